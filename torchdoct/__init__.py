@@ -1,0 +1,33 @@
+"""torchdoct: batched PyTorch simulation of dynamic OCT (DOCT) signals and their metrics.
+
+Units and resolution conventions: :mod:`torchdoct.conventions`.
+"""
+
+from .config import (
+    Analysis,
+    Diffusion,
+    Flow,
+    Noise,
+    OCTSystem,
+    Population,
+    Protocol,
+    RandomBallistic,
+    Scene,
+    SceneError,
+    SimulationSettings,
+    load_scene,
+    scene_from_dict,
+)
+from .metrics import complex_variance, lag_correlations, liv, ocds, to_db
+from .plan import Plan, make_plan
+from .scenes import shipped_scenes
+from .simulate import SimulationResult, simulate
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Analysis", "Diffusion", "Flow", "Noise", "OCTSystem", "Population", "Protocol", "RandomBallistic",
+    "Scene", "SceneError", "SimulationSettings", "load_scene", "scene_from_dict",
+    "complex_variance", "lag_correlations", "liv", "ocds", "to_db",
+    "Plan", "make_plan", "shipped_scenes", "SimulationResult", "simulate", "__version__",
+]

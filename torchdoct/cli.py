@@ -1,0 +1,179 @@
+"""Command line: ``torchdoct {scenes,plan,simulate,bench}``. Parse, call one library function, print."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any, Sequence
+
+__all__ = ["build_parser", "main"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="torchdoct", description="Dynamic OCT simulation and metrics.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    sub.add_parser("scenes", help="list the shipped example scenes")
+
+    pl = sub.add_parser("plan", help="print what a simulation of a scene will run")
+    pl.add_argument("scene", help="scene TOML file or shipped scene name")
+    pl.add_argument("--trials", type=int, default=None, help="trials to cost (default: the scene's)")
+    pl.add_argument("--tolerance", type=float, default=None, help="PSF truncation tolerance (amplitude)")
+    pl.add_argument("--json", action="store_true", help="print the plan as JSON")
+
+    sm = sub.add_parser("simulate", help="simulate a scene and print its LIV/OCDS summary")
+    sm.add_argument("scene", help="scene TOML file or shipped scene name")
+    sm.add_argument("--trials", type=int, default=None, help="number of trials (default: the scene's)")
+    sm.add_argument("--seed", type=int, default=None, help="random seed (default: the scene's)")
+    sm.add_argument("--dtype", choices=("float32", "float64"), default=None)
+    sm.add_argument("--tolerance", type=float, default=None, help="PSF truncation tolerance (amplitude)")
+    sm.add_argument("--device", default=None, help="torch device (default cpu)")
+    sm.add_argument("--out", default=None, help="write signals, metrics and the resolved scene to this .npz")
+    sm.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    sm.add_argument("--json", action="store_true", help="print the summary as JSON")
+    sm.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    bn = sub.add_parser("bench", help="benchmarks (throughput, written as JSON)")
+    bsub = bn.add_subparsers(dest="bench", required=True)
+    bs = bsub.add_parser("simulate", help="paper's 4 systems x 3 motions at their largest parameters")
+    bs.add_argument("--trials", type=int, default=1024, help="trials per cell")
+    bs.add_argument("--repeats", type=int, default=1, help="repeats per cell (best is kept)")
+    bs.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    bs.add_argument("--out", default="bench-simulate.json", help="JSON output file")
+    bs.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    return p
+
+
+def _check_out(path: str | None, force: bool, suffix: str) -> Path | None:
+    if path is None:
+        return None
+    out = Path(path)
+    if out.suffix != suffix:
+        raise SystemExit(f"error: --out must end in {suffix}; got {path!r}")
+    if out.exists() and not force:
+        raise SystemExit(f"error: {out} exists; pass --force to overwrite it")
+    if not out.parent.exists():
+        raise SystemExit(f"error: directory {out.parent} does not exist")
+    return out
+
+
+def _atomic_write(path: Path, write) -> None:
+    """Write through a temporary file in the same directory, then rename over ``path``."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _format_summary(summary: dict[str, Any], result) -> str:
+    sc = result.scene
+    lines = [f"scene {sc.name!r}: {result.trials} trials, seed {result.seed}, "
+             f"{sc.protocol.n_frames} frames, {result.signals.dtype}, {result.elapsed_s:.2f} s"]
+    est = sc.analysis.ocds_estimator
+    lines.append(f"LIV: ddof-0 variance of 10·log10 I (dB²); OCDS: −slope of the {est} correlation of the "
+                 f"{sc.analysis.ocds_scale} intensity over {list(sc.analysis.ocds_delay_range_s)} s (1/s)")
+    lines.append(f"{'system':>16}  {'LIV mean ± SD (SE) [dB²]':>28}  {'OCDS mean ± SD (SE) [1/s]':>30}  empty")
+    for name, row in summary.items():
+        cells = []
+        for key, fmt in (("liv", "{:7.3f} ± {:6.3f} ({:.3f})"), ("ocds", "{:7.4f} ± {:6.4f} ({:.4f})")):
+            if key in row:
+                r = row[key]
+                cells.append(fmt.format(r["mean"], r["sd"], r["se"]))
+            else:
+                cells.append("-")
+        lines.append(f"{name:>16}  {cells[0]:>28}  {cells[1]:>30}  {row['zero_intensity_trials']}")
+    if any(r["zero_intensity_trials"] for r in summary.values()):
+        lines.append("empty: trials with I = 0 at some frame (no scatterer within the PSF truncation); "
+                     "their dB metrics are NaN and excluded from the means")
+    return "\n".join(lines)
+
+
+def _save_npz(path: Path, result, metrics: dict[str, Any]) -> None:
+    import numpy as np
+
+    arrays: dict[str, Any] = {
+        "signals": result.signals.cpu().numpy(),
+        "frame_times_s": np.asarray(result.frame_times_s, dtype=np.float64),
+        "system_names": np.asarray(result.system_names, dtype=np.str_),
+        "seed": np.int64(result.seed),
+        "trials": np.int64(result.trials),
+        "scene_json": np.asarray(json.dumps(result.scene.to_dict())),
+        "plan_json": np.asarray(result.plan.to_json()),
+        "zero_intensity": metrics["zero_intensity"].cpu().numpy(),
+    }
+    for k, v in metrics.items():
+        if k != "zero_intensity":
+            arrays[k] = v.cpu().numpy()
+
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+
+    _atomic_write(path, write)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from . import config
+    from .scenes import shipped_scenes
+
+    try:
+        if args.command == "scenes":
+            for name, path in shipped_scenes().items():
+                sc = config.load_scene(path)
+                print(f"{name:>22}: {sc.description}")
+            return 0
+        if args.command == "plan":
+            from .plan import make_plan
+
+            scene = config.load_scene(args.scene)
+            plan = make_plan(scene, truncation_tolerance=args.tolerance)
+            print(plan.to_json() if args.json else plan.describe(args.trials or scene.simulation.trials))
+            return 0
+        if args.command == "simulate":
+            from .simulate import simulate
+
+            out = _check_out(args.out, args.force, ".npz")
+            scene = config.load_scene(args.scene)
+            result = simulate(scene, trials=args.trials, seed=args.seed, dtype=args.dtype,
+                              device=args.device, truncation_tolerance=args.tolerance,
+                              progress=not args.no_progress)
+            metrics = result.metrics()
+            from .metrics import summarize
+
+            summary = summarize(metrics, result.system_names)
+            if args.json:
+                print(json.dumps(summary, indent=2))
+            else:
+                print(_format_summary(summary, result))
+            if out is not None:
+                _save_npz(out, result, metrics)
+                print(f"wrote {out}")
+            return 0
+        if args.command == "bench":
+            from . import bench
+
+            out = _check_out(args.out, args.force, ".json")
+            res = bench.bench_simulate(trials=args.trials, dtype=args.dtype, repeats=args.repeats,
+                                       progress=True)
+            print(bench.format_simulate_table(res))
+            _atomic_write(out, lambda tmp: bench.write_json(res, tmp))
+            print(f"wrote {out}")
+            return 0
+    except (config.SceneError, TypeError, ValueError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,595 @@
+"""Scenes: validated, frozen descriptions of systems, protocol, scatterers, noise and analysis.
+
+A scene is what a TOML scene file holds (schema in the README); :func:`load_scene` reads one,
+:func:`scene_from_dict` builds one from plain Python data, and :meth:`Scene.to_dict` writes it back.
+Every value is checked on construction; a bad value raises :class:`SceneError` (a ``ValueError``)
+or ``TypeError`` naming the key path (``population[1].motion[0].speed_um_per_s``), the value and
+the fix.
+
+Units follow :mod:`torchdoct.conventions`: lengths µm, times s, wavelength in vacuum µm, lateral
+resolution = 1/e² full width of the intensity PSF, axial resolution = intensity FWHM.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Union
+
+__all__ = [
+    "SceneError",
+    "OCTSystem",
+    "Protocol",
+    "Diffusion",
+    "RandomBallistic",
+    "Flow",
+    "Motion",
+    "Population",
+    "Noise",
+    "Analysis",
+    "SimulationSettings",
+    "Scene",
+    "METRICS",
+    "load_scene",
+    "scene_from_dict",
+]
+
+METRICS = ("liv", "ocds", "complex_variance", "autocorrelation")
+#: Upper limits that keep a scene physically meaningful and the plan finite.
+MAX_FRAMES = 100_000
+
+
+class SceneError(ValueError):
+    """A scene value is invalid; the message names the key, the value and the fix."""
+
+
+# ----------------------------------------------------------------------------------------------
+# value checks
+
+
+def _fail(path: str, msg: str, fix: str | None = None) -> None:
+    text = f"{path}: {msg}"
+    if fix:
+        text += f" (fix: {fix})"
+    raise SceneError(text)
+
+
+def _number(path: str, value: Any, *, positive: bool = False, nonneg: bool = False,
+            lo: float | None = None, hi: float | None = None, unit: str = "") -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"{path} must be a number{(' in ' + unit) if unit else ''}; "
+                        f"got {type(value).__name__} {value!r}")
+    v = float(value)
+    u = f" {unit}" if unit else ""
+    if not math.isfinite(v):
+        _fail(path, f"must be a finite number{u}; got {value!r}", "give a finite value")
+    if positive and v <= 0:
+        _fail(path, f"must be > 0{u}; got {value!r}", "give a positive value")
+    if nonneg and v < 0:
+        _fail(path, f"must be >= 0{u}; got {value!r}", "give a non-negative value")
+    if lo is not None and v < lo:
+        _fail(path, f"must be >= {lo}{u}; got {value!r}")
+    if hi is not None and v > hi:
+        _fail(path, f"must be <= {hi}{u}; got {value!r}")
+    return v
+
+
+def _integer(path: str, value: Any, *, lo: int | None = None, hi: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        else:
+            raise TypeError(f"{path} must be an integer; got {type(value).__name__} {value!r}")
+    if lo is not None and value < lo:
+        _fail(path, f"must be >= {lo}; got {value}")
+    if hi is not None and value > hi:
+        _fail(path, f"must be <= {hi}; got {value}")
+    return int(value)
+
+
+def _string(path: str, value: Any, choices: tuple[str, ...] | None = None) -> str:
+    if not isinstance(value, str):
+        raise TypeError(f"{path} must be a string; got {type(value).__name__} {value!r}")
+    if choices is not None and value not in choices:
+        _fail(path, f"must be one of {', '.join(map(repr, choices))}; got {value!r}")
+    return value
+
+
+# ----------------------------------------------------------------------------------------------
+# dataclasses
+
+
+@dataclass(frozen=True, kw_only=True)
+class OCTSystem:
+    """One OCT system: probe wavelength and resolutions (see :mod:`torchdoct.conventions`).
+
+    ``wavelength_um``: vacuum centre wavelength (µm). ``lateral_resolution_um``: 1/e² full width of
+    the intensity PSF (µm). ``axial_resolution_um``: FWHM of the intensity PSF in the medium (µm).
+    ``refractive_index``: phase index ``n`` of the medium (round-trip phase ``2·k·n·z``; 1.0 matches
+    the reference paper).
+    """
+
+    name: str
+    wavelength_um: float
+    lateral_resolution_um: float
+    axial_resolution_um: float
+    refractive_index: float = 1.0
+
+    def __post_init__(self) -> None:
+        p = f"system[{self.name!r}]"
+        _string(f"{p}.name", self.name)
+        if not self.name:
+            _fail(f"{p}.name", "must not be empty", "give each system a short unique name")
+        _number(f"{p}.wavelength_um", self.wavelength_um, positive=True, unit="µm")
+        if not (0.1 <= self.wavelength_um <= 20.0):
+            _fail(f"{p}.wavelength_um", f"{self.wavelength_um} µm is outside 0.1-20 µm",
+                  "wavelengths are in micrometres: 840 nm is 0.84")
+        _number(f"{p}.lateral_resolution_um", self.lateral_resolution_um, positive=True, unit="µm")
+        _number(f"{p}.axial_resolution_um", self.axial_resolution_um, positive=True, unit="µm")
+        for key in ("lateral_resolution_um", "axial_resolution_um"):
+            if getattr(self, key) > 1e4:
+                _fail(f"{p}.{key}", f"{getattr(self, key)} µm is larger than 1 cm",
+                      "resolutions are in micrometres")
+        _number(f"{p}.refractive_index", self.refractive_index, lo=1.0, hi=5.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Protocol:
+    """Frame timing: ``n_frames`` frames ``frame_interval_s`` apart, or explicit ``frame_times_s`` (s)."""
+
+    n_frames: int
+    frame_interval_s: float | None = None
+    frame_times_s: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        _integer("protocol.n_frames", self.n_frames, lo=2, hi=MAX_FRAMES)
+        if (self.frame_interval_s is None) == (self.frame_times_s is None):
+            _fail("protocol", "give exactly one of frame_interval_s and frame_times_s",
+                  "e.g. frame_interval_s = 0.2048")
+        if self.frame_interval_s is not None:
+            _number("protocol.frame_interval_s", self.frame_interval_s, positive=True, unit="s")
+        else:
+            times = self.frame_times_s
+            if not isinstance(times, (list, tuple)):
+                raise TypeError(f"protocol.frame_times_s must be a list of times in s; got {times!r}")
+            times = tuple(_number(f"protocol.frame_times_s[{i}]", t, unit="s")
+                          for i, t in enumerate(times))
+            object.__setattr__(self, "frame_times_s", times)
+            if len(times) != self.n_frames:
+                _fail("protocol.frame_times_s", f"has {len(times)} entries but n_frames = {self.n_frames}",
+                      "make n_frames equal to the number of frame times")
+            if any(b <= a for a, b in zip(times, times[1:])):
+                _fail("protocol.frame_times_s", "must be strictly increasing")
+
+    @property
+    def times_s(self) -> tuple[float, ...]:
+        """Frame times relative to the first frame (s)."""
+        if self.frame_times_s is not None:
+            t0 = self.frame_times_s[0]
+            return tuple(t - t0 for t in self.frame_times_s)
+        return tuple(i * self.frame_interval_s for i in range(self.n_frames))
+
+    @property
+    def duration_s(self) -> float:
+        """First-to-last frame separation (s)."""
+        return self.times_s[-1]
+
+    @property
+    def max_interval_s(self) -> float:
+        t = self.times_s
+        return max(b - a for a, b in zip(t, t[1:]))
+
+    @property
+    def is_uniform(self) -> bool:
+        t = self.times_s
+        d = [b - a for a, b in zip(t, t[1:])]
+        return max(d) - min(d) <= 1e-9 * max(d)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Diffusion:
+    """Brownian motion: each coordinate moves by ``N(0, 2·D·Δt)`` over Δt (paper Eq. 9)."""
+
+    diffusion_um2_per_s: float
+    kind: Literal["diffusion"] = "diffusion"
+
+    def validate(self, path: str) -> None:
+        _number(f"{path}.diffusion_um2_per_s", self.diffusion_um2_per_s, nonneg=True, unit="µm²/s")
+
+    @property
+    def is_zero(self) -> bool:
+        return self.diffusion_um2_per_s == 0.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class RandomBallistic:
+    """Random ballistic motion: every scatterer moves at ``speed_um_per_s`` along its own direction.
+
+    ``directions = "isotropic"``: uniform on the sphere (cos of the polar angle ~ U[-1, 1]).
+    ``directions = "uniform-angles"``: polar angle ~ U[0, π] as in the paper's text and the COG
+    reference code (not isotropic: ⟨n_z²⟩ = 1/2, physics.md §10.2). Azimuth ~ U[0, 2π) in both.
+    """
+
+    speed_um_per_s: float
+    directions: Literal["isotropic", "uniform-angles"] = "isotropic"
+    kind: Literal["ballistic"] = "ballistic"
+
+    def validate(self, path: str) -> None:
+        _number(f"{path}.speed_um_per_s", self.speed_um_per_s, nonneg=True, unit="µm/s")
+        _string(f"{path}.directions", self.directions, ("isotropic", "uniform-angles"))
+
+    @property
+    def is_zero(self) -> bool:
+        return self.speed_um_per_s == 0.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class Flow:
+    """Mono-directional flow: all scatterers move with one velocity.
+
+    ``polar_angle_deg`` is measured from the depth axis (+z, deeper), ``azimuth_deg`` from +x.
+    """
+
+    speed_um_per_s: float
+    polar_angle_deg: float = 45.0
+    azimuth_deg: float = 0.0
+    kind: Literal["flow"] = "flow"
+
+    def validate(self, path: str) -> None:
+        _number(f"{path}.speed_um_per_s", self.speed_um_per_s, nonneg=True, unit="µm/s")
+        _number(f"{path}.polar_angle_deg", self.polar_angle_deg, lo=0.0, hi=180.0, unit="deg")
+        _number(f"{path}.azimuth_deg", self.azimuth_deg, lo=-360.0, hi=360.0, unit="deg")
+
+    @property
+    def is_zero(self) -> bool:
+        return self.speed_um_per_s == 0.0
+
+    @property
+    def velocity_um_per_s(self) -> tuple[float, float, float]:
+        th = math.radians(self.polar_angle_deg)
+        ph = math.radians(self.azimuth_deg)
+        v = self.speed_um_per_s
+        return (v * math.sin(th) * math.cos(ph), v * math.sin(th) * math.sin(ph), v * math.cos(th))
+
+
+Motion = Union[Diffusion, RandomBallistic, Flow]
+_MOTION_TYPES = {"diffusion": Diffusion, "ballistic": RandomBallistic, "flow": Flow}
+
+
+@dataclass(frozen=True, kw_only=True)
+class Population:
+    """Scatterers of one kind: Poisson density (µm⁻³), field reflectivity ``b`` and motions.
+
+    The displacements of all ``motion`` entries add up; no entry means static scatterers.
+    """
+
+    density_per_um3: float
+    reflectivity: float = 1.0
+    motion: tuple[Motion, ...] = ()
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        p = f"population[{self.name!r}]" if self.name else "population"
+        _number(f"{p}.density_per_um3", self.density_per_um3, positive=True, unit="µm⁻³")
+        if self.density_per_um3 > 1e3:
+            _fail(f"{p}.density_per_um3", f"{self.density_per_um3} per µm³ is beyond 1000",
+                  "density is per cubic micrometre: 0.055 means 5.5e7 per mm³")
+        _number(f"{p}.reflectivity", self.reflectivity, positive=True)
+        object.__setattr__(self, "motion", tuple(self.motion))
+        for i, m in enumerate(self.motion):
+            if not isinstance(m, (Diffusion, RandomBallistic, Flow)):
+                raise TypeError(f"{p}.motion[{i}] must be Diffusion, RandomBallistic or Flow; got {m!r}")
+            m.validate(f"{p}.motion[{i}]")
+
+    @property
+    def active_motion(self) -> tuple[Motion, ...]:
+        """Motion entries with a non-zero parameter (zero-speed entries do nothing)."""
+        return tuple(m for m in self.motion if not m.is_zero)
+
+    @property
+    def diffusion_um2_per_s(self) -> float:
+        return sum(m.diffusion_um2_per_s for m in self.active_motion if isinstance(m, Diffusion))
+
+    @property
+    def flow_velocity_um_per_s(self) -> tuple[float, float, float]:
+        v = [0.0, 0.0, 0.0]
+        for m in self.active_motion:
+            if isinstance(m, Flow):
+                for a, c in enumerate(m.velocity_um_per_s):
+                    v[a] += c
+        return tuple(v)
+
+    @property
+    def ballistic(self) -> tuple[RandomBallistic, ...]:
+        return tuple(m for m in self.active_motion if isinstance(m, RandomBallistic))
+
+    @property
+    def max_speed_um_per_s(self) -> float:
+        """Upper bound on the drift speed |v_flow + Σ v_b n_b| (µm/s)."""
+        vf = math.sqrt(sum(c * c for c in self.flow_velocity_um_per_s))
+        return vf + sum(m.speed_um_per_s for m in self.ballistic)
+
+    @property
+    def motion_class(self) -> str:
+        """``static``, ``drift`` (ballistic and/or flow only) or ``diffusive``."""
+        if not self.active_motion:
+            return "static"
+        if self.diffusion_um2_per_s > 0:
+            return "diffusive"
+        return "drift"
+
+
+@dataclass(frozen=True, kw_only=True)
+class Noise:
+    """Additive circular complex Gaussian noise, independent per frame, at ``snr_db`` (dB).
+
+    The noise power per system is ``⟨I⟩ / 10^(snr_db/10)`` with ``⟨I⟩`` the mean noise-free intensity
+    of the scene for that system (physics.md §5.2, summed over populations).
+    """
+
+    snr_db: float
+
+    def __post_init__(self) -> None:
+        _number("noise.snr_db", self.snr_db, lo=-60.0, hi=200.0, unit="dB")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Analysis:
+    """Which metrics to compute and how (physics.md §1, §2.4).
+
+    ``ocds_delay_range_s``: delay range [s] of the OCDS slope fit (default [0.2048, 1.2288]).
+    ``ocds_scale``: ``"db"`` (default) or ``"linear"`` intensity. ``ocds_estimator``: ``"pearson"``
+    (per-lag Pearson correlation, default) or ``"biased"`` (lagged products over N / zero-lag).
+    """
+
+    metrics: tuple[str, ...] = ("liv", "ocds")
+    ocds_delay_range_s: tuple[float, float] = (0.2048, 1.2288)
+    ocds_scale: Literal["db", "linear"] = "db"
+    ocds_estimator: Literal["pearson", "biased"] = "pearson"
+
+    def __post_init__(self) -> None:
+        if isinstance(self.metrics, str) or not isinstance(self.metrics, (list, tuple)):
+            raise TypeError(f"analysis.metrics must be a list of metric names; got {self.metrics!r}")
+        object.__setattr__(self, "metrics", tuple(self.metrics))
+        for i, m in enumerate(self.metrics):
+            _string(f"analysis.metrics[{i}]", m, METRICS)
+        if len(set(self.metrics)) != len(self.metrics):
+            _fail("analysis.metrics", f"lists a metric twice: {list(self.metrics)}")
+        r = self.ocds_delay_range_s
+        if not isinstance(r, (list, tuple)) or len(r) != 2:
+            raise TypeError(f"analysis.ocds_delay_range_s must be [min_s, max_s]; got {r!r}")
+        r = tuple(_number(f"analysis.ocds_delay_range_s[{i}]", x, positive=True, unit="s")
+                  for i, x in enumerate(r))
+        if r[1] <= r[0]:
+            _fail("analysis.ocds_delay_range_s", f"max must exceed min; got {list(r)}")
+        object.__setattr__(self, "ocds_delay_range_s", r)
+        _string("analysis.ocds_scale", self.ocds_scale, ("db", "linear"))
+        _string("analysis.ocds_estimator", self.ocds_estimator, ("pearson", "biased"))
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimulationSettings:
+    """Defaults of a run: ``trials``, ``seed``, PSF ``truncation_tolerance`` and ``dtype``.
+
+    ``truncation_tolerance`` is the amplitude (relative to the PSF peak) below which scatterers are
+    left out; it bounds the relative mean-square field error (see
+    :func:`torchdoct.conventions.truncation_error_bound`).
+    """
+
+    trials: int = 500
+    seed: int = 0
+    truncation_tolerance: float = 1e-3
+    dtype: Literal["float32", "float64"] = "float32"
+
+    def __post_init__(self) -> None:
+        _integer("simulation.trials", self.trials, lo=1, hi=10**9)
+        _integer("simulation.seed", self.seed, lo=0, hi=2**63 - 1)
+        _number("simulation.truncation_tolerance", self.truncation_tolerance, lo=1e-12, hi=0.5)
+        _string("simulation.dtype", self.dtype, ("float32", "float64"))
+
+
+@dataclass(frozen=True, kw_only=True)
+class Scene:
+    """A sample (scatterer populations) seen by one or more OCT systems over one protocol."""
+
+    systems: tuple[OCTSystem, ...]
+    protocol: Protocol
+    populations: tuple[Population, ...]
+    noise: Noise | None = None
+    analysis: Analysis = field(default_factory=Analysis)
+    simulation: SimulationSettings = field(default_factory=SimulationSettings)
+    name: str = ""
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "systems", tuple(self.systems))
+        object.__setattr__(self, "populations", tuple(self.populations))
+        if not self.systems:
+            _fail("system", "a scene needs at least one [[system]]", "add a [[system]] table")
+        if not self.populations:
+            _fail("population", "a scene needs at least one [[population]]", "add a [[population]] table")
+        names = [s.name for s in self.systems]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            _fail("system.name", f"duplicate system names {dup}", "give each system a unique name")
+        lo, hi = self.analysis.ocds_delay_range_s
+        if "ocds" in self.analysis.metrics:
+            delays = self.delays_s
+            inside = [d for d in delays if lo * (1 - 1e-9) <= d <= hi * (1 + 1e-9)]
+            if len(inside) < 2:
+                _fail("analysis.ocds_delay_range_s",
+                      f"[{lo}, {hi}] s holds {len(inside)} frame delay(s) of the protocol "
+                      f"(delays {delays[0]:.6g} ... {delays[-1]:.6g} s); OCDS needs at least 2",
+                      "widen the range or lengthen the protocol")
+
+    @property
+    def delays_s(self) -> tuple[float, ...]:
+        """Distinct frame-pair delays of the protocol (s), rounded to 1e-9 s."""
+        t = self.protocol.times_s
+        if self.protocol.is_uniform:
+            dt = self.protocol.duration_s / (len(t) - 1)
+            return tuple(m * dt for m in range(1, len(t)))
+        ds = sorted({round(b - a, 9) for i, a in enumerate(t) for b in t[i + 1:]})
+        return tuple(ds)
+
+    def replace(self, **changes: Any) -> "Scene":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data in the scene-file schema (round-trips through :func:`scene_from_dict`)."""
+        out: dict[str, Any] = {}
+        if self.name:
+            out["name"] = self.name
+        if self.description:
+            out["description"] = self.description
+        out["system"] = [dataclasses.asdict(s) for s in self.systems]
+        pr: dict[str, Any] = {"n_frames": self.protocol.n_frames}
+        if self.protocol.frame_interval_s is not None:
+            pr["frame_interval_s"] = self.protocol.frame_interval_s
+        else:
+            pr["frame_times_s"] = list(self.protocol.frame_times_s)
+        out["protocol"] = pr
+        pops = []
+        for p in self.populations:
+            d: dict[str, Any] = {"density_per_um3": p.density_per_um3, "reflectivity": p.reflectivity}
+            if p.name:
+                d["name"] = p.name
+            d["motion"] = [dataclasses.asdict(m) for m in p.motion]
+            pops.append(d)
+        out["population"] = pops
+        if self.noise is not None:
+            out["noise"] = {"snr_db": self.noise.snr_db}
+        a = dataclasses.asdict(self.analysis)
+        a["metrics"] = list(a["metrics"])
+        a["ocds_delay_range_s"] = list(a["ocds_delay_range_s"])
+        out["analysis"] = a
+        out["simulation"] = dataclasses.asdict(self.simulation)
+        return out
+
+
+# ----------------------------------------------------------------------------------------------
+# parsing
+
+
+def _check_keys(path: str, table: Any, allowed: set[str], required: set[str] = frozenset()) -> dict:
+    if not isinstance(table, dict):
+        raise TypeError(f"{path} must be a table; got {type(table).__name__} {table!r}")
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        _fail(path, f"unknown key(s) {unknown}", f"allowed keys are {sorted(allowed)}")
+    missing = sorted(required - set(table))
+    if missing:
+        _fail(path, f"missing required key(s) {missing}")
+    return table
+
+
+def _list_of_tables(path: str, value: Any) -> list:
+    if isinstance(value, dict):
+        value = [value]
+    if not isinstance(value, list):
+        raise TypeError(f"{path} must be an array of tables ([[{path}]]); got {value!r}")
+    return value
+
+
+def _build(path: str, cls: type, kwargs: dict[str, Any]) -> Any:
+    """Construct a dataclass, re-labelling its errors with the file's key path."""
+    try:
+        return cls(**kwargs)
+    except SceneError as err:
+        msg = str(err)
+        # replace the generic prefix (system['x'] / population) with the file path
+        head, _, rest = msg.partition(".")
+        if head.startswith(("system[", "population")) and rest:
+            msg = f"{path}.{rest}"
+        raise SceneError(msg) from None
+    except TypeError as err:
+        msg = str(err)
+        head, _, rest = msg.partition(".")
+        if head.startswith(("system[", "population")) and rest:
+            msg = f"{path}.{rest}"
+        raise TypeError(msg) from None
+
+
+_SYSTEM_KEYS = {"name", "wavelength_um", "lateral_resolution_um", "axial_resolution_um", "refractive_index"}
+_MOTION_KEYS = {
+    "diffusion": {"kind", "diffusion_um2_per_s"},
+    "ballistic": {"kind", "speed_um_per_s", "directions"},
+    "flow": {"kind", "speed_um_per_s", "polar_angle_deg", "azimuth_deg"},
+}
+_MOTION_REQUIRED = {
+    "diffusion": {"diffusion_um2_per_s"},
+    "ballistic": {"speed_um_per_s"},
+    "flow": {"speed_um_per_s", "polar_angle_deg"},
+}
+
+
+def scene_from_dict(data: dict[str, Any]) -> Scene:
+    """Build a validated :class:`Scene` from the scene-file schema (see the README)."""
+    _check_keys("scene", data, {"name", "description", "system", "protocol", "population", "noise",
+                                "analysis", "simulation"}, {"system", "protocol", "population"})
+    systems = []
+    for i, s in enumerate(_list_of_tables("system", data["system"])):
+        p = f"system[{i}]"
+        _check_keys(p, s, _SYSTEM_KEYS, _SYSTEM_KEYS - {"refractive_index"})
+        systems.append(_build(p, OCTSystem, dict(s)))
+    pr = _check_keys("protocol", data["protocol"], {"n_frames", "frame_interval_s", "frame_times_s"},
+                     {"n_frames"})
+    protocol = Protocol(**pr)
+    populations = []
+    for i, pop in enumerate(_list_of_tables("population", data["population"])):
+        p = f"population[{i}]"
+        _check_keys(p, pop, {"name", "density_per_um3", "reflectivity", "motion"}, {"density_per_um3"})
+        motions = []
+        for j, m in enumerate(_list_of_tables(f"{p}.motion", pop.get("motion", []))):
+            mp = f"{p}.motion[{j}]"
+            if not isinstance(m, dict):
+                raise TypeError(f"{mp} must be a table; got {m!r}")
+            if "kind" not in m:
+                _fail(mp, "missing key 'kind'", 'set kind = "diffusion", "ballistic" or "flow"')
+            kind = _string(f"{mp}.kind", m["kind"], tuple(_MOTION_TYPES))
+            _check_keys(mp, m, _MOTION_KEYS[kind], _MOTION_REQUIRED[kind])
+            kw = {k: v for k, v in m.items() if k != "kind"}
+            try:
+                motion = _MOTION_TYPES[kind](**kw)
+                motion.validate(mp)
+            except TypeError as err:
+                raise TypeError(f"{mp}: {err}") from None
+            motions.append(motion)
+        kw = {k: v for k, v in pop.items() if k != "motion"}
+        populations.append(_build(p, Population, {**kw, "motion": tuple(motions)}))
+    noise = None
+    if "noise" in data:
+        n = _check_keys("noise", data["noise"], {"snr_db"}, {"snr_db"})
+        noise = Noise(**n)
+    analysis = Analysis(**_check_keys("analysis", data.get("analysis", {}),
+                                      {"metrics", "ocds_delay_range_s", "ocds_scale", "ocds_estimator"}))
+    simulation = SimulationSettings(**_check_keys(
+        "simulation", data.get("simulation", {}), {"trials", "seed", "truncation_tolerance", "dtype"}))
+    name = data.get("name", "")
+    desc = data.get("description", "")
+    _string("name", name)
+    _string("description", desc)
+    return Scene(systems=tuple(systems), protocol=protocol, populations=tuple(populations), noise=noise,
+                 analysis=analysis, simulation=simulation, name=name, description=desc)
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read and validate a TOML scene file, or a shipped scene by name (see :func:`torchdoct.scenes`)."""
+    from .scenes import resolve_scene_path
+
+    p = resolve_scene_path(path)
+    try:
+        with open(p, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as err:
+        raise SceneError(f"{p}: not valid TOML: {err}") from None
+    try:
+        scene = scene_from_dict(data)
+    except (SceneError, TypeError) as err:
+        raise type(err)(f"{p.name}: {err}") from None
+    if not scene.name:
+        scene = scene.replace(name=p.stem)
+    return scene

@@ -1,0 +1,213 @@
+"""DOCT metrics on any ``[..., frames]`` tensor: a point sequence or a whole map.
+
+Definitions (physics.md §1, §2.4; intensity ``I = |E|²``, dB = ``10·log10 I``):
+
+* **LIV** (dB²): population variance (ddof 0) over frames of ``10·log10 I``.
+* **lag correlation** ``ρ(τ)``: for each distinct frame delay ``τ``, the Pearson correlation of
+  the signal over all frame pairs ``(i, j)`` with ``t_j − t_i = τ`` (``{s_i}`` against ``{s_j}``, each
+  with its own mean), on the dB (default) or linear intensity. ``estimator="biased"`` instead
+  divides the lagged products of the mean-removed sequence by ``N`` times its variance (the
+  ``scipy.signal.correlate`` form, which shrinks ``ρ_m`` by about ``1 − m/N``).
+* **OCDS** (s⁻¹): minus the least-squares slope of ``ρ(τ)`` against ``τ`` over the delays in
+  ``delay_range_s`` (default [0.2048, 1.2288] s, i.e. lags 1-6 at 204.8 ms); positive for a decaying
+  correlation.
+* **complex variance**: ``mean_t |E − mean_t E|²`` (ddof 0, linear intensity units).
+
+Degenerate inputs are defined, never NaN: a constant sequence has LIV exactly 0; a lag whose two
+sub-sequences are both constant has ``ρ = 1`` (nothing decorrelates), and ``ρ = 0`` if only one is
+constant (the biased estimator also gives 1 for a constant sequence). Intensities of exactly 0 (an empty resolution volume) have no dB value: :func:`to_db`
+maps them to −inf and :func:`compute_metrics` reports those trials (``zero_intensity``) and sets
+their dB metrics to NaN explicitly, so summaries exclude and count them.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import torch
+
+__all__ = [
+    "to_db",
+    "liv",
+    "lag_correlations",
+    "ocds",
+    "ocds_from_correlations",
+    "complex_variance",
+    "compute_metrics",
+    "summarize",
+]
+
+
+def to_db(intensity: torch.Tensor) -> torch.Tensor:
+    """``10·log10 I`` (dB of linear intensity)."""
+    return 10.0 * torch.log10(intensity)
+
+
+def _variance_last(x: torch.Tensor) -> torch.Tensor:
+    """ddof-0 variance along the last axis, shifted by the first sample (exact 0 for constants)."""
+    d = x - x[..., :1]
+    m = d.mean(-1, keepdim=True)
+    return ((d - m) ** 2).mean(-1)
+
+
+def liv(intensity: torch.Tensor) -> torch.Tensor:
+    """LIV (dB²): ddof-0 variance over the last axis (frames) of ``10·log10 I`` (physics.md §1)."""
+    return _variance_last(to_db(intensity))
+
+
+def _delays(frame_times_s: Sequence[float]) -> tuple[list[float], list[tuple[list[int], list[int]]]]:
+    """Distinct delays (s, rounded to 1e-9 s) and, for each, the frame index pairs (i, j>i)."""
+    t = [float(x) - float(frame_times_s[0]) for x in frame_times_s]
+    n = len(t)
+    dts = [b - a for a, b in zip(t, t[1:])]
+    if max(dts) - min(dts) <= 1e-9 * max(dts):
+        dt = t[-1] / (n - 1)
+        return ([m * dt for m in range(1, n)],
+                [(list(range(0, n - m)), list(range(m, n))) for m in range(1, n)])
+    groups: dict[float, tuple[list[int], list[int]]] = {}
+    for i in range(n):
+        for j in range(i + 1, n):
+            key = round(t[j] - t[i], 9)
+            g = groups.setdefault(key, ([], []))
+            g[0].append(i)
+            g[1].append(j)
+    keys = sorted(groups)
+    return keys, [groups[k] for k in keys]
+
+
+def _pearson(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    ref = x[..., :1]
+    xd = x - ref
+    yd = y - ref
+    xm = xd - xd.mean(-1, keepdim=True)
+    ym = yd - yd.mean(-1, keepdim=True)
+    vx = (xm * xm).mean(-1)
+    vy = (ym * ym).mean(-1)
+    cov = (xm * ym).mean(-1)
+    den = torch.sqrt(vx * vy)
+    both_const = (vx == 0) & (vy == 0)
+    rho = torch.where(den > 0, cov / torch.where(den > 0, den, torch.ones_like(den)), torch.zeros_like(den))
+    return torch.where(both_const, torch.ones_like(rho), rho)
+
+
+def lag_correlations(
+    signal: torch.Tensor, frame_times_s: Sequence[float], *, estimator: str = "pearson"
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Correlation coefficient against delay for real sequences ``[..., frames]``.
+
+    Returns ``(delays_s [L], rho [..., L])``; see the module docstring for the estimators.
+    """
+    if signal.shape[-1] != len(frame_times_s):
+        raise ValueError(f"signal has {signal.shape[-1]} frames but {len(frame_times_s)} frame times were given")
+    if signal.is_complex():
+        raise TypeError("lag_correlations takes a real signal (dB or linear intensity)")
+    delays, pairs = _delays(frame_times_s)
+    cols = []
+    if estimator == "pearson":
+        for i, j in pairs:
+            ii = torch.tensor(i, device=signal.device)
+            jj = torch.tensor(j, device=signal.device)
+            cols.append(_pearson(signal.index_select(-1, ii), signal.index_select(-1, jj)))
+    elif estimator == "biased":
+        d = signal - signal[..., :1]
+        xm = d - d.mean(-1, keepdim=True)
+        var = (xm * xm).sum(-1)
+        for i, j in pairs:
+            ii = torch.tensor(i, device=signal.device)
+            jj = torch.tensor(j, device=signal.device)
+            s = (xm.index_select(-1, ii) * xm.index_select(-1, jj)).sum(-1)
+            cols.append(torch.where(var > 0, s / torch.where(var > 0, var, torch.ones_like(var)),
+                                    torch.ones_like(var)))
+    else:
+        raise ValueError(f"estimator must be 'pearson' or 'biased'; got {estimator!r}")
+    return torch.tensor(delays, dtype=signal.dtype, device=signal.device), torch.stack(cols, dim=-1)
+
+
+def ocds_from_correlations(rho: torch.Tensor, delays_s: torch.Tensor,
+                           delay_range_s: tuple[float, float] = (0.2048, 1.2288)) -> torch.Tensor:
+    """OCDS (s⁻¹) = − OLS slope of ``rho[..., L]`` against ``delays_s`` within ``delay_range_s``."""
+    lo, hi = delay_range_s
+    sel = (delays_s >= lo * (1 - 1e-9)) & (delays_s <= hi * (1 + 1e-9))
+    if int(sel.sum()) < 2:
+        raise ValueError(f"delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
+                         f"(delays {delays_s.min().item():.6g} ... {delays_s.max().item():.6g} s)")
+    x = delays_s[sel]
+    y = rho[..., sel]
+    xc = x - x.mean()
+    return -(y * xc).sum(-1) / (xc * xc).sum()
+
+
+def ocds(intensity: torch.Tensor, frame_times_s: Sequence[float], *,
+         delay_range_s: tuple[float, float] = (0.2048, 1.2288), scale: str = "db",
+         estimator: str = "pearson") -> torch.Tensor:
+    """OCDS (s⁻¹) of intensities ``[..., frames]`` (physics.md §2.4; see the module docstring)."""
+    if scale == "db":
+        s = to_db(intensity)
+    elif scale == "linear":
+        s = intensity
+    else:
+        raise ValueError(f"scale must be 'db' or 'linear'; got {scale!r}")
+    delays, rho = lag_correlations(s, frame_times_s, estimator=estimator)
+    return ocds_from_correlations(rho, delays, delay_range_s)
+
+
+def complex_variance(field: torch.Tensor) -> torch.Tensor:
+    """``mean_t |E − mean_t E|²`` over the last axis (ddof 0; linear intensity units)."""
+    d = field - field[..., :1]
+    m = d.mean(-1, keepdim=True)
+    r = d - m
+    return (r.real ** 2 + r.imag ** 2).mean(-1)
+
+
+def compute_metrics(signals: torch.Tensor, frame_times_s: Sequence[float], analysis: Any) -> dict[str, Any]:
+    """Metrics of complex signals ``[..., frames]`` as the scene's ``[analysis]`` asks.
+
+    Returns a dict with one tensor per metric (``liv``, ``ocds`` ``[...]``; ``autocorrelation``
+    ``[..., L]`` with ``autocorrelation_delays_s``), plus ``zero_intensity`` (bool ``[...]``: some
+    frame has I = 0, i.e. an empty resolution volume; dB metrics of those entries are NaN).
+    """
+    intensity = signals.real ** 2 + signals.imag ** 2
+    zero = (intensity <= 0).any(-1)
+    out: dict[str, Any] = {"zero_intensity": zero}
+    nan = torch.tensor(float("nan"), dtype=intensity.dtype, device=intensity.device)
+    db_needed = "liv" in analysis.metrics or (
+        analysis.ocds_scale == "db" and ("ocds" in analysis.metrics or "autocorrelation" in analysis.metrics))
+    safe = torch.where(zero[..., None], torch.ones_like(intensity), intensity) if db_needed else intensity
+    for name in analysis.metrics:
+        if name == "liv":
+            out["liv"] = torch.where(zero, nan, liv(safe))
+        elif name == "ocds":
+            v = ocds(safe if analysis.ocds_scale == "db" else intensity, frame_times_s,
+                     delay_range_s=analysis.ocds_delay_range_s, scale=analysis.ocds_scale,
+                     estimator=analysis.ocds_estimator)
+            out["ocds"] = torch.where(zero, nan, v) if analysis.ocds_scale == "db" else v
+        elif name == "complex_variance":
+            out["complex_variance"] = complex_variance(signals)
+        elif name == "autocorrelation":
+            s = to_db(safe) if analysis.ocds_scale == "db" else intensity
+            d, rho = lag_correlations(s, frame_times_s, estimator=analysis.ocds_estimator)
+            if analysis.ocds_scale == "db":
+                rho = torch.where(zero[..., None], nan, rho)
+            out["autocorrelation"] = rho
+            out["autocorrelation_delays_s"] = d
+    return out
+
+
+def summarize(metrics: dict[str, Any], system_names: Sequence[str]) -> dict[str, Any]:
+    """Mean, SD, standard error and count per system of the scalar metrics ``[trials, systems]``."""
+    zero = metrics["zero_intensity"]
+    out: dict[str, Any] = {}
+    for s, name in enumerate(system_names):
+        row: dict[str, Any] = {"zero_intensity_trials": int(zero[:, s].sum())}
+        for key in ("liv", "ocds", "complex_variance"):
+            if key not in metrics:
+                continue
+            v = metrics[key][:, s].double()
+            v = v[torch.isfinite(v)]
+            n = v.numel()
+            mean = float(v.mean()) if n else math.nan
+            sd = float(v.std(unbiased=True)) if n > 1 else math.nan
+            row[key] = {"mean": mean, "sd": sd, "se": sd / math.sqrt(n) if n > 1 else math.nan, "n": n}
+        out[name] = row
+    return out

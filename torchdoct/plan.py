@@ -1,0 +1,318 @@
+"""The plan of a point simulation: which stages run, on which domain, at what cost.
+
+:func:`make_plan` turns a :class:`~torchdoct.config.Scene` into a :class:`Plan`; the simulator
+executes exactly that plan, and ``torchdoct plan SCENE.toml`` prints it. Effects a scene does not ask
+for have no stage: no noise stage without ``[noise]``, no motion stage for static scatterers, no
+per-frame random draws for ballistic or flow motion (straight paths are drawn once).
+
+Domains (lengths µm, times s; PSF truncation as in :mod:`torchdoct.conventions`):
+
+* ``B``: the box of half-widths ``H = c·(s_x, s_x, s_z)``, ``c = √(2 ln(1/tolerance))``, the union
+  over the scene's systems (all systems see the same scatterers).
+* static populations: Poisson scatterers in ``B``, one evaluation per scatterer (the signal is
+  constant over frames).
+* drift populations (ballistic and/or flow, no diffusion): every straight path that meets ``B``
+  during the protocol: the scatterers in ``B`` at the first frame plus those entering through its
+  faces, a Poisson flux ``ρ·(−v·m)₊`` per unit area and time (``m`` the outward face normal).
+  Exact: a path that never meets ``B`` never comes closer than the tolerance.
+* diffusive populations: scatterers are tracked frame by frame in the region ``R = B ⊕ M``,
+  ``M = c·σ_step + v_max·Δt`` (``σ_step = √(2·D·Δt_max)``), which a scatterer outside ``R`` cannot
+  cross into ``B`` within one frame except with probability below the tolerance; at each frame
+  immigrants from the shell around ``R`` are drawn from the Poisson medium outside it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .config import Population, Scene
+from .conventions import (
+    ens_paper,
+    mean_intensity,
+    n_eff,
+    truncation_error_bound,
+    truncation_half_widths_um,
+    truncation_radius_factor,
+)
+
+__all__ = ["PopulationPlan", "SystemPlan", "Plan", "make_plan", "capacity"]
+
+#: Trials per reproducibility block: trial ``i`` draws its randomness from the stream of block
+#: ``i // BLOCK_TRIALS``, seeded from (seed, block index), so results never depend on chunking.
+BLOCK_TRIALS = 64
+
+
+def capacity(mean: float) -> int:
+    """Slots reserved for a Poisson count of the given mean: mean + 10 SD + 16, a multiple of 8.
+
+    The chance that a Poisson count exceeds it is below 1e-20; the simulator checks and raises.
+    """
+    c = mean + 10.0 * math.sqrt(max(mean, 0.0)) + 16.0
+    return int(math.ceil(c / 8.0) * 8)
+
+
+def _box_volume(h: tuple[float, float, float]) -> float:
+    return 8.0 * h[0] * h[1] * h[2]
+
+
+def _face_areas(h: tuple[float, float, float]) -> list[tuple[int, float]]:
+    """(axis, area) of the two faces normal to each axis of the box of half-widths h."""
+    out = []
+    for a in range(3):
+        b, c = [i for i in range(3) if i != a]
+        out.append((a, 4.0 * h[b] * h[c]))
+    return out
+
+
+def expected_entry_flux(pop: Population, h: tuple[float, float, float], n_samples: int = 200_000) -> float:
+    """Expected number of paths entering box ``h`` per unit time: ``ρ Σ_f A_f E[(−v·m_f)₊]``.
+
+    The expectation over the velocity law is taken with a fixed-seed quadrature sample (a plan
+    figure, not used by the simulation).
+    """
+    rng = np.random.default_rng(12345)
+    v = np.tile(np.asarray(pop.flow_velocity_um_per_s, dtype=float), (n_samples, 1))
+    for b in pop.ballistic:
+        u1, u2 = rng.random(n_samples), rng.random(n_samples)
+        if b.directions == "isotropic":
+            mu = 2 * u1 - 1
+        else:
+            mu = np.cos(np.pi * u1)
+        st = np.sqrt(np.clip(1 - mu * mu, 0, None))
+        phi = 2 * np.pi * u2
+        v += b.speed_um_per_s * np.stack([st * np.cos(phi), st * np.sin(phi), mu], axis=1)
+    flux = 0.0
+    for a, area in _face_areas(h):
+        # both faces: E[(v_a)_-] + E[(v_a)_+] = E|v_a|
+        flux += area * float(np.mean(np.abs(v[:, a])))
+    return pop.density_per_um3 * flux
+
+
+def _groups(halfs: list[tuple[float, float, float]]) -> list[tuple[tuple[float, float, float], tuple[int, ...]]]:
+    """Systems grouped by identical PSF truncation boxes (in first-seen order)."""
+    out: dict[tuple[float, float, float], list[int]] = {}
+    for i, h in enumerate(halfs):
+        out.setdefault(h, []).append(i)
+    return [(h, tuple(idx)) for h, idx in out.items()]
+
+
+def face_immigrant_mean(rho: float, sigma_um: float, inner: tuple[float, float, float], margin_um: float) -> float:
+    """Expected proposals per frame of the face immigrant sampler (pure diffusion).
+
+    Scatterers crossing one face plane inward per step: ``ρ·σ/√(2π)`` per unit area, over the faces
+    extended by the margin on the other axes.
+    """
+    e = [h + margin_um for h in inner]
+    area = sum(2.0 * 4.0 * e[b] * e[c] for a in range(3) for b, c in [[i for i in range(3) if i != a]])
+    return rho * sigma_um / math.sqrt(2.0 * math.pi) * area
+
+
+@dataclass(frozen=True)
+class PopulationPlan:
+    """How one population is simulated (lengths µm, times s)."""
+
+    index: int
+    name: str
+    sampler: str  # "static" | "drift" | "diffusive"
+    motions: tuple[str, ...]
+    density_per_um3: float
+    domain_half_widths_um: tuple[float, float, float]
+    expected_scatterers_per_trial: float
+    capacity: int
+    per_frame_random_draws: bool
+    evaluations_per_trial: float  # scatterer-frame evaluations, all systems
+    # drift
+    entry_proposal_rate_per_s: float = 0.0
+    entry_proposal_capacity: int = 0
+    entry_capacity: int = 0
+    # per-system culling (static, drift): one entry per group of systems sharing a PSF box:
+    # (half-widths µm, system indices, expected scatterers per trial, capacity)
+    system_groups: tuple = ()
+    # diffusive
+    immigrant_method: str = ""
+    step_margin_um: float = 0.0
+    immigrant_shell_half_widths_um: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    immigrant_proposal_capacity: int = 0
+
+
+@dataclass(frozen=True)
+class SystemPlan:
+    name: str
+    truncation_half_widths_um: tuple[float, float, float]
+    ens_paper: float
+    n_eff: float
+    mean_intensity: float
+    noise_power: float | None
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What a simulation of a scene will run; see the module docstring."""
+
+    scene_name: str
+    stages: tuple[str, ...]
+    truncation_tolerance: float
+    truncation_error_bound: float
+    domain_half_widths_um: tuple[float, float, float]
+    systems: tuple[SystemPlan, ...]
+    populations: tuple[PopulationPlan, ...]
+    n_frames: int
+    duration_s: float
+    frame_chunk: int
+    has_noise: bool
+    block_trials: int = BLOCK_TRIALS
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def expected_scatterers_per_trial(self) -> float:
+        return sum(p.expected_scatterers_per_trial for p in self.populations)
+
+    @property
+    def evaluations_per_trial(self) -> float:
+        return sum(p.evaluations_per_trial for p in self.populations)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["expected_scatterers_per_trial"] = self.expected_scatterers_per_trial
+        d["evaluations_per_trial"] = self.evaluations_per_trial
+        return d
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    def describe(self, trials: int | None = None) -> str:
+        """Human-readable plan."""
+        lines = [f"plan for scene {self.scene_name!r}: {self.n_frames} frames over {self.duration_s:g} s"]
+        lines.append("stages: " + " -> ".join(self.stages))
+        lines.append(f"PSF truncation tolerance {self.truncation_tolerance:g} "
+                     f"(relative mean-square field error <= {self.truncation_error_bound:.2g})")
+        lines.append("systems (all see the same scatterers):")
+        for s in self.systems:
+            h = s.truncation_half_widths_um
+            noise = "" if s.noise_power is None else f", noise power {s.noise_power:.4g}"
+            lines.append(f"  {s.name:>14}: ENS(paper, ρΔx²Δz) {s.ens_paper:8.3f}   N_eff {s.n_eff:8.3f}   "
+                         f"<I> {s.mean_intensity:.4g}   PSF box ±({h[0]:.2f}, {h[1]:.2f}, {h[2]:.2f}) µm{noise}")
+        lines.append("populations:")
+        for p in self.populations:
+            h = p.domain_half_widths_um
+            lines.append(f"  [{p.index}] {p.name or '-'}: {p.sampler} ({', '.join(p.motions) or 'no motion'}), "
+                         f"ρ = {p.density_per_um3:g} µm⁻³")
+            if p.sampler == "diffusive":
+                lines.append(f"      random walk, tracked region = PSF box + {p.step_margin_um:.2f} µm per side, "
+                             f"immigrants drawn by the {p.immigrant_method} sampler")
+            if len(p.system_groups) > 1:
+                lines.append("      each system evaluates only the scatterers that reach its own PSF box")
+            lines.append(f"      domain ±({h[0]:.2f}, {h[1]:.2f}, {h[2]:.2f}) µm, "
+                         f"{p.expected_scatterers_per_trial:.1f} scatterers/trial expected, "
+                         f"{p.evaluations_per_trial:.4g} scatterer-frame evaluations/trial, "
+                         f"per-frame random draws: {'yes' if p.per_frame_random_draws else 'no'}")
+        lines.append(f"total: {self.expected_scatterers_per_trial:.1f} scatterers/trial, "
+                     f"{self.evaluations_per_trial:.4g} scatterer-frame evaluations/trial")
+        if trials is not None:
+            lines.append(f"for {trials} trials: {self.evaluations_per_trial * trials:.4g} evaluations")
+        for n in self.notes:
+            lines.append(f"note: {n}")
+        return "\n".join(lines)
+
+
+def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Plan:
+    """Decide stages, domains and costs for simulating ``scene`` (see the module docstring)."""
+    tol = scene.simulation.truncation_tolerance if truncation_tolerance is None else truncation_tolerance
+    c = truncation_radius_factor(tol)
+    protocol = scene.protocol
+    T = protocol.duration_s
+    n_frames = protocol.n_frames
+    S = len(scene.systems)
+    halfs = [truncation_half_widths_um(s.lateral_resolution_um, s.axial_resolution_um, tol)
+             for s in scene.systems]
+    H = tuple(max(h[a] for h in halfs) for a in range(3))
+    rho_total = sum(p.density_per_um3 for p in scene.populations)
+
+    systems = []
+    for s, h in zip(scene.systems, halfs):
+        mi = sum(mean_intensity(p.density_per_um3, s.lateral_resolution_um, s.axial_resolution_um,
+                                p.reflectivity) for p in scene.populations)
+        noise = None if scene.noise is None else mi / 10.0 ** (scene.noise.snr_db / 10.0)
+        systems.append(SystemPlan(
+            name=s.name, truncation_half_widths_um=h,
+            ens_paper=ens_paper(rho_total, s.lateral_resolution_um, s.axial_resolution_um),
+            n_eff=n_eff(rho_total, s.lateral_resolution_um, s.axial_resolution_um),
+            mean_intensity=mi, noise_power=noise))
+
+    pops = []
+    notes = []
+    stages = []
+    for i, p in enumerate(scene.populations):
+        kind = p.motion_class
+        motions = tuple(m.kind + ("" if m.kind != "ballistic" else f" ({m.directions})")
+                        for m in p.active_motion)
+        zero = [m.kind for m in p.motion if m.is_zero]
+        if zero:
+            notes.append(f"population {i}: motion entries with zero parameter ({', '.join(zero)}) do nothing")
+        rho = p.density_per_um3
+        if kind == "static":
+            n = rho * _box_volume(H)
+            groups = tuple((h, idx, rho * _box_volume(h), capacity(rho * _box_volume(h)))
+                           for h, idx in _groups(halfs))
+            evals = sum(g[2] * len(g[1]) for g in groups)
+            pops.append(PopulationPlan(i, p.name, "static", motions, rho, H, n, capacity(n), False, evals,
+                                       system_groups=groups))
+        elif kind == "drift":
+            n0 = rho * _box_volume(H)
+            flux = expected_entry_flux(p, H)
+            vmax = p.max_speed_um_per_s
+            prop_rate = rho * vmax * sum(2 * a for _, a in _face_areas(H))
+            n = n0 + flux * T
+            moving = vmax > 0 and T > 0
+            groups = []
+            for h, idx in _groups(halfs):
+                ng = rho * _box_volume(h) + (expected_entry_flux(p, h) * T if h != H else flux * T)
+                groups.append((h, idx, ng, capacity(ng)))
+            evals = sum(g[2] * len(g[1]) for g in groups) * n_frames
+            pops.append(PopulationPlan(i, p.name, "drift", motions, rho, H, n, capacity(n0), False,
+                                       evals, system_groups=tuple(groups), entry_proposal_rate_per_s=prop_rate,
+                                       entry_proposal_capacity=capacity(prop_rate * T) if moving else 0,
+                                       entry_capacity=capacity(flux * T) if moving else 0))
+        else:
+            D = p.diffusion_um2_per_s
+            dtm = protocol.max_interval_s
+            sigma = math.sqrt(2.0 * D * dtm)
+            margin = c * sigma + p.max_speed_um_per_s * dtm
+            R = tuple(h + margin for h in H)
+            outer = tuple(r + margin for r in R)
+            n = rho * _box_volume(R)
+            if p.max_speed_um_per_s > 0:
+                method = "shell"
+                n_prop = rho * (_box_volume(outer) - _box_volume(R))
+            else:
+                method = "faces"
+                n_prop = face_immigrant_mean(rho, sigma, R, margin)
+            pops.append(PopulationPlan(i, p.name, "diffusive", motions, rho, R, n, capacity(n), True,
+                                       n * n_frames * S, immigrant_method=method, step_margin_um=margin,
+                                       immigrant_shell_half_widths_um=outer,
+                                       immigrant_proposal_capacity=capacity(n_prop)))
+    kinds = {p.sampler for p in pops}
+    stages.append("seed scatterers")
+    if "drift" in kinds:
+        stages.append("straight paths (drawn once)")
+    if "diffusive" in kinds:
+        stages.append("random walk (per-frame draws)")
+    if kinds == {"static"}:
+        stages.append("signal (one evaluation, constant over frames)")
+    else:
+        stages.append("signal")
+    if scene.noise is not None:
+        stages.append("noise")
+    stages.append("metrics")
+    # frame chunk: keep a chunk of block x scatterers x frames below ~4M elements
+    cmax = max(max(p.capacity + p.entry_capacity + p.immigrant_proposal_capacity for p in pops), 1)
+    frame_chunk = int(max(1, min(n_frames, (1 << 22) // (BLOCK_TRIALS * cmax))))
+    return Plan(scene_name=scene.name, stages=tuple(stages), truncation_tolerance=tol,
+                truncation_error_bound=truncation_error_bound(tol), domain_half_widths_um=H,
+                systems=tuple(systems), populations=tuple(pops), n_frames=n_frames, duration_s=T,
+                frame_chunk=frame_chunk, has_noise=scene.noise is not None, notes=tuple(notes))

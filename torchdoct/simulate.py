@@ -1,0 +1,618 @@
+"""Batched point simulator: the complex OCT signal of one pixel over a protocol, many trials at once.
+
+The signal of system ``s`` at frame time ``t`` is the paper's Eq. (11) (physics.md §5.1)::
+
+    E_s(t) = Σ_j b_j · exp(−(x_j²+y_j²)/(2 s_x²) − z_j²/(2 s_z²)) · exp(i·2·k·n·z_j(t))
+
+with the PSF centred at the origin, ``s_x = Δx/(2√2)``, ``s_z = Δz/(2√ln2)``, ``k = 2π/λ₀``
+(:mod:`torchdoct.conventions`; lengths µm, times s). Scatterers form a homogeneous Poisson medium;
+only those that can come within the PSF truncation tolerance are drawn (see :mod:`torchdoct.plan`).
+
+Design notes:
+
+* All systems of a scene see the same scatterer realization.
+* Randomness: trial ``i`` takes its draws from a ``torch.Generator`` seeded from ``(seed, i // 64)``;
+  every block of 64 trials draws the same sequence whatever the chunk, so results are bit-identical
+  for any ``chunk_trials`` or number of trials. Draws are made in float64 whatever the dtype, so a
+  float32 and a float64 run with one seed simulate the same scatterers.
+* Phases: each scatterer's phase is kept as ``φ₀ = (2kn·z_ref) mod 2π`` plus ``2kn·(z(t) − z_ref)``,
+  with the displacement from a reference point computed in float64 (random walks) or as ``v·(t − t_ref)``
+  (straight paths), so float32 keeps sub-milliradian phase accuracy at any depth or protocol length.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from .config import Population, Scene
+from .conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, wavenumber_per_um
+from .plan import BLOCK_TRIALS, Plan, PopulationPlan, face_immigrant_mean, make_plan
+
+__all__ = ["simulate", "SimulationResult", "CapacityError", "block_generator"]
+
+_F64 = torch.float64
+#: Position of unused slots (µm): far enough that the PSF amplitude underflows to exactly 0.
+_FAR = 1.0e6
+_TWO_PI = 2.0 * math.pi
+
+
+class CapacityError(RuntimeError):
+    """A Poisson count exceeded its reserved slots (probability < 1e-20 per draw)."""
+
+
+def block_generator(seed: int, block: int) -> torch.Generator:
+    """The random stream of trials ``64·block … 64·block + 63`` for ``seed``."""
+    state = np.random.SeedSequence(entropy=int(seed), spawn_key=(int(block),)).generate_state(2, np.uint32)
+    g = torch.Generator(device="cpu")
+    g.manual_seed((int(state[0]) << 31) ^ int(state[1]))
+    return g
+
+
+class _Draws:
+    """Random draws for a chunk of blocks, each block from its own generator (CPU).
+
+    Numbers are drawn in float32 (the generator's native precision, 4-5 ns each) and returned as
+    float64, whatever the working dtype, so float32 and float64 runs share one realization. Blocks
+    draw in parallel threads (each block owns its generator, so the result does not depend on it).
+    """
+
+    def __init__(self, gens: list[torch.Generator], device: torch.device):
+        self.gens = gens
+        self.device = device
+
+    def _draw(self, fn, shape):
+        if len(self.gens) == 1:
+            parts = [fn((BLOCK_TRIALS, *shape), generator=self.gens[0], dtype=torch.float32)]
+        else:
+            parts = list(_pool().map(
+                lambda g: fn((BLOCK_TRIALS, *shape), generator=g, dtype=torch.float32), self.gens))
+        return torch.cat(parts).to(device=self.device, dtype=_F64)
+
+    def rand(self, *shape: int) -> torch.Tensor:
+        """Uniform on [0, 1) (24-bit resolution)."""
+        return self._draw(torch.rand, shape)
+
+    def rand_open(self, *shape: int) -> torch.Tensor:
+        """Uniform on (0, 1]: safe under ``log``."""
+        return 1.0 - self._draw(torch.rand, shape)
+
+    def randn(self, *shape: int) -> torch.Tensor:
+        return self._draw(torch.randn, shape)
+
+    def poisson(self, mean: float, cap: int, what: str) -> torch.Tensor:
+        if mean <= 0:
+            return torch.zeros(BLOCK_TRIALS * len(self.gens), dtype=torch.int64, device=self.device)
+        rate = torch.full((BLOCK_TRIALS,), float(mean), dtype=_F64)
+        n = torch.cat([torch.poisson(rate, generator=g) for g in self.gens]).to(torch.int64)
+        if int(n.max()) > cap:
+            raise CapacityError(f"{what}: Poisson count {int(n.max())} exceeds the {cap} reserved slots")
+        return n.to(self.device)
+
+
+_POOL = None
+
+
+def _pool():
+    global _POOL
+    if _POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL = ThreadPoolExecutor(max_workers=max(1, torch.get_num_threads()))
+    return _POOL
+
+
+def _directions(draws: _Draws, law: str, n: int) -> torch.Tensor:
+    """Unit vectors [N, n, 3]: isotropic (cos polar ~ U[-1,1]) or uniform polar angle on [0, π]."""
+    u = draws.rand(n, 2)
+    if law == "isotropic":
+        mu = 2.0 * u[..., 0] - 1.0
+    else:
+        mu = torch.cos(math.pi * u[..., 0])
+    st = torch.sqrt(torch.clamp(1.0 - mu * mu, min=0.0))
+    phi = _TWO_PI * u[..., 1]
+    return torch.stack([st * torch.cos(phi), st * torch.sin(phi), mu], dim=-1)
+
+
+def _velocities(pop: Population, draws: _Draws, n: int) -> torch.Tensor:
+    """Drift velocity of each scatterer (µm/s), [N, n, 3]: flow + Σ ballistic speed·direction."""
+    v = torch.tensor(pop.flow_velocity_um_per_s, dtype=_F64, device=draws.device).expand(
+        BLOCK_TRIALS * len(draws.gens), n, 3).clone()
+    for b in pop.ballistic:
+        v += b.speed_um_per_s * _directions(draws, b.directions, n)
+    return v
+
+
+def _inside(pos: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
+    return (pos.abs() <= half).all(dim=-1)
+
+
+@dataclass
+class _Optics:
+    kn: torch.Tensor  # [S] 2πn/λ (rad/µm), float64
+    a_lat: torch.Tensor  # [S] 1/(2 s_x²), working dtype
+    a_ax: torch.Tensor  # [S] 1/(2 s_z²), working dtype
+
+    @classmethod
+    def of(cls, scene: Scene, dtype: torch.dtype, device: torch.device) -> "_Optics":
+        kn = [wavenumber_per_um(s.wavelength_um, s.refractive_index) for s in scene.systems]
+        sx = [amplitude_sigma_lateral_um(s.lateral_resolution_um) for s in scene.systems]
+        sz = [amplitude_sigma_axial_um(s.axial_resolution_um) for s in scene.systems]
+        return cls(torch.tensor(kn, dtype=_F64, device=device),
+                   torch.tensor([0.5 / x**2 for x in sx], dtype=dtype, device=device),
+                   torch.tensor([0.5 / z**2 for z in sz], dtype=dtype, device=device))
+
+
+def _phase0(kn: torch.Tensor, z: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``(2kn·z) mod 2π`` per system, [S, ...] (float64 in, working dtype out)."""
+    return torch.remainder(2.0 * kn.view(-1, *([1] * z.dim())) * z, _TWO_PI).to(dtype)
+
+
+def _sum_field(amp: torch.Tensor, phase: torch.Tensor, dim: int) -> torch.Tensor:
+    """Σ amp·e^{i·phase} along ``dim`` (real arithmetic: complex exp is slow on CPU)."""
+    return torch.complex((amp * torch.cos(phase)).sum(dim), (amp * torch.sin(phase)).sum(dim))
+
+
+#: Exponents below -_EXP_FLOOR are clamped and their amplitude set to exactly 0: the PSF amplitude
+#: there (e^-60 ~ 1e-26) is far below any truncation tolerance, and exp() of large negative
+#: arguments is several times slower.
+_EXP_FLOOR = 60.0
+
+
+def _amplitude(exponent: torch.Tensor) -> torch.Tensor:
+    """``exp(exponent)`` with arguments below ``-_EXP_FLOOR`` giving exactly 0 (in place on exponent)."""
+    return torch.nn.functional.threshold(torch.exp(exponent.clamp_(min=-_EXP_FLOOR)),
+                                         2.0 * math.exp(-_EXP_FLOOR), 0.0)
+
+
+def _path_coefficients(p: torch.Tensor, v: torch.Tensor | None, t_ref: torch.Tensor | None,
+                       kn: float, a_lat: float, a_ax: float):
+    """Per-scatterer coefficients of the field exponent of one system, about the closest approach.
+
+    For a straight path ``r(t) = p + v·(t − t_ref)`` the PSF exponent is a quadratic in t; written
+    about its vertex ``t*`` it is ``e* + a2·(t − t*)²`` (both ≤ 0, so no cancellation in float32),
+    and the phase is ``φ* + ω·(t − t*)`` with ``φ* = (2kn·z(t*)) mod 2π`` and ``ω = 2kn·v_z``.
+    Inputs float64 [N, C, 3] / [N, C]; returns float64 (e*, a2, t*, φ*, ω) of shape [N, C].
+    """
+    far = (p.abs() >= 0.5 * _FAR).any(-1)
+    if v is None:
+        e = -(a_lat * (p[..., 0] ** 2 + p[..., 1] ** 2) + a_ax * p[..., 2] ** 2)
+        phi = torch.remainder(2.0 * kn * p[..., 2], _TWO_PI)
+        return e, None, None, phi, None
+    v = torch.where(far[..., None], torch.zeros_like(v), v)
+    t_ref = torch.where(far, torch.zeros_like(t_ref), t_ref)
+    a2 = -(a_lat * (v[..., 0] ** 2 + v[..., 1] ** 2) + a_ax * v[..., 2] ** 2)
+    a1 = -2.0 * (a_lat * (p[..., 0] * v[..., 0] + p[..., 1] * v[..., 1]) + a_ax * p[..., 2] * v[..., 2])
+    moving = a2 < 0
+    shift = torch.where(moving, -a1 / (2.0 * torch.where(moving, a2, torch.ones_like(a2))), torch.zeros_like(a2))
+    t_star = t_ref + shift
+    r = p + v * shift[..., None]
+    e = -(a_lat * (r[..., 0] ** 2 + r[..., 1] ** 2) + a_ax * r[..., 2] ** 2)
+    phi = torch.remainder(2.0 * kn * r[..., 2], _TWO_PI)
+    omega = 2.0 * kn * v[..., 2]
+    return e, a2, t_star, phi, omega
+
+
+def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tensor | None,
+                times: torch.Tensor, optics: _Optics, systems: tuple[int, ...], refl: float,
+                dtype: torch.dtype, frame_chunk: int) -> torch.Tensor:
+    """Field [N, len(systems), T] of scatterers on straight paths ``p_ref + vel·(t − t_ref)``.
+
+    ``vel is None`` means static scatterers: one evaluation, repeated over the frames.
+    """
+    N, C, _ = p_ref.shape
+    T = times.numel()
+    cdt = _complex_of(dtype)
+    if vel is None:
+        out = torch.empty(N, len(systems), dtype=cdt, device=p_ref.device)
+        for k, s in enumerate(systems):
+            e, _, _, phi, _ = _path_coefficients(p_ref, None, None, float(optics.kn[s]),
+                                                 float(optics.a_lat[s]), float(optics.a_ax[s]))
+            amp = _amplitude(e.to(dtype))
+            if refl != 1.0:
+                amp = amp * refl
+            out[:, k] = _sum_field(amp, phi.to(dtype), dim=1)
+        return out[:, :, None].expand(N, len(systems), T)
+    out = torch.empty(N, len(systems), T, dtype=cdt, device=p_ref.device)
+    t_d = times.to(dtype)
+    for k, s in enumerate(systems):
+        e, a2, t_star, phi, omega = (c.to(dtype)[..., None] for c in _path_coefficients(
+            p_ref, vel, t_ref, float(optics.kn[s]), float(optics.a_lat[s]), float(optics.a_ax[s])))
+        for f0 in range(0, T, frame_chunk):
+            tc = t_d[f0:f0 + frame_chunk]
+            tau = tc.view(1, 1, -1) - t_star  # [N, C, Tc]
+            amp = _amplitude(torch.addcmul(e, a2, tau * tau))
+            if refl != 1.0:
+                amp = amp * refl
+            phase = torch.addcmul(phi, omega, tau)
+            out[:, k, f0:f0 + tc.numel()] = _sum_field(amp, phase, dim=1)
+    return out
+
+
+def _path_meets_box(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tensor | None,
+                    T: float, half: tuple[float, float, float]) -> torch.Tensor:
+    """Whether ``p_ref + vel·(t − t_ref)`` is inside the box for some t in [0, T] (slab test)."""
+    if vel is None:
+        return _inside(p_ref, torch.tensor(half, dtype=p_ref.dtype, device=p_ref.device))
+    lo = torch.zeros(p_ref.shape[:2], dtype=p_ref.dtype, device=p_ref.device)
+    hi = torch.full_like(lo, T)
+    inf = torch.full_like(lo, math.inf)
+    for a in range(3):
+        v = vel[..., a]
+        p = p_ref[..., a]
+        moving = v != 0
+        vs = torch.where(moving, v, torch.ones_like(v))
+        t1 = t_ref + (-half[a] - p) / vs
+        t2 = t_ref + (half[a] - p) / vs
+        inside = p.abs() <= half[a]
+        tmin = torch.where(moving, torch.minimum(t1, t2), torch.where(inside, -inf, inf))
+        tmax = torch.where(moving, torch.maximum(t1, t2), torch.where(inside, inf, -inf))
+        lo = torch.maximum(lo, tmin)
+        hi = torch.minimum(hi, tmax)
+    return lo <= hi
+
+
+def _eval_culled(pp: PopulationPlan, pop: Population, p_ref, vel, t_ref, times, optics, dtype, plan):
+    """Evaluate each group of systems on the scatterers that can reach its own PSF box."""
+    N = p_ref.shape[0]
+    S = optics.kn.numel()
+    out = torch.empty(N, S, times.numel(), dtype=_complex_of(dtype), device=p_ref.device)
+    T = float(times[-1])
+    for half, idx, _, cap in pp.system_groups:
+        if tuple(half) == tuple(pp.domain_half_widths_um):
+            sel = (p_ref, vel, t_ref)
+        else:
+            mask = _path_meets_box(p_ref, vel, t_ref, T, half)
+            tensors = [t for t in (p_ref, vel, t_ref) if t is not None]
+            valid, got = _compact(mask, cap, f"population {pp.index} systems {idx}", *tensors)
+            got[0] = torch.where(valid[..., None], got[0], torch.full_like(got[0], _FAR))
+            sel = (got[0], got[1], got[2]) if vel is not None else (got[0], None, None)
+        out[:, list(idx)] = _eval_paths(*sel, times, optics, tuple(idx), pop.reflectivity, dtype,
+                                        plan.frame_chunk)
+    return out
+
+
+def _complex_of(dtype: torch.dtype) -> torch.dtype:
+    return torch.complex64 if dtype == torch.float32 else torch.complex128
+
+
+def _uniform_box(draws: _Draws, n: torch.Tensor, cap: int, half: tuple[float, float, float]):
+    """Poisson points uniform in a box: positions [N, cap, 3] (unused slots far away), valid mask."""
+    h = torch.tensor(half, dtype=_F64, device=draws.device)
+    pos = (2.0 * draws.rand(cap, 3) - 1.0) * h
+    valid = torch.arange(cap, device=draws.device)[None, :] < n[:, None]
+    pos = torch.where(valid[..., None], pos, torch.full_like(pos, _FAR))
+    return pos, valid
+
+
+def _compact(mask: torch.Tensor, cap: int, what: str, *tensors: torch.Tensor):
+    """Move the True entries of ``mask`` [N, P] to the front (order kept), keep ``cap`` slots."""
+    n = mask.sum(1)
+    if int(n.max()) > cap:
+        raise CapacityError(f"{what}: {int(n.max())} entries exceed the {cap} reserved slots")
+    order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)[:, :cap]
+    valid = torch.arange(cap, device=mask.device)[None, :] < n[:, None]
+    out = []
+    for t in tensors:
+        idx = order.view(*order.shape, *([1] * (t.dim() - 2))).expand(*order.shape, *t.shape[2:])
+        out.append(t.gather(1, idx))
+    return valid, out
+
+
+def _simulate_static(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
+    n = draws.poisson(pp.expected_scatterers_per_trial, pp.capacity, f"population {pp.index} count")
+    pos, _ = _uniform_box(draws, n, pp.capacity, pp.domain_half_widths_um)
+    return _eval_culled(pp, pop, pos, None, None, times, optics, dtype, plan)
+
+
+def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
+    H = pp.domain_half_widths_um
+    rho = pp.density_per_um3
+    n0_mean = rho * 8.0 * H[0] * H[1] * H[2]
+    n0 = draws.poisson(n0_mean, pp.capacity, f"population {pp.index} count")
+    p0, _ = _uniform_box(draws, n0, pp.capacity, H)
+    v0 = _velocities(pop, draws, pp.capacity)
+    N = p0.shape[0]
+    t0 = torch.zeros(N, pp.capacity, dtype=_F64, device=draws.device)
+    T = float(times[-1])
+    if pp.entry_proposal_capacity == 0:
+        return _eval_culled(pp, pop, p0, v0, t0, times, optics, dtype, plan)
+    # entrants through the faces of the box: proposals at rate ρ·v_max·A per face, thinned by
+    # (−v·m)₊ / v_max (m the outward normal), uniform entry point and entry time.
+    P = pp.entry_proposal_capacity
+    vmax = pop.max_speed_um_per_s
+    n_prop = draws.poisson(pp.entry_proposal_rate_per_s * T, P, f"population {pp.index} entrants")
+    u = draws.rand(P, 6)
+    h = torch.tensor(H, dtype=_F64, device=draws.device)
+    areas = torch.tensor([H[1] * H[2], H[0] * H[2], H[0] * H[1]], dtype=_F64, device=draws.device)
+    cum = torch.cumsum(areas, 0) / areas.sum()
+    axis = torch.searchsorted(cum, u[..., 0].contiguous(), right=True).clamp(max=2)  # [N, P]
+    side = torch.where(u[..., 1] < 0.5, -1.0, 1.0).to(_F64)
+    pe = (2.0 * u[..., 2:5] - 1.0) * h
+    onehot = torch.nn.functional.one_hot(axis, 3).to(torch.bool)
+    pe = torch.where(onehot, side[..., None] * h, pe)
+    te = u[..., 5] * T
+    ve = _velocities(pop, draws, P)
+    u_acc = draws.rand(P)
+    v_axis = ve.gather(2, axis[..., None]).squeeze(-1)
+    accept = (u_acc * vmax < -side * v_axis) & (torch.arange(P, device=draws.device)[None, :] < n_prop[:, None])
+    valid_e, (pe, ve, te) = _compact(accept, pp.entry_capacity, f"population {pp.index} entrants", pe, ve, te)
+    pe = torch.where(valid_e[..., None], pe, torch.full_like(pe, _FAR))
+    p_ref = torch.cat([p0, pe], dim=1)
+    vel = torch.cat([v0, ve], dim=1)
+    t_ref = torch.cat([t0, te], dim=1)
+    return _eval_culled(pp, pop, p_ref, vel, t_ref, times, optics, dtype, plan)
+
+
+def _shell_points(draws: _Draws, P: int, inner: tuple, outer: tuple) -> torch.Tensor:
+    """Points uniform in the shell between two centred boxes, [N, P, 3] (three disjoint slab pairs)."""
+    R = torch.tensor(inner, dtype=_F64, device=draws.device)
+    O = torch.tensor(outer, dtype=_F64, device=draws.device)
+    # slab a: |x_a| in (R_a, O_a], axes before a within R, axes after a within O
+    vols = []
+    for a in range(3):
+        v = O[a] - R[a]
+        for b in range(3):
+            if b < a:
+                v = v * R[b]
+            elif b > a:
+                v = v * O[b]
+        vols.append(v)
+    vols = torch.stack(vols)
+    cum = torch.cumsum(vols, 0) / vols.sum()
+    u = draws.rand(P, 5)
+    slab = torch.searchsorted(cum, u[..., 0].contiguous(), right=True).clamp(max=2)
+    side = torch.where(u[..., 1] < 0.5, -1.0, 1.0).to(_F64)
+    pts = []
+    for b in range(3):
+        # coordinate b: in the shell part if b is the slab axis, else within R (b before the
+        # slab axis) or within O (b after it)
+        lim = torch.where(slab > b, R[b], O[b])
+        inner_c = (2.0 * u[..., 2 + b] - 1.0) * lim
+        shell_c = side * (R[b] + u[..., 2 + b] * (O[b] - R[b]))
+        pts.append(torch.where(slab == b, shell_c, inner_c))
+    return torch.stack(pts, dim=-1)
+
+
+def _face_immigrants(draws: _Draws, P: int, n_prop: torch.Tensor, inner: tuple, margin: float,
+                     sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Scatterers of the Poisson medium outside box ``inner`` that one diffusion step brings inside.
+
+    For each face (axis a, side s) the sources beyond the face plane that cross it form a Poisson
+    process of rate ``ρ·σ/√(2π)`` per unit area: the inward step is ``σ·|g|`` with ``|g|`` Rayleigh
+    and the source lies uniformly within that distance beyond the plane. The other coordinates are
+    uniform over the face extended by ``margin`` and take a normal step. A source outside the box on
+    several axes is kept only for its first such axis, so every source is counted once.
+    Returns positions after the step [N, P, 3] and the accepted mask [N, P].
+    """
+    dev = draws.device
+    Rt = torch.tensor(inner, dtype=_F64, device=dev)
+    E = Rt + margin
+    areas = torch.stack([E[1] * E[2], E[0] * E[2], E[0] * E[1]])
+    cum = torch.cumsum(areas, 0) / areas.sum()
+    u = draws.rand(P, 7)
+    g = draws.randn(P, 3)
+    axis = torch.searchsorted(cum, u[..., 0].contiguous(), right=True).clamp(max=2)
+    side = torch.where(u[..., 1] < 0.5, -1.0, 1.0).to(_F64)
+    step_in = sigma * torch.sqrt(-2.0 * torch.log1p(-u[..., 2]))  # σ|g|, |g| Rayleigh
+    depth = step_in * u[..., 3]  # source distance beyond the face plane
+    y = (2.0 * u[..., 4:7] - 1.0) * E
+    x = y + sigma * g
+    onehot = torch.nn.functional.one_hot(axis, 3).to(torch.bool)
+    y_face = side[..., None] * (Rt + depth[..., None])
+    x_face = side[..., None] * (Rt + depth[..., None] - step_in[..., None])
+    y = torch.where(onehot, y_face, y)
+    x = torch.where(onehot, x_face, x)
+    first = torch.ones_like(side, dtype=torch.bool)
+    for b in range(2):
+        first &= (axis <= b) | (y[..., b].abs() <= Rt[b])
+    acc = (torch.arange(P, device=dev)[None, :] < n_prop[:, None]) & first & _inside(x, Rt)
+    return x, acc
+
+
+def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
+    dev = draws.device
+    R = pp.domain_half_widths_um
+    Rt = torch.tensor(R, dtype=_F64, device=dev)
+    rho = pp.density_per_um3
+    C = pp.capacity
+    P = pp.immigrant_proposal_capacity
+    D = pop.diffusion_um2_per_s
+    drift = pop.max_speed_um_per_s > 0
+    n0 = draws.poisson(pp.expected_scatterers_per_trial, C, f"population {pp.index} count")
+    pos, alive = _uniform_box(draws, n0, C, R)
+    vel = _velocities(pop, draws, C) if drift else None
+    N = pos.shape[0]
+    S = optics.kn.numel()
+    T = times.numel()
+    phi0 = _phase0(optics.kn, pos[..., 2], _F64)  # kept in float64: cast at evaluation
+    zref = pos[..., 2].clone()
+    out = torch.empty(N, S, T, dtype=_complex_of(dtype), device=dev)
+    prop_slots = torch.arange(P, device=dev)[None, :]
+    shell_vol = 8.0 * (math.prod(pp.immigrant_shell_half_widths_um) - math.prod(R))
+    far = torch.full_like(pos, _FAR)
+
+    def evaluate(f: int) -> None:
+        p = pos.to(dtype)
+        r2 = p[..., 0] ** 2 + p[..., 1] ** 2
+        z2 = p[..., 2] ** 2
+        dz = pos[..., 2] - zref
+        for s in range(S):
+            amp = _amplitude(-(r2 * optics.a_lat[s] + z2 * optics.a_ax[s]))
+            if pop.reflectivity != 1.0:
+                amp = amp * pop.reflectivity
+            phase = (phi0[s] + 2.0 * optics.kn[s] * dz).to(dtype)
+            out[:, s, f] = _sum_field(amp, phase, dim=1)
+
+    evaluate(0)
+    for f in range(1, T):
+        dt = float(times[f] - times[f - 1])
+        sigma = math.sqrt(2.0 * D * dt)
+        step = sigma * draws.randn(C, 3)
+        if drift:
+            step = step + vel * dt
+        pos = pos + step
+        alive = alive & _inside(pos, Rt)
+        # immigrants: the Poisson medium outside R, one step later, landing inside R
+        vy = None
+        if pp.immigrant_method == "faces":
+            mean = face_immigrant_mean(rho, sigma, R, pp.step_margin_um)
+            n_prop = draws.poisson(mean, P, f"population {pp.index} immigrants")
+            y, acc = _face_immigrants(draws, P, n_prop, R, pp.step_margin_um, sigma)
+        else:
+            n_prop = draws.poisson(rho * shell_vol, P, f"population {pp.index} immigrants")
+            y = _shell_points(draws, P, R, pp.immigrant_shell_half_widths_um)
+            ystep = sigma * draws.randn(P, 3)
+            if drift:
+                vy = _velocities(pop, draws, P)
+                ystep = ystep + vy * dt
+            y = y + ystep
+            acc = (prop_slots < n_prop[:, None]) & _inside(y, Rt)
+        n_acc = acc.sum(1)
+        dead = ~alive
+        dead_rank = torch.cumsum(dead, 1) - 1
+        if bool((n_acc > dead.sum(1)).any()):
+            raise CapacityError(f"population {pp.index}: tracked scatterers exceed the {C} reserved slots")
+        order = torch.argsort((~acc).to(torch.int8), dim=1, stable=True)
+        src = order.gather(1, dead_rank.clamp(0, P - 1))
+        fill = dead & (dead_rank < n_acc[:, None])
+        new_pos = y.gather(1, src[..., None].expand(-1, -1, 3))
+        pos = torch.where(fill[..., None], new_pos, pos)
+        zref = torch.where(fill, new_pos[..., 2], zref)
+        phi0 = torch.where(fill[None], _phase0(optics.kn, new_pos[..., 2], _F64), phi0)
+        if drift:
+            vel = torch.where(fill[..., None], vy.gather(1, src[..., None].expand(-1, -1, 3)), vel)
+        alive = alive | fill
+        pos = torch.where(alive[..., None], pos, far)
+        evaluate(f)
+    return out
+
+
+_SAMPLERS: dict[str, Callable] = {
+    "static": _simulate_static,
+    "drift": _simulate_drift,
+    "diffusive": _simulate_diffusive,
+}
+
+
+@dataclass
+class SimulationResult:
+    """Complex signals ``[trials, systems, frames]`` of a scene, with what produced them."""
+
+    scene: Scene
+    plan: Plan
+    signals: torch.Tensor
+    seed: int
+    trials: int
+    frame_times_s: tuple[float, ...]
+    elapsed_s: float = 0.0
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def intensity(self) -> torch.Tensor:
+        return self.signals.real ** 2 + self.signals.imag ** 2
+
+    @property
+    def system_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.scene.systems)
+
+    def metrics(self) -> dict[str, Any]:
+        """The scene's ``[analysis]`` metrics on these signals (see :func:`torchdoct.metrics.compute_metrics`)."""
+        from .metrics import compute_metrics
+
+        return compute_metrics(self.signals, self.frame_times_s, self.scene.analysis)
+
+    def summary(self) -> dict[str, Any]:
+        from .metrics import summarize
+
+        return summarize(self.metrics(), self.system_names)
+
+
+def _simulate_chunk(scene: Scene, plan: Plan, blocks: list[int], seed: int, dtype: torch.dtype,
+                    device: torch.device) -> torch.Tensor:
+    draws = _Draws([block_generator(seed, b) for b in blocks], device)
+    times = torch.tensor(scene.protocol.times_s, dtype=_F64, device=device)
+    optics = _Optics.of(scene, dtype, device)
+    total = None
+    for pp, pop in zip(plan.populations, scene.populations):
+        e = _SAMPLERS[pp.sampler](pp, pop, draws, times, optics, dtype, plan)
+        total = e if total is None else total + e
+    if plan.has_noise:
+        power = torch.tensor([s.noise_power for s in plan.systems], dtype=_F64, device=device)
+        amp = torch.sqrt(power / 2.0).view(1, -1, 1)
+        shape = (len(scene.systems), times.numel())
+        noise = torch.complex(draws.randn(*shape) * amp, draws.randn(*shape) * amp).to(total.dtype)
+        total = total + noise
+    return total.contiguous()
+
+
+def simulate(
+    scene: Scene,
+    *,
+    trials: int | None = None,
+    seed: int | None = None,
+    dtype: torch.dtype | str | None = None,
+    device: str | torch.device | None = None,
+    truncation_tolerance: float | None = None,
+    chunk_trials: int | None = None,
+    progress: bool = False,
+) -> SimulationResult:
+    """Simulate ``trials`` independent realizations of ``scene`` (all systems, all frames).
+
+    Returns complex signals ``[trials, systems, frames]`` (complex64 for float32, complex128 for
+    float64). Defaults come from the scene's ``[simulation]`` table. ``chunk_trials`` (rounded up to a
+    multiple of 64) only sets how many trials are computed at once: results are bit-identical for
+    any value.
+    """
+    import time
+
+    st = scene.simulation
+    trials = st.trials if trials is None else int(trials)
+    seed = st.seed if seed is None else int(seed)
+    if trials < 1:
+        raise ValueError(f"trials must be >= 1; got {trials}")
+    if seed < 0:
+        raise ValueError(f"seed must be >= 0; got {seed}")
+    dtype = dtype or st.dtype
+    if isinstance(dtype, str):
+        if dtype not in ("float32", "float64"):
+            raise ValueError(f"dtype must be 'float32' or 'float64'; got {dtype!r}")
+        dtype = getattr(torch, dtype)
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"dtype must be torch.float32 or torch.float64; got {dtype}")
+    device = torch.device(device or "cpu")
+    plan = make_plan(scene, truncation_tolerance=truncation_tolerance)
+    n_blocks = -(-trials // BLOCK_TRIALS)
+    if chunk_trials is None:
+        # keep a chunk's largest working tensor near 16M elements
+        per_trial = max(max(p.capacity + p.entry_capacity + p.immigrant_proposal_capacity
+                            for p in plan.populations), 1) * max(plan.frame_chunk, 1)
+        chunk_blocks = max(1, min(16, (1 << 24) // (BLOCK_TRIALS * per_trial)))
+    else:
+        if chunk_trials < 1:
+            raise ValueError(f"chunk_trials must be >= 1; got {chunk_trials}")
+        chunk_blocks = -(-int(chunk_trials) // BLOCK_TRIALS)
+    t0 = time.perf_counter()
+    pieces = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=trials, unit="trial", desc=f"simulate {scene.name or 'scene'}")
+    done = 0
+    for b0 in range(0, n_blocks, chunk_blocks):
+        blocks = list(range(b0, min(n_blocks, b0 + chunk_blocks)))
+        pieces.append(_simulate_chunk(scene, plan, blocks, seed, dtype, device))
+        if bar is not None:
+            step = min(trials, (blocks[-1] + 1) * BLOCK_TRIALS) - done
+            bar.update(step)
+            done += step
+    if bar is not None:
+        bar.close()
+    signals = torch.cat(pieces)[:trials]
+    return SimulationResult(scene=scene, plan=plan, signals=signals, seed=seed, trials=trials,
+                            frame_times_s=scene.protocol.times_s, elapsed_s=time.perf_counter() - t0)
