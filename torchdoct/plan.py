@@ -93,6 +93,15 @@ def expected_entry_flux(pop: Population, h: tuple[float, float, float], n_sample
     return pop.density_per_um3 * flux
 
 
+def _ellipsoid_volume(system, c: float) -> float:
+    """Volume (µm³) where the amplitude PSF exceeds the tolerance: (4π/3)·c³·s_x²·s_z."""
+    from .conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
+
+    sx = amplitude_sigma_lateral_um(system.lateral_resolution_um)
+    sz = amplitude_sigma_axial_um(system.axial_resolution_um)
+    return 4.0 * math.pi / 3.0 * c**3 * sx * sx * sz
+
+
 def _groups(halfs: list[tuple[float, float, float]]) -> list[tuple[tuple[float, float, float], tuple[int, ...]]]:
     """Systems grouped by identical PSF truncation boxes (in first-seen order)."""
     out: dict[tuple[float, float, float], list[int]] = {}
@@ -273,7 +282,9 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Pla
             for h, idx in _groups(halfs):
                 ng = rho * _box_volume(h) + (expected_entry_flux(p, h) * T if h != H else flux * T)
                 groups.append((h, idx, ng, capacity(ng)))
-            evals = sum(g[2] * len(g[1]) for g in groups) * n_frames
+            # only (scatterer, frame) pairs above the tolerance are evaluated: by stationarity their
+            # expected number is ρ·(ellipsoid volume)·frames per system
+            evals = sum(rho * _ellipsoid_volume(sy, c) for sy in scene.systems) * n_frames
             pops.append(PopulationPlan(i, p.name, "drift", motions, rho, H, n, capacity(n0), False,
                                        evals, system_groups=tuple(groups), entry_proposal_rate_per_s=prop_rate,
                                        entry_proposal_capacity=capacity(prop_rate * T) if moving else 0,

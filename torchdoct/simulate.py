@@ -199,7 +199,7 @@ def _path_coefficients(p: torch.Tensor, v: torch.Tensor | None, t_ref: torch.Ten
 
 def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tensor | None,
                 times: torch.Tensor, optics: _Optics, systems: tuple[int, ...], refl: float,
-                dtype: torch.dtype, frame_chunk: int) -> torch.Tensor:
+                dtype: torch.dtype, tolerance: float) -> torch.Tensor:
     """Field [N, len(systems), T] of scatterers on straight paths ``p_ref + vel·(t − t_ref)``.
 
     ``vel is None`` means static scatterers: one evaluation, repeated over the frames.
@@ -218,19 +218,51 @@ def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tens
             out[:, k] = _sum_field(amp, phi.to(dtype), dim=1)
         return out[:, :, None].expand(N, len(systems), T)
     out = torch.empty(N, len(systems), T, dtype=cdt, device=p_ref.device)
-    t_d = times.to(dtype)
+    log_tol = math.log(tolerance)
     for k, s in enumerate(systems):
-        e, a2, t_star, phi, omega = (c.to(dtype)[..., None] for c in _path_coefficients(
-            p_ref, vel, t_ref, float(optics.kn[s]), float(optics.a_lat[s]), float(optics.a_ax[s])))
-        for f0 in range(0, T, frame_chunk):
-            tc = t_d[f0:f0 + frame_chunk]
-            tau = tc.view(1, 1, -1) - t_star  # [N, C, Tc]
-            amp = _amplitude(torch.addcmul(e, a2, tau * tau))
-            if refl != 1.0:
-                amp = amp * refl
-            phase = torch.addcmul(phi, omega, tau)
-            out[:, k, f0:f0 + tc.numel()] = _sum_field(amp, phase, dim=1)
+        coef = _path_coefficients(p_ref, vel, t_ref, float(optics.kn[s]), float(optics.a_lat[s]),
+                                  float(optics.a_ax[s]))
+        out[:, k] = _eval_sparse(*coef, times, log_tol, refl, dtype)
     return out
+
+
+def _eval_sparse(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi: torch.Tensor,
+                 omega: torch.Tensor, times: torch.Tensor, log_tol: float, refl: float,
+                 dtype: torch.dtype) -> torch.Tensor:
+    """Field [N, T] of straight paths, evaluated only at the frames where the amplitude exceeds the tolerance.
+
+    With the exponent ``e* + a2·(t − t*)²`` a path is above ``tolerance`` during
+    ``|t − t*| ≤ √((ln tol − e*)/a2)``; those (scatterer, frame) pairs are expanded, evaluated and
+    accumulated with ``index_add_`` in scatterer order (deterministic).
+    """
+    N, C = e.shape
+    T = times.numel()
+    dev = e.device
+    visible = e >= log_tol
+    moving = a2 < 0
+    half = torch.sqrt(torch.where(visible & moving, (log_tol - e) / torch.where(moving, a2, -torch.ones_like(a2)),
+                                  torch.zeros_like(e)))
+    lo = torch.where(moving, t_star - half, torch.full_like(e, -math.inf))
+    hi = torch.where(moving, t_star + half, torch.full_like(e, math.inf))
+    k_lo = torch.searchsorted(times, lo.reshape(-1).contiguous(), right=False)
+    k_hi = torch.searchsorted(times, hi.reshape(-1).contiguous(), right=True)
+    counts = torch.where(visible.reshape(-1), (k_hi - k_lo).clamp(min=0), torch.zeros_like(k_lo))
+    total = int(counts.sum())
+    cdt = _complex_of(dtype)
+    if total == 0:
+        return torch.zeros(N, T, dtype=cdt, device=dev)
+    src = torch.repeat_interleave(torch.arange(N * C, device=dev), counts, output_size=total)
+    start = torch.cumsum(counts, 0) - counts
+    frame = k_lo[src] + (torch.arange(total, device=dev) - start[src])
+    tau = (times[frame] - t_star.reshape(-1)[src]).to(dtype)
+    amp = torch.exp(torch.addcmul(e.reshape(-1)[src].to(dtype), a2.reshape(-1)[src].to(dtype), tau * tau))
+    if refl != 1.0:
+        amp = amp * refl
+    phase = torch.addcmul(phi.reshape(-1)[src].to(dtype), omega.reshape(-1)[src].to(dtype), tau)
+    dest = (src // C) * T + frame
+    re = torch.zeros(N * T, dtype=dtype, device=dev).index_add_(0, dest, amp * torch.cos(phase))
+    im = torch.zeros(N * T, dtype=dtype, device=dev).index_add_(0, dest, amp * torch.sin(phase))
+    return torch.complex(re, im).view(N, T)
 
 
 def _path_meets_box(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tensor | None,
@@ -272,7 +304,7 @@ def _eval_culled(pp: PopulationPlan, pop: Population, p_ref, vel, t_ref, times, 
             got[0] = torch.where(valid[..., None], got[0], torch.full_like(got[0], _FAR))
             sel = (got[0], got[1], got[2]) if vel is not None else (got[0], None, None)
         out[:, list(idx)] = _eval_paths(*sel, times, optics, tuple(idx), pop.reflectivity, dtype,
-                                        plan.frame_chunk)
+                                        plan.truncation_tolerance)
     return out
 
 
@@ -589,9 +621,10 @@ def simulate(
     n_blocks = -(-trials // BLOCK_TRIALS)
     if chunk_trials is None:
         # keep a chunk's largest working tensor near 16M elements
-        per_trial = max(max(p.capacity + p.entry_capacity + p.immigrant_proposal_capacity
-                            for p in plan.populations), 1) * max(plan.frame_chunk, 1)
-        chunk_blocks = max(1, min(16, (1 << 24) // (BLOCK_TRIALS * per_trial)))
+        per_trial = max(max(3 * (p.capacity + p.entry_capacity + p.entry_proposal_capacity
+                                 + p.immigrant_proposal_capacity) + (p.evaluations_per_trial
+                                 if p.sampler == "drift" else 0) for p in plan.populations), 1)
+        chunk_blocks = max(1, min(16, int((1 << 23) // (BLOCK_TRIALS * per_trial))))
     else:
         if chunk_trials < 1:
             raise ValueError(f"chunk_trials must be >= 1; got {chunk_trials}")
