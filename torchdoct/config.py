@@ -498,19 +498,18 @@ def _build(path: str, cls: type, kwargs: dict[str, Any]) -> Any:
     """Construct a dataclass, re-labelling its errors with the file's key path."""
     try:
         return cls(**kwargs)
-    except SceneError as err:
+    except (SceneError, TypeError) as err:
         msg = str(err)
-        # replace the generic prefix (system['x'] / population) with the file path
-        head, _, rest = msg.partition(".")
-        if head.startswith(("system[", "population")) and rest:
-            msg = f"{path}.{rest}"
-        raise SceneError(msg) from None
-    except TypeError as err:
-        msg = str(err)
-        head, _, rest = msg.partition(".")
-        if head.startswith(("system[", "population")) and rest:
-            msg = f"{path}.{rest}"
-        raise TypeError(msg) from None
+        prefixes = []
+        if cls is OCTSystem:
+            prefixes.append(f"system[{kwargs.get('name')!r}]")
+        if cls is Population:
+            prefixes.append(f"population[{kwargs.get('name')!r}]" if kwargs.get("name") else "population")
+        for pre in prefixes:
+            if msg.startswith(pre + "."):
+                msg = path + msg[len(pre):]
+                break
+        raise type(err)(msg) from None
 
 
 _SYSTEM_KEYS = {"name", "wavelength_um", "lateral_resolution_um", "axial_resolution_um", "refractive_index"}
@@ -522,7 +521,7 @@ _MOTION_KEYS = {
 _MOTION_REQUIRED = {
     "diffusion": {"diffusion_um2_per_s"},
     "ballistic": {"speed_um_per_s"},
-    "flow": {"speed_um_per_s", "polar_angle_deg"},
+    "flow": {"speed_um_per_s"},
 }
 
 
@@ -554,9 +553,9 @@ def scene_from_dict(data: dict[str, Any]) -> Scene:
             kw = {k: v for k, v in m.items() if k != "kind"}
             try:
                 motion = _MOTION_TYPES[kind](**kw)
-                motion.validate(mp)
             except TypeError as err:
                 raise TypeError(f"{mp}: {err}") from None
+            motion.validate(mp)
             motions.append(motion)
         kw = {k: v for k, v in pop.items() if k != "motion"}
         populations.append(_build(p, Population, {**kw, "motion": tuple(motions)}))

@@ -135,7 +135,7 @@ def ocds_from_correlations(rho: torch.Tensor, delays_s: torch.Tensor,
     x = delays_s[sel]
     y = rho[..., sel]
     xc = x - x.mean()
-    return -(y * xc).sum(-1) / (xc * xc).sum()
+    return -((y - y[..., :1]) * xc).sum(-1) / (xc * xc).sum()
 
 
 def ocds(intensity: torch.Tensor, frame_times_s: Sequence[float], *,
