@@ -85,13 +85,28 @@ class _Draws:
         return self._draw(torch.randn, shape)
 
     def poisson(self, mean: float, cap: int, what: str) -> torch.Tensor:
+        """Poisson counts [trials] by inversion of the CDF: exactly two uniforms per trial.
+
+        Inversion makes the count a monotone function of one uniform, so a slightly different mean
+        (say a slightly larger domain) keeps the same counts and the same later draws almost always:
+        realizations are nested across nearby scenes.
+        """
+        u = self.rand(2)
         if mean <= 0:
-            return torch.zeros(BLOCK_TRIALS * len(self.gens), dtype=torch.int64, device=self.device)
-        rate = torch.full((BLOCK_TRIALS,), float(mean), dtype=_F64)
-        n = torch.cat([torch.poisson(rate, generator=g) for g in self.gens]).to(torch.int64)
+            return torch.zeros(u.shape[0], dtype=torch.int64, device=self.device)
+        u = u[:, 0] + u[:, 1] * 2.0**-24
+        cdf = _poisson_cdf(float(mean), cap + 1).to(self.device)
+        n = torch.searchsorted(cdf, u.contiguous(), right=True)
         if int(n.max()) > cap:
             raise CapacityError(f"{what}: Poisson count {int(n.max())} exceeds the {cap} reserved slots")
-        return n.to(self.device)
+        return n
+
+
+def _poisson_cdf(mean: float, n: int) -> torch.Tensor:
+    """P(N <= k) for k = 0 … n−1 (float64)."""
+    k = torch.arange(n, dtype=_F64)
+    logp = k * math.log(mean) - mean - torch.lgamma(k + 1.0)
+    return torch.cumsum(torch.exp(logp), 0).clamp_(max=1.0)
 
 
 _POOL = None

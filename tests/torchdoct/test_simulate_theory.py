@@ -87,7 +87,7 @@ def test_finite_scatterer_term_is_resolved():
     ne = n_eff(RHO, 4.9, 3.8)
     cov, se, _ = batch_means(cov_at_lag(1), E)
     assert abs(g1_th[0]) < 1e-6  # phases fully decorrelated
-    assert cov.real > 10 * se  # clearly non-zero
+    assert cov.real > 5 * se  # clearly non-zero: Siegert (N_eff → ∞) would give 0
     assert_within_se(cov.real, float(j_th[0] / ne), se, what="j/N_eff")
 
 
