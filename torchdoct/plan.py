@@ -275,7 +275,8 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Pla
             n0 = rho * _box_volume(H)
             flux = expected_entry_flux(p, H)
             vmax = p.max_speed_um_per_s
-            prop_rate = rho * vmax * sum(2 * a for _, a in _face_areas(H))
+            # entrant proposals: velocities kept with probability Φ(v)/(v_max·√ΣA²) (simulate.py)
+            prop_rate = rho * vmax * math.sqrt(sum(a * a for _, a in _face_areas(H)))
             n = n0 + flux * T
             moving = vmax > 0 and T > 0
             groups = []

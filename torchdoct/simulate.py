@@ -253,28 +253,34 @@ def _eval_sparse(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi: t
     N, C = e.shape
     T = times.numel()
     dev = e.device
-    visible = e >= log_tol
+    visible = (e >= log_tol).reshape(-1)
+    idx = torch.nonzero(visible).squeeze(1)  # scatterers that ever reach the tolerance level
+    cdt = _complex_of(dtype)
+    if idx.numel() == 0:
+        return torch.zeros(N, T, dtype=cdt, device=dev)
+    e, a2, t_star = e.reshape(-1)[idx], a2.reshape(-1)[idx], t_star.reshape(-1)[idx]
     moving = a2 < 0
-    half = torch.sqrt(torch.where(visible & moving, (log_tol - e) / torch.where(moving, a2, -torch.ones_like(a2)),
+    half = torch.sqrt(torch.where(moving, (log_tol - e) / torch.where(moving, a2, -torch.ones_like(a2)),
                                   torch.zeros_like(e)))
     lo = torch.where(moving, t_star - half, torch.full_like(e, -math.inf))
     hi = torch.where(moving, t_star + half, torch.full_like(e, math.inf))
-    k_lo = torch.searchsorted(times, lo.reshape(-1).contiguous(), right=False)
-    k_hi = torch.searchsorted(times, hi.reshape(-1).contiguous(), right=True)
-    counts = torch.where(visible.reshape(-1), (k_hi - k_lo).clamp(min=0), torch.zeros_like(k_lo))
+    k_lo = torch.searchsorted(times, lo, right=False)
+    k_hi = torch.searchsorted(times, hi, right=True)
+    counts = (k_hi - k_lo).clamp(min=0)
     total = int(counts.sum())
-    cdt = _complex_of(dtype)
     if total == 0:
         return torch.zeros(N, T, dtype=cdt, device=dev)
-    src = torch.repeat_interleave(torch.arange(N * C, device=dev), counts, output_size=total)
+    coef = torch.stack([e, a2, t_star, phi.reshape(-1)[idx], omega.reshape(-1)[idx]], dim=1)
+    src = torch.repeat_interleave(torch.arange(idx.numel(), device=dev), counts, output_size=total)
     start = torch.cumsum(counts, 0) - counts
     frame = k_lo[src] + (torch.arange(total, device=dev) - start[src])
-    tau = (times[frame] - t_star.reshape(-1)[src]).to(dtype)
-    amp = torch.exp(torch.addcmul(e.reshape(-1)[src].to(dtype), a2.reshape(-1)[src].to(dtype), tau * tau))
+    c = coef.to(dtype).index_select(0, src)
+    tau = times.to(dtype)[frame] - c[:, 2]
+    amp = torch.exp(torch.addcmul(c[:, 0], c[:, 1], tau * tau))
     if refl != 1.0:
         amp = amp * refl
-    phase = torch.addcmul(phi.reshape(-1)[src].to(dtype), omega.reshape(-1)[src].to(dtype), tau)
-    dest = (src // C) * T + frame
+    phase = torch.addcmul(c[:, 3], c[:, 4], tau)
+    dest = (idx // C)[src] * T + frame
     re = torch.zeros(N * T, dtype=dtype, device=dev).index_add_(0, dest, amp * torch.cos(phase))
     im = torch.zeros(N * T, dtype=dtype, device=dev).index_add_(0, dest, amp * torch.sin(phase))
     return torch.complex(re, im).view(N, T)
@@ -368,26 +374,32 @@ def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, o
     T = float(times[-1])
     if pp.entry_proposal_capacity == 0:
         return _eval_culled(pp, pop, p0, v0, t0, times, optics, dtype, plan)
-    # entrants through the faces of the box: proposals at rate ρ·v_max·A per face, thinned by
-    # (−v·m)₊ / v_max (m the outward normal), uniform entry point and entry time.
+    # Entrants through the faces of the box form a Poisson process of intensity
+    # ρ·p(v)·A_f·(−v·m_f)₊ over (velocity, face, point, time). Per velocity the entering flux is
+    # Φ(v) = Σ_a A_a·|v_a| ≤ v_max·√(Σ A_a²), so velocities are drawn from p(v) and kept with
+    # probability Φ(v)/(v_max·√ΣA²); the entry face is then axis a with probability A_a·|v_a|/Φ(v)
+    # on the side facing −v, with a uniform point on it and a uniform entry time.
     P = pp.entry_proposal_capacity
+    dev = draws.device
     vmax = pop.max_speed_um_per_s
     n_prop = draws.poisson(pp.entry_proposal_rate_per_s * T, P, f"population {pp.index} entrants")
-    u = draws.rand(P, 6)
-    h = torch.tensor(H, dtype=_F64, device=draws.device)
-    areas = torch.tensor([H[1] * H[2], H[0] * H[2], H[0] * H[1]], dtype=_F64, device=draws.device)
-    cum = torch.cumsum(areas, 0) / areas.sum()
-    axis = torch.searchsorted(cum, u[..., 0].contiguous(), right=True).clamp(max=2)  # [N, P]
-    side = torch.where(u[..., 1] < 0.5, -1.0, 1.0).to(_F64)
-    pe = (2.0 * u[..., 2:5] - 1.0) * h
-    onehot = torch.nn.functional.one_hot(axis, 3).to(torch.bool)
-    pe = torch.where(onehot, side[..., None] * h, pe)
-    te = u[..., 5] * T
+    h = torch.tensor(H, dtype=_F64, device=dev)
+    areas = torch.tensor([H[1] * H[2], H[0] * H[2], H[0] * H[1]], dtype=_F64, device=dev)
     ve = _velocities(pop, draws, P)
     u_acc = draws.rand(P)
-    v_axis = ve.gather(2, axis[..., None]).squeeze(-1)
-    accept = (u_acc * vmax < -side * v_axis) & (torch.arange(P, device=draws.device)[None, :] < n_prop[:, None])
-    valid_e, (pe, ve, te) = _compact(accept, pp.entry_capacity, f"population {pp.index} entrants", pe, ve, te)
+    flux = (ve.abs() * areas).sum(-1)
+    bound = vmax * float(torch.sqrt((areas * areas).sum()))
+    accept = (u_acc * bound < flux) & (torch.arange(P, device=dev)[None, :] < n_prop[:, None])
+    valid_e, (ve,) = _compact(accept, pp.entry_capacity, f"population {pp.index} entrants", ve)
+    u = draws.rand(pp.entry_capacity, 4)
+    w = ve.abs() * areas
+    cum = torch.cumsum(w, -1)
+    axis = (u[..., :1] * cum[..., 2:3] >= cum).sum(-1).clamp(max=2)  # [N, E]
+    onehot = torch.nn.functional.one_hot(axis, 3).to(torch.bool)
+    side = -torch.sign(ve.gather(2, axis[..., None]).squeeze(-1))
+    pe = (2.0 * u[..., 1:4] - 1.0) * h
+    pe = torch.where(onehot, side[..., None] * h, pe)
+    te = draws.rand(pp.entry_capacity) * T
     pe = torch.where(valid_e[..., None], pe, torch.full_like(pe, _FAR))
     p_ref = torch.cat([p0, pe], dim=1)
     vel = torch.cat([v0, ve], dim=1)
