@@ -474,48 +474,71 @@ def _face_immigrants(draws: _Draws, P: int, n_prop: torch.Tensor, inner: tuple, 
 
 
 def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
+    """Random walk tracked frame by frame in the region R (see :mod:`torchdoct.plan`).
+
+    State per slot (float64, component-major [N, 3, C]): position, depth at which the phase was
+    referenced and that phase ``(2kn·z_ref) mod 2π``. Unused slots sit far away. Each frame: one
+    step for every slot, slots that left R are freed (set far away), immigrants from the medium
+    outside fill free slots, and the field is evaluated on the slots inside the PSF box only.
+    """
     dev = draws.device
     R = pp.domain_half_widths_um
-    Rt = torch.tensor(R, dtype=_F64, device=dev)
+    Rt = torch.tensor(R, dtype=_F64, device=dev).view(1, 3, 1)
+    inv_B = torch.tensor([1.0 / h for h in plan.domain_half_widths_um], dtype=_F64, device=dev).view(1, 3, 1)
     rho = pp.density_per_um3
     C = pp.capacity
     P = pp.immigrant_proposal_capacity
     D = pop.diffusion_um2_per_s
     drift = pop.max_speed_um_per_s > 0
     n0 = draws.poisson(pp.expected_scatterers_per_trial, C, f"population {pp.index} count")
-    pos, alive = _uniform_box(draws, n0, C, R)
-    vel = _velocities(pop, draws, C) if drift else None
+    pos0, alive = _uniform_box(draws, n0, C, R)
+    pos = pos0.transpose(1, 2).contiguous()  # [N, 3, C]
+    vel = _velocities(pop, draws, C).transpose(1, 2).contiguous() if drift else None
     N = pos.shape[0]
     S = optics.kn.numel()
     T = times.numel()
-    phi0 = _phase0(optics.kn, pos[..., 2], _F64)  # kept in float64: cast at evaluation
-    zref = pos[..., 2].clone()
-    out = torch.empty(N, S, T, dtype=_complex_of(dtype), device=dev)
+    kn2 = [2.0 * float(optics.kn[s]) for s in range(S)]
+    zref = pos[:, 2].clone()
+    phi0 = torch.stack([torch.remainder(k * zref, _TWO_PI) for k in kn2]).to(dtype)  # [S, N, C]
+    cdt = _complex_of(dtype)
+    out_re = torch.zeros(S, N * T, dtype=dtype, device=dev)
+    out_im = torch.zeros(S, N * T, dtype=dtype, device=dev)
     prop_slots = torch.arange(P, device=dev)[None, :]
     shell_vol = 8.0 * (math.prod(pp.immigrant_shell_half_widths_um) - math.prod(R))
-    far = torch.full_like(pos, _FAR)
+    a_lat = [float(optics.a_lat[s]) for s in range(S)]
+    a_ax = [float(optics.a_ax[s]) for s in range(S)]
 
     def evaluate(f: int) -> None:
-        p = pos.to(dtype)
-        r2 = p[..., 0] ** 2 + p[..., 1] ** 2
-        z2 = p[..., 2] ** 2
-        dz = pos[..., 2] - zref
+        # only slots inside the PSF box carry an amplitude above the tolerance
+        b, c = torch.nonzero((pos * inv_B).abs_().amax(1) <= 1.0, as_tuple=True)
+        if b.numel() == 0:
+            return
+        p = pos[b, :, c]  # [M, 3] float64
+        dz = p[:, 2] - zref[b, c]
+        p = p.to(dtype)
+        r2 = p[:, 0] * p[:, 0] + p[:, 1] * p[:, 1]
+        z2 = p[:, 2] * p[:, 2]
+        dest = b * T + f
         for s in range(S):
-            amp = _amplitude(-(r2 * optics.a_lat[s] + z2 * optics.a_ax[s]))
+            amp = _amplitude(torch.addcmul(r2 * (-a_lat[s]), z2, torch.tensor(-a_ax[s], dtype=dtype)))
             if pop.reflectivity != 1.0:
                 amp = amp * pop.reflectivity
-            phase = (phi0[s] + 2.0 * optics.kn[s] * dz).to(dtype)
-            out[:, s, f] = _sum_field(amp, phase, dim=1)
+            phase = phi0[s, b, c] + (kn2[s] * dz).to(dtype)
+            out_re[s].index_add_(0, dest, amp * torch.cos(phase))
+            out_im[s].index_add_(0, dest, amp * torch.sin(phase))
 
     evaluate(0)
     for f in range(1, T):
         dt = float(times[f] - times[f - 1])
         sigma = math.sqrt(2.0 * D * dt)
-        step = sigma * draws.randn(C, 3)
+        pos.add_(draws.randn(3, C), alpha=sigma)
         if drift:
-            step = step + vel * dt
-        pos = pos + step
-        alive = alive & _inside(pos, Rt)
+            pos.add_(vel, alpha=dt)
+        inside = (pos.abs() <= Rt).all(1)
+        left = alive & ~inside
+        alive &= inside
+        lb, lc = torch.nonzero(left, as_tuple=True)
+        pos[lb, :, lc] = _FAR
         # immigrants: the Poisson medium outside R, one step later, landing inside R
         vy = None
         if pp.immigrant_method == "faces":
@@ -530,25 +553,27 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
                 vy = _velocities(pop, draws, P)
                 ystep = ystep + vy * dt
             y = y + ystep
-            acc = (prop_slots < n_prop[:, None]) & _inside(y, Rt)
+            acc = (prop_slots < n_prop[:, None]) & _inside(y, Rt.view(3))
         n_acc = acc.sum(1)
         dead = ~alive
         dead_rank = torch.cumsum(dead, 1) - 1
         if bool((n_acc > dead.sum(1)).any()):
             raise CapacityError(f"population {pp.index}: tracked scatterers exceed the {C} reserved slots")
-        order = torch.argsort((~acc).to(torch.int8), dim=1, stable=True)
-        src = order.gather(1, dead_rank.clamp(0, P - 1))
         fill = dead & (dead_rank < n_acc[:, None])
-        new_pos = y.gather(1, src[..., None].expand(-1, -1, 3))
-        pos = torch.where(fill[..., None], new_pos, pos)
-        zref = torch.where(fill, new_pos[..., 2], zref)
-        phi0 = torch.where(fill[None], _phase0(optics.kn, new_pos[..., 2], _F64), phi0)
-        if drift:
-            vel = torch.where(fill[..., None], vy.gather(1, src[..., None].expand(-1, -1, 3)), vel)
-        alive = alive | fill
-        pos = torch.where(alive[..., None], pos, far)
+        fb, fc = torch.nonzero(fill, as_tuple=True)
+        if fb.numel():
+            order = torch.argsort((~acc).to(torch.int8), dim=1, stable=True)
+            src = order[fb, dead_rank[fb, fc]]
+            new = y[fb, src]  # [F, 3]
+            pos[fb, :, fc] = new
+            zref[fb, fc] = new[:, 2]
+            for s in range(S):
+                phi0[s, fb, fc] = torch.remainder(kn2[s] * new[:, 2], _TWO_PI).to(dtype)
+            if drift:
+                vel[fb, :, fc] = vy[fb, src]
+            alive[fb, fc] = True
         evaluate(f)
-    return out
+    return torch.complex(out_re, out_im).view(S, N, T).permute(1, 0, 2).to(cdt)
 
 
 _SAMPLERS: dict[str, Callable] = {
