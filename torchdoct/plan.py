@@ -110,13 +110,12 @@ def _groups(halfs: list[tuple[float, float, float]]) -> list[tuple[tuple[float, 
     return [(h, tuple(idx)) for h, idx in out.items()]
 
 
-def face_immigrant_mean(rho: float, sigma_um: float, inner: tuple[float, float, float], margin_um: float) -> float:
+def face_immigrant_mean(rho: float, sigma_um: float, inner: tuple[float, float, float]) -> float:
     """Expected proposals per frame of the face immigrant sampler (pure diffusion).
 
-    Scatterers crossing one face plane inward per step: ``ρ·σ/√(2π)`` per unit area, over the faces
-    extended by the margin on the other axes.
+    Sources crossing one face plane inward per step: ``ρ·σ/√(2π)`` per unit area, over the six faces.
     """
-    e = [h + margin_um for h in inner]
+    e = inner
     area = sum(2.0 * 4.0 * e[b] * e[c] for a in range(3) for b, c in [[i for i in range(3) if i != a]])
     return rho * sigma_um / math.sqrt(2.0 * math.pi) * area
 
@@ -303,7 +302,7 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Pla
                 n_prop = rho * (_box_volume(outer) - _box_volume(R))
             else:
                 method = "faces"
-                n_prop = face_immigrant_mean(rho, sigma, R, margin)
+                n_prop = face_immigrant_mean(rho, sigma, R)
             pops.append(PopulationPlan(i, p.name, "diffusive", motions, rho, R, n, capacity(n), True,
                                        n * n_frames * S, immigrant_method=method, step_margin_um=margin,
                                        immigrant_shell_half_widths_um=outer,

@@ -437,21 +437,21 @@ def _shell_points(draws: _Draws, P: int, inner: tuple, outer: tuple) -> torch.Te
     return torch.stack(pts, dim=-1)
 
 
-def _face_immigrants(draws: _Draws, P: int, n_prop: torch.Tensor, inner: tuple, margin: float,
+def _face_immigrants(draws: _Draws, P: int, n_prop: torch.Tensor, inner: tuple,
                      sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Scatterers of the Poisson medium outside box ``inner`` that one diffusion step brings inside.
 
     For each face (axis a, side s) the sources beyond the face plane that cross it form a Poisson
     process of rate ``ρ·σ/√(2π)`` per unit area: the inward step is ``σ·|g|`` with ``|g|`` Rayleigh
-    and the source lies uniformly within that distance beyond the plane. The other coordinates are
-    uniform over the face extended by ``margin`` and take a normal step. A source outside the box on
-    several axes is kept only for its first such axis, so every source is counted once.
+    and the source lies uniformly within that distance beyond the plane. On the other axes a
+    uniform source plus a normal step is a uniform landing point minus that step, so landing points
+    are drawn uniform on the face and the sources found by stepping back. A source outside the box
+    on several axes is kept only for its first such axis, so every source is counted exactly once.
     Returns positions after the step [N, P, 3] and the accepted mask [N, P].
     """
     dev = draws.device
     Rt = torch.tensor(inner, dtype=_F64, device=dev)
-    E = Rt + margin
-    areas = torch.stack([E[1] * E[2], E[0] * E[2], E[0] * E[1]])
+    areas = torch.stack([Rt[1] * Rt[2], Rt[0] * Rt[2], Rt[0] * Rt[1]])
     cum = torch.cumsum(areas, 0) / areas.sum()
     u = draws.rand(P, 7)
     g = draws.randn(P, 3)
@@ -459,13 +459,11 @@ def _face_immigrants(draws: _Draws, P: int, n_prop: torch.Tensor, inner: tuple, 
     side = torch.where(u[..., 1] < 0.5, -1.0, 1.0).to(_F64)
     step_in = sigma * torch.sqrt(-2.0 * torch.log1p(-u[..., 2]))  # σ|g|, |g| Rayleigh
     depth = step_in * u[..., 3]  # source distance beyond the face plane
-    y = (2.0 * u[..., 4:7] - 1.0) * E
-    x = y + sigma * g
+    x = (2.0 * u[..., 4:7] - 1.0) * Rt  # landing point on the other axes
+    y = x - sigma * g  # its source
     onehot = torch.nn.functional.one_hot(axis, 3).to(torch.bool)
-    y_face = side[..., None] * (Rt + depth[..., None])
-    x_face = side[..., None] * (Rt + depth[..., None] - step_in[..., None])
-    y = torch.where(onehot, y_face, y)
-    x = torch.where(onehot, x_face, x)
+    y = torch.where(onehot, side[..., None] * (Rt + depth[..., None]), y)
+    x = torch.where(onehot, side[..., None] * (Rt + depth[..., None] - step_in[..., None]), x)
     first = torch.ones_like(side, dtype=torch.bool)
     for b in range(2):
         first &= (axis <= b) | (y[..., b].abs() <= Rt[b])
@@ -542,9 +540,9 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
         # immigrants: the Poisson medium outside R, one step later, landing inside R
         vy = None
         if pp.immigrant_method == "faces":
-            mean = face_immigrant_mean(rho, sigma, R, pp.step_margin_um)
+            mean = face_immigrant_mean(rho, sigma, R)
             n_prop = draws.poisson(mean, P, f"population {pp.index} immigrants")
-            y, acc = _face_immigrants(draws, P, n_prop, R, pp.step_margin_um, sigma)
+            y, acc = _face_immigrants(draws, P, n_prop, R, sigma)
         else:
             n_prop = draws.poisson(rho * shell_vol, P, f"population {pp.index} immigrants")
             y = _shell_points(draws, P, R, pp.immigrant_shell_half_widths_um)

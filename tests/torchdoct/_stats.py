@@ -10,7 +10,7 @@ import torch
 
 
 def batch_means(stat: Callable[[torch.Tensor], complex | float], signals: torch.Tensor,
-                n_batches: int = 32) -> tuple[complex, float, float]:
+                n_batches: int = 64) -> tuple[complex, float, float]:
     """Statistic on all trials, and the standard error of its real and imaginary parts.
 
     ``stat`` maps complex signals [trials, frames] to a number. Trials are independent, so the SE

@@ -60,7 +60,7 @@ CASES = [
 @pytest.mark.parametrize("motion, system", CASES)
 def test_mean_intensity_g1_and_intensity_autocorrelation(motion, system):
     """⟨I⟩ (§5.2), g1(τ) (§5.3) and ⟨I I_τ⟩/⟨I⟩² − 1 = |g1|² + j/N_eff (§5.4) at lags 1, 2, 6."""
-    res = td.simulate(scene((motion,), systems=(system,), n_frames=8), trials=2048, seed=11, dtype="float64")
+    res = td.simulate(scene((motion,), systems=(system,), n_frames=8), trials=4096, seed=11, dtype="float64")
     E = res.signals[:, 0, :]
     ne = n_eff(RHO, system.lateral_resolution_um, system.axial_resolution_um)
     mi_th = mean_intensity_theory(RHO, system.lateral_resolution_um, system.axial_resolution_um)
