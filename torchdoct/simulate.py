@@ -110,6 +110,30 @@ def _poisson_cdf(mean: float, n: int) -> torch.Tensor:
 
 
 _POOL = None
+_LIBC = None
+
+
+def _release_free_memory() -> None:
+    """Return freed heap memory to the OS (glibc ``malloc_trim``) between chunks.
+
+    Chunks allocate and free large tensors of varying sizes; glibc's growing mmap threshold then
+    serves them from the heap, which fragments and keeps the peak RSS growing with the number of
+    chunks. Trimming after each chunk keeps the peak independent of the number of trials.
+    """
+    global _LIBC
+    if _LIBC is None:
+        try:
+            import ctypes
+            import ctypes.util
+
+            name = ctypes.util.find_library("c")
+            _LIBC = ctypes.CDLL(name) if name else False
+            if _LIBC and not hasattr(_LIBC, "malloc_trim"):
+                _LIBC = False
+        except OSError:
+            _LIBC = False
+    if _LIBC:
+        _LIBC.malloc_trim(0)
 
 
 def _pool():
@@ -690,6 +714,7 @@ def simulate(
     for b0 in range(0, n_blocks, chunk_blocks):
         blocks = list(range(b0, min(n_blocks, b0 + chunk_blocks)))
         pieces.append(_simulate_chunk(scene, plan, blocks, seed, dtype, device))
+        _release_free_memory()
         if bar is not None:
             step = min(trials, (blocks[-1] + 1) * BLOCK_TRIALS) - done
             bar.update(step)
