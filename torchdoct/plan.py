@@ -171,7 +171,6 @@ class Plan:
     populations: tuple[PopulationPlan, ...]
     n_frames: int
     duration_s: float
-    frame_chunk: int
     has_noise: bool
     block_trials: int = BLOCK_TRIALS
     notes: tuple[str, ...] = field(default_factory=tuple)
@@ -320,10 +319,7 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Pla
     if scene.noise is not None:
         stages.append("noise")
     stages.append("metrics")
-    # frame chunk: keep a chunk of block x scatterers x frames below ~4M elements
-    cmax = max(max(p.capacity + p.entry_capacity + p.immigrant_proposal_capacity for p in pops), 1)
-    frame_chunk = int(max(1, min(n_frames, (1 << 22) // (BLOCK_TRIALS * cmax))))
     return Plan(scene_name=scene.name, stages=tuple(stages), truncation_tolerance=tol,
                 truncation_error_bound=truncation_error_bound(tol), domain_half_widths_um=H,
                 systems=tuple(systems), populations=tuple(pops), n_frames=n_frames, duration_s=T,
-                frame_chunk=frame_chunk, has_noise=scene.noise is not None, notes=tuple(notes))
+                has_noise=scene.noise is not None, notes=tuple(notes))

@@ -186,11 +186,6 @@ class _Optics:
                    torch.tensor([0.5 / z**2 for z in sz], dtype=dtype, device=device))
 
 
-def _phase0(kn: torch.Tensor, z: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """``(2kn·z) mod 2π`` per system, [S, ...] (float64 in, working dtype out)."""
-    return torch.remainder(2.0 * kn.view(-1, *([1] * z.dim())) * z, _TWO_PI).to(dtype)
-
-
 def _sum_field(amp: torch.Tensor, phase: torch.Tensor, dim: int) -> torch.Tensor:
     """Σ amp·e^{i·phase} along ``dim`` (real arithmetic: complex exp is slow on CPU)."""
     return torch.complex((amp * torch.cos(phase)).sum(dim), (amp * torch.sin(phase)).sum(dim))
