@@ -118,7 +118,7 @@ def _release_free_memory() -> None:
 
     Chunks allocate and free large tensors of varying sizes; glibc's growing mmap threshold then
     serves them from the heap, which fragments and keeps the peak RSS growing with the number of
-    chunks. Trimming after each chunk keeps the peak independent of the number of trials.
+    chunks. Trimming every few seconds of work keeps the peak independent of the number of trials.
     """
     global _LIBC
     if _LIBC is None:
@@ -706,10 +706,13 @@ def simulate(
 
         bar = tqdm(total=trials, unit="trial", desc=f"simulate {scene.name or 'scene'}")
     done = 0
+    last_trim = time.perf_counter()
     for b0 in range(0, n_blocks, chunk_blocks):
         blocks = list(range(b0, min(n_blocks, b0 + chunk_blocks)))
         pieces.append(_simulate_chunk(scene, plan, blocks, seed, dtype, device))
-        _release_free_memory()
+        if time.perf_counter() - last_trim > 2.0:  # amortized: a trim costs a few ms of page faults
+            _release_free_memory()
+            last_trim = time.perf_counter()
         if bar is not None:
             step = min(trials, (blocks[-1] + 1) * BLOCK_TRIALS) - done
             bar.update(step)
