@@ -30,7 +30,12 @@ import numpy as np
 import torch
 
 from .config import Population, Scene
-from .conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, wavenumber_per_um
+from .conventions import (
+    amplitude_sigma_axial_um,
+    amplitude_sigma_lateral_um,
+    truncation_radius_factor,
+    wavenumber_per_um,
+)
 from .plan import BLOCK_TRIALS, Plan, PopulationPlan, face_immigrant_mean, make_plan
 
 __all__ = ["simulate", "SimulationResult", "CapacityError", "block_generator"]
@@ -501,7 +506,6 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
     dev = draws.device
     R = pp.domain_half_widths_um
     Rt = torch.tensor(R, dtype=_F64, device=dev).view(1, 3, 1)
-    inv_B = torch.tensor([1.0 / h for h in plan.domain_half_widths_um], dtype=_F64, device=dev).view(1, 3, 1)
     rho = pp.density_per_um3
     C = pp.capacity
     P = pp.immigrant_proposal_capacity
@@ -525,24 +529,34 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
     a_lat = [float(optics.a_lat[s]) for s in range(S)]
     a_ax = [float(optics.a_ax[s]) for s in range(S)]
 
+    # systems grouped by their own PSF box: each evaluates only the slots inside it
+    c_tol = truncation_radius_factor(plan.truncation_tolerance)
+    boxes: dict[tuple[float, float], list[int]] = {}
+    for s in range(S):
+        key = (c_tol / math.sqrt(2.0 * a_lat[s]), c_tol / math.sqrt(2.0 * a_ax[s]))
+        boxes.setdefault(key, []).append(s)
+    groups = [(torch.tensor([1.0 / hx, 1.0 / hx, 1.0 / hz], dtype=_F64, device=dev).view(1, 3, 1), idx)
+              for (hx, hz), idx in boxes.items()]
+
     def evaluate(f: int) -> None:
-        # only slots inside the PSF box carry an amplitude above the tolerance
-        b, c = torch.nonzero((pos * inv_B).abs_().amax(1) <= 1.0, as_tuple=True)
-        if b.numel() == 0:
-            return
-        p = pos[b, :, c]  # [M, 3] float64
-        dz = p[:, 2] - zref[b, c]
-        p = p.to(dtype)
-        r2 = p[:, 0] * p[:, 0] + p[:, 1] * p[:, 1]
-        z2 = p[:, 2] * p[:, 2]
-        dest = b * T + f
-        for s in range(S):
-            amp = _amplitude(torch.addcmul(r2 * (-a_lat[s]), z2, torch.tensor(-a_ax[s], dtype=dtype)))
-            if pop.reflectivity != 1.0:
-                amp = amp * pop.reflectivity
-            phase = phi0[s, b, c] + (kn2[s] * dz).to(dtype)
-            out_re[s].index_add_(0, dest, amp * torch.cos(phase))
-            out_im[s].index_add_(0, dest, amp * torch.sin(phase))
+        for inv_box, systems in groups:
+            # only slots inside the system's PSF box carry an amplitude above the tolerance
+            b, c = torch.nonzero((pos * inv_box).abs_().amax(1) <= 1.0, as_tuple=True)
+            if b.numel() == 0:
+                continue
+            p = pos[b, :, c]  # [M, 3] float64
+            dz = p[:, 2] - zref[b, c]
+            p = p.to(dtype)
+            r2 = p[:, 0] * p[:, 0] + p[:, 1] * p[:, 1]
+            z2 = p[:, 2] * p[:, 2]
+            dest = b * T + f
+            for s in systems:
+                amp = _amplitude(torch.addcmul(r2 * (-a_lat[s]), z2, torch.tensor(-a_ax[s], dtype=dtype)))
+                if pop.reflectivity != 1.0:
+                    amp = amp * pop.reflectivity
+                phase = phi0[s, b, c] + (kn2[s] * dz).to(dtype)
+                out_re[s].index_add_(0, dest, amp * torch.cos(phase))
+                out_im[s].index_add_(0, dest, amp * torch.sin(phase))
 
     evaluate(0)
     for f in range(1, T):
