@@ -35,6 +35,7 @@ from .conventions import (
     ens_paper,
     mean_intensity,
     n_eff,
+    psf_integral_um3,
     truncation_error_bound,
     truncation_half_widths_um,
     truncation_radius_factor,
@@ -94,12 +95,9 @@ def expected_entry_flux(pop: Population, h: tuple[float, float, float], n_sample
 
 
 def _ellipsoid_volume(system, c: float) -> float:
-    """Volume (µm³) where the amplitude PSF exceeds the tolerance: (4π/3)·c³·s_x²·s_z."""
-    from .conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
-
-    sx = amplitude_sigma_lateral_um(system.lateral_resolution_um)
-    sz = amplitude_sigma_axial_um(system.axial_resolution_um)
-    return 4.0 * math.pi / 3.0 * c**3 * sx * sx * sz
+    """Volume (µm³) where the amplitude PSF exceeds the tolerance: (4π/3)·c³·s_x²·s_z = 4c³/(3√π)·∫|h|²."""
+    return 4.0 * c**3 / (3.0 * math.sqrt(math.pi)) * psf_integral_um3(system.lateral_resolution_um,
+                                                                       system.axial_resolution_um)
 
 
 def _groups(halfs: list[tuple[float, float, float]]) -> list[tuple[tuple[float, float, float], tuple[int, ...]]]:
@@ -115,8 +113,7 @@ def face_immigrant_mean(rho: float, sigma_um: float, inner: tuple[float, float, 
 
     Sources crossing one face plane inward per step: ``ρ·σ/√(2π)`` per unit area, over the six faces.
     """
-    e = inner
-    area = sum(2.0 * 4.0 * e[b] * e[c] for a in range(3) for b, c in [[i for i in range(3) if i != a]])
+    area = sum(2.0 * 4.0 * inner[b] * inner[c] for a in range(3) for b, c in [[i for i in range(3) if i != a]])
     return rho * sigma_um / math.sqrt(2.0 * math.pi) * area
 
 

@@ -22,6 +22,7 @@ Design notes:
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -30,12 +31,7 @@ import numpy as np
 import torch
 
 from .config import Population, Scene
-from .conventions import (
-    amplitude_sigma_axial_um,
-    amplitude_sigma_lateral_um,
-    truncation_radius_factor,
-    wavenumber_per_um,
-)
+from .conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, wavenumber_per_um
 from .plan import BLOCK_TRIALS, Plan, PopulationPlan, face_immigrant_mean, make_plan
 
 __all__ = ["simulate", "SimulationResult", "CapacityError", "block_generator"]
@@ -107,8 +103,9 @@ class _Draws:
         return n
 
 
+@functools.lru_cache(maxsize=64)
 def _poisson_cdf(mean: float, n: int) -> torch.Tensor:
-    """P(N <= k) for k = 0 … n−1 (float64)."""
+    """P(N <= k) for k = 0 … n−1 (float64, CPU; cached: a random walk asks for the same one every frame)."""
     k = torch.arange(n, dtype=_F64)
     logp = k * math.log(mean) - mean - torch.lgamma(k + 1.0)
     return torch.cumsum(torch.exp(logp), 0).clamp_(max=1.0)
@@ -530,13 +527,11 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
     a_ax = [float(optics.a_ax[s]) for s in range(S)]
 
     # systems grouped by their own PSF box: each evaluates only the slots inside it
-    c_tol = truncation_radius_factor(plan.truncation_tolerance)
-    boxes: dict[tuple[float, float], list[int]] = {}
-    for s in range(S):
-        key = (c_tol / math.sqrt(2.0 * a_lat[s]), c_tol / math.sqrt(2.0 * a_ax[s]))
-        boxes.setdefault(key, []).append(s)
-    groups = [(torch.tensor([1.0 / hx, 1.0 / hx, 1.0 / hz], dtype=_F64, device=dev).view(1, 3, 1), idx)
-              for (hx, hz), idx in boxes.items()]
+    boxes: dict[tuple[float, float, float], list[int]] = {}
+    for s, sp in enumerate(plan.systems):
+        boxes.setdefault(sp.truncation_half_widths_um, []).append(s)
+    groups = [(torch.tensor([1.0 / h for h in half], dtype=_F64, device=dev).view(1, 3, 1), idx)
+              for half, idx in boxes.items()]
 
     def evaluate(f: int) -> None:
         for inv_box, systems in groups:
@@ -551,7 +546,7 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
             z2 = p[:, 2] * p[:, 2]
             dest = b * T + f
             for s in systems:
-                amp = _amplitude(torch.addcmul(r2 * (-a_lat[s]), z2, torch.tensor(-a_ax[s], dtype=dtype)))
+                amp = _amplitude(torch.add(r2 * (-a_lat[s]), z2, alpha=-a_ax[s]))
                 if pop.reflectivity != 1.0:
                     amp = amp * pop.reflectivity
                 phase = phi0[s, b, c] + (kn2[s] * dz).to(dtype)
@@ -703,7 +698,7 @@ def simulate(
     plan = make_plan(scene, truncation_tolerance=truncation_tolerance)
     n_blocks = -(-trials // BLOCK_TRIALS)
     if chunk_trials is None:
-        # keep a chunk's largest working tensor near 16M elements
+        # keep a chunk's largest working tensors near 8M elements
         per_trial = max(max(3 * (p.capacity + p.entry_capacity + p.entry_proposal_capacity
                                  + p.immigrant_proposal_capacity) + (p.evaluations_per_trial
                                  if p.sampler == "drift" else 0) for p in plan.populations), 1)
