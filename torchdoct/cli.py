@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
+import importlib
+import importlib.util
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any, Sequence
+
+from ._files import atomic_write, check_out
 
 __all__ = ["build_parser", "main"]
 
@@ -45,33 +47,24 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     bs.add_argument("--out", default="bench-simulate.json", help="JSON output file")
     bs.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    for name in _EXTENSIONS:
+        if importlib.util.find_spec(f"{__package__}.{name}") is not None:
+            importlib.import_module(f"{__package__}.{name}").register(sub, bsub)
     return p
 
 
 def _check_out(path: str | None, force: bool, suffix: str) -> Path | None:
-    if path is None:
-        return None
-    out = Path(path)
-    if out.suffix != suffix:
-        raise SystemExit(f"error: --out must end in {suffix}; got {path!r}")
-    if out.exists() and not force:
-        raise SystemExit(f"error: {out} exists; pass --force to overwrite it")
-    if not out.parent.exists():
-        raise SystemExit(f"error: directory {out.parent} does not exist")
-    return out
-
-
-def _atomic_write(path: Path, write) -> None:
-    """Write through a temporary file in the same directory, then rename over ``path``."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
     try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        return check_out(path, force, suffix)
+    except ValueError as err:
+        raise SystemExit(f"error: {err}") from None
+
+
+_atomic_write = atomic_write
+
+#: Modules that add subcommands: each has ``register(sub, bench_sub)``, adding parsers whose
+#: ``func`` default is the handler ``func(args) -> int``.
+_EXTENSIONS = ("cli_render", "cli_data", "cli_study")
 
 
 def _format_summary(summary: dict[str, Any], result) -> str:
@@ -127,6 +120,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .scenes import shipped_scenes
 
     try:
+        if getattr(args, "func", None) is not None:
+            return int(args.func(args))
         if args.command == "scenes":
             for name, path in shipped_scenes().items():
                 sc = config.load_scene(path)
@@ -159,7 +154,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 _save_npz(out, result, metrics)
                 print(f"wrote {out}")
             return 0
-        if args.command == "bench":
+        if args.command == "bench" and args.bench == "simulate":
             from . import bench
 
             out = _check_out(args.out, args.force, ".json")
