@@ -120,3 +120,37 @@ def format_simulate_table(result: dict[str, Any]) -> str:
 
 def write_json(result: dict[str, Any], path: str | Path) -> None:
     Path(path).write_text(json.dumps(result, indent=2))
+
+
+def bench_render(*, phantom: str = "spheroid", repeats: int = 3, dtype: str = "float32") -> dict[str, Any]:
+    """Time :func:`torchdoct.render.render` on a shipped phantom (best of ``repeats``).
+
+    Reports the wall time, pixel-frames per second and the scatterer evaluations of the run.
+    """
+    from .phantom import load_phantom
+    from .render import render
+
+    ph = load_phantom(phantom)
+    times = []
+    res = None
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        res = render(ph, dtype=dtype)
+        times.append(time.perf_counter() - t0)
+    best = min(times)
+    shape = tuple(res.data.shape)
+    pixel_frames = shape[1] * int(torch.tensor(shape[2:]).prod()) * shape[0]
+    return {
+        "benchmark": "render",
+        "phantom": phantom,
+        "shape_STZX": list(shape),
+        "pitch_um": ph.grid.pitch_um,
+        "dtype": dtype,
+        "wall_s_best": best,
+        "wall_s_all": times,
+        "pixel_frames_per_s": pixel_frames / best,
+        "populations": res.work["populations"],
+        "stages": res.work["stages"],
+        "target_s": 20.0,
+        "machine": machine_info(),
+    }

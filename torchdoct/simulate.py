@@ -147,9 +147,13 @@ def _pool():
     return _POOL
 
 
-def _directions(draws: _Draws, law: str, n: int) -> torch.Tensor:
-    """Unit vectors [N, n, 3]: isotropic (cos polar ~ U[-1,1]) or uniform polar angle on [0, π]."""
-    u = draws.rand(n, 2)
+def unit_directions(u: torch.Tensor, law: str) -> torch.Tensor:
+    """Unit vectors [..., 3] from uniforms ``u`` [..., 2] on [0, 1).
+
+    ``law``: ``"isotropic"`` (cos of the polar angle uniform on [−1, 1]) or ``"uniform-angles"`` (the
+    polar angle uniform on [0, π], the reference paper's text and code; physics.md §10.2). The azimuth
+    is uniform on [0, 2π). The polar angle is measured from the depth (z) axis.
+    """
     if law == "isotropic":
         mu = 2.0 * u[..., 0] - 1.0
     else:
@@ -157,6 +161,11 @@ def _directions(draws: _Draws, law: str, n: int) -> torch.Tensor:
     st = torch.sqrt(torch.clamp(1.0 - mu * mu, min=0.0))
     phi = _TWO_PI * u[..., 1]
     return torch.stack([st * torch.cos(phi), st * torch.sin(phi), mu], dim=-1)
+
+
+def _directions(draws: _Draws, law: str, n: int) -> torch.Tensor:
+    """Unit vectors [N, n, 3] of one direction law (see :func:`unit_directions`)."""
+    return unit_directions(draws.rand(n, 2), law)
 
 
 def _velocities(pop: Population, draws: _Draws, n: int) -> torch.Tensor:
