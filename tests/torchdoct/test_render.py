@@ -254,3 +254,36 @@ def test_uniform_region_matches_point_model():
         da, db = (a - a.mean()) ** 2, (b - b.mean()) ** 2  # spread: compare the variances
         assert_within_se(da.mean(), db.mean(), math.hypot(da.std() / math.sqrt(len(da)), db.std() / math.sqrt(len(db))))
     assert_within_se(pix[:, 0].mean(), mean_intensity(0.055, 4.9, 3.8), pix[:, 0].std() / math.sqrt(len(pix)))
+
+
+# ------------------------------------------------------------------------------------------------
+# command line
+
+
+def test_cli_render_writes_sequence_labels_preview_and_refuses_overwrite(tmp_path, capsys):
+    from torchdoct.cli import main
+    from torchdoct.io import read_sequence
+
+    src = tmp_path / "ph.toml"
+    src.write_text(
+        'name = "mini"\n[[system]]\nname = "840nm"\nwavelength_um = 0.84\nlateral_resolution_um = 4.9\n'
+        'axial_resolution_um = 3.8\n[protocol]\nn_frames = 6\nframe_interval_s = 0.2048\n'
+        '[grid]\nn_x = 20\nn_z = 16\npitch_x_um = 2.0\npitch_z_um = 2.0\n'
+        '[[region]]\nname = "ball"\nshape = "sphere"\nradius_um = 10.0\ndensity_per_um3 = 0.05\n'
+        '[[region.motion]]\nkind = "diffusion"\ndiffusion_um2_per_s = 0.02\n'
+        '[analysis]\nmetrics = ["liv", "ocds"]\nocds_delay_range_s = [0.2048, 0.6144]\n', encoding="utf-8")
+    out = tmp_path / "seq.npz"
+    assert main(["render", str(src), "--out", str(out), "--no-progress"]) == 0
+    seq = read_sequence(out)
+    assert seq.data.shape == (6, 16, 20) and seq.meta["axes"] == "TZX"
+    assert seq.meta["pitch_um"] == {"z": 2.0, "x": 2.0} and len(seq.meta["frame_times_s"]) == 6
+    assert seq.labels.shape == (16, 20) and set(np.unique(seq.labels)) == {0, MOTION_CODES["diffusion"]}
+    assert (tmp_path / "seq.png").stat().st_size > 1000
+    before = out.read_bytes()
+    assert main(["render", str(src), "--out", str(out), "--no-progress", "--seed", "4"]) == 2
+    assert "exists" in capsys.readouterr().err and out.read_bytes() == before
+    assert main(["render", str(src), "--out", str(tmp_path / "seq.h5"), "--no-progress", "--no-preview"]) == 0
+    h5 = read_sequence(tmp_path / "seq.h5")
+    assert np.array_equal(h5.data, seq.data)
+    assert main(["render", str(src), "--out", str(tmp_path / "seq.txt")]) == 2
+    assert main(["render", str(tmp_path / "missing.toml"), "--out", str(tmp_path / "x.npz")]) == 2
