@@ -20,8 +20,9 @@ What runs, and nothing else:
 * **Motion.** Static populations are splatted once and added to every frame; populations with only
   ballistic or flow motion move on straight paths drawn once (a flow region is a rigid translation,
   no per-frame random draws); diffusing populations take one Gaussian step per frame (float64).
-* **Region membership.** A scatterer counts at a frame only while it is inside its region, so each
-  region keeps its density at every frame and the ground-truth labels are exact.
+* **Region membership.** A scatterer counts at a frame only while it is inside its region and not
+  inside a later region (later regions paint over earlier ones; the background lies under all), so
+  each region keeps its density at every frame and the ground-truth labels are exact.
 * **Splatting.** The Gaussian PSF is separable: each scatterer adds the outer product of its
   axial and lateral PSF windows (``2·h/pitch + 2`` pixels per axis) to the image, chunked over
   scatterers so memory stays bounded. Positions are float64 and phases are reduced mod 2π in
@@ -219,9 +220,10 @@ def _inside(phantom: Phantom, st: _PopulationState, pos: torch.Tensor, reach_box
     keep = ((pos >= reach_box[0]) & (pos <= reach_box[1])).all(-1)
     if st.region is not None:
         keep &= phantom.regions[st.region].contains(pos, phantom.grid)
-    elif phantom.regions:  # background: outside every region
-        for r in phantom.regions:
-            keep &= ~r.contains(pos, phantom.grid)
+    # later regions paint over earlier ones; the background lies under every region
+    later = phantom.regions if st.region is None else phantom.regions[st.region + 1:]
+    for r in later:
+        keep &= ~r.contains(pos, phantom.grid)
     return keep
 
 

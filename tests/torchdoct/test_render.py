@@ -126,6 +126,24 @@ def test_empty_outside_regions_and_labels():
     assert (res.data[0][:, torch.from_numpy(r < 8)].abs() > 0).all()
 
 
+def test_later_regions_paint_over_earlier_ones():
+    """A static ball over a diffusing slab: inside the ball only static scatterers count."""
+    ph = _phantom({"n_x": 40, "n_z": 40, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
+                  regions=[{"name": "slab", "shape": "slab", "z_min_um": -100.0, "z_max_um": 100.0,
+                            "density_per_um3": 0.05, "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.1}]},
+                           {"name": "ball", "shape": "sphere", "radius_um": 30.0, "density_per_um3": 0.05}])
+    res = render(ph)
+    x = ph.grid.coords_um("x")[None, :]
+    z = ph.grid.coords_um("z")[:, None]
+    r = np.sqrt(x**2 + z**2)
+    assert np.all(res.labels[r <= 30] == MOTION_CODES["static"])
+    assert np.all(res.labels[r > 30.5] == MOTION_CODES["diffusion"])
+    liv = res.maps()["liv"].numpy()
+    deep = r < 30.0 - 3.72 * amplitude_sigma_axial_um(3.8) - 5 * math.sqrt(2 * 0.1 * 7 * 0.2048)
+    assert deep.sum() > 20 and np.all(liv[deep] == 0)
+    assert np.all(liv[r > 45] > 0)
+
+
 def test_flow_region_is_rigid_translation_without_per_frame_draws(monkeypatch):
     calls = []
     real = torch.randn
