@@ -15,7 +15,10 @@ def register(sub, bench_sub) -> None:
     ph.set_defaults(func=_phantoms)
 
     r = sub.add_parser("render", help="render a phantom's complex image sequence, labels and a PNG preview")
-    r.add_argument("phantom", help="phantom TOML file or shipped phantom name")
+    r.add_argument("phantom", help="phantom or scene TOML file, or a shipped phantom or scene name")
+    r.add_argument("--grid", default=None, metavar="NZxNX|NYxNZxNX",
+                   help="pixels per axis (B-scan NZxNX, volume NYxNZxNX); replaces the file's [grid]")
+    r.add_argument("--pitch-um", type=float, default=None, help="pixel pitch (µm, all axes) with --grid")
     r.add_argument("--out", required=True,
                    help="output .npz, .npy or .h5 (with several systems: one file per system, "
                         "named STEM-SYSTEM.SUFFIX); .npy/.npz get a .json metadata sidecar")
@@ -46,6 +49,25 @@ def _phantoms(args) -> int:
     return 0
 
 
+def _grid(spec: str | None, pitch: float | None) -> dict | None:
+    if spec is None:
+        if pitch is not None:
+            raise ValueError("--pitch-um needs --grid NZxNX (or NYxNZxNX)")
+        return None
+    try:
+        n = [int(v) for v in spec.lower().split("x")]
+    except ValueError:
+        n = []
+    if len(n) not in (2, 3) or min(n) < 1:
+        raise ValueError(f"--grid must be NZxNX or NYxNZxNX with positive integers; got {spec!r}")
+    if pitch is None:
+        raise ValueError("--grid needs --pitch-um (pixel pitch in µm)")
+    g = {"n_z": n[-2], "n_x": n[-1], "pitch_x_um": pitch, "pitch_z_um": pitch}
+    if len(n) == 3:
+        g.update(kind="volume", n_y=n[0], pitch_y_um=pitch)
+    return g
+
+
 def _outputs(out: Path, names: list[str]) -> dict[str, Path]:
     if len(names) == 1:
         return {names[0]: out}
@@ -58,7 +80,7 @@ def _render(args) -> int:
     from .phantom import load_phantom
     from .render import render, save_preview
 
-    ph = load_phantom(args.phantom)
+    ph = load_phantom(args.phantom, grid=_grid(args.grid, args.pitch_um))
     names = args.system or [s.name for s in ph.scene.systems]
     check_out(args.out, True, _SUFFIXES)  # suffix and directory; existence per file below
     outs = _outputs(Path(args.out), names)
@@ -66,6 +88,8 @@ def _render(args) -> int:
         check_out(p, args.force, _SUFFIXES)
         if p.suffix in (".npy", ".npz"):
             check_out(p.with_suffix(".json"), args.force, ".json", "metadata sidecar")
+        if p.suffix == ".npy":
+            check_out(p.with_name(p.stem + ".labels.npz"), args.force, ".npz", "labels file")
         if not args.no_preview:
             check_out(p.with_suffix(".png"), args.force, ".png", "preview")
     res = render(ph, systems=names, seed=args.seed, dtype=args.dtype, device=args.device,
@@ -77,14 +101,29 @@ def _render(args) -> int:
         print(f"  {pop}: " + ", ".join(f"{k} {v}" for k, v in w.items()))
     for n, p in outs.items():
         k = res.system_index(n)
-        write_sequence(p, res.data[k].cpu().numpy(), res.metadata(k), labels=res.labels,
-                       label_params=res.label_params, force=args.force)
+        meta = res.metadata(k)
+        if p.suffix == ".npy":  # a .npy holds one array: the ground truth goes beside it
+            lab = p.with_name(p.stem + ".labels.npz")
+            meta["labels_file"] = lab.name
+            atomic_write(lab, lambda tmp: _save_labels(tmp, res))
+            write_sequence(p, res.data[k].cpu().numpy(), meta, force=args.force)
+            print(f"wrote {lab}")
+        else:
+            write_sequence(p, res.data[k].cpu().numpy(), meta, labels=res.labels,
+                           label_params=res.label_params, force=args.force)
         print(f"wrote {p}" + (f" and {p.with_suffix('.json')}" if p.suffix != ".h5" else ""))
         if not args.no_preview:
             png = p.with_suffix(".png")
             atomic_write(png, lambda tmp, k=k: save_preview(res, tmp, k))
             print(f"wrote {png}")
     return 0
+
+
+def _save_labels(path: str, res) -> None:
+    import numpy as np
+
+    with open(path, "wb") as fh:
+        np.savez(fh, labels=res.labels, label_params=res.label_params, regions=res.regions)
 
 
 def _bench(args) -> int:

@@ -2,10 +2,12 @@
 
 A phantom file is a scene file (systems, protocol, noise, analysis, simulation: see
 :mod:`torchdoct.config`) with a ``[grid]`` table and, instead of ``[[population]]``, one or more
-``[[region]]`` tables and an optional ``[background]`` (schema in the README). Each region is a shape
-with its own scatterer population (``density_per_um3``, ``reflectivity``, ``[[region.motion]]``, the
-keys of a ``[[population]]``); ``[background]`` fills everything outside the regions; without it, the
-outside is empty. Later regions paint over earlier ones where they overlap.
+``[[region]]`` tables and optional ``[[background]]`` populations (schema in the README). Each region
+is a shape with its own scatterer population (``density_per_um3``, ``reflectivity``,
+``[[region.motion]]``, the keys of a ``[[population]]``); the background populations fill everything
+outside the regions; without them, the outside is empty. Later regions paint over earlier ones where
+they overlap. A plain scene file (``[[population]]``, no regions) with a grid is a uniform medium:
+its populations are the background.
 
 Coordinates (:mod:`torchdoct.conventions`): µm, ``x`` lateral (fast axis), ``y`` lateral (slow axis),
 ``z`` depth (increasing into the sample). The grid is centred on the origin: pixel ``i`` along an axis
@@ -22,7 +24,7 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -38,11 +40,15 @@ MOTION_CODES = {"empty": 0, "static": 1, "diffusion": 2, "ballistic": 3, "flow":
 MAX_PIXELS = 2**28
 
 
-def motion_code(pop: Population | None) -> int:
-    """Ground-truth code (:data:`MOTION_CODES`) of a population: its single motion kind, or mixed."""
-    if pop is None:
+def motion_code(pops: Population | Sequence[Population] | None) -> int:
+    """Ground-truth code (:data:`MOTION_CODES`) of populations sharing a region: their single
+    motion kind (static scatterers beside moving ones do not change it), or mixed."""
+    if pops is None:
         return MOTION_CODES["empty"]
-    kinds = {type(m).__name__ for m in pop.active_motion}
+    pops = [pops] if isinstance(pops, Population) else list(pops)
+    if not pops:
+        return MOTION_CODES["empty"]
+    kinds = {type(m).__name__ for p in pops for m in p.active_motion}
     if not kinds:
         return MOTION_CODES["static"]
     if len(kinds) > 1:
@@ -188,37 +194,38 @@ class Region:
 class Phantom:
     """A scene (systems, protocol, populations, noise, analysis) plus its grid and regions.
 
-    ``scene.populations`` holds the background population first (if any), then one per region;
-    ``background`` is the index of the background population or ``None``.
+    ``scene.populations`` holds the background populations first, then one per region;
+    ``background`` holds the indices of the background populations (empty: nothing outside regions).
     """
 
     scene: Scene
     grid: Grid
     regions: tuple[Region, ...]
-    background: int | None = None
+    background: tuple[int, ...] = ()
 
     @property
     def name(self) -> str:
         return self.scene.name
 
-    def population_of(self, region: int | None) -> Population | None:
-        if region is None:
-            return None if self.background is None else self.scene.populations[self.background]
-        return self.scene.populations[self.regions[region].population]
-
     def region_table(self) -> list[dict[str, Any]]:
-        """JSON-able description of each labelled region (background first, if any)."""
+        """JSON-able description of each labelled region (the background first, if any).
+
+        ``diffusion_um2_per_s`` and ``speed_um_per_s`` are the largest among the region's populations;
+        the speed is |v_flow| plus the ballistic speeds.
+        """
         rows = []
-        names = ([("background", self.background)] if self.background is not None else []) + [
-            (r.name, r.population) for r in self.regions]
-        for name, ip in names:
-            pop = self.scene.populations[ip]
-            v = math.sqrt(sum(c * c for c in pop.flow_velocity_um_per_s)) + sum(
-                b.speed_um_per_s for b in pop.ballistic)
-            rows.append({"name": name, "motion_code": motion_code(pop),
-                         "motion": [type(m).__name__ for m in pop.active_motion] or ["static"],
-                         "diffusion_um2_per_s": pop.diffusion_um2_per_s, "speed_um_per_s": v,
-                         "density_per_um3": pop.density_per_um3, "reflectivity": pop.reflectivity})
+        groups = ([("background", list(self.background))] if self.background else []) + [
+            (r.name, [r.population]) for r in self.regions]
+        for name, idx in groups:
+            pops = [self.scene.populations[i] for i in idx]
+            speeds = [math.sqrt(sum(c * c for c in p.flow_velocity_um_per_s))
+                      + sum(b.speed_um_per_s for b in p.ballistic) for p in pops]
+            rows.append({"name": name, "motion_code": motion_code(pops),
+                         "motion": sorted({type(m).__name__ for p in pops for m in p.active_motion}) or ["static"],
+                         "diffusion_um2_per_s": max(p.diffusion_um2_per_s for p in pops),
+                         "speed_um_per_s": max(speeds),
+                         "density_per_um3": sum(p.density_per_um3 for p in pops),
+                         "populations": len(pops)})
         return rows
 
     def to_dict(self) -> dict[str, Any]:
@@ -234,10 +241,8 @@ class Phantom:
         else:
             grid["y_um"] = g.y_um
         out["grid"] = grid
-        if self.background is not None:
-            bg = dict(pops[self.background])
-            bg.pop("name", None)
-            out["background"] = bg
+        if self.background:
+            out["background"] = [pops[i] for i in self.background]
         regions = []
         for r in self.regions:
             d: dict[str, Any] = {"name": r.name, "shape": r.shape}
@@ -303,14 +308,20 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
     """Build a validated :class:`Phantom` from the phantom-file schema (see the module docstring)."""
     if not isinstance(data, dict):
         raise TypeError(f"a phantom must be a table; got {type(data).__name__}")
-    if "population" in data:
-        _fail("population", "a phantom places its scatterers in [[region]] tables and [background]",
-              "move each [[population]] into a [[region]] with a shape, or into [background]")
+    data = dict(data)
+    if "population" in data:  # a plain scene: its populations are a uniform background
+        if "region" in data or "background" in data:
+            _fail("population", "a phantom places its scatterers in [[region]] and [[background]] tables",
+                  "move each [[population]] into a [[region]] with a shape, or into [[background]]")
+        data["background"] = data.pop("population")
     allowed = {"name", "description", "system", "protocol", "noise", "analysis", "simulation",
                "grid", "region", "background"}
-    _check_keys("phantom", data, allowed, {"system", "protocol", "grid"})
+    _check_keys("phantom", data, allowed, {"system", "protocol"})
+    if "grid" not in data:
+        _fail("grid", "missing the [grid] table (pixels and pitch)",
+              "add [grid] with n_x, n_z, pitch_x_um, pitch_z_um (or pass --grid/--pitch-um to render)")
     if "region" not in data and "background" not in data:
-        _fail("region", "a phantom needs at least one [[region]] or a [background]",
+        _fail("region", "a phantom needs at least one [[region]] or [[background]] population",
               "add a [[region]] table with a shape and a density")
     g = _check_keys("grid", data["grid"], {"kind", "n_x", "n_z", "n_y", "pitch_x_um", "pitch_z_um",
                                             "pitch_y_um", "y_um"}, {"n_x", "n_z", "pitch_x_um", "pitch_z_um"})
@@ -322,12 +333,16 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
 
     pops: list[dict[str, Any]] = []
     where: list[str] = []
-    background = None
-    if "background" in data:
-        bg = _check_keys("background", data["background"], _POP_KEYS, {"density_per_um3"})
-        background = 0
-        pops.append({**bg, "name": "background"})
-        where.append("background")
+    bgs = data.get("background", [])
+    if isinstance(bgs, dict):
+        bgs = [bgs]
+    if not isinstance(bgs, list):
+        raise TypeError(f"background must be a table or an array of tables; got {bgs!r}")
+    for i, bg in enumerate(bgs):
+        _check_keys(f"background[{i}]", bg, _POP_KEYS | {"name"}, {"density_per_um3"})
+        pops.append({**bg, "name": bg.get("name") or f"background{i}" if len(bgs) > 1 else "background"})
+        where.append(f"background[{i}]")
+    background = tuple(range(len(bgs)))
     regions_raw = data.get("region", [])
     if isinstance(regions_raw, dict):
         regions_raw = [regions_raw]
@@ -345,7 +360,7 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
         _check_keys(path, r, {"name", "shape", *_SHAPE_KEYS[shape], *_POP_KEYS},
                     {"density_per_um3", *_SHAPE_REQUIRED[shape]})
         name = _string(f"{path}.name", r.get("name", f"region{i}"))
-        if name in names or name == "background":
+        if name in names or name.startswith("background"):
             _fail(f"{path}.name", f"duplicate region name {name!r}", "give each region a unique name")
         names.add(name)
         pops.append({**{k: v for k, v in r.items() if k in _POP_KEYS}, "name": name})
@@ -364,7 +379,7 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
 
     regions = []
     for path, name, shape, r in region_specs:
-        kw: dict[str, Any] = {"name": name, "shape": shape, "population": len(regions) + (background is not None)}
+        kw: dict[str, Any] = {"name": name, "shape": shape, "population": len(regions) + len(background)}
         if "center_um" in r:
             kw["center_um"] = _vec3(f"{path}.center_um", r["center_um"])
         if shape == "sphere":
@@ -416,21 +431,32 @@ def shipped_phantoms() -> dict[str, Path]:
     return {p.stem: p for p in sorted(_phantom_dir().glob("*.toml"))}
 
 
-def load_phantom(path: str | Path) -> Phantom:
-    """Read and validate a TOML phantom file, or a shipped phantom by name."""
+def load_phantom(path: str | Path, *, grid: dict[str, Any] | None = None) -> Phantom:
+    """Read and validate a TOML phantom file, a shipped phantom, or a scene file (shipped or not).
+
+    ``grid`` (the keys of ``[grid]``) replaces the file's grid, or supplies one to a scene file.
+    """
     p = Path(path)
     if not p.is_file():
+        from .scenes import shipped_scenes
+
         shipped = shipped_phantoms()
+        scenes = shipped_scenes()
         if str(path) in shipped:
             p = shipped[str(path)]
+        elif str(path) in scenes:
+            p = scenes[str(path)]
         else:
             raise FileNotFoundError(f"phantom file {str(path)!r} not found; give a path to a .toml phantom "
-                                    f"file or the name of a shipped phantom: {', '.join(shipped)}")
+                                    f"or scene file, or the name of a shipped phantom "
+                                    f"({', '.join(shipped)}) or scene ({', '.join(scenes)})")
     try:
         with open(p, "rb") as fh:
             data = tomllib.load(fh)
     except tomllib.TOMLDecodeError as err:
         raise SceneError(f"{p}: not valid TOML: {err}") from None
+    if grid is not None:
+        data["grid"] = dict(grid)
     try:
         ph = phantom_from_dict(data, base_dir=p.parent)
     except (SceneError, TypeError) as err:

@@ -208,7 +208,9 @@ def _seed_population(phantom: Phantom, index: int, region: int | None, half: tup
         vel = torch.tensor(pop.flow_velocity_um_per_s, dtype=_F64).expand(n, 3).clone()
         for b in pop.ballistic:
             vel += b.speed_um_per_s * unit_directions(torch.rand(n, 2, generator=gen, dtype=_F64), b.directions)
-    name = "background" if region is None else phantom.regions[region].name
+    name = phantom.scene.populations[index].name or f"population{index}"
+    if region is not None:
+        name = phantom.regions[region].name
     st = _PopulationState(index, name, pop, region, pos, vel, pop.diffusion_um2_per_s, gen)
     if st.diffusion > 0:
         st.walk = torch.zeros_like(pos)
@@ -290,7 +292,7 @@ def _pixel_labels(phantom: Phantom) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     table = phantom.region_table()
     region = torch.full(pos.shape[:-1], -1, dtype=torch.int16)
     offset = 0
-    if phantom.background is not None:
+    if phantom.background:
         region[:] = 0
         offset = 1
     for i, r in enumerate(phantom.regions):

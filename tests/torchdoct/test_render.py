@@ -305,3 +305,32 @@ def test_cli_render_writes_sequence_labels_preview_and_refuses_overwrite(tmp_pat
     assert np.array_equal(h5.data, seq.data)
     assert main(["render", str(src), "--out", str(tmp_path / "seq.txt")]) == 2
     assert main(["render", str(tmp_path / "missing.toml"), "--out", str(tmp_path / "x.npz")]) == 2
+
+
+def test_any_scene_renders_as_a_uniform_medium(tmp_path, tmp_scene_file, capsys):
+    """A point-model scene file (no regions) plus a grid: its populations fill the field of view."""
+    from torchdoct.cli import main
+    from torchdoct.io import read_sequence
+
+    out = tmp_path / "scene.npy"
+    assert main(["render", str(tmp_scene_file), "--grid", "12x10", "--pitch-um", "3", "--out", str(out),
+                 "--no-progress"]) == 0
+    seq = read_sequence(out)
+    assert seq.data.shape == (8, 12, 10) and seq.meta["pitch_um"] == {"z": 3.0, "x": 3.0}
+    labels = np.load(tmp_path / "scene.labels.npz", allow_pickle=False)
+    assert seq.meta["labels_file"] == "scene.labels.npz"
+    assert np.all(labels["labels"] == MOTION_CODES["diffusion"]) and np.all(np.abs(seq.data) > 0)
+    assert main(["render", str(tmp_scene_file), "--out", str(tmp_path / "b.npy")]) == 2
+    assert "[grid]" in capsys.readouterr().err
+    assert main(["render", str(tmp_scene_file), "--grid", "4x", "--pitch-um", "1", "--out",
+                 str(tmp_path / "c.npy")]) == 2
+
+
+def test_mixed_background_populations_label():
+    ph = _phantom(SMALL_GRID, background=[{"density_per_um3": 0.03},
+                                          {"density_per_um3": 0.02, "name": "moving",
+                                           "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.2}]}])
+    res = render(ph)
+    assert np.all(res.labels == MOTION_CODES["diffusion"])
+    assert np.allclose(res.label_params[0], 0.2)
+    assert res.phantom.region_table()[0]["density_per_um3"] == pytest.approx(0.05)

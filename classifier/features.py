@@ -1,0 +1,269 @@
+"""Feature specifications: which DOCT metrics, at which system configurations, make a feature vector.
+
+A feature vector is the LIV (dB²) and OCDS (1/s) of one pixel at several system configurations
+(wavelength, lateral 1/e² resolution, axial FWHM resolution; :mod:`torchdoct.conventions`), all
+computed from the *same* scatterers: in simulation, the systems of one scene; in measured data,
+one complex dataset and its computational resolution reductions (reference paper §2.1.3), or a
+co-registered dual-band acquisition. The reference paper (§3.3, §4) finds that the way LIV and
+OCDS change with wavelength and resolution differs between diffusion, random-ballistic motion and
+mono-directional flow (physics.md §5.3-5.7, §11): that difference is what the classifier learns.
+
+Specifications are declared once, as TOML files in ``classifier/specs/`` (two ship:
+``single-acquisition`` and ``two-wavelength``), and stored in every model's metadata. Feature
+``i`` is ``f"{metric}@{configuration.name}"``, ordered metric-major within each configuration::
+
+    liv@original, ocds@original, liv@axial=14, ocds@axial=14, ...
+
+Consumers match a maps channel to a feature by (metric, wavelength_um, lateral_resolution_um,
+axial_resolution_um) within 1e-6 relative (the maps format of the project), never by name.
+
+This module imports neither torch nor torchdoct: the classify path uses it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "METRIC_UNITS",
+    "REL_TOL",
+    "Configuration",
+    "FeatureSpec",
+    "load_spec",
+    "shipped_specs",
+    "spec_from_dict",
+    "same_value",
+]
+
+#: Metrics a feature may use, with the unit strings of the maps format.
+METRIC_UNITS = {"liv": "dB^2", "ocds": "1/s"}
+#: Relative tolerance for matching physical values (wavelengths, resolutions, times).
+REL_TOL = 1e-6
+
+
+def same_value(a: float, b: float, rel: float = REL_TOL) -> bool:
+    """``|a − b| ≤ rel·max(|a|, |b|)``: the project's rule for matching physical values."""
+    return abs(float(a) - float(b)) <= rel * max(abs(float(a)), abs(float(b)))
+
+
+def _num(path: str, value: Any, *, positive: bool = True) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"{path} must be a number; got {type(value).__name__} {value!r}")
+    v = float(value)
+    if not math.isfinite(v) or (positive and v <= 0):
+        raise ValueError(f"{path} must be a finite number > 0; got {value!r}")
+    return v
+
+
+@dataclass(frozen=True, kw_only=True)
+class Configuration:
+    """One system configuration of a feature vector.
+
+    ``wavelength_um``: vacuum centre wavelength (µm). ``lateral_resolution_um``: 1/e² full width of
+    the intensity PSF (µm). ``axial_resolution_um``: intensity FWHM in the medium (µm). ``name`` is a
+    short label used in feature names (``"original"``, ``"axial=14"``, ``"840nm"``).
+    """
+
+    name: str
+    wavelength_um: float
+    lateral_resolution_um: float
+    axial_resolution_um: float
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise TypeError(f"configuration.name must be a non-empty string; got {self.name!r}")
+        p = f"configuration[{self.name!r}]"
+        wl = _num(f"{p}.wavelength_um", self.wavelength_um)
+        if not 0.1 <= wl <= 20.0:
+            raise ValueError(f"{p}.wavelength_um = {wl} is outside 0.1-20 µm (fix: micrometres, 840 nm is 0.84)")
+        _num(f"{p}.lateral_resolution_um", self.lateral_resolution_um)
+        _num(f"{p}.axial_resolution_um", self.axial_resolution_um)
+
+    def matches(self, wavelength_um: float, lateral_resolution_um: float, axial_resolution_um: float) -> bool:
+        """True when all three values agree within :data:`REL_TOL` relative."""
+        return (same_value(self.wavelength_um, wavelength_um)
+                and same_value(self.lateral_resolution_um, lateral_resolution_um)
+                and same_value(self.axial_resolution_um, axial_resolution_um))
+
+    def describe(self) -> str:
+        return (f"{self.wavelength_um * 1000:g} nm, lateral {self.lateral_resolution_um:g} µm, "
+                f"axial {self.axial_resolution_um:g} µm")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FeatureSpec:
+    """Metrics × configurations, the frame protocol and the OCDS analysis they are computed with.
+
+    ``n_frames`` frames ``frame_interval_s`` apart (s); OCDS per physics.md §2.4 over
+    ``ocds_delay_range_s`` (s) on the ``ocds_scale`` intensity with the ``ocds_estimator``
+    correlation; ``refractive_index`` is the medium's phase index used in simulation (the paper's
+    n = 1).
+    """
+
+    name: str
+    configurations: tuple[Configuration, ...]
+    metrics: tuple[str, ...] = ("liv", "ocds")
+    description: str = ""
+    n_frames: int = 32
+    frame_interval_s: float = 0.2048
+    ocds_delay_range_s: tuple[float, float] = (0.2048, 1.2288)
+    ocds_scale: str = "db"
+    ocds_estimator: str = "pearson"
+    refractive_index: float = 1.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "configurations", tuple(self.configurations))
+        object.__setattr__(self, "metrics", tuple(self.metrics))
+        object.__setattr__(self, "ocds_delay_range_s", tuple(float(x) for x in self.ocds_delay_range_s))
+        if not isinstance(self.name, str) or not self.name:
+            raise TypeError(f"spec name must be a non-empty string; got {self.name!r}")
+        if not self.configurations:
+            raise ValueError(f"spec {self.name!r}: needs at least one [[configuration]]")
+        for c in self.configurations:
+            if not isinstance(c, Configuration):
+                raise TypeError(f"spec {self.name!r}: configurations must be Configuration; got {c!r}")
+        names = [c.name for c in self.configurations]
+        if len(set(names)) != len(names):
+            raise ValueError(f"spec {self.name!r}: duplicate configuration names {names}")
+        for i, a in enumerate(self.configurations):
+            for b in self.configurations[i + 1:]:
+                if a.matches(b.wavelength_um, b.lateral_resolution_um, b.axial_resolution_um):
+                    raise ValueError(f"spec {self.name!r}: configurations {a.name!r} and {b.name!r} are the same system")
+        if not self.metrics:
+            raise ValueError(f"spec {self.name!r}: metrics must not be empty")
+        for m in self.metrics:
+            if m not in METRIC_UNITS:
+                raise ValueError(f"spec {self.name!r}: metric {m!r} is not supported; use {sorted(METRIC_UNITS)}")
+        if len(set(self.metrics)) != len(self.metrics):
+            raise ValueError(f"spec {self.name!r}: a metric is listed twice: {list(self.metrics)}")
+        if isinstance(self.n_frames, bool) or not isinstance(self.n_frames, int) or self.n_frames < 3:
+            raise ValueError(f"spec {self.name!r}: n_frames must be an integer >= 3; got {self.n_frames!r}")
+        _num("protocol.frame_interval_s", self.frame_interval_s)
+        rng = self.ocds_delay_range_s
+        if len(rng) != 2 or _num("analysis.ocds_delay_range_s[1]", rng[1]) <= _num(
+                "analysis.ocds_delay_range_s[0]", rng[0]):
+            raise ValueError(f"analysis.ocds_delay_range_s must be [min_s, max_s] with max > min; "
+                             f"got {list(self.ocds_delay_range_s)}")
+        if self.ocds_scale not in ("db", "linear"):
+            raise ValueError(f"analysis.ocds_scale must be 'db' or 'linear'; got {self.ocds_scale!r}")
+        if self.ocds_estimator not in ("pearson", "biased"):
+            raise ValueError(f"analysis.ocds_estimator must be 'pearson' or 'biased'; got {self.ocds_estimator!r}")
+        n = _num("refractive_index", self.refractive_index)
+        if not 1.0 <= n <= 5.0:
+            raise ValueError(f"refractive_index must be in [1, 5]; got {n}")
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def features(self) -> tuple[tuple[str, Configuration], ...]:
+        """(metric, configuration) of every feature, in feature order."""
+        return tuple((m, c) for c in self.configurations for m in self.metrics)
+
+    @property
+    def feature_names(self) -> tuple[str, ...]:
+        return tuple(f"{m}@{c.name}" for m, c in self.features)
+
+    @property
+    def feature_units(self) -> tuple[str, ...]:
+        return tuple(METRIC_UNITS[m] for m, _ in self.features)
+
+    @property
+    def n_features(self) -> int:
+        return len(self.configurations) * len(self.metrics)
+
+    @property
+    def frame_times_s(self) -> tuple[float, ...]:
+        return tuple(i * self.frame_interval_s for i in range(self.n_frames))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data in the spec-file schema (round-trips through :func:`spec_from_dict`)."""
+        return {
+            "name": self.name,
+            "description": self.description,
+            "metrics": list(self.metrics),
+            "refractive_index": self.refractive_index,
+            "protocol": {"n_frames": self.n_frames, "frame_interval_s": self.frame_interval_s},
+            "analysis": {"ocds_delay_range_s": list(self.ocds_delay_range_s), "ocds_scale": self.ocds_scale,
+                         "ocds_estimator": self.ocds_estimator},
+            "configuration": [dataclasses.asdict(c) for c in self.configurations],
+        }
+
+
+_TOP_KEYS = {"name", "description", "metrics", "refractive_index", "protocol", "analysis", "configuration"}
+
+
+def _keys(path: str, table: Any, allowed: set[str], required: set[str]) -> dict:
+    if not isinstance(table, dict):
+        raise TypeError(f"{path} must be a table; got {type(table).__name__}")
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ValueError(f"{path}: unknown key(s) {unknown} (allowed: {sorted(allowed)})")
+    missing = sorted(required - set(table))
+    if missing:
+        raise ValueError(f"{path}: missing key(s) {missing}")
+    return table
+
+
+def spec_from_dict(data: dict[str, Any]) -> FeatureSpec:
+    """Build a validated :class:`FeatureSpec` from the spec-file schema (see ``classifier/specs/``)."""
+    _keys("spec", data, _TOP_KEYS, {"name", "configuration"})
+    prot = _keys("spec.protocol", data.get("protocol", {}), {"n_frames", "frame_interval_s"}, set())
+    ana = _keys("spec.analysis", data.get("analysis", {}),
+                {"ocds_delay_range_s", "ocds_scale", "ocds_estimator"}, set())
+    confs = data["configuration"]
+    if not isinstance(confs, list):
+        raise TypeError("spec.configuration must be an array of tables ([[configuration]])")
+    keys = {"name", "wavelength_um", "lateral_resolution_um", "axial_resolution_um"}
+    configurations = tuple(Configuration(**_keys(f"spec.configuration[{i}]", c, keys, keys))
+                           for i, c in enumerate(confs))
+    kw: dict[str, Any] = {"name": data["name"], "configurations": configurations,
+                          "description": data.get("description", "")}
+    if "metrics" in data:
+        if not isinstance(data["metrics"], list):
+            raise TypeError(f"spec.metrics must be a list of metric names; got {data['metrics']!r}")
+        kw["metrics"] = tuple(data["metrics"])
+    if "refractive_index" in data:
+        kw["refractive_index"] = data["refractive_index"]
+    kw.update(prot)
+    if "ocds_delay_range_s" in ana:
+        kw["ocds_delay_range_s"] = tuple(ana["ocds_delay_range_s"])
+    for k in ("ocds_scale", "ocds_estimator"):
+        if k in ana:
+            kw[k] = ana[k]
+    return FeatureSpec(**kw)
+
+
+def shipped_specs() -> dict[str, Path]:
+    """Names and paths of the specifications shipped in ``classifier/specs/``."""
+    root = resources.files("classifier") / "specs"
+    return {p.name[:-5]: Path(str(p)) for p in sorted(root.iterdir(), key=lambda q: q.name)
+            if p.name.endswith(".toml")}
+
+
+def load_spec(name_or_path: str | Path | FeatureSpec) -> FeatureSpec:
+    """A shipped spec by name (``single-acquisition``, ``two-wavelength``) or a TOML spec file."""
+    if isinstance(name_or_path, FeatureSpec):
+        return name_or_path
+    shipped = shipped_specs()
+    key = str(name_or_path)
+    if key in shipped:
+        path = shipped[key]
+    else:
+        path = Path(key)
+        if not path.exists():
+            raise FileNotFoundError(f"feature spec {key!r}: no such file and not a shipped spec "
+                                    f"(shipped: {', '.join(shipped)})")
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as err:
+        raise ValueError(f"{path.name}: not valid TOML: {err}") from None
+    try:
+        return spec_from_dict(data)
+    except (TypeError, ValueError) as err:
+        raise type(err)(f"{path.name}: {err}") from None

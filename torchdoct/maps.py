@@ -1,0 +1,624 @@
+"""DOCT maps of complex (or intensity) OCT sequences at one or more resolutions.
+
+For every requested resolution (:func:`torchdoct.resolution.parse_resolution`: ``original``,
+``axial=14``, ``lateral=18``, ``axial=14,lateral=18``) the complex field is reduced
+(:func:`torchdoct.resolution.reduce_resolution`, paper Eqs. 1-8), ``I = |E|²`` is formed, and per
+pixel (time last, ``[..., T]``) the channels below are computed:
+
+* ``liv`` (dB²): :func:`torchdoct.metrics.liv`, ddof-0 variance of ``10·log10 I`` (physics.md §1);
+* ``ocds`` (1/s): −OLS slope of the lag correlation over ``ocds_delay_range_s`` (physics.md §2.4;
+  :func:`torchdoct.metrics.ocds`; the default Pearson/dB path evaluates only the lags inside the
+  range, with the same definition, see :func:`ocds_map`);
+* ``mean_db`` (dB): ``10·log10(mean_t I)``, the dB of the time-averaged linear intensity (the
+  structural OCT image; with the default ``normalization="power"`` of the reduction it stays
+  comparable across resolutions);
+* on request ``aliv`` (dB²) and ``swiftness`` (1/s): physics.md §3, as the COG contrast library
+  defines them: the LIV curve ``LIV(T_w)`` (ddof-0 variance of the dB intensity over every run of
+  consecutive frames spanning exactly ``T_w``, averaged over start positions, for every ``T_w`` that
+  is a difference of frame times; :func:`liv_curve`), smoothed by a 3×3 box over each (Z, X) image
+  (``cv2.blur``, border reflect-101; ``aliv_smoothing=False`` turns it off), then the saturation model
+  ``LIV(T_w) = a·(1 − exp(−T_w/τ))`` fitted by unweighted least squares with ``a, τ ≥ 0``
+  (:func:`fit_saturation`); ``aliv = a``, ``swiftness = 1/τ``.
+
+Undefined values are NaN: pixels with ``I = 0`` in some frame have no dB value (LIV, OCDS, aLIV,
+Swiftness NaN; ``mean_db`` NaN only if ``I = 0`` at every frame), and Swiftness is NaN where the fit
+gives ``a = 0`` (no fluctuation, τ undefined).
+
+Block raster volumes (:class:`torchdoct.io.BlockRaster` in the sequence metadata): maps are
+computed on the whole volume (the lateral Gaussian runs across block boundaries, as in the paper),
+then the B-scans next to the boundaries are dropped; ``meta["y_indices"]`` lists the kept positions.
+
+Work is done in depth slabs (with a halo for the axial window), so memory stays bounded and a
+progress bar shows; results do not depend on the slab size beyond the window truncation at 5σ'.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence as _Seq
+
+import numpy as np
+import torch
+
+from . import metrics as _metrics
+from ._files import atomic_write, check_out
+from .io import Maps, Sequence
+from .resolution import (
+    EDGE_MODES,
+    NORMALIZATIONS,
+    ResolutionTarget,
+    axial_filter_sigma_um,
+    depth_spectrum_center,
+    lateral_filter_sigma_um,
+    parse_resolution,
+    reduce_resolution,
+)
+
+__all__ = [
+    "METRICS",
+    "UNITS",
+    "DEFAULT_OCDS_DELAY_RANGE_S",
+    "ocds_map",
+    "liv_curve",
+    "fit_saturation",
+    "box_smooth_zx",
+    "compute_maps",
+    "pseudo_color",
+    "write_pngs",
+    "png_name",
+    "bench_maps",
+]
+
+METRICS = ("liv", "ocds", "mean_db", "aliv", "swiftness")
+UNITS = {"liv": "dB^2", "ocds": "1/s", "mean_db": "dB", "aliv": "dB^2", "swiftness": "1/s"}
+DEFAULT_OCDS_DELAY_RANGE_S = (0.2048, 1.2288)
+#: Default hue range of the pseudo-colour images: low values red (0), high values green (1/3).
+DEFAULT_HUE_RANGE = (0.0, 1.0 / 3.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# per-pixel metrics on [..., T]
+
+
+def _uniform_dt(frame_times_s: _Seq[float]) -> float | None:
+    t = [float(v) for v in frame_times_s]
+    d = [b - a for a, b in zip(t, t[1:])]
+    if max(d) - min(d) <= 1e-9 * max(d):
+        return (t[-1] - t[0]) / (len(t) - 1)
+    return None
+
+
+def _pearson_lag(s: torch.Tensor, m: int) -> torch.Tensor:
+    """Pearson correlation of ``s[..., :N-m]`` with ``s[..., m:]`` (metrics.lag_correlations rules)."""
+    n = s.shape[-1]
+    a = s[..., : n - m]
+    b = s[..., m:]
+    am = a - a.mean(-1, keepdim=True)
+    bm = b - b.mean(-1, keepdim=True)
+    va = (am * am).mean(-1)
+    vb = (bm * bm).mean(-1)
+    cov = (am * bm).mean(-1)
+    den = torch.sqrt(va * vb)
+    pos = den > 0
+    rho = torch.where(pos, cov / torch.where(pos, den, torch.ones_like(den)), torch.zeros_like(den))
+    return torch.where((va == 0) & (vb == 0), torch.ones_like(rho), rho)
+
+
+def ocds_map(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
+             delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S, scale: str = "db",
+             estimator: str = "pearson") -> torch.Tensor:
+    """OCDS (1/s) of intensities ``[..., T]``: identical to :func:`torchdoct.metrics.ocds`.
+
+    For a uniform protocol with the Pearson estimator only the lags inside ``delay_range_s`` are
+    computed (same per-lag Pearson definition and degenerate-case rules as
+    :func:`torchdoct.metrics.lag_correlations`; the slope comes from
+    :func:`torchdoct.metrics.ocds_from_correlations`); otherwise it calls :func:`torchdoct.metrics.ocds`.
+    """
+    dt = _uniform_dt(frame_times_s)
+    if dt is None or estimator != "pearson":
+        return _metrics.ocds(intensity, frame_times_s, delay_range_s=delay_range_s, scale=scale, estimator=estimator)
+    if scale == "db":
+        s = _metrics.to_db(intensity)
+    elif scale == "linear":
+        s = intensity
+    else:
+        raise ValueError(f"scale must be 'db' or 'linear'; got {scale!r}")
+    n = s.shape[-1]
+    if n != len(frame_times_s):
+        raise ValueError(f"signal has {n} frames but {len(frame_times_s)} frame times were given")
+    lo, hi = delay_range_s
+    lags = [m for m in range(1, n) if lo * (1 - 1e-9) <= m * dt <= hi * (1 + 1e-9)]
+    if len(lags) < 2:
+        raise ValueError(f"OCDS delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
+                         f"(frame interval {dt:.6g} s, {n} frames); give --ocds-delay-range-s")
+    s = s - s[..., :1]
+    rho = torch.stack([_pearson_lag(s, m) for m in lags], dim=-1)
+    delays = torch.tensor([m * dt for m in lags], dtype=s.dtype, device=s.device)
+    return _metrics.ocds_from_correlations(rho, delays, (lo, hi))
+
+
+def _windows(frame_times_s: _Seq[float], max_window_s: float | None) -> list[tuple[float, list[tuple[int, int]]]]:
+    """Distinct window spans ``T_w`` (s) and, for each, the (first, last) frame index pairs."""
+    t = [float(v) - float(frame_times_s[0]) for v in frame_times_s]
+    n = len(t)
+    dt = _uniform_dt(frame_times_s)
+    if dt is not None:
+        out = [(m * dt, [(i, i + m) for i in range(n - m)]) for m in range(1, n)]
+    else:
+        groups: dict[float, list[tuple[int, int]]] = {}
+        for i in range(n):
+            for j in range(i + 1, n):
+                groups.setdefault(round(t[j] - t[i], 9), []).append((i, j))
+        out = [(k, groups[k]) for k in sorted(groups)]
+    if max_window_s is not None:
+        out = [w for w in out if w[0] <= max_window_s * (1 + 1e-9)]
+    if len(out) < 2:
+        raise ValueError("the LIV curve needs at least 2 time windows; check frame_times_s / max_window_s")
+    return out
+
+
+def liv_curve(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
+              max_window_s: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """LIV curve (physics.md §3 step 1): ``(windows_s [W], curve [..., W])`` in dB², float64.
+
+    ``curve[..., w]`` is the mean over start positions of the ddof-0 variance of ``10·log10 I`` over
+    the consecutive frames ``i … j`` with ``t_j − t_i = windows_s[w]``.
+    """
+    wins = _windows(frame_times_s, max_window_s)
+    s = _metrics.to_db(intensity).double()
+    s = s - s.mean(-1, keepdim=True)
+    zeros = torch.zeros_like(s[..., :1])
+    c1 = torch.cat([zeros, s.cumsum(-1)], -1)
+    c2 = torch.cat([zeros, (s * s).cumsum(-1)], -1)
+    n = s.shape[-1]
+    cols = []
+    uniform = _uniform_dt(frame_times_s) is not None
+    for _, pairs in wins:
+        if uniform:  # runs i … i+m for every start i: contiguous slices of the cumulative sums
+            m = pairs[0][1] - pairs[0][0]
+            d1 = (c1[..., m + 1:] - c1[..., : n - m]) / (m + 1)
+            d2 = (c2[..., m + 1:] - c2[..., : n - m]) / (m + 1)
+        else:
+            i = torch.tensor([p[0] for p in pairs], device=s.device)
+            j = torch.tensor([p[1] + 1 for p in pairs], device=s.device)
+            cnt = (j - i).to(s.dtype)
+            d1 = (c1.index_select(-1, j) - c1.index_select(-1, i)) / cnt
+            d2 = (c2.index_select(-1, j) - c2.index_select(-1, i)) / cnt
+        cols.append((d2 - d1 * d1).clamp_min(0).mean(-1))
+    windows = torch.tensor([w[0] for w in wins], dtype=torch.float64, device=s.device)
+    return windows, torch.stack(cols, -1)
+
+
+def box_smooth_zx(curves: torch.Tensor) -> torch.Tensor:
+    """3×3 box mean over the (Z, X) dimensions of ``curves [..., Z, X, W]`` (border reflect-101,
+    as ``cv2.blur``); leading dimensions (e.g. Y) are separate images."""
+    lead = curves.shape[:-3]
+    z, x, w = curves.shape[-3:]
+    img = curves.reshape(-1, z, x, w).permute(0, 3, 1, 2)  # [N, W, Z, X]
+    pad_mode = "reflect"
+    pz = 1 if z >= 2 else 0
+    px = 1 if x >= 2 else 0
+    img = torch.nn.functional.pad(img, (px, px, pz, pz), mode=pad_mode) if (pz or px) else img
+    out = torch.nn.functional.avg_pool2d(img, kernel_size=(2 * pz + 1, 2 * px + 1), stride=1)
+    return out.permute(0, 2, 3, 1).reshape(*lead, z, x, w)
+
+
+def fit_saturation(windows_s: torch.Tensor, curve: torch.Tensor, *, tau_bounds_s: tuple[float, float] | None = None,
+                   grid: int = 64, iterations: int = 24) -> tuple[torch.Tensor, torch.Tensor]:
+    """Least-squares fit of ``a·(1 − exp(−T_w/τ))`` to every curve ``[..., W]``; returns ``(a, τ)``.
+
+    Vectorized over pixels (no per-pixel loop), float64. For fixed τ the best ``a ≥ 0`` is closed-form,
+    ``a = max(0, Σ y f / Σ f²)`` with ``f = 1 − exp(−T_w/τ)``, so the fit is a 1-D minimisation of the
+    profile residual over ``ln τ``: a ``grid``-point log grid (one matrix product for all pixels)
+    locates the global minimum, then golden-section search refines it inside the neighbouring grid
+    cells (``iterations`` steps, bracket × 0.618 each). τ is bounded to ``tau_bounds_s`` (default
+    ``[min T_w / 100, 100·max T_w]``); a fit at a bound means the curve is flat (τ → 0) or still
+    linear (τ → ∞) over the windows. Same minimum as ``scipy.optimize.curve_fit`` with bounds
+    ``[0, ∞)`` when that lies inside the bounds (physics.md §3).
+    """
+    t = windows_s.to(torch.float64)
+    y = curve.to(torch.float64)
+    lead = y.shape[:-1]
+    y = y.reshape(-1, y.shape[-1])
+    if tau_bounds_s is None:
+        tau_bounds_s = (float(t.min()) / 100.0, 100.0 * float(t.max()))
+    lo, hi = math.log(tau_bounds_s[0]), math.log(tau_bounds_s[1])
+    u = torch.linspace(lo, hi, grid, dtype=torch.float64, device=y.device)
+    fg = -torch.expm1(-t[None, :] / torch.exp(u)[:, None])  # [G, W]
+    syf = y @ fg.T  # [P, G]
+    q = syf.clamp_min(0) ** 2 / (fg * fg).sum(-1)
+    g = q.argmax(-1)
+    step = (hi - lo) / (grid - 1)
+    ua = (u[g] - step).clamp(lo, hi)
+    ub = (u[g] + step).clamp(lo, hi)
+
+    neg_t = -t[None, :]
+
+    def profile(uu: torch.Tensor) -> torch.Tensor:
+        f = -torch.expm1(neg_t * torch.exp(-uu)[:, None])
+        syf = torch.einsum("pw,pw->p", y, f)
+        return syf.clamp_min(0) ** 2 / torch.einsum("pw,pw->p", f, f)
+
+    r = (math.sqrt(5.0) - 1.0) / 2.0
+    uc = ub - r * (ub - ua)
+    ud = ua + r * (ub - ua)
+    qc, qd = profile(uc), profile(ud)
+    for _ in range(iterations):
+        left = qc >= qd  # the maximum lies in [ua, ud]
+        ub = torch.where(left, ud, ub)
+        ua = torch.where(left, ua, uc)
+        new_u = torch.where(left, ub - r * (ub - ua), ua + r * (ub - ua))
+        qn = profile(new_u)
+        uc, ud, qc, qd = (torch.where(left, new_u, ud), torch.where(left, uc, new_u),
+                          torch.where(left, qn, qd), torch.where(left, qc, qn))
+    u_best = torch.where(qc >= qd, uc, ud)
+    tau = torch.exp(u_best)
+    f = -torch.expm1(-t[None, :] / tau[:, None])
+    a = ((y * f).sum(-1) / (f * f).sum(-1)).clamp_min(0)
+    return a.reshape(lead), tau.reshape(lead)
+
+
+# ----------------------------------------------------------------------------------------------
+# maps of a sequence
+
+
+def _pixel_metrics(intensity: torch.Tensor, frame_times_s: list[float], wanted: list[str], *,
+                   ocds_delay_range_s: tuple[float, float], ocds_scale: str, ocds_estimator: str,
+                   aliv_smoothing: bool, aliv_max_window_s: float | None,
+                   chunk_pixels: int) -> dict[str, torch.Tensor]:
+    """Metrics of ``intensity [T, *spatial]`` → ``{name: [*spatial]}`` (see the module docstring)."""
+    spatial = intensity.shape[1:]
+    it = intensity.movedim(0, -1).reshape(-1, intensity.shape[0])
+    n_pix = it.shape[0]
+    nan = float("nan")
+    out = {k: torch.empty(n_pix, dtype=intensity.dtype, device=intensity.device) for k in wanted}
+    curves = None
+    if "aliv" in wanted or "swiftness" in wanted:
+        curves = []
+    for p0 in range(0, n_pix, chunk_pixels):
+        x = it[p0:p0 + chunk_pixels]
+        zero = (x <= 0).any(-1)
+        safe = torch.where(zero[:, None], torch.ones_like(x), x) if bool(zero.any()) else x
+        if "liv" in out:
+            out["liv"][p0:p0 + len(x)] = torch.where(zero, nan, _metrics.liv(safe))
+        if "ocds" in out:
+            v = ocds_map(safe if ocds_scale == "db" else x, frame_times_s, delay_range_s=ocds_delay_range_s,
+                         scale=ocds_scale, estimator=ocds_estimator)
+            out["ocds"][p0:p0 + len(x)] = torch.where(zero, nan, v) if ocds_scale == "db" else v
+        if "mean_db" in out:
+            m = x.mean(-1)
+            out["mean_db"][p0:p0 + len(x)] = torch.where(m > 0, _metrics.to_db(torch.where(m > 0, m, torch.ones_like(m))),
+                                                          torch.full_like(m, nan))
+        if curves is not None:
+            windows, c = liv_curve(safe, frame_times_s, max_window_s=aliv_max_window_s)
+            curves.append(c)
+    res = {k: v.reshape(spatial) for k, v in out.items()}
+    if curves is not None:
+        c = torch.cat(curves, 0).reshape(*spatial, -1)
+        if aliv_smoothing:
+            c = box_smooth_zx(c)
+        c = c.reshape(n_pix, -1)
+        zero_all = (it <= 0).any(-1)
+        a_out = torch.empty(n_pix, dtype=torch.float64, device=c.device)
+        tau_out = torch.empty(n_pix, dtype=torch.float64, device=c.device)
+        step = max(1, chunk_pixels // 4)
+        for p0 in range(0, n_pix, step):
+            a, tau = fit_saturation(windows, c[p0:p0 + step])
+            a_out[p0:p0 + step] = a
+            tau_out[p0:p0 + step] = tau
+        a_out = torch.where(zero_all, nan, a_out)
+        swift = torch.where(zero_all | (a_out == 0), nan, 1.0 / tau_out)
+        if "aliv" in wanted:
+            res["aliv"] = a_out.to(intensity.dtype).reshape(spatial)
+        if "swiftness" in wanted:
+            res["swiftness"] = swift.to(intensity.dtype).reshape(spatial)
+    return res
+
+
+def _as_targets(resolutions: Iterable[str | ResolutionTarget]) -> list[ResolutionTarget]:
+    targets = []
+    for r in resolutions:
+        t = r if isinstance(r, ResolutionTarget) else parse_resolution(r)
+        if t.label in [x.label for x in targets]:
+            raise ValueError(f"resolution {t.label!r} requested twice")
+        targets.append(t)
+    if not targets:
+        raise ValueError("give at least one --resolution (e.g. original)")
+    return targets
+
+
+def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = ("original",), *,
+                 metrics: Iterable[str] = ("liv", "ocds", "mean_db"),
+                 ocds_delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S,
+                 ocds_scale: str = "db", ocds_estimator: str = "pearson",
+                 aliv_smoothing: bool = True, aliv_max_window_s: float | None = None,
+                 axial_center: str | float = "zero", edge_mode: str = "reflect", normalization: str = "power",
+                 drop_boundary: bool = True, device: str | torch.device | None = None,
+                 slab_elements: int = 1 << 23, chunk_pixels: int = 1 << 16, progress: bool = False,
+                 timings: dict[str, float] | None = None) -> Maps:
+    """DOCT maps of ``seq`` at every resolution in ``resolutions`` (see the module docstring).
+
+    ``metrics``: any of ``liv``, ``ocds``, ``mean_db``, ``aliv``, ``swiftness``. ``axial_center``,
+    ``edge_mode``, ``normalization``: :func:`torchdoct.resolution.reduce_resolution`.
+    ``drop_boundary``: drop the block-boundary B-scans of a block raster volume. ``slab_elements``:
+    complex samples per depth slab; ``chunk_pixels``: pixels per metric chunk (memory only).
+    ``timings`` (optional dict) receives seconds per resolution label. Returns :class:`Maps`
+    (float32 ``[C, (Y), Z, X]``, channels ``f"{metric}@{resolution}"``).
+    """
+    wanted = [m for m in METRICS if m in set(metrics)]
+    unknown = sorted(set(metrics) - set(METRICS))
+    if unknown or not wanted:
+        raise ValueError(f"unknown metrics {unknown}; choose from {', '.join(METRICS)}")
+    if edge_mode not in EDGE_MODES:
+        raise ValueError(f"edge_mode must be one of {', '.join(EDGE_MODES)}; got {edge_mode!r}")
+    if normalization not in NORMALIZATIONS:
+        raise ValueError(f"normalization must be one of {', '.join(NORMALIZATIONS)}; got {normalization!r}")
+    targets = _as_targets(resolutions)
+    system = seq.system
+    lat0, ax0 = float(system["lateral_resolution_um"]), float(system["axial_resolution_um"])
+    changes = [t for t in targets if t.resolved(system) != (lat0, ax0)]
+    for t in targets:  # validate every target before any work
+        if t.lateral_resolution_um is not None:
+            lateral_filter_sigma_um(lat0, t.lateral_resolution_um)
+        if t.axial_resolution_um is not None:
+            axial_filter_sigma_um(ax0, t.axial_resolution_um)
+    if changes and not seq.is_complex:
+        raise ValueError(f"{seq.source or 'sequence'} holds intensity only (dtype {seq.data.dtype}): a resolution "
+                         f"change ({', '.join(t.label for t in changes)}) needs the complex field; use "
+                         "--resolution original only")
+    times = seq.frame_times_s
+    if "ocds" in wanted:
+        lo, hi = ocds_delay_range_s
+        if not (0 < lo < hi):
+            raise ValueError(f"ocds_delay_range_s must be 0 < lo < hi (s); got {ocds_delay_range_s!r}")
+        probe = torch.rand(1, len(times), generator=torch.Generator().manual_seed(0)) + 1.0
+        ocds_map(probe, times, delay_range_s=(lo, hi), scale=ocds_scale, estimator=ocds_estimator)
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+    data = seq.data
+    axes = seq.axes
+    zdim = axes.index("Z")
+    n_z = data.shape[zdim]
+    per_row = int(np.prod(data.shape)) // n_z
+    fc: float | str = axial_center
+    if axial_center == "centroid" and seq.is_complex and any(t.axial_resolution_um is not None for t in changes):
+        sub = torch.from_numpy(np.ascontiguousarray(data[: min(4, data.shape[0])]))
+        fc = depth_spectrum_center(sub, axes=axes)
+    elif isinstance(axial_center, str) and axial_center not in ("zero", "centroid"):
+        raise ValueError(f"axial_center must be 'zero', 'centroid' or a number (cycles/pixel); got {axial_center!r}")
+    margin = 1 if (aliv_smoothing and ("aliv" in wanted or "swiftness" in wanted)) else 0
+    real_dtype = np.float64 if data.dtype in (np.complex128, np.float64) else np.float32
+    out = np.full((len(targets) * len(wanted), *data.shape[1:]), np.nan, dtype=real_dtype)
+
+    plans = []
+    for t in targets:
+        lat, ax = t.resolved(system)
+        sig = axial_filter_sigma_um(ax0, ax) / seq.pitch_um["z"] if ax != ax0 else 0.0
+        halo = (int(math.ceil(5.0 * sig)) + 1 if sig else 0) + margin
+        rows = n_z if (edge_mode == "wrap" and sig) else max(1, min(n_z, int(slab_elements) // max(per_row, 1)))
+        plans.append((t, halo, rows))
+    total = sum(math.ceil(n_z / rows) for _, _, rows in plans)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=total, desc="maps", unit="slab")
+    channels: list[dict[str, Any]] = []
+    for ti, (t, halo, rows) in enumerate(plans):
+        lat, ax = t.resolved(system)
+        for m in wanted:
+            channels.append({"name": f"{m}@{t.label}", "metric": m, "unit": UNITS[m], "resolution": t.label,
+                             "wavelength_um": float(system["wavelength_um"]), "lateral_resolution_um": lat,
+                             "axial_resolution_um": ax})
+        t0 = time.perf_counter()
+        for z0 in range(0, n_z, rows):
+            z1 = min(n_z, z0 + rows)
+            a0, a1 = max(0, z0 - halo), min(n_z, z1 + halo)
+            block = torch.from_numpy(np.array(data[..., a0:a1, :], copy=True))  # canonical: Z second to last
+            block = block.to(dev)
+            if seq.is_complex:
+                red = reduce_resolution(block, pitch_um=seq.pitch_um, system=system,
+                                        lateral_resolution_um=t.lateral_resolution_um,
+                                        axial_resolution_um=t.axial_resolution_um, axes=axes,
+                                        axial_center=fc, edge_mode=edge_mode, normalization=normalization)
+                m0, m1 = max(a0, z0 - margin), min(a1, z1 + margin)
+                red = red.narrow(zdim, m0 - a0, m1 - m0)
+                inten = red.real ** 2 + red.imag ** 2
+            else:
+                m0, m1 = a0, a1
+                inten = block.to(torch.float64 if real_dtype == np.float64 else torch.float32)
+            vals = _pixel_metrics(inten, times, wanted, ocds_delay_range_s=tuple(ocds_delay_range_s),
+                                  ocds_scale=ocds_scale, ocds_estimator=ocds_estimator,
+                                  aliv_smoothing=aliv_smoothing, aliv_max_window_s=aliv_max_window_s,
+                                  chunk_pixels=chunk_pixels)
+            for mi, m in enumerate(wanted):
+                v = vals[m].narrow(zdim - 1, z0 - m0, z1 - z0).cpu().numpy()
+                idx = [ti * len(wanted) + mi] + [slice(None)] * (data.ndim - 1)
+                idx[zdim] = slice(z0, z1)
+                out[tuple(idx)] = v
+            if bar is not None:
+                bar.update(1)
+        if timings is not None:
+            timings[t.label] = time.perf_counter() - t0
+    if bar is not None:
+        bar.close()
+    meta: dict[str, Any] = {
+        "channels": channels,
+        "axes": "C" + axes[1:],
+        "pitch_um": seq.pitch_um,
+        "frame_times_s": times,
+        "system": system,
+        "ocds_delay_range_s": [float(v) for v in ocds_delay_range_s],
+        "ocds_scale": ocds_scale,
+        "ocds_estimator": ocds_estimator,
+        "source": seq.source,
+        "reduction": {"edge_mode": edge_mode, "normalization": normalization,
+                      "axial_center": axial_center if isinstance(axial_center, str) else float(axial_center),
+                      "axial_center_cycles_per_pixel": float(fc) if not isinstance(fc, str) else 0.0,
+                      "lateral_axes": "YX" if "Y" in axes else "X"},
+    }
+    if "aliv" in wanted or "swiftness" in wanted:
+        meta["aliv"] = {"smoothing": "box3x3" if aliv_smoothing else "none", "max_window_s": aliv_max_window_s,
+                        "model": "a*(1-exp(-T/tau)); aliv=a, swiftness=1/tau"}
+    raster = seq.block_raster
+    if raster is not None:
+        meta["block_raster"] = raster.to_dict()
+        keep = raster.keep_y() if drop_boundary else np.ones(raster.n_y, dtype=bool)
+        out = out[:, keep]
+        meta["y_indices"] = [int(i) for i in np.flatnonzero(keep)]
+    return Maps(maps=out.astype(np.float32, copy=False), channels=tuple(c["name"] for c in channels), meta=meta)
+
+
+# ----------------------------------------------------------------------------------------------
+# pseudo-colour images
+
+
+def pseudo_color(value: np.ndarray, intensity_db: np.ndarray | None, *, value_range: tuple[float, float],
+                 db_range: tuple[float, float] | None = None,
+                 hue_range: tuple[float, float] = DEFAULT_HUE_RANGE) -> np.ndarray:
+    """RGB uint8 ``[H, W, 3]``: hue = ``value`` over ``value_range``, brightness = dB intensity.
+
+    HSV composition as DOCT images are shown: hue ``hue_range[0] + (hue_range[1] − hue_range[0])·
+    clip((v − lo)/(hi − lo), 0, 1)`` (default red for low, green for high), saturation 1, value
+    ``clip((dB − db_lo)/(db_hi − db_lo), 0, 1)`` (1 everywhere without an intensity image). NaN values
+    are shown grey (saturation 0) at their brightness.
+    """
+    from matplotlib.colors import hsv_to_rgb
+
+    v = np.asarray(value, dtype=np.float64)
+    lo, hi = (float(x) for x in value_range)
+    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+        raise ValueError(f"value range must be finite with hi > lo; got {value_range!r}")
+    frac = np.clip((v - lo) / (hi - lo), 0.0, 1.0)
+    hue = hue_range[0] + (hue_range[1] - hue_range[0]) * np.nan_to_num(frac)
+    if intensity_db is None:
+        bright = np.ones_like(v)
+    else:
+        if db_range is None:
+            raise ValueError("db_range is needed with an intensity image")
+        dlo, dhi = (float(x) for x in db_range)
+        if not (math.isfinite(dlo) and math.isfinite(dhi) and dhi > dlo):
+            raise ValueError(f"dB range must be finite with hi > lo; got {db_range!r}")
+        bright = np.nan_to_num(np.clip((np.asarray(intensity_db, dtype=np.float64) - dlo) / (dhi - dlo), 0, 1))
+    sat = np.where(np.isfinite(v), 1.0, 0.0)
+    rgb = hsv_to_rgb(np.stack([np.mod(hue, 1.0), sat, bright], axis=-1))
+    return np.round(rgb * 255.0).astype(np.uint8)
+
+
+def png_name(out_path: str | Path, channel: str) -> Path:
+    """``OUT_STEM_metric_resolution.png`` beside ``out_path`` (``=`` and ``,`` removed from the label)."""
+    out = Path(out_path)
+    metric, _, res = channel.partition("@")
+    label = res.replace("=", "").replace(",", "-").replace(".", "p")
+    return out.with_name(f"{out.stem}_{metric}_{label}.png")
+
+
+def _auto_range(values: list[np.ndarray], lo_pct: float, hi_pct: float) -> tuple[float, float]:
+    v = np.concatenate([np.asarray(a, dtype=np.float64).ravel() for a in values])
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return (0.0, 1.0)
+    lo, hi = np.percentile(v, [lo_pct, hi_pct])
+    if not hi > lo:
+        hi = lo + 1.0
+    return float(lo), float(hi)
+
+
+def write_pngs(maps: Maps, out_path: str | Path, *, ranges: Mapping[str, tuple[float, float]] | None = None,
+               db_range: tuple[float, float] | None = None, hue_range: tuple[float, float] = DEFAULT_HUE_RANGE,
+               y_index: int | None = None, force: bool = False, check_only: bool = False) -> list[Path]:
+    """One pseudo-colour PNG per channel (:func:`pseudo_color`), named by :func:`png_name`.
+
+    Each DOCT channel takes its brightness from the ``mean_db`` channel of the same resolution
+    (uniform brightness if there is none); ``mean_db`` channels are written in grey scale.
+    ``ranges``: ``{metric: (lo, hi)}``; a metric without one gets the 1st-99th percentile of its
+    finite values pooled over all resolutions (so resolutions share one colour scale).
+    ``db_range``: default the 5th-99.9th percentile of all ``mean_db`` values. Volumes
+    ``[C, Y, Z, X]`` show the B-scan ``y_index`` (default the middle one). All paths are checked
+    before writing; existing files need ``force``. ``check_only`` returns the paths without writing.
+    """
+    names = list(maps.channels)
+    paths = [png_name(out_path, n) for n in names]
+    for p in paths:
+        check_out(p, force, ".png", what="PNG output")
+    if check_only:
+        return paths
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.image
+
+    arr = maps.maps
+    if arr.ndim == 4:
+        y = arr.shape[1] // 2 if y_index is None else int(y_index)
+        if not 0 <= y < arr.shape[1]:
+            raise ValueError(f"--png-y {y_index} is outside 0..{arr.shape[1] - 1}")
+        arr = arr[:, y]
+    infos = maps.meta["channels"]
+    by_metric: dict[str, list[np.ndarray]] = {}
+    for i, info in enumerate(infos):
+        by_metric.setdefault(info["metric"], []).append(arr[i])
+    ranges = dict(ranges or {})
+    if db_range is None and "mean_db" in by_metric:
+        db_range = _auto_range(by_metric["mean_db"], 5.0, 99.9)
+    db_of = {info["resolution"]: arr[i] for i, info in enumerate(infos) if info["metric"] == "mean_db"}
+    for i, (info, path) in enumerate(zip(infos, paths)):
+        metric = info["metric"]
+        if metric == "mean_db":
+            lo, hi = ranges.get("mean_db", db_range)
+            g = np.nan_to_num(np.clip((arr[i] - lo) / (hi - lo), 0, 1))
+            img = np.round(np.repeat(g[..., None], 3, -1) * 255).astype(np.uint8)
+        else:
+            vr = ranges.get(metric) or _auto_range(by_metric[metric], 1.0, 99.0)
+            db = db_of.get(info["resolution"])
+            img = pseudo_color(arr[i], db, value_range=vr, db_range=db_range if db is not None else None,
+                               hue_range=hue_range)
+        atomic_write(path, lambda tmp, img=img: matplotlib.image.imsave(tmp, img, format="png"))
+    return paths
+
+
+# ----------------------------------------------------------------------------------------------
+# benchmark
+
+
+def bench_maps(*, frames: int = 32, shape: tuple[int, int] = (512, 512),
+               resolutions: _Seq[str] = ("original", "axial=14", "lateral=18"),
+               metrics: _Seq[str] = ("liv", "ocds", "mean_db"), repeats: int = 1, seed: int = 0) -> dict[str, Any]:
+    """Time :func:`compute_maps` on a random complex64 ``[frames, *shape]`` stack (measured, never asserted).
+
+    System: 840 nm, 4.9 µm lateral / 3.8 µm axial; pitch 1.5 µm (z) × 2.0 µm (x); 204.8 ms frames.
+    Returns a JSON-ready dict with the best total time over ``repeats`` and seconds per resolution.
+    """
+    from .bench import machine_info
+    from .io import validate_meta
+
+    g = torch.Generator().manual_seed(int(seed))
+    data = torch.randn(frames, *shape, dtype=torch.complex64, generator=g).numpy()
+    meta = validate_meta({"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},
+                          "frame_times_s": [i * 0.2048 for i in range(frames)],
+                          "system": {"name": "840nm-high", "wavelength_um": 0.84, "lateral_resolution_um": 4.9,
+                                     "axial_resolution_um": 3.8}}, data.shape)
+    seq = Sequence(data=data, meta=meta, source="bench")
+    compute_maps(seq, ["original"], metrics=metrics)  # warm-up
+    best, best_t = math.inf, {}
+    for _ in range(max(1, int(repeats))):
+        tm: dict[str, float] = {}
+        t0 = time.perf_counter()
+        compute_maps(seq, resolutions, metrics=metrics, timings=tm)
+        dt = time.perf_counter() - t0
+        if dt < best:
+            best, best_t = dt, tm
+    return {
+        "benchmark": "maps",
+        "shape": [frames, *shape],
+        "dtype": "complex64",
+        "resolutions": list(resolutions),
+        "metrics": list(metrics),
+        "repeats": int(repeats),
+        "seconds_total": best,
+        "seconds_per_resolution": best_t,
+        "megapixel_frames_per_s": frames * shape[0] * shape[1] * len(resolutions) / best / 1e6,
+        "target_seconds": 10.0,
+        "machine": machine_info(),
+    }
