@@ -19,7 +19,9 @@ from .config import (
     scene_from_dict,
 )
 from .metrics import complex_variance, lag_correlations, liv, ocds, to_db
+from .phantom import Phantom, load_phantom, phantom_from_dict
 from .plan import Plan, make_plan
+from .render import RenderResult, render
 from .scenes import shipped_scenes
 from .simulate import SimulationResult, simulate
 
@@ -29,5 +31,6 @@ __all__ = [
     "Analysis", "Diffusion", "Flow", "Noise", "OCTSystem", "Population", "Protocol", "RandomBallistic",
     "Scene", "SceneError", "SimulationSettings", "load_scene", "scene_from_dict",
     "complex_variance", "lag_correlations", "liv", "ocds", "to_db",
+    "Phantom", "load_phantom", "phantom_from_dict", "RenderResult", "render",
     "Plan", "make_plan", "shipped_scenes", "SimulationResult", "simulate", "__version__",
 ]
