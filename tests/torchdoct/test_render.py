@@ -8,7 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-import torchdoct.render as render_mod
+import sys
+
+import torchdoct.render  # noqa: F401  (the module; torchdoct.render is the function)
+
+render_mod = sys.modules["torchdoct.render"]
 from torchdoct import simulate
 from torchdoct.config import SceneError
 from torchdoct.conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity
