@@ -381,7 +381,7 @@ class SimulationSettings:
 
     trials: int = 500
     seed: int = 0
-    truncation_tolerance: float = 1e-3
+    truncation_tolerance: float = 1e-2
     dtype: Literal["float32", "float64"] = "float32"
 
     def __post_init__(self) -> None:

@@ -149,7 +149,9 @@ def truncation_error_bound(tolerance: float) -> float:
     The left-out scatterers lie outside the ellipsoid ``Σ x_a²/s_a² = 2 ln(1/tol)``; their share of
     ``∫|h|²`` is ``P(χ²₃ > 4·ln(1/tol)) = Q(3/2, 2·ln(1/tol))``. Cross terms between scatterers
     average to zero (independent phases), so this is the relative mean-square field error; its square
-    root bounds the relative RMS error of the signal. tolerance 1e-3 gives 4.4e-6 (RMS 0.21 %).
+    root bounds the relative RMS error of the signal. Tolerance 1e-2 (the default) gives 3.6e-4 (RMS
+    1.9 %), 1e-3 gives 4.3e-6 (RMS 0.21 %); the box that is actually kept loses less (5e-5 and 4e-7
+    of the mean intensity).
     """
     c = truncation_radius_factor(tolerance)
     x = c * c  # = 2 ln(1/tol); Q(3/2, x) = erfc(√x) + 2√(x/π)·e^{-x}

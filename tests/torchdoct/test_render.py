@@ -15,7 +15,8 @@ import torchdoct.render  # noqa: F401  (the module; torchdoct.render is the func
 render_mod = sys.modules["torchdoct.render"]
 from torchdoct import simulate
 from torchdoct.config import SceneError
-from torchdoct.conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity
+from torchdoct.conventions import (amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
+                                   truncation_radius_factor)
 from torchdoct.phantom import MOTION_CODES, load_phantom, phantom_from_dict, shipped_phantoms
 from torchdoct.render import render
 
@@ -123,9 +124,9 @@ def test_empty_outside_regions_and_labels():
     assert np.all(res.labels[r > 12.0] == MOTION_CODES["empty"])
     assert np.allclose(res.label_params[1][r <= 12.0], 0.5) and np.all(res.label_params[0] == 0)
     # pixels farther than the PSF truncation plus the protocol reach from the ball see nothing
-    hx = 3.717 * amplitude_sigma_lateral_um(4.9)
+    c = truncation_radius_factor(ph.scene.simulation.truncation_tolerance)
     reach = 0.5 * 7 * 0.2048
-    far = r > 12.0 + hx + amplitude_sigma_axial_um(3.8) * 3.717 + reach
+    far = r > 12.0 + c * amplitude_sigma_lateral_um(4.9) + c * amplitude_sigma_axial_um(3.8) + reach
     assert far.any() and torch.all(res.data[0][:, torch.from_numpy(far)] == 0)
     assert (res.data[0][:, torch.from_numpy(r < 8)].abs() > 0).all()
 
@@ -143,7 +144,7 @@ def test_later_regions_paint_over_earlier_ones():
     assert np.all(res.labels[r <= 30] == MOTION_CODES["static"])
     assert np.all(res.labels[r > 30.5] == MOTION_CODES["diffusion"])
     liv = res.maps()["liv"].numpy()
-    deep = r < 30.0 - 3.72 * amplitude_sigma_axial_um(3.8) - 5 * math.sqrt(2 * 0.1 * 7 * 0.2048)
+    deep = r < 30.0 - truncation_radius_factor(1e-2) * amplitude_sigma_axial_um(3.8) - 5 * math.sqrt(2 * 0.1 * 7 * 0.2048)
     assert deep.sum() > 20 and np.all(liv[deep] == 0)
     assert np.all(liv[r > 45] > 0)
 

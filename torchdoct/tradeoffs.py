@@ -1,0 +1,253 @@
+"""What accuracy costs in time: measured trade-off curves of the point simulator.
+
+For each test cell (one motion seen by the paper's 840-nm, 4.9/3.8-µm system, 32 frames at 204.8 ms)
+the knobs a user turns are measured against a converged reference:
+
+* **truncation tolerance** (PSF amplitude cutoff): the bias of mean LIV and mean OCDS against the
+  reference (tolerance 1e-8, float64, many trials) ± its standard error; the relative error of the
+  mean intensity against ``⟨I⟩ = ρ·π^{3/2}·s_x²·s_z`` (physics.md §5.2) and of g1 at one frame lag
+  against its closed form (physics.md §5.3); the documented bound on the relative mean-square field
+  error, ``Q(3/2, 2·ln(1/tol))``. A bias smaller than its standard error is reported as unresolved;
+* **trials**: the error of a mean is its standard error ``SD/√n`` (measured SD of a large reference);
+* **dtype**: float32 vs float64 with one seed (same scatterers): the largest per-trial LIV/OCDS
+  difference and the bias of the means;
+* **chunk size**: results are bit-identical (asserted here too), only time and memory change.
+
+Every point carries its measured wall time. The total error of a (tolerance, trials, dtype) choice
+is ``√(bias² + SE²)``; the Pareto front is the set of choices no other choice beats in both time
+and error. :func:`recommend` picks, for a target error, the cheapest choice on the front.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from .config import Analysis, Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic, Scene
+from .conventions import mean_intensity, truncation_error_bound
+from .simulate import simulate
+
+__all__ = ["tradeoff_cells", "simulator_tradeoffs", "pareto_front", "recommend", "plot_tradeoffs",
+           "DEFAULTS"]
+
+#: The shipped defaults (what a scene gets without a [simulation] table, and the paper's trials).
+DEFAULTS = {"truncation_tolerance": 1e-2, "dtype": "float32", "trials": 500}
+_REFERENCE_TOLERANCE = 1e-8
+
+
+def tradeoff_cells() -> dict[str, Scene]:
+    """Three motions at mid-range parameters on the paper's 840-nm high-resolution system."""
+    system = OCTSystem(name="840nm-high", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)
+    protocol = Protocol(n_frames=32, frame_interval_s=0.2048)
+    analysis = Analysis(metrics=("liv", "ocds"))
+    motions = {
+        "diffusion D=0.05": Diffusion(diffusion_um2_per_s=0.05),
+        "ballistic v=0.5": RandomBallistic(speed_um_per_s=0.5, directions="uniform-angles"),
+        "flow v=1 (45°)": Flow(speed_um_per_s=1.0, polar_angle_deg=45.0),
+    }
+    return {name: Scene(systems=(system,), protocol=protocol, analysis=analysis, name=name,
+                        populations=(Population(density_per_um3=0.055, motion=(m,)),))
+            for name, m in motions.items()}
+
+
+def _g1_theory(scene: Scene, lag: int) -> float:
+    from . import theory
+
+    s = scene.systems[0]
+    m = scene.populations[0].motion[0]
+    tau = lag * scene.protocol.frame_interval_s
+    kw = dict(lateral_resolution_um=s.lateral_resolution_um, axial_resolution_um=s.axial_resolution_um,
+              wavelength_um=s.wavelength_um, refractive_index=s.refractive_index)
+    if isinstance(m, Diffusion):
+        g = theory.g1_diffusion(tau, diffusion_um2_per_s=m.diffusion_um2_per_s, **kw)
+    elif isinstance(m, RandomBallistic):
+        g = theory.g1_ballistic(tau, speed_um_per_s=m.speed_um_per_s, directions=m.directions, **kw)
+    else:
+        g = theory.g1_flow(tau, speed_um_per_s=m.speed_um_per_s, polar_angle_deg=m.polar_angle_deg, **kw)
+    return complex(np.asarray(g)).real if np.iscomplexobj(g) else float(g)
+
+
+def _g1_sim(signals: torch.Tensor, lag: int) -> tuple[complex, float]:
+    """Estimate of g1(lag) = <E(t+τ) E*(t)>/<I> and its standard error over trials."""
+    e = signals[:, 0].to(torch.complex128)
+    i_mean = float((e.abs() ** 2).mean())
+    per_trial = (e[:, lag:] * e[:, :-lag].conj()).mean(-1) / i_mean
+    est = complex(per_trial.mean())
+    se = float(per_trial.real.std() / math.sqrt(per_trial.numel()))
+    return est, se
+
+
+def _run(scene: Scene, trials: int, seed: int, tol: float, dtype: str, chunk: int | None = None):
+    t0 = time.perf_counter()
+    res = simulate(scene, trials=trials, seed=seed, dtype=dtype, truncation_tolerance=tol, chunk_trials=chunk)
+    wall = time.perf_counter() - t0
+    m = res.metrics()
+    return res, {k: m[k][:, 0].double() for k in ("liv", "ocds")}, wall
+
+
+def _paired(a: torch.Tensor, b: torch.Tensor) -> tuple[float, float]:
+    ok = torch.isfinite(a) & torch.isfinite(b)
+    d = (a - b)[ok]
+    return float(d.mean()), float(d.std() / math.sqrt(max(1, d.numel())))
+
+
+def simulator_tradeoffs(*, trials: int = 8192, reference_trials: int = 16384,
+                        tolerances: Sequence[float] = (1e-1, 1e-2, 1e-3, 1e-4),
+                        trials_grid: Sequence[int] = (64, 128, 256, 500, 1024, 2048, 4096),
+                        chunk_trials: Sequence[int] = (64, 256, 1024, 4096),
+                        seed: int = 20261122, progress: bool = False) -> dict[str, Any]:
+    """Measure every knob of every :func:`tradeoff_cells` cell; returns a JSON-ready dict."""
+    from tqdm.auto import tqdm
+
+    from .bench import machine_info
+
+    cells_out = []
+    cells = tradeoff_cells()
+    bar = tqdm(total=len(cells) * (2 + len(tolerances) + len(trials_grid) + len(chunk_trials)),
+               desc="trade-offs", disable=not progress)
+    for name, scene in cells.items():
+        ref_res, ref, ref_wall = _run(scene, reference_trials, seed + 1, _REFERENCE_TOLERANCE, "float64")
+        bar.update(1)
+        sd = {k: float(v[torch.isfinite(v)].std()) for k, v in ref.items()}
+        ref_mean = {k: float(v[torch.isfinite(v)].mean()) for k, v in ref.items()}
+        g1_true = _g1_theory(scene, 1)
+        tol_rows = []
+        i_true = mean_intensity(scene.populations[0].density_per_um3, scene.systems[0].lateral_resolution_um,
+                                scene.systems[0].axial_resolution_um)
+        for tol in tolerances:
+            res, met, wall = _run(scene, trials, seed, tol, "float32")
+            g1, g1_se = _g1_sim(res.signals, 1)
+            inten = (res.signals.abs() ** 2).double().mean(-1)[:, 0]
+            row = {"tolerance": tol, "dtype": "float32", "wall_s": wall, "ms_per_trial": 1e3 * wall / trials,
+                   "field_mse_bound": truncation_error_bound(tol),
+                   "g1_lag1": g1.real, "g1_lag1_se": g1_se, "g1_lag1_error": abs(g1.real - g1_true),
+                   "mean_intensity_rel_error": float(inten.mean()) / i_true - 1.0,
+                   "mean_intensity_rel_se": float(inten.std()) / math.sqrt(trials) / i_true}
+            for k in ("liv", "ocds"):
+                v = met[k][torch.isfinite(met[k])]
+                row[f"{k}_bias"] = float(v.mean()) - ref_mean[k]
+                row[f"{k}_bias_se"] = math.hypot(float(v.std()) / math.sqrt(v.numel()),
+                                                 sd[k] / math.sqrt(reference_trials))
+            tol_rows.append(row)
+            bar.update(1)
+        # dtype at the default tolerance, same seed
+        n_small = min(trials, 2048)
+        _, m32, w32 = _run(scene, n_small, seed, DEFAULTS["truncation_tolerance"], "float32")
+        _, m64, w64 = _run(scene, n_small, seed, DEFAULTS["truncation_tolerance"], "float64")
+        bar.update(1)
+        dtype_row = {"trials": n_small, "float32_ms_per_trial": 1e3 * w32 / n_small,
+                     "float64_ms_per_trial": 1e3 * w64 / n_small}
+        for k in ("liv", "ocds"):
+            dtype_row[f"{k}_max_abs_diff"] = float((m32[k] - m64[k]).abs().nan_to_num(0.0).max())
+            dtype_row[f"{k}_bias"], dtype_row[f"{k}_bias_se"] = _paired(m32[k], m64[k])
+        trial_rows = []
+        for n in trials_grid:
+            _, met, wall = _run(scene, n, seed + 2, DEFAULTS["truncation_tolerance"], "float32")
+            row = {"trials": n, "wall_s": wall, "ms_per_trial": 1e3 * wall / n}
+            for k in ("liv", "ocds"):
+                v = met[k][torch.isfinite(met[k])]
+                row[f"{k}_error"] = abs(float(v.mean()) - float(ref[k][torch.isfinite(ref[k])].mean()))
+                row[f"{k}_se"] = sd[k] / math.sqrt(n)
+            trial_rows.append(row)
+            bar.update(1)
+        chunk_rows = []
+        first = None
+        for c in chunk_trials:
+            res, _, wall = _run(scene, n_small, seed, DEFAULTS["truncation_tolerance"], "float32", chunk=c)
+            if first is None:
+                first = res.signals
+            identical = bool(torch.equal(first, res.signals))
+            if not identical:
+                raise AssertionError(f"{name}: chunk_trials={c} changed the result")
+            chunk_rows.append({"chunk_trials": c, "trials": n_small, "wall_s": wall, "ms_per_trial": 1e3 * wall / n_small,
+                               "bit_identical": identical})
+            bar.update(1)
+        cells_out.append({
+            "cell": name, "reference": {"trials": reference_trials, "tolerance": _REFERENCE_TOLERANCE,
+                                        "dtype": "float64", "wall_s": ref_wall,
+                                        "liv_mean": float(ref["liv"].nanmean()), "liv_sd": sd["liv"],
+                                        "ocds_mean": float(ref["ocds"].nanmean()), "ocds_sd": sd["ocds"],
+                                        "g1_lag1_theory": g1_true},
+            "tolerance": tol_rows, "dtype": dtype_row, "trials": trial_rows, "chunk": chunk_rows})
+    bar.close()
+    out = {"benchmark": "tradeoffs-simulate", "trials_per_point": trials, "seed": seed,
+           "defaults": DEFAULTS, "machine": machine_info(), "cells": cells_out}
+    out["pareto"] = {c["cell"]: pareto_front(_choices(c)) for c in cells_out}
+    out["recommendation"] = {c["cell"]: recommend(_choices(c), c) for c in cells_out}
+    return out
+
+
+def _choices(cell: dict[str, Any], metric: str = "liv") -> list[dict[str, Any]]:
+    """(tolerance, dtype, trials) choices with predicted time and total error of the mean ``metric``.
+
+    Time = measured ms/trial at that tolerance and dtype × trials; error = √(bias² + (SD/√n)²), the
+    bias taken as its measured value or its standard error, whichever is larger (an unresolved bias
+    counts as large as it could be).
+    """
+    sd = cell["reference"][f"{metric}_sd"]
+    out = []
+    for row in cell["tolerance"]:
+        bias = max(abs(row[f"{metric}_bias"]), row[f"{metric}_bias_se"])
+        for n in sorted({r["trials"] for r in cell["trials"]}):
+            out.append({"tolerance": row["tolerance"], "dtype": row["dtype"], "trials": n,
+                        "time_s": row["ms_per_trial"] * n / 1e3,
+                        "error": math.sqrt(bias * bias + sd * sd / n), "bias": bias})
+    return out
+
+
+def pareto_front(choices: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Choices that no other choice beats in both time and error (sorted by time)."""
+    front = []
+    best = math.inf
+    for c in sorted(choices, key=lambda c: (c["time_s"], c["error"])):
+        if c["error"] < best:
+            front.append(c)
+            best = c["error"]
+    return front
+
+
+def recommend(choices: list[dict[str, Any]], cell: dict[str, Any]) -> dict[str, Any]:
+    """For the error of the shipped defaults, the cheapest choice on the front, and where the defaults sit."""
+    front = pareto_front(choices)
+    d = next(c for c in choices if c["tolerance"] == DEFAULTS["truncation_tolerance"]
+             and c["dtype"] == DEFAULTS["dtype"] and c["trials"] == min(
+                 {x["trials"] for x in choices}, key=lambda n: abs(n - DEFAULTS["trials"])))
+    cheapest = min((c for c in choices if c["error"] <= d["error"] * 1.02), key=lambda c: c["time_s"])
+    on_front = any(c is d for c in front) or (d["time_s"] <= cheapest["time_s"] * 1.10)
+    return {"defaults": d, "cheapest_at_same_error": cheapest, "defaults_on_front": bool(on_front),
+            "time_ratio_defaults_vs_cheapest": d["time_s"] / cheapest["time_s"]}
+
+
+def plot_tradeoffs(result: dict[str, Any], path: str) -> None:
+    """Error of the mean LIV against wall time per cell, with the Pareto front and the defaults."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cells = result["cells"]
+    fig, axes = plt.subplots(1, len(cells), figsize=(5 * len(cells), 4.2), constrained_layout=True)
+    axes = np.atleast_1d(axes)
+    for ax, cell in zip(axes, cells):
+        ch = _choices(cell)
+        for dtype, mk in (("float32", "o"), ("float64", "s")):
+            pts = [c for c in ch if c["dtype"] == dtype]
+            sc = ax.scatter([c["time_s"] for c in pts], [c["error"] for c in pts], marker=mk, s=14,
+                            c=[math.log10(c["tolerance"]) for c in pts], cmap="viridis", label=dtype)
+        front = pareto_front(ch)
+        ax.plot([c["time_s"] for c in front], [c["error"] for c in front], "k-", lw=1, label="Pareto front")
+        rec = recommend(ch, cell)["defaults"]
+        ax.plot([rec["time_s"]], [rec["error"]], "r*", ms=14, label="defaults")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("wall time (s)")
+        ax.set_ylabel("error of mean LIV (dB²)")
+        ax.set_title(cell["cell"])
+        ax.legend(fontsize=7)
+    fig.colorbar(sc, ax=axes, label="log10 truncation tolerance")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
