@@ -47,6 +47,15 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     bs.add_argument("--out", default="bench-simulate.json", help="JSON output file")
     bs.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    bt = bsub.add_parser("tradeoffs", help="error against time for tolerance, trials, dtype and chunk size")
+    bt.add_argument("--trials", type=int, default=8192, help="trials per tolerance point")
+    bt.add_argument("--reference-trials", type=int, default=16384, help="trials of the converged reference")
+    bt.add_argument("--out", default="bench-tradeoffs.json", help="JSON output (a PNG of the front beside it)")
+    bt.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    ba = bsub.add_parser("all", help="every benchmark, each writing DIR/bench-NAME.json")
+    ba.add_argument("--out", default="bench", help="output directory (created if missing)")
+    ba.add_argument("--quick", action="store_true", help="reduced sizes (a smoke run, minutes)")
+    ba.add_argument("--force", action="store_true", help="overwrite existing results")
     for name in _EXTENSIONS:
         if importlib.util.find_spec(f"{__package__}.{name}") is not None:
             importlib.import_module(f"{__package__}.{name}").register(sub, bsub)
@@ -114,6 +123,31 @@ def _save_npz(path: Path, result, metrics: dict[str, Any]) -> None:
     _atomic_write(path, write)
 
 
+def _bench_all(args) -> int:
+    """Run every registered benchmark in turn; each writes ``DIR/bench-NAME.json``."""
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    quick = {"simulate": ["--trials", "256"], "tradeoffs": ["--trials", "1024", "--reference-trials", "2048"],
+             "render": ["--repeats", "1"]}
+    parser = build_parser()
+    bench_sub = next(a for a in parser._subparsers._group_actions[0].choices["bench"]._actions
+                     if isinstance(a, argparse._SubParsersAction))
+    names = [n for n in bench_sub.choices if n != "all"]
+    failed = []
+    for name in names:
+        argv = ["bench", name, "--out", str(out_dir / f"bench-{name}.json")]
+        if args.force:
+            argv.append("--force")
+        if args.quick:
+            argv += quick.get(name, ["--quick"] if "--quick" in bench_sub.choices[name].format_usage() else [])
+        print(f"== torchdoct {' '.join(argv)}", flush=True)
+        code = main(argv)
+        if code != 0:
+            failed.append(name)
+    print(f"benchmarks: {len(names) - len(failed)} of {len(names)} done" + (f"; failed: {failed}" if failed else ""))
+    return 1 if failed else 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from . import config
@@ -154,6 +188,20 @@ def main(argv: Sequence[str] | None = None) -> int:
                 _save_npz(out, result, metrics)
                 print(f"wrote {out}")
             return 0
+        if args.command == "bench" and args.bench == "tradeoffs":
+            from . import tradeoffs
+
+            out = _check_out(args.out, args.force, ".json")
+            png = _check_out(str(Path(args.out).with_suffix(".png")), args.force, ".png")
+            res = tradeoffs.simulator_tradeoffs(trials=args.trials, reference_trials=args.reference_trials,
+                                                progress=True)
+            print(tradeoffs.format_table(res))
+            _atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
+            _atomic_write(png, lambda tmp: tradeoffs.plot_tradeoffs(res, tmp))
+            print(f"wrote {out} and {png}")
+            return 0
+        if args.command == "bench" and args.bench == "all":
+            return _bench_all(args)
         if args.command == "bench" and args.bench == "simulate":
             from . import bench
 

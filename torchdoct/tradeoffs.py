@@ -32,7 +32,7 @@ from .conventions import mean_intensity, truncation_error_bound
 from .simulate import simulate
 
 __all__ = ["tradeoff_cells", "simulator_tradeoffs", "pareto_front", "recommend", "plot_tradeoffs",
-           "DEFAULTS"]
+           "format_table", "DEFAULTS"]
 
 #: The shipped defaults (what a scene gets without a [simulation] table, and the paper's trials).
 DEFAULTS = {"truncation_tolerance": 1e-2, "dtype": "float32", "trials": 500}
@@ -251,3 +251,35 @@ def plot_tradeoffs(result: dict[str, Any], path: str) -> None:
     fig.colorbar(sc, ax=axes, label="log10 truncation tolerance")
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+def format_table(result: dict[str, Any]) -> str:
+    """Markdown tables: per cell and tolerance, time and errors; dtype and chunk rows; the defaults."""
+    lines = []
+    for cell in result["cells"]:
+        ref = cell["reference"]
+        lines.append(f"### {cell['cell']} (reference: {ref['trials']} trials, tolerance {ref['tolerance']:g}, "
+                     f"float64: LIV {ref['liv_mean']:.3f} ± SD {ref['liv_sd']:.2f} dB², OCDS "
+                     f"{ref['ocds_mean']:.4f} ± SD {ref['ocds_sd']:.3f} 1/s)")
+        lines.append("| tolerance | ms/trial | field MSE bound | ⟨I⟩ rel. error | g1(Δt) error | "
+                     "LIV bias (dB²) | OCDS bias (1/s) |")
+        lines.append("|---:|---:|---:|---:|---:|---:|---:|")
+        for r in cell["tolerance"]:
+            lines.append(f"| {r['tolerance']:g} | {r['ms_per_trial']:.3f} | {r['field_mse_bound']:.1e} | "
+                         f"{r['mean_intensity_rel_error']:+.4f} ± {r['mean_intensity_rel_se']:.4f} | "
+                         f"{r['g1_lag1_error']:.4f} (SE {r['g1_lag1_se']:.4f}) | "
+                         f"{r['liv_bias']:+.3f} ± {r['liv_bias_se']:.3f} | {r['ocds_bias']:+.4f} ± {r['ocds_bias_se']:.4f} |")
+        d = cell["dtype"]
+        lines.append(f"float32 {d['float32_ms_per_trial']:.3f} ms/trial vs float64 {d['float64_ms_per_trial']:.3f}; "
+                     f"same scatterers: max |ΔLIV| {d['liv_max_abs_diff']:.2e} dB², max |ΔOCDS| "
+                     f"{d['ocds_max_abs_diff']:.2e} 1/s")
+        lines.append("chunk trials → ms/trial (bit-identical results): " + ", ".join(
+            f"{c['chunk_trials']} → {c['ms_per_trial']:.3f}" for c in cell["chunk"]))
+        rec = result["recommendation"][cell["cell"]]
+        dft, ch = rec["defaults"], rec["cheapest_at_same_error"]
+        lines.append(f"defaults (tol {dft['tolerance']:g}, {dft['dtype']}, {dft['trials']} trials): "
+                     f"{dft['time_s']:.3f} s, LIV error {dft['error']:.3f} dB²; cheapest at that error: tol "
+                     f"{ch['tolerance']:g}, {ch['trials']} trials, {ch['time_s']:.3f} s; defaults on the front: "
+                     f"{rec['defaults_on_front']}")
+        lines.append("")
+    return "\n".join(lines)
