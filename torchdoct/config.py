@@ -40,6 +40,11 @@ __all__ = [
 METRICS = ("liv", "ocds", "complex_variance", "autocorrelation")
 #: Upper limits that keep a scene physically meaningful and the plan finite.
 MAX_FRAMES = 100_000
+#: Largest motion parameters (far beyond biology: 1 cm/s, 1 mm²/s); they keep plans finite.
+MAX_SPEED_UM_PER_S = 1e4
+MAX_DIFFUSION_UM2_PER_S = 1e6
+#: Longest protocol (s): one day.
+MAX_DURATION_S = 86_400.0
 
 
 class SceneError(ValueError):
@@ -151,6 +156,9 @@ class Protocol:
                   "e.g. frame_interval_s = 0.2048")
         if self.frame_interval_s is not None:
             _number("protocol.frame_interval_s", self.frame_interval_s, positive=True, unit="s")
+            if self.frame_interval_s * (self.n_frames - 1) > MAX_DURATION_S:
+                _fail("protocol.frame_interval_s", f"{self.frame_interval_s} s × {self.n_frames - 1} intervals "
+                      f"exceeds {MAX_DURATION_S:g} s", "times are in seconds: 204.8 ms is 0.2048")
         else:
             times = self.frame_times_s
             if not isinstance(times, (list, tuple)):
@@ -163,6 +171,9 @@ class Protocol:
                       "make n_frames equal to the number of frame times")
             if any(b <= a for a, b in zip(times, times[1:])):
                 _fail("protocol.frame_times_s", "must be strictly increasing")
+            if times[-1] - times[0] > MAX_DURATION_S:
+                _fail("protocol.frame_times_s", f"span {times[-1] - times[0]:g} s exceeds {MAX_DURATION_S:g} s",
+                      "times are in seconds")
 
     @property
     def times_s(self) -> tuple[float, ...]:
@@ -197,7 +208,8 @@ class Diffusion:
     kind: Literal["diffusion"] = "diffusion"
 
     def validate(self, path: str) -> None:
-        _number(f"{path}.diffusion_um2_per_s", self.diffusion_um2_per_s, nonneg=True, unit="µm²/s")
+        _number(f"{path}.diffusion_um2_per_s", self.diffusion_um2_per_s, nonneg=True, hi=MAX_DIFFUSION_UM2_PER_S,
+                unit="µm²/s")
 
     @property
     def is_zero(self) -> bool:
@@ -218,7 +230,7 @@ class RandomBallistic:
     kind: Literal["ballistic"] = "ballistic"
 
     def validate(self, path: str) -> None:
-        _number(f"{path}.speed_um_per_s", self.speed_um_per_s, nonneg=True, unit="µm/s")
+        _number(f"{path}.speed_um_per_s", self.speed_um_per_s, nonneg=True, hi=MAX_SPEED_UM_PER_S, unit="µm/s")
         _string(f"{path}.directions", self.directions, ("isotropic", "uniform-angles"))
 
     @property
@@ -239,7 +251,7 @@ class Flow:
     kind: Literal["flow"] = "flow"
 
     def validate(self, path: str) -> None:
-        _number(f"{path}.speed_um_per_s", self.speed_um_per_s, nonneg=True, unit="µm/s")
+        _number(f"{path}.speed_um_per_s", self.speed_um_per_s, nonneg=True, hi=MAX_SPEED_UM_PER_S, unit="µm/s")
         _number(f"{path}.polar_angle_deg", self.polar_angle_deg, lo=0.0, hi=180.0, unit="deg")
         _number(f"{path}.azimuth_deg", self.azimuth_deg, lo=-360.0, hi=360.0, unit="deg")
 
@@ -278,6 +290,9 @@ class Population:
             _fail(f"{p}.density_per_um3", f"{self.density_per_um3} per µm³ is beyond 1000",
                   "density is per cubic micrometre: 0.055 means 5.5e7 per mm³")
         _number(f"{p}.reflectivity", self.reflectivity, positive=True)
+        if self.reflectivity > 1e6:
+            _fail(f"{p}.reflectivity", f"{self.reflectivity} is beyond 1e6",
+                  "reflectivity is a relative field amplitude (1 = the reference scatterer); use relative values")
         object.__setattr__(self, "motion", tuple(self.motion))
         for i, m in enumerate(self.motion):
             if not isinstance(m, (Diffusion, RandomBallistic, Flow)):

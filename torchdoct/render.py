@@ -50,7 +50,7 @@ from .config import Population
 from .conventions import (amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
                           truncation_half_widths_um, wavenumber_per_um)
 from .phantom import MOTION_CODES, Phantom, motion_code
-from .simulate import unit_directions
+from .simulate import MemoryLimitError, available_memory_bytes, unit_directions
 
 __all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS"]
 
@@ -344,6 +344,14 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
     lo = torch.tensor([grid.extent_um(a)[0] - half[i] for i, a in enumerate("xyz")], dtype=_F64)
     hi = torch.tensor([grid.extent_um(a)[1] + half[i] for i, a in enumerate("xyz")], dtype=_F64)
     box = (lo, hi)
+
+    out_bytes = len(optics) * T * n_pix * (16 if dtype == torch.float64 else 8)
+    avail = available_memory_bytes()
+    if avail is not None and 2 * out_bytes > avail:  # the sequence plus one copy when written
+        raise MemoryLimitError(
+            f"the rendered sequence alone is {out_bytes / 2**30:.2f} GB ({len(optics)} system(s) × {T} frames × "
+            f"{n_pix} pixels) and needs about twice that; {avail / 2**30:.2f} GB are available: render fewer "
+            f"pixels or frames, one system at a time (--system), or in float32")
 
     states = []
     pop_regions: list[int | None] = [None] * len(scene.populations)

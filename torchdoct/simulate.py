@@ -34,7 +34,8 @@ from .config import Population, Scene
 from .conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, wavenumber_per_um
 from .plan import BLOCK_TRIALS, Plan, PopulationPlan, face_immigrant_mean, make_plan
 
-__all__ = ["simulate", "SimulationResult", "CapacityError", "block_generator"]
+__all__ = ["simulate", "SimulationResult", "CapacityError", "MemoryLimitError", "block_generator",
+           "chunk_bytes", "available_memory_bytes", "unit_directions"]
 
 _F64 = torch.float64
 #: Position of unused slots (µm): far enough that the PSF amplitude underflows to exactly 0.
@@ -611,6 +612,36 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
     return torch.complex(out_re, out_im).view(S, N, T).permute(1, 0, 2).to(cdt)
 
 
+class MemoryLimitError(ValueError):
+    """A run would need more memory than the machine has available (refused before any work)."""
+
+
+#: Bytes of working memory per reserved slot element (measured: float64 state, float32 draws and
+#: the temporaries of one frame; 10^5 trials of the largest paper cell peak below 1 GB).
+_BYTES_PER_ELEMENT = 40
+
+
+def chunk_bytes(plan: Plan, chunk_trials: int, n_systems: int, n_frames: int) -> int:
+    """Estimated peak working memory (bytes) of one chunk of ``chunk_trials`` trials."""
+    per_trial = max(3 * (p.capacity + p.entry_capacity + p.entry_proposal_capacity
+                         + p.immigrant_proposal_capacity)
+                    + (p.evaluations_per_trial if p.sampler == "drift" else 0) for p in plan.populations)
+    per_trial += 4 * n_systems * n_frames
+    return int(per_trial * chunk_trials * _BYTES_PER_ELEMENT)
+
+
+def available_memory_bytes() -> int | None:
+    """``MemAvailable`` of the machine (Linux ``/proc/meminfo``), or ``None`` where unknown."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
 _SAMPLERS: dict[str, Callable] = {
     "static": _simulate_static,
     "drift": _simulate_drift,
@@ -716,6 +747,16 @@ def simulate(
         if chunk_trials < 1:
             raise ValueError(f"chunk_trials must be >= 1; got {chunk_trials}")
         chunk_blocks = -(-int(chunk_trials) // BLOCK_TRIALS)
+    need = chunk_bytes(plan, chunk_blocks * BLOCK_TRIALS, len(scene.systems), scene.protocol.n_frames)
+    need += trials * len(scene.systems) * scene.protocol.n_frames * 2 * torch.finfo(dtype).bits // 8
+    avail = available_memory_bytes()
+    if avail is not None and need > avail:
+        raise MemoryLimitError(
+            f"this simulation needs about {need / 2**30:.2f} GB ({chunk_blocks * BLOCK_TRIALS} trials per chunk, "
+            f"{plan.expected_scatterers_per_trial:.4g} scatterers per trial, plus the output) but only "
+            f"{avail / 2**30:.2f} GB are available; lower chunk_trials (minimum {BLOCK_TRIALS}), loosen "
+            f"the truncation tolerance (simulation.truncation_tolerance, now {plan.truncation_tolerance:g}), "
+            f"run fewer trials per call, or lower the density")
     t0 = time.perf_counter()
     pieces = []
     bar = None
