@@ -45,7 +45,7 @@ import dataclasses
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence as _Seq
 
@@ -706,7 +706,7 @@ def write_maps(path: str | os.PathLike, maps: Maps, *, force: bool = False) -> P
         def write(tmp: str) -> None:
             import tifffile
 
-            tifffile.imwrite(tmp, arr, description=text, metadata=None)
+            tifffile.imwrite(tmp, arr, description=text, metadata=None, photometric="minisblack")
     atomic_write(out, write)
     return out
 
@@ -741,9 +741,13 @@ def read_maps(path: str | os.PathLike) -> Maps:
         if "channels" not in meta:
             raise ValueError(f"{p.name}: ImageDescription has no 'channels'; not a torchdoct maps file")
         channels = tuple(c["name"] for c in meta["channels"])
-        n_sp = len(meta.get("axes", "CZX")) - 1
-        if arr.ndim == n_sp and len(channels) == 1:
-            arr = arr[None]
+        n_sp = len(meta.get("axes", "CZX")) - 1  # pages are [Z, X] images: restore [C, (Y), Z, X]
+        shape = (len(channels), -1, *arr.shape[-2:]) if n_sp == 3 else (len(channels), *arr.shape[-2:])
+        try:
+            arr = arr.reshape(shape)
+        except ValueError:
+            raise ValueError(f"{p.name}: stack of shape {list(arr.shape)} does not hold {len(channels)} channels "
+                             f"of {meta.get('axes')}") from None
     if "channels" not in meta or len(meta["channels"]) != len(channels):
         raise ValueError(f"{p.name}: meta 'channels' does not match the {len(channels)} channel names")
     return Maps(maps=arr, channels=channels, meta=meta)

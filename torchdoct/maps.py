@@ -395,47 +395,59 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     for t in targets:
         lat, ax = t.resolved(system)
         sig = axial_filter_sigma_um(ax0, ax) / seq.pitch_um["z"] if ax != ax0 else 0.0
-        halo = (int(math.ceil(5.0 * sig)) + 1 if sig else 0) + margin
-        rows = n_z if (edge_mode == "wrap" and sig) else max(1, min(n_z, int(slab_elements) // max(per_row, 1)))
-        plans.append((t, halo, rows))
-    total = sum(math.ceil(n_z / rows) for _, _, rows in plans)
+        if sig and lat == lat0 and "Y" in axes:
+            # axial only, volume: chunk over B-scans (whole depth columns, no halo; aLIV smoothing is per B-scan)
+            cdim, halo, mrg = 1, 0, 0
+            n_c = data.shape[1]
+            rows = max(1, min(n_c, int(slab_elements) // max(int(np.prod(data.shape)) // n_c, 1)))
+        else:  # depth slabs with a halo for the axial window and the 3x3 smoothing
+            cdim, mrg, n_c = zdim, margin, n_z
+            halo = (int(math.ceil(5.0 * sig)) + 1 if sig else 0) + margin
+            rows = max(1, min(n_c, int(slab_elements) // max(per_row, 1)))
+            if sig:
+                rows = n_c if edge_mode == "wrap" else min(n_c, max(rows, 2 * halo))
+        plans.append((t, cdim, n_c, halo, mrg, rows))
+    total = sum(math.ceil(n_c / rows) for _, _, n_c, _, _, rows in plans)
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=total, desc="maps", unit="slab")
     channels: list[dict[str, Any]] = []
-    for ti, (t, halo, rows) in enumerate(plans):
+    for ti, (t, cdim, n_c, halo, mrg, rows) in enumerate(plans):
         lat, ax = t.resolved(system)
         for m in wanted:
             channels.append({"name": f"{m}@{t.label}", "metric": m, "unit": UNITS[m], "resolution": t.label,
                              "wavelength_um": float(system["wavelength_um"]), "lateral_resolution_um": lat,
                              "axial_resolution_um": ax})
         t0 = time.perf_counter()
-        for z0 in range(0, n_z, rows):
-            z1 = min(n_z, z0 + rows)
-            a0, a1 = max(0, z0 - halo), min(n_z, z1 + halo)
-            block = torch.from_numpy(np.array(data[..., a0:a1, :], copy=True))  # canonical: Z second to last
-            block = block.to(dev)
+        for c0 in range(0, n_c, rows):
+            c1 = min(n_c, c0 + rows)
+            a0, a1 = max(0, c0 - halo), min(n_c, c1 + halo)
+            sel = [slice(None)] * data.ndim
+            sel[cdim] = slice(a0, a1)
+            block = torch.from_numpy(np.array(data[tuple(sel)], copy=True)).to(dev)
             if seq.is_complex:
                 red = reduce_resolution(block, pitch_um=seq.pitch_um, system=system,
                                         lateral_resolution_um=t.lateral_resolution_um,
                                         axial_resolution_um=t.axial_resolution_um, axes=axes,
                                         axial_center=fc, edge_mode=edge_mode, normalization=normalization)
-                m0, m1 = max(a0, z0 - margin), min(a1, z1 + margin)
-                red = red.narrow(zdim, m0 - a0, m1 - m0)
+            else:
+                red = block
+            m0, m1 = max(a0, c0 - mrg), min(a1, c1 + mrg)
+            red = red.narrow(cdim, m0 - a0, m1 - m0)
+            if red.is_complex():
                 inten = red.real ** 2 + red.imag ** 2
             else:
-                m0, m1 = a0, a1
-                inten = block.to(torch.float64 if real_dtype == np.float64 else torch.float32)
+                inten = red.to(torch.float64 if real_dtype == np.float64 else torch.float32)
             vals = _pixel_metrics(inten, times, wanted, ocds_delay_range_s=tuple(ocds_delay_range_s),
                                   ocds_scale=ocds_scale, ocds_estimator=ocds_estimator,
                                   aliv_smoothing=aliv_smoothing, aliv_max_window_s=aliv_max_window_s,
                                   chunk_pixels=chunk_pixels)
             for mi, m in enumerate(wanted):
-                v = vals[m].narrow(zdim - 1, z0 - m0, z1 - z0).cpu().numpy()
+                v = vals[m].narrow(cdim - 1, c0 - m0, c1 - c0).cpu().numpy()
                 idx = [ti * len(wanted) + mi] + [slice(None)] * (data.ndim - 1)
-                idx[zdim] = slice(z0, z1)
+                idx[cdim] = slice(c0, c1)
                 out[tuple(idx)] = v
             if bar is not None:
                 bar.update(1)

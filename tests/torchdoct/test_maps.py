@@ -1,0 +1,330 @@
+"""DOCT maps (torchdoct.maps) and the ``torchdoct maps`` / ``torchdoct bench maps`` commands."""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+
+import numpy as np
+import pytest
+import tifffile
+import torch
+from scipy import ndimage, optimize
+
+from torchdoct import metrics
+from torchdoct.cli import main
+from torchdoct.io import BlockRaster, Sequence, read_maps, read_sequence, validate_meta, write_sequence
+from torchdoct.maps import (
+    box_smooth_zx,
+    compute_maps,
+    fit_saturation,
+    liv_curve,
+    ocds_map,
+    png_name,
+    pseudo_color,
+)
+from torchdoct.resolution import reduce_resolution
+
+SYSTEM = {"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
+          "refractive_index": 1.0}
+DT = 0.2048
+
+
+def speckle(shape, *, corr=0.8, seed=0, dtype=np.complex64) -> np.ndarray:
+    """Complex Gaussian frames [T, ...] with lag-1 field correlation ``corr`` (AR(1) in time)."""
+    rng = np.random.default_rng(seed)
+
+    def noise():
+        return rng.standard_normal(shape[1:]) + 1j * rng.standard_normal(shape[1:])
+
+    e = noise()
+    out = []
+    for _ in range(shape[0]):
+        e = corr * e + math.sqrt(1 - corr * corr) * noise()
+        out.append(e)
+    return np.array(out).astype(dtype)
+
+
+def make_seq(data, *, volume=False, raster=None, times=None) -> Sequence:
+    t = times if times is not None else [DT * i for i in range(data.shape[0])]
+    meta = {"axes": "TYZX" if volume else "TZX", "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 3.0} if volume else {})},
+            "frame_times_s": t, "system": SYSTEM}
+    if raster is not None:
+        meta["block_raster"] = raster.to_dict()
+    return Sequence(data=data, meta=validate_meta(meta, data.shape), source="test.npy")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# per-pixel metrics agree with torchdoct.metrics
+# ----------------------------------------------------------------------------------------------------------
+def test_liv_ocds_mean_db_match_metrics():
+    data = speckle((12, 9, 11), dtype=np.complex128)
+    data[:, 0, 0] = 1.0 + 1.0j  # constant pixel: LIV 0, OCDS 0 (rho = 1 at every lag)
+    seq = make_seq(data)
+    m = compute_maps(seq, ["original"], ocds_delay_range_s=(0.2048, 0.8192))
+    i = torch.from_numpy(np.abs(data) ** 2).movedim(0, -1)
+    np.testing.assert_allclose(m["liv@original"], metrics.liv(i).numpy(), rtol=1e-5, atol=1e-5)
+    ref = metrics.ocds(i, seq.frame_times_s, delay_range_s=(0.2048, 0.8192)).numpy()
+    np.testing.assert_allclose(m["ocds@original"], ref, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(m["mean_db@original"], 10 * np.log10((np.abs(data) ** 2).mean(0)), rtol=1e-5)
+    assert m["liv@original"][0, 0] == 0 and m["ocds@original"][0, 0] == 0
+    assert m.maps.dtype == np.float32 and m.meta["axes"] == "CZX"
+
+
+@pytest.mark.parametrize("scale,estimator", [("db", "pearson"), ("linear", "pearson"), ("db", "biased")])
+def test_ocds_map_equals_metrics_ocds(scale, estimator):
+    g = torch.Generator().manual_seed(5)
+    i = torch.rand(300, 16, generator=g, dtype=torch.float64) + 0.01
+    i[:3] = 1.0  # constant
+    times = [DT * k for k in range(16)]
+    got = ocds_map(i, times, delay_range_s=(0.2048, 1.2288), scale=scale, estimator=estimator)
+    ref = metrics.ocds(i, times, delay_range_s=(0.2048, 1.2288), scale=scale, estimator=estimator)
+    torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12)
+    nonuniform = [0.0, 0.1, 0.3, 0.4, 0.6, 0.7, 0.9, 1.0, 1.2, 1.3, 1.5, 1.6, 1.8, 1.9, 2.1, 2.2]
+    torch.testing.assert_close(ocds_map(i, nonuniform, delay_range_s=(0.1, 0.6)),
+                               metrics.ocds(i, nonuniform, delay_range_s=(0.1, 0.6)))
+    with pytest.raises(ValueError, match="fewer than 2 delays"):
+        ocds_map(i, times, delay_range_s=(0.3, 0.35))
+
+
+def test_zero_intensity_pixels_are_nan():
+    data = speckle((8, 4, 5))
+    data[3, 1, 1] = 0  # one empty frame
+    data[:, 2, 2] = 0  # always empty
+    m = compute_maps(make_seq(data), ["original"], metrics=["liv", "ocds", "mean_db", "aliv", "swiftness"],
+                     ocds_delay_range_s=(0.2048, 0.6144))
+    for name in ("liv", "ocds", "aliv", "swiftness"):
+        assert np.isnan(m[f"{name}@original"][1, 1]) and np.isnan(m[f"{name}@original"][2, 2])
+    assert np.isfinite(m["mean_db@original"][1, 1]) and np.isnan(m["mean_db@original"][2, 2])
+    assert np.isfinite(m.maps[:, 0, 0]).all()
+
+
+# ----------------------------------------------------------------------------------------------------------
+# LIV curve, smoothing and the saturation fit (aLIV, Swiftness)
+# ----------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("times", [[DT * k for k in range(10)], [0.0, 0.1, 0.3, 0.4, 0.6, 0.7, 0.9, 1.0]])
+def test_liv_curve_brute_force(times):
+    g = torch.Generator().manual_seed(1)
+    i = torch.rand(7, len(times), generator=g, dtype=torch.float64) + 0.05
+    w, c = liv_curve(i, times)
+    db = 10 * np.log10(i.numpy())
+    t = np.asarray(times) - times[0]
+    spans = sorted({round(t[b] - t[a], 9) for a in range(len(t)) for b in range(a + 1, len(t))})
+    np.testing.assert_allclose(w.numpy(), spans, atol=1e-9)
+    for k, span in enumerate(spans):
+        runs = [(a, b) for a in range(len(t)) for b in range(a + 1, len(t)) if abs(t[b] - t[a] - span) < 1e-9]
+        ref = np.mean([np.var(db[:, a:b + 1], axis=1) for a, b in runs], axis=0)
+        np.testing.assert_allclose(c[:, k].numpy(), ref, rtol=1e-9, atol=1e-9)
+    w2, c2 = liv_curve(i, times, max_window_s=0.45)
+    assert float(w2.max()) <= 0.45 and c2.shape[-1] == int((w <= 0.45 + 1e-12).sum())
+
+
+def test_box_smoothing_is_cv2_blur():
+    x = torch.rand(2, 6, 7, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    ref = ndimage.uniform_filter(x.numpy(), size=(1, 3, 3, 1), mode="mirror")  # mirror = reflect-101
+    np.testing.assert_allclose(box_smooth_zx(x).numpy(), ref, rtol=1e-12, atol=1e-12)
+
+
+def _curve_fit(t, y):
+    def model(x, a, tau):
+        return a * (1 - np.exp(-x / tau))
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        p, _ = optimize.curve_fit(model, t, y, p0=(20.0, 1.0), bounds=([0, 0], [np.inf, np.inf]),
+                                  ftol=1e-14, xtol=1e-14, gtol=1e-14, max_nfev=10000)
+    return p
+
+
+def test_fit_matches_scipy_curve_fit():
+    rng = np.random.default_rng(4)
+    t = DT * np.arange(1, 32)
+    curves = []
+    for a, tau in [(25.0, 0.4), (8.0, 2.0), (30.0, 0.1), (3.0, 6.0), (15.0, 1.0)]:
+        curves.append(a * (1 - np.exp(-t / tau)) + rng.normal(0, 0.3, t.size))
+    # noise-free sample-size "saturation" of independent frames: σ²·m/(m+1) (physics.md §3 note i)
+    curves.append(31.03 * np.arange(1, 32) / np.arange(2, 33))
+    y = torch.tensor(np.array(curves))
+    a, tau = fit_saturation(torch.tensor(t), y)
+    for k in range(len(curves)):
+        pa, ptau = _curve_fit(t, curves[k])
+        assert float(a[k]) == pytest.approx(pa, rel=1e-4)
+        assert float(tau[k]) == pytest.approx(ptau, rel=1e-4)
+    assert float(a[-1]) == pytest.approx(29.1, abs=0.05) and 1 / float(tau[-1]) == pytest.approx(2.8, abs=0.05)
+
+
+def test_fit_on_map_pixels_matches_curve_fit():
+    data = speckle((16, 6, 7), corr=0.85, seed=3, dtype=np.complex128)
+    m = compute_maps(make_seq(data), ["original"], metrics=["aliv", "swiftness"], aliv_smoothing=False)
+    i = torch.from_numpy(np.abs(data) ** 2).movedim(0, -1)
+    w, c = liv_curve(i, [DT * k for k in range(16)])
+    for z, x in [(0, 0), (2, 3), (5, 6), (4, 1)]:
+        pa, ptau = _curve_fit(w.numpy(), c[z, x].numpy())
+        assert m["aliv@original"][z, x] == pytest.approx(pa, rel=1e-4)
+        assert m["swiftness@original"][z, x] == pytest.approx(1 / ptau, rel=1e-4)
+    flat = fit_saturation(w, torch.zeros(2, w.numel(), dtype=torch.float64))[0]
+    assert torch.equal(flat, torch.zeros(2, dtype=torch.float64))
+
+
+# ----------------------------------------------------------------------------------------------------------
+# compute_maps: resolutions, slabs, volumes, block raster, intensity input
+# ----------------------------------------------------------------------------------------------------------
+def test_maps_at_reduced_resolution_and_slab_invariance():
+    data = speckle((10, 60, 20), seed=6, dtype=np.complex128)
+    seq = make_seq(data)
+    kw = dict(metrics=["liv", "ocds", "mean_db", "aliv", "swiftness"], ocds_delay_range_s=(0.2048, 0.6144))
+    big = compute_maps(seq, ["original", "axial=14", "lateral=18", "axial=14,lateral=18"], **kw)
+    small = compute_maps(seq, ["original", "axial=14", "lateral=18", "axial=14,lateral=18"],
+                         slab_elements=10 * 20 * 7, chunk_pixels=37, **kw)
+    # slabs see the axial window truncated at 5σ' (tail e^-12.5 ≈ 4e-6 of the field); dB metrics of dark
+    # pixels amplify that a little
+    np.testing.assert_allclose(small.maps, big.maps, rtol=1e-4, atol=1e-4)
+    np.testing.assert_array_equal(small.maps[:3], big.maps[:3])  # no reduction: LIV, OCDS, mean dB exact
+    np.testing.assert_allclose(small.maps[3:5], big.maps[3:5], rtol=1e-5)  # fit: rounding of chunked sums
+    red = reduce_resolution(data, pitch_um=seq.pitch_um, system=SYSTEM, axial_resolution_um=14.0)
+    i = torch.from_numpy(np.abs(red) ** 2).movedim(0, -1)
+    np.testing.assert_allclose(big["liv@axial=14"], metrics.liv(i).numpy(), rtol=1e-5, atol=1e-5)
+    infos = {c["name"]: c for c in big.meta["channels"]}
+    assert infos["ocds@axial=14,lateral=18"]["lateral_resolution_um"] == 18.0
+    assert infos["ocds@axial=14,lateral=18"]["axial_resolution_um"] == 14.0
+    assert infos["liv@lateral=18"]["axial_resolution_um"] == 3.8 and infos["liv@original"]["unit"] == "dB^2"
+    assert infos["swiftness@original"]["unit"] == "1/s" and infos["mean_db@original"]["unit"] == "dB"
+    assert big.channels[0] == "liv@original" and len(big.channels) == 20
+    assert big.meta["reduction"]["lateral_axes"] == "X" and big.meta["source"] == "test.npy"
+
+
+def test_volume_with_block_raster_drops_boundary_bscans():
+    raster = BlockRaster(n_blocks=2, n_repeats=8, bscans_per_block=4, drop_boundary=1)
+    data = speckle((8, 8, 5, 6), seed=7)
+    seq = make_seq(data, volume=True, raster=raster)
+    m = compute_maps(seq, ["original", "lateral=9.8"], ocds_delay_range_s=(0.2048, 0.6144))
+    assert m.maps.shape == (6, 6, 5, 6) and m.meta["axes"] == "CYZX"
+    assert m.meta["y_indices"] == [0, 1, 2, 5, 6, 7] and m.meta["reduction"]["lateral_axes"] == "YX"
+    full = compute_maps(seq, ["original", "lateral=9.8"], ocds_delay_range_s=(0.2048, 0.6144), drop_boundary=False)
+    np.testing.assert_array_equal(m.maps, full.maps[:, [0, 1, 2, 5, 6, 7]])
+    # chunking over B-scans (axial only) or depth slabs (axial + lateral) does not change the maps
+    res = ["axial=14", "axial=14,lateral=9.8"]
+    kw = dict(ocds_delay_range_s=(0.2048, 0.6144), metrics=["liv", "ocds", "mean_db", "aliv"])
+    one = compute_maps(seq, res, **kw)
+    chunked = compute_maps(seq, res, slab_elements=8 * 2 * 5 * 6, **kw)
+    np.testing.assert_allclose(chunked.maps, one.maps, rtol=1e-4, atol=1e-4)
+
+
+def test_intensity_input_allows_only_original(tmp_path):
+    inten = np.abs(speckle((8, 5, 6), seed=8)) ** 2
+    tifffile.imwrite(tmp_path / "cog.tif", inten.astype(np.float32))
+    seq = read_sequence(tmp_path / "cog.tif", pitch_um="z=1.5,x=2", frame_interval_s=DT, system=SYSTEM)
+    m = compute_maps(seq, ["original"], ocds_delay_range_s=(0.2048, 0.6144))
+    i = torch.from_numpy(inten.astype(np.float32)).movedim(0, -1)
+    np.testing.assert_allclose(m["liv@original"], metrics.liv(i).numpy(), rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="intensity only.*needs the complex field"):
+        compute_maps(seq, ["original", "axial=14"])
+
+
+def test_bad_requests():
+    seq = make_seq(speckle((8, 5, 6)))
+    with pytest.raises(ValueError, match="unknown metrics"):
+        compute_maps(seq, metrics=["liv", "speed"])
+    with pytest.raises(ValueError, match="finer than the original"):
+        compute_maps(seq, ["axial=2"])
+    with pytest.raises(ValueError, match="requested twice"):
+        compute_maps(seq, ["original", "original"])
+    with pytest.raises(ValueError, match="fewer than 2 delays"):
+        compute_maps(seq, ["original"], ocds_delay_range_s=(0.2048, 0.25))
+    bare = Sequence(data=seq.data, meta={k: v for k, v in seq.meta.items() if k != "system"})
+    with pytest.raises(ValueError, match="--wavelength-um"):
+        compute_maps(bare)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# pseudo colour
+# ----------------------------------------------------------------------------------------------------------
+def test_pseudo_color_hue_and_brightness():
+    v = np.array([[0.0, 10.0, 5.0, np.nan]])
+    db = np.array([[40.0, 40.0, 20.0, 40.0]])
+    rgb = pseudo_color(v, db, value_range=(0, 10), db_range=(20, 40))
+    assert rgb.dtype == np.uint8 and rgb.shape == (1, 4, 3)
+    assert tuple(rgb[0, 0]) == (255, 0, 0)  # low value: red, full brightness
+    assert tuple(rgb[0, 1]) == (0, 255, 0)  # high value: green
+    assert tuple(rgb[0, 2]) == (0, 0, 0)  # at the dB floor: black
+    assert tuple(rgb[0, 3]) == (255, 255, 255)  # NaN: grey scale
+    assert tuple(pseudo_color(np.array([[20.0]]), None, value_range=(0, 10))[0, 0]) == (0, 255, 0)  # clipped
+    with pytest.raises(ValueError, match="hi > lo"):
+        pseudo_color(v, db, value_range=(1, 1), db_range=(0, 1))
+    assert png_name("out/maps.tif", "liv@axial=14,lateral=9.8").name == "maps_liv_axial14-lateral9p8.png"
+
+
+# ----------------------------------------------------------------------------------------------------------
+# command line
+# ----------------------------------------------------------------------------------------------------------
+def test_cli_maps_end_to_end(tmp_path, capsys):
+    data = speckle((10, 24, 16), seed=9)
+    seq_path = write_sequence(tmp_path / "seq.npz", data,
+                              {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},
+                               "frame_times_s": [DT * k for k in range(10)], "system": SYSTEM})
+    out_tif, out_npz = tmp_path / "maps.tif", tmp_path / "maps.npz"
+    argv = ["maps", str(seq_path), "--resolution", "original", "--resolution", "axial=14", "--resolution",
+            "lateral=18", "--aliv", "--ocds-delay-range-s", "0.2048", "0.6144", "--out", str(out_tif), "--out",
+            str(out_npz), "--png", "--range", "liv=0,30", "--no-progress"]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "swiftness@lateral=18" in text and f"wrote {out_npz}" in text
+    a, b = read_maps(out_tif), read_maps(out_npz)
+    np.testing.assert_array_equal(a.maps, b.maps)
+    assert a.maps.shape == (15, 24, 16) and a.meta == b.meta
+    assert a.meta["source"] == "seq.npz" and a.meta["system"]["wavelength_um"] == 0.84
+    assert a.meta["frame_times_s"] == pytest.approx([DT * k for k in range(10)])
+    assert a.meta["ocds_delay_range_s"] == [0.2048, 0.6144]
+    pngs = sorted(p.name for p in tmp_path.glob("*.png"))
+    assert len(pngs) == 15 and "maps_ocds_axial14.png" in pngs
+    direct = compute_maps(read_sequence(seq_path), ["original", "axial=14", "lateral=18"],
+                          metrics=["liv", "ocds", "mean_db", "aliv", "swiftness"], ocds_delay_range_s=(0.2048, 0.6144))
+    np.testing.assert_array_equal(a.maps, direct.maps)
+    # never overwrites without --force, and checks before working
+    assert main(argv) == 2
+    assert "exists; pass --force" in capsys.readouterr().err
+    assert main(argv + ["--force"]) == 0
+
+
+def test_cli_maps_errors(tmp_path, capsys):
+    np.save(tmp_path / "raw.npy", speckle((8, 5, 6)))
+    assert main(["maps", str(tmp_path / "raw.npy"), "--out", str(tmp_path / "m.npz"), "--no-progress"]) == 2
+    assert "--axes" in capsys.readouterr().err
+    argv = ["maps", str(tmp_path / "raw.npy"), "--axes", "TZX", "--pitch-um", "z=1.5,x=2", "--frame-interval-s",
+            "0.2048", "--out", str(tmp_path / "m.npz"), "--no-progress", "--ocds-delay-range-s", "0.2048", "0.6144"]
+    assert main(argv) == 2
+    assert "--wavelength-um" in capsys.readouterr().err
+    sys_args = ["--wavelength-um", "0.84", "--lateral-resolution-um", "4.9", "--axial-resolution-um", "3.8"]
+    assert main(argv + sys_args + ["--resolution", "axial=3"]) == 2
+    assert "finer than the original" in capsys.readouterr().err
+    assert main(argv + sys_args) == 0
+    assert read_maps(tmp_path / "m.npz").meta["system"]["lateral_resolution_um"] == 4.9
+    inten = np.abs(speckle((8, 5, 6))) ** 2
+    tifffile.imwrite(tmp_path / "i.tif", inten.astype(np.float32))
+    assert main(["maps", str(tmp_path / "i.tif"), "--pitch-um", "z=1.5,x=2", "--frame-interval-s", "0.2048",
+                 "--resolution", "lateral=18", "--out", str(tmp_path / "i.npz"), "--no-progress"] + sys_args) == 2
+    assert "intensity only" in capsys.readouterr().err
+
+
+def test_cli_block_raster_volume(tmp_path, capsys):
+    raster = BlockRaster(n_blocks=2, n_repeats=8, bscans_per_block=4)
+    vol = speckle((8, 8, 4, 5), seed=10)
+    flat = np.concatenate([vol[:, 4 * b:4 * (b + 1)].reshape(-1, 4, 5) for b in range(2)])  # acquisition order
+    np.save(tmp_path / "flat.npy", flat)
+    assert main(["maps", str(tmp_path / "flat.npy"), "--axes", "TZX", "--pitch-um", "z=1.5,x=2,y=8",
+                 "--frame-interval-s", "0.2048", "--block-raster", "2:8:4", "--wavelength-um", "0.84",
+                 "--lateral-resolution-um", "4.9", "--axial-resolution-um", "3.8", "--ocds-delay-range-s",
+                 "0.2048", "0.6144", "--out", str(tmp_path / "v.npz"), "--no-progress", "--png"]) == 0
+    m = read_maps(tmp_path / "v.npz")
+    assert m.maps.shape == (3, 6, 4, 5) and m.meta["block_raster"] == raster.to_dict()
+    direct = compute_maps(make_seq(vol, volume=True, raster=raster), ["original"], ocds_delay_range_s=(0.2048, 0.6144))
+    np.testing.assert_allclose(m.maps, direct.maps, rtol=1e-6)
+
+
+def test_cli_bench_maps_runs(tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    assert main(["bench", "maps", "--frames", "8", "--size", "16", "12", "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["shape"] == [8, 16, 12] and set(res["seconds_per_resolution"]) == {"original", "axial=14", "lateral=18"}
+    assert main(["bench", "maps", "--frames", "8", "--size", "16", "12", "--out", str(out)]) == 2

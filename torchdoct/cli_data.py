@@ -1,0 +1,269 @@
+"""Command line for measured data: ``torchdoct maps``, ``torchdoct compare``, ``torchdoct bench maps``.
+
+Thin layer: parse, call one library function (:func:`torchdoct.maps.compute_maps`,
+:func:`torchdoct.compare.compare_samples`, :func:`torchdoct.maps.bench_maps`), print.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["register"]
+
+
+def _floats(text: str, n: int | None = None, what: str = "value") -> list[float]:
+    try:
+        vals = [float(v) for v in str(text).replace(" ", "").split(",") if v != ""]
+    except ValueError:
+        raise ValueError(f"{what} must be comma-separated numbers; got {text!r}") from None
+    if n is not None and len(vals) != n:
+        raise ValueError(f"{what} needs {n} numbers; got {text!r}")
+    return vals
+
+
+def register(sub: Any, bench_sub: Any) -> None:
+    """Add ``maps``, ``compare`` and ``bench maps`` to the torchdoct parser."""
+    mp = sub.add_parser("maps", help="DOCT maps (LIV, OCDS, mean dB, aLIV, Swiftness) of an OCT sequence file",
+                        description="Compute DOCT maps of a complex (or intensity) OCT sequence at one or more "
+                                    "resolutions and write them to .tif/.npz, with optional pseudo-colour PNGs.")
+    mp.add_argument("input", help="sequence file: .npy/.npz (+ .json sidecar), .h5 (incl. MATLAB v7.3), .tif")
+    mp.add_argument("--resolution", action="append", default=None, metavar="R",
+                    help="original | axial=UM | lateral=UM | axial=UM,lateral=UM (repeat; default original)")
+    mp.add_argument("--metrics", default="liv,ocds,mean_db", help="comma list of liv, ocds, mean_db (default all 3)")
+    mp.add_argument("--aliv", action="store_true", help="also compute aLIV and Swiftness (LIV-curve fit)")
+    mp.add_argument("--out", action="append", required=True, metavar="FILE",
+                    help="output maps file, .tif or .npz (repeat to write both)")
+    mp.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    g = mp.add_argument_group("metadata (override or supply the file's)")
+    g.add_argument("--axes", default=None, help="stored axis order, e.g. TZX, TYZX, XZT (MATLAB [Z,X,T] in HDF5)")
+    g.add_argument("--pitch-um", default=None, help="pixel pitch in µm, e.g. z=1.5,x=2.0[,y=7.8]")
+    g.add_argument("--frame-interval-s", type=float, default=None, help="uniform frame interval (s)")
+    g.add_argument("--frame-times-s", default=None, help="comma-separated frame times (s)")
+    g.add_argument("--wavelength-um", type=float, default=None, help="centre wavelength (µm, vacuum)")
+    g.add_argument("--lateral-resolution-um", type=float, default=None, help="original 1/e² lateral width (µm)")
+    g.add_argument("--axial-resolution-um", type=float, default=None, help="original axial FWHM in the medium (µm)")
+    g.add_argument("--refractive-index", type=float, default=None, help="refractive index n (default 1)")
+    g.add_argument("--system-name", default=None, help="name of the OCT system")
+    g.add_argument("--dataset", default=None, help="HDF5 dataset / MATLAB variable name")
+    g.add_argument("--block-raster", default=None, metavar="B:R:K",
+                   help="block raster protocol: blocks:repeats:B-scans per block (paper: 8:32:16); a flat "
+                        "[B*R*K, Z, X] stack in acquisition order is unpacked to [R, B*K, Z, X]")
+    g.add_argument("--drop-boundary", type=int, default=1,
+                   help="B-scans dropped on each side of block boundaries (default 1; 0 keeps all)")
+    a = mp.add_argument_group("metric and reduction options")
+    a.add_argument("--ocds-delay-range-s", nargs=2, type=float, default=[0.2048, 1.2288], metavar=("LO", "HI"))
+    a.add_argument("--ocds-scale", choices=("db", "linear"), default="db")
+    a.add_argument("--ocds-estimator", choices=("pearson", "biased"), default="pearson")
+    a.add_argument("--no-aliv-smoothing", action="store_true", help="no 3x3 box smoothing of the LIV curves")
+    a.add_argument("--aliv-max-window-s", type=float, default=None, help="longest LIV-curve window (s)")
+    a.add_argument("--axial-center", default="zero",
+                   help="axial window centre: zero (simulated data), centroid (measured data with a depth "
+                        "carrier), or cycles/pixel")
+    a.add_argument("--edge-mode", choices=("reflect", "constant", "wrap"), default="reflect")
+    a.add_argument("--normalization", choices=("power", "peak", "sum"), default="power",
+                   help="filter gain: power keeps the mean intensity (default), peak the PSF peak, sum unit kernel")
+    a.add_argument("--device", default=None, help="torch device (default cpu)")
+    p = mp.add_argument_group("pseudo-colour PNGs")
+    p.add_argument("--png", action="store_true", help="write OUT_metric_resolution.png per channel")
+    p.add_argument("--range", action="append", default=[], metavar="METRIC=LO,HI",
+                   help="hue range of a metric, e.g. liv=0,10 (default 1st-99th percentile)")
+    p.add_argument("--db-range", nargs=2, type=float, default=None, metavar=("LO", "HI"),
+                   help="brightness range (dB) (default 5th-99.9th percentile)")
+    p.add_argument("--png-y", type=int, default=None, help="B-scan index shown for volumes (default middle)")
+    mp.add_argument("--no-progress", action="store_true", help="no progress bar")
+    mp.set_defaults(func=_maps)
+
+    cp = sub.add_parser("compare", help="per-sample mean LIV/OCDS per configuration and the paper's tests",
+                        description="Mean DOCT values of several samples' maps per configuration; paired t-test "
+                                    "(2 configurations) or Kruskal-Wallis then pairwise paired t-tests (3+).")
+    cp.add_argument("maps", nargs="+", metavar="[SAMPLE=]MAPS",
+                    help="maps files; SAMPLE= groups files of one sample (default: file stem)")
+    cp.add_argument("--mask", action="append", default=None, metavar="FILE",
+                    help="region mask per maps file, in the same order (.npy, .npz, .tif; boolean or 0/1)")
+    cp.add_argument("--threshold-db", type=float, default=None, help="region = pixels with mean_db >= this (dB)")
+    cp.add_argument("--threshold-resolution", default=None,
+                    help="resolution of the mean_db channel used for the threshold (default: the file's first)")
+    cp.add_argument("--config", action="append", default=None, metavar="[WL_UM:]RESOLUTION",
+                    help="configurations to compare, in order (default: all common ones)")
+    cp.add_argument("--metrics", default="liv,ocds", help="comma list of metrics (default liv,ocds)")
+    cp.add_argument("--alpha", type=float, default=0.05, help="significance level (default 0.05)")
+    cp.add_argument("--out", default=None, help="tests table (.csv)")
+    cp.add_argument("--per-sample", default=None, help="per-sample means table (.csv)")
+    cp.add_argument("--plot", default=None, help="means ± SD plot (.png, .pdf, .svg)")
+    cp.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    cp.add_argument("--json", action="store_true", help="print the tests as JSON")
+    cp.set_defaults(func=_compare)
+
+    bm = bench_sub.add_parser("maps", help="time maps of a random complex stack at several resolutions")
+    bm.add_argument("--frames", type=int, default=32)
+    bm.add_argument("--size", nargs=2, type=int, default=[512, 512], metavar=("Z", "X"))
+    bm.add_argument("--resolution", action="append", default=None, metavar="R",
+                    help="default: original, axial=14, lateral=18")
+    bm.add_argument("--aliv", action="store_true", help="include aLIV and Swiftness")
+    bm.add_argument("--repeats", type=int, default=1, help="timed repeats (best is kept)")
+    bm.add_argument("--out", default="bench-maps.json", help="JSON output file")
+    bm.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    bm.set_defaults(func=_bench_maps)
+
+
+# ----------------------------------------------------------------------------------------------
+# handlers
+
+
+def _maps(args: argparse.Namespace) -> int:
+    from ._files import check_out
+    from .io import BlockRaster, MAPS_SUFFIXES, read_sequence, write_maps
+    from .maps import compute_maps, write_pngs
+
+    outs = []
+    for o in args.out:
+        outs.append(check_out(o, args.force, MAPS_SUFFIXES, what="--out"))
+    if len({p.resolve() for p in outs}) != len(outs):
+        raise ValueError("--out given twice with the same file")
+    metrics = [m.strip() for m in args.metrics.split(",") if m.strip()]
+    if args.aliv:
+        metrics += [m for m in ("aliv", "swiftness") if m not in metrics]
+    ranges = {}
+    for r in args.range:
+        key, sep, val = r.partition("=")
+        if not sep:
+            raise ValueError(f"--range must be METRIC=LO,HI (e.g. liv=0,10); got {r!r}")
+        ranges[key.strip()] = tuple(_floats(val, 2, f"--range {key}"))
+    system = {k: v for k, v in (("name", args.system_name), ("wavelength_um", args.wavelength_um),
+                                ("lateral_resolution_um", args.lateral_resolution_um),
+                                ("axial_resolution_um", args.axial_resolution_um),
+                                ("refractive_index", args.refractive_index)) if v is not None}
+    raster = BlockRaster.parse(args.block_raster, args.drop_boundary) if args.block_raster else None
+    center: str | float = args.axial_center
+    if center not in ("zero", "centroid"):
+        center = _floats(center, 1, "--axial-center")[0]
+    seq = read_sequence(args.input, axes=args.axes, pitch_um=args.pitch_um,
+                        frame_times_s=_floats(args.frame_times_s, None, "--frame-times-s") if args.frame_times_s else None,
+                        frame_interval_s=args.frame_interval_s, system=system or None, dataset=args.dataset,
+                        block_raster=raster)
+    _ = seq.system  # a clear error before any work when the optics are unknown
+    resolutions = args.resolution or ["original"]
+    if args.png:  # check the PNG paths before the work
+        from .maps import METRICS, png_name
+        from .resolution import parse_resolution
+
+        for r in resolutions:
+            for m in metrics:
+                if m in METRICS:
+                    check_out(png_name(outs[0], f"{m}@{parse_resolution(r).label}"), args.force, ".png",
+                              what="PNG output")
+    maps = compute_maps(seq, resolutions, metrics=metrics, ocds_delay_range_s=tuple(args.ocds_delay_range_s),
+                        ocds_scale=args.ocds_scale, ocds_estimator=args.ocds_estimator,
+                        aliv_smoothing=not args.no_aliv_smoothing, aliv_max_window_s=args.aliv_max_window_s,
+                        axial_center=center, edge_mode=args.edge_mode, normalization=args.normalization,
+                        drop_boundary=args.drop_boundary > 0, device=args.device,
+                        progress=not args.no_progress)
+    shape = "×".join(str(s) for s in maps.maps.shape[1:])
+    print(f"{seq.source}: {seq.n_frames} frames, {'complex' if seq.is_complex else 'intensity'} "
+          f"{list(seq.data.shape)} ({seq.axes}) → {len(maps.channels)} channels [{maps.meta['axes']}] {shape}")
+    print(f"{'channel':>34}  {'unit':>5}  {'median':>10}  {'mean':>10}  {'finite':>7}")
+    for i, name in enumerate(maps.channels):
+        v = maps.maps[i]
+        fin = np.isfinite(v)
+        med = float(np.median(v[fin])) if fin.any() else math.nan
+        mean = float(np.mean(v[fin], dtype=np.float64)) if fin.any() else math.nan
+        print(f"{name:>34}  {maps.meta['channels'][i]['unit']:>5}  {med:10.4f}  {mean:10.4f}  {fin.mean():7.1%}")
+    for o in outs:
+        write_maps(o, maps, force=args.force)
+        print(f"wrote {o}")
+    if args.png:  # one set of PNGs, named after the first --out
+        for p in write_pngs(maps, outs[0], ranges=ranges, db_range=tuple(args.db_range) if args.db_range else None,
+                            y_index=args.png_y, force=args.force):
+            print(f"wrote {p}")
+    return 0
+
+
+def _load_mask(path: str) -> np.ndarray:
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"mask file {p} does not exist")
+    suf = p.suffix.lower()
+    if suf == ".npy":
+        try:
+            return np.load(p, allow_pickle=False)
+        except ValueError as err:
+            raise ValueError(f"{p.name}: not a numeric .npy mask ({err})") from None
+    if suf == ".npz":
+        with np.load(p, allow_pickle=False) as z:
+            key = "mask" if "mask" in z.files else (z.files[0] if len(z.files) == 1 else None)
+            if key is None:
+                raise ValueError(f"{p.name}: store the mask under the key 'mask'")
+            return z[key]
+    if suf in (".tif", ".tiff"):
+        import tifffile
+
+        return tifffile.imread(p)
+    raise ValueError(f"mask {p.name}: use .npy, .npz or .tif")
+
+
+def _compare(args: argparse.Namespace) -> int:
+    from ._files import atomic_write, check_out
+    from .compare import compare_samples, plot_comparison, region_mask
+    from .io import read_maps
+
+    out = check_out(args.out, args.force, ".csv", what="--out")
+    per_out = check_out(args.per_sample, args.force, ".csv", what="--per-sample")
+    plot_out = check_out(args.plot, args.force, (".png", ".pdf", ".svg"), what="--plot")
+    if args.mask is not None and len(args.mask) != len(args.maps):
+        raise ValueError(f"give one --mask per maps file ({len(args.maps)}); got {len(args.mask)}")
+    if args.mask is not None and args.threshold_db is not None:
+        raise ValueError("give --mask or --threshold-db, not both")
+    samples: dict[str, list] = {}
+    for k, spec in enumerate(args.maps):
+        name, sep, path = spec.partition("=")
+        if not sep or not name or "/" in name:
+            name, path = Path(spec).stem, spec
+        maps = read_maps(path)
+        mask = _load_mask(args.mask[k]) if args.mask is not None else None
+        region = region_mask(maps, mask=mask, threshold_db=args.threshold_db,
+                             threshold_resolution=args.threshold_resolution)
+        samples.setdefault(name, []).append((maps, region))
+    metrics = [m.strip() for m in args.metrics.split(",") if m.strip()]
+    res = compare_samples(samples, metrics=metrics, configs=args.config, alpha=args.alpha)
+    if args.json:
+        print(res.tests.to_json(orient="records", indent=2))
+    else:
+        print(res.format())
+    if out is not None:
+        atomic_write(out, lambda tmp: res.tests.to_csv(tmp, index=False))
+        print(f"wrote {out}")
+    if per_out is not None:
+        atomic_write(per_out, lambda tmp: res.per_sample.to_csv(tmp, index=False))
+        print(f"wrote {per_out}")
+    if plot_out is not None:
+        plot_comparison(res, plot_out, force=args.force)
+        print(f"wrote {plot_out}")
+    return 0
+
+
+def _bench_maps(args: argparse.Namespace) -> int:
+    from ._files import atomic_write, check_out
+    from .maps import bench_maps
+
+    out = check_out(args.out, args.force, ".json", what="--out")
+    if args.frames < 2 or min(args.size) < 1:
+        raise ValueError("--frames must be >= 2 and --size positive")
+    metrics = ["liv", "ocds", "mean_db"] + (["aliv", "swiftness"] if args.aliv else [])
+    res = bench_maps(frames=args.frames, shape=tuple(args.size),
+                     resolutions=args.resolution or ["original", "axial=14", "lateral=18"],
+                     metrics=metrics, repeats=args.repeats)
+    per = ", ".join(f"{k} {v:.2f} s" for k, v in res["seconds_per_resolution"].items())
+    m = res["machine"]
+    print(f"maps of a complex64 {res['shape']} stack, {len(res['resolutions'])} resolutions, "
+          f"{'+'.join(res['metrics'])}: {res['seconds_total']:.2f} s total ({per}); "
+          f"target {res['target_seconds']:.0f} s; {m['cpu_count']} cores, torch {m['torch']} with "
+          f"{m['torch_threads']} threads")
+    atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
+    print(f"wrote {out}")
+    return 0
