@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import zipfile
 import math
 import os
 from dataclasses import dataclass
@@ -483,7 +484,7 @@ def _load_npy(path: Path) -> np.ndarray:
 
 def _load_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # our handle: closed on errors too
             if "data" not in z.files:
                 raise ValueError(f"{path.name}: no array 'data' (arrays: {', '.join(z.files) or 'none'}); "
                                  "store the sequence under the key 'data'")
@@ -622,14 +623,18 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     suffix = p.suffix.lower()
     labels = params = None
     file_meta: dict | None = None
-    if suffix == ".npy":
-        data = _refuse_object(_load_npy(p), p.name)
-    elif suffix == ".npz":
-        data, labels, params = _load_npz(p)
-    elif suffix == ".h5":
-        data, labels, params, file_meta = _load_h5(p, dataset)
-    else:
-        data, file_meta = _load_tif(p)
+    try:
+        if suffix == ".npy":
+            data = _refuse_object(_load_npy(p), p.name)
+        elif suffix == ".npz":
+            data, labels, params = _load_npz(p)
+        elif suffix == ".h5":
+            data, labels, params, file_meta = _load_h5(p, dataset)
+        else:
+            data, file_meta = _load_tif(p)
+    except (EOFError, OSError, zipfile.BadZipFile, KeyError) as err:
+        raise ValueError(f"{p.name}: not a readable {suffix} file (truncated or corrupt: "
+                         f"{type(err).__name__}: {err})") from None
     if dataset is not None and suffix != ".h5":
         raise ValueError(f"{p.name}: dataset= applies to .h5 files only")
     side = sidecar_path(p)
@@ -663,6 +668,8 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     if data.ndim not in (3, 4):
         raise ValueError(f"{p.name}: data have shape {list(data.shape)}; expected 3 ([T, Z, X]) or 4 ([T, Y, Z, X]) "
                          "dimensions")
+    if 0 in data.shape:
+        raise ValueError(f"{p.name}: data have an empty axis (shape {list(data.shape)}); nothing to read")
     if meta.get("axes") is None:
         raise ValueError(f"{p.name}: missing 'axes'; {_HOW['axes']}")
     stored = _check_axes(meta["axes"], data.ndim, p.name)
@@ -720,23 +727,33 @@ def read_maps(path: str | os.PathLike) -> Maps:
         raise ValueError(f"{p.name}: maps files end in {' or '.join(MAPS_SUFFIXES)}")
     if p.suffix.lower() == ".npz":
         try:
-            with np.load(p, allow_pickle=False) as z:
+            with open(p, "rb") as fh, np.load(fh, allow_pickle=False) as z:
                 missing = [k for k in ("maps", "channels", "meta_json") if k not in z.files]
                 if missing:
                     raise ValueError(f"{p.name}: not a maps file (missing {', '.join(missing)})")
-                arr = np.asarray(z["maps"], dtype=np.float32)
-                channels = tuple(str(c) for c in z["channels"])
+                raw = z["maps"]
+                if raw.dtype.kind not in "fiu":
+                    raise ValueError(f"{p.name}: maps dtype {raw.dtype} is not real; maps are float32")
+                arr = np.asarray(raw, dtype=np.float32)
+                channels = tuple(str(c) for c in np.atleast_1d(z["channels"]))
                 meta = _parse_json(str(z["meta_json"]), f"{p.name} meta_json")
         except ValueError as err:
-            if "pickle" in str(err).lower():
+            if "pickle" in str(err).lower() or "object" in str(err).lower():
                 raise ValueError(f"{p.name}: holds object arrays; refused (no unpickling)") from None
             raise
+        except (EOFError, OSError, zipfile.BadZipFile, KeyError) as err:
+            raise ValueError(f"{p.name}: not a readable maps file (truncated or corrupt: "
+                             f"{type(err).__name__}: {err})") from None
     else:
         import tifffile
 
-        with tifffile.TiffFile(p) as tf:
-            arr = np.asarray(tf.asarray(), dtype=np.float32)
-            desc = tf.pages[0].description
+        try:
+            with tifffile.TiffFile(p) as tf:
+                arr = np.asarray(tf.asarray(), dtype=np.float32)
+                desc = tf.pages[0].description
+        except (EOFError, OSError, ValueError, IndexError, tifffile.TiffFileError) as err:
+            raise ValueError(f"{p.name}: not a readable maps TIFF (truncated or corrupt: "
+                             f"{type(err).__name__}: {err})") from None
         meta = _parse_json(desc, f"{p.name} ImageDescription")
         if "channels" not in meta:
             raise ValueError(f"{p.name}: ImageDescription has no 'channels'; not a torchdoct maps file")
@@ -750,4 +767,7 @@ def read_maps(path: str | os.PathLike) -> Maps:
                              f"of {meta.get('axes')}") from None
     if "channels" not in meta or len(meta["channels"]) != len(channels):
         raise ValueError(f"{p.name}: meta 'channels' does not match the {len(channels)} channel names")
+    if arr.ndim not in (3, 4) or arr.shape[0] != len(channels) or 0 in arr.shape:
+        raise ValueError(f"{p.name}: maps of shape {list(arr.shape)} do not hold {len(channels)} channels of "
+                         "[Z, X] or [Y, Z, X] pixels")
     return Maps(maps=arr, channels=channels, meta=meta)

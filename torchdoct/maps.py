@@ -20,7 +20,7 @@ pixel (time last, ``[..., T]``) the channels below are computed:
   ``LIV(T_w) = a·(1 − exp(−T_w/τ))`` fitted by unweighted least squares with ``a, τ ≥ 0``
   (:func:`fit_saturation`); ``aliv = a``, ``swiftness = 1/τ``.
 
-Undefined values are NaN: pixels with ``I = 0`` in some frame have no dB value (LIV, OCDS, aLIV,
+Undefined values are NaN: pixels with ``I = 0`` or a NaN sample in some frame have no dB value (LIV, OCDS, aLIV,
 Swiftness NaN; ``mean_db`` NaN only if ``I = 0`` at every frame), and Swiftness is NaN where the fit
 gives ``a = 0`` (no fluctuation, τ undefined).
 
@@ -279,14 +279,15 @@ def _pixel_metrics(intensity: torch.Tensor, frame_times_s: list[float], wanted: 
         curves = []
     for p0 in range(0, n_pix, chunk_pixels):
         x = it[p0:p0 + chunk_pixels]
-        zero = (x <= 0).any(-1)
+        zero = ~(x > 0).all(-1)  # I = 0 or NaN at some frame: no dB value
         safe = torch.where(zero[:, None], torch.ones_like(x), x) if bool(zero.any()) else x
         if "liv" in out:
             out["liv"][p0:p0 + len(x)] = torch.where(zero, nan, _metrics.liv(safe))
         if "ocds" in out:
             v = ocds_map(safe if ocds_scale == "db" else x, frame_times_s, delay_range_s=ocds_delay_range_s,
                          scale=ocds_scale, estimator=ocds_estimator)
-            out["ocds"][p0:p0 + len(x)] = torch.where(zero, nan, v) if ocds_scale == "db" else v
+            bad = zero if ocds_scale == "db" else ~torch.isfinite(x).all(-1)
+            out["ocds"][p0:p0 + len(x)] = torch.where(bad, nan, v)
         if "mean_db" in out:
             m = x.mean(-1)
             out["mean_db"][p0:p0 + len(x)] = torch.where(m > 0, _metrics.to_db(torch.where(m > 0, m, torch.ones_like(m))),
@@ -300,7 +301,7 @@ def _pixel_metrics(intensity: torch.Tensor, frame_times_s: list[float], wanted: 
         if aliv_smoothing:
             c = box_smooth_zx(c)
         c = c.reshape(n_pix, -1)
-        zero_all = (it <= 0).any(-1)
+        zero_all = ~(it > 0).all(-1)
         a_out = torch.empty(n_pix, dtype=torch.float64, device=c.device)
         tau_out = torch.empty(n_pix, dtype=torch.float64, device=c.device)
         step = max(1, chunk_pixels // 4)
