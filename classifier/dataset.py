@@ -10,40 +10,56 @@
   motion is already a sizeable part of its plateau (physics.md §5.7), and extended a decade below
   as the issue asks;
 * flow direction isotropic (cos of the polar angle from the depth axis ~ U[−1, 1], azimuth ~ U[0, 360°));
-* total scatterer density ~ U[0.02, 0.1] µm⁻³;
-* with probability 1/2 a static fraction ~ U[0, 0.8] of the density (same reflectivity);
+* density of the moving scatterers ~ U[0.02, 0.1] µm⁻³;
+* with probability 1/2 a static fraction ~ U[0, 0.8] of the mean intensity (static scatterers at the
+  moving ones' density, reflectivity set to give that fraction);
 * with probability 1/2 additive noise at SNR ~ U[20, 40] dB (torchdoct's noise model: circular
   complex Gaussian, independent per frame and per system, relative to each system's mean intensity);
 * refractive index, protocol and OCDS analysis from the feature spec (the paper's: n = 1, 32 frames
   at 0.2048 s, OCDS over [0.2048, 1.2288] s on dB intensity, Pearson estimator).
 
-**Sampling** (stratified): a split holds ``draws`` parameter draws × ``trials_per_draw`` trials.
-Draw ``k`` has motion type ``k mod 3``; the ``i``-th draw of a type takes its log-magnitude at the
-quantile ``frac(u₀ + i·(√5 − 1)/2)`` (golden-ratio sequence, ``u₀`` from the split's seed), so any
-prefix of draws covers the magnitude range evenly; the other parameters are drawn independently per
-draw. One :func:`torchdoct.simulate` call per draw runs its trials (all systems of the scene see the
-same scatterers, as one dataset and its resolution reductions do); 64 trials per draw is one random
-block of the simulator, and fewer would cost the same. Trials of one draw share their parameters, so
-statistics are computed with draws as the independent unit where it matters.
+**Sampling** (stratified): a split holds ``draws`` parameter draws × ``replicates`` (static
+fraction, SNR) settings × ``trials_per_draw`` trials. Draw ``k`` has motion type ``k mod 3``; the
+``i``-th draw of a type takes its log-magnitude at the quantile ``frac(u₀ + i·(√5 − 1)/2)``
+(golden-ratio sequence, ``u₀`` from the split's seed), so any prefix of draws covers the magnitude
+range evenly; density and flow direction are drawn independently per draw, static fraction and SNR
+per replicate. Two :func:`torchdoct.simulate` calls per draw (moving and static scatterers) run its
+trials (all systems of a scene see the same scatterers, as one dataset and its resolution
+reductions do); 64 trials per draw is one random block of the simulator, and fewer would cost the
+same. Trials of one (draw, replicate) group share every parameter: they are the pixels that pooling
+may average, and draws are the independent unit of the parameter space.
 
 **Seeds and splits**: everything of draw ``k`` of split ``s`` (train 0, validation 1, test 2) comes
 from ``numpy.random.SeedSequence(seed, spawn_key=(s, k))``; the splits never share a draw, and a
 split's draws do not depend on how many draws are made.
 
-**Ground-truth identifiability** (physics.md §5.3-5.4, via :mod:`torchdoct.theory`): with the
-intensity correlation coefficient of the moving scatterers ``ρ_I(τ) = (|g1|² + j/N_eff)/(1 + 1/N_eff)``
-at each configuration of the spec, a draw is *indeterminate* when its motion
+**Ground-truth identifiability** (physics.md §5.3-5.4, via :mod:`torchdoct.theory`): a draw is
+*indeterminate* when its moving scatterers
 
-* does not decorrelate: ``ρ_I(T) ≥ 1 − ε`` at every configuration, ``T`` the first-to-last frame
-  delay (``"static"``), or
-* decorrelates completely within one frame interval: ``ρ_I(Δt) ≤ ε`` at every configuration
-  (``"decorrelated"``),
+* do not decorrelate: the intensity correlation coefficient ``ρ_I(T) = (|g1|² + j/N_eff)/(1 + 1/N_eff)``
+  at the first-to-last frame delay ``T`` is ``≥ 1 − ε`` at every configuration (``"static"``): LIV and
+  OCDS are those of a static sample whatever the motion; or
+* decorrelate completely within one frame interval: ``|g1(Δt)|² ≤ ε`` at every configuration
+  (``"decorrelated"``): every frame has a new speckle phase pattern, and all that is left of the
+  intensity correlation is the incoherent term ``j/N_eff ≤ 1/(1 + N_eff)``, which only measures how
+  fast scatterers cross the PSF (a transit time that diffusion and random-ballistic motion both have;
+  flow never gets here in the prior, because for flow ``|g1|² = j`` decays by transit alone),
 
-with ``ε = 0.05``. In both regimes LIV and OCDS are those of a static sample or of independent
-speckle whatever the motion type, so no classifier can tell the types apart.
+with ``ε = 0.05``. The classifier's ``indeterminate`` class is trained on these draws
+(:mod:`classifier.rule`).
+
+**Static fraction and noise** are applied per *replicate*: each draw's moving and static fields are
+simulated once and combined ``replicates`` times with different static fractions and SNRs
+(:func:`simulate_draw`); this multiplies the nuisance variety per (costly) simulation. The static
+fraction is the static scatterers' share of the mean intensity.
 
 **Cache**: a split is stored as ``.npz`` under a key (SHA-256) of the spec, the prior, the seed, the
-split, the number of draws and trials, and the torchdoct version, and is reused when the key matches.
+split, the numbers of draws, replicates and trials, the PSF truncation, the ground-truth definition
+and the torchdoct version, and is reused when the key matches.
+
+**Cost** (this machine, one thread, single-acquisition spec): about 0.53 s per draw, i.e. 8 ms per
+simulated trial of the three systems, 1 ms per feature vector after the 8 replicates; the
+two-wavelength spec costs about a tenth of that (:attr:`Dataset.meta` records it per split).
 """
 
 from __future__ import annotations
@@ -64,6 +80,8 @@ from .features import FeatureSpec, load_spec
 
 __all__ = [
     "CLASSES",
+    "STATUS",
+    "combine_fields",
     "SPLITS",
     "Prior",
     "Draw",
@@ -137,112 +155,164 @@ class Prior:
 
 @dataclass(frozen=True)
 class Draw:
-    """One parameter draw: motion type and magnitude (µm²/s for diffusion, µm/s otherwise), flow
-    direction (deg), total density (µm⁻³), static fraction, SNR (dB; NaN = no noise)."""
+    """One parameter draw: motion type ``label`` and ``magnitude`` (µm²/s for diffusion, µm/s
+    otherwise), flow direction (deg), density of the moving scatterers (µm⁻³), the simulator seed,
+    and per replicate ``(static_fraction, snr_db)`` (``snr_db`` NaN = no noise)."""
 
     label: int
     magnitude: float
     polar_angle_deg: float
     azimuth_deg: float
     density_per_um3: float
-    static_fraction: float
-    snr_db: float
     sim_seed: int
+    nuisance: tuple[tuple[float, float], ...] = ()
 
     @property
     def motion(self) -> str:
         return CLASSES[self.label]
 
 
-def _seed_sequence(seed: int, split: str, index: int) -> np.random.SeedSequence:
-    return np.random.SeedSequence(int(seed), spawn_key=(SPLITS[split], int(index)))
+def _seed_sequence(seed: int, split: str, *key: int) -> np.random.SeedSequence:
+    return np.random.SeedSequence(int(seed), spawn_key=(SPLITS[split], *(int(k) for k in key)))
 
 
-def draw_parameters(prior: Prior, seed: int, split: str, k: int) -> Draw:
-    """Draw ``k`` of ``split`` (module docstring: stratified type and magnitude, the rest i.i.d.)."""
+def draw_parameters(prior: Prior, seed: int, split: str, k: int, replicates: int = 1) -> Draw:
+    """Draw ``k`` of ``split`` (module docstring: stratified type and magnitude, the rest i.i.d.).
+
+    Replicate ``r``'s static fraction and SNR come from their own stream, so they do not depend on
+    the number of replicates.
+    """
     if split not in SPLITS:
         raise ValueError(f"split must be one of {list(SPLITS)}; got {split!r}")
     label = k % len(CLASSES)
     i = k // len(CLASSES)
     # offset of the magnitude sequence: one per (seed, split, type), independent of k
-    u0 = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(SPLITS[split], 1 << 30, label))).random()
+    u0 = np.random.default_rng(_seed_sequence(seed, split, 1 << 30, label)).random()
     q = (u0 + i * _GOLDEN) % 1.0
     lo, hi = prior.diffusion_um2_per_s if label == 0 else prior.speed_um_per_s
     magnitude = float(math.exp(math.log(lo) + q * (math.log(hi) - math.log(lo))))
     ss = _seed_sequence(seed, split, k)
-    rng = np.random.default_rng(ss)
-    u = rng.random(8)
+    u = np.random.default_rng(ss).random(4)
     polar = math.degrees(math.acos(2.0 * u[0] - 1.0))
     azimuth = 360.0 * u[1]
     density = prior.density_per_um3[0] + u[2] * (prior.density_per_um3[1] - prior.density_per_um3[0])
-    static = 0.0
-    if u[3] < prior.static_probability:
-        static = prior.static_fraction[0] + u[4] * (prior.static_fraction[1] - prior.static_fraction[0])
-    snr = math.nan
-    if u[5] < prior.noise_probability:
-        snr = prior.snr_db[0] + u[6] * (prior.snr_db[1] - prior.snr_db[0])
+    nuisance = []
+    for r in range(replicates):
+        v = np.random.default_rng(_seed_sequence(seed, split, k, 1 + r)).random(4)
+        static = 0.0
+        if v[0] < prior.static_probability:
+            static = prior.static_fraction[0] + v[1] * (prior.static_fraction[1] - prior.static_fraction[0])
+        snr = math.nan
+        if v[2] < prior.noise_probability:
+            snr = prior.snr_db[0] + v[3] * (prior.snr_db[1] - prior.snr_db[0])
+        nuisance.append((float(static), float(snr)))
     sim_seed = int(ss.generate_state(2, np.uint64)[1] >> np.uint64(2))
     return Draw(label=label, magnitude=magnitude, polar_angle_deg=polar, azimuth_deg=azimuth,
-                density_per_um3=float(density), static_fraction=float(static), snr_db=float(snr),
-                sim_seed=sim_seed)
+                density_per_um3=float(density), sim_seed=sim_seed, nuisance=tuple(nuisance))
 
 
-def scene_for(spec: FeatureSpec, draw: Draw, prior: Prior):
-    """The :class:`torchdoct.Scene` of one draw: the spec's systems, protocol and analysis."""
+def scene_for(spec: FeatureSpec, draw: Draw, prior: Prior, population: str = "moving"):
+    """The noise-free :class:`torchdoct.Scene` of one draw's ``"moving"`` or ``"static"`` scatterers.
+
+    Both have the draw's density and reflectivity 1; the spec's systems, protocol and analysis.
+    """
     import torchdoct as td
 
     systems = tuple(td.OCTSystem(name=c.name, wavelength_um=c.wavelength_um,
                                  lateral_resolution_um=c.lateral_resolution_um,
                                  axial_resolution_um=c.axial_resolution_um,
                                  refractive_index=spec.refractive_index) for c in spec.configurations)
-    if draw.label == 0:
-        motion = td.Diffusion(diffusion_um2_per_s=draw.magnitude)
+    if population == "static":
+        motion: tuple = ()
+    elif population != "moving":
+        raise ValueError(f"population must be 'moving' or 'static'; got {population!r}")
+    elif draw.label == 0:
+        motion = (td.Diffusion(diffusion_um2_per_s=draw.magnitude),)
     elif draw.label == 1:
-        motion = td.RandomBallistic(speed_um_per_s=draw.magnitude, directions=prior.ballistic_directions)
+        motion = (td.RandomBallistic(speed_um_per_s=draw.magnitude, directions=prior.ballistic_directions),)
     else:
-        motion = td.Flow(speed_um_per_s=draw.magnitude, polar_angle_deg=draw.polar_angle_deg,
-                         azimuth_deg=draw.azimuth_deg)
-    moving = draw.density_per_um3 * (1.0 - draw.static_fraction)
-    pops = [td.Population(name="moving", density_per_um3=moving, motion=(motion,))]
-    if draw.static_fraction > 0:
-        pops.append(td.Population(name="static", density_per_um3=draw.density_per_um3 * draw.static_fraction))
-    noise = None if math.isnan(draw.snr_db) else td.Noise(snr_db=draw.snr_db)
-    return td.Scene(name=f"{spec.name}-{draw.motion}", systems=systems,
+        motion = (td.Flow(speed_um_per_s=draw.magnitude, polar_angle_deg=draw.polar_angle_deg,
+                          azimuth_deg=draw.azimuth_deg),)
+    return td.Scene(name=f"{spec.name}-{draw.motion}-{population}", systems=systems,
                     protocol=td.Protocol(n_frames=spec.n_frames, frame_interval_s=spec.frame_interval_s),
-                    populations=tuple(pops), noise=noise,
+                    populations=(td.Population(name=population, density_per_um3=draw.density_per_um3,
+                                               motion=motion),),
                     analysis=td.Analysis(metrics=("liv", "ocds"), ocds_delay_range_s=spec.ocds_delay_range_s,
                                          ocds_scale=spec.ocds_scale, ocds_estimator=spec.ocds_estimator))
 
 
-def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
-                  truncation_tolerance: float) -> tuple[np.ndarray, np.ndarray]:
-    """Feature vectors ``[trials, F]`` (float32, spec order) and the empty-volume mask ``[trials]``."""
-    import torchdoct as td
+def combine_fields(moving, static, static_fraction: float, snr_db: float, mean_intensity_moving, generator):
+    """``E_m + a·E_s + n`` for complex signals ``[trials, systems, frames]`` (see :func:`simulate_draw`).
 
-    scene = scene_for(spec, draw, prior)
-    res = td.simulate(scene, trials=trials, seed=draw.sim_seed, dtype="float32",
-                      truncation_tolerance=truncation_tolerance, progress=False)
-    met = res.metrics()
-    cols = [met[m][:, s] for s in range(len(spec.configurations)) for m in spec.metrics]
+    ``static`` may be ``None`` when ``static_fraction`` is 0; ``snr_db`` NaN adds no noise;
+    ``mean_intensity_moving`` is ``⟨I⟩`` of the moving scatterers per system (static scatterers have
+    the same density, so the noise-free total is ``(1 + a²)⟨I⟩``); ``generator`` a ``torch.Generator``.
+    """
     import torch
 
-    x = torch.stack(cols, dim=-1).cpu().numpy().astype(np.float32)
-    zero = met["zero_intensity"].any(-1).cpu().numpy()
+    f = float(static_fraction)
+    if not 0.0 <= f < 1.0:
+        raise ValueError(f"static_fraction must be in [0, 1); got {static_fraction!r}")
+    a = math.sqrt(f / (1.0 - f))
+    if f > 0 and static is None:
+        raise ValueError("static_fraction > 0 needs the static scatterers' signals")
+    e = moving if f == 0 else moving + a * static
+    if not math.isnan(snr_db):
+        mean_i = torch.as_tensor(mean_intensity_moving, dtype=torch.float32).view(1, -1, 1)
+        amp = torch.sqrt((1.0 + a * a) * mean_i / 10.0 ** (snr_db / 10.0) / 2.0)
+        shape = e.shape
+        noise = torch.complex(torch.randn(shape, generator=generator) * amp,
+                              torch.randn(shape, generator=generator) * amp)
+        e = e + noise
+    return e
+
+
+def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
+                  truncation_tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Feature vectors ``[R, trials, F]`` (float32, spec order) and the empty-volume mask ``[R, trials]``.
+
+    Two :func:`torchdoct.simulate` calls per draw: the moving scatterers ``E_m`` and, independently,
+    static scatterers ``E_s`` at the same density (reflectivity 1). Replicate ``r`` with static
+    fraction ``f`` and SNR is ``E = E_m + a·E_s + n`` with ``a = √(f/(1−f))`` (a static population of
+    reflectivity ``a``, exactly: the field is linear in the reflectivity; ``f`` is the static share of
+    the mean intensity) and ``n`` circular complex Gaussian noise, independent per frame and system,
+    of power ``⟨I⟩/10^(SNR/10)`` with ``⟨I⟩ = (1 + a²)·ρ·π^{3/2}·s_x²·s_z`` the mean noise-free
+    intensity (physics.md §5.2, §8; the model of :class:`torchdoct.Noise`).
+    """
+    import torch
+    import torchdoct as td
+    from torchdoct.conventions import mean_intensity
+    from torchdoct.metrics import compute_metrics
+
+    moving = td.simulate(scene_for(spec, draw, prior, "moving"), trials=trials, seed=draw.sim_seed,
+                         dtype="float32", truncation_tolerance=truncation_tolerance, progress=False)
+    nuisance = draw.nuisance or ((0.0, math.nan),)
+    static = None
+    if any(f > 0 for f, _ in nuisance):
+        static = td.simulate(scene_for(spec, draw, prior, "static"), trials=trials, seed=draw.sim_seed ^ 0x5A5A5A5A,
+                             dtype="float32", truncation_tolerance=truncation_tolerance, progress=False).signals
+    mean_i = [mean_intensity(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um)
+              for c in spec.configurations]
+    gen = torch.Generator().manual_seed(draw.sim_seed ^ 0x3C3C3C3C)
+    signals = torch.cat([combine_fields(moving.signals, static, f, snr, mean_i, gen) for f, snr in nuisance])
+    met = compute_metrics(signals, moving.frame_times_s, moving.scene.analysis)
+    cols = [met[m][:, s] for s in range(len(spec.configurations)) for m in spec.metrics]
+    x = torch.stack(cols, dim=-1).numpy().astype(np.float32).reshape(len(nuisance), trials, -1)
+    zero = met["zero_intensity"].any(-1).numpy().reshape(len(nuisance), trials)
     return x, zero
 
 
 def identifiability(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, np.ndarray, np.ndarray]:
-    """Ground-truth identifiability of a draw (module docstring) and ``ρ_I(Δt)``, ``ρ_I(T)`` per configuration.
+    """Ground-truth identifiability of a draw (module docstring), with its two criteria per configuration.
 
-    Returns ``(status, rho_first [C], rho_last [C])`` with status ``"identifiable"``, ``"static"`` or
-    ``"decorrelated"``. Formulas: physics.md §5.3 (g1), §5.4 (j, N_eff, ρ_I); N_eff of the moving
-    scatterers (:func:`torchdoct.conventions.n_eff`).
+    Returns ``(status, g1sq_first [C], rho_last [C])``: status ``"identifiable"``, ``"static"`` or
+    ``"decorrelated"``; ``|g1(Δt)|²`` and ``ρ_I(T)`` of the moving scatterers. Formulas: physics.md
+    §5.3 (g1), §5.4 (j, N_eff, ``ρ_I = (|g1|² + j/N_eff)/(1 + 1/N_eff)``), via :mod:`torchdoct.theory`.
     """
     from torchdoct import theory
     from torchdoct.conventions import n_eff
 
     taus = np.array([spec.frame_interval_s, (spec.n_frames - 1) * spec.frame_interval_s])
-    moving = draw.density_per_um3 * (1.0 - draw.static_fraction)
     first, last = [], []
     for c in spec.configurations:
         res = dict(lateral_resolution_um=c.lateral_resolution_um, axial_resolution_um=c.axial_resolution_um)
@@ -261,8 +331,8 @@ def identifiability(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, n
                                 wavelength_um=c.wavelength_um, refractive_index=spec.refractive_index, **res)
             j = theory.j_flow(taus, speed_um_per_s=draw.magnitude, polar_angle_deg=draw.polar_angle_deg, **res)
         rho = theory.intensity_correlation_coefficient(
-            g1, j, n_eff(moving, c.lateral_resolution_um, c.axial_resolution_um))
-        first.append(float(rho[0]))
+            g1, j, n_eff(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um))
+        first.append(float(np.abs(g1[0]) ** 2))
         last.append(float(rho[1]))
     first_a, last_a = np.array(first), np.array(last)
     eps = prior.identifiability_epsilon
@@ -275,23 +345,30 @@ def identifiability(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, n
     return status, first_a, last_a
 
 
+#: Version of the ground-truth definition (part of the cache key).
+_IDENTIFIABILITY_VERSION = "static: rho_I(T) >= 1-eps; decorrelated: |g1(dt)|^2 <= eps; all configurations"
 #: Identifiability status codes stored in a dataset.
 STATUS = ("identifiable", "static", "decorrelated")
+
+
+_ARRAYS = ("x", "y", "draw", "group", "status", "magnitude", "density", "static_fraction", "snr_db")
 
 
 @dataclass
 class Dataset:
     """One split: features ``x [N, F]`` (float32), motion labels ``y [N]`` and per-sample truth.
 
-    ``draw [N]`` is the draw index (trials of one draw share their parameters); ``status [N]``
-    indexes :data:`STATUS`; ``magnitude``, ``density``, ``static_fraction``, ``snr_db`` (NaN = no
-    noise) describe the draw. Samples with an empty resolution volume at some frame (NaN features)
-    are dropped and counted in ``meta["dropped_empty"]``.
+    ``draw [N]`` is the draw index and ``group [N]`` the (draw, replicate) index: trials of a group
+    share every parameter and are the units that may be pooled. ``status [N]`` indexes
+    :data:`STATUS`; ``magnitude``, ``density`` (moving scatterers), ``static_fraction``, ``snr_db``
+    (NaN = no noise) describe the sample. Samples with an empty resolution volume at some frame
+    (NaN features) are dropped and counted in ``meta["dropped_empty"]``.
     """
 
     x: np.ndarray
     y: np.ndarray
     draw: np.ndarray
+    group: np.ndarray
     status: np.ndarray
     magnitude: np.ndarray
     density: np.ndarray
@@ -307,8 +384,7 @@ class Dataset:
         return self.status == 0
 
     def arrays(self) -> dict[str, np.ndarray]:
-        return {k: getattr(self, k) for k in ("x", "y", "draw", "status", "magnitude", "density",
-                                              "static_fraction", "snr_db")}
+        return {k: getattr(self, k) for k in _ARRAYS}
 
     def save(self, path: str | os.PathLike) -> None:
         with open(path, "wb") as fh:
@@ -317,8 +393,7 @@ class Dataset:
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Dataset":
         with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in ("x", "y", "draw", "status", "magnitude", "density", "static_fraction",
-                                        "snr_db")}
+            arrays = {k: z[k] for k in _ARRAYS}
             meta = json.loads(str(z["meta_json"]))
         return cls(**arrays, meta=meta)
 
@@ -330,37 +405,45 @@ def default_cache_dir() -> Path:
 
 
 def dataset_key(spec: FeatureSpec, prior: Prior, seed: int, split: str, draws: int, trials_per_draw: int,
-                truncation_tolerance: float) -> tuple[str, dict[str, Any]]:
+                replicates: int, truncation_tolerance: float) -> tuple[str, dict[str, Any]]:
     """Cache key (hex SHA-256) and the JSON-able description it hashes."""
     import torchdoct
 
     desc = {"spec": spec.to_dict(), "prior": prior.to_dict(), "seed": int(seed), "split": split,
-            "draws": int(draws), "trials_per_draw": int(trials_per_draw),
+            "draws": int(draws), "trials_per_draw": int(trials_per_draw), "replicates": int(replicates),
             "truncation_tolerance": float(truncation_tolerance), "torchdoct_version": torchdoct.__version__,
-            "format": 1}
+            "identifiability": _IDENTIFIABILITY_VERSION, "format": 2}
     blob = json.dumps(desc, sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest(), desc
 
 
+def _positive_int(name: str, v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise ValueError(f"{name} must be a positive integer; got {v!r}")
+    return v
+
+
 def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: int = 0, split: str = "train",
-                 draws: int = 300, trials_per_draw: int = 64, truncation_tolerance: float = 1e-2,
-                 cache_dir: str | os.PathLike | None = None, use_cache: bool = True,
-                 progress: bool = False) -> Dataset:
+                 draws: int = 300, trials_per_draw: int = 64, replicates: int = 8,
+                 truncation_tolerance: float = 1e-2, cache_dir: str | os.PathLike | None = None,
+                 use_cache: bool = True, progress: bool = False) -> Dataset:
     """Simulate (or load from the cache) one split of labelled feature vectors.
 
-    ``truncation_tolerance`` is the simulator's PSF truncation (relative amplitude); 1e-2 bounds the
-    relative mean-square field error at 3.6e-4 (:func:`torchdoct.conventions.truncation_error_bound`)
-    and halves the cost against the default 1e-3.
+    ``draws`` parameter draws × ``replicates`` (static fraction, SNR) settings × ``trials_per_draw``
+    trials (:func:`simulate_draw`). ``truncation_tolerance`` is the simulator's PSF truncation
+    (relative amplitude); 1e-2 bounds the relative mean-square field error at 3.6e-4
+    (:func:`torchdoct.conventions.truncation_error_bound`) and halves the cost against 1e-3.
     """
     spec = load_spec(spec)
     prior = prior or Prior()
     if split not in SPLITS:
         raise ValueError(f"split must be one of {list(SPLITS)}; got {split!r}")
-    if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
-        raise ValueError(f"draws must be a positive integer; got {draws!r}")
-    if isinstance(trials_per_draw, bool) or not isinstance(trials_per_draw, int) or trials_per_draw < 1:
-        raise ValueError(f"trials_per_draw must be a positive integer; got {trials_per_draw!r}")
-    key, desc = dataset_key(spec, prior, seed, split, draws, trials_per_draw, truncation_tolerance)
+    _positive_int("draws", draws)
+    _positive_int("trials_per_draw", trials_per_draw)
+    _positive_int("replicates", replicates)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer; got {seed!r}")
+    key, desc = dataset_key(spec, prior, seed, split, draws, trials_per_draw, replicates, truncation_tolerance)
     path = None
     if use_cache:
         cdir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
@@ -375,27 +458,28 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
         from tqdm.auto import tqdm
 
         bar = tqdm(total=draws, unit="draw", desc=f"simulate {spec.name}/{split}")
-    cols: dict[str, list] = {k: [] for k in ("x", "y", "draw", "status", "magnitude", "density",
-                                             "static_fraction", "snr_db")}
+    cols: dict[str, list] = {k: [] for k in _ARRAYS}
     dropped = 0
     status_counts = {s: 0 for s in STATUS}
     t0 = time.perf_counter()
     for k in range(draws):
-        d = draw_parameters(prior, seed, split, k)
+        d = draw_parameters(prior, seed, split, k, replicates)
         x, zero = simulate_draw(spec, d, prior, trials=trials_per_draw, truncation_tolerance=truncation_tolerance)
         status, _, _ = identifiability(spec, d, prior)
         status_counts[status] += 1
-        keep = ~zero & np.all(np.isfinite(x), axis=1)
-        dropped += int((~keep).sum())
-        n = int(keep.sum())
-        cols["x"].append(x[keep])
-        cols["y"].append(np.full(n, d.label, np.int64))
-        cols["draw"].append(np.full(n, k, np.int64))
-        cols["status"].append(np.full(n, STATUS.index(status), np.int64))
-        cols["magnitude"].append(np.full(n, d.magnitude))
-        cols["density"].append(np.full(n, d.density_per_um3))
-        cols["static_fraction"].append(np.full(n, d.static_fraction))
-        cols["snr_db"].append(np.full(n, d.snr_db))
+        for r, (f, snr) in enumerate(d.nuisance):
+            keep = ~zero[r] & np.all(np.isfinite(x[r]), axis=1)
+            dropped += int((~keep).sum())
+            n = int(keep.sum())
+            cols["x"].append(x[r][keep])
+            cols["y"].append(np.full(n, d.label, np.int64))
+            cols["draw"].append(np.full(n, k, np.int64))
+            cols["group"].append(np.full(n, k * replicates + r, np.int64))
+            cols["status"].append(np.full(n, STATUS.index(status), np.int64))
+            cols["magnitude"].append(np.full(n, d.magnitude))
+            cols["density"].append(np.full(n, d.density_per_um3))
+            cols["static_fraction"].append(np.full(n, f))
+            cols["snr_db"].append(np.full(n, snr))
         if bar is not None:
             bar.update(1)
     if bar is not None:
@@ -405,8 +489,8 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
     arrays["x"] = arrays["x"].astype(np.float32).reshape(-1, spec.n_features)
     meta = {"key": key, **desc, "feature_names": list(spec.feature_names), "classes": list(CLASSES),
             "status_names": list(STATUS), "draw_status_counts": status_counts, "dropped_empty": dropped,
-            "elapsed_s": elapsed, "seconds_per_sample": elapsed / (draws * trials_per_draw),
-            "from_cache": False}
+            "elapsed_s": elapsed, "seconds_per_draw": elapsed / draws,
+            "seconds_per_trial": elapsed / (draws * trials_per_draw), "from_cache": False}
     ds = Dataset(**arrays, meta=meta)
     if path is not None:
         from torchdoct._files import atomic_write

@@ -1,0 +1,192 @@
+"""Console scripts ``doct-train`` and ``doct-classify``: parse, call one library function, print.
+
+``doct-train`` = :func:`classifier.train.train` + :func:`classifier.export.export_onnx` +
+:func:`classifier.report.write_report`; ``doct-classify`` = :func:`classifier.infer.classify_maps` +
+:func:`classifier.infer.write_classification`. ``doct-classify`` never imports torch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Sequence
+
+__all__ = ["build_train_parser", "build_classify_parser", "train_main", "classify_main"]
+
+_ERRORS = (ValueError, TypeError, FileNotFoundError)
+
+
+def build_train_parser() -> argparse.ArgumentParser:
+    from .train import TrainConfig
+
+    d = TrainConfig()
+    p = argparse.ArgumentParser(
+        prog="doct-train",
+        description="Simulate labelled DOCT features, train the motion-type classifier, export ONNX and a report. "
+                    "Without options it reproduces the shipped single-acquisition model.")
+    p.add_argument("--out", required=True, help="output directory: SPEC.onnx, SPEC.json/.md/.png (report)")
+    p.add_argument("--spec", default=d.spec, help="feature spec: 'single-acquisition', 'two-wavelength' or a TOML file")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--draws-train", type=int, default=d.draws_train, help="parameter draws in the training split")
+    p.add_argument("--draws-validation", type=int, default=d.draws_validation)
+    p.add_argument("--draws-test", type=int, default=d.draws_test)
+    p.add_argument("--trials-per-draw", type=int, default=d.trials_per_draw)
+    p.add_argument("--replicates", type=int, default=d.replicates,
+                   help="(static fraction, SNR) settings per simulated draw")
+    p.add_argument("--max-epochs", type=int, default=d.max_epochs)
+    p.add_argument("--min-probability", type=float, default=d.min_probability,
+                   help="indeterminate below this top-class probability")
+    p.add_argument("--no-baselines", action="store_true", help="skip the scikit-learn baselines")
+    p.add_argument("--cache", default=None, help="dataset cache directory (default ~/.cache/torchdoct/classifier)")
+    p.add_argument("--no-cache", action="store_true", help="neither read nor write the dataset cache")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def train_main(argv: Sequence[str] | None = None) -> int:
+    """``doct-train``: returns the exit code (2 on bad input)."""
+    args = build_train_parser().parse_args(argv)
+    try:
+        return _train(args)
+    except _ERRORS as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+def _train(args: argparse.Namespace) -> int:
+    import time
+
+    import numpy as np
+    import torch
+
+    from ._files import check_out
+    from .export import OPSET, build_metadata, export_onnx, onnx_parity
+    from .features import load_spec
+    from .report import write_report
+    from .train import TrainConfig, train
+
+    spec = load_spec(args.spec)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file; give a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {s: check_out(out / f"{spec.name}{s}", args.force, s, f"--out {out}") for s in (".onnx", ".json", ".md", ".png")}
+    if args.threads is not None:
+        if args.threads < 1:
+            raise ValueError(f"--threads must be >= 1; got {args.threads}")
+        torch.set_num_threads(args.threads)
+    cfg = TrainConfig(spec=str(args.spec), seed=args.seed, draws_train=args.draws_train,
+                      draws_validation=args.draws_validation, draws_test=args.draws_test,
+                      trials_per_draw=args.trials_per_draw, replicates=args.replicates, max_epochs=args.max_epochs,
+                      min_probability=args.min_probability, baselines=not args.no_baselines)
+    t0 = time.perf_counter()
+    res = train(cfg, cache_dir=args.cache, use_cache=not args.no_cache, progress=not args.no_progress)
+    meta = build_metadata(res)
+    export_onnx(res.model, meta, paths[".onnx"])
+    parity = onnx_parity(res.model, paths[".onnx"], res.test_inputs)
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    sess = ort.InferenceSession(str(paths[".onnx"]), opts, providers=["CPUExecutionProvider"])
+    xs = np.ascontiguousarray(res.test_inputs, np.float32)
+    best = min(_time(lambda: sess.run(["probabilities"], {"features": xs})) for _ in range(3))
+    res.report["timing"]["network (onnxruntime, 1 thread)"] = {
+        "train_s": res.report["timing"]["network"]["train_s"], "inference_us_per_sample": best / len(xs) * 1e6}
+    res.report["onnx_parity_max_abs_diff"] = parity
+    res.report["onnx_opset"] = OPSET
+    res.report["total_s"] = time.perf_counter() - t0
+    write_report(_finite(res.report), paths[".json"], paths[".md"], paths[".png"])
+    m1 = res.report["test"]["network"]["1"]
+    print(f"wrote {', '.join(str(p) for p in paths.values())}")
+    print(f"test (pool 1): accuracy {m1['accuracy_all']:.3f}, balanced {m1['balanced_accuracy_all']:.3f}; identifiable: "
+          f"coverage {m1['coverage_identifiable']:.3f}, accuracy {m1['accuracy_identifiable']:.3f}, balanced "
+          f"{m1['balanced_accuracy_identifiable']:.3f}; ECE {m1['ece']:.3f}; ONNX max |dp| {parity:.1e}; "
+          f"total {res.report['total_s']:.0f} s")
+    return 0
+
+
+def _time(fn) -> float:
+    import time
+
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
+def _finite(obj):
+    """Replace NaN/inf floats by None (strict JSON)."""
+    import math
+
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def build_classify_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="doct-classify",
+        description="Classify every pixel of DOCT maps (from `torchdoct maps`) as diffusion, random-ballistic "
+                    "motion, flow or indeterminate. Writes classes.tif (+ legend.json), probabilities.tif, "
+                    "overlay.png and summary.json into --out.")
+    p.add_argument("maps", nargs="+", help="maps file(s) (.npz or .tif); several files are combined channel by channel")
+    p.add_argument("--model", default=None, help="ONNX model file or shipped model name (default: single-acquisition)")
+    p.add_argument("--out", required=True, help="output directory (created if missing)")
+    p.add_argument("--pool", type=int, default=1, help="average features over N x N (z, x) neighbourhoods first")
+    p.add_argument("--background-db", default="auto",
+                   help="mask pixels whose mean dB intensity is below this; 'auto' = 99th percentile - 30 dB; 'none'")
+    p.add_argument("--min-probability", type=float, default=None,
+                   help="override the model's threshold below which a pixel is indeterminate")
+    p.add_argument("--ignore-refractive-index", action="store_true",
+                   help="accept maps whose system refractive index differs from the model's")
+    p.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: $OMP_NUM_THREADS)")
+    p.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    return p
+
+
+def classify_main(argv: Sequence[str] | None = None) -> int:
+    """``doct-classify``: returns the exit code (2 on bad input)."""
+    args = build_classify_parser().parse_args(argv)
+    from .infer import classify_maps, write_classification
+
+    try:
+        bg = args.background_db
+        if bg not in ("auto", "none"):
+            try:
+                bg = float(bg)
+            except ValueError:
+                raise ValueError(f"--background-db must be 'auto', 'none' or a number in dB; got {bg!r}") from None
+        res = classify_maps(args.maps, args.model, pool=args.pool, background_db=bg,
+                            min_probability=args.min_probability,
+                            ignore_refractive_index=args.ignore_refractive_index, threads=args.threads)
+        written = write_classification(res, args.out, force=args.force)
+    except _ERRORS as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    counts = res.counts()
+    if args.json:
+        print(json.dumps({"counts": counts, "info": res.info, "written": [str(p) for p in written]}, indent=1))
+    else:
+        total = max(res.info["classified"], 1)
+        print(f"model {res.model.path.name} ({res.model.metadata['spec']['name']}), pool {res.info['pool']}: "
+              f"{res.info['classified']} of {res.info['pixels']} pixels classified "
+              f"({res.info['background_pixels']} background, {res.info['nan_pixels']} NaN)")
+        for c in res.classes:
+            print(f"  {c:>14}: {counts[c]:>9} ({counts[c] / total:6.1%})")
+        print(f"  {res.info['pixels_per_s']:.3g} pixels/s; wrote {', '.join(p.name for p in written)} to {args.out}")
+        for note in res.info.get("notes", []):
+            print(f"note: {note}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(classify_main())

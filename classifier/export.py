@@ -1,0 +1,206 @@
+"""ONNX export of a :class:`~classifier.model.MotionClassifier`, with its metadata, and a runtime check.
+
+The graph is written operator by operator with :mod:`onnx.helper` at a fixed opset
+(:data:`OPSET` = 17): ``Max``/``Add``/``Log`` and ``Where`` for the fixed transforms, ``Sub``/``Div``
+for the standardisation, ``Gemm``/``Relu`` for the layers, ``Div`` by the temperature and
+``Softmax``. Writing the graph directly keeps the file independent of torch's exporters (the
+TorchScript one is deprecated, the torch.export one needs onnxscript) and makes every node
+reviewable; :func:`onnx_parity` checks the result in onnxruntime against torch.
+
+Metadata (``metadata_props``): key :data:`METADATA_KEY` holds one JSON document with the input
+columns (feature names, metrics, units, system configurations), the class names, the
+indeterminate rule, the feature spec, the prior, the training recipe, a summary of the report and
+the package versions; keys ``classes`` and ``feature_names`` repeat the essentials as plain JSON
+lists. Model files are ONNX only; nothing is ever unpickled.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import numpy as np
+
+__all__ = ["OPSET", "METADATA_KEY", "FORMAT", "build_metadata", "onnx_model", "export_onnx", "onnx_parity",
+           "model_from_onnx"]
+
+OPSET = 17
+METADATA_KEY = "torchdoct_classifier"
+FORMAT = "torchdoct-classifier/1"
+
+
+def build_metadata(result) -> dict[str, Any]:
+    """The metadata document of a :class:`classifier.train.TrainResult`."""
+    import torchdoct
+
+    from . import __version__
+    from .features import METRIC_UNITS
+
+    spec = result.spec
+    columns = []
+    for (metric, conf), name in zip(spec.features, spec.feature_names):
+        columns.append({"name": name, "metric": metric, "unit": METRIC_UNITS[metric], "configuration": conf.name,
+                        "wavelength_um": conf.wavelength_um, "lateral_resolution_um": conf.lateral_resolution_um,
+                        "axial_resolution_um": conf.axial_resolution_um})
+    columns.append({"name": "pool_pixels", "metric": "pool_pixels", "unit": "pixels",
+                    "description": "number of independent pixels averaged into the feature vector (1 = one pixel)"})
+    rep = result.report
+    summary = {}
+    for pool, m in rep["test"]["network"].items():
+        summary[pool] = {k: m[k] for k in ("accuracy_all", "balanced_accuracy_all", "coverage_identifiable",
+                                           "accuracy_identifiable", "balanced_accuracy_identifiable", "ece")}
+    return {
+        "format": FORMAT,
+        "classifier_version": __version__,
+        "torchdoct_version": torchdoct.__version__,
+        "onnx_opset": OPSET,
+        "input": {"name": "features", "dtype": "float32", "shape": ["N", len(columns)], "columns": columns},
+        "output": {"name": "probabilities", "dtype": "float32", "shape": ["N", len(rep["classes"])],
+                   "classes": list(rep["classes"])},
+        "rule": result.rule,
+        "pool_pixels_max": result.config.max_pool_pixels,
+        "spec": spec.to_dict(),
+        "prior": result.prior.to_dict(),
+        "train_config": result.config.to_dict(),
+        "test_summary_by_pool": summary,
+    }
+
+
+def _np(t) -> np.ndarray:
+    return t.detach().cpu().numpy().astype(np.float32)
+
+
+def onnx_model(model, metadata: dict[str, Any]):
+    """The :class:`onnx.ModelProto` of ``model`` (eval mode) with ``metadata`` (module docstring)."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+    from torch import nn
+
+    from .model import LIV_OFFSET_DB2
+
+    width = model.n_features + 1
+    inits = [
+        numpy_helper.from_array(np.array(0.0, np.float32), "zero"),
+        numpy_helper.from_array(np.array(1.0, np.float32), "one"),
+        numpy_helper.from_array(np.array(LIV_OFFSET_DB2, np.float32), "liv_offset"),
+        numpy_helper.from_array(model.liv_mask.cpu().numpy().astype(bool), "liv_mask"),
+        numpy_helper.from_array(model.pool_mask.cpu().numpy().astype(bool), "pool_mask"),
+        numpy_helper.from_array(_np(model.feature_mean), "feature_mean"),
+        numpy_helper.from_array(_np(model.feature_scale), "feature_scale"),
+        numpy_helper.from_array(np.array(float(model.temperature), np.float32), "temperature"),
+    ]
+    nodes = [
+        helper.make_node("Max", ["features", "zero"], ["x_pos"]),
+        helper.make_node("Add", ["x_pos", "liv_offset"], ["x_off"]),
+        helper.make_node("Log", ["x_off"], ["liv_log"]),
+        helper.make_node("Max", ["features", "one"], ["x_ge1"]),
+        helper.make_node("Log", ["x_ge1"], ["pool_log"]),
+        helper.make_node("Where", ["pool_mask", "pool_log", "features"], ["t_pool"]),
+        helper.make_node("Where", ["liv_mask", "liv_log", "t_pool"], ["t"]),
+        helper.make_node("Sub", ["t", "feature_mean"], ["t_c"]),
+        helper.make_node("Div", ["t_c", "feature_scale"], ["h0"]),
+    ]
+    cur = "h0"
+    linear = [m for m in model.net if isinstance(m, nn.Linear)]
+    for i, lin in enumerate(linear):
+        inits.append(numpy_helper.from_array(_np(lin.weight), f"w{i}"))
+        inits.append(numpy_helper.from_array(_np(lin.bias), f"b{i}"))
+        out = f"z{i}"
+        nodes.append(helper.make_node("Gemm", [cur, f"w{i}", f"b{i}"], [out], transB=1))
+        if i < len(linear) - 1:
+            nodes.append(helper.make_node("Relu", [out], [f"h{i + 1}"]))
+            cur = f"h{i + 1}"
+        else:
+            cur = out
+    nodes.append(helper.make_node("Div", [cur, "temperature"], ["scaled"]))
+    nodes.append(helper.make_node("Softmax", ["scaled"], ["probabilities"], axis=1))
+    graph = helper.make_graph(
+        nodes, "motion_classifier",
+        [helper.make_tensor_value_info("features", TensorProto.FLOAT, ["N", width])],
+        [helper.make_tensor_value_info("probabilities", TensorProto.FLOAT, ["N", model.n_classes])],
+        initializer=inits)
+    proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
+                              producer_name="torchdoct-classifier", producer_version=metadata.get("classifier_version", ""),
+                              doc_string="DOCT motion-type classifier: features [N, F+1] -> class probabilities [N, C]; "
+                                         f"see metadata key '{METADATA_KEY}'")
+    proto.ir_version = 8  # the IR version of opset 17
+    props = {METADATA_KEY: json.dumps(metadata, default=_plain),
+             "classes": json.dumps(metadata["output"]["classes"]),
+             "feature_names": json.dumps([c["name"] for c in metadata["input"]["columns"]])}
+    helper.set_model_props(proto, props)
+    onnx.checker.check_model(proto)
+    return proto
+
+
+def _plain(o: Any) -> Any:
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def export_onnx(model, metadata: dict[str, Any], path) -> None:
+    """Write ``model`` with ``metadata`` to ``path`` (atomically; the caller checks overwriting)."""
+    from ._files import atomic_write
+
+    proto = onnx_model(model, metadata)
+    data = proto.SerializeToString()
+
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+
+    atomic_write(path, write)
+
+
+def onnx_parity(model, path, x: np.ndarray, chunk: int = 65536) -> float:
+    """Max |p_onnxruntime − p_torch| over the rows of ``x`` ``[N, F+1]``."""
+    import onnxruntime as ort
+    import torch
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    worst = 0.0
+    for i in range(0, len(x), chunk):
+        xb = np.ascontiguousarray(x[i:i + chunk], dtype=np.float32)
+        p_ort = sess.run(["probabilities"], {"features": xb})[0]
+        with torch.no_grad():
+            p_t = model(torch.from_numpy(xb)).numpy()
+        worst = max(worst, float(np.abs(p_ort - p_t).max()))
+    return worst
+
+
+def model_from_onnx(path):
+    """Rebuild the torch :class:`~classifier.model.MotionClassifier` from an exported ONNX file.
+
+    Reads the initializers written by :func:`onnx_model` (no pickle involved); used to check a
+    shipped model against torch and to continue from it.
+    """
+    import onnx
+    import torch
+    from onnx import numpy_helper
+
+    from .model import MotionClassifier
+
+    proto = onnx.load(str(path))
+    init = {t.name: np.array(numpy_helper.to_array(t)) for t in proto.graph.initializer}
+    n_layers = sum(1 for k in init if k.startswith("w"))
+    if n_layers < 1 or "liv_mask" not in init:
+        raise ValueError(f"{path}: not a model written by classifier.export")
+    weights = [init[f"w{i}"] for i in range(n_layers)]
+    liv_mask = init["liv_mask"].astype(bool)
+    width = liv_mask.size
+    hidden = [w.shape[0] for w in weights[:-1]]
+    with torch.random.fork_rng(devices=[]):  # the initial weights are overwritten; keep the global RNG untouched
+        model = MotionClassifier(width - 1, weights[-1].shape[0], np.flatnonzero(liv_mask[:-1]).tolist(), hidden)
+    with torch.no_grad():
+        model.feature_mean.copy_(torch.from_numpy(init["feature_mean"]))
+        model.feature_scale.copy_(torch.from_numpy(init["feature_scale"]))
+        model.temperature.fill_(float(init["temperature"]))
+        linear = [m for m in model.net if isinstance(m, torch.nn.Linear)]
+        for i, lin in enumerate(linear):
+            lin.weight.copy_(torch.from_numpy(init[f"w{i}"]))
+            lin.bias.copy_(torch.from_numpy(init[f"b{i}"]))
+    return model.eval()

@@ -1,0 +1,88 @@
+"""A small MLP that maps DOCT feature vectors to motion-type probabilities.
+
+Input ``[N, F + 1]`` float32: the spec's features in spec order (LIV in dB², OCDS in 1/s) and, last,
+``pool_pixels``: how many independent pixels were averaged into the feature vector (1 for a single
+pixel; ``doct-classify --pool N`` sets it, see :mod:`classifier.infer`). Everything the network
+needs to see raw features lives inside it, so the ONNX file is self-contained:
+
+1. fixed transforms: ``log(max(LIV, 0) + 0.01 dB²)`` (LIV spans six decades between a nearly
+   static and a fully decorrelated pixel), OCDS unchanged, ``log(pool_pixels)``;
+2. standardisation with the training set's mean and SD (buffers);
+3. ``Linear → ReLU`` hidden layers, a linear output layer;
+4. a temperature (buffer, fitted on the validation split after training) and softmax.
+
+Output ``[N, C]`` class probabilities (float32), classes in the order of the model's metadata.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import nn
+
+__all__ = ["MotionClassifier", "LIV_OFFSET_DB2"]
+
+#: Offset (dB²) inside the LIV log transform: below it, LIV differences carry no weight.
+LIV_OFFSET_DB2 = 0.01
+
+
+class MotionClassifier(nn.Module):
+    """``features [N, F+1] → probabilities [N, C]`` (module docstring).
+
+    ``log_columns``: indices of the LIV features (log-transformed); ``n_features`` counts the spec's
+    features (the ``pool_pixels`` column comes on top).
+    """
+
+    def __init__(self, n_features: int, n_classes: int, log_columns: Sequence[int],
+                 hidden: Sequence[int] = (64, 64)):
+        super().__init__()
+        if n_features < 1 or n_classes < 2:
+            raise ValueError(f"need n_features >= 1 and n_classes >= 2; got {n_features}, {n_classes}")
+        width = n_features + 1
+        mask = torch.zeros(width, dtype=torch.bool)
+        for c in log_columns:
+            if not 0 <= int(c) < n_features:
+                raise ValueError(f"log column {c} is outside the {n_features} features")
+            mask[int(c)] = True
+        pool = torch.zeros(width, dtype=torch.bool)
+        pool[-1] = True
+        self.n_features = int(n_features)
+        self.n_classes = int(n_classes)
+        self.hidden = tuple(int(h) for h in hidden)
+        self.register_buffer("liv_mask", mask)
+        self.register_buffer("pool_mask", pool)
+        self.register_buffer("feature_mean", torch.zeros(width))
+        self.register_buffer("feature_scale", torch.ones(width))
+        self.register_buffer("temperature", torch.ones(()))
+        layers: list[nn.Module] = []
+        prev = width
+        for h in self.hidden:
+            layers += [nn.Linear(prev, h), nn.ReLU()]
+            prev = h
+        layers.append(nn.Linear(prev, n_classes))
+        self.net = nn.Sequential(*layers)
+
+    def transform(self, x: torch.Tensor) -> torch.Tensor:
+        """Fixed transforms of step 1 (the last column is ``pool_pixels``)."""
+        if x.dim() != 2 or x.shape[1] != self.n_features + 1:
+            raise ValueError(f"features must be [N, {self.n_features + 1}] (spec features + pool_pixels); "
+                             f"got {tuple(x.shape)}")
+        liv = torch.log(torch.clamp(x, min=0.0) + LIV_OFFSET_DB2)
+        pool = torch.log(torch.clamp(x, min=1.0))
+        return torch.where(self.liv_mask, liv, torch.where(self.pool_mask, pool, x))
+
+    def set_normalization(self, x: torch.Tensor) -> None:
+        """Store mean and SD of the transformed training features (SD floored at 1e-6)."""
+        with torch.no_grad():
+            t = self.transform(x)
+            self.feature_mean.copy_(t.mean(0))
+            self.feature_scale.copy_(t.std(0).clamp(min=1e-6))
+
+    def logits(self, x: torch.Tensor) -> torch.Tensor:
+        """Logits before the temperature."""
+        z = (self.transform(x) - self.feature_mean) / self.feature_scale
+        return self.net(z)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.softmax(self.logits(x) / self.temperature, dim=1)

@@ -1,0 +1,319 @@
+"""Evaluation metrics and the training report (JSON + Markdown + PNG). numpy/matplotlib only.
+
+Metrics (classes = the model's classes, the last being ``indeterminate``):
+
+* **accuracy / balanced accuracy (all)**: decisions after the indeterminate rule against the
+  truth including the indeterminate class (balanced = mean per-class recall);
+* **identifiable**: over samples whose motion is identifiable by the ground truth
+  (:func:`classifier.dataset.identifiability`): ``coverage`` = fraction the rule decides;
+  ``accuracy`` and ``balanced_accuracy`` over the decided ones (motion classes only); ``strict``
+  accuracy counts undecided samples as wrong;
+* **ECE**: expected calibration error of the top-class probability before the rule, 15 equal-width
+  bins, truth including the indeterminate class.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any, Sequence
+
+import numpy as np
+
+from .rule import REASONS, apply_rule
+
+__all__ = ["expected_calibration_error", "evaluate", "bootstrap_se", "magnitude_table", "write_report",
+           "format_markdown"]
+
+
+def expected_calibration_error(probabilities: np.ndarray, truth: np.ndarray, bins: int = 15) -> tuple[float, list]:
+    """Top-label ECE and its reliability table ``[(confidence, accuracy, count), ...]`` per bin."""
+    p = np.asarray(probabilities, dtype=np.float64)
+    conf = p.max(1)
+    ok = (p.argmax(1) == np.asarray(truth)).astype(np.float64)
+    edges = np.linspace(0.0, 1.0, bins + 1)
+    idx = np.clip(np.digitize(conf, edges[1:-1]), 0, bins - 1)
+    ece = 0.0
+    table = []
+    for b in range(bins):
+        m = idx == b
+        n = int(m.sum())
+        if n:
+            ece += n / len(conf) * abs(conf[m].mean() - ok[m].mean())
+            table.append((float(conf[m].mean()), float(ok[m].mean()), n))
+    return float(ece), table
+
+
+def _recalls(truth: np.ndarray, pred: np.ndarray, classes: Sequence[int]) -> list[float]:
+    out = []
+    for c in classes:
+        m = truth == c
+        out.append(float((pred[m] == c).mean()) if m.any() else math.nan)
+    return out
+
+
+def evaluate(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, class_names: Sequence[str],
+             rule: dict[str, Any]) -> dict[str, Any]:
+    """All metrics of the module docstring for one set of samples.
+
+    ``y`` motion labels (0..C−2), ``status`` 0 where identifiable (ground truth).
+    """
+    n_cls = len(class_names)
+    ind = n_cls - 1
+    truth = np.where(status == 0, y, ind)
+    pred, reasons = apply_rule(probabilities, class_names, rule)
+    ident = status == 0
+    decided = ident & (pred != ind)
+    cm = np.zeros((n_cls, n_cls), np.int64)
+    np.add.at(cm, (truth, pred), 1)
+    rec_all = _recalls(truth, pred, range(n_cls))
+    rec_id = _recalls(y[decided], pred[decided], range(n_cls - 1))
+    ece, table = expected_calibration_error(probabilities, truth)
+    return {
+        "samples": int(len(y)),
+        "accuracy_all": float((pred == truth).mean()),
+        "balanced_accuracy_all": float(np.nanmean(rec_all)),
+        "recall_all": dict(zip(class_names, rec_all)),
+        "identifiable_samples": int(ident.sum()),
+        "coverage_identifiable": float(decided.sum() / max(ident.sum(), 1)),
+        "accuracy_identifiable": float((pred[decided] == y[decided]).mean()) if decided.any() else math.nan,
+        "balanced_accuracy_identifiable": float(np.nanmean(rec_id)) if decided.any() else math.nan,
+        "recall_identifiable": dict(zip(class_names[:-1], rec_id)),
+        "strict_accuracy_identifiable": float((pred[ident] == y[ident]).mean()) if ident.any() else math.nan,
+        "indeterminate_fraction": float((pred == ind).mean()),
+        "indeterminate_reasons": {r: int((reasons == i).sum()) for i, r in enumerate(REASONS)},
+        "ece": ece,
+        "reliability": table,
+        "confusion": cm.tolist(),
+    }
+
+
+def bootstrap_se(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, draw: np.ndarray,
+                 class_names: Sequence[str], rule: dict[str, Any], *, n_boot: int = 200, seed: int = 0,
+                 keys: Sequence[str] = ("accuracy_identifiable", "balanced_accuracy_identifiable",
+                                        "coverage_identifiable", "accuracy_all", "ece")) -> dict[str, float]:
+    """Standard errors of :func:`evaluate`'s metrics from a bootstrap over *draws* (the independent
+    unit: trials of a draw share its parameters), ``n_boot`` resamples with a seeded generator."""
+    rng = np.random.default_rng(seed)
+    draws = np.unique(draw)
+    index = {d: np.flatnonzero(draw == d) for d in draws}
+    vals: dict[str, list[float]] = {k: [] for k in keys}
+    for _ in range(n_boot):
+        pick = np.concatenate([index[d] for d in rng.choice(draws, draws.size, replace=True)])
+        m = evaluate(probabilities[pick], y[pick], status[pick], class_names, rule)
+        for k in keys:
+            vals[k].append(m[k])
+    return {k: float(np.nanstd(v, ddof=1)) for k, v in vals.items()}
+
+
+def magnitude_table(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, magnitude: np.ndarray,
+                    class_names: Sequence[str], rule: dict[str, Any], ranges: Sequence[tuple[float, float]],
+                    bins: int = 8) -> list[dict[str, Any]]:
+    """Per motion class and log-magnitude bin: counts, truth-indeterminate fraction, predicted
+    indeterminate fraction, and accuracy on the identifiable, decided samples."""
+    ind = len(class_names) - 1
+    pred, _ = apply_rule(probabilities, class_names, rule)
+    rows = []
+    for c in range(len(class_names) - 1):
+        lo, hi = ranges[c]
+        edges = np.geomspace(lo, hi, bins + 1)
+        m = y == c
+        idx = np.clip(np.digitize(magnitude[m], edges[1:-1]), 0, bins - 1)
+        for b in range(bins):
+            sel = idx == b
+            if not sel.any():
+                continue
+            st = status[m][sel]
+            pr = pred[m][sel]
+            dec = (st == 0) & (pr != ind)
+            rows.append({
+                "class": class_names[c], "low": float(edges[b]), "high": float(edges[b + 1]), "samples": int(sel.sum()),
+                "truth_indeterminate": float((st != 0).mean()),
+                "truth_static": float((st == 1).mean()), "truth_decorrelated": float((st == 2).mean()),
+                "predicted_indeterminate": float((pr == ind).mean()),
+                "accuracy_decided": float((pr[dec] == c).mean()) if dec.any() else math.nan,
+                "coverage": float(dec.sum() / max((st == 0).sum(), 1)) if (st == 0).any() else math.nan,
+            })
+    return rows
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, float):
+        return "–" if math.isnan(v) else f"{v:.{digits}f}"
+    return str(v)
+
+
+def format_markdown(report: dict[str, Any]) -> str:
+    """The report as Markdown (tables of the JSON)."""
+    r = report
+    cls = r["classes"]
+    L = [f"# Motion-type classifier report: `{r['spec']['name']}`", ""]
+    L.append(f"Spec: {r['spec']['description']}  ")
+    L.append(f"Features: {', '.join(r['feature_names'])} (+ `pool_pixels`)  ")
+    L.append(f"Classes: {', '.join(cls)}; rule: {r['rule']['definition']} min_probability = "
+             f"{r['rule']['min_probability']}, epsilon = {r['rule']['epsilon']}.  ")
+    d = r["data"]
+    L.append(f"Data: seed {r['seed']}; draws train/validation/test = {d['draws']['train']}/"
+             f"{d['draws']['validation']}/{d['draws']['test']} × {d['replicates']} (static fraction, SNR) replicates × "
+             f"{d['trials_per_draw']} trials; simulation {d['simulation_s']:.1f} s ({d['s_per_draw']:.3f} s per draw, "
+             f"{d['ms_per_trial']:.2f} ms per simulated trial; torch threads: {d['threads']}); training {r['training']['seconds']:.1f} s, {r['training']['epochs']} epochs, "
+             f"temperature {r['training']['temperature']:.3f}.")
+    L.append("")
+    L.append("## Test set, by pooled pixels")
+    L.append("")
+    L.append("`pool` = independent pixels (trials of one draw) averaged per feature vector. Identifiable = "
+             "ground truth; accuracy over the decided ones; coverage = decided share; strict counts undecided as wrong.")
+    L.append("")
+    L.append("| model | pool | acc. all | bal. acc. all | coverage | acc. identifiable | bal. acc. identifiable "
+             "| strict acc. | ECE | indeterminate |")
+    L.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for name, per in r["test"].items():
+        for pool, m in per.items():
+            L.append(f"| {name} | {pool} | {_fmt(m['accuracy_all'])} | {_fmt(m['balanced_accuracy_all'])} | "
+                     f"{_fmt(m['coverage_identifiable'])} | {_fmt(m['accuracy_identifiable'])} | "
+                     f"{_fmt(m['balanced_accuracy_identifiable'])} | {_fmt(m['strict_accuracy_identifiable'])} | "
+                     f"{_fmt(m['ece'])} | {_fmt(m['indeterminate_fraction'])} |")
+    L.append("")
+    if "standard_errors" in r:
+        L.append("Standard errors of the network's numbers (bootstrap over test draws, the independent unit): " +
+                 "; ".join(f"pool {pool}: " + ", ".join(f"{k.replace('_', ' ')} ±{v:.3f}" for k, v in se.items())
+                           for pool, se in r["standard_errors"].items()) + ".")
+        L.append("")
+    L.append("## Models: training and inference time")
+    L.append("")
+    L.append("| model | training [s] | inference [µs/sample] | acc. identifiable (pool 1) | bal. acc. identifiable (pool 1) |")
+    L.append("|---|---:|---:|---:|---:|")
+    for name, t in r["timing"].items():
+        m = r["test"].get(name, r["test"]["network"])["1"]
+        L.append(f"| {name} | {t['train_s']:.2f} | {t['inference_us_per_sample']:.2f} | "
+                 f"{_fmt(m['accuracy_identifiable'])} | {_fmt(m['balanced_accuracy_identifiable'])} |")
+    L.append("")
+    for pool in r["confusion_pools"]:
+        cm = r["test"]["network"][pool]["confusion"]
+        L.append(f"## Confusion matrix (network, pool {pool}; rows truth, columns decision)")
+        L.append("")
+        L.append("| truth \\ decision | " + " | ".join(cls) + " |")
+        L.append("|---|" + "---:|" * len(cls))
+        for c, row in zip(cls, cm):
+            L.append(f"| {c} | " + " | ".join(str(v) for v in row) + " |")
+        L.append("")
+    L.append("## Where the outcome is indeterminate, and accuracy against motion magnitude (network)")
+    L.append("")
+    L.append("Magnitude: D in µm²/s (diffusion), v in µm/s (ballistic, flow). Truth static/decorrelated: "
+             "share of samples whose ground truth is indeterminate for that reason.")
+    L.append("")
+    for pool, rows in r["by_magnitude"].items():
+        L.append(f"### pool {pool}")
+        L.append("")
+        L.append("| class | magnitude | samples | truth static | truth decorrelated | decided indeterminate "
+                 "| coverage (identifiable) | accuracy (decided) |")
+        L.append("|---|---|---:|---:|---:|---:|---:|---:|")
+        for row in rows:
+            L.append(f"| {row['class']} | {row['low']:.2g}–{row['high']:.2g} | {row['samples']} | "
+                     f"{_fmt(row['truth_static'], 2)} | {_fmt(row['truth_decorrelated'], 2)} | "
+                     f"{_fmt(row['predicted_indeterminate'], 2)} | {_fmt(row['coverage'], 2)} | "
+                     f"{_fmt(row['accuracy_decided'], 2)} |")
+        L.append("")
+    if "by_condition" in r:
+        L.append("## Accuracy by acquisition condition (network, identifiable samples, pool 1)")
+        L.append("")
+        L.append("| condition | samples | coverage | accuracy (decided) | balanced accuracy (decided) |")
+        L.append("|---|---:|---:|---:|---:|")
+        for name, m in r["by_condition"].items():
+            L.append(f"| {name} | {m['identifiable_samples']} | {_fmt(m['coverage_identifiable'])} | "
+                     f"{_fmt(m['accuracy_identifiable'])} | {_fmt(m['balanced_accuracy_identifiable'])} |")
+        L.append("")
+    if "onnx_parity_max_abs_diff" in r:
+        L.append(f"ONNX (opset {r.get('onnx_opset')}) against torch on the test set: max |Δp| = "
+                 f"{r['onnx_parity_max_abs_diff']:.2e}.")
+        L.append("")
+    return "\n".join(L)
+
+
+def plot_report(report: dict[str, Any], path: str) -> None:
+    """Confusion matrices, accuracy and indeterminate share against magnitude, reliability diagram."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    r = report
+    cls = r["classes"]
+    pools = r["confusion_pools"]
+    fig, axes = plt.subplots(2, 3, figsize=(15, 9))
+    for ax, pool in zip(axes[0, :2], pools):
+        cm = np.array(r["test"]["network"][pool]["confusion"], dtype=float)
+        frac = cm / np.maximum(cm.sum(1, keepdims=True), 1)
+        ax.imshow(frac, cmap="Blues", vmin=0, vmax=1)
+        for i in range(len(cls)):
+            for j in range(len(cls)):
+                ax.text(j, i, f"{frac[i, j]:.2f}", ha="center", va="center",
+                        color="white" if frac[i, j] > 0.6 else "black", fontsize=8)
+        ax.set_xticks(range(len(cls)), cls, rotation=30, fontsize=8)
+        ax.set_yticks(range(len(cls)), cls, fontsize=8)
+        ax.set_xlabel("decision")
+        ax.set_ylabel("truth")
+        ax.set_title(f"confusion (row-normalised), pool {pool}")
+    ax = axes[0, 2]
+    for pool, style in zip(pools, ("-", "--")):
+        table = r["test"]["network"][pool]["reliability"]
+        if table:
+            c, a, _ = zip(*table)
+            ax.plot(c, a, "o" + style, label=f"pool {pool} (ECE {r['test']['network'][pool]['ece']:.3f})")
+    ax.plot([0, 1], [0, 1], "k:", lw=1)
+    ax.set_xlabel("top-class probability")
+    ax.set_ylabel("observed accuracy")
+    ax.set_title("reliability")
+    ax.legend(fontsize=8)
+    colors = {"diffusion": "C0", "ballistic": "C1", "flow": "C2"}
+    units = {"diffusion": "D [µm²/s]", "ballistic": "v [µm/s]", "flow": "v [µm/s]"}
+    for ax, c in zip(axes[1], cls[:-1]):
+        for pool, style in zip(pools, ("-", "--")):
+            rows = [row for row in r["by_magnitude"][pool] if row["class"] == c]
+            mid = [math.sqrt(row["low"] * row["high"]) for row in rows]
+            ax.plot(mid, [row["accuracy_decided"] for row in rows], "o" + style, color=colors.get(c, "k"),
+                    label=f"accuracy (decided), pool {pool}")
+            ax.plot(mid, [row["predicted_indeterminate"] for row in rows], "s" + style, color="grey",
+                    label=f"decided indeterminate, pool {pool}")
+        rows = [row for row in r["by_magnitude"][pools[0]] if row["class"] == c]
+        mid = [math.sqrt(row["low"] * row["high"]) for row in rows]
+        ax.fill_between(mid, 0, [row["truth_indeterminate"] for row in rows], color="red", alpha=0.15,
+                        label="truth indeterminate")
+        ax.set_xscale("log")
+        ax.set_ylim(0, 1.02)
+        ax.set_xlabel(units.get(c, "magnitude"))
+        ax.set_title(c)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"{r['spec']['name']}: test set")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_report(report: dict[str, Any], json_path, md_path, png_path) -> None:
+    """Write the three report files (each atomically; callers check overwriting first)."""
+    from ._files import atomic_write
+
+    def w_json(tmp: str) -> None:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(report, fh, indent=1, default=_json_default)
+
+    def w_md(tmp: str) -> None:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(format_markdown(report) + "\n")
+
+    atomic_write(json_path, w_json)
+    atomic_write(md_path, w_md)
+    atomic_write(png_path, lambda tmp: plot_report(report, tmp))
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

@@ -1,0 +1,390 @@
+"""Training: datasets → pooled samples → :class:`~classifier.model.MotionClassifier` → report.
+
+:func:`train` runs the whole recipe of the shipped model from a :class:`TrainConfig`:
+
+1. simulate (or load from the cache) the train, validation and test splits
+   (:func:`classifier.dataset.make_dataset`);
+2. targets: the motion type where the ground truth says the motion is identifiable, else
+   ``indeterminate`` (:mod:`classifier.rule`);
+3. pooled samples: a feature vector may be the mean over ``n`` independent pixels (``pool_pixels``
+   = n, the model's last input). Each epoch uses every single trial (n = 1) plus, per draw,
+   ``pooled_per_draw`` means over random subsets of its trials with n log-uniform in
+   [2, ``max_pool_pixels``]; the validation set is one fixed draw of the same mixture;
+4. AdamW on cross-entropy, minibatches shuffled by a seeded numpy generator, early stopping on the
+   validation loss (best weights kept);
+5. temperature scaling on the validation set (grid search of the NLL), stored in the model;
+6. scikit-learn baselines (logistic regression, histogram gradient boosting) on the same training
+   samples (singles + one pooled draw);
+7. evaluation on the test split at ``eval_pools`` pooled pixels (n = 1: every trial; n > 1: 16
+   random subsets per draw), the report of :mod:`classifier.report`.
+
+Everything is seeded from ``TrainConfig.seed``; the global torch RNG is not used (weights are
+initialised inside :func:`torch.random.fork_rng`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from . import __version__
+from .dataset import CLASSES, STATUS, Dataset, Prior, make_dataset
+from .features import FeatureSpec, load_spec
+from .model import LIV_OFFSET_DB2, MotionClassifier
+from .report import bootstrap_se, evaluate, magnitude_table
+from .rule import INDETERMINATE, make_rule
+
+__all__ = ["TrainConfig", "TrainResult", "train", "pooled_samples", "CLASS_NAMES", "transform_numpy"]
+
+#: Output classes of every model: the motion types, then ``indeterminate``.
+CLASS_NAMES = (*CLASSES, INDETERMINATE)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrainConfig:
+    """Recipe of a model. The defaults are the shipped model's (``doct-train`` without options).
+
+    ``draws_*``: parameter draws per split; ``trials_per_draw``: trials simulated per draw;
+    ``truncation_tolerance``: the simulator's PSF truncation (relative amplitude).
+    """
+
+    spec: str = "single-acquisition"
+    seed: int = 0
+    draws_train: int = 270
+    draws_validation: int = 45
+    draws_test: int = 90
+    trials_per_draw: int = 64
+    replicates: int = 8
+    truncation_tolerance: float = 1e-2
+    hidden: tuple[int, ...] = (64, 64)
+    max_epochs: int = 200
+    patience: int = 20
+    batch_size: int = 512
+    learning_rate: float = 3e-3
+    weight_decay: float = 1e-4
+    singles_per_group: int = 32
+    pooled_per_group: int = 16
+    max_pool_pixels: int = 48
+    min_probability: float = 0.5
+    eval_pools: tuple[int, ...] = (1, 4, 9, 25)
+    baselines: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
+        object.__setattr__(self, "eval_pools", tuple(int(n) for n in self.eval_pools))
+        for key in ("draws_train", "draws_validation", "draws_test", "trials_per_draw", "max_epochs",
+                    "batch_size", "singles_per_group", "pooled_per_group", "max_pool_pixels", "replicates"):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"TrainConfig.{key} must be a positive integer; got {v!r}")
+        for key in ("draws_train", "draws_validation", "draws_test"):
+            if getattr(self, key) < len(CLASSES):
+                raise ValueError(f"TrainConfig.{key} must be >= {len(CLASSES)} (one draw per motion type); "
+                                 f"got {getattr(self, key)}")
+        if self.max_pool_pixels > self.trials_per_draw:
+            raise ValueError(f"TrainConfig.max_pool_pixels ({self.max_pool_pixels}) must not exceed "
+                             f"trials_per_draw ({self.trials_per_draw})")
+        if any(n < 1 or n > self.trials_per_draw for n in self.eval_pools) or 1 not in self.eval_pools:
+            raise ValueError(f"TrainConfig.eval_pools must include 1 and lie in [1, trials_per_draw]; "
+                             f"got {self.eval_pools}")
+        if not 0.0 <= self.min_probability < 1.0:
+            raise ValueError(f"TrainConfig.min_probability must be in [0, 1); got {self.min_probability!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"TrainConfig.seed must be a non-negative integer; got {self.seed!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+@dataclass
+class TrainResult:
+    """The trained model (eval mode), its report and the test samples (for the ONNX parity check)."""
+
+    model: MotionClassifier
+    report: dict[str, Any]
+    spec: FeatureSpec
+    prior: Prior
+    config: TrainConfig
+    rule: dict[str, Any]
+    test_inputs: np.ndarray
+    datasets: dict[str, Dataset] = field(default_factory=dict)
+
+
+def transform_numpy(x: np.ndarray, liv_mask: np.ndarray) -> np.ndarray:
+    """The model's fixed transforms (step 1 of :mod:`classifier.model`) in numpy, for the baselines."""
+    out = np.array(x, dtype=np.float64)
+    out[:, liv_mask] = np.log(np.clip(out[:, liv_mask], 0.0, None) + LIV_OFFSET_DB2)
+    out[:, -1] = np.log(np.clip(out[:, -1], 1.0, None))
+    return out
+
+
+def _groups(ds: Dataset) -> list[np.ndarray]:
+    """Sample indices of every group (trials sharing all parameters; contiguous)."""
+    _, start, count = np.unique(ds.group, return_index=True, return_counts=True)
+    return [np.arange(s, s + c) for s, c in zip(start, count)]
+
+
+_TRUTH = ("y", "status", "magnitude", "density", "static_fraction", "snr_db", "draw", "group")
+
+
+def pooled_samples(ds: Dataset, sizes_per_group: list[np.ndarray], rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Means over random subsets of each group's trials (a group shares every parameter).
+
+    ``sizes_per_group[g]`` lists the subset sizes wanted from group ``g`` (in :func:`_groups` order;
+    capped at its number of trials). Returns inputs ``[M, F+1]`` (features + pool_pixels) and the
+    per-sample truth arrays.
+    """
+    xs, cols = [], {k: [] for k in _TRUTH}
+    for idx, sizes in zip(_groups(ds), sizes_per_group):
+        sizes = np.asarray(sizes, dtype=np.int64)
+        if sizes.size == 0:
+            continue
+        t = idx.size
+        if sizes.max() > t:
+            sizes = np.minimum(sizes, t)
+        perm = np.argsort(rng.random((sizes.size, t)), axis=1)
+        cs = np.cumsum(ds.x[idx][perm].astype(np.float64), axis=1)
+        mean = cs[np.arange(sizes.size), sizes - 1] / sizes[:, None]
+        xs.append(np.concatenate([mean, sizes[:, None].astype(np.float64)], axis=1))
+        for k in cols:
+            cols[k].append(np.repeat(getattr(ds, k)[idx[0]], sizes.size))
+    out = {k: np.concatenate(v) for k, v in cols.items()}
+    out["x"] = np.concatenate(xs).astype(np.float32)
+    return out
+
+
+def _singles(ds: Dataset, index: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    sel = slice(None) if index is None else index
+    x = ds.x[sel]
+    out = {k: getattr(ds, k)[sel] for k in _TRUTH}
+    out["x"] = np.concatenate([x, np.ones((len(x), 1), np.float32)], axis=1)
+    return out
+
+
+def _concat(*parts: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def _epoch_samples(ds: Dataset, cfg: TrainConfig, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Per group: ``singles_per_group`` random single trials and ``pooled_per_group`` pooled means
+    (n log-uniform in [2, max_pool_pixels])."""
+    groups = _groups(ds)
+    single_idx = np.concatenate([rng.choice(g, min(cfg.singles_per_group, g.size), replace=False) for g in groups])
+    singles = _singles(ds, np.sort(single_idx))
+    if cfg.max_pool_pixels < 2 or cfg.pooled_per_group == 0:
+        return singles
+    lo, hi = math.log(2.0), math.log(cfg.max_pool_pixels + 0.999)
+    sizes = [np.floor(np.exp(lo + rng.random(cfg.pooled_per_group) * (hi - lo))).astype(np.int64) for _ in groups]
+    return _concat(singles, pooled_samples(ds, sizes, rng))
+
+
+def _eval_samples(ds: Dataset, n: int, rng: np.random.Generator, per_group: int = 8) -> dict[str, np.ndarray]:
+    if n == 1:
+        return _singles(ds)
+    return pooled_samples(ds, [np.full(per_group, n) for _ in _groups(ds)], rng)
+
+
+def _targets(s: dict[str, np.ndarray]) -> np.ndarray:
+    return np.where(s["status"] == 0, s["y"], len(CLASS_NAMES) - 1)
+
+
+def _fit_temperature(logits: torch.Tensor, target: torch.Tensor) -> float:
+    """Temperature minimising the validation NLL on a log grid over [1/4, 4]."""
+    grid = np.exp(np.linspace(math.log(0.25), math.log(4.0), 241))
+    with torch.no_grad():
+        nll = [float(torch.nn.functional.cross_entropy(logits / float(t), target)) for t in grid]
+    return float(grid[int(np.argmin(nll))])
+
+
+def _timed_predict(fn, x: np.ndarray, repeats: int = 3) -> tuple[np.ndarray, float]:
+    best = math.inf
+    out = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn(x)
+        best = min(best, time.perf_counter() - t0)
+    return out, best / max(len(x), 1) * 1e6
+
+
+def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cache_dir=None, use_cache: bool = True,
+          progress: bool = False, log=print) -> TrainResult:
+    """Run the recipe of the module docstring; returns the model, the report and the test inputs."""
+    cfg = config or TrainConfig()
+    prior = prior or Prior()
+    spec = load_spec(cfg.spec)
+    rule = make_rule(prior.identifiability_epsilon, cfg.min_probability)
+    say = log or (lambda *a, **k: None)
+
+    # 1. data
+    t_sim = 0.0
+    n_sim_samples = 0
+    data: dict[str, Dataset] = {}
+    for split, draws in (("train", cfg.draws_train), ("validation", cfg.draws_validation), ("test", cfg.draws_test)):
+        ds = make_dataset(spec, prior, seed=cfg.seed, split=split, draws=draws, trials_per_draw=cfg.trials_per_draw,
+                          replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance, cache_dir=cache_dir, use_cache=use_cache,
+                          progress=progress)
+        data[split] = ds
+        t_sim += ds.meta["elapsed_s"]
+        n_sim_samples += draws * cfg.trials_per_draw
+        say(f"{split}: {len(ds)} samples from {draws} draws ({'cache' if ds.meta['from_cache'] else 'simulated'}, "
+            f"{ds.meta['seconds_per_draw']:.3f} s/draw); ground truth per draw: {ds.meta['draw_status_counts']}")
+
+    liv_cols = [i for i, (m, _) in enumerate(spec.features) if m == "liv"]
+    n_feat = spec.n_features
+    rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(7,)))
+    val = _epoch_samples(data["validation"], cfg, np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(8,))))
+    train0 = _epoch_samples(data["train"], cfg, rng)
+
+    # 4. network
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(cfg.seed)
+        model = MotionClassifier(n_feat, len(CLASS_NAMES), liv_cols, cfg.hidden)
+    model.set_normalization(torch.from_numpy(train0["x"]))
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
+    xv = torch.from_numpy(val["x"])
+    tv = torch.from_numpy(_targets(val))
+    best = (math.inf, None, 0)
+    t0 = time.perf_counter()
+    epoch = 0
+    samples = train0
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=cfg.max_epochs, unit="epoch", desc="train")
+    for epoch in range(1, cfg.max_epochs + 1):
+        if epoch > 1:
+            samples = _epoch_samples(data["train"], cfg, rng)
+        x = torch.from_numpy(samples["x"])
+        t = torch.from_numpy(_targets(samples))
+        order = torch.from_numpy(rng.permutation(len(t)))
+        model.train()
+        for b in range(0, len(order), cfg.batch_size):
+            sel = order[b:b + cfg.batch_size]
+            loss = torch.nn.functional.cross_entropy(model.logits(x[sel]), t[sel])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        model.eval()
+        with torch.no_grad():
+            vloss = float(torch.nn.functional.cross_entropy(model.logits(xv), tv))
+        if vloss < best[0] - 1e-5:
+            best = (vloss, {k: v.clone() for k, v in model.state_dict().items()}, epoch)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(val_loss=f"{vloss:.4f}", best=best[2])
+        if epoch - best[2] >= cfg.patience:
+            break
+    if bar is not None:
+        bar.close()
+    model.load_state_dict(best[1])
+    model.eval()
+    with torch.no_grad():
+        temperature = _fit_temperature(model.logits(xv), tv)
+        model.temperature.fill_(temperature)
+    train_s = time.perf_counter() - t0
+    say(f"network: {epoch} epochs (best {best[2]}, validation loss {best[0]:.4f}), temperature {temperature:.3f}, "
+        f"{train_s:.1f} s")
+
+    # 7. evaluation sets
+    ev_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))
+    tests = {str(n): _eval_samples(data["test"], n, ev_rng) for n in cfg.eval_pools}
+
+    def net_predict(xx: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return model(torch.from_numpy(xx)).numpy()
+
+    predictors: dict[str, Any] = {"network": net_predict}
+    timing = {"network": {"train_s": train_s}}
+
+    # 6. baselines
+    if cfg.baselines:
+        from sklearn.ensemble import HistGradientBoostingClassifier
+        from sklearn.linear_model import LogisticRegression
+        from sklearn.pipeline import make_pipeline
+        from sklearn.preprocessing import StandardScaler
+
+        mask = np.zeros(n_feat + 1, bool)
+        mask[liv_cols] = True
+        xb = transform_numpy(train0["x"], mask)
+        yb = _targets(train0)
+        for name, est in (("logistic_regression", make_pipeline(StandardScaler(), LogisticRegression(max_iter=2000))),
+                          ("gradient_boosting", HistGradientBoostingClassifier(max_iter=300, random_state=cfg.seed))):
+            t1 = time.perf_counter()
+            est.fit(xb, yb)
+            timing[name] = {"train_s": time.perf_counter() - t1}
+            predictors[name] = (lambda e: (lambda xx: e.predict_proba(transform_numpy(xx, mask))))(est)
+            say(f"{name}: trained in {timing[name]['train_s']:.2f} s")
+
+    test_metrics: dict[str, dict[str, Any]] = {}
+    probs_net: dict[str, np.ndarray] = {}
+    for name, fn in predictors.items():
+        test_metrics[name] = {}
+        for pool, s in tests.items():
+            if pool == "1":
+                p, us = _timed_predict(fn, s["x"])
+                timing[name]["inference_us_per_sample"] = us
+            else:
+                p = fn(s["x"])
+            if name == "network":
+                probs_net[pool] = p
+            test_metrics[name][pool] = evaluate(p, s["y"], s["status"], CLASS_NAMES, rule)
+
+    ranges = [prior.diffusion_um2_per_s, prior.speed_um_per_s, prior.speed_um_per_s]
+    conf_pools = [p for p in ("1", "25") if p in tests] or [str(cfg.eval_pools[0])]
+    by_mag = {pool: magnitude_table(probs_net[pool], tests[pool]["y"], tests[pool]["status"],
+                                    tests[pool]["magnitude"], CLASS_NAMES, rule, ranges) for pool in conf_pools}
+    s1 = tests["1"]
+    noisy = np.isfinite(s1["snr_db"])
+    mixed = s1["static_fraction"] > 0
+    conditions = {"no noise, no static": ~noisy & ~mixed, "no noise, static fraction": ~noisy & mixed,
+                  "noise, no static": noisy & ~mixed, "noise and static fraction": noisy & mixed}
+    by_cond = {name: evaluate(probs_net["1"][m], s1["y"][m], s1["status"][m], CLASS_NAMES, rule)
+               for name, m in conditions.items() if m.any()}
+    ses = {pool: bootstrap_se(probs_net[pool], tests[pool]["y"], tests[pool]["status"], tests[pool]["draw"],
+                              CLASS_NAMES, rule, seed=cfg.seed) for pool in conf_pools}
+    import torchdoct
+
+    report = {
+        "classifier_version": __version__,
+        "torchdoct_version": torchdoct.__version__,
+        "torch_version": torch.__version__,
+        "spec": spec.to_dict(),
+        "feature_names": list(spec.feature_names),
+        "classes": list(CLASS_NAMES),
+        "rule": rule,
+        "prior": prior.to_dict(),
+        "config": cfg.to_dict(),
+        "seed": cfg.seed,
+        "data": {
+            "draws": {k: v.meta["draws"] for k, v in data.items()},
+            "trials_per_draw": cfg.trials_per_draw,
+            "samples": {k: len(v) for k, v in data.items()},
+            "draw_status_counts": {k: v.meta["draw_status_counts"] for k, v in data.items()},
+            "dropped_empty": {k: v.meta["dropped_empty"] for k, v in data.items()},
+            "simulation_s": t_sim,
+            "replicates": cfg.replicates,
+            "ms_per_trial": t_sim / max(n_sim_samples, 1) * 1e3,
+            "s_per_draw": t_sim / max(sum(c for c in (cfg.draws_train, cfg.draws_validation, cfg.draws_test)), 1),
+            "from_cache": {k: v.meta["from_cache"] for k, v in data.items()},
+            "threads": torch.get_num_threads(),
+        },
+        "training": {"seconds": train_s, "epochs": epoch, "best_epoch": best[2], "validation_loss": best[0],
+                     "temperature": temperature},
+        "test": test_metrics,
+        "timing": timing,
+        "confusion_pools": conf_pools,
+        "standard_errors": ses,
+        "by_magnitude": by_mag,
+        "by_condition": by_cond,
+        "status_names": list(STATUS),
+    }
+    return TrainResult(model=model, report=report, spec=spec, prior=prior, config=cfg, rule=rule,
+                       test_inputs=tests["1"]["x"], datasets=data)

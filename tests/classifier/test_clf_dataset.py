@@ -1,0 +1,149 @@
+"""The labelled dataset: prior draws, ground-truth identifiability, field combination, cache."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchdoct as td
+from classifier.dataset import (CLASSES, Draw, Prior, combine_fields, draw_parameters, identifiability,
+                                make_dataset, scene_for, simulate_draw)
+from classifier.features import Configuration, FeatureSpec, load_spec
+
+TINY = FeatureSpec(name="tiny", configurations=(
+    Configuration(name="o", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8),))
+
+
+def _draw(label: int, magnitude: float, density: float = 0.06, nuisance=((0.0, math.nan),), polar: float = 45.0) -> Draw:
+    return Draw(label=label, magnitude=magnitude, polar_angle_deg=polar, azimuth_deg=0.0, density_per_um3=density,
+                sim_seed=11, nuisance=tuple(nuisance))
+
+
+def test_draws_are_stratified_reproducible_and_prefix_stable():
+    prior = Prior()
+    draws = [draw_parameters(prior, 3, "train", k, replicates=4) for k in range(60)]
+    assert [d.label for d in draws] == [k % 3 for k in range(60)]
+    again = draw_parameters(prior, 3, "train", 17, replicates=2)
+    assert again.magnitude == draws[17].magnitude and again.sim_seed == draws[17].sim_seed
+    assert again.nuisance == draws[17].nuisance[:2]  # replicate r does not depend on the number of replicates
+    other = draw_parameters(prior, 3, "test", 17)
+    assert other.sim_seed != draws[17].sim_seed and other.magnitude != draws[17].magnitude
+    for label, (lo, hi) in enumerate((prior.diffusion_um2_per_s, prior.speed_um_per_s, prior.speed_um_per_s)):
+        mags = np.array([d.magnitude for d in draws if d.label == label])
+        assert np.all((mags >= lo) & (mags <= hi))
+        q = np.sort((np.log(mags) - math.log(lo)) / (math.log(hi) - math.log(lo)))
+        # golden-ratio stratification: 20 points leave no gap wider than 2/20 of the log range
+        assert np.diff(np.concatenate([[q[-1] - 1], q])).max() < 0.1
+    for d in draws:
+        assert 0.02 <= d.density_per_um3 <= 0.1 and 0.0 <= d.polar_angle_deg <= 180.0
+        for f, snr in d.nuisance:
+            assert 0.0 <= f <= 0.8 and (math.isnan(snr) or 20.0 <= snr <= 40.0)
+
+
+def test_prior_validation_and_round_trip():
+    p = Prior()
+    assert Prior.from_dict(p.to_dict()) == p
+    with pytest.raises(ValueError, match="unknown"):
+        Prior.from_dict({"speed": [1, 2]})
+    with pytest.raises(ValueError, match="diffusion_um2_per_s"):
+        Prior(diffusion_um2_per_s=(0.0, 15.0))
+    with pytest.raises(ValueError, match="static_fraction"):
+        Prior(static_fraction=(0.0, 1.0))
+    with pytest.raises(ValueError, match="probability"):
+        Prior(noise_probability=1.5)
+
+
+def test_identifiability_regimes_follow_the_physics():
+    spec = load_spec("single-acquisition")
+    prior = Prior()
+    # flow decorrelates by transit only (|g1|^2 = j, physics.md §5.4): never 'decorrelated' in the prior's range
+    for v in np.geomspace(*prior.speed_um_per_s, 12):
+        s, g1sq, rho_last = identifiability(spec, _draw(2, v), prior)
+        assert s != "decorrelated"
+    assert identifiability(spec, _draw(2, 1e-3), prior)[0] == "static"
+    assert identifiability(spec, _draw(0, 15.0), prior)[0] == "decorrelated"
+    assert identifiability(spec, _draw(1, 6.0), prior)[0] == "decorrelated"
+    assert identifiability(spec, _draw(0, 1e-3), prior)[0] == "identifiable"
+    # monotone in the motion magnitude: static -> identifiable -> decorrelated, never back
+    for label, rng in ((0, prior.diffusion_um2_per_s), (1, prior.speed_um_per_s)):
+        order = {"static": 0, "identifiable": 1, "decorrelated": 2}
+        seq = [order[identifiability(spec, _draw(label, m), prior)[0]] for m in np.geomspace(*rng, 30)]
+        assert seq == sorted(seq)
+    # the status is exactly the stated criteria
+    eps = prior.identifiability_epsilon
+    for label, m in ((0, 0.04), (1, 0.9), (2, 0.09), (1, 0.004)):
+        s, g1sq, rho_last = identifiability(spec, _draw(label, m), prior)
+        assert (s == "static") == bool(np.all(rho_last >= 1 - eps))
+        assert (s == "decorrelated") == (not np.all(rho_last >= 1 - eps) and bool(np.all(g1sq <= eps)))
+        assert np.all((g1sq >= 0) & (g1sq <= 1)) and np.all(rho_last <= 1 + 1e-12)
+
+
+def test_combine_fields_intensity_and_noise_power():
+    gen = torch.Generator().manual_seed(5)
+    shape = (4000, 2, 8)
+    e_m = torch.complex(torch.randn(shape, generator=gen), torch.randn(shape, generator=gen)) * math.sqrt(0.5)
+    e_s = torch.complex(torch.randn(shape, generator=gen), torch.randn(shape, generator=gen)) * math.sqrt(0.5) * 1.3
+    assert torch.equal(combine_fields(e_m, None, 0.0, math.nan, [1.0, 1.0], gen), e_m)
+    f = 0.6
+    out = combine_fields(e_m, e_s, f, math.nan, [1.0, 1.0], gen)
+    a2 = f / (1 - f)
+    i = (out.real ** 2 + out.imag ** 2).double()
+    ref = (e_m.real ** 2 + e_m.imag ** 2).double().mean() + a2 * (e_s.real ** 2 + e_s.imag ** 2).double().mean()
+    se = float(i.mean(dim=(1, 2)).std() / math.sqrt(shape[0]))
+    assert abs(float(i.mean()) - float(ref)) <= 4 * se
+    # noise alone (zero moving field): power (1 + a^2)·<I>/10^(snr/10) per system, circular
+    zero = torch.zeros(shape, dtype=torch.complex64)
+    mean_i = [2.0, 0.5]
+    noise = combine_fields(zero, zero, f, 10.0, mean_i, gen)
+    p = (noise.real ** 2 + noise.imag ** 2).double()
+    for s_idx, m in enumerate(mean_i):
+        want = (1 + a2) * m / 10.0
+        got = p[:, s_idx].mean()
+        se = float(p[:, s_idx].std() / math.sqrt(p[:, s_idx].numel()))
+        assert abs(float(got) - want) <= 4 * se
+        assert abs(float((noise[:, s_idx].real ** 2 - noise[:, s_idx].imag ** 2).mean())) <= 4 * se
+    with pytest.raises(ValueError, match="static_fraction"):
+        combine_fields(e_m, e_s, 1.0, math.nan, [1.0, 1.0], gen)
+    with pytest.raises(ValueError, match="static scatterers"):
+        combine_fields(e_m, None, 0.5, math.nan, [1.0, 1.0], gen)
+
+
+def test_noise_matches_torchdoct_noise_model():
+    """A static sample with 10-dB noise: LIV from simulate_draw's noise equals torchdoct.Noise's (within SE)."""
+    prior = Prior()
+    draw = _draw(2, 1e-9, nuisance=((0.0, 10.0),))  # flow at 1e-9 µm/s: static for every purpose
+    x, zero = simulate_draw(TINY, draw, prior, trials=1024, truncation_tolerance=1e-2)
+    assert not zero.any()
+    liv_ours = x[0, :, 0].astype(np.float64)
+    scene = scene_for(TINY, draw, prior, "static").replace(noise=td.Noise(snr_db=10.0))
+    ref = td.simulate(scene, trials=1024, seed=99, truncation_tolerance=1e-2).metrics()["liv"][:, 0].double().numpy()
+    se = math.sqrt(liv_ours.var(ddof=1) / liv_ours.size + ref.var(ddof=1) / ref.size)
+    assert abs(liv_ours.mean() - ref.mean()) <= 4 * se
+
+
+def test_make_dataset_caches_by_key_and_is_reproducible(tmp_path):
+    kw = dict(seed=4, split="validation", draws=3, trials_per_draw=64, replicates=2, cache_dir=tmp_path)
+    a = make_dataset(TINY, **kw)
+    assert not a.meta["from_cache"] and len(a) == 3 * 2 * 64 - a.meta["dropped_empty"]
+    assert a.x.shape == (len(a), 2) and a.x.dtype == np.float32
+    assert set(np.unique(a.y)) == {0, 1, 2} and len(np.unique(a.group)) == 6
+    b = make_dataset(TINY, **kw)
+    assert b.meta["from_cache"]
+    for k, v in a.arrays().items():
+        np.testing.assert_array_equal(v, getattr(b, k))
+    c = make_dataset(TINY, **{**kw, "cache_dir": None}, use_cache=False)
+    np.testing.assert_array_equal(a.x, c.x)
+    d = make_dataset(TINY, **{**kw, "seed": 5})
+    assert not d.meta["from_cache"] and not np.array_equal(a.magnitude, d.magnitude)
+    assert len(list(tmp_path.iterdir())) == 2
+    with pytest.raises(ValueError, match="split"):
+        make_dataset(TINY, split="dev", draws=3, cache_dir=tmp_path)
+    with pytest.raises(ValueError, match="draws"):
+        make_dataset(TINY, draws=0, cache_dir=tmp_path)
+
+
+def test_classes_are_the_three_motion_types():
+    assert CLASSES == ("diffusion", "ballistic", "flow")

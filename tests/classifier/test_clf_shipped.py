@@ -1,0 +1,81 @@
+"""The shipped models: metadata, report, onnxruntime-vs-torch parity, and (slow) reproduction by doct-train."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from classifier.dataset import Prior, draw_parameters, simulate_draw
+from classifier.export import OPSET, model_from_onnx
+from classifier.features import load_spec
+from classifier.infer import DEFAULT_MODEL, load_model, shipped_models
+from classifier.rule import INDETERMINATE
+from classifier.train import CLASS_NAMES
+
+DATA = Path(__file__).resolve().parents[2] / "classifier" / "data"
+#: doct-train from scratch must give the shipped report's numbers within this many of the report's
+#: bootstrap standard errors (on this machine the run is bit-identical; elsewhere floating-point
+#: differences may change the trained weights slightly).
+REPRODUCTION_Z = 2.0
+
+
+@pytest.mark.parametrize("name", ["single-acquisition", "two-wavelength"])
+def test_shipped_model_metadata_and_report(name):
+    assert DEFAULT_MODEL == "single-acquisition" and name in shipped_models()
+    model = load_model(name, threads=1)
+    meta = model.metadata
+    spec = load_spec(name)
+    assert model.spec == spec
+    assert model.classes == list(CLASS_NAMES) and model.rule["indeterminate_class"] == INDETERMINATE
+    assert [c["name"] for c in model.columns] == [*spec.feature_names, "pool_pixels"]
+    assert [c.get("unit") for c in model.columns] == [*spec.feature_units, "pixels"]
+    assert meta["onnx_opset"] == OPSET == 17 and meta["prior"] == Prior().to_dict()
+    report = json.loads((DATA / f"{name}.json").read_text())
+    assert report["onnx_parity_max_abs_diff"] <= 1e-5
+    assert report["spec"] == spec.to_dict() and report["rule"] == model.rule
+    for pool, summary in meta["test_summary_by_pool"].items():
+        for key, value in summary.items():
+            assert report["test"]["network"][pool][key] == pytest.approx(value, rel=1e-12)
+
+
+def test_default_model_matches_torch_on_simulated_features():
+    """onnxruntime against the torch network rebuilt from the file's weights: max |Δp| <= 1e-5."""
+    spec = load_spec(DEFAULT_MODEL)
+    prior = Prior()
+    xs = []
+    for k in range(3):  # one draw of each motion type, two (static fraction, SNR) replicates
+        d = draw_parameters(prior, 123, "test", k, replicates=2)
+        x, zero = simulate_draw(spec, d, prior, trials=64, truncation_tolerance=1e-2)
+        xs.append(x.reshape(-1, spec.n_features)[~zero.reshape(-1)])
+    x = np.concatenate(xs)
+    inputs = np.concatenate([x, np.ones((len(x), 1), np.float32)], axis=1)
+    pooled = inputs.copy()
+    pooled[:, -1] = np.arange(len(x)) % 48 + 1
+    onnx_model = load_model(DEFAULT_MODEL, threads=1)
+    torch_model = model_from_onnx(shipped_models()[DEFAULT_MODEL])
+    for batch in (inputs, pooled):
+        with torch.no_grad():
+            p_torch = torch_model(torch.from_numpy(batch)).numpy()
+        assert float(np.abs(onnx_model.predict(batch) - p_torch).max()) <= 1e-5
+
+
+@pytest.mark.slow
+def test_doct_train_reproduces_the_shipped_model(tmp_path):
+    """``doct-train`` with its defaults, from scratch (no cache), gives the shipped report's accuracy.
+
+    About 5 minutes on one thread.
+    """
+    from classifier.cli import train_main
+
+    out = tmp_path / "model"
+    assert train_main(["--out", str(out), "--no-cache", "--no-progress"]) == 0
+    new = json.loads((out / "single-acquisition.json").read_text())
+    old = json.loads((DATA / "single-acquisition.json").read_text())
+    for pool in ("1", "25"):
+        for key in ("accuracy_identifiable", "balanced_accuracy_identifiable", "coverage_identifiable", "ece"):
+            tol = REPRODUCTION_Z * old["standard_errors"][pool][key]
+            assert abs(new["test"]["network"][pool][key] - old["test"]["network"][pool][key]) <= tol, (pool, key)

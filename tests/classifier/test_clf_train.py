@@ -1,0 +1,141 @@
+"""Training recipe, pooled samples, evaluation metrics and the indeterminate rule."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from classifier.cli import train_main
+from classifier.dataset import Dataset
+from classifier.export import onnx_parity
+from classifier.report import evaluate, expected_calibration_error
+from classifier.rule import INDETERMINATE, apply_rule, make_rule
+from classifier.train import CLASS_NAMES, TrainConfig, pooled_samples, train
+
+TINY_RECIPE = dict(spec="two-wavelength", draws_train=9, draws_validation=6, draws_test=6, replicates=2,
+                   max_epochs=4, singles_per_group=16, pooled_per_group=4)
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("clf-cache")
+
+
+def test_rule_decides_and_abstains():
+    rule = make_rule(0.05, 0.5)
+    names = list(CLASS_NAMES)
+    p = np.array([[0.7, 0.1, 0.1, 0.1],    # clear diffusion
+                  [0.4, 0.35, 0.2, 0.05],  # top < 0.5: low probability
+                  [0.1, 0.1, 0.1, 0.7],    # indeterminate class
+                  [0.2, 0.5, 0.2, 0.1]])   # exactly the threshold: decided
+    labels, reasons = apply_rule(p, names, rule)
+    assert labels.tolist() == [0, 3, 3, 1] and reasons.tolist() == [0, 2, 1, 0]
+    labels, _ = apply_rule(p, names, rule, min_probability=0.0)
+    assert labels.tolist() == [0, 0, 3, 1]
+    with pytest.raises(ValueError, match="kind"):
+        apply_rule(p, names, {**rule, "kind": "magic"})
+    with pytest.raises(ValueError, match=r"\[N, 4\]"):
+        apply_rule(p[:, :3], names, rule)
+    with pytest.raises(ValueError, match="min_probability"):
+        make_rule(0.05, 1.0)
+    assert rule["indeterminate_class"] == INDETERMINATE == names[-1]
+
+
+def test_ece_and_evaluate_on_constructed_cases():
+    # 10 samples at confidence 0.7 of which exactly 7 correct: perfectly calibrated, ECE = 0
+    p = np.tile([0.7, 0.1, 0.1, 0.1], (10, 1))
+    truth = np.array([0] * 7 + [1] * 3)
+    ece, table = expected_calibration_error(p, truth)
+    assert ece == pytest.approx(0.0, abs=1e-12) and table == [(pytest.approx(0.7), pytest.approx(0.7), 10)]
+    # always 0.9 confident, right half the time: ECE = 0.4
+    p2 = np.tile([0.9, 0.05, 0.03, 0.02], (10, 1))
+    assert expected_calibration_error(p2, np.array([0, 1] * 5))[0] == pytest.approx(0.4)
+    # evaluate: confusion counts, coverage and accuracies by hand
+    y = np.array([0, 0, 1, 2, 1, 2])
+    status = np.array([0, 0, 0, 0, 1, 2])  # last two: truth indeterminate
+    p3 = np.array([[0.9, 0.05, 0.03, 0.02], [0.3, 0.3, 0.2, 0.2], [0.1, 0.8, 0.05, 0.05],
+                   [0.6, 0.2, 0.1, 0.1], [0.05, 0.05, 0.1, 0.8], [0.7, 0.1, 0.1, 0.1]])
+    m = evaluate(p3, y, status, CLASS_NAMES, make_rule(0.05, 0.5))
+    assert np.array(m["confusion"]).sum() == 6
+    assert m["confusion"][0] == [1, 0, 0, 1] and m["confusion"][3] == [1, 0, 0, 1]
+    assert m["coverage_identifiable"] == pytest.approx(3 / 4)
+    assert m["accuracy_identifiable"] == pytest.approx(2 / 3)
+    assert m["strict_accuracy_identifiable"] == pytest.approx(2 / 4)
+    assert m["accuracy_all"] == pytest.approx(3 / 6)
+    assert m["indeterminate_reasons"] == {"decided": 4, "indeterminate class": 1, "low probability": 1}
+
+
+def _toy_dataset() -> Dataset:
+    rng = np.random.default_rng(0)
+    n = 3 * 10
+    return Dataset(x=rng.normal(size=(n, 2)).astype(np.float32), y=np.repeat([0, 1, 2], 10),
+                   draw=np.repeat([0, 1, 2], 10), group=np.repeat([0, 1, 2], 10), status=np.zeros(n, np.int64),
+                   magnitude=np.ones(n), density=np.ones(n), static_fraction=np.zeros(n), snr_db=np.full(n, np.nan))
+
+
+def test_pooled_samples_are_subset_means_of_one_group():
+    ds = _toy_dataset()
+    rng = np.random.default_rng(1)
+    out = pooled_samples(ds, [np.array([10, 1, 3]), np.array([10]), np.array([2, 2])], rng)
+    assert out["x"].shape == (6, 3)
+    np.testing.assert_allclose(out["x"][0, :2], ds.x[:10].mean(0), rtol=1e-5)  # the whole group
+    np.testing.assert_allclose(out["x"][3, :2], ds.x[10:20].mean(0), rtol=1e-5)
+    assert any(np.allclose(out["x"][1, :2], row) for row in ds.x[:10])  # n = 1: one of its trials
+    assert out["x"][:, -1].tolist() == [10, 1, 3, 10, 2, 2]
+    assert out["y"].tolist() == [0, 0, 0, 1, 2, 2]
+    # a size beyond the group is capped at the group
+    capped = pooled_samples(ds, [np.array([50]), np.array([]), np.array([])], rng)
+    assert capped["x"][0, -1] == 10
+
+
+def test_train_config_validation():
+    with pytest.raises(ValueError, match="max_pool_pixels"):
+        TrainConfig(max_pool_pixels=100, trials_per_draw=64)
+    with pytest.raises(ValueError, match="draws_test"):
+        TrainConfig(draws_test=2)
+    with pytest.raises(ValueError, match="eval_pools"):
+        TrainConfig(eval_pools=(4, 9))
+
+
+def test_tiny_training_is_reproducible_and_exports_with_parity(cache_dir, tmp_path):
+    cfg = TrainConfig(**TINY_RECIPE)
+    a = train(cfg, cache_dir=cache_dir, log=None)
+    b = train(cfg, cache_dir=cache_dir, log=None)
+    assert all(b.datasets[k].meta["from_cache"] for k in b.datasets)
+    for k, v in a.model.state_dict().items():
+        assert torch.equal(v, b.model.state_dict()[k]), k
+    assert a.report["test"]["network"]["1"] == b.report["test"]["network"]["1"]
+    rep = a.report
+    assert rep["classes"] == list(CLASS_NAMES)
+    for name in ("network", "logistic_regression", "gradient_boosting"):
+        for pool in ("1", "4", "9", "25"):
+            m = rep["test"][name][pool]
+            for key in ("accuracy_all", "balanced_accuracy_all", "coverage_identifiable", "ece"):
+                assert 0.0 <= m[key] <= 1.0
+        assert rep["timing"][name]["train_s"] >= 0 and rep["timing"][name]["inference_us_per_sample"] > 0
+    assert {row["class"] for row in rep["by_magnitude"]["1"]} <= set(CLASS_NAMES[:3])
+    # doct-train: files, ONNX parity on the test set, refusal to overwrite
+    out = tmp_path / "model"
+    argv = ["--out", str(out), "--spec", "two-wavelength", "--draws-train", "9", "--draws-validation", "6",
+            "--draws-test", "6", "--replicates", "2", "--max-epochs", "4", "--cache", str(cache_dir), "--no-progress"]
+    assert train_main(argv) == 0
+    report = json.loads((out / "two-wavelength.json").read_text())
+    assert report["onnx_parity_max_abs_diff"] <= 1e-5 and report["onnx_opset"] == 17
+    assert (out / "two-wavelength.md").read_text().startswith("# Motion-type classifier report")
+    assert (out / "two-wavelength.png").stat().st_size > 0
+    assert train_main(argv) == 2  # exists, no --force
+    assert train_main([*argv, "--force"]) == 0
+    assert train_main(["--out", str(out), "--spec", "nope"]) == 2
+
+
+def test_parity_on_the_test_split(cache_dir, tmp_path):
+    """onnxruntime against torch on every test-set input of a trained model: max |Δp| <= 1e-5."""
+    from classifier.export import build_metadata, export_onnx
+
+    res = train(TrainConfig(**TINY_RECIPE), cache_dir=cache_dir, log=None)
+    path = tmp_path / "m.onnx"
+    export_onnx(res.model, build_metadata(res), path)
+    assert onnx_parity(res.model, path, res.test_inputs) <= 1e-5
