@@ -57,7 +57,7 @@ fraction is the static scatterers' share of the mean intensity.
 split, the numbers of draws, replicates and trials, the PSF truncation, the ground-truth definition
 and the torchdoct version, and is reused when the key matches.
 
-**Cost** (this machine, one thread, single-acquisition spec): about 0.53 s per draw, i.e. 8 ms per
+**Cost** (a 2-core machine, one thread, single-acquisition spec): about 0.53 s per draw, i.e. 8 ms per
 simulated trial of the three systems, 1 ms per feature vector after the 8 replicates; the
 two-wavelength spec costs about a tenth of that (:attr:`Dataset.meta` records it per split).
 """
