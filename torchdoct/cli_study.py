@@ -1,0 +1,119 @@
+"""Command line: ``torchdoct sweep``, ``torchdoct study`` and ``torchdoct bench study``.
+
+Registered by :mod:`torchdoct.cli` through :func:`register`. Each handler parses, calls one library
+function (:mod:`torchdoct.sweep`, :mod:`torchdoct.study`) and prints.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+__all__ = ["register"]
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", required=True, help="output directory (created if its parent exists)")
+    p.add_argument("--trials", type=int, default=None, help="trials per cell (default: the file's)")
+    p.add_argument("--seed", type=int, default=None, help="base seed; each cell derives its own (default: the file's)")
+    p.add_argument("--cache", default=None,
+                   help="cache directory of finished cells (default: OUT/cache); reruns resume from it")
+    p.add_argument("--no-cache", action="store_true", help="do not read or write the cell cache")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the cells on an existing Dask distributed cluster (e.g. tcp://host:8786)")
+    p.add_argument("--batch-cells", type=int, default=1, help="cells per task (results do not depend on it)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="local worker processes, one torch thread each (default: the number of CPU cores; "
+                        "1 runs the cells in this process with its torch threads)")
+    p.add_argument("--force", action="store_true", help="overwrite output files that exist")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def register(sub, bench_sub) -> None:
+    """Add ``sweep``, ``study`` and ``bench study`` to the torchdoct command line."""
+    sw = sub.add_parser("sweep", help="run a scene file's [sweep] grid; write a tidy table (CSV, Parquet)")
+    sw.add_argument("scene", help="TOML scene file with a [sweep] table")
+    _add_run_options(sw)
+    sw.add_argument("--dtype", choices=("float32", "float64"), default=None)
+    sw.add_argument("--tolerance", type=float, default=None, help="PSF truncation tolerance (amplitude)")
+    sw.set_defaults(func=_sweep)
+
+    st = sub.add_parser("study", help="run a study (e.g. 'paper'): table, Figs. 6-8, claims report")
+    st.add_argument("study", help="study TOML file or shipped study name (paper, paper-reduced)")
+    _add_run_options(st)
+    st.set_defaults(func=_study)
+
+    bs = bench_sub.add_parser("study", help="wall time of a whole study from an empty cache")
+    bs.add_argument("--study", default="paper-reduced", help="study file or shipped name (default paper-reduced)")
+    bs.add_argument("--trials", type=int, default=None, help="trials per point (default: the study's)")
+    bs.add_argument("--groupings", action="store_true",
+                    help="also time cells with all systems in one scene vs the comparisons' pairs")
+    bs.add_argument("--grouping-trials", type=int, default=128, help="trials per timed cell for --groupings")
+    bs.add_argument("--study-out", default=None, metavar="DIR",
+                    help="keep the study's table, figures and report in DIR (default: a temporary directory)")
+    bs.add_argument("--out", default="bench-study.json", help="JSON output file")
+    bs.add_argument("--force", action="store_true", help="overwrite --out (and --study-out files) if they exist")
+    bs.add_argument("--workers", type=int, default=None,
+                    help="local worker processes (default: the number of CPU cores)")
+    bs.add_argument("--no-progress", action="store_true", help="no progress bar")
+    bs.set_defaults(func=_bench_study)
+
+
+def _workers(args) -> int:
+    import os
+
+    return args.workers if args.workers is not None else max(1, os.cpu_count() or 1)
+
+
+def _cache(args) -> object:
+    if args.no_cache:
+        return None
+    return args.cache if args.cache is not None else Path(args.out) / "cache"
+
+
+def _sweep(args) -> int:
+    from .sweep import format_table, load_sweep, prepare_out_dir, run_sweep, sweep_outputs, write_sweep_outputs
+
+    sweep = load_sweep(args.scene)
+    prepare_out_dir(args.out, sweep_outputs(args.out), args.force)
+    res = run_sweep(sweep, trials=args.trials, seed=args.seed, dtype=args.dtype, tolerance=args.tolerance,
+                    cache_dir=_cache(args), scheduler=args.scheduler, batch_cells=args.batch_cells,
+                    workers=_workers(args), progress=not args.no_progress, desc=f"sweep {sweep.name}")
+    files = write_sweep_outputs(res, args.out, force=args.force)
+    print(f"sweep {sweep.name!r}: {len(res.cells)} cells ({res.computed} computed, {res.cached} from the cache), "
+          f"{res.system_trials} system-trials, {res.elapsed_s:.1f} s")
+    print(format_table(res.table()))
+    for f in files:
+        print(f"wrote {f}")
+    return 0
+
+
+def _study(args) -> int:
+    from .study import run_study
+
+    r = run_study(args.study, args.out, trials=args.trials, seed=args.seed,
+                  cache_dir=None if args.no_cache else (args.cache if args.cache is not None else "default"),
+                  scheduler=args.scheduler, batch_cells=args.batch_cells, workers=_workers(args), force=args.force,
+                  progress=not args.no_progress)
+    sr = r.sweep_result
+    print(f"study {r.study.name!r}: {len(sr.cells)} cells ({sr.computed} computed, {sr.cached} from the cache), "
+          f"{sr.system_trials} system-trials; simulation {r.timings['simulate_s']:.1f} s, "
+          f"total {r.timings['total_s']:.1f} s")
+    for f in r.files:
+        print(f"wrote {f}")
+    return 0
+
+
+def _bench_study(args) -> int:
+    from ._files import atomic_write, check_out
+    from .study import bench_study, format_bench_study
+
+    out = check_out(args.out, args.force, ".json")
+    res = bench_study(args.study, trials=args.trials, groupings=args.groupings, grouping_trials=args.grouping_trials,
+                      study_out=args.study_out, force=args.force, workers=_workers(args),
+                      progress=not args.no_progress)
+    print(format_bench_study(res))
+    atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2), encoding="utf-8"))
+    print(f"wrote {out}")
+    return 0

@@ -1,0 +1,897 @@
+"""Sweeps: run a scene over a grid of field values, cache every cell, gather one tidy table.
+
+A sweep is a scene (the scene-file schema of the README) plus a ``[sweep]`` table that varies any of
+its fields. Each combination of values is a *cell*; a cell is one :func:`torchdoct.simulate` run of
+all the scene's systems (so the systems of a cell see the same scatterers and compare pairwise).
+
+Schema of the ``[sweep]`` table::
+
+    [sweep]
+    name = "diffusion"          # optional, default: the scene's name
+    mode = "product"            # or "zip": the i-th values of every field together
+
+    [[sweep.field]]             # one or more
+    path = "population.0.motion.0.diffusion_um2_per_s"   # key path into the scene file
+    name = "D_um2_per_s"        # optional table column, default: the last key (the path if taken)
+    values = [0.0]              # explicit values (any TOML value), and/or
+    log = { start = 0.001, stop = 1.0, num = 19 }        # geometric spacing (start, stop > 0)
+    linear = { start = 1.5, stop = 15.0, num = 10 }      # even spacing
+
+A field takes explicit ``values`` in their given order, or a generated ``linear``/``log`` sequence; a
+field that gives more than one of the three takes the sorted union (numbers only). Generated values
+are rounded to 12 significant digits so that cell keys (and seeds) do not depend on the numpy version.
+Paths index arrays of tables by position (``system.1.axial_resolution_um``); a missing table on the
+path is created (``noise.snr_db`` without a ``[noise]`` table), and every cell is validated with
+:func:`torchdoct.config.scene_from_dict` before anything runs. ``simulation.trials`` and
+``simulation.seed`` set the run of every cell and cannot be swept.
+
+Seeds, cache and reproducibility:
+
+* **cell key**: the canonical JSON of the cell's ``{path: value}`` assignments.
+* **cell seed**: derived from (base seed, cell key) by SHA-256 (:func:`cell_seed`); it does not
+  depend on the cell's position in the grid, on how cells are batched, on which cells run in the
+  same call, or on the executor, so a sweep can be split, extended, resumed or spread over a Dask
+  cluster and every cell gives the same numbers.
+* **cache**: a finished cell is stored under a hash of its resolved scene (every field, defaults
+  included, except ``name``/``description``), seed, trials, dtype, PSF tolerance and the torchdoct
+  version (:func:`cache_key`); a rerun loads it instead of simulating, and a changed scene
+  recomputes only the cells whose resolved scene changed.
+
+The tidy table has one row per cell × system × scalar metric (``liv`` dB², ``ocds`` 1/s,
+``complex_variance``): mean, SD (ddof 1), standard error, the number of finite trials ``n``, the
+number of trials with an empty resolution volume ``empty`` (NaN dB metrics, see
+:mod:`torchdoct.metrics`), the trials and the seed of the cell (:func:`results_table`; the
+statistics are those of :func:`torchdoct.metrics.summarize`).
+
+Executors (:func:`run_sweeps`): this process (``workers = 1``, the library default), ``workers`` local
+processes with one torch thread each (the command line's default is one per CPU core: on a shared
+machine, single-threaded processes are far less sensitive to other load than one process with
+several torch threads), or an existing Dask distributed cluster (``scheduler = "tcp://host:8786"``),
+cells as tasks whose results come back to this process, which writes the cache and the table.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+
+from .config import Scene, SceneError, scene_from_dict
+
+__all__ = [
+    "SCALAR_METRICS",
+    "SweepField",
+    "Cell",
+    "Sweep",
+    "CellResult",
+    "SweepResult",
+    "field_values",
+    "make_sweep",
+    "parse_sweep",
+    "load_sweep",
+    "cell_seed",
+    "cache_key",
+    "run_cell",
+    "run_sweeps",
+    "run_sweep",
+    "results_table",
+    "write_table",
+    "write_sweep_outputs",
+    "sweep_outputs",
+    "prepare_out_dir",
+    "format_table",
+]
+
+#: Metrics with one number per trial and system, and their units: the rows of the table.
+SCALAR_METRICS = {"liv": "dB^2", "ocds": "1/s", "complex_variance": "linear intensity"}
+#: Columns of the table that a sweep field or tag may not take as its name.
+RESERVED_COLUMNS = ("sweep", "cell", "system", "wavelength_um", "lateral_resolution_um",
+                    "axial_resolution_um", "refractive_index", "metric", "unit", "mean", "sd", "se", "n",
+                    "empty", "trials", "seed", "cache_key")
+#: Bump when the cached content changes meaning; part of every cache key.
+CACHE_FORMAT = 1
+_ARRAY_TABLES = ("system", "population")
+_SIG_DIGITS = 12
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
+
+
+def _fail(where: str, msg: str, fix: str | None = None) -> None:
+    text = f"{where}: {msg}"
+    if fix:
+        text += f" (fix: {fix})"
+    raise SceneError(text)
+
+
+def _canonical(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False)
+
+
+# ----------------------------------------------------------------------------------------------
+# values of one field
+
+
+def _round(v: float) -> float:
+    return float(f"{v:.{_SIG_DIGITS}g}")
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _range_spec(where: str, spec: Any, kind: str) -> list[float]:
+    example = "{ start = 0.001, stop = 15.0, num = 31 }" if kind == "log" else "{ start = 0.0, stop = 15.0, num = 31 }"
+    if not isinstance(spec, dict):
+        raise TypeError(f"{where}.{kind} must be a table {example}; got {spec!r}")
+    unknown = sorted(set(spec) - {"start", "stop", "num"})
+    missing = sorted({"start", "stop", "num"} - set(spec))
+    if unknown or missing:
+        _fail(f"{where}.{kind}", f"needs exactly the keys start, stop, num; "
+              f"{'unknown ' + str(unknown) if unknown else 'missing ' + str(missing)}", f"write {kind} = {example}")
+    start, stop, num = spec["start"], spec["stop"], spec["num"]
+    for key, v in (("start", start), ("stop", stop)):
+        if not _is_number(v):
+            raise TypeError(f"{where}.{kind}.{key} must be a number; got {v!r}")
+        if not math.isfinite(v):
+            _fail(f"{where}.{kind}.{key}", f"must be finite; got {v!r}")
+    if isinstance(num, bool) or not isinstance(num, int):
+        raise TypeError(f"{where}.{kind}.num must be an integer; got {num!r}")
+    if num < 1:
+        _fail(f"{where}.{kind}.num", f"must be >= 1; got {num}")
+    if kind == "log":
+        if start <= 0 or stop <= 0:
+            _fail(f"{where}.log", f"start and stop must be > 0; got start = {start}, stop = {stop}",
+                  "add 0 with values = [0.0] and start the log range above 0")
+        vals = np.geomspace(float(start), float(stop), num) if num > 1 else np.array([float(start)])
+    else:
+        vals = np.linspace(float(start), float(stop), num) if num > 1 else np.array([float(start)])
+    return [_round(float(v)) for v in vals]
+
+
+def field_values(spec: dict[str, Any], where: str = "sweep.field") -> tuple[Any, ...]:
+    """Values of one sweep field from its ``values`` / ``linear`` / ``log`` keys (module docstring)."""
+    sources = [k for k in ("values", "linear", "log") if k in spec]
+    if not sources:
+        _fail(where, "gives no values", "add values = [...], linear = {start, stop, num} or log = {start, stop, num}")
+    out: list[Any] = []
+    if "values" in spec:
+        vals = spec["values"]
+        if not isinstance(vals, list) or not vals:
+            raise TypeError(f"{where}.values must be a non-empty array; got {vals!r}")
+        for i, v in enumerate(vals):
+            if isinstance(v, float) and not math.isfinite(v):
+                _fail(f"{where}.values[{i}]", f"must be finite; got {v!r}")
+        out.extend(vals)
+    for kind in ("linear", "log"):
+        if kind in spec:
+            out.extend(_range_spec(where, spec[kind], kind))
+    if len(sources) > 1:
+        bad = [v for v in out if not _is_number(v)]
+        if bad:
+            _fail(where, f"combines {', '.join(sources)} but has non-numeric values {bad[:3]}",
+                  "give non-numeric values alone in values = [...]")
+        uniq: list[float] = []
+        for v in sorted(out):
+            if not uniq or not math.isclose(v, uniq[-1], rel_tol=1e-12, abs_tol=0.0):
+                uniq.append(v)
+        out = uniq
+    return tuple(out)
+
+
+# ----------------------------------------------------------------------------------------------
+# paths into the scene dict
+
+
+def _split_path(path: str, where: str) -> list[str]:
+    if not isinstance(path, str) or not path.strip():
+        raise TypeError(f"{where}.path must be a dotted key path such as "
+                        f"'population.0.motion.0.diffusion_um2_per_s'; got {path!r}")
+    parts = path.split(".")
+    if any(not p for p in parts):
+        _fail(f"{where}.path", f"{path!r} has an empty segment", "separate keys by single dots")
+    return parts
+
+
+def _normalize_arrays(data: dict[str, Any]) -> dict[str, Any]:
+    """Turn single-table ``[system]``/``[population]``/``[population.motion]`` into one-element arrays."""
+    for key in _ARRAY_TABLES:
+        if isinstance(data.get(key), dict):
+            data[key] = [data[key]]
+    for pop in data.get("population", []) if isinstance(data.get("population"), list) else []:
+        if isinstance(pop, dict) and isinstance(pop.get("motion"), dict):
+            pop["motion"] = [pop["motion"]]
+    return data
+
+
+def _set_path(data: dict[str, Any], parts: list[str], value: Any, where: str) -> None:
+    """Set ``data[p0][p1]...`` = value; arrays by index, missing tables created."""
+    node: Any = data
+    path = ".".join(parts)
+    for depth, key in enumerate(parts):
+        last = depth == len(parts) - 1
+        here = ".".join(parts[:depth]) or "the scene"
+        if isinstance(node, list):
+            if not key.isdigit():
+                _fail(f"{where}.path", f"{path!r}: {here} is an array; {key!r} is not an index",
+                      f"use a position 0..{len(node) - 1}, e.g. {'.'.join(parts[:depth] + ['0'] + parts[depth + 1:])!r}")
+            i = int(key)
+            if i >= len(node):
+                _fail(f"{where}.path", f"{path!r}: {here} has {len(node)} entr{'y' if len(node) == 1 else 'ies'} "
+                      f"(indices 0..{len(node) - 1}); index {i} is out of range",
+                      f"add the entry to the scene or use an index below {len(node)}")
+            if last:
+                node[i] = copy.deepcopy(value)
+            else:
+                node = node[i]
+        elif isinstance(node, dict):
+            if last:
+                node[key] = copy.deepcopy(value)
+            else:
+                if key not in node:
+                    node[key] = {}
+                node = node[key]
+        else:
+            _fail(f"{where}.path", f"{path!r}: {here} is a value ({node!r}), not a table or array",
+                  "point the path at a key inside a table")
+
+
+# ----------------------------------------------------------------------------------------------
+# sweeps and cells
+
+
+def _norm_value(v: Any) -> Any:
+    """Value as it enters a cell key: integers as floats (so 0 and 0.0 are one cell), recursively."""
+    if _is_number(v):
+        return float(v)
+    if isinstance(v, list):
+        return [_norm_value(x) for x in v]
+    if isinstance(v, tuple):
+        return [_norm_value(x) for x in v]
+    if isinstance(v, dict):
+        return {str(k): _norm_value(x) for k, x in v.items()}
+    return v
+
+
+@dataclass(frozen=True)
+class SweepField:
+    """One swept field: the key ``path`` into the scene file, its table column ``name``, its values."""
+
+    path: str
+    name: str
+    values: tuple[Any, ...]
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One point of a sweep: its assignments ``(path, value)``, validated scene and key."""
+
+    sweep: str
+    index: int
+    assignments: tuple[tuple[str, Any], ...]
+    names: tuple[str, ...]
+    scene: Scene
+    key: str
+
+    @property
+    def values(self) -> dict[str, Any]:
+        """Column name -> value."""
+        return {n: v for n, (_, v) in zip(self.names, self.assignments)}
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """A base scene and the fields it varies (see the module docstring)."""
+
+    name: str
+    scene_data: dict[str, Any]
+    scene: Scene
+    fields: tuple[SweepField, ...]
+    mode: str = "product"
+    tags: tuple[tuple[str, str], ...] = ()
+    cells: tuple[Cell, ...] = field(default=(), repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The resolved sweep: base scene (defaults filled in), fields with their values, tags."""
+        return {"name": self.name, "mode": self.mode, "tags": dict(self.tags),
+                "fields": [{"path": f.path, "name": f.name, "values": list(f.values)} for f in self.fields],
+                "scene": self.scene.to_dict()}
+
+
+def cell_key(assignments: Iterable[tuple[str, Any]]) -> str:
+    """Canonical JSON of a cell's ``{path: value}`` (sorted paths, integers as floats)."""
+    return _canonical({p: _norm_value(v) for p, v in sorted(assignments)})
+
+
+def make_sweep(scene_data: dict[str, Any], fields: Sequence[dict[str, Any]], *, mode: str = "product",
+               name: str | None = None, tags: dict[str, str] | None = None, where: str = "sweep") -> Sweep:
+    """Build and validate a :class:`Sweep` from a scene dict (file schema) and field specs.
+
+    Every field spec is a dict with ``path``, optional ``name`` and ``values``/``linear``/``log``.
+    Every cell's scene is validated here; an error names the field, the cell and the fix.
+    """
+    base = _normalize_arrays(copy.deepcopy(scene_data))
+    try:
+        base_scene = scene_from_dict(base)
+    except (SceneError, TypeError) as err:
+        raise type(err)(f"scene (without [sweep]): {err}") from None
+    if mode not in ("product", "zip"):
+        _fail(f"{where}.mode", f"must be 'product' or 'zip'; got {mode!r}")
+    if not isinstance(fields, (list, tuple)) or not fields:
+        _fail(f"{where}.field", "a sweep needs at least one [[sweep.field]]",
+              'add [[sweep.field]] with path = "..." and values = [...]')
+    name = name if name is not None else (base_scene.name or "sweep")
+    if not isinstance(name, str) or not name:
+        raise TypeError(f"{where}.name must be a non-empty string; got {name!r}")
+    tags = dict(tags or {})
+    parsed: list[SweepField] = []
+    paths: list[list[str]] = []
+    for i, spec in enumerate(fields):
+        fw = f"{where}.field[{i}]"
+        if not isinstance(spec, dict):
+            raise TypeError(f"{fw} must be a table; got {spec!r}")
+        unknown = sorted(set(spec) - {"path", "name", "values", "linear", "log"})
+        if unknown:
+            _fail(fw, f"unknown key(s) {unknown}", "allowed keys are path, name, values, linear, log")
+        if "path" not in spec:
+            _fail(fw, "missing key 'path'", 'e.g. path = "population.0.motion.0.diffusion_um2_per_s"')
+        parts = _split_path(spec["path"], fw)
+        if parts[0] == "sweep":
+            _fail(f"{fw}.path", "a sweep cannot sweep itself", "point the path into the scene")
+        if parts[0] == "simulation" and len(parts) > 1 and parts[1] in ("trials", "seed"):
+            _fail(f"{fw}.path", f"{spec['path']!r}: trials and seed are set for the whole sweep (each cell "
+                  "derives its own seed from the base seed)", "use --trials / --seed instead of sweeping them")
+        col = spec.get("name", parts[-1])
+        if "name" not in spec and (col in RESERVED_COLUMNS or col in tags or col in [f.name for f in parsed]):
+            col = spec["path"]  # the last key is taken: the whole path names the column
+        if not isinstance(col, str) or not col:
+            raise TypeError(f"{fw}.name must be a non-empty string; got {col!r}")
+        if col in RESERVED_COLUMNS or col in tags:
+            _fail(f"{fw}.name", f"{col!r} is a column of the table already", "give the field another name")
+        if col in [f.name for f in parsed]:
+            _fail(f"{fw}.name", f"two fields are named {col!r}", "set name = \"...\" on one of them")
+        if spec["path"] in [f.path for f in parsed]:
+            _fail(f"{fw}.path", f"{spec['path']!r} is swept twice", "sweep each path once")
+        parsed.append(SweepField(path=spec["path"], name=col, values=field_values(spec, fw)))
+        paths.append(parts)
+    for k, v in tags.items():
+        if not isinstance(k, str) or not isinstance(v, str):
+            raise TypeError(f"{where}: tags must map strings to strings; got {k!r}: {v!r}")
+        if k in RESERVED_COLUMNS:
+            _fail(f"{where}.tags", f"{k!r} is a column of the table already", "rename the tag")
+    if mode == "zip":
+        lengths = {f.name: len(f.values) for f in parsed}
+        if len(set(lengths.values())) > 1:
+            _fail(f"{where}.mode", f"zip needs fields of equal length; got {lengths}",
+                  "give every field the same number of values or use mode = \"product\"")
+        combos = list(zip(*[f.values for f in parsed]))
+    else:
+        import itertools
+
+        combos = list(itertools.product(*[f.values for f in parsed]))
+    cells: list[Cell] = []
+    seen: dict[str, int] = {}
+    for idx, combo in enumerate(combos):
+        data = copy.deepcopy(base)
+        assignments = []
+        for f, parts, value in zip(parsed, paths, combo):
+            _set_path(data, parts, value, f"{where}.field[{parsed.index(f)}]")
+            assignments.append((f.path, value))
+        desc = ", ".join(f"{p} = {v!r}" for p, v in assignments)
+        try:
+            scene = scene_from_dict(data)
+        except (SceneError, TypeError) as err:
+            raise type(err)(f"{where} cell {idx} ({desc}): {err}") from None
+        key = cell_key(assignments)
+        if key in seen:
+            _fail(where, f"cells {seen[key]} and {idx} are the same ({desc})", "remove the duplicate values")
+        seen[key] = idx
+        cells.append(Cell(sweep=name, index=idx, assignments=tuple(assignments),
+                          names=tuple(f.name for f in parsed), scene=scene, key=key))
+    return Sweep(name=name, scene_data=base, scene=base_scene, fields=tuple(parsed), mode=mode,
+                 tags=tuple(tags.items()), cells=tuple(cells))
+
+
+def parse_sweep(data: dict[str, Any], *, source: str = "scene") -> Sweep:
+    """A :class:`Sweep` from a scene-file dict with a ``[sweep]`` table (module docstring)."""
+    if not isinstance(data, dict):
+        raise TypeError(f"{source}: a sweep file must be a table; got {type(data).__name__}")
+    if "sweep" not in data:
+        _fail(source, "has no [sweep] table", "add [sweep] and [[sweep.field]] tables (see the README)")
+    data = copy.deepcopy(data)
+    spec = data.pop("sweep")
+    if not isinstance(spec, dict):
+        raise TypeError(f"{source}: sweep must be a table; got {spec!r}")
+    unknown = sorted(set(spec) - {"name", "mode", "field"})
+    if unknown:
+        _fail(f"{source}: sweep", f"unknown key(s) {unknown}", "allowed keys are name, mode, field")
+    fields = spec.get("field", [])
+    if isinstance(fields, dict):
+        fields = [fields]
+    return make_sweep(data, fields, mode=spec.get("mode", "product"), name=spec.get("name"))
+
+
+def load_sweep(path: str | os.PathLike) -> Sweep:
+    """Read a TOML scene file with a ``[sweep]`` table."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"sweep file {str(path)!r} not found; give the path of a .toml scene file "
+                                "with a [sweep] table")
+    try:
+        with open(p, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as err:
+        raise SceneError(f"{p.name}: not valid TOML: {err}") from None
+    try:
+        sweep = parse_sweep(data, source=p.name)
+    except (SceneError, TypeError) as err:
+        msg = str(err)
+        raise type(err)(msg if msg.startswith(p.name) else f"{p.name}: {msg}") from None
+    if not data.get("sweep", {}).get("name") and not sweep.scene.name:
+        sweep = _renamed(sweep, p.stem)
+    return sweep
+
+
+def _renamed(sweep: Sweep, name: str) -> Sweep:
+    cells = tuple(dataclasses.replace(c, sweep=name) for c in sweep.cells)
+    return dataclasses.replace(sweep, name=name, cells=cells)
+
+
+# ----------------------------------------------------------------------------------------------
+# seeds and cache keys
+
+
+def cell_seed(base_seed: int, key: str) -> int:
+    """Seed of a cell: the first 63 bits of SHA-256 over (base seed, cell key).
+
+    Depends on nothing else (not the cell's index, batch or executor), so a cell gives the same
+    numbers in any sweep that contains it.
+    """
+    if isinstance(base_seed, bool) or not isinstance(base_seed, int) or base_seed < 0:
+        raise ValueError(f"seed must be an integer >= 0; got {base_seed!r}")
+    digest = hashlib.sha256(_canonical(["torchdoct-cell-seed", int(base_seed), key]).encode()).digest()
+    return int.from_bytes(digest[:8], "big") >> 1
+
+
+def _run_scene_dict(scene: Scene, *, trials: int, seed: int, dtype: str, tolerance: float) -> dict[str, Any]:
+    """The scene of a cell as it runs: file schema, defaults filled in, the run in ``[simulation]``."""
+    d = scene.to_dict()
+    d.pop("name", None)
+    d.pop("description", None)
+    d["simulation"] = {"trials": int(trials), "seed": int(seed), "dtype": str(dtype),
+                       "truncation_tolerance": float(tolerance)}
+    return d
+
+
+def cache_key(scene: Scene, *, seed: int, trials: int, dtype: str, tolerance: float) -> str:
+    """Hash (hex, 40 characters) of the resolved cell, seed, trials, dtype, tolerance and version."""
+    payload = {"format": CACHE_FORMAT, "version": _version(),
+               "scene": _run_scene_dict(scene, trials=trials, seed=seed, dtype=dtype, tolerance=tolerance)}
+    return hashlib.sha256(_canonical(payload).encode()).hexdigest()[:40]
+
+
+# ----------------------------------------------------------------------------------------------
+# running one cell (local or on a Dask worker: plain data in, plain data out)
+
+
+def run_cell(payload: dict[str, Any]) -> dict[str, Any]:
+    """Simulate one cell and compute its scalar metrics per trial.
+
+    ``payload``: ``{"scene": scene dict (file schema, [simulation] holding trials, seed, dtype,
+    truncation_tolerance)}``. Returns ``{"metrics": {name: array [trials, systems]}, "zero_intensity":
+    bool array [trials, systems], "system_names": [...], "elapsed_s": float}``. Plain data, so it runs
+    the same on a Dask worker.
+    """
+    from .metrics import compute_metrics
+    from .simulate import simulate
+
+    scene = scene_from_dict(payload["scene"])
+    st = scene.simulation
+    t0 = time.perf_counter()
+    res = simulate(scene, trials=st.trials, seed=st.seed, dtype=st.dtype,
+                   truncation_tolerance=st.truncation_tolerance, progress=False)
+    analysis = dataclasses.replace(scene.analysis,
+                                   metrics=tuple(m for m in scene.analysis.metrics if m in SCALAR_METRICS))
+    m = compute_metrics(res.signals, res.frame_times_s, analysis)
+    return {"metrics": {k: m[k].cpu().numpy() for k in analysis.metrics},
+            "zero_intensity": m["zero_intensity"].cpu().numpy(),
+            "system_names": [s.name for s in scene.systems],
+            "elapsed_s": time.perf_counter() - t0}
+
+
+def run_cell_batch(payloads: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """:func:`run_cell` on each payload (one Dask task per batch)."""
+    return [run_cell(p) for p in payloads]
+
+
+# ----------------------------------------------------------------------------------------------
+# results
+
+
+@dataclass
+class CellResult:
+    """Per-trial scalar metrics ``[trials, systems]`` of one cell, and how they were produced."""
+
+    cell: Cell
+    sweep: Sweep
+    seed: int
+    trials: int
+    dtype: str
+    tolerance: float
+    cache_key: str
+    metrics: dict[str, np.ndarray]
+    zero_intensity: np.ndarray
+    system_names: tuple[str, ...]
+    elapsed_s: float
+    cached: bool
+
+
+@dataclass
+class SweepResult:
+    """All cells of one or more sweeps; :meth:`table` is the tidy table."""
+
+    sweeps: tuple[Sweep, ...]
+    cells: list[CellResult]
+    elapsed_s: float
+    computed: int
+    cached: int
+    _table: Any = field(default=None, repr=False)
+
+    def table(self):
+        """The tidy table (pandas DataFrame), built once (see :func:`results_table`)."""
+        if self._table is None:
+            self._table = results_table(self.cells)
+        return self._table
+
+    def cell(self, sweep: str, index: int) -> CellResult:
+        for c in self.cells:
+            if c.cell.sweep == sweep and c.cell.index == index:
+                return c
+        raise KeyError(f"no cell {index} in sweep {sweep!r}")
+
+    def of_sweep(self, sweep: str) -> list[CellResult]:
+        return [c for c in self.cells if c.cell.sweep == sweep]
+
+    @property
+    def system_trials(self) -> int:
+        return sum(c.trials * len(c.system_names) for c in self.cells)
+
+
+class _Cache:
+    """Cell results as ``DIR/<cache key>.npz`` (metrics, zero-intensity flags and a JSON header)."""
+
+    def __init__(self, directory: str | os.PathLike | None):
+        self.dir = None if directory is None else Path(directory)
+
+    def path(self, key: str) -> Path:
+        return self.dir / f"{key}.npz"
+
+    def get(self, key: str) -> dict[str, Any] | None:
+        if self.dir is None:
+            return None
+        p = self.path(key)
+        if not p.is_file():
+            return None
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta_json"]))
+                if meta.get("cache_key") != key:
+                    return None
+                metrics = {k: z[f"metric_{k}"] for k in meta["metrics"]}
+                zero = z["zero_intensity"]
+        except (OSError, ValueError, KeyError, json.JSONDecodeError):
+            return None  # unreadable or partial: recompute
+        return {"metrics": metrics, "zero_intensity": zero, "system_names": meta["system_names"],
+                "elapsed_s": meta.get("elapsed_s", 0.0)}
+
+    def put(self, key: str, res: dict[str, Any], scene_dict: dict[str, Any]) -> None:
+        if self.dir is None:
+            return
+        from ._files import atomic_write
+
+        self.dir.mkdir(parents=True, exist_ok=True)
+        meta = {"cache_key": key, "format": CACHE_FORMAT, "version": _version(), "scene": scene_dict,
+                "metrics": list(res["metrics"]), "system_names": list(res["system_names"]),
+                "elapsed_s": res["elapsed_s"]}
+        arrays = {f"metric_{k}": v for k, v in res["metrics"].items()}
+        arrays["zero_intensity"] = res["zero_intensity"]
+        arrays["meta_json"] = np.asarray(json.dumps(meta))
+
+        def write(tmp: str) -> None:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **arrays)
+
+        atomic_write(self.path(key), write)
+
+
+def _connect(scheduler: str):
+    try:
+        from dask.distributed import Client
+    except ImportError:  # pragma: no cover - depends on the installation
+        raise ValueError("--scheduler needs dask.distributed; install it with pip install 'torchdoct[dask]'") from None
+    try:
+        return Client(scheduler, set_as_default=False, timeout="10s")
+    except (OSError, TimeoutError, ValueError) as err:
+        raise ValueError(f"--scheduler {scheduler!r}: cannot connect ({err}); start a scheduler "
+                         "(dask scheduler) and workers that have torchdoct installed, and give its address "
+                         "such as tcp://host:8786") from None
+
+
+def _worker_init(threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+
+
+def _execute(payloads: list[dict[str, Any]], *, scheduler: str | None, batch_cells: int, workers: int,
+             done: Callable[[int, dict[str, Any]], None]) -> None:
+    """Run payloads in this process, in local worker processes or on a Dask cluster; ``done(i, result)``
+    as each finishes."""
+    batches = [list(range(i, min(len(payloads), i + batch_cells))) for i in range(0, len(payloads), batch_cells)]
+    if scheduler is None and (workers == 1 or len(batches) < 2):
+        for b in batches:
+            for i, res in zip(b, run_cell_batch([payloads[i] for i in b])):
+                done(i, res)
+        return
+    if scheduler is None:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed as done_first
+
+        ctx = multiprocessing.get_context("spawn")  # no fork of a process that holds torch threads
+        with ProcessPoolExecutor(max_workers=min(workers, len(batches)), mp_context=ctx,
+                                 initializer=_worker_init, initargs=(1,)) as pool:
+            futures = {pool.submit(run_cell_batch, [payloads[i] for i in b]): b for b in batches}
+            try:
+                for fut in done_first(futures):
+                    for i, r in zip(futures[fut], fut.result()):
+                        done(i, r)
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
+        return
+    from dask.distributed import as_completed
+
+    client = _connect(scheduler)
+    try:
+        with client.as_current():
+            futures = [client.submit(run_cell_batch, [payloads[i] for i in b], pure=False) for b in batches]
+            index = {f.key: b for f, b in zip(futures, batches)}
+            for fut in as_completed(futures):
+                res = fut.result()
+                for i, r in zip(index[fut.key], res):
+                    done(i, r)
+    finally:
+        client.close()
+
+
+def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int | None = None,
+               dtype: str | None = None, tolerance: float | None = None,
+               cache_dir: str | os.PathLike | None = None, scheduler: str | None = None,
+               batch_cells: int = 1, workers: int = 1, progress: bool = False, desc: str = "sweep") -> SweepResult:
+    """Run every cell of ``sweeps`` (cached cells are loaded, not recomputed).
+
+    ``trials``, ``seed``, ``dtype`` and ``tolerance`` override each sweep's ``[simulation]`` values;
+    each cell runs with :func:`cell_seed` of the base seed and its key. ``cache_dir`` (None: no cache)
+    stores every finished cell at once, so an interrupted run resumes where it stopped.
+    ``scheduler``: address of a Dask distributed scheduler (cells as tasks; None runs locally).
+    ``batch_cells``: cells per task; ``workers``: local worker processes (one torch thread each) when
+    no scheduler is given (1: this process, with its own thread settings). Results depend on neither.
+    """
+    if isinstance(batch_cells, bool) or not isinstance(batch_cells, int) or batch_cells < 1:
+        raise ValueError(f"batch_cells must be an integer >= 1; got {batch_cells!r}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1; got {workers!r}")
+    if trials is not None and (isinstance(trials, bool) or not isinstance(trials, int) or trials < 1):
+        raise ValueError(f"trials must be an integer >= 1; got {trials!r}")
+    if dtype is not None and dtype not in ("float32", "float64"):
+        raise ValueError(f"dtype must be 'float32' or 'float64'; got {dtype!r}")
+    if tolerance is not None and not (0.0 < tolerance < 1.0):
+        raise ValueError(f"tolerance must be in (0, 1); got {tolerance!r}")
+    names = [s.name for s in sweeps]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"sweep names must be unique; {dup} appear twice")
+    t0 = time.perf_counter()
+    cache = _Cache(cache_dir)
+    jobs = []  # (sweep, cell, seed, trials, dtype, tolerance, key, scene dict)
+    for sw in sweeps:
+        for cell in sw.cells:
+            st = cell.scene.simulation
+            n = trials if trials is not None else st.trials
+            base = seed if seed is not None else sw.scene.simulation.seed
+            s = cell_seed(base, cell.key)
+            dt = dtype or st.dtype
+            tol = tolerance if tolerance is not None else st.truncation_tolerance
+            key = cache_key(cell.scene, seed=s, trials=n, dtype=dt, tolerance=tol)
+            jobs.append((sw, cell, s, n, dt, tol, key,
+                         _run_scene_dict(cell.scene, trials=n, seed=s, dtype=dt, tolerance=tol)))
+    results: list[CellResult | None] = [None] * len(jobs)
+    pending: list[int] = []
+    for j, (sw, cell, s, n, dt, tol, key, sd) in enumerate(jobs):
+        hit = cache.get(key)
+        if hit is not None:
+            results[j] = _cell_result(jobs[j], hit, cached=True)
+        else:
+            pending.append(j)
+    bar = None
+    if progress and pending:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=sum(jobs[j][3] for j in pending), unit="trial", desc=desc, dynamic_ncols=True)
+        bar.set_postfix_str(f"{len(jobs) - len(pending)} cached, {len(pending)} to run")
+
+    def done(i: int, res: dict[str, Any]) -> None:
+        j = pending[i]
+        cache.put(jobs[j][6], res, jobs[j][7])
+        results[j] = _cell_result(jobs[j], res, cached=False)
+        if bar is not None:
+            bar.update(jobs[j][3])
+
+    try:
+        _execute([{"scene": jobs[j][7]} for j in pending], scheduler=scheduler, batch_cells=batch_cells,
+                 workers=workers, done=done)
+    finally:
+        if bar is not None:
+            bar.close()
+    return SweepResult(sweeps=tuple(sweeps), cells=[r for r in results if r is not None],
+                       elapsed_s=time.perf_counter() - t0, computed=len(pending), cached=len(jobs) - len(pending))
+
+
+def run_sweep(sweep: Sweep, **kwargs: Any) -> SweepResult:
+    """:func:`run_sweeps` of one sweep."""
+    return run_sweeps([sweep], **kwargs)
+
+
+def _cell_result(job, res: dict[str, Any], cached: bool) -> CellResult:
+    sw, cell, s, n, dt, tol, key, _ = job
+    return CellResult(cell=cell, sweep=sw, seed=s, trials=n, dtype=dt, tolerance=tol, cache_key=key,
+                      metrics=dict(res["metrics"]), zero_intensity=np.asarray(res["zero_intensity"]),
+                      system_names=tuple(res["system_names"]), elapsed_s=float(res["elapsed_s"]), cached=cached)
+
+
+# ----------------------------------------------------------------------------------------------
+# the tidy table
+
+
+def _column_value(v: Any) -> Any:
+    if v is None or isinstance(v, (str, bool)) or _is_number(v):
+        return v
+    return json.dumps(v, sort_keys=True)
+
+
+def results_table(cells: Sequence[CellResult]):
+    """Tidy table (pandas): one row per cell × system × scalar metric (module docstring)."""
+    import pandas as pd
+
+    rows = []
+    for c in cells:
+        systems = {s.name: s for s in c.cell.scene.systems}
+        for s_idx, sname in enumerate(c.system_names):
+            sy = systems[sname]
+            for metric, arr in c.metrics.items():
+                v = np.asarray(arr[:, s_idx], dtype=np.float64)
+                v = v[np.isfinite(v)]
+                n = int(v.size)
+                mean = float(v.mean()) if n else math.nan
+                sd = float(v.std(ddof=1)) if n > 1 else math.nan
+                row = {"sweep": c.cell.sweep, **dict(c.sweep.tags), "cell": c.cell.index}
+                row.update({k: _column_value(x) for k, x in c.cell.values.items()})
+                row.update({"system": sname, "wavelength_um": sy.wavelength_um,
+                            "lateral_resolution_um": sy.lateral_resolution_um,
+                            "axial_resolution_um": sy.axial_resolution_um,
+                            "refractive_index": sy.refractive_index, "metric": metric,
+                            "unit": SCALAR_METRICS[metric], "mean": mean, "sd": sd,
+                            "se": sd / math.sqrt(n) if n > 1 else math.nan, "n": n,
+                            "empty": int(np.asarray(c.zero_intensity[:, s_idx]).sum()),
+                            "trials": c.trials, "seed": c.seed, "cache_key": c.cache_key})
+                rows.append(row)
+    df = pd.DataFrame(rows)
+    for col in df.columns:  # Parquet needs one type per column: mixed field values become text
+        if df[col].dtype == object:
+            kinds = {type(x) for x in df[col] if x is not None and not (isinstance(x, float) and math.isnan(x))}
+            if len(kinds) > 1:
+                df[col] = df[col].map(lambda x: None if x is None else str(x))
+    return df
+
+
+def write_table(table, stem: str | os.PathLike, *, force: bool = False) -> list[Path]:
+    """Write ``stem.csv`` and ``stem.parquet`` atomically (refusing to overwrite without ``force``)."""
+    from ._files import atomic_write, check_out
+
+    stem = Path(stem)
+    csv = check_out(stem.with_suffix(".csv"), force, ".csv", "--out")
+    pq = check_out(stem.with_suffix(".parquet"), force, ".parquet", "--out")
+    atomic_write(csv, lambda tmp: table.to_csv(tmp, index=False))
+    atomic_write(pq, lambda tmp: table.to_parquet(tmp, index=False))
+    return [csv, pq]
+
+
+def _run_record(result: SweepResult) -> list[dict[str, Any]]:
+    return [{"sweep": c.cell.sweep, "cell": c.cell.index, "values": {k: _column_value(v) for k, v in
+                                                                    c.cell.values.items()},
+             "seed": c.seed, "trials": c.trials, "dtype": c.dtype, "truncation_tolerance": c.tolerance,
+             "cache_key": c.cache_key} for c in result.cells]
+
+
+def sweep_outputs(out_dir: str | os.PathLike, stem: str = "results") -> list[Path]:
+    """The files :func:`write_sweep_outputs` writes into ``out_dir``."""
+    d = Path(out_dir)
+    return [d / f"{stem}.csv", d / f"{stem}.parquet", d / "sweep.json"]
+
+
+def prepare_out_dir(out_dir: str | os.PathLike, files: Sequence[Path], force: bool, what: str = "--out") -> Path:
+    """Create ``out_dir`` (its parent must exist) and check that none of ``files`` would be overwritten."""
+    d = Path(out_dir)
+    if d.exists() and not d.is_dir():
+        raise ValueError(f"{what}: {d} exists and is not a directory; give a directory")
+    if not d.exists():
+        if not d.parent.exists():
+            raise ValueError(f"{what}: directory {d.parent} does not exist; create it first")
+        d.mkdir()
+    clash = [p for p in files if p.exists()]
+    if clash and not force:
+        raise ValueError(f"{what}: {', '.join(str(p) for p in clash)} exist(s); pass --force to overwrite "
+                         "(finished cells come from the cache either way)")
+    return d
+
+
+def write_sweep_outputs(result: SweepResult, out_dir: str | os.PathLike, *, force: bool = False,
+                        stem: str = "results") -> list[Path]:
+    """Write the tidy table (CSV, Parquet) and ``sweep.json`` (resolved sweeps, cells, seeds, keys)."""
+    from ._files import atomic_write
+
+    files = sweep_outputs(out_dir, stem)
+    prepare_out_dir(out_dir, files, force)
+    written = write_table(result.table(), Path(out_dir) / stem, force=force)
+    record = {"torchdoct_version": _version(), "sweeps": [s.to_dict() for s in result.sweeps],
+              "cells": _run_record(result)}
+    atomic_write(files[2], lambda tmp: Path(tmp).write_text(json.dumps(record, indent=2), encoding="utf-8"))
+    return written + [files[2]]
+
+
+def format_table(table, metrics: Sequence[str] = ("liv", "ocds")) -> str:
+    """Mean (SE) per cell (rows) and system (columns) for each metric: what ``torchdoct sweep`` prints."""
+    out = []
+    fixed = set(RESERVED_COLUMNS)
+    value_cols = [c for c in table.columns if c not in fixed]
+    multi = table["sweep"].nunique() > 1
+    for metric in metrics:
+        t = table[table["metric"] == metric]
+        if t.empty:
+            continue
+        systems = list(dict.fromkeys(t["system"]))
+        rows: dict[tuple[str, int], dict[str, str]] = {}
+        labels: dict[tuple[str, int], str] = {}
+        for r in t.to_dict("records"):
+            k = (r["sweep"], r["cell"])
+            if k not in labels:
+                parts = [f"{c}={r[c]:.6g}" if isinstance(r[c], float) else f"{c}={r[c]}"
+                         for c in value_cols if not _missing(r[c])]
+                labels[k] = (f"{r['sweep']}: " if multi else "") + ", ".join(parts)
+            rows.setdefault(k, {})[r["system"]] = f"{r['mean']:.4g} ({r['se']:.2g})"
+        width = max(len(v) for v in labels.values())
+        cw = max(16, *(len(s) for s in systems))
+        lines = [f"{metric} mean (SE) [{t['unit'].iloc[0]}]",
+                 " " * width + "  " + "  ".join(f"{s:>{cw}}" for s in systems)]
+        for k, lab in labels.items():
+            lines.append(f"{lab:<{width}}  " + "  ".join(f"{rows[k].get(s, '-'):>{cw}}" for s in systems))
+        out.append("\n".join(lines))
+    return "\n\n".join(out)
+
+
+def _missing(x: Any) -> bool:
+    return x is None or (isinstance(x, float) and math.isnan(x))
