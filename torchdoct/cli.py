@@ -141,7 +141,7 @@ def _bench_all(args) -> int:
         if args.quick:
             argv += quick.get(name, ["--quick"] if "--quick" in bench_sub.choices[name].format_usage() else [])
         print(f"== torchdoct {' '.join(argv)}", flush=True)
-        code = main(argv)
+        code = _main(argv)
         if code != 0:
             failed.append(name)
     print(f"benchmarks: {len(names) - len(failed)} of {len(names)} done" + (f"; failed: {failed}" if failed else ""))
@@ -149,6 +149,16 @@ def _bench_all(args) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except BrokenPipeError:  # output piped into a pager or `head` that closed early
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from . import config
     from .scenes import shipped_scenes

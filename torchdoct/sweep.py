@@ -60,6 +60,7 @@ import math
 import os
 import time
 import tomllib
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
@@ -586,13 +587,13 @@ class _Cache:
         if not p.is_file():
             return None
         try:
-            with np.load(p, allow_pickle=False) as z:
+            with open(p, "rb") as fh, np.load(fh, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta_json"]))
                 if meta.get("cache_key") != key:
                     return None
                 metrics = {k: z[f"metric_{k}"] for k in meta["metrics"]}
                 zero = z["zero_intensity"]
-        except (OSError, ValueError, KeyError, json.JSONDecodeError):
+        except (OSError, EOFError, ValueError, KeyError, json.JSONDecodeError, zipfile.BadZipFile):
             return None  # unreadable or partial: recompute
         return {"metrics": metrics, "zero_intensity": zero, "system_names": meta["system_names"],
                 "elapsed_s": meta.get("elapsed_s", 0.0)}
