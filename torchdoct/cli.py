@@ -47,11 +47,18 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     bs.add_argument("--out", default="bench-simulate.json", help="JSON output file")
     bs.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    bt = bsub.add_parser("tradeoffs", help="error against time for tolerance, trials, dtype and chunk size")
-    bt.add_argument("--trials", type=int, default=8192, help="trials per tolerance point")
-    bt.add_argument("--reference-trials", type=int, default=16384, help="trials of the converged reference")
-    bt.add_argument("--out", default="bench-tradeoffs.json", help="JSON output (a PNG of the front beside it)")
+    bt = bsub.add_parser("tradeoffs", help="what accuracy costs in time: simulator, study and classifier")
+    bt.add_argument("--part", choices=("all", "simulator", "study", "classifier"), default="all")
+    bt.add_argument("--trials", type=int, default=8192, help="simulator: trials per tolerance point")
+    bt.add_argument("--reference-trials", type=int, default=16384, help="simulator: trials of the reference")
+    bt.add_argument("--quick", action="store_true", help="reduced sizes (minutes)")
+    bt.add_argument("--out", default="bench-tradeoffs.json", help="JSON output (PNGs of the fronts beside it)")
     bt.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    bc = bsub.add_parser("classify", help="doct-classify throughput on a 512×512 synthetic maps file")
+    bc.add_argument("--size", type=int, default=512, help="pixels per side")
+    bc.add_argument("--repeats", type=int, default=3)
+    bc.add_argument("--out", default="bench-classify.json")
+    bc.add_argument("--force", action="store_true")
     ba = bsub.add_parser("all", help="every benchmark, each writing DIR/bench-NAME.json")
     ba.add_argument("--out", default="bench", help="output directory (created if missing)")
     ba.add_argument("--quick", action="store_true", help="reduced sizes (a smoke run, minutes)")
@@ -123,12 +130,43 @@ def _save_npz(path: Path, result, metrics: dict[str, Any]) -> None:
     _atomic_write(path, write)
 
 
+def _bench_tradeoffs(args) -> int:
+    """Trade-off curves of the simulator, the paper study and the classifier (``--part``)."""
+    from . import tradeoffs
+
+    out = _check_out(args.out, args.force, ".json")
+    parts = ["simulator", "study", "classifier"] if args.part == "all" else [args.part]
+    pngs = {p: Path(args.out).with_name(f"{Path(args.out).stem}-{p}.png") for p in parts if p != "study"}
+    for png in pngs.values():
+        _check_out(str(png), args.force, ".png")
+    res: dict[str, Any] = {}
+    if "simulator" in parts:
+        n, ref = (512, 1024) if args.quick else (args.trials, args.reference_trials)
+        res["simulator"] = tradeoffs.simulator_tradeoffs(trials=n, reference_trials=ref, progress=True)
+        print(tradeoffs.format_table(res["simulator"]))
+    if "study" in parts:
+        grid, ref = ((16, 64), 128) if args.quick else ((16, 32, 64, 128, 256), 512)
+        res["study"] = tradeoffs.study_tradeoffs(trials_grid=grid, reference_trials=ref, progress=True)
+        print(tradeoffs.format_study_table(res["study"]))
+    if "classifier" in parts:
+        from classifier import tradeoffs as clf_tradeoffs
+
+        res["classifier"] = clf_tradeoffs.classifier_tradeoffs(quick=args.quick, progress=True)
+        print(clf_tradeoffs.format_table(res["classifier"]))
+    _atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
+    if "simulator" in pngs:
+        _atomic_write(pngs["simulator"], lambda tmp: tradeoffs.plot_tradeoffs(res["simulator"], tmp))
+    if "classifier" in pngs:
+        _atomic_write(pngs["classifier"], lambda tmp: clf_tradeoffs.plot_tradeoffs(res["classifier"], tmp))
+    print(f"wrote {out}" + "".join(f", {p}" for p in pngs.values()))
+    return 0
+
+
 def _bench_all(args) -> int:
     """Run every registered benchmark in turn; each writes ``DIR/bench-NAME.json``."""
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    quick = {"simulate": ["--trials", "256"], "tradeoffs": ["--trials", "1024", "--reference-trials", "2048"],
-             "render": ["--repeats", "1"]}
+    quick = {"simulate": ["--trials", "256"], "tradeoffs": ["--quick"], "render": ["--repeats", "1"]}
     parser = build_parser()
     bench_sub = next(a for a in parser._subparsers._group_actions[0].choices["bench"]._actions
                      if isinstance(a, argparse._SubParsersAction))
@@ -199,16 +237,15 @@ def _main(argv: Sequence[str] | None = None) -> int:
                 print(f"wrote {out}")
             return 0
         if args.command == "bench" and args.bench == "tradeoffs":
-            from . import tradeoffs
+            return _bench_tradeoffs(args)
+        if args.command == "bench" and args.bench == "classify":
+            from classifier.bench import bench_classify, format_bench_classify
 
             out = _check_out(args.out, args.force, ".json")
-            png = _check_out(str(Path(args.out).with_suffix(".png")), args.force, ".png")
-            res = tradeoffs.simulator_tradeoffs(trials=args.trials, reference_trials=args.reference_trials,
-                                                progress=True)
-            print(tradeoffs.format_table(res))
+            res = bench_classify(size=args.size, repeats=args.repeats)
+            print(format_bench_classify(res))
             _atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
-            _atomic_write(png, lambda tmp: tradeoffs.plot_tradeoffs(res, tmp))
-            print(f"wrote {out} and {png}")
+            print(f"wrote {out}")
             return 0
         if args.command == "bench" and args.bench == "all":
             return _bench_all(args)

@@ -283,3 +283,60 @@ def format_table(result: dict[str, Any]) -> str:
                      f"{rec['defaults_on_front']}")
         lines.append("")
     return "\n".join(lines)
+
+
+def study_tradeoffs(study: str = "paper-reduced", *, trials_grid: Sequence[int] = (16, 32, 64, 128, 256),
+                    reference_trials: int = 512, workers: int = 1, progress: bool = False) -> dict[str, Any]:
+    """Figure-level error of a study against trials per point, with the wall time of each run.
+
+    Every curve point (part × comparison × motion value × system × metric) of the study is run at
+    each trial count with the study's seed + 1 and compared with a reference run at
+    ``reference_trials`` (the study's own seed, so the two are independent). The figure-level error
+    is the RMS over points of ``mean_n − mean_ref``, per metric; its expectation from the standard
+    errors, ``√mean(SE_n² + SE_ref²)``, is reported beside it. The full study's time at ``n`` trials
+    is predicted from the measured ms per cell-trial.
+    """
+    from .bench import machine_info
+    from .study import load_study, study_sweeps
+    from .sweep import run_sweeps
+
+    st = load_study(study)
+    sweeps = study_sweeps(st)
+    keys = ["sweep", "cell", "system", "metric"]
+    t0 = time.perf_counter()
+    ref = run_sweeps(sweeps, trials=reference_trials, workers=workers, progress=progress, desc="reference")
+    ref_wall = time.perf_counter() - t0
+    rt = ref.table().set_index(keys)
+    rows = []
+    for n in trials_grid:
+        t0 = time.perf_counter()
+        res = run_sweeps(sweeps, trials=int(n), seed=st.seed + 1, workers=workers, progress=progress,
+                         desc=f"{n} trials")
+        wall = time.perf_counter() - t0
+        tab = res.table().set_index(keys)
+        row: dict[str, Any] = {"trials": int(n), "wall_s": wall, "cells": len(res.cells),
+                               "ms_per_cell_trial": 1e3 * wall / (len(res.cells) * n)}
+        for metric in ("liv", "ocds"):
+            a = tab.xs(metric, level="metric")
+            b = rt.xs(metric, level="metric").loc[a.index]
+            ok = np.isfinite(a["mean"].to_numpy()) & np.isfinite(b["mean"].to_numpy())
+            d = a["mean"].to_numpy()[ok] - b["mean"].to_numpy()[ok]
+            se2 = a["se"].to_numpy()[ok] ** 2 + b["se"].to_numpy()[ok] ** 2
+            row[f"{metric}_rms_error"] = float(np.sqrt(np.mean(d * d)))
+            row[f"{metric}_rms_expected"] = float(np.sqrt(np.mean(se2)))
+            row[f"{metric}_max_abs_error"] = float(np.abs(d).max())
+        rows.append(row)
+    return {"benchmark": "tradeoffs-study", "study": study, "reference_trials": reference_trials,
+            "reference_wall_s": ref_wall, "cells": len(ref.cells), "rows": rows, "machine": machine_info()}
+
+
+def format_study_table(result: dict[str, Any]) -> str:
+    lines = [f"study `{result['study']}` ({result['cells']} cells) against a {result['reference_trials']}-trial "
+             "reference: RMS over curve points of the error of the mean (expected from the SEs in brackets)",
+             "| trials/point | wall (s) | ms per cell-trial | LIV RMS error (dB²) | OCDS RMS error (1/s) |",
+             "|---:|---:|---:|---:|---:|"]
+    for r in result["rows"]:
+        lines.append(f"| {r['trials']} | {r['wall_s']:.1f} | {r['ms_per_cell_trial']:.2f} | "
+                     f"{r['liv_rms_error']:.3f} ({r['liv_rms_expected']:.3f}) | "
+                     f"{r['ocds_rms_error']:.4f} ({r['ocds_rms_expected']:.4f}) |")
+    return "\n".join(lines)
