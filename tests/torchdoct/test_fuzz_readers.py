@@ -157,6 +157,14 @@ def test_pickle_bearing_files_are_refused_everywhere(tmp_path, capsys):
     with pytest.raises(ERRORS, match="objmaps.npz"):
         read_maps(tmp_path / "objmaps.npz")
     assert main(["compare", str(tmp_path / "objmaps.npz"), str(tmp_path / "objmaps.npz")]) == 2
+    from classifier.cli import classify_main
+
+    for model in ("model.pkl", "model-as.onnx"):
+        (tmp_path / "model-as.onnx").write_bytes((tmp_path / "model.pkl").read_bytes())
+        assert classify_main([str(tmp_path / "objmaps.npz"), "--model", str(tmp_path / model),
+                              "--out", str(tmp_path / "clf")]) == 2
+        assert capsys.readouterr().err.startswith("error: ")
+        assert not (tmp_path / "clf").exists()
 
 
 @st.composite
