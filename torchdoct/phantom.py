@@ -82,7 +82,7 @@ class Grid:
         if self.kind == "bscan" and self.n_y != 1:
             _fail("grid.n_y", f"a B-scan has one plane; got n_y = {self.n_y}", 'set kind = "volume"')
         if self.n_x * self.n_y * self.n_z > MAX_PIXELS:
-            _fail("grid", f"{self.n_x}×{self.n_y}×{self.n_z} pixels exceed {MAX_PIXELS}",
+            _fail("grid.n_x, n_y, n_z", f"{self.n_x:.4g} × {self.n_y:.4g} × {self.n_z:.4g} pixels exceed {MAX_PIXELS}",
                   "use fewer pixels or a coarser pitch")
 
     @property
@@ -348,6 +348,9 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
         regions_raw = [regions_raw]
     if not isinstance(regions_raw, list):
         raise TypeError(f"region must be an array of tables ([[region]]); got {regions_raw!r}")
+    if not regions_raw and not bgs:
+        _fail("region", "a phantom needs at least one [[region]] or [[background]] population",
+              "add a [[region]] table with a shape and a density")
     region_specs = []
     names = set()
     for i, r in enumerate(regions_raw):

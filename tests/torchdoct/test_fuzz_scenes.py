@@ -152,7 +152,7 @@ def _valid_or_clear(d, named, alt):
     return scene
 
 
-@settings(max_examples=250, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=250, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(broken_scenes())
 def test_broken_scene_dicts_fail_clearly_or_run(case):
     d, named, alt = case
@@ -165,11 +165,13 @@ def test_broken_scene_dicts_fail_clearly_or_run(case):
             except MemoryLimitError:
                 return
             m = res.metrics()
-            bad = ~torch.isfinite(m["liv"]) & ~m["zero_intensity"]
-            assert not bool(bad.any()), "non-finite LIV without the zero-intensity flag"
+            for k in ("liv", "ocds"):
+                if k in m:  # an empty metrics list is valid: the run gives signals only
+                    bad = ~torch.isfinite(m[k]) & ~m["zero_intensity"]
+                    assert not bool(bad.any()), f"non-finite {k} without the zero-intensity flag"
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+@settings(max_examples=200, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow,
                                                                    HealthCheck.function_scoped_fixture])
 @given(broken_scenes())
 def test_broken_scene_files_give_one_error_line(tmp_path, capsys, case):
@@ -218,7 +220,7 @@ PHANTOM = {"system": BASE["system"], "protocol": BASE["protocol"], "analysis": B
 PHANTOM_PATHS = sorted(set(_paths(PHANTOM)), key=str)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200, deadline=None, derandomize=True)
 @given(st.sampled_from(PHANTOM_PATHS), st.sampled_from(BAD_VALUES + ["delete"]))
 def test_broken_phantoms_fail_clearly(path, value):
     d = copy.deepcopy(PHANTOM)
@@ -238,7 +240,7 @@ def test_broken_phantoms_fail_clearly(path, value):
 # valid extreme scenes run and give finite metrics or the documented zero-intensity policy
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=30, deadline=None, derandomize=True)
 @given(density=st.sampled_from([1e-6, 1e-3, 0.055, 2.0]),
        motion=st.sampled_from([None, ("diffusion", 1e-8), ("diffusion", 50.0), ("ballistic", 1e-6),
                                ("ballistic", 100.0), ("flow", 1e-6), ("flow", 300.0)]),
@@ -257,7 +259,11 @@ def test_valid_extreme_scenes_run(density, motion, wavelength, frames):
     d["analysis"] = {"metrics": ["liv", "ocds"] if frames >= 4 else ["liv"],
                      "ocds_delay_range_s": [0.2048, 0.6144]}
     scene = scene_from_dict(d)
-    res = simulate(scene, trials=64, seed=3)
+    try:
+        res = simulate(scene, trials=64, seed=3)
+    except MemoryLimitError as err:  # the documented policy: refused up front, with the knob to turn
+        assert "truncation_tolerance" in str(err) and "GB" in str(err)
+        return
     m = res.metrics()
     for k in ("liv", "ocds") if frames >= 4 else ("liv",):
         v = m[k]
