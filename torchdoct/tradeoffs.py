@@ -234,10 +234,9 @@ def plot_tradeoffs(result: dict[str, Any], path: str) -> None:
     axes = np.atleast_1d(axes)
     for ax, cell in zip(axes, cells):
         ch = _choices(cell)
-        for dtype, mk in (("float32", "o"), ("float64", "s")):
-            pts = [c for c in ch if c["dtype"] == dtype]
-            sc = ax.scatter([c["time_s"] for c in pts], [c["error"] for c in pts], marker=mk, s=14,
-                            c=[math.log10(c["tolerance"]) for c in pts], cmap="viridis", label=dtype)
+        tols = [math.log10(c["tolerance"]) for c in ch]
+        sc = ax.scatter([c["time_s"] for c in ch], [c["error"] for c in ch], s=14, c=tols, cmap="viridis",
+                        vmin=min(tols), vmax=max(tols), label="(tolerance, trials)")
         front = pareto_front(ch)
         ax.plot([c["time_s"] for c in front], [c["error"] for c in front], "k-", lw=1, label="Pareto front")
         rec = recommend(ch, cell)["defaults"]
