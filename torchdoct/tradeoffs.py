@@ -178,7 +178,27 @@ def simulator_tradeoffs(*, trials: int = 8192, reference_trials: int = 16384,
            "defaults": DEFAULTS, "machine": machine_info(), "cells": cells_out}
     out["pareto"] = {c["cell"]: pareto_front(_choices(c)) for c in cells_out}
     out["recommendation"] = {c["cell"]: recommend(_choices(c), c) for c in cells_out}
+    out["combined"] = combined_front(out)
     return out
+
+
+def combined_front(result: dict[str, Any]) -> dict[str, Any]:
+    """One default must serve every motion: the front over all cells together.
+
+    A (tolerance, dtype, trials) choice costs the sum of its times over the cells and its error is
+    the largest of its cells' errors (each ``√(bias² + SD²/n)`` of the mean LIV, in dB²). Returns the
+    front, the defaults' point and whether the defaults are on it.
+    """
+    per_cell = [{(c["tolerance"], c["dtype"], c["trials"]): c for c in _choices(cell)} for cell in result["cells"]]
+    keys = set.intersection(*(set(p) for p in per_cell))
+    choices = [{"tolerance": k[0], "dtype": k[1], "trials": k[2],
+                "time_s": sum(p[k]["time_s"] for p in per_cell),
+                "error": max(p[k]["error"] for p in per_cell)} for k in sorted(keys)]
+    front = pareto_front(choices)
+    n_def = min({k[2] for k in keys}, key=lambda n: abs(n - DEFAULTS["trials"]))
+    d = next(c for c in choices if c["tolerance"] == DEFAULTS["truncation_tolerance"]
+             and c["dtype"] == DEFAULTS["dtype"] and c["trials"] == n_def)
+    return {"front": front, "defaults": d, "defaults_on_front": any(c is d for c in front)}
 
 
 def _choices(cell: dict[str, Any], metric: str = "liv") -> list[dict[str, Any]]:
@@ -281,6 +301,12 @@ def format_table(result: dict[str, Any]) -> str:
                      f"{ch['tolerance']:g}, {ch['trials']} trials, {ch['time_s']:.3f} s; defaults on the front: "
                      f"{rec['defaults_on_front']}")
         lines.append("")
+    comb = result.get("combined") or combined_front(result)
+    d = comb["defaults"]
+    lines.append("all cells together (time summed, error the worst cell's): front " + ", ".join(
+        f"tol {c['tolerance']:g}/{c['trials']} trials ({c['time_s']:.3f} s, {c['error']:.3f} dB²)" for c in comb["front"]))
+    lines.append(f"defaults (tol {d['tolerance']:g}, {d['trials']} trials): {d['time_s']:.3f} s, worst-cell LIV error "
+                 f"{d['error']:.3f} dB²; on the combined front: {comb['defaults_on_front']}")
     return "\n".join(lines)
 
 
