@@ -18,7 +18,7 @@ from classifier.train import CLASS_NAMES
 
 DATA = Path(__file__).resolve().parents[2] / "classifier" / "data"
 #: doct-train from scratch must give the shipped report's numbers within this many of the report's
-#: bootstrap standard errors (on this machine the run is bit-identical; elsewhere floating-point
+#: bootstrap standard errors (on the machine that trained it the run is bit-identical; elsewhere floating-point
 #: differences may change the trained weights slightly).
 REPRODUCTION_Z = 2.0
 
