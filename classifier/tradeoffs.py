@@ -251,59 +251,12 @@ def _seconds_per_draw(spec, prior, plan: TradeoffPlan) -> float:
 
 
 def _fit(train_ds, val_ds, spec, cfg) -> dict[str, Any]:
-    """Train the network of :func:`classifier.train.train` on given splits.
+    """:func:`classifier.train.fit_network` on given splits (the network of ``train``)."""
+    from .train import fit_network
 
-    Same samples, seeds, optimiser, early stopping and temperature scaling as ``train`` (a test
-    checks the probabilities are identical); timed from the first sample to the fitted temperature.
-    """
-    import torch
-
-    from .model import MotionClassifier
-    from .train import CLASS_NAMES, _epoch_samples, _fit_temperature, _targets
-
-    t0 = time.perf_counter()
-    liv_cols = [i for i, (m, _) in enumerate(spec.features) if m == "liv"]
-    rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(7,)))
-    val = _epoch_samples(val_ds, cfg, np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(8,))))
-    train0 = _epoch_samples(train_ds, cfg, rng)
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(cfg.seed)
-        model = MotionClassifier(spec.n_features, len(CLASS_NAMES), liv_cols, cfg.hidden)
-    model.set_normalization(torch.from_numpy(train0["x"]))
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
-    xv = torch.from_numpy(val["x"])
-    tv = torch.from_numpy(_targets(val))
-    best: tuple[float, Any, int] = (math.inf, None, 0)
-    samples = train0
-    epoch = 0
-    for epoch in range(1, cfg.max_epochs + 1):
-        if epoch > 1:
-            samples = _epoch_samples(train_ds, cfg, rng)
-        x = torch.from_numpy(samples["x"])
-        t = torch.from_numpy(_targets(samples))
-        order = torch.from_numpy(rng.permutation(len(t)))
-        model.train()
-        for b in range(0, len(order), cfg.batch_size):
-            sel = order[b:b + cfg.batch_size]
-            loss = torch.nn.functional.cross_entropy(model.logits(x[sel]), t[sel])
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-        model.eval()
-        with torch.no_grad():
-            vloss = float(torch.nn.functional.cross_entropy(model.logits(xv), tv))
-        if vloss < best[0] - 1e-5:
-            best = (vloss, {k: v.clone() for k, v in model.state_dict().items()}, epoch)
-        if epoch - best[2] >= cfg.patience:
-            break
-    model.load_state_dict(best[1])
-    model.eval()
-    with torch.no_grad():
-        temperature = _fit_temperature(model.logits(xv), tv)
-        model.temperature.fill_(temperature)
-    return {"model": model, "training_s": time.perf_counter() - t0, "epochs": epoch, "best_epoch": best[2],
-            "validation_loss": best[0], "temperature": temperature,
-            "parameters": int(sum(p.numel() for p in model.net.parameters()))}
+    fit = fit_network(train_ds, val_ds, spec, cfg)
+    fit.pop("first_samples")
+    return fit
 
 
 # ---------------------------------------------------------------------------------------------

@@ -40,7 +40,7 @@ from .model import LIV_OFFSET_DB2, MotionClassifier
 from .report import bootstrap_se, evaluate, magnitude_table
 from .rule import INDETERMINATE, make_rule
 
-__all__ = ["TrainConfig", "TrainResult", "train", "pooled_samples", "CLASS_NAMES", "transform_numpy"]
+__all__ = ["TrainConfig", "TrainResult", "train", "fit_network", "pooled_samples", "CLASS_NAMES", "transform_numpy"]
 
 #: Output classes of every model: the motion types, then ``indeterminate``.
 CLASS_NAMES = (*CLASSES, INDETERMINATE)
@@ -213,47 +213,28 @@ def _timed_predict(fn, x: np.ndarray, repeats: int = 3) -> tuple[np.ndarray, flo
     return out, best / max(len(x), 1) * 1e6
 
 
-def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cache_dir=None, use_cache: bool = True,
-          progress: bool = False, log=print) -> TrainResult:
-    """Run the recipe of the module docstring; returns the model, the report and the test inputs."""
-    cfg = config or TrainConfig()
-    prior = prior or Prior()
-    spec = load_spec(cfg.spec)
-    rule = make_rule(prior.identifiability_epsilon, cfg.min_probability)
-    say = log or (lambda *a, **k: None)
+def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, progress: bool = False) -> dict[str, Any]:
+    """Train the network on given splits: seeded samples, AdamW, early stopping on the validation
+    loss, then temperature scaling. Timed from the first sample to the fitted temperature.
 
-    # 1. data
-    t_sim = 0.0
-    n_sim_samples = 0
-    data: dict[str, Dataset] = {}
-    for split, draws in (("train", cfg.draws_train), ("validation", cfg.draws_validation), ("test", cfg.draws_test)):
-        ds = make_dataset(spec, prior, seed=cfg.seed, split=split, draws=draws, trials_per_draw=cfg.trials_per_draw,
-                          replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance, cache_dir=cache_dir, use_cache=use_cache,
-                          progress=progress)
-        data[split] = ds
-        t_sim += ds.meta["elapsed_s"]
-        n_sim_samples += draws * cfg.trials_per_draw
-        say(f"{split}: {len(ds)} samples from {draws} draws ({'cache' if ds.meta['from_cache'] else 'simulated'}, "
-            f"{ds.meta['seconds_per_draw']:.3f} s/draw); ground truth per draw: {ds.meta['draw_status_counts']}")
-
+    Returns the model, ``training_s``, ``epochs``, ``best_epoch``, ``validation_loss``,
+    ``temperature``, ``parameters`` and ``first_samples`` (the first epoch's training samples).
+    """
+    t0 = time.perf_counter()
     liv_cols = [i for i, (m, _) in enumerate(spec.features) if m == "liv"]
-    n_feat = spec.n_features
     rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(7,)))
-    val = _epoch_samples(data["validation"], cfg, np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(8,))))
-    train0 = _epoch_samples(data["train"], cfg, rng)
-
-    # 4. network
+    val = _epoch_samples(val_ds, cfg, np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(8,))))
+    train0 = _epoch_samples(train_ds, cfg, rng)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed)
-        model = MotionClassifier(n_feat, len(CLASS_NAMES), liv_cols, cfg.hidden)
+        model = MotionClassifier(spec.n_features, len(CLASS_NAMES), liv_cols, cfg.hidden)
     model.set_normalization(torch.from_numpy(train0["x"]))
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
     xv = torch.from_numpy(val["x"])
     tv = torch.from_numpy(_targets(val))
-    best = (math.inf, None, 0)
-    t0 = time.perf_counter()
-    epoch = 0
+    best: tuple[float, Any, int] = (math.inf, None, 0)
     samples = train0
+    epoch = 0
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -261,7 +242,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
         bar = tqdm(total=cfg.max_epochs, unit="epoch", desc="train")
     for epoch in range(1, cfg.max_epochs + 1):
         if epoch > 1:
-            samples = _epoch_samples(data["train"], cfg, rng)
+            samples = _epoch_samples(train_ds, cfg, rng)
         x = torch.from_numpy(samples["x"])
         t = torch.from_numpy(_targets(samples))
         order = torch.from_numpy(rng.permutation(len(t)))
@@ -289,7 +270,42 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
     with torch.no_grad():
         temperature = _fit_temperature(model.logits(xv), tv)
         model.temperature.fill_(temperature)
-    train_s = time.perf_counter() - t0
+    return {"model": model, "training_s": time.perf_counter() - t0, "epochs": epoch, "best_epoch": best[2],
+            "validation_loss": best[0], "temperature": temperature,
+            "parameters": int(sum(p.numel() for p in model.net.parameters())), "first_samples": train0}
+
+
+def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cache_dir=None, use_cache: bool = True,
+          progress: bool = False, log=print) -> TrainResult:
+    """Run the recipe of the module docstring; returns the model, the report and the test inputs."""
+    cfg = config or TrainConfig()
+    prior = prior or Prior()
+    spec = load_spec(cfg.spec)
+    rule = make_rule(prior.identifiability_epsilon, cfg.min_probability)
+    say = log or (lambda *a, **k: None)
+
+    # 1. data
+    t_sim = 0.0
+    n_sim_samples = 0
+    data: dict[str, Dataset] = {}
+    for split, draws in (("train", cfg.draws_train), ("validation", cfg.draws_validation), ("test", cfg.draws_test)):
+        ds = make_dataset(spec, prior, seed=cfg.seed, split=split, draws=draws, trials_per_draw=cfg.trials_per_draw,
+                          replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance, cache_dir=cache_dir, use_cache=use_cache,
+                          progress=progress)
+        data[split] = ds
+        t_sim += ds.meta["elapsed_s"]
+        n_sim_samples += draws * cfg.trials_per_draw
+        say(f"{split}: {len(ds)} samples from {draws} draws ({'cache' if ds.meta['from_cache'] else 'simulated'}, "
+            f"{ds.meta['seconds_per_draw']:.3f} s/draw); ground truth per draw: {ds.meta['draw_status_counts']}")
+
+    liv_cols = [i for i, (m, _) in enumerate(spec.features) if m == "liv"]
+    n_feat = spec.n_features
+
+    # 4. network
+    fit = fit_network(data["train"], data["validation"], spec, cfg, progress=progress)
+    model, train0, epoch, temperature = fit["model"], fit["first_samples"], fit["epochs"], fit["temperature"]
+    best = (fit["validation_loss"], None, fit["best_epoch"])
+    train_s = fit["training_s"]
     say(f"network: {epoch} epochs (best {best[2]}, validation loss {best[0]:.4f}), temperature {temperature:.3f}, "
         f"{train_s:.1f} s")
 
