@@ -104,7 +104,7 @@ def bench_simulate(*, trials: int = 1024, dtype: str = "float32", repeats: int =
 
 
 def format_simulate_table(result: dict[str, Any]) -> str:
-    lines = [f"| system | motion | scatterers/trial | ms/trial | trials/s | evaluations/s |",
+    lines = ["| system | motion | scatterers/trial | ms/trial | trials/s | evaluations/s |",
              "|---|---|---:|---:|---:|---:|"]
     for r in result["cells"]:
         lines.append(f"| {r['system']} | {r['motion']} | {r['scatterers_per_trial']:.0f} | "

@@ -66,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name in _EXTENSIONS:
         if importlib.util.find_spec(f"{__package__}.{name}") is not None:
             importlib.import_module(f"{__package__}.{name}").register(sub, bsub)
+    p.bench_subparsers = bsub  # read by `bench all`
     return p
 
 
@@ -167,9 +168,7 @@ def _bench_all(args) -> int:
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     quick = {"simulate": ["--trials", "256"], "tradeoffs": ["--quick"], "render": ["--repeats", "1"]}
-    parser = build_parser()
-    bench_sub = next(a for a in parser._subparsers._group_actions[0].choices["bench"]._actions
-                     if isinstance(a, argparse._SubParsersAction))
+    bench_sub = build_parser().bench_subparsers
     names = [n for n in bench_sub.choices if n != "all"]
     failed = []
     for name in names:

@@ -590,16 +590,21 @@ def scene_from_dict(data: dict[str, Any]) -> Scene:
                  analysis=analysis, simulation=simulation, name=name, description=desc)
 
 
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """The tables of a TOML file; a syntax error is a :class:`SceneError` naming the file."""
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as err:
+        raise SceneError(f"{path}: not valid TOML: {err}") from None
+
+
 def load_scene(path: str | Path) -> Scene:
     """Read and validate a TOML scene file, or a shipped scene by name (see :func:`torchdoct.scenes`)."""
     from .scenes import resolve_scene_path
 
     p = resolve_scene_path(path)
-    try:
-        with open(p, "rb") as fh:
-            data = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as err:
-        raise SceneError(f"{p}: not valid TOML: {err}") from None
+    data = read_toml(p)
     try:
         scene = scene_from_dict(data)
     except (SceneError, TypeError) as err:

@@ -21,7 +21,6 @@ stream; a diffusing core keeps its density). Ground-truth labels are the region 
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -29,7 +28,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from .config import Population, Scene, SceneError, _check_keys, _fail, _integer, _number, _string, scene_from_dict
+from .config import (Population, Scene, SceneError, _check_keys, _fail, _integer, _number, _string, read_toml,
+                     scene_from_dict)
 
 __all__ = ["Grid", "Region", "Phantom", "load_phantom", "phantom_from_dict", "shipped_phantoms",
            "MOTION_CODES", "motion_code"]
@@ -453,11 +453,7 @@ def load_phantom(path: str | Path, *, grid: dict[str, Any] | None = None) -> Pha
             raise FileNotFoundError(f"phantom file {str(path)!r} not found; give a path to a .toml phantom "
                                     f"or scene file, or the name of a shipped phantom "
                                     f"({', '.join(shipped)}) or scene ({', '.join(scenes)})")
-    try:
-        with open(p, "rb") as fh:
-            data = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as err:
-        raise SceneError(f"{p}: not valid TOML: {err}") from None
+    data = read_toml(p)
     if grid is not None:
         data["grid"] = dict(grid)
     try:

@@ -49,8 +49,8 @@ import torch
 from .config import Population
 from .conventions import (amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
                           truncation_half_widths_um, wavenumber_per_um)
-from .phantom import MOTION_CODES, Phantom, motion_code
-from .simulate import MemoryLimitError, available_memory_bytes, unit_directions
+from .phantom import MOTION_CODES, Phantom
+from .simulate import MemoryLimitError, available_memory_bytes, seeded_generator, unit_directions
 
 __all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS"]
 
@@ -61,11 +61,6 @@ _TWO_PI = 2.0 * math.pi
 DIFFUSION_REACH_SIGMAS = 5.0
 #: Complex PSF-window elements per splat chunk (bounds the temporary memory to ~64 MB).
 _SPLAT_ELEMENTS = 1 << 22
-
-
-def _generator(seed: int, *key: int) -> torch.Generator:
-    state = np.random.SeedSequence(entropy=int(seed), spawn_key=tuple(int(k) for k in key)).generate_state(2, np.uint32)
-    return torch.Generator().manual_seed((int(state[0]) << 31) ^ int(state[1]))
 
 
 def _complex_of(dtype: torch.dtype) -> torch.dtype:
@@ -188,7 +183,7 @@ def _seed_population(phantom: Phantom, index: int, region: int | None, half: tup
     pop = phantom.scene.populations[index]
     grid = phantom.grid
     reach = _reach_um(pop, duration_s)
-    gen = _generator(seed, index)
+    gen = seeded_generator(seed, index)
     lo, hi = [], []
     bounds = phantom.regions[region].bounds_um() if region is not None else None
     for a, ax in enumerate("xyz"):
@@ -421,7 +416,7 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
             i_ref = max(mean_intensity(p.density_per_um3, sysobj.lateral_resolution_um,
                                        sysobj.axial_resolution_um, p.reflectivity) for p in scene.populations)
             sigma = math.sqrt(i_ref / 10.0 ** (scene.noise.snr_db / 10.0) / 2.0)
-            g = _generator(seed, 1 << 20, all_names.index(o.name))
+            g = seeded_generator(seed, 1 << 20, all_names.index(o.name))
             noise = torch.randn(T, n_pix, 2, generator=g, dtype=_F64).to(dtype) * sigma
             data[k] += torch.complex(noise[..., 0], noise[..., 1]).to(device)
     else:

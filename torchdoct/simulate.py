@@ -34,7 +34,7 @@ from .config import Population, Scene
 from .conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, wavenumber_per_um
 from .plan import BLOCK_TRIALS, Plan, PopulationPlan, face_immigrant_mean, make_plan
 
-__all__ = ["simulate", "SimulationResult", "CapacityError", "MemoryLimitError", "block_generator",
+__all__ = ["simulate", "SimulationResult", "CapacityError", "MemoryLimitError", "block_generator", "seeded_generator",
            "chunk_bytes", "available_memory_bytes", "unit_directions"]
 
 _F64 = torch.float64
@@ -47,12 +47,17 @@ class CapacityError(RuntimeError):
     """A Poisson count exceeded its reserved slots (probability < 1e-20 per draw)."""
 
 
-def block_generator(seed: int, block: int) -> torch.Generator:
-    """The random stream of trials ``64·block … 64·block + 63`` for ``seed``."""
-    state = np.random.SeedSequence(entropy=int(seed), spawn_key=(int(block),)).generate_state(2, np.uint32)
+def seeded_generator(seed: int, *key: int) -> torch.Generator:
+    """A CPU ``torch.Generator`` whose stream is derived from ``seed`` and the integer ``key`` path."""
+    state = np.random.SeedSequence(entropy=int(seed), spawn_key=tuple(int(k) for k in key)).generate_state(2, np.uint32)
     g = torch.Generator(device="cpu")
     g.manual_seed((int(state[0]) << 31) ^ int(state[1]))
     return g
+
+
+def block_generator(seed: int, block: int) -> torch.Generator:
+    """The random stream of trials ``64·block … 64·block + 63`` for ``seed``."""
+    return seeded_generator(seed, block)
 
 
 class _Draws:
@@ -621,12 +626,15 @@ class MemoryLimitError(ValueError):
 _BYTES_PER_ELEMENT = 40
 
 
+def _working_elements_per_trial(plan: Plan) -> float:
+    """Largest working tensor of one trial (elements): the slots of the biggest population."""
+    return max(3 * (p.capacity + p.entry_capacity + p.entry_proposal_capacity + p.immigrant_proposal_capacity)
+               + (p.evaluations_per_trial if p.sampler == "drift" else 0) for p in plan.populations)
+
+
 def chunk_bytes(plan: Plan, chunk_trials: int, n_systems: int, n_frames: int) -> int:
     """Estimated peak working memory (bytes) of one chunk of ``chunk_trials`` trials."""
-    per_trial = max(3 * (p.capacity + p.entry_capacity + p.entry_proposal_capacity
-                         + p.immigrant_proposal_capacity)
-                    + (p.evaluations_per_trial if p.sampler == "drift" else 0) for p in plan.populations)
-    per_trial += 4 * n_systems * n_frames
+    per_trial = _working_elements_per_trial(plan) + 4 * n_systems * n_frames
     return int(per_trial * chunk_trials * _BYTES_PER_ELEMENT)
 
 
@@ -739,9 +747,7 @@ def simulate(
     n_blocks = -(-trials // BLOCK_TRIALS)
     if chunk_trials is None:
         # keep a chunk's largest working tensors near 8M elements
-        per_trial = max(max(3 * (p.capacity + p.entry_capacity + p.entry_proposal_capacity
-                                 + p.immigrant_proposal_capacity) + (p.evaluations_per_trial
-                                 if p.sampler == "drift" else 0) for p in plan.populations), 1)
+        per_trial = max(_working_elements_per_trial(plan), 1)
         chunk_blocks = max(1, min(16, int((1 << 23) // (BLOCK_TRIALS * per_trial))))
     else:
         if chunk_trials < 1:

@@ -48,7 +48,6 @@ import json
 import math
 import os
 import time
-import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -56,7 +55,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .config import SceneError, scene_from_dict
+from .config import SceneError, read_toml, scene_from_dict
 from .sweep import (
     SweepResult,
     field_values,
@@ -202,11 +201,7 @@ def _resolve(study: str | os.PathLike) -> Path:
 def load_study(study: str | os.PathLike) -> Study:
     """Read and validate a study file, or a shipped study by name (``paper``, ``paper-reduced``)."""
     p = _resolve(study)
-    try:
-        with open(p, "rb") as fh:
-            data = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as err:
-        raise SceneError(f"{p.name}: not valid TOML: {err}") from None
+    data = read_toml(p)
     try:
         return study_from_dict(data, default_name=p.stem)
     except (SceneError, TypeError) as err:

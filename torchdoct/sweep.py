@@ -59,7 +59,6 @@ import json
 import math
 import os
 import time
-import tomllib
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,7 +66,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from .config import Scene, SceneError, scene_from_dict
+from .config import Scene, SceneError, read_toml, scene_from_dict
 
 __all__ = [
     "SCALAR_METRICS",
@@ -431,11 +430,7 @@ def load_sweep(path: str | os.PathLike) -> Sweep:
     if not p.is_file():
         raise FileNotFoundError(f"sweep file {str(path)!r} not found; give the path of a .toml scene file "
                                 "with a [sweep] table")
-    try:
-        with open(p, "rb") as fh:
-            data = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as err:
-        raise SceneError(f"{p.name}: not valid TOML: {err}") from None
+    data = read_toml(p)
     try:
         sweep = parse_sweep(data, source=p.name)
     except (SceneError, TypeError) as err:

@@ -195,9 +195,7 @@ def combined_front(result: dict[str, Any]) -> dict[str, Any]:
                 "time_s": sum(p[k]["time_s"] for p in per_cell),
                 "error": max(p[k]["error"] for p in per_cell)} for k in sorted(keys)]
     front = pareto_front(choices)
-    n_def = min({k[2] for k in keys}, key=lambda n: abs(n - DEFAULTS["trials"]))
-    d = next(c for c in choices if c["tolerance"] == DEFAULTS["truncation_tolerance"]
-             and c["dtype"] == DEFAULTS["dtype"] and c["trials"] == n_def)
+    d = _defaults_choice(choices)
     return {"front": front, "defaults": d, "defaults_on_front": any(c is d for c in front)}
 
 
@@ -230,12 +228,17 @@ def pareto_front(choices: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return front
 
 
+def _defaults_choice(choices: list[dict[str, Any]]) -> dict[str, Any]:
+    """The choice of the shipped defaults (the measured trial count nearest to the default's)."""
+    n = min({c["trials"] for c in choices}, key=lambda n: abs(n - DEFAULTS["trials"]))
+    return next(c for c in choices if c["tolerance"] == DEFAULTS["truncation_tolerance"]
+                and c["dtype"] == DEFAULTS["dtype"] and c["trials"] == n)
+
+
 def recommend(choices: list[dict[str, Any]], cell: dict[str, Any]) -> dict[str, Any]:
     """For the error of the shipped defaults, the cheapest choice on the front, and where the defaults sit."""
     front = pareto_front(choices)
-    d = next(c for c in choices if c["tolerance"] == DEFAULTS["truncation_tolerance"]
-             and c["dtype"] == DEFAULTS["dtype"] and c["trials"] == min(
-                 {x["trials"] for x in choices}, key=lambda n: abs(n - DEFAULTS["trials"])))
+    d = _defaults_choice(choices)
     cheapest = min((c for c in choices if c["error"] <= d["error"] * 1.02), key=lambda c: c["time_s"])
     on_front = any(c is d for c in front) or (d["time_s"] <= cheapest["time_s"] * 1.10)
     return {"defaults": d, "cheapest_at_same_error": cheapest, "defaults_on_front": bool(on_front),
