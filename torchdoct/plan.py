@@ -15,7 +15,14 @@ Domains (lengths µm, times s; PSF truncation as in :mod:`torchdoct.conventions`
   during the protocol: the scatterers in ``B`` at the first frame plus those entering through its
   faces, a Poisson flux ``ρ·(−v·m)₊`` per unit area and time (``m`` the outward face normal).
   Exact: a path that never meets ``B`` never comes closer than the tolerance.
-* diffusive populations: scatterers are tracked frame by frame in the region ``R = B ⊕ M``,
+* pure diffusion: scatterers walk on a periodic cell ``Ω ⊇ B`` (a scatterer leaving one face
+  re-enters through the opposite one), so the count and the uniform Poisson law hold exactly at every
+  frame and nothing is drawn but the steps. The only approximation is that a scatterer that travels
+  once around the cell meets its own earlier contribution; :func:`periodic_image_bound` gives the
+  largest such spurious share of any two-frame correlation of the field (relative to ⟨I⟩) or of
+  the intensity (relative to ⟨I⟩²), and :func:`periodic_cell` grows ``Ω`` beyond ``B`` until it is
+  below :func:`wrap_tolerance` (``max(tolerance/10, 1e-5)``: 1e-3 at the default tolerance).
+* diffusion with drift: scatterers are tracked frame by frame in the region ``R = B ⊕ M``,
   ``M = c·σ_step + v_max·Δt`` (``σ_step = √(2·D·Δt_max)``), which a scatterer outside ``R`` cannot
   cross into ``B`` within one frame except with probability below the tolerance; at each frame
   immigrants from the shell around ``R`` are drawn from the Poisson medium outside it.
@@ -34,14 +41,18 @@ from .config import Population, Scene
 from .conventions import (
     ens_paper,
     mean_intensity,
+    wavenumber_per_um,
     n_eff,
+    amplitude_sigma_axial_um,
+    amplitude_sigma_lateral_um,
     psf_integral_um3,
     truncation_error_bound,
     truncation_half_widths_um,
     truncation_radius_factor,
 )
 
-__all__ = ["PopulationPlan", "SystemPlan", "Plan", "make_plan", "capacity"]
+__all__ = ["PopulationPlan", "SystemPlan", "Plan", "make_plan", "capacity", "periodic_cell",
+           "periodic_image_bound", "wrap_tolerance"]
 
 #: Trials per reproducibility block: trial ``i`` draws its randomness from the stream of block
 #: ``i // BLOCK_TRIALS``, seeded from (seed, block index), so results never depend on chunking.
@@ -108,13 +119,93 @@ def _groups(halfs: list[tuple[float, float, float]]) -> list[tuple[tuple[float, 
     return [(h, tuple(idx)) for h, idx in out.items()]
 
 
-def face_immigrant_mean(rho: float, sigma_um: float, inner: tuple[float, float, float]) -> float:
-    """Expected proposals per frame of the face immigrant sampler (pure diffusion).
+def wrap_tolerance(tolerance: float) -> float:
+    """Largest spurious share of a two-frame correlation the periodic cell may add: ``max(tol/10, 1e-5)``."""
+    return max(tolerance / 10.0, 1e-5)
 
-    Sources crossing one face plane inward per step: ``ρ·σ/√(2π)`` per unit area, over the six faces.
+
+def _bound_lags(times_s: tuple[float, ...]) -> np.ndarray:
+    """Delays (s) at which the periodic-image bound is evaluated: a dense grid over [shortest, longest]
+    delay of the protocol (the bound is smooth in the delay, so its maximum over the grid is its
+    maximum over the protocol's delays to within the grid spacing)."""
+    t = np.asarray(times_s, dtype=float)
+    d_min = float(np.min(np.diff(t)))
+    d_max = float(t[-1] - t[0])
+    return np.unique(np.concatenate([np.geomspace(d_min, d_max, 256), np.linspace(d_min, d_max, 256)]))
+
+
+def periodic_image_bound(half_widths_um, optics, diffusion_um2_per_s: float, lags_s,
+                         w_intensity: float, w_field: float) -> float:
+    """Largest spurious share of a two-frame correlation from a periodic cell (pure diffusion).
+
+    A scatterer displaced by ``Δ`` (Gaussian, variance ``2·D·τ`` per axis after delay τ) is evaluated
+    at ``Δ`` wrapped into the cell of side ``L = 2·half_widths``; the wrong images ``Δ − n·L``
+    (``n ≠ 0``) add to the same-scatterer terms of the two-frame moments (physics.md §5). With the
+    untruncated Gaussian PSF of amplitude widths ``s_a`` (:mod:`torchdoct.conventions`):
+
+    * intensity, relative to ⟨I⟩²: ``w_I·[Π_a Σ_k N(k·L_a; 0, s_a² + 2Dτ) − Π_a N(0; 0, s_a² + 2Dτ)]``,
+      ``w_I = ρ_p·b_p⁴/(Σ_i ρ_i·b_i²)²`` (``1/ρ`` for one population);
+    * field, relative to ⟨I⟩: ``w_F·[Π_a Σ_k |F_a(k)| − Π_a F_a(0)]`` with
+      ``F_a(k) = √(2s_a²/W_a)·exp(−(k·L_a)²/(2·W_a))``, ``W_a = 2s_a² + 2Dτ``, times
+      ``exp(−q²·v_p/2)``, ``v_p = 2Dτ·2s_z²/W_z``, on the depth axis (``q = 2kn``, the phase
+      decorrelation); ``w_F = ρ_p·b_p²/Σ_i ρ_i·b_i²``.
+
+    ``optics``: one ``(s_x, s_z, q)`` per system (µm, µm, rad/µm). Returns the maximum over the
+    systems, the delays ``lags_s`` (s) and both terms.
     """
-    area = sum(2.0 * 4.0 * inner[b] * inner[c] for a in range(3) for b, c in [[i for i in range(3) if i != a]])
-    return rho * sigma_um / math.sqrt(2.0 * math.pi) * area
+    L = 2.0 * np.asarray(half_widths_um, dtype=float)
+    v = 2.0 * diffusion_um2_per_s * np.asarray(lags_s, dtype=float)
+    worst = 0.0
+    for s_x, s_z, q in optics:
+        i_all = np.ones_like(v)
+        i_0 = np.ones_like(v)
+        f_all = np.ones_like(v)
+        f_0 = np.ones_like(v)
+        for a, s in enumerate((s_x, s_x, s_z)):
+            s2 = s * s + v
+            w = 2.0 * s * s + v
+            kmax = int(math.ceil(12.0 * math.sqrt(float(w.max())) / L[a])) + 1
+            k = np.arange(-kmax, kmax + 1, dtype=float)[None, :]
+            g = np.exp(-(k * L[a]) ** 2 / (2.0 * s2[:, None])) / np.sqrt(2.0 * np.pi * s2[:, None])
+            i_all *= g.sum(1)
+            i_0 *= g[:, kmax]
+            f = np.sqrt(2.0 * s * s / w)[:, None] * np.exp(-(k * L[a]) ** 2 / (2.0 * w[:, None]))
+            if a == 2:
+                f = f * np.exp(-0.5 * q * q * v * 2.0 * s * s / w)[:, None]
+            f_all *= f.sum(1)
+            f_0 *= f[:, kmax]
+        worst = max(worst, float(np.max(w_intensity * (i_all - i_0))), float(np.max(w_field * (f_all - f_0))))
+    return worst
+
+
+def periodic_cell(psf_half_widths_um, optics, diffusion_um2_per_s: float, times_s, w_intensity: float,
+                  w_field: float, target: float) -> tuple[tuple[float, float, float], float]:
+    """The smallest cell ``B + g`` (``g ≥ 0`` µm added to every half-width) whose
+    :func:`periodic_image_bound` over the protocol's delays is at most ``target``; returns the cell's
+    half-widths (µm) and its bound."""
+    lags = _bound_lags(times_s)
+    H = tuple(float(h) for h in psf_half_widths_um)
+
+    def bound(g: float) -> float:
+        return periodic_image_bound([h + g for h in H], optics, diffusion_um2_per_s, lags, w_intensity, w_field)
+
+    if bound(0.0) <= target:
+        return H, bound(0.0)
+    lo, hi = 0.0, max(H)
+    while bound(hi) > target:
+        lo, hi = hi, 2.0 * hi
+        if hi > 1e7:
+            raise ValueError("no periodic cell reaches the wrap tolerance (raise the truncation tolerance)")
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if bound(mid) > target:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 1e-3 * hi:
+            break
+    cell = tuple(h + hi for h in H)
+    return cell, bound(hi)
 
 
 @dataclass(frozen=True)
@@ -138,8 +229,9 @@ class PopulationPlan:
     # per-system culling (static, drift): one entry per group of systems sharing a PSF box:
     # (half-widths µm, system indices, expected scatterers per trial, capacity)
     system_groups: tuple = ()
-    # diffusive
+    # diffusive: "periodic" (pure diffusion) or "shell" (diffusion with drift)
     immigrant_method: str = ""
+    wrap_error_bound: float = 0.0
     step_margin_um: float = 0.0
     immigrant_shell_half_widths_um: tuple[float, float, float] = (0.0, 0.0, 0.0)
     immigrant_proposal_capacity: int = 0
@@ -206,9 +298,12 @@ class Plan:
             h = p.domain_half_widths_um
             lines.append(f"  [{p.index}] {p.name or '-'}: {p.sampler} ({', '.join(p.motions) or 'no motion'}), "
                          f"ρ = {p.density_per_um3:g} µm⁻³")
-            if p.sampler == "diffusive":
+            if p.immigrant_method == "periodic":
+                lines.append(f"      random walk on a periodic cell = PSF box + {p.step_margin_um:.2f} µm per side "
+                             f"(wrap-around adds <= {p.wrap_error_bound:.2g} to any two-frame correlation)")
+            elif p.sampler == "diffusive":
                 lines.append(f"      random walk, tracked region = PSF box + {p.step_margin_um:.2f} µm per side, "
-                             f"immigrants drawn by the {p.immigrant_method} sampler")
+                             f"immigrants drawn from the surrounding shell")
             if len(p.system_groups) > 1:
                 lines.append("      each system evaluates only the scatterers that reach its own PSF box")
             lines.append(f"      domain ±({h[0]:.2f}, {h[1]:.2f}, {h[2]:.2f}) µm, "
@@ -285,6 +380,19 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Pla
                                        evals, system_groups=tuple(groups), entry_proposal_rate_per_s=prop_rate,
                                        entry_proposal_capacity=capacity(prop_rate * T) if moving else 0,
                                        entry_capacity=capacity(flux * T) if moving else 0))
+        elif p.max_speed_um_per_s == 0:
+            D = p.diffusion_um2_per_s
+            mean_b2 = sum(q.density_per_um3 * q.reflectivity**2 for q in scene.populations)
+            w_int = rho * p.reflectivity**4 / mean_b2**2
+            w_field = rho * p.reflectivity**2 / mean_b2
+            optics = [(amplitude_sigma_lateral_um(s.lateral_resolution_um), amplitude_sigma_axial_um(s.axial_resolution_um),
+                       2.0 * wavenumber_per_um(s.wavelength_um, s.refractive_index)) for s in scene.systems]
+            cell, bound = periodic_cell(H, optics, D, protocol.times_s, w_int, w_field, wrap_tolerance(tol))
+            n = rho * _box_volume(cell)
+            evals = n * n_frames * S  # every scatterer of the cell, every frame, every system
+            pops.append(PopulationPlan(i, p.name, "diffusive", motions, rho, cell, n, capacity(n), True, evals,
+                                       immigrant_method="periodic", step_margin_um=cell[0] - H[0],
+                                       wrap_error_bound=bound))
         else:
             D = p.diffusion_um2_per_s
             dtm = protocol.max_interval_s
@@ -293,14 +401,9 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Pla
             R = tuple(h + margin for h in H)
             outer = tuple(r + margin for r in R)
             n = rho * _box_volume(R)
-            if p.max_speed_um_per_s > 0:
-                method = "shell"
-                n_prop = rho * (_box_volume(outer) - _box_volume(R))
-            else:
-                method = "faces"
-                n_prop = face_immigrant_mean(rho, sigma, R)
+            n_prop = rho * (_box_volume(outer) - _box_volume(R))
             pops.append(PopulationPlan(i, p.name, "diffusive", motions, rho, R, n, capacity(n), True,
-                                       n * n_frames * S, immigrant_method=method, step_margin_um=margin,
+                                       n * n_frames * S, immigrant_method="shell", step_margin_um=margin,
                                        immigrant_shell_half_widths_um=outer,
                                        immigrant_proposal_capacity=capacity(n_prop)))
     kinds = {p.sampler for p in pops}
