@@ -11,10 +11,13 @@ Domains (lengths µm, times s; PSF truncation as in :mod:`torchdoct.conventions`
   over the scene's systems (all systems see the same scatterers).
 * static populations: Poisson scatterers in ``B``, one evaluation per scatterer (the signal is
   constant over frames).
-* drift populations (ballistic and/or flow, no diffusion): every straight path that meets ``B``
-  during the protocol: the scatterers in ``B`` at the first frame plus those entering through its
-  faces, a Poisson flux ``ρ·(−v·m)₊`` per unit area and time (``m`` the outward face normal).
-  Exact: a path that never meets ``B`` never comes closer than the tolerance.
+* drift populations (ballistic and/or flow, no diffusion): every straight path that meets the
+  tolerance ellipsoid ``E`` (semi-axes ``H``, inscribed in ``B``: the region where the amplitude PSF
+  exceeds the tolerance) during the protocol: the scatterers inside ``E`` at the first frame plus
+  those entering it. In coordinates scaled by ``H`` the ellipsoid is the unit ball, a velocity ``v``
+  becomes ``w = v/H`` and the Poisson density ``ρ·Hx·Hy·Hz``, so paths of velocity ``v`` enter at
+  the rate ``ρ·Hx·Hy·Hz·π·|w|`` with a uniform impact point on the disk across ``w``. Exact: a path
+  that never meets ``E`` never exceeds the tolerance, and every path sampled does.
 * pure diffusion: scatterers walk on a periodic cell ``Ω ⊇ B`` (a scatterer leaving one face
   re-enters through the opposite one), so the count and the uniform Poisson law hold exactly at every
   frame and nothing is drawn but the steps. The only approximation is that a scatterer that travels
@@ -45,7 +48,6 @@ from .conventions import (
     n_eff,
     amplitude_sigma_axial_um,
     amplitude_sigma_lateral_um,
-    psf_integral_um3,
     truncation_error_bound,
     truncation_half_widths_um,
     truncation_radius_factor,
@@ -81,34 +83,38 @@ def _face_areas(h: tuple[float, float, float]) -> list[tuple[int, float]]:
     return out
 
 
-def expected_entry_flux(pop: Population, h: tuple[float, float, float], n_samples: int = 200_000) -> float:
-    """Expected number of paths entering box ``h`` per unit time: ``ρ Σ_f A_f E[(−v·m_f)₊]``.
-
-    The expectation over the velocity law is taken with a fixed-seed quadrature sample (a plan
-    figure, not used by the simulation).
-    """
+def _velocity_sample(pop: Population, n_samples: int = 200_000) -> np.ndarray:
+    """A fixed-seed sample [n, 3] of the population's drift velocity law (µm/s), for plan figures."""
     rng = np.random.default_rng(12345)
     v = np.tile(np.asarray(pop.flow_velocity_um_per_s, dtype=float), (n_samples, 1))
     for b in pop.ballistic:
         u1, u2 = rng.random(n_samples), rng.random(n_samples)
-        if b.directions == "isotropic":
-            mu = 2 * u1 - 1
-        else:
-            mu = np.cos(np.pi * u1)
+        mu = 2 * u1 - 1 if b.directions == "isotropic" else np.cos(np.pi * u1)
         st = np.sqrt(np.clip(1 - mu * mu, 0, None))
         phi = 2 * np.pi * u2
         v += b.speed_um_per_s * np.stack([st * np.cos(phi), st * np.sin(phi), mu], axis=1)
-    flux = 0.0
-    for a, area in _face_areas(h):
-        # both faces: E[(v_a)_-] + E[(v_a)_+] = E|v_a|
-        flux += area * float(np.mean(np.abs(v[:, a])))
-    return pop.density_per_um3 * flux
+    return v
 
 
-def _ellipsoid_volume(system, c: float) -> float:
-    """Volume (µm³) where the amplitude PSF exceeds the tolerance: (4π/3)·c³·s_x²·s_z = 4c³/(3√π)·∫|h|²."""
-    return 4.0 * c**3 / (3.0 * math.sqrt(math.pi)) * psf_integral_um3(system.lateral_resolution_um,
-                                                                       system.axial_resolution_um)
+def expected_entry_flux(pop: Population, h: tuple[float, float, float]) -> float:
+    """Expected number of paths entering box ``h`` per unit time: ``ρ Σ_f A_f E[(−v·m_f)₊]``
+    (expectation over a fixed-seed sample of the velocity law; a plan figure)."""
+    v = _velocity_sample(pop)
+    # both faces normal to axis a: E[(v_a)_-] + E[(v_a)_+] = E|v_a|
+    return pop.density_per_um3 * sum(area * float(np.mean(np.abs(v[:, a]))) for a, area in _face_areas(h))
+
+
+def ellipsoid_entry_rate(pop: Population, h: tuple[float, float, float]) -> float:
+    """Expected number of paths entering the ellipsoid of semi-axes ``h`` per unit time:
+    ``ρ·π·hx·hy·hz·E|v/h|`` (see the module docstring; expectation over a fixed-seed sample)."""
+    w = np.linalg.norm(_velocity_sample(pop) / np.asarray(h, dtype=float), axis=1)
+    return pop.density_per_um3 * math.pi * math.prod(h) * float(np.mean(w))
+
+
+def ellipsoid_entry_bound(pop: Population, h: tuple[float, float, float]) -> float:
+    """Upper bound on ``|v/h|`` over the velocity law (µm/s over µm): the proposal rate of entrants."""
+    flow = math.sqrt(sum((f / x) ** 2 for f, x in zip(pop.flow_velocity_um_per_s, h)))
+    return flow + sum(b.speed_um_per_s for b in pop.ballistic) / min(h)
 
 
 def _groups(halfs: list[tuple[float, float, float]]) -> list[tuple[tuple[float, float, float], tuple[int, ...]]]:
@@ -304,6 +310,9 @@ class Plan:
             elif p.sampler == "diffusive":
                 lines.append(f"      random walk, tracked region = PSF box + {p.step_margin_um:.2f} µm per side, "
                              f"immigrants drawn from the surrounding shell")
+            if p.sampler == "drift":
+                lines.append("      straight paths that meet the tolerance ellipsoid (semi-axes = the PSF box "
+                             "half-widths) during the protocol")
             if len(p.system_groups) > 1:
                 lines.append("      each system evaluates only the scatterers that reach its own PSF box")
             lines.append(f"      domain ±({h[0]:.2f}, {h[1]:.2f}, {h[2]:.2f}) µm, "
@@ -362,20 +371,18 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Pla
             pops.append(PopulationPlan(i, p.name, "static", motions, rho, H, n, capacity(n), False, evals,
                                        system_groups=groups))
         elif kind == "drift":
-            n0 = rho * _box_volume(H)
-            flux = expected_entry_flux(p, H)
-            vmax = p.max_speed_um_per_s
-            # entrant proposals: velocities kept with probability Φ(v)/(v_max·√ΣA²) (simulate.py)
-            prop_rate = rho * vmax * math.sqrt(sum(a * a for _, a in _face_areas(H)))
+            n0 = rho * 4.0 * math.pi / 3.0 * math.prod(H)
+            flux = ellipsoid_entry_rate(p, H)
+            prop_rate = rho * math.pi * math.prod(H) * ellipsoid_entry_bound(p, H)
             n = n0 + flux * T
-            moving = vmax > 0 and T > 0
+            moving = p.max_speed_um_per_s > 0 and T > 0
             groups = []
             for h, idx in _groups(halfs):
-                ng = rho * _box_volume(h) + (expected_entry_flux(p, h) * T if h != H else flux * T)
+                ng = n if h == H else rho * _box_volume(h) + expected_entry_flux(p, h) * T
                 groups.append((h, idx, ng, capacity(ng)))
-            # only (scatterer, frame) pairs above the tolerance are evaluated: by stationarity their
-            # expected number is ρ·(ellipsoid volume)·frames per system
-            evals = sum(rho * _ellipsoid_volume(sy, c) for sy in scene.systems) * n_frames
+            # every sampled path is evaluated at every frame of its group's systems (amplitudes below
+            # the tolerance are set to 0)
+            evals = sum(g[2] * len(g[1]) for g in groups) * n_frames
             pops.append(PopulationPlan(i, p.name, "drift", motions, rho, H, n, capacity(n0), False,
                                        evals, system_groups=tuple(groups), entry_proposal_rate_per_s=prop_rate,
                                        entry_proposal_capacity=capacity(prop_rate * T) if moving else 0,

@@ -444,49 +444,55 @@ def _simulate_static(pp: PopulationPlan, pop: Population, draws: _Draws, times, 
     return _eval_culled(pp, pop, pos, None, None, times, optics, dtype, plan)
 
 
+def _unit_ball(draws: _Draws, n: int) -> torch.Tensor:
+    """Points uniform in the unit ball, [N, n, 3]: an isotropic direction at radius ``U^(1/3)``."""
+    u = draws.rand(n, 3)
+    return unit_directions(u[..., :2], "isotropic") * u[..., 2:].pow(1.0 / 3.0)
+
+
 def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
-    H = pp.domain_half_widths_um
-    rho = pp.density_per_um3
-    n0_mean = rho * 8.0 * H[0] * H[1] * H[2]
+    """Straight paths that meet the tolerance ellipsoid during the protocol (see :mod:`torchdoct.plan`)."""
+    H = torch.tensor(pp.domain_half_widths_um, dtype=_F64, device=draws.device)
+    n0_mean = 4.0 * math.pi / 3.0 * pp.density_per_um3 * math.prod(pp.domain_half_widths_um)
     n0 = draws.poisson(n0_mean, pp.capacity, f"population {pp.index} count")
-    p0, _ = _uniform_box(draws, n0, pp.capacity, H)
+    valid0 = torch.arange(pp.capacity, device=draws.device)[None, :] < n0[:, None]
+    p0 = torch.where(valid0[..., None], _unit_ball(draws, pp.capacity) * H, _FAR)
     v0 = _velocities(pop, draws, pp.capacity)
     N = p0.shape[0]
     t0 = torch.zeros(N, pp.capacity, dtype=_F64, device=draws.device)
-    T = float(times[-1])
     if pp.entry_proposal_capacity == 0:
         return _eval_culled(pp, pop, p0, v0, t0, times, optics, dtype, plan)
-    # Entrants through the faces of the box form a Poisson process of intensity
-    # ρ·p(v)·A_f·(−v·m_f)₊ over (velocity, face, point, time). Per velocity the entering flux is
-    # Φ(v) = Σ_a A_a·|v_a| ≤ v_max·√(Σ A_a²), so velocities are drawn from p(v) and kept with
-    # probability Φ(v)/(v_max·√ΣA²); the entry face is then axis a with probability A_a·|v_a|/Φ(v)
-    # on the side facing −v, with a uniform point on it and a uniform entry time.
+    # Entrants: in coordinates scaled by H the ellipsoid is the unit ball and a path of velocity v
+    # has velocity w = v/H; such paths enter at the rate ρ·Hx·Hy·Hz·π·|w|. Velocities are drawn from
+    # the law and kept with probability |w|/w_max; the impact point is uniform on the unit disk
+    # across w, the entry point where that line meets the sphere on its way in, the time uniform.
     P = pp.entry_proposal_capacity
-    dev = draws.device
-    vmax = pop.max_speed_um_per_s
+    E = pp.entry_capacity
+    T = float(times[-1])
+    w_max = pp.entry_proposal_rate_per_s / (pp.density_per_um3 * math.pi * math.prod(pp.domain_half_widths_um))
     n_prop = draws.poisson(pp.entry_proposal_rate_per_s * T, P, f"population {pp.index} entrants")
-    h = torch.tensor(H, dtype=_F64, device=dev)
-    areas = torch.tensor([H[1] * H[2], H[0] * H[2], H[0] * H[1]], dtype=_F64, device=dev)
     ve = _velocities(pop, draws, P)
     u_acc = draws.rand(P)
-    flux = (ve.abs() * areas).sum(-1)
-    bound = vmax * float(torch.sqrt((areas * areas).sum()))
-    accept = (u_acc * bound < flux) & (torch.arange(P, device=dev)[None, :] < n_prop[:, None])
-    valid_e, (ve,) = _compact(accept, pp.entry_capacity, f"population {pp.index} entrants", ve)
-    u = draws.rand(pp.entry_capacity, 4)
-    w = ve.abs() * areas
-    cum = torch.cumsum(w, -1)
-    axis = (u[..., :1] * cum[..., 2:3] >= cum).sum(-1).clamp(max=2)  # [N, E]
-    onehot = torch.nn.functional.one_hot(axis, 3).to(torch.bool)
-    side = -torch.sign(ve.gather(2, axis[..., None]).squeeze(-1))
-    pe = (2.0 * u[..., 1:4] - 1.0) * h
-    pe = torch.where(onehot, side[..., None] * h, pe)
-    te = draws.rand(pp.entry_capacity) * T
-    pe = torch.where(valid_e[..., None], pe, torch.full_like(pe, _FAR))
-    p_ref = torch.cat([p0, pe], dim=1)
-    vel = torch.cat([v0, ve], dim=1)
-    t_ref = torch.cat([t0, te], dim=1)
-    return _eval_culled(pp, pop, p_ref, vel, t_ref, times, optics, dtype, plan)
+    accept = (u_acc * w_max < torch.linalg.vector_norm(ve / H, dim=-1)) & (
+        torch.arange(P, device=draws.device)[None, :] < n_prop[:, None])
+    valid_e, (ve,) = _compact(accept, E, f"population {pp.index} entrants", ve)
+    w = ve / H
+    w_hat = w / torch.linalg.vector_norm(w, dim=-1, keepdim=True).clamp_min(1e-300)
+    helper = torch.zeros_like(w_hat)
+    helper[..., 0] = (w_hat[..., 0].abs() < 0.9).to(_F64)
+    helper[..., 1] = 1.0 - helper[..., 0]
+    e1 = torch.linalg.cross(helper, w_hat)
+    e1 = e1 / torch.linalg.vector_norm(e1, dim=-1, keepdim=True)
+    e2 = torch.linalg.cross(w_hat, e1)
+    u = draws.rand(E, 3)
+    rad = torch.sqrt(u[..., 0])
+    ang = _TWO_PI * u[..., 1]
+    y = (rad * torch.cos(ang)).unsqueeze(-1) * e1 + (rad * torch.sin(ang)).unsqueeze(-1) * e2
+    y = y - torch.sqrt(torch.clamp(1.0 - u[..., 0], min=0.0)).unsqueeze(-1) * w_hat
+    pe = torch.where(valid_e[..., None], y * H, _FAR)
+    te = u[..., 2] * T
+    return _eval_culled(pp, pop, torch.cat([p0, pe], dim=1), torch.cat([v0, ve], dim=1),
+                        torch.cat([t0, te], dim=1), times, optics, dtype, plan)
 
 
 def _shell_points(draws: _Draws, P: int, inner: tuple, outer: tuple) -> torch.Tensor:

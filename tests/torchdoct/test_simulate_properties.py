@@ -149,16 +149,29 @@ def test_zero_parameter_motion_is_static():
     assert torch.equal(a.signals, b.signals)
 
 
-def test_plan_counts_match_the_work():
-    """Expected scatterers per trial (plan) against the mean count the simulator drew."""
-    for kind in ("static", "ballistic", "diffusion"):
+def test_plan_counts_match_the_work(monkeypatch):
+    """Expected scatterers per trial (plan) against the mean number the simulator actually used."""
+    seen = []
+    real = sim._eval_culled
+
+    def spy(pp, pop, p_ref, *args):
+        seen.append((p_ref[..., 0] < 0.5 * sim._FAR).sum(1).double())
+        return real(pp, pop, p_ref, *args)
+
+    monkeypatch.setattr(sim, "_eval_culled", spy)
+    for kind in ("static", "ballistic", "flow"):
+        seen.clear()
         sc = scene(MOTIONS[kind], n_frames=8, delay=(0.2048, 0.6144))
-        pp = make_plan(sc).populations[0]
-        draws = sim._Draws([sim.block_generator(0, b) for b in range(8)], torch.device("cpu"))
-        n = draws.poisson(pp.expected_scatterers_per_trial if kind != "ballistic" else
-                          0.055 * 8 * math.prod(pp.domain_half_widths_um), pp.capacity, "test")
-        mean = pp.expected_scatterers_per_trial if kind != "ballistic" else 0.055 * 8 * math.prod(pp.domain_half_widths_um)
-        assert abs(float(n.double().mean()) - mean) <= 4 * math.sqrt(mean / n.numel())
+        mean = make_plan(sc).populations[0].expected_scatterers_per_trial
+        td.simulate(sc, trials=512, seed=0)
+        n = torch.cat(seen)
+        assert abs(float(n.mean()) - mean) <= 4 * math.sqrt(mean / n.numel()), kind  # Poisson counts
+    # the random walk draws one Poisson count per trial for its periodic cell
+    pp = make_plan(scene(MOTIONS["diffusion"], n_frames=8, delay=(0.2048, 0.6144))).populations[0]
+    draws = sim._Draws([sim.block_generator(0, b) for b in range(8)], torch.device("cpu"))
+    n = draws.poisson(pp.expected_scatterers_per_trial, pp.capacity, "test")
+    mean = pp.expected_scatterers_per_trial
+    assert abs(float(n.double().mean()) - mean) <= 4 * math.sqrt(mean / n.numel())
 
 
 # ------------------------------------------------------------------------------------------------
