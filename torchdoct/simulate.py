@@ -95,13 +95,15 @@ class _Draws:
     def randn(self, *shape: int) -> torch.Tensor:
         return self._draw(torch.randn, shape)
 
-    def ragged(self, fn, k: int, sizes: list[int]) -> torch.Tensor:
+    def ragged(self, fn, k: int, sizes: list[int], out: torch.Tensor | None = None) -> torch.Tensor:
         """``fn`` draws (``torch.rand``/``torch.randn``) of shape ``[k, Σ sizes]`` in float32: block ``b``
         draws its ``[k, sizes[b]]`` from its own generator, so a block's numbers never depend on the chunk."""
         def one(i: int) -> torch.Tensor:
             return fn((k, sizes[i]), generator=self.gens[i], dtype=torch.float32)
 
         parts = [one(0)] if len(self.gens) == 1 else list(_pool().map(one, range(len(self.gens))))
+        if out is not None and out.device.type == "cpu":
+            return torch.cat(parts, dim=1, out=out)
         return torch.cat(parts, dim=1).to(self.device)
 
     def poisson(self, mean: float, cap: int, what: str) -> torch.Tensor:
@@ -232,7 +234,7 @@ def _truncated_amplitude(exponent: torch.Tensor, log_tol: float) -> torch.Tensor
     (``exponent`` is overwritten). Below it the exponent is first set to ``-_EXP_FLOOR``: ``exp`` of
     arguments that underflow is 20-30 times slower than of moderate ones."""
     floor = torch.nn.functional.threshold(exponent, log_tol, -_EXP_FLOOR, inplace=True)
-    return torch.nn.functional.threshold(torch.exp(floor), 2.0 * math.exp(-_EXP_FLOOR), 0.0, inplace=True)
+    return torch.nn.functional.threshold(torch.exp(floor, out=floor), 2.0 * math.exp(-_EXP_FLOOR), 0.0, inplace=True)
 
 
 def _amplitude(exponent: torch.Tensor) -> torch.Tensor:
@@ -302,7 +304,7 @@ def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tens
 #: frames and each tile evaluates only the paths visible during it.
 _TILE_FRAMES = 64
 #: (path, frame) pairs evaluated at once: small enough for the temporaries to stay in cache.
-_PIECE_ELEMENTS = 1 << 17
+_PIECE_ELEMENTS = 1 << 18
 _PAD_EXPONENT = -1.0e30
 
 
@@ -476,19 +478,20 @@ def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, o
     accept = (u_acc * w_max < torch.linalg.vector_norm(ve / H, dim=-1)) & (
         torch.arange(P, device=draws.device)[None, :] < n_prop[:, None])
     valid_e, (ve,) = _compact(accept, E, f"population {pp.index} entrants", ve)
-    w = ve / H
-    w_hat = w / torch.linalg.vector_norm(w, dim=-1, keepdim=True).clamp_min(1e-300)
-    helper = torch.zeros_like(w_hat)
-    helper[..., 0] = (w_hat[..., 0].abs() < 0.9).to(_F64)
-    helper[..., 1] = 1.0 - helper[..., 0]
-    e1 = torch.linalg.cross(helper, w_hat)
-    e1 = e1 / torch.linalg.vector_norm(e1, dim=-1, keepdim=True)
-    e2 = torch.linalg.cross(w_hat, e1)
+    # unit direction n of w and an orthonormal basis (e1, e2) across it (Duff et al. 2017, branch-free)
+    wx, wy, wz = (ve / H).unbind(-1)
+    wn = torch.sqrt(wx * wx + wy * wy + wz * wz)
+    nx, ny, nz = wx / wn, wy / wn, wz / wn
+    sgn = torch.where(nz >= 0, 1.0, -1.0).to(_F64)
+    a = -1.0 / (sgn + nz)
+    b = nx * ny * a
+    e1 = (1.0 + sgn * nx * nx * a, sgn * b, -sgn * nx)
+    e2 = (b, sgn + ny * ny * a, -ny)
     u = draws.rand(E, 3)
     rad = torch.sqrt(u[..., 0])
     ang = _TWO_PI * u[..., 1]
-    y = (rad * torch.cos(ang)).unsqueeze(-1) * e1 + (rad * torch.sin(ang)).unsqueeze(-1) * e2
-    y = y - torch.sqrt(torch.clamp(1.0 - u[..., 0], min=0.0)).unsqueeze(-1) * w_hat
+    c1, c2, depth = rad * torch.cos(ang), rad * torch.sin(ang), torch.sqrt(1.0 - u[..., 0])
+    y = torch.stack([c1 * e1[i] + c2 * e2[i] - depth * n_i for i, n_i in enumerate((nx, ny, nz))], dim=-1)
     pe = torch.where(valid_e[..., None], y * H, _FAR)
     te = u[..., 2] * T
     return _eval_culled(pp, pop, torch.cat([p0, pe], dim=1), torch.cat([v0, ve], dim=1),
@@ -556,17 +559,23 @@ def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: _Draws, times
     for s in range(S):
         groups.setdefault((float(optics.a_lat[s]), float(optics.a_ax[s])), []).append(s)
 
+    # working buffers, reused every frame (fresh multi-MB temporaries cost page faults)
+    M = pos.shape[1]
+    step = torch.empty(3, M, dtype=torch.float32, device=dev)
+    wrap = torch.empty(3, M, dtype=dtype, device=dev)
+    amp, re, im = (torch.empty(M, dtype=dtype, device=dev) for _ in range(3))
+
     def evaluate(f: int) -> None:
         for (a_lat, a_ax), systems in groups.items():
-            e = pos[0] * pos[0]
-            e.addcmul_(pos[1], pos[1]).mul_(-a_lat).addcmul_(pos[2], pos[2], value=-a_ax)
-            amp = _truncated_amplitude(e, log_tol)
+            torch.mul(pos[0], pos[0], out=amp)
+            amp.addcmul_(pos[1], pos[1]).mul_(-a_lat).addcmul_(pos[2], pos[2], value=-a_ax)
+            _truncated_amplitude(amp, log_tol)
             if refl != 1.0:
                 amp.mul_(refl)
             for s in systems:
-                ph = pos[2] * q[s]
-                re = amp * torch.cos(ph)
-                im = amp.mul(torch.sin(ph, out=ph))
+                torch.mul(pos[2], q[s], out=im)
+                torch.cos(im, out=re).mul_(amp)
+                im.sin_().mul_(amp)
                 out_re[s, :, f] = torch.segment_reduce(re, "sum", lengths=n)
                 out_im[s, :, f] = torch.segment_reduce(im, "sum", lengths=n)
 
@@ -574,8 +583,9 @@ def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: _Draws, times
     evaluate(0)
     for f in range(1, T):
         sigma = math.sqrt(2.0 * D * float(times[f] - times[f - 1]))
-        pos.add_(draws.ragged(torch.randn, 3, sizes), alpha=sigma)
-        pos.sub_(torch.round(pos * inv_L).mul_(L))
+        pos.add_(draws.ragged(torch.randn, 3, sizes, out=step), alpha=sigma)
+        torch.mul(pos, inv_L, out=wrap).round_()
+        pos.addcmul_(wrap, L, value=-1.0)
         evaluate(f)
     return torch.complex(out_re, out_im).permute(1, 0, 2).to(_complex_of(dtype))
 
