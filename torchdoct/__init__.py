@@ -25,7 +25,7 @@ from .render import RenderResult, render
 from .scenes import shipped_scenes
 from .simulate import SimulationResult, simulate
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "Analysis", "Diffusion", "Flow", "Noise", "OCTSystem", "Population", "Protocol", "RandomBallistic",

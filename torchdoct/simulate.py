@@ -559,7 +559,7 @@ def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: _Draws, times
     for s in range(S):
         groups.setdefault((float(optics.a_lat[s]), float(optics.a_ax[s])), []).append(s)
 
-    # working buffers, reused every frame (fresh multi-MB temporaries cost page faults)
+    # working buffers, reused every frame
     M = pos.shape[1]
     step = torch.empty(3, M, dtype=torch.float32, device=dev)
     wrap = torch.empty(3, M, dtype=dtype, device=dev)

@@ -40,7 +40,8 @@ _REFERENCE_TOLERANCE = 1e-8
 
 
 def tradeoff_cells() -> dict[str, Scene]:
-    """Three motions at mid-range parameters on the paper's 840-nm high-resolution system."""
+    """Three motions at mid-range parameters, and diffusion at the paper's largest D (where the
+    periodic cell of the random walk is largest), on the paper's 840-nm high-resolution system."""
     system = OCTSystem(name="840nm-high", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)
     protocol = Protocol(n_frames=32, frame_interval_s=0.2048)
     analysis = Analysis(metrics=("liv", "ocds"))
@@ -48,6 +49,7 @@ def tradeoff_cells() -> dict[str, Scene]:
         "diffusion D=0.05": Diffusion(diffusion_um2_per_s=0.05),
         "ballistic v=0.5": RandomBallistic(speed_um_per_s=0.5, directions="uniform-angles"),
         "flow v=1 (45°)": Flow(speed_um_per_s=1.0, polar_angle_deg=45.0),
+        "diffusion D=15": Diffusion(diffusion_um2_per_s=15.0),
     }
     return {name: Scene(systems=(system,), protocol=protocol, analysis=analysis, name=name,
                         populations=(Population(density_per_um3=0.055, motion=(m,)),))
