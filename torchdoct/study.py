@@ -88,6 +88,8 @@ __all__ = [
 
 #: |z| at or above which a difference counts as significant in the claims report.
 Z_SIGNIFICANT = 4.0
+#: A single value's difference that brackets a crossing (see :func:`_crossing`).
+Z_BRACKET = 2.0
 _METRIC_LABEL = {"liv": "LIV (dB²)", "ocds": "OCDS (s⁻¹)"}
 _METRIC_UNIT = {"liv": "dB²", "ocds": "s⁻¹"}
 
@@ -646,6 +648,9 @@ def _crossing(c: _Curve) -> dict[str, Any] | None:
 
     The split between two sampled values that maximizes Σz_left − Σz_right; it counts as found when
     the pooled difference is significantly positive on the left and significantly negative on the right.
+    ``bracket``: where the crossing can lie, from the last value at or below the split whose own
+    difference is positive at z ≥ 2 to the first value at or above it negative at z ≤ −2 (the range of
+    the curve's ends when there is none): in between, single values cannot tell the sign.
     """
     c = c.where(c.x > 0)
     if c.x.size < 2:
@@ -655,8 +660,12 @@ def _crossing(c: _Curve) -> dict[str, Any] | None:
     k = int(np.argmax(score))
     left, right = c.where(np.arange(c.x.size) <= k), c.where(np.arange(c.x.size) > k)
     pl, pr = _pooled(left), _pooled(right)
+    pos = [i for i in range(k + 1) if z[i] >= Z_BRACKET]
+    neg = [i for i in range(k + 1, c.x.size) if z[i] <= -Z_BRACKET]
+    bracket = (float(c.x[pos[-1]] if pos else c.x[0]), float(c.x[neg[0]] if neg else c.x[-1]))
     return {"x_lo": float(c.x[k]), "x_hi": float(c.x[k + 1]), "x": float(math.sqrt(c.x[k] * c.x[k + 1])),
-            "left": pl, "right": pr, "found": pl[2] >= Z_SIGNIFICANT and pr[2] <= -Z_SIGNIFICANT}
+            "bracket": bracket, "left": pl, "right": pr,
+            "found": pl[2] >= Z_SIGNIFICANT and pr[2] <= -Z_SIGNIFICANT}
 
 
 def _x_reach(x: np.ndarray, y: np.ndarray, frac: float = 0.9) -> float:
@@ -848,12 +857,15 @@ def _resolution_claims(cl: _Claims, study: Study, diffs, comp: Comparison, kind:
             if cr:
                 sides = (f"pooled low − high below {_dz(*cr['left'][:2], 'dB²')}, above {_dz(*cr['right'][:2], 'dB²')}")
                 if found:
-                    res = (f"the order inverts between the sampled {xs} = {cr['x_lo']:.3g} and {cr['x_hi']:.3g} {xu} "
-                           f"(≈ {cr['x']:.3g}); {sides}")
-                    if paper_cross and not (0.6 <= cr["x"] <= 2.4):
-                        verdict = f"partly: the order inverts, but near {cr['x']:.3g} µm²/s instead of about 1.2"
+                    b0, b1 = cr["bracket"]
+                    res = (f"the order inverts; best split between the sampled {xs} = {cr['x_lo']:.3g} and "
+                           f"{cr['x_hi']:.3g} {xu} (≈ {cr['x']:.3g}), and single values place the crossing between "
+                           f"{b0:.3g} and {b1:.3g} {xu} (the last significantly positive and first significantly "
+                           f"negative difference, |z| ≥ {Z_BRACKET:g}); {sides}")
+                    if paper_cross and not (b0 <= 1.2 <= b1):
+                        verdict = f"partly: the order inverts, but between {b0:.3g} and {b1:.3g} µm²/s, not at about 1.2"
                     else:
-                        verdict = "supported" + (" (within a factor 2 of 1.2 µm²/s)" if paper_cross else "")
+                        verdict = "supported" + (f" (1.2 µm²/s lies within {b0:.3g}–{b1:.3g})" if paper_cross else "")
                 else:
                     res = (f"no significant inversion; best split between {cr['x_lo']:.3g} and {cr['x_hi']:.3g} "
                            f"{xu}: {sides}")

@@ -67,7 +67,7 @@ def test_default_model_matches_torch_on_simulated_features():
 def test_doct_train_reproduces_the_shipped_model(tmp_path):
     """``doct-train`` with its defaults, from scratch (no cache), gives the shipped report's accuracy.
 
-    About 5 minutes on one thread.
+    About 1.5 minutes on one thread.
     """
     from classifier.cli import train_main
 

@@ -252,8 +252,14 @@ def test_crossing_finder():
     mean, se_left, z, k = cr["left"]  # pooled over the independent cells left of the split
     assert k == 3 and mean == pytest.approx(4.0 / 3) and se_left == pytest.approx(0.25 * math.sqrt(3) / 3)
     assert cr["right"][3] == 2 and cr["right"][0] == pytest.approx(-1.25)
+    # z = 8, 6, 2, −4, −6: the last value positive at z ≥ 2 is x = 1.0, the first negative at z ≤ −2 is 2.0
+    assert cr["bracket"] == (1.0, 2.0)
     quiet = _crossing(_Curve(x, np.zeros(6), diff, diff, se * 10, diff / (se * 10)))
     assert not quiet["found"]
+    # a flat stretch where single values cannot tell the sign widens the bracket to its ends
+    flat = np.array([0.0, 2.0, 0.2, -0.1, 0.1, -1.5])
+    cr = _crossing(_Curve(x, np.zeros(6), flat, flat, se, flat / se))
+    assert cr["bracket"] == (0.1, 5.0)
 
 
 def test_rerun_uses_the_cache_and_refuses_to_overwrite(tiny_run, tmp_path):
