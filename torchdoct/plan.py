@@ -28,7 +28,9 @@ Domains (lengths µm, times s; PSF truncation as in :mod:`torchdoct.conventions`
 * diffusion with drift: scatterers are tracked frame by frame in the region ``R = B ⊕ M``,
   ``M = c·σ_step + v_max·Δt`` (``σ_step = √(2·D·Δt_max)``), which a scatterer outside ``R`` cannot
   cross into ``B`` within one frame except with probability below the tolerance; at each frame
-  immigrants from the shell around ``R`` are drawn from the Poisson medium outside it.
+  immigrants from the shell around ``R`` are drawn from the Poisson medium outside it. A scatterer
+  that leaves ``R`` and later comes back returns as a new one: its contributions before and after
+  are not correlated, which drops part of the same-scatterer correlation at long delays.
 """
 
 from __future__ import annotations

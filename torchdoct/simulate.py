@@ -605,11 +605,10 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
     C = pp.capacity
     P = pp.immigrant_proposal_capacity
     D = pop.diffusion_um2_per_s
-    drift = pop.max_speed_um_per_s > 0
     n0 = draws.poisson(pp.expected_scatterers_per_trial, C, f"population {pp.index} count")
     pos0, alive = _uniform_box(draws, n0, C, R)
     pos = pos0.transpose(1, 2).contiguous()  # [N, 3, C]
-    vel = _velocities(pop, draws, C).transpose(1, 2).contiguous() if drift else None
+    vel = _velocities(pop, draws, C).transpose(1, 2).contiguous()
     N = pos.shape[0]
     S = optics.kn.numel()
     T = times.numel()
@@ -655,9 +654,7 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
     for f in range(1, T):
         dt = float(times[f] - times[f - 1])
         sigma = math.sqrt(2.0 * D * dt)
-        pos.add_(draws.randn(3, C), alpha=sigma)
-        if drift:
-            pos.add_(vel, alpha=dt)
+        pos.add_(draws.randn(3, C), alpha=sigma).add_(vel, alpha=dt)
         inside = (pos.abs() <= Rt).all(1)
         left = alive & ~inside
         alive &= inside
@@ -684,8 +681,7 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
             zref[fb, fc] = new[:, 2]
             for s in range(S):
                 phi0[s, fb, fc] = torch.remainder(kn2[s] * new[:, 2], _TWO_PI).to(dtype)
-            if drift:
-                vel[fb, :, fc] = vy[fb, src]
+            vel[fb, :, fc] = vy[fb, src]
             alive[fb, fc] = True
         evaluate(f)
     return torch.complex(out_re, out_im).view(S, N, T).permute(1, 0, 2).to(cdt)
