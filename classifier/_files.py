@@ -1,7 +1,7 @@
 """torchdoct's torch-free helper modules, reachable without importing torch.
 
 ``import torchdoct._files`` would run ``torchdoct/__init__.py``, which imports torch; the classify
-path must not. ``torchdoct/_files.py`` (``check_out``, ``atomic_write``) and
+path must not. ``torchdoct/_files.py`` (``check_out``, ``atomic_write``, ``shipped_files``) and
 ``torchdoct/conventions.py`` (resolution ↔ PSF sigma) import only the standard library, so when
 torchdoct is not imported yet they are loaded from their files, without their package.
 """
@@ -12,7 +12,7 @@ import importlib.util
 import sys
 from types import ModuleType
 
-__all__ = ["check_out", "atomic_write", "conventions"]
+__all__ = ["check_out", "atomic_write", "shipped_files", "conventions"]
 
 
 def _standalone(name: str) -> ModuleType:
@@ -48,3 +48,8 @@ def check_out(path, force, suffix, what="--out"):
 def atomic_write(path, write):
     """:func:`torchdoct._files.atomic_write`."""
     return _standalone("_files").atomic_write(path, write)
+
+
+def shipped_files(package, folder, suffix=".toml"):
+    """:func:`torchdoct._files.shipped_files`."""
+    return _standalone("_files").shipped_files(package, folder, suffix)

@@ -26,9 +26,10 @@ import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any
+
+from ._files import shipped_files
 
 __all__ = [
     "METRIC_UNITS",
@@ -240,9 +241,7 @@ def spec_from_dict(data: dict[str, Any]) -> FeatureSpec:
 
 def shipped_specs() -> dict[str, Path]:
     """Names and paths of the specifications shipped in ``classifier/specs/``."""
-    root = resources.files("classifier") / "specs"
-    return {p.name[:-5]: Path(str(p)) for p in sorted(root.iterdir(), key=lambda q: q.name)
-            if p.name.endswith(".toml")}
+    return shipped_files("classifier", "specs")
 
 
 def load_spec(name_or_path: str | Path | FeatureSpec) -> FeatureSpec:

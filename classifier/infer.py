@@ -38,12 +38,12 @@ import math
 import os
 import time
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
+from ._files import shipped_files
 from .features import METRIC_UNITS, FeatureSpec, same_value, spec_from_dict
 from .rule import INDETERMINATE, REASONS, apply_rule
 
@@ -82,9 +82,7 @@ _AUTO_RANGE_DB = 30.0
 
 def shipped_models() -> dict[str, Path]:
     """Names and paths of the models shipped in ``classifier/data/``."""
-    root = resources.files("classifier") / "data"
-    return {p.name[:-5]: Path(str(p)) for p in sorted(root.iterdir(), key=lambda q: q.name)
-            if p.name.endswith(".onnx")}
+    return shipped_files("classifier", "data", ".onnx")
 
 
 @dataclass

@@ -1,13 +1,15 @@
-"""Output-file safety shared by every command: refuse to overwrite without ``force``, write atomically."""
+"""File helpers shared by every command (standard library only): refuse to overwrite without
+``force``, write atomically, find the files shipped with the project."""
 
 from __future__ import annotations
 
 import os
 import tempfile
+from importlib import resources
 from pathlib import Path
 from typing import Callable, Sequence
 
-__all__ = ["check_out", "atomic_write"]
+__all__ = ["check_out", "atomic_write", "shipped_files", "file_or_shipped"]
 
 
 def check_out(path: str | os.PathLike | None, force: bool, suffix: str | Sequence[str],
@@ -49,3 +51,18 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def shipped_files(package: str, folder: str, suffix: str = ".toml") -> dict[str, Path]:
+    """Name (file name without ``suffix``) -> path of every ``folder/*suffix`` file shipped in ``package``."""
+    root = resources.files(package).joinpath(*folder.split("/"))
+    return {p.name[: -len(suffix)]: Path(str(p)) for p in sorted(root.iterdir(), key=lambda q: q.name)
+            if p.name.endswith(suffix)}
+
+
+def file_or_shipped(key: str | os.PathLike, shipped: dict[str, Path]) -> Path | None:
+    """``key`` if it is a file, else the shipped file of that name, else ``None``."""
+    p = Path(key)
+    if p.is_file():
+        return p
+    return shipped.get(str(key))

@@ -28,8 +28,10 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from ._files import file_or_shipped, shipped_files
 from .config import (Population, Scene, SceneError, _check_keys, _fail, _integer, _number, _string, read_toml,
                      scene_from_dict)
+from .scenes import shipped_scenes
 
 __all__ = ["Grid", "Region", "Phantom", "load_phantom", "phantom_from_dict", "shipped_phantoms",
            "MOTION_CODES", "motion_code"]
@@ -423,15 +425,9 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
     return Phantom(scene=scene, grid=grid, regions=tuple(regions), background=background)
 
 
-def _phantom_dir() -> Path:
-    from importlib import resources
-
-    return Path(str(resources.files("torchdoct") / "data" / "phantoms"))
-
-
 def shipped_phantoms() -> dict[str, Path]:
     """Name -> path of every phantom shipped with torchdoct."""
-    return {p.stem: p for p in sorted(_phantom_dir().glob("*.toml"))}
+    return shipped_files("torchdoct", "data/phantoms")
 
 
 def load_phantom(path: str | Path, *, grid: dict[str, Any] | None = None) -> Phantom:
@@ -439,20 +435,13 @@ def load_phantom(path: str | Path, *, grid: dict[str, Any] | None = None) -> Pha
 
     ``grid`` (the keys of ``[grid]``) replaces the file's grid, or supplies one to a scene file.
     """
-    p = Path(path)
-    if not p.is_file():
-        from .scenes import shipped_scenes
-
-        shipped = shipped_phantoms()
-        scenes = shipped_scenes()
-        if str(path) in shipped:
-            p = shipped[str(path)]
-        elif str(path) in scenes:
-            p = scenes[str(path)]
-        else:
-            raise FileNotFoundError(f"phantom file {str(path)!r} not found; give a path to a .toml phantom "
-                                    f"or scene file, or the name of a shipped phantom "
-                                    f"({', '.join(shipped)}) or scene ({', '.join(scenes)})")
+    shipped = shipped_phantoms()
+    scenes = shipped_scenes()
+    p = file_or_shipped(path, {**scenes, **shipped})
+    if p is None:
+        raise FileNotFoundError(f"phantom file {str(path)!r} not found; give a path to a .toml phantom "
+                                f"or scene file, or the name of a shipped phantom "
+                                f"({', '.join(shipped)}) or scene ({', '.join(scenes)})")
     data = read_toml(p)
     if grid is not None:
         data["grid"] = dict(grid)

@@ -56,7 +56,8 @@ from .conventions import (
 )
 
 __all__ = ["PopulationPlan", "SystemPlan", "Plan", "make_plan", "capacity", "periodic_cell",
-           "periodic_image_bound", "wrap_tolerance"]
+           "periodic_image_bound", "wrap_tolerance", "ellipsoid_entry_rate", "ellipsoid_entry_bound",
+           "expected_entry_flux"]
 
 #: Trials per reproducibility block: trial ``i`` draws its randomness from the stream of block
 #: ``i // BLOCK_TRIALS``, seeded from (seed, block index), so results never depend on chunking.
@@ -197,23 +198,26 @@ def periodic_cell(psf_half_widths_um, optics, diffusion_um2_per_s: float, times_
     def bound(g: float) -> float:
         return periodic_image_bound([h + g for h in H], optics, diffusion_um2_per_s, lags, w_intensity, w_field)
 
-    if bound(0.0) <= target:
-        return H, bound(0.0)
+    b = bound(0.0)
+    if b <= target:
+        return H, b
     lo, hi = 0.0, max(H)
-    while bound(hi) > target:
+    b = bound(hi)
+    while b > target:
         lo, hi = hi, 2.0 * hi
         if hi > 1e7:
             raise ValueError("no periodic cell reaches the wrap tolerance (raise the truncation tolerance)")
-    for _ in range(40):
-        mid = 0.5 * (lo + hi)
-        if bound(mid) > target:
-            lo = mid
-        else:
-            hi = mid
+        b = bound(hi)
+    for _ in range(40):  # bisection on g; ``b`` stays the bound at ``hi``
         if hi - lo < 1e-3 * hi:
             break
-    cell = tuple(h + hi for h in H)
-    return cell, bound(hi)
+        mid = 0.5 * (lo + hi)
+        b_mid = bound(mid)
+        if b_mid > target:
+            lo = mid
+        else:
+            hi, b = mid, b_mid
+    return tuple(h + hi for h in H), b
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ import torch
 
 from .config import Population, Scene
 from .conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, wavenumber_per_um
-from .plan import BLOCK_TRIALS, Plan, PopulationPlan, make_plan
+from .plan import BLOCK_TRIALS, Plan, PopulationPlan, ellipsoid_entry_bound, make_plan
 
 __all__ = ["simulate", "SimulationResult", "CapacityError", "MemoryLimitError", "block_generator", "seeded_generator",
            "chunk_bytes", "available_memory_bytes", "unit_directions"]
@@ -296,7 +296,7 @@ def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tens
     for k, s in enumerate(systems):
         coef = _path_coefficients(p_ref, vel, t_ref, float(optics.kn[s]), float(optics.a_lat[s]),
                                   float(optics.a_ax[s]))
-        out[:, k] = _eval_sparse(*coef, times, log_tol, refl, dtype)
+        out[:, k] = _eval_straight(*coef, times, log_tol, refl, dtype)
     return out
 
 
@@ -308,7 +308,7 @@ _PIECE_ELEMENTS = 1 << 18
 _PAD_EXPONENT = -1.0e30
 
 
-def _eval_sparse(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi: torch.Tensor,
+def _eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi: torch.Tensor,
                  omega: torch.Tensor, times: torch.Tensor, log_tol: float, refl: float,
                  dtype: torch.dtype) -> torch.Tensor:
     """Field [N, T] of straight paths, counting each path only at the frames where its amplitude
@@ -471,7 +471,7 @@ def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, o
     P = pp.entry_proposal_capacity
     E = pp.entry_capacity
     T = float(times[-1])
-    w_max = pp.entry_proposal_rate_per_s / (pp.density_per_um3 * math.pi * math.prod(pp.domain_half_widths_um))
+    w_max = ellipsoid_entry_bound(pop, pp.domain_half_widths_um)
     n_prop = draws.poisson(pp.entry_proposal_rate_per_s * T, P, f"population {pp.index} entrants")
     ve = _velocities(pop, draws, P)
     u_acc = draws.rand(P)

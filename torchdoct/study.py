@@ -49,15 +49,16 @@ import math
 import os
 import time
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
-from .config import SceneError, read_toml, scene_from_dict
+from ._files import atomic_write, file_or_shipped, shipped_files
+from .config import SceneError, _check_keys, _fail, read_toml, scene_from_dict
 from .sweep import (
     SweepResult,
+    _normalize_arrays,
     field_values,
     make_sweep,
     prepare_out_dir,
@@ -92,22 +93,6 @@ Z_SIGNIFICANT = 4.0
 Z_BRACKET = 2.0
 _METRIC_LABEL = {"liv": "LIV (dB²)", "ocds": "OCDS (s⁻¹)"}
 _METRIC_UNIT = {"liv": "dB²", "ocds": "s⁻¹"}
-
-
-def _fail(where: str, msg: str, fix: str | None = None) -> None:
-    raise SceneError(f"{where}: {msg}" + (f" (fix: {fix})" if fix else ""))
-
-
-def _keys(where: str, table: Any, allowed: set[str], required: set[str] = frozenset()) -> dict:
-    if not isinstance(table, dict):
-        raise TypeError(f"{where} must be a table; got {type(table).__name__} {table!r}")
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        _fail(where, f"unknown key(s) {unknown}", f"allowed keys are {sorted(allowed)}")
-    missing = sorted(set(required) - set(table))
-    if missing:
-        _fail(where, f"missing key(s) {missing}")
-    return table
 
 
 def _str(where: str, v: Any) -> str:
@@ -180,22 +165,16 @@ class Study:
                           "motion": p.motion, "values": list(p.values)} for p in self.parts]}
 
 
-def _studies_dir() -> Path:
-    return Path(str(resources.files("torchdoct") / "data" / "studies"))
-
-
 def shipped_studies() -> dict[str, Path]:
     """Name -> path of every study file shipped with torchdoct."""
-    return {p.stem: p for p in sorted(_studies_dir().glob("*.toml"))}
+    return shipped_files("torchdoct", "data/studies")
 
 
 def _resolve(study: str | os.PathLike) -> Path:
-    p = Path(study)
-    if p.is_file():
-        return p
     shipped = shipped_studies()
-    if str(study) in shipped:
-        return shipped[str(study)]
+    found = file_or_shipped(study, shipped)
+    if found is not None:
+        return found
     raise FileNotFoundError(f"study {str(study)!r} not found; give a study .toml file or the name of a shipped "
                             f"study: {', '.join(shipped)}")
 
@@ -212,8 +191,8 @@ def load_study(study: str | os.PathLike) -> Study:
 
 def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Study:
     """A validated :class:`Study` from the study-file schema (module docstring)."""
-    _keys("study file", data, {"name", "description", "study", "scene", "part"}, {"study", "scene", "part"})
-    st = _keys("study", data["study"], {"trials", "seed", "dtype", "grouping", "figure_parts", "direction_parts",
+    _check_keys("study file", data, {"name", "description", "study", "scene", "part"}, {"study", "scene", "part"})
+    st = _check_keys("study", data["study"], {"trials", "seed", "dtype", "grouping", "figure_parts", "direction_parts",
                                         "comparison"}, {"comparison", "figure_parts"})
     trials = st.get("trials", 500)
     seed = st.get("seed", 0)
@@ -230,14 +209,9 @@ def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Stu
     scene = copy.deepcopy(data["scene"])
     if not isinstance(scene, dict):
         raise TypeError(f"scene must be a table; got {scene!r}")
-    for key in ("system", "population"):
-        if isinstance(scene.get(key), dict):
-            scene[key] = [scene[key]]
+    _normalize_arrays(scene)
     if not isinstance(scene.get("population"), list) or not scene["population"]:
         _fail("scene.population", "the study needs a [[scene.population]] for the parts' motion")
-    pop0 = scene["population"][0]
-    if isinstance(pop0.get("motion"), dict):
-        pop0["motion"] = [pop0["motion"]]
     try:
         scene_from_dict(scene)
     except (SceneError, TypeError) as err:
@@ -252,7 +226,7 @@ def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Stu
     comparisons = []
     for i, c in enumerate(comps):
         w = f"study.comparison[{i}]"
-        _keys(w, c, {"name", "figure", "title", "paper_figure", "reference", "other"}, {"name", "reference", "other"})
+        _check_keys(w, c, {"name", "figure", "title", "paper_figure", "reference", "other"}, {"name", "reference", "other"})
         for k in ("reference", "other"):
             if _str(f"{w}.{k}", c[k]) not in system_names:
                 _fail(f"{w}.{k}", f"{c[k]!r} is not a system of [scene]", f"use one of {system_names}")
@@ -275,7 +249,7 @@ def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Stu
     parts = []
     for i, p in enumerate(parts_data):
         w = f"part[{i}]"
-        _keys(w, p, {"name", "label", "parameter", "inset_max", "motion", "values", "linear", "log"},
+        _check_keys(w, p, {"name", "label", "parameter", "inset_max", "motion", "values", "linear", "log"},
               {"name", "parameter", "motion"})
         motion = p["motion"]
         if not isinstance(motion, dict) or "kind" not in motion:
@@ -565,7 +539,6 @@ def plot_directions(study: Study, directions):
 
 
 def _save_figure(fig, stem: Path, force: bool) -> list[Path]:
-    from ._files import atomic_write
 
     out = []
     for ext, kw in ((".png", {"dpi": 150, "metadata": {"Software": None}}), (".svg", {"metadata": {"Date": None}})):
@@ -1124,7 +1097,6 @@ def run_study(study: Study | str | os.PathLike, out_dir: str | os.PathLike, *, t
     override the study's. Every output file is checked before any simulation: an existing one is an
     error unless ``force``. A rerun reuses the cached cells.
     """
-    from ._files import atomic_write
     from . import __version__
 
     if not isinstance(study, Study):

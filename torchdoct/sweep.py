@@ -66,7 +66,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from .config import Scene, SceneError, read_toml, scene_from_dict
+from .config import Scene, SceneError, _fail, read_toml, scene_from_dict
 
 __all__ = [
     "SCALAR_METRICS",
@@ -108,13 +108,6 @@ def _version() -> str:
     from . import __version__
 
     return __version__
-
-
-def _fail(where: str, msg: str, fix: str | None = None) -> None:
-    text = f"{where}: {msg}"
-    if fix:
-        text += f" (fix: {fix})"
-    raise SceneError(text)
 
 
 def _canonical(obj: Any) -> str:

@@ -85,7 +85,7 @@ class _Counter:
         self.summed = 0
         orig_draw = sim._Draws._draw
         orig_sum = sim._sum_field
-        orig_sparse = sim._eval_sparse
+        orig_sparse = sim._eval_straight
 
         def draw(this, fn, shape):
             self.calls.append((fn.__name__, tuple(shape)))
@@ -102,7 +102,7 @@ class _Counter:
 
         monkeypatch.setattr(sim._Draws, "_draw", draw)
         monkeypatch.setattr(sim, "_sum_field", sum_field)
-        monkeypatch.setattr(sim, "_eval_sparse", sparse)
+        monkeypatch.setattr(sim, "_eval_straight", sparse)
 
     def normals(self):
         return [c for c in self.calls if c[0] == "randn"]
