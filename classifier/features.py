@@ -244,19 +244,22 @@ def shipped_specs() -> dict[str, Path]:
     return shipped_files("classifier", "specs")
 
 
+def shipped_or_path(key: str, shipped: dict[str, Path], what: str) -> Path:
+    """The shipped file named ``key``, else the file at path ``key``; ``what`` names it in the error."""
+    if key in shipped:
+        return shipped[key]
+    path = Path(key)
+    if not path.exists():
+        raise FileNotFoundError(f"{what} {key!r}: no such file and not a shipped {what} "
+                                f"(shipped: {', '.join(shipped) or 'none'})")
+    return path
+
+
 def load_spec(name_or_path: str | Path | FeatureSpec) -> FeatureSpec:
     """A shipped spec by name (``single-acquisition``, ``two-wavelength``) or a TOML spec file."""
     if isinstance(name_or_path, FeatureSpec):
         return name_or_path
-    shipped = shipped_specs()
-    key = str(name_or_path)
-    if key in shipped:
-        path = shipped[key]
-    else:
-        path = Path(key)
-        if not path.exists():
-            raise FileNotFoundError(f"feature spec {key!r}: no such file and not a shipped spec "
-                                    f"(shipped: {', '.join(shipped)})")
+    path = shipped_or_path(str(name_or_path), shipped_specs(), "feature spec")
     try:
         with open(path, "rb") as fh:
             data = tomllib.load(fh)

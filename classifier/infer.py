@@ -44,7 +44,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ._files import shipped_files
-from .features import METRIC_UNITS, FeatureSpec, same_value, spec_from_dict
+from .features import METRIC_UNITS, FeatureSpec, same_value, shipped_or_path, spec_from_dict
 from .rule import INDETERMINATE, REASONS, apply_rule
 
 __all__ = [
@@ -139,17 +139,9 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     """
     import onnxruntime as ort
 
-    shipped = shipped_models()
-    key = DEFAULT_MODEL if model is None else str(model)
-    if key in shipped:
-        path = shipped[key]
-    else:
-        path = Path(key)
-        if not path.exists():
-            raise FileNotFoundError(f"model {key!r}: no such file and not a shipped model "
-                                    f"(shipped: {', '.join(shipped) or 'none'})")
-        if path.suffix != ".onnx":
-            raise ValueError(f"model {path.name}: must be an .onnx file written by doct-train")
+    path = shipped_or_path(DEFAULT_MODEL if model is None else str(model), shipped_models(), "model")
+    if path.suffix != ".onnx":
+        raise ValueError(f"model {path.name}: must be an .onnx file written by doct-train")
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = _threads(threads)
     opts.inter_op_num_threads = 1

@@ -66,12 +66,20 @@ _SPECS = (ONE_CONFIGURATION, "single-acquisition", "two-wavelength")
 _Z_DOMINATED = 2.0
 
 
-def _defaults() -> dict[str, Any]:
-    from .cli import build_classify_parser
+def _train_defaults():
     from .train import TrainConfig
 
-    cfg = TrainConfig()
-    return {"draws_train": cfg.draws_train, "spec": cfg.spec, "hidden": list(cfg.hidden),
+    return TrainConfig()
+
+
+#: ``doct-train``'s defaults, which the trade-off plan starts from.
+_TRAIN = _train_defaults()
+
+
+def _defaults() -> dict[str, Any]:
+    from .cli import build_classify_parser
+
+    return {"draws_train": _TRAIN.draws_train, "spec": _TRAIN.spec, "hidden": list(_TRAIN.hidden),
             "pool": int(build_classify_parser().get_default("pool"))}
 
 
@@ -98,16 +106,16 @@ class TradeoffPlan:
     left off the fronts.
     """
 
-    seed: int = 0
+    seed: int = _TRAIN.seed
     draws_grid: tuple[int, ...] = (25, 50, 100, 200, 270, 400)
-    draws_base: int = 270
-    draws_validation: int = 45
-    draws_test: int = 90
-    trials_per_draw: int = 64
-    replicates: int = 8
+    draws_base: int = _TRAIN.draws_train
+    draws_validation: int = _TRAIN.draws_validation
+    draws_test: int = _TRAIN.draws_test
+    trials_per_draw: int = _TRAIN.trials_per_draw
+    replicates: int = _TRAIN.replicates
     hidden_grid: tuple[tuple[int, ...], ...] = ((8, 8), (32, 32), (64, 64), (128, 128), (64,), (64, 64, 64))
     pools: tuple[int, ...] = (1, 4, 9, 25)
-    max_epochs: int = 200
+    max_epochs: int = _TRAIN.max_epochs
     timing_draws: int = 6
     map_side: int = 512
     timing_repeats: int = 5

@@ -95,6 +95,14 @@ _METRIC_LABEL = {"liv": "LIV (dB²)", "ocds": "OCDS (s⁻¹)"}
 _METRIC_UNIT = {"liv": "dB²", "ocds": "s⁻¹"}
 
 
+def _tables(where: str, value: Any, empty: str) -> list:
+    """An array of tables (a single table becomes one); none at all fails with ``empty``."""
+    value = [value] if isinstance(value, dict) else value
+    if not isinstance(value, list) or not value:
+        _fail(where, empty)
+    return value
+
+
 def _str(where: str, v: Any) -> str:
     if not isinstance(v, str) or not v:
         raise TypeError(f"{where} must be a non-empty string; got {v!r}")
@@ -218,11 +226,7 @@ def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Stu
         raise type(err)(f"scene: {err}") from None
     system_names = [s["name"] for s in scene["system"]]
 
-    comps = st["comparison"]
-    if isinstance(comps, dict):
-        comps = [comps]
-    if not isinstance(comps, list) or not comps:
-        _fail("study.comparison", "needs at least one [[study.comparison]]")
+    comps = _tables("study.comparison", st["comparison"], "needs at least one [[study.comparison]]")
     comparisons = []
     for i, c in enumerate(comps):
         w = f"study.comparison[{i}]"
@@ -241,11 +245,7 @@ def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Stu
     if len(set(names)) != len(names) or "all" in names:
         _fail("study.comparison", f"names must be unique and not 'all'; got {names}")
 
-    parts_data = data["part"]
-    if isinstance(parts_data, dict):
-        parts_data = [parts_data]
-    if not isinstance(parts_data, list) or not parts_data:
-        _fail("part", "a study needs at least one [[part]]")
+    parts_data = _tables("part", data["part"], "a study needs at least one [[part]]")
     parts = []
     for i, p in enumerate(parts_data):
         w = f"part[{i}]"
