@@ -90,22 +90,6 @@ def _uniform_dt(frame_times_s: _Seq[float]) -> float | None:
     return None
 
 
-def _pearson_lag(s: torch.Tensor, m: int) -> torch.Tensor:
-    """Pearson correlation of ``s[..., :N-m]`` with ``s[..., m:]`` (metrics.lag_correlations rules)."""
-    n = s.shape[-1]
-    a = s[..., : n - m]
-    b = s[..., m:]
-    am = a - a.mean(-1, keepdim=True)
-    bm = b - b.mean(-1, keepdim=True)
-    va = (am * am).mean(-1)
-    vb = (bm * bm).mean(-1)
-    cov = (am * bm).mean(-1)
-    den = torch.sqrt(va * vb)
-    pos = den > 0
-    rho = torch.where(pos, cov / torch.where(pos, den, torch.ones_like(den)), torch.zeros_like(den))
-    return torch.where((va == 0) & (vb == 0), torch.ones_like(rho), rho)
-
-
 def ocds_map(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
              delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S, scale: str = "db",
              estimator: str = "pearson") -> torch.Tensor:
@@ -133,8 +117,7 @@ def ocds_map(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
     if len(lags) < 2:
         raise ValueError(f"OCDS delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
                          f"(frame interval {dt:.6g} s, {n} frames); give --ocds-delay-range-s")
-    s = s - s[..., :1]
-    rho = torch.stack([_pearson_lag(s, m) for m in lags], dim=-1)
+    rho = torch.stack([_metrics._pearson(s[..., : n - m], s[..., m:]) for m in lags], dim=-1)
     delays = torch.tensor([m * dt for m in lags], dtype=s.dtype, device=s.device)
     return _metrics.ocds_from_correlations(rho, delays, (lo, hi))
 

@@ -657,6 +657,13 @@ def _count(c: _Curve, sign: int) -> tuple[int, int]:
     return int(np.sum(z >= Z_SIGNIFICANT)), int(np.sum(z <= -Z_SIGNIFICANT))
 
 
+def _extremes(c: _Curve) -> tuple[int, int, int, float]:
+    """(index of the largest |z|, values significant either way, index of the largest |difference|,
+    that difference relative to the curve's maximum)."""
+    k = int(np.nanargmax(np.abs(c.diff)))
+    return _maxabs(c), sum(_count(c, +1)), k, (abs(c.diff[k]) / c.scale if c.scale > 0 else 0.0)
+
+
 def _verdict_effect(n_exp: int, n_opp: int, trials: int) -> str:
     """A claimed difference of known sign."""
     if n_exp and not n_opp:
@@ -766,10 +773,7 @@ def _wavelength_claims(cl: _Claims, study: Study, diffs, comp: Comparison) -> No
             continue
         c = c.flip().where(c.x > 0)
         u = _METRIC_UNIT[metric]
-        i = _maxabs(c)
-        nsig = sum(_count(c, +1))
-        k = int(np.nanargmax(np.abs(c.diff)))
-        rel = abs(c.diff[k]) / c.scale if c.scale > 0 else 0.0
+        i, nsig, k, rel = _extremes(c)
         res = (f"over all {c.x.size} speeds v > 0 the largest {ref} − {oth} in units of its SE is "
                f"{_dz(c.diff[i], c.se[i], u)} at v = {c.x[i]:.3g} {xu}; |z| ≥ {Z_SIGNIFICANT:g} at {nsig} values; "
                f"largest |difference| {abs(c.diff[k]):.3g} {u} ({100 * rel:.1f} % of the curve's maximum)")
@@ -858,10 +862,7 @@ def _resolution_claims(cl: _Claims, study: Study, diffs, comp: Comparison, kind:
             continue
         cpos = c.where(c.x > 0)
         if part is dpart:
-            i = _maxabs(cpos)
-            nsig = sum(_count(cpos, +1))
-            k = int(np.nanargmax(np.abs(cpos.diff)))
-            rel = abs(cpos.diff[k]) / cpos.scale if cpos.scale > 0 else 0.0
+            i, nsig, k, rel = _extremes(cpos)
             res = (f"low − high: largest |z| {_dz(cpos.diff[i], cpos.se[i], 's⁻¹')} at D = {cpos.x[i]:.3g} {xu}; "
                    f"|z| ≥ {Z_SIGNIFICANT:g} at {nsig}/{cpos.x.size} values; largest |difference| "
                    f"{abs(cpos.diff[k]):.3g} s⁻¹ "
@@ -884,10 +885,7 @@ def _resolution_claims(cl: _Claims, study: Study, diffs, comp: Comparison, kind:
             continue
         cpos = c.where(c.x > 0)
         u = _METRIC_UNIT[metric]
-        i = _maxabs(cpos)
-        nsig = sum(_count(cpos, +1))
-        k = int(np.nanargmax(np.abs(cpos.diff)))
-        rel = abs(cpos.diff[k]) / cpos.scale if cpos.scale > 0 else 0.0
+        i, nsig, k, rel = _extremes(cpos)
         pm, pse, pz, pk = _pooled(cpos)
         res = (f"low − high: largest |z| {_dz(cpos.diff[i], cpos.se[i], u)} at v = {cpos.x[i]:.3g} {xu}; largest "
                f"|difference| {abs(cpos.diff[k]):.3g} {u} at v = {cpos.x[k]:.3g} {xu} ({100 * rel:.0f} % of the curve's "
