@@ -35,6 +35,7 @@ Domains (lengths µm, times s; PSF truncation as in :mod:`torchdoct.conventions`
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import asdict, dataclass, field
@@ -86,16 +87,25 @@ def _face_areas(h: tuple[float, float, float]) -> list[tuple[int, float]]:
     return out
 
 
-def _velocity_sample(pop: Population, n_samples: int = 200_000) -> np.ndarray:
+def _velocity_sample(pop: Population) -> np.ndarray:
     """A fixed-seed sample [n, 3] of the population's drift velocity law (µm/s), for plan figures."""
+    return _velocity_sample_of(tuple(pop.flow_velocity_um_per_s),
+                               tuple((b.speed_um_per_s, b.directions) for b in pop.ballistic))
+
+
+@functools.lru_cache(maxsize=16)
+def _velocity_sample_of(flow: tuple[float, ...], ballistic: tuple[tuple[float, str], ...],
+                        n_samples: int = 200_000) -> np.ndarray:
+    """Cached by the velocity law: a plan asks for it once per group of systems."""
     rng = np.random.default_rng(12345)
-    v = np.tile(np.asarray(pop.flow_velocity_um_per_s, dtype=float), (n_samples, 1))
-    for b in pop.ballistic:
+    v = np.tile(np.asarray(flow, dtype=float), (n_samples, 1))
+    for speed, directions in ballistic:
         u1, u2 = rng.random(n_samples), rng.random(n_samples)
-        mu = 2 * u1 - 1 if b.directions == "isotropic" else np.cos(np.pi * u1)
+        mu = 2 * u1 - 1 if directions == "isotropic" else np.cos(np.pi * u1)
         st = np.sqrt(np.clip(1 - mu * mu, 0, None))
         phi = 2 * np.pi * u2
-        v += b.speed_um_per_s * np.stack([st * np.cos(phi), st * np.sin(phi), mu], axis=1)
+        v += speed * np.stack([st * np.cos(phi), st * np.sin(phi), mu], axis=1)
+    v.setflags(write=False)
     return v
 
 
