@@ -591,12 +591,16 @@ def scene_from_dict(data: dict[str, Any]) -> Scene:
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
-    """The tables of a TOML file; a syntax error is a :class:`SceneError` naming the file."""
+    """The tables of a TOML file; a syntax error or a file that is not UTF-8 text (an image or data
+    file given by mistake) is a :class:`SceneError` naming the file."""
     try:
         with open(path, "rb") as fh:
             return tomllib.load(fh)
     except tomllib.TOMLDecodeError as err:
         raise SceneError(f"{path}: not valid TOML: {err}") from None
+    except UnicodeDecodeError as err:
+        raise SceneError(f"{path}: not a TOML text file (byte {err.start} is not UTF-8 text); give the scene, "
+                         "phantom or study file (TOML, UTF-8), not a data or image file") from None
 
 
 def load_scene(path: str | Path) -> Scene:

@@ -181,3 +181,13 @@ def test_missing_scene_file_exits_2(tmp_path, capsys, command):
     assert main([command, str(missing)] + (["--no-progress"] if command == "simulate" else [])) == 2
     err = capsys.readouterr().err
     assert "missing.toml" in err and "not found" in err and "example" in err
+
+
+@pytest.mark.parametrize("content", [bytes(range(256)) * 4, b"\xff\xfe[system]\n", b"name = \"\xe9\"\n"])
+def test_binary_scene_file_exits_2_naming_the_file(tmp_path, capsys, content):
+    path = tmp_path / "scan.toml"
+    path.write_bytes(content)
+    assert main(["plan", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1
+    assert "scan.toml" in err and "UTF-8" in err and "codec" not in err

@@ -271,3 +271,22 @@ def test_valid_extreme_scenes_run(density, motion, wavelength, frames):
         assert bool(torch.isnan(v[m["zero_intensity"]]).all())
         if motion is None:
             assert bool((v[~m["zero_intensity"]] == 0).all())
+
+
+# ------------------------------------------------------------------------------------------------
+# files that are not scene text: binary data, truncated or corrupted TOML
+
+
+@settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.one_of(st.binary(min_size=1, max_size=400),
+                 st.tuples(st.integers(0, len(SMALL_SCENE_TOML)), st.binary(min_size=1, max_size=8))
+                 .map(lambda t: SMALL_SCENE_TOML.encode()[:t[0]] + t[1])))
+def test_binary_or_corrupted_scene_files_give_one_error_line(tmp_path, capsys, content):
+    path = tmp_path / "scan.toml"
+    path.write_bytes(content)
+    for argv in (["plan", str(path)], ["simulate", str(path), "--trials", "2", "--no-progress"]):
+        code = main(argv)
+        err = capsys.readouterr().err
+        if code != 0:  # a truncation can leave a valid scene (e.g. cut after the last table)
+            assert code == 2 and err.startswith("error: ") and err.count("\n") == 1, err
+            assert "scan.toml" in err, err
