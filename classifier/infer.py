@@ -44,7 +44,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ._files import shipped_files
-from .features import METRIC_UNITS, FeatureSpec, same_value, shipped_or_path, spec_from_dict
+from .features import FeatureSpec, metric_unit, same_value, shipped_or_path, spec_from_dict
 from .rule import INDETERMINATE, REASONS, apply_rule
 
 __all__ = [
@@ -193,34 +193,123 @@ def _tiff_meta(path: Path) -> dict[str, Any]:
                      "write it with `torchdoct maps ... --out FILE.tif`")
 
 
+def _rewrite_fix(path: Path) -> str:
+    return f"Fix: write it again with `torchdoct maps DATA --out {path.name}` (or copy it again completely)"
+
+
+def _read_npz(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
+    """``maps`` and the parsed ``meta_json`` of a maps ``.npz``; never unpickles."""
+    import zipfile
+    import zlib
+
+    unreadable = (zipfile.BadZipFile, EOFError, OSError, zlib.error)
+    with open(path, "rb") as fh:  # our handle: numpy leaves its own open when the archive is damaged
+        try:
+            z = np.load(fh, allow_pickle=False)
+        except (*unreadable, ValueError) as err:
+            raise ValueError(f"{path.name}: not a readable .npz archive: the file is truncated, corrupted or not "
+                             f"a .npz file ({err}). {_rewrite_fix(path)}") from None
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ValueError(f"{path.name}: holds one bare array, not a maps archive ('maps', 'channels', "
+                             f"'meta_json'). {_rewrite_fix(path)}")
+        arrays = _npz_arrays(path, z, unreadable)
+    raw = arrays["meta_json"]
+    if raw.dtype.kind not in "US" or raw.size != 1:
+        raise ValueError(f"{path.name}: 'meta_json' must be a JSON text (a 0-d string array); got a "
+                         f"{raw.dtype} array of shape {list(raw.shape)}. {_rewrite_fix(path)}")
+    try:
+        meta = json.loads(str(raw.reshape(())))
+    except ValueError as err:
+        raise ValueError(f"{path.name}: 'meta_json' is not valid JSON ({err}). {_rewrite_fix(path)}") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path.name}: 'meta_json' must be a JSON object ({{\"channels\": [...], ...}}); got a "
+                         f"{type(meta).__name__}. {_rewrite_fix(path)}")
+    return arrays["maps"], meta
+
+
+def _npz_arrays(path: Path, z, unreadable: tuple[type[BaseException], ...]) -> dict[str, np.ndarray]:
+    with z:
+        for key in ("maps", "meta_json"):
+            if key not in z:
+                raise ValueError(f"{path.name}: missing array {key!r} (maps files have 'maps', 'channels', "
+                                 "'meta_json'; write them with `torchdoct maps`)")
+        arrays = {}
+        for key in ("maps", "meta_json"):
+            try:
+                arrays[key] = z[key]
+            except ValueError as err:  # object arrays: numpy refuses them without allow_pickle
+                if "pickle" not in str(err) and "Object arrays" not in str(err):
+                    raise ValueError(f"{path.name}: array {key!r} is unreadable ({err}). {_rewrite_fix(path)}") from None
+                raise ValueError(f"{path.name}: array {key!r} holds Python objects (a pickle); pickles are never "
+                                 "loaded (loading one can run code). Fix: store 'maps' as a float array and "
+                                 "'meta_json' as a JSON string, as `torchdoct maps` writes them") from None
+            except unreadable as err:
+                raise ValueError(f"{path.name}: array {key!r} is truncated or corrupted ({err}). "
+                                 f"{_rewrite_fix(path)}") from None
+    return arrays
+
+
+def _read_tiff(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
+    """The image stack and the JSON description of a maps TIFF, restored to ``[C, (Y,) Z, X]``."""
+    import logging
+
+    import tifffile
+
+    class _Errors(logging.Handler):  # tifffile logs (not raises) a damaged page table and reads what it can
+        def __init__(self):
+            super().__init__(logging.ERROR)
+            self.messages: list[str] = []
+
+        def emit(self, record):
+            self.messages.append(record.getMessage())
+
+    log = logging.getLogger("tifffile")
+    errors, propagate = _Errors(), log.propagate
+    log.addHandler(errors)
+    log.propagate = False
+    try:
+        data = tifffile.imread(path)
+        meta = _tiff_meta(path)
+        if errors.messages:
+            raise ValueError("; ".join(errors.messages))
+    except ValueError as err:
+        if "ImageDescription" in str(err):
+            raise
+        raise ValueError(f"{path.name}: not a readable TIFF: the file is truncated, corrupted or not a TIFF "
+                         f"({err}). {_rewrite_fix(path)}") from None
+    except Exception as err:  # tifffile raises many types on damaged files (struct, index, OS errors)
+        raise ValueError(f"{path.name}: not a readable TIFF: the file is truncated, corrupted or not a TIFF "
+                         f"({type(err).__name__}: {err}). {_rewrite_fix(path)}") from None
+    finally:
+        log.removeHandler(errors)
+        log.propagate = propagate
+    n_ch = len(meta["channels"]) if isinstance(meta.get("channels"), list) else 0
+    n_sp = len(str(meta.get("axes", "CZX"))) - 1  # pages are [Z, X] images: restore [C, (Y), Z, X]
+    shape = (n_ch, -1, *data.shape[-2:]) if n_sp == 3 else (n_ch, *data.shape[-2:])
+    try:
+        data = data.reshape(shape)
+    except ValueError:
+        raise ValueError(f"{path.name}: a stack of shape {list(data.shape)} does not hold {n_ch} channels "
+                         f"of axes {meta.get('axes')!r}") from None
+    return data, meta
+
+
 def read_maps(path: str | os.PathLike) -> Maps:
-    """Read a maps file (``.npz`` or ``.tif``/``.tiff``) in the project's maps format."""
+    """Read a maps file (``.npz`` or ``.tif``/``.tiff``) in the project's maps format.
+
+    Nothing is unpickled. An empty, truncated or corrupted file, an object (pickled) array or a
+    ``meta_json`` that is not a JSON object is a ``ValueError`` naming the file and the fix.
+    """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"maps file {path} does not exist")
-    if path.suffix == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            for key in ("maps", "meta_json"):
-                if key not in z:
-                    raise ValueError(f"{path.name}: missing array {key!r} (maps files have 'maps', 'channels', "
-                                     "'meta_json'; write them with `torchdoct maps`)")
-            data = z["maps"]
-            meta = json.loads(str(z["meta_json"]))
-    elif path.suffix in (".tif", ".tiff"):
-        import tifffile
-
-        data = tifffile.imread(path)
-        meta = _tiff_meta(path)
-        n_ch = len(meta["channels"]) if isinstance(meta.get("channels"), list) else 0
-        n_sp = len(str(meta.get("axes", "CZX"))) - 1  # pages are [Z, X] images: restore [C, (Y), Z, X]
-        shape = (n_ch, -1, *data.shape[-2:]) if n_sp == 3 else (n_ch, *data.shape[-2:])
-        try:
-            data = data.reshape(shape)
-        except ValueError:
-            raise ValueError(f"{path.name}: a stack of shape {list(data.shape)} does not hold {n_ch} channels "
-                             f"of axes {meta.get('axes')!r}") from None
-    else:
+    if path.suffix not in (".npz", ".tif", ".tiff"):
         raise ValueError(f"maps file {path.name}: must be .npz or .tif (the formats of `torchdoct maps`)")
+    if not path.is_file():
+        raise ValueError(f"maps file {path} is not a file")
+    if path.stat().st_size == 0:
+        raise ValueError(f"{path.name}: the file is empty (0 bytes). {_rewrite_fix(path)}")
+    data, meta = _read_npz(path) if path.suffix == ".npz" else _read_tiff(path)
     if not np.issubdtype(data.dtype, np.floating):
         raise TypeError(f"{path.name}: maps must be floating point; got {data.dtype}")
     if data.ndim not in (3, 4):
@@ -315,9 +404,9 @@ def assemble_features(maps_list: Sequence[Maps], model: ClassifierModel, *,
                 "the maps of the other wavelength as a second file")
         m, i, ch = found
         unit = ch.get("unit")
-        if unit is not None and unit != METRIC_UNITS[metric]:
+        if unit is not None and unit != metric_unit(metric):
             raise ValueError(f"{m.path.name}: channel {ch.get('name')!r} has unit {unit!r}; the model expects "
-                             f"{METRIC_UNITS[metric]!r}")
+                             f"{metric_unit(metric)!r}")
         feats.append(m.data[i])
         used.append({"feature": col["name"], "file": m.path.name, "channel": ch.get("name", str(i))})
     mean_db = None

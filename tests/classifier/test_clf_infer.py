@@ -238,3 +238,58 @@ def test_volume_maps_are_classified_per_bscan(setup, tmp_path):
     out = tmp_path / "o"
     assert classify_main([str(path), "--model", str(setup["model"]), "--out", str(out), "--pool", "3"]) == 0
     assert (out / "overlay.png").stat().st_size > 0
+
+
+def _broken_maps_files(setup, tmp_path) -> dict[str, tuple[Path, str]]:
+    """name -> (file, text the error must contain besides the file name)."""
+    meta, data = setup["meta"], setup["data"]
+    raw = setup["npz"].read_bytes()
+    tif = setup["tif"].read_bytes()
+    files = {}
+
+    def put(name, content, text):
+        p = tmp_path / name
+        p.write_bytes(content)
+        files[name] = (p, text)
+
+    put("empty.npz", b"", "empty")
+    put("truncated.npz", raw[: len(raw) // 2], "truncated")
+    put("header.npz", raw[:30], "truncated")
+    put("text.npz", b"maps,meta\n1,2\n", "not a .npz")
+    put("empty.tif", b"", "empty")
+    put("truncated.tif", tif[: len(tif) // 3], "truncated")
+    for name, meta_json, text in (("badjson.npz", np.asarray("{not json"), "not valid JSON"),
+                                  ("listjson.npz", np.asarray(json.dumps([1, 2])), "JSON object"),
+                                  ("pickled.npz", np.array([meta], dtype=object), "pickle"),
+                                  ("numjson.npz", np.arange(3.0), "JSON text")):
+        p = tmp_path / name
+        np.savez(p, maps=data, meta_json=meta_json)
+        files[name] = (p, text)
+    p = tmp_path / "pickledmaps.npz"
+    np.savez(p, maps=np.array([data], dtype=object), meta_json=np.asarray(json.dumps(meta)))
+    files[p.name] = (p, "pickle")
+    p = tmp_path / "channelsjson.npz"
+    np.savez(p, maps=data, meta_json=np.asarray(json.dumps({**meta, "channels": "lots"})))
+    files[p.name] = (p, "channels")
+    return files
+
+
+def test_unreadable_maps_files_are_named_with_the_fix(setup, tmp_path):
+    for name, (path, text) in _broken_maps_files(setup, tmp_path).items():
+        with pytest.raises(ValueError) as info:
+            read_maps(path)
+        msg = str(info.value)
+        assert name in msg and text in msg, (name, msg)
+        if text in ("empty", "truncated", "not a .npz"):
+            assert "torchdoct maps" in msg, msg  # the fix: write it again
+
+
+def test_cli_unreadable_maps_exit_2_with_one_line(setup, tmp_path, capsys):
+    for name, (path, text) in _broken_maps_files(setup, tmp_path).items():
+        code = classify_main([str(path), "--model", str(setup["model"]), "--out", str(tmp_path / "o"),
+                              "--threads", "1"])
+        captured = capsys.readouterr()
+        assert code == 2, (name, captured.err)
+        assert captured.err.startswith("error: ") and captured.err.count("\n") == 1, captured.err
+        assert name in captured.err and captured.out == ""
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
