@@ -19,7 +19,8 @@ Steps of :func:`classify_maps`:
    Background: the ``mean_db`` channel (if present) below ``background_db``; ``"auto"`` = its
    99th percentile minus 30 dB (the usual DOCT display range), ``None`` = no background mask.
 4. **Pooling** (optional, ``pool = N``): every feature is averaged over the valid pixels of the
-   N × N neighbourhood in the (z, x) plane of each B-scan. The model's ``pool_pixels`` input is
+   N × N neighbourhood in the (z, x) plane of each B-scan (N at most the B-scan's smaller side;
+   a larger window would give every pixel the same class and is refused). The model's ``pool_pixels`` input is
    the number of *independent* pixels averaged: the valid count times the independence fraction of
    the pixel grid, ``n_e(N, p_x, s_x)·n_e(N, p_z, s_z)/N²`` with ``n_e = N²/Σ_ij exp(−((i−j)p)²/(2s²))``
    the effective sample count of N pixels of pitch ``p`` under the speckle intensity correlation of a
@@ -557,6 +558,11 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     if min_probability is not None and not 0.0 <= float(min_probability) < 1.0:
         raise ValueError(f"min_probability must be in [0, 1); got {min_probability!r}")
     maps_list = [read_maps(p) for p in paths]
+    z_px, x_px = maps_list[0].spatial_shape[-2:]
+    if pool > min(z_px, x_px):
+        raise ValueError(f"{maps_list[0].path.name}: pool {pool} (--pool) is larger than its {z_px} × {x_px} (z × x) "
+                         f"B-scans: every {pool} × {pool} window would average most of the image and give all pixels "
+                         f"the same class. The largest valid pool is {min(z_px, x_px)}")
     t_read = time.perf_counter()
     feats, mean_db, info = assemble_features(maps_list, mdl, ignore_refractive_index=ignore_refractive_index)
     finite = np.all(np.isfinite(feats), axis=0)

@@ -293,3 +293,18 @@ def test_cli_unreadable_maps_exit_2_with_one_line(setup, tmp_path, capsys):
         assert captured.err.startswith("error: ") and captured.err.count("\n") == 1, captured.err
         assert name in captured.err and captured.out == ""
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+def test_pool_larger_than_the_image_is_refused(setup, tmp_path, capsys):
+    assert classify_maps(setup["npz"], str(setup["model"]), pool=min(Z, X), threads=1).info["pool"] == Z
+    for pool in (Z + 1, X + 1, 1000):
+        with pytest.raises(ValueError) as info:
+            classify_maps(setup["npz"], str(setup["model"]), pool=pool, threads=1)
+        msg = str(info.value)
+        assert f"{Z} × {X}" in msg and f"largest valid pool is {Z}" in msg and "maps.npz" in msg, msg
+    out = tmp_path / "o"
+    assert classify_main([str(setup["npz"]), "--model", str(setup["model"]), "--out", str(out), "--threads", "1",
+                          "--pool", str(X)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "--pool" in err and f"largest valid pool is {Z}" in err
+    assert not out.exists()
