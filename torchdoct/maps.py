@@ -16,7 +16,9 @@ pixel (time last, ``[..., T]``) the channels below are computed:
   defines them: the LIV curve ``LIV(T_w)`` (ddof-0 variance of the dB intensity over every run of
   consecutive frames spanning exactly ``T_w``, averaged over start positions, for every ``T_w`` that
   is a difference of frame times; :func:`liv_curve`), smoothed by a 3×3 box over each (Z, X) image
-  (``cv2.blur``, border reflect-101; ``aliv_smoothing=False`` turns it off), then the saturation model
+  (``cv2.blur``, border reflect-101; ``aliv_smoothing=False`` turns it off) over the *defined*
+  neighbours only (an undefined pixel's curve does not enter its neighbours' mean; with every pixel
+  defined this is exactly ``cv2.blur``), then the saturation model
   ``LIV(T_w) = a·(1 − exp(−T_w/τ))`` fitted by unweighted least squares with ``a, τ ≥ 0``
   (:func:`fit_saturation`); ``aliv = a``, ``swiftness = 1/τ``.
 
@@ -45,6 +47,7 @@ import torch
 from . import metrics as _metrics
 from ._files import atomic_write, check_out
 from .io import Maps, Sequence
+from .threads import one_torch_thread
 from .resolution import (
     EDGE_MODES,
     NORMALIZATIONS,
@@ -174,17 +177,31 @@ def liv_curve(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
     return windows, torch.stack(cols, -1)
 
 
-def box_smooth_zx(curves: torch.Tensor) -> torch.Tensor:
+def box_smooth_zx(curves: torch.Tensor, defined: torch.Tensor | None = None) -> torch.Tensor:
     """3×3 box mean over the (Z, X) dimensions of ``curves [..., Z, X, W]`` (border reflect-101,
-    as ``cv2.blur``); leading dimensions (e.g. Y) are separate images."""
+    as ``cv2.blur``); leading dimensions (e.g. Y) are separate images.
+
+    ``defined`` (bool ``[..., Z, X]``): average over the defined pixels of each 3×3 neighbourhood only
+    (``Σ defined·curve / Σ defined`` over the same reflect-101 window), so an undefined pixel (no dB
+    value) does not pull its neighbours' curves towards 0; a pixel with no defined neighbour gets 0.
+    """
     lead = curves.shape[:-3]
     z, x, w = curves.shape[-3:]
-    img = curves.reshape(-1, z, x, w).permute(0, 3, 1, 2)  # [N, W, Z, X]
-    pad_mode = "reflect"
     pz = 1 if z >= 2 else 0
     px = 1 if x >= 2 else 0
-    img = torch.nn.functional.pad(img, (px, px, pz, pz), mode=pad_mode) if (pz or px) else img
-    out = torch.nn.functional.avg_pool2d(img, kernel_size=(2 * pz + 1, 2 * px + 1), stride=1)
+
+    def blur(img: torch.Tensor) -> torch.Tensor:  # [N, C, Z, X]
+        img = torch.nn.functional.pad(img, (px, px, pz, pz), mode="reflect") if (pz or px) else img
+        return torch.nn.functional.avg_pool2d(img, kernel_size=(2 * pz + 1, 2 * px + 1), stride=1)
+
+    img = curves.reshape(-1, z, x, w).permute(0, 3, 1, 2)  # [N, W, Z, X]
+    if defined is None:
+        out = blur(img)
+    else:
+        d = defined.reshape(-1, 1, z, x).to(curves.dtype)
+        num = blur(img * d)
+        den = blur(d)
+        out = torch.where(den > 0, num / torch.where(den > 0, den, torch.ones_like(den)), torch.zeros_like(num))
     return out.permute(0, 2, 3, 1).reshape(*lead, z, x, w)
 
 
@@ -281,10 +298,10 @@ def _pixel_metrics(intensity: torch.Tensor, frame_times_s: list[float], wanted: 
     res = {k: v.reshape(spatial) for k, v in out.items()}
     if curves is not None:
         c = torch.cat(curves, 0).reshape(*spatial, -1)
-        if aliv_smoothing:
-            c = box_smooth_zx(c)
-        c = c.reshape(n_pix, -1)
         zero_all = ~(it > 0).all(-1)
+        if aliv_smoothing:
+            c = box_smooth_zx(c, defined=~zero_all.reshape(spatial))
+        c = c.reshape(n_pix, -1)
         a_out = torch.empty(n_pix, dtype=torch.float64, device=c.device)
         tau_out = torch.empty(n_pix, dtype=torch.float64, device=c.device)
         step = max(1, chunk_pixels // 4)
@@ -313,6 +330,7 @@ def _as_targets(resolutions: Iterable[str | ResolutionTarget]) -> list[Resolutio
     return targets
 
 
+@one_torch_thread
 def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = ("original",), *,
                  metrics: Iterable[str] = ("liv", "ocds", "mean_db"),
                  ocds_delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S,

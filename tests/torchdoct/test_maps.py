@@ -328,3 +328,212 @@ def test_cli_bench_maps_runs(tmp_path, capsys):
     res = json.loads(out.read_text())
     assert res["shape"] == [8, 16, 12] and set(res["seconds_per_resolution"]) == {"original", "axial=14", "lateral=18"}
     assert main(["bench", "maps", "--frames", "8", "--size", "16", "12", "--out", str(out)]) == 2
+
+
+# ----------------------------------------------------------------------------------------------------------
+# edge cases (issue 15): undefined neighbours, fits on a τ bound, reduction leakage, figures, bad inputs
+# ----------------------------------------------------------------------------------------------------------
+def _mean_over_defined(c: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """3×3 mean (border reflect-101, as cv2.blur) of curves ``c [Z, X, W]`` over the defined pixels only."""
+    w = valid.astype(np.float64)
+    num = ndimage.uniform_filter(c * w[..., None], size=(3, 3, 1), mode="mirror")
+    den = ndimage.uniform_filter(w, size=3, mode="mirror")
+    with np.errstate(invalid="ignore", divide="ignore"):  # no defined neighbour: NaN
+        return num / den[..., None]
+
+
+def test_undefined_pixels_do_not_enter_the_aliv_smoothing():
+    """Zeroing a patch leaves its neighbours' aLIV/Swiftness equal to the 3×3 mean over defined neighbours."""
+    data = speckle((12, 14, 13), corr=0.85, seed=11, dtype=np.complex128)
+    valid = np.ones((14, 13), bool)
+    valid[4:9, 5:10] = False
+    zeroed = data.copy()
+    zeroed[:, ~valid] = 0
+    m = compute_maps(make_seq(zeroed), ["original"], metrics=["aliv", "swiftness"])
+    i = torch.from_numpy(np.abs(data) ** 2).movedim(0, -1)
+    w, c = liv_curve(i, [DT * k for k in range(12)])
+    a, tau = fit_saturation(w, torch.from_numpy(_mean_over_defined(c.numpy(), valid)))
+    np.testing.assert_allclose(m["aliv@original"][valid], a.numpy()[valid], rtol=2e-5)
+    np.testing.assert_allclose(m["swiftness@original"][valid], 1 / tau.numpy()[valid], rtol=2e-5)
+    assert np.isnan(m["aliv@original"][~valid]).all() and np.isnan(m["swiftness@original"][~valid]).all()
+    # the pixels away from the patch do not change at all
+    far = ndimage.binary_dilation(~valid, structure=np.ones((3, 3), bool))
+    ref = compute_maps(make_seq(data), ["original"], metrics=["aliv", "swiftness"])
+    np.testing.assert_array_equal(m.maps[:2][:, ~far], ref.maps[:2][:, ~far])
+
+
+def test_fits_on_a_tau_bound_are_flagged():
+    t = np.arange(16)
+    data = speckle((16, 4, 5), corr=0.85, seed=12, dtype=np.complex128)
+    data[:, 0, 0] = np.sqrt(10 ** (0.3 * t / 10))  # dB ramp: LIV curve grows as T_w², τ → upper bound
+    data[:, 0, 1] = np.sqrt(10 ** (np.where(t % 2 == 0, 1.0, -1.0) / 10))  # alternating: flat curve, τ → lower bound
+    data[:, 3, 4] = 0  # undefined
+    m = compute_maps(make_seq(data), ["original"], metrics=["aliv", "swiftness"], aliv_smoothing=False)
+    assert m.channels == ("aliv@original", "swiftness@original", "aliv_fit@original")
+    code = m["aliv_fit@original"]
+    assert code[0, 0] == 2 and code[0, 1] == 1 and np.isnan(code[3, 4])
+    inside = np.ones((4, 5), bool)
+    inside[0, :2] = inside[3, 4] = False
+    assert (code[inside] == 0).all()
+    assert m.meta["aliv"]["flagged_pixels"] == {"original": {"tau_at_lower_bound": 1, "tau_at_upper_bound": 1}}
+    assert "bound" in m.meta["aliv"]["flag"] and m.channel_info("aliv_fit@original")["unit"] == "code"
+    # flagged pixels are shown in their own colour, distinct from every hue of the scale and from NaN grey
+    rgb = pseudo_color(m["aliv@original"], None, value_range=(0, 30), flagged=code > 0)
+    assert tuple(rgb[0, 0]) == tuple(rgb[0, 1]) == (255, 0, 255)
+    assert all(tuple(rgb[z, x]) != (255, 0, 255) for z, x in zip(*np.nonzero(inside)))
+
+
+def test_empty_pixels_stay_undefined_after_an_axial_reduction():
+    """FFT leakage into exactly empty rows is masked by the documented floor; real blur is kept."""
+    data = speckle((8, 120, 6), seed=13)
+    data[:, 20:] = 0  # rows 20… exactly empty (a 150 µm empty region below the sample)
+    m = compute_maps(make_seq(data), ["original", "axial=14"], ocds_delay_range_s=(0.2048, 0.6144))
+    for metric in ("liv", "ocds", "mean_db"):
+        assert np.isnan(m[f"{metric}@original"][20:]).all()
+        v = m[f"{metric}@axial=14"]
+        assert np.isfinite(v[:24]).all(), metric  # the reduced PSF reaches a few rows into the empty region
+        assert np.isnan(v[70:]).all(), metric  # > 9 σ'_z away: only round-off remains
+    rule = m.meta["empty_rule"]
+    assert rule["floor_relative_db"] == pytest.approx(10 * np.log10((1024 * np.finfo(np.float32).eps) ** 2))
+    assert "max" in rule["rule"] and "I = 0" in rule["rule"]
+
+
+def test_map_figure_axes_colour_bar_and_title(tmp_path):
+    from torchdoct import figures
+    from torchdoct.maps import map_figure
+
+    data = speckle((8, 12, 10), seed=14)
+    m = compute_maps(make_seq(data), ["original", "axial=14"], ocds_delay_range_s=(0.2048, 0.6144))
+    fig = map_figure(m, "liv@axial=14", value_range=(0.0, 30.0), db_range=(-10.0, 10.0))
+    img_ax = fig.axes[0]
+    assert img_ax.get_xlabel() == figures.X_LABEL == "x (µm)" and img_ax.get_ylabel() == figures.Z_LABEL
+    assert img_ax.images[0].get_extent() == pytest.approx([0.0, 10 * 2.0, 12 * 1.5, 0.0])
+    title = img_ax.get_title()
+    assert "LIV" in title and "axial=14" in title and "lateral 4.9 µm" in title and "axial 14 µm" in title
+    cbar_label = fig.axes[1].get_ylabel()
+    assert "dB²" in cbar_label and "0" in cbar_label and "30" in cbar_label
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    paths = write_pngs_for(m, tmp_path)
+    h, w = matplotlib_image_shape(paths[0])
+    assert w > 400 and h > 250  # a figure with axes, not the bare 12×10 map
+
+
+def write_pngs_for(m, tmp_path):
+    from torchdoct.maps import write_pngs
+
+    return write_pngs(m, tmp_path / "maps.npz")
+
+
+def matplotlib_image_shape(path):
+    import matplotlib.image
+
+    return matplotlib.image.imread(path).shape[:2]
+
+
+def test_one_axes_convention_for_render_preview_maps_and_overlay(tmp_path, monkeypatch):
+    import matplotlib.figure
+
+    from torchdoct import figures
+    from torchdoct.phantom import load_phantom
+    from torchdoct.render import preview_figure, render
+
+    res = render(load_phantom("spheroid", grid={"n_z": 24, "n_x": 20, "pitch_x_um": 2.0, "pitch_z_um": 2.0}),
+                 systems=None, seed=1, frames=4) if "frames" in render.__code__.co_varnames else render(
+        load_phantom("spheroid", grid={"n_z": 24, "n_x": 20, "pitch_x_um": 2.0, "pitch_z_um": 2.0}), seed=1)
+    fig = preview_figure(res, 0)
+    for ax in fig.axes:
+        if ax.images and ax.get_label() != "<colorbar>":
+            assert ax.get_xlabel() == figures.X_LABEL and ax.get_ylabel() == figures.Z_LABEL
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    # the classifier overlay draws with the same helper
+    from classifier import infer
+
+    seen = []
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda self, *a, **k: seen.append(self))
+    cls = infer.Classification(labels=np.zeros((6, 5), np.uint8), probabilities=np.zeros((1, 6, 5), np.float32),
+                               classes=["diffusion"], mask=np.ones((6, 5), bool), background=np.zeros((6, 5), bool),
+                               intensity_db=np.zeros((6, 5)), model=None, sources=["m.npz"], axes="CZX",
+                               pitch_um={"z": 1.5, "x": 2.0}, info={"pool": 1})
+    infer._overlay(cls, str(tmp_path / "o.png"))
+    ax = seen[0].axes[0]
+    assert ax.get_xlabel() == figures.X_LABEL and ax.get_ylabel() == figures.Z_LABEL
+    assert ax.images[0].get_extent() == pytest.approx([0.0, 5 * 2.0, 6 * 1.5, 0.0])
+
+
+def test_intensity_tiff_at_original_resolution_needs_no_optics(tmp_path, capsys):
+    inten = (np.abs(speckle((8, 5, 6), seed=15)) ** 2).astype(np.float32)
+    tifffile.imwrite(tmp_path / "cog.tif", inten)
+    out = tmp_path / "m.npz"
+    assert main(["maps", str(tmp_path / "cog.tif"), "--frame-interval-s", "0.2048", "--ocds-delay-range-s",
+                 "0.2048", "0.6144", "--aliv", "--out", str(out), "--png", "--no-progress"]) == 0
+    m = read_maps(out)
+    i = torch.from_numpy(inten).movedim(0, -1)
+    np.testing.assert_allclose(m["liv@original"], metrics.liv(i).numpy(), rtol=1e-5, atol=1e-5)
+    assert m.channel_info("liv@original")["wavelength_um"] is None and m.meta["pitch_um"] is None
+    assert (tmp_path / "m_liv_original.png").exists()
+    capsys.readouterr()
+    # a resolution change still needs them, and says which
+    np.save(tmp_path / "raw.npy", speckle((8, 5, 6)))
+    argv = ["maps", str(tmp_path / "raw.npy"), "--axes", "TZX", "--frame-interval-s", "0.2048",
+            "--ocds-delay-range-s", "0.2048", "0.6144", "--out", str(tmp_path / "r.npz"), "--no-progress"]
+    assert main(argv) == 0
+    assert main(argv + ["--resolution", "axial=14", "--force"]) == 2
+    err = capsys.readouterr().err
+    assert "--pitch-um" in err or "--wavelength-um" in err
+
+
+def test_biased_ocds_computes_only_the_lags_in_the_range(monkeypatch):
+    g = torch.Generator().manual_seed(16)
+    i = torch.rand(50, 24, generator=g, dtype=torch.float64) + 0.01
+    times = [DT * k for k in range(24)]
+    ref = metrics.ocds(i, times, delay_range_s=(0.2048, 0.6144), estimator="biased")
+
+    def every_lag(*a, **k):
+        raise AssertionError("all lags computed")
+
+    monkeypatch.setattr(metrics, "lag_correlations", every_lag)
+    got = ocds_map(i, times, delay_range_s=(0.2048, 0.6144), estimator="biased")
+    torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-12)
+
+
+def test_all_nan_or_empty_input_is_refused(tmp_path, capsys):
+    for name, fill in (("nan", np.nan), ("zero", 0.0)):
+        data = np.full((8, 5, 6), fill, np.complex64)
+        path = write_sequence(tmp_path / f"{name}.npz", data, {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},
+                                                               "frame_times_s": [DT * k for k in range(8)],
+                                                               "system": SYSTEM})
+        with pytest.raises(ValueError, match=f"{name}.npz.*no (finite|nonzero)"):
+            compute_maps(read_sequence(path), ["original"])
+        out = tmp_path / f"{name}-maps.npz"
+        assert main(["maps", str(path), "--out", str(out), "--no-progress"]) == 2
+        assert f"{name}.npz" in capsys.readouterr().err and not out.exists()
+
+
+def test_one_frame_input_is_refused_naming_the_file(tmp_path, capsys):
+    path = write_sequence(tmp_path / "one.npy", speckle((1, 5, 6)), {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},
+                                                                     "frame_times_s": [0.0], "system": SYSTEM})
+    with pytest.raises(ValueError, match="one.npy.*1 frame.*at least 2"):
+        compute_maps(read_sequence(path), ["original"], metrics=["liv"])
+    assert main(["maps", str(path), "--out", str(tmp_path / "m.npz"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "one.npy" in err and "max()" not in err
+
+
+def test_big_endian_npy_is_read(tmp_path, capsys):
+    data = speckle((8, 5, 6), seed=17)
+    meta = {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0}, "frame_times_s": [DT * k for k in range(8)],
+            "system": SYSTEM}
+    write_sequence(tmp_path / "le.npy", data, meta)
+    np.save(tmp_path / "be.npy", data.astype(">c8"))
+    (tmp_path / "be.json").write_text(json.dumps(meta))
+    outs = []
+    for stem in ("le", "be"):
+        outs.append(tmp_path / f"{stem}-maps.npz")
+        assert main(["maps", str(tmp_path / f"{stem}.npy"), "--resolution", "original", "--resolution", "axial=14",
+                     "--ocds-delay-range-s", "0.2048", "0.6144", "--aliv", "--out", str(outs[-1]),
+                     "--no-progress"]) == 0
+    np.testing.assert_array_equal(read_maps(outs[0]).maps, read_maps(outs[1]).maps)
