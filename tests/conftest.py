@@ -9,6 +9,10 @@ import torch
 
 import torchdoct
 
+# The threading policy of torchdoct (torchdoct.threads): tensor operations run on one torch thread;
+# parallel work runs over independent pieces. Tests that call torch directly follow it too.
+torch.set_num_threads(1)
+
 
 @pytest.fixture(autouse=True)
 def guard_global_torch_state():

@@ -24,8 +24,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="run the cells on an existing Dask distributed cluster (e.g. tcp://host:8786)")
     p.add_argument("--batch-cells", type=int, default=1, help="cells per task (results do not depend on it)")
     p.add_argument("--workers", type=int, default=None,
-                   help="local worker processes, one torch thread each (default: the number of CPU cores; "
-                        "1 runs the cells in this process with its torch threads)")
+                   help="local worker processes, one torch thread each (default: --threads, else the usable "
+                        "cores; 1 runs the cells in this process on one core)")
     p.add_argument("--force", action="store_true", help="overwrite output files that exist")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -55,15 +55,18 @@ def register(sub, bench_sub) -> None:
     bs.add_argument("--out", default="bench-study.json", help="JSON output file")
     bs.add_argument("--force", action="store_true", help="overwrite --out (and --study-out files) if they exist")
     bs.add_argument("--workers", type=int, default=None,
-                    help="local worker processes (default: the number of CPU cores)")
+                    help="local worker processes (default: --threads, else the usable cores)")
     bs.add_argument("--no-progress", action="store_true", help="no progress bar")
     bs.set_defaults(func=_bench_study)
 
 
 def _workers(args) -> int:
-    import os
+    """Worker processes: ``--workers``, else ``--threads``, else the usable cores (one torch thread each)."""
+    from .threads import resolve_threads
 
-    return args.workers if args.workers is not None else max(1, os.cpu_count() or 1)
+    if args.workers is not None:
+        return args.workers
+    return resolve_threads(getattr(args, "threads", None))
 
 
 def _cache(args) -> object:

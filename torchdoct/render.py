@@ -51,6 +51,7 @@ from .conventions import (amplitude_sigma_axial_um, amplitude_sigma_lateral_um, 
                           truncation_half_widths_um, wavenumber_per_um)
 from .phantom import MOTION_CODES, Phantom
 from .simulate import MemoryLimitError, available_memory_bytes, seeded_generator, unit_directions
+from .threads import one_torch_thread
 
 __all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS"]
 
@@ -303,6 +304,7 @@ def _pixel_labels(phantom: Phantom) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return labels.numpy(), params.numpy(), region.numpy()
 
 
+@one_torch_thread
 def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed: int | None = None,
            dtype: str | torch.dtype | None = None, device: str | torch.device | None = None,
            truncation_tolerance: float | None = None, progress: bool = False) -> RenderResult:

@@ -37,6 +37,7 @@ import torch
 from .config import Population, Scene
 from .conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, wavenumber_per_um
 from .plan import BLOCK_TRIALS, Plan, PopulationPlan, ellipsoid_entry_bound, make_plan
+from .threads import map_ordered, resolve_threads, single_torch_thread
 
 __all__ = ["simulate", "SimulationResult", "CapacityError", "MemoryLimitError", "block_generator", "seeded_generator",
            "chunk_bytes", "available_memory_bytes", "unit_directions"]
@@ -68,8 +69,8 @@ class _Draws:
     """Random draws for a chunk of blocks, each block from its own generator (CPU).
 
     Numbers are drawn in float32 (the generator's native precision, 4-5 ns each) and returned as
-    float64, whatever the working dtype, so float32 and float64 runs share one realization. Blocks
-    draw in parallel threads (each block owns its generator, so the result does not depend on it).
+    float64, whatever the working dtype, so float32 and float64 runs share one realization. Each
+    block owns its generator, so a block's numbers do not depend on the chunk it is drawn in.
     """
 
     def __init__(self, gens: list[torch.Generator], device: torch.device):
@@ -77,11 +78,7 @@ class _Draws:
         self.device = device
 
     def _draw(self, fn, shape):
-        if len(self.gens) == 1:
-            parts = [fn((BLOCK_TRIALS, *shape), generator=self.gens[0], dtype=torch.float32)]
-        else:
-            parts = list(_pool().map(
-                lambda g: fn((BLOCK_TRIALS, *shape), generator=g, dtype=torch.float32), self.gens))
+        parts = [fn((BLOCK_TRIALS, *shape), generator=g, dtype=torch.float32) for g in self.gens]
         return torch.cat(parts).to(device=self.device, dtype=_F64)
 
     def rand(self, *shape: int) -> torch.Tensor:
@@ -101,7 +98,7 @@ class _Draws:
         def one(i: int) -> torch.Tensor:
             return fn((k, sizes[i]), generator=self.gens[i], dtype=torch.float32)
 
-        parts = [one(0)] if len(self.gens) == 1 else list(_pool().map(one, range(len(self.gens))))
+        parts = [one(i) for i in range(len(self.gens))]
         if out is not None and out.device.type == "cpu":
             return torch.cat(parts, dim=1, out=out)
         return torch.cat(parts, dim=1).to(self.device)
@@ -132,7 +129,6 @@ def _poisson_cdf(mean: float, n: int) -> torch.Tensor:
     return torch.cumsum(torch.exp(logp), 0).clamp_(max=1.0)
 
 
-_POOL = None
 _LIBC = None
 
 
@@ -157,15 +153,6 @@ def _release_free_memory() -> None:
             _LIBC = False
     if _LIBC:
         _LIBC.malloc_trim(0)
-
-
-def _pool():
-    global _POOL
-    if _POOL is None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _POOL = ThreadPoolExecutor(max_workers=max(1, torch.get_num_threads()))
-    return _POOL
 
 
 def unit_directions(u: torch.Tensor, law: str) -> torch.Tensor:
@@ -789,14 +776,16 @@ def simulate(
     device: str | torch.device | None = None,
     truncation_tolerance: float | None = None,
     chunk_trials: int | None = None,
+    threads: int | None = None,
     progress: bool = False,
 ) -> SimulationResult:
     """Simulate ``trials`` independent realizations of ``scene`` (all systems, all frames).
 
     Returns complex signals ``[trials, systems, frames]`` (complex64 for float32, complex128 for
     float64). Defaults come from the scene's ``[simulation]`` table. ``chunk_trials`` (rounded up to a
-    multiple of 64) only sets how many trials are computed at once: results are bit-identical for
-    any value.
+    multiple of 64) only sets how many trials are computed at once; ``threads`` how many chunks are
+    computed at once, each with one torch thread (:mod:`torchdoct.threads`; default: the usable
+    cores). Results are bit-identical for any value of either.
     """
     import time
 
@@ -815,24 +804,27 @@ def simulate(
     if dtype not in (torch.float32, torch.float64):
         raise ValueError(f"dtype must be torch.float32 or torch.float64; got {dtype}")
     device = torch.device(device or "cpu")
+    threads = resolve_threads(threads)
     plan = make_plan(scene, truncation_tolerance=truncation_tolerance)
     n_blocks = -(-trials // BLOCK_TRIALS)
     if chunk_trials is None:
-        # keep a chunk's largest working tensors near 8M elements
+        # keep a chunk's largest working tensors near 8M elements, and give every thread a chunk
         per_trial = max(_working_elements_per_trial(plan), 1)
-        chunk_blocks = max(1, min(16, int((1 << 23) // (BLOCK_TRIALS * per_trial))))
+        chunk_blocks = max(1, min(16, int((1 << 23) // (BLOCK_TRIALS * per_trial)), -(-n_blocks // threads)))
     else:
         if chunk_trials < 1:
             raise ValueError(f"chunk_trials must be >= 1; got {chunk_trials}")
         chunk_blocks = -(-int(chunk_trials) // BLOCK_TRIALS)
-    need = chunk_bytes(plan, chunk_blocks * BLOCK_TRIALS, len(scene.systems), scene.protocol.n_frames)
+    in_flight = min(threads, -(-n_blocks // chunk_blocks))
+    need = in_flight * chunk_bytes(plan, chunk_blocks * BLOCK_TRIALS, len(scene.systems), scene.protocol.n_frames)
     need += trials * len(scene.systems) * scene.protocol.n_frames * 2 * torch.finfo(dtype).bits // 8
     avail = available_memory_bytes()
     if avail is not None and need > avail:
         raise MemoryLimitError(
             f"this simulation needs about {need / 2**30:.2f} GB ({chunk_blocks * BLOCK_TRIALS} trials per chunk, "
-            f"{plan.expected_scatterers_per_trial:.4g} scatterers per trial, plus the output) but only "
-            f"{avail / 2**30:.2f} GB are available; lower chunk_trials (minimum {BLOCK_TRIALS}), loosen "
+            f"{plan.expected_scatterers_per_trial:.4g} scatterers per trial, {in_flight} chunk(s) at once, "
+            f"plus the output) but only "
+            f"{avail / 2**30:.2f} GB are available; lower chunk_trials (minimum {BLOCK_TRIALS}) or threads, loosen "
             f"the truncation tolerance (simulation.truncation_tolerance, now {plan.truncation_tolerance:g}), "
             f"run fewer trials per call, or lower the density")
     t0 = time.perf_counter()
@@ -844,16 +836,18 @@ def simulate(
         bar = tqdm(total=trials, unit="trial", desc=f"simulate {scene.name or 'scene'}")
     done = 0
     last_trim = time.perf_counter()
-    for b0 in range(0, n_blocks, chunk_blocks):
-        blocks = list(range(b0, min(n_blocks, b0 + chunk_blocks)))
-        pieces.append(_simulate_chunk(scene, plan, blocks, seed, dtype, device))
-        if time.perf_counter() - last_trim > 2.0:  # amortized: a trim costs a few ms of page faults
-            _release_free_memory()
-            last_trim = time.perf_counter()
-        if bar is not None:
-            step = min(trials, (blocks[-1] + 1) * BLOCK_TRIALS) - done
-            bar.update(step)
-            done += step
+    chunks = [list(range(b0, min(n_blocks, b0 + chunk_blocks))) for b0 in range(0, n_blocks, chunk_blocks)]
+    with single_torch_thread():
+        for blocks, piece in zip(chunks, map_ordered(
+                lambda blocks: _simulate_chunk(scene, plan, blocks, seed, dtype, device), chunks, threads)):
+            pieces.append(piece)
+            if time.perf_counter() - last_trim > 2.0:  # amortized: a trim costs a few ms of page faults
+                _release_free_memory()
+                last_trim = time.perf_counter()
+            if bar is not None:
+                step = min(trials, (blocks[-1] + 1) * BLOCK_TRIALS) - done
+                bar.update(step)
+                done += step
     if bar is not None:
         bar.close()
     signals = torch.cat(pieces)[:trials]

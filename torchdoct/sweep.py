@@ -43,10 +43,10 @@ number of trials with an empty resolution volume ``empty`` (NaN dB metrics, see
 :mod:`torchdoct.metrics`), the trials and the seed of the cell (:func:`results_table`; the
 statistics are those of :func:`torchdoct.metrics.summarize`).
 
-Executors (:func:`run_sweeps`): this process (``workers = 1``, the library default), ``workers`` local
-processes with one torch thread each (the command line's default is one per CPU core: on a shared
-machine, single-threaded processes are far less sensitive to other load than one process with
-several torch threads), or an existing Dask distributed cluster (``scheduler = "tcp://host:8786"``),
+Executors (:func:`run_sweeps`): this process on one core (``workers = 1``, the library default),
+``workers`` local processes with one torch thread each (the command line's ``--threads``, default one
+per usable core: on a shared machine, single-threaded processes are far less sensitive to other load
+than one process with several torch threads; :mod:`torchdoct.threads`), or an existing Dask distributed cluster (``scheduler = "tcp://host:8786"``),
 cells as tasks whose results come back to this process, which writes the cache and the table.
 """
 
@@ -620,9 +620,13 @@ def _connect(scheduler: str):
 
 
 def _worker_init(threads: int) -> None:
+    """A worker process computes with one core: one torch thread, one simulation thread."""
     import torch
 
+    from .threads import set_default_threads
+
     torch.set_num_threads(threads)
+    set_default_threads(threads)
 
 
 def _execute(payloads: list[dict[str, Any]], *, scheduler: str | None, batch_cells: int, workers: int,
@@ -631,9 +635,12 @@ def _execute(payloads: list[dict[str, Any]], *, scheduler: str | None, batch_cel
     as each finishes."""
     batches = [list(range(i, min(len(payloads), i + batch_cells))) for i in range(0, len(payloads), batch_cells)]
     if scheduler is None and (workers == 1 or len(batches) < 2):
-        for b in batches:
-            for i, res in zip(b, run_cell_batch([payloads[i] for i in b])):
-                done(i, res)
+        from .threads import using_threads
+
+        with using_threads(workers):  # the cells' simulations use the workers' cores as threads
+            for b in batches:
+                for i, res in zip(b, run_cell_batch([payloads[i] for i in b])):
+                    done(i, res)
         return
     if scheduler is None:
         import multiprocessing
@@ -677,8 +684,9 @@ def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int 
     each cell runs with :func:`cell_seed` of the base seed and its key. ``cache_dir`` (None: no cache)
     stores every finished cell at once, so an interrupted run resumes where it stopped.
     ``scheduler``: address of a Dask distributed scheduler (cells as tasks; None runs locally).
-    ``batch_cells``: cells per task; ``workers``: local worker processes (one torch thread each) when
-    no scheduler is given (1: this process, with its own thread settings). Results depend on neither.
+    ``batch_cells``: cells per task; ``workers``: the cores to use when no scheduler is given: local
+    worker processes with one torch thread each, or (1, or a single task) this process with that many
+    simulation threads (:mod:`torchdoct.threads`). Results depend on neither.
     """
     if isinstance(batch_cells, bool) or not isinstance(batch_cells, int) or batch_cells < 1:
         raise ValueError(f"batch_cells must be an integer >= 1; got {batch_cells!r}")

@@ -1,0 +1,95 @@
+"""Threading policy (torchdoct.threads): one torch thread per worker, bit-identical for any thread count."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+import torch
+
+import torchdoct as td
+from torchdoct import threads as th
+from torchdoct.cli import main
+
+
+def test_simulate_bit_identical_for_any_threads_and_chunking(small_scene):
+    ref = td.simulate(small_scene, trials=300, seed=5, threads=1).signals
+    for t, chunk in ((2, None), (3, None), (2, 64), (4, 128)):
+        out = td.simulate(small_scene, trials=300, seed=5, threads=t, chunk_trials=chunk).signals
+        assert torch.equal(out, ref), (t, chunk)
+
+
+def test_simulate_restores_torch_threads(small_scene):
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        td.simulate(small_scene, trials=64, seed=1, threads=2)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_single_torch_thread_nests_and_restores():
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with th.single_torch_thread():
+            assert torch.get_num_threads() == 1
+            with th.single_torch_thread():
+                assert torch.get_num_threads() == 1
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_map_ordered_keeps_order_and_bounds_work_in_flight():
+    running, peak, lock = [0], [0], threading.Lock()
+
+    def work(i):
+        with lock:
+            running[0] += 1
+            peak[0] = max(peak[0], running[0])
+        time.sleep(0.01 * ((7 * i) % 3))  # finish out of order
+        with lock:
+            running[0] -= 1
+        return i * i
+
+    assert list(th.map_ordered(work, range(10), 3)) == [i * i for i in range(10)]
+    assert 1 <= peak[0] <= 3
+    assert list(th.map_ordered(work, range(4), 1)) == [0, 1, 4, 9]
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
+def test_bad_thread_counts_are_refused(bad, small_scene):
+    with pytest.raises(ValueError, match="threads must be an integer >= 1"):
+        th.resolve_threads(bad)
+    with pytest.raises(ValueError, match="threads must be an integer >= 1"):
+        td.simulate(small_scene, trials=64, threads=bad)
+
+
+def test_default_threads_follow_setting_and_environment(monkeypatch):
+    monkeypatch.setenv("TORCHDOCT_THREADS", "3")
+    assert th.default_threads() == 3
+    with th.using_threads(1):
+        assert th.default_threads() == 1
+    assert th.default_threads() == 3
+    monkeypatch.setenv("TORCHDOCT_THREADS", "many")
+    with pytest.raises(ValueError, match="TORCHDOCT_THREADS"):
+        th.default_threads()
+    monkeypatch.delenv("TORCHDOCT_THREADS")
+    assert th.default_threads() >= 1
+
+
+def test_cli_threads_option(capsys, tmp_path):
+    assert main(["simulate", "example", "--trials", "64", "--threads", "0", "--no-progress"]) == 2
+    assert "--threads" in capsys.readouterr().err
+    a, b = tmp_path / "a.npz", tmp_path / "b.npz"
+    assert main(["simulate", "example", "--trials", "128", "--threads", "1", "--no-progress", "--out", str(a)]) == 0
+    assert main(["simulate", "example", "--trials", "128", "--threads", "2", "--no-progress", "--out", str(b)]) == 0
+    import numpy as np
+
+    with np.load(a) as fa, np.load(b) as fb:
+        assert np.array_equal(fa["signals"], fb["signals"])
+    th.set_default_threads(None)
