@@ -41,7 +41,8 @@ def build_train_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-baselines", action="store_true", help="skip the scikit-learn baselines")
     p.add_argument("--cache", default=None, help="dataset cache directory (default ~/.cache/torchdoct/classifier)")
     p.add_argument("--no-cache", action="store_true", help="neither read nor write the dataset cache")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="cores to use for the simulation (default: the usable cores); one torch thread each")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -75,10 +76,10 @@ def _train(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {out} is a file; give a directory")
     out.mkdir(parents=True, exist_ok=True)
     paths = {s: check_out(out / f"{spec.name}{s}", args.force, s, f"--out {out}") for s in (".onnx", ".json", ".md", ".png")}
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ValueError(f"--threads must be >= 1; got {args.threads}")
-        torch.set_num_threads(args.threads)
+    from torchdoct.threads import set_default_threads
+
+    set_default_threads(args.threads)  # simulation threads (torchdoct.threads); ValueError names the fix
+    torch.set_num_threads(1)  # one torch thread per worker: no stalls beside other busy processes
     cfg = TrainConfig(spec=str(args.spec), seed=args.seed, draws_train=args.draws_train,
                       draws_validation=args.draws_validation, draws_test=args.draws_test,
                       trials_per_draw=args.trials_per_draw, replicates=args.replicates, max_epochs=args.max_epochs,

@@ -66,8 +66,25 @@ def build_parser() -> argparse.ArgumentParser:
     for name in _EXTENSIONS:
         if importlib.util.find_spec(f"{__package__}.{name}") is not None:
             importlib.import_module(f"{__package__}.{name}").register(sub, bsub)
+    _add_threads(sub, bsub)
     p.bench_subparsers = bsub  # read by `bench all`
     return p
+
+
+#: Commands that only list or describe: no --threads.
+_NO_COMPUTE = {"scenes", "phantoms", "plan", "bench"}
+
+
+def _add_threads(*subparser_groups) -> None:
+    """One knob on every command that computes: ``--threads N`` (:mod:`torchdoct.threads`)."""
+    for group in subparser_groups:
+        for name, sp in group.choices.items():
+            if name in _NO_COMPUTE or any("--threads" in a.option_strings for a in sp._actions):
+                continue
+            sp.add_argument("--threads", type=int, default=None, metavar="N",
+                            help="cores to use (default: the usable cores, or $TORCHDOCT_THREADS); each works "
+                                 "with one torch thread, so other busy processes do not stall it; results do "
+                                 "not depend on N")
 
 
 def _check_out(path: str | None, force: bool, suffix: str) -> Path | None:
@@ -198,6 +215,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from . import config
+    from .threads import set_default_threads
+
+    try:
+        set_default_threads(getattr(args, "threads", None))
+    except ValueError as err:
+        print(f"error: --threads: {err}", file=sys.stderr)
+        return 2
+    import torch
+
+    torch.set_num_threads(1)  # parallel work runs over independent pieces (torchdoct.threads)
     from .scenes import shipped_scenes
 
     try:
