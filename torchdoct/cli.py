@@ -228,6 +228,10 @@ def _main(argv: Sequence[str] | None = None) -> int:
     from .scenes import shipped_scenes
 
     try:
+        if getattr(args, "device", None) is not None:  # every command with --device (simulate, render, maps)
+            from ._device import check_device
+
+            check_device(args.device)
         if getattr(args, "func", None) is not None:
             return int(args.func(args))
         if args.command == "scenes":

@@ -191,3 +191,36 @@ def test_binary_scene_file_exits_2_naming_the_file(tmp_path, capsys, content):
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1
     assert "scan.toml" in err and "UTF-8" in err and "codec" not in err
+
+
+# ----------------------------------------------------------------------------------------------------------
+# --device: one check for every command that has it
+# ----------------------------------------------------------------------------------------------------------
+_NO_CUDA = not torch.cuda.is_available()
+
+
+@pytest.mark.parametrize("device, text", [("bogus", "not a torch device"), ("gpu", "not a torch device"),
+                                          ("cuda:x", "not a torch device"),
+                                          pytest.param("cuda", "CUDA", marks=pytest.mark.skipif(
+                                              not _NO_CUDA, reason="a CUDA device exists")),
+                                          pytest.param("cuda:0", "CUDA", marks=pytest.mark.skipif(
+                                              not _NO_CUDA, reason="a CUDA device exists")),
+                                          ("cuda:99", "CUDA"), ("meta", "meta")])
+@pytest.mark.parametrize("command", ["simulate", "render", "maps"])
+def test_unusable_device_exits_2_listing_the_devices(tmp_scene_file, tmp_path, capsys, command, device, text):
+    out = tmp_path / ("x.npz" if command != "maps" else "m.npz")
+    argv = {"simulate": ["simulate", str(tmp_scene_file), "--trials", "2", "--no-progress"],
+            "render": ["render", "spheroid", "--out", str(out), "--no-progress"],
+            "maps": ["maps", str(tmp_path / "seq.npy"), "--out", str(out)]}[command]
+    assert main(argv + ["--device", device]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.startswith("error: ") and captured.err.count("\n") == 1, captured.err
+    err = captured.err
+    assert f"--device {device!r}" in err and text in err and "devices here: cpu" in err and "--device cpu" in err, err
+    assert not out.exists()
+
+
+def test_cpu_device_is_accepted(tmp_scene_file, capsys):
+    assert main(["simulate", str(tmp_scene_file), "--trials", "2", "--no-progress", "--device", "cpu"]) == 0
+    assert main(["simulate", str(tmp_scene_file), "--trials", "2", "--no-progress", "--device", "cpu:0"]) == 0
+    capsys.readouterr()
