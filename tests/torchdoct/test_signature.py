@@ -1,0 +1,158 @@
+"""The decorrelation signature (torchdoct.signature): closed forms, limits, invariances, names.
+
+Statistical checks use circular complex Gaussian fields (fully developed speckle, N_eff → ∞) with
+fixed seeds: independent frames (fully decorrelated) and a complex AR(1) process
+``E_i = a·E_{i−1} + √(1−a²)·e_i`` whose field correlation is ``g1(m) = a^m``, so that
+``ρ_I(m) = |g1|²`` (Siegert) and ``ρ_dB(m) = (6/π²)·Li₂(|g1|²)`` (physics.md §2.4, §5.4). Tolerances are
+z = 4 Monte Carlo standard errors from the sample plus the estimator's known O(1/(T−m)) bias bound.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchdoct import theory
+from torchdoct.metrics import liv
+from torchdoct.signature import (
+    DEFAULT_FEATURES,
+    available_features,
+    default_features,
+    feature_unit,
+    needs_field,
+    parse_feature,
+    signature,
+)
+
+DT_S = 0.2048
+Z = 4.0
+ALL = ("rho_db_1", "rho_db_5", "rho_lin_1", "rho_lin_5", "g1_1", "g1_5", "phase_ramp", "lin_contrast", "db_variance")
+
+
+def _times(n):
+    return [DT_S * i for i in range(n)]
+
+
+def _speckle(shape, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.complex(torch.randn(*shape, generator=g, dtype=torch.float64),
+                         torch.randn(*shape, generator=g, dtype=torch.float64)) / math.sqrt(2.0)
+
+
+def _ar1(pixels, frames, a, seed=0):
+    e = _speckle((pixels, frames), seed)
+    out = torch.empty_like(e)
+    out[:, 0] = e[:, 0]
+    for i in range(1, frames):
+        out[:, i] = a * out[:, i - 1] + math.sqrt(1 - a * a) * e[:, i]
+    return out
+
+
+def _mean_se(v):
+    v = v.double()
+    return float(v.mean()), float(v.std() / math.sqrt(v.numel()))
+
+
+def test_static_pixel_is_fully_correlated():
+    e = torch.full((5, 32), 2.0 - 1.5j, dtype=torch.complex128)
+    names, f = signature(e, _times(32), names=ALL)
+    assert names == ALL and f.shape == (5, len(ALL))
+    got = dict(zip(names, f[0].tolist()))
+    for k in ("rho_db_1", "rho_db_5", "rho_lin_1", "rho_lin_5", "g1_1", "g1_5", "phase_ramp"):
+        assert got[k] == pytest.approx(1.0, abs=1e-12), k
+    assert got["lin_contrast"] == 0.0 and got["db_variance"] == 0.0
+
+
+def test_decorrelated_speckle_correlations_vanish():
+    t = 32
+    e = _speckle((20000, t), seed=1)
+    names, f = signature(e, _times(t), names=ALL)
+    got = {n: f[:, i] for i, n in enumerate(names)}
+    for k in ("rho_db_1", "rho_db_5", "rho_lin_1", "rho_lin_5"):
+        m = parse_feature(k)[1]
+        mean, se = _mean_se(got[k])
+        assert abs(mean) <= 2.0 / (t - m) + Z * se, (k, mean, se)  # lag-estimator bias is O(1/(T-m))
+    for k in ("g1_1", "g1_5"):  # E|g1_hat|^2 = 1/(T-m) to first order for independent frames
+        m = parse_feature(k)[1]
+        mean, se = _mean_se(got[k] ** 2 * (t - m))
+        assert abs(mean - 1.0) <= 0.1 + Z * se, (k, mean)
+    # Gaussian speckle: Var(10 log10 I) = (10/ln10)^2 pi^2/6, ddof 0 over T frames of independent speckle
+    mean, se = _mean_se(got["db_variance"])
+    assert mean == pytest.approx(theory.db_variance_gaussian_speckle() * (t - 1) / t, abs=Z * se)
+    torch.testing.assert_close(got["db_variance"], liv(e.abs() ** 2))
+
+
+@pytest.mark.parametrize("a", [0.5, 0.9])
+def test_ar1_field_matches_the_closed_forms(a):
+    t = 1024  # long sequences: the estimators' bias, O(1/((1 − a)·T)) for a correlated series, stays small
+    e = _ar1(1000, t, a, seed=2)
+    names, f = signature(e, _times(t), names=("g1_1", "g1_3", "rho_lin_1", "rho_lin_3", "rho_db_1", "rho_db_3"))
+    got = {n: f[:, i] for i, n in enumerate(names)}
+    for m in (1, 3):
+        g = a ** m
+        expect = {f"g1_{m}": g, f"rho_lin_{m}": g * g, f"rho_db_{m}": float(theory.rho_db_gaussian_limit(g))}
+        for k, v in expect.items():
+            mean, se = _mean_se(got[k])
+            assert abs(mean - v) <= 2.0 / ((1 - a) * (t - m)) + Z * se, (k, mean, v, se)
+
+
+def test_bulk_phase_and_scale_invariance():
+    t = 32
+    e = _ar1(500, t, 0.8, seed=3) * torch.exp(1j * torch.linspace(0, 3, t, dtype=torch.float64))  # some Doppler
+    names, f0 = signature(e, _times(t), names=ALL)
+    # scale-free: a gain and a constant phase change nothing
+    _, f1 = signature(e * (7.3 * np.exp(0.4j)), _times(t), names=ALL)
+    torch.testing.assert_close(f1, f0, rtol=1e-9, atol=1e-9)
+    # a random bulk phase per frame leaves the intensity features exactly unchanged
+    phi = torch.rand(1, t, generator=torch.Generator().manual_seed(4), dtype=torch.float64) * 2 * math.pi
+    _, f2 = signature(e * torch.exp(1j * phi), _times(t), names=ALL)
+    inten = [i for i, n in enumerate(names) if not needs_field(n)]
+    field = [i for i, n in enumerate(names) if needs_field(n)]
+    torch.testing.assert_close(f2[:, inten], f0[:, inten], rtol=1e-9, atol=1e-9)
+    assert float((f2[:, field] - f0[:, field]).abs().max()) > 0.1  # the field group sees the bulk phase
+    # a linear bulk drift (constant bulk velocity) leaves the field features unchanged as well
+    drift = torch.exp(1j * 1.7 * torch.arange(t, dtype=torch.float64))
+    _, f3 = signature(e * drift, _times(t), names=ALL)
+    torch.testing.assert_close(f3, f0, rtol=1e-9, atol=1e-9)
+
+
+def test_flow_phase_ramp_is_one():
+    t = 32  # a pure Doppler rotation of a static speckle: constant phase increment
+    e = _speckle((10, 1), seed=5) * torch.exp(-1j * 0.9 * torch.arange(t, dtype=torch.float64))
+    _, f = signature(e, _times(t), names=("phase_ramp", "g1_1", "g1_7"))
+    torch.testing.assert_close(f, torch.ones_like(f))
+
+
+def test_names_shapes_units_and_intensity_only():
+    e = _speckle((2, 3, 4, 32), seed=6).to(torch.complex64)
+    names, f = signature(e, _times(32))
+    assert names == DEFAULT_FEATURES == default_features(32)
+    assert f.shape == (2, 3, 4, len(names)) and f.dtype == torch.float32
+    inten = (e.abs() ** 2)
+    names_i, fi = signature(inten, _times(32))
+    assert names_i == available_features(DEFAULT_FEATURES, False) and not any(needs_field(n) for n in names_i)
+    assert all(n in names for n in names_i) and fi.shape[-1] == len(names_i)
+    torch.testing.assert_close(fi, f[..., [names.index(n) for n in names_i]])
+    assert feature_unit("rho_db_3") == "1" and feature_unit("db_variance") == "dB^2"
+    assert all(parse_feature(n)[1] <= 29 for n in default_features(32))
+    assert all(parse_feature(n)[1] <= 5 for n in default_features(8))
+    with pytest.raises(ValueError, match="complex field"):
+        signature(inten, _times(32), names=("g1_1",))
+    with pytest.raises(ValueError, match="unknown signature feature"):
+        signature(e, _times(32), names=("g2_1",))
+    with pytest.raises(ValueError, match="lag 30 needs at least 33 frames"):
+        signature(e, _times(32), names=("rho_db_30",))
+    with pytest.raises(ValueError, match="uniform"):
+        signature(e, [0.0, 0.1, 0.3] + [0.1 * i for i in range(3, 32)], names=("rho_db_1",))
+    with pytest.raises(ValueError, match="32 frames but 31"):
+        signature(e, _times(31))
+
+
+def test_empty_volume_gives_nan():
+    e = _speckle((3, 32), seed=7)
+    e[1, 5] = 0
+    _, f = signature(e, _times(32), names=ALL)
+    assert torch.isnan(f[1]).all() and torch.isfinite(f[[0, 2]]).all()
