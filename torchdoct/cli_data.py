@@ -37,6 +37,9 @@ def register(sub: Any, bench_sub: Any) -> None:
                     help="original | axial=UM | lateral=UM | axial=UM,lateral=UM (repeat; default original)")
     mp.add_argument("--metrics", default="liv,ocds,mean_db", help="comma list of liv, ocds, mean_db (default all 3)")
     mp.add_argument("--aliv", action="store_true", help="also compute aLIV and Swiftness (LIV-curve fit)")
+    mp.add_argument("--signature", action="store_true",
+                    help="also write the decorrelation-signature channels (torchdoct.signature) that the "
+                         "classifier's signature model reads")
     mp.add_argument("--out", action="append", required=True, metavar="FILE",
                     help="output maps file, .tif or .npz (repeat to write both)")
     mp.add_argument("--force", action="store_true", help="overwrite existing outputs")
@@ -164,6 +167,12 @@ def _maps(args: argparse.Namespace) -> int:
                         axial_center=center, edge_mode=args.edge_mode, normalization=args.normalization,
                         drop_boundary=args.drop_boundary > 0, device=args.device,
                         progress=not args.no_progress)
+    if args.signature:
+        from .signature import signature_maps
+
+        maps, note = signature_maps(maps, seq, resolutions)
+        if note:
+            print(f"note: {note}")
     shape = "×".join(str(s) for s in maps.maps.shape[1:])
     print(f"{seq.source}: {seq.n_frames} frames, {'complex' if seq.is_complex else 'intensity'} "
           f"{list(seq.data.shape)} ({seq.axes}) → {len(maps.channels)} channels [{maps.meta['axes']}] {shape}")

@@ -70,6 +70,7 @@ __all__ = [
     "default_features",
     "parse_feature",
     "signature",
+    "signature_maps",
 ]
 
 _PATTERN = re.compile(r"^(rho_db|rho_lin|g1)_([1-9][0-9]*)$")
@@ -197,3 +198,74 @@ def signature(x: torch.Tensor, frame_times_s: Sequence[float],
     if bool(bad.any()):
         out = torch.where(bad[..., None], torch.full_like(out, math.nan), out)
     return names, out
+
+
+def signature_maps(maps, seq, resolutions: Sequence = ("original",), *, names: Sequence[str] | None = None,
+                   chunk_pixels: int = 1 << 16):
+    """``maps`` (a :class:`torchdoct.io.Maps` of ``seq`` from :func:`torchdoct.maps.compute_maps`) with
+    the signature channels of every resolution appended: ``f"{feature}@{resolution}"``, metric = the
+    feature name, its unit and the optics of the resolution (the maps format's named channels).
+
+    The field of each resolution is reduced exactly as the maps' own channels were (the reduction
+    settings and axial centre recorded in ``maps.meta["reduction"]``, paper Eqs. 1-8), then
+    :func:`signature` runs per pixel. ``names``: default :func:`default_features` of the sequence's
+    frame count; intensity-only sequences get only the intensity features
+    (``meta["signature"]["intensity_only"]``; a model that needs the phase refuses such maps).
+    Returns ``(maps, note)`` with ``note`` a sentence for the user when only the intensity part could
+    be computed, else ``None``.
+    """
+    import numpy as np
+    import torch
+
+    from .io import Maps
+    from .resolution import parse_resolution, reduce_resolution
+
+    times = list(seq.frame_times_s)
+    wanted = tuple(names) if names is not None else default_features(len(times))
+    feats = available_features(wanted, seq.is_complex)
+    note = None
+    if len(feats) < len(wanted):
+        if names is not None:
+            missing = [n for n in wanted if n not in feats]
+            raise ValueError(f"{seq.source or 'sequence'} holds intensity only: the signature features "
+                             f"{', '.join(missing)} need the complex field (phase)")
+        note = (f"{seq.source or 'sequence'} holds intensity only: the signature has only its intensity part "
+                f"({len(feats)} of {len(wanted)} features per resolution; no g1/phase features); models that "
+                "need the phase will refuse these maps")
+    red_meta = maps.meta.get("reduction") or {}
+    center = red_meta.get("axial_center_cycles_per_pixel", 0.0) or "zero"
+    system = seq.system
+    axes = seq.axes
+    keep = maps.meta.get("y_indices")
+    blocks, channels = [], []
+    for r in resolutions:
+        t = r if not isinstance(r, str) else parse_resolution(r)
+        lat, ax = t.resolved(system)
+        data = torch.from_numpy(np.ascontiguousarray(seq.data))
+        if seq.is_complex:
+            data = reduce_resolution(data, pitch_um=seq.pitch_um, system=system,
+                                     lateral_resolution_um=t.lateral_resolution_um,
+                                     axial_resolution_um=t.axial_resolution_um, axes=axes, axial_center=center,
+                                     edge_mode=red_meta.get("edge_mode", "reflect"),
+                                     normalization=red_meta.get("normalization", "power"))
+        if not data.is_complex():
+            data = data.to(torch.float64 if data.dtype == torch.float64 else torch.float32)
+        x = data.movedim(0, -1)  # [*spatial, T]
+        if keep is not None:
+            x = x[torch.as_tensor(keep)]
+        spatial = x.shape[:-1]
+        flat = x.reshape(-1, x.shape[-1])
+        out = torch.empty(flat.shape[0], len(feats), dtype=torch.float32)
+        for p0 in range(0, flat.shape[0], chunk_pixels):
+            out[p0:p0 + chunk_pixels] = signature(flat[p0:p0 + chunk_pixels], times, names=feats)[1].float()
+        blocks.append(out.T.reshape(len(feats), *spatial).numpy())
+        for f in feats:
+            channels.append({"name": f"{f}@{t.label}", "metric": f, "unit": feature_unit(f), "resolution": t.label,
+                             "wavelength_um": float(system["wavelength_um"]), "lateral_resolution_um": lat,
+                             "axial_resolution_um": ax})
+    meta = dict(maps.meta)
+    meta["channels"] = list(maps.meta["channels"]) + channels
+    meta["signature"] = {"features": list(feats), "intensity_only": not seq.is_complex,
+                         "definition": "torchdoct.signature (lags in frames)"}
+    arr = np.concatenate([maps.maps, *blocks], axis=0).astype(np.float32, copy=False)
+    return Maps(maps=arr, channels=tuple(c["name"] for c in meta["channels"]), meta=meta), note

@@ -156,3 +156,52 @@ def test_empty_volume_gives_nan():
     e[1, 5] = 0
     _, f = signature(e, _times(32), names=ALL)
     assert torch.isnan(f[1]).all() and torch.isfinite(f[[0, 2]]).all()
+
+
+# ----------------------------------------------------------------------------------------------------------
+# torchdoct maps --signature
+# ----------------------------------------------------------------------------------------------------------
+SYSTEM = {"name": "t", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}
+
+
+def test_cli_maps_signature_channels(tmp_path, capsys):
+    import tifffile
+
+    from torchdoct.cli import main
+    from torchdoct.io import read_maps, read_sequence, write_sequence
+    from torchdoct.resolution import reduce_resolution
+
+    t = 32
+    data = _ar1(12 * 10, t, 0.7, seed=8).T.reshape(t, 12, 10).numpy().astype(np.complex64)
+    seq_path = write_sequence(tmp_path / "seq.npz", data, {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},
+                                                          "frame_times_s": _times(t), "system": SYSTEM})
+    out = tmp_path / "maps.npz"
+    assert main(["maps", str(seq_path), "--resolution", "original", "--resolution", "lateral=18", "--signature",
+                 "--out", str(out), "--no-progress"]) == 0
+    assert "intensity only" not in capsys.readouterr().out
+    maps = read_maps(out)
+    n = len(DEFAULT_FEATURES)
+    assert maps.maps.shape == (6 + 2 * n, 12, 10)
+    chans = maps.meta["channels"]
+    assert [c["name"] for c in chans[6:6 + n]] == [f"{f}@original" for f in DEFAULT_FEATURES]
+    lat = [c for c in chans if c["resolution"] == "lateral=18" and c["metric"] == "g1_1"]
+    assert len(lat) == 1 and lat[0]["lateral_resolution_um"] == 18.0 and lat[0]["unit"] == "1"
+    assert maps.meta["signature"]["intensity_only"] is False
+    # the channels are the extractor applied to the (reduced) field, pixel by pixel
+    seq = read_sequence(seq_path)
+    red = reduce_resolution(torch.from_numpy(seq.data), pitch_um=seq.pitch_um, system=seq.system,
+                            lateral_resolution_um=18.0, axes="TZX")
+    _, ref = signature(red.movedim(0, -1), _times(t))
+    got = maps.maps[[i for i, c in enumerate(chans) if c["resolution"] == "lateral=18" and c["metric"] in DEFAULT_FEATURES]]
+    np.testing.assert_allclose(got, ref.permute(2, 0, 1).numpy(), rtol=1e-5, atol=1e-6)
+    # intensity-only input: only the intensity part, and the tool says so
+    tifffile.imwrite(tmp_path / "i.tif", (np.abs(data) ** 2).astype(np.float32))
+    assert main(["maps", str(tmp_path / "i.tif"), "--pitch-um", "z=1.5,x=2", "--frame-interval-s", "0.2048",
+                 "--wavelength-um", "0.84", "--lateral-resolution-um", "4.9", "--axial-resolution-um", "3.8",
+                 "--signature", "--out", str(tmp_path / "i.npz"), "--no-progress"]) == 0
+    assert "holds intensity only: the signature has only its intensity part" in capsys.readouterr().out
+    imaps = read_maps(tmp_path / "i.npz")
+    names = [c["metric"] for c in imaps.meta["channels"][3:]]
+    assert names == list(available_features(DEFAULT_FEATURES, False)) and imaps.meta["signature"]["intensity_only"]
+    orig = [i for i, c in enumerate(chans) if c["resolution"] == "original" and c["metric"] in names]
+    np.testing.assert_allclose(imaps.maps[3:], maps.maps[orig], rtol=1e-4, atol=1e-5)
