@@ -15,7 +15,19 @@ from typing import Sequence
 
 __all__ = ["build_train_parser", "build_classify_parser", "train_main", "classify_main"]
 
-_ERRORS = (ValueError, TypeError, FileNotFoundError)
+_ERRORS = (ValueError, TypeError, FileNotFoundError)  # bad input: exit code 2 (torchdoct.cli.EXIT_CODES)
+
+
+def _run(fn, args) -> int:
+    """Exit codes of every command: 2 bad input, 1 the system refused a read or write (one line)."""
+    try:
+        return fn(args)
+    except _ERRORS as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:  # permissions, disk full
+        print(f"error: {err}", file=sys.stderr)
+        return 1
 
 
 def build_train_parser() -> argparse.ArgumentParser:
@@ -49,13 +61,9 @@ def build_train_parser() -> argparse.ArgumentParser:
 
 
 def train_main(argv: Sequence[str] | None = None) -> int:
-    """``doct-train``: returns the exit code (2 on bad input)."""
+    """``doct-train``: returns the exit code (0 done, 2 bad input, 1 other failure)."""
     args = build_train_parser().parse_args(argv)
-    try:
-        return _train(args)
-    except _ERRORS as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    return _run(_train, args)
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -155,24 +163,24 @@ def build_classify_parser() -> argparse.ArgumentParser:
 
 
 def classify_main(argv: Sequence[str] | None = None) -> int:
-    """``doct-classify``: returns the exit code (2 on bad input)."""
+    """``doct-classify``: returns the exit code (0 done, 2 bad input, 1 other failure)."""
     args = build_classify_parser().parse_args(argv)
-    from .infer import classify_maps, write_classification
+    return _run(_classify, args)
 
-    try:
-        bg = args.background_db
-        if bg not in ("auto", "none"):
-            try:
-                bg = float(bg)
-            except ValueError:
-                raise ValueError(f"--background-db must be 'auto', 'none' or a number in dB; got {bg!r}") from None
-        res = classify_maps(args.maps, args.model, pool=args.pool, background_db=bg,
-                            min_probability=args.min_probability,
-                            ignore_refractive_index=args.ignore_refractive_index, threads=args.threads)
-        written = write_classification(res, args.out, force=args.force)
-    except _ERRORS as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+
+def _classify(args: argparse.Namespace) -> int:
+    from . import infer
+
+    bg = args.background_db
+    if bg not in ("auto", "none"):
+        try:
+            bg = float(bg)
+        except ValueError:
+            raise ValueError(f"--background-db must be 'auto', 'none' or a number in dB; got {bg!r}") from None
+    res = infer.classify_maps(args.maps, args.model, pool=args.pool, background_db=bg,
+                              min_probability=args.min_probability,
+                              ignore_refractive_index=args.ignore_refractive_index, threads=args.threads)
+    written = infer.write_classification(res, args.out, force=args.force)
     counts = res.counts()
     if args.json:
         print(json.dumps({"counts": counts, "info": res.info, "written": [str(p) for p in written]}, indent=1))

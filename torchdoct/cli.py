@@ -12,7 +12,17 @@ from typing import Any, Sequence
 
 from ._files import atomic_write, check_out
 
-__all__ = ["build_parser", "main"]
+__all__ = ["build_parser", "main", "EXIT_CODES"]
+
+#: Exit codes of every command (``torchdoct``, ``doct-train``, ``doct-classify``; README, Command line).
+EXIT_CODES = {
+    0: "done",
+    1: "failed for a reason other than the input: the system refused a read or write (permissions, disk "
+       "full; one `error:` line) or an internal error (a traceback: please report it)",
+    2: "bad input or usage: unknown option, missing, empty or corrupt file, invalid value, unusable "
+       "device, output that exists without --force (one `error:` line naming the file or option and "
+       "the fix; nothing is written)",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -87,11 +97,7 @@ def _add_threads(*subparser_groups) -> None:
                                  "not depend on N")
 
 
-def _check_out(path: str | None, force: bool, suffix: str) -> Path | None:
-    try:
-        return check_out(path, force, suffix)
-    except ValueError as err:
-        raise SystemExit(f"error: {err}") from None
+_check_out = check_out  # its ValueError is bad input: exit code 2 (EXIT_CODES)
 
 
 _atomic_write = atomic_write
@@ -292,6 +298,9 @@ def _main(argv: Sequence[str] | None = None) -> int:
     except (config.SceneError, TypeError, ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # the system refused a read or write (permissions, disk full)
+        print(f"error: {err}", file=sys.stderr)
+        return 1
     return 1
 
 

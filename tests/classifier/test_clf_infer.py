@@ -308,3 +308,25 @@ def test_pool_larger_than_the_image_is_refused(setup, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("error: ") and "--pool" in err and f"largest valid pool is {Z}" in err
     assert not out.exists()
+
+
+def test_cli_exit_codes_follow_the_convention(setup, tmp_path, capsys, monkeypatch):
+    """0 done, 2 bad input or usage (nothing written), 1 the system refused a write (one error line)."""
+    import classifier.infer as infer
+
+    argv = [str(setup["npz"]), "--model", str(setup["model"]), "--threads", "1"]
+    with pytest.raises(SystemExit) as info:
+        classify_main(argv)  # no --out: argparse usage error
+    assert info.value.code == 2
+    capsys.readouterr()
+    (tmp_path / "file").write_text("x")
+    assert classify_main([*argv, "--out", str(tmp_path / "file")]) == 2
+    assert "is a file" in capsys.readouterr().err
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device", str(tmp_path / "o" / "classes.tif"))
+
+    monkeypatch.setattr(infer, "write_classification", full)
+    assert classify_main([*argv, "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and "No space left" in err

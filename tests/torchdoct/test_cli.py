@@ -154,10 +154,10 @@ def test_simulate_json_summary(tmp_scene_file, capsys):
     assert np.isfinite(row["liv"]["mean"]) and np.isfinite(row["ocds"]["mean"])
 
 
-def test_simulate_out_needs_npz_suffix(tmp_scene_file, tmp_path):
+def test_simulate_out_needs_npz_suffix(tmp_scene_file, tmp_path, capsys):
     out = tmp_path / "x.txt"
     code, message = _run(["simulate", str(tmp_scene_file), "--trials", "64", "--out", str(out), "--no-progress"])
-    assert code != 0 and ".npz" in message
+    assert code == 2 and ".npz" in capsys.readouterr().err + message
     assert not out.exists()
 
 
@@ -224,3 +224,39 @@ def test_cpu_device_is_accepted(tmp_scene_file, capsys):
     assert main(["simulate", str(tmp_scene_file), "--trials", "2", "--no-progress", "--device", "cpu"]) == 0
     assert main(["simulate", str(tmp_scene_file), "--trials", "2", "--no-progress", "--device", "cpu:0"]) == 0
     capsys.readouterr()
+
+
+# ----------------------------------------------------------------------------------------------------------
+# exit codes: 0 done, 2 bad input or usage (nothing written), 1 any other failure (README, Command line)
+# ----------------------------------------------------------------------------------------------------------
+def test_bad_output_paths_exit_2_not_1(tmp_scene_file, tmp_path, capsys):
+    existing = tmp_path / "old.npz"
+    existing.write_bytes(b"keep")
+    for argv, text in ((["simulate", str(tmp_scene_file), "--out", str(tmp_path / "x.txt")], ".npz"),
+                       (["simulate", str(tmp_scene_file), "--out", str(existing)], "--force"),
+                       (["simulate", str(tmp_scene_file), "--out", str(tmp_path / "no" / "x.npz")], "create it"),
+                       (["bench", "simulate", "--out", str(tmp_path / "b.txt")], ".json"),
+                       (["bench", "classify", "--out", str(existing)], ".json")):
+        assert main(argv + (["--no-progress"] if argv[0] == "simulate" else [])) == 2, argv  # not SystemExit
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1 and text in err, err
+    assert existing.read_bytes() == b"keep"
+    with pytest.raises(SystemExit) as info:  # argparse usage errors: 2 as well
+        main(["simulate"])
+    assert info.value.code == 2
+    capsys.readouterr()
+
+
+def test_failed_write_exits_1_with_one_line(tmp_scene_file, tmp_path, capsys, monkeypatch):
+    import torchdoct.cli as cli
+
+    def full(path, write):
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr(cli, "_atomic_write", full)
+    out = tmp_path / "x.npz"
+    assert main(["simulate", str(tmp_scene_file), "--trials", "2", "--no-progress", "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert captured.err.startswith("error: ") and captured.err.count("\n") == 1
+    assert "No space left" in captured.err and "x.npz" in captured.err
+    assert not out.exists()
