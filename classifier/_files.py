@@ -2,7 +2,8 @@
 
 ``import torchdoct._files`` would run ``torchdoct/__init__.py``, which imports torch; the classify
 path must not. ``torchdoct/_files.py`` (``check_out``, ``atomic_write``, ``shipped_files``) and
-``torchdoct/conventions.py`` (resolution ↔ PSF sigma) import only the standard library, so when
+``torchdoct/conventions.py`` (resolution ↔ PSF sigma) and ``torchdoct/signature.py`` (signature
+feature names) import only the standard library, so when
 torchdoct is not imported yet they are loaded from their files, without their package.
 """
 
@@ -12,7 +13,7 @@ import importlib.util
 import sys
 from types import ModuleType
 
-__all__ = ["check_out", "atomic_write", "shipped_files", "conventions"]
+__all__ = ["check_out", "atomic_write", "shipped_files", "conventions", "signature"]
 
 
 def _standalone(name: str) -> ModuleType:
@@ -38,6 +39,11 @@ def _standalone(name: str) -> ModuleType:
 def conventions() -> ModuleType:
     """:mod:`torchdoct.conventions` (the only place resolutions become PSF sigmas)."""
     return _standalone("conventions")
+
+
+def signature() -> ModuleType:
+    """:mod:`torchdoct.signature` (names and units of the signature features; no torch at import)."""
+    return _standalone("signature")
 
 
 def check_out(path, force, suffix, what="--out"):

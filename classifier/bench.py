@@ -21,12 +21,12 @@ __all__ = ["bench_classify", "format_bench_classify"]
 
 
 def _synthetic_maps(path: Path, spec, size: int, seed: int) -> Path:
-    from .features import METRIC_UNITS
+    from .features import metric_unit
 
     rng = np.random.default_rng(seed)
     chans, arrays = [], []
     for metric, c in spec.features:
-        chans.append({"name": f"{metric}@{c.name}", "metric": metric, "unit": METRIC_UNITS[metric],
+        chans.append({"name": f"{metric}@{c.name}", "metric": metric, "unit": metric_unit(metric),
                       "resolution": c.name, "wavelength_um": c.wavelength_um,
                       "lateral_resolution_um": c.lateral_resolution_um, "axial_resolution_um": c.axial_resolution_um})
         lo, hi = (0.0, 35.0) if metric == "liv" else (-0.2, 1.2)

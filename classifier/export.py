@@ -34,12 +34,12 @@ def build_metadata(result) -> dict[str, Any]:
     import torchdoct
 
     from . import __version__
-    from .features import METRIC_UNITS
+    from .features import metric_unit
 
     spec = result.spec
     columns = []
     for (metric, conf), name in zip(spec.features, spec.feature_names):
-        columns.append({"name": name, "metric": metric, "unit": METRIC_UNITS[metric], "configuration": conf.name,
+        columns.append({"name": name, "metric": metric, "unit": metric_unit(metric), "configuration": conf.name,
                         "wavelength_um": conf.wavelength_um, "lateral_resolution_um": conf.lateral_resolution_um,
                         "axial_resolution_um": conf.axial_resolution_um})
     columns.append({"name": "pool_pixels", "metric": "pool_pixels", "unit": "pixels",

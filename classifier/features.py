@@ -1,6 +1,7 @@
 """Feature specifications: which DOCT metrics, at which system configurations, make a feature vector.
 
-A feature vector is the LIV (dB²) and OCDS (1/s) of one pixel at several system configurations
+A feature vector is the LIV (dB²) and OCDS (1/s) (or the decorrelation-signature features of
+:mod:`torchdoct.signature`, e.g. ``rho_db_3``, ``g1_1``; spec ``signature``) of one pixel at several system configurations
 (wavelength, lateral 1/e² resolution, axial FWHM resolution; :mod:`torchdoct.conventions`), all
 computed from the *same* scatterers: in simulation, the systems of one scene; in measured data,
 one complex dataset and its computational resolution reductions (reference paper §2.1.3), or a
@@ -29,11 +30,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ._files import shipped_files
+from ._files import shipped_files, signature as _signature
 
 __all__ = [
     "METRIC_UNITS",
     "REL_TOL",
+    "metric_unit",
     "Configuration",
     "FeatureSpec",
     "load_spec",
@@ -46,6 +48,14 @@ __all__ = [
 METRIC_UNITS = {"liv": "dB^2", "ocds": "1/s"}
 #: Relative tolerance for matching physical values (wavelengths, resolutions, times).
 REL_TOL = 1e-6
+
+
+def metric_unit(metric: str) -> str:
+    """Unit of a metric: :data:`METRIC_UNITS`, or a signature feature of :mod:`torchdoct.signature`
+    (``rho_db_M``, ``rho_lin_M``, ``g1_M``, ``phase_ramp``, ``lin_contrast``, ``db_variance``)."""
+    if metric in METRIC_UNITS:
+        return METRIC_UNITS[metric]
+    return _signature().feature_unit(metric)
 
 
 def same_value(a: float, b: float, rel: float = REL_TOL) -> bool:
@@ -139,8 +149,12 @@ class FeatureSpec:
         if not self.metrics:
             raise ValueError(f"spec {self.name!r}: metrics must not be empty")
         for m in self.metrics:
-            if m not in METRIC_UNITS:
-                raise ValueError(f"spec {self.name!r}: metric {m!r} is not supported; use {sorted(METRIC_UNITS)}")
+            try:
+                metric_unit(m)
+            except ValueError:
+                raise ValueError(f"spec {self.name!r}: metric {m!r} is not supported; use {sorted(METRIC_UNITS)} "
+                                 "or signature features (rho_db_M, rho_lin_M, g1_M, phase_ramp, lin_contrast, "
+                                 "db_variance; torchdoct.signature)") from None
         if len(set(self.metrics)) != len(self.metrics):
             raise ValueError(f"spec {self.name!r}: a metric is listed twice: {list(self.metrics)}")
         if isinstance(self.n_frames, bool) or not isinstance(self.n_frames, int) or self.n_frames < 3:
@@ -171,7 +185,17 @@ class FeatureSpec:
 
     @property
     def feature_units(self) -> tuple[str, ...]:
-        return tuple(METRIC_UNITS[m] for m, _ in self.features)
+        return tuple(metric_unit(m) for m, _ in self.features)
+
+    @property
+    def is_signature(self) -> bool:
+        """True when the features are decorrelation-signature features (:mod:`torchdoct.signature`)."""
+        return any(m not in METRIC_UNITS for m in self.metrics)
+
+    @property
+    def needs_field(self) -> bool:
+        """True when some feature needs the complex field (phase), not only the intensity."""
+        return any(m not in METRIC_UNITS and _signature().needs_field(m) for m in self.metrics)
 
     @property
     def n_features(self) -> int:
