@@ -61,24 +61,32 @@ from .resolution import (
 
 __all__ = [
     "METRICS",
+    "FIT_FLAG",
     "UNITS",
     "DEFAULT_OCDS_DELAY_RANGE_S",
     "ocds_map",
     "liv_curve",
     "fit_saturation",
+    "tau_bound_code",
     "box_smooth_zx",
     "compute_maps",
     "pseudo_color",
+    "map_figure",
     "write_pngs",
     "png_name",
     "bench_maps",
 ]
 
 METRICS = ("liv", "ocds", "mean_db", "aliv", "swiftness")
-UNITS = {"liv": "dB^2", "ocds": "1/s", "mean_db": "dB", "aliv": "dB^2", "swiftness": "1/s"}
+#: Channel written with ``aliv``/``swiftness``: where the saturation fit ended on a τ bound
+#: (:func:`tau_bound_code`: 0 inside, 1 lower bound, 2 upper bound, NaN undefined).
+FIT_FLAG = "aliv_fit"
+UNITS = {"liv": "dB^2", "ocds": "1/s", "mean_db": "dB", "aliv": "dB^2", "swiftness": "1/s", FIT_FLAG: "code"}
 DEFAULT_OCDS_DELAY_RANGE_S = (0.2048, 1.2288)
 #: Default hue range of the pseudo-colour images: low values red (0), high values green (1/3).
 DEFAULT_HUE_RANGE = (0.0, 1.0 / 3.0)
+#: Colour of flagged pixels (aLIV/Swiftness fits on a τ bound) in the pseudo-colour images.
+FLAG_RGB = (255, 0, 255)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -223,7 +231,7 @@ def fit_saturation(windows_s: torch.Tensor, curve: torch.Tensor, *, tau_bounds_s
     lead = y.shape[:-1]
     y = y.reshape(-1, y.shape[-1])
     if tau_bounds_s is None:
-        tau_bounds_s = (float(t.min()) / 100.0, 100.0 * float(t.max()))
+        tau_bounds_s = _default_tau_bounds(t)
     lo, hi = math.log(tau_bounds_s[0]), math.log(tau_bounds_s[1])
     u = torch.linspace(lo, hi, grid, dtype=torch.float64, device=y.device)
     fg = -torch.expm1(-t[None, :] / torch.exp(u)[:, None])  # [G, W]
@@ -258,6 +266,27 @@ def fit_saturation(windows_s: torch.Tensor, curve: torch.Tensor, *, tau_bounds_s
     f = -torch.expm1(-t[None, :] / tau[:, None])
     a = ((y * f).sum(-1) / (f * f).sum(-1)).clamp_min(0)
     return a.reshape(lead), tau.reshape(lead)
+
+
+def _default_tau_bounds(windows_s: torch.Tensor) -> tuple[float, float]:
+    return float(windows_s.min()) / 100.0, 100.0 * float(windows_s.max())
+
+
+#: ``|ln τ − ln bound|`` below which a fit counts as ending on a τ bound (τ within 0.1 % of it).
+TAU_BOUND_LOG_TOL = 1e-3
+
+
+def tau_bound_code(tau: torch.Tensor, windows_s: torch.Tensor,
+                   tau_bounds_s: tuple[float, float] | None = None) -> torch.Tensor:
+    """Where a :func:`fit_saturation` fit ended on a τ bound: 0 inside, 1 at the lower bound (the
+    curve is flat over the windows: it saturated before the shortest one), 2 at the upper bound (the
+    curve is still rising linearly at the longest window); ``|ln τ − ln bound| <`` :data:`TAU_BOUND_LOG_TOL`.
+    Such aLIV/Swiftness values are bounds of the model, not measurements (physics.md §3)."""
+    lo, hi = _default_tau_bounds(windows_s) if tau_bounds_s is None else tau_bounds_s
+    u = torch.log(tau.to(torch.float64))
+    code = torch.zeros_like(u)
+    code = torch.where(u - math.log(lo) < TAU_BOUND_LOG_TOL, torch.ones_like(u), code)
+    return torch.where(math.log(hi) - u < TAU_BOUND_LOG_TOL, torch.full_like(u, 2.0), code)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -311,10 +340,12 @@ def _pixel_metrics(intensity: torch.Tensor, frame_times_s: list[float], wanted: 
             tau_out[p0:p0 + step] = tau
         a_out = torch.where(zero_all, nan, a_out)
         swift = torch.where(zero_all | (a_out == 0), nan, 1.0 / tau_out)
+        code = torch.where(a_out == 0, 0.0, tau_bound_code(tau_out, windows))  # a = 0: no τ to flag
         if "aliv" in wanted:
             res["aliv"] = a_out.to(intensity.dtype).reshape(spatial)
         if "swiftness" in wanted:
             res["swiftness"] = swift.to(intensity.dtype).reshape(spatial)
+        res[FIT_FLAG] = torch.where(zero_all, nan, code).to(intensity.dtype).reshape(spatial)
     return res
 
 
@@ -391,7 +422,8 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
         raise ValueError(f"axial_center must be 'zero', 'centroid' or a number (cycles/pixel); got {axial_center!r}")
     margin = 1 if (aliv_smoothing and ("aliv" in wanted or "swiftness" in wanted)) else 0
     real_dtype = np.float64 if data.dtype in (np.complex128, np.float64) else np.float32
-    out = np.full((len(targets) * len(wanted), *data.shape[1:]), np.nan, dtype=real_dtype)
+    outputs = wanted + ([FIT_FLAG] if ("aliv" in wanted or "swiftness" in wanted) else [])
+    out = np.full((len(targets) * len(outputs), *data.shape[1:]), np.nan, dtype=real_dtype)
 
     plans = []
     for t in targets:
@@ -418,7 +450,7 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     channels: list[dict[str, Any]] = []
     for ti, (t, cdim, n_c, halo, mrg, rows) in enumerate(plans):
         lat, ax = t.resolved(system)
-        for m in wanted:
+        for m in outputs:
             channels.append({"name": f"{m}@{t.label}", "metric": m, "unit": UNITS[m], "resolution": t.label,
                              "wavelength_um": float(system["wavelength_um"]), "lateral_resolution_um": lat,
                              "axial_resolution_um": ax})
@@ -446,9 +478,9 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
                                   ocds_scale=ocds_scale, ocds_estimator=ocds_estimator,
                                   aliv_smoothing=aliv_smoothing, aliv_max_window_s=aliv_max_window_s,
                                   chunk_pixels=chunk_pixels)
-            for mi, m in enumerate(wanted):
+            for mi, m in enumerate(outputs):
                 v = vals[m].narrow(cdim - 1, c0 - m0, c1 - c0).cpu().numpy()
-                idx = [ti * len(wanted) + mi] + [slice(None)] * (data.ndim - 1)
+                idx = [ti * len(outputs) + mi] + [slice(None)] * (data.ndim - 1)
                 idx[cdim] = slice(c0, c1)
                 out[tuple(idx)] = v
             if bar is not None:
@@ -481,6 +513,13 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
         keep = raster.keep_y() if drop_boundary else np.ones(raster.n_y, dtype=bool)
         out = out[:, keep]
         meta["y_indices"] = [int(i) for i in np.flatnonzero(keep)]
+    if FIT_FLAG in outputs:
+        meta["aliv"]["flag"] = (f"{FIT_FLAG} channel: 1 where the fit ended on the lower τ bound (curve flat over the "
+                                "windows), 2 on the upper bound (still rising at the longest window), 0 inside, NaN "
+                                "undefined; aLIV/Swiftness there are bounds of the model, not measurements")
+        meta["aliv"]["flagged_pixels"] = {
+            c["resolution"]: {"tau_at_lower_bound": int(np.sum(out[i] == 1)), "tau_at_upper_bound": int(np.sum(out[i] == 2))}
+            for i, c in enumerate(channels) if c["metric"] == FIT_FLAG}
     return Maps(maps=out.astype(np.float32, copy=False), channels=tuple(c["name"] for c in channels), meta=meta)
 
 
@@ -490,13 +529,14 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
 
 def pseudo_color(value: np.ndarray, intensity_db: np.ndarray | None, *, value_range: tuple[float, float],
                  db_range: tuple[float, float] | None = None,
-                 hue_range: tuple[float, float] = DEFAULT_HUE_RANGE) -> np.ndarray:
+                 hue_range: tuple[float, float] = DEFAULT_HUE_RANGE, flagged: np.ndarray | None = None) -> np.ndarray:
     """RGB uint8 ``[H, W, 3]``: hue = ``value`` over ``value_range``, brightness = dB intensity.
 
     HSV composition as DOCT images are shown: hue ``hue_range[0] + (hue_range[1] − hue_range[0])·
     clip((v − lo)/(hi − lo), 0, 1)`` (default red for low, green for high), saturation 1, value
     ``clip((dB − db_lo)/(db_hi − db_lo), 0, 1)`` (1 everywhere without an intensity image). NaN values
-    are shown grey (saturation 0) at their brightness.
+    are shown grey (saturation 0) at their brightness; ``flagged`` pixels (bool, e.g. an aLIV fit on a
+    τ bound) are shown in :data:`FLAG_RGB` (magenta, outside the red-green hue scale) at full brightness.
     """
     from matplotlib.colors import hsv_to_rgb
 
@@ -516,8 +556,10 @@ def pseudo_color(value: np.ndarray, intensity_db: np.ndarray | None, *, value_ra
             raise ValueError(f"dB range must be finite with hi > lo; got {db_range!r}")
         bright = np.nan_to_num(np.clip((np.asarray(intensity_db, dtype=np.float64) - dlo) / (dhi - dlo), 0, 1))
     sat = np.where(np.isfinite(v), 1.0, 0.0)
-    rgb = hsv_to_rgb(np.stack([np.mod(hue, 1.0), sat, bright], axis=-1))
-    return np.round(rgb * 255.0).astype(np.uint8)
+    rgb = np.round(hsv_to_rgb(np.stack([np.mod(hue, 1.0), sat, bright], axis=-1)) * 255.0).astype(np.uint8)
+    if flagged is not None:
+        rgb[np.asarray(flagged, dtype=bool)] = FLAG_RGB
+    return rgb
 
 
 def png_name(out_path: str | Path, channel: str) -> Path:
@@ -539,21 +581,118 @@ def _auto_range(values: list[np.ndarray], lo_pct: float, hi_pct: float) -> tuple
     return float(lo), float(hi)
 
 
+_TITLES = {"liv": "LIV", "ocds": "OCDS", "mean_db": "mean intensity", "aliv": "aLIV", "swiftness": "Swiftness",
+           FIT_FLAG: "aLIV fit on a τ bound"}
+
+
+def _optics_text(info: Mapping[str, Any]) -> str:
+    lat, ax, wl = (info.get(k) for k in ("lateral_resolution_um", "axial_resolution_um", "wavelength_um"))
+    if lat is None or ax is None:
+        return "original resolution (optics not given)"
+    return f"lateral {float(lat):g} µm, axial {float(ax):g} µm" + (f", {float(wl) * 1000:g} nm" if wl else "")
+
+
+def map_figure(maps: Maps, channel: str, *, value_range: tuple[float, float] | None = None,
+               db_range: tuple[float, float] | None = None, hue_range: tuple[float, float] = DEFAULT_HUE_RANGE,
+               y_index: int | None = None) -> Any:
+    """A quantitative figure of one channel: the image on µm axes (:mod:`torchdoct.figures`), a colour
+    bar with the unit and the value range, the channel name and its resolution in the title.
+
+    DOCT channels are drawn by :func:`pseudo_color` (brightness from the ``mean_db`` channel of the
+    same resolution over ``db_range``; aLIV/Swiftness pixels whose fit ended on a τ bound, from the
+    ``aliv_fit`` channel, in :data:`FLAG_RGB`; undefined pixels grey), ``mean_db`` in grey scale.
+    ``value_range`` defaults to the channel's 1st-99th percentile, ``db_range`` to the 5th-99.9th
+    percentile of its ``mean_db``. Volumes show the B-scan ``y_index`` (default the middle one).
+    Returns the matplotlib ``Figure`` (the caller saves and closes it).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import ListedColormap, Normalize, hsv_to_rgb
+    from matplotlib.patches import Patch
+
+    from .figures import show_bscan, unit_text
+
+    info = maps.channel_info(channel)
+    metric, res = info["metric"], info["resolution"]
+
+    def plane(name: str) -> np.ndarray:
+        a = maps[name]
+        return a[y] if a.ndim == 3 else a
+
+    y = None
+    if maps.maps.ndim == 4:
+        n_y = maps.maps.shape[1]
+        y = n_y // 2 if y_index is None else int(y_index)
+        if not 0 <= y < n_y:
+            raise ValueError(f"--png-y {y_index} is outside 0..{n_y - 1}")
+    v = plane(channel)
+    vr = value_range or _auto_range([v], 1.0, 99.0)
+    unit = unit_text(info.get("unit"))
+    name = _TITLES.get(metric, metric)
+    h, w = v.shape
+    aspect = (w * float((maps.meta.get("pitch_um") or {}).get("x", 1.0) or 1.0)) / max(
+        h * float((maps.meta.get("pitch_um") or {}).get("z", 1.0) or 1.0), 1e-9)
+    fig_w = min(max(4.5 * aspect, 3.5), 11.0) + 2.6
+    fig, ax = plt.subplots(figsize=(fig_w, 5.0))
+    handles = []
+    extra = ""
+    n_nan = int(np.sum(~np.isfinite(v)))
+    if metric == "mean_db":
+        cmap = plt.get_cmap("gray").with_extremes(bad="#6f9fcf")
+        show_bscan(ax, np.ma.masked_invalid(v), pitch_um=maps.meta.get("pitch_um"), cmap=cmap, vmin=vr[0], vmax=vr[1])
+        sm = ScalarMappable(norm=Normalize(*vr), cmap=cmap)
+        if n_nan:
+            handles.append(Patch(color="#6f9fcf", label=f"no intensity ({n_nan} px)"))
+    else:
+        db_name = next((c["name"] for c in maps.meta["channels"] if c["metric"] == "mean_db"
+                        and c["resolution"] == res), None)
+        db = plane(db_name) if db_name else None
+        dr = db_range or (_auto_range([db], 5.0, 99.9) if db is not None else None)
+        flag_name = f"{FIT_FLAG}@{res}"
+        flagged = None
+        if metric in ("aliv", "swiftness") and flag_name in maps.channels:
+            with np.errstate(invalid="ignore"):
+                flagged = plane(flag_name) > 0
+        rgb = pseudo_color(v, db, value_range=vr, db_range=dr if db is not None else None, hue_range=hue_range,
+                           flagged=flagged)
+        show_bscan(ax, rgb, pitch_um=maps.meta.get("pitch_um"))
+        hues = np.linspace(hue_range[0], hue_range[1], 256)
+        cmap = ListedColormap(hsv_to_rgb(np.stack([np.mod(hues, 1.0), np.ones(256), np.ones(256)], -1)))
+        sm = ScalarMappable(norm=Normalize(*vr), cmap=cmap)
+        if n_nan:
+            handles.append(Patch(color="0.6", label=f"undefined, no dB value ({n_nan} px)"))
+        if flagged is not None and flagged.any():
+            handles.append(Patch(color=np.array(FLAG_RGB) / 255.0, label=f"fit on a τ bound ({int(flagged.sum())} px)"))
+        if db is not None:
+            extra = f"\nbrightness: mean intensity {dr[0]:.3g} … {dr[1]:.3g} dB"
+    cb = fig.colorbar(sm, ax=ax, shrink=0.85)
+    cb.set_label(f"{name} ({unit}): {vr[0]:.4g} … {vr[1]:.4g}")
+    if handles:
+        ax.legend(handles=handles, loc="lower left", fontsize=7, framealpha=0.8)
+    where = "" if y is None else f", B-scan y = {y}"
+    ax.set_title(f"{name} [{channel}]\n{_optics_text(info)}{where}{extra}", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
 def write_pngs(maps: Maps, out_path: str | Path, *, ranges: Mapping[str, tuple[float, float]] | None = None,
                db_range: tuple[float, float] | None = None, hue_range: tuple[float, float] = DEFAULT_HUE_RANGE,
                y_index: int | None = None, force: bool = False, check_only: bool = False) -> list[Path]:
-    """One pseudo-colour PNG per channel (:func:`pseudo_color`), named by :func:`png_name`.
+    """One figure PNG per channel (:func:`map_figure`), named by :func:`png_name`; the ``aliv_fit``
+    flags are drawn inside the aLIV/Swiftness images, not as images of their own.
 
-    Each DOCT channel takes its brightness from the ``mean_db`` channel of the same resolution
-    (uniform brightness if there is none); ``mean_db`` channels are written in grey scale.
     ``ranges``: ``{metric: (lo, hi)}``; a metric without one gets the 1st-99th percentile of its
     finite values pooled over all resolutions (so resolutions share one colour scale).
-    ``db_range``: default the 5th-99.9th percentile of all ``mean_db`` values. Volumes
-    ``[C, Y, Z, X]`` show the B-scan ``y_index`` (default the middle one). All paths are checked
-    before writing; existing files need ``force``. ``check_only`` returns the paths without writing.
+    ``db_range``: default the 5th-99.9th percentile of all ``mean_db`` values (the brightness of the
+    DOCT images and the grey scale of ``mean_db``). Volumes ``[C, Y, Z, X]`` show the B-scan
+    ``y_index`` (default the middle one). All paths are checked before writing; existing files need
+    ``force``. ``check_only`` returns the paths without writing.
     """
-    names = list(maps.channels)
-    paths = [png_name(out_path, n) for n in names]
+    infos = [c for c in maps.meta["channels"] if c["metric"] != FIT_FLAG]
+    paths = [png_name(out_path, c["name"]) for c in infos]
     for p in paths:
         check_out(p, force, ".png", what="PNG output")
     if check_only:
@@ -561,7 +700,7 @@ def write_pngs(maps: Maps, out_path: str | Path, *, ranges: Mapping[str, tuple[f
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.image
+    import matplotlib.pyplot as plt
 
     arr = maps.maps
     if arr.ndim == 4:
@@ -569,26 +708,21 @@ def write_pngs(maps: Maps, out_path: str | Path, *, ranges: Mapping[str, tuple[f
         if not 0 <= y < arr.shape[1]:
             raise ValueError(f"--png-y {y_index} is outside 0..{arr.shape[1] - 1}")
         arr = arr[:, y]
-    infos = maps.meta["channels"]
     by_metric: dict[str, list[np.ndarray]] = {}
-    for i, info in enumerate(infos):
-        by_metric.setdefault(info["metric"], []).append(arr[i])
+    for c in infos:
+        by_metric.setdefault(c["metric"], []).append(arr[maps.index(c["name"])])
     ranges = dict(ranges or {})
     if db_range is None and "mean_db" in by_metric:
         db_range = _auto_range(by_metric["mean_db"], 5.0, 99.9)
-    db_of = {info["resolution"]: arr[i] for i, info in enumerate(infos) if info["metric"] == "mean_db"}
-    for i, (info, path) in enumerate(zip(infos, paths)):
+    for info, path in zip(infos, paths):
         metric = info["metric"]
-        if metric == "mean_db":
-            lo, hi = ranges.get("mean_db", db_range)
-            g = np.nan_to_num(np.clip((arr[i] - lo) / (hi - lo), 0, 1))
-            img = np.round(np.repeat(g[..., None], 3, -1) * 255).astype(np.uint8)
-        else:
-            vr = ranges.get(metric) or _auto_range(by_metric[metric], 1.0, 99.0)
-            db = db_of.get(info["resolution"])
-            img = pseudo_color(arr[i], db, value_range=vr, db_range=db_range if db is not None else None,
-                               hue_range=hue_range)
-        atomic_write(path, lambda tmp, img=img: matplotlib.image.imsave(tmp, img, format="png"))
+        vr = ranges.get(metric) or (db_range if metric == "mean_db" and db_range else
+                                    _auto_range(by_metric[metric], 1.0, 99.0))
+        fig = map_figure(maps, info["name"], value_range=vr, db_range=db_range, hue_range=hue_range, y_index=y_index)
+        try:
+            atomic_write(path, lambda tmp, fig=fig: fig.savefig(tmp, format="png", dpi=100))
+        finally:
+            plt.close(fig)
     return paths
 
 

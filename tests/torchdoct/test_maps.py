@@ -190,7 +190,7 @@ def test_maps_at_reduced_resolution_and_slab_invariance():
     assert infos["ocds@axial=14,lateral=18"]["axial_resolution_um"] == 14.0
     assert infos["liv@lateral=18"]["axial_resolution_um"] == 3.8 and infos["liv@original"]["unit"] == "dB^2"
     assert infos["swiftness@original"]["unit"] == "1/s" and infos["mean_db@original"]["unit"] == "dB"
-    assert big.channels[0] == "liv@original" and len(big.channels) == 20
+    assert big.channels[0] == "liv@original" and len(big.channels) == 24  # 5 metrics + aliv_fit, 4 resolutions
     assert big.meta["reduction"]["lateral_axes"] == "X" and big.meta["source"] == "test.npy"
 
 
@@ -272,7 +272,7 @@ def test_cli_maps_end_to_end(tmp_path, capsys):
     assert "swiftness@lateral=18" in text and f"wrote {out_npz}" in text
     a, b = read_maps(out_tif), read_maps(out_npz)
     np.testing.assert_array_equal(a.maps, b.maps)
-    assert a.maps.shape == (15, 24, 16) and a.meta == b.meta
+    assert a.maps.shape == (18, 24, 16) and a.meta == b.meta  # 5 metrics + the aLIV fit flags, 3 resolutions
     assert a.meta["source"] == "seq.npz" and a.meta["system"]["wavelength_um"] == 0.84
     assert a.meta["frame_times_s"] == pytest.approx([DT * k for k in range(10)])
     assert a.meta["ocds_delay_range_s"] == [0.2048, 0.6144]
