@@ -649,16 +649,14 @@ def _overlay(res: Classification, path: str) -> None:
     for i, c in enumerate(res.classes):
         sel = labels == i
         rgb[sel] = 0.45 * rgb[sel] + 0.55 * np.array(to_rgb(CLASS_COLORS.get(c, "#000000")))
-    extent = None
-    if res.pitch_um and "x" in res.pitch_um and "z" in res.pitch_um:
-        extent = (0, labels.shape[1] * float(res.pitch_um["x"]), labels.shape[0] * float(res.pitch_um["z"]), 0)
+    from ._files import _standalone
+
+    figures = _standalone("figures")  # torchdoct.figures, torch-free: the project's one axes convention
+    extent, _ = figures.image_extent(labels.shape, res.pitch_um)
     h = 5.0
-    wdt = h * (labels.shape[1] / max(labels.shape[0], 1)) if extent is None else \
-        h * (extent[1] / max(extent[2], 1e-9))
+    wdt = h * (extent[1] - extent[0]) / max(extent[2] - extent[3], 1e-9)
     fig, ax = plt.subplots(figsize=(min(max(wdt, 4.0), 14.0) + 2.0, h))
-    ax.imshow(rgb, extent=extent, interpolation="nearest")
-    ax.set_xlabel("x [µm]" if extent else "x [pixel]")
-    ax.set_ylabel("z [µm]" if extent else "z [pixel]")
+    figures.show_bscan(ax, rgb, pitch_um=res.pitch_um)
     counts = res.counts()
     total = max(int(res.mask.sum()), 1)
     handles = [Patch(color=CLASS_COLORS.get(c, "#000000"), label=f"{c} ({counts[c] / total:.0%})") for c in res.classes]

@@ -53,7 +53,7 @@ from .phantom import MOTION_CODES, Phantom
 from .simulate import MemoryLimitError, available_memory_bytes, seeded_generator, unit_directions
 from .threads import one_torch_thread
 
-__all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS"]
+__all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS", "save_preview", "preview_figure"]
 
 _F64 = torch.float64
 _TWO_PI = 2.0 * math.pi
@@ -435,7 +435,20 @@ _LABEL_COLOURS = {0: "#000000", 1: "#7f7f7f", 2: "#1f77b4", 3: "#ff7f0e", 4: "#d
 
 def save_preview(result: RenderResult, path: str, system: str | int | None = None,
                  liv_range_db2: tuple[float, float] = (0.0, 30.0)) -> None:
-    """PNG preview: frame 0 in dB, the LIV map (dB²) and the ground-truth motion labels."""
+    """PNG preview (:func:`preview_figure`) written to ``path``."""
+    import matplotlib.pyplot as plt
+
+    fig = preview_figure(result, system, liv_range_db2)
+    try:
+        fig.savefig(path, dpi=90, format="png")
+    finally:
+        plt.close(fig)
+
+
+def preview_figure(result: RenderResult, system: str | int | None = None,
+                   liv_range_db2: tuple[float, float] = (0.0, 30.0)) -> Any:
+    """Preview figure: frame 0 in dB, the LIV map (dB²) and the ground-truth motion labels, on the
+    project's µm axes (:mod:`torchdoct.figures`; pixel edges at the phantom's coordinates)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -454,32 +467,30 @@ def save_preview(result: RenderResult, path: str, system: str | int | None = Non
         mid = grid.n_y // 2
         frame, liv_map, labels = frame[mid], liv_map[mid], labels[mid]
     frame_db = 10.0 * torch.log10(frame.clamp_min(1e-30)).numpy()
+    from .figures import show_bscan
+
     top = float(np.percentile(frame_db, 99.5))
-    x0, x1 = grid.extent_um("x")
-    z0, z1 = grid.extent_um("z")
-    ext = (x0, x1, z1, z0)
+    pitch = {"z": grid.pitch_z_um, "x": grid.pitch_x_um}
+    origin = (grid.extent_um("z")[0] - grid.pitch_z_um / 2, grid.extent_um("x")[0] - grid.pitch_x_um / 2)
     fig, ax = plt.subplots(1, 3, figsize=(14, 4.8), constrained_layout=True)
-    im0 = ax[0].imshow(frame_db, cmap="gray", vmin=top - 40.0, vmax=top, extent=ext)
+    im0 = show_bscan(ax[0], frame_db, pitch_um=pitch, origin_um=origin, cmap="gray", vmin=top - 40.0, vmax=top)
     ax[0].set_title("frame 0, intensity (dB)")
-    fig.colorbar(im0, ax=ax[0], shrink=0.8)
+    fig.colorbar(im0, ax=ax[0], shrink=0.8).set_label("intensity (dB)")
     cmap = plt.get_cmap("inferno").with_extremes(bad="#202020")
-    im1 = ax[1].imshow(liv_map.numpy(), cmap=cmap, vmin=liv_range_db2[0], vmax=liv_range_db2[1], extent=ext)
+    im1 = show_bscan(ax[1], liv_map.numpy(), pitch_um=pitch, origin_um=origin, cmap=cmap, vmin=liv_range_db2[0],
+                     vmax=liv_range_db2[1])
     ax[1].set_title("LIV (dB²)")
-    fig.colorbar(im1, ax=ax[1], shrink=0.8)
+    fig.colorbar(im1, ax=ax[1], shrink=0.8).set_label("LIV (dB²)")
     codes = sorted(_LABEL_COLOURS)
-    ax[2].imshow(labels, cmap=ListedColormap([_LABEL_COLOURS[c] for c in codes]), vmin=-0.5,
-                 vmax=len(codes) - 0.5, extent=ext, interpolation="nearest")
+    show_bscan(ax[2], labels, pitch_um=pitch, origin_um=origin, cmap=ListedColormap([_LABEL_COLOURS[c] for c in codes]),
+               vmin=-0.5, vmax=len(codes) - 0.5)
     ax[2].set_title("ground truth: motion")
     names = {v: k for k, v in MOTION_CODES.items()}
     present = sorted({int(c) for c in np.unique(labels)})
     ax[2].legend(handles=[Patch(color=_LABEL_COLOURS[c], label=names[c]) for c in present],
                  loc="lower right", fontsize=8)
-    for a in ax:
-        a.set_xlabel("x (µm)")
-        a.set_ylabel("z, depth (µm)")
     s = result.phantom.scene.systems[[x.name for x in result.phantom.scene.systems].index(result.system_names[k])]
     fig.suptitle(f"{result.phantom.name}: {s.name} ({s.wavelength_um * 1000:.0f} nm, "
                  f"{s.lateral_resolution_um}/{s.axial_resolution_um} µm), {len(result.frame_times_s)} frames, "
                  f"seed {result.seed}")
-    fig.savefig(path, dpi=90, format="png")
-    plt.close(fig)
+    return fig

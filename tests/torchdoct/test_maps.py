@@ -439,13 +439,14 @@ def test_one_axes_convention_for_render_preview_maps_and_overlay(tmp_path, monke
     from torchdoct.phantom import load_phantom
     from torchdoct.render import preview_figure, render
 
-    res = render(load_phantom("spheroid", grid={"n_z": 24, "n_x": 20, "pitch_x_um": 2.0, "pitch_z_um": 2.0}),
-                 systems=None, seed=1, frames=4) if "frames" in render.__code__.co_varnames else render(
-        load_phantom("spheroid", grid={"n_z": 24, "n_x": 20, "pitch_x_um": 2.0, "pitch_z_um": 2.0}), seed=1)
+    res = render(load_phantom("spheroid", grid={"n_z": 24, "n_x": 20, "pitch_x_um": 2.0, "pitch_z_um": 2.0}), seed=1)
     fig = preview_figure(res, 0)
-    for ax in fig.axes:
-        if ax.images and ax.get_label() != "<colorbar>":
-            assert ax.get_xlabel() == figures.X_LABEL and ax.get_ylabel() == figures.Z_LABEL
+    images = [ax for ax in fig.axes if ax.images]
+    assert len(images) == 3
+    for ax in images:
+        assert ax.get_xlabel() == figures.X_LABEL and ax.get_ylabel() == figures.Z_LABEL
+        x0, x1, z1, z0 = ax.images[0].get_extent()
+        assert (x1 - x0, z1 - z0) == pytest.approx((20 * 2.0, 24 * 2.0))  # pixel edges: n·pitch
     import matplotlib.pyplot as plt
 
     plt.close(fig)
