@@ -150,8 +150,11 @@ def _maps(args: argparse.Namespace) -> int:
                         frame_times_s=_floats(args.frame_times_s, None, "--frame-times-s") if args.frame_times_s else None,
                         frame_interval_s=args.frame_interval_s, system=system or None, dataset=args.dataset,
                         block_raster=raster)
-    _ = seq.system  # a clear error before any work when the optics are unknown
     resolutions = args.resolution or ["original"]
+    from .resolution import parse_resolution
+
+    if any(parse_resolution(r).label != "original" for r in resolutions):
+        _ = seq.system, seq.pitch_um  # a resolution change needs them: a clear error before any work
     if args.png:  # check the PNG paths before the work
         from .maps import METRICS, png_name
         from .resolution import parse_resolution

@@ -190,7 +190,12 @@ class Sequence:
 
     @property
     def pitch_um(self) -> dict[str, float]:
-        return dict(self.meta["pitch_um"])
+        """The pixel pitch (µm); a ``ValueError`` says how to give it when the metadata have none (only a
+        resolution change needs it)."""
+        pitch = self.meta.get("pitch_um")
+        if pitch is None:
+            raise ValueError(f"{self.source or 'sequence'}: missing 'pitch_um' (µm per pixel); {_HOW['pitch_um']}")
+        return dict(pitch)
 
     @property
     def frame_times_s(self) -> list[float]:
@@ -295,35 +300,39 @@ def _check_axes(axes: Any, ndim: int | None, where: str) -> str:
 
 
 def validate_meta(meta: Mapping[str, Any], shape: _Seq[int], *, where: str = "metadata",
-                  require_system: bool = False) -> dict[str, Any]:
+                  require_system: bool = False, require_pitch: bool = False) -> dict[str, Any]:
     """Check metadata against canonical-order data of ``shape``; return a cleaned copy.
 
-    Checks: ``axes`` is ``TZX`` or ``TYZX`` and matches the rank; ``pitch_um`` has a positive entry for
-    every spatial axis (and no other key); ``frame_times_s`` has ``T`` finite, strictly increasing
+    Checks: ``axes`` is ``TZX`` or ``TYZX`` and matches the rank; ``pitch_um`` (when present, or when
+    ``require_pitch``; only a resolution change needs it) has a positive entry for every spatial axis
+    (and no other key); ``frame_times_s`` has ``T`` finite, strictly increasing
     entries; ``system`` (when present, or when ``require_system``) has positive ``wavelength_um``,
     ``lateral_resolution_um``, ``axial_resolution_um`` (µm) and ``refractive_index`` ≥ 1.
     """
     if not isinstance(meta, Mapping):
         raise TypeError(f"{where} must be a dict; got {type(meta).__name__}")
     out = dict(meta)
-    for key in ("axes", "pitch_um", "frame_times_s"):
+    for key in ("axes", "frame_times_s") + (("pitch_um",) if require_pitch else ()):
         if out.get(key) is None:
             raise ValueError(f"{where}: missing {key!r}; {_HOW[key]}")
     axes = _check_axes(out["axes"], len(shape), where)
     if axes not in _CANONICAL_AXES:
         raise ValueError(f"{where}: axes {axes!r} is not canonical (TZX or TYZX); transpose the data first")
     out["axes"] = axes
-    pitch = out["pitch_um"]
-    if not isinstance(pitch, Mapping):
-        raise TypeError(f"{where}: pitch_um must be a dict like {{'z': 1.5, 'x': 2.0}}; got {pitch!r}")
-    spatial = [c.lower() for c in axes if c != "T"]
-    extra = sorted(set(pitch) - set(spatial))
-    if extra:
-        raise ValueError(f"{where}: pitch_um has keys {extra} for axes not in {axes!r}; allowed: {spatial}")
-    missing = [c for c in spatial if pitch.get(c) is None]
-    if missing:
-        raise ValueError(f"{where}: pitch_um is missing {missing} (µm per pixel); {_HOW['pitch_um']}")
-    out["pitch_um"] = {c: _finite_positive(f"{where}: pitch_um[{c!r}] (µm)", pitch[c]) for c in spatial}
+    pitch = out.get("pitch_um")
+    if pitch is None:  # only a resolution change needs it (Sequence.pitch_um says how to give it)
+        out.pop("pitch_um", None)
+    else:
+        if not isinstance(pitch, Mapping):
+            raise TypeError(f"{where}: pitch_um must be a dict like {{'z': 1.5, 'x': 2.0}}; got {pitch!r}")
+        spatial = [c.lower() for c in axes if c != "T"]
+        extra = sorted(set(pitch) - set(spatial))
+        if extra:
+            raise ValueError(f"{where}: pitch_um has keys {extra} for axes not in {axes!r}; allowed: {spatial}")
+        missing = [c for c in spatial if pitch.get(c) is None]
+        if missing:
+            raise ValueError(f"{where}: pitch_um is missing {missing} (µm per pixel); {_HOW['pitch_um']}")
+        out["pitch_um"] = {c: _finite_positive(f"{where}: pitch_um[{c!r}] (µm)", pitch[c]) for c in spatial}
     times = out["frame_times_s"]
     if isinstance(times, (str, bytes)) or not hasattr(times, "__len__"):
         raise TypeError(f"{where}: frame_times_s must be a list of times in s; got {times!r}")
@@ -670,6 +679,8 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
                          "dimensions")
     if 0 in data.shape:
         raise ValueError(f"{p.name}: data have an empty axis (shape {list(data.shape)}); nothing to read")
+    if not data.dtype.isnative:  # e.g. a big-endian '>c8' .npy: read into native byte order (torch needs it)
+        data = data.astype(data.dtype.newbyteorder("="))
     if meta.get("axes") is None:
         raise ValueError(f"{p.name}: missing 'axes'; {_HOW['axes']}")
     stored = _check_axes(meta["axes"], data.ndim, p.name)

@@ -24,7 +24,19 @@ pixel (time last, ``[..., T]``) the channels below are computed:
 
 Undefined values are NaN: pixels with ``I = 0`` or a NaN sample in some frame have no dB value (LIV, OCDS, aLIV,
 Swiftness NaN; ``mean_db`` NaN only if ``I = 0`` at every frame), and Swiftness is NaN where the fit
-gives ``a = 0`` (no fluctuation, τ undefined).
+gives ``a = 0`` (no fluctuation, τ undefined). After a resolution reduction the same rule holds with a
+floor: ``I ≤ (64·ε)²·max I`` (ε the machine epsilon of the data type, ``max I`` the largest finite
+intensity of the input: −102 dB for complex64, −277 dB for complex128) counts as ``I = 0``, because
+exactly empty pixels acquire FFT round-off of the reduction there, not signal (:data:`EMPTY_RULE`,
+recorded as ``meta["empty_rule"]``). At the original resolution only exact zeros are empty. An input
+with no finite nonzero sample, or with fewer than 2 frames, is refused.
+
+aLIV/Swiftness fits that end on a τ bound (:func:`tau_bound_code`) are flagged in the ``aliv_fit``
+channel written with them (0 inside, 1 lower bound, 2 upper bound, NaN undefined); their counts per
+resolution are in ``meta["aliv"]["flagged_pixels"]`` and :func:`write_pngs` draws them in magenta.
+
+Optics: only a resolution change needs the pitch and the original resolutions (``system``); maps at
+the original resolution record them when known (``None`` otherwise).
 
 Block raster volumes (:class:`torchdoct.io.BlockRaster` in the sequence metadata): maps are
 computed on the whole volume (the lateral Gaussian runs across block boundaries, as in the paper),
@@ -292,6 +304,29 @@ def tau_bound_code(tau: torch.Tensor, windows_s: torch.Tensor,
 # ----------------------------------------------------------------------------------------------
 # maps of a sequence
 
+#: The leakage floor of a resolution reduction is ``(EMPTY_FLOOR_EPS_FACTOR·ε)²·max I`` (ε of the data type).
+EMPTY_FLOOR_EPS_FACTOR = 64
+EMPTY_RULE = ("a pixel has no dB value where I = 0 or NaN at some frame; after a resolution reduction I <= "
+              "(64·eps)²·max I (eps of the data type, max I over the input; -102 dB for complex64, -277 dB for "
+              "complex128) counts as I = 0: FFT round-off of the reduction, not signal")
+
+
+def _peak_intensity(data: np.ndarray, src: str) -> float:
+    """Largest finite ``|E|²`` (or intensity) of ``data``, frame by frame; refuses data without any
+    finite nonzero sample (every map would be NaN)."""
+    peak = 0.0
+    for k in range(data.shape[0]):
+        f = np.asarray(data[k])
+        v = (f.real.astype(np.float64) ** 2 + f.imag.astype(np.float64) ** 2) if np.iscomplexobj(f) else \
+            np.abs(f.astype(np.float64))
+        v = v[np.isfinite(v)]
+        if v.size:
+            peak = max(peak, float(v.max()))
+    if not peak > 0:
+        raise ValueError(f"{src}: holds no finite nonzero sample (every value is NaN, infinite or 0), so no pixel "
+                         "has a dB value; check the file (and --dataset / --axes)")
+    return peak
+
 
 def _pixel_metrics(intensity: torch.Tensor, frame_times_s: list[float], wanted: list[str], *,
                    ocds_delay_range_s: tuple[float, float], ocds_scale: str, ocds_estimator: str,
@@ -389,9 +424,22 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     if normalization not in NORMALIZATIONS:
         raise ValueError(f"normalization must be one of {', '.join(NORMALIZATIONS)}; got {normalization!r}")
     targets = _as_targets(resolutions)
-    system = seq.system
-    lat0, ax0 = float(system["lateral_resolution_um"]), float(system["axial_resolution_um"])
-    changes = [t for t in targets if t.resolved(system) != (lat0, ax0)]
+    src = seq.source or "sequence"
+    if seq.n_frames < 2:
+        raise ValueError(f"{src}: {seq.n_frames} frame along T; DOCT maps need at least 2 frames (LIV is a variance "
+                         "over frames); check the file or --axes")
+    if any(t.lateral_resolution_um is not None or t.axial_resolution_um is not None for t in targets):
+        system = seq.system  # a resolution target needs the original optics (a clear error names the options)
+    else:  # original resolution only: the optics are recorded when known, never required
+        system = {k: v for k, v in dict(seq.meta.get("system") or {}).items() if v is not None}
+    known = "lateral_resolution_um" in system and "axial_resolution_um" in system
+    lat0 = float(system["lateral_resolution_um"]) if known else None
+    ax0 = float(system["axial_resolution_um"]) if known else None
+
+    def optics(t: ResolutionTarget) -> tuple[float | None, float | None]:
+        return t.resolved(system) if known else (None, None)
+
+    changes = [t for t in targets if optics(t) != (lat0, ax0)]
     for t in targets:  # validate every target before any work
         if t.lateral_resolution_um is not None:
             lateral_filter_sigma_um(lat0, t.lateral_resolution_um)
@@ -416,18 +464,21 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     per_row = int(np.prod(data.shape)) // n_z
     fc: float | str = axial_center
     if axial_center == "centroid" and seq.is_complex and any(t.axial_resolution_um is not None for t in changes):
-        sub = torch.from_numpy(np.ascontiguousarray(data[: min(4, data.shape[0])]))
+        sub = torch.from_numpy(np.ascontiguousarray(data[: min(4, data.shape[0])], dtype=native))
         fc = depth_spectrum_center(sub, axes=axes)
     elif isinstance(axial_center, str) and axial_center not in ("zero", "centroid"):
         raise ValueError(f"axial_center must be 'zero', 'centroid' or a number (cycles/pixel); got {axial_center!r}")
     margin = 1 if (aliv_smoothing and ("aliv" in wanted or "swiftness" in wanted)) else 0
     real_dtype = np.float64 if data.dtype in (np.complex128, np.float64) else np.float32
+    native = data.dtype.newbyteorder("=")  # big-endian files are read in native byte order
+    peak = _peak_intensity(data, src)
+    floor = peak * (EMPTY_FLOOR_EPS_FACTOR * float(np.finfo(real_dtype).eps)) ** 2
     outputs = wanted + ([FIT_FLAG] if ("aliv" in wanted or "swiftness" in wanted) else [])
     out = np.full((len(targets) * len(outputs), *data.shape[1:]), np.nan, dtype=real_dtype)
 
     plans = []
     for t in targets:
-        lat, ax = t.resolved(system)
+        lat, ax = optics(t)
         sig = axial_filter_sigma_um(ax0, ax) / seq.pitch_um["z"] if ax != ax0 else 0.0
         if sig and lat == lat0 and "Y" in axes:
             # axial only, volume: chunk over B-scans (whole depth columns, no halo; aLIV smoothing is per B-scan)
@@ -449,10 +500,11 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
         bar = tqdm(total=total, desc="maps", unit="slab")
     channels: list[dict[str, Any]] = []
     for ti, (t, cdim, n_c, halo, mrg, rows) in enumerate(plans):
-        lat, ax = t.resolved(system)
+        lat, ax = optics(t)
+        wl = system.get("wavelength_um")
         for m in outputs:
             channels.append({"name": f"{m}@{t.label}", "metric": m, "unit": UNITS[m], "resolution": t.label,
-                             "wavelength_um": float(system["wavelength_um"]), "lateral_resolution_um": lat,
+                             "wavelength_um": None if wl is None else float(wl), "lateral_resolution_um": lat,
                              "axial_resolution_um": ax})
         t0 = time.perf_counter()
         for c0 in range(0, n_c, rows):
@@ -460,8 +512,8 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
             a0, a1 = max(0, c0 - halo), min(n_c, c1 + halo)
             sel = [slice(None)] * data.ndim
             sel[cdim] = slice(a0, a1)
-            block = torch.from_numpy(np.array(data[tuple(sel)], copy=True)).to(dev)
-            if seq.is_complex:
+            block = torch.from_numpy(np.array(data[tuple(sel)], dtype=native, copy=True)).to(dev)
+            if t in changes:
                 red = reduce_resolution(block, pitch_um=seq.pitch_um, system=system,
                                         lateral_resolution_um=t.lateral_resolution_um,
                                         axial_resolution_um=t.axial_resolution_um, axes=axes,
@@ -474,6 +526,8 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
                 inten = red.real ** 2 + red.imag ** 2
             else:
                 inten = red.to(torch.float64 if real_dtype == np.float64 else torch.float32)
+            if t in changes:  # FFT round-off of the reduction is no signal: treated as I = 0 (module docstring)
+                inten = torch.where(inten > floor, inten, torch.zeros_like(inten))
             vals = _pixel_metrics(inten, times, wanted, ocds_delay_range_s=tuple(ocds_delay_range_s),
                                   ocds_scale=ocds_scale, ocds_estimator=ocds_estimator,
                                   aliv_smoothing=aliv_smoothing, aliv_max_window_s=aliv_max_window_s,
@@ -492,13 +546,15 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     meta: dict[str, Any] = {
         "channels": channels,
         "axes": "C" + axes[1:],
-        "pitch_um": seq.pitch_um,
+        "pitch_um": seq.meta.get("pitch_um"),
         "frame_times_s": times,
         "system": system,
         "ocds_delay_range_s": [float(v) for v in ocds_delay_range_s],
         "ocds_scale": ocds_scale,
         "ocds_estimator": ocds_estimator,
         "source": seq.source,
+        "empty_rule": {"rule": EMPTY_RULE, "floor_relative_db": 10.0 * math.log10(floor / peak),
+                       "floor": floor, "max_intensity": peak},
         "reduction": {"edge_mode": edge_mode, "normalization": normalization,
                       "axial_center": axial_center if isinstance(axial_center, str) else float(axial_center),
                       "axial_center_cycles_per_pixel": float(fc) if not isinstance(fc, str) else 0.0,

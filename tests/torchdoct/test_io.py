@@ -118,10 +118,13 @@ def test_missing_metadata_names_the_option(tmp_path):
     np.save(tmp_path / "raw.npy", data)
     with pytest.raises(ValueError, match="missing 'axes'.*--axes"):
         read_sequence(tmp_path / "raw.npy")
-    with pytest.raises(ValueError, match="missing 'pitch_um'.*--pitch-um"):
-        read_sequence(tmp_path / "raw.npy", axes="TZX")
     with pytest.raises(ValueError, match="missing 'frame_times_s'.*--frame-interval-s"):
         read_sequence(tmp_path / "raw.npy", axes="TZX", pitch_um="z=1,x=2")
+    no_pitch = read_sequence(tmp_path / "raw.npy", axes="TZX", frame_interval_s=0.5)  # only a reduction needs it
+    with pytest.raises(ValueError, match="raw.npy: missing 'pitch_um'.*--pitch-um"):
+        no_pitch.pitch_um
+    with pytest.raises(ValueError, match="missing 'pitch_um'.*--pitch-um"):
+        validate_meta(_meta(pitch_um=None), (4, 5, 6), require_pitch=True)
     seq = read_sequence(tmp_path / "raw.npy", axes="TZX", pitch_um="z=1,x=2", frame_interval_s=0.5)
     assert seq.frame_times_s == [0.0, 0.5, 1.0, 1.5]
     with pytest.raises(ValueError, match="--wavelength-um"):

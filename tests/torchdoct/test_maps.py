@@ -234,7 +234,8 @@ def test_bad_requests():
         compute_maps(seq, ["original"], ocds_delay_range_s=(0.2048, 0.25))
     bare = Sequence(data=seq.data, meta={k: v for k, v in seq.meta.items() if k != "system"})
     with pytest.raises(ValueError, match="--wavelength-um"):
-        compute_maps(bare)
+        compute_maps(bare, ["original", "axial=14"])
+    assert compute_maps(bare).channel_info("liv@original")["wavelength_um"] is None  # original: optics not needed
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -293,7 +294,7 @@ def test_cli_maps_errors(tmp_path, capsys):
     assert "--axes" in capsys.readouterr().err
     argv = ["maps", str(tmp_path / "raw.npy"), "--axes", "TZX", "--pitch-um", "z=1.5,x=2", "--frame-interval-s",
             "0.2048", "--out", str(tmp_path / "m.npz"), "--no-progress", "--ocds-delay-range-s", "0.2048", "0.6144"]
-    assert main(argv) == 2
+    assert main(argv + ["--resolution", "axial=14"]) == 2
     assert "--wavelength-um" in capsys.readouterr().err
     sys_args = ["--wavelength-um", "0.84", "--lateral-resolution-um", "4.9", "--axial-resolution-um", "3.8"]
     assert main(argv + sys_args + ["--resolution", "axial=3"]) == 2
@@ -394,7 +395,7 @@ def test_empty_pixels_stay_undefined_after_an_axial_reduction():
         assert np.isfinite(v[:24]).all(), metric  # the reduced PSF reaches a few rows into the empty region
         assert np.isnan(v[70:]).all(), metric  # > 9 σ'_z away: only round-off remains
     rule = m.meta["empty_rule"]
-    assert rule["floor_relative_db"] == pytest.approx(10 * np.log10((1024 * np.finfo(np.float32).eps) ** 2))
+    assert rule["floor_relative_db"] == pytest.approx(10 * np.log10((64 * np.finfo(np.float32).eps) ** 2))
     assert "max" in rule["rule"] and "I = 0" in rule["rule"]
 
 
