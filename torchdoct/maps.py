@@ -118,13 +118,14 @@ def ocds_map(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
              estimator: str = "pearson") -> torch.Tensor:
     """OCDS (1/s) of intensities ``[..., T]``: identical to :func:`torchdoct.metrics.ocds`.
 
-    For a uniform protocol with the Pearson estimator only the lags inside ``delay_range_s`` are
-    computed (same per-lag Pearson definition and degenerate-case rules as
-    :func:`torchdoct.metrics.lag_correlations`; the slope comes from
-    :func:`torchdoct.metrics.ocds_from_correlations`); otherwise it calls :func:`torchdoct.metrics.ocds`.
+    For a uniform protocol only the lags inside ``delay_range_s`` are computed, with either estimator
+    (same per-lag definitions and degenerate-case rules as :func:`torchdoct.metrics.lag_correlations`:
+    Pearson per lag, or the biased ``Σ x̃_i x̃_{i+m} / Σ x̃²`` of the whole-sequence deviations; the slope
+    comes from :func:`torchdoct.metrics.ocds_from_correlations`); a non-uniform protocol calls
+    :func:`torchdoct.metrics.ocds`.
     """
     dt = _uniform_dt(frame_times_s)
-    if dt is None or estimator != "pearson":
+    if dt is None or estimator not in ("pearson", "biased"):
         return _metrics.ocds(intensity, frame_times_s, delay_range_s=delay_range_s, scale=scale, estimator=estimator)
     if scale == "db":
         s = _metrics.to_db(intensity)
@@ -140,7 +141,16 @@ def ocds_map(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
     if len(lags) < 2:
         raise ValueError(f"OCDS delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
                          f"(frame interval {dt:.6g} s, {n} frames); give --ocds-delay-range-s")
-    rho = torch.stack([_metrics._pearson(s[..., : n - m], s[..., m:]) for m in lags], dim=-1)
+    if estimator == "pearson":
+        rho = torch.stack([_metrics._pearson(s[..., : n - m], s[..., m:]) for m in lags], dim=-1)
+    else:  # biased: as metrics.lag_correlations, for the lags in the range only
+        d = s - s[..., :1]
+        xm = d - d.mean(-1, keepdim=True)
+        var = (xm * xm).sum(-1)
+        ok = var > 0
+        den = torch.where(ok, var, torch.ones_like(var))
+        rho = torch.stack([torch.where(ok, (xm[..., : n - m] * xm[..., m:]).sum(-1) / den, torch.ones_like(var))
+                           for m in lags], dim=-1)
     delays = torch.tensor([m * dt for m in lags], dtype=s.dtype, device=s.device)
     return _metrics.ocds_from_correlations(rho, delays, (lo, hi))
 
