@@ -15,6 +15,10 @@ from typing import Sequence
 
 __all__ = ["build_train_parser", "build_classify_parser", "train_main", "classify_main"]
 
+#: ``doct-train --quick``: small splits for a first run (about a minute on 2 cores; classifier/README.md).
+QUICK = {"draws_train": 90, "draws_validation": 24, "draws_test": 36, "trials_per_draw": 64, "replicates": 4,
+         "max_epochs": 100}
+
 _ERRORS = (ValueError, TypeError, FileNotFoundError)  # bad input: exit code 2 (torchdoct.cli.EXIT_CODES)
 
 
@@ -41,13 +45,18 @@ def build_train_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output directory: SPEC.onnx, SPEC.json/.md/.png (report)")
     p.add_argument("--spec", default=d.spec, help="feature spec: 'single-acquisition', 'two-wavelength' or a TOML file")
     p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--draws-train", type=int, default=d.draws_train, help="parameter draws in the training split")
-    p.add_argument("--draws-validation", type=int, default=d.draws_validation)
-    p.add_argument("--draws-test", type=int, default=d.draws_test)
-    p.add_argument("--trials-per-draw", type=int, default=d.trials_per_draw)
-    p.add_argument("--replicates", type=int, default=d.replicates,
-                   help="(static fraction, SNR) settings per simulated draw")
-    p.add_argument("--max-epochs", type=int, default=d.max_epochs)
+    p.add_argument("--quick", action="store_true",
+                   help=f"small splits for a first run, about a minute on 2 cores ({_quick_text()}); "
+                        "a smoke test of the whole recipe, far less accurate than the shipped model; "
+                        "size options given as well win")
+    p.add_argument("--draws-train", type=int, default=None,
+                   help=f"parameter draws in the training split (default {d.draws_train})")
+    p.add_argument("--draws-validation", type=int, default=None, help=f"(default {d.draws_validation})")
+    p.add_argument("--draws-test", type=int, default=None, help=f"(default {d.draws_test})")
+    p.add_argument("--trials-per-draw", type=int, default=None, help=f"(default {d.trials_per_draw})")
+    p.add_argument("--replicates", type=int, default=None,
+                   help=f"(static fraction, SNR) settings per simulated draw (default {d.replicates})")
+    p.add_argument("--max-epochs", type=int, default=None, help=f"(default {d.max_epochs})")
     p.add_argument("--min-probability", type=float, default=d.min_probability,
                    help="indeterminate below this top-class probability")
     p.add_argument("--no-baselines", action="store_true", help="skip the scikit-learn baselines")
@@ -60,6 +69,12 @@ def build_train_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _quick_text() -> str:
+    q = QUICK
+    return (f"draws {q['draws_train']}/{q['draws_validation']}/{q['draws_test']}, {q['replicates']} replicates, "
+            f"at most {q['max_epochs']} epochs")
+
+
 def train_main(argv: Sequence[str] | None = None) -> int:
     """``doct-train``: returns the exit code (0 done, 2 bad input, 1 other failure)."""
     args = build_train_parser().parse_args(argv)
@@ -67,31 +82,56 @@ def train_main(argv: Sequence[str] | None = None) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    import time
+    import os
+    import shutil
+    import tempfile
 
-    import numpy as np
     import torch
 
     from ._files import check_out
-    from .export import OPSET, build_metadata, export_onnx, onnx_parity
     from .features import load_spec
-    from .report import write_report
-    from .train import TrainConfig, train
+    from .train import TrainConfig
 
     spec = load_spec(args.spec)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a directory")
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {s: check_out(out / f"{spec.name}{s}", args.force, s, f"--out {out}") for s in (".onnx", ".json", ".md", ".png")}
+    paths = {s: check_out(out / f"{spec.name}{s}", args.force, s, f"--out {out}") if out.is_dir() else out / f"{spec.name}{s}"
+             for s in (".onnx", ".json", ".md", ".png")}
     from torchdoct.threads import set_default_threads
 
     set_default_threads(args.threads)  # simulation threads (torchdoct.threads); ValueError names the fix
     torch.set_num_threads(1)  # one torch thread per worker: no stalls beside other busy processes
-    cfg = TrainConfig(spec=str(args.spec), seed=args.seed, draws_train=args.draws_train,
-                      draws_validation=args.draws_validation, draws_test=args.draws_test,
-                      trials_per_draw=args.trials_per_draw, replicates=args.replicates, max_epochs=args.max_epochs,
-                      min_probability=args.min_probability, baselines=not args.no_baselines)
+    base = QUICK if args.quick else {k: getattr(TrainConfig(), k) for k in QUICK}
+    sizes = {k: base[k] if getattr(args, k) is None else getattr(args, k) for k in QUICK}  # explicit sizes win
+    cfg = TrainConfig(spec=str(args.spec), seed=args.seed, min_probability=args.min_probability,
+                      baselines=not args.no_baselines, **sizes)
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".doct-train-", dir=out))  # outputs appear only when all are written
+    try:
+        line = _train_into(args, cfg, {s: stage / p.name for s, p in paths.items()})
+        for s in (".json", ".md", ".png", ".onnx"):  # the model last: never a model without its report
+            os.replace(stage / paths[s].name, paths[s])
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+        if created and not any(out.iterdir()):
+            out.rmdir()
+    print(f"wrote {', '.join(str(p) for p in paths.values())}")
+    print(line)
+    return 0
+
+
+def _train_into(args: argparse.Namespace, cfg, paths: dict[str, Path]) -> str:
+    """Train, export and write the report into ``paths``; returns the summary line."""
+    import time
+
+    import numpy as np
+
+    from .export import OPSET, build_metadata, export_onnx, onnx_parity
+    from .report import summary_line, write_report
+    from .train import train
+
     t0 = time.perf_counter()
     res = train(cfg, cache_dir=args.cache, use_cache=not args.no_cache, progress=not args.no_progress)
     meta = build_metadata(res)
@@ -109,14 +149,10 @@ def _train(args: argparse.Namespace) -> int:
     res.report["onnx_parity_max_abs_diff"] = parity
     res.report["onnx_opset"] = OPSET
     res.report["total_s"] = time.perf_counter() - t0
-    write_report(_finite(res.report), paths[".json"], paths[".md"], paths[".png"])
-    m1 = res.report["test"]["network"]["1"]
-    print(f"wrote {', '.join(str(p) for p in paths.values())}")
-    print(f"test (pool 1): accuracy {m1['accuracy_all']:.3f}, balanced {m1['balanced_accuracy_all']:.3f}; identifiable: "
-          f"coverage {m1['coverage_identifiable']:.3f}, accuracy {m1['accuracy_identifiable']:.3f}, balanced "
-          f"{m1['balanced_accuracy_identifiable']:.3f}; ECE {m1['ece']:.3f}; ONNX max |dp| {parity:.1e}; "
-          f"total {res.report['total_s']:.0f} s")
-    return 0
+    report = _finite(res.report)
+    write_report(report, paths[".json"], paths[".md"], paths[".png"])
+    return (f"test (pool 1): {summary_line(report['test']['network']['1'])}; ONNX max |dp| {parity:.1e}; "
+            f"total {report['total_s']:.0f} s")
 
 
 def _time(fn) -> float:

@@ -23,7 +23,7 @@ import numpy as np
 from .rule import REASONS, apply_rule
 
 __all__ = ["expected_calibration_error", "evaluate", "bootstrap_se", "magnitude_table", "write_report",
-           "format_markdown"]
+           "format_markdown", "undefined_reason", "summary_line"]
 
 
 def expected_calibration_error(probabilities: np.ndarray, truth: np.ndarray, bins: int = 15) -> tuple[float, list]:
@@ -93,9 +93,14 @@ def bootstrap_se(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, d
                  keys: Sequence[str] = ("accuracy_identifiable", "balanced_accuracy_identifiable",
                                         "coverage_identifiable", "accuracy_all", "ece")) -> dict[str, float]:
     """Standard errors of :func:`evaluate`'s metrics from a bootstrap over *draws* (the independent
-    unit: trials of a draw share its parameters), ``n_boot`` resamples with a seeded generator."""
+    unit: trials of a draw share its parameters), ``n_boot`` resamples with a seeded generator.
+
+    NaN (undefined, see :func:`undefined_reason`) with fewer than 2 draws, or when fewer than 2
+    resamples give a defined value."""
     rng = np.random.default_rng(seed)
     draws = np.unique(draw)
+    if draws.size < 2:
+        return {k: math.nan for k in keys}
     index = {d: np.flatnonzero(draw == d) for d in draws}
     vals: dict[str, list[float]] = {k: [] for k in keys}
     for _ in range(n_boot):
@@ -103,7 +108,51 @@ def bootstrap_se(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, d
         m = evaluate(probabilities[pick], y[pick], status[pick], class_names, rule)
         for k in keys:
             vals[k].append(m[k])
-    return {k: float(np.nanstd(v, ddof=1)) for k, v in vals.items()}
+    out = {}
+    for k, v in vals.items():
+        v = np.asarray(v, dtype=np.float64)
+        v = v[np.isfinite(v)]
+        out[k] = float(np.std(v, ddof=1)) if v.size >= 2 else math.nan
+    return out
+
+
+#: Why a metric of :func:`evaluate` can be undefined (None in the JSON report, "n/a" in the text).
+_NO_IDENTIFIABLE = "the test set has no identifiable sample"
+_NONE_DECIDED = ("no identifiable test sample was decided: coverage 0, the network called all of them "
+                 "indeterminate; train on more draws or lower --min-probability")
+_IDENTIFIABLE_KEYS = ("accuracy_identifiable", "balanced_accuracy_identifiable", "strict_accuracy_identifiable",
+                      "coverage_identifiable")
+
+
+def _undefined(v: Any) -> bool:
+    return v is None or (isinstance(v, float) and not math.isfinite(v))
+
+
+def undefined_reason(metrics: dict[str, Any], key: str) -> str | None:
+    """Why ``metrics[key]`` (an :func:`evaluate` result) is undefined; ``None`` when it is defined."""
+    if not _undefined(metrics.get(key)):
+        return None
+    if key in _IDENTIFIABLE_KEYS:
+        return _NO_IDENTIFIABLE if not metrics.get("identifiable_samples") else _NONE_DECIDED
+    return "undefined on this test set"
+
+
+def summary_line(metrics: dict[str, Any]) -> str:
+    """One line of the headline test metrics; an undefined one reads "n/a (reason)", each reason once."""
+    said: set[str] = set()
+
+    def f(key: str) -> str:
+        reason = undefined_reason(metrics, key)
+        if reason is None:
+            return f"{metrics[key]:.3f}"
+        if reason in said:
+            return "n/a"
+        said.add(reason)
+        return f"n/a ({reason})"
+
+    return (f"accuracy {f('accuracy_all')}, balanced {f('balanced_accuracy_all')}; identifiable: coverage "
+            f"{f('coverage_identifiable')}, accuracy {f('accuracy_identifiable')}, balanced "
+            f"{f('balanced_accuracy_identifiable')}; ECE {f('ece')}")
 
 
 def magnitude_table(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, magnitude: np.ndarray,
@@ -138,10 +187,10 @@ def magnitude_table(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray
 
 
 def _fmt(v: Any, digits: int = 3) -> str:
-    if v is None:
-        return "–"
+    if _undefined(v):
+        return "n/a"
     if isinstance(v, float):
-        return "–" if math.isnan(v) else f"{v:.{digits}f}"
+        return f"{v:.{digits}f}"
     return str(v)
 
 
@@ -176,10 +225,20 @@ def format_markdown(report: dict[str, Any]) -> str:
                      f"{_fmt(m['balanced_accuracy_identifiable'])} | {_fmt(m['strict_accuracy_identifiable'])} | "
                      f"{_fmt(m['ece'])} | {_fmt(m['indeterminate_fraction'])} |")
     L.append("")
+    reasons = sorted({why for per in r["test"].values() for m in per.values() for key in _IDENTIFIABLE_KEYS
+                      if (why := undefined_reason(m, key))})
+    for why in reasons:
+        L.append(f"n/a: {why}.  ")
+    if reasons:
+        L.append("")
     if "standard_errors" in r:
         L.append("Standard errors of the network's numbers (bootstrap over test draws, the independent unit): " +
-                 "; ".join(f"pool {pool}: " + ", ".join(f"{k.replace('_', ' ')} ±{v:.3f}" for k, v in se.items())
-                           for pool, se in r["standard_errors"].items()) + ".")
+                 "; ".join(f"pool {pool}: " + ", ".join(f"{k.replace('_', ' ')} " + ("n/a" if _undefined(v) else f"±{v:.3f}")
+                                                        for k, v in se.items())
+                           for pool, se in r["standard_errors"].items()) + ".  ")
+        if any(_undefined(v) for se in r["standard_errors"].values() for v in se.values()):
+            L.append("n/a: the metric is undefined in all but at most one bootstrap resample, or the test set "
+                     "has fewer than 2 draws.")
         L.append("")
     L.append("## Models: training and inference time")
     L.append("")

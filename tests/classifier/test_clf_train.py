@@ -139,3 +139,85 @@ def test_parity_on_the_test_split(cache_dir, tmp_path):
     path = tmp_path / "m.onnx"
     export_onnx(res.model, build_metadata(res), path)
     assert onnx_parity(res.model, path, res.test_inputs) <= 1e-5
+
+
+TINY_ARGV = ["--spec", "two-wavelength", "--draws-train", "9", "--draws-validation", "6", "--draws-test", "6",
+             "--replicates", "2", "--no-progress"]
+
+
+def test_undecided_network_reports_na_with_the_reason(cache_dir, tmp_path, capsys):
+    """A network that decides no identifiable test sample: the metrics over decided samples are
+    undefined; the run still succeeds and says n/a and why, in the summary line and the report."""
+    out = tmp_path / "model"
+    argv = ["--out", str(out), *TINY_ARGV, "--max-epochs", "1", "--min-probability", "0.999", "--no-baselines",
+            "--cache", str(cache_dir)]
+    assert train_main(argv) == 0
+    printed = capsys.readouterr().out
+    report = json.loads((out / "two-wavelength.json").read_text())
+    m1 = report["test"]["network"]["1"]
+    assert m1["identifiable_samples"] > 0 and m1["coverage_identifiable"] == 0.0  # the case under test
+    assert m1["accuracy_identifiable"] is None and m1["balanced_accuracy_identifiable"] is None
+    assert "accuracy n/a (no identifiable test sample was decided" in printed, printed
+    md = (out / "two-wavelength.md").read_text()
+    assert "| n/a |" in md and "n/a: no identifiable test sample was decided" in md
+    assert sorted(p.name for p in out.iterdir()) == ["two-wavelength.json", "two-wavelength.md",
+                                                      "two-wavelength.onnx", "two-wavelength.png"]
+
+
+def test_failed_run_leaves_no_model_and_keeps_the_old_one(cache_dir, tmp_path, monkeypatch, capsys):
+    import classifier.report as report
+
+    out = tmp_path / "model"
+    argv = ["--out", str(out), *TINY_ARGV, "--max-epochs", "1", "--no-baselines", "--cache", str(cache_dir)]
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("figure failed")
+
+    monkeypatch.setattr(report, "plot_report", broken)
+    with pytest.raises(RuntimeError, match="figure failed"):  # an internal error: exit 1 with its traceback
+        train_main(argv)
+    assert not out.exists() or list(out.iterdir()) == []  # no model without its report, no temporary files
+    monkeypatch.undo()
+    assert train_main(argv) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(report, "plot_report", full)
+    assert train_main([*argv, "--force", "--seed", "1"]) == 1
+    assert "No space left" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # the previous model is intact
+
+
+def test_quick_sets_the_documented_sizes_and_explicit_sizes_win(tmp_path, monkeypatch):
+    import classifier.train as train_module
+    from classifier.cli import QUICK
+
+    seen = []
+
+    def stop(cfg, **kwargs):
+        seen.append(cfg)
+        raise KeyboardInterrupt  # stop before any simulation
+
+    monkeypatch.setattr(train_module, "train", stop)
+    out = tmp_path / "q"
+    for argv in (["--quick"], ["--quick", "--draws-train", "12"], []):
+        with pytest.raises(KeyboardInterrupt):
+            train_main(["--out", str(out), "--no-progress", *argv])
+        assert not out.exists()  # an interrupted run leaves nothing, not even the directory it created
+    quick, explicit, default = seen
+    assert {k: getattr(quick, k) for k in QUICK} == QUICK
+    assert explicit.draws_train == 12 and explicit.draws_test == QUICK["draws_test"]
+    assert default == TrainConfig()  # without --quick: the shipped model's recipe
+    assert QUICK["draws_train"] * QUICK["replicates"] < TrainConfig().draws_train * TrainConfig().replicates / 5
+
+
+@pytest.mark.slow
+def test_quick_run_gives_a_usable_model(tmp_path, capsys):
+    """`doct-train --quick` (about a minute on 2 cores): the model decides and beats chance."""
+    out = tmp_path / "q"
+    assert train_main(["--out", str(out), "--quick", "--no-progress", "--cache", str(tmp_path / "cache")]) == 0
+    m1 = json.loads((out / "single-acquisition.json").read_text())["test"]["network"]["1"]
+    assert m1["coverage_identifiable"] > 0.2 and m1["balanced_accuracy_identifiable"] > 0.5  # chance: 1/3
+    assert "n/a" not in capsys.readouterr().out
