@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -201,21 +202,30 @@ def _load_mask(path: str) -> np.ndarray:
     if not p.exists():
         raise FileNotFoundError(f"mask file {p} does not exist")
     suf = p.suffix.lower()
-    if suf == ".npy":
+    if suf in (".npy", ".npz"):
         try:
-            return np.load(p, allow_pickle=False)
+            if suf == ".npy":
+                return np.load(p, allow_pickle=False)
+            with open(p, "rb") as fh, np.load(fh, allow_pickle=False) as z:
+                key = "mask" if "mask" in z.files else (z.files[0] if len(z.files) == 1 else None)
+                if key is None:
+                    raise ValueError(f"{p.name}: store the mask under the key 'mask'")
+                return z[key]
         except ValueError as err:
-            raise ValueError(f"{p.name}: not a numeric .npy mask ({err})") from None
-    if suf == ".npz":
-        with np.load(p, allow_pickle=False) as z:
-            key = "mask" if "mask" in z.files else (z.files[0] if len(z.files) == 1 else None)
-            if key is None:
-                raise ValueError(f"{p.name}: store the mask under the key 'mask'")
-            return z[key]
+            if "allow_pickle" in str(err):
+                raise ValueError(f"mask {p.name}: holds an object array, which would need unpickling; refused "
+                                 "(store a boolean or 0/1 array)") from None
+            raise ValueError(f"mask {p.name}: not a readable {suf} mask ({err})") from None
+        except (EOFError, OSError, zipfile.BadZipFile, KeyError) as err:
+            raise ValueError(f"mask {p.name}: not a readable {suf} file (truncated or corrupt: "
+                             f"{type(err).__name__})") from None
     if suf in (".tif", ".tiff"):
         import tifffile
 
-        return tifffile.imread(p)
+        try:
+            return tifffile.imread(p)
+        except (tifffile.TiffFileError, OSError, ValueError, IndexError) as err:
+            raise ValueError(f"mask {p.name}: not a readable TIFF ({type(err).__name__}: {err})") from None
     raise ValueError(f"mask {p.name}: use .npy, .npz or .tif")
 
 

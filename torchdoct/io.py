@@ -589,7 +589,7 @@ def _parse_json(text: str, where: str) -> dict:
     except json.JSONDecodeError as err:
         raise ValueError(f"{where}: invalid JSON ({err})") from None
     if not isinstance(d, dict):
-        raise ValueError(f"{where}: metadata JSON must be an object")
+        raise ValueError(f"{where}: metadata JSON must be an object {{...}}; got {type(d).__name__} {text[:40]!r}")
     return d
 
 
@@ -746,15 +746,25 @@ def read_maps(path: str | os.PathLike) -> Maps:
                 if raw.dtype.kind not in "fiu":
                     raise ValueError(f"{p.name}: maps dtype {raw.dtype} is not real; maps are float32")
                 arr = np.asarray(raw, dtype=np.float32)
-                channels = tuple(str(c) for c in np.atleast_1d(z["channels"]))
-                meta = _parse_json(str(z["meta_json"]), f"{p.name} meta_json")
+                names = z["channels"]
+                text = z["meta_json"]
         except ValueError as err:
-            if "pickle" in str(err).lower() or "object" in str(err).lower():
+            if "allow_pickle" in str(err):
                 raise ValueError(f"{p.name}: holds object arrays; refused (no unpickling)") from None
             raise
         except (EOFError, OSError, zipfile.BadZipFile, KeyError) as err:
             raise ValueError(f"{p.name}: not a readable maps file (truncated or corrupt: "
                              f"{type(err).__name__}: {err})") from None
+        if names.dtype.kind not in "US":
+            raise ValueError(f"{p.name}: 'channels' must be an array of channel names; got dtype {names.dtype}")
+        channels = tuple(str(c) for c in np.atleast_1d(names))
+        if text.dtype.kind not in "US" or text.size != 1:
+            raise ValueError(f"{p.name}: meta_json must be one JSON text string; got a {text.dtype} array of shape "
+                             f"{list(text.shape)} (not written by torchdoct maps; recompute the maps)")
+        try:
+            meta = _parse_json(str(text.reshape(())[()]), f"{p.name} meta_json")
+        except UnicodeDecodeError as err:
+            raise ValueError(f"{p.name} meta_json: not UTF-8 text ({err})") from None
     else:
         import tifffile
 
@@ -776,9 +786,45 @@ def read_maps(path: str | os.PathLike) -> Maps:
         except ValueError:
             raise ValueError(f"{p.name}: stack of shape {list(arr.shape)} does not hold {len(channels)} channels "
                              f"of {meta.get('axes')}") from None
-    if "channels" not in meta or len(meta["channels"]) != len(channels):
+    if "channels" not in meta or not isinstance(meta["channels"], list) or len(meta["channels"]) != len(channels):
         raise ValueError(f"{p.name}: meta 'channels' does not match the {len(channels)} channel names")
     if arr.ndim not in (3, 4) or arr.shape[0] != len(channels) or 0 in arr.shape:
         raise ValueError(f"{p.name}: maps of shape {list(arr.shape)} do not hold {len(channels)} channels of "
                          "[Z, X] or [Y, Z, X] pixels")
+    _check_maps_meta(meta, channels, arr.ndim, f"{p.name} {'meta_json' if p.suffix.lower() == '.npz' else 'ImageDescription'}")
     return Maps(maps=arr, channels=channels, meta=meta)
+
+
+_CHANNEL_TEXT = ("name", "metric", "unit", "resolution")
+_CHANNEL_OPTICS = ("wavelength_um", "lateral_resolution_um", "axial_resolution_um")
+
+
+def _check_maps_meta(meta: dict, channels: tuple[str, ...], ndim: int, where: str) -> None:
+    """The fields of a maps file's metadata that readers use: one dict per channel with the text
+    fields ``name`` (= the channel name), ``metric``, ``unit``, ``resolution`` and the optics (µm,
+    > 0, or null when unknown); ``axes`` ``C`` + ``ZX``/``YZX`` of the stack's rank; ``pitch_um`` a
+    dict of positive µm (or null)."""
+    fix = "the file was not written by torchdoct maps or was edited; recompute the maps"
+    for i, (name, ch) in enumerate(zip(channels, meta["channels"])):
+        if not isinstance(ch, Mapping):
+            raise ValueError(f"{where}: channels[{i}] must be an object with {', '.join(_CHANNEL_TEXT)} and the optics; "
+                             f"got {ch!r} ({fix})")
+        for key in _CHANNEL_TEXT:
+            if not isinstance(ch.get(key), str):
+                raise ValueError(f"{where}: channels[{i}].{key} must be a string; got {ch.get(key)!r} ({fix})")
+        if ch["name"] != name:
+            raise ValueError(f"{where}: channels[{i}].name {ch['name']!r} differs from the channel name {name!r} ({fix})")
+        for key in _CHANNEL_OPTICS:
+            v = ch.get(key)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
+                                  or v <= 0):
+                raise ValueError(f"{where}: channels[{i}].{key} must be a number > 0 (µm) or null; got {v!r} ({fix})")
+    axes = meta.get("axes")
+    if axes is not None and axes != ("CZX" if ndim == 3 else "CYZX"):
+        raise ValueError(f"{where}: axes {axes!r} does not match maps of rank {ndim} "
+                         f"({'CZX' if ndim == 3 else 'CYZX'}) ({fix})")
+    pitch = meta.get("pitch_um")
+    if pitch is not None and (not isinstance(pitch, Mapping) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+            for v in pitch.values())):
+        raise ValueError(f"{where}: pitch_um must be an object of positive µm per axis or null; got {pitch!r} ({fix})")

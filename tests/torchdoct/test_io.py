@@ -268,3 +268,57 @@ def test_maps_tiff_keeps_single_channels_and_volumes(tmp_path, shape, axes):
     r = read_maps(write_maps(tmp_path / "m.tif", m))
     assert r.maps.shape == shape
     np.testing.assert_array_equal(r.maps, m.maps)
+
+
+def _bad_meta_variants():
+    good = _maps().meta
+    chans = good["channels"]
+    return {
+        "number": "5",
+        "list": "[1, 2]",
+        "channel-names-only": json.dumps({**good, "channels": [c["name"] for c in chans]}),
+        "channel-without-metric": json.dumps({**good, "channels": [{k: v for k, v in c.items() if k != "metric"}
+                                                                   for c in chans]}),
+        "wavelength-text": json.dumps({**good, "channels": [{**c, "wavelength_um": "abc"} for c in chans]}),
+        "name-mismatch": json.dumps({**good, "channels": [{**c, "name": "x@y"} for c in chans]}),
+        "axes-rank": json.dumps({**good, "axes": "CYZX"}),
+        "pitch-text": json.dumps({**good, "pitch_um": "z=1"}),
+    }
+
+
+@pytest.mark.parametrize("kind", sorted(_bad_meta_variants()))
+def test_maps_npz_with_invalid_meta_json_names_file_and_key(tmp_path, kind, capsys):
+    from torchdoct.cli import main
+
+    m = _maps()
+    good = write_maps(tmp_path / "good.npz", m)
+    arrays = {"maps": m.maps, "channels": np.asarray(m.channels), "meta_json": np.asarray(_bad_meta_variants()[kind])}
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ValueError, match=r"bad\.npz.*meta_json") as info:
+        read_maps(tmp_path / "bad.npz")
+    assert "object arrays" not in str(info.value)  # valid JSON of the wrong shape is not a pickle
+    assert main(["compare", str(tmp_path / "bad.npz"), str(good)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "bad.npz" in err and "Traceback" not in err
+
+
+def test_maps_npz_with_a_non_text_meta_json(tmp_path):
+    m = _maps()
+    np.savez(tmp_path / "num.npz", maps=m.maps, channels=np.asarray(m.channels), meta_json=np.arange(3.0))
+    with pytest.raises(ValueError, match=r"num\.npz.*meta_json.*(text|string)"):
+        read_maps(tmp_path / "num.npz")
+
+
+def test_object_array_masks_are_refused_naming_the_file(tmp_path, capsys):
+    from torchdoct.cli import main
+
+    m = _maps()
+    maps_path = write_maps(tmp_path / "m.npz", m)
+    np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    np.savez(tmp_path / "obj.npz", mask=np.array([{"a": 1}], dtype=object))
+    (tmp_path / "cut.npz").write_bytes(b"PK\x03\x04broken")
+    for name in ("obj.npy", "obj.npz", "cut.npz"):
+        assert main(["compare", f"a={maps_path}", f"b={maps_path}", "--mask", str(tmp_path / name), "--mask",
+                     str(tmp_path / name)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and name in err and "allow_pickle" not in err, err
