@@ -55,6 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--trials", type=int, default=1024, help="trials per cell")
     bs.add_argument("--repeats", type=int, default=1, help="repeats per cell (best is kept)")
     bs.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    bs.add_argument("--load", action="store_true",
+                    help="also time every cell on one thread, and beside a busy process that it starts and stops")
     bs.add_argument("--out", default="bench-simulate.json", help="JSON output file")
     bs.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     bt = bsub.add_parser("tradeoffs", help="what accuracy costs in time: simulator, study and classifier")
@@ -69,6 +71,10 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--repeats", type=int, default=3)
     bc.add_argument("--out", default="bench-classify.json")
     bc.add_argument("--force", action="store_true")
+    bl = bsub.add_parser("load", help="simulate, render and sweep: alone on 1 and N threads, and beside a busy process")
+    bl.add_argument("--repeats", type=int, default=3, help="runs per figure (best is kept)")
+    bl.add_argument("--out", default="bench-load.json", help="JSON output file")
+    bl.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     ba = bsub.add_parser("all", help="every benchmark, each writing DIR/bench-NAME.json")
     ba.add_argument("--out", default="bench", help="output directory (created if missing)")
     ba.add_argument("--quick", action="store_true", help="reduced sizes (a smoke run, minutes)")
@@ -190,7 +196,7 @@ def _bench_all(args) -> int:
     """Run every registered benchmark in turn; each writes ``DIR/bench-NAME.json``."""
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    quick = {"simulate": ["--trials", "256"], "tradeoffs": ["--quick"], "render": ["--repeats", "1"]}
+    quick = {"simulate": ["--trials", "256"], "tradeoffs": ["--quick"], "render": ["--repeats", "1"], "load": ["--repeats", "1"]}
     bench_sub = build_parser().bench_subparsers
     names = [n for n in bench_sub.choices if n != "all"]
     failed = []
@@ -285,12 +291,21 @@ def _main(argv: Sequence[str] | None = None) -> int:
             return 0
         if args.command == "bench" and args.bench == "all":
             return _bench_all(args)
+        if args.command == "bench" and args.bench == "load":
+            from . import bench
+
+            out = _check_out(args.out, args.force, ".json")
+            res = bench.bench_load(repeats=args.repeats, threads=args.threads, progress=True)
+            print(bench.format_load_table(res))
+            _atomic_write(out, lambda tmp: bench.write_json(res, tmp))
+            print(f"wrote {out}")
+            return 0
         if args.command == "bench" and args.bench == "simulate":
             from . import bench
 
             out = _check_out(args.out, args.force, ".json")
             res = bench.bench_simulate(trials=args.trials, dtype=args.dtype, repeats=args.repeats,
-                                       progress=True)
+                                       threads=args.threads, load=args.load, progress=True)
             print(bench.format_simulate_table(res))
             _atomic_write(out, lambda tmp: bench.write_json(res, tmp))
             print(f"wrote {out}")

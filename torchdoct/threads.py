@@ -130,20 +130,23 @@ def one_torch_thread(fn: Callable[..., R]) -> Callable[..., R]:
 def map_ordered(fn: Callable[[T], R], items: Iterable[T], threads: int) -> Iterator[R]:
     """``fn`` over ``items`` on up to ``threads`` Python threads; results in the order of ``items``.
 
-    At most ``threads`` pieces are in flight (so memory stays bounded by ``threads`` pieces); with one
-    thread it is a plain loop. ``fn`` should spend its time in torch operations (which release the GIL).
+    ``items`` is consumed lazily and at most ``threads`` pieces are in flight, so memory stays bounded
+    by ``threads`` pieces; with one thread it is a plain loop. ``fn`` should spend its time in torch
+    operations (which release the GIL).
     """
-    items = list(items)
-    if threads <= 1 or len(items) < 2:
+    if threads <= 1:
         for x in items:
             yield fn(x)
         return
+    from collections import deque
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(max_workers=min(threads, len(items))) as pool:
-        pending = [pool.submit(fn, x) for x in items[:threads]]
-        for nxt in range(threads, len(items) + threads):
-            res = pending.pop(0).result()
-            if nxt < len(items):
-                pending.append(pool.submit(fn, items[nxt]))
+    it = iter(items)
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        pending = deque(pool.submit(fn, x) for _, x in zip(range(threads), it))
+        while pending:
+            res = pending.popleft().result()
+            for x in it:
+                pending.append(pool.submit(fn, x))
+                break
             yield res

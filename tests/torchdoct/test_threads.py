@@ -93,3 +93,19 @@ def test_cli_threads_option(capsys, tmp_path):
     with np.load(a) as fa, np.load(b) as fb:
         assert np.array_equal(fa["signals"], fb["signals"])
     th.set_default_threads(None)
+
+
+def test_render_bit_identical_for_any_threads():
+    ph = td.phantom_from_dict({
+        "name": "threads",
+        "system": [{"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}],
+        "protocol": {"n_frames": 6, "frame_interval_s": 0.2048},
+        "grid": {"kind": "bscan", "n_x": 12, "n_z": 12, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
+        "region": [{"name": "flow", "shape": "slab", "z_min_um": -12.0, "z_max_um": 0.0, "density_per_um3": 0.05,
+                    "motion": [{"kind": "flow", "speed_um_per_s": 2.0, "polar_angle_deg": 60.0}]}],
+        "background": [{"density_per_um3": 0.05, "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.5}]}],
+    })  # a walk and straight paths
+    ref = td.render(ph, seed=3, threads=1).data
+    assert ref.abs().max() > 0
+    assert torch.equal(td.render(ph, seed=3, threads=2).data, ref)
+    assert torch.equal(td.render(ph, seed=3, threads=3).data, ref)
