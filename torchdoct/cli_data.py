@@ -83,9 +83,11 @@ def register(sub: Any, bench_sub: Any) -> None:
     mp.add_argument("--no-progress", action="store_true", help="no progress bar")
     mp.set_defaults(func=_maps)
 
-    cp = sub.add_parser("compare", help="per-sample mean LIV/OCDS per configuration and the paper's tests",
+    cp = sub.add_parser("compare", help="per-sample mean LIV/OCDS per configuration and the paper's tests "
+                                        "(tests need >= 2 samples)",
                         description="Mean DOCT values of several samples' maps per configuration; paired t-test "
-                                    "(2 configurations) or Kruskal-Wallis then pairwise paired t-tests (3+).")
+                                    "(2 configurations) or Kruskal-Wallis then pairwise paired t-tests (3+). The "
+                                    "tests need at least 2 samples; one sample gets its means without tests.")
     cp.add_argument("maps", nargs="+", metavar="[SAMPLE=]MAPS",
                     help="maps files; SAMPLE= groups files of one sample (default: file stem)")
     cp.add_argument("--mask", action="append", default=None, metavar="FILE",
@@ -252,6 +254,9 @@ def _compare(args: argparse.Namespace) -> int:
                              threshold_resolution=args.threshold_resolution)
         samples.setdefault(name, []).append((maps, region))
     metrics = [m.strip() for m in args.metrics.split(",") if m.strip()]
+    if out is not None and len(samples) < 2:
+        raise ValueError(f"--out: the tests need at least 2 samples; got 1 ({next(iter(samples))}); give more "
+                         "samples, or drop --out for the one-sample summary (--per-sample writes its means)")
     res = compare_samples(samples, metrics=metrics, configs=args.config, alpha=args.alpha)
     if args.json:
         print(res.tests.to_json(orient="records", indent=2))

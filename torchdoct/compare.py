@@ -6,7 +6,8 @@ wavelength comparison) are compared by a paired t-test (``scipy.stats.ttest_rel`
 (the four axial or lateral resolutions) first by the Kruskal-Wallis test (``scipy.stats.kruskal``)
 and, when it is significant, by paired t-tests between every pair. No multiple-comparison
 correction is applied (as in the paper). Plots show the mean over samples ± SD (ddof 1) as the
-paper's Figs. 3-5, with the individual samples as thin paired lines.
+paper's Figs. 3-5, with the individual samples as thin paired lines. The tests need at least 2
+samples; one sample gets its per-configuration means without tests.
 
 A **configuration** is a (wavelength, lateral resolution, axial resolution) triple: channels of
 different maps files are matched by these values within 1e-6 relative, not by name, so the maps of
@@ -43,6 +44,9 @@ __all__ = [
 ]
 
 _RTOL = 1e-6
+#: Columns of the tests table (one row per test).
+TEST_COLUMNS = ["metric", "test", "config_a", "config_b", "n_samples", "mean_a", "sd_a", "mean_b", "sd_b",
+                "mean_diff_b_minus_a", "statistic", "p_value", "significant", "posthoc"]
 
 
 @dataclass(frozen=True)
@@ -143,6 +147,7 @@ class ComparisonResult:
     configs: list[str]
     metrics: list[str]
     alpha: float
+    note: str = ""
 
     def values(self, metric: str) -> np.ndarray:
         """``[n_samples, n_configs]`` per-sample means of ``metric``."""
@@ -155,16 +160,21 @@ class ComparisonResult:
         lines = []
         for metric in self.metrics:
             v = self.values(metric)
-            lines.append(f"{metric}: mean ± SD over {v.shape[0]} samples")
+            if v.shape[0] > 1:
+                lines.append(f"{metric}: mean ± SD over {v.shape[0]} samples")
+            else:
+                lines.append(f"{metric}: mean over the region of 1 sample")
             for j, c in enumerate(self.configs):
-                sd = np.std(v[:, j], ddof=1) if v.shape[0] > 1 else math.nan
-                lines.append(f"  {c:>28}  {np.mean(v[:, j]):10.4f} ± {sd:.4f}")
+                sd = f" ± {np.std(v[:, j], ddof=1):.4f}" if v.shape[0] > 1 else ""
+                lines.append(f"  {c:>28}  {np.mean(v[:, j]):10.4f}{sd}")
             for _, r in self.tests[self.tests["metric"] == metric].iterrows():
                 pair = r["config_a"] if r["config_b"] == "" else f"{r['config_a']} vs {r['config_b']}"
                 extra = "" if r["test"] == "Kruskal-Wallis" or r["posthoc"] is None else (
                     " (post hoc)" if r["posthoc"] else " (Kruskal-Wallis not significant)")
                 lines.append(f"  {r['test']}: {pair}: statistic {r['statistic']:.4g}, p = {r['p_value']:.4g} "
                              f"{significance_stars(r['p_value'], self.alpha)}{extra}")
+        if self.note:
+            lines.append(self.note)
         return "\n".join(lines)
 
 
@@ -192,12 +202,13 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
     """Paper statistics over samples. ``samples``: ``{name: [(maps, region), ...]}`` (one sample may
     hold the maps of several systems). ``configs``: ``"[WAVELENGTH_UM:]RESOLUTION"`` specs selecting
     and ordering configurations (default: every configuration present in all samples, in order of
-    first appearance). Needs ≥ 2 samples and ≥ 2 configurations."""
+    first appearance). Needs ≥ 2 configurations; the tests need ≥ 2 samples: with one sample the
+    result holds its means and an empty tests table (``note`` says why)."""
     import pandas as pd
     from scipy import stats
 
-    if len(samples) < 2:
-        raise ValueError(f"the paired tests need at least 2 samples; got {len(samples)}")
+    if not samples:
+        raise ValueError("no samples given")
     if not (0 < alpha < 1):
         raise ValueError(f"alpha must be in (0, 1); got {alpha!r}")
     metrics = list(metrics)
@@ -244,11 +255,16 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
     per_sample = pd.DataFrame(rows)
     result = ComparisonResult(per_sample=per_sample, tests=None, configs=labels, metrics=metrics, alpha=alpha)
     tests = []
+    if len(per) < 2:
+        result.note = (f"1 sample ({next(iter(per))}): no tests; the paired tests need at least 2 samples "
+                       "(one mean per sample and configuration)")
     for m in metrics:
         v = result.values(m)
         if not np.all(np.isfinite(v)):
             raise ValueError(f"{m}: some sample has no finite values in its region; check masks / thresholds")
         n = v.shape[0]
+        if n < 2:
+            continue
 
         def summary(j: int) -> tuple[float, float]:
             return float(np.mean(v[:, j])), float(np.std(v[:, j], ddof=1))
@@ -271,7 +287,7 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
                           "posthoc": None})
             for i, j in combinations(range(len(chosen)), 2):
                 tests.append(ttest(i, j, sig))
-    result.tests = pd.DataFrame(tests)
+    result.tests = pd.DataFrame(tests, columns=TEST_COLUMNS)
     return result
 
 

@@ -143,8 +143,6 @@ def test_wavelength_pairs_across_maps_files(tmp_path, capsys):
 def test_errors_and_plot(tmp_path):
     rng = np.random.default_rng(4)
     m = make_maps(rng, ["original", "axial=14"])
-    with pytest.raises(ValueError, match="at least 2 samples"):
-        compare_samples({"a": [(m, region_mask(m))]})
     m2 = make_maps(rng, ["original"])
     with pytest.raises(ValueError, match="at least 2 configurations"):
         compare_samples({"a": [(m, region_mask(m))], "b": [(m2, region_mask(m2))]})
@@ -205,3 +203,24 @@ def test_whole_path_from_sequence_files_to_the_statistics_table(tmp_path, capsys
     assert list(t["test"]) == ["Kruskal-Wallis"] + ["paired t-test"] * 3 + ["Kruskal-Wallis"] + ["paired t-test"] * 3
     assert t["p_value"].between(0, 1).all() and (tmp_path / "stats.png").exists()
     assert "sample0_maps_liv_axial14.png" in {p.name for p in tmp_path.glob("*.png")}
+
+
+def test_one_sample_gives_the_summary_without_tests(tmp_path, capsys):
+    rng = np.random.default_rng(6)
+    m = make_maps(rng, ["original", "axial=14"], shift={"axial=14": 2.0})
+    res = compare_samples({"only": [(m, region_mask(m))]})
+    assert len(res.tests) == 0 and list(res.tests.columns)[:3] == ["metric", "test", "config_a"]
+    np.testing.assert_allclose(res.values("liv")[0], [np.nanmean(m["liv@original"]), np.nanmean(m["liv@axial=14"])],
+                               rtol=1e-6)
+    text = res.format()
+    assert "1 sample" in text and "no tests" in text and "at least 2 samples" in text
+    path = tmp_path / "only.npz"
+    write_maps(path, m)
+    assert main(["compare", str(path), "--per-sample", str(tmp_path / "per.csv"), "--plot", str(tmp_path / "p.png")]) == 0
+    out = capsys.readouterr().out
+    assert "no tests" in out and (tmp_path / "per.csv").exists() and (tmp_path / "p.png").exists()
+    assert len(pd.read_csv(tmp_path / "per.csv")) == 2 * 2  # 2 configurations × 2 metrics
+    # a tests table cannot be written from one sample: the error says why and how
+    assert main(["compare", str(path), "--out", str(tmp_path / "t.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "at least 2 samples" in err and not (tmp_path / "t.csv").exists()
