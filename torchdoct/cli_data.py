@@ -189,6 +189,9 @@ def _maps(args: argparse.Namespace) -> int:
         med = float(np.median(v[fin])) if fin.any() else math.nan
         mean = float(np.mean(v[fin], dtype=np.float64)) if fin.any() else math.nan
         print(f"{name:>34}  {maps.meta['channels'][i]['unit']:>5}  {med:10.4f}  {mean:10.4f}  {fin.mean():7.1%}")
+    for res, n in (maps.meta.get("aliv") or {}).get("flagged_pixels", {}).items():
+        print(f"aLIV fit on a τ bound at {res}: {n['tau_at_lower_bound']} pixels at the lower, "
+              f"{n['tau_at_upper_bound']} at the upper bound (aliv_fit channel; magenta in the PNGs)")
     for o in outs:
         write_maps(o, maps, force=args.force)
         print(f"wrote {o}")

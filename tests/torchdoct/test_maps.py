@@ -271,6 +271,7 @@ def test_cli_maps_end_to_end(tmp_path, capsys):
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "swiftness@lateral=18" in text and f"wrote {out_npz}" in text
+    assert "aLIV fit on a τ bound at axial=14:" in text
     a, b = read_maps(out_tif), read_maps(out_npz)
     np.testing.assert_array_equal(a.maps, b.maps)
     assert a.maps.shape == (18, 24, 16) and a.meta == b.meta  # 5 metrics + the aLIV fit flags, 3 resolutions
