@@ -25,7 +25,7 @@ Steps of :func:`classify_maps`:
    the pixel grid, ``n_e(N, p_x, s_x)·n_e(N, p_z, s_z)/N²`` with ``n_e = N²/Σ_ij exp(−((i−j)p)²/(2s²))``
    the effective sample count of N pixels of pitch ``p`` under the speckle intensity correlation of a
    Gaussian amplitude PSF of sigma ``s`` (finest configuration of the spec, sigmas from
-   :mod:`torchdoct.conventions`; physics.md §5.3 overlap of displaced Gaussians), clipped to
+   :mod:`torchdoct.conventions`; docs/physics.md §5.3 overlap of displaced Gaussians), clipped to
    [1, ``pool_pixels_max``]. Without ``pitch_um`` in the maps, pixels count as independent.
 5. **Classification**: onnxruntime on the valid pixels (chunks of 2^17), then the rule of
    :mod:`classifier.rule`: class map values 0…C−1 (the model's classes, ``indeterminate`` last) and
@@ -611,12 +611,22 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
 OUTPUT_FILES = ("classes.tif", "probabilities.tif", "legend.json", "summary.json", "overlay.png")
 
 
+def _cite_repository(text: str) -> str:
+    """Bare ``physics.md N`` citations (in model metadata) as the repository file ``docs/physics.md §N``."""
+    import re
+
+    return re.sub(r"(?<!docs/)physics\.md\s*§?\s*(?=\d)", "docs/physics.md §", text)
+
+
 def _legend(res: Classification) -> dict[str, Any]:
+    rule = dict(res.model.rule)
+    if isinstance(rule.get("definition"), str):
+        rule["definition"] = _cite_repository(rule["definition"])
     return {
         "classes": [{"value": i, "name": c, "color": CLASS_COLORS.get(c, "#000000")} for i, c in enumerate(res.classes)],
         "masked_value": MASKED,
         "masked_meaning": "background (mean dB intensity below the threshold) or a NaN feature",
-        "rule": res.model.rule,
+        "rule": rule,
         "min_probability": res.info["min_probability"],
         "axes": res.axes,
         "pitch_um": res.pitch_um,
