@@ -156,6 +156,17 @@ def test_pickle_bearing_files_are_refused_everywhere(tmp_path, capsys):
         assert err.startswith("error: ")
     with pytest.raises(ERRORS, match="objmaps.npz"):
         read_maps(tmp_path / "objmaps.npz")
+    from torchdoct.io import Maps, write_maps
+
+    chans = [{"name": "liv@original", "metric": "liv", "unit": "dB^2", "resolution": "original",
+              "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}]
+    good = write_maps(tmp_path / "good.npz", Maps(maps=np.zeros((1, Z, X), np.float32), channels=["liv@original"],
+                                                  meta={"channels": chans, "axes": "CZX"}))
+    for mask in ("obj.npy", "obj.npz"):  # object-array masks: refused naming the file, never unpickled
+        assert main(["compare", f"a={good}", f"b={good}", "--mask", str(tmp_path / mask), "--mask",
+                     str(tmp_path / mask)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: mask ") and mask in err and "allow_pickle" not in err
     assert main(["compare", str(tmp_path / "objmaps.npz"), str(tmp_path / "objmaps.npz")]) == 2
     from classifier.cli import classify_main
 
@@ -167,9 +178,49 @@ def test_pickle_bearing_files_are_refused_everywhere(tmp_path, capsys):
         assert not (tmp_path / "clf").exists()
 
 
+@settings(max_examples=40, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.sampled_from(["npy", "npz", "h5"]), st.sampled_from(["one-frame", "all-nan", "all-zero", "big-endian"]),
+       st.sampled_from([np.complex64, np.complex128]))
+def test_readable_but_unusable_sequences(tmp_path, capsys, fmt, kind, dtype):
+    """Files the reader accepts: a one-frame or all-NaN/all-zero stack is refused by ``maps`` naming the
+    file; a big-endian stack gives the same maps as the native one."""
+    import tempfile
+    from pathlib import Path
+
+    from torchdoct.cli import main as cli
+
+    tmp_path = Path(tempfile.mkdtemp(dir=tmp_path))  # one directory per example
+    rng = np.random.default_rng(3)
+    meta = json.loads(json.dumps(META))
+    data = _field(rng, dtype=dtype)
+    if kind == "one-frame":
+        data, meta["frame_times_s"] = data[:1], [0.0]
+    elif kind == "all-nan":
+        data[:] = np.nan
+    elif kind == "all-zero":
+        data[:] = 0
+    native = _write(tmp_path / "native", data, meta, fmt)
+    if kind == "big-endian":
+        data = data.astype(data.dtype.newbyteorder(">"))
+    path = _write(tmp_path / f"seq-{kind}", data, meta, fmt)
+    seq = read_sequence(path)
+    assert seq.data.dtype.isnative
+    args = ["--ocds-delay-range-s", "0.2048", "0.6144", "--aliv", "--no-progress", "--resolution", "original",
+            "--resolution", "axial=14"]
+    code = cli(["maps", str(path), "--out", str(tmp_path / "m.npz"), *args])
+    if kind == "big-endian":
+        assert code == 0 and cli(["maps", str(native), "--out", str(tmp_path / "n.npz"), *args]) == 0
+        np.testing.assert_array_equal(read_maps(tmp_path / "m.npz").maps, read_maps(tmp_path / "n.npz").maps)
+    else:
+        assert code == 2 and not (tmp_path / "m.npz").exists()
+        assert path.name in capsys.readouterr().err
+
+
 @st.composite
 def broken_maps(draw):
-    kind = draw(st.sampled_from(["truncate", "shape", "channels", "meta", "dtype", "missing-key"]))
+    kind = draw(st.sampled_from(["truncate", "shape", "channels", "meta", "dtype", "missing-key", "meta-number",
+                                 "meta-list", "meta-channel-names", "meta-channel-no-metric", "meta-optics-text",
+                                 "meta-axes", "meta-not-text", "meta-pitch"]))
     return kind, draw(st.floats(0.0, 0.95))
 
 
@@ -193,6 +244,14 @@ def test_broken_maps_files_fail_clearly(tmp_path, case):
         arrays["maps"] = np.zeros((1, Z, X), np.complex64)
     elif kind == "missing-key":
         del arrays["meta_json"]
+    elif kind.startswith("meta-"):
+        bad = {"meta-number": "5", "meta-list": "[1]",
+               "meta-channel-names": json.dumps({**meta, "channels": ["liv@original"]}),
+               "meta-channel-no-metric": json.dumps({**meta, "channels": [{"name": "liv@original"}]}),
+               "meta-optics-text": json.dumps({**meta, "channels": [{**chans[0], "wavelength_um": "840nm"}]}),
+               "meta-axes": json.dumps({**meta, "axes": "CYZX"}), "meta-pitch": json.dumps({**meta, "pitch_um": [2, 2]}),
+               "meta-not-text": np.arange(3.0)}[kind]
+        arrays["meta_json"] = np.asarray(bad)
     path = tmp_path / f"maps-{kind}.npz"
     np.savez(path, **arrays)
     if kind == "truncate":
@@ -201,6 +260,9 @@ def test_broken_maps_files_fail_clearly(tmp_path, case):
     with pytest.raises(ERRORS) as info:
         read_maps(path)
     assert path.name in str(info.value) or "channel" in str(info.value) or "meta" in str(info.value)
+    if kind.startswith("meta-"):
+        assert path.name in str(info.value) and "object arrays" not in str(info.value)
+        assert main(["compare", str(path), str(path)]) == 2
 
 
 def draw_shape(u: float) -> tuple[int, ...]:
