@@ -268,8 +268,15 @@ def combine_fields(moving, static, static_fraction: float, snr_db: float, mean_i
 
 
 def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
-                  truncation_tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+                  truncation_tolerance: float, bulk_phase: bool = False):
     """Feature vectors ``[R, trials, F]`` (float32, spec order) and the empty-volume mask ``[R, trials]``.
+
+    For a signature spec (:attr:`FeatureSpec.is_signature`) the features come from
+    :func:`torchdoct.signature.signature` (the extractor of ``torchdoct maps --signature``), and a
+    third array ``[R, trials, 2·C]`` holds LIV and OCDS of the same pixels at the same
+    configurations (for the LIV/OCDS baseline on the same test pixels). ``bulk_phase``: multiply
+    every frame by a uniform random phase (one per trial and frame, common to the configurations,
+    as bulk motion of a sample is to one dataset and its resolution reductions).
 
     Two :func:`torchdoct.simulate` calls per draw: the moving scatterers ``E_m`` and, independently,
     static scatterers ``E_s`` at the same density (reflectivity 1). Replicate ``r`` with static
@@ -295,10 +302,21 @@ def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
               for c in spec.configurations]
     gen = torch.Generator().manual_seed(draw.sim_seed ^ 0x3C3C3C3C)
     signals = torch.cat([combine_fields(moving.signals, static, f, snr, mean_i, gen) for f, snr in nuisance])
+    if bulk_phase:  # one uniform random phase per trial and frame, common to all configurations
+        bgen = torch.Generator().manual_seed(draw.sim_seed ^ 0x0F0F0F0F)
+        phi = torch.rand(signals.shape[0], 1, signals.shape[-1], generator=bgen, dtype=torch.float64) * (2 * math.pi)
+        signals = signals * torch.polar(torch.ones_like(phi), phi).to(signals.dtype)
     met = compute_metrics(signals, moving.frame_times_s, moving.scene.analysis)
+    zero = met["zero_intensity"].any(-1).numpy().reshape(len(nuisance), trials)
+    if spec.is_signature:
+        from torchdoct.signature import signature
+
+        _, sig = signature(signals, moving.frame_times_s, names=spec.metrics)  # [N, systems, F]
+        x = sig.reshape(sig.shape[0], -1).numpy().astype(np.float32).reshape(len(nuisance), trials, -1)
+        ref = torch.stack([met[m][:, s] for s in range(len(spec.configurations)) for m in ("liv", "ocds")], dim=-1)
+        return x, zero, ref.numpy().astype(np.float32).reshape(len(nuisance), trials, -1)
     cols = [met[m][:, s] for s in range(len(spec.configurations)) for m in spec.metrics]
     x = torch.stack(cols, dim=-1).numpy().astype(np.float32).reshape(len(nuisance), trials, -1)
-    zero = met["zero_intensity"].any(-1).numpy().reshape(len(nuisance), trials)
     return x, zero
 
 
@@ -375,6 +393,8 @@ class Dataset:
     static_fraction: np.ndarray
     snr_db: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
+    #: LIV and OCDS of the same samples at the spec's configurations (signature specs only), ``[N, 2·C]``.
+    x_ref: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.y.shape[0])
@@ -388,14 +408,16 @@ class Dataset:
 
     def save(self, path: str | os.PathLike) -> None:
         with open(path, "wb") as fh:
-            np.savez(fh, meta_json=np.asarray(json.dumps(self.meta)), **self.arrays())
+            extra = {} if self.x_ref is None else {"x_ref": self.x_ref}
+            np.savez(fh, meta_json=np.asarray(json.dumps(self.meta)), **self.arrays(), **extra)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Dataset":
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in _ARRAYS}
             meta = json.loads(str(z["meta_json"]))
-        return cls(**arrays, meta=meta)
+            x_ref = z["x_ref"] if "x_ref" in z.files else None
+        return cls(**arrays, meta=meta, x_ref=x_ref)
 
 
 def default_cache_dir() -> Path:
@@ -405,7 +427,7 @@ def default_cache_dir() -> Path:
 
 
 def dataset_key(spec: FeatureSpec, prior: Prior, seed: int, split: str, draws: int, trials_per_draw: int,
-                replicates: int, truncation_tolerance: float) -> tuple[str, dict[str, Any]]:
+                replicates: int, truncation_tolerance: float, bulk_phase: bool = False) -> tuple[str, dict[str, Any]]:
     """Cache key (hex SHA-256) and the JSON-able description it hashes."""
     import torchdoct
 
@@ -413,8 +435,19 @@ def dataset_key(spec: FeatureSpec, prior: Prior, seed: int, split: str, draws: i
             "draws": int(draws), "trials_per_draw": int(trials_per_draw), "replicates": int(replicates),
             "truncation_tolerance": float(truncation_tolerance), "torchdoct_version": torchdoct.__version__,
             "identifiability": _IDENTIFIABILITY_VERSION, "format": 2}
+    if spec.is_signature:
+        desc["signature_extractor"] = _signature_version()
+    if bulk_phase:
+        desc["bulk_phase"] = "uniform random phase per trial and frame"
     blob = json.dumps(desc, sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest(), desc
+
+
+def _signature_version() -> str:
+    """Hash of the extractor's source: a change of the signature invalidates cached signature splits."""
+    import torchdoct.signature as sig
+
+    return hashlib.sha256(Path(sig.__file__).read_bytes()).hexdigest()[:16]
 
 
 def _positive_int(name: str, v: Any) -> int:
@@ -426,13 +459,14 @@ def _positive_int(name: str, v: Any) -> int:
 def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: int = 0, split: str = "train",
                  draws: int = 300, trials_per_draw: int = 64, replicates: int = 8,
                  truncation_tolerance: float = 1e-2, cache_dir: str | os.PathLike | None = None,
-                 use_cache: bool = True, progress: bool = False) -> Dataset:
+                 use_cache: bool = True, progress: bool = False, bulk_phase: bool = False) -> Dataset:
     """Simulate (or load from the cache) one split of labelled feature vectors.
 
     ``draws`` parameter draws × ``replicates`` (static fraction, SNR) settings × ``trials_per_draw``
     trials (:func:`simulate_draw`). ``truncation_tolerance`` is the simulator's PSF truncation
     (relative amplitude); 1e-2 bounds the relative mean-square field error at 3.6e-4
     (:func:`torchdoct.conventions.truncation_error_bound`) and halves the cost against 1e-3.
+    ``bulk_phase``: a random bulk phase per frame (:func:`simulate_draw`; a separate cache entry).
     """
     spec = load_spec(spec)
     prior = prior or Prior()
@@ -443,11 +477,12 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
     _positive_int("replicates", replicates)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer; got {seed!r}")
-    key, desc = dataset_key(spec, prior, seed, split, draws, trials_per_draw, replicates, truncation_tolerance)
+    key, desc = dataset_key(spec, prior, seed, split, draws, trials_per_draw, replicates, truncation_tolerance,
+                            bulk_phase)
     path = None
     if use_cache:
         cdir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-        path = cdir / f"{spec.name}-{split}-{key[:16]}.npz"
+        path = cdir / f"{spec.name}-{split}{'-bulk' if bulk_phase else ''}-{key[:16]}.npz"
         if path.exists():
             ds = Dataset.load(path)
             if ds.meta.get("key") == key:
@@ -459,12 +494,15 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
 
         bar = tqdm(total=draws, unit="draw", desc=f"simulate {spec.name}/{split}")
     cols: dict[str, list] = {k: [] for k in _ARRAYS}
+    refs: list[np.ndarray] = []
     dropped = 0
     status_counts = {s: 0 for s in STATUS}
     t0 = time.perf_counter()
     for k in range(draws):
         d = draw_parameters(prior, seed, split, k, replicates)
-        x, zero = simulate_draw(spec, d, prior, trials=trials_per_draw, truncation_tolerance=truncation_tolerance)
+        res = simulate_draw(spec, d, prior, trials=trials_per_draw, truncation_tolerance=truncation_tolerance,
+                            bulk_phase=bulk_phase)
+        x, zero = res[0], res[1]
         status, _, _ = identifiability(spec, d, prior)
         status_counts[status] += 1
         for r, (f, snr) in enumerate(d.nuisance):
@@ -472,6 +510,8 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
             dropped += int((~keep).sum())
             n = int(keep.sum())
             cols["x"].append(x[r][keep])
+            if len(res) == 3:
+                refs.append(res[2][r][keep])
             cols["y"].append(np.full(n, d.label, np.int64))
             cols["draw"].append(np.full(n, k, np.int64))
             cols["group"].append(np.full(n, k * replicates + r, np.int64))
@@ -491,7 +531,8 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
             "status_names": list(STATUS), "draw_status_counts": status_counts, "dropped_empty": dropped,
             "elapsed_s": elapsed, "seconds_per_draw": elapsed / draws,
             "seconds_per_trial": elapsed / (draws * trials_per_draw), "from_cache": False}
-    ds = Dataset(**arrays, meta=meta)
+    x_ref = np.concatenate(refs).astype(np.float32) if refs else None
+    ds = Dataset(**arrays, meta=meta, x_ref=x_ref)
     if path is not None:
         from torchdoct._files import atomic_write
 

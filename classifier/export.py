@@ -34,6 +34,7 @@ def build_metadata(result) -> dict[str, Any]:
     import torchdoct
 
     from . import __version__
+    from .dataset import CLASSES
     from .features import metric_unit
 
     spec = result.spec
@@ -57,6 +58,12 @@ def build_metadata(result) -> dict[str, Any]:
         "input": {"name": "features", "dtype": "float32", "shape": ["N", len(columns)], "columns": columns},
         "output": {"name": "probabilities", "dtype": "float32", "shape": ["N", len(rep["classes"])],
                    "classes": list(rep["classes"])},
+        **({"magnitude": {"outputs": ["log10_magnitude", "log10_magnitude_sd"], "shape": ["N", len(CLASSES)],
+                          "classes": list(CLASSES),
+                          "units": {"diffusion": "log10(µm^2/s)", "ballistic": "log10(µm/s)", "flow": "log10(µm/s)"},
+                          "meaning": "per motion class k: predicted log10 magnitude given class k and the SD of a "
+                                     "Gaussian predictive distribution (68 % interval = mean ± SD, 95 % = ± 1.96 SD)",
+                          "test": rep["magnitude"]}} if "magnitude" in rep else {}),
         "rule": result.rule,
         "pool_pixels_max": result.config.max_pool_pixels,
         "spec": spec.to_dict(),
@@ -102,6 +109,7 @@ def onnx_model(model, metadata: dict[str, Any]):
     ]
     cur = "h0"
     linear = [m for m in model.net if isinstance(m, nn.Linear)]
+    hidden_out = "h0"
     for i, lin in enumerate(linear):
         inits.append(numpy_helper.from_array(_np(lin.weight), f"w{i}"))
         inits.append(numpy_helper.from_array(_np(lin.bias), f"b{i}"))
@@ -110,15 +118,31 @@ def onnx_model(model, metadata: dict[str, Any]):
         if i < len(linear) - 1:
             nodes.append(helper.make_node("Relu", [out], [f"h{i + 1}"]))
             cur = f"h{i + 1}"
+            hidden_out = cur
         else:
             cur = out
     nodes.append(helper.make_node("Div", [cur, "temperature"], ["scaled"]))
     nodes.append(helper.make_node("Softmax", ["scaled"], ["probabilities"], axis=1))
+    outputs = [helper.make_tensor_value_info("probabilities", TensorProto.FLOAT, ["N", model.n_classes])]
+    k = getattr(model, "n_magnitude", 0)
+    if k:  # magnitude heads on the last hidden layer: mean and SD = exp(logvar/2)·scale (classifier.model)
+        inits += [numpy_helper.from_array(_np(model.magnitude_mean.weight), "mag_mean_w"),
+                  numpy_helper.from_array(_np(model.magnitude_mean.bias), "mag_mean_b"),
+                  numpy_helper.from_array(_np(model.magnitude_logvar.weight), "mag_logvar_w"),
+                  numpy_helper.from_array(_np(model.magnitude_logvar.bias), "mag_logvar_b"),
+                  numpy_helper.from_array(np.array(0.5, np.float32), "half"),
+                  numpy_helper.from_array(np.array(float(model.magnitude_sd_scale), np.float32), "mag_sd_scale")]
+        nodes += [helper.make_node("Gemm", [hidden_out, "mag_mean_w", "mag_mean_b"], ["log10_magnitude"], transB=1),
+                  helper.make_node("Gemm", [hidden_out, "mag_logvar_w", "mag_logvar_b"], ["mag_logvar"], transB=1),
+                  helper.make_node("Mul", ["mag_logvar", "half"], ["mag_half_logvar"]),
+                  helper.make_node("Exp", ["mag_half_logvar"], ["mag_sd_raw"]),
+                  helper.make_node("Mul", ["mag_sd_raw", "mag_sd_scale"], ["log10_magnitude_sd"])]
+        outputs += [helper.make_tensor_value_info("log10_magnitude", TensorProto.FLOAT, ["N", k]),
+                    helper.make_tensor_value_info("log10_magnitude_sd", TensorProto.FLOAT, ["N", k])]
     graph = helper.make_graph(
         nodes, "motion_classifier",
         [helper.make_tensor_value_info("features", TensorProto.FLOAT, ["N", width])],
-        [helper.make_tensor_value_info("probabilities", TensorProto.FLOAT, ["N", model.n_classes])],
-        initializer=inits)
+        outputs, initializer=inits)
     proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
                               producer_name="torchdoct-classifier", producer_version=metadata.get("classifier_version", ""),
                               doc_string="DOCT motion-type classifier: features [N, F+1] -> class probabilities [N, C]; "
@@ -155,7 +179,8 @@ def export_onnx(model, metadata: dict[str, Any], path) -> None:
 
 
 def onnx_parity(model, path, x: np.ndarray, chunk: int = 65536) -> float:
-    """Max |p_onnxruntime − p_torch| over the rows of ``x`` ``[N, F+1]``."""
+    """Max |p_onnxruntime − p_torch| over the rows of ``x`` ``[N, F+1]`` (and over the magnitude
+    outputs, in log10 units, for magnitude models)."""
     import onnxruntime as ort
     import torch
 
@@ -169,6 +194,11 @@ def onnx_parity(model, path, x: np.ndarray, chunk: int = 65536) -> float:
         with torch.no_grad():
             p_t = model(torch.from_numpy(xb)).numpy()
         worst = max(worst, float(np.abs(p_ort - p_t).max()))
+        if getattr(model, "n_magnitude", 0):
+            m_ort, s_ort = sess.run(["log10_magnitude", "log10_magnitude_sd"], {"features": xb})
+            with torch.no_grad():
+                m_t, s_t = (v.numpy() for v in model.magnitude(torch.from_numpy(xb)))
+            worst = max(worst, float(np.abs(m_ort - m_t).max()), float(np.abs(s_ort - s_t).max()))
     return worst
 
 
@@ -186,15 +216,17 @@ def model_from_onnx(path):
 
     proto = onnx.load(str(path))
     init = {t.name: np.array(numpy_helper.to_array(t)) for t in proto.graph.initializer}
-    n_layers = sum(1 for k in init if k.startswith("w"))
+    n_layers = sum(1 for name in init if name.startswith("w"))
     if n_layers < 1 or "liv_mask" not in init:
         raise ValueError(f"{path}: not a model written by classifier.export")
     weights = [init[f"w{i}"] for i in range(n_layers)]
     liv_mask = init["liv_mask"].astype(bool)
     width = liv_mask.size
     hidden = [w.shape[0] for w in weights[:-1]]
+    k = init["mag_mean_w"].shape[0] if "mag_mean_w" in init else 0
     with torch.random.fork_rng(devices=[]):  # the initial weights are overwritten; keep the global RNG untouched
-        model = MotionClassifier(width - 1, weights[-1].shape[0], np.flatnonzero(liv_mask[:-1]).tolist(), hidden)
+        model = MotionClassifier(width - 1, weights[-1].shape[0], np.flatnonzero(liv_mask[:-1]).tolist(), hidden,
+                                 n_magnitude=k)
     with torch.no_grad():
         model.feature_mean.copy_(torch.from_numpy(init["feature_mean"]))
         model.feature_scale.copy_(torch.from_numpy(init["feature_scale"]))
@@ -203,4 +235,9 @@ def model_from_onnx(path):
         for i, lin in enumerate(linear):
             lin.weight.copy_(torch.from_numpy(init[f"w{i}"]))
             lin.bias.copy_(torch.from_numpy(init[f"b{i}"]))
+        if k:
+            for head in ("mean", "logvar"):
+                getattr(model, f"magnitude_{head}").weight.copy_(torch.from_numpy(init[f"mag_{head}_w"]))
+                getattr(model, f"magnitude_{head}").bias.copy_(torch.from_numpy(init[f"mag_{head}_b"]))
+            model.magnitude_sd_scale.fill_(float(init["mag_sd_scale"]))
     return model.eval()

@@ -45,7 +45,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from ._files import shipped_files
-from .features import FeatureSpec, metric_unit, same_value, shipped_or_path, spec_from_dict
+from ._files import signature as _signature
+from .features import METRIC_UNITS, FeatureSpec, metric_unit, same_value, shipped_or_path, spec_from_dict
 from .rule import INDETERMINATE, REASONS, apply_rule
 
 __all__ = [
@@ -113,6 +114,22 @@ class ClassifierModel:
     @property
     def pool_pixels_max(self) -> int:
         return int(self.metadata.get("pool_pixels_max", 1))
+
+    @property
+    def has_magnitude(self) -> bool:
+        """True when the model also predicts the motion magnitude with an interval (signature models)."""
+        return "magnitude" in self.metadata
+
+    def predict_magnitude(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per motion class, predicted ``log10`` magnitude and its predictive SD, ``[N, K]`` each."""
+        x = np.ascontiguousarray(x, dtype=np.float32)
+        k = len(self.metadata["magnitude"]["classes"])
+        mean = np.empty((x.shape[0], k), np.float32)
+        sd = np.empty((x.shape[0], k), np.float32)
+        for i in range(0, x.shape[0], _CHUNK):
+            mean[i:i + _CHUNK], sd[i:i + _CHUNK] = self.session.run(["log10_magnitude", "log10_magnitude_sd"],
+                                                                    {"features": x[i:i + _CHUNK]})
+        return mean, sd
 
     def predict(self, x: np.ndarray) -> np.ndarray:
         """Probabilities ``[N, C]`` of inputs ``[N, F+1]`` (features + pool_pixels), float32."""
@@ -395,6 +412,12 @@ def assemble_features(maps_list: Sequence[Maps], model: ClassifierModel, *,
                     break
             if found:
                 break
+        if found is None and any((m.meta.get("signature") or {}).get("intensity_only") for m in maps_list) \
+                and metric not in METRIC_UNITS and _signature().needs_field(metric):
+            raise ValueError(f"model {model.path.name} needs the complex field's phase ({col['name']!r}), but the maps "
+                             "were computed from intensity-only data, which give only the intensity part of the "
+                             "signature. Fix: compute the maps from the complex data, or classify with the LIV/OCDS "
+                             f"model (--model {DEFAULT_MODEL})")
         if found is None:
             have = "; ".join(_describe_channel(ch) for m in maps_list for ch in m.channels)
             res = col["configuration"]
@@ -522,6 +545,8 @@ class Classification:
     axes: str
     pitch_um: dict[str, Any] | None
     info: dict[str, Any] = field(default_factory=dict)
+    #: float32 [5, *S] (:data:`MAGNITUDE_CHANNELS`), NaN where masked or indeterminate; None without a magnitude head
+    magnitude: np.ndarray | None = None
 
     def counts(self) -> dict[str, int]:
         out = {c: int((self.labels == i).sum()) for i, c in enumerate(self.classes)}
@@ -554,10 +579,13 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
         raise ValueError(f"pool must be a positive integer (N for N × N neighbourhoods); got {pool!r}")
     if isinstance(paths, (str, os.PathLike)):
         paths = [paths]
-    mdl = model if isinstance(model, ClassifierModel) else load_model(model, threads=threads)
     if min_probability is not None and not 0.0 <= float(min_probability) < 1.0:
         raise ValueError(f"min_probability must be in [0, 1); got {min_probability!r}")
     maps_list = [read_maps(p) for p in paths]
+    choice_note = None
+    if model is None:
+        model, choice_note = default_model_for(maps_list)
+    mdl = model if isinstance(model, ClassifierModel) else load_model(model, threads=threads)
     z_px, x_px = maps_list[0].spatial_shape[-2:]
     if pool > min(z_px, x_px):
         raise ValueError(f"{maps_list[0].path.name}: pool {pool} (--pool) is larger than its {z_px} × {x_px} (z × x) "
@@ -565,6 +593,8 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
                          f"the same class. The largest valid pool is {min(z_px, x_px)}")
     t_read = time.perf_counter()
     feats, mean_db, info = assemble_features(maps_list, mdl, ignore_refractive_index=ignore_refractive_index)
+    if choice_note:
+        info["notes"] = [choice_note, *info.get("notes", [])]
     finite = np.all(np.isfinite(feats), axis=0)
     bg, thr = _background(mean_db, background_db)
     valid = finite if bg is None else finite & ~bg
@@ -586,6 +616,17 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     labels[idx] = labels_flat.astype(np.uint8)
     pmaps = np.full((len(mdl.classes), valid.size), np.nan, np.float32)
     pmaps[:, idx] = probs.T
+    magnitude = None
+    if mdl.has_magnitude:
+        magnitude = np.full((len(MAGNITUDE_CHANNELS), valid.size), np.nan, np.float32)
+        mean, sd = mdl.predict_magnitude(x)
+        k = mean.shape[1]
+        motion = labels_flat < k  # decided pixels: the magnitude of the decided class
+        rows = np.flatnonzero(motion)
+        m, s_ = mean[rows, labels_flat[rows]], sd[rows, labels_flat[rows]]
+        for c, v in enumerate((m, m - s_, m + s_, m - 1.959964 * s_, m + 1.959964 * s_)):
+            magnitude[c, idx[rows]] = v
+        magnitude = magnitude.reshape((len(MAGNITUDE_CHANNELS), *valid.shape))
     t_end = time.perf_counter()
     n_pix = int(valid.size)
     info.update({
@@ -602,13 +643,41 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     return Classification(labels=labels.reshape(shape), probabilities=pmaps.reshape((len(mdl.classes), *shape)),
                           classes=mdl.classes, mask=valid, background=(bg if bg is not None else np.zeros(shape, bool)),
                           intensity_db=mean_db, model=mdl, sources=[m.path.name for m in maps_list], axes=axes,
-                          pitch_um=meta0.get("pitch_um"), info=info)
+                          pitch_um=meta0.get("pitch_um"), info=info, magnitude=magnitude)
+
+
+#: Shipped model used by default when the maps hold its (signature) channels.
+SIGNATURE_MODEL = "signature"
+
+
+def default_model_for(maps_list: Sequence[Maps]) -> tuple[str, str | None]:
+    """The shipped model ``doct-classify`` uses without ``--model``, and a note for the user.
+
+    :data:`SIGNATURE_MODEL` when the maps hold every channel it reads (``torchdoct maps --signature``
+    of complex data), else :data:`DEFAULT_MODEL` (LIV/OCDS), saying why.
+    """
+    shipped = shipped_models()
+    has_sig = any(m.meta.get("signature") for m in maps_list)
+    if SIGNATURE_MODEL not in shipped:
+        return DEFAULT_MODEL, None
+    if not has_sig:
+        return DEFAULT_MODEL, (f"model {DEFAULT_MODEL} (LIV/OCDS): the maps have no signature channels; "
+                               "`torchdoct maps DATA --signature ...` lets doct-classify use the more accurate "
+                               f"{SIGNATURE_MODEL} model")
+    sig = load_model(SIGNATURE_MODEL, threads=1)
+    try:
+        assemble_features(maps_list, sig, ignore_refractive_index=True)
+    except ValueError as err:
+        return DEFAULT_MODEL, f"model {DEFAULT_MODEL} (LIV/OCDS) instead of {SIGNATURE_MODEL}: {err}"
+    return SIGNATURE_MODEL, None
 
 
 # ---------------------------------------------------------------------------------------------
 # outputs
 
 OUTPUT_FILES = ("classes.tif", "probabilities.tif", "legend.json", "summary.json", "overlay.png")
+#: ``magnitude.tif`` (models with a magnitude head): log10 magnitude of the decided class and its intervals.
+MAGNITUDE_CHANNELS = ("log10_magnitude", "lower_68", "upper_68", "lower_95", "upper_95")
 
 
 def _cite_repository(text: str) -> str:
@@ -688,7 +757,8 @@ def write_classification(res: Classification, out_dir: str | os.PathLike, *, for
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a directory")
     out.mkdir(parents=True, exist_ok=True)
-    paths = {name: check_out(out / name, force, Path(name).suffix, f"--out {out}: {name}") for name in OUTPUT_FILES}
+    names = OUTPUT_FILES + (("magnitude.tif",) if res.magnitude is not None else ())
+    paths = {name: check_out(out / name, force, Path(name).suffix, f"--out {out}: {name}") for name in names}
     legend = _legend(res)
     desc_classes = json.dumps({"legend": legend, "source": res.sources})
     desc_probs = json.dumps({"channels": res.classes, "axes": "C" + res.axes, "unit": "probability",
@@ -710,4 +780,12 @@ def write_classification(res: Classification, out_dir: str | os.PathLike, *, for
     atomic_write(paths["legend.json"], dump(legend))
     atomic_write(paths["summary.json"], dump(summary))
     atomic_write(paths["overlay.png"], lambda t: _overlay(res, t))
+    if res.magnitude is not None:
+        desc_mag = json.dumps({"channels": list(MAGNITUDE_CHANNELS), "axes": "C" + res.axes,
+                               "unit": "log10(µm^2/s) where the class is diffusion, log10(µm/s) where ballistic or flow",
+                               "intervals": "68 % = mean ± SD, 95 % = mean ± 1.96 SD of the model's Gaussian "
+                                            "predictive distribution", "masked": "NaN (also where indeterminate)",
+                               "source": res.sources})
+        atomic_write(paths["magnitude.tif"], lambda t: tifffile.imwrite(t, res.magnitude, description=desc_mag,
+                                                                         metadata=None, photometric="minisblack"))
     return list(paths.values())

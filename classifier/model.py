@@ -12,6 +12,12 @@ needs to see raw features lives inside it, so the ONNX file is self-contained:
 4. a temperature (buffer, fitted on the validation split after training) and softmax.
 
 Output ``[N, C]`` class probabilities (float32), classes in the order of the model's metadata.
+
+Magnitude models (``n_magnitude = K`` motion classes, the signature spec) add two linear heads on
+the last hidden layer: per motion class ``k`` the predicted ``log10`` magnitude (``D`` in µm²/s for
+diffusion, ``v`` in µm/s for ballistic motion and flow) *given that the class is k*, and its
+log-variance; trained by the Gaussian negative log-likelihood on identifiable samples of the true
+class, the SD then scaled by one factor fitted on the validation split (:meth:`magnitude`).
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ class MotionClassifier(nn.Module):
     """
 
     def __init__(self, n_features: int, n_classes: int, log_columns: Sequence[int],
-                 hidden: Sequence[int] = (64, 64)):
+                 hidden: Sequence[int] = (64, 64), n_magnitude: int = 0):
         super().__init__()
         if n_features < 1 or n_classes < 2:
             raise ValueError(f"need n_features >= 1 and n_classes >= 2; got {n_features}, {n_classes}")
@@ -62,6 +68,11 @@ class MotionClassifier(nn.Module):
             prev = h
         layers.append(nn.Linear(prev, n_classes))
         self.net = nn.Sequential(*layers)
+        self.n_magnitude = int(n_magnitude)
+        if self.n_magnitude:  # created after the classifier layers: their seeded initialisation is unchanged
+            self.magnitude_mean = nn.Linear(prev, self.n_magnitude)
+            self.magnitude_logvar = nn.Linear(prev, self.n_magnitude)
+            self.register_buffer("magnitude_sd_scale", torch.ones(()))
 
     def transform(self, x: torch.Tensor) -> torch.Tensor:
         """Fixed transforms of step 1 (the last column is ``pool_pixels``)."""
@@ -83,6 +94,19 @@ class MotionClassifier(nn.Module):
         """Logits before the temperature."""
         z = (self.transform(x) - self.feature_mean) / self.feature_scale
         return self.net(z)
+
+    def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Logits before the temperature ``[N, C]``, magnitude means ``[N, K]`` and log-variances
+        ``[N, K]`` before the SD scale (magnitude models only)."""
+        z = (self.transform(x) - self.feature_mean) / self.feature_scale
+        h = self.net[:-1](z)
+        return self.net[-1](h), self.magnitude_mean(h), self.magnitude_logvar(h)
+
+    def magnitude(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predicted ``log10`` magnitude per motion class ``[N, K]`` and its predictive SD ``[N, K]``
+        (``exp(logvar/2)`` times the validation-fitted scale; Gaussian predictive distribution)."""
+        _, mean, logvar = self.heads(x)
+        return mean, torch.exp(0.5 * logvar) * self.magnitude_sd_scale
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.softmax(self.logits(x) / self.temperature, dim=1)

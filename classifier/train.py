@@ -74,6 +74,16 @@ class TrainConfig:
     min_probability: float = 0.5
     eval_pools: tuple[int, ...] = (1, 4, 9, 25)
     baselines: bool = True
+    #: magnitude head (log10 D or v with a Gaussian predictive SD); None = for signature specs
+    magnitude: bool | None = None
+    magnitude_weight: float = 1.0
+    #: also evaluate on a test split with a random bulk phase per frame; None = for specs that use the phase
+    bulk_phase_test: bool | None = None
+
+    @classmethod
+    def for_spec(cls, spec: str = "single-acquisition", **overrides: Any) -> "TrainConfig":
+        """The recipe of the shipped model of ``spec`` (:data:`SPEC_RECIPES`), with ``overrides``."""
+        return cls(**{"spec": spec, **SPEC_RECIPES.get(str(spec), {}), **overrides})
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
@@ -101,6 +111,24 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+#: Shipped recipes that differ from the :class:`TrainConfig` defaults (``doct-train --spec NAME``).
+#: The signature spec has ~50× more features than LIV/OCDS: more draws and replicates (the
+#: replicates' static fraction and noise are almost free), a wider network.
+SPEC_RECIPES: dict[str, dict[str, Any]] = {
+    "signature": {"draws_train": 900, "draws_validation": 90, "draws_test": 90, "replicates": 8,
+                  "hidden": (128, 128), "patience": 15, "max_epochs": 80},
+}
+
+
+def _uses_magnitude(cfg: TrainConfig, spec: FeatureSpec) -> bool:
+    return spec.is_signature if cfg.magnitude is None else bool(cfg.magnitude)
+
+
+def _log_columns(spec: FeatureSpec) -> list[int]:
+    """Columns log-transformed by the model: LIV and its signature twin ``db_variance`` (dB²)."""
+    return [i for i, (m, _) in enumerate(spec.features) if m in ("liv", "db_variance")]
 
 
 @dataclass
@@ -195,6 +223,22 @@ def _targets(s: dict[str, np.ndarray]) -> np.ndarray:
     return np.where(s["status"] == 0, s["y"], len(CLASS_NAMES) - 1)
 
 
+def _magnitude_targets(s: dict[str, np.ndarray]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``log10`` magnitude, motion label and identifiable mask of samples (the magnitude head's targets)."""
+    return (torch.from_numpy(np.log10(s["magnitude"]).astype(np.float32)), torch.from_numpy(s["y"].astype(np.int64)),
+            torch.from_numpy(s["status"] == 0))
+
+
+def _gaussian_nll(mu: torch.Tensor, logvar: torch.Tensor, target: torch.Tensor, label: torch.Tensor,
+                  ident: torch.Tensor) -> torch.Tensor:
+    """Gaussian NLL (without the constant) of the true class's head, mean over identifiable samples."""
+    if not bool(ident.any()):
+        return mu.sum() * 0.0
+    m = mu.gather(1, label[:, None])[:, 0][ident]
+    lv = logvar.gather(1, label[:, None])[:, 0][ident].clamp(-12.0, 8.0)
+    return 0.5 * (lv + (target[ident] - m) ** 2 * torch.exp(-lv)).mean()
+
+
 def _fit_temperature(logits: torch.Tensor, target: torch.Tensor) -> float:
     """Temperature minimising the validation NLL on a log grid over [1/4, 4]."""
     grid = np.exp(np.linspace(math.log(0.25), math.log(4.0), 241))
@@ -221,17 +265,26 @@ def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, p
     ``temperature``, ``parameters`` and ``first_samples`` (the first epoch's training samples).
     """
     t0 = time.perf_counter()
-    liv_cols = [i for i, (m, _) in enumerate(spec.features) if m == "liv"]
+    liv_cols = _log_columns(spec)
+    mag = _uses_magnitude(cfg, spec)
     rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(7,)))
     val = _epoch_samples(val_ds, cfg, np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(8,))))
     train0 = _epoch_samples(train_ds, cfg, rng)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed)
-        model = MotionClassifier(spec.n_features, len(CLASS_NAMES), liv_cols, cfg.hidden)
+        model = MotionClassifier(spec.n_features, len(CLASS_NAMES), liv_cols, cfg.hidden,
+                                 n_magnitude=len(CLASSES) if mag else 0)
     model.set_normalization(torch.from_numpy(train0["x"]))
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
     xv = torch.from_numpy(val["x"])
     tv = torch.from_numpy(_targets(val))
+    mv = _magnitude_targets(val)
+
+    def loss_of(xb, tb, mb=None):
+        if not mag:
+            return torch.nn.functional.cross_entropy(model.logits(xb), tb)
+        logits, mu, lv = model.heads(xb)
+        return torch.nn.functional.cross_entropy(logits, tb) + cfg.magnitude_weight * _gaussian_nll(mu, lv, *mb)
     best: tuple[float, Any, int] = (math.inf, None, 0)
     samples = train0
     epoch = 0
@@ -245,17 +298,18 @@ def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, p
             samples = _epoch_samples(train_ds, cfg, rng)
         x = torch.from_numpy(samples["x"])
         t = torch.from_numpy(_targets(samples))
+        mt = _magnitude_targets(samples)
         order = torch.from_numpy(rng.permutation(len(t)))
         model.train()
         for b in range(0, len(order), cfg.batch_size):
             sel = order[b:b + cfg.batch_size]
-            loss = torch.nn.functional.cross_entropy(model.logits(x[sel]), t[sel])
+            loss = loss_of(x[sel], t[sel], tuple(a[sel] for a in mt))
             opt.zero_grad()
             loss.backward()
             opt.step()
         model.eval()
         with torch.no_grad():
-            vloss = float(torch.nn.functional.cross_entropy(model.logits(xv), tv))
+            vloss = float(loss_of(xv, tv, mv))
         if vloss < best[0] - 1e-5:
             best = (vloss, {k: v.clone() for k, v in model.state_dict().items()}, epoch)
         if bar is not None:
@@ -270,9 +324,69 @@ def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, p
     with torch.no_grad():
         temperature = _fit_temperature(model.logits(xv), tv)
         model.temperature.fill_(temperature)
+        if mag:  # one SD scale: the maximum-likelihood factor on the validation split's identifiable samples
+            _, mu, lv = model.heads(xv)
+            target, label, ident = mv
+            m = mu.gather(1, label[:, None])[:, 0]
+            var = torch.exp(lv.gather(1, label[:, None])[:, 0])
+            z2 = ((target - m) ** 2 / var)[ident]
+            model.magnitude_sd_scale.fill_(float(torch.sqrt(z2.mean())) if z2.numel() else 1.0)
     return {"model": model, "training_s": time.perf_counter() - t0, "epochs": epoch, "best_epoch": best[2],
             "validation_loss": best[0], "temperature": temperature,
             "parameters": int(sum(p.numel() for p in model.net.parameters())), "first_samples": train0}
+
+
+def _test_sets(ds: Dataset, cfg: TrainConfig, spec: FeatureSpec, rng: np.random.Generator):
+    """Evaluation samples per pool size; with ``ds.x_ref`` (signature specs) also the LIV/OCDS inputs of
+    the very same (pooled) pixels, ``({pool: samples}, {pool: reference samples} or {})``."""
+    if ds.x_ref is None:
+        return {str(n): _eval_samples(ds, n, rng) for n in cfg.eval_pools}, {}
+    f = ds.x.shape[1]
+    joint = dataclasses.replace(ds, x=np.concatenate([ds.x, ds.x_ref], axis=1), x_ref=None)
+    tests, refs = {}, {}
+    for n in cfg.eval_pools:
+        s = _eval_samples(joint, n, rng)
+        x = s["x"]
+        tests[str(n)] = {**s, "x": np.concatenate([x[:, :f], x[:, -1:]], axis=1)}
+        refs[str(n)] = {**s, "x": np.concatenate([x[:, f:-1], x[:, -1:]], axis=1)}
+    return tests, refs
+
+
+def _reference_model(spec: FeatureSpec):
+    """The shipped LIV/OCDS model whose configurations are the spec's (None if there is none)."""
+    from .infer import load_model, shipped_models
+
+    for name in shipped_models():
+        try:
+            mdl = load_model(name, threads=1)
+        except ValueError:
+            continue
+        ref = mdl.spec
+        if (not ref.is_signature and len(ref.configurations) == len(spec.configurations)
+                and all(a.matches(b.wavelength_um, b.lateral_resolution_um, b.axial_resolution_um)
+                        for a, b in zip(ref.configurations, spec.configurations))):
+            return mdl
+    return None
+
+
+def _magnitude_eval(model: MotionClassifier, s: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Magnitude error and interval coverage on identifiable samples (head of the true motion class)."""
+    ident = s["status"] == 0
+    with torch.no_grad():
+        mu, sd = model.magnitude(torch.from_numpy(s["x"][ident]))
+    y = s["y"][ident]
+    m = mu.numpy()[np.arange(len(y)), y].astype(np.float64)
+    sdv = sd.numpy()[np.arange(len(y)), y].astype(np.float64)
+    err = np.abs(m - np.log10(s["magnitude"][ident]))
+    out: dict[str, Any] = {"samples": int(len(y)), "median_abs_log10_error": float(np.median(err)),
+                           "mean_abs_log10_error": float(err.mean()),
+                           "coverage_68": float(np.mean(err <= sdv)), "coverage_95": float(np.mean(err <= 1.959964 * sdv)),
+                           "median_predicted_sd": float(np.median(sdv))}
+    out["by_class"] = {CLASSES[c]: {"median_abs_log10_error": float(np.median(err[y == c])),
+                                    "coverage_68": float(np.mean(err[y == c] <= sdv[y == c])),
+                                    "coverage_95": float(np.mean(err[y == c] <= 1.959964 * sdv[y == c]))}
+                       for c in range(len(CLASSES)) if np.any(y == c)}
+    return out
 
 
 def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cache_dir=None, use_cache: bool = True,
@@ -298,7 +412,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
         say(f"{split}: {len(ds)} samples from {draws} draws ({'cache' if ds.meta['from_cache'] else 'simulated'}, "
             f"{ds.meta['seconds_per_draw']:.3f} s/draw); ground truth per draw: {ds.meta['draw_status_counts']}")
 
-    liv_cols = [i for i, (m, _) in enumerate(spec.features) if m == "liv"]
+    liv_cols = _log_columns(spec)
     n_feat = spec.n_features
 
     # 4. network
@@ -311,7 +425,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
 
     # 7. evaluation sets
     ev_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))
-    tests = {str(n): _eval_samples(data["test"], n, ev_rng) for n in cfg.eval_pools}
+    tests, tests_ref = _test_sets(data["test"], cfg, spec, ev_rng)
 
     def net_predict(xx: np.ndarray) -> np.ndarray:
         with torch.no_grad():
@@ -319,6 +433,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
 
     predictors: dict[str, Any] = {"network": net_predict}
     timing = {"network": {"train_s": train_s}}
+    reference = _reference_model(spec) if tests_ref else None
 
     # 6. baselines
     if cfg.baselines:
@@ -352,6 +467,34 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
             if name == "network":
                 probs_net[pool] = p
             test_metrics[name][pool] = evaluate(p, s["y"], s["status"], CLASS_NAMES, rule)
+    if reference is not None:  # the shipped LIV/OCDS model on LIV and OCDS of the same test pixels
+        name = f"{reference.metadata['spec']['name']} (LIV/OCDS model)"
+        test_metrics[name] = {}
+        for pool, s in tests_ref.items():
+            if pool == "1":
+                p, us = _timed_predict(reference.predict, s["x"])
+                timing[name] = {"train_s": math.nan, "inference_us_per_sample": us}
+            else:
+                p = reference.predict(s["x"])
+            test_metrics[name][pool] = evaluate(p, s["y"], s["status"], CLASS_NAMES, rule)
+    magnitude_report = None
+    if _uses_magnitude(cfg, spec):
+        magnitude_report = {pool: _magnitude_eval(model, s) for pool, s in tests.items()}
+        say("magnitude (pool 1): " + ", ".join(f"{k} {v:.3f}" for k, v in magnitude_report["1"].items()
+                                               if isinstance(v, float)))
+    bulk_report = None
+    if (spec.needs_field if cfg.bulk_phase_test is None else cfg.bulk_phase_test):
+        bulk = make_dataset(spec, prior, seed=cfg.seed, split="test", draws=cfg.draws_test,
+                            trials_per_draw=cfg.trials_per_draw, replicates=cfg.replicates,
+                            truncation_tolerance=cfg.truncation_tolerance, cache_dir=cache_dir, use_cache=use_cache,
+                            progress=progress, bulk_phase=True)
+        t_sim += bulk.meta["elapsed_s"]
+        b_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))
+        btests, _ = _test_sets(bulk, cfg, spec, b_rng)
+        bulk_report = {pool: evaluate(net_predict(s["x"]), s["y"], s["status"], CLASS_NAMES, rule)
+                       for pool, s in btests.items() if pool in ("1", "25")}
+        say(f"random bulk phase per frame: balanced accuracy (identifiable, pool 1) "
+            f"{bulk_report['1']['balanced_accuracy_identifiable']:.3f}, coverage {bulk_report['1']['coverage_identifiable']:.3f}")
 
     ranges = [prior.diffusion_um2_per_s, prior.speed_um_per_s, prior.speed_um_per_s]
     conf_pools = [p for p in ("1", "25") if p in tests] or [str(cfg.eval_pools[0])]
@@ -402,5 +545,9 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
         "by_condition": by_cond,
         "status_names": list(STATUS),
     }
+    if magnitude_report is not None:
+        report["magnitude"] = magnitude_report
+    if bulk_report is not None:
+        report["bulk_phase"] = bulk_report
     return TrainResult(model=model, report=report, spec=spec, prior=prior, config=cfg, rule=rule,
                        test_inputs=tests["1"]["x"], datasets=data)

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from classifier.features import METRIC_UNITS, FeatureSpec
+from classifier.features import FeatureSpec, metric_unit
 
 
 def maps_meta(spec: FeatureSpec, channels: list[dict[str, Any]], *, pitch_um=None, n_frames=None,
@@ -32,7 +32,7 @@ def maps_meta(spec: FeatureSpec, channels: list[dict[str, Any]], *, pitch_um=Non
 def feature_channels(spec: FeatureSpec, with_mean_db: bool = True) -> list[dict[str, Any]]:
     out = []
     for metric, c in spec.features:
-        out.append({"name": f"{metric}@{c.name}", "metric": metric, "unit": METRIC_UNITS[metric],
+        out.append({"name": f"{metric}@{c.name}", "metric": metric, "unit": metric_unit(metric),
                     "resolution": c.name, "wavelength_um": c.wavelength_um,
                     "lateral_resolution_um": c.lateral_resolution_um, "axial_resolution_um": c.axial_resolution_um})
     if with_mean_db:

@@ -1,0 +1,111 @@
+"""The signature path of the classifier: simulated signature features, the magnitude head and its
+ONNX outputs, magnitude maps in doct-classify, and the choice of the default model."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from _clf_maps import feature_channels, maps_meta, save_maps
+from classifier.dataset import Draw, Prior, simulate_draw
+from classifier.export import build_metadata, export_onnx, model_from_onnx, onnx_parity
+from classifier.features import load_spec
+from classifier.infer import MAGNITUDE_CHANNELS, MASKED, classify_maps, load_model, write_classification
+from classifier.train import TrainConfig, train
+from torchdoct.signature import needs_field
+
+
+def _draw(label, magnitude, static=0.0, snr=math.nan):
+    return Draw(label=label, magnitude=magnitude, polar_angle_deg=50.0, azimuth_deg=10.0, density_per_um3=0.05,
+                sim_seed=4242 + label, nuisance=((static, snr),))
+
+
+def test_signature_spec_features_and_same_pixels_as_liv_ocds():
+    spec = load_spec("signature")
+    assert spec.is_signature and spec.needs_field and spec.n_features == 3 * len(spec.metrics)
+    assert [c.name for c in spec.configurations] == [c.name for c in load_spec("single-acquisition").configurations]
+    d = _draw(2, 0.3, static=0.3, snr=30.0)
+    x, zero, ref = simulate_draw(spec, d, Prior(), trials=64, truncation_tolerance=1e-2)
+    assert x.shape == (1, 64, spec.n_features) and ref.shape == (1, 64, 6) and not zero.any()
+    # the LIV/OCDS of the very same simulated pixels are those of the single-acquisition path
+    x_lo, _ = simulate_draw(load_spec("single-acquisition"), d, Prior(), trials=64, truncation_tolerance=1e-2)
+    np.testing.assert_array_equal(ref, x_lo)
+    # db_variance is LIV (same definition, physics.md §1)
+    liv_cols = [i for i, (m, c) in enumerate(spec.features) if m == "db_variance"]
+    np.testing.assert_allclose(x[0][:, liv_cols], x_lo[0][:, 0::2], rtol=1e-5)
+    # a random bulk phase per frame: intensity features unchanged, field features changed
+    xb, _, refb = simulate_draw(spec, d, Prior(), trials=64, truncation_tolerance=1e-2, bulk_phase=True)
+    field = np.array([needs_field(m) for m, _ in spec.features])
+    np.testing.assert_allclose(xb[..., ~field], x[..., ~field], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(refb, ref, rtol=1e-4, atol=1e-4)
+    assert np.abs(xb[..., field] - x[..., field]).max() > 0.1
+
+
+@pytest.fixture(scope="module")
+def magnitude_model(tmp_path_factory):
+    """A tiny two-wavelength model with the magnitude head (cheap to simulate)."""
+    tmp = tmp_path_factory.mktemp("clf-mag")
+    res = train(TrainConfig(spec="two-wavelength", draws_train=12, draws_validation=6, draws_test=6, replicates=2,
+                            max_epochs=4, singles_per_group=16, pooled_per_group=4, magnitude=True,
+                            baselines=False), cache_dir=tmp / "cache", log=None)
+    path = tmp / "mag.onnx"
+    export_onnx(res.model, build_metadata(res), path)
+    return res, path
+
+
+def test_magnitude_head_report_and_onnx_parity(magnitude_model):
+    res, path = magnitude_model
+    assert onnx_parity(res.model, path, res.test_inputs) <= 1e-5
+    back = model_from_onnx(path)
+    x = torch.from_numpy(res.test_inputs)
+    with torch.no_grad():
+        for a, b in zip(res.model.magnitude(x), back.magnitude(x)):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+        mean, sd = res.model.magnitude(x)
+    assert bool((sd > 0).all()) and mean.shape == (len(x), 3)
+    mdl = load_model(path, threads=1)
+    assert mdl.has_magnitude and mdl.metadata["magnitude"]["classes"] == ["diffusion", "ballistic", "flow"]
+    m_ort, s_ort = mdl.predict_magnitude(res.test_inputs)
+    np.testing.assert_allclose(m_ort, mean.numpy(), atol=1e-5)
+    np.testing.assert_allclose(s_ort, sd.numpy(), rtol=1e-5)
+    # the report's coverage is the share of identifiable test pixels inside mean ± SD of their true class
+    rep = res.report["magnitude"]["1"]
+    s = res.datasets["test"]
+    ident = s.status == 0
+    y = s.y[ident]
+    err = np.abs(m_ort[ident][np.arange(len(y)), y] - np.log10(s.magnitude[ident]))
+    sdv = s_ort[ident][np.arange(len(y)), y]
+    assert rep["samples"] == len(y)
+    assert rep["coverage_68"] == pytest.approx(np.mean(err <= sdv), abs=2.0 / len(y))
+    assert rep["median_abs_log10_error"] == pytest.approx(np.median(err), abs=1e-4)
+
+
+def test_classify_writes_magnitude_maps(magnitude_model, tmp_path):
+    res, path = magnitude_model
+    spec = res.spec
+    d = _draw(0, 3e-3)
+    x, _ = simulate_draw(spec, d, Prior(), trials=64, truncation_tolerance=1e-2)
+    feats = x[0].T.reshape(spec.n_features, 8, 8)
+    data = np.concatenate([feats, np.full((1, 8, 8), 20.0, np.float32)])
+    maps = save_maps(tmp_path / "maps.npz", data, maps_meta(spec, feature_channels(spec)))
+    out = classify_maps(maps, path, threads=1)
+    assert out.magnitude.shape == (len(MAGNITUDE_CHANNELS), 8, 8)
+    decided = (out.labels != MASKED) & (out.labels < 3)
+    m, lo68, hi68, lo95, hi95 = out.magnitude
+    assert np.all(np.isfinite(m[decided])) and np.all(np.isnan(m[~decided]))
+    assert np.all((lo95 <= lo68) & (lo68 <= m) & (m <= hi68) & (hi68 <= hi95)[decided] if decided.any() else True)
+    mdl = load_model(path, threads=1)
+    inputs = np.concatenate([feats.reshape(spec.n_features, -1).T, np.ones((64, 1), np.float32)], axis=1)
+    mean, sd = mdl.predict_magnitude(inputs)
+    lab = out.labels.reshape(-1)
+    rows = np.flatnonzero(decided.reshape(-1))
+    np.testing.assert_allclose(m.reshape(-1)[rows], mean[rows, lab[rows]], atol=1e-6)
+    np.testing.assert_allclose(hi95.reshape(-1)[rows] - m.reshape(-1)[rows], 1.959964 * sd[rows, lab[rows]], rtol=1e-5)
+    written = {p.name for p in write_classification(out, tmp_path / "out")}
+    assert "magnitude.tif" in written
+    import tifffile
+
+    np.testing.assert_array_equal(tifffile.imread(tmp_path / "out" / "magnitude.tif"), out.magnitude)
