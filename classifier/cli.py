@@ -43,7 +43,7 @@ def build_train_parser() -> argparse.ArgumentParser:
         description="Simulate labelled DOCT features, train the motion-type classifier, export ONNX and a report. "
                     "Without options it reproduces the shipped single-acquisition model.")
     p.add_argument("--out", required=True, help="output directory: SPEC.onnx, SPEC.json/.md/.png (report)")
-    p.add_argument("--spec", default=d.spec, help="feature spec: 'single-acquisition', 'two-wavelength' or a TOML file")
+    p.add_argument("--spec", default=d.spec, help="feature spec: 'single-acquisition', 'two-wavelength', 'signature' or a TOML file")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--quick", action="store_true",
                    help=f"small splits for a first run, about a minute on 2 cores ({_quick_text()}); "
@@ -102,10 +102,10 @@ def _train(args: argparse.Namespace) -> int:
 
     set_default_threads(args.threads)  # simulation threads (torchdoct.threads); ValueError names the fix
     torch.set_num_threads(1)  # one torch thread per worker: no stalls beside other busy processes
-    base = QUICK if args.quick else {k: getattr(TrainConfig(), k) for k in QUICK}
+    base = QUICK if args.quick else {k: getattr(TrainConfig.for_spec(str(args.spec)), k) for k in QUICK}
     sizes = {k: base[k] if getattr(args, k) is None else getattr(args, k) for k in QUICK}  # explicit sizes win
-    cfg = TrainConfig(spec=str(args.spec), seed=args.seed, min_probability=args.min_probability,
-                      baselines=not args.no_baselines, **sizes)
+    cfg = TrainConfig.for_spec(str(args.spec), seed=args.seed, min_probability=args.min_probability,
+                               baselines=not args.no_baselines, **sizes)
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=".doct-train-", dir=out))  # outputs appear only when all are written

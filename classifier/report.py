@@ -246,7 +246,7 @@ def format_markdown(report: dict[str, Any]) -> str:
     L.append("|---|---:|---:|---:|---:|")
     for name, t in r["timing"].items():
         m = r["test"].get(name, r["test"]["network"])["1"]
-        L.append(f"| {name} | {t['train_s']:.2f} | {t['inference_us_per_sample']:.2f} | "
+        L.append(f"| {name} | {_fmt(t['train_s'], 2)} | {t['inference_us_per_sample']:.2f} | "
                  f"{_fmt(m['accuracy_identifiable'])} | {_fmt(m['balanced_accuracy_identifiable'])} |")
     L.append("")
     for pool in r["confusion_pools"]:
@@ -283,6 +283,30 @@ def format_markdown(report: dict[str, Any]) -> str:
         for name, m in r["by_condition"].items():
             L.append(f"| {name} | {m['identifiable_samples']} | {_fmt(m['coverage_identifiable'])} | "
                      f"{_fmt(m['accuracy_identifiable'])} | {_fmt(m['balanced_accuracy_identifiable'])} |")
+        L.append("")
+    if "magnitude" in r:
+        L.append("## Motion magnitude (network; identifiable test samples, head of the true class)")
+        L.append("")
+        L.append("log10 D (µm²/s) for diffusion, log10 v (µm/s) for ballistic motion and flow; interval = mean ± SD "
+                 "(68 %) and ± 1.96 SD (95 %) of the predicted Gaussian.")
+        L.append("")
+        L.append("| pool | samples | median abs. log10 error | mean abs. log10 error | 68 % coverage | 95 % coverage "
+                 "| median SD | median error diffusion / ballistic / flow |")
+        L.append("|---:|---:|---:|---:|---:|---:|---:|---|")
+        for pool, m in r["magnitude"].items():
+            per = " / ".join(_fmt(m["by_class"].get(c, {}).get("median_abs_log10_error")) for c in cls[:-1])
+            L.append(f"| {pool} | {m['samples']} | {_fmt(m['median_abs_log10_error'])} | "
+                     f"{_fmt(m['mean_abs_log10_error'])} | {_fmt(m['coverage_68'])} | {_fmt(m['coverage_95'])} | "
+                     f"{_fmt(m['median_predicted_sd'])} | {per} |")
+        L.append("")
+    if "bulk_phase" in r:
+        L.append("## Random bulk phase per frame (network; the test draws with a uniform random phase per frame)")
+        L.append("")
+        L.append("| pool | coverage | acc. identifiable | bal. acc. identifiable | ECE |")
+        L.append("|---:|---:|---:|---:|---:|")
+        for pool, m in r["bulk_phase"].items():
+            L.append(f"| {pool} | {_fmt(m['coverage_identifiable'])} | {_fmt(m['accuracy_identifiable'])} | "
+                     f"{_fmt(m['balanced_accuracy_identifiable'])} | {_fmt(m['ece'])} |")
         L.append("")
     if "onnx_parity_max_abs_diff" in r:
         L.append(f"ONNX (opset {r.get('onnx_opset')}) against torch on the test set: max |Δp| = "
