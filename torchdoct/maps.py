@@ -327,11 +327,8 @@ def _peak_intensity(data: np.ndarray, src: str) -> float:
     peak = 0.0
     for k in range(data.shape[0]):
         f = np.asarray(data[k])
-        v = (f.real.astype(np.float64) ** 2 + f.imag.astype(np.float64) ** 2) if np.iscomplexobj(f) else \
-            np.abs(f.astype(np.float64))
-        v = v[np.isfinite(v)]
-        if v.size:
-            peak = max(peak, float(v.max()))
+        v = f.real * f.real + f.imag * f.imag if np.iscomplexobj(f) else np.abs(f)
+        peak = max(peak, float(np.max(v, where=np.isfinite(v), initial=0.0)))
     if not peak > 0:
         raise ValueError(f"{src}: holds no finite nonzero sample (every value is NaN, infinite or 0), so no pixel "
                          "has a dB value; check the file (and --dataset / --axes)")
