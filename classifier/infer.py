@@ -339,7 +339,47 @@ def read_maps(path: str | os.PathLike) -> Maps:
     for i, ch in enumerate(channels):
         if not isinstance(ch, dict) or "metric" not in ch:
             raise ValueError(f"{path.name}: channel {i} has no 'metric' entry: {ch!r}")
+    _check_meta(path.name, meta)
     return Maps(path=path, data=data.astype(np.float32, copy=False), channels=channels, meta=meta)
+
+
+def _check_meta(name: str, meta: dict[str, Any]) -> None:
+    """Types and ranges of the maps metadata the classifier reads; a ``ValueError`` names the key."""
+    fix = "Fix: write the maps with `torchdoct maps`, or correct that entry of the metadata"
+
+    def number(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+    def fail(key: str, want: str, got: Any) -> None:
+        raise ValueError(f"{name}: meta {key} must be {want}; got {got!r}. {fix}")
+
+    for i, ch in enumerate(meta["channels"]):
+        if not isinstance(ch["metric"], str):
+            fail(f"channels[{i}].metric", "a metric name", ch["metric"])
+        for key in ("name", "unit", "resolution"):
+            if key in ch and not isinstance(ch[key], str):
+                fail(f"channels[{i}].{key}", "a string", ch[key])
+        for key in ("wavelength_um", "lateral_resolution_um", "axial_resolution_um"):
+            if ch.get(key) is not None and not (number(ch[key]) and ch[key] > 0):
+                fail(f"channels[{i}].{key}", "a positive number (µm) or null", ch[key])
+    for key in ("system", "reduction", "pitch_um", "signature"):
+        if meta.get(key) is not None and not isinstance(meta[key], dict):
+            fail(key, "a table (JSON object)", meta[key])
+    if "axes" in meta and not isinstance(meta["axes"], str):
+        fail("axes", "a string such as 'CZX'", meta["axes"])
+    times = meta.get("frame_times_s")
+    if times is not None and not (isinstance(times, list) and all(number(t) for t in times)):
+        fail("frame_times_s", "a list of times (s)", times)
+    delays = meta.get("ocds_delay_range_s")
+    if delays is not None and not (isinstance(delays, list) and len(delays) == 2 and all(number(t) for t in delays)):
+        fail("ocds_delay_range_s", "[low, high] (s)", delays)
+    for key, value in (meta.get("system") or {}).items():
+        if (key.endswith("_um") or key == "refractive_index") and value is not None:
+            if not (number(value) and value > 0):
+                fail(f"system.{key}", "a positive number or null", value)
+    for key, value in (meta.get("pitch_um") or {}).items():
+        if not (number(value) and value > 0):
+            fail(f"pitch_um.{key}", "a positive number (µm)", value)
 
 
 def _describe_channel(ch: dict[str, Any]) -> str:
@@ -378,7 +418,8 @@ def _check_protocol(maps: Maps, spec: FeatureSpec, ignore_refractive_index: bool
         raise ValueError(f"{name}: OCDS delay range {rng} s differs from the model's "
                          f"{list(spec.ocds_delay_range_s)} s (fix: recompute the maps with that range)")
     system = maps.meta.get("system") or {}
-    n = system.get("refractive_index", 1.0)
+    n = system.get("refractive_index")
+    n = 1.0 if n is None else n  # not recorded: the paper's n = 1
     if not ignore_refractive_index and not same_value(float(n), spec.refractive_index):
         raise ValueError(f"{name}: system refractive_index {n} but the model was trained for "
                          f"{spec.refractive_index} (phase rates scale with n; fix: train a model whose spec has "
@@ -419,12 +460,13 @@ def assemble_features(maps_list: Sequence[Maps], model: ClassifierModel, *,
                              "signature. Fix: compute the maps from the complex data, or classify with the LIV/OCDS "
                              f"model (--model {DEFAULT_MODEL})")
         if found is None:
-            have = "; ".join(_describe_channel(ch) for m in maps_list for ch in m.channels)
+            have = "; ".join(f"{m.path.name}: " + ", ".join(_describe_channel(ch) for ch in m.channels)
+                             for m in maps_list)
             res = col["configuration"]
             raise ValueError(
                 f"maps lack the model feature {col['name']!r}: {metric} at {col['wavelength_um'] * 1000:g} nm, "
                 f"lateral {col['lateral_resolution_um']:g} µm, axial {col['axial_resolution_um']:g} µm. Channels "
-                f"present: {have}. Fix: compute it, e.g. `torchdoct maps DATA --resolution {res} ...`, or give "
+                f"present in {have}. Fix: compute it, e.g. `torchdoct maps DATA --resolution {res} ...`, or give "
                 "the maps of the other wavelength as a second file")
         m, i, ch = found
         unit = ch.get("unit")
@@ -436,9 +478,9 @@ def assemble_features(maps_list: Sequence[Maps], model: ClassifierModel, *,
     mean_db = None
     first = spec.configurations[0]
     candidates = [(m, i, ch) for m in maps_list for i, ch in enumerate(m.channels) if ch.get("metric") == "mean_db"]
-    candidates.sort(key=lambda t: 0 if first.matches(*(float(t[2].get(k, math.nan)) for k in
-                                                       ("wavelength_um", "lateral_resolution_um",
-                                                        "axial_resolution_um"))) else 1)
+    candidates.sort(key=lambda t: 0 if first.matches(*(float(t[2].get(k) if t[2].get(k) is not None else math.nan)
+                                                         for k in ("wavelength_um", "lateral_resolution_um",
+                                                                   "axial_resolution_um"))) else 1)
     if candidates:
         m, i, ch = candidates[0]
         mean_db = m.data[i]
@@ -447,7 +489,7 @@ def assemble_features(maps_list: Sequence[Maps], model: ClassifierModel, *,
         axes = (m.meta.get("reduction") or {}).get("lateral_axes")
         system = m.meta.get("system") or {}
         reduced = [c for c in spec.configurations
-                   if "lateral_resolution_um" in system
+                   if system.get("lateral_resolution_um") is not None
                    and not same_value(c.lateral_resolution_um, float(system["lateral_resolution_um"]))]
         if axes == "X" and reduced:
             notes.append(f"{m.path.name}: the lateral resolution was reduced along x only (B-scan data), so the "

@@ -726,7 +726,8 @@ def map_figure(maps: Maps, channel: str, *, value_range: tuple[float, float] | N
         cmap = ListedColormap(hsv_to_rgb(np.stack([np.mod(hues, 1.0), np.ones(256), np.ones(256)], -1)))
         sm = ScalarMappable(norm=Normalize(*vr), cmap=cmap)
         if n_nan:
-            handles.append(Patch(color="0.6", label=f"undefined, no dB value ({n_nan} px)"))
+            handles.append(Patch(color="0.6", label=f"undefined, no dB value: grey, black without intensity "
+                                                    f"({n_nan} px)"))
         if flagged is not None and flagged.any():
             handles.append(Patch(color=np.array(FLAG_RGB) / 255.0, label=f"fit on a τ bound ({int(flagged.sum())} px)"))
         if db is not None:
