@@ -290,3 +290,17 @@ def test_binary_or_corrupted_scene_files_give_one_error_line(tmp_path, capsys, c
         if code != 0:  # a truncation can leave a valid scene (e.g. cut after the last table)
             assert code == 2 and err.startswith("error: ") and err.count("\n") == 1, err
             assert "scan.toml" in err, err
+
+
+@settings(max_examples=80, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.one_of(st.sampled_from(["cpu", "cpu:0", "cuda", "cuda:0", "cuda:-1", "cuda:1e9", "mps", "xpu", "meta",
+                                  "CPU", "gpu", "", " ", "cpu:", ":0", "cuda:0:1"]),
+                 st.text(max_size=12)))
+def test_device_strings_give_one_error_line(tmp_path, capsys, device):
+    path = tmp_path / "scene.toml"
+    path.write_text(SMALL_SCENE_TOML, encoding="utf-8")
+    code = main(["simulate", str(path), "--trials", "2", "--no-progress", "--device", device])
+    captured = capsys.readouterr()
+    if code != 0:
+        assert code == 2 and captured.err.startswith("error: ") and captured.err.count("\n") == 1, captured.err
+        assert "--device" in captured.err and "devices here: cpu" in captured.err, captured.err
