@@ -101,7 +101,9 @@ def _train(args: argparse.Namespace) -> int:
     from torchdoct.threads import set_default_threads
 
     set_default_threads(args.threads)  # simulation threads (torchdoct.threads); ValueError names the fix
-    torch.set_num_threads(1)  # one torch thread per worker: no stalls beside other busy processes
+    from torchdoct.threads import limit_process_threads
+
+    limit_process_threads()  # one torch/BLAS thread per worker: no stalls beside other busy processes
     base = QUICK if args.quick else {k: getattr(TrainConfig.for_spec(str(args.spec)), k) for k in QUICK}
     sizes = {k: base[k] if getattr(args, k) is None else getattr(args, k) for k in QUICK}  # explicit sizes win
     cfg = TrainConfig.for_spec(str(args.spec), seed=args.seed, min_probability=args.min_probability,

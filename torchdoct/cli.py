@@ -234,9 +234,9 @@ def _main(argv: Sequence[str] | None = None) -> int:
     except ValueError as err:
         print(f"error: --threads: {err}", file=sys.stderr)
         return 2
-    import torch
+    from .threads import limit_process_threads
 
-    torch.set_num_threads(1)  # parallel work runs over independent pieces (torchdoct.threads)
+    limit_process_threads()  # parallel work runs over independent pieces (torchdoct.threads)
     from .scenes import shipped_scenes
 
     try:

@@ -31,7 +31,7 @@ from typing import Callable, Iterable, Iterator, TypeVar
 
 import torch
 
-__all__ = ["default_threads", "set_default_threads", "using_threads", "resolve_threads", "single_torch_thread",
+__all__ = ["default_threads", "set_default_threads", "limit_process_threads", "using_threads", "resolve_threads", "single_torch_thread",
            "one_torch_thread", "map_ordered"]
 
 T = TypeVar("T")
@@ -69,6 +69,18 @@ def default_threads() -> int:
             raise ValueError(f"TORCHDOCT_THREADS must be an integer >= 1 (the number of cores to use); "
                              f"got {env!r}") from None
     return _usable_cores()
+
+
+def limit_process_threads() -> None:
+    """For a command-line process: torch and the BLAS/OpenMP pools of numpy and scikit-learn use one
+    thread each (their parallel regions stall beside other busy processes); parallel work runs over
+    independent pieces instead."""
+    torch.set_num_threads(1)
+    try:
+        import threadpoolctl
+    except ImportError:  # pragma: no cover - installed with scikit-learn
+        return
+    threadpoolctl.threadpool_limits(1)
 
 
 def set_default_threads(threads: int | None) -> None:
