@@ -225,6 +225,10 @@ def _read_npz(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
         try:
             z = np.load(fh, allow_pickle=False)
         except (*unreadable, ValueError) as err:
+            fh.seek(0)
+            if "Object arrays" in str(err) or fh.read(1) == b"\x80":  # a .npy of objects, or a pickle stream
+                raise ValueError(f"{path.name}: holds Python objects (a pickle), not a maps archive; pickles are never "
+                                 f"loaded (loading one can run code). {_rewrite_fix(path)}") from None
             raise ValueError(f"{path.name}: not a readable .npz archive: the file is truncated, corrupted or not "
                              f"a .npz file ({err}). {_rewrite_fix(path)}") from None
         if not isinstance(z, np.lib.npyio.NpzFile):

@@ -127,7 +127,8 @@ def test_broken_meta_json_keys_fuzz(tmp_path, data):
     st.none() | st.booleans() | st.floats(allow_nan=False) | st.text(max_size=5),
     lambda c: st.lists(c, max_size=3) | st.dictionaries(st.text(max_size=5), c, max_size=3), max_leaves=8)
     .map(json.dumps)),
-       kind=st.sampled_from(["text", "pickled-meta", "pickled-maps", "number-meta", "int-maps", "1d-maps"]))
+       kind=st.sampled_from(["text", "pickled-meta", "pickled-maps", "pickled-npy", "number-meta", "int-maps",
+                             "1d-maps"]))
 def test_malformed_meta_json_and_pickles_fuzz(tmp_path, meta_json, kind):
     path = tmp_path / "odd.npz"
     maps, meta = DATA, np.asarray(meta_json)
@@ -141,12 +142,16 @@ def test_malformed_meta_json_and_pickles_fuzz(tmp_path, meta_json, kind):
         maps, meta = DATA.astype(np.int32), np.asarray(json.dumps(META))
     elif kind == "1d-maps":
         maps, meta = DATA.reshape(-1), np.asarray(json.dumps(META))
-    np.savez(path, maps=maps, meta_json=meta)
+    if kind == "pickled-npy":  # a pickled .npy given the maps suffix
+        with open(path, "wb") as fh:
+            np.save(fh, np.array([meta_json, DATA], dtype=object), allow_pickle=True)
+    else:
+        np.savez(path, maps=maps, meta_json=meta)
     with pytest.raises(ERRORS) as info:
         read_maps(path)
     assert "odd.npz" in str(info.value)
     if kind.startswith("pickled"):
-        assert "pickle" in str(info.value)
+        assert "(a pickle)" in str(info.value), info.value
     code, _, err = _classify(path, tmp_path / "o")
     _assert_clear(code, err, "odd.npz")
     assert code == 2
@@ -162,3 +167,12 @@ def test_pool_sizes_fuzz(good, tmp_path, pool):
     assert (code == 0) == (1 <= pool <= min(Z, X)), (pool, err)
     if pool > min(Z, X):
         assert f"largest valid pool is {min(Z, X)}" in err
+
+
+def test_a_pickle_under_the_maps_suffix_is_named_as_such(tmp_path):
+    import pickle
+
+    path = tmp_path / "p.npz"
+    path.write_bytes(pickle.dumps({"maps": DATA, "meta_json": json.dumps(META)}))
+    with pytest.raises(ValueError, match=r"p\.npz: holds Python objects \(a pickle\)"):
+        read_maps(path)
