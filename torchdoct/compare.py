@@ -126,6 +126,11 @@ def sample_means(maps: Maps, region: np.ndarray, metrics: Iterable[str] = ("liv"
     for i, info in enumerate(maps.meta["channels"]):
         if info["metric"] not in wanted:
             continue
+        if any(info.get(k) is None for k in ("wavelength_um", "lateral_resolution_um", "axial_resolution_um")):
+            raise ValueError(f"{maps.meta.get('source') or 'maps'}: channel {info['name']} has no optics (the maps were "
+                             "computed without them); configurations are matched by wavelength and resolutions: "
+                             "recompute the maps with --wavelength-um, --lateral-resolution-um and "
+                             "--axial-resolution-um")
         v = maps.maps[i][region]
         v = v[np.isfinite(v)]
         mean = float(np.mean(v, dtype=np.float64)) if v.size else math.nan

@@ -224,3 +224,15 @@ def test_one_sample_gives_the_summary_without_tests(tmp_path, capsys):
     assert main(["compare", str(path), "--out", str(tmp_path / "t.csv")]) == 2
     err = capsys.readouterr().err
     assert "at least 2 samples" in err and not (tmp_path / "t.csv").exists()
+
+
+def test_maps_without_optics_are_refused_naming_the_fix(tmp_path, capsys):
+    rng = np.random.default_rng(7)
+    m = make_maps(rng, ["original", "axial=14"], source="cog.tif")
+    for c in m.meta["channels"]:
+        c["wavelength_um"] = c["lateral_resolution_um"] = c["axial_resolution_um"] = None
+    with pytest.raises(ValueError, match="cog.tif.*liv@original.*--wavelength-um"):
+        sample_means(m, region_mask(m))
+    write_maps(tmp_path / "a.npz", m)
+    assert main(["compare", str(tmp_path / "a.npz")]) == 2
+    assert "--wavelength-um" in capsys.readouterr().err
