@@ -3,8 +3,9 @@
 A B-scan ``[Z, X]`` is drawn with x (fast lateral) to the right and depth z downwards, both in µm
 (:data:`X_LABEL`, :data:`Z_LABEL`). The image extent is at pixel *edges*: pixel ``(iz, ix)`` covers
 ``x ∈ [x0 + ix·Δx, x0 + (ix + 1)·Δx]`` and ``z ∈ [z0 + iz·Δz, z0 + (iz + 1)·Δz]``, so the axes run
-from ``x0`` to ``x0 + n_x·Δx`` and from ``z0`` (top) to ``z0 + n_z·Δz`` (bottom); ``x0, z0`` default
-to 0 (maps and overlays; the render preview passes the phantom's first pixel edge). Without a pitch
+from ``x0`` to ``x0 + n_x·Δx`` and from ``z0`` (top) to ``z0 + n_z·Δz`` (bottom); ``x0, z0`` are 0
+in every figure of the project (render preview, maps, overlays), so one image shows the same
+coordinates in all three: distances from the top-left pixel edge. Without a pitch
 the same layout is drawn in pixels (labels :data:`X_LABEL_PX`, :data:`Z_LABEL_PX`). Colour bars
 carry the quantity and its unit, ``"LIV (dB²)"``.
 

@@ -487,18 +487,17 @@ def preview_figure(result: RenderResult, system: str | int | None = None,
 
     top = float(np.percentile(frame_db, 99.5))
     pitch = {"z": grid.pitch_z_um, "x": grid.pitch_x_um}
-    origin = (grid.extent_um("z")[0] - grid.pitch_z_um / 2, grid.extent_um("x")[0] - grid.pitch_x_um / 2)
     fig, ax = plt.subplots(1, 3, figsize=(14, 4.8), constrained_layout=True)
-    im0 = show_bscan(ax[0], frame_db, pitch_um=pitch, origin_um=origin, cmap="gray", vmin=top - 40.0, vmax=top)
+    im0 = show_bscan(ax[0], frame_db, pitch_um=pitch, cmap="gray", vmin=top - 40.0, vmax=top)
     ax[0].set_title("frame 0, intensity (dB)")
     fig.colorbar(im0, ax=ax[0], shrink=0.8).set_label("intensity (dB)")
     cmap = plt.get_cmap("inferno").with_extremes(bad="#202020")
-    im1 = show_bscan(ax[1], liv_map.numpy(), pitch_um=pitch, origin_um=origin, cmap=cmap, vmin=liv_range_db2[0],
+    im1 = show_bscan(ax[1], liv_map.numpy(), pitch_um=pitch, cmap=cmap, vmin=liv_range_db2[0],
                      vmax=liv_range_db2[1])
     ax[1].set_title("LIV (dB²)")
     fig.colorbar(im1, ax=ax[1], shrink=0.8).set_label("LIV (dB²)")
     codes = sorted(_LABEL_COLOURS)
-    show_bscan(ax[2], labels, pitch_um=pitch, origin_um=origin, cmap=ListedColormap([_LABEL_COLOURS[c] for c in codes]),
+    show_bscan(ax[2], labels, pitch_um=pitch, cmap=ListedColormap([_LABEL_COLOURS[c] for c in codes]),
                vmin=-0.5, vmax=len(codes) - 0.5)
     ax[2].set_title("ground truth: motion")
     names = {v: k for k, v in MOTION_CODES.items()}
