@@ -96,8 +96,10 @@ def _train(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a directory")
-    paths = {s: check_out(out / f"{spec.name}{s}", args.force, s, f"--out {out}") if out.is_dir() else out / f"{spec.name}{s}"
-             for s in (".onnx", ".json", ".md", ".png")}
+    paths = {s: out / f"{spec.name}{s}" for s in (".onnx", ".json", ".md", ".png")}
+    if out.is_dir():
+        for s, p in paths.items():
+            check_out(p, args.force, s, f"--out {out}")
     from torchdoct.threads import set_default_threads
 
     set_default_threads(args.threads)  # simulation threads (torchdoct.threads); ValueError names the fix

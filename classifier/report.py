@@ -233,7 +233,8 @@ def format_markdown(report: dict[str, Any]) -> str:
         L.append("")
     if "standard_errors" in r:
         L.append("Standard errors of the network's numbers (bootstrap over test draws, the independent unit): " +
-                 "; ".join(f"pool {pool}: " + ", ".join(f"{k.replace('_', ' ')} " + ("n/a" if _undefined(v) else f"±{v:.3f}")
+                 "; ".join(f"pool {pool}: " + ", ".join(f"{k.replace('_', ' ')} "
+                                                        + ("n/a" if _undefined(v) else f"±{v:.3f}")
                                                         for k, v in se.items())
                            for pool, se in r["standard_errors"].items()) + ".  ")
         if any(_undefined(v) for se in r["standard_errors"].values() for v in se.values()):

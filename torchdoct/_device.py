@@ -49,7 +49,8 @@ def check_device(device: str | None, what: str = "--device") -> str | None:
             reason = f"this torch build ({torch.__version__}) has no CUDA support"
             fix += "; for a GPU install a CUDA build of torch (https://pytorch.org/get-started/locally/)"
         else:
-            reason = f"no {dev.type.upper() if dev.type != 'mps' else 'MPS'} device is available to torch {torch.__version__}"
+            kind = "MPS" if dev.type == "mps" else dev.type.upper()
+            reason = f"no {kind} device is available to torch {torch.__version__}"
         raise ValueError(f"{what} {device!r}: {reason}; {fix}")
     if dev.index is not None and dev.type != "mps" and dev.index >= backend.device_count():
         raise ValueError(f"{what} {device!r}: there are {backend.device_count()} {dev.type.upper()} devices "

@@ -277,7 +277,8 @@ def test_valid_extreme_scenes_run(density, motion, wavelength, frames):
 # files that are not scene text: binary data, truncated or corrupted TOML
 
 
-@settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=150, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.one_of(st.binary(min_size=1, max_size=400),
                  st.tuples(st.integers(0, len(SMALL_SCENE_TOML)), st.binary(min_size=1, max_size=8))
                  .map(lambda t: SMALL_SCENE_TOML.encode()[:t[0]] + t[1])))
