@@ -79,7 +79,7 @@ class _Draws:
 
     def _draw(self, fn, shape):
         parts = [fn((BLOCK_TRIALS, *shape), generator=g, dtype=torch.float32) for g in self.gens]
-        return torch.cat(parts).to(device=self.device, dtype=_F64)
+        return (parts[0] if len(parts) == 1 else torch.cat(parts)).to(device=self.device, dtype=_F64)
 
     def rand(self, *shape: int) -> torch.Tensor:
         """Uniform on [0, 1) (24-bit resolution)."""
@@ -99,6 +99,8 @@ class _Draws:
             return fn((k, sizes[i]), generator=self.gens[i], dtype=torch.float32)
 
         parts = [one(i) for i in range(len(self.gens))]
+        if len(parts) == 1 and out is None:
+            return parts[0].to(self.device)
         if out is not None and out.device.type == "cpu":
             return torch.cat(parts, dim=1, out=out)
         return torch.cat(parts, dim=1).to(self.device)
@@ -333,13 +335,16 @@ def _eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi:
             vis = visible[rows]
             if T > _TILE_FRAMES:
                 vis = vis & (lo[rows] <= times[f1 - 1]) & (hi[rows] >= times[f0])
-            r, col = torch.nonzero(vis, as_tuple=True)
-            if r.numel() == 0:
+            where = torch.nonzero(vis.reshape(-1)).view(-1)  # flat (row, column) of the visible paths
+            if where.numel() == 0:
                 continue
-            rank = torch.cumsum(vis, 1)[r, col] - 1
+            r = where // C
+            rank = torch.cumsum(vis, 1).view(-1).index_select(0, where) - 1
             width = int(rank.max()) + 1
             packed = pad.expand(vis.shape[0], width, 5).clone()
-            packed[r, rank] = torch.stack([x[rows][r, col] for x in coef], dim=1).to(dtype)
+            where += rows.start * C
+            packed.view(-1, 5).index_copy_(0, r * width + rank, torch.stack(
+                [x.reshape(-1).index_select(0, where) for x in coef], dim=1).to(dtype))
             per_piece = max(1, _PIECE_ELEMENTS // (width * (f1 - f0)))
             tt = t[f0:f1]
             for i0 in range(0, vis.shape[0], per_piece):
@@ -521,8 +526,10 @@ def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: _Draws, times
     The Poisson count and uniform positions are drawn once; each frame every scatterer takes a
     Gaussian step of ``√(2·D·Δt)`` per axis (µm) and is wrapped back into the cell. The cell is small
     (|z| ≤ a few tens of µm), so positions and phases ``2kn·z`` stay exact in float32 without a phase
-    reference. Scatterers are laid out flat, trial after trial, and the field of each trial is the sum
-    over its segment (``segment_reduce``, in scatterer order: the same bits whatever the chunk).
+    reference. Each block of 64 trials walks on its own (its state stays in the cache, its steps are
+    drawn straight into one buffer); its scatterers are laid out flat, trial after trial, and the
+    field of each trial is the sum over its segment (``segment_reduce``, in scatterer order: the same
+    bits whatever the chunk).
     """
     dev = draws.device
     n = draws.poisson(pp.expected_scatterers_per_trial, pp.capacity, f"population {pp.index} count")
@@ -533,24 +540,34 @@ def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: _Draws, times
     half = torch.tensor(pp.domain_half_widths_um, dtype=dtype, device=dev).view(3, 1)
     L = 2.0 * half
     inv_L = 1.0 / L
-    pos = (2.0 * draws.ragged(torch.rand, 3, sizes).to(dtype) - 1.0) * half  # [3, M]
     q = [2.0 * float(optics.kn[s]) for s in range(S)]
     refl = pop.reflectivity
     log_tol = math.log(plan.truncation_tolerance)
-    out_re = torch.zeros(S, N, T, dtype=dtype, device=dev)
-    out_im = torch.zeros(S, N, T, dtype=dtype, device=dev)
     # systems sharing a PSF share the amplitude. Every scatterer of the cell is evaluated: the cell
     # exceeds the PSF box only where the wrap bound needs it, and finding the scatterers outside a
     # box (mask, gather, scatter) costs more than evaluating them (measured: 14 vs 5 ns each).
     groups: dict[tuple[float, float], list[int]] = {}
     for s in range(S):
         groups.setdefault((float(optics.a_lat[s]), float(optics.a_ax[s])), []).append(s)
+    sigmas = [math.sqrt(2.0 * pop.diffusion_um2_per_s * float(times[f] - times[f - 1])) for f in range(1, T)]
+    out = torch.zeros(N, S, T, dtype=_complex_of(dtype), device=dev)
+    for i, (g, M) in enumerate(zip(draws.gens, sizes)):
+        rows = slice(i * BLOCK_TRIALS, (i + 1) * BLOCK_TRIALS)
+        out[rows] = _walk_periodic_block(g, M, n[rows], half, L, inv_L, q, groups, refl, log_tol, sigmas, S, T,
+                                         dtype, dev)
+    return out
 
-    # working buffers, reused every frame
-    M = pos.shape[1]
-    step = torch.empty(3, M, dtype=torch.float32, device=dev)
+
+def _walk_periodic_block(g: torch.Generator, M: int, n: torch.Tensor, half, L, inv_L, q, groups, refl: float,
+                         log_tol: float, sigmas: list[float], S: int, T: int, dtype, dev) -> torch.Tensor:
+    """The field [64, S, T] of one block's ``M`` scatterers (``n`` per trial) walking on the cell."""
+    pos = torch.rand((3, M), generator=g, dtype=torch.float32).to(device=dev, dtype=dtype)
+    pos.mul_(2.0).sub_(1.0).mul_(half)
+    res = torch.empty(T, 2, S, n.numel(), dtype=dtype, device=dev)
+    step = torch.empty(3, M, dtype=torch.float32)
     wrap = torch.empty(3, M, dtype=dtype, device=dev)
     amp, re, im = (torch.empty(M, dtype=dtype, device=dev) for _ in range(3))
+    lengths = n.to(dev)
 
     def evaluate(f: int) -> None:
         for (a_lat, a_ax), systems in groups.items():
@@ -563,18 +580,17 @@ def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: _Draws, times
                 torch.mul(pos[2], q[s], out=im)
                 torch.cos(im, out=re).mul_(amp)
                 im.sin_().mul_(amp)
-                out_re[s, :, f] = torch.segment_reduce(re, "sum", lengths=n)
-                out_im[s, :, f] = torch.segment_reduce(im, "sum", lengths=n)
+                res[f, 0, s].copy_(torch.segment_reduce(re, "sum", lengths=lengths))
+                res[f, 1, s].copy_(torch.segment_reduce(im, "sum", lengths=lengths))
 
-    D = pop.diffusion_um2_per_s
     evaluate(0)
     for f in range(1, T):
-        sigma = math.sqrt(2.0 * D * float(times[f] - times[f - 1]))
-        pos.add_(draws.ragged(torch.randn, 3, sizes, out=step), alpha=sigma)
+        torch.randn((3, M), generator=g, dtype=torch.float32, out=step)
+        pos.add_(step.to(dev) if dev.type != "cpu" else step, alpha=sigmas[f - 1])
         torch.mul(pos, inv_L, out=wrap).round_()
         pos.addcmul_(wrap, L, value=-1.0)
         evaluate(f)
-    return torch.complex(out_re, out_im).permute(1, 0, 2).to(_complex_of(dtype))
+    return torch.complex(res[:, 0], res[:, 1]).permute(2, 1, 0)
 
 
 def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
@@ -672,6 +688,11 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
             alive[fb, fc] = True
         evaluate(f)
     return torch.complex(out_re, out_im).view(S, N, T).permute(1, 0, 2).to(cdt)
+
+
+#: Largest working tensor of a chunk (elements) for the default chunk size: a chunk's state stays near
+#: the cache (one block of 64 trials for most scenes; measured 10-50 % faster than 8M-element chunks).
+_CHUNK_ELEMENTS = 1 << 18
 
 
 class MemoryLimitError(ValueError):
@@ -810,7 +831,7 @@ def simulate(
     if chunk_trials is None:
         # keep a chunk's largest working tensors near 8M elements, and give every thread a chunk
         per_trial = max(_working_elements_per_trial(plan), 1)
-        chunk_blocks = max(1, min(16, int((1 << 23) // (BLOCK_TRIALS * per_trial)), -(-n_blocks // threads)))
+        chunk_blocks = max(1, min(16, int(_CHUNK_ELEMENTS // (BLOCK_TRIALS * per_trial)), -(-n_blocks // threads)))
     else:
         if chunk_trials < 1:
             raise ValueError(f"chunk_trials must be >= 1; got {chunk_trials}")
