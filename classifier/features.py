@@ -289,6 +289,9 @@ def load_spec(name_or_path: str | Path | FeatureSpec) -> FeatureSpec:
             data = tomllib.load(fh)
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"{path.name}: not valid TOML: {err}") from None
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path.name}: not a TOML text file (byte {err.start} is not UTF-8 text); give a feature "
+                         "spec (TOML, UTF-8) or a shipped spec name, not a data or image file") from None
     try:
         return spec_from_dict(data)
     except (TypeError, ValueError) as err:

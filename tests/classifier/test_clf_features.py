@@ -75,3 +75,19 @@ def test_load_spec_from_file_and_missing_file(tmp_path):
     bad.write_text("name = ", encoding="utf-8")
     with pytest.raises(ValueError, match="bad.toml"):
         load_spec(bad)
+
+
+def test_binary_spec_file_is_named_never_a_codec_error(tmp_path, capsys):
+    """A spec that is not UTF-8 text (an image given by mistake): a ValueError naming the file, and
+    ``doct-train --spec`` exits 2 with one ``error:`` line and writes nothing (was a bare codec error)."""
+    from classifier.cli import train_main
+
+    png = tmp_path / "scan.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
+    with pytest.raises(ValueError, match=r"scan\.png: not a TOML text file \(byte 0"):
+        load_spec(png)
+    out = tmp_path / "model"
+    assert train_main(["--out", str(out), "--spec", str(png), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: scan.png:") and "Traceback" not in err and "codec" not in err
+    assert not out.exists()
