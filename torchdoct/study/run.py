@@ -1,0 +1,109 @@
+"""Running a study: :func:`run_study` builds its sweeps, runs them (cached, resumable, locally or on
+Dask), and writes the files :func:`study_outputs` lists (described in :mod:`torchdoct.study`): the
+tables, the paired differences, the figures, the claims report and ``study.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .._files import atomic_write
+from ..sweep import SweepResult, prepare_out_dir, run_sweeps, write_table
+from .claims import claims_report
+from .figures import _save_figure, plot_comparison, plot_directions
+from .spec import Study, load_study
+from .stats import direction_differences, paired_differences
+from .sweeps import study_sweeps
+
+__all__ = ["StudyResult", "study_outputs", "run_study"]
+
+
+def study_outputs(study: Study, out_dir: str | os.PathLike) -> list[Path]:
+    """Every file :func:`run_study` writes into ``out_dir``."""
+    d = Path(out_dir)
+    files = [d / "results.csv", d / "results.parquet", d / "differences.csv", d / "differences.parquet"]
+    if study.direction_parts:
+        files += [d / "directions.csv", d / "directions.parquet"]
+    for c in study.comparisons:
+        files += [d / f"{c.figure}.png", d / f"{c.figure}.svg"]
+    if study.direction_parts:
+        files += [d / "fig-directions.png", d / "fig-directions.svg"]
+    files += [d / "claims.md", d / "study.json"]
+    return files
+
+
+@dataclass
+class StudyResult:
+    """What :func:`run_study` produced."""
+
+    study: Study
+    sweep_result: SweepResult
+    table: Any
+    differences: Any
+    directions: Any
+    report: str
+    files: list[Path]
+    timings: dict[str, float]
+
+
+def run_study(study: Study | str | os.PathLike, out_dir: str | os.PathLike, *, trials: int | None = None,
+              seed: int | None = None, cache_dir: str | os.PathLike | None = "default",
+              scheduler: str | None = None, batch_cells: int = 1, workers: int = 1, force: bool = False,
+              progress: bool = False) -> StudyResult:
+    """Run a study and write its table, differences, figures, claims report and ``study.json``.
+
+    ``cache_dir``: ``"default"`` is ``out_dir/cache``; ``None`` disables the cache. ``trials``/``seed``
+    override the study's. Every output file is checked before any simulation: an existing one is an
+    error unless ``force``. A rerun reuses the cached cells.
+    """
+    from .. import __version__
+
+    if not isinstance(study, Study):
+        study = load_study(study)
+    if trials is not None or seed is not None:
+        study = Study(**{**study.__dict__, "trials": trials if trials is not None else study.trials,
+                         "seed": seed if seed is not None else study.seed})
+    files = study_outputs(study, out_dir)
+    out = prepare_out_dir(out_dir, files, force)
+    if cache_dir == "default":
+        cache_dir = out / "cache"
+    t0 = time.perf_counter()
+    sweeps = study_sweeps(study)
+    res = run_sweeps(sweeps, cache_dir=cache_dir, scheduler=scheduler, batch_cells=batch_cells, workers=workers,
+                     progress=progress, desc=f"study {study.name}")
+    t_sim = time.perf_counter() - t0
+    table = res.table()
+    diffs = paired_differences(study, res)
+    dirs = direction_differences(study, res)
+    written = write_table(table, out / "results", force=force)
+    written += write_table(diffs, out / "differences", force=force)
+    if study.direction_parts:
+        written += write_table(dirs, out / "directions", force=force)
+    t1 = time.perf_counter()
+    for c in study.comparisons:
+        written += _save_figure(plot_comparison(study, c, diffs), out / c.figure, force)
+    if study.direction_parts:
+        written += _save_figure(plot_directions(study, dirs), out / "fig-directions", force)
+    t_fig = time.perf_counter() - t1
+    timings = {"simulate_s": t_sim, "figures_s": t_fig}
+    runtime = {"cells": len(res.cells), "computed": res.computed, "cached": res.cached,
+               "system_trials": res.system_trials, "simulate_s": t_sim,
+               "total_s": time.perf_counter() - t0, "version": __version__}
+    report = claims_report(study, res, diffs, dirs, runtime=runtime)
+    atomic_write(out / "claims.md", lambda tmp: Path(tmp).write_text(report, encoding="utf-8"))
+    written.append(out / "claims.md")
+    timings["total_s"] = time.perf_counter() - t0
+    record = {"torchdoct_version": __version__, "study": study.to_dict(), "timings_s": timings,
+              "cells": [{"sweep": c.cell.sweep, "cell": c.cell.index, "value": c.cell.values["value"],
+                         "seed": c.seed, "trials": c.trials, "dtype": c.dtype, "cache_key": c.cache_key,
+                         "cached": c.cached, "elapsed_s": c.elapsed_s} for c in res.cells],
+              "computed": res.computed, "cached": res.cached, "system_trials": res.system_trials}
+    atomic_write(out / "study.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=2), encoding="utf-8"))
+    written.append(out / "study.json")
+    return StudyResult(study=study, sweep_result=res, table=table, differences=diffs, directions=dirs,
+                       report=report, files=written, timings=timings)
