@@ -558,7 +558,11 @@ def _load_h5(path: Path, dataset: str | None) -> tuple[np.ndarray, np.ndarray | 
         if "torchdoct" in fh.attrs:
             raw = fh.attrs["torchdoct"]
             if isinstance(raw, bytes):
-                raw = raw.decode("utf-8")
+                try:
+                    raw = raw.decode("utf-8")
+                except UnicodeDecodeError as err:
+                    raise ValueError(f"{path.name}: attribute 'torchdoct' is not UTF-8 text (byte {err.start}); it "
+                                     "must hold the JSON metadata (write the file again)") from None
             meta = _parse_json(str(raw), f"{path.name} attribute 'torchdoct'")
     return data, labels, params, meta
 
@@ -651,7 +655,13 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     if file_meta is not None:
         meta.update(file_meta)
     elif side.exists():
-        meta.update(_parse_json(side.read_text(encoding="utf-8"), side.name))
+        try:
+            side_text = side.read_text(encoding="utf-8")
+        except UnicodeDecodeError as err:
+            raise ValueError(f"{side.name}: the metadata sidecar of {p.name} is not UTF-8 text (byte {err.start}); "
+                             "it must be the JSON metadata file (fix it, or remove it and give the metadata as "
+                             "options)") from None
+        meta.update(_parse_json(side_text, side.name))
     if suffix in (".tif", ".tiff") and axes is None and "axes" not in meta:
         axes = "TZX"
     # keyword overrides

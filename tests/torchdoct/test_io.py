@@ -165,6 +165,26 @@ def test_object_arrays_are_refused(tmp_path):
         read_sequence(tmp_path / "nodata.npz")
 
 
+def test_binary_metadata_is_named_never_a_codec_error(tmp_path, capsys):
+    """A sidecar or HDF5 ``torchdoct`` attribute that is not UTF-8 text: a ValueError naming the file
+    (was a bare ``'utf-8' codec can't decode`` message), and ``maps`` exits 2 writing nothing."""
+    from torchdoct.cli import main
+
+    write_sequence(tmp_path / "s.npy", _field((4, 5, 6)), _meta())
+    (tmp_path / "s.json").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
+    with pytest.raises(ValueError, match=r"s\.json: the metadata sidecar of s\.npy is not UTF-8 text \(byte 0\)"):
+        read_sequence(tmp_path / "s.npy")
+    with h5py.File(tmp_path / "h.h5", "w") as fh:
+        fh.create_dataset("data", data=_field((4, 5, 6)))
+        fh.attrs["torchdoct"] = np.bytes_(b'{"axes": "\xff\xfe"}')
+    with pytest.raises(ValueError, match=r"h\.h5: attribute 'torchdoct' is not UTF-8 text \(byte 10\)"):
+        read_sequence(tmp_path / "h.h5")
+    for name in ("s.npy", "h.h5"):
+        assert main(["maps", str(tmp_path / name), "--out", str(tmp_path / "m.npz"), "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and "codec" not in err and not (tmp_path / "m.npz").exists()
+
+
 def test_matlab_v73_compound_complex(tmp_path):
     """MATLAB v7.3 stores a [Z, X, T] complex array as an HDF5 compound {real, imag} of shape (T, X, Z)."""
     data = _field((4, 5, 6))  # T, Z, X
