@@ -156,7 +156,11 @@ def _maps(args: argparse.Namespace) -> int:
     resolutions = args.resolution or ["original"]
     from .resolution import parse_resolution
 
-    if any(parse_resolution(r).label != "original" for r in resolutions):
+    changes = [parse_resolution(r).label for r in resolutions if parse_resolution(r).label != "original"]
+    if changes and not seq.is_complex:  # no optics option can help: say so before asking for them
+        raise ValueError(f"{seq.source} holds intensity only (dtype {seq.data.dtype}): a resolution change "
+                         f"({', '.join(changes)}) needs the complex field; use --resolution original only")
+    if changes:
         _ = seq.system, seq.pitch_um  # a resolution change needs them: a clear error before any work
     if args.png:  # check the PNG paths before the work
         from .maps import METRICS, png_name

@@ -307,6 +307,12 @@ def test_cli_maps_errors(tmp_path, capsys):
     assert main(["maps", str(tmp_path / "i.tif"), "--pitch-um", "z=1.5,x=2", "--frame-interval-s", "0.2048",
                  "--resolution", "lateral=18", "--out", str(tmp_path / "i.npz"), "--no-progress"] + sys_args) == 2
     assert "intensity only" in capsys.readouterr().err
+    # without the optics the intensity-only refusal comes first, not a request for optics that cannot help
+    assert main(["maps", str(tmp_path / "i.tif"), "--frame-interval-s", "0.2048", "--resolution", "lateral=18",
+                 "--out", str(tmp_path / "i.npz"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "i.tif holds intensity only" in err and "--wavelength-um" not in err and "pitch" not in err
+    assert not (tmp_path / "i.npz").exists()
 
 
 def test_cli_block_raster_volume(tmp_path, capsys):
