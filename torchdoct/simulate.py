@@ -335,27 +335,27 @@ def _eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi:
             vis = visible[rows]
             if T > _TILE_FRAMES:
                 vis = vis & (lo[rows] <= times[f1 - 1]) & (hi[rows] >= times[f0])
-            where = torch.nonzero(vis.reshape(-1)).view(-1)  # flat (row, column) of the visible paths
-            if where.numel() == 0:
+            count = vis.sum(1)
+            width = int(count.max())
+            if width == 0:
                 continue
-            r = where // C
-            rank = torch.cumsum(vis, 1).view(-1).index_select(0, where) - 1
-            width = int(rank.max()) + 1
-            packed = pad.expand(vis.shape[0], width, 5).clone()
-            where += rows.start * C
-            packed.view(-1, 5).index_copy_(0, r * width + rank, torch.stack(
-                [x.reshape(-1).index_select(0, where) for x in coef], dim=1).to(dtype))
+            # visible paths to the front of each row, in order (masked_select and masked_scatter both
+            # go in row-major order); the rest of the row is padding
+            front = torch.arange(width, device=dev) < count[:, None]
+            packed = pad.view(1, 5, 1).expand(vis.shape[0], 5, width).clone()  # [rows, 5, width]
+            for i, x in enumerate(coef):
+                packed[:, i].masked_scatter_(front, x[rows].masked_select(vis).to(dtype))
             per_piece = max(1, _PIECE_ELEMENTS // (width * (f1 - f0)))
             tt = t[f0:f1]
             for i0 in range(0, vis.shape[0], per_piece):
-                c = packed[i0:i0 + per_piece]  # [k, width, 5]
-                tau = tt - c[..., 2:3]  # [k, width, frames]
+                c = packed[i0:i0 + per_piece, :, :, None]  # [k, 5, width, 1]
+                tau = tt - c[:, 2]  # [k, width, frames]
                 ex = tau * tau
-                ex.mul_(c[..., 1:2]).add_(c[..., 0:1])
+                ex.mul_(c[:, 1]).add_(c[:, 0])
                 amp = _truncated_amplitude(ex, log_tol)
                 if refl != 1.0:
                     amp.mul_(refl)
-                ph = tau.mul_(c[..., 4:5]).add_(c[..., 3:4])
+                ph = tau.mul_(c[:, 4]).add_(c[:, 3])
                 out = slice(b0 + i0, b0 + i0 + c.shape[0])
                 re[out, f0:f1] = (amp * torch.cos(ph)).sum(1)
                 im[out, f0:f1] = amp.mul_(torch.sin(ph, out=ph)).sum(1)
