@@ -451,7 +451,8 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
             t1 = time.perf_counter()
             est.fit(xb, yb)
             timing[name] = {"train_s": time.perf_counter() - t1}
-            predictors[name] = (lambda e: (lambda xx: e.predict_proba(transform_numpy(xx, mask))))(est)
+            full = np.eye(len(CLASS_NAMES))[est.classes_]  # a class absent from a small training split: p = 0
+            predictors[name] = (lambda e, f: (lambda xx: e.predict_proba(transform_numpy(xx, mask)) @ f))(est, full)
             say(f"{name}: trained in {timing[name]['train_s']:.2f} s")
 
     test_metrics: dict[str, dict[str, Any]] = {}

@@ -164,6 +164,22 @@ def test_undecided_network_reports_na_with_the_reason(cache_dir, tmp_path, capsy
                                                       "two-wavelength.onnx", "two-wavelength.png"]
 
 
+def test_baselines_cover_classes_absent_from_a_small_training_split(cache_dir, tmp_path, capsys):
+    """Three training draws that are all identifiable: the scikit-learn baselines never see the
+    indeterminate class; their probabilities still have one column per class (0 for the absent one)
+    and the run succeeds (was 'probabilities must be [N, 4]; got (192, 3)' after training)."""
+    out = tmp_path / "model"
+    argv = ["--out", str(out), "--spec", "single-acquisition", "--draws-train", "3", "--draws-validation", "3",
+            "--draws-test", "3", "--replicates", "1", "--max-epochs", "1", "--cache", str(cache_dir),
+            "--no-progress"]
+    assert train_main(argv) == 0, capsys.readouterr().err
+    assert "'static': 0, 'decorrelated': 0" in capsys.readouterr().out.splitlines()[0]  # the case under test
+    report = json.loads((out / "single-acquisition.json").read_text())
+    for name in ("logistic_regression", "gradient_boosting"):
+        m1 = report["test"][name]["1"]
+        assert m1["identifiable_samples"] > 0 and 0.0 <= m1["coverage_identifiable"] <= 1.0
+
+
 def test_failed_run_leaves_no_model_and_keeps_the_old_one(cache_dir, tmp_path, monkeypatch, capsys):
     import classifier.report as report
 
