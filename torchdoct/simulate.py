@@ -164,13 +164,18 @@ def unit_directions(u: torch.Tensor, law: str) -> torch.Tensor:
     polar angle uniform on [0, π], the reference paper's text and code; physics.md §10.2). The azimuth
     is uniform on [0, 2π). The polar angle is measured from the depth (z) axis.
     """
+    return torch.stack(_direction_components(u[..., 0], u[..., 1], law), dim=-1)
+
+
+def _direction_components(u0: torch.Tensor, u1: torch.Tensor, law: str) -> tuple[torch.Tensor, ...]:
+    """The (x, y, z) components of :func:`unit_directions` from the two uniforms."""
     if law == "isotropic":
-        mu = 2.0 * u[..., 0] - 1.0
+        mu = 2.0 * u0 - 1.0
     else:
-        mu = torch.cos(math.pi * u[..., 0])
+        mu = torch.cos(math.pi * u0)
     st = torch.sqrt(torch.clamp(1.0 - mu * mu, min=0.0))
-    phi = _TWO_PI * u[..., 1]
-    return torch.stack([st * torch.cos(phi), st * torch.sin(phi), mu], dim=-1)
+    phi = _TWO_PI * u1
+    return st * torch.cos(phi), st * torch.sin(phi), mu
 
 
 def _directions(draws: _Draws, law: str, n: int) -> torch.Tensor:
@@ -184,6 +189,18 @@ def _velocities(pop: Population, draws: _Draws, n: int) -> torch.Tensor:
         BLOCK_TRIALS * len(draws.gens), n, 3).clone()
     for b in pop.ballistic:
         v += b.speed_um_per_s * _directions(draws, b.directions, n)
+    return v
+
+
+def _velocity_components(pop: Population, draws: _Draws, n: int) -> torch.Tensor:
+    """:func:`_velocities` component-major: [3, N, n] (the same draws and the same numbers)."""
+    v = torch.empty(3, BLOCK_TRIALS * len(draws.gens), n, dtype=_F64, device=draws.device)
+    for i, f in enumerate(pop.flow_velocity_um_per_s):
+        v[i] = f
+    for b in pop.ballistic:
+        u = draws.rand(n, 2)
+        for i, d in enumerate(_direction_components(u[..., 0], u[..., 1], b.directions)):
+            v[i] += b.speed_um_per_s * d
     return v
 
 
@@ -239,9 +256,10 @@ def _path_coefficients(p: torch.Tensor, v: torch.Tensor | None, t_ref: torch.Ten
     For a straight path ``r(t) = p + v·(t − t_ref)`` the PSF exponent is a quadratic in t; written
     about its vertex ``t*`` it is ``e* + a2·(t − t*)²`` (both ≤ 0, so no cancellation in float32),
     and the phase is ``φ* + ω·(t − t*)`` with ``φ* = (2kn·z(t*)) mod 2π`` and ``ω = 2kn·v_z``.
-    Inputs float64 [N, C, 3] / [N, C]; returns float64 (e*, a2, t*, φ*, ω) of shape [N, C].
+    Inputs float64 [3, N, C] (component-major) / [N, C]; returns float64 (e*, a2, t*, φ*, ω) of
+    shape [N, C].
     """
-    px, py, pz = p.movedim(-1, 0).contiguous()  # component-major: [N, C] each
+    px, py, pz = p
 
     def norm_w(x, y, z, xx, yy, zz):  # −(a_lat·(x·xx + y·yy) + a_ax·z·zz)
         out = x * xx
@@ -249,7 +267,7 @@ def _path_coefficients(p: torch.Tensor, v: torch.Tensor | None, t_ref: torch.Ten
 
     if v is None:
         return norm_w(px, py, pz, px, py, pz), None, None, torch.remainder(pz * (2.0 * kn), _TWO_PI), None
-    vx, vy, vz = (v * (p[..., :1] < 0.5 * _FAR)).movedim(-1, 0).contiguous()  # unused slots stand still
+    vx, vy, vz = v * (p[:1] < 0.5 * _FAR)  # unused slots stand still
     a2 = norm_w(vx, vy, vz, vx, vy, vz)
     # exponent(t_ref + u) = e(p) + 2u·(−(p·v)_w) + a2·u², stationary at u = (p·v)_w / a2
     shift = norm_w(px, py, pz, vx, vy, vz).div_(a2).neg_().nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)
@@ -263,11 +281,12 @@ def _path_coefficients(p: torch.Tensor, v: torch.Tensor | None, t_ref: torch.Ten
 def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tensor | None,
                 times: torch.Tensor, optics: _Optics, systems: tuple[int, ...], refl: float,
                 dtype: torch.dtype, tolerance: float) -> torch.Tensor:
-    """Field [N, len(systems), T] of scatterers on straight paths ``p_ref + vel·(t − t_ref)``.
+    """Field [N, len(systems), T] of scatterers on straight paths ``p_ref + vel·(t − t_ref)``
+    (positions and velocities component-major, [3, N, C]).
 
     ``vel is None`` means static scatterers: one evaluation, repeated over the frames.
     """
-    N, C, _ = p_ref.shape
+    _, N, C = p_ref.shape
     T = times.numel()
     cdt = _complex_of(dtype)
     if vel is None:
@@ -364,15 +383,16 @@ def _eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi:
 
 def _path_meets_box(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tensor | None,
                     T: float, half: tuple[float, float, float]) -> torch.Tensor:
-    """Whether ``p_ref + vel·(t − t_ref)`` is inside the box for some t in [0, T] (slab test)."""
+    """Whether ``p_ref + vel·(t − t_ref)`` is inside the box for some t in [0, T] (slab test;
+    positions and velocities [3, N, C])."""
     if vel is None:
-        return _inside(p_ref, torch.tensor(half, dtype=p_ref.dtype, device=p_ref.device))
-    lo = torch.zeros(p_ref.shape[:2], dtype=p_ref.dtype, device=p_ref.device)
+        return (p_ref[0].abs() <= half[0]) & (p_ref[1].abs() <= half[1]) & (p_ref[2].abs() <= half[2])
+    lo = torch.zeros(p_ref.shape[1:], dtype=p_ref.dtype, device=p_ref.device)
     hi = torch.full_like(lo, T)
     inf = torch.full_like(lo, math.inf)
     for a in range(3):
-        v = vel[..., a]
-        p = p_ref[..., a]
+        v = vel[a]
+        p = p_ref[a]
         moving = v != 0
         vs = torch.where(moving, v, torch.ones_like(v))
         t1 = t_ref + (-half[a] - p) / vs
@@ -387,7 +407,7 @@ def _path_meets_box(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.
 
 def _eval_culled(pp: PopulationPlan, pop: Population, p_ref, vel, t_ref, times, optics, dtype, plan):
     """Evaluate each group of systems on the scatterers that can reach its own PSF box."""
-    N = p_ref.shape[0]
+    N = p_ref.shape[1]
     S = optics.kn.numel()
     out = torch.empty(N, S, times.numel(), dtype=_complex_of(dtype), device=p_ref.device)
     T = float(times[-1])
@@ -397,8 +417,7 @@ def _eval_culled(pp: PopulationPlan, pop: Population, p_ref, vel, t_ref, times, 
         else:
             mask = _path_meets_box(p_ref, vel, t_ref, T, half)
             tensors = [t for t in (p_ref, vel, t_ref) if t is not None]
-            valid, got = _compact(mask, cap, f"population {pp.index} systems {idx}", *tensors)
-            got[0] = torch.where(valid[..., None], got[0], torch.full_like(got[0], _FAR))
+            _, got = _compact(mask, cap, f"population {pp.index} systems {idx}", *tensors, fill=(_FAR, 0.0, 0.0))
             sel = (got[0], got[1], got[2]) if vel is not None else (got[0], None, None)
         out[:, list(idx)] = _eval_paths(*sel, times, optics, tuple(idx), pop.reflectivity, dtype,
                                         plan.truncation_tolerance)
@@ -418,60 +437,75 @@ def _uniform_box(draws: _Draws, n: torch.Tensor, cap: int, half: tuple[float, fl
     return pos, valid
 
 
-def _compact(mask: torch.Tensor, cap: int, what: str, *tensors: torch.Tensor):
-    """Move the True entries of ``mask`` [N, P] to the front (order kept), keep ``cap`` slots."""
+def _compact(mask: torch.Tensor, cap: int, what: str, *tensors: torch.Tensor, fill=None):
+    """Move the True entries of ``mask`` [N, P] to the front (order kept), keep ``cap`` slots.
+
+    ``tensors``: [..., N, P] (leading dims, e.g. components, broadcast against the mask); returns the
+    valid mask [N, cap] and the tensors [..., N, cap], slots past the count set to ``fill`` (one value
+    per tensor, default 0)."""
     n = mask.sum(1)
     if int(n.max()) > cap:
         raise CapacityError(f"{what}: {int(n.max())} entries exceed the {cap} reserved slots")
-    order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)[:, :cap]
     valid = torch.arange(cap, device=mask.device)[None, :] < n[:, None]
     out = []
-    for t in tensors:
-        idx = order.view(*order.shape, *([1] * (t.dim() - 2))).expand(*order.shape, *t.shape[2:])
-        out.append(t.gather(1, idx))
+    for i, t in enumerate(tensors):
+        c = torch.full((*t.shape[:-1], cap), 0.0 if fill is None else fill[i], dtype=t.dtype, device=t.device)
+        out.append(c.masked_scatter_(valid, t.masked_select(mask)))
     return valid, out
 
 
 def _simulate_static(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
     n = draws.poisson(pp.expected_scatterers_per_trial, pp.capacity, f"population {pp.index} count")
     pos, _ = _uniform_box(draws, n, pp.capacity, pp.domain_half_widths_um)
-    return _eval_culled(pp, pop, pos, None, None, times, optics, dtype, plan)
+    return _eval_culled(pp, pop, pos.permute(2, 0, 1).contiguous(), None, None, times, optics, dtype, plan)
 
 
-def _unit_ball(draws: _Draws, n: int) -> torch.Tensor:
-    """Points uniform in the unit ball, [N, n, 3]: an isotropic direction at radius ``U^(1/3)``."""
+def _unit_ball(draws: _Draws, n: int) -> tuple[torch.Tensor, ...]:
+    """Points uniform in the unit ball, components (x, y, z) [N, n]: an isotropic direction at
+    radius ``U^(1/3)``."""
     u = draws.rand(n, 3)
-    return unit_directions(u[..., :2], "isotropic") * u[..., 2:].pow(1.0 / 3.0)
+    r = u[..., 2].pow(1.0 / 3.0)
+    return tuple(d * r for d in _direction_components(u[..., 0], u[..., 1], "isotropic"))
 
 
 def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
-    """Straight paths that meet the tolerance ellipsoid during the protocol (see :mod:`torchdoct.plan`)."""
-    H = torch.tensor(pp.domain_half_widths_um, dtype=_F64, device=draws.device)
-    n0_mean = 4.0 * math.pi / 3.0 * pp.density_per_um3 * math.prod(pp.domain_half_widths_um)
-    n0 = draws.poisson(n0_mean, pp.capacity, f"population {pp.index} count")
-    valid0 = torch.arange(pp.capacity, device=draws.device)[None, :] < n0[:, None]
-    p0 = torch.where(valid0[..., None], _unit_ball(draws, pp.capacity) * H, _FAR)
-    v0 = _velocities(pop, draws, pp.capacity)
-    N = p0.shape[0]
-    t0 = torch.zeros(N, pp.capacity, dtype=_F64, device=draws.device)
-    if pp.entry_proposal_capacity == 0:
-        return _eval_culled(pp, pop, p0, v0, t0, times, optics, dtype, plan)
+    """Straight paths that meet the tolerance ellipsoid during the protocol (see :mod:`torchdoct.plan`).
+
+    Positions and velocities are kept component-major ([3, N, slots], float64)."""
+    H = pp.domain_half_widths_um
+    dev = draws.device
+    n0_mean = 4.0 * math.pi / 3.0 * pp.density_per_um3 * math.prod(H)
+    C = pp.capacity
+    n0 = draws.poisson(n0_mean, C, f"population {pp.index} count")
+    N = n0.numel()
+    E = pp.entry_capacity if pp.entry_proposal_capacity else 0
+    valid0 = torch.arange(C, device=dev)[None, :] < n0[:, None]
+    p = torch.empty(3, N, C + E, dtype=_F64, device=dev)
+    for i, x in enumerate(_unit_ball(draws, C)):
+        p[i, :, :C] = x.mul_(H[i]).masked_fill_(~valid0, _FAR)
+    v = torch.empty_like(p)
+    v[:, :, :C] = _velocity_components(pop, draws, C)
+    t_ref = torch.zeros(N, C + E, dtype=_F64, device=dev)
+    if E == 0:
+        return _eval_culled(pp, pop, p, v, t_ref, times, optics, dtype, plan)
     # Entrants: in coordinates scaled by H the ellipsoid is the unit ball and a path of velocity v
     # has velocity w = v/H; such paths enter at the rate ρ·Hx·Hy·Hz·π·|w|. Velocities are drawn from
     # the law and kept with probability |w|/w_max; the impact point is uniform on the unit disk
     # across w, the entry point where that line meets the sphere on its way in, the time uniform.
     P = pp.entry_proposal_capacity
-    E = pp.entry_capacity
     T = float(times[-1])
-    w_max = ellipsoid_entry_bound(pop, pp.domain_half_widths_um)
+    w_max = ellipsoid_entry_bound(pop, H)
     n_prop = draws.poisson(pp.entry_proposal_rate_per_s * T, P, f"population {pp.index} entrants")
-    ve = _velocities(pop, draws, P)
+    ve = _velocity_components(pop, draws, P)
     u_acc = draws.rand(P)
-    accept = (u_acc * w_max < torch.linalg.vector_norm(ve / H, dim=-1)) & (
-        torch.arange(P, device=draws.device)[None, :] < n_prop[:, None])
+    w = torch.stack([ve[i] / H[i] for i in range(3)], dim=-1)
+    accept = (u_acc * w_max < torch.linalg.vector_norm(w, dim=-1)) & (
+        torch.arange(P, device=dev)[None, :] < n_prop[:, None])
     valid_e, (ve,) = _compact(accept, E, f"population {pp.index} entrants", ve)
-    # unit direction n of w and an orthonormal basis (e1, e2) across it (Duff et al. 2017, branch-free)
-    wx, wy, wz = (ve / H).unbind(-1)
+    v[:, :, C:] = ve
+    # unit direction n of w and an orthonormal basis (e1, e2) across it (Duff et al. 2017, branch-free;
+    # slots past the count give NaN here and are set far away below)
+    wx, wy, wz = (ve[i] / H[i] for i in range(3))
     wn = torch.sqrt(wx * wx + wy * wy + wz * wz)
     nx, ny, nz = wx / wn, wy / wn, wz / wn
     sgn = torch.where(nz >= 0, 1.0, -1.0).to(_F64)
@@ -483,11 +517,11 @@ def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, o
     rad = torch.sqrt(u[..., 0])
     ang = _TWO_PI * u[..., 1]
     c1, c2, depth = rad * torch.cos(ang), rad * torch.sin(ang), torch.sqrt(1.0 - u[..., 0])
-    y = torch.stack([c1 * e1[i] + c2 * e2[i] - depth * n_i for i, n_i in enumerate((nx, ny, nz))], dim=-1)
-    pe = torch.where(valid_e[..., None], y * H, _FAR)
-    te = u[..., 2] * T
-    return _eval_culled(pp, pop, torch.cat([p0, pe], dim=1), torch.cat([v0, ve], dim=1),
-                        torch.cat([t0, te], dim=1), times, optics, dtype, plan)
+    invalid_e = ~valid_e
+    for i, n_i in enumerate((nx, ny, nz)):
+        p[i, :, C:] = (c1 * e1[i] + c2 * e2[i] - depth * n_i).mul_(H[i]).masked_fill_(invalid_e, _FAR)
+    torch.mul(u[..., 2], T, out=t_ref[:, C:])
+    return _eval_culled(pp, pop, p, v, t_ref, times, optics, dtype, plan)
 
 
 def _shell_points(draws: _Draws, P: int, inner: tuple, outer: tuple) -> torch.Tensor:
