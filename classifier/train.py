@@ -114,11 +114,11 @@ class TrainConfig:
 
 
 #: Shipped recipes that differ from the :class:`TrainConfig` defaults (``doct-train --spec NAME``).
-#: The signature spec has ~50× more features than LIV/OCDS: more draws and replicates (the
-#: replicates' static fraction and noise are almost free), a wider network.
+#: The signature spec has 6× more features than LIV/OCDS: more draws, a wider network, and the
+#: random-bulk-phase test split.
 SPEC_RECIPES: dict[str, dict[str, Any]] = {
-    "signature": {"draws_train": 900, "draws_validation": 90, "draws_test": 90, "replicates": 8,
-                  "hidden": (128, 128), "patience": 15, "max_epochs": 80},
+    "signature": {"draws_train": 480, "draws_validation": 60, "draws_test": 90, "replicates": 8,
+                  "hidden": (128, 128), "patience": 10, "max_epochs": 60, "bulk_phase_test": True},
 }
 
 
