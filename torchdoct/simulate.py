@@ -406,7 +406,12 @@ def _path_meets_box(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.
 
 
 def _eval_culled(pp: PopulationPlan, pop: Population, p_ref, vel, t_ref, times, optics, dtype, plan):
-    """Evaluate each group of systems on the scatterers that can reach its own PSF box."""
+    """Evaluate each group of systems on the scatterers that can reach its own PSF box.
+
+    ``p_ref``, ``vel``: [N, C, 3]; a view of component-major storage ([3, N, C] permuted) is used
+    without a copy."""
+    p_ref = p_ref.permute(2, 0, 1).contiguous()
+    vel = None if vel is None else vel.permute(2, 0, 1).contiguous()
     N = p_ref.shape[1]
     S = optics.kn.numel()
     out = torch.empty(N, S, times.numel(), dtype=_complex_of(dtype), device=p_ref.device)
@@ -457,7 +462,7 @@ def _compact(mask: torch.Tensor, cap: int, what: str, *tensors: torch.Tensor, fi
 def _simulate_static(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
     n = draws.poisson(pp.expected_scatterers_per_trial, pp.capacity, f"population {pp.index} count")
     pos, _ = _uniform_box(draws, n, pp.capacity, pp.domain_half_widths_um)
-    return _eval_culled(pp, pop, pos.permute(2, 0, 1).contiguous(), None, None, times, optics, dtype, plan)
+    return _eval_culled(pp, pop, pos, None, None, times, optics, dtype, plan)
 
 
 def _unit_ball(draws: _Draws, n: int) -> tuple[torch.Tensor, ...]:
@@ -487,7 +492,7 @@ def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, o
     v[:, :, :C] = _velocity_components(pop, draws, C)
     t_ref = torch.zeros(N, C + E, dtype=_F64, device=dev)
     if E == 0:
-        return _eval_culled(pp, pop, p, v, t_ref, times, optics, dtype, plan)
+        return _eval_culled(pp, pop, p.permute(1, 2, 0), v.permute(1, 2, 0), t_ref, times, optics, dtype, plan)
     # Entrants: in coordinates scaled by H the ellipsoid is the unit ball and a path of velocity v
     # has velocity w = v/H; such paths enter at the rate ρ·Hx·Hy·Hz·π·|w|. Velocities are drawn from
     # the law and kept with probability |w|/w_max; the impact point is uniform on the unit disk
@@ -521,7 +526,7 @@ def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, o
     for i, n_i in enumerate((nx, ny, nz)):
         p[i, :, C:] = (c1 * e1[i] + c2 * e2[i] - depth * n_i).mul_(H[i]).masked_fill_(invalid_e, _FAR)
     torch.mul(u[..., 2], T, out=t_ref[:, C:])
-    return _eval_culled(pp, pop, p, v, t_ref, times, optics, dtype, plan)
+    return _eval_culled(pp, pop, p.permute(1, 2, 0), v.permute(1, 2, 0), t_ref, times, optics, dtype, plan)
 
 
 def _shell_points(draws: _Draws, P: int, inner: tuple, outer: tuple) -> torch.Tensor:
