@@ -58,7 +58,7 @@ def _write(path, data, meta, fmt, sidecar=True):
 def broken_sequences(draw):
     fmt = draw(st.sampled_from(["npy", "npz", "h5"]))
     kind = draw(st.sampled_from(["truncate", "dtype", "rank", "axes", "frames", "pitch", "zero", "sidecar",
-                                 "not-json", "system"]))
+                                 "not-json", "system", "binary-meta"]))
     meta = json.loads(json.dumps(META))
     shape = (T, Z, X)
     dtype = np.complex64
@@ -96,6 +96,11 @@ def test_broken_sequence_files_fail_clearly(tmp_path, case):
     meta_out = meta
     if kind == "not-json":
         meta_out = "{'axes': TZX"
+    if kind == "binary-meta":  # an image or data file saved as the metadata: not UTF-8 text
+        meta_out = b"\x89PNG\r\n\x1a\n\xff\xfe" + bytes(range(1, 256))
+        if fmt != "h5":
+            (tmp_path / f"seq-{kind}.json").write_bytes(meta_out)
+            meta_out = None
     path = _write(tmp_path / f"seq-{kind}", data, meta_out, fmt, sidecar=kind != "sidecar")
     if kind == "truncate":
         raw = path.read_bytes()
@@ -104,6 +109,7 @@ def test_broken_sequence_files_fail_clearly(tmp_path, case):
         seq = read_sequence(path)
     except ERRORS as err:
         msg = str(err)
+        assert kind != "binary-meta" or (path.name in msg and ("not UTF-8 text" in msg or "invalid JSON" in msg)), msg
         assert path.name in msg or path.stem in msg or any(
             k in msg for k in ("axes", "frame", "pitch", "system", "wavelength", "resolution", "json", "JSON")), msg
         code = main(["maps", str(path), "--out", str(tmp_path / "m.npz"), "--no-progress"])
