@@ -192,13 +192,15 @@ def _velocities(pop: Population, draws: _Draws, n: int) -> torch.Tensor:
     return v
 
 
-def _velocity_components(pop: Population, draws: _Draws, n: int) -> torch.Tensor:
-    """:func:`_velocities` component-major: [3, N, n] (the same draws and the same numbers)."""
-    v = torch.empty(3, BLOCK_TRIALS * len(draws.gens), n, dtype=_F64, device=draws.device)
+def _velocity_components(pop: Population, draws: _Draws, n: int, keep: int | None = None) -> torch.Tensor:
+    """:func:`_velocities` component-major: [3, N, keep] (the same draws and the same numbers; the
+    draws are made for ``n`` slots, only the first ``keep`` are computed)."""
+    keep = n if keep is None else keep
+    v = torch.empty(3, BLOCK_TRIALS * len(draws.gens), keep, dtype=_F64, device=draws.device)
     for i, f in enumerate(pop.flow_velocity_um_per_s):
         v[i] = f
     for b in pop.ballistic:
-        u = draws.rand(n, 2)
+        u = draws.rand(n, 2)[:, :keep]
         for i, d in enumerate(_direction_components(u[..., 0], u[..., 1], b.directions)):
             v[i] += b.speed_um_per_s * d
     return v
@@ -442,15 +444,17 @@ def _uniform_box(draws: _Draws, n: torch.Tensor, cap: int, half: tuple[float, fl
     return pos, valid
 
 
-def _compact(mask: torch.Tensor, cap: int, what: str, *tensors: torch.Tensor, fill=None):
+def _compact(mask: torch.Tensor, cap: int, what: str, *tensors: torch.Tensor, fill=None, keep: bool = False):
     """Move the True entries of ``mask`` [N, P] to the front (order kept), keep ``cap`` slots.
 
     ``tensors``: [..., N, P] (leading dims, e.g. components, broadcast against the mask); returns the
     valid mask [N, cap] and the tensors [..., N, cap], slots past the count set to ``fill`` (one value
-    per tensor, default 0)."""
+    per tensor, default 0). ``keep``: only as many slots as the largest count (at least one)."""
     n = mask.sum(1)
     if int(n.max()) > cap:
         raise CapacityError(f"{what}: {int(n.max())} entries exceed the {cap} reserved slots")
+    if keep:
+        cap = max(1, int(n.max()))
     valid = torch.arange(cap, device=mask.device)[None, :] < n[:, None]
     out = []
     for i, t in enumerate(tensors):
@@ -465,10 +469,10 @@ def _simulate_static(pp: PopulationPlan, pop: Population, draws: _Draws, times, 
     return _eval_culled(pp, pop, pos, None, None, times, optics, dtype, plan)
 
 
-def _unit_ball(draws: _Draws, n: int) -> tuple[torch.Tensor, ...]:
-    """Points uniform in the unit ball, components (x, y, z) [N, n]: an isotropic direction at
-    radius ``U^(1/3)``."""
-    u = draws.rand(n, 3)
+def _unit_ball(draws: _Draws, n: int, keep: int) -> tuple[torch.Tensor, ...]:
+    """Points uniform in the unit ball, components (x, y, z) [N, keep]: an isotropic direction at
+    radius ``U^(1/3)`` (drawn for ``n`` slots, the first ``keep`` computed)."""
+    u = draws.rand(n, 3)[:, :keep]
     r = u[..., 2].pow(1.0 / 3.0)
     return tuple(d * r for d in _direction_components(u[..., 0], u[..., 1], "isotropic"))
 
@@ -476,23 +480,24 @@ def _unit_ball(draws: _Draws, n: int) -> tuple[torch.Tensor, ...]:
 def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
     """Straight paths that meet the tolerance ellipsoid during the protocol (see :mod:`torchdoct.plan`).
 
-    Positions and velocities are kept component-major ([3, N, slots], float64)."""
+    Positions and velocities are kept component-major ([3, N, slots], float64). Draws are made for
+    the reserved slots (the random stream does not depend on the counts), but only the slots below
+    the chunk's largest count are computed: the others are empty in every trial."""
     H = pp.domain_half_widths_um
     dev = draws.device
     n0_mean = 4.0 * math.pi / 3.0 * pp.density_per_um3 * math.prod(H)
-    C = pp.capacity
-    n0 = draws.poisson(n0_mean, C, f"population {pp.index} count")
+    n0 = draws.poisson(n0_mean, pp.capacity, f"population {pp.index} count")
     N = n0.numel()
+    C = int(n0.max())
     E = pp.entry_capacity if pp.entry_proposal_capacity else 0
     valid0 = torch.arange(C, device=dev)[None, :] < n0[:, None]
-    p = torch.empty(3, N, C + E, dtype=_F64, device=dev)
-    for i, x in enumerate(_unit_ball(draws, C)):
-        p[i, :, :C] = x.mul_(H[i]).masked_fill_(~valid0, _FAR)
-    v = torch.empty_like(p)
-    v[:, :, :C] = _velocity_components(pop, draws, C)
-    t_ref = torch.zeros(N, C + E, dtype=_F64, device=dev)
+    p0 = torch.empty(3, N, C, dtype=_F64, device=dev)
+    for i, x in enumerate(_unit_ball(draws, pp.capacity, C)):
+        p0[i] = x.mul_(H[i]).masked_fill_(~valid0, _FAR)
+    v0 = _velocity_components(pop, draws, pp.capacity, C)
     if E == 0:
-        return _eval_culled(pp, pop, p.permute(1, 2, 0), v.permute(1, 2, 0), t_ref, times, optics, dtype, plan)
+        t_ref = torch.zeros(N, C, dtype=_F64, device=dev)
+        return _eval_culled(pp, pop, p0.permute(1, 2, 0), v0.permute(1, 2, 0), t_ref, times, optics, dtype, plan)
     # Entrants: in coordinates scaled by H the ellipsoid is the unit ball and a path of velocity v
     # has velocity w = v/H; such paths enter at the rate ρ·Hx·Hy·Hz·π·|w|. Velocities are drawn from
     # the law and kept with probability |w|/w_max; the impact point is uniform on the unit disk
@@ -501,13 +506,20 @@ def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, o
     T = float(times[-1])
     w_max = ellipsoid_entry_bound(pop, H)
     n_prop = draws.poisson(pp.entry_proposal_rate_per_s * T, P, f"population {pp.index} entrants")
-    ve = _velocity_components(pop, draws, P)
-    u_acc = draws.rand(P)
+    mp = int(n_prop.max())
+    ve = _velocity_components(pop, draws, P, mp)
+    u_acc = draws.rand(P)[:, :mp]
     w = torch.stack([ve[i] / H[i] for i in range(3)], dim=-1)
     accept = (u_acc * w_max < torch.linalg.vector_norm(w, dim=-1)) & (
-        torch.arange(P, device=dev)[None, :] < n_prop[:, None])
-    valid_e, (ve,) = _compact(accept, E, f"population {pp.index} entrants", ve)
+        torch.arange(mp, device=dev)[None, :] < n_prop[:, None])
+    valid_e, (ve,) = _compact(accept, E, f"population {pp.index} entrants", ve, keep=True)
+    me = valid_e.shape[1]
+    p = torch.empty(3, N, C + me, dtype=_F64, device=dev)
+    p[:, :, :C] = p0
+    v = torch.empty_like(p)
+    v[:, :, :C] = v0
     v[:, :, C:] = ve
+    t_ref = torch.zeros(N, C + me, dtype=_F64, device=dev)
     # unit direction n of w and an orthonormal basis (e1, e2) across it (Duff et al. 2017, branch-free;
     # slots past the count give NaN here and are set far away below)
     wx, wy, wz = (ve[i] / H[i] for i in range(3))
@@ -518,7 +530,7 @@ def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, o
     b = nx * ny * a
     e1 = (1.0 + sgn * nx * nx * a, sgn * b, -sgn * nx)
     e2 = (b, sgn + ny * ny * a, -ny)
-    u = draws.rand(E, 3)
+    u = draws.rand(E, 3)[:, :me]
     rad = torch.sqrt(u[..., 0])
     ang = _TWO_PI * u[..., 1]
     c1, c2, depth = rad * torch.cos(ang), rad * torch.sin(ang), torch.sqrt(1.0 - u[..., 0])
