@@ -567,13 +567,46 @@ def _load_h5(path: Path, dataset: str | None) -> tuple[np.ndarray, np.ndarray | 
     return data, labels, params, meta
 
 
+class _TiffDamage:
+    """Turns what tifffile only logs about a damaged file (a broken page table: it then reads the pages it
+    can reach, e.g. one page of a truncated stack) into a ``ValueError`` after the read."""
+
+    def __enter__(self):
+        import logging
+
+        class _Collect(logging.Handler):
+            def __init__(self):
+                super().__init__(logging.ERROR)
+                self.messages: list[str] = []
+
+            def emit(self, record):
+                self.messages.append(record.getMessage())
+
+        self.log, self.handler = logging.getLogger("tifffile"), _Collect()
+        self.propagate, self.log.propagate = self.log.propagate, False
+        self.log.addHandler(self.handler)
+        return self
+
+    def check(self) -> None:
+        if self.handler.messages:
+            raise ValueError("; ".join(self.handler.messages))
+
+    def __exit__(self, *exc):
+        self.log.removeHandler(self.handler)
+        self.log.propagate = self.propagate
+        return False
+
+
 def _load_tif(path: Path) -> tuple[np.ndarray, dict | None]:
     import tifffile
 
     try:
-        with tifffile.TiffFile(path) as tf:
+        with _TiffDamage() as damage, tifffile.TiffFile(path) as tf:
             data = tf.asarray()
+            if data.ndim == 2 and len(tf.pages) > 1:  # one image per page, each its own series: all pages
+                data = tf.asarray(key=range(len(tf.pages)))
             desc = tf.pages[0].description if len(tf.pages) else ""
+            damage.check()
     except (tifffile.TiffFileError, OSError, ValueError) as err:
         raise ValueError(f"{path.name}: not a readable TIFF stack ({err})") from None
     meta = None
@@ -779,9 +812,10 @@ def read_maps(path: str | os.PathLike) -> Maps:
         import tifffile
 
         try:
-            with tifffile.TiffFile(p) as tf:
+            with _TiffDamage() as damage, tifffile.TiffFile(p) as tf:
                 arr = np.asarray(tf.asarray(), dtype=np.float32)
                 desc = tf.pages[0].description
+                damage.check()
         except (EOFError, OSError, ValueError, IndexError, tifffile.TiffFileError) as err:
             raise ValueError(f"{p.name}: not a readable maps TIFF (truncated or corrupt: "
                              f"{type(err).__name__}: {err})") from None

@@ -215,6 +215,31 @@ def test_intensity_tiff_stack(tmp_path):
     np.testing.assert_array_equal(seq.data, inten)
 
 
+def test_tiff_written_page_by_page_and_truncated_tiffs(tmp_path, capsys):
+    """A stack written one page at a time (each page its own series) reads as all its pages (was only
+    the first: 'data have shape [6, 7]'); a truncated one (tifffile only logs its broken page table and
+    reads the first page) and a truncated maps TIFF are refused as truncated, naming the file, with no
+    stray log line."""
+    inten = np.random.default_rng(4).random((5, 6, 7)).astype(np.float32)
+    with tifffile.TiffWriter(tmp_path / "pages.tif") as tw:
+        for frame in inten:
+            tw.write(frame, contiguous=False)
+    np.testing.assert_array_equal(read_sequence(tmp_path / "pages.tif", frame_interval_s=0.2).data, inten)
+    raw = (tmp_path / "pages.tif").read_bytes()
+    (tmp_path / "cut.tif").write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(ValueError, match=r"cut\.tif: not a readable TIFF stack"):
+        read_sequence(tmp_path / "cut.tif", frame_interval_s=0.2)
+    chans = [{"name": f"liv@r{i}", "metric": "liv", "unit": "dB^2", "resolution": f"r{i}", "wavelength_um": 0.84,
+              "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8} for i in range(3)]
+    m = Maps(maps=np.ones((3, 64, 64), np.float32), channels=[c["name"] for c in chans],
+             meta={"channels": chans, "axes": "CZX"})
+    raw = write_maps(tmp_path / "m.tif", m).read_bytes()
+    (tmp_path / "mcut.tif").write_bytes(raw[: int(len(raw) * 0.8)])
+    with pytest.raises(ValueError, match=r"mcut\.tif: not a readable maps TIFF \(truncated or corrupt"):
+        read_maps(tmp_path / "mcut.tif")
+    assert capsys.readouterr().err == ""
+
+
 def test_block_raster_unpack_and_boundaries(tmp_path):
     raster = BlockRaster.parse("3:4:5")
     assert (raster.n_bscans, raster.n_y) == (60, 15)
