@@ -617,8 +617,10 @@ def _walk_periodic_block(g: torch.Generator, M: int, n: torch.Tensor, half, L, i
     res = torch.empty(T, 2, S, n.numel(), dtype=dtype, device=dev)
     step = torch.empty(3, M, dtype=torch.float32)
     wrap = torch.empty(3, M, dtype=dtype, device=dev)
-    amp, re, im = (torch.empty(M, dtype=dtype, device=dev) for _ in range(3))
-    lengths = n.to(dev)
+    amp = torch.empty(M, dtype=dtype, device=dev)
+    field = torch.empty(2, M, dtype=dtype, device=dev)  # real and imaginary parts of each term
+    re, im = field
+    lengths = n.to(dev).expand(2, -1).contiguous()
 
     def evaluate(f: int) -> None:
         for (a_lat, a_ax), systems in groups.items():
@@ -629,10 +631,10 @@ def _walk_periodic_block(g: torch.Generator, M: int, n: torch.Tensor, half, L, i
                 amp.mul_(refl)
             for s in systems:
                 torch.mul(pos[2], q[s], out=im)
-                torch.cos(im, out=re).mul_(amp)
-                im.sin_().mul_(amp)
-                res[f, 0, s].copy_(torch.segment_reduce(re, "sum", lengths=lengths))
-                res[f, 1, s].copy_(torch.segment_reduce(im, "sum", lengths=lengths))
+                torch.cos(im, out=re)
+                im.sin_()
+                field.mul_(amp)
+                res[f, :, s] = torch.segment_reduce(field, "sum", lengths=lengths, axis=1)
 
     evaluate(0)
     for f in range(1, T):
