@@ -214,6 +214,9 @@ def _load_mask(path: str) -> np.ndarray:
     if suf in (".npy", ".npz"):
         try:
             if suf == ".npy":
+                from .io import check_npy_header
+
+                check_npy_header(p, "mask ")
                 return np.load(p, allow_pickle=False)
             with open(p, "rb") as fh, np.load(fh, allow_pickle=False) as z:
                 key = "mask" if "mask" in z.files else (z.files[0] if len(z.files) == 1 else None)

@@ -481,7 +481,18 @@ def _refuse_object(arr: np.ndarray, where: str) -> np.ndarray:
     return arr
 
 
+def check_npy_header(path: Path, what: str = "") -> None:
+    """A ``.npy`` file must start with the NPY magic; anything else (a pickle, another format, random
+    bytes) is refused naming the file, before numpy would take it for a pickle."""
+    with open(path, "rb") as fh:
+        head = fh.read(6)
+    if head != b"\x93NUMPY":
+        raise ValueError(f"{what}{path.name}: not a NumPy .npy file (no NPY header: "
+                         f"{'empty' if not head else 'a pickle or another format'}); write it with numpy.save")
+
+
 def _load_npy(path: Path) -> np.ndarray:
+    check_npy_header(path)
     try:
         return np.load(path, mmap_mode="r", allow_pickle=False)
     except ValueError as err:

@@ -367,3 +367,16 @@ def test_object_array_masks_are_refused_naming_the_file(tmp_path, capsys):
                      str(tmp_path / name)]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and name in err and "allow_pickle" not in err, err
+
+
+def test_a_file_that_is_not_npy_is_named_as_such(tmp_path):
+    """Random bytes or a pickle under the .npy suffix: 'not a NumPy .npy file', never 'object array'."""
+    import pickle
+
+    from torchdoct.io import read_sequence
+
+    for name, payload in (("garbage.npy", b"hello, this is not numpy" * 10), ("pickled.npy", pickle.dumps([1, 2]))):
+        p = tmp_path / name
+        p.write_bytes(payload)
+        with pytest.raises(ValueError, match=rf"{name}: not a NumPy \.npy file"):
+            read_sequence(p)
