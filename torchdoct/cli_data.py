@@ -234,10 +234,16 @@ def _load_mask(path: str) -> np.ndarray:
     if suf in (".tif", ".tiff"):
         import tifffile
 
+        from .io import _TiffDamage
+
         try:
-            return tifffile.imread(p)
+            with _TiffDamage() as damage:  # a truncated file: tifffile only logs; refuse it instead
+                arr = tifffile.imread(p)
+                damage.check()
+            return arr
         except (tifffile.TiffFileError, OSError, ValueError, IndexError) as err:
-            raise ValueError(f"mask {p.name}: not a readable TIFF ({type(err).__name__}: {err})") from None
+            raise ValueError(f"mask {p.name}: not a readable TIFF, truncated or corrupt "
+                             f"({type(err).__name__}: {err})") from None
     raise ValueError(f"mask {p.name}: use .npy, .npz or .tif")
 
 

@@ -236,3 +236,17 @@ def test_maps_without_optics_are_refused_naming_the_fix(tmp_path, capsys):
     write_maps(tmp_path / "a.npz", m)
     assert main(["compare", str(tmp_path / "a.npz")]) == 2
     assert "--wavelength-um" in capsys.readouterr().err
+
+
+def test_truncated_tif_mask_is_refused_quietly(tmp_path, capfd):
+    import tifffile
+
+    from torchdoct.cli_data import _load_mask
+
+    good = tmp_path / "m.tif"
+    tifffile.imwrite(good, np.ones((8, 64, 64), np.uint8))
+    bad = tmp_path / "cut.tif"
+    bad.write_bytes(good.read_bytes()[: good.stat().st_size // 3])
+    with pytest.raises(ValueError, match="mask cut.tif: not a readable TIFF, truncated or corrupt"):
+        _load_mask(str(bad))
+    assert capfd.readouterr().err == ""
