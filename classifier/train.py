@@ -10,8 +10,9 @@
    = n, the model's last input). Each epoch uses every single trial (n = 1) plus, per draw,
    ``pooled_per_draw`` means over random subsets of its trials with n log-uniform in
    [2, ``max_pool_pixels``]; the validation set is one fixed draw of the same mixture;
-4. AdamW on cross-entropy, minibatches shuffled by a seeded numpy generator, early stopping on the
-   validation loss (best weights kept);
+4. AdamW on cross-entropy (plus the magnitude head's Gaussian NLL for magnitude models,
+   :mod:`classifier.model`), minibatches shuffled by a seeded numpy generator, early stopping on the
+   validation cross-entropy (best weights kept);
 5. temperature scaling on the validation set (grid search of the NLL), stored in the model;
 6. scikit-learn baselines (logistic regression, histogram gradient boosting) on the same training
    samples (singles + one pooled draw);
@@ -117,7 +118,7 @@ class TrainConfig:
 #: The signature spec has 6× more features than LIV/OCDS: more draws, a wider network, and the
 #: random-bulk-phase test split.
 SPEC_RECIPES: dict[str, dict[str, Any]] = {
-    "signature": {"draws_train": 480, "draws_validation": 60, "draws_test": 90, "replicates": 8,
+    "signature": {"draws_train": 960, "draws_validation": 60, "draws_test": 90, "replicates": 8,
                   "hidden": (128, 128), "patience": 10, "max_epochs": 60, "bulk_phase_test": True},
 }
 
@@ -308,8 +309,8 @@ def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, p
             loss.backward()
             opt.step()
         model.eval()
-        with torch.no_grad():
-            vloss = float(loss_of(xv, tv, mv))
+        with torch.no_grad():  # early stopping on the classification loss (the magnitude head must not stop it)
+            vloss = float(torch.nn.functional.cross_entropy(model.logits(xv), tv))
         if vloss < best[0] - 1e-5:
             best = (vloss, {k: v.clone() for k, v in model.state_dict().items()}, epoch)
         if bar is not None:

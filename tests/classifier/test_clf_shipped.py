@@ -23,7 +23,7 @@ DATA = Path(__file__).resolve().parents[2] / "classifier" / "data"
 REPRODUCTION_Z = 2.0
 
 
-@pytest.mark.parametrize("name", ["single-acquisition", "two-wavelength"])
+@pytest.mark.parametrize("name", ["single-acquisition", "two-wavelength", "signature"])
 def test_shipped_model_metadata_and_report(name):
     assert DEFAULT_MODEL == "single-acquisition" and name in shipped_models()
     model = load_model(name, threads=1)
@@ -63,19 +63,46 @@ def test_default_model_matches_torch_on_simulated_features():
         assert float(np.abs(onnx_model.predict(batch) - p_torch).max()) <= 1e-5
 
 
+def test_signature_model_magnitude_outputs_match_torch():
+    """The shipped signature model's magnitude outputs: onnxruntime against torch within 1e-5."""
+    spec = load_spec("signature")
+    prior = Prior()
+    xs = []
+    for k in range(3):
+        d = draw_parameters(prior, 321, "test", k, replicates=1)
+        x, zero, _ = simulate_draw(spec, d, prior, trials=64, truncation_tolerance=1e-2)
+        xs.append(x.reshape(-1, spec.n_features)[~zero.reshape(-1)])
+    x = np.concatenate(xs)
+    inputs = np.concatenate([x, (np.arange(len(x)) % 48 + 1)[:, None].astype(np.float32)], axis=1)
+    onnx_model = load_model("signature", threads=1)
+    torch_model = model_from_onnx(shipped_models()["signature"])
+    assert onnx_model.has_magnitude and torch_model.n_magnitude == 3
+    with torch.no_grad():
+        p_torch = torch_model(torch.from_numpy(inputs)).numpy()
+        m_torch, s_torch = (v.numpy() for v in torch_model.magnitude(torch.from_numpy(inputs)))
+    m_ort, s_ort = onnx_model.predict_magnitude(inputs)
+    assert float(np.abs(onnx_model.predict(inputs) - p_torch).max()) <= 1e-5
+    assert float(np.abs(m_ort - m_torch).max()) <= 1e-5 and float(np.abs(s_ort - s_torch).max()) <= 1e-5
+
+
 @pytest.mark.slow
-def test_doct_train_reproduces_the_shipped_model(tmp_path):
+@pytest.mark.parametrize("spec", ["single-acquisition", "signature"])
+def test_doct_train_reproduces_the_shipped_model(tmp_path, spec):
     """``doct-train`` with its defaults, from scratch (no cache), gives the shipped report's accuracy.
 
-    About 1.5 minutes on one thread.
+    About 1.5 minutes on one thread for single-acquisition; about 15 minutes on 2 cores for signature.
     """
     from classifier.cli import train_main
 
     out = tmp_path / "model"
-    assert train_main(["--out", str(out), "--no-cache", "--no-progress"]) == 0
-    new = json.loads((out / "single-acquisition.json").read_text())
-    old = json.loads((DATA / "single-acquisition.json").read_text())
+    assert train_main(["--out", str(out), "--spec", spec, "--no-cache", "--no-progress"]) == 0
+    new = json.loads((out / f"{spec}.json").read_text())
+    old = json.loads((DATA / f"{spec}.json").read_text())
     for pool in ("1", "25"):
         for key in ("accuracy_identifiable", "balanced_accuracy_identifiable", "coverage_identifiable", "ece"):
             tol = REPRODUCTION_Z * old["standard_errors"][pool][key]
             assert abs(new["test"]["network"][pool][key] - old["test"]["network"][pool][key]) <= tol, (pool, key)
+    if "magnitude" in old:
+        for pool in ("1", "25"):
+            assert abs(new["magnitude"][pool]["median_abs_log10_error"]
+                       - old["magnitude"][pool]["median_abs_log10_error"]) <= 0.05, pool

@@ -25,7 +25,7 @@ def _draw(label, magnitude, static=0.0, snr=math.nan):
 
 def test_signature_spec_features_and_same_pixels_as_liv_ocds():
     spec = load_spec("signature")
-    assert spec.is_signature and spec.needs_field and spec.n_features == 3 * len(spec.metrics)
+    assert spec.is_signature and not spec.needs_field and spec.n_features == 3 * len(spec.metrics)
     assert [c.name for c in spec.configurations] == [c.name for c in load_spec("single-acquisition").configurations]
     d = _draw(2, 0.3, static=0.3, snr=30.0)
     x, zero, ref = simulate_draw(spec, d, Prior(), trials=64, truncation_tolerance=1e-2)
@@ -36,12 +36,10 @@ def test_signature_spec_features_and_same_pixels_as_liv_ocds():
     # db_variance is LIV (same definition, physics.md §1)
     liv_cols = [i for i, (m, c) in enumerate(spec.features) if m == "db_variance"]
     np.testing.assert_allclose(x[0][:, liv_cols], x_lo[0][:, 0::2], rtol=1e-5)
-    # a random bulk phase per frame: intensity features unchanged, field features changed
+    # a random bulk phase per frame leaves the (intensity-only) signature unchanged
     xb, _, refb = simulate_draw(spec, d, Prior(), trials=64, truncation_tolerance=1e-2, bulk_phase=True)
-    field = np.array([needs_field(m) for m, _ in spec.features])
-    np.testing.assert_allclose(xb[..., ~field], x[..., ~field], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(xb, x, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(refb, ref, rtol=1e-4, atol=1e-4)
-    assert np.abs(xb[..., field] - x[..., field]).max() > 0.1
 
 
 @pytest.fixture(scope="module")
@@ -109,3 +107,49 @@ def test_classify_writes_magnitude_maps(magnitude_model, tmp_path):
     import tifffile
 
     np.testing.assert_array_equal(tifffile.imread(tmp_path / "out" / "magnitude.tif"), out.magnitude)
+
+
+def test_default_model_follows_the_maps_channels(tmp_path):
+    """Without --model: the shipped signature model when the maps have its channels (also intensity-only
+    maps: it reads only the intensity part), else the LIV/OCDS model with a note."""
+    from classifier.infer import DEFAULT_MODEL, SIGNATURE_MODEL, default_model_for, read_maps
+
+    sig, lo = load_spec("signature"), load_spec("single-acquisition")
+    rng = np.random.default_rng(1)
+    chans = feature_channels(lo, with_mean_db=False) + feature_channels(sig)
+    data = rng.uniform(0.1, 1.0, size=(len(chans), 6, 6)).astype(np.float32)
+    meta = maps_meta(sig, chans)
+    meta["signature"] = {"features": list(sig.metrics), "intensity_only": True}
+    full = save_maps(tmp_path / "full.npz", data, meta)
+    assert default_model_for([read_maps(full)]) == (SIGNATURE_MODEL, None)
+    res = classify_maps(full, threads=1)
+    assert res.model.path.stem == SIGNATURE_MODEL and res.magnitude is not None
+    plain = save_maps(tmp_path / "plain.npz", data[:7], maps_meta(lo, feature_channels(lo)))
+    name, note = default_model_for([read_maps(plain)])
+    assert name == DEFAULT_MODEL and "--signature" in note
+    res = classify_maps(plain, threads=1)
+    assert res.model.path.stem == DEFAULT_MODEL and res.magnitude is None and "--signature" in res.info["notes"][0]
+
+
+def test_a_model_that_needs_the_phase_refuses_intensity_only_maps(tmp_path):
+    spec_path = tmp_path / "phase.toml"
+    spec_path.write_text('''name = "phase-test"
+metrics = ["rho_lin_1", "g1_1"]
+[[configuration]]
+name = "original"
+wavelength_um = 0.84
+lateral_resolution_um = 4.9
+axial_resolution_um = 3.8
+''')
+    res = train(TrainConfig(spec=str(spec_path), draws_train=6, draws_validation=3, draws_test=3, replicates=1,
+                            max_epochs=2, singles_per_group=8, pooled_per_group=2, baselines=False, eval_pools=(1, 4),
+                            max_pool_pixels=8), cache_dir=tmp_path / "cache", log=None)
+    assert res.spec.needs_field
+    path = tmp_path / "phase.onnx"
+    export_onnx(res.model, build_metadata(res), path)
+    chans = [c for c in feature_channels(res.spec) if c["metric"] != "g1_1"]
+    meta = maps_meta(res.spec, chans)
+    meta["signature"] = {"features": ["rho_lin_1"], "intensity_only": True}
+    maps = save_maps(tmp_path / "inten.npz", np.ones((len(chans), 4, 4), np.float32), meta)
+    with pytest.raises(ValueError, match="needs the complex field's phase"):
+        classify_maps(maps, path, threads=1)
