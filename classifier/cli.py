@@ -232,7 +232,7 @@ def _classify(args: argparse.Namespace) -> int:
         for c in res.classes:
             print(f"  {c:>14}: {counts[c]:>9} ({counts[c] / total:6.1%})")
         print(f"  {res.info['pixels_per_s']:.3g} pixels/s; wrote {', '.join(p.name for p in written)} to {args.out}")
-        for note in res.info.get("notes", []):
+        for note in ([res.info["model_choice"]] if res.info.get("model_choice") else []) + res.info.get("notes", []):
             print(f"note: {note}")
     return 0
 

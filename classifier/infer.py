@@ -639,8 +639,7 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
                          f"the same class. The largest valid pool is {min(z_px, x_px)}")
     t_read = time.perf_counter()
     feats, mean_db, info = assemble_features(maps_list, mdl, ignore_refractive_index=ignore_refractive_index)
-    if choice_note:
-        info["notes"] = [choice_note, *info.get("notes", [])]
+    info["model_choice"] = choice_note
     finite = np.all(np.isfinite(feats), axis=0)
     bg, thr = _background(mean_db, background_db)
     valid = finite if bg is None else finite & ~bg

@@ -109,7 +109,7 @@ def test_classify_writes_magnitude_maps(magnitude_model, tmp_path):
     np.testing.assert_array_equal(tifffile.imread(tmp_path / "out" / "magnitude.tif"), out.magnitude)
 
 
-def test_default_model_follows_the_maps_channels(tmp_path):
+def test_default_model_follows_the_maps_channels(tmp_path, capsys):
     """Without --model: the shipped signature model when the maps have its channels (also intensity-only
     maps: it reads only the intensity part), else the LIV/OCDS model with a note."""
     from classifier.infer import DEFAULT_MODEL, SIGNATURE_MODEL, default_model_for, read_maps
@@ -128,7 +128,11 @@ def test_default_model_follows_the_maps_channels(tmp_path):
     name, note = default_model_for([read_maps(plain)])
     assert name == DEFAULT_MODEL and "--signature" in note
     res = classify_maps(plain, threads=1)
-    assert res.model.path.stem == DEFAULT_MODEL and res.magnitude is None and "--signature" in res.info["notes"][0]
+    assert res.model.path.stem == DEFAULT_MODEL and res.magnitude is None and "--signature" in res.info["model_choice"]
+    from classifier.cli import classify_main
+
+    assert classify_main([str(plain), "--out", str(tmp_path / "out")]) == 0
+    assert "note: model single-acquisition (LIV/OCDS): the maps have no signature channels" in capsys.readouterr().out
 
 
 def test_a_model_that_needs_the_phase_refuses_intensity_only_maps(tmp_path):
