@@ -157,3 +157,30 @@ axial_resolution_um = 3.8
     maps = save_maps(tmp_path / "inten.npz", np.ones((len(chans), 4, 4), np.float32), meta)
     with pytest.raises(ValueError, match="needs the complex field's phase"):
         classify_maps(maps, path, threads=1)
+
+
+def test_maps_signature_then_classify_uses_the_signature_model(tmp_path, capsys):
+    """torchdoct maps --signature → doct-classify (no --model): the channels match the shipped signature model."""
+    from torchdoct.cli import main as td_main
+    from torchdoct.io import write_sequence
+
+    from classifier.cli import classify_main
+
+    rng = np.random.default_rng(3)
+    t, z, x = 32, 12, 12
+    e = np.empty((t, z, x), np.complex64)
+    e[0] = rng.standard_normal((z, x)) + 1j * rng.standard_normal((z, x))
+    for i in range(1, t):  # partially decorrelating speckle
+        e[i] = 0.9 * e[i - 1] + math.sqrt(1 - 0.81) * (rng.standard_normal((z, x)) + 1j * rng.standard_normal((z, x)))
+    seq = write_sequence(tmp_path / "seq.npz", e, {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},
+                                                   "frame_times_s": [0.2048 * i for i in range(t)],
+                                                   "system": {"name": "s", "wavelength_um": 0.84,
+                                                              "lateral_resolution_um": 4.9,
+                                                              "axial_resolution_um": 3.8}})
+    maps = tmp_path / "maps.npz"
+    assert td_main(["maps", str(seq), "--resolution", "original", "--resolution", "axial=14", "--resolution",
+                    "lateral=18", "--signature", "--out", str(maps), "--no-progress"]) == 0
+    capsys.readouterr()
+    assert classify_main([str(maps), "--out", str(tmp_path / "out"), "--background-db", "none"]) == 0
+    out = capsys.readouterr().out
+    assert "model signature.onnx (signature)" in out and (tmp_path / "out" / "magnitude.tif").exists()
