@@ -24,8 +24,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="run the cells on an existing Dask distributed cluster (e.g. tcp://host:8786)")
     p.add_argument("--batch-cells", type=int, default=1, help="cells per task (results do not depend on it)")
     p.add_argument("--workers", type=int, default=None,
-                   help="local worker processes, one torch thread each (default: --threads, else the usable "
-                        "cores; 1 runs the cells in this process on one core)")
+                   help="cells computed side by side, one torch thread each (default: --threads, else the usable "
+                        "cores; 1 runs one cell at a time on one core)")
     p.add_argument("--force", action="store_true", help="overwrite output files that exist")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -55,13 +55,13 @@ def register(sub, bench_sub) -> None:
     bs.add_argument("--out", default="bench-study.json", help="JSON output file")
     bs.add_argument("--force", action="store_true", help="overwrite --out (and --study-out files) if they exist")
     bs.add_argument("--workers", type=int, default=None,
-                    help="local worker processes (default: --threads, else the usable cores)")
+                    help="cells computed side by side (default: --threads, else the usable cores)")
     bs.add_argument("--no-progress", action="store_true", help="no progress bar")
     bs.set_defaults(func=_bench_study)
 
 
 def _workers(args) -> int:
-    """Worker processes: ``--workers``, else ``--threads``, else the usable cores (one torch thread each)."""
+    """Cells side by side: ``--workers``, else ``--threads``, else the usable cores (one torch thread each)."""
     from .threads import resolve_threads
 
     if args.workers is not None:

@@ -44,9 +44,10 @@ number of trials with an empty resolution volume ``empty`` (NaN dB metrics, see
 statistics are those of :func:`torchdoct.metrics.summarize`).
 
 Executors (:func:`run_sweeps`): this process on one core (``workers = 1``, the library default),
-``workers`` local processes with one torch thread each (the command line's ``--threads``, default one
-per usable core: on a shared machine, single-threaded processes are far less sensitive to other load
-than one process with several torch threads; :mod:`torchdoct.threads`), or an existing Dask distributed cluster (``scheduler = "tcp://host:8786"``),
+``workers`` cells side by side in threads of this process, each on one torch thread (the command
+line's ``--threads``, default one per usable core: on a shared machine, independent single-threaded
+pieces are far less sensitive to other load than torch's intra-op threads; :mod:`torchdoct.threads`;
+threads also avoid starting worker processes, which costs seconds per worker), or an existing Dask distributed cluster (``scheduler = "tcp://host:8786"``),
 cells as tasks whose results come back to this process, which writes the cache and the table.
 """
 
@@ -619,45 +620,26 @@ def _connect(scheduler: str):
                          "such as tcp://host:8786") from None
 
 
-def _worker_init(threads: int) -> None:
-    """A worker process computes with one core: one torch thread, one simulation thread."""
-    import torch
-
-    from .threads import set_default_threads
-
-    torch.set_num_threads(threads)
-    set_default_threads(threads)
-
-
 def _execute(payloads: list[dict[str, Any]], *, scheduler: str | None, batch_cells: int, workers: int,
              done: Callable[[int, dict[str, Any]], None]) -> None:
-    """Run payloads in this process, in local worker processes or on a Dask cluster; ``done(i, result)``
+    """Run payloads in this process (side by side in threads) or on a Dask cluster; ``done(i, result)``
     as each finishes."""
     batches = [list(range(i, min(len(payloads), i + batch_cells))) for i in range(0, len(payloads), batch_cells)]
-    if scheduler is None and (workers == 1 or len(batches) < 2):
-        from .threads import using_threads
-
-        with using_threads(workers):  # the cells' simulations use the workers' cores as threads
-            for b in batches:
-                for i, res in zip(b, run_cell_batch([payloads[i] for i in b])):
-                    done(i, res)
-        return
     if scheduler is None:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor, as_completed as done_first
+        from .threads import map_ordered, using_threads
 
-        ctx = multiprocessing.get_context("spawn")  # no fork of a process that holds torch threads
-        with ProcessPoolExecutor(max_workers=min(workers, len(batches)), mp_context=ctx,
-                                 initializer=_worker_init, initargs=(1,)) as pool:
-            futures = {pool.submit(run_cell_batch, [payloads[i] for i in b]): b for b in batches}
-            try:
-                for fut in done_first(futures):
-                    for i, r in zip(futures[fut], fut.result()):
+        if workers == 1 or len(batches) < 2:
+            with using_threads(workers):  # one batch at a time; its simulations use the workers as threads
+                results = (run_cell_batch([payloads[i] for i in b]) for b in batches)
+                for b, res in zip(batches, results):
+                    for i, r in zip(b, res):
                         done(i, r)
-            except BaseException:
-                for f in futures:
-                    f.cancel()
-                raise
+            return
+        with using_threads(1):  # batches side by side, each on one core (one torch thread)
+            results = map_ordered(lambda b: run_cell_batch([payloads[i] for i in b]), batches, workers)
+            for b, res in zip(batches, results):
+                for i, r in zip(b, res):
+                    done(i, r)
         return
     from dask.distributed import as_completed
 
@@ -685,7 +667,7 @@ def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int 
     stores every finished cell at once, so an interrupted run resumes where it stopped.
     ``scheduler``: address of a Dask distributed scheduler (cells as tasks; None runs locally).
     ``batch_cells``: cells per task; ``workers``: the cores to use when no scheduler is given: local
-    worker processes with one torch thread each, or (1, or a single task) this process with that many
+    threads running cells side by side with one torch thread each, or (1, or a single task) one cell at a time with that many
     simulation threads (:mod:`torchdoct.threads`). Results depend on neither.
     """
     if isinstance(batch_cells, bool) or not isinstance(batch_cells, int) or batch_cells < 1:

@@ -9,7 +9,7 @@ thread). torchdoct therefore never relies on intra-op threads:
 * every computing call runs its tensor operations with **one torch thread**
   (:func:`single_torch_thread`), and
 * where it can use more than one core, it runs **independent pieces of work** in parallel: blocks
-  of trials in :func:`torchdoct.simulate`, cells of a sweep in worker processes. A piece never waits
+  of trials in :func:`torchdoct.simulate`, frames in :func:`torchdoct.render`, cells of a sweep. A piece never waits
   for another, so a busy neighbour slows the run only by the share of the cores it takes.
 
 Each piece draws from its own random stream and is combined in a fixed order, so the numbers are

@@ -368,7 +368,7 @@ def test_cli_sweep_resumes_and_refuses_to_overwrite(tmp_path, capsys):
     assert main(["sweep", str(path), "--out", str(out), "--no-progress", "--force"]) == 0
     assert "(0 computed, 3 from the cache)" in capsys.readouterr().out
     assert main(["sweep", str(path), "--out", str(out), "--force", "--no-progress", "--trials", "128",
-                 "--workers", "2"]) == 0  # two local worker processes
+                 "--workers", "2"]) == 0  # two cells side by side
     assert "(3 computed, 0 from the cache)" in capsys.readouterr().out
     t = pd.read_parquet(out / "results.parquet")
     assert t["trials"].eq(128).all()
