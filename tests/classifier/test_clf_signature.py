@@ -184,3 +184,15 @@ def test_maps_signature_then_classify_uses_the_signature_model(tmp_path, capsys)
     assert classify_main([str(maps), "--out", str(tmp_path / "out"), "--background-db", "none"]) == 0
     out = capsys.readouterr().out
     assert "model signature.onnx (signature)" in out and (tmp_path / "out" / "magnitude.tif").exists()
+
+
+def test_ablation_subsets_are_candidates_and_name_the_shipped_content():
+    from classifier.ablation import SUBSETS, candidate_spec
+    from torchdoct.signature import DEFAULT_FEATURES, available_features
+
+    cand = set(candidate_spec().metrics)
+    assert all(set(v) <= cand for v in SUBSETS.values())
+    chosen = [v for k, v in SUBSETS.items() if "the signature spec" in k]
+    assert len(chosen) == 1 and set(chosen[0]) == set(load_spec("signature").metrics)
+    # the maps' default signature holds the spec's features as its intensity part
+    assert set(load_spec("signature").metrics) == set(available_features(DEFAULT_FEATURES, False))
