@@ -44,10 +44,11 @@ number of trials with an empty resolution volume ``empty`` (NaN dB metrics, see
 statistics are those of :func:`torchdoct.metrics.summarize`).
 
 Executors (:func:`run_sweeps`): this process on one core (``workers = 1``, the library default),
-``workers`` cells side by side in threads of this process, each on one torch thread (the command
-line's ``--threads``, default one per usable core: on a shared machine, independent single-threaded
-pieces are far less sensitive to other load than torch's intra-op threads; :mod:`torchdoct.threads`;
-threads also avoid starting worker processes, which costs seconds per worker), or an existing Dask distributed cluster (``scheduler = "tcp://host:8786"``),
+``workers`` cells side by side, each on one torch thread (the command line's ``--threads``, default
+one per usable core: on a shared machine, independent single-threaded pieces are far less sensitive
+to other load than torch's intra-op threads; :mod:`torchdoct.threads`): in threads of this process
+for small sweeps, in worker processes from :data:`_PROCESS_WORK` system-trials on (a process costs
+seconds to start, threads share the interpreter's lock), or an existing Dask distributed cluster (``scheduler = "tcp://host:8786"``),
 cells as tasks whose results come back to this process, which writes the cache and the table.
 """
 
@@ -620,10 +621,25 @@ def _connect(scheduler: str):
                          "such as tcp://host:8786") from None
 
 
+#: System-trials of a sweep from which local cells run in worker processes rather than threads: a
+#: worker process costs 2-3 s to start, threads share the interpreter's lock. Measured on 2 cores:
+#: 10,752 system-trials (the reduced study) 3.3 s in threads against 7.2 s in processes; 408,000
+#: (the paper study) 37 s in processes against about 70 s in threads.
+_PROCESS_WORK = 100_000
+
+
+def _worker_init() -> None:
+    """A worker process computes on one core: one torch (and BLAS) thread, one simulation thread."""
+    from .threads import limit_process_threads, set_default_threads
+
+    limit_process_threads()
+    set_default_threads(1)
+
+
 def _execute(payloads: list[dict[str, Any]], *, scheduler: str | None, batch_cells: int, workers: int,
              done: Callable[[int, dict[str, Any]], None]) -> None:
-    """Run payloads in this process (side by side in threads) or on a Dask cluster; ``done(i, result)``
-    as each finishes."""
+    """Run payloads in this process (side by side in threads), in worker processes or on a Dask cluster;
+    ``done(i, result)`` as each finishes."""
     batches = [list(range(i, min(len(payloads), i + batch_cells))) for i in range(0, len(payloads), batch_cells)]
     if scheduler is None:
         from .threads import map_ordered, using_threads
@@ -635,11 +651,29 @@ def _execute(payloads: list[dict[str, Any]], *, scheduler: str | None, batch_cel
                     for i, r in zip(b, res):
                         done(i, r)
             return
-        with using_threads(1):  # batches side by side, each on one core (one torch thread)
-            results = map_ordered(lambda b: run_cell_batch([payloads[i] for i in b]), batches, workers)
-            for b, res in zip(batches, results):
-                for i, r in zip(b, res):
-                    done(i, r)
+        work = sum(p["scene"]["simulation"]["trials"] * len(p["scene"]["system"]) for p in payloads)
+        if work < _PROCESS_WORK:
+            with using_threads(1):  # batches side by side in threads, each on one core (one torch thread)
+                results = map_ordered(lambda b: run_cell_batch([payloads[i] for i in b]), batches, workers)
+                for b, res in zip(batches, results):
+                    for i, r in zip(b, res):
+                        done(i, r)
+            return
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed as done_first
+
+        ctx = multiprocessing.get_context("spawn")  # no fork of a process that holds torch threads
+        with ProcessPoolExecutor(max_workers=min(workers, len(batches)), mp_context=ctx,
+                                 initializer=_worker_init) as pool:
+            futures = {pool.submit(run_cell_batch, [payloads[i] for i in b]): b for b in batches}
+            try:
+                for fut in done_first(futures):
+                    for i, r in zip(futures[fut], fut.result()):
+                        done(i, r)
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
         return
     from dask.distributed import as_completed
 
@@ -667,7 +701,8 @@ def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int 
     stores every finished cell at once, so an interrupted run resumes where it stopped.
     ``scheduler``: address of a Dask distributed scheduler (cells as tasks; None runs locally).
     ``batch_cells``: cells per task; ``workers``: the cores to use when no scheduler is given: local
-    threads running cells side by side with one torch thread each, or (1, or a single task) one cell at a time with that many
+    cells side by side with one torch thread each (threads, or worker processes for large sweeps), or
+    (1, or a single task) one cell at a time with that many
     simulation threads (:mod:`torchdoct.threads`). Results depend on neither.
     """
     if isinstance(batch_cells, bool) or not isinstance(batch_cells, int) or batch_cells < 1:

@@ -109,3 +109,19 @@ def test_render_bit_identical_for_any_threads():
     assert ref.abs().max() > 0
     assert torch.equal(td.render(ph, seed=3, threads=2).data, ref)
     assert torch.equal(td.render(ph, seed=3, threads=3).data, ref)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("process_work", [1, 10**12])  # worker processes; threads
+def test_sweep_cells_side_by_side_equal_one_at_a_time(monkeypatch, process_work):
+    from torchdoct import sweep as sw
+    from torchdoct.config import read_toml
+    from torchdoct.scenes import resolve_scene_path
+
+    s = sw.make_sweep(read_toml(resolve_scene_path("example")),
+                      [{"path": "population.0.motion.0.diffusion_um2_per_s", "values": [0.01, 0.1, 1.0]}], name="t")
+    ref = sw.run_sweeps([s], trials=128, workers=1).table()
+    monkeypatch.setattr(sw, "_PROCESS_WORK", process_work)
+    got = sw.run_sweeps([s], trials=128, workers=2).table()
+    cols = [c for c in ref.columns if c != "elapsed_s"]
+    assert got[cols].equals(ref[cols])
