@@ -291,13 +291,15 @@ def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
     from torchdoct.conventions import mean_intensity
     from torchdoct.metrics import compute_metrics
 
+    # one thread per draw: draws run side by side (make_dataset)
     moving = td.simulate(scene_for(spec, draw, prior, "moving"), trials=trials, seed=draw.sim_seed,
-                         dtype="float32", truncation_tolerance=truncation_tolerance, progress=False)
+                         dtype="float32", truncation_tolerance=truncation_tolerance, threads=1, progress=False)
     nuisance = draw.nuisance or ((0.0, math.nan),)
     static = None
     if any(f > 0 for f, _ in nuisance):
         static = td.simulate(scene_for(spec, draw, prior, "static"), trials=trials, seed=draw.sim_seed ^ 0x5A5A5A5A,
-                             dtype="float32", truncation_tolerance=truncation_tolerance, progress=False).signals
+                             dtype="float32", truncation_tolerance=truncation_tolerance, threads=1,
+                             progress=False).signals
     mean_i = [mean_intensity(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um)
               for c in spec.configurations]
     gen = torch.Generator().manual_seed(draw.sim_seed ^ 0x3C3C3C3C)
@@ -498,10 +500,20 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
     dropped = 0
     status_counts = {s: 0 for s in STATUS}
     t0 = time.perf_counter()
-    for k in range(draws):
+    from torchdoct.threads import map_ordered, resolve_threads, single_torch_thread
+
+    def one(k: int):
         d = draw_parameters(prior, seed, split, k, replicates)
-        res = simulate_draw(spec, d, prior, trials=trials_per_draw, truncation_tolerance=truncation_tolerance,
-                            bulk_phase=bulk_phase)
+        return k, d, simulate_draw(spec, d, prior, trials=trials_per_draw, truncation_tolerance=truncation_tolerance,
+                                   bulk_phase=bulk_phase)
+
+    # draws side by side on the usable cores (torchdoct.threads: one torch thread each, and every draw
+    # has its own seeds, so the dataset does not depend on the number of threads)
+    def computed():
+        with single_torch_thread():
+            yield from map_ordered(one, range(draws), resolve_threads(None))
+
+    for k, d, res in computed():
         x, zero = res[0], res[1]
         status, _, _ = identifiability(spec, d, prior)
         status_counts[status] += 1

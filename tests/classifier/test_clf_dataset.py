@@ -147,3 +147,15 @@ def test_make_dataset_caches_by_key_and_is_reproducible(tmp_path):
 
 def test_classes_are_the_three_motion_types():
     assert CLASSES == ("diffusion", "ballistic", "flow")
+
+
+def test_dataset_does_not_depend_on_threads():
+    """Draws run side by side (torchdoct.threads); each has its own seeds, so the split is bit-identical."""
+    from torchdoct.threads import using_threads
+
+    with using_threads(1):
+        one = make_dataset(TINY, split="test", draws=3, trials_per_draw=64, replicates=2, use_cache=False)
+    with using_threads(3):
+        three = make_dataset(TINY, split="test", draws=3, trials_per_draw=64, replicates=2, use_cache=False)
+    assert np.array_equal(one.x, three.x) and np.array_equal(one.y, three.y)
+    assert np.array_equal(one.group, three.group)
