@@ -196,7 +196,9 @@ def build_classify_parser() -> argparse.ArgumentParser:
                    help="override the model's threshold below which a pixel is indeterminate")
     p.add_argument("--ignore-refractive-index", action="store_true",
                    help="accept maps whose system refractive index differs from the model's")
-    p.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: $OMP_NUM_THREADS)")
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="cores to use: chunks of pixels side by side, one onnxruntime thread each (default: "
+                        "$TORCHDOCT_THREADS, else the usable cores); results do not depend on N")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     return p

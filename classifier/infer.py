@@ -37,6 +37,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -94,6 +95,21 @@ class ClassifierModel:
     path: Path
     metadata: dict[str, Any]
     session: Any
+    threads: int = 1
+
+    def _chunks(self, fn, n: int) -> None:
+        """``fn(slice)`` over fixed chunks of ``n`` rows, ``threads`` chunks side by side (one onnxruntime
+        thread each: no stalls beside other busy processes; the chunks, hence the numbers, do not depend
+        on ``threads``)."""
+        parts = [slice(i, min(n, i + _CHUNK)) for i in range(0, n, _CHUNK)]
+        if self.threads <= 1 or len(parts) < 2:
+            for sl in parts:
+                fn(sl)
+            return
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=min(self.threads, len(parts))) as pool:
+            list(pool.map(fn, parts))
 
     @property
     def spec(self) -> FeatureSpec:
@@ -126,9 +142,10 @@ class ClassifierModel:
         k = len(self.metadata["magnitude"]["classes"])
         mean = np.empty((x.shape[0], k), np.float32)
         sd = np.empty((x.shape[0], k), np.float32)
-        for i in range(0, x.shape[0], _CHUNK):
-            mean[i:i + _CHUNK], sd[i:i + _CHUNK] = self.session.run(["log10_magnitude", "log10_magnitude_sd"],
-                                                                    {"features": x[i:i + _CHUNK]})
+        def run(sl: slice) -> None:
+            mean[sl], sd[sl] = self.session.run(["log10_magnitude", "log10_magnitude_sd"], {"features": x[sl]})
+
+        self._chunks(run, x.shape[0])
         return mean, sd
 
     def predict(self, x: np.ndarray) -> np.ndarray:
@@ -138,22 +155,36 @@ class ClassifierModel:
         if x.ndim != 2 or x.shape[1] != width:
             raise ValueError(f"model inputs must be [N, {width}]; got {x.shape}")
         out = np.empty((x.shape[0], len(self.classes)), np.float32)
-        for i in range(0, x.shape[0], _CHUNK):
-            out[i:i + _CHUNK] = self.session.run(["probabilities"], {"features": x[i:i + _CHUNK]})[0]
+        def run(sl: slice) -> None:
+            out[sl] = self.session.run(["probabilities"], {"features": x[sl]})[0]
+
+        self._chunks(run, x.shape[0])
         return out
 
 
 def _threads(threads: int | None) -> int:
-    if threads is not None:
-        return max(0, int(threads))
-    env = os.environ.get("OMP_NUM_THREADS", "")
-    return int(env) if env.isdigit() else 0
+    """Chunks classified side by side: ``threads``, else ``$TORCHDOCT_THREADS``, else the usable cores."""
+    if threads is None:
+        loaded = sys.modules.get("torchdoct.threads")  # the command line's --threads, when torchdoct runs
+        if loaded is not None:
+            return loaded.default_threads()
+        env = os.environ.get("TORCHDOCT_THREADS", "")
+        if env.isdigit() and int(env) >= 1:
+            return int(env)
+        try:
+            return max(1, len(os.sched_getaffinity(0)))
+        except (AttributeError, OSError):  # pragma: no cover - not Linux
+            return max(1, os.cpu_count() or 1)
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ValueError(f"threads must be an integer >= 1 (the number of cores to use); got {threads!r}")
+    return threads
 
 
 def load_model(model: str | os.PathLike | None = None, *, threads: int | None = None) -> ClassifierModel:
     """Open an ONNX model: ``None`` (the shipped default), a shipped name, or a ``.onnx`` path.
 
-    ``threads``: onnxruntime intra-op threads (default: ``$OMP_NUM_THREADS``, else onnxruntime's).
+    ``threads``: chunks of pixels classified side by side, each on one onnxruntime thread with spinning
+    off (default: ``$TORCHDOCT_THREADS``, else the usable cores; see :mod:`torchdoct.threads`).
     """
     import onnxruntime as ort
 
@@ -161,8 +192,10 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     if path.suffix != ".onnx":
         raise ValueError(f"model {path.name}: must be an .onnx file written by doct-train")
     opts = ort.SessionOptions()
-    opts.intra_op_num_threads = _threads(threads)
+    n_threads = _threads(threads)
+    opts.intra_op_num_threads = 1
     opts.inter_op_num_threads = 1
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     try:
         sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
     except Exception as err:  # onnxruntime raises its own exception types
@@ -173,7 +206,7 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     meta = json.loads(props[_METADATA_KEY])
     if meta.get("format") != _FORMAT:
         raise ValueError(f"model {path.name}: metadata format {meta.get('format')!r}, this version reads {_FORMAT!r}")
-    return ClassifierModel(path=path, metadata=meta, session=sess)
+    return ClassifierModel(path=path, metadata=meta, session=sess, threads=n_threads)
 
 
 # ---------------------------------------------------------------------------------------------
