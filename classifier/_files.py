@@ -18,10 +18,10 @@ __all__ = ["check_out", "atomic_write", "shipped_files", "conventions", "signatu
 
 def _standalone(name: str) -> ModuleType:
     """``torchdoct.<name>`` if torchdoct is imported, else the file loaded on its own."""
-    full = f"torchdoct.{name}"
+    full = f"torchdoct.{name}"  # a dotted name: a module of a subpackage (sim.signature)
     if full in sys.modules:
         return sys.modules[full]
-    alias = f"classifier._torchdoct_{name}"
+    alias = f"classifier._torchdoct_{name.replace('.', '_')}"
     cached = sys.modules.get(alias)
     if cached is not None:
         return cached
@@ -29,7 +29,7 @@ def _standalone(name: str) -> ModuleType:
     if spec is None or not spec.submodule_search_locations:
         raise ImportError("torchdoct is not installed; install the project (pip install .)")
     loc = next(iter(spec.submodule_search_locations))
-    file_spec = importlib.util.spec_from_file_location(alias, f"{loc}/{name}.py")
+    file_spec = importlib.util.spec_from_file_location(alias, f"{loc}/{name.replace('.', '/')}.py")
     module = importlib.util.module_from_spec(file_spec)
     file_spec.loader.exec_module(module)
     sys.modules[alias] = module
@@ -42,8 +42,8 @@ def conventions() -> ModuleType:
 
 
 def signature() -> ModuleType:
-    """:mod:`torchdoct.signature` (names and units of the signature features; no torch at import)."""
-    return _standalone("signature")
+    """:mod:`torchdoct.sim.signature` (names and units of the signature features; no torch at import)."""
+    return _standalone("sim.signature")
 
 
 def check_out(path, force, suffix, what="--out"):

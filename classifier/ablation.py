@@ -1,7 +1,7 @@
 """Ablation of the decorrelation signature: which features the ``signature`` spec keeps.
 
 ``python -m classifier.ablation --out ablation.json`` simulates (or loads from the dataset cache) the
-single-acquisition configurations with *every* candidate feature of :mod:`torchdoct.signature`
+single-acquisition configurations with *every* candidate feature of :mod:`torchdoct.sim.signature`
 (``rho_db_m``, ``rho_lin_m``, ``g1_m`` at lags 1-29, ``phase_ramp``, ``lin_contrast``,
 ``db_variance``: 90 per configuration) from the classifier's prior (:mod:`classifier.dataset`;
 360 training draws, the 90 test draws of seed 0, and the same test draws with a random bulk phase

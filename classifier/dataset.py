@@ -33,7 +33,7 @@ may average, and draws are the independent unit of the parameter space.
 from ``numpy.random.SeedSequence(seed, spawn_key=(s, k))``; the splits never share a draw, and a
 split's draws do not depend on how many draws are made.
 
-**Ground-truth identifiability** (physics.md §5.3-5.4, via :mod:`torchdoct.theory`): a draw is
+**Ground-truth identifiability** (physics.md §5.3-5.4, via :mod:`torchdoct.sim.theory`): a draw is
 *indeterminate* when its moving scatterers
 
 * do not decorrelate: the intensity correlation coefficient ``ρ_I(T) = (|g1|² + j/N_eff)/(1 + 1/N_eff)``
@@ -272,7 +272,7 @@ def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
     """Feature vectors ``[R, trials, F]`` (float32, spec order) and the empty-volume mask ``[R, trials]``.
 
     For a signature spec (:attr:`FeatureSpec.is_signature`) the features come from
-    :func:`torchdoct.signature.signature` (the extractor of ``torchdoct maps --signature``), and a
+    :func:`torchdoct.sim.signature.signature` (the extractor of ``torchdoct maps --signature``), and a
     third array ``[R, trials, 2·C]`` holds LIV and OCDS of the same pixels at the same
     configurations (for the LIV/OCDS baseline on the same test pixels). ``bulk_phase``: multiply
     every frame by a uniform random phase (one per trial and frame, common to the configurations,
@@ -289,7 +289,7 @@ def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
     import torch
     import torchdoct as td
     from torchdoct.conventions import mean_intensity
-    from torchdoct.metrics import compute_metrics
+    from torchdoct.sim.metrics import compute_metrics
 
     # one thread per draw: draws run side by side (make_dataset)
     moving = td.simulate(scene_for(spec, draw, prior, "moving"), trials=trials, seed=draw.sim_seed,
@@ -311,7 +311,7 @@ def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
     met = compute_metrics(signals, moving.frame_times_s, moving.scene.analysis)
     zero = met["zero_intensity"].any(-1).numpy().reshape(len(nuisance), trials)
     if spec.is_signature:
-        from torchdoct.signature import signature
+        from torchdoct.sim.signature import signature
 
         _, sig = signature(signals, moving.frame_times_s, names=spec.metrics)  # [N, systems, F]
         x = sig.reshape(sig.shape[0], -1).numpy().astype(np.float32).reshape(len(nuisance), trials, -1)
@@ -327,9 +327,9 @@ def identifiability(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, n
 
     Returns ``(status, g1sq_first [C], rho_last [C])``: status ``"identifiable"``, ``"static"`` or
     ``"decorrelated"``; ``|g1(Δt)|²`` and ``ρ_I(T)`` of the moving scatterers. Formulas: physics.md
-    §5.3 (g1), §5.4 (j, N_eff, ``ρ_I = (|g1|² + j/N_eff)/(1 + 1/N_eff)``), via :mod:`torchdoct.theory`.
+    §5.3 (g1), §5.4 (j, N_eff, ``ρ_I = (|g1|² + j/N_eff)/(1 + 1/N_eff)``), via :mod:`torchdoct.sim.theory`.
     """
-    from torchdoct import theory
+    from torchdoct.sim import theory
     from torchdoct.conventions import n_eff
 
     taus = np.array([spec.frame_interval_s, (spec.n_frames - 1) * spec.frame_interval_s])
@@ -447,7 +447,7 @@ def dataset_key(spec: FeatureSpec, prior: Prior, seed: int, split: str, draws: i
 
 def _signature_version() -> str:
     """Hash of the extractor's source: a change of the signature invalidates cached signature splits."""
-    import torchdoct.signature as sig
+    import torchdoct.sim.signature as sig
 
     return hashlib.sha256(Path(sig.__file__).read_bytes()).hexdigest()[:16]
 

@@ -1,7 +1,7 @@
 """Feature specifications: which DOCT metrics, at which system configurations, make a feature vector.
 
 A feature vector is the LIV (dB²) and OCDS (1/s) (or the decorrelation-signature features of
-:mod:`torchdoct.signature`, e.g. ``rho_db_3``, ``g1_1``; spec ``signature``) of one pixel at several system configurations
+:mod:`torchdoct.sim.signature`, e.g. ``rho_db_3``, ``g1_1``; spec ``signature``) of one pixel at several system configurations
 (wavelength, lateral 1/e² resolution, axial FWHM resolution; :mod:`torchdoct.conventions`), all
 computed from the *same* scatterers: in simulation, the systems of one scene; in measured data,
 one complex dataset and its computational resolution reductions (reference paper §2.1.3), or a
@@ -51,7 +51,7 @@ REL_TOL = 1e-6
 
 
 def metric_unit(metric: str) -> str:
-    """Unit of a metric: :data:`METRIC_UNITS`, or a signature feature of :mod:`torchdoct.signature`
+    """Unit of a metric: :data:`METRIC_UNITS`, or a signature feature of :mod:`torchdoct.sim.signature`
     (``rho_db_M``, ``rho_lin_M``, ``g1_M``, ``phase_ramp``, ``lin_contrast``, ``db_variance``)."""
     if metric in METRIC_UNITS:
         return METRIC_UNITS[metric]
@@ -154,7 +154,7 @@ class FeatureSpec:
             except ValueError:
                 raise ValueError(f"spec {self.name!r}: metric {m!r} is not supported; use {sorted(METRIC_UNITS)} "
                                  "or signature features (rho_db_M, rho_lin_M, g1_M, phase_ramp, lin_contrast, "
-                                 "db_variance; torchdoct.signature)") from None
+                                 "db_variance; torchdoct.sim.signature)") from None
         if len(set(self.metrics)) != len(self.metrics):
             raise ValueError(f"spec {self.name!r}: a metric is listed twice: {list(self.metrics)}")
         if isinstance(self.n_frames, bool) or not isinstance(self.n_frames, int) or self.n_frames < 3:
@@ -189,7 +189,7 @@ class FeatureSpec:
 
     @property
     def is_signature(self) -> bool:
-        """True when the features are decorrelation-signature features (:mod:`torchdoct.signature`)."""
+        """True when the features are decorrelation-signature features (:mod:`torchdoct.sim.signature`)."""
         return any(m not in METRIC_UNITS for m in self.metrics)
 
     @property

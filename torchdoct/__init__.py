@@ -3,7 +3,7 @@
 Units and resolution conventions: :mod:`torchdoct.conventions`.
 """
 
-from .config import (
+from .sim.config import (
     Analysis,
     Diffusion,
     Flow,
@@ -18,12 +18,12 @@ from .config import (
     load_scene,
     scene_from_dict,
 )
-from .metrics import complex_variance, lag_correlations, liv, ocds, to_db
-from .phantom import Phantom, load_phantom, phantom_from_dict
-from .plan import Plan, make_plan
-from .render import RenderResult, render
-from .scenes import shipped_scenes
-from .simulate import SimulationResult, simulate
+from .sim.metrics import complex_variance, lag_correlations, liv, ocds, to_db
+from .image.phantom import Phantom, load_phantom, phantom_from_dict
+from .sim.plan import Plan, make_plan
+from .image.render import RenderResult, render
+from .sim.scenes import shipped_scenes
+from .sim.simulate import SimulationResult, simulate
 
 __version__ = "0.2.0"
 

@@ -35,7 +35,7 @@ common denominator across specs) stand beside it. Standard errors come from a bo
 point uses the same resamples, so the difference of two points has a paired standard error.
 
 Pareto front (per axis, time key and pool): the points no other point beats in both time and error
-(:func:`torchdoct.tradeoffs.pareto_front`), among the settings that decide at least
+(:func:`torchdoct.bench.tradeoffs.pareto_front`), among the settings that decide at least
 ``TradeoffPlan.min_coverage`` (0.1) of the identifiable samples (a balanced accuracy over a handful
 of decisions says nothing). The defaults are *on the front* when no point is both faster and more
 accurate, and *significantly dominated* when such a point is better by more than two paired standard

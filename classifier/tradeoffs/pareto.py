@@ -24,7 +24,7 @@ def _pareto(axis: str, rows: list[dict[str, Any]], reps: dict[tuple[str, str], d
     not decide significantly less than the best. ``reps[(label, pool)]`` holds the bootstrap
     replicates of the errors and the coverage (the same resamples for every setting).
     """
-    from torchdoct.tradeoffs import pareto_front
+    from torchdoct.bench.tradeoffs import pareto_front
 
     pts, excluded = [], []
     for r in rows:

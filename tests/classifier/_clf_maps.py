@@ -1,4 +1,4 @@
-"""Synthetic maps files in the project's maps format (see torchdoct.io), for the classify tests."""
+"""Synthetic maps files in the project's maps format (see torchdoct.measured.io), for the classify tests."""
 
 from __future__ import annotations
 

@@ -28,7 +28,7 @@ from classifier.cli import classify_main  # noqa: E402
 REPORT = json.loads((Path(__file__).resolve().parents[2] / "classifier" / "data" / "single-acquisition.json").read_text())
 REF = REPORT["test"]["network"]["4"]
 MARGIN = 0.15
-CODES = {2: 0, 3: 1, 4: 2}  # render's motion codes (torchdoct.phantom.MOTION_CODES) -> classifier labels
+CODES = {2: 0, 3: 1, 4: 2}  # render's motion codes (torchdoct.image.phantom.MOTION_CODES) -> classifier labels
 STATIC = 1
 
 PHANTOM = """

@@ -15,7 +15,7 @@ from classifier.export import build_metadata, export_onnx, model_from_onnx, onnx
 from classifier.features import load_spec
 from classifier.infer import MAGNITUDE_CHANNELS, MASKED, classify_maps, load_model, write_classification
 from classifier.train import TrainConfig, train
-from torchdoct.signature import needs_field
+from torchdoct.sim.signature import needs_field
 
 
 def _draw(label, magnitude, static=0.0, snr=math.nan):
@@ -162,7 +162,7 @@ axial_resolution_um = 3.8
 def test_maps_signature_then_classify_uses_the_signature_model(tmp_path, capsys):
     """torchdoct maps --signature → doct-classify (no --model): the channels match the shipped signature model."""
     from torchdoct.cli import main as td_main
-    from torchdoct.io import write_sequence
+    from torchdoct.measured.io import write_sequence
 
     from classifier.cli import classify_main
 
@@ -188,7 +188,7 @@ def test_maps_signature_then_classify_uses_the_signature_model(tmp_path, capsys)
 
 def test_ablation_subsets_are_candidates_and_name_the_shipped_content():
     from classifier.ablation import SUBSETS, candidate_spec
-    from torchdoct.signature import DEFAULT_FEATURES, available_features
+    from torchdoct.sim.signature import DEFAULT_FEATURES, available_features
 
     cand = set(candidate_spec().metrics)
     assert all(set(v) <= cand for v in SUBSETS.values())

@@ -10,7 +10,7 @@ import torch
 
 from torchdoct import load_scene, scene_from_dict, shipped_scenes
 from torchdoct.cli import main
-from torchdoct.metrics import compute_metrics
+from torchdoct.sim.metrics import compute_metrics
 
 STATIC_SCENE = """\
 name = "static-only"

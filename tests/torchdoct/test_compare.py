@@ -1,4 +1,4 @@
-"""Per-sample means and the paper's tests (torchdoct.compare) and ``torchdoct compare``."""
+"""Per-sample means and the paper's tests (torchdoct.measured.compare) and ``torchdoct compare``."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 from scipy import stats
 
 from torchdoct.cli import main
-from torchdoct.compare import compare_samples, parse_config, plot_comparison, region_mask, sample_means
-from torchdoct.io import Maps, write_maps
+from torchdoct.measured.compare import compare_samples, parse_config, plot_comparison, region_mask, sample_means
+from torchdoct.measured.io import Maps, write_maps
 
 RES = {"original": (4.9, 3.8), "axial=7.6": (4.9, 7.6), "axial=11.4": (4.9, 11.4), "axial=14": (4.9, 14.0),
        "axial=14,lateral=18": (18.0, 14.0)}
@@ -182,7 +182,7 @@ def _render(rng, *, nz=36, nx=36, pz=1.5, px=2.0, frames=8, dt=0.2048, d_um2_per
 
 def test_whole_path_from_sequence_files_to_the_statistics_table(tmp_path, capsys):
     """Simulated sequences → ``torchdoct maps`` (3 resolutions) → ``torchdoct compare`` (Kruskal-Wallis)."""
-    from torchdoct.io import write_sequence
+    from torchdoct.measured.io import write_sequence
 
     rng = np.random.default_rng(5)
     maps_args = []
@@ -241,7 +241,7 @@ def test_maps_without_optics_are_refused_naming_the_fix(tmp_path, capsys):
 def test_truncated_tif_mask_is_refused_quietly(tmp_path, capfd):
     import tifffile
 
-    from torchdoct.cli_data import _load_mask
+    from torchdoct.cli.data import _load_mask
 
     good = tmp_path / "m.tif"
     tifffile.imwrite(good, np.ones((8, 64, 64), np.uint8))

@@ -1,4 +1,4 @@
-"""Scene validation, round trips and file loading (torchdoct.config, torchdoct.scenes)."""
+"""Scene validation, round trips and file loading (torchdoct.sim.config, torchdoct.sim.scenes)."""
 
 from __future__ import annotations
 

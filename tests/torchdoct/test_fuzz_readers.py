@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from torchdoct.cli import main  # noqa: E402
-from torchdoct.io import read_maps, read_sequence  # noqa: E402
+from torchdoct.measured.io import read_maps, read_sequence  # noqa: E402
 
 T, Z, X = 8, 6, 5
 META = {"axes": "TZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": [0.2048 * i for i in range(T)],
@@ -122,8 +122,8 @@ def test_broken_sequence_files_fail_clearly(tmp_path, case):
 @settings(max_examples=30, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.sampled_from(["npy", "npz", "h5"]), st.integers(1, 6))
 def test_nan_pixels_give_nan_maps_only_there(tmp_path, fmt, n_bad):
-    from torchdoct.io import write_sequence
-    from torchdoct.maps import compute_maps
+    from torchdoct.measured.io import write_sequence
+    from torchdoct.measured.maps import compute_maps
 
     rng = np.random.default_rng(n_bad)
     data = _field(rng)
@@ -162,7 +162,7 @@ def test_pickle_bearing_files_are_refused_everywhere(tmp_path, capsys):
         assert err.startswith("error: ")
     with pytest.raises(ERRORS, match="objmaps.npz"):
         read_maps(tmp_path / "objmaps.npz")
-    from torchdoct.io import Maps, write_maps
+    from torchdoct.measured.io import Maps, write_maps
 
     chans = [{"name": "liv@original", "metric": "liv", "unit": "dB^2", "resolution": "original",
               "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}]

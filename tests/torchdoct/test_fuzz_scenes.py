@@ -20,10 +20,10 @@ from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from torchdoct.cli import main  # noqa: E402
-from torchdoct.config import SceneError, scene_from_dict  # noqa: E402
-from torchdoct.phantom import phantom_from_dict  # noqa: E402
-from torchdoct.plan import make_plan  # noqa: E402
-from torchdoct.simulate import MemoryLimitError, simulate  # noqa: E402
+from torchdoct.sim.config import SceneError, scene_from_dict  # noqa: E402
+from torchdoct.image.phantom import phantom_from_dict  # noqa: E402
+from torchdoct.sim.plan import make_plan  # noqa: E402
+from torchdoct.sim.simulate import MemoryLimitError, simulate  # noqa: E402
 
 from conftest import SMALL_SCENE_TOML  # noqa: E402
 

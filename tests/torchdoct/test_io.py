@@ -1,4 +1,4 @@
-"""Sequence and maps files (torchdoct.io): formats, metadata validation, overrides, safety."""
+"""Sequence and maps files (torchdoct.measured.io): formats, metadata validation, overrides, safety."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 import tifffile
 import torch
 
-from torchdoct.io import (
+from torchdoct.measured.io import (
     BlockRaster,
     Maps,
     read_maps,
@@ -373,7 +373,7 @@ def test_a_file_that_is_not_npy_is_named_as_such(tmp_path):
     """Random bytes or a pickle under the .npy suffix: 'not a NumPy .npy file', never 'object array'."""
     import pickle
 
-    from torchdoct.io import read_sequence
+    from torchdoct.measured.io import read_sequence
 
     for name, payload in (("garbage.npy", b"hello, this is not numpy" * 10), ("pickled.npy", pickle.dumps([1, 2]))):
         p = tmp_path / name

@@ -11,9 +11,9 @@ import pytest
 import torch
 
 import torchdoct as td
-from torchdoct.plan import BLOCK_TRIALS
+from torchdoct.sim.plan import BLOCK_TRIALS
 
-sim = importlib.import_module("torchdoct.simulate")
+sim = importlib.import_module("torchdoct.sim.simulate")
 
 HIGH = td.OCTSystem(name="840-high", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)
 AX14 = td.OCTSystem(name="840-ax14", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=14.0)

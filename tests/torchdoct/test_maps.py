@@ -1,4 +1,4 @@
-"""DOCT maps (torchdoct.maps) and the ``torchdoct maps`` / ``torchdoct bench maps`` commands."""
+"""DOCT maps (torchdoct.measured.maps) and the ``torchdoct maps`` / ``torchdoct bench maps`` commands."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ import tifffile
 import torch
 from scipy import ndimage, optimize
 
-from torchdoct import metrics
+from torchdoct.sim import metrics
 from torchdoct.cli import main
-from torchdoct.io import BlockRaster, Sequence, read_maps, read_sequence, validate_meta, write_sequence
-from torchdoct.maps import (
+from torchdoct.measured.io import BlockRaster, Sequence, read_maps, read_sequence, validate_meta, write_sequence
+from torchdoct.measured.maps import (
     box_smooth_zx,
     compute_maps,
     fit_saturation,
@@ -24,7 +24,7 @@ from torchdoct.maps import (
     png_name,
     pseudo_color,
 )
-from torchdoct.resolution import reduce_resolution
+from torchdoct.measured.resolution import reduce_resolution
 
 SYSTEM = {"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
           "refractive_index": 1.0}
@@ -56,7 +56,7 @@ def make_seq(data, *, volume=False, raster=None, times=None) -> Sequence:
 
 
 # ----------------------------------------------------------------------------------------------------------
-# per-pixel metrics agree with torchdoct.metrics
+# per-pixel metrics agree with torchdoct.sim.metrics
 # ----------------------------------------------------------------------------------------------------------
 def test_liv_ocds_mean_db_match_metrics():
     data = speckle((12, 9, 11), dtype=np.complex128)
@@ -408,7 +408,7 @@ def test_empty_pixels_stay_undefined_after_an_axial_reduction():
 
 def test_map_figure_axes_colour_bar_and_title(tmp_path):
     from torchdoct import figures
-    from torchdoct.maps import map_figure
+    from torchdoct.measured.maps import map_figure
 
     data = speckle((8, 12, 10), seed=14)
     m = compute_maps(make_seq(data), ["original", "axial=14"], ocds_delay_range_s=(0.2048, 0.6144))
@@ -429,7 +429,7 @@ def test_map_figure_axes_colour_bar_and_title(tmp_path):
 
 
 def write_pngs_for(m, tmp_path):
-    from torchdoct.maps import write_pngs
+    from torchdoct.measured.maps import write_pngs
 
     return write_pngs(m, tmp_path / "maps.npz")
 
@@ -444,8 +444,8 @@ def test_one_axes_convention_for_render_preview_maps_and_overlay(tmp_path, monke
     import matplotlib.figure
 
     from torchdoct import figures
-    from torchdoct.phantom import load_phantom
-    from torchdoct.render import preview_figure, render
+    from torchdoct.image.phantom import load_phantom
+    from torchdoct.image.render import preview_figure, render
 
     res = render(load_phantom("spheroid", grid={"n_z": 24, "n_x": 20, "pitch_x_um": 2.0, "pitch_z_um": 2.0}), seed=1)
     fig = preview_figure(res, 0)

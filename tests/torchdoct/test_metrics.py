@@ -1,4 +1,4 @@
-"""DOCT metrics (torchdoct.metrics) against numpy references and a process of known correlation.
+"""DOCT metrics (torchdoct.sim.metrics) against numpy references and a process of known correlation.
 
 Statistical checks use AR(1) sequences in dB, s_t = a·s_{t−1} + √(1−a²)·e_t (stationary, ρ_m = a^m),
 with fixed seeds; tolerances are z = 4 Monte Carlo standard errors computed from the sample.
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchdoct.config import Analysis
-from torchdoct.metrics import (
+from torchdoct.sim.config import Analysis
+from torchdoct.sim.metrics import (
     complex_variance,
     compute_metrics,
     lag_correlations,

@@ -15,11 +15,11 @@ import pytest
 import torch
 
 from torchdoct.cli import main
-from torchdoct.io import read_maps, read_sequence
-from torchdoct.metrics import liv, ocds
-from torchdoct.phantom import phantom_from_dict
-from torchdoct.render import render
-from torchdoct.resolution import reduce_resolution
+from torchdoct.measured.io import read_maps, read_sequence
+from torchdoct.sim.metrics import liv, ocds
+from torchdoct.image.phantom import phantom_from_dict
+from torchdoct.image.render import render
+from torchdoct.measured.resolution import reduce_resolution
 
 HIGH = {"name": "high", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}
 

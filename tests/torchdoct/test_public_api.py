@@ -19,10 +19,10 @@ CLASSIFIER = ["Configuration", "FeatureSpec", "load_spec", "shipped_specs", "cla
               "read_maps", "shipped_models", "write_classification", "INDETERMINATE", "apply_rule", "train",
               "TrainConfig", "TrainResult", "make_dataset", "Prior", "export_onnx"]
 #: Functions the README and the docs name by their module path.
-DOCUMENTED = ["torchdoct.threads:set_default_threads", "torchdoct.resolution:reduce_resolution",
-              "torchdoct.maps:compute_maps", "torchdoct.sweep:run_sweeps", "torchdoct.study:run_study",
-              "torchdoct.study:load_study", "torchdoct.figures:show_bscan", "torchdoct.metrics:summarize",
-              "torchdoct.io:read_sequence"]
+DOCUMENTED = ["torchdoct.threads:set_default_threads", "torchdoct.measured.resolution:reduce_resolution",
+              "torchdoct.measured.maps:compute_maps", "torchdoct.study.sweep:run_sweeps", "torchdoct.study:run_study",
+              "torchdoct.study:load_study", "torchdoct.figures:show_bscan", "torchdoct.sim.metrics:summarize",
+              "torchdoct.measured.io:read_sequence"]
 
 
 def test_top_level_names():

@@ -10,15 +10,15 @@ import torch
 
 import sys
 
-import torchdoct.render  # noqa: F401  (the module; torchdoct.render is the function)
+import torchdoct.image.render  # noqa: F401  (the module; torchdoct.render is the function)
 
-render_mod = sys.modules["torchdoct.render"]
+render_mod = sys.modules["torchdoct.image.render"]
 from torchdoct import simulate
-from torchdoct.config import SceneError
+from torchdoct.sim.config import SceneError
 from torchdoct.conventions import (amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
                                    truncation_radius_factor)
-from torchdoct.phantom import MOTION_CODES, load_phantom, phantom_from_dict, shipped_phantoms
-from torchdoct.render import render
+from torchdoct.image.phantom import MOTION_CODES, load_phantom, phantom_from_dict, shipped_phantoms
+from torchdoct.image.render import render
 
 from _stats import assert_within_se
 
@@ -285,7 +285,7 @@ def test_uniform_region_matches_point_model():
 
 def test_cli_render_writes_sequence_labels_preview_and_refuses_overwrite(tmp_path, capsys):
     from torchdoct.cli import main
-    from torchdoct.io import read_sequence
+    from torchdoct.measured.io import read_sequence
 
     src = tmp_path / "ph.toml"
     src.write_text(
@@ -315,7 +315,7 @@ def test_cli_render_writes_sequence_labels_preview_and_refuses_overwrite(tmp_pat
 def test_any_scene_renders_as_a_uniform_medium(tmp_path, tmp_scene_file, capsys):
     """A point-model scene file (no regions) plus a grid: its populations fill the field of view."""
     from torchdoct.cli import main
-    from torchdoct.io import read_sequence
+    from torchdoct.measured.io import read_sequence
 
     out = tmp_path / "scene.npy"
     assert main(["render", str(tmp_scene_file), "--grid", "12x10", "--pitch-um", "3", "--out", str(out),

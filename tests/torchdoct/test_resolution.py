@@ -1,4 +1,4 @@
-"""Resolution reduction of complex OCT data (paper Eqs. 1-8; torchdoct.resolution)."""
+"""Resolution reduction of complex OCT data (paper Eqs. 1-8; torchdoct.measured.resolution)."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from torchdoct import metrics
+from torchdoct.sim import metrics
 from torchdoct.conventions import (
     amplitude_sigma_axial_um,
     amplitude_sigma_lateral_um,
     wavenumber_per_um,
 )
-from torchdoct.resolution import (
+from torchdoct.measured.resolution import (
     ResolutionTarget,
     axial_filter_sigma_um,
     axial_window_sigma_per_um,

@@ -1,4 +1,4 @@
-"""The decorrelation signature (torchdoct.signature): closed forms, limits, invariances, names.
+"""The decorrelation signature (torchdoct.sim.signature): closed forms, limits, invariances, names.
 
 Statistical checks use circular complex Gaussian fields (fully developed speckle, N_eff → ∞) with
 fixed seeds: independent frames (fully decorrelated) and a complex AR(1) process
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchdoct import theory
-from torchdoct.metrics import liv
-from torchdoct.signature import (
+from torchdoct.sim import theory
+from torchdoct.sim.metrics import liv
+from torchdoct.sim.signature import (
     DEFAULT_FEATURES,
     available_features,
     default_features,
@@ -168,8 +168,8 @@ def test_cli_maps_signature_channels(tmp_path, capsys):
     import tifffile
 
     from torchdoct.cli import main
-    from torchdoct.io import read_maps, read_sequence, write_sequence
-    from torchdoct.resolution import reduce_resolution
+    from torchdoct.measured.io import read_maps, read_sequence, write_sequence
+    from torchdoct.measured.resolution import reduce_resolution
 
     t = 32
     data = _ar1(12 * 10, t, 0.7, seed=8).T.reshape(t, 12, 10).numpy().astype(np.complex64)

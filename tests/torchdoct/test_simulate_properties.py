@@ -11,12 +11,12 @@ import torch
 from _stats import assert_within_se, batch_means, g1_at_lag
 
 import torchdoct as td
-from torchdoct import theory as th
+from torchdoct.sim import theory as th
 from torchdoct.conventions import mean_intensity as mean_intensity_theory
 from torchdoct.conventions import n_eff
-from torchdoct.plan import make_plan
+from torchdoct.sim.plan import make_plan
 
-sim = importlib.import_module("torchdoct.simulate")
+sim = importlib.import_module("torchdoct.sim.simulate")
 
 DT = 0.2048
 HIGH = td.OCTSystem(name="840-high", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)
@@ -265,7 +265,7 @@ def test_huge_motion_saturates():
     assert abs(float(liv.mean()) - 31 / 32 * 33.0) <= 4 * math.hypot(se, 31 / 32 * 0.2)
     # independent frames: E[ρ_m] ≈ −1/(N−m) for the Pearson estimator, hence OCDS ≈ 0.006 1/s
     delays = torch.arange(1, 32, dtype=torch.float64) * DT
-    ref = float(td.metrics.ocds_from_correlations(-1.0 / (32 - torch.arange(1, 32, dtype=torch.float64)), delays))
+    ref = float(td.sim.metrics.ocds_from_correlations(-1.0 / (32 - torch.arange(1, 32, dtype=torch.float64)), delays))
     assert abs(ref) < 0.01
     assert_within_se(float(ocds.mean()), ref, float(ocds.std() / math.sqrt(ocds.numel())), what="OCDS")
 
@@ -375,7 +375,7 @@ def _axis_terms_by_quadrature(s, L, v, q, k):
 
 def test_periodic_image_bound_matches_quadrature():
     """The closed-form image terms of plan.periodic_image_bound against brute-force quadrature."""
-    from torchdoct.plan import periodic_image_bound
+    from torchdoct.sim.plan import periodic_image_bound
 
     s_x, s_z, q = 1.73, 2.28, 14.96
     half = (4.0, 4.0, 5.0)
@@ -400,7 +400,7 @@ def test_periodic_image_bound_matches_quadrature():
 @pytest.mark.parametrize("D", [1e-6, 0.005, 1.2, 15.0, 1e4])
 def test_periodic_cell_holds_the_psf_and_meets_the_wrap_tolerance(D):
     from torchdoct.conventions import truncation_half_widths_um
-    from torchdoct.plan import wrap_tolerance
+    from torchdoct.sim.plan import wrap_tolerance
 
     for tol in (1e-2, 1e-3):
         pp = make_plan(scene((td.Diffusion(diffusion_um2_per_s=D),)), truncation_tolerance=tol).populations[0]

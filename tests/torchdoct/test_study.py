@@ -19,7 +19,7 @@ import pandas as pd
 import pytest
 
 from torchdoct.cli import main
-from torchdoct.config import SceneError
+from torchdoct.sim.config import SceneError
 from torchdoct.study import (
     Z_SIGNIFICANT,
     _crossing,
@@ -33,7 +33,7 @@ from torchdoct.study import (
     study_outputs,
     study_sweeps,
 )
-from torchdoct.sweep import cell_seed, run_sweeps
+from torchdoct.study.sweep import cell_seed, run_sweeps
 
 REPO = Path(__file__).resolve().parents[2]
 NOTEBOOK = REPO / "notebooks" / "paper_reproduction.ipynb"

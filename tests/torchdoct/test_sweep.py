@@ -1,4 +1,4 @@
-"""Sweeps (torchdoct.sweep): grids, validation, per-cell seeds, cache and resume, tables, Dask.
+"""Sweeps (torchdoct.study.sweep): grids, validation, per-cell seeds, cache and resume, tables, Dask.
 
 Tiny scenes only (two systems, 8 frames, 64 trials per cell).
 """
@@ -16,9 +16,9 @@ import torch
 import torchdoct
 from torchdoct import scene_from_dict, simulate
 from torchdoct.cli import main
-from torchdoct.config import SceneError
-from torchdoct.metrics import summarize
-from torchdoct.sweep import (
+from torchdoct.sim.config import SceneError
+from torchdoct.sim.metrics import summarize
+from torchdoct.study.sweep import (
     SCALAR_METRICS,
     cache_key,
     cell_seed,

@@ -1,4 +1,4 @@
-"""Deterministic checks of torchdoct.theory (physics.md §1, §2.4, §5, §6).
+"""Deterministic checks of torchdoct.sim.theory (physics.md §1, §2.4, §5, §6).
 
 No Monte Carlo: every closed form is compared with a direct numerical integration of the expectation that
 defines it (physics.md §5.3, §5.4), with the reference tables of physics.md §5.7 and §6, and with limits.
@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from torchdoct import theory as th
+from torchdoct.sim import theory as th
 from torchdoct.conventions import (
     amplitude_sigma_axial_um,
     amplitude_sigma_lateral_um,

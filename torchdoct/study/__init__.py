@@ -13,12 +13,12 @@ small one for tests and the notebook) holds:
   motion to the first population;
 * ``[[part]]``: ``name``, ``label`` (x axis), ``parameter`` (the swept key of the motion table),
   ``inset_max`` (x range of the small-motion inset), ``motion`` (a motion table) and the values as in a
-  sweep field (``values`` / ``linear`` / ``log``, see :mod:`torchdoct.sweep`).
+  sweep field (``values`` / ``linear`` / ``log``, see :mod:`torchdoct.study.sweep`).
 
-:func:`run_study` turns every part (× comparison when grouped in pairs) into a :class:`~torchdoct.sweep.Sweep`,
+:func:`run_study` turns every part (× comparison when grouped in pairs) into a :class:`~torchdoct.study.sweep.Sweep`,
 runs them (cached, resumable, locally or on Dask), and writes into the output directory:
 
-* ``results.csv``/``.parquet``: the tidy table of :mod:`torchdoct.sweep` with the columns ``part``,
+* ``results.csv``/``.parquet``: the tidy table of :mod:`torchdoct.study.sweep` with the columns ``part``,
   ``comparison``, ``motion``, ``parameter`` and ``value`` (the motion parameter);
 * ``differences.csv``/``.parquet``: per part, comparison, value and metric, both systems' mean and SD
   and the paired difference ``other − reference`` over the same trials (same scatterers) with its
@@ -31,13 +31,13 @@ runs them (cached, resumable, locally or on Dask), and writes into the output di
 * ``claims.md``: every numerical finding of the paper's Sections 3.3 and 4 with this run's numbers and
   a verdict; ``study.json``: the resolved study, every cell's seed and cache key, wall times.
 
-Metrics are those of :mod:`torchdoct.metrics` (LIV: physics.md §1; OCDS: physics.md §2.4); ENS and
+Metrics are those of :mod:`torchdoct.sim.metrics` (LIV: physics.md §1; OCDS: physics.md §2.4); ENS and
 N_eff come from :mod:`torchdoct.conventions` (physics.md §5.5).
 
 Statistics: a difference is *significant* when ``|z| ≥ 4`` (``Z_SIGNIFICANT``; the project's bound
 for Monte Carlo comparisons, conservative for the ~30 values of a curve). Cells of one motion value
 share their seed across parts and comparisons (the seed depends on the base seed and the cell key
-``{path: value}`` only, :func:`torchdoct.sweep.cell_seed`), so the two direction laws are compared with
+``{path: value}`` only, :func:`torchdoct.study.sweep.cell_seed`), so the two direction laws are compared with
 common random numbers; every SE is computed from per-trial differences and is valid either way.
 
 The package is split by concern, in import order (each module imports only those before it):

@@ -19,7 +19,7 @@ __all__ = ["bench_study", "format_bench_study"]
 
 def _grouping_cells(study: Study, trials: int) -> list[dict[str, Any]]:
     """ms per cell of one motion value with all systems in one scene vs the comparisons' pairs."""
-    from ..simulate import simulate
+    from ..sim.simulate import simulate
 
     rows = []
     for pname in study.figure_parts:

@@ -30,7 +30,7 @@ from .stats import (
 )
 
 if TYPE_CHECKING:
-    from ..sweep import SweepResult
+    from .sweep import SweepResult
 
 __all__ = ["claims_report"]
 

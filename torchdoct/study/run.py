@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from .._files import atomic_write
-from ..sweep import SweepResult, prepare_out_dir, run_sweeps, write_table
+from .sweep import SweepResult, prepare_out_dir, run_sweeps, write_table
 from .claims import claims_report
 from .figures import _save_figure, plot_comparison, plot_directions
 from .spec import Study, load_study

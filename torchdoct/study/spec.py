@@ -3,7 +3,7 @@ the fix) into a frozen :class:`Study` of :class:`Part` (one motion model swept o
 :class:`Comparison` (two systems compared pairwise).
 
 The schema is described in :mod:`torchdoct.study`; the values of a part follow the sweep-field grammar
-of :mod:`torchdoct.sweep`. Nothing here runs a simulation.
+of :mod:`torchdoct.study.sweep`. Nothing here runs a simulation.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from .._files import file_or_shipped, shipped_files
-from ..config import SceneError, _check_keys, _fail, read_toml, scene_from_dict
-from ..sweep import _normalize_arrays, field_values
+from ..sim.config import SceneError, _check_keys, _fail, read_toml, scene_from_dict
+from .sweep import _normalize_arrays, field_values
 
 __all__ = ["Comparison", "Part", "Study", "shipped_studies", "load_study", "study_from_dict"]
 

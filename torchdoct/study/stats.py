@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from ..sweep import SweepResult
+from .sweep import SweepResult
 from .spec import Study
 from .sweeps import _groups, _sweep_name
 

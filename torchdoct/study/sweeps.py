@@ -1,7 +1,7 @@
-"""The sweeps a study builds: one :class:`~torchdoct.sweep.Sweep` per part, or per part × comparison
+"""The sweeps a study builds: one :class:`~torchdoct.study.sweep.Sweep` per part, or per part × comparison
 (``grouping = "pairs"``), each tagged with ``part``, ``comparison``, ``motion`` and ``parameter``.
 
-Running them (grids, seeds, cache, resume, Dask) is :mod:`torchdoct.sweep`'s concern; what a study
+Running them (grids, seeds, cache, resume, Dask) is :mod:`torchdoct.study.sweep`'s concern; what a study
 computes from their cells is :mod:`torchdoct.study.stats`'.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import copy
 
-from ..sweep import make_sweep
+from .sweep import make_sweep
 from .spec import Study
 
 __all__ = ["study_sweeps"]

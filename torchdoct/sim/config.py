@@ -604,7 +604,7 @@ def read_toml(path: str | Path) -> dict[str, Any]:
 
 
 def load_scene(path: str | Path) -> Scene:
-    """Read and validate a TOML scene file, or a shipped scene by name (see :func:`torchdoct.scenes`)."""
+    """Read and validate a TOML scene file, or a shipped scene by name (see :func:`torchdoct.sim.scenes`)."""
     from .scenes import resolve_scene_path
 
     p = resolve_scene_path(path)

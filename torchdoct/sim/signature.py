@@ -13,7 +13,7 @@ Features, named by a string (lags ``m`` in frames, delay ``τ = m·Δt``):
 
 * ``rho_db_{m}``: Pearson correlation of the dB intensity ``10·log10 I`` between frames ``i`` and
   ``i + m`` (all ``T − m`` pairs, each sub-sequence with its own mean; the estimator of
-  :func:`torchdoct.metrics.lag_correlations` and OCDS, physics.md §2.4). Unitless.
+  :func:`torchdoct.sim.metrics.lag_correlations` and OCDS, physics.md §2.4). Unitless.
 * ``rho_lin_{m}``: the same on the linear intensity ``I = |E|²``; its expectation is
   ``ρ_I(τ) = (|g1|² + j/N_eff)/(1 + 1/N_eff)`` (physics.md §5.4). Unitless.
 * ``g1_{m}``: magnitude of the normalised complex field autocorrelation,
@@ -43,7 +43,7 @@ reads them); :func:`signature` imports torch.
 
 Undefined values are NaN: a pixel with ``I = 0`` (or NaN) at some frame has no dB value and gets
 NaN in every feature; a lag whose two sub-sequences are both constant has correlation 1 and one
-constant against a varying one 0 (the rules of :mod:`torchdoct.metrics`).
+constant against a varying one 0 (the rules of :mod:`torchdoct.sim.metrics`).
 
 :data:`DEFAULT_FEATURES` is the content chosen by the ablation in ``classifier/README.md``.
 """
@@ -206,7 +206,7 @@ def signature(x: torch.Tensor, frame_times_s: Sequence[float],
 
 def signature_maps(maps, seq, resolutions: Sequence = ("original",), *, names: Sequence[str] | None = None,
                    chunk_pixels: int = 1 << 16):
-    """``maps`` (a :class:`torchdoct.io.Maps` of ``seq`` from :func:`torchdoct.maps.compute_maps`) with
+    """``maps`` (a :class:`torchdoct.measured.io.Maps` of ``seq`` from :func:`torchdoct.measured.maps.compute_maps`) with
     the signature channels of every resolution appended: ``f"{feature}@{resolution}"``, metric = the
     feature name, its unit and the optics of the resolution (the maps format's named channels).
 
@@ -221,8 +221,8 @@ def signature_maps(maps, seq, resolutions: Sequence = ("original",), *, names: S
     import numpy as np
     import torch
 
-    from .io import Maps
-    from .resolution import parse_resolution, reduce_resolution
+    from ..measured.io import Maps
+    from ..measured.resolution import parse_resolution, reduce_resolution
 
     times = list(seq.frame_times_s)
     wanted = tuple(names) if names is not None else default_features(len(times))
@@ -270,6 +270,6 @@ def signature_maps(maps, seq, resolutions: Sequence = ("original",), *, names: S
     meta = dict(maps.meta)
     meta["channels"] = list(maps.meta["channels"]) + channels
     meta["signature"] = {"features": list(feats), "intensity_only": not seq.is_complex,
-                         "definition": "torchdoct.signature (lags in frames)"}
+                         "definition": "torchdoct.sim.signature (lags in frames)"}
     arr = np.concatenate([maps.maps, *blocks], axis=0).astype(np.float32, copy=False)
     return Maps(maps=arr, channels=tuple(c["name"] for c in meta["channels"]), meta=meta), note

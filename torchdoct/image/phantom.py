@@ -1,7 +1,7 @@
 """Phantoms: a scene whose scatterer populations live in labelled regions, imaged on a pixel grid.
 
 A phantom file is a scene file (systems, protocol, noise, analysis, simulation: see
-:mod:`torchdoct.config`) with a ``[grid]`` table and, instead of ``[[population]]``, one or more
+:mod:`torchdoct.sim.config`) with a ``[grid]`` table and, instead of ``[[population]]``, one or more
 ``[[region]]`` tables and optional ``[[background]]`` populations (schema in the README). Each region
 is a shape with its own scatterer population (``density_per_um3``, ``reflectivity``,
 ``[[region.motion]]``, the keys of a ``[[population]]``); the background populations fill everything
@@ -28,10 +28,10 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from ._files import file_or_shipped, shipped_files
-from .config import (Population, Scene, SceneError, _check_keys, _fail, _integer, _number, _string, read_toml,
+from .._files import file_or_shipped, shipped_files
+from ..sim.config import (Population, Scene, SceneError, _check_keys, _fail, _integer, _number, _string, read_toml,
                      scene_from_dict)
-from .scenes import shipped_scenes
+from ..sim.scenes import shipped_scenes
 
 __all__ = ["Grid", "Region", "Phantom", "load_phantom", "phantom_from_dict", "shipped_phantoms",
            "MOTION_CODES", "motion_code"]

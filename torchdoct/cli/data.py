@@ -1,7 +1,7 @@
 """Command line for measured data: ``torchdoct maps``, ``torchdoct compare``, ``torchdoct bench maps``.
 
-Thin layer: parse, call one library function (:func:`torchdoct.maps.compute_maps`,
-:func:`torchdoct.compare.compare_samples`, :func:`torchdoct.maps.bench_maps`), print.
+Thin layer: parse, call one library function (:func:`torchdoct.measured.maps.compute_maps`,
+:func:`torchdoct.measured.compare.compare_samples`, :func:`torchdoct.measured.maps.bench_maps`), print.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ def register(sub: Any, bench_sub: Any) -> None:
     mp.add_argument("--metrics", default="liv,ocds,mean_db", help="comma list of liv, ocds, mean_db (default all 3)")
     mp.add_argument("--aliv", action="store_true", help="also compute aLIV and Swiftness (LIV-curve fit)")
     mp.add_argument("--signature", action="store_true",
-                    help="also write the decorrelation-signature channels (torchdoct.signature) that the "
+                    help="also write the decorrelation-signature channels (torchdoct.sim.signature) that the "
                          "classifier's signature model reads")
     mp.add_argument("--out", action="append", required=True, metavar="FILE",
                     help="output maps file, .tif or .npz (repeat to write both)")
@@ -123,9 +123,9 @@ def register(sub: Any, bench_sub: Any) -> None:
 
 
 def _maps(args: argparse.Namespace) -> int:
-    from ._files import check_out
-    from .io import BlockRaster, MAPS_SUFFIXES, read_sequence, write_maps
-    from .maps import compute_maps, write_pngs
+    from .._files import check_out
+    from ..measured.io import BlockRaster, MAPS_SUFFIXES, read_sequence, write_maps
+    from ..measured.maps import compute_maps, write_pngs
 
     outs = []
     for o in args.out:
@@ -154,7 +154,7 @@ def _maps(args: argparse.Namespace) -> int:
                         frame_interval_s=args.frame_interval_s, system=system or None, dataset=args.dataset,
                         block_raster=raster)
     resolutions = args.resolution or ["original"]
-    from .resolution import parse_resolution
+    from ..measured.resolution import parse_resolution
 
     changes = [parse_resolution(r).label for r in resolutions if parse_resolution(r).label != "original"]
     if changes and not seq.is_complex:  # no optics option can help: say so before asking for them
@@ -163,8 +163,8 @@ def _maps(args: argparse.Namespace) -> int:
     if changes:
         _ = seq.system, seq.pitch_um  # a resolution change needs them: a clear error before any work
     if args.png:  # check the PNG paths before the work
-        from .maps import METRICS, png_name
-        from .resolution import parse_resolution
+        from ..measured.maps import METRICS, png_name
+        from ..measured.resolution import parse_resolution
 
         for r in resolutions:
             for m in metrics:
@@ -178,7 +178,7 @@ def _maps(args: argparse.Namespace) -> int:
                         drop_boundary=args.drop_boundary > 0, device=args.device,
                         progress=not args.no_progress)
     if args.signature:
-        from .signature import signature_maps
+        from ..sim.signature import signature_maps
 
         maps, note = signature_maps(maps, seq, resolutions)
         if note:
@@ -214,7 +214,7 @@ def _load_mask(path: str) -> np.ndarray:
     if suf in (".npy", ".npz"):
         try:
             if suf == ".npy":
-                from .io import check_npy_header
+                from ..measured.io import check_npy_header
 
                 check_npy_header(p, "mask ")
                 return np.load(p, allow_pickle=False)
@@ -234,7 +234,7 @@ def _load_mask(path: str) -> np.ndarray:
     if suf in (".tif", ".tiff"):
         import tifffile
 
-        from .io import _TiffDamage
+        from ..measured.io import _TiffDamage
 
         try:
             with _TiffDamage() as damage:  # a truncated file: tifffile only logs; refuse it instead
@@ -248,9 +248,9 @@ def _load_mask(path: str) -> np.ndarray:
 
 
 def _compare(args: argparse.Namespace) -> int:
-    from ._files import atomic_write, check_out
-    from .compare import compare_samples, plot_comparison, region_mask
-    from .io import read_maps
+    from .._files import atomic_write, check_out
+    from ..measured.compare import compare_samples, plot_comparison, region_mask
+    from ..measured.io import read_maps
 
     out = check_out(args.out, args.force, ".csv", what="--out")
     per_out = check_out(args.per_sample, args.force, ".csv", what="--per-sample")
@@ -291,8 +291,8 @@ def _compare(args: argparse.Namespace) -> int:
 
 
 def _bench_maps(args: argparse.Namespace) -> int:
-    from ._files import atomic_write, check_out
-    from .maps import bench_maps
+    from .._files import atomic_write, check_out
+    from ..measured.maps import bench_maps
 
     out = check_out(args.out, args.force, ".json", what="--out")
     if args.frames < 2 or min(args.size) < 1:

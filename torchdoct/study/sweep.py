@@ -22,7 +22,7 @@ field that gives more than one of the three takes the sorted union (numbers only
 are rounded to 12 significant digits so that cell keys (and seeds) do not depend on the numpy version.
 Paths index arrays of tables by position (``system.1.axial_resolution_um``); a missing table on the
 path is created (``noise.snr_db`` without a ``[noise]`` table), and every cell is validated with
-:func:`torchdoct.config.scene_from_dict` before anything runs. ``simulation.trials`` and
+:func:`torchdoct.sim.config.scene_from_dict` before anything runs. ``simulation.trials`` and
 ``simulation.seed`` set the run of every cell and cannot be swept.
 
 Seeds, cache and reproducibility:
@@ -40,8 +40,8 @@ Seeds, cache and reproducibility:
 The tidy table has one row per cell × system × scalar metric (``liv`` dB², ``ocds`` 1/s,
 ``complex_variance``): mean, SD (ddof 1), standard error, the number of finite trials ``n``, the
 number of trials with an empty resolution volume ``empty`` (NaN dB metrics, see
-:mod:`torchdoct.metrics`), the trials and the seed of the cell (:func:`results_table`; the
-statistics are those of :func:`torchdoct.metrics.summarize`).
+:mod:`torchdoct.sim.metrics`), the trials and the seed of the cell (:func:`results_table`; the
+statistics are those of :func:`torchdoct.sim.metrics.summarize`).
 
 Executors (:func:`run_sweeps`): this process on one core (``workers = 1``, the library default),
 ``workers`` cells side by side, each on one torch thread (the command line's ``--threads``, default
@@ -68,7 +68,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from .config import Scene, SceneError, _fail, read_toml, scene_from_dict
+from ..sim.config import Scene, SceneError, _fail, read_toml, scene_from_dict
 
 __all__ = [
     "SCALAR_METRICS",
@@ -107,7 +107,7 @@ _SIG_DIGITS = 12
 
 
 def _version() -> str:
-    from . import __version__
+    from .. import __version__
 
     return __version__
 
@@ -486,8 +486,8 @@ def run_cell(payload: dict[str, Any]) -> dict[str, Any]:
     bool array [trials, systems], "system_names": [...], "elapsed_s": float}``. Plain data, so it runs
     the same on a Dask worker.
     """
-    from .metrics import compute_metrics
-    from .simulate import simulate
+    from ..sim.metrics import compute_metrics
+    from ..sim.simulate import simulate
 
     scene = scene_from_dict(payload["scene"])
     st = scene.simulation
@@ -591,7 +591,7 @@ class _Cache:
     def put(self, key: str, res: dict[str, Any], scene_dict: dict[str, Any]) -> None:
         if self.dir is None:
             return
-        from ._files import atomic_write
+        from .._files import atomic_write
 
         self.dir.mkdir(parents=True, exist_ok=True)
         meta = {"cache_key": key, "format": CACHE_FORMAT, "version": _version(), "scene": scene_dict,
@@ -630,7 +630,7 @@ _PROCESS_WORK = 100_000
 
 def _worker_init() -> None:
     """A worker process computes on one core: one torch (and BLAS) thread, one simulation thread."""
-    from .threads import limit_process_threads, set_default_threads
+    from ..threads import limit_process_threads, set_default_threads
 
     limit_process_threads()
     set_default_threads(1)
@@ -642,7 +642,7 @@ def _execute(payloads: list[dict[str, Any]], *, scheduler: str | None, batch_cel
     ``done(i, result)`` as each finishes."""
     batches = [list(range(i, min(len(payloads), i + batch_cells))) for i in range(0, len(payloads), batch_cells)]
     if scheduler is None:
-        from .threads import map_ordered, using_threads
+        from ..threads import map_ordered, using_threads
 
         if workers == 1 or len(batches) < 2:
             with using_threads(workers):  # one batch at a time; its simulations use the workers as threads
@@ -824,7 +824,7 @@ def results_table(cells: Sequence[CellResult]):
 
 def write_table(table, stem: str | os.PathLike, *, force: bool = False) -> list[Path]:
     """Write ``stem.csv`` and ``stem.parquet`` atomically (refusing to overwrite without ``force``)."""
-    from ._files import atomic_write, check_out
+    from .._files import atomic_write, check_out
 
     stem = Path(stem)
     csv = check_out(stem.with_suffix(".csv"), force, ".csv", "--out")
@@ -866,7 +866,7 @@ def prepare_out_dir(out_dir: str | os.PathLike, files: Sequence[Path], force: bo
 def write_sweep_outputs(result: SweepResult, out_dir: str | os.PathLike, *, force: bool = False,
                         stem: str = "results") -> list[Path]:
     """Write the tidy table (CSV, Parquet) and ``sweep.json`` (resolved sweeps, cells, seeds, keys)."""
-    from ._files import atomic_write
+    from .._files import atomic_write
 
     files = sweep_outputs(out_dir, stem)
     prepare_out_dir(out_dir, files, force)

@@ -1,13 +1,13 @@
 """DOCT maps of complex (or intensity) OCT sequences at one or more resolutions.
 
-For every requested resolution (:func:`torchdoct.resolution.parse_resolution`: ``original``,
+For every requested resolution (:func:`torchdoct.measured.resolution.parse_resolution`: ``original``,
 ``axial=14``, ``lateral=18``, ``axial=14,lateral=18``) the complex field is reduced
-(:func:`torchdoct.resolution.reduce_resolution`, paper Eqs. 1-8), ``I = |E|²`` is formed, and per
+(:func:`torchdoct.measured.resolution.reduce_resolution`, paper Eqs. 1-8), ``I = |E|²`` is formed, and per
 pixel (time last, ``[..., T]``) the channels below are computed:
 
-* ``liv`` (dB²): :func:`torchdoct.metrics.liv`, ddof-0 variance of ``10·log10 I`` (physics.md §1);
+* ``liv`` (dB²): :func:`torchdoct.sim.metrics.liv`, ddof-0 variance of ``10·log10 I`` (physics.md §1);
 * ``ocds`` (1/s): −OLS slope of the lag correlation over ``ocds_delay_range_s`` (physics.md §2.4;
-  :func:`torchdoct.metrics.ocds`; the default Pearson/dB path evaluates only the lags inside the
+  :func:`torchdoct.sim.metrics.ocds`; the default Pearson/dB path evaluates only the lags inside the
   range, with the same definition, see :func:`ocds_map`);
 * ``mean_db`` (dB): ``10·log10(mean_t I)``, the dB of the time-averaged linear intensity (the
   structural OCT image; with the default ``normalization="power"`` of the reduction it stays
@@ -38,7 +38,7 @@ resolution are in ``meta["aliv"]["flagged_pixels"]`` and :func:`write_pngs` draw
 Optics: only a resolution change needs the pitch and the original resolutions (``system``); maps at
 the original resolution record them when known (``None`` otherwise).
 
-Block raster volumes (:class:`torchdoct.io.BlockRaster` in the sequence metadata): maps are
+Block raster volumes (:class:`torchdoct.measured.io.BlockRaster` in the sequence metadata): maps are
 computed on the whole volume (the lateral Gaussian runs across block boundaries, as in the paper),
 then the B-scans next to the boundaries are dropped; ``meta["y_indices"]`` lists the kept positions.
 
@@ -56,10 +56,10 @@ from typing import Any, Iterable, Mapping, Sequence as _Seq
 import numpy as np
 import torch
 
-from . import metrics as _metrics
-from ._files import atomic_write, check_out
+from ..sim import metrics as _metrics
+from .._files import atomic_write, check_out
 from .io import Maps, Sequence
-from .threads import one_torch_thread
+from ..threads import one_torch_thread
 from .resolution import (
     EDGE_MODES,
     NORMALIZATIONS,
@@ -116,13 +116,13 @@ def _uniform_dt(frame_times_s: _Seq[float]) -> float | None:
 def ocds_map(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
              delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S, scale: str = "db",
              estimator: str = "pearson") -> torch.Tensor:
-    """OCDS (1/s) of intensities ``[..., T]``: identical to :func:`torchdoct.metrics.ocds`.
+    """OCDS (1/s) of intensities ``[..., T]``: identical to :func:`torchdoct.sim.metrics.ocds`.
 
     For a uniform protocol only the lags inside ``delay_range_s`` are computed, with either estimator
-    (same per-lag definitions and degenerate-case rules as :func:`torchdoct.metrics.lag_correlations`:
+    (same per-lag definitions and degenerate-case rules as :func:`torchdoct.sim.metrics.lag_correlations`:
     Pearson per lag, or the biased ``Σ x̃_i x̃_{i+m} / Σ x̃²`` of the whole-sequence deviations; the slope
-    comes from :func:`torchdoct.metrics.ocds_from_correlations`); a non-uniform protocol calls
-    :func:`torchdoct.metrics.ocds`.
+    comes from :func:`torchdoct.sim.metrics.ocds_from_correlations`); a non-uniform protocol calls
+    :func:`torchdoct.sim.metrics.ocds`.
     """
     dt = _uniform_dt(frame_times_s)
     if dt is None or estimator not in ("pearson", "biased"):
@@ -416,7 +416,7 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     """DOCT maps of ``seq`` at every resolution in ``resolutions`` (see the module docstring).
 
     ``metrics``: any of ``liv``, ``ocds``, ``mean_db``, ``aliv``, ``swiftness``. ``axial_center``,
-    ``edge_mode``, ``normalization``: :func:`torchdoct.resolution.reduce_resolution`.
+    ``edge_mode``, ``normalization``: :func:`torchdoct.measured.resolution.reduce_resolution`.
     ``drop_boundary``: drop the block-boundary B-scans of a block raster volume. ``slab_elements``:
     complex samples per depth slab; ``chunk_pixels``: pixels per metric chunk (memory only).
     ``timings`` (optional dict) receives seconds per resolution label. Returns :class:`Maps`
@@ -676,7 +676,7 @@ def map_figure(maps: Maps, channel: str, *, value_range: tuple[float, float] | N
     from matplotlib.colors import ListedColormap, Normalize, hsv_to_rgb
     from matplotlib.patches import Patch
 
-    from .figures import show_bscan, unit_text
+    from ..figures import show_bscan, unit_text
 
     info = maps.channel_info(channel)
     metric, res = info["metric"], info["resolution"]
@@ -802,7 +802,7 @@ def bench_maps(*, frames: int = 32, shape: tuple[int, int] = (512, 512),
     System: 840 nm, 4.9 µm lateral / 3.8 µm axial; pitch 1.5 µm (z) × 2.0 µm (x); 204.8 ms frames.
     Returns a JSON-ready dict with the best total time over ``repeats`` and seconds per resolution.
     """
-    from .bench import machine_info
+    from ..bench import machine_info
     from .io import validate_meta
 
     g = torch.Generator().manual_seed(int(seed))

@@ -52,7 +52,7 @@ from typing import Any, Mapping, Sequence as _Seq
 
 import numpy as np
 
-from ._files import atomic_write, check_out
+from .._files import atomic_write, check_out
 
 __all__ = [
     "SEQUENCE_SUFFIXES",

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any, Sequence
 
-from ._files import atomic_write, check_out
+from .._files import atomic_write, check_out
 
 __all__ = ["build_parser", "main", "EXIT_CODES"]
 
@@ -110,7 +110,7 @@ _atomic_write = atomic_write
 
 #: Modules that add subcommands: each has ``register(sub, bench_sub)``, adding parsers whose
 #: ``func`` default is the handler ``func(args) -> int``.
-_EXTENSIONS = ("cli_render", "cli_data", "cli_study")
+_EXTENSIONS = ("render", "data", "study")
 
 
 def _format_summary(summary: dict[str, Any], result) -> str:
@@ -162,7 +162,7 @@ def _save_npz(path: Path, result, metrics: dict[str, Any]) -> None:
 
 def _bench_tradeoffs(args) -> int:
     """Trade-off curves of the simulator, the paper study and the classifier (``--part``)."""
-    from . import tradeoffs
+    from ..bench import tradeoffs
 
     out = _check_out(args.out, args.force, ".json")
     parts = ["simulator", "study", "classifier"] if args.part == "all" else [args.part]
@@ -226,22 +226,22 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from . import config
-    from .threads import set_default_threads
+    from ..sim import config
+    from ..threads import set_default_threads
 
     try:
         set_default_threads(getattr(args, "threads", None))
     except ValueError as err:
         print(f"error: --threads: {err}", file=sys.stderr)
         return 2
-    from .threads import limit_process_threads
+    from ..threads import limit_process_threads
 
     limit_process_threads()  # parallel work runs over independent pieces (torchdoct.threads)
-    from .scenes import shipped_scenes
+    from ..sim.scenes import shipped_scenes
 
     try:
         if getattr(args, "device", None) is not None:  # every command with --device (simulate, render, maps)
-            from ._device import check_device
+            from .._device import check_device
 
             check_device(args.device)
         if getattr(args, "func", None) is not None:
@@ -252,14 +252,14 @@ def _main(argv: Sequence[str] | None = None) -> int:
                 print(f"{name:>22}: {sc.description}")
             return 0
         if args.command == "plan":
-            from .plan import make_plan
+            from ..sim.plan import make_plan
 
             scene = config.load_scene(args.scene)
             plan = make_plan(scene, truncation_tolerance=args.tolerance)
             print(plan.to_json() if args.json else plan.describe(args.trials or scene.simulation.trials))
             return 0
         if args.command == "simulate":
-            from .simulate import simulate
+            from ..sim.simulate import simulate
 
             out = _check_out(args.out, args.force, ".npz")
             scene = config.load_scene(args.scene)
@@ -267,7 +267,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
                               device=args.device, truncation_tolerance=args.tolerance,
                               progress=not args.no_progress)
             metrics = result.metrics()
-            from .metrics import summarize
+            from ..sim.metrics import summarize
 
             summary = summarize(metrics, result.system_names)
             if args.json:
@@ -292,7 +292,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
         if args.command == "bench" and args.bench == "all":
             return _bench_all(args)
         if args.command == "bench" and args.bench == "load":
-            from . import bench
+            from .. import bench
 
             out = _check_out(args.out, args.force, ".json")
             res = bench.bench_load(repeats=args.repeats, threads=args.threads, progress=True)
@@ -301,7 +301,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
             print(f"wrote {out}")
             return 0
         if args.command == "bench" and args.bench == "simulate":
-            from . import bench
+            from .. import bench
 
             out = _check_out(args.out, args.force, ".json")
             res = bench.bench_simulate(trials=args.trials, dtype=args.dtype, repeats=args.repeats,

@@ -42,7 +42,7 @@ def register(sub, bench_sub) -> None:
 
 
 def _phantoms(args) -> int:
-    from .phantom import load_phantom, shipped_phantoms
+    from ..image.phantom import load_phantom, shipped_phantoms
 
     for name, path in shipped_phantoms().items():
         print(f"{name:>14}: {load_phantom(path).scene.description}")
@@ -75,10 +75,10 @@ def _outputs(out: Path, names: list[str]) -> dict[str, Path]:
 
 
 def _render(args) -> int:
-    from ._files import atomic_write, check_out
-    from .io import write_sequence
-    from .phantom import load_phantom
-    from .render import render, save_preview
+    from .._files import atomic_write, check_out
+    from ..measured.io import write_sequence
+    from ..image.phantom import load_phantom
+    from ..image.render import render, save_preview
 
     ph = load_phantom(args.phantom, grid=_grid(args.grid, args.pitch_um))
     names = args.system or [s.name for s in ph.scene.systems]
@@ -127,8 +127,8 @@ def _save_labels(path: str, res) -> None:
 
 
 def _bench(args) -> int:
-    from ._files import atomic_write, check_out
-    from .bench import bench_render
+    from .._files import atomic_write, check_out
+    from ..bench import bench_render
 
     out = check_out(args.out, args.force, ".json")
     res = bench_render(phantom=args.phantom, repeats=args.repeats, dtype=args.dtype)

@@ -27,9 +27,9 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from .config import Analysis, Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic, Scene
-from .conventions import mean_intensity, truncation_error_bound
-from .simulate import simulate
+from ..sim.config import Analysis, Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic, Scene
+from ..conventions import mean_intensity, truncation_error_bound
+from ..sim.simulate import simulate
 
 __all__ = ["tradeoff_cells", "simulator_tradeoffs", "pareto_front", "recommend", "plot_tradeoffs",
            "format_table", "DEFAULTS"]
@@ -57,7 +57,7 @@ def tradeoff_cells() -> dict[str, Scene]:
 
 
 def _g1_theory(scene: Scene, lag: int) -> float:
-    from . import theory
+    from ..sim import theory
 
     s = scene.systems[0]
     m = scene.populations[0].motion[0]
@@ -105,7 +105,7 @@ def simulator_tradeoffs(*, trials: int = 8192, reference_trials: int = 16384,
     """Measure every knob of every :func:`tradeoff_cells` cell; returns a JSON-ready dict."""
     from tqdm.auto import tqdm
 
-    from .bench import machine_info
+    from . import machine_info
 
     cells_out = []
     cells = tradeoff_cells()
@@ -326,9 +326,9 @@ def study_tradeoffs(study: str = "paper-reduced", *, trials_grid: Sequence[int] 
     errors, ``√mean(SE_n² + SE_ref²)``, is reported beside it. The full study's time at ``n`` trials
     is predicted from the measured ms per cell-trial.
     """
-    from .bench import machine_info
-    from .study import load_study, study_sweeps
-    from .sweep import run_sweeps
+    from . import machine_info
+    from ..study import load_study, study_sweeps
+    from ..study.sweep import run_sweeps
 
     st = load_study(study)
     sweeps = study_sweeps(st)

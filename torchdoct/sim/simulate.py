@@ -6,7 +6,7 @@ The signal of system ``s`` at frame time ``t`` is the paper's Eq. (11) (physics.
 
 with the PSF centred at the origin, ``s_x = Δx/(2√2)``, ``s_z = Δz/(2√ln2)``, ``k = 2π/λ₀``
 (:mod:`torchdoct.conventions`; lengths µm, times s). Scatterers form a homogeneous Poisson medium;
-only those that can come within the PSF truncation tolerance are drawn (see :mod:`torchdoct.plan`).
+only those that can come within the PSF truncation tolerance are drawn (see :mod:`torchdoct.sim.plan`).
 
 Design notes:
 
@@ -35,9 +35,9 @@ import numpy as np
 import torch
 
 from .config import Population, Scene
-from .conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, wavenumber_per_um
+from ..conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, wavenumber_per_um
 from .plan import BLOCK_TRIALS, Plan, PopulationPlan, ellipsoid_entry_bound, make_plan
-from .threads import map_ordered, resolve_threads, single_torch_thread
+from ..threads import map_ordered, resolve_threads, single_torch_thread
 
 __all__ = ["simulate", "SimulationResult", "CapacityError", "MemoryLimitError", "block_generator", "seeded_generator",
            "chunk_bytes", "available_memory_bytes", "unit_directions"]
@@ -478,7 +478,7 @@ def _unit_ball(draws: _Draws, n: int, keep: int) -> tuple[torch.Tensor, ...]:
 
 
 def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
-    """Straight paths that meet the tolerance ellipsoid during the protocol (see :mod:`torchdoct.plan`).
+    """Straight paths that meet the tolerance ellipsoid during the protocol (see :mod:`torchdoct.sim.plan`).
 
     Positions and velocities are kept component-major ([3, N, slots], float64). Draws are made for
     the reserved slots (the random stream does not depend on the counts), but only the slots below
@@ -572,7 +572,7 @@ def _shell_points(draws: _Draws, P: int, inner: tuple, outer: tuple) -> torch.Te
 
 
 def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
-    """Pure diffusion on the periodic cell of the plan (see :mod:`torchdoct.plan`).
+    """Pure diffusion on the periodic cell of the plan (see :mod:`torchdoct.sim.plan`).
 
     The Poisson count and uniform positions are drawn once; each frame every scatterer takes a
     Gaussian step of ``√(2·D·Δt)`` per axis (µm) and is wrapped back into the cell. The cell is small
@@ -647,7 +647,7 @@ def _walk_periodic_block(g: torch.Generator, M: int, n: torch.Tensor, half, L, i
 
 
 def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
-    """Diffusion with drift: a random walk tracked frame by frame in the region R (see :mod:`torchdoct.plan`).
+    """Diffusion with drift: a random walk tracked frame by frame in the region R (see :mod:`torchdoct.sim.plan`).
 
     State per slot (float64, component-major [N, 3, C]): position, depth at which the phase was
     referenced and that phase ``(2kn·z_ref) mod 2π``. Unused slots sit far away. Each frame: one
@@ -811,7 +811,7 @@ class SimulationResult:
         return tuple(s.name for s in self.scene.systems)
 
     def metrics(self) -> dict[str, Any]:
-        """The scene's ``[analysis]`` metrics on these signals (see :func:`torchdoct.metrics.compute_metrics`)."""
+        """The scene's ``[analysis]`` metrics on these signals (see :func:`torchdoct.sim.metrics.compute_metrics`)."""
         from .metrics import compute_metrics
 
         return compute_metrics(self.signals, self.frame_times_s, self.scene.analysis)

@@ -56,7 +56,7 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
-from .conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
+from ..conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
 
 __all__ = [
     "ResolutionTarget",
@@ -305,7 +305,7 @@ def reduce_resolution(field: Any, *, pitch_um: Mapping[str, float], system: Any,
     ``field``: torch tensor or numpy array, complex64/complex128, any layout named by ``axes`` (one
     letter per dimension; ``Z`` depth and ``X`` required, ``Y`` optional, others such as ``T`` are
     batch). ``pitch_um``: ``{"z": .., "x": .., ["y": ..]}`` (µm per pixel, z in the medium).
-    ``system``: an :class:`~torchdoct.config.OCTSystem` or a dict with the original
+    ``system``: an :class:`~torchdoct.sim.config.OCTSystem` or a dict with the original
     ``lateral_resolution_um`` (1/e² width) and ``axial_resolution_um`` (FWHM). Targets ``None`` keep
     the original. Lateral: Gaussian σ'_x on each en-face plane (Y and X; X only without Y); axial:
     spectral window σ_s along Z. ``axial_center``, ``edge_mode``, ``normalization``: see the module

@@ -1,6 +1,6 @@
 """The plan of a point simulation: which stages run, on which domain, at what cost.
 
-:func:`make_plan` turns a :class:`~torchdoct.config.Scene` into a :class:`Plan`; the simulator
+:func:`make_plan` turns a :class:`~torchdoct.sim.config.Scene` into a :class:`Plan`; the simulator
 executes exactly that plan, and ``torchdoct plan SCENE.toml`` prints it. Effects a scene does not ask
 for have no stage: no noise stage without ``[noise]``, no motion stage for static scatterers, no
 per-frame random draws for ballistic or flow motion (straight paths are drawn once).
@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from .config import Population, Scene
-from .conventions import (
+from ..conventions import (
     ens_paper,
     mean_intensity,
     wavenumber_per_um,

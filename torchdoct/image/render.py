@@ -46,12 +46,12 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from .config import Population
-from .conventions import (amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
+from ..sim.config import Population
+from ..conventions import (amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
                           truncation_half_widths_um, wavenumber_per_um)
 from .phantom import MOTION_CODES, Phantom
-from .simulate import MemoryLimitError, available_memory_bytes, seeded_generator, unit_directions
-from .threads import map_ordered, one_torch_thread, resolve_threads
+from ..sim.simulate import MemoryLimitError, available_memory_bytes, seeded_generator, unit_directions
+from ..threads import map_ordered, one_torch_thread, resolve_threads
 
 __all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS", "save_preview", "preview_figure"]
 
@@ -139,7 +139,7 @@ class RenderResult:
         }
 
     def intensity(self, system: str | int | None = None) -> torch.Tensor:
-        """|E|² with frames last: [..., T] (the layout of :mod:`torchdoct.metrics`)."""
+        """|E|² with frames last: [..., T] (the layout of :mod:`torchdoct.sim.metrics`)."""
         e = self.data[self.system_index(system)]
         return (e.real**2 + e.imag**2).movedim(0, -1)
 
@@ -148,7 +148,7 @@ class RenderResult:
 
         Pixels whose intensity is 0 at some frame (no scatterer within reach) are NaN.
         """
-        from .metrics import liv, ocds, to_db
+        from ..sim.metrics import liv, ocds, to_db
 
         i = self.intensity(system)
         zero = (i <= 0).any(-1)
@@ -483,7 +483,7 @@ def preview_figure(result: RenderResult, system: str | int | None = None,
         mid = grid.n_y // 2
         frame, liv_map, labels = frame[mid], liv_map[mid], labels[mid]
     frame_db = 10.0 * torch.log10(frame.clamp_min(1e-30)).numpy()
-    from .figures import show_bscan
+    from ..figures import show_bscan
 
     top = float(np.percentile(frame_db, 99.5))
     pitch = {"z": grid.pitch_z_um, "x": grid.pitch_x_um}

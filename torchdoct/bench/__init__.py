@@ -18,9 +18,9 @@ from typing import Any
 
 import torch
 
-from .config import Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic, Scene
-from .plan import make_plan
-from .simulate import simulate
+from ..sim.config import Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic, Scene
+from ..sim.plan import make_plan
+from ..sim.simulate import simulate
 
 __all__ = ["paper_systems", "paper_motions", "bench_simulate", "machine_info", "format_simulate_table", "write_json"]
 
@@ -92,7 +92,7 @@ def bench_simulate(*, trials: int = 1024, dtype: str = "float32", repeats: int =
             bar.update()
         return best, res, best_cpu
 
-    from .threads import resolve_threads
+    from ..threads import resolve_threads
 
     n_threads = resolve_threads(threads)
     for scene, (system, (mname, motion)) in zip(scenes, cells):
@@ -187,12 +187,12 @@ def write_json(result: dict[str, Any], path: str | Path) -> None:
 
 
 def bench_render(*, phantom: str = "spheroid", repeats: int = 3, dtype: str = "float32") -> dict[str, Any]:
-    """Time :func:`torchdoct.render.render` on a shipped phantom (best of ``repeats``).
+    """Time :func:`torchdoct.image.render.render` on a shipped phantom (best of ``repeats``).
 
     Reports the wall time, pixel-frames per second and the scatterer evaluations of the run.
     """
-    from .phantom import load_phantom
-    from .render import render
+    from ..image.phantom import load_phantom
+    from ..image.render import render
 
     ph = load_phantom(phantom)
     times = []
@@ -228,8 +228,8 @@ def _burn() -> None:  # pragma: no cover - runs in the neighbour process
     """A second torchdoct job: simulate the example scene on one core, forever."""
     import sys
 
-    from .config import load_scene
-    from .threads import set_default_threads
+    from ..sim.config import load_scene
+    from ..threads import set_default_threads
 
     torch.set_num_threads(1)
     set_default_threads(1)
@@ -264,10 +264,10 @@ class BusyNeighbour:
 
 def _workloads(tmp: Path) -> dict[str, Any]:
     """The commands a user runs, as library calls taking ``threads``."""
-    from .cli import main
-    from .config import load_scene, read_toml
-    from .scenes import resolve_scene_path
-    from .sweep import make_sweep, run_sweeps
+    from ..cli import main
+    from ..sim.config import load_scene, read_toml
+    from ..sim.scenes import resolve_scene_path
+    from ..study.sweep import make_sweep, run_sweeps
 
     example = load_scene("example")
     sweep = make_sweep(read_toml(resolve_scene_path("example")),
@@ -307,7 +307,7 @@ def bench_load(*, repeats: int = 3, threads: int | None = None, progress: bool =
     """
     import tempfile
 
-    from .threads import resolve_threads
+    from ..threads import resolve_threads
 
     threads = resolve_threads(threads)
     rows: dict[str, dict[str, float]] = {}

@@ -1,7 +1,7 @@
 """Command line: ``torchdoct sweep``, ``torchdoct study`` and ``torchdoct bench study``.
 
 Registered by :mod:`torchdoct.cli` through :func:`register`. Each handler parses, calls one library
-function (:mod:`torchdoct.sweep`, :mod:`torchdoct.study`) and prints.
+function (:mod:`torchdoct.study.sweep`, :mod:`torchdoct.study`) and prints.
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ def register(sub, bench_sub) -> None:
 
 def _workers(args) -> int:
     """Cells side by side: ``--workers``, else ``--threads``, else the usable cores (one torch thread each)."""
-    from .threads import resolve_threads
+    from ..threads import resolve_threads
 
     if args.workers is not None:
         return args.workers
@@ -76,7 +76,7 @@ def _cache(args) -> object:
 
 
 def _sweep(args) -> int:
-    from .sweep import format_table, load_sweep, prepare_out_dir, run_sweep, sweep_outputs, write_sweep_outputs
+    from ..study.sweep import format_table, load_sweep, prepare_out_dir, run_sweep, sweep_outputs, write_sweep_outputs
 
     sweep = load_sweep(args.scene)
     prepare_out_dir(args.out, sweep_outputs(args.out), args.force)
@@ -93,7 +93,7 @@ def _sweep(args) -> int:
 
 
 def _study(args) -> int:
-    from .study import run_study
+    from ..study import run_study
 
     r = run_study(args.study, args.out, trials=args.trials, seed=args.seed,
                   cache_dir=None if args.no_cache else (args.cache if args.cache is not None else "default"),
@@ -109,8 +109,8 @@ def _study(args) -> int:
 
 
 def _bench_study(args) -> int:
-    from ._files import atomic_write, check_out
-    from .study import bench_study, format_bench_study
+    from .._files import atomic_write, check_out
+    from ..study import bench_study, format_bench_study
 
     out = check_out(args.out, args.force, ".json")
     res = bench_study(args.study, trials=args.trials, groupings=args.groupings, grouping_trials=args.grouping_trials,

@@ -1,0 +1,3 @@
+"""Images with ground truth: phantom files (phantom) rendered into complex B-scan or volume
+sequences (render).
+"""
