@@ -30,6 +30,9 @@ Steps of :func:`classify_maps`:
 5. **Classification**: onnxruntime on the valid pixels (chunks of 2^17), then the rule of
    :mod:`classifier.rule`: class map values 0…C−1 (the model's classes, ``indeterminate`` last) and
    :data:`MASKED` for background/NaN pixels; per-class probability maps (NaN where masked).
+
+Kept whole (over 600 lines): the torch-free classify path, reading, pooling, rule and writing
+(docs/architecture.md).
 """
 
 from __future__ import annotations

@@ -37,6 +37,9 @@ meta JSON as ImageDescription. See :class:`Maps`.
 
 Safety: files are never unpickled (``allow_pickle=False``; object arrays are refused), outputs are
 written atomically and never overwritten without ``force``.
+
+Kept whole (over 600 lines): one reader per format behind two entry points, with one set of
+error rules (docs/architecture.md).
 """
 
 from __future__ import annotations

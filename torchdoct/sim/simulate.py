@@ -22,6 +22,9 @@ Design notes:
   it (|z| of a few tens of µm), so ``2kn·z`` is exact enough in the working dtype as it is.
 * Sums over scatterers are taken per trial in scatterer order (``segment_reduce``/``index_add_``), never
   across trials, so a trial's bits do not depend on which other trials share its chunk.
+
+Kept whole (over 600 lines): the three samplers share the draw, compaction and evaluation kernels,
+and the reproducibility contract is easiest to check in one place (docs/architecture.md).
 """
 
 from __future__ import annotations

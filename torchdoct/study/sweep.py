@@ -50,6 +50,9 @@ to other load than torch's intra-op threads; :mod:`torchdoct.threads`): in threa
 for small sweeps, in worker processes from :data:`_PROCESS_WORK` system-trials on (a process costs
 seconds to start, threads share the interpreter's lock), or an existing Dask distributed cluster (``scheduler = "tcp://host:8786"``),
 cells as tasks whose results come back to this process, which writes the cache and the table.
+
+Kept whole (over 600 lines): grid, cache and executors are one mechanism that studies only call
+(docs/architecture.md).
 """
 
 from __future__ import annotations
