@@ -192,6 +192,16 @@ def _bench_tradeoffs(args) -> int:
     return 0
 
 
+def _bench(args, compute, fmt) -> int:
+    """A benchmark command: check ``--out``, run, print the table, write the JSON."""
+    out = _check_out(args.out, args.force, ".json")
+    res = compute()
+    print(fmt(res))
+    _atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
+    print(f"wrote {out}")
+    return 0
+
+
 def _bench_all(args) -> int:
     """Run every registered benchmark in turn; each writes ``DIR/bench-NAME.json``."""
     out_dir = Path(args.out)
@@ -283,33 +293,20 @@ def _main(argv: Sequence[str] | None = None) -> int:
         if args.command == "bench" and args.bench == "classify":
             from classifier.bench import bench_classify, format_bench_classify
 
-            out = _check_out(args.out, args.force, ".json")
-            res = bench_classify(size=args.size, repeats=args.repeats)
-            print(format_bench_classify(res))
-            _atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
-            print(f"wrote {out}")
-            return 0
+            return _bench(args, lambda: bench_classify(size=args.size, repeats=args.repeats), format_bench_classify)
         if args.command == "bench" and args.bench == "all":
             return _bench_all(args)
         if args.command == "bench" and args.bench == "load":
             from .. import bench
 
-            out = _check_out(args.out, args.force, ".json")
-            res = bench.bench_load(repeats=args.repeats, threads=args.threads, progress=True)
-            print(bench.format_load_table(res))
-            _atomic_write(out, lambda tmp: bench.write_json(res, tmp))
-            print(f"wrote {out}")
-            return 0
+            return _bench(args, lambda: bench.bench_load(repeats=args.repeats, threads=args.threads, progress=True),
+                          bench.format_load_table)
         if args.command == "bench" and args.bench == "simulate":
             from .. import bench
 
-            out = _check_out(args.out, args.force, ".json")
-            res = bench.bench_simulate(trials=args.trials, dtype=args.dtype, repeats=args.repeats,
-                                       threads=args.threads, load=args.load, progress=True)
-            print(bench.format_simulate_table(res))
-            _atomic_write(out, lambda tmp: bench.write_json(res, tmp))
-            print(f"wrote {out}")
-            return 0
+            return _bench(args, lambda: bench.bench_simulate(trials=args.trials, dtype=args.dtype, repeats=args.repeats,
+                                                             threads=args.threads, load=args.load, progress=True),
+                          bench.format_simulate_table)
     except (config.SceneError, TypeError, ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
