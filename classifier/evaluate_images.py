@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +40,7 @@ MOVING_CODES = {2: "diffusion", 3: "ballistic", 4: "flow"}
 PARAM_ROW = {"diffusion": 0, "ballistic": 1, "flow": 1}
 _MASKED = 255
 
-__all__ = ["MOVING_CODES", "read_rendered_labels", "score_images", "format_scores"]
+__all__ = ["MOVING_CODES", "read_rendered_labels", "score_images", "format_scores", "main"]
 
 
 def read_rendered_labels(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
@@ -256,3 +257,28 @@ def format_scores(scores: dict[str, Any]) -> str:
                      f"recall {f(c.get('recall'))}, decided as {c.get('decided_as')}, "
                      f"median |log10 error| {f(mm.get('median_abs_log10_error'))}")
     return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m classifier.evaluate_images CLASSIFIED RENDERED [--edge-um E] [--json]``: print the scores."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m classifier.evaluate_images",
+                                 description="Score a doct-classify output against the labels of a rendered phantom.")
+    ap.add_argument("classified", help="the --out directory of doct-classify")
+    ap.add_argument("rendered", help="the sequence file of `torchdoct render` (.npz or .h5) the maps came from")
+    ap.add_argument("--edge-um", type=float, default=0.0,
+                    help="leave out pixels within this distance (µm, per axis) of another label (default 0)")
+    ap.add_argument("--json", action="store_true", help="print the scores as JSON")
+    args = ap.parse_args(argv)
+    try:
+        scores = score_images(args.classified, args.rendered, edge_um=args.edge_um)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(scores, indent=1) if args.json else format_scores(scores))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -156,3 +156,17 @@ def test_bad_inputs_are_named(chain, tmp_path):
 def test_scoring_does_not_import_torch():
     code = "import sys, classifier.evaluate_images; assert 'torch' not in sys.modules, 'torch imported'"
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[2])
+
+
+def test_module_command(chain, tmp_path, capsys):
+    from classifier.evaluate_images import main
+
+    seq, out = chain
+    assert main([str(out[5]), str(seq), "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == json.loads(json.dumps(score_images(out[5], seq)))
+    assert main([str(out[5]), str(seq), "--edge-um", "10"]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith("pool 5, edge 10 µm:") and "flow 3" in text
+    assert main([str(tmp_path), str(seq)]) == 2
+    assert "classes.tif is missing" in capsys.readouterr().err
