@@ -314,7 +314,3 @@ def _main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 1
     return 1
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
