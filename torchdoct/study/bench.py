@@ -92,7 +92,7 @@ def format_bench_study(res: dict[str, Any]) -> str:
     lines = [f"study {res['study']}: {res['cells']} cells ({res['motion_values']} motion values, grouping "
              f"{res['grouping']}), {res['trials_per_point']} trials per point, {res['system_trials']} system-trials",
              f"wall time {res['wall_s']:.1f} s (simulation {res['simulate_s']:.1f} s, figures {res['figures_s']:.1f} s); "
-             f"{res['ms_per_system_trial']:.3f} ms per system-trial (wall); {res['workers']} worker thread(s)"
+             f"{res['ms_per_system_trial']:.3f} ms per system-trial (wall); {res['workers']} cells side by side"
              + " with one torch thread each",
              "cell time per part (summed over workers): "
              + ", ".join(f"{k} {v:.1f} s" for k, v in res["simulate_s_per_part"].items())]
