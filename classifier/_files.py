@@ -2,7 +2,7 @@
 
 ``import torchdoct._files`` would run ``torchdoct/__init__.py``, which imports torch; the classify
 path must not. ``torchdoct/_files.py`` (``check_out``, ``atomic_write``, ``shipped_files``) and
-``torchdoct/conventions.py`` (resolution ↔ PSF sigma) and ``torchdoct/signature.py`` (signature
+``torchdoct/conventions.py`` (resolution ↔ PSF sigma) and ``torchdoct/sim/signature.py`` (signature
 feature names) import only the standard library, so when
 torchdoct is not imported yet they are loaded from their files, without their package.
 """
