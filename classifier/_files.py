@@ -13,7 +13,7 @@ import importlib.util
 import sys
 from types import ModuleType
 
-__all__ = ["check_out", "atomic_write", "shipped_files", "conventions", "signature"]
+__all__ = ["check_out", "atomic_write", "shipped_files", "conventions", "signature", "threads"]
 
 
 def _standalone(name: str) -> ModuleType:
@@ -44,6 +44,11 @@ def conventions() -> ModuleType:
 def signature() -> ModuleType:
     """:mod:`torchdoct.sim.signature` (names and units of the signature features; no torch at import)."""
     return _standalone("sim.signature")
+
+
+def threads() -> ModuleType:
+    """:mod:`torchdoct.threads` (the threading policy; torch only inside the functions that set it)."""
+    return _standalone("threads")
 
 
 def check_out(path, force, suffix, what="--out"):

@@ -40,7 +40,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +49,7 @@ import numpy as np
 
 from ._files import shipped_files
 from ._files import signature as _signature
+from ._files import threads as _threads
 from .features import METRIC_UNITS, FeatureSpec, metric_unit, same_value, shipped_or_path, spec_from_dict
 from .rule import INDETERMINATE, REASONS, apply_rule
 
@@ -105,14 +105,8 @@ class ClassifierModel:
         thread each: no stalls beside other busy processes; the chunks, hence the numbers, do not depend
         on ``threads``)."""
         parts = [slice(i, min(n, i + _CHUNK)) for i in range(0, n, _CHUNK)]
-        if self.threads <= 1 or len(parts) < 2:
-            for sl in parts:
-                fn(sl)
-            return
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(max_workers=min(self.threads, len(parts))) as pool:
-            list(pool.map(fn, parts))
+        for _ in _threads().map_ordered(fn, parts, self.threads):
+            pass
 
     @property
     def spec(self) -> FeatureSpec:
@@ -165,24 +159,6 @@ class ClassifierModel:
         return out
 
 
-def _threads(threads: int | None) -> int:
-    """Chunks classified side by side: ``threads``, else ``$TORCHDOCT_THREADS``, else the usable cores."""
-    if threads is None:
-        loaded = sys.modules.get("torchdoct.threads")  # the command line's --threads, when torchdoct runs
-        if loaded is not None:
-            return loaded.default_threads()
-        env = os.environ.get("TORCHDOCT_THREADS", "")
-        if env.isdigit() and int(env) >= 1:
-            return int(env)
-        try:
-            return max(1, len(os.sched_getaffinity(0)))
-        except (AttributeError, OSError):  # pragma: no cover - not Linux
-            return max(1, os.cpu_count() or 1)
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
-        raise ValueError(f"threads must be an integer >= 1 (the number of cores to use); got {threads!r}")
-    return threads
-
-
 def load_model(model: str | os.PathLike | None = None, *, threads: int | None = None) -> ClassifierModel:
     """Open an ONNX model: ``None`` (the shipped default), a shipped name, or a ``.onnx`` path.
 
@@ -195,7 +171,7 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     if path.suffix != ".onnx":
         raise ValueError(f"model {path.name}: must be an .onnx file written by doct-train")
     opts = ort.SessionOptions()
-    n_threads = _threads(threads)
+    n_threads = _threads().resolve_threads(threads)
     opts.intra_op_num_threads = 1
     opts.inter_op_num_threads = 1
     opts.add_session_config_entry("session.intra_op.allow_spinning", "0")

@@ -194,6 +194,17 @@ def _fmt(v: Any, digits: int = 3) -> str:
     return str(v)
 
 
+def _section(L: list[str], title: str, note: str | None, header: Sequence[str], align: str,
+             rows: Sequence[Sequence[Any]]) -> None:
+    """Append a Markdown section: ``## title``, an optional note, a table (``align``: ``-`` left,
+    ``r`` right per column) and a blank line."""
+    L += [f"## {title}", ""] + ([note, ""] if note else [])
+    L.append("| " + " | ".join(header) + " |")
+    L.append("|" + "".join("---:|" if a == "r" else "---|" for a in align))
+    L += ["| " + " | ".join(str(v) for v in row) + " |" for row in rows]
+    L.append("")
+
+
 def format_markdown(report: dict[str, Any]) -> str:
     """The report as Markdown (tables of the JSON)."""
     r = report
@@ -277,38 +288,25 @@ def format_markdown(report: dict[str, Any]) -> str:
                      f"{_fmt(row['accuracy_decided'], 2)} |")
         L.append("")
     if "by_condition" in r:
-        L.append("## Accuracy by acquisition condition (network, identifiable samples, pool 1)")
-        L.append("")
-        L.append("| condition | samples | coverage | accuracy (decided) | balanced accuracy (decided) |")
-        L.append("|---|---:|---:|---:|---:|")
-        for name, m in r["by_condition"].items():
-            L.append(f"| {name} | {m['identifiable_samples']} | {_fmt(m['coverage_identifiable'])} | "
-                     f"{_fmt(m['accuracy_identifiable'])} | {_fmt(m['balanced_accuracy_identifiable'])} |")
-        L.append("")
+        _section(L, "Accuracy by acquisition condition (network, identifiable samples, pool 1)", None,
+                 ["condition", "samples", "coverage", "accuracy (decided)", "balanced accuracy (decided)"], "-rrrr",
+                 [[name, m["identifiable_samples"], _fmt(m["coverage_identifiable"]), _fmt(m["accuracy_identifiable"]),
+                   _fmt(m["balanced_accuracy_identifiable"])] for name, m in r["by_condition"].items()])
     if "magnitude" in r:
-        L.append("## Motion magnitude (network; identifiable test samples, head of the true class)")
-        L.append("")
-        L.append("log10 D (µm²/s) for diffusion, log10 v (µm/s) for ballistic motion and flow; interval = mean ± SD "
-                 "(68 %) and ± 1.96 SD (95 %) of the predicted Gaussian.")
-        L.append("")
-        L.append("| pool | samples | median abs. log10 error | mean abs. log10 error | 68 % coverage | 95 % coverage "
-                 "| median SD | median error diffusion / ballistic / flow |")
-        L.append("|---:|---:|---:|---:|---:|---:|---:|---|")
-        for pool, m in r["magnitude"].items():
-            per = " / ".join(_fmt(m["by_class"].get(c, {}).get("median_abs_log10_error")) for c in cls[:-1])
-            L.append(f"| {pool} | {m['samples']} | {_fmt(m['median_abs_log10_error'])} | "
-                     f"{_fmt(m['mean_abs_log10_error'])} | {_fmt(m['coverage_68'])} | {_fmt(m['coverage_95'])} | "
-                     f"{_fmt(m['median_predicted_sd'])} | {per} |")
-        L.append("")
+        _section(L, "Motion magnitude (network; identifiable test samples, head of the true class)",
+                 "log10 D (µm²/s) for diffusion, log10 v (µm/s) for ballistic motion and flow; interval = mean ± SD "
+                 "(68 %) and ± 1.96 SD (95 %) of the predicted Gaussian.",
+                 ["pool", "samples", "median abs. log10 error", "mean abs. log10 error", "68 % coverage",
+                  "95 % coverage", "median SD", "median error diffusion / ballistic / flow"], "rrrrrrr-",
+                 [[pool, m["samples"], _fmt(m["median_abs_log10_error"]), _fmt(m["mean_abs_log10_error"]),
+                   _fmt(m["coverage_68"]), _fmt(m["coverage_95"]), _fmt(m["median_predicted_sd"]),
+                   " / ".join(_fmt(m["by_class"].get(c, {}).get("median_abs_log10_error")) for c in cls[:-1])]
+                  for pool, m in r["magnitude"].items()])
     if "bulk_phase" in r:
-        L.append("## Random bulk phase per frame (network; the test draws with a uniform random phase per frame)")
-        L.append("")
-        L.append("| pool | coverage | acc. identifiable | bal. acc. identifiable | ECE |")
-        L.append("|---:|---:|---:|---:|---:|")
-        for pool, m in r["bulk_phase"].items():
-            L.append(f"| {pool} | {_fmt(m['coverage_identifiable'])} | {_fmt(m['accuracy_identifiable'])} | "
-                     f"{_fmt(m['balanced_accuracy_identifiable'])} | {_fmt(m['ece'])} |")
-        L.append("")
+        _section(L, "Random bulk phase per frame (network; the test draws with a uniform random phase per frame)", None,
+                 ["pool", "coverage", "acc. identifiable", "bal. acc. identifiable", "ECE"], "rrrrr",
+                 [[pool, _fmt(m["coverage_identifiable"]), _fmt(m["accuracy_identifiable"]),
+                   _fmt(m["balanced_accuracy_identifiable"]), _fmt(m["ece"])] for pool, m in r["bulk_phase"].items()])
     if "onnx_parity_max_abs_diff" in r:
         L.append(f"ONNX (opset {r.get('onnx_opset')}) against torch on the test set: max |Δp| = "
                  f"{r['onnx_parity_max_abs_diff']:.2e}.")

@@ -19,6 +19,9 @@ The knob is ``threads`` (``--threads N`` on the command line): how many cores a 
 ``None`` means :func:`default_threads`: the cores this process may run on
 (``os.sched_getaffinity``), or the value set by :func:`set_default_threads` or the
 ``TORCHDOCT_THREADS`` environment variable.
+
+The module imports torch only inside the functions that set its threads, so the torch-free classify
+path uses the same policy (``classifier._files.threads``).
 """
 
 from __future__ import annotations
@@ -29,10 +32,8 @@ import os
 import threading
 from typing import Callable, Iterable, Iterator, TypeVar
 
-import torch
-
-__all__ = ["default_threads", "set_default_threads", "limit_process_threads", "using_threads", "resolve_threads", "single_torch_thread",
-           "one_torch_thread", "map_ordered"]
+__all__ = ["default_threads", "set_default_threads", "limit_process_threads", "using_threads", "resolve_threads",
+           "single_torch_thread", "one_torch_thread", "map_ordered"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -75,6 +76,8 @@ def limit_process_threads() -> None:
     """For a command-line process: torch and the BLAS/OpenMP pools of numpy and scikit-learn use one
     thread each (their parallel regions stall beside other busy processes); parallel work runs over
     independent pieces instead."""
+    import torch
+
     torch.set_num_threads(1)
     try:
         import threadpoolctl
@@ -114,6 +117,8 @@ def single_torch_thread() -> Iterator[None]:
     Re-entrant and safe to nest from several Python threads: the setting is restored when the
     outermost body ends.
     """
+    import torch
+
     global _DEPTH, _SAVED
     with _LOCK:
         if _DEPTH == 0:

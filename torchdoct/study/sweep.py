@@ -647,17 +647,14 @@ def _execute(payloads: list[dict[str, Any]], *, scheduler: str | None, batch_cel
     if scheduler is None:
         from ..threads import map_ordered, using_threads
 
-        if workers == 1 or len(batches) < 2:
-            with using_threads(workers):  # one batch at a time; its simulations use the workers as threads
-                results = (run_cell_batch([payloads[i] for i in b]) for b in batches)
-                for b, res in zip(batches, results):
-                    for i, r in zip(b, res):
-                        done(i, r)
-            return
         work = sum(p["scene"]["simulation"]["trials"] * len(p["scene"]["system"]) for p in payloads)
-        if work < _PROCESS_WORK:
-            with using_threads(1):  # batches side by side in threads, each on one core (one torch thread)
-                results = map_ordered(lambda b: run_cell_batch([payloads[i] for i in b]), batches, workers)
+        if workers == 1 or len(batches) < 2 or work < _PROCESS_WORK:
+            # one batch at a time using the workers as simulation threads, or batches side by side in
+            # threads of this process, each on one core (one torch thread)
+            one_at_a_time = workers == 1 or len(batches) < 2
+            with using_threads(workers if one_at_a_time else 1):
+                results = map_ordered(lambda b: run_cell_batch([payloads[i] for i in b]), batches,
+                                      1 if one_at_a_time else workers)
                 for b, res in zip(batches, results):
                     for i, r in zip(b, res):
                         done(i, r)
