@@ -2,14 +2,21 @@
 
 **The prior** (:class:`Prior`, stored in every model):
 
-* motion type: diffusion, random-ballistic motion (isotropic directions), mono-directional flow,
-  in equal numbers;
+* motion type: diffusion, random-ballistic motion, mono-directional flow, in equal numbers;
+* random-ballistic direction law (``ballistic_directions``, the laws of
+  :class:`torchdoct.RandomBallistic`, physics.md §10.2): ``"both"`` (default) gives each ballistic
+  draw, with probability 1/2, either the isotropic law (cos of the polar angle ~ U[−1, 1]) or the
+  paper's ``"uniform-angles"`` law (polar angle ~ U[0, π], concentrated at the depth axis, ⟨n_z²⟩ = 1/2),
+  from a stream of its own (:attr:`Draw.ballistic_directions`); ``"isotropic"`` or
+  ``"uniform-angles"`` gives every ballistic draw that law (the prior of the models trained before
+  the two laws were mixed: ``"isotropic"``);
 * motion magnitude, log-uniform: D ∈ [1e-4, 15] µm²/s, v ∈ [1e-3, 6] µm/s. The paper's ranges
   (§3.2) end at 15 µm²/s and 6 µm/s and start at 0, which a log scale cannot hold; their lower ends
   are taken as 1e-3 µm²/s and 1e-2 µm/s, where the 840-nm LIV of diffusion and random-ballistic
   motion is already a sizeable part of its plateau (physics.md §5.7), and extended a decade below
   as the issue asks;
-* flow direction isotropic (cos of the polar angle from the depth axis ~ U[−1, 1], azimuth ~ U[0, 360°));
+* flow direction isotropic within ``flow_polar_angle_deg`` = [θ₁, θ₂] (default [0, 180°]): cos of
+  the polar angle from the depth axis ~ U[cos θ₂, cos θ₁] (U[−1, 1] by default), azimuth ~ U[0, 360°);
 * density of the moving scatterers ~ U[0.02, 0.1] µm⁻³;
 * with probability 1/2 a static fraction ~ U[0, 0.8] of the mean intensity (static scatterers at the
   moving ones' density, reflectivity set to give that fraction);
@@ -23,15 +30,17 @@ fraction, SNR) settings × ``trials_per_draw`` trials. Draw ``k`` has motion typ
 ``i``-th draw of a type takes its log-magnitude at the quantile ``frac(u₀ + i·(√5 − 1)/2)``
 (golden-ratio sequence, ``u₀`` from the split's seed), so any prefix of draws covers the magnitude
 range evenly; density and flow direction are drawn independently per draw, static fraction and SNR
-per replicate. Two :func:`torchdoct.simulate` calls per draw (moving and static scatterers) run its
+per replicate, the ballistic direction law (prior ``"both"``) per ballistic draw. Two :func:`torchdoct.simulate` calls per draw (moving and static scatterers) run its
 trials (all systems of a scene see the same scatterers, as one dataset and its resolution
 reductions do); 64 trials per draw is one random block of the simulator, and fewer would cost the
 same. Trials of one (draw, replicate) group share every parameter: they are the pixels that pooling
 may average, and draws are the independent unit of the parameter space.
 
 **Seeds and splits**: everything of draw ``k`` of split ``s`` (train 0, validation 1, test 2) comes
-from ``numpy.random.SeedSequence(seed, spawn_key=(s, k))``; the splits never share a draw, and a
-split's draws do not depend on how many draws are made.
+from ``numpy.random.SeedSequence(seed, spawn_key=(s, k))`` (replicate ``r``: ``(s, k, 1 + r)``; the
+ballistic direction law: ``(s, k, 2³⁰)``, so choosing it leaves every other parameter of the draw
+as it is); the splits never share a draw, and a split's draws do not depend on how many draws are
+made.
 
 **Ground-truth identifiability** (physics.md §5.3-5.4, via :mod:`torchdoct.sim.theory`): a draw is
 *indeterminate* when its moving scatterers
@@ -45,8 +54,11 @@ split's draws do not depend on how many draws are made.
   fast scatterers cross the PSF (a transit time that diffusion and random-ballistic motion both have;
   flow never gets here in the prior, because for flow ``|g1|² = j`` decays by transit alone),
 
-with ``ε = 0.05``. The classifier's ``indeterminate`` class is trained on these draws
-(:mod:`classifier.rule`).
+with ``ε = 0.05``. For signature specs the second case also needs the transit term to be flat over
+the measured delays, ``ρ_I(Δt) − ρ_I(T) ≤ ε`` at every configuration: the signature reads the whole
+intensity correlation curve, and a transit term that still decays has a shape that tells diffusion
+from random-ballistic motion (:func:`identifiability`). The classifier's ``indeterminate`` class is
+trained on these draws (:mod:`classifier.rule`).
 
 **Static fraction and noise** are applied per *replicate*: each draw's moving and static fields are
 simulated once and combined ``replicates`` times with different static fractions and SNRs
@@ -99,6 +111,12 @@ CLASSES = ("diffusion", "ballistic", "flow")
 #: Split names and their index in the seed's spawn key.
 SPLITS = {"train": 0, "validation": 1, "test": 2}
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+#: Direction laws of :class:`torchdoct.RandomBallistic` (physics.md §10.2).
+BALLISTIC_LAWS = ("isotropic", "uniform-angles")
+#: Values of :attr:`Prior.ballistic_directions`: ``"both"`` mixes the two laws 1:1.
+BALLISTIC_PRIORS = ("both", *BALLISTIC_LAWS)
+#: Spawn-key element of the stream that picks a ballistic draw's direction law.
+_LAW_STREAM = 1 << 30
 
 
 def _range(path: str, value: Any, *, positive: bool = False) -> tuple[float, float]:
@@ -116,7 +134,8 @@ class Prior:
 
     diffusion_um2_per_s: tuple[float, float] = (1e-4, 15.0)
     speed_um_per_s: tuple[float, float] = (1e-3, 6.0)
-    ballistic_directions: str = "isotropic"
+    ballistic_directions: str = "both"
+    flow_polar_angle_deg: tuple[float, float] = (0.0, 180.0)
     density_per_um3: tuple[float, float] = (0.02, 0.1)
     static_probability: float = 0.5
     static_fraction: tuple[float, float] = (0.0, 0.8)
@@ -126,7 +145,7 @@ class Prior:
 
     def __post_init__(self) -> None:
         for key, pos in (("diffusion_um2_per_s", True), ("speed_um_per_s", True), ("density_per_um3", True),
-                         ("static_fraction", False), ("snr_db", False)):
+                         ("static_fraction", False), ("snr_db", False), ("flow_polar_angle_deg", False)):
             object.__setattr__(self, key, _range(key, getattr(self, key), positive=pos))
         if self.static_fraction[0] < 0 or self.static_fraction[1] >= 1:
             raise ValueError(f"prior.static_fraction must lie in [0, 1); got {self.static_fraction}")
@@ -134,9 +153,13 @@ class Prior:
             v = getattr(self, key)
             if not isinstance(v, (int, float)) or not 0.0 <= float(v) <= 1.0:
                 raise ValueError(f"prior.{key} must be a probability in [0, 1]; got {v!r}")
-        if self.ballistic_directions not in ("isotropic", "uniform-angles"):
-            raise ValueError(f"prior.ballistic_directions must be 'isotropic' or 'uniform-angles'; "
-                             f"got {self.ballistic_directions!r}")
+        if self.flow_polar_angle_deg[0] < 0 or self.flow_polar_angle_deg[1] > 180:
+            raise ValueError(f"prior.flow_polar_angle_deg must lie in [0, 180] (degrees from the depth axis); "
+                             f"got {list(self.flow_polar_angle_deg)}")
+        if not isinstance(self.ballistic_directions, str) or self.ballistic_directions not in BALLISTIC_PRIORS:
+            raise ValueError(f"prior.ballistic_directions must be one of {list(BALLISTIC_PRIORS)} ('both': each "
+                             f"ballistic draw takes one of torchdoct.RandomBallistic's two direction laws with "
+                             f"probability 1/2); got {self.ballistic_directions!r}")
         if not 0.0 < float(self.identifiability_epsilon) < 0.5:
             raise ValueError(f"prior.identifiability_epsilon must be in (0, 0.5); got {self.identifiability_epsilon!r}")
 
@@ -157,7 +180,10 @@ class Prior:
 class Draw:
     """One parameter draw: motion type ``label`` and ``magnitude`` (µm²/s for diffusion, µm/s
     otherwise), flow direction (deg), density of the moving scatterers (µm⁻³), the simulator seed,
-    and per replicate ``(static_fraction, snr_db)`` (``snr_db`` NaN = no noise)."""
+    per replicate ``(static_fraction, snr_db)`` (``snr_db`` NaN = no noise), and
+    ``ballistic_directions``, the direction law of a random-ballistic draw (:data:`BALLISTIC_LAWS`).
+    A draw of another motion type carries the prior's law when the prior has one, else
+    ``"isotropic"``; it is not used for them."""
 
     label: int
     magnitude: float
@@ -166,6 +192,12 @@ class Draw:
     density_per_um3: float
     sim_seed: int
     nuisance: tuple[tuple[float, float], ...] = ()
+    ballistic_directions: str = "isotropic"
+
+    def __post_init__(self) -> None:
+        if self.ballistic_directions not in BALLISTIC_LAWS:
+            raise ValueError(f"Draw.ballistic_directions must be one of {list(BALLISTIC_LAWS)}; "
+                             f"got {self.ballistic_directions!r}")
 
     @property
     def motion(self) -> str:
@@ -180,7 +212,8 @@ def draw_parameters(prior: Prior, seed: int, split: str, k: int, replicates: int
     """Draw ``k`` of ``split`` (module docstring: stratified type and magnitude, the rest i.i.d.).
 
     Replicate ``r``'s static fraction and SNR come from their own stream, so they do not depend on
-    the number of replicates.
+    the number of replicates; so does the direction law of a ballistic draw under the prior
+    ``"both"`` (``isotropic`` if its uniform is < 1/2, else ``uniform-angles``).
     """
     if split not in SPLITS:
         raise ValueError(f"split must be one of {list(SPLITS)}; got {split!r}")
@@ -193,7 +226,12 @@ def draw_parameters(prior: Prior, seed: int, split: str, k: int, replicates: int
     magnitude = float(math.exp(math.log(lo) + q * (math.log(hi) - math.log(lo))))
     ss = _seed_sequence(seed, split, k)
     u = np.random.default_rng(ss).random(4)
-    polar = math.degrees(math.acos(2.0 * u[0] - 1.0))
+    th1, th2 = prior.flow_polar_angle_deg
+    if (th1, th2) == (0.0, 180.0):
+        polar = math.degrees(math.acos(2.0 * u[0] - 1.0))
+    else:  # isotropic within [th1, th2]: cos(polar) ~ U[cos th2, cos th1]
+        c1, c2 = math.cos(math.radians(th1)), math.cos(math.radians(th2))
+        polar = min(max(math.degrees(math.acos(min(max(c2 + u[0] * (c1 - c2), -1.0), 1.0))), th1), th2)
     azimuth = 360.0 * u[1]
     density = prior.density_per_um3[0] + u[2] * (prior.density_per_um3[1] - prior.density_per_um3[0])
     nuisance = []
@@ -207,8 +245,14 @@ def draw_parameters(prior: Prior, seed: int, split: str, k: int, replicates: int
             snr = prior.snr_db[0] + v[3] * (prior.snr_db[1] - prior.snr_db[0])
         nuisance.append((float(static), float(snr)))
     sim_seed = int(ss.generate_state(2, np.uint64)[1] >> np.uint64(2))
+    law = prior.ballistic_directions
+    if law == "both":
+        law = "isotropic"
+        if label == 1 and np.random.default_rng(_seed_sequence(seed, split, k, _LAW_STREAM)).random() >= 0.5:
+            law = "uniform-angles"
     return Draw(label=label, magnitude=magnitude, polar_angle_deg=polar, azimuth_deg=azimuth,
-                density_per_um3=float(density), sim_seed=sim_seed, nuisance=tuple(nuisance))
+                density_per_um3=float(density), sim_seed=sim_seed, nuisance=tuple(nuisance),
+                ballistic_directions=law)
 
 
 def scene_for(spec: FeatureSpec, draw: Draw, prior: Prior, population: str = "moving"):
@@ -229,7 +273,7 @@ def scene_for(spec: FeatureSpec, draw: Draw, prior: Prior, population: str = "mo
     elif draw.label == 0:
         motion = (td.Diffusion(diffusion_um2_per_s=draw.magnitude),)
     elif draw.label == 1:
-        motion = (td.RandomBallistic(speed_um_per_s=draw.magnitude, directions=prior.ballistic_directions),)
+        motion = (td.RandomBallistic(speed_um_per_s=draw.magnitude, directions=draw.ballistic_directions),)
     else:
         motion = (td.Flow(speed_um_per_s=draw.magnitude, polar_angle_deg=draw.polar_angle_deg,
                           azimuth_deg=draw.azimuth_deg),)
@@ -328,12 +372,20 @@ def identifiability(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, n
     Returns ``(status, g1sq_first [C], rho_last [C])``: status ``"identifiable"``, ``"static"`` or
     ``"decorrelated"``; ``|g1(Δt)|²`` and ``ρ_I(T)`` of the moving scatterers. Formulas: physics.md
     §5.3 (g1), §5.4 (j, N_eff, ``ρ_I = (|g1|² + j/N_eff)/(1 + 1/N_eff)``), via :mod:`torchdoct.sim.theory`.
+
+    For a signature spec (:attr:`FeatureSpec.is_signature`) "decorrelated" is narrower: the field must
+    decorrelate within one frame interval *and* what is left of the intensity correlation, the
+    incoherent transit term ``j/N_eff``, must be flat over the measured delays,
+    ``ρ_I(Δt) − ρ_I(T) ≤ ε`` at every configuration. The signature reads the intensity correlation at
+    every lag, so a transit term that still decays over the acquisition is a curve with a shape
+    (diffusion and random-ballistic transit decay differently in the delay, physics.md §5.4), which
+    LIV and OCDS reduce to two numbers but the signature keeps (measured in ``classifier/README.md``).
     """
     from torchdoct.sim import theory
     from torchdoct.conventions import n_eff
 
     taus = np.array([spec.frame_interval_s, (spec.n_frames - 1) * spec.frame_interval_s])
-    first, last = [], []
+    first, last, drop = [], [], []
     for c in spec.configurations:
         res = dict(lateral_resolution_um=c.lateral_resolution_um, axial_resolution_um=c.axial_resolution_um)
         if draw.label == 0:
@@ -343,8 +395,8 @@ def identifiability(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, n
         elif draw.label == 1:
             g1 = theory.g1_ballistic(taus, speed_um_per_s=draw.magnitude, wavelength_um=c.wavelength_um,
                                      refractive_index=spec.refractive_index,
-                                     directions=prior.ballistic_directions, **res)
-            j = theory.j_ballistic(taus, speed_um_per_s=draw.magnitude, directions=prior.ballistic_directions,
+                                     directions=draw.ballistic_directions, **res)
+            j = theory.j_ballistic(taus, speed_um_per_s=draw.magnitude, directions=draw.ballistic_directions,
                                    **res)
         else:
             g1 = theory.g1_flow(taus, speed_um_per_s=draw.magnitude, polar_angle_deg=draw.polar_angle_deg,
@@ -354,11 +406,13 @@ def identifiability(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, n
             g1, j, n_eff(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um))
         first.append(float(np.abs(g1[0]) ** 2))
         last.append(float(rho[1]))
+        drop.append(float(rho[0] - rho[1]))
     first_a, last_a = np.array(first), np.array(last)
     eps = prior.identifiability_epsilon
+    flat = np.all(np.array(drop) <= eps) if spec.is_signature else True
     if np.all(last_a >= 1.0 - eps):
         status = "static"
-    elif np.all(first_a <= eps):
+    elif np.all(first_a <= eps) and flat:
         status = "decorrelated"
     else:
         status = "identifiable"
@@ -367,6 +421,8 @@ def identifiability(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, n
 
 #: Version of the ground-truth definition (part of the cache key).
 _IDENTIFIABILITY_VERSION = "static: rho_I(T) >= 1-eps; decorrelated: |g1(dt)|^2 <= eps; all configurations"
+#: The same for signature specs (decorrelated also needs a flat transit term, see :func:`identifiability`).
+_IDENTIFIABILITY_VERSION_SIGNATURE = _IDENTIFIABILITY_VERSION + "; signature: and rho_I(dt) - rho_I(T) <= eps"
 #: Identifiability status codes stored in a dataset.
 STATUS = ("identifiable", "static", "decorrelated")
 
@@ -436,7 +492,8 @@ def dataset_key(spec: FeatureSpec, prior: Prior, seed: int, split: str, draws: i
     desc = {"spec": spec.to_dict(), "prior": prior.to_dict(), "seed": int(seed), "split": split,
             "draws": int(draws), "trials_per_draw": int(trials_per_draw), "replicates": int(replicates),
             "truncation_tolerance": float(truncation_tolerance), "torchdoct_version": torchdoct.__version__,
-            "identifiability": _IDENTIFIABILITY_VERSION, "format": 2}
+            "identifiability": (_IDENTIFIABILITY_VERSION_SIGNATURE if spec.is_signature else _IDENTIFIABILITY_VERSION),
+            "format": 2}
     if spec.is_signature:
         desc["signature_extractor"] = _signature_version()
     if bulk_phase:

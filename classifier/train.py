@@ -124,6 +124,8 @@ SPEC_RECIPES: dict[str, dict[str, Any]] = {
                   "hidden": (128, 128), "learning_rate": 1e-3, "weight_decay": 1e-3, "patience": 15,
                   "max_epochs": 60, "bulk_phase_test": True},
 }
+#: The two-wavelength signature spec (the signature's 24 intensity features at 840 and 1310 nm) takes it too.
+SPEC_RECIPES["two-wavelength-signature"] = SPEC_RECIPES["signature"]
 
 
 def _uses_magnitude(cfg: TrainConfig, spec: FeatureSpec) -> bool:
@@ -399,7 +401,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
     cfg = config or TrainConfig()
     prior = prior or Prior()
     spec = load_spec(cfg.spec)
-    rule = make_rule(prior.identifiability_epsilon, cfg.min_probability)
+    rule = make_rule(prior.identifiability_epsilon, cfg.min_probability, signature=spec.is_signature)
     say = log or (lambda *a, **k: None)
 
     # 1. data
