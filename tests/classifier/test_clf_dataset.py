@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -195,3 +196,97 @@ def test_dataset_does_not_depend_on_threads():
         three = make_dataset(TINY, split="test", draws=3, trials_per_draw=64, replicates=2, use_cache=False)
     assert np.array_equal(one.x, three.x) and np.array_equal(one.y, three.y)
     assert np.array_equal(one.group, three.group)
+
+
+def test_prior_direction_laws_and_flow_angle_range_are_validated():
+    assert Prior().ballistic_directions == "both" and Prior().flow_polar_angle_deg == (0.0, 180.0)
+    for law in ("both", "isotropic", "uniform-angles"):
+        assert Prior.from_dict(Prior(ballistic_directions=law).to_dict()).ballistic_directions == law
+    with pytest.raises(ValueError, match=r"ballistic_directions must be one of \['both', 'isotropic', 'uniform-angles'\]"):
+        Prior(ballistic_directions="cog")
+    with pytest.raises(ValueError, match="ballistic_directions"):
+        Prior(ballistic_directions=None)
+    with pytest.raises(ValueError, match=r"flow_polar_angle_deg must lie in \[0, 180\]"):
+        Prior(flow_polar_angle_deg=(10.0, 190.0))
+    with pytest.raises(ValueError, match="flow_polar_angle_deg"):
+        Prior(flow_polar_angle_deg=(80.0, 10.0))
+    with pytest.raises(ValueError, match="Draw.ballistic_directions"):
+        _draw(1, 0.1).__class__(label=1, magnitude=0.1, polar_angle_deg=0.0, azimuth_deg=0.0, density_per_um3=0.05,
+                                sim_seed=1, ballistic_directions="both")
+
+
+def test_stored_priors_still_load():
+    """Priors stored in models (the shipped ones, and one written before the laws were mixed and the flow
+    angle had a range) load: a missing key takes its default, which reproduces the old draws."""
+    from classifier.infer import load_model, shipped_models
+
+    old = {"diffusion_um2_per_s": [0.0001, 15.0], "speed_um_per_s": [0.001, 6.0], "ballistic_directions": "isotropic",
+           "density_per_um3": [0.02, 0.1], "static_probability": 0.5, "static_fraction": [0.0, 0.8],
+           "noise_probability": 0.5, "snr_db": [20.0, 40.0], "identifiability_epsilon": 0.05}
+    stored = [old] + [load_model(name, threads=1).metadata["prior"] for name in shipped_models()]
+    for data in stored:
+        p = Prior.from_dict(data)
+        assert p.ballistic_directions == data["ballistic_directions"]
+        assert p.flow_polar_angle_deg == tuple(data.get("flow_polar_angle_deg", (0.0, 180.0)))
+        if p.ballistic_directions != "both":
+            assert draw_parameters(p, 0, "train", 1).ballistic_directions == p.ballistic_directions
+    assert Prior.from_dict(old) == Prior(ballistic_directions="isotropic")
+
+
+def test_both_direction_laws_are_drawn_half_each_and_leave_the_rest_of_the_draw_unchanged():
+    both, iso, cog = Prior(), Prior(ballistic_directions="isotropic"), Prior(ballistic_directions="uniform-angles")
+    n_ballistic = 0
+    laws = []
+    for k in range(480):  # 160 ballistic draws
+        d = draw_parameters(both, 7, "train", k, replicates=2)
+        ref = draw_parameters(iso, 7, "train", k, replicates=2)
+        # the law comes from a stream of its own: every other parameter is the single-law prior's
+        assert dataclasses.replace(d, ballistic_directions="isotropic") == ref
+        assert draw_parameters(cog, 7, "train", k).ballistic_directions == "uniform-angles"
+        if d.label == 1:
+            n_ballistic += 1
+            laws.append(d.ballistic_directions)
+        else:
+            assert d.ballistic_directions == "isotropic"
+    assert n_ballistic == 160 and set(laws) == {"isotropic", "uniform-angles"}
+    share = laws.count("uniform-angles") / n_ballistic
+    assert abs(share - 0.5) <= 4 * math.sqrt(0.25 / n_ballistic)
+    # reproducible, and not a function of the draw's place in the golden-ratio sequence alone
+    assert [draw_parameters(both, 7, "train", k).ballistic_directions for k in range(1, 480, 3)] == laws
+    assert [draw_parameters(both, 8, "train", k).ballistic_directions for k in range(1, 480, 3)] != laws
+
+
+def test_each_ballistic_draw_is_simulated_and_judged_with_its_own_law():
+    spec = load_spec("single-acquisition")
+    prior = Prior()
+    iso = _draw(1, 0.3)
+    cog = dataclasses.replace(iso, ballistic_directions="uniform-angles")
+    assert scene_for(spec, iso, prior).populations[0].motion[0].directions == "isotropic"
+    assert scene_for(spec, cog, prior).populations[0].motion[0].directions == "uniform-angles"
+    # the laws' closed forms differ (physics.md §5.3: sinc vs J0 tail), and so do the criteria
+    _, g1_iso, rho_iso = identifiability(spec, iso, prior)
+    _, g1_cog, rho_cog = identifiability(spec, cog, prior)
+    assert not np.allclose(g1_iso, g1_cog, rtol=1e-3) and not np.allclose(rho_iso, rho_cog, rtol=1e-6)
+
+
+def test_flow_angle_range_is_isotropic_within_it():
+    wide = Prior()
+    u = [draw_parameters(wide, 2, "test", k) for k in range(2, 3000, 3)]
+    # default: the historical law, cos(polar) = 2u - 1 bit for bit
+    for k, d in zip(range(2, 3000, 3), u[:20]):
+        from classifier.dataset import _seed_sequence
+
+        u0 = np.random.default_rng(_seed_sequence(2, "test", k)).random(4)[0]
+        assert d.polar_angle_deg == math.degrees(math.acos(2.0 * u0 - 1.0))
+    narrow = Prior(flow_polar_angle_deg=(10.0, 80.0))
+    draws = [draw_parameters(narrow, 2, "test", k) for k in range(2, 3000, 3)]
+    polar = np.array([d.polar_angle_deg for d in draws])
+    assert np.all((polar >= 10.0) & (polar <= 80.0))
+    # cos(polar) ~ U[cos 80°, cos 10°]: mean and variance of a uniform, within 4 SE
+    c = np.cos(np.radians(polar))
+    lo, hi = math.cos(math.radians(80.0)), math.cos(math.radians(10.0))
+    assert abs(c.mean() - (lo + hi) / 2) <= 4 * (hi - lo) / math.sqrt(12 * c.size)
+    assert abs(c.var() - (hi - lo) ** 2 / 12) <= 4 * (hi - lo) ** 2 / math.sqrt(180 * c.size)
+    # the angle range changes nothing else
+    for d, w in zip(draws[:50], u[:50]):
+        assert dataclasses.replace(d, polar_angle_deg=w.polar_angle_deg) == w
