@@ -43,7 +43,8 @@ def build_train_parser() -> argparse.ArgumentParser:
         description="Simulate labelled DOCT features, train the motion-type classifier, export ONNX and a report. "
                     "Without options it reproduces the shipped single-acquisition model.")
     p.add_argument("--out", required=True, help="output directory: SPEC.onnx, SPEC.json/.md/.png (report)")
-    p.add_argument("--spec", default=d.spec, help="feature spec: 'single-acquisition', 'two-wavelength', 'signature' or a TOML file")
+    p.add_argument("--spec", default=d.spec, help="feature spec: 'single-acquisition', 'two-wavelength', 'signature', "
+                                                "'two-wavelength-signature' or a TOML file")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--quick", action="store_true",
                    help=f"small splits for a first run, about a minute on 2 cores ({_quick_text()}); "

@@ -9,8 +9,9 @@ co-registered dual-band acquisition. The reference paper (§3.3, §4) finds that
 OCDS change with wavelength and resolution differs between diffusion, random-ballistic motion and
 mono-directional flow (physics.md §5.3-5.7, §11): that difference is what the classifier learns.
 
-Specifications are declared once, as TOML files in ``classifier/specs/`` (two ship:
-``single-acquisition`` and ``two-wavelength``), and stored in every model's metadata. Feature
+Specifications are declared once, as TOML files in ``classifier/specs/`` (four ship:
+``single-acquisition``, ``two-wavelength`` and their signature twins ``signature``,
+``two-wavelength-signature``), and stored in every model's metadata. Feature
 ``i`` is ``f"{metric}@{configuration.name}"``, ordered metric-major within each configuration::
 
     liv@original, ocds@original, liv@axial=14, ocds@axial=14, ...

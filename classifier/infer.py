@@ -7,8 +7,9 @@ Steps of :func:`classify_maps`:
 
 1. **Model** (:func:`load_model`): an ONNX file written by :mod:`classifier.export`; its metadata
    gives the feature columns (metric + system configuration), the classes, the indeterminate
-   rule and the feature spec (protocol, OCDS delay range, refractive index). Default: the model
-   shipped in ``classifier/data/`` for the single-acquisition spec.
+   rule and the feature spec (protocol, OCDS delay range, refractive index). Default
+   (:func:`default_model_for`): a shipped signature model whose channels the maps hold
+   (two-wavelength signature, then signature), else the single-acquisition LIV/OCDS model.
 2. **Maps** (:func:`read_maps`): one or more maps files in the project's format (``.npz`` with
    ``maps``/``channels``/``meta_json``, or ``.tif`` with the JSON in the ImageDescription). Every
    model feature must match a channel by (metric, wavelength, lateral resolution, axial resolution)
@@ -705,28 +706,40 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
 
 #: Shipped model used by default when the maps hold its (signature) channels.
 SIGNATURE_MODEL = "signature"
+#: Shipped signature models ``doct-classify`` prefers without ``--model``, in this order: the first whose
+#: every channel the maps hold (``torchdoct maps --signature``; the two-wavelength one reads the maps of
+#: both bands, one file or two). A model that is not shipped is skipped.
+SIGNATURE_MODELS = ("two-wavelength-signature", SIGNATURE_MODEL)
 
 
 def default_model_for(maps_list: Sequence[Maps]) -> tuple[str, str | None]:
     """The shipped model ``doct-classify`` uses without ``--model``, and a note for the user.
 
-    :data:`SIGNATURE_MODEL` when the maps hold every channel it reads (``torchdoct maps --signature``
-    of complex data), else :data:`DEFAULT_MODEL` (LIV/OCDS), saying why.
+    The first shipped model of :data:`SIGNATURE_MODELS` whose every feature the maps hold, else
+    :data:`DEFAULT_MODEL` (LIV/OCDS), saying why (for maps with signature channels: what the signature
+    model closest to them, the one with the fewest missing features, lacks).
     """
     shipped = shipped_models()
-    has_sig = any(m.meta.get("signature") for m in maps_list)
-    if SIGNATURE_MODEL not in shipped:
+    candidates = [name for name in SIGNATURE_MODELS if name in shipped]
+    if not candidates:
         return DEFAULT_MODEL, None
-    if not has_sig:
+    if not any(m.meta.get("signature") for m in maps_list):
         return DEFAULT_MODEL, (f"model {DEFAULT_MODEL} (LIV/OCDS): the maps have no signature channels; "
                                "`torchdoct maps DATA --signature ...` lets doct-classify use the more accurate "
-                               f"{SIGNATURE_MODEL} model")
-    sig = load_model(SIGNATURE_MODEL, threads=1)
-    try:
-        assemble_features(maps_list, sig, ignore_refractive_index=True)
-    except ValueError as err:
-        return DEFAULT_MODEL, f"model {DEFAULT_MODEL} (LIV/OCDS) instead of {SIGNATURE_MODEL}: {err}"
-    return SIGNATURE_MODEL, None
+                               f"{candidates[-1]} model")
+    failed = []
+    for name in candidates:
+        sig = load_model(name, threads=1)
+        try:
+            assemble_features(maps_list, sig, ignore_refractive_index=True)
+        except ValueError as err:
+            missing = sum(not any(_channel_matches(ch, col["metric"], col) for m in maps_list for ch in m.channels)
+                          for col in sig.columns[:-1])
+            failed.append((missing, name, err))
+            continue
+        return name, None
+    _, name, err = min(failed, key=lambda f: f[0])  # ties: the earlier in SIGNATURE_MODELS
+    return DEFAULT_MODEL, f"model {DEFAULT_MODEL} (LIV/OCDS) instead of {name}: {err}"
 
 
 # ---------------------------------------------------------------------------------------------

@@ -9,7 +9,7 @@ from classifier.features import (Configuration, FeatureSpec, load_spec, same_val
 
 
 def test_shipped_specs_are_the_documented_ones():
-    assert set(shipped_specs()) == {"single-acquisition", "two-wavelength", "signature"}
+    assert set(shipped_specs()) == {"single-acquisition", "two-wavelength", "signature", "two-wavelength-signature"}
     single = load_spec("single-acquisition")
     assert [(c.wavelength_um, c.lateral_resolution_um, c.axial_resolution_um) for c in single.configurations] == [
         (0.84, 4.9, 3.8), (0.84, 4.9, 14.0), (0.84, 18.0, 3.8)]
@@ -26,7 +26,7 @@ def test_shipped_specs_are_the_documented_ones():
         assert len(spec.frame_times_s) == 32 and spec.frame_times_s[-1] == pytest.approx(31 * 0.2048)
 
 
-@pytest.mark.parametrize("name", ["single-acquisition", "two-wavelength", "signature"])
+@pytest.mark.parametrize("name", ["single-acquisition", "two-wavelength", "signature", "two-wavelength-signature"])
 def test_spec_round_trips_through_its_dict(name):
     spec = load_spec(name)
     assert spec_from_dict(spec.to_dict()) == spec
