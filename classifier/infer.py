@@ -148,16 +148,28 @@ class ClassifierModel:
 
     def predict(self, x: np.ndarray) -> np.ndarray:
         """Probabilities ``[N, C]`` of inputs ``[N, F+1]`` (features + pool_pixels), float32."""
+        return self.predict_all(x, magnitude=False)[0]
+
+    def predict_all(self, x: np.ndarray, magnitude: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """``(probabilities [N, C], log10 magnitude [N, K], its SD [N, K])`` from one pass of the network
+        (the magnitude pair is None for models without a magnitude head or when ``magnitude`` is False)."""
         x = np.ascontiguousarray(x, dtype=np.float32)
         width = len(self.columns)
         if x.ndim != 2 or x.shape[1] != width:
             raise ValueError(f"model inputs must be [N, {width}]; got {x.shape}")
-        out = np.empty((x.shape[0], len(self.classes)), np.float32)
+        names = ["probabilities"]
+        out = [np.empty((x.shape[0], len(self.classes)), np.float32)]
+        if magnitude and self.has_magnitude:
+            k = len(self.metadata["magnitude"]["classes"])
+            names += ["log10_magnitude", "log10_magnitude_sd"]
+            out += [np.empty((x.shape[0], k), np.float32), np.empty((x.shape[0], k), np.float32)]
+
         def run(sl: slice) -> None:
-            out[sl] = self.session.run(["probabilities"], {"features": x[sl]})[0]
+            for o, r in zip(out, self.session.run(names, {"features": x[sl]})):
+                o[sl] = r
 
         self._chunks(run, x.shape[0])
-        return out
+        return out[0], (out[1] if len(out) > 1 else None), (out[2] if len(out) > 1 else None)
 
 
 def load_model(model: str | os.PathLike | None = None, *, threads: int | None = None) -> ClassifierModel:
@@ -530,9 +542,10 @@ def _box_sum(a: np.ndarray, n: int, axis: int) -> np.ndarray:
     pad[axis] = (h1 + 1, h2)
     c = np.cumsum(np.pad(a, pad), axis=axis)
     length = a.shape[axis]
-    hi = np.take(c, np.arange(n, n + length), axis=axis)
-    lo = np.take(c, np.arange(0, length), axis=axis)
-    return hi - lo
+    hi = [slice(None)] * a.ndim
+    lo = [slice(None)] * a.ndim
+    hi[axis], lo[axis] = slice(n, n + length), slice(0, length)
+    return c[tuple(hi)] - c[tuple(lo)]
 
 
 def pool_features(features: np.ndarray, valid: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -653,7 +666,9 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     t_read = time.perf_counter()
     feats, mean_db, info = assemble_features(maps_list, mdl, ignore_refractive_index=ignore_refractive_index)
     info["model_choice"] = choice_note
-    finite = np.all(np.isfinite(feats), axis=0)
+    # a pixel is finite iff the float64 sum of its features is (NaN and ±inf propagate; finite float32
+    # values cannot overflow a float64 sum): one pass instead of a boolean array per feature
+    finite = np.isfinite(feats.sum(axis=0, dtype=np.float64))
     bg, thr = _background(mean_db, background_db)
     valid = finite if bg is None else finite & ~bg
     meta0 = maps_list[0].meta
@@ -662,11 +677,10 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     idx = np.flatnonzero(valid)
     x = np.empty((idx.size, feats.shape[0] + 1), np.float32)
     flat = pooled.reshape(feats.shape[0], -1)
-    for j in range(feats.shape[0]):
-        x[:, j] = flat[j, idx]
+    x[:, :-1] = (flat if idx.size == flat.shape[1] else flat[:, idx]).T
     x[:, -1] = np.clip(counts.reshape(-1)[idx] * frac, 1.0, float(mdl.pool_pixels_max))
     t_feat = time.perf_counter()
-    probs = mdl.predict(x)
+    probs, mag_mean, mag_sd = mdl.predict_all(x)
     t_onnx = time.perf_counter()
     labels_flat, reasons = apply_rule(probs, mdl.classes, mdl.rule, min_probability)
     shape = valid.shape
@@ -675,9 +689,9 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     pmaps = np.full((len(mdl.classes), valid.size), np.nan, np.float32)
     pmaps[:, idx] = probs.T
     magnitude = None
-    if mdl.has_magnitude:
+    if mag_mean is not None:
         magnitude = np.full((len(MAGNITUDE_CHANNELS), valid.size), np.nan, np.float32)
-        mean, sd = mdl.predict_magnitude(x)
+        mean, sd = mag_mean, mag_sd
         k = mean.shape[1]
         motion = labels_flat < k  # decided pixels: the magnitude of the decided class
         rows = np.flatnonzero(motion)

@@ -70,6 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--size", type=int, default=512, help="pixels per side")
     bc.add_argument("--repeats", type=int, default=3)
     bc.add_argument("--out", default="bench-classify.json")
+    bc.add_argument("--model", default=None, help="shipped model name or .onnx path (default: the LIV/OCDS model)")
     bc.add_argument("--force", action="store_true")
     bl = bsub.add_parser("load", help="simulate, render and sweep: alone on 1 and N threads, and beside a busy process")
     bl.add_argument("--repeats", type=int, default=3, help="runs per figure (best is kept)")
@@ -293,7 +294,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
         if args.command == "bench" and args.bench == "classify":
             from classifier.bench import bench_classify, format_bench_classify
 
-            return _bench(args, lambda: bench_classify(size=args.size, repeats=args.repeats), format_bench_classify)
+            return _bench(args, lambda: bench_classify(size=args.size, repeats=args.repeats, model=args.model),
+                          format_bench_classify)
         if args.command == "bench" and args.bench == "all":
             return _bench_all(args)
         if args.command == "bench" and args.bench == "load":
