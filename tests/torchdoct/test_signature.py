@@ -158,6 +158,61 @@ def test_empty_volume_gives_nan():
     assert torch.isnan(f[1]).all() and torch.isfinite(f[[0, 2]]).all()
 
 
+@pytest.mark.parametrize("omega", [0.9, -2.3, 3.0, 5.5, 2 * math.pi + 0.4])
+def test_g1_phase_of_a_pure_rotation_is_the_wrapped_angle(omega):
+    # E_i = exp(i·ω·t_i) (t_i = i·Δt): G(m) = (T − m)·exp(−i·ω·m·Δt), so |ĝ1_m| = 1 and
+    # g1_phase_m = −ω·m·Δt wrapped into (−π, π]
+    t = 32
+    tt = torch.tensor(_times(t), dtype=torch.float64)
+    w = omega / DT_S  # rad/s
+    e = (3.0 - 1.0j) * torch.exp(1j * w * tt)[None, :]
+    lags = (1, 2, 5, 13, 29)
+    names = tuple(f"g1_phase_{m}" for m in lags) + tuple(f"g1_{m}" for m in lags)
+    _, f = signature(e, _times(t), names=names)
+    for i, m in enumerate(lags):
+        want = math.remainder(-omega * m, 2 * math.pi)  # in [−π, π]
+        if want <= -math.pi:
+            want += 2 * math.pi
+        got = float(f[0, i])
+        assert -math.pi < got <= math.pi
+        assert abs(math.remainder(got - want, 2 * math.pi)) < 1e-9, (m, got, want)
+    torch.testing.assert_close(f[0, len(lags):], torch.ones(len(lags), dtype=torch.float64))
+
+
+def test_g1_phase_sign_follows_the_flow_closed_form():
+    # a static speckle moved deeper at v_z: E ∝ exp(+i·2kn·z(t)) gives arg G(m) = −2kn·v_z·m·Δt
+    # (theory.g1_flow's phase), here with 2kn·v_z·Δt = 0.7 rad per frame
+    t = 32
+    e = _speckle((4, 1), seed=11) * torch.exp(1j * 0.7 * torch.arange(t, dtype=torch.float64))
+    _, f = signature(e, _times(t), names=("g1_phase_1", "g1_phase_3"))
+    flow = theory.g1_flow(np.array([1, 3]) * DT_S, speed_um_per_s=0.7 / (2 * 2 * math.pi / 0.84 * DT_S),
+                          polar_angle_deg=0.0, wavelength_um=0.84, lateral_resolution_um=1e6, axial_resolution_um=1e6)
+    torch.testing.assert_close(f, torch.from_numpy(np.angle(flow))[None, :].expand(4, 2), rtol=0, atol=1e-6)
+    torch.testing.assert_close(f[0], torch.tensor([-0.7, -2.1], dtype=torch.float64))
+
+
+def test_g1_phase_names_units_and_undefined_values():
+    assert parse_feature("g1_phase_7") == ("g1_phase", 7) and parse_feature("g1_7") == ("g1", 7)
+    assert feature_unit("g1_phase_1") == "rad" and needs_field("g1_phase_1")
+    assert "g1_phase_1" not in available_features(("g1_phase_1", "rho_lin_1"), False)
+    with pytest.raises(ValueError, match="g1_phase_M"):
+        parse_feature("g1_phase_0")
+    e = _speckle((4, 32), seed=12)
+    e[1] = 0  # G = 0: no angle
+    e[2, 3] = complex("nan")
+    e[3, 1:] = 0  # one non-zero frame only: G(m) = 0 at every lag, but I = 0 already makes it NaN
+    _, f = signature(e, _times(32), names=("g1_phase_1", "g1_phase_4"))
+    assert torch.isfinite(f[0]).all() and torch.isnan(f[1:]).all()
+    # I > 0 at every frame but G(2) = 0 exactly: E_i·E*_{i+2} = +1, +1, −1, −1, ... over 28 pairs
+    alt2 = torch.tensor(([1.0] * 4 + [-1.0] * 4) * 4, dtype=torch.complex128)[None, :30]
+    assert complex((alt2[0, :-2] * alt2[0, 2:].conj()).sum()) == 0
+    _, fa = signature(alt2, _times(30), names=("g1_phase_2", "g1_2", "g1_phase_1"))
+    assert math.isnan(float(fa[0, 0])) and float(fa[0, 1]) == 0.0 and math.isfinite(float(fa[0, 2]))
+    alt = torch.tensor([1, 1j, -1, -1j] * 8, dtype=torch.complex128)[None, :]
+    _, fb = signature(alt, _times(32), names=("g1_phase_2",))  # E_i E*_{i+2} = −1 for every i: angle π, not −π
+    assert float(fb[0, 0]) == pytest.approx(math.pi, abs=1e-12)
+
+
 # ----------------------------------------------------------------------------------------------------------
 # torchdoct maps --signature
 # ----------------------------------------------------------------------------------------------------------

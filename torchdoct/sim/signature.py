@@ -20,6 +20,11 @@ Features, named by a string (lags ``m`` in frames, delay ``τ = m·Δt``):
   ``|Σ_i E_i E*_{i+m}| / √(Σ_i |E_i|² · Σ_i |E_{i+m}|²)`` (sums over the ``T − m`` pairs), the
   estimate of ``|g1(τ)|`` of physics.md §5.3 (its expectation for fully decorrelated speckle is
   ``≈ √(π/(4(T−m)))``, and ``E|ĝ1|² ≈ 1/(T − m)``). In [0, 1] by Cauchy-Schwarz.
+* ``g1_phase_{m}`` (rad): the argument of the same sum, ``arg G(m)`` in (−π, π] with
+  ``G(m) = Σ_i E_i E*_{i+m}``: with the round-trip phase ``e^{+i·2kn·z}`` a scatterer moving deeper at
+  ``v_z`` gives ``G ∝ exp(−i·2kn·v_z·τ)`` (physics.md §5.3 (c), :func:`torchdoct.sim.theory.g1_flow`), so
+  ``g1_phase_m = −2kn·v_z·m·Δt`` wrapped; a field ``E_i = exp(i·ω·t_i)`` gives ``−ω·m·Δt`` wrapped.
+  ``g1_m·exp(i·g1_phase_m)`` is the complex ``ĝ1(m·Δt)``. NaN where ``G(m) = 0`` (no defined angle).
 * ``phase_ramp``: ``cos(arg G(2) − 2·arg G(1))`` with ``G(m) = Σ_i E_i E*_{i+m}``: 1 when the field's
   phase turns at a constant rate (flow's Doppler term ``exp(−i·2k·v_z·τ)``, physics.md §5.3 (c)),
   random for diffusion and random-ballistic motion. Unitless.
@@ -31,7 +36,7 @@ Every feature is invariant to the scale of the field (a gain or a reflectivity f
 physics says the shape of the decorrelation is. **Bulk phase**: a phase ``φ_i`` common to all
 scatterers of the pixel at frame ``i`` (bulk motion of the sample between frames) leaves every
 intensity feature (``rho_db``, ``rho_lin``, ``lin_contrast``, ``db_variance``) exactly unchanged;
-``g1_m`` and ``phase_ramp`` are unchanged by a *linear* drift ``φ_i = ω·t_i`` (a constant bulk
+``g1_m`` and ``phase_ramp`` are unchanged by a *linear* drift (``g1_phase_m`` shifts by ``−ω·m·Δt``) ``φ_i = ω·t_i`` (a constant bulk
 velocity), but no per-pixel statistic of the field survives an arbitrary phase per frame: the
 field group then measures the bulk phase, not the pixel (so models that use it need phase-stable
 or bulk-phase-corrected data; ``classifier/README.md`` reports the accuracy with a random bulk
@@ -73,12 +78,12 @@ __all__ = [
     "signature_maps",
 ]
 
-_PATTERN = re.compile(r"^(rho_db|rho_lin|g1)_([1-9][0-9]*)$")
+_PATTERN = re.compile(r"^(rho_db|rho_lin|g1|g1_phase)_([1-9][0-9]*)$")
 _SCALARS = {"phase_ramp": "1", "lin_contrast": "1", "db_variance": "dB^2"}
 #: Unit of every feature kind (the maps format's unit strings).
-UNITS = {"rho_db": "1", "rho_lin": "1", "g1": "1", **_SCALARS}
+UNITS = {"rho_db": "1", "rho_lin": "1", "g1": "1", "g1_phase": "rad", **_SCALARS}
 #: Kinds that need the complex field (phase); the others need only the intensity.
-FIELD_FEATURES = ("g1", "phase_ramp")
+FIELD_FEATURES = ("g1", "g1_phase", "phase_ramp")
 #: Default lags (frames) of each group, chosen by the ablation in classifier/README.md: the linear
 #: intensity correlation at roughly log-spaced lags plus the two one-time statistics carry all that
 #: the dB correlations add (no dB lags), and ``|g1|`` at the first lags (the field part) adds a little
@@ -98,13 +103,13 @@ def parse_feature(name: str) -> tuple[str, int]:
         return name, 0
     m = _PATTERN.match(str(name))
     if m is None:
-        raise ValueError(f"unknown signature feature {name!r}: use rho_db_M, rho_lin_M, g1_M (M = lag in frames "
-                         f">= 1) or {', '.join(_SCALARS)}")
+        raise ValueError(f"unknown signature feature {name!r}: use rho_db_M, rho_lin_M, g1_M, g1_phase_M (M = lag "
+                         f"in frames >= 1) or {', '.join(_SCALARS)}")
     return m.group(1), int(m.group(2))
 
 
 def feature_unit(name: str) -> str:
-    """Unit string of a feature (``"1"`` or ``"dB^2"``)."""
+    """Unit string of a feature (``"1"``, ``"rad"`` or ``"dB^2"``)."""
     return UNITS[parse_feature(name)[0]]
 
 
@@ -193,6 +198,11 @@ def signature(x: torch.Tensor, frame_times_s: Sequence[float],
         elif kind == "g1":
             den = torch.sqrt(safe[..., : n - m].sum(-1) * safe[..., m:].sum(-1))
             v = g(m).abs() / den
+        elif kind == "g1_phase":  # arg G(m) in (−π, π]; NaN where G(m) = 0
+            gm = g(m)
+            v = torch.angle(gm)
+            v = torch.where(v <= -math.pi, v + 2.0 * math.pi, v)
+            v = torch.where(gm.abs() > 0, v, torch.full_like(v, math.nan))
         else:  # phase_ramp
             z = g(2) * g(1).conj() ** 2
             v = torch.where(z.abs() > 0, z.real / torch.where(z.abs() > 0, z.abs(), torch.ones_like(z.real)),
