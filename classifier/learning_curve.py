@@ -125,8 +125,10 @@ def _paired_difference(p_a: np.ndarray, p_b: np.ndarray, s: dict[str, np.ndarray
 def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int | None = None,
                        draws_validation: int | None = None, draws_test: int | None = None,
                        max_epochs: int | None = None, gb_pixels: int = 60000, seed: int = 0, cache_dir=None,
-                       log=print) -> dict[str, Any]:
-    """The study of the module docstring; returns a JSON-able dict (``rows``: one per size)."""
+                       progress: bool = False, log=print) -> dict[str, Any]:
+    """The study of the module docstring; returns a JSON-able dict (``rows``: one per size).
+
+    ``progress``: progress bars (stderr) for the simulation and the epochs; ``log``: one line per stage."""
     import torch
 
     import torchdoct
@@ -158,7 +160,7 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
         say(f"{split}: {n} draws ...", flush=True)
         ds = make_dataset(spec, prior, seed=cfg.seed, split=split, draws=n, trials_per_draw=cfg.trials_per_draw,
                           replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance,
-                          cache_dir=cache_dir)
+                          cache_dir=cache_dir, progress=progress)
         data[split] = ds
         sim_s[split] = float(ds.meta["elapsed_s"])
         say(f"{split}: {len(ds)} samples ({'cache' if ds.meta['from_cache'] else 'simulated'} in "
@@ -177,7 +179,7 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
         per_draw = tr.status[np.unique(tr.draw, return_index=True)[1]]  # ground truth of each draw
         row: dict[str, Any] = {"draws": n, "samples": len(tr),
                                "draw_status_counts": {name: int((per_draw == i).sum()) for i, name in enumerate(STATUS)}}
-        fit = fit_network(tr, data["validation"], spec, cfg)
+        fit = fit_network(tr, data["validation"], spec, cfg, progress=progress)
         model = fit["model"]
         net: dict[str, Any] = {"training_s": fit["training_s"], "epochs": fit["epochs"],
                                "best_epoch": fit["best_epoch"], "validation_loss": fit["validation_loss"],
@@ -432,7 +434,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_outputs(args.out)
         res = run_learning_curve(sizes=args.sizes, draws_max=args.draws_max, draws_validation=args.draws_validation,
                                  draws_test=args.draws_test, max_epochs=args.max_epochs, gb_pixels=args.gb_pixels,
-                                 cache_dir=args.cache)
+                                 cache_dir=args.cache, progress=True)
         paths = write_outputs(res, args.out)
     except ValueError as exc:
         print(f"error: {exc}", flush=True)
