@@ -30,11 +30,12 @@ fraction, SNR) settings × ``trials_per_draw`` trials. Draw ``k`` has motion typ
 ``i``-th draw of a type takes its log-magnitude at the quantile ``frac(u₀ + i·(√5 − 1)/2)``
 (golden-ratio sequence, ``u₀`` from the split's seed), so any prefix of draws covers the magnitude
 range evenly; density and flow direction are drawn independently per draw, static fraction and SNR
-per replicate, the ballistic direction law (prior ``"both"``) per ballistic draw. Two :func:`torchdoct.simulate` calls per draw (moving and static scatterers) run its
-trials (all systems of a scene see the same scatterers, as one dataset and its resolution
-reductions do); 64 trials per draw is one random block of the simulator, and fewer would cost the
-same. Trials of one (draw, replicate) group share every parameter: they are the pixels that pooling
-may average, and draws are the independent unit of the parameter space.
+per replicate, the ballistic direction law (prior ``"both"``) per ballistic draw. Two
+:func:`torchdoct.simulate` calls per draw (moving and static scatterers) run its trials (all systems
+of a scene see the same scatterers, as one dataset and its resolution reductions do); 64 trials per
+draw is one random block of the simulator, and fewer would cost the same. Trials of one (draw,
+replicate) group share every parameter: they are the pixels that pooling may average, and draws are
+the independent unit of the parameter space.
 
 **Seeds and splits**: everything of draw ``k`` of split ``s`` (train 0, validation 1, test 2) comes
 from ``numpy.random.SeedSequence(seed, spawn_key=(s, k))`` (replicate ``r``: ``(s, k, 1 + r)``; the

@@ -205,6 +205,71 @@ def _section(L: list[str], title: str, note: str | None, header: Sequence[str], 
     L.append("")
 
 
+def _magnitude_rows(L: list[str], title: str, rows: Sequence[dict[str, Any]]) -> None:
+    """Append one :func:`magnitude_table` as a Markdown table under the heading ``title``."""
+    L += [title, ""]
+    L.append("| class | magnitude | samples | truth static | truth decorrelated | decided indeterminate "
+             "| coverage (identifiable) | accuracy (decided) |")
+    L.append("|---|---|---:|---:|---:|---:|---:|---:|")
+    for row in rows:
+        L.append(f"| {row['class']} | {row['low']:.2g}–{row['high']:.2g} | {row['samples']} | "
+                 f"{_fmt(row['truth_static'], 2)} | {_fmt(row['truth_decorrelated'], 2)} | "
+                 f"{_fmt(row['predicted_indeterminate'], 2)} | {_fmt(row['coverage'], 2)} | "
+                 f"{_fmt(row['accuracy_decided'], 2)} |")
+    L.append("")
+
+
+def _shifted_section(L: list[str], sp: dict[str, Any]) -> None:
+    """The shifted-prior test set (``report["shifted_prior"]``, :data:`classifier.train.SHIFTED_PRIOR`)."""
+    pr = sp["prior"]
+    noise = (f"noise with probability {pr['noise_probability']:g} at SNR {pr['snr_db'][0]:g}–{pr['snr_db'][1]:g} dB"
+             if pr["noise_probability"] > 0 else "no noise")
+    static = ("no static fraction" if pr["static_probability"] == 0 else
+              f"static fraction {pr['static_fraction'][0]:g}–{pr['static_fraction'][1]:g} with probability "
+              f"{pr['static_probability']:g}")
+    dens = pr["density_per_um3"]
+    dens_s = f"{dens[0]:g}" if dens[0] == dens[1] else f"{dens[0]:g}–{dens[1]:g}"
+    note = (f"The network on test draws from another prior: flow at {pr['flow_polar_angle_deg'][0]:g}–"
+            f"{pr['flow_polar_angle_deg'][1]:g}° from the depth axis (isotropic within), moving-scatterer density "
+            f"{dens_s} µm⁻³, {static}, {noise}, random-ballistic direction laws: {pr['ballistic_directions']}; "
+            f"motion types, magnitudes and simulator seeds those of the test draws. {sp['draws']} draws, "
+            f"{sp['samples']} samples; ground truth per draw: "
+            + ", ".join(f"{k} {v}" for k, v in sp["draw_status_counts"].items()) + ".")
+    ses = sp.get("standard_errors", {})
+
+    def pm(pool: str, key: str) -> str:
+        v = sp["test"][pool][key]
+        se = ses.get(pool, {}).get(key)
+        return _fmt(v) + ("" if se is None or _undefined(se) or _undefined(v) else f" ± {se:.3f}")
+
+    _section(L, "Shifted-prior test set (network)", note,
+             ["pool", "samples", "coverage", "acc. identifiable", "bal. acc. identifiable", "ECE", "indeterminate"],
+             "rrrrrrr",
+             [[pool, m["samples"], pm(pool, "coverage_identifiable"), pm(pool, "accuracy_identifiable"),
+               pm(pool, "balanced_accuracy_identifiable"), pm(pool, "ece"), _fmt(m["indeterminate_fraction"])]
+              for pool, m in sp["test"].items()])
+    if ses:
+        L += ["± : standard error, bootstrap over the draws.", ""]
+    reasons = sorted({why for m in sp["test"].values() for key in _IDENTIFIABLE_KEYS
+                      if (why := undefined_reason(m, key))})
+    if reasons:
+        L += [f"n/a: {why}.  " for why in reasons] + [""]
+    t = sp.get("targets")
+    if t is not None:
+        m = sp["test"][t["pool"]]
+        L += [f"Targets (pool {t['pool']}): balanced accuracy (identifiable) ≥ "
+              f"{t['balanced_accuracy_identifiable']:g}: {_fmt(m['balanced_accuracy_identifiable'])}; "
+              f"ECE ≤ {t['ece']:g}: {_fmt(m['ece'])}; "
+              f"**{'met' if t['met'] else 'not met'}**.", ""]
+    for pool, rows in sp.get("by_magnitude", {}).items():
+        _magnitude_rows(L, f"### Shifted prior: accuracy against motion magnitude, pool {pool}", rows)
+    if "magnitude" in sp:
+        _section(L, "Shifted prior: motion magnitude (network; identifiable samples, head of the true class)", None,
+                 ["pool", "samples", "median abs. log10 error", "68 % coverage", "95 % coverage"], "rrrrr",
+                 [[pool, m["samples"], _fmt(m["median_abs_log10_error"]), _fmt(m["coverage_68"]),
+                   _fmt(m["coverage_95"])] for pool, m in sp["magnitude"].items()])
+
+
 def format_markdown(report: dict[str, Any]) -> str:
     """The report as Markdown (tables of the JSON)."""
     r = report
@@ -276,17 +341,7 @@ def format_markdown(report: dict[str, Any]) -> str:
              "share of samples whose ground truth is indeterminate for that reason.")
     L.append("")
     for pool, rows in r["by_magnitude"].items():
-        L.append(f"### pool {pool}")
-        L.append("")
-        L.append("| class | magnitude | samples | truth static | truth decorrelated | decided indeterminate "
-                 "| coverage (identifiable) | accuracy (decided) |")
-        L.append("|---|---|---:|---:|---:|---:|---:|---:|")
-        for row in rows:
-            L.append(f"| {row['class']} | {row['low']:.2g}–{row['high']:.2g} | {row['samples']} | "
-                     f"{_fmt(row['truth_static'], 2)} | {_fmt(row['truth_decorrelated'], 2)} | "
-                     f"{_fmt(row['predicted_indeterminate'], 2)} | {_fmt(row['coverage'], 2)} | "
-                     f"{_fmt(row['accuracy_decided'], 2)} |")
-        L.append("")
+        _magnitude_rows(L, f"### pool {pool}", rows)
     if "by_condition" in r:
         _section(L, "Accuracy by acquisition condition (network, identifiable samples, pool 1)", None,
                  ["condition", "samples", "coverage", "accuracy (decided)", "balanced accuracy (decided)"], "-rrrr",
@@ -307,6 +362,8 @@ def format_markdown(report: dict[str, Any]) -> str:
                  ["pool", "coverage", "acc. identifiable", "bal. acc. identifiable", "ECE"], "rrrrr",
                  [[pool, _fmt(m["coverage_identifiable"]), _fmt(m["accuracy_identifiable"]),
                    _fmt(m["balanced_accuracy_identifiable"]), _fmt(m["ece"])] for pool, m in r["bulk_phase"].items()])
+    if "shifted_prior" in r:
+        _shifted_section(L, r["shifted_prior"])
     if "onnx_parity_max_abs_diff" in r:
         L.append(f"ONNX (opset {r.get('onnx_opset')}) against torch on the test set: max |Δp| = "
                  f"{r['onnx_parity_max_abs_diff']:.2e}.")
@@ -344,6 +401,10 @@ def plot_report(report: dict[str, Any], path: str) -> None:
         if table:
             c, a, _ = zip(*table)
             ax.plot(c, a, "o" + style, label=f"pool {pool} (ECE {r['test']['network'][pool]['ece']:.3f})")
+    shifted = r.get("shifted_prior", {}).get("test", {}).get("1")
+    if shifted and shifted["reliability"]:
+        c, a, _ = zip(*shifted["reliability"])
+        ax.plot(c, a, "^:", color="C3", label=f"shifted prior, pool 1 (ECE {shifted['ece']:.3f})")
     ax.plot([0, 1], [0, 1], "k:", lw=1)
     ax.set_xlabel("top-class probability")
     ax.set_ylabel("observed accuracy")

@@ -202,7 +202,8 @@ def test_prior_direction_laws_and_flow_angle_range_are_validated():
     assert Prior().ballistic_directions == "both" and Prior().flow_polar_angle_deg == (0.0, 180.0)
     for law in ("both", "isotropic", "uniform-angles"):
         assert Prior.from_dict(Prior(ballistic_directions=law).to_dict()).ballistic_directions == law
-    with pytest.raises(ValueError, match=r"ballistic_directions must be one of \['both', 'isotropic', 'uniform-angles'\]"):
+    with pytest.raises(ValueError,
+                       match=r"ballistic_directions must be one of \['both', 'isotropic', 'uniform-angles'\]"):
         Prior(ballistic_directions="cog")
     with pytest.raises(ValueError, match="ballistic_directions"):
         Prior(ballistic_directions=None)

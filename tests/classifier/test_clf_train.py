@@ -237,3 +237,54 @@ def test_quick_run_gives_a_usable_model(tmp_path, capsys):
     m1 = json.loads((out / "single-acquisition.json").read_text())["test"]["network"]["1"]
     assert m1["coverage_identifiable"] > 0.2 and m1["balanced_accuracy_identifiable"] > 0.5  # chance: 1/3
     assert "n/a" not in capsys.readouterr().out
+
+
+def test_shifted_prior_test_set_is_evaluated_and_reported(cache_dir, tmp_path):
+    """A tiny training with the shifted-prior test set: its split follows SHIFTED_PRIOR (cached apart),
+    the report holds every eval pool with finite metrics, and the main evaluation is untouched."""
+    import dataclasses
+    import math
+
+    from classifier.dataset import Prior
+    from classifier.report import format_markdown, plot_report
+    from classifier.train import SHIFTED_PRIOR, SHIFTED_TARGETS, shifted_prior
+
+    assert TrainConfig.for_spec("signature").shifted_test is None  # None: on for signature specs
+    assert SHIFTED_PRIOR.flow_polar_angle_deg == (10.0, 80.0) and SHIFTED_PRIOR.density_per_um3 == (0.05, 0.05)
+    assert SHIFTED_PRIOR.static_probability == 0.0 and SHIFTED_PRIOR.noise_probability == 1.0
+    assert SHIFTED_PRIOR.snr_db == (15.0, 25.0) and SHIFTED_PRIOR.ballistic_directions == "both"
+    narrow = Prior(speed_um_per_s=(0.01, 1.0))
+    assert shifted_prior(narrow) == dataclasses.replace(SHIFTED_PRIOR, speed_um_per_s=(0.01, 1.0))
+    plain = train(TrainConfig(**TINY_RECIPE, baselines=False), cache_dir=cache_dir, log=None)
+    res = train(TrainConfig(**TINY_RECIPE, baselines=False, shifted_test=True), cache_dir=cache_dir, log=None)
+    assert "shifted_prior" not in plain.report  # two-wavelength is not a signature spec: off by default
+    assert res.report["test"] == plain.report["test"]  # the extra split does not touch the main evaluation
+    ds = res.datasets["shifted_prior"]
+    assert ds.meta["prior"] == SHIFTED_PRIOR.to_dict() and ds.meta["key"] != res.datasets["test"].meta["key"]
+    assert np.all(ds.density == 0.05) and np.all(ds.static_fraction == 0.0)
+    assert np.all((ds.snr_db >= 15.0) & (ds.snr_db <= 25.0))
+    sp = res.report["shifted_prior"]
+    assert sp["prior"] == SHIFTED_PRIOR.to_dict() and sp["samples"] == len(ds)
+    assert set(sp["test"]) == {"1", "4", "9", "25"}
+    for pool, m in sp["test"].items():
+        assert m["samples"] > 0 and m["identifiable_samples"] > 0
+        for key in ("accuracy_all", "balanced_accuracy_all", "coverage_identifiable", "ece"):
+            assert 0.0 <= m[key] <= 1.0 and math.isfinite(m[key]), (pool, key)
+    assert set(sp["by_magnitude"]) == {"1", "25"} and sp["by_magnitude"]["1"]
+    assert all(math.isfinite(v) for v in sp["standard_errors"]["1"].values())
+    m1 = sp["test"]["1"]
+    want = (m1["balanced_accuracy_identifiable"] >= SHIFTED_TARGETS["balanced_accuracy_identifiable"]
+            and m1["ece"] <= SHIFTED_TARGETS["ece"])
+    assert sp["targets"]["met"] == want
+    md = format_markdown(res.report)
+    assert "## Shifted-prior test set (network)" in md and "flow at 10–80° from the depth axis" in md
+    assert "density 0.05 µm⁻³" in md and "SNR 15–25 dB" in md and "### Shifted prior: accuracy against" in md
+    assert f"ECE ≤ 0.05: {m1['ece']:.3f}" in md
+    plot_report(res.report, str(tmp_path / "r.png"))
+    assert (tmp_path / "r.png").stat().st_size > 0
+    from classifier.dataset import make_dataset
+
+    cfg = res.config
+    again = make_dataset(cfg.spec, SHIFTED_PRIOR, seed=cfg.seed, split="test", draws=cfg.draws_test,
+                         trials_per_draw=cfg.trials_per_draw, replicates=cfg.replicates, cache_dir=cache_dir)
+    assert again.meta["from_cache"] and np.array_equal(again.x, ds.x)  # cached under its own key
