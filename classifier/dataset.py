@@ -55,11 +55,10 @@ made.
   fast scatterers cross the PSF (a transit time that diffusion and random-ballistic motion both have;
   flow never gets here in the prior, because for flow ``|g1|² = j`` decays by transit alone),
 
-with ``ε = 0.05``. For signature specs the second case also needs the transit term to be flat over
-the measured delays, ``ρ_I(Δt) − ρ_I(T) ≤ ε`` at every configuration: the signature reads the whole
-intensity correlation curve, and a transit term that still decays has a shape that tells diffusion
-from random-ballistic motion (:func:`identifiability`). The classifier's ``indeterminate`` class is
-trained on these draws (:mod:`classifier.rule`).
+with ``ε = 0.05``, for every spec: for the signature the definition was re-measured (a transit term
+that still decays after the field has decorrelated does not tell the motion types apart per pixel:
+:func:`identifiability`). The classifier's ``indeterminate`` class is trained on these draws
+(:mod:`classifier.rule`).
 
 **Static fraction and noise** are applied per *replicate*: each draw's moving and static fields are
 simulated once and combined ``replicates`` times with different static fractions and SNRs
@@ -104,6 +103,7 @@ __all__ = [
     "scene_for",
     "simulate_draw",
     "identifiability",
+    "transit_decay",
     "make_dataset",
 ]
 
@@ -374,14 +374,28 @@ def identifiability(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, n
     ``"decorrelated"``; ``|g1(Δt)|²`` and ``ρ_I(T)`` of the moving scatterers. Formulas: physics.md
     §5.3 (g1), §5.4 (j, N_eff, ``ρ_I = (|g1|² + j/N_eff)/(1 + 1/N_eff)``), via :mod:`torchdoct.sim.theory`.
 
-    For a signature spec (:attr:`FeatureSpec.is_signature`) "decorrelated" is narrower: the field must
-    decorrelate within one frame interval *and* what is left of the intensity correlation, the
-    incoherent transit term ``j/N_eff``, must be flat over the measured delays,
-    ``ρ_I(Δt) − ρ_I(T) ≤ ε`` at every configuration. The signature reads the intensity correlation at
-    every lag, so a transit term that still decays over the acquisition is a curve with a shape
-    (diffusion and random-ballistic transit decay differently in the delay, physics.md §5.4), which
-    LIV and OCDS reduce to two numbers but the signature keeps (measured in ``classifier/README.md``).
+    The same definition holds for signature specs: a transit term ``j/N_eff`` that still decays over
+    the acquisition after the field has decorrelated (:func:`transit_decay`) was measured not to tell
+    diffusion from random-ballistic motion per pixel (``python -m classifier.ablation --indeterminate``,
+    ``classifier/README.md``), so "decorrelated" stays as wide as it is.
     """
+    from torchdoct.sim import theory
+    from torchdoct.conventions import n_eff
+
+    taus = np.array([spec.frame_interval_s, (spec.n_frames - 1) * spec.frame_interval_s])
+    status, first_a, last_a, _ = _criteria(spec, draw, prior)
+    return status, first_a, last_a
+
+
+def transit_decay(spec: FeatureSpec, draw: Draw, prior: Prior) -> np.ndarray:
+    """``ρ_I(Δt) − ρ_I(T)`` per configuration [C]: how much of the moving scatterers' intensity correlation
+    still decays between the first and the last frame delay (physics.md §5.4; after the field has
+    decorrelated, ``|g1|² ≈ 0``, this is the incoherent transit term ``j/N_eff`` alone)."""
+    return _criteria(spec, draw, prior)[3]
+
+
+def _criteria(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
+    """Status, ``|g1(Δt)|²``, ``ρ_I(T)`` and ``ρ_I(Δt) − ρ_I(T)`` per configuration (:func:`identifiability`)."""
     from torchdoct.sim import theory
     from torchdoct.conventions import n_eff
 
@@ -410,20 +424,17 @@ def identifiability(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, n
         drop.append(float(rho[0] - rho[1]))
     first_a, last_a = np.array(first), np.array(last)
     eps = prior.identifiability_epsilon
-    flat = np.all(np.array(drop) <= eps) if spec.is_signature else True
     if np.all(last_a >= 1.0 - eps):
         status = "static"
-    elif np.all(first_a <= eps) and flat:
+    elif np.all(first_a <= eps):
         status = "decorrelated"
     else:
         status = "identifiable"
-    return status, first_a, last_a
+    return status, first_a, last_a, np.array(drop)
 
 
 #: Version of the ground-truth definition (part of the cache key).
 _IDENTIFIABILITY_VERSION = "static: rho_I(T) >= 1-eps; decorrelated: |g1(dt)|^2 <= eps; all configurations"
-#: The same for signature specs (decorrelated also needs a flat transit term, see :func:`identifiability`).
-_IDENTIFIABILITY_VERSION_SIGNATURE = _IDENTIFIABILITY_VERSION + "; signature: and rho_I(dt) - rho_I(T) <= eps"
 #: Identifiability status codes stored in a dataset.
 STATUS = ("identifiable", "static", "decorrelated")
 
@@ -493,8 +504,7 @@ def dataset_key(spec: FeatureSpec, prior: Prior, seed: int, split: str, draws: i
     desc = {"spec": spec.to_dict(), "prior": prior.to_dict(), "seed": int(seed), "split": split,
             "draws": int(draws), "trials_per_draw": int(trials_per_draw), "replicates": int(replicates),
             "truncation_tolerance": float(truncation_tolerance), "torchdoct_version": torchdoct.__version__,
-            "identifiability": (_IDENTIFIABILITY_VERSION_SIGNATURE if spec.is_signature else _IDENTIFIABILITY_VERSION),
-            "format": 2}
+            "identifiability": _IDENTIFIABILITY_VERSION, "format": 2}
     if spec.is_signature:
         desc["signature_extractor"] = _signature_version()
     if bulk_phase:

@@ -14,10 +14,9 @@ scatterers do not decorrelate over the acquisition (intensity correlation coeffi
 their field decorrelates completely within one frame interval (``|g1(Δt)|² ≤ ε`` at every
 configuration; "decorrelated": each frame is a new speckle phase pattern and only the incoherent
 transit term ``j/N_eff`` of physics.md §5.4 is left, the same in kind for diffusion and
-random-ballistic motion), with ``ε = 0.05``. For signature models the second case also requires that transit
-term to be flat over the measured delays (``ρ_I(Δt) − ρ_I(T) ≤ ε`` at every configuration): the
-signature reads the intensity correlation at every lag, and a transit term that still decays tells
-diffusion from random-ballistic motion by its shape.
+random-ballistic motion), with ``ε = 0.05``. The same holds for signature models: a transit term
+that still decays after the field has decorrelated was measured not to tell diffusion from
+random-ballistic motion per pixel (``python -m classifier.ablation --indeterminate``).
 
 Model: the network has an explicit class ``indeterminate`` trained on that ground truth. The rule
 (stored in the model's metadata, applied by ``doct-classify`` and by the report) is
@@ -49,20 +48,14 @@ _DEFINITION = (
     "completely within one frame interval (|g1(frame interval)|^2 <= epsilon at every configuration) "
     "(physics.md 5.3-5.4)."
 )
-_SIGNATURE = (" For signature models the second case also needs the incoherent transit term to be flat over the "
-              "measured delays (rho_I(frame interval) - rho_I(T) <= epsilon at every configuration): the signature "
-              "reads the whole intensity correlation curve, whose transit part tells diffusion from ballistic motion.")
 
 
-def make_rule(epsilon: float, min_probability: float = DEFAULT_MIN_PROBABILITY, *,
-              signature: bool = False) -> dict[str, Any]:
-    """The rule as stored in model metadata (JSON-able); ``signature``: the narrower ground truth of
-    signature specs (:func:`classifier.dataset.identifiability`)."""
+def make_rule(epsilon: float, min_probability: float = DEFAULT_MIN_PROBABILITY) -> dict[str, Any]:
+    """The rule as stored in model metadata (JSON-able)."""
     if not 0.0 <= float(min_probability) < 1.0:
         raise ValueError(f"min_probability must be in [0, 1); got {min_probability!r}")
     return {"kind": "class-or-threshold", "indeterminate_class": INDETERMINATE,
-            "min_probability": float(min_probability), "epsilon": float(epsilon),
-            "definition": _DEFINITION + (_SIGNATURE if signature else "")}
+            "min_probability": float(min_probability), "epsilon": float(epsilon), "definition": _DEFINITION}
 
 
 def apply_rule(probabilities: np.ndarray, class_names: Sequence[str], rule: dict[str, Any],

@@ -432,7 +432,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
     cfg = config or TrainConfig()
     prior = prior or Prior()
     spec = load_spec(cfg.spec)
-    rule = make_rule(prior.identifiability_epsilon, cfg.min_probability, signature=spec.is_signature)
+    rule = make_rule(prior.identifiability_epsilon, cfg.min_probability)
     say = log or (lambda *a, **k: None)
 
     # 1. data

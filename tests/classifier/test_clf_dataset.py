@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import torchdoct as td
-from classifier.dataset import (CLASSES, Draw, Prior, combine_fields, draw_parameters, identifiability,
+from classifier.dataset import (CLASSES, Draw, Prior, combine_fields, draw_parameters, identifiability, transit_decay,
                                 make_dataset, scene_for, simulate_draw)
 from classifier.features import Configuration, FeatureSpec, load_spec
 
@@ -82,40 +82,32 @@ def test_identifiability_regimes_follow_the_physics():
         assert np.all((g1sq >= 0) & (g1sq <= 1)) and np.all(rho_last <= 1 + 1e-12)
 
 
-def test_signature_identifiability_keeps_a_decaying_transit_term():
-    """Signature specs: 'decorrelated' also needs a flat transit term, rho_I(dt) - rho_I(T) <= eps."""
+def test_transit_decay_is_the_closed_form_and_the_definition_is_the_same_for_signature_specs():
+    """rho_I(dt) - rho_I(T) from the closed forms; signature specs share the ground-truth definition."""
     from torchdoct.conventions import n_eff
     from torchdoct.sim import theory
 
     sig, liv = load_spec("signature"), load_spec("single-acquisition")
     prior = Prior()
-    eps = prior.identifiability_epsilon
     taus = np.array([sig.frame_interval_s, (sig.n_frames - 1) * sig.frame_interval_s])
-
-    def drop(d):  # rho_I(dt) - rho_I(T) per configuration, from the closed forms (physics.md §5.4)
-        out = []
+    for m in (1e-3, 1.0, 15.0):
+        d = _draw(0, m)
+        want = []
         for c in sig.configurations:
             res = dict(lateral_resolution_um=c.lateral_resolution_um, axial_resolution_um=c.axial_resolution_um)
-            g1 = theory.g1_diffusion(taus, diffusion_um2_per_s=d.magnitude, wavelength_um=c.wavelength_um,
+            g1 = theory.g1_diffusion(taus, diffusion_um2_per_s=m, wavelength_um=c.wavelength_um,
                                      refractive_index=sig.refractive_index, **res)
-            j = theory.j_diffusion(taus, diffusion_um2_per_s=d.magnitude, **res)
+            j = theory.j_diffusion(taus, diffusion_um2_per_s=m, **res)
             rho = theory.intensity_correlation_coefficient(g1, j, n_eff(d.density_per_um3, **res))
-            out.append(rho[0] - rho[1])
-        return np.array(out)
-
-    # D = 1 µm²/s: the field decorrelates within a frame, but the transit term still decays over the
-    # acquisition: identifiable for the signature, indeterminate ('decorrelated') for LIV/OCDS
-    slow_transit = _draw(0, 1.0)
-    assert identifiability(liv, slow_transit, prior)[0] == "decorrelated"
-    s, g1sq, _ = identifiability(sig, slow_transit, prior)
-    assert s == "identifiable" and np.all(g1sq <= eps) and np.any(drop(slow_transit) > eps)
-    # D = 15 µm²/s: the transit is over within a frame too: nothing left to read
-    fast = _draw(0, 15.0)
-    s, g1sq, _ = identifiability(sig, fast, prior)
-    assert s == "decorrelated" and np.all(drop(fast) <= eps)
-    # random-ballistic motion at 6 µm/s: transit visible, identifiable for the signature only
-    assert identifiability(sig, _draw(1, 6.0), prior)[0] == "identifiable"
-    assert identifiability(liv, _draw(1, 6.0), prior)[0] == "decorrelated"
+            want.append(rho[0] - rho[1])
+        np.testing.assert_allclose(transit_decay(sig, d, prior), want, rtol=1e-12)
+        assert identifiability(sig, d, prior)[0] == identifiability(liv, d, prior)[0]
+    # D = 1 µm²/s: the field decorrelates within a frame while the transit term still decays
+    eps = prior.identifiability_epsilon
+    s, g1sq, _ = identifiability(sig, _draw(0, 1.0), prior)
+    assert s == "decorrelated" and np.all(g1sq <= eps) and np.any(transit_decay(sig, _draw(0, 1.0), prior) > eps)
+    # D = 15 µm²/s: the transit is over within a frame too
+    assert np.all(transit_decay(sig, _draw(0, 15.0), prior) <= eps)
 
 
 def test_combine_fields_intensity_and_noise_power():

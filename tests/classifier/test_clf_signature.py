@@ -196,3 +196,22 @@ def test_ablation_subsets_are_candidates_and_name_the_shipped_content():
     assert len(chosen) == 1 and set(chosen[0]) == set(load_spec("signature").metrics)
     # the maps' default signature holds the spec's features as its intensity part
     assert set(load_spec("signature").metrics) == set(available_features(DEFAULT_FEATURES, False))
+
+
+@pytest.mark.slow
+def test_indeterminate_measurement_partitions_the_test_split(tmp_path):
+    """``python -m classifier.ablation --indeterminate``: the three regimes partition the test pixels that
+    are identifiable or decorrelated, and every score is a probability."""
+    from classifier.ablation import run_indeterminate
+    from classifier.dataset import Prior, make_dataset
+
+    res = run_indeterminate(draws_train=12, draws_test=6, pixels=3000, cache_dir=tmp_path, log=None)
+    te = make_dataset(__import__("classifier.ablation", fromlist=["candidate_spec"]).candidate_spec(), Prior(),
+                      split="test", draws=6, cache_dir=tmp_path)
+    counts = res["test_samples"]
+    assert counts["identifiable"] == int((te.status == 0).sum())
+    assert counts["decorrelated, transit visible"] + counts["decorrelated, flat"] == int((te.status == 2).sum())
+    for row in res["features"].values():
+        for v in row.values():
+            b = v["balanced_accuracy_identifiable"]
+            assert b != b or 0.0 <= b <= 1.0
