@@ -53,7 +53,8 @@ with 0.54 / 0.88: the estimator ĝ1 of a single 32-frame pixel is biased at long
 slowly varying speckle stays coherent within them), and its lags are strongly correlated.
 
 ``python -m classifier.g1fit --out PATH.json`` compares the fit with the shipped ``signature``
-network on the very test pixels of its report (:func:`evaluate_against_network`).
+network on the very test pixels of its report (:func:`evaluate_against_network`). The module stays
+whole (over 600 lines): the comparison is the fit's only caller and reads its grid and outcome codes.
 """
 
 from __future__ import annotations
@@ -67,8 +68,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-__all__ = ["GRID_PER_DECADE", "DEFAULT_LAGS", "FLOW_EXTRA_PARAMETERS", "REASONS", "G1Fit", "fit_g1", "g1_columns", "complex_g1", "superset_spec",
-           "evaluate_against_network", "format_markdown", "main"]
+__all__ = ["GRID_PER_DECADE", "DEFAULT_LAGS", "FLOW_EXTRA_PARAMETERS", "REASONS", "G1Fit", "fit_g1", "g1_columns",
+           "complex_g1", "superset_spec", "evaluate_against_network", "format_markdown", "main"]
 
 #: Candidate magnitudes per decade (log grid step 1/20 dex).
 GRID_PER_DECADE = 20
@@ -486,7 +487,11 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
 
     say = log or (lambda *a, **k: None)
     net = load_model(model, threads=1)
-    spec, prior = net.spec, Prior.from_dict(net.metadata["prior"])
+    spec = net.spec
+    if not spec.is_signature or "train_config" not in net.metadata or "prior" not in net.metadata:
+        raise ValueError(f"model {net.path.name}: the comparison needs a signature model written by doct-train "
+                         f"(spec {spec.name!r} reads {', '.join(spec.metrics)}); use --model signature")
+    prior = Prior.from_dict(net.metadata["prior"])
     tc = net.metadata["train_config"]
     cfg = SimpleNamespace(**{k: tc[k] for k in ("seed", "draws_test", "trials_per_draw", "replicates",
                                                  "truncation_tolerance", "eval_pools")})
@@ -506,16 +511,21 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
         "lags": list(lags), "rule": rule["definition"], "fit": {
             "grid_per_decade": GRID_PER_DECADE, "cos_polar_steps": COS_POLAR_STEPS, "phase_steps": PHASE_STEPS,
             "envelopes_lags": [m if math.isfinite(m) else "flat" for m in ENVELOPES_LAGS],
-            "selection": "lowest BIC n ln(RSS/n) + p ln n, n = 2 C L, p = 2C+1 (diffusion, ballistic), 2C+2 (flow)",
-            "indeterminate": "non-finite input; Mf = 0 at every configuration; |g1_fit(T)|^2 >= 1 - eps at every "
-                             "configuration (static); |g1_fit(dt)|^2 <= eps at every configuration (decorrelated)"},
+            "selection": f"lowest BIC n ln(RSS/n) + p ln n, n = 2 C L, p = 2C+1 (diffusion, ballistic), "
+                         f"2C+{1 + FLOW_EXTRA_PARAMETERS} (flow: speed, polar angle, phase step), against the null "
+                         "model g1 = Ms (p = C)",
+            "indeterminate": "non-finite input; no moving term (Mf = 0 at every configuration, or the null model "
+                             "wins); |g1_fit(T)|^2 >= 1 - eps at every configuration (static); |g1_fit(dt)|^2 <= eps "
+                             "at every configuration (decorrelated)"},
+        "network_reads_field": bool(spec.needs_field),
         "sets": {}}
     for bulk in (False, True):
         label = "random bulk phase per frame" if bulk else "phase-stable"
         ds = make_dataset(sup, prior, seed=cfg.seed, split="test", draws=n_draws, trials_per_draw=cfg.trials_per_draw,
                           replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance,
                           cache_dir=cache_dir, bulk_phase=bulk)
-        say(f"{label}: {len(ds)} test pixels from {n_draws} draws ({'cache' if ds.meta['from_cache'] else 'simulated'})")
+        src = "cache" if ds.meta["from_cache"] else "simulated"
+        say(f"{label}: {len(ds)} test pixels from {n_draws} draws ({src})")
         y = complex_g1(ds.x, mag_cols, ph_cols, n_conf)
         joint = dataclasses.replace(ds, x=np.concatenate(
             [ds.x[:, net_cols], y.real.reshape(len(ds), -1), y.imag.reshape(len(ds), -1)], axis=1), x_ref=None)
@@ -589,8 +599,9 @@ def format_markdown(r: dict[str, Any]) -> str:
     L.append(f"Model `{r['model']}` (spec `{r['spec']}`: {'; '.join(r['configurations'])}). Test split of its report: "
              f"seed {r['seed']}, {r['draws_test']} draws × {r['replicates']} (static fraction, SNR) replicates × "
              f"{r['trials_per_draw']} trials, PSF truncation {r['truncation_tolerance']}; the same pixels for both "
-             f"methods. The network reads its signature features; the fit reads the complex ĝ1 = g1_m·exp(i·g1_phase_m) "
-             f"at lags {r['lags'][0]}-{r['lags'][-1]} of every configuration (`classifier/g1fit.py`: closed forms of "
+             "methods. The network reads its signature features; the fit reads the complex "
+             f"ĝ1 = g1_m·exp(i·g1_phase_m) at lags {', '.join(map(str, r['lags']))} (frames) of every configuration "
+             "(`classifier/g1fit.py`: closed forms of "
              "torchdoct.sim.theory, grid of "
              f"{r['fit']['grid_per_decade']} magnitudes per decade, {r['fit']['cos_polar_steps']} |cos θ| for flow; "
              f"class by {r['fit']['selection']}; indeterminate: {r['fit']['indeterminate']}).  ")
@@ -601,6 +612,12 @@ def format_markdown(r: dict[str, Any]) -> str:
     L.append("")
     for label, per in r["sets"].items():
         L += [f"## {label}", ""]
+        if label != "phase-stable":
+            L.append("A uniform random phase per frame (bulk motion) scrambles every field sum G(m), hence ĝ1 and its "
+                     "phase: the fit has nothing left to fit. "
+                     + ("The network reads intensity features only, which the bulk phase leaves unchanged: its "
+                        "numbers are those of the phase-stable data." if not r.get("network_reads_field") else ""))
+            L.append("")
         L.append("| pool | method | bal. acc. identifiable | coverage | acc. identifiable | strict acc. | acc. all "
                  "| magnitude error (a) | (b) | (a) diffusion / ballistic / flow |")
         L.append("|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
@@ -621,7 +638,8 @@ def format_markdown(r: dict[str, Any]) -> str:
             if "us_per_pixel" in row:
                 t = row["us_per_pixel"]
                 L.append(f"Cost per pixel (one thread, {t['pixels']} pixels, features given): network "
-                         f"{t['network']:.2f} µs, g1 fit {t['g1 fit']:.0f} µs ({t['g1 fit'] / t['network']:.0f}×).  ")
+                         f"{t['network']:.2f} µs, g1 fit {t['g1 fit']:.0f} µs "
+                         f"({t['g1 fit'] / t['network']:.0f}×).  ")
             if "matches_model_report" in row["network"]:
                 chk = row["network"]["matches_model_report"]
                 L.append("Network against its own report on these pixels (balanced accuracy, coverage): "

@@ -163,4 +163,6 @@ def test_cli_refuses_existing_output(tmp_path, capsys):
     assert g1fit.main(["--out", str(tmp_path / "x.txt")]) == 2
     assert g1fit.main(["--out", str(tmp_path / "y.json"), "--lags", "1,a"]) == 2
     assert g1fit.main(["--out", str(tmp_path / "y.json"), "--draws", "0"]) == 2
+    assert g1fit.main(["--out", str(tmp_path / "y.json"), "--model", "single-acquisition"]) == 2
+    assert "signature model" in capsys.readouterr().out
     assert not list(tmp_path.glob("y.*")) and not list(tmp_path.glob("x.*"))
