@@ -570,7 +570,7 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
                 _, t_net = _timed(lambda: net.predict(x_net[sub]), repeats=5)
                 n_t = len(yy[sub])
                 row["us_per_pixel"] = {"network": t_net / n_t * 1e6, "g1 fit": t_fit / n_t * 1e6, "pixels": n_t}
-
+            if not bulk:
                 def diffs(ix):
                     a = evaluate(p_net[ix], s["y"][ix], s["status"][ix], CLASS_NAMES, rule)
                     b = evaluate(fit.one_hot()[ix], s["y"][ix], s["status"][ix], CLASS_NAMES, rule)
@@ -654,7 +654,7 @@ def format_markdown(r: dict[str, Any]) -> str:
         L.append("")
     L += ["## By how much the network beats the fit", ""]
     L.append("Differences network − fit on the same samples; SE = standard error from a paired bootstrap over test "
-             "draws (pool 1, phase-stable). Magnitude error (a) compares different pixel sets (each method's own "
+             "draws (phase-stable data). Magnitude error (a) compares different pixel sets (each method's own "
              "correctly decided ones), (b) the same identifiable pixels.")
     L.append("")
     for label, per in r["sets"].items():
