@@ -59,8 +59,8 @@ whole (over 600 lines): the comparison is the fit's only caller and reads its gr
 
 from __future__ import annotations
 
-import math
 import dataclasses
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 from types import SimpleNamespace
