@@ -125,7 +125,8 @@ def run_indeterminate(*, draws_train: int = 360, draws_test: int = 90, pixels: i
     :func:`run_ablation` with those decorrelated draws labelled by their motion type instead of
     ``indeterminate``, and the balanced accuracy is measured per pixel in each regime of the test
     split, for the shipped signature content and for every candidate feature. Chance is 0.5 (only
-    diffusion and random-ballistic motion reach the regime in the prior).
+    diffusion and random-ballistic motion reach the regime in the prior; where a regime holds a
+    single motion type, its balanced accuracy is that type's recall and measures no separation).
     """
     from sklearn.ensemble import HistGradientBoostingClassifier
 
@@ -175,6 +176,7 @@ def run_indeterminate(*, draws_train: int = 360, draws_test: int = 90, pixels: i
             e = evaluate(p[m], te.y[m], status, CLASS_NAMES, rule)
             row[name] = {k: e[k] for k in ("balanced_accuracy_identifiable", "coverage_identifiable",
                                            "recall_identifiable")}
+            row[name]["samples_per_class"] = {c: int((te.y[m] == i).sum()) for i, c in enumerate(CLASS_NAMES[:-1])}
         out["features"][label] = row
         if log:
             log(f"{label}: " + "; ".join(f"{n} balanced accuracy {v['balanced_accuracy_identifiable']:.3f} "
