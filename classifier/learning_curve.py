@@ -3,7 +3,7 @@
 ``python -m classifier.learning_curve --out signature-learning-curve.json`` takes the ``signature``
 spec and its shipped recipe (:meth:`classifier.train.TrainConfig.for_spec`), simulates (or loads from
 the dataset cache) one training split of ``draws_max`` draws (default 1920, twice the shipped 960)
-and the shipped model's validation and test splits (90 draws each, seed 0), and trains the network
+and the shipped model's validation and test splits (the recipe's numbers of draws, seed 0), and trains the network
 with the shipped recipe and seed (:func:`classifier.train.fit_network`) on nested prefixes of the
 training draws (default 60, 120, 240, 480, 960, 1920). A prefix of ``n`` draws is exactly the
 ``n``-draw training split of :func:`classifier.dataset.make_dataset` (a split's draws do not depend on
@@ -423,8 +423,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--sizes", type=_int_list, default=list(DEFAULT_SIZES),
                    help="nested training sizes in draws, increasing (default %(default)s)")
     p.add_argument("--draws-max", type=int, default=None, help="draws of the training split (default: largest size)")
-    p.add_argument("--draws-validation", type=int, default=None, help="validation draws (default: the recipe's 90)")
-    p.add_argument("--draws-test", type=int, default=None, help="test draws (default: the recipe's 90)")
+    p.add_argument("--draws-validation", type=int, default=None, help="validation draws (default: the recipe's)")
+    p.add_argument("--draws-test", type=int, default=None, help="test draws (default: the recipe's)")
     p.add_argument("--max-epochs", type=int, default=None, help="epoch cap (default: the recipe's)")
     p.add_argument("--gb-pixels", type=int, default=60000,
                    help="samples for gradient boosting per size (0: no gradient boosting; default %(default)s)")
