@@ -23,7 +23,7 @@ DATA = Path(__file__).resolve().parents[2] / "classifier" / "data"
 REPRODUCTION_Z = 2.0
 
 
-@pytest.mark.parametrize("name", ["single-acquisition", "two-wavelength", "signature"])
+@pytest.mark.parametrize("name", ["single-acquisition", "two-wavelength", "signature", "two-wavelength-signature"])
 def test_shipped_model_metadata_and_report(name):
     assert DEFAULT_MODEL == "single-acquisition" and name in shipped_models()
     model = load_model(name, threads=1)
