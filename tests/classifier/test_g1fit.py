@@ -166,3 +166,23 @@ def test_cli_refuses_existing_output(tmp_path, capsys):
     assert g1fit.main(["--out", str(tmp_path / "y.json"), "--model", "single-acquisition"]) == 2
     assert "signature model" in capsys.readouterr().out
     assert not list(tmp_path.glob("y.*")) and not list(tmp_path.glob("x.*"))
+
+
+def test_bootstrap_fast_path_matches_the_report_definitions():
+    from classifier.g1fit import _abs_log10_error, _headline, _magnitude_errors
+    from classifier.report import evaluate
+    from classifier.rule import make_rule
+    from classifier.train import CLASS_NAMES
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    pred = rng.integers(0, 4, n)
+    s = {"y": rng.integers(0, 3, n), "status": rng.choice(3, n, p=[0.6, 0.2, 0.2]),
+         "magnitude": 10 ** rng.uniform(-3, 1, n)}
+    est = np.log10(s["magnitude"])[:, None] + rng.normal(0, 0.2, (n, 3))
+    fast = _headline(pred, s["y"], s["status"], _abs_log10_error(est, s))
+    full = evaluate(np.eye(4)[pred], s["y"], s["status"], CLASS_NAMES, make_rule(0.05))
+    mag = _magnitude_errors(est, s, pred == s["y"])
+    assert fast["balanced_accuracy_identifiable"] == pytest.approx(full["balanced_accuracy_identifiable"], abs=1e-12)
+    assert fast["coverage_identifiable"] == pytest.approx(full["coverage_identifiable"], abs=1e-12)
+    assert fast["median_abs_log10_error"] == pytest.approx(mag["decided_correct"]["median_abs_log10_error"], abs=1e-12)
