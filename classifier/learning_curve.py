@@ -163,7 +163,7 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
                           cache_dir=cache_dir, progress=progress)
         data[split] = ds
         sim_s[split] = float(ds.meta["elapsed_s"])
-        say(f"{split}: {len(ds)} samples ({'cache' if ds.meta['from_cache'] else 'simulated'} in "
+        say(f"{split}: {len(ds)} samples ({'from the cache; ' if ds.meta['from_cache'] else ''}simulated in "
             f"{ds.meta['elapsed_s']:.0f} s); ground truth per draw {ds.meta['draw_status_counts']}", flush=True)
 
     ev_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))  # as doct-train
@@ -289,6 +289,18 @@ def flattening_sentence(res: dict[str, Any]) -> str:
             + " (paired bootstrap over test draws; one training seed).")
 
 
+def epoch_cap_sentence(res: dict[str, Any]) -> str:
+    """Which sizes the recipe's epoch cap stopped before early stopping did (their accuracy is a lower bound)."""
+    c = res["config"]
+    capped = [r["draws"] for r in res["rows"]
+              if r["network"]["epochs"] >= c["max_epochs"] and r["network"]["epochs"] - r["network"]["best_epoch"] < c["patience"]]
+    if not capped:
+        return f"Early stopping (patience {c['patience']}) ended every training before the recipe's cap of {c['max_epochs']} epochs."
+    return (f"The recipe's cap of {c['max_epochs']} epochs ended the training at {', '.join(map(str, capped))} draws "
+            f"before early stopping (patience {c['patience']}) did: an epoch has fewer samples on fewer draws, so these "
+            "points are also limited by the number of optimisation steps and are lower bounds.")
+
+
 def format_markdown(res: dict[str, Any]) -> str:
     """The study as Markdown: method, one table per model, where the curve flattens."""
     c = res["config"]
@@ -300,7 +312,7 @@ def format_markdown(res: dict[str, Any]) -> str:
          f"pixels at pool 1); shipped model: {res['draws_shipped']} training draws. Simulation "
          + ", ".join(f"{k} {v:.0f} s" for k, v in res["simulation_s"].items())
          + f"; torch threads {res['threads']}.", "",
-         "**" + flattening_sentence(res) + "**", "",
+         "**" + flattening_sentence(res) + "**", "", epoch_cap_sentence(res), "",
          "## Network (shipped recipe)", "",
          "Balanced accuracy and coverage on identifiable pixels (ground truth), ± bootstrap SE over test draws "
          "(n/a: the model decided no identifiable test pixel); "

@@ -95,6 +95,7 @@ def test_outputs_exist_with_finite_numbers(tiny_run):
     assert set(res["flattening"]) == {"1", "25"}
     md = out.with_suffix(".md").read_text()
     assert re.search(r"^\| 6 \| \d+ / \d+ / \d+ \| 25 \| ", md, re.M) and "Between the two largest training sizes" in md
+    assert "cap of 3 epochs ended the training at 3, 6 draws" in md  # 3 epochs < patience 15: always the cap
 
 
 @pytest.mark.slow
