@@ -297,8 +297,9 @@ def epoch_cap_sentence(res: dict[str, Any]) -> str:
     if not capped:
         return f"Early stopping (patience {c['patience']}) ended every training before the recipe's cap of {c['max_epochs']} epochs."
     return (f"The recipe's cap of {c['max_epochs']} epochs ended the training at {', '.join(map(str, capped))} draws "
-            f"before early stopping (patience {c['patience']}) did: an epoch has fewer samples on fewer draws, so these "
-            "points are also limited by the number of optimisation steps and are lower bounds.")
+            f"before early stopping (patience {c['patience']}) did (best epoch in the table): an epoch has fewer samples "
+            "on fewer draws, so these points may also be limited by the number of optimisation steps (lower bounds "
+            "where the best epoch is near the cap).")
 
 
 def format_markdown(res: dict[str, Any]) -> str:
