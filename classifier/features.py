@@ -53,7 +53,7 @@ REL_TOL = 1e-6
 
 def metric_unit(metric: str) -> str:
     """Unit of a metric: :data:`METRIC_UNITS`, or a signature feature of :mod:`torchdoct.sim.signature`
-    (``rho_db_M``, ``rho_lin_M``, ``g1_M``, ``phase_ramp``, ``lin_contrast``, ``db_variance``)."""
+    (``rho_db_M``, ``rho_lin_M``, ``g1_M``, ``g1_phase_M``, ``phase_ramp``, ``lin_contrast``, ``db_variance``)."""
     if metric in METRIC_UNITS:
         return METRIC_UNITS[metric]
     return _signature().feature_unit(metric)
@@ -154,7 +154,7 @@ class FeatureSpec:
                 metric_unit(m)
             except ValueError:
                 raise ValueError(f"spec {self.name!r}: metric {m!r} is not supported; use {sorted(METRIC_UNITS)} "
-                                 "or signature features (rho_db_M, rho_lin_M, g1_M, phase_ramp, lin_contrast, "
+                                 "or signature features (rho_db_M, rho_lin_M, g1_M, g1_phase_M, phase_ramp, lin_contrast, "
                                  "db_variance; torchdoct.sim.signature)") from None
         if len(set(self.metrics)) != len(self.metrics):
             raise ValueError(f"spec {self.name!r}: a metric is listed twice: {list(self.metrics)}")
