@@ -154,8 +154,8 @@ class FeatureSpec:
                 metric_unit(m)
             except ValueError:
                 raise ValueError(f"spec {self.name!r}: metric {m!r} is not supported; use {sorted(METRIC_UNITS)} "
-                                 "or signature features (rho_db_M, rho_lin_M, g1_M, g1_phase_M, phase_ramp, lin_contrast, "
-                                 "db_variance; torchdoct.sim.signature)") from None
+                                 "or signature features (rho_db_M, rho_lin_M, g1_M, g1_phase_M, phase_ramp, "
+                                 "lin_contrast, db_variance; torchdoct.sim.signature)") from None
         if len(set(self.metrics)) != len(self.metrics):
             raise ValueError(f"spec {self.name!r}: a metric is listed twice: {list(self.metrics)}")
         if isinstance(self.n_frames, bool) or not isinstance(self.n_frames, int) or self.n_frames < 3:
