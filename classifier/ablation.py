@@ -150,7 +150,7 @@ def run_indeterminate(*, draws_train: int = 360, draws_test: int = 90, pixels: i
         r = np.array([per_draw[int(k)] for k in ds.draw])
         return np.where(ds.status == 2, r, 0)
 
-    r_tr, r_te = regimes(tr, "train"), regimes(te, "test")
+    r_te = regimes(te, "test")
     ind = len(CLASS_NAMES) - 1
     y = np.where((tr.status == 0) | (tr.status == 2), tr.y, ind)  # decorrelated draws keep their motion label
     sub = np.random.default_rng(seed).choice(len(tr), min(pixels, len(tr)), replace=False)

@@ -379,10 +379,6 @@ def identifiability(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, n
     diffusion from random-ballistic motion per pixel (``python -m classifier.ablation --indeterminate``,
     ``classifier/README.md``), so "decorrelated" stays as wide as it is.
     """
-    from torchdoct.sim import theory
-    from torchdoct.conventions import n_eff
-
-    taus = np.array([spec.frame_interval_s, (spec.n_frames - 1) * spec.frame_interval_s])
     status, first_a, last_a, _ = _criteria(spec, draw, prior)
     return status, first_a, last_a
 

@@ -136,14 +136,9 @@ class ClassifierModel:
 
     def predict_magnitude(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per motion class, predicted ``log10`` magnitude and its predictive SD, ``[N, K]`` each."""
-        x = np.ascontiguousarray(x, dtype=np.float32)
-        k = len(self.metadata["magnitude"]["classes"])
-        mean = np.empty((x.shape[0], k), np.float32)
-        sd = np.empty((x.shape[0], k), np.float32)
-        def run(sl: slice) -> None:
-            mean[sl], sd[sl] = self.session.run(["log10_magnitude", "log10_magnitude_sd"], {"features": x[sl]})
-
-        self._chunks(run, x.shape[0])
+        _, mean, sd = self.predict_all(x)
+        if mean is None:
+            raise ValueError(f"model {self.path.name} has no magnitude head")
         return mean, sd
 
     def predict(self, x: np.ndarray) -> np.ndarray:
