@@ -41,6 +41,7 @@ from .config import Population, Scene
 from ..conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, wavenumber_per_um
 from .plan import BLOCK_TRIALS, Plan, PopulationPlan, ellipsoid_entry_bound, make_plan
 from ..threads import map_ordered, resolve_threads, single_torch_thread
+from . import kernel
 
 __all__ = ["simulate", "SimulationResult", "CapacityError", "MemoryLimitError", "block_generator", "seeded_generator",
            "chunk_bytes", "available_memory_bytes", "unit_directions"]
@@ -335,6 +336,11 @@ def _eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi:
     on the block's own paths, so the bits do not depend on the chunk. Dense rows cost about 5 ns per
     (path, frame) against about 60 ns for gathering only the visible pairs.
     """
+    if dtype == torch.float32 and e.device.type == "cpu":
+        # the fused kernel (torchdoct.sim.kernel): phases in turns, exact sums
+        acc = kernel.eval_straight(e, a2, t_star, phi / _TWO_PI, omega / _TWO_PI, times, log_tol)
+        field = kernel.sums_to_field(acc)
+        return field * refl if refl != 1.0 else field
     N, C = e.shape
     T = times.numel()
     dev = e.device
@@ -605,20 +611,29 @@ def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: _Draws, times
         groups.setdefault((float(optics.a_lat[s]), float(optics.a_ax[s])), []).append(s)
     sigmas = [math.sqrt(2.0 * pop.diffusion_um2_per_s * float(times[f] - times[f - 1])) for f in range(1, T)]
     out = torch.zeros(N, S, T, dtype=_complex_of(dtype), device=dev)
+    fused = dtype == torch.float32 and dev.type == "cpu"
+    group_of = [next(j for j, members in enumerate(groups.values()) if s in members) for s in range(S)]
     for i, (g, M) in enumerate(zip(draws.gens, sizes)):
         rows = slice(i * BLOCK_TRIALS, (i + 1) * BLOCK_TRIALS)
-        out[rows] = _walk_periodic_block(g, M, n[rows], half, L, inv_L, q, groups, refl, log_tol, sigmas, S, T,
-                                         dtype, dev)
+        pos = torch.rand((3, M), generator=g, dtype=torch.float32).to(device=dev, dtype=dtype)
+        pos.mul_(2.0).sub_(1.0).mul_(half)
+        key = int(torch.randint(0, 2**62, (1,), generator=g))  # the walk's normals: kernel.normals(key, frame, 3M)
+        if fused:
+            acc = kernel.walk_periodic(pos, n[rows], key, sigmas, tuple(L.flatten().tolist()), list(groups),
+                                       group_of, [qs / _TWO_PI for qs in q], log_tol)
+            field = kernel.sums_to_field(acc)
+            out[rows] = field * refl if refl != 1.0 else field
+        else:
+            out[rows] = _walk_periodic_block(pos, key, M, n[rows], L, inv_L, q, groups, refl, log_tol, sigmas, S,
+                                             T, dtype, dev)
     return out
 
 
-def _walk_periodic_block(g: torch.Generator, M: int, n: torch.Tensor, half, L, inv_L, q, groups, refl: float,
+def _walk_periodic_block(pos: torch.Tensor, key: int, M: int, n: torch.Tensor, L, inv_L, q, groups, refl: float,
                          log_tol: float, sigmas: list[float], S: int, T: int, dtype, dev) -> torch.Tensor:
-    """The field [64, S, T] of one block's ``M`` scatterers (``n`` per trial) walking on the cell."""
-    pos = torch.rand((3, M), generator=g, dtype=torch.float32).to(device=dev, dtype=dtype)
-    pos.mul_(2.0).sub_(1.0).mul_(half)
+    """The field [64, S, T] of one block's ``M`` scatterers (``n`` per trial) walking on the cell, in
+    torch (float64, or a device other than the CPU): the same normals as the fused kernel."""
     res = torch.empty(T, 2, S, n.numel(), dtype=dtype, device=dev)
-    step = torch.empty(3, M, dtype=torch.float32)
     wrap = torch.empty(3, M, dtype=dtype, device=dev)
     amp = torch.empty(M, dtype=dtype, device=dev)
     field = torch.empty(2, M, dtype=dtype, device=dev)  # real and imaginary parts of each term
@@ -641,8 +656,8 @@ def _walk_periodic_block(g: torch.Generator, M: int, n: torch.Tensor, half, L, i
 
     evaluate(0)
     for f in range(1, T):
-        torch.randn((3, M), generator=g, dtype=torch.float32, out=step)
-        pos.add_(step.to(dev) if dev.type != "cpu" else step, alpha=sigmas[f - 1])
+        step = kernel.normals(key, f, 3 * M).view(3, M)
+        pos.add_(step.to(device=dev, dtype=dtype), alpha=sigmas[f - 1])
         torch.mul(pos, inv_L, out=wrap).round_()
         pos.addcmul_(wrap, L, value=-1.0)
         evaluate(f)

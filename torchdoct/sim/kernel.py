@@ -1,0 +1,317 @@
+"""Fused float32 kernels of the point simulator: a compiled library and its bit-identical torch reference.
+
+Two kernels carry almost all the work of the paper's cells: the random walk on the periodic cell
+(pure diffusion) and the evaluation of straight paths (random-ballistic motion and flow). Each is
+written twice, as the same sequence of IEEE-754 float32 operations:
+
+* in C (``_kernel.c``, compiled when the package is installed): one pass over each scatterer and
+  frame, nothing stored in between;
+* in torch (this module): the reference, used when the compiled library is absent
+  (``TORCHDOCT_KERNEL=torch`` forces it), and by the tests, which check that both give the same bits.
+
+What makes the two agree to the last bit:
+
+* the elementary functions are polynomials with fixed float32 constants, not the platform's
+  ``exp``/``sin``/``cos`` (whose last bits differ between libraries and CPUs): ``exp`` by
+  ``2^k·P₇(r)``, ``sin``/``cos`` of ``2π·t`` with ``t`` in turns (quadrant reduction, Taylor
+  polynomials of degree 9/10), ``log`` by the ``atanh`` series; accuracy about 2 ulp (tested);
+* no fused multiply-add and no reassociation: the library is built with ``-ffp-contract=off``; the
+  torch code never uses ``addcmul`` or ``alpha``;
+* each field term ``amp·cos`` / ``amp·sin`` is quantized to 2⁻³⁰ and summed in 64-bit integers,
+  which is exact, so the order of the sum (vector lanes, trial layout) cannot change a bit.
+  The quantization error (≤ 2⁻³¹ per term, 5·10⁻¹⁰) is far below float32's resolution of the sum.
+
+Random numbers of the walk: the normals of frame ``f`` come from SplitMix64 (Steele, Lea & Flood
+2014) at index ``f·2³² + p`` of a 64-bit key drawn from the block's generator, two per index by
+Box–Muller (``u₁`` with 23 bits, so |z| ≤ 5.8; P(|z| > 5.8) ≈ 7·10⁻⁹ under a true normal), so any
+normal can be recomputed from (key, frame, index) alone.
+
+Phases are in turns (``q = 2n/λ`` turns per µm of depth: the paper's ``2kn``/2π).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import os
+import warnings
+from functools import lru_cache
+
+import numpy as np
+import torch
+
+__all__ = ["compiled", "backend", "exp_neg", "sincos_turns", "log_pos", "normals", "walk_periodic",
+           "eval_straight", "QUANT_SCALE"]
+
+_F32 = torch.float32
+#: Field terms are quantized to 2^-30 before the exact integer sum.
+QUANT_SCALE = 2.0**30
+_h = float.fromhex  # the C source writes the same constants as hex literals
+_RINT_MAGIC = 12582912.0  # 1.5·2^23
+_EXP_FLOOR = -87.0
+_LOG2E, _LN2_HI, _LN2_LO = _h("0x1.715476p+0"), _h("0x1.62e4p-1"), _h("0x1.7f7d1cp-20")
+_EXP_C = (_h("0x1.a01a02p-13"), _h("0x1.6c16c2p-10"), _h("0x1.111112p-7"), _h("0x1.555556p-5"), _h("0x1.555556p-3"), 0.5, 1.0, 1.0)
+_TWO_PI = _h("0x1.921fb6p+2")
+_SIN_C = (_h("0x1.71de3ap-19"), -_h("0x1.a01a02p-13"), _h("0x1.111112p-7"), -_h("0x1.555556p-3"))
+_COS_C = (-_h("0x1.27e4fcp-22"), _h("0x1.a01a02p-16"), -_h("0x1.6c16c2p-10"), _h("0x1.555556p-5"), -0.5)
+_LOG_C = (_h("0x1.c71c72p-4"), _h("0x1.24924ap-3"), _h("0x1.99999ap-3"), _h("0x1.555556p-2"))
+_LN2, _SQRT2 = _h("0x1.62e43p-1"), _h("0x1.6a09e6p+0")
+_M64 = (1 << 64) - 1
+
+
+# ---------------------------------------------------------------------------------------------
+# the compiled library
+
+
+@lru_cache(maxsize=1)
+def _library():
+    """The compiled library (ctypes), or None when it was not built or ``TORCHDOCT_KERNEL=torch``."""
+    if os.environ.get("TORCHDOCT_KERNEL", "").strip().lower() == "torch":
+        return None
+    try:
+        from importlib.util import find_spec
+
+        spec = find_spec("torchdoct.sim._kernel")
+        if spec is None or not spec.origin:
+            raise ImportError("not built")
+        lib = ctypes.CDLL(spec.origin)
+    except (ImportError, OSError) as exc:
+        warnings.warn(f"torchdoct's compiled kernel is not available ({exc}); the torch reference gives the "
+                      "same numbers, several times more slowly. Reinstall with a C compiler present "
+                      "(`pip install .`) to build it.", RuntimeWarning, stacklevel=3)
+        return None
+    p, i64, i32, u64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32, ctypes.c_uint64, ctypes.c_float
+    lib.tdk_exp_neg.argtypes = [i64, p, p]
+    lib.tdk_sincos_turns.argtypes = [i64, p, p, p]
+    lib.tdk_log_pos.argtypes = [i64, p, p]
+    lib.tdk_normals.argtypes = [u64, i64, i64, p]
+    lib.tdk_walk_periodic.argtypes = [i64, i32, p, p, u64, i32, p, p, p, i32, p, p, i32, p, p, f32, p]
+    lib.tdk_walk_periodic.restype = ctypes.c_int
+    lib.tdk_eval_straight.argtypes = [i32, i64, p, p, p, p, p, i32, p, f32, p]
+    for name in ("tdk_exp_neg", "tdk_sincos_turns", "tdk_log_pos", "tdk_normals", "tdk_eval_straight"):
+        getattr(lib, name).restype = None
+    return lib
+
+
+def compiled() -> bool:
+    """Whether the compiled kernel is in use (else the torch reference, with the same results)."""
+    return _library() is not None
+
+
+def backend() -> str:
+    """``"compiled"`` or ``"torch"``: which implementation computes (the numbers are the same)."""
+    return "compiled" if compiled() else "torch"
+
+
+def _use_c(force_torch: bool):
+    return None if force_torch else _library()
+
+
+def _f32(x: torch.Tensor) -> torch.Tensor:
+    return x.detach().to(device="cpu", dtype=_F32).contiguous()
+
+
+def _ptr(x: torch.Tensor) -> int:
+    return x.data_ptr()
+
+
+# ---------------------------------------------------------------------------------------------
+# the reference in torch (float32, CPU): every line is one IEEE operation of the C code
+
+
+def _rint(x: torch.Tensor) -> torch.Tensor:
+    return (x + _RINT_MAGIC) - _RINT_MAGIC
+
+
+def _horner(x: torch.Tensor, coef: tuple[float, ...]) -> torch.Tensor:
+    p = torch.full_like(x, coef[0])
+    for c in coef[1:]:
+        p = p * x + c
+    return p
+
+
+def exp_neg(x: torch.Tensor, *, force_torch: bool = False) -> torch.Tensor:
+    """``exp(x)`` for ``x ≤ 0`` (float32; clamped at −87): ``x = k·ln2 + r``, Taylor polynomial of degree 7."""
+    x = _f32(x)
+    lib = _use_c(force_torch)
+    if lib is not None:
+        out = torch.empty_like(x)
+        lib.tdk_exp_neg(x.numel(), _ptr(x), _ptr(out))
+        return out
+    x = torch.clamp(x, min=_EXP_FLOOR)
+    k = _rint(x * _LOG2E)
+    r = (x - k * _LN2_HI) - k * _LN2_LO
+    scale = ((k.to(torch.int32) + 127) << 23).view(_F32)
+    return _horner(r, _EXP_C) * scale
+
+
+def sincos_turns(t: torch.Tensor, *, force_torch: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(sin 2πt, cos 2πt)`` for ``t`` in turns (float32, |t| < 2²⁰)."""
+    t = _f32(t)
+    lib = _use_c(force_torch)
+    if lib is not None:
+        sn, cs = torch.empty_like(t), torch.empty_like(t)
+        lib.tdk_sincos_turns(t.numel(), _ptr(t), _ptr(sn), _ptr(cs))
+        return sn, cs
+    n = _rint(t * 4.0)
+    a = (t - n * 0.25) * _TWO_PI
+    a2 = a * a
+    s = _horner(a2, _SIN_C) * a2
+    s = s * a
+    s = s + a
+    c = _horner(a2, _COS_C) * a2 + 1.0
+    q = n.to(torch.int32) & 3
+    sn = torch.where(q == 0, s, torch.where(q == 1, c, torch.where(q == 2, -s, -c)))
+    cs = torch.where(q == 0, c, torch.where(q == 1, -s, torch.where(q == 2, -c, s)))
+    return sn, cs
+
+
+def log_pos(u: torch.Tensor, *, force_torch: bool = False) -> torch.Tensor:
+    """``log(u)`` for normal positive float32 ``u`` (the ``atanh`` series of ``m ∈ [√½, √2)``)."""
+    u = _f32(u)
+    lib = _use_c(force_torch)
+    if lib is not None:
+        out = torch.empty_like(u)
+        lib.tdk_log_pos(u.numel(), _ptr(u), _ptr(out))
+        return out
+    b = u.view(torch.int32)
+    e = ((b >> 23) & 0xFF) - 127
+    m = ((b & 0x7FFFFF) | 0x3F800000).view(_F32)
+    big = m > _SQRT2
+    m = torch.where(big, m * 0.5, m)
+    e = torch.where(big, e + 1, e)
+    f = m - 1.0
+    s = f / (f + 2.0)
+    s2 = s * s
+    t = _horner(s2, _LOG_C) * s2
+    t = t * s
+    t = t + s
+    return e.to(_F32) * _LN2 + t * 2.0
+
+
+def _splitmix64(key: int, index: np.ndarray) -> np.ndarray:
+    """SplitMix64's output at ``index`` (uint64 array) of the stream of ``key``."""
+    with np.errstate(over="ignore"):
+        z = np.uint64(key & _M64) + index * np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        return z ^ (z >> np.uint64(31))
+
+
+def normals(key: int, frame: int, n: int, *, force_torch: bool = False) -> torch.Tensor:
+    """The ``n`` standard normals (float32) of ``frame`` in the stream of ``key``: Box–Muller on
+    SplitMix64 at index ``frame·2³² + p`` for the pair ``p`` (the spare of an odd ``n`` is dropped)."""
+    lib = _use_c(force_torch)
+    if lib is not None:
+        out = torch.empty(n, dtype=_F32)
+        lib.tdk_normals(key & _M64, frame, n, _ptr(out))
+        return out
+    pairs = (n + 1) // 2
+    h = _splitmix64(key, (np.uint64(frame) << np.uint64(32)) + np.arange(pairs, dtype=np.uint64))
+    u1 = (torch.from_numpy((h >> np.uint64(41)).astype(np.int32)).to(_F32) + 0.5) * 2.0**-23
+    u2 = torch.from_numpy((h & np.uint64(0xFFFFFF)).astype(np.int32)).to(_F32) * 2.0**-24
+    r = torch.sqrt((log_pos(u1, force_torch=True) * -2.0).double()).to(_F32)  # float32 sqrt is not exact in torch
+    sn, cs = sincos_turns(u2, force_torch=True)
+    return torch.stack([r * cs, r * sn], dim=1).reshape(-1)[:n]
+
+
+def _quantize(v: torch.Tensor) -> torch.Tensor:
+    y = v * QUANT_SCALE
+    return torch.where(y.abs() < 4194304.0, _rint(y), y).to(torch.int32).to(torch.int64)
+
+
+def sums_to_field(acc: torch.Tensor) -> torch.Tensor:
+    """Exact integer sums ``[..., 2]`` (units of 2⁻³⁰) → complex64 field."""
+    v = (acc.to(torch.float64) * (1.0 / QUANT_SCALE)).to(_F32)
+    return torch.complex(v[..., 0], v[..., 1])
+
+
+# ---------------------------------------------------------------------------------------------
+# the two kernels
+
+
+def walk_periodic(pos: torch.Tensor, counts: torch.Tensor, key: int, sigmas: list[float],
+                  L: tuple[float, ...], groups: list[tuple[float, float]], group_of: list[int],
+                  q_turns: list[float], log_tol: float, *, force_torch: bool = False) -> torch.Tensor:
+    """Pure diffusion on the periodic cell for one block of trials, float32 (physics.md §5.1).
+
+    ``pos`` [3, M] (µm, component-major; updated in place): the scatterers of the block, laid out
+    trial after trial (``counts`` [trials] each). Frame ``f ≥ 1`` moves every scatterer by
+    ``sigmas[f−1]·z`` per axis (``z`` = :func:`normals` of ``(key, f)``, component-major), then wraps
+    it back into the cell ``|x_c| ≤ L_c/2``. For each PSF group ``(a_lat, a_ax) = (1/(2s_x²), 1/(2s_z²))``
+    the amplitude is ``exp(−a_lat·(x²+y²) − a_ax·z²)``, 0 where the exponent is below ``log_tol``;
+    system ``s`` (group ``group_of[s]``) adds ``amp·e^{i·2π·q_turns[s]·z}``.
+    Returns the exact sums [trials, S, T, 2] (int64, units of 2⁻³⁰; :func:`sums_to_field`).
+    """
+    M = pos.shape[1]
+    nt = counts.numel()
+    S, G, T = len(q_turns), len(groups), len(sigmas) + 1
+    lib = _use_c(force_torch)
+    if lib is not None:
+        assert pos.dtype == _F32 and pos.is_contiguous() and pos.device.type == "cpu"
+        cnt = counts.to(device="cpu", dtype=torch.int64).contiguous()
+        acc = torch.empty(nt, S, T, 2, dtype=torch.int64)
+        arr = lambda v, dt=_F32: torch.tensor(v, dtype=dt)  # noqa: E731
+        sg, Lt, iLt = arr(sigmas or [0.0]), arr(list(L)), arr([1.0 / x for x in L])
+        al, az = arr([g[0] for g in groups]), arr([g[1] for g in groups])
+        go, qt = arr(group_of, torch.int32), arr(q_turns)
+        rc = lib.tdk_walk_periodic(M, nt, _ptr(cnt), _ptr(pos), key & _M64, T, _ptr(sg), _ptr(Lt), _ptr(iLt), G,
+                                   _ptr(al), _ptr(az), S, _ptr(go), _ptr(qt), log_tol, _ptr(acc))
+        if rc != 0:
+            raise MemoryError(f"the periodic walk could not allocate scratch memory for {M} scatterers")
+        return acc
+    seg = torch.repeat_interleave(torch.arange(nt), counts.to("cpu"), output_size=M)
+    acc = torch.zeros(nt, S, T, 2, dtype=torch.int64)
+    Lv = torch.tensor(L, dtype=_F32).view(3, 1)
+    iLv = torch.tensor([1.0 / x for x in L], dtype=_F32).view(3, 1)
+    log_tol32 = float(np.float32(log_tol))
+    for f in range(T):
+        if f > 0:
+            z = normals(key, f, 3 * M, force_torch=True).view(3, M)
+            v = pos + z * float(np.float32(sigmas[f - 1]))
+            w = _rint(v * iLv)
+            pos.copy_(v - w * Lv)
+        px, py, pz = pos
+        for g, (al, az) in enumerate(groups):
+            al32, az32 = float(np.float32(al)), float(np.float32(az))
+            r2 = px * px + py * py
+            ex = r2 * (-al32) - (pz * pz) * az32
+            amp = torch.where(ex >= log_tol32, exp_neg(ex, force_torch=True), torch.zeros_like(ex))
+            for s in range(S):
+                if group_of[s] != g:
+                    continue
+                sn, cs = sincos_turns(pz * float(np.float32(q_turns[s])), force_torch=True)
+                acc[:, s, f, 0].index_add_(0, seg, _quantize(amp * cs))
+                acc[:, s, f, 1].index_add_(0, seg, _quantize(amp * sn))
+    return acc
+
+
+def eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi_turns: torch.Tensor,
+                  omega_turns: torch.Tensor, times: torch.Tensor, log_tol: float, *,
+                  force_torch: bool = False) -> torch.Tensor:
+    """Straight paths, float32 (physics.md §5.1): for each trial (row) and path (column) of the
+    [N, C] coefficients, the PSF exponent ``e + a2·τ²`` and the phase ``φ + ω·τ`` (turns) at
+    ``τ = t − t*``; the path adds ``exp(exponent)·e^{i·2π·phase}`` at the frames where the exponent
+    is at least ``log_tol``. Returns the exact sums [N, T, 2] (int64, units of 2⁻³⁰)."""
+    e, a2, t_star, phi_turns, omega_turns, tt = (_f32(x) for x in (e, a2, t_star, phi_turns, omega_turns, times))
+    N, C = e.shape
+    T = tt.numel()
+    log_tol32 = float(np.float32(log_tol))
+    lib = _use_c(force_torch)
+    if lib is not None:
+        acc = torch.empty(N, T, 2, dtype=torch.int64)
+        lib.tdk_eval_straight(N, C, _ptr(e), _ptr(a2), _ptr(t_star), _ptr(phi_turns), _ptr(omega_turns), T,
+                              _ptr(tt), log_tol32, _ptr(acc))
+        return acc
+    acc = torch.zeros(N, T, 2, dtype=torch.int64)
+    rows = max(1, (1 << 20) // max(1, C * T))
+    for r0 in range(0, N, rows):
+        sl = slice(r0, r0 + rows)
+        tau = tt.view(1, 1, T) - t_star[sl, :, None]
+        ex = (tau * tau) * a2[sl, :, None] + e[sl, :, None]
+        keep = (ex >= log_tol32) & (e[sl, :, None] >= log_tol32)
+        amp = torch.where(keep, exp_neg(ex, force_torch=True), torch.zeros_like(ex))
+        sn, cs = sincos_turns(tau * omega_turns[sl, :, None] + phi_turns[sl, :, None], force_torch=True)
+        acc[sl, :, 0] = _quantize(amp * cs).sum(1)
+        acc[sl, :, 1] = _quantize(amp * sn).sum(1)
+    return acc
