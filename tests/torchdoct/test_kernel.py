@@ -108,26 +108,40 @@ def _draws(seed: int, blocks: int = 2):
     return sim._Draws([sim.block_generator(seed, b) for b in range(blocks)], torch.device("cpu"))
 
 
-@pytest.mark.parametrize("motion", [
-    (td.Flow(speed_um_per_s=2.0, polar_angle_deg=30.0),),
-    (td.RandomBallistic(speed_um_per_s=3.0, directions="isotropic"),
-     td.RandomBallistic(speed_um_per_s=1.0, directions="uniform-angles"), td.Flow(speed_um_per_s=0.5)),
-])
-def test_velocity_components_are_the_stacked_velocities(motion):
-    pop = td.Population(density_per_um3=0.01, motion=motion)
-    stacked = sim._velocities(pop, _draws(5), 40)  # [N, n, 3]
-    comps = sim._velocity_components(pop, _draws(5), 40)  # [3, N, n], same draws
-    assert torch.equal(comps, stacked.permute(2, 0, 1))
-    # computing only the first slots uses the same draws: a prefix of the same numbers
-    assert torch.equal(sim._velocity_components(pop, _draws(5), 40, 17), comps[:, :, :17])
+def test_drift_paths_follow_their_laws():
+    """Initial paths fill the ellipsoid uniformly (|p/H|³ uniform on [0, 1]); entrants start on its
+    surface moving inward, at times uniform on [0, T]; velocities have the law's speed and directions
+    (isotropic: ⟨cos²θ⟩ = 1/3; uniform angles: ⟨cos²θ⟩ = 1/2)."""
+    from scipy import stats
 
+    from torchdoct.sim import kernel
 
-def test_unit_ball_components_are_the_stacked_points():
-    u_ref = _draws(9).rand(50, 3)
-    ref = sim.unit_directions(u_ref[..., :2], "isotropic") * u_ref[..., 2:].pow(1.0 / 3.0)
-    x, y, z = sim._unit_ball(_draws(9), 50, 31)
-    assert torch.equal(torch.stack([x, y, z], -1), ref[:, :31])
-    assert float((x * x + y * y + z * z).max()) <= 1.0 + 1e-12
+    H, T, N = (9.0, 8.0, 11.0), 6.5, 64 * 40
+    n0 = torch.full((N,), 30)
+    n_prop = torch.full((N,), 20)
+    for law, mean_mu2 in ((0, 1.0 / 3.0), (1, 0.5)):
+        w_max = 6.0 / min(H)
+        p, v, t_ref, count = kernel.drift_paths(list(range(7, 47)), n0, n_prop, H, (0.0, 0.0, 0.0), [(6.0, law)],
+                                                w_max, T, 20)
+        x = [p[i] / H[i] for i in range(3)]
+        r3 = (x[0] ** 2 + x[1] ** 2 + x[2] ** 2) ** 1.5
+        slot = torch.arange(p.shape[2])[None, :].expand(N, -1)
+        first = slot < 30
+        assert stats.kstest(r3[first].numpy(), "uniform").pvalue > 1e-4
+        speed = torch.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)[first]
+        # the azimuth's sin/cos are float32 polynomials (kernel.sincos_turns): unit length to 2 float32 ulp
+        torch.testing.assert_close(speed, torch.full_like(speed, 6.0), rtol=2.0**-22, atol=0.0)
+        mu2 = (v[2][first] / 6.0) ** 2
+        n = mu2.numel()
+        assert abs(float(mu2.mean()) - mean_mu2) < 5 * float(mu2.std()) / math.sqrt(n)
+        # entrants: on the surface, inward, uniform times
+        later = (slot >= 30) & (slot < count[:, None])
+        assert int(later.sum()) > 1000
+        torch.testing.assert_close(r3[later], torch.ones_like(r3[later]), rtol=2.0**-20, atol=0.0)  # float32 sin/cos
+        inward = sum(x[i][later] * v[i][later] / H[i] for i in range(3))
+        assert bool((inward < 0).all())
+        assert stats.kstest(t_ref[later].numpy() / T, "uniform").pvalue > 1e-4
+        assert bool((p[0][~(first | later)] == 1e6).all()) and bool((v[:, ~(first | later)] == 0).all())
 
 
 @pytest.mark.parametrize("motion", [

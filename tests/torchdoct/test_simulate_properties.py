@@ -155,7 +155,7 @@ def test_plan_counts_match_the_work(monkeypatch):
     real = sim._eval_culled
 
     def spy(pp, pop, p_ref, *args):
-        seen.append((p_ref[..., 0] < 0.5 * sim._FAR).sum(1).double())
+        seen.append((p_ref[0] < 0.5 * sim._FAR).sum(1).double())  # [3, N, C]
         return real(pp, pop, p_ref, *args)
 
     monkeypatch.setattr(sim, "_eval_culled", spy)

@@ -107,7 +107,7 @@ static inline uint64_t splitmix64(uint64_t key, uint64_t n) {
 static inline void box_muller(uint64_t h, float *z0, float *z1) {
     float u1 = ((float)(uint32_t)(h >> 41) + 0.5f) * 0x1p-23f;
     float u2 = (float)(uint32_t)(h & 0xffffffu) * 0x1p-24f;
-    float r = sqrtf(log_pos(u1) * -2.0f); /* correctly rounded (the reference rounds the double root: the same) */
+    float r = sqrtf(log_pos(u1) * -2.0f);
     float sn, cs;
     sincos_turns(u2, &sn, &cs);
     *z0 = r * cs;
@@ -234,6 +234,202 @@ CLONES void tdk_eval_straight(int32_t n_trials, int64_t C, const float *e, const
             acc[((int64_t)b * T + f) * 2 + 1] = im;
         }
     }
+}
+
+/* ---- straight paths from their draws (see kernel.drift_paths and kernel.path_fields) ---- */
+
+#define FAR_UM 1.0e6 /* position of unused slots: the PSF amplitude there is exactly 0 */
+
+/* A uniform on [0, 1) with 24 bits: SplitMix64 of `key` at the counter (stream, trial, slot, component). */
+static inline float uniform24(uint64_t key, uint64_t stream, uint64_t trial, uint64_t slot, uint64_t comp) {
+    uint64_t h = splitmix64(key, (stream << 56) | (trial << 48) | (slot << 8) | comp);
+    return (float)(uint32_t)(h >> 40) * 0x1p-24f;
+}
+
+/* Unit vector from two uniforms: law 0 isotropic (cos θ = 2u₀ − 1), law 1 uniform angles (θ = π·u₀);
+ * azimuth 2π·u₁ (physics.md §10.2). */
+static inline void direction(int32_t law, float u0, float u1, double *d) {
+    double mu;
+    if (law == 0) {
+        mu = 2.0 * (double)u0 - 1.0;
+    } else {
+        float s, c;
+        sincos_turns(u0 * 0.5f, &s, &c);
+        mu = (double)c;
+    }
+    double st2 = 1.0 - mu * mu;
+    double st = sqrt(st2 > 0.0 ? st2 : 0.0);
+    float sp, cp;
+    sincos_turns(u1, &sp, &cp);
+    d[0] = st * (double)cp;
+    d[1] = st * (double)sp;
+    d[2] = mu;
+}
+
+/* Velocities (µm/s) of slots 0..n−1 of a stream: flow + Σ_k speed_k·direction_k, the direction of
+ * ballistic component k from the uniforms of components 2k and 2k+1 (one vector pass per component). */
+static inline void velocities(uint64_t key, uint64_t stream, uint64_t tb, int64_t n, const double *flow, int32_t K,
+                       const double *speed, const int32_t *law, double *vx, double *vy, double *vz) {
+    for (int64_t j = 0; j < n; j++) {
+        vx[j] = flow[0];
+        vy[j] = flow[1];
+        vz[j] = flow[2];
+    }
+    for (int32_t k = 0; k < K; k++) {
+        double sp = speed[k];
+        int32_t lw = law[k];
+        for (int64_t j = 0; j < n; j++) {
+            double d[3];
+            direction(lw, uniform24(key, stream, tb, (uint64_t)j, 2 * k), uniform24(key, stream, tb, (uint64_t)j, 2 * k + 1), d);
+            vx[j] = vx[j] + sp * d[0];
+            vy[j] = vy[j] + sp * d[1];
+            vz[j] = vz[j] + sp * d[2];
+        }
+    }
+}
+
+/* u^(1/3) for u in [0, 1]: a float32 guess, then two Newton steps in double. */
+static inline double cbrt_unit(float u) {
+    if (u == 0.0f) return 0.0;
+    double y = (double)exp_neg(log_pos(u) * 0x1.555556p-2f);
+    double y2 = y * y;
+    y = y - (y2 * y - (double)u) / (y2 * 3.0);
+    y2 = y * y;
+    return y - (y2 * y - (double)u) / (y2 * 3.0);
+}
+
+/* The straight paths of N trials (see kernel.drift_paths). Outputs component-major p, v [3, N, cap] and
+ * t_ref [N, cap], count [N]; slots past the count are far away and still. Each trial runs in vector
+ * passes: initial paths, proposal velocities and acceptance, then the entry geometry of the accepted.
+ * Returns 0, −1 when scratch memory is missing, or 1 + the trial whose accepted entrants exceed E. */
+CLONES int tdk_drift_paths(int32_t N, const uint64_t *keys, const int64_t *n0, const int64_t *n_prop, const double *H,
+                           const double *flow, int32_t K, const double *speed, const int32_t *law, double w_max,
+                           double T, int64_t E, int64_t cap, double *p, double *v, double *t_ref, int64_t *count) {
+    int64_t P = 1;
+    for (int32_t b = 0; b < N; b++) P = n_prop[b] > P ? n_prop[b] : P;
+    double *sv = malloc(sizeof(double) * (size_t)(4 * P));
+    int64_t *list = malloc(sizeof(int64_t) * (size_t)P);
+    if (!sv || !list) { free(sv); free(list); return -1; }
+    double *svx = sv, *svy = sv + P, *svz = sv + 2 * P;
+    unsigned char *acc = (unsigned char *)(sv + 3 * P);
+    int64_t NC = (int64_t)N * cap;
+    double *px = p, *py = p + NC, *pz = p + 2 * NC, *vx = v, *vy = v + NC, *vz = v + 2 * NC;
+    for (int32_t b = 0; b < N; b++) {
+        uint64_t key = keys[b / 64], tb = (uint64_t)(b % 64);
+        int64_t base = (int64_t)b * cap, m0 = n0[b], mp = n_prop[b];
+        for (int64_t j = 0; j < m0; j++) {
+            double d[3];
+            direction(0, uniform24(key, 1, tb, (uint64_t)j, 0), uniform24(key, 1, tb, (uint64_t)j, 1), d);
+            double r = cbrt_unit(uniform24(key, 1, tb, (uint64_t)j, 2));
+            px[base + j] = (d[0] * r) * H[0];
+            py[base + j] = (d[1] * r) * H[1];
+            pz[base + j] = (d[2] * r) * H[2];
+            t_ref[base + j] = 0.0;
+        }
+        velocities(key, 2, tb, m0, flow, K, speed, law, vx + base, vy + base, vz + base);
+        velocities(key, 3, tb, mp, flow, K, speed, law, svx, svy, svz);
+        for (int64_t j = 0; j < mp; j++) {
+            double wx = svx[j] / H[0], wy = svy[j] / H[1], wz = svz[j] / H[2];
+            double wn = sqrt(wx * wx + wy * wy + wz * wz);
+            acc[j] = (double)uniform24(key, 4, tb, (uint64_t)j, 0) * w_max < wn;
+        }
+        int64_t na = 0;
+        for (int64_t j = 0; j < mp; j++) {
+            list[na] = j;
+            na += acc[j];
+        }
+        if (na > E) { free(sv); free(list); return 1 + b; }
+        if (m0 + na > cap) { free(sv); free(list); return 1 + b; }
+        for (int64_t m = 0; m < na; m++) {
+            int64_t j = list[m], k = base + m0 + m;
+            double vel[3] = {svx[j], svy[j], svz[j]};
+            double wx = vel[0] / H[0], wy = vel[1] / H[1], wz = vel[2] / H[2];
+            double wn = sqrt(wx * wx + wy * wy + wz * wz);
+            double nx = wx / wn, ny = wy / wn, nz = wz / wn;
+            double sgn = nz >= 0.0 ? 1.0 : -1.0;
+            double a = -1.0 / (sgn + nz);
+            double bb = nx * ny * a;
+            double e1x = 1.0 + sgn * nx * nx * a, e1y = sgn * bb, e1z = -sgn * nx;
+            double e2x = bb, e2y = sgn + ny * ny * a, e2z = -ny;
+            float g0 = uniform24(key, 5, tb, (uint64_t)j, 0), g1 = uniform24(key, 5, tb, (uint64_t)j, 1);
+            float g2 = uniform24(key, 5, tb, (uint64_t)j, 2);
+            double rad = sqrt((double)g0), depth = sqrt(1.0 - (double)g0);
+            float s, c;
+            sincos_turns(g1, &s, &c);
+            double c1 = rad * (double)c, c2 = rad * (double)s;
+            px[k] = ((c1 * e1x + c2 * e2x) - depth * nx) * H[0];
+            py[k] = ((c1 * e1y + c2 * e2y) - depth * ny) * H[1];
+            pz[k] = ((c1 * e1z + c2 * e2z) - depth * nz) * H[2];
+            vx[k] = vel[0];
+            vy[k] = vel[1];
+            vz[k] = vel[2];
+            t_ref[k] = (double)g2 * T;
+        }
+        count[b] = m0 + na;
+        for (int64_t k = base + m0 + na; k < base + cap; k++) {
+            px[k] = py[k] = pz[k] = FAR_UM;
+            vx[k] = vy[k] = vz[k] = 0.0;
+            t_ref[k] = 0.0;
+        }
+    }
+    free(sv);
+    free(list);
+    return 0;
+}
+
+/* −(a_lat·(x·xx + y·yy)) − a_ax·(z·zz) */
+static inline double norm_w(double al, double az, double x, double y, double z, double xx, double yy, double zz) {
+    return -(al * (x * xx + y * yy)) - az * (z * zz);
+}
+
+/* Fields of straight paths for S systems (see kernel.path_fields): per path the float64 coefficients
+ * about the closest approach (exponent e* + a2·τ², phase φ* + ω·τ in turns), rounded to float32, then
+ * the float32 evaluation of tdk_eval_straight. p, v [3, N, C]; acc [N, S, T, 2]. Returns 0 or −1. */
+CLONES int tdk_path_fields(int32_t N, int64_t C, const double *p, const double *v, const double *t_ref,
+                           int64_t comp_stride, int64_t row_stride, int32_t S, const double *q, const double *a_lat,
+                           const double *a_ax, int32_t T, const float *times, float log_tol, int64_t *acc) {
+    float *w = malloc(sizeof(float) * (size_t)(5 * C + 1));
+    if (!w) return -1;
+    float *fe = w, *fa = w + C, *ft = w + 2 * C, *fp = w + 3 * C, *fo = w + 4 * C;
+    int64_t NC = comp_stride;
+    for (int32_t b = 0; b < N; b++) {
+        for (int32_t s = 0; s < S; s++) {
+            double al = a_lat[s], az = a_ax[s], qs = q[s];
+            for (int64_t c = 0; c < C; c++) {
+                int64_t i = (int64_t)b * row_stride + c;
+                double px = p[i], py = p[NC + i], pz = p[2 * NC + i];
+                int moving = px < 0.5 * FAR_UM;
+                double vx = moving ? v[i] : 0.0, vy = moving ? v[NC + i] : 0.0, vz = moving ? v[2 * NC + i] : 0.0;
+                double a2 = norm_w(al, az, vx, vy, vz, vx, vy, vz);
+                double shift = a2 != 0.0 ? -(norm_w(al, az, px, py, pz, vx, vy, vz) / a2) : 0.0;
+                double rx = px + vx * shift, ry = py + vy * shift, rz = pz + vz * shift;
+                double x = rz * qs;
+                fe[c] = (float)norm_w(al, az, rx, ry, rz, rx, ry, rz);
+                fa[c] = (float)a2;
+                ft[c] = (float)(t_ref[i] + shift);
+                fp[c] = (float)(x - floor(x));
+                fo[c] = (float)(vz * qs);
+            }
+            for (int32_t f = 0; f < T; f++) {
+                float t = times[f];
+                int64_t re = 0, im = 0;
+                for (int64_t c = 0; c < C; c++) {
+                    float tau = t - ft[c];
+                    float ex = (tau * tau) * fa[c] + fe[c];
+                    float amp = (ex >= log_tol && fe[c] >= log_tol) ? exp_neg(ex) : 0.0f;
+                    float sn, cs;
+                    sincos_turns(tau * fo[c] + fp[c], &sn, &cs);
+                    re += quantize(amp * cs);
+                    im += quantize(amp * sn);
+                }
+                int64_t *o = acc + (((int64_t)b * S + s) * T + f) * 2;
+                o[0] = re;
+                o[1] = im;
+            }
+        }
+    }
+    free(w);
+    return 0;
 }
 
 /* A Python module only so that setuptools builds and installs the library; it is used through ctypes. */

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 __all__ = ["compiled", "backend", "exp_neg", "sincos_turns", "log_pos", "normals", "walk_periodic",
-           "eval_straight", "QUANT_SCALE"]
+           "eval_straight", "uniforms24", "drift_paths", "path_fields", "sums_to_field", "QUANT_SCALE"]
 
 _F32 = torch.float32
 #: Field terms are quantized to 2^-30 before the exact integer sum.
@@ -88,6 +88,11 @@ def _library():
     lib.tdk_walk_periodic.argtypes = [i64, i32, p, p, u64, i32, p, p, p, i32, p, p, i32, p, p, f32, p]
     lib.tdk_walk_periodic.restype = ctypes.c_int
     lib.tdk_eval_straight.argtypes = [i32, i64, p, p, p, p, p, i32, p, f32, p]
+    f64 = ctypes.c_double
+    lib.tdk_drift_paths.argtypes = [i32, p, p, p, p, p, i32, p, p, f64, f64, i64, i64, p, p, p, p]
+    lib.tdk_drift_paths.restype = ctypes.c_int
+    lib.tdk_path_fields.argtypes = [i32, i64, p, p, p, i64, i64, i32, p, p, p, i32, p, f32, p]
+    lib.tdk_path_fields.restype = ctypes.c_int
     for name in ("tdk_exp_neg", "tdk_sincos_turns", "tdk_log_pos", "tdk_normals", "tdk_eval_straight"):
         getattr(lib, name).restype = None
     return lib
@@ -117,6 +122,12 @@ def _ptr(x: torch.Tensor) -> int:
 
 # ---------------------------------------------------------------------------------------------
 # the reference in torch (float32, CPU): every line is one IEEE operation of the C code
+
+
+def _sqrt(x: torch.Tensor) -> torch.Tensor:
+    """Correctly rounded square root (torch's vectorized ``sqrt`` may miss by one ulp; NumPy's is the
+    IEEE operation, as in the C code)."""
+    return torch.from_numpy(np.sqrt(x.contiguous().numpy()))
 
 
 def _rint(x: torch.Tensor) -> torch.Tensor:
@@ -210,7 +221,7 @@ def normals(key: int, frame: int, n: int, *, force_torch: bool = False) -> torch
     h = _splitmix64(key, (np.uint64(frame) << np.uint64(32)) + np.arange(pairs, dtype=np.uint64))
     u1 = (torch.from_numpy((h >> np.uint64(41)).astype(np.int32)).to(_F32) + 0.5) * 2.0**-23
     u2 = torch.from_numpy((h & np.uint64(0xFFFFFF)).astype(np.int32)).to(_F32) * 2.0**-24
-    r = torch.sqrt((log_pos(u1, force_torch=True) * -2.0).double()).to(_F32)  # float32 sqrt is not exact in torch
+    r = _sqrt(log_pos(u1, force_torch=True) * -2.0)
     sn, cs = sincos_turns(u2, force_torch=True)
     return torch.stack([r * cs, r * sn], dim=1).reshape(-1)[:n]
 
@@ -315,3 +326,189 @@ def eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi_t
         acc[sl, :, 0] = _quantize(amp * cs).sum(1)
         acc[sl, :, 1] = _quantize(amp * sn).sum(1)
     return acc
+
+
+# ---------------------------------------------------------------------------------------------
+# straight paths: drawn from their own counter-based uniforms, then evaluated
+
+_FAR = 1.0e6
+_F64 = torch.float64
+_THIRD32 = _h("0x1.555556p-2")
+
+
+def uniforms24(keys: np.ndarray, stream: int, trial: np.ndarray, slot: np.ndarray, comp: int) -> torch.Tensor:
+    """Uniforms on [0, 1) with 24 bits (float32): SplitMix64 of ``keys`` at the counter
+    ``stream·2⁵⁶ + trial·2⁴⁸ + slot·2⁸ + comp`` (arrays broadcast; ``trial`` is the trial within its
+    block of 64)."""
+    idx = ((np.uint64(stream) << np.uint64(56)) | (trial.astype(np.uint64) << np.uint64(48))
+           | (slot.astype(np.uint64) << np.uint64(8)) | np.uint64(comp))
+    with np.errstate(over="ignore"):
+        z = keys.astype(np.uint64) + idx * np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        z = z ^ (z >> np.uint64(31))
+    return torch.from_numpy((z >> np.uint64(40)).astype(np.int32)).to(_F32) * 2.0**-24
+
+
+def _direction(law: int, u0: torch.Tensor, u1: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    if law == 0:
+        mu = 2.0 * u0.double() - 1.0
+    else:
+        mu = sincos_turns(u0 * 0.5, force_torch=True)[1].double()
+    st2 = 1.0 - mu * mu
+    st = _sqrt(torch.where(st2 > 0.0, st2, torch.zeros_like(st2)))
+    sp, cp = sincos_turns(u1, force_torch=True)
+    return st * cp.double(), st * sp.double(), mu
+
+
+def _velocity(ctx, stream: int, slot: np.ndarray) -> list[torch.Tensor]:
+    keys, tb, flow, ballistic = ctx
+    v = [torch.full(np.broadcast_shapes(tb.shape, slot.shape), float(f), dtype=_F64) for f in flow]
+    for k, (speed, law) in enumerate(ballistic):
+        d = _direction(law, uniforms24(keys, stream, tb, slot, 2 * k), uniforms24(keys, stream, tb, slot, 2 * k + 1))
+        v = [v[i] + speed * d[i] for i in range(3)]
+    return v
+
+
+def _cbrt_unit(u: torch.Tensor) -> torch.Tensor:
+    y = exp_neg(log_pos(torch.where(u == 0.0, torch.ones_like(u), u), force_torch=True) * _THIRD32,
+                force_torch=True).double()
+    ud = u.double()
+    for _ in range(2):
+        y2 = y * y
+        y = y - (y2 * y - ud) / (y2 * 3.0)
+    return torch.where(u == 0.0, torch.zeros_like(y), y)
+
+
+def drift_paths(keys: list[int], n0: torch.Tensor, n_prop: torch.Tensor, H: tuple[float, float, float],
+                flow: tuple[float, float, float], ballistic: list[tuple[float, int]], w_max: float, T: float,
+                E: int, *, force_torch: bool = False):
+    """Straight paths of a population for trials ``N = 64·len(keys)`` (physics.md §5.1, sampler in
+    :mod:`torchdoct.sim.plan`): ``n0`` initial paths uniform in the ellipsoid of half-axes ``H`` (µm) at
+    ``t = 0``, and the entrants among ``n_prop`` proposals (velocity kept with probability
+    ``|v/H|/w_max``, entering through the ellipsoid's surface at a time uniform on [0, T] s).
+    Velocities: ``flow`` + Σ ``speed·direction`` over ``ballistic`` = [(speed µm/s, law 0 isotropic /
+    1 uniform angles)]. Every number comes from :func:`uniforms24` of the block's key at (stream,
+    trial, slot, component), so no draw depends on another trial or on the counts.
+
+    Returns ``p``, ``v`` [3, N, C] (float64, µm and µm/s; unused slots far away and still), ``t_ref``
+    [N, C] (s) and the count per trial; C is the largest count. Raises ``OverflowError`` with the trial
+    when the accepted entrants exceed ``E``."""
+    N = n0.numel()
+    n0c = n0.to("cpu", torch.int64).contiguous()
+    npc = n_prop.to("cpu", torch.int64).contiguous()
+    lib = _use_c(force_torch)
+    if lib is not None:
+        cap = int(n0c.max()) + (min(E, int(npc.max())) if N else 0)
+        cap = max(cap, 1)
+        p = torch.empty(3, N, cap, dtype=_F64)
+        v = torch.empty(3, N, cap, dtype=_F64)
+        t_ref = torch.empty(N, cap, dtype=_F64)
+        count = torch.empty(N, dtype=torch.int64)
+        ku = torch.tensor(np.array(keys, dtype=np.uint64).view(np.int64))
+        speeds = torch.tensor([b[0] for b in ballistic] or [0.0], dtype=_F64)
+        laws = torch.tensor([b[1] for b in ballistic] or [0], dtype=torch.int32)
+        Ht, ft = torch.tensor(H, dtype=_F64), torch.tensor(flow, dtype=_F64)
+        rc = lib.tdk_drift_paths(N, _ptr(ku), _ptr(n0c), _ptr(npc), _ptr(Ht), _ptr(ft), len(ballistic), _ptr(speeds),
+                                 _ptr(laws), float(w_max), float(T), int(E), cap, _ptr(p), _ptr(v), _ptr(t_ref),
+                                 _ptr(count))
+        if rc < 0:
+            raise MemoryError(f"the straight-path sampler could not allocate scratch memory for {int(npc.max())} proposals")
+        if rc > 0:
+            raise OverflowError(rc - 1)
+        C = max(1, int(count.max()))
+        return p[:, :, :C], v[:, :, :C], t_ref[:, :C], count
+    kb = np.repeat(np.array(keys, dtype=np.uint64), 64)[:N, None]
+    tb = (np.arange(N) % 64)[:, None]
+    ctx = (kb, tb, flow, ballistic)
+    # initial paths
+    m0 = max(1, int(n0c.max()))
+    j = np.arange(m0)[None, :]
+    valid0 = torch.arange(m0)[None, :] < n0c[:, None]
+    dx = _direction(0, uniforms24(kb, 1, tb, j, 0), uniforms24(kb, 1, tb, j, 1))
+    r = _cbrt_unit(uniforms24(kb, 1, tb, j, 2))
+    p0 = [torch.where(valid0, (dx[i] * r) * H[i], torch.full_like(r, _FAR)) for i in range(3)]
+    v0 = [torch.where(valid0, x, torch.zeros_like(x)) for x in _velocity(ctx, 2, j)]
+    # entrants
+    mp = max(1, int(npc.max()))
+    j = np.arange(mp)[None, :]
+    vel = _velocity(ctx, 3, j)
+    w = [vel[i] / H[i] for i in range(3)]
+    wn = _sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    accept = (uniforms24(kb, 4, tb, j, 0).double() * w_max < wn) & (torch.arange(mp)[None, :] < npc[:, None])
+    n_acc = accept.sum(1)
+    if N and int(n_acc.max()) > E:
+        raise OverflowError(int(torch.nonzero(n_acc > E)[0, 0]))
+    nx, ny, nz = (x / wn for x in w)
+    sgn = torch.where(nz >= 0.0, 1.0, -1.0).to(_F64)
+    a = -1.0 / (sgn + nz)
+    bb = nx * ny * a
+    e1 = (1.0 + sgn * nx * nx * a, sgn * bb, -sgn * nx)
+    e2 = (bb, sgn + ny * ny * a, -ny)
+    g0, g1, g2 = (uniforms24(kb, 5, tb, j, c) for c in range(3))
+    rad, depth = _sqrt(g0.double()), _sqrt(1.0 - g0.double())
+    s, c = sincos_turns(g1, force_torch=True)
+    c1, c2 = rad * c.double(), rad * s.double()
+    pe = [((c1 * e1[i] + c2 * e2[i]) - depth * (nx, ny, nz)[i]) * H[i] for i in range(3)]
+    te = g2.double() * T
+    count = n0c + n_acc
+    C = max(1, int(count.max()))
+    p = torch.full((3, N, C), _FAR, dtype=_F64)
+    v = torch.zeros(3, N, C, dtype=_F64)
+    t_ref = torch.zeros(N, C, dtype=_F64)
+    slots = torch.arange(C)[None, :]
+    first = slots < n0c[:, None]
+    later = (slots >= n0c[:, None]) & (slots < count[:, None])
+    for i in range(3):
+        p[i].masked_scatter_(first, p0[i].masked_select(valid0))
+        v[i].masked_scatter_(first, v0[i].masked_select(valid0))
+        p[i].masked_scatter_(later, pe[i].masked_select(accept))
+        v[i].masked_scatter_(later, vel[i].masked_select(accept))
+    t_ref.masked_scatter_(later, te.masked_select(accept))
+    return p, v, t_ref, count
+
+
+def _norm_w(al: float, az: float, x, y, z, xx, yy, zz):
+    return -(al * (x * xx + y * yy)) - az * (z * zz)
+
+
+def path_fields(p: torch.Tensor, v: torch.Tensor, t_ref: torch.Tensor, q_turns: list[float], a_lat: list[float],
+                a_ax: list[float], times: torch.Tensor, log_tol: float, *, force_torch: bool = False) -> torch.Tensor:
+    """Fields of straight paths ``p + v·(t − t_ref)`` ([3, N, C] float64, µm, µm/s; [N, C] s) for the
+    systems ``(q_turns, a_lat, a_ax)`` (2n/λ in turns per µm, 1/(2s_x²), 1/(2s_z²)), physics.md §5.1.
+
+    Per path, in float64: the PSF exponent about the closest approach ``t* = t_ref + shift``,
+    ``e* = −a_lat·(x*²+y*²) − a_ax·z*²`` and ``a2 = −a_lat·(v_x²+v_y²) − a_ax·v_z²``, the phase
+    ``φ* = frac(q·z*)`` and ``ω = q·v_z`` (turns, turns/s); slots at ``x ≥ 5·10⁵ µm`` stand still.
+    Rounded to float32, they go through :func:`eval_straight`. Returns exact sums [N, S, T, 2]."""
+    N, C = t_ref.shape
+    S = len(q_turns)
+    tt = _f32(times)
+    T = tt.numel()
+    lib = _use_c(force_torch)
+    if lib is not None:
+        p, v, t_ref = (x.to("cpu", _F64) for x in (p, v, t_ref))
+        # slices of a [3, N, cap] buffer are read in place: one layout for p and v, unit stride in the slots
+        if not (p.stride() == v.stride() and p.stride(2) == 1 and t_ref.stride() == (p.stride(1), 1)):
+            p, v, t_ref = p.contiguous(), v.contiguous(), t_ref.contiguous()
+        acc = torch.empty(N, S, T, 2, dtype=torch.int64)
+        qa, la, za = (torch.tensor(x, dtype=_F64) for x in (q_turns, a_lat, a_ax))
+        rc = lib.tdk_path_fields(N, C, _ptr(p), _ptr(v), _ptr(t_ref), p.stride(0), p.stride(1), S, _ptr(qa), _ptr(la),
+                                 _ptr(za), T, _ptr(tt), float(np.float32(log_tol)), _ptr(acc))
+        if rc != 0:
+            raise MemoryError(f"the straight-path evaluation could not allocate scratch memory for {C} paths")
+        return acc
+    px, py, pz = p
+    moving = px < 0.5 * _FAR
+    vx, vy, vz = (torch.where(moving, x, torch.zeros_like(x)) for x in v)
+    out = torch.empty(N, S, T, 2, dtype=torch.int64)
+    for s in range(S):
+        al, az, qs = float(a_lat[s]), float(a_ax[s]), float(q_turns[s])
+        a2 = _norm_w(al, az, vx, vy, vz, vx, vy, vz)
+        num = _norm_w(al, az, px, py, pz, vx, vy, vz)
+        shift = torch.where(a2 != 0.0, -(num / torch.where(a2 != 0.0, a2, torch.ones_like(a2))), torch.zeros_like(a2))
+        rx, ry, rz = px + vx * shift, py + vy * shift, pz + vz * shift
+        x = rz * qs
+        out[:, s] = eval_straight(_norm_w(al, az, rx, ry, rz, rx, ry, rz), a2, t_ref + shift, x - torch.floor(x),
+                                  vz * qs, tt, log_tol, force_torch=True)
+    return out

@@ -85,6 +85,10 @@ class _Draws:
         parts = [fn((BLOCK_TRIALS, *shape), generator=g, dtype=torch.float32) for g in self.gens]
         return (parts[0] if len(parts) == 1 else torch.cat(parts)).to(device=self.device, dtype=_F64)
 
+    def keys(self) -> list[int]:
+        """One 62-bit key per block, for the counter-based streams of :mod:`torchdoct.sim.kernel`."""
+        return [int(torch.randint(0, 2**62, (1,), generator=g)) for g in self.gens]
+
     def rand(self, *shape: int) -> torch.Tensor:
         """Uniform on [0, 1) (24-bit resolution)."""
         return self._draw(torch.rand, shape)
@@ -196,20 +200,6 @@ def _velocities(pop: Population, draws: _Draws, n: int) -> torch.Tensor:
     return v
 
 
-def _velocity_components(pop: Population, draws: _Draws, n: int, keep: int | None = None) -> torch.Tensor:
-    """:func:`_velocities` component-major: [3, N, keep] (the same draws and the same numbers; the
-    draws are made for ``n`` slots, only the first ``keep`` are computed)."""
-    keep = n if keep is None else keep
-    v = torch.empty(3, BLOCK_TRIALS * len(draws.gens), keep, dtype=_F64, device=draws.device)
-    for i, f in enumerate(pop.flow_velocity_um_per_s):
-        v[i] = f
-    for b in pop.ballistic:
-        u = draws.rand(n, 2)[:, :keep]
-        for i, d in enumerate(_direction_components(u[..., 0], u[..., 1], b.directions)):
-            v[i] += b.speed_um_per_s * d
-    return v
-
-
 def _inside(pos: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
     return (pos.abs() <= half).all(dim=-1)
 
@@ -305,8 +295,15 @@ def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tens
                 amp = amp * refl
             out[:, k] = _sum_field(amp, phi.to(dtype), dim=1)
         return out[:, :, None].expand(N, len(systems), T)
-    out = torch.empty(N, len(systems), T, dtype=cdt, device=p_ref.device)
     log_tol = math.log(tolerance)
+    if dtype == torch.float32 and p_ref.device.type == "cpu":
+        # the fused kernel: float64 coefficients, float32 evaluation, exact sums (torchdoct.sim.kernel)
+        acc = kernel.path_fields(p_ref, vel, t_ref, [2.0 * float(optics.kn[s]) / _TWO_PI for s in systems],
+                                 [float(optics.a_lat[s]) for s in systems], [float(optics.a_ax[s]) for s in systems],
+                                 times, log_tol)
+        field = kernel.sums_to_field(acc)
+        return field * refl if refl != 1.0 else field
+    out = torch.empty(N, len(systems), T, dtype=cdt, device=p_ref.device)
     for k, s in enumerate(systems):
         coef = _path_coefficients(p_ref, vel, t_ref, float(optics.kn[s]), float(optics.a_lat[s]),
                                   float(optics.a_ax[s]))
@@ -419,10 +416,7 @@ def _path_meets_box(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.
 def _eval_culled(pp: PopulationPlan, pop: Population, p_ref, vel, t_ref, times, optics, dtype, plan):
     """Evaluate each group of systems on the scatterers that can reach its own PSF box.
 
-    ``p_ref``, ``vel``: [N, C, 3]; a view of component-major storage ([3, N, C] permuted) is used
-    without a copy."""
-    p_ref = p_ref.permute(2, 0, 1).contiguous()
-    vel = None if vel is None else vel.permute(2, 0, 1).contiguous()
+    ``p_ref``, ``vel``: [3, N, C] (component-major)."""
     N = p_ref.shape[1]
     S = optics.kn.numel()
     out = torch.empty(N, S, times.numel(), dtype=_complex_of(dtype), device=p_ref.device)
@@ -475,79 +469,38 @@ def _compact(mask: torch.Tensor, cap: int, what: str, *tensors: torch.Tensor, fi
 def _simulate_static(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
     n = draws.poisson(pp.expected_scatterers_per_trial, pp.capacity, f"population {pp.index} count")
     pos, _ = _uniform_box(draws, n, pp.capacity, pp.domain_half_widths_um)
-    return _eval_culled(pp, pop, pos, None, None, times, optics, dtype, plan)
-
-
-def _unit_ball(draws: _Draws, n: int, keep: int) -> tuple[torch.Tensor, ...]:
-    """Points uniform in the unit ball, components (x, y, z) [N, keep]: an isotropic direction at
-    radius ``U^(1/3)`` (drawn for ``n`` slots, the first ``keep`` computed)."""
-    u = draws.rand(n, 3)[:, :keep]
-    r = u[..., 2].pow(1.0 / 3.0)
-    return tuple(d * r for d in _direction_components(u[..., 0], u[..., 1], "isotropic"))
+    return _eval_culled(pp, pop, pos.permute(2, 0, 1).contiguous(), None, None, times, optics, dtype, plan)
 
 
 def _simulate_drift(pp: PopulationPlan, pop: Population, draws: _Draws, times, optics, dtype, plan):
     """Straight paths that meet the tolerance ellipsoid during the protocol (see :mod:`torchdoct.sim.plan`).
 
-    Positions and velocities are kept component-major ([3, N, slots], float64). Draws are made for
-    the reserved slots (the random stream does not depend on the counts), but only the slots below
-    the chunk's largest count are computed: the others are empty in every trial."""
+    The Poisson counts come from the blocks' generators; every path's numbers come from the
+    counter-based uniforms of its block's key (:func:`torchdoct.sim.kernel.drift_paths`): initial paths
+    uniform in the ellipsoid, and entrants. In coordinates scaled by H the ellipsoid is the unit ball
+    and a path of velocity v has velocity w = v/H; such paths enter at the rate ρ·Hx·Hy·Hz·π·|w|.
+    Velocities are drawn from the law and kept with probability |w|/w_max; the impact point is
+    uniform on the unit disk across w, the entry point where that line meets the sphere on its way
+    in, the time uniform. Positions and velocities are component-major ([3, N, slots], float64)."""
     H = pp.domain_half_widths_um
-    dev = draws.device
     n0_mean = 4.0 * math.pi / 3.0 * pp.density_per_um3 * math.prod(H)
     n0 = draws.poisson(n0_mean, pp.capacity, f"population {pp.index} count")
-    N = n0.numel()
-    C = int(n0.max())
     E = pp.entry_capacity if pp.entry_proposal_capacity else 0
-    valid0 = torch.arange(C, device=dev)[None, :] < n0[:, None]
-    p0 = torch.empty(3, N, C, dtype=_F64, device=dev)
-    for i, x in enumerate(_unit_ball(draws, pp.capacity, C)):
-        p0[i] = x.mul_(H[i]).masked_fill_(~valid0, _FAR)
-    v0 = _velocity_components(pop, draws, pp.capacity, C)
-    if E == 0:
-        t_ref = torch.zeros(N, C, dtype=_F64, device=dev)
-        return _eval_culled(pp, pop, p0.permute(1, 2, 0), v0.permute(1, 2, 0), t_ref, times, optics, dtype, plan)
-    # Entrants: in coordinates scaled by H the ellipsoid is the unit ball and a path of velocity v
-    # has velocity w = v/H; such paths enter at the rate ρ·Hx·Hy·Hz·π·|w|. Velocities are drawn from
-    # the law and kept with probability |w|/w_max; the impact point is uniform on the unit disk
-    # across w, the entry point where that line meets the sphere on its way in, the time uniform.
-    P = pp.entry_proposal_capacity
     T = float(times[-1])
-    w_max = ellipsoid_entry_bound(pop, H)
-    n_prop = draws.poisson(pp.entry_proposal_rate_per_s * T, P, f"population {pp.index} entrants")
-    mp = int(n_prop.max())
-    ve = _velocity_components(pop, draws, P, mp)
-    u_acc = draws.rand(P)[:, :mp]
-    w = torch.stack([ve[i] / H[i] for i in range(3)], dim=-1)
-    accept = (u_acc * w_max < torch.linalg.vector_norm(w, dim=-1)) & (
-        torch.arange(mp, device=dev)[None, :] < n_prop[:, None])
-    valid_e, (ve,) = _compact(accept, E, f"population {pp.index} entrants", ve, keep=True)
-    me = valid_e.shape[1]
-    p = torch.empty(3, N, C + me, dtype=_F64, device=dev)
-    p[:, :, :C] = p0
-    v = torch.empty_like(p)
-    v[:, :, :C] = v0
-    v[:, :, C:] = ve
-    t_ref = torch.zeros(N, C + me, dtype=_F64, device=dev)
-    # unit direction n of w and an orthonormal basis (e1, e2) across it (Duff et al. 2017, branch-free;
-    # slots past the count give NaN here and are set far away below)
-    wx, wy, wz = (ve[i] / H[i] for i in range(3))
-    wn = torch.sqrt(wx * wx + wy * wy + wz * wz)
-    nx, ny, nz = wx / wn, wy / wn, wz / wn
-    sgn = torch.where(nz >= 0, 1.0, -1.0).to(_F64)
-    a = -1.0 / (sgn + nz)
-    b = nx * ny * a
-    e1 = (1.0 + sgn * nx * nx * a, sgn * b, -sgn * nx)
-    e2 = (b, sgn + ny * ny * a, -ny)
-    u = draws.rand(E, 3)[:, :me]
-    rad = torch.sqrt(u[..., 0])
-    ang = _TWO_PI * u[..., 1]
-    c1, c2, depth = rad * torch.cos(ang), rad * torch.sin(ang), torch.sqrt(1.0 - u[..., 0])
-    invalid_e = ~valid_e
-    for i, n_i in enumerate((nx, ny, nz)):
-        p[i, :, C:] = (c1 * e1[i] + c2 * e2[i] - depth * n_i).mul_(H[i]).masked_fill_(invalid_e, _FAR)
-    torch.mul(u[..., 2], T, out=t_ref[:, C:])
-    return _eval_culled(pp, pop, p.permute(1, 2, 0), v.permute(1, 2, 0), t_ref, times, optics, dtype, plan)
+    if E:
+        n_prop = draws.poisson(pp.entry_proposal_rate_per_s * T, pp.entry_proposal_capacity,
+                               f"population {pp.index} entrants")
+    else:
+        n_prop = torch.zeros_like(n0)
+    keys = draws.keys()
+    ballistic = [(b.speed_um_per_s, 0 if b.directions == "isotropic" else 1) for b in pop.ballistic]
+    try:
+        p, v, t_ref, _ = kernel.drift_paths(keys, n0, n_prop, tuple(H), tuple(pop.flow_velocity_um_per_s), ballistic,
+                                            ellipsoid_entry_bound(pop, H), T, E)
+    except OverflowError:
+        raise CapacityError(f"population {pp.index} entrants: accepted entrants exceed the {E} reserved slots") from None
+    dev = draws.device
+    return _eval_culled(pp, pop, p.to(dev), v.to(dev), t_ref.to(dev), times, optics, dtype, plan)
 
 
 def _shell_points(draws: _Draws, P: int, inner: tuple, outer: tuple) -> torch.Tensor:
