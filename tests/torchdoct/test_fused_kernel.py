@@ -64,7 +64,7 @@ def test_log_is_accurate(force_torch):
 
 def test_normals_are_standard_normal_and_independent():
     n = 1_000_001  # odd: the spare of the last pair is dropped
-    z = kernel.normals(987654321, 3, n).double().numpy()
+    z = kernel.normals(987654321, 3, 1, n).double().numpy()
     assert z.shape == (n,)
     se = 1.0 / math.sqrt(n)
     assert abs(z.mean()) < 5 * se
@@ -78,19 +78,21 @@ def test_normals_are_standard_normal_and_independent():
     assert abs(k - expect) < 5 * math.sqrt(expect)
     assert np.abs(z).max() <= math.sqrt(-2.0 * math.log(0.5 * 2.0**-23)) + 1e-6
     # no correlation between neighbours (the two of a pair and consecutive pairs), nor across frames
-    z2 = kernel.normals(987654321, 4, n).double().numpy()
-    for a, b in ((z[:-1:2], z[1::2]), (z[:-2], z[2:]), (z, z2)):
+    z2 = kernel.normals(987654321, 4, 1, n).double().numpy()
+    z3 = kernel.normals(987654321, 3, 2, n).double().numpy()
+    for a, b in ((z[:-1:2], z[1::2]), (z[:-2], z[2:]), (z, z2), (z, z3)):
         assert abs(np.corrcoef(a, b)[0, 1]) < 5 / math.sqrt(a.size)
     # squares of the pair: Box–Muller's r² = z0² + z1² is exponential with mean 2
     r2 = z[:-1:2] ** 2 + z[1::2] ** 2
     assert stats.kstest(r2, "expon", args=(0, 2.0)).pvalue > 1e-4
 
 
-def test_normals_depend_only_on_key_frame_and_index():
-    a = kernel.normals(5, 7, 1000)
-    assert torch.equal(a[:501], kernel.normals(5, 7, 501))  # a prefix is the same
-    assert not torch.equal(a, kernel.normals(5, 8, 1000))
-    assert not torch.equal(a, kernel.normals(6, 7, 1000))
+def test_normals_depend_only_on_key_frame_axis_and_index():
+    a = kernel.normals(5, 7, 0, 1000)
+    assert torch.equal(a[:501], kernel.normals(5, 7, 0, 501))  # a prefix is the same
+    assert not torch.equal(a, kernel.normals(5, 8, 0, 1000))  # another frame,
+    assert not torch.equal(a, kernel.normals(5, 7, 1, 1000))  # another axis,
+    assert not torch.equal(a, kernel.normals(6, 7, 0, 1000))  # another key
 
 
 # ---------------------------------------------------------------------------------------------
@@ -107,8 +109,12 @@ def test_elementary_functions_are_bit_identical_on_both_backends():
         assert torch.equal(a, b)
     u = torch.rand(100_003, generator=g) + 2.0**-24
     assert torch.equal(kernel.log_pos(u), kernel.log_pos(u, force_torch=True))
+    for M in (1, 5, 40_001):
+        cell = kernel.uniform_cell(99, M, (6.0, 5.0, 7.5))
+        assert torch.equal(cell, kernel.uniform_cell(99, M, (6.0, 5.0, 7.5), force_torch=True))
+        assert (cell.abs() <= torch.tensor([6.0, 5.0, 7.5]).view(3, 1)).all()
     for n in (1, 2, 7, 40_001):
-        assert torch.equal(kernel.normals(2**63 + 11, 5, n), kernel.normals(2**63 + 11, 5, n, force_torch=True))
+        assert torch.equal(kernel.normals(2**63 + 11, 5, 2, n), kernel.normals(2**63 + 11, 5, 2, n, force_torch=True))
 
 
 @needs_compiled

@@ -76,7 +76,14 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--repeats", type=int, default=3, help="runs per figure (best is kept)")
     bl.add_argument("--out", default="bench-load.json", help="JSON output file")
     bl.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    ba = bsub.add_parser("all", help="every benchmark, each writing DIR/bench-NAME.json")
+    bg = bsub.add_parser("cog", help="the paper's 12 cells against the COG point simulator (a clone of it), one core")
+    bg.add_argument("--cog", required=True, metavar="DIR", help="folder of a clone of the COG DOCT simulation library")
+    bg.add_argument("--cog-trials", type=int, default=10, help="COG trials per cell and repeat")
+    bg.add_argument("--trials", type=int, default=1024, help="torchdoct trials per cell and repeat")
+    bg.add_argument("--repeats", type=int, default=3, help="repeats per cell (best is kept)")
+    bg.add_argument("--out", default="bench-cog.json", help="JSON output file")
+    bg.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    ba = bsub.add_parser("all", help="every benchmark, each writing DIR/bench-NAME.json (not cog, which needs --cog)")
     ba.add_argument("--out", default="bench", help="output directory (created if missing)")
     ba.add_argument("--quick", action="store_true", help="reduced sizes (a smoke run, minutes)")
     ba.add_argument("--force", action="store_true", help="overwrite existing results")
@@ -89,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Commands that only list or describe: no --threads.
-_NO_COMPUTE = {"scenes", "phantoms", "plan", "bench"}
+_NO_COMPUTE = {"scenes", "phantoms", "plan", "bench", "cog"}
 
 
 def _add_threads(*subparser_groups) -> None:
@@ -209,7 +216,7 @@ def _bench_all(args) -> int:
     out_dir.mkdir(parents=True, exist_ok=True)
     quick = {"simulate": ["--trials", "256"], "tradeoffs": ["--quick"], "render": ["--repeats", "1"], "load": ["--repeats", "1"]}
     bench_sub = build_parser().bench_subparsers
-    names = [n for n in bench_sub.choices if n != "all"]
+    names = [n for n in bench_sub.choices if n not in ("all", "cog")]
     failed = []
     for name in names:
         argv = ["bench", name, "--out", str(out_dir / f"bench-{name}.json")]
@@ -303,6 +310,11 @@ def _main(argv: Sequence[str] | None = None) -> int:
 
             return _bench(args, lambda: bench.bench_load(repeats=args.repeats, threads=args.threads, progress=True),
                           bench.format_load_table)
+        if args.command == "bench" and args.bench == "cog":
+            from ..bench import cog
+
+            return _bench(args, lambda: cog.bench_cog(args.cog, cog_trials=args.cog_trials, trials=args.trials,
+                                                      repeats=args.repeats, progress=True), cog.format_cog_table)
         if args.command == "bench" and args.bench == "simulate":
             from .. import bench
 

@@ -135,61 +135,77 @@ CLONES void tdk_log_pos(int64_t n, const float *u, float *out) {
     for (int64_t i = 0; i < n; i++) out[i] = log_pos(u[i]);
 }
 
-/* Normals z[0..n) of frame `frame`: pair p comes from splitmix64(key, frame·2^32 + p). */
-CLONES void tdk_normals(uint64_t key, int64_t frame, int64_t n, float *z) {
+/* Counter of the normal pair p of component `comp` at frame `frame`: frame·2^32 + comp·2^30 + p. */
+static inline uint64_t pair_index(int64_t frame, int32_t comp, int64_t p) {
+    return ((uint64_t)frame << 32) | ((uint64_t)comp << 30) | (uint64_t)p;
+}
+
+/* Normals of pairs q0 ≤ q < q1 (component comp, frame): z[2(q−q0)] and z[2(q−q0)+1], by Box–Muller. */
+static inline void normal_pairs(uint64_t key, int64_t frame, int32_t comp, int64_t q0, int64_t q1, float *z) {
+    for (int64_t q = q0; q < q1; q++)
+        box_muller(splitmix64(key, pair_index(frame, comp, q)), &z[2 * (q - q0)], &z[2 * (q - q0) + 1]);
+}
+
+/* Normals z[0..n) of scatterers 0..n−1 for (frame, comp): scatterer i takes the first (even i) or
+ * second (odd i) normal of pair i/2. */
+CLONES void tdk_normals(uint64_t key, int64_t frame, int32_t comp, int64_t n, float *z) {
     int64_t pairs = n / 2;
-    uint64_t base = (uint64_t)frame << 32;
-    for (int64_t p = 0; p < pairs; p++) box_muller(splitmix64(key, base + (uint64_t)p), &z[2 * p], &z[2 * p + 1]);
+    normal_pairs(key, frame, comp, 0, pairs, z);
     if (n & 1) {
-        float spare;
-        box_muller(splitmix64(key, base + (uint64_t)pairs), &z[n - 1], &spare);
+        float two[2];
+        normal_pairs(key, frame, comp, pairs, pairs + 1, two);
+        z[n - 1] = two[0];
     }
 }
 
 /* Pure diffusion on the periodic cell, one block of trials (see kernel.walk_periodic).
- *   M scatterers laid out trial after trial (counts[b] each), pos [3, M] (µm, updated in place);
- *   frame f ≥ 1: pos += sigma[f−1]·z (z from tdk_normals(key, f, 3M)), then pos −= L·rint(pos/L);
+ *   M scatterers laid out trial after trial (counts[b] each; block index i), pos [3, M] (µm, updated);
+ *   frame f ≥ 1: pos_c[i] += sigma[f−1]·z (tdk_normals(key, f, c, ·)[i]), then pos −= L·rint(pos/L);
  *   per PSF group g: amplitude exp(−a_lat[g]·(x²+y²) − a_ax[g]·z²), 0 below log_tol;
  *   per system s: acc[b, s, f, 0/1] += quantize(amp·cos/sin(2π·q[s]·z)).
+ * Trial after trial, all frames: a trial's scatterers stay in the L1 cache.
  * Returns 0, or −1 if the scratch memory could not be allocated. */
 CLONES int tdk_walk_periodic(int64_t M, int32_t n_trials, const int64_t *counts, float *pos, uint64_t key,
-                      int32_t T, const float *sigma, const float *L, const float *inv_L, int32_t G,
-                      const float *a_lat, const float *a_ax, int32_t S, const int32_t *group_of,
-                      const float *q, float log_tol, int64_t *acc) {
-    float *z = malloc(sizeof(float) * (size_t)(3 * M + 1));
-    float *amp = malloc(sizeof(float) * (size_t)(M + 1));
+                             int32_t T, const float *sigma, const float *L, const float *inv_L, int32_t G,
+                             const float *a_lat, const float *a_ax, int32_t S, const int32_t *group_of,
+                             const float *q, float log_tol, int64_t *acc) {
+    int64_t nmax = 1;
+    for (int32_t b = 0; b < n_trials; b++) nmax = counts[b] > nmax ? counts[b] : nmax;
+    float *z = malloc(sizeof(float) * (size_t)(nmax + 4));
+    float *amp = malloc(sizeof(float) * (size_t)(nmax + 1));
     if (!z || !amp) { free(z); free(amp); return -1; }
-    float *px = pos, *py = pos + M, *pz = pos + 2 * M;
-    memset(acc, 0, sizeof(int64_t) * (size_t)n_trials * (size_t)S * (size_t)T * 2);
-    for (int32_t f = 0; f < T; f++) {
-        if (f > 0) {
-            tdk_normals(key, f, 3 * M, z);
-            float sg = sigma[f - 1];
-            for (int c = 0; c < 3; c++) {
-                float *p = pos + c * M, *zc = z + c * M;
-                float l = L[c], il = inv_L[c];
-                for (int64_t i = 0; i < M; i++) {
-                    float v = p[i] + zc[i] * sg;
-                    float w = rint_m(v * il);
-                    p[i] = v - w * l;
+    int64_t i0 = 0;
+    for (int32_t b = 0; b < n_trials; b++) {
+        int64_t n = counts[b], i1 = i0 + n;
+        float *px = pos + i0, *py = pos + M + i0, *pz = pos + 2 * M + i0;
+        for (int32_t f = 0; f < T; f++) {
+            if (f > 0 && n > 0) {
+                float sg = sigma[f - 1];
+                int64_t q0 = i0 >> 1, q1 = (i1 + 1) >> 1, off = i0 & 1;
+                for (int32_t c = 0; c < 3; c++) {
+                    float *p = pos + c * M + i0;
+                    float l = L[c], il = inv_L[c];
+                    normal_pairs(key, f, c, q0, q1, z);
+                    const float *zc = z + off;
+                    for (int64_t i = 0; i < n; i++) {
+                        float v = p[i] + zc[i] * sg;
+                        float w = rint_m(v * il);
+                        p[i] = v - w * l;
+                    }
                 }
             }
-        }
-        for (int32_t g = 0; g < G; g++) {
-            float al = a_lat[g], az = a_ax[g];
-            for (int64_t i = 0; i < M; i++) {
-                float r2 = px[i] * px[i] + py[i] * py[i];
-                float ex = r2 * -al - (pz[i] * pz[i]) * az;
-                amp[i] = ex >= log_tol ? exp_neg(ex) : 0.0f;
-            }
-            for (int32_t s = 0; s < S; s++) {
-                if (group_of[s] != g) continue;
-                float qs = q[s];
-                int64_t i0 = 0;
-                for (int32_t b = 0; b < n_trials; b++) {
-                    int64_t i1 = i0 + counts[b];
+            for (int32_t g = 0; g < G; g++) {
+                float al = a_lat[g], az = a_ax[g];
+                for (int64_t i = 0; i < n; i++) {
+                    float r2 = px[i] * px[i] + py[i] * py[i];
+                    float ex = r2 * -al - (pz[i] * pz[i]) * az;
+                    amp[i] = ex >= log_tol ? exp_neg(ex) : 0.0f;
+                }
+                for (int32_t s = 0; s < S; s++) {
+                    if (group_of[s] != g) continue;
+                    float qs = q[s];
                     int64_t re = 0, im = 0;
-                    for (int64_t i = i0; i < i1; i++) {
+                    for (int64_t i = 0; i < n; i++) {
                         float sn, cs;
                         sincos_turns(pz[i] * qs, &sn, &cs);
                         re += quantize(amp[i] * cs);
@@ -198,10 +214,10 @@ CLONES int tdk_walk_periodic(int64_t M, int32_t n_trials, const int64_t *counts,
                     int64_t *o = acc + (((int64_t)b * S + s) * T + f) * 2;
                     o[0] = re;
                     o[1] = im;
-                    i0 = i1;
                 }
             }
         }
+        i0 = i1;
     }
     free(z);
     free(amp);
@@ -244,6 +260,15 @@ CLONES void tdk_eval_straight(int32_t n_trials, int64_t C, const float *e, const
 static inline float uniform24(uint64_t key, uint64_t stream, uint64_t trial, uint64_t slot, uint64_t comp) {
     uint64_t h = splitmix64(key, (stream << 56) | (trial << 48) | (slot << 8) | comp);
     return (float)(uint32_t)(h >> 40) * 0x1p-24f;
+}
+
+/* Uniform positions of a block's M scatterers in the cell |x_c| ≤ half[c]: pos[c, i] = (2u − 1)·half[c],
+ * u = uniform24(key, 6, c, i, 0) (float32). */
+CLONES void tdk_uniform_cell(uint64_t key, int64_t M, const float *half, float *pos) {
+    for (int c = 0; c < 3; c++) {
+        float h = half[c];
+        for (int64_t i = 0; i < M; i++) pos[c * M + i] = (uniform24(key, 6, (uint64_t)c, (uint64_t)i, 0) * 2.0f - 1.0f) * h;
+    }
 }
 
 /* Unit vector from two uniforms: law 0 isotropic (cos θ = 2u₀ − 1), law 1 uniform angles (θ = π·u₀);

@@ -21,10 +21,12 @@ What makes the two agree to the last bit:
   which is exact, so the order of the sum (vector lanes, trial layout) cannot change a bit.
   The quantization error (≤ 2⁻³¹ per term, 5·10⁻¹⁰) is far below float32's resolution of the sum.
 
-Random numbers of the walk: the normals of frame ``f`` come from SplitMix64 (Steele, Lea & Flood
-2014) at index ``f·2³² + p`` of a 64-bit key drawn from the block's generator, two per index by
-Box–Muller (``u₁`` with 23 bits, so |z| ≤ 5.8; P(|z| > 5.8) ≈ 7·10⁻⁹ under a true normal), so any
-normal can be recomputed from (key, frame, index) alone.
+Random numbers: the normals of the walk at frame ``f`` along axis ``c`` come from SplitMix64
+(Steele, Lea & Flood 2014) at index ``f·2³² + c·2³⁰ + p`` of a 64-bit key drawn from the block's
+generator, two per index by Box–Muller (``u₁`` with 23 bits, so |z| ≤ 5.8; P(|z| > 5.8) ≈ 7·10⁻⁹
+under a true normal); the paths of random-ballistic motion and flow take 24-bit uniforms from
+SplitMix64 at (stream, trial, slot, component). Any number can be recomputed from its counter alone,
+so no draw depends on how many others are made, on the chunk or on the thread.
 
 Phases are in turns (``q = 2n/λ`` turns per µm of depth: the paper's ``2kn``/2π).
 """
@@ -41,7 +43,7 @@ import numpy as np
 import torch
 
 __all__ = ["compiled", "backend", "exp_neg", "sincos_turns", "log_pos", "normals", "walk_periodic",
-           "eval_straight", "uniforms24", "drift_paths", "path_fields", "sums_to_field", "QUANT_SCALE"]
+           "eval_straight", "uniforms24", "uniform_cell", "drift_paths", "path_fields", "sums_to_field", "QUANT_SCALE"]
 
 _F32 = torch.float32
 #: Field terms are quantized to 2^-30 before the exact integer sum.
@@ -84,7 +86,7 @@ def _library():
     lib.tdk_exp_neg.argtypes = [i64, p, p]
     lib.tdk_sincos_turns.argtypes = [i64, p, p, p]
     lib.tdk_log_pos.argtypes = [i64, p, p]
-    lib.tdk_normals.argtypes = [u64, i64, i64, p]
+    lib.tdk_normals.argtypes = [u64, i64, i32, i64, p]
     lib.tdk_walk_periodic.argtypes = [i64, i32, p, p, u64, i32, p, p, p, i32, p, p, i32, p, p, f32, p]
     lib.tdk_walk_periodic.restype = ctypes.c_int
     lib.tdk_eval_straight.argtypes = [i32, i64, p, p, p, p, p, i32, p, f32, p]
@@ -93,6 +95,8 @@ def _library():
     lib.tdk_drift_paths.restype = ctypes.c_int
     lib.tdk_path_fields.argtypes = [i32, i64, p, p, p, i64, i64, i32, p, p, p, i32, p, f32, p]
     lib.tdk_path_fields.restype = ctypes.c_int
+    lib.tdk_uniform_cell.argtypes = [u64, i64, p, p]
+    lib.tdk_uniform_cell.restype = None
     for name in ("tdk_exp_neg", "tdk_sincos_turns", "tdk_log_pos", "tdk_normals", "tdk_eval_straight"):
         getattr(lib, name).restype = None
     return lib
@@ -209,21 +213,28 @@ def _splitmix64(key: int, index: np.ndarray) -> np.ndarray:
         return z ^ (z >> np.uint64(31))
 
 
-def normals(key: int, frame: int, n: int, *, force_torch: bool = False) -> torch.Tensor:
-    """The ``n`` standard normals (float32) of ``frame`` in the stream of ``key``: Box–Muller on
-    SplitMix64 at index ``frame·2³² + p`` for the pair ``p`` (the spare of an odd ``n`` is dropped)."""
+def normals(key: int, frame: int, comp: int, n: int, *, force_torch: bool = False) -> torch.Tensor:
+    """The standard normals (float32) of scatterers ``0 … n−1`` for ``(frame, comp)`` in the stream of
+    ``key``: scatterer ``i`` takes the first (even ``i``) or second (odd ``i``) normal of pair ``i // 2``,
+    Box–Muller on SplitMix64 at index ``frame·2³² + comp·2³⁰ + pair``."""
     lib = _use_c(force_torch)
     if lib is not None:
         out = torch.empty(n, dtype=_F32)
-        lib.tdk_normals(key & _M64, frame, n, _ptr(out))
+        lib.tdk_normals(key & _M64, frame, comp, n, _ptr(out))
         return out
     pairs = (n + 1) // 2
-    h = _splitmix64(key, (np.uint64(frame) << np.uint64(32)) + np.arange(pairs, dtype=np.uint64))
+    base = (np.uint64(frame) << np.uint64(32)) | (np.uint64(comp) << np.uint64(30))
+    h = _splitmix64(key, base + np.arange(pairs, dtype=np.uint64))
     u1 = (torch.from_numpy((h >> np.uint64(41)).astype(np.int32)).to(_F32) + 0.5) * 2.0**-23
     u2 = torch.from_numpy((h & np.uint64(0xFFFFFF)).astype(np.int32)).to(_F32) * 2.0**-24
     r = _sqrt(log_pos(u1, force_torch=True) * -2.0)
     sn, cs = sincos_turns(u2, force_torch=True)
     return torch.stack([r * cs, r * sn], dim=1).reshape(-1)[:n]
+
+
+def _block_normals(key: int, frame: int, M: int) -> torch.Tensor:
+    """The walk's normals [3, M] of a block's scatterers at ``frame`` (as :func:`walk_periodic` draws them)."""
+    return torch.stack([normals(key, frame, c, M) for c in range(3)])
 
 
 def _quantize(v: torch.Tensor) -> torch.Tensor:
@@ -247,8 +258,8 @@ def walk_periodic(pos: torch.Tensor, counts: torch.Tensor, key: int, sigmas: lis
     """Pure diffusion on the periodic cell for one block of trials, float32 (physics.md §5.1).
 
     ``pos`` [3, M] (µm, component-major; updated in place): the scatterers of the block, laid out
-    trial after trial (``counts`` [trials] each). Frame ``f ≥ 1`` moves every scatterer by
-    ``sigmas[f−1]·z`` per axis (``z`` = :func:`normals` of ``(key, f)``, component-major), then wraps
+    trial after trial (``counts`` [trials] each). Frame ``f ≥ 1`` moves scatterer ``i`` by
+    ``sigmas[f−1]·z`` along axis ``c`` (``z`` = :func:`normals` of ``(key, f, c)`` at ``i``), then wraps
     it back into the cell ``|x_c| ≤ L_c/2``. For each PSF group ``(a_lat, a_ax) = (1/(2s_x²), 1/(2s_z²))``
     the amplitude is ``exp(−a_lat·(x²+y²) − a_ax·z²)``, 0 where the exponent is below ``log_tol``;
     system ``s`` (group ``group_of[s]``) adds ``amp·e^{i·2π·q_turns[s]·z}``.
@@ -278,7 +289,7 @@ def walk_periodic(pos: torch.Tensor, counts: torch.Tensor, key: int, sigmas: lis
     log_tol32 = float(np.float32(log_tol))
     for f in range(T):
         if f > 0:
-            z = normals(key, f, 3 * M, force_torch=True).view(3, M)
+            z = torch.stack([normals(key, f, c, M, force_torch=True) for c in range(3)])
             v = pos + z * float(np.float32(sigmas[f - 1]))
             w = _rint(v * iLv)
             pos.copy_(v - w * Lv)
@@ -348,6 +359,20 @@ def uniforms24(keys: np.ndarray, stream: int, trial: np.ndarray, slot: np.ndarra
         z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
         z = z ^ (z >> np.uint64(31))
     return torch.from_numpy((z >> np.uint64(40)).astype(np.int32)).to(_F32) * 2.0**-24
+
+
+def uniform_cell(key: int, M: int, half: tuple[float, float, float], *, force_torch: bool = False) -> torch.Tensor:
+    """Positions [3, M] (float32, µm) uniform in the cell ``|x_c| ≤ half[c]``: ``(2u − 1)·half[c]`` with
+    ``u`` = :func:`uniforms24` of ``key`` at (stream 6, axis c, scatterer i)."""
+    lib = _use_c(force_torch)
+    if lib is not None:
+        out = torch.empty(3, M, dtype=_F32)
+        h = torch.tensor(half, dtype=_F32)
+        lib.tdk_uniform_cell(key & _M64, M, _ptr(h), _ptr(out))
+        return out
+    kb = np.array([[key & _M64]], dtype=np.uint64)
+    u = uniforms24(kb, 6, np.arange(3)[:, None], np.arange(M)[None, :], 0)
+    return (u * 2.0 - 1.0) * torch.tensor(half, dtype=_F32).view(3, 1)
 
 
 def _direction(law: int, u0: torch.Tensor, u1: torch.Tensor) -> tuple[torch.Tensor, ...]:

@@ -120,8 +120,23 @@ def expected_entry_flux(pop: Population, h: tuple[float, float, float]) -> float
 def ellipsoid_entry_rate(pop: Population, h: tuple[float, float, float]) -> float:
     """Expected number of paths entering the ellipsoid of semi-axes ``h`` per unit time:
     ``ρ·π·hx·hy·hz·E|v/h|`` (see the module docstring; expectation over a fixed-seed sample)."""
-    w = np.linalg.norm(_velocity_sample(pop) / np.asarray(h, dtype=float), axis=1)
-    return pop.density_per_um3 * math.pi * math.prod(h) * float(np.mean(w))
+    flow = tuple(pop.flow_velocity_um_per_s)
+    ballistic = tuple((b.speed_um_per_s, b.directions) for b in pop.ballistic)
+    if not ballistic:  # one velocity: exact
+        mean_w = math.sqrt(sum((f / x) ** 2 for f, x in zip(flow, h)))
+    elif len(ballistic) == 1 and not any(flow):  # |v/h| = speed·|d/h|: one sample per direction law and h
+        mean_w = ballistic[0][0] * _mean_scaled_speed((0.0, 0.0, 0.0), ((1.0, ballistic[0][1]),), tuple(h))
+    else:
+        mean_w = _mean_scaled_speed(flow, ballistic, tuple(h))
+    return pop.density_per_um3 * math.pi * math.prod(h) * mean_w
+
+
+@functools.lru_cache(maxsize=256)
+def _mean_scaled_speed(flow: tuple[float, ...], ballistic: tuple[tuple[float, str], ...],
+                       h: tuple[float, float, float]) -> float:
+    """E|v/h| over the fixed-seed sample of the velocity law (cached: sweeps ask for it per cell)."""
+    w = np.linalg.norm(_velocity_sample_of(flow, ballistic) / np.asarray(h, dtype=float), axis=1)
+    return float(np.mean(w))
 
 
 def ellipsoid_entry_bound(pop: Population, h: tuple[float, float, float]) -> float:

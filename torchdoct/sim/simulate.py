@@ -568,9 +568,8 @@ def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: _Draws, times
     group_of = [next(j for j, members in enumerate(groups.values()) if s in members) for s in range(S)]
     for i, (g, M) in enumerate(zip(draws.gens, sizes)):
         rows = slice(i * BLOCK_TRIALS, (i + 1) * BLOCK_TRIALS)
-        pos = torch.rand((3, M), generator=g, dtype=torch.float32).to(device=dev, dtype=dtype)
-        pos.mul_(2.0).sub_(1.0).mul_(half)
-        key = int(torch.randint(0, 2**62, (1,), generator=g))  # the walk's normals: kernel.normals(key, frame, 3M)
+        key = int(torch.randint(0, 2**62, (1,), generator=g))  # the block's counter-based streams (kernel)
+        pos = kernel.uniform_cell(key, M, tuple(pp.domain_half_widths_um)).to(device=dev, dtype=dtype)
         if fused:
             acc = kernel.walk_periodic(pos, n[rows], key, sigmas, tuple(L.flatten().tolist()), list(groups),
                                        group_of, [qs / _TWO_PI for qs in q], log_tol)
@@ -609,7 +608,7 @@ def _walk_periodic_block(pos: torch.Tensor, key: int, M: int, n: torch.Tensor, L
 
     evaluate(0)
     for f in range(1, T):
-        step = kernel.normals(key, f, 3 * M).view(3, M)
+        step = kernel._block_normals(key, f, M)
         pos.add_(step.to(device=dev, dtype=dtype), alpha=sigmas[f - 1])
         torch.mul(pos, inv_L, out=wrap).round_()
         pos.addcmul_(wrap, L, value=-1.0)
