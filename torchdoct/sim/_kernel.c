@@ -413,9 +413,11 @@ static inline double norm_w(double al, double az, double x, double y, double z, 
 CLONES int tdk_path_fields(int32_t N, int64_t C, const double *p, const double *v, const double *t_ref,
                            int64_t comp_stride, int64_t row_stride, int32_t S, const double *q, const double *a_lat,
                            const double *a_ax, int32_t T, const float *times, float log_tol, int64_t *acc) {
-    float *w = malloc(sizeof(float) * (size_t)(5 * C + 1));
-    if (!w) return -1;
+    float *w = malloc(sizeof(float) * (size_t)(10 * C + 2));
+    unsigned char *vis = malloc((size_t)C + 1);
+    if (!w || !vis) { free(w); free(vis); return -1; }
     float *fe = w, *fa = w + C, *ft = w + 2 * C, *fp = w + 3 * C, *fo = w + 4 * C;
+    float *ke = w + 5 * C, *ka = w + 6 * C, *kt = w + 7 * C, *kp = w + 8 * C, *ko = w + 9 * C;
     int64_t NC = comp_stride;
     for (int32_t b = 0; b < N; b++) {
         for (int32_t s = 0; s < S; s++) {
@@ -434,16 +436,36 @@ CLONES int tdk_path_fields(int32_t N, int64_t C, const double *p, const double *
                 ft[c] = (float)(t_ref[i] + shift);
                 fp[c] = (float)(x - floor(x));
                 fo[c] = (float)(vz * qs);
+                vis[c] = 0;
+            }
+            /* a path whose exponent is below the tolerance at every frame adds exactly 0: skip it */
+            for (int32_t f = 0; f < T; f++) {
+                float t = times[f];
+                for (int64_t c = 0; c < C; c++) {
+                    float tau = t - ft[c];
+                    float ex = (tau * tau) * fa[c] + fe[c];
+                    vis[c] |= (ex >= log_tol) & (fe[c] >= log_tol);
+                }
+            }
+            int64_t k = 0;
+            for (int64_t c = 0; c < C; c++) {
+                if (!vis[c]) continue;
+                ke[k] = fe[c];
+                ka[k] = fa[c];
+                kt[k] = ft[c];
+                kp[k] = fp[c];
+                ko[k] = fo[c];
+                k++;
             }
             for (int32_t f = 0; f < T; f++) {
                 float t = times[f];
                 int64_t re = 0, im = 0;
-                for (int64_t c = 0; c < C; c++) {
-                    float tau = t - ft[c];
-                    float ex = (tau * tau) * fa[c] + fe[c];
-                    float amp = (ex >= log_tol && fe[c] >= log_tol) ? exp_neg(ex) : 0.0f;
+                for (int64_t c = 0; c < k; c++) {
+                    float tau = t - kt[c];
+                    float ex = (tau * tau) * ka[c] + ke[c];
+                    float amp = ex >= log_tol ? exp_neg(ex) : 0.0f;
                     float sn, cs;
-                    sincos_turns(tau * fo[c] + fp[c], &sn, &cs);
+                    sincos_turns(tau * ko[c] + kp[c], &sn, &cs);
                     re += quantize(amp * cs);
                     im += quantize(amp * sn);
                 }
@@ -454,6 +476,7 @@ CLONES int tdk_path_fields(int32_t N, int64_t C, const double *p, const double *
         }
     }
     free(w);
+    free(vis);
     return 0;
 }
 

@@ -419,6 +419,10 @@ def _eval_culled(pp: PopulationPlan, pop: Population, p_ref, vel, t_ref, times, 
     ``p_ref``, ``vel``: [3, N, C] (component-major)."""
     N = p_ref.shape[1]
     S = optics.kn.numel()
+    if vel is not None and dtype == torch.float32 and p_ref.device.type == "cpu":
+        # the fused kernel skips, per system, the paths that stay below the tolerance: no culling here
+        return _eval_paths(p_ref, vel, t_ref, times, optics, tuple(range(S)), pop.reflectivity, dtype,
+                           plan.truncation_tolerance)
     out = torch.empty(N, S, times.numel(), dtype=_complex_of(dtype), device=p_ref.device)
     T = float(times[-1])
     for half, idx, _, cap in pp.system_groups:
