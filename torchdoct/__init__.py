@@ -25,7 +25,7 @@ from .image.render import RenderResult, render
 from .sim.scenes import shipped_scenes
 from .sim.simulate import SimulationResult, simulate
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 
 __all__ = [
     "Analysis", "Diffusion", "Flow", "Noise", "OCTSystem", "Population", "Protocol", "RandomBallistic",

@@ -11,11 +11,16 @@ only those that can come within the PSF truncation tolerance are drawn (see :mod
 Design notes:
 
 * All systems of a scene see the same scatterer realization.
-* Randomness: trial ``i`` takes its draws from a ``torch.Generator`` seeded from ``(seed, i // 64)``;
-  every block of 64 trials draws the same sequence whatever the chunk, so results are bit-identical
-  for any ``chunk_trials`` or number of trials. Draws are made in float64 whatever the dtype, so a
-  float32 and a float64 run with one seed simulate the same scatterers.
-* Phases: each scatterer's phase is kept as ``φ₀ = (2kn·z_ref) mod 2π`` plus ``2kn·(z(t) − z_ref)``,
+* Randomness: block ``b`` of 64 trials has a ``torch.Generator`` seeded from ``(seed, b)``, which
+  draws the Poisson counts and one key per population. The periodic walk and the straight paths take
+  every other number from counter-based streams of that key (:mod:`torchdoct.sim.kernel`); static
+  populations, walks with drift and noise draw from the block's generator in float32 (4-5 ns each),
+  made in the same shapes whatever the chunk. So results are bit-identical for any ``chunk_trials``,
+  number of trials or threads, and float32 and float64 runs with one seed simulate the same scatterers.
+* Kernels: in float32 on the CPU the periodic walk and the straight paths run in the fused kernel of
+  :mod:`torchdoct.sim.kernel` (compiled, or its bit-identical torch reference); float64 and other
+  devices use the torch code below with the same draws.
+* Phases (torch code): each scatterer's phase is kept as ``φ₀ = (2kn·z_ref) mod 2π`` plus ``2kn·(z(t) − z_ref)``,
   with the displacement from a reference point computed in float64 (walks with drift) or as
   ``v·(t − t*)`` about the closest approach (straight paths), so float32 keeps sub-milliradian phase
   accuracy at any depth or protocol length. Walks on the periodic cell (pure diffusion) never leave
