@@ -172,8 +172,9 @@ CLONES int tdk_walk_periodic(int64_t M, int32_t n_trials, const int64_t *counts,
     int64_t nmax = 1;
     for (int32_t b = 0; b < n_trials; b++) nmax = counts[b] > nmax ? counts[b] : nmax;
     float *z = malloc(sizeof(float) * (size_t)(nmax + 4));
-    float *amp = malloc(sizeof(float) * (size_t)(nmax + 1));
+    float *amp = malloc(sizeof(float) * (size_t)(3 * nmax + 3));
     if (!z || !amp) { free(z); free(amp); return -1; }
+    float *ka = amp + nmax + 1, *kz = amp + 2 * nmax + 2;
     int64_t i0 = 0;
     for (int32_t b = 0; b < n_trials; b++) {
         int64_t n = counts[b], i1 = i0 + n;
@@ -201,15 +202,23 @@ CLONES int tdk_walk_periodic(int64_t M, int32_t n_trials, const int64_t *counts,
                     float ex = r2 * -al - (pz[i] * pz[i]) * az;
                     amp[i] = ex >= log_tol ? exp_neg(ex) : 0.0f;
                 }
+                /* most of the cell lies outside the PSF: only the scatterers with an amplitude add
+                 * anything (the others add exactly 0), so the phases are evaluated on those alone */
+                int64_t k = 0;
+                for (int64_t i = 0; i < n; i++) {
+                    ka[k] = amp[i];
+                    kz[k] = pz[i];
+                    k += amp[i] != 0.0f;
+                }
                 for (int32_t s = 0; s < S; s++) {
                     if (group_of[s] != g) continue;
                     float qs = q[s];
                     int64_t re = 0, im = 0;
-                    for (int64_t i = 0; i < n; i++) {
+                    for (int64_t i = 0; i < k; i++) {
                         float sn, cs;
-                        sincos_turns(pz[i] * qs, &sn, &cs);
-                        re += quantize(amp[i] * cs);
-                        im += quantize(amp[i] * sn);
+                        sincos_turns(kz[i] * qs, &sn, &cs);
+                        re += quantize(ka[i] * cs);
+                        im += quantize(ka[i] * sn);
                     }
                     int64_t *o = acc + (((int64_t)b * S + s) * T + f) * 2;
                     o[0] = re;
