@@ -181,3 +181,26 @@ def test_float32_and_float64_walks_share_the_realization():
     a = td.simulate(scene, trials=64, seed=9, dtype="float32", threads=1).signals.to(torch.complex128)
     b = td.simulate(scene, trials=64, seed=9, dtype="float64", threads=1).signals
     assert float((a - b).abs().max()) <= 1e-4 * float(b.abs().max())
+
+
+def test_a_source_checkout_builds_the_library_into_the_cache(tmp_path, monkeypatch):
+    """Without an installed extension, the library is built once from _kernel.c into the user cache
+    (and gives the same bits); without a compiler there is nothing to build."""
+    import ctypes
+    import shutil
+
+    monkeypatch.setenv("TORCHDOCT_CACHE", str(tmp_path))
+    if shutil.which("cc") is None and shutil.which("gcc") is None:
+        pytest.skip("no C compiler")
+    path = kernel._build_from_source()
+    assert path is not None and path.parent == tmp_path and path.is_file()
+    assert kernel._build_from_source() == path  # cached: built once
+    lib = ctypes.CDLL(str(path))
+    x = -torch.rand(1000, generator=_gen(8)) * 50.0
+    out = torch.empty_like(x)
+    lib.tdk_exp_neg.argtypes = [ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p]
+    lib.tdk_exp_neg(x.numel(), x.data_ptr(), out.data_ptr())
+    assert torch.equal(out, kernel.exp_neg(x, force_torch=True))
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
+    assert kernel._build_from_source() is None
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no partial file left behind

@@ -8,8 +8,10 @@
  *
  * Units: positions µm, times s, phases in turns (1 turn = 2π rad).
  */
+#ifndef TORCHDOCT_NO_PYTHON
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#endif
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -489,8 +491,11 @@ CLONES int tdk_path_fields(int32_t N, int64_t C, const double *p, const double *
     return 0;
 }
 
-/* A Python module only so that setuptools builds and installs the library; it is used through ctypes. */
+#ifndef TORCHDOCT_NO_PYTHON
+/* A Python module only so that setuptools builds and installs the library; it is used through ctypes.
+ * (kernel.py can also build it as a plain shared library, with TORCHDOCT_NO_PYTHON defined.) */
 static struct PyModuleDef kernel_module = {PyModuleDef_HEAD_INIT, "_kernel",
                                            "Fused float32 simulator kernels (used through ctypes).", -1, NULL};
 
 PyMODINIT_FUNC PyInit__kernel(void) { return PyModule_Create(&kernel_module); }
+#endif

@@ -4,8 +4,9 @@ Two kernels carry almost all the work of the paper's cells: the random walk on t
 (pure diffusion) and the evaluation of straight paths (random-ballistic motion and flow). Each is
 written twice, as the same sequence of IEEE-754 float32 operations:
 
-* in C (``_kernel.c``, compiled when the package is installed): one pass over each scatterer and
-  frame, nothing stored in between;
+* in C (``_kernel.c``, compiled when the package is installed; imported from a source checkout, it is
+  built once with the system's C compiler into the user cache, ``~/.cache/torchdoct`` or
+  ``$TORCHDOCT_CACHE``): one pass over each scatterer and frame, nothing stored in between;
 * in torch (this module): the reference, used when the compiled library is absent
   (``TORCHDOCT_KERNEL=torch`` forces it), and by the tests, which check that both give the same bits.
 
@@ -34,10 +35,15 @@ Phases are in turns (``q = 2n/λ`` turns per µm of depth: the paper's ``2kn``/2
 from __future__ import annotations
 
 import ctypes
+import hashlib
 import math
 import os
+import shutil
+import subprocess
+import tempfile
 import warnings
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -65,22 +71,68 @@ _M64 = (1 << 64) - 1
 # the compiled library
 
 
+#: Compiler flags of the library (setup.py uses the same): every multiply and add a separate IEEE
+#: operation, as in the torch reference.
+CFLAGS = ("-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math", "-std=c11")
+
+
+def _cache_dir() -> Path:
+    base = os.environ.get("TORCHDOCT_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "torchdoct")
+    return Path(base)
+
+
+def _build_from_source() -> Path | None:
+    """The library built from ``_kernel.c`` with the system's C compiler into the user cache (once per
+    source and compiler; written to a temporary name and renamed, so concurrent processes are safe).
+    Used when the package was not built by ``pip install`` (a source checkout on ``sys.path``)."""
+    src = Path(__file__).with_name("_kernel.c")
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    if cc is None or not src.is_file():
+        return None
+    flags = [*CFLAGS, "-DTORCHDOCT_NO_PYTHON", "-shared", "-fPIC"]
+    digest = hashlib.sha256(src.read_bytes() + " ".join([cc, *flags]).encode()).hexdigest()[:16]
+    out = _cache_dir() / f"kernel-{digest}.so"
+    if out.is_file():
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
+    os.close(fd)
+    try:
+        subprocess.run([cc, *flags, str(src), "-o", tmp, "-lm"], check=True, capture_output=True, timeout=300)
+        os.replace(tmp, out)
+    except (OSError, subprocess.SubprocessError):
+        Path(tmp).unlink(missing_ok=True)
+        return None
+    return out
+
+
 @lru_cache(maxsize=1)
 def _library():
-    """The compiled library (ctypes), or None when it was not built or ``TORCHDOCT_KERNEL=torch``."""
+    """The compiled library (ctypes): the installed extension, else one built from source into the
+    user cache; None (the torch reference) when neither exists or ``TORCHDOCT_KERNEL=torch``."""
     if os.environ.get("TORCHDOCT_KERNEL", "").strip().lower() == "torch":
         return None
-    try:
-        from importlib.util import find_spec
+    from importlib.util import find_spec
 
-        spec = find_spec("torchdoct.sim._kernel")
-        if spec is None or not spec.origin:
-            raise ImportError("not built")
-        lib = ctypes.CDLL(spec.origin)
-    except (ImportError, OSError) as exc:
-        warnings.warn(f"torchdoct's compiled kernel is not available ({exc}); the torch reference gives the "
-                      "same numbers, several times more slowly. Reinstall with a C compiler present "
-                      "(`pip install .`) to build it.", RuntimeWarning, stacklevel=3)
+    spec = find_spec("torchdoct.sim._kernel")
+    path = spec.origin if spec is not None and spec.origin else None
+    lib = None
+    for candidate in ([path] if path else []) + ["build"]:
+        try:
+            if candidate == "build":
+                candidate = _build_from_source()
+                if candidate is None:
+                    break
+            lib = ctypes.CDLL(str(candidate))
+            break
+        except OSError:
+            continue
+    if lib is None:
+        warnings.warn("torchdoct's compiled kernel is not available (no built extension and no C compiler to "
+                      "build it); the torch reference gives the same numbers, several times more slowly. Install "
+                      "a C compiler (gcc or clang) and reinstall (`pip install .`) to build it.",
+                      RuntimeWarning, stacklevel=3)
         return None
     p, i64, i32, u64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32, ctypes.c_uint64, ctypes.c_float
     lib.tdk_exp_neg.argtypes = [i64, p, p]
