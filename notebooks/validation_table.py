@@ -47,21 +47,6 @@ def _mi(E):
     return float((E.real ** 2 + E.imag ** 2).mean())
 
 
-def _theory(motion, system, tau):
-    kw = dict(lateral_resolution_um=system.lateral_resolution_um, axial_resolution_um=system.axial_resolution_um)
-    if isinstance(motion, td.Diffusion):
-        D = motion.diffusion_um2_per_s
-        return (th.g1_diffusion(tau, diffusion_um2_per_s=D, wavelength_um=system.wavelength_um, **kw),
-                th.j_diffusion(tau, diffusion_um2_per_s=D, **kw))
-    if isinstance(motion, td.RandomBallistic):
-        v, d = motion.speed_um_per_s, motion.directions
-        return (th.g1_ballistic(tau, speed_um_per_s=v, wavelength_um=system.wavelength_um, directions=d, **kw),
-                th.j_ballistic(tau, speed_um_per_s=v, directions=d, **kw))
-    v, a = motion.speed_um_per_s, motion.polar_angle_deg
-    return (th.g1_flow(tau, speed_um_per_s=v, polar_angle_deg=a, wavelength_um=system.wavelength_um, **kw),
-            th.j_flow(tau, speed_um_per_s=v, polar_angle_deg=a, **kw))
-
-
 def _fmt(z: complex, se_re: float, se_im: float, digits: int, imag: bool) -> str:
     """``re ± se`` or, where the theory is complex (flow), ``re ± im·i (± se)``; minus signs typeset."""
     if imag:
@@ -79,7 +64,7 @@ def main() -> None:
                          populations=(td.Population(density_per_um3=RHO, motion=(motion,)),))
         E = td.simulate(scene, trials=TRIALS, seed=SEED, dtype="float64").signals[:, 0, :]
         ne = n_eff(RHO, system.lateral_resolution_um, system.axial_resolution_um)
-        g_th, j_th = (complex(np.atleast_1d(x)[0]) for x in _theory(motion, system, np.array([lag * DT])))
+        g_th, j_th = (complex(np.atleast_1d(x)[0]) for x in th.g1_and_j(motion, system, np.array([lag * DT])))
         cov_th = abs(g_th) ** 2 + j_th.real / ne
         zs = []
         mi, se, _ = _batch(_mi, E)

@@ -28,21 +28,6 @@ def scene(motion=(), *, systems=(HIGH,), rho=RHO, n_frames=32, dt=DT, noise=None
                     noise=noise, analysis=td.Analysis(metrics=metrics, ocds_delay_range_s=delay))
 
 
-def theory(motion, system, tau):
-    kw = dict(lateral_resolution_um=system.lateral_resolution_um, axial_resolution_um=system.axial_resolution_um)
-    if isinstance(motion, td.Diffusion):
-        D = motion.diffusion_um2_per_s
-        return (th.g1_diffusion(tau, diffusion_um2_per_s=D, wavelength_um=system.wavelength_um, **kw),
-                th.j_diffusion(tau, diffusion_um2_per_s=D, **kw))
-    if isinstance(motion, td.RandomBallistic):
-        v, d = motion.speed_um_per_s, motion.directions
-        return (th.g1_ballistic(tau, speed_um_per_s=v, wavelength_um=system.wavelength_um, directions=d, **kw),
-                th.j_ballistic(tau, speed_um_per_s=v, directions=d, **kw))
-    v, a = motion.speed_um_per_s, motion.polar_angle_deg
-    return (th.g1_flow(tau, speed_um_per_s=v, polar_angle_deg=a, wavelength_um=system.wavelength_um, **kw),
-            th.j_flow(tau, speed_um_per_s=v, polar_angle_deg=a, **kw))
-
-
 CASES = [
     pytest.param(td.Diffusion(diffusion_um2_per_s=0.005), HIGH, id="diffusion-0.005"),
     pytest.param(td.Diffusion(diffusion_um2_per_s=0.5), HIGH, id="diffusion-0.5"),
@@ -77,7 +62,7 @@ def test_mean_intensity_g1_and_intensity_autocorrelation(motion, system, seed):
     c2, se, _ = batch_means(contrast2, E)
     assert_within_se(c2.real, 1 + 1 / ne, se, what="C^2")
     lags = np.array([1, 2, 6])
-    g1_th, j_th = theory(motion, system, lags * DT)
+    g1_th, j_th = th.g1_and_j(motion, system, lags * DT)
     for lag, g, j in zip(lags, np.atleast_1d(g1_th), np.atleast_1d(j_th)):
         est, se_re, se_im = batch_means(g1_at_lag(int(lag)), E)
         assert_within_se(est.real, float(np.real(g)), se_re, what=f"Re g1 lag {lag}")
@@ -91,7 +76,7 @@ def test_finite_scatterer_term_is_resolved():
     motion = td.Diffusion(diffusion_um2_per_s=0.5)
     res = td.simulate(scene((motion,), n_frames=4), trials=4096, seed=3, dtype="float64")
     E = res.signals[:, 0, :]
-    g1_th, j_th = theory(motion, HIGH, np.array([DT]))
+    g1_th, j_th = th.g1_and_j(motion, HIGH, np.array([DT]))
     ne = n_eff(RHO, 4.9, 3.8)
     cov, se, _ = batch_means(cov_at_lag(1), E)
     assert abs(g1_th[0]) < 1e-6  # phases fully decorrelated
@@ -129,7 +114,7 @@ def test_gaussian_limit_liv_curve_for_flow():
     motion = td.Flow(speed_um_per_s=0.5, polar_angle_deg=45.0)
     res = td.simulate(scene((motion,), rho=rho, n_frames=16, delay=(0.2048, 0.6144)), trials=1024, seed=4)
     liv = res.metrics()["liv"][:, 0].double()
-    g1, _ = theory(motion, HIGH, np.arange(1, 16) * DT)
+    g1, _ = th.g1_and_j(motion, HIGH, np.arange(1, 16) * DT)
     ref = th.liv_gaussian_limit(np.abs(g1), 16)
     # the finite-N_eff correction of the flow LIV is O(1/N_eff) of the plateau (< 0.6 dB² here)
     se = float(liv.std() / math.sqrt(liv.numel()))

@@ -235,31 +235,36 @@ CLONES int tdk_walk_periodic(int64_t M, int32_t n_trials, const int64_t *counts,
     return 0;
 }
 
-/* Straight paths (see kernel.eval_straight): per trial b and path c (C slots per trial), the exponent
- * e + a2·τ² and the phase φ + ω·τ (turns) at τ = t_f − t*, counted where the exponent ≥ log_tol:
- * acc[b, f, 0/1] += quantize(exp(exponent)·cos/sin(2π·phase)). Dense over the paths of a trial (one
- * vector loop per frame), which costs less than visiting each path's visible frames only. */
+/* The field of k straight paths at T frames: the exponent e + a2·τ² and the phase φ + ω·τ (turns) at
+ * τ = t_f − t*, counted where both the exponent and e are ≥ log_tol; out[2f], out[2f+1] = Σ quantize(
+ * exp(exponent)·cos/sin(2π·phase)). Dense over the paths (one vector loop per frame). */
+static inline void dense_paths(int64_t k, const float *e, const float *a2, const float *ts, const float *ph,
+                               const float *om, int32_t T, const float *times, float log_tol, int64_t *out) {
+    for (int32_t f = 0; f < T; f++) {
+        float t = times[f];
+        int64_t re = 0, im = 0;
+        for (int64_t c = 0; c < k; c++) {
+            float tau = t - ts[c];
+            float ex = (tau * tau) * a2[c] + e[c];
+            float amp = (ex >= log_tol && e[c] >= log_tol) ? exp_neg(ex) : 0.0f;
+            float sn, cs;
+            sincos_turns(tau * om[c] + ph[c], &sn, &cs);
+            re += quantize(amp * cs);
+            im += quantize(amp * sn);
+        }
+        out[2 * f] = re;
+        out[2 * f + 1] = im;
+    }
+}
+
+/* Straight paths from their float32 coefficients (see kernel.eval_straight): C slots per trial,
+ * acc [n_trials, T, 2]. */
 CLONES void tdk_eval_straight(int32_t n_trials, int64_t C, const float *e, const float *a2, const float *t_star,
                               const float *phi, const float *omega, int32_t T, const float *times, float log_tol,
                               int64_t *acc) {
     for (int32_t b = 0; b < n_trials; b++) {
-        const float *eb = e + (int64_t)b * C, *ab = a2 + (int64_t)b * C, *tb = t_star + (int64_t)b * C;
-        const float *pb = phi + (int64_t)b * C, *ob = omega + (int64_t)b * C;
-        for (int32_t f = 0; f < T; f++) {
-            float t = times[f];
-            int64_t re = 0, im = 0;
-            for (int64_t c = 0; c < C; c++) {
-                float tau = t - tb[c];
-                float ex = (tau * tau) * ab[c] + eb[c];
-                float amp = (ex >= log_tol && eb[c] >= log_tol) ? exp_neg(ex) : 0.0f;
-                float sn, cs;
-                sincos_turns(tau * ob[c] + pb[c], &sn, &cs);
-                re += quantize(amp * cs);
-                im += quantize(amp * sn);
-            }
-            acc[((int64_t)b * T + f) * 2] = re;
-            acc[((int64_t)b * T + f) * 2 + 1] = im;
-        }
+        int64_t o = (int64_t)b * C;
+        dense_paths(C, e + o, a2 + o, t_star + o, phi + o, omega + o, T, times, log_tol, acc + (int64_t)b * T * 2);
     }
 }
 
@@ -468,22 +473,7 @@ CLONES int tdk_path_fields(int32_t N, int64_t C, const double *p, const double *
                 ko[k] = fo[c];
                 k++;
             }
-            for (int32_t f = 0; f < T; f++) {
-                float t = times[f];
-                int64_t re = 0, im = 0;
-                for (int64_t c = 0; c < k; c++) {
-                    float tau = t - kt[c];
-                    float ex = (tau * tau) * ka[c] + ke[c];
-                    float amp = ex >= log_tol ? exp_neg(ex) : 0.0f;
-                    float sn, cs;
-                    sincos_turns(tau * ko[c] + kp[c], &sn, &cs);
-                    re += quantize(amp * cs);
-                    im += quantize(amp * sn);
-                }
-                int64_t *o = acc + (((int64_t)b * S + s) * T + f) * 2;
-                o[0] = re;
-                o[1] = im;
-            }
+            dense_paths(k, ke, ka, kt, kp, ko, T, times, log_tol, acc + ((int64_t)b * S + s) * T * 2);
         }
     }
     free(w);

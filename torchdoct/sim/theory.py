@@ -45,6 +45,7 @@ __all__ = [
     "j_diffusion",
     "j_ballistic",
     "j_flow",
+    "g1_and_j",
     "intensity_autocovariance",
     "intensity_correlation_coefficient",
     "dilog",
@@ -429,6 +430,24 @@ def j_flow(tau_s, *, speed_um_per_s, polar_angle_deg, lateral_resolution_um, axi
 # ----------------------------------------------------------------------------------------------------------
 # intensity correlations (physics.md §5.4, §2.4)
 # ----------------------------------------------------------------------------------------------------------
+def g1_and_j(motion, system, tau_s) -> tuple[np.ndarray, np.ndarray]:
+    """``(g1(τ), j(τ))`` of one motion model seen by one system (physics.md §5.3-5.4): ``motion`` a
+    ``Diffusion``, ``RandomBallistic`` or ``Flow`` and ``system`` an ``OCTSystem`` of
+    :mod:`torchdoct.sim.config` (read by their fields: µm, µm²/s, µm/s, degrees); ``tau_s`` in s."""
+    kw = dict(lateral_resolution_um=system.lateral_resolution_um, axial_resolution_um=system.axial_resolution_um)
+    if hasattr(motion, "diffusion_um2_per_s"):
+        D = motion.diffusion_um2_per_s
+        return (g1_diffusion(tau_s, diffusion_um2_per_s=D, wavelength_um=system.wavelength_um, **kw),
+                j_diffusion(tau_s, diffusion_um2_per_s=D, **kw))
+    if hasattr(motion, "directions"):
+        v, d = motion.speed_um_per_s, motion.directions
+        return (g1_ballistic(tau_s, speed_um_per_s=v, wavelength_um=system.wavelength_um, directions=d, **kw),
+                j_ballistic(tau_s, speed_um_per_s=v, directions=d, **kw))
+    v, a = motion.speed_um_per_s, motion.polar_angle_deg
+    return (g1_flow(tau_s, speed_um_per_s=v, polar_angle_deg=a, wavelength_um=system.wavelength_um, **kw),
+            j_flow(tau_s, speed_um_per_s=v, polar_angle_deg=a, **kw))
+
+
 def _n_eff_arr(n_eff_value) -> np.ndarray:
     return _positive("n_eff_value", n_eff_value, "(scatterers)")
 
