@@ -176,6 +176,13 @@ def _ptr(x: torch.Tensor) -> int:
     return x.data_ptr()
 
 
+def _c_elementwise(fn, x: torch.Tensor, n_out: int) -> tuple[torch.Tensor, ...]:
+    """``fn(n, x, out…)`` of the library on a contiguous float32 ``x``: the ``n_out`` outputs."""
+    outs = tuple(torch.empty_like(x) for _ in range(n_out))
+    fn(x.numel(), _ptr(x), *(_ptr(o) for o in outs))
+    return outs
+
+
 # ---------------------------------------------------------------------------------------------
 # the reference in torch (float32, CPU): every line is one IEEE operation of the C code
 
@@ -202,9 +209,7 @@ def exp_neg(x: torch.Tensor, *, force_torch: bool = False) -> torch.Tensor:
     x = _f32(x)
     lib = _use_c(force_torch)
     if lib is not None:
-        out = torch.empty_like(x)
-        lib.tdk_exp_neg(x.numel(), _ptr(x), _ptr(out))
-        return out
+        return _c_elementwise(lib.tdk_exp_neg, x, 1)[0]
     x = torch.clamp(x, min=_EXP_FLOOR)
     k = _rint(x * _LOG2E)
     r = (x - k * _LN2_HI) - k * _LN2_LO
@@ -217,9 +222,7 @@ def sincos_turns(t: torch.Tensor, *, force_torch: bool = False) -> tuple[torch.T
     t = _f32(t)
     lib = _use_c(force_torch)
     if lib is not None:
-        sn, cs = torch.empty_like(t), torch.empty_like(t)
-        lib.tdk_sincos_turns(t.numel(), _ptr(t), _ptr(sn), _ptr(cs))
-        return sn, cs
+        return _c_elementwise(lib.tdk_sincos_turns, t, 2)
     n = _rint(t * 4.0)
     a = (t - n * 0.25) * _TWO_PI
     a2 = a * a
@@ -238,9 +241,7 @@ def log_pos(u: torch.Tensor, *, force_torch: bool = False) -> torch.Tensor:
     u = _f32(u)
     lib = _use_c(force_torch)
     if lib is not None:
-        out = torch.empty_like(u)
-        lib.tdk_log_pos(u.numel(), _ptr(u), _ptr(out))
-        return out
+        return _c_elementwise(lib.tdk_log_pos, u, 1)[0]
     b = u.view(torch.int32)
     e = ((b >> 23) & 0xFF) - 127
     m = ((b & 0x7FFFFF) | 0x3F800000).view(_F32)
