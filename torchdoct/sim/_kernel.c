@@ -201,17 +201,17 @@ CLONES int tdk_walk_periodic(int64_t M, int32_t n_trials, const int64_t *counts,
                 float al = a_lat[g], az = a_ax[g];
                 for (int64_t i = 0; i < n; i++) {
                     float r2 = px[i] * px[i] + py[i] * py[i];
-                    float ex = r2 * -al - (pz[i] * pz[i]) * az;
-                    amp[i] = ex >= log_tol ? exp_neg(ex) : 0.0f;
+                    amp[i] = r2 * -al - (pz[i] * pz[i]) * az; /* the exponent, for now */
                 }
-                /* most of the cell lies outside the PSF: only the scatterers with an amplitude add
-                 * anything (the others add exactly 0), so the phases are evaluated on those alone */
+                /* most of the cell lies outside the PSF: only the scatterers above the tolerance add
+                 * anything (the others add exactly 0), so amplitudes and phases are evaluated on those */
                 int64_t k = 0;
                 for (int64_t i = 0; i < n; i++) {
                     ka[k] = amp[i];
                     kz[k] = pz[i];
-                    k += amp[i] != 0.0f;
+                    k += amp[i] >= log_tol;
                 }
+                for (int64_t i = 0; i < k; i++) ka[i] = exp_neg(ka[i]);
                 for (int32_t s = 0; s < S; s++) {
                     if (group_of[s] != g) continue;
                     float qs = q[s];

@@ -262,6 +262,13 @@ def periodic_cell(psf_half_widths_um, optics, diffusion_um2_per_s: float, times_
     return tuple(h + hi for h in H), b
 
 
+@functools.lru_cache(maxsize=256)
+def _periodic_cell_cached(psf_half_widths_um, optics, diffusion_um2_per_s, times_s, w_intensity, w_field, target):
+    """:func:`periodic_cell` remembered per argument set (a bisection of a dozen bound evaluations, several ms:
+    repeated simulations of one scene, and sweeps that revisit a value, pay it once)."""
+    return periodic_cell(psf_half_widths_um, optics, diffusion_um2_per_s, times_s, w_intensity, w_field, target)
+
+
 @dataclass(frozen=True)
 class PopulationPlan:
     """How one population is simulated (lengths µm, times s)."""
@@ -442,7 +449,8 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Pla
             w_field = rho * p.reflectivity**2 / mean_b2
             optics = [(amplitude_sigma_lateral_um(s.lateral_resolution_um), amplitude_sigma_axial_um(s.axial_resolution_um),
                        2.0 * wavenumber_per_um(s.wavelength_um, s.refractive_index)) for s in scene.systems]
-            cell, bound = periodic_cell(H, optics, D, protocol.times_s, w_int, w_field, wrap_tolerance(tol))
+            cell, bound = _periodic_cell_cached(tuple(H), tuple(optics), D, tuple(protocol.times_s), w_int, w_field,
+                                                wrap_tolerance(tol))
             n = rho * _box_volume(cell)
             evals = n * n_frames * S  # every scatterer of the cell, every frame, every system
             pops.append(PopulationPlan(i, p.name, "diffusive", motions, rho, cell, n, capacity(n), True, evals,
