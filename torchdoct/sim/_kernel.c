@@ -160,6 +160,44 @@ CLONES void tdk_normals(uint64_t key, int64_t frame, int32_t comp, int64_t n, fl
     }
 }
 
+
+/* Compaction of the scatterers above the tolerance: (ex[i], z[i]) for ex[i] >= log_tol, in order.
+ * Exact (a copy); with AVX-512 by compress-stores, else a scalar loop. */
+static int64_t compact_scalar(int64_t n, const float *ex, const float *z, float log_tol, float *kex, float *kz) {
+    int64_t k = 0;
+    for (int64_t i = 0; i < n; i++) {
+        kex[k] = ex[i];
+        kz[k] = z[i];
+        k += ex[i] >= log_tol;
+    }
+    return k;
+}
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#include <immintrin.h>
+__attribute__((target("avx512f"))) static int64_t compact_avx512(int64_t n, const float *ex, const float *z,
+                                                                  float log_tol, float *kex, float *kz) {
+    int64_t k = 0, i = 0;
+    __m512 tol = _mm512_set1_ps(log_tol);
+    for (; i + 16 <= n; i += 16) {
+        __m512 e = _mm512_loadu_ps(ex + i);
+        __mmask16 m = _mm512_cmp_ps_mask(e, tol, _CMP_GE_OQ);
+        _mm512_mask_compressstoreu_ps(kex + k, m, e);
+        _mm512_mask_compressstoreu_ps(kz + k, m, _mm512_loadu_ps(z + i));
+        k += __builtin_popcount((unsigned)m);
+    }
+    return k + compact_scalar(n - i, ex + i, z + i, log_tol, kex + k, kz + k);
+}
+static int64_t (*compact_fn)(int64_t, const float *, const float *, float, float *, float *) = 0;
+static int64_t compact(int64_t n, const float *ex, const float *z, float log_tol, float *kex, float *kz) {
+    if (!compact_fn) compact_fn = __builtin_cpu_supports("avx512f") ? compact_avx512 : compact_scalar;
+    return compact_fn(n, ex, z, log_tol, kex, kz);
+}
+#else
+static int64_t compact(int64_t n, const float *ex, const float *z, float log_tol, float *kex, float *kz) {
+    return compact_scalar(n, ex, z, log_tol, kex, kz);
+}
+#endif
+
 /* Pure diffusion on the periodic cell, one block of trials (see kernel.walk_periodic).
  *   M scatterers laid out trial after trial (counts[b] each; block index i), pos [3, M] (µm, updated);
  *   frame f ≥ 1: pos_c[i] += sigma[f−1]·z (tdk_normals(key, f, c, ·)[i]), then pos −= L·rint(pos/L);
@@ -205,12 +243,7 @@ CLONES int tdk_walk_periodic(int64_t M, int32_t n_trials, const int64_t *counts,
                 }
                 /* most of the cell lies outside the PSF: only the scatterers above the tolerance add
                  * anything (the others add exactly 0), so amplitudes and phases are evaluated on those */
-                int64_t k = 0;
-                for (int64_t i = 0; i < n; i++) {
-                    ka[k] = amp[i];
-                    kz[k] = pz[i];
-                    k += amp[i] >= log_tol;
-                }
+                int64_t k = compact(n, amp, pz, log_tol, ka, kz);
                 for (int64_t i = 0; i < k; i++) ka[i] = exp_neg(ka[i]);
                 for (int32_t s = 0; s < S; s++) {
                     if (group_of[s] != g) continue;
