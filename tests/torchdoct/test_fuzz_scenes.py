@@ -300,7 +300,9 @@ def test_binary_or_corrupted_scene_files_give_one_error_line(tmp_path, capsys, c
 def test_device_strings_give_one_error_line(tmp_path, capsys, device):
     path = tmp_path / "scene.toml"
     path.write_text(SMALL_SCENE_TOML, encoding="utf-8")
-    code = main(["simulate", str(path), "--trials", "2", "--no-progress", "--device", device])
+    # ``--device=VALUE``: any string reaches the device check (``--device -x`` would be argparse's
+    # usage error for a missing value, tested in test_cli)
+    code = main(["simulate", str(path), "--trials", "2", "--no-progress", f"--device={device}"])
     captured = capsys.readouterr()
     if code != 0:
         assert code == 2 and captured.err.startswith("error: ") and captured.err.count("\n") == 1, captured.err
