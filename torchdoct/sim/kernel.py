@@ -8,7 +8,8 @@ written twice, as the same sequence of IEEE-754 float32 operations:
   built once with the system's C compiler into the user cache, ``~/.cache/torchdoct`` or
   ``$TORCHDOCT_CACHE``): one pass over each scatterer and frame, nothing stored in between;
 * in torch (this module): the reference, used when the compiled library is absent
-  (``TORCHDOCT_KERNEL=torch`` forces it), and by the tests, which check that both give the same bits.
+  (``TORCHDOCT_KERNEL=torch`` forces it; 20-40 times slower), and by the tests, which check that both
+  give the same bits.
 
 What makes the two agree to the last bit:
 
@@ -135,7 +136,7 @@ def _library():
             continue
     if lib is None:
         warnings.warn("torchdoct's compiled kernel is not available (no built extension and no C compiler to "
-                      "build it); the torch reference gives the same numbers, several times more slowly. Install "
+                      "build it); the torch reference gives the same numbers, 20-40 times more slowly. Install "
                       "a C compiler (gcc or clang) and reinstall (`pip install .`) to build it.",
                       RuntimeWarning, stacklevel=3)
         return None
