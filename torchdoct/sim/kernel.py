@@ -291,9 +291,9 @@ def normals(key: int, frame: int, comp: int, n: int, *, force_torch: bool = Fals
     return torch.stack([r * cs, r * sn], dim=1).reshape(-1)[:n]
 
 
-def _block_normals(key: int, frame: int, M: int) -> torch.Tensor:
+def _block_normals(key: int, frame: int, M: int, *, force_torch: bool = False) -> torch.Tensor:
     """The walk's normals [3, M] of a block's scatterers at ``frame`` (as :func:`walk_periodic` draws them)."""
-    return torch.stack([normals(key, frame, c, M) for c in range(3)])
+    return torch.stack([normals(key, frame, c, M, force_torch=force_torch) for c in range(3)])
 
 
 def _quantize(v: torch.Tensor) -> torch.Tensor:
@@ -348,7 +348,7 @@ def walk_periodic(pos: torch.Tensor, counts: torch.Tensor, key: int, sigmas: lis
     log_tol32 = float(np.float32(log_tol))
     for f in range(T):
         if f > 0:
-            z = torch.stack([normals(key, f, c, M, force_torch=True) for c in range(3)])
+            z = _block_normals(key, f, M, force_torch=True)
             v = pos + z * float(np.float32(sigmas[f - 1]))
             w = _rint(v * iLv)
             pos.copy_(v - w * Lv)

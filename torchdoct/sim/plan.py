@@ -87,12 +87,6 @@ def _face_areas(h: tuple[float, float, float]) -> list[tuple[int, float]]:
     return out
 
 
-def _velocity_sample(pop: Population) -> np.ndarray:
-    """A fixed-seed sample [n, 3] of the population's drift velocity law (µm/s), for plan figures."""
-    return _velocity_sample_of(tuple(pop.flow_velocity_um_per_s),
-                               tuple((b.speed_um_per_s, b.directions) for b in pop.ballistic))
-
-
 @functools.lru_cache(maxsize=16)
 def _velocity_sample_of(flow: tuple[float, ...], ballistic: tuple[tuple[float, str], ...],
                         n_samples: int = 200_000) -> np.ndarray:
@@ -109,51 +103,47 @@ def _velocity_sample_of(flow: tuple[float, ...], ballistic: tuple[tuple[float, s
     return v
 
 
-def expected_entry_flux(pop: Population, h: tuple[float, float, float]) -> float:
-    """Expected number of paths entering box ``h`` per unit time: ``ρ Σ_f A_f E[(−v·m_f)₊]``
-    (expectation over a fixed-seed sample of the velocity law; a plan figure)."""
-    # both faces normal to axis a: E[(v_a)_-] + E[(v_a)_+] = E|v_a|
-    return pop.density_per_um3 * sum(area * m for (_, area), m in zip(_face_areas(h), _mean_abs_velocity(pop)))
+def _mean_abs_components(v: np.ndarray, h: tuple[float, float, float]) -> np.ndarray:
+    """E|v_a| per axis (µm/s) over the velocity rows ``v``."""
+    return np.array([np.mean(np.abs(v[:, a])) for a in range(3)])
 
 
-def _mean_abs_velocity(pop: Population) -> tuple[float, float, float]:
-    """E|v_a| per axis (µm/s): exact for one velocity; ``speed·E|d_a|`` for one ballistic law alone;
-    else over the fixed-seed sample."""
-    flow = tuple(pop.flow_velocity_um_per_s)
-    ballistic = tuple((b.speed_um_per_s, b.directions) for b in pop.ballistic)
-    if not ballistic:
-        return tuple(abs(f) for f in flow)
-    if len(ballistic) == 1 and not any(flow):
-        return tuple(ballistic[0][0] * m for m in _mean_abs_sample((0.0, 0.0, 0.0), ((1.0, ballistic[0][1]),)))
-    return _mean_abs_sample(flow, ballistic)
+def _mean_scaled_speed(v: np.ndarray, h: tuple[float, float, float]) -> float:
+    """E|v/h| over the velocity rows ``v`` (1/s)."""
+    return float(np.mean(np.linalg.norm(v / np.asarray(h, dtype=float), axis=1)))
 
 
 @functools.lru_cache(maxsize=256)
-def _mean_abs_sample(flow: tuple[float, ...], ballistic: tuple[tuple[float, str], ...]) -> tuple[float, float, float]:
-    v = _velocity_sample_of(flow, ballistic)
-    return tuple(float(np.mean(np.abs(v[:, a]))) for a in range(3))
+def _sample_mean(stat, flow: tuple[float, ...], ballistic: tuple[tuple[float, str], ...], h: tuple[float, float, float]):
+    """``stat`` over the fixed-seed sample of a velocity law (cached: sweeps ask for it per cell)."""
+    return stat(_velocity_sample_of(flow, ballistic), h)
+
+
+def _law_mean(pop: Population, stat, h: tuple[float, float, float] = (1.0, 1.0, 1.0)):
+    """``stat`` (homogeneous of degree 1 in v) over the population's velocity law: exact for one
+    velocity; ``speed·stat(d)`` for one ballistic law alone (one sample per direction law); else over
+    the fixed-seed sample."""
+    flow = tuple(pop.flow_velocity_um_per_s)
+    ballistic = tuple((b.speed_um_per_s, b.directions) for b in pop.ballistic)
+    if not ballistic:
+        return stat(np.asarray([flow], dtype=float), h)
+    if len(ballistic) == 1 and not any(flow):
+        return ballistic[0][0] * _sample_mean(stat, (0.0, 0.0, 0.0), ((1.0, ballistic[0][1]),), tuple(h))
+    return _sample_mean(stat, flow, ballistic, tuple(h))
+
+
+def expected_entry_flux(pop: Population, h: tuple[float, float, float]) -> float:
+    """Expected number of paths entering box ``h`` per unit time: ``ρ Σ_f A_f E[(−v·m_f)₊]``
+    (expectation over the velocity law, :func:`_law_mean`; a plan figure)."""
+    # both faces normal to axis a: E[(v_a)_-] + E[(v_a)_+] = E|v_a|
+    m = _law_mean(pop, _mean_abs_components)
+    return pop.density_per_um3 * sum(area * float(m[a]) for a, area in _face_areas(h))
 
 
 def ellipsoid_entry_rate(pop: Population, h: tuple[float, float, float]) -> float:
     """Expected number of paths entering the ellipsoid of semi-axes ``h`` per unit time:
-    ``ρ·π·hx·hy·hz·E|v/h|`` (see the module docstring; expectation over a fixed-seed sample)."""
-    flow = tuple(pop.flow_velocity_um_per_s)
-    ballistic = tuple((b.speed_um_per_s, b.directions) for b in pop.ballistic)
-    if not ballistic:  # one velocity: exact
-        mean_w = math.sqrt(sum((f / x) ** 2 for f, x in zip(flow, h)))
-    elif len(ballistic) == 1 and not any(flow):  # |v/h| = speed·|d/h|: one sample per direction law and h
-        mean_w = ballistic[0][0] * _mean_scaled_speed((0.0, 0.0, 0.0), ((1.0, ballistic[0][1]),), tuple(h))
-    else:
-        mean_w = _mean_scaled_speed(flow, ballistic, tuple(h))
-    return pop.density_per_um3 * math.pi * math.prod(h) * mean_w
-
-
-@functools.lru_cache(maxsize=256)
-def _mean_scaled_speed(flow: tuple[float, ...], ballistic: tuple[tuple[float, str], ...],
-                       h: tuple[float, float, float]) -> float:
-    """E|v/h| over the fixed-seed sample of the velocity law (cached: sweeps ask for it per cell)."""
-    w = np.linalg.norm(_velocity_sample_of(flow, ballistic) / np.asarray(h, dtype=float), axis=1)
-    return float(np.mean(w))
+    ``ρ·π·hx·hy·hz·E|v/h|`` (see the module docstring; expectation over the velocity law, :func:`_law_mean`)."""
+    return pop.density_per_um3 * math.pi * math.prod(h) * _law_mean(pop, _mean_scaled_speed, tuple(h))
 
 
 def ellipsoid_entry_bound(pop: Population, h: tuple[float, float, float]) -> float:

@@ -575,13 +575,13 @@ def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: _Draws, times
     out = torch.zeros(N, S, T, dtype=_complex_of(dtype), device=dev)
     fused = dtype == torch.float32 and dev.type == "cpu"
     group_of = [next(j for j, members in enumerate(groups.values()) if s in members) for s in range(S)]
-    for i, (g, M) in enumerate(zip(draws.gens, sizes)):
+    cell, psf_groups, q_turns = tuple(L.flatten().tolist()), list(groups), [qs / _TWO_PI for qs in q]
+    # each block's key seeds its counter-based streams (kernel)
+    for i, (key, M) in enumerate(zip(draws.keys(), sizes)):
         rows = slice(i * BLOCK_TRIALS, (i + 1) * BLOCK_TRIALS)
-        key = int(torch.randint(0, 2**62, (1,), generator=g))  # the block's counter-based streams (kernel)
         pos = kernel.uniform_cell(key, M, tuple(pp.domain_half_widths_um)).to(device=dev, dtype=dtype)
         if fused:
-            acc = kernel.walk_periodic(pos, n[rows], key, sigmas, tuple(L.flatten().tolist()), list(groups),
-                                       group_of, [qs / _TWO_PI for qs in q], log_tol)
+            acc = kernel.walk_periodic(pos, n[rows], key, sigmas, cell, psf_groups, group_of, q_turns, log_tol)
             field = kernel.sums_to_field(acc)
             out[rows] = field * refl if refl != 1.0 else field
         else:
