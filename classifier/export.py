@@ -83,27 +83,36 @@ def onnx_model(model, metadata: dict[str, Any]):
     from onnx import TensorProto, helper, numpy_helper
     from torch import nn
 
-    from .model import LIV_OFFSET_DB2
+    from .model import DECORRELATION_OFFSET, LIV_OFFSET_DB2
 
+    # Step 1 in one pass over the columns: u = max(sign·x + shift, floor) + offset, log where a column is
+    # transformed: LIV log(max(x, 0) + 0.01), correlations log(max(1 − x, 0) + 0.001), pool_pixels
+    # log(max(x, 1)) (classifier.model.MotionClassifier.transform; the per-column vectors encode the masks).
     width = model.n_features + 1
+    liv = model.liv_mask.cpu().numpy().astype(bool)
+    corr = model.corr_mask.cpu().numpy().astype(bool)
+    pool = model.pool_mask.cpu().numpy().astype(bool)
+    sign = np.where(corr, -1.0, 1.0).astype(np.float32)
+    shift = np.where(corr, 1.0, 0.0).astype(np.float32)
+    floor = np.where(pool, 1.0, 0.0).astype(np.float32)
+    offset = np.select([liv, corr], [LIV_OFFSET_DB2, DECORRELATION_OFFSET], 0.0).astype(np.float32)
     inits = [
-        numpy_helper.from_array(np.array(0.0, np.float32), "zero"),
-        numpy_helper.from_array(np.array(1.0, np.float32), "one"),
-        numpy_helper.from_array(np.array(LIV_OFFSET_DB2, np.float32), "liv_offset"),
-        numpy_helper.from_array(model.liv_mask.cpu().numpy().astype(bool), "liv_mask"),
-        numpy_helper.from_array(model.pool_mask.cpu().numpy().astype(bool), "pool_mask"),
+        numpy_helper.from_array(sign, "t_sign"),
+        numpy_helper.from_array(shift, "t_shift"),
+        numpy_helper.from_array(floor, "t_floor"),
+        numpy_helper.from_array(offset, "t_offset"),
+        numpy_helper.from_array(liv | corr | pool, "t_log"),
         numpy_helper.from_array(_np(model.feature_mean), "feature_mean"),
         numpy_helper.from_array(_np(model.feature_scale), "feature_scale"),
         numpy_helper.from_array(np.array(float(model.temperature), np.float32), "temperature"),
     ]
     nodes = [
-        helper.make_node("Max", ["features", "zero"], ["x_pos"]),
-        helper.make_node("Add", ["x_pos", "liv_offset"], ["x_off"]),
-        helper.make_node("Log", ["x_off"], ["liv_log"]),
-        helper.make_node("Max", ["features", "one"], ["x_ge1"]),
-        helper.make_node("Log", ["x_ge1"], ["pool_log"]),
-        helper.make_node("Where", ["pool_mask", "pool_log", "features"], ["t_pool"]),
-        helper.make_node("Where", ["liv_mask", "liv_log", "t_pool"], ["t"]),
+        helper.make_node("Mul", ["features", "t_sign"], ["x_signed"]),
+        helper.make_node("Add", ["x_signed", "t_shift"], ["x_shifted"]),
+        helper.make_node("Max", ["x_shifted", "t_floor"], ["x_floored"]),
+        helper.make_node("Add", ["x_floored", "t_offset"], ["x_offset"]),
+        helper.make_node("Log", ["x_offset"], ["x_log"]),
+        helper.make_node("Where", ["t_log", "x_log", "features"], ["t"]),
         helper.make_node("Sub", ["t", "feature_mean"], ["t_c"]),
         helper.make_node("Div", ["t_c", "feature_scale"], ["h0"]),
     ]
@@ -217,16 +226,21 @@ def model_from_onnx(path):
     proto = onnx.load(str(path))
     init = {t.name: np.array(numpy_helper.to_array(t)) for t in proto.graph.initializer}
     n_layers = sum(1 for name in init if name.startswith("w"))
-    if n_layers < 1 or "liv_mask" not in init:
+    if n_layers < 1 or not ("t_sign" in init or "liv_mask" in init):
         raise ValueError(f"{path}: not a model written by classifier.export")
     weights = [init[f"w{i}"] for i in range(n_layers)]
-    liv_mask = init["liv_mask"].astype(bool)
+    if "t_sign" in init:  # the per-column transform vectors of onnx_model
+        corr_mask = init["t_sign"] < 0
+        liv_mask = init["t_log"].astype(bool) & ~corr_mask & (init["t_floor"] == 0)
+    else:  # files of the earlier graph: masks as initializers
+        liv_mask = init["liv_mask"].astype(bool)
+        corr_mask = init["corr_mask"].astype(bool) if "corr_mask" in init else np.zeros_like(liv_mask)
     width = liv_mask.size
     hidden = [w.shape[0] for w in weights[:-1]]
     k = init["mag_mean_w"].shape[0] if "mag_mean_w" in init else 0
     with torch.random.fork_rng(devices=[]):  # the initial weights are overwritten; keep the global RNG untouched
         model = MotionClassifier(width - 1, weights[-1].shape[0], np.flatnonzero(liv_mask[:-1]).tolist(), hidden,
-                                 n_magnitude=k)
+                                 n_magnitude=k, correlation_columns=np.flatnonzero(corr_mask[:-1]).tolist())
     with torch.no_grad():
         model.feature_mean.copy_(torch.from_numpy(init["feature_mean"]))
         model.feature_scale.copy_(torch.from_numpy(init["feature_scale"]))

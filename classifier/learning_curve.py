@@ -137,7 +137,7 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
     from .dataset import STATUS, Prior, make_dataset
     from .features import load_spec
     from .rule import make_rule
-    from .train import CLASS_NAMES, TrainConfig, _log_columns, _targets, _test_sets, fit_network, transform_numpy
+    from .train import CLASS_NAMES, TrainConfig, _masks, _targets, _test_sets, fit_network, transform_numpy
 
     say = log or (lambda *a, **k: None)
     sizes, n_max = _check_sizes(sizes, draws_max)
@@ -169,8 +169,7 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
     ev_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))  # as doct-train
     tests, _ = _test_sets(data["test"], cfg, spec, ev_rng)
     tests = {p: tests[p] for p in _POOLS if p in tests}
-    mask = np.zeros(spec.n_features + 1, bool)
-    mask[_log_columns(spec)] = True
+    mask, cmask = _masks(spec)
 
     rows: list[dict[str, Any]] = []
     probs: dict[int, dict[str, np.ndarray]] = {}
@@ -207,12 +206,12 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
             sub = np.sort(rng.choice(len(s0["x"]), min(gb_pixels, len(s0["x"])), replace=False))
             t0 = time.perf_counter()
             gb = HistGradientBoostingClassifier(max_iter=300, random_state=cfg.seed)
-            gb.fit(transform_numpy(s0["x"][sub], mask), _targets(s0)[sub])
+            gb.fit(transform_numpy(s0["x"][sub], mask, cmask), _targets(s0)[sub])
             gbr: dict[str, Any] = {"training_s": time.perf_counter() - t0, "pixels": int(len(sub)),
                                    "iterations": int(gb.n_iter_)}
             full = np.eye(len(CLASS_NAMES))[gb.classes_]  # a class absent from the samples: p = 0
             for pool, s in tests.items():
-                gbr[pool] = _metrics(gb.predict_proba(transform_numpy(s["x"], mask)) @ full, s, rule, cfg.seed)
+                gbr[pool] = _metrics(gb.predict_proba(transform_numpy(s["x"], mask, cmask)) @ full, s, rule, cfg.seed)
             row["gradient_boosting"] = gbr
             say(f"{n} draws: gradient boosting on {len(sub)} samples, {gbr['training_s']:.0f} s; "
                 + "; ".join(f"pool {p}: balanced accuracy {gbr[p]['balanced_accuracy_identifiable']:.3f}"

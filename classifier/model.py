@@ -6,7 +6,14 @@ pixel; ``doct-classify --pool N`` sets it, see :mod:`classifier.infer`). Everyth
 needs to see raw features lives inside it, so the ONNX file is self-contained:
 
 1. fixed transforms: ``log(max(LIV, 0) + 0.01 dB²)`` (LIV spans six decades between a nearly
-   static and a fully decorrelated pixel), OCDS unchanged, ``log(pool_pixels)``;
+   static and a fully decorrelated pixel), OCDS unchanged, ``log(pool_pixels)``; for the
+   correlation coefficients of the decorrelation signature (``rho_lin_m``, ``rho_db_m``, ``g1_m``,
+   :mod:`torchdoct.sim.signature`) the log decorrelation ``log(max(1 − ρ, 0) + 0.001)``. At short
+   delays ``1 − ρ_I(τ)`` grows as ``τ`` for diffusion (``|g1|² = exp(−2q²Dτ)``) and as ``τ²`` for
+   random-ballistic motion and flow (Gaussian transit and Doppler terms; physics.md §5.3-5.4), and a
+   resolution change scales flow's transit time only: on this scale the motion type is a slope
+   against ``log m`` and the resolution dependence an offset between configurations, both linear
+   in the inputs (measured gain: classifier/README.md);
 2. standardisation with the training set's mean and SD (buffers);
 3. ``Linear → ReLU`` hidden layers, a linear output layer;
 4. a temperature (buffer, fitted on the validation split after training) and softmax.
@@ -27,36 +34,45 @@ from typing import Sequence
 import torch
 from torch import nn
 
-__all__ = ["MotionClassifier", "LIV_OFFSET_DB2"]
+__all__ = ["MotionClassifier", "LIV_OFFSET_DB2", "DECORRELATION_OFFSET"]
 
 #: Offset (dB²) inside the LIV log transform: below it, LIV differences carry no weight.
 LIV_OFFSET_DB2 = 0.01
+#: Offset inside the log decorrelation ``log(max(1 − ρ, 0) + offset)`` of correlation features.
+DECORRELATION_OFFSET = 1e-3
 
 
 class MotionClassifier(nn.Module):
     """``features [N, F+1] → probabilities [N, C]`` (module docstring).
 
-    ``log_columns``: indices of the LIV features (log-transformed); ``n_features`` counts the spec's
-    features (the ``pool_pixels`` column comes on top).
+    ``log_columns``: indices of the LIV features (log-transformed); ``correlation_columns``: indices
+    of the correlation coefficients (log decorrelation); ``n_features`` counts the spec's features
+    (the ``pool_pixels`` column comes on top).
     """
 
     def __init__(self, n_features: int, n_classes: int, log_columns: Sequence[int],
-                 hidden: Sequence[int] = (64, 64), n_magnitude: int = 0):
+                 hidden: Sequence[int] = (64, 64), n_magnitude: int = 0,
+                 correlation_columns: Sequence[int] = ()):
         super().__init__()
         if n_features < 1 or n_classes < 2:
             raise ValueError(f"need n_features >= 1 and n_classes >= 2; got {n_features}, {n_classes}")
         width = n_features + 1
         mask = torch.zeros(width, dtype=torch.bool)
-        for c in log_columns:
-            if not 0 <= int(c) < n_features:
-                raise ValueError(f"log column {c} is outside the {n_features} features")
-            mask[int(c)] = True
+        corr = torch.zeros(width, dtype=torch.bool)
+        for m, cols in ((mask, log_columns), (corr, correlation_columns)):
+            for c in cols:
+                if not 0 <= int(c) < n_features:
+                    raise ValueError(f"log column {c} is outside the {n_features} features")
+                if mask[int(c)] or corr[int(c)]:
+                    raise ValueError(f"column {c} is both a LIV and a correlation column")
+                m[int(c)] = True
         pool = torch.zeros(width, dtype=torch.bool)
         pool[-1] = True
         self.n_features = int(n_features)
         self.n_classes = int(n_classes)
         self.hidden = tuple(int(h) for h in hidden)
         self.register_buffer("liv_mask", mask)
+        self.register_buffer("corr_mask", corr)
         self.register_buffer("pool_mask", pool)
         self.register_buffer("feature_mean", torch.zeros(width))
         self.register_buffer("feature_scale", torch.ones(width))
@@ -81,7 +97,10 @@ class MotionClassifier(nn.Module):
                              f"got {tuple(x.shape)}")
         liv = torch.log(torch.clamp(x, min=0.0) + LIV_OFFSET_DB2)
         pool = torch.log(torch.clamp(x, min=1.0))
-        return torch.where(self.liv_mask, liv, torch.where(self.pool_mask, pool, x))
+        t = torch.where(self.liv_mask, liv, torch.where(self.pool_mask, pool, x))
+        if bool(self.corr_mask.any()):
+            t = torch.where(self.corr_mask, torch.log(torch.clamp(1.0 - x, min=0.0) + DECORRELATION_OFFSET), t)
+        return t
 
     def set_normalization(self, x: torch.Tensor) -> None:
         """Store mean and SD of the transformed training features (SD floored at 1e-6)."""

@@ -10,7 +10,7 @@ import torch
 
 from classifier.export import METADATA_KEY, OPSET, model_from_onnx, onnx_model, onnx_parity
 from classifier.infer import load_model
-from classifier.model import LIV_OFFSET_DB2, MotionClassifier
+from classifier.model import DECORRELATION_OFFSET, LIV_OFFSET_DB2, MotionClassifier
 
 
 def _model(seed: int = 0) -> MotionClassifier:
@@ -86,6 +86,42 @@ def test_onnx_graph_metadata_and_parity(tmp_path):
     with torch.no_grad():
         assert float(np.abs(p - m(torch.from_numpy(x)).numpy()).max()) <= 1e-5
     assert loaded.classes == _metadata()["output"]["classes"]
+
+
+def test_correlation_columns_read_as_log_decorrelation(tmp_path):
+    """Correlation coefficients enter as log(max(1 - rho, 0) + offset): a slope against log(lag) of 1 for
+    an exponential decay (diffusion), 2 for a Gaussian one (ballistic, flow); the same in ONNX."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(2)
+        m = MotionClassifier(4, 4, [3], hidden=(8,), correlation_columns=[0, 1])
+    with pytest.raises(ValueError, match="both"):
+        MotionClassifier(4, 4, [1], correlation_columns=[1])
+    lag = torch.tensor([1.0, 2.0, 4.0, 8.0])
+    for power in (1.0, 2.0):
+        rho = 1.0 - 1e-2 * (lag / 8.0) ** power  # 1 - rho from 1e-2/8^p to 1e-2: above the offset's scale
+        x = torch.stack([rho, rho, torch.zeros(4), torch.ones(4), torch.ones(4)], 1)
+        t = m.transform(x)[:, 0].double()
+        slope = np.polyfit(np.log(lag.numpy()), t.numpy(), 1)[0]
+        big = (1e-2 * (lag / 8.0) ** power).double()
+        np.testing.assert_allclose(t.numpy(), np.log(big.numpy() + DECORRELATION_OFFSET), rtol=1e-5)
+        assert slope == pytest.approx(power * float(np.mean((big / (big + DECORRELATION_OFFSET)).numpy())), rel=0.25)
+    x = torch.tensor([[1.0, 1.2, 0.5, 3.0, 1.0], [-0.4, 0.0, 0.5, -1.0, 4.0]])
+    t = m.transform(x)
+    np.testing.assert_allclose(t[:, :2], np.log(np.clip(1.0 - x[:, :2].numpy(), 0, None) + DECORRELATION_OFFSET),
+                               rtol=1e-6)  # rho >= 1 (a static pixel) sits at log(offset)
+    np.testing.assert_array_equal(t[:, 2], x[:, 2])
+    path = tmp_path / "c.onnx"
+    path.write_bytes(onnx_model(m.eval(), {**_metadata(), "input": {"columns": [{"name": n} for n in (
+        "rho_lin_1@a", "rho_lin_2@a", "lin_contrast@a", "db_variance@a", "pool_pixels")]}}).SerializeToString())
+    rng = np.random.default_rng(0)
+    xs = np.concatenate([rng.uniform(-0.3, 1.0, (2000, 3)), rng.uniform(0, 40, (2000, 1)),
+                         rng.integers(1, 49, (2000, 1))], 1).astype(np.float32)
+    xs[:5, :2] = 1.0
+    assert onnx_parity(m, path, xs) <= 1e-5
+    back = model_from_onnx(path)
+    assert back.corr_mask.tolist() == m.corr_mask.tolist()
+    with torch.no_grad():
+        np.testing.assert_array_equal(back(torch.from_numpy(xs)).numpy(), m(torch.from_numpy(xs)).numpy())
 
 
 def test_load_model_refuses_foreign_files(tmp_path):
