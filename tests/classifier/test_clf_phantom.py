@@ -8,11 +8,11 @@ v = 0.01, 0.05, 0.3 µm/s, flow v = 0.3, 1, 3 µm/s, all identifiable by the gro
 decides (``classifier/data/signature.md``, accuracy against magnitude). All labelled moving pixels
 count (edge 0). Floors from 6 renderings (seeds 2026 = the file's, 1-5), 128 × 128 B-scan:
 
-* pool 1: balanced accuracy 0.803 ± 0.012 (mean ± SD over seeds; 0.810 for the shipped seed),
-  coverage 0.856 ± 0.008, median |log10 magnitude error| 0.096 ± 0.002;
-* pool 5: balanced accuracy 0.908 ± 0.015 (0.921), coverage 0.964 ± 0.005, magnitude 0.077 ± 0.003.
+* pool 1: balanced accuracy 0.809 ± 0.011 (mean ± SD over seeds; 0.816 for the shipped seed),
+  coverage 0.858 ± 0.009, median |log10 magnitude error| 0.089 ± 0.003;
+* pool 5: balanced accuracy 0.918 ± 0.009 (0.920), coverage 0.937 ± 0.006, magnitude 0.068 ± 0.004.
 
-Floors (pool 1 / pool 5): balanced accuracy 0.78 / 0.87 (1.9 and 2.5 SD below the means: the test
+Floors (pool 1 / pool 5): balanced accuracy 0.78 / 0.87 (2.6 and 5.3 SD below the means: the test
 renders the shipped seed, but any change of the renderer's random stream is another draw), coverage
 0.75 / 0.90, median |log10 magnitude error| at most 0.15 / 0.12.
 """
