@@ -39,7 +39,7 @@ import torch
 
 from . import __version__
 from .dataset import CLASSES, STATUS, Dataset, Prior, make_dataset
-from .features import FeatureSpec, load_spec
+from .features import METRIC_UNITS, FeatureSpec, load_spec
 from .model import DECORRELATION_OFFSET, LIV_OFFSET_DB2, MotionClassifier
 from .report import bootstrap_se, evaluate, magnitude_table
 from .rule import INDETERMINATE, make_rule
@@ -151,9 +151,9 @@ SPEC_RECIPES["two-wavelength-signature"] = SPEC_RECIPES["signature"]
 #: cone: cos of the polar angle ~ U[cos 80°, cos 10°]; training: the whole sphere), the density of the
 #: moving scatterers fixed at 0.05 µm⁻³ (training: U[0.02, 0.1]), no static fraction (training: with
 #: probability 1/2), noise always on at SNR U[15, 25] dB (training: with probability 1/2 at
-#: U[10, 40] dB; before the noise prior was widened, 15-20 dB lay outside it), both random-ballistic direction laws, the training
-#: prior's magnitude ranges (:func:`shifted_prior` takes them, and ε, from the prior trained on).
-#: Its split is the test split of the same seed (its draws have the test draws' motion types,
+#: U[10, 40] dB; before the noise prior was widened, 15-20 dB lay outside it), both random-ballistic
+#: direction laws, the training prior's magnitude ranges (:func:`shifted_prior` takes them, and ε,
+#: from the prior trained on). Its split is the test split of the same seed (its draws have the test draws' motion types,
 #: magnitudes and simulator seeds; the nuisances above are its own) and is cached apart (the cache
 #: key holds the prior).
 SHIFTED_PRIOR = Prior(ballistic_directions="both", flow_polar_angle_deg=(10.0, 80.0), density_per_um3=(0.05, 0.05),
@@ -183,8 +183,10 @@ def _log_columns(spec: FeatureSpec) -> list[int]:
 def _correlation_columns(spec: FeatureSpec) -> list[int]:
     """Columns the model reads as log decorrelation: the signature's correlation coefficients
     (``rho_lin_m``, ``rho_db_m``, ``g1_m``; :mod:`classifier.model`)."""
-    return [i for i, (m, _) in enumerate(spec.features) if m.startswith(("rho_lin_", "rho_db_", "g1_"))
-            and not m.startswith("g1_phase_")]
+    from torchdoct.sim.signature import parse_feature
+
+    return [i for i, (m, _) in enumerate(spec.features)
+            if m not in METRIC_UNITS and parse_feature(m)[0] in ("rho_lin", "rho_db", "g1")]
 
 
 def _masks(spec: FeatureSpec) -> tuple[np.ndarray, np.ndarray]:

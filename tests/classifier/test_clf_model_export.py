@@ -156,3 +156,21 @@ def test_exported_softmax_rows_sum_to_one(tmp_path):
     p = load_model(path, threads=1).predict(_inputs(1000, 8))
     assert p.dtype == np.float32 and np.all(p >= 0)
     np.testing.assert_allclose(p.sum(1), 1.0, atol=1e-6)
+
+
+def test_correlation_columns_of_the_shipped_specs():
+    """The signature specs' correlation coefficients, and only they, are read as log decorrelation; the
+    shipped signature model carries exactly these columns."""
+    from classifier.features import load_spec
+    from classifier.infer import shipped_models
+    from classifier.train import _correlation_columns
+
+    for name in ("signature", "two-wavelength-signature", "single-acquisition"):
+        spec = load_spec(name)
+        cols = _correlation_columns(spec)
+        assert [spec.features[i][0] for i in cols] == [m for m, _ in spec.features if m.startswith("rho_lin_")]
+        assert all(spec.features[i][0] not in ("lin_contrast", "db_variance", "liv", "ocds") for i in cols)
+    m = model_from_onnx(shipped_models()["signature"])
+    assert np.flatnonzero(m.corr_mask.numpy()).tolist() == _correlation_columns(load_spec("signature"))
+    assert np.flatnonzero(m.liv_mask.numpy()).tolist() == [
+        i for i, (metric, _) in enumerate(load_spec("signature").features) if metric == "db_variance"]
