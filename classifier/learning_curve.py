@@ -2,10 +2,10 @@
 
 ``python -m classifier.learning_curve --out signature-learning-curve.json`` takes the ``signature``
 spec and its shipped recipe (:meth:`classifier.train.TrainConfig.for_spec`), simulates (or loads from
-the dataset cache) one training split of ``draws_max`` draws (default 1920, twice the shipped 960)
+the dataset cache) one training split of ``draws_max`` draws (default 3840, twice the shipped 1920)
 and the shipped model's validation and test splits (the recipe's numbers of draws, seed 0), and trains the network
 with the shipped recipe and seed (:func:`classifier.train.fit_network`) on nested prefixes of the
-training draws (default 60, 120, 240, 480, 960, 1920). A prefix of ``n`` draws is exactly the
+training draws (default 60, 120, 240, 480, 960, 1920, 3840). A prefix of ``n`` draws is exactly the
 ``n``-draw training split of :func:`classifier.dataset.make_dataset` (a split's draws do not depend on
 how many are made, and the golden-ratio magnitude sequence covers the range evenly at every prefix).
 Every model is evaluated on the same test samples as ``doct-train`` (pool 1 and pool 25 pixels):
@@ -36,8 +36,8 @@ import numpy as np
 __all__ = ["DEFAULT_SIZES", "draw_prefix", "run_learning_curve", "format_markdown", "plot_learning_curve",
            "write_outputs", "main"]
 
-#: Default nested training sizes (draws); the shipped recipe uses 960.
-DEFAULT_SIZES = (60, 120, 240, 480, 960, 1920)
+#: Default nested training sizes (draws); the shipped recipe uses 1920.
+DEFAULT_SIZES = (60, 120, 240, 480, 960, 1920, 3840)
 _POOLS = ("1", "25")
 _SUFFIXES = (".json", ".md", ".png")
 

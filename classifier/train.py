@@ -136,9 +136,11 @@ class TrainConfig:
 #: coverage curve, none of the 0.023 gap to gradient boosting closed (all of the above on the raw
 #: correlations). What closed it is the input scale: the correlation coefficients read as log
 #: decorrelation (classifier.model; +0.022 ± 0.005 per pixel, paired, classifier/README.md), after
-#: which 120 epochs stop at 70 with the same best epoch 55 as the cap of 60 (identical model).
+#: which 120 epochs stop at 70 with the same best epoch 55 as the cap of 60 (identical model). With
+#: that input the learning curve no longer flattened at 960 training draws (+0.016 ± 0.004 per pixel
+#: from 960 to 1920, paired): the recipe takes 1920 (classifier/data/signature-learning-curve.md).
 SPEC_RECIPES: dict[str, dict[str, Any]] = {
-    "signature": {"draws_train": 960, "draws_validation": 90, "draws_test": 180, "replicates": 8,
+    "signature": {"draws_train": 1920, "draws_validation": 90, "draws_test": 180, "replicates": 8,
                   "hidden": (64, 64), "learning_rate": 1e-3, "weight_decay": 1e-3, "patience": 15,
                   "max_epochs": 60, "bulk_phase_test": True},
 }

@@ -8,11 +8,11 @@ v = 0.01, 0.05, 0.3 µm/s, flow v = 0.3, 1, 3 µm/s, all identifiable by the gro
 decides (``classifier/data/signature.md``, accuracy against magnitude). All labelled moving pixels
 count (edge 0). Floors from 6 renderings (seeds 2026 = the file's, 1-5), 128 × 128 B-scan:
 
-* pool 1: balanced accuracy 0.809 ± 0.011 (mean ± SD over seeds; 0.816 for the shipped seed),
-  coverage 0.858 ± 0.009, median |log10 magnitude error| 0.089 ± 0.003;
-* pool 5: balanced accuracy 0.918 ± 0.009 (0.920), coverage 0.937 ± 0.006, magnitude 0.068 ± 0.004.
+* pool 1: balanced accuracy 0.815 ± 0.014 (mean ± SD over seeds; 0.828 for the shipped seed),
+  coverage 0.851 ± 0.007, median |log10 magnitude error| 0.088 ± 0.002;
+* pool 5: balanced accuracy 0.919 ± 0.013 (0.929), coverage 0.957 ± 0.005, magnitude 0.071 ± 0.003.
 
-Floors (pool 1 / pool 5): balanced accuracy 0.78 / 0.87 (2.6 and 5.3 SD below the means: the test
+Floors (pool 1 / pool 5): balanced accuracy 0.78 / 0.87 (2.5 and 3.8 SD below the means: the test
 renders the shipped seed, but any change of the renderer's random stream is another draw), coverage
 0.75 / 0.90, median |log10 magnitude error| at most 0.15 / 0.12.
 """

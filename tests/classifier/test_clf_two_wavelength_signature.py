@@ -68,7 +68,7 @@ def test_spec_is_the_signature_at_the_two_wavelength_configurations():
     # the shipped recipe is the signature one (wider network, random-bulk-phase test split)
     assert SPEC_RECIPES[NAME] == SPEC_RECIPES["signature"]
     assert TrainConfig.for_spec(NAME) == dataclasses.replace(TrainConfig.for_spec("signature"), spec=NAME)
-    assert TrainConfig.for_spec(NAME).bulk_phase_test and TrainConfig.for_spec(NAME).draws_train == 960
+    assert TrainConfig.for_spec(NAME).bulk_phase_test and TrainConfig.for_spec(NAME).draws_train == 1920
 
 
 @pytest.fixture(scope="module")
