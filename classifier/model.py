@@ -62,7 +62,7 @@ class MotionClassifier(nn.Module):
         for m, cols in ((mask, log_columns), (corr, correlation_columns)):
             for c in cols:
                 if not 0 <= int(c) < n_features:
-                    raise ValueError(f"log column {c} is outside the {n_features} features")
+                    raise ValueError(f"column {c} is outside the {n_features} features")
                 if mask[int(c)] or corr[int(c)]:
                     raise ValueError(f"column {c} is both a LIV and a correlation column")
                 m[int(c)] = True
@@ -97,10 +97,9 @@ class MotionClassifier(nn.Module):
                              f"got {tuple(x.shape)}")
         liv = torch.log(torch.clamp(x, min=0.0) + LIV_OFFSET_DB2)
         pool = torch.log(torch.clamp(x, min=1.0))
-        t = torch.where(self.liv_mask, liv, torch.where(self.pool_mask, pool, x))
-        if bool(self.corr_mask.any()):
-            t = torch.where(self.corr_mask, torch.log(torch.clamp(1.0 - x, min=0.0) + DECORRELATION_OFFSET), t)
-        return t
+        decorrelation = torch.log(torch.clamp(1.0 - x, min=0.0) + DECORRELATION_OFFSET)
+        return torch.where(self.liv_mask, liv, torch.where(self.corr_mask, decorrelation,
+                                                           torch.where(self.pool_mask, pool, x)))
 
     def set_normalization(self, x: torch.Tensor) -> None:
         """Store mean and SD of the transformed training features (SD floored at 1e-6)."""

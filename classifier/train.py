@@ -155,9 +155,9 @@ SPEC_RECIPES["two-wavelength-signature"] = SPEC_RECIPES["signature"]
 #: probability 1/2), noise always on at SNR U[15, 25] dB (training: with probability 1/2 at
 #: U[10, 40] dB; before the noise prior was widened, 15-20 dB lay outside it), both random-ballistic
 #: direction laws, the training prior's magnitude ranges (:func:`shifted_prior` takes them, and ε,
-#: from the prior trained on). Its split is the test split of the same seed (its draws have the test draws' motion types,
-#: magnitudes and simulator seeds; the nuisances above are its own) and is cached apart (the cache
-#: key holds the prior).
+#: from the prior trained on). Its split is the test split of the same seed (its draws have the test
+#: draws' motion types, magnitudes and simulator seeds; the nuisances above are its own) and is cached
+#: apart (the cache key holds the prior).
 SHIFTED_PRIOR = Prior(ballistic_directions="both", flow_polar_angle_deg=(10.0, 80.0), density_per_um3=(0.05, 0.05),
                       static_probability=0.0, noise_probability=1.0, snr_db=(15.0, 25.0))
 #: What must hold on the shifted-prior test set, per pixel (pool 1): balanced accuracy over the
@@ -510,7 +510,6 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
         n_sim_samples += draws * cfg.trials_per_draw
         say(f"{split}: {len(ds)} samples from {draws} draws ({'cache' if ds.meta['from_cache'] else 'simulated'}, "
             f"{ds.meta['seconds_per_draw']:.3f} s/draw); ground truth per draw: {ds.meta['draw_status_counts']}")
-
 
     # 4. network
     fit = fit_network(data["train"], data["validation"], spec, cfg, progress=progress)
