@@ -188,13 +188,15 @@ def build_classify_parser() -> argparse.ArgumentParser:
                     "motion, flow or indeterminate. Writes classes.tif (+ legend.json), probabilities.tif, "
                     "overlay.png and summary.json into --out.")
     p.add_argument("maps", nargs="+", help="maps file(s) (.npz or .tif); several files are combined channel by channel")
-    p.add_argument("--model", default=None, help="ONNX model file or shipped model name (default: single-acquisition)")
+    p.add_argument("--model", default=None, help="ONNX model file or shipped model name (default: the shipped signature model whose features "
+                        "the maps hold, two-wavelength-signature for both bands, else single-acquisition)")
     p.add_argument("--out", required=True, help="output directory (created if missing)")
     p.add_argument("--pool", type=int, default=1, help="average features over N x N (z, x) neighbourhoods first")
     p.add_argument("--background-db", default="auto",
                    help="mask pixels whose mean dB intensity is below this; 'auto' = 99th percentile - 30 dB; 'none'")
     p.add_argument("--min-probability", type=float, default=None,
-                   help="override the model's threshold below which a pixel is indeterminate")
+                   help="override the model's threshold below which a pixel is indeterminate (higher: fewer "
+                        "pixels decided, more of them right; the model's report tabulates the trade-off)")
     p.add_argument("--ignore-refractive-index", action="store_true",
                    help="accept maps whose system refractive index differs from the model's")
     p.add_argument("--threads", type=int, default=None, metavar="N",

@@ -22,8 +22,11 @@ import numpy as np
 
 from .rule import REASONS, apply_rule
 
-__all__ = ["expected_calibration_error", "evaluate", "bootstrap_se", "magnitude_table", "write_report",
-           "format_markdown", "undefined_reason", "summary_line"]
+__all__ = ["expected_calibration_error", "evaluate", "bootstrap_se", "coverage_curve", "magnitude_table",
+           "write_report", "format_markdown", "undefined_reason", "summary_line", "COVERAGE_THRESHOLDS"]
+
+#: ``min_probability`` values of the accuracy-coverage table (:func:`coverage_curve`).
+COVERAGE_THRESHOLDS = (0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 
 
 def expected_calibration_error(probabilities: np.ndarray, truth: np.ndarray, bins: int = 15) -> tuple[float, list]:
@@ -114,6 +117,26 @@ def bootstrap_se(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, d
         v = v[np.isfinite(v)]
         out[k] = float(np.std(v, ddof=1)) if v.size >= 2 else math.nan
     return out
+
+
+def coverage_curve(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, class_names: Sequence[str],
+                   rule: dict[str, Any], thresholds: Sequence[float] = COVERAGE_THRESHOLDS) -> list[dict[str, Any]]:
+    """Accuracy against coverage as the rule's ``min_probability`` varies, the rest of the rule fixed:
+    what ``doct-classify --min-probability`` trades. Per threshold: coverage, accuracy and balanced
+    accuracy on the identifiable samples (as :func:`evaluate`) and the share of the non-identifiable
+    samples that is decided (given a motion class although the ground truth is indeterminate; NaN
+    without such samples). A higher threshold decides a subset of the pixels a lower one decides."""
+    ind = len(class_names) - 1
+    rows = []
+    for t in thresholds:
+        m = evaluate(probabilities, y, status, class_names, {**rule, "min_probability": float(t)})
+        non = np.asarray(status) != 0
+        pred, _ = apply_rule(probabilities[non], class_names, {**rule, "min_probability": float(t)})
+        rows.append({"min_probability": float(t), "coverage_identifiable": m["coverage_identifiable"],
+                     "accuracy_identifiable": m["accuracy_identifiable"],
+                     "balanced_accuracy_identifiable": m["balanced_accuracy_identifiable"],
+                     "non_identifiable_decided": float((pred != ind).mean()) if non.any() else math.nan})
+    return rows
 
 
 #: Why a metric of :func:`evaluate` can be undefined (None in the JSON report, "n/a" in the text).
@@ -317,6 +340,15 @@ def format_markdown(report: dict[str, Any]) -> str:
             L.append("n/a: the metric is undefined in all but at most one bootstrap resample, or the test set "
                      "has fewer than 2 draws.")
         L.append("")
+    if "coverage_curve" in r:
+        _section(L, "Accuracy against coverage (network): the `--min-probability` trade-off",
+                 f"The rule at each min_probability (the model's: {r['rule']['min_probability']:g}); identifiable "
+                 "test samples, and the share of the non-identifiable ones given a motion class.",
+                 ["pool", "min_probability", "coverage", "acc. identifiable", "bal. acc. identifiable",
+                  "non-identifiable decided"], "rrrrrr",
+                 [[pool, f"{c['min_probability']:g}", _fmt(c["coverage_identifiable"]), _fmt(c["accuracy_identifiable"]),
+                   _fmt(c["balanced_accuracy_identifiable"]), _fmt(c["non_identifiable_decided"])]
+                  for pool, rows in r["coverage_curve"].items() for c in rows])
     L.append("## Models: training and inference time")
     L.append("")
     L.append("| model | training [s] | inference [µs/sample] | acc. identifiable (pool 1) | bal. acc. identifiable (pool 1) |")

@@ -41,7 +41,7 @@ from . import __version__
 from .dataset import CLASSES, STATUS, Dataset, Prior, make_dataset
 from .features import METRIC_UNITS, FeatureSpec, load_spec
 from .model import DECORRELATION_OFFSET, LIV_OFFSET_DB2, MotionClassifier
-from .report import bootstrap_se, evaluate, magnitude_table
+from .report import bootstrap_se, coverage_curve, evaluate, magnitude_table
 from .rule import INDETERMINATE, make_rule
 
 __all__ = ["TrainConfig", "TrainResult", "train", "fit_network", "pooled_samples", "CLASS_NAMES", "transform_numpy",
@@ -573,6 +573,8 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
             else:
                 p = reference.predict(s["x"])
             test_metrics[name][pool] = evaluate(p, s["y"], s["status"], CLASS_NAMES, rule)
+    curves = {pool: coverage_curve(probs_net[pool], s["y"], s["status"], CLASS_NAMES, rule)
+              for pool, s in tests.items() if pool in ("1", "25")}
     magnitude_report = None
     if _uses_magnitude(cfg, spec):
         magnitude_report = {pool: _magnitude_eval(model, s) for pool, s in tests.items()}
@@ -678,6 +680,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
         "standard_errors": ses,
         "by_magnitude": by_mag,
         "by_condition": by_cond,
+        "coverage_curve": curves,
         "status_names": list(STATUS),
     }
     if magnitude_report is not None:

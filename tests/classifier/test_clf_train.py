@@ -11,7 +11,7 @@ import torch
 from classifier.cli import train_main
 from classifier.dataset import Dataset
 from classifier.export import onnx_parity
-from classifier.report import evaluate, expected_calibration_error
+from classifier.report import coverage_curve, evaluate, expected_calibration_error, format_markdown
 from classifier.rule import INDETERMINATE, apply_rule, make_rule
 from classifier.train import CLASS_NAMES, TrainConfig, pooled_samples, train
 
@@ -68,6 +68,31 @@ def test_ece_and_evaluate_on_constructed_cases():
     assert m["indeterminate_reasons"] == {"decided": 4, "indeterminate class": 1, "low probability": 1}
 
 
+def test_coverage_curve_trades_coverage_for_accuracy_by_the_threshold():
+    """The --min-probability trade-off on a constructed case: decided sets nest, counts by hand."""
+    y = np.array([0, 0, 1, 2, 1, 2, 0])
+    status = np.array([0, 0, 0, 0, 0, 1, 2])  # last two: truth indeterminate
+    p = np.array([[0.9, 0.05, 0.03, 0.02],    # right, confident
+                  [0.45, 0.4, 0.1, 0.05],     # right, unsure
+                  [0.65, 0.2, 0.1, 0.05],     # wrong (ballistic called diffusion)
+                  [0.1, 0.1, 0.75, 0.05],     # right
+                  [0.1, 0.2, 0.1, 0.6],       # indeterminate class: never decided
+                  [0.55, 0.3, 0.1, 0.05],     # non-identifiable, decided below 0.55
+                  [0.05, 0.05, 0.05, 0.85]])
+    rule = make_rule(0.05, 0.5)
+    rows = coverage_curve(p, y, status, CLASS_NAMES, rule, thresholds=(0.4, 0.5, 0.7, 0.95))
+    assert [r["min_probability"] for r in rows] == [0.4, 0.5, 0.7, 0.95]
+    assert [r["coverage_identifiable"] for r in rows] == pytest.approx([4 / 5, 3 / 5, 2 / 5, 0.0])
+    assert [r["accuracy_identifiable"] for r in rows[:3]] == pytest.approx([3 / 4, 2 / 3, 1.0])
+    assert np.isnan(rows[3]["accuracy_identifiable"])
+    assert [r["non_identifiable_decided"] for r in rows] == pytest.approx([1 / 2, 1 / 2, 0.0, 0.0])
+    # at the rule's own threshold the curve is evaluate()'s result
+    m = evaluate(p, y, status, CLASS_NAMES, rule)
+    assert rows[1]["coverage_identifiable"] == m["coverage_identifiable"]
+    assert rows[1]["balanced_accuracy_identifiable"] == m["balanced_accuracy_identifiable"]
+    assert np.isnan(coverage_curve(p[:5], y[:5], status[:5], CLASS_NAMES, rule)[0]["non_identifiable_decided"])
+
+
 def _toy_dataset() -> Dataset:
     rng = np.random.default_rng(0)
     n = 3 * 10
@@ -117,6 +142,12 @@ def test_tiny_training_is_reproducible_and_exports_with_parity(cache_dir, tmp_pa
                 assert 0.0 <= m[key] <= 1.0
         assert rep["timing"][name]["train_s"] >= 0 and rep["timing"][name]["inference_us_per_sample"] > 0
     assert {row["class"] for row in rep["by_magnitude"]["1"]} <= set(CLASS_NAMES[:3])
+    for pool, rows in rep["coverage_curve"].items():  # nested decided sets: coverage falls as the threshold rises
+        cov = [r["coverage_identifiable"] for r in rows]
+        assert cov == sorted(cov, reverse=True)
+        at_rule = next(r for r in rows if r["min_probability"] == rep["rule"]["min_probability"])
+        assert at_rule["coverage_identifiable"] == rep["test"]["network"][pool]["coverage_identifiable"]
+    assert "`--min-probability` trade-off" in format_markdown(rep)
     # doct-train: files, ONNX parity on the test set, refusal to overwrite
     out = tmp_path / "model"
     argv = ["--out", str(out), "--spec", "two-wavelength", "--draws-train", "9", "--draws-validation", "6",
