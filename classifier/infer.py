@@ -80,7 +80,9 @@ CLASS_COLORS = {"diffusion": "#1f77b4", "ballistic": "#ff7f0e", "flow": "#2ca02c
 _FORMAT = "torchdoct-classifier/1"
 _METADATA_KEY = "torchdoct_classifier"
 #: Rows per onnxruntime call: the network's intermediate tensors of 2048 rows stay in the core's cache
-#: (1.2-1.4x the throughput of 131072-row chunks, `torchdoct bench classify`); results do not depend on it.
+#: (1.2-1.4x the throughput of 131072-row chunks, `torchdoct bench classify`). onnxruntime's matrix
+#: kernels take rows in groups of 4 and round the rows of an incomplete group differently (~1e-7), so a
+#: multiple of 4 keeps every row's result independent of the chunk size and of the thread count.
 _CHUNK = 1 << 11
 _AUTO_RANGE_DB = 30.0
 

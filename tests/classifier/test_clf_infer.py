@@ -330,3 +330,20 @@ def test_cli_exit_codes_follow_the_convention(setup, tmp_path, capsys, monkeypat
     assert classify_main([*argv, "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1 and "No space left" in err
+
+
+def test_predictions_do_not_depend_on_chunks_or_threads(monkeypatch):
+    """The shipped signature model on 5003 rows: bit-identical for any chunk size (a multiple of 4, see
+    classifier.infer._CHUNK) and thread count, the 3 rows of the last incomplete group of 4 included."""
+    import classifier.infer as infer
+
+    rng = np.random.default_rng(11)
+    ref_model = load_model("signature", threads=1)
+    x = rng.uniform(0.0, 1.0, (5003, len(ref_model.columns))).astype(np.float32)
+    x[:, -1] = rng.integers(1, 26, len(x))
+    ref = ref_model.predict_all(x)
+    for chunk, threads in ((8, 1), (1000, 2), (1 << 17, 2)):
+        monkeypatch.setattr(infer, "_CHUNK", chunk)
+        got = load_model("signature", threads=threads).predict_all(x)
+        for a, b in zip(ref, got):
+            assert np.array_equal(a, b), (chunk, threads)
