@@ -204,3 +204,17 @@ def test_a_source_checkout_builds_the_library_into_the_cache(tmp_path, monkeypat
     monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
     assert kernel._build_from_source() is None
     assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no partial file left behind
+
+
+def test_setup_py_builds_with_the_kernels_compiler_flags():
+    """setup.py (which cannot import torch in an isolated build) keeps its own copy of the flags; the
+    installed extension and the source-checkout build must compile alike (bit identity needs -ffp-contract=off)."""
+    import ast
+    from pathlib import Path
+
+    tree = ast.parse((Path(__file__).resolve().parents[2] / "setup.py").read_text())
+    flags = {node.targets[0].id: ast.literal_eval(node.value) for node in tree.body
+             if isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name)
+             and node.targets[0].id in ("CFLAGS", "OPTIONAL_CFLAGS")}
+    assert tuple(flags["CFLAGS"]) == kernel.CFLAGS and "-ffp-contract=off" in kernel.CFLAGS
+    assert tuple(flags["OPTIONAL_CFLAGS"]) == kernel.OPTIONAL_CFLAGS
