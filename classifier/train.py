@@ -41,7 +41,7 @@ from . import __version__
 from .dataset import CLASSES, STATUS, Dataset, Prior, make_dataset
 from .features import METRIC_UNITS, FeatureSpec, load_spec
 from .model import DECORRELATION_OFFSET, LIV_OFFSET_DB2, MotionClassifier
-from .report import bootstrap_se, coverage_curve, evaluate, magnitude_table
+from .report import COVERAGE_THRESHOLDS, bootstrap_se, coverage_curve, evaluate, magnitude_table
 from .rule import INDETERMINATE, make_rule
 
 __all__ = ["TrainConfig", "TrainResult", "train", "fit_network", "pooled_samples", "CLASS_NAMES", "transform_numpy",
@@ -573,7 +573,8 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
             else:
                 p = reference.predict(s["x"])
             test_metrics[name][pool] = evaluate(p, s["y"], s["status"], CLASS_NAMES, rule)
-    curves = {pool: coverage_curve(probs_net[pool], s["y"], s["status"], CLASS_NAMES, rule)
+    thresholds = sorted({*COVERAGE_THRESHOLDS, float(cfg.min_probability)})  # the model's own threshold included
+    curves = {pool: coverage_curve(probs_net[pool], s["y"], s["status"], CLASS_NAMES, rule, thresholds)
               for pool, s in tests.items() if pool in ("1", "25")}
     magnitude_report = None
     if _uses_magnitude(cfg, spec):

@@ -189,6 +189,8 @@ def test_undecided_network_reports_na_with_the_reason(cache_dir, tmp_path, capsy
     assert m1["identifiable_samples"] > 0 and m1["coverage_identifiable"] == 0.0  # the case under test
     assert m1["accuracy_identifiable"] is None and m1["balanced_accuracy_identifiable"] is None
     assert "accuracy n/a (no identifiable test sample was decided" in printed, printed
+    own = [r for r in report["coverage_curve"]["1"] if r["min_probability"] == 0.999]  # the model's threshold
+    assert len(own) == 1 and own[0]["coverage_identifiable"] == 0.0 and own[0]["accuracy_identifiable"] is None
     md = (out / "two-wavelength.md").read_text()
     assert "| n/a |" in md and "n/a: no identifiable test sample was decided" in md
     assert sorted(p.name for p in out.iterdir()) == ["two-wavelength.json", "two-wavelength.md",
