@@ -127,11 +127,12 @@ def coverage_curve(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray,
     samples that is decided (given a motion class although the ground truth is indeterminate; NaN
     without such samples). A higher threshold decides a subset of the pixels a lower one decides."""
     ind = len(class_names) - 1
+    non = np.asarray(status) != 0
     rows = []
     for t in thresholds:
-        m = evaluate(probabilities, y, status, class_names, {**rule, "min_probability": float(t)})
-        non = np.asarray(status) != 0
-        pred, _ = apply_rule(probabilities[non], class_names, {**rule, "min_probability": float(t)})
+        rule_t = {**rule, "min_probability": float(t)}
+        m = evaluate(probabilities, y, status, class_names, rule_t)
+        pred, _ = apply_rule(probabilities[non], class_names, rule_t)
         rows.append({"min_probability": float(t), "coverage_identifiable": m["coverage_identifiable"],
                      "accuracy_identifiable": m["accuracy_identifiable"],
                      "balanced_accuracy_identifiable": m["balanced_accuracy_identifiable"],
