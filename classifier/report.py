@@ -243,7 +243,18 @@ def _magnitude_rows(L: list[str], title: str, rows: Sequence[dict[str, Any]]) ->
     L.append("")
 
 
-def _shifted_section(L: list[str], sp: dict[str, Any]) -> None:
+def _coverage_section(L: list[str], title: str, curves: dict[str, list[dict[str, Any]]], rule: dict[str, Any]) -> None:
+    """One :func:`coverage_curve` table per report section, pools one after the other."""
+    _section(L, title, f"The rule at each min_probability (the model's: {rule['min_probability']:g}); identifiable "
+             "test samples, and the share of the non-identifiable ones given a motion class.",
+             ["pool", "min_probability", "coverage", "acc. identifiable", "bal. acc. identifiable",
+              "non-identifiable decided"], "rrrrrr",
+             [[pool, f"{c['min_probability']:g}", _fmt(c["coverage_identifiable"]), _fmt(c["accuracy_identifiable"]),
+               _fmt(c["balanced_accuracy_identifiable"]), _fmt(c["non_identifiable_decided"])]
+              for pool, rows in curves.items() for c in rows])
+
+
+def _shifted_section(L: list[str], sp: dict[str, Any], rule: dict[str, Any]) -> None:
     """The shifted-prior test set (``report["shifted_prior"]``, :data:`classifier.train.SHIFTED_PRIOR`)."""
     pr = sp["prior"]
     noise = (f"noise with probability {pr['noise_probability']:g} at SNR {pr['snr_db'][0]:g}–{pr['snr_db'][1]:g} dB"
@@ -285,6 +296,8 @@ def _shifted_section(L: list[str], sp: dict[str, Any]) -> None:
               f"{t['balanced_accuracy_identifiable']:g}: {_fmt(m['balanced_accuracy_identifiable'])}; "
               f"ECE ≤ {t['ece']:g}: {_fmt(m['ece'])}; "
               f"**{'met' if t['met'] else 'not met'}**.", ""]
+    if "coverage_curve" in sp:
+        _coverage_section(L, "Shifted prior: accuracy against coverage (`--min-probability`)", sp["coverage_curve"], rule)
     for pool, rows in sp.get("by_magnitude", {}).items():
         _magnitude_rows(L, f"### Shifted prior: accuracy against motion magnitude, pool {pool}", rows)
     if "magnitude" in sp:
@@ -342,14 +355,8 @@ def format_markdown(report: dict[str, Any]) -> str:
                      "has fewer than 2 draws.")
         L.append("")
     if "coverage_curve" in r:
-        _section(L, "Accuracy against coverage (network): the `--min-probability` trade-off",
-                 f"The rule at each min_probability (the model's: {r['rule']['min_probability']:g}); identifiable "
-                 "test samples, and the share of the non-identifiable ones given a motion class.",
-                 ["pool", "min_probability", "coverage", "acc. identifiable", "bal. acc. identifiable",
-                  "non-identifiable decided"], "rrrrrr",
-                 [[pool, f"{c['min_probability']:g}", _fmt(c["coverage_identifiable"]), _fmt(c["accuracy_identifiable"]),
-                   _fmt(c["balanced_accuracy_identifiable"]), _fmt(c["non_identifiable_decided"])]
-                  for pool, rows in r["coverage_curve"].items() for c in rows])
+        _coverage_section(L, "Accuracy against coverage (network): the `--min-probability` trade-off",
+                          r["coverage_curve"], r["rule"])
     L.append("## Models: training and inference time")
     L.append("")
     L.append("| model | training [s] | inference [µs/sample] | acc. identifiable (pool 1) | bal. acc. identifiable (pool 1) |")
@@ -396,7 +403,7 @@ def format_markdown(report: dict[str, Any]) -> str:
                  [[pool, _fmt(m["coverage_identifiable"]), _fmt(m["accuracy_identifiable"]),
                    _fmt(m["balanced_accuracy_identifiable"]), _fmt(m["ece"])] for pool, m in r["bulk_phase"].items()])
     if "shifted_prior" in r:
-        _shifted_section(L, r["shifted_prior"])
+        _shifted_section(L, r["shifted_prior"], r["rule"])
     if "onnx_parity_max_abs_diff" in r:
         L.append(f"ONNX (opset {r.get('onnx_opset')}) against torch on the test set: max |Δp| = "
                  f"{r['onnx_parity_max_abs_diff']:.2e}.")

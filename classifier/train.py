@@ -632,6 +632,8 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
             "by_magnitude": {pool: magnitude_table(sprobs[pool], stests[pool]["y"], stests[pool]["status"],
                                                    stests[pool]["magnitude"], CLASS_NAMES, rule, s_ranges)
                              for pool in conf_pools},
+            "coverage_curve": {pool: coverage_curve(sprobs[pool], s["y"], s["status"], CLASS_NAMES, rule, thresholds)
+                               for pool, s in stests.items() if pool in ("1", "25")},
         }
         if _uses_magnitude(cfg, spec):
             shifted_report["magnitude"] = {pool: _magnitude_eval(model, s) for pool, s in stests.items()}

@@ -309,7 +309,11 @@ def test_shifted_prior_test_set_is_evaluated_and_reported(cache_dir, tmp_path):
     want = (m1["balanced_accuracy_identifiable"] >= SHIFTED_TARGETS["balanced_accuracy_identifiable"]
             and m1["ece"] <= SHIFTED_TARGETS["ece"])
     assert sp["targets"]["met"] == want
+    for pool, rows in sp["coverage_curve"].items():  # the shifted set's --min-probability trade-off
+        at_rule = next(r for r in rows if r["min_probability"] == res.report["rule"]["min_probability"])
+        assert at_rule["coverage_identifiable"] == sp["test"][pool]["coverage_identifiable"]
     md = format_markdown(res.report)
+    assert "## Shifted prior: accuracy against coverage" in md
     assert "## Shifted-prior test set (network)" in md and "flow at 10–80° from the depth axis" in md
     assert "density 0.05 µm⁻³" in md and "SNR 15–25 dB" in md and "### Shifted prior: accuracy against" in md
     assert f"ECE ≤ 0.05: {m1['ece']:.3f}" in md
