@@ -126,17 +126,14 @@ def coverage_curve(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray,
     accuracy on the identifiable samples (as :func:`evaluate`) and the share of the non-identifiable
     samples that is decided (given a motion class although the ground truth is indeterminate; NaN
     without such samples). A higher threshold decides a subset of the pixels a lower one decides."""
-    ind = len(class_names) - 1
-    non = np.asarray(status) != 0
     rows = []
     for t in thresholds:
-        rule_t = {**rule, "min_probability": float(t)}
-        m = evaluate(probabilities, y, status, class_names, rule_t)
-        pred, _ = apply_rule(probabilities[non], class_names, rule_t)
+        m = evaluate(probabilities, y, status, class_names, {**rule, "min_probability": float(t)})
+        non = m["confusion"][-1]  # truth indeterminate = the non-identifiable samples, by decision
         rows.append({"min_probability": float(t), "coverage_identifiable": m["coverage_identifiable"],
                      "accuracy_identifiable": m["accuracy_identifiable"],
                      "balanced_accuracy_identifiable": m["balanced_accuracy_identifiable"],
-                     "non_identifiable_decided": float((pred != ind).mean()) if non.any() else math.nan})
+                     "non_identifiable_decided": (sum(non) - non[-1]) / sum(non) if sum(non) else math.nan})
     return rows
 
 

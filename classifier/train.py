@@ -573,9 +573,6 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
             else:
                 p = reference.predict(s["x"])
             test_metrics[name][pool] = evaluate(p, s["y"], s["status"], CLASS_NAMES, rule)
-    thresholds = sorted({*COVERAGE_THRESHOLDS, float(cfg.min_probability)})  # the model's own threshold included
-    curves = {pool: coverage_curve(probs_net[pool], s["y"], s["status"], CLASS_NAMES, rule, thresholds)
-              for pool, s in tests.items() if pool in ("1", "25")}
     magnitude_report = None
     if _uses_magnitude(cfg, spec):
         magnitude_report = {pool: _magnitude_eval(model, s) for pool, s in tests.items()}
@@ -597,6 +594,9 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
 
     ranges = [prior.diffusion_um2_per_s, prior.speed_um_per_s, prior.speed_um_per_s]
     conf_pools = [p for p in ("1", "25") if p in tests] or [str(cfg.eval_pools[0])]
+    thresholds = sorted({*COVERAGE_THRESHOLDS, float(cfg.min_probability)})  # the model's own threshold included
+    curves = {pool: coverage_curve(probs_net[pool], tests[pool]["y"], tests[pool]["status"], CLASS_NAMES, rule,
+                                   thresholds) for pool in conf_pools}
     by_mag = {pool: magnitude_table(probs_net[pool], tests[pool]["y"], tests[pool]["status"],
                                     tests[pool]["magnitude"], CLASS_NAMES, rule, ranges) for pool in conf_pools}
     s1 = tests["1"]
@@ -632,8 +632,8 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
             "by_magnitude": {pool: magnitude_table(sprobs[pool], stests[pool]["y"], stests[pool]["status"],
                                                    stests[pool]["magnitude"], CLASS_NAMES, rule, s_ranges)
                              for pool in conf_pools},
-            "coverage_curve": {pool: coverage_curve(sprobs[pool], s["y"], s["status"], CLASS_NAMES, rule, thresholds)
-                               for pool, s in stests.items() if pool in ("1", "25")},
+            "coverage_curve": {pool: coverage_curve(sprobs[pool], stests[pool]["y"], stests[pool]["status"],
+                                                    CLASS_NAMES, rule, thresholds) for pool in conf_pools},
         }
         if _uses_magnitude(cfg, spec):
             shifted_report["magnitude"] = {pool: _magnitude_eval(model, s) for pool, s in stests.items()}
