@@ -91,6 +91,41 @@ def evaluate(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, class
     }
 
 
+#: Polar bands of a flow's direction from the beam (depth) axis, degrees (folded into [0°, 90°]:
+#: a flow and its reverse decorrelate alike in intensity).
+POLAR_BANDS = ((0.0, 30.0), (30.0, 60.0), (60.0, 90.0))
+
+
+def flow_recall_by_band(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, polar_angle_deg: np.ndarray,
+                        magnitude: np.ndarray, class_names: Sequence[str], rule: dict[str, Any]) -> dict[str, Any]:
+    """Flow recall by polar band and by speed decade, on identifiable flow samples.
+
+    Per band (``θ`` folded to ``min(θ, 180° − θ)``, :data:`POLAR_BANDS`) and per decade of the speed
+    (µm/s): ``samples``, ``coverage`` (share the rule decides), ``recall`` (share of the decided called
+    flow) and ``as`` (share of the decided called each class). Bands with no sample are left out.
+    """
+    flow = list(class_names).index("flow")
+    pred, _ = apply_rule(probabilities, class_names, rule)
+    ind = len(class_names) - 1
+    sel = (status == 0) & (y == flow) & np.isfinite(polar_angle_deg)
+    theta = np.minimum(polar_angle_deg, 180.0 - polar_angle_deg)
+    decade = np.floor(np.log10(np.maximum(magnitude, 1e-300)))
+
+    def row(mask: np.ndarray) -> dict[str, Any]:
+        dec = mask & (pred != ind)
+        n_dec = int(dec.sum())
+        return {"samples": int(mask.sum()), "coverage": float(n_dec / max(int(mask.sum()), 1)),
+                "recall": float((pred[dec] == flow).mean()) if n_dec else math.nan,
+                "as": {c: float((pred[dec] == i).mean()) if n_dec else math.nan
+                       for i, c in enumerate(class_names[:-1])}}
+
+    bands = {f"{lo:g}-{hi:g}": row(sel & (theta >= lo) & ((theta < hi) | (hi == 90.0)))
+             for lo, hi in POLAR_BANDS}
+    decades = {f"1e{int(d)}": row(sel & (decade == d)) for d in np.unique(decade[sel])}
+    return {"polar_bands": {k: v for k, v in bands.items() if v["samples"]},
+            "speed_decades": {k: v for k, v in decades.items() if v["samples"]}}
+
+
 def bootstrap_se(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, draw: np.ndarray,
                  class_names: Sequence[str], rule: dict[str, Any], *, n_boot: int = 200, seed: int = 0,
                  keys: Sequence[str] = ("accuracy_identifiable", "balanced_accuracy_identifiable",
@@ -251,6 +286,21 @@ def _coverage_section(L: list[str], title: str, curves: dict[str, list[dict[str,
               for pool, rows in curves.items() for c in rows])
 
 
+def flow_bands_section(L: list[str], title: str, bands: dict[str, dict[str, Any]]) -> None:
+    """One table of :func:`flow_recall_by_band` results, pools one after the other."""
+    rows = []
+    for pool, fb in bands.items():
+        for kind, key in (("polar", "polar_bands"), ("speed", "speed_decades")):
+            for name, r in fb.get(key, {}).items():
+                label = f"{name}°" if kind == "polar" else f"{name} µm/s decade"
+                rows.append([pool, label, r["samples"], _fmt(r["coverage"]), _fmt(r["recall"]),
+                             _fmt(r["as"].get("ballistic", math.nan)), _fmt(r["as"].get("diffusion", math.nan))])
+    _section(L, title, "Identifiable flow samples by the polar angle of the flow from the beam axis (folded into "
+             "0–90°) and by speed decade: share decided (coverage), share of the decided called flow (recall), "
+             "ballistic, diffusion.", ["pool", "band", "samples", "coverage", "flow recall", "as ballistic",
+                                        "as diffusion"], "rlrrrrr", rows)
+
+
 def _shifted_section(L: list[str], sp: dict[str, Any], rule: dict[str, Any]) -> None:
     """The shifted-prior test set (``report["shifted_prior"]``, :data:`classifier.train.SHIFTED_PRIOR`)."""
     pr = sp["prior"]
@@ -295,6 +345,8 @@ def _shifted_section(L: list[str], sp: dict[str, Any], rule: dict[str, Any]) -> 
               f"**{'met' if t['met'] else 'not met'}**.", ""]
     if "coverage_curve" in sp:
         _coverage_section(L, "Shifted prior: accuracy against coverage (`--min-probability`)", sp["coverage_curve"], rule)
+    if "flow_bands" in sp:
+        flow_bands_section(L, "Shifted prior: flow recall by direction and speed", sp["flow_bands"])
     for pool, rows in sp.get("by_magnitude", {}).items():
         _magnitude_rows(L, f"### Shifted prior: accuracy against motion magnitude, pool {pool}", rows)
     if "magnitude" in sp:
@@ -354,6 +406,8 @@ def format_markdown(report: dict[str, Any]) -> str:
     if "coverage_curve" in r:
         _coverage_section(L, "Accuracy against coverage (network): the `--min-probability` trade-off",
                           r["coverage_curve"], r["rule"])
+    if "flow_bands" in r:
+        flow_bands_section(L, "Flow recall by direction and speed (network)", r["flow_bands"])
     L.append("## Models: training and inference time")
     L.append("")
     L.append("| model | training [s] | inference [µs/sample] | acc. identifiable (pool 1) | bal. acc. identifiable (pool 1) |")

@@ -41,7 +41,8 @@ from . import __version__
 from .dataset import CLASSES, STATUS, Dataset, Prior, make_dataset
 from .features import METRIC_UNITS, FeatureSpec, load_spec
 from .model import DECORRELATION_OFFSET, LIV_OFFSET_DB2, MotionClassifier
-from .report import COVERAGE_THRESHOLDS, bootstrap_se, coverage_curve, evaluate, magnitude_table
+from .report import (COVERAGE_THRESHOLDS, bootstrap_se, coverage_curve, evaluate, flow_recall_by_band,
+                     magnitude_table)
 from .rule import INDETERMINATE, make_rule
 
 __all__ = ["TrainConfig", "TrainResult", "train", "fit_network", "pooled_samples", "CLASS_NAMES", "transform_numpy",
@@ -230,7 +231,7 @@ def _groups(ds: Dataset) -> list[np.ndarray]:
     return [np.arange(s, s + c) for s, c in zip(start, count)]
 
 
-_TRUTH = ("y", "status", "magnitude", "density", "static_fraction", "snr_db", "draw", "group")
+_TRUTH = ("y", "status", "magnitude", "density", "static_fraction", "snr_db", "draw", "group", "polar_angle_deg")
 
 
 def pooled_samples(ds: Dataset, sizes_per_group: list[np.ndarray], rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -634,6 +635,9 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
                              for pool in conf_pools},
             "coverage_curve": {pool: coverage_curve(sprobs[pool], stests[pool]["y"], stests[pool]["status"],
                                                     CLASS_NAMES, rule, thresholds) for pool in conf_pools},
+            "flow_bands": {pool: flow_recall_by_band(sprobs[pool], stests[pool]["y"], stests[pool]["status"],
+                                                     stests[pool]["polar_angle_deg"], stests[pool]["magnitude"],
+                                                     CLASS_NAMES, rule) for pool in conf_pools},
         }
         if _uses_magnitude(cfg, spec):
             shifted_report["magnitude"] = {pool: _magnitude_eval(model, s) for pool, s in stests.items()}
@@ -684,6 +688,9 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
         "by_magnitude": by_mag,
         "by_condition": by_cond,
         "coverage_curve": curves,
+        "flow_bands": {pool: flow_recall_by_band(probs_net[pool], tests[pool]["y"], tests[pool]["status"],
+                                                 tests[pool]["polar_angle_deg"], tests[pool]["magnitude"],
+                                                 CLASS_NAMES, rule) for pool in conf_pools},
         "status_names": list(STATUS),
     }
     if magnitude_report is not None:
