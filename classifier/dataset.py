@@ -180,7 +180,11 @@ class Prior:
             raise ValueError(f"prior.identifiability_epsilon must be in (0, 0.5); got {self.identifiability_epsilon!r}")
 
     def to_dict(self) -> dict[str, Any]:
+        """JSON-able fields; ``flow_polar_law`` only when it is not ``"isotropic"`` (the law of every
+        prior stored before the key existed, so their dicts and cache keys stay what they were)."""
         d = dataclasses.asdict(self)
+        if d["flow_polar_law"] == "isotropic":
+            del d["flow_polar_law"]
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
     @classmethod
@@ -477,11 +481,16 @@ class Dataset:
     density: np.ndarray
     static_fraction: np.ndarray
     snr_db: np.ndarray
-    #: polar angle of a flow sample's velocity from the depth (beam) axis, degrees; NaN for other motions
-    polar_angle_deg: np.ndarray
+    #: polar angle of a flow sample's velocity from the depth (beam) axis, degrees; NaN for other
+    #: motions (and ``None`` given: unknown, NaN)
+    polar_angle_deg: np.ndarray | None = None
     meta: dict[str, Any] = field(default_factory=dict)
     #: LIV and OCDS of the same samples at the spec's configurations (signature specs only), ``[N, 2·C]``.
     x_ref: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.polar_angle_deg is None:
+            self.polar_angle_deg = np.full(self.y.shape, math.nan)
 
     def __len__(self) -> int:
         return int(self.y.shape[0])

@@ -68,6 +68,9 @@ class TrainConfig:
     trials_per_draw: int = 64
     replicates: int = 8
     truncation_tolerance: float = 1e-2
+    #: law of the flow's polar angle in the training prior when no prior is given
+    #: (:attr:`classifier.dataset.Prior.flow_polar_law`)
+    flow_polar_law: str = "isotropic"
     hidden: tuple[int, ...] = (64, 64)
     max_epochs: int = 200
     patience: int = 20
@@ -493,7 +496,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
           progress: bool = False, log=print) -> TrainResult:
     """Run the recipe of the module docstring; returns the model, the report and the test inputs."""
     cfg = config or TrainConfig()
-    prior = prior or Prior()
+    prior = prior or Prior(flow_polar_law=cfg.flow_polar_law)
     spec = load_spec(cfg.spec)
     rule = make_rule(prior.identifiability_epsilon, cfg.min_probability)
     say = log or (lambda *a, **k: None)
