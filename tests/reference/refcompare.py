@@ -1,0 +1,161 @@
+"""Feature means of torchdoct's simulator against the reference simulator (:mod:`refsim`): the cells,
+the runs, and the z-test (Monte Carlo standard errors of both sides).
+
+The configurations are those of the shipped signature models (``classifier/specs/signature.toml``):
+840 nm at 4.9/3.8 µm, axial-reduced to 14 µm and lateral-reduced to 18 µm; 32 frames at 0.2048 s.
+Features: every signature feature a shipped model reads (``rho_lin_m`` at the spec's lags,
+``lin_contrast``, ``db_variance``), the field group (``g1_m``, ``g1_phase_m``, ``phase_ramp``) and LIV
+and OCDS, computed on both sides by torchdoct's own extractors (:func:`torchdoct.sim.signature.signature`
+and :func:`torchdoct.sim.metrics.compute_metrics`) — the numbers the models read.
+
+**The test**: per feature and configuration, ``z = (mean_td − mean_ref)/√(SE_td² + SE_ref²)`` with
+``SE = SD/√n`` over independent trials. The bound on ``|z|`` is Bonferroni over the comparisons of one
+test at a family-wise false-alarm rate :data:`FAMILY_ALPHA`: ``z* = Φ⁻¹(1 − α/(2·K))`` (3.5 for 10
+comparisons, 4.3 for 81), fixed before any result is seen.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import tomllib
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from scipy import special
+
+import refsim
+
+__all__ = ["FAMILY_ALPHA", "CONFIGS", "RHO_LIN_LAGS", "FIELD_LAGS", "NAMES", "DENSITY", "N_FRAMES", "DT",
+           "CELLS", "z_bound", "reference_features", "torchdoct_features", "compare", "format_failures"]
+
+#: Family-wise false-alarm rate of one comparison test (over all its features and configurations).
+FAMILY_ALPHA = 1e-3
+_SPEC = Path(__file__).resolve().parents[2] / "classifier" / "specs" / "signature.toml"
+
+
+def _spec() -> dict:
+    with open(_SPEC, "rb") as fh:
+        return tomllib.load(fh)
+
+
+_S = _spec()
+#: (name, wavelength µm, lateral 1/e² width µm, axial FWHM µm) of the signature spec.
+CONFIGS = tuple((c["name"], c["wavelength_um"], c["lateral_resolution_um"], c["axial_resolution_um"])
+                for c in _S["configuration"])
+RHO_LIN_LAGS = tuple(int(m.rsplit("_", 1)[1]) for m in _S["metrics"] if m.startswith("rho_lin_"))
+FIELD_LAGS = (1, 2, 3, 4, 6, 8)  # torchdoct.sim.signature.DEFAULT_FIELD_LAGS (the field group's lags)
+N_FRAMES = int(_S["protocol"]["n_frames"])
+DT = float(_S["protocol"]["frame_interval_s"])
+#: Density of the moving scatterers (µm⁻³), inside the training prior's U[0.02, 0.1].
+DENSITY = 0.05
+NAMES = refsim.feature_names(RHO_LIN_LAGS, FIELD_LAGS)
+SIGNATURE_NAMES = tuple(n for n in NAMES if n not in ("liv", "ocds"))
+
+#: Cells: slow motions (short lags carry the bias of a truncated PSF), flow at several angles.
+CELLS = {
+    "flow v=0.5 θ=20°": refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=20.0, azimuth_deg=30.0),
+    "flow v=0.5 θ=0°": refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=0.0),
+    "flow v=0.5 θ=45°": refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=45.0, azimuth_deg=200.0),
+    "flow v=0.5 θ=70°": refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=70.0, azimuth_deg=100.0),
+    "flow v=0.5 θ=90°": refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=90.0),
+    "flow v=2 θ=45°": refsim.Motion("flow", speed_um_per_s=2.0, polar_angle_deg=45.0),
+    "diffusion D=0.002": refsim.Motion("diffusion", diffusion_um2_per_s=0.002),
+    "diffusion D=0.05": refsim.Motion("diffusion", diffusion_um2_per_s=0.05),
+    "ballistic v=0.03 iso": refsim.Motion("ballistic", speed_um_per_s=0.03, directions="isotropic"),
+    "ballistic v=0.3 uniform-angles": refsim.Motion("ballistic", speed_um_per_s=0.3, directions="uniform-angles"),
+}
+
+
+def z_bound(comparisons: int, alpha: float = FAMILY_ALPHA) -> float:
+    """Bonferroni bound ``Φ⁻¹(1 − α/(2K))`` on ``|z|`` for ``K`` comparisons at family-wise rate ``α``."""
+    return float(-special.ndtri(alpha / (2.0 * comparisons)))
+
+
+def _optics(configs: Sequence[int]) -> list[refsim.Optics]:
+    return [refsim.Optics(*CONFIGS[i][1:]) for i in configs]
+
+
+def _torch_features(signals, names: Sequence[str] = NAMES) -> dict[str, np.ndarray]:
+    """Features ``{name: [trials, systems]}`` by torchdoct's extractors (signature + LIV/OCDS)."""
+    import torch
+
+    from torchdoct.sim.config import Analysis
+    from torchdoct.sim.metrics import compute_metrics
+    from torchdoct.sim.signature import signature
+
+    x = torch.as_tensor(signals)
+    times = [i * DT for i in range(x.shape[-1])]
+    sig = tuple(n for n in names if n not in ("liv", "ocds"))
+    out: dict[str, np.ndarray] = {}
+    if sig:
+        _, f = signature(x, times, names=sig)
+        for i, n in enumerate(sig):
+            out[n] = f[..., i].double().numpy()
+    extra = tuple(n for n in names if n in ("liv", "ocds"))
+    if extra:
+        met = compute_metrics(x, times, Analysis(metrics=extra, ocds_delay_range_s=(DT, 6 * DT)))
+        for n in extra:
+            out[n] = met[n].double().numpy()
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def reference_features(cell: str, trials: int, seed: int = 20261201,
+                       configs: tuple[int, ...] = (0, 1, 2)) -> dict[str, np.ndarray]:
+    """Features ``{name: [trials, configs]}`` of the reference simulator's fields for ``cell`` at the
+    configurations ``configs`` (indices into :data:`CONFIGS`; cached per session)."""
+    e = refsim.simulate(_optics(configs), CELLS[cell], density_per_um3=DENSITY, n_frames=N_FRAMES, frame_interval_s=DT,
+                        trials=trials, seed=seed)
+    return _torch_features(e)
+
+
+def torchdoct_scene(cell: str, configs: Sequence[int] = (0, 1, 2)):
+    """The torchdoct scene of a cell: the configurations ``configs``, one population, the paper's protocol."""
+    import torchdoct as td
+
+    m = CELLS[cell]
+    if m.kind == "flow":
+        motion = td.Flow(speed_um_per_s=m.speed_um_per_s, polar_angle_deg=m.polar_angle_deg, azimuth_deg=m.azimuth_deg)
+    elif m.kind == "ballistic":
+        motion = td.RandomBallistic(speed_um_per_s=m.speed_um_per_s, directions=m.directions)
+    else:
+        motion = td.Diffusion(diffusion_um2_per_s=m.diffusion_um2_per_s)
+    systems = tuple(td.OCTSystem(name=n, wavelength_um=wl, lateral_resolution_um=lat, axial_resolution_um=ax)
+                    for n, wl, lat, ax in (CONFIGS[i] for i in configs))
+    return td.Scene(systems=systems, protocol=td.Protocol(n_frames=N_FRAMES, frame_interval_s=DT),
+                    populations=(td.Population(density_per_um3=DENSITY, motion=(motion,)),), name=cell)
+
+
+def torchdoct_features(cell: str, trials: int, *, seed: int = 7, dtype: str = "float32",
+                       truncation_tolerance: float | None = None, configs: Sequence[int] = (0, 1, 2),
+                       **simulate_kw) -> dict[str, np.ndarray]:
+    """Features of torchdoct's fields for ``cell`` (``truncation_tolerance=None``: the scene default)."""
+    import torch
+    import torchdoct as td
+
+    res = td.simulate(torchdoct_scene(cell, configs), trials=trials, seed=seed, dtype=dtype,
+                      truncation_tolerance=truncation_tolerance, **simulate_kw)
+    return _torch_features(res.signals.to(torch.complex128))
+
+
+def compare(a: dict[str, np.ndarray], b: dict[str, np.ndarray], configs: Sequence[int] = (0, 1, 2)) -> list[dict]:
+    """Per feature and configuration: means, SEs, z of ``a − b`` (NaN trials dropped and counted)."""
+    rows = []
+    for name in a:
+        for s, cname in enumerate(CONFIGS[i][0] for i in configs):
+            x, y = a[name][:, s], b[name][:, s]
+            fx, fy = x[np.isfinite(x)], y[np.isfinite(y)]
+            se = math.hypot(fx.std(ddof=1) / math.sqrt(fx.size), fy.std(ddof=1) / math.sqrt(fy.size))
+            d = float(fx.mean() - fy.mean())
+            rows.append({"feature": name, "config": cname, "a": float(fx.mean()), "b": float(fy.mean()),
+                         "bias": d, "se": se, "z": d / se if se > 0 else (0.0 if d == 0 else math.inf),
+                         "nan_a": int(x.size - fx.size), "nan_b": int(y.size - fy.size)})
+    return rows
+
+
+def format_failures(rows: list[dict], bound: float, top: int = 8) -> str:
+    worst = sorted(rows, key=lambda r: -abs(r["z"]))[:top]
+    return "; ".join(f"{r['feature']}@{r['config']}: {r['a']:.5g} vs {r['b']:.5g} (bias {r['bias']:+.2g} ± "
+                     f"{r['se']:.2g}, z {r['z']:+.1f})" for r in worst) + f"; |z| bound {bound:.2f}"
