@@ -1,4 +1,5 @@
-"""Command line for measured data: ``torchdoct maps``, ``torchdoct compare``, ``torchdoct bench maps``.
+"""Command line for measured data: ``torchdoct maps``, ``torchdoct compare``, ``torchdoct bench maps``,
+``torchdoct bench bulk-phase``.
 
 Thin layer: parse, call one library function (:func:`torchdoct.measured.maps.compute_maps`,
 :func:`torchdoct.measured.compare.compare_samples`, :func:`torchdoct.measured.maps.bench_maps`), print.
@@ -73,6 +74,17 @@ def register(sub: Any, bench_sub: Any) -> None:
     a.add_argument("--normalization", choices=("power", "peak", "sum"), default="power",
                    help="filter gain: power keeps the mean intensity (default), peak the PSF peak, sum unit kernel")
     a.add_argument("--device", default=None, help="torch device (default cpu)")
+    bp = mp.add_argument_group("bulk-phase correction (complex data; physics.md §12)")
+    bp.add_argument("--bulk-phase", choices=("weighted-mean", "histogram"), default=None,
+                    help="remove the bulk phase per A-line and consecutive frame pair before the resolution "
+                         "reduction and the signature: weighted-mean (arg of the summed E_{i+1}E_i* along depth) "
+                         "or histogram (peak of the intensity-weighted phase-difference histogram; keeps the "
+                         "Doppler ramp of a flowing layer)")
+    bp.add_argument("--bulk-phase-mask", default="all", metavar="all|median|DB",
+                    help="pixels used: all (default), median (the brighter half of each A-line), or a dB threshold "
+                         "on |E_{i+1}E_i*|")
+    bp.add_argument("--bulk-phase-rows", default=None, metavar="Z0:Z1",
+                    help="depth rows used for the estimate (default all; the correction applies to every row)")
     p = mp.add_argument_group("pseudo-colour PNGs")
     p.add_argument("--png", action="store_true", help="write OUT_metric_resolution.png per channel")
     p.add_argument("--range", action="append", default=[], metavar="METRIC=LO,HI",
@@ -116,6 +128,16 @@ def register(sub: Any, bench_sub: Any) -> None:
     bm.add_argument("--out", default="bench-maps.json", help="JSON output file")
     bm.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     bm.set_defaults(func=_bench_maps)
+
+    bb = bench_sub.add_parser("bulk-phase", help="residual phase error of the bulk-phase correction against SNR")
+    bb.add_argument("--snr-db", default="10,20,30,40", help="comma list of SNRs (dB; default 10,20,30,40)")
+    bb.add_argument("--depth", type=int, default=64, help="depth pixels per A-line (default 64)")
+    bb.add_argument("--frames", type=int, default=32)
+    bb.add_argument("--lines", type=int, default=2000, help="A-lines per SNR (default 2000)")
+    bb.add_argument("--seed", type=int, default=0)
+    bb.add_argument("--out", default="bench-bulk-phase.json", help="JSON output file")
+    bb.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    bb.set_defaults(func=_bench_bulk_phase)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -171,16 +193,32 @@ def _maps(args: argparse.Namespace) -> int:
                 if m in METRICS:
                     check_out(png_name(outs[0], f"{m}@{parse_resolution(r).label}"), args.force, ".png",
                               what="PNG output")
+    bulk = None
+    if args.bulk_phase:
+        from ..measured.bulkphase import estimate_bulk_phase
+
+        bulk = estimate_bulk_phase(seq, args.bulk_phase, mask=args.bulk_phase_mask, rows=args.bulk_phase_rows,
+                                   device=args.device, progress=not args.no_progress)
+        info = bulk.meta()
+        print(f"bulk phase ({bulk.method}, mask {info['mask']}): RMS step {info['step_rms_rad']:.3f} rad, "
+              f"{info['pairs_without_signal']} A-line pairs without signal")
+    elif args.bulk_phase_mask != "all" or args.bulk_phase_rows is not None:
+        raise ValueError("--bulk-phase-mask and --bulk-phase-rows need --bulk-phase METHOD")
     maps = compute_maps(seq, resolutions, metrics=metrics, ocds_delay_range_s=tuple(args.ocds_delay_range_s),
                         ocds_scale=args.ocds_scale, ocds_estimator=args.ocds_estimator,
                         aliv_smoothing=not args.no_aliv_smoothing, aliv_max_window_s=args.aliv_max_window_s,
                         axial_center=center, edge_mode=args.edge_mode, normalization=args.normalization,
-                        drop_boundary=args.drop_boundary > 0, device=args.device,
+                        drop_boundary=args.drop_boundary > 0, device=args.device, bulk_phase=bulk,
                         progress=not args.no_progress)
     if args.signature:
         from ..sim.signature import signature_maps
 
-        maps, note = signature_maps(maps, seq, resolutions)
+        if bulk is not None:
+            from ..measured.bulkphase import corrected_sequence
+
+            maps, note = signature_maps(maps, corrected_sequence(seq, bulk), resolutions)
+        else:
+            maps, note = signature_maps(maps, seq, resolutions)
         if note:
             print(f"note: {note}")
     shape = "×".join(str(s) for s in maps.maps.shape[1:])
@@ -287,6 +325,21 @@ def _compare(args: argparse.Namespace) -> int:
     if plot_out is not None:
         plot_comparison(res, plot_out, force=args.force)
         print(f"wrote {plot_out}")
+    return 0
+
+
+def _bench_bulk_phase(args: argparse.Namespace) -> int:
+    from .._files import atomic_write, check_out
+    from ..measured.bulkphase import bench_bulk_phase, format_bench_bulk_phase
+
+    out = check_out(args.out, args.force, ".json", what="--out")
+    if args.frames < 2 or args.depth < 3 or args.lines < 2:
+        raise ValueError("--frames must be >= 2, --depth >= 3 and --lines >= 2")
+    res = bench_bulk_phase(snr_db=_floats(args.snr_db, None, "--snr-db"), n_z=args.depth, frames=args.frames,
+                           lines=args.lines, seed=args.seed)
+    print(format_bench_bulk_phase(res))
+    atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
+    print(f"wrote {out}")
     return 0
 
 

@@ -38,6 +38,14 @@ resolution are in ``meta["aliv"]["flagged_pixels"]`` and :func:`write_pngs` draw
 Optics: only a resolution change needs the pitch and the original resolutions (``system``); maps at
 the original resolution record them when known (``None`` otherwise).
 
+Bulk phase (``bulk_phase``, ``torchdoct maps --bulk-phase METHOD``): the phase common to an A-line's
+pixels at each frame is estimated per A-line and consecutive frame pair and removed
+(:mod:`torchdoct.measured.bulkphase`, physics.md §12) before the field is reduced, so a lateral
+reduction adds A-lines with their bulk motion removed; the estimate runs first, in lateral slabs of
+whole A-lines (it needs every depth row used and every frame of an A-line), and only the
+``[T, (Y), X]`` phases are kept. The maps record it in ``meta["bulk_phase"]`` (method, reference
+``"consecutive frames"``, mask, rows).
+
 Block raster volumes (:class:`torchdoct.measured.io.BlockRaster` in the sequence metadata): maps are
 computed on the whole volume (the lateral Gaussian runs across block boundaries, as in the paper),
 then the B-scans next to the boundaries are dropped; ``meta["y_indices"]`` lists the kept positions.
@@ -61,6 +69,7 @@ import torch
 
 from ..sim import metrics as _metrics
 from .._files import atomic_write, check_out
+from .bulkphase import BulkPhase, estimate_bulk_phase, phasor as _bulk_phasor
 from .io import Maps, Sequence
 from ..threads import one_torch_thread
 from .resolution import (
@@ -414,13 +423,19 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
                  aliv_smoothing: bool = True, aliv_max_window_s: float | None = None,
                  axial_center: str | float = "zero", edge_mode: str = "reflect", normalization: str = "power",
                  drop_boundary: bool = True, device: str | torch.device | None = None,
+                 bulk_phase: str | BulkPhase | None = None,
                  slab_elements: int = 1 << 23, chunk_pixels: int = 1 << 16, progress: bool = False,
                  timings: dict[str, float] | None = None) -> Maps:
     """DOCT maps of ``seq`` at every resolution in ``resolutions`` (see the module docstring).
 
     ``metrics``: any of ``liv``, ``ocds``, ``mean_db``, ``aliv``, ``swiftness``. ``axial_center``,
     ``edge_mode``, ``normalization``: :func:`torchdoct.measured.resolution.reduce_resolution`.
-    ``drop_boundary``: drop the block-boundary B-scans of a block raster volume. ``slab_elements``:
+    ``drop_boundary``: drop the block-boundary B-scans of a block raster volume. ``bulk_phase``: a
+    method of :mod:`torchdoct.measured.bulkphase` (estimated here with its defaults) or a
+    :class:`~torchdoct.measured.bulkphase.BulkPhase` estimated from ``seq``: each A-line's frames are
+    multiplied by ``exp(−iφ̂_i)`` before the resolution reduction (the intensity maps at the original
+    resolution do not read the phase and are unchanged bit for bit); recorded as
+    ``meta["bulk_phase"]``; intensity-only input is refused. ``slab_elements``:
     complex samples per depth slab; ``chunk_pixels``: pixels per metric chunk (memory only).
     ``timings`` (optional dict) receives seconds per resolution label. Returns :class:`Maps`
     (float32 ``[C, (Y), Z, X]``, channels ``f"{metric}@{resolution}"``).
@@ -467,6 +482,16 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
         probe = torch.rand(1, len(times), generator=torch.Generator().manual_seed(0)) + 1.0
         ocds_map(probe, times, delay_range_s=(lo, hi), scale=ocds_scale, estimator=ocds_estimator)
     dev = torch.device(device) if device is not None else torch.device("cpu")
+    if isinstance(bulk_phase, str):
+        bulk_phase = estimate_bulk_phase(seq, bulk_phase, slab_elements=slab_elements, device=dev, progress=progress)
+    elif bulk_phase is not None and not isinstance(bulk_phase, BulkPhase):
+        raise TypeError(f"bulk_phase must be a method name or a BulkPhase; got {type(bulk_phase).__name__}")
+    bulk = None
+    if bulk_phase is not None:
+        if not seq.is_complex:
+            raise ValueError(f"{src} holds intensity only (dtype {seq.data.dtype}): bulk-phase correction needs the "
+                             "complex field; give the complex sequence, or drop --bulk-phase")
+        bulk = torch.from_numpy(_bulk_phasor(bulk_phase, seq)).to(dev)  # [T, (Y), 1, X]: broadcasts over depth
     data = seq.data
     axes = seq.axes
     zdim = axes.index("Z")
@@ -523,6 +548,10 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
             sel = [slice(None)] * data.ndim
             sel[cdim] = slice(a0, a1)
             block = torch.from_numpy(np.array(data[tuple(sel)], dtype=native, copy=True)).to(dev)
+            if bulk is not None and t in changes:  # bulk phase removed before the A-lines are mixed
+                psel = list(sel)
+                psel[zdim] = slice(None)
+                block = block * bulk[tuple(psel)]
             if t in changes:
                 red = reduce_resolution(block, pitch_um=seq.pitch_um, system=system,
                                         lateral_resolution_um=t.lateral_resolution_um,
@@ -570,6 +599,8 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
                       "axial_center_cycles_per_pixel": float(fc) if not isinstance(fc, str) else 0.0,
                       "lateral_axes": "YX" if "Y" in axes else "X"},
     }
+    if bulk_phase is not None:
+        meta["bulk_phase"] = bulk_phase.meta()
     if "aliv" in wanted or "swiftness" in wanted:
         meta["aliv"] = {"smoothing": "box3x3" if aliv_smoothing else "none", "max_window_s": aliv_max_window_s,
                         "model": "a*(1-exp(-T/tau)); aliv=a, swiftness=1/tau"}
