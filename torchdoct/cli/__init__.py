@@ -60,9 +60,13 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--out", default="bench-simulate.json", help="JSON output file")
     bs.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     bt = bsub.add_parser("tradeoffs", help="what accuracy costs in time: simulator, study and classifier")
-    bt.add_argument("--part", choices=("all", "simulator", "study", "classifier"), default="all")
+    bt.add_argument("--part", choices=("all", "simulator", "study", "classifier", "fidelity"), default="all")
     bt.add_argument("--trials", type=int, default=8192, help="simulator: trials per tolerance point")
     bt.add_argument("--reference-trials", type=int, default=16384, help="simulator: trials of the reference")
+    bt.add_argument("--fidelity-trials", type=int, default=4096,
+                    help="fidelity: trials per cell and simulator setting (bias of every model feature)")
+    bt.add_argument("--fidelity-reference-trials", type=int, default=8192,
+                    help="fidelity: trials per cell of the tight reference (tolerance 1e-6, float64)")
     bt.add_argument("--quick", action="store_true", help="reduced sizes (minutes)")
     bt.add_argument("--out", default="bench-tradeoffs.json", help="JSON output (PNGs of the fronts beside it)")
     bt.add_argument("--force", action="store_true", help="overwrite --out if it exists")
@@ -173,8 +177,8 @@ def _bench_tradeoffs(args) -> int:
     from ..bench import tradeoffs
 
     out = _check_out(args.out, args.force, ".json")
-    parts = ["simulator", "study", "classifier"] if args.part == "all" else [args.part]
-    pngs = {p: Path(args.out).with_name(f"{Path(args.out).stem}-{p}.png") for p in parts if p != "study"}
+    parts = ["simulator", "study", "classifier", "fidelity"] if args.part == "all" else [args.part]
+    pngs = {p: Path(args.out).with_name(f"{Path(args.out).stem}-{p}.png") for p in parts if p not in ("study", "fidelity")}
     for png in pngs.values():
         _check_out(str(png), args.force, ".png")
     res: dict[str, Any] = {}
@@ -191,6 +195,10 @@ def _bench_tradeoffs(args) -> int:
 
         res["classifier"] = clf_tradeoffs.classifier_tradeoffs(quick=args.quick, progress=True)
         print(clf_tradeoffs.format_table(res["classifier"]))
+    if "fidelity" in parts:
+        n, ref = (512, 1024) if args.quick else (args.fidelity_trials, args.fidelity_reference_trials)
+        res["fidelity"] = tradeoffs.feature_fidelity(trials=n, reference_trials=ref, progress=True)
+        print(tradeoffs.format_fidelity_table(res["fidelity"]))
     _atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
     if "simulator" in pngs:
         _atomic_write(pngs["simulator"], lambda tmp: tradeoffs.plot_tradeoffs(res["simulator"], tmp))
