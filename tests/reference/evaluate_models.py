@@ -280,29 +280,84 @@ def _joint_block(optics: Sequence[refsim.Optics], motion: refsim.Motion, density
     who = [who_all[s] for s in sel]
     w = [0.5 / s**2 for s in sig]
     two_kn = [2.0 * o.kn for o in optics]
+    sums = [_TrialSums(k, trials) for k in who]
     out = np.empty((trials, len(optics), len(times)), dtype=np.complex128)
+    t_rel = times - times[0]
     if motion.kind == "diffusion":
         dt = np.diff(times)
         if len(times) > 2 and np.ptp(dt) > 1e-12 * times[-1]:
             raise ValueError("diffusion needs uniform frame times")
         step_sd = math.sqrt(2.0 * motion.diffusion_um2_per_s * float(dt[0])) if len(times) > 1 else 0.0
-    pos = p0.copy()
-    for i, t in enumerate(times):
-        if motion.kind == "diffusion":
+        pos = p0.copy()
+        for i in range(len(times)):
             if i > 0:  # exact Brownian path at the frame times
                 pos += rng.standard_normal((pos.shape[1], 3)).T * step_sd
-        elif motion.kind != "static":
-            pos = p0 + v * (t - times[0])
-        for c in range(len(optics)):
-            q = pos[:, sel[c]]
-            amp = np.exp(-(w[c][0] * q[0] ** 2 + w[c][1] * q[1] ** 2 + w[c][2] * q[2] ** 2))
-            ph = two_kn[c] * q[2]
-            out[:, c, i] = (np.bincount(who[c], weights=amp * np.cos(ph), minlength=trials)
-                            + 1j * np.bincount(who[c], weights=amp * np.sin(ph), minlength=trials))
-    if snr_db is not None:
-        for c, o in enumerate(optics):
-            sd = math.sqrt(refsim.mean_intensity(o, density) / 10.0 ** (snr_db / 10.0) / 2.0)
-            out[:, c] += sd * (rng.standard_normal((trials, len(times))) + 1j * rng.standard_normal((trials, len(times))))
+            phasor = {}
+            for c in range(len(optics)):
+                if two_kn[c] not in phasor:  # exp(i·2kn·z) of every used scatterer, once per wavelength
+                    phasor[two_kn[c]] = _cis(two_kn[c] * pos[2])
+                q = pos[:, sel[c]]
+                amp = np.exp(-(w[c][0] * q[0] ** 2 + w[c][1] * q[1] ** 2 + w[c][2] * q[2] ** 2))
+                out[:, c, i] = sums[c](amp * phasor[two_kn[c]][sel[c]])
+        return _add_noise(out, optics, density, snr_db, rng)
+    # straight paths r(t) = r0 + v·t: the Gaussian exponent is A + B·t + C·t² per scatterer, and the
+    # phase 2kn·(z0 + v_z·t) turns by a fixed factor per frame interval (uniform frames)
+    for c in range(len(optics)):
+        x0, vv = p0[:, sel[c]], v[:, sel[c]]
+        wc = w[c][:, None]
+        A = np.sum(wc * x0 * x0, axis=0)
+        B = 2.0 * np.sum(wc * x0 * vv, axis=0)
+        C = np.sum(wc * vv * vv, axis=0)
+        phasor = _cis(two_kn[c] * x0[2])
+        if motion.kind == "ballistic" and len(times) > 1:
+            turn = _cis(two_kn[c] * vv[2] * (times[1] - times[0]))
+        for i, t in enumerate(t_rel):
+            if motion.kind == "ballistic" and i > 0:
+                phasor *= turn
+            e = sums[c](np.exp(-(A + t * (B + t * C))) * phasor)
+            if motion.kind == "flow":  # the common Doppler phase of flow
+                e *= np.exp(1j * two_kn[c] * motion.flow_velocity[2] * t)
+            out[:, c, i] = e
+    return _add_noise(out, optics, density, snr_db, rng)
+
+
+def _cis(phase: np.ndarray) -> np.ndarray:
+    """``exp(i·phase)`` (complex128) from float64 cosine and sine (torch's vectorised ones: 5x numpy's speed,
+    within 1 ulp of numpy's)."""
+    import torch
+
+    t = torch.from_numpy(np.ascontiguousarray(phase, dtype=np.float64))
+    out = np.empty(t.shape, np.complex128)
+    out.real, out.imag = torch.cos(t).numpy(), torch.sin(t).numpy()
+    return out
+
+
+class _TrialSums:
+    """Sums of per-scatterer values over the scatterers of each trial (``owner`` sorted ascending)."""
+
+    def __init__(self, owner: np.ndarray, trials: int):
+        counts = np.bincount(owner, minlength=trials)
+        self.trials = trials
+        self.nonempty = counts > 0
+        self.starts = (np.cumsum(counts) - counts)[self.nonempty]
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        out = np.zeros(self.trials, dtype=values.dtype)
+        if self.starts.size:
+            out[self.nonempty] = np.add.reduceat(values, self.starts)
+        return out
+
+
+def _add_noise(out: np.ndarray, optics: Sequence[refsim.Optics], density: float, snr_db: float | None,
+               rng: np.random.Generator) -> np.ndarray:
+    """Circular complex Gaussian noise, independent per configuration, trial and frame, of power
+    ``⟨I⟩/10^(SNR/10)`` with ``⟨I⟩`` the configuration's mean intensity (physics.md §5.2, §8)."""
+    if snr_db is None:
+        return out
+    trials, _, frames = out.shape
+    for c, o in enumerate(optics):
+        sd = math.sqrt(refsim.mean_intensity(o, density) / 10.0 ** (snr_db / 10.0) / 2.0)
+        out[:, c] += sd * (rng.standard_normal((trials, frames)) + 1j * rng.standard_normal((trials, frames)))
     return out
 
 
