@@ -3,7 +3,7 @@ prior the models were not trained on.
 
 Run (from the repository root)::
 
-    python -m tests.reference.evaluate_models --model signature [--draws 150] [--trials 32] [--seed 0] [--out DIR]
+    python -m tests.reference.evaluate_models --model signature [--draws 300] [--trials 32] [--seed 0] [--out DIR]
 
 ``--model``: a shipped model name, an ``.onnx`` file, or a ``doct-train --out`` directory holding one.
 Writes ``<out>/<model>-independent.json`` and ``.md`` (never over existing files without ``--force``)
@@ -68,7 +68,9 @@ interval coverage (head of the true class, identifiable pixels). Standard errors
 draws (the independent unit), :data:`N_BOOT` resamples. Beside every number its target
 (:data:`TARGETS`, issue 24).
 
-**Cost**: the brute force is heavy; the default 150 draws × 32 trials takes a few minutes on one core.
+**Cost** (one core): about 0.3 s per draw of 32 trials (flow and random-ballistic motion 0.1-0.3 s,
+diffusion, whose Brownian steps and phases are drawn and evaluated per frame, up to 1 s); the default
+300 draws × 32 trials takes under two minutes idle.
 """
 
 from __future__ import annotations
@@ -95,7 +97,7 @@ __all__ = ["DEFAULT_DRAWS", "DEFAULT_TRIALS", "BLOCK_TRIALS", "DENSITY", "RANGES
            "motion_for", "source_box_um", "simulate_joint", "draw_features", "evaluate_model", "format_markdown",
            "main"]
 
-DEFAULT_DRAWS = 150
+DEFAULT_DRAWS = 300
 DEFAULT_TRIALS = 32
 #: Trials per random block of the simulation.
 BLOCK_TRIALS = 8
@@ -476,6 +478,10 @@ def evaluate_model(model: str, *, draws: int = DEFAULT_DRAWS, trials: int = DEFA
     if not spec.is_signature:
         raise ValueError(f"model {name}: its features are {list(spec.metrics)}; this evaluation computes the "
                          "signature features (torchdoct.sim.signature) and needs a signature model")
+    names = [col["name"] for col in mdl.columns[:-1]]
+    if names != list(spec.feature_names) or mdl.columns[-1]["metric"] != "pool_pixels":
+        raise ValueError(f"model {name}: its input columns {names + [mdl.columns[-1]['name']]} are not its spec's "
+                         f"features {list(spec.feature_names)} followed by pool_pixels; re-export it with doct-train")
     classes = mdl.classes
     rule = mdl.rule
     prior = independent_prior(float(rule["epsilon"]))

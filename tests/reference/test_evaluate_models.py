@@ -9,6 +9,7 @@ independent systems is marked slow.
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -101,6 +102,18 @@ def test_prior_is_the_documented_one():
     # a draw does not depend on how many are made, and seeds differ
     assert em.draw_independent(7, 11) == draws[11]
     assert em.draw_independent(8, 11) != draws[11]
+
+
+def test_optics_follow_the_spec_including_a_bscan_lateral_width_along_y():
+    """Wavelength, lateral x (and y where a configuration gives it), axial width and refractive index
+    come from the model's spec; a configuration without ``lateral_resolution_y_um`` is isotropic."""
+    conf = [SimpleNamespace(wavelength_um=0.84, lateral_resolution_um=18.0, axial_resolution_um=3.8,
+                            lateral_resolution_y_um=4.9),
+            SimpleNamespace(wavelength_um=1.31, lateral_resolution_um=4.9, axial_resolution_um=14.0)]
+    optics = em.optics_for(SimpleNamespace(configurations=conf, refractive_index=1.33))
+    assert optics == [refsim.Optics(0.84, 18.0, 3.8, lateral_y_um=4.9, refractive_index=1.33),
+                      refsim.Optics(1.31, 4.9, 14.0, lateral_y_um=None, refractive_index=1.33)]
+    assert optics[0].sigmas_um[1] == pytest.approx(4.9 / (2 * math.sqrt(2)))
 
 
 def test_features_of_a_draw_do_not_depend_on_the_trial_count():
