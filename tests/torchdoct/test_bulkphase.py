@@ -172,6 +172,20 @@ def test_moving_speckle_alone_leaves_a_random_walk_of_the_predicted_step():
     assert abs(slope - pred) <= 4 * se, (slope, se, pred)
 
 
+@pytest.mark.parametrize("n_z,p_static,seed", [(96, 0.85, 1), (32, 0.7, 2), (64, 0.5, 3)])
+def test_static_plus_moving_residual_matches_the_prediction(n_z, p_static, seed):
+    """Static speckle plus AR(1) moving speckle (g = 0.95) at 30 dB: the moving part's projection on the static
+    field and the random walk of its own products add to the noise terms (physics.md §12.3)."""
+    t, x, g = 16, 600, 0.95
+    truth = make_field(t, n_z, x, snr_db=30.0, p_static=p_static, g=g, seed=seed)
+    phi = bulk_phase_of(t, (x,), seed)
+    lines = torch.from_numpy(np.ascontiguousarray(np.moveaxis(with_bulk(truth, phi), 1, 2)))  # [T, X, Z]
+    rms, se = residual_rms(phase_steps(lines, "weighted-mean")[0], torch.from_numpy(phi))
+    pred = predicted_residual_rms(30.0, n_z, t, moving_fraction=1 - p_static, moving_g=g)
+    assert abs(rms - pred) <= 4 * se, (rms, se, pred)
+    assert pred > 3 * predicted_residual_rms(30.0, n_z, t)  # the moving part dominates the noise here
+
+
 # ----------------------------------------------------------------------------------------------------------
 # the corrected field: features against the truth
 # ----------------------------------------------------------------------------------------------------------

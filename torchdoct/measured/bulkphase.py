@@ -383,24 +383,42 @@ def corrected_sequence(seq: Sequence, bp: BulkPhase) -> Sequence:
 
 
 def predicted_residual_rms(snr_db: float, n_z: int, n_frames: int, *, speckle: bool = True,
-                           noise_only: int = 0) -> float:
-    """First-order RMS residual phase (rad) over the frames of a static A-line in white noise
-    (module docstring; physics.md §12): ``√((1 − 1/T)·σ²/2·E[1/A] + (T² − 1)/(6T)·N σ⁴/2·E[1/A²])``
-    with ``A = Σ|S|²`` over the ``N_z`` signal pixels, ``SNR = E[A]/(N_z σ²)``, and ``N = N_z +``
-    ``noise_only`` the pixels used (``noise_only`` of them hold noise only, e.g. below the sample).
-    ``speckle``: ``A`` Gamma distributed (fully developed speckle, mean over A-lines); otherwise
-    ``A = N_z·P`` fixed."""
+                           noise_only: int = 0, moving_fraction: float = 0.0, moving_g: float = 1.0) -> float:
+    """First-order RMS residual phase (rad) over the frames of an A-line (module docstring; physics.md §12),
+    about its frame mean, with the signal power per pixel 1 and white noise at ``snr_db``.
+
+    Static A-line: ``√((1 − 1/T)·σ²/2·E[1/A] + (T² − 1)/(6T)·N σ⁴/2·E[1/A²])`` with ``A = Σ|S|²`` over
+    the ``N_z`` signal pixels and ``N = N_z + noise_only`` the pixels used (``noise_only`` of them hold
+    noise only, e.g. below the sample). ``speckle``: ``A`` Gamma distributed (fully developed speckle,
+    mean over A-lines: ``E[1/A] = 1/(N_z − 1)``, ``E[1/A²] = 1/((N_z − 1)(N_z − 2))``); otherwise
+    ``A = N_z`` fixed. ``moving_fraction`` ``f_m`` of the power decorrelating as AR(1) with lag-1
+    correlation ``moving_g`` ``g`` (physics.md §12.3): ``A`` becomes ``N_z·a``, ``a = 1 − f_m + g·f_m``, and two
+    terms add: the moving part's projection on the static field, ``Im Σ S*M_i / A`` (variance
+    ``N_z f_s f_m/2·E[1/A²]``, times ``1 − (1/T²)Σ_ij g^|i−j|`` about the frame mean), and the random
+    walk of ``Im Σ M_{i+1}M_i* / A`` (``N_z (1 − g²) f_m²/2·E[1/A²]`` per step). Noise and moving
+    speckle are taken to first order; cross terms of the two are neglected (O(1 − g))."""
     snr = 10.0 ** (float(snr_db) / 10.0)
     n, t = int(n_z), int(n_frames)
     n_used = n + int(noise_only)
+    fm = float(moving_fraction)
+    g = float(moving_g)
+    if not 0.0 <= fm <= 1.0 or not 0.0 < g <= 1.0:
+        raise ValueError("moving_fraction must be in [0, 1] and moving_g in (0, 1]")
+    fs = 1.0 - fm
+    a = fs + g * fm
     if speckle:
         if n < 3:
             raise ValueError("the speckle average needs N_z >= 3")
-        inv_a, inv_a2 = 1.0 / (n - 1), 1.0 / ((n - 1) * (n - 2))  # in units of P (signal power per pixel)
+        inv_a, inv_a2 = 1.0 / ((n - 1) * a), 1.0 / ((n - 1) * (n - 2) * a * a)
     else:
-        inv_a, inv_a2 = 1.0 / n, 1.0 / (n * n)
+        inv_a, inv_a2 = 1.0 / (n * a), 1.0 / (n * n * a * a)
     sigma2 = 1.0 / snr
-    ms = (1.0 - 1.0 / t) * sigma2 / 2.0 * inv_a + (t * t - 1.0) / (6.0 * t) * n_used * sigma2 ** 2 / 2.0 * inv_a2
+    walk = (t * t - 1.0) / (6.0 * t)
+    ms = (1.0 - 1.0 / t) * sigma2 / 2.0 * inv_a / a + walk * n_used * sigma2 ** 2 / 2.0 * inv_a2
+    if fm > 0:
+        lags = np.abs(np.arange(t)[:, None] - np.arange(t)[None, :])
+        about_mean = 1.0 - float(np.mean(g ** lags))
+        ms += n * fs * fm / 2.0 * inv_a2 * about_mean + walk * n * (1.0 - g * g) * fm * fm / 2.0 * inv_a2
     return math.sqrt(ms)
 
 
