@@ -14,10 +14,10 @@ volume ``[T, Y, Z, X]``) and each consecutive frame pair ``(i, i+1)``, with the 
 
 * ``weighted-mean``: ``Δφ_i = arg Σ_z C_i(z)``. The argument of the summed products is the
   intensity-weighted mean phase difference (each pixel weighs ``|E_{i+1}||E_i|``); it is the
-  maximum-likelihood step for a static A-line in white Gaussian noise, but every pixel pulls on it,
-  so a flowing layer with a Doppler step ``δ`` shifts it by about ``w_f·δ`` (``w_f`` the layer's share
-  of ``Σ|C|``; exactly ``arg(Σ_static |C| + Σ_flow C)``): the flow's ramp shrinks to ``δ − that`` and
-  the static tissue acquires the opposite ramp.
+  maximum-likelihood step of one frame pair for an unknown static field in white Gaussian noise, but
+  every pixel pulls on it, so a flowing layer with a Doppler step ``δ`` shifts it by about ``w_f·δ``
+  (``w_f`` the layer's share of ``Σ|C|``; exactly ``arg(Σ_static |C| + Σ_flow C)``): the flow's ramp
+  shrinks to ``δ − that`` and the static tissue acquires the opposite ramp.
 * ``histogram``: the peak of the ``|C|``-weighted histogram of the pixel phase differences
   ``arg C_i(z)`` (``bins`` bins over (−π, π], smoothed circularly by [1, 2, 1]/4), refined to sub-bin
   precision: ``c₁ = arg Σ C`` over the pixels within 3 bins of the peak; the spread ``s`` of the
@@ -48,7 +48,8 @@ original resolution).
 **Residual error** (physics.md §12, derived there): for an A-line of static scatterers ``S(z)`` in
 white circular Gaussian noise of power ``σ²`` per pixel, with ``A = Σ_z |S(z)|²`` over the ``N_z``
 used pixels and ``SNR = A/(N_z σ²)`` (mean signal intensity over noise power), the corrected phase
-differs from the truth by a constant (irrelevant: a phase common to all frames of an A-line) plus a
+differs from the truth by a constant (a phase common to all frames of the A-line, which no temporal
+feature sees) plus a
 residual ``r_i`` whose RMS over the ``T`` frames is, to first order in the noise,
 
     ⟨r²⟩ = (1 − 1/T)·σ²/(2A) + (T² − 1)/(6T)·N_z σ⁴/(2A²)
@@ -60,7 +61,11 @@ noise-times-noise part of each step, is a random walk over the frames and matter
 At high SNR the residual is ``≈ 1/√(2·N_z·SNR)``. For fully developed speckle ``A`` is a Gamma
 variable and the mean over A-lines uses ``E[1/A] = 1/((N_z−1)P)``, ``E[1/A²] = 1/((N_z−1)(N_z−2)P²)``
 (:func:`predicted_residual_rms`). :func:`bench_bulk_phase` (``torchdoct bench bulk-phase``) measures it
-against SNR.
+against SNR. Moving scatterers in the A-line add to it: the estimate cannot tell the bulk phase from
+the phase that the A-line's own decorrelating speckle shares across its pixels, and removes that too
+(physics.md §12.3: a term of variance ``≈ f_s f_m/(2 N_z a²)`` and a random walk of ``≈ (1 − g²)
+f_m²/(2 N_z a²)`` per step for a moving power fraction ``f_m`` with lag-1 correlation ``g``,
+``a = f_s + g f_m``; ``predicted_residual_rms(moving_fraction=, moving_g=)``).
 
 **Memory.** The correction of an A-line needs its whole depth (rows used) and all its frames, so the
 estimate runs in lateral slabs of whole A-lines (X columns of a B-scan sequence, whole B-scans of a
