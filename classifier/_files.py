@@ -51,6 +51,11 @@ def threads() -> ModuleType:
     return _standalone("threads")
 
 
+def interrupt() -> ModuleType:
+    """:mod:`torchdoct.interrupt` (Ctrl-C, SIGTERM and closed pipes at the entry points; standard library)."""
+    return _standalone("interrupt")
+
+
 def check_out(path, force, suffix, what="--out"):
     """:func:`torchdoct._files.check_out`."""
     return _standalone("_files").check_out(path, force, suffix, what)

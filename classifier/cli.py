@@ -13,6 +13,10 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+from ._files import interrupt as _load_interrupt
+
+_interrupt = _load_interrupt()
+
 __all__ = ["build_train_parser", "build_classify_parser", "train_main", "classify_main"]
 
 #: ``doct-train --quick``: small splits for a first run (about a minute on 2 cores; classifier/README.md).
@@ -29,6 +33,8 @@ def _run(fn, args) -> int:
     except _ERRORS as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader of the output went away: the entry point ends quietly
+        raise
     except OSError as err:  # permissions, disk full
         print(f"error: {err}", file=sys.stderr)
         return 1
@@ -76,6 +82,7 @@ def _quick_text() -> str:
             f"at most {q['max_epochs']} epochs")
 
 
+@_interrupt.entry_point  # Ctrl-C/SIGTERM: one line, exit 130/143 (torchdoct.interrupt)
 def train_main(argv: Sequence[str] | None = None) -> int:
     """``doct-train``: returns the exit code (0 done, 2 bad input, 1 other failure)."""
     args = build_train_parser().parse_args(argv)
@@ -207,6 +214,7 @@ def build_classify_parser() -> argparse.ArgumentParser:
     return p
 
 
+@_interrupt.entry_point  # Ctrl-C/SIGTERM: one line, exit 130/143 (torchdoct.interrupt)
 def classify_main(argv: Sequence[str] | None = None) -> int:
     """``doct-classify``: returns the exit code (0 done, 2 bad input, 1 other failure)."""
     args = build_classify_parser().parse_args(argv)

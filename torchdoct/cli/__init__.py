@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from .._files import atomic_write, check_out
+from ..interrupt import entry_point
 
 __all__ = ["build_parser", "main", "EXIT_CODES"]
 
@@ -240,14 +241,9 @@ def _bench_all(args) -> int:
     return 1 if failed else 0
 
 
+@entry_point  # Ctrl-C/SIGTERM: one line, exit 130/143; a closed output pipe: quiet exit 141
 def main(argv: Sequence[str] | None = None) -> int:
-    try:
-        return _main(argv)
-    except BrokenPipeError:  # output piped into a pager or `head` that closed early
-        import os
-
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 0
+    return _main(argv)
 
 
 def _main(argv: Sequence[str] | None = None) -> int:
@@ -332,6 +328,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
     except (config.SceneError, TypeError, ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader of the output went away: torchdoct.interrupt ends quietly
+        raise
     except OSError as err:  # the system refused a read or write (permissions, disk full)
         print(f"error: {err}", file=sys.stderr)
         return 1

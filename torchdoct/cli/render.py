@@ -71,11 +71,15 @@ def _grid(spec: str | None, pitch: float | None) -> dict | None:
 def _outputs(out: Path, names: list[str]) -> dict[str, Path]:
     if len(names) == 1:
         return {names[0]: out}
+    from .._files import safe_name
+
+    for n in names:  # STEM-SYSTEM.SUFFIX: a system name must be a plain file name
+        safe_name(n, "system name", "rename the system in the phantom file, or render one system with --system")
     return {n: out.with_name(f"{out.stem}-{n}{out.suffix}") for n in names}
 
 
 def _render(args) -> int:
-    from .._files import atomic_write, check_out
+    from .._files import atomic_write, check_out, output_set
     from ..measured.io import write_sequence
     from ..image.phantom import load_phantom
     from ..image.render import render, save_preview
@@ -84,14 +88,15 @@ def _render(args) -> int:
     names = args.system or [s.name for s in ph.scene.systems]
     check_out(args.out, True, _SUFFIXES)  # suffix and directory; existence per file below
     outs = _outputs(Path(args.out), names)
+    files = []  # the output set: written whole or not at all (an error, Ctrl-C, SIGTERM)
     for n, p in outs.items():
-        check_out(p, args.force, _SUFFIXES)
+        files.append(check_out(p, args.force, _SUFFIXES))
         if p.suffix in (".npy", ".npz"):
-            check_out(p.with_suffix(".json"), args.force, ".json", "metadata sidecar")
+            files.append(check_out(p.with_suffix(".json"), args.force, ".json", "metadata sidecar"))
         if p.suffix == ".npy":
-            check_out(p.with_name(p.stem + ".labels.npz"), args.force, ".npz", "labels file")
+            files.append(check_out(p.with_name(p.stem + ".labels.npz"), args.force, ".npz", "labels file"))
         if not args.no_preview:
-            check_out(p.with_suffix(".png"), args.force, ".png", "preview")
+            files.append(check_out(p.with_suffix(".png"), args.force, ".png", "preview"))
     res = render(ph, systems=names, seed=args.seed, dtype=args.dtype, device=args.device,
                  truncation_tolerance=args.tolerance, progress=not args.no_progress)
     print(f"rendered {ph.name!r}: {res.phantom.grid.axes} {tuple(res.data.shape[1:])}, "
@@ -99,23 +104,22 @@ def _render(args) -> int:
     print("stages: " + "; ".join(res.work["stages"]))
     for pop, w in res.work["populations"].items():
         print(f"  {pop}: " + ", ".join(f"{k} {v}" for k, v in w.items()))
-    for n, p in outs.items():
-        k = res.system_index(n)
-        meta = res.metadata(k)
-        if p.suffix == ".npy":  # a .npy holds one array: the ground truth goes beside it
-            lab = p.with_name(p.stem + ".labels.npz")
-            meta["labels_file"] = lab.name
-            atomic_write(lab, lambda tmp: _save_labels(tmp, res))
-            write_sequence(p, res.data[k].cpu().numpy(), meta, force=args.force)
-            print(f"wrote {lab}")
-        else:
-            write_sequence(p, res.data[k].cpu().numpy(), meta, labels=res.labels,
-                           label_params=res.label_params, force=args.force)
-        print(f"wrote {p}" + (f" and {p.with_suffix('.json')}" if p.suffix != ".h5" else ""))
-        if not args.no_preview:
-            png = p.with_suffix(".png")
-            atomic_write(png, lambda tmp, k=k: save_preview(res, tmp, k))
-            print(f"wrote {png}")
+    with output_set(files, args.force) as stage:
+        for n, p in outs.items():
+            k = res.system_index(n)
+            meta = res.metadata(k)
+            if p.suffix == ".npy":  # a .npy holds one array: the ground truth goes beside it
+                lab = p.with_name(p.stem + ".labels.npz")
+                meta["labels_file"] = lab.name
+                atomic_write(stage(lab), lambda tmp: _save_labels(tmp, res))
+                write_sequence(stage(p), res.data[k].cpu().numpy(), meta, force=args.force)
+            else:
+                write_sequence(stage(p), res.data[k].cpu().numpy(), meta, labels=res.labels,
+                               label_params=res.label_params, force=args.force)
+            if not args.no_preview:
+                atomic_write(stage(p.with_suffix(".png")), lambda tmp, k=k: save_preview(res, tmp, k))
+    for p in files:
+        print(f"wrote {p}")
     return 0
 
 

@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .._files import atomic_write
+from .._files import atomic_write, output_set
 from .sweep import SweepResult, prepare_out_dir, run_sweeps, write_table
 from .claims import claims_report
 from .figures import _save_figure, plot_comparison, plot_directions
@@ -80,30 +81,34 @@ def run_study(study: Study | str | os.PathLike, out_dir: str | os.PathLike, *, t
     table = res.table()
     diffs = paired_differences(study, res)
     dirs = direction_differences(study, res)
-    written = write_table(table, out / "results", force=force)
-    written += write_table(diffs, out / "differences", force=force)
-    if study.direction_parts:
-        written += write_table(dirs, out / "directions", force=force)
-    t1 = time.perf_counter()
-    for c in study.comparisons:
-        written += _save_figure(plot_comparison(study, c, diffs), out / c.figure, force)
-    if study.direction_parts:
-        written += _save_figure(plot_directions(study, dirs), out / "fig-directions", force)
-    t_fig = time.perf_counter() - t1
-    timings = {"simulate_s": t_sim, "figures_s": t_fig}
-    runtime = {"cells": len(res.cells), "computed": res.computed, "cached": res.cached,
-               "system_trials": res.system_trials, "simulate_s": t_sim,
-               "total_s": time.perf_counter() - t0, "version": __version__}
-    report = claims_report(study, res, diffs, dirs, runtime=runtime)
-    atomic_write(out / "claims.md", lambda tmp: Path(tmp).write_text(report, encoding="utf-8"))
-    written.append(out / "claims.md")
-    timings["total_s"] = time.perf_counter() - t0
-    record = {"torchdoct_version": __version__, "study": study.to_dict(), "timings_s": timings,
-              "cells": [{"sweep": c.cell.sweep, "cell": c.cell.index, "value": c.cell.values["value"],
-                         "seed": c.seed, "trials": c.trials, "dtype": c.dtype, "cache_key": c.cache_key,
-                         "cached": c.cached, "elapsed_s": c.elapsed_s} for c in res.cells],
-              "computed": res.computed, "cached": res.cached, "system_trials": res.system_trials}
-    atomic_write(out / "study.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=2), encoding="utf-8"))
-    written.append(out / "study.json")
+    with output_set(files, force) as stage:  # every file appears at once, or none (an error, Ctrl-C, SIGTERM)
+        at = stage(out / "results.csv").parent
+        write_table(table, at / "results", force=force)
+        write_table(diffs, at / "differences", force=force)
+        if study.direction_parts:
+            write_table(dirs, at / "directions", force=force)
+        t1 = time.perf_counter()
+        if progress:
+            print(f"study {study.name}: figures and the claims report ...", file=sys.stderr, flush=True)
+        for c in study.comparisons:
+            _save_figure(plot_comparison(study, c, diffs), at / c.figure, force)
+        if study.direction_parts:
+            _save_figure(plot_directions(study, dirs), at / "fig-directions", force)
+        t_fig = time.perf_counter() - t1
+        timings = {"simulate_s": t_sim, "figures_s": t_fig}
+        runtime = {"cells": len(res.cells), "computed": res.computed, "cached": res.cached,
+                   "system_trials": res.system_trials, "simulate_s": t_sim,
+                   "total_s": time.perf_counter() - t0, "version": __version__}
+        report = claims_report(study, res, diffs, dirs, runtime=runtime)
+        atomic_write(at / "claims.md", lambda tmp: Path(tmp).write_text(report, encoding="utf-8"))
+        timings["total_s"] = time.perf_counter() - t0
+        record = {"torchdoct_version": __version__, "study": study.to_dict(), "timings_s": timings,
+                  "cells": [{"sweep": c.cell.sweep, "cell": c.cell.index, "value": c.cell.values["value"],
+                             "seed": c.seed, "trials": c.trials, "dtype": c.dtype, "cache_key": c.cache_key,
+                             "cached": c.cached, "elapsed_s": c.elapsed_s} for c in res.cells],
+                  "computed": res.computed, "cached": res.cached, "system_trials": res.system_trials}
+        atomic_write(at / "study.json",
+                     lambda tmp: Path(tmp).write_text(json.dumps(record, indent=2), encoding="utf-8"))
+    written = files
     return StudyResult(study=study, sweep_result=res, table=table, differences=diffs, directions=dirs,
                        report=report, files=written, timings=timings)

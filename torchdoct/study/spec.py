@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from .._files import file_or_shipped, shipped_files
+from .._files import safe_name
 from ..sim.config import SceneError, _check_keys, _fail, read_toml, scene_from_dict
 from .sweep import _normalize_arrays, field_values
 
@@ -159,7 +160,16 @@ def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Stu
         if c["reference"] == c["other"]:
             _fail(w, "reference and other are the same system", "compare two different systems")
         name = _str(f"{w}.name", c["name"])
-        comparisons.append(Comparison(name=name, figure=_str(f"{w}.figure", c.get("figure", f"fig-{name}")),
+        figure = _str(f"{w}.figure", c.get("figure", f"fig-{name}"))
+        try:  # the figure's files are OUT/FIGURE.png and .svg
+            safe_name(figure, f"{w}.figure" if "figure" in c else f"{w}.name (the figure is fig-NAME)",
+                      "give a plain name such as fig-6")
+        except ValueError as err:
+            raise SceneError(str(err)) from None
+        if "." in figure:
+            _fail(f"{w}.figure", f"{figure!r} holds a dot; its files are FIGURE.png and FIGURE.svg",
+                  "give a name without a suffix, such as fig-6")
+        comparisons.append(Comparison(name=name, figure=figure,
                                       title=_str(f"{w}.title", c.get("title", name)),
                                       reference=c["reference"], other=c["other"],
                                       paper_figure=_str(f"{w}.paper_figure", c.get("paper_figure", c.get("figure", name)))))

@@ -71,6 +71,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
+from ..interrupt import note
 from ..sim.config import Scene, SceneError, _fail, read_toml, scene_from_dict
 
 __all__ = [
@@ -631,12 +632,28 @@ def _connect(scheduler: str):
 _PROCESS_WORK = 100_000
 
 
-def _worker_init() -> None:
-    """A worker process computes on one core: one torch (and BLAS) thread, one simulation thread."""
+def _worker_init(parent_pid: int | None = None) -> None:
+    """A worker process computes on one core: one torch (and BLAS) thread, one simulation thread. It
+    ignores Ctrl-C and dies with its parent (:func:`torchdoct.interrupt.worker_init`)."""
+    from ..interrupt import worker_init
     from ..threads import limit_process_threads, set_default_threads
 
+    worker_init(parent_pid)
     limit_process_threads()
     set_default_threads(1)
+
+
+def _stop_workers(pool) -> None:
+    """Stop a process pool's workers now (on an error or an interruption), not after their cells."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in procs:
+        proc.join(timeout=10)
+        if proc.is_alive():  # pragma: no cover - a worker that ignores SIGTERM
+            proc.kill()
 
 
 def _execute(payloads: list[dict[str, Any]], *, scheduler: str | None, batch_cells: int, workers: int,
@@ -664,15 +681,17 @@ def _execute(payloads: list[dict[str, Any]], *, scheduler: str | None, batch_cel
 
         ctx = multiprocessing.get_context("spawn")  # no fork of a process that holds torch threads
         with ProcessPoolExecutor(max_workers=min(workers, len(batches)), mp_context=ctx,
-                                 initializer=_worker_init) as pool:
-            futures = {pool.submit(run_cell_batch, [payloads[i] for i in b]): b for b in batches}
+                                 initializer=_worker_init, initargs=(os.getpid(),)) as pool:
+            futures: dict = {}
             try:
+                futures.update({pool.submit(run_cell_batch, [payloads[i] for i in b]): b for b in batches})
                 for fut in done_first(futures):
                     for i, r in zip(futures[fut], fut.result()):
                         done(i, r)
             except BaseException:
                 for f in futures:
                     f.cancel()
+                _stop_workers(pool)
                 raise
         return
     from dask.distributed import as_completed
@@ -758,9 +777,22 @@ def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int 
     try:
         _execute([{"scene": jobs[j][7]} for j in pending], scheduler=scheduler, batch_cells=batch_cells,
                  workers=workers, done=done)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: say what the cache keeps (torchdoct.interrupt)
+        finished = sum(results[j] is not None for j in pending)
+        if cache.dir is not None:
+            before = len(jobs) - len(pending)
+            note(kept=f"{finished} of the {len(pending)} cells to compute" + (f" (and {before} found there before)"
+                      if before else "") + f" in the cache {cache.dir}",
+                 resume="rerun the same command to resume from them", key="cache")
+        else:
+            note(resume="rerun the same command (without --no-cache, finished cells would be kept)")
+        raise
     finally:
         if bar is not None:
             bar.close()
+    if cache.dir is not None:  # should the command be interrupted while it writes its outputs
+        note(kept=f"all {len(jobs)} cells in the cache {cache.dir}",
+             resume="rerun the same command: the cells come from the cache", key="cache")
     return SweepResult(sweeps=tuple(sweeps), cells=[r for r in results if r is not None],
                        elapsed_s=time.perf_counter() - t0, computed=len(pending), cached=len(jobs) - len(pending))
 
@@ -865,16 +897,18 @@ def prepare_out_dir(out_dir: str | os.PathLike, files: Sequence[Path], force: bo
 
 def write_sweep_outputs(result: SweepResult, out_dir: str | os.PathLike, *, force: bool = False,
                         stem: str = "results") -> list[Path]:
-    """Write the tidy table (CSV, Parquet) and ``sweep.json`` (resolved sweeps, cells, seeds, keys)."""
-    from .._files import atomic_write
+    """Write the tidy table (CSV, Parquet) and ``sweep.json`` (resolved sweeps, cells, seeds, keys):
+    the three appear together or not at all (:func:`torchdoct._files.output_set`)."""
+    from .._files import atomic_write, output_set
 
     files = sweep_outputs(out_dir, stem)
     prepare_out_dir(out_dir, files, force)
-    written = write_table(result.table(), Path(out_dir) / stem, force=force)
     record = {"torchdoct_version": _version(), "sweeps": [s.to_dict() for s in result.sweeps],
               "cells": _run_record(result)}
-    atomic_write(files[2], lambda tmp: Path(tmp).write_text(json.dumps(record, indent=2), encoding="utf-8"))
-    return written + [files[2]]
+    with output_set(files, force) as stage:
+        write_table(result.table(), stage(files[0]).with_suffix(""), force=force)
+        atomic_write(stage(files[2]), lambda tmp: Path(tmp).write_text(json.dumps(record, indent=2), encoding="utf-8"))
+    return files
 
 
 def format_table(table, metrics: Sequence[str] = ("liv", "ocds")) -> str:
