@@ -30,6 +30,13 @@
   background mask), which on a system with 40-50 dB of peak SNR reaches 10-20 dB: the prior covers
   the pixels the model is asked about (with U[20, 40] dB the model was over-confident at 15-20 dB:
   expected calibration error 0.11 there, classifier/README.md);
+* ``bulk_residual_step_rad`` (default (0, 0): phase-stable data): for models that read the field's
+  phase on bulk-phase-corrected maps (``torchdoct maps --bulk-phase``), what the correction leaves: a
+  random walk of the phase over the frames, common to the configurations, with a step SD ~ U[low, high]
+  rad per replicate (the correction estimates one phase step per frame pair; docs/physics.md gives
+  its residual against SNR);
+* the configurations' optics from the spec, an anisotropic lateral PSF included
+  (``lateral_resolution_y_um``: a B-scan's x-only lateral reduction keeps the original width along y);
 * refractive index, protocol and OCDS analysis from the feature spec (the paper's: n = 1, 32 frames
   at 0.2048 s, OCDS over [0.2048, 1.2288] s on dB intensity, Pearson estimator).
 
@@ -154,10 +161,15 @@ class Prior:
     noise_probability: float = 0.5
     snr_db: tuple[float, float] = (10.0, 40.0)
     identifiability_epsilon: float = 0.05
+    #: residual of a bulk-phase correction (``torchdoct maps --bulk-phase``): a random walk of the
+    #: phase over the frames, common to the configurations, with a step SD (rad) ~ U[low, high] per
+    #: replicate; (0, 0) = phase-stable data (the default)
+    bulk_residual_step_rad: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         for key, pos in (("diffusion_um2_per_s", True), ("speed_um_per_s", True), ("density_per_um3", True),
-                         ("static_fraction", False), ("snr_db", False), ("flow_polar_angle_deg", False)):
+                         ("static_fraction", False), ("snr_db", False), ("flow_polar_angle_deg", False),
+                         ("bulk_residual_step_rad", False)):
             object.__setattr__(self, key, _range(key, getattr(self, key), positive=pos))
         if self.static_fraction[0] < 0 or self.static_fraction[1] >= 1:
             raise ValueError(f"prior.static_fraction must lie in [0, 1); got {self.static_fraction}")
@@ -176,6 +188,9 @@ class Prior:
             raise ValueError(f"prior.ballistic_directions must be one of {list(BALLISTIC_PRIORS)} ('both': each "
                              f"ballistic draw takes one of torchdoct.RandomBallistic's two direction laws with "
                              f"probability 1/2); got {self.ballistic_directions!r}")
+        if self.bulk_residual_step_rad[0] < 0 or self.bulk_residual_step_rad[1] > math.pi:
+            raise ValueError(f"prior.bulk_residual_step_rad must lie in [0, π] (rad per frame); "
+                             f"got {list(self.bulk_residual_step_rad)}")
         if not 0.0 < float(self.identifiability_epsilon) < 0.5:
             raise ValueError(f"prior.identifiability_epsilon must be in (0, 0.5); got {self.identifiability_epsilon!r}")
 
@@ -185,6 +200,8 @@ class Prior:
         d = dataclasses.asdict(self)
         if d["flow_polar_law"] == "isotropic":
             del d["flow_polar_law"]
+        if tuple(d["bulk_residual_step_rad"]) == (0.0, 0.0):
+            del d["bulk_residual_step_rad"]
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
     @classmethod
@@ -277,6 +294,13 @@ def draw_parameters(prior: Prior, seed: int, split: str, k: int, replicates: int
                 ballistic_directions=law)
 
 
+def _lateral_y(c) -> dict[str, float]:
+    """``{"lateral_resolution_y_um": Δy}`` for a configuration with an anisotropic lateral PSF (a B-scan's
+    x-only lateral reduction keeps the original width along y), else ``{}`` (isotropic)."""
+    y = getattr(c, "lateral_resolution_y_um", None)
+    return {} if y is None else {"lateral_resolution_y_um": y}
+
+
 def scene_for(spec: FeatureSpec, draw: Draw, prior: Prior, population: str = "moving"):
     """The noise-free :class:`torchdoct.Scene` of one draw's ``"moving"`` or ``"static"`` scatterers.
 
@@ -287,7 +311,8 @@ def scene_for(spec: FeatureSpec, draw: Draw, prior: Prior, population: str = "mo
     systems = tuple(td.OCTSystem(name=c.name, wavelength_um=c.wavelength_um,
                                  lateral_resolution_um=c.lateral_resolution_um,
                                  axial_resolution_um=c.axial_resolution_um,
-                                 refractive_index=spec.refractive_index) for c in spec.configurations)
+                                 refractive_index=spec.refractive_index, **_lateral_y(c))
+                    for c in spec.configurations)
     if population == "static":
         motion: tuple = ()
     elif population != "moving":
@@ -366,10 +391,19 @@ def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
         static = td.simulate(scene_for(spec, draw, prior, "static"), trials=trials, seed=draw.sim_seed ^ 0x5A5A5A5A,
                              dtype="float32", truncation_tolerance=truncation_tolerance, threads=1,
                              progress=False).signals
-    mean_i = [mean_intensity(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um)
+    mean_i = [mean_intensity(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um, **_lateral_y(c))
               for c in spec.configurations]
     gen = torch.Generator().manual_seed(draw.sim_seed ^ 0x3C3C3C3C)
     signals = torch.cat([combine_fields(moving.signals, static, f, snr, mean_i, gen) for f, snr in nuisance])
+    lo, hi = prior.bulk_residual_step_rad
+    if hi > 0:  # the residual of a bulk-phase correction: a random walk per trial, common to the configurations
+        rgen = torch.Generator().manual_seed(draw.sim_seed ^ 0x1E1E1E1E)
+        n_rep, n_t = len(nuisance), signals.shape[-1]
+        step_sd = lo + torch.rand(n_rep, 1, 1, generator=rgen, dtype=torch.float64) * (hi - lo)
+        steps = torch.randn(n_rep, trials, n_t - 1, generator=rgen, dtype=torch.float64) * step_sd
+        walk = torch.cat([torch.zeros(n_rep, trials, 1, dtype=torch.float64), steps.cumsum(-1)], dim=-1)
+        walk = walk.reshape(n_rep * trials, 1, n_t)
+        signals = signals * torch.polar(torch.ones_like(walk), walk).to(signals.dtype)
     if bulk_phase:  # one uniform random phase per trial and frame, common to all configurations
         bgen = torch.Generator().manual_seed(draw.sim_seed ^ 0x0F0F0F0F)
         phi = torch.rand(signals.shape[0], 1, signals.shape[-1], generator=bgen, dtype=torch.float64) * (2 * math.pi)
@@ -419,7 +453,8 @@ def _criteria(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, np.ndar
     taus = np.array([spec.frame_interval_s, (spec.n_frames - 1) * spec.frame_interval_s])
     first, last, drop = [], [], []
     for c in spec.configurations:
-        res = dict(lateral_resolution_um=c.lateral_resolution_um, axial_resolution_um=c.axial_resolution_um)
+        res = dict(lateral_resolution_um=c.lateral_resolution_um, axial_resolution_um=c.axial_resolution_um,
+                   **_lateral_y(c))
         if draw.label == 0:
             g1 = theory.g1_diffusion(taus, diffusion_um2_per_s=draw.magnitude, wavelength_um=c.wavelength_um,
                                      refractive_index=spec.refractive_index, **res)
@@ -432,10 +467,12 @@ def _criteria(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, np.ndar
                                    **res)
         else:
             g1 = theory.g1_flow(taus, speed_um_per_s=draw.magnitude, polar_angle_deg=draw.polar_angle_deg,
-                                wavelength_um=c.wavelength_um, refractive_index=spec.refractive_index, **res)
-            j = theory.j_flow(taus, speed_um_per_s=draw.magnitude, polar_angle_deg=draw.polar_angle_deg, **res)
+                                azimuth_deg=draw.azimuth_deg, wavelength_um=c.wavelength_um,
+                                refractive_index=spec.refractive_index, **res)
+            j = theory.j_flow(taus, speed_um_per_s=draw.magnitude, polar_angle_deg=draw.polar_angle_deg,
+                              azimuth_deg=draw.azimuth_deg, **res)
         rho = theory.intensity_correlation_coefficient(
-            g1, j, n_eff(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um))
+            g1, j, n_eff(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um, **_lateral_y(c)))
         first.append(float(np.abs(g1[0]) ** 2))
         last.append(float(rho[1]))
         drop.append(float(rho[0] - rho[1]))
