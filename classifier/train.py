@@ -71,6 +71,9 @@ class TrainConfig:
     #: law of the flow's polar angle in the training prior when no prior is given
     #: (:attr:`classifier.dataset.Prior.flow_polar_law`)
     flow_polar_law: str = "isotropic"
+    #: residual bulk-phase step SD range (rad) of the training prior when no prior is given
+    #: (:attr:`classifier.dataset.Prior.bulk_residual_step_rad`; for models that read the phase)
+    bulk_residual_step_rad: tuple[float, float] = (0.0, 0.0)
     hidden: tuple[int, ...] = (64, 64)
     max_epochs: int = 200
     patience: int = 20
@@ -99,6 +102,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
         object.__setattr__(self, "eval_pools", tuple(int(n) for n in self.eval_pools))
+        object.__setattr__(self, "bulk_residual_step_rad", tuple(float(v) for v in self.bulk_residual_step_rad))
         for key in ("draws_train", "draws_validation", "draws_test", "trials_per_draw", "max_epochs",
                     "batch_size", "singles_per_group", "pooled_per_group", "max_pool_pixels", "replicates"):
             v = getattr(self, key)
@@ -496,7 +500,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
           progress: bool = False, log=print) -> TrainResult:
     """Run the recipe of the module docstring; returns the model, the report and the test inputs."""
     cfg = config or TrainConfig()
-    prior = prior or Prior(flow_polar_law=cfg.flow_polar_law)
+    prior = prior or Prior(flow_polar_law=cfg.flow_polar_law, bulk_residual_step_rad=cfg.bulk_residual_step_rad)
     spec = load_spec(cfg.spec)
     rule = make_rule(prior.identifiability_epsilon, cfg.min_probability)
     say = log or (lambda *a, **k: None)
