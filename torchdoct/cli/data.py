@@ -80,9 +80,10 @@ def register(sub: Any, bench_sub: Any) -> None:
                          "reduction and the signature: weighted-mean (arg of the summed E_{i+1}E_i* along depth) "
                          "or histogram (peak of the intensity-weighted phase-difference histogram; keeps the "
                          "Doppler ramp of a flowing layer)")
-    bp.add_argument("--bulk-phase-mask", default="all", metavar="all|median|DB",
-                    help="pixels used: all (default), median (the brighter half of each A-line), or a dB threshold "
-                         "on |E_{i+1}E_i*|")
+    bp.add_argument("--bulk-phase-mask", default="all", metavar="all|median|stable[:C]|DB",
+                    help="pixels used: all (default), median (the brighter half of each A-line), stable (pixels whose "
+                         "temporal intensity contrast is <= C, default 0.05: the static tissue; best for samples "
+                         "with moving scatterers), or a dB threshold on |E_{i+1}E_i*|")
     bp.add_argument("--bulk-phase-rows", default=None, metavar="Z0:Z1",
                     help="depth rows used for the estimate (default all; the correction applies to every row)")
     p = mp.add_argument_group("pseudo-colour PNGs")
