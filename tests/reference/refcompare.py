@@ -41,9 +41,12 @@ def _spec() -> dict:
 
 
 _S = _spec()
-#: (name, wavelength µm, lateral 1/e² width µm, axial FWHM µm) of the signature spec.
-CONFIGS = tuple((c["name"], c["wavelength_um"], c["lateral_resolution_um"], c["axial_resolution_um"])
-                for c in _S["configuration"])
+#: (name, wavelength µm, lateral 1/e² width along x µm, axial FWHM µm, lateral width along y µm or None
+#: = as x): the signature spec's three configurations (indices 0-2), then a B-scan's x-only lateral
+#: reduction to 18 µm that keeps 4.9 µm along y (index 3).
+CONFIGS = tuple((c["name"], c["wavelength_um"], c["lateral_resolution_um"], c["axial_resolution_um"],
+                 c.get("lateral_resolution_y_um")) for c in _S["configuration"]) + (
+    ("lateral=18 x-only", 0.84, 18.0, 3.8, 4.9),)
 RHO_LIN_LAGS = tuple(int(m.rsplit("_", 1)[1]) for m in _S["metrics"] if m.startswith("rho_lin_"))
 FIELD_LAGS = (1, 2, 3, 4, 6, 8)  # torchdoct.sim.signature.DEFAULT_FIELD_LAGS (the field group's lags)
 N_FRAMES = int(_S["protocol"]["n_frames"])
@@ -68,13 +71,26 @@ CELLS = {
 }
 
 
+#: Cells for the B-scan configuration (index 3): flow with a component along y (out of the B-scan
+#: plane, where the PSF keeps its original width) and along x, and diffusion.
+BSCAN_CELLS = {
+    "flow v=2 θ=45° along y": refsim.Motion("flow", speed_um_per_s=2.0, polar_angle_deg=45.0, azimuth_deg=90.0),
+    "flow v=2 θ=60° along x": refsim.Motion("flow", speed_um_per_s=2.0, polar_angle_deg=60.0, azimuth_deg=0.0),
+    "diffusion D=0.05": CELLS["diffusion D=0.05"],
+}
+
+
+def _motion(cell: str) -> refsim.Motion:
+    return CELLS[cell] if cell in CELLS else BSCAN_CELLS[cell]
+
+
 def z_bound(comparisons: int, alpha: float = FAMILY_ALPHA) -> float:
     """Bonferroni bound ``Φ⁻¹(1 − α/(2K))`` on ``|z|`` for ``K`` comparisons at family-wise rate ``α``."""
     return float(-special.ndtri(alpha / (2.0 * comparisons)))
 
 
 def _optics(configs: Sequence[int]) -> list[refsim.Optics]:
-    return [refsim.Optics(*CONFIGS[i][1:]) for i in configs]
+    return [refsim.Optics(wl, lat, ax, lateral_y_um=lat_y) for _, wl, lat, ax, lat_y in (CONFIGS[i] for i in configs)]
 
 
 def _torch_features(signals, names: Sequence[str] = NAMES) -> dict[str, np.ndarray]:
@@ -106,7 +122,7 @@ def reference_features(cell: str, trials: int, seed: int = 20261201,
                        configs: tuple[int, ...] = (0, 1, 2)) -> dict[str, np.ndarray]:
     """Features ``{name: [trials, configs]}`` of the reference simulator's fields for ``cell`` at the
     configurations ``configs`` (indices into :data:`CONFIGS`; cached per session)."""
-    e = refsim.simulate(_optics(configs), CELLS[cell], density_per_um3=DENSITY, n_frames=N_FRAMES, frame_interval_s=DT,
+    e = refsim.simulate(_optics(configs), _motion(cell), density_per_um3=DENSITY, n_frames=N_FRAMES, frame_interval_s=DT,
                         trials=trials, seed=seed)
     return _torch_features(e)
 
@@ -115,15 +131,16 @@ def torchdoct_scene(cell: str, configs: Sequence[int] = (0, 1, 2)):
     """The torchdoct scene of a cell: the configurations ``configs``, one population, the paper's protocol."""
     import torchdoct as td
 
-    m = CELLS[cell]
+    m = _motion(cell)
     if m.kind == "flow":
         motion = td.Flow(speed_um_per_s=m.speed_um_per_s, polar_angle_deg=m.polar_angle_deg, azimuth_deg=m.azimuth_deg)
     elif m.kind == "ballistic":
         motion = td.RandomBallistic(speed_um_per_s=m.speed_um_per_s, directions=m.directions)
     else:
         motion = td.Diffusion(diffusion_um2_per_s=m.diffusion_um2_per_s)
-    systems = tuple(td.OCTSystem(name=n, wavelength_um=wl, lateral_resolution_um=lat, axial_resolution_um=ax)
-                    for n, wl, lat, ax in (CONFIGS[i] for i in configs))
+    systems = tuple(td.OCTSystem(name=n, wavelength_um=wl, lateral_resolution_um=lat, axial_resolution_um=ax,
+                                 **({} if lat_y is None else {"lateral_resolution_y_um": lat_y}))
+                    for n, wl, lat, ax, lat_y in (CONFIGS[i] for i in configs))
     return td.Scene(systems=systems, protocol=td.Protocol(n_frames=N_FRAMES, frame_interval_s=DT),
                     populations=(td.Population(density_per_um3=DENSITY, motion=(motion,)),), name=cell)
 

@@ -1,0 +1,96 @@
+"""torchdoct's simulator against the independent reference simulator, on every feature a model reads (slow).
+
+Per cell (refcompare.CELLS: slow flow at 0-90° from the beam axis, faster flow, slow and moderate
+diffusion, random-ballistic motion under both direction laws) and the three configurations of the
+shipped signature models, the mean of every feature — ``rho_lin_m`` at the spec's lags,
+``lin_contrast``, ``db_variance``, the field group ``g1_m``, ``g1_phase_m``, ``phase_ramp``, LIV and
+OCDS — agrees between torchdoct and the reference within the Bonferroni |z| bound of
+refcompare (Monte Carlo SEs of both sides; 1024 reference trials, 8192 torchdoct trials).
+
+Settings of torchdoct: the scene default (``simulation.truncation_tolerance`` and, where the
+simulator has it, ``simulation.truncation``; float32 as the training data use), tolerance 1e-3 in
+float32 and 1e-4 in float64. A hard truncation at 1e-2 lets scatterers pop in at 1 % of the peak
+amplitude, which decorrelates slow motion at short lags (flow 0.5 µm/s at 20°: ``rho_lin_1`` at
+axial=14 0.990 against 0.998, z ≈ −14): while that is the default, the cells it biases are marked
+``xfail(strict=True)`` (:data:`BIASED_AT_HARD_1E2`), so the mark must go when the default changes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+
+import pytest
+
+import refcompare as rc
+from torchdoct.sim.config import OCTSystem, SimulationSettings
+from torchdoct.sim.simulate import simulate
+
+pytestmark = pytest.mark.slow
+
+REF_TRIALS = 1024
+TD_TRIALS = 8192
+_DEFAULTS = SimulationSettings()
+_HAS_TRUNCATION_MODE = "truncation" in inspect.signature(simulate).parameters
+DEFAULT_IS_HARD_1E2 = (_DEFAULTS.truncation_tolerance == 1e-2
+                       and getattr(_DEFAULTS, "truncation", "hard") == "hard")
+#: Cells whose features a hard truncation at 1e-2 biases beyond the bound, measured (``--runxfail``
+#: shows the worst features): slow flow at every angle, worst |z| 19 (20°, rho_lin_1@axial=14
+#: 0.9896 vs 0.9973), 29 (0°, rho_lin_1@axial=14 0.9843 vs 0.9985), 13 (45°), 19 (70°) and 26
+#: (90°, rho_lin_1@lateral=18 0.9872 vs 0.9984); OCDS is biased too at 0° and 90° (z ≈ +7). Slow
+#: diffusion and slow random-ballistic motion stay within the bound at 1e-2.
+BIASED_AT_HARD_1E2 = {"flow v=0.5 θ=20°", "flow v=0.5 θ=0°", "flow v=0.5 θ=45°", "flow v=0.5 θ=70°", "flow v=0.5 θ=90°"}
+
+SETTINGS = {
+    "default": {},
+    "1e-3 float32": {"truncation_tolerance": 1e-3, "dtype": "float32"},
+    "1e-4 float64": {"truncation_tolerance": 1e-4, "dtype": "float64"},
+}
+
+
+def _params():
+    out = []
+    for cell in rc.CELLS:
+        for label in SETTINGS:
+            marks = []
+            if label == "default" and DEFAULT_IS_HARD_1E2 and cell in BIASED_AT_HARD_1E2:
+                marks.append(pytest.mark.xfail(strict=True, reason="the default hard PSF truncation at 1e-2 "
+                                                                   "biases slow motion at short lags (issue 24)"))
+            out.append(pytest.param(cell, label, marks=marks, id=f"{cell}-{label}"))
+    return out
+
+
+@pytest.mark.parametrize("cell,setting", _params())
+def test_every_feature_matches_reference(cell, setting):
+    ref = rc.reference_features(cell, REF_TRIALS)
+    td = rc.torchdoct_features(cell, TD_TRIALS, **SETTINGS[setting])
+    rows = rc.compare(td, ref)
+    bound = rc.z_bound(len(rows))
+    assert all(r["nan_a"] == 0 and r["nan_b"] == 0 for r in rows), "empty resolution volumes (NaN features)"
+    assert max(abs(r["z"]) for r in rows) <= bound, rc.format_failures(rows, bound)
+
+
+@pytest.mark.skipif(not _HAS_TRUNCATION_MODE, reason="the simulator has no smooth PSF taper")
+@pytest.mark.parametrize("cell", ["flow v=0.5 θ=20°", "diffusion D=0.002", "ballistic v=0.03 iso"])
+def test_taper_matches_reference(cell):
+    """The smooth taper at the default tolerance, float32, on the cells the hard cut biases."""
+    ref = rc.reference_features(cell, REF_TRIALS)
+    td = rc.torchdoct_features(cell, TD_TRIALS, truncation="taper", truncation_tolerance=_DEFAULTS.truncation_tolerance)
+    rows = rc.compare(td, ref)
+    bound = rc.z_bound(len(rows))
+    assert max(abs(r["z"]) for r in rows) <= bound, rc.format_failures(rows, bound)
+
+
+_HAS_Y_WIDTH = any(f.name == "lateral_resolution_y_um" for f in dataclasses.fields(OCTSystem))
+
+
+@pytest.mark.skipif(not _HAS_Y_WIDTH, reason="the simulator has no separate lateral width along y")
+@pytest.mark.parametrize("setting", ["1e-3 float32", "1e-4 float64"])
+@pytest.mark.parametrize("cell", list(rc.BSCAN_CELLS))
+def test_bscan_lateral_reduction_matches_reference(cell, setting):
+    """A B-scan's x-only lateral reduction (18 µm along x, 4.9 µm along y, 3.8 µm axial): every feature."""
+    ref = rc.reference_features(cell, REF_TRIALS, configs=(3,))
+    td = rc.torchdoct_features(cell, TD_TRIALS, configs=(3,), **SETTINGS[setting])
+    rows = rc.compare(td, ref, configs=(3,))
+    bound = rc.z_bound(len(rows))
+    assert max(abs(r["z"]) for r in rows) <= bound, rc.format_failures(rows, bound)
