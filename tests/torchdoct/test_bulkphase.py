@@ -399,6 +399,8 @@ def test_rows_option_equals_the_cropped_sequence_and_apply_is_the_phasor():
     out = apply_bulk_phase(truth, a, "TZX")
     np.testing.assert_allclose(out, truth * np.exp(-1j * a.phase)[:, None, :], rtol=1e-6, atol=1e-6)
     np.testing.assert_array_equal(corrected_sequence(seq, a).data, out)
+    assert estimate_bulk_phase(seq, "histogram", mask="stable").meta()["mask"] == "stable:0.05"
+    assert estimate_bulk_phase(seq, "histogram", mask=" Stable:0.2").meta()["mask"] == "stable:0.2"
     thr = estimate_bulk_phase(seq, "weighted-mean", mask=-200.0)  # a threshold below every pixel = all
     np.testing.assert_array_equal(thr.phase, estimate_bulk_phase(seq, "weighted-mean").phase)
 
