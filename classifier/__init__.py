@@ -8,7 +8,8 @@ every pixel of the maps written by ``torchdoct maps`` (``doct-classify``).
 Modules: :mod:`~classifier.features` (feature specs), :mod:`~classifier.dataset` (labelled
 simulation), :mod:`~classifier.model` (the network), :mod:`~classifier.train` (recipe),
 :mod:`~classifier.export` (ONNX), :mod:`~classifier.infer` (classify maps; numpy + onnxruntime
-only), :mod:`~classifier.rule` (the ``indeterminate`` outcome), :mod:`~classifier.report`.
+only: :mod:`~classifier.runtime`, :mod:`~classifier.matching`, :mod:`~classifier.pooling`,
+:mod:`~classifier.outputs`), :mod:`~classifier.rule` (the ``indeterminate`` outcome), :mod:`~classifier.report`.
 
 Importing ``classifier`` does not import torch: the torch-based names (``train``, ``TrainConfig``,
 ``make_dataset``, ``Prior``, ``export_onnx``) load on first use.

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["bench_classify", "format_bench_classify"]
+__all__ = ["bench_classify", "format_bench_classify", "bench_command"]
 
 
 def _synthetic_maps(path: Path, spec, size: int, seed: int) -> Path:
@@ -78,3 +78,9 @@ def format_bench_classify(res: dict[str, Any]) -> str:
     for r in res["rows"]:
         lines.append(f"| {r['pool']} | {r['seconds']:.3f} | {r['pixels_per_s']:.3g} |")
     return "\n".join(lines)
+
+
+def bench_command(args) -> tuple[Any, Any]:
+    """``torchdoct bench classify`` (entry point ``torchdoct.bench``/``classify``, :mod:`torchdoct.extensions`):
+    the computation of ``args`` (``size``, ``repeats``, ``model``) and its table."""
+    return (lambda: bench_classify(size=args.size, repeats=args.repeats, model=args.model)), format_bench_classify

@@ -13,9 +13,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from ._files import interrupt as _load_interrupt
-
-_interrupt = _load_interrupt()
+from torchdoct import interrupt as _interrupt
 
 __all__ = ["build_train_parser", "build_classify_parser", "train_main", "classify_main"]
 
@@ -96,7 +94,7 @@ def _train(args: argparse.Namespace) -> int:
 
     import torch
 
-    from ._files import check_out
+    from torchdoct._files import check_out
     from .features import load_spec
     from .train import TrainConfig
 
@@ -138,41 +136,19 @@ def _train_into(args: argparse.Namespace, cfg, paths: dict[str, Path]) -> str:
     """Train, export and write the report into ``paths``; returns the summary line."""
     import time
 
-    import numpy as np
-
-    from .export import OPSET, build_metadata, export_onnx, onnx_parity
+    from .export import build_metadata, export_onnx, runtime_checks
     from .report import summary_line, write_report
     from .train import train
 
     t0 = time.perf_counter()
     res = train(cfg, cache_dir=args.cache, use_cache=not args.no_cache, progress=not args.no_progress)
-    meta = build_metadata(res)
-    export_onnx(res.model, meta, paths[".onnx"])
-    parity = onnx_parity(res.model, paths[".onnx"], res.test_inputs)
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = 1
-    sess = ort.InferenceSession(str(paths[".onnx"]), opts, providers=["CPUExecutionProvider"])
-    xs = np.ascontiguousarray(res.test_inputs, np.float32)
-    best = min(_time(lambda: sess.run(["probabilities"], {"features": xs})) for _ in range(3))
-    res.report["timing"]["network (onnxruntime, 1 thread)"] = {
-        "train_s": res.report["timing"]["network"]["train_s"], "inference_us_per_sample": best / len(xs) * 1e6}
-    res.report["onnx_parity_max_abs_diff"] = parity
-    res.report["onnx_opset"] = OPSET
+    export_onnx(res.model, build_metadata(res), paths[".onnx"])
+    parity = runtime_checks(res, paths[".onnx"])
     res.report["total_s"] = time.perf_counter() - t0
     report = _finite(res.report)
     write_report(report, paths[".json"], paths[".md"], paths[".png"])
     return (f"test (pool 1): {summary_line(report['test']['network']['1'])}; ONNX max |dp| {parity:.1e}; "
             f"total {report['total_s']:.0f} s")
-
-
-def _time(fn) -> float:
-    import time
-
-    t = time.perf_counter()
-    fn()
-    return time.perf_counter() - t
 
 
 def _finite(obj):
@@ -189,6 +165,8 @@ def _finite(obj):
 
 
 def build_classify_parser() -> argparse.ArgumentParser:
+    from .infer import DEFAULT_BACKGROUND_DB, DEFAULT_POOL
+
     p = argparse.ArgumentParser(
         prog="doct-classify",
         description="Classify every pixel of DOCT maps (from `torchdoct maps`) as diffusion, random-ballistic "
@@ -198,8 +176,9 @@ def build_classify_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default=None, help="ONNX model file or shipped model name (default: the shipped signature model whose features "
                         "the maps hold, two-wavelength-signature for both bands, else single-acquisition)")
     p.add_argument("--out", required=True, help="output directory (created if missing)")
-    p.add_argument("--pool", type=int, default=1, help="average features over N x N (z, x) neighbourhoods first")
-    p.add_argument("--background-db", default="auto",
+    p.add_argument("--pool", type=int, default=DEFAULT_POOL,
+                   help="average features over N x N (z, x) neighbourhoods first")
+    p.add_argument("--background-db", default=DEFAULT_BACKGROUND_DB,
                    help="mask pixels whose mean dB intensity is below this; 'auto' = 99th percentile - 30 dB; 'none'")
     p.add_argument("--min-probability", type=float, default=None,
                    help="override the model's threshold below which a pixel is indeterminate (higher: fewer "

@@ -22,11 +22,11 @@ from typing import Any
 import numpy as np
 
 __all__ = ["OPSET", "METADATA_KEY", "FORMAT", "build_metadata", "onnx_model", "export_onnx", "onnx_parity",
-           "model_from_onnx"]
+           "runtime_checks", "model_from_onnx"]
+
+from .runtime import FORMAT, METADATA_KEY, onnx_session
 
 OPSET = 17
-METADATA_KEY = "torchdoct_classifier"
-FORMAT = "torchdoct-classifier/1"
 
 
 def build_metadata(result) -> dict[str, Any]:
@@ -175,7 +175,7 @@ def _plain(o: Any) -> Any:
 
 def export_onnx(model, metadata: dict[str, Any], path) -> None:
     """Write ``model`` with ``metadata`` to ``path`` (atomically; the caller checks overwriting)."""
-    from ._files import atomic_write
+    from torchdoct._files import atomic_write
 
     proto = onnx_model(model, metadata)
     data = proto.SerializeToString()
@@ -190,12 +190,9 @@ def export_onnx(model, metadata: dict[str, Any], path) -> None:
 def onnx_parity(model, path, x: np.ndarray, chunk: int = 65536) -> float:
     """Max |p_onnxruntime − p_torch| over the rows of ``x`` ``[N, F+1]`` (and over the magnitude
     outputs, in log10 units, for magnitude models)."""
-    import onnxruntime as ort
     import torch
 
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = 1
-    sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    sess = onnx_session(path)
     worst = 0.0
     for i in range(0, len(x), chunk):
         xb = np.ascontiguousarray(x[i:i + chunk], dtype=np.float32)
@@ -209,6 +206,31 @@ def onnx_parity(model, path, x: np.ndarray, chunk: int = 65536) -> float:
                 m_t, s_t = (v.numpy() for v in model.magnitude(torch.from_numpy(xb)))
             worst = max(worst, float(np.abs(m_ort - m_t).max()), float(np.abs(s_ort - s_t).max()))
     return worst
+
+
+def runtime_checks(result, path, repeats: int = 3) -> float:
+    """The exported model at ``path`` checked and timed in onnxruntime, recorded in ``result.report``.
+
+    ``onnx_parity_max_abs_diff`` (:func:`onnx_parity` on the test inputs), ``onnx_opset`` and the timing
+    row ``network (onnxruntime, 1 thread)`` (best of ``repeats`` runs over the test inputs, µs per sample).
+    Returns the parity.
+    """
+    import time
+
+    parity = onnx_parity(result.model, path, result.test_inputs)
+    sess = onnx_session(path)
+    xs = np.ascontiguousarray(result.test_inputs, np.float32)
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        sess.run(["probabilities"], {"features": xs})
+        best = min(best, time.perf_counter() - t)
+    rep = result.report
+    rep["timing"]["network (onnxruntime, 1 thread)"] = {
+        "train_s": rep["timing"]["network"]["train_s"], "inference_us_per_sample": best / len(xs) * 1e6}
+    rep["onnx_parity_max_abs_diff"] = parity
+    rep["onnx_opset"] = OPSET
+    return parity
 
 
 def model_from_onnx(path):

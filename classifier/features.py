@@ -16,10 +16,12 @@ Specifications are declared once, as TOML files in ``classifier/specs/`` (four s
 
     liv@original, ocds@original, liv@axial=14, ocds@axial=14, ...
 
-Consumers match a maps channel to a feature by (metric, wavelength_um, lateral_resolution_um,
-axial_resolution_um) within 1e-6 relative (the maps format of the project), never by name.
+Consumers match a maps channel to a feature by its metric and its optics
+(:class:`torchdoct.optics.ChannelOptics`: wavelength, lateral and axial resolution within 1e-6
+relative, the one match of the project), never by name. A configuration is isotropic unless it gives
+``lateral_resolution_y_um`` (the 1/e² width along y; default: as along x).
 
-This module imports neither torch nor torchdoct: the classify path uses it.
+This module imports no torch (the classify path uses it); from torchdoct only torch-free modules.
 """
 
 from __future__ import annotations
@@ -31,7 +33,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ._files import shipped_files, signature as _signature
+from torchdoct._files import shipped_files
+from torchdoct.optics import REL_TOL, ChannelOptics, same_value
+from torchdoct.sim import signature as _signature_module
 
 __all__ = [
     "METRIC_UNITS",
@@ -47,8 +51,10 @@ __all__ = [
 
 #: Metrics a feature may use, with the unit strings of the maps format.
 METRIC_UNITS = {"liv": "dB^2", "ocds": "1/s"}
-#: Relative tolerance for matching physical values (wavelengths, resolutions, times).
-REL_TOL = 1e-6
+
+def _signature():
+    """:mod:`torchdoct.sim.signature` (names and units of the signature features; no torch at import)."""
+    return _signature_module
 
 
 def metric_unit(metric: str) -> str:
@@ -57,11 +63,6 @@ def metric_unit(metric: str) -> str:
     if metric in METRIC_UNITS:
         return METRIC_UNITS[metric]
     return _signature().feature_unit(metric)
-
-
-def same_value(a: float, b: float, rel: float = REL_TOL) -> bool:
-    """``|a − b| ≤ rel·max(|a|, |b|)``: the project's rule for matching physical values."""
-    return abs(float(a) - float(b)) <= rel * max(abs(float(a)), abs(float(b)))
 
 
 def _num(path: str, value: Any, *, positive: bool = True) -> float:
@@ -78,14 +79,16 @@ class Configuration:
     """One system configuration of a feature vector.
 
     ``wavelength_um``: vacuum centre wavelength (µm). ``lateral_resolution_um``: 1/e² full width of
-    the intensity PSF (µm). ``axial_resolution_um``: intensity FWHM in the medium (µm). ``name`` is a
-    short label used in feature names (``"original"``, ``"axial=14"``, ``"840nm"``).
+    the intensity PSF along x (µm). ``axial_resolution_um``: intensity FWHM in the medium (µm).
+    ``lateral_resolution_y_um``: the 1/e² width along y (µm; ``None``, the default: as along x). ``name``
+    is a short label used in feature names (``"original"``, ``"axial=14"``, ``"840nm"``).
     """
 
     name: str
     wavelength_um: float
     lateral_resolution_um: float
     axial_resolution_um: float
+    lateral_resolution_y_um: float | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
@@ -96,16 +99,32 @@ class Configuration:
             raise ValueError(f"{p}.wavelength_um = {wl} is outside 0.1-20 µm (fix: micrometres, 840 nm is 0.84)")
         _num(f"{p}.lateral_resolution_um", self.lateral_resolution_um)
         _num(f"{p}.axial_resolution_um", self.axial_resolution_um)
+        if self.lateral_resolution_y_um is not None:
+            _num(f"{p}.lateral_resolution_y_um", self.lateral_resolution_y_um)
 
-    def matches(self, wavelength_um: float, lateral_resolution_um: float, axial_resolution_um: float) -> bool:
-        """True when all three values agree within :data:`REL_TOL` relative."""
-        return (same_value(self.wavelength_um, wavelength_um)
-                and same_value(self.lateral_resolution_um, lateral_resolution_um)
-                and same_value(self.axial_resolution_um, axial_resolution_um))
+    @property
+    def optics(self) -> ChannelOptics:
+        """The configuration's optics as the project's one value (:class:`torchdoct.optics.ChannelOptics`)."""
+        return ChannelOptics(self.wavelength_um, self.lateral_resolution_um, self.axial_resolution_um,
+                             self.lateral_resolution_y_um)
+
+    def matches(self, optics: ChannelOptics | float, lateral_resolution_um: float | None = None,
+                axial_resolution_um: float | None = None, *, lateral_y: bool = True) -> bool:
+        """:meth:`ChannelOptics.matches` of :attr:`optics` and ``optics`` (a :class:`ChannelOptics`, or
+        wavelength, lateral and axial resolution of an isotropic system)."""
+        if not isinstance(optics, ChannelOptics):
+            optics = ChannelOptics(float(optics), float(lateral_resolution_um), float(axial_resolution_um))
+        return self.optics.matches(optics, lateral_y=lateral_y)
 
     def describe(self) -> str:
-        return (f"{self.wavelength_um * 1000:g} nm, lateral {self.lateral_resolution_um:g} µm, "
-                f"axial {self.axial_resolution_um:g} µm")
+        return self.optics.describe()
+
+    def to_dict(self) -> dict[str, Any]:
+        """The spec-file table of this configuration (``lateral_resolution_y_um`` only when given)."""
+        d = dataclasses.asdict(self)
+        if d["lateral_resolution_y_um"] is None:
+            del d["lateral_resolution_y_um"]
+        return d
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -145,7 +164,7 @@ class FeatureSpec:
             raise ValueError(f"spec {self.name!r}: duplicate configuration names {names}")
         for i, a in enumerate(self.configurations):
             for b in self.configurations[i + 1:]:
-                if a.matches(b.wavelength_um, b.lateral_resolution_um, b.axial_resolution_um):
+                if a.optics.matches(b.optics):
                     raise ValueError(f"spec {self.name!r}: configurations {a.name!r} and {b.name!r} are the same system")
         if not self.metrics:
             raise ValueError(f"spec {self.name!r}: metrics must not be empty")
@@ -216,7 +235,7 @@ class FeatureSpec:
             "protocol": {"n_frames": self.n_frames, "frame_interval_s": self.frame_interval_s},
             "analysis": {"ocds_delay_range_s": list(self.ocds_delay_range_s), "ocds_scale": self.ocds_scale,
                          "ocds_estimator": self.ocds_estimator},
-            "configuration": [dataclasses.asdict(c) for c in self.configurations],
+            "configuration": [c.to_dict() for c in self.configurations],
         }
 
 
@@ -245,7 +264,8 @@ def spec_from_dict(data: dict[str, Any]) -> FeatureSpec:
     if not isinstance(confs, list):
         raise TypeError("spec.configuration must be an array of tables ([[configuration]])")
     keys = {"name", "wavelength_um", "lateral_resolution_um", "axial_resolution_um"}
-    configurations = tuple(Configuration(**_keys(f"spec.configuration[{i}]", c, keys, keys))
+    configurations = tuple(Configuration(**_keys(f"spec.configuration[{i}]", c, keys | {"lateral_resolution_y_um"},
+                                                 keys))
                            for i, c in enumerate(confs))
     kw: dict[str, Any] = {"name": data["name"], "configurations": configurations,
                           "description": data.get("description", "")}

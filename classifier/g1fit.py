@@ -500,7 +500,7 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
     from .infer import load_model
     from .report import evaluate
     from .rule import apply_rule
-    from .train import CLASS_NAMES, _eval_samples
+    from .train import CLASS_NAMES, eval_samples
 
     say = log or (lambda *a, **k: None)
     net = load_model(model, threads=1)
@@ -549,7 +549,7 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
         rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))  # the report's pools
         pools = {}
         for n in cfg.eval_pools:
-            s = _eval_samples(joint, n, rng)
+            s = eval_samples(joint, n, rng)
             if str(n) in ("1", "25"):
                 pools[str(n)] = s
         out: dict[str, Any] = {}
@@ -705,7 +705,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import json
     from pathlib import Path
 
-    from ._files import atomic_write
+    from torchdoct._files import atomic_write
 
     p = argparse.ArgumentParser(prog="python -m classifier.g1fit", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, help="JSON output file; the Markdown is written beside it (.md)")

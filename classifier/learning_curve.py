@@ -137,7 +137,7 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
     from .dataset import STATUS, Prior, make_dataset
     from .features import load_spec
     from .rule import make_rule
-    from .train import CLASS_NAMES, TrainConfig, _masks, _targets, _test_sets, fit_network, transform_numpy
+    from .train import CLASS_NAMES, TrainConfig, class_targets, feature_masks, fit_network, evaluation_sets, transform_numpy
 
     say = log or (lambda *a, **k: None)
     sizes, n_max = _check_sizes(sizes, draws_max)
@@ -167,9 +167,9 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
             f"{ds.meta['elapsed_s']:.0f} s); ground truth per draw {ds.meta['draw_status_counts']}", flush=True)
 
     ev_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))  # as doct-train
-    tests, _ = _test_sets(data["test"], cfg, spec, ev_rng)
+    tests, _ = evaluation_sets(data["test"], cfg, spec, ev_rng)
     tests = {p: tests[p] for p in _POOLS if p in tests}
-    mask, cmask = _masks(spec)
+    mask, cmask = feature_masks(spec)
 
     rows: list[dict[str, Any]] = []
     probs: dict[int, dict[str, np.ndarray]] = {}
@@ -206,7 +206,7 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
             sub = np.sort(rng.choice(len(s0["x"]), min(gb_pixels, len(s0["x"])), replace=False))
             t0 = time.perf_counter()
             gb = HistGradientBoostingClassifier(max_iter=300, random_state=cfg.seed)
-            gb.fit(transform_numpy(s0["x"][sub], mask, cmask), _targets(s0)[sub])
+            gb.fit(transform_numpy(s0["x"][sub], mask, cmask), class_targets(s0)[sub])
             gbr: dict[str, Any] = {"training_s": time.perf_counter() - t0, "pixels": int(len(sub)),
                                    "iterations": int(gb.n_iter_)}
             full = np.eye(len(CLASS_NAMES))[gb.classes_]  # a class absent from the samples: p = 0
@@ -409,7 +409,7 @@ def check_outputs(out) -> list[Path]:
 
 def write_outputs(res: dict[str, Any], out) -> list[Path]:
     """Write the JSON, Markdown and PNG files (each atomically)."""
-    from ._files import atomic_write
+    from torchdoct._files import atomic_write
 
     paths = check_outputs(out)
 

@@ -46,7 +46,8 @@ from .report import (COVERAGE_THRESHOLDS, bootstrap_se, coverage_curve, evaluate
 from .rule import INDETERMINATE, make_rule
 
 __all__ = ["TrainConfig", "TrainResult", "train", "fit_network", "pooled_samples", "CLASS_NAMES", "transform_numpy",
-           "SHIFTED_PRIOR", "SHIFTED_TARGETS", "shifted_prior"]
+           "SHIFTED_PRIOR", "SHIFTED_TARGETS", "shifted_prior", "feature_masks", "eval_samples", "class_targets",
+           "evaluation_sets"]
 
 #: Output classes of every model: the motion types, then ``indeterminate``.
 CLASS_NAMES = (*CLASSES, INDETERMINATE)
@@ -199,7 +200,7 @@ def _correlation_columns(spec: FeatureSpec) -> list[int]:
             if m not in METRIC_UNITS and parse_feature(m)[0] in ("rho_lin", "rho_db", "g1")]
 
 
-def _masks(spec: FeatureSpec) -> tuple[np.ndarray, np.ndarray]:
+def feature_masks(spec: FeatureSpec) -> tuple[np.ndarray, np.ndarray]:
     """Boolean masks over the model's inputs (features + ``pool_pixels``) of the LIV and correlation columns."""
     liv = np.zeros(spec.n_features + 1, bool)
     liv[_log_columns(spec)] = True
@@ -292,13 +293,16 @@ def _epoch_samples(ds: Dataset, cfg: TrainConfig, rng: np.random.Generator) -> d
     return _concat(singles, pooled_samples(ds, sizes, rng))
 
 
-def _eval_samples(ds: Dataset, n: int, rng: np.random.Generator, per_group: int = 8) -> dict[str, np.ndarray]:
+def eval_samples(ds: Dataset, n: int, rng: np.random.Generator, per_group: int = 8) -> dict[str, np.ndarray]:
+    """Evaluation samples of ``ds`` at pool size ``n``: every pixel alone for ``n = 1``, else ``per_group``
+    pools of ``n`` pixels per draw group (:func:`pooled_samples`)."""
     if n == 1:
         return _singles(ds)
     return pooled_samples(ds, [np.full(per_group, n) for _ in _groups(ds)], rng)
 
 
-def _targets(s: dict[str, np.ndarray]) -> np.ndarray:
+def class_targets(s: dict[str, np.ndarray]) -> np.ndarray:
+    """Class index of every sample: its motion type where identifiable, else ``indeterminate`` (the last)."""
     return np.where(s["status"] == 0, s["y"], len(CLASS_NAMES) - 1)
 
 
@@ -357,7 +361,7 @@ def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, p
     model.set_normalization(torch.from_numpy(train0["x"]))
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
     xv = torch.from_numpy(val["x"])
-    tv = torch.from_numpy(_targets(val))
+    tv = torch.from_numpy(class_targets(val))
     mv = _magnitude_targets(val)
 
     def loss_of(xb, tb, mb=None):
@@ -377,7 +381,7 @@ def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, p
         if epoch > 1:
             samples = _epoch_samples(train_ds, cfg, rng)
         x = torch.from_numpy(samples["x"])
-        t = torch.from_numpy(_targets(samples))
+        t = torch.from_numpy(class_targets(samples))
         mt = _magnitude_targets(samples)
         order = torch.from_numpy(rng.permutation(len(t)))
         model.train()
@@ -443,16 +447,16 @@ def interval_scale(z: np.ndarray) -> float:
     return float(grid[int(np.argmin(loss))])
 
 
-def _test_sets(ds: Dataset, cfg: TrainConfig, spec: FeatureSpec, rng: np.random.Generator):
+def evaluation_sets(ds: Dataset, cfg: TrainConfig, spec: FeatureSpec, rng: np.random.Generator):
     """Evaluation samples per pool size; with ``ds.x_ref`` (signature specs) also the LIV/OCDS inputs of
     the very same (pooled) pixels, ``({pool: samples}, {pool: reference samples} or {})``."""
     if ds.x_ref is None:
-        return {str(n): _eval_samples(ds, n, rng) for n in cfg.eval_pools}, {}
+        return {str(n): eval_samples(ds, n, rng) for n in cfg.eval_pools}, {}
     f = ds.x.shape[1]
     joint = dataclasses.replace(ds, x=np.concatenate([ds.x, ds.x_ref], axis=1), x_ref=None)
     tests, refs = {}, {}
     for n in cfg.eval_pools:
-        s = _eval_samples(joint, n, rng)
+        s = eval_samples(joint, n, rng)
         x = s["x"]
         tests[str(n)] = {**s, "x": np.concatenate([x[:, :f], x[:, -1:]], axis=1)}
         refs[str(n)] = {**s, "x": np.concatenate([x[:, f:-1], x[:, -1:]], axis=1)}
@@ -529,7 +533,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
 
     # 7. evaluation sets
     ev_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))
-    tests, tests_ref = _test_sets(data["test"], cfg, spec, ev_rng)
+    tests, tests_ref = evaluation_sets(data["test"], cfg, spec, ev_rng)
 
     def net_predict(xx: np.ndarray) -> np.ndarray:
         with torch.no_grad():
@@ -546,9 +550,9 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
         from sklearn.pipeline import make_pipeline
         from sklearn.preprocessing import StandardScaler
 
-        mask, cmask = _masks(spec)
+        mask, cmask = feature_masks(spec)
         xb = transform_numpy(train0["x"], mask, cmask)
-        yb = _targets(train0)
+        yb = class_targets(train0)
         for name, est in (("logistic_regression", make_pipeline(StandardScaler(), LogisticRegression(max_iter=2000))),
                           ("gradient_boosting", HistGradientBoostingClassifier(max_iter=300, random_state=cfg.seed))):
             t1 = time.perf_counter()
@@ -594,7 +598,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
                             progress=progress, bulk_phase=True)
         t_sim += bulk.meta["elapsed_s"]
         b_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))
-        btests, _ = _test_sets(bulk, cfg, spec, b_rng)
+        btests, _ = evaluation_sets(bulk, cfg, spec, b_rng)
         bulk_report = {pool: evaluate(net_predict(s["x"]), s["y"], s["status"], CLASS_NAMES, rule)
                        for pool, s in btests.items() if pool in ("1", "25")}
         say(f"random bulk phase per frame: balanced accuracy (identifiable, pool 1) "
@@ -624,7 +628,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
                                   truncation_tolerance=cfg.truncation_tolerance, cache_dir=cache_dir,
                                   use_cache=use_cache, progress=progress)
         s_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(10,)))
-        stests, _ = _test_sets(shifted_ds, cfg, spec, s_rng)
+        stests, _ = evaluation_sets(shifted_ds, cfg, spec, s_rng)
         sprobs = {pool: net_predict(s["x"]) for pool, s in stests.items()}
         s_ranges = [sp.diffusion_um2_per_s, sp.speed_um_per_s, sp.speed_um_per_s]
         shifted_report = {
@@ -710,3 +714,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
         datasets["shifted_prior"] = shifted_ds
     return TrainResult(model=model, report=report, spec=spec, prior=prior, config=cfg, rule=rule,
                        test_inputs=tests["1"]["x"], datasets=datasets)
+
+
+# The former private names of the steps other modules use (learning curve, g1 fit, trade-offs).
+_masks, _eval_samples, _targets, _test_sets = feature_masks, eval_samples, class_targets, evaluation_sets

@@ -1,31 +1,33 @@
 """torchdoct: batched PyTorch simulation of dynamic OCT (DOCT) signals and their metrics.
 
 Units and resolution conventions: :mod:`torchdoct.conventions`.
+
+Importing ``torchdoct`` is light: the public names below and the subpackages load on first use
+(``torchdoct.simulate``, ``torchdoct.sim``), so the torch-free modules (:mod:`torchdoct.conventions`,
+:mod:`torchdoct.optics`, :mod:`torchdoct.measured.io`, :mod:`torchdoct.threads`, ...) can be imported
+without torch.
 """
 
-from .sim.config import (
-    Analysis,
-    Diffusion,
-    Flow,
-    Noise,
-    OCTSystem,
-    Population,
-    Protocol,
-    RandomBallistic,
-    Scene,
-    SceneError,
-    SimulationSettings,
-    load_scene,
-    scene_from_dict,
-)
-from .sim.metrics import complex_variance, lag_correlations, liv, ocds, to_db
-from .image.phantom import Phantom, load_phantom, phantom_from_dict
-from .sim.plan import Plan, make_plan
-from .image.render import RenderResult, render
-from .sim.scenes import shipped_scenes
-from .sim.simulate import SimulationResult, simulate
+from __future__ import annotations
+
+import importlib
 
 __version__ = "0.3.0"
+
+#: Public name → the module that owns it (imported on first access).
+_LAZY = {
+    **dict.fromkeys(("Analysis", "Diffusion", "Flow", "Noise", "OCTSystem", "Population", "Protocol",
+                     "RandomBallistic", "Scene", "SceneError", "SimulationSettings", "load_scene",
+                     "scene_from_dict"), ".sim.config"),
+    **dict.fromkeys(("complex_variance", "lag_correlations", "liv", "ocds", "to_db"), ".sim.metrics"),
+    **dict.fromkeys(("Phantom", "load_phantom", "phantom_from_dict"), ".image.phantom"),
+    **dict.fromkeys(("Plan", "make_plan"), ".sim.plan"),
+    **dict.fromkeys(("RenderResult", "render"), ".image.render"),
+    "shipped_scenes": ".sim.scenes",
+    **dict.fromkeys(("SimulationResult", "simulate"), ".sim.simulate"),
+}
+#: Subpackages and modules reachable as attributes (``torchdoct.sim``) without an explicit import.
+_SUBMODULES = ("sim", "image", "measured", "study", "bench", "cli", "conventions", "optics", "threads", "figures")
 
 __all__ = [
     "Analysis", "Diffusion", "Flow", "Noise", "OCTSystem", "Population", "Protocol", "RandomBallistic",
@@ -34,3 +36,17 @@ __all__ = [
     "Phantom", "load_phantom", "phantom_from_dict", "RenderResult", "render",
     "Plan", "make_plan", "shipped_scenes", "SimulationResult", "simulate", "__version__",
 ]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name], __name__), name)
+        globals()[name] = value  # later lookups skip this function
+        return value
+    if name in _SUBMODULES:
+        return importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY) | set(_SUBMODULES))

@@ -10,7 +10,7 @@ the same layout is drawn in pixels (labels :data:`X_LABEL_PX`, :data:`Z_LABEL_PX
 carry the quantity and its unit, ``"LIV (dB²)"``.
 
 This module imports only the standard library and numpy (matplotlib inside the functions), so the
-torch-free classify path can load it on its own (``classifier._files``).
+torch-free classify path imports it (``import torchdoct`` is light).
 """
 
 from __future__ import annotations

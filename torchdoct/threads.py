@@ -21,7 +21,7 @@ The knob is ``threads`` (``--threads N`` on the command line): how many cores a 
 ``TORCHDOCT_THREADS`` environment variable.
 
 The module imports torch only inside the functions that set its threads, so the torch-free classify
-path uses the same policy (``classifier._files.threads``).
+path uses the same policy (:mod:`classifier.runtime`).
 """
 
 from __future__ import annotations

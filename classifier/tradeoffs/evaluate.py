@@ -117,15 +117,11 @@ def _best_time(fn: Callable[[], Any], repeats: int) -> float:
 
 
 def _ort_session(model, spec, threads: int):
-    import onnxruntime as ort
-
     from .. import __version__
     from ..export import onnx_model
+    from ..runtime import onnx_session
     from ..train import CLASS_NAMES
 
     meta = {"classifier_version": __version__, "output": {"classes": list(CLASS_NAMES)},
             "input": {"columns": [{"name": n} for n in (*spec.feature_names, "pool_pixels")]}}
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.inter_op_num_threads = 1
-    return ort.InferenceSession(onnx_model(model, meta).SerializeToString(), opts, providers=["CPUExecutionProvider"])
+    return onnx_session(onnx_model(model, meta).SerializeToString(), threads=threads)

@@ -24,10 +24,10 @@ _TRAIN = _train_defaults()
 
 
 def _defaults() -> dict[str, Any]:
-    from ..cli import build_classify_parser
+    from ..infer import DEFAULT_POOL
 
     return {"draws_train": _TRAIN.draws_train, "spec": _TRAIN.spec, "hidden": list(_TRAIN.hidden),
-            "pool": int(build_classify_parser().get_default("pool"))}
+            "pool": int(DEFAULT_POOL)}
 
 
 #: The shipped settings: ``doct-train`` and ``doct-classify`` without options.

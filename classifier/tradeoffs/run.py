@@ -41,7 +41,7 @@ def run_tradeoffs(plan: TradeoffPlan, *, cache_dir=None, progress: bool = False,
     from ..features import load_spec
     from ..infer import DEFAULT_MODEL, load_model, pool_features
     from ..rule import apply_rule, make_rule
-    from ..train import CLASS_NAMES, TrainConfig, _eval_samples
+    from ..train import CLASS_NAMES, TrainConfig, eval_samples
 
     if not isinstance(plan, TradeoffPlan):
         raise TypeError(f"plan must be a TradeoffPlan; got {type(plan).__name__}")
@@ -84,7 +84,7 @@ def run_tradeoffs(plan: TradeoffPlan, *, cache_dir=None, progress: bool = False,
     tests = {}
     for name in _SPECS:
         ev_rng = np.random.default_rng(np.random.SeedSequence(plan.seed, spawn_key=(9,)))
-        tests[name] = {str(n): _eval_samples(data[name]["test"], n, ev_rng) for n in plan.pools}
+        tests[name] = {str(n): eval_samples(data[name]["test"], n, ev_rng) for n in plan.pools}
     weights = _bootstrap_weights(plan.draws_test, plan.n_boot, plan.seed)
     sa_test = data["single-acquisition"]["test"]
     common_by_draw = np.zeros(plan.draws_test, bool)

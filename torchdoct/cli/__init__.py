@@ -192,9 +192,11 @@ def _bench_tradeoffs(args) -> int:
         res["study"] = tradeoffs.study_tradeoffs(trials_grid=grid, reference_trials=ref, progress=True)
         print(tradeoffs.format_study_table(res["study"]))
     if "classifier" in parts:
-        from classifier import tradeoffs as clf_tradeoffs
+        from .. import extensions
 
-        res["classifier"] = clf_tradeoffs.classifier_tradeoffs(quick=args.quick, progress=True)
+        clf_tradeoffs = extensions.load(extensions.TRADEOFFS, "classifier",
+                                        command="torchdoct bench tradeoffs --part classifier")
+        res["classifier"] = clf_tradeoffs.compute(quick=args.quick, progress=True)
         print(clf_tradeoffs.format_table(res["classifier"]))
     if "fidelity" in parts:
         n, ref = (512, 1024) if args.quick else (args.fidelity_trials, args.fidelity_reference_trials)
@@ -204,7 +206,7 @@ def _bench_tradeoffs(args) -> int:
     if "simulator" in pngs:
         _atomic_write(pngs["simulator"], lambda tmp: tradeoffs.plot_tradeoffs(res["simulator"], tmp))
     if "classifier" in pngs:
-        _atomic_write(pngs["classifier"], lambda tmp: clf_tradeoffs.plot_tradeoffs(res["classifier"], tmp))
+        _atomic_write(pngs["classifier"], lambda tmp: clf_tradeoffs.plot(res["classifier"], tmp))
     print(f"wrote {out}" + "".join(f", {p}" for p in pngs.values()))
     return 0
 
@@ -303,10 +305,10 @@ def _main(argv: Sequence[str] | None = None) -> int:
         if args.command == "bench" and args.bench == "tradeoffs":
             return _bench_tradeoffs(args)
         if args.command == "bench" and args.bench == "classify":
-            from classifier.bench import bench_classify, format_bench_classify
+            from .. import extensions
 
-            return _bench(args, lambda: bench_classify(size=args.size, repeats=args.repeats, model=args.model),
-                          format_bench_classify)
+            compute, fmt = extensions.load(extensions.BENCH, "classify", command="torchdoct bench classify")(args)
+            return _bench(args, compute, fmt)
         if args.command == "bench" and args.bench == "all":
             return _bench_all(args)
         if args.command == "bench" and args.bench == "load":

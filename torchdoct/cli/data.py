@@ -273,10 +273,10 @@ def _load_mask(path: str) -> np.ndarray:
     if suf in (".tif", ".tiff"):
         import tifffile
 
-        from ..measured.io import _TiffDamage
+        from ..measured.guards import TiffDamage
 
         try:
-            with _TiffDamage() as damage:  # a truncated file: tifffile only logs; refuse it instead
+            with TiffDamage() as damage:  # a truncated file: tifffile only logs; refuse it instead
                 arr = tifffile.imread(p)
                 damage.check()
             return arr

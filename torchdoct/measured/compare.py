@@ -30,9 +30,11 @@ from typing import Any, Iterable, Mapping, Sequence as _Seq
 import numpy as np
 
 from .._files import atomic_write, check_out
-from .io import Maps
+from ..optics import ChannelOptics, same_value
+from .mapsfile import Maps
 
 __all__ = [
+    "ComparedConfiguration",
     "Configuration",
     "ComparisonResult",
     "parse_config",
@@ -43,24 +45,25 @@ __all__ = [
     "significance_stars",
 ]
 
-_RTOL = 1e-6
 #: Columns of the tests table (one row per test).
 TEST_COLUMNS = ["metric", "test", "config_a", "config_b", "n_samples", "mean_a", "sd_a", "mean_b", "sd_b",
                 "mean_diff_b_minus_a", "statistic", "p_value", "significant", "posthoc"]
 
 
 @dataclass(frozen=True)
-class Configuration:
-    """Optics of a channel (µm); ``resolution`` is the label of the first channel seen."""
+class ComparedConfiguration:
+    """One configuration of a comparison: a channel's optics (µm) as a table key, and ``resolution``, the
+    label of the first channel seen (not compared). Channels are grouped by their optics values; matching
+    optics against a wanted value is :meth:`torchdoct.optics.ChannelOptics.matches`."""
 
     wavelength_um: float
     lateral_resolution_um: float
     axial_resolution_um: float
     resolution: str = field(compare=False, default="")
 
-    def matches(self, info: Mapping[str, Any]) -> bool:
-        return all(math.isclose(float(info[k]), getattr(self, k), rel_tol=_RTOL)
-                   for k in ("wavelength_um", "lateral_resolution_um", "axial_resolution_um"))
+    @property
+    def optics(self) -> ChannelOptics:
+        return ChannelOptics(self.wavelength_um, self.lateral_resolution_um, self.axial_resolution_um)
 
     def label(self, with_wavelength: bool) -> str:
         res = self.resolution or f"lateral={self.lateral_resolution_um:g},axial={self.axial_resolution_um:g}"
@@ -82,8 +85,12 @@ def parse_config(text: str) -> tuple[float | None, str]:
     return wl, parse_resolution(t).label
 
 
-def _channel_config(info: Mapping[str, Any]) -> Configuration:
-    return Configuration(float(info["wavelength_um"]), float(info["lateral_resolution_um"]),
+#: The former name of :class:`ComparedConfiguration` (the classifier's spec has its own ``Configuration``).
+Configuration = ComparedConfiguration
+
+
+def _channel_config(info: Mapping[str, Any]) -> ComparedConfiguration:
+    return ComparedConfiguration(float(info["wavelength_um"]), float(info["lateral_resolution_um"]),
                          float(info["axial_resolution_um"]), str(info.get("resolution", "")))
 
 
@@ -119,9 +126,9 @@ def region_mask(maps: Maps, *, mask: np.ndarray | None = None, threshold_db: flo
 
 
 def sample_means(maps: Maps, region: np.ndarray, metrics: Iterable[str] = ("liv", "ocds")
-                 ) -> dict[Configuration, dict[str, tuple[float, int]]]:
+                 ) -> dict[ComparedConfiguration, dict[str, tuple[float, int]]]:
     """``{configuration: {metric: (mean over finite region pixels, pixel count)}}`` of one maps file."""
-    out: dict[Configuration, dict[str, tuple[float, int]]] = {}
+    out: dict[ComparedConfiguration, dict[str, tuple[float, int]]] = {}
     wanted = set(metrics)
     for i, info in enumerate(maps.meta["channels"]):
         if info["metric"] not in wanted:
@@ -217,10 +224,10 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
     if not (0 < alpha < 1):
         raise ValueError(f"alpha must be in (0, 1); got {alpha!r}")
     metrics = list(metrics)
-    per: dict[str, dict[Configuration, dict[str, tuple[float, int]]]] = {}
-    order: list[Configuration] = []
+    per: dict[str, dict[ComparedConfiguration, dict[str, tuple[float, int]]]] = {}
+    order: list[ComparedConfiguration] = []
     for name, items in samples.items():
-        merged: dict[Configuration, dict[str, tuple[float, int]]] = {}
+        merged: dict[ComparedConfiguration, dict[str, tuple[float, int]]] = {}
         for maps, region in items:
             for cfg, vals in sample_means(maps, region, metrics).items():
                 if cfg in merged:
@@ -234,7 +241,7 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
         for spec in configs:
             wl, label = parse_config(spec)
             hits = [c for c in order if c.resolution == label
-                    and (wl is None or math.isclose(c.wavelength_um, wl, rel_tol=_RTOL))]
+                    and (wl is None or same_value(c.wavelength_um, wl))]
             if len(hits) != 1:
                 have = ", ".join(c.label(True) for c in order)
                 raise ValueError(f"--config {spec!r} matches {len(hits)} configurations (have: {have}); "

@@ -33,13 +33,12 @@ inner boundary for exclusion (the paper drops one).
 
 **Maps files** (written by ``torchdoct maps``): ``.npz`` with ``maps`` float32 ``[C, Z, X]`` or
 ``[C, Y, Z, X]``, ``channels`` (str array) and ``meta_json``; or ``.tif`` with the same stack and the
-meta JSON as ImageDescription. See :class:`Maps`.
+meta JSON as ImageDescription. Their owner is :mod:`torchdoct.measured.mapsfile` (:class:`Maps`,
+:func:`read_maps`, :func:`write_maps`, re-exported here).
 
-Safety: files are never unpickled (``allow_pickle=False``; object arrays are refused), outputs are
-written atomically and never overwritten without ``force``.
-
-Kept whole (over 600 lines): one reader per format behind two entry points, with one set of
-error rules (docs/architecture.md).
+Safety (:mod:`torchdoct.measured.guards`, shared by every reader): files are never unpickled
+(``allow_pickle=False``; object arrays are refused), outputs are written atomically and never
+overwritten without ``force``. numpy only: importing this module does not import torch.
 """
 
 from __future__ import annotations
@@ -56,10 +55,13 @@ from typing import Any, Mapping, Sequence as _Seq
 import numpy as np
 
 from .._files import atomic_write, check_out
+from .guards import TiffDamage, check_npy_header, parse_json_object, refuse_object
+from .mapsfile import MAPS_SUFFIXES, Maps, read_maps, write_maps
 
 __all__ = [
     "SEQUENCE_SUFFIXES",
     "MAPS_SUFFIXES",
+    "SequenceData",
     "Sequence",
     "BlockRaster",
     "Maps",
@@ -72,7 +74,6 @@ __all__ = [
 ]
 
 SEQUENCE_SUFFIXES = (".npy", ".npz", ".h5", ".tif", ".tiff")
-MAPS_SUFFIXES = (".npz", ".tif", ".tiff")
 _WRITE_SUFFIXES = (".npy", ".npz", ".h5")
 _CANONICAL_AXES = ("TZX", "TYZX")
 _SYSTEM_NUMBERS = ("wavelength_um", "lateral_resolution_um", "axial_resolution_um", "refractive_index")
@@ -171,7 +172,7 @@ class BlockRaster:
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
-class Sequence:
+class SequenceData:
     """A time sequence of OCT frames with validated metadata.
 
     ``data``: numpy array in canonical order ``[T, Z, X]`` or ``[T, Y, Z, X]``: complex64/complex128
@@ -229,51 +230,8 @@ class Sequence:
         return None if br is None else BlockRaster(**br)
 
 
-@dataclass(frozen=True, kw_only=True, eq=False)
-class Maps:
-    """DOCT maps: ``maps`` float32 ``[C, Z, X]`` or ``[C, Y, Z, X]``, channel names, metadata.
-
-    ``meta["channels"]`` holds one dict per channel: ``name`` (``f"{metric}@{resolution}"``),
-    ``metric``, ``unit``, ``resolution``, ``wavelength_um``, ``lateral_resolution_um``,
-    ``axial_resolution_um``. Match channels with :meth:`find` (by metric and optics), not by name.
-    """
-
-    maps: np.ndarray
-    channels: tuple[str, ...]
-    meta: dict[str, Any]
-
-    def __post_init__(self) -> None:
-        m = np.asarray(self.maps)
-        if m.ndim not in (3, 4):
-            raise ValueError(f"maps must be [C, Z, X] or [C, Y, Z, X]; got shape {list(m.shape)}")
-        if m.shape[0] != len(self.channels):
-            raise ValueError(f"maps has {m.shape[0]} channels but {len(self.channels)} channel names")
-        object.__setattr__(self, "channels", tuple(str(c) for c in self.channels))
-
-    def index(self, name: str) -> int:
-        try:
-            return self.channels.index(name)
-        except ValueError:
-            raise ValueError(f"no channel {name!r}; channels: {', '.join(self.channels)}") from None
-
-    def __getitem__(self, name: str) -> np.ndarray:
-        return self.maps[self.index(name)]
-
-    def channel_info(self, name: str) -> dict[str, Any]:
-        return dict(self.meta["channels"][self.index(name)])
-
-    def find(self, metric: str, *, wavelength_um: float | None = None, lateral_resolution_um: float | None = None,
-             axial_resolution_um: float | None = None, rtol: float = 1e-6) -> list[str]:
-        """Names of channels of ``metric`` whose optics match the given values within ``rtol``."""
-        want = {"wavelength_um": wavelength_um, "lateral_resolution_um": lateral_resolution_um,
-                "axial_resolution_um": axial_resolution_um}
-        out = []
-        for info in self.meta["channels"]:
-            if info["metric"] != metric:
-                continue
-            if all(v is None or math.isclose(float(info[k]), float(v), rel_tol=rtol) for k, v in want.items()):
-                out.append(info["name"])
-        return out
+#: The former name of :class:`SequenceData` (it shadowed ``typing.Sequence``), kept for the public API.
+Sequence = SequenceData
 
 
 # ----------------------------------------------------------------------------------------------
@@ -478,22 +436,6 @@ def write_sequence(path: str | os.PathLike, data: Any, meta: Mapping[str, Any], 
 # sequence reader
 
 
-def _refuse_object(arr: np.ndarray, where: str) -> np.ndarray:
-    if arr.dtype.hasobject:
-        raise ValueError(f"{where}: object arrays are refused (they would need unpickling); store a numeric array")
-    return arr
-
-
-def check_npy_header(path: Path, what: str = "") -> None:
-    """A ``.npy`` file must start with the NPY magic; anything else (a pickle, another format, random
-    bytes) is refused naming the file, before numpy would take it for a pickle."""
-    with open(path, "rb") as fh:
-        head = fh.read(6)
-    if head != b"\x93NUMPY":
-        raise ValueError(f"{what}{path.name}: not a NumPy .npy file (no NPY header: "
-                         f"{'empty' if not head else 'a pickle or another format'}); write it with numpy.save")
-
-
 def _load_npy(path: Path) -> np.ndarray:
     check_npy_header(path)
     try:
@@ -513,7 +455,7 @@ def _load_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | N
                                  "store the sequence under the key 'data'")
             out = []
             for key in ("data", "labels", "label_params"):
-                out.append(_refuse_object(z[key], f"{path.name}[{key}]") if key in z.files else None)
+                out.append(refuse_object(z[key], f"{path.name}[{key}]") if key in z.files else None)
     except ValueError as err:
         if "pickle" in str(err).lower() or "object" in str(err).lower():
             raise ValueError(f"{path.name}: holds an object array, which would need unpickling; refused") from None
@@ -577,45 +519,15 @@ def _load_h5(path: Path, dataset: str | None) -> tuple[np.ndarray, np.ndarray | 
                 except UnicodeDecodeError as err:
                     raise ValueError(f"{path.name}: attribute 'torchdoct' is not UTF-8 text (byte {err.start}); it "
                                      "must hold the JSON metadata (write the file again)") from None
-            meta = _parse_json(str(raw), f"{path.name} attribute 'torchdoct'")
+            meta = parse_json_object(str(raw), f"{path.name} attribute 'torchdoct'")
     return data, labels, params, meta
-
-
-class _TiffDamage:
-    """Turns what tifffile only logs about a damaged file (a broken page table: it then reads the pages it
-    can reach, e.g. one page of a truncated stack) into a ``ValueError`` after the read."""
-
-    def __enter__(self):
-        import logging
-
-        class _Collect(logging.Handler):
-            def __init__(self):
-                super().__init__(logging.ERROR)
-                self.messages: list[str] = []
-
-            def emit(self, record):
-                self.messages.append(record.getMessage())
-
-        self.log, self.handler = logging.getLogger("tifffile"), _Collect()
-        self.propagate, self.log.propagate = self.log.propagate, False
-        self.log.addHandler(self.handler)
-        return self
-
-    def check(self) -> None:
-        if self.handler.messages:
-            raise ValueError("; ".join(self.handler.messages))
-
-    def __exit__(self, *exc):
-        self.log.removeHandler(self.handler)
-        self.log.propagate = self.propagate
-        return False
 
 
 def _load_tif(path: Path) -> tuple[np.ndarray, dict | None]:
     import tifffile
 
     try:
-        with _TiffDamage() as damage, tifffile.TiffFile(path) as tf:
+        with TiffDamage() as damage, tifffile.TiffFile(path) as tf:
             data = tf.asarray()
             if data.ndim == 2 and len(tf.pages) > 1:  # one image per page, each its own series: all pages
                 data = tf.asarray(key=range(len(tf.pages)))
@@ -632,16 +544,6 @@ def _load_tif(path: Path) -> tuple[np.ndarray, dict | None]:
         if isinstance(d, dict) and "axes" in d and "frame_times_s" in d:
             meta = d
     return data, meta
-
-
-def _parse_json(text: str, where: str) -> dict:
-    try:
-        d = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{where}: invalid JSON ({err})") from None
-    if not isinstance(d, dict):
-        raise ValueError(f"{where}: metadata JSON must be an object {{...}}; got {type(d).__name__} {text[:40]!r}")
-    return d
 
 
 def _parse_pitch(pitch: Any) -> dict[str, float]:
@@ -661,8 +563,8 @@ def _parse_pitch(pitch: Any) -> dict[str, float]:
 def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um: Mapping[str, float] | str | None = None,
                   frame_times_s: _Seq[float] | None = None, frame_interval_s: float | None = None,
                   system: Mapping[str, Any] | None = None, dataset: str | None = None,
-                  block_raster: BlockRaster | None = None) -> Sequence:
-    """Read a sequence file (see the module docstring) into a :class:`Sequence` in canonical order.
+                  block_raster: BlockRaster | None = None) -> SequenceData:
+    """Read a sequence file (see the module docstring) into a :class:`SequenceData` in canonical order.
 
     Metadata come from the file (h5 attribute, TIFF JSON description) or its JSON sidecar; the
     keywords override them key by key or supply missing ones: ``axes`` (the stored order, any
@@ -685,7 +587,7 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     file_meta: dict | None = None
     try:
         if suffix == ".npy":
-            data = _refuse_object(_load_npy(p), p.name)
+            data = refuse_object(_load_npy(p), p.name)
         elif suffix == ".npz":
             data, labels, params = _load_npz(p)
         elif suffix == ".h5":
@@ -708,7 +610,7 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
             raise ValueError(f"{side.name}: the metadata sidecar of {p.name} is not UTF-8 text (byte {err.start}); "
                              "it must be the JSON metadata file (fix it, or remove it and give the metadata as "
                              "options)") from None
-        meta.update(_parse_json(side_text, side.name))
+        meta.update(parse_json_object(side_text, side.name))
     if suffix in (".tif", ".tiff") and axes is None and "axes" not in meta:
         axes = "TZX"
     # keyword overrides
@@ -758,131 +660,4 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
         dt = _finite_positive("frame_interval_s (s)", frame_interval_s)
         meta["frame_times_s"] = [i * dt for i in range(data.shape[0])]
     clean = validate_meta(meta, data.shape, where=p.name)
-    return Sequence(data=data, meta=clean, labels=labels, label_params=params, source=p.name)
-
-
-# ----------------------------------------------------------------------------------------------
-# maps files
-
-
-def write_maps(path: str | os.PathLike, maps: Maps, *, force: bool = False) -> Path:
-    """Write :class:`Maps` to ``.npz`` (``maps``, ``channels``, ``meta_json``) or ``.tif`` (stack +
-    JSON ImageDescription), atomically; refuses to overwrite without ``force``."""
-    out = check_out(path, force, MAPS_SUFFIXES, what="maps output")
-    arr = np.ascontiguousarray(maps.maps, dtype=np.float32)
-    meta = dict(maps.meta)
-    text = json.dumps(meta)
-    if out.suffix == ".npz":
-        def write(tmp: str) -> None:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, maps=arr, channels=np.asarray(maps.channels, dtype=np.str_),
-                         meta_json=np.asarray(text))
-    else:
-        def write(tmp: str) -> None:
-            import tifffile
-
-            tifffile.imwrite(tmp, arr, description=text, metadata=None, photometric="minisblack")
-    atomic_write(out, write)
-    return out
-
-
-def read_maps(path: str | os.PathLike) -> Maps:
-    """Read a maps file written by :func:`write_maps` (``.npz`` or ``.tif``)."""
-    p = Path(path)
-    if not p.exists():
-        raise FileNotFoundError(f"maps file {p} does not exist")
-    if p.suffix.lower() not in MAPS_SUFFIXES:
-        raise ValueError(f"{p.name}: maps files end in {' or '.join(MAPS_SUFFIXES)}")
-    if p.suffix.lower() == ".npz":
-        try:
-            with open(p, "rb") as fh, np.load(fh, allow_pickle=False) as z:
-                missing = [k for k in ("maps", "channels", "meta_json") if k not in z.files]
-                if missing:
-                    raise ValueError(f"{p.name}: not a maps file (missing {', '.join(missing)})")
-                raw = z["maps"]
-                if raw.dtype.kind not in "fiu":
-                    raise ValueError(f"{p.name}: maps dtype {raw.dtype} is not real; maps are float32")
-                arr = np.asarray(raw, dtype=np.float32)
-                names = z["channels"]
-                text = z["meta_json"]
-        except ValueError as err:
-            if "allow_pickle" in str(err):
-                raise ValueError(f"{p.name}: holds object arrays; refused (no unpickling)") from None
-            raise
-        except (EOFError, OSError, zipfile.BadZipFile, KeyError) as err:
-            raise ValueError(f"{p.name}: not a readable maps file (truncated or corrupt: "
-                             f"{type(err).__name__}: {err})") from None
-        if names.dtype.kind not in "US":
-            raise ValueError(f"{p.name}: 'channels' must be an array of channel names; got dtype {names.dtype}")
-        channels = tuple(str(c) for c in np.atleast_1d(names))
-        if text.dtype.kind not in "US" or text.size != 1:
-            raise ValueError(f"{p.name}: meta_json must be one JSON text string; got a {text.dtype} array of shape "
-                             f"{list(text.shape)} (not written by torchdoct maps; recompute the maps)")
-        try:
-            meta = _parse_json(str(text.reshape(())[()]), f"{p.name} meta_json")
-        except UnicodeDecodeError as err:
-            raise ValueError(f"{p.name} meta_json: not UTF-8 text ({err})") from None
-    else:
-        import tifffile
-
-        try:
-            with _TiffDamage() as damage, tifffile.TiffFile(p) as tf:
-                arr = np.asarray(tf.asarray(), dtype=np.float32)
-                desc = tf.pages[0].description
-                damage.check()
-        except (EOFError, OSError, ValueError, IndexError, tifffile.TiffFileError) as err:
-            raise ValueError(f"{p.name}: not a readable maps TIFF (truncated or corrupt: "
-                             f"{type(err).__name__}: {err})") from None
-        meta = _parse_json(desc, f"{p.name} ImageDescription")
-        if "channels" not in meta:
-            raise ValueError(f"{p.name}: ImageDescription has no 'channels'; not a torchdoct maps file")
-        channels = tuple(c["name"] for c in meta["channels"])
-        n_sp = len(meta.get("axes", "CZX")) - 1  # pages are [Z, X] images: restore [C, (Y), Z, X]
-        shape = (len(channels), -1, *arr.shape[-2:]) if n_sp == 3 else (len(channels), *arr.shape[-2:])
-        try:
-            arr = arr.reshape(shape)
-        except ValueError:
-            raise ValueError(f"{p.name}: stack of shape {list(arr.shape)} does not hold {len(channels)} channels "
-                             f"of {meta.get('axes')}") from None
-    if "channels" not in meta or not isinstance(meta["channels"], list) or len(meta["channels"]) != len(channels):
-        raise ValueError(f"{p.name}: meta 'channels' does not match the {len(channels)} channel names")
-    if arr.ndim not in (3, 4) or arr.shape[0] != len(channels) or 0 in arr.shape:
-        raise ValueError(f"{p.name}: maps of shape {list(arr.shape)} do not hold {len(channels)} channels of "
-                         "[Z, X] or [Y, Z, X] pixels")
-    _check_maps_meta(meta, channels, arr.ndim, f"{p.name} {'meta_json' if p.suffix.lower() == '.npz' else 'ImageDescription'}")
-    return Maps(maps=arr, channels=channels, meta=meta)
-
-
-_CHANNEL_TEXT = ("name", "metric", "unit", "resolution")
-_CHANNEL_OPTICS = ("wavelength_um", "lateral_resolution_um", "axial_resolution_um")
-
-
-def _check_maps_meta(meta: dict, channels: tuple[str, ...], ndim: int, where: str) -> None:
-    """The fields of a maps file's metadata that readers use: one dict per channel with the text
-    fields ``name`` (= the channel name), ``metric``, ``unit``, ``resolution`` and the optics (µm,
-    > 0, or null when unknown); ``axes`` ``C`` + ``ZX``/``YZX`` of the stack's rank; ``pitch_um`` a
-    dict of positive µm (or null)."""
-    fix = "the file was not written by torchdoct maps or was edited; recompute the maps"
-    for i, (name, ch) in enumerate(zip(channels, meta["channels"])):
-        if not isinstance(ch, Mapping):
-            raise ValueError(f"{where}: channels[{i}] must be an object with {', '.join(_CHANNEL_TEXT)} and the optics; "
-                             f"got {ch!r} ({fix})")
-        for key in _CHANNEL_TEXT:
-            if not isinstance(ch.get(key), str):
-                raise ValueError(f"{where}: channels[{i}].{key} must be a string; got {ch.get(key)!r} ({fix})")
-        if ch["name"] != name:
-            raise ValueError(f"{where}: channels[{i}].name {ch['name']!r} differs from the channel name {name!r} ({fix})")
-        for key in _CHANNEL_OPTICS:
-            v = ch.get(key)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
-                                  or v <= 0):
-                raise ValueError(f"{where}: channels[{i}].{key} must be a number > 0 (µm) or null; got {v!r} ({fix})")
-    axes = meta.get("axes")
-    if axes is not None and axes != ("CZX" if ndim == 3 else "CYZX"):
-        raise ValueError(f"{where}: axes {axes!r} does not match maps of rank {ndim} "
-                         f"({'CZX' if ndim == 3 else 'CYZX'}) ({fix})")
-    pitch = meta.get("pitch_um")
-    if pitch is not None and (not isinstance(pitch, Mapping) or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-            for v in pitch.values())):
-        raise ValueError(f"{where}: pitch_um must be an object of positive µm per axis or null; got {pitch!r} ({fix})")
+    return SequenceData(data=data, meta=clean, labels=labels, label_params=params, source=p.name)

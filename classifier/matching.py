@@ -1,0 +1,240 @@
+"""Maps ↔ spec: the model's feature columns found among the channels of maps files, the protocol checks,
+and the default model for a set of maps (numpy only; no torch).
+
+Every model feature (column) must match a maps channel by its metric and its optics
+(:meth:`torchdoct.optics.ChannelOptics.matches`, within 1e-6 relative; the channel's optics from the maps
+metadata, :meth:`torchdoct.measured.mapsfile.Maps.optics`); the frame times and the OCDS delay range must
+be the spec's; the system's refractive index must be the spec's. Anything missing or mismatched is a
+``ValueError`` naming it and the fix.
+
+B-scan maps reduced laterally (``reduction.lateral_axes == "X"``) have channels whose PSF is wider along
+x than along y, unlike the isotropic configurations of the shipped specs. :data:`MATCH_LATERAL_Y` says
+whether the match compares the y width too: for now it does not (the channel matches on x, and
+:func:`bscan_notes` tells the user to expect lower accuracy); set it to True to refuse such channels
+for isotropic columns (a spec then needs ``lateral_resolution_y_um`` to read them).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+from torchdoct.measured.mapsfile import Maps
+from torchdoct.optics import ChannelOptics
+from torchdoct.sim import signature as _signature
+
+from .features import METRIC_UNITS, FeatureSpec, metric_unit, same_value
+from .runtime import DEFAULT_MODEL, ClassifierModel
+
+__all__ = ["MATCH_LATERAL_Y", "SIGNATURE_MODEL", "SIGNATURE_MODELS", "MapsChannels", "column_optics",
+           "channel_matches", "assemble_features", "bscan_notes", "choose_default_model"]
+
+#: Whether a model column matches a channel only when their lateral widths along y agree too. False (for
+#: now): a B-scan channel reduced along x matches an isotropic column on x, with a note
+#: (:func:`bscan_notes`); True refuses it.
+MATCH_LATERAL_Y = False
+#: Shipped model used by default when the maps hold its (signature) channels.
+SIGNATURE_MODEL = "signature"
+#: Shipped signature models ``doct-classify`` prefers without ``--model``, in this order: the first whose
+#: every channel the maps hold (``torchdoct maps --signature``; the two-wavelength one reads the maps of
+#: both bands, one file or two). A model that is not shipped is skipped.
+SIGNATURE_MODELS = ("two-wavelength-signature", SIGNATURE_MODEL)
+
+
+@dataclass(frozen=True)
+class MapsChannels:
+    """The classifier's view of one :class:`~torchdoct.measured.mapsfile.Maps`: its channels as their
+    metadata dicts (``channels``), the stack (``data``), the metadata, the file. It reads nothing: the
+    maps format has one owner, :mod:`torchdoct.measured.mapsfile`."""
+
+    maps: Maps
+
+    @property
+    def path(self) -> Path:
+        return self.maps.path if self.maps.path is not None else Path(self.maps.name)
+
+    @property
+    def data(self) -> np.ndarray:
+        return self.maps.maps
+
+    @property
+    def channels(self) -> list[dict[str, Any]]:
+        return self.maps.channel_meta
+
+    @property
+    def meta(self) -> dict[str, Any]:
+        return self.maps.meta
+
+    @property
+    def spatial_shape(self) -> tuple[int, ...]:
+        return self.maps.spatial_shape
+
+
+def _as_maps(m: Maps | MapsChannels) -> Maps:
+    return m.maps if isinstance(m, MapsChannels) else m
+
+
+def column_optics(col: Mapping[str, Any]) -> ChannelOptics:
+    """The optics of a model's input column (its metadata: wavelength and resolutions, µm)."""
+    y = col.get("lateral_resolution_y_um")
+    return ChannelOptics(float(col["wavelength_um"]), float(col["lateral_resolution_um"]),
+                         float(col["axial_resolution_um"]), None if y is None else float(y))
+
+
+def channel_matches(maps: Maps, i: int, metric: str, optics: ChannelOptics) -> bool:
+    """True when channel ``i`` of ``maps`` is ``metric`` with ``optics`` (:data:`MATCH_LATERAL_Y`)."""
+    if maps.meta["channels"][i].get("metric") != metric:
+        return False
+    have = maps.optics(i)
+    return have is not None and optics.matches(have, lateral_y=MATCH_LATERAL_Y)
+
+
+def _describe_channel(ch: dict[str, Any]) -> str:
+    def g(k):
+        v = ch.get(k)
+        return f"{v:g}" if isinstance(v, (int, float)) else "?"
+
+    return (f"{ch.get('name', ch.get('metric'))} ({g('wavelength_um')} µm, lateral {g('lateral_resolution_um')} µm, "
+            f"axial {g('axial_resolution_um')} µm)")
+
+
+def _check_protocol(maps: Maps, spec: FeatureSpec, ignore_refractive_index: bool) -> None:
+    name = maps.name
+    times = maps.meta.get("frame_times_s")
+    if not isinstance(times, list) or len(times) < 2:
+        raise ValueError(f"{name}: meta has no 'frame_times_s'; the model needs {spec.n_frames} frames "
+                         f"{spec.frame_interval_s} s apart")
+    t = np.asarray(times, dtype=np.float64)
+    d = np.diff(t)
+    if len(t) != spec.n_frames or not all(same_value(x, spec.frame_interval_s) for x in d):
+        raise ValueError(f"{name}: maps were computed from {len(t)} frames at intervals {d.min():g}-{d.max():g} s, "
+                         f"but the model was trained for {spec.n_frames} frames {spec.frame_interval_s} s apart "
+                         "(fix: train a model with this protocol in its spec)")
+    rng = maps.meta.get("ocds_delay_range_s")
+    if rng is None or len(rng) != 2 or not all(same_value(a, b) for a, b in zip(rng, spec.ocds_delay_range_s)):
+        raise ValueError(f"{name}: OCDS delay range {rng} s differs from the model's "
+                         f"{list(spec.ocds_delay_range_s)} s (fix: recompute the maps with that range)")
+    system = maps.meta.get("system") or {}
+    n = system.get("refractive_index")
+    n = 1.0 if n is None else n  # not recorded: the paper's n = 1
+    if not ignore_refractive_index and not same_value(float(n), spec.refractive_index):
+        raise ValueError(f"{name}: system refractive_index {n} but the model was trained for "
+                         f"{spec.refractive_index} (phase rates scale with n; fix: train a model whose spec has "
+                         f"refractive_index = {n}, or pass --ignore-refractive-index)")
+
+
+def _find_column(maps_list: Sequence[Maps], col: Mapping[str, Any]) -> tuple[Maps, int] | None:
+    """The first channel (file order, then channel order) matching the column, or None."""
+    optics = column_optics(col)
+    for m in maps_list:
+        for i in range(len(m.channels)):
+            if channel_matches(m, i, col["metric"], optics):
+                return m, i
+    return None
+
+
+def bscan_notes(maps_list: Sequence[Maps], spec: FeatureSpec) -> list[str]:
+    """For B-scan maps reduced laterally along x only: which of the spec's configurations their channels
+    hold with the original width along y (an anisotropic PSF, :meth:`ChannelOptics.of_channel`), unlike the
+    spec's isotropic training."""
+    notes = []
+    for m in maps_list:
+        reduced = [c for c in spec.configurations
+                   if not ChannelOptics.of_channel(c.to_dict(), m.meta).isotropic]
+        if reduced:
+            notes.append(f"{m.name}: the lateral resolution was reduced along x only (B-scan data), so the "
+                         f"{', '.join(c.name for c in reduced)} channels keep the original width along y, unlike "
+                         "the model's isotropic training; expect lower accuracy than the report (volumes are "
+                         "reduced isotropically)")
+    return notes
+
+
+def assemble_features(maps_list: Sequence[Maps | MapsChannels], model: ClassifierModel, *,
+                      ignore_refractive_index: bool = False) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
+    """Model features ``[F, *S]`` from the channels of one or more maps files, and the intensity map.
+
+    Returns ``(features, mean_db or None, info)``; ``info`` names the channel used for every feature.
+    """
+    maps_list = [_as_maps(m) for m in maps_list]
+    if not maps_list:
+        raise ValueError("no maps file given")
+    spec = model.spec
+    shape = maps_list[0].spatial_shape
+    for m in maps_list:
+        if m.spatial_shape != shape:
+            raise ValueError(f"maps files have different shapes: {maps_list[0].name} {shape}, "
+                             f"{m.name} {m.spatial_shape}")
+        _check_protocol(m, spec, ignore_refractive_index)
+    feats = []
+    used = []
+    for col in model.columns[:-1]:
+        metric = col["metric"]
+        found = _find_column(maps_list, col)
+        if found is None and any((m.meta.get("signature") or {}).get("intensity_only") for m in maps_list) \
+                and metric not in METRIC_UNITS and _signature.needs_field(metric):
+            raise ValueError(f"model {model.path.name} needs the complex field's phase ({col['name']!r}), but the maps "
+                             "were computed from intensity-only data, which give only the intensity part of the "
+                             "signature. Fix: compute the maps from the complex data, or classify with the LIV/OCDS "
+                             f"model (--model {DEFAULT_MODEL})")
+        if found is None:
+            have = "; ".join(f"{m.name}: " + ", ".join(_describe_channel(ch) for ch in m.meta["channels"])
+                             for m in maps_list)
+            res = col["configuration"]
+            raise ValueError(
+                f"maps lack the model feature {col['name']!r}: {metric} at {col['wavelength_um'] * 1000:g} nm, "
+                f"lateral {col['lateral_resolution_um']:g} µm, axial {col['axial_resolution_um']:g} µm. Channels "
+                f"present in {have}. Fix: compute it, e.g. `torchdoct maps DATA --resolution {res} ...`, or give "
+                "the maps of the other wavelength as a second file")
+        m, i = found
+        ch = m.meta["channels"][i]
+        unit = ch.get("unit")
+        if unit is not None and unit != metric_unit(metric):
+            raise ValueError(f"{m.name}: channel {ch.get('name')!r} has unit {unit!r}; the model expects "
+                             f"{metric_unit(metric)!r}")
+        feats.append(m.maps[i])
+        used.append({"feature": col["name"], "file": m.name, "channel": ch.get("name", str(i))})
+    mean_db = None
+    first = spec.configurations[0].optics
+    candidates = [(m, i) for m in maps_list for i, ch in enumerate(m.meta["channels"]) if ch.get("metric") == "mean_db"]
+    candidates.sort(key=lambda t: 0 if channel_matches(t[0], t[1], "mean_db", first) else 1)
+    if candidates:
+        m, i = candidates[0]
+        mean_db = m.maps[i]
+    info = {"features": used,
+            "intensity_channel": candidates[0][0].meta["channels"][candidates[0][1]].get("name") if candidates else None,
+            "notes": bscan_notes(maps_list, spec)}
+    return np.stack(feats).astype(np.float32, copy=False), mean_db, info
+
+
+def choose_default_model(maps_list: Sequence[Maps | MapsChannels], shipped: Mapping[str, Path],
+                         open_model: Callable[[str], ClassifierModel]) -> tuple[str, str | None]:
+    """The shipped model ``doct-classify`` uses without ``--model``, and a note for the user.
+
+    The first model of :data:`SIGNATURE_MODELS` in ``shipped`` whose every feature the maps hold (each
+    opened with ``open_model(name)``), else :data:`DEFAULT_MODEL` (LIV/OCDS), saying why (for maps with
+    signature channels: what the signature model closest to them, the one with the fewest missing
+    features, lacks).
+    """
+    maps_list = [_as_maps(m) for m in maps_list]
+    candidates = [name for name in SIGNATURE_MODELS if name in shipped]
+    if not candidates:
+        return DEFAULT_MODEL, None
+    if not any(m.meta.get("signature") for m in maps_list):
+        return DEFAULT_MODEL, (f"model {DEFAULT_MODEL} (LIV/OCDS): the maps have no signature channels; "
+                               "`torchdoct maps DATA --signature ...` lets doct-classify use the more accurate "
+                               f"{candidates[-1]} model")
+    failed = []
+    for name in candidates:
+        sig = open_model(name)
+        try:
+            assemble_features(maps_list, sig, ignore_refractive_index=True)
+        except ValueError as err:
+            missing = sum(_find_column(maps_list, col) is None for col in sig.columns[:-1])
+            failed.append((missing, name, err))
+            continue
+        return name, None
+    _, name, err = min(failed, key=lambda f: f[0])  # ties: the earlier in SIGNATURE_MODELS
+    return DEFAULT_MODEL, f"model {DEFAULT_MODEL} (LIV/OCDS) instead of {name}: {err}"

@@ -1,0 +1,190 @@
+"""Outputs of the classify path: the :class:`Classification` result and the files ``doct-classify`` writes
+(numpy, tifffile, matplotlib; no torch).
+
+``classes.tif`` (uint8: class index 0…C−1, the model's classes with ``indeterminate`` last, and
+:data:`MASKED` for background/NaN pixels) with its ``legend.json``, ``probabilities.tif`` (float32
+``[C, *S]``, NaN where masked), ``summary.json``, ``overlay.png`` (the classes on the mean intensity) and,
+for models with a magnitude head, ``magnitude.tif`` (:data:`MAGNITUDE_CHANNELS`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .rule import INDETERMINATE
+from .runtime import ClassifierModel
+
+__all__ = ["MASKED", "CLASS_COLORS", "OUTPUT_FILES", "MAGNITUDE_CHANNELS", "Classification", "magnitude_maps",
+           "write_classification"]
+
+#: Class-map value of background and NaN pixels.
+MASKED = 255
+#: Colours of the classes in the legend and overlay.
+CLASS_COLORS = {"diffusion": "#1f77b4", "ballistic": "#ff7f0e", "flow": "#2ca02c", INDETERMINATE: "#8c8c8c"}
+
+
+@dataclass
+class Classification:
+    """Result of :func:`classify_maps` (arrays over the maps' spatial shape ``S``)."""
+
+    labels: np.ndarray  # uint8 [*S]: class index, MASKED for background/NaN
+    probabilities: np.ndarray  # float32 [C, *S], NaN where masked
+    classes: list[str]
+    mask: np.ndarray  # bool [*S]: True where classified
+    background: np.ndarray  # bool [*S]: True where masked as background (not NaN)
+    intensity_db: np.ndarray | None
+    model: ClassifierModel
+    sources: list[str]
+    axes: str
+    pitch_um: dict[str, Any] | None
+    info: dict[str, Any] = field(default_factory=dict)
+    #: float32 [5, *S] (:data:`MAGNITUDE_CHANNELS`), NaN where masked or indeterminate; None without a magnitude head
+    magnitude: np.ndarray | None = None
+
+    def counts(self) -> dict[str, int]:
+        out = {c: int((self.labels == i).sum()) for i, c in enumerate(self.classes)}
+        out["masked"] = int((self.labels == MASKED).sum())
+        return out
+
+
+OUTPUT_FILES = ("classes.tif", "probabilities.tif", "legend.json", "summary.json", "overlay.png")
+#: ``magnitude.tif`` (models with a magnitude head): log10 magnitude of the decided class and its intervals.
+MAGNITUDE_CHANNELS = ("log10_magnitude", "lower_68", "upper_68", "lower_95", "upper_95")
+
+#: z of the two-sided 95 % interval of a Gaussian.
+_Z95 = 1.959964
+
+
+def magnitude_maps(labels: np.ndarray, mean: np.ndarray, sd: np.ndarray, idx: np.ndarray,
+                   shape: tuple[int, ...]) -> np.ndarray:
+    """The ``magnitude.tif`` stack ``[5, *shape]`` (:data:`MAGNITUDE_CHANNELS`): at the decided pixels
+    (``labels`` < K, the motion classes), the log10 magnitude of the decided class and its 68 % / 95 %
+    intervals (mean ± SD, mean ± 1.96 SD of the model's Gaussian predictive distribution); NaN elsewhere.
+
+    ``labels [N]``: the rule's decisions of the classified pixels, ``idx [N]`` their flat indices;
+    ``mean``, ``sd [N, K]``: the model's magnitude head.
+    """
+    size = int(np.prod(shape))
+    magnitude = np.full((len(MAGNITUDE_CHANNELS), size), np.nan, np.float32)
+    k = mean.shape[1]
+    motion = labels < k  # decided pixels: the magnitude of the decided class
+    rows = np.flatnonzero(motion)
+    m, s_ = mean[rows, labels[rows]], sd[rows, labels[rows]]
+    for c, v in enumerate((m, m - s_, m + s_, m - _Z95 * s_, m + _Z95 * s_)):
+        magnitude[c, idx[rows]] = v
+    return magnitude.reshape((len(MAGNITUDE_CHANNELS), *shape))
+
+
+def _cite_repository(text: str) -> str:
+    """Bare ``physics.md N`` citations (in model metadata) as the repository file ``docs/physics.md §N``."""
+    import re
+
+    return re.sub(r"(?<!docs/)physics\.md\s*§?\s*(?=\d)", "docs/physics.md §", text)
+
+
+def _legend(res: Classification) -> dict[str, Any]:
+    rule = dict(res.model.rule)
+    if isinstance(rule.get("definition"), str):
+        rule["definition"] = _cite_repository(rule["definition"])
+    return {
+        "classes": [{"value": i, "name": c, "color": CLASS_COLORS.get(c, "#000000")} for i, c in enumerate(res.classes)],
+        "masked_value": MASKED,
+        "masked_meaning": "background (mean dB intensity below the threshold) or a NaN feature",
+        "rule": rule,
+        "min_probability": res.info["min_probability"],
+        "axes": res.axes,
+        "pitch_um": res.pitch_um,
+    }
+
+
+def _overlay(res: Classification, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import to_rgb
+    from matplotlib.patches import Patch
+
+    labels = res.labels
+    inten = res.intensity_db
+    title_extra = ""
+    if labels.ndim == 3:
+        mid = labels.shape[0] // 2
+        labels = labels[mid]
+        inten = inten[mid] if inten is not None else None
+        title_extra = f", B-scan y = {mid}"
+    if inten is not None and np.isfinite(inten).any():
+        fin = inten[np.isfinite(inten)]
+        lo, hi = np.percentile(fin, [1, 99.5])
+        grey = np.clip((np.nan_to_num(inten, nan=lo, neginf=lo, posinf=hi) - lo) / max(hi - lo, 1e-9), 0, 1)
+    else:
+        grey = np.full(labels.shape, 0.5)
+    rgb = np.repeat(grey[..., None], 3, axis=-1)
+    for i, c in enumerate(res.classes):
+        sel = labels == i
+        rgb[sel] = 0.45 * rgb[sel] + 0.55 * np.array(to_rgb(CLASS_COLORS.get(c, "#000000")))
+    from torchdoct import figures  # torch-free: the project's one axes convention
+    extent, _ = figures.image_extent(labels.shape, res.pitch_um)
+    h = 5.0
+    wdt = h * (extent[1] - extent[0]) / max(extent[2] - extent[3], 1e-9)
+    fig, ax = plt.subplots(figsize=(min(max(wdt, 4.0), 14.0) + 2.0, h))
+    figures.show_bscan(ax, rgb, pitch_um=res.pitch_um)
+    counts = res.counts()
+    total = max(int(res.mask.sum()), 1)
+    handles = [Patch(color=CLASS_COLORS.get(c, "#000000"), label=f"{c} ({counts[c] / total:.0%})") for c in res.classes]
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="class")
+    ax.set_title(f"motion type on mean intensity (pool {res.info['pool']}{title_extra})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_classification(res: Classification, out_dir: str | os.PathLike, *, force: bool = False) -> list[Path]:
+    """Write :data:`OUTPUT_FILES` into ``out_dir`` (created if missing; nothing is overwritten
+    without ``force``; every file is written atomically)."""
+    import tifffile
+
+    from torchdoct._files import atomic_write, check_out
+
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file; give a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    names = OUTPUT_FILES + (("magnitude.tif",) if res.magnitude is not None else ())
+    paths = {name: check_out(out / name, force, Path(name).suffix, f"--out {out}: {name}") for name in names}
+    legend = _legend(res)
+    desc_classes = json.dumps({"legend": legend, "source": res.sources})
+    desc_probs = json.dumps({"channels": res.classes, "axes": "C" + res.axes, "unit": "probability",
+                             "masked": "NaN", "source": res.sources})
+    summary = {"counts": res.counts(), "sources": res.sources, "model": res.model.path.name,
+               "model_spec": res.model.metadata["spec"]["name"], "info": res.info}
+    atomic_write(paths["classes.tif"], lambda t: tifffile.imwrite(t, res.labels, description=desc_classes, metadata=None,
+                                                     photometric="minisblack"))
+    atomic_write(paths["probabilities.tif"],
+                 lambda t: tifffile.imwrite(t, res.probabilities, description=desc_probs, metadata=None,
+                                            photometric="minisblack"))
+
+    def dump(obj):
+        def w(t):
+            with open(t, "w", encoding="utf-8") as fh:
+                json.dump(obj, fh, indent=1)
+        return w
+
+    atomic_write(paths["legend.json"], dump(legend))
+    atomic_write(paths["summary.json"], dump(summary))
+    atomic_write(paths["overlay.png"], lambda t: _overlay(res, t))
+    if res.magnitude is not None:
+        desc_mag = json.dumps({"channels": list(MAGNITUDE_CHANNELS), "axes": "C" + res.axes,
+                               "unit": "log10(µm^2/s) where the class is diffusion, log10(µm/s) where ballistic or flow",
+                               "intervals": "68 % = mean ± SD, 95 % = mean ± 1.96 SD of the model's Gaussian "
+                                            "predictive distribution", "masked": "NaN (also where indeterminate)",
+                               "source": res.sources})
+        atomic_write(paths["magnitude.tif"], lambda t: tifffile.imwrite(t, res.magnitude, description=desc_mag,
+                                                                         metadata=None, photometric="minisblack"))
+    return list(paths.values())

@@ -1,0 +1,166 @@
+"""The ONNX runtime of the classifier: one session factory and the model (numpy and onnxruntime; no torch).
+
+:func:`onnx_session` is the only place an onnxruntime session is built (classify, the export's parity
+check, ``doct-train``'s timing, the trade-off study): CPU provider, ``threads`` intra-op threads, one
+inter-op thread, no spinning (a spinning thread stalls beside other busy processes; the numbers do not
+depend on it). :class:`ClassifierModel` is an ONNX file written by :mod:`classifier.export` with its
+metadata (format :data:`FORMAT` under the key :data:`METADATA_KEY`): the feature columns, the classes,
+the indeterminate rule and the feature spec.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+from torchdoct._files import shipped_files
+from torchdoct.threads import map_ordered, resolve_threads
+
+from .features import FeatureSpec, shipped_or_path, spec_from_dict
+
+__all__ = ["METADATA_KEY", "FORMAT", "CHUNK_ROWS", "DEFAULT_MODEL", "onnx_session", "ClassifierModel",
+           "shipped_models", "load_model"]
+
+#: Key of the model's metadata JSON in the ONNX ``metadata_props``.
+METADATA_KEY = "torchdoct_classifier"
+#: Format of that metadata document (written by :func:`classifier.export.build_metadata`).
+FORMAT = "torchdoct-classifier/1"
+#: Name of the shipped default model (``classifier/data/<name>.onnx``).
+DEFAULT_MODEL = "single-acquisition"
+#: Rows per onnxruntime call: the network's intermediate tensors of 2048 rows stay in the core's cache
+#: (1.2-1.4x the throughput of 131072-row chunks, `torchdoct bench classify`). onnxruntime's matrix
+#: kernels take rows in groups of 4 and round the rows of an incomplete group differently (~1e-7), so a
+#: multiple of 4 keeps every row's result independent of the chunk size and of the thread count.
+CHUNK_ROWS = 1 << 11
+
+
+def onnx_session(model: str | os.PathLike | bytes, *, threads: int = 1, name: str | None = None):
+    """An onnxruntime ``InferenceSession`` of an ONNX file (path) or serialized model (bytes).
+
+    ``threads``: intra-op threads (1 for the classify path, which runs chunks side by side instead).
+    A file onnxruntime cannot read is a ``ValueError`` naming it (``name``, default the file name).
+    """
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = int(threads)
+    opts.inter_op_num_threads = 1
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    source = model if isinstance(model, bytes) else str(model)
+    try:
+        return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
+    except Exception as err:  # onnxruntime raises its own exception types
+        label = name or ("serialized model" if isinstance(model, bytes) else Path(model).name)
+        raise ValueError(f"model {label}: not a readable ONNX model ({err})") from None
+
+
+def shipped_models() -> dict[str, Path]:
+    """Names and paths of the models shipped in ``classifier/data/``."""
+    return shipped_files("classifier", "data", ".onnx")
+
+
+@dataclass
+class ClassifierModel:
+    """An ONNX motion-type model and its metadata (see :mod:`classifier.export`).
+
+    ``threads``: chunks of ``chunk_rows`` rows classified side by side, one onnxruntime thread each.
+    """
+
+    path: Path
+    metadata: dict[str, Any]
+    session: Any
+    threads: int = 1
+    chunk_rows: int = CHUNK_ROWS
+
+    def _chunks(self, fn, n: int) -> None:
+        """``fn(slice)`` over fixed chunks of ``chunk_rows`` rows, ``threads`` chunks side by side (one
+        onnxruntime thread each: no stalls beside other busy processes; the chunks, hence the numbers, do
+        not depend on ``threads``)."""
+        step = self.chunk_rows
+        parts = [slice(i, min(n, i + step)) for i in range(0, n, step)]
+        for _ in map_ordered(fn, parts, self.threads):
+            pass
+
+    @property
+    def spec(self) -> FeatureSpec:
+        return spec_from_dict(self.metadata["spec"])
+
+    @property
+    def classes(self) -> list[str]:
+        return list(self.metadata["output"]["classes"])
+
+    @property
+    def rule(self) -> dict[str, Any]:
+        return self.metadata["rule"]
+
+    @property
+    def columns(self) -> list[dict[str, Any]]:
+        return list(self.metadata["input"]["columns"])
+
+    @property
+    def pool_pixels_max(self) -> int:
+        return int(self.metadata.get("pool_pixels_max", 1))
+
+    @property
+    def has_magnitude(self) -> bool:
+        """True when the model also predicts the motion magnitude with an interval (signature models)."""
+        return "magnitude" in self.metadata
+
+    def predict_magnitude(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per motion class, predicted ``log10`` magnitude and its predictive SD, ``[N, K]`` each."""
+        _, mean, sd = self.predict_all(x)
+        if mean is None:
+            raise ValueError(f"model {self.path.name} has no magnitude head")
+        return mean, sd
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        """Probabilities ``[N, C]`` of inputs ``[N, F+1]`` (features + pool_pixels), float32."""
+        return self.predict_all(x, magnitude=False)[0]
+
+    def predict_all(self, x: np.ndarray, magnitude: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """``(probabilities [N, C], log10 magnitude [N, K], its SD [N, K])`` from one pass of the network
+        (the magnitude pair is None for models without a magnitude head or when ``magnitude`` is False)."""
+        x = np.ascontiguousarray(x, dtype=np.float32)
+        width = len(self.columns)
+        if x.ndim != 2 or x.shape[1] != width:
+            raise ValueError(f"model inputs must be [N, {width}]; got {x.shape}")
+        names = ["probabilities"]
+        out = [np.empty((x.shape[0], len(self.classes)), np.float32)]
+        if magnitude and self.has_magnitude:
+            k = len(self.metadata["magnitude"]["classes"])
+            names += ["log10_magnitude", "log10_magnitude_sd"]
+            out += [np.empty((x.shape[0], k), np.float32), np.empty((x.shape[0], k), np.float32)]
+
+        def run(sl: slice) -> None:
+            for o, r in zip(out, self.session.run(names, {"features": x[sl]})):
+                o[sl] = r
+
+        self._chunks(run, x.shape[0])
+        return out[0], (out[1] if len(out) > 1 else None), (out[2] if len(out) > 1 else None)
+
+
+def load_model(model: str | os.PathLike | None = None, *, threads: int | None = None,
+               shipped: Mapping[str, Path] | None = None, chunk_rows: int = CHUNK_ROWS) -> ClassifierModel:
+    """Open an ONNX model: ``None`` (the shipped default), a shipped name, or a ``.onnx`` path.
+
+    ``threads``: chunks of pixels classified side by side, each on one onnxruntime thread with spinning
+    off (default: ``$TORCHDOCT_THREADS``, else the usable cores; see :mod:`torchdoct.threads`).
+    ``shipped``: the shipped models by name (default :func:`shipped_models`).
+    """
+    shipped = shipped_models() if shipped is None else shipped
+    path = shipped_or_path(DEFAULT_MODEL if model is None else str(model), dict(shipped), "model")
+    if path.suffix != ".onnx":
+        raise ValueError(f"model {path.name}: must be an .onnx file written by doct-train")
+    n_threads = resolve_threads(threads)
+    sess = onnx_session(path, threads=1)
+    props = sess.get_modelmeta().custom_metadata_map
+    if METADATA_KEY not in props:
+        raise ValueError(f"model {path.name}: no '{METADATA_KEY}' metadata; it was not written by doct-train")
+    meta = json.loads(props[METADATA_KEY])
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"model {path.name}: metadata format {meta.get('format')!r}, this version reads {FORMAT!r}")
+    return ClassifierModel(path=path, metadata=meta, session=sess, threads=n_threads, chunk_rows=chunk_rows)

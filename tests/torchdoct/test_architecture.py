@@ -1,0 +1,177 @@
+"""The architecture's rules (docs/architecture.md), checked on the source: no import circle between the
+project's modules, one owner of the maps format and of the channel-optics match, no module loaded by its
+file path, torch-free imports where the torch-free paths need them, long modules say why they are whole."""
+
+from __future__ import annotations
+
+import ast
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+PACKAGES = ("torchdoct", "classifier")
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for pkg in PACKAGES:
+        for path in sorted((REPO / pkg).rglob("*.py")):
+            parts = list(path.relative_to(REPO).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            out[".".join(parts)] = path
+    return out
+
+
+MODULES = _modules()
+
+
+def _module_level_imports(name: str, path: Path) -> set[str]:
+    """Project modules imported by the statements that run at import time (not inside functions or
+    classes' methods)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: set[str] = set()
+
+    def visit(nodes):
+        for node in nodes:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                continue
+            if isinstance(node, ast.ClassDef):
+                visit([n for n in node.body if not isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))])
+                continue
+            if isinstance(node, ast.Import):
+                for alias in node.names:
+                    found.add(alias.name)
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = package.split(".")
+                    base = base[:len(base) - (node.level - 1)]
+                    mod = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    mod = node.module or ""
+                for alias in node.names:
+                    sub = f"{mod}.{alias.name}"
+                    found.add(sub if sub in MODULES else mod)
+            for field in ("body", "orelse", "finalbody", "handlers"):
+                visit(getattr(node, field, []) or [])
+
+    visit(tree.body)
+    return {m for m in found if m in MODULES and m != name}
+
+
+def test_no_import_circle_between_the_project_modules():
+    graph = {name: _module_level_imports(name, path) for name, path in MODULES.items()}
+    state: dict[str, int] = {}  # 1 on the current path, 2 done
+    stack: list[str] = []
+
+    def walk(node: str) -> None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycle = stack[stack.index(nxt):] + [nxt]
+                pytest.fail("import circle: " + " -> ".join(cycle))
+            if nxt not in state:
+                walk(nxt)
+        stack.pop()
+        state[node] = 2
+
+    for name in sorted(graph):
+        if name not in state:
+            walk(name)
+    # the checker sees the edges it should: a known module-level import
+    assert "torchdoct.measured.mapsfile" in graph["torchdoct.measured.io"]
+    assert "torchdoct.optics" in graph["classifier.features"]
+
+
+#: Modules that load a file by its path, and why: none of the project's own files.
+LOADS_BY_PATH = {"torchdoct.bench.cog": "the user's clone of the external COG simulator (torchdoct bench cog --cog DIR)"}
+
+
+def test_torchdoct_never_imports_classifier():
+    """At any level (functions included): the commands reach the classifier through entry points
+    (torchdoct/extensions.py), and classifier/tradeoffs/plan.py reads no command-line parser."""
+    for name, path in MODULES.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        mods = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        mods |= {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and not n.level}
+        if name.startswith("torchdoct"):
+            assert not any(m == "classifier" or m.startswith("classifier.") for m in mods), name
+    plan = ast.parse((REPO / "classifier/tradeoffs/plan.py").read_text(encoding="utf-8"))
+    assert not any(isinstance(n, ast.ImportFrom) and (n.module or "").endswith("cli") for n in ast.walk(plan))
+
+
+def test_the_classifier_fills_the_command_table():
+    from importlib.metadata import entry_points
+
+    from torchdoct import extensions
+
+    bench = {e.name: e.value for e in entry_points(group=extensions.BENCH)}
+    parts = {e.name: e.value for e in entry_points(group=extensions.TRADEOFFS)}
+    assert bench.get("classify") == "classifier.bench:bench_command"
+    assert parts.get("classifier") == "classifier.tradeoffs.part"
+    part = extensions.load(extensions.TRADEOFFS, "classifier", command="test")
+    assert all(callable(getattr(part, f)) for f in ("compute", "format_table", "plot"))
+    with pytest.raises(ValueError, match="entry-point group"):
+        extensions.load(extensions.BENCH, "no-such-part", command="torchdoct bench no-such-part")
+
+
+def test_no_module_loads_a_project_file_by_path():
+    loaders = {name for name, path in MODULES.items()
+               if any(w in path.read_text(encoding="utf-8") for w in ("spec_from_file_location", "SourceFileLoader"))}
+    assert loaders == set(LOADS_BY_PATH)
+
+
+def _classes_and_functions():
+    for name, path in MODULES.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ClassDef):
+                yield name, node, [n for n in node.body if isinstance(n, ast.FunctionDef)]
+
+
+def test_one_maps_class_and_one_channel_optics_match():
+    maps = [name for name, cls, _ in _classes_and_functions() if cls.name == "Maps"]
+    assert maps == ["torchdoct.measured.mapsfile"]
+    matches = {(name, cls.name): fn for name, cls, fns in _classes_and_functions() for fn in fns if fn.name == "matches"}
+    assert set(matches) == {("torchdoct.optics", "ChannelOptics"), ("classifier.features", "Configuration")}
+    # the spec's configuration delegates to the one match
+    assert "self.optics.matches(" in ast.unparse(matches[("classifier.features", "Configuration")])
+    funcs = {n.name for path in MODULES.values() for n in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+             if isinstance(n, ast.FunctionDef)}
+    assert "_channel_matches" not in funcs
+
+
+def _run(code: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+
+
+@pytest.mark.parametrize("code", [
+    "import classifier; classifier.classify_maps; classifier.read_maps; classifier.load_model",
+    "import torchdoct; import torchdoct.measured.io, torchdoct.optics, torchdoct.conventions, torchdoct.threads",
+])
+def test_torch_free_imports(code):
+    out = _run(code + "\nimport sys\nbad = sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.'))\n"
+                      "assert not bad, bad\nprint('ok')\n")
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_import_torchdoct_is_lazy_but_complete():
+    out = _run("import sys, torchdoct\nassert 'torch' not in sys.modules\n"
+               "assert callable(torchdoct.simulate) and 'torch' in sys.modules\n"
+               "assert torchdoct.sim.simulate.simulate is torchdoct.simulate\nprint('ok')\n")
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_long_modules_say_why_they_are_whole():
+    for name, path in MODULES.items():
+        text = path.read_text(encoding="utf-8")
+        if text.count("\n") > 800:
+            doc = ast.get_docstring(ast.parse(text)) or ""
+            assert "kept whole" in doc.lower(), f"{name}: {text.count(chr(10))} lines without a 'Kept whole' reason"

@@ -1,0 +1,34 @@
+"""What other installed packages add to torchdoct's commands: a table filled through entry points.
+
+torchdoct never imports such a package by name (no arrow from ``torchdoct`` to ``classifier``); a package
+declares its parts in its ``pyproject.toml`` and the command line looks them up here:
+
+* group :data:`BENCH` (``torchdoct.bench``), name ``NAME``: ``torchdoct bench NAME``. The entry point is a
+  callable ``part(args) -> (compute, format)``: ``compute()`` returns the result dict (written as JSON),
+  ``format(result)`` its table;
+* group :data:`TRADEOFFS` (``torchdoct.tradeoffs``), name ``PART``: ``torchdoct bench tradeoffs --part PART``.
+  The entry point is an object (a module) with ``compute(*, quick, progress) -> dict``,
+  ``format_table(result) -> str`` and ``plot(result, path)``.
+
+The classifier fills both (``classify``; ``classifier``).
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import entry_points
+from typing import Any
+
+__all__ = ["BENCH", "TRADEOFFS", "load"]
+
+BENCH = "torchdoct.bench"
+TRADEOFFS = "torchdoct.tradeoffs"
+
+
+def load(group: str, name: str, *, command: str) -> Any:
+    """The object registered as ``name`` in entry-point ``group``; a ``ValueError`` naming ``command`` and
+    the fix when no installed package provides it."""
+    for ep in entry_points(group=group):
+        if ep.name == name:
+            return ep.load()
+    raise ValueError(f"`{command}` needs the package that provides {name!r} (entry-point group {group!r}): "
+                     "install the project with its classifier (pip install .)")
