@@ -186,6 +186,14 @@ CASES = [
      ["analysis.metrics", "twice"]),
     ("density-per-mm3", _set("population", 0, "density_per_um3", 5.5e7), SceneError,
      ["population[0].density_per_um3", "per cubic micrometre"]),
+    ("zero-lateral-y-resolution", _set("system", 0, "lateral_resolution_y_um", 0), SceneError,
+     ["system[0].lateral_resolution_y_um", "must be > 0", "positive"]),
+    ("string-lateral-y-resolution", _set("system", 0, "lateral_resolution_y_um", "4.9"), TypeError,
+     ["system[0].lateral_resolution_y_um", "must be a number", "str"]),
+    ("lateral-y-resolution-in-nm", _set("system", 0, "lateral_resolution_y_um", 4.9e4), SceneError,
+     ["system[0].lateral_resolution_y_um", "larger than 1 cm", "micrometres"]),
+    ("unknown-truncation-mode", _set("simulation", {"truncation": "smooth"}), SceneError,
+     ["simulation.truncation", "must be one of", "'hard'", "'taper'", "'smooth'"]),
 ]
 
 

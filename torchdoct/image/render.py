@@ -4,7 +4,8 @@ Every pixel holds the point model's sum over scatterers (physics.md §5.1, paper
 centred on that pixel::
 
     E(t; x_p, y_p, z_p) = Σ_j b_j · h(r_j(t) − r_p) · exp(i·2·k·n·z_j(t)),
-    h(r) = exp(−(x² + y²)/(2 s_x²) − z²/(2 s_z²)),  s_x = Δx/(2√2),  s_z = Δz/(2√ln2),  k = 2π/λ₀
+    h(r) = exp(−x²/(2 s_x²) − y²/(2 s_y²) − z²/(2 s_z²)),  s_x = Δx/(2√2),  s_y = Δy/(2√2),
+    s_z = Δz/(2√ln2),  k = 2π/λ₀  (Δy = Δx unless the system gives ``lateral_resolution_y_um``)
 
 (:mod:`torchdoct.conventions`; µm, s). The phase is the scatterer's absolute depth phase: a pixel and
 its neighbour see one scatterer with the same phase, so there is no carrier across pixels and the
@@ -25,7 +26,10 @@ What runs, and nothing else:
   each region keeps its density at every frame and the ground-truth labels are exact.
 * **Splatting.** The Gaussian PSF is separable: each scatterer adds the outer product of its
   axial and lateral PSF windows (``2·h/pitch + 2`` pixels per axis) to the image, chunked over
-  scatterers so memory stays bounded. Positions are float64 and phases are reduced mod 2π in
+  scatterers so memory stays bounded. Each axis window is cut at the truncation tolerance (``h`` the
+  half-width of the axis); with ``[simulation] truncation = "taper"`` it is multiplied by the taper
+  window (:func:`torchdoct.conventions.taper_window`) of that axis's exponent, so scatterers enter each
+  axis's window continuously. Positions are float64 and phases are reduced mod 2π in
   float64 before the working dtype is used, so float32 output keeps its phase accuracy at any depth.
 * **Noise** (only with ``[noise]``): circular complex Gaussian per pixel and frame at ``snr_db``
   below the mean noise-free intensity ``ρ·b²·π^{3/2}·s_x²·s_z`` (physics.md §5.2) of the brightest
@@ -47,7 +51,7 @@ import numpy as np
 import torch
 
 from ..sim.config import Population
-from ..conventions import (amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
+from ..conventions import (TAPER_START, amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
                           truncation_half_widths_um, wavenumber_per_um)
 from .phantom import MOTION_CODES, Phantom
 from ..sim.simulate import MemoryLimitError, available_memory_bytes, seeded_generator, unit_directions
@@ -71,10 +75,13 @@ def _complex_of(dtype: torch.dtype) -> torch.dtype:
 @dataclass
 class _SystemOptics:
     name: str
-    sx: float  # amplitude sigma, lateral (µm)
+    sx: float  # amplitude sigma, lateral x (µm)
     sz: float  # amplitude sigma, axial (µm)
     kn: float  # 2πn/λ₀ (rad/µm)
     half: tuple[float, float, float]  # truncation half-widths (x, y, z), µm
+    sy: float = 0.0  # amplitude sigma, lateral y (µm)
+    log_tol: float = 0.0  # ln(tolerance), for the taper
+    taper: bool = False
 
 
 @dataclass
@@ -130,7 +137,9 @@ class RenderResult:
             "frame_times_s": list(self.frame_times_s),
             "system": {"name": s.name, "wavelength_um": s.wavelength_um,
                        "lateral_resolution_um": s.lateral_resolution_um,
-                       "axial_resolution_um": s.axial_resolution_um, "refractive_index": s.refractive_index},
+                       "axial_resolution_um": s.axial_resolution_um, "refractive_index": s.refractive_index,
+                       **({} if s.lateral_resolution_y_um is None
+                          else {"lateral_resolution_y_um": s.lateral_resolution_y_um})},
             "phantom": self.phantom.to_dict(),
             "seed": self.seed,
             "labels_legend": {str(v): k for k, v in MOTION_CODES.items()},
@@ -159,7 +168,7 @@ class RenderResult:
         return {k: torch.where(zero, torch.full_like(v, math.nan), v) for k, v in out.items()}
 
 
-def _optics(phantom: Phantom, names: Sequence[str], tol: float) -> list[_SystemOptics]:
+def _optics(phantom: Phantom, names: Sequence[str], tol: float, taper: bool = False) -> list[_SystemOptics]:
     out = []
     for s in phantom.scene.systems:
         if s.name in names:
@@ -167,7 +176,9 @@ def _optics(phantom: Phantom, names: Sequence[str], tol: float) -> list[_SystemO
                 s.name, amplitude_sigma_lateral_um(s.lateral_resolution_um),
                 amplitude_sigma_axial_um(s.axial_resolution_um),
                 wavenumber_per_um(s.wavelength_um, s.refractive_index),
-                truncation_half_widths_um(s.lateral_resolution_um, s.axial_resolution_um, tol)))
+                truncation_half_widths_um(s.lateral_resolution_um, s.axial_resolution_um, tol,
+                                          lateral_resolution_y_um=s.lateral_resolution_y_um),
+                sy=amplitude_sigma_lateral_um(s.lateral_widths_um[1]), log_tol=math.log(tol), taper=taper))
     return out
 
 
@@ -225,18 +236,29 @@ def _inside(phantom: Phantom, st: _PopulationState, pos: torch.Tensor, reach_box
     return keep
 
 
+def _axis_taper(ex: torch.Tensor, log_tol: float) -> torch.Tensor:
+    """The taper window (:func:`torchdoct.conventions.taper_window`) of one axis's PSF exponents ``ex``."""
+    t = ((ex / log_tol - TAPER_START) / (1.0 - TAPER_START)).clamp_(0.0, 1.0)
+    return 1.0 - t * t * t * (10.0 - 15.0 * t + 6.0 * t * t)
+
+
 def _axis_window(coord: torch.Tensor, first: float, pitch: float, n: int, half: float, sigma: float,
-                 dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+                 dtype: torch.dtype, taper_log_tol: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """PSF amplitude window along one axis: pixel indices [N, K] (clamped) and weights [N, K].
 
-    Weights are ``exp(−d²/(2σ²))`` for pixels within ``half`` of the scatterer, else 0.
+    Weights are ``exp(−d²/(2σ²))`` for pixels within ``half`` of the scatterer, else 0; with
+    ``taper_log_tol`` (``ln tol``) they are multiplied by the taper window of ``−d²/(2σ²)``.
     """
     k = int(math.floor(2.0 * half / pitch)) + 2
     i0 = torch.ceil((coord - half - first) / pitch)
     idx = i0[:, None] + torch.arange(k, dtype=_F64)
     d = first + idx * pitch - coord[:, None]
     ok = (idx >= 0) & (idx <= n - 1) & (d.abs() <= half)
-    w = torch.exp(-(d * d) / (2.0 * sigma * sigma)).to(dtype) * ok
+    ex = -(d * d) / (2.0 * sigma * sigma)
+    amp = torch.exp(ex)
+    if taper_log_tol is not None:
+        amp = amp * _axis_taper(ex, taper_log_tol)
+    w = amp.to(dtype) * ok
     return idx.clamp_(0, n - 1).long(), w
 
 
@@ -255,17 +277,23 @@ def _splat(out: torch.Tensor, pos: torch.Tensor, refl: float, opt: _SystemOptics
     chunk = max(1, _SPLAT_ELEMENTS // (kx * ky * kz))
     x0, z0 = grid.extent_um("x")[0], grid.extent_um("z")[0]
     y0 = grid.extent_um("y")[0]
+    sy = opt.sy or opt.sx
+    lt = opt.log_tol if opt.taper else None
     for s in range(0, n, chunk):
         p = pos[s:s + chunk]
         phase = torch.remainder(2.0 * opt.kn * p[:, 2], _TWO_PI).to(dtype)
-        ix, wx = _axis_window(p[:, 0], x0, grid.pitch_x_um, grid.n_x, hx, opt.sx, dtype)
-        iz, wz = _axis_window(p[:, 2], z0, grid.pitch_z_um, grid.n_z, hz, opt.sz, dtype)
+        ix, wx = _axis_window(p[:, 0], x0, grid.pitch_x_um, grid.n_x, hx, opt.sx, dtype, lt)
+        iz, wz = _axis_window(p[:, 2], z0, grid.pitch_z_um, grid.n_z, hz, opt.sz, dtype, lt)
         if volume:
-            iy, wy = _axis_window(p[:, 1], y0, grid.pitch_y_um, grid.n_y, hy, opt.sx, dtype)
+            iy, wy = _axis_window(p[:, 1], y0, grid.pitch_y_um, grid.n_y, hy, sy, dtype, lt)
             a = refl * torch.ones_like(phase)
         else:
             dy = p[:, 1] - grid.y_um
-            a = (refl * torch.exp(-(dy * dy) / (2.0 * opt.sx * opt.sx))).to(dtype)
+            ey = -(dy * dy) / (2.0 * sy * sy)
+            a = refl * torch.exp(ey)
+            if lt is not None:
+                a = a * _axis_taper(ey, lt)
+            a = a.to(dtype)
         w = torch.complex(a * torch.cos(phase), a * torch.sin(phase))
         wzx = (wz[:, :, None] * wx[:, None, :])  # [N, kz, kx]
         idx = iz[:, :, None] * grid.n_x + ix[:, None, :]
@@ -332,7 +360,7 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
     for nm in names:
         if nm not in all_names:
             raise ValueError(f"system {nm!r} is not in the phantom; its systems are {all_names}")
-    optics = _optics(phantom, names, tol)
+    optics = _optics(phantom, names, tol, sim.truncation == "taper")
     half = tuple(max(o.half[a] for o in optics) for a in range(3))
     grid = phantom.grid
     times = torch.tensor(scene.protocol.times_s, dtype=_F64)
@@ -432,7 +460,9 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
         for k, o in enumerate(optics):
             sysobj = scene.systems[all_names.index(o.name)]
             i_ref = max(mean_intensity(p.density_per_um3, sysobj.lateral_resolution_um,
-                                       sysobj.axial_resolution_um, p.reflectivity) for p in scene.populations)
+                                       sysobj.axial_resolution_um, p.reflectivity,
+                                       lateral_resolution_y_um=sysobj.lateral_resolution_y_um)
+                        for p in scene.populations)
             sigma = math.sqrt(i_ref / 10.0 ** (scene.noise.snr_db / 10.0) / 2.0)
             g = seeded_generator(seed, 1 << 20, all_names.index(o.name))
             noise = torch.randn(T, n_pix, 2, generator=g, dtype=_F64).to(dtype) * sigma

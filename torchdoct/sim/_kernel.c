@@ -123,6 +123,21 @@ static inline int32_t quantize(float v) {
     return (int32_t)r;
 }
 
+/* The taper window of the exponent ex (≤ 0) of a scatterer above the tolerance (see
+ * torchdoct.conventions.taper_window): 1 for ex ≥ e0 = a·ln tol, else 1 − t³(10 − 15t + 6t²) with
+ * t = min((ex − e0)·tk, 1), tk = 1/((1 − a)·ln tol), which reaches 0 at ex = ln tol (C²). */
+static inline float taper_w(float ex, float e0, float tk) {
+    float t = (ex - e0) * tk;
+    t = t < 1.0f ? t : 1.0f;
+    float t3 = (t * t) * t;
+    float p = t * 6.0f;
+    p = p - 15.0f;
+    p = p * t;
+    p = p + 10.0f;
+    float w = 1.0f - t3 * p;
+    return ex >= e0 ? 1.0f : w;
+}
+
 /* ---- exported, for the bit-identity tests ---- */
 
 CLONES void tdk_exp_neg(int64_t n, const float *x, float *out) {
@@ -135,6 +150,10 @@ CLONES void tdk_sincos_turns(int64_t n, const float *t, float *sn, float *cs) {
 
 CLONES void tdk_log_pos(int64_t n, const float *u, float *out) {
     for (int64_t i = 0; i < n; i++) out[i] = log_pos(u[i]);
+}
+
+CLONES void tdk_taper(int64_t n, const float *ex, float e0, float tk, float *out) {
+    for (int64_t i = 0; i < n; i++) out[i] = taper_w(ex[i], e0, tk);
 }
 
 /* Counter of the normal pair p of component `comp` at frame `frame`: frame·2^32 + comp·2^30 + p. */
@@ -201,14 +220,16 @@ static int64_t compact(int64_t n, const float *ex, const float *z, float log_tol
 /* Pure diffusion on the periodic cell, one block of trials (see kernel.walk_periodic).
  *   M scatterers laid out trial after trial (counts[b] each; block index i), pos [3, M] (µm, updated);
  *   frame f ≥ 1: pos_c[i] += sigma[f−1]·z (tdk_normals(key, f, c, ·)[i]), then pos −= L·rint(pos/L);
- *   per PSF group g: amplitude exp(−a_lat[g]·(x²+y²) − a_ax[g]·z²), 0 below log_tol;
+ *   per PSF group g: amplitude exp(−a_lat[g]·(x² + ry[g]·y²) − a_ax[g]·z²), 0 below log_tol (times
+ *   taper_w of the exponent when tk ≠ 0); ry = 1 is the isotropic lateral PSF (y² not multiplied);
  *   per system s: acc[b, s, f, 0/1] += quantize(amp·cos/sin(2π·q[s]·z)).
  * Trial after trial, all frames: a trial's scatterers stay in the L1 cache.
  * Returns 0, or −1 if the scratch memory could not be allocated. */
 CLONES int tdk_walk_periodic(int64_t M, int32_t n_trials, const int64_t *counts, float *pos, uint64_t key,
                              int32_t T, const float *sigma, const float *L, const float *inv_L, int32_t G,
-                             const float *a_lat, const float *a_ax, int32_t S, const int32_t *group_of,
-                             const float *q, float log_tol, int64_t *acc) {
+                             const float *a_lat, const float *a_ax, const float *ry, int32_t S,
+                             const int32_t *group_of, const float *q, float log_tol, float e0, float tk,
+                             int64_t *acc) {
     int64_t nmax = 1;
     for (int32_t b = 0; b < n_trials; b++) nmax = counts[b] > nmax ? counts[b] : nmax;
     float *z = malloc(sizeof(float) * (size_t)(nmax + 4));
@@ -236,15 +257,26 @@ CLONES int tdk_walk_periodic(int64_t M, int32_t n_trials, const int64_t *counts,
                 }
             }
             for (int32_t g = 0; g < G; g++) {
-                float al = a_lat[g], az = a_ax[g];
-                for (int64_t i = 0; i < n; i++) {
-                    float r2 = px[i] * px[i] + py[i] * py[i];
-                    amp[i] = r2 * -al - (pz[i] * pz[i]) * az; /* the exponent, for now */
+                float al = a_lat[g], az = a_ax[g], yr = ry[g];
+                if (yr == 1.0f) {
+                    for (int64_t i = 0; i < n; i++) {
+                        float r2 = px[i] * px[i] + py[i] * py[i];
+                        amp[i] = r2 * -al - (pz[i] * pz[i]) * az; /* the exponent, for now */
+                    }
+                } else {
+                    for (int64_t i = 0; i < n; i++) {
+                        float r2 = px[i] * px[i] + (py[i] * py[i]) * yr;
+                        amp[i] = r2 * -al - (pz[i] * pz[i]) * az;
+                    }
                 }
                 /* most of the cell lies outside the PSF: only the scatterers above the tolerance add
                  * anything (the others add exactly 0), so amplitudes and phases are evaluated on those */
                 int64_t k = compact(n, amp, pz, log_tol, ka, kz);
-                for (int64_t i = 0; i < k; i++) ka[i] = exp_neg(ka[i]);
+                if (tk == 0.0f) {
+                    for (int64_t i = 0; i < k; i++) ka[i] = exp_neg(ka[i]);
+                } else {
+                    for (int64_t i = 0; i < k; i++) ka[i] = exp_neg(ka[i]) * taper_w(ka[i], e0, tk);
+                }
                 for (int32_t s = 0; s < S; s++) {
                     if (group_of[s] != g) continue;
                     float qs = q[s];
@@ -270,9 +302,11 @@ CLONES int tdk_walk_periodic(int64_t M, int32_t n_trials, const int64_t *counts,
 
 /* The field of k straight paths at T frames: the exponent e + a2·τ² and the phase φ + ω·τ (turns) at
  * τ = t_f − t*, counted where both the exponent and e are ≥ log_tol; out[2f], out[2f+1] = Σ quantize(
- * exp(exponent)·cos/sin(2π·phase)). Dense over the paths (one vector loop per frame). */
+ * exp(exponent)·cos/sin(2π·phase)), the amplitude times taper_w(exponent) when `taper` (a constant at
+ * each call, so the compiler keeps the hard loop as it was). Dense over the paths (one vector loop per frame). */
 static inline void dense_paths(int64_t k, const float *e, const float *a2, const float *ts, const float *ph,
-                               const float *om, int32_t T, const float *times, float log_tol, int64_t *out) {
+                               const float *om, int32_t T, const float *times, float log_tol, const int taper,
+                               float e0, float tk, int64_t *out) {
     for (int32_t f = 0; f < T; f++) {
         float t = times[f];
         int64_t re = 0, im = 0;
@@ -280,6 +314,7 @@ static inline void dense_paths(int64_t k, const float *e, const float *a2, const
             float tau = t - ts[c];
             float ex = (tau * tau) * a2[c] + e[c];
             float amp = (ex >= log_tol && e[c] >= log_tol) ? exp_neg(ex) : 0.0f;
+            if (taper) amp = amp * taper_w(ex, e0, tk);
             float sn, cs;
             sincos_turns(tau * om[c] + ph[c], &sn, &cs);
             re += quantize(amp * cs);
@@ -294,10 +329,14 @@ static inline void dense_paths(int64_t k, const float *e, const float *a2, const
  * acc [n_trials, T, 2]. */
 CLONES void tdk_eval_straight(int32_t n_trials, int64_t C, const float *e, const float *a2, const float *t_star,
                               const float *phi, const float *omega, int32_t T, const float *times, float log_tol,
-                              int64_t *acc) {
+                              float e0, float tk, int64_t *acc) {
     for (int32_t b = 0; b < n_trials; b++) {
         int64_t o = (int64_t)b * C;
-        dense_paths(C, e + o, a2 + o, t_star + o, phi + o, omega + o, T, times, log_tol, acc + (int64_t)b * T * 2);
+        int64_t *out = acc + (int64_t)b * T * 2;
+        if (tk == 0.0f)
+            dense_paths(C, e + o, a2 + o, t_star + o, phi + o, omega + o, T, times, log_tol, 0, e0, tk, out);
+        else
+            dense_paths(C, e + o, a2 + o, t_star + o, phi + o, omega + o, T, times, log_tol, 1, e0, tk, out);
     }
 }
 
@@ -451,9 +490,10 @@ CLONES int tdk_drift_paths(int32_t N, const uint64_t *keys, const int64_t *n0, c
     return 0;
 }
 
-/* −(a_lat·(x·xx + y·yy)) − a_ax·(z·zz) */
-static inline double norm_w(double al, double az, double x, double y, double z, double xx, double yy, double zz) {
-    return -(al * (x * xx + y * yy)) - az * (z * zz);
+/* −(a_lat·(x·xx + (y·yy)·ry)) − a_ax·(z·zz); ry = 1 (the isotropic lateral PSF) changes no bit */
+static inline double norm_w(double al, double az, double ry, double x, double y, double z, double xx, double yy,
+                            double zz) {
+    return -(al * (x * xx + (y * yy) * ry)) - az * (z * zz);
 }
 
 /* Fields of straight paths for S systems (see kernel.path_fields): per path the float64 coefficients
@@ -461,7 +501,8 @@ static inline double norm_w(double al, double az, double x, double y, double z, 
  * the float32 evaluation of tdk_eval_straight. p, v [3, N, C]; acc [N, S, T, 2]. Returns 0 or −1. */
 CLONES int tdk_path_fields(int32_t N, int64_t C, const double *p, const double *v, const double *t_ref,
                            int64_t comp_stride, int64_t row_stride, int32_t S, const double *q, const double *a_lat,
-                           const double *a_ax, int32_t T, const float *times, float log_tol, int64_t *acc) {
+                           const double *a_ax, const double *ry, int32_t T, const float *times, float log_tol,
+                           float e0, float tk, int64_t *acc) {
     float *w = malloc(sizeof(float) * (size_t)(10 * C + 2));
     unsigned char *vis = malloc((size_t)C + 1);
     if (!w || !vis) { free(w); free(vis); return -1; }
@@ -470,17 +511,17 @@ CLONES int tdk_path_fields(int32_t N, int64_t C, const double *p, const double *
     int64_t NC = comp_stride;
     for (int32_t b = 0; b < N; b++) {
         for (int32_t s = 0; s < S; s++) {
-            double al = a_lat[s], az = a_ax[s], qs = q[s];
+            double al = a_lat[s], az = a_ax[s], yr = ry[s], qs = q[s];
             for (int64_t c = 0; c < C; c++) {
                 int64_t i = (int64_t)b * row_stride + c;
                 double px = p[i], py = p[NC + i], pz = p[2 * NC + i];
                 int moving = px < 0.5 * FAR_UM;
                 double vx = moving ? v[i] : 0.0, vy = moving ? v[NC + i] : 0.0, vz = moving ? v[2 * NC + i] : 0.0;
-                double a2 = norm_w(al, az, vx, vy, vz, vx, vy, vz);
-                double shift = a2 != 0.0 ? -(norm_w(al, az, px, py, pz, vx, vy, vz) / a2) : 0.0;
-                double rx = px + vx * shift, ry = py + vy * shift, rz = pz + vz * shift;
+                double a2 = norm_w(al, az, yr, vx, vy, vz, vx, vy, vz);
+                double shift = a2 != 0.0 ? -(norm_w(al, az, yr, px, py, pz, vx, vy, vz) / a2) : 0.0;
+                double rx = px + vx * shift, ryy = py + vy * shift, rz = pz + vz * shift;
                 double x = rz * qs;
-                fe[c] = (float)norm_w(al, az, rx, ry, rz, rx, ry, rz);
+                fe[c] = (float)norm_w(al, az, yr, rx, ryy, rz, rx, ryy, rz);
                 fa[c] = (float)a2;
                 ft[c] = (float)(t_ref[i] + shift);
                 fp[c] = (float)(x - floor(x));
@@ -506,7 +547,11 @@ CLONES int tdk_path_fields(int32_t N, int64_t C, const double *p, const double *
                 ko[k] = fo[c];
                 k++;
             }
-            dense_paths(k, ke, ka, kt, kp, ko, T, times, log_tol, acc + ((int64_t)b * S + s) * T * 2);
+            int64_t *out = acc + ((int64_t)b * S + s) * T * 2;
+            if (tk == 0.0f)
+                dense_paths(k, ke, ka, kt, kp, ko, T, times, log_tol, 0, e0, tk, out);
+            else
+                dense_paths(k, ke, ka, kt, kp, ko, T, times, log_tol, 1, e0, tk, out);
         }
     }
     free(w);

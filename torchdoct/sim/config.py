@@ -112,7 +112,10 @@ class OCTSystem:
     """One OCT system: probe wavelength and resolutions (see :mod:`torchdoct.conventions`).
 
     ``wavelength_um``: vacuum centre wavelength (µm). ``lateral_resolution_um``: 1/e² full width of
-    the intensity PSF (µm). ``axial_resolution_um``: FWHM of the intensity PSF in the medium (µm).
+    the intensity PSF (µm), along x, and along y too unless ``lateral_resolution_y_um`` is given.
+    ``lateral_resolution_y_um``: 1/e² full width along y (µm; default ``None`` = the same as x): B-scan
+    data after a computational lateral reduction along x only keep the system's width along y.
+    ``axial_resolution_um``: FWHM of the intensity PSF in the medium (µm).
     ``refractive_index``: phase index ``n`` of the medium (round-trip phase ``2·k·n·z``; 1.0 matches
     the reference paper).
     """
@@ -122,6 +125,7 @@ class OCTSystem:
     lateral_resolution_um: float
     axial_resolution_um: float
     refractive_index: float = 1.0
+    lateral_resolution_y_um: float | None = None
 
     def __post_init__(self) -> None:
         p = f"system[{self.name!r}]"
@@ -134,11 +138,25 @@ class OCTSystem:
                   "wavelengths are in micrometres: 840 nm is 0.84")
         _number(f"{p}.lateral_resolution_um", self.lateral_resolution_um, positive=True, unit="µm")
         _number(f"{p}.axial_resolution_um", self.axial_resolution_um, positive=True, unit="µm")
-        for key in ("lateral_resolution_um", "axial_resolution_um"):
-            if getattr(self, key) > 1e4:
+        if self.lateral_resolution_y_um is not None:
+            _number(f"{p}.lateral_resolution_y_um", self.lateral_resolution_y_um, positive=True, unit="µm")
+        for key in ("lateral_resolution_um", "lateral_resolution_y_um", "axial_resolution_um"):
+            if getattr(self, key) is not None and getattr(self, key) > 1e4:
                 _fail(f"{p}.{key}", f"{getattr(self, key)} µm is larger than 1 cm",
                       "resolutions are in micrometres")
         _number(f"{p}.refractive_index", self.refractive_index, lo=1.0, hi=5.0)
+
+    @property
+    def lateral_widths_um(self) -> tuple[float, float]:
+        """1/e² full widths (x, y) of the intensity PSF (µm); y is ``lateral_resolution_um`` unless
+        ``lateral_resolution_y_um`` is given."""
+        y = self.lateral_resolution_um if self.lateral_resolution_y_um is None else self.lateral_resolution_y_um
+        return (self.lateral_resolution_um, y)
+
+    @property
+    def is_isotropic(self) -> bool:
+        """Whether the lateral PSF has one width (x and y)."""
+        return self.lateral_resolution_y_um is None or self.lateral_resolution_y_um == self.lateral_resolution_um
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -387,23 +405,28 @@ class Analysis:
 
 @dataclass(frozen=True, kw_only=True)
 class SimulationSettings:
-    """Defaults of a run: ``trials``, ``seed``, PSF ``truncation_tolerance`` and ``dtype``.
+    """Defaults of a run: ``trials``, ``seed``, PSF ``truncation_tolerance``, ``truncation`` and ``dtype``.
 
     ``truncation_tolerance`` is the amplitude (relative to the PSF peak) below which scatterers are
     left out; it bounds the relative mean-square field error (see
-    :func:`torchdoct.conventions.truncation_error_bound`).
+    :func:`torchdoct.conventions.truncation_error_bound`). ``truncation``: ``"hard"`` (default: the
+    amplitude is cut to 0 below the tolerance, so moving scatterers enter the PSF with a step) or
+    ``"taper"`` (the amplitude is multiplied by a smooth window that reaches 0 at the tolerance, so
+    they enter continuously; :func:`torchdoct.conventions.taper_window`, physics.md §5.9).
     """
 
     trials: int = 500
     seed: int = 0
     truncation_tolerance: float = 1e-2
     dtype: Literal["float32", "float64"] = "float32"
+    truncation: Literal["hard", "taper"] = "hard"
 
     def __post_init__(self) -> None:
         _integer("simulation.trials", self.trials, lo=1, hi=10**9)
         _integer("simulation.seed", self.seed, lo=0, hi=2**63 - 1)
         _number("simulation.truncation_tolerance", self.truncation_tolerance, lo=1e-12, hi=0.5)
         _string("simulation.dtype", self.dtype, ("float32", "float64"))
+        _string("simulation.truncation", self.truncation, ("hard", "taper"))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -460,7 +483,8 @@ class Scene:
             out["name"] = self.name
         if self.description:
             out["description"] = self.description
-        out["system"] = [dataclasses.asdict(s) for s in self.systems]
+        out["system"] = [{k: v for k, v in dataclasses.asdict(s).items()
+                          if not (k == "lateral_resolution_y_um" and v is None)} for s in self.systems]
         pr: dict[str, Any] = {"n_frames": self.protocol.n_frames}
         if self.protocol.frame_interval_s is not None:
             pr["frame_interval_s"] = self.protocol.frame_interval_s
@@ -481,7 +505,10 @@ class Scene:
         a["metrics"] = list(a["metrics"])
         a["ocds_delay_range_s"] = list(a["ocds_delay_range_s"])
         out["analysis"] = a
-        out["simulation"] = dataclasses.asdict(self.simulation)
+        sim = dataclasses.asdict(self.simulation)
+        if sim["truncation"] == "hard":  # the default, left out (files written before it existed read the same)
+            del sim["truncation"]
+        out["simulation"] = sim
         return out
 
 
@@ -527,7 +554,8 @@ def _build(path: str, cls: type, kwargs: dict[str, Any]) -> Any:
         raise type(err)(msg) from None
 
 
-_SYSTEM_KEYS = {"name", "wavelength_um", "lateral_resolution_um", "axial_resolution_um", "refractive_index"}
+_SYSTEM_KEYS = {"name", "wavelength_um", "lateral_resolution_um", "axial_resolution_um", "refractive_index",
+                "lateral_resolution_y_um"}
 _MOTION_KEYS = {
     "diffusion": {"kind", "diffusion_um2_per_s"},
     "ballistic": {"kind", "speed_um_per_s", "directions"},
@@ -547,7 +575,7 @@ def scene_from_dict(data: dict[str, Any]) -> Scene:
     systems = []
     for i, s in enumerate(_list_of_tables("system", data["system"])):
         p = f"system[{i}]"
-        _check_keys(p, s, _SYSTEM_KEYS, _SYSTEM_KEYS - {"refractive_index"})
+        _check_keys(p, s, _SYSTEM_KEYS, _SYSTEM_KEYS - {"refractive_index", "lateral_resolution_y_um"})
         systems.append(_build(p, OCTSystem, dict(s)))
     pr = _check_keys("protocol", data["protocol"], {"n_frames", "frame_interval_s", "frame_times_s"},
                      {"n_frames"})
@@ -581,7 +609,7 @@ def scene_from_dict(data: dict[str, Any]) -> Scene:
     analysis = Analysis(**_check_keys("analysis", data.get("analysis", {}),
                                       {"metrics", "ocds_delay_range_s", "ocds_scale", "ocds_estimator"}))
     simulation = SimulationSettings(**_check_keys(
-        "simulation", data.get("simulation", {}), {"trials", "seed", "truncation_tolerance", "dtype"}))
+        "simulation", data.get("simulation", {}), {"trials", "seed", "truncation_tolerance", "dtype", "truncation"}))
     name = data.get("name", "")
     desc = data.get("description", "")
     _string("name", name)
@@ -593,9 +621,15 @@ def scene_from_dict(data: dict[str, Any]) -> Scene:
 def read_toml(path: str | Path) -> dict[str, Any]:
     """The tables of a TOML file; a syntax error or a file that is not UTF-8 text (an image or data
     file given by mistake) is a :class:`SceneError` naming the file."""
+    from .._files import check_nesting
+
     try:
         with open(path, "rb") as fh:
-            return tomllib.load(fh)
+            text = fh.read().decode("utf-8")
+        check_nesting(text, str(path), toml=True)  # before the parser's recursion
+        data = tomllib.loads(text)
+        check_nesting(data, str(path))  # dotted keys nest tables without brackets
+        return data
     except tomllib.TOMLDecodeError as err:
         raise SceneError(f"{path}: not valid TOML: {err}") from None
     except UnicodeDecodeError as err:

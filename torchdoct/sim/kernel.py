@@ -31,6 +31,11 @@ SplitMix64 at (stream, trial, slot, component). Any number can be recomputed fro
 so no draw depends on how many others are made, on the chunk or on the thread.
 
 Phases are in turns (``q = 2n/λ`` turns per µm of depth: the paper's ``2kn``/2π).
+
+PSF: the exponent is ``−a_lat·(x² + ry·y²) − a_ax·z²`` with ``a_lat = 1/(2s_x²)``, ``ry = s_x²/s_y²``
+and ``a_ax = 1/(2s_z²)``; ``ry = 1`` (the isotropic lateral PSF) gives the same bits as ``x² + y²``.
+Truncation: amplitudes are 0 below ``log_tol``; with the taper (:func:`taper_constants`) the amplitude
+above it is multiplied by the window :func:`taper_weights` of the exponent (physics.md §5.9).
 """
 
 from __future__ import annotations
@@ -50,7 +55,8 @@ import numpy as np
 import torch
 
 __all__ = ["compiled", "backend", "exp_neg", "sincos_turns", "log_pos", "normals", "walk_periodic",
-           "eval_straight", "uniforms24", "uniform_cell", "drift_paths", "path_fields", "sums_to_field", "QUANT_SCALE"]
+           "eval_straight", "uniforms24", "uniform_cell", "drift_paths", "path_fields", "sums_to_field", "QUANT_SCALE",
+           "taper_weights", "taper_constants"]
 
 _F32 = torch.float32
 #: Field terms are quantized to 2^-30 before the exact integer sum.
@@ -145,17 +151,18 @@ def _library():
     lib.tdk_sincos_turns.argtypes = [i64, p, p, p]
     lib.tdk_log_pos.argtypes = [i64, p, p]
     lib.tdk_normals.argtypes = [u64, i64, i32, i64, p]
-    lib.tdk_walk_periodic.argtypes = [i64, i32, p, p, u64, i32, p, p, p, i32, p, p, i32, p, p, f32, p]
+    lib.tdk_walk_periodic.argtypes = [i64, i32, p, p, u64, i32, p, p, p, i32, p, p, p, i32, p, p, f32, f32, f32, p]
     lib.tdk_walk_periodic.restype = ctypes.c_int
-    lib.tdk_eval_straight.argtypes = [i32, i64, p, p, p, p, p, i32, p, f32, p]
+    lib.tdk_eval_straight.argtypes = [i32, i64, p, p, p, p, p, i32, p, f32, f32, f32, p]
+    lib.tdk_taper.argtypes = [i64, p, f32, f32, p]
     f64 = ctypes.c_double
     lib.tdk_drift_paths.argtypes = [i32, p, p, p, p, p, i32, p, p, f64, f64, i64, i64, p, p, p, p]
     lib.tdk_drift_paths.restype = ctypes.c_int
-    lib.tdk_path_fields.argtypes = [i32, i64, p, p, p, i64, i64, i32, p, p, p, i32, p, f32, p]
+    lib.tdk_path_fields.argtypes = [i32, i64, p, p, p, i64, i64, i32, p, p, p, p, i32, p, f32, f32, f32, p]
     lib.tdk_path_fields.restype = ctypes.c_int
     lib.tdk_uniform_cell.argtypes = [u64, i64, p, p]
     lib.tdk_uniform_cell.restype = None
-    for name in ("tdk_exp_neg", "tdk_sincos_turns", "tdk_log_pos", "tdk_normals", "tdk_eval_straight"):
+    for name in ("tdk_exp_neg", "tdk_sincos_turns", "tdk_log_pos", "tdk_normals", "tdk_eval_straight", "tdk_taper"):
         getattr(lib, name).restype = None
     return lib
 
@@ -263,6 +270,38 @@ def log_pos(u: torch.Tensor, *, force_torch: bool = False) -> torch.Tensor:
     return e.to(_F32) * _LN2 + t * 2.0
 
 
+def taper_constants(log_tol: float, taper: bool) -> tuple[float, float]:
+    """The float32 constants ``(e0, tk)`` of the taper window at tolerance ``e^log_tol``: ``e0 = a·ln tol``
+    and ``tk = 1/((1 − a)·ln tol)``, ``a`` = :data:`torchdoct.conventions.TAPER_START`; ``(0, 0)`` (no
+    taper: the hard truncation) when ``taper`` is false."""
+    if not taper:
+        return 0.0, 0.0
+    from ..conventions import TAPER_START
+
+    return (float(np.float32(TAPER_START * log_tol)), float(np.float32(1.0 / ((1.0 - TAPER_START) * log_tol))))
+
+
+def taper_weights(ex: torch.Tensor, e0: float, tk: float, *, force_torch: bool = False) -> torch.Tensor:
+    """The taper window (float32) of exponents ``ex`` between ``ln tol`` and 0: 1 for ``ex ≥ e0``, else
+    ``1 − t³·(10 − 15t + 6t²)`` with ``t = min((ex − e0)·tk, 1)`` (constants from :func:`taper_constants`;
+    :func:`torchdoct.conventions.taper_window` in float32)."""
+    ex = _f32(ex)
+    lib = _use_c(force_torch)
+    if lib is not None:
+        out = torch.empty_like(ex)
+        lib.tdk_taper(ex.numel(), _ptr(ex), e0, tk, _ptr(out))
+        return out
+    t = (ex - e0) * tk
+    t = torch.where(t < 1.0, t, torch.ones_like(t))
+    t3 = (t * t) * t
+    p = t * 6.0
+    p = p - 15.0
+    p = p * t
+    p = p + 10.0
+    w = 1.0 - t3 * p
+    return torch.where(ex >= e0, torch.ones_like(w), w)
+
+
 def _splitmix64(key: int, index: np.ndarray) -> np.ndarray:
     """SplitMix64's output at ``index`` (uint64 array) of the stream of ``key``."""
     with np.errstate(over="ignore"):
@@ -312,21 +351,25 @@ def sums_to_field(acc: torch.Tensor) -> torch.Tensor:
 
 
 def walk_periodic(pos: torch.Tensor, counts: torch.Tensor, key: int, sigmas: list[float],
-                  L: tuple[float, ...], groups: list[tuple[float, float]], group_of: list[int],
-                  q_turns: list[float], log_tol: float, *, force_torch: bool = False) -> torch.Tensor:
+                  L: tuple[float, ...], groups: list[tuple[float, ...]], group_of: list[int],
+                  q_turns: list[float], log_tol: float, *, taper: bool = False,
+                  force_torch: bool = False) -> torch.Tensor:
     """Pure diffusion on the periodic cell for one block of trials, float32 (physics.md §5.1).
 
     ``pos`` [3, M] (µm, component-major; updated in place): the scatterers of the block, laid out
     trial after trial (``counts`` [trials] each). Frame ``f ≥ 1`` moves scatterer ``i`` by
     ``sigmas[f−1]·z`` along axis ``c`` (``z`` = :func:`normals` of ``(key, f, c)`` at ``i``), then wraps
-    it back into the cell ``|x_c| ≤ L_c/2``. For each PSF group ``(a_lat, a_ax) = (1/(2s_x²), 1/(2s_z²))``
-    the amplitude is ``exp(−a_lat·(x²+y²) − a_ax·z²)``, 0 where the exponent is below ``log_tol``;
+    it back into the cell ``|x_c| ≤ L_c/2``. For each PSF group ``(a_lat, a_ax[, ry]) = (1/(2s_x²),
+    1/(2s_z²)[, s_x²/s_y²])`` (``ry`` 1 when left out) the amplitude is ``exp(−a_lat·(x² + ry·y²) − a_ax·z²)``,
+    0 where the exponent is below ``log_tol``, times the window :func:`taper_weights` of the exponent if ``taper``;
     system ``s`` (group ``group_of[s]``) adds ``amp·e^{i·2π·q_turns[s]·z}``.
     Returns the exact sums [trials, S, T, 2] (int64, units of 2⁻³⁰; :func:`sums_to_field`).
     """
     M = pos.shape[1]
     nt = counts.numel()
     S, G, T = len(q_turns), len(groups), len(sigmas) + 1
+    ry = [float(g[2]) if len(g) > 2 else 1.0 for g in groups]
+    e0, tk = taper_constants(log_tol, taper)
     lib = _use_c(force_torch)
     if lib is not None:
         assert pos.dtype == _F32 and pos.is_contiguous() and pos.device.type == "cpu"
@@ -334,10 +377,10 @@ def walk_periodic(pos: torch.Tensor, counts: torch.Tensor, key: int, sigmas: lis
         acc = torch.empty(nt, S, T, 2, dtype=torch.int64)
         arr = lambda v, dt=_F32: torch.tensor(v, dtype=dt)  # noqa: E731
         sg, Lt, iLt = arr(sigmas or [0.0]), arr(list(L)), arr([1.0 / x for x in L])
-        al, az = arr([g[0] for g in groups]), arr([g[1] for g in groups])
+        al, az, ryt = arr([g[0] for g in groups]), arr([g[1] for g in groups]), arr(ry)
         go, qt = arr(group_of, torch.int32), arr(q_turns)
         rc = lib.tdk_walk_periodic(M, nt, _ptr(cnt), _ptr(pos), key & _M64, T, _ptr(sg), _ptr(Lt), _ptr(iLt), G,
-                                   _ptr(al), _ptr(az), S, _ptr(go), _ptr(qt), log_tol, _ptr(acc))
+                                   _ptr(al), _ptr(az), _ptr(ryt), S, _ptr(go), _ptr(qt), log_tol, e0, tk, _ptr(acc))
         if rc != 0:
             raise MemoryError(f"the periodic walk could not allocate scratch memory for {M} scatterers")
         return acc
@@ -353,11 +396,14 @@ def walk_periodic(pos: torch.Tensor, counts: torch.Tensor, key: int, sigmas: lis
             w = _rint(v * iLv)
             pos.copy_(v - w * Lv)
         px, py, pz = pos
-        for g, (al, az) in enumerate(groups):
-            al32, az32 = float(np.float32(al)), float(np.float32(az))
-            r2 = px * px + py * py
+        for g, grp in enumerate(groups):
+            al32, az32, ry32 = float(np.float32(grp[0])), float(np.float32(grp[1])), float(np.float32(ry[g]))
+            r2 = px * px + py * py if ry32 == 1.0 else px * px + (py * py) * ry32
             ex = r2 * (-al32) - (pz * pz) * az32
-            amp = torch.where(ex >= log_tol32, exp_neg(ex, force_torch=True), torch.zeros_like(ex))
+            amp = exp_neg(ex, force_torch=True)
+            if tk != 0.0:
+                amp = amp * taper_weights(ex, e0, tk, force_torch=True)
+            amp = torch.where(ex >= log_tol32, amp, torch.zeros_like(ex))
             for s in range(S):
                 if group_of[s] != g:
                     continue
@@ -368,21 +414,23 @@ def walk_periodic(pos: torch.Tensor, counts: torch.Tensor, key: int, sigmas: lis
 
 
 def eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi_turns: torch.Tensor,
-                  omega_turns: torch.Tensor, times: torch.Tensor, log_tol: float, *,
+                  omega_turns: torch.Tensor, times: torch.Tensor, log_tol: float, *, taper: bool = False,
                   force_torch: bool = False) -> torch.Tensor:
     """Straight paths, float32 (physics.md §5.1): for each trial (row) and path (column) of the
     [N, C] coefficients, the PSF exponent ``e + a2·τ²`` and the phase ``φ + ω·τ`` (turns) at
-    ``τ = t − t*``; the path adds ``exp(exponent)·e^{i·2π·phase}`` at the frames where the exponent
-    is at least ``log_tol``. Returns the exact sums [N, T, 2] (int64, units of 2⁻³⁰)."""
+    ``τ = t − t*``; the path adds ``exp(exponent)·e^{i·2π·phase}`` (times the window :func:`taper_weights` of
+    the exponent if ``taper``) at the frames where the exponent is at least ``log_tol``. Returns the
+    exact sums [N, T, 2] (int64, units of 2⁻³⁰)."""
     e, a2, t_star, phi_turns, omega_turns, tt = (_f32(x) for x in (e, a2, t_star, phi_turns, omega_turns, times))
     N, C = e.shape
     T = tt.numel()
     log_tol32 = float(np.float32(log_tol))
+    e0, tk = taper_constants(log_tol, taper)
     lib = _use_c(force_torch)
     if lib is not None:
         acc = torch.empty(N, T, 2, dtype=torch.int64)
         lib.tdk_eval_straight(N, C, _ptr(e), _ptr(a2), _ptr(t_star), _ptr(phi_turns), _ptr(omega_turns), T,
-                              _ptr(tt), log_tol32, _ptr(acc))
+                              _ptr(tt), log_tol32, e0, tk, _ptr(acc))
         return acc
     acc = torch.zeros(N, T, 2, dtype=torch.int64)
     rows = max(1, (1 << 20) // max(1, C * T))
@@ -391,7 +439,10 @@ def eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi_t
         tau = tt.view(1, 1, T) - t_star[sl, :, None]
         ex = (tau * tau) * a2[sl, :, None] + e[sl, :, None]
         keep = (ex >= log_tol32) & (e[sl, :, None] >= log_tol32)
-        amp = torch.where(keep, exp_neg(ex, force_torch=True), torch.zeros_like(ex))
+        amp = exp_neg(ex, force_torch=True)
+        if tk != 0.0:
+            amp = amp * taper_weights(ex, e0, tk, force_torch=True)
+        amp = torch.where(keep, amp, torch.zeros_like(ex))
         sn, cs = sincos_turns(tau * omega_turns[sl, :, None] + phi_turns[sl, :, None], force_torch=True)
         acc[sl, :, 0] = _quantize(amp * cs).sum(1)
         acc[sl, :, 1] = _quantize(amp * sn).sum(1)
@@ -552,23 +603,28 @@ def drift_paths(keys: list[int], n0: torch.Tensor, n_prop: torch.Tensor, H: tupl
     return p, v, t_ref, count
 
 
-def _norm_w(al: float, az: float, x, y, z, xx, yy, zz):
-    return -(al * (x * xx + y * yy)) - az * (z * zz)
+def _norm_w(al: float, az: float, ry: float, x, y, z, xx, yy, zz):
+    return -(al * (x * xx + (y * yy) * ry)) - az * (z * zz)
 
 
 def path_fields(p: torch.Tensor, v: torch.Tensor, t_ref: torch.Tensor, q_turns: list[float], a_lat: list[float],
-                a_ax: list[float], times: torch.Tensor, log_tol: float, *, force_torch: bool = False) -> torch.Tensor:
+                a_ax: list[float], times: torch.Tensor, log_tol: float, *, ry: list[float] | None = None,
+                taper: bool = False, force_torch: bool = False) -> torch.Tensor:
     """Fields of straight paths ``p + v·(t − t_ref)`` ([3, N, C] float64, µm, µm/s; [N, C] s) for the
-    systems ``(q_turns, a_lat, a_ax)`` (2n/λ in turns per µm, 1/(2s_x²), 1/(2s_z²)), physics.md §5.1.
+    systems ``(q_turns, a_lat, a_ax, ry)`` (2n/λ in turns per µm, 1/(2s_x²), 1/(2s_z²), s_x²/s_y²; ``ry``
+    all 1 when ``None``), physics.md §5.1.
 
     Per path, in float64: the PSF exponent about the closest approach ``t* = t_ref + shift``,
-    ``e* = −a_lat·(x*²+y*²) − a_ax·z*²`` and ``a2 = −a_lat·(v_x²+v_y²) − a_ax·v_z²``, the phase
+    ``e* = −a_lat·(x*² + ry·y*²) − a_ax·z*²`` and ``a2 = −a_lat·(v_x² + ry·v_y²) − a_ax·v_z²``, the phase
     ``φ* = frac(q·z*)`` and ``ω = q·v_z`` (turns, turns/s); slots at ``x ≥ 5·10⁵ µm`` stand still.
-    Rounded to float32, they go through :func:`eval_straight`. Returns exact sums [N, S, T, 2]."""
+    Rounded to float32, they go through :func:`eval_straight` (with the taper if ``taper``). Returns
+    exact sums [N, S, T, 2]."""
     N, C = t_ref.shape
     S = len(q_turns)
     tt = _f32(times)
     T = tt.numel()
+    ry = [1.0] * S if ry is None else [float(r) for r in ry]
+    e0, tk = taper_constants(log_tol, taper)
     lib = _use_c(force_torch)
     if lib is not None:
         p, v, t_ref = (x.to("cpu", _F64) for x in (p, v, t_ref))
@@ -576,9 +632,9 @@ def path_fields(p: torch.Tensor, v: torch.Tensor, t_ref: torch.Tensor, q_turns: 
         if not (p.stride() == v.stride() and p.stride(2) == 1 and t_ref.stride() == (p.stride(1), 1)):
             p, v, t_ref = p.contiguous(), v.contiguous(), t_ref.contiguous()
         acc = torch.empty(N, S, T, 2, dtype=torch.int64)
-        qa, la, za = (torch.tensor(x, dtype=_F64) for x in (q_turns, a_lat, a_ax))
+        qa, la, za, ra = (torch.tensor(x, dtype=_F64) for x in (q_turns, a_lat, a_ax, ry))
         rc = lib.tdk_path_fields(N, C, _ptr(p), _ptr(v), _ptr(t_ref), p.stride(0), p.stride(1), S, _ptr(qa), _ptr(la),
-                                 _ptr(za), T, _ptr(tt), float(np.float32(log_tol)), _ptr(acc))
+                                 _ptr(za), _ptr(ra), T, _ptr(tt), float(np.float32(log_tol)), e0, tk, _ptr(acc))
         if rc != 0:
             raise MemoryError(f"the straight-path evaluation could not allocate scratch memory for {C} paths")
         return acc
@@ -587,12 +643,12 @@ def path_fields(p: torch.Tensor, v: torch.Tensor, t_ref: torch.Tensor, q_turns: 
     vx, vy, vz = (torch.where(moving, x, torch.zeros_like(x)) for x in v)
     out = torch.empty(N, S, T, 2, dtype=torch.int64)
     for s in range(S):
-        al, az, qs = float(a_lat[s]), float(a_ax[s]), float(q_turns[s])
-        a2 = _norm_w(al, az, vx, vy, vz, vx, vy, vz)
-        num = _norm_w(al, az, px, py, pz, vx, vy, vz)
+        al, az, yr, qs = float(a_lat[s]), float(a_ax[s]), ry[s], float(q_turns[s])
+        a2 = _norm_w(al, az, yr, vx, vy, vz, vx, vy, vz)
+        num = _norm_w(al, az, yr, px, py, pz, vx, vy, vz)
         shift = torch.where(a2 != 0.0, -(num / torch.where(a2 != 0.0, a2, torch.ones_like(a2))), torch.zeros_like(a2))
-        rx, ry, rz = px + vx * shift, py + vy * shift, pz + vz * shift
+        rx, ryy, rz = px + vx * shift, py + vy * shift, pz + vz * shift
         x = rz * qs
-        out[:, s] = eval_straight(_norm_w(al, az, rx, ry, rz, rx, ry, rz), a2, t_ref + shift, x - torch.floor(x),
-                                  vz * qs, tt, log_tol, force_torch=True)
+        out[:, s] = eval_straight(_norm_w(al, az, yr, rx, ryy, rz, rx, ryy, rz), a2, t_ref + shift,
+                                  x - torch.floor(x), vz * qs, tt, log_tol, taper=taper, force_torch=True)
     return out

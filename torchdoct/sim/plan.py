@@ -7,8 +7,9 @@ per-frame random draws for ballistic or flow motion (straight paths are drawn on
 
 Domains (lengths µm, times s; PSF truncation as in :mod:`torchdoct.conventions`):
 
-* ``B``: the box of half-widths ``H = c·(s_x, s_x, s_z)``, ``c = √(2 ln(1/tolerance))``, the union
-  over the scene's systems (all systems see the same scatterers).
+* ``B``: the box of half-widths ``H = c·(s_x, s_y, s_z)``, ``c = √(2 ln(1/tolerance))``, the union
+  over the scene's systems (all systems see the same scatterers); ``s_y = s_x`` unless a system gives
+  ``lateral_resolution_y_um``.
 * static populations: Poisson scatterers in ``B``, one evaluation per scatterer (the signal is
   constant over frames).
 * drift populations (ballistic and/or flow, no diffusion): every straight path that meets the
@@ -51,7 +52,7 @@ from ..conventions import (
     n_eff,
     amplitude_sigma_axial_um,
     amplitude_sigma_lateral_um,
-    truncation_error_bound,
+    truncation_field_error,
     truncation_half_widths_um,
     truncation_radius_factor,
 )
@@ -191,18 +192,20 @@ def periodic_image_bound(half_widths_um, optics, diffusion_um2_per_s: float, lag
       ``exp(−q²·v_p/2)``, ``v_p = 2Dτ·2s_z²/W_z``, on the depth axis (``q = 2kn``, the phase
       decorrelation); ``w_F = ρ_p·b_p²/Σ_i ρ_i·b_i²``.
 
-    ``optics``: one ``(s_x, s_z, q)`` per system (µm, µm, rad/µm). Returns the maximum over the
-    systems, the delays ``lags_s`` (s) and both terms.
+    ``optics``: one ``(s_x, s_z, q)`` or ``(s_x, s_z, q, s_y)`` per system (µm, µm, rad/µm, µm; ``s_y = s_x``
+    when left out). Returns the maximum over the systems, the delays ``lags_s`` (s) and both terms.
     """
     L = 2.0 * np.asarray(half_widths_um, dtype=float)
     v = 2.0 * diffusion_um2_per_s * np.asarray(lags_s, dtype=float)
     worst = 0.0
-    for s_x, s_z, q in optics:
+    for opt in optics:
+        s_x, s_z, q = opt[:3]
+        s_y = opt[3] if len(opt) > 3 else s_x
         i_all = np.ones_like(v)
         i_0 = np.ones_like(v)
         f_all = np.ones_like(v)
         f_0 = np.ones_like(v)
-        for a, s in enumerate((s_x, s_x, s_z)):
+        for a, s in enumerate((s_x, s_y, s_z)):
             s2 = s * s + v
             w = 2.0 * s * s + v
             kmax = int(math.ceil(12.0 * math.sqrt(float(w.max())) / L[a])) + 1
@@ -314,6 +317,7 @@ class Plan:
     has_noise: bool
     block_trials: int = BLOCK_TRIALS
     notes: tuple[str, ...] = field(default_factory=tuple)
+    truncation: str = "hard"
 
     @property
     def expected_scatterers_per_trial(self) -> float:
@@ -336,8 +340,9 @@ class Plan:
         """Human-readable plan."""
         lines = [f"plan for scene {self.scene_name!r}: {self.n_frames} frames over {self.duration_s:g} s"]
         lines.append("stages: " + " -> ".join(self.stages))
-        lines.append(f"PSF truncation tolerance {self.truncation_tolerance:g} "
-                     f"(relative mean-square field error <= {self.truncation_error_bound:.2g})")
+        mode = "tapered to 0 at" if self.truncation == "taper" else "cut at"
+        lines.append(f"PSF amplitude {mode} tolerance {self.truncation_tolerance:g} "
+                     f"(relative mean-square field change {self.truncation_error_bound:.2g})")
         lines.append("systems (all see the same scatterers):")
         for s in self.systems:
             h = s.truncation_half_widths_um
@@ -373,15 +378,20 @@ class Plan:
         return "\n".join(lines)
 
 
-def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Plan:
-    """Decide stages, domains and costs for simulating ``scene`` (see the module docstring)."""
+def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, truncation: str | None = None) -> Plan:
+    """Decide stages, domains and costs for simulating ``scene`` (see the module docstring).
+
+    ``truncation_tolerance`` and ``truncation`` (``"hard"`` or ``"taper"``) default to the scene's
+    ``[simulation]`` values; the taper changes no domain (it reaches 0 on the same ellipsoid)."""
     tol = scene.simulation.truncation_tolerance if truncation_tolerance is None else truncation_tolerance
+    mode = scene.simulation.truncation if truncation is None else truncation
     c = truncation_radius_factor(tol)
     protocol = scene.protocol
     T = protocol.duration_s
     n_frames = protocol.n_frames
     S = len(scene.systems)
-    halfs = [truncation_half_widths_um(s.lateral_resolution_um, s.axial_resolution_um, tol)
+    halfs = [truncation_half_widths_um(s.lateral_resolution_um, s.axial_resolution_um, tol,
+                                       lateral_resolution_y_um=s.lateral_resolution_y_um)
              for s in scene.systems]
     H = tuple(max(h[a] for h in halfs) for a in range(3))
     rho_total = sum(p.density_per_um3 for p in scene.populations)
@@ -389,12 +399,15 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Pla
     systems = []
     for s, h in zip(scene.systems, halfs):
         mi = sum(mean_intensity(p.density_per_um3, s.lateral_resolution_um, s.axial_resolution_um,
-                                p.reflectivity) for p in scene.populations)
+                                p.reflectivity, lateral_resolution_y_um=s.lateral_resolution_y_um)
+                 for p in scene.populations)
         noise = None if scene.noise is None else mi / 10.0 ** (scene.noise.snr_db / 10.0)
         systems.append(SystemPlan(
             name=s.name, truncation_half_widths_um=h,
-            ens_paper=ens_paper(rho_total, s.lateral_resolution_um, s.axial_resolution_um),
-            n_eff=n_eff(rho_total, s.lateral_resolution_um, s.axial_resolution_um),
+            ens_paper=ens_paper(rho_total, s.lateral_resolution_um, s.axial_resolution_um,
+                                lateral_resolution_y_um=s.lateral_resolution_y_um),
+            n_eff=n_eff(rho_total, s.lateral_resolution_um, s.axial_resolution_um,
+                        lateral_resolution_y_um=s.lateral_resolution_y_um),
             mean_intensity=mi, noise_power=noise))
 
     pops = []
@@ -438,7 +451,9 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Pla
             w_int = rho * p.reflectivity**4 / mean_b2**2
             w_field = rho * p.reflectivity**2 / mean_b2
             optics = [(amplitude_sigma_lateral_um(s.lateral_resolution_um), amplitude_sigma_axial_um(s.axial_resolution_um),
-                       2.0 * wavenumber_per_um(s.wavelength_um, s.refractive_index)) for s in scene.systems]
+                       2.0 * wavenumber_per_um(s.wavelength_um, s.refractive_index))
+                      + (() if s.lateral_resolution_y_um is None else (amplitude_sigma_lateral_um(s.lateral_resolution_y_um),))
+                      for s in scene.systems]
             cell, bound = _periodic_cell_cached(tuple(H), tuple(optics), D, tuple(protocol.times_s), w_int, w_field,
                                                 wrap_tolerance(tol))
             n = rho * _box_volume(cell)
@@ -473,6 +488,6 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None) -> Pla
         stages.append("noise")
     stages.append("metrics")
     return Plan(scene_name=scene.name, stages=tuple(stages), truncation_tolerance=tol,
-                truncation_error_bound=truncation_error_bound(tol), domain_half_widths_um=H,
+                truncation_error_bound=truncation_field_error(tol, mode), domain_half_widths_um=H,
                 systems=tuple(systems), populations=tuple(pops), n_frames=n_frames, duration_s=T,
-                has_noise=scene.noise is not None, notes=tuple(notes))
+                has_noise=scene.noise is not None, notes=tuple(notes), truncation=mode)

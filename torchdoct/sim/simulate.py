@@ -43,7 +43,8 @@ import numpy as np
 import torch
 
 from .config import Population, Scene
-from ..conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um, wavenumber_per_um
+from ..conventions import (TAPER_START, TRUNCATION_MODES, amplitude_sigma_axial_um, amplitude_sigma_lateral_um,
+                           wavenumber_per_um)
 from .plan import BLOCK_TRIALS, Plan, PopulationPlan, ellipsoid_entry_bound, make_plan
 from ..threads import map_ordered, resolve_threads, single_torch_thread
 from . import kernel
@@ -214,15 +215,18 @@ class _Optics:
     kn: torch.Tensor  # [S] 2πn/λ (rad/µm), float64
     a_lat: torch.Tensor  # [S] 1/(2 s_x²), working dtype
     a_ax: torch.Tensor  # [S] 1/(2 s_z²), working dtype
+    ry: list[float]  # [S] s_x²/s_y² (float64; exactly 1.0 for an isotropic lateral PSF)
 
     @classmethod
     def of(cls, scene: Scene, dtype: torch.dtype, device: torch.device) -> "_Optics":
         kn = [wavenumber_per_um(s.wavelength_um, s.refractive_index) for s in scene.systems]
         sx = [amplitude_sigma_lateral_um(s.lateral_resolution_um) for s in scene.systems]
+        sy = [amplitude_sigma_lateral_um(s.lateral_widths_um[1]) for s in scene.systems]
         sz = [amplitude_sigma_axial_um(s.axial_resolution_um) for s in scene.systems]
         return cls(torch.tensor(kn, dtype=_F64, device=device),
                    torch.tensor([0.5 / x**2 for x in sx], dtype=dtype, device=device),
-                   torch.tensor([0.5 / z**2 for z in sz], dtype=dtype, device=device))
+                   torch.tensor([0.5 / z**2 for z in sz], dtype=dtype, device=device),
+                   [1.0 if x == y else (x / y) ** 2 for x, y in zip(sx, sy)])
 
 
 def _sum_field(amp: torch.Tensor, phase: torch.Tensor, dim: int) -> torch.Tensor:
@@ -250,21 +254,33 @@ def _amplitude(exponent: torch.Tensor) -> torch.Tensor:
                                          2.0 * math.exp(-_EXP_FLOOR), 0.0)
 
 
+def _taper_window(exponent: torch.Tensor, log_tol: float) -> torch.Tensor:
+    """The taper window (:func:`torchdoct.conventions.taper_window`) of PSF exponents, in their dtype:
+    1 above ``TAPER_START·ln tol``, 0 below ``ln tol``, ``1 − t³(10 − 15t + 6t²)`` between
+    (``t = (exponent/ln tol − a)/(1 − a)``). The torch code's twin of the fused kernel's window."""
+    t = ((exponent / log_tol - TAPER_START) / (1.0 - TAPER_START)).clamp_(0.0, 1.0)
+    return 1.0 - t * t * t * (10.0 - 15.0 * t + 6.0 * t * t)
+
+
 def _path_coefficients(p: torch.Tensor, v: torch.Tensor | None, t_ref: torch.Tensor | None,
-                       kn: float, a_lat: float, a_ax: float):
+                       kn: float, a_lat: float, a_ax: float, ry: float = 1.0):
     """Per-scatterer coefficients of the field exponent of one system, about the closest approach.
 
     For a straight path ``r(t) = p + v·(t − t_ref)`` the PSF exponent is a quadratic in t; written
     about its vertex ``t*`` it is ``e* + a2·(t − t*)²`` (both ≤ 0, so no cancellation in float32),
     and the phase is ``φ* + ω·(t − t*)`` with ``φ* = (2kn·z(t*)) mod 2π`` and ``ω = 2kn·v_z``.
     Inputs float64 [3, N, C] (component-major) / [N, C]; returns float64 (e*, a2, t*, φ*, ω) of
-    shape [N, C].
+    shape [N, C]. ``ry = s_x²/s_y²`` (1: the isotropic lateral PSF).
     """
     px, py, pz = p
 
-    def norm_w(x, y, z, xx, yy, zz):  # −(a_lat·(x·xx + y·yy) + a_ax·z·zz)
+    def norm_w(x, y, z, xx, yy, zz):  # −(a_lat·(x·xx + ry·y·yy) + a_ax·z·zz)
         out = x * xx
-        return out.addcmul_(y, yy).mul_(-a_lat).addcmul_(z, zz, value=-a_ax)
+        if ry == 1.0:
+            out.addcmul_(y, yy)
+        else:
+            out.addcmul_(y, yy, value=ry)
+        return out.mul_(-a_lat).addcmul_(z, zz, value=-a_ax)
 
     if v is None:
         return norm_w(px, py, pz, px, py, pz), None, None, torch.remainder(pz * (2.0 * kn), _TWO_PI), None
@@ -273,17 +289,17 @@ def _path_coefficients(p: torch.Tensor, v: torch.Tensor | None, t_ref: torch.Ten
     # exponent(t_ref + u) = e(p) + 2u·(−(p·v)_w) + a2·u², stationary at u = (p·v)_w / a2
     shift = norm_w(px, py, pz, vx, vy, vz).div_(a2).neg_().nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)
     t_star = t_ref + shift
-    rx, ry, rz = torch.addcmul(px, vx, shift), torch.addcmul(py, vy, shift), torch.addcmul(pz, vz, shift)
-    e = norm_w(rx, ry, rz, rx, ry, rz)
+    rx, ry_, rz = torch.addcmul(px, vx, shift), torch.addcmul(py, vy, shift), torch.addcmul(pz, vz, shift)
+    e = norm_w(rx, ry_, rz, rx, ry_, rz)
     phi = torch.remainder(rz.mul_(2.0 * kn), _TWO_PI)
     return e, a2, t_star, phi, vz * (2.0 * kn)
 
 
 def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tensor | None,
                 times: torch.Tensor, optics: _Optics, systems: tuple[int, ...], refl: float,
-                dtype: torch.dtype, tolerance: float) -> torch.Tensor:
+                dtype: torch.dtype, tolerance: float, taper: bool = False) -> torch.Tensor:
     """Field [N, len(systems), T] of scatterers on straight paths ``p_ref + vel·(t − t_ref)``
-    (positions and velocities component-major, [3, N, C]).
+    (positions and velocities component-major, [3, N, C]); ``taper``: amplitudes times the taper window.
 
     ``vel is None`` means static scatterers: one evaluation, repeated over the frames.
     """
@@ -294,8 +310,12 @@ def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tens
         out = torch.empty(N, len(systems), dtype=cdt, device=p_ref.device)
         for k, s in enumerate(systems):
             e, _, _, phi, _ = _path_coefficients(p_ref, None, None, float(optics.kn[s]),
-                                                 float(optics.a_lat[s]), float(optics.a_ax[s]))
-            amp = _amplitude(e.to(dtype))
+                                                 float(optics.a_lat[s]), float(optics.a_ax[s]), optics.ry[s])
+            e = e.to(dtype)
+            w = _taper_window(e, math.log(tolerance)) if taper else None
+            amp = _amplitude(e)
+            if w is not None:
+                amp = amp * w
             if refl != 1.0:
                 amp = amp * refl
             out[:, k] = _sum_field(amp, phi.to(dtype), dim=1)
@@ -305,14 +325,14 @@ def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tens
         # the fused kernel: float64 coefficients, float32 evaluation, exact sums (torchdoct.sim.kernel)
         acc = kernel.path_fields(p_ref, vel, t_ref, [2.0 * float(optics.kn[s]) / _TWO_PI for s in systems],
                                  [float(optics.a_lat[s]) for s in systems], [float(optics.a_ax[s]) for s in systems],
-                                 times, log_tol)
+                                 times, log_tol, ry=[optics.ry[s] for s in systems], taper=taper)
         field = kernel.sums_to_field(acc)
         return field * refl if refl != 1.0 else field
     out = torch.empty(N, len(systems), T, dtype=cdt, device=p_ref.device)
     for k, s in enumerate(systems):
         coef = _path_coefficients(p_ref, vel, t_ref, float(optics.kn[s]), float(optics.a_lat[s]),
-                                  float(optics.a_ax[s]))
-        out[:, k] = _eval_straight(*coef, times, log_tol, refl, dtype)
+                                  float(optics.a_ax[s]), optics.ry[s])
+        out[:, k] = _eval_straight(*coef, times, log_tol, refl, dtype, taper)
     return out
 
 
@@ -326,7 +346,7 @@ _PAD_EXPONENT = -1.0e30
 
 def _eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi: torch.Tensor,
                  omega: torch.Tensor, times: torch.Tensor, log_tol: float, refl: float,
-                 dtype: torch.dtype) -> torch.Tensor:
+                 dtype: torch.dtype, taper: bool = False) -> torch.Tensor:
     """Field [N, T] of straight paths, counting each path only at the frames where its amplitude
     exceeds the tolerance.
 
@@ -340,7 +360,7 @@ def _eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi:
     """
     if dtype == torch.float32 and e.device.type == "cpu":
         # the fused kernel (torchdoct.sim.kernel): phases in turns, exact sums
-        acc = kernel.eval_straight(e, a2, t_star, phi / _TWO_PI, omega / _TWO_PI, times, log_tol)
+        acc = kernel.eval_straight(e, a2, t_star, phi / _TWO_PI, omega / _TWO_PI, times, log_tol, taper=taper)
         field = kernel.sums_to_field(acc)
         return field * refl if refl != 1.0 else field
     N, C = e.shape
@@ -384,7 +404,10 @@ def _eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi:
                 tau = tt - c[:, 2]  # [k, width, frames]
                 ex = tau * tau
                 ex.mul_(c[:, 1]).add_(c[:, 0])
+                w = _taper_window(ex, log_tol) if taper else None
                 amp = _truncated_amplitude(ex, log_tol)
+                if w is not None:
+                    amp.mul_(w)
                 if refl != 1.0:
                     amp.mul_(refl)
                 ph = tau.mul_(c[:, 4]).add_(c[:, 3])
@@ -427,7 +450,7 @@ def _eval_culled(pp: PopulationPlan, pop: Population, p_ref, vel, t_ref, times, 
     if vel is not None and dtype == torch.float32 and p_ref.device.type == "cpu":
         # the fused kernel skips, per system, the paths that stay below the tolerance: no culling here
         return _eval_paths(p_ref, vel, t_ref, times, optics, tuple(range(S)), pop.reflectivity, dtype,
-                           plan.truncation_tolerance)
+                           plan.truncation_tolerance, plan.truncation == "taper")
     out = torch.empty(N, S, times.numel(), dtype=_complex_of(dtype), device=p_ref.device)
     T = float(times[-1])
     for half, idx, _, cap in pp.system_groups:
@@ -439,7 +462,7 @@ def _eval_culled(pp: PopulationPlan, pop: Population, p_ref, vel, t_ref, times, 
             _, got = _compact(mask, cap, f"population {pp.index} systems {idx}", *tensors, fill=(_FAR, 0.0, 0.0))
             sel = (got[0], got[1], got[2]) if vel is not None else (got[0], None, None)
         out[:, list(idx)] = _eval_paths(*sel, times, optics, tuple(idx), pop.reflectivity, dtype,
-                                        plan.truncation_tolerance)
+                                        plan.truncation_tolerance, plan.truncation == "taper")
     return out
 
 
@@ -567,9 +590,11 @@ def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: _Draws, times
     log_tol = math.log(plan.truncation_tolerance)
     # systems sharing a PSF share the amplitude (the fused kernel then evaluates the phases only where
     # the amplitude is above the tolerance; the torch code evaluates every scatterer of the cell)
-    groups: dict[tuple[float, float], list[int]] = {}
+    groups: dict[tuple[float, ...], list[int]] = {}
     for s in range(S):
-        groups.setdefault((float(optics.a_lat[s]), float(optics.a_ax[s])), []).append(s)
+        key_s = (float(optics.a_lat[s]), float(optics.a_ax[s]))
+        groups.setdefault(key_s if optics.ry[s] == 1.0 else key_s + (optics.ry[s],), []).append(s)
+    taper = plan.truncation == "taper"
     t = times.tolist()
     sigmas = [math.sqrt(2.0 * pop.diffusion_um2_per_s * (t[f] - t[f - 1])) for f in range(1, T)]
     out = torch.zeros(N, S, T, dtype=_complex_of(dtype), device=dev)
@@ -581,17 +606,19 @@ def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: _Draws, times
         rows = slice(i * BLOCK_TRIALS, (i + 1) * BLOCK_TRIALS)
         pos = kernel.uniform_cell(key, M, tuple(pp.domain_half_widths_um)).to(device=dev, dtype=dtype)
         if fused:
-            acc = kernel.walk_periodic(pos, n[rows], key, sigmas, cell, psf_groups, group_of, q_turns, log_tol)
+            acc = kernel.walk_periodic(pos, n[rows], key, sigmas, cell, psf_groups, group_of, q_turns, log_tol,
+                                       taper=taper)
             field = kernel.sums_to_field(acc)
             out[rows] = field * refl if refl != 1.0 else field
         else:
             out[rows] = _walk_periodic_block(pos, key, M, n[rows], L, inv_L, q, groups, refl, log_tol, sigmas, S,
-                                             T, dtype, dev)
+                                             T, dtype, dev, taper)
     return out
 
 
 def _walk_periodic_block(pos: torch.Tensor, key: int, M: int, n: torch.Tensor, L, inv_L, q, groups, refl: float,
-                         log_tol: float, sigmas: list[float], S: int, T: int, dtype, dev) -> torch.Tensor:
+                         log_tol: float, sigmas: list[float], S: int, T: int, dtype, dev,
+                         taper: bool = False) -> torch.Tensor:
     """The field [64, S, T] of one block's ``M`` scatterers (``n`` per trial) walking on the cell, in
     torch (float64, or a device other than the CPU): the same normals as the fused kernel."""
     res = torch.empty(T, 2, S, n.numel(), dtype=dtype, device=dev)
@@ -602,10 +629,18 @@ def _walk_periodic_block(pos: torch.Tensor, key: int, M: int, n: torch.Tensor, L
     lengths = n.to(dev).expand(2, -1).contiguous()
 
     def evaluate(f: int) -> None:
-        for (a_lat, a_ax), systems in groups.items():
+        for grp, systems in groups.items():
+            a_lat, a_ax = grp[0], grp[1]
             torch.mul(pos[0], pos[0], out=amp)
-            amp.addcmul_(pos[1], pos[1]).mul_(-a_lat).addcmul_(pos[2], pos[2], value=-a_ax)
+            if len(grp) > 2:  # anisotropic lateral PSF: ry = s_x²/s_y²
+                amp.addcmul_(pos[1], pos[1], value=grp[2])
+            else:
+                amp.addcmul_(pos[1], pos[1])
+            amp.mul_(-a_lat).addcmul_(pos[2], pos[2], value=-a_ax)
+            w = _taper_window(amp, log_tol) if taper else None
             _truncated_amplitude(amp, log_tol)
+            if w is not None:
+                amp.mul_(w)
             if refl != 1.0:
                 amp.mul_(refl)
             for s in systems:
@@ -657,6 +692,8 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
     shell_vol = 8.0 * (math.prod(pp.immigrant_shell_half_widths_um) - math.prod(R))
     a_lat = [float(optics.a_lat[s]) for s in range(S)]
     a_ax = [float(optics.a_ax[s]) for s in range(S)]
+    taper = plan.truncation == "taper"
+    log_tol = math.log(plan.truncation_tolerance)
 
     # systems grouped by their own PSF box: each evaluates only the slots inside it
     boxes: dict[tuple[float, float, float], list[int]] = {}
@@ -674,11 +711,16 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: _Draws, time
             p = pos[b, :, c]  # [M, 3] float64
             dz = p[:, 2] - zref[b, c]
             p = p.to(dtype)
-            r2 = p[:, 0] * p[:, 0] + p[:, 1] * p[:, 1]
+            x2, y2 = p[:, 0] * p[:, 0], p[:, 1] * p[:, 1]
             z2 = p[:, 2] * p[:, 2]
             dest = b * T + f
             for s in systems:
-                amp = _amplitude(torch.add(r2 * (-a_lat[s]), z2, alpha=-a_ax[s]))
+                r2 = x2 + y2 if optics.ry[s] == 1.0 else x2 + y2 * optics.ry[s]
+                ex = torch.add(r2 * (-a_lat[s]), z2, alpha=-a_ax[s])
+                w = _taper_window(ex, log_tol) if taper else None
+                amp = _amplitude(ex)
+                if w is not None:
+                    amp = amp * w
                 if pop.reflectivity != 1.0:
                     amp = amp * pop.reflectivity
                 phase = phi0[s, b, c] + (kn2[s] * dz).to(dtype)
@@ -828,6 +870,7 @@ def simulate(
     dtype: torch.dtype | str | None = None,
     device: str | torch.device | None = None,
     truncation_tolerance: float | None = None,
+    truncation: str | None = None,
     chunk_trials: int | None = None,
     threads: int | None = None,
     progress: bool = False,
@@ -835,7 +878,8 @@ def simulate(
     """Simulate ``trials`` independent realizations of ``scene`` (all systems, all frames).
 
     Returns complex signals ``[trials, systems, frames]`` (complex64 for float32, complex128 for
-    float64). Defaults come from the scene's ``[simulation]`` table. ``chunk_trials`` (rounded up to a
+    float64). Defaults come from the scene's ``[simulation]`` table (``truncation``: ``"hard"`` or
+    ``"taper"``, :class:`~torchdoct.sim.config.SimulationSettings`). ``chunk_trials`` (rounded up to a
     multiple of 64) only sets how many trials are computed at once; ``threads`` how many chunks are
     computed at once, each with one torch thread (:mod:`torchdoct.threads`; default: the usable
     cores). Results are bit-identical for any value of either.
@@ -858,7 +902,9 @@ def simulate(
         raise ValueError(f"dtype must be torch.float32 or torch.float64; got {dtype}")
     device = torch.device(device or "cpu")
     threads = resolve_threads(threads)
-    plan = make_plan(scene, truncation_tolerance=truncation_tolerance)
+    if truncation is not None and truncation not in TRUNCATION_MODES:
+        raise ValueError(f"truncation must be one of {TRUNCATION_MODES}; got {truncation!r}")
+    plan = make_plan(scene, truncation_tolerance=truncation_tolerance, truncation=truncation)
     n_blocks = -(-trials // BLOCK_TRIALS)
     if chunk_trials is None:
         # keep a chunk's largest working tensors near 8M elements, and give every thread a chunk
