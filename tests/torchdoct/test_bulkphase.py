@@ -491,3 +491,15 @@ def test_cli_bench_bulk_phase(tmp_path, capsys):
     assert [r["method"] for r in res["rows"]] == ["weighted-mean", "histogram"]
     assert all(0.8 < r["ratio"] < 1.2 for r in res["rows"])
     assert "predicted" in capsys.readouterr().out
+
+
+def test_bench_on_a_rendered_phantom():
+    from torchdoct.measured.bulkphase import bench_bulk_phase_phantom, format_bench_bulk_phase
+
+    ph = bench_bulk_phase_phantom("vessel-slab", snr_db=(30.0,), methods=("histogram",), masks=("all", "stable"))
+    rows = {r["mask"]: r for r in ph["rows"]}
+    assert set(rows) == {"all", "stable:0.05"}
+    assert rows["stable:0.05"]["residual_rms_rad"] < 0.01 < rows["all"]["residual_rms_rad"]
+    assert abs(rows["stable:0.05"]["g1_4_static_z"]) < 3
+    text = format_bench_bulk_phase({"lines": 1, "n_z": 1, "frames": 1, "rows": [], "phantom": ph})
+    assert "vessel-slab" in text and "stable:0.05" in text
