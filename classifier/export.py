@@ -43,6 +43,8 @@ def build_metadata(result) -> dict[str, Any]:
         columns.append({"name": name, "metric": metric, "unit": metric_unit(metric), "configuration": conf.name,
                         "wavelength_um": conf.wavelength_um, "lateral_resolution_um": conf.lateral_resolution_um,
                         "axial_resolution_um": conf.axial_resolution_um})
+        if conf.lateral_resolution_y_um is not None:  # an anisotropic lateral PSF (isotropic: no key)
+            columns[-1]["lateral_resolution_y_um"] = conf.lateral_resolution_y_um
     columns.append({"name": "pool_pixels", "metric": "pool_pixels", "unit": "pixels",
                     "description": "number of independent pixels averaged into the feature vector (1 = one pixel)"})
     rep = result.report

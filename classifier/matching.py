@@ -138,12 +138,13 @@ def _find_column(maps_list: Sequence[Maps], col: Mapping[str, Any]) -> tuple[Map
 
 def bscan_notes(maps_list: Sequence[Maps], spec: FeatureSpec) -> list[str]:
     """For B-scan maps reduced laterally along x only: which of the spec's configurations their channels
-    hold with the original width along y (an anisotropic PSF, :meth:`ChannelOptics.of_channel`), unlike the
-    spec's isotropic training."""
+    hold with another width along y than the spec's (the original width: an anisotropic PSF,
+    :meth:`ChannelOptics.of_channel`), unlike the spec's isotropic training. A spec that gives that
+    ``lateral_resolution_y_um`` was trained on it: no note."""
     notes = []
     for m in maps_list:
         reduced = [c for c in spec.configurations
-                   if not ChannelOptics.of_channel(c.to_dict(), m.meta).isotropic]
+                   if not c.optics.matches(ChannelOptics.of_channel(c.to_dict(), m.meta))]
         if reduced:
             notes.append(f"{m.name}: the lateral resolution was reduced along x only (B-scan data), so the "
                          f"{', '.join(c.name for c in reduced)} channels keep the original width along y, unlike "

@@ -523,7 +523,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
         say(f"{split}: {len(ds)} samples from {draws} draws ({'cache' if ds.meta['from_cache'] else 'simulated'}, "
             f"{ds.meta['seconds_per_draw']:.3f} s/draw); ground truth per draw: {ds.meta['draw_status_counts']}")
 
-    # 4. network
+    # 2-5. network: targets, pooled samples, AdamW with early stopping, temperature (fit_network)
     fit = fit_network(data["train"], data["validation"], spec, cfg, progress=progress)
     model, train0, epoch, temperature = fit["model"], fit["first_samples"], fit["epochs"], fit["temperature"]
     best = (fit["validation_loss"], None, fit["best_epoch"])
@@ -531,17 +531,12 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
     say(f"network: {epoch} epochs (best {best[2]}, validation loss {best[0]:.4f}), temperature {temperature:.3f}, "
         f"{train_s:.1f} s")
 
-    # 7. evaluation sets
-    ev_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))
-    tests, tests_ref = evaluation_sets(data["test"], cfg, spec, ev_rng)
-
     def net_predict(xx: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             return model(torch.from_numpy(xx)).numpy()
 
     predictors: dict[str, Any] = {"network": net_predict}
     timing = {"network": {"train_s": train_s}}
-    reference = _reference_model(spec) if tests_ref else None
 
     # 6. baselines
     if cfg.baselines:
@@ -562,6 +557,10 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
             predictors[name] = (lambda e, f: (lambda xx: e.predict_proba(transform_numpy(xx, mask, cmask)) @ f))(est, full)
             say(f"{name}: trained in {timing[name]['train_s']:.2f} s")
 
+    # 7. evaluation on the test split (its own seeded stream: the order of the steps changes no number)
+    ev_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))
+    tests, tests_ref = evaluation_sets(data["test"], cfg, spec, ev_rng)
+    reference = _reference_model(spec) if tests_ref else None
     test_metrics: dict[str, dict[str, Any]] = {}
     probs_net: dict[str, np.ndarray] = {}
     for name, fn in predictors.items():
@@ -620,6 +619,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
                for name, m in conditions.items() if m.any()}
     ses = {pool: bootstrap_se(probs_net[pool], tests[pool]["y"], tests[pool]["status"], tests[pool]["draw"],
                               CLASS_NAMES, rule, seed=cfg.seed) for pool in conf_pools}
+    # 8. the shifted prior (signature specs)
     shifted_report, shifted_ds = None, None
     if (spec.is_signature if cfg.shifted_test is None else cfg.shifted_test):
         sp = shifted_prior(prior)
@@ -664,6 +664,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
         say(f"shifted prior ({len(shifted_ds)} samples, {'cache' if shifted_ds.meta['from_cache'] else 'simulated'}): "
             f"balanced accuracy (identifiable, pool 1) {m1['balanced_accuracy_identifiable']:.3f}, coverage "
             f"{m1['coverage_identifiable']:.3f}, ECE {m1['ece']:.3f}")
+    # the report (classifier.report writes it)
     import torchdoct
 
     report = {
