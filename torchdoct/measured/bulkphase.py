@@ -55,8 +55,7 @@ For a static sample at low SNR few pixels pass and ``"all"`` is better.
 white circular Gaussian noise of power ``σ²`` per pixel, with ``A = Σ_z |S(z)|²`` over the ``N_z``
 used pixels and ``SNR = A/(N_z σ²)`` (mean signal intensity over noise power), the corrected phase
 differs from the truth by a constant (a phase common to all frames of the A-line, which no temporal
-feature sees) plus a
-residual ``r_i`` whose RMS over the ``T`` frames is, to first order in the noise,
+feature sees) plus a residual ``r_i`` whose RMS over the ``T`` frames is, to first order in the noise,
 
     ⟨r²⟩ = (1 − 1/T)·σ²/(2A) + (T² − 1)/(6T)·N_z σ⁴/(2A²)
          ≈ 1/(2 N_z SNR) + (T/6)/(2 N_z SNR²)
