@@ -60,6 +60,7 @@ SIGNATURE_NAMES = tuple(n for n in NAMES if n not in ("liv", "ocds"))
 CELLS = {
     "flow v=0.5 θ=20°": refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=20.0, azimuth_deg=30.0),
     "flow v=0.5 θ=0°": refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=0.0),
+    "flow v=0.2 θ=0°": refsim.Motion("flow", speed_um_per_s=0.2, polar_angle_deg=0.0),
     "flow v=0.5 θ=45°": refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=45.0, azimuth_deg=200.0),
     "flow v=0.5 θ=70°": refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=70.0, azimuth_deg=100.0),
     "flow v=0.5 θ=90°": refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=90.0),

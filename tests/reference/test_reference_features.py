@@ -39,7 +39,12 @@ DEFAULT_IS_HARD_1E2 = (_DEFAULTS.truncation_tolerance == 1e-2
 #: 0.9896 vs 0.9973), 29 (0°, rho_lin_1@axial=14 0.9843 vs 0.9985), 13 (45°), 19 (70°) and 26
 #: (90°, rho_lin_1@lateral=18 0.9872 vs 0.9984); OCDS is biased too at 0° and 90° (z ≈ +7). Slow
 #: diffusion and slow random-ballistic motion stay within the bound at 1e-2.
-BIASED_AT_HARD_1E2 = {"flow v=0.5 θ=20°", "flow v=0.5 θ=0°", "flow v=0.5 θ=45°", "flow v=0.5 θ=70°", "flow v=0.5 θ=90°"}
+BIASED_AT_HARD_1E2 = {"flow v=0.5 θ=20°", "flow v=0.5 θ=0°", "flow v=0.5 θ=45°", "flow v=0.5 θ=70°", "flow v=0.5 θ=90°",
+                      "flow v=0.2 θ=0°"}
+#: A hard cut at 1e-3 still biases slower axial flow: flow 0.2 µm/s along the beam axis, rho_lin_1 at
+#: axial=14 −0.0020 ± 0.0002 against torchdoct at 1e-6 (``torchdoct bench tradeoffs --part fidelity``);
+#: kept as a strict xfail, the measured reason a hard 1e-3 is not the cure.
+BIASED_AT_HARD_1E3 = {"flow v=0.2 θ=0°"}
 
 SETTINGS = {
     "default": {},
@@ -56,6 +61,9 @@ def _params():
             if label == "default" and DEFAULT_IS_HARD_1E2 and cell in BIASED_AT_HARD_1E2:
                 marks.append(pytest.mark.xfail(strict=True, reason="the default hard PSF truncation at 1e-2 "
                                                                    "biases slow motion at short lags (issue 24)"))
+            if label == "1e-3 float32" and cell in BIASED_AT_HARD_1E3:
+                marks.append(pytest.mark.xfail(strict=True, reason="a hard PSF truncation at 1e-3 still biases the "
+                                                                   "short-lag intensity correlation of slow axial flow"))
             out.append(pytest.param(cell, label, marks=marks, id=f"{cell}-{label}"))
     return out
 
@@ -71,7 +79,7 @@ def test_every_feature_matches_reference(cell, setting):
 
 
 @pytest.mark.skipif(not _HAS_TRUNCATION_MODE, reason="the simulator has no smooth PSF taper")
-@pytest.mark.parametrize("cell", ["flow v=0.5 θ=20°", "diffusion D=0.002", "ballistic v=0.03 iso"])
+@pytest.mark.parametrize("cell", ["flow v=0.5 θ=20°", "flow v=0.2 θ=0°", "diffusion D=0.002", "ballistic v=0.03 iso"])
 def test_taper_matches_reference(cell):
     """The smooth taper at the default tolerance, float32, on the cells the hard cut biases."""
     ref = rc.reference_features(cell, REF_TRIALS)
