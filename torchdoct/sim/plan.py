@@ -347,7 +347,8 @@ class Plan:
         for s in self.systems:
             h = s.truncation_half_widths_um
             noise = "" if s.noise_power is None else f", noise power {s.noise_power:.4g}"
-            lines.append(f"  {s.name:>14}: ENS(paper, ρΔx²Δz) {s.ens_paper:8.3f}   N_eff {s.n_eff:8.3f}   "
+            ens = "ρΔx²Δz" if h[0] == h[1] else "ρΔxΔyΔz"
+            lines.append(f"  {s.name:>14}: ENS(paper, {ens}) {s.ens_paper:8.3f}   N_eff {s.n_eff:8.3f}   "
                          f"<I> {s.mean_intensity:.4g}   PSF box ±({h[0]:.2f}, {h[1]:.2f}, {h[2]:.2f}) µm{noise}")
         lines.append("populations:")
         for p in self.populations:
