@@ -99,9 +99,15 @@ def _train(args: argparse.Namespace) -> int:
     from .train import TrainConfig
 
     spec = load_spec(args.spec)
+    from torchdoct._files import safe_name
+
+    safe_name(spec.name, f"feature spec name (the outputs are SPEC.onnx, ...; in {args.spec})",
+              "give the spec a plain name")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a directory")
+    if args.cache is not None and not args.no_cache and Path(args.cache).exists() and not Path(args.cache).is_dir():
+        raise ValueError(f"--cache {args.cache} is a file; give a directory (or --no-cache)")
     paths = {s: out / f"{spec.name}{s}" for s in (".onnx", ".json", ".md", ".png")}
     if out.is_dir():
         for s, p in paths.items():
@@ -114,8 +120,11 @@ def _train(args: argparse.Namespace) -> int:
     limit_process_threads()  # one torch/BLAS thread per worker: no stalls beside other busy processes
     base = QUICK if args.quick else {k: getattr(TrainConfig.for_spec(str(args.spec)), k) for k in QUICK}
     sizes = {k: base[k] if getattr(args, k) is None else getattr(args, k) for k in QUICK}  # explicit sizes win
-    cfg = TrainConfig.for_spec(str(args.spec), seed=args.seed, min_probability=args.min_probability,
-                               baselines=not args.no_baselines, **sizes)
+    try:
+        cfg = TrainConfig.for_spec(str(args.spec), seed=args.seed, min_probability=args.min_probability,
+                                   baselines=not args.no_baselines, **sizes)
+    except (TypeError, ValueError) as err:
+        raise type(err)(_as_typed(str(err))) from None
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=".doct-train-", dir=out))  # outputs appear only when all are written
@@ -164,6 +173,17 @@ def _finite(obj):
     return obj
 
 
+def _as_typed(message: str) -> str:
+    """A :class:`~classifier.train.TrainConfig` error with its fields named as the user types them
+    (``TrainConfig.draws_train`` -> ``--draws-train``; a field no option sets: the training recipe's)."""
+    import re
+
+    options = {a.dest: a.option_strings[0] for a in build_train_parser()._actions if a.option_strings}
+    text = re.sub(r"TrainConfig\.(\w+)", lambda m: options.get(m.group(1), f"the training recipe's {m.group(1)}"),
+                  message)
+    return re.sub(r"\b[a-z0-9]+(?:_[a-z0-9]+)+\b", lambda m: options.get(m.group(0), m.group(0)), text)
+
+
 def build_classify_parser() -> argparse.ArgumentParser:
     from .infer import DEFAULT_BACKGROUND_DB, DEFAULT_POOL
 
@@ -209,6 +229,9 @@ def _classify(args: argparse.Namespace) -> int:
             bg = float(bg)
         except ValueError:
             raise ValueError(f"--background-db must be 'auto', 'none' or a number in dB; got {bg!r}") from None
+    from .outputs import check_outputs
+
+    check_outputs(args.out, args.force)  # before the work: --out a file, or an earlier run's files without --force
     res = infer.classify_maps(args.maps, args.model, pool=args.pool, background_db=bg,
                               min_probability=args.min_probability,
                               ignore_refractive_index=args.ignore_refractive_index, threads=args.threads)

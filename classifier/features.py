@@ -305,9 +305,14 @@ def load_spec(name_or_path: str | Path | FeatureSpec) -> FeatureSpec:
     if isinstance(name_or_path, FeatureSpec):
         return name_or_path
     path = shipped_or_path(str(name_or_path), shipped_specs(), "feature spec")
+    from torchdoct._files import check_nesting
+
     try:
         with open(path, "rb") as fh:
-            data = tomllib.load(fh)
+            raw = fh.read()
+        check_nesting(raw, path.name, toml=True)  # before the parser's recursion
+        data = tomllib.loads(raw.decode("utf-8"))
+        check_nesting(data, path.name)  # dotted keys nest tables without brackets
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"{path.name}: not valid TOML: {err}") from None
     except UnicodeDecodeError as err:

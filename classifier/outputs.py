@@ -145,19 +145,45 @@ def _overlay(res: Classification, path: str) -> None:
     plt.close(fig)
 
 
-def write_classification(res: Classification, out_dir: str | os.PathLike, *, force: bool = False) -> list[Path]:
-    """Write :data:`OUTPUT_FILES` into ``out_dir`` (created if missing; nothing is overwritten
-    without ``force``; every file is written atomically)."""
-    import tifffile
-
-    from torchdoct._files import atomic_write, check_out
+def check_outputs(out_dir: str | os.PathLike, force: bool) -> dict[str, Path]:
+    """The output set of ``doct-classify`` in ``out_dir`` (every file it may hold, ``magnitude.tif``
+    included), checked before the work: ``out_dir`` must not be a file, and no file of the set may
+    exist unless ``force``."""
+    from torchdoct._files import check_out
 
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a directory")
+    return {name: (check_out(out / name, force, Path(name).suffix, f"--out {out}: {name}") if out.is_dir()
+                   else out / name) for name in OUTPUT_FILES + ("magnitude.tif",)}
+
+
+def write_classification(res: Classification, out_dir: str | os.PathLike, *, force: bool = False) -> list[Path]:
+    """Write :data:`OUTPUT_FILES` (and ``magnitude.tif`` when the model predicts magnitudes) into
+    ``out_dir`` (created if missing), all together or none (:func:`torchdoct._files.output_set`: an error,
+    Ctrl-C or SIGTERM leaves the folder as it was); nothing is overwritten without ``force``, and with it
+    an earlier run's file this run does not write (``magnitude.tif`` of another model) is removed."""
+    import tifffile
+
+    from torchdoct._files import atomic_write, output_set
+
+    out = Path(out_dir)
+    every = check_outputs(out, force)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        with output_set(every.values(), force) as stage:
+            written = _write_into(res, {name: stage(p) for name, p in every.items()}, tifffile, atomic_write)
+    except BaseException:
+        if created and not any(out.iterdir()):  # leave no empty folder behind either
+            out.rmdir()
+        raise
+    return [every[name] for name in written]
+
+
+def _write_into(res: Classification, paths: dict[str, Path], tifffile, atomic_write) -> list[str]:
+    """Write the files of :func:`write_classification` to ``paths`` (staged); returns the names written."""
     names = OUTPUT_FILES + (("magnitude.tif",) if res.magnitude is not None else ())
-    paths = {name: check_out(out / name, force, Path(name).suffix, f"--out {out}: {name}") for name in names}
     legend = _legend(res)
     desc_classes = json.dumps({"legend": legend, "source": res.sources})
     desc_probs = json.dumps({"channels": res.classes, "axes": "C" + res.axes, "unit": "probability",
@@ -187,4 +213,4 @@ def write_classification(res: Classification, out_dir: str | os.PathLike, *, for
                                "source": res.sources})
         atomic_write(paths["magnitude.tif"], lambda t: tifffile.imwrite(t, res.magnitude, description=desc_mag,
                                                                          metadata=None, photometric="minisblack"))
-    return list(paths.values())
+    return list(names)

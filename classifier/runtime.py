@@ -160,6 +160,9 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     props = sess.get_modelmeta().custom_metadata_map
     if METADATA_KEY not in props:
         raise ValueError(f"model {path.name}: no '{METADATA_KEY}' metadata; it was not written by doct-train")
+    from torchdoct._files import check_nesting
+
+    check_nesting(props[METADATA_KEY], f"model {path.name}: metadata")  # before the parser's recursion
     meta = json.loads(props[METADATA_KEY])
     if meta.get("format") != FORMAT:
         raise ValueError(f"model {path.name}: metadata format {meta.get('format')!r}, this version reads {FORMAT!r}")

@@ -167,6 +167,7 @@ def _maps(args: argparse.Namespace) -> int:
         if not sep:
             raise ValueError(f"--range must be METRIC=LO,HI (e.g. liv=0,10); got {r!r}")
         ranges[key.strip()] = tuple(_floats(val, 2, f"--range {key}"))
+    _check_png_options(args, ranges, metrics)  # before anything is read or written
     system = {k: v for k, v in (("name", args.system_name), ("wavelength_um", args.wavelength_um),
                                 ("lateral_resolution_um", args.lateral_resolution_um),
                                 ("axial_resolution_um", args.axial_resolution_um),
@@ -188,6 +189,12 @@ def _maps(args: argparse.Namespace) -> int:
                          f"({', '.join(changes)}) needs the complex field; use --resolution original only")
     if changes:
         _ = seq.system, seq.pitch_um  # a resolution change needs them: a clear error before any work
+    if args.png_y is not None:  # the B-scan shown must exist
+        n_y = dict(zip(seq.axes, seq.data.shape)).get("Y")
+        if n_y is None:
+            raise ValueError(f"--png-y: {seq.source} holds B-scans ({seq.axes}), not a volume; drop --png-y")
+        if not 0 <= args.png_y < n_y:
+            raise ValueError(f"--png-y {args.png_y} is outside 0..{n_y - 1} (the volume's {n_y} B-scans)")
     if args.png:  # check the PNG paths before the work
         from ..measured.maps import METRICS, png_name
         from ..measured.resolution import parse_resolution
@@ -238,14 +245,52 @@ def _maps(args: argparse.Namespace) -> int:
     for res, n in (maps.meta.get("aliv") or {}).get("flagged_pixels", {}).items():
         print(f"aLIV fit on a τ bound at {res}: {n['tau_at_lower_bound']} pixels at the lower, "
               f"{n['tau_at_upper_bound']} at the upper bound (aliv_fit channel; magenta in the PNGs)")
-    for o in outs:
-        write_maps(o, maps, force=args.force)
-        print(f"wrote {o}")
-    if args.png:  # one set of PNGs, named after the first --out
-        for p in write_pngs(maps, outs[0], ranges=ranges, db_range=tuple(args.db_range) if args.db_range else None,
-                            y_index=args.png_y, force=args.force):
-            print(f"wrote {p}")
+    from .._files import output_set
+
+    png_kw = dict(ranges=ranges, db_range=tuple(args.db_range) if args.db_range else None, y_index=args.png_y,
+                  force=args.force)
+    files = list(outs) + (write_pngs(maps, outs[0], check_only=True, **png_kw) if args.png else [])
+    with output_set(files, args.force) as stage:  # the maps files and PNGs appear together or not at all
+        for o in outs:
+            write_maps(stage(o), maps, force=args.force)
+        if args.png:  # one set of PNGs, named after the first --out
+            write_pngs(maps, stage(outs[0]), **png_kw)
+    for p in files:
+        print(f"wrote {p}")
     return 0
+
+
+def _check_png_options(args: argparse.Namespace, ranges: dict[str, tuple[float, float]], metrics: list[str]) -> None:
+    """``--range``, ``--db-range`` and ``--png-y``: refused when they would be ignored or cannot be drawn."""
+    given = [o for o, v in (("--range", bool(args.range)), ("--db-range", args.db_range is not None),
+                            ("--png-y", args.png_y is not None)) if v]
+    if given and not args.png:
+        raise ValueError(f"{', '.join(given)} set(s) the PNGs; add --png (or drop {given[0]})")
+    from ..measured.maps import METRICS
+
+    valid = [m for m in metrics if m in METRICS]
+    for key, (lo, hi) in ranges.items():
+        if key not in valid and not (args.signature and _signature_feature(key)):
+            raise ValueError(f"--range {key}={lo:g},{hi:g}: {key!r} is not a metric of these maps; give one of "
+                             f"{', '.join(valid)}" + (" or a signature feature (rho_db_1, ...)" if args.signature else ""))
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ValueError(f"--range {key}: LO,HI must be finite numbers with LO < HI; got {lo:g},{hi:g}")
+    if args.db_range is not None:
+        lo, hi = args.db_range
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ValueError(f"--db-range: LO HI must be finite numbers (dB) with LO < HI; got {lo:g} {hi:g}")
+    if args.png_y is not None and args.png_y < 0:
+        raise ValueError(f"--png-y must be a B-scan index >= 0; got {args.png_y}")
+
+
+def _signature_feature(name: str) -> bool:
+    from ..sim.signature import feature_unit
+
+    try:
+        feature_unit(name)
+    except (ValueError, KeyError):
+        return False
+    return True
 
 
 def _load_mask(path: str) -> np.ndarray:

@@ -78,7 +78,10 @@ def _cache(args) -> object:
 def _sweep(args) -> int:
     from ..study.sweep import format_table, load_sweep, prepare_out_dir, run_sweep, sweep_outputs, write_sweep_outputs
 
+    from ..study.sweep import check_cache_dir
+
     sweep = load_sweep(args.scene)
+    check_cache_dir(_cache(args))  # a file there: refused before the output folder is made
     prepare_out_dir(args.out, sweep_outputs(args.out), args.force)
     res = run_sweep(sweep, trials=args.trials, seed=args.seed, dtype=args.dtype, tolerance=args.tolerance,
                     cache_dir=_cache(args), scheduler=args.scheduler, batch_cells=args.batch_cells,

@@ -183,6 +183,9 @@ class ComparisonResult:
                 pair = r["config_a"] if r["config_b"] == "" else f"{r['config_a']} vs {r['config_b']}"
                 extra = "" if r["test"] == "Kruskal-Wallis" or r["posthoc"] is None else (
                     " (post hoc)" if r["posthoc"] else " (Kruskal-Wallis not significant)")
+                if not math.isfinite(r["statistic"]):
+                    lines.append(f"  {r['test']}: {pair}: no difference testable (the same in every sample)")
+                    continue
                 lines.append(f"  {r['test']}: {pair}: statistic {r['statistic']:.4g}, p = {r['p_value']:.4g} "
                              f"{significance_stars(r['p_value'], self.alpha)}{extra}")
         if self.note:
@@ -267,6 +270,7 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
     per_sample = pd.DataFrame(rows)
     result = ComparisonResult(per_sample=per_sample, tests=None, configs=labels, metrics=metrics, alpha=alpha)
     tests = []
+    untestable: list[str] = []
     if len(per) < 2:
         result.note = (f"1 sample ({next(iter(per))}): no tests; the paired tests need at least 2 samples "
                        "(one mean per sample and configuration)")
@@ -282,7 +286,14 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
             return float(np.mean(v[:, j])), float(np.std(v[:, j], ddof=1))
 
         def ttest(i: int, j: int, posthoc: bool | None) -> dict[str, Any]:
-            stat, p = _quiet(stats.ttest_rel, v[:, i], v[:, j])
+            d = v[:, j] - v[:, i]
+            if np.ptp(d) <= 1e-12 * max(float(np.max(np.abs(v[:, [i, j]]))), 1e-300):
+                # the same paired difference in every sample (identical samples, or one sample given twice):
+                # its SD is 0 and the t statistic infinite; no difference is testable
+                stat, p = math.nan, math.nan
+                untestable.append(f"{m} {labels[i]} vs {labels[j]}")
+            else:
+                stat, p = _quiet(stats.ttest_rel, v[:, i], v[:, j])
             (ma, sa), (mb, sb) = summary(i), summary(j)
             return {"metric": m, "test": "paired t-test", "config_a": labels[i], "config_b": labels[j], "n_samples": n,
                     "mean_a": ma, "sd_a": sa, "mean_b": mb, "sd_b": sb, "mean_diff_b_minus_a": mb - ma,
@@ -291,7 +302,11 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
         if len(chosen) == 2:
             tests.append(ttest(0, 1, None))
         else:
-            stat, p = _quiet(stats.kruskal, *[v[:, j] for j in range(v.shape[1])])
+            if np.ptp(v) <= 1e-12 * max(float(np.max(np.abs(v))), 1e-300):  # every value the same
+                stat, p = math.nan, math.nan
+                untestable.append(f"{m} (Kruskal-Wallis)")
+            else:
+                stat, p = _quiet(stats.kruskal, *[v[:, j] for j in range(v.shape[1])])
             sig = bool(p < alpha)
             tests.append({"metric": m, "test": "Kruskal-Wallis", "config_a": "all", "config_b": "", "n_samples": n,
                           "mean_a": math.nan, "sd_a": math.nan, "mean_b": math.nan, "sd_b": math.nan,
@@ -300,6 +315,10 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
             for i, j in combinations(range(len(chosen)), 2):
                 tests.append(ttest(i, j, sig))
     result.tests = pd.DataFrame(tests, columns=TEST_COLUMNS)
+    if untestable:
+        result.note = "\n".join(filter(None, [result.note, (
+            f"no difference testable for {', '.join(untestable)}: the samples give the same paired difference "
+            "(statistic and p NaN; identical samples, or one maps file given as two samples?)")]))
     return result
 
 

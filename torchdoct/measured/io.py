@@ -537,6 +537,9 @@ def _load_tif(path: Path) -> tuple[np.ndarray, dict | None]:
         raise ValueError(f"{path.name}: not a readable TIFF stack ({err})") from None
     meta = None
     if desc and desc.lstrip().startswith("{"):
+        from .._files import check_nesting
+
+        check_nesting(desc, f"{path.name}: TIFF ImageDescription")  # before the parser's recursion
         try:
             d = json.loads(desc)
         except json.JSONDecodeError:

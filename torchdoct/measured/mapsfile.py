@@ -226,6 +226,9 @@ def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]
     if raw.dtype.kind not in "US" or raw.size != 1:
         raise ValueError(f"{path.name}: 'meta_json' must be a JSON text (a 0-d string array); got a "
                          f"{raw.dtype} array of shape {list(raw.shape)}. {_rewrite_fix(path)}")
+    from .._files import check_nesting
+
+    check_nesting(str(raw.reshape(())), f"{path.name}: 'meta_json'")  # before the parser's recursion
     try:
         meta = json.loads(str(raw.reshape(())))
     except ValueError as err:
@@ -265,6 +268,9 @@ def _tiff_meta(path: Path, tf) -> dict[str, Any]:
     page = tf.pages[0]
     for tag in page.tags.values():
         if tag.name == "ImageDescription":
+            from .._files import check_nesting
+
+            check_nesting(tag.value, f"{path.name}: TIFF ImageDescription")  # before the parser's recursion
             try:
                 meta = json.loads(tag.value)
             except (TypeError, ValueError):

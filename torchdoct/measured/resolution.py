@@ -107,6 +107,10 @@ class ResolutionTarget:
         return float(lat), float(ax)
 
 
+#: Coarsest target resolution accepted (µm): 1 cm, the bound of a scene's system resolutions.
+MAX_RESOLUTION_UM = 1e4
+
+
 def parse_resolution(text: str) -> ResolutionTarget:
     """``"original"`` | ``"axial=14"`` | ``"lateral=18"`` | ``"axial=14,lateral=18"`` (µm)."""
     t = str(text).strip().lower().replace(" ", "")
@@ -122,6 +126,9 @@ def parse_resolution(text: str) -> ResolutionTarget:
             vals[key] = float(val)
         except ValueError:
             raise ValueError(f"--resolution {text!r}: {val!r} is not a number (µm)") from None
+        if not (math.isfinite(vals[key]) and 0 < vals[key] <= MAX_RESOLUTION_UM):  # 1e200 overflows its square
+            raise ValueError(f"--resolution {text!r}: {key} must be a number of µm in (0, {MAX_RESOLUTION_UM:g}] "
+                             f"(resolutions are in micrometres; {MAX_RESOLUTION_UM:g} µm is 1 cm)")
     return ResolutionTarget(lateral_resolution_um=vals.get("lateral"), axial_resolution_um=vals.get("axial"))
 
 

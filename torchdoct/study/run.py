@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from .._files import atomic_write, output_set
-from .sweep import SweepResult, prepare_out_dir, run_sweeps, write_table
+from .sweep import SweepResult, check_cache_dir, prepare_out_dir, run_sweeps, write_table
 from .claims import claims_report
 from .figures import _save_figure, plot_comparison, plot_directions
 from .spec import Study, load_study
@@ -70,6 +70,7 @@ def run_study(study: Study | str | os.PathLike, out_dir: str | os.PathLike, *, t
         study = Study(**{**study.__dict__, "trials": trials if trials is not None else study.trials,
                          "seed": seed if seed is not None else study.seed})
     files = study_outputs(study, out_dir)
+    check_cache_dir(None if cache_dir == "default" else cache_dir)
     out = prepare_out_dir(out_dir, files, force)
     if cache_dir == "default":
         cache_dir = out / "cache"

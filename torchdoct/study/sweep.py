@@ -95,6 +95,7 @@ __all__ = [
     "write_sweep_outputs",
     "sweep_outputs",
     "prepare_out_dir",
+    "check_cache_dir",
     "format_table",
 ]
 
@@ -738,6 +739,7 @@ def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int 
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ValueError(f"sweep names must be unique; {dup} appear twice")
+    check_cache_dir(cache_dir)
     t0 = time.perf_counter()
     cache = _Cache(cache_dir)
     jobs = []  # (sweep, cell, seed, trials, dtype, tolerance, key, scene dict)
@@ -877,6 +879,12 @@ def sweep_outputs(out_dir: str | os.PathLike, stem: str = "results") -> list[Pat
     """The files :func:`write_sweep_outputs` writes into ``out_dir``."""
     d = Path(out_dir)
     return [d / f"{stem}.csv", d / f"{stem}.parquet", d / "sweep.json"]
+
+
+def check_cache_dir(cache_dir: str | os.PathLike | None, what: str = "--cache") -> None:
+    """Refuse, before any work, a cache directory that is an existing regular file."""
+    if cache_dir is not None and Path(cache_dir).exists() and not Path(cache_dir).is_dir():
+        raise ValueError(f"{what} {cache_dir} is a file; give a directory (created if missing) or --no-cache")
 
 
 def prepare_out_dir(out_dir: str | os.PathLike, files: Sequence[Path], force: bool, what: str = "--out") -> Path:
