@@ -79,11 +79,14 @@ def test_every_feature_matches_reference(cell, setting):
 
 
 @pytest.mark.skipif(not _HAS_TRUNCATION_MODE, reason="the simulator has no smooth PSF taper")
+@pytest.mark.parametrize("tolerance", [1e-2, 1e-3])
 @pytest.mark.parametrize("cell", ["flow v=0.5 θ=20°", "flow v=0.2 θ=0°", "diffusion D=0.002", "ballistic v=0.03 iso"])
-def test_taper_matches_reference(cell):
-    """The smooth taper at the default tolerance, float32, on the cells the hard cut biases."""
+def test_taper_matches_reference(cell, tolerance):
+    """The smooth taper, float32, on the cells the hard cut biases. (At 1e-2 the taper's narrower PSF
+    biases slow axial flow at lateral=18 by about −0.011 in ``rho_lin_8``: resolvable with 32,768
+    trials per side, below this test's resolution; README, "Fidelity on what the models read".)"""
     ref = rc.reference_features(cell, REF_TRIALS)
-    td = rc.torchdoct_features(cell, TD_TRIALS, truncation="taper", truncation_tolerance=_DEFAULTS.truncation_tolerance)
+    td = rc.torchdoct_features(cell, TD_TRIALS, truncation="taper", truncation_tolerance=tolerance)
     rows = rc.compare(td, ref)
     bound = rc.z_bound(len(rows))
     assert max(abs(r["z"]) for r in rows) <= bound, rc.format_failures(rows, bound)
