@@ -150,6 +150,11 @@ def _train_into(args: argparse.Namespace, cfg, paths: dict[str, Path]) -> str:
     from .train import train
 
     t0 = time.perf_counter()
+    if not args.no_cache:  # should the run be interrupted (torchdoct.interrupt)
+        from .dataset import default_cache_dir
+
+        _interrupt.note(kept=f"the data splits simulated so far, in the cache {args.cache or default_cache_dir()}",
+                        resume="rerun the same command: those splits come from the cache")
     res = train(cfg, cache_dir=args.cache, use_cache=not args.no_cache, progress=not args.no_progress)
     export_onnx(res.model, build_metadata(res), paths[".onnx"])
     parity = runtime_checks(res, paths[".onnx"])

@@ -155,3 +155,19 @@ def test_doct_classify_interrupted_while_writing_leaves_the_folder_as_it_was(tmp
     monkeypatch.undo()
     assert classify_main(argv) == 0  # the rerun needs no --force
     assert json.loads((out / "summary.json").read_text())["model"] == "single-acquisition.onnx"
+
+
+def test_doct_train_interrupted_says_what_the_cache_keeps(tmp_path, capsys, monkeypatch):
+    import classifier.train as train
+
+    def simulating(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(2)
+
+    monkeypatch.setattr(train, "train", simulating)
+    out = tmp_path / "o"
+    assert train_main(["--out", str(out), "--quick", "--cache", str(tmp_path / "cache"), "--no-progress"]) == 143
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("interrupted (SIGTERM): kept the data splits simulated so far")
+    assert str(tmp_path / "cache") in lines[0] and "rerun the same command" in lines[0]
+    assert not out.exists()

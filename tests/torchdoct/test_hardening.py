@@ -215,3 +215,15 @@ def test_cache_or_out_that_is_a_file_is_refused_before_the_work(tmp_path, capsys
     refused(capsys, tmp_path, ["sweep", str(scene), "--out", str(tmp_path / "o"), "--cache", str(a_file)],
             "--cache", "plain.txt", "is a file")
     refused(capsys, tmp_path, ["simulate", "example", "--out", str(tmp_path)], "--out")
+
+
+def test_compare_names_the_mask_that_does_not_fit(tmp_path, capsys):
+    from test_compare import make_maps
+    from torchdoct.measured.io import write_maps
+
+    m = tmp_path / "x.npz"
+    write_maps(m, make_maps(np.random.default_rng(0), ["original", "axial=14"]))
+    mask = tmp_path / "small-mask.npy"
+    np.save(mask, np.ones((3, 3), bool))
+    refused(capsys, tmp_path, ["compare", f"A={m}", f"B={m}", "--mask", str(mask), "--mask", str(mask),
+                               "--out", str(tmp_path / "t.csv")], "--mask", "small-mask.npy")

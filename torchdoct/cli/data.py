@@ -353,8 +353,13 @@ def _compare(args: argparse.Namespace) -> int:
             name, path = Path(spec).stem, spec
         maps = read_maps(path)
         mask = _load_mask(args.mask[k]) if args.mask is not None else None
-        region = region_mask(maps, mask=mask, threshold_db=args.threshold_db,
-                             threshold_resolution=args.threshold_resolution)
+        try:
+            region = region_mask(maps, mask=mask, threshold_db=args.threshold_db,
+                                 threshold_resolution=args.threshold_resolution)
+        except ValueError as err:  # name the mask file that does not fit its maps
+            if mask is None:
+                raise
+            raise ValueError(f"--mask {args.mask[k]} (for {path}): {err}") from None
         samples.setdefault(name, []).append((maps, region))
     metrics = [m.strip() for m in args.metrics.split(",") if m.strip()]
     if out is not None and len(samples) < 2:
@@ -365,15 +370,18 @@ def _compare(args: argparse.Namespace) -> int:
         print(res.tests.to_json(orient="records", indent=2))
     else:
         print(res.format())
-    if out is not None:
-        atomic_write(out, lambda tmp: res.tests.to_csv(tmp, index=False))
-        print(f"wrote {out}")
-    if per_out is not None:
-        atomic_write(per_out, lambda tmp: res.per_sample.to_csv(tmp, index=False))
-        print(f"wrote {per_out}")
-    if plot_out is not None:
-        plot_comparison(res, plot_out, force=args.force)
-        print(f"wrote {plot_out}")
+    from .._files import output_set
+
+    files = [p for p in (out, per_out, plot_out) if p is not None]
+    with output_set(files, args.force) as stage:  # the tables and the plot appear together or not at all
+        if out is not None:
+            atomic_write(stage(out), lambda tmp: res.tests.to_csv(tmp, index=False))
+        if per_out is not None:
+            atomic_write(stage(per_out), lambda tmp: res.per_sample.to_csv(tmp, index=False))
+        if plot_out is not None:
+            plot_comparison(res, stage(plot_out), force=args.force)
+    for p in files:
+        print(f"wrote {p}")
     return 0
 
 
