@@ -469,6 +469,8 @@ def _run_scene_dict(scene: Scene, *, trials: int, seed: int, dtype: str, toleran
     d.pop("description", None)
     d["simulation"] = {"trials": int(trials), "seed": int(seed), "dtype": str(dtype),
                        "truncation_tolerance": float(tolerance)}
+    if scene.simulation.truncation != "hard":  # keys of hard cells stay as they were
+        d["simulation"]["truncation"] = scene.simulation.truncation
     return d
 
 
