@@ -9,7 +9,6 @@ import glob
 import os
 import re
 import shutil
-import sys
 import tempfile
 import threading
 from importlib import resources
@@ -81,22 +80,14 @@ def _remove(path: Path) -> None:
             path.unlink()
 
 
-@contextlib.contextmanager
-def _signals_held() -> Iterator[None]:
-    """Hold SIGINT/SIGTERM back (see :func:`torchdoct.interrupt.deferred`, whose shared state this reads:
-    this file is loaded on its own by ``classifier``, so it cannot import that module)."""
-    s = sys.modules.get("_torchdoct_interrupt_state")
-    if s is None or not s.active or threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    s.defer += 1
-    try:
-        yield
-    finally:
-        s.defer -= 1
-        if s.defer == 0 and s.pending is not None:
-            s.pending = None
-            raise KeyboardInterrupt()  # the entry point reads which signal it was from the shared state
+def _signals_held():
+    """Ctrl-C and SIGTERM held back while an output set is renamed (:func:`torchdoct.interrupt.deferred`;
+    in the main thread of a command, where its handlers run)."""
+    from . import interrupt
+
+    if interrupt.active() and threading.current_thread() is threading.main_thread():
+        return interrupt.deferred()
+    return contextlib.nullcontext()
 
 
 class OutputSet:

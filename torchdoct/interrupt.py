@@ -14,10 +14,6 @@
   (:func:`torchdoct._files.output_set`), so a set appears whole or not at all.
 * :func:`worker_init` makes a worker process ignore Ctrl-C (its parent stops it) and die with its
   parent, even when the parent is killed with SIGKILL (Linux).
-
-The state (the signal received, what was kept) lives in one object per process, shared by every copy
-of this file: ``classifier`` loads the torch-free ground-floor modules from their files when
-``torchdoct`` is not imported, so this module can exist twice in one process.
 """
 
 from __future__ import annotations
@@ -28,7 +24,7 @@ import os
 import signal
 import sys
 import threading
-import types
+from types import SimpleNamespace
 from typing import Any, Callable, Iterator
 
 __all__ = ["Terminated", "entry_point", "note", "deferred", "worker_init", "EXIT_SIGINT", "EXIT_SIGTERM",
@@ -38,7 +34,6 @@ EXIT_SIGINT = 128 + signal.SIGINT  # 130
 EXIT_SIGTERM = 128 + signal.SIGTERM  # 143
 EXIT_PIPE = 128 + 13  # 141: SIGPIPE, the reader of the output went away
 
-_KEY = "_torchdoct_interrupt_state"
 _NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
 
 
@@ -46,14 +41,17 @@ class Terminated(KeyboardInterrupt):
     """Raised in the main thread on SIGTERM (a :class:`KeyboardInterrupt`: the same clean-up runs)."""
 
 
-def _state() -> types.ModuleType:
-    """The one state object of the process (see the module docstring)."""
-    s = sys.modules.get(_KEY)
-    if s is None:
-        s = types.ModuleType(_KEY, "state of torchdoct.interrupt, shared by every copy of the module")
-        s.signum, s.defer, s.pending, s.kept, s.resume, s.active = None, 0, None, {}, None, False
-        s = sys.modules.setdefault(_KEY, s)
-    return s
+#: The signal received, signals held back, what was kept, and whether an entry point is running.
+_STATE = SimpleNamespace(signum=None, defer=0, pending=None, kept={}, resume=None, active=False)
+
+
+def _state() -> SimpleNamespace:
+    return _STATE
+
+
+def active() -> bool:
+    """Whether an :func:`entry_point` runs (its handlers are installed)."""
+    return _STATE.active
 
 
 def _raise_for(signum: int) -> None:

@@ -23,6 +23,9 @@ EXIT_CODES = {
     2: "bad input or usage: unknown option, missing, empty or corrupt file, invalid value, unusable "
        "device, output that exists without --force (one `error:` line naming the file or option and "
        "the fix; nothing is written)",
+    130: "interrupted by Ctrl-C: one line says what was kept and how to resume (torchdoct.interrupt)",
+    141: "the output pipe closed early (`| head`): ended quietly",
+    143: "terminated by SIGTERM: one line says what was kept and how to resume",
 }
 
 
