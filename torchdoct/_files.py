@@ -80,6 +80,15 @@ def _remove(path: Path) -> None:
             path.unlink()
 
 
+def _note_written(files: list[Path]) -> None:
+    """Should the command be interrupted after this set is in place, its one line says so."""
+    from . import interrupt
+
+    if interrupt.active() and files:
+        more = f" and {len(files) - 1} more" if len(files) > 1 else ""
+        interrupt.note(kept=f"the complete outputs {files[0]}{more}", key=f"outputs {files[0]}")
+
+
 def _signals_held():
     """Ctrl-C and SIGTERM held back while an output set is renamed (:func:`torchdoct.interrupt.deferred`;
     in the main thread of a command, where its handlers run)."""
@@ -148,6 +157,7 @@ def output_set(paths: Iterable[str | os.PathLike], force: bool, what: str = "--o
                     os.replace(staged, p)
                 elif p.exists() or p.is_symlink():
                     _remove(p)
+            _note_written([p for p in finals if p.exists()])
     finally:
         for st in stages.values():
             shutil.rmtree(st, ignore_errors=True)

@@ -123,7 +123,7 @@ def test_output_set_removes_the_temporary_files_a_killed_run_left(tmp_path):
     assert _files(tmp_path) == {"a.csv", other.name}
 
 
-def test_a_signal_during_the_renames_is_held_until_the_set_is_whole(tmp_path, monkeypatch):
+def test_a_signal_during_the_renames_is_held_until_the_set_is_whole(tmp_path, monkeypatch, capsys):
     files = [tmp_path / f"f{i}.txt" for i in range(4)]
     real_replace = os.replace
     calls = []
@@ -146,6 +146,8 @@ def test_a_signal_during_the_renames_is_held_until_the_set_is_whole(tmp_path, mo
     assert cmd() == 143
     monkeypatch.undo()
     assert _files(tmp_path) == {f.name for f in files}  # all four, then the interruption
+    line = _one_line(capsys.readouterr().err, "SIGTERM")
+    assert f"kept the complete outputs {files[0]} and 3 more" in line
 
 
 # ----------------------------------------------------------------------------------------------------------
