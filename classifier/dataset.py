@@ -133,6 +133,11 @@ BALLISTIC_LAWS = ("isotropic", "uniform-angles")
 BALLISTIC_PRIORS = ("both", *BALLISTIC_LAWS)
 #: Laws of the flow's polar angle within :attr:`Prior.flow_polar_angle_deg` (module docstring).
 FLOW_POLAR_LAWS = ("isotropic", "uniform-angle")
+#: PSF truncation mode of the training data (:func:`make_dataset`): the smooth taper, which lets
+#: scatterers enter the PSF continuously (a hard cut at 1e-2 biases the short-lag correlations of slow
+#: motion that the signature models read; the taper at 1e-2 matches the reference simulator at the cost
+#: of the hard cut, ``torchdoct bench tradeoffs --part fidelity``).
+DEFAULT_TRUNCATION = "taper"
 #: Spawn-key element of the stream that picks a ballistic draw's direction law.
 _LAW_STREAM = 1 << 30
 
@@ -359,7 +364,7 @@ def combine_fields(moving, static, static_fraction: float, snr_db: float, mean_i
 
 
 def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
-                  truncation_tolerance: float, bulk_phase: bool = False):
+                  truncation_tolerance: float, bulk_phase: bool = False, truncation: str = DEFAULT_TRUNCATION):
     """Feature vectors ``[R, trials, F]`` (float32, spec order) and the empty-volume mask ``[R, trials]``.
 
     For a signature spec (:attr:`FeatureSpec.is_signature`) the features come from
@@ -384,13 +389,14 @@ def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
 
     # one thread per draw: draws run side by side (make_dataset)
     moving = td.simulate(scene_for(spec, draw, prior, "moving"), trials=trials, seed=draw.sim_seed,
-                         dtype="float32", truncation_tolerance=truncation_tolerance, threads=1, progress=False)
+                         dtype="float32", truncation_tolerance=truncation_tolerance, truncation=truncation,
+                         threads=1, progress=False)
     nuisance = draw.nuisance or ((0.0, math.nan),)
     static = None
     if any(f > 0 for f, _ in nuisance):
         static = td.simulate(scene_for(spec, draw, prior, "static"), trials=trials, seed=draw.sim_seed ^ 0x5A5A5A5A,
-                             dtype="float32", truncation_tolerance=truncation_tolerance, threads=1,
-                             progress=False).signals
+                             dtype="float32", truncation_tolerance=truncation_tolerance, truncation=truncation,
+                             threads=1, progress=False).signals
     mean_i = [mean_intensity(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um, **_lateral_y(c))
               for c in spec.configurations]
     gen = torch.Generator().manual_seed(draw.sim_seed ^ 0x3C3C3C3C)
@@ -561,7 +567,8 @@ def default_cache_dir() -> Path:
 
 
 def dataset_key(spec: FeatureSpec, prior: Prior, seed: int, split: str, draws: int, trials_per_draw: int,
-                replicates: int, truncation_tolerance: float, bulk_phase: bool = False) -> tuple[str, dict[str, Any]]:
+                replicates: int, truncation_tolerance: float, bulk_phase: bool = False,
+                truncation: str = "hard") -> tuple[str, dict[str, Any]]:
     """Cache key (hex SHA-256) and the JSON-able description it hashes."""
     import torchdoct
 
@@ -573,6 +580,8 @@ def dataset_key(spec: FeatureSpec, prior: Prior, seed: int, split: str, draws: i
         desc["signature_extractor"] = _signature_version()
     if bulk_phase:
         desc["bulk_phase"] = "uniform random phase per trial and frame"
+    if truncation != "hard":  # (a hard cut: the only mode of the splits stored before there were two)
+        desc["truncation"] = truncation
     blob = json.dumps(desc, sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest(), desc
 
@@ -593,7 +602,8 @@ def _positive_int(name: str, v: Any) -> int:
 def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: int = 0, split: str = "train",
                  draws: int = 300, trials_per_draw: int = 64, replicates: int = 8,
                  truncation_tolerance: float = 1e-2, cache_dir: str | os.PathLike | None = None,
-                 use_cache: bool = True, progress: bool = False, bulk_phase: bool = False) -> Dataset:
+                 use_cache: bool = True, progress: bool = False, bulk_phase: bool = False,
+                 truncation: str = DEFAULT_TRUNCATION) -> Dataset:
     """Simulate (or load from the cache) one split of labelled feature vectors.
 
     ``draws`` parameter draws × ``replicates`` (static fraction, SNR) settings × ``trials_per_draw``
@@ -601,6 +611,10 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
     (relative amplitude); 1e-2 bounds the relative mean-square field error at 3.6e-4
     (:func:`torchdoct.conventions.truncation_error_bound`) and halves the cost against 1e-3.
     ``bulk_phase``: a random bulk phase per frame (:func:`simulate_draw`; a separate cache entry).
+    ``truncation``: ``"hard"`` (the amplitude cut to 0 below the tolerance) or ``"taper"`` (a smooth
+    window that reaches 0 at the tolerance, so scatterers enter the PSF continuously;
+    :func:`torchdoct.conventions.taper_window`): the hard cut at 1e-2 biases the short-lag correlations
+    of slow motion, which the signature models read (``torchdoct bench tradeoffs --part fidelity``).
     """
     spec = load_spec(spec)
     prior = prior or Prior()
@@ -612,7 +626,7 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer; got {seed!r}")
     key, desc = dataset_key(spec, prior, seed, split, draws, trials_per_draw, replicates, truncation_tolerance,
-                            bulk_phase)
+                            bulk_phase, truncation)
     path = None
     if use_cache:
         cdir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
@@ -637,7 +651,7 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
     def one(k: int):
         d = draw_parameters(prior, seed, split, k, replicates)
         return k, d, simulate_draw(spec, d, prior, trials=trials_per_draw, truncation_tolerance=truncation_tolerance,
-                                   bulk_phase=bulk_phase)
+                                   bulk_phase=bulk_phase, truncation=truncation)
 
     # draws side by side on the usable cores (torchdoct.threads: one torch thread each, and every draw
     # has its own seeds, so the dataset does not depend on the number of threads)

@@ -539,7 +539,7 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
     for bulk in (False, True):
         label = "random bulk phase per frame" if bulk else "phase-stable"
         ds = make_dataset(sup, prior, seed=cfg.seed, split="test", draws=n_draws, trials_per_draw=cfg.trials_per_draw,
-                          replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance,
+                          replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance, truncation=cfg.truncation,
                           cache_dir=cache_dir, bulk_phase=bulk)
         src = "cache" if ds.meta["from_cache"] else "simulated"
         say(f"{label}: {len(ds)} test pixels from {n_draws} draws ({src})")

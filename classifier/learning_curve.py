@@ -159,7 +159,7 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
     for split, n in (("train", n_max), ("validation", cfg.draws_validation), ("test", cfg.draws_test)):
         say(f"{split}: {n} draws ...", flush=True)
         ds = make_dataset(spec, prior, seed=cfg.seed, split=split, draws=n, trials_per_draw=cfg.trials_per_draw,
-                          replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance,
+                          replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance, truncation=cfg.truncation,
                           cache_dir=cache_dir, progress=progress)
         data[split] = ds
         sim_s[split] = float(ds.meta["elapsed_s"])

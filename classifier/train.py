@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from . import __version__
-from .dataset import CLASSES, STATUS, Dataset, Prior, make_dataset
+from .dataset import CLASSES, DEFAULT_TRUNCATION, STATUS, Dataset, Prior, make_dataset
 from .features import METRIC_UNITS, FeatureSpec, load_spec
 from .model import DECORRELATION_OFFSET, LIV_OFFSET_DB2, MotionClassifier
 from .report import (COVERAGE_THRESHOLDS, bootstrap_se, coverage_curve, evaluate, flow_recall_by_band,
@@ -69,6 +69,10 @@ class TrainConfig:
     trials_per_draw: int = 64
     replicates: int = 8
     truncation_tolerance: float = 1e-2
+    #: the PSF truncation mode of the training data: ``"taper"`` (scatterers enter the PSF continuously;
+    #: unbiased on every model feature against the reference simulator, at the cost of the hard cut at the
+    #: same tolerance) or ``"hard"`` (the mode of the models trained before the taper existed)
+    truncation: str = DEFAULT_TRUNCATION
     #: law of the flow's polar angle in the training prior when no prior is given
     #: (:attr:`classifier.dataset.Prior.flow_polar_law`)
     flow_polar_law: str = "isotropic"
@@ -148,13 +152,25 @@ class TrainConfig:
 #: which 120 epochs stop at 70 with the same best epoch 55 as the cap of 60 (identical model). With
 #: that input the learning curve no longer flattened at 960 training draws (+0.016 ± 0.004 per pixel
 #: from 960 to 1920, paired): the recipe takes 1920 (classifier/data/signature-learning-curve.md).
+#:
+#: The flow's polar angle is drawn uniform in angle (``flow_polar_law = "uniform-angle"``), not
+#: isotropically: near-axial flow, the direction an intensity signature tells least well from
+#: random-ballistic motion (it decorrelates by axial transit, which only the axial-reduced
+#: configuration slows; classifier/README.md), gets a third of the flow draws instead of 13 %.
 SPEC_RECIPES: dict[str, dict[str, Any]] = {
     "signature": {"draws_train": 1920, "draws_validation": 90, "draws_test": 180, "replicates": 8,
                   "hidden": (64, 64), "learning_rate": 1e-3, "weight_decay": 1e-3, "patience": 15,
-                  "max_epochs": 60, "bulk_phase_test": True},
+                  "max_epochs": 60, "bulk_phase_test": True, "flow_polar_law": "uniform-angle"},
 }
-#: The two-wavelength signature spec (the signature's 24 intensity features at 840 and 1310 nm) takes it too.
+#: The two-wavelength signature spec (the signature's 24 intensity features at 840 and 1310 nm) and the
+#: B-scan signature spec (the lateral reduction along x only) take it too.
 SPEC_RECIPES["two-wavelength-signature"] = SPEC_RECIPES["signature"]
+SPEC_RECIPES["signature-bscan"] = SPEC_RECIPES["signature"]
+#: The B-scan signature with the field group (|g1| at the first lags) for bulk-phase-corrected maps: the
+#: same recipe, with the residual of the correction in the prior (a random walk of step SD up to 0.05 rad:
+#: ``torchdoct maps --bulk-phase weighted-mean`` leaves ~0.036 rad per step on dynamic tissue at 30 dB,
+#: docs/physics.md §12), and the random-bulk-phase test split showing what an uncorrected phase costs.
+SPEC_RECIPES["signature-bscan-field"] = {**SPEC_RECIPES["signature"], "bulk_residual_step_rad": (0.0, 0.05)}
 
 
 #: Prior of the shifted-prior test set: nuisances the training prior (:class:`~classifier.dataset.Prior`)
@@ -515,7 +531,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
     data: dict[str, Dataset] = {}
     for split, draws in (("train", cfg.draws_train), ("validation", cfg.draws_validation), ("test", cfg.draws_test)):
         ds = make_dataset(spec, prior, seed=cfg.seed, split=split, draws=draws, trials_per_draw=cfg.trials_per_draw,
-                          replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance, cache_dir=cache_dir, use_cache=use_cache,
+                          replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance, truncation=cfg.truncation, cache_dir=cache_dir, use_cache=use_cache,
                           progress=progress)
         data[split] = ds
         t_sim += ds.meta["elapsed_s"]
@@ -593,7 +609,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
     if (spec.needs_field if cfg.bulk_phase_test is None else cfg.bulk_phase_test):
         bulk = make_dataset(spec, prior, seed=cfg.seed, split="test", draws=cfg.draws_test,
                             trials_per_draw=cfg.trials_per_draw, replicates=cfg.replicates,
-                            truncation_tolerance=cfg.truncation_tolerance, cache_dir=cache_dir, use_cache=use_cache,
+                            truncation_tolerance=cfg.truncation_tolerance, truncation=cfg.truncation, cache_dir=cache_dir, use_cache=use_cache,
                             progress=progress, bulk_phase=True)
         t_sim += bulk.meta["elapsed_s"]
         b_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))
@@ -625,7 +641,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
         sp = shifted_prior(prior)
         shifted_ds = make_dataset(spec, sp, seed=cfg.seed, split="test", draws=cfg.draws_test,
                                   trials_per_draw=cfg.trials_per_draw, replicates=cfg.replicates,
-                                  truncation_tolerance=cfg.truncation_tolerance, cache_dir=cache_dir,
+                                  truncation_tolerance=cfg.truncation_tolerance, truncation=cfg.truncation, cache_dir=cache_dir,
                                   use_cache=use_cache, progress=progress)
         s_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(10,)))
         stests, _ = evaluation_sets(shifted_ds, cfg, spec, s_rng)

@@ -89,7 +89,8 @@ def _seconds_per_draw(spec, prior, plan: TradeoffPlan) -> float:
 
     def run(k: int) -> None:
         d = draw_parameters(prior, plan.seed, "train", k, plan.replicates)
-        simulate_draw(spec, d, prior, trials=plan.trials_per_draw, truncation_tolerance=tol)
+        simulate_draw(spec, d, prior, trials=plan.trials_per_draw, truncation_tolerance=tol,
+                      truncation=TrainConfig().truncation)
 
     run(m)
     t0 = time.perf_counter()

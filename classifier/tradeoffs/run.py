@@ -68,6 +68,7 @@ def run_tradeoffs(plan: TradeoffPlan, *, cache_dir=None, progress: bool = False,
                                              trials_per_draw=plan.trials_per_draw,
                                              replicates=plan.replicates,
                                              truncation_tolerance=base_cfg.truncation_tolerance,
+                                             truncation=base_cfg.truncation,
                                              cache_dir=cache_dir, progress=progress)
     data[ONE_CONFIGURATION] = {split: derive_dataset(ds, specs["single-acquisition"], specs[ONE_CONFIGURATION], prior)
                                for split, ds in data["single-acquisition"].items()}
