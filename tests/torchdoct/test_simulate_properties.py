@@ -186,16 +186,21 @@ def test_zero_motion_gives_exact_zeros():
     assert torch.equal(m["ocds"], torch.zeros_like(m["ocds"]))
 
 
-def test_sparse_volume_policy():
-    """Trials with no scatterer in the truncated PSF have I = 0: counted, NaN metrics, excluded."""
+@pytest.mark.parametrize("truncation", ["hard", "taper"])
+def test_sparse_volume_policy(truncation):
+    """Trials with no scatterer in the truncated PSF have I = 0: counted, NaN metrics, excluded.
+
+    The hard cut keeps every scatterer of the PSF box (amplitudes below the tolerance in its corners
+    included); the taper reaches exactly 0 on the tolerance ellipsoid inscribed in the box, whose
+    volume is π/6 of the box's: P(empty) = exp(−ρ·V) with V the box or the ellipsoid."""
     plan = make_plan(scene((), n_frames=4, metrics=("liv",)))
     box = 8 * math.prod(plan.populations[0].domain_half_widths_um)
-    rho = 1.5 / box  # 1.5 scatterers expected in the box: P(empty) = e^-1.5
+    rho = 1.5 / box  # 1.5 scatterers expected in the box
     sc = scene((), rho=rho, n_frames=4, metrics=("liv",))
-    res = td.simulate(sc, trials=8192, seed=6)
+    res = td.simulate(sc, trials=8192, seed=6, truncation=truncation)
     m = res.metrics()
     zero = m["zero_intensity"][:, 0]
-    p = math.exp(-1.5)
+    p = math.exp(-1.5 * (1.0 if truncation == "hard" else math.pi / 6.0))
     assert_within_se(float(zero.double().mean()), p, math.sqrt(p * (1 - p) / zero.numel()), what="P(empty)")
     assert torch.isnan(m["liv"][zero, 0]).all()
     assert torch.isfinite(m["liv"][~zero, 0]).all()

@@ -244,10 +244,10 @@ def test_cache_key_covers_what_changes_the_numbers(monkeypatch):
                cache_key(scene, seed=1, trials=64, dtype="float32", tolerance=1e-4),
                cache_key(scene_from_dict({**BASE, "protocol": {"n_frames": 9, "frame_interval_s": 0.2048}}),
                          seed=1, trials=64, dtype="float32", tolerance=1e-3),
-               cache_key(scene.replace(simulation=torchdoct.SimulationSettings(truncation="taper")),
+               cache_key(scene.replace(simulation=torchdoct.SimulationSettings(truncation="hard")),
                          seed=1, trials=64, dtype="float32", tolerance=1e-3)]
-    # the default truncation ("hard") leaves the keys of existing caches as they were
-    assert k == cache_key(scene.replace(simulation=torchdoct.SimulationSettings(truncation="hard")), seed=1,
+    # the default truncation is the taper: a scene that names it has the same key
+    assert k == cache_key(scene.replace(simulation=torchdoct.SimulationSettings(truncation="taper")), seed=1,
                           trials=64, dtype="float32", tolerance=1e-3)
     monkeypatch.setattr(torchdoct, "__version__", "0.0.0-test")
     changed.append(cache_key(scene, seed=1, trials=64, dtype="float32", tolerance=1e-3))

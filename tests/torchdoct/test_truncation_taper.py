@@ -169,28 +169,31 @@ def test_mean_intensity_is_the_closed_form_of_the_window(motion, hard_ellipsoid,
         assert_within_se(mi.real, cv.truncation_intensity_factor(tol, mode) * full, se, what=f"<I> {mode}")
 
 
-def test_hard_is_the_default_and_changes_nothing():
+def test_taper_is_the_default():
     sc = _scene((td.Flow(speed_um_per_s=2.0, polar_angle_deg=30.0),))
-    assert sc.simulation.truncation == "hard"
+    assert sc.simulation.truncation == "taper"
     a = td.simulate(sc, trials=64, seed=1, threads=1).signals
-    assert torch.equal(a, td.simulate(sc, trials=64, seed=1, threads=1, truncation="hard").signals)
+    assert torch.equal(a, td.simulate(sc, trials=64, seed=1, threads=1, truncation="taper").signals)
+    assert not torch.equal(a, td.simulate(sc, trials=64, seed=1, threads=1, truncation="hard").signals)
     with pytest.raises(ValueError, match="truncation must be one of"):
         td.simulate(sc, trials=64, truncation="soft")
-    plan = td.make_plan(sc.replace(simulation=td.SimulationSettings(truncation="taper")))
+    plan = td.make_plan(sc)
     assert plan.truncation == "taper"
     assert plan.truncation_error_bound == cv.truncation_field_error(1e-2, "taper")
     assert "tapered to 0" in plan.describe()
-    assert td.make_plan(sc).truncation_error_bound == cv.truncation_error_bound(1e-2)
+    hard = td.make_plan(sc.replace(simulation=td.SimulationSettings(truncation="hard")))
+    assert hard.truncation_error_bound == cv.truncation_error_bound(1e-2)
 
 
 def test_scene_setting_round_trips():
     from torchdoct.sim.config import scene_from_dict
 
-    sc = _scene((), truncation="taper")
+    sc = _scene((), truncation="hard")
     d = sc.to_dict()
-    assert d["simulation"]["truncation"] == "taper"
+    assert d["simulation"]["truncation"] == "hard"
     assert scene_from_dict(d) == sc
-    assert "truncation" not in _scene(()).to_dict()["simulation"]
+    assert "truncation" not in _scene(()).to_dict()["simulation"]  # the default (taper) is left out
+    assert scene_from_dict(_scene((), truncation="taper").to_dict()) == _scene(())
 
 
 @pytest.mark.parametrize("mode", ["hard", "taper"])
