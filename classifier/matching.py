@@ -8,10 +8,15 @@ be the spec's; the system's refractive index must be the spec's. Anything missin
 ``ValueError`` naming it and the fix.
 
 B-scan maps reduced laterally (``reduction.lateral_axes == "X"``) have channels whose PSF is wider along
-x than along y, unlike the isotropic configurations of the shipped specs. :data:`MATCH_LATERAL_Y` says
-whether the match compares the y width too: for now it does not (the channel matches on x, and
-:func:`bscan_notes` tells the user to expect lower accuracy); set it to True to refuse such channels
-for isotropic columns (a spec then needs ``lateral_resolution_y_um`` to read them).
+x than along y. :data:`MATCH_LATERAL_Y` says whether the match compares the y width too: it does, so a
+model trained on isotropic reductions (volumes) is never applied to B-scan maps, nor a B-scan model
+to volumes; the error names the model, or the ``doct-train`` command, that fits the maps. The shipped
+B-scan specs (``*-bscan``) give their lateral-reduced configuration ``lateral_resolution_y_um``.
+
+Models that read the field's phase (:attr:`FeatureSpec.needs_field`: ``g1_m``, ``g1_phase_m``,
+``phase_ramp``) are applied only to maps whose metadata say the bulk phase was corrected
+(``meta["bulk_phase"]``, written by ``torchdoct maps --bulk-phase``): a bulk phase per frame
+destroys those features (:mod:`torchdoct.sim.signature`).
 """
 
 from __future__ import annotations
@@ -29,19 +34,22 @@ from torchdoct.sim import signature as _signature
 from .features import METRIC_UNITS, FeatureSpec, metric_unit, same_value
 from .runtime import DEFAULT_MODEL, ClassifierModel
 
-__all__ = ["MATCH_LATERAL_Y", "SIGNATURE_MODEL", "SIGNATURE_MODELS", "MapsChannels", "column_optics",
+__all__ = ["MATCH_LATERAL_Y", "SIGNATURE_MODEL", "SIGNATURE_MODELS", "LIV_OCDS_MODELS", "MapsChannels", "column_optics",
            "channel_matches", "assemble_features", "bscan_notes", "choose_default_model"]
 
-#: Whether a model column matches a channel only when their lateral widths along y agree too. False (for
-#: now): a B-scan channel reduced along x matches an isotropic column on x, with a note
-#: (:func:`bscan_notes`); True refuses it.
-MATCH_LATERAL_Y = False
+#: Whether a model column matches a channel only when their lateral widths along y agree too: True, so a
+#: B-scan channel reduced along x only (18 × 4.9 µm) never feeds a column trained on an isotropic PSF
+#: (18 × 18 µm) and the reverse. False would match on x alone, with a note (:func:`bscan_notes`).
+MATCH_LATERAL_Y = True
 #: Shipped model used by default when the maps hold its (signature) channels.
 SIGNATURE_MODEL = "signature"
 #: Shipped signature models ``doct-classify`` prefers without ``--model``, in this order: the first whose
 #: every channel the maps hold (``torchdoct maps --signature``; the two-wavelength one reads the maps of
-#: both bands, one file or two). A model that is not shipped is skipped.
-SIGNATURE_MODELS = ("two-wavelength-signature", SIGNATURE_MODEL)
+#: both bands, one file or two), and, for a model that reads the phase, whose maps are bulk-phase
+#: corrected. A model that is not shipped is skipped.
+SIGNATURE_MODELS = ("two-wavelength-signature", "signature-bscan-field", "signature-bscan", SIGNATURE_MODEL)
+#: LIV/OCDS models for maps without signature channels, in this order (B-scan maps: the first).
+LIV_OCDS_MODELS = ("single-acquisition-bscan", DEFAULT_MODEL)
 
 
 @dataclass(frozen=True)
@@ -136,12 +144,50 @@ def _find_column(maps_list: Sequence[Maps], col: Mapping[str, Any]) -> tuple[Map
     return None
 
 
+def _refuse_other_geometry(maps_list: Sequence[Maps], col: Mapping[str, Any], model: ClassifierModel) -> None:
+    """A column that a channel matches on x but not along y: B-scan maps and a volume model, or the
+    reverse. Raise naming the model (or the ``doct-train`` command) that fits the maps."""
+    optics = column_optics(col)
+    for m in maps_list:
+        for i, ch in enumerate(m.meta["channels"]):
+            have = m.optics(i)
+            if ch.get("metric") != col["metric"] or have is None or not optics.matches(have, lateral_y=False):
+                continue
+            bscan = not have.isotropic
+            want = _counterpart(model.spec.name, bscan)
+            kind = "B-scan maps (lateral resolution reduced along x only)" if bscan else "volume maps (isotropic)"
+            raise ValueError(
+                f"{m.name}: channel {ch.get('name')!r} has {have.describe()}: {kind}, but model "
+                f"{model.path.name} was trained on {optics.describe()}. Fix: {_train_hint(want, model.spec.name)}")
+
+
+def _counterpart(name: str, bscan: bool) -> str:
+    """The spec of the other geometry: ``NAME-bscan`` for B-scan maps, ``NAME`` without ``-bscan`` for volumes."""
+    if bscan:
+        return name if "-bscan" in name else f"{name}-bscan"
+    return name.replace("-bscan", "")
+
+
+def _train_hint(want: str, have: str) -> str:
+    from .features import shipped_specs
+    from .runtime import shipped_models
+
+    if want in shipped_models():
+        return f"classify with the model trained on this geometry (--model {want})"
+    if want in shipped_specs():
+        return f"train the model of this geometry: `doct-train --spec {want} --out DIR`, then --model DIR"
+    return (f"train a model for this geometry from a spec like classifier/specs/{have}.toml with the lateral "
+            "widths of these channels (lateral_resolution_y_um): `doct-train --spec SPEC.toml --out DIR`")
+
+
 def bscan_notes(maps_list: Sequence[Maps], spec: FeatureSpec) -> list[str]:
     """For B-scan maps reduced laterally along x only: which of the spec's configurations their channels
     hold with another width along y than the spec's (the original width: an anisotropic PSF,
     :meth:`ChannelOptics.of_channel`), unlike the spec's isotropic training. A spec that gives that
     ``lateral_resolution_y_um`` was trained on it: no note."""
     notes = []
+    if MATCH_LATERAL_Y:  # such channels are refused, not noted
+        return notes
     for m in maps_list:
         reduced = [c for c in spec.configurations
                    if not c.optics.matches(ChannelOptics.of_channel(c.to_dict(), m.meta))]
@@ -169,6 +215,15 @@ def assemble_features(maps_list: Sequence[Maps | MapsChannels], model: Classifie
             raise ValueError(f"maps files have different shapes: {maps_list[0].name} {shape}, "
                              f"{m.name} {m.spatial_shape}")
         _check_protocol(m, spec, ignore_refractive_index)
+    intensity_only = any((m.meta.get("signature") or {}).get("intensity_only") for m in maps_list)
+    if spec.needs_field and not intensity_only:  # (intensity-only maps: the missing columns say so below)
+        uncorrected = [m.name for m in maps_list if not m.meta.get("bulk_phase")]
+        if uncorrected:
+            raise ValueError(f"model {model.path.name} reads the field's phase (|g1|), which a bulk phase per frame "
+                             f"destroys, but {', '.join(uncorrected)} were not bulk-phase corrected. Fix: compute the "
+                             "maps with `torchdoct maps DATA --bulk-phase weighted-mean --signature ...` (phase-stable "
+                             "data too), or classify with an intensity-only model (--model signature-bscan or "
+                             "--model signature)")
     feats = []
     used = []
     for col in model.columns[:-1]:
@@ -181,6 +236,7 @@ def assemble_features(maps_list: Sequence[Maps | MapsChannels], model: Classifie
                              "signature. Fix: compute the maps from the complex data, or classify with the LIV/OCDS "
                              f"model (--model {DEFAULT_MODEL})")
         if found is None:
+            _refuse_other_geometry(maps_list, col, model)
             have = "; ".join(f"{m.name}: " + ", ".join(_describe_channel(ch) for ch in m.meta["channels"])
                              for m in maps_list)
             res = col["configuration"]
@@ -221,12 +277,13 @@ def choose_default_model(maps_list: Sequence[Maps | MapsChannels], shipped: Mapp
     """
     maps_list = [_as_maps(m) for m in maps_list]
     candidates = [name for name in SIGNATURE_MODELS if name in shipped]
+    liv_ocds = _liv_ocds_model(maps_list, shipped, open_model)
     if not candidates:
-        return DEFAULT_MODEL, None
+        return liv_ocds, None
     if not any(m.meta.get("signature") for m in maps_list):
-        return DEFAULT_MODEL, (f"model {DEFAULT_MODEL} (LIV/OCDS): the maps have no signature channels; "
-                               "`torchdoct maps DATA --signature ...` lets doct-classify use the more accurate "
-                               f"{candidates[-1]} model")
+        return liv_ocds, (f"model {liv_ocds} (LIV/OCDS): the maps have no signature channels; "
+                          "`torchdoct maps DATA --signature ...` lets doct-classify use the more accurate "
+                          "signature models")
     failed = []
     for name in candidates:
         sig = open_model(name)
@@ -238,4 +295,17 @@ def choose_default_model(maps_list: Sequence[Maps | MapsChannels], shipped: Mapp
             continue
         return name, None
     _, name, err = min(failed, key=lambda f: f[0])  # ties: the earlier in SIGNATURE_MODELS
-    return DEFAULT_MODEL, f"model {DEFAULT_MODEL} (LIV/OCDS) instead of {name}: {err}"
+    return liv_ocds, f"model {liv_ocds} (LIV/OCDS) instead of {name}: {err}"
+
+
+def _liv_ocds_model(maps_list: Sequence[Maps], shipped: Mapping[str, Path],
+                    open_model: Callable[[str], ClassifierModel]) -> str:
+    """The first of :data:`LIV_OCDS_MODELS` that is shipped and whose every column the maps hold (B-scan
+    maps: the B-scan model), else :data:`DEFAULT_MODEL` (whose error then says what is missing)."""
+    for name in LIV_OCDS_MODELS:
+        if name not in shipped:
+            continue
+        model = open_model(name)
+        if all(_find_column(maps_list, col) is not None for col in model.columns[:-1]):
+            return name
+    return DEFAULT_MODEL

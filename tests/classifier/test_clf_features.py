@@ -10,7 +10,7 @@ from classifier.features import (Configuration, FeatureSpec, load_spec, same_val
 
 def test_shipped_specs_are_the_documented_ones():
     assert set(shipped_specs()) == {"single-acquisition", "two-wavelength", "signature", "two-wavelength-signature",
-                                    "signature-bscan", "signature-bscan-field"}
+                                    "signature-bscan", "signature-bscan-field", "single-acquisition-bscan"}
     single = load_spec("single-acquisition")
     assert [(c.wavelength_um, c.lateral_resolution_um, c.axial_resolution_um) for c in single.configurations] == [
         (0.84, 4.9, 3.8), (0.84, 4.9, 14.0), (0.84, 18.0, 3.8)]

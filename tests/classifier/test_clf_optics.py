@@ -75,8 +75,10 @@ def test_spec_lateral_resolution_y_is_optional_and_leaves_isotropic_specs_unchan
     assert c.matches(0.84, 18.0, 3.8, lateral_y=False)
 
 
-def test_doct_classify_matches_bscan_channels_on_x_for_now(tmp_path, monkeypatch):
-    """B-scan maps reduced along x: today's behaviour (match on x, a note); the switch refuses them."""
+def test_doct_classify_refuses_a_model_of_the_other_geometry(tmp_path, monkeypatch):
+    """B-scan maps reduced along x only never feed a model trained on isotropic reductions: the error
+    names the B-scan model (or its doct-train command); volume maps still match. With the switch off,
+    the old behaviour (match on x, a note)."""
     spec = load_spec("single-acquisition")
     chans = feature_channels(spec)
     data = np.random.default_rng(2).uniform(0.1, 1.0, size=(len(chans), 5, 6)).astype(np.float32)
@@ -84,16 +86,15 @@ def test_doct_classify_matches_bscan_channels_on_x_for_now(tmp_path, monkeypatch
     meta = {**maps_meta(spec, chans), "reduction": {"lateral_axes": "X"}}
     path = save_maps(tmp_path / "bscan.npz", data, meta)
     model = load_model("single-acquisition", threads=1)
-    assert matching.MATCH_LATERAL_Y is False
+    assert matching.MATCH_LATERAL_Y is True
+    with pytest.raises(ValueError, match=r"channel 'liv@lateral=18' has 840 nm, lateral 18 × 4.9 µm \(x × y\).*"
+                                         r"B-scan maps.*single-acquisition-bscan"):
+        assemble_features([read_maps(path)], model)
+    volume = save_maps(tmp_path / "vol.npz", data, {**meta, "reduction": {"lateral_axes": "YX"}})
+    assert assemble_features([read_maps(volume)], model)[2]["notes"] == []  # isotropic channels match
+    monkeypatch.setattr(matching, "MATCH_LATERAL_Y", False)
     feats, _, info = assemble_features([read_maps(path)], model)
     assert feats.shape == (6, 5, 6) and len(info["notes"]) == 1 and "lateral=18" in info["notes"][0]
-    assert classify_maps(path, model, threads=1).info["classified"] == 30
-    volume = save_maps(tmp_path / "vol.npz", data, {**meta, "reduction": {"lateral_axes": "YX"}})
-    assert assemble_features([read_maps(volume)], model)[2]["notes"] == []
-    monkeypatch.setattr(matching, "MATCH_LATERAL_Y", True)
-    with pytest.raises(ValueError, match=r"maps lack the model feature 'liv@lateral=18'"):
-        assemble_features([read_maps(path)], model)
-    assemble_features([read_maps(volume)], model)  # isotropic channels still match
     # a spec trained on the B-scan PSF (y = the original width) matches them, without a note
     aniso = dataclasses.replace(spec.configurations[2], lateral_resolution_y_um=4.9)
     assert aniso.optics.matches(read_maps(path).optics("liv@lateral=18"))

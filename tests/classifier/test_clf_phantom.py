@@ -79,7 +79,7 @@ def test_phantom_regions_are_identifiable():
 def test_motion_types_phantom_scores(chain, pool):
     seq, out = chain
     summary = json.loads((out[pool] / "summary.json").read_text())
-    assert summary["model_spec"] == "signature"  # picked by default for maps with signature channels
+    assert summary["model_spec"] == "signature-bscan"  # picked by default for B-scan maps with signature channels
     s = score_images(out[pool], seq)
     o, floor = s["overall"], FLOORS[pool]
     assert s["pool"] == pool and o["pixels"] == 9 * 616

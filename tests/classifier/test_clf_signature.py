@@ -183,7 +183,8 @@ def test_maps_signature_then_classify_uses_the_signature_model(tmp_path, capsys)
     capsys.readouterr()
     assert classify_main([str(maps), "--out", str(tmp_path / "out"), "--background-db", "none"]) == 0
     out = capsys.readouterr().out
-    assert "model signature.onnx (signature)" in out and (tmp_path / "out" / "magnitude.tif").exists()
+    # B-scan maps (axes TZX, lateral reduction along x only): the B-scan signature model
+    assert "model signature-bscan.onnx (signature-bscan)" in out and (tmp_path / "out" / "magnitude.tif").exists()
 
 
 def test_ablation_subsets_are_candidates_and_name_the_shipped_content():

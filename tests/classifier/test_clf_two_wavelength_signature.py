@@ -162,14 +162,15 @@ def test_default_model_for_each_kind_of_maps(tiny_model, rendered_maps, tmp_path
     # not shipped (yet): the choice of before
     monkeypatch.setattr(infer, "shipped_models", lambda: dict(real))
     name, note = choice(both)
-    assert name == infer.DEFAULT_MODEL and "instead of signature: maps lack the model feature" in note
-    assert choice([rendered_maps["single"]]) == (infer.SIGNATURE_MODEL, None)
+    # (the rendered maps are B-scans, reduced laterally along x only: the B-scan signature model)
+    assert name == infer.DEFAULT_MODEL and "instead of signature-bscan: maps lack the model feature" in note
+    assert choice([rendered_maps["single"]]) == ("signature-bscan", None)
     # shipped: the dual-band signature maps (two files or one) take it, the rest as before
     monkeypatch.setattr(infer, "shipped_models", lambda: {**real, NAME: tiny_model})
     assert choice(both) == (NAME, None)
     assert choice(both[::-1]) == (NAME, None)
     assert choice([merged]) == (NAME, None)
-    assert choice([rendered_maps["single"]]) == (infer.SIGNATURE_MODEL, None)
+    assert choice([rendered_maps["single"]]) == ("signature-bscan", None)
     name, note = choice([rendered_maps["840nm"]])  # one band only: the closest signature model says what lacks
     assert name == infer.DEFAULT_MODEL and f"instead of {NAME}" in note and "rho_lin_1@1310nm" in note
     name, note = choice([plain])

@@ -98,8 +98,14 @@ def test_batched_equals_per_pixel(monkeypatch):
         one = fit_g1(y[i:i + 1], **KW)
         for field in ("label", "reason", "model", "magnitude", "magnitude_by_model", "polar_angle_deg"):
             np.testing.assert_array_equal(getattr(one, field)[0], getattr(whole, field)[i], err_msg=field)
-        for field in ("static", "moving", "rss", "phase_step_rad"):
-            np.testing.assert_allclose(getattr(one, field)[0], getattr(whole, field)[i], rtol=1e-9, atol=1e-12)
+        # the Doppler phase step comes from a float32 search (g1fit._phase_search), whose BLAS products may
+        # round differently with the batch size: the step's parabola refinement then moves by float32
+        # round-off of the criterion (measured 3e-7 rad; bound 1e-5 rad, 1e-4 of a phase-grid step), and the
+        # flow model's amplitudes and RSS, which use that step, agree to ~1e-6 relative
+        for field in ("static", "moving", "rss"):
+            np.testing.assert_allclose(getattr(one, field)[0], getattr(whole, field)[i], rtol=1e-6, atol=1e-9,
+                                       err_msg=field)
+        np.testing.assert_allclose(one.phase_step_rad[0], whole.phase_step_rad[i], rtol=0, atol=1e-5)
 
 
 def test_undefined_and_indeterminate_pixels():
