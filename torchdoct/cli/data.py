@@ -56,6 +56,11 @@ def register(sub: Any, bench_sub: Any) -> None:
     g.add_argument("--refractive-index", type=float, default=None, help="refractive index n (default 1)")
     g.add_argument("--system-name", default=None, help="name of the OCT system")
     g.add_argument("--dataset", default=None, help="HDF5 dataset / MATLAB variable name")
+    g.add_argument("--allow-external-hdf5", action="store_true",
+                   help="read HDF5 external storage, external links and virtual datasets whose data lie in other "
+                        "files (refused by default: they can make any readable file into data)")
+    g.add_argument("--max-input-gb", type=float, default=None, metavar="GB",
+                   help="largest input array to read (GiB; default 8 or $TORCHDOCT_MAX_INPUT_GB)")
     g.add_argument("--block-raster", default=None, metavar="B:R:K",
                    help="block raster protocol: blocks:repeats:B-scans per block (paper: 8:32:16); a flat "
                         "[B*R*K, Z, X] stack in acquisition order is unpacked to [R, B*K, Z, X]")
@@ -117,6 +122,8 @@ def register(sub: Any, bench_sub: Any) -> None:
     cp.add_argument("--plot", default=None, help="means ± SD plot (.png, .pdf, .svg)")
     cp.add_argument("--force", action="store_true", help="overwrite existing outputs")
     cp.add_argument("--json", action="store_true", help="print the tests as JSON")
+    cp.add_argument("--max-input-gb", type=float, default=None, metavar="GB",
+                    help="largest maps or mask array to read (GiB; default 8 or $TORCHDOCT_MAX_INPUT_GB)")
     cp.set_defaults(func=_compare)
 
     bm = bench_sub.add_parser("maps", help="time maps of a random complex stack at several resolutions")
@@ -151,8 +158,10 @@ def register(sub: Any, bench_sub: Any) -> None:
 def _maps(args: argparse.Namespace) -> int:
     from .._files import check_out
     from ..measured.io import BlockRaster, MAPS_SUFFIXES, read_sequence, write_maps
+    from ..measured.guards import set_max_input_gb
     from ..measured.maps import compute_maps, write_pngs
 
+    set_max_input_gb(args.max_input_gb)
     outs = []
     for o in args.out:
         outs.append(check_out(o, args.force, MAPS_SUFFIXES, what="--out"))
@@ -179,7 +188,7 @@ def _maps(args: argparse.Namespace) -> int:
     seq = read_sequence(args.input, axes=args.axes, pitch_um=args.pitch_um,
                         frame_times_s=_floats(args.frame_times_s, None, "--frame-times-s") if args.frame_times_s else None,
                         frame_interval_s=args.frame_interval_s, system=system or None, dataset=args.dataset,
-                        block_raster=raster)
+                        block_raster=raster, allow_external_hdf5=args.allow_external_hdf5)
     resolutions = args.resolution or ["original"]
     from ..measured.resolution import parse_resolution
 
@@ -301,10 +310,14 @@ def _load_mask(path: str) -> np.ndarray:
     if suf in (".npy", ".npz"):
         try:
             if suf == ".npy":
-                from ..measured.io import check_npy_header
+                from ..measured.guards import check_npy_header, check_npy_size
 
                 check_npy_header(p, "mask ")
+                check_npy_size(p, "mask ")
                 return np.load(p, allow_pickle=False)
+            from ..measured.guards import check_npz_sizes
+
+            check_npz_sizes(p, "mask ")
             with open(p, "rb") as fh, np.load(fh, allow_pickle=False) as z:
                 key = "mask" if "mask" in z.files else (z.files[0] if len(z.files) == 1 else None)
                 if key is None:
@@ -337,8 +350,10 @@ def _load_mask(path: str) -> np.ndarray:
 def _compare(args: argparse.Namespace) -> int:
     from .._files import atomic_write, check_out
     from ..measured.compare import compare_samples, plot_comparison, region_mask
+    from ..measured.guards import set_max_input_gb
     from ..measured.io import read_maps
 
+    set_max_input_gb(args.max_input_gb)
     out = check_out(args.out, args.force, ".csv", what="--out")
     per_out = check_out(args.per_sample, args.force, ".csv", what="--per-sample")
     plot_out = check_out(args.plot, args.force, (".png", ".pdf", ".svg"), what="--plot")

@@ -4,17 +4,197 @@ One set of rules for sequences (:mod:`torchdoct.measured.io`), maps (:mod:`torch
 masks (``torchdoct compare --mask``) and the classifier's maps: nothing is unpickled (object arrays and
 pickle streams are refused, naming the file), a ``.npy`` must carry the NPY header, a JSON text must be
 an object, and a damaged TIFF, which tifffile only logs before reading what it can reach, is an error.
+
+Bounded sizes: every reader checks the size an array declares (a ``.npy`` header's shape × itemsize, each
+``.npz`` member's header, an HDF5 dataset's shape × dtype, a TIFF's pages × page shape × dtype) against
+:func:`max_input_bytes` *before* allocating it, so a small file that declares or decompresses to a huge
+array (a zip bomb) is one clear error. The limit is 8 GiB unless the environment variable
+``TORCHDOCT_MAX_INPUT_GB`` or the option ``--max-input-gb`` (which calls :func:`set_max_input_gb`) says
+otherwise.
+
+Safe HDF5 (:func:`check_hdf5_local`): a dataset with external storage, an external link or a virtual
+dataset whose sources lie in another file would make any file the user can read into "data"; they are
+refused unless the caller allows them explicitly (``allow_external=True``, ``--allow-external-hdf5``).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
+import os
 from pathlib import Path
+from typing import Any, Iterable
 
 import numpy as np
 
-__all__ = ["TiffDamage", "check_npy_header", "refuse_object", "parse_json_object"]
+__all__ = ["TiffDamage", "check_npy_header", "refuse_object", "parse_json_object", "MAX_INPUT_ENV",
+           "DEFAULT_MAX_INPUT_GB", "max_input_bytes", "set_max_input_gb", "check_declared_size", "check_npy_size",
+           "check_npz_sizes", "check_tiff_pages", "check_hdf5_local"]
+
+MAX_INPUT_ENV = "TORCHDOCT_MAX_INPUT_GB"
+DEFAULT_MAX_INPUT_GB = 8.0
+_GIB = 1 << 30
+_max_input_gb: float | None = None  # set by --max-input-gb
+
+
+def set_max_input_gb(gb: float | None) -> None:
+    """Set (or with ``None`` clear) the limit on one input array's declared size in GiB, over the
+    environment variable ``TORCHDOCT_MAX_INPUT_GB`` and the 8 GiB default."""
+    global _max_input_gb
+    if gb is not None and not (isinstance(gb, (int, float)) and math.isfinite(gb) and gb > 0):
+        raise ValueError(f"--max-input-gb must be a positive number of GiB; got {gb!r}")
+    _max_input_gb = None if gb is None else float(gb)
+
+
+def max_input_bytes() -> int:
+    """The largest array (bytes) a reader allocates: ``--max-input-gb``, else ``TORCHDOCT_MAX_INPUT_GB``,
+    else 8 GiB."""
+    gb = _max_input_gb
+    if gb is None:
+        raw = os.environ.get(MAX_INPUT_ENV, "").strip()
+        if raw:
+            try:
+                gb = float(raw)
+            except ValueError:
+                gb = math.nan
+            if not (math.isfinite(gb) and gb > 0):
+                raise ValueError(f"environment variable {MAX_INPUT_ENV}={raw!r} must be a positive number of GiB")
+        else:
+            gb = DEFAULT_MAX_INPUT_GB
+    return int(gb * _GIB)
+
+
+def _human(n: int) -> str:
+    for unit, size in (("TiB", 1 << 40), ("GiB", _GIB), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{n} bytes"
+
+
+def check_declared_size(where: str, shape: Iterable[int], itemsize: int, what: str = "array") -> int:
+    """The byte count ``prod(shape) * itemsize`` (exact integers: no overflow), or a ``ValueError`` naming
+    ``where``, the size and the option / environment variable that raises the limit when over it."""
+    n = int(itemsize)
+    dims = [int(d) for d in shape]
+    for d in dims:
+        n *= d
+    limit = max_input_bytes()
+    if n > limit:
+        raise ValueError(f"{where}: the {what} declares shape {dims} and would take {_human(n)} in memory, over "
+                         f"the input limit of {_human(limit)}; if the data really are this large, raise the limit "
+                         f"with --max-input-gb GB or the environment variable {MAX_INPUT_ENV}=GB")
+    return n
+
+
+def _npy_header(fh, where: str) -> tuple[tuple[int, ...], np.dtype]:
+    from numpy.lib import format as npf
+
+    try:
+        version = npf.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = npf.read_array_header_1_0(fh, max_header_size=1 << 20)
+        else:
+            shape, _, dtype = npf.read_array_header_2_0(fh, max_header_size=1 << 20)
+    except (ValueError, OSError, EOFError) as err:
+        raise ValueError(f"{where}: not a readable .npy header ({err}); write it again with numpy.save") from None
+    return shape, dtype
+
+
+def check_npy_size(path: Path, what: str = "") -> None:
+    """A ``.npy`` file's declared array within :func:`max_input_bytes`, and the file long enough to hold it
+    (a truncated array is named as such, with the fix)."""
+    with open(path, "rb") as fh:
+        shape, dtype = _npy_header(fh, f"{what}{path.name}")
+        n = check_declared_size(f"{what}{path.name}", shape, dtype.itemsize)
+        have = os.fstat(fh.fileno()).st_size - fh.tell()
+    if not dtype.hasobject and have < n:
+        raise ValueError(f"{what}{path.name}: truncated: the header declares {list(shape)} {dtype} ({n} bytes of "
+                         f"data) but the file holds {have}; copy or write the file again completely")
+
+
+def check_npz_sizes(path: Path, what: str = "") -> None:
+    """Every ``.npy`` member of a ``.npz`` archive within :func:`max_input_bytes`, read from its header
+    before anything is decompressed beyond it (a zip bomb declares its size there: numpy reads exactly that)."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as zf:
+            for info in zf.infolist():
+                if not info.filename.endswith(".npy"):
+                    continue
+                with zf.open(info) as fh:
+                    head = fh.read(6)
+                    if head != b"\x93NUMPY":
+                        continue  # numpy's own reader names what it is
+                    fh.seek(0)
+                    shape, dtype = _npy_header(fh, f"{what}{path.name}[{info.filename[:-4]}]")
+                check_declared_size(f"{what}{path.name}[{info.filename[:-4]}]", shape, dtype.itemsize)
+    except zipfile.BadZipFile:
+        return  # the caller's reader reports the damaged archive
+
+
+def check_tiff_pages(path: Path, tf: Any, what: str = "") -> None:
+    """A TIFF's pages all of one shape and dtype (mixed pages are refused naming the first page that
+    differs, instead of reading some and dropping the rest) and their total within :func:`max_input_bytes`."""
+    pages = tf.pages
+    n = len(pages)
+    if n == 0:
+        return
+    first = pages[0]
+    shape0, dtype0 = tuple(first.shape), first.dtype
+    for i in range(1, n):
+        page = pages[i]
+        if tuple(page.shape) != shape0 or page.dtype != dtype0:
+            raise ValueError(f"{what}{path.name}: TIFF pages of two shapes: page 0 is {list(shape0)} {dtype0}, page "
+                             f"{i} is {list(page.shape)} {page.dtype}; a stack needs one shape on every page (write "
+                             "the frames as one stack of equal images)")
+    itemsize = dtype0.itemsize if dtype0 is not None else 1
+    check_declared_size(f"{what}{path.name}", (n, *shape0), itemsize, what=f"TIFF stack ({n} pages)")
+
+
+def check_hdf5_local(fh: Any, path: Path, allow_external: bool = False) -> None:
+    """Refuse external links, datasets with external storage and virtual datasets with sources in another
+    file anywhere in the open HDF5 file ``fh`` (walked without following any external link), unless
+    ``allow_external``."""
+    import h5py
+
+    fix = ("if you trust the file and want those files read, give --allow-external-hdf5 (read_sequence: "
+           "allow_external_hdf5=True); otherwise copy the data into the file (e.g. h5repack)")
+    seen: set = set()
+
+    def walk(group: Any, prefix: str, depth: int) -> None:
+        if depth > 64:
+            raise ValueError(f"{path.name}: HDF5 groups nested over 64 levels at {prefix or '/'}; refused")
+        for name in group.keys():
+            full = f"{prefix}/{name}"
+            link = group.get(name, getlink=True)
+            if isinstance(link, h5py.ExternalLink):
+                if not allow_external:
+                    raise ValueError(f"{path.name}: {full} is an external link to {link.filename}:{link.path} "
+                                     f"outside the input file; refused ({fix})")
+                continue
+            obj = group.get(name)
+            if obj is None:  # a dangling soft link
+                continue
+            if isinstance(obj, h5py.Group):
+                if obj.id in seen:  # a hard-link cycle
+                    continue
+                seen.add(obj.id)
+                walk(obj, full, depth + 1)
+            elif isinstance(obj, h5py.Dataset):
+                if obj.external and not allow_external:
+                    files = ", ".join(sorted({str(e[0]) for e in obj.external}))
+                    raise ValueError(f"{path.name}: dataset {full} stores its data in external file(s) {files} "
+                                     f"outside the input file; refused ({fix})")
+                if obj.is_virtual and not allow_external:
+                    others = sorted({vs.file_name for vs in obj.virtual_sources()
+                                     if vs.file_name not in (".", str(path), os.path.basename(str(path)))})
+                    if others:
+                        raise ValueError(f"{path.name}: virtual dataset {full} takes its data from "
+                                         f"{', '.join(others)} outside the input file; refused ({fix})")
+
+    walk(fh, "", 0)
 
 
 class TiffDamage:

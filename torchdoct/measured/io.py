@@ -55,7 +55,8 @@ from typing import Any, Mapping, Sequence as _Seq
 import numpy as np
 
 from .._files import atomic_write, check_out
-from .guards import TiffDamage, check_npy_header, parse_json_object, refuse_object
+from .guards import (TiffDamage, check_declared_size, check_hdf5_local, check_npy_header, check_npy_size,
+                     check_npz_sizes, check_tiff_pages, parse_json_object, refuse_object)
 from .mapsfile import MAPS_SUFFIXES, Maps, read_maps, write_maps
 
 __all__ = [
@@ -438,6 +439,7 @@ def write_sequence(path: str | os.PathLike, data: Any, meta: Mapping[str, Any], 
 
 def _load_npy(path: Path) -> np.ndarray:
     check_npy_header(path)
+    check_npy_size(path)
     try:
         return np.load(path, mmap_mode="r", allow_pickle=False)
     except ValueError as err:
@@ -448,6 +450,7 @@ def _load_npy(path: Path) -> np.ndarray:
 
 
 def _load_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    check_npz_sizes(path)  # declared sizes, before anything is decompressed
     try:
         with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # our handle: closed on errors too
             if "data" not in z.files:
@@ -459,12 +462,16 @@ def _load_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | N
     except ValueError as err:
         if "pickle" in str(err).lower() or "object" in str(err).lower():
             raise ValueError(f"{path.name}: holds an object array, which would need unpickling; refused") from None
+        if "EOF" in str(err) or "reading array data" in str(err):
+            raise ValueError(f"{path.name}: an array is truncated ({err}); copy or write the file again "
+                             "completely") from None
         raise
     return out[0], out[1], out[2]
 
 
 def _h5_array(ds: Any, where: str) -> np.ndarray:
     dt = ds.dtype
+    check_declared_size(where, ds.shape or (), dt.itemsize, what="dataset")  # before reading (and decompressing)
     if dt.names is not None:
         names = {n.lower(): n for n in dt.names}
         if set(names) != {"real", "imag"}:
@@ -487,7 +494,8 @@ def _h5_array(ds: Any, where: str) -> np.ndarray:
     return np.asarray(ds[()])
 
 
-def _load_h5(path: Path, dataset: str | None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict | None]:
+def _load_h5(path: Path, dataset: str | None, allow_external: bool = False
+             ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict | None]:
     import h5py
 
     try:
@@ -495,6 +503,7 @@ def _load_h5(path: Path, dataset: str | None) -> tuple[np.ndarray, np.ndarray | 
     except OSError as err:
         raise ValueError(f"{path.name}: not a readable HDF5 / MATLAB v7.3 file ({err})") from None
     with fh:
+        check_hdf5_local(fh, path, allow_external)  # before any link is followed or any data read
         names = [k for k in fh.keys() if not k.startswith("#") and isinstance(fh[k], h5py.Dataset)]
         if dataset is None:
             if "data" in names:
@@ -528,6 +537,7 @@ def _load_tif(path: Path) -> tuple[np.ndarray, dict | None]:
 
     try:
         with TiffDamage() as damage, tifffile.TiffFile(path) as tf:
+            check_tiff_pages(path, tf)  # one shape on every page, total within the input limit
             data = tf.asarray()
             if data.ndim == 2 and len(tf.pages) > 1:  # one image per page, each its own series: all pages
                 data = tf.asarray(key=range(len(tf.pages)))
@@ -549,6 +559,30 @@ def _load_tif(path: Path) -> tuple[np.ndarray, dict | None]:
     return data, meta
 
 
+def _check_values(data: np.ndarray, name: str) -> None:
+    """Non-finite samples (NaN, inf) and negative intensities are refused, counted, naming the fix; read
+    frame by frame (a memory-mapped ``.npy`` is never loaded whole for this)."""
+    n_bad = n_neg = 0
+    bad_pixels = None
+    for frame in data:
+        fin = np.isfinite(frame)
+        if not fin.all():
+            n_bad += int(fin.size - np.count_nonzero(fin))
+            bad_pixels = ~fin if bad_pixels is None else bad_pixels | ~fin
+        if data.dtype.kind == "f":
+            n_neg += int(np.count_nonzero(frame < 0))
+    if n_bad:
+        raise ValueError(f"{name}: {n_bad} of {data.size} samples are not finite (NaN or inf), in "
+                         f"{int(np.count_nonzero(bad_pixels))} of {bad_pixels.size} pixels; they would make every map "
+                         "pixel they reach NaN (a resolution reduction spreads them). Fix: replace them (e.g. "
+                         "numpy.nan_to_num(a, nan=0, posinf=0, neginf=0)) and exclude those pixels afterwards "
+                         "(compare --mask), or crop them out")
+    if n_neg:
+        raise ValueError(f"{name}: {n_neg} of {data.size} intensity samples are negative; a linear intensity is >= 0 "
+                         "(a dB or background-subtracted image is not one). Fix: store the linear intensity |E|^2, "
+                         "e.g. 10**(dB/10), or clip the subtracted background at 0")
+
+
 def _parse_pitch(pitch: Any) -> dict[str, float]:
     if isinstance(pitch, str):
         out = {}
@@ -566,7 +600,7 @@ def _parse_pitch(pitch: Any) -> dict[str, float]:
 def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um: Mapping[str, float] | str | None = None,
                   frame_times_s: _Seq[float] | None = None, frame_interval_s: float | None = None,
                   system: Mapping[str, Any] | None = None, dataset: str | None = None,
-                  block_raster: BlockRaster | None = None) -> SequenceData:
+                  block_raster: BlockRaster | None = None, allow_external_hdf5: bool = False) -> SequenceData:
     """Read a sequence file (see the module docstring) into a :class:`SequenceData` in canonical order.
 
     Metadata come from the file (h5 attribute, TIFF JSON description) or its JSON sidecar; the
@@ -576,7 +610,12 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     ``lateral_resolution_um``, ``axial_resolution_um``, ``refractive_index``), ``dataset`` (HDF5
     variable name), ``block_raster`` (unpack an acquisition-order ``[blocks·repeats·bscans, Z, X]``
     stack, whose stored axes must then be a permutation of TZX with T the scan index, to
-    ``[T, Y, Z, X]``; data already ``[T, Y, Z, X]`` just record it for boundary exclusion).
+    ``[T, Y, Z, X]``; data already ``[T, Y, Z, X]`` just record it for boundary exclusion),
+    ``allow_external_hdf5`` (read HDF5 external storage, external links and virtual datasets whose data
+    lie in other files; refused by default, :func:`torchdoct.measured.guards.check_hdf5_local`).
+    Declared sizes over :func:`torchdoct.measured.guards.max_input_bytes` are refused before reading;
+    samples that are not finite, negative intensities and extended-precision dtypes are refused naming
+    the file, the count and the fix. A file the system does not let us read raises ``PermissionError``.
     A TIFF stack without axes is taken as ``TZX`` (the COG layout). Missing metadata raise a
     ``ValueError`` naming the key and the option that gives it.
     """
@@ -594,9 +633,11 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
         elif suffix == ".npz":
             data, labels, params = _load_npz(p)
         elif suffix == ".h5":
-            data, labels, params, file_meta = _load_h5(p, dataset)
+            data, labels, params, file_meta = _load_h5(p, dataset, allow_external_hdf5)
         else:
             data, file_meta = _load_tif(p)
+    except PermissionError:  # the system refuses: exit 1 at the command line, as for an unreadable sidecar
+        raise
     except (EOFError, OSError, zipfile.BadZipFile, KeyError) as err:
         raise ValueError(f"{p.name}: not a readable {suffix} file (truncated or corrupt: "
                          f"{type(err).__name__}: {err})") from None
@@ -630,6 +671,10 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
         merged.update({k: v for k, v in dict(system).items() if v is not None})
         meta["system"] = merged
 
+    if (data.dtype.kind == "c" and data.dtype.itemsize > 16) or (data.dtype.kind == "f" and data.dtype.itemsize > 8):
+        raise TypeError(f"{p.name}: data dtype {data.dtype} (extended precision) is not supported; convert it to "
+                        f"{'complex128' if data.dtype.kind == 'c' else 'float64'} (e.g. a.astype(np."
+                        f"{'complex128' if data.dtype.kind == 'c' else 'float64'})) and save again")
     if data.dtype.kind not in "cf":
         if data.dtype.kind in "iu" and suffix in (".tif", ".tiff"):
             data = data.astype(np.float32)
@@ -643,6 +688,7 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
         raise ValueError(f"{p.name}: data have an empty axis (shape {list(data.shape)}); nothing to read")
     if not data.dtype.isnative:  # e.g. a big-endian '>c8' .npy: read into native byte order (torch needs it)
         data = data.astype(data.dtype.newbyteorder("="))
+    _check_values(data, p.name)
     if meta.get("axes") is None:
         raise ValueError(f"{p.name}: missing 'axes'; {_HOW['axes']}")
     stored = _check_axes(meta["axes"], data.ndim, p.name)

@@ -33,7 +33,7 @@ import numpy as np
 
 from .._files import atomic_write, check_out
 from ..optics import ChannelOptics
-from .guards import TiffDamage
+from .guards import MAX_INPUT_ENV, TiffDamage, check_npz_sizes, check_tiff_pages
 
 __all__ = ["MAPS_SUFFIXES", "Maps", "read_maps", "write_maps"]
 
@@ -208,6 +208,7 @@ def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]
     import zlib
 
     unreadable = (zipfile.BadZipFile, EOFError, OSError, zlib.error)
+    check_npz_sizes(path)  # declared sizes within the input limit, before anything is decompressed
     with open(path, "rb") as fh:  # our handle: numpy leaves its own open when the archive is damaged
         try:
             z = np.load(fh, allow_pickle=False)
@@ -287,11 +288,12 @@ def _read_tiff(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
 
     try:
         with TiffDamage() as damage, tifffile.TiffFile(path) as tf:
+            check_tiff_pages(path, tf)  # one shape on every page, total within the input limit
             data = tf.asarray()
             meta = _tiff_meta(path, tf)
             damage.check()
     except ValueError as err:
-        if "ImageDescription" in str(err):
+        if "ImageDescription" in str(err) or MAX_INPUT_ENV in str(err) or "TIFF pages of two shapes" in str(err):
             raise
         raise ValueError(f"{path.name}: not a readable maps TIFF (truncated or corrupt: {err}). "
                          f"{_rewrite_fix(path)}") from None

@@ -1,0 +1,271 @@
+"""Hardening of the readers (issue: bounded resources, safe HDF5, nonsense refused).
+
+Each refusal is exit 2 with one ``error:`` line naming the file, what is wrong and the fix (the option
+or environment variable that allows it), no traceback and nothing written; a read the system refuses is
+exit 1.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from torchdoct.cli import main
+from torchdoct.measured import guards
+from torchdoct.measured.io import read_sequence
+
+h5py = pytest.importorskip("h5py")
+tifffile = pytest.importorskip("tifffile")
+
+META = {"axes": "TZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": [0.2048 * i for i in range(8)],
+        "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
+                   "refractive_index": 1.0}}
+
+
+@pytest.fixture(autouse=True)
+def _default_limit(monkeypatch):
+    monkeypatch.delenv(guards.MAX_INPUT_ENV, raising=False)
+    guards.set_max_input_gb(None)
+    yield
+    guards.set_max_input_gb(None)
+
+
+def _tree(d: Path) -> dict[str, int]:
+    return {str(p.relative_to(d)): p.stat().st_mtime_ns for p in d.rglob("*")}
+
+
+def refused(capsys, tmp_path: Path, argv: list[str], *names: str, code: int = 2) -> str:
+    before = _tree(tmp_path)
+    got = main(argv)
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert got == code, err
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert "Traceback" not in err
+    for n in names:
+        assert n in lines[0], (n, lines[0])
+    assert _tree(tmp_path) == before, "nothing may be written"
+    return lines[0]
+
+
+def _field(shape=(8, 6, 5), seed=0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return (rng.standard_normal(shape) + 1j * rng.standard_normal(shape)).astype(np.complex64)
+
+
+def _sidecar(path: Path) -> Path:
+    path.with_suffix(".json").write_text(json.dumps(META))
+    return path
+
+
+def _maps_argv(tmp_path: Path, src: Path, *extra: str) -> list[str]:
+    return ["maps", str(src), "--out", str(tmp_path / "out" / "m.npz"), "--no-progress", *extra]
+
+
+@pytest.fixture()
+def outdir(tmp_path):
+    (tmp_path / "out").mkdir()
+    return tmp_path
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 1. safe HDF5: nothing outside the input file is read unless --allow-external-hdf5
+# ----------------------------------------------------------------------------------------------------------
+def _h5_external_storage(tmp_path: Path) -> tuple[Path, Path]:
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(_field().tobytes())
+    path = tmp_path / "ext.h5"
+    with h5py.File(path, "w") as fh:
+        fh.create_dataset("data", shape=(8, 6, 5), dtype=np.complex64, external=[(str(secret), 0, 8 * 6 * 5 * 8)])
+        fh.attrs["torchdoct"] = json.dumps(META)
+    return path, secret
+
+
+def _h5_external_link(tmp_path: Path) -> tuple[Path, Path]:
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as fh:
+        fh["data"] = _field()
+    path = tmp_path / "link.h5"
+    with h5py.File(path, "w") as fh:
+        fh["data"] = h5py.ExternalLink(str(other), "/data")
+        fh.attrs["torchdoct"] = json.dumps(META)
+    return path, other
+
+
+def _h5_virtual(tmp_path: Path) -> tuple[Path, Path]:
+    other = tmp_path / "source.h5"
+    with h5py.File(other, "w") as fh:
+        fh["field"] = _field()
+    layout = h5py.VirtualLayout(shape=(8, 6, 5), dtype=np.complex64)
+    layout[:] = h5py.VirtualSource(str(other), "field", shape=(8, 6, 5))
+    path = tmp_path / "virtual.h5"
+    with h5py.File(path, "w") as fh:
+        fh.create_virtual_dataset("data", layout)
+        fh.attrs["torchdoct"] = json.dumps(META)
+    return path, other
+
+
+@pytest.mark.parametrize("make, what", [(_h5_external_storage, "external file"), (_h5_external_link, "external link"),
+                                        (_h5_virtual, "virtual dataset")])
+def test_hdf5_pointing_outside_the_file_is_refused_unless_allowed(outdir, capsys, make, what):
+    path, target = make(outdir)
+    line = refused(capsys, outdir, _maps_argv(outdir, path), path.name, "/data", target.name, what,
+                   "--allow-external-hdf5")
+    assert "\n" not in line
+    with pytest.raises(ValueError, match="allow_external_hdf5=True"):
+        read_sequence(path)
+    seq = read_sequence(path, allow_external_hdf5=True)  # explicitly allowed: the other file is read
+    np.testing.assert_array_equal(seq.data, _field())
+    assert main(_maps_argv(outdir, path, "--allow-external-hdf5")) == 0
+
+
+def test_virtual_dataset_inside_the_file_is_read(tmp_path):
+    path = tmp_path / "self.h5"
+    with h5py.File(path, "w") as fh:
+        fh["field"] = _field()
+        layout = h5py.VirtualLayout(shape=(8, 6, 5), dtype=np.complex64)
+        layout[:] = h5py.VirtualSource(".", "field", shape=(8, 6, 5))
+        fh.create_virtual_dataset("data", layout)
+        fh.attrs["torchdoct"] = json.dumps(META)
+    np.testing.assert_array_equal(read_sequence(path).data, _field())
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 2. declared sizes checked before anything is allocated
+# ----------------------------------------------------------------------------------------------------------
+def _npy_bytes_declaring(shape: tuple[int, ...], dtype=np.complex64, payload: bytes = b"") -> bytes:
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": np.dtype(dtype).str, "fortran_order": False,
+                                               "shape": shape})
+    return buf.getvalue() + payload
+
+
+def test_tiny_npz_declaring_a_tebibyte_is_refused(outdir, capsys):
+    path = outdir / "liar.npz"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("data.npy", _npy_bytes_declaring((1200, 1 << 14, 8000)) + bytes(1000))
+    _sidecar(path)
+    assert path.stat().st_size < 1300
+    line = refused(capsys, outdir, _maps_argv(outdir, path), "liar.npz", "TiB", "--max-input-gb",
+                   guards.MAX_INPUT_ENV)
+    assert "1.14 TiB" in line  # 1200 * 16384 * 8000 * 8 bytes = 1.258e15
+
+
+def test_zip_bomb_npz_is_refused_before_decompressing(outdir, capsys, monkeypatch):
+    path = outdir / "bomb.npz"
+    np.savez_compressed(path, data=np.zeros((64, 256, 256), np.complex64))  # 32 MiB in ~33 KB
+    _sidecar(path)
+    assert path.stat().st_size < 100_000
+    monkeypatch.setenv(guards.MAX_INPUT_ENV, "0.01")  # a 10 MiB limit stands for the 8 GiB default
+    import tracemalloc
+
+    tracemalloc.start()
+    refused(capsys, outdir, _maps_argv(outdir, path), "bomb.npz", "32 MiB", "--max-input-gb", guards.MAX_INPUT_ENV)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 4 << 20, peak  # nothing near the declared 32 MiB was allocated
+
+
+def test_limit_is_raised_by_the_option(outdir, capsys, monkeypatch):
+    path = _sidecar(outdir / "seq.npy")
+    np.save(path, _field())
+    monkeypatch.setenv(guards.MAX_INPUT_ENV, "1e-6")  # ~1 KiB: the 1.9 KiB sequence is over it
+    refused(capsys, outdir, _maps_argv(outdir, path), "seq.npy", "--max-input-gb")
+    assert main(_maps_argv(outdir, path, "--max-input-gb", "1")) == 0
+
+
+def test_npy_and_hdf5_declaring_huge_arrays_are_refused(outdir, capsys):
+    npy = _sidecar(outdir / "huge.npy")
+    npy.write_bytes(_npy_bytes_declaring((4096, 4096, 4096)) + bytes(64))
+    refused(capsys, outdir, _maps_argv(outdir, npy), "huge.npy", "512 GiB", "--max-input-gb")
+    h5 = outdir / "huge.h5"
+    with h5py.File(h5, "w") as fh:  # chunked and compressed, never written: a few KB on disk
+        fh.create_dataset("data", shape=(4096, 4096, 4096), dtype=np.complex64, chunks=(1, 64, 64),
+                          compression="gzip")
+        fh.attrs["torchdoct"] = json.dumps(META)
+    assert h5.stat().st_size < 100_000
+    refused(capsys, outdir, _maps_argv(outdir, h5), "huge.h5", "data", "512 GiB", "--max-input-gb")
+
+
+def test_tiff_over_the_limit_is_refused(outdir, capsys, monkeypatch):
+    path = outdir / "stack.tif"
+    tifffile.imwrite(path, np.zeros((64, 128, 128), np.float32), compression="zlib")  # 4 MiB, small on disk
+    monkeypatch.setenv(guards.MAX_INPUT_ENV, "0.001")
+    refused(capsys, outdir, _maps_argv(outdir, path, "--pitch-um", "z=2,x=2", "--frame-interval-s", "0.2"),
+            "stack.tif", "64 pages", "4 MiB", "--max-input-gb")
+
+
+def test_maps_file_over_the_limit_is_refused_in_compare(tmp_path, capsys):
+    path = tmp_path / "a.npz"
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("maps.npy", _npy_bytes_declaring((3, 1 << 16, 1 << 16), np.float32))
+        zf.writestr("meta_json.npy", _npy_bytes_declaring((), "<U2") + "{}".encode("utf-32-le"))
+    refused(capsys, tmp_path, ["compare", f"A={path}", f"B={path}"], "a.npz", "48 GiB", "--max-input-gb")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 3. nonsense samples and broken files named with the fix
+# ----------------------------------------------------------------------------------------------------------
+def test_nan_samples_are_refused_with_counts(outdir, capsys):
+    path = _sidecar(outdir / "nan.npy")
+    a = _field()
+    a[3, 2, 1] = np.nan
+    a[5, 2, 1] = np.inf
+    a[0, 0, 0] = np.nan
+    np.save(path, a)
+    refused(capsys, outdir, _maps_argv(outdir, path, "--resolution", "lateral=18"), "nan.npy",
+            "3 of 240 samples are not finite", "2 of 30 pixels", "nan_to_num")
+
+
+def test_negative_intensities_are_refused(outdir, capsys):
+    path = _sidecar(outdir / "neg.npy")
+    a = np.abs(_field()) ** 2
+    a[:, 0, :2] = -1.0
+    np.save(path, a.astype(np.float32))
+    refused(capsys, outdir, _maps_argv(outdir, path), "neg.npy", "16 of 240 intensity samples are negative")
+
+
+def test_tiff_pages_of_two_shapes_are_refused(outdir, capsys):
+    path = outdir / "mixed.tif"
+    with tifffile.TiffWriter(path) as tw:
+        for k in range(4):
+            tw.write(np.ones((6, 5) if k < 2 else (6, 4), np.float32))
+    refused(capsys, outdir, _maps_argv(outdir, path, "--pitch-um", "z=2,x=2", "--frame-interval-s", "0.2"),
+            "mixed.tif", "page 0 is [6, 5]", "page 2 is [6, 4]")
+
+
+def test_extended_precision_is_refused_naming_the_fix(outdir, capsys):
+    if np.dtype(np.clongdouble).itemsize <= 16:
+        pytest.skip("no extended precision on this platform")
+    path = _sidecar(outdir / "long.npy")
+    np.save(path, _field().astype(np.clongdouble))
+    refused(capsys, outdir, _maps_argv(outdir, path), "long.npy", "complex128")
+
+
+def test_truncated_arrays_are_named_with_the_fix(outdir, capsys):
+    full = _field()
+    npy = _sidecar(outdir / "cut.npy")
+    np.save(npy, full)
+    npy.write_bytes(npy.read_bytes()[:-100])
+    refused(capsys, outdir, _maps_argv(outdir, npy), "cut.npy", "truncated", "again completely")
+    npz = _sidecar(outdir / "cut.npz")
+    with zipfile.ZipFile(npz, "w") as zf:  # a member whose data stop short of its header's shape
+        zf.writestr("data.npy", _npy_bytes_declaring(full.shape) + full.tobytes()[:-80])
+    refused(capsys, outdir, _maps_argv(outdir, npz), "cut.npz", "truncated", "again completely")
+
+
+def test_unreadable_input_is_a_system_refusal(outdir, capsys, monkeypatch):
+    path = _sidecar(outdir / "locked.npy")
+    np.save(path, _field())
+    from torchdoct.measured import io as mio
+
+    def denied(p):
+        raise PermissionError(13, "Permission denied", str(p))
+
+    monkeypatch.setattr(mio, "_load_npy", denied)  # running as root, chmod cannot deny a read
+    refused(capsys, outdir, _maps_argv(outdir, path), "locked.npy", "Permission denied", code=1)
