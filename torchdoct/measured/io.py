@@ -571,6 +571,9 @@ def _check_values(data: np.ndarray, name: str) -> None:
             bad_pixels = ~fin if bad_pixels is None else bad_pixels | ~fin
         if data.dtype.kind == "f":
             n_neg += int(np.count_nonzero(frame < 0))
+    if n_bad == data.size:
+        raise ValueError(f"{name}: holds no finite sample (all {n_bad} are NaN or inf); check the file (and "
+                         "--dataset / --axes)")
     if n_bad:
         raise ValueError(f"{name}: {n_bad} of {data.size} samples are not finite (NaN or inf), in "
                          f"{int(np.count_nonzero(bad_pixels))} of {bad_pixels.size} pixels; they would make every map "
