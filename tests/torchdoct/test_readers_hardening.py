@@ -269,3 +269,31 @@ def test_unreadable_input_is_a_system_refusal(outdir, capsys, monkeypatch):
 
     monkeypatch.setattr(mio, "_load_npy", denied)  # running as root, chmod cannot deny a read
     refused(capsys, outdir, _maps_argv(outdir, path), "locked.npy", "Permission denied", code=1)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 4. a target resolution the pixel grid cannot hold
+# ----------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("pitch, res, names", [
+    ("z=2,x=20", "lateral=18", ["lateral resolution of 18 µm", "x pitch of 20 µm", "lateral=40"]),
+    ("z=10,x=2", "axial=14", ["axial resolution of 14 µm", "z pitch of 10 µm", "axial=20"]),
+    ("z=2,x=20", "lateral=0.05", ["lateral resolution of 0.05 µm", "lateral=40"]),
+])
+def test_resolution_finer_than_the_pitch_allows_is_refused(outdir, capsys, pitch, res, names):
+    path = _sidecar(outdir / "coarse.npy")
+    np.save(path, _field())
+    argv = _maps_argv(outdir, path, "--pitch-um", pitch, "--resolution", res)
+    if res == "lateral=0.05":
+        argv += ["--lateral-resolution-um", "0.04"]
+    refused(capsys, outdir, argv, "--resolution", "smallest", *names)
+    from torchdoct.measured.maps import compute_maps
+
+    with pytest.raises(ValueError, match="smallest"):
+        compute_maps(read_sequence(path, pitch_um=pitch, system={"lateral_resolution_um": 0.04}
+                                   if res == "lateral=0.05" else None), [res])
+
+
+def test_resolution_of_two_pixels_is_accepted(outdir):
+    path = _sidecar(outdir / "coarse.npy")
+    np.save(path, _field())
+    assert main(_maps_argv(outdir, path, "--pitch-um", "z=2,x=9", "--resolution", "lateral=18")) == 0

@@ -198,6 +198,14 @@ def _maps(args: argparse.Namespace) -> int:
                          f"({', '.join(changes)}) needs the complex field; use --resolution original only")
     if changes:
         _ = seq.system, seq.pitch_um  # a resolution change needs them: a clear error before any work
+        from ..measured.resolution import check_target_sampled
+
+        for r in resolutions:  # a target the pixel grid cannot hold: refused before the work
+            t = parse_resolution(r)
+            for kind, target in (("lateral", t.lateral_resolution_um), ("axial", t.axial_resolution_um)):
+                if target is not None:
+                    check_target_sampled(kind, float(seq.system[f"{kind}_resolution_um"]), float(target),
+                                         seq.pitch_um, seq.axes)
     if args.png_y is not None:  # the B-scan shown must exist
         n_y = dict(zip(seq.axes, seq.data.shape)).get("Y")
         if n_y is None:

@@ -77,6 +77,7 @@ from .resolution import (
     NORMALIZATIONS,
     ResolutionTarget,
     axial_filter_sigma_um,
+    check_target_sampled,
     depth_spectrum_center,
     lateral_filter_sigma_um,
     parse_resolution,
@@ -468,8 +469,12 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     for t in targets:  # validate every target before any work
         if t.lateral_resolution_um is not None:
             lateral_filter_sigma_um(lat0, t.lateral_resolution_um)
+            if t in changes:  # the grid must hold the target PSF (two pixels at least)
+                check_target_sampled("lateral", lat0, t.lateral_resolution_um, seq.pitch_um, seq.axes)
         if t.axial_resolution_um is not None:
             axial_filter_sigma_um(ax0, t.axial_resolution_um)
+            if t in changes:
+                check_target_sampled("axial", ax0, t.axial_resolution_um, seq.pitch_um, seq.axes)
     if changes and not seq.is_complex:
         raise ValueError(f"{seq.source or 'sequence'} holds intensity only (dtype {seq.data.dtype}): a resolution "
                          f"change ({', '.join(t.label for t in changes)}) needs the complex field; use "

@@ -45,6 +45,12 @@ Decisions (all switchable):
 * **Identity / finer targets**: a target equal to the original (within 1e-9 relative) or ``None``
   leaves that axis untouched (the input is returned as is when nothing changes); a target finer than
   the original is a ``ValueError``.
+* **Targets the grid cannot hold** (:func:`check_target_sampled`): a reduction cannot sharpen, and a
+  target PSF narrower than two pixels along a filtered axis (lateral 1/e² width or axial FWHM
+  ``< 2·pitch``) is not represented by the samples (Nyquist); ``torchdoct maps`` refuses such a target
+  naming the smallest one the data allow. At exactly two pixels the lateral target's sampled
+  ``Σ|h|²`` differs from ``∫|h|²/pitch`` by ``2·exp(−π² s²/p²)`` = 1.4 % (Poisson summation,
+  ``s = p/√2``), the axial one's by 1e-6.
 """
 
 from __future__ import annotations
@@ -67,6 +73,8 @@ __all__ = [
     "depth_spectrum_center",
     "gaussian_filter_axis",
     "reduce_resolution",
+    "check_target_sampled",
+    "MIN_TARGET_PIXELS",
     "EDGE_MODES",
     "NORMALIZATIONS",
 ]
@@ -142,6 +150,33 @@ def _check_target(kind: str, original_um: float, target_um: float) -> float:
         raise ValueError(f"target {kind} resolution {target_um:g} µm is finer than the original {original_um:g} µm; "
                          "a resolution can only be reduced (give a target >= the original)")
     return target_um * target_um - original_um * original_um
+
+
+#: the narrowest target PSF (lateral 1/e² width, axial FWHM) in pixels of the filtered axis (Nyquist)
+MIN_TARGET_PIXELS = 2.0
+
+
+def check_target_sampled(kind: str, original_um: float, target_um: float, pitch_um: Mapping[str, float],
+                         axes: str, option: str = "--resolution") -> None:
+    """Refuse a ``kind`` (``"lateral"`` / ``"axial"``) target that differs from the original but is narrower
+    than :data:`MIN_TARGET_PIXELS` pixels along an axis it filters (lateral: X, and Y when ``axes`` has it;
+    axial: Z), naming ``option`` and the smallest target the data allow. Axes without a pitch are left to
+    :func:`reduce_resolution`'s own error."""
+    if _check_target(kind, original_um, target_um) == 0.0:
+        return
+    pitch = {str(k).lower(): v for k, v in dict(pitch_um or {}).items()}
+    letters = "z" if kind == "axial" else "".join(c.lower() for c in "YX" if c in axes)
+    known = {c: float(pitch[c]) for c in letters if c in pitch and isinstance(pitch[c], (int, float))
+             and math.isfinite(pitch[c]) and pitch[c] > 0}
+    if not known:
+        return
+    c, p = max(known.items(), key=lambda kv: kv[1])
+    smallest = max(MIN_TARGET_PIXELS * p, original_um)
+    if target_um < MIN_TARGET_PIXELS * p:
+        raise ValueError(f"{option}: a {kind} resolution of {target_um:g} µm is finer than the {c} pitch of {p:g} µm "
+                         f"allows (the grid holds no PSF narrower than {MIN_TARGET_PIXELS:g} pixels, and a reduction "
+                         f"cannot sharpen); the smallest {kind} target these data allow is {smallest:g} µm: give "
+                         f"{kind}={smallest:g} or more")
 
 
 def lateral_filter_sigma_um(original_um: float, target_um: float) -> float:
