@@ -215,6 +215,8 @@ def build_classify_parser() -> argparse.ArgumentParser:
                         "$TORCHDOCT_THREADS, else the usable cores); results do not depend on N")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--max-input-gb", type=float, default=None, metavar="GB",
+                   help="largest maps array to read (GiB; default 8 or $TORCHDOCT_MAX_INPUT_GB)")
     return p
 
 
@@ -234,8 +236,11 @@ def _classify(args: argparse.Namespace) -> int:
             bg = float(bg)
         except ValueError:
             raise ValueError(f"--background-db must be 'auto', 'none' or a number in dB; got {bg!r}") from None
+    from torchdoct.measured.guards import set_max_input_gb
+
     from .outputs import check_outputs
 
+    set_max_input_gb(args.max_input_gb)  # the readers' limit on one declared array
     check_outputs(args.out, args.force)  # before the work: --out a file, or an earlier run's files without --force
     res = infer.classify_maps(args.maps, args.model, pool=args.pool, background_db=bg,
                               min_probability=args.min_probability,

@@ -297,3 +297,17 @@ def test_resolution_of_two_pixels_is_accepted(outdir):
     path = _sidecar(outdir / "coarse.npy")
     np.save(path, _field())
     assert main(_maps_argv(outdir, path, "--pitch-um", "z=2,x=9", "--resolution", "lateral=18")) == 0
+
+
+def test_maps_file_over_the_limit_is_refused_in_doct_classify(tmp_path, capsys):
+    from classifier.cli import classify_main
+
+    path = tmp_path / "a.npz"
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("maps.npy", _npy_bytes_declaring((3, 1 << 16, 1 << 16), np.float32))
+        zf.writestr("meta_json.npy", _npy_bytes_declaring((), "<U2") + "{}".encode("utf-32-le"))
+    before = _tree(tmp_path)
+    assert classify_main([str(path), "--out", str(tmp_path / "cls")]) == 2
+    err = capsys.readouterr().err
+    assert "a.npz" in err and "48 GiB" in err and "--max-input-gb" in err and "Traceback" not in err
+    assert _tree(tmp_path) == before
