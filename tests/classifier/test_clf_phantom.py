@@ -5,16 +5,21 @@
 The phantom has nine discs in static tissue: diffusion D = 0.0003, 0.002, 0.01 µm²/s, random-ballistic
 v = 0.01, 0.05, 0.3 µm/s, flow v = 0.3, 1, 3 µm/s, all identifiable by the ground-truth definition
 (``classifier.dataset.identifiability``, checked below) and spanning the range where the model
-decides (``classifier/data/signature.md``, accuracy against magnitude). All labelled moving pixels
-count (edge 0). Floors from 6 renderings (seeds 2026 = the file's, 1-5), 128 × 128 B-scan:
+decides. All labelled moving pixels count (edge 0). The maps are B-scans reduced laterally along x
+only, so the default model is the B-scan signature model (``signature-bscan``). Six renderings
+(seeds 2026 = the file's, 1-5), 128 × 128 B-scan:
 
-* pool 1: balanced accuracy 0.815 ± 0.014 (mean ± SD over seeds; 0.828 for the shipped seed),
-  coverage 0.851 ± 0.007, median |log10 magnitude error| 0.088 ± 0.002;
-* pool 5: balanced accuracy 0.919 ± 0.013 (0.929), coverage 0.957 ± 0.005, magnitude 0.071 ± 0.003.
+* pool 1: balanced accuracy 0.812 ± 0.007 (mean ± SD; 0.813 for the shipped seed), coverage
+  0.861 ± 0.002;
+* pool 5: balanced accuracy 0.870 ± 0.010 (0.876), coverage 0.951 ± 0.003.
 
-Floors (pool 1 / pool 5): balanced accuracy 0.78 / 0.87 (2.5 and 3.8 SD below the means: the test
-renders the shipped seed, but any change of the renderer's random stream is another draw), coverage
-0.75 / 0.90, median |log10 magnitude error| at most 0.15 / 0.12.
+(The previous shipped signature model, a volume model applied to these B-scan maps, gave 0.815 ± 0.014
+and 0.919 ± 0.013: the
+B-scan model, trained on the PSF these maps have, gives up the slow in-plane flow, 0.3 µm/s across
+the beam along x, for flow leaving the plane: see ``test_oblique_out_of_plane_flow_phantom_scores``.)
+Floors (pool 1 / pool 5): balanced accuracy 0.78 / 0.84 (3 SD below the means, rounded down; the
+test renders the shipped seed, but any change of the renderer's random stream is another draw),
+coverage 0.75 / 0.90, median |log10 magnitude error| at most 0.15 / 0.12.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ from classifier.cli import classify_main  # noqa: E402
 from classifier.evaluate_images import MOVING_CODES, read_rendered_labels, score_images  # noqa: E402
 
 FLOORS = {1: {"balanced_accuracy": 0.78, "coverage": 0.75, "magnitude": 0.15},
-          5: {"balanced_accuracy": 0.87, "coverage": 0.90, "magnitude": 0.12}}
+          5: {"balanced_accuracy": 0.84, "coverage": 0.90, "magnitude": 0.12}}
 
 
 @pytest.fixture(scope="module")
