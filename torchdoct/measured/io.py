@@ -180,7 +180,8 @@ class SequenceData:
     (complex OCT) or float (linear intensity, e.g. a TIFF stack). May be a read-only memory map.
     ``meta``: the metadata dict (canonical ``axes``, ``pitch_um``, ``frame_times_s``, optional
     ``system`` and extra keys). ``labels`` / ``label_params``: optional arrays stored with the data.
-    ``source``: the file name it was read from (no directory).
+    ``source``: the file name it was read from (no directory). ``nonfinite_samples``: how many samples
+    of ``data`` are NaN or infinite (counted by :func:`read_sequence`; the maps mask their pixels).
     """
 
     data: np.ndarray
@@ -188,6 +189,7 @@ class SequenceData:
     labels: np.ndarray | None = None
     label_params: np.ndarray | None = None
     source: str | None = None
+    nonfinite_samples: int = 0
 
     @property
     def axes(self) -> str:
@@ -559,31 +561,24 @@ def _load_tif(path: Path) -> tuple[np.ndarray, dict | None]:
     return data, meta
 
 
-def _check_values(data: np.ndarray, name: str) -> None:
-    """Non-finite samples (NaN, inf) and negative intensities are refused, counted, naming the fix; read
-    frame by frame (a memory-mapped ``.npy`` is never loaded whole for this)."""
+def _check_values(data: np.ndarray, name: str) -> int:
+    """The number of non-finite samples (NaN, inf; data holding no finite sample are refused); negative
+    intensities are refused, counted, naming the fix. Read frame by frame (a memory-mapped ``.npy`` is never
+    loaded whole for this)."""
     n_bad = n_neg = 0
-    bad_pixels = None
     for frame in data:
         fin = np.isfinite(frame)
-        if not fin.all():
-            n_bad += int(fin.size - np.count_nonzero(fin))
-            bad_pixels = ~fin if bad_pixels is None else bad_pixels | ~fin
+        n_bad += int(fin.size - np.count_nonzero(fin))
         if data.dtype.kind == "f":
             n_neg += int(np.count_nonzero(frame < 0))
     if n_bad == data.size:
         raise ValueError(f"{name}: holds no finite sample (all {n_bad} are NaN or inf); check the file (and "
                          "--dataset / --axes)")
-    if n_bad:
-        raise ValueError(f"{name}: {n_bad} of {data.size} samples are not finite (NaN or inf), in "
-                         f"{int(np.count_nonzero(bad_pixels))} of {bad_pixels.size} pixels; they would make every map "
-                         "pixel they reach NaN (a resolution reduction spreads them). Fix: replace them (e.g. "
-                         "numpy.nan_to_num(a, nan=0, posinf=0, neginf=0)) and exclude those pixels afterwards "
-                         "(compare --mask), or crop them out")
     if n_neg:
         raise ValueError(f"{name}: {n_neg} of {data.size} intensity samples are negative; a linear intensity is >= 0 "
                          "(a dB or background-subtracted image is not one). Fix: store the linear intensity |E|^2, "
                          "e.g. 10**(dB/10), or clip the subtracted background at 0")
+    return n_bad
 
 
 def _parse_pitch(pitch: Any) -> dict[str, float]:
@@ -617,8 +612,9 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     ``allow_external_hdf5`` (read HDF5 external storage, external links and virtual datasets whose data
     lie in other files; refused by default, :func:`torchdoct.measured.guards.check_hdf5_local`).
     Declared sizes over :func:`torchdoct.measured.guards.max_input_bytes` are refused before reading;
-    samples that are not finite, negative intensities and extended-precision dtypes are refused naming
-    the file, the count and the fix. A file the system does not let us read raises ``PermissionError``.
+    negative intensities and extended-precision dtypes are refused naming the file, the count and the
+    fix; samples that are not finite (NaN, inf) are counted (``nonfinite_samples``) and their pixels are
+    masked in the maps (:func:`torchdoct.measured.maps.compute_maps`). A file the system does not let us read raises ``PermissionError``.
     A TIFF stack without axes is taken as ``TZX`` (the COG layout). Missing metadata raise a
     ``ValueError`` naming the key and the option that gives it.
     """
@@ -691,7 +687,7 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
         raise ValueError(f"{p.name}: data have an empty axis (shape {list(data.shape)}); nothing to read")
     if not data.dtype.isnative:  # e.g. a big-endian '>c8' .npy: read into native byte order (torch needs it)
         data = data.astype(data.dtype.newbyteorder("="))
-    _check_values(data, p.name)
+    n_nonfinite = _check_values(data, p.name)
     if meta.get("axes") is None:
         raise ValueError(f"{p.name}: missing 'axes'; {_HOW['axes']}")
     stored = _check_axes(meta["axes"], data.ndim, p.name)
@@ -712,4 +708,5 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
         dt = _finite_positive("frame_interval_s (s)", frame_interval_s)
         meta["frame_times_s"] = [i * dt for i in range(data.shape[0])]
     clean = validate_meta(meta, data.shape, where=p.name)
-    return SequenceData(data=data, meta=clean, labels=labels, label_params=params, source=p.name)
+    return SequenceData(data=data, meta=clean, labels=labels, label_params=params, source=p.name,
+                        nonfinite_samples=n_nonfinite)

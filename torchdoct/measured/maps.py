@@ -22,7 +22,12 @@ pixel (time last, ``[..., T]``) the channels below are computed:
   ``LIV(T_w) = a·(1 − exp(−T_w/τ))`` fitted by unweighted least squares with ``a, τ ≥ 0``
   (:func:`fit_saturation`); ``aliv = a``, ``swiftness = 1/τ``.
 
-Undefined values are NaN: pixels with ``I = 0`` or a NaN sample in some frame have no dB value (LIV, OCDS, aLIV,
+Non-finite samples (NaN or inf in some frame) are masked per pixel instead of reaching the reduction's FFT
+(where one NaN would make every reduced pixel NaN): they enter the reduction as 0, and every channel is NaN
+at the pixels whose value they reach: the pixel itself at the original resolution, and after a reduction
+every pixel within the ``⌈5σ'⌉`` pixels of the window's truncation along each filtered axis (plus the 3×3
+smoothing for aLIV/Swiftness); ``meta["nonfinite"]`` counts the samples and the masked pixels per
+resolution. Undefined values are NaN: pixels with ``I = 0`` have no dB value (LIV, OCDS, aLIV,
 Swiftness NaN; ``mean_db`` NaN only if ``I = 0`` at every frame), and Swiftness is NaN where the fit
 gives ``a = 0`` (no fluctuation, τ undefined). After a resolution reduction the same rule holds with a
 floor: ``I ≤ (64·ε)²·max I`` (ε the machine epsilon of the data type, ``max I`` the largest finite
@@ -95,6 +100,8 @@ __all__ = [
     "tau_bound_code",
     "box_smooth_zx",
     "compute_maps",
+    "nonfinite_mask",
+    "nonfinite_reach_px",
     "pseudo_color",
     "map_figure",
     "write_pngs",
@@ -404,6 +411,52 @@ def _pixel_metrics(intensity: torch.Tensor, frame_times_s: list[float], wanted: 
     return res
 
 
+def _nonfinite_reach(bad: np.ndarray, spatial_axes: str, widths: Mapping[str, int], wrap: bool) -> np.ndarray:
+    """``bad`` (pixels with a non-finite sample, ``[(Y), Z, X]``) spread by ``±widths[c]`` pixels along each
+    axis letter ``c`` (the reach of a filter truncated at 5σ'); periodic when the reduction wraps."""
+    from scipy.ndimage import maximum_filter1d
+
+    out = bad.astype(np.uint8)
+    for c, w in widths.items():
+        if w > 0 and c in spatial_axes:
+            out = maximum_filter1d(out, size=2 * w + 1, axis=spatial_axes.index(c), mode="wrap" if wrap else "constant")
+    return out.astype(bool)
+
+
+def nonfinite_reach_px(seq: Sequence, target: str | ResolutionTarget) -> dict[str, int]:
+    """How far (pixels, per axis letter) a sample reaches through the reduction to ``target`` of ``seq``:
+    ``⌈5σ'/pitch⌉`` along each filtered axis (the window's truncation), nothing at the original."""
+    t = parse_resolution(target) if isinstance(target, str) else target
+    if t.lateral_resolution_um is None and t.axial_resolution_um is None:
+        return {}
+    system = seq.system
+    lat0, ax0 = float(system["lateral_resolution_um"]), float(system["axial_resolution_um"])
+    lat, ax = t.resolved(system)
+    reach = {}
+    if ax != ax0:
+        reach["Z"] = int(math.ceil(5.0 * axial_filter_sigma_um(ax0, ax) / seq.pitch_um["z"]))
+    if lat != lat0:
+        sl = lateral_filter_sigma_um(lat0, lat)
+        for c in "YX":
+            if c in seq.axes:
+                reach[c] = int(math.ceil(5.0 * sl / seq.pitch_um[c.lower()]))
+    return reach
+
+
+def nonfinite_mask(seq: Sequence, target: str | ResolutionTarget = "original", *,
+                   edge_mode: str = "reflect") -> np.ndarray | None:
+    """The pixels (``[(Y), Z, X]``) that a non-finite sample of ``seq`` reaches at ``target`` (the rule of
+    :func:`compute_maps`, module docstring), or ``None`` when every sample is finite."""
+    bad = None
+    for frame in seq.data:
+        fin = np.isfinite(frame)
+        if not fin.all():
+            bad = ~fin if bad is None else bad | ~fin
+    if bad is None:
+        return None
+    return _nonfinite_reach(bad, seq.axes[1:], nonfinite_reach_px(seq, target), edge_mode == "wrap")
+
+
 def _as_targets(resolutions: Iterable[str | ResolutionTarget]) -> list[ResolutionTarget]:
     targets = []
     for r in resolutions:
@@ -531,15 +584,18 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
             rows = max(1, min(n_c, int(slab_elements) // max(per_row, 1)))
             if sig:
                 rows = n_c if edge_mode == "wrap" else min(n_c, max(rows, 2 * halo))
-        plans.append((t, cdim, n_c, halo, mrg, rows))
-    total = sum(math.ceil(n_c / rows) for _, _, n_c, _, _, rows in plans)
+        reach = nonfinite_reach_px(seq, t) if t in changes else {}
+        plans.append((t, cdim, n_c, halo, mrg, rows, reach))
+    total = sum(math.ceil(n_c / plan[5]) for plan in plans)
+    nonfinite_pixels: dict[str, int] = {}
+    n_nonfinite = 0
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=total, desc="maps", unit="slab")
     channels: list[dict[str, Any]] = []
-    for ti, (t, cdim, n_c, halo, mrg, rows) in enumerate(plans):
+    for ti, (t, cdim, n_c, halo, mrg, rows, reach) in enumerate(plans):
         lat, ax = optics(t)
         wl = system.get("wavelength_um")
         for m in outputs:
@@ -557,6 +613,14 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
                 psel = list(sel)
                 psel[zdim] = slice(None)
                 block = block * bulk[tuple(psel)]
+            bad = None
+            fin = torch.isfinite(block)
+            if not bool(fin.all()):  # masked per pixel: non-finite samples enter the reduction as 0
+                bad = (~fin).any(dim=0).cpu().numpy()  # [(Y), Z, X] over a0:a1
+                if ti == 0:
+                    n_nonfinite += int((~fin).narrow(cdim, c0 - a0, c1 - c0).sum())
+                block = torch.where(fin, block, torch.zeros_like(block))
+            del fin
             if t in changes:
                 red = reduce_resolution(block, pitch_um=seq.pitch_um, system=system,
                                         lateral_resolution_um=t.lateral_resolution_um,
@@ -576,8 +640,22 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
                                   ocds_scale=ocds_scale, ocds_estimator=ocds_estimator,
                                   aliv_smoothing=aliv_smoothing, aliv_max_window_s=aliv_max_window_s,
                                   chunk_pixels=chunk_pixels)
+            masks = {}
+            if bad is not None:
+                sp = axes[1:]
+                masks["pixel"] = _nonfinite_reach(bad, sp, reach, edge_mode == "wrap")
+                if margin:
+                    grown = {c: reach.get(c, 0) + (margin if c in "ZX" else 0) for c in "YZX"}
+                    masks["smoothed"] = _nonfinite_reach(bad, sp, grown, edge_mode == "wrap")
+                core = [slice(None)] * (data.ndim - 1)
+                core[cdim - 1] = slice(c0 - a0, c1 - a0)
+                masks = {k: v[tuple(core)] for k, v in masks.items()}
+                nonfinite_pixels[t.label] = nonfinite_pixels.get(t.label, 0) + int(np.count_nonzero(masks["pixel"]))
             for mi, m in enumerate(outputs):
                 v = vals[m].narrow(cdim - 1, c0 - m0, c1 - c0).cpu().numpy()
+                if masks:
+                    smoothed = m in ("aliv", "swiftness", FIT_FLAG) and "smoothed" in masks
+                    v = np.where(masks["smoothed" if smoothed else "pixel"], np.nan, v)
                 idx = [ti * len(outputs) + mi] + [slice(None)] * (data.ndim - 1)
                 idx[cdim] = slice(c0, c1)
                 out[tuple(idx)] = v
@@ -606,6 +684,11 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     }
     if bulk_phase is not None:
         meta["bulk_phase"] = bulk_phase.meta()
+    if n_nonfinite:
+        meta["nonfinite"] = {"samples": n_nonfinite,
+                             "masked_pixels": {t.label: nonfinite_pixels.get(t.label, 0) for t in targets},
+                             "rule": "pixels a non-finite sample reaches (its own; within 5 sigma of the reduction "
+                                     "window along each filtered axis) are NaN in every channel"}
     if "aliv" in wanted or "swiftness" in wanted:
         meta["aliv"] = {"smoothing": "box3x3" if aliv_smoothing else "none", "max_window_s": aliv_max_window_s,
                         "model": "a*(1-exp(-T/tau)); aliv=a, swiftness=1/tau"}

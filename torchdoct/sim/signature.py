@@ -225,6 +225,7 @@ def signature_maps(maps, seq, resolutions: Sequence = ("original",), *, names: S
     :func:`signature` runs per pixel. ``names``: default :func:`default_features` of the sequence's
     frame count; intensity-only sequences get only the intensity features
     (``meta["signature"]["intensity_only"]``; a model that needs the phase refuses such maps).
+    Non-finite samples are masked as the maps mask them (:func:`torchdoct.measured.maps.nonfinite_mask`).
     Returns ``(maps, note)`` with ``note`` a sentence for the user when only the intensity part could
     be computed, else ``None``.
     """
@@ -255,7 +256,13 @@ def signature_maps(maps, seq, resolutions: Sequence = ("original",), *, names: S
     for r in resolutions:
         t = r if not isinstance(r, str) else parse_resolution(r)
         lat, ax = t.resolved(system)
-        data = torch.from_numpy(np.ascontiguousarray(seq.data))
+        arr = np.ascontiguousarray(seq.data)  # a read-only memory map (.npy) is copied: torch needs it writable
+        data = torch.from_numpy(arr if arr.flags.writeable else arr.copy())
+        from ..measured.maps import nonfinite_mask  # the maps' own masking of NaN/inf samples
+
+        masked = nonfinite_mask(seq, t, edge_mode=red_meta.get("edge_mode", "reflect"))
+        if masked is not None:  # they enter the reduction as 0; the pixels they reach are NaN below
+            data = torch.where(torch.isfinite(data), data, torch.zeros_like(data))
         if seq.is_complex:
             data = reduce_resolution(data, pitch_um=seq.pitch_um, system=system,
                                      lateral_resolution_um=t.lateral_resolution_um,
@@ -272,7 +279,10 @@ def signature_maps(maps, seq, resolutions: Sequence = ("original",), *, names: S
         out = torch.empty(flat.shape[0], len(feats), dtype=torch.float32)
         for p0 in range(0, flat.shape[0], chunk_pixels):
             out[p0:p0 + chunk_pixels] = signature(flat[p0:p0 + chunk_pixels], times, names=feats)[1].float()
-        blocks.append(out.T.reshape(len(feats), *spatial).numpy())
+        block = out.T.reshape(len(feats), *spatial).numpy()
+        if masked is not None:
+            block[:, masked[keep] if keep is not None else masked] = np.nan
+        blocks.append(block)
         for f in feats:
             channels.append({"name": f"{f}@{t.label}", "metric": f, "unit": feature_unit(f), "resolution": t.label,
                              "wavelength_um": float(system["wavelength_um"]), "lateral_resolution_um": lat,
