@@ -355,3 +355,25 @@ def test_maps_file_over_the_limit_is_refused_in_doct_classify(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "a.npz" in err and "48 GiB" in err and "--max-input-gb" in err and "Traceback" not in err
     assert _tree(tmp_path) == before
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".npz", ".tif"])
+def test_mask_over_the_limit_is_refused(tmp_path, capsys, monkeypatch, suffix):
+    from torchdoct.measured.io import Maps, write_maps
+
+    maps = Maps(maps=np.ones((1, 6, 5), np.float32), channels=("liv@original",),
+                meta={"channels": [{"name": "liv@original", "metric": "liv", "unit": "dB^2",
+                                    "resolution": "original"}], "axes": "CZX"})
+    write_maps(tmp_path / "a.npz", maps)
+    mask = np.ones((64, 64), bool)
+    path = tmp_path / f"mask{suffix}"
+    if suffix == ".npy":
+        np.save(path, mask)
+    elif suffix == ".npz":
+        np.savez_compressed(path, mask=mask)
+    else:
+        tifffile.imwrite(path, mask.astype(np.uint8))
+    monkeypatch.setenv(guards.MAX_INPUT_ENV, str(1000 / 2 ** 30))  # 1000 bytes
+    line = refused(capsys, tmp_path, ["compare", f"A={tmp_path / 'a.npz'}", "--mask", str(path)],
+                   f"mask mask{suffix}", "4 KiB", "--max-input-gb")
+    assert "mask mask mask" not in line

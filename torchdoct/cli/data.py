@@ -337,6 +337,8 @@ def _load_mask(path: str) -> np.ndarray:
                     raise ValueError(f"{p.name}: store the mask under the key 'mask'")
                 return z[key]
         except ValueError as err:
+            if "--max-input-gb" in str(err) or "truncated:" in str(err):  # already names the mask and the fix
+                raise
             if "allow_pickle" in str(err):
                 raise ValueError(f"mask {p.name}: holds an object array, which would need unpickling; refused "
                                  "(store a boolean or 0/1 array)") from None
@@ -347,14 +349,20 @@ def _load_mask(path: str) -> np.ndarray:
     if suf in (".tif", ".tiff"):
         import tifffile
 
-        from ..measured.guards import TiffDamage
+        from ..measured.guards import TiffDamage, check_tiff_pages
 
         try:
-            with TiffDamage() as damage:  # a truncated file: tifffile only logs; refuse it instead
-                arr = tifffile.imread(p)
+            with TiffDamage() as damage, tifffile.TiffFile(p) as tf:  # a truncated file: tifffile only logs
+                check_tiff_pages(p, tf, "mask ")  # one shape, within the input limit, before reading
+                arr = tf.asarray()
                 damage.check()
             return arr
-        except (tifffile.TiffFileError, OSError, ValueError, IndexError) as err:
+        except ValueError as err:
+            if "--max-input-gb" in str(err) or "pages of two shapes" in str(err):
+                raise
+            raise ValueError(f"mask {p.name}: not a readable TIFF, truncated or corrupt "
+                             f"({type(err).__name__}: {err})") from None
+        except (tifffile.TiffFileError, OSError, IndexError) as err:
             raise ValueError(f"mask {p.name}: not a readable TIFF, truncated or corrupt "
                              f"({type(err).__name__}: {err})") from None
     raise ValueError(f"mask {p.name}: use .npy, .npz or .tif")
