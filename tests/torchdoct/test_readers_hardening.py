@@ -254,7 +254,7 @@ def test_nan_samples_give_a_note_and_masked_signature(outdir, capsys):
     assert main(_maps_argv(outdir, path, "--resolution", "original", "--resolution", "lateral=18",
                            "--signature")) == 0
     out = capsys.readouterr().out
-    assert "note: nan.npy: 2 samples are NaN or infinite" in out and "1 at original" in out
+    assert "note: nan.npy: 2 samples are NaN or infinite, masked" in out and "(pixels: 1 at original" in out
     from torchdoct.measured.io import read_maps
 
     m = read_maps(outdir / "out" / "m.npz")

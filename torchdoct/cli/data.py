@@ -252,8 +252,9 @@ def _maps(args: argparse.Namespace) -> int:
     nonfinite = maps.meta.get("nonfinite")
     if nonfinite:  # masked per pixel (compute_maps): say how many and where
         per = ", ".join(f"{n} at {res}" for res, n in nonfinite["masked_pixels"].items())
-        print(f"note: {seq.source}: {nonfinite['samples']} samples are NaN or infinite; the pixels they reach are "
-              f"NaN in every channel ({per} pixels)")
+        n = nonfinite["samples"]
+        print(f"note: {seq.source}: {n} sample{'s are' if n != 1 else ' is'} NaN or infinite, masked: the pixels "
+              f"{'they reach' if n != 1 else 'it reaches'} are NaN in every channel (pixels: {per})")
     shape = "×".join(str(s) for s in maps.maps.shape[1:])
     print(f"{seq.source}: {seq.n_frames} frames, {'complex' if seq.is_complex else 'intensity'} "
           f"{list(seq.data.shape)} ({seq.axes}) → {len(maps.channels)} channels [{maps.meta['axes']}] {shape}")
