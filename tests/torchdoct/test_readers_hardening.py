@@ -377,3 +377,22 @@ def test_mask_over_the_limit_is_refused(tmp_path, capsys, monkeypatch, suffix):
     line = refused(capsys, tmp_path, ["compare", f"A={tmp_path / 'a.npz'}", "--mask", str(path)],
                    f"mask mask{suffix}", "4 KiB", "--max-input-gb")
     assert "mask mask mask" not in line
+
+
+@pytest.mark.parametrize("suffix", [".h5", ".tif"])
+def test_unreadable_hdf5_or_tiff_is_a_system_refusal(outdir, capsys, monkeypatch, suffix):
+    """Readers that wrap OS errors as 'not readable' (exit 2) are never reached: the open is tried first."""
+    import builtins
+
+    path = outdir / f"locked{suffix}"
+    path.write_bytes(b"x")
+    real_open = builtins.open
+
+    def guarded(file, *a, **k):
+        if str(file) == str(path):
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", guarded)
+    refused(capsys, outdir, _maps_argv(outdir, path, "--pitch-um", "z=2,x=2", "--frame-interval-s", "0.2"),
+            f"locked{suffix}", "Permission denied", code=1)

@@ -624,6 +624,8 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     if p.suffix.lower() not in SEQUENCE_SUFFIXES:
         raise ValueError(f"{p.name}: unknown sequence format; use {', '.join(SEQUENCE_SUFFIXES)}")
     suffix = p.suffix.lower()
+    with open(p, "rb"):  # a file the system does not let us read: PermissionError (exit 1), whatever the format
+        pass
     labels = params = None
     file_meta: dict | None = None
     try:
