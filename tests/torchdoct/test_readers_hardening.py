@@ -396,3 +396,19 @@ def test_unreadable_hdf5_or_tiff_is_a_system_refusal(outdir, capsys, monkeypatch
     monkeypatch.setattr(builtins, "open", guarded)
     refused(capsys, outdir, _maps_argv(outdir, path, "--pitch-um", "z=2,x=2", "--frame-interval-s", "0.2"),
             f"locked{suffix}", "Permission denied", code=1)
+
+
+def test_unreadable_maps_tiff_is_a_system_refusal(tmp_path, capsys, monkeypatch):
+    import builtins
+
+    path = tmp_path / "locked.tif"
+    tifffile.imwrite(path, np.ones((2, 6, 5), np.float32))
+    real_open = builtins.open
+
+    def guarded(file, *a, **k):
+        if str(file) == str(path):
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", guarded)
+    refused(capsys, tmp_path, ["compare", f"A={path}"], "locked.tif", "Permission denied", code=1)

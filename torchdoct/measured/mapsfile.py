@@ -171,6 +171,8 @@ def read_maps(path: str | os.PathLike) -> Maps:
         raise ValueError(f"maps file {p} is not a file")
     if p.stat().st_size == 0:
         raise ValueError(f"{p.name}: the file is empty (0 bytes). {_rewrite_fix(p)}")
+    with open(p, "rb"):  # a read the system refuses stays a PermissionError (exit 1), not 'unreadable' (2)
+        pass
     if p.suffix.lower() == ".npz":
         arr, names, meta = _read_npz(p)
         where = f"{p.name} meta_json"
