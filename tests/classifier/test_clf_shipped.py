@@ -24,7 +24,7 @@ REPRODUCTION_Z = 2.0
 
 
 @pytest.mark.parametrize("name", ["single-acquisition", "two-wavelength", "signature", "two-wavelength-signature",
-                                  "signature-bscan"])
+                                  "signature-bscan", "signature-bscan-field", "single-acquisition-bscan"])
 def test_shipped_model_metadata_and_report(name):
     assert DEFAULT_MODEL == "single-acquisition" and name in shipped_models()
     model = load_model(name, threads=1)
