@@ -253,7 +253,9 @@ def _classify(args: argparse.Namespace) -> int:
         total = max(res.info["classified"], 1)
         print(f"model {res.model.path.name} ({res.model.metadata['spec']['name']}), pool {res.info['pool']}: "
               f"{res.info['classified']} of {res.info['pixels']} pixels classified "
-              f"({res.info['background_pixels']} background, {res.info['nan_pixels']} NaN)")
+              f"({res.info['background_pixels']} background, {res.info['nan_pixels']} NaN"
+              + (f", {res.info['out_of_range_pixels']} with a feature outside its physical range: masked"
+                 if res.info.get("out_of_range_pixels") else "") + ")")
         for c in res.classes:
             print(f"  {c:>14}: {counts[c]:>9} ({counts[c] / total:6.1%})")
         print(f"  {res.info['pixels_per_s']:.3g} pixels/s; wrote {', '.join(p.name for p in written)} to {args.out}")

@@ -39,6 +39,7 @@ from torchdoct.sim import signature as _signature_module
 
 __all__ = [
     "METRIC_UNITS",
+    "physical_range",
     "REL_TOL",
     "metric_unit",
     "Configuration",
@@ -63,6 +64,37 @@ def metric_unit(metric: str) -> str:
     if metric in METRIC_UNITS:
         return METRIC_UNITS[metric]
     return _signature().feature_unit(metric)
+
+
+#: Largest LIV / dB variance a pixel can have and still be a DOCT measurement (dB²): fully developed
+#: speckle gives 31 dB² (physics.md §5.6); a value beyond this is corrupt input, not a sample.
+MAX_DB_VARIANCE_DB2 = 1e4
+
+
+def physical_range(metric: str, n_frames: int) -> tuple[float, float]:
+    """The values a feature can take from a real sequence of ``n_frames`` frames, ``(low, high)``.
+
+    Correlation coefficients (``rho_lin_M``, ``rho_db_M``) lie in [−1, 1], ``g1_M`` in [0, 1], a phase in
+    [−π, π], ``phase_ramp`` (a cosine) in [−1, 1]; the temporal contrast ``Var I/⟨I⟩²`` (ddof 0) in
+    [0, T − 1]; LIV and the dB variance in [0, :data:`MAX_DB_VARIANCE_DB2`]; OCDS (1/s) is any finite
+    number. ``doct-classify`` masks a pixel with a feature outside its range (and counts it): the
+    network was never shown such a value and would extrapolate (torchdoct.sim.signature for the
+    definitions)."""
+    tol = 1e-3  # float32 round-off of a coefficient computed from near-constant sequences
+    if metric == "ocds":
+        return -math.inf, math.inf
+    if metric == "liv":
+        return 0.0, MAX_DB_VARIANCE_DB2
+    kind, _ = _signature().parse_feature(metric)
+    if kind in ("rho_lin", "rho_db", "phase_ramp"):
+        return -1.0 - tol, 1.0 + tol
+    if kind == "g1":
+        return 0.0, 1.0 + tol
+    if kind == "g1_phase":
+        return -math.pi - tol, math.pi + tol
+    if kind == "lin_contrast":
+        return 0.0, float(max(n_frames - 1, 1)) * (1.0 + tol)
+    return 0.0, MAX_DB_VARIANCE_DB2  # db_variance
 
 
 def _num(path: str, value: Any, *, positive: bool = True) -> float:

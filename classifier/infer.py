@@ -38,6 +38,7 @@ from . import runtime
 from .matching import (SIGNATURE_MODEL, SIGNATURE_MODELS, MapsChannels, assemble_features, choose_default_model)
 from .outputs import (CLASS_COLORS, MAGNITUDE_CHANNELS, MASKED, OUTPUT_FILES, Classification, _legend, _overlay,
                       magnitude_maps, write_classification)
+from .features import physical_range
 from .pooling import effective_count, independent_fraction, model_inputs, pool_features
 from .rule import REASONS, apply_rule
 from .runtime import DEFAULT_MODEL, ClassifierModel
@@ -152,6 +153,13 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     # a pixel is finite iff the float64 sum of its features is (NaN and ±inf propagate; finite float32
     # values cannot overflow a float64 sum): one pass instead of a boolean array per feature
     finite = np.isfinite(feats.sum(axis=0, dtype=np.float64))
+    # a feature outside the values a real sequence can give (classifier.features.physical_range): corrupt
+    # input the network never saw; masked like a non-finite pixel, and counted
+    lo, hi = (np.array(b, np.float32)[:, None, ...] for b in zip(*(
+        physical_range(col["metric"], mdl.spec.n_frames) for col in mdl.columns[:-1])))
+    flat = feats.reshape(len(feats), -1)
+    outside = (np.any((flat < lo) | (flat > hi), axis=0) & finite.reshape(-1)).reshape(finite.shape)
+    finite &= ~outside
     bg, thr = _background(mean_db, background_db)
     valid = finite if bg is None else finite & ~bg
     meta0 = maps_list[0].meta
@@ -172,7 +180,8 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     background = bg if bg is not None else np.zeros(shape, bool)
     info.update({
         "pixels": n_pix, "classified": int(idx.size), "pool": int(pool), "pool_independent_fraction": frac,
-        "background_db_threshold": thr, "nan_pixels": int((~finite).sum()),
+        "background_db_threshold": thr, "nan_pixels": int((~finite).sum() - outside.sum()),
+        "out_of_range_pixels": int(outside.sum()),
         "background_pixels": int((background & finite).sum()),
         "indeterminate_reasons": {r: int((reasons == i).sum()) for i, r in enumerate(REASONS)},
         "min_probability": float(mdl.rule["min_probability"] if min_probability is None else min_probability),

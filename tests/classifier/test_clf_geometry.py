@@ -70,3 +70,31 @@ def test_a_phase_model_needs_bulk_phase_corrected_maps(maps):
         classify_maps(maps["bscan"], "signature-bscan-field", threads=1, background_db="none")
     res = classify_maps(maps["bscan-corrected"], "signature-bscan-field", threads=1, background_db="none")
     assert res.model.spec.name == "signature-bscan-field" and res.info["classified"] == 80
+
+
+def test_features_outside_their_physical_range_are_masked_and_counted(tmp_path):
+    """A feature no real sequence can give (a correlation of 3e38, a negative dB variance) is corrupt input:
+    the pixel is masked like a NaN pixel and counted, never given a motion class."""
+    from _clf_maps import feature_channels, maps_meta, save_maps
+
+    from classifier.features import load_spec, physical_range
+
+    spec = load_spec("signature")
+    chans = feature_channels(spec)
+    rng = np.random.default_rng(1)
+    data = rng.uniform(0.2, 0.9, size=(len(chans), 6, 7)).astype(np.float32)
+    names = [c["name"] for c in chans]
+    for i, n in enumerate(names):
+        if n.startswith("db_variance"):
+            data[i] = rng.uniform(5.0, 30.0, size=(6, 7))
+        if n.startswith("lin_contrast"):
+            data[i] = rng.uniform(0.5, 1.5, size=(6, 7))
+        if n.startswith("mean_db"):
+            data[i] = 20.0
+    data[names.index("rho_lin_1@original"), 0, 0] = 3e38
+    data[names.index("db_variance@axial=14"), 2, 3] = -1.0
+    path = save_maps(tmp_path / "corrupt.npz", data, maps_meta(spec, chans))
+    res = classify_maps(path, "signature", threads=1, background_db="none")
+    assert res.info["out_of_range_pixels"] == 2 and res.info["nan_pixels"] == 0
+    assert not res.mask[0, 0] and not res.mask[2, 3] and res.mask.sum() == 6 * 7 - 2
+    assert physical_range("rho_lin_3", 32) == (-1.001, 1.001) and physical_range("lin_contrast", 32)[1] > 31
