@@ -302,8 +302,7 @@ def draw_parameters(prior: Prior, seed: int, split: str, k: int, replicates: int
 def _lateral_y(c) -> dict[str, float]:
     """``{"lateral_resolution_y_um": Δy}`` for a configuration with an anisotropic lateral PSF (a B-scan's
     x-only lateral reduction keeps the original width along y), else ``{}`` (isotropic)."""
-    y = getattr(c, "lateral_resolution_y_um", None)
-    return {} if y is None else {"lateral_resolution_y_um": y}
+    return {} if c.lateral_resolution_y_um is None else {"lateral_resolution_y_um": c.lateral_resolution_y_um}
 
 
 def scene_for(spec: FeatureSpec, draw: Draw, prior: Prior, population: str = "moving"):

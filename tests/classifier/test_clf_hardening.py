@@ -14,30 +14,17 @@ import numpy as np
 import pytest
 
 from _clf_maps import feature_channels, maps_meta, save_maps
+from _refusal import refused as _refused
+from _refusal import tree as _tree
 from classifier.cli import classify_main, train_main
 from classifier.features import load_spec
 
 SPECS = Path(__file__).resolve().parents[2] / "classifier" / "specs"
 
 
-def _tree(d: Path) -> dict[str, int]:
-    return {str(p.relative_to(d)): p.stat().st_mtime_ns for p in d.rglob("*")}
-
-
 def refused(capsys, tmp_path: Path, run, argv: list[str], *names: str, absent: tuple[str, ...] = ()) -> str:
     """Exit 2, one ``error:`` line naming ``names`` (and not ``absent``), no traceback, nothing written."""
-    before = _tree(tmp_path)
-    code = run(argv)
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in err, err
-    for n in names:
-        assert n in lines[0], (n, lines[0])
-    for n in absent:
-        assert n not in lines[0], (n, lines[0])
-    assert _tree(tmp_path) == before
-    return lines[0]
+    return _refused(capsys, tmp_path, argv, *names, run=run, absent=absent)
 
 
 @pytest.fixture()

@@ -42,11 +42,11 @@ FLOORS = {1: {"balanced_accuracy": 0.78, "coverage": 0.75, "magnitude": 0.15},
           5: {"balanced_accuracy": 0.84, "coverage": 0.90, "magnitude": 0.12}}
 
 
-@pytest.fixture(scope="module")
-def chain(tmp_path_factory):
-    d = tmp_path_factory.mktemp("motion-types")
+def _render_map_classify(tmp_path_factory, phantom: str):
+    """The README's chain on a shipped phantom: render → maps --signature → doct-classify at pools 1 and 5."""
+    d = tmp_path_factory.mktemp(phantom)
     seq, maps = d / "seq.npz", d / "maps.npz"
-    assert torchdoct_main(["render", "motion-types", "--out", str(seq), "--no-progress", "--no-preview",
+    assert torchdoct_main(["render", phantom, "--out", str(seq), "--no-progress", "--no-preview",
                            "--threads", "1"]) == 0
     assert torchdoct_main(["maps", str(seq), "--resolution", "original", "--resolution", "axial=14",
                            "--resolution", "lateral=18", "--signature", "--out", str(maps), "--no-progress",
@@ -56,6 +56,11 @@ def chain(tmp_path_factory):
         out[pool] = d / f"classified-{pool}"
         assert classify_main([str(maps), "--out", str(out[pool]), "--pool", str(pool), "--threads", "1"]) == 0
     return seq, out
+
+
+@pytest.fixture(scope="module")
+def chain(tmp_path_factory):
+    return _render_map_classify(tmp_path_factory, "motion-types")
 
 
 def test_phantom_regions_are_identifiable():
@@ -188,18 +193,7 @@ OBLIQUE_FLOORS = {1: {"balanced_accuracy": 0.85, "coverage": 0.85}, 5: {"balance
 
 @pytest.fixture(scope="module")
 def oblique_chain(tmp_path_factory):
-    d = tmp_path_factory.mktemp("oblique-flow")
-    seq, maps = d / "seq.npz", d / "maps.npz"
-    assert torchdoct_main(["render", "oblique-flow", "--out", str(seq), "--no-progress", "--no-preview",
-                           "--threads", "1"]) == 0
-    assert torchdoct_main(["maps", str(seq), "--resolution", "original", "--resolution", "axial=14",
-                           "--resolution", "lateral=18", "--signature", "--out", str(maps), "--no-progress",
-                           "--threads", "1"]) == 0
-    out = {}
-    for pool in (1, 5):
-        out[pool] = d / f"classified-{pool}"
-        assert classify_main([str(maps), "--out", str(out[pool]), "--pool", str(pool), "--threads", "1"]) == 0
-    return seq, out
+    return _render_map_classify(tmp_path_factory, "oblique-flow")
 
 
 @pytest.mark.parametrize("pool", [1, 5])

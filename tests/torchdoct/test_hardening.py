@@ -16,30 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from _refusal import refused
+from _refusal import tree as _tree
 from torchdoct.cli import main
 
 DEEP = "[" * 5000 + "]" * 5000
 SPHEROID = Path(__file__).resolve().parents[2] / "torchdoct" / "data" / "phantoms" / "spheroid.toml"
-
-
-def _tree(d: Path) -> dict[str, int]:
-    return {str(p.relative_to(d)): p.stat().st_mtime_ns for p in d.rglob("*")}
-
-
-def refused(capsys, tmp_path: Path, argv: list[str], *names: str, code: int = 2, run=main) -> str:
-    """``run(argv)`` exits with ``code`` and one ``error:`` line naming every one of ``names``, no
-    traceback, and writes nothing under ``tmp_path``."""
-    before = _tree(tmp_path)
-    got = run(argv)
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert got == code, err
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    assert "Traceback" not in err
-    for n in names:
-        assert n in lines[0], (n, lines[0])
-    assert _tree(tmp_path) == before, "nothing may be written"
-    return lines[0]
 
 
 @pytest.fixture()

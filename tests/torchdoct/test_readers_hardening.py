@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from _refusal import refused
+from _refusal import tree as _tree
 from torchdoct.cli import main
 from torchdoct.measured import guards
 from torchdoct.measured.io import read_sequence
@@ -33,24 +35,6 @@ def _default_limit(monkeypatch):
     guards.set_max_input_gb(None)
     yield
     guards.set_max_input_gb(None)
-
-
-def _tree(d: Path) -> dict[str, int]:
-    return {str(p.relative_to(d)): p.stat().st_mtime_ns for p in d.rglob("*")}
-
-
-def refused(capsys, tmp_path: Path, argv: list[str], *names: str, code: int = 2) -> str:
-    before = _tree(tmp_path)
-    got = main(argv)
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert got == code, err
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    assert "Traceback" not in err
-    for n in names:
-        assert n in lines[0], (n, lines[0])
-    assert _tree(tmp_path) == before, "nothing may be written"
-    return lines[0]
 
 
 def _field(shape=(8, 6, 5), seed=0) -> np.ndarray:
