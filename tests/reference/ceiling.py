@@ -1,0 +1,644 @@
+"""The accuracy ceiling of the signature features on independent data: the strongest practical
+classifier trained on data drawn from the independent prior itself, tested on the same independent
+set as :mod:`evaluate_models`.
+
+Run (from the repository root; resumable, see *Cost*)::
+
+    python -m tests.reference.ceiling --out DIR [--parts a,b,c] [--sizes 150,300,600] [--budget-seconds 540]
+
+Writes ``<out>/independent-ceiling.json`` and ``.md`` (never over existing files without ``--force``)
+and prints a summary.
+
+**What it measures.** The shipped models are trained on the training prior
+(:class:`classifier.dataset.Prior`) and tested by :mod:`evaluate_models` on another prior and another
+simulator. A model trained on draws of the *test* prior (a matched prior: optimistic) bounds what the
+features can give on that data; where it stays below a goal, the gap is the features' (what the
+configurations and estimators measure), and where it lies above the shipped model, the gap is the
+shipped model's and its training prior's.
+
+**Data.** Test set: draws ``0..N−1`` of :func:`evaluate_models.draw_independent` with seed
+``--test-seed`` (0: the set of the ``*-independent.md`` reports), simulated by
+:func:`evaluate_models.draw_features` (the reference simulator, every configuration of the spec seeing
+the same scatterers; features by ``torchdoct.sim.signature``), ground truth by
+:func:`classifier.dataset.identifiability` under :func:`evaluate_models.independent_prior` with the
+shipped model's ε. Training sets: draws ``0..M−1`` of the same prior with seed ``--train-seed`` (1),
+so every training draw has its own parameters and simulator seed (disjoint from the test draws;
+the sizes are nested prefixes of one sequence), simulated
+
+* by the reference simulator (parts **a**, **b**), or
+* by torchdoct (:func:`classifier.dataset.simulate_draw`, the training data's simulator at the shipped
+  recipe's truncation, taper), the same draws as a :class:`classifier.dataset.Draw`
+  (:func:`evaluate_models.dataset_draw`) under :func:`evaluate_models.independent_prior` (part **c**):
+  the same prior exactly, only the simulator differs from the test set's.
+
+Parts (:data:`PARTS`): **a** the ``signature`` spec (volume; its 36 intensity features: ``rho_lin`` at
+10 lags, ``lin_contrast``, ``db_variance`` at 3 configurations); **b** ``signature-bscan-field``
+(B-scan geometry; the intensity features and the field group ``g1`` at 6 lags, phase-stable data: the
+reference simulator has no bulk phase), with **b-int** its intensity columns alone (the features of
+``signature-bscan``, same data: what the field group adds); **c** part a's classifier trained on
+torchdoct data (a − c = the simulator gap; c − shipped = the model's and its training prior's gap).
+
+**Classifier.** ``sklearn.ensemble.HistGradientBoostingClassifier`` on the raw features (trees are
+invariant to monotone transforms of a feature), three classes (no indeterminate class: every draw of
+this prior is identifiable), on the identifiable training pixels, one thread, fixed ``random_state``;
+one classifier per pool: pool 1 on single pixels, pool 25 on means of 25 of a draw's pixels
+(:data:`TRAIN_POOLED_PER_DRAW` random subsets per training draw; the test pools are
+:mod:`evaluate_models`' own: 8 subsets per draw, :func:`classifier.train.pooled_samples`, the same
+generator seed).
+
+**Metrics.** Decisions by the top-class probability above a threshold chosen so that a fraction ``q``
+of the identifiable pixels is decided (:func:`coverage_threshold`; ``q`` in :data:`COVERAGES`), and by
+the shipped rule (``max p ≥ 0.5``); at each: :func:`classifier.report.evaluate` (balanced accuracy
+over the decided identifiable pixels, per-class recall) and :func:`classifier.report.flow_recall_by_band`
+(flow recall by polar band 0-30°/30-60°/60-90° and by speed decade). The shipped model of each part
+(:data:`SHIPPED`) is scored on the same test pixels by the same thresholds (paired). ± = bootstrap
+SE over test draws (:func:`evaluate_models._bootstrap`, threshold held fixed).
+
+**Cost** (one core). Simulation dominates; features are cached per draw under ``<out>/cache`` and
+a run stops cleanly after ``--budget-seconds`` of simulation (exit status 3: run it again to resume),
+so it can be run in chunks; the fits and the report come once every set is cached.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+try:  # run as `python -m tests.reference.ceiling`
+    from . import evaluate_models as em
+except ImportError:  # imported by the tests (tests/reference on sys.path)
+    import evaluate_models as em
+
+__all__ = ["PARTS", "SHIPPED", "COVERAGES", "POOLS", "TRAIN_POOLED_PER_DRAW", "FeatureCache", "load_set",
+           "pool_samples", "subset", "fit_gb", "coverage_threshold", "score", "part_columns", "run", "main"]
+
+#: part -> (spec, training-data simulator, feature columns: "all" or "intensity").
+PARTS: dict[str, tuple[str, str, str]] = {
+    "a": ("signature", "refsim", "all"),
+    "b": ("signature-bscan-field", "refsim", "all"),
+    "b-int": ("signature-bscan-field", "refsim", "intensity"),
+    "c": ("signature", "torchdoct", "all"),
+}
+#: The shipped model each part is compared with (scored on the same test pixels).
+SHIPPED = {"a": "signature", "b": "signature-bscan-field", "b-int": "signature-bscan", "c": "signature"}
+PART_TEXT = {
+    "a": "signature features (volume), trained on reference-simulator draws of the independent prior",
+    "b": "signature-bscan-field features (B-scan, intensity + field group g1, phase-stable), reference-simulator "
+         "draws of the independent prior",
+    "b-int": "the intensity columns of b alone (the signature-bscan features), same data",
+    "c": "signature features (volume), trained on torchdoct (taper) draws of the independent prior, tested on the "
+         "reference simulator",
+}
+#: Fractions of the identifiable test pixels decided (accuracy-coverage curve).
+COVERAGES = (0.7, 0.8, 0.9, 1.0)
+POOLS = (1, 25)
+TRAIN_POOLED_PER_DRAW = 16
+DEFAULT_SIZES = (150, 300, 600)
+DEFAULT_TEST_DRAWS = em.DEFAULT_DRAWS
+N_BOOT = 200
+GB_PARAMS = {"max_iter": 400, "learning_rate": 0.1, "max_leaf_nodes": 31, "min_samples_leaf": 40,
+             "l2_regularization": 1.0, "early_stopping": True, "validation_fraction": 0.15, "n_iter_no_change": 20}
+_CLASSES = ("diffusion", "ballistic", "flow")
+_CLASS_NAMES = (*_CLASSES, "indeterminate")
+EXIT_INCOMPLETE = 3
+
+
+# ------------------------------------------------------------------------------------------------
+# simulated features, cached per draw
+
+
+def _truncation(spec_name: str) -> tuple[float, str]:
+    from classifier.train import TrainConfig
+
+    cfg = TrainConfig.for_spec(spec_name)
+    return float(cfg.truncation_tolerance), str(cfg.truncation)
+
+
+def simulate_features(spec, d: "em.IndependentDraw", trials: int, source: str, epsilon: float) -> np.ndarray:
+    """Features ``[trials, F]`` (float32, the spec's order) of one independent draw by ``source``:
+    ``"refsim"`` (:func:`evaluate_models.draw_features`) or ``"torchdoct"``
+    (:func:`classifier.dataset.simulate_draw` at the shipped recipe's truncation; empty-volume pixels
+    as NaN rows, dropped like non-finite ones)."""
+    if source == "refsim":
+        return em.draw_features(spec, d, trials)
+    if source != "torchdoct":
+        raise ValueError(f"unknown source {source!r} (refsim or torchdoct)")
+    from classifier.dataset import simulate_draw
+
+    tol, mode = _truncation(spec.name)
+    x, zero = simulate_draw(spec, em.dataset_draw(d), em.independent_prior(epsilon), trials=trials,
+                            truncation_tolerance=tol, truncation=mode)[:2]
+    x = x[0].astype(np.float32)
+    x[zero[0]] = np.nan
+    return x
+
+
+class FeatureCache:
+    """Per-draw feature files ``<root>/<source>-<spec>-seed<S>-trials<T>/k<k>.npy`` (atomic writes)."""
+
+    def __init__(self, root: str | os.PathLike, spec, source: str, seed: int, trials: int, epsilon: float):
+        self.spec, self.source, self.seed, self.trials, self.epsilon = spec, source, int(seed), int(trials), epsilon
+        self.dir = Path(root) / f"{source}-{spec.name}-seed{self.seed}-trials{self.trials}"
+
+    def path(self, k: int) -> Path:
+        return self.dir / f"k{int(k):05d}.npy"
+
+    def missing(self, draws: int) -> list[int]:
+        return [k for k in range(draws) if not self.path(k).exists()]
+
+    def fill(self, draws: int, deadline: float | None = None, progress: bool = False) -> bool:
+        """Simulate the missing draws ``< draws``; stop after the draw that passes ``deadline``
+        (``time.perf_counter()`` value). True when all are cached."""
+        todo = self.missing(draws)
+        if not todo:
+            return True
+        self.dir.mkdir(parents=True, exist_ok=True)
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=len(todo), unit="draw", desc=self.dir.name)
+        seconds = self.seconds()
+        try:
+            for k in todo:
+                t = time.process_time()
+                x = simulate_features(self.spec, em.draw_independent(self.seed, k), self.trials, self.source,
+                                      self.epsilon)
+                tmp = self.dir / f".k{k:05d}.tmp.npy"
+                np.save(tmp, x.astype(np.float32))
+                os.replace(tmp, self.path(k))
+                seconds[str(k)] = time.process_time() - t
+                if bar is not None:
+                    bar.update(1)
+                if deadline is not None and time.perf_counter() > deadline:
+                    break
+        finally:
+            tmp = self.dir / ".seconds.json.tmp"
+            tmp.write_text(json.dumps(seconds), encoding="utf-8")
+            os.replace(tmp, self.dir / "seconds.json")
+            if bar is not None:
+                bar.close()
+        return not self.missing(draws)
+
+    def seconds(self) -> dict[str, float]:
+        """CPU seconds of each cached draw's simulation (``seconds.json``; {} when absent)."""
+        p = self.dir / "seconds.json"
+        if not p.exists():
+            return {}
+        try:
+            d = json.loads(p.read_text(encoding="utf-8"))
+        except ValueError:
+            return {}
+        return {str(k): float(v) for k, v in d.items()} if isinstance(d, dict) else {}
+
+    def load(self, k: int) -> np.ndarray:
+        x = np.load(self.path(k), allow_pickle=False)
+        if x.ndim != 2 or x.shape != (self.trials, self.spec.n_features):
+            raise ValueError(f"{self.path(k)}: features of shape {x.shape}, expected "
+                             f"({self.trials}, {self.spec.n_features}); delete it to simulate it again")
+        return x
+
+
+def load_set(cache: FeatureCache, draws: int, *, features: np.ndarray | None = None):
+    """The draws ``0..draws−1`` of a cache as a :class:`classifier.dataset.Dataset` (ground truth as in
+    :func:`evaluate_models.evaluate_model`; non-finite rows dropped). ``features``: an already
+    simulated ``[draws, trials, F]`` array instead of the cache files (the tests)."""
+    from classifier.dataset import STATUS, Dataset, identifiability
+
+    prior = em.independent_prior(cache.epsilon)
+    cols: dict[str, list] = {k: [] for k in ("x", "y", "draw", "status", "magnitude", "snr_db", "polar_angle_deg")}
+    for k in range(draws):
+        d = em.draw_independent(cache.seed, k)
+        status, _, _ = identifiability(cache.spec, em.dataset_draw(d), prior)
+        x = cache.load(k) if features is None else np.asarray(features[k], np.float32)
+        x = x[np.all(np.isfinite(x), axis=1)]
+        n = len(x)
+        cols["x"].append(x)
+        cols["y"].append(np.full(n, d.label, np.int64))
+        cols["draw"].append(np.full(n, k, np.int64))
+        cols["status"].append(np.full(n, STATUS.index(status), np.int64))
+        cols["magnitude"].append(np.full(n, d.magnitude))
+        cols["snr_db"].append(np.full(n, d.snr_db))
+        cols["polar_angle_deg"].append(np.full(n, d.polar_angle_deg if d.label == 2 else math.nan))
+    a = {k: np.concatenate(v) for k, v in cols.items()}
+    return Dataset(x=a["x"].reshape(-1, cache.spec.n_features), y=a["y"], draw=a["draw"], group=a["draw"],
+                   status=a["status"], magnitude=a["magnitude"], density=np.full(a["y"].shape, em.DENSITY),
+                   static_fraction=np.zeros(a["y"].shape), snr_db=a["snr_db"], polar_angle_deg=a["polar_angle_deg"])
+
+
+def subset(ds, index: np.ndarray):
+    """The rows ``index`` of a :class:`classifier.dataset.Dataset`."""
+    from classifier.dataset import Dataset
+
+    return Dataset(**{k: v[index] for k, v in ds.arrays().items()})
+
+
+def pool_samples(ds, pool: int, seed: int, per_draw: int = em.POOLED_PER_DRAW) -> dict[str, np.ndarray]:
+    """Samples of ``ds`` at ``pool`` (1: every pixel; ``n > 1``: ``per_draw`` means of ``n`` pixels per
+    draw, :func:`classifier.train.pooled_samples` with :mod:`evaluate_models`' generator
+    ``SeedSequence(seed, spawn_key=(1, n))``). The pool column is not appended."""
+    from classifier.train import pooled_samples
+
+    if pool == 1:
+        return {"x": ds.x, "y": ds.y, "status": ds.status, "draw": ds.draw, "magnitude": ds.magnitude,
+                "polar_angle_deg": ds.polar_angle_deg}
+    rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(1, int(pool))))
+    s = pooled_samples(ds, [np.full(per_draw, pool) for _ in np.unique(ds.group)], rng)
+    s["x"] = s["x"][:, :-1] if s["x"].shape[1] == ds.x.shape[1] + 1 else s["x"]
+    return s
+
+
+def part_columns(spec, which: str) -> np.ndarray:
+    """Column indices of ``which`` features of ``spec``: ``"all"`` or ``"intensity"`` (no field feature)."""
+    if which == "all":
+        return np.arange(spec.n_features)
+    if which != "intensity":
+        raise ValueError(f"unknown feature group {which!r} (all or intensity)")
+    from torchdoct.sim.signature import needs_field
+
+    return np.array([i for i, (m, _) in enumerate(spec.features) if not needs_field(m)])
+
+
+# ------------------------------------------------------------------------------------------------
+# classifier and metrics
+
+
+def fit_gb(x: np.ndarray, y: np.ndarray, seed: int = 0):
+    """``HistGradientBoostingClassifier`` (:data:`GB_PARAMS`, one thread, ``random_state = seed``)."""
+    from sklearn.ensemble import HistGradientBoostingClassifier
+    from threadpoolctl import threadpool_limits
+
+    if set(np.unique(y)) != {0, 1, 2}:
+        raise ValueError("the training pixels must hold every motion type")
+    with threadpool_limits(1):
+        return HistGradientBoostingClassifier(random_state=int(seed), **GB_PARAMS).fit(x, y)
+
+
+def predict_gb(model, x: np.ndarray) -> np.ndarray:
+    """Probabilities ``[N, 4]``: the three motion types, and an ``indeterminate`` column of 0."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        p = model.predict_proba(x)
+    return np.concatenate([p, np.zeros((len(p), 1))], axis=1)
+
+
+def coverage_threshold(probabilities: np.ndarray, status: np.ndarray, q: float) -> float:
+    """The ``min_probability`` that decides the ``round(q·n)`` most confident of the ``n`` identifiable
+    samples (``status == 0``) whose top class is not the last (``indeterminate``): 0 when there are no
+    more than that (all of them decided; coverage may then stay below ``q``)."""
+    if not 0.0 < q <= 1.0:
+        raise ValueError(f"coverage must be in (0, 1]; got {q!r}")
+    p = np.asarray(probabilities)
+    ident = status == 0
+    eligible = p.argmax(1) != p.shape[1] - 1
+    conf = np.sort(p.max(1)[ident & eligible])[::-1]
+    n = int(round(q * int(ident.sum())))
+    if n >= conf.size or n == 0:
+        return 0.0
+    return float(conf[n - 1])
+
+
+def score(probabilities: np.ndarray, s: dict[str, np.ndarray], *, threshold: float, n_boot: int = N_BOOT,
+          seed: int = 0) -> dict[str, Any]:
+    """Metrics of the decisions ``max p ≥ threshold`` (the module docstring) with bootstrap SEs."""
+    from classifier.report import evaluate, flow_recall_by_band
+    from classifier.rule import make_rule
+
+    rule = make_rule(0.05, min(max(threshold, 0.0), np.nextafter(1.0, 0.0)))
+    y, st, dr = s["y"], s["status"], s["draw"]
+
+    def ev(i):
+        return evaluate(probabilities[i], y[i], st[i], _CLASS_NAMES, rule)
+
+    def fb(i):
+        return flow_recall_by_band(probabilities[i], y[i], st[i], s["polar_angle_deg"][i], s["magnitude"][i],
+                                   _CLASS_NAMES, rule)
+
+    allx = np.arange(len(y))
+    m, b = ev(allx), fb(allx)
+    out = {"min_probability": float(threshold), "coverage": m["coverage_identifiable"],
+           "balanced_accuracy": m["balanced_accuracy_identifiable"], "accuracy": m["accuracy_identifiable"],
+           "recall": m["recall_identifiable"],
+           "flow_polar_bands": {k: v["recall"] for k, v in b["polar_bands"].items()},
+           "flow_polar_bands_coverage": {k: v["coverage"] for k, v in b["polar_bands"].items()},
+           "flow_polar_bands_as": {k: v["as"] for k, v in b["polar_bands"].items()},
+           "flow_speed_decades": {k: v["recall"] for k, v in b["speed_decades"].items()}}
+    if n_boot >= 2:
+        def scalars(i):
+            mm, bb = ev(i), fb(i)
+            d = {"coverage": mm["coverage_identifiable"], "balanced_accuracy": mm["balanced_accuracy_identifiable"]}
+            d.update({f"recall:{c}": v for c, v in mm["recall_identifiable"].items()})
+            d.update({f"band:{k}": v["recall"] for k, v in bb["polar_bands"].items()})
+            d.update({f"decade:{k}": v["recall"] for k, v in bb["speed_decades"].items()})
+            return d
+
+        out["se"] = em._bootstrap(scalars, dr, n_boot, seed)
+    return out
+
+
+def score_curve(probabilities: np.ndarray, s: dict[str, np.ndarray], *, n_boot: int, seed: int,
+                rule_threshold: float = 0.5) -> dict[str, Any]:
+    """:func:`score` at every coverage of :data:`COVERAGES` and at the shipped rule's threshold."""
+    out = {f"coverage {q:g}": score(probabilities, s, threshold=coverage_threshold(probabilities, s["status"], q),
+                                    n_boot=n_boot, seed=seed) for q in COVERAGES}
+    out[f"min_probability {rule_threshold:g}"] = score(probabilities, s, threshold=rule_threshold, n_boot=n_boot,
+                                                       seed=seed)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# the run
+
+
+def _shipped(name: str):
+    from classifier.infer import load_model
+
+    return load_model(name, threads=1)
+
+
+def _shipped_probs(mdl, spec, x: np.ndarray, pool: int) -> np.ndarray:
+    """The shipped model's probabilities on features of ``spec`` (its own columns picked by name)."""
+    names = list(mdl.spec.feature_names)
+    have = list(spec.feature_names)
+    missing = [n for n in names if n not in have]
+    if missing:
+        raise ValueError(f"shipped model {mdl.path.name} reads {missing}, which spec {spec.name} does not hold")
+    cols = [have.index(n) for n in names]
+    xx = np.concatenate([x[:, cols], np.full((len(x), 1), float(pool), np.float32)], axis=1)
+    probs, _, _ = mdl.predict_all(xx, magnitude=False)
+    if list(mdl.classes) != list(_CLASS_NAMES):
+        raise ValueError(f"shipped model {mdl.path.name}: classes {mdl.classes}, expected {list(_CLASS_NAMES)}")
+    return probs.astype(np.float64)
+
+
+def caches_for(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: int, trials: int,
+               train_seed: int, test_seed: int, epsilon: float) -> list[tuple[FeatureCache, int]]:
+    """Every (cache, draws) the parts need, test sets first; one cache per (source, spec, seed)."""
+    from classifier.features import load_spec
+
+    need: dict[tuple, tuple[FeatureCache, int]] = {}
+    root = out / "cache"
+    for p in parts:
+        spec_name, source, _ = PARTS[p]
+        spec = load_spec(spec_name)
+        for src, seed, n in (("refsim", test_seed, test_draws), (source, train_seed, max(sizes))):
+            key = (src, spec_name, seed)
+            c = need.get(key, (FeatureCache(root, spec, src, seed, trials, epsilon), 0))[0]
+            need[key] = (c, max(n, need.get(key, (c, 0))[1]))
+    return sorted(need.values(), key=lambda cn: (cn[0].seed != test_seed, cn[0].source, cn[0].spec.name))
+
+
+def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: int, trials: int, train_seed: int,
+        test_seed: int, n_boot: int, budget_s: float | None, progress: bool) -> dict[str, Any] | None:
+    """Simulate what is missing (within ``budget_s``); when everything is cached, fit and score every
+    part and size and return the report (else None)."""
+    t0 = time.perf_counter()
+    epsilon = float(_shipped(SHIPPED["a"]).rule["epsilon"])
+    caches = caches_for(out, parts, sizes=sizes, test_draws=test_draws, trials=trials, train_seed=train_seed,
+                        test_seed=test_seed, epsilon=epsilon)
+    deadline = None if budget_s is None else t0 + float(budget_s)
+    for c, n in caches:
+        if not c.fill(n, deadline, progress):
+            return None
+    sim_s = time.perf_counter() - t0
+    from classifier.features import load_spec
+
+    results: dict[str, Any] = {}
+    fit_s: dict[str, float] = {}
+    for p in parts:
+        spec_name, source, which = PARTS[p]
+        spec = load_spec(spec_name)
+        cols = part_columns(spec, which)
+        test = load_set(FeatureCache(out / "cache", spec, "refsim", test_seed, trials, epsilon), test_draws)
+        train_all = load_set(FeatureCache(out / "cache", spec, source, train_seed, trials, epsilon), max(sizes))
+        mdl = _shipped(SHIPPED[p])
+        res: dict[str, Any] = {"spec": spec_name, "train_source": source, "features": which,
+                               "feature_names": [spec.feature_names[i] for i in cols], "shipped": SHIPPED[p],
+                               "text": PART_TEXT[p], "pools": {}}
+        t1 = time.perf_counter()
+        for pool in POOLS:
+            ts = pool_samples(test, pool, test_seed)
+            r: dict[str, Any] = {"test_samples": int(len(ts["y"])), "by_size": {}}
+            r["shipped"] = score_curve(_shipped_probs(mdl, spec, ts["x"], pool), ts, n_boot=n_boot, seed=test_seed)
+            for n in sorted(sizes):
+                keep = (train_all.draw < n) & (train_all.status == 0)
+                sub = subset(train_all, np.flatnonzero(keep))
+                trs = pool_samples(sub, pool, train_seed, per_draw=TRAIN_POOLED_PER_DRAW)
+                gb = fit_gb(trs["x"][:, cols], trs["y"], seed=train_seed)
+                probs = predict_gb(gb, ts["x"][:, cols])
+                r["by_size"][str(n)] = {"train_draws": int(n), "train_samples": int(len(trs["y"])),
+                                        "gb_iterations": int(gb.n_iter_),
+                                        **score_curve(probs, ts, n_boot=n_boot if n == max(sizes) else 0,
+                                                      seed=test_seed)}
+            res["pools"][str(pool)] = r
+        fit_s[p] = time.perf_counter() - t1
+        results[p] = res
+    import classifier
+    import sklearn
+    import torchdoct
+
+    return {"versions": {"classifier": classifier.__version__, "torchdoct": torchdoct.__version__,
+                         "sklearn": sklearn.__version__},
+            "command": command_line(parts, sizes, test_draws, trials, train_seed, test_seed, n_boot),
+            "test_seed": int(test_seed), "train_seed": int(train_seed), "test_draws": int(test_draws),
+            "train_sizes": [int(n) for n in sorted(sizes)], "trials_per_draw": int(trials), "pools": list(POOLS),
+            "coverages": list(COVERAGES), "epsilon": epsilon, "gb_params": GB_PARAMS,
+            "train_pooled_per_draw": TRAIN_POOLED_PER_DRAW, "test_pooled_per_draw": em.POOLED_PER_DRAW,
+            "n_boot": int(n_boot), "prior": em.PRIOR_TEXT, "simulation": em.SIM_TEXT,
+            "targets": em.TARGETS, "parts": results,
+            "seconds": {"this_run_simulation": sim_s, "fits_and_scores": fit_s,
+                        "simulation_per_set": _cache_seconds(caches)}}
+
+
+def _cache_seconds(caches) -> dict[str, dict[str, float]]:
+    """Draws and CPU seconds of the simulation of every cached set (over the runs that filled it)."""
+    out = {}
+    for c, n in caches:
+        sec = c.seconds()
+        v = [sec[str(k)] for k in range(n) if str(k) in sec]
+        out[c.dir.name] = {"draws": int(n), "cpu_seconds": float(sum(v)),
+                           "cpu_seconds_per_draw": float(np.mean(v)) if v else math.nan}
+    return out
+
+
+def command_line(parts, sizes, test_draws, trials, train_seed, test_seed, n_boot) -> str:
+    return (f"python -m tests.reference.ceiling --out DIR --parts {','.join(parts)} --sizes "
+            f"{','.join(str(n) for n in sorted(sizes))} --test-draws {test_draws} --trials {trials} "
+            f"--train-seed {train_seed} --test-seed {test_seed} --boot {n_boot}")
+
+
+# ------------------------------------------------------------------------------------------------
+# report
+
+
+def _f(v: Any, d: int = 3) -> str:
+    return "n/a" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{v:.{d}f}"
+
+
+def _pm(r: dict[str, Any], key: str, se_key: str | None = None) -> str:
+    v = r
+    for k in key.split("/"):
+        v = v.get(k, {}) if isinstance(v, dict) else None
+    se = r.get("se", {}).get(se_key or key)
+    return _f(v) if se is None or not math.isfinite(se) else f"{_f(v)} ± {se:.3f}"
+
+
+def _row(label: str, r: dict[str, Any]) -> str:
+    bands = " / ".join(_pm(r, f"flow_polar_bands/{b}", f"band:{b}") for b in ("0-30", "30-60", "60-90"))
+    rec = " / ".join(_pm(r, f"recall/{c}", f"recall:{c}") for c in _CLASSES)
+    return f"| {label} | {_f(r['coverage'])} | {_pm(r, 'balanced_accuracy')} | {rec} | {bands} |"
+
+
+def format_markdown(rep: dict[str, Any]) -> str:
+    cmd = rep["command"]
+    L = ["# The ceiling of the signature features on independent data", "",
+         f"Test set: {rep['test_draws']} draws × {rep['trials_per_draw']} pixels of the independent prior, seed "
+         f"{rep['test_seed']} (the set of the `*-independent.md` reports), {rep['simulation']}. Training sets: the "
+         f"first {', '.join(str(n) for n in rep['train_sizes'])} draws of the same prior with seed {rep['train_seed']} "
+         f"(disjoint draws: own parameters and simulator seeds). Prior: {rep['prior']}.", "",
+         "Classifier: HistGradientBoosting (" + ", ".join(f"{k}={v}" for k, v in rep["gb_params"].items())
+         + "), three classes, one per pool (pool 25: "
+         f"{rep['train_pooled_per_draw']} means of 25 pixels per training draw; test pools as evaluate_models: "
+         f"{rep['test_pooled_per_draw']} per draw). A matched prior: an optimistic ceiling. Decisions: the top "
+         "class where its probability passes the threshold that decides the stated share of the identifiable "
+         "test pixels (coverage), or 0.5 (the shipped rule). The shipped model of each part is scored on the same "
+         "test pixels at the same coverages (paired). ± = bootstrap SE over test draws "
+         f"({rep['n_boot']} resamples).", "",
+         f"Reproduce every number below: `{cmd}` (DIR: any directory; the simulated features are cached there "
+         "and a run resumes; `--budget-seconds S` stops after S s of simulation with exit status 3).", ""]
+    main_size = str(max(rep["train_sizes"]))
+    L += ["## Pool 1 at coverage 0.80 (the goal: balanced accuracy ≥ 0.88 at coverage ≥ 0.80, flow recall ≥ 0.80 "
+          "in every polar band)", "",
+          "| part | model | coverage | bal. acc. | recall diffusion / ballistic / flow | flow recall 0-30° / 30-60° / "
+          "60-90° |", "|---|---|---:|---:|---|---|"]
+    for p, res in rep["parts"].items():
+        r1 = res["pools"]["1"]
+        L.append(_row(f"{p} | ceiling ({main_size} draws)", r1["by_size"][main_size]["coverage 0.8"]))
+        L.append(_row(f"{p} | shipped `{res['shipped']}`", r1["shipped"]["coverage 0.8"]))
+    L += ["", "Parts: " + "; ".join(f"**{p}** {res['text']}" for p, res in rep["parts"].items()) + ".", ""]
+    for p, res in rep["parts"].items():
+        L += [f"## Part {p}: {res['text']}", "", f"Spec `{res['spec']}`, {len(res['feature_names'])} features "
+              f"({res['features']}), training simulator {res['train_source']}; compared with `{res['shipped']}`.", ""]
+        for pool, r in res["pools"].items():
+            L += [f"### Pool {pool} ({r['test_samples']} test samples)", "",
+                  "| model | decision | coverage | bal. acc. | recall diffusion / ballistic / flow | flow recall "
+                  "0-30° / 30-60° / 60-90° |", "|---|---|---:|---:|---|---|"]
+            for n, rn in r["by_size"].items():
+                for key in [f"coverage {q:g}" for q in rep["coverages"]] + ["min_probability 0.5"]:
+                    L.append(_row(f"ceiling, {n} draws | {key}", rn[key]))
+            for key in [f"coverage {q:g}" for q in rep["coverages"]] + ["min_probability 0.5"]:
+                L.append(_row(f"shipped `{res['shipped']}` | {key}", r["shipped"][key]))
+            rn = r["by_size"][main_size]["coverage 0.8"]
+            rs = r["shipped"]["coverage 0.8"]
+            L += ["", f"Flow recall by speed decade at coverage 0.8: ceiling ({main_size} draws) "
+                  + ", ".join(f"{k} µm/s {_pm(rn, f'flow_speed_decades/{k}', f'decade:{k}')}"
+                              for k in rn["flow_speed_decades"])
+                  + f"; shipped " + ", ".join(f"{k} µm/s {_pm(rs, f'flow_speed_decades/{k}', f'decade:{k}')}"
+                                               for k in rs["flow_speed_decades"]) + ".", ""]
+    s = rep["seconds"]
+    L += ["Cost (CPU, one core): simulation " + ", ".join(
+        f"{k} {v['draws']} draws {v['cpu_seconds']:.0f} s ({v['cpu_seconds_per_draw']:.2f} s per draw)"
+        for k, v in s["simulation_per_set"].items()) + "; fits and scores (wall) "
+        + ", ".join(f"{p} {v:.0f} s" for p, v in s["fits_and_scores"].items()) + ".", ""]
+    return "\n".join(L)
+
+
+def _summary(rep: dict[str, Any]) -> str:
+    n = str(max(rep["train_sizes"]))
+    lines = []
+    for p, res in rep["parts"].items():
+        for pool in ("1", "25"):
+            r = res["pools"][pool]
+            for who, rr in ((f"ceiling {n}", r["by_size"][n]), (f"shipped {res['shipped']}", r["shipped"])):
+                c = rr["coverage 0.8"]
+                lines.append(f"{p} pool {pool} {who}: bal. acc. {_f(c['balanced_accuracy'])} at {_f(c['coverage'])}; "
+                             f"flow bands " + " / ".join(_f(v) for v in c["flow_polar_bands"].values())
+                             + f"; coverage 1.0: {_f(rr['coverage 1']['balanced_accuracy'])}")
+    return "\n".join(lines)
+
+
+def write_report(rep: dict[str, Any], out: Path, force: bool = False) -> list[Path]:
+    paths = [out / f"independent-ceiling{s}" for s in (".json", ".md")]
+    if not force:
+        for p in paths:
+            if p.exists():
+                raise FileExistsError(f"{p} exists; pass --force to overwrite it, or choose another --out")
+    for p, text in zip(paths, (json.dumps(rep, indent=1, default=em._json_default), format_markdown(rep))):
+        tmp = p.with_name(f".{p.name}.tmp")
+        tmp.write_text(text + "\n", encoding="utf-8")
+        os.replace(tmp, p)
+    return paths
+
+
+def _ints(text: str, what: str) -> list[int]:
+    try:
+        v = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise ValueError(f"--{what} must be comma-separated integers; got {text!r}") from None
+    if not v or min(v) < 3:
+        raise ValueError(f"--{what} must hold integers >= 3 (one draw per motion type); got {text!r}")
+    return v
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m tests.reference.ceiling",
+                                 description="Ceiling of the signature features on the independent data: gradient "
+                                             "boosting trained on draws of the independent prior. Writes "
+                                             "<out>/independent-ceiling.json and .md.")
+    ap.add_argument("--out", required=True, help="output directory (also holds the feature cache, <out>/cache)")
+    ap.add_argument("--parts", default="a,b,b-int,c", help=f"parts among {list(PARTS)} (default all)")
+    ap.add_argument("--sizes", default=",".join(str(n) for n in DEFAULT_SIZES), help="training draws (nested)")
+    ap.add_argument("--test-draws", type=int, default=DEFAULT_TEST_DRAWS)
+    ap.add_argument("--trials", type=int, default=em.DEFAULT_TRIALS)
+    ap.add_argument("--train-seed", type=int, default=1)
+    ap.add_argument("--test-seed", type=int, default=0)
+    ap.add_argument("--boot", type=int, default=N_BOOT)
+    ap.add_argument("--budget-seconds", type=float, default=None,
+                    help="stop simulating after this many seconds (exit status 3; run again to resume)")
+    ap.add_argument("--force", action="store_true", help="overwrite existing report files")
+    ap.add_argument("--no-progress", action="store_true")
+    args = ap.parse_args(argv)
+    try:
+        parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+        bad = [p for p in parts if p not in PARTS]
+        if bad or not parts:
+            raise ValueError(f"--parts: unknown {bad or 'none given'}; choose among {list(PARTS)}")
+        sizes = _ints(args.sizes, "sizes")
+        if args.test_draws < 3 or args.trials < 25 or args.boot < 0:
+            raise ValueError("--test-draws must be >= 3, --trials >= 25 (pool 25), --boot >= 0")
+        if args.train_seed == args.test_seed:
+            raise ValueError("--train-seed must differ from --test-seed (training draws disjoint from the test draws)")
+        out = Path(args.out)
+        if out.exists() and not out.is_dir():
+            raise ValueError(f"--out {out} is a file; give a directory")
+        out.mkdir(parents=True, exist_ok=True)
+        import torch
+
+        torch.set_num_threads(1)  # one core: the numbers do not depend on it (every draw has its own seeds)
+        rep = run(out, parts, sizes=sizes, test_draws=args.test_draws, trials=args.trials,
+                  train_seed=args.train_seed, test_seed=args.test_seed, n_boot=args.boot,
+                  budget_s=args.budget_seconds, progress=not args.no_progress)
+        if rep is None:
+            print(f"simulation budget used; features cached under {out / 'cache'}: run the same command again to "
+                  "resume", file=sys.stderr)
+            return EXIT_INCOMPLETE
+        paths = write_report(rep, out, force=args.force)
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(_summary(rep))
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
