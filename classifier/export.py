@@ -177,7 +177,7 @@ def _plain(o: Any) -> Any:
 
 def export_onnx(model, metadata: dict[str, Any], path) -> None:
     """Write ``model`` with ``metadata`` to ``path`` (atomically; the caller checks overwriting)."""
-    from torchdoct._files import atomic_write
+    from torchdoct.files import atomic_write
 
     proto = onnx_model(model, metadata)
     data = proto.SerializeToString()

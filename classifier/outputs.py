@@ -149,7 +149,7 @@ def check_outputs(out_dir: str | os.PathLike, force: bool) -> dict[str, Path]:
     """The output set of ``doct-classify`` in ``out_dir`` (every file it may hold, ``magnitude.tif``
     included), checked before the work: ``out_dir`` must not be a file, and no file of the set may
     exist unless ``force``."""
-    from torchdoct._files import check_out
+    from torchdoct.files import check_out
 
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -160,12 +160,12 @@ def check_outputs(out_dir: str | os.PathLike, force: bool) -> dict[str, Path]:
 
 def write_classification(res: Classification, out_dir: str | os.PathLike, *, force: bool = False) -> list[Path]:
     """Write :data:`OUTPUT_FILES` (and ``magnitude.tif`` when the model predicts magnitudes) into
-    ``out_dir`` (created if missing), all together or none (:func:`torchdoct._files.output_set`: an error,
+    ``out_dir`` (created if missing), all together or none (:func:`torchdoct.files.output_set`: an error,
     Ctrl-C or SIGTERM leaves the folder as it was); nothing is overwritten without ``force``, and with it
     an earlier run's file this run does not write (``magnitude.tif`` of another model) is removed."""
     import tifffile
 
-    from torchdoct._files import atomic_write, output_set
+    from torchdoct.files import atomic_write, output_set
 
     out = Path(out_dir)
     every = check_outputs(out, force)

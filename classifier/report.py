@@ -528,7 +528,7 @@ def plot_report(report: dict[str, Any], path: str) -> None:
 
 def write_report(report: dict[str, Any], json_path, md_path, png_path) -> None:
     """Write the three report files (each atomically; callers check overwriting first)."""
-    from torchdoct._files import atomic_write
+    from torchdoct.files import atomic_write
 
     def w_json(tmp: str) -> None:
         with open(tmp, "w", encoding="utf-8") as fh:

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-from torchdoct._files import shipped_files
+from torchdoct.files import shipped_files
 from torchdoct.threads import map_ordered, resolve_threads
 
 from .features import FeatureSpec, shipped_or_path, spec_from_dict
@@ -160,7 +160,7 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     props = sess.get_modelmeta().custom_metadata_map
     if METADATA_KEY not in props:
         raise ValueError(f"model {path.name}: no '{METADATA_KEY}' metadata; it was not written by doct-train")
-    from torchdoct._files import check_nesting
+    from torchdoct.files import check_nesting
 
     check_nesting(props[METADATA_KEY], f"model {path.name}: metadata")  # before the parser's recursion
     meta = json.loads(props[METADATA_KEY])

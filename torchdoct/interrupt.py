@@ -11,7 +11,7 @@
 * A **closed output pipe** (``| head``) ends the command quietly with exit code 141 (128 + SIGPIPE),
   the shell's code for a reader that went away.
 * :func:`deferred` holds both signals back while an output set is renamed into place
-  (:func:`torchdoct._files.output_set`), so a set appears whole or not at all.
+  (:func:`torchdoct.files.output_set`), so a set appears whole or not at all.
 * :func:`worker_init` makes a worker process ignore Ctrl-C (its parent stops it) and die with its
   parent, even when the parent is killed with SIGKILL (Linux).
 """

@@ -95,14 +95,14 @@ LOADS_BY_PATH = {"torchdoct.bench.cog": "the user's clone of the external COG si
 
 def test_torchdoct_never_imports_classifier():
     """At any level (functions included): the commands reach the classifier through entry points
-    (torchdoct/extensions.py), and classifier/tradeoffs/plan.py reads no command-line parser."""
+    (torchdoct/extensions.py), and classifier/research/tradeoffs/plan.py reads no command-line parser."""
     for name, path in MODULES.items():
         tree = ast.parse(path.read_text(encoding="utf-8"))
         mods = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
         mods |= {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and not n.level}
         if name.startswith("torchdoct"):
             assert not any(m == "classifier" or m.startswith("classifier.") for m in mods), name
-    plan = ast.parse((REPO / "classifier/tradeoffs/plan.py").read_text(encoding="utf-8"))
+    plan = ast.parse((REPO / "classifier/research/tradeoffs/plan.py").read_text(encoding="utf-8"))
     assert not any(isinstance(n, ast.ImportFrom) and (n.module or "").endswith("cli") for n in ast.walk(plan))
 
 
@@ -114,7 +114,7 @@ def test_the_classifier_fills_the_command_table():
     bench = {e.name: e.value for e in entry_points(group=extensions.BENCH)}
     parts = {e.name: e.value for e in entry_points(group=extensions.TRADEOFFS)}
     assert bench.get("classify") == "classifier.bench:bench_command"
-    assert parts.get("classifier") == "classifier.tradeoffs.part"
+    assert parts.get("classifier") == "classifier.research.tradeoffs.part"
     part = extensions.load(extensions.TRADEOFFS, "classifier", command="test")
     assert all(callable(getattr(part, f)) for f in ("compute", "format_table", "plot"))
     with pytest.raises(ValueError, match="entry-point group"):

@@ -51,7 +51,7 @@ def test_deeply_nested_scene_is_refused(tmp_path, capsys, text):
 
 
 def test_shallow_brackets_in_strings_and_comments_are_not_nesting(tmp_path, capsys):
-    from torchdoct._files import check_nesting
+    from torchdoct.files import check_nesting
 
     text = 'a = "' + "[" * 500 + '"\n# ' + "{" * 500 + "\nb = '''" + "[" * 500 + "'''\nc = [[1], [2]]\n"
     check_nesting(text, "x.toml", toml=True)  # no error: the brackets are in strings and comments

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any, Sequence
 
-from .._files import atomic_write, check_out
+from ..files import atomic_write, check_out
 from ..interrupt import entry_point
 
 __all__ = ["build_parser", "main", "EXIT_CODES"]

@@ -156,7 +156,7 @@ def register(sub: Any, bench_sub: Any) -> None:
 
 
 def _maps(args: argparse.Namespace) -> int:
-    from .._files import check_out
+    from ..files import check_out
     from ..measured.io import BlockRaster, MAPS_SUFFIXES, read_sequence, write_maps
     from ..measured.guards import set_max_input_gb
     from ..measured.maps import compute_maps, write_pngs
@@ -268,7 +268,7 @@ def _maps(args: argparse.Namespace) -> int:
     for res, n in (maps.meta.get("aliv") or {}).get("flagged_pixels", {}).items():
         print(f"aLIV fit on a τ bound at {res}: {n['tau_at_lower_bound']} pixels at the lower, "
               f"{n['tau_at_upper_bound']} at the upper bound (aliv_fit channel; magenta in the PNGs)")
-    from .._files import output_set
+    from ..files import output_set
 
     png_kw = dict(ranges=ranges, db_range=tuple(args.db_range) if args.db_range else None, y_index=args.png_y,
                   force=args.force)
@@ -370,7 +370,7 @@ def _load_mask(path: str) -> np.ndarray:
 
 
 def _compare(args: argparse.Namespace) -> int:
-    from .._files import atomic_write, check_out
+    from ..files import atomic_write, check_out
     from ..measured.compare import compare_samples, plot_comparison, region_mask
     from ..measured.guards import set_max_input_gb
     from ..measured.io import read_maps
@@ -407,7 +407,7 @@ def _compare(args: argparse.Namespace) -> int:
         print(res.tests.to_json(orient="records", indent=2))
     else:
         print(res.format())
-    from .._files import output_set
+    from ..files import output_set
 
     files = [p for p in (out, per_out, plot_out) if p is not None]
     with output_set(files, args.force) as stage:  # the tables and the plot appear together or not at all
@@ -423,7 +423,7 @@ def _compare(args: argparse.Namespace) -> int:
 
 
 def _bench_bulk_phase(args: argparse.Namespace) -> int:
-    from .._files import atomic_write, check_out
+    from ..files import atomic_write, check_out
     from ..measured.bulkphase import bench_bulk_phase, format_bench_bulk_phase
 
     out = check_out(args.out, args.force, ".json", what="--out")
@@ -442,7 +442,7 @@ def _bench_bulk_phase(args: argparse.Namespace) -> int:
 
 
 def _bench_maps(args: argparse.Namespace) -> int:
-    from .._files import atomic_write, check_out
+    from ..files import atomic_write, check_out
     from ..measured.maps import bench_maps
 
     out = check_out(args.out, args.force, ".json", what="--out")

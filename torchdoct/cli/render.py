@@ -71,7 +71,7 @@ def _grid(spec: str | None, pitch: float | None) -> dict | None:
 def _outputs(out: Path, names: list[str]) -> dict[str, Path]:
     if len(names) == 1:
         return {names[0]: out}
-    from .._files import safe_name
+    from ..files import safe_name
 
     for n in names:  # STEM-SYSTEM.SUFFIX: a system name must be a plain file name
         safe_name(n, "system name", "rename the system in the phantom file, or render one system with --system")
@@ -79,7 +79,7 @@ def _outputs(out: Path, names: list[str]) -> dict[str, Path]:
 
 
 def _render(args) -> int:
-    from .._files import atomic_write, check_out, output_set
+    from ..files import atomic_write, check_out, output_set
     from ..measured.io import write_sequence
     from ..image.phantom import load_phantom
     from ..image.render import render, save_preview
@@ -131,7 +131,7 @@ def _save_labels(path: str, res) -> None:
 
 
 def _bench(args) -> int:
-    from .._files import atomic_write, check_out
+    from ..files import atomic_write, check_out
     from ..bench import bench_render
 
     out = check_out(args.out, args.force, ".json")

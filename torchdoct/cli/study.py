@@ -112,7 +112,7 @@ def _study(args) -> int:
 
 
 def _bench_study(args) -> int:
-    from .._files import atomic_write, check_out
+    from ..files import atomic_write, check_out
     from ..study import bench_study, format_bench_study
 
     out = check_out(args.out, args.force, ".json")

@@ -28,7 +28,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from .._files import file_or_shipped, shipped_files
+from ..files import file_or_shipped, shipped_files
 from ..sim.config import (Population, Scene, SceneError, _check_keys, _fail, _integer, _number, _string, read_toml,
                      scene_from_dict)
 from ..sim.scenes import shipped_scenes

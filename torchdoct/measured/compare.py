@@ -29,7 +29,7 @@ from typing import Any, Iterable, Mapping, Sequence as _Seq
 
 import numpy as np
 
-from .._files import atomic_write, check_out
+from ..files import atomic_write, check_out
 from ..optics import ChannelOptics, same_value
 from .mapsfile import Maps
 

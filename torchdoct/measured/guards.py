@@ -252,7 +252,7 @@ def check_npy_header(path: Path, what: str = "") -> None:
 
 def parse_json_object(text: str, where: str) -> dict:
     """The JSON object in ``text``; invalid JSON or another JSON type is a ``ValueError`` naming ``where``."""
-    from .._files import check_nesting
+    from ..files import check_nesting
 
     check_nesting(text, where)  # before the parser's recursion
     try:

@@ -54,7 +54,7 @@ from typing import Any, Mapping, Sequence as _Seq
 
 import numpy as np
 
-from .._files import atomic_write, check_out
+from ..files import atomic_write, check_out
 from .guards import (TiffDamage, check_declared_size, check_hdf5_local, check_npy_header, check_npy_size,
                      check_npz_sizes, check_tiff_pages, parse_json_object, refuse_object)
 from .mapsfile import MAPS_SUFFIXES, Maps, read_maps, write_maps
@@ -549,7 +549,7 @@ def _load_tif(path: Path) -> tuple[np.ndarray, dict | None]:
         raise ValueError(f"{path.name}: not a readable TIFF stack ({err})") from None
     meta = None
     if desc and desc.lstrip().startswith("{"):
-        from .._files import check_nesting
+        from ..files import check_nesting
 
         check_nesting(desc, f"{path.name}: TIFF ImageDescription")  # before the parser's recursion
         try:

@@ -31,7 +31,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .._files import atomic_write, check_out
+from ..files import atomic_write, check_out
 from ..optics import ChannelOptics
 from .guards import MAX_INPUT_ENV, TiffDamage, check_npz_sizes, check_tiff_pages
 
@@ -229,7 +229,7 @@ def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]
     if raw.dtype.kind not in "US" or raw.size != 1:
         raise ValueError(f"{path.name}: 'meta_json' must be a JSON text (a 0-d string array); got a "
                          f"{raw.dtype} array of shape {list(raw.shape)}. {_rewrite_fix(path)}")
-    from .._files import check_nesting
+    from ..files import check_nesting
 
     check_nesting(str(raw.reshape(())), f"{path.name}: 'meta_json'")  # before the parser's recursion
     try:
@@ -271,7 +271,7 @@ def _tiff_meta(path: Path, tf) -> dict[str, Any]:
     page = tf.pages[0]
     for tag in page.tags.values():
         if tag.name == "ImageDescription":
-            from .._files import check_nesting
+            from ..files import check_nesting
 
             check_nesting(tag.value, f"{path.name}: TIFF ImageDescription")  # before the parser's recursion
             try:

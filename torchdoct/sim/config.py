@@ -626,7 +626,7 @@ def scene_from_dict(data: dict[str, Any]) -> Scene:
 def read_toml(path: str | Path) -> dict[str, Any]:
     """The tables of a TOML file; a syntax error or a file that is not UTF-8 text (an image or data
     file given by mistake) is a :class:`SceneError` naming the file."""
-    from .._files import check_nesting
+    from ..files import check_nesting
 
     try:
         with open(path, "rb") as fh:

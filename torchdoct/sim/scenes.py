@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .._files import file_or_shipped, shipped_files
+from ..files import file_or_shipped, shipped_files
 
 __all__ = ["shipped_scenes", "resolve_scene_path"]
 

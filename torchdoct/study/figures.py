@@ -14,7 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .._files import atomic_write
+from ..files import atomic_write
 from .spec import Comparison, Part, Study, _xsym, _xunit
 
 __all__ = ["plot_comparison", "plot_directions"]

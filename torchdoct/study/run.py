@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .._files import atomic_write, output_set
+from ..files import atomic_write, output_set
 from .sweep import SweepResult, check_cache_dir, prepare_out_dir, run_sweeps, write_table
 from .claims import claims_report
 from .figures import _save_figure, plot_comparison, plot_directions

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .._files import file_or_shipped, shipped_files
-from .._files import safe_name
+from ..files import file_or_shipped, shipped_files
+from ..files import safe_name
 from ..sim.config import SceneError, _check_keys, _fail, read_toml, scene_from_dict
 from .sweep import _normalize_arrays, field_values
 

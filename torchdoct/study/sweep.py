@@ -598,7 +598,7 @@ class _Cache:
     def put(self, key: str, res: dict[str, Any], scene_dict: dict[str, Any]) -> None:
         if self.dir is None:
             return
-        from .._files import atomic_write
+        from ..files import atomic_write
 
         self.dir.mkdir(parents=True, exist_ok=True)
         meta = {"cache_key": key, "format": CACHE_FORMAT, "version": _version(), "scene": scene_dict,
@@ -860,7 +860,7 @@ def results_table(cells: Sequence[CellResult]):
 
 def write_table(table, stem: str | os.PathLike, *, force: bool = False) -> list[Path]:
     """Write ``stem.csv`` and ``stem.parquet`` atomically (refusing to overwrite without ``force``)."""
-    from .._files import atomic_write, check_out
+    from ..files import atomic_write, check_out
 
     stem = Path(stem)
     csv = check_out(stem.with_suffix(".csv"), force, ".csv", "--out")
@@ -908,8 +908,8 @@ def prepare_out_dir(out_dir: str | os.PathLike, files: Sequence[Path], force: bo
 def write_sweep_outputs(result: SweepResult, out_dir: str | os.PathLike, *, force: bool = False,
                         stem: str = "results") -> list[Path]:
     """Write the tidy table (CSV, Parquet) and ``sweep.json`` (resolved sweeps, cells, seeds, keys):
-    the three appear together or not at all (:func:`torchdoct._files.output_set`)."""
-    from .._files import atomic_write, output_set
+    the three appear together or not at all (:func:`torchdoct.files.output_set`)."""
+    from ..files import atomic_write, output_set
 
     files = sweep_outputs(out_dir, stem)
     prepare_out_dir(out_dir, files, force)

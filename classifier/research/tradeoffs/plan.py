@@ -14,7 +14,7 @@ _SPECS = (ONE_CONFIGURATION, "single-acquisition", "two-wavelength")
 
 
 def _train_defaults():
-    from ..train import TrainConfig
+    from classifier.train import TrainConfig
 
     return TrainConfig()
 
@@ -24,7 +24,7 @@ _TRAIN = _train_defaults()
 
 
 def _defaults() -> dict[str, Any]:
-    from ..infer import DEFAULT_POOL
+    from classifier.infer import DEFAULT_POOL
 
     return {"draws_train": _TRAIN.draws_train, "spec": _TRAIN.spec, "hidden": list(_TRAIN.hidden),
             "pool": int(DEFAULT_POOL)}

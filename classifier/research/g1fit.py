@@ -52,7 +52,7 @@ pool 1 / pool 25) they beat every lag 1-8 (0.45 / 0.70), 1-16 (0.46 / 0.79) and 
 with 0.54 / 0.88: the estimator ĝ1 of a single 32-frame pixel is biased at long lags (few pairs; a
 slowly varying speckle stays coherent within them), and its lags are strongly correlated.
 
-``python -m classifier.g1fit --out PATH.json`` compares the fit with the shipped ``signature``
+``python -m classifier.research.g1fit --out PATH.json`` compares the fit with the shipped ``signature``
 network on the very test pixels of its report (:func:`evaluate_against_network`). The module stays
 whole (over 600 lines): the comparison is the fit's only caller and reads its grid and outcome codes.
 """
@@ -391,7 +391,7 @@ def fit_g1(y: np.ndarray, configurations: Sequence[tuple[float, float, float]], 
 def superset_spec(spec, lags: Sequence[int]):
     """``spec`` (a signature spec) with ``g1_m`` and ``g1_phase_m`` at ``lags`` appended to its metrics
     (the same configurations and protocol, hence the same simulated pixels)."""
-    from .features import spec_from_dict
+    from classifier.features import spec_from_dict
 
     d = spec.to_dict()
     extra = [f"{k}_{m}" for k in ("g1", "g1_phase") for m in lags]
@@ -430,7 +430,7 @@ def _fit_kwargs(spec, prior, lags) -> dict[str, Any]:
 def _magnitude_errors(est_log10: np.ndarray, s: dict[str, np.ndarray], decided_correct: np.ndarray) -> dict:
     """Median |log10 error| on identifiable samples: (a) decided with the true class, (b) every
     identifiable sample with the true class's estimate (the training report's definition)."""
-    from .dataset import CLASSES
+    from classifier.dataset import CLASSES
 
     ident = s["status"] == 0
     rows = np.arange(len(s["y"]))
@@ -496,11 +496,11 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
     pixels of its report); ``lags`` default :data:`DEFAULT_LAGS` (those ≤ T − 3)."""
     from threadpoolctl import threadpool_limits
 
-    from .dataset import Prior, make_dataset
-    from .infer import load_model
-    from .report import evaluate
-    from .rule import apply_rule
-    from .train import CLASS_NAMES, eval_samples
+    from classifier.dataset import Prior, make_dataset
+    from classifier.infer import load_model
+    from classifier.report import evaluate
+    from classifier.rule import apply_rule
+    from classifier.train import CLASS_NAMES, eval_samples
 
     say = log or (lambda *a, **k: None)
     net = load_model(model, threads=1)
@@ -616,7 +616,7 @@ def format_markdown(r: dict[str, Any]) -> str:
              f"{r['trials_per_draw']} trials, PSF truncation {r['truncation_tolerance']}; the same pixels for both "
              "methods. The network reads its signature features; the fit reads the complex "
              f"ĝ1 = g1_m·exp(i·g1_phase_m) at lags {', '.join(map(str, r['lags']))} (frames) of every configuration "
-             "(`classifier/g1fit.py`: closed forms of "
+             "(`classifier/research/g1fit.py`: closed forms of "
              "torchdoct.sim.theory, grid of "
              f"{r['fit']['grid_per_decade']} magnitudes per decade, {r['fit']['cos_polar_steps']} |cos θ| for flow; "
              f"class by {r['fit']['selection']}; indeterminate: {r['fit']['indeterminate']}).  ")
@@ -699,15 +699,15 @@ def format_markdown(r: dict[str, Any]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m classifier.g1fit --out PATH.json``: run :func:`evaluate_against_network`, write
+    """``python -m classifier.research.g1fit --out PATH.json``: run :func:`evaluate_against_network`, write
     ``PATH.json`` and ``PATH.md`` (refuses to overwrite either)."""
     import argparse
     import json
     from pathlib import Path
 
-    from torchdoct._files import atomic_write
+    from torchdoct.files import atomic_write
 
-    p = argparse.ArgumentParser(prog="python -m classifier.g1fit", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m classifier.research.g1fit", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, help="JSON output file; the Markdown is written beside it (.md)")
     p.add_argument("--model", default="signature", help="shipped model name or .onnx path (default signature)")
     p.add_argument("--draws", type=int, default=None,

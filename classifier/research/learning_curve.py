@@ -1,6 +1,6 @@
 """Learning curve of the ``signature`` classifier: test accuracy against the number of training draws.
 
-``python -m classifier.learning_curve --out signature-learning-curve.json`` takes the ``signature``
+``python -m classifier.research.learning_curve --out signature-learning-curve.json`` takes the ``signature``
 spec and its shipped recipe (:meth:`classifier.train.TrainConfig.for_spec`), simulates (or loads from
 the dataset cache) one training split of ``draws_max`` draws (default 3840, twice the shipped 1920)
 and the shipped model's validation and test splits (the recipe's numbers of draws, seed 0), and trains the network
@@ -97,8 +97,8 @@ _KEYS = ("balanced_accuracy_identifiable", "coverage_identifiable", "ece")
 
 
 def _metrics(p: np.ndarray, s: dict[str, np.ndarray], rule: dict, seed: int) -> dict[str, float]:
-    from .report import bootstrap_se, evaluate
-    from .train import CLASS_NAMES
+    from classifier.report import bootstrap_se, evaluate
+    from classifier.train import CLASS_NAMES
 
     m = evaluate(p, s["y"], s["status"], CLASS_NAMES, rule)
     se = bootstrap_se(p, s["y"], s["status"], s["draw"], CLASS_NAMES, rule, seed=seed, keys=_KEYS)
@@ -112,8 +112,8 @@ def _metrics(p: np.ndarray, s: dict[str, np.ndarray], rule: dict, seed: int) -> 
 def _paired_difference(p_a: np.ndarray, p_b: np.ndarray, s: dict[str, np.ndarray], rule: dict, seed: int,
                        key: str = "balanced_accuracy_identifiable") -> tuple[float, float]:
     """``metric(p_b) − metric(p_a)`` on the same samples and its SE (both on the same resampled draws)."""
-    from .report import evaluate
-    from .train import CLASS_NAMES
+    from classifier.report import evaluate
+    from classifier.train import CLASS_NAMES
 
     def diff(i):
         return (evaluate(p_b[i], s["y"][i], s["status"][i], CLASS_NAMES, rule)[key]
@@ -133,11 +133,11 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
 
     import torchdoct
 
-    from . import __version__
-    from .dataset import STATUS, Prior, make_dataset
-    from .features import load_spec
-    from .rule import make_rule
-    from .train import CLASS_NAMES, TrainConfig, class_targets, feature_masks, fit_network, evaluation_sets, transform_numpy
+    from classifier import __version__
+    from classifier.dataset import STATUS, Prior, make_dataset
+    from classifier.features import load_spec
+    from classifier.rule import make_rule
+    from classifier.train import CLASS_NAMES, TrainConfig, class_targets, feature_masks, fit_network, evaluation_sets, transform_numpy
 
     say = log or (lambda *a, **k: None)
     sizes, n_max = _check_sizes(sizes, draws_max)
@@ -409,7 +409,7 @@ def check_outputs(out) -> list[Path]:
 
 def write_outputs(res: dict[str, Any], out) -> list[Path]:
     """Write the JSON, Markdown and PNG files (each atomically)."""
-    from torchdoct._files import atomic_write
+    from torchdoct.files import atomic_write
 
     paths = check_outputs(out)
 
@@ -430,7 +430,7 @@ def _int_list(text: str) -> list[int]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m classifier.learning_curve", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m classifier.research.learning_curve", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, help="JSON output file (the .md and .png are written beside it)")
     p.add_argument("--sizes", type=_int_list, default=list(DEFAULT_SIZES),
                    help="nested training sizes in draws, increasing (default %(default)s)")

@@ -15,7 +15,7 @@ import numpy as np
 
 def _fit(train_ds, val_ds, spec, cfg) -> dict[str, Any]:
     """:func:`classifier.train.fit_network` on given splits (the network of ``train``)."""
-    from ..train import fit_network
+    from classifier.train import fit_network
 
     fit = fit_network(train_ds, val_ds, spec, cfg)
     fit.pop("first_samples")
@@ -82,9 +82,9 @@ class _Evaluator:
         self.rule = rule
 
     def __call__(self, probabilities: np.ndarray, s: dict[str, np.ndarray]) -> tuple[dict[str, Any], np.ndarray]:
-        from ..report import evaluate
-        from ..rule import apply_rule
-        from ..train import CLASS_NAMES
+        from classifier.report import evaluate
+        from classifier.rule import apply_rule
+        from classifier.train import CLASS_NAMES
 
         m = evaluate(probabilities, s["y"], s["status"], CLASS_NAMES, self.rule)
         pred, _ = apply_rule(probabilities, CLASS_NAMES, self.rule)
@@ -117,10 +117,10 @@ def _best_time(fn: Callable[[], Any], repeats: int) -> float:
 
 
 def _ort_session(model, spec, threads: int):
-    from .. import __version__
-    from ..export import onnx_model
-    from ..runtime import onnx_session
-    from ..train import CLASS_NAMES
+    from classifier import __version__
+    from classifier.export import onnx_model
+    from classifier.runtime import onnx_session
+    from classifier.train import CLASS_NAMES
 
     meta = {"classifier_version": __version__, "output": {"classes": list(CLASS_NAMES)},
             "input": {"columns": [{"name": n} for n in (*spec.feature_names, "pool_pixels")]}}

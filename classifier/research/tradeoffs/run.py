@@ -20,7 +20,7 @@ def _hidden_label(hidden: Sequence[int]) -> str:
 
 
 def classifier_tradeoffs(*, quick: bool = False, cache_dir=None, progress: bool = False) -> dict[str, Any]:
-    """Measure the four trade-off axes of :mod:`classifier.tradeoffs`; returns a JSON-ready dict.
+    """Measure the four trade-off axes of :mod:`classifier.research.tradeoffs`; returns a JSON-ready dict.
 
     ``quick``: :data:`QUICK_PLAN` (small splits, ~1.5 min at one thread) instead of the full
     :class:`TradeoffPlan` (~10 min cold, datasets cached); ``cache_dir``: the dataset cache
@@ -37,11 +37,11 @@ def run_tradeoffs(plan: TradeoffPlan, *, cache_dir=None, progress: bool = False,
 
     from torchdoct.bench import machine_info
 
-    from ..dataset import Prior, make_dataset
-    from ..features import load_spec
-    from ..infer import DEFAULT_MODEL, load_model, pool_features
-    from ..rule import apply_rule, make_rule
-    from ..train import CLASS_NAMES, TrainConfig, eval_samples
+    from classifier.dataset import Prior, make_dataset
+    from classifier.features import load_spec
+    from classifier.infer import DEFAULT_MODEL, load_model, pool_features
+    from classifier.rule import apply_rule, make_rule
+    from classifier.train import CLASS_NAMES, TrainConfig, eval_samples
 
     if not isinstance(plan, TradeoffPlan):
         raise TypeError(f"plan must be a TradeoffPlan; got {type(plan).__name__}")

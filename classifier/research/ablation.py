@@ -1,6 +1,6 @@
 """Ablation of the decorrelation signature: which features the ``signature`` spec keeps.
 
-``python -m classifier.ablation --out ablation.json`` simulates (or loads from the dataset cache) the
+``python -m classifier.research.ablation --out ablation.json`` simulates (or loads from the dataset cache) the
 single-acquisition configurations with *every* candidate feature of :mod:`torchdoct.sim.signature`
 (``rho_db_m``, ``rho_lin_m``, ``g1_m`` at lags 1-29, ``phase_ramp``, ``lin_contrast``,
 ``db_variance``: 90 per configuration) from the classifier's prior (:mod:`classifier.dataset`;
@@ -59,7 +59,7 @@ SUBSETS = {
 
 def candidate_spec():
     """The single-acquisition configurations with every candidate signature feature."""
-    from .features import load_spec, spec_from_dict
+    from classifier.features import load_spec, spec_from_dict
 
     d = load_spec("single-acquisition").to_dict()
     d["name"] = "signature-ablation"
@@ -73,10 +73,10 @@ def run_ablation(*, draws_train: int = 360, draws_test: int = 90, pixels: int = 
     """Balanced accuracy, coverage and ECE per subset (module docstring); JSON-able."""
     from sklearn.ensemble import HistGradientBoostingClassifier
 
-    from .dataset import Prior, make_dataset
-    from .report import evaluate
-    from .rule import make_rule
-    from .train import CLASS_NAMES
+    from classifier.dataset import Prior, make_dataset
+    from classifier.report import evaluate
+    from classifier.rule import make_rule
+    from classifier.train import CLASS_NAMES
 
     spec = candidate_spec()
     prior = Prior()
@@ -130,11 +130,11 @@ def run_indeterminate(*, draws_train: int = 360, draws_test: int = 90, pixels: i
     """
     from sklearn.ensemble import HistGradientBoostingClassifier
 
-    from .dataset import Prior, draw_parameters, make_dataset, transit_decay
-    from .features import load_spec
-    from .report import evaluate
-    from .rule import make_rule
-    from .train import CLASS_NAMES
+    from classifier.dataset import Prior, draw_parameters, make_dataset, transit_decay
+    from classifier.features import load_spec
+    from classifier.report import evaluate
+    from classifier.rule import make_rule
+    from classifier.train import CLASS_NAMES
 
     spec, prior = candidate_spec(), Prior()
     eps = prior.identifiability_epsilon
@@ -185,7 +185,7 @@ def run_indeterminate(*, draws_train: int = 360, draws_test: int = 90, pixels: i
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m classifier.ablation", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m classifier.research.ablation", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, help="JSON output file")
     p.add_argument("--draws-train", type=int, default=360)
     p.add_argument("--draws-test", type=int, default=90)

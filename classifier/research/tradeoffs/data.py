@@ -16,7 +16,7 @@ _ONE_CONFIGURATION_SYSTEM = (0.84, 4.9, 3.8)
 def one_configuration_spec():
     """The ``one-configuration`` spec: the single-acquisition spec reduced to its 840-nm 4.9/3.8-µm
     configuration (same protocol and OCDS analysis)."""
-    from ..features import load_spec
+    from classifier.features import load_spec
 
     base = load_spec("single-acquisition")
     keep = [c for c in base.configurations if c.matches(*_ONE_CONFIGURATION_SYSTEM)]
@@ -45,7 +45,7 @@ def derive_dataset(ds, base, sub, prior):
     noise, so the columns are distributed as a simulation of ``sub`` alone). Ground truth:
     :func:`classifier.dataset.identifiability` of every draw under ``sub`` (physics.md §5.3-5.4).
     """
-    from ..dataset import STATUS, Dataset, draw_parameters, identifiability
+    from classifier.dataset import STATUS, Dataset, draw_parameters, identifiability
 
     cols = _columns(base, sub)
     meta = ds.meta
@@ -67,7 +67,7 @@ def derive_dataset(ds, base, sub, prior):
 
 def prefix_dataset(ds, draws: int):
     """The first ``draws`` draws of ``ds`` (equal to a split simulated with ``draws`` draws)."""
-    from ..dataset import Dataset
+    from classifier.dataset import Dataset
 
     n_have = int(ds.meta["draws"])
     if draws > n_have:
@@ -81,8 +81,8 @@ def prefix_dataset(ds, draws: int):
 def _seconds_per_draw(spec, prior, plan: TradeoffPlan) -> float:
     """Seconds per draw of :func:`classifier.dataset.simulate_draw` over training draws 0…m−1 (one
     untimed warm-up draw first)."""
-    from ..dataset import draw_parameters, simulate_draw
-    from ..train import TrainConfig
+    from classifier.dataset import draw_parameters, simulate_draw
+    from classifier.train import TrainConfig
 
     tol = TrainConfig().truncation_tolerance
     m = plan.timing_draws

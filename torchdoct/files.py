@@ -1,0 +1,234 @@
+"""File helpers shared by every command (standard library only): refuse to overwrite without
+``force``, write atomically, write a set of outputs whole or not at all, check names that become
+file names and the nesting depth of parsed files, find the files shipped with the project."""
+
+from __future__ import annotations
+
+import contextlib
+import glob
+import os
+import re
+import shutil
+import tempfile
+import threading
+from importlib import resources
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Sequence
+
+__all__ = ["check_out", "atomic_write", "output_set", "OutputSet", "safe_name", "check_nesting", "MAX_NESTING",
+           "shipped_files", "file_or_shipped"]
+
+#: Deepest nesting of arrays/tables (TOML) or arrays/objects (JSON) that any input file may have: the
+#: project's own files need 5 at most; far deeper ones would exhaust the parser's recursion.
+MAX_NESTING = 64
+
+
+def check_out(path: str | os.PathLike | None, force: bool, suffix: str | Sequence[str],
+              what: str = "--out") -> Path | None:
+    """Validate an output path before any work is done.
+
+    ``suffix`` is one allowed suffix or a sequence of them. Raises ``ValueError`` naming ``what`` and
+    the fix when the suffix is wrong, the file exists and ``force`` is false, or the directory is missing.
+    """
+    if path is None:
+        return None
+    out = Path(path)
+    allowed = (suffix,) if isinstance(suffix, str) else tuple(suffix)
+    if out.suffix not in allowed:
+        raise ValueError(f"{what} must end in {' or '.join(allowed)}; got {str(path)!r}")
+    if out.is_dir():
+        raise ValueError(f"{what}: {out} is a directory; give a file name")
+    if out.exists() and not force:
+        raise ValueError(f"{what}: {out} exists; pass --force to overwrite it")
+    if not out.parent.exists():
+        raise ValueError(f"{what}: directory {out.parent} does not exist; create it first")
+    return out
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
+    """Call ``write(tmp)`` on a temporary file in ``path``'s directory, then rename it over ``path``.
+
+    A crash or kill mid-write never leaves a partial file under the final name; the temporary file
+    is removed on error. ``tmp`` keeps ``path``'s suffix so writers that pick a format by suffix work.
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    try:
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _stale_temporaries(directory: Path, name: str) -> list[Path]:
+    """Temporary files of ``name`` left in ``directory`` by a killed run (:func:`atomic_write`'s
+    ``.NAME.XXXX.tmpSUFFIX``, :func:`output_set`'s ``.NAME.stage.tmp.XXXX``)."""
+    return [Path(p) for p in glob.glob(os.path.join(glob.escape(str(directory)), f".{glob.escape(name)}.*.tmp*"))]
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+
+
+def _note_written(files: list[Path]) -> None:
+    """Should the command be interrupted after this set is in place, its one line says so."""
+    from . import interrupt
+
+    if interrupt.active() and files:
+        more = f" and {len(files) - 1} more" if len(files) > 1 else ""
+        interrupt.note(kept=f"the complete outputs {files[0]}{more}", key=f"outputs {files[0]}")
+
+
+def _signals_held():
+    """Ctrl-C and SIGTERM held back while an output set is renamed (:func:`torchdoct.interrupt.deferred`;
+    in the main thread of a command, where its handlers run)."""
+    from . import interrupt
+
+    if interrupt.active() and threading.current_thread() is threading.main_thread():
+        return interrupt.deferred()
+    return contextlib.nullcontext()
+
+
+class OutputSet:
+    """Staging paths of an :func:`output_set`: ``stage(final)`` is where to write ``final``."""
+
+    def __init__(self, finals: Sequence[Path], stages: dict[Path, Path]):
+        self.finals = list(finals)
+        self._stages = stages
+
+    def __call__(self, final: str | os.PathLike) -> Path:
+        final = Path(final)
+        if final not in self.finals:
+            raise KeyError(f"{final} is not a file of this output set")
+        return self._stages[final.parent] / final.name
+
+
+@contextlib.contextmanager
+def output_set(paths: Iterable[str | os.PathLike], force: bool, what: str = "--out") -> Iterator[OutputSet]:
+    """Write the files ``paths`` together: whole or not at all.
+
+    ``with output_set(paths, force) as stage: write(stage(p)) ...``: every file is written into a hidden
+    staging folder beside it (``.FIRST.stage.tmp.XXXX``) and all are renamed into place when the block
+    ends without an error, with Ctrl-C and SIGTERM held back meanwhile (:mod:`torchdoct.interrupt`);
+    on an error or an interruption the staging folder is removed and the files already there are
+    untouched. ``paths`` lists every file the set may hold: at the end, one the block did not write is
+    removed when it exists (the earlier run's file, e.g. ``magnitude.tif`` of another model), so the
+    folder holds this run's set only. An existing file is an error unless ``force``; temporary files
+    of the set left by a killed run are removed first. The folders must exist.
+    """
+    finals = [Path(p) for p in paths]
+    if len(set(finals)) != len(finals):
+        raise ValueError(f"{what}: a file is listed twice in one output set")
+    if not force:
+        clash = [str(p) for p in finals if p.exists()]
+        if clash:
+            raise ValueError(f"{what}: {', '.join(clash)} exist(s); pass --force to overwrite")
+    parents = list(dict.fromkeys(p.parent for p in finals))
+    for d in parents:
+        if not d.is_dir():
+            raise ValueError(f"{what}: directory {d} does not exist; create it first")
+    for p in finals:
+        for stale in _stale_temporaries(p.parent, p.name):
+            _remove(stale)
+    first = {d: next(p.name for p in finals if p.parent == d) for d in parents}
+    stages: dict[Path, Path] = {}
+    try:
+        for d in parents:
+            stages[d] = Path(tempfile.mkdtemp(prefix=f".{first[d]}.stage.tmp.", dir=d))
+        yield OutputSet(finals, stages)
+        extra = [str(q) for d, st in stages.items() for q in st.iterdir()
+                 if d / q.name not in finals and not q.name.startswith(".")]
+        if extra:
+            raise RuntimeError(f"files written outside their output set: {extra}")
+        with _signals_held():
+            for p in finals:
+                staged = stages[p.parent] / p.name
+                if staged.exists():
+                    os.replace(staged, p)
+                elif p.exists() or p.is_symlink():
+                    _remove(p)
+            _note_written([p for p in finals if p.exists()])
+    finally:
+        for st in stages.values():
+            shutil.rmtree(st, ignore_errors=True)
+
+
+_UNSAFE = re.compile(r"[\x00-\x1f\x7f-\x9f/\\]")
+
+
+def safe_name(name: str, what: str, fix: str = "rename it") -> str:
+    """``name`` if it can be part of a file name as it is: no path separator, no control character
+    (newline, BEL, ...), not empty, ``.`` or ``..``, at most 100 characters. Else ``ValueError``
+    naming ``what`` and the fix."""
+    bad = _UNSAFE.search(name) if isinstance(name, str) else None
+    if not isinstance(name, str) or bad or name.strip() in ("", ".", "..") or len(name) > 100:
+        why = (f"holds {bad.group()!r}" if bad else "is too long (over 100 characters)" if len(str(name)) > 100
+               else "is empty, '.' or '..'")
+        raise ValueError(f"{what} {name!r} becomes part of a file name but {why}: no path separators or "
+                         f"control characters; {fix}")
+    return name
+
+
+_JSON_TOKENS = re.compile(r'"(?:\\.|[^"\\])*"|[\[\]{}]')
+_TOML_TOKENS = re.compile(r'"""[\s\S]*?"""|\'\'\'[\s\S]*?\'\'\'|"(?:\\.|[^"\\\n])*"|\'[^\'\n]*\'|#[^\n]*|[\[\]{}]')
+
+
+def check_nesting(data: Any, where: str, *, toml: bool = False, limit: int = MAX_NESTING) -> None:
+    """Refuse input nested deeper than ``limit`` before it reaches a recursive parser or validator.
+
+    ``data``: the text (``str``/``bytes``) of a JSON (or, with ``toml``, TOML) file, scanned without
+    recursion (strings and comments skipped), or an already parsed object (dicts and lists walked
+    without recursion: TOML dotted keys nest tables without brackets). ``where`` names the file.
+    """
+    if isinstance(data, (bytes, bytearray)):
+        data = bytes(data).decode("utf-8", errors="replace")
+    depth = 0
+    if isinstance(data, str):
+        if data.count("[") + data.count("{") <= limit:
+            return
+        for m in (_TOML_TOKENS if toml else _JSON_TOKENS).finditer(data):
+            t = m.group()
+            if t in "[{":
+                depth += 1
+                if depth > limit:
+                    break
+            elif t in "]}":
+                depth -= 1
+    else:
+        stack = [(data, 1)]
+        while stack and depth <= limit:
+            obj, d = stack.pop()
+            if isinstance(obj, dict):
+                obj = list(obj.values())
+            elif not isinstance(obj, (list, tuple)):
+                continue
+            depth = max(depth, d)
+            stack.extend((v, d + 1) for v in obj if isinstance(v, (dict, list, tuple)))
+    if depth > limit:
+        raise ValueError(f"{where}: nested more than {limit} levels deep (arrays or tables inside each other); "
+                         "valid files nest a few levels: check that this is the right file")
+
+
+def shipped_files(package: str, folder: str, suffix: str = ".toml") -> dict[str, Path]:
+    """Name (file name without ``suffix``) -> path of every ``folder/*suffix`` file shipped in ``package``."""
+    root = resources.files(package).joinpath(*folder.split("/"))
+    return {p.name[: -len(suffix)]: Path(str(p)) for p in sorted(root.iterdir(), key=lambda q: q.name)
+            if p.name.endswith(suffix)}
+
+
+def file_or_shipped(key: str | os.PathLike, shipped: dict[str, Path]) -> Path | None:
+    """``key`` if it is a file, else the shipped file of that name, else ``None``."""
+    p = Path(key)
+    if p.is_file():
+        return p
+    return shipped.get(str(key))
