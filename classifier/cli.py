@@ -47,8 +47,18 @@ def build_train_parser() -> argparse.ArgumentParser:
         description="Simulate labelled DOCT features, train the motion-type classifier, export ONNX and a report. "
                     "Without options it reproduces the shipped single-acquisition model.")
     p.add_argument("--out", required=True, help="output directory: SPEC.onnx, SPEC.json/.md/.png (report)")
-    p.add_argument("--spec", default=d.spec, help="feature spec: 'single-acquisition', 'two-wavelength', 'signature', "
-                                                "'two-wavelength-signature' or a TOML file")
+    p.add_argument("--spec", default=None, help=f"feature spec: a shipped name ('single-acquisition', 'signature', "
+                                              f"'signature-bscan', ...; default {d.spec!r}) or a TOML file")
+    p.add_argument("--like", nargs="+", metavar="MAPS", default=None,
+                   help="train for the system of these maps (from `torchdoct maps`): the spec from their metadata "
+                        "(resolutions, wavelength, frame times, refractive index, reduction axes, signature "
+                        "features) and a prior scaled to that system; writes SPEC.spec.toml and SPEC.prior.toml "
+                        "beside the model")
+    p.add_argument("--prior", default=None, metavar="TOML",
+                   help="training prior (a SPEC.prior.toml written by --like, or your own: the fields of "
+                        "classifier.dataset.Prior); default: the shipped prior, or with --like the scaled one")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the spec, the prior, the recipe, the expected time and the cache key, then stop")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--quick", action="store_true",
                    help=f"small splits for a first run, about a minute on 2 cores ({_quick_text()}); "
@@ -92,24 +102,33 @@ def _train(args: argparse.Namespace) -> int:
     import shutil
     import tempfile
 
-    import torch
-
-    from torchdoct._files import check_out
+    from torchdoct._files import check_out, safe_name
     from .features import load_spec
     from .train import TrainConfig
 
-    spec = load_spec(args.spec)
-    from torchdoct._files import safe_name
+    if args.like and args.spec:
+        raise ValueError("--like and --spec exclude each other: --like derives the spec from the maps")
+    notes: list[str] = []
+    if args.like:
+        from torchdoct.measured.mapsfile import read_maps
 
-    safe_name(spec.name, f"feature spec name (the outputs are SPEC.onnx, ...; in {args.spec})",
+        from .matching import spec_from_maps
+
+        spec, notes = spec_from_maps([read_maps(p) for p in args.like])
+        spec_key: object = spec
+    else:
+        spec_key = str(args.spec or TrainConfig().spec)
+        spec = load_spec(spec_key)
+    safe_name(spec.name, f"feature spec name (the outputs are SPEC.onnx, ...; in {args.spec or 'the maps'})",
               "give the spec a plain name")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a directory")
     if args.cache is not None and not args.no_cache and Path(args.cache).exists() and not Path(args.cache).is_dir():
         raise ValueError(f"--cache {args.cache} is a file; give a directory (or --no-cache)")
-    paths = {s: out / f"{spec.name}{s}" for s in (".onnx", ".json", ".md", ".png")}
-    if out.is_dir():
+    suffixes = (".onnx", ".json", ".md", ".png") + ((".spec.toml", ".prior.toml") if args.like else ())
+    paths = {s: out / f"{spec.name}{s}" for s in suffixes}
+    if out.is_dir() and not args.dry_run:
         for s, p in paths.items():
             check_out(p, args.force, s, f"--out {out}")
     from torchdoct.threads import set_default_threads
@@ -118,30 +137,133 @@ def _train(args: argparse.Namespace) -> int:
     from torchdoct.threads import limit_process_threads
 
     limit_process_threads()  # one torch/BLAS thread per worker: no stalls beside other busy processes
-    base = QUICK if args.quick else {k: getattr(TrainConfig.for_spec(str(args.spec)), k) for k in QUICK}
+    base = QUICK if args.quick else {k: getattr(TrainConfig.for_spec(spec_key), k) for k in QUICK}
     sizes = {k: base[k] if getattr(args, k) is None else getattr(args, k) for k in QUICK}  # explicit sizes win
     try:
-        cfg = TrainConfig.for_spec(str(args.spec), seed=args.seed, min_probability=args.min_probability,
+        cfg = TrainConfig.for_spec(spec_key, seed=args.seed, min_probability=args.min_probability,
                                    baselines=not args.no_baselines, **sizes)
     except (TypeError, ValueError) as err:
         raise type(err)(_as_typed(str(err))) from None
+    prior, ranges = _prior(args, spec, cfg)
+    if args.like or args.prior or args.dry_run:
+        _print_plan(args, spec, prior, ranges, cfg, notes, paths)
+    if args.dry_run:
+        return 0
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=".doct-train-", dir=out))  # outputs appear only when all are written
     try:
-        line = _train_into(args, cfg, {s: stage / p.name for s, p in paths.items()})
-        for s in (".json", ".md", ".png", ".onnx"):  # the model last: never a model without its report
-            os.replace(stage / paths[s].name, paths[s])
+        line = _train_into(args, cfg, {s: stage / p.name for s, p in paths.items()}, spec=spec, prior=prior)
+        if args.like:
+            _write_like_files(spec, prior, ranges, args, {s: stage / paths[s].name for s in (".spec.toml", ".prior.toml")})
+        for s in (".json", ".md", ".png", ".spec.toml", ".prior.toml", ".onnx"):  # the model last
+            if s in paths:
+                os.replace(stage / paths[s].name, paths[s])
     finally:
         shutil.rmtree(stage, ignore_errors=True)
-        if created and not any(out.iterdir()):
+        if created and out.exists() and not any(out.iterdir()):
             out.rmdir()
     print(f"wrote {', '.join(str(p) for p in paths.values())}")
     print(line)
+    if args.like:
+        print(f"classify: doct-classify {' '.join(args.like)} --model {paths['.onnx']} --out DIR")
     return 0
 
 
-def _train_into(args: argparse.Namespace, cfg, paths: dict[str, Path]) -> str:
+def _prior(args: argparse.Namespace, spec, cfg):
+    """The training prior and, with ``--like``, the identifiable ranges it was scaled from."""
+    from .dataset import prior_for_spec
+    from .train import default_prior
+
+    if args.prior:
+        return _read_prior(args.prior), None
+    if args.like:
+        return prior_for_spec(spec, default_prior(cfg))
+    return None, None
+
+
+def _read_prior(path: str):
+    """A prior TOML file (the fields of :class:`classifier.dataset.Prior`), errors naming the file."""
+    import tomllib
+
+    from torchdoct._files import check_nesting
+
+    from .dataset import Prior
+
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"--prior {path}: no such file") from None
+    try:
+        check_nesting(raw, p.name, toml=True)
+        data = tomllib.loads(raw.decode("utf-8"))
+        return Prior.from_dict(data)
+    except tomllib.TOMLDecodeError as err:
+        raise ValueError(f"--prior {p.name}: not valid TOML: {err}") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"--prior {p.name}: not a TOML text file") from None
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"--prior {p.name}: {err}") from None
+
+
+_RANGE_UNITS = {"diffusion": "D, µm²/s", "ballistic": "v, µm/s", "flow": "v, µm/s"}
+
+
+def _print_plan(args, spec, prior, ranges, cfg, notes, paths) -> None:
+    """What will be trained, printed before the work: spec, prior, recipe, expected time, cache key."""
+    from .dataset import CLASSES, dataset_key, default_cache_dir
+    from .features import toml_text
+    from .train import default_prior, estimate_seconds
+
+    prior = prior or default_prior(cfg)
+    print(f"spec {spec.name}: {spec.n_features} features ({len(spec.metrics)} × {len(spec.configurations)} "
+          f"configurations), {spec.n_frames} frames {spec.frame_interval_s:g} s apart, n = {spec.refractive_index:g}")
+    print(toml_text(spec.to_dict()).rstrip().replace("\n", "\n    ").join(("    ", "")))
+    for note in notes:
+        print(f"note: {note}")
+    print("prior (log-uniform magnitudes" + (", the identifiable range widened by half a decade each side):"
+                                            if ranges else "):"))
+    for label, name in enumerate(CLASSES):
+        lo, hi = prior.magnitude_range(label)
+        ident = f" (identifiable {ranges[name][0]:.3g}-{ranges[name][1]:.3g})" if ranges else ""
+        print(f"    {name:>9} ({_RANGE_UNITS[name]}): {lo:.3g}-{hi:.3g}{ident}")
+    print(f"    density {prior.density_per_um3[0]:.3g}-{prior.density_per_um3[1]:.3g} µm⁻³, SNR "
+          f"{prior.snr_db[0]:g}-{prior.snr_db[1]:g} dB (p = {prior.noise_probability:g}), static fraction "
+          f"{prior.static_fraction[0]:g}-{prior.static_fraction[1]:g} (p = {prior.static_probability:g}), flow "
+          f"polar angle {prior.flow_polar_law}" + (f", residual bulk phase step {prior.bulk_residual_step_rad[1]:g} rad"
+                                                   if prior.bulk_residual_step_rad[1] > 0 else ""))
+    print(f"recipe: draws {cfg.draws_train}/{cfg.draws_validation}/{cfg.draws_test} (train/validation/test) × "
+          f"{cfg.replicates} replicates × {cfg.trials_per_draw} trials, at most {cfg.max_epochs} epochs, "
+          f"seed {cfg.seed}, PSF {cfg.truncation} at {cfg.truncation_tolerance:g}")
+    est = estimate_seconds(spec, prior, cfg, pilot_draws=3 if args.quick else 6, threads=args.threads)
+    print(f"expected time: about {est['total_s'] / 60:.1f} min (simulation {est['simulation_s'] / 60:.1f} min: "
+          f"{est['draws']} draws at {est['pilot_s_per_draw']:.2f} s each on the cores, from a pilot of the first "
+          f"draws; the network's fit at most {est['fit_s'] / 60:.1f} min)")
+    if not args.no_cache:
+        key, _ = dataset_key(spec, prior, cfg.seed, "train", cfg.draws_train, cfg.trials_per_draw, cfg.replicates,
+                             cfg.truncation_tolerance, truncation=cfg.truncation)
+        print(f"cache: {args.cache or default_cache_dir()} (training split key {key[:16]}; a rerun reuses it)")
+    if args.like:
+        extra = "".join(f" --{k.replace('_', '-')} {getattr(args, k)}" for k in QUICK if getattr(args, k) is not None)
+        print(f"the same model again: doct-train --spec {paths['.spec.toml']} --prior {paths['.prior.toml']} --out "
+              f"{args.out} --seed {cfg.seed}" + (" --quick" if args.quick else "") + extra)
+
+
+def _write_like_files(spec, prior, ranges, args, paths) -> None:
+    """SPEC.spec.toml and SPEC.prior.toml of a ``--like`` run (``doct-train --spec ... --prior ...`` retrains it)."""
+    from .features import toml_text
+
+    sources = ", ".join(Path(p).name for p in args.like)
+    paths[".spec.toml"].write_text(toml_text(spec.to_dict(), f"Feature spec derived by doct-train --like from "
+                                                             f"{sources}."), encoding="utf-8")
+    header = (f"Training prior of {spec.name}, scaled to its system (classifier.dataset.prior_for_spec): magnitude "
+              "ranges = identifiable ranges\n(closed forms) widened by half a decade; identifiable: "
+              + "; ".join(f"{k} {v[0]:.3g}-{v[1]:.3g}" for k, v in (ranges or {}).items()))
+    paths[".prior.toml"].write_text(toml_text(prior.to_dict(), header), encoding="utf-8")
+
+
+def _train_into(args: argparse.Namespace, cfg, paths: dict[str, Path], *, spec=None, prior=None) -> str:
     """Train, export and write the report into ``paths``; returns the summary line."""
     import time
 
@@ -155,7 +277,8 @@ def _train_into(args: argparse.Namespace, cfg, paths: dict[str, Path]) -> str:
 
         _interrupt.note(kept=f"the data splits simulated so far, in the cache {args.cache or default_cache_dir()}",
                         resume="rerun the same command: those splits come from the cache")
-    res = train(cfg, cache_dir=args.cache, use_cache=not args.no_cache, progress=not args.no_progress)
+    res = train(cfg, prior=prior, cache_dir=args.cache, use_cache=not args.no_cache, progress=not args.no_progress,
+                spec=spec)
     export_onnx(res.model, build_metadata(res), paths[".onnx"])
     parity = runtime_checks(res, paths[".onnx"])
     res.report["total_s"] = time.perf_counter() - t0

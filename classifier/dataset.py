@@ -10,7 +10,9 @@
   from a stream of its own (:attr:`Draw.ballistic_directions`); ``"isotropic"`` or
   ``"uniform-angles"`` gives every ballistic draw that law (the prior of the models trained before
   the two laws were mixed: ``"isotropic"``);
-* motion magnitude, log-uniform: D ∈ [1e-4, 15] µm²/s, v ∈ [1e-3, 6] µm/s. The paper's ranges
+* motion magnitude, log-uniform: D ∈ [1e-4, 15] µm²/s, v ∈ [1e-3, 6] µm/s (the shipped models; a
+  prior scaled to another system, :func:`prior_for_spec`, spans each motion type's identifiable range
+  and keeps the scatterers per resolution volume). The paper's ranges
   (§3.2) end at 15 µm²/s and 6 µm/s and start at 0, which a log scale cannot hold; their lower ends
   are taken as 1e-3 µm²/s and 1e-2 µm/s, where the 840-nm LIV of diffusion and random-ballistic
   motion is already a sizeable part of its plateau (physics.md §5.7), and extended a decade below
@@ -118,6 +120,8 @@ __all__ = [
     "scene_for",
     "simulate_draw",
     "identifiability",
+    "identifiable_range",
+    "prior_for_spec",
     "transit_decay",
     "make_dataset",
 ]
@@ -157,6 +161,10 @@ class Prior:
 
     diffusion_um2_per_s: tuple[float, float] = (1e-4, 15.0)
     speed_um_per_s: tuple[float, float] = (1e-3, 6.0)
+    #: flow speeds (µm/s) when they differ from the random-ballistic ones; None (the shipped priors): as
+    #: ``speed_um_per_s``. A prior scaled to a system (:func:`prior_for_spec`) gives each motion type its
+    #: own identifiable range: flow decorrelates by transit alone and stays identifiable far faster.
+    flow_speed_um_per_s: tuple[float, float] | None = None
     ballistic_directions: str = "both"
     flow_polar_angle_deg: tuple[float, float] = (0.0, 180.0)
     flow_polar_law: str = "isotropic"
@@ -176,6 +184,9 @@ class Prior:
                          ("static_fraction", False), ("snr_db", False), ("flow_polar_angle_deg", False),
                          ("bulk_residual_step_rad", False)):
             object.__setattr__(self, key, _range(key, getattr(self, key), positive=pos))
+        if self.flow_speed_um_per_s is not None:
+            object.__setattr__(self, "flow_speed_um_per_s",
+                               _range("flow_speed_um_per_s", self.flow_speed_um_per_s, positive=True))
         if self.static_fraction[0] < 0 or self.static_fraction[1] >= 1:
             raise ValueError(f"prior.static_fraction must lie in [0, 1); got {self.static_fraction}")
         for key in ("static_probability", "noise_probability"):
@@ -207,7 +218,18 @@ class Prior:
             del d["flow_polar_law"]
         if tuple(d["bulk_residual_step_rad"]) == (0.0, 0.0):
             del d["bulk_residual_step_rad"]
+        if d["flow_speed_um_per_s"] is None:
+            del d["flow_speed_um_per_s"]
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+    def magnitude_range(self, label: int) -> tuple[float, float]:
+        """The log-uniform range of the motion magnitude of class ``label`` (:data:`CLASSES`): D (µm²/s)
+        for diffusion, the speed (µm/s) for random-ballistic motion and flow."""
+        if label == 0:
+            return self.diffusion_um2_per_s
+        if label == 2 and self.flow_speed_um_per_s is not None:
+            return self.flow_speed_um_per_s
+        return self.speed_um_per_s
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "Prior":
@@ -264,7 +286,7 @@ def draw_parameters(prior: Prior, seed: int, split: str, k: int, replicates: int
     # offset of the magnitude sequence: one per (seed, split, type), independent of k
     u0 = np.random.default_rng(_seed_sequence(seed, split, 1 << 30, label)).random()
     q = (u0 + i * _GOLDEN) % 1.0
-    lo, hi = prior.diffusion_um2_per_s if label == 0 else prior.speed_um_per_s
+    lo, hi = prior.magnitude_range(label)
     magnitude = float(math.exp(math.log(lo) + q * (math.log(hi) - math.log(lo))))
     ss = _seed_sequence(seed, split, k)
     u = np.random.default_rng(ss).random(4)
@@ -345,6 +367,8 @@ def combine_fields(moving, static, static_fraction: float, snr_db: float, mean_i
     """
     import torch
 
+    from torchdoct.conventions import noise_sigma
+
     f = float(static_fraction)
     if not 0.0 <= f < 1.0:
         raise ValueError(f"static_fraction must be in [0, 1); got {static_fraction!r}")
@@ -354,7 +378,7 @@ def combine_fields(moving, static, static_fraction: float, snr_db: float, mean_i
     e = moving if f == 0 else moving + a * static
     if not math.isnan(snr_db):
         mean_i = torch.as_tensor(mean_intensity_moving, dtype=torch.float32).view(1, -1, 1)
-        amp = torch.sqrt((1.0 + a * a) * mean_i / 10.0 ** (snr_db / 10.0) / 2.0)
+        amp = noise_sigma((1.0 + a * a) * mean_i, snr_db)
         shape = e.shape
         noise = torch.complex(torch.randn(shape, generator=generator) * amp,
                               torch.randn(shape, generator=generator) * amp)
@@ -490,6 +514,90 @@ def _criteria(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, np.ndar
     else:
         status = "identifiable"
     return status, first_a, last_a, np.array(drop)
+
+
+#: Nuisances over which :func:`identifiable_range` takes the widest range: flow at every polar angle
+#: (degrees from the depth axis; azimuth 0, the lateral widths along x and y both enter through the
+#: configurations), both random-ballistic direction laws, the prior's density extremes.
+_RANGE_POLAR_DEG = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
+#: Log-magnitude grid of :func:`identifiable_range`: 1e-9 to 1e5 at 24 points per decade (±5 %).
+_RANGE_GRID = np.logspace(-9.0, 5.0, 14 * 24 + 1)
+#: Half a decade beyond each end of the identifiable range (:func:`prior_for_spec`): the indeterminate
+#: class is trained on the draws that are static or decorrelated, and the network must see the transition.
+PRIOR_MARGIN_DECADES = 0.5
+#: Lateral 1/e² width and axial FWHM (µm) of the system the shipped prior's density range refers to
+#: (the reference paper's 840-nm system; :func:`prior_for_spec`).
+REFERENCE_RESOLUTIONS_UM = (4.9, 3.8)
+
+
+def identifiable_range(spec: FeatureSpec, label: int, prior: Prior | None = None) -> tuple[float, float]:
+    """The magnitudes (D in µm²/s for diffusion, the speed in µm/s otherwise) at which motion type
+    ``label`` is identifiable (:func:`identifiability`) at the spec's configurations and protocol for some
+    direction (flow: polar angle 0-90°; random-ballistic: either direction law) and density of ``prior``.
+
+    Below it every configuration sees a static sample over the acquisition (``ρ_I(T) ≥ 1 − ε``), above
+    it every configuration decorrelates within one frame interval (``|g1(Δt)|² ≤ ε``): the closed forms
+    of physics.md §5.3-5.4 on a log grid (:data:`_RANGE_GRID`, 5 % steps). ``ValueError`` when no
+    magnitude of the grid is identifiable (a protocol that cannot see this motion)."""
+    prior = prior or Prior()
+    if label == 2:
+        variants = [dict(polar_angle_deg=a) for a in _RANGE_POLAR_DEG]
+    elif label == 1:
+        variants = [dict(ballistic_directions=law) for law in BALLISTIC_LAWS]
+    else:
+        variants = [{}]
+    ok = np.zeros(_RANGE_GRID.size, bool)
+    for i, mag in enumerate(_RANGE_GRID):
+        for v in variants:
+            for dens in sorted(set(prior.density_per_um3)):
+                d = Draw(label=label, magnitude=float(mag), polar_angle_deg=v.get("polar_angle_deg", 0.0),
+                         azimuth_deg=0.0, density_per_um3=dens, sim_seed=0,
+                         ballistic_directions=v.get("ballistic_directions", "isotropic"))
+                if identifiability(spec, d, prior)[0] == "identifiable":
+                    ok[i] = True
+                    break
+            if ok[i]:
+                break
+    if not ok.any():
+        raise ValueError(f"spec {spec.name!r}: {CLASSES[label]} is identifiable at no magnitude from "
+                         f"{_RANGE_GRID[0]:g} to {_RANGE_GRID[-1]:g} with {spec.n_frames} frames "
+                         f"{spec.frame_interval_s:g} s apart")
+    idx = np.flatnonzero(ok)
+    return float(_RANGE_GRID[idx[0]]), float(_RANGE_GRID[idx[-1]])
+
+
+def prior_for_spec(spec: FeatureSpec, base: Prior | None = None,
+                   margin_decades: float = PRIOR_MARGIN_DECADES) -> tuple[Prior, dict[str, list[float]]]:
+    """``base`` (default :class:`Prior`) with its magnitude ranges and density scaled to the spec's system
+    and protocol.
+
+    The density range keeps the number of scatterers per resolution volume, ``N_eff`` (physics.md §5.4),
+    that ``base`` gives the reference system (:data:`REFERENCE_RESOLUTIONS_UM`, the paper's 4.9/3.8 µm)
+    at the spec's finest configuration: the speckle statistics the shipped models were trained on, at a
+    cost that does not grow with the resolution volume (a 10/8 µm system would otherwise simulate 9×
+    more scatterers per trial). Each motion type's range is its :func:`identifiable_range` widened by
+    ``margin_decades`` at both ends (the indeterminate class is trained on what lies beyond); flow gets
+    its own speed range (:attr:`Prior.flow_speed_um_per_s`). Returns the prior and the identifiable
+    ranges it came from (``{"diffusion": [lo, hi], ...}``, µm²/s or µm/s)."""
+    import dataclasses as _dc
+
+    from torchdoct.conventions import n_eff
+
+    base = base or Prior()
+    ref = n_eff(1.0, *REFERENCE_RESOLUTIONS_UM)
+    finest = min(n_eff(1.0, c.lateral_resolution_um, c.axial_resolution_um, **_lateral_y(c))
+                 for c in spec.configurations)
+    density = tuple(float(f"{d * ref / finest:.3g}") for d in base.density_per_um3)
+    base = _dc.replace(base, density_per_um3=density)
+    ranges = {CLASSES[label]: list(identifiable_range(spec, label, base)) for label in range(len(CLASSES))}
+    k = 10.0 ** float(margin_decades)
+
+    def widen(r):
+        return (float(f"{r[0] / k:.3g}"), float(f"{r[1] * k:.3g}"))
+
+    prior = _dc.replace(base, diffusion_um2_per_s=widen(ranges["diffusion"]),
+                        speed_um_per_s=widen(ranges["ballistic"]), flow_speed_um_per_s=widen(ranges["flow"]))
+    return prior, ranges
 
 
 #: Version of the ground-truth definition (part of the cache key).

@@ -47,6 +47,7 @@ __all__ = [
     "load_spec",
     "shipped_specs",
     "spec_from_dict",
+    "toml_text",
     "same_value",
 ]
 
@@ -269,6 +270,38 @@ class FeatureSpec:
                          "ocds_estimator": self.ocds_estimator},
             "configuration": [c.to_dict() for c in self.configurations],
         }
+
+
+def _toml_value(v: Any) -> str:
+    import json
+
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"TOML has no value for {v!r}")
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False)  # a JSON string is a TOML basic string
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"no TOML form for {type(v).__name__} {v!r}")
+
+
+def toml_text(data: dict[str, Any], header: str = "") -> str:
+    """``data`` as TOML: its plain keys, then its tables (``[name]``) and arrays of tables (``[[name]]``),
+    one level deep (the spec and prior files); ``None`` values are left out. ``header``: comment lines."""
+    lines = [f"# {line}" if line else "#" for line in header.splitlines()]
+    plain = {k: v for k, v in data.items() if v is not None and not isinstance(v, dict)
+             and not (isinstance(v, list) and v and all(isinstance(x, dict) for x in v))}
+    lines += [f"{k} = {_toml_value(v)}" for k, v in plain.items()]
+    for k, v in data.items():
+        if isinstance(v, dict):
+            lines += ["", f"[{k}]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in v.items() if vv is not None]
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            for item in v:
+                lines += ["", f"[[{k}]]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in item.items() if vv is not None]
+    return "\n".join(lines) + "\n"
 
 
 _TOP_KEYS = {"name", "description", "metrics", "refractive_index", "protocol", "analysis", "configuration"}

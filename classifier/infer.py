@@ -35,7 +35,8 @@ import numpy as np
 from torchdoct.measured import mapsfile
 
 from . import runtime
-from .matching import (SIGNATURE_MODEL, SIGNATURE_MODELS, MapsChannels, assemble_features, choose_default_model)
+from .matching import (SIGNATURE_MODEL, SIGNATURE_MODELS, MapsChannels, assemble_features, choose_default_model,
+                       no_shipped_model_message)
 from .outputs import (CLASS_COLORS, MAGNITUDE_CHANNELS, MASKED, OUTPUT_FILES, Classification, _legend, _overlay,
                       magnitude_maps, write_classification)
 from .features import physical_range
@@ -143,12 +144,18 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
         paths = [paths]
     maps_list = [mapsfile.read_maps(p) for p in paths]
     choice_note = None
-    if model is None:
+    chosen = model is None
+    if chosen:
         model, choice_note = default_model_for(maps_list)
     mdl = model if isinstance(model, ClassifierModel) else load_model(model, threads=threads)
     _check_pool(pool, maps_list[0])
     t_read = time.perf_counter()
-    feats, mean_db, info = assemble_features(maps_list, mdl, ignore_refractive_index=ignore_refractive_index)
+    try:
+        feats, mean_db, info = assemble_features(maps_list, mdl, ignore_refractive_index=ignore_refractive_index)
+    except ValueError as err:
+        if not chosen:
+            raise
+        raise ValueError(no_shipped_model_message(maps_list, str(err))) from None
     info["model_choice"] = choice_note
     # a pixel is finite iff the float64 sum of its features is (NaN and ±inf propagate; finite float32
     # values cannot overflow a float64 sum): one pass instead of a boolean array per feature

@@ -34,7 +34,7 @@ from torchdoct.sim import signature as _signature
 from .features import METRIC_UNITS, FeatureSpec, metric_unit, same_value
 from .runtime import DEFAULT_MODEL, ClassifierModel
 
-__all__ = ["MATCH_LATERAL_Y", "SIGNATURE_MODEL", "SIGNATURE_MODELS", "LIV_OCDS_MODELS", "MapsChannels", "column_optics",
+__all__ = ["spec_from_maps", "no_shipped_model_message", "MATCH_LATERAL_Y", "SIGNATURE_MODEL", "SIGNATURE_MODELS", "LIV_OCDS_MODELS", "MapsChannels", "column_optics",
            "channel_matches", "assemble_features", "bscan_notes", "choose_default_model"]
 
 #: Whether a model column matches a channel only when their lateral widths along y agree too: True, so a
@@ -309,3 +309,142 @@ def _liv_ocds_model(maps_list: Sequence[Maps], shipped: Mapping[str, Path],
         if all(_find_column(maps_list, col) is not None for col in model.columns[:-1]):
             return name
     return DEFAULT_MODEL
+
+
+def _frame_protocol(maps: Maps) -> tuple[int, float]:
+    """``(n_frames, frame_interval_s)`` of the maps' uniform frame times, or ``ValueError`` naming the fix."""
+    times = maps.meta.get("frame_times_s")
+    if not isinstance(times, list) or len(times) < 4:
+        raise ValueError(f"{maps.name}: the metadata hold no frame times of at least 4 frames ('frame_times_s'), "
+                         "which a model's protocol needs. Fix: recompute the maps with --frame-interval-s "
+                         "or --frame-times-s")
+    t = np.asarray(times, dtype=np.float64)
+    d = np.diff(t)
+    if not np.all(np.isfinite(d)) or d.min() <= 0 or d.max() - d.min() > 1e-6 * d.max():
+        raise ValueError(f"{maps.name}: frame intervals {d.min():g}-{d.max():g} s are not uniform; the signature "
+                         "and the trained protocol need one frame interval")
+    return len(t), float(f"{np.mean(d):.12g}")
+
+
+def spec_from_maps(maps_list: Sequence[Maps | MapsChannels], name: str | None = None) -> tuple[FeatureSpec, list[str]]:
+    """The feature spec of a model for these maps (``doct-train --like``), and notes on what was chosen.
+
+    Read from the metadata (the inverse of :func:`assemble_features`): the configurations are the
+    resolutions present (each channel's optics, :meth:`~torchdoct.measured.mapsfile.Maps.optics`: the
+    wavelength, the lateral 1/e² width along x and y, the axial FWHM in the medium; B-scan maps reduced
+    along x only keep the original width along y), the protocol is the frame times (uniform), the
+    medium's refractive index and the OCDS analysis are the maps'. The features are the decorrelation
+    signature the maps hold (``torchdoct maps --signature``: their lags follow the frame count,
+    :func:`torchdoct.sim.signature.default_features`), its field group only when the maps say the bulk
+    phase was corrected (``meta["bulk_phase"]``), else LIV and OCDS. Several files (e.g. two wavelengths)
+    must share the protocol. ``name``: the spec's (default ``like-STEM`` of the first file).
+    """
+    import re
+
+    from .features import Configuration
+
+    maps_list = [_as_maps(m) for m in maps_list]
+    if not maps_list:
+        raise ValueError("no maps file given")
+    first = maps_list[0]
+    n_frames, dt = _frame_protocol(first)
+    for m in maps_list[1:]:
+        other = _frame_protocol(m)
+        if other[0] != n_frames or not same_value(other[1], dt):
+            raise ValueError(f"{m.name}: {other[0]} frames {other[1]:g} s apart, but {first.name} has {n_frames} "
+                             f"frames {dt:g} s apart; maps of one model share the protocol")
+    notes: list[str] = []
+    signature = [m.meta.get("signature") for m in maps_list]
+    if all(signature):
+        names = [tuple(s.get("features") or ()) for s in signature]
+        if any(n != names[0] for n in names):
+            raise ValueError("the maps files hold different signature features; compute them with the same "
+                             "`torchdoct maps --signature` options")
+        corrected = all(m.meta.get("bulk_phase") for m in maps_list)
+        intensity_only = any(s.get("intensity_only") for s in signature)
+        metrics = [f for f in names[0] if corrected and not intensity_only or not _signature.needs_field(f)]
+        if not corrected and not intensity_only and len(metrics) < len(names[0]):
+            notes.append("the field group (g1_M) is left out: the maps were not bulk-phase corrected, and a bulk "
+                         "phase per frame destroys it (`torchdoct maps --bulk-phase weighted-mean --signature` "
+                         "gives a model that reads it)")
+    else:
+        metrics = ["liv", "ocds"]
+        notes.append("LIV and OCDS features: the maps have no signature channels (`torchdoct maps DATA --signature` "
+                     "gives the more accurate signature model)")
+    configurations: list[Configuration] = []
+    labels: dict[str, int] = {}
+    for m in maps_list:
+        for i, ch in enumerate(m.meta["channels"]):
+            if ch.get("metric") != metrics[0]:
+                continue
+            optics = m.optics(i)
+            if optics is None:
+                raise ValueError(f"{m.name}: channel {ch.get('name')!r} records no wavelength or resolution. Fix: "
+                                 "recompute the maps with --wavelength-um, --lateral-resolution-um and "
+                                 "--axial-resolution-um")
+            if any(c.optics.matches(optics) for c in configurations):
+                continue
+            label = str(ch.get("resolution") or f"c{len(configurations)}")
+            if len(maps_list) > 1:
+                label = f"{optics.wavelength_um * 1000:g}nm-{label}"
+            labels[label] = labels.get(label, 0) + 1
+            if labels[label] > 1:
+                label = f"{label}-{labels[label]}"
+            configurations.append(Configuration(name=label, wavelength_um=optics.wavelength_um,
+                                                lateral_resolution_um=optics.lateral_resolution_um,
+                                                axial_resolution_um=optics.axial_resolution_um,
+                                                lateral_resolution_y_um=optics.lateral_resolution_y_um))
+    if not configurations:
+        have = ", ".join(first.channels)
+        raise ValueError(f"{first.name}: no {metrics[0]} channel to build a model from (channels: {have}). Fix: "
+                         "compute the maps with `torchdoct maps DATA --signature --resolution original ...`")
+    system = first.meta.get("system") or {}
+    n = system.get("refractive_index")
+    rng = first.meta.get("ocds_delay_range_s") or [dt, 6 * dt]
+    stem = re.sub(r"[^A-Za-z0-9._-]+", "-", Path(first.name).stem).strip("-.") or "maps"
+    geometry = ("B-scan, lateral reduction along x only" if any(not c.optics.isotropic for c in configurations)
+                else "isotropic reductions")
+    spec_name = name or f"like-{stem}"
+    description = (f"derived from the metadata of {', '.join(m.name for m in maps_list)} (doct-train --like): "
+                   f"{len(metrics)} features at {len(configurations)} configurations ("
+                   + "; ".join(f"{c.name}: {c.describe()}" for c in configurations)
+                   + f"), {geometry}; {n_frames} frames {dt:g} s apart, n = {1.0 if n is None else float(n):g}")
+    spec = FeatureSpec(name=spec_name, description=description, configurations=tuple(configurations),
+                       metrics=tuple(metrics), n_frames=n_frames, frame_interval_s=dt,
+                       ocds_delay_range_s=tuple(float(v) for v in rng),
+                       ocds_scale=str(first.meta.get("ocds_scale") or "db"),
+                       ocds_estimator=str(first.meta.get("ocds_estimator") or "pearson"),
+                       refractive_index=1.0 if n is None else float(n))
+    # every feature at every configuration must be in the maps (what assemble_features will look for)
+    for metric, conf in spec.features:
+        if _find_column(maps_list, {"metric": metric, **conf.to_dict()}) is None:
+            raise ValueError(f"{first.name}: {metric} is missing at {conf.describe()}; the maps must hold every "
+                             f"feature at every resolution. Fix: recompute them with one `torchdoct maps` call")
+    return spec, notes
+
+
+def no_shipped_model_message(maps_list: Sequence[Maps | MapsChannels], reason: str) -> str:
+    """The refusal when no shipped model fits the maps: what their system is, and the exact commands that
+    train a model from the maps themselves (``doct-train --like``) and classify with it."""
+    maps_list = [_as_maps(m) for m in maps_list]
+    files = " ".join(str(m.path) if m.path is not None else m.name for m in maps_list)
+    m0 = maps_list[0]
+    system = m0.meta.get("system") or {}
+    times = m0.meta.get("frame_times_s") or []
+    parts = []
+    if system.get("wavelength_um"):
+        parts.append(f"{float(system['wavelength_um']) * 1000:g} nm, lateral "
+                     f"{float(system.get('lateral_resolution_um') or math.nan):g} µm, axial "
+                     f"{float(system.get('axial_resolution_um') or math.nan):g} µm")
+    if len(times) >= 2:
+        parts.append(f"{len(times)} frames {float(times[1]) - float(times[0]):.4g} s apart")
+    parts.append(f"n = {system.get('refractive_index') or 1:g}")
+    import re
+
+    short = reason.split(" Channels present in")[0].split(" Fix:")[0]
+    short = re.sub(r"\s*\(fix:[^)]*\)", "", short).removeprefix(f"{m0.name}: ").rstrip(". ")
+    return (f"{m0.name}: no shipped model fits these maps ({'; '.join(parts)}; the shipped models know 840 nm at "
+            f"4.9/3.8 µm, with 1310 nm for the two-wavelength ones, 32 frames 0.2048 s apart, n = 1): {short}. "
+            f"Fix: train a model for this system from the maps themselves, `doct-train --like {files} --out MODEL_DIR` "
+            "(it prints the expected time first; --quick gives a rough model in about a minute), then "
+            f"`doct-classify {files} --model MODEL_DIR --out OUT`")

@@ -145,7 +145,8 @@ class ClassifierModel:
 
 def load_model(model: str | os.PathLike | None = None, *, threads: int | None = None,
                shipped: Mapping[str, Path] | None = None, chunk_rows: int = CHUNK_ROWS) -> ClassifierModel:
-    """Open an ONNX model: ``None`` (the shipped default), a shipped name, or a ``.onnx`` path.
+    """Open an ONNX model: ``None`` (the shipped default), a shipped name, a ``.onnx`` path, or a directory
+    holding one (``doct-train --out DIR``).
 
     ``threads``: chunks of pixels classified side by side, each on one onnxruntime thread with spinning
     off (default: ``$TORCHDOCT_THREADS``, else the usable cores; see :mod:`torchdoct.threads`).
@@ -153,6 +154,12 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     """
     shipped = shipped_models() if shipped is None else shipped
     path = shipped_or_path(DEFAULT_MODEL if model is None else str(model), dict(shipped), "model")
+    if path.is_dir():  # a doct-train output directory: its one model
+        found = sorted(path.glob("*.onnx"))
+        if len(found) != 1:
+            raise ValueError(f"model directory {path}: holds {len(found)} .onnx files "
+                             f"({', '.join(p.name for p in found) or 'none'}); give the .onnx file itself")
+        path = found[0]
     if path.suffix != ".onnx":
         raise ValueError(f"model {path.name}: must be an .onnx file written by doct-train")
     n_threads = resolve_threads(threads)

@@ -100,9 +100,18 @@ class TrainConfig:
     shifted_test: bool | None = None
 
     @classmethod
-    def for_spec(cls, spec: str = "single-acquisition", **overrides: Any) -> "TrainConfig":
-        """The recipe of the shipped model of ``spec`` (:data:`SPEC_RECIPES`), with ``overrides``."""
-        return cls(**{"spec": spec, **SPEC_RECIPES.get(str(spec), {}), **overrides})
+    def for_spec(cls, spec: str | FeatureSpec = "single-acquisition", **overrides: Any) -> "TrainConfig":
+        """The recipe of ``spec`` with ``overrides``: a shipped spec's (:data:`SPEC_RECIPES`), else, for a spec
+        of one's own (a TOML file, ``doct-train --like``), :func:`recipe_for` by its features."""
+        if isinstance(spec, FeatureSpec):
+            return cls(**{**recipe_for(spec), **overrides, "spec": spec.name})
+        if str(spec) in SPEC_RECIPES or str(spec) in _SHIPPED_DEFAULT_RECIPE:
+            return cls(**{"spec": spec, **SPEC_RECIPES.get(str(spec), {}), **overrides})
+        try:
+            recipe = recipe_for(load_spec(spec))
+        except (OSError, TypeError, ValueError):  # the spec's own error comes when it is loaded
+            recipe = {}
+        return cls(**{"spec": spec, **recipe, **overrides})
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
@@ -173,6 +182,73 @@ SPEC_RECIPES["signature-bscan"] = SPEC_RECIPES["signature"]
 SPEC_RECIPES["signature-bscan-field"] = {**SPEC_RECIPES["signature"], "bulk_residual_step_rad": (0.0, 0.05)}
 
 
+#: Shipped specs trained with the :class:`TrainConfig` defaults (LIV/OCDS).
+_SHIPPED_DEFAULT_RECIPE = ("single-acquisition", "two-wavelength", "single-acquisition-bscan")
+#: Recipe of a signature spec of one's own (``doct-train --like``, a spec TOML): the shipped signature
+#: recipe with half its training draws. Its cost is the network's fit (one thread, so the model does not
+#: depend on the cores): 1920 draws took 7-12 min of the shipped models' 9-18 min, which with the
+#: simulation of a 64-frame protocol would pass the 15 min a user should wait; the learning curve gives
+#: 960 draws −0.016 ± 0.004 per pixel against 1920 (classifier/data/signature-learning-curve.md).
+OWN_SIGNATURE_RECIPE: dict[str, Any] = {**SPEC_RECIPES["signature"], "draws_train": 960, "bulk_phase_test": False}
+
+
+def recipe_for(spec: FeatureSpec) -> dict[str, Any]:
+    """The recipe (:class:`TrainConfig` fields) of a spec of one's own: :data:`OWN_SIGNATURE_RECIPE` for
+    a signature spec (with the random-bulk-phase test split and a residual bulk phase in the prior when it
+    reads the field's phase, as :data:`SPEC_RECIPES` ``"signature-bscan-field"``), the defaults for
+    LIV/OCDS."""
+    if not spec.is_signature:
+        return {}
+    recipe = dict(OWN_SIGNATURE_RECIPE)
+    if spec.needs_field:
+        recipe.update(bulk_phase_test=True,
+                      bulk_residual_step_rad=SPEC_RECIPES["signature-bscan-field"]["bulk_residual_step_rad"])
+    return recipe
+
+
+def default_prior(cfg: TrainConfig) -> Prior:
+    """The prior of a recipe when none is given: :class:`Prior` with the recipe's flow polar law and
+    residual bulk phase."""
+    return Prior(flow_polar_law=cfg.flow_polar_law, bulk_residual_step_rad=cfg.bulk_residual_step_rad)
+
+
+def estimate_seconds(spec: FeatureSpec, prior: Prior, cfg: TrainConfig, *, pilot_draws: int = 6,
+                     threads: int | None = None) -> dict[str, float]:
+    """Expected time of :func:`train` (s), from a pilot: the first ``pilot_draws`` draws of the training split
+    simulated and timed (their numbers are not kept). Simulation: the mean time per draw × the draws of
+    every split (train, validation, test, and the test-sized shifted-prior and bulk-phase splits when the
+    recipe makes them) / the cores; the network's fit: :data:`FIT_SECONDS_PER_SAMPLE_EPOCH` × samples
+    per epoch × the epoch cap (an upper bound: early stopping often ends sooner)."""
+    from torchdoct.threads import resolve_threads, single_torch_thread
+
+    from .dataset import draw_parameters, simulate_draw
+
+    t0 = time.perf_counter()
+    with single_torch_thread():
+        for k in range(int(pilot_draws)):
+            d = draw_parameters(prior, cfg.seed, "train", k, cfg.replicates)
+            simulate_draw(spec, d, prior, trials=cfg.trials_per_draw, truncation_tolerance=cfg.truncation_tolerance,
+                          truncation=cfg.truncation)
+    per_draw = (time.perf_counter() - t0) / max(int(pilot_draws), 1)
+    extra = 0
+    if spec.is_signature if cfg.shifted_test is None else cfg.shifted_test:
+        extra += cfg.draws_test
+    if spec.needs_field if cfg.bulk_phase_test is None else cfg.bulk_phase_test:
+        extra += cfg.draws_test
+    draws = cfg.draws_train + cfg.draws_validation + cfg.draws_test + extra
+    simulation = per_draw * draws / resolve_threads(threads)
+    samples = cfg.draws_train * cfg.replicates * (cfg.singles_per_group + cfg.pooled_per_group)
+    fit = FIT_SECONDS_PER_SAMPLE_EPOCH * samples * cfg.max_epochs * (spec.n_features / 36.0) ** 0.5
+    return {"pilot_s_per_draw": per_draw, "draws": draws, "simulation_s": simulation, "fit_s": fit,
+            "total_s": simulation + fit}
+
+
+#: Seconds per training sample and epoch of the network's fit on one thread, measured on the shipped
+#: signature model (36 features, 64-64 hidden: 424 s for 60 epochs of 737,280 samples, a 2-core machine
+#: beside other work); :func:`estimate_seconds` scales it with the square root of the feature count.
+FIT_SECONDS_PER_SAMPLE_EPOCH = 424.0 / (60 * 737_280)
+
+
 #: Prior of the shifted-prior test set: nuisances the training prior (:class:`~classifier.dataset.Prior`)
 #: does not draw, or draws elsewhere. Flow at 10-80° from the depth axis (isotropic within that
 #: cone: cos of the polar angle ~ U[cos 80°, cos 10°]; training: the whole sphere), the density of the
@@ -191,11 +267,16 @@ SHIFTED_TARGETS = {"pool": "1", "balanced_accuracy_identifiable": 0.85, "ece": 0
 
 
 def shifted_prior(prior: Prior | None = None) -> Prior:
-    """:data:`SHIFTED_PRIOR` with the magnitude ranges and ε of ``prior`` (the prior trained on)."""
+    """:data:`SHIFTED_PRIOR` with the magnitude ranges and ε of ``prior`` (the prior trained on), its fixed
+    density scaled as ``prior``'s lower end is from :class:`Prior`'s (a prior scaled to another system's
+    resolution volume, :func:`classifier.dataset.prior_for_spec`)."""
     prior = prior or Prior()
+    scale = prior.density_per_um3[0] / Prior().density_per_um3[0]  # a prior scaled to another system (N_eff)
+    density = tuple(float(f"{d * scale:.3g}") for d in SHIFTED_PRIOR.density_per_um3) if scale != 1.0 else None
     return dataclasses.replace(SHIFTED_PRIOR, diffusion_um2_per_s=prior.diffusion_um2_per_s,
-                               speed_um_per_s=prior.speed_um_per_s,
-                               identifiability_epsilon=prior.identifiability_epsilon)
+                               speed_um_per_s=prior.speed_um_per_s, flow_speed_um_per_s=prior.flow_speed_um_per_s,
+                               identifiability_epsilon=prior.identifiability_epsilon,
+                               **({} if density is None else {"density_per_um3": density}))
 
 
 def _uses_magnitude(cfg: TrainConfig, spec: FeatureSpec) -> bool:
@@ -517,11 +598,14 @@ def _magnitude_eval(model: MotionClassifier, s: dict[str, np.ndarray]) -> dict[s
 
 
 def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cache_dir=None, use_cache: bool = True,
-          progress: bool = False, log=print) -> TrainResult:
-    """Run the recipe of the module docstring; returns the model, the report and the test inputs."""
+          progress: bool = False, log=print, spec: FeatureSpec | None = None) -> TrainResult:
+    """Run the recipe of the module docstring; returns the model, the report and the test inputs.
+
+    ``spec``: the feature spec as a value (``doct-train --like``); default ``config.spec`` (a shipped
+    name or a TOML file)."""
     cfg = config or TrainConfig()
-    prior = prior or Prior(flow_polar_law=cfg.flow_polar_law, bulk_residual_step_rad=cfg.bulk_residual_step_rad)
-    spec = load_spec(cfg.spec)
+    prior = prior or default_prior(cfg)
+    spec = load_spec(cfg.spec if spec is None else spec)
     rule = make_rule(prior.identifiability_epsilon, cfg.min_probability)
     say = log or (lambda *a, **k: None)
 
@@ -619,7 +703,7 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
         say(f"random bulk phase per frame: balanced accuracy (identifiable, pool 1) "
             f"{bulk_report['1']['balanced_accuracy_identifiable']:.3f}, coverage {bulk_report['1']['coverage_identifiable']:.3f}")
 
-    ranges = [prior.diffusion_um2_per_s, prior.speed_um_per_s, prior.speed_um_per_s]
+    ranges = [prior.magnitude_range(label) for label in range(len(CLASSES))]
     conf_pools = [p for p in ("1", "25") if p in tests] or [str(cfg.eval_pools[0])]
     thresholds = sorted({*COVERAGE_THRESHOLDS, float(cfg.min_probability)})  # the model's own threshold included
     curves = {pool: coverage_curve(probs_net[pool], tests[pool]["y"], tests[pool]["status"], CLASS_NAMES, rule,

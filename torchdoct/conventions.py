@@ -46,6 +46,13 @@ window :func:`taper_window` of the exponent, which falls smoothly (C²) from 1 a
 to 0 at ``ln tol``, so scatterers enter continuously. The taper changes the PSF near its edge; its
 cost in mean-square field and mean intensity is :func:`truncation_field_error` and
 :func:`truncation_intensity_factor` (moments of the window over the |h|²-weighted radius).
+
+Noise (``[noise] snr_db``, :class:`torchdoct.sim.config.Noise`; physics.md §8): additive circular complex
+Gaussian noise, independent per frame (and per pixel and system), of power ``N₀ = ⟨I⟩/10^(SNR/10)``
+relative to the mean noise-free intensity ``⟨I⟩`` (physics.md §5.2); its real and imaginary parts each
+have the standard deviation ``√(N₀/2)``. :func:`noise_power` and :func:`noise_sigma` are the only
+conversions of an SNR in dB to a noise level: the point simulator, the image renderer and the
+classifier's training data call them.
 """
 
 from __future__ import annotations
@@ -73,6 +80,8 @@ __all__ = [
     "taper_window",
     "truncation_field_error",
     "truncation_intensity_factor",
+    "noise_power",
+    "noise_sigma",
 ]
 
 LENGTH_UNIT = "um"
@@ -271,3 +280,31 @@ def truncation_intensity_factor(tolerance: float, mode: str = "hard") -> float:
         return 1.0 - truncation_error_bound(tolerance)
     c2 = truncation_radius_factor(tolerance) ** 2
     return _gamma32_cdf(TAPER_START * c2) + _shell_moment(tolerance, lambda w: w * w)
+
+
+def noise_power(mean_intensity, snr_db: float):
+    """Noise power ``N₀ = ⟨I⟩ / 10^(snr_db/10)`` (intensity units, those of ``⟨I⟩ = |E|²``) of additive
+    circular complex Gaussian noise at ``snr_db`` (dB) below the mean noise-free intensity
+    ``mean_intensity`` (physics.md §5.2, §8; :class:`torchdoct.sim.config.Noise`).
+
+    ``mean_intensity`` is a number or an array/tensor (one value per system); the result has its type.
+    """
+    return mean_intensity / 10.0 ** (snr_db / 10.0)
+
+
+def noise_sigma(mean_intensity, snr_db: float):
+    """Standard deviation ``√(N₀/2)`` (field units, ``√`` of intensity) of each of the real and the
+    imaginary part of the noise at ``snr_db`` (dB) below ``mean_intensity``: ``N₀`` is
+    :func:`noise_power`, split evenly between the two quadratures (physics.md §8).
+
+    A number gives a float; a torch tensor or numpy array gives one of its type and dtype.
+    """
+    var = noise_power(mean_intensity, snr_db) / 2.0
+    if isinstance(var, (int, float)):
+        return math.sqrt(var)
+    sqrt = getattr(var, "sqrt", None)
+    if sqrt is not None:
+        return sqrt()
+    import numpy as np
+
+    return np.sqrt(var)

@@ -73,6 +73,8 @@ __all__ = [
     "needs_field",
     "available_features",
     "default_features",
+    "signature_lags",
+    "REFERENCE_FRAMES",
     "parse_feature",
     "signature",
     "signature_maps",
@@ -123,9 +125,40 @@ def available_features(names: Sequence[str], is_complex: bool) -> tuple[str, ...
     return tuple(n for n in names if is_complex or not needs_field(n))
 
 
+#: The protocol the default lags were chosen for (the paper's 32 frames); :func:`signature_lags` rescales them.
+REFERENCE_FRAMES = 32
+
+
+def signature_lags(lags: Sequence[int], n_frames: int) -> tuple[int, ...]:
+    """``lags`` (frames, chosen for :data:`REFERENCE_FRAMES` frames) for a sequence of ``n_frames``.
+
+    The lags keep their place on the acquisition: lag ``m`` becomes ``round(m·(T − 4)/28)`` for ``T``
+    frames (the longest default lag, 28, stays ``T − 4``), bumped to stay strictly increasing, with lag 1
+    always kept (the shortest delay the protocol resolves: the fastest identifiable motion, physics.md
+    §5.3) and every lag ≤ T − 3. For 32 frames this is ``lags`` itself; for 64 frames the default
+    intensity lags are 1, 2, 4, 6, 9, 13, 17, 24, 34, 47, 60; for 16 frames 1-9 and 12."""
+    n = int(n_frames)
+    scale = (n - 4) / (REFERENCE_FRAMES - 4)
+    out: list[int] = []
+    for m in lags:
+        lag = max(1, int(math.floor(m * scale + 0.5)))
+        if out and lag <= out[-1]:
+            lag = out[-1] + 1
+        if lag <= n - 3:
+            out.append(lag)
+    if lags and (not out or out[0] != 1) and n >= 4:
+        out.insert(0, 1)
+    return tuple(out)
+
+
 def default_features(n_frames: int) -> tuple[str, ...]:
-    """:data:`DEFAULT_FEATURES` without the lags a sequence of ``n_frames`` cannot give (lag ≤ T − 3)."""
-    return tuple(n for n in DEFAULT_FEATURES if parse_feature(n)[1] <= n_frames - 3)
+    """:data:`DEFAULT_FEATURES` for a sequence of ``n_frames``: every group's lags placed on the acquisition
+    by :func:`signature_lags` (for 32 frames exactly :data:`DEFAULT_FEATURES`)."""
+    groups = ((kind, signature_lags(lags, n_frames)) for kind, lags in
+              (("rho_db", DEFAULT_DB_LAGS), ("rho_lin", DEFAULT_LINEAR_LAGS)))
+    intensity = tuple(f"{kind}_{m}" for kind, lags in groups for m in lags)
+    return intensity + ("lin_contrast", "db_variance") + tuple(
+        f"g1_{m}" for m in signature_lags(DEFAULT_FIELD_LAGS, n_frames))
 
 
 def _uniform(frame_times_s: Sequence[float], n: int) -> None:

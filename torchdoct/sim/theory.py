@@ -345,7 +345,7 @@ def _ballistic_anisotropic(q: np.ndarray, a_x: np.ndarray, a_y: np.ndarray, b_ax
                 mu = np.cos(th)
                 s2 = np.sin(th) ** 2
                 osc = np.cos(q[sl, None] * mu)
-            f = np.exp(-b_ax[sl, None] * mu * mu - s2 * m[sl, None]) * special.ive(0, s2 * half_d[sl, None])
+            f = np.exp(-b_ax[sl, None] * mu * mu - s2 * m[sl, None]) * _ive0_abs(s2 * half_d[sl, None])
             out[sl] = (osc * f) @ w
     return out
 
