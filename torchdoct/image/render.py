@@ -52,7 +52,7 @@ import torch
 
 from ..sim.config import Population
 from ..conventions import (TAPER_START, amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
-                          truncation_half_widths_um, wavenumber_per_um)
+                          noise_sigma, truncation_half_widths_um, wavenumber_per_um)
 from .phantom import MOTION_CODES, Phantom
 from ..sim.simulate import MemoryLimitError, available_memory_bytes, seeded_generator, unit_directions
 from ..threads import map_ordered, one_torch_thread, resolve_threads
@@ -463,7 +463,7 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
                                        sysobj.axial_resolution_um, p.reflectivity,
                                        lateral_resolution_y_um=sysobj.lateral_resolution_y_um)
                         for p in scene.populations)
-            sigma = math.sqrt(i_ref / 10.0 ** (scene.noise.snr_db / 10.0) / 2.0)
+            sigma = noise_sigma(i_ref, scene.noise.snr_db)
             g = seeded_generator(seed, 1 << 20, all_names.index(o.name))
             noise = torch.randn(T, n_pix, 2, generator=g, dtype=_F64).to(dtype) * sigma
             data[k] += torch.complex(noise[..., 0], noise[..., 1]).to(device)

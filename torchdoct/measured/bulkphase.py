@@ -91,6 +91,7 @@ from typing import Any, Sequence as _Seq
 import numpy as np
 import torch
 
+from ..conventions import noise_power, noise_sigma
 from ..threads import one_torch_thread
 from .io import Sequence
 
@@ -433,7 +434,6 @@ def predicted_residual_rms(snr_db: float, n_z: int, n_frames: int, *, speckle: b
     ``N_z f_s f_m/2·E[1/A²]``, times ``1 − (1/T²)Σ_ij g^|i−j|`` about the frame mean), and the random
     walk of ``Im Σ M_{i+1}M_i* / A`` (``N_z (1 − g²) f_m²/2·E[1/A²]`` per step). Noise and moving
     speckle are taken to first order; cross terms of the two are neglected (O(1 − g))."""
-    snr = 10.0 ** (float(snr_db) / 10.0)
     n, t = int(n_z), int(n_frames)
     n_used = n + int(noise_only)
     fm = float(moving_fraction)
@@ -448,7 +448,7 @@ def predicted_residual_rms(snr_db: float, n_z: int, n_frames: int, *, speckle: b
         inv_a, inv_a2 = 1.0 / ((n - 1) * a), 1.0 / ((n - 1) * (n - 2) * a * a)
     else:
         inv_a, inv_a2 = 1.0 / (n * a), 1.0 / (n * n * a * a)
-    sigma2 = 1.0 / snr
+    sigma2 = noise_power(1.0, float(snr_db))  # signal power 1
     walk = (t * t - 1.0) / (6.0 * t)
     ms = (1.0 - 1.0 / t) * sigma2 / 2.0 * inv_a / a + walk * n_used * sigma2 ** 2 / 2.0 * inv_a2
     if fm > 0:
@@ -468,7 +468,7 @@ def _synthetic(n_lines: int, n_z: int, n_frames: int, snr_db: float, seed: int) 
                              torch.randn(*shape, generator=g, dtype=torch.float64)) / math.sqrt(2.0)
 
     s = cn(n_lines, n_z)
-    noise = cn(n_frames, n_lines, n_z) * math.sqrt(10.0 ** (-float(snr_db) / 10.0))
+    noise = cn(n_frames, n_lines, n_z) * math.sqrt(noise_power(1.0, float(snr_db)))
     phi = (torch.rand(n_frames, n_lines, generator=g, dtype=torch.float64) * 2 - 1) * math.pi
     phi[0] = 0.0
     lines = (s[None] + noise) * torch.exp(1j * phi)[..., None]
@@ -558,7 +558,7 @@ def bench_bulk_phase_phantom(phantom: str = "vessel-slab", *, snr_db: _Seq[float
         g = torch.Generator().manual_seed(int(seed) * 1000 + k)
         noise = torch.complex(torch.randn(*field.shape, generator=g, dtype=torch.float64),
                               torch.randn(*field.shape, generator=g, dtype=torch.float64))
-        truth = field + noise * math.sqrt(p_static * 10.0 ** (-float(snr) / 10.0) / 2.0)
+        truth = field + noise * noise_sigma(p_static, float(snr))
         phi = (torch.rand(n_t, n_x, generator=g, dtype=torch.float64) * 2 - 1) * math.pi
         phi[0] = 0.0
         data = (truth * torch.exp(1j * phi)[:, None, :]).to(torch.complex64)

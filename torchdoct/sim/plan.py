@@ -50,6 +50,7 @@ from ..conventions import (
     mean_intensity,
     wavenumber_per_um,
     n_eff,
+    noise_power,
     amplitude_sigma_axial_um,
     amplitude_sigma_lateral_um,
     truncation_field_error,
@@ -402,7 +403,7 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
         mi = sum(mean_intensity(p.density_per_um3, s.lateral_resolution_um, s.axial_resolution_um,
                                 p.reflectivity, lateral_resolution_y_um=s.lateral_resolution_y_um)
                  for p in scene.populations)
-        noise = None if scene.noise is None else mi / 10.0 ** (scene.noise.snr_db / 10.0)
+        noise = None if scene.noise is None else noise_power(mi, scene.noise.snr_db)
         systems.append(SystemPlan(
             name=s.name, truncation_half_widths_um=h,
             ens_paper=ens_paper(rho_total, s.lateral_resolution_um, s.axial_resolution_um,

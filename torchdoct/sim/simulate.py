@@ -44,7 +44,7 @@ import torch
 
 from .config import Population, Scene
 from ..conventions import (TAPER_START, TRUNCATION_MODES, amplitude_sigma_axial_um, amplitude_sigma_lateral_um,
-                           wavenumber_per_um)
+                           noise_sigma, wavenumber_per_um)
 from .plan import BLOCK_TRIALS, Plan, PopulationPlan, ellipsoid_entry_bound, make_plan
 from ..threads import map_ordered, resolve_threads, single_torch_thread
 from . import kernel
@@ -854,8 +854,8 @@ def _simulate_chunk(scene: Scene, plan: Plan, blocks: list[int], seed: int, dtyp
         e = _SAMPLERS[sampler](pp, pop, draws, times, optics, dtype, plan)
         total = e if total is None else total + e
     if plan.has_noise:
-        power = torch.tensor([s.noise_power for s in plan.systems], dtype=_F64, device=device)
-        amp = torch.sqrt(power / 2.0).view(1, -1, 1)
+        amp = torch.tensor([noise_sigma(s.mean_intensity, scene.noise.snr_db) for s in plan.systems],
+                           dtype=_F64, device=device).view(1, -1, 1)
         shape = (len(scene.systems), times.numel())
         noise = torch.complex(draws.randn(*shape) * amp, draws.randn(*shape) * amp).to(total.dtype)
         total = total + noise
