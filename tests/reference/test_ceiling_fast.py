@@ -123,3 +123,25 @@ def test_the_intensity_columns_of_the_field_spec_are_the_bscan_spec():
     cols = ce.part_columns(spec, "intensity")
     assert [spec.feature_names[i] for i in cols] == list(load_spec("signature-bscan").feature_names)
     assert len(ce.part_columns(spec, "all")) == spec.n_features > len(cols)
+
+
+def test_the_shared_speed_prior_moves_only_the_speeds_to_the_same_quantile(tmp_path):
+    import math
+
+    lo, hi = (math.log(v) for v in ce.SHARED_SPEED)
+    for k in range(60):
+        m, s = em.draw_independent(1, k), ce.draw_for("shared", 1, k)
+        assert ce.draw_for("matched", 1, k) == m
+        assert (s.label, s.sim_seed, s.polar_angle_deg, s.snr_db, s.ballistic_directions) == (
+            m.label, m.sim_seed, m.polar_angle_deg, m.snr_db, m.ballistic_directions)
+        if m.label == 0:
+            assert s == m
+            continue
+        a, b = (math.log(v) for v in em.RANGES[m.motion])
+        assert ce.SHARED_SPEED[0] <= s.magnitude <= ce.SHARED_SPEED[1]
+        assert (math.log(s.magnitude) - lo) / (hi - lo) == pytest.approx((math.log(m.magnitude) - a) / (b - a),
+                                                                       abs=1e-12)
+    assert _cache(tmp_path, 1).dir != ce.FeatureCache(tmp_path / "cache", load_spec("signature"), "refsim", 1, TRIALS,
+                                                      0.05, "shared").dir
+    with pytest.raises(ValueError):
+        ce.draw_for("wide", 1, 0)
