@@ -10,7 +10,11 @@ declares its parts in its ``pyproject.toml`` and the command line looks them up 
   The entry point is an object (a module) with ``compute(*, quick, progress) -> dict``,
   ``format_table(result) -> str`` and ``plot(result, path)``.
 
-The classifier fills both (``classify``; ``classifier``).
+* group :data:`COMMANDS` (``torchdoct.commands``), name ``NAME``: the command ``torchdoct NAME``. The entry
+  point is an object (a module) with ``HELP``, ``DESCRIPTION``, ``add_arguments(parser)`` and
+  ``run(args) -> int``.
+
+The classifier fills all three (``classify``; ``classifier``; ``translate``).
 """
 
 from __future__ import annotations
@@ -18,10 +22,16 @@ from __future__ import annotations
 from importlib.metadata import entry_points
 from typing import Any
 
-__all__ = ["BENCH", "TRADEOFFS", "load"]
+__all__ = ["BENCH", "TRADEOFFS", "COMMANDS", "load", "commands"]
 
 BENCH = "torchdoct.bench"
 TRADEOFFS = "torchdoct.tradeoffs"
+COMMANDS = "torchdoct.commands"
+
+
+def commands() -> list[tuple[str, Any]]:
+    """``(name, command object)`` of every installed command of group :data:`COMMANDS`, by name."""
+    return sorted(((ep.name, ep.load()) for ep in entry_points(group=COMMANDS)), key=lambda t: t[0])
 
 
 def load(group: str, name: str, *, command: str) -> Any:

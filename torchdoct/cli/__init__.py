@@ -53,6 +53,13 @@ def build_parser() -> argparse.ArgumentParser:
     sm.add_argument("--json", action="store_true", help="print the summary as JSON")
     sm.add_argument("--no-progress", action="store_true", help="no progress bar")
 
+    from .. import extensions
+
+    for name, command in extensions.commands():  # commands other installed packages add (translate)
+        cp = sub.add_parser(name, help=command.HELP, description=command.DESCRIPTION)
+        command.add_arguments(cp)
+        cp.set_defaults(func=command.run)
+
     bn = sub.add_parser("bench", help="benchmarks (throughput, written as JSON)")
     bsub = bn.add_subparsers(dest="bench", required=True)
     bs = bsub.add_parser("simulate", help="paper's 4 systems x 3 motions at their largest parameters")
@@ -61,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     bs.add_argument("--load", action="store_true",
                     help="also time every cell on one thread, and beside a busy process that it starts and stops")
-    bs.add_argument("--out", default="bench-simulate.json", help="JSON output file")
+    bs.add_argument("--out", default=None, metavar="FILE.json", help="also write the result as JSON (default: printed only, nothing written)")
     bs.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     bt = bsub.add_parser("tradeoffs", help="what accuracy costs in time: simulator, study and classifier")
     bt.add_argument("--part", choices=("all", "simulator", "study", "classifier", "fidelity"), default="all")
@@ -72,24 +79,24 @@ def build_parser() -> argparse.ArgumentParser:
     bt.add_argument("--fidelity-reference-trials", type=int, default=8192,
                     help="fidelity: trials per cell of the tight reference (tolerance 1e-6, float64)")
     bt.add_argument("--quick", action="store_true", help="reduced sizes (minutes)")
-    bt.add_argument("--out", default="bench-tradeoffs.json", help="JSON output (PNGs of the fronts beside it)")
+    bt.add_argument("--out", default=None, metavar="FILE.json", help="also write the result as JSON (PNGs of the fronts beside it) (default: printed only, nothing written)")
     bt.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     bc = bsub.add_parser("classify", help="doct-classify throughput on a 512×512 synthetic maps file")
     bc.add_argument("--size", type=int, default=512, help="pixels per side")
     bc.add_argument("--repeats", type=int, default=3)
-    bc.add_argument("--out", default="bench-classify.json")
+    bc.add_argument("--out", default=None, metavar="FILE.json", help="also write the result as JSON (default: printed only, nothing written)")
     bc.add_argument("--model", default=None, help="shipped model name or .onnx path (default: the LIV/OCDS model)")
     bc.add_argument("--force", action="store_true")
     bl = bsub.add_parser("load", help="simulate, render and sweep: alone on 1 and N threads, and beside a busy process")
     bl.add_argument("--repeats", type=int, default=3, help="runs per figure (best is kept)")
-    bl.add_argument("--out", default="bench-load.json", help="JSON output file")
+    bl.add_argument("--out", default=None, metavar="FILE.json", help="also write the result as JSON (default: printed only, nothing written)")
     bl.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     bg = bsub.add_parser("cog", help="the paper's 12 cells against the COG point simulator (a clone of it), one core")
     bg.add_argument("--cog", required=True, metavar="DIR", help="folder of a clone of the COG DOCT simulation library")
     bg.add_argument("--cog-trials", type=int, default=10, help="COG trials per cell and repeat")
     bg.add_argument("--trials", type=int, default=1024, help="torchdoct trials per cell and repeat")
     bg.add_argument("--repeats", type=int, default=3, help="repeats per cell (best is kept)")
-    bg.add_argument("--out", default="bench-cog.json", help="JSON output file")
+    bg.add_argument("--out", default=None, metavar="FILE.json", help="also write the result as JSON (default: printed only, nothing written)")
     bg.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     ba = bsub.add_parser("all", help="every benchmark, each writing DIR/bench-NAME.json (not cog, which needs --cog)")
     ba.add_argument("--out", default="bench", help="output directory (created if missing)")
@@ -182,7 +189,8 @@ def _bench_tradeoffs(args) -> int:
 
     out = _check_out(args.out, args.force, ".json")
     parts = ["simulator", "study", "classifier", "fidelity"] if args.part == "all" else [args.part]
-    pngs = {p: Path(args.out).with_name(f"{Path(args.out).stem}-{p}.png") for p in parts if p not in ("study", "fidelity")}
+    pngs = {} if out is None else {p: Path(args.out).with_name(f"{Path(args.out).stem}-{p}.png")
+                                   for p in parts if p not in ("study", "fidelity")}
     for png in pngs.values():
         _check_out(str(png), args.force, ".png")
     res: dict[str, Any] = {}
@@ -205,6 +213,8 @@ def _bench_tradeoffs(args) -> int:
         n, ref = (512, 1024) if args.quick else (args.fidelity_trials, args.fidelity_reference_trials)
         res["fidelity"] = tradeoffs.feature_fidelity(trials=n, reference_trials=ref, progress=True)
         print(tradeoffs.format_fidelity_table(res["fidelity"]))
+    if out is None:  # nothing is written into the current folder unasked
+        return 0
     _atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
     if "simulator" in pngs:
         _atomic_write(pngs["simulator"], lambda tmp: tradeoffs.plot_tradeoffs(res["simulator"], tmp))
@@ -219,8 +229,9 @@ def _bench(args, compute, fmt) -> int:
     out = _check_out(args.out, args.force, ".json")
     res = compute()
     print(fmt(res))
-    _atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
-    print(f"wrote {out}")
+    if out is not None:  # asked for with --out: nothing is written into the current folder unasked
+        _atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
+        print(f"wrote {out}")
     return 0
 
 
