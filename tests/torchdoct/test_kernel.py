@@ -13,7 +13,8 @@ import torch
 import torchdoct as td
 from torchdoct.sim.plan import BLOCK_TRIALS
 
-sim = importlib.import_module("torchdoct.sim.simulate")
+sim = importlib.import_module("torchdoct.sim.samplers")
+streams = importlib.import_module("torchdoct.sim.streams")
 
 HIGH = td.OCTSystem(name="840-high", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)
 AX14 = td.OCTSystem(name="840-ax14", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=14.0)
@@ -100,12 +101,12 @@ def test_compact_moves_entries_to_the_front_in_order():
     # keep: only as many slots as the largest count
     valid_k, (c_k,) = sim._compact(mask, cap, "test", comps, keep=True)
     assert valid_k.shape[1] == int(mask.sum(1).max()) and torch.equal(c_k[:, valid_k], ref_c[:, valid])
-    with pytest.raises(sim.CapacityError, match="exceed the 3 reserved slots"):
+    with pytest.raises(streams.CapacityError, match="exceed the 3 reserved slots"):
         sim._compact(mask, 3, "test", comps)
 
 
 def _draws(seed: int, blocks: int = 2):
-    return sim._Draws([sim.block_generator(seed, b) for b in range(blocks)], torch.device("cpu"))
+    return streams.Draws([streams.block_generator(seed, b) for b in range(blocks)], torch.device("cpu"))
 
 
 def test_drift_paths_follow_their_laws():

@@ -16,7 +16,8 @@ from torchdoct.conventions import mean_intensity as mean_intensity_theory
 from torchdoct.conventions import n_eff
 from torchdoct.sim.plan import make_plan
 
-sim = importlib.import_module("torchdoct.sim.simulate")
+sim = importlib.import_module("torchdoct.sim.samplers")
+streams = importlib.import_module("torchdoct.sim.streams")
 
 DT = 0.2048
 HIGH = td.OCTSystem(name="840-high", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)
@@ -83,7 +84,7 @@ class _Counter:
     def __init__(self, monkeypatch):
         self.calls: list[tuple[str, tuple]] = []
         self.summed = 0
-        orig_draw = sim._Draws._draw
+        orig_draw = streams.Draws._draw
         orig_sum = sim._sum_field
         orig_sparse = sim._eval_straight
 
@@ -100,7 +101,7 @@ class _Counter:
             self.summed += int((out != 0).sum())
             return out
 
-        monkeypatch.setattr(sim._Draws, "_draw", draw)
+        monkeypatch.setattr(streams.Draws, "_draw", draw)
         monkeypatch.setattr(sim, "_sum_field", sum_field)
         monkeypatch.setattr(sim, "_eval_straight", sparse)
 
@@ -168,7 +169,7 @@ def test_plan_counts_match_the_work(monkeypatch):
         assert abs(float(n.mean()) - mean) <= 4 * math.sqrt(mean / n.numel()), kind  # Poisson counts
     # the random walk draws one Poisson count per trial for its periodic cell
     pp = make_plan(scene(MOTIONS["diffusion"], n_frames=8, delay=(0.2048, 0.6144))).populations[0]
-    draws = sim._Draws([sim.block_generator(0, b) for b in range(8)], torch.device("cpu"))
+    draws = streams.Draws([streams.block_generator(0, b) for b in range(8)], torch.device("cpu"))
     n = draws.poisson(pp.expected_scatterers_per_trial, pp.capacity, "test")
     mean = pp.expected_scatterers_per_trial
     assert abs(float(n.double().mean()) - mean) <= 4 * math.sqrt(mean / n.numel())

@@ -133,7 +133,7 @@ def test_a_scatterer_enters_continuously_with_the_taper(dtype):
     tol = 1e-2
     times = torch.linspace(0.0, 6.0, 60_001, dtype=torch.float64)
     coef = [torch.tensor([[x]], dtype=torch.float64) for x in (0.0, -1.0, 3.0, 0.0, 0.0)]  # e*, a2, t*, φ, ω
-    sim = __import__("importlib").import_module("torchdoct.sim.simulate")
+    sim = __import__("importlib").import_module("torchdoct.sim.samplers")
     jumps = {}
     for taper in (False, True):
         amp = sim._eval_straight(*coef, times, math.log(tol), 1.0, getattr(torch, dtype), taper)[0].abs().double()

@@ -54,7 +54,9 @@ from ..sim.config import Population
 from ..conventions import (TAPER_START, amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
                           noise_sigma, truncation_half_widths_um, wavenumber_per_um)
 from .phantom import MOTION_CODES, Phantom
-from ..sim.simulate import MemoryLimitError, available_memory_bytes, seeded_generator, unit_directions
+from ..sim.memory import MemoryLimitError, available_memory_bytes
+from ..sim.samplers import unit_directions
+from ..sim.streams import seeded_generator
 from ..threads import map_ordered, one_torch_thread, resolve_threads
 
 __all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS", "save_preview", "preview_figure"]
