@@ -1,6 +1,8 @@
 """The architecture's rules (docs/architecture.md), checked on the source: no import circle between the
-project's modules, one owner of the maps format and of the channel-optics match, no module loaded by its
-file path, torch-free imports where the torch-free paths need them, long modules say why they are whole."""
+project's modules (at import time, and with the imports inside functions only through the documented
+upward ones), one owner of the maps format and of the channel-optics match, no module loaded by its file
+path, torch-free imports where the torch-free paths need them, long modules say why they are whole, and
+the research modules (classifier/research) off the product path, using public names only."""
 
 from __future__ import annotations
 
@@ -175,3 +177,109 @@ def test_long_modules_say_why_they_are_whole():
         if text.count("\n") > 800:
             doc = ast.get_docstring(ast.parse(text)) or ""
             assert "kept whole" in doc.lower(), f"{name}: {text.count(chr(10))} lines without a 'Kept whole' reason"
+
+
+def _all_imports(name: str, path: Path) -> dict[str, bool]:
+    """Project modules imported anywhere in the module (functions included) → True when one of those
+    imports runs at import time."""
+    top = _module_level_imports(name, path)
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                mod = ".".join(base[:len(base) - (node.level - 1)] + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            found.update(f"{mod}.{a.name}" if f"{mod}.{a.name}" in MODULES else mod for a in node.names)
+    out = {}
+    for mod in found:
+        while mod and mod not in MODULES:  # ``import torchdoct.sim.theory as t`` names the module
+            mod = mod.rpartition(".")[0]
+        if mod and mod != name:
+            out[mod] = mod in top
+    return out
+
+
+#: Imports that point up the import order of docs/architecture.md, each inside a function (run only when
+#: that function is called), and why.
+UPWARD_IMPORTS = {
+    ("torchdoct.bench", "torchdoct.cli"): "bench._workloads times the commands a user runs",
+    ("torchdoct.measured.maps", "torchdoct.bench"): "bench_maps records machine_info",
+    ("torchdoct.measured.bulkphase", "torchdoct.bench"): "bench_bulk_phase records machine_info",
+    ("torchdoct.study.bench", "torchdoct.bench"): "bench_study records machine_info",
+    ("torchdoct.sim.signature", "torchdoct.measured.maps"): "signature_maps runs the maps' slab loop",
+}
+
+
+def test_imports_inside_functions_point_up_only_where_documented():
+    """Counting the imports inside functions too, the only circles go through the documented upward
+    imports, and those never run at import time."""
+    graph = {name: _all_imports(name, path) for name, path in MODULES.items()}
+    for (a, b), why in UPWARD_IMPORTS.items():
+        assert not graph.get(a, {}).get(b, False), f"{a} imports {b} at import time ({why}): only inside a function"
+    edges = {a: {b for b in targets if (a, b) not in UPWARD_IMPORTS} for a, targets in graph.items()}
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def walk(node: str) -> None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(edges[node]):
+            if state.get(nxt) == 1:
+                pytest.fail("import circle (imports inside functions included): "
+                            + " -> ".join(stack[stack.index(nxt):] + [nxt]))
+            if nxt not in state:
+                walk(nxt)
+        stack.pop()
+        state[node] = 2
+
+    for name in sorted(edges):
+        if name not in state:
+            walk(name)
+    # the original circle of the classifier's benchmark: torchdoct reaches classifier through entry points
+    assert not any(b.startswith("classifier") for a, targets in graph.items() if a.startswith("torchdoct")
+                   for b in targets)
+
+
+RESEARCH = "classifier.research"
+
+
+def test_research_modules_stay_off_the_product_path():
+    """No module outside classifier/research imports it (the benchmark reaches the trade-offs part through
+    the entry-point table), and the research modules use only public names of classifier and torchdoct."""
+    research = {name for name in MODULES if name == RESEARCH or name.startswith(RESEARCH + ".")}
+    assert {"classifier.research.ablation", "classifier.research.g1fit", "classifier.research.learning_curve",
+            "classifier.research.tradeoffs"} <= research
+    for name, path in MODULES.items():
+        if name not in research:
+            bad = sorted(m for m in _all_imports(name, path) if m in research)
+            assert not bad, f"{name} (product path) imports {bad}"
+    for name in sorted(research):
+        tree = ast.parse(MODULES[name].read_text(encoding="utf-8"))
+        package = name if MODULES[name].name == "__init__.py" else name.rpartition(".")[0]
+        for node in ast.walk(tree):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            if node.level:
+                base = package.split(".")
+                mod = ".".join(base[:len(base) - (node.level - 1)] + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            if mod.split(".")[0] not in PACKAGES or mod == RESEARCH or mod.startswith(RESEARCH + "."):
+                continue
+            assert not any(part.startswith("_") for part in mod.split(".")), f"{name} imports private module {mod}"
+            private = [a.name for a in node.names if a.name.startswith("_") and a.name != "__version__"]
+            assert not private, f"{name} imports private names {private} from {mod}"
+
+
+def test_the_commands_load_no_research_module():
+    out = _run("import sys\nimport classifier.cli, classifier.bench, classifier.train, classifier.export\n"
+               "import torchdoct.cli, torchdoct.bench, torchdoct.cli.data, torchdoct.cli.render, torchdoct.cli.study\n"
+               "bad = sorted(m for m in sys.modules if m.startswith('classifier.research'))\n"
+               "assert not bad, bad\nprint('ok')\n")
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
