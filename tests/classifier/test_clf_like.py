@@ -173,3 +173,38 @@ def test_classify_without_a_fitting_shipped_model_names_the_like_command(tmp_pat
     assert f"doct-train --like {path} --out MODEL_DIR" in err and "--model MODEL_DIR" in err
     assert "64 frames 0.0128 s apart" in err
     assert not (tmp_path / "c").exists()
+
+
+def test_like_writes_spec_and_prior_that_retrain_the_same_model(tmp_path, capsys):
+    """``doct-train --like`` then ``doct-train --spec SPEC.spec.toml --prior SPEC.prior.toml``: the same
+    network weights (the same spec, prior and seed give the same model); tiny sizes."""
+    import onnx
+    from onnx import numpy_helper
+
+    from classifier.cli import train_main
+
+    path = _bscan_maps(tmp_path, spec="signature", name="vol.npz")  # isotropic reductions: a volume
+    m = read_maps(path)
+    meta = dict(m.meta)
+    meta.pop("reduction")
+    path = save_maps(tmp_path / "vol.npz", m.maps, meta)
+    tiny = ["--quick", "--draws-train", "6", "--draws-validation", "3", "--draws-test", "3", "--max-epochs", "2",
+            "--no-baselines", "--no-cache", "--no-progress"]
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert train_main(["--like", str(path), "--out", str(a), *tiny]) == 0
+    printed = capsys.readouterr().out
+    spec_file, prior_file = a / "like-vol.spec.toml", a / "like-vol.prior.toml"
+    assert spec_file.exists() and prior_file.exists() and (a / "like-vol.onnx").exists()
+    assert f"--spec {spec_file} --prior {prior_file}" in printed
+    assert Prior.from_dict(tomllib.loads(prior_file.read_text())).flow_speed_um_per_s is not None
+    assert train_main(["--spec", str(spec_file), "--prior", str(prior_file), "--out", str(b), *tiny]) == 0
+
+    def weights(p):
+        return {i.name: numpy_helper.to_array(i) for i in onnx.load(str(p)).graph.initializer}
+
+    wa, wb = weights(a / "like-vol.onnx"), weights(b / "like-vol.onnx")
+    assert wa.keys() == wb.keys() and all(np.array_equal(wa[k], wb[k]) for k in wa)
+    bad = tmp_path / "bad.prior.toml"
+    bad.write_text("speed_um_per_s = [1.0, 0.1]\n")
+    assert train_main(["--spec", str(spec_file), "--prior", str(bad), "--out", str(tmp_path / "c"), *tiny]) == 2
+    assert "bad.prior.toml" in capsys.readouterr().err
