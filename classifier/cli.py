@@ -365,9 +365,12 @@ def _classify(args: argparse.Namespace) -> int:
 
     set_max_input_gb(args.max_input_gb)  # the readers' limit on one declared array
     check_outputs(args.out, args.force)  # before the work: --out a file, or an earlier run's files without --force
-    res = infer.classify_maps(args.maps, args.model, pool=args.pool, background_db=bg,
-                              min_probability=args.min_probability,
-                              ignore_refractive_index=args.ignore_refractive_index, threads=args.threads)
+    try:
+        res = infer.classify_maps(args.maps, args.model, pool=args.pool, background_db=bg,
+                                  min_probability=args.min_probability,
+                                  ignore_refractive_index=args.ignore_refractive_index, threads=args.threads)
+    except ValueError as err:
+        raise ValueError(_signature_hint(str(err))) from None
     written = infer.write_classification(res, args.out, force=args.force)
     counts = res.counts()
     if args.json:
@@ -385,6 +388,20 @@ def _classify(args: argparse.Namespace) -> int:
         for note in ([res.info["model_choice"]] if res.info.get("model_choice") else []) + res.info.get("notes", []):
             print(f"note: {note}")
     return 0
+
+
+def _signature_hint(message: str) -> str:
+    """A missing model feature that is a decorrelation-signature channel: name the option that writes it
+    (``torchdoct maps ... --signature``)."""
+    import re
+
+    m = re.search(r"maps lack the model feature '([^'@]+)@", message)
+    if m is None or m.group(1) in ("liv", "ocds", "mean_db", "aliv", "swiftness") or "--signature" in message:
+        return message
+    return (f"{message}. The model reads decorrelation-signature channels ({m.group(1)}, ...), which "
+            "`torchdoct maps` writes only with --signature: compute the maps again with `torchdoct maps DATA "
+            "--resolution ... --signature --out MAPS`, or classify with the LIV/OCDS model (--model "
+            "single-acquisition-bscan for B-scans, single-acquisition for volumes)")
 
 
 if __name__ == "__main__":  # pragma: no cover

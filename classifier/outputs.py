@@ -3,8 +3,10 @@
 
 ``classes.tif`` (uint8: class index 0…C−1, the model's classes with ``indeterminate`` last, and
 :data:`MASKED` for background/NaN pixels) with its ``legend.json``, ``probabilities.tif`` (float32
-``[C, *S]``, NaN where masked), ``summary.json``, ``overlay.png`` (the classes on the mean intensity) and,
-for models with a magnitude head, ``magnitude.tif`` (:data:`MAGNITUDE_CHANNELS`).
+``[C, *S]``, NaN where masked), ``summary.json``, ``overlay.png`` (the classes on the mean intensity in
+colour-blind-safe colours, masked pixels black, the model named) and, for models with a magnitude head,
+``magnitude.tif`` (:data:`MAGNITUDE_CHANNELS`) and its picture ``magnitude.png`` (D in µm²/s, speed in
+µm/s). The TIFFs carry ImageJ metadata (pixel size in µm, channel names: :mod:`torchdoct.imagej`).
 """
 
 from __future__ import annotations
@@ -20,13 +22,17 @@ import numpy as np
 from .rule import INDETERMINATE
 from .runtime import ClassifierModel
 
-__all__ = ["MASKED", "CLASS_COLORS", "OUTPUT_FILES", "MAGNITUDE_CHANNELS", "Classification", "magnitude_maps",
+__all__ = ["MASKED", "CLASS_COLORS", "MASKED_COLOR", "OUTPUT_FILES", "MAGNITUDE_FILES",
+           "MAGNITUDE_CHANNELS", "Classification", "magnitude_maps",
            "write_classification"]
 
 #: Class-map value of background and NaN pixels.
 MASKED = 255
-#: Colours of the classes in the legend and overlay.
-CLASS_COLORS = {"diffusion": "#1f77b4", "ballistic": "#ff7f0e", "flow": "#2ca02c", INDETERMINATE: "#8c8c8c"}
+#: Colours of the classes in the legend and overlay: the Okabe-Ito palette, told apart with any of the
+#: common colour-vision deficiencies (blue, orange, bluish green; indeterminate reddish purple).
+CLASS_COLORS = {"diffusion": "#0072B2", "ballistic": "#E69F00", "flow": "#009E73", INDETERMINATE: "#CC79A7"}
+#: Overlay colour of masked pixels (background or a NaN feature): black, unlike every class.
+MASKED_COLOR = "#000000"
 
 
 @dataclass
@@ -54,6 +60,8 @@ class Classification:
 
 
 OUTPUT_FILES = ("classes.tif", "probabilities.tif", "legend.json", "summary.json", "overlay.png")
+#: Written beside :data:`OUTPUT_FILES` by models with a magnitude head (the stack and its picture).
+MAGNITUDE_FILES = ("magnitude.tif", "magnitude.png")
 #: ``magnitude.tif`` (models with a magnitude head): log10 magnitude of the decided class and its intervals.
 MAGNITUDE_CHANNELS = ("log10_magnitude", "lower_68", "upper_68", "lower_95", "upper_95")
 
@@ -129,6 +137,8 @@ def _overlay(res: Classification, path: str) -> None:
     for i, c in enumerate(res.classes):
         sel = labels == i
         rgb[sel] = 0.45 * rgb[sel] + 0.55 * np.array(to_rgb(CLASS_COLORS.get(c, "#000000")))
+    masked = labels == MASKED  # no class tint: the intensity darkened towards black
+    rgb[masked] = 0.45 * rgb[masked] + 0.55 * np.array(to_rgb(MASKED_COLOR))
     from torchdoct import figures  # torch-free: the project's one axes convention
     extent, _ = figures.image_extent(labels.shape, res.pitch_um)
     h = 5.0
@@ -138,15 +148,65 @@ def _overlay(res: Classification, path: str) -> None:
     counts = res.counts()
     total = max(int(res.mask.sum()), 1)
     handles = [Patch(color=CLASS_COLORS.get(c, "#000000"), label=f"{c} ({counts[c] / total:.0%})") for c in res.classes]
-    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="class")
-    ax.set_title(f"motion type on mean intensity (pool {res.info['pool']}{title_extra})", fontsize=9)
+    handles.append(Patch(facecolor=MASKED_COLOR, edgecolor="#808080",
+                         label=f"masked: background or NaN ({counts['masked']} px)"))
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8,
+              title="class (% of classified)")
+    ax.set_title(f"motion type on mean intensity, model {_model_name(res)}, pool {res.info['pool']}{title_extra}",
+                 fontsize=9)
     fig.tight_layout()
+    fig.savefig(path, dpi=120, bbox_inches="tight")  # the legend beside the image stays whole
+    plt.close(fig)
+
+
+def _model_name(res: Classification) -> str:
+    """The model as the figures name it: its spec name and file (``signature-bscan (signature-bscan.onnx)``)."""
+    spec = res.model.metadata.get("spec", {}).get("name") or res.model.path.stem
+    return spec if res.model.path.name == f"{spec}.onnx" else f"{spec} ({res.model.path.name})"
+
+
+def _magnitude_picture(res: Classification, path: str) -> None:
+    """``magnitude.png``: the predicted magnitude of the decided pixels on µm axes, the diffusion
+    coefficient (µm²/s) where the class is diffusion and the speed (µm/s) where it is ballistic or flow,
+    each on a logarithmic colour bar with its unit (cividis, readable with colour-vision deficiencies)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    from torchdoct import figures
+
+    mag = res.magnitude[0]
+    labels = res.labels
+    title_extra = ""
+    if labels.ndim == 3:
+        mid = labels.shape[0] // 2
+        mag, labels, title_extra = mag[mid], labels[mid], f", B-scan y = {mid}"
+    panels = [("diffusion", ("diffusion",), "D (µm²/s)"),
+              ("ballistic or flow", tuple(c for c in ("ballistic", "flow") if c in res.classes), "speed (µm/s)")]
+    extent, _ = figures.image_extent(labels.shape, res.pitch_um)
+    h = 4.2
+    wdt = h * (extent[1] - extent[0]) / max(extent[2] - extent[3], 1e-9)
+    fig, axes = plt.subplots(1, 2, figsize=(2 * (min(max(wdt, 3.0), 10.0) + 1.6), h), constrained_layout=True)
+    cmap = plt.get_cmap("cividis").with_extremes(bad="#d9d9d9")
+    for ax, (what, classes, unit) in zip(axes, panels):
+        sel = np.isin(labels, [res.classes.index(c) for c in classes if c in res.classes]) & np.isfinite(mag)
+        vals = np.where(sel, 10.0 ** np.where(sel, mag, 0.0), np.nan)
+        fin = vals[np.isfinite(vals)]
+        lo, hi = (np.percentile(fin, [1, 99]) if fin.size else (1e-3, 1.0))
+        hi = max(hi, lo * 1.0001)
+        im = figures.show_bscan(ax, vals, pitch_um=res.pitch_um, cmap=cmap, norm=LogNorm(vmin=lo, vmax=hi))
+        fig.colorbar(im, ax=ax, shrink=0.85).set_label(unit)
+        ax.set_title(f"{what}: {unit}, {fin.size} px (grey: not this class)", fontsize=8)
+    fig.suptitle(f"predicted magnitude (median of the model's distribution), model {_model_name(res)}, "
+                 f"pool {res.info['pool']}{title_extra}", fontsize=9)
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
 def check_outputs(out_dir: str | os.PathLike, force: bool) -> dict[str, Path]:
-    """The output set of ``doct-classify`` in ``out_dir`` (every file it may hold, ``magnitude.tif``
+    """The output set of ``doct-classify`` in ``out_dir`` (every file it may hold, :data:`MAGNITUDE_FILES`
     included), checked before the work: ``out_dir`` must not be a file, and no file of the set may
     exist unless ``force``."""
     from torchdoct.files import check_out
@@ -155,14 +215,14 @@ def check_outputs(out_dir: str | os.PathLike, force: bool) -> dict[str, Path]:
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a directory")
     return {name: (check_out(out / name, force, Path(name).suffix, f"--out {out}: {name}") if out.is_dir()
-                   else out / name) for name in OUTPUT_FILES + ("magnitude.tif",)}
+                   else out / name) for name in OUTPUT_FILES + MAGNITUDE_FILES}
 
 
 def write_classification(res: Classification, out_dir: str | os.PathLike, *, force: bool = False) -> list[Path]:
     """Write :data:`OUTPUT_FILES` (and ``magnitude.tif`` when the model predicts magnitudes) into
     ``out_dir`` (created if missing), all together or none (:func:`torchdoct.files.output_set`: an error,
     Ctrl-C or SIGTERM leaves the folder as it was); nothing is overwritten without ``force``, and with it
-    an earlier run's file this run does not write (``magnitude.tif`` of another model) is removed."""
+    an earlier run's file this run does not write (``magnitude.tif``/``.png`` of another model) is removed."""
     import tifffile
 
     from torchdoct.files import atomic_write, output_set
@@ -183,18 +243,23 @@ def write_classification(res: Classification, out_dir: str | os.PathLike, *, for
 
 def _write_into(res: Classification, paths: dict[str, Path], tifffile, atomic_write) -> list[str]:
     """Write the files of :func:`write_classification` to ``paths`` (staged); returns the names written."""
-    names = OUTPUT_FILES + (("magnitude.tif",) if res.magnitude is not None else ())
+    names = OUTPUT_FILES + (MAGNITUDE_FILES if res.magnitude is not None else ())
+    from torchdoct.imagej import imagej_write_options
+
+    def imagej(arr, channels, desc, unit=None):  # JSON description first, then ImageJ's: µm scale, channel names
+        axes = ("C" if len(channels) > 1 or arr.ndim > len(res.axes) else "") + res.axes
+        return imagej_write_options(arr.shape, axes, res.pitch_um, channels, description=desc, value_unit=unit)
+
     legend = _legend(res)
     desc_classes = json.dumps({"legend": legend, "source": res.sources})
     desc_probs = json.dumps({"channels": res.classes, "axes": "C" + res.axes, "unit": "probability",
                              "masked": "NaN", "source": res.sources})
     summary = {"counts": res.counts(), "sources": res.sources, "model": res.model.path.name,
                "model_spec": res.model.metadata["spec"]["name"], "info": res.info}
-    atomic_write(paths["classes.tif"], lambda t: tifffile.imwrite(t, res.labels, description=desc_classes, metadata=None,
-                                                     photometric="minisblack"))
-    atomic_write(paths["probabilities.tif"],
-                 lambda t: tifffile.imwrite(t, res.probabilities, description=desc_probs, metadata=None,
-                                            photometric="minisblack"))
+    atomic_write(paths["classes.tif"], lambda t: tifffile.imwrite(t, res.labels, **imagej(
+        res.labels, ["class"], desc_classes)))
+    atomic_write(paths["probabilities.tif"], lambda t: tifffile.imwrite(t, res.probabilities, **imagej(
+        res.probabilities, list(res.classes), desc_probs, "probability")))
 
     def dump(obj):
         def w(t):
@@ -211,6 +276,7 @@ def _write_into(res: Classification, paths: dict[str, Path], tifffile, atomic_wr
                                "intervals": "68 % = mean ± SD, 95 % = mean ± 1.96 SD of the model's Gaussian "
                                             "predictive distribution", "masked": "NaN (also where indeterminate)",
                                "source": res.sources})
-        atomic_write(paths["magnitude.tif"], lambda t: tifffile.imwrite(t, res.magnitude, description=desc_mag,
-                                                                         metadata=None, photometric="minisblack"))
+        atomic_write(paths["magnitude.tif"], lambda t: tifffile.imwrite(t, res.magnitude, **imagej(
+            res.magnitude, list(MAGNITUDE_CHANNELS), desc_mag)))
+        atomic_write(paths["magnitude.png"], lambda t: _magnitude_picture(res, t))
     return list(names)

@@ -8,6 +8,7 @@
   SIGTERM raises :class:`Terminated`, a :class:`KeyboardInterrupt`, so the clean-up that runs for
   Ctrl-C (temporary files removed, staged outputs discarded, worker processes stopped) runs for both.
   A second signal during that clean-up ends the process at once.
+* A progress bar shows only after :data:`PROGRESS_DELAY_S` (1 s): a short run prints none.
 * A **closed output pipe** (``| head``) ends the command quietly with exit code 141 (128 + SIGPIPE),
   the shell's code for a reader that went away.
 * :func:`deferred` holds both signals back while an output set is renamed into place
@@ -35,6 +36,8 @@ EXIT_SIGTERM = 128 + signal.SIGTERM  # 143
 EXIT_PIPE = 128 + 13  # 141: SIGPIPE, the reader of the output went away
 
 _NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
+#: A command's progress bar shows only once its run has taken this long (s); ``$TQDM_DELAY`` overrides.
+PROGRESS_DELAY_S = 1.0
 
 
 class Terminated(KeyboardInterrupt):
@@ -143,6 +146,8 @@ def entry_point(fn: Callable[..., int]) -> Callable[..., int]:
         if s.active:  # nested (e.g. `bench all` running each benchmark): the outer wrapper handles it
             return fn(*args, **kwargs)
         s.signum, s.pending, s.defer, s.kept, s.resume, s.active = None, None, 0, {}, None, True
+        # progress bars (tqdm, imported later) appear only after PROGRESS_DELAY_S: none on a short run
+        os.environ.setdefault("TQDM_DELAY", f"{PROGRESS_DELAY_S:g}")
         previous = {}
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):

@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     bs.add_argument("--load", action="store_true",
                     help="also time every cell on one thread, and beside a busy process that it starts and stops")
-    bs.add_argument("--out", default=None, metavar="FILE.json", help="also write the result as JSON (default: printed only, nothing written)")
+    bs.add_argument("--out", default=None, metavar="FILE.json",
+                    help="also write the result as JSON (default: printed only, nothing written)")
     bs.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     bt = bsub.add_parser("tradeoffs", help="what accuracy costs in time: simulator, study and classifier")
     bt.add_argument("--part", choices=("all", "simulator", "study", "classifier", "fidelity"), default="all")
@@ -79,24 +80,28 @@ def build_parser() -> argparse.ArgumentParser:
     bt.add_argument("--fidelity-reference-trials", type=int, default=8192,
                     help="fidelity: trials per cell of the tight reference (tolerance 1e-6, float64)")
     bt.add_argument("--quick", action="store_true", help="reduced sizes (minutes)")
-    bt.add_argument("--out", default=None, metavar="FILE.json", help="also write the result as JSON (PNGs of the fronts beside it) (default: printed only, nothing written)")
+    bt.add_argument("--out", default=None, metavar="FILE.json",
+                    help="also write the result as JSON (PNGs of the fronts beside it) (default: printed only, nothing written)")
     bt.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     bc = bsub.add_parser("classify", help="doct-classify throughput on a 512×512 synthetic maps file")
     bc.add_argument("--size", type=int, default=512, help="pixels per side")
     bc.add_argument("--repeats", type=int, default=3)
-    bc.add_argument("--out", default=None, metavar="FILE.json", help="also write the result as JSON (default: printed only, nothing written)")
+    bc.add_argument("--out", default=None, metavar="FILE.json",
+                    help="also write the result as JSON (default: printed only, nothing written)")
     bc.add_argument("--model", default=None, help="shipped model name or .onnx path (default: the LIV/OCDS model)")
     bc.add_argument("--force", action="store_true")
     bl = bsub.add_parser("load", help="simulate, render and sweep: alone on 1 and N threads, and beside a busy process")
     bl.add_argument("--repeats", type=int, default=3, help="runs per figure (best is kept)")
-    bl.add_argument("--out", default=None, metavar="FILE.json", help="also write the result as JSON (default: printed only, nothing written)")
+    bl.add_argument("--out", default=None, metavar="FILE.json",
+                    help="also write the result as JSON (default: printed only, nothing written)")
     bl.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     bg = bsub.add_parser("cog", help="the paper's 12 cells against the COG point simulator (a clone of it), one core")
     bg.add_argument("--cog", required=True, metavar="DIR", help="folder of a clone of the COG DOCT simulation library")
     bg.add_argument("--cog-trials", type=int, default=10, help="COG trials per cell and repeat")
     bg.add_argument("--trials", type=int, default=1024, help="torchdoct trials per cell and repeat")
     bg.add_argument("--repeats", type=int, default=3, help="repeats per cell (best is kept)")
-    bg.add_argument("--out", default=None, metavar="FILE.json", help="also write the result as JSON (default: printed only, nothing written)")
+    bg.add_argument("--out", default=None, metavar="FILE.json",
+                    help="also write the result as JSON (default: printed only, nothing written)")
     bg.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     ba = bsub.add_parser("all", help="every benchmark, each writing DIR/bench-NAME.json (not cog, which needs --cog)")
     ba.add_argument("--out", default="bench", help="output directory (created if missing)")

@@ -133,7 +133,8 @@ def register(sub: Any, bench_sub: Any) -> None:
                     help="default: original, axial=14, lateral=18")
     bm.add_argument("--aliv", action="store_true", help="include aLIV and Swiftness")
     bm.add_argument("--repeats", type=int, default=1, help="timed repeats (best is kept)")
-    bm.add_argument("--out", default="bench-maps.json", help="JSON output file")
+    bm.add_argument("--out", default=None, metavar="FILE.json",
+                    help="also write the result as JSON (default: printed only, nothing written)")
     bm.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     bm.set_defaults(func=_bench_maps)
 
@@ -146,7 +147,8 @@ def register(sub: Any, bench_sub: Any) -> None:
     bb.add_argument("--phantom", default=None, metavar="NAME",
                     help="also render this B-scan phantom (e.g. vessel-slab, which has moving regions) and measure "
                          "every method and mask on it at 20, 30, 40 dB")
-    bb.add_argument("--out", default="bench-bulk-phase.json", help="JSON output file")
+    bb.add_argument("--out", default=None, metavar="FILE.json",
+                    help="also write the result as JSON (default: printed only, nothing written)")
     bb.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     bb.set_defaults(func=_bench_bulk_phase)
 
@@ -436,8 +438,9 @@ def _bench_bulk_phase(args: argparse.Namespace) -> int:
 
         res["phantom"] = bench_bulk_phase_phantom(args.phantom)
     print(format_bench_bulk_phase(res))
-    atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
-    print(f"wrote {out}")
+    if out is not None:  # asked for with --out: nothing is written into the current folder unasked
+        atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
+        print(f"wrote {out}")
     return 0
 
 
@@ -458,6 +461,7 @@ def _bench_maps(args: argparse.Namespace) -> int:
           f"{'+'.join(res['metrics'])}: {res['seconds_total']:.2f} s total ({per}); "
           f"target {res['target_seconds']:.0f} s; {m['cpu_count']} cores, torch {m['torch']} with "
           f"{m['torch_threads']} threads")
-    atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
-    print(f"wrote {out}")
+    if out is not None:  # asked for with --out: nothing is written into the current folder unasked
+        atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
+        print(f"wrote {out}")
     return 0

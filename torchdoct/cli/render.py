@@ -30,13 +30,17 @@ def register(sub, bench_sub) -> None:
     r.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
     r.add_argument("--force", action="store_true", help="overwrite existing outputs")
     r.add_argument("--no-progress", action="store_true")
+    r.add_argument("--max-scatterers", type=float, default=None, metavar="N",
+                   help="largest expected number of seeded scatterers (default 2e7, about 2.4 GB); checked "
+                        "before the work")
     r.set_defaults(func=_render)
 
     b = bench_sub.add_parser("render", help="spheroid phantom: 32-frame 256×256 B-scan sequence")
     b.add_argument("--phantom", default="spheroid")
     b.add_argument("--repeats", type=int, default=3, help="repeats (best is kept)")
     b.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    b.add_argument("--out", default="bench-render.json")
+    b.add_argument("--out", default=None, metavar="FILE.json",
+                    help="also write the result as JSON (default: printed only, nothing written)")
     b.add_argument("--force", action="store_true")
     b.set_defaults(func=_bench)
 
@@ -97,8 +101,13 @@ def _render(args) -> int:
             files.append(check_out(p.with_name(p.stem + ".labels.npz"), args.force, ".npz", "labels file"))
         if not args.no_preview:
             files.append(check_out(p.with_suffix(".png"), args.force, ".png", "preview"))
+    if len(outs) > 1:  # say it before the work: --out is a pattern here, not the file written
+        print(f"{len(outs)} systems: one file per system, {Path(args.out).stem}-SYSTEM{Path(args.out).suffix} "
+              f"({', '.join(p.name for p in outs.values())}), not {Path(args.out).name}; --system NAME renders one "
+              f"system into {Path(args.out).name}", flush=True)
     res = render(ph, systems=names, seed=args.seed, dtype=args.dtype, device=args.device,
-                 truncation_tolerance=args.tolerance, progress=not args.no_progress)
+                 truncation_tolerance=args.tolerance, progress=not args.no_progress,
+                 max_scatterers=args.max_scatterers)
     print(f"rendered {ph.name!r}: {res.phantom.grid.axes} {tuple(res.data.shape[1:])}, "
           f"{len(names)} system(s), seed {res.seed}, {res.elapsed_s:.2f} s")
     print("stages: " + "; ".join(res.work["stages"]))
@@ -137,6 +146,7 @@ def _bench(args) -> int:
     out = check_out(args.out, args.force, ".json")
     res = bench_render(phantom=args.phantom, repeats=args.repeats, dtype=args.dtype)
     print(json.dumps({k: v for k, v in res.items() if k != "machine"}, indent=2))
-    atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
-    print(f"wrote {out}")
+    if out is not None:  # asked for with --out: nothing is written into the current folder unasked
+        atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
+        print(f"wrote {out}")
     return 0

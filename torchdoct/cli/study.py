@@ -52,7 +52,8 @@ def register(sub, bench_sub) -> None:
     bs.add_argument("--grouping-trials", type=int, default=128, help="trials per timed cell for --groupings")
     bs.add_argument("--study-out", default=None, metavar="DIR",
                     help="keep the study's table, figures and report in DIR (default: a temporary directory)")
-    bs.add_argument("--out", default="bench-study.json", help="JSON output file")
+    bs.add_argument("--out", default=None, metavar="FILE.json",
+                    help="also write the result as JSON (default: printed only, nothing written)")
     bs.add_argument("--force", action="store_true", help="overwrite --out (and --study-out files) if they exist")
     bs.add_argument("--workers", type=int, default=None,
                     help="cells computed side by side (default: --threads, else the usable cores)")
@@ -120,6 +121,7 @@ def _bench_study(args) -> int:
                       study_out=args.study_out, force=args.force, workers=_workers(args),
                       progress=not args.no_progress)
     print(format_bench_study(res))
-    atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2), encoding="utf-8"))
-    print(f"wrote {out}")
+    if out is not None:  # asked for with --out: nothing is written into the current folder unasked
+        atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2), encoding="utf-8"))
+        print(f"wrote {out}")
     return 0

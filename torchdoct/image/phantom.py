@@ -29,8 +29,8 @@ import numpy as np
 import torch
 
 from ..files import file_or_shipped, shipped_files
-from ..sim.config import (Population, Scene, SceneError, _check_keys, _fail, _integer, _number, _string, read_toml,
-                     scene_from_dict)
+from ..sim.config import (Population, Scene, SceneError, _check_keys, _fail, _integer, _number, _string, check_count,
+                          read_toml, scene_from_dict)
 from ..sim.scenes import shipped_scenes
 
 __all__ = ["Grid", "Region", "Phantom", "load_phantom", "phantom_from_dict", "shipped_phantoms",
@@ -340,6 +340,7 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
         bgs = [bgs]
     if not isinstance(bgs, list):
         raise TypeError(f"background must be a table or an array of tables; got {bgs!r}")
+    check_count("background", len(bgs))
     for i, bg in enumerate(bgs):
         _check_keys(f"background[{i}]", bg, _POP_KEYS | {"name"}, {"density_per_um3"})
         pops.append({**bg, "name": bg.get("name") or f"background{i}" if len(bgs) > 1 else "background"})
@@ -350,6 +351,7 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
         regions_raw = [regions_raw]
     if not isinstance(regions_raw, list):
         raise TypeError(f"region must be an array of tables ([[region]]); got {regions_raw!r}")
+    check_count("region", len(regions_raw))
     if not regions_raw and not bgs:
         _fail("region", "a phantom needs at least one [[region]] or [[background]] population",
               "add a [[region]] table with a shape and a density")

@@ -59,13 +59,25 @@ from ..sim.samplers import unit_directions
 from ..sim.streams import seeded_generator
 from ..threads import map_ordered, one_torch_thread, resolve_threads
 
-__all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS", "save_preview", "preview_figure"]
+__all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS", "MAX_SCATTERERS", "ScatterersLimitError",
+           "save_preview", "preview_figure"]
 
 _F64 = torch.float64
 _TWO_PI = 2.0 * math.pi
 #: A diffusing scatterer is seeded up to this many RMS displacements (per axis, over the protocol)
 #: outside the imaged box; the walk's maximum passes it with probability < 1e-6.
 DIFFUSION_REACH_SIGMAS = 5.0
+#: Largest expected number of seeded scatterers (all populations) that :func:`render` accepts without
+#: ``max_scatterers`` (``--max-scatterers``): the shipped phantoms seed at most 3e5.
+MAX_SCATTERERS = 2e7
+#: Bytes held per seeded scatterer (float64 position, velocity and walk, one frame's positions and masks).
+_BYTES_PER_SCATTERER = 128
+
+
+class ScatterersLimitError(ValueError):
+    """A phantom grid whose seeded scatterers would exceed the limit (refused before any work)."""
+
+
 #: Complex PSF-window elements per splat chunk (bounds the temporary memory to ~64 MB).
 _SPLAT_ELEMENTS = 1 << 22
 
@@ -192,12 +204,13 @@ def _reach_um(pop: Population, duration_s: float) -> tuple[float, float, float]:
     return tuple(abs(vf[a]) * duration_s + vb * duration_s + diff for a in range(3))  # type: ignore[return-value]
 
 
-def _seed_population(phantom: Phantom, index: int, region: int | None, half: tuple[float, ...],
-                     duration_s: float, seed: int) -> _PopulationState | None:
+def _seed_box(phantom: Phantom, index: int, region: int | None, half: tuple[float, ...],
+              duration_s: float) -> tuple[list[float], list[float], float]:
+    """The box a population is seeded in (lower and upper corner, µm) and its expected scatterer count:
+    the grid's extent plus the PSF truncation half-width plus the population's reach, cut to its region."""
     pop = phantom.scene.populations[index]
     grid = phantom.grid
     reach = _reach_um(pop, duration_s)
-    gen = seeded_generator(seed, index)
     lo, hi = [], []
     bounds = phantom.regions[region].bounds_um() if region is not None else None
     for a, ax in enumerate("xyz"):
@@ -208,7 +221,14 @@ def _seed_population(phantom: Phantom, index: int, region: int | None, half: tup
         lo.append(l)
         hi.append(h)
     volume = math.prod(max(0.0, h - l) for l, h in zip(lo, hi))
-    mean = pop.density_per_um3 * volume
+    return lo, hi, pop.density_per_um3 * volume
+
+
+def _seed_population(phantom: Phantom, index: int, region: int | None, half: tuple[float, ...],
+                     duration_s: float, seed: int) -> _PopulationState | None:
+    pop = phantom.scene.populations[index]
+    gen = seeded_generator(seed, index)
+    lo, hi, mean = _seed_box(phantom, index, region, half, duration_s)
     n = int(torch.poisson(torch.tensor([mean], dtype=_F64), generator=gen).item()) if mean > 0 else 0
     lo_t, hi_t = torch.tensor(lo, dtype=_F64), torch.tensor(hi, dtype=_F64)
     pos = lo_t + (hi_t - lo_t) * torch.rand(n, 3, generator=gen, dtype=_F64)
@@ -244,6 +264,13 @@ def _axis_taper(ex: torch.Tensor, log_tol: float) -> torch.Tensor:
     return 1.0 - t * t * t * (10.0 - 15.0 * t + 6.0 * t * t)
 
 
+def _window_pixels(half: float, pitch: float, n: int) -> int:
+    """Pixels of one axis's PSF window: ``2·h/pitch + 2``, but never more than the grid's ``n`` (a
+    window starting at the grid's first pixel it reaches covers every pixel within ``h`` of the
+    scatterer), so a pitch far below the PSF width (``--pitch-um 1e-6``) costs the grid, not ``h/pitch``."""
+    return int(min(math.floor(2.0 * half / pitch) + 2, n))
+
+
 def _axis_window(coord: torch.Tensor, first: float, pitch: float, n: int, half: float, sigma: float,
                  dtype: torch.dtype, taper_log_tol: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """PSF amplitude window along one axis: pixel indices [N, K] (clamped) and weights [N, K].
@@ -251,8 +278,8 @@ def _axis_window(coord: torch.Tensor, first: float, pitch: float, n: int, half: 
     Weights are ``exp(−d²/(2σ²))`` for pixels within ``half`` of the scatterer, else 0; with
     ``taper_log_tol`` (``ln tol``) they are multiplied by the taper window of ``−d²/(2σ²)``.
     """
-    k = int(math.floor(2.0 * half / pitch)) + 2
-    i0 = torch.ceil((coord - half - first) / pitch)
+    k = _window_pixels(half, pitch, n)
+    i0 = torch.ceil((coord - half - first) / pitch).clamp_(0.0, float(n))  # the window starts inside the grid
     idx = i0[:, None] + torch.arange(k, dtype=_F64)
     d = first + idx * pitch - coord[:, None]
     ok = (idx >= 0) & (idx <= n - 1) & (d.abs() <= half)
@@ -273,9 +300,9 @@ def _splat(out: torch.Tensor, pos: torch.Tensor, refl: float, opt: _SystemOptics
         return 0
     hx, hy, hz = opt.half
     volume = grid.kind == "volume"
-    kx = int(math.floor(2.0 * hx / grid.pitch_x_um)) + 2
-    kz = int(math.floor(2.0 * hz / grid.pitch_z_um)) + 2
-    ky = int(math.floor(2.0 * hy / grid.pitch_y_um)) + 2 if volume else 1
+    kx = _window_pixels(hx, grid.pitch_x_um, grid.n_x)
+    kz = _window_pixels(hz, grid.pitch_z_um, grid.n_z)
+    ky = _window_pixels(hy, grid.pitch_y_um, grid.n_y) if volume else 1
     chunk = max(1, _SPLAT_ELEMENTS // (kx * ky * kz))
     x0, z0 = grid.extent_um("x")[0], grid.extent_um("z")[0]
     y0 = grid.extent_um("y")[0]
@@ -338,13 +365,15 @@ def _pixel_labels(phantom: Phantom) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed: int | None = None,
            dtype: str | torch.dtype | None = None, device: str | torch.device | None = None,
            truncation_tolerance: float | None = None, threads: int | None = None,
-           progress: bool = False) -> RenderResult:
+           progress: bool = False, max_scatterers: float | None = None) -> RenderResult:
     """Render the complex image sequence of ``phantom`` for its systems (all, or the named ones).
 
     ``seed``, ``dtype`` and ``truncation_tolerance`` default to the scene's ``[simulation]`` values.
     ``threads``: frames splatted at once, each on one torch thread (:mod:`torchdoct.threads`; default:
     the usable cores); the output is bit-identical for any value.
-    All systems see the same scatterers. Returns a :class:`RenderResult` (see the module docstring
+    All systems see the same scatterers. The expected number of scatterers seeded is checked first:
+    over ``max_scatterers`` (default :data:`MAX_SCATTERERS`) it is a :class:`ScatterersLimitError`
+    naming the count and the memory it would take. Returns a :class:`RenderResult` (see the module docstring
     for what runs).
     """
     t_start = time.perf_counter()
@@ -388,6 +417,16 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
     pop_regions: list[int | None] = [None] * len(scene.populations)
     for i, r in enumerate(phantom.regions):
         pop_regions[r.population] = i
+    expected = sum(_seed_box(phantom, ip, pop_regions[ip], half, duration)[2] for ip in range(len(scene.populations)))
+    limit = MAX_SCATTERERS if max_scatterers is None else float(max_scatterers)
+    if not expected <= limit:  # checked before anything is drawn or allocated (NaN/inf included)
+        fov = " × ".join(f"{grid.extent_um(a)[1] - grid.extent_um(a)[0] + p:.4g}"
+                         for a, p in (("x", grid.pitch_x_um), ("z", grid.pitch_z_um)))
+        raise ScatterersLimitError(
+            f"{phantom.name}: the grid ({' × '.join(str(n) for n in grid.shape)} pixels, field of view {fov} µm "
+            f"x × z) and the PSF and motion reach around it would hold {expected:.3g} scatterers, about "
+            f"{expected * _BYTES_PER_SCATTERER / 2**30:.3g} GB; the limit is {limit:.3g}: use fewer pixels or a "
+            f"smaller --pitch-um, or raise the limit with --max-scatterers N")
     for ip in range(len(scene.populations)):
         st = _seed_population(phantom, ip, pop_regions[ip], half, duration, seed)
         if st is not None:

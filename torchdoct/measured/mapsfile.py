@@ -128,7 +128,8 @@ class Maps:
 
 def write_maps(path: str | os.PathLike, maps: Maps, *, force: bool = False) -> Path:
     """Write :class:`Maps` to ``.npz`` (``maps``, ``channels``, ``meta_json``) or ``.tif`` (stack +
-    JSON ImageDescription), atomically; refuses to overwrite without ``force``."""
+    JSON ImageDescription, then ImageJ metadata: pixel size in µm and channel names,
+    :mod:`torchdoct.imagej`), atomically; refuses to overwrite without ``force``."""
     out = check_out(path, force, MAPS_SUFFIXES, what="maps output")
     arr = np.ascontiguousarray(maps.maps, dtype=np.float32)
     meta = dict(maps.meta)
@@ -142,7 +143,12 @@ def write_maps(path: str | os.PathLike, maps: Maps, *, force: bool = False) -> P
         def write(tmp: str) -> None:
             import tifffile
 
-            tifffile.imwrite(tmp, arr, description=text, metadata=None, photometric="minisblack")
+            from ..imagej import imagej_write_options
+
+            units = {ch.get("unit") for ch in meta.get("channels", []) if isinstance(ch, dict)}
+            tifffile.imwrite(tmp, arr, **imagej_write_options(  # Fiji/napari: µm scale and channel names
+                arr.shape, meta.get("axes") or ("CYZX" if arr.ndim == 4 else "CZX"), meta.get("pitch_um"),
+                list(maps.channels), description=text, value_unit=units.pop() if len(units) == 1 else None))
     atomic_write(out, write)
     return out
 

@@ -385,6 +385,12 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
 
     ``truncation_tolerance`` and ``truncation`` (``"hard"`` or ``"taper"``) default to the scene's
     ``[simulation]`` values; the taper changes no domain (it reaches 0 on the same ellipsoid)."""
+    from .config import check_count
+
+    check_count("system", len(scene.systems))  # a scene built in Python: the file's limits, before the work
+    check_count("population", len(scene.populations))
+    for i, p in enumerate(scene.populations):
+        check_count(f"population[{i}].motion", len(p.motion))
     tol = scene.simulation.truncation_tolerance if truncation_tolerance is None else truncation_tolerance
     mode = scene.simulation.truncation if truncation is None else truncation
     c = truncation_radius_factor(tol)
