@@ -508,6 +508,7 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
     from classifier.features import load_spec
 
     results: dict[str, Any] = {}
+    kept: dict[tuple[str, str], tuple] = {}  # pool-1 probabilities of the largest training set, for the pairs
     fit_s: dict[str, float] = {}
     for p in parts:
         spec_name, source, which, prior = PARTS[p]
@@ -523,7 +524,10 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
         for pool in POOLS:
             ts = pool_samples(test, pool, test_seed)
             r: dict[str, Any] = {"test_samples": int(len(ts["y"])), "by_size": {}}
-            r["shipped"] = score_curve(_shipped_probs(mdl, spec, ts["x"], pool), ts, n_boot=n_boot, seed=test_seed)
+            sp = _shipped_probs(mdl, spec, ts["x"], pool)
+            r["shipped"] = score_curve(sp, ts, n_boot=n_boot, seed=test_seed)
+            if pool == 1:
+                kept[(p, "shipped")] = (sp, ts, spec_name)
             for n in sorted(sizes):
                 keep = (train_all.draw < n) & (train_all.status == 0)
                 sub = subset(train_all, np.flatnonzero(keep))
@@ -535,10 +539,14 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
                     r["by_size"][str(n)][variant] = {
                         "train_draws": int(n), "train_samples": int(len(trs["y"])), "gb_iterations": int(gb.n_iter_),
                         "inputs": int(gb.n_features_in_),
-                        **score_curve(probs, ts, n_boot=n_boot if n == max(sizes) else 0, seed=test_seed)}
+                        **_curve_for_size(score_curve(probs, ts, n_boot=n_boot if n == max(sizes) else 0,
+                                                      seed=test_seed), n == max(sizes))}
+                    if pool == 1 and n == max(sizes):
+                        kept[(p, variant)] = (probs, ts, spec_name)
             res["pools"][str(pool)] = r
         fit_s[p] = time.perf_counter() - t1
         results[p] = res
+    comparisons = paired_comparisons(kept, results, n_boot=n_boot, seed=test_seed)
     import classifier
     import sklearn
     import torchdoct
@@ -551,9 +559,17 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
             "coverages": list(COVERAGES), "variants": list(VARIANTS), "epsilon": epsilon, "gb_params": GB_PARAMS,
             "train_pooled_per_draw": TRAIN_POOLED_PER_DRAW, "test_pooled_per_draw": em.POOLED_PER_DRAW,
             "n_boot": int(n_boot), "prior": em.PRIOR_TEXT, "simulation": em.SIM_TEXT,
-            "targets": em.TARGETS, "parts": results,
+            "targets": em.TARGETS, "parts": results, "comparisons": comparisons,
             "seconds": {"this_run_simulation": sim_s, "fits_and_scores": fit_s,
                         "simulation_per_set": _cache_seconds(caches)}}
+
+
+#: Decisions kept in the report for the training sets other than the largest (the learning curve).
+SMALL_SIZE_KEYS = ("coverage 0.8", "coverage 1")
+
+
+def _curve_for_size(curve: dict[str, Any], largest: bool) -> dict[str, Any]:
+    return curve if largest else {k: curve[k] for k in SMALL_SIZE_KEYS}
 
 
 def _cache_seconds(caches) -> dict[str, dict[str, float]]:
@@ -631,6 +647,9 @@ def format_markdown(rep: dict[str, Any]) -> str:
             L.append(_row(f"{p} | {VARIANT_TEXT[v]}, {big} draws", r1["by_size"][big][v]["coverage 0.8"]))
         L.append(_row(f"{p} | shipped `{res['shipped']}`", r1["shipped"]["coverage 0.8"]))
     L += ["", "Parts: " + "; ".join(f"**{p}** {res['text']}" for p, res in rep["parts"].items()) + ".", "",
+          f"Reproduce: `{cmd}`.", ""]
+    L += findings(rep)
+    L += ["",
           "## Against training size (pool 1; balanced accuracy at coverage 0.8 and 1.0, flow recall by polar band "
           "at coverage 0.8)", "",
           "| part | inputs | training draws | bal. acc. at 0.8 | bal. acc. at 1.0 | flow 0-30° / 30-60° / 60-90° |",
@@ -642,6 +661,7 @@ def format_markdown(rep: dict[str, Any]) -> str:
                 L.append(f"| {p} | {VARIANT_TEXT[v]} | {n} | {_pm(c8, 'balanced_accuracy')} | "
                          f"{_pm(c1, 'balanced_accuracy')} | "
                          + " / ".join(_f(c8["flow_polar_bands"].get(b)) for b in ("0-30", "30-60", "60-90")) + " |")
+    L += ["", f"Reproduce: `{cmd}`."]
     for p, res in rep["parts"].items():
         L += ["", f"## Part {p}: {res['text']}", "", f"Spec `{res['spec']}`, {len(res['feature_names'])} features "
               f"({res['features']}), training simulator {res['train_source']}, training prior {res['train_prior']}; "
@@ -657,13 +677,113 @@ def format_markdown(rep: dict[str, Any]) -> str:
                 L.append(_row(f"shipped `{res['shipped']}` | {key}", r["shipped"][key]))
             L += ["", "Flow recall by speed decade at coverage 0.8: "
                   + "; ".join(f"{VARIANT_TEXT[v]} {_dec(r['by_size'][big][v]['coverage 0.8'])}" for v in rep["variants"])
-                  + f"; shipped {_dec(r['shipped']['coverage 0.8'])}.", ""]
+                  + f"; shipped {_dec(r['shipped']['coverage 0.8'])}.", "", f"Reproduce: `{cmd}`.", ""]
     s = rep["seconds"]
     L += ["Cost (CPU, one core): simulation " + ", ".join(
         f"{k} {v['draws']} draws {v['cpu_seconds']:.0f} s ({v['cpu_seconds_per_draw']:.2f} s per draw)"
         for k, v in s["simulation_per_set"].items()) + "; fits and scores (wall) "
         + ", ".join(f"{p} {v:.0f} s" for p, v in s["fits_and_scores"].items()) + ".", ""]
     return "\n".join(L)
+
+
+def _best(res: dict[str, Any], size: str, variants: Sequence[str], pool: str = "1",
+          key: str = "coverage 0.8") -> tuple[str, dict[str, Any]]:
+    """The variant with the highest balanced accuracy at ``key`` and its scores."""
+    rows = {v: res["pools"][pool]["by_size"][size][v][key] for v in variants}
+    v = max(rows, key=lambda k: rows[k]["balanced_accuracy"])
+    return v, rows[v]
+
+
+def findings(rep: dict[str, Any]) -> list[str]:
+    """What the numbers say (computed from them, pool 1 at coverage 0.8, the largest training set)."""
+    big = str(max(rep["train_sizes"]))
+    goal = rep["targets"]["pool_1"]["balanced_accuracy_identifiable"]
+    band_goal = rep["targets"]["flow_recall_every_polar_band"]
+    parts = rep["parts"]
+    L = ["## What it shows (pool 1, coverage 0.80, the better inputs, " + big + " training draws)", ""]
+    best = {p: _best(res, big, rep["variants"]) for p, res in parts.items()}
+    for p, (v, r) in best.items():
+        sh = parts[p]["pools"]["1"]["shipped"]["coverage 0.8"]
+        bands = r["flow_polar_bands"]
+        low = min(bands.values())
+        L.append(f"- **{p}** ({VARIANT_TEXT[v]}): {_pm(r, 'balanced_accuracy')} against the goal {goal:g} "
+                 f"({'above' if r['balanced_accuracy'] >= goal else 'below'}); flow recall "
+                 + " / ".join(_f(bands[b]) for b in ("0-30", "30-60", "60-90"))
+                 + f" ({'every band' if low >= band_goal else 'not every band'} ≥ {band_goal:g}); shipped "
+                 f"`{parts[p]['shipped']}` {_pm(sh, 'balanced_accuracy')} at the same coverage: ceiling − shipped "
+                 f"= {r['balanced_accuracy'] - sh['balanced_accuracy']:+.3f}.")
+    L += ["", "Paired differences of the balanced accuracy at coverage 0.8 (same test pixels; ± paired bootstrap "
+          "SE over test draws):", ""]
+    for c in rep.get("comparisons", []):
+        se = c.get("se")
+        L.append(f"- {c['what']}: {c['x']} − {c['y']} = {c['difference']:+.3f}"
+                 + (f" ± {se:.3f}" if se is not None and math.isfinite(se) else "") + ".")
+    L += ["", "Against training size (the better inputs):", ""]
+    for p, res in parts.items():
+        n = [str(k) for k in rep["train_sizes"]]
+        if len(n) >= 2:
+            v = best[p][0]
+            a = res["pools"]["1"]["by_size"][n[-2]][v]["coverage 0.8"]["balanced_accuracy"]
+            b = res["pools"]["1"]["by_size"][n[-1]][v]["coverage 0.8"]["balanced_accuracy"]
+            grows = "still growing: the ceiling measured is a lower bound" if b - a > 0.005 else "nearly flat"
+            L.append(f"- {p}: {n[-2]} → {n[-1]} training draws {b - a:+.3f} ({grows}).")
+    return L
+
+
+#: Paired differences reported (pool 1, coverage 0.8; each part at its better inputs): (x, y, what).
+PAIRS = (("a", "c", "simulator gap: trained on the reference simulator − trained on torchdoct (same prior, same test)"),
+         ("a", "a-shared", "what the matched prior's per-type speed ranges give (matched − shared speed range)"),
+         ("b", "b-shared", "the same on B-scans with the field group (matched − shared)"),
+         ("b", "b-int", "the field group on phase-stable B-scans (intensity + g1 − intensity alone)"))
+
+
+def paired_difference(a: tuple, b: tuple, n_boot: int, seed: int) -> dict[str, float]:
+    """Balanced accuracy at coverage 0.8 of ``a`` minus ``b`` (each ``(probabilities, samples)`` of the same
+    test samples, each at its own coverage-0.8 threshold) with its paired bootstrap SE over test draws."""
+    from classifier.report import evaluate
+    from classifier.rule import make_rule
+
+    (pa, s), (pb, sb) = a[:2], b[:2]
+    if not np.array_equal(s["draw"], sb["draw"]) or not np.array_equal(s["y"], sb["y"]):
+        raise ValueError("paired differences need the same test samples")
+    ra = make_rule(0.05, coverage_threshold(pa, s["status"], 0.8))
+    rb = make_rule(0.05, coverage_threshold(pb, s["status"], 0.8))
+
+    def d(i):
+        x = evaluate(pa[i], s["y"][i], s["status"][i], _CLASS_NAMES, ra)["balanced_accuracy_identifiable"]
+        y = evaluate(pb[i], s["y"][i], s["status"][i], _CLASS_NAMES, rb)["balanced_accuracy_identifiable"]
+        return {"difference": x - y}
+
+    out = {"difference": d(np.arange(len(s["y"])))["difference"]}
+    if n_boot >= 2:
+        out["se"] = em._bootstrap(d, s["draw"], n_boot, seed).get("difference", math.nan)
+    return out
+
+
+def paired_comparisons(kept: dict, results: dict, *, n_boot: int, seed: int) -> list[dict[str, Any]]:
+    """The :data:`PAIRS` present, and every part's ceiling against its shipped model, as paired differences."""
+    out = []
+
+    def better(p):
+        rows = {v: results[p]["pools"]["1"]["by_size"] for v in VARIANTS}
+        big = max(rows["raw"], key=int)
+        return max(VARIANTS, key=lambda v: results[p]["pools"]["1"]["by_size"][big][v]["coverage 0.8"]
+                   ["balanced_accuracy"])
+
+    for p in results:
+        v = better(p)
+        out.append({"x": f"{p} ({VARIANT_TEXT[v]})", "y": f"shipped {results[p]['shipped']}",
+                    "what": f"ceiling − shipped model, part {p}",
+                    **paired_difference(kept[(p, v)], kept[(p, "shipped")], n_boot, seed)})
+    for x, y, what in PAIRS:
+        if x in results and y in results:
+            vx, vy = better(x), better(y)
+            out.append({"x": f"{x} ({VARIANT_TEXT[vx]})", "y": f"{y} ({VARIANT_TEXT[vy]})", "what": what,
+                        **paired_difference(kept[(x, vx)], kept[(y, vy)], n_boot, seed)})
+    for p in results:  # what the contrasts add
+        out.append({"x": f"{p} (GB + contrasts)", "y": f"{p} (GB)", "what": f"the contrasts, part {p}",
+                    **paired_difference(kept[(p, "derived")], kept[(p, "raw")], n_boot, seed)})
+    return out
 
 
 def _summary(rep: dict[str, Any]) -> str:
@@ -681,13 +801,25 @@ def _summary(rep: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _rounded(obj: Any, digits: int = 5) -> Any:
+    """``obj`` with every float rounded to ``digits`` decimals (the JSON report; the Markdown shows 3)."""
+    if isinstance(obj, float):
+        return round(obj, digits) if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _rounded(v, digits) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_rounded(v, digits) for v in obj]
+    return obj
+
+
 def write_report(rep: dict[str, Any], out: Path, force: bool = False) -> list[Path]:
     paths = [out / f"independent-ceiling{s}" for s in (".json", ".md")]
     if not force:
         for p in paths:
             if p.exists():
                 raise FileExistsError(f"{p} exists; pass --force to overwrite it, or choose another --out")
-    for p, text in zip(paths, (json.dumps(rep, indent=1, default=em._json_default), format_markdown(rep))):
+    text_json = json.dumps(_rounded(json.loads(json.dumps(rep, default=em._json_default))), separators=(",", ":"))
+    for p, text in zip(paths, (text_json, format_markdown(rep))):
         tmp = p.with_name(f".{p.name}.tmp")
         tmp.write_text(text + "\n", encoding="utf-8")
         os.replace(tmp, p)
