@@ -242,3 +242,82 @@ def test_study_figures_phase_has_a_progress_bar(tmp_path, capsys):
     err = capsys.readouterr().err.replace("\r", "\n")
     steps = re.findall(r"figures and claims report: +\d+%\S* *\| *(\d+)/(\d+)", err)
     assert steps and max(int(a) for a, _ in steps) >= 1, err[-2000:]  # it advanced, step by step
+
+
+# ----------------------------------------------------------------------------------------------------------
+# peak memory on the bombs: within the README's budget (Command line, "Memory")
+
+
+def _bomb_inputs(d: Path) -> dict[str, Path]:
+    """The adversarial pass's bombs: a 1.2 KB .npz declaring 1.14 TiB, a few-KB .h5 declaring 512 GiB
+    (chunked and compressed, never written), a maps .npz declaring 48 GiB, a scene of 100,000 systems."""
+    import io
+    import zipfile
+
+    import h5py
+
+    def npy_header(shape, dtype) -> bytes:
+        buf = io.BytesIO()
+        np.lib.format.write_array_header_1_0(buf, {"descr": np.dtype(dtype).str, "fortran_order": False,
+                                                   "shape": shape})
+        return buf.getvalue()
+
+    meta = {"axes": "TZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": [0.2048 * i for i in range(32)],
+            "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9,
+                       "axial_resolution_um": 3.8}}
+    out = {"npz": d / "liar.npz", "h5": d / "huge.h5", "maps": d / "maps.npz", "scene": d / "big.toml"}
+    with zipfile.ZipFile(out["npz"], "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("data.npy", npy_header((1200, 1 << 14, 8000), np.complex64) + bytes(1000))
+    out["npz"].with_suffix(".json").write_text(json.dumps(meta))
+    with h5py.File(out["h5"], "w") as fh:
+        fh.create_dataset("data", shape=(4096, 4096, 4096), dtype=np.complex64, chunks=(1, 64, 64),
+                          compression="gzip")
+        fh.attrs["torchdoct"] = json.dumps(meta)
+    with zipfile.ZipFile(out["maps"], "w") as zf:
+        zf.writestr("maps.npy", npy_header((3, 1 << 16, 1 << 16), np.float32) + bytes(64))
+        zf.writestr("channels.npy", npy_header((3,), "<U16") + bytes(192))
+    out["scene"].write_text(_scene_text(systems=100_000))
+    return out
+
+
+@pytest.mark.slow
+def test_peak_memory_on_the_bombs_stays_within_the_budget(tmp_path):
+    """Each bomb is refused (exit 2) with the command's peak resident memory within its documented
+    budget for no accepted input (README: maps, compare and plan 400 MB, doct-classify 300 MB, render
+    600 MB), far from the gigabytes to terabytes the files declare."""
+    b = _bomb_inputs(tmp_path)
+    runs = {
+        "maps npz": (["maps", str(b["npz"]), "--out", "m.npz"], 400),
+        "maps h5": (["maps", str(b["h5"]), "--out", "m.npz"], 400),
+        "compare": (["compare", f"A={b['maps']}", f"B={b['maps']}"], 400),
+        "plan": (["plan", str(b["scene"])], 400),
+        "render": (["render", "example", "--grid", "64x64", "--pitch-um", "1e6", "--out", "r.h5"], 600),
+    }
+    for what, (argv, budget_mb) in runs.items():
+        rc, peak, err = _peak_rss_mb(argv, tmp_path)
+        assert rc == 2 and "Traceback" not in err, (what, err)
+        assert peak < budget_mb, f"{what}: peak {peak:.0f} MB over the {budget_mb} MB budget"
+    code = ("import resource, sys\nfrom classifier.cli import classify_main\n"
+            f"rc = classify_main([{str(b['maps'])!r}, '--out', 'c'])\n"
+            "print('PEAK_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\nsys.exit(rc)\n")
+    p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    peak = int(next(ln.split()[1] for ln in p.stdout.splitlines() if ln.startswith("PEAK_KB"))) / 1024
+    assert p.returncode == 2 and peak < 300, (p.stderr, peak)
+    assert not any(x.name in ("m.npz", "r.h5", "c") for x in tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_peak_memory_of_maps_within_its_budget(tmp_path):
+    """``maps`` at three resolutions on a [32, 256, 256] complex64 stack (16.8 MB): the README's budget
+    of 300 MB + 10 × the input array (measured 417 MB)."""
+    rng = np.random.default_rng(0)
+    shape = (32, 256, 256)
+    a = (rng.standard_normal(shape, dtype=np.float32) + 1j * rng.standard_normal(shape, dtype=np.float32))
+    np.save(tmp_path / "s.npy", a.astype(np.complex64))
+    (tmp_path / "s.json").write_text(json.dumps({
+        "axes": "TZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": [0.2048 * i for i in range(32)],
+        "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}}))
+    rc, peak, err = _peak_rss_mb(["maps", "s.npy", "--resolution", "original", "--resolution", "axial=14",
+                                  "--resolution", "lateral=18", "--no-progress", "--out", "m.npz"], tmp_path)
+    assert rc == 0, err
+    assert peak < 300 + 10 * a.astype(np.complex64).nbytes / 2**20, peak
