@@ -226,7 +226,11 @@ def _print_plan(args, spec, prior, ranges, cfg, notes, paths) -> None:
                                             if ranges else "):"))
     for label, name in enumerate(CLASSES):
         lo, hi = prior.magnitude_range(label)
-        ident = f" (identifiable {ranges[name][0]:.3g}-{ranges[name][1]:.3g})" if ranges else ""
+        ident = f" (identifiable {ranges[name][0]:.3g}-{ranges[name][1]:.3g}" if ranges else ""
+        if ranges and f"{name}_simulated_max" in ranges:
+            ident += (f"; simulated up to {ranges[name + '_simulated_max'][0]:.3g}: a faster one sweeps more than "
+                      "1e4 scatterers per simulated pixel, classify it with care")
+        ident += ")" if ranges else ""
         print(f"    {name:>9} ({_RANGE_UNITS[name]}): {lo:.3g}-{hi:.3g}{ident}")
     print(f"    density {prior.density_per_um3[0]:.3g}-{prior.density_per_um3[1]:.3g} µm⁻³, SNR "
           f"{prior.snr_db[0]:g}-{prior.snr_db[1]:g} dB (p = {prior.noise_probability:g}), static fraction "
@@ -257,9 +261,13 @@ def _write_like_files(spec, prior, ranges, args, paths) -> None:
     sources = ", ".join(Path(p).name for p in args.like)
     paths[".spec.toml"].write_text(toml_text(spec.to_dict(), f"Feature spec derived by doct-train --like from "
                                                              f"{sources}."), encoding="utf-8")
+    ranges = ranges or {}
     header = (f"Training prior of {spec.name}, scaled to its system (classifier.dataset.prior_for_spec): magnitude "
-              "ranges = identifiable ranges\n(closed forms) widened by half a decade; identifiable: "
-              + "; ".join(f"{k} {v[0]:.3g}-{v[1]:.3g}" for k, v in (ranges or {}).items()))
+              "ranges = identifiable ranges\n(closed forms) widened by half a decade, speeds capped where a "
+              "simulated pixel would hold too many scatterers.\nIdentifiable: "
+              + "; ".join(f"{k} {v[0]:.3g}-{v[1]:.3g}" for k, v in ranges.items() if len(v) == 2)
+              + "".join(f"; {k.split('_')[0]} simulated up to {v[0]:.3g} µm/s" for k, v in ranges.items()
+                        if k.endswith("_simulated_max")))
     paths[".prior.toml"].write_text(toml_text(prior.to_dict(), header), encoding="utf-8")
 
 

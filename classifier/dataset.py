@@ -577,8 +577,10 @@ def prior_for_spec(spec: FeatureSpec, base: Prior | None = None,
     cost that does not grow with the resolution volume (a 10/8 µm system would otherwise simulate 9×
     more scatterers per trial). Each motion type's range is its :func:`identifiable_range` widened by
     ``margin_decades`` at both ends (the indeterminate class is trained on what lies beyond); flow gets
-    its own speed range (:attr:`Prior.flow_speed_um_per_s`). Returns the prior and the identifiable
-    ranges it came from (``{"diffusion": [lo, hi], ...}``, µm²/s or µm/s)."""
+    its own speed range (:attr:`Prior.flow_speed_um_per_s`). Speeds are capped where the simulation would
+    need more than :data:`MAX_SCATTERERS_PER_TRIAL` scatterers per trial (:func:`speed_cap`): faster
+    motions are outside the trained range. Returns the prior and the identifiable ranges it came from
+    (``{"diffusion": [lo, hi], ...}``, µm²/s or µm/s; ``"flow_simulated_max"`` etc. when capped)."""
     import dataclasses as _dc
 
     from torchdoct.conventions import n_eff
@@ -595,9 +597,56 @@ def prior_for_spec(spec: FeatureSpec, base: Prior | None = None,
     def widen(r):
         return (float(f"{r[0] / k:.3g}"), float(f"{r[1] * k:.3g}"))
 
-    prior = _dc.replace(base, diffusion_um2_per_s=widen(ranges["diffusion"]),
-                        speed_um_per_s=widen(ranges["ballistic"]), flow_speed_um_per_s=widen(ranges["flow"]))
+    speed = {}
+    for label, name in ((1, "ballistic"), (2, "flow")):
+        lo, hi = widen(ranges[name])
+        cap = speed_cap(spec, base, label)
+        if cap < hi:
+            ranges[f"{name}_simulated_max"] = [float(f"{cap:.3g}")]
+            hi = float(f"{cap:.3g}")
+        speed[name] = (lo, max(hi, lo))
+    prior = _dc.replace(base, diffusion_um2_per_s=widen(ranges["diffusion"]), speed_um_per_s=speed["ballistic"],
+                        flow_speed_um_per_s=speed["flow"])
     return prior, ranges
+
+
+#: Most scatterers per simulated trial a scaled prior asks of the simulator (:func:`speed_cap`): the
+#: shipped prior's costliest draw (flow at 6 µm/s, 0.1 µm⁻³, the reference configurations: ~1e4). A
+#: faster motion sweeps a longer box over the acquisition, and its memory (about 0.4 MB per scatterer per
+#: 64 trials) and time grow with it: flow at 100 µm/s over 32 frames of 0.2048 s holds 1e5 scatterers
+#: per trial, 38 GB per chunk.
+MAX_SCATTERERS_PER_TRIAL = 1.0e4
+
+
+def speed_cap(spec: FeatureSpec, prior: Prior, label: int) -> float:
+    """The fastest speed (µm/s) of motion type ``label`` (1 ballistic, 2 flow) whose simulation at the prior's
+    highest density holds at most :data:`MAX_SCATTERERS_PER_TRIAL` scatterers per trial at every direction
+    (:meth:`torchdoct.sim.plan.Plan.expected_scatterers_per_trial`; bisection to 2 %)."""
+    from torchdoct.sim.plan import make_plan
+
+    def count(v: float) -> float:
+        worst = 0.0
+        angles = (0.0, 45.0, 90.0) if label == 2 else (0.0,)
+        laws = BALLISTIC_LAWS if label == 1 else ("isotropic",)
+        for a in angles:
+            for law in laws:
+                d = Draw(label=label, magnitude=v, polar_angle_deg=a, azimuth_deg=0.0,
+                         density_per_um3=prior.density_per_um3[1], sim_seed=0, ballistic_directions=law)
+                plan = make_plan(scene_for(spec, d, prior), truncation_tolerance=1e-2, truncation=DEFAULT_TRUNCATION)
+                worst = max(worst, plan.expected_scatterers_per_trial)
+        return worst
+
+    from torchdoct.sim.config import MAX_SPEED_UM_PER_S
+
+    lo, hi = 1e-6, float(MAX_SPEED_UM_PER_S)
+    if count(hi) <= MAX_SCATTERERS_PER_TRIAL:
+        return hi
+    if count(lo) > MAX_SCATTERERS_PER_TRIAL:
+        return lo
+    while hi / lo > 1.02:
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if count(mid) <= MAX_SCATTERERS_PER_TRIAL else (lo, mid)
+    return lo
 
 
 #: Version of the ground-truth definition (part of the cache key).

@@ -85,8 +85,26 @@ def test_prior_for_spec_keeps_n_eff_and_widens_each_range_by_the_margin():
     for label, name in enumerate(CLASSES):
         lo, hi = prior.magnitude_range(label)
         assert lo == pytest.approx(ranges[name][0] / 10 ** 0.5, rel=5e-3)
-        assert hi == pytest.approx(ranges[name][1] * 10 ** 0.5, rel=5e-3)
-    assert prior.flow_speed_um_per_s is not None and prior.flow_speed_um_per_s[1] > prior.speed_um_per_s[1]
+        top = min(ranges[name][1] * 10 ** 0.5, ranges.get(f"{name}_simulated_max", [math.inf])[0])
+        assert hi == pytest.approx(top, rel=5e-3)
+    assert prior.flow_speed_um_per_s is not None and prior.flow_speed_um_per_s[0] > prior.speed_um_per_s[0]
+
+
+def test_speed_cap_bounds_the_scatterers_a_draw_simulates():
+    from classifier.dataset import MAX_SCATTERERS_PER_TRIAL, scene_for, speed_cap
+    from torchdoct.sim.plan import make_plan
+
+    spec, prior = _spec(), Prior()
+    cap = speed_cap(spec, prior, 2)
+
+    def count(v):
+        return max(make_plan(scene_for(spec, Draw(label=2, magnitude=v, polar_angle_deg=a, azimuth_deg=0.0,
+                                                  density_per_um3=prior.density_per_um3[1], sim_seed=0), prior),
+                             truncation_tolerance=1e-2, truncation="taper").expected_scatterers_per_trial
+                   for a in (0.0, 45.0, 90.0))
+
+    assert count(cap) <= MAX_SCATTERERS_PER_TRIAL < count(1.03 * cap)
+    assert 3.0 < cap < 30.0  # a volume at the reference system: the shipped prior's 6 µm/s is inside
 
 
 def test_flow_speed_range_is_optional_and_leaves_old_priors_unchanged():
