@@ -145,3 +145,35 @@ def test_the_shared_speed_prior_moves_only_the_speeds_to_the_same_quantile(tmp_p
                                                       0.05, "shared").dir
     with pytest.raises(ValueError):
         ce.draw_for("wide", 1, 0)
+
+
+def test_the_contrasts_are_the_log_decorrelation_slopes_and_configuration_differences():
+    spec = load_spec("signature")
+    cols = ce.part_columns(spec, "all")
+    lags = sorted({int(m.split("_")[-1]) for m, _ in spec.features if m.startswith("rho_lin_")})
+    confs = [c.name for c in spec.configurations]
+    power = {confs[0]: 1.0, confs[1]: 2.0, confs[2]: 1.5}
+    x = np.full((2, spec.n_features), 0.5)
+    for i, (m, c) in enumerate(spec.features):
+        if m.startswith("rho_lin_"):
+            x[:, i] = 1.0 - np.array([1e-3, 2e-3]) * int(m.split("_")[-1]) ** power[c.name]
+    z = ce.derived_features(spec, x, cols)
+    n_slopes, n_diff = len(confs) * (len(lags) - 1), (len(confs) - 1) * len(lags)
+    assert z.shape == (2, n_slopes + n_diff)
+
+    def L(a, c, m):
+        return np.log(a * m ** power[c] + ce.DERIVED_OFFSET)
+
+    a = np.array([1e-3, 2e-3])
+    expected = []
+    for c in confs:  # the order of derived_features: per configuration, its slopes, then its differences
+        expected += [(L(a, c, m2) - L(a, c, m1)) / np.log(m2 / m1) for m1, m2 in zip(lags[:-1], lags[1:])]
+        if c != confs[0]:
+            expected += [L(a, c, m) - L(a, confs[0], m) for m in lags]
+    np.testing.assert_allclose(z, np.stack(expected, axis=1), rtol=1e-12)
+    # far above the offset the slope is the power law's exponent (1 diffusion-like, 2 ballistic-like)
+    assert z[1, len(lags) - 2] == pytest.approx(1.0, abs=0.01)
+    # the intensity-only columns of the field spec give no g1 contrast
+    fspec = load_spec("signature-bscan-field")
+    assert ce.derived_features(fspec, np.full((1, fspec.n_features), 0.5), ce.part_columns(fspec, "intensity")
+                               ).shape[1] == n_slopes + n_diff
