@@ -173,4 +173,28 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     meta = json.loads(props[METADATA_KEY])
     if meta.get("format") != FORMAT:
         raise ValueError(f"model {path.name}: metadata format {meta.get('format')!r}, this version reads {FORMAT!r}")
+    _check_graph_matches_metadata(path, sess, meta)
     return ClassifierModel(path=path, metadata=meta, session=sess, threads=n_threads, chunk_rows=chunk_rows)
+
+
+def _check_graph_matches_metadata(path: Path, sess: Any, meta: Mapping[str, Any]) -> None:
+    """The network's input width and output widths must be those its metadata declares (feature columns,
+    classes, magnitude classes): an edited or mismatched file is refused by name before any pixel runs,
+    instead of failing inside onnxruntime or numpy."""
+    fix = "use the .onnx file as doct-train wrote it, or retrain with doct-train"
+    try:
+        declared = {"features": len(meta["input"]["columns"]), "probabilities": len(meta["output"]["classes"])}
+        if meta.get("magnitude"):
+            declared["log10_magnitude"] = declared["log10_magnitude_sd"] = len(meta["magnitude"]["classes"])
+    except (KeyError, TypeError) as err:
+        raise ValueError(f"model {path.name}: metadata lacks {err}; {fix}") from None
+    graph = {a.name: a.shape for a in list(sess.get_inputs()) + list(sess.get_outputs())}
+    for name, width in declared.items():
+        shape = graph.get(name)
+        if shape is None:
+            kind = "input" if name == "features" else "output"
+            raise ValueError(f"model {path.name}: the network has no '{name}' {kind}; {fix}")
+        if len(shape) != 2 or (isinstance(shape[1], int) and shape[1] != width):
+            what = "input columns" if name == "features" else "columns"
+            raise ValueError(f"model {path.name}: the network's '{name}' is {shape}, but its metadata declares "
+                             f"{width} {what}; {fix}")
