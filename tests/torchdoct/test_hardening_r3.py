@@ -321,3 +321,14 @@ def test_peak_memory_of_maps_within_its_budget(tmp_path):
                                   "--resolution", "lateral=18", "--no-progress", "--out", "m.npz"], tmp_path)
     assert rc == 0, err
     assert peak < 300 + 10 * a.astype(np.complex64).nbytes / 2**20, peak
+
+
+def test_float32_overflow_of_the_intensity_is_named(seq, capsys):
+    """|E| ≈ 1e25 in complex64: |E|² overflows float32; named with the fix (it was reported as 'holds no
+    finite nonzero sample')."""
+    big = seq.with_name("big.npy")
+    np.save(big, (np.load(seq) * np.float32(1e25)).astype(np.complex64))
+    big.with_suffix(".json").write_text(seq.with_suffix(".json").read_text())
+    line = refused(capsys, seq.parent, ["maps", str(big), "--no-progress", "--out", str(seq.parent / "m.npz")],
+                   "big.npy", "overflows float32", "complex128")
+    assert "no finite nonzero" not in line

@@ -347,7 +347,14 @@ def _peak_intensity(data: np.ndarray, src: str) -> float:
     peak = 0.0
     for k in range(data.shape[0]):
         f = np.asarray(data[k])
-        v = f.real * f.real + f.imag * f.imag if np.iscomplexobj(f) else np.abs(f)
+        with np.errstate(over="ignore", invalid="ignore"):
+            v = f.real * f.real + f.imag * f.imag if np.iscomplexobj(f) else np.abs(f)
+        overflow = ~np.isfinite(v) & np.isfinite(f)  # |E|² beyond the data type of finite samples
+        if overflow.any():
+            top = float(np.max(np.abs(f[overflow])))
+            raise ValueError(f"{src}: |E|² overflows {v.dtype} (|E| up to {top:.3g}, the largest {v.dtype} |E|² is "
+                             f"{float(np.finfo(v.dtype).max):.3g}); scale the field down (e.g. divide it by "
+                             f"{10 ** math.ceil(math.log10(top) - 15):.0e}) or store it as complex128")
         peak = max(peak, float(np.max(v, where=np.isfinite(v), initial=0.0)))
     if not peak > 0:
         raise ValueError(f"{src}: holds no finite nonzero sample (every value is NaN, infinite or 0), so no pixel "
