@@ -161,6 +161,8 @@ def _overlay(res: Classification, path: str) -> None:
 
 def _model_name(res: Classification) -> str:
     """The model as the figures name it: its spec name and file (``signature-bscan (signature-bscan.onnx)``)."""
+    if res.model is None:  # a result assembled by hand (no model file)
+        return "not named"
     spec = res.model.metadata.get("spec", {}).get("name") or res.model.path.stem
     return spec if res.model.path.name == f"{spec}.onnx" else f"{spec} ({res.model.path.name})"
 
