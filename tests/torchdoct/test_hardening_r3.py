@@ -332,3 +332,12 @@ def test_float32_overflow_of_the_intensity_is_named(seq, capsys):
     line = refused(capsys, seq.parent, ["maps", str(big), "--no-progress", "--out", str(seq.parent / "m.npz")],
                    "big.npy", "overflows float32", "complex128")
     assert "no finite nonzero" not in line
+
+
+def test_bench_all_needs_its_output_folder(tmp_path, capsys, monkeypatch):
+    """``bench all`` writes a folder of results: only where ``--out DIR`` says (it made ./bench unasked)."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "all"])
+    assert exc.value.code == 2 and "--out" in capsys.readouterr().err
+    assert _tree(tmp_path) == {}

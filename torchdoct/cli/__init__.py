@@ -104,7 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also write the result as JSON (default: printed only, nothing written)")
     bg.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     ba = bsub.add_parser("all", help="every benchmark, each writing DIR/bench-NAME.json (not cog, which needs --cog)")
-    ba.add_argument("--out", default="bench", help="output directory (created if missing)")
+    ba.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
     ba.add_argument("--quick", action="store_true", help="reduced sizes (a smoke run, minutes)")
     ba.add_argument("--force", action="store_true", help="overwrite existing results")
     for name in _EXTENSIONS:
