@@ -222,6 +222,10 @@ def test_like_writes_spec_and_prior_that_retrain_the_same_model(tmp_path, capsys
 
     wa, wb = weights(a / "like-vol.onnx"), weights(b / "like-vol.onnx")
     assert wa.keys() == wb.keys() and all(np.array_equal(wa[k], wb[k]) for k in wa)
+    from classifier.cli import classify_main
+
+    assert classify_main([str(path), "--model", str(a), "--out", str(tmp_path / "cls")]) == 0  # --model DIR
+    assert (tmp_path / "cls" / "classes.tif").exists()
     bad = tmp_path / "bad.prior.toml"
     bad.write_text("speed_um_per_s = [1.0, 0.1]\n")
     assert train_main(["--spec", str(spec_file), "--prior", str(bad), "--out", str(tmp_path / "c"), *tiny]) == 2
