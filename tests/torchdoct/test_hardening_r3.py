@@ -346,3 +346,18 @@ def test_bench_all_needs_its_output_folder(tmp_path, capsys, monkeypatch):
         main(["bench", "all"])
     assert exc.value.code == 2 and "--out" in capsys.readouterr().err
     assert _tree(tmp_path) == {}
+
+
+def test_maps_force_replaces_the_earlier_png_set(seq, tmp_path, capsys):
+    """``maps --png --force`` with fewer resolutions: the earlier run's PNGs of this output go (they would
+    sit beside maps that no longer hold their channels); the user's other files stay."""
+    out = seq.parent / "m.npz"
+    assert main(["maps", str(seq), "--resolution", "original", "--resolution", "lateral=8", "--png", "--no-progress",
+                 "--out", str(out)]) == 0
+    old = seq.parent / "m_liv_lateral8.png"
+    assert old.is_file()
+    mine = seq.parent / "m_notes.png"
+    mine.write_bytes(b"the user's own")
+    assert main(["maps", str(seq), "--png", "--force", "--no-progress", "--out", str(out)]) == 0
+    assert not old.exists() and (seq.parent / "m_liv_original.png").is_file() and mine.is_file()
+    assert f"removed {old}" in capsys.readouterr().out

@@ -8,6 +8,7 @@ Thin layer: parse, call one library function (:func:`torchdoct.measured.maps.com
 from __future__ import annotations
 
 import argparse
+import glob
 import json
 import math
 import zipfile
@@ -275,14 +276,32 @@ def _maps(args: argparse.Namespace) -> int:
     png_kw = dict(ranges=ranges, db_range=tuple(args.db_range) if args.db_range else None, y_index=args.png_y,
                   force=args.force)
     files = list(outs) + (write_pngs(maps, outs[0], check_only=True, **png_kw) if args.png else [])
-    with output_set(files, args.force) as stage:  # the maps files and PNGs appear together or not at all
+    # --force replaces the whole earlier set: its PNGs of channels this run does not draw go with it
+    earlier = [p for p in _earlier_pngs(outs[0]) if p not in files] if args.force else []
+    with output_set(files + earlier, args.force) as stage:  # maps files and PNGs appear together or not at all
         for o in outs:
             write_maps(stage(o), maps, force=args.force)
         if args.png:  # one set of PNGs, named after the first --out
             write_pngs(maps, stage(outs[0]), **png_kw)
     for p in files:
         print(f"wrote {p}")
+    for p in earlier:
+        print(f"removed {p} (an earlier run's PNG of this output; --force replaces the whole set)")
     return 0
+
+
+def _earlier_pngs(out: Path) -> list[Path]:
+    """PNGs of an earlier ``maps --png`` run named after ``out`` (``STEM_METRIC_RESOLUTION.png``, METRIC a
+    DOCT metric or a signature feature): the output set that ``--force`` replaces."""
+    from ..measured.maps import METRICS
+
+    found = []
+    for p in sorted(out.parent.glob(f"{glob.escape(out.stem)}_*.png")):
+        rest = p.stem[len(out.stem) + 1:]
+        metric = rest.rsplit("_", 1)[0] if "_" in rest else ""
+        if metric in METRICS or (metric and _signature_feature(metric)):
+            found.append(p)
+    return found
 
 
 def _check_png_options(args: argparse.Namespace, ranges: dict[str, tuple[float, float]], metrics: list[str]) -> None:
