@@ -40,7 +40,14 @@ torchdoct data (a − c = the simulator gap; c − shipped = the model's and its
 **a-shared**, **b-shared** parts a and b trained on the ``"shared"`` prior (:func:`draw_for`: one speed
 range for random-ballistic motion and flow, as in the shipped models' training prior), which takes from
 the ceiling what the independent prior's per-type speed ranges give away (a flow faster than 0.5 µm/s
-cannot be random-ballistic motion there).
+cannot be random-ballistic motion there); **d**, **e** part c's classifier trained on torchdoct draws of
+the models' own kind of training prior instead of the independent one (:data:`DATASET_PRIORS`,
+:func:`dataset_set`: :func:`classifier.dataset.make_dataset`, the same number of draws, one (static
+fraction, SNR) setting each): **d** the prior the shipped ``signature`` model was trained on, **e** that
+prior scaled to the system (:func:`classifier.dataset.prior_for_spec`); c − d is the training prior's
+gap, e − d what the physics-scaled prior recovers of it (:data:`PAIRS`). Their training draws include
+the prior's static and decorrelated ones, which the classifier (three classes) leaves out like every
+non-identifiable pixel.
 
 **Classifier.** ``sklearn.ensemble.HistGradientBoostingClassifier`` (:data:`GB_PARAMS`) on the raw
 features (trees are invariant to monotone transforms of a feature) and, as a second variant, with the
@@ -66,7 +73,10 @@ parts): simulation 1,110 s of CPU (reference simulator 0.27-0.32 s per draw for 
 volume configurations, 0.11-0.12 s for the B-scan ones; torchdoct 0.04 s), fits and scores 430 s
 (60-90 s of wall time per part). Features are cached per draw under ``<out>/cache`` and a
 run stops cleanly after ``--budget-seconds`` of simulation (exit status 3: run it again to resume),
-so it can be run in chunks; the fits and the report come once every set is cached.
+so it can be run in chunks; the fits and the report come once every set is cached. Parts d and e
+simulate one :func:`classifier.dataset.make_dataset` split per prior (1,200 draws: 2-3 min of wall time
+on 2 cores each, not resumable within a split; the budget is checked between them) under
+``<out>/cache/make_dataset``.
 """
 
 from __future__ import annotations
@@ -106,10 +116,12 @@ PARTS: dict[str, tuple[str, str, str, str]] = {
     "c": ("signature", "torchdoct", "all", "matched"),
     "a-shared": ("signature", "refsim", "all", "shared"),
     "b-shared": ("signature-bscan-field", "refsim", "all", "shared"),
+    "d": ("signature", "torchdoct", "all", "training"),
+    "e": ("signature", "torchdoct", "all", "scaled"),
 }
 #: The shipped model each part is compared with (scored on the same test pixels).
 SHIPPED = {"a": "signature", "b": "signature-bscan-field", "b-int": "signature-bscan", "c": "signature",
-           "a-shared": "signature", "b-shared": "signature-bscan-field"}
+           "a-shared": "signature", "b-shared": "signature-bscan-field", "d": "signature", "e": "signature"}
 PART_TEXT = {
     "a": "signature features (volume), trained on reference-simulator draws of the independent prior",
     "b": "signature-bscan-field features (B-scan, intensity + field group g1, phase-stable), reference-simulator "
@@ -120,7 +132,17 @@ PART_TEXT = {
     "a-shared": "part a with one speed range 0.01-3 µm/s for random-ballistic motion and flow in training (the "
                 "prior's per-type speed ranges no longer help)",
     "b-shared": "part b with one speed range 0.01-3 µm/s for random-ballistic motion and flow in training",
+    "d": "part c's classifier trained on torchdoct draws of the shipped signature recipe's training prior "
+         "(classifier.dataset.Prior, flow polar angle uniform; make_dataset, one nuisance replicate per draw)",
+    "e": "part d with the training prior scaled to the system (classifier.dataset.prior_for_spec of d's prior: "
+         "each motion type's identifiable range ± half a decade, speeds capped at what the simulator holds)",
 }
+#: Training priors of parts d and e, in the form of the models' own training data
+#: (:class:`classifier.dataset.Prior`, simulated by :func:`classifier.dataset.make_dataset`): ``"training"``
+#: the prior the shipped ``signature`` model was trained on, ``"scaled"`` the same scaled to the spec's
+#: system (:func:`classifier.dataset.prior_for_spec`). Each draw's pixels share one (static fraction, SNR)
+#: setting of the prior (one replicate), so a training draw holds as many pixels as in the other parts.
+DATASET_PRIORS = ("training", "scaled")
 #: Fractions of the identifiable test pixels decided (accuracy-coverage curve).
 COVERAGES = (0.7, 0.8, 0.9, 1.0)
 POOLS = (1, 25)
@@ -286,6 +308,42 @@ def load_set(cache: FeatureCache, draws: int, *, features: np.ndarray | None = N
     return Dataset(x=a["x"].reshape(-1, cache.spec.n_features), y=a["y"], draw=a["draw"], group=a["draw"],
                    status=a["status"], magnitude=a["magnitude"], density=np.full(a["y"].shape, em.DENSITY),
                    static_fraction=np.zeros(a["y"].shape), snr_db=a["snr_db"], polar_angle_deg=a["polar_angle_deg"])
+
+
+def dataset_prior(name: str, spec, epsilon: float):
+    """The :class:`classifier.dataset.Prior` of :data:`DATASET_PRIORS` ``name`` for ``spec``, with the
+    shipped model's ε: ``"training"`` is ``Prior(flow_polar_law="uniform-angle")`` (the shipped
+    ``signature`` recipe's prior: D in [1e-4, 15] µm²/s, one speed range [1e-3, 6] µm/s for random-ballistic
+    motion and flow), ``"scaled"`` :func:`classifier.dataset.prior_for_spec` of it."""
+    import dataclasses
+
+    from classifier.dataset import Prior, prior_for_spec
+
+    if name not in DATASET_PRIORS:
+        raise ValueError(f"unknown dataset prior {name!r}; choose among {list(DATASET_PRIORS)}")
+    prior = Prior(flow_polar_law="uniform-angle", identifiability_epsilon=float(epsilon))
+    if name == "scaled":
+        prior = prior_for_spec(spec, prior)[0]
+    return dataclasses.replace(prior, identifiability_epsilon=float(epsilon))
+
+
+def dataset_set(out: Path, spec, name: str, seed: int, draws: int, trials: int, epsilon: float, *,
+                simulate: bool = True, progress: bool = False):
+    """The training split of parts d and e: :func:`classifier.dataset.make_dataset` of
+    :func:`dataset_prior` ``name`` (split ``"train"`` of ``seed``, ``draws`` draws, ``trials`` trials, one
+    replicate, the shipped recipe's truncation), cached under ``<out>/cache/make_dataset`` (any
+    ``doct-train --cache`` directory reuses it). ``simulate=False``: None when it is not cached yet."""
+    from classifier.dataset import dataset_key, make_dataset
+
+    prior = dataset_prior(name, spec, epsilon)
+    tol, mode = _truncation(spec.name)
+    cdir = Path(out) / "cache" / "make_dataset"
+    if not simulate:
+        key, _ = dataset_key(spec, prior, seed, "train", draws, trials, 1, tol, False, mode)
+        if not (cdir / f"{spec.name}-train-{key[:16]}.npz").exists():
+            return None
+    return make_dataset(spec, prior, seed=int(seed), split="train", draws=int(draws), trials_per_draw=int(trials),
+                        replicates=1, truncation_tolerance=tol, truncation=mode, cache_dir=cdir, progress=progress)
 
 
 def subset(ds, index: np.ndarray):
@@ -492,6 +550,8 @@ def caches_for(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_dr
         spec_name, source, _, prior = PARTS[p]
         spec = load_spec(spec_name)
         for src, seed, n, pr in (("refsim", test_seed, test_draws, "matched"), (source, train_seed, max(sizes), prior)):
+            if pr in DATASET_PRIORS:  # parts d and e: classifier.dataset.make_dataset (dataset_set)
+                continue
             key = (src, spec_name, seed, pr)
             c = need.get(key, (FeatureCache(root, spec, src, seed, trials, epsilon, pr), 0))[0]
             need[key] = (c, max(n, need.get(key, (c, 0))[1]))
@@ -510,8 +570,21 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
     for c, n in caches:
         if not c.fill(n, deadline, progress):
             return None
-    sim_s = time.perf_counter() - t0
     from classifier.features import load_spec
+
+    datasets: dict[str, Any] = {}  # parts d and e: one make_dataset split per prior (not resumable within)
+    for p in parts:
+        spec_name, _, _, prior = PARTS[p]
+        if prior in DATASET_PRIORS and prior not in datasets:
+            ds = dataset_set(out, load_spec(spec_name), prior, train_seed, max(sizes), trials, epsilon,
+                             simulate=False)
+            if ds is None:
+                if deadline is not None and time.perf_counter() > deadline:
+                    return None
+                ds = dataset_set(out, load_spec(spec_name), prior, train_seed, max(sizes), trials, epsilon,
+                                 progress=progress)
+            datasets[prior] = ds
+    sim_s = time.perf_counter() - t0
 
     results: dict[str, Any] = {}
     kept: dict[tuple[str, str], tuple] = {}  # pool-1 probabilities of the largest training set, for the pairs
@@ -521,7 +594,11 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
         spec = load_spec(spec_name)
         cols = part_columns(spec, which)
         test = load_set(FeatureCache(out / "cache", spec, "refsim", test_seed, trials, epsilon), test_draws)
-        train_all = load_set(FeatureCache(out / "cache", spec, source, train_seed, trials, epsilon, prior), max(sizes))
+        if prior in DATASET_PRIORS:
+            train_all = datasets[prior]
+        else:
+            train_all = load_set(FeatureCache(out / "cache", spec, source, train_seed, trials, epsilon, prior),
+                                 max(sizes))
         mdl = _shipped(SHIPPED[p])
         res: dict[str, Any] = {"spec": spec_name, "train_source": source, "features": which, "train_prior": prior,
                                "feature_names": [spec.feature_names[i] for i in cols], "shipped": SHIPPED[p],
@@ -550,6 +627,10 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
                     if pool == 1 and n == max(sizes):
                         kept[(p, variant)] = (probs, ts, spec_name)
             res["pools"][str(pool)] = r
+        if prior in DATASET_PRIORS:
+            ds = datasets[prior]
+            res["train_prior_fields"] = dataset_prior(prior, spec, epsilon).to_dict()
+            res["train_draw_status"] = ds.meta.get("draw_status_counts")
         fit_s[p] = time.perf_counter() - t1
         results[p] = res
     comparisons = paired_comparisons(kept, results, n_boot=n_boot, seed=test_seed)
@@ -567,7 +648,12 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
             "n_boot": int(n_boot), "prior": em.PRIOR_TEXT, "simulation": em.SIM_TEXT,
             "targets": em.TARGETS, "parts": results, "comparisons": comparisons,
             "seconds": {"this_run_simulation": sim_s, "fits_and_scores": fit_s,
-                        "simulation_per_set": _cache_seconds(caches)}}
+                        "simulation_per_set": {**_cache_seconds(caches), **{
+                            f"make_dataset-{ds.meta['spec']['name']}-{pr}-prior-seed{train_seed}-trials{trials} "
+                            f"(wall, every core)": {
+                                "draws": int(max(sizes)), "cpu_seconds": float(ds.meta.get("elapsed_s", math.nan)),
+                                "cpu_seconds_per_draw": float(ds.meta.get("seconds_per_draw", math.nan))}
+                            for pr, ds in datasets.items()}}}}
 
 
 #: Decisions kept in the report for the training sets other than the largest (the learning curve).
@@ -740,7 +826,10 @@ def findings(rep: dict[str, Any]) -> list[str]:
 PAIRS = (("a", "c", "simulator gap: trained on the reference simulator − trained on torchdoct (same prior, same test)"),
          ("a", "a-shared", "what the matched prior's per-type speed ranges give (matched − shared speed range)"),
          ("b", "b-shared", "the same on B-scans with the field group (matched − shared)"),
-         ("b", "b-int", "the field group on phase-stable B-scans (intensity + g1 − intensity alone)"))
+         ("b", "b-int", "the field group on phase-stable B-scans (intensity + g1 − intensity alone)"),
+         ("e", "d", "training prior: scaled to the system − the shipped recipe's (same simulator, draws, classifier)"),
+         ("c", "e", "what the scaled prior leaves to the matched one (independent prior − scaled prior)"),
+         ("c", "d", "prior gap of the shipped recipe (independent prior − the shipped recipe's prior)"))
 
 
 def paired_difference(a: tuple, b: tuple, n_boot: int, seed: int) -> dict[str, float]:

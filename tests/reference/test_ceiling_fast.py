@@ -177,3 +177,33 @@ def test_the_contrasts_are_the_log_decorrelation_slopes_and_configuration_differ
     fspec = load_spec("signature-bscan-field")
     assert ce.derived_features(fspec, np.full((1, fspec.n_features), 0.5), ce.part_columns(fspec, "intensity")
                                ).shape[1] == n_slopes + n_diff
+
+
+def test_parts_d_and_e_train_on_the_shipped_and_the_scaled_prior_from_make_dataset(tmp_path):
+    from classifier.dataset import Prior, identifiable_range, prior_for_spec
+
+    spec = load_spec("signature")
+    d, e = ce.dataset_prior("training", spec, 0.05), ce.dataset_prior("scaled", spec, 0.05)
+    assert d == Prior(flow_polar_law="uniform-angle")  # the shipped signature recipe's prior
+    assert e == prior_for_spec(spec, d)[0] and e.flow_polar_law == "uniform-angle"
+    # the scaled prior spans each type's identifiable range, and the diffusion range ends where it does
+    lo, hi = identifiable_range(spec, 0, e)
+    assert e.diffusion_um2_per_s[0] < lo < hi < e.diffusion_um2_per_s[1] < d.diffusion_um2_per_s[1]
+    assert ce.dataset_prior("training", spec, 0.1).identifiability_epsilon == 0.1
+    with pytest.raises(ValueError):
+        ce.dataset_prior("matched", spec, 0.05)
+    # no simulation for them in the feature caches: make_dataset's own split under <out>/cache/make_dataset
+    caches = ce.caches_for(tmp_path, ["d", "e"], sizes=[6], test_draws=9, trials=TRIALS, train_seed=1, test_seed=0,
+                           epsilon=0.05)
+    assert {c.dir.name: n for c, n in caches} == {f"refsim-signature-seed0-trials{TRIALS}": 9}
+    assert ce.dataset_set(tmp_path, spec, "scaled", 1, 6, TRIALS, 0.05, simulate=False) is None
+    ds = ce.dataset_set(tmp_path, spec, "scaled", 1, 6, TRIALS, 0.05)
+    assert not ds.meta["from_cache"] and ds.x.shape[1] == spec.n_features
+    assert sorted(np.unique(ds.draw)) == list(range(6)) and np.all(ds.group == ds.draw)  # one replicate
+    again = ce.dataset_set(tmp_path, spec, "scaled", 1, 6, TRIALS, 0.05, simulate=False)
+    assert again.meta["from_cache"]
+    np.testing.assert_array_equal(again.x, ds.x)
+    for k in range(6):  # every magnitude inside the scaled prior's range of its type
+        m = ds.magnitude[ds.draw == k]
+        lo, hi = e.magnitude_range(k % 3)
+        assert m.size == 0 or lo <= m[0] <= hi
