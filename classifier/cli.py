@@ -172,7 +172,7 @@ def _train(args: argparse.Namespace) -> int:
 
 def _prior(args: argparse.Namespace, spec, cfg):
     """The training prior and, with ``--like``, the identifiable ranges it was scaled from."""
-    from .dataset import prior_for_spec
+    from .own_system import prior_for_spec
     from .train import default_prior
 
     if args.prior:
@@ -214,7 +214,8 @@ def _print_plan(args, spec, prior, ranges, cfg, notes, paths) -> None:
     """What will be trained, printed before the work: spec, prior, recipe, expected time, cache key."""
     from .dataset import CLASSES, dataset_key, default_cache_dir
     from .features import toml_text
-    from .train import default_prior, estimate_seconds
+    from .own_system import estimate_seconds
+    from .train import default_prior
 
     prior = prior or default_prior(cfg)
     print(f"spec {spec.name}: {spec.n_features} features ({len(spec.metrics)} × {len(spec.configurations)} "
@@ -262,7 +263,7 @@ def _write_like_files(spec, prior, ranges, args, paths) -> None:
     paths[".spec.toml"].write_text(toml_text(spec.to_dict(), f"Feature spec derived by doct-train --like from "
                                                              f"{sources}."), encoding="utf-8")
     ranges = ranges or {}
-    header = (f"Training prior of {spec.name}, scaled to its system (classifier.dataset.prior_for_spec): magnitude "
+    header = (f"Training prior of {spec.name}, scaled to its system (classifier.own_system.prior_for_spec): magnitude "
               "ranges = identifiable ranges\n(closed forms) widened by half a decade, speeds capped where a "
               "simulated pixel would hold too many scatterers.\nIdentifiable: "
               + "; ".join(f"{k} {v[0]:.3g}-{v[1]:.3g}" for k, v in ranges.items() if len(v) == 2)

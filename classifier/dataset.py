@@ -11,8 +11,8 @@
   ``"uniform-angles"`` gives every ballistic draw that law (the prior of the models trained before
   the two laws were mixed: ``"isotropic"``);
 * motion magnitude, log-uniform: D ∈ [1e-4, 15] µm²/s, v ∈ [1e-3, 6] µm/s (the shipped models; a
-  prior scaled to another system, :func:`prior_for_spec`, spans each motion type's identifiable range
-  and keeps the scatterers per resolution volume). The paper's ranges
+  prior scaled to another system, :func:`classifier.own_system.prior_for_spec`, spans each motion type's
+  identifiable range and keeps the scatterers per resolution volume). The paper's ranges
   (§3.2) end at 15 µm²/s and 6 µm/s and start at 0, which a log scale cannot hold; their lower ends
   are taken as 1e-3 µm²/s and 1e-2 µm/s, where the 840-nm LIV of diffusion and random-ballistic
   motion is already a sizeable part of its plateau (physics.md §5.7), and extended a decade below
@@ -120,8 +120,6 @@ __all__ = [
     "scene_for",
     "simulate_draw",
     "identifiability",
-    "identifiable_range",
-    "prior_for_spec",
     "transit_decay",
     "make_dataset",
 ]
@@ -162,8 +160,8 @@ class Prior:
     diffusion_um2_per_s: tuple[float, float] = (1e-4, 15.0)
     speed_um_per_s: tuple[float, float] = (1e-3, 6.0)
     #: flow speeds (µm/s) when they differ from the random-ballistic ones; None (the shipped priors): as
-    #: ``speed_um_per_s``. A prior scaled to a system (:func:`prior_for_spec`) gives each motion type its
-    #: own identifiable range: flow decorrelates by transit alone and stays identifiable far faster.
+    #: ``speed_um_per_s``. A prior scaled to a system (:func:`classifier.own_system.prior_for_spec`) gives
+    #: each motion type its own identifiable range: flow decorrelates by transit alone, identifiable faster.
     flow_speed_um_per_s: tuple[float, float] | None = None
     ballistic_directions: str = "both"
     flow_polar_angle_deg: tuple[float, float] = (0.0, 180.0)
@@ -514,139 +512,6 @@ def _criteria(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, np.ndar
     else:
         status = "identifiable"
     return status, first_a, last_a, np.array(drop)
-
-
-#: Nuisances over which :func:`identifiable_range` takes the widest range: flow at every polar angle
-#: (degrees from the depth axis; azimuth 0, the lateral widths along x and y both enter through the
-#: configurations), both random-ballistic direction laws, the prior's density extremes.
-_RANGE_POLAR_DEG = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
-#: Log-magnitude grid of :func:`identifiable_range`: 1e-9 to 1e5 at 24 points per decade (±5 %).
-_RANGE_GRID = np.logspace(-9.0, 5.0, 14 * 24 + 1)
-#: Half a decade beyond each end of the identifiable range (:func:`prior_for_spec`): the indeterminate
-#: class is trained on the draws that are static or decorrelated, and the network must see the transition.
-PRIOR_MARGIN_DECADES = 0.5
-#: Lateral 1/e² width and axial FWHM (µm) of the system the shipped prior's density range refers to
-#: (the reference paper's 840-nm system; :func:`prior_for_spec`).
-REFERENCE_RESOLUTIONS_UM = (4.9, 3.8)
-
-
-def identifiable_range(spec: FeatureSpec, label: int, prior: Prior | None = None) -> tuple[float, float]:
-    """The magnitudes (D in µm²/s for diffusion, the speed in µm/s otherwise) at which motion type
-    ``label`` is identifiable (:func:`identifiability`) at the spec's configurations and protocol for some
-    direction (flow: polar angle 0-90°; random-ballistic: either direction law) and density of ``prior``.
-
-    Below it every configuration sees a static sample over the acquisition (``ρ_I(T) ≥ 1 − ε``), above
-    it every configuration decorrelates within one frame interval (``|g1(Δt)|² ≤ ε``): the closed forms
-    of physics.md §5.3-5.4 on a log grid (:data:`_RANGE_GRID`, 5 % steps). ``ValueError`` when no
-    magnitude of the grid is identifiable (a protocol that cannot see this motion)."""
-    prior = prior or Prior()
-    if label == 2:
-        variants = [dict(polar_angle_deg=a) for a in _RANGE_POLAR_DEG]
-    elif label == 1:
-        variants = [dict(ballistic_directions=law) for law in BALLISTIC_LAWS]
-    else:
-        variants = [{}]
-    ok = np.zeros(_RANGE_GRID.size, bool)
-    for i, mag in enumerate(_RANGE_GRID):
-        for v in variants:
-            for dens in sorted(set(prior.density_per_um3)):
-                d = Draw(label=label, magnitude=float(mag), polar_angle_deg=v.get("polar_angle_deg", 0.0),
-                         azimuth_deg=0.0, density_per_um3=dens, sim_seed=0,
-                         ballistic_directions=v.get("ballistic_directions", "isotropic"))
-                if identifiability(spec, d, prior)[0] == "identifiable":
-                    ok[i] = True
-                    break
-            if ok[i]:
-                break
-    if not ok.any():
-        raise ValueError(f"spec {spec.name!r}: {CLASSES[label]} is identifiable at no magnitude from "
-                         f"{_RANGE_GRID[0]:g} to {_RANGE_GRID[-1]:g} with {spec.n_frames} frames "
-                         f"{spec.frame_interval_s:g} s apart")
-    idx = np.flatnonzero(ok)
-    return float(_RANGE_GRID[idx[0]]), float(_RANGE_GRID[idx[-1]])
-
-
-def prior_for_spec(spec: FeatureSpec, base: Prior | None = None,
-                   margin_decades: float = PRIOR_MARGIN_DECADES) -> tuple[Prior, dict[str, list[float]]]:
-    """``base`` (default :class:`Prior`) with its magnitude ranges and density scaled to the spec's system
-    and protocol.
-
-    The density range keeps the number of scatterers per resolution volume, ``N_eff`` (physics.md §5.4),
-    that ``base`` gives the reference system (:data:`REFERENCE_RESOLUTIONS_UM`, the paper's 4.9/3.8 µm)
-    at the spec's finest configuration: the speckle statistics the shipped models were trained on, at a
-    cost that does not grow with the resolution volume (a 10/8 µm system would otherwise simulate 9×
-    more scatterers per trial). Each motion type's range is its :func:`identifiable_range` widened by
-    ``margin_decades`` at both ends (the indeterminate class is trained on what lies beyond); flow gets
-    its own speed range (:attr:`Prior.flow_speed_um_per_s`). Speeds are capped where the simulation would
-    need more than :data:`MAX_SCATTERERS_PER_TRIAL` scatterers per trial (:func:`speed_cap`): faster
-    motions are outside the trained range. Returns the prior and the identifiable ranges it came from
-    (``{"diffusion": [lo, hi], ...}``, µm²/s or µm/s; ``"flow_simulated_max"`` etc. when capped)."""
-    import dataclasses as _dc
-
-    from torchdoct.conventions import n_eff
-
-    base = base or Prior()
-    ref = n_eff(1.0, *REFERENCE_RESOLUTIONS_UM)
-    finest = min(n_eff(1.0, c.lateral_resolution_um, c.axial_resolution_um, **_lateral_y(c))
-                 for c in spec.configurations)
-    density = tuple(float(f"{d * ref / finest:.3g}") for d in base.density_per_um3)
-    base = _dc.replace(base, density_per_um3=density)
-    ranges = {CLASSES[label]: list(identifiable_range(spec, label, base)) for label in range(len(CLASSES))}
-    k = 10.0 ** float(margin_decades)
-
-    def widen(r):
-        return (float(f"{r[0] / k:.3g}"), float(f"{r[1] * k:.3g}"))
-
-    speed = {}
-    for label, name in ((1, "ballistic"), (2, "flow")):
-        lo, hi = widen(ranges[name])
-        cap = speed_cap(spec, base, label)
-        if cap < hi:
-            ranges[f"{name}_simulated_max"] = [float(f"{cap:.3g}")]
-            hi = float(f"{cap:.3g}")
-        speed[name] = (lo, max(hi, lo))
-    prior = _dc.replace(base, diffusion_um2_per_s=widen(ranges["diffusion"]), speed_um_per_s=speed["ballistic"],
-                        flow_speed_um_per_s=speed["flow"])
-    return prior, ranges
-
-
-#: Most scatterers per simulated trial a scaled prior asks of the simulator (:func:`speed_cap`): the
-#: shipped prior's costliest draw (flow at 6 µm/s, 0.1 µm⁻³, the reference configurations: ~1e4). A
-#: faster motion sweeps a longer box over the acquisition, and its memory (about 0.4 MB per scatterer per
-#: 64 trials) and time grow with it: flow at 100 µm/s over 32 frames of 0.2048 s holds 1e5 scatterers
-#: per trial, 38 GB per chunk.
-MAX_SCATTERERS_PER_TRIAL = 1.0e4
-
-
-def speed_cap(spec: FeatureSpec, prior: Prior, label: int) -> float:
-    """The fastest speed (µm/s) of motion type ``label`` (1 ballistic, 2 flow) whose simulation at the prior's
-    highest density holds at most :data:`MAX_SCATTERERS_PER_TRIAL` scatterers per trial at every direction
-    (:meth:`torchdoct.sim.plan.Plan.expected_scatterers_per_trial`; bisection to 2 %)."""
-    from torchdoct.sim.plan import make_plan
-
-    def count(v: float) -> float:
-        worst = 0.0
-        angles = (0.0, 45.0, 90.0) if label == 2 else (0.0,)
-        laws = BALLISTIC_LAWS if label == 1 else ("isotropic",)
-        for a in angles:
-            for law in laws:
-                d = Draw(label=label, magnitude=v, polar_angle_deg=a, azimuth_deg=0.0,
-                         density_per_um3=prior.density_per_um3[1], sim_seed=0, ballistic_directions=law)
-                plan = make_plan(scene_for(spec, d, prior), truncation_tolerance=1e-2, truncation=DEFAULT_TRUNCATION)
-                worst = max(worst, plan.expected_scatterers_per_trial)
-        return worst
-
-    from torchdoct.sim.config import MAX_SPEED_UM_PER_S
-
-    lo, hi = 1e-6, float(MAX_SPEED_UM_PER_S)
-    if count(hi) <= MAX_SCATTERERS_PER_TRIAL:
-        return hi
-    if count(lo) > MAX_SCATTERERS_PER_TRIAL:
-        return lo
-    while hi / lo > 1.02:
-        mid = math.sqrt(lo * hi)
-        lo, hi = (mid, hi) if count(mid) <= MAX_SCATTERERS_PER_TRIAL else (lo, mid)
-    return lo
 
 
 #: Version of the ground-truth definition (part of the cache key).

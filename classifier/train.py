@@ -213,43 +213,6 @@ def default_prior(cfg: TrainConfig) -> Prior:
     return Prior(flow_polar_law=cfg.flow_polar_law, bulk_residual_step_rad=cfg.bulk_residual_step_rad)
 
 
-def estimate_seconds(spec: FeatureSpec, prior: Prior, cfg: TrainConfig, *, pilot_draws: int = 6,
-                     threads: int | None = None) -> dict[str, float]:
-    """Expected time of :func:`train` (s), from a pilot: the first ``pilot_draws`` draws of the training split
-    simulated and timed (their numbers are not kept). Simulation: the mean time per draw × the draws of
-    every split (train, validation, test, and the test-sized shifted-prior and bulk-phase splits when the
-    recipe makes them) / the cores; the network's fit: :data:`FIT_SECONDS_PER_SAMPLE_EPOCH` × samples
-    per epoch × the epoch cap (an upper bound: early stopping often ends sooner)."""
-    from torchdoct.threads import resolve_threads, single_torch_thread
-
-    from .dataset import draw_parameters, simulate_draw
-
-    t0 = time.perf_counter()
-    with single_torch_thread():
-        for k in range(int(pilot_draws)):
-            d = draw_parameters(prior, cfg.seed, "train", k, cfg.replicates)
-            simulate_draw(spec, d, prior, trials=cfg.trials_per_draw, truncation_tolerance=cfg.truncation_tolerance,
-                          truncation=cfg.truncation)
-    per_draw = (time.perf_counter() - t0) / max(int(pilot_draws), 1)
-    extra = 0
-    if spec.is_signature if cfg.shifted_test is None else cfg.shifted_test:
-        extra += cfg.draws_test
-    if spec.needs_field if cfg.bulk_phase_test is None else cfg.bulk_phase_test:
-        extra += cfg.draws_test
-    draws = cfg.draws_train + cfg.draws_validation + cfg.draws_test + extra
-    simulation = per_draw * draws / resolve_threads(threads)
-    samples = cfg.draws_train * cfg.replicates * (cfg.singles_per_group + cfg.pooled_per_group)
-    fit = FIT_SECONDS_PER_SAMPLE_EPOCH * samples * cfg.max_epochs * (spec.n_features / 36.0) ** 0.5
-    return {"pilot_s_per_draw": per_draw, "draws": draws, "simulation_s": simulation, "fit_s": fit,
-            "total_s": simulation + fit}
-
-
-#: Seconds per training sample and epoch of the network's fit on one thread, measured on the shipped
-#: signature model (36 features, 64-64 hidden: 424 s for 60 epochs of 737,280 samples, a 2-core machine
-#: beside other work); :func:`estimate_seconds` scales it with the square root of the feature count.
-FIT_SECONDS_PER_SAMPLE_EPOCH = 424.0 / (60 * 737_280)
-
-
 #: Prior of the shifted-prior test set: nuisances the training prior (:class:`~classifier.dataset.Prior`)
 #: does not draw, or draws elsewhere. Flow at 10-80° from the depth axis (isotropic within that
 #: cone: cos of the polar angle ~ U[cos 80°, cos 10°]; training: the whole sphere), the density of the
@@ -270,7 +233,7 @@ SHIFTED_TARGETS = {"pool": "1", "balanced_accuracy_identifiable": 0.85, "ece": 0
 def shifted_prior(prior: Prior | None = None) -> Prior:
     """:data:`SHIFTED_PRIOR` with the magnitude ranges and ε of ``prior`` (the prior trained on), its fixed
     density scaled as ``prior``'s lower end is from :class:`Prior`'s (a prior scaled to another system's
-    resolution volume, :func:`classifier.dataset.prior_for_spec`)."""
+    resolution volume, :func:`classifier.own_system.prior_for_spec`)."""
     prior = prior or Prior()
     scale = prior.density_per_um3[0] / Prior().density_per_um3[0]  # a prior scaled to another system (N_eff)
     density = tuple(float(f"{d * scale:.3g}") for d in SHIFTED_PRIOR.density_per_um3) if scale != 1.0 else None

@@ -25,7 +25,7 @@ system measures for that motion. ``torchdoct translate MAPS --to TARGET.toml`` j
 **Where it cannot translate** (NaN, and the code in channel ``translation``, :data:`STATUS`): pixels the
 classifier masked (background, NaN or out-of-range features), indeterminate pixels, and pixels whose
 magnitude lies outside the motion type's identifiable range on the source system
-(:func:`classifier.dataset.identifiable_range`: there the features do not measure the magnitude).
+(:func:`classifier.own_system.identifiable_range`: there the features do not measure the magnitude).
 """
 
 from __future__ import annotations
@@ -232,7 +232,8 @@ def translate_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], targe
 
     from torchdoct.measured.mapsfile import Maps
 
-    from .dataset import CLASSES, Prior, identifiable_range
+    from .dataset import CLASSES, Prior
+    from .own_system import identifiable_range
     from .features import spec_from_dict
     from .infer import classify_maps
 
