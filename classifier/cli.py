@@ -102,7 +102,7 @@ def _train(args: argparse.Namespace) -> int:
     import shutil
     import tempfile
 
-    from torchdoct._files import check_out, safe_name
+    from torchdoct.files import check_out, safe_name
     from .features import load_spec
     from .train import TrainConfig
 
@@ -186,7 +186,7 @@ def _read_prior(path: str):
     """A prior TOML file (the fields of :class:`classifier.dataset.Prior`), errors naming the file."""
     import tomllib
 
-    from torchdoct._files import check_nesting
+    from torchdoct.files import check_nesting
 
     from .dataset import Prior
 

@@ -714,7 +714,7 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
     x_ref = np.concatenate(refs).astype(np.float32) if refs else None
     ds = Dataset(**arrays, meta=meta, x_ref=x_ref)
     if path is not None:
-        from torchdoct._files import atomic_write
+        from torchdoct.files import atomic_write
 
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write(path, ds.save)

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from torchdoct._files import shipped_files
+from torchdoct.files import shipped_files
 from torchdoct.optics import REL_TOL, ChannelOptics, same_value
 from torchdoct.sim import signature as _signature_module
 
@@ -370,7 +370,7 @@ def load_spec(name_or_path: str | Path | FeatureSpec) -> FeatureSpec:
     if isinstance(name_or_path, FeatureSpec):
         return name_or_path
     path = shipped_or_path(str(name_or_path), shipped_specs(), "feature spec")
-    from torchdoct._files import check_nesting
+    from torchdoct.files import check_nesting
 
     try:
         with open(path, "rb") as fh:
