@@ -14,7 +14,7 @@ from classifier.export import OPSET, model_from_onnx
 from classifier.features import load_spec
 from classifier.infer import DEFAULT_MODEL, load_model, shipped_models
 from classifier.rule import INDETERMINATE
-from classifier.train import CLASS_NAMES, TrainConfig
+from classifier.train import CLASS_NAMES, TrainConfig, default_prior
 
 DATA = Path(__file__).resolve().parents[2] / "classifier" / "data"
 #: doct-train from scratch must give the shipped report's numbers within this many of the report's
@@ -34,9 +34,10 @@ def test_shipped_model_metadata_and_report(name):
     assert model.classes == list(CLASS_NAMES) and model.rule["indeterminate_class"] == INDETERMINATE
     assert [c["name"] for c in model.columns] == [*spec.feature_names, "pool_pixels"]
     assert [c.get("unit") for c in model.columns] == [*spec.feature_units, "pixels"]
-    # the recipe's prior (classifier.train.SPEC_RECIPES: the flow's polar-angle law, a bulk-phase residual)
+    # the recipe's prior (classifier.train.SPEC_RECIPES: the flow's polar-angle law, a bulk-phase residual;
+    # scaled to the system for classifier.train.SCALED_PRIOR_SPECS)
     cfg = TrainConfig.for_spec(name)
-    recipe_prior = Prior(flow_polar_law=cfg.flow_polar_law, bulk_residual_step_rad=cfg.bulk_residual_step_rad)
+    recipe_prior = default_prior(cfg)
     # models trained before the recipe took the uniform-angle law carry the isotropic default prior
     assert meta["onnx_opset"] == OPSET == 17 and meta["prior"] in (recipe_prior.to_dict(), Prior().to_dict())
     report = json.loads((DATA / f"{name}.json").read_text())

@@ -44,7 +44,7 @@ cannot be random-ballistic motion there); **d**, **e** part c's classifier train
 the models' own kind of training prior instead of the independent one (:data:`DATASET_PRIORS`,
 :func:`dataset_set`: :func:`classifier.dataset.make_dataset`, the same number of draws, one (static
 fraction, SNR) setting each): **d** the prior the shipped ``signature`` model was trained on, **e** that
-prior scaled to the system (:func:`classifier.dataset.prior_for_spec`); c − d is the training prior's
+prior scaled to the system (:func:`classifier.own_system.prior_for_spec`); c − d is the training prior's
 gap, e − d what the physics-scaled prior recovers of it (:data:`PAIRS`). Their training draws include
 the prior's static and decorrelated ones, which the classifier (three classes) leaves out like every
 non-identifiable pixel.
@@ -134,13 +134,13 @@ PART_TEXT = {
     "b-shared": "part b with one speed range 0.01-3 µm/s for random-ballistic motion and flow in training",
     "d": "part c's classifier trained on torchdoct draws of the shipped signature recipe's training prior "
          "(classifier.dataset.Prior, flow polar angle uniform; make_dataset, one nuisance replicate per draw)",
-    "e": "part d with the training prior scaled to the system (classifier.dataset.prior_for_spec of d's prior: "
+    "e": "part d with the training prior scaled to the system (classifier.own_system.prior_for_spec of d's prior: "
          "each motion type's identifiable range ± half a decade, speeds capped at what the simulator holds)",
 }
 #: Training priors of parts d and e, in the form of the models' own training data
 #: (:class:`classifier.dataset.Prior`, simulated by :func:`classifier.dataset.make_dataset`): ``"training"``
 #: the prior the shipped ``signature`` model was trained on, ``"scaled"`` the same scaled to the spec's
-#: system (:func:`classifier.dataset.prior_for_spec`). Each draw's pixels share one (static fraction, SNR)
+#: system (:func:`classifier.own_system.prior_for_spec`). Each draw's pixels share one (static fraction, SNR)
 #: setting of the prior (one replicate), so a training draw holds as many pixels as in the other parts.
 DATASET_PRIORS = ("training", "scaled")
 #: Fractions of the identifiable test pixels decided (accuracy-coverage curve).
@@ -314,10 +314,11 @@ def dataset_prior(name: str, spec, epsilon: float):
     """The :class:`classifier.dataset.Prior` of :data:`DATASET_PRIORS` ``name`` for ``spec``, with the
     shipped model's ε: ``"training"`` is ``Prior(flow_polar_law="uniform-angle")`` (the shipped
     ``signature`` recipe's prior: D in [1e-4, 15] µm²/s, one speed range [1e-3, 6] µm/s for random-ballistic
-    motion and flow), ``"scaled"`` :func:`classifier.dataset.prior_for_spec` of it."""
+    motion and flow), ``"scaled"`` :func:`classifier.own_system.prior_for_spec` of it."""
     import dataclasses
 
-    from classifier.dataset import Prior, prior_for_spec
+    from classifier.dataset import Prior
+    from classifier.own_system import prior_for_spec
 
     if name not in DATASET_PRIORS:
         raise ValueError(f"unknown dataset prior {name!r}; choose among {list(DATASET_PRIORS)}")

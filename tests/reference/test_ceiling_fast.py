@@ -180,7 +180,8 @@ def test_the_contrasts_are_the_log_decorrelation_slopes_and_configuration_differ
 
 
 def test_parts_d_and_e_train_on_the_shipped_and_the_scaled_prior_from_make_dataset(tmp_path):
-    from classifier.dataset import Prior, identifiable_range, prior_for_spec
+    from classifier.dataset import Prior
+    from classifier.own_system import identifiable_range, prior_for_spec
 
     spec = load_spec("signature")
     d, e = ce.dataset_prior("training", spec, 0.05), ce.dataset_prior("scaled", spec, 0.05)
