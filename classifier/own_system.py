@@ -13,16 +13,13 @@ from __future__ import annotations
 
 import math
 import time
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
 from .dataset import (BALLISTIC_LAWS, CLASSES, DEFAULT_TRUNCATION, Draw, Prior, _lateral_y, identifiability,
                       scene_for)
 from .features import FeatureSpec
-
-if TYPE_CHECKING:
-    from .train import TrainConfig
 
 __all__ = ["identifiable_range", "prior_for_spec", "speed_cap", "estimate_seconds", "PRIOR_MARGIN_DECADES",
            "REFERENCE_RESOLUTIONS_UM", "MAX_SCATTERERS_PER_TRIAL", "FIT_SECONDS_PER_SAMPLE_EPOCH"]
@@ -160,9 +157,10 @@ def speed_cap(spec: FeatureSpec, prior: Prior, label: int) -> float:
     return lo
 
 
-def estimate_seconds(spec: FeatureSpec, prior: Prior, cfg: "TrainConfig", *, pilot_draws: int = 6,
+def estimate_seconds(spec: FeatureSpec, prior: Prior, cfg: Any, *, pilot_draws: int = 6,
                      threads: int | None = None) -> dict[str, float]:
-    """Expected time of :func:`train` (s), from a pilot: the first ``pilot_draws`` draws of the training split
+    """Expected time of :func:`classifier.train.train` with the recipe ``cfg`` (a
+    :class:`classifier.train.TrainConfig`), in s, from a pilot: the first ``pilot_draws`` draws of the training split
     simulated and timed (their numbers are not kept). Simulation: the mean time per draw × the draws of
     every split (train, validation, test, and the test-sized shifted-prior and bulk-phase splits when the
     recipe makes them) / the cores; the network's fit: :data:`FIT_SECONDS_PER_SAMPLE_EPOCH` × samples
