@@ -1,6 +1,7 @@
 """Training: datasets → pooled samples → :class:`~classifier.model.MotionClassifier` → report.
 
-:func:`train` runs the whole recipe of the shipped model from a :class:`TrainConfig`:
+:func:`train` runs the whole recipe of the shipped model from a :class:`TrainConfig` (the recipes:
+:mod:`classifier.recipe`, whose names this module re-exports):
 
 1. simulate (or load from the cache) the train, validation and test splits
    (:func:`classifier.dataset.make_dataset`);
@@ -38,11 +39,13 @@ import numpy as np
 import torch
 
 from . import __version__
-from .dataset import CLASSES, DEFAULT_TRUNCATION, STATUS, Dataset, Prior, make_dataset
+from .dataset import CLASSES, STATUS, Dataset, Prior, make_dataset
 from .features import METRIC_UNITS, FeatureSpec, load_spec
 from .model import DECORRELATION_OFFSET, LIV_OFFSET_DB2, MotionClassifier
 from .report import (COVERAGE_THRESHOLDS, bootstrap_se, coverage_curve, evaluate, flow_recall_by_band,
                      magnitude_table)
+from .recipe import (OWN_SIGNATURE_RECIPE, SCALED_PRIOR_SPECS, SHIFTED_PRIOR, SHIFTED_TARGETS, SPEC_RECIPES,  # noqa: F401
+                     TrainConfig, default_prior, recipe_for, shifted_prior)
 from .rule import INDETERMINATE, make_rule
 
 __all__ = ["TrainConfig", "TrainResult", "train", "fit_network", "pooled_samples", "CLASS_NAMES", "transform_numpy",
@@ -51,215 +54,6 @@ __all__ = ["TrainConfig", "TrainResult", "train", "fit_network", "pooled_samples
 
 #: Output classes of every model: the motion types, then ``indeterminate``.
 CLASS_NAMES = (*CLASSES, INDETERMINATE)
-
-
-@dataclass(frozen=True, kw_only=True)
-class TrainConfig:
-    """Recipe of a model. The defaults are the shipped model's (``doct-train`` without options).
-
-    ``draws_*``: parameter draws per split; ``trials_per_draw``: trials simulated per draw;
-    ``truncation_tolerance``: the simulator's PSF truncation (relative amplitude).
-    """
-
-    spec: str = "single-acquisition"
-    seed: int = 0
-    draws_train: int = 270
-    draws_validation: int = 45
-    draws_test: int = 90
-    trials_per_draw: int = 64
-    replicates: int = 8
-    truncation_tolerance: float = 1e-2
-    #: the PSF truncation mode of the training data: ``"taper"`` (scatterers enter the PSF continuously;
-    #: unbiased on every model feature against the reference simulator, at the cost of the hard cut at the
-    #: same tolerance) or ``"hard"`` (the mode of the models trained before the taper existed)
-    truncation: str = DEFAULT_TRUNCATION
-    #: law of the flow's polar angle in the training prior when no prior is given
-    #: (:attr:`classifier.dataset.Prior.flow_polar_law`)
-    flow_polar_law: str = "isotropic"
-    #: residual bulk-phase step SD range (rad) of the training prior when no prior is given
-    #: (:attr:`classifier.dataset.Prior.bulk_residual_step_rad`; for models that read the phase)
-    bulk_residual_step_rad: tuple[float, float] = (0.0, 0.0)
-    hidden: tuple[int, ...] = (64, 64)
-    max_epochs: int = 200
-    patience: int = 20
-    batch_size: int = 512
-    learning_rate: float = 3e-3
-    weight_decay: float = 1e-4
-    singles_per_group: int = 32
-    pooled_per_group: int = 16
-    max_pool_pixels: int = 48
-    min_probability: float = 0.5
-    eval_pools: tuple[int, ...] = (1, 4, 9, 25)
-    baselines: bool = True
-    #: magnitude head (log10 D or v with a Gaussian predictive SD); None = for signature specs
-    magnitude: bool | None = None
-    magnitude_weight: float = 1.0
-    #: also evaluate on a test split with a random bulk phase per frame; None = for specs that use the phase
-    bulk_phase_test: bool | None = None
-    #: also evaluate on a test split from :data:`SHIFTED_PRIOR`; None = for signature specs
-    shifted_test: bool | None = None
-
-    @classmethod
-    def for_spec(cls, spec: str | FeatureSpec = "single-acquisition", **overrides: Any) -> "TrainConfig":
-        """The recipe of ``spec`` with ``overrides``: a shipped spec's (:data:`SPEC_RECIPES`), else, for a spec
-        of one's own (a TOML file, ``doct-train --like``), :func:`recipe_for` by its features."""
-        if isinstance(spec, FeatureSpec):
-            return cls(**{**recipe_for(spec), **overrides, "spec": spec.name})
-        if str(spec) in SPEC_RECIPES or str(spec) in _SHIPPED_DEFAULT_RECIPE:
-            return cls(**{"spec": spec, **SPEC_RECIPES.get(str(spec), {}), **overrides})
-        try:
-            recipe = recipe_for(load_spec(spec))
-        except (OSError, TypeError, ValueError):  # the spec's own error comes when it is loaded
-            recipe = {}
-        return cls(**{"spec": spec, **recipe, **overrides})
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
-        object.__setattr__(self, "eval_pools", tuple(int(n) for n in self.eval_pools))
-        object.__setattr__(self, "bulk_residual_step_rad", tuple(float(v) for v in self.bulk_residual_step_rad))
-        for key in ("draws_train", "draws_validation", "draws_test", "trials_per_draw", "max_epochs",
-                    "batch_size", "singles_per_group", "pooled_per_group", "max_pool_pixels", "replicates"):
-            v = getattr(self, key)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"TrainConfig.{key} must be a positive integer; got {v!r}")
-        for key in ("draws_train", "draws_validation", "draws_test"):
-            if getattr(self, key) < len(CLASSES):
-                raise ValueError(f"TrainConfig.{key} must be >= {len(CLASSES)} (one draw per motion type); "
-                                 f"got {getattr(self, key)}")
-        if self.max_pool_pixels > self.trials_per_draw:
-            raise ValueError(f"TrainConfig.max_pool_pixels ({self.max_pool_pixels}) must not exceed "
-                             f"trials_per_draw ({self.trials_per_draw})")
-        if any(n < 1 or n > self.trials_per_draw for n in self.eval_pools) or 1 not in self.eval_pools:
-            raise ValueError(f"TrainConfig.eval_pools must include 1 and lie in [1, trials_per_draw]; "
-                             f"got {self.eval_pools}")
-        if not 0.0 <= self.min_probability < 1.0:
-            raise ValueError(f"TrainConfig.min_probability must be in [0, 1); got {self.min_probability!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"TrainConfig.seed must be a non-negative integer; got {self.seed!r}")
-
-    def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
-
-
-#: Shipped recipes that differ from the :class:`TrainConfig` defaults (``doct-train --spec NAME``).
-#: The signature spec has 6× more features than LIV/OCDS: more draws, a network trained more slowly
-#: and more regularised (with the LIV/OCDS recipe it stopped at epoch 6: balanced accuracy 0.849 /
-#: 0.953 at pool 1 / 25, ECE 0.038; with this one 0.868 / 0.968, ECE 0.025 on the same splits), a
-#: test split twice as large (SE of the balanced accuracy 0.02 with 90 draws), and the random-bulk-
-#: phase test split. Width: in a trial with 480 training draws (and transit-only draws counted as
-#: identifiable), 64-64, 128-64 and 128-128 hidden units gave balanced accuracy 0.775 / 0.777 / 0.771
-#: (pool 1) and 0.931 / 0.939 / 0.943 (pool 25) on the same 90 test draws, all within one SE; 64-64
-#: costs a third of 128-128 per pixel in doct-classify. Training longer does not help (same splits,
-#: pool 1, differences paired over the test draws): with 150 epochs and patience 15 it stops at epoch
-#: 63 with the same best epoch 48 (identical model); with patience 25 (best epoch 95) or a cosine decay
-#: over 100 or 150 epochs it reaches 0.848-0.850 (−0.010 to −0.012, SE ≤ 0.005) at coverage
-#: 0.765-0.779 (+0.02-0.03), within 0.007 of 0.860 at the shipped coverage: the same accuracy-
-#: coverage curve, none of the 0.023 gap to gradient boosting closed (all of the above on the raw
-#: correlations). What closed it is the input scale: the correlation coefficients read as log
-#: decorrelation (classifier.model; +0.022 ± 0.005 per pixel, paired, classifier/README.md), after
-#: which 120 epochs stop at 70 with the same best epoch 55 as the cap of 60 (identical model). With
-#: that input the learning curve no longer flattened at 960 training draws (+0.016 ± 0.004 per pixel
-#: from 960 to 1920, paired): the recipe takes 1920 (classifier/data/signature-learning-curve.md).
-#:
-#: The flow's polar angle is drawn uniform in angle (``flow_polar_law = "uniform-angle"``), not
-#: isotropically: near-axial flow, the direction an intensity signature tells least well from
-#: random-ballistic motion (it decorrelates by axial transit, which only the axial-reduced
-#: configuration slows; classifier/README.md), gets a third of the flow draws instead of 13 %.
-SPEC_RECIPES: dict[str, dict[str, Any]] = {
-    "signature": {"draws_train": 1920, "draws_validation": 90, "draws_test": 180, "replicates": 8,
-                  "hidden": (64, 64), "learning_rate": 1e-3, "weight_decay": 1e-3, "patience": 15,
-                  "max_epochs": 60, "bulk_phase_test": True, "flow_polar_law": "uniform-angle"},
-}
-#: The two-wavelength signature spec (the signature's 24 intensity features at 840 and 1310 nm) and the
-#: B-scan signature spec (the lateral reduction along x only) take it too.
-SPEC_RECIPES["two-wavelength-signature"] = SPEC_RECIPES["signature"]
-SPEC_RECIPES["signature-bscan"] = SPEC_RECIPES["signature"]
-#: The B-scan signature with the field group (|g1| at the first lags) for bulk-phase-corrected maps: the
-#: same recipe, with the residual of the correction in the prior (a random walk of step SD up to 0.05 rad:
-#: ``torchdoct maps --bulk-phase weighted-mean`` leaves ~0.036 rad per step on dynamic tissue at 30 dB,
-#: docs/physics.md §12), and the random-bulk-phase test split showing what an uncorrected phase costs.
-SPEC_RECIPES["signature-bscan-field"] = {**SPEC_RECIPES["signature"], "bulk_residual_step_rad": (0.0, 0.05)}
-
-
-#: Shipped specs trained with the :class:`TrainConfig` defaults (LIV/OCDS).
-_SHIPPED_DEFAULT_RECIPE = ("single-acquisition", "two-wavelength", "single-acquisition-bscan")
-#: Recipe of a signature spec of one's own (``doct-train --like``, a spec TOML): the shipped signature
-#: recipe (1920 training draws; without the random-bulk-phase test split, which only the models that read
-#: the phase need). Its cost is mostly the network's fit, on one thread so that the model does not depend
-#: on the cores: 1920 draws took 7-12 min for the shipped models; a --like run on a 1310-nm system took
-#: 5 min with 960 draws (pool 5 on its rendered phantom 0.919 at coverage 0.938), and the learning curve
-#: gives 960 draws −0.016 ± 0.004 per pixel against 1920 (classifier/data/signature-learning-curve.md).
-OWN_SIGNATURE_RECIPE: dict[str, Any] = {**SPEC_RECIPES["signature"], "bulk_phase_test": False}
-
-
-def recipe_for(spec: FeatureSpec) -> dict[str, Any]:
-    """The recipe (:class:`TrainConfig` fields) of a spec of one's own: :data:`OWN_SIGNATURE_RECIPE` for
-    a signature spec (with the random-bulk-phase test split and a residual bulk phase in the prior when it
-    reads the field's phase, as :data:`SPEC_RECIPES` ``"signature-bscan-field"``), the defaults for
-    LIV/OCDS."""
-    if not spec.is_signature:
-        return {}
-    recipe = dict(OWN_SIGNATURE_RECIPE)
-    if spec.needs_field:
-        recipe.update(bulk_phase_test=True,
-                      bulk_residual_step_rad=SPEC_RECIPES["signature-bscan-field"]["bulk_residual_step_rad"])
-    return recipe
-
-
-#: Shipped specs whose default prior is scaled to their system (:func:`default_prior`,
-#: :func:`classifier.own_system.prior_for_spec`: each motion type's identifiable range ± half a decade, flow its
-#: own range, speeds capped at what the simulator holds; for ``signature`` D 6.19e-6-0.1 µm²/s, v 0.0011-6.63
-#: µm/s random-ballistic and 0.0287-6.06 µm/s flow, against 1e-4-15 and 1e-3-6 for both). Of the shipped
-#: prior's draws 46 % are static or decorrelated (the scaled one's 27 %), and flow below 0.09 µm/s is never
-#: identifiable. Measured on the independent reference simulator (classifier/data/independent-ceiling.md,
-#: parts d and e): gradient boosting on 1200 draws of the scaled prior +0.023 ± 0.007 per pixel (paired)
-#: against the shipped one; the ``signature`` network retrained on it 0.826 ± 0.007 at coverage 0.793
-#: against 0.803 ± 0.008 at 0.776 (flow 0.76 / 0.60 / 0.80 by polar band against 0.62 / 0.40 / 0.66;
-#: classifier/data/signature-independent.md).
-SCALED_PRIOR_SPECS = ("signature",)
-
-
-def default_prior(cfg: TrainConfig) -> Prior:
-    """The prior of a recipe when none is given: :class:`Prior` with the recipe's flow polar law and
-    residual bulk phase, scaled to the spec's system (:func:`classifier.own_system.prior_for_spec`) for the
-    shipped specs of :data:`SCALED_PRIOR_SPECS`."""
-    prior = Prior(flow_polar_law=cfg.flow_polar_law, bulk_residual_step_rad=cfg.bulk_residual_step_rad)
-    if str(cfg.spec) in SCALED_PRIOR_SPECS:
-        from .own_system import prior_for_spec
-
-        prior = prior_for_spec(load_spec(cfg.spec), prior)[0]
-    return prior
-
-
-#: Prior of the shifted-prior test set: nuisances the training prior (:class:`~classifier.dataset.Prior`)
-#: does not draw, or draws elsewhere. Flow at 10-80° from the depth axis (isotropic within that
-#: cone: cos of the polar angle ~ U[cos 80°, cos 10°]; training: the whole sphere), the density of the
-#: moving scatterers fixed at 0.05 µm⁻³ (training: U[0.02, 0.1]), no static fraction (training: with
-#: probability 1/2), noise always on at SNR U[15, 25] dB (training: with probability 1/2 at
-#: U[10, 40] dB; before the noise prior was widened, 15-20 dB lay outside it), both random-ballistic
-#: direction laws, the training prior's magnitude ranges (:func:`shifted_prior` takes them, and ε,
-#: from the prior trained on). Its split is the test split of the same seed (its draws have the test
-#: draws' motion types, magnitudes and simulator seeds; the nuisances above are its own) and is cached
-#: apart (the cache key holds the prior).
-SHIFTED_PRIOR = Prior(ballistic_directions="both", flow_polar_angle_deg=(10.0, 80.0), density_per_um3=(0.05, 0.05),
-                      static_probability=0.0, noise_probability=1.0, snr_db=(15.0, 25.0))
-#: What must hold on the shifted-prior test set, per pixel (pool 1): balanced accuracy over the
-#: decided identifiable samples at least, expected calibration error at most.
-SHIFTED_TARGETS = {"pool": "1", "balanced_accuracy_identifiable": 0.85, "ece": 0.05}
-
-
-def shifted_prior(prior: Prior | None = None) -> Prior:
-    """:data:`SHIFTED_PRIOR` with the magnitude ranges and ε of ``prior`` (the prior trained on), its fixed
-    density scaled as ``prior``'s lower end is from :class:`Prior`'s (a prior scaled to another system's
-    resolution volume, :func:`classifier.own_system.prior_for_spec`)."""
-    prior = prior or Prior()
-    scale = prior.density_per_um3[0] / Prior().density_per_um3[0]  # a prior scaled to another system (N_eff)
-    density = tuple(float(f"{d * scale:.3g}") for d in SHIFTED_PRIOR.density_per_um3) if scale != 1.0 else None
-    return dataclasses.replace(SHIFTED_PRIOR, diffusion_um2_per_s=prior.diffusion_um2_per_s,
-                               speed_um_per_s=prior.speed_um_per_s, flow_speed_um_per_s=prior.flow_speed_um_per_s,
-                               identifiability_epsilon=prior.identifiability_epsilon,
-                               **({} if density is None else {"density_per_um3": density}))
 
 
 def _uses_magnitude(cfg: TrainConfig, spec: FeatureSpec) -> bool:
