@@ -166,12 +166,16 @@ def test_spec_from_maps_refuses_channels_without_optics(tmp_path):
 def test_like_dry_run_prints_spec_prior_time_and_key_and_writes_nothing(tmp_path, capsys):
     from classifier.cli import train_main
 
-    path = _bscan_maps(tmp_path)
+    path = _bscan_maps(tmp_path, spec="signature")  # volume maps: isotropic reductions (the faster closed forms)
+    m = read_maps(path)
+    meta = dict(m.meta)
+    meta.pop("reduction")
+    path = save_maps(tmp_path / "own.npz", m.maps, meta)
     out = tmp_path / "model"
     assert train_main(["--like", str(path), "--out", str(out), "--dry-run", "--quick", "--no-cache"]) == 0
     text = capsys.readouterr().out
-    for needle in ("spec like-own", "lateral_resolution_y_um = 4.9", "identifiable", "expected time: about",
-                   "--spec", "--prior"):
+    for needle in ("spec like-own", "axial_resolution_um = 14.0", "identifiable", "expected time: about",
+                   "simulated up to", "--spec", "--prior"):
         assert needle in text, needle
     assert not out.exists()
     assert train_main(["--like", str(path), "--spec", "signature", "--out", str(out)]) == 2  # exclusive
@@ -194,6 +198,7 @@ def test_classify_without_a_fitting_shipped_model_names_the_like_command(tmp_pat
     assert not (tmp_path / "c").exists()
 
 
+@pytest.mark.slow
 def test_like_writes_spec_and_prior_that_retrain_the_same_model(tmp_path, capsys):
     """``doct-train --like`` then ``doct-train --spec SPEC.spec.toml --prior SPEC.prior.toml``: the same
     network weights (the same spec, prior and seed give the same model); tiny sizes."""

@@ -30,5 +30,5 @@ def test_like_quick_model_classifies_its_system(system, tmp_path):
     s = r["scores"]["5"][0]["overall"]
     acc, cov = FLOORS[system]
     assert s["balanced_accuracy"] >= acc and s["coverage"] >= cov, (system, s)
-    assert r["spec"]["n_frames"] == (64 if system == "system-fast" else 32)
+    assert r["spec"]["protocol"]["n_frames"] == (64 if system == "system-fast" else 32)
     assert r["training_s"] is not None
