@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import torchdoct_command
+
 #: Phantom → (maps options, description).
 SYSTEMS = {
     "system-1310nm": (["--resolution", "original", "--resolution", "axial=30", "--resolution", "lateral=37"],
@@ -40,19 +42,12 @@ SYSTEMS = {
 POOLS = (1, 5)
 
 
-def _torchdoct(argv: list[str]) -> None:
-    from torchdoct.cli import main
-
-    if main(argv) != 0:
-        raise RuntimeError(f"`torchdoct {' '.join(argv)}` failed")
-
-
 def render_maps(out: Path, system: str, seed: int) -> tuple[Path, Path]:
     seq, maps = out / f"{system}-{seed}.npz", out / f"{system}-{seed}-maps.npz"
     if not maps.exists():
-        _torchdoct(["render", system, "--out", str(seq), "--seed", str(seed), "--no-preview", "--no-progress",
+        torchdoct_command(["render", system, "--out", str(seq), "--seed", str(seed), "--no-preview", "--no-progress",
                     "--force"])
-        _torchdoct(["maps", str(seq), *SYSTEMS[system][0], "--signature", "--out", str(maps), "--no-progress",
+        torchdoct_command(["maps", str(seq), *SYSTEMS[system][0], "--signature", "--out", str(maps), "--no-progress",
                     "--force"])
     return seq, maps
 

@@ -28,18 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
+from . import torchdoct_command
+
 PHANTOM = "motion-types-two-systems"
 SOURCE, TARGET = "840nm-high", "1310nm-10um"
 _NAMES = {2: "diffusion", 3: "ballistic", 4: "flow"}
 _GOALS = {"abs_bias_over_sd": 1.0 / 3.0, "coverage_68": (0.60, 0.76)}
-
-
-def _run(argv: list[str]) -> None:
-    from torchdoct.cli import main
-
-    code = main(argv)
-    if code != 0:
-        raise RuntimeError(f"`torchdoct {' '.join(argv)}` exited {code}")
 
 
 def chain(out: Path, seed: int, trials: int) -> dict[str, Path]:
@@ -48,12 +42,12 @@ def chain(out: Path, seed: int, trials: int) -> dict[str, Path]:
     seq = {s: Path(f"{stem}-{s}.npz") for s in (SOURCE, TARGET)}
     files = {"source_maps": out / f"mt2-{seed}-{SOURCE}-maps.npz", "target_maps": out / f"mt2-{seed}-{TARGET}-maps.npz",
              "translated": out / f"mt2-{seed}-translated.npz", **{f"seq_{k}": v for k, v in seq.items()}}
-    _run(["render", PHANTOM, "--out", f"{stem}.npz", "--seed", str(seed), "--no-preview", "--no-progress", "--force"])
-    _run(["maps", str(seq[SOURCE]), "--resolution", "original", "--resolution", "axial=14", "--resolution",
+    torchdoct_command(["render", PHANTOM, "--out", f"{stem}.npz", "--seed", str(seed), "--no-preview", "--no-progress", "--force"])
+    torchdoct_command(["maps", str(seq[SOURCE]), "--resolution", "original", "--resolution", "axial=14", "--resolution",
           "lateral=18", "--signature", "--out", str(files["source_maps"]), "--no-progress", "--force"])
-    _run(["maps", str(seq[TARGET]), "--metrics", "liv,ocds", "--out", str(files["target_maps"]), "--no-progress",
+    torchdoct_command(["maps", str(seq[TARGET]), "--metrics", "liv,ocds", "--out", str(files["target_maps"]), "--no-progress",
           "--force"])
-    _run(["translate", str(files["source_maps"]), "--to", PHANTOM, "--to-system", TARGET, "--out",
+    torchdoct_command(["translate", str(files["source_maps"]), "--to", PHANTOM, "--to-system", TARGET, "--out",
           str(files["translated"]), "--trials", str(trials), "--seed", str(seed), "--no-progress", "--force"])
     return files
 

@@ -66,26 +66,38 @@ def _module_level_imports(name: str, path: Path) -> set[str]:
     return {m for m in found if m in MODULES and m != name}
 
 
-def test_no_import_circle_between_the_project_modules():
-    graph = {name: _module_level_imports(name, path) for name, path in MODULES.items()}
+def _first_circle(graph: dict[str, set[str]]) -> list[str] | None:
+    """A circle of the directed ``graph`` (depth-first, nodes in sorted order), or None."""
     state: dict[str, int] = {}  # 1 on the current path, 2 done
     stack: list[str] = []
 
-    def walk(node: str) -> None:
+    def walk(node: str) -> list[str] | None:
         state[node] = 1
         stack.append(node)
         for nxt in sorted(graph[node]):
             if state.get(nxt) == 1:
-                cycle = stack[stack.index(nxt):] + [nxt]
-                pytest.fail("import circle: " + " -> ".join(cycle))
+                return stack[stack.index(nxt):] + [nxt]
             if nxt not in state:
-                walk(nxt)
+                found = walk(nxt)
+                if found:
+                    return found
         stack.pop()
         state[node] = 2
+        return None
 
     for name in sorted(graph):
         if name not in state:
-            walk(name)
+            found = walk(name)
+            if found:
+                return found
+    return None
+
+
+def test_no_import_circle_between_the_project_modules():
+    graph = {name: _module_level_imports(name, path) for name, path in MODULES.items()}
+    cycle = _first_circle(graph)
+    if cycle:
+        pytest.fail("import circle: " + " -> ".join(cycle))
     # the checker sees the edges it should: a known module-level import
     assert "torchdoct.measured.mapsfile" in graph["torchdoct.measured.io"]
     assert "torchdoct.optics" in graph["classifier.features"]
@@ -226,24 +238,9 @@ def test_imports_inside_functions_point_up_only_where_documented():
     for (a, b), why in UPWARD_IMPORTS.items():
         assert not graph.get(a, {}).get(b, False), f"{a} imports {b} at import time ({why}): only inside a function"
     edges = {a: {b for b in targets if (a, b) not in UPWARD_IMPORTS} for a, targets in graph.items()}
-    state: dict[str, int] = {}
-    stack: list[str] = []
-
-    def walk(node: str) -> None:
-        state[node] = 1
-        stack.append(node)
-        for nxt in sorted(edges[node]):
-            if state.get(nxt) == 1:
-                pytest.fail("import circle (imports inside functions included): "
-                            + " -> ".join(stack[stack.index(nxt):] + [nxt]))
-            if nxt not in state:
-                walk(nxt)
-        stack.pop()
-        state[node] = 2
-
-    for name in sorted(edges):
-        if name not in state:
-            walk(name)
+    cycle = _first_circle(edges)
+    if cycle:
+        pytest.fail("import circle (imports inside functions included): " + " -> ".join(cycle))
     # the original circle of the classifier's benchmark: torchdoct reaches classifier through entry points
     assert not any(b.startswith("classifier") for a, targets in graph.items() if a.startswith("torchdoct")
                    for b in targets)
