@@ -9,13 +9,12 @@ import os
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-import textwrap
-
 import pytest
 import threadpoolctl
 import torch
 
 import torchdoct
+from _scenes import SMALL_SCENE_TOML
 
 # The threading policy of torchdoct (torchdoct.threads): tensor operations run on one torch thread;
 # parallel work runs over independent pieces. Tests that call torch directly follow it too.
@@ -52,35 +51,6 @@ def small_scene() -> torchdoct.Scene:
     )
 
 
-SMALL_SCENE_TOML = textwrap.dedent("""\
-    name = "small-file"
-    description = "one system, 8 frames, diffusing scatterers (test scene)"
-
-    [[system]]
-    name = "840nm"
-    wavelength_um = 0.84
-    lateral_resolution_um = 4.9
-    axial_resolution_um = 3.8
-
-    [protocol]
-    n_frames = 8
-    frame_interval_s = 0.2048
-
-    [[population]]
-    density_per_um3 = 0.055
-
-    [[population.motion]]
-    kind = "diffusion"
-    diffusion_um2_per_s = 0.1
-
-    [analysis]
-    metrics = ["liv", "ocds"]
-    ocds_delay_range_s = [0.2048, 0.6144]
-
-    [simulation]
-    trials = 64
-    seed = 7
-    """)
 
 
 @pytest.fixture

@@ -25,7 +25,7 @@ from torchdoct.image.phantom import phantom_from_dict  # noqa: E402
 from torchdoct.sim.plan import make_plan  # noqa: E402
 from torchdoct.sim.simulate import MemoryLimitError, simulate  # noqa: E402
 
-from conftest import SMALL_SCENE_TOML  # noqa: E402
+from _scenes import SMALL_SCENE_TOML  # noqa: E402
 
 BASE = tomllib.loads(SMALL_SCENE_TOML)
 BASE["noise"] = {"snr_db": 30.0}
