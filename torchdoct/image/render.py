@@ -54,7 +54,7 @@ from ..sim.config import Population
 from ..conventions import (TAPER_START, amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
                           noise_sigma, truncation_half_widths_um, wavenumber_per_um)
 from .phantom import MOTION_CODES, Phantom
-from ..sim.memory import MemoryLimitError, available_memory_bytes
+from ..resources import check_resources
 from ..sim.samplers import unit_directions
 from ..sim.streams import seeded_generator
 from ..threads import map_ordered, one_torch_thread, resolve_threads
@@ -406,12 +406,11 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
     box = (lo, hi)
 
     out_bytes = len(optics) * T * n_pix * (16 if dtype == torch.float64 else 8)
-    avail = available_memory_bytes()
-    if avail is not None and 2 * out_bytes > avail:  # the sequence plus one copy when written
-        raise MemoryLimitError(
-            f"the rendered sequence alone is {out_bytes / 2**30:.2f} GB ({len(optics)} system(s) × {T} frames × "
-            f"{n_pix} pixels) and needs about twice that; {avail / 2**30:.2f} GB are available: render fewer "
-            f"pixels or frames, one system at a time (--system), or in float32")
+    check_resources(  # the sequence plus one copy when written (torchdoct.resources)
+        "the rendered sequence", 2 * out_bytes,
+        "render fewer pixels or frames, one system at a time (--system), or in float32",
+        detail=f"{out_bytes / 2**30:.2f} GB alone: {len(optics)} system(s) × {T} frames × {n_pix} pixels, and one "
+               "copy when written")
 
     states = []
     pop_regions: list[int | None] = [None] * len(scene.populations)

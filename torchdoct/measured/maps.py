@@ -511,6 +511,9 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
         raise ValueError(f"normalization must be one of {', '.join(NORMALIZATIONS)}; got {normalization!r}")
     targets = _as_targets(resolutions)
     src = seq.source or "sequence"
+    from ..resources import check_maps  # the one resource check of every command, before any work
+    check_maps(src, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,
+               n_resolutions=len(targets), metrics=wanted, slab_elements=slab_elements)
     if seq.n_frames < 2:
         raise ValueError(f"{src}: {seq.n_frames} frame along T; DOCT maps need at least 2 frames (LIV is a variance "
                          "over frames); check the file or --axes")

@@ -1,23 +1,21 @@
 """Memory of a simulation, estimated before any work: the chunk size, the peak working memory of a
-chunk, the memory the machine has available, and the refusal when a run would not fit
-(:class:`MemoryLimitError`, raised by :func:`torchdoct.simulate` and :func:`torchdoct.render` before they
-start, naming the knob to turn). :func:`release_free_memory` returns freed heap to the OS between chunks.
+chunk and of a whole run (:func:`simulation_bytes`), and the refusal when a run would not fit
+(:func:`check_simulation`: :class:`MemoryLimitError` from the one resource check of every command,
+:func:`torchdoct.resources.check_resources`, raised by :func:`torchdoct.simulate` before it starts,
+naming the knob to turn). :func:`release_free_memory` returns freed heap to the OS between chunks.
 """
 
 from __future__ import annotations
 
-from .plan import Plan
+from ..resources import MemoryLimitError, available_memory_bytes, check_resources
+from .plan import BLOCK_TRIALS, Plan
 
 __all__ = ["MemoryLimitError", "CHUNK_ELEMENTS", "BYTES_PER_ELEMENT", "working_elements_per_trial", "chunk_bytes",
-           "available_memory_bytes", "release_free_memory"]
+           "simulation_bytes", "check_simulation", "available_memory_bytes", "release_free_memory"]
 
 #: Largest working tensor of a chunk (elements) for the default chunk size: a chunk's state stays near
 #: the cache (one block of 64 trials for most scenes; measured 10-50 % faster than 8M-element chunks).
 CHUNK_ELEMENTS = 1 << 18
-
-
-class MemoryLimitError(ValueError):
-    """A run would need more memory than the machine has available (refused before any work)."""
 
 
 #: Bytes of working memory per reserved slot element (measured: float64 state, float32 draws and
@@ -37,17 +35,44 @@ def chunk_bytes(plan: Plan, chunk_trials: int, n_systems: int, n_frames: int) ->
     return int(per_trial * chunk_trials * BYTES_PER_ELEMENT)
 
 
-def available_memory_bytes() -> int | None:
-    """``MemAvailable`` of the machine (Linux ``/proc/meminfo``), or ``None`` where unknown."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        return None
-    return None
+def simulation_bytes(plan: Plan, *, trials: int, n_systems: int, n_frames: int, threads: int,
+                     chunk_trials: int | None = None, dtype_bytes: int = 4) -> tuple[int, int, int]:
+    """Peak memory of :func:`torchdoct.simulate` and how it runs: ``(bytes, blocks per chunk, chunks in
+    flight)``.
 
+    Without ``chunk_trials`` a chunk's largest working tensors stay near :data:`CHUNK_ELEMENTS` and every
+    thread gets a chunk; ``threads`` chunks run at once; the output holds ``trials × n_systems ×
+    n_frames`` complex samples of ``2 × dtype_bytes`` bytes.
+    """
+    n_blocks = -(-trials // BLOCK_TRIALS)
+    if chunk_trials is None:
+        per_trial = max(working_elements_per_trial(plan), 1)
+        chunk_blocks = max(1, min(16, int(CHUNK_ELEMENTS // (BLOCK_TRIALS * per_trial)), -(-n_blocks // threads)))
+    else:
+        if chunk_trials < 1:
+            raise ValueError(f"chunk_trials must be >= 1; got {chunk_trials}")
+        chunk_blocks = -(-int(chunk_trials) // BLOCK_TRIALS)
+    in_flight = min(threads, -(-n_blocks // chunk_blocks))
+    need = in_flight * chunk_bytes(plan, chunk_blocks * BLOCK_TRIALS, n_systems, n_frames)
+    need += trials * n_systems * n_frames * 2 * dtype_bytes
+    return need, chunk_blocks, in_flight
+
+
+def check_simulation(plan: Plan, *, trials: int, n_systems: int, n_frames: int, threads: int,
+                     chunk_trials: int | None = None, dtype_bytes: int = 4) -> int:
+    """:func:`simulation_bytes` checked against the available memory (one line naming the chunk, the
+    scatterers and the knobs to turn); returns the blocks per chunk."""
+    need, chunk_blocks, in_flight = simulation_bytes(plan, trials=trials, n_systems=n_systems, n_frames=n_frames,
+                                                     threads=threads, chunk_trials=chunk_trials,
+                                                     dtype_bytes=dtype_bytes)
+    check_resources(
+        "this simulation", need,
+        f"lower chunk_trials (minimum {BLOCK_TRIALS}) or threads, loosen the truncation tolerance "
+        f"(simulation.truncation_tolerance, now {plan.truncation_tolerance:g}), run fewer trials per call, "
+        "or lower the density",
+        detail=f"{chunk_blocks * BLOCK_TRIALS} trials per chunk, {plan.expected_scatterers_per_trial:.4g} scatterers "
+               f"per trial, {in_flight} chunk(s) at once, plus the output")
+    return chunk_blocks
 
 
 _LIBC = None

@@ -43,8 +43,8 @@ import torch
 
 from .config import Scene
 from ..conventions import TRUNCATION_MODES, noise_sigma
-from .memory import (CHUNK_ELEMENTS, MemoryLimitError, available_memory_bytes, chunk_bytes, release_free_memory,
-                     working_elements_per_trial)
+from .memory import (MemoryLimitError, available_memory_bytes, check_simulation, chunk_bytes,
+                     release_free_memory)
 from .plan import BLOCK_TRIALS, Plan, make_plan
 from .samplers import scene_field, unit_directions
 from .streams import CapacityError, Draws, block_generator, seeded_generator
@@ -148,26 +148,11 @@ def simulate(
         raise ValueError(f"truncation must be one of {TRUNCATION_MODES}; got {truncation!r}")
     plan = make_plan(scene, truncation_tolerance=truncation_tolerance, truncation=truncation)
     n_blocks = -(-trials // BLOCK_TRIALS)
-    if chunk_trials is None:
-        # keep a chunk's largest working tensors near 8M elements, and give every thread a chunk
-        per_trial = max(working_elements_per_trial(plan), 1)
-        chunk_blocks = max(1, min(16, int(CHUNK_ELEMENTS // (BLOCK_TRIALS * per_trial)), -(-n_blocks // threads)))
-    else:
-        if chunk_trials < 1:
-            raise ValueError(f"chunk_trials must be >= 1; got {chunk_trials}")
-        chunk_blocks = -(-int(chunk_trials) // BLOCK_TRIALS)
-    in_flight = min(threads, -(-n_blocks // chunk_blocks))
-    need = in_flight * chunk_bytes(plan, chunk_blocks * BLOCK_TRIALS, len(scene.systems), scene.protocol.n_frames)
-    need += trials * len(scene.systems) * scene.protocol.n_frames * 2 * torch.finfo(dtype).bits // 8
-    avail = available_memory_bytes()
-    if avail is not None and need > avail:
-        raise MemoryLimitError(
-            f"this simulation needs about {need / 2**30:.2f} GB ({chunk_blocks * BLOCK_TRIALS} trials per chunk, "
-            f"{plan.expected_scatterers_per_trial:.4g} scatterers per trial, {in_flight} chunk(s) at once, "
-            f"plus the output) but only "
-            f"{avail / 2**30:.2f} GB are available; lower chunk_trials (minimum {BLOCK_TRIALS}) or threads, loosen "
-            f"the truncation tolerance (simulation.truncation_tolerance, now {plan.truncation_tolerance:g}), "
-            f"run fewer trials per call, or lower the density")
+    # keep a chunk's largest working tensors near 8M elements, and give every thread a chunk; refused
+    # before any work when the chunks in flight and the output would not fit (torchdoct.resources)
+    chunk_blocks = check_simulation(plan, trials=trials, n_systems=len(scene.systems),
+                                    n_frames=scene.protocol.n_frames, threads=threads, chunk_trials=chunk_trials,
+                                    dtype_bytes=torch.finfo(dtype).bits // 8)
     t0 = time.perf_counter()
     pieces = []
     bar = None

@@ -1,0 +1,181 @@
+"""Resources a command needs, checked before any work: one check and one error for every command.
+
+Every command estimates, before it allocates its working arrays, the peak memory it will need (and,
+where it writes a large output, the bytes that output takes on disk) and calls :func:`check_resources`.
+The check compares the estimate with the memory the machine has available (``MemAvailable`` of
+``/proc/meminfo``) and the free space of the output's file system, and refuses a run that would not fit
+with one :class:`ResourceLimitError` (:class:`MemoryLimitError` for memory, :class:`DiskLimitError` for
+disk): one line that names the input (a file, a field or a value), the estimate, the available amount
+and the fix (an option to lower or a smaller value). Where the machine does not say how much it has
+(not Linux), nothing is refused.
+
+The estimates are each command's own, beside its code:
+
+* :func:`torchdoct.simulate` — :func:`torchdoct.sim.memory.simulation_bytes` (chunks in flight and the
+  output signals); ``torchdoct sweep`` and ``torchdoct study`` — the largest cell's simulation times the
+  cells side by side, plus every cell's per-trial metrics (:func:`torchdoct.study.sweep.run_sweeps`);
+* :func:`torchdoct.render` — the rendered sequence and one copy of it when written;
+* ``torchdoct maps`` — :func:`maps_bytes`: the output channels and the working copies of one slab;
+* ``doct-train`` — :func:`classifier.dataset.make_dataset`: the split's arrays, twice (the pieces and
+  their concatenation);
+* ``doct-classify`` and ``torchdoct translate`` — :func:`classify_bytes`: a few copies of the maps
+  files' arrays (their declared sizes, read from the files' headers without loading them).
+
+Standard library only: the torch-free classify path imports it.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+from typing import Iterable
+
+__all__ = ["ResourceLimitError", "MemoryLimitError", "DiskLimitError", "available_memory_bytes", "free_disk_bytes",
+           "format_gb", "check_resources", "maps_bytes", "check_maps", "declared_array_bytes", "classify_bytes",
+           "MAPS_WORK_COPIES", "CLASSIFY_COPIES"]
+
+
+class ResourceLimitError(ValueError):
+    """A run would need more memory or disk than the machine has (refused before any work)."""
+
+
+class MemoryLimitError(ResourceLimitError):
+    """A run would need more memory than the machine has available (refused before any work)."""
+
+
+class DiskLimitError(ResourceLimitError):
+    """An output would need more disk space than its file system has free (refused before any work)."""
+
+
+def available_memory_bytes() -> int | None:
+    """``MemAvailable`` of the machine (Linux ``/proc/meminfo``), or ``None`` where unknown."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
+def free_disk_bytes(path: str | os.PathLike) -> int | None:
+    """Free bytes of the file system that holds ``path`` (or its nearest existing parent), or ``None``."""
+    p = Path(path).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    try:
+        return int(shutil.disk_usage(p).free)
+    except OSError:
+        return None
+
+
+def format_gb(n: float) -> str:
+    """Bytes as GB with two decimals (the unit of every refusal)."""
+    return f"{n / 2**30:.2f} GB"
+
+
+def check_resources(what: str, need_bytes: float, fix: str, *, detail: str = "",
+                    out_path: str | os.PathLike | None = None, out_bytes: float = 0,
+                    out_fix: str | None = None) -> None:
+    """Refuse, before any work, a run that would not fit.
+
+    ``what`` names the input (``"maps of scan.npy"``, ``"sweep 'diffusion' cell 3 (...)"``); the
+    message reads "``what`` needs about X GB (``detail``) but only Y GB are available; ``fix``".
+    ``out_path``/``out_bytes``: an output of that size is written there (its file system's free space is
+    checked; ``out_fix``, default ``fix``, says what to do). Raises :class:`MemoryLimitError` or
+    :class:`DiskLimitError` (both ``ValueError``: exit code 2 on the command line).
+    """
+    avail = available_memory_bytes()
+    if avail is not None and need_bytes > avail:
+        raise MemoryLimitError(f"{what} needs about {format_gb(need_bytes)}" + (f" ({detail})" if detail else "")
+                               + f" but only {format_gb(avail)} are available; {fix}")
+    if out_path is not None and out_bytes > 0:
+        free = free_disk_bytes(out_path)
+        if free is not None and out_bytes > free:
+            raise DiskLimitError(f"{what}: the output {out_path} takes about {format_gb(out_bytes)} on disk but only "
+                                 f"{format_gb(free)} are free there; {out_fix or fix}")
+
+
+# ----------------------------------------------------------------------------------------------
+# estimates of the commands that have no module of their own for them
+
+#: Working copies of one depth slab that the maps loop holds at once (the slab, its reduced field, the
+#: intensity and the metric temporaries; measured: [32, 512²] complex64, 3 resolutions, peak 804 MB of
+#: which about 250 MB are the interpreter and torch).
+MAPS_WORK_COPIES = 10
+
+
+def maps_bytes(shape: Iterable[int], itemsize: int, *, complex_samples: bool, n_resolutions: int,
+               metrics: Iterable[str], slab_elements: int) -> tuple[int, int]:
+    """Peak working memory and output bytes (float32 maps) of ``torchdoct maps``.
+
+    ``shape``: the sequence ``[T, (Y,) Z, X]``, its sample ``itemsize`` (bytes) and whether the samples
+    are complex (``complex_samples``); the output holds
+    ``n_resolutions`` × (metrics, plus the aLIV fit flag with ``aliv``/``swiftness``) channels over the
+    ``[(Y,) Z, X]`` pixels, in the sample's real precision while computed. A slab holds at most
+    ``slab_elements`` samples (:data:`MAPS_WORK_COPIES` copies at once).
+    """
+    dims = [int(d) for d in shape]
+    total = 1
+    for d in dims:
+        total *= d
+    pixels = total // max(dims[0], 1)
+    metrics = list(metrics)
+    channels = n_resolutions * (len(metrics) + (1 if {"aliv", "swiftness"} & set(metrics) else 0))
+    real = int(itemsize) // 2 if complex_samples else int(itemsize)
+    slab = min(int(slab_elements), total) * int(itemsize)
+    out_disk = channels * pixels * 4
+    return MAPS_WORK_COPIES * slab + channels * pixels * real + out_disk, out_disk
+
+
+def check_maps(source: str, shape: Iterable[int], itemsize: int, *, complex_samples: bool, n_resolutions: int,
+               metrics: Iterable[str], slab_elements: int, out_paths: Iterable[str | os.PathLike] = ()) -> None:
+    """The resource check of ``torchdoct maps`` (:func:`maps_bytes`; the output's disk space when
+    ``out_paths`` are given), naming the sequence ``source`` and the options that lower the need."""
+    dims = [int(d) for d in shape]
+    metrics = list(metrics)
+    need, out_disk = maps_bytes(dims, itemsize, complex_samples=complex_samples, n_resolutions=n_resolutions,
+                                metrics=metrics, slab_elements=slab_elements)
+    fix = ("give fewer --resolution values or --metrics, or crop the sequence (fewer B-scans, depths or A-lines); "
+           "the slab size (slab_elements) bounds the working memory")
+    outs = list(out_paths)
+    check_resources(f"maps of {source}", need, fix,
+                    detail=f"sequence {dims}, {n_resolutions} resolution(s), {len(metrics)} metric(s)")
+    for o in outs:
+        check_resources(f"maps of {source}", 0, fix, out_path=o, out_bytes=out_disk,
+                        out_fix="free disk space there or write --out elsewhere")
+
+
+def declared_array_bytes(path: str | os.PathLike) -> int:
+    """Bytes of the arrays a file declares, without loading them: the ``.npy`` members' uncompressed
+    sizes for ``.npz``, the file's size otherwise (TIFF stacks are stored uncompressed)."""
+    p = Path(path)
+    if p.suffix.lower() == ".npz":
+        import zipfile
+
+        try:
+            with zipfile.ZipFile(p) as zf:
+                return sum(i.file_size for i in zf.infolist() if i.filename.endswith(".npy"))
+        except (OSError, zipfile.BadZipFile):
+            return 0  # the reader names a damaged archive
+    try:
+        return p.stat().st_size
+    except OSError:
+        return 0  # the reader names a missing file
+
+
+#: Copies of the maps that classification holds at once (the maps read, the features, the model inputs
+#: and the probability maps; README: 300 MB + 4 × the maps files).
+CLASSIFY_COPIES = 4
+
+
+def classify_bytes(paths: Iterable[str | os.PathLike], limit_bytes: int | None = None) -> int:
+    """Peak memory of classifying (or translating) the maps ``paths``: :data:`CLASSIFY_COPIES` × their
+    declared arrays. A file over ``limit_bytes`` (the readers' input limit) counts 0: its reader refuses
+    it with the input-limit message."""
+    sizes = [declared_array_bytes(p) for p in paths]
+    if limit_bytes is not None:
+        sizes = [0 if s > limit_bytes else s for s in sizes]
+    return CLASSIFY_COPIES * sum(sizes)
