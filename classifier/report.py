@@ -23,7 +23,8 @@ import numpy as np
 from .rule import REASONS, apply_rule
 
 __all__ = ["expected_calibration_error", "evaluate", "bootstrap_se", "coverage_curve", "magnitude_table",
-           "write_report", "format_markdown", "undefined_reason", "summary_line", "COVERAGE_THRESHOLDS"]
+           "write_report", "format_markdown", "undefined_reason", "summary_line", "training_summary", "finite",
+           "COVERAGE_THRESHOLDS"]
 
 #: ``min_probability`` values of the accuracy-coverage table (:func:`coverage_curve`).
 COVERAGE_THRESHOLDS = (0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
@@ -211,6 +212,25 @@ def summary_line(metrics: dict[str, Any]) -> str:
             f"{f('balanced_accuracy_identifiable')}; ECE {f('ece')}")
 
 
+def training_summary(report: dict[str, Any]) -> str:
+    """The line ``doct-train`` prints after a run: the network's test metrics at pool 1
+    (:func:`summary_line`), the ONNX parity and the total time."""
+    return (f"test (pool 1): {summary_line(report['test']['network']['1'])}; ONNX max |dp| "
+            f"{report['onnx_parity_max_abs_diff']:.1e}; total {report['total_s']:.0f} s")
+
+
+def finite(obj: Any) -> Any:
+    """``obj`` with every NaN or infinite float replaced by None (strict JSON; an undefined metric reads
+    "n/a" in the text, :func:`undefined_reason`), through dicts, lists and tuples (as lists)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    return obj
+
+
 def magnitude_table(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, magnitude: np.ndarray,
                     class_names: Sequence[str], rule: dict[str, Any], ranges: Sequence[tuple[float, float]],
                     bins: int = 8) -> list[dict[str, Any]]:
@@ -352,8 +372,8 @@ def _shifted_section(L: list[str], sp: dict[str, Any], rule: dict[str, Any]) -> 
     if "magnitude" in sp:
         _section(L, "Shifted prior: motion magnitude (network; identifiable samples, head of the true class)", None,
                  ["pool", "samples", "median abs. log10 error", "68 % coverage", "95 % coverage"], "rrrrr",
-                 [[pool, m["samples"], _fmt(m["median_abs_log10_error"]), _fmt(m["coverage_68"]),
-                   _fmt(m["coverage_95"])] for pool, m in sp["magnitude"].items()])
+                 [[pool, m["samples"], _fmt(m.get("median_abs_log10_error")), _fmt(m.get("coverage_68")),
+                   _fmt(m.get("coverage_95"))] for pool, m in sp["magnitude"].items()])
 
 
 def format_markdown(report: dict[str, Any]) -> str:
@@ -444,9 +464,9 @@ def format_markdown(report: dict[str, Any]) -> str:
                  "(68 %) and ± 1.96 SD (95 %) of the predicted Gaussian.",
                  ["pool", "samples", "median abs. log10 error", "mean abs. log10 error", "68 % coverage",
                   "95 % coverage", "median SD", "median error diffusion / ballistic / flow"], "rrrrrrr-",
-                 [[pool, m["samples"], _fmt(m["median_abs_log10_error"]), _fmt(m["mean_abs_log10_error"]),
-                   _fmt(m["coverage_68"]), _fmt(m["coverage_95"]), _fmt(m["median_predicted_sd"]),
-                   " / ".join(_fmt(m["by_class"].get(c, {}).get("median_abs_log10_error")) for c in cls[:-1])]
+                 [[pool, m["samples"], _fmt(m.get("median_abs_log10_error")), _fmt(m.get("mean_abs_log10_error")),
+                   _fmt(m.get("coverage_68")), _fmt(m.get("coverage_95")), _fmt(m.get("median_predicted_sd")),
+                   " / ".join(_fmt(m.get("by_class", {}).get(c, {}).get("median_abs_log10_error")) for c in cls[:-1])]
                   for pool, m in r["magnitude"].items()])
     if "bulk_phase" in r:
         _section(L, "Random bulk phase per frame (network; the test draws with a uniform random phase per frame)", None,

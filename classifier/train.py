@@ -1,30 +1,37 @@
-"""Training: datasets → pooled samples → :class:`~classifier.model.MotionClassifier` → report.
+"""Training as a pipeline of public steps: recipe → samples → fit → every test set evaluated → report.
 
 :func:`train` runs the whole recipe of the shipped model from a :class:`TrainConfig` (the recipes:
-:mod:`classifier.recipe`, whose names this module re-exports):
+:mod:`classifier.recipe`, whose names this module re-exports), one public step after the other:
 
-1. simulate (or load from the cache) the train, validation and test splits
-   (:func:`classifier.dataset.make_dataset`);
-2. targets: the motion type where the ground truth says the motion is identifiable, else
-   ``indeterminate`` (:mod:`classifier.rule`);
-3. pooled samples: a feature vector may be the mean over ``n`` independent pixels (``pool_pixels``
-   = n, the model's last input). Each epoch uses every single trial (n = 1) plus, per draw,
-   ``pooled_per_draw`` means over random subsets of its trials with n log-uniform in
-   [2, ``max_pool_pixels``]; the validation set is one fixed draw of the same mixture;
-4. AdamW on cross-entropy (plus the magnitude head's Gaussian NLL for magnitude models,
-   :mod:`classifier.model`), minibatches shuffled by a seeded numpy generator, early stopping on the
-   validation cross-entropy (best weights kept);
-5. temperature scaling on the validation set (grid search of the NLL), stored in the model;
-6. scikit-learn baselines (logistic regression, histogram gradient boosting) on the same training
-   samples (singles + one pooled draw);
-7. evaluation on the test split at ``eval_pools`` pooled pixels (n = 1: every trial; n > 1: 16
-   random subsets per draw), the report of :mod:`classifier.report`;
-8. for signature specs (``TrainConfig.shifted_test``), the same evaluation of the network on a test
-   split drawn from :data:`SHIFTED_PRIOR` (other flow angles, fixed density, no static fraction,
-   other noise), on which accuracy and calibration must hold (:data:`SHIFTED_TARGETS`).
+1. the recipe (:func:`plan_training` → :class:`TrainPlan`): the config, the training prior, the feature
+   spec, the indeterminate rule (:mod:`classifier.rule`), and what the spec takes: a magnitude head
+   (signature specs), a test split with a random bulk phase per frame (specs that read the phase), a test
+   split from :data:`SHIFTED_PRIOR` (signature specs: other flow angles, fixed density, no static
+   fraction, other noise; accuracy and calibration must hold there, :data:`SHIFTED_TARGETS`);
+2. the samples (:func:`simulate_data` → :class:`TrainingData`): the train, validation and test splits
+   and those test sets, simulated or loaded from the cache (:func:`classifier.dataset.make_dataset`);
+3. the fit (:func:`fit_models` → :class:`FittedModels`): the network (:func:`fit_network`): targets =
+   the motion type where the ground truth says the motion is identifiable, else ``indeterminate``
+   (:func:`class_targets`); pooled samples: a feature vector may be the mean over ``n`` independent
+   pixels (``pool_pixels`` = n, the model's last input), each epoch every single trial (n = 1) plus, per
+   draw, ``pooled_per_group`` means over random subsets of its trials with n log-uniform in
+   [2, ``max_pool_pixels``], the validation set one fixed draw of the same mixture; AdamW on
+   cross-entropy (plus the magnitude head's Gaussian NLL for magnitude models, :mod:`classifier.model`),
+   minibatches shuffled by a seeded numpy generator, early stopping on the validation cross-entropy
+   (best weights kept); temperature scaling on the validation set (grid search of the NLL), stored in
+   the model. Then the scikit-learn baselines (logistic regression, histogram gradient boosting) on
+   the same training samples (singles + one pooled draw);
+4. every test set evaluated (:func:`evaluate_test_sets`), each by the one function
+   :func:`classifier.evaluation.evaluate_set`: the test split at ``eval_pools`` pooled pixels (n = 1:
+   every trial; n > 1: 8 random subsets per draw; :func:`evaluation_sets`) for every model (and the
+   shipped LIV/OCDS model on the same pixels for signature specs, :func:`reference_model`), the
+   random-bulk-phase and the shifted-prior test splits for the network;
+5. the report (:func:`training_report`; written by :func:`classifier.report.write_report`).
 
-Everything is seeded from ``TrainConfig.seed``; the global torch RNG is not used (weights are
-initialised inside :func:`torch.random.fork_rng`).
+:func:`train_to_files` adds the ONNX export, its check in onnxruntime and the report files
+(``doct-train``). Everything is seeded from ``TrainConfig.seed`` (the evaluation samples of each test
+set from their own stream, so the order of the steps changes no number); the global torch RNG is not
+used (weights are initialised inside :func:`torch.random.fork_rng`).
 """
 
 from __future__ import annotations
@@ -41,20 +48,17 @@ import torch
 from . import __version__
 from .dataset import CLASSES, STATUS, Dataset, Prior, make_dataset
 from .features import METRIC_UNITS, FeatureSpec, load_spec
+from .evaluation import CLASS_NAMES, evaluate_set
 from .model import DECORRELATION_OFFSET, LIV_OFFSET_DB2, MotionClassifier
-from .report import (COVERAGE_THRESHOLDS, bootstrap_se, coverage_curve, evaluate, flow_recall_by_band,
-                     magnitude_table)
 from .recipe import (OWN_SIGNATURE_RECIPE, SCALED_PRIOR_SPECS, SHIFTED_PRIOR, SHIFTED_TARGETS, SPEC_RECIPES,  # noqa: F401
                      TrainConfig, default_prior, recipe_for, shifted_prior)
-from .rule import INDETERMINATE, make_rule
+from .rule import make_rule
 
 __all__ = ["TrainConfig", "TrainResult", "train", "fit_network", "pooled_samples", "CLASS_NAMES", "transform_numpy",
            "SHIFTED_PRIOR", "SHIFTED_TARGETS", "shifted_prior", "feature_masks", "eval_samples", "class_targets",
-           "evaluation_sets"]
-
-#: Output classes of every model: the motion types, then ``indeterminate``.
-CLASS_NAMES = (*CLASSES, INDETERMINATE)
-
+           "evaluation_sets", "TrainPlan", "plan_training", "TrainingData", "simulate_data", "FittedModels",
+           "fit_models", "evaluate_test_sets", "training_report", "reference_model", "network_predictions",
+           "interval_scale", "train_to_files"]
 
 def _uses_magnitude(cfg: TrainConfig, spec: FeatureSpec) -> bool:
     return spec.is_signature if cfg.magnitude is None else bool(cfg.magnitude)
@@ -337,8 +341,9 @@ def evaluation_sets(ds: Dataset, cfg: TrainConfig, spec: FeatureSpec, rng: np.ra
     return tests, refs
 
 
-def _reference_model(spec: FeatureSpec):
-    """The shipped LIV/OCDS model whose configurations are the spec's (None if there is none)."""
+def reference_model(spec: FeatureSpec):
+    """The shipped LIV/OCDS model whose configurations are the spec's (None if there is none): the
+    comparison row of a signature model's report, scored on LIV and OCDS of the same test pixels."""
     from .infer import load_model, shipped_models
 
     for name in shipped_models():
@@ -354,24 +359,311 @@ def _reference_model(spec: FeatureSpec):
     return None
 
 
-def _magnitude_eval(model: MotionClassifier, s: dict[str, np.ndarray]) -> dict[str, Any]:
-    """Magnitude error and interval coverage on identifiable samples (head of the true motion class)."""
-    ident = s["status"] == 0
+def network_predictions(model: MotionClassifier, s: dict[str, np.ndarray], magnitude: bool = False):
+    """The network's probabilities ``[N, C]`` of the samples ``s`` and, with ``magnitude``, its predicted
+    ``(log10 magnitude, SD)`` ``[N, K]``, computed on the identifiable rows (the only rows
+    :func:`classifier.evaluation.magnitude_metrics` reads; NaN elsewhere); ``None`` without."""
     with torch.no_grad():
+        p = model(torch.from_numpy(s["x"])).numpy()
+        if not magnitude:
+            return p, None
+        ident = s["status"] == 0
         mu, sd = model.magnitude(torch.from_numpy(s["x"][ident]))
-    y = s["y"][ident]
-    m = mu.numpy()[np.arange(len(y)), y].astype(np.float64)
-    sdv = sd.numpy()[np.arange(len(y)), y].astype(np.float64)
-    err = np.abs(m - np.log10(s["magnitude"][ident]))
-    out: dict[str, Any] = {"samples": int(len(y)), "median_abs_log10_error": float(np.median(err)),
-                           "mean_abs_log10_error": float(err.mean()),
-                           "coverage_68": float(np.mean(err <= sdv)), "coverage_95": float(np.mean(err <= 1.959964 * sdv)),
-                           "median_predicted_sd": float(np.median(sdv))}
-    out["by_class"] = {CLASSES[c]: {"median_abs_log10_error": float(np.median(err[y == c])),
-                                    "coverage_68": float(np.mean(err[y == c] <= sdv[y == c])),
-                                    "coverage_95": float(np.mean(err[y == c] <= 1.959964 * sdv[y == c]))}
-                       for c in range(len(CLASSES)) if np.any(y == c)}
+    mean = np.full((len(p), mu.shape[1]), np.nan, np.float32)
+    sdv = np.full((len(p), sd.shape[1]), np.nan, np.float32)
+    mean[ident], sdv[ident] = mu.numpy(), sd.numpy()
+    return p, (mean, sdv)
+
+
+# ------------------------------------------------------------------------------------------------
+# the steps of train()
+
+
+@dataclass(frozen=True)
+class TrainPlan:
+    """Step 1 of :func:`train`: the recipe, the training prior, the feature spec, the indeterminate rule and
+    what the spec takes: a magnitude head, the random-bulk-phase and the shifted-prior test sets."""
+
+    config: TrainConfig
+    prior: Prior
+    spec: FeatureSpec
+    rule: dict[str, Any]
+    magnitude: bool
+    bulk_phase_test: bool
+    shifted_test: bool
+
+
+def plan_training(config: TrainConfig | None = None, prior: Prior | None = None,
+                  spec: FeatureSpec | str | None = None) -> TrainPlan:
+    """The :class:`TrainPlan` of a recipe (default :class:`TrainConfig`), a prior (default
+    :func:`default_prior`) and a spec (default ``config.spec``: a shipped name or a TOML file)."""
+    cfg = config or TrainConfig()
+    prior = prior or default_prior(cfg)
+    spec = load_spec(cfg.spec if spec is None else spec)
+    return TrainPlan(config=cfg, prior=prior, spec=spec, rule=make_rule(prior.identifiability_epsilon, cfg.min_probability),
+                     magnitude=_uses_magnitude(cfg, spec),
+                     bulk_phase_test=bool(spec.needs_field if cfg.bulk_phase_test is None else cfg.bulk_phase_test),
+                     shifted_test=bool(spec.is_signature if cfg.shifted_test is None else cfg.shifted_test))
+
+
+@dataclass
+class TrainingData:
+    """Step 2 of :func:`train`: the train, validation and test splits (``splits``), and the test sets the
+    plan takes: the test draws with a random bulk phase per frame, and test draws from the shifted prior."""
+
+    splits: dict[str, Dataset]
+    bulk_phase: Dataset | None = None
+    shifted_prior: Dataset | None = None
+
+    @property
+    def simulation_s(self) -> float:
+        """Simulation time of the splits and the bulk-phase set (the shifted prior's is reported with it)."""
+        return sum(ds.meta["elapsed_s"] for ds in (*self.splits.values(), self.bulk_phase) if ds is not None)
+
+
+def simulate_data(plan: TrainPlan, *, cache_dir=None, use_cache: bool = True, progress: bool = False,
+                  log=print) -> TrainingData:
+    """Simulate (or load from the cache) every dataset of the plan (:func:`classifier.dataset.make_dataset`,
+    seeded by the recipe's seed and the split: the order changes no number)."""
+    cfg, spec, prior = plan.config, plan.spec, plan.prior
+    say = log or (lambda *a, **k: None)
+    common = dict(seed=cfg.seed, trials_per_draw=cfg.trials_per_draw, replicates=cfg.replicates,
+                  truncation_tolerance=cfg.truncation_tolerance, truncation=cfg.truncation, cache_dir=cache_dir,
+                  use_cache=use_cache, progress=progress)
+    splits: dict[str, Dataset] = {}
+    for split, draws in (("train", cfg.draws_train), ("validation", cfg.draws_validation), ("test", cfg.draws_test)):
+        ds = make_dataset(spec, prior, split=split, draws=draws, **common)
+        splits[split] = ds
+        say(f"{split}: {len(ds)} samples from {draws} draws ({'cache' if ds.meta['from_cache'] else 'simulated'}, "
+            f"{ds.meta['seconds_per_draw']:.3f} s/draw); ground truth per draw: {ds.meta['draw_status_counts']}")
+    data = TrainingData(splits)
+    if plan.bulk_phase_test:
+        data.bulk_phase = make_dataset(spec, prior, split="test", draws=cfg.draws_test, bulk_phase=True, **common)
+    if plan.shifted_test:
+        data.shifted_prior = make_dataset(spec, shifted_prior(prior), split="test", draws=cfg.draws_test, **common)
+    return data
+
+
+@dataclass
+class FittedModels:
+    """Step 3 of :func:`train`: the network (:func:`fit_network`'s result), the predictors to evaluate
+    (``name -> f(x) = probabilities``: the network, then the baselines) and their training times (s)."""
+
+    network: dict[str, Any]
+    predictors: dict[str, Any]
+    train_s: dict[str, float]
+
+    @property
+    def model(self) -> MotionClassifier:
+        return self.network["model"]
+
+
+def fit_models(plan: TrainPlan, data: TrainingData, *, progress: bool = False, log=print) -> FittedModels:
+    """The network (:func:`fit_network`) and, with ``config.baselines``, the scikit-learn baselines (logistic
+    regression, histogram gradient boosting) on the network's first training samples."""
+    cfg, spec = plan.config, plan.spec
+    say = log or (lambda *a, **k: None)
+    fit = fit_network(data.splits["train"], data.splits["validation"], spec, cfg, progress=progress)
+    model = fit["model"]
+    say(f"network: {fit['epochs']} epochs (best {fit['best_epoch']}, validation loss {fit['validation_loss']:.4f}), "
+        f"temperature {fit['temperature']:.3f}, {fit['training_s']:.1f} s")
+    predictors: dict[str, Any] = {"network": lambda xx: network_predictions(model, {"x": xx})[0]}
+    train_s = {"network": fit["training_s"]}
+    if cfg.baselines:
+        from sklearn.ensemble import HistGradientBoostingClassifier
+        from sklearn.linear_model import LogisticRegression
+        from sklearn.pipeline import make_pipeline
+        from sklearn.preprocessing import StandardScaler
+
+        mask, cmask = feature_masks(spec)
+        train0 = fit["first_samples"]
+        xb = transform_numpy(train0["x"], mask, cmask)
+        yb = class_targets(train0)
+        for name, est in (("logistic_regression", make_pipeline(StandardScaler(), LogisticRegression(max_iter=2000))),
+                          ("gradient_boosting", HistGradientBoostingClassifier(max_iter=300, random_state=cfg.seed))):
+            t1 = time.perf_counter()
+            est.fit(xb, yb)
+            train_s[name] = time.perf_counter() - t1
+            full = np.eye(len(CLASS_NAMES))[est.classes_]  # a class absent from a small training split: p = 0
+            predictors[name] = (lambda e, f: (lambda xx: e.predict_proba(transform_numpy(xx, mask, cmask)) @ f))(est, full)
+            say(f"{name}: trained in {train_s[name]:.2f} s")
+    return FittedModels(network=fit, predictors=predictors, train_s=train_s)
+
+
+#: Seeds (``spawn_key``) of the evaluation samples of each test set: the bulk-phase set pools the very
+#: pixels of the test split.
+_EVAL_STREAM = {"test": 9, "bulk_phase": 9, "shifted_prior": 10}
+
+
+def _confusion_pools(plan: TrainPlan) -> list[str]:
+    """Pools of the report's detailed tables (confusion, curves, bands, standard errors): 1 and 25."""
+    pools = [str(n) for n in plan.config.eval_pools]
+    return [p for p in ("1", "25") if p in pools] or [pools[0]]
+
+
+def _by_pool(blocks: dict[str, dict[str, Any]], key: str, pools=None) -> dict[str, Any]:
+    return {pool: b[key] for pool, b in blocks.items() if (pools is None or pool in pools)}
+
+
+def evaluate_test_sets(plan: TrainPlan, data: TrainingData, fitted: FittedModels, *, log=print) -> dict[str, Any]:
+    """Step 4 of :func:`train`: every model on every test set, each pool's samples scored by
+    :func:`classifier.evaluation.evaluate_set`.
+
+    Returns ``test`` (``{model: {pool: block}}``: the network, the baselines and, for signature specs, the
+    shipped LIV/OCDS model on LIV and OCDS of the same pixels), ``inference_us`` (µs per sample at pool 1),
+    ``bulk_phase`` and ``shifted_prior`` (``{pool: block}`` of the network, None when the plan has no such
+    set) and ``test_inputs`` (the pool-1 inputs of the test split)."""
+    cfg, spec, rule = plan.config, plan.spec, plan.rule
+    say = log or (lambda *a, **k: None)
+    conf = _confusion_pools(plan)
+    model = fitted.model
+
+    def samples(name: str, ds: Dataset):
+        rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(_EVAL_STREAM[name],)))
+        return evaluation_sets(ds, cfg, spec, rng)
+
+    def network_blocks(sets, ranges, *, pools=None, own=False, magnitude=plan.magnitude):
+        out = {}
+        for pool, s in sets.items():
+            if pools is not None and pool not in pools:
+                continue
+            p, mag = network_predictions(model, s, magnitude)
+            if own and pool == "1":  # the same numbers, timed
+                p, inference_us["network"] = _timed_predict(fitted.predictors["network"], s["x"])
+            out[pool] = evaluate_set(p, s, rule, magnitude=mag, ranges=ranges, detail=ranges is not None and pool in conf,
+                                     by_condition=own and pool == "1", seed=cfg.seed, class_samples=False)
+        return out
+
+    # the test split: the network, the baselines, the shipped LIV/OCDS model
+    inference_us: dict[str, float] = {}
+    tests, tests_ref = samples("test", data.splits["test"])
+    prior = plan.prior
+    test = {"network": network_blocks(tests, [prior.magnitude_range(label) for label in range(len(CLASSES))], own=True)}
+    for name, fn in fitted.predictors.items():
+        if name == "network":
+            continue
+        test[name] = {}
+        for pool, s in tests.items():
+            if pool == "1":
+                p, inference_us[name] = _timed_predict(fn, s["x"])
+            else:
+                p = fn(s["x"])
+            test[name][pool] = evaluate_set(p, s, rule, detail=False)
+    reference = reference_model(spec) if tests_ref else None
+    if reference is not None:
+        name = f"{reference.metadata['spec']['name']} (LIV/OCDS model)"
+        test[name] = {}
+        for pool, s in tests_ref.items():
+            if pool == "1":
+                p, inference_us[name] = _timed_predict(reference.predict, s["x"])
+            else:
+                p = reference.predict(s["x"])
+            test[name][pool] = evaluate_set(p, s, rule, detail=False)
+    if plan.magnitude:
+        say("magnitude (pool 1): " + ", ".join(f"{k} {v:.3f}" for k, v in test["network"]["1"]["magnitude"].items()
+                                               if isinstance(v, float)))
+    out: dict[str, Any] = {"test": test, "inference_us": inference_us, "bulk_phase": None, "shifted_prior": None,
+                           "test_inputs": tests["1"]["x"]}
+    if data.bulk_phase is not None:  # the test draws with a random bulk phase per frame
+        btests, _ = samples("bulk_phase", data.bulk_phase)
+        bulk = network_blocks(btests, None, pools=("1", "25"), magnitude=False)
+        out["bulk_phase"] = bulk
+        m1 = bulk["1"]["metrics"]
+        say(f"random bulk phase per frame: balanced accuracy (identifiable, pool 1) "
+            f"{m1['balanced_accuracy_identifiable']:.3f}, coverage {m1['coverage_identifiable']:.3f}")
+    if data.shifted_prior is not None:  # test draws from the shifted prior
+        sp = shifted_prior(prior)
+        stests, _ = samples("shifted_prior", data.shifted_prior)
+        shifted = network_blocks(stests, [sp.diffusion_um2_per_s, sp.speed_um_per_s, sp.speed_um_per_s])
+        out["shifted_prior"] = shifted
+        m1, ds = shifted["1"]["metrics"], data.shifted_prior
+        say(f"shifted prior ({len(ds)} samples, {'cache' if ds.meta['from_cache'] else 'simulated'}): "
+            f"balanced accuracy (identifiable, pool 1) {m1['balanced_accuracy_identifiable']:.3f}, coverage "
+            f"{m1['coverage_identifiable']:.3f}, ECE {m1['ece']:.3f}")
     return out
+
+
+def training_report(plan: TrainPlan, data: TrainingData, fitted: FittedModels, evaluation: dict[str, Any]) -> dict[str, Any]:
+    """Step 5 of :func:`train`: the report (written by :func:`classifier.report.write_report`)."""
+    import torchdoct
+
+    cfg = plan.config
+    conf = _confusion_pools(plan)
+    fit = fitted.network
+    splits = data.splits
+    n_sim_samples = (cfg.draws_train + cfg.draws_validation + cfg.draws_test) * cfg.trials_per_draw
+    net = evaluation["test"]["network"]
+    timing = {name: {"train_s": s} for name, s in fitted.train_s.items()}
+    for name, us in evaluation["inference_us"].items():
+        timing.setdefault(name, {"train_s": math.nan})["inference_us_per_sample"] = us
+    t_sim = data.simulation_s
+    report = {
+        "classifier_version": __version__,
+        "torchdoct_version": torchdoct.__version__,
+        "torch_version": torch.__version__,
+        "spec": plan.spec.to_dict(),
+        "feature_names": list(plan.spec.feature_names),
+        "classes": list(CLASS_NAMES),
+        "rule": plan.rule,
+        "prior": plan.prior.to_dict(),
+        "config": cfg.to_dict(),
+        "seed": cfg.seed,
+        "data": {
+            "draws": {k: v.meta["draws"] for k, v in splits.items()},
+            "trials_per_draw": cfg.trials_per_draw,
+            "samples": {k: len(v) for k, v in splits.items()},
+            "draw_status_counts": {k: v.meta["draw_status_counts"] for k, v in splits.items()},
+            "dropped_empty": {k: v.meta["dropped_empty"] for k, v in splits.items()},
+            "simulation_s": t_sim,
+            "replicates": cfg.replicates,
+            "ms_per_trial": t_sim / max(n_sim_samples, 1) * 1e3,
+            "s_per_draw": t_sim / max(sum(c for c in (cfg.draws_train, cfg.draws_validation, cfg.draws_test)), 1),
+            "from_cache": {k: v.meta["from_cache"] for k, v in splits.items()},
+            "threads": torch.get_num_threads(),
+        },
+        "training": {"seconds": fit["training_s"], "epochs": fit["epochs"], "best_epoch": fit["best_epoch"],
+                     "validation_loss": fit["validation_loss"], "temperature": fit["temperature"]},
+        "test": {name: _by_pool(blocks, "metrics") for name, blocks in evaluation["test"].items()},
+        "timing": timing,
+        "confusion_pools": conf,
+        "standard_errors": _by_pool(net, "standard_errors", conf),
+        "by_magnitude": _by_pool(net, "by_magnitude", conf),
+        "by_condition": net["1"]["by_condition"],
+        "coverage_curve": _by_pool(net, "coverage_curve", conf),
+        "flow_bands": _by_pool(net, "flow_bands", conf),
+        "status_names": list(STATUS),
+    }
+    if plan.magnitude:
+        report["magnitude"] = _by_pool(net, "magnitude")
+    if evaluation["bulk_phase"] is not None:
+        report["bulk_phase"] = _by_pool(evaluation["bulk_phase"], "metrics")
+    if evaluation["shifted_prior"] is not None:
+        report["shifted_prior"] = _shifted_report(plan, data.shifted_prior, evaluation["shifted_prior"], conf)
+    return report
+
+
+def _shifted_report(plan: TrainPlan, ds: Dataset, blocks: dict[str, dict[str, Any]], conf: list[str]) -> dict[str, Any]:
+    """The shifted-prior section of the report, with its targets (:data:`SHIFTED_TARGETS`)."""
+    rep = {
+        "prior": shifted_prior(plan.prior).to_dict(), "draws": plan.config.draws_test, "samples": len(ds),
+        "draw_status_counts": ds.meta["draw_status_counts"], "dropped_empty": ds.meta["dropped_empty"],
+        "simulation_s": ds.meta["elapsed_s"], "from_cache": ds.meta["from_cache"],
+        "test": _by_pool(blocks, "metrics"),
+        "standard_errors": _by_pool(blocks, "standard_errors", conf),
+        "by_magnitude": _by_pool(blocks, "by_magnitude", conf),
+        "coverage_curve": _by_pool(blocks, "coverage_curve", conf),
+        "flow_bands": _by_pool(blocks, "flow_bands", conf),
+    }
+    if plan.magnitude:
+        rep["magnitude"] = _by_pool(blocks, "magnitude")
+    tp = SHIFTED_TARGETS["pool"]
+    if tp in rep["test"]:
+        m = rep["test"][tp]
+        bal, ece = m["balanced_accuracy_identifiable"], m["ece"]
+        rep["targets"] = {**SHIFTED_TARGETS,
+                          "met": bool(math.isfinite(bal) and bal >= SHIFTED_TARGETS["balanced_accuracy_identifiable"]
+                                      and ece <= SHIFTED_TARGETS["ece"])}
+    return rep
 
 
 def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cache_dir=None, use_cache: bool = True,
@@ -380,219 +672,35 @@ def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cach
 
     ``spec``: the feature spec as a value (``doct-train --like``); default ``config.spec`` (a shipped
     name or a TOML file)."""
-    cfg = config or TrainConfig()
-    prior = prior or default_prior(cfg)
-    spec = load_spec(cfg.spec if spec is None else spec)
-    rule = make_rule(prior.identifiability_epsilon, cfg.min_probability)
-    say = log or (lambda *a, **k: None)
-
-    # 1. data
-    t_sim = 0.0
-    n_sim_samples = 0
-    data: dict[str, Dataset] = {}
-    for split, draws in (("train", cfg.draws_train), ("validation", cfg.draws_validation), ("test", cfg.draws_test)):
-        ds = make_dataset(spec, prior, seed=cfg.seed, split=split, draws=draws, trials_per_draw=cfg.trials_per_draw,
-                          replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance, truncation=cfg.truncation, cache_dir=cache_dir, use_cache=use_cache,
-                          progress=progress)
-        data[split] = ds
-        t_sim += ds.meta["elapsed_s"]
-        n_sim_samples += draws * cfg.trials_per_draw
-        say(f"{split}: {len(ds)} samples from {draws} draws ({'cache' if ds.meta['from_cache'] else 'simulated'}, "
-            f"{ds.meta['seconds_per_draw']:.3f} s/draw); ground truth per draw: {ds.meta['draw_status_counts']}")
-
-    # 2-5. network: targets, pooled samples, AdamW with early stopping, temperature (fit_network)
-    fit = fit_network(data["train"], data["validation"], spec, cfg, progress=progress)
-    model, train0, epoch, temperature = fit["model"], fit["first_samples"], fit["epochs"], fit["temperature"]
-    best = (fit["validation_loss"], None, fit["best_epoch"])
-    train_s = fit["training_s"]
-    say(f"network: {epoch} epochs (best {best[2]}, validation loss {best[0]:.4f}), temperature {temperature:.3f}, "
-        f"{train_s:.1f} s")
-
-    def net_predict(xx: np.ndarray) -> np.ndarray:
-        with torch.no_grad():
-            return model(torch.from_numpy(xx)).numpy()
-
-    predictors: dict[str, Any] = {"network": net_predict}
-    timing = {"network": {"train_s": train_s}}
-
-    # 6. baselines
-    if cfg.baselines:
-        from sklearn.ensemble import HistGradientBoostingClassifier
-        from sklearn.linear_model import LogisticRegression
-        from sklearn.pipeline import make_pipeline
-        from sklearn.preprocessing import StandardScaler
-
-        mask, cmask = feature_masks(spec)
-        xb = transform_numpy(train0["x"], mask, cmask)
-        yb = class_targets(train0)
-        for name, est in (("logistic_regression", make_pipeline(StandardScaler(), LogisticRegression(max_iter=2000))),
-                          ("gradient_boosting", HistGradientBoostingClassifier(max_iter=300, random_state=cfg.seed))):
-            t1 = time.perf_counter()
-            est.fit(xb, yb)
-            timing[name] = {"train_s": time.perf_counter() - t1}
-            full = np.eye(len(CLASS_NAMES))[est.classes_]  # a class absent from a small training split: p = 0
-            predictors[name] = (lambda e, f: (lambda xx: e.predict_proba(transform_numpy(xx, mask, cmask)) @ f))(est, full)
-            say(f"{name}: trained in {timing[name]['train_s']:.2f} s")
-
-    # 7. evaluation on the test split (its own seeded stream: the order of the steps changes no number)
-    ev_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))
-    tests, tests_ref = evaluation_sets(data["test"], cfg, spec, ev_rng)
-    reference = _reference_model(spec) if tests_ref else None
-    test_metrics: dict[str, dict[str, Any]] = {}
-    probs_net: dict[str, np.ndarray] = {}
-    for name, fn in predictors.items():
-        test_metrics[name] = {}
-        for pool, s in tests.items():
-            if pool == "1":
-                p, us = _timed_predict(fn, s["x"])
-                timing[name]["inference_us_per_sample"] = us
-            else:
-                p = fn(s["x"])
-            if name == "network":
-                probs_net[pool] = p
-            test_metrics[name][pool] = evaluate(p, s["y"], s["status"], CLASS_NAMES, rule)
-    if reference is not None:  # the shipped LIV/OCDS model on LIV and OCDS of the same test pixels
-        name = f"{reference.metadata['spec']['name']} (LIV/OCDS model)"
-        test_metrics[name] = {}
-        for pool, s in tests_ref.items():
-            if pool == "1":
-                p, us = _timed_predict(reference.predict, s["x"])
-                timing[name] = {"train_s": math.nan, "inference_us_per_sample": us}
-            else:
-                p = reference.predict(s["x"])
-            test_metrics[name][pool] = evaluate(p, s["y"], s["status"], CLASS_NAMES, rule)
-    magnitude_report = None
-    if _uses_magnitude(cfg, spec):
-        magnitude_report = {pool: _magnitude_eval(model, s) for pool, s in tests.items()}
-        say("magnitude (pool 1): " + ", ".join(f"{k} {v:.3f}" for k, v in magnitude_report["1"].items()
-                                               if isinstance(v, float)))
-    bulk_report = None
-    if (spec.needs_field if cfg.bulk_phase_test is None else cfg.bulk_phase_test):
-        bulk = make_dataset(spec, prior, seed=cfg.seed, split="test", draws=cfg.draws_test,
-                            trials_per_draw=cfg.trials_per_draw, replicates=cfg.replicates,
-                            truncation_tolerance=cfg.truncation_tolerance, truncation=cfg.truncation, cache_dir=cache_dir, use_cache=use_cache,
-                            progress=progress, bulk_phase=True)
-        t_sim += bulk.meta["elapsed_s"]
-        b_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))
-        btests, _ = evaluation_sets(bulk, cfg, spec, b_rng)
-        bulk_report = {pool: evaluate(net_predict(s["x"]), s["y"], s["status"], CLASS_NAMES, rule)
-                       for pool, s in btests.items() if pool in ("1", "25")}
-        say(f"random bulk phase per frame: balanced accuracy (identifiable, pool 1) "
-            f"{bulk_report['1']['balanced_accuracy_identifiable']:.3f}, coverage {bulk_report['1']['coverage_identifiable']:.3f}")
-
-    ranges = [prior.magnitude_range(label) for label in range(len(CLASSES))]
-    conf_pools = [p for p in ("1", "25") if p in tests] or [str(cfg.eval_pools[0])]
-    thresholds = sorted({*COVERAGE_THRESHOLDS, float(cfg.min_probability)})  # the model's own threshold included
-    curves = {pool: coverage_curve(probs_net[pool], tests[pool]["y"], tests[pool]["status"], CLASS_NAMES, rule,
-                                   thresholds) for pool in conf_pools}
-    by_mag = {pool: magnitude_table(probs_net[pool], tests[pool]["y"], tests[pool]["status"],
-                                    tests[pool]["magnitude"], CLASS_NAMES, rule, ranges) for pool in conf_pools}
-    s1 = tests["1"]
-    noisy = np.isfinite(s1["snr_db"])
-    mixed = s1["static_fraction"] > 0
-    conditions = {"no noise, no static": ~noisy & ~mixed, "no noise, static fraction": ~noisy & mixed,
-                  "noise, no static": noisy & ~mixed, "noise and static fraction": noisy & mixed}
-    by_cond = {name: evaluate(probs_net["1"][m], s1["y"][m], s1["status"][m], CLASS_NAMES, rule)
-               for name, m in conditions.items() if m.any()}
-    ses = {pool: bootstrap_se(probs_net[pool], tests[pool]["y"], tests[pool]["status"], tests[pool]["draw"],
-                              CLASS_NAMES, rule, seed=cfg.seed) for pool in conf_pools}
-    # 8. the shifted prior (signature specs)
-    shifted_report, shifted_ds = None, None
-    if (spec.is_signature if cfg.shifted_test is None else cfg.shifted_test):
-        sp = shifted_prior(prior)
-        shifted_ds = make_dataset(spec, sp, seed=cfg.seed, split="test", draws=cfg.draws_test,
-                                  trials_per_draw=cfg.trials_per_draw, replicates=cfg.replicates,
-                                  truncation_tolerance=cfg.truncation_tolerance, truncation=cfg.truncation, cache_dir=cache_dir,
-                                  use_cache=use_cache, progress=progress)
-        s_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(10,)))
-        stests, _ = evaluation_sets(shifted_ds, cfg, spec, s_rng)
-        sprobs = {pool: net_predict(s["x"]) for pool, s in stests.items()}
-        s_ranges = [sp.diffusion_um2_per_s, sp.speed_um_per_s, sp.speed_um_per_s]
-        shifted_report = {
-            "prior": sp.to_dict(), "draws": cfg.draws_test, "samples": len(shifted_ds),
-            "draw_status_counts": shifted_ds.meta["draw_status_counts"],
-            "dropped_empty": shifted_ds.meta["dropped_empty"], "simulation_s": shifted_ds.meta["elapsed_s"],
-            "from_cache": shifted_ds.meta["from_cache"],
-            "test": {pool: evaluate(sprobs[pool], s["y"], s["status"], CLASS_NAMES, rule)
-                     for pool, s in stests.items()},
-            "standard_errors": {pool: bootstrap_se(sprobs[pool], stests[pool]["y"], stests[pool]["status"],
-                                                   stests[pool]["draw"], CLASS_NAMES, rule, seed=cfg.seed)
-                                for pool in conf_pools},
-            "by_magnitude": {pool: magnitude_table(sprobs[pool], stests[pool]["y"], stests[pool]["status"],
-                                                   stests[pool]["magnitude"], CLASS_NAMES, rule, s_ranges)
-                             for pool in conf_pools},
-            "coverage_curve": {pool: coverage_curve(sprobs[pool], stests[pool]["y"], stests[pool]["status"],
-                                                    CLASS_NAMES, rule, thresholds) for pool in conf_pools},
-            "flow_bands": {pool: flow_recall_by_band(sprobs[pool], stests[pool]["y"], stests[pool]["status"],
-                                                     stests[pool]["polar_angle_deg"], stests[pool]["magnitude"],
-                                                     CLASS_NAMES, rule) for pool in conf_pools},
-        }
-        if _uses_magnitude(cfg, spec):
-            shifted_report["magnitude"] = {pool: _magnitude_eval(model, s) for pool, s in stests.items()}
-        tp = SHIFTED_TARGETS["pool"]
-        if tp in shifted_report["test"]:
-            m = shifted_report["test"][tp]
-            bal, ece = m["balanced_accuracy_identifiable"], m["ece"]
-            shifted_report["targets"] = {
-                **SHIFTED_TARGETS,
-                "met": bool(math.isfinite(bal) and bal >= SHIFTED_TARGETS["balanced_accuracy_identifiable"]
-                            and ece <= SHIFTED_TARGETS["ece"])}
-        m1 = shifted_report["test"]["1"]
-        say(f"shifted prior ({len(shifted_ds)} samples, {'cache' if shifted_ds.meta['from_cache'] else 'simulated'}): "
-            f"balanced accuracy (identifiable, pool 1) {m1['balanced_accuracy_identifiable']:.3f}, coverage "
-            f"{m1['coverage_identifiable']:.3f}, ECE {m1['ece']:.3f}")
-    # the report (classifier.report writes it)
-    import torchdoct
-
-    report = {
-        "classifier_version": __version__,
-        "torchdoct_version": torchdoct.__version__,
-        "torch_version": torch.__version__,
-        "spec": spec.to_dict(),
-        "feature_names": list(spec.feature_names),
-        "classes": list(CLASS_NAMES),
-        "rule": rule,
-        "prior": prior.to_dict(),
-        "config": cfg.to_dict(),
-        "seed": cfg.seed,
-        "data": {
-            "draws": {k: v.meta["draws"] for k, v in data.items()},
-            "trials_per_draw": cfg.trials_per_draw,
-            "samples": {k: len(v) for k, v in data.items()},
-            "draw_status_counts": {k: v.meta["draw_status_counts"] for k, v in data.items()},
-            "dropped_empty": {k: v.meta["dropped_empty"] for k, v in data.items()},
-            "simulation_s": t_sim,
-            "replicates": cfg.replicates,
-            "ms_per_trial": t_sim / max(n_sim_samples, 1) * 1e3,
-            "s_per_draw": t_sim / max(sum(c for c in (cfg.draws_train, cfg.draws_validation, cfg.draws_test)), 1),
-            "from_cache": {k: v.meta["from_cache"] for k, v in data.items()},
-            "threads": torch.get_num_threads(),
-        },
-        "training": {"seconds": train_s, "epochs": epoch, "best_epoch": best[2], "validation_loss": best[0],
-                     "temperature": temperature},
-        "test": test_metrics,
-        "timing": timing,
-        "confusion_pools": conf_pools,
-        "standard_errors": ses,
-        "by_magnitude": by_mag,
-        "by_condition": by_cond,
-        "coverage_curve": curves,
-        "flow_bands": {pool: flow_recall_by_band(probs_net[pool], tests[pool]["y"], tests[pool]["status"],
-                                                 tests[pool]["polar_angle_deg"], tests[pool]["magnitude"],
-                                                 CLASS_NAMES, rule) for pool in conf_pools},
-        "status_names": list(STATUS),
-    }
-    if magnitude_report is not None:
-        report["magnitude"] = magnitude_report
-    if bulk_report is not None:
-        report["bulk_phase"] = bulk_report
-    datasets = dict(data)
-    if shifted_report is not None:
-        report["shifted_prior"] = shifted_report
-        datasets["shifted_prior"] = shifted_ds
-    return TrainResult(model=model, report=report, spec=spec, prior=prior, config=cfg, rule=rule,
-                       test_inputs=tests["1"]["x"], datasets=datasets)
+    plan = plan_training(config, prior, spec)                                            # 1. the recipe
+    data = simulate_data(plan, cache_dir=cache_dir, use_cache=use_cache, progress=progress, log=log)  # 2. samples
+    fitted = fit_models(plan, data, progress=progress, log=log)                          # 3. fit
+    evaluation = evaluate_test_sets(plan, data, fitted, log=log)                         # 4. every test set
+    report = training_report(plan, data, fitted, evaluation)                             # 5. the report
+    datasets = dict(data.splits)
+    if data.shifted_prior is not None:
+        datasets["shifted_prior"] = data.shifted_prior
+    return TrainResult(model=fitted.model, report=report, spec=plan.spec, prior=plan.prior, config=plan.config,
+                       rule=plan.rule, test_inputs=evaluation["test_inputs"], datasets=datasets)
 
 
-# The former private names of the steps other modules use (learning curve, g1 fit, trade-offs).
-_masks, _eval_samples, _targets, _test_sets = feature_masks, eval_samples, class_targets, evaluation_sets
+def train_to_files(config: TrainConfig | None, paths: dict[str, Any], *, prior: Prior | None = None,
+                   spec: FeatureSpec | None = None, cache_dir=None, use_cache: bool = True, progress: bool = False,
+                   log=print) -> TrainResult:
+    """:func:`train`, then the model exported to ``paths[".onnx"]`` (:func:`classifier.export.export_onnx`),
+    checked and timed in onnxruntime (:func:`classifier.export.runtime_checks`), and the report written to
+    ``paths[".json"]``, ``[".md"]`` and ``[".png"]`` (:func:`classifier.report.write_report`; NaN and inf as
+    null, :func:`classifier.report.finite`). The files are written in place (``doct-train`` stages them
+    and checks overwriting first). Returns the result, its report as written (with ``total_s``, the
+    seconds of the whole run)."""
+    from .export import build_metadata, export_onnx, runtime_checks
+    from .report import finite, write_report
+
+    t0 = time.perf_counter()
+    res = train(config, prior=prior, cache_dir=cache_dir, use_cache=use_cache, progress=progress, log=log, spec=spec)
+    export_onnx(res.model, build_metadata(res), paths[".onnx"])
+    runtime_checks(res, paths[".onnx"])
+    res.report["total_s"] = time.perf_counter() - t0
+    res.report = finite(res.report)
+    write_report(res.report, paths[".json"], paths[".md"], paths[".png"])
+    return res

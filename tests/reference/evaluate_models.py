@@ -61,11 +61,11 @@ in training. **Ground truth**: :func:`classifier.dataset.identifiability` of a
 **Metrics** (per pool 1 and 25; pool ``n`` = the mean of ``n`` trials of one draw, ``pool_pixels = n``,
 8 random subsets per draw, :func:`classifier.train.pooled_samples`, as in the training reports and as
 ``doct-classify --pool`` feeds independent pixels), decided by the model's own rule:
-:func:`classifier.report.evaluate` (balanced accuracy and coverage on identifiable pixels, per-class
-recall, ECE), :func:`classifier.report.flow_recall_by_band`, :func:`classifier.report.coverage_curve`,
-:func:`classifier.report.magnitude_table`, the magnitude head's median |log10 error| and 68 %/95 %
-interval coverage (head of the true class, identifiable pixels). Standard errors: bootstrap over
-draws (the independent unit), :data:`N_BOOT` resamples. Beside every number its target
+the metrics block of every test set of the training reports, :func:`classifier.evaluation.evaluate_set`:
+balanced accuracy and coverage on identifiable pixels, per-class recall, ECE, flow recall by polar band
+and speed decade, the accuracy-coverage table, accuracy against magnitude, the magnitude head's median
+|log10 error| and 68 %/95 % interval coverage (head of the true class, identifiable pixels). Standard
+errors: bootstrap over draws (the independent unit), :data:`N_BOOT` resamples. Beside every number its target
 (:data:`TARGETS`, issue 24).
 
 **Cost** (one core): the shipped ``signature`` model's default run (300 draws × 32 trials, three
@@ -398,52 +398,12 @@ def draw_features(spec, d: IndependentDraw, trials: int) -> np.ndarray:
 # evaluation
 
 
-def _magnitude_metrics(mean: np.ndarray, sd: np.ndarray, y: np.ndarray, status: np.ndarray,
-                       magnitude: np.ndarray) -> dict[str, Any]:
-    """Median/mean |log10 error| and 68 %/95 % interval coverage, head of the true class, identifiable
-    samples (the definitions of the training reports)."""
-    ident = status == 0
-    yy = y[ident]
-    if yy.size == 0:
-        return {"samples": 0}
-    rows = np.arange(yy.size)
-    mu = mean[ident][rows, yy].astype(np.float64)
-    s = sd[ident][rows, yy].astype(np.float64)
-    err = np.abs(mu - np.log10(magnitude[ident]))
-    out: dict[str, Any] = {"samples": int(yy.size), "median_abs_log10_error": float(np.median(err)),
-                           "mean_abs_log10_error": float(err.mean()), "coverage_68": float(np.mean(err <= s)),
-                           "coverage_95": float(np.mean(err <= 1.959964 * s)), "median_predicted_sd": float(np.median(s))}
-    out["by_class"] = {_CLASSES[c]: {"samples": int(np.sum(yy == c)),
-                                     "median_abs_log10_error": float(np.median(err[yy == c])),
-                                     "coverage_68": float(np.mean(err[yy == c] <= s[yy == c])),
-                                     "coverage_95": float(np.mean(err[yy == c] <= 1.959964 * s[yy == c]))}
-                       for c in range(3) if np.any(yy == c)}
-    return out
-
-
 def _bootstrap(fn, draw: np.ndarray, n_boot: int, seed: int) -> dict[str, float]:
-    """SD over ``n_boot`` resamples of the draws of the scalars ``fn(index) -> {name: value}`` (NaN dropped)."""
-    rng = np.random.default_rng(seed)
-    draws = np.unique(draw)
-    index = {k: np.flatnonzero(draw == k) for k in draws}
-    vals: dict[str, list[float]] = {}
-    if draws.size < 2:
-        return {}
-    for _ in range(n_boot):
-        pick = np.concatenate([index[k] for k in rng.choice(draws, draws.size, replace=True)])
-        for key, v in fn(pick).items():
-            vals.setdefault(key, []).append(v)
-    out = {}
-    for key, v in vals.items():
-        a = np.asarray(v, dtype=np.float64)
-        a = a[np.isfinite(a)]
-        out[key] = float(np.std(a, ddof=1)) if a.size >= 2 else math.nan
-    return out
+    """SD over ``n_boot`` resamples of the draws of the scalars ``fn(index) -> {name: value}`` (NaN dropped):
+    :func:`classifier.evaluation.bootstrap_draws` (the resampling of every standard error here)."""
+    from classifier.evaluation import bootstrap_draws
 
-
-def _band_scalars(fb: dict[str, Any]) -> dict[str, float]:
-    return {f"{kind}:{name}": r["recall"] for kind in ("polar_bands", "speed_decades")
-            for name, r in fb[kind].items()}
+    return bootstrap_draws(fn, draw, n_boot=n_boot, seed=seed)
 
 
 def _resolve_model(model: str):
@@ -467,8 +427,7 @@ def evaluate_model(model: str, *, draws: int = DEFAULT_DRAWS, trials: int = DEFA
     """Simulate ``draws`` independent draws × ``trials`` pixels, classify them with ``model`` and return
     the report (JSON-able dict; module docstring)."""
     from classifier.dataset import STATUS, Dataset, identifiability
-    from classifier.report import (COVERAGE_THRESHOLDS, bootstrap_se, coverage_curve, evaluate, flow_recall_by_band,
-                                   magnitude_table)
+    from classifier.evaluation import evaluate_set
     from classifier.train import pooled_samples
 
     for name, v, low in (("draws", draws, 1), ("trials", trials, 1), ("seed", seed, 0), ("n_boot", n_boot, 2)):
@@ -523,7 +482,6 @@ def evaluate_model(model: str, *, draws: int = DEFAULT_DRAWS, trials: int = DEFA
                  magnitude=a["magnitude"], density=np.full(a["y"].shape, DENSITY),
                  static_fraction=np.zeros(a["y"].shape), snr_db=a["snr_db"], polar_angle_deg=a["polar_angle_deg"])
     pools = sorted({min(int(p), trials) for p in POOLS})
-    thresholds = sorted({*COVERAGE_THRESHOLDS, float(rule["min_probability"])})
     ranges = [RANGES[c] for c in _CLASSES]
     results: dict[str, Any] = {}
     for pool in pools:
@@ -536,25 +494,9 @@ def evaluate_model(model: str, *, draws: int = DEFAULT_DRAWS, trials: int = DEFA
             groups = np.unique(ds.group)
             s = pooled_samples(ds, [np.full(POOLED_PER_DRAW, pool) for _ in groups], rng)
         probs, mean, sd = mdl.predict_all(s["x"])
-        y, st, dr = s["y"], s["status"], s["draw"]
-        m = evaluate(probs, y, st, classes, rule)
-        fb = flow_recall_by_band(probs, y, st, s["polar_angle_deg"], s["magnitude"], classes, rule)
-        res: dict[str, Any] = {
-            "samples": int(len(y)), "metrics": m,
-            "standard_errors": bootstrap_se(probs, y, st, dr, classes, rule, n_boot=n_boot, seed=seed),
-            "flow_bands": fb,
-            "flow_bands_se": _bootstrap(lambda i: _band_scalars(flow_recall_by_band(
-                probs[i], y[i], st[i], s["polar_angle_deg"][i], s["magnitude"][i], classes, rule)), dr, n_boot, seed),
-            "recall_se": _bootstrap(lambda i: evaluate(probs[i], y[i], st[i], classes, rule)["recall_identifiable"],
-                                    dr, n_boot, seed),
-            "coverage_curve": coverage_curve(probs, y, st, classes, rule, thresholds),
-            "by_magnitude": magnitude_table(probs, y, st, s["magnitude"], classes, rule, ranges),
-        }
-        if mean is not None:
-            res["magnitude"] = _magnitude_metrics(mean, sd, y, st, s["magnitude"])
-            res["magnitude_se"] = _bootstrap(lambda i: {k: v for k, v in _magnitude_metrics(
-                mean[i], sd[i], y[i], st[i], s["magnitude"][i]).items() if isinstance(v, float)}, dr, n_boot, seed)
-        results[str(pool)] = res
+        results[str(pool)] = evaluate_set(probs, s, rule, class_names=classes, ranges=ranges,
+                                          magnitude=None if mean is None else (mean, sd), resampled_errors=True,
+                                          n_boot=n_boot, seed=seed)
     import classifier
     import torchdoct
 
