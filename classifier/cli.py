@@ -374,6 +374,10 @@ def _classify(args: argparse.Namespace) -> int:
 
     set_max_input_gb(args.max_input_gb)  # the readers' limit on one declared array
     check_outputs(args.out, args.force)  # before the work: --out a file, or an earlier run's files without --force
+    from torchdoct.measured.guards import max_input_bytes
+    from torchdoct.resources import check_classify
+
+    check_classify("doct-classify", args.maps, max_input_bytes())  # memory, before anything is read
     try:
         res = infer.classify_maps(args.maps, args.model, pool=args.pool, background_db=bg,
                                   min_probability=args.min_probability,

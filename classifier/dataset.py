@@ -620,6 +620,25 @@ def _positive_int(name: str, v: Any) -> int:
     return v
 
 
+def _check_resources(spec: FeatureSpec, split: str, draws: int, trials_per_draw: int, replicates: int,
+                     path: Path | None) -> None:
+    """The split's arrays fit in memory twice (the pieces of every draw and their concatenation) and once in
+    the cache's folder: :func:`torchdoct.resources.check_resources`, before any draw is simulated."""
+    from torchdoct.resources import check_resources
+
+    n = draws * replicates * trials_per_draw
+    per_sample = 4 * spec.n_features + 8 * (len(_ARRAYS) - 1) + (8 * len(spec.configurations) if spec.is_signature
+                                                                   else 0)
+    check_resources(
+        f"the {split} split of {spec.name!r}", 2 * n * per_sample,
+        "lower the draws (doct-train --draws-train, --draws-validation, --draws-test), --trials-per-draw or "
+        "--replicates",
+        detail=f"{n} samples = {draws} draws × {replicates} replicates × {trials_per_draw} trials, "
+               f"{per_sample} bytes each, twice while gathered",
+        out_path=None if path is None else path.parent, out_bytes=n * per_sample,
+        out_fix="free disk space there, give another --cache directory, or --no-cache")
+
+
 def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: int = 0, split: str = "train",
                  draws: int = 300, trials_per_draw: int = 64, replicates: int = 8,
                  truncation_tolerance: float = 1e-2, cache_dir: str | os.PathLike | None = None,
@@ -657,6 +676,7 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
             if ds.meta.get("key") == key:
                 ds.meta["from_cache"] = True
                 return ds
+    _check_resources(spec, split, draws, trials_per_draw, replicates, path)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -667,20 +687,17 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
     dropped = 0
     status_counts = {s: 0 for s in STATUS}
     t0 = time.perf_counter()
-    from torchdoct.threads import map_ordered, resolve_threads, single_torch_thread
+    from torchdoct.study.cells import run_cells
+    from torchdoct.threads import resolve_threads
 
     def one(k: int):
         d = draw_parameters(prior, seed, split, k, replicates)
         return k, d, simulate_draw(spec, d, prior, trials=trials_per_draw, truncation_tolerance=truncation_tolerance,
                                    bulk_phase=bulk_phase, truncation=truncation)
 
-    # draws side by side on the usable cores (torchdoct.threads: one torch thread each, and every draw
-    # has its own seeds, so the dataset does not depend on the number of threads)
-    def computed():
-        with single_torch_thread():
-            yield from map_ordered(one, range(draws), resolve_threads(None))
-
-    for k, d, res in computed():
+    def gather(_: int, item) -> None:
+        nonlocal dropped
+        k, d, res = item
         x, zero = res[0], res[1]
         status, _, _ = identifiability(spec, d, prior)
         status_counts[status] += 1
@@ -702,8 +719,15 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
             cols["polar_angle_deg"].append(np.full(n, d.polar_angle_deg if d.label == 2 else math.nan))
         if bar is not None:
             bar.update(1)
-    if bar is not None:
-        bar.close()
+
+    # draws side by side on the usable cores, in threads (the cell runner, torchdoct.study.cells: one
+    # torch thread each, gathered in draw order; every draw has its own seeds, so the dataset does not
+    # depend on the number of threads)
+    try:
+        run_cells(one, list(range(draws)), done=gather, workers=resolve_threads(None), one_torch_thread=True)
+    finally:
+        if bar is not None:
+            bar.close()
     elapsed = time.perf_counter() - t0
     arrays = {k: np.concatenate(v) for k, v in cols.items()}
     arrays["x"] = arrays["x"].astype(np.float32).reshape(-1, spec.n_features)

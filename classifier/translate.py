@@ -345,6 +345,10 @@ def run(args) -> int:
     if isinstance(args.trials, bool) or args.trials < 4:
         raise ValueError(f"--trials must be an integer >= 4; got {args.trials!r}")
     target = load_target(args.to, args.to_system)
+    from torchdoct.measured.guards import max_input_bytes
+    from torchdoct.resources import check_classify
+
+    check_classify("torchdoct translate", args.maps, max_input_bytes())  # memory, before anything is read
     maps, res = translate_maps(args.maps, target, model=args.model, pool=args.pool,
                                min_probability=args.min_probability, trials=args.trials, seed=args.seed,
                                progress=not args.no_progress)

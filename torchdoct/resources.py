@@ -33,7 +33,7 @@ from typing import Iterable
 
 __all__ = ["ResourceLimitError", "MemoryLimitError", "DiskLimitError", "available_memory_bytes", "free_disk_bytes",
            "format_gb", "check_resources", "maps_bytes", "check_maps", "declared_array_bytes", "classify_bytes",
-           "MAPS_WORK_COPIES", "CLASSIFY_COPIES"]
+           "check_classify", "MAPS_WORK_COPIES", "CLASSIFY_COPIES"]
 
 
 class ResourceLimitError(ValueError):
@@ -131,21 +131,23 @@ def maps_bytes(shape: Iterable[int], itemsize: int, *, complex_samples: bool, n_
 
 
 def check_maps(source: str, shape: Iterable[int], itemsize: int, *, complex_samples: bool, n_resolutions: int,
-               metrics: Iterable[str], slab_elements: int, out_paths: Iterable[str | os.PathLike] = ()) -> None:
-    """The resource check of ``torchdoct maps`` (:func:`maps_bytes`; the output's disk space when
-    ``out_paths`` are given), naming the sequence ``source`` and the options that lower the need."""
+               metrics: Iterable[str], slab_elements: int | None, out_paths: Iterable[str | os.PathLike] = ()) -> None:
+    """The resource check of ``torchdoct maps`` (:func:`maps_bytes`), naming the sequence ``source`` and the
+    options that lower the need: the memory (not with ``slab_elements=None``) and the disk space of the
+    ``out_paths`` (float32 maps)."""
     dims = [int(d) for d in shape]
     metrics = list(metrics)
     need, out_disk = maps_bytes(dims, itemsize, complex_samples=complex_samples, n_resolutions=n_resolutions,
-                                metrics=metrics, slab_elements=slab_elements)
+                                metrics=metrics, slab_elements=slab_elements or 0)
+    what = f"maps of {source}"
     fix = ("give fewer --resolution values or --metrics, or crop the sequence (fewer B-scans, depths or A-lines); "
            "the slab size (slab_elements) bounds the working memory")
-    outs = list(out_paths)
-    check_resources(f"maps of {source}", need, fix,
-                    detail=f"sequence {dims}, {n_resolutions} resolution(s), {len(metrics)} metric(s)")
-    for o in outs:
-        check_resources(f"maps of {source}", 0, fix, out_path=o, out_bytes=out_disk,
-                        out_fix="free disk space there or write --out elsewhere")
+    if slab_elements is not None:
+        check_resources(what, need, fix,
+                        detail=f"sequence {dims}, {n_resolutions} resolution(s), {len(metrics)} metric(s)")
+    for o in out_paths:
+        check_resources(what, 0, fix, out_path=o, out_bytes=out_disk,
+                        out_fix="free disk space there, write --out elsewhere, or " + fix.split(";")[0])
 
 
 def declared_array_bytes(path: str | os.PathLike) -> int:
@@ -179,3 +181,14 @@ def classify_bytes(paths: Iterable[str | os.PathLike], limit_bytes: int | None =
     if limit_bytes is not None:
         sizes = [0 if s > limit_bytes else s for s in sizes]
     return CLASSIFY_COPIES * sum(sizes)
+
+
+def check_classify(command: str, paths: Iterable[str | os.PathLike], limit_bytes: int | None = None) -> None:
+    """The resource check of ``doct-classify`` (``command``) and ``torchdoct translate``: :func:`classify_bytes`
+    of the maps ``paths``, naming them and the fix."""
+    paths = list(paths)
+    need = classify_bytes(paths, limit_bytes)
+    names = ", ".join(Path(p).name for p in paths)
+    check_resources(f"{command} of {names}", need,
+                    "classify a crop of the maps (fewer B-scans or pixels), or fewer maps files at once",
+                    detail=f"{CLASSIFY_COPIES} × the maps arrays the files declare, {format_gb(need / CLASSIFY_COPIES)}")

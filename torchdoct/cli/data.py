@@ -235,6 +235,10 @@ def _maps(args: argparse.Namespace) -> int:
               f"{info['pairs_without_signal']} A-line pairs without signal")
     elif args.bulk_phase_mask != "all" or args.bulk_phase_rows is not None:
         raise ValueError("--bulk-phase-mask and --bulk-phase-rows need --bulk-phase METHOD")
+    from ..resources import check_maps
+
+    check_maps(seq.source, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,  # disk space
+               n_resolutions=len(resolutions), metrics=metrics, slab_elements=None, out_paths=outs)
     maps = compute_maps(seq, resolutions, metrics=metrics, ocds_delay_range_s=tuple(args.ocds_delay_range_s),
                         ocds_scale=args.ocds_scale, ocds_estimator=args.ocds_estimator,
                         aliv_smoothing=not args.no_aliv_smoothing, aliv_max_window_s=args.aliv_max_window_s,

@@ -43,16 +43,18 @@ number of trials with an empty resolution volume ``empty`` (NaN dB metrics, see
 :mod:`torchdoct.sim.metrics`), the trials and the seed of the cell (:func:`results_table`; the
 statistics are those of :func:`torchdoct.sim.metrics.summarize`).
 
-Executors (:func:`run_sweeps`): this process on one core (``workers = 1``, the library default),
-``workers`` cells side by side, each on one torch thread (the command line's ``--threads``, default
-one per usable core: on a shared machine, independent single-threaded pieces are far less sensitive
-to other load than torch's intra-op threads; :mod:`torchdoct.threads`): in threads of this process
-for small sweeps, in worker processes from :data:`_PROCESS_WORK` system-trials on (a process costs
-seconds to start, threads share the interpreter's lock), or an existing Dask distributed cluster (``scheduler = "tcp://host:8786"``),
-cells as tasks whose results come back to this process, which writes the cache and the table.
+Executors (:func:`run_sweeps`, through the cell runner :mod:`torchdoct.study.cells`, which also owns
+the seeds, the cache files and what an interruption keeps): this process on one core (``workers = 1``,
+the library default), ``workers`` cells side by side, each on one torch thread (the command line's
+``--threads``, default one per usable core: on a shared machine, independent single-threaded pieces are
+far less sensitive to other load than torch's intra-op threads; :mod:`torchdoct.threads`): in threads
+of this process for small sweeps, in worker processes from :data:`_PROCESS_WORK` system-trials on (a
+process costs seconds to start, threads share the interpreter's lock), or an existing Dask distributed
+cluster (``scheduler = "tcp://host:8786"``), cells as tasks whose results come back to this process,
+which writes the cache and the table. Before any cell runs, the cells to compute are checked against
+the available memory and the cache's disk (:func:`torchdoct.resources.check_resources`).
 
-Kept whole (over 600 lines): grid, cache and executors are one mechanism that studies only call
-(docs/architecture.md).
+The grid (a field's values, key paths into the scene) is :mod:`torchdoct.study.grid`'s.
 """
 
 from __future__ import annotations
@@ -64,15 +66,15 @@ import json
 import math
 import os
 import time
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from ..interrupt import note
 from ..sim.config import Scene, SceneError, _fail, read_toml, scene_from_dict
+from .cells import CellCache, CellJob, cell_seed, run_cached, run_cells
+from .grid import _is_number, _normalize_arrays, _set_path, _split_path, field_values
 
 __all__ = [
     "SCALAR_METRICS",
@@ -107,8 +109,6 @@ RESERVED_COLUMNS = ("sweep", "cell", "system", "wavelength_um", "lateral_resolut
                     "empty", "trials", "seed", "cache_key")
 #: Bump when the cached content changes meaning; part of every cache key.
 CACHE_FORMAT = 1
-_ARRAY_TABLES = ("system", "population")
-_SIG_DIGITS = 12
 
 
 def _version() -> str:
@@ -119,134 +119,6 @@ def _version() -> str:
 
 def _canonical(obj: Any) -> str:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False)
-
-
-# ----------------------------------------------------------------------------------------------
-# values of one field
-
-
-def _round(v: float) -> float:
-    return float(f"{v:.{_SIG_DIGITS}g}")
-
-
-def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _range_spec(where: str, spec: Any, kind: str) -> list[float]:
-    example = "{ start = 0.001, stop = 15.0, num = 31 }" if kind == "log" else "{ start = 0.0, stop = 15.0, num = 31 }"
-    if not isinstance(spec, dict):
-        raise TypeError(f"{where}.{kind} must be a table {example}; got {spec!r}")
-    unknown = sorted(set(spec) - {"start", "stop", "num"})
-    missing = sorted({"start", "stop", "num"} - set(spec))
-    if unknown or missing:
-        _fail(f"{where}.{kind}", f"needs exactly the keys start, stop, num; "
-              f"{'unknown ' + str(unknown) if unknown else 'missing ' + str(missing)}", f"write {kind} = {example}")
-    start, stop, num = spec["start"], spec["stop"], spec["num"]
-    for key, v in (("start", start), ("stop", stop)):
-        if not _is_number(v):
-            raise TypeError(f"{where}.{kind}.{key} must be a number; got {v!r}")
-        if not math.isfinite(v):
-            _fail(f"{where}.{kind}.{key}", f"must be finite; got {v!r}")
-    if isinstance(num, bool) or not isinstance(num, int):
-        raise TypeError(f"{where}.{kind}.num must be an integer; got {num!r}")
-    if num < 1:
-        _fail(f"{where}.{kind}.num", f"must be >= 1; got {num}")
-    if kind == "log":
-        if start <= 0 or stop <= 0:
-            _fail(f"{where}.log", f"start and stop must be > 0; got start = {start}, stop = {stop}",
-                  "add 0 with values = [0.0] and start the log range above 0")
-        vals = np.geomspace(float(start), float(stop), num) if num > 1 else np.array([float(start)])
-    else:
-        vals = np.linspace(float(start), float(stop), num) if num > 1 else np.array([float(start)])
-    return [_round(float(v)) for v in vals]
-
-
-def field_values(spec: dict[str, Any], where: str = "sweep.field") -> tuple[Any, ...]:
-    """Values of one sweep field from its ``values`` / ``linear`` / ``log`` keys (module docstring)."""
-    sources = [k for k in ("values", "linear", "log") if k in spec]
-    if not sources:
-        _fail(where, "gives no values", "add values = [...], linear = {start, stop, num} or log = {start, stop, num}")
-    out: list[Any] = []
-    if "values" in spec:
-        vals = spec["values"]
-        if not isinstance(vals, list) or not vals:
-            raise TypeError(f"{where}.values must be a non-empty array; got {vals!r}")
-        for i, v in enumerate(vals):
-            if isinstance(v, float) and not math.isfinite(v):
-                _fail(f"{where}.values[{i}]", f"must be finite; got {v!r}")
-        out.extend(vals)
-    for kind in ("linear", "log"):
-        if kind in spec:
-            out.extend(_range_spec(where, spec[kind], kind))
-    if len(sources) > 1:
-        bad = [v for v in out if not _is_number(v)]
-        if bad:
-            _fail(where, f"combines {', '.join(sources)} but has non-numeric values {bad[:3]}",
-                  "give non-numeric values alone in values = [...]")
-        uniq: list[float] = []
-        for v in sorted(out):
-            if not uniq or not math.isclose(v, uniq[-1], rel_tol=1e-12, abs_tol=0.0):
-                uniq.append(v)
-        out = uniq
-    return tuple(out)
-
-
-# ----------------------------------------------------------------------------------------------
-# paths into the scene dict
-
-
-def _split_path(path: str, where: str) -> list[str]:
-    if not isinstance(path, str) or not path.strip():
-        raise TypeError(f"{where}.path must be a dotted key path such as "
-                        f"'population.0.motion.0.diffusion_um2_per_s'; got {path!r}")
-    parts = path.split(".")
-    if any(not p for p in parts):
-        _fail(f"{where}.path", f"{path!r} has an empty segment", "separate keys by single dots")
-    return parts
-
-
-def _normalize_arrays(data: dict[str, Any]) -> dict[str, Any]:
-    """Turn single-table ``[system]``/``[population]``/``[population.motion]`` into one-element arrays."""
-    for key in _ARRAY_TABLES:
-        if isinstance(data.get(key), dict):
-            data[key] = [data[key]]
-    for pop in data.get("population", []) if isinstance(data.get("population"), list) else []:
-        if isinstance(pop, dict) and isinstance(pop.get("motion"), dict):
-            pop["motion"] = [pop["motion"]]
-    return data
-
-
-def _set_path(data: dict[str, Any], parts: list[str], value: Any, where: str) -> None:
-    """Set ``data[p0][p1]...`` = value; arrays by index, missing tables created."""
-    node: Any = data
-    path = ".".join(parts)
-    for depth, key in enumerate(parts):
-        last = depth == len(parts) - 1
-        here = ".".join(parts[:depth]) or "the scene"
-        if isinstance(node, list):
-            if not key.isdigit():
-                _fail(f"{where}.path", f"{path!r}: {here} is an array; {key!r} is not an index",
-                      f"use a position 0..{len(node) - 1}, e.g. {'.'.join(parts[:depth] + ['0'] + parts[depth + 1:])!r}")
-            i = int(key)
-            if i >= len(node):
-                _fail(f"{where}.path", f"{path!r}: {here} has {len(node)} entr{'y' if len(node) == 1 else 'ies'} "
-                      f"(indices 0..{len(node) - 1}); index {i} is out of range",
-                      f"add the entry to the scene or use an index below {len(node)}")
-            if last:
-                node[i] = copy.deepcopy(value)
-            else:
-                node = node[i]
-        elif isinstance(node, dict):
-            if last:
-                node[key] = copy.deepcopy(value)
-            else:
-                if key not in node:
-                    node[key] = {}
-                node = node[key]
-        else:
-            _fail(f"{where}.path", f"{path!r}: {here} is a value ({node!r}), not a table or array",
-                  "point the path at a key inside a table")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -450,18 +322,6 @@ def _renamed(sweep: Sweep, name: str) -> Sweep:
 # seeds and cache keys
 
 
-def cell_seed(base_seed: int, key: str) -> int:
-    """Seed of a cell: the first 63 bits of SHA-256 over (base seed, cell key).
-
-    Depends on nothing else (not the cell's index, batch or executor), so a cell gives the same
-    numbers in any sweep that contains it.
-    """
-    if isinstance(base_seed, bool) or not isinstance(base_seed, int) or base_seed < 0:
-        raise ValueError(f"seed must be an integer >= 0; got {base_seed!r}")
-    digest = hashlib.sha256(_canonical(["torchdoct-cell-seed", int(base_seed), key]).encode()).digest()
-    return int.from_bytes(digest[:8], "big") >> 1
-
-
 def _run_scene_dict(scene: Scene, *, trials: int, seed: int, dtype: str, tolerance: float) -> dict[str, Any]:
     """The scene of a cell as it runs: file schema, defaults filled in, the run in ``[simulation]``."""
     d = scene.to_dict()
@@ -568,66 +428,6 @@ class SweepResult:
         return sum(c.trials * len(c.system_names) for c in self.cells)
 
 
-class _Cache:
-    """Cell results as ``DIR/<cache key>.npz`` (metrics, zero-intensity flags and a JSON header)."""
-
-    def __init__(self, directory: str | os.PathLike | None):
-        self.dir = None if directory is None else Path(directory)
-
-    def path(self, key: str) -> Path:
-        return self.dir / f"{key}.npz"
-
-    def get(self, key: str) -> dict[str, Any] | None:
-        if self.dir is None:
-            return None
-        p = self.path(key)
-        if not p.is_file():
-            return None
-        try:
-            with open(p, "rb") as fh, np.load(fh, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta_json"]))
-                if meta.get("cache_key") != key:
-                    return None
-                metrics = {k: z[f"metric_{k}"] for k in meta["metrics"]}
-                zero = z["zero_intensity"]
-        except (OSError, EOFError, ValueError, KeyError, json.JSONDecodeError, zipfile.BadZipFile):
-            return None  # unreadable or partial: recompute
-        return {"metrics": metrics, "zero_intensity": zero, "system_names": meta["system_names"],
-                "elapsed_s": meta.get("elapsed_s", 0.0)}
-
-    def put(self, key: str, res: dict[str, Any], scene_dict: dict[str, Any]) -> None:
-        if self.dir is None:
-            return
-        from ..files import atomic_write
-
-        self.dir.mkdir(parents=True, exist_ok=True)
-        meta = {"cache_key": key, "format": CACHE_FORMAT, "version": _version(), "scene": scene_dict,
-                "metrics": list(res["metrics"]), "system_names": list(res["system_names"]),
-                "elapsed_s": res["elapsed_s"]}
-        arrays = {f"metric_{k}": v for k, v in res["metrics"].items()}
-        arrays["zero_intensity"] = res["zero_intensity"]
-        arrays["meta_json"] = np.asarray(json.dumps(meta))
-
-        def write(tmp: str) -> None:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, **arrays)
-
-        atomic_write(self.path(key), write)
-
-
-def _connect(scheduler: str):
-    try:
-        from dask.distributed import Client
-    except ImportError:  # pragma: no cover - depends on the installation
-        raise ValueError("--scheduler needs dask.distributed; install it with pip install 'torchdoct[dask]'") from None
-    try:
-        return Client(scheduler, set_as_default=False, timeout="10s")
-    except (OSError, TimeoutError, ValueError) as err:
-        raise ValueError(f"--scheduler {scheduler!r}: cannot connect ({err}); start a scheduler "
-                         "(dask scheduler) and workers that have torchdoct installed, and give its address "
-                         "such as tcp://host:8786") from None
-
-
 #: System-trials of a sweep from which local cells run in worker processes rather than threads: a
 #: worker process costs 2-3 s to start, threads share the interpreter's lock. Measured on 2 cores:
 #: 10,752 system-trials (the reduced study) 3.3 s in threads against 7.2 s in processes; 408,000
@@ -635,81 +435,14 @@ def _connect(scheduler: str):
 _PROCESS_WORK = 100_000
 
 
-def _worker_init(parent_pid: int | None = None) -> None:
-    """A worker process computes on one core: one torch (and BLAS) thread, one simulation thread. It
-    ignores Ctrl-C and dies with its parent (:func:`torchdoct.interrupt.worker_init`)."""
-    from ..interrupt import worker_init
-    from ..threads import limit_process_threads, set_default_threads
-
-    worker_init(parent_pid)
-    limit_process_threads()
-    set_default_threads(1)
-
-
-def _stop_workers(pool) -> None:
-    """Stop a process pool's workers now (on an error or an interruption), not after their cells."""
-    procs = list((getattr(pool, "_processes", None) or {}).values())
-    pool.shutdown(wait=False, cancel_futures=True)
-    for proc in procs:
-        if proc.is_alive():
-            proc.terminate()
-    for proc in procs:
-        proc.join(timeout=10)
-        if proc.is_alive():  # pragma: no cover - a worker that ignores SIGTERM
-            proc.kill()
-
-
 def _execute(payloads: list[dict[str, Any]], *, scheduler: str | None, batch_cells: int, workers: int,
              done: Callable[[int, dict[str, Any]], None]) -> None:
-    """Run payloads in this process (side by side in threads), in worker processes or on a Dask cluster;
+    """Run payloads through the cell runner (:func:`torchdoct.study.cells.run_cells`): side by side in
+    threads, in worker processes from :data:`_PROCESS_WORK` system-trials on, or on a Dask cluster;
     ``done(i, result)`` as each finishes."""
-    batches = [list(range(i, min(len(payloads), i + batch_cells))) for i in range(0, len(payloads), batch_cells)]
-    if scheduler is None:
-        from ..threads import map_ordered, using_threads
-
-        work = sum(p["scene"]["simulation"]["trials"] * len(p["scene"]["system"]) for p in payloads)
-        if workers == 1 or len(batches) < 2 or work < _PROCESS_WORK:
-            # one batch at a time using the workers as simulation threads, or batches side by side in
-            # threads of this process, each on one core (one torch thread)
-            one_at_a_time = workers == 1 or len(batches) < 2
-            with using_threads(workers if one_at_a_time else 1):
-                results = map_ordered(lambda b: run_cell_batch([payloads[i] for i in b]), batches,
-                                      1 if one_at_a_time else workers)
-                for b, res in zip(batches, results):
-                    for i, r in zip(b, res):
-                        done(i, r)
-            return
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor, as_completed as done_first
-
-        ctx = multiprocessing.get_context("spawn")  # no fork of a process that holds torch threads
-        with ProcessPoolExecutor(max_workers=min(workers, len(batches)), mp_context=ctx,
-                                 initializer=_worker_init, initargs=(os.getpid(),)) as pool:
-            futures: dict = {}
-            try:
-                futures.update({pool.submit(run_cell_batch, [payloads[i] for i in b]): b for b in batches})
-                for fut in done_first(futures):
-                    for i, r in zip(futures[fut], fut.result()):
-                        done(i, r)
-            except BaseException:
-                for f in futures:
-                    f.cancel()
-                _stop_workers(pool)
-                raise
-        return
-    from dask.distributed import as_completed
-
-    client = _connect(scheduler)
-    try:
-        with client.as_current():
-            futures = [client.submit(run_cell_batch, [payloads[i] for i in b], pure=False) for b in batches]
-            index = {f.key: b for f, b in zip(futures, batches)}
-            for fut in as_completed(futures):
-                res = fut.result()
-                for i, r in zip(index[fut.key], res):
-                    done(i, r)
-    finally:
-        client.close()
+    work = sum(p["scene"]["simulation"]["trials"] * len(p["scene"]["system"]) for p in payloads)
+    run_cells(run_cell, payloads, done=done, workers=workers, batch=batch_cells, scheduler=scheduler,
+              processes=work >= _PROCESS_WORK)
 
 
 def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int | None = None,
@@ -743,8 +476,8 @@ def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int 
         raise ValueError(f"sweep names must be unique; {dup} appear twice")
     check_cache_dir(cache_dir)
     t0 = time.perf_counter()
-    cache = _Cache(cache_dir)
-    jobs = []  # (sweep, cell, seed, trials, dtype, tolerance, key, scene dict)
+    info = []  # (sweep, cell, seed, trials, dtype, tolerance, key)
+    jobs: list[CellJob] = []
     for sw in sweeps:
         for cell in sw.cells:
             st = cell.scene.simulation
@@ -754,51 +487,75 @@ def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int 
             dt = dtype or st.dtype
             tol = tolerance if tolerance is not None else st.truncation_tolerance
             key = cache_key(cell.scene, seed=s, trials=n, dtype=dt, tolerance=tol)
-            jobs.append((sw, cell, s, n, dt, tol, key,
-                         _run_scene_dict(cell.scene, trials=n, seed=s, dtype=dt, tolerance=tol)))
-    results: list[CellResult | None] = [None] * len(jobs)
-    pending: list[int] = []
-    for j, (sw, cell, s, n, dt, tol, key, sd) in enumerate(jobs):
-        hit = cache.get(key)
-        if hit is not None:
-            results[j] = _cell_result(jobs[j], hit, cached=True)
-        else:
-            pending.append(j)
-    bar = None
-    if progress and pending:
-        from tqdm.auto import tqdm
+            info.append((sw, cell, s, n, dt, tol, key))
+            jobs.append(CellJob(key=key, payload={"scene": _run_scene_dict(cell.scene, trials=n, seed=s, dtype=dt,
+                                                                           tolerance=tol)}, weight=n))
 
-        bar = tqdm(total=sum(jobs[j][3] for j in pending), unit="trial", desc=desc, dynamic_ncols=True)
-        bar.set_postfix_str(f"{len(jobs) - len(pending)} cached, {len(pending)} to run")
+    def execute(payloads: list, done: Callable) -> None:
+        _execute(payloads, scheduler=scheduler, batch_cells=batch_cells, workers=workers, done=done)
 
-    def done(i: int, res: dict[str, Any]) -> None:
-        j = pending[i]
-        cache.put(jobs[j][6], res, jobs[j][7])
-        results[j] = _cell_result(jobs[j], res, cached=False)
-        if bar is not None:
-            bar.update(jobs[j][3])
+    results, pending = run_cached(
+        jobs, cache=CellCache(cache_dir), execute=execute, encode=_encode, decode=_decode, progress=progress,
+        desc=desc, unit="trial", what="cells",
+        before=lambda todo: _check_resources([info[j] for j in todo], scheduler=scheduler, workers=workers,
+                                             batch_cells=batch_cells, cache_dir=cache_dir, trials=trials))
+    computed = set(pending)
+    cells = [_cell_result(info[j], res, cached=j not in computed) for j, res in enumerate(results)]
+    return SweepResult(sweeps=tuple(sweeps), cells=cells, elapsed_s=time.perf_counter() - t0,
+                       computed=len(pending), cached=len(jobs) - len(pending))
 
-    try:
-        _execute([{"scene": jobs[j][7]} for j in pending], scheduler=scheduler, batch_cells=batch_cells,
-                 workers=workers, done=done)
-    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: say what the cache keeps (torchdoct.interrupt)
-        finished = sum(results[j] is not None for j in pending)
-        if cache.dir is not None:
-            before = len(jobs) - len(pending)
-            note(kept=f"{finished} of the {len(pending)} cells to compute" + (f" (and {before} found there before)"
-                      if before else "") + f" in the cache {cache.dir}",
-                 resume="rerun the same command to resume from them", key="cache")
-        else:
-            note(resume="rerun the same command (without --no-cache, finished cells would be kept)")
-        raise
-    finally:
-        if bar is not None:
-            bar.close()
-    if cache.dir is not None:  # should the command be interrupted while it writes its outputs
-        note(kept=f"all {len(jobs)} cells in the cache {cache.dir}",
-             resume="rerun the same command: the cells come from the cache", key="cache")
-    return SweepResult(sweeps=tuple(sweeps), cells=[r for r in results if r is not None],
-                       elapsed_s=time.perf_counter() - t0, computed=len(pending), cached=len(jobs) - len(pending))
+
+def _encode(job: CellJob, res: dict[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """A cell's cache entry (:class:`~torchdoct.study.cells.CellCache`): its per-trial metrics
+    ``metric_<name>``, ``zero_intensity`` and a header with the resolved scene that ran."""
+    arrays = {f"metric_{k}": v for k, v in res["metrics"].items()}
+    arrays["zero_intensity"] = res["zero_intensity"]
+    return arrays, {"format": CACHE_FORMAT, "version": _version(), "scene": job.payload["scene"],
+                    "metrics": list(res["metrics"]), "system_names": list(res["system_names"]),
+                    "elapsed_s": res["elapsed_s"]}
+
+
+def _decode(job: CellJob, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> dict[str, Any]:
+    return {"metrics": {k: arrays[f"metric_{k}"] for k in meta["metrics"]}, "zero_intensity": arrays["zero_intensity"],
+            "system_names": meta["system_names"], "elapsed_s": meta.get("elapsed_s", 0.0)}
+
+
+def _check_resources(todo: list[tuple], *, scheduler: str | None, workers: int, batch_cells: int,
+                     cache_dir: str | os.PathLike | None, trials: int | None) -> None:
+    """The cells to compute fit in memory (the largest cell's simulation times the cells side by side, plus
+    every cell's per-trial metrics) and their cache entries on disk: :func:`torchdoct.resources.check_resources`,
+    before any cell runs."""
+    if not todo:
+        return
+    from ..resources import check_resources
+    from ..sim.memory import simulation_bytes
+    from ..sim.plan import make_plan
+
+    batches = -(-len(todo) // batch_cells)
+    side_by_side = scheduler is None and workers > 1 and batches > 1
+    largest, where = 0, todo[0]
+    results = 0
+    for job in todo:
+        sw, cell, s, n, dt, tol, key = job
+        n_sys, n_frames = len(cell.scene.systems), cell.scene.protocol.n_frames
+        results += n * n_sys * (len(SCALAR_METRICS) + 1) * 8
+        if scheduler is None:  # on a cluster the cells' memory is the workers'
+            plan = make_plan(cell.scene, truncation_tolerance=tol)
+            need = simulation_bytes(plan, trials=n, n_systems=n_sys, n_frames=n_frames,
+                                    threads=1 if side_by_side else workers, dtype_bytes=4 if dt == "float32" else 8)[0]
+            if need > largest:
+                largest, where = need, job
+    at_once = min(workers, batches) if side_by_side else 1
+    sw, cell, _, n, _, tol, _ = where
+    desc = ", ".join(f"{p} = {v!r}" for p, v in cell.assignments)
+    fix = (f"lower the trials per cell (--trials{f', now {trials}' if trials is not None else ''}), run fewer cells "
+           f"side by side (--workers, now {workers}), or loosen the truncation tolerance (--tolerance or "
+           f"simulation.truncation_tolerance, now {tol:g})")
+    check_resources(f"sweep {sw.name!r}", largest * at_once + results, fix,
+                    detail=f"its largest cell, {cell.index} ({desc}), {largest / 2**30:.2f} GB with {n} trials, × "
+                           f"{at_once} cell(s) side by side, plus the per-trial metrics of {len(todo)} cells",
+                    out_path=cache_dir, out_bytes=results if cache_dir is not None else 0,
+                    out_fix="free disk space there, give another --cache directory, or --no-cache")
 
 
 def run_sweep(sweep: Sweep, **kwargs: Any) -> SweepResult:
@@ -807,7 +564,7 @@ def run_sweep(sweep: Sweep, **kwargs: Any) -> SweepResult:
 
 
 def _cell_result(job, res: dict[str, Any], cached: bool) -> CellResult:
-    sw, cell, s, n, dt, tol, key, _ = job
+    sw, cell, s, n, dt, tol, key = job
     return CellResult(cell=cell, sweep=sw, seed=s, trials=n, dtype=dt, tolerance=tol, cache_key=key,
                       metrics=dict(res["metrics"]), zero_intensity=np.asarray(res["zero_intensity"]),
                       system_names=tuple(res["system_names"]), elapsed_s=float(res["elapsed_s"]), cached=cached)
