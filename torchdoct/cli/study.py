@@ -83,6 +83,11 @@ def _sweep(args) -> int:
 
     sweep = load_sweep(args.scene)
     check_cache_dir(_cache(args))  # a file there: refused before the output folder is made
+    from ..study.sweep import check_sweep_resources
+
+    check_sweep_resources([sweep], trials=args.trials, seed=args.seed, dtype=args.dtype, tolerance=args.tolerance,
+                          cache_dir=_cache(args), scheduler=args.scheduler, batch_cells=args.batch_cells,
+                          workers=_workers(args))  # memory and disk, before the output folder is made
     prepare_out_dir(args.out, sweep_outputs(args.out), args.force)
     res = run_sweep(sweep, trials=args.trials, seed=args.seed, dtype=args.dtype, tolerance=args.tolerance,
                     cache_dir=_cache(args), scheduler=args.scheduler, batch_cells=args.batch_cells,

@@ -273,7 +273,8 @@ def run_cached(jobs: Sequence[CellJob], *, cache: CellCache, execute: Callable[[
             bar.update(jobs[j].weight)
 
     try:
-        execute([jobs[j].payload for j in pending], done)
+        if pending:
+            execute([jobs[j].payload for j in pending], done)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: say what the cache keeps (torchdoct.interrupt)
         n_done = sum(finished[j] for j in pending)
         if cache.dir is not None:

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from ..files import atomic_write, output_set
-from .sweep import SweepResult, check_cache_dir, prepare_out_dir, run_sweeps, write_table
+from .sweep import SweepResult, check_cache_dir, check_sweep_resources, prepare_out_dir, run_sweeps, write_table
 from .claims import claims_report
 from .figures import _save_figure, plot_comparison, plot_directions
 from .spec import Study, load_study
@@ -70,11 +70,13 @@ def run_study(study: Study | str | os.PathLike, out_dir: str | os.PathLike, *, t
                          "seed": seed if seed is not None else study.seed})
     files = study_outputs(study, out_dir)
     check_cache_dir(None if cache_dir == "default" else cache_dir)
-    out = prepare_out_dir(out_dir, files, force)
     if cache_dir == "default":
-        cache_dir = out / "cache"
-    t0 = time.perf_counter()
+        cache_dir = Path(out_dir) / "cache"
     sweeps = study_sweeps(study)
+    check_sweep_resources(sweeps, cache_dir=cache_dir, scheduler=scheduler, batch_cells=batch_cells,
+                          workers=workers)  # memory and disk, before the output folder is made
+    out = prepare_out_dir(out_dir, files, force)
+    t0 = time.perf_counter()
     res = run_sweeps(sweeps, cache_dir=cache_dir, scheduler=scheduler, batch_cells=batch_cells, workers=workers,
                      progress=progress, desc=f"study {study.name}")
     t_sim = time.perf_counter() - t0

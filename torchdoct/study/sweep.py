@@ -92,6 +92,7 @@ __all__ = [
     "run_cell",
     "run_sweeps",
     "run_sweep",
+    "check_sweep_resources",
     "results_table",
     "write_table",
     "write_sweep_outputs",
@@ -476,20 +477,7 @@ def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int 
         raise ValueError(f"sweep names must be unique; {dup} appear twice")
     check_cache_dir(cache_dir)
     t0 = time.perf_counter()
-    info = []  # (sweep, cell, seed, trials, dtype, tolerance, key)
-    jobs: list[CellJob] = []
-    for sw in sweeps:
-        for cell in sw.cells:
-            st = cell.scene.simulation
-            n = trials if trials is not None else st.trials
-            base = seed if seed is not None else sw.scene.simulation.seed
-            s = cell_seed(base, cell.key)
-            dt = dtype or st.dtype
-            tol = tolerance if tolerance is not None else st.truncation_tolerance
-            key = cache_key(cell.scene, seed=s, trials=n, dtype=dt, tolerance=tol)
-            info.append((sw, cell, s, n, dt, tol, key))
-            jobs.append(CellJob(key=key, payload={"scene": _run_scene_dict(cell.scene, trials=n, seed=s, dtype=dt,
-                                                                           tolerance=tol)}, weight=n))
+    info, jobs = _jobs(sweeps, trials=trials, seed=seed, dtype=dtype, tolerance=tolerance)
 
     def execute(payloads: list, done: Callable) -> None:
         _execute(payloads, scheduler=scheduler, batch_cells=batch_cells, workers=workers, done=done)
@@ -503,6 +491,39 @@ def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int 
     cells = [_cell_result(info[j], res, cached=j not in computed) for j, res in enumerate(results)]
     return SweepResult(sweeps=tuple(sweeps), cells=cells, elapsed_s=time.perf_counter() - t0,
                        computed=len(pending), cached=len(jobs) - len(pending))
+
+
+def _jobs(sweeps: Sequence[Sweep], *, trials: int | None, seed: int | None, dtype: str | None,
+          tolerance: float | None) -> tuple[list[tuple], list[CellJob]]:
+    """Every cell as it runs: ``(sweep, cell, seed, trials, dtype, tolerance, cache key)`` and its
+    :class:`~torchdoct.study.cells.CellJob` (the payload of :func:`run_cell`)."""
+    info, jobs = [], []
+    for sw in sweeps:
+        for cell in sw.cells:
+            st = cell.scene.simulation
+            n = trials if trials is not None else st.trials
+            base = seed if seed is not None else sw.scene.simulation.seed
+            s = cell_seed(base, cell.key)
+            dt = dtype or st.dtype
+            tol = tolerance if tolerance is not None else st.truncation_tolerance
+            key = cache_key(cell.scene, seed=s, trials=n, dtype=dt, tolerance=tol)
+            info.append((sw, cell, s, n, dt, tol, key))
+            jobs.append(CellJob(key=key, payload={"scene": _run_scene_dict(cell.scene, trials=n, seed=s, dtype=dt,
+                                                                           tolerance=tol)}, weight=n))
+    return info, jobs
+
+
+def check_sweep_resources(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int | None = None,
+                          dtype: str | None = None, tolerance: float | None = None,
+                          cache_dir: str | os.PathLike | None = None, scheduler: str | None = None,
+                          batch_cells: int = 1, workers: int = 1) -> None:
+    """The resource check of :func:`run_sweeps` (same arguments), for a command to call before it makes its
+    output folder: the cells without a cache file must fit (:func:`torchdoct.resources.check_resources`)."""
+    info, jobs = _jobs(sweeps, trials=trials, seed=seed, dtype=dtype, tolerance=tolerance)
+    cache = CellCache(cache_dir)
+    todo = [i for i, job in zip(info, jobs) if cache.dir is None or not cache.path(job.key).is_file()]
+    _check_resources(todo, scheduler=scheduler, workers=workers, batch_cells=batch_cells, cache_dir=cache_dir,
+                     trials=trials)
 
 
 def _encode(job: CellJob, res: dict[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
