@@ -65,43 +65,36 @@ def _check_sizes(sizes: Sequence[int], draws_max: int | None) -> tuple[tuple[int
     return sizes, n_max
 
 
-def _magnitude_errors(model, s: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """|log10 magnitude error| of the true class's head on identifiable samples, and their draws."""
-    import torch
-
+def _magnitude_errors(magnitude: tuple[np.ndarray, np.ndarray] | None,
+                      s: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """|log10 magnitude error| of the true class's head on identifiable samples, and their draws
+    (``magnitude``: the network's predicted ``(log10 magnitude, SD)``, :func:`classifier.train.network_predictions`)."""
     ident = s["status"] == 0
-    if not ident.any():
+    if magnitude is None or not ident.any():
         return np.zeros(0), np.zeros(0, np.int64)
-    with torch.no_grad():
-        mu, _ = model.magnitude(torch.from_numpy(s["x"][ident]))
     y = s["y"][ident]
-    m = mu.numpy()[np.arange(len(y)), y].astype(np.float64)
+    m = magnitude[0][ident][np.arange(len(y)), y].astype(np.float64)
     return np.abs(m - np.log10(s["magnitude"][ident])), s["draw"][ident]
 
 
 def _bootstrap(stat, draw: np.ndarray, *, n_boot: int = 200, seed: int = 0) -> float:
-    """SD of ``stat(index)`` over resamples of the draws (NaN with < 2 draws or < 2 finite values)."""
-    draws = np.unique(draw)
-    if draws.size < 2:
-        return math.nan
-    index = {d: np.flatnonzero(draw == d) for d in draws}
-    rng = np.random.default_rng(seed)
-    vals = [stat(np.concatenate([index[d] for d in rng.choice(draws, draws.size, replace=True)]))
-            for _ in range(n_boot)]
-    v = np.asarray(vals, dtype=np.float64)
-    v = v[np.isfinite(v)]
-    return float(np.std(v, ddof=1)) if v.size >= 2 else math.nan
+    """SD of ``stat(index)`` over resamples of the draws (NaN with < 2 draws or < 2 finite values;
+    :func:`classifier.evaluation.bootstrap_draws`)."""
+    from classifier.evaluation import bootstrap_draws
+
+    return bootstrap_draws(lambda i: {"stat": stat(i)}, draw, n_boot=n_boot, seed=seed).get("stat", math.nan)
 
 
 _KEYS = ("balanced_accuracy_identifiable", "coverage_identifiable", "ece")
 
 
 def _metrics(p: np.ndarray, s: dict[str, np.ndarray], rule: dict, seed: int) -> dict[str, float]:
-    from classifier.report import bootstrap_se, evaluate
-    from classifier.train import CLASS_NAMES
+    """Balanced accuracy, coverage (identifiable) and ECE with their bootstrap SEs: the metrics block of
+    every test set (:func:`classifier.evaluation.evaluate_set`)."""
+    from classifier.evaluation import evaluate_set
 
-    m = evaluate(p, s["y"], s["status"], CLASS_NAMES, rule)
-    se = bootstrap_se(p, s["y"], s["status"], s["draw"], CLASS_NAMES, rule, seed=seed, keys=_KEYS)
+    block = evaluate_set(p, s, rule, seed=seed)
+    m, se = block["metrics"], block["standard_errors"]
     out: dict[str, float] = {}
     for k in _KEYS:
         out[k] = float(m[k])
@@ -112,8 +105,8 @@ def _metrics(p: np.ndarray, s: dict[str, np.ndarray], rule: dict, seed: int) -> 
 def _paired_difference(p_a: np.ndarray, p_b: np.ndarray, s: dict[str, np.ndarray], rule: dict, seed: int,
                        key: str = "balanced_accuracy_identifiable") -> tuple[float, float]:
     """``metric(p_b) − metric(p_a)`` on the same samples and its SE (both on the same resampled draws)."""
+    from classifier.evaluation import CLASS_NAMES
     from classifier.report import evaluate
-    from classifier.train import CLASS_NAMES
 
     def diff(i):
         return (evaluate(p_b[i], s["y"][i], s["status"][i], CLASS_NAMES, rule)[key]
@@ -137,7 +130,8 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
     from classifier.dataset import STATUS, Prior, make_dataset
     from classifier.features import load_spec
     from classifier.rule import make_rule
-    from classifier.train import CLASS_NAMES, TrainConfig, class_targets, feature_masks, fit_network, evaluation_sets, transform_numpy
+    from classifier.train import (CLASS_NAMES, TrainConfig, class_targets, evaluation_sets, feature_masks, fit_network,
+                                  network_predictions, transform_numpy)
 
     say = log or (lambda *a, **k: None)
     sizes, n_max = _check_sizes(sizes, draws_max)
@@ -185,11 +179,10 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
                                "temperature": fit["temperature"]}
         probs[n] = {}
         for pool, s in tests.items():
-            with torch.no_grad():
-                p = model(torch.from_numpy(s["x"])).numpy()
+            p, mag = network_predictions(model, s, magnitude=model.n_magnitude > 0)
             probs[n][pool] = p
             m = _metrics(p, s, rule, cfg.seed)
-            err, edraw = _magnitude_errors(model, s)
+            err, edraw = _magnitude_errors(mag, s)
             m["median_abs_log10_error"] = float(np.median(err)) if err.size else math.nan
             m["median_abs_log10_error_se"] = _bootstrap(lambda i: float(np.median(err[i])), edraw, seed=cfg.seed)
             net[pool] = m
