@@ -1,7 +1,7 @@
 """Console scripts ``doct-train`` and ``doct-classify``: parse, call one library function, print.
 
-``doct-train`` = :func:`classifier.train.train` + :func:`classifier.export.export_onnx` +
-:func:`classifier.report.write_report`; ``doct-classify`` = :func:`classifier.infer.classify_maps` +
+``doct-train`` = :func:`classifier.train.train_to_files` (:func:`classifier.train.train`,
+:func:`classifier.export.export_onnx`, :func:`classifier.report.write_report`); ``doct-classify`` = :func:`classifier.infer.classify_maps` +
 :func:`classifier.infer.write_classification`. ``doct-classify`` never imports torch.
 """
 
@@ -98,11 +98,7 @@ def train_main(argv: Sequence[str] | None = None) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    import os
-    import shutil
-    import tempfile
-
-    from torchdoct.files import check_out, safe_name
+    from torchdoct.files import check_out, output_set, safe_name
     from .features import load_spec
     from .train import TrainConfig
 
@@ -151,16 +147,13 @@ def _train(args: argparse.Namespace) -> int:
         return 0
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=".doct-train-", dir=out))  # outputs appear only when all are written
+    order = [s for s in (".json", ".md", ".png", ".spec.toml", ".prior.toml", ".onnx") if s in paths]  # the model last
     try:
-        line = _train_into(args, cfg, {s: stage / p.name for s, p in paths.items()}, spec=spec, prior=prior)
-        if args.like:
-            _write_like_files(spec, prior, ranges, args, {s: stage / paths[s].name for s in (".spec.toml", ".prior.toml")})
-        for s in (".json", ".md", ".png", ".spec.toml", ".prior.toml", ".onnx"):  # the model last
-            if s in paths:
-                os.replace(stage / paths[s].name, paths[s])
+        with output_set([paths[s] for s in order], args.force, f"--out {out}") as stage:  # all files or none
+            line = _train_into(args, cfg, {s: stage(p) for s, p in paths.items()}, spec=spec, prior=prior)
+            if args.like:
+                _write_like_files(spec, prior, ranges, args, {s: stage(paths[s]) for s in (".spec.toml", ".prior.toml")})
     finally:
-        shutil.rmtree(stage, ignore_errors=True)
         if created and out.exists() and not any(out.iterdir()):
             out.rmdir()
     print(f"wrote {', '.join(str(p) for p in paths.values())}")
@@ -273,41 +266,19 @@ def _write_like_files(spec, prior, ranges, args, paths) -> None:
 
 
 def _train_into(args: argparse.Namespace, cfg, paths: dict[str, Path], *, spec=None, prior=None) -> str:
-    """Train, export and write the report into ``paths``; returns the summary line."""
-    import time
+    """Train, export and write the report into ``paths`` (:func:`classifier.train.train_to_files`);
+    returns the summary line."""
+    from .report import training_summary
+    from .train import train_to_files
 
-    from .export import build_metadata, export_onnx, runtime_checks
-    from .report import summary_line, write_report
-    from .train import train
-
-    t0 = time.perf_counter()
     if not args.no_cache:  # should the run be interrupted (torchdoct.interrupt)
         from .dataset import default_cache_dir
 
         _interrupt.note(kept=f"the data splits simulated so far, in the cache {args.cache or default_cache_dir()}",
                         resume="rerun the same command: those splits come from the cache")
-    res = train(cfg, prior=prior, cache_dir=args.cache, use_cache=not args.no_cache, progress=not args.no_progress,
-                spec=spec)
-    export_onnx(res.model, build_metadata(res), paths[".onnx"])
-    parity = runtime_checks(res, paths[".onnx"])
-    res.report["total_s"] = time.perf_counter() - t0
-    report = _finite(res.report)
-    write_report(report, paths[".json"], paths[".md"], paths[".png"])
-    return (f"test (pool 1): {summary_line(report['test']['network']['1'])}; ONNX max |dp| {parity:.1e}; "
-            f"total {report['total_s']:.0f} s")
-
-
-def _finite(obj):
-    """Replace NaN/inf floats by None (strict JSON)."""
-    import math
-
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    return obj
+    res = train_to_files(cfg, paths, prior=prior, spec=spec, cache_dir=args.cache, use_cache=not args.no_cache,
+                         progress=not args.no_progress)
+    return training_summary(res.report)
 
 
 def _as_typed(message: str) -> str:
