@@ -629,13 +629,13 @@ def _check_resources(spec: FeatureSpec, split: str, draws: int, trials_per_draw:
     n = draws * replicates * trials_per_draw
     per_sample = 4 * spec.n_features + 8 * (len(_ARRAYS) - 1) + (8 * len(spec.configurations) if spec.is_signature
                                                                    else 0)
-    check_resources(
+    check_resources(  # on disk: the finished draws until the split is written, then the split
         f"the {split} split of {spec.name!r}", 2 * n * per_sample,
         "lower the draws (doct-train --draws-train, --draws-validation, --draws-test), --trials-per-draw or "
         "--replicates",
         detail=f"{n} samples = {draws} draws × {replicates} replicates × {trials_per_draw} trials, "
                f"{per_sample} bytes each, twice while gathered",
-        out_path=None if path is None else path.parent, out_bytes=n * per_sample,
+        out_path=None if path is None else path.parent, out_bytes=2 * n * per_sample,
         out_fix="free disk space there, give another --cache directory, or --no-cache")
 
 
@@ -677,27 +677,35 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
                 ds.meta["from_cache"] = True
                 return ds
     _check_resources(spec, split, draws, trials_per_draw, replicates, path)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=draws, unit="draw", desc=f"simulate {spec.name}/{split}")
     cols: dict[str, list] = {k: [] for k in _ARRAYS}
     refs: list[np.ndarray] = []
     dropped = 0
     status_counts = {s: 0 for s in STATUS}
     t0 = time.perf_counter()
-    from torchdoct.study.cells import run_cells
+    from torchdoct.study.cells import CellCache, CellJob, run_cached, run_cells
     from torchdoct.threads import resolve_threads
 
     def one(k: int):
         d = draw_parameters(prior, seed, split, k, replicates)
-        return k, d, simulate_draw(spec, d, prior, trials=trials_per_draw, truncation_tolerance=truncation_tolerance,
-                                   bulk_phase=bulk_phase, truncation=truncation)
+        return simulate_draw(spec, d, prior, trials=trials_per_draw, truncation_tolerance=truncation_tolerance,
+                             bulk_phase=bulk_phase, truncation=truncation)
 
-    def gather(_: int, item) -> None:
-        nonlocal dropped
-        k, d, res = item
+    # draws side by side on the usable cores, in threads (the cell runner, torchdoct.study.cells: one
+    # torch thread each; every draw has its own seeds, so the dataset does not depend on the number of
+    # threads); each finished draw is kept beside the split's cache file until the split is written, so
+    # an interrupted run resumes from the draws it finished
+    draw_cache = CellCache(None if path is None else path.with_name(f".{path.stem}.draws"))
+    jobs = [CellJob(key=f"draw-{k}-{hashlib.sha256(f'{key}:{k}'.encode()).hexdigest()[:24]}", payload=k)
+            for k in range(draws)]
+
+    def execute(payloads: list, done) -> None:
+        run_cells(one, payloads, done=done, workers=resolve_threads(None), one_torch_thread=True)
+
+    results, _ = run_cached(
+        jobs, cache=draw_cache, execute=execute, encode=_encode_draw, decode=_decode_draw, progress=progress,
+        desc=f"simulate {spec.name}/{split}", unit="draw", what="draws of this split", final_note=False)
+    for k, res in enumerate(results):  # gathered in draw order
+        d = draw_parameters(prior, seed, split, k, replicates)
         x, zero = res[0], res[1]
         status, _, _ = identifiability(spec, d, prior)
         status_counts[status] += 1
@@ -717,17 +725,6 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
             cols["static_fraction"].append(np.full(n, f))
             cols["snr_db"].append(np.full(n, snr))
             cols["polar_angle_deg"].append(np.full(n, d.polar_angle_deg if d.label == 2 else math.nan))
-        if bar is not None:
-            bar.update(1)
-
-    # draws side by side on the usable cores, in threads (the cell runner, torchdoct.study.cells: one
-    # torch thread each, gathered in draw order; every draw has its own seeds, so the dataset does not
-    # depend on the number of threads)
-    try:
-        run_cells(one, list(range(draws)), done=gather, workers=resolve_threads(None), one_torch_thread=True)
-    finally:
-        if bar is not None:
-            bar.close()
     elapsed = time.perf_counter() - t0
     arrays = {k: np.concatenate(v) for k, v in cols.items()}
     arrays["x"] = arrays["x"].astype(np.float32).reshape(-1, spec.n_features)
@@ -742,4 +739,20 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
 
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write(path, ds.save)
+        if draw_cache.dir is not None and draw_cache.dir.is_dir():  # the split holds them now
+            for k in range(draws):
+                draw_cache.path(jobs[k].key).unlink(missing_ok=True)
+            try:
+                draw_cache.dir.rmdir()
+            except OSError:
+                pass  # another run's draws are there too
     return ds
+
+
+def _encode_draw(job, res) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """A finished draw's cache entry: its features, empty-volume mask and (signature specs) LIV/OCDS."""
+    return {f"a{i}": a for i, a in enumerate(res)}, {"arrays": len(res)}
+
+
+def _decode_draw(job, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> tuple[np.ndarray, ...]:
+    return tuple(arrays[f"a{i}"] for i in range(int(meta["arrays"])))

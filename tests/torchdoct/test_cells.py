@@ -147,3 +147,41 @@ def test_the_resource_check_runs_before_any_cell(tmp_path):
     with pytest.raises(ValueError, match="too large"):
         run_cached(_jobs(), cache=cache, execute=execute, encode=_encode, decode=_decode, before=before)
     assert seen == [[0, 2, 3, 4, 5, 6]]  # the cached cell is not counted
+
+
+def test_training_data_resumes_from_the_draws_an_interruption_kept(tmp_path, monkeypatch, fresh_notes):
+    """make_dataset runs its draws through the same runner: Ctrl-C after 2 of 4 draws keeps them; the rerun
+    simulates only the other 2 and gives the split of an uninterrupted run bit for bit; once the split is
+    written, the kept draws are removed."""
+    import classifier.dataset as dataset
+    from torchdoct.threads import using_threads
+
+    kw = dict(draws=4, trials_per_draw=64, replicates=1)
+    with using_threads(1):
+        ref = dataset.make_dataset("single-acquisition", use_cache=False, **kw)
+    real = dataset.simulate_draw
+    calls = []
+
+    def stops_at_the_third(*args, **kwargs):
+        calls.append(args[1].sim_seed)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(dataset, "simulate_draw", stops_at_the_third)
+    with using_threads(1), pytest.raises(KeyboardInterrupt):
+        dataset.make_dataset("single-acquisition", cache_dir=tmp_path, **kw)
+    kept = [p for p in tmp_path.iterdir()]
+    assert len(kept) == 1 and kept[0].name.startswith(".single-acquisition-train-") and kept[0].is_dir()
+    assert len(list(kept[0].glob("draw-*.npz"))) == 2
+    assert "kept 2 of the 4 draws of this split to compute in the cache" in interrupt.message(signal.SIGINT)
+
+    calls.clear()
+    monkeypatch.setattr(dataset, "simulate_draw", lambda *a, **k: (calls.append(a[1].sim_seed), real(*a, **k))[1])
+    with using_threads(2):
+        ds = dataset.make_dataset("single-acquisition", cache_dir=tmp_path, **kw)
+    seeds = [dataset.draw_parameters(dataset.Prior(), 0, "train", k, 1).sim_seed for k in range(4)]
+    assert sorted(calls) == sorted(seeds[2:])
+    for name in ("x", "y", "draw", "group", "status", "magnitude", "density", "static_fraction", "snr_db"):
+        assert np.array_equal(getattr(ds, name), getattr(ref, name), equal_nan=True), name
+    assert [p.name for p in tmp_path.iterdir()] == [f"single-acquisition-train-{ds.meta['key'][:16]}.npz"]

@@ -233,15 +233,16 @@ def run_cached(jobs: Sequence[CellJob], *, cache: CellCache, execute: Callable[[
                encode: Callable[[CellJob, Any], tuple[dict[str, np.ndarray], dict[str, Any]]],
                decode: Callable[[CellJob, dict[str, np.ndarray], dict[str, Any]], Any],
                progress: bool = False, desc: str = "cells", unit: str = "trial", what: str = "cells",
-               before: Callable[[list[int]], None] | None = None) -> tuple[list[Any], list[int]]:
+               before: Callable[[list[int]], None] | None = None,
+               final_note: bool = True) -> tuple[list[Any], list[int]]:
     """Results of every job (from the cache, or computed): ``(results, indices computed)``.
 
     Cached jobs are decoded (``decode(job, arrays, header)``; an entry that does not decode is computed);
     the others run through ``execute(payloads, done)`` (a :func:`run_cells` call), and each finished one
     is stored at once (``encode(job, result) -> (arrays, header)``). ``before(indices to compute)`` runs
     before any of them (the resource check: :func:`torchdoct.resources.check_resources`). On Ctrl-C or SIGTERM the one line
-    says how many ``what`` the cache keeps and how to resume; after the run, should the command be
-    interrupted while it writes its outputs, that every cell is there.
+    says how many ``what`` the cache keeps and how to resume; after the run (with ``final_note``), should
+    the command be interrupted while it writes its outputs, that every cell is there.
     """
     results: list[Any] = [None] * len(jobs)
     pending: list[int] = []
@@ -288,7 +289,7 @@ def run_cached(jobs: Sequence[CellJob], *, cache: CellCache, execute: Callable[[
     finally:
         if bar is not None:
             bar.close()
-    if cache.dir is not None:  # should the command be interrupted while it writes its outputs
+    if final_note and cache.dir is not None:  # should the command be interrupted while it writes its outputs
         note(kept=f"all {len(jobs)} {what} in the cache {cache.dir}",
              resume=f"rerun the same command: the {what} come from the cache", key="cache")
     return results, pending
