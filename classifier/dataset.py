@@ -389,7 +389,7 @@ def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
     """Feature vectors ``[R, trials, F]`` (float32, spec order) and the empty-volume mask ``[R, trials]``.
 
     For a signature spec (:attr:`FeatureSpec.is_signature`) the features come from
-    :func:`torchdoct.sim.signature.signature` (the extractor of ``torchdoct maps --signature``), and a
+    :func:`torchdoct.sim.signature.pixel_features` (the extractor of ``torchdoct maps --signature``), and a
     third array ``[R, trials, 2·C]`` holds LIV and OCDS of the same pixels at the same
     configurations (for the LIV/OCDS baseline on the same test pixels). ``bulk_phase``: multiply
     every frame by a uniform random phase (one per trial and frame, common to the configurations,
@@ -438,9 +438,9 @@ def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
     met = compute_metrics(signals, moving.frame_times_s, moving.scene.analysis)
     zero = met["zero_intensity"].any(-1).numpy().reshape(len(nuisance), trials)
     if spec.is_signature:
-        from torchdoct.sim.signature import signature
+        from torchdoct.sim.signature import pixel_features  # the function of the maps' slab loop too
 
-        _, sig = signature(signals, moving.frame_times_s, names=spec.metrics)  # [N, systems, F]
+        _, sig = pixel_features(signals, moving.frame_times_s, spec)  # [N, systems, F]
         x = sig.reshape(sig.shape[0], -1).numpy().astype(np.float32).reshape(len(nuisance), trials, -1)
         ref = torch.stack([met[m][:, s] for s in range(len(spec.configurations)) for m in ("liv", "ocds")], dim=-1)
         return x, zero, ref.numpy().astype(np.float32).reshape(len(nuisance), trials, -1)

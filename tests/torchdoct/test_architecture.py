@@ -227,7 +227,6 @@ UPWARD_IMPORTS = {
     ("torchdoct.measured.maps", "torchdoct.bench"): "bench_maps records machine_info",
     ("torchdoct.measured.bulkphase", "torchdoct.bench"): "bench_bulk_phase records machine_info",
     ("torchdoct.study.bench", "torchdoct.bench"): "bench_study records machine_info",
-    ("torchdoct.sim.signature", "torchdoct.measured.maps"): "signature_maps runs the maps' slab loop",
 }
 
 

@@ -260,3 +260,95 @@ def test_cli_maps_signature_channels(tmp_path, capsys):
     assert names == list(available_features(DEFAULT_FEATURES, False)) and imaps.meta["signature"]["intensity_only"]
     orig = [i for i, c in enumerate(chans) if c["resolution"] == "original" and c["metric"] in names]
     np.testing.assert_allclose(imaps.maps[3:], maps.maps[orig], rtol=1e-4, atol=1e-5)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# pixel_features: one function for the training data and the maps' slab loop
+# ----------------------------------------------------------------------------------------------------------
+def test_pixel_features_takes_names_or_a_spec_and_does_not_depend_on_the_chunks():
+    from types import SimpleNamespace
+
+    from torchdoct.sim.signature import pixel_features
+
+    t = 32
+    x = _ar1(3 * 37, t, 0.8, seed=21).reshape(3, 37, t)  # [N, C, T], contiguous as the training data's
+    names, ref = signature(x, _times(t))
+    assert names == DEFAULT_FEATURES
+    for spec_or_names in (None, DEFAULT_FEATURES, SimpleNamespace(metrics=list(DEFAULT_FEATURES))):
+        got_names, got = pixel_features(x, _times(t), spec_or_names)
+        assert got_names == names and torch.equal(got, ref)
+    # chunks of pixels (memory only): the same numbers whatever the chunk size, up to the float64 round-off of
+    # torch's reductions (their order of summation may follow the number of rows)
+    for chunk in (1, 7, 37, 10_000):
+        got_names, got = pixel_features(x, _times(t), DEFAULT_FEATURES, chunk_pixels=chunk)
+        assert got_names == names and got.shape == ref.shape, chunk
+        torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="chunk_pixels"):
+        pixel_features(x, _times(t), None, chunk_pixels=0)
+
+
+def test_the_signature_module_imports_nothing_of_measured():
+    import ast
+    from pathlib import Path
+
+    import torchdoct.sim.signature as mod
+
+    tree = ast.parse(Path(mod.__file__).read_text(encoding="utf-8"))
+    found = {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    found |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    assert not any("measured" in m for m in found), found
+
+
+def _field_seq(shape, seed, *, volume=False):
+    from torchdoct.measured.io import Sequence, validate_meta
+
+    t = shape[0]
+    e = _ar1(int(np.prod(shape[1:])), t, 0.85, seed=seed).T.reshape(shape).numpy()  # complex128 [T, (Y), Z, X]
+    meta = {"axes": "TYZX" if volume else "TZX", "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 3.0} if volume else {})},
+            "frame_times_s": _times(t), "system": SYSTEM}
+    return Sequence(data=e, meta=validate_meta(meta, e.shape), source="test.npy")
+
+
+@pytest.mark.parametrize("volume", [False, True])
+def test_signature_channels_of_small_slabs_equal_the_whole_volume(volume):
+    """The slab loop (small slabs and chunks) gives the signature of the whole field, reduced at once: exact up
+    to float64 round-off without an axial reduction; with one, within the axial window's truncation at 5σ'
+    (its tail e^-12.5 ≈ 4e-6 of the field), as the DOCT channels (test_maps)."""
+    from torchdoct.measured.maps import compute_maps
+    from torchdoct.measured.resolution import parse_resolution, reduce_resolution
+
+    t = 16
+    seq = _field_seq((t, 4, 30, 9) if volume else (t, 40, 12), seed=22, volume=volume)
+    res = ["original", "lateral=18", "axial=14"]
+    names = default_features(t) + ("g1_phase_1", "phase_ramp")
+    small = compute_maps(seq, res, metrics=("liv",), signature=names, slab_elements=t * 9 * 4 * 3,
+                         chunk_pixels=11)
+    assert small.meta["signature"]["features"] == list(names)
+    for r in res:
+        target = parse_resolution(r)
+        whole = reduce_resolution(torch.from_numpy(seq.data), pitch_um=seq.pitch_um, system=SYSTEM,
+                                  lateral_resolution_um=target.lateral_resolution_um,
+                                  axial_resolution_um=target.axial_resolution_um, axes=seq.axes)
+        _, ref = signature(whole.movedim(0, -1), _times(t), names)
+        got = np.stack([small[f"{n}@{r}"] for n in names], -1)
+        tol = 1e-4 if target.axial_resolution_um else 1e-9
+        np.testing.assert_allclose(got, ref.numpy().astype(np.float32), rtol=tol, atol=tol, err_msg=r)
+
+
+def test_signature_maps_is_the_slab_loop_and_keeps_the_maps_bscans():
+    """``signature_maps`` (maps computed first, the signature appended) gives the channels of one pass with
+    ``signature=``, bit for bit, also for a block raster volume whose boundary B-scans the maps dropped."""
+    from torchdoct.measured.io import BlockRaster, Sequence, validate_meta
+    from torchdoct.measured.maps import compute_maps, signature_maps
+
+    raster = BlockRaster(n_blocks=2, n_repeats=16, bscans_per_block=3, drop_boundary=1)
+    base = _field_seq((16, 6, 10, 8), seed=23, volume=True)
+    meta = dict(base.meta, block_raster=raster.to_dict())
+    seq = Sequence(data=base.data.astype(np.complex64), meta=validate_meta(meta, base.data.shape), source="r.npy")
+    res = ["original", "lateral=9.8"]
+    one = compute_maps(seq, res, signature=True)
+    assert one.meta["y_indices"] == [0, 1, 4, 5] and one.maps.shape[1] == 4
+    two, note = signature_maps(compute_maps(seq, res), seq, res)
+    assert note is None and two.channels == one.channels and two.meta["signature"] == one.meta["signature"]
+    np.testing.assert_array_equal(two.maps, one.maps)
+    assert one.channels[6:] == tuple(f"{f}@{r}" for r in res for f in default_features(16))  # after liv, ocds, mean_db

@@ -244,16 +244,11 @@ def _maps(args: argparse.Namespace) -> int:
                         aliv_smoothing=not args.no_aliv_smoothing, aliv_max_window_s=args.aliv_max_window_s,
                         axial_center=center, edge_mode=args.edge_mode, normalization=args.normalization,
                         drop_boundary=args.drop_boundary > 0, device=args.device, bulk_phase=bulk,
-                        progress=not args.no_progress)
-    if args.signature:
-        from ..sim.signature import signature_maps
+                        signature=args.signature, progress=not args.no_progress)
+    if args.signature:  # computed in the slab loop, from the same (bulk-corrected, reduced) field
+        from ..measured.maps import signature_channels
 
-        if bulk is not None:
-            from ..measured.bulkphase import corrected_sequence
-
-            maps, note = signature_maps(maps, corrected_sequence(seq, bulk), resolutions)
-        else:
-            maps, note = signature_maps(maps, seq, resolutions)
+        note = signature_channels(seq)[1]
         if note:
             print(f"note: {note}")
     nonfinite = maps.meta.get("nonfinite")

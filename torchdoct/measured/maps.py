@@ -58,8 +58,17 @@ then the B-scans next to the boundaries are dropped; ``meta["y_indices"]`` lists
 Work is done in depth slabs (with a halo for the axial window), so memory stays bounded and a
 progress bar shows; results do not depend on the slab size beyond the window truncation at 5σ'.
 
-Kept whole (over 600 lines): the slab loop and the per-slab metrics it runs belong together
-(docs/architecture.md).
+Signature channels (``signature``, ``torchdoct maps --signature``): the decorrelation-signature features of
+:func:`torchdoct.sim.signature.pixel_features` (the extractor of the training data) of every resolution's
+field, computed in the same slab loop from the same reduced field as the other channels, pixel by pixel;
+channels ``f"{feature}@{resolution}"`` after the DOCT channels. With ``bulk_phase`` they read the
+corrected field at every resolution (the original one included: the field features read the phase).
+Pixels that non-finite samples reach are NaN, as in the other channels; otherwise the signature's own
+rule holds (NaN where ``I = 0`` at some frame, :mod:`torchdoct.sim.signature`), without the floor of
+:data:`EMPTY_RULE`.
+
+The module runs the slab loop; the per-pixel metrics are in :mod:`torchdoct.measured.mapmetrics` and the
+figures in :mod:`torchdoct.measured.mapfigures` (their public names are importable from here too).
 """
 
 from __future__ import annotations
@@ -72,11 +81,25 @@ from typing import Any, Iterable, Mapping, Sequence as _Seq
 import numpy as np
 import torch
 
-from ..sim import metrics as _metrics
-from .._files import atomic_write, check_out
+from ..files import atomic_write, check_out
+from ..sim.signature import available_features, default_features, feature_unit, pixel_features
 from .bulkphase import BulkPhase, estimate_bulk_phase, phasor as _bulk_phasor
 from .io import Maps, Sequence
 from ..threads import one_torch_thread
+from .mapfigures import DEFAULT_HUE_RANGE, FLAG_RGB, map_figure, percentile_range, png_name, pseudo_color
+from .mapmetrics import (
+    DEFAULT_OCDS_DELAY_RANGE_S,
+    FIT_FLAG,
+    METRICS,
+    TAU_BOUND_LOG_TOL,
+    UNITS,
+    box_smooth_zx,
+    fit_saturation,
+    liv_curve,
+    ocds_map,
+    pixel_metrics,
+    tau_bound_code,
+)
 from .resolution import (
     EDGE_MODES,
     NORMALIZATIONS,
@@ -102,233 +125,14 @@ __all__ = [
     "compute_maps",
     "nonfinite_mask",
     "nonfinite_reach_px",
+    "signature_channels",
+    "signature_maps",
     "pseudo_color",
     "map_figure",
     "write_pngs",
     "png_name",
     "bench_maps",
 ]
-
-METRICS = ("liv", "ocds", "mean_db", "aliv", "swiftness")
-#: Channel written with ``aliv``/``swiftness``: where the saturation fit ended on a τ bound
-#: (:func:`tau_bound_code`: 0 inside, 1 lower bound, 2 upper bound, NaN undefined).
-FIT_FLAG = "aliv_fit"
-UNITS = {"liv": "dB^2", "ocds": "1/s", "mean_db": "dB", "aliv": "dB^2", "swiftness": "1/s", FIT_FLAG: "code"}
-DEFAULT_OCDS_DELAY_RANGE_S = (0.2048, 1.2288)
-#: Default hue range of the pseudo-colour images: low values red (0), high values green (1/3).
-DEFAULT_HUE_RANGE = (0.0, 1.0 / 3.0)
-#: Colour of flagged pixels (aLIV/Swiftness fits on a τ bound) in the pseudo-colour images.
-FLAG_RGB = (255, 0, 255)
-
-
-# ----------------------------------------------------------------------------------------------
-# per-pixel metrics on [..., T]
-
-
-def _uniform_dt(frame_times_s: _Seq[float]) -> float | None:
-    t = [float(v) for v in frame_times_s]
-    d = [b - a for a, b in zip(t, t[1:])]
-    if max(d) - min(d) <= 1e-9 * max(d):
-        return (t[-1] - t[0]) / (len(t) - 1)
-    return None
-
-
-def ocds_map(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
-             delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S, scale: str = "db",
-             estimator: str = "pearson") -> torch.Tensor:
-    """OCDS (1/s) of intensities ``[..., T]``: identical to :func:`torchdoct.sim.metrics.ocds`.
-
-    For a uniform protocol only the lags inside ``delay_range_s`` are computed, with either estimator
-    (same per-lag definitions and degenerate-case rules as :func:`torchdoct.sim.metrics.lag_correlations`:
-    Pearson per lag, or the biased ``Σ x̃_i x̃_{i+m} / Σ x̃²`` of the whole-sequence deviations; the slope
-    comes from :func:`torchdoct.sim.metrics.ocds_from_correlations`); a non-uniform protocol calls
-    :func:`torchdoct.sim.metrics.ocds`.
-    """
-    dt = _uniform_dt(frame_times_s)
-    if dt is None or estimator not in ("pearson", "biased"):
-        return _metrics.ocds(intensity, frame_times_s, delay_range_s=delay_range_s, scale=scale, estimator=estimator)
-    if scale == "db":
-        s = _metrics.to_db(intensity)
-    elif scale == "linear":
-        s = intensity
-    else:
-        raise ValueError(f"scale must be 'db' or 'linear'; got {scale!r}")
-    n = s.shape[-1]
-    if n != len(frame_times_s):
-        raise ValueError(f"signal has {n} frames but {len(frame_times_s)} frame times were given")
-    lo, hi = delay_range_s
-    lags = [m for m in range(1, n) if lo * (1 - 1e-9) <= m * dt <= hi * (1 + 1e-9)]
-    if len(lags) < 2:
-        raise ValueError(f"OCDS delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
-                         f"(frame interval {dt:.6g} s, {n} frames); give --ocds-delay-range-s")
-    if estimator == "pearson":
-        rho = torch.stack([_metrics._pearson(s[..., : n - m], s[..., m:]) for m in lags], dim=-1)
-    else:  # biased: as metrics.lag_correlations, for the lags in the range only
-        d = s - s[..., :1]
-        xm = d - d.mean(-1, keepdim=True)
-        var = (xm * xm).sum(-1)
-        ok = var > 0
-        den = torch.where(ok, var, torch.ones_like(var))
-        rho = torch.stack([torch.where(ok, (xm[..., : n - m] * xm[..., m:]).sum(-1) / den, torch.ones_like(var))
-                           for m in lags], dim=-1)
-    delays = torch.tensor([m * dt for m in lags], dtype=s.dtype, device=s.device)
-    return _metrics.ocds_from_correlations(rho, delays, (lo, hi))
-
-
-def _windows(frame_times_s: _Seq[float], max_window_s: float | None) -> list[tuple[float, list[tuple[int, int]]]]:
-    """Distinct window spans ``T_w`` (s) and, for each, the (first, last) frame index pairs."""
-    t = [float(v) - float(frame_times_s[0]) for v in frame_times_s]
-    n = len(t)
-    dt = _uniform_dt(frame_times_s)
-    if dt is not None:
-        out = [(m * dt, [(i, i + m) for i in range(n - m)]) for m in range(1, n)]
-    else:
-        groups: dict[float, list[tuple[int, int]]] = {}
-        for i in range(n):
-            for j in range(i + 1, n):
-                groups.setdefault(round(t[j] - t[i], 9), []).append((i, j))
-        out = [(k, groups[k]) for k in sorted(groups)]
-    if max_window_s is not None:
-        out = [w for w in out if w[0] <= max_window_s * (1 + 1e-9)]
-    if len(out) < 2:
-        raise ValueError("the LIV curve needs at least 2 time windows; check frame_times_s / max_window_s")
-    return out
-
-
-def liv_curve(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
-              max_window_s: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """LIV curve (physics.md §3 step 1): ``(windows_s [W], curve [..., W])`` in dB², float64.
-
-    ``curve[..., w]`` is the mean over start positions of the ddof-0 variance of ``10·log10 I`` over
-    the consecutive frames ``i … j`` with ``t_j − t_i = windows_s[w]``.
-    """
-    wins = _windows(frame_times_s, max_window_s)
-    s = _metrics.to_db(intensity).double()
-    s = s - s.mean(-1, keepdim=True)
-    zeros = torch.zeros_like(s[..., :1])
-    c1 = torch.cat([zeros, s.cumsum(-1)], -1)
-    c2 = torch.cat([zeros, (s * s).cumsum(-1)], -1)
-    n = s.shape[-1]
-    cols = []
-    uniform = _uniform_dt(frame_times_s) is not None
-    for _, pairs in wins:
-        if uniform:  # runs i … i+m for every start i: contiguous slices of the cumulative sums
-            m = pairs[0][1] - pairs[0][0]
-            d1 = (c1[..., m + 1:] - c1[..., : n - m]) / (m + 1)
-            d2 = (c2[..., m + 1:] - c2[..., : n - m]) / (m + 1)
-        else:
-            i = torch.tensor([p[0] for p in pairs], device=s.device)
-            j = torch.tensor([p[1] + 1 for p in pairs], device=s.device)
-            cnt = (j - i).to(s.dtype)
-            d1 = (c1.index_select(-1, j) - c1.index_select(-1, i)) / cnt
-            d2 = (c2.index_select(-1, j) - c2.index_select(-1, i)) / cnt
-        cols.append((d2 - d1 * d1).clamp_min(0).mean(-1))
-    windows = torch.tensor([w[0] for w in wins], dtype=torch.float64, device=s.device)
-    return windows, torch.stack(cols, -1)
-
-
-def box_smooth_zx(curves: torch.Tensor, defined: torch.Tensor | None = None) -> torch.Tensor:
-    """3×3 box mean over the (Z, X) dimensions of ``curves [..., Z, X, W]`` (border reflect-101,
-    as ``cv2.blur``); leading dimensions (e.g. Y) are separate images.
-
-    ``defined`` (bool ``[..., Z, X]``): average over the defined pixels of each 3×3 neighbourhood only
-    (``Σ defined·curve / Σ defined`` over the same reflect-101 window), so an undefined pixel (no dB
-    value) does not pull its neighbours' curves towards 0; a pixel with no defined neighbour gets 0.
-    """
-    lead = curves.shape[:-3]
-    z, x, w = curves.shape[-3:]
-    pz = 1 if z >= 2 else 0
-    px = 1 if x >= 2 else 0
-
-    def blur(img: torch.Tensor) -> torch.Tensor:  # [N, C, Z, X]
-        img = torch.nn.functional.pad(img, (px, px, pz, pz), mode="reflect") if (pz or px) else img
-        return torch.nn.functional.avg_pool2d(img, kernel_size=(2 * pz + 1, 2 * px + 1), stride=1)
-
-    img = curves.reshape(-1, z, x, w).permute(0, 3, 1, 2)  # [N, W, Z, X]
-    if defined is None:
-        out = blur(img)
-    else:
-        d = defined.reshape(-1, 1, z, x).to(curves.dtype)
-        num = blur(img * d)
-        den = blur(d)
-        out = torch.where(den > 0, num / torch.where(den > 0, den, torch.ones_like(den)), torch.zeros_like(num))
-    return out.permute(0, 2, 3, 1).reshape(*lead, z, x, w)
-
-
-def fit_saturation(windows_s: torch.Tensor, curve: torch.Tensor, *, tau_bounds_s: tuple[float, float] | None = None,
-                   grid: int = 64, iterations: int = 24) -> tuple[torch.Tensor, torch.Tensor]:
-    """Least-squares fit of ``a·(1 − exp(−T_w/τ))`` to every curve ``[..., W]``; returns ``(a, τ)``.
-
-    Vectorized over pixels (no per-pixel loop), float64. For fixed τ the best ``a ≥ 0`` is closed-form,
-    ``a = max(0, Σ y f / Σ f²)`` with ``f = 1 − exp(−T_w/τ)``, so the fit is a 1-D minimisation of the
-    profile residual over ``ln τ``: a ``grid``-point log grid (one matrix product for all pixels)
-    locates the global minimum, then golden-section search refines it inside the neighbouring grid
-    cells (``iterations`` steps, bracket × 0.618 each). τ is bounded to ``tau_bounds_s`` (default
-    ``[min T_w / 100, 100·max T_w]``); a fit at a bound means the curve is flat (τ → 0) or still
-    linear (τ → ∞) over the windows. Same minimum as ``scipy.optimize.curve_fit`` with bounds
-    ``[0, ∞)`` when that lies inside the bounds (physics.md §3).
-    """
-    t = windows_s.to(torch.float64)
-    y = curve.to(torch.float64)
-    lead = y.shape[:-1]
-    y = y.reshape(-1, y.shape[-1])
-    if tau_bounds_s is None:
-        tau_bounds_s = _default_tau_bounds(t)
-    lo, hi = math.log(tau_bounds_s[0]), math.log(tau_bounds_s[1])
-    u = torch.linspace(lo, hi, grid, dtype=torch.float64, device=y.device)
-    fg = -torch.expm1(-t[None, :] / torch.exp(u)[:, None])  # [G, W]
-    syf = y @ fg.T  # [P, G]
-    q = syf.clamp_min(0) ** 2 / (fg * fg).sum(-1)
-    g = q.argmax(-1)
-    step = (hi - lo) / (grid - 1)
-    ua = (u[g] - step).clamp(lo, hi)
-    ub = (u[g] + step).clamp(lo, hi)
-
-    neg_t = -t[None, :]
-
-    def profile(uu: torch.Tensor) -> torch.Tensor:
-        f = -torch.expm1(neg_t * torch.exp(-uu)[:, None])
-        syf = torch.einsum("pw,pw->p", y, f)
-        return syf.clamp_min(0) ** 2 / torch.einsum("pw,pw->p", f, f)
-
-    r = (math.sqrt(5.0) - 1.0) / 2.0
-    uc = ub - r * (ub - ua)
-    ud = ua + r * (ub - ua)
-    qc, qd = profile(uc), profile(ud)
-    for _ in range(iterations):
-        left = qc >= qd  # the maximum lies in [ua, ud]
-        ub = torch.where(left, ud, ub)
-        ua = torch.where(left, ua, uc)
-        new_u = torch.where(left, ub - r * (ub - ua), ua + r * (ub - ua))
-        qn = profile(new_u)
-        uc, ud, qc, qd = (torch.where(left, new_u, ud), torch.where(left, uc, new_u),
-                          torch.where(left, qn, qd), torch.where(left, qc, qn))
-    u_best = torch.where(qc >= qd, uc, ud)
-    tau = torch.exp(u_best)
-    f = -torch.expm1(-t[None, :] / tau[:, None])
-    a = ((y * f).sum(-1) / (f * f).sum(-1)).clamp_min(0)
-    return a.reshape(lead), tau.reshape(lead)
-
-
-def _default_tau_bounds(windows_s: torch.Tensor) -> tuple[float, float]:
-    return float(windows_s.min()) / 100.0, 100.0 * float(windows_s.max())
-
-
-#: ``|ln τ − ln bound|`` below which a fit counts as ending on a τ bound (τ within 0.1 % of it).
-TAU_BOUND_LOG_TOL = 1e-3
-
-
-def tau_bound_code(tau: torch.Tensor, windows_s: torch.Tensor,
-                   tau_bounds_s: tuple[float, float] | None = None) -> torch.Tensor:
-    """Where a :func:`fit_saturation` fit ended on a τ bound: 0 inside, 1 at the lower bound (the
-    curve is flat over the windows: it saturated before the shortest one), 2 at the upper bound (the
-    curve is still rising linearly at the longest window); ``|ln τ − ln bound| <`` :data:`TAU_BOUND_LOG_TOL`.
-    Such aLIV/Swiftness values are bounds of the model, not measurements (physics.md §3)."""
-    lo, hi = _default_tau_bounds(windows_s) if tau_bounds_s is None else tau_bounds_s
-    u = torch.log(tau.to(torch.float64))
-    code = torch.zeros_like(u)
-    code = torch.where(u - math.log(lo) < TAU_BOUND_LOG_TOL, torch.ones_like(u), code)
-    return torch.where(math.log(hi) - u < TAU_BOUND_LOG_TOL, torch.full_like(u, 2.0), code)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -360,62 +164,6 @@ def _peak_intensity(data: np.ndarray, src: str) -> float:
         raise ValueError(f"{src}: holds no finite nonzero sample (every value is NaN, infinite or 0), so no pixel "
                          "has a dB value; check the file (and --dataset / --axes)")
     return peak
-
-
-def _pixel_metrics(intensity: torch.Tensor, frame_times_s: list[float], wanted: list[str], *,
-                   ocds_delay_range_s: tuple[float, float], ocds_scale: str, ocds_estimator: str,
-                   aliv_smoothing: bool, aliv_max_window_s: float | None,
-                   chunk_pixels: int) -> dict[str, torch.Tensor]:
-    """Metrics of ``intensity [T, *spatial]`` → ``{name: [*spatial]}`` (see the module docstring)."""
-    spatial = intensity.shape[1:]
-    it = intensity.movedim(0, -1).reshape(-1, intensity.shape[0])
-    n_pix = it.shape[0]
-    nan = float("nan")
-    out = {k: torch.empty(n_pix, dtype=intensity.dtype, device=intensity.device) for k in wanted}
-    curves = None
-    if "aliv" in wanted or "swiftness" in wanted:
-        curves = []
-    for p0 in range(0, n_pix, chunk_pixels):
-        x = it[p0:p0 + chunk_pixels]
-        zero = ~(x > 0).all(-1)  # I = 0 or NaN at some frame: no dB value
-        safe = torch.where(zero[:, None], torch.ones_like(x), x) if bool(zero.any()) else x
-        if "liv" in out:
-            out["liv"][p0:p0 + len(x)] = torch.where(zero, nan, _metrics.liv(safe))
-        if "ocds" in out:
-            v = ocds_map(safe if ocds_scale == "db" else x, frame_times_s, delay_range_s=ocds_delay_range_s,
-                         scale=ocds_scale, estimator=ocds_estimator)
-            bad = zero if ocds_scale == "db" else ~torch.isfinite(x).all(-1)
-            out["ocds"][p0:p0 + len(x)] = torch.where(bad, nan, v)
-        if "mean_db" in out:
-            m = x.mean(-1)
-            out["mean_db"][p0:p0 + len(x)] = torch.where(m > 0, _metrics.to_db(torch.where(m > 0, m, torch.ones_like(m))),
-                                                          torch.full_like(m, nan))
-        if curves is not None:
-            windows, c = liv_curve(safe, frame_times_s, max_window_s=aliv_max_window_s)
-            curves.append(c)
-    res = {k: v.reshape(spatial) for k, v in out.items()}
-    if curves is not None:
-        c = torch.cat(curves, 0).reshape(*spatial, -1)
-        zero_all = ~(it > 0).all(-1)
-        if aliv_smoothing:
-            c = box_smooth_zx(c, defined=~zero_all.reshape(spatial))
-        c = c.reshape(n_pix, -1)
-        a_out = torch.empty(n_pix, dtype=torch.float64, device=c.device)
-        tau_out = torch.empty(n_pix, dtype=torch.float64, device=c.device)
-        step = max(1, chunk_pixels // 4)
-        for p0 in range(0, n_pix, step):
-            a, tau = fit_saturation(windows, c[p0:p0 + step])
-            a_out[p0:p0 + step] = a
-            tau_out[p0:p0 + step] = tau
-        a_out = torch.where(zero_all, nan, a_out)
-        swift = torch.where(zero_all | (a_out == 0), nan, 1.0 / tau_out)
-        code = torch.where(a_out == 0, 0.0, tau_bound_code(tau_out, windows))  # a = 0: no τ to flag
-        if "aliv" in wanted:
-            res["aliv"] = a_out.to(intensity.dtype).reshape(spatial)
-        if "swiftness" in wanted:
-            res["swiftness"] = swift.to(intensity.dtype).reshape(spatial)
-        res[FIT_FLAG] = torch.where(zero_all, nan, code).to(intensity.dtype).reshape(spatial)
-    return res
 
 
 def _nonfinite_reach(bad: np.ndarray, spatial_axes: str, widths: Mapping[str, int], wrap: bool) -> np.ndarray:
@@ -484,7 +232,7 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
                  aliv_smoothing: bool = True, aliv_max_window_s: float | None = None,
                  axial_center: str | float = "zero", edge_mode: str = "reflect", normalization: str = "power",
                  drop_boundary: bool = True, device: str | torch.device | None = None,
-                 bulk_phase: str | BulkPhase | None = None,
+                 bulk_phase: str | BulkPhase | None = None, signature: bool | _Seq[str] | None = None,
                  slab_elements: int = 1 << 23, chunk_pixels: int = 1 << 16, progress: bool = False,
                  timings: dict[str, float] | None = None) -> Maps:
     """DOCT maps of ``seq`` at every resolution in ``resolutions`` (see the module docstring).
@@ -494,16 +242,24 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     ``drop_boundary``: drop the block-boundary B-scans of a block raster volume. ``bulk_phase``: a
     method of :mod:`torchdoct.measured.bulkphase` (estimated here with its defaults) or a
     :class:`~torchdoct.measured.bulkphase.BulkPhase` estimated from ``seq``: each A-line's frames are
-    multiplied by ``exp(−iφ̂_i)`` before the resolution reduction (the intensity maps at the original
-    resolution do not read the phase and are unchanged bit for bit); recorded as
-    ``meta["bulk_phase"]``; intensity-only input is refused. ``slab_elements``:
+    multiplied by ``exp(−iφ̂_i)`` before the resolution reduction, slab by slab, as
+    :func:`~torchdoct.measured.bulkphase.corrected_sequence` does (the same numbers; the intensity maps at
+    the original resolution do not read the phase and are unchanged bit for bit); recorded as
+    ``meta["bulk_phase"]``; intensity-only input is refused. ``signature``: also the signature channels
+    (module docstring) of every resolution, after the DOCT channels: ``True`` for
+    :func:`signature_channels` of the sequence (the intensity part of intensity-only data), or the
+    feature names; recorded as ``meta["signature"]`` (``metrics`` may then be empty). ``slab_elements``:
     complex samples per depth slab; ``chunk_pixels``: pixels per metric chunk (memory only).
     ``timings`` (optional dict) receives seconds per resolution label. Returns :class:`Maps`
     (float32 ``[C, (Y), Z, X]``, channels ``f"{metric}@{resolution}"``).
     """
     wanted = [m for m in METRICS if m in set(metrics)]
     unknown = sorted(set(metrics) - set(METRICS))
-    if unknown or not wanted:
+    feats: tuple[str, ...] = ()
+    if signature is not None and signature is not False:  # before any work: the names, the optics, the protocol
+        feats, _ = signature_channels(seq, None if signature is True else signature)
+        sig_system = seq.system  # the signature channels record the optics of every resolution
+    if unknown or not (wanted or feats):
         raise ValueError(f"unknown metrics {unknown}; choose from {', '.join(METRICS)}")
     if edge_mode not in EDGE_MODES:
         raise ValueError(f"edge_mode must be one of {', '.join(EDGE_MODES)}; got {edge_mode!r}")
@@ -513,7 +269,7 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     src = seq.source or "sequence"
     from ..resources import check_maps  # the one resource check of every command, before any work
     check_maps(src, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,
-               n_resolutions=len(targets), metrics=wanted, slab_elements=slab_elements)
+               n_resolutions=len(targets), metrics=wanted + list(feats), slab_elements=slab_elements)
     if seq.n_frames < 2:
         raise ValueError(f"{src}: {seq.n_frames} frame along T; DOCT maps need at least 2 frames (LIV is a variance "
                          "over frames); check the file or --axes")
@@ -559,8 +315,10 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
         if not seq.is_complex:
             raise ValueError(f"{src} holds intensity only (dtype {seq.data.dtype}): bulk-phase correction needs the "
                              "complex field; give the complex sequence, or drop --bulk-phase")
-        bulk = torch.from_numpy(_bulk_phasor(bulk_phase, seq)).to(dev)  # [T, (Y), 1, X]: broadcasts over depth
+        # [T, (Y), 1, X] in the data's dtype, broadcast over depth: the multiplication of corrected_sequence
+        bulk = _bulk_phasor(bulk_phase, seq)
     data = seq.data
+    native = data.dtype.newbyteorder("=")  # big-endian files are read in native byte order
     axes = seq.axes
     zdim = axes.index("Z")
     n_z = data.shape[zdim]
@@ -573,11 +331,15 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
         raise ValueError(f"axial_center must be 'zero', 'centroid' or a number (cycles/pixel); got {axial_center!r}")
     margin = 1 if (aliv_smoothing and ("aliv" in wanted or "swiftness" in wanted)) else 0
     real_dtype = np.float64 if data.dtype in (np.complex128, np.float64) else np.float32
-    native = data.dtype.newbyteorder("=")  # big-endian files are read in native byte order
     peak = _peak_intensity(data, src)
     floor = peak * (EMPTY_FLOOR_EPS_FACTOR * float(np.finfo(real_dtype).eps)) ** 2
     outputs = wanted + ([FIT_FLAG] if ("aliv" in wanted or "swiftness" in wanted) else [])
-    out = np.full((len(targets) * len(outputs), *data.shape[1:]), np.nan, dtype=real_dtype)
+    n_doct = len(targets) * len(outputs)  # the DOCT channels, then the signature channels
+    raster = seq.block_raster
+    keep_y = None  # the B-scans a block raster volume keeps (its others are dropped below)
+    if raster is not None:
+        keep_y = raster.keep_y() if drop_boundary else np.ones(raster.n_y, dtype=bool)
+    out = np.full((n_doct + len(targets) * len(feats), *data.shape[1:]), np.nan, dtype=real_dtype)
 
     plans = []
     for t in targets:
@@ -605,6 +367,7 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
 
         bar = tqdm(total=total, desc="maps", unit="slab")
     channels: list[dict[str, Any]] = []
+    sig_channels: list[dict[str, Any]] = []
     for ti, (t, cdim, n_c, halo, mrg, rows, reach) in enumerate(plans):
         lat, ax = optics(t)
         wl = system.get("wavelength_um")
@@ -612,17 +375,25 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
             channels.append({"name": f"{m}@{t.label}", "metric": m, "unit": UNITS[m], "resolution": t.label,
                              "wavelength_um": None if wl is None else float(wl), "lateral_resolution_um": lat,
                              "axial_resolution_um": ax})
+        if feats:
+            s_lat, s_ax = t.resolved(sig_system)
+            sig_channels += [{"name": f"{f}@{t.label}", "metric": f, "unit": feature_unit(f), "resolution": t.label,
+                              "wavelength_um": float(sig_system["wavelength_um"]), "lateral_resolution_um": s_lat,
+                              "axial_resolution_um": s_ax} for f in feats]
         t0 = time.perf_counter()
         for c0 in range(0, n_c, rows):
             c1 = min(n_c, c0 + rows)
             a0, a1 = max(0, c0 - halo), min(n_c, c1 + halo)
             sel = [slice(None)] * data.ndim
             sel[cdim] = slice(a0, a1)
-            block = torch.from_numpy(np.array(data[tuple(sel)], dtype=native, copy=True)).to(dev)
-            if bulk is not None and t in changes:  # bulk phase removed before the A-lines are mixed
+            raw = np.array(data[tuple(sel)], dtype=native, copy=True)
+            corrected = None
+            if bulk is not None and (t in changes or feats):  # bulk phase removed before the A-lines are mixed
                 psel = list(sel)
                 psel[zdim] = slice(None)
-                block = block * bulk[tuple(psel)]
+                corrected = torch.from_numpy(np.multiply(raw, bulk[tuple(psel)])).to(dev)
+            # the intensity maps at the original resolution read no phase: the field as recorded
+            block = corrected if t in changes and corrected is not None else torch.from_numpy(raw).to(dev)
             bad = None
             fin = torch.isfinite(block)
             if not bool(fin.all()):  # masked per pixel: non-finite samples enter the reduction as 0
@@ -630,6 +401,8 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
                 if ti == 0:
                     n_nonfinite += int((~fin).narrow(cdim, c0 - a0, c1 - c0).sum())
                 block = torch.where(fin, block, torch.zeros_like(block))
+                if corrected is not None and t not in changes:
+                    corrected = torch.where(fin, corrected, torch.zeros_like(corrected))
             del fin
             if t in changes:
                 red = reduce_resolution(block, pitch_um=seq.pitch_um, system=system,
@@ -638,6 +411,8 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
                                         axial_center=fc, edge_mode=edge_mode, normalization=normalization)
             else:
                 red = block
+            # the signature's field: the reduced one, or at the original resolution the bulk-corrected one
+            field = corrected if corrected is not None and t not in changes else red
             m0, m1 = max(a0, c0 - mrg), min(a1, c1 + mrg)
             red = red.narrow(cdim, m0 - a0, m1 - m0)
             if red.is_complex():
@@ -646,10 +421,11 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
                 inten = red.to(torch.float64 if real_dtype == np.float64 else torch.float32)
             if t in changes:  # FFT round-off of the reduction is no signal: treated as I = 0 (module docstring)
                 inten = torch.where(inten > floor, inten, torch.zeros_like(inten))
-            vals = _pixel_metrics(inten, times, wanted, ocds_delay_range_s=tuple(ocds_delay_range_s),
-                                  ocds_scale=ocds_scale, ocds_estimator=ocds_estimator,
-                                  aliv_smoothing=aliv_smoothing, aliv_max_window_s=aliv_max_window_s,
-                                  chunk_pixels=chunk_pixels)
+            vals = pixel_metrics(inten, times, wanted, ocds_delay_range_s=tuple(ocds_delay_range_s),
+                                 ocds_scale=ocds_scale, ocds_estimator=ocds_estimator,
+                                 aliv_smoothing=aliv_smoothing, aliv_max_window_s=aliv_max_window_s,
+                                 chunk_pixels=chunk_pixels) if wanted else {}
+            del inten
             masks = {}
             if bad is not None:
                 sp = axes[1:]
@@ -669,12 +445,31 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
                 idx = [ti * len(outputs) + mi] + [slice(None)] * (data.ndim - 1)
                 idx[cdim] = slice(c0, c1)
                 out[tuple(idx)] = v
+            if feats:  # the signature of the slab's own pixels (no halo), from the same field
+                x = field.narrow(cdim, c0 - a0, c1 - c0)
+                if not x.is_complex():
+                    x = x.to(torch.float64 if real_dtype == np.float64 else torch.float32)
+                x = x.movedim(0, -1)  # [*spatial, T]
+                idx = [slice(n_doct + ti * len(feats), n_doct + (ti + 1) * len(feats))] + [slice(None)] * (data.ndim - 1)
+                idx[cdim] = slice(c0, c1)
+                ys = None
+                if keep_y is not None:  # only the B-scans kept
+                    ys = np.flatnonzero(keep_y[c0:c1] if cdim == 1 else keep_y)
+                    x = x[torch.as_tensor(ys)]
+                    idx[1] = ys + (c0 if cdim == 1 else 0)
+                f = pixel_features(x, times, feats, chunk_pixels=chunk_pixels)[1]
+                f = f.movedim(-1, 0).cpu().numpy()  # [F, *spatial]
+                if masks:  # the pixels that non-finite samples reach, as for the DOCT channels
+                    f = np.where(masks["pixel"] if ys is None else masks["pixel"][ys], np.nan, f)
+                out[tuple(idx)] = f
+            del field
             if bar is not None:
                 bar.update(1)
         if timings is not None:
             timings[t.label] = time.perf_counter() - t0
     if bar is not None:
         bar.close()
+    channels += sig_channels
     meta: dict[str, Any] = {
         "channels": channels,
         "axes": "C" + axes[1:],
@@ -702,12 +497,10 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     if "aliv" in wanted or "swiftness" in wanted:
         meta["aliv"] = {"smoothing": "box3x3" if aliv_smoothing else "none", "max_window_s": aliv_max_window_s,
                         "model": "a*(1-exp(-T/tau)); aliv=a, swiftness=1/tau"}
-    raster = seq.block_raster
     if raster is not None:
         meta["block_raster"] = raster.to_dict()
-        keep = raster.keep_y() if drop_boundary else np.ones(raster.n_y, dtype=bool)
-        out = out[:, keep]
-        meta["y_indices"] = [int(i) for i in np.flatnonzero(keep)]
+        out = out[:, keep_y]
+        meta["y_indices"] = [int(i) for i in np.flatnonzero(keep_y)]
     if FIT_FLAG in outputs:
         meta["aliv"]["flag"] = (f"{FIT_FLAG} channel: 1 where the fit ended on the lower τ bound (curve flat over the "
                                 "windows), 2 on the upper bound (still rising at the longest window), 0 inside, NaN "
@@ -715,163 +508,73 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
         meta["aliv"]["flagged_pixels"] = {
             c["resolution"]: {"tau_at_lower_bound": int(np.sum(out[i] == 1)), "tau_at_upper_bound": int(np.sum(out[i] == 2))}
             for i, c in enumerate(channels) if c["metric"] == FIT_FLAG}
+    if feats:
+        meta["signature"] = {"features": list(feats), "intensity_only": not seq.is_complex,
+                             "definition": "torchdoct.sim.signature (lags in frames)"}
     return Maps(maps=out.astype(np.float32, copy=False), channels=tuple(c["name"] for c in channels), meta=meta)
 
 
+def signature_channels(seq: Sequence, names: _Seq[str] | None = None) -> tuple[tuple[str, ...], str | None]:
+    """The signature features that maps of ``seq`` get, and a sentence for the user (or ``None``).
+
+    ``names``: default :func:`torchdoct.sim.signature.default_features` of the sequence's frame count, of
+    which intensity-only sequences get the intensity part (the sentence says so; a model that needs the
+    phase refuses such maps); named features that need the phase are refused for intensity-only data.
+    Unknown names, lags the protocol cannot hold and non-uniform frame intervals are refused here,
+    before any work.
+    """
+    times = list(seq.frame_times_s)
+    wanted = tuple(names) if names is not None else default_features(len(times))
+    feats = available_features(wanted, seq.is_complex)
+    note = None
+    if len(feats) < len(wanted):
+        if names is not None:
+            missing = [n for n in wanted if n not in feats]
+            raise ValueError(f"{seq.source or 'sequence'} holds intensity only: the signature features "
+                             f"{', '.join(missing)} need the complex field (phase)")
+        note = (f"{seq.source or 'sequence'} holds intensity only: the signature has only its intensity part "
+                f"({len(feats)} of {len(wanted)} features per resolution; no g1/phase features); models that "
+                "need the phase will refuse these maps")
+    probe = torch.ones(1, len(times), dtype=torch.complex64 if seq.is_complex else torch.float32)
+    pixel_features(probe, times, feats)  # the names, lags and frame times, on one pixel
+    return feats, note
+
+
+def signature_maps(maps: Maps, seq: Sequence, resolutions: _Seq[str | ResolutionTarget] = ("original",), *,
+                   names: _Seq[str] | None = None, chunk_pixels: int = 1 << 16) -> tuple[Maps, str | None]:
+    """``maps`` (from :func:`compute_maps` of ``seq``) with the signature channels of every resolution
+    appended: ``f"{feature}@{resolution}"``, metric = the feature name, its unit and the optics of the
+    resolution; ``meta["signature"]`` records the features.
+
+    The channels are those of ``compute_maps(..., signature=...)``: the field of each resolution reduced
+    with the reduction settings recorded in ``maps.meta["reduction"]`` (paper Eqs. 1-8), slab by slab,
+    then :func:`torchdoct.sim.signature.pixel_features` per pixel; the B-scans of ``maps.meta["y_indices"]``
+    are kept. ``names``: :func:`signature_channels`. Returns ``(maps, note)`` with ``note`` a sentence
+    for the user when only the intensity part could be computed, else ``None``.
+    """
+    red_meta = maps.meta.get("reduction") or {}
+    feats, note = signature_channels(seq, names)
+    keep = maps.meta.get("y_indices")
+    raster = seq.block_raster
+    sig = compute_maps(seq, resolutions, metrics=(), signature=feats,
+                       axial_center=red_meta.get("axial_center_cycles_per_pixel", 0.0) or "zero",
+                       edge_mode=red_meta.get("edge_mode", "reflect"),
+                       normalization=red_meta.get("normalization", "power"),
+                       drop_boundary=raster is not None and keep is not None and len(keep) < raster.n_y,
+                       chunk_pixels=chunk_pixels)
+    block = sig.maps
+    if keep is not None and sig.meta.get("y_indices") != list(keep):
+        raise ValueError(f"maps keep the B-scans {list(keep)}, but {seq.source or 'the sequence'} gives "
+                         f"{sig.meta.get('y_indices')}: give the sequence the maps were computed from")
+    meta = dict(maps.meta)
+    meta["channels"] = list(maps.meta["channels"]) + list(sig.meta["channels"])
+    meta["signature"] = sig.meta["signature"]
+    arr = np.concatenate([maps.maps, block], axis=0).astype(np.float32, copy=False)
+    return Maps(maps=arr, channels=tuple(c["name"] for c in meta["channels"]), meta=meta), note
+
+
 # ----------------------------------------------------------------------------------------------
-# pseudo-colour images
-
-
-def pseudo_color(value: np.ndarray, intensity_db: np.ndarray | None, *, value_range: tuple[float, float],
-                 db_range: tuple[float, float] | None = None,
-                 hue_range: tuple[float, float] = DEFAULT_HUE_RANGE, flagged: np.ndarray | None = None) -> np.ndarray:
-    """RGB uint8 ``[H, W, 3]``: hue = ``value`` over ``value_range``, brightness = dB intensity.
-
-    HSV composition as DOCT images are shown: hue ``hue_range[0] + (hue_range[1] − hue_range[0])·
-    clip((v − lo)/(hi − lo), 0, 1)`` (default red for low, green for high), saturation 1, value
-    ``clip((dB − db_lo)/(db_hi − db_lo), 0, 1)`` (1 everywhere without an intensity image). NaN values
-    are shown grey (saturation 0) at their brightness; ``flagged`` pixels (bool, e.g. an aLIV fit on a
-    τ bound) are shown in :data:`FLAG_RGB` (magenta, outside the red-green hue scale) at full brightness.
-    """
-    from matplotlib.colors import hsv_to_rgb
-
-    v = np.asarray(value, dtype=np.float64)
-    lo, hi = (float(x) for x in value_range)
-    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
-        raise ValueError(f"value range must be finite with hi > lo; got {value_range!r}")
-    frac = np.clip((v - lo) / (hi - lo), 0.0, 1.0)
-    hue = hue_range[0] + (hue_range[1] - hue_range[0]) * np.nan_to_num(frac)
-    if intensity_db is None:
-        bright = np.ones_like(v)
-    else:
-        if db_range is None:
-            raise ValueError("db_range is needed with an intensity image")
-        dlo, dhi = (float(x) for x in db_range)
-        if not (math.isfinite(dlo) and math.isfinite(dhi) and dhi > dlo):
-            raise ValueError(f"dB range must be finite with hi > lo; got {db_range!r}")
-        bright = np.nan_to_num(np.clip((np.asarray(intensity_db, dtype=np.float64) - dlo) / (dhi - dlo), 0, 1))
-    sat = np.where(np.isfinite(v), 1.0, 0.0)
-    rgb = np.round(hsv_to_rgb(np.stack([np.mod(hue, 1.0), sat, bright], axis=-1)) * 255.0).astype(np.uint8)
-    if flagged is not None:
-        rgb[np.asarray(flagged, dtype=bool)] = FLAG_RGB
-    return rgb
-
-
-def png_name(out_path: str | Path, channel: str) -> Path:
-    """``OUT_STEM_metric_resolution.png`` beside ``out_path`` (``=`` and ``,`` removed from the label)."""
-    out = Path(out_path)
-    metric, _, res = channel.partition("@")
-    label = res.replace("=", "").replace(",", "-").replace(".", "p")
-    return out.with_name(f"{out.stem}_{metric}_{label}.png")
-
-
-def _auto_range(values: list[np.ndarray], lo_pct: float, hi_pct: float) -> tuple[float, float]:
-    v = np.concatenate([np.asarray(a, dtype=np.float64).ravel() for a in values])
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return (0.0, 1.0)
-    lo, hi = np.percentile(v, [lo_pct, hi_pct])
-    if not hi > lo:
-        hi = lo + 1.0
-    return float(lo), float(hi)
-
-
-_TITLES = {"liv": "LIV", "ocds": "OCDS", "mean_db": "mean intensity", "aliv": "aLIV", "swiftness": "Swiftness",
-           FIT_FLAG: "aLIV fit on a τ bound"}
-
-
-def _optics_text(info: Mapping[str, Any]) -> str:
-    lat, ax, wl = (info.get(k) for k in ("lateral_resolution_um", "axial_resolution_um", "wavelength_um"))
-    if lat is None or ax is None:
-        return "original resolution (optics not given)"
-    return f"lateral {float(lat):g} µm, axial {float(ax):g} µm" + (f", {float(wl) * 1000:g} nm" if wl else "")
-
-
-def map_figure(maps: Maps, channel: str, *, value_range: tuple[float, float] | None = None,
-               db_range: tuple[float, float] | None = None, hue_range: tuple[float, float] = DEFAULT_HUE_RANGE,
-               y_index: int | None = None) -> Any:
-    """A quantitative figure of one channel: the image on µm axes (:mod:`torchdoct.figures`), a colour
-    bar with the unit and the value range, the channel name and its resolution in the title.
-
-    DOCT channels are drawn by :func:`pseudo_color` (brightness from the ``mean_db`` channel of the
-    same resolution over ``db_range``; aLIV/Swiftness pixels whose fit ended on a τ bound, from the
-    ``aliv_fit`` channel, in :data:`FLAG_RGB`; undefined pixels grey), ``mean_db`` in grey scale.
-    ``value_range`` defaults to the channel's 1st-99th percentile, ``db_range`` to the 5th-99.9th
-    percentile of its ``mean_db``. Volumes show the B-scan ``y_index`` (default the middle one).
-    Returns the matplotlib ``Figure`` (the caller saves and closes it).
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import ListedColormap, Normalize, hsv_to_rgb
-    from matplotlib.patches import Patch
-
-    from ..figures import show_bscan, unit_text
-
-    info = maps.channel_info(channel)
-    metric, res = info["metric"], info["resolution"]
-
-    def plane(name: str) -> np.ndarray:
-        a = maps[name]
-        return a[y] if a.ndim == 3 else a
-
-    y = None
-    if maps.maps.ndim == 4:
-        n_y = maps.maps.shape[1]
-        y = n_y // 2 if y_index is None else int(y_index)
-        if not 0 <= y < n_y:
-            raise ValueError(f"--png-y {y_index} is outside 0..{n_y - 1}")
-    v = plane(channel)
-    vr = value_range or _auto_range([v], 1.0, 99.0)
-    unit = unit_text(info.get("unit"))
-    name = _TITLES.get(metric, metric)
-    h, w = v.shape
-    aspect = (w * float((maps.meta.get("pitch_um") or {}).get("x", 1.0) or 1.0)) / max(
-        h * float((maps.meta.get("pitch_um") or {}).get("z", 1.0) or 1.0), 1e-9)
-    fig_w = min(max(4.5 * aspect, 3.5), 11.0) + 2.6
-    fig, ax = plt.subplots(figsize=(fig_w, 5.0))
-    handles = []
-    extra = ""
-    n_nan = int(np.sum(~np.isfinite(v)))
-    if metric == "mean_db":
-        cmap = plt.get_cmap("gray").with_extremes(bad="#6f9fcf")
-        show_bscan(ax, np.ma.masked_invalid(v), pitch_um=maps.meta.get("pitch_um"), cmap=cmap, vmin=vr[0], vmax=vr[1])
-        sm = ScalarMappable(norm=Normalize(*vr), cmap=cmap)
-        if n_nan:
-            handles.append(Patch(color="#6f9fcf", label=f"no intensity ({n_nan} px)"))
-    else:
-        db_name = next((c["name"] for c in maps.meta["channels"] if c["metric"] == "mean_db"
-                        and c["resolution"] == res), None)
-        db = plane(db_name) if db_name else None
-        dr = db_range or (_auto_range([db], 5.0, 99.9) if db is not None else None)
-        flag_name = f"{FIT_FLAG}@{res}"
-        flagged = None
-        if metric in ("aliv", "swiftness") and flag_name in maps.channels:
-            with np.errstate(invalid="ignore"):
-                flagged = plane(flag_name) > 0
-        rgb = pseudo_color(v, db, value_range=vr, db_range=dr if db is not None else None, hue_range=hue_range,
-                           flagged=flagged)
-        show_bscan(ax, rgb, pitch_um=maps.meta.get("pitch_um"))
-        hues = np.linspace(hue_range[0], hue_range[1], 256)
-        cmap = ListedColormap(hsv_to_rgb(np.stack([np.mod(hues, 1.0), np.ones(256), np.ones(256)], -1)))
-        sm = ScalarMappable(norm=Normalize(*vr), cmap=cmap)
-        if n_nan:
-            handles.append(Patch(color="0.6", label=f"undefined, no dB value: grey, black without intensity "
-                                                    f"({n_nan} px)"))
-        if flagged is not None and flagged.any():
-            handles.append(Patch(color=np.array(FLAG_RGB) / 255.0, label=f"fit on a τ bound ({int(flagged.sum())} px)"))
-        if db is not None:
-            extra = f"\nbrightness: mean intensity {dr[0]:.3g} … {dr[1]:.3g} dB"
-    cb = fig.colorbar(sm, ax=ax, shrink=0.85)
-    cb.set_label(f"{name} ({unit}): {vr[0]:.4g} … {vr[1]:.4g}")
-    if handles:
-        ax.legend(handles=handles, loc="lower left", fontsize=7, framealpha=0.8)
-    where = "" if y is None else f", B-scan y = {y}"
-    ax.set_title(f"{name} [{channel}]\n{_optics_text(info)}{where}{extra}", fontsize=9)
-    fig.tight_layout()
-    return fig
+# the PNG set
 
 
 def write_pngs(maps: Maps, out_path: str | Path, *, ranges: Mapping[str, tuple[float, float]] | None = None,
@@ -909,11 +612,11 @@ def write_pngs(maps: Maps, out_path: str | Path, *, ranges: Mapping[str, tuple[f
         by_metric.setdefault(c["metric"], []).append(arr[maps.index(c["name"])])
     ranges = dict(ranges or {})
     if db_range is None and "mean_db" in by_metric:
-        db_range = _auto_range(by_metric["mean_db"], 5.0, 99.9)
+        db_range = percentile_range(by_metric["mean_db"], 5.0, 99.9)
     for info, path in zip(infos, paths):
         metric = info["metric"]
         vr = ranges.get(metric) or (db_range if metric == "mean_db" and db_range else
-                                    _auto_range(by_metric[metric], 1.0, 99.0))
+                                    percentile_range(by_metric[metric], 1.0, 99.0))
         fig = map_figure(maps, info["name"], value_range=vr, db_range=db_range, hue_range=hue_range, y_index=y_index)
         try:
             atomic_write(path, lambda tmp, fig=fig: fig.savefig(tmp, format="png", dpi=100))

@@ -4,10 +4,11 @@ A pixel's complex time series ``E(t_i)`` (frames last, ``[..., T]``, uniform fra
 its motion in *how* it decorrelates with the delay: diffusion decorrelates exponentially in the
 delay, random-ballistic motion and flow as a Gaussian (in the PSF transit) and an oscillating
 phase term, and flow also turns the field's phase (physics.md §4, §5.3-5.4, §11). LIV and OCDS are
-two coarse summaries of that curve; the signature keeps the curve itself at a few lags. The same
-function computes the training features of :mod:`classifier.dataset` (simulated fields) and the
-``--signature`` channels of ``torchdoct maps`` (measured fields and their computational resolution
-reductions), so the two cannot drift apart.
+two coarse summaries of that curve; the signature keeps the curve itself at a few lags. One function,
+:func:`pixel_features`, computes the training features of :mod:`classifier.dataset` (simulated fields)
+and the ``--signature`` channels of ``torchdoct maps`` (measured fields and their computational
+resolution reductions, slab by slab in :func:`torchdoct.measured.maps.compute_maps`), so the two cannot
+drift apart. This module reads no file and imports nothing of :mod:`torchdoct.measured`.
 
 Features, named by a string (lags ``m`` in frames, delay ``τ = m·Δt``):
 
@@ -44,7 +45,7 @@ phase per frame). Intensity-only data (e.g. TIFF intensities) give only the inte
 (:func:`available_features`).
 
 The names, units and defaults import only the standard library (the torch-free classify path
-reads them); :func:`signature` imports torch.
+reads them); :func:`signature` and :func:`pixel_features` import torch.
 
 Undefined values are NaN: a pixel with ``I = 0`` (or NaN) at some frame has no dB value and gets
 NaN in every feature; a lag whose two sub-sequences are both constant has correlation 1 and one
@@ -77,7 +78,7 @@ __all__ = [
     "REFERENCE_FRAMES",
     "parse_feature",
     "signature",
-    "signature_maps",
+    "pixel_features",
 ]
 
 _PATTERN = re.compile(r"^(rho_db|rho_lin|g1|g1_phase)_([1-9][0-9]*)$")
@@ -247,82 +248,38 @@ def signature(x: torch.Tensor, frame_times_s: Sequence[float],
     return names, out
 
 
-def signature_maps(maps, seq, resolutions: Sequence = ("original",), *, names: Sequence[str] | None = None,
-                   chunk_pixels: int = 1 << 16):
-    """``maps`` (a :class:`torchdoct.measured.io.Maps` of ``seq`` from :func:`torchdoct.measured.maps.compute_maps`) with
-    the signature channels of every resolution appended: ``f"{feature}@{resolution}"``, metric = the
-    feature name, its unit and the optics of the resolution (the maps format's named channels).
+def pixel_features(field: torch.Tensor, frame_times_s: Sequence[float], spec_or_names=None, *,
+                   chunk_pixels: int | None = None) -> tuple[tuple[str, ...], torch.Tensor]:
+    """The features a signature model reads from every pixel of ``field [..., T]`` → ``(names, [..., F])``.
 
-    The field of each resolution is reduced exactly as the maps' own channels were (the reduction
-    settings and axial centre recorded in ``maps.meta["reduction"]``, paper Eqs. 1-8), then
-    :func:`signature` runs per pixel. ``names``: default :func:`default_features` of the sequence's
-    frame count; intensity-only sequences get only the intensity features
-    (``meta["signature"]["intensity_only"]``; a model that needs the phase refuses such maps).
-    Non-finite samples are masked as the maps mask them (:func:`torchdoct.measured.maps.nonfinite_mask`).
-    Returns ``(maps, note)`` with ``note`` a sentence for the user when only the intensity part could
-    be computed, else ``None``.
+    The one feature function of both sides: :func:`classifier.dataset.simulate_draw` (simulated fields
+    ``[N, configurations, T]``) and :func:`torchdoct.measured.maps.compute_maps` (each slab of a measured
+    or rendered field, after its resolution reduction and bulk-phase correction) call it, so a model
+    sees the same definition in training and on maps. ``field``: complex field, or real non-negative
+    intensity (intensity features only); ``frame_times_s``: the ``T`` frame times (s), uniform.
+    ``spec_or_names``: the feature names (:func:`parse_feature`), or a feature specification naming them
+    in its ``metrics`` (a signature spec of :mod:`classifier.features`), or ``None`` for
+    :func:`default_features` (their intensity part for real input). ``chunk_pixels``: at most that many
+    pixels per :func:`signature` call (the leading dimensions flattened; memory only), ``None`` for one
+    call. The features (module docstring) are those of :func:`signature`, in the field's real dtype.
     """
-    import numpy as np
+    names = getattr(spec_or_names, "metrics", spec_or_names)
+    if names is not None:
+        names = tuple(names)
+    if chunk_pixels is None:
+        return signature(field, frame_times_s, names=names)
     import torch
 
-    from ..measured.io import Maps
-    from ..measured.resolution import parse_resolution, reduce_resolution
-
-    times = list(seq.frame_times_s)
-    wanted = tuple(names) if names is not None else default_features(len(times))
-    feats = available_features(wanted, seq.is_complex)
-    note = None
-    if len(feats) < len(wanted):
-        if names is not None:
-            missing = [n for n in wanted if n not in feats]
-            raise ValueError(f"{seq.source or 'sequence'} holds intensity only: the signature features "
-                             f"{', '.join(missing)} need the complex field (phase)")
-        note = (f"{seq.source or 'sequence'} holds intensity only: the signature has only its intensity part "
-                f"({len(feats)} of {len(wanted)} features per resolution; no g1/phase features); models that "
-                "need the phase will refuse these maps")
-    red_meta = maps.meta.get("reduction") or {}
-    center = red_meta.get("axial_center_cycles_per_pixel", 0.0) or "zero"
-    system = seq.system
-    axes = seq.axes
-    keep = maps.meta.get("y_indices")
-    blocks, channels = [], []
-    for r in resolutions:
-        t = r if not isinstance(r, str) else parse_resolution(r)
-        lat, ax = t.resolved(system)
-        arr = np.ascontiguousarray(seq.data)  # a read-only memory map (.npy) is copied: torch needs it writable
-        data = torch.from_numpy(arr if arr.flags.writeable else arr.copy())
-        from ..measured.maps import nonfinite_mask  # the maps' own masking of NaN/inf samples
-
-        masked = nonfinite_mask(seq, t, edge_mode=red_meta.get("edge_mode", "reflect"))
-        if masked is not None:  # they enter the reduction as 0; the pixels they reach are NaN below
-            data = torch.where(torch.isfinite(data), data, torch.zeros_like(data))
-        if seq.is_complex:
-            data = reduce_resolution(data, pitch_um=seq.pitch_um, system=system,
-                                     lateral_resolution_um=t.lateral_resolution_um,
-                                     axial_resolution_um=t.axial_resolution_um, axes=axes, axial_center=center,
-                                     edge_mode=red_meta.get("edge_mode", "reflect"),
-                                     normalization=red_meta.get("normalization", "power"))
-        if not data.is_complex():
-            data = data.to(torch.float64 if data.dtype == torch.float64 else torch.float32)
-        x = data.movedim(0, -1)  # [*spatial, T]
-        if keep is not None:
-            x = x[torch.as_tensor(keep)]
-        spatial = x.shape[:-1]
-        flat = x.reshape(-1, x.shape[-1])
-        out = torch.empty(flat.shape[0], len(feats), dtype=torch.float32)
-        for p0 in range(0, flat.shape[0], chunk_pixels):
-            out[p0:p0 + chunk_pixels] = signature(flat[p0:p0 + chunk_pixels], times, names=feats)[1].float()
-        block = out.T.reshape(len(feats), *spatial).numpy()
-        if masked is not None:
-            block[:, masked[keep] if keep is not None else masked] = np.nan
-        blocks.append(block)
-        for f in feats:
-            channels.append({"name": f"{f}@{t.label}", "metric": f, "unit": feature_unit(f), "resolution": t.label,
-                             "wavelength_um": float(system["wavelength_um"]), "lateral_resolution_um": lat,
-                             "axial_resolution_um": ax})
-    meta = dict(maps.meta)
-    meta["channels"] = list(maps.meta["channels"]) + channels
-    meta["signature"] = {"features": list(feats), "intensity_only": not seq.is_complex,
-                         "definition": "torchdoct.sim.signature (lags in frames)"}
-    arr = np.concatenate([maps.maps, *blocks], axis=0).astype(np.float32, copy=False)
-    return Maps(maps=arr, channels=tuple(c["name"] for c in meta["channels"]), meta=meta), note
+    if int(chunk_pixels) < 1:
+        raise ValueError(f"chunk_pixels must be a positive integer; got {chunk_pixels!r}")
+    n = field.shape[-1]
+    flat = field.reshape(-1, n)
+    lead = field.shape[:-1]
+    names, first = signature(flat[:chunk_pixels], frame_times_s, names=names)
+    if flat.shape[0] <= chunk_pixels:
+        return names, first.reshape(*lead, len(names))
+    out = torch.empty(flat.shape[0], len(names), dtype=first.dtype, device=first.device)
+    out[:chunk_pixels] = first
+    for p0 in range(chunk_pixels, flat.shape[0], chunk_pixels):
+        out[p0:p0 + chunk_pixels] = signature(flat[p0:p0 + chunk_pixels], frame_times_s, names=names)[1]
+    return names, out.reshape(*lead, len(names))
