@@ -61,6 +61,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -541,6 +542,18 @@ def _decode(job: CellJob, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -
             "system_names": meta["system_names"], "elapsed_s": meta.get("elapsed_s", 0.0)}
 
 
+@functools.lru_cache(maxsize=4096)
+def _cell_bytes(scene: Scene, trials: int, threads: int, tolerance: float, dtype_bytes: int) -> int:
+    """Peak memory of one cell's simulation (:func:`torchdoct.sim.memory.simulation_bytes`); remembered, so a
+    command's check before its output folder and :func:`run_sweeps`' own plan each cell once."""
+    from ..sim.memory import simulation_bytes
+    from ..sim.plan import make_plan
+
+    plan = make_plan(scene, truncation_tolerance=tolerance)
+    return simulation_bytes(plan, trials=trials, n_systems=len(scene.systems), n_frames=scene.protocol.n_frames,
+                            threads=threads, dtype_bytes=dtype_bytes)[0]
+
+
 def _check_resources(todo: list[tuple], *, scheduler: str | None, workers: int, batch_cells: int,
                      cache_dir: str | os.PathLike | None, trials: int | None) -> None:
     """The cells to compute fit in memory (the largest cell's simulation times the cells side by side, plus
@@ -549,8 +562,6 @@ def _check_resources(todo: list[tuple], *, scheduler: str | None, workers: int, 
     if not todo:
         return
     from ..resources import check_resources
-    from ..sim.memory import simulation_bytes
-    from ..sim.plan import make_plan
 
     batches = -(-len(todo) // batch_cells)
     side_by_side = scheduler is None and workers > 1 and batches > 1
@@ -558,23 +569,22 @@ def _check_resources(todo: list[tuple], *, scheduler: str | None, workers: int, 
     results = 0
     for job in todo:
         sw, cell, s, n, dt, tol, key = job
-        n_sys, n_frames = len(cell.scene.systems), cell.scene.protocol.n_frames
-        results += n * n_sys * (len(SCALAR_METRICS) + 1) * 8
+        results += n * len(cell.scene.systems) * (len(SCALAR_METRICS) + 1) * 8
         if scheduler is None:  # on a cluster the cells' memory is the workers'
-            plan = make_plan(cell.scene, truncation_tolerance=tol)
-            need = simulation_bytes(plan, trials=n, n_systems=n_sys, n_frames=n_frames,
-                                    threads=1 if side_by_side else workers, dtype_bytes=4 if dt == "float32" else 8)[0]
+            need = _cell_bytes(cell.scene, n, 1 if side_by_side else workers, tol, 4 if dt == "float32" else 8)
             if need > largest:
                 largest, where = need, job
     at_once = min(workers, batches) if side_by_side else 1
     sw, cell, _, n, _, tol, _ = where
+    names = list(dict.fromkeys(job[0].name for job in todo))
     desc = ", ".join(f"{p} = {v!r}" for p, v in cell.assignments)
-    fix = (f"lower the trials per cell (--trials{f', now {trials}' if trials is not None else ''}), run fewer cells "
-           f"side by side (--workers, now {workers}), or loosen the truncation tolerance (--tolerance or "
-           f"simulation.truncation_tolerance, now {tol:g})")
-    check_resources(f"sweep {sw.name!r}", largest * at_once + results, fix,
-                    detail=f"its largest cell, {cell.index} ({desc}), {largest / 2**30:.2f} GB with {n} trials, × "
-                           f"{at_once} cell(s) side by side, plus the per-trial metrics of {len(todo)} cells",
+    fix = (f"lower the trials per cell (--trials, now {n}), run fewer cells side by side (--workers, now {workers}), "
+           f"or loosen the truncation tolerance (--tolerance or simulation.truncation_tolerance, now {tol:g})")
+    check_resources(f"sweep {names[0]!r}" if len(names) == 1 else f"running {len(todo)} cells of {len(names)} sweeps",
+                    largest * at_once + results, fix,
+                    detail=f"the largest cell, {'' if len(names) == 1 else repr(sw.name) + ' '}{cell.index} ({desc}), "
+                           f"{largest / 2**30:.2f} GB with {n} trials, × {at_once} cell(s) side by side, plus the "
+                           f"per-trial metrics of {len(todo)} cells",
                     out_path=cache_dir, out_bytes=results if cache_dir is not None else 0,
                     out_fix="free disk space there, give another --cache directory, or --no-cache")
 
