@@ -118,10 +118,14 @@ PARTS: dict[str, tuple[str, str, str, str]] = {
     "b-shared": ("signature-bscan-field", "refsim", "all", "shared"),
     "d": ("signature", "torchdoct", "all", "training"),
     "e": ("signature", "torchdoct", "all", "scaled"),
+    "e-noise": ("signature", "torchdoct", "all", "scaled-noise"),
+    "e-nostatic": ("signature", "torchdoct", "all", "scaled-nostatic"),
+    "e-nostatic-noise": ("signature", "torchdoct", "all", "scaled-nostatic-noise"),
 }
 #: The shipped model each part is compared with (scored on the same test pixels).
 SHIPPED = {"a": "signature", "b": "signature-bscan-field", "b-int": "signature-bscan", "c": "signature",
-           "a-shared": "signature", "b-shared": "signature-bscan-field", "d": "signature", "e": "signature"}
+           "a-shared": "signature", "b-shared": "signature-bscan-field", "d": "signature", "e": "signature",
+           "e-noise": "signature", "e-nostatic": "signature", "e-nostatic-noise": "signature"}
 PART_TEXT = {
     "a": "signature features (volume), trained on reference-simulator draws of the independent prior",
     "b": "signature-bscan-field features (B-scan, intensity + field group g1, phase-stable), reference-simulator "
@@ -136,13 +140,17 @@ PART_TEXT = {
          "(classifier.dataset.Prior, flow polar angle uniform; make_dataset, one nuisance replicate per draw)",
     "e": "part d with the training prior scaled to the system (classifier.own_system.prior_for_spec of d's prior: "
          "each motion type's identifiable range ± half a decade, speeds capped at what the simulator holds)",
+    "e-noise": "part e with detection noise in every training draw (SNR U[10, 40] dB; e: in half of them)",
+    "e-nostatic": "part e without static scatterers in any training draw (e: a static fraction U[0, 0.8] in half "
+                  "of them); the independent prior has none: what the static nuisance of training costs there",
+    "e-nostatic-noise": "part e with both changes: noise in every draw and no static scatterers",
 }
 #: Training priors of parts d and e, in the form of the models' own training data
 #: (:class:`classifier.dataset.Prior`, simulated by :func:`classifier.dataset.make_dataset`): ``"training"``
 #: the prior the shipped ``signature`` model was trained on, ``"scaled"`` the same scaled to the spec's
 #: system (:func:`classifier.own_system.prior_for_spec`). Each draw's pixels share one (static fraction, SNR)
 #: setting of the prior (one replicate), so a training draw holds as many pixels as in the other parts.
-DATASET_PRIORS = ("training", "scaled")
+DATASET_PRIORS = ("training", "scaled", "scaled-noise", "scaled-nostatic", "scaled-nostatic-noise")
 #: Fractions of the identifiable test pixels decided (accuracy-coverage curve).
 COVERAGES = (0.7, 0.8, 0.9, 1.0)
 POOLS = (1, 25)
@@ -314,7 +322,9 @@ def dataset_prior(name: str, spec, epsilon: float):
     """The :class:`classifier.dataset.Prior` of :data:`DATASET_PRIORS` ``name`` for ``spec``, with the
     shipped model's ε: ``"training"`` is ``Prior(flow_polar_law="uniform-angle")`` (the shipped
     ``signature`` recipe's prior: D in [1e-4, 15] µm²/s, one speed range [1e-3, 6] µm/s for random-ballistic
-    motion and flow), ``"scaled"`` :func:`classifier.own_system.prior_for_spec` of it."""
+    motion and flow), ``"scaled"`` :func:`classifier.own_system.prior_for_spec` of it; ``"-noise"``: detection
+    noise in every draw (``noise_probability = 1``), ``"-nostatic"``: no static scatterers
+    (``static_probability = 0``)."""
     import dataclasses
 
     from classifier.dataset import Prior
@@ -323,8 +333,12 @@ def dataset_prior(name: str, spec, epsilon: float):
     if name not in DATASET_PRIORS:
         raise ValueError(f"unknown dataset prior {name!r}; choose among {list(DATASET_PRIORS)}")
     prior = Prior(flow_polar_law="uniform-angle", identifiability_epsilon=float(epsilon))
-    if name == "scaled":
+    if name.startswith("scaled"):
         prior = prior_for_spec(spec, prior)[0]
+    if "noise" in name.split("-"):  # detection noise in every draw (SNR range unchanged)
+        prior = dataclasses.replace(prior, noise_probability=1.0)
+    if "nostatic" in name.split("-"):  # no static scatterers in any draw
+        prior = dataclasses.replace(prior, static_probability=0.0)
     return dataclasses.replace(prior, identifiability_epsilon=float(epsilon))
 
 
