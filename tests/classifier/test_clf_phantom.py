@@ -213,13 +213,14 @@ def test_oblique_out_of_plane_flow_phantom_scores(oblique_chain, pool):
 def test_oblique_flow_volume_phantom_scores(tmp_path_factory):
     """The volume counterpart (``oblique-flow-volume``: 32 × 96 × 96 pixels, the same motions, the flows at
     30°, 60° and 20° from the beam): volume maps are reduced isotropically, so doct-classify picks the volume
-    model ``signature``. Three renderings (seeds 2026, 1, 2), the model trained on the scaled prior: pool 1
-    balanced accuracy 0.908 ± 0.004 at coverage 0.886 ± 0.001, pool 5 0.977 ± 0.007 at 0.955 ± 0.003 (the
-    model on the unscaled prior: 0.896 ± 0.007 at 0.878 ± 0.002, 0.966 ± 0.005 at 0.972 ± 0.000). Floors 3 SD
-    below, rounded down: 0.89 / 0.95 on the balanced accuracy, 0.88 / 0.94 on the coverage."""
+    model ``signature``. Three renderings (seeds 2026, 1, 2), the model trained on the scaled prior with noise
+    in every draw: pool 1 balanced accuracy 0.917 ± 0.006 at coverage 0.910 ± 0.001, pool 5 0.976 ± 0.006 at
+    0.986 ± 0.000 (with noise in half the draws: 0.908 ± 0.004 at 0.886 ± 0.001, 0.977 ± 0.007 at
+    0.955 ± 0.003; on the unscaled prior: 0.896 ± 0.007 at 0.878 ± 0.002, 0.966 ± 0.005 at 0.972 ± 0.000).
+    Floors 3 SD below, rounded down: 0.89 / 0.95 on the balanced accuracy, 0.90 / 0.98 on the coverage."""
     seq, out = _render_map_classify(tmp_path_factory, "oblique-flow-volume")
     summary = json.loads((out[1] / "summary.json").read_text())
     assert "signature.onnx" in json.dumps(summary)
-    for pool, (acc, cov) in {1: (0.89, 0.88), 5: (0.95, 0.94)}.items():
+    for pool, (acc, cov) in {1: (0.89, 0.90), 5: (0.95, 0.98)}.items():
         s = score_images(out[pool], seq)["overall"]
         assert s["balanced_accuracy"] >= acc and s["coverage"] >= cov, (pool, s)

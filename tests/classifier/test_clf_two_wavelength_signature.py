@@ -65,9 +65,11 @@ def test_spec_is_the_signature_at_the_two_wavelength_configurations():
     for key in ("n_frames", "frame_interval_s", "ocds_delay_range_s", "ocds_scale", "ocds_estimator",
                 "refractive_index"):
         assert getattr(spec, key) == getattr(sig, key) == getattr(two, key), key
-    # the shipped recipe is the signature one (wider network, random-bulk-phase test split)
-    assert SPEC_RECIPES[NAME] == SPEC_RECIPES["signature"]
-    assert TrainConfig.for_spec(NAME) == dataclasses.replace(TrainConfig.for_spec("signature"), spec=NAME)
+    # the shipped recipe is the signature one (wider network, random-bulk-phase test split), with the noise
+    # prior the shipped two-wavelength model was trained on (noise in half the draws)
+    assert SPEC_RECIPES[NAME] == {**SPEC_RECIPES["signature"], "noise_probability": 0.5}
+    assert TrainConfig.for_spec(NAME) == dataclasses.replace(TrainConfig.for_spec("signature"), spec=NAME,
+                                                             noise_probability=0.5)
     assert TrainConfig.for_spec(NAME).bulk_phase_test and TrainConfig.for_spec(NAME).draws_train == 1920
 
 
