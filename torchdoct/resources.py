@@ -191,4 +191,5 @@ def check_classify(command: str, paths: Iterable[str | os.PathLike], limit_bytes
     names = ", ".join(Path(p).name for p in paths)
     check_resources(f"{command} of {names}", need,
                     "classify a crop of the maps (fewer B-scans or pixels), or fewer maps files at once",
-                    detail=f"{CLASSIFY_COPIES} × the maps arrays the files declare, {format_gb(need / CLASSIFY_COPIES)}")
+                    detail=f"{CLASSIFY_COPIES} × the maps arrays the files declare, "
+                           f"{format_gb(need / CLASSIFY_COPIES)}")

@@ -118,7 +118,8 @@ def test_simulate_estimate_is_the_one_it_checks(monkeypatch):
 
 
 def test_render_refused(tiny_memory, capsys, tmp_path):
-    refused(capsys, tmp_path, ["render", "example", "--grid", "8x8", "--pitch-um", "2", "--out", str(tmp_path / "r.h5")],
+    refused(capsys, tmp_path,
+            ["render", "example", "--grid", "8x8", "--pitch-um", "2", "--out", str(tmp_path / "r.h5")],
             "the rendered sequence needs about", "GB are available", "--system", "float32")
 
 

@@ -240,9 +240,9 @@ def run_cached(jobs: Sequence[CellJob], *, cache: CellCache, execute: Callable[[
     Cached jobs are decoded (``decode(job, arrays, header)``; an entry that does not decode is computed);
     the others run through ``execute(payloads, done)`` (a :func:`run_cells` call), and each finished one
     is stored at once (``encode(job, result) -> (arrays, header)``). ``before(indices to compute)`` runs
-    before any of them (the resource check: :func:`torchdoct.resources.check_resources`). On Ctrl-C or SIGTERM the one line
-    says how many ``what`` the cache keeps and how to resume; after the run (with ``final_note``), should
-    the command be interrupted while it writes its outputs, that every cell is there.
+    before any of them (the resource check: :func:`torchdoct.resources.check_resources`). On Ctrl-C or
+    SIGTERM the one line says how many ``what`` the cache keeps and how to resume; after the run (with
+    ``final_note``), should the command be interrupted while it writes its outputs, that every cell is there.
     """
     results: list[Any] = [None] * len(jobs)
     pending: list[int] = []
