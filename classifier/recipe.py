@@ -159,10 +159,10 @@ SPEC_RECIPES: dict[str, dict[str, Any]] = {
 }
 #: The two-wavelength signature spec (the signature's 24 intensity features at 840 and 1310 nm) and the
 #: B-scan signature spec (the lateral reduction along x only) take it too.
-#: They and a spec of one's own keep the shipped models' noise prior (noise in half the draws) until they
-#: are retrained with noise in every draw (as the ``signature`` recipe above).
+#: The two-wavelength one and a spec of one's own keep the shipped models' noise prior (noise in half the
+#: draws) until they are retrained with noise in every draw (as the ``signature`` recipe above).
 SPEC_RECIPES["two-wavelength-signature"] = {**SPEC_RECIPES["signature"], "noise_probability": 0.5}
-SPEC_RECIPES["signature-bscan"] = {**SPEC_RECIPES["signature"], "noise_probability": 0.5}
+SPEC_RECIPES["signature-bscan"] = dict(SPEC_RECIPES["signature"])
 #: The B-scan signature with the field group (|g1| at the first lags) for bulk-phase-corrected maps: the
 #: same recipe, with the residual of the correction in the prior (a random walk of step SD up to 0.05 rad:
 #: ``torchdoct maps --bulk-phase weighted-mean`` leaves ~0.036 rad per step on dynamic tissue at 30 dB,
@@ -206,7 +206,7 @@ def recipe_for(spec: FeatureSpec) -> dict[str, Any]:
 #: against the shipped one; the ``signature`` network retrained on it 0.826 ± 0.007 at coverage 0.793
 #: against 0.803 ± 0.008 at 0.776 (flow 0.76 / 0.60 / 0.80 by polar band against 0.62 / 0.40 / 0.66;
 #: classifier/data/signature-independent.md).
-SCALED_PRIOR_SPECS = ("signature",)
+SCALED_PRIOR_SPECS = ("signature", "signature-bscan")
 
 
 def default_prior(cfg: TrainConfig) -> Prior:

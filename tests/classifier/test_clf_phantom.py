@@ -9,15 +9,18 @@ decides. All labelled moving pixels count (edge 0). The maps are B-scans reduced
 only, so the default model is the B-scan signature model (``signature-bscan``). Six renderings
 (seeds 2026 = the file's, 1-5), 128 × 128 B-scan:
 
-* pool 1: balanced accuracy 0.812 ± 0.007 (mean ± SD; 0.813 for the shipped seed), coverage
-  0.861 ± 0.002;
-* pool 5: balanced accuracy 0.870 ± 0.010 (0.876), coverage 0.951 ± 0.003.
+* pool 1: balanced accuracy 0.807 ± 0.008 (mean ± SD; 0.817 for the shipped seed), coverage
+  0.846 ± 0.008;
+* pool 5: balanced accuracy 0.903 ± 0.012 (0.921), coverage 0.966 ± 0.005.
+
+(The B-scan model trained before its prior was scaled to its system and drew noise in every draw gave
+0.812 ± 0.007 at 0.861 and 0.870 ± 0.010 at 0.951.)
 
 (The previous shipped signature model, a volume model applied to these B-scan maps, gave 0.815 ± 0.014
 and 0.919 ± 0.013: the
 B-scan model, trained on the PSF these maps have, gives up the slow in-plane flow, 0.3 µm/s across
 the beam along x, for flow leaving the plane: see ``test_oblique_out_of_plane_flow_phantom_scores``.)
-Floors (pool 1 / pool 5): balanced accuracy 0.78 / 0.84 (3 SD below the means, rounded down; the
+Floors (pool 1 / pool 5): balanced accuracy 0.78 / 0.86 (3 SD below the means, rounded down; the
 test renders the shipped seed, but any change of the renderer's random stream is another draw),
 coverage 0.75 / 0.90, median |log10 magnitude error| at most 0.15 / 0.12.
 """
@@ -39,7 +42,7 @@ from classifier.cli import classify_main  # noqa: E402
 from classifier.evaluate_images import MOVING_CODES, read_rendered_labels, score_images  # noqa: E402
 
 FLOORS = {1: {"balanced_accuracy": 0.78, "coverage": 0.75, "magnitude": 0.15},
-          5: {"balanced_accuracy": 0.84, "coverage": 0.90, "magnitude": 0.12}}
+          5: {"balanced_accuracy": 0.86, "coverage": 0.90, "magnitude": 0.12}}
 
 
 def _render_map_classify(tmp_path_factory, phantom: str):
@@ -185,10 +188,11 @@ def test_module_command(chain, tmp_path, capsys):
 
 #: Floors on the ``oblique-flow`` phantom (its three flows leave the B-scan plane: 0.3 µm/s at 30° along
 #: y, 1 µm/s at 60° azimuth 60°, 3 µm/s at 20° azimuth 120°), decided by the B-scan signature model.
-#: Six renderings (seeds 2026 = the file's, 1-5): pool 1 balanced accuracy 0.881 ± 0.008 (mean ± SD;
-#: 0.889 for the shipped seed), coverage 0.877 ± 0.005; pool 5 0.941 ± 0.006 (0.952), coverage
-#: 0.968 ± 0.007. Floors 3 SD below the means, rounded down.
-OBLIQUE_FLOORS = {1: {"balanced_accuracy": 0.85, "coverage": 0.85}, 5: {"balanced_accuracy": 0.92, "coverage": 0.94}}
+#: Six renderings (seeds 2026 = the file's, 1-5): pool 1 balanced accuracy 0.871 ± 0.012 (mean ± SD;
+#: 0.887 for the shipped seed), coverage 0.870 ± 0.006; pool 5 0.951 ± 0.005 (0.957), coverage
+#: 0.973 ± 0.005 (the model before its prior was scaled and noisy in every draw: 0.881 ± 0.008 at
+#: 0.877, 0.941 ± 0.006 at 0.968). Floors 3 SD below the means, rounded down.
+OBLIQUE_FLOORS = {1: {"balanced_accuracy": 0.83, "coverage": 0.85}, 5: {"balanced_accuracy": 0.93, "coverage": 0.95}}
 
 
 @pytest.fixture(scope="module")
