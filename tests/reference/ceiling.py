@@ -7,7 +7,8 @@ Run (from the repository root; resumable, see *Cost*)::
     python -m tests.reference.ceiling --out DIR [--parts a,b,c] [--sizes 150,300,600,1200] [--budget-seconds 480]
 
 Writes ``<out>/independent-ceiling.json`` and ``.md`` (never over existing files without ``--force``)
-and prints a summary.
+and prints a summary. Kept whole: one research command whose data, fits, scores and report are read top
+to bottom, and whose functions the fast tests call one by one.
 
 **What it measures.** The shipped models are trained on the training prior
 (:class:`classifier.dataset.Prior`) and tested by :mod:`evaluate_models` on another prior and another
