@@ -174,6 +174,7 @@ def test_render_interrupted_while_writing_leaves_nothing_and_reruns_without_forc
     assert _files(tmp_path) == {"r.npz", "r.json", "r.png"}
 
 
+@pytest.mark.slow  # ~14 s: the default suite stays under 5 min beside another job
 def test_study_interrupted_while_writing_keeps_its_cache_and_says_so(tmp_path, monkeypatch, capsys):
     from test_study import _write_tiny
     import torchdoct.study.run as run_module
