@@ -159,8 +159,8 @@ SPEC_RECIPES: dict[str, dict[str, Any]] = {
 }
 #: The two-wavelength signature spec (the signature's 24 intensity features at 840 and 1310 nm) and the
 #: B-scan signature spec (the lateral reduction along x only) take it too.
-#: The two-wavelength one and a spec of one's own keep the shipped models' noise prior (noise in half the
-#: draws) until they are retrained with noise in every draw (as the ``signature`` recipe above).
+#: The two-wavelength one keeps the shipped model's noise prior (noise in half the draws) until it is
+#: retrained with noise in every draw (as the ``signature`` recipe above).
 SPEC_RECIPES["two-wavelength-signature"] = {**SPEC_RECIPES["signature"], "noise_probability": 0.5}
 SPEC_RECIPES["signature-bscan"] = dict(SPEC_RECIPES["signature"])
 #: The B-scan signature with the field group (|g1| at the first lags) for bulk-phase-corrected maps: the
@@ -178,7 +178,7 @@ _SHIPPED_DEFAULT_RECIPE = ("single-acquisition", "two-wavelength", "single-acqui
 #: on the cores: 1920 draws took 7-12 min for the shipped models; a --like run on a 1310-nm system took
 #: 5 min with 960 draws (pool 5 on its rendered phantom 0.919 at coverage 0.938), and the learning curve
 #: gives 960 draws −0.016 ± 0.004 per pixel against 1920 (classifier/data/signature-learning-curve.md).
-OWN_SIGNATURE_RECIPE: dict[str, Any] = {**SPEC_RECIPES["signature"], "bulk_phase_test": False, "noise_probability": 0.5}
+OWN_SIGNATURE_RECIPE: dict[str, Any] = {**SPEC_RECIPES["signature"], "bulk_phase_test": False}
 
 
 def recipe_for(spec: FeatureSpec) -> dict[str, Any]:

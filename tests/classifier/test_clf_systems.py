@@ -17,9 +17,10 @@ import pytest
 
 pytestmark = pytest.mark.slow
 
-#: Measured (quick model, pool 5, seed 2026): balanced accuracy @ coverage 0.747 @ 0.794 (1310 nm),
-#: 0.789 @ 0.806 (fast), 0.920 @ 0.944 (tissue volume) → floors 0.05 below. About 35 s per system.
-FLOORS = {"system-1310nm": (0.69, 0.74), "system-fast": (0.73, 0.75), "system-tissue-volume": (0.87, 0.89)}
+#: Measured (quick model, pool 5, seed 2026; noise in every training draw): balanced accuracy @ coverage
+#: 0.801 @ 0.917 (1310 nm), 0.823 @ 0.915 (fast), 0.933 @ 0.976 (tissue volume) → floors 0.05 below, rounded
+#: down (with noise in half the draws: 0.747 @ 0.794, 0.789 @ 0.806, 0.920 @ 0.944). About 35 s per system.
+FLOORS = {"system-1310nm": (0.75, 0.86), "system-fast": (0.77, 0.86), "system-tissue-volume": (0.88, 0.92)}
 
 
 @pytest.mark.parametrize("system", list(FLOORS))
