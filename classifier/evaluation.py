@@ -27,12 +27,12 @@ A *sample set* is a dict of arrays of equal length: ``x`` (model inputs), ``y`` 
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
 from .dataset import CLASSES
-from .report import (COVERAGE_THRESHOLDS, bootstrap_se, coverage_curve, evaluate, flow_recall_by_band,
+from .report import (COVERAGE_THRESHOLDS, bootstrap_draws, bootstrap_se, coverage_curve, evaluate, flow_recall_by_band,
                      magnitude_table)
 from .rule import INDETERMINATE
 
@@ -87,30 +87,6 @@ def magnitude_metrics(mean: np.ndarray, sd: np.ndarray, y: np.ndarray, status: n
             row[key] = float(np.mean(err[m] <= k * s[m]))
         by_class[class_names[c]] = row
     out["by_class"] = by_class
-    return out
-
-
-def bootstrap_draws(fn: Callable[[np.ndarray], dict[str, float]], draw: np.ndarray, *, n_boot: int = 200,
-                    seed: int = 0) -> dict[str, float]:
-    """Standard errors of the scalars ``fn(index) -> {name: value}`` from ``n_boot`` resamples of the draws
-    (the independent unit) with a seeded generator: the SD (ddof 1) of each scalar's finite values, NaN
-    with fewer than 2 of them; ``{}`` with fewer than 2 draws. The resamples are those of
-    :func:`classifier.report.bootstrap_se` with the same seed."""
-    rng = np.random.default_rng(seed)
-    draws = np.unique(draw)
-    if draws.size < 2:
-        return {}
-    index = {k: np.flatnonzero(draw == k) for k in draws}
-    vals: dict[str, list[float]] = {}
-    for _ in range(n_boot):
-        pick = np.concatenate([index[k] for k in rng.choice(draws, draws.size, replace=True)])
-        for key, v in fn(pick).items():
-            vals.setdefault(key, []).append(v)
-    out = {}
-    for key, v in vals.items():
-        a = np.asarray(v, dtype=np.float64)
-        a = a[np.isfinite(a)]
-        out[key] = float(np.std(a, ddof=1)) if a.size >= 2 else math.nan
     return out
 
 

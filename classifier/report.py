@@ -16,13 +16,13 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from .rule import REASONS, apply_rule
 
-__all__ = ["expected_calibration_error", "evaluate", "bootstrap_se", "coverage_curve", "magnitude_table",
+__all__ = ["expected_calibration_error", "evaluate", "bootstrap_draws", "bootstrap_se", "coverage_curve", "magnitude_table",
            "write_report", "format_markdown", "undefined_reason", "summary_line", "training_summary", "finite",
            "COVERAGE_THRESHOLDS"]
 
@@ -127,32 +127,46 @@ def flow_recall_by_band(probabilities: np.ndarray, y: np.ndarray, status: np.nda
             "speed_decades": {k: v for k, v in decades.items() if v["samples"]}}
 
 
+def bootstrap_draws(fn: Callable[[np.ndarray], dict[str, float]], draw: np.ndarray, *, n_boot: int = 200,
+                    seed: int = 0) -> dict[str, float]:
+    """Standard errors of the scalars ``fn(index) -> {name: value}`` from ``n_boot`` resamples of the draws
+    (the independent unit) with a seeded generator: the SD (ddof 1) of each scalar's finite values, NaN
+    with fewer than 2 of them; ``{}`` with fewer than 2 draws. The resampling of
+    :func:`bootstrap_se` and of :func:`classifier.evaluation.evaluate_set`'s other standard errors."""
+    rng = np.random.default_rng(seed)
+    draws = np.unique(draw)
+    if draws.size < 2:
+        return {}
+    index = {k: np.flatnonzero(draw == k) for k in draws}
+    vals: dict[str, list[float]] = {}
+    for _ in range(n_boot):
+        pick = np.concatenate([index[k] for k in rng.choice(draws, draws.size, replace=True)])
+        for key, v in fn(pick).items():
+            vals.setdefault(key, []).append(v)
+    out = {}
+    for key, v in vals.items():
+        a = np.asarray(v, dtype=np.float64)
+        a = a[np.isfinite(a)]
+        out[key] = float(np.std(a, ddof=1)) if a.size >= 2 else math.nan
+    return out
+
+
 def bootstrap_se(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, draw: np.ndarray,
                  class_names: Sequence[str], rule: dict[str, Any], *, n_boot: int = 200, seed: int = 0,
                  keys: Sequence[str] = ("accuracy_identifiable", "balanced_accuracy_identifiable",
                                         "coverage_identifiable", "accuracy_all", "ece")) -> dict[str, float]:
     """Standard errors of :func:`evaluate`'s metrics from a bootstrap over *draws* (the independent
-    unit: trials of a draw share its parameters), ``n_boot`` resamples with a seeded generator.
+    unit: trials of a draw share its parameters), ``n_boot`` resamples with a seeded generator
+    (:func:`bootstrap_draws`).
 
     NaN (undefined, see :func:`undefined_reason`) with fewer than 2 draws, or when fewer than 2
     resamples give a defined value."""
-    rng = np.random.default_rng(seed)
-    draws = np.unique(draw)
-    if draws.size < 2:
-        return {k: math.nan for k in keys}
-    index = {d: np.flatnonzero(draw == d) for d in draws}
-    vals: dict[str, list[float]] = {k: [] for k in keys}
-    for _ in range(n_boot):
-        pick = np.concatenate([index[d] for d in rng.choice(draws, draws.size, replace=True)])
-        m = evaluate(probabilities[pick], y[pick], status[pick], class_names, rule)
-        for k in keys:
-            vals[k].append(m[k])
-    out = {}
-    for k, v in vals.items():
-        v = np.asarray(v, dtype=np.float64)
-        v = v[np.isfinite(v)]
-        out[k] = float(np.std(v, ddof=1)) if v.size >= 2 else math.nan
-    return out
+    def scalars(i: np.ndarray) -> dict[str, float]:
+        m = evaluate(probabilities[i], y[i], status[i], class_names, rule)
+        return {k: m[k] for k in keys}
+
+    se = bootstrap_draws(scalars, draw, n_boot=n_boot, seed=seed)
+    return {k: se.get(k, math.nan) for k in keys}
 
 
 def coverage_curve(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, class_names: Sequence[str],
