@@ -51,7 +51,13 @@ def bench_classify(*, size: int = 512, repeats: int = 3, model: str | None = Non
     """Pixels per second of ``classify_maps`` on a synthetic ``size × size`` maps file."""
     from .infer import classify_maps, load_model
 
+    from torchdoct.resources import CLASSIFY_COPIES, check_bench
+
     mdl = load_model(model)
+    channels = len(mdl.spec.features) + 1
+    # the channels drawn in float64, the float32 file, and classification's copies of it
+    check_bench("torchdoct bench classify", (8 + 4 + 4 * CLASSIFY_COPIES) * channels * int(size) ** 2,
+                f"{size}×{size} pixels, {channels} channels", "give a smaller --size")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         path = _synthetic_maps(Path(tmp) / "maps.npz", mdl.spec, size, seed)

@@ -19,7 +19,11 @@ The estimates are each command's own, beside its code:
 * ``doct-train`` — :func:`classifier.dataset.make_dataset`: the split's arrays, twice (the pieces and
   their concatenation);
 * ``doct-classify`` and ``torchdoct translate`` — :func:`classify_bytes`: a few copies of the maps
-  files' arrays (their declared sizes, read from the files' headers without loading them).
+  files' arrays (their declared sizes, read from the files' headers without loading them);
+* ``torchdoct compare`` — :func:`check_compare`: every maps file it compares, held at once, and its region;
+* the benchmarks with a size (``bench maps``, ``bench bulk-phase``, ``bench classify``) —
+  :func:`check_bench`: their synthetic input and its work, from the sizes asked for; the others run the
+  commands above, which check themselves.
 
 Standard library only: the torch-free classify path imports it.
 """
@@ -33,7 +37,8 @@ from typing import Iterable
 
 __all__ = ["ResourceLimitError", "MemoryLimitError", "DiskLimitError", "available_memory_bytes", "free_disk_bytes",
            "format_gb", "check_resources", "maps_bytes", "check_maps", "declared_array_bytes", "classify_bytes",
-           "check_classify", "MAPS_WORK_COPIES", "CLASSIFY_COPIES"]
+           "check_classify", "check_compare", "check_bench", "MAPS_WORK_COPIES", "CLASSIFY_COPIES",
+           "COMPARE_COPIES"]
 
 
 class ResourceLimitError(ValueError):
@@ -177,19 +182,43 @@ def classify_bytes(paths: Iterable[str | os.PathLike], limit_bytes: int | None =
     """Peak memory of classifying (or translating) the maps ``paths``: :data:`CLASSIFY_COPIES` × their
     declared arrays. A file over ``limit_bytes`` (the readers' input limit) counts 0: its reader refuses
     it with the input-limit message."""
+    return CLASSIFY_COPIES * _declared_total(paths, limit_bytes)
+
+
+def _declared_total(paths: Iterable[str | os.PathLike], limit_bytes: int | None) -> int:
+    """The declared array bytes of ``paths``; a file over ``limit_bytes`` counts 0 (its reader refuses it)."""
     sizes = [declared_array_bytes(p) for p in paths]
-    if limit_bytes is not None:
-        sizes = [0 if s > limit_bytes else s for s in sizes]
-    return CLASSIFY_COPIES * sum(sizes)
+    return sum(0 if limit_bytes is not None and s > limit_bytes else s for s in sizes)
+
+
+def _check_maps_files(what: str, paths: list, copies: int, fix: str, limit_bytes: int | None) -> None:
+    need = copies * _declared_total(paths, limit_bytes)
+    names = ", ".join(Path(p).name for p in paths)
+    check_resources(f"{what} of {names}", need, fix,
+                    detail=f"{copies} × the maps arrays the files declare, {format_gb(need / copies)}")
 
 
 def check_classify(command: str, paths: Iterable[str | os.PathLike], limit_bytes: int | None = None) -> None:
     """The resource check of ``doct-classify`` (``command``) and ``torchdoct translate``: :func:`classify_bytes`
     of the maps ``paths``, naming them and the fix."""
-    paths = list(paths)
-    need = classify_bytes(paths, limit_bytes)
-    names = ", ".join(Path(p).name for p in paths)
-    check_resources(f"{command} of {names}", need,
-                    "classify a crop of the maps (fewer B-scans or pixels), or fewer maps files at once",
-                    detail=f"{CLASSIFY_COPIES} × the maps arrays the files declare, "
-                           f"{format_gb(need / CLASSIFY_COPIES)}")
+    _check_maps_files(command, list(paths), CLASSIFY_COPIES,
+                      "classify a crop of the maps (fewer B-scans or pixels), or fewer maps files at once", limit_bytes)
+
+
+#: Copies of the maps that ``torchdoct compare`` holds at once: every file's channels as read, and the
+#: per-pixel values of its region (a mask of the same size at most).
+COMPARE_COPIES = 2
+
+
+def check_compare(paths: Iterable[str | os.PathLike], limit_bytes: int | None = None) -> None:
+    """The resource check of ``torchdoct compare``: :data:`COMPARE_COPIES` × the declared arrays of every maps
+    file (all samples are held at once for the tests), naming the files and the fix."""
+    _check_maps_files("torchdoct compare", list(paths), COMPARE_COPIES,
+                      "compare fewer maps files at once, or crops of them (fewer B-scans or pixels)", limit_bytes)
+
+
+def check_bench(command: str, need_bytes: float, sizes: str, fix: str) -> None:
+    """The resource check of a benchmark that makes its own input (``command``, e.g. ``"torchdoct bench
+    maps"``): ``need_bytes`` for the ``sizes`` asked for (named in the message), refused with ``fix`` (the
+    options that lower them)."""
+    check_resources(f"{command} ({sizes})", need_bytes, fix)

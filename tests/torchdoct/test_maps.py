@@ -72,18 +72,25 @@ def test_liv_ocds_mean_db_match_metrics():
     assert m.maps.dtype == np.float32 and m.meta["axes"] == "CZX"
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("scale,estimator", [("db", "pearson"), ("linear", "pearson"), ("db", "biased")])
-def test_ocds_map_equals_metrics_ocds(scale, estimator):
+def test_ocds_of_the_lags_in_range_equals_the_slope_of_every_lag(scale, estimator, dtype):
+    """The one OCDS (maps and simulator) correlates only the lags in the delay range; the slope over
+    every lag's correlation (lag_correlations → ocds_from_correlations) is the same number, bit for bit."""
     g = torch.Generator().manual_seed(5)
-    i = torch.rand(300, 16, generator=g, dtype=torch.float64) + 0.01
+    i = (torch.rand(300, 16, generator=g, dtype=torch.float64) + 0.01).to(dtype)
     i[:3] = 1.0  # constant
     times = [DT * k for k in range(16)]
     got = ocds_map(i, times, delay_range_s=(0.2048, 1.2288), scale=scale, estimator=estimator)
-    ref = metrics.ocds(i, times, delay_range_s=(0.2048, 1.2288), scale=scale, estimator=estimator)
-    torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12)
+    s = metrics.to_db(i) if scale == "db" else i
+    delays, rho = metrics.lag_correlations(s, times, estimator=estimator)
+    ref = metrics.ocds_from_correlations(rho, delays, (0.2048, 1.2288))
+    assert torch.equal(got, ref)
+    assert torch.equal(metrics.ocds(i, times, scale=scale, estimator=estimator), got)  # the maps' OCDS is this one
     nonuniform = [0.0, 0.1, 0.3, 0.4, 0.6, 0.7, 0.9, 1.0, 1.2, 1.3, 1.5, 1.6, 1.8, 1.9, 2.1, 2.2]
-    torch.testing.assert_close(ocds_map(i, nonuniform, delay_range_s=(0.1, 0.6)),
-                               metrics.ocds(i, nonuniform, delay_range_s=(0.1, 0.6)))
+    d, r = metrics.lag_correlations(metrics.to_db(i), nonuniform)
+    assert torch.equal(ocds_map(i, nonuniform, delay_range_s=(0.1, 0.6)),
+                       metrics.ocds_from_correlations(r, d, (0.1, 0.6)))
     with pytest.raises(ValueError, match="fewer than 2 delays"):
         ocds_map(i, times, delay_range_s=(0.3, 0.35))
 
@@ -209,6 +216,35 @@ def test_volume_with_block_raster_drops_boundary_bscans():
     one = compute_maps(seq, res, **kw)
     chunked = compute_maps(seq, res, slab_elements=8 * 2 * 5 * 6, **kw)
     np.testing.assert_allclose(chunked.maps, one.maps, rtol=1e-4, atol=1e-4)
+    # the original resolution with the aLIV smoothing is cut into whole B-scans: the same maps up to the
+    # float32 rounding of the per-pixel sums (torch orders a reduction by the batch's shape)
+    orig = compute_maps(seq, ["original"], **kw)
+    for size in (8 * 1 * 5 * 6, 8 * 3 * 5 * 6):
+        np.testing.assert_allclose(compute_maps(seq, ["original"], slab_elements=size, **kw).maps, orig.maps,
+                                   rtol=1e-5, atol=1e-5)
+
+
+def test_slab_cut_follows_what_the_stages_need():
+    """The slab loop cuts the axis its stages need least; halos of stages in sequence add up."""
+    from torchdoct.measured.bulkphase import CORRECTION_AXIS_NEEDS
+    from torchdoct.measured.maps import slab_cut
+    from torchdoct.measured.mapmetrics import SMOOTHING_AXIS_NEEDS
+    from torchdoct.measured.resolution import reduction_axis_needs
+
+    axial = reduction_axis_needs("TYZX", lateral=False, axial_sigma_px=2.0)
+    lateral = reduction_axis_needs("TYZX", lateral=True, axial_sigma_px=0.0)
+    both = reduction_axis_needs("TZX", lateral=True, axial_sigma_px=2.0)
+    assert axial == {"Z": 11} and lateral == {"Y": None, "X": None} and both == {"Z": 11, "X": None}
+    assert reduction_axis_needs("TZX", lateral=False, axial_sigma_px=2.0, edge_mode="wrap") == {"Z": None}
+    assert slab_cut("TZX", []) == ("Z", 0, 0)  # per-pixel work: depth slabs
+    assert slab_cut("TYZX", [CORRECTION_AXIS_NEEDS]) == ("Z", 0, 0)  # the correction cuts anywhere
+    assert slab_cut("TYZX", [axial]) == ("Y", 0, 0)  # an axial window in a volume: whole B-scans, no halo
+    assert slab_cut("TYZX", [lateral]) == ("Z", 0, 0)
+    assert slab_cut("TYZX", [lateral], [SMOOTHING_AXIS_NEEDS]) == ("Z", 1, 1)
+    assert slab_cut("TZX", [both], [SMOOTHING_AXIS_NEEDS]) == ("Z", 12, 1)  # the window's halo + the smoothing's
+    assert slab_cut("TYZX", [], [SMOOTHING_AXIS_NEEDS]) == ("Y", 0, 0)  # smoothing is per B-scan
+    wrap = reduction_axis_needs("TZX", lateral=True, axial_sigma_px=2.0, edge_mode="wrap")
+    assert slab_cut("TZX", [wrap]) == ("Z", None, 0)  # nothing may be cut: one slab
 
 
 def test_intensity_input_allows_only_original(tmp_path):
@@ -499,7 +535,8 @@ def test_biased_ocds_computes_only_the_lags_in_the_range(monkeypatch):
     g = torch.Generator().manual_seed(16)
     i = torch.rand(50, 24, generator=g, dtype=torch.float64) + 0.01
     times = [DT * k for k in range(24)]
-    ref = metrics.ocds(i, times, delay_range_s=(0.2048, 0.6144), estimator="biased")
+    delays, rho = metrics.lag_correlations(metrics.to_db(i), times, estimator="biased")
+    ref = metrics.ocds_from_correlations(rho, delays, (0.2048, 0.6144))
 
     def every_lag(*a, **k):
         raise AssertionError("all lags computed")

@@ -266,6 +266,39 @@ def test_translate_refused_before_reading(monkeypatch, capsys, seq):
             "torchdoct translate of m.npz", "needs about", "crop")
 
 
+def test_compare_refused_before_reading(monkeypatch, capsys, seq):
+    maps = _maps_file(seq, capsys)
+    import torchdoct.measured.mapsfile as mapsfile
+
+    monkeypatch.setattr(mapsfile, "read_maps", _no_work)
+    monkeypatch.setattr(resources, "available_memory_bytes", lambda: KB)
+    line = refused(capsys, seq.parent, ["compare", f"a={maps}", f"b={maps}", "--out", str(seq.parent / "c.csv")],
+                   "torchdoct compare of m.npz, m.npz", "needs about", "GB are available", "fewer maps files")
+    declared = resources.declared_array_bytes(maps)
+    assert f"{resources.COMPARE_COPIES} × the maps arrays" in line
+    # the estimate: every file's declared arrays, COMPARE_COPIES times; exactly that much memory passes the check
+    monkeypatch.setattr(resources, "available_memory_bytes", lambda: resources.COMPARE_COPIES * 2 * declared)
+    resources.check_compare([maps, maps])
+    monkeypatch.setattr(resources, "available_memory_bytes", lambda: resources.COMPARE_COPIES * 2 * declared - 1)
+    with pytest.raises(resources.MemoryLimitError):
+        resources.check_compare([maps, maps])
+
+
+@pytest.mark.parametrize("argv,names", [
+    (["bench", "maps", "--size", "64", "64", "--frames", "8"], ("torchdoct bench maps", "[8, 64, 64]", "--size")),
+    (["bench", "bulk-phase", "--lines", "100", "--depth", "16", "--frames", "8"],
+     ("torchdoct bench bulk-phase", "100 A-lines", "--lines")),
+    (["bench", "classify", "--size", "64"], ("torchdoct bench classify", "64×64 pixels", "--size")),
+])
+def test_benchmarks_with_a_size_refused_before_making_their_input(tiny_memory, monkeypatch, capsys, tmp_path,
+                                                                 argv, names):
+    import torch
+
+    monkeypatch.setattr(torch, "randn", _no_work)  # the synthetic inputs are never drawn
+    monkeypatch.setattr(np.random, "default_rng", _no_work)
+    refused(capsys, tmp_path, argv + ["--out", str(tmp_path / "b.json")], *names, "GB are available")
+
+
 def test_every_refusal_is_one_exception_class():
     from torchdoct.sim.memory import MemoryLimitError as from_memory
     from torchdoct.sim.simulate import MemoryLimitError as from_simulate

@@ -403,11 +403,16 @@ def _compare(args: argparse.Namespace) -> int:
         raise ValueError(f"give one --mask per maps file ({len(args.maps)}); got {len(args.mask)}")
     if args.mask is not None and args.threshold_db is not None:
         raise ValueError("give --mask or --threshold-db, not both")
-    samples: dict[str, list] = {}
-    for k, spec in enumerate(args.maps):
+    named = []
+    for spec in args.maps:
         name, sep, path = spec.partition("=")
-        if not sep or not name or "/" in name:
-            name, path = Path(spec).stem, spec
+        named.append((name, path) if sep and name and "/" not in name else (Path(spec).stem, spec))
+    from ..measured.guards import max_input_bytes
+    from ..resources import check_compare
+
+    check_compare([path for _, path in named], max_input_bytes())  # memory, before anything is read
+    samples: dict[str, list] = {}
+    for k, (name, path) in enumerate(named):
         maps = read_maps(path)
         mask = _load_mask(args.mask[k]) if args.mask is not None else None
         try:

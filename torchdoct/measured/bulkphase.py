@@ -96,6 +96,7 @@ from ..threads import one_torch_thread
 from .io import Sequence
 
 __all__ = [
+    "CORRECTION_AXIS_NEEDS",
     "METHODS",
     "MASKS",
     "STABLE_CONTRAST",
@@ -402,6 +403,14 @@ def apply_bulk_phase(field: np.ndarray | torch.Tensor, bp: BulkPhase, axes: str)
     return field * p.astype(field.dtype.newbyteorder("="))
 
 
+#: What the correction (not the estimate) needs of each spatial axis when it runs on a piece of the field
+#: (read by the slab planner of :func:`torchdoct.measured.maps.compute_maps`, as
+#: :func:`torchdoct.measured.resolution.reduction_axis_needs`): nothing, since it multiplies each A-line's
+#: frames by their own phasor, so any cut is exact. The estimate needs whole A-lines and every frame; it runs
+#: before, over lateral slabs of its own (:func:`estimate_bulk_phase`), and keeps only the ``[T, (Y), X]`` phases.
+CORRECTION_AXIS_NEEDS: dict[str, int | None] = {}
+
+
 def corrected_sequence(seq: Sequence, bp: BulkPhase) -> Sequence:
     """A corrected copy of ``seq`` (the whole field in memory, the data's dtype) whose metadata record
     the correction (``meta["bulk_phase"]``)."""
@@ -499,7 +508,12 @@ def bench_bulk_phase(*, snr_db: _Seq[float] = (10.0, 20.0, 30.0, 40.0), n_z: int
     prediction, ratio, seconds.
     """
     from ..bench import machine_info
+    from ..resources import check_bench
 
+    # one SNR's A-lines at once: speckle, noise and phasors in complex128, the complex64 lines and the
+    # methods' phase differences (about 8 complex128 copies of [T, L, Z])
+    check_bench("torchdoct bench bulk-phase", 8 * 16 * int(frames) * int(lines) * int(n_z),
+                f"{frames} frames × {lines} A-lines × {n_z} depths per SNR", "give fewer --lines, --depth or --frames")
     rows = []
     for k, snr in enumerate(snr_db):
         x, phi = _synthetic(lines, n_z, frames, snr, seed + k)

@@ -14,6 +14,7 @@ import torch
 from ..sim import metrics as _metrics
 
 __all__ = [
+    "SMOOTHING_AXIS_NEEDS",
     "METRICS",
     "FIT_FLAG",
     "UNITS",
@@ -35,61 +36,19 @@ UNITS = {"liv": "dB^2", "ocds": "1/s", "mean_db": "dB", "aliv": "dB^2", "swiftne
 DEFAULT_OCDS_DELAY_RANGE_S = (0.2048, 1.2288)
 
 
-def _uniform_dt(frame_times_s: _Seq[float]) -> float | None:
-    t = [float(v) for v in frame_times_s]
-    d = [b - a for a, b in zip(t, t[1:])]
-    if max(d) - min(d) <= 1e-9 * max(d):
-        return (t[-1] - t[0]) / (len(t) - 1)
-    return None
-
-
 def ocds_map(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
              delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S, scale: str = "db",
              estimator: str = "pearson") -> torch.Tensor:
-    """OCDS (1/s) of intensities ``[..., T]``: identical to :func:`torchdoct.sim.metrics.ocds`.
-
-    For a uniform protocol only the lags inside ``delay_range_s`` are computed, with either estimator
-    (same per-lag definitions and degenerate-case rules as :func:`torchdoct.sim.metrics.lag_correlations`:
-    Pearson per lag, or the biased ``Σ x̃_i x̃_{i+m} / Σ x̃²`` of the whole-sequence deviations; the slope
-    comes from :func:`torchdoct.sim.metrics.ocds_from_correlations`); a non-uniform protocol calls
-    :func:`torchdoct.sim.metrics.ocds`.
-    """
-    dt = _uniform_dt(frame_times_s)
-    if dt is None or estimator not in ("pearson", "biased"):
-        return _metrics.ocds(intensity, frame_times_s, delay_range_s=delay_range_s, scale=scale, estimator=estimator)
-    if scale == "db":
-        s = _metrics.to_db(intensity)
-    elif scale == "linear":
-        s = intensity
-    else:
-        raise ValueError(f"scale must be 'db' or 'linear'; got {scale!r}")
-    n = s.shape[-1]
-    if n != len(frame_times_s):
-        raise ValueError(f"signal has {n} frames but {len(frame_times_s)} frame times were given")
-    lo, hi = delay_range_s
-    lags = [m for m in range(1, n) if lo * (1 - 1e-9) <= m * dt <= hi * (1 + 1e-9)]
-    if len(lags) < 2:
-        raise ValueError(f"OCDS delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
-                         f"(frame interval {dt:.6g} s, {n} frames); give --ocds-delay-range-s")
-    if estimator == "pearson":
-        rho = torch.stack([_metrics._pearson(s[..., : n - m], s[..., m:]) for m in lags], dim=-1)
-    else:  # biased: as metrics.lag_correlations, for the lags in the range only
-        d = s - s[..., :1]
-        xm = d - d.mean(-1, keepdim=True)
-        var = (xm * xm).sum(-1)
-        ok = var > 0
-        den = torch.where(ok, var, torch.ones_like(var))
-        rho = torch.stack([torch.where(ok, (xm[..., : n - m] * xm[..., m:]).sum(-1) / den, torch.ones_like(var))
-                           for m in lags], dim=-1)
-    delays = torch.tensor([m * dt for m in lags], dtype=s.dtype, device=s.device)
-    return _metrics.ocds_from_correlations(rho, delays, (lo, hi))
+    """OCDS (1/s) of intensities ``[..., T]``: :func:`torchdoct.sim.metrics.ocds` itself (the one OCDS of
+    the simulator and the maps), with the maps' default delay range."""
+    return _metrics.ocds(intensity, frame_times_s, delay_range_s=delay_range_s, scale=scale, estimator=estimator)
 
 
 def _windows(frame_times_s: _Seq[float], max_window_s: float | None) -> list[tuple[float, list[tuple[int, int]]]]:
     """Distinct window spans ``T_w`` (s) and, for each, the (first, last) frame index pairs."""
     t = [float(v) - float(frame_times_s[0]) for v in frame_times_s]
     n = len(t)
-    dt = _uniform_dt(frame_times_s)
+    dt = _metrics.uniform_frame_interval_s(frame_times_s)
     if dt is not None:
         out = [(m * dt, [(i, i + m) for i in range(n - m)]) for m in range(1, n)]
     else:
@@ -120,7 +79,7 @@ def liv_curve(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
     c2 = torch.cat([zeros, (s * s).cumsum(-1)], -1)
     n = s.shape[-1]
     cols = []
-    uniform = _uniform_dt(frame_times_s) is not None
+    uniform = _metrics.uniform_frame_interval_s(frame_times_s) is not None
     for _, pairs in wins:
         if uniform:  # runs i … i+m for every start i: contiguous slices of the cumulative sums
             m = pairs[0][1] - pairs[0][0]
@@ -135,6 +94,11 @@ def liv_curve(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
         cols.append((d2 - d1 * d1).clamp_min(0).mean(-1))
     windows = torch.tensor([w[0] for w in wins], dtype=torch.float64, device=s.device)
     return windows, torch.stack(cols, -1)
+
+
+#: What the 3×3 box smoothing of the aLIV curves (:func:`box_smooth_zx`) needs of a piece of the maps: one
+#: pixel more on each side along Z and X (each B-scan is smoothed on its own: Y may be cut anywhere).
+SMOOTHING_AXIS_NEEDS: dict[str, int | None] = {"Z": 1, "X": 1}
 
 
 def box_smooth_zx(curves: torch.Tensor, defined: torch.Tensor | None = None) -> torch.Tensor:

@@ -55,8 +55,11 @@ Block raster volumes (:class:`torchdoct.measured.io.BlockRaster` in the sequence
 computed on the whole volume (the lateral Gaussian runs across block boundaries, as in the paper),
 then the B-scans next to the boundaries are dropped; ``meta["y_indices"]`` lists the kept positions.
 
-Work is done in depth slabs (with a halo for the axial window), so memory stays bounded and a
-progress bar shows; results do not depend on the slab size beyond the window truncation at 5σ'.
+Work is done in slabs, so memory stays bounded and a progress bar shows: each stage says which axes it
+needs whole or with a halo (the lateral reduction the en-face axes, the axial window a halo of 5σ' + 1
+pixels along depth, the aLIV smoothing one pixel along Z and X, the bulk-phase correction and the per-pixel
+metrics and features nothing), and :func:`slab_cut` cuts the axis they need least (depth slabs with their
+halo, or whole B-scans of a volume); results do not depend on the slab size beyond the window truncation at 5σ'.
 
 Signature channels (``signature``, ``torchdoct maps --signature``): the decorrelation-signature features of
 :func:`torchdoct.sim.signature.pixel_features` (the extractor of the training data) of every resolution's
@@ -83,7 +86,7 @@ import torch
 
 from ..files import atomic_write, check_out
 from ..sim.signature import available_features, default_features, feature_unit, pixel_features
-from .bulkphase import BulkPhase, estimate_bulk_phase, phasor as _bulk_phasor
+from .bulkphase import CORRECTION_AXIS_NEEDS, BulkPhase, estimate_bulk_phase, phasor as _bulk_phasor
 from .io import Maps, Sequence
 from ..threads import one_torch_thread
 from .mapfigures import DEFAULT_HUE_RANGE, FLAG_RGB, map_figure, percentile_range, png_name, pseudo_color
@@ -91,6 +94,7 @@ from .mapmetrics import (
     DEFAULT_OCDS_DELAY_RANGE_S,
     FIT_FLAG,
     METRICS,
+    SMOOTHING_AXIS_NEEDS,
     TAU_BOUND_LOG_TOL,
     UNITS,
     box_smooth_zx,
@@ -110,6 +114,7 @@ from .resolution import (
     lateral_filter_sigma_um,
     parse_resolution,
     reduce_resolution,
+    reduction_axis_needs,
 )
 
 __all__ = [
@@ -123,6 +128,7 @@ __all__ = [
     "tau_bound_code",
     "box_smooth_zx",
     "compute_maps",
+    "slab_cut",
     "nonfinite_mask",
     "nonfinite_reach_px",
     "signature_channels",
@@ -224,6 +230,38 @@ def _as_targets(resolutions: Iterable[str | ResolutionTarget]) -> list[Resolutio
     return targets
 
 
+def _add_halos(a: int | None, b: int | None) -> int | None:
+    return None if a is None or b is None else a + b
+
+
+def slab_cut(axes: str, field_needs: Iterable[Mapping[str, int | None]],
+             map_needs: Iterable[Mapping[str, int | None]] = ()) -> tuple[str, int | None, int]:
+    """Where the slab loop of :func:`compute_maps` cuts one resolution's work: ``(axis, halo, margin)``.
+
+    Every stage says what it needs of each spatial axis of a piece (``None``: the axis whole; an integer:
+    a halo of that many pixels each side; absent: nothing): the field stages, run in order before the
+    per-pixel metrics and features (the bulk-phase correction, :data:`~torchdoct.measured.bulkphase.
+    CORRECTION_AXIS_NEEDS`; the resolution reduction, :func:`~torchdoct.measured.resolution.
+    reduction_axis_needs`), then the stages on the maps (the aLIV smoothing, :data:`~torchdoct.measured.
+    mapmetrics.SMOOTHING_AXIS_NEEDS`). Halos of stages in sequence add up. The cut axis is the one of Z, Y
+    (when the sequence has it) that no stage needs whole, with the smallest total ``halo`` (Z on a tie);
+    ``margin`` is the part of it the map stages need (the metrics are computed that many pixels beyond
+    each slab's own rows). When every candidate is needed whole, ``("Z", None, 0)``: one slab.
+    """
+    total: dict[str, int | None] = {}
+    on_maps: dict[str, int | None] = {}
+    for needs, into in ((field_needs, [total]), (map_needs, [total, on_maps])):
+        for n in needs:
+            for a, h in n.items():
+                for d in into:
+                    d[a] = _add_halos(d.get(a, 0), h)
+    cuts = [a for a in "ZY" if a in axes and total.get(a, 0) is not None]
+    if not cuts:
+        return "Z", None, 0
+    a = min(cuts, key=lambda c: (total.get(c, 0), "ZY".index(c)))
+    return a, total.get(a, 0), on_maps.get(a, 0) or 0
+
+
 @one_torch_thread
 def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = ("original",), *,
                  metrics: Iterable[str] = ("liv", "ocds", "mean_db"),
@@ -321,8 +359,6 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     native = data.dtype.newbyteorder("=")  # big-endian files are read in native byte order
     axes = seq.axes
     zdim = axes.index("Z")
-    n_z = data.shape[zdim]
-    per_row = int(np.prod(data.shape)) // n_z
     fc: float | str = axial_center
     if axial_center == "centroid" and seq.is_complex and any(t.axial_resolution_um is not None for t in changes):
         sub = torch.from_numpy(np.ascontiguousarray(data[: min(4, data.shape[0])], dtype=native))
@@ -342,20 +378,21 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     out = np.full((n_doct + len(targets) * len(feats), *data.shape[1:]), np.nan, dtype=real_dtype)
 
     plans = []
-    for t in targets:
+    for t in targets:  # each resolution's cut: from what its stages need of the axes (slab_cut)
         lat, ax = optics(t)
         sig = axial_filter_sigma_um(ax0, ax) / seq.pitch_um["z"] if ax != ax0 else 0.0
-        if sig and lat == lat0 and "Y" in axes:
-            # axial only, volume: chunk over B-scans (whole depth columns, no halo; aLIV smoothing is per B-scan)
-            cdim, halo, mrg = 1, 0, 0
-            n_c = data.shape[1]
-            rows = max(1, min(n_c, int(slab_elements) // max(int(np.prod(data.shape)) // n_c, 1)))
-        else:  # depth slabs with a halo for the axial window and the 3x3 smoothing
-            cdim, mrg, n_c = zdim, margin, n_z
-            halo = (int(math.ceil(5.0 * sig)) + 1 if sig else 0) + margin
-            rows = max(1, min(n_c, int(slab_elements) // max(per_row, 1)))
-            if sig:
-                rows = n_c if edge_mode == "wrap" else min(n_c, max(rows, 2 * halo))
+        field_needs = [CORRECTION_AXIS_NEEDS] if bulk is not None else []
+        if t in changes:
+            field_needs.append(reduction_axis_needs(axes, lateral=lat != lat0, axial_sigma_px=sig,
+                                                    edge_mode=edge_mode))
+        cut, halo, mrg = slab_cut(axes, field_needs, [SMOOTHING_AXIS_NEEDS] if margin else [])
+        cdim = axes.index(cut)
+        n_c = data.shape[cdim]
+        rows = max(1, min(n_c, int(slab_elements) // max(int(np.prod(data.shape)) // n_c, 1)))
+        if halo is None:  # every axis it could cut is needed whole: one slab
+            halo, rows = 0, n_c
+        elif halo:  # a slab at least as deep as its halo on both sides
+            rows = min(n_c, max(rows, 2 * halo))
         reach = nonfinite_reach_px(seq, t) if t in changes else {}
         plans.append((t, cdim, n_c, halo, mrg, rows, reach))
     total = sum(math.ceil(n_c / plan[5]) for plan in plans)
@@ -638,8 +675,14 @@ def bench_maps(*, frames: int = 32, shape: tuple[int, int] = (512, 512),
     Returns a JSON-ready dict with the best total time over ``repeats`` and seconds per resolution.
     """
     from ..bench import machine_info
+    from ..resources import check_bench, maps_bytes
     from .io import validate_meta
 
+    dims = [int(frames), *(int(n) for n in shape)]
+    work, _ = maps_bytes(dims, 8, complex_samples=True, n_resolutions=len(resolutions), metrics=metrics,
+                         slab_elements=1 << 23)
+    check_bench("torchdoct bench maps", 8 * math.prod(dims) + work, f"a random complex64 stack {dims}",
+                "give a smaller --size or fewer --frames")
     g = torch.Generator().manual_seed(int(seed))
     data = torch.randn(frames, *shape, dtype=torch.complex64, generator=g).numpy()
     meta = validate_meta({"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},

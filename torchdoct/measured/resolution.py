@@ -65,6 +65,7 @@ import torch
 from ..conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
 
 __all__ = [
+    "reduction_axis_needs",
     "ResolutionTarget",
     "parse_resolution",
     "lateral_filter_sigma_um",
@@ -336,6 +337,22 @@ def _gain(normalization: str, ratio: float) -> float:
     if normalization == "sum":
         return 1.0
     raise ValueError(f"normalization must be one of {', '.join(NORMALIZATIONS)}; got {normalization!r}")
+
+
+def reduction_axis_needs(axes: str, *, lateral: bool, axial_sigma_px: float,
+                         edge_mode: str = "reflect") -> dict[str, int | None]:
+    """What :func:`reduce_resolution` needs of each spatial axis when it runs on a piece of the field (the
+    slab planner of :func:`torchdoct.measured.maps.compute_maps` reads it): ``None`` = that axis whole (the
+    lateral Gaussian runs along every en-face axis, Y and X, across the whole plane; the axial filter with
+    ``edge_mode="wrap"`` is periodic over the whole depth), an integer = a halo of that many pixels on each
+    side (the axial window of σ ``axial_sigma_px`` pixels, truncated at 5σ, plus one). An axis not named
+    may be cut anywhere: the reduction of the piece equals that of the whole there."""
+    needs: dict[str, int | None] = {}
+    if axial_sigma_px:
+        needs["Z"] = None if edge_mode == "wrap" else int(math.ceil(5.0 * axial_sigma_px)) + 1
+    if lateral:
+        needs.update({c: None for c in "YX" if c in axes})
+    return needs
 
 
 def reduce_resolution(field: Any, *, pitch_um: Mapping[str, float], system: Any,

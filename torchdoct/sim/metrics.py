@@ -33,6 +33,7 @@ __all__ = [
     "lag_correlations",
     "ocds",
     "ocds_from_correlations",
+    "uniform_frame_interval_s",
     "complex_variance",
     "compute_metrics",
     "summarize",
@@ -138,18 +139,55 @@ def ocds_from_correlations(rho: torch.Tensor, delays_s: torch.Tensor,
     return -((y - y[..., :1]) * xc).sum(-1) / (xc * xc).sum()
 
 
+def uniform_frame_interval_s(frame_times_s: Sequence[float]) -> float | None:
+    """The frame interval (s) of a uniform protocol (steps equal within 1e-9 relative), else ``None``."""
+    t = [float(v) for v in frame_times_s]
+    d = [b - a for a, b in zip(t, t[1:])]
+    if d and max(d) - min(d) <= 1e-9 * max(d):
+        return (t[-1] - t[0]) / (len(t) - 1)
+    return None
+
+
 def ocds(intensity: torch.Tensor, frame_times_s: Sequence[float], *,
          delay_range_s: tuple[float, float] = (0.2048, 1.2288), scale: str = "db",
          estimator: str = "pearson") -> torch.Tensor:
-    """OCDS (s⁻¹) of intensities ``[..., frames]`` (physics.md §2.4; see the module docstring)."""
+    """OCDS (s⁻¹) of intensities ``[..., frames]`` (physics.md §2.4; see the module docstring).
+
+    The one OCDS of the project: the simulator's metrics (:func:`compute_metrics`) and the maps
+    (:mod:`torchdoct.measured.mapmetrics`) both call it. For a uniform protocol only the lags inside
+    ``delay_range_s`` are correlated (the others do not enter the slope); their values are those of
+    :func:`lag_correlations`, and the slope is :func:`ocds_from_correlations`.
+    """
     if scale == "db":
         s = to_db(intensity)
     elif scale == "linear":
         s = intensity
     else:
         raise ValueError(f"scale must be 'db' or 'linear'; got {scale!r}")
-    delays, rho = lag_correlations(s, frame_times_s, estimator=estimator)
-    return ocds_from_correlations(rho, delays, delay_range_s)
+    dt = uniform_frame_interval_s(frame_times_s)
+    if dt is None or estimator not in ("pearson", "biased"):
+        delays, rho = lag_correlations(s, frame_times_s, estimator=estimator)
+        return ocds_from_correlations(rho, delays, delay_range_s)
+    n = s.shape[-1]
+    if n != len(frame_times_s):
+        raise ValueError(f"signal has {n} frames but {len(frame_times_s)} frame times were given")
+    lo, hi = delay_range_s
+    lags = [m for m in range(1, n) if lo * (1 - 1e-9) <= m * dt <= hi * (1 + 1e-9)]
+    if len(lags) < 2:
+        raise ValueError(f"OCDS delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
+                         f"(frame interval {dt:.6g} s, {n} frames); give --ocds-delay-range-s")
+    if estimator == "pearson":
+        rho = torch.stack([_pearson(s[..., : n - m], s[..., m:]) for m in lags], dim=-1)
+    else:  # biased: as lag_correlations, for the lags in the range only
+        d = s - s[..., :1]
+        xm = d - d.mean(-1, keepdim=True)
+        var = (xm * xm).sum(-1)
+        ok = var > 0
+        den = torch.where(ok, var, torch.ones_like(var))
+        rho = torch.stack([torch.where(ok, (xm[..., : n - m] * xm[..., m:]).sum(-1) / den, torch.ones_like(var))
+                           for m in lags], dim=-1)
+    delays = torch.tensor([m * dt for m in lags], dtype=s.dtype, device=s.device)
+    return ocds_from_correlations(rho, delays, (lo, hi))
 
 
 def complex_variance(field: torch.Tensor) -> torch.Tensor:
