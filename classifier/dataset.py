@@ -80,7 +80,17 @@ that still decays after the field has decorrelated does not tell the motion type
 **Static fraction and noise** are applied per *replicate*: each draw's moving and static fields are
 simulated once and combined ``replicates`` times with different static fractions and SNRs
 (:func:`simulate_draw`); this multiplies the nuisance variety per (costly) simulation. The static
-fraction is the static scatterers' share of the mean intensity.
+fraction is the static scatterers' share of the mean intensity, the same at every configuration (static
+scatterers mixed among the moving ones). A replicate may instead lie near the **edge of its moving
+region** (:attr:`Prior.static_edge_probability`; a vessel wall, a cell's border): static tissue fills the
+half-space beyond a plane at distance ``d`` from the pixel, and each configuration's static share is the
+part of its own intensity PSF beyond the plane, ``f_c = ½·erfc(d / (√2·σ_c))`` with ``σ_c`` the SD of the
+configuration's intensity PSF along the plane's normal (:func:`edge_static_fractions`; physics.md §14). A
+reduced configuration reaches further into the static tissue than the original one, so near an edge the
+moving field beats against a static field at its Doppler frequency in the reduced configurations only
+(measured on the rendered flow phantoms: the intensity correlation of a flow region oscillates at
+``2 n v_z / λ`` within one reduced PSF of its edge). The moving scatterers fill the whole space in the
+simulation (the half-space restriction enters only through the shares).
 
 **Cache**: a split is stored as ``.npz`` under a key (SHA-256) of the spec, the prior, the seed, the
 split, the numbers of draws, replicates and trials, the PSF truncation, the ground-truth definition
@@ -105,12 +115,14 @@ from typing import Any
 
 import numpy as np
 
+from .nuisance import combine_fields, edge_static_fractions  # noqa: F401  (public names of this module too)
 from .features import FeatureSpec, load_spec
 
 __all__ = [
     "CLASSES",
     "STATUS",
     "combine_fields",
+    "edge_static_fractions",
     "SPLITS",
     "Prior",
     "Draw",
@@ -142,6 +154,8 @@ FLOW_POLAR_LAWS = ("isotropic", "uniform-angle")
 DEFAULT_TRUNCATION = "taper"
 #: Spawn-key element of the stream that picks a ballistic draw's direction law.
 _LAW_STREAM = 1 << 30
+#: the stream of a replicate's static edge (:attr:`Prior.static_edge_probability`)
+_EDGE_STREAM = (1 << 30) + 1
 
 
 def _range(path: str, value: Any, *, positive: bool = False) -> tuple[float, float]:
@@ -176,18 +190,28 @@ class Prior:
     #: phase over the frames, common to the configurations, with a step SD (rad) ~ U[low, high] per
     #: replicate; (0, 0) = phase-stable data (the default)
     bulk_residual_step_rad: tuple[float, float] = (0.0, 0.0)
+    #: probability per replicate that the pixel lies near the edge of its moving region, with static tissue
+    #: beyond a plane (module docstring): that replicate's static share is then each configuration's own
+    #: (:func:`edge_static_fractions`) instead of a common static fraction; 0 (the shipped priors): never
+    static_edge_probability: float = 0.0
+    #: the distance from the pixel to that plane, uniform in this range, in units of the SD of the largest
+    #: configuration's intensity PSF along the plane's normal (0: on the edge, every share 1/2)
+    static_edge_distance: tuple[float, float] = (0.0, 3.0)
 
     def __post_init__(self) -> None:
         for key, pos in (("diffusion_um2_per_s", True), ("speed_um_per_s", True), ("density_per_um3", True),
                          ("static_fraction", False), ("snr_db", False), ("flow_polar_angle_deg", False),
-                         ("bulk_residual_step_rad", False)):
+                         ("bulk_residual_step_rad", False), ("static_edge_distance", False)):
             object.__setattr__(self, key, _range(key, getattr(self, key), positive=pos))
         if self.flow_speed_um_per_s is not None:
             object.__setattr__(self, "flow_speed_um_per_s",
                                _range("flow_speed_um_per_s", self.flow_speed_um_per_s, positive=True))
         if self.static_fraction[0] < 0 or self.static_fraction[1] >= 1:
             raise ValueError(f"prior.static_fraction must lie in [0, 1); got {self.static_fraction}")
-        for key in ("static_probability", "noise_probability"):
+        if self.static_edge_distance[0] < 0:
+            raise ValueError(f"prior.static_edge_distance must be >= 0 (PSF SDs from the edge); "
+                             f"got {list(self.static_edge_distance)}")
+        for key in ("static_probability", "noise_probability", "static_edge_probability"):
             v = getattr(self, key)
             if not isinstance(v, (int, float)) or not 0.0 <= float(v) <= 1.0:
                 raise ValueError(f"prior.{key} must be a probability in [0, 1]; got {v!r}")
@@ -218,6 +242,8 @@ class Prior:
             del d["bulk_residual_step_rad"]
         if d["flow_speed_um_per_s"] is None:
             del d["flow_speed_um_per_s"]
+        if d["static_edge_probability"] == 0:  # priors without edges keep their dicts and cache keys
+            del d["static_edge_probability"], d["static_edge_distance"]
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
     def magnitude_range(self, label: int) -> tuple[float, float]:
@@ -255,6 +281,9 @@ class Draw:
     sim_seed: int
     nuisance: tuple[tuple[float, float], ...] = ()
     ballistic_directions: str = "isotropic"
+    #: per replicate, ``None`` or the static edge ``(d, n_x, n_y, n_z)`` of :func:`edge_static_fractions`
+    #: (its static shares replace the replicate's static fraction); empty: no edges
+    static_edges: tuple[tuple[float, float, float, float] | None, ...] = ()
 
     def __post_init__(self) -> None:
         if self.ballistic_directions not in BALLISTIC_LAWS:
@@ -299,6 +328,7 @@ def draw_parameters(prior: Prior, seed: int, split: str, k: int, replicates: int
     azimuth = 360.0 * u[1]
     density = prior.density_per_um3[0] + u[2] * (prior.density_per_um3[1] - prior.density_per_um3[0])
     nuisance = []
+    edges: list = []
     for r in range(replicates):
         v = np.random.default_rng(_seed_sequence(seed, split, k, 1 + r)).random(4)
         static = 0.0
@@ -308,6 +338,16 @@ def draw_parameters(prior: Prior, seed: int, split: str, k: int, replicates: int
         if v[2] < prior.noise_probability:
             snr = prior.snr_db[0] + v[3] * (prior.snr_db[1] - prior.snr_db[0])
         nuisance.append((float(static), float(snr)))
+        if prior.static_edge_probability > 0:  # its own stream: the draws above are those of a prior without edges
+            w = np.random.default_rng(_seed_sequence(seed, split, k, 1 + r, _EDGE_STREAM)).random(4)
+            edge = None
+            if w[0] < prior.static_edge_probability:
+                cos_t, phi = 2.0 * w[1] - 1.0, 2.0 * math.pi * w[2]
+                sin_t = math.sqrt(max(0.0, 1.0 - cos_t * cos_t))
+                lo_d, hi_d = prior.static_edge_distance
+                edge = (float(lo_d + w[3] * (hi_d - lo_d)), sin_t * math.cos(phi), sin_t * math.sin(phi), cos_t)
+                nuisance[-1] = (0.0, nuisance[-1][1])
+            edges.append(edge)
     sim_seed = int(ss.generate_state(2, np.uint64)[1] >> np.uint64(2))
     law = prior.ballistic_directions
     if law == "both":
@@ -316,7 +356,7 @@ def draw_parameters(prior: Prior, seed: int, split: str, k: int, replicates: int
             law = "uniform-angles"
     return Draw(label=label, magnitude=magnitude, polar_angle_deg=polar, azimuth_deg=azimuth,
                 density_per_um3=float(density), sim_seed=sim_seed, nuisance=tuple(nuisance),
-                ballistic_directions=law)
+                ballistic_directions=law, static_edges=tuple(edges) if any(e is not None for e in edges) else ())
 
 
 def _lateral_y(c) -> dict[str, float]:
@@ -356,34 +396,6 @@ def scene_for(spec: FeatureSpec, draw: Draw, prior: Prior, population: str = "mo
                                          ocds_scale=spec.ocds_scale, ocds_estimator=spec.ocds_estimator))
 
 
-def combine_fields(moving, static, static_fraction: float, snr_db: float, mean_intensity_moving, generator):
-    """``E_m + a·E_s + n`` for complex signals ``[trials, systems, frames]`` (see :func:`simulate_draw`).
-
-    ``static`` may be ``None`` when ``static_fraction`` is 0; ``snr_db`` NaN adds no noise;
-    ``mean_intensity_moving`` is ``⟨I⟩`` of the moving scatterers per system (static scatterers have
-    the same density, so the noise-free total is ``(1 + a²)⟨I⟩``); ``generator`` a ``torch.Generator``.
-    """
-    import torch
-
-    from torchdoct.conventions import noise_sigma
-
-    f = float(static_fraction)
-    if not 0.0 <= f < 1.0:
-        raise ValueError(f"static_fraction must be in [0, 1); got {static_fraction!r}")
-    a = math.sqrt(f / (1.0 - f))
-    if f > 0 and static is None:
-        raise ValueError("static_fraction > 0 needs the static scatterers' signals")
-    e = moving if f == 0 else moving + a * static
-    if not math.isnan(snr_db):
-        mean_i = torch.as_tensor(mean_intensity_moving, dtype=torch.float32).view(1, -1, 1)
-        amp = noise_sigma((1.0 + a * a) * mean_i, snr_db)
-        shape = e.shape
-        noise = torch.complex(torch.randn(shape, generator=generator) * amp,
-                              torch.randn(shape, generator=generator) * amp)
-        e = e + noise
-    return e
-
-
 def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
                   truncation_tolerance: float, bulk_phase: bool = False, truncation: str = DEFAULT_TRUNCATION):
     """Feature vectors ``[R, trials, F]`` (float32, spec order) and the empty-volume mask ``[R, trials]``.
@@ -413,15 +425,18 @@ def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
                          dtype="float32", truncation_tolerance=truncation_tolerance, truncation=truncation,
                          threads=1, progress=False)
     nuisance = draw.nuisance or ((0.0, math.nan),)
+    edges = draw.static_edges or (None,) * len(nuisance)
+    shares = [f if e is None else edge_static_fractions(spec.configurations, e) for (f, _), e in zip(nuisance, edges)]
     static = None
-    if any(f > 0 for f, _ in nuisance):
+    if any(f > 0 for f, _ in nuisance) or any(e is not None for e in edges):
         static = td.simulate(scene_for(spec, draw, prior, "static"), trials=trials, seed=draw.sim_seed ^ 0x5A5A5A5A,
                              dtype="float32", truncation_tolerance=truncation_tolerance, truncation=truncation,
                              threads=1, progress=False).signals
     mean_i = [mean_intensity(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um, **_lateral_y(c))
               for c in spec.configurations]
     gen = torch.Generator().manual_seed(draw.sim_seed ^ 0x3C3C3C3C)
-    signals = torch.cat([combine_fields(moving.signals, static, f, snr, mean_i, gen) for f, snr in nuisance])
+    signals = torch.cat([combine_fields(moving.signals, static, f, snr, mean_i, gen)
+                         for f, (_, snr) in zip(shares, nuisance)])
     lo, hi = prior.bulk_residual_step_rad
     if hi > 0:  # the residual of a bulk-phase correction: a random walk per trial, common to the configurations
         rgen = torch.Generator().manual_seed(draw.sim_seed ^ 0x1E1E1E1E)
@@ -709,7 +724,10 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
         x, zero = res[0], res[1]
         status, _, _ = identifiability(spec, d, prior)
         status_counts[status] += 1
-        for r, (f, snr) in enumerate(d.nuisance):
+        edges = d.static_edges or (None,) * len(d.nuisance)
+        for r, ((f, snr), e) in enumerate(zip(d.nuisance, edges)):
+            if e is not None:  # a static edge: the mean of the configurations' static shares
+                f = float(np.mean(edge_static_fractions(spec.configurations, e)))
             keep = ~zero[r] & np.all(np.isfinite(x[r]), axis=1)
             dropped += int((~keep).sum())
             n = int(keep.sum())

@@ -47,6 +47,9 @@ class TrainConfig:
     #: share of the training draws with detection noise when no prior is given
     #: (:attr:`classifier.dataset.Prior.noise_probability`; the noise-free rest is a limit no measurement reaches)
     noise_probability: float = 0.5
+    #: share of the training replicates near a static edge when no prior is given
+    #: (:attr:`classifier.dataset.Prior.static_edge_probability`: each configuration its own static share)
+    static_edge_probability: float = 0.0
     hidden: tuple[int, ...] = (64, 64)
     max_epochs: int = 200
     patience: int = 20
@@ -104,6 +107,10 @@ class TrainConfig:
                 or not 0.0 <= float(self.noise_probability) <= 1.0:
             raise ValueError(f"TrainConfig.noise_probability must be a probability in [0, 1]; "
                              f"got {self.noise_probability!r}")
+        if isinstance(self.static_edge_probability, bool) or not isinstance(self.static_edge_probability, (int, float)) \
+                or not 0.0 <= float(self.static_edge_probability) <= 1.0:
+            raise ValueError(f"TrainConfig.static_edge_probability must be a probability in [0, 1]; "
+                             f"got {self.static_edge_probability!r}")
         if not 0.0 <= self.min_probability < 1.0:
             raise ValueError(f"TrainConfig.min_probability must be in [0, 1); got {self.min_probability!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
@@ -111,6 +118,8 @@ class TrainConfig:
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
+        if d["static_edge_probability"] == 0:  # recipes without edges keep the dicts recorded before the field
+            del d["static_edge_probability"]
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
 
@@ -178,7 +187,8 @@ _SHIPPED_DEFAULT_RECIPE = ("single-acquisition", "two-wavelength", "single-acqui
 #: on the cores: 1920 draws took 7-12 min for the shipped models; a --like run on a 1310-nm system took
 #: 5 min with 960 draws (pool 5 on its rendered phantom 0.919 at coverage 0.938), and the learning curve
 #: gives 960 draws −0.016 ± 0.004 per pixel against 1920 (classifier/data/signature-learning-curve.md).
-OWN_SIGNATURE_RECIPE: dict[str, Any] = {**SPEC_RECIPES["signature"], "bulk_phase_test": False}
+OWN_SIGNATURE_RECIPE: dict[str, Any] = {**SPEC_RECIPES["signature"], "bulk_phase_test": False,
+                                        "static_edge_probability": 0.25}
 
 
 def recipe_for(spec: FeatureSpec) -> dict[str, Any]:
@@ -216,7 +226,7 @@ def default_prior(cfg: TrainConfig) -> Prior:
     residual bulk phase, scaled to the spec's system (:func:`classifier.own_system.prior_for_spec`) for the
     shipped specs of :data:`SCALED_PRIOR_SPECS`."""
     prior = Prior(flow_polar_law=cfg.flow_polar_law, bulk_residual_step_rad=cfg.bulk_residual_step_rad,
-                  noise_probability=cfg.noise_probability)
+                  noise_probability=cfg.noise_probability, static_edge_probability=cfg.static_edge_probability)
     if str(cfg.spec) in SCALED_PRIOR_SPECS:
         from .own_system import prior_for_spec
 

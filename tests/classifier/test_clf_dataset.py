@@ -283,3 +283,91 @@ def test_flow_angle_range_is_isotropic_within_it():
     # the angle range changes nothing else
     for d, w in zip(draws[:50], u[:50]):
         assert dataclasses.replace(d, polar_angle_deg=w.polar_angle_deg) == w
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the edge of a moving region: a static share per configuration (physics.md §14)
+
+def test_edge_static_fractions_closed_form():
+    from classifier.dataset import edge_static_fractions
+
+    spec = load_spec("signature")  # original 4.9/3.8, axial=14, lateral=18 (isotropic)
+    names = [c.name for c in spec.configurations]
+    assert edge_static_fractions(spec.configurations, (0.0, 1.0, 0.0, 0.0)) == [0.5] * 3  # on the edge
+    # normal along x: σ_c = Δx/4; the widest (lateral 18 µm) at d = 1 of its SDs holds ½·erfc(1/√2)
+    f = dict(zip(names, edge_static_fractions(spec.configurations, (1.0, 1.0, 0.0, 0.0))))
+    by_name = {c.name: c for c in spec.configurations}
+    assert f[names[2]] == pytest.approx(0.5 * math.erfc(1 / math.sqrt(2)), rel=1e-12)
+    d_um = by_name[names[2]].lateral_resolution_um / 4
+    assert f[names[0]] == pytest.approx(0.5 * math.erfc(d_um / (math.sqrt(2) * 4.9 / 4)), rel=1e-12)
+    assert f[names[1]] == f[names[0]]  # the axial reduction does not widen the PSF along x
+    # normal along z: the axial-reduced configuration reaches furthest; the sign of the normal does not matter
+    up = edge_static_fractions(spec.configurations, (0.7, 0.0, 0.0, 1.0))
+    assert up == edge_static_fractions(spec.configurations, (0.7, 0.0, 0.0, -1.0))
+    assert up[1] > up[0] == up[2]
+    far = edge_static_fractions(spec.configurations, (3.0, 0.6, 0.0, 0.8))
+    assert max(far) == pytest.approx(0.5 * math.erfc(3 / math.sqrt(2)), rel=1e-12) and min(far) < max(far)
+
+
+def test_combine_fields_takes_a_static_share_per_system():
+    gen = torch.Generator().manual_seed(6)
+    shape = (6000, 2, 4)
+    e_m = torch.complex(torch.randn(shape, generator=gen), torch.randn(shape, generator=gen)) * math.sqrt(0.5)
+    e_s = torch.complex(torch.randn(shape, generator=gen), torch.randn(shape, generator=gen)) * math.sqrt(0.5)
+    shares = [0.1, 0.7]
+    out = combine_fields(e_m, e_s, shares, math.nan, [1.0, 1.0], gen)
+    static_part = out - e_m  # a_c·E_s
+    for c, f in enumerate(shares):
+        p_static = (static_part[:, c].abs() ** 2).double()
+        p_total = (out[:, c].abs() ** 2).double()
+        share = float(p_static.mean() / p_total.mean())
+        se = float(p_static.std() / math.sqrt(p_static.numel())) / float(p_total.mean())
+        assert abs(share - f) <= 5 * se + 0.01, (c, share, f)  # 0.01: the ratio's own spread
+    assert torch.equal(combine_fields(e_m, e_s, [0.3, 0.3], math.nan, [1.0, 1.0], gen),
+                       combine_fields(e_m, e_s, 0.3, math.nan, [1.0, 1.0], gen))
+    with pytest.raises(ValueError, match="2 systems"):
+        combine_fields(e_m, e_s, [0.1, 0.2, 0.3], math.nan, [1.0, 1.0], gen)
+
+
+def test_edge_replicates_leave_the_other_draws_unchanged():
+    base = Prior()
+    edged = dataclasses.replace(base, static_edge_probability=0.3)
+    assert "static_edge_probability" not in base.to_dict() and edged.to_dict()["static_edge_probability"] == 0.3
+    n_edge = n_rep = 0
+    for k in range(200):
+        a, b = draw_parameters(base, 1, "train", k, 8), draw_parameters(edged, 1, "train", k, 8)
+        assert (a.magnitude, a.sim_seed, a.polar_angle_deg) == (b.magnitude, b.sim_seed, b.polar_angle_deg)
+        assert a.static_edges == ()
+        edges = b.static_edges or (None,) * 8
+        for (fa, sa), (fb, sb), e in zip(a.nuisance, b.nuisance, edges):
+            assert sa == sb or (math.isnan(sa) and math.isnan(sb))
+            if e is None:
+                assert fa == fb
+            else:
+                assert fb == 0.0 and 0.0 <= e[0] <= 3.0 and math.isclose(math.hypot(*e[1:]), 1.0, rel_tol=1e-12)
+                n_edge += 1
+            n_rep += 1
+    se = math.sqrt(0.3 * 0.7 / n_rep)
+    assert abs(n_edge / n_rep - 0.3) <= 4 * se
+
+
+def test_flow_near_a_static_edge_beats_at_its_doppler_period():
+    """Axial flow beside static tissue: the intensity correlation of the configuration that reaches the static
+    side oscillates at the Doppler period λ/(2 n v_z) (here 8 frames), so ρ at 8 frames exceeds ρ at 4; without
+    the edge it decays monotonically."""
+    spec = load_spec("signature")
+    prior = Prior()
+    v = 0.84 / (2 * 1.0 * 8 * 0.2048)  # Doppler period of 8 frames
+    i4, i8 = spec.metrics.index("rho_lin_4"), spec.metrics.index("rho_lin_8")
+    lat = 2  # lateral=18: reaches the static side first along x
+    nm = len(spec.metrics)
+    out = {}
+    for name, edges in (("none", ()), ("edge", ((0.5, 1.0, 0.0, 0.0),))):
+        d = Draw(label=2, magnitude=v, polar_angle_deg=0.0, azimuth_deg=0.0, density_per_um3=0.05, sim_seed=21,
+                 nuisance=((0.0, math.nan),), static_edges=edges)
+        x = simulate_draw(spec, d, prior, trials=256, truncation_tolerance=1e-2)[0][0]
+        r4, r8 = x[:, lat * nm + i4], x[:, lat * nm + i8]
+        diff = r8 - r4
+        out[name] = (float(diff.mean()), float(diff.std() / math.sqrt(len(diff))))
+    assert out["none"][0] < -3 * out["none"][1]  # decays: ρ_8 < ρ_4
+    assert out["edge"][0] > 3 * out["edge"][1]  # beats: ρ_8 > ρ_4
