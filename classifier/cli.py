@@ -230,14 +230,19 @@ def _print_plan(args, spec, prior, ranges, cfg, notes, paths) -> None:
           f"{prior.snr_db[0]:g}-{prior.snr_db[1]:g} dB (p = {prior.noise_probability:g}), static fraction "
           f"{prior.static_fraction[0]:g}-{prior.static_fraction[1]:g} (p = {prior.static_probability:g}), flow "
           f"polar angle {prior.flow_polar_law}" + (f", residual bulk phase step {prior.bulk_residual_step_rad[1]:g} rad"
-                                                   if prior.bulk_residual_step_rad[1] > 0 else ""))
+                                                   if prior.bulk_residual_step_rad[1] > 0 else "")
+          + (f", a static edge {prior.static_edge_distance[0]:g}-{prior.static_edge_distance[1]:g} PSF SDs away "
+             f"(p = {prior.static_edge_probability:g}; each configuration its own static share)"
+             if prior.static_edge_probability > 0 else ""))
     print(f"recipe: draws {cfg.draws_train}/{cfg.draws_validation}/{cfg.draws_test} (train/validation/test) × "
           f"{cfg.replicates} replicates × {cfg.trials_per_draw} trials, at most {cfg.max_epochs} epochs, "
           f"seed {cfg.seed}, PSF {cfg.truncation} at {cfg.truncation_tolerance:g}")
     est = estimate_seconds(spec, prior, cfg, pilot_draws=3 if args.quick else 6, threads=args.threads)
     print(f"expected time: about {est['total_s'] / 60:.1f} min (simulation {est['simulation_s'] / 60:.1f} min: "
           f"{est['draws']} draws at {est['pilot_s_per_draw']:.2f} s each on the cores, from a pilot of the first "
-          f"draws; the network's fit at most {est['fit_s'] / 60:.1f} min)")
+          f"draws; the network's fit at most {est['fit_s'] / 60:.1f} min"
+          + (f"; the scikit-learn baselines {est['baselines_s'] / 60:.1f} min, --no-baselines skips them"
+             if est["baselines_s"] else "") + ")")
     if not args.no_cache:
         key, _ = dataset_key(spec, prior, cfg.seed, "train", cfg.draws_train, cfg.trials_per_draw, cfg.replicates,
                              cfg.truncation_tolerance, truncation=cfg.truncation)

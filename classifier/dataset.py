@@ -26,6 +26,8 @@
 * density of the moving scatterers ~ U[0.02, 0.1] µm⁻³;
 * with probability 1/2 a static fraction ~ U[0, 0.8] of the mean intensity (static scatterers at the
   moving ones' density, reflectivity set to give that fraction);
+* ``static_edge_probability`` (default 0; ``doct-train --like`` 0.25): the pixel near the edge of its moving
+  region instead, each configuration with its own static share (below, physics.md §14);
 * with probability 1/2 additive noise at SNR ~ U[10, 40] dB (torchdoct's noise model: circular
   complex Gaussian, independent per frame and per system, relative to each system's mean intensity).
   ``doct-classify`` decides every pixel down to 30 dB below the image's 99th percentile (its
