@@ -17,10 +17,12 @@ import pytest
 
 pytestmark = pytest.mark.slow
 
-#: Measured (quick model, pool 5, seed 2026; noise in every training draw): balanced accuracy @ coverage
-#: 0.801 @ 0.917 (1310 nm), 0.823 @ 0.915 (fast), 0.933 @ 0.976 (tissue volume) → floors 0.05 below, rounded
-#: down (with noise in half the draws: 0.747 @ 0.794, 0.789 @ 0.806, 0.920 @ 0.944). About 35 s per system.
-FLOORS = {"system-1310nm": (0.75, 0.86), "system-fast": (0.77, 0.86), "system-tissue-volume": (0.88, 0.92)}
+#: Measured (quick model, pool 5, seed 2026; noise in every training draw, a static edge in a quarter of the
+#: replicates): balanced accuracy @ coverage 0.799 @ 0.856 (1310 nm), 0.836 @ 0.924 (fast), 0.938 @ 0.980
+#: (tissue volume) → floors 0.05 below, rounded down (without the edges: 0.801 @ 0.917, 0.823 @ 0.915,
+#: 0.933 @ 0.976; with noise in half the draws: 0.747 @ 0.794, 0.789 @ 0.806, 0.920 @ 0.944). About 35 s
+#: per system.
+FLOORS = {"system-1310nm": (0.74, 0.80), "system-fast": (0.78, 0.87), "system-tissue-volume": (0.88, 0.93)}
 
 
 @pytest.mark.parametrize("system", list(FLOORS))
