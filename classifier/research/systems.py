@@ -1,7 +1,8 @@
 """Your own system, end to end: rendered phantoms of other OCT systems → ``torchdoct maps`` → ``doct-train
 --like`` → ``doct-classify``, scored against the rendered ground truth.
 
-``python -m classifier.research.systems --out DIR [--system NAME ...] [--seeds 2026,1,2] [--quick]``
+``python -m classifier.research.systems --out DIR [--system NAME ...] [--seeds 2026,1,2] [--quick]
+[--min-probability P ...]``
 
 For each system phantom (``system-1310nm``: 1310 nm, lateral 10 µm, axial 8 µm; ``system-fast``: 64 frames
 12.8 ms apart; ``system-tissue-volume``: a volume in tissue, n = 1.38) the chain a user runs:
@@ -12,7 +13,8 @@ For each system phantom (``system-1310nm``: 1310 nm, lateral 10 µm, axial 8 µm
    its report gives the training time);
 3. ``doct-classify --model DIR/SYSTEM --pool P`` for every seed and P = 1, 5, scored with
    :func:`classifier.evaluate_images.score_images` (all labelled moving pixels, edge 0): balanced accuracy,
-   coverage, recall per motion type, magnitude error and interval coverage.
+   coverage, recall per motion type, magnitude error and interval coverage; with ``--min-probability P``
+   also at pool 5 with that threshold of the indeterminate outcome.
 
 Writes ``DIR/systems-validation.json`` and ``.md``.
 """
@@ -67,7 +69,7 @@ def train(out: Path, system: str, maps: Path, quick: bool) -> tuple[Path, dict]:
     return found[0], report
 
 
-def evaluate(out: Path, system: str, seeds: list[int], quick: bool) -> dict:
+def evaluate(out: Path, system: str, seeds: list[int], quick: bool, min_probabilities: list[float] = ()) -> dict:
     from classifier.cli import classify_main
     from classifier.evaluate_images import score_images
 
@@ -81,6 +83,12 @@ def evaluate(out: Path, system: str, seeds: list[int], quick: bool) -> dict:
             if classify_main([str(maps), "--model", str(model), "--out", str(cdir), "--pool", str(p), "--force"]) != 0:
                 raise RuntimeError(f"doct-classify {maps} failed")
             scores[str(p)].append(score_images(cdir, seq, edge_um=0.0))
+        for mp in min_probabilities:  # pool 5 again, with another threshold of the indeterminate outcome
+            cdir = out / f"cls-{system}-{s}-p5-mp{mp:g}"
+            if classify_main([str(maps), "--model", str(model), "--out", str(cdir), "--pool", "5",
+                              "--min-probability", f"{mp:g}", "--force"]) != 0:
+                raise RuntimeError(f"doct-classify {maps} --min-probability {mp:g} failed")
+            scores.setdefault(f"5@{mp:g}", []).append(score_images(cdir, seq, edge_um=0.0))
     test = report["test"]["network"]["1"]
     return {"system": system, "description": SYSTEMS[system][1], "model": model.name,
             "spec": report["spec"], "prior": report["prior"],
@@ -104,6 +112,10 @@ def to_markdown(result: dict) -> str:
          "| system | training (simulation + fit) | own test split, pool 1 | pool 1: balanced accuracy @ coverage "
          "| pool 5: balanced accuracy @ coverage | pool 5 recall diffusion / ballistic / flow | magnitude: median "
          "\\|log10 error\\|, 68 % / 95 % cover (pool 5) |", "|---|---|---|---|---|---|---|"]
+    extra = any(k.startswith("5@") for r in result["systems"] for k in r["scores"])
+    if extra:  # pool 5 at other thresholds of the indeterminate outcome: one more column
+        L[-2] += " pool 5 with `--min-probability`: balanced accuracy @ coverage |"
+        L[-1] += "---|"
     for r in result["systems"]:
         cells = []
         for p in ("1", "5"):
@@ -117,11 +129,17 @@ def to_markdown(result: dict) -> str:
             return np.mean([m.get(key) if m.get(key) is not None else np.nan for m in mags])
 
         mag = f"{mm('median_abs_log10_error'):.3f}, {mm('in_68'):.2f} / {mm('in_95'):.2f}"
+        thresholds = []
+        for key in (k for k in r["scores"] if k.startswith("5@")):
+            b, bs = _overall(r["scores"][key], "balanced_accuracy")
+            c, cs = _overall(r["scores"][key], "coverage")
+            thresholds.append(f"{key[2:]}: {b:.3f} ± {bs:.3f} @ {c:.3f} ± {cs:.3f}")
         t = r["training_s"]
         L.append(f"| {r['system']}: {r['description']} | {t / 60:.1f} min ({r['simulation_s'] / 60:.1f} + "
                  f"{r['fit_s'] / 60:.1f}) | {r['own_test_pool1']['balanced_accuracy_identifiable']:.3f} @ "
                  f"{r['own_test_pool1']['coverage_identifiable']:.3f} | {cells[0]} | {cells[1]} | "
-                 f"{rec['diffusion']:.3f} / {rec['ballistic']:.3f} / {rec['flow']:.3f} | {mag} |")
+                 f"{rec['diffusion']:.3f} / {rec['ballistic']:.3f} / {rec['flow']:.3f} | {mag} |"
+                 + (f" {'; '.join(thresholds)} |" if extra else ""))
     return "\n".join(L) + "\n"
 
 
@@ -131,14 +149,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--system", action="append", choices=list(SYSTEMS), help="(repeat; default all three)")
     p.add_argument("--seeds", default="2026,1,2,3,4,5", help="rendering seeds, the first trains (default 2026,1,...,5)")
     p.add_argument("--quick", action="store_true", help="doct-train --like --quick (about a minute per system)")
+    p.add_argument("--min-probability", type=float, action="append", default=[],
+                   help="also classify at pool 5 with this doct-classify --min-probability (repeat)")
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     seeds = [int(s) for s in args.seeds.split(",")]
     t0 = time.perf_counter()
-    systems = [evaluate(out, s, seeds, args.quick) for s in (args.system or list(SYSTEMS))]
+    systems = [evaluate(out, s, seeds, args.quick, args.min_probability) for s in (args.system or list(SYSTEMS))]
     result = {"command": "python -m classifier.research.systems --out DIR" + "".join(f" --system {s}" for s in args.system or [])
-              + (f" --seeds {args.seeds}" if args.seeds != "2026,1,2,3,4,5" else "") + (" --quick" if args.quick else ""),
+              + (f" --seeds {args.seeds}" if args.seeds != "2026,1,2,3,4,5" else "") + (" --quick" if args.quick else "")
+              + "".join(f" --min-probability {mp:g}" for mp in args.min_probability),
               "seeds": seeds, "systems": systems, "seconds": time.perf_counter() - t0}
     (out / "systems-validation.json").write_text(json.dumps(result, indent=1, default=float))
     (out / "systems-validation.md").write_text(to_markdown(result))
