@@ -68,6 +68,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from classifier.report import bootstrap_draws
+
 __all__ = ["GRID_PER_DECADE", "DEFAULT_LAGS", "FLOW_EXTRA_PARAMETERS", "REASONS", "G1Fit", "fit_g1", "g1_columns",
            "complex_g1", "superset_spec", "evaluate_against_network", "format_markdown", "main"]
 
@@ -473,21 +475,6 @@ def _timed(fn, *args, repeats: int = 2) -> tuple[Any, float]:
     return out, best
 
 
-def _paired_bootstrap(draw: np.ndarray, fn, n_boot: int = 200, seed: int = 0) -> dict[str, float]:
-    """Standard errors of the network-minus-fit differences ``fn(index) → dict`` over draws."""
-    rng = np.random.default_rng(seed)
-    draws = np.unique(draw)
-    if draws.size < 2:
-        return {}
-    index = {d: np.flatnonzero(draw == d) for d in draws}
-    vals: dict[str, list[float]] = {}
-    for _ in range(n_boot):
-        pick = np.concatenate([index[d] for d in rng.choice(draws, draws.size, replace=True)])
-        for k, v in fn(pick).items():
-            vals.setdefault(k, []).append(v)
-    return {k: float(np.nanstd(np.asarray(v), ddof=1)) for k, v in vals.items()}
-
-
 def evaluate_against_network(model: str = "signature", *, draws: int | None = None, lags: Sequence[int] | None = None,
                              cache_dir=None, timing_pixels: int = 4096, log=print) -> dict[str, Any]:
     """The fit and the shipped network on the same test pixels (pool 1 and 25, with and without a
@@ -595,7 +582,7 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
                     y_, st_ = s["y"][ix], s["status"][ix]
                     a, b = _headline(dec_net[ix], y_, st_, err_net[ix]), _headline(fit.label[ix], y_, st_, err_fit[ix])
                     return {k: a[k] - b[k] for k in a}
-                row["difference_se"] = _paired_bootstrap(s["draw"], diffs, seed=cfg.seed)
+                row["difference_se"] = bootstrap_draws(diffs, s["draw"], seed=cfg.seed)  # paired: one resample, both
             out[pool] = row
             say(f"  pool {pool}: network bal. acc. {m_net['balanced_accuracy_identifiable']:.3f} coverage "
                 f"{m_net['coverage_identifiable']:.3f}; g1 fit {m_fit['balanced_accuracy_identifiable']:.3f} / "
