@@ -61,9 +61,8 @@ def _delays(frame_times_s: Sequence[float]) -> tuple[list[float], list[tuple[lis
     """Distinct delays (s, rounded to 1e-9 s) and, for each, the frame index pairs (i, j>i)."""
     t = [float(x) - float(frame_times_s[0]) for x in frame_times_s]
     n = len(t)
-    dts = [b - a for a, b in zip(t, t[1:])]
-    if max(dts) - min(dts) <= 1e-9 * max(dts):
-        dt = t[-1] / (n - 1)
+    dt = uniform_frame_interval_s(frame_times_s)
+    if dt is not None:
         return ([m * dt for m in range(1, n)],
                 [(list(range(0, n - m)), list(range(m, n))) for m in range(1, n)])
     groups: dict[float, tuple[list[int], list[int]]] = {}
