@@ -46,7 +46,10 @@ the models' own kind of training prior instead of the independent one (:data:`DA
 :func:`dataset_set`: :func:`classifier.dataset.make_dataset`, the same number of draws, one (static
 fraction, SNR) setting each): **d** the prior the shipped ``signature`` model was trained on, **e** that
 prior scaled to the system (:func:`classifier.own_system.prior_for_spec`); c − d is the training prior's
-gap, e − d what the physics-scaled prior recovers of it (:data:`PAIRS`). Their training draws include
+gap, e − d what the physics-scaled prior recovers of it (:data:`PAIRS`); **f** the same for the B-scan
+models: ``signature-bscan-field``'s features trained on torchdoct draws of that recipe's own prior
+(``"recipe"``: :func:`classifier.recipe.default_prior`), **f-int** its intensity columns (the features of
+``signature-bscan``): the honest-prior ceiling of the shipped B-scan models. Their training draws include
 the prior's static and decorrelated ones, which the classifier (three classes) leaves out like every
 non-identifiable pixel.
 
@@ -122,11 +125,14 @@ PARTS: dict[str, tuple[str, str, str, str]] = {
     "e-noise": ("signature", "torchdoct", "all", "scaled-noise"),
     "e-nostatic": ("signature", "torchdoct", "all", "scaled-nostatic"),
     "e-nostatic-noise": ("signature", "torchdoct", "all", "scaled-nostatic-noise"),
+    "f": ("signature-bscan-field", "torchdoct", "all", "recipe"),
+    "f-int": ("signature-bscan-field", "torchdoct", "intensity", "recipe"),
 }
 #: The shipped model each part is compared with (scored on the same test pixels).
 SHIPPED = {"a": "signature", "b": "signature-bscan-field", "b-int": "signature-bscan", "c": "signature",
            "a-shared": "signature", "b-shared": "signature-bscan-field", "d": "signature", "e": "signature",
-           "e-noise": "signature", "e-nostatic": "signature", "e-nostatic-noise": "signature"}
+           "e-noise": "signature", "e-nostatic": "signature", "e-nostatic-noise": "signature",
+           "f": "signature-bscan-field", "f-int": "signature-bscan"}
 PART_TEXT = {
     "a": "signature features (volume), trained on reference-simulator draws of the independent prior",
     "b": "signature-bscan-field features (B-scan, intensity + field group g1, phase-stable), reference-simulator "
@@ -145,13 +151,18 @@ PART_TEXT = {
     "e-nostatic": "part e without static scatterers in any training draw (e: a static fraction U[0, 0.8] in half "
                   "of them); the independent prior has none: what the static nuisance of training costs there",
     "e-nostatic-noise": "part e with both changes: noise in every draw and no static scatterers",
+    "f": "signature-bscan-field features (B-scan, intensity + field group g1), trained on torchdoct draws of the "
+         "shipped signature-bscan-field recipe's own training prior (classifier.recipe.default_prior: scaled to the "
+         "system, noise in every draw, a residual bulk phase step U[0, 0.05] rad; one nuisance replicate per draw)",
+    "f-int": "the intensity columns of f alone (signature-bscan's features; the residual bulk phase does not touch "
+             "them), same data",
 }
 #: Training priors of parts d and e, in the form of the models' own training data
 #: (:class:`classifier.dataset.Prior`, simulated by :func:`classifier.dataset.make_dataset`): ``"training"``
 #: the prior the shipped ``signature`` model was trained on, ``"scaled"`` the same scaled to the spec's
 #: system (:func:`classifier.own_system.prior_for_spec`). Each draw's pixels share one (static fraction, SNR)
 #: setting of the prior (one replicate), so a training draw holds as many pixels as in the other parts.
-DATASET_PRIORS = ("training", "scaled", "scaled-noise", "scaled-nostatic", "scaled-nostatic-noise")
+DATASET_PRIORS = ("training", "scaled", "scaled-noise", "scaled-nostatic", "scaled-nostatic-noise", "recipe")
 #: Fractions of the identifiable test pixels decided (accuracy-coverage curve).
 COVERAGES = (0.7, 0.8, 0.9, 1.0)
 POOLS = (1, 25)
@@ -325,7 +336,8 @@ def dataset_prior(name: str, spec, epsilon: float):
     ``signature`` recipe's prior: D in [1e-4, 15] µm²/s, one speed range [1e-3, 6] µm/s for random-ballistic
     motion and flow), ``"scaled"`` :func:`classifier.own_system.prior_for_spec` of it; ``"-noise"``: detection
     noise in every draw (``noise_probability = 1``), ``"-nostatic"``: no static scatterers
-    (``static_probability = 0``)."""
+    (``static_probability = 0``); ``"recipe"``: the prior the spec's shipped recipe trains on
+    (:func:`classifier.recipe.default_prior` of ``TrainConfig.for_spec(spec)``)."""
     import dataclasses
 
     from classifier.dataset import Prior
@@ -333,6 +345,11 @@ def dataset_prior(name: str, spec, epsilon: float):
 
     if name not in DATASET_PRIORS:
         raise ValueError(f"unknown dataset prior {name!r}; choose among {list(DATASET_PRIORS)}")
+    if name == "recipe":
+        from classifier.recipe import default_prior
+        from classifier.train import TrainConfig
+
+        return dataclasses.replace(default_prior(TrainConfig.for_spec(spec.name)), identifiability_epsilon=float(epsilon))
     prior = Prior(flow_polar_law="uniform-angle", identifiability_epsilon=float(epsilon))
     if name.startswith("scaled"):
         prior = prior_for_spec(spec, prior)[0]
@@ -591,7 +608,7 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
     datasets: dict[str, Any] = {}  # parts d and e: one make_dataset split per prior (not resumable within)
     for p in parts:
         spec_name, _, _, prior = PARTS[p]
-        if prior in DATASET_PRIORS and prior not in datasets:
+        if prior in DATASET_PRIORS and (spec_name, prior) not in datasets:
             ds = dataset_set(out, load_spec(spec_name), prior, train_seed, max(sizes), trials, epsilon,
                              simulate=False)
             if ds is None:
@@ -599,7 +616,7 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
                     return None
                 ds = dataset_set(out, load_spec(spec_name), prior, train_seed, max(sizes), trials, epsilon,
                                  progress=progress)
-            datasets[prior] = ds
+            datasets[(spec_name, prior)] = ds
     sim_s = time.perf_counter() - t0
 
     results: dict[str, Any] = {}
@@ -611,7 +628,7 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
         cols = part_columns(spec, which)
         test = load_set(FeatureCache(out / "cache", spec, "refsim", test_seed, trials, epsilon), test_draws)
         if prior in DATASET_PRIORS:
-            train_all = datasets[prior]
+            train_all = datasets[(spec_name, prior)]
         else:
             train_all = load_set(FeatureCache(out / "cache", spec, source, train_seed, trials, epsilon, prior),
                                  max(sizes))
@@ -644,7 +661,7 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
                         kept[(p, variant)] = (probs, ts, spec_name)
             res["pools"][str(pool)] = r
         if prior in DATASET_PRIORS:
-            ds = datasets[prior]
+            ds = datasets[(spec_name, prior)]
             res["train_prior_fields"] = dataset_prior(prior, spec, epsilon).to_dict()
             res["train_draw_status"] = ds.meta.get("draw_status_counts")
         fit_s[p] = time.perf_counter() - t1
@@ -669,7 +686,7 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
                             f"(wall, every core)": {
                                 "draws": int(max(sizes)), "cpu_seconds": float(ds.meta.get("elapsed_s", math.nan)),
                                 "cpu_seconds_per_draw": float(ds.meta.get("seconds_per_draw", math.nan))}
-                            for pr, ds in datasets.items()}}}}
+                            for (_, pr), ds in datasets.items()}}}}
 
 
 #: Decisions kept in the report for the training sets other than the largest (the learning curve).

@@ -285,6 +285,7 @@ def format_markdown(rep: dict[str, Any]) -> str:
     for p, res in rep["parts"].items():
         L += row(p, res, "1")
     L += ["", "Parts: " + "; ".join(f"**{p}** {res['text']}" for p, res in rep["parts"].items()) + ".", ""]
+    L += findings(rep) + [""]
     L += ["## Pool 25", "", "| part | training prior | model | median abs. log10 error | diffusion / ballistic / "
           "flow | 68 % coverage | 95 % coverage | median half-width 68 % |", "|---|---|---|---:|---|---:|---:|---:|"]
     for p, res in rep["parts"].items():
@@ -299,6 +300,30 @@ def format_markdown(rep: dict[str, Any]) -> str:
           f"Cost: simulation of what was not cached {rep['seconds']['simulation']:.0f} s; fits and scores (wall) "
           + ", ".join(f"{p} {v:.0f} s" for p, v in rep["seconds"]["fits"].items()) + ".", ""]
     return "\n".join(L)
+
+
+def _inside(v: float, band: tuple[float, float]) -> str:
+    return "inside" if band[0] <= v <= band[1] else ("above" if v > band[1] else "below")
+
+
+def findings(rep: dict[str, Any]) -> list[str]:
+    """What the pool-1 numbers say against the goals, per part (generated from the numbers)."""
+    t = rep["targets"]
+    L = ["## What it shows (pool 1)", ""]
+    for p, res in rep["parts"].items():
+        g, s = res["pools"]["1"]["quantile_gb"], res["pools"]["1"]["shipped"]
+        err, c68, c95 = g["median_abs_log10_error"], g["coverage_68"], g["coverage_95"]
+        kind = ("the matched prior: the best the features give when the test prior is known"
+                if res["train_prior"] in ("matched", "shared") else
+                "a prior a model for unknown samples can be trained on: intervals calibrated honestly on it")
+        L.append(f"- **{p}** ({kind}): median |log10 error| {err:.3f} ± {g.get('se', {}).get('median_abs_log10_error', 0):.3f} "
+                 f"({'meets' if err <= t['median_abs_log10_error'] else 'above'} the goal "
+                 f"{t['median_abs_log10_error']}); 68 % / 95 % intervals hold {c68:.3f} / {c95:.3f} "
+                 f"({_inside(c68, t['coverage_68'])} / {_inside(c95, t['coverage_95'])} "
+                 f"{t['coverage_68'][0]}-{t['coverage_68'][1]} / {t['coverage_95'][0]}-{t['coverage_95'][1]}); "
+                 f"shipped `{res['shipped']}` on the same pixels {s['median_abs_log10_error']:.3f}, "
+                 f"{s['coverage_68']:.3f} / {s['coverage_95']:.3f}.")
+    return L
 
 
 def _summary(rep: dict[str, Any]) -> str:
