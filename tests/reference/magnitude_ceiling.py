@@ -31,6 +31,12 @@ A matched prior (parts a, c: the independent prior itself, the same magnitude ra
 the regressor knows the ranges the test magnitudes are drawn from. Where even it stays above 0.06, the
 goal lies beyond what the features hold at this pool size.
 
+**Cost** (one core, the default parts and sizes; measured on the committed report's run): the
+simulation of what :mod:`ceiling`'s cache lacks (from scratch about 15 min: the reference-simulator test
+sets, part b's 1200 reference-simulator training draws, part c's torchdoct draws and one
+:func:`ceiling.dataset_set` split per prior), then 2-3 min of fits per part (about 20 min); a run
+interrupted during the simulation resumes from the cache.
+
 **Metrics** per pool (1 and 25, :data:`ceiling.POOLS`): median and mean ``|log10 error|`` of the median
 regressor, the shares of the test pixels inside the 68 % and 95 % intervals, the median interval
 half-width, the same per motion class; ± = bootstrap SE over test draws (:func:`evaluate_models._bootstrap`).
@@ -66,7 +72,7 @@ GBR_PARAMS = {"max_iter": 400, "learning_rate": 0.1, "max_leaf_nodes": 31, "min_
               "l2_regularization": 1.0, "early_stopping": True, "validation_fraction": 0.15, "n_iter_no_change": 20}
 #: Share of the training draws held out to conformalise the intervals (:func:`fit_quantiles`).
 CALIBRATION_SHARE = 0.25
-DEFAULT_PARTS = ("c", "d", "e")
+DEFAULT_PARTS = ("c", "d", "e", "e-noise", "e-nostatic-noise", "b", "b-int", "f", "f-int")
 DEFAULT_TRAIN_DRAWS = 1200
 _CLASSES = ("diffusion", "ballistic", "flow")
 
