@@ -39,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -120,29 +121,45 @@ def _groups(ds: Dataset) -> list[np.ndarray]:
 _TRUTH = ("y", "status", "magnitude", "density", "static_fraction", "snr_db", "draw", "group", "polar_angle_deg")
 
 
+#: Elements (rows × trials × features) of one block of :func:`pooled_samples` (about 32 MB in float64).
+_POOL_BLOCK = 4_000_000
+
+
 def pooled_samples(ds: Dataset, sizes_per_group: list[np.ndarray], rng: np.random.Generator) -> dict[str, np.ndarray]:
     """Means over random subsets of each group's trials (a group shares every parameter).
 
     ``sizes_per_group[g]`` lists the subset sizes wanted from group ``g`` (in :func:`_groups` order;
     capped at its number of trials). Returns inputs ``[M, F+1]`` (features + pool_pixels) and the
     per-sample truth arrays.
+
+    Each subset is the first ``n`` trials of a random permutation of its group (``argsort`` of uniforms),
+    its mean the float64 running sum of those trials divided by ``n``. The uniforms of every group are
+    drawn at once, in group order (the same numbers as drawing them group by group), and groups of equal
+    size are permuted and summed together in blocks of :data:`_POOL_BLOCK` elements.
     """
-    xs, cols = [], {k: [] for k in _TRUTH}
-    for idx, sizes in zip(_groups(ds), sizes_per_group):
-        sizes = np.asarray(sizes, dtype=np.int64)
-        if sizes.size == 0:
-            continue
-        t = idx.size
-        if sizes.max() > t:
-            sizes = np.minimum(sizes, t)
-        perm = np.argsort(rng.random((sizes.size, t)), axis=1)
-        cs = np.cumsum(ds.x[idx][perm].astype(np.float64), axis=1)
-        mean = cs[np.arange(sizes.size), sizes - 1] / sizes[:, None]
-        xs.append(np.concatenate([mean, sizes[:, None].astype(np.float64)], axis=1))
-        for k in cols:
-            cols[k].append(np.repeat(getattr(ds, k)[idx[0]], sizes.size))
-    out = {k: np.concatenate(v) for k, v in cols.items()}
-    out["x"] = np.concatenate(xs).astype(np.float32)
+    groups = _groups(ds)[:len(sizes_per_group)]
+    sizes = [np.minimum(np.asarray(s, dtype=np.int64), g.size) for g, s in zip(groups, sizes_per_group)]
+    n = np.array([s.size for s in sizes], dtype=np.int64)
+    t = np.array([g.size for g in groups], dtype=np.int64)
+    u = rng.random(int(np.sum(n * t)))
+    u_start = np.concatenate([[0], np.cumsum(n * t)])
+    row_start = np.concatenate([[0], np.cumsum(n)])
+    f = ds.x.shape[1]
+    mean = np.empty((int(row_start[-1]), f))
+    for tt in np.unique(t[n > 0]):
+        ks = np.flatnonzero((t == tt) & (n > 0))
+        blocks = np.array_split(ks, min(ks.size, max(1, int(math.ceil(float(n[ks].sum()) * tt * f / _POOL_BLOCK)))))
+        for block in blocks:
+            perm = np.argsort(np.concatenate([u[u_start[k]:u_start[k + 1]] for k in block]).reshape(-1, tt), axis=1)
+            trials = np.concatenate([np.broadcast_to(groups[k], (n[k], tt)) for k in block])
+            cs = np.cumsum(ds.x[np.take_along_axis(trials, perm, axis=1)].astype(np.float64), axis=1)
+            sz = np.concatenate([sizes[k] for k in block])
+            rows = np.concatenate([np.arange(row_start[k], row_start[k + 1]) for k in block])
+            mean[rows] = cs[np.arange(sz.size), sz - 1] / sz[:, None]
+    all_sizes = np.concatenate(sizes) if sizes else np.zeros(0, np.int64)
+    first = np.repeat(np.array([g[0] for g in groups], dtype=np.int64), n)
+    out = {k: getattr(ds, k)[first] for k in _TRUTH}
+    out["x"] = np.concatenate([mean, all_sizes[:, None].astype(np.float64)], axis=1).astype(np.float32)
     return out
 
 
@@ -255,30 +272,40 @@ def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, p
         from tqdm.auto import tqdm
 
         bar = tqdm(total=cfg.max_epochs, unit="epoch", desc="train")
-    for epoch in range(1, cfg.max_epochs + 1):
-        if epoch > 1:
-            samples = _epoch_samples(train_ds, cfg, rng)
-        x = torch.from_numpy(samples["x"])
-        t = torch.from_numpy(class_targets(samples))
-        mt = _magnitude_targets(samples)
-        order = torch.from_numpy(rng.permutation(len(t)))
-        model.train()
-        for b in range(0, len(order), cfg.batch_size):
-            sel = order[b:b + cfg.batch_size]
-            loss = loss_of(x[sel], t[sel], tuple(a[sel] for a in mt))
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-        model.eval()
-        with torch.no_grad():  # early stopping on the classification loss (the magnitude head must not stop it)
-            vloss = float(torch.nn.functional.cross_entropy(model.logits(xv), tv))
-        if vloss < best[0] - 1e-5:
-            best = (vloss, {k: v.clone() for k, v in model.state_dict().items()}, epoch)
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(val_loss=f"{vloss:.4f}", best=best[2])
-        if epoch - best[2] >= cfg.patience:
-            break
+    # The next epoch's samples are drawn in a second thread while this epoch trains (numpy releases the GIL):
+    # the generator is used in the same order as drawing them in turn (this epoch's samples, its batch
+    # order, the next epoch's samples, ...), so the model is bit-identical; an early stop leaves one unused.
+    pool = ThreadPoolExecutor(max_workers=1)
+    upcoming = None
+    try:
+        for epoch in range(1, cfg.max_epochs + 1):
+            if epoch > 1:
+                samples = upcoming.result()
+            x = torch.from_numpy(samples["x"])
+            t = torch.from_numpy(class_targets(samples))
+            mt = _magnitude_targets(samples)
+            order = torch.from_numpy(rng.permutation(len(t)))
+            if epoch < cfg.max_epochs:
+                upcoming = pool.submit(_epoch_samples, train_ds, cfg, rng)
+            model.train()
+            for b in range(0, len(order), cfg.batch_size):
+                sel = order[b:b + cfg.batch_size]
+                loss = loss_of(x[sel], t[sel], tuple(a[sel] for a in mt))
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+            model.eval()
+            with torch.no_grad():  # early stopping on the classification loss (the magnitude head must not stop it)
+                vloss = float(torch.nn.functional.cross_entropy(model.logits(xv), tv))
+            if vloss < best[0] - 1e-5:
+                best = (vloss, {k: v.clone() for k, v in model.state_dict().items()}, epoch)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(val_loss=f"{vloss:.4f}", best=best[2])
+            if epoch - best[2] >= cfg.patience:
+                break
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
     if bar is not None:
         bar.close()
     model.load_state_dict(best[1])

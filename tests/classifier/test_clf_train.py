@@ -116,6 +116,38 @@ def test_pooled_samples_are_subset_means_of_one_group():
     assert capped["x"][0, -1] == 10
 
 
+def test_pooled_samples_do_not_depend_on_how_the_groups_are_blocked(monkeypatch):
+    """All groups at once give the numbers of drawing them one group at a time with the same generator, bit
+    for bit, whatever the block size; groups of unequal size (dropped trials) included."""
+    import classifier.train as tr
+
+    rng = np.random.default_rng(3)
+    counts = np.array([10, 7, 10, 4, 10, 9])
+    group = np.repeat(np.arange(counts.size), counts)
+    n = int(counts.sum())
+    ds = Dataset(x=rng.normal(size=(n, 3)).astype(np.float32), y=group % 3, draw=group, group=group,
+                 status=np.zeros(n, np.int64), magnitude=np.ones(n), density=np.ones(n),
+                 static_fraction=np.zeros(n), snr_db=np.full(n, np.nan))
+    sizes = [np.array([3, 10, 2]), np.array([], np.int64), np.array([5]), np.array([9, 1]), np.array([2] * 5),
+             np.array([8])]
+    one_by_one, g1 = [], np.random.default_rng(7)
+    for k in range(counts.size):
+        keep = group == k
+        sub = Dataset(**{key: v[keep] for key, v in ds.arrays().items()})
+        if sizes[k].size:
+            one_by_one.append(pooled_samples(sub, [sizes[k]], g1)["x"])
+    expected = np.concatenate(one_by_one)
+    for block in (tr._POOL_BLOCK, 40, 1):
+        monkeypatch.setattr(tr, "_POOL_BLOCK", block)
+        g2 = np.random.default_rng(7)
+        out = pooled_samples(ds, sizes, g2)
+        assert np.array_equal(out["x"], expected)
+        assert out["group"].tolist() == [k for k in range(counts.size) for _ in range(sizes[k].size)]
+    g2 = np.random.default_rng(7)
+    pooled_samples(ds, sizes, g2)
+    assert g2.random() == g1.random()  # the generator ends where drawing group by group left it
+
+
 def test_train_config_validation():
     with pytest.raises(ValueError, match="max_pool_pixels"):
         TrainConfig(max_pool_pixels=100, trials_per_draw=64)
