@@ -13,7 +13,7 @@ import pytest
 from _clf_maps import feature_channels, maps_meta, save_maps
 from classifier.export import build_metadata, export_onnx
 from classifier.features import load_spec
-from classifier.train import SPEC_RECIPES, TrainConfig, train
+from classifier.train import SCALED_PRIOR_SPECS, SPEC_RECIPES, TrainConfig, default_prior, train
 
 NAME = "two-wavelength-signature"
 
@@ -65,11 +65,11 @@ def test_spec_is_the_signature_at_the_two_wavelength_configurations():
     for key in ("n_frames", "frame_interval_s", "ocds_delay_range_s", "ocds_scale", "ocds_estimator",
                 "refractive_index"):
         assert getattr(spec, key) == getattr(sig, key) == getattr(two, key), key
-    # the shipped recipe is the signature one (wider network, random-bulk-phase test split), with the noise
-    # prior the shipped two-wavelength model was trained on (noise in half the draws)
-    assert SPEC_RECIPES[NAME] == {**SPEC_RECIPES["signature"], "noise_probability": 0.5}
-    assert TrainConfig.for_spec(NAME) == dataclasses.replace(TrainConfig.for_spec("signature"), spec=NAME,
-                                                             noise_probability=0.5)
+    # the shipped recipe is the signature one (wider network, random-bulk-phase test split, noise in every
+    # draw), its prior scaled to the two-band system
+    assert SPEC_RECIPES[NAME] == SPEC_RECIPES["signature"]
+    assert TrainConfig.for_spec(NAME) == dataclasses.replace(TrainConfig.for_spec("signature"), spec=NAME)
+    assert NAME in SCALED_PRIOR_SPECS and default_prior(TrainConfig.for_spec(NAME)).noise_probability == 1.0
     assert TrainConfig.for_spec(NAME).bulk_phase_test and TrainConfig.for_spec(NAME).draws_train == 1920
 
 
