@@ -941,13 +941,19 @@ def _rounded(obj: Any, digits: int = 5) -> Any:
 
 
 def write_report(rep: dict[str, Any], out: Path, force: bool = False) -> list[Path]:
-    paths = [out / f"independent-ceiling{s}" for s in (".json", ".md")]
+    return write_files(rep, out, "independent-ceiling", format_markdown(rep), force)
+
+
+def write_files(rep: dict[str, Any], out: Path, stem: str, markdown: str, force: bool = False) -> list[Path]:
+    """``<out>/<stem>.json`` (``rep``, rounded) and ``.md`` (``markdown``), atomically; never over existing
+    files without ``force``."""
+    paths = [out / f"{stem}{s}" for s in (".json", ".md")]
     if not force:
         for p in paths:
             if p.exists():
                 raise FileExistsError(f"{p} exists; pass --force to overwrite it, or choose another --out")
     text_json = json.dumps(_rounded(json.loads(json.dumps(rep, default=em._json_default))), separators=(",", ":"))
-    for p, text in zip(paths, (text_json, format_markdown(rep))):
+    for p, text in zip(paths, (text_json, markdown)):
         tmp = p.with_name(f".{p.name}.tmp")
         tmp.write_text(text + "\n", encoding="utf-8")
         os.replace(tmp, p)

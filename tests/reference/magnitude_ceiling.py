@@ -45,9 +45,7 @@ half-width, the same per motion class; ± = bootstrap SE over test draws (:func:
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -344,17 +342,7 @@ def _summary(rep: dict[str, Any]) -> str:
 
 
 def write_report(rep: dict[str, Any], out: Path, force: bool = False) -> list[Path]:
-    paths = [out / f"independent-magnitude-ceiling{s}" for s in (".json", ".md")]
-    if not force:
-        for p in paths:
-            if p.exists():
-                raise FileExistsError(f"{p} exists; pass --force to overwrite it, or choose another --out")
-    text_json = json.dumps(ce._rounded(json.loads(json.dumps(rep, default=em._json_default))), separators=(",", ":"))
-    for p, text in zip(paths, (text_json, format_markdown(rep))):
-        tmp = p.with_name(f".{p.name}.tmp")
-        tmp.write_text(text + "\n", encoding="utf-8")
-        os.replace(tmp, p)
-    return paths
+    return ce.write_files(rep, out, "independent-magnitude-ceiling", format_markdown(rep), force)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
