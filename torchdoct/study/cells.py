@@ -133,8 +133,16 @@ def _worker_init(parent_pid: int | None = None) -> None:
 
 
 def _stop_workers(pool) -> None:
-    """Stop a process pool's workers now (on an error or an interruption), not after their cells."""
+    """Stop a process pool's workers now (on an error or an interruption), not after their cells.
+
+    A worker stopped while it sends a result leaves half a message in the result pipe, and the pool's
+    manager thread waits for the rest forever; the interpreter joins that thread at exit, so the command
+    would never end. Once the workers are gone, this process's own end of the pipe is closed too: the
+    manager thread reads the end of the file, marks the pool broken and ends.
+    """
     procs = list((getattr(pool, "_processes", None) or {}).values())
+    results = getattr(pool, "_result_queue", None)
+    manager = getattr(pool, "_executor_manager_thread", None)
     pool.shutdown(wait=False, cancel_futures=True)
     for proc in procs:
         if proc.is_alive():
@@ -143,6 +151,12 @@ def _stop_workers(pool) -> None:
         proc.join(timeout=10)
         if proc.is_alive():  # pragma: no cover - a worker that ignores SIGTERM
             proc.kill()
+            proc.join(timeout=10)
+    writer = getattr(results, "_writer", None)
+    if writer is not None:
+        writer.close()
+    if manager is not None:
+        manager.join(timeout=30)
 
 
 def run_cells(task: Callable[[Any], Any], payloads: Sequence[Any], *, done: Callable[[int, Any], None],
@@ -192,9 +206,7 @@ def _run_in_processes(task, payloads, batches, workers, done) -> None:
             for fut in done_first(futures):
                 for i, r in zip(futures[fut], fut.result()):
                     done(i, r)
-        except BaseException:
-            for f in futures:
-                f.cancel()
+        except BaseException:  # the pool's manager thread cancels the futures not yet started
             _stop_workers(pool)
             raise
 
