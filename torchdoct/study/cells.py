@@ -200,9 +200,8 @@ def _run_in_processes(task, payloads, batches, workers, done) -> None:
     ctx = multiprocessing.get_context("spawn")  # no fork of a process that holds torch threads
     with ProcessPoolExecutor(max_workers=min(workers, len(batches)), mp_context=ctx,
                              initializer=_worker_init, initargs=(os.getpid(),)) as pool:
-        futures: dict = {}
         try:
-            futures.update({pool.submit(_run_batch, task, [payloads[i] for i in b]): b for b in batches})
+            futures = {pool.submit(_run_batch, task, [payloads[i] for i in b]): b for b in batches}
             for fut in done_first(futures):
                 for i, r in zip(futures[fut], fut.result()):
                     done(i, r)
