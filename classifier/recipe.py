@@ -141,14 +141,14 @@ class TrainConfig:
 #: decorrelation (classifier.model; +0.022 ± 0.005 per pixel, paired, classifier/README.md), after
 #: which 120 epochs stop at 70 with the same best epoch 55 as the cap of 60 (identical model). With
 #: that input the learning curve no longer flattened at 960 training draws (+0.016 ± 0.004 per pixel
-#: from 960 to 1920, paired): the recipe takes 1920 (classifier/data/signature-learning-curve.md).
+#: from 960 to 1920, paired): the recipe takes 1920 (research/results/signature-learning-curve.md).
 #:
 #: Detection noise is in every training draw (``noise_probability = 1``, SNR U[10, 40] dB relative to the
 #: mean intensity; the shipped models before it: in half of them). Every measurement holds noise, and at
 #: 40 dB it is nearly absent, so the noise-free draws taught only a limit no data reach: a model that saw
 #: them reads the tiny decorrelation of slow motion at the first lags exactly, which any noise floor
 #: (``1 − ρ ≈ 2/SNR`` at every lag) hides. Measured on the independent reference simulator
-#: (classifier/data/independent-prior-ablation.md, gradient boosting + contrasts on 1200 draws, pool 1 at
+#: (research/results/independent-prior-ablation.md, gradient boosting + contrasts on 1200 draws, pool 1 at
 #: coverage 0.8): 0.839 ± 0.008 against 0.827 ± 0.010 with noise in half the draws; the ``signature``
 #: network 0.832 ± 0.007 at coverage 0.807 against 0.826 ± 0.007 at 0.793, pooled over 25 0.990 at 0.982
 #: against 0.982 at 0.981, and on its own shifted-prior test split 0.792 against 0.762 at coverage 0.66.
@@ -185,7 +185,7 @@ _SHIPPED_DEFAULT_RECIPE = ("single-acquisition", "two-wavelength", "single-acqui
 #: the phase need). Its cost is mostly the network's fit, on one thread so that the model does not depend
 #: on the cores: 1920 draws took 7-12 min for the shipped models; a --like run on a 1310-nm system took
 #: 5 min with 960 draws (pool 5 on its rendered phantom 0.919 at coverage 0.938), and the learning curve
-#: gives 960 draws −0.016 ± 0.004 per pixel against 1920 (classifier/data/signature-learning-curve.md).
+#: gives 960 draws −0.016 ± 0.004 per pixel against 1920 (research/results/signature-learning-curve.md).
 OWN_SIGNATURE_RECIPE: dict[str, Any] = {**SPEC_RECIPES["signature"], "bulk_phase_test": False,
                                         "static_edge_probability": 0.25}
 
@@ -209,16 +209,16 @@ def recipe_for(spec: FeatureSpec) -> dict[str, Any]:
 #: own range, speeds capped at what the simulator holds; for ``signature`` D 6.19e-6-0.1 µm²/s, v 0.0011-6.63
 #: µm/s random-ballistic and 0.0287-6.06 µm/s flow, against 1e-4-15 and 1e-3-6 for both). Of the shipped
 #: prior's draws 46 % are static or decorrelated (the scaled one's 27 %), and flow below 0.09 µm/s is never
-#: identifiable. Measured on the independent reference simulator (classifier/data/independent-ceiling.md,
+#: identifiable. Measured on the independent reference simulator (research/results/independent-ceiling.md,
 #: parts d and e): gradient boosting on 1200 draws of the scaled prior +0.023 ± 0.007 per pixel (paired)
 #: against the shipped one; the ``signature`` network retrained on it 0.826 ± 0.007 at coverage 0.793
 #: against 0.803 ± 0.008 at 0.776 (flow 0.76 / 0.60 / 0.80 by polar band against 0.62 / 0.40 / 0.66;
-#: classifier/data/signature-independent.md). The B-scan models take it too (their PSF's y width kept:
+#: research/results/signature-independent.md). The B-scan models take it too (their PSF's y width kept:
 #: v up to 7.5 µm/s random-ballistic and 33.1 µm/s flow): ``signature-bscan`` on independent data 0.759 at
 #: 0.766 against 0.736 at 0.787, flow 0.80 / 0.45 / 0.40 against 0.64 / 0.29 / 0.23 (with noise in every
-#: draw; classifier/data/signature-bscan-independent.md). So does ``two-wavelength-signature`` (flow up to 82.5
+#: draw; research/results/signature-bscan-independent.md). So does ``two-wavelength-signature`` (flow up to 82.5
 #: µm/s at its two small configurations), retrained with noise in every draw: 0.761 at 0.758 against 0.734 at
-#: 0.767, flow 0.61 / 0.62 / 0.62 against 0.38 / 0.41 / 0.39 (classifier/data/two-wavelength-signature-independent.md).
+#: 0.767, flow 0.61 / 0.62 / 0.62 against 0.38 / 0.41 / 0.39 (research/results/two-wavelength-signature-independent.md).
 SCALED_PRIOR_SPECS = ("signature", "signature-bscan", "signature-bscan-field", "two-wavelength-signature")
 
 

@@ -16,7 +16,7 @@ configuration; "decorrelated": each frame is a new speckle phase pattern and onl
 transit term ``j/N_eff`` of physics.md §5.4 is left, the same in kind for diffusion and
 random-ballistic motion), with ``ε = 0.05``. The same holds for signature models: a transit term
 that still decays after the field has decorrelated was measured not to tell diffusion from
-random-ballistic motion per pixel (``python -m classifier.research.ablation --indeterminate``).
+random-ballistic motion per pixel (``python -m research.ablation --indeterminate``).
 
 Model: the network has an explicit class ``indeterminate`` trained on that ground truth. The rule
 (stored in the model's metadata, applied by ``doct-classify`` and by the report) is

@@ -188,7 +188,7 @@ def test_maps_signature_then_classify_uses_the_signature_model(tmp_path, capsys)
 
 
 def test_ablation_subsets_are_candidates_and_name_the_shipped_content():
-    from classifier.research.ablation import SUBSETS, candidate_spec
+    from research.ablation import SUBSETS, candidate_spec
     from torchdoct.sim.signature import DEFAULT_FEATURES, available_features
 
     cand = set(candidate_spec().metrics)
@@ -201,13 +201,13 @@ def test_ablation_subsets_are_candidates_and_name_the_shipped_content():
 
 @pytest.mark.slow
 def test_indeterminate_measurement_partitions_the_test_split(tmp_path):
-    """``python -m classifier.research.ablation --indeterminate``: the three regimes partition the test pixels that
+    """``python -m research.ablation --indeterminate``: the three regimes partition the test pixels that
     are identifiable or decorrelated, and every score is a probability."""
-    from classifier.research.ablation import run_indeterminate
+    from research.ablation import run_indeterminate
     from classifier.dataset import Prior, make_dataset
 
     res = run_indeterminate(draws_train=12, draws_test=6, pixels=3000, cache_dir=tmp_path, log=None)
-    te = make_dataset(__import__("classifier.research.ablation", fromlist=["candidate_spec"]).candidate_spec(), Prior(),
+    te = make_dataset(__import__("research.ablation", fromlist=["candidate_spec"]).candidate_spec(), Prior(),
                       split="test", draws=6, cache_dir=tmp_path)
     counts = res["test_samples"]
     assert counts["identifiable"] == int((te.status == 0).sum())

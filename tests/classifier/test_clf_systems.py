@@ -1,12 +1,12 @@
 """Your own system, end to end as a user runs it (slow): a rendered phantom of another OCT system →
 ``torchdoct maps`` → ``doct-train --like --quick`` → ``doct-classify --model DIR --pool 5``, scored against the
-rendered ground truth (``classifier.research.systems``).
+rendered ground truth (``research.systems``).
 
 The three systems of issue "your own system": ``system-1310nm`` (1310 nm, lateral 10 µm, axial 8 µm),
 ``system-fast`` (64 frames 12.8 ms apart), ``system-tissue-volume`` (a volume in tissue, n = 1.38). The
 ``--quick`` models (90 training draws, about a minute) are rough; the full ``--like`` models and their
 accuracy are in the README. Floors: the quick model's pool-5 balanced accuracy and coverage on the
-shipped rendering (seed 2026), measured with ``python -m classifier.research.systems --out DIR --quick
+shipped rendering (seed 2026), measured with ``python -m research.systems --out DIR --quick
 --seeds 2026``, minus 0.05 (the spread of a quick model between training seeds is of that order; the
 rendering itself is fixed by its seed).
 """
@@ -27,7 +27,7 @@ FLOORS = {"system-1310nm": (0.74, 0.80), "system-fast": (0.78, 0.87), "system-ti
 
 @pytest.mark.parametrize("system", list(FLOORS))
 def test_like_quick_model_classifies_its_system(system, tmp_path):
-    from classifier.research.systems import evaluate
+    from research.systems import evaluate
 
     r = evaluate(tmp_path, system, [2026], quick=True)
     s = r["scores"]["5"][0]["overall"]

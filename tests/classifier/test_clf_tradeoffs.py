@@ -13,7 +13,7 @@ from classifier.dataset import STATUS, Prior, make_dataset
 from classifier.features import load_spec
 from classifier.report import bootstrap_se, evaluate
 from classifier.rule import make_rule
-from classifier.research.tradeoffs import (DEFAULTS, TradeoffPlan, _bootstrap_weights, _Evaluator, _fit, _pareto, derive_dataset,
+from classifier.bench.tradeoffs import (DEFAULTS, TradeoffPlan, _bootstrap_weights, _Evaluator, _fit, _pareto, derive_dataset,
                                   format_table, one_configuration_spec, plot_tradeoffs, prefix_dataset, run_tradeoffs)
 from classifier.train import CLASS_NAMES, TrainConfig, train
 

@@ -90,7 +90,7 @@ def test_translated_maps_match_the_directly_rendered_ones(tmp_path):
     (~6 pixels each), so a region median's SE is ≈ 1.25/√27 ≈ 0.24 SD: the goal 1/3 + one SE of the
     median of three; a coverage over the ~1200 translated pixels of all regions (~200 grains) has SE
     ≈ 0.033: 0.68 ± 3 SE."""
-    from classifier.research.translation import chain, score, summarize
+    from research.translation import chain, score, summarize
 
     s = summarize(score(chain(tmp_path, 2026, 128)))
     for motion in ("diffusion", "ballistic", "flow"):

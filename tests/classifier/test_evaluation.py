@@ -153,8 +153,8 @@ def _private_classifier_imports(path: Path) -> list[str]:
 
 
 def test_research_and_reference_code_use_public_names_of_classifier():
-    """classifier/research/ and tests/reference/ import no private name of a classifier module."""
-    files = sorted((ROOT / "classifier" / "research").rglob("*.py")) + sorted((ROOT / "tests" / "reference").glob("*.py"))
+    """research/ and tests/reference/ import no private name of a classifier module."""
+    files = sorted((ROOT / "research").rglob("*.py")) + sorted((ROOT / "tests" / "reference").glob("*.py"))
     assert files
     bad = [hit for f in files for hit in _private_classifier_imports(f)]
     assert not bad, bad

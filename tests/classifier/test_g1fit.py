@@ -1,4 +1,4 @@
-"""The per-pixel least-squares g1 fit (classifier.research.g1fit): closed-form curves, static term, batching,
+"""The per-pixel least-squares g1 fit (research.g1fit): closed-form curves, static term, batching,
 undefined input, the CLI's refusals. The full comparison with the network is not a test."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from classifier.research import g1fit
-from classifier.research.g1fit import DEFAULT_LAGS, GRID_PER_DECADE, REASONS, fit_g1
+from research import g1fit
+from research.g1fit import DEFAULT_LAGS, GRID_PER_DECADE, REASONS, fit_g1
 from torchdoct.sim import theory
 
 DT = 0.2048
@@ -141,7 +141,7 @@ def test_bad_input_is_refused():
 
 def test_superset_spec_columns_and_complex_curve():
     from classifier.features import load_spec
-    from classifier.research.g1fit import complex_g1, g1_columns, superset_spec
+    from research.g1fit import complex_g1, g1_columns, superset_spec
 
     spec = load_spec("signature")
     sup = superset_spec(spec, (1, 2, 5))
@@ -175,7 +175,7 @@ def test_cli_refuses_existing_output(tmp_path, capsys):
 
 
 def test_bootstrap_fast_path_matches_the_report_definitions():
-    from classifier.research.g1fit import _abs_log10_error, _headline, _magnitude_errors
+    from research.g1fit import _abs_log10_error, _headline, _magnitude_errors
     from classifier.report import evaluate
     from classifier.rule import make_rule
     from classifier.train import CLASS_NAMES

@@ -1,4 +1,4 @@
-"""Learning curve of the signature classifier (``python -m classifier.research.learning_curve``), on tiny sizes.
+"""Learning curve of the signature classifier (``python -m research.learning_curve``), on tiny sizes.
 
 The tests that run the study (simulation of 12 draws, two trainings: about 15-20 s on 2 busy cores) are
 ``slow``; the prefix property, the refusals and the option errors are checked fast on their own.
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from classifier.dataset import make_dataset
-from classifier.research.learning_curve import draw_prefix, main
+from research.learning_curve import draw_prefix, main
 
 TINY = ["--sizes", "3,6", "--draws-test", "3", "--draws-validation", "3", "--max-epochs", "3", "--gb-pixels", "500"]
 

@@ -3,7 +3,7 @@ prior the models were not trained on.
 
 Run (from the repository root)::
 
-    python -m tests.reference.evaluate_models --model signature [--draws 300] [--trials 32] [--seed 0] [--out DIR]
+    python -m tests.reference.evaluate_models --model signature [--draws 300] [--trials 32] [--seed 0] --out DIR
 
 ``--model``: a shipped model name, an ``.onnx`` file, or a ``doct-train --out`` directory holding one.
 Writes ``<out>/<model>-independent.json`` and ``.md`` (never over existing files without ``--force``)
@@ -698,7 +698,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--trials", type=int, default=DEFAULT_TRIALS,
                     help=f"independent pixels per draw (default {DEFAULT_TRIALS})")
     ap.add_argument("--seed", type=int, default=0, help="seed of the draws, the simulation and the pools (default 0)")
-    ap.add_argument("--out", default=".", help="output directory (default: the current directory)")
+    ap.add_argument("--out", required=True, help="output directory")
     ap.add_argument("--boot", type=int, default=N_BOOT, help=f"bootstrap resamples over draws (default {N_BOOT})")
     ap.add_argument("--force", action="store_true", help="overwrite existing report files")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")

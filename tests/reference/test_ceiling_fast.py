@@ -1,7 +1,7 @@
 """Fast checks of the ceiling measurement (:mod:`ceiling`): disjoint training and test draws, the cache
 and the classifier reproducible from the seed, the metrics exact on known decisions, the coverage
 threshold deciding the asked share. A few draws of 8 trials; the numbers of the report come from
-``python -m tests.reference.ceiling`` (classifier/data/independent-ceiling.md)."""
+``python -m tests.reference.ceiling`` (research/results/independent-ceiling.md)."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 known conditional distribution (median error and interval shares of a Gaussian, within the Monte Carlo
 error), the metrics are exact on known intervals, and a small run reads the shared feature cache and
 writes its report. The report's numbers come from ``python -m tests.reference.magnitude_ceiling``
-(classifier/data/independent-magnitude-ceiling.md)."""
+(research/results/independent-magnitude-ceiling.md)."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 project's modules (at import time, and with the imports inside functions only through the documented
 upward ones), one owner of the maps format and of the channel-optics match, no module loaded by its file
 path, torch-free imports where the torch-free paths need them, long modules say why they are whole, and
-the research modules (classifier/research) off the product path, using public names only."""
+the research modules (research/, outside the packages) off the product path, using public names only."""
 
 from __future__ import annotations
 
@@ -16,11 +16,13 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 PACKAGES = ("torchdoct", "classifier")
+#: The research scripts: a top-level folder outside the installed packages.
+RESEARCH = "research"
 
 
 def _modules() -> dict[str, Path]:
     out = {}
-    for pkg in PACKAGES:
+    for pkg in (*PACKAGES, RESEARCH):
         for path in sorted((REPO / pkg).rglob("*.py")):
             parts = list(path.relative_to(REPO).with_suffix("").parts)
             if parts[-1] == "__init__":
@@ -109,14 +111,14 @@ LOADS_BY_PATH = {"torchdoct.bench.cog": "the user's clone of the external COG si
 
 def test_torchdoct_never_imports_classifier():
     """At any level (functions included): the commands reach the classifier through entry points
-    (torchdoct/extensions.py), and classifier/research/tradeoffs/plan.py reads no command-line parser."""
+    (torchdoct/extensions.py), and classifier/bench/tradeoffs/plan.py reads no command-line parser."""
     for name, path in MODULES.items():
         tree = ast.parse(path.read_text(encoding="utf-8"))
         mods = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
         mods |= {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and not n.level}
         if name.startswith("torchdoct"):
             assert not any(m == "classifier" or m.startswith("classifier.") for m in mods), name
-    plan = ast.parse((REPO / "classifier/research/tradeoffs/plan.py").read_text(encoding="utf-8"))
+    plan = ast.parse((REPO / "classifier/bench/tradeoffs/plan.py").read_text(encoding="utf-8"))
     assert not any(isinstance(n, ast.ImportFrom) and (n.module or "").endswith("cli") for n in ast.walk(plan))
 
 
@@ -127,8 +129,8 @@ def test_the_classifier_fills_the_command_table():
 
     bench = {e.name: e.value for e in entry_points(group=extensions.BENCH)}
     parts = {e.name: e.value for e in entry_points(group=extensions.TRADEOFFS)}
-    assert bench.get("classify") == "classifier.bench:bench_command"
-    assert parts.get("classifier") == "classifier.research.tradeoffs.part"
+    assert bench.get("classify") == "classifier.bench.classify:bench_command"
+    assert parts.get("classifier") == "classifier.bench.tradeoffs.part"
     part = extensions.load(extensions.TRADEOFFS, "classifier", command="test")
     assert all(callable(getattr(part, f)) for f in ("compute", "format_table", "plot"))
     with pytest.raises(ValueError, match="entry-point group"):
@@ -245,15 +247,12 @@ def test_imports_inside_functions_point_up_only_where_documented():
                    for b in targets)
 
 
-RESEARCH = "classifier.research"
-
-
 def test_research_modules_stay_off_the_product_path():
-    """No module outside classifier/research imports it (the benchmark reaches the trade-offs part through
+    """No module outside research imports it (the benchmark reaches the trade-offs part through
     the entry-point table), and the research modules use only public names of classifier and torchdoct."""
     research = {name for name in MODULES if name == RESEARCH or name.startswith(RESEARCH + ".")}
-    assert {"classifier.research.ablation", "classifier.research.g1fit", "classifier.research.learning_curve",
-            "classifier.research.tradeoffs"} <= research
+    assert {"research.ablation", "research.g1fit", "research.learning_curve", "research.systems",
+            "research.translation"} <= research
     for name, path in MODULES.items():
         if name not in research:
             bad = sorted(m for m in _all_imports(name, path) if m in research)
@@ -276,9 +275,37 @@ def test_research_modules_stay_off_the_product_path():
             assert not private, f"{name} imports private names {private} from {mod}"
 
 
+def test_package_data_holds_only_the_shipped_models_and_their_reports():
+    """classifier/data/ ships what the commands read: each model's ONNX file with its training report
+    (.json, .md, .png of the same name); research reports live in research/results/."""
+    data = REPO / "classifier" / "data"
+    models = {p.stem for p in data.glob("*.onnx")}
+    assert models
+    strays = sorted(p.name for p in data.iterdir() if p.stem not in models or p.suffix not in (".onnx", ".json", ".md", ".png"))
+    assert not strays, f"not a shipped model or its report: {strays}"
+    assert not (REPO / "classifier" / "research").exists()
+
+
+def test_research_and_reference_scripts_require_their_output_folder():
+    """The research scripts and tests/reference/* write only where they are told: every ``--out`` is
+    required (no default inside the package), so no run writes package data."""
+    scripts = sorted((REPO / RESEARCH).glob("*.py")) + sorted((REPO / "tests" / "reference").glob("*.py"))
+    outs = []
+    for path in scripts:
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "add_argument"
+                    and node.args and isinstance(node.args[0], ast.Constant) and node.args[0].value == "--out"):
+                kw = {k.arg: k.value for k in node.keywords}
+                outs.append(path.name)
+                assert "default" not in kw, f"{path.name}: --out has a default"
+                assert isinstance(kw.get("required"), ast.Constant) and kw["required"].value is True, \
+                    f"{path.name}: --out must be required"
+    assert {"ablation.py", "g1fit.py", "learning_curve.py", "ceiling.py", "evaluate_models.py"} <= set(outs)
+
+
 def test_the_commands_load_no_research_module():
     out = _run("import sys\nimport classifier.cli, classifier.bench, classifier.train, classifier.export\n"
                "import torchdoct.cli, torchdoct.bench, torchdoct.cli.data, torchdoct.cli.render, torchdoct.cli.study\n"
-               "bad = sorted(m for m in sys.modules if m.startswith('classifier.research'))\n"
+               "bad = sorted(m for m in sys.modules if m.startswith('research'))\n"
                "assert not bad, bad\nprint('ok')\n")
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr

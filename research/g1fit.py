@@ -52,7 +52,7 @@ pool 1 / pool 25) they beat every lag 1-8 (0.45 / 0.70), 1-16 (0.46 / 0.79) and 
 with 0.54 / 0.88: the estimator ĝ1 of a single 32-frame pixel is biased at long lags (few pairs; a
 slowly varying speckle stays coherent within them), and its lags are strongly correlated.
 
-``python -m classifier.research.g1fit --out PATH.json`` compares the fit with the shipped ``signature``
+``python -m research.g1fit --out PATH.json`` compares the fit with the shipped ``signature``
 network on the very test pixels of its report (:func:`evaluate_against_network`). The module stays
 whole (over 600 lines): the comparison is the fit's only caller and reads its grid and outcome codes.
 """
@@ -603,7 +603,7 @@ def format_markdown(r: dict[str, Any]) -> str:
              f"{r['trials_per_draw']} trials, PSF truncation {r['truncation_tolerance']}; the same pixels for both "
              "methods. The network reads its signature features; the fit reads the complex "
              f"ĝ1 = g1_m·exp(i·g1_phase_m) at lags {', '.join(map(str, r['lags']))} (frames) of every configuration "
-             "(`classifier/research/g1fit.py`: closed forms of "
+             "(`research/g1fit.py`: closed forms of "
              "torchdoct.sim.theory, grid of "
              f"{r['fit']['grid_per_decade']} magnitudes per decade, {r['fit']['cos_polar_steps']} |cos θ| for flow; "
              f"class by {r['fit']['selection']}; indeterminate: {r['fit']['indeterminate']}).  ")
@@ -686,7 +686,7 @@ def format_markdown(r: dict[str, Any]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m classifier.research.g1fit --out PATH.json``: run :func:`evaluate_against_network`, write
+    """``python -m research.g1fit --out PATH.json``: run :func:`evaluate_against_network`, write
     ``PATH.json`` and ``PATH.md`` (refuses to overwrite either)."""
     import argparse
     import json
@@ -694,7 +694,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from torchdoct.files import atomic_write
 
-    p = argparse.ArgumentParser(prog="python -m classifier.research.g1fit", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m research.g1fit", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, help="JSON output file; the Markdown is written beside it (.md)")
     p.add_argument("--model", default="signature", help="shipped model name or .onnx path (default signature)")
     p.add_argument("--draws", type=int, default=None,

@@ -20,7 +20,7 @@ def _hidden_label(hidden: Sequence[int]) -> str:
 
 
 def classifier_tradeoffs(*, quick: bool = False, cache_dir=None, progress: bool = False) -> dict[str, Any]:
-    """Measure the four trade-off axes of :mod:`classifier.research.tradeoffs`; returns a JSON-ready dict.
+    """Measure the four trade-off axes of :mod:`classifier.bench.tradeoffs`; returns a JSON-ready dict.
 
     ``quick``: :data:`QUICK_PLAN` (small splits, ~1.5 min at one thread) instead of the full
     :class:`TradeoffPlan` (~10 min cold, datasets cached); ``cache_dir``: the dataset cache

@@ -12,10 +12,10 @@ __all__ = ["compute", "format_table", "plot"]
 
 
 def compute(*, quick: bool = False, progress: bool = False) -> dict[str, Any]:
-    """:func:`classifier.research.tradeoffs.run.classifier_tradeoffs` (the quick plan when ``quick``)."""
+    """:func:`classifier.bench.tradeoffs.run.classifier_tradeoffs` (the quick plan when ``quick``)."""
     return classifier_tradeoffs(quick=quick, progress=progress)
 
 
 def plot(result: dict[str, Any], path) -> None:
-    """:func:`classifier.research.tradeoffs.report.plot_tradeoffs`."""
+    """:func:`classifier.bench.tradeoffs.report.plot_tradeoffs`."""
     plot_tradeoffs(result, path)

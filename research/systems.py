@@ -1,7 +1,7 @@
 """Your own system, end to end: rendered phantoms of other OCT systems → ``torchdoct maps`` → ``doct-train
 --like`` → ``doct-classify``, scored against the rendered ground truth.
 
-``python -m classifier.research.systems --out DIR [--system NAME ...] [--seeds 2026,1,2] [--quick]
+``python -m research.systems --out DIR [--system NAME ...] [--seeds 2026,1,2] [--quick]
 [--min-probability P ...]``
 
 For each system phantom (``system-1310nm``: 1310 nm, lateral 10 µm, axial 8 µm; ``system-fast``: 64 frames
@@ -144,7 +144,7 @@ def to_markdown(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m classifier.research.systems", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m research.systems", description=__doc__.split("\n")[0])
     p.add_argument("--out", required=True)
     p.add_argument("--system", action="append", choices=list(SYSTEMS), help="(repeat; default all three)")
     p.add_argument("--seeds", default="2026,1,2,3,4,5", help="rendering seeds, the first trains (default 2026,1,...,5)")
@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     seeds = [int(s) for s in args.seeds.split(",")]
     t0 = time.perf_counter()
     systems = [evaluate(out, s, seeds, args.quick, args.min_probability) for s in (args.system or list(SYSTEMS))]
-    result = {"command": "python -m classifier.research.systems --out DIR" + "".join(f" --system {s}" for s in args.system or [])
+    result = {"command": "python -m research.systems --out DIR" + "".join(f" --system {s}" for s in args.system or [])
               + (f" --seeds {args.seeds}" if args.seeds != "2026,1,2,3,4,5" else "") + (" --quick" if args.quick else "")
               + "".join(f" --min-probability {mp:g}" for mp in args.min_probability),
               "seeds": seeds, "systems": systems, "seconds": time.perf_counter() - t0}

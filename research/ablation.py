@@ -1,6 +1,6 @@
 """Ablation of the decorrelation signature: which features the ``signature`` spec keeps.
 
-``python -m classifier.research.ablation --out ablation.json`` simulates (or loads from the dataset cache) the
+``python -m research.ablation --out ablation.json`` simulates (or loads from the dataset cache) the
 single-acquisition configurations with *every* candidate feature of :mod:`torchdoct.sim.signature`
 (``rho_db_m``, ``rho_lin_m``, ``g1_m`` at lags 1-29, ``phase_ramp``, ``lin_contrast``,
 ``db_variance``: 90 per configuration) from the classifier's prior (:mod:`classifier.dataset`;
@@ -185,7 +185,7 @@ def run_indeterminate(*, draws_train: int = 360, draws_test: int = 90, pixels: i
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m classifier.research.ablation", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m research.ablation", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, help="JSON output file")
     p.add_argument("--draws-train", type=int, default=360)
     p.add_argument("--draws-test", type=int, default=90)

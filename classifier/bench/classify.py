@@ -21,7 +21,7 @@ __all__ = ["bench_classify", "format_bench_classify", "bench_command"]
 
 
 def _synthetic_maps(path: Path, spec, size: int, seed: int) -> Path:
-    from .features import metric_unit
+    from ..features import metric_unit
 
     rng = np.random.default_rng(seed)
     chans, arrays = [], []
@@ -49,7 +49,7 @@ def _synthetic_maps(path: Path, spec, size: int, seed: int) -> Path:
 
 def bench_classify(*, size: int = 512, repeats: int = 3, model: str | None = None, seed: int = 0) -> dict[str, Any]:
     """Pixels per second of ``classify_maps`` on a synthetic ``size × size`` maps file."""
-    from .infer import classify_maps, load_model
+    from ..infer import classify_maps, load_model
 
     from torchdoct.resources import CLASSIFY_COPIES, check_bench
 

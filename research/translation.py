@@ -1,7 +1,7 @@
 """Validation of ``torchdoct translate``: one phantom rendered on two systems, the translated maps of the
 first against the directly rendered maps of the second, per region and motion type.
 
-``python -m classifier.research.translation --out DIR [--seed 2026 ...]``:
+``python -m research.translation --out DIR [--seed 2026 ...]``:
 
 1. ``torchdoct render motion-types-two-systems`` (the same scatterers seen by the 840-nm system, 4.9/3.8 µm,
    and a 1310-nm system, 10/8 µm; 30 dB SNR);
@@ -156,7 +156,7 @@ def to_markdown(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m classifier.research.translation", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m research.translation", description=__doc__.split("\n")[0])
     p.add_argument("--out", required=True, help="working and output directory")
     p.add_argument("--seed", type=int, action="append", help="rendering seeds (repeat; default 2026)")
     p.add_argument("--trials", type=int, default=128, help="torchdoct translate --trials")
@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     for seed in seeds:
         regions[str(seed)] = score(chain(out, seed, args.trials), args.edge_um)
     rows = [r for rs in regions.values() for r in rs]
-    result = {"command": "python -m classifier.research.translation --out DIR " + " ".join(f"--seed {s}" for s in seeds)
+    result = {"command": "python -m research.translation --out DIR " + " ".join(f"--seed {s}" for s in seeds)
               + (f" --trials {args.trials}" if args.trials != 128 else ""), "seeds": seeds, "edge_um": args.edge_um,
               "goals": _GOALS, "regions": regions, "summary": summarize(rows), "seconds": time.perf_counter() - t0}
     (out / "translation-validation.json").write_text(json.dumps(result, indent=1))

@@ -1,6 +1,6 @@
 """Learning curve of the ``signature`` classifier: test accuracy against the number of training draws.
 
-``python -m classifier.research.learning_curve --out signature-learning-curve.json`` takes the ``signature``
+``python -m research.learning_curve --out signature-learning-curve.json`` takes the ``signature``
 spec and its shipped recipe (:meth:`classifier.train.TrainConfig.for_spec`), simulates (or loads from
 the dataset cache) one training split of ``draws_max`` draws (default 3840, twice the shipped 1920)
 and the shipped model's validation and test splits (the recipe's numbers of draws, seed 0), and trains the network
@@ -423,7 +423,7 @@ def _int_list(text: str) -> list[int]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m classifier.research.learning_curve", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m research.learning_curve", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, help="JSON output file (the .md and .png are written beside it)")
     p.add_argument("--sizes", type=_int_list, default=list(DEFAULT_SIZES),
                    help="nested training sizes in draws, increasing (default %(default)s)")
