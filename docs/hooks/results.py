@@ -1,0 +1,319 @@
+"""Render the project's results files as Markdown for the documentation site.
+
+Every measured figure on the site comes from a JSON file that a named command writes (a benchmark, a
+model's training report, a validation run). A page asks for a table with a marker line::
+
+    <!-- render: bench-simulate -->
+
+and :func:`render` replaces it with the table, the command that wrote the file and the file's path.
+Nothing here measures anything: it reads files and formats them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Callable
+
+#: Folders searched, in order, for a results file by its name (relative to the repository root).
+RESULT_DIRS = ("docs/results", "benchmarks/results", "benchmarks", "notebooks/bench", "research/results",
+               "classifier/data")
+
+
+class MissingResult(LookupError):
+    """A page asks for a results file that is not in the repository."""
+
+
+def find(root: Path, name: str) -> Path:
+    for d in RESULT_DIRS:
+        p = root / d / name
+        if p.is_file():
+            return p
+    raise MissingResult(f"results file {name} not found in any of {', '.join(RESULT_DIRS)}")
+
+
+def load(root: Path, name: str) -> tuple[dict[str, Any], str]:
+    p = find(root, name)
+    return json.loads(p.read_text(encoding="utf-8")), p.relative_to(root).as_posix()
+
+
+# ---------------------------------------------------------------- formatting
+def num(x: Any, digits: int = 3) -> str:
+    """A number with ``digits`` significant figures (integers as they are); missing values as "n/a"."""
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "n/a"
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    if isinstance(x, int):
+        return f"{x:,}".replace(",", " ") if abs(x) >= 10000 else str(x)
+    if x == 0:
+        return "0"
+    if abs(x) >= 1e5 or abs(x) < 1e-3:
+        return f"{x:.{digits - 1}e}"
+    if abs(x) >= 10 ** digits:
+        return str(round(x))
+    return f"{x:.{digits}g}"
+
+
+def pm(x: Any, se: Any, digits: int = 3) -> str:
+    if se is None:
+        return num(x, digits)
+    return f"{num(x, digits)} ± {num(se, 2)}"
+
+
+def cell(x: Any) -> str:
+    return str(x).replace("|", "\\|").replace("\n", " ")
+
+
+def table(header: list[str], rows: list[list[Any]]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    out += ["| " + " | ".join(cell(c) for c in r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+def source(command: str, path: str, extra: str = "") -> str:
+    line = f"Written by `{command}` into `{path}`"
+    return f"*{line}{'; ' + extra if extra else ''}.*"
+
+
+def machine(d: dict[str, Any]) -> str:
+    m = d.get("machine")
+    if not m:
+        return ""
+    return (f"machine: {m.get('cpu_count')} cores, torch {m.get('torch')}, {m.get('torch_threads')} torch "
+            f"thread(s), Python {m.get('python')}")
+
+
+# ---------------------------------------------------------------- benchmarks
+def bench_simulate(root: Path) -> str:
+    d, p = load(root, "bench-simulate.json")
+    thr = d.get("threads")
+    rows = [[c["system"], c["motion"], num(c["scatterers_per_trial"], 4), num(c["ms_per_trial"]),
+             num(c["evaluations_per_s"]), num(c["of_evaluation_limit"]), num(c.get("ms_per_trial_1_thread")),
+             num(c.get("ms_per_trial_loaded")), num(c.get("loaded_over_1_thread_alone"))] for c in d["cells"]]
+    t = table(["system", "motion", "scatterers/trial", f"ms/trial ({thr} threads)", "evaluations/s",
+               "of the limit", "ms/trial, 1 thread", "ms/trial beside a busy job", "÷ 1 thread alone"], rows)
+    summary = (f"Mean over the cells: {num(d['mean_ms_per_trial'])} ms/trial on {thr} threads, "
+               f"{num(d.get('mean_ms_per_trial_1_thread'))} on one, {num(d.get('mean_ms_per_trial_loaded'))} beside "
+               f"a busy job (target {num(d['target_ms_per_trial'])}); {d['trials_per_cell']} trials per cell, "
+               f"{d['dtype']}, best of {d['repeats']}; the limit is {num(d['evaluation_limit_per_s'])} "
+               "scatterer-frame evaluations per second per core.")
+    return "\n\n".join([t, summary, source("torchdoct bench simulate --load --repeats 2 --out FILE", p, machine(d))])
+
+
+def bench_study(root: Path) -> str:
+    rows, paths = [], []
+    for name, what in (("bench-study-paper.json", "idle"), ("bench-study-paper-loaded.json", "beside a busy job"),
+                       ("bench-study.json", "idle")):
+        try:
+            d, p = load(root, name)
+        except MissingResult:
+            continue
+        paths.append(p)
+        rows.append([d["study"], what, d["cells"], num(d["system_trials"]), d["trials_per_point"], num(d["wall_s"]),
+                     num(d["simulate_s"]), num(d["figures_s"]), d.get("workers")])
+    t = table(["study", "machine", "cells", "system-trials", "trials/point", "wall (s)", "simulation (s)",
+               "figures and report (s)", "workers"], rows)
+    return "\n\n".join([t, source("torchdoct bench study [--study paper] --out FILE", ", ".join(paths))])
+
+
+def bench_cog(root: Path) -> str:
+    d, p = load(root, "bench-cog.json")
+    rows = [[c["system"], c["motion"], num(c["cog_scatterers"]), num(c["torchdoct_scatterers"], 4),
+             num(c["cog_ms_per_trial"]), num(c["torchdoct_ms_per_trial"]), f"{num(c['ratio'])}×"] for c in d["cells"]]
+    t = table(["system", "motion", "COG scatterers/trial", "torchdoct scatterers/trial", "COG ms/trial",
+               "torchdoct ms/trial", "COG ÷ torchdoct"], rows)
+    return "\n\n".join([t, f"Geometric mean of the ratios: {num(d['geometric_mean_ratio'])}× (one core each, CPU "
+                           f"time, best of {d['repeats']}).", source("torchdoct bench cog --cog DIR --out FILE", p)])
+
+
+def bench_render(root: Path) -> str:
+    d, p = load(root, "bench-render.json")
+    pops = ", ".join(f"{k}: {num(v['scatterers'])} scatterers" for k, v in d["populations"].items())
+    t = table(["phantom", "shape [S, T, Z, X]", "pitch (µm)", "wall (s), best", "pixel-frames/s", "target (s)"],
+              [[d["phantom"], "×".join(map(str, d["shape_STZX"])), ", ".join(f"{k} {v}" for k, v in d["pitch_um"].items()),
+                num(d["wall_s_best"]), num(d["pixel_frames_per_s"]), num(d["target_s"])]])
+    return "\n\n".join([t, f"Populations: {pops}.", source("torchdoct bench render --out FILE", p, machine(d))])
+
+
+def bench_maps(root: Path) -> str:
+    d, p = load(root, "bench-maps.json")
+    per = d["seconds_per_resolution"]
+    t = table(["stack", "channels", "total (s)", *[f"{k} (s)" for k in per], "target (s)"],
+              [[f"{d['shape']} {d['dtype']}", ", ".join(d["metrics"]), num(d["seconds_total"]),
+                *[num(v) for v in per.values()], num(d["target_seconds"])]])
+    return "\n\n".join([t, source("torchdoct bench maps --out FILE", p, machine(d))])
+
+
+def bench_classify(root: Path) -> str:
+    rows, paths = [], []
+    for name in ("bench-classify.json", "bench-classify-signature.json"):
+        try:
+            d, p = load(root, name)
+        except MissingResult:
+            continue
+        paths.append(p)
+        for r in d["rows"]:
+            st = r.get("stages_s", {})
+            rows.append([d["model"], r["pool"], f"{d['size']} × {d['size']}", num(r["pixels_per_s"]),
+                         num(st.get("read")), num(st.get("features")), num(st.get("onnxruntime")), num(st.get("rule")),
+                         num(d["target_pixels_per_s"])])
+    t = table(["model", "pool", "maps", "pixels/s", "read (s)", "features (s)", "onnxruntime (s)", "rule (s)",
+               "target pixels/s"], rows)
+    return "\n\n".join([t, source("torchdoct bench classify [--model signature] --out FILE", ", ".join(paths))])
+
+
+def bench_load(root: Path) -> str:
+    d, p = load(root, "bench-load.json")
+    rows = [[r["workload"], num(r["alone_1_thread_s"]), num(r["alone_s"]), num(r["loaded_s"]),
+             num(r["loaded_over_1_thread_alone"])] for r in d["rows"]]
+    t = table(["command", "1 thread alone (s)", f"{d['threads']} threads alone (s)",
+               f"{d['threads']} threads beside a busy job (s)", "÷ 1 thread alone"], rows)
+    worst = max(r["loaded_over_1_thread_alone"] for r in d["rows"])
+    return "\n\n".join([t, f"Worst ratio {num(worst)} (target ≤ {num(d['target_ratio'])}); the busy job: "
+                           f"{d['neighbour']}.", source(f"torchdoct bench load --repeats {d['repeats']} --out FILE", p,
+                                                        machine(d))])
+
+
+def tradeoffs_simulator(root: Path) -> str:
+    d, p = load(root, "bench-tradeoffs.json")
+    s = d["simulator"]
+    rows = []
+    for c in s["cells"]:
+        for t in c["tolerance"]:
+            rows.append([num(t["tolerance"]), c["cell"], num(t["ms_per_trial"]),
+                         pm(t["mean_intensity_rel_error"], t["mean_intensity_rel_se"], 2),
+                         pm(t["liv_bias"], t["liv_bias_se"], 2), pm(t["ocds_bias"], t["ocds_bias_se"], 2)])
+    rows.sort(key=lambda r: -float(r[0]))
+    ref = s["cells"][0]["reference"]
+    t = table(["tolerance", "cell", "ms/trial", "⟨I⟩ relative error", "LIV bias (dB²)", "OCDS bias (1/s)"], rows)
+    dt = [[c["cell"], num(c["dtype"]["float32_ms_per_trial"]), num(c["dtype"]["float64_ms_per_trial"]),
+           num(c["dtype"]["liv_max_abs_diff"])] for c in s["cells"]]
+    t2 = table(["cell", "float32 ms/trial", "float64 ms/trial", "largest per-trial LIV difference (dB²)"], dt)
+    text = (f"{num(s['trials_per_point'])} trials per tolerance against a {num(ref['trials'])}-trial {ref['dtype']} "
+            f"reference at tolerance {num(ref['tolerance'])}; bias ± standard error of the mean.")
+    return "\n\n".join([t, text, t2, source("torchdoct bench tradeoffs --part simulator --out FILE", p, machine(s))])
+
+
+def tradeoffs_study(root: Path) -> str:
+    d, p = load(root, "bench-tradeoffs.json")
+    s = d["study"]
+    rows = [[r["trials"], num(r["wall_s"]), f"{num(r['liv_rms_error'])} ({num(r['liv_rms_expected'])})",
+             f"{num(r['ocds_rms_error'])} ({num(r['ocds_rms_expected'])})"] for r in s["rows"]]
+    t = table(["trials per point", "wall (s)", "LIV RMS error, dB² (expected)", "OCDS RMS error, 1/s (expected)"], rows)
+    return "\n\n".join([t, f"`{s['study']}`, {s['cells']} cells, against a {s['reference_trials']}-trial reference; "
+                           "in brackets the error expected from the standard errors.",
+                        source("torchdoct bench tradeoffs --part study --out FILE", p)])
+
+
+def tradeoffs_fidelity(root: Path) -> str:
+    d, p = load(root, "bench-tradeoffs-fidelity.json")
+    f = d["fidelity"]
+    rows = []
+    for s in f["settings"]:
+        feats = [r for c in s["cells"] for r in c["rows"]]
+        worst = max(feats, key=lambda r: abs(r["z"]) if r["z"] == r["z"] else 0)
+        lo = [r for r in feats if r["feature"] in ("liv", "ocds")]
+        zlo = max((abs(r["z"]) for r in lo if r["z"] == r["z"]), default=float("nan"))
+        ms = sum(c["ms_per_trial"] for c in s["cells"]) / len(s["cells"])
+        rows.append([s["truncation"], num(s["truncation_tolerance"]), s["dtype"], num(ms),
+                     f"{num(abs(worst['z']), 2)} (`{worst['feature']}`@{worst['config']})", num(zlo, 2)])
+    t = table(["truncation", "tolerance", "dtype", "ms/trial", "max \\|z\\| (feature@configuration)",
+               "max \\|z\\| LIV/OCDS"], rows)
+    ch = f["cheapest_without_resolvable_bias"]
+    ref = f["reference"]
+    text = (f"{num(f['trials'])} trials per setting against {num(f['reference_trials'])} at tolerance "
+            f"{num(ref['truncation_tolerance'])} ({ref['truncation']}, {ref['dtype']}); family-wise α = {f['alpha']}. "
+            f"Cheapest setting without a resolvable bias: {ch['truncation']} at {num(ch['truncation_tolerance'])}, "
+            f"{ch['dtype']}.")
+    return "\n\n".join([t, text, source("torchdoct bench tradeoffs --part fidelity --out FILE", p, machine(f))])
+
+
+def simulate_example(root: Path) -> str:
+    d, p = load(root, "simulate-example.json")
+    rows = [[name, pm(s["liv"]["mean"], s["liv"]["se"], 4), num(s["liv"]["sd"], 4), pm(s["ocds"]["mean"], s["ocds"]["se"], 4),
+             num(s["ocds"]["sd"], 4), s["liv"]["n"], s["zero_intensity_trials"]] for name, s in d.items()]
+    t = table(["system", "LIV mean ± SE (dB²)", "LIV SD (dB²)", "OCDS mean ± SE (1/s)", "OCDS SD (1/s)", "trials",
+               "empty"], rows)
+    return "\n\n".join([t, source("torchdoct simulate example --json > FILE", p)])
+
+
+# ---------------------------------------------------------------- classifier results
+def quick_train(root: Path) -> str:
+    d, p = load(root, "quick-single-acquisition.json")
+    t1, se = d["test"]["network"]["1"], d["standard_errors"]["1"]
+    rows = [[k.replace("_", " "), pm(t1[k], se.get(k))] for k in
+            ("coverage_identifiable", "accuracy_identifiable", "balanced_accuracy_identifiable", "ece")]
+    t = table(["pool 1, own test split", "value ± bootstrap SE"], rows)
+    dr = d["data"]["draws"]
+    return "\n\n".join([t, f"Draws train / validation / test: {dr['train']} / {dr['validation']} / {dr['test']}.",
+                        source("doct-train --quick --no-cache --out DIR", p, "the report is `DIR/single-acquisition.json`")])
+
+
+def _pool_row(label: str, m: dict[str, Any], se: dict[str, Any] | None) -> list[str]:
+    se = se or {}
+    return [label, pm(m.get("coverage_identifiable"), se.get("coverage_identifiable")),
+            pm(m.get("balanced_accuracy_identifiable"), se.get("balanced_accuracy_identifiable")),
+            pm(m.get("accuracy_identifiable"), se.get("accuracy_identifiable")), pm(m.get("ece"), se.get("ece"))]
+
+
+def systems_validation(root: Path) -> str:
+    d, p = load(root, "systems-validation.json")
+    rows = []
+    for s in d["systems"]:
+        sc = {k: v[0]["overall"] for k, v in s["scores"].items()}
+        own = s.get("own_test_pool1", {})
+        rows.append([f"`{s['system']}`: {s['description']}", num(s["training_s"] / 60, 3),
+                     f"{num(own.get('balanced_accuracy_identifiable'))} @ {num(own.get('coverage_identifiable'))}",
+                     *[f"{num(o['balanced_accuracy'])} @ {num(o['coverage'])}" for o in sc.values()]])
+    pools = list(d["systems"][0]["scores"])
+    t = table(["system", "`doct-train --like` (min)", "own test split, pool 1",
+               *[f"pool {k}: bal. acc. @ coverage" for k in pools]], rows)
+    return "\n\n".join([t, f"Seeds {', '.join(map(str, d['seeds']))}; pool `5@0.6` is `--pool 5 --min-probability 0.6`.",
+                        source(d["command"], p)])
+
+
+def translation_validation(root: Path) -> str:
+    d, p = load(root, "translation-validation.json")
+    rows = []
+    for motion, s in d["summary"].items():
+        if not isinstance(s, dict) or "liv" not in s:
+            continue
+        lv, oc = s["liv"], s["ocds"]
+        rows.append([motion, num(s.get("translated_share")),
+                     f"{num(lv['median_abs_bias_over_sd'], 2)} ({num(lv['regions_within_goal'], 2)})", num(lv["coverage_68"], 2),
+                     f"{num(oc['median_abs_bias_over_sd'], 2)} ({num(oc['regions_within_goal'], 2)})", num(oc["coverage_68"], 2),
+                     f"{num(lv['untranslated_median_abs_bias_over_sd'], 2)} / {num(oc['untranslated_median_abs_bias_over_sd'], 2)}"])
+    g = d["goals"]
+    rows.append(["goal", "", f"≤ {num(g['abs_bias_over_sd'], 2)}", f"{g['coverage_68'][0]}-{g['coverage_68'][1]}",
+                 f"≤ {num(g['abs_bias_over_sd'], 2)}", f"{g['coverage_68'][0]}-{g['coverage_68'][1]}", ""])
+    t = table(["motion", "translated", "LIV: \\|bias\\|/SD median (regions within goal)", "LIV: 68 % cover",
+               "OCDS: \\|bias\\|/SD median (within goal)", "OCDS: 68 % cover", "untranslated LIV / OCDS \\|bias\\|/SD"], rows)
+    return "\n\n".join([t, source(d["command"], p)])
+
+
+RENDERERS: dict[str, Callable[[Path], str]] = {
+    "bench-simulate": bench_simulate,
+    "bench-study": bench_study,
+    "bench-cog": bench_cog,
+    "bench-render": bench_render,
+    "bench-maps": bench_maps,
+    "bench-classify": bench_classify,
+    "bench-load": bench_load,
+    "tradeoffs-simulator": tradeoffs_simulator,
+    "tradeoffs-study": tradeoffs_study,
+    "tradeoffs-fidelity": tradeoffs_fidelity,
+    "simulate-example": simulate_example,
+    "quick-train": quick_train,
+    "systems-validation": systems_validation,
+    "translation-validation": translation_validation,
+}
+
+
+def render(root: Path, name: str) -> str:
+    try:
+        fn = RENDERERS[name]
+    except KeyError:
+        raise KeyError(f"unknown results table {name!r}; known: {', '.join(sorted(RENDERERS))}") from None
+    return fn(root)
