@@ -293,6 +293,16 @@ def translation_validation(root: Path) -> str:
     return "\n\n".join([t, source(d["command"], p)])
 
 
+def validation_table(root: Path) -> str:
+    d, p = load(root, "validation-table.json")
+    rows = [[r["motion"], f"{num(r['lag_s'], 4)} s", r["g1_simulated"], r["g1_theory"],
+             pm(r["intensity_cov_simulated"], r["intensity_cov_se"], 4), num(r["intensity_cov_theory"], 4),
+             num(r["max_abs_z"], 2)] for r in d["rows"]]
+    t = table(["motion", "τ", "g1 simulated", "g1 theory", "⟨I I_τ⟩/⟨I⟩² − 1 simulated", "theory", "largest \\|z\\|"], rows)
+    return "\n\n".join([t, f"{num(d['trials'])} trials per row, seed {d['seed']}, {d['density_per_um3']} µm⁻³, "
+                             f"{d['n_frames']} frames at {d['frame_interval_s']} s, {d['dtype']}.", source(d["command"], p)])
+
+
 RENDERERS: dict[str, Callable[[Path], str]] = {
     "bench-simulate": bench_simulate,
     "bench-study": bench_study,
@@ -308,6 +318,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "quick-train": quick_train,
     "systems-validation": systems_validation,
     "translation-validation": translation_validation,
+    "validation-table": validation_table,
 }
 
 

@@ -168,7 +168,16 @@ def on_config(config, **kwargs):
     return config
 
 
+#: Figures of the repository shown on the site: (folder, glob) -> assets/figures/.
+FIGURES = [("notebooks/figures", "*.png")]
+
+
 def on_files(files, config, **kwargs):
+    for folder, pattern in FIGURES:
+        for png in sorted((ROOT / folder).glob(pattern)):
+            uri = f"assets/figures/{png.name}"
+            if files.get_file_from_path(uri) is None:
+                files.append(File.generated(config, uri, abs_src_path=str(png)))
     for uri, content in _generated().items():
         existing = files.get_file_from_path(uri)
         if existing is not None:
