@@ -17,7 +17,7 @@ Importing ``classifier`` does not import torch: the torch-based names (``train``
 
 from __future__ import annotations
 
-__version__ = "0.3.0"
+from torchdoct import __version__  # one distribution, one version (pyproject.toml)
 
 from .features import Configuration, FeatureSpec, load_spec, shipped_specs
 from .infer import classify_maps, load_model, read_maps, shipped_models, write_classification

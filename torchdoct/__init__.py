@@ -11,8 +11,13 @@ without torch.
 from __future__ import annotations
 
 import importlib
+from importlib import metadata as _metadata
 
-__version__ = "0.3.0"
+try:  # the one version is the distribution's (pyproject.toml)
+    __version__ = _metadata.version("torchdoct")
+except _metadata.PackageNotFoundError:  # a source tree that was never installed
+    __version__ = "0+unknown"
+del _metadata
 
 #: Public name → the module that owns it (imported on first access).
 _LAZY = {

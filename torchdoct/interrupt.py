@@ -13,6 +13,9 @@
   the shell's code for a reader that went away.
 * :func:`deferred` holds both signals back while an output set is renamed into place
   (:func:`torchdoct.files.output_set`), so a set appears whole or not at all.
+* A command that needs an **optional dependency** the install left out (torch on the base install
+  that ``doct-classify`` needs) ends with one line naming the extra to install (:data:`EXTRAS`),
+  exit code 1, no traceback.
 * :func:`worker_init` makes a worker process ignore Ctrl-C (its parent stops it) and die with its
   parent, even when the parent is killed with SIGKILL (Linux).
 """
@@ -28,12 +31,17 @@ import threading
 from types import SimpleNamespace
 from typing import Any, Callable, Iterator
 
-__all__ = ["Terminated", "entry_point", "note", "deferred", "worker_init", "EXIT_SIGINT", "EXIT_SIGTERM",
-           "EXIT_PIPE"]
+__all__ = ["Terminated", "entry_point", "note", "deferred", "worker_init", "EXIT_SIGINT", "EXIT_SIGTERM", "EXTRAS",
+           "EXIT_PIPE", "missing_extra"]
 
 EXIT_SIGINT = 128 + signal.SIGINT  # 130
 EXIT_SIGTERM = 128 + signal.SIGTERM  # 143
 EXIT_PIPE = 128 + 13  # 141: SIGPIPE, the reader of the output went away
+
+#: Optional top-level modules → the extra of ``pyproject.toml`` that installs them.
+EXTRAS = {**dict.fromkeys(("torch", "scipy", "pandas", "pyarrow", "threadpoolctl"), "sim"),
+          **dict.fromkeys(("sklearn", "onnx"), "train"), **dict.fromkeys(("dask", "distributed"), "dask"),
+          **dict.fromkeys(("napari", "npe2"), "napari")}
 
 _NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
 #: A command's progress bar shows only once its run has taken this long (s); ``$TQDM_DELAY`` overrides.
@@ -166,12 +174,29 @@ def entry_point(fn: Callable[..., int]) -> Callable[..., int]:
         except BrokenPipeError:
             _quiet_pipe()
             return EXIT_PIPE
+        except ModuleNotFoundError as err:
+            line = missing_extra(err)
+            if line is None:
+                raise
+            print(line, file=sys.stderr, flush=True)
+            return 1
         finally:
             s.active = False
             for sig, h in previous.items():
                 signal.signal(sig, h)
 
     return wrapper
+
+
+def missing_extra(err: ModuleNotFoundError) -> str | None:
+    """The ``error:`` line for a missing optional dependency (:data:`EXTRAS`), or ``None`` for another module."""
+    top = (err.name or "").split(".")[0]
+    extra = EXTRAS.get(top)
+    if extra is None:
+        return None
+    pin = "torch==2.13.0 " if extra in ("sim", "train") else ""  # the CPU build of torch, pinned first
+    return (f"error: this command needs {top}, which the install left out; install the {extra!r} extra: "
+            f"pip install {pin}'torchdoct[{extra}]'")
 
 
 def worker_init(parent_pid: int | None = None) -> None:
