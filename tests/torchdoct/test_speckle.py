@@ -1,0 +1,193 @@
+"""Speckle-motion features (torchdoct.sim.speckle) against the closed forms of docs/concepts/speckle-motion.md.
+
+The synthetic fields are circular Gaussian speckle (N_eff → ∞) of the Gaussian amplitude PSF of the
+840-nm system (conventions), periodic and band-limited on a 1-µm grid, so a translation by any vector is
+exact (a phase ramp in the Fourier domain): E(r, t) = E₀(r − d(t)). Tolerances: z = 3.5 standard errors of
+the mean over independent fields (one window, the centre pixel's, per field).
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchdoct.conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
+from torchdoct.sim.speckle import (default_speckle_features, halo_pixels, parse_speckle_feature, speckle_features,
+                                   speckle_motion)
+
+Z_SE = 3.5
+DT = 0.2048
+T = 32
+S_X = amplitude_sigma_lateral_um(4.9)
+S_Z = amplitude_sigma_axial_um(3.8)
+PITCH = {"z": 1.0, "x": 1.0, "y": 1.0}
+
+
+def translated_speckle(n_fields: int, shape: tuple[int, ...], sigmas: tuple[float, ...],
+                       displacement_um, seed: int) -> torch.Tensor:
+    """``[n_fields, T, *shape]`` complex Gaussian speckle (amplitude PSF sigmas per axis, µm; 1-µm pixels)
+    translated at frame ``i`` by ``displacement_um(i)`` (a vector per axis, µm)."""
+    gen = torch.Generator().manual_seed(seed)
+    w = torch.randn(n_fields, *shape, dtype=torch.complex128, generator=gen)
+    ks = torch.meshgrid(*[torch.fft.fftfreq(n, d=1.0, dtype=torch.float64) * 2 * math.pi for n in shape],
+                        indexing="ij")
+    transfer = torch.exp(-sum(k ** 2 * s ** 2 / 2 for k, s in zip(ks, sigmas)))
+    spec = torch.fft.fftn(w, dim=tuple(range(1, len(shape) + 1))) * transfer
+    frames = []
+    for i in range(T):
+        d = displacement_um(i)
+        ramp = torch.exp(-1j * sum(k * di for k, di in zip(ks, d)))
+        frames.append(torch.fft.ifftn(spec * ramp, dim=tuple(range(1, len(shape) + 1))))
+    return torch.stack(frames, 1)
+
+
+def centre_features(field: torch.Tensor, names, ndim: int = 2, window: int = 9) -> torch.Tensor:
+    """Features of the centre pixel of each field (a crop that holds its window and offsets): ``[N, F]``."""
+    h = halo_pixels(window) + 1
+    sp = field.shape[-ndim:]
+    sl = tuple(slice(n // 2 - h, n // 2 + h + 1) for n in sp)
+    crop = field[(slice(None), slice(None), *sl)]
+    _, f = speckle_motion(crop, PITCH, DT, names, window=window, ndim=ndim)
+    return f[(slice(None), slice(None), *([h] * ndim))]
+
+
+def _mean_se(v: torch.Tensor) -> tuple[float, float]:
+    return float(v.mean()), float(v.std() / math.sqrt(v.numel()))
+
+
+@pytest.fixture(scope="module")
+def flow_bscan():
+    v = (0.2, 0.25)  # µm/s along z (deeper), x
+
+    def d(i):
+        return (v[0] * i * DT, v[1] * i * DT)
+    return v, translated_speckle(48, (32, 32), (S_Z, S_X), d, seed=11)
+
+
+def test_translated_speckle_peak_offset_is_v_tau(flow_bscan):
+    v, field = flow_bscan
+    names = ("xc_shift_z_16", "xc_shift_x_16", "xc_velocity_z", "xc_velocity_x")
+    f = centre_features(field, names)
+    tau = 16 * DT
+    for i, expect in enumerate((v[0] * tau, v[1] * tau, v[0], v[1])):
+        mean, se = _mean_se(f[:, i])
+        assert abs(mean - expect) < Z_SE * se, (names[i], mean, expect, se)
+        assert se < 0.2 * abs(expect)  # the test can tell the offset from zero
+
+
+def test_translated_gaussian_speckle_keeps_correlation_one_at_its_peak():
+    """ρ(Δ, τ) = exp(−(Δ_x − d_x)²/(2s_x²) − (Δ_z − d_z)²/(2s_z²)) for Gaussian speckle: the centred value
+    decays as exp(−d_x²/(2s_x²) − d_z²/(2s_z²)), the peak stays 1. The window's ratio estimator is biased
+    by O(1/N_ind) (N_ind the window's independent speckle count, classifier.pooling's convention;
+    docs/concepts/speckle-motion.md §6), so the tolerance is z·SE + 1/N_ind at a 25-pixel window."""
+    from classifier.pooling import effective_count
+
+    v, w = (0.2, 0.25), 25
+
+    def d(i):
+        return (v[0] * i * DT, v[1] * i * DT)
+    field = translated_speckle(48, (40, 40), (S_Z, S_X), d, seed=21)
+    n_ind = effective_count(w, 1.0, S_X) * effective_count(w, 1.0, S_Z)
+    f = centre_features(field, ("xc_centre_8", "xc_centre_16", "xc_peak_16"), window=w)
+    for i, m in enumerate((8, 16)):
+        dz, dx = v[0] * m * DT, v[1] * m * DT
+        expect = math.exp(-dx ** 2 / (2 * S_X ** 2) - dz ** 2 / (2 * S_Z ** 2))
+        mean, se = _mean_se(f[:, i])
+        assert abs(mean - expect) < Z_SE * se + 1.0 / n_ind, (m, mean, expect, se)
+    mean, se = _mean_se(f[:, 2])
+    assert abs(mean - 1.0) < Z_SE * se + 1.0 / n_ind, (mean, se)
+
+
+def test_direction_symmetric_motion_has_no_antisymmetric_part(flow_bscan):
+    """Two independent patterns moving at +v and −v (a direction-symmetric motion): the signed offset and
+    velocity vanish in expectation, and the moving share stays well below translation's."""
+    v, field = flow_bscan
+
+    def back(i):
+        return (-v[0] * i * DT, -v[1] * i * DT)
+    field2 = translated_speckle(48, (32, 32), (S_Z, S_X), back, seed=12)
+    names = ("xc_shift_z_16", "xc_shift_x_16", "xc_velocity_z", "xc_velocity_x", "xc_share_16")
+    sym = centre_features(field + field2, names)
+    for i in range(4):
+        mean, se = _mean_se(sym[:, i])
+        assert abs(mean) < Z_SE * se, (names[i], mean, se)
+    one = centre_features(field, names)
+    m_sym, se_sym = _mean_se(sym[:, 4])
+    m_one, se_one = _mean_se(one[:, 4])
+    assert m_one - m_sym > Z_SE * math.hypot(se_sym, se_one)
+
+
+def test_mirrored_field_mirrors_every_signed_feature(flow_bscan):
+    _, field = flow_bscan
+    x = field[:4, :, 8:25, 8:25]
+    names = speckle_features(2)
+    _, f = speckle_motion(x, PITCH, DT, names)
+    _, g = speckle_motion(x.flip(-1), PITCH, DT, names)
+    g = g.flip(-1)
+    for i, n in enumerate(names):
+        _, axis, _ = parse_speckle_feature(n)
+        sign = -1.0 if axis == "x" else 1.0
+        torch.testing.assert_close(g[:, i], sign * f[:, i], rtol=1e-9, atol=1e-9, msg=n)
+
+
+def test_features_do_not_depend_on_the_field_scale_or_batch(flow_bscan):
+    _, field = flow_bscan
+    x = field[:3, :, 8:25, 8:25]
+    names = speckle_features(2)
+    _, f = speckle_motion(x, PITCH, DT, names)
+    _, g = speckle_motion(x * 1e-7, PITCH, DT, names)
+    torch.testing.assert_close(g, f, rtol=1e-9, atol=1e-9)
+    _, one = speckle_motion(x[1:2], PITCH, DT, names)
+    assert torch.equal(one[0], f[1])  # each field's features are its own, whatever the batch
+    _, again = speckle_motion(x, PITCH, DT, names)
+    assert torch.equal(again, f)
+    _, inten = speckle_motion(x.abs() ** 2, PITCH, DT, names)  # the intensity gives the same numbers
+    torch.testing.assert_close(inten, f, rtol=1e-9, atol=1e-9)
+
+
+def test_volume_sees_the_offset_along_y():
+    v = (0.3, 0.0, 0.0)  # µm/s along y, z, x: flow across the B-scans
+
+    def d(i):
+        return (v[0] * i * DT, v[1] * i * DT, v[2] * i * DT)
+    field = translated_speckle(24, (16, 16, 16), (S_X, S_Z, S_X), d, seed=5)
+    f = centre_features(field, ("xc_velocity_y", "xc_velocity_z", "xc_velocity_x"), ndim=3, window=5)
+    for i, expect in enumerate(v):
+        mean, se = _mean_se(f[:, i])
+        assert abs(mean - expect) < Z_SE * se, (i, mean, expect, se)
+    assert abs(float(f[:, 0].mean())) > 5 * float(f[:, 0].std() / math.sqrt(24))
+
+
+def test_invalid_pixel_is_nan_and_leaves_its_neighbours_defined(flow_bscan):
+    _, field = flow_bscan
+    x = (field[:1, :, 8:25, 8:25].abs() ** 2).clone()
+    x[0, 5, 8, 8] = 0.0
+    _, f = speckle_motion(x, PITCH, DT)
+    assert torch.isnan(f[0, :, 8, 8]).all()
+    assert torch.isfinite(f[0, :, 8, 9]).all()
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"window": 4}, "odd"),
+    ({"max_offset": 0}, "max_offset"),
+    ({"names": ("xc_centre_31",)}, "lag"),
+    ({"names": ("xc_shift_y_2",)}, "no axis"),
+    ({"names": ("xc_bogus_2",)}, "unknown speckle feature"),
+])
+def test_bad_arguments_are_refused(kwargs, match):
+    x = torch.rand(1, T, 12, 12, generator=torch.Generator().manual_seed(0)) + 0.1
+    with pytest.raises(ValueError, match=match):
+        speckle_motion(x, PITCH, DT, **kwargs)
+
+
+def test_missing_pitch_is_refused():
+    with pytest.raises(ValueError, match="pitch"):
+        speckle_motion(torch.ones(1, T, 12, 12), {"z": 1.0}, DT)
+
+
+def test_default_features_are_named_with_units():
+    names = default_speckle_features(2)
+    assert "xc_speed" in names and "xc_share_16" in names
+    assert {parse_speckle_feature(n)[0] for n in names} == {"centre", "peak", "share", "shift", "speed"}
