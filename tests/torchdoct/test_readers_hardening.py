@@ -290,12 +290,12 @@ def test_truncated_arrays_are_named_with_the_fix(outdir, capsys):
 def test_unreadable_input_is_a_system_refusal(outdir, capsys, monkeypatch):
     path = _sidecar(outdir / "locked.npy")
     np.save(path, _field())
-    from torchdoct.measured import io as mio
+    from torchdoct.measured.formats import npy as npy_format
 
     def denied(p):
         raise PermissionError(13, "Permission denied", str(p))
 
-    monkeypatch.setattr(mio, "_load_npy", denied)  # running as root, chmod cannot deny a read
+    monkeypatch.setattr(npy_format, "load_array", denied)  # running as root, chmod cannot deny a read
     refused(capsys, outdir, _maps_argv(outdir, path), "locked.npy", "Permission denied", code=1)
 
 

@@ -1,0 +1,83 @@
+"""HDF5 ``.h5`` sequences, MATLAB v7.3 included: dataset ``data`` (complex, or a MATLAB compound
+``{real, imag}``), optional ``labels`` / ``label_params``, the JSON metadata as the root's string attribute
+``torchdoct`` (a MATLAB file has none: a sidecar or options give them; ``dataset=`` names its variable
+unless it holds only one). External storage, external links and virtual datasets whose data lie in
+other files are refused unless allowed (:func:`torchdoct.measured.guards.check_hdf5_local`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..guards import check_declared_size, check_hdf5_local, parse_json_object
+from .base import Loaded
+
+SUFFIXES = (".h5",)
+NAME = "HDF5 .h5 (MATLAB v7.3)"
+DATASET = True
+
+
+def read_dataset(ds: Any, where: str) -> np.ndarray:
+    """One HDF5 dataset as numpy, its declared size checked before it is read (and decompressed); a
+    MATLAB v7.3 complex compound becomes a complex array, a string dataset a ``str`` array."""
+    dt = ds.dtype
+    check_declared_size(where, ds.shape or (), dt.itemsize, what="dataset")  # before reading (and decompressing)
+    if dt.names is not None:
+        names = {n.lower(): n for n in dt.names}
+        if set(names) != {"real", "imag"}:
+            raise ValueError(f"{where}: compound dataset with fields {dt.names}; expected MATLAB v7.3 complex "
+                             "{real, imag}")
+        raw = ds[()]
+        re = np.asarray(raw[names["real"]])
+        im = np.asarray(raw[names["imag"]])
+        ctype = np.complex128 if re.dtype == np.float64 else np.complex64
+        arr = np.empty(re.shape, dtype=ctype)
+        arr.real = re
+        arr.imag = im
+        return arr
+    if dt.kind == "O":
+        import h5py
+
+        if h5py.check_string_dtype(dt) is not None:
+            return np.asarray(ds.asstr()[()], dtype=str)
+        raise ValueError(f"{where}: object/reference datasets are not supported; store a numeric array")
+    return np.asarray(ds[()])
+
+
+def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = False) -> Loaded:
+    import h5py
+
+    try:
+        fh = h5py.File(path, "r")
+    except OSError as err:
+        raise ValueError(f"{path.name}: not a readable HDF5 / MATLAB v7.3 file ({err})") from None
+    with fh:
+        check_hdf5_local(fh, path, allow_external_hdf5)  # before any link is followed or any data read
+        names = [k for k in fh.keys() if not k.startswith("#") and isinstance(fh[k], h5py.Dataset)]
+        if dataset is None:
+            if "data" in names:
+                dataset = "data"
+            else:
+                cands = [n for n in names if n not in ("labels", "label_params")]
+                if len(cands) != 1:
+                    raise ValueError(f"{path.name}: no dataset 'data' and {len(cands)} candidate datasets "
+                                     f"({', '.join(cands) or 'none'}); name one with --dataset")
+                dataset = cands[0]
+        if dataset not in fh or not isinstance(fh[dataset], h5py.Dataset):
+            raise ValueError(f"{path.name}: no dataset {dataset!r} (datasets: {', '.join(names) or 'none'})")
+        data = read_dataset(fh[dataset], f"{path.name}:{dataset}")
+        labels = read_dataset(fh["labels"], f"{path.name}:labels") if "labels" in names else None
+        params = read_dataset(fh["label_params"], f"{path.name}:label_params") if "label_params" in names else None
+        meta = None
+        if "torchdoct" in fh.attrs:
+            raw = fh.attrs["torchdoct"]
+            if isinstance(raw, bytes):
+                try:
+                    raw = raw.decode("utf-8")
+                except UnicodeDecodeError as err:
+                    raise ValueError(f"{path.name}: attribute 'torchdoct' is not UTF-8 text (byte {err.start}); it "
+                                     "must hold the JSON metadata (write the file again)") from None
+            meta = parse_json_object(str(raw), f"{path.name} attribute 'torchdoct'")
+    return Loaded(data=data, labels=labels, label_params=params, meta=meta)
