@@ -43,7 +43,7 @@ API = [
     ("images", "Phantoms and rendering", "Phantom files and the image renderer.",
      ["torchdoct.image.phantom", "torchdoct.image.render"]),
     ("measured", "Measured data", "Readers, resolution reduction, bulk-phase correction, DOCT maps and statistics.",
-     ["torchdoct.measured.io", "torchdoct.measured.resolution", "torchdoct.measured.bulkphase",
+     ["torchdoct.measured.io", "torchdoct.measured.sequence", "torchdoct.measured.resolution", "torchdoct.measured.bulkphase",
       "torchdoct.measured.maps", "torchdoct.measured.mapsfile", "torchdoct.measured.compare"]),
     ("study", "Sweeps and the study", "Parameter sweeps and the reference paper's numerical study.",
      ["torchdoct.study.sweep", "torchdoct.study.run", "torchdoct.study.claims"]),
