@@ -190,4 +190,4 @@ def test_missing_pitch_is_refused():
 def test_default_features_are_named_with_units():
     names = default_speckle_features(2)
     assert "xc_speed" in names and "xc_share_16" in names
-    assert {parse_speckle_feature(n)[0] for n in names} == {"centre", "peak", "share", "shift", "speed"}
+    assert {parse_speckle_feature(n)[0] for n in names} == {"centre", "peak", "share", "asym", "shift", "speed"}

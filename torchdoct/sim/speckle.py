@@ -30,6 +30,10 @@ B-scan's lateral axis, ``y`` the slow axis of a volume, positive towards increas
   pattern keeps where it went; flow in the plane keeps 1).
 * ``xc_share_{m}`` (1): the antisymmetric (moving) share ``Σ_Δ (ρ̂(Δ) − ρ̂(−Δ))² / (2·Σ_Δ ρ̂(Δ)²)`` over the
   offsets ``Δ ≠ 0`` of the grid, in [0, 1]; expectation 0 for any direction-symmetric motion.
+* ``xc_asym_{m}`` (1): the size of that antisymmetric part in correlation units, the root mean square of
+  ``(ρ̂(Δ) − ρ̂(−Δ))/2`` over the offsets ``Δ ≠ 0``: a flow keeps it of order ``ρ̂_peak·p·|d|/s²`` while its
+  pattern stays correlated; under direction-symmetric motion it is the estimator's noise, which (unlike
+  the share, a ratio that noise alone brings near 1/2 once the correlation has decayed) stays small.
 * ``xc_shift_{c}_{m}`` (µm): the sub-pixel peak offset along axis ``c``: the grid maximum refined by a
   three-point Gaussian (log-parabola) fit along each axis (a parabola when a value is ≤ 0), times the
   pitch. Positive: the pattern moved towards increasing index.
@@ -83,10 +87,10 @@ DEFAULT_MAX_OFFSET = 2
 #: Spatial axis letters of B-scans (2) and volumes (3), in array order after the frames.
 SPATIAL_AXES = {2: "zx", 3: "yzx"}
 
-_PATTERN = re.compile(r"^xc_(centre|peak|share|shift|shift_[xyz])_([1-9][0-9]*)$")
+_PATTERN = re.compile(r"^xc_(centre|peak|share|asym|shift|shift_[xyz])_([1-9][0-9]*)$")
 _VEL = re.compile(r"^xc_velocity_([xyz])$")
 #: Unit of every feature kind.
-UNITS = {"centre": "1", "peak": "1", "share": "1", "shift": "um", "shift_x": "um", "shift_y": "um", "shift_z": "um",
+UNITS = {"centre": "1", "peak": "1", "share": "1", "asym": "1", "shift": "um", "shift_x": "um", "shift_y": "um", "shift_z": "um",
          "velocity": "um/s", "speed": "um/s"}
 
 
@@ -101,7 +105,7 @@ def parse_speckle_feature(name: str) -> tuple[str, str | None, int]:
         return "velocity", m.group(1), 0
     m = _PATTERN.match(name)
     if m is None:
-        raise ValueError(f"unknown speckle feature {name!r}: use xc_centre_M, xc_peak_M, xc_share_M, xc_shift_M, "
+        raise ValueError(f"unknown speckle feature {name!r}: use xc_centre_M, xc_peak_M, xc_share_M, xc_asym_M, xc_shift_M, "
                          "xc_shift_{z,x,y}_M (M = lag in frames >= 1), xc_velocity_{z,x,y} or xc_speed")
     kind = m.group(1)
     axis = kind[-1] if kind.startswith("shift_") else None
@@ -124,10 +128,10 @@ def speckle_feature_unit(name: str) -> str:
 
 def default_speckle_features(ndim: int = 2, lags: Sequence[int] = DEFAULT_LAGS) -> tuple[str, ...]:
     """The default features of a B-scan (``ndim = 2``) or a volume (``ndim = 3``): per lag the centred
-    value, the peak, the moving share and the in-plane shift length; then the speed."""
+    value, the peak, the moving share, the antisymmetric amplitude and the shift length; then the speed."""
     if ndim not in SPATIAL_AXES:
         raise ValueError(f"speckle features need 2 (Z, X) or 3 (Y, Z, X) spatial axes; got {ndim}")
-    per_lag = tuple(f"xc_{k}_{m}" for m in lags for k in ("centre", "peak", "share", "shift"))
+    per_lag = tuple(f"xc_{k}_{m}" for m in lags for k in ("centre", "peak", "share", "asym", "shift"))
     return per_lag + ("xc_speed",)
 
 
@@ -318,6 +322,7 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
         for i in nz:  # in grid order, one offset at a time: the same sums whatever the batch shape
             anti += (r[i] - flip[i]) ** 2
             energy += 4.0 * r[i] ** 2
+        feats["asym"] = torch.sqrt(anti / (4.0 * len(nz)))
         feats["share"] = torch.where(energy > 0, anti / torch.where(energy > 0, energy, torch.ones_like(energy)), nan)
         coords = torch.tensor(grid, dtype=torch.long)  # [G, ndim]
         at = coords[arg]  # [B, *S, ndim] grid offset of the peak
