@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["bench_classify", "format_bench_classify", "bench_command"]
+__all__ = ["bench_classify", "format_bench_classify", "HELP", "DESCRIPTION", "add_arguments", "benchmark"]
 
 
 def _synthetic_maps(path: Path, spec, size: int, seed: int) -> Path:
@@ -71,7 +71,7 @@ def bench_classify(*, size: int = 512, repeats: int = 3, model: str | None = Non
                 info = res.info
             rows.append({"pool": pool, "pixels": size * size, "seconds": best, "pixels_per_s": size * size / best,
                          "classified": info["classified"], "stages_s": info["seconds"]})
-    from torchdoct.bench import machine_info
+    from torchdoct.runtime.machine import machine_info
 
     return {"benchmark": "classify", "model": mdl.spec.name, "size": size, "repeats": repeats, "rows": rows,
             "target_pixels_per_s": 1e6, "onnxruntime_threads": os.environ.get("OMP_NUM_THREADS"),
@@ -86,7 +86,20 @@ def format_bench_classify(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def bench_command(args) -> tuple[Any, Any]:
-    """``torchdoct bench classify`` (entry point ``torchdoct.bench``/``classify``, :mod:`torchdoct.extensions`):
-    the computation of ``args`` (``size``, ``repeats``, ``model``) and its table."""
+#: ``torchdoct bench classify`` (entry point ``torchdoct.bench``/``classify``, :mod:`torchdoct.extensions`).
+HELP = "doct-classify throughput on a 512×512 synthetic maps file"
+DESCRIPTION = None
+
+
+def add_arguments(bc) -> None:
+    bc.add_argument("--size", type=int, default=512, help="pixels per side")
+    bc.add_argument("--repeats", type=int, default=3)
+    bc.add_argument("--out", default=None, metavar="FILE.json",
+                    help="also write the result as JSON (default: printed only, nothing written)")
+    bc.add_argument("--model", default=None, help="shipped model name or .onnx path (default: the LIV/OCDS model)")
+    bc.add_argument("--force", action="store_true")
+
+
+def benchmark(args) -> tuple[Any, Any]:
+    """The computation of ``args`` (``size``, ``repeats``, ``model``) and its table."""
     return (lambda: bench_classify(size=args.size, repeats=args.repeats, model=args.model)), format_bench_classify

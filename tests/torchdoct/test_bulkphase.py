@@ -14,16 +14,15 @@ import numpy as np
 import pytest
 import torch
 
+from torchdoct.bench.bulkphase import _synthetic, residual_rms
 from torchdoct.cli import main
 from torchdoct.measured.bulkphase import (
     BulkPhase,
-    _synthetic,
     apply_bulk_phase,
     corrected_sequence,
     estimate_bulk_phase,
     phase_steps,
     predicted_residual_rms,
-    residual_rms,
 )
 from torchdoct.measured.io import Sequence, read_maps, validate_meta
 from torchdoct.measured.maps import compute_maps
@@ -494,7 +493,7 @@ def test_cli_bench_bulk_phase(tmp_path, capsys):
 
 
 def test_bench_on_a_rendered_phantom():
-    from torchdoct.measured.bulkphase import bench_bulk_phase_phantom, format_bench_bulk_phase
+    from torchdoct.bench.bulkphase import bench_bulk_phase_phantom, format_bench_bulk_phase
 
     ph = bench_bulk_phase_phantom("vessel-slab", snr_db=(30.0,), methods=("histogram",), masks=("all", "stable"))
     rows = {r["mask"]: r for r in ph["rows"]}

@@ -10,19 +10,18 @@ per-core cost), which other busy processes on a shared machine disturb much less
 from __future__ import annotations
 
 import json
-import os
-import platform
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 
+from ..runtime.machine import machine_info
 from ..sim.config import Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic, Scene
 from ..sim.plan import make_plan
 from ..sim.simulate import simulate
 
-__all__ = ["paper_systems", "paper_motions", "bench_simulate", "machine_info", "format_simulate_table", "write_json"]
+__all__ = ["paper_systems", "paper_motions", "bench_simulate", "format_simulate_table", "write_json"]
 
 
 def paper_systems() -> list[OCTSystem]:
@@ -41,18 +40,6 @@ def paper_motions() -> dict[str, Any]:
         "diffusion D=15": Diffusion(diffusion_um2_per_s=15.0),
         "ballistic v=6": RandomBallistic(speed_um_per_s=6.0, directions="uniform-angles"),
         "flow v=6 (45°)": Flow(speed_um_per_s=6.0, polar_angle_deg=45.0),
-    }
-
-
-def machine_info() -> dict[str, Any]:
-    return {
-        "cpu_count": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
-        "torch_interop_threads": torch.get_num_interop_threads(),
-        "torch": torch.__version__,
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
     }
 
 
@@ -262,9 +249,8 @@ class BusyNeighbour:
         self.proc.wait()
 
 
-def _workloads(tmp: Path) -> dict[str, Any]:
-    """The commands a user runs, as library calls taking ``threads``."""
-    from ..cli import main
+def _workloads(tmp: Path, command: Callable[[list[str]], int]) -> dict[str, Any]:
+    """The commands a user runs, as library calls taking ``threads``; ``command(argv)`` runs ``torchdoct render``."""
     from ..sim.config import load_scene, read_toml
     from ..sim.scenes import resolve_scene_path
     from ..study.sweep import make_sweep, run_sweeps
@@ -279,7 +265,7 @@ def _workloads(tmp: Path) -> dict[str, Any]:
         import io
 
         with contextlib.redirect_stdout(io.StringIO()):
-            code = main(["render", "example", "--grid", "64x64", "--pitch-um", "2", "--system", "840nm-high",
+            code = command(["render", "example", "--grid", "64x64", "--pitch-um", "2", "--system", "840nm-high",
                          "--out", str(tmp / "r.npz"), "--force", "--no-progress", "--threads", str(threads)])
         if code != 0:
             raise RuntimeError("torchdoct render example failed")
@@ -299,9 +285,13 @@ def _paper_cell() -> Scene:
                  name="840nm-high diffusion D=15")
 
 
-def bench_load(*, repeats: int = 3, threads: int | None = None, progress: bool = False) -> dict[str, Any]:
+def bench_load(*, command: Callable[[list[str]], int], repeats: int = 3, threads: int | None = None,
+               progress: bool = False) -> dict[str, Any]:
     """Each workload alone on one thread, alone with ``threads`` (default: the usable cores), and with
     ``threads`` beside a busy neighbour process (:class:`BusyNeighbour`); best of ``repeats`` each.
+
+    ``command(argv) -> int``: the command line that runs the ``render`` workload as a user would
+    (``torchdoct bench load`` passes its own; this package imports no command line).
 
     The policy's target: beside a second job, every workload within 1.5× of its one-thread time alone.
     """
@@ -312,7 +302,7 @@ def bench_load(*, repeats: int = 3, threads: int | None = None, progress: bool =
     threads = resolve_threads(threads)
     rows: dict[str, dict[str, float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        work = _workloads(Path(tmp))
+        work = _workloads(Path(tmp), command)
         for fn in work.values():  # warm-up (imports, caches)
             fn(1)
 

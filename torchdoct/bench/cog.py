@@ -25,7 +25,8 @@ from typing import Any
 
 from threadpoolctl import threadpool_limits
 
-from . import machine_info, paper_motions, paper_systems
+from ..runtime.machine import machine_info
+from . import paper_motions, paper_systems
 from ..sim.config import Diffusion, Flow, Population, Protocol, RandomBallistic, Scene
 from ..sim.simulate import simulate
 

@@ -29,6 +29,7 @@ import torch
 
 from ..sim.config import Analysis, Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic, Scene
 from ..conventions import mean_intensity, truncation_error_bound
+from ..runtime.machine import machine_info
 from ..sim.simulate import simulate
 
 __all__ = ["tradeoff_cells", "simulator_tradeoffs", "pareto_front", "recommend", "plot_tradeoffs",
@@ -106,7 +107,6 @@ def simulator_tradeoffs(*, trials: int = 8192, reference_trials: int = 16384,
     """Measure every knob of every :func:`tradeoff_cells` cell; returns a JSON-ready dict."""
     from tqdm.auto import tqdm
 
-    from . import machine_info
 
     cells_out = []
     cells = tradeoff_cells()
@@ -327,7 +327,6 @@ def study_tradeoffs(study: str = "paper-reduced", *, trials_grid: Sequence[int] 
     errors, ``√mean(SE_n² + SE_ref²)``, is reported beside it. The full study's time at ``n`` trials
     is predicted from the measured ms per cell-trial.
     """
-    from . import machine_info
     from ..study import load_study, study_sweeps
     from ..study.sweep import run_sweeps
 
@@ -468,7 +467,6 @@ def feature_fidelity(*, trials: int = 8192, reference_trials: int = 16384, seed:
     from scipy import special
     from tqdm.auto import tqdm
 
-    from . import machine_info
 
     settings = list(settings) if settings is not None else fidelity_settings()
     all_cells = fidelity_cells()

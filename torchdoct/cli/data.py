@@ -1,40 +1,26 @@
-"""Command line for measured data: ``torchdoct maps``, ``torchdoct compare``, ``torchdoct bench maps``,
-``torchdoct bench bulk-phase``.
+"""Command line for measured data: ``torchdoct maps`` and ``torchdoct compare`` (their benchmarks:
+:mod:`torchdoct.cli.bench`).
 
 Thin layer: parse, call one library function (:func:`torchdoct.measured.maps.compute_maps`,
-:func:`torchdoct.measured.compare.compare_samples`, :func:`torchdoct.measured.maps.bench_maps`), print.
+:func:`torchdoct.measured.compare.compare_samples`), print.
 """
 
 from __future__ import annotations
 
 import argparse
 import glob
-import json
 import math
 import zipfile
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-__all__ = ["register"]
+from .command import Command, parse_floats
+
+__all__ = ["COMMANDS"]
 
 
-def _floats(text: str, n: int | None = None, what: str = "value") -> list[float]:
-    try:
-        vals = [float(v) for v in str(text).replace(" ", "").split(",") if v != ""]
-    except ValueError:
-        raise ValueError(f"{what} must be comma-separated numbers; got {text!r}") from None
-    if n is not None and len(vals) != n:
-        raise ValueError(f"{what} needs {n} numbers; got {text!r}")
-    return vals
-
-
-def register(sub: Any, bench_sub: Any) -> None:
-    """Add ``maps``, ``compare`` and ``bench maps`` to the torchdoct parser."""
-    mp = sub.add_parser("maps", help="DOCT maps (LIV, OCDS, mean dB, aLIV, Swiftness) of an OCT sequence file",
-                        description="Compute DOCT maps of a complex (or intensity) OCT sequence at one or more "
-                                    "resolutions and write them to .tif/.npz, with optional pseudo-colour PNGs.")
+def _maps_arguments(mp) -> None:
     mp.add_argument("input", help="sequence file: .npy/.npz (+ .json sidecar), .h5 (incl. MATLAB v7.3), .tif")
     mp.add_argument("--resolution", action="append", default=None, metavar="R",
                     help="original | axial=UM | lateral=UM | axial=UM,lateral=UM (repeat; default original)")
@@ -100,13 +86,9 @@ def register(sub: Any, bench_sub: Any) -> None:
                    help="brightness range (dB) (default 5th-99.9th percentile)")
     p.add_argument("--png-y", type=int, default=None, help="B-scan index shown for volumes (default middle)")
     mp.add_argument("--no-progress", action="store_true", help="no progress bar")
-    mp.set_defaults(func=_maps)
 
-    cp = sub.add_parser("compare", help="per-sample mean LIV/OCDS per configuration and the paper's tests "
-                                        "(tests need >= 2 samples)",
-                        description="Mean DOCT values of several samples' maps per configuration; paired t-test "
-                                    "(2 configurations) or Kruskal-Wallis then pairwise paired t-tests (3+). The "
-                                    "tests need at least 2 samples; one sample gets its means without tests.")
+
+def _compare_arguments(cp) -> None:
     cp.add_argument("maps", nargs="+", metavar="[SAMPLE=]MAPS",
                     help="maps files; SAMPLE= groups files of one sample (default: file stem)")
     cp.add_argument("--mask", action="append", default=None, metavar="FILE",
@@ -125,33 +107,6 @@ def register(sub: Any, bench_sub: Any) -> None:
     cp.add_argument("--json", action="store_true", help="print the tests as JSON")
     cp.add_argument("--max-input-gb", type=float, default=None, metavar="GB",
                     help="largest maps or mask array to read (GiB; default 8 or $TORCHDOCT_MAX_INPUT_GB)")
-    cp.set_defaults(func=_compare)
-
-    bm = bench_sub.add_parser("maps", help="time maps of a random complex stack at several resolutions")
-    bm.add_argument("--frames", type=int, default=32)
-    bm.add_argument("--size", nargs=2, type=int, default=[512, 512], metavar=("Z", "X"))
-    bm.add_argument("--resolution", action="append", default=None, metavar="R",
-                    help="default: original, axial=14, lateral=18")
-    bm.add_argument("--aliv", action="store_true", help="include aLIV and Swiftness")
-    bm.add_argument("--repeats", type=int, default=1, help="timed repeats (best is kept)")
-    bm.add_argument("--out", default=None, metavar="FILE.json",
-                    help="also write the result as JSON (default: printed only, nothing written)")
-    bm.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    bm.set_defaults(func=_bench_maps)
-
-    bb = bench_sub.add_parser("bulk-phase", help="residual phase error of the bulk-phase correction against SNR")
-    bb.add_argument("--snr-db", default="10,20,30,40", help="comma list of SNRs (dB; default 10,20,30,40)")
-    bb.add_argument("--depth", type=int, default=64, help="depth pixels per A-line (default 64)")
-    bb.add_argument("--frames", type=int, default=32)
-    bb.add_argument("--lines", type=int, default=2000, help="A-lines per SNR (default 2000)")
-    bb.add_argument("--seed", type=int, default=0)
-    bb.add_argument("--phantom", default=None, metavar="NAME",
-                    help="also render this B-scan phantom (e.g. vessel-slab, which has moving regions) and measure "
-                         "every method and mask on it at 20, 30, 40 dB")
-    bb.add_argument("--out", default=None, metavar="FILE.json",
-                    help="also write the result as JSON (default: printed only, nothing written)")
-    bb.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    bb.set_defaults(func=_bench_bulk_phase)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -178,7 +133,7 @@ def _maps(args: argparse.Namespace) -> int:
         key, sep, val = r.partition("=")
         if not sep:
             raise ValueError(f"--range must be METRIC=LO,HI (e.g. liv=0,10); got {r!r}")
-        ranges[key.strip()] = tuple(_floats(val, 2, f"--range {key}"))
+        ranges[key.strip()] = tuple(parse_floats(val, 2, f"--range {key}"))
     _check_png_options(args, ranges, metrics)  # before anything is read or written
     system = {k: v for k, v in (("name", args.system_name), ("wavelength_um", args.wavelength_um),
                                 ("lateral_resolution_um", args.lateral_resolution_um),
@@ -187,9 +142,9 @@ def _maps(args: argparse.Namespace) -> int:
     raster = BlockRaster.parse(args.block_raster, args.drop_boundary) if args.block_raster else None
     center: str | float = args.axial_center
     if center not in ("zero", "centroid"):
-        center = _floats(center, 1, "--axial-center")[0]
+        center = parse_floats(center, 1, "--axial-center")[0]
     seq = read_sequence(args.input, axes=args.axes, pitch_um=args.pitch_um,
-                        frame_times_s=_floats(args.frame_times_s, None, "--frame-times-s") if args.frame_times_s else None,
+                        frame_times_s=parse_floats(args.frame_times_s, None, "--frame-times-s") if args.frame_times_s else None,
                         frame_interval_s=args.frame_interval_s, system=system or None, dataset=args.dataset,
                         block_raster=raster, allow_external_hdf5=args.allow_external_hdf5)
     resolutions = args.resolution or ["original"]
@@ -447,44 +402,15 @@ def _compare(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bench_bulk_phase(args: argparse.Namespace) -> int:
-    from ..files import atomic_write, check_out
-    from ..measured.bulkphase import bench_bulk_phase, format_bench_bulk_phase
-
-    out = check_out(args.out, args.force, ".json", what="--out")
-    if args.frames < 2 or args.depth < 3 or args.lines < 2:
-        raise ValueError("--frames must be >= 2, --depth >= 3 and --lines >= 2")
-    res = bench_bulk_phase(snr_db=_floats(args.snr_db, None, "--snr-db"), n_z=args.depth, frames=args.frames,
-                           lines=args.lines, seed=args.seed)
-    if args.phantom:
-        from ..measured.bulkphase import bench_bulk_phase_phantom
-
-        res["phantom"] = bench_bulk_phase_phantom(args.phantom)
-    print(format_bench_bulk_phase(res))
-    if out is not None:  # asked for with --out: nothing is written into the current folder unasked
-        atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
-        print(f"wrote {out}")
-    return 0
-
-
-def _bench_maps(args: argparse.Namespace) -> int:
-    from ..files import atomic_write, check_out
-    from ..measured.maps import bench_maps
-
-    out = check_out(args.out, args.force, ".json", what="--out")
-    if args.frames < 2 or min(args.size) < 1:
-        raise ValueError("--frames must be >= 2 and --size positive")
-    metrics = ["liv", "ocds", "mean_db"] + (["aliv", "swiftness"] if args.aliv else [])
-    res = bench_maps(frames=args.frames, shape=tuple(args.size),
-                     resolutions=args.resolution or ["original", "axial=14", "lateral=18"],
-                     metrics=metrics, repeats=args.repeats)
-    per = ", ".join(f"{k} {v:.2f} s" for k, v in res["seconds_per_resolution"].items())
-    m = res["machine"]
-    print(f"maps of a complex64 {res['shape']} stack, {len(res['resolutions'])} resolutions, "
-          f"{'+'.join(res['metrics'])}: {res['seconds_total']:.2f} s total ({per}); "
-          f"target {res['target_seconds']:.0f} s; {m['cpu_count']} cores, torch {m['torch']} with "
-          f"{m['torch_threads']} threads")
-    if out is not None:  # asked for with --out: nothing is written into the current folder unasked
-        atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
-        print(f"wrote {out}")
-    return 0
+COMMANDS = {
+    "maps": Command("DOCT maps (LIV, OCDS, mean dB, aLIV, Swiftness) of an OCT sequence file",
+                    _maps_arguments, _maps,
+                    "Compute DOCT maps of a complex (or intensity) OCT sequence at one or more "
+                    "resolutions and write them to .tif/.npz, with optional pseudo-colour PNGs."),
+    "compare": Command("per-sample mean LIV/OCDS per configuration and the paper's tests "
+                       "(tests need >= 2 samples)",
+                       _compare_arguments, _compare,
+                       "Mean DOCT values of several samples' maps per configuration; paired t-test "
+                       "(2 configurations) or Kruskal-Wallis then pairwise paired t-tests (3+). The "
+                       "tests need at least 2 samples; one sample gets its means without tests."),
+}

@@ -1,20 +1,21 @@
-"""``torchdoct phantoms``, ``torchdoct render`` and ``torchdoct bench render``."""
+"""``torchdoct phantoms`` and ``torchdoct render`` (its benchmark: :mod:`torchdoct.cli.bench`)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-__all__ = ["register"]
+from .command import Command
+
+__all__ = ["COMMANDS"]
 
 _SUFFIXES = (".npz", ".npy", ".h5")
 
 
-def register(sub, bench_sub) -> None:
-    ph = sub.add_parser("phantoms", help="list the shipped phantoms")
-    ph.set_defaults(func=_phantoms)
+def _phantoms_arguments(ph) -> None:
+    pass
 
-    r = sub.add_parser("render", help="render a phantom's complex image sequence, labels and a PNG preview")
+
+def _render_arguments(r) -> None:
     r.add_argument("phantom", help="phantom or scene TOML file, or a shipped phantom or scene name")
     r.add_argument("--grid", default=None, metavar="NZxNX|NYxNZxNX",
                    help="pixels per axis (B-scan NZxNX, volume NYxNZxNX); replaces the file's [grid]")
@@ -33,16 +34,6 @@ def register(sub, bench_sub) -> None:
     r.add_argument("--max-scatterers", type=float, default=None, metavar="N",
                    help="largest expected number of seeded scatterers (default 2e7, about 2.4 GB); checked "
                         "before the work")
-    r.set_defaults(func=_render)
-
-    b = bench_sub.add_parser("render", help="spheroid phantom: 32-frame 256×256 B-scan sequence")
-    b.add_argument("--phantom", default="spheroid")
-    b.add_argument("--repeats", type=int, default=3, help="repeats (best is kept)")
-    b.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    b.add_argument("--out", default=None, metavar="FILE.json",
-                    help="also write the result as JSON (default: printed only, nothing written)")
-    b.add_argument("--force", action="store_true")
-    b.set_defaults(func=_bench)
 
 
 def _phantoms(args) -> int:
@@ -139,14 +130,7 @@ def _save_labels(path: str, res) -> None:
         np.savez(fh, labels=res.labels, label_params=res.label_params, regions=res.regions)
 
 
-def _bench(args) -> int:
-    from ..files import atomic_write, check_out
-    from ..bench import bench_render
-
-    out = check_out(args.out, args.force, ".json")
-    res = bench_render(phantom=args.phantom, repeats=args.repeats, dtype=args.dtype)
-    print(json.dumps({k: v for k, v in res.items() if k != "machine"}, indent=2))
-    if out is not None:  # asked for with --out: nothing is written into the current folder unasked
-        atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
-        print(f"wrote {out}")
-    return 0
+COMMANDS = {
+    "phantoms": Command("list the shipped phantoms", _phantoms_arguments, _phantoms),
+    "render": Command("render a phantom's complex image sequence, labels and a PNG preview", _render_arguments, _render),
+}

@@ -1,16 +1,17 @@
-"""Command line: ``torchdoct sweep``, ``torchdoct study`` and ``torchdoct bench study``.
+"""Command line: ``torchdoct sweep`` and ``torchdoct study`` (its benchmark: :mod:`torchdoct.cli.bench`).
 
-Registered by :mod:`torchdoct.cli` through :func:`register`. Each handler parses, calls one library
+Entries of the command table of :mod:`torchdoct.cli` (:data:`COMMANDS`). Each handler parses, calls one library
 function (:mod:`torchdoct.study.sweep`, :mod:`torchdoct.study`) and prints.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
-__all__ = ["register"]
+from .command import Command, workers
+
+__all__ = ["COMMANDS"]
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
@@ -30,44 +31,16 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def register(sub, bench_sub) -> None:
-    """Add ``sweep``, ``study`` and ``bench study`` to the torchdoct command line."""
-    sw = sub.add_parser("sweep", help="run a scene file's [sweep] grid; write a tidy table (CSV, Parquet)")
+def _sweep_arguments(sw) -> None:
     sw.add_argument("scene", help="TOML scene file with a [sweep] table")
     _add_run_options(sw)
     sw.add_argument("--dtype", choices=("float32", "float64"), default=None)
     sw.add_argument("--tolerance", type=float, default=None, help="PSF truncation tolerance (amplitude)")
-    sw.set_defaults(func=_sweep)
 
-    st = sub.add_parser("study", help="run a study (e.g. 'paper'): table, Figs. 6-8, claims report")
+
+def _study_arguments(st) -> None:
     st.add_argument("study", help="study TOML file or shipped study name (paper, paper-reduced)")
     _add_run_options(st)
-    st.set_defaults(func=_study)
-
-    bs = bench_sub.add_parser("study", help="wall time of a whole study from an empty cache")
-    bs.add_argument("--study", default="paper-reduced", help="study file or shipped name (default paper-reduced)")
-    bs.add_argument("--trials", type=int, default=None, help="trials per point (default: the study's)")
-    bs.add_argument("--groupings", action="store_true",
-                    help="also time cells with all systems in one scene vs the comparisons' pairs")
-    bs.add_argument("--grouping-trials", type=int, default=128, help="trials per timed cell for --groupings")
-    bs.add_argument("--study-out", default=None, metavar="DIR",
-                    help="keep the study's table, figures and report in DIR (default: a temporary directory)")
-    bs.add_argument("--out", default=None, metavar="FILE.json",
-                    help="also write the result as JSON (default: printed only, nothing written)")
-    bs.add_argument("--force", action="store_true", help="overwrite --out (and --study-out files) if they exist")
-    bs.add_argument("--workers", type=int, default=None,
-                    help="cells computed side by side (default: --threads, else the usable cores)")
-    bs.add_argument("--no-progress", action="store_true", help="no progress bar")
-    bs.set_defaults(func=_bench_study)
-
-
-def _workers(args) -> int:
-    """Cells side by side: ``--workers``, else ``--threads``, else the usable cores (one torch thread each)."""
-    from ..threads import resolve_threads
-
-    if args.workers is not None:
-        return args.workers
-    return resolve_threads(getattr(args, "threads", None))
 
 
 def _cache(args) -> object:
@@ -87,11 +60,11 @@ def _sweep(args) -> int:
 
     check_sweep_resources([sweep], trials=args.trials, seed=args.seed, dtype=args.dtype, tolerance=args.tolerance,
                           cache_dir=_cache(args), scheduler=args.scheduler, batch_cells=args.batch_cells,
-                          workers=_workers(args))  # memory and disk, before the output folder is made
+                          workers=workers(args))  # memory and disk, before the output folder is made
     prepare_out_dir(args.out, sweep_outputs(args.out), args.force)
     res = run_sweep(sweep, trials=args.trials, seed=args.seed, dtype=args.dtype, tolerance=args.tolerance,
                     cache_dir=_cache(args), scheduler=args.scheduler, batch_cells=args.batch_cells,
-                    workers=_workers(args), progress=not args.no_progress, desc=f"sweep {sweep.name}")
+                    workers=workers(args), progress=not args.no_progress, desc=f"sweep {sweep.name}")
     files = write_sweep_outputs(res, args.out, force=args.force)
     print(f"sweep {sweep.name!r}: {len(res.cells)} cells ({res.computed} computed, {res.cached} from the cache), "
           f"{res.system_trials} system-trials, {res.elapsed_s:.1f} s")
@@ -106,7 +79,7 @@ def _study(args) -> int:
 
     r = run_study(args.study, args.out, trials=args.trials, seed=args.seed,
                   cache_dir=None if args.no_cache else (args.cache if args.cache is not None else "default"),
-                  scheduler=args.scheduler, batch_cells=args.batch_cells, workers=_workers(args), force=args.force,
+                  scheduler=args.scheduler, batch_cells=args.batch_cells, workers=workers(args), force=args.force,
                   progress=not args.no_progress)
     sr = r.sweep_result
     print(f"study {r.study.name!r}: {len(sr.cells)} cells ({sr.computed} computed, {sr.cached} from the cache), "
@@ -117,16 +90,7 @@ def _study(args) -> int:
     return 0
 
 
-def _bench_study(args) -> int:
-    from ..files import atomic_write, check_out
-    from ..study import bench_study, format_bench_study
-
-    out = check_out(args.out, args.force, ".json")
-    res = bench_study(args.study, trials=args.trials, groupings=args.groupings, grouping_trials=args.grouping_trials,
-                      study_out=args.study_out, force=args.force, workers=_workers(args),
-                      progress=not args.no_progress)
-    print(format_bench_study(res))
-    if out is not None:  # asked for with --out: nothing is written into the current folder unasked
-        atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2), encoding="utf-8"))
-        print(f"wrote {out}")
-    return 0
+COMMANDS = {
+    "sweep": Command("run a scene file's [sweep] grid; write a tidy table (CSV, Parquet)", _sweep_arguments, _sweep),
+    "study": Command("run a study (e.g. 'paper'): table, Figs. 6-8, claims report", _study_arguments, _study),
+}

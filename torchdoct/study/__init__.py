@@ -44,13 +44,12 @@ The package is split by concern, in import order (each module imports only those
 :mod:`~torchdoct.study.spec` (the study file), :mod:`~torchdoct.study.sweeps` (the sweeps a study
 builds), :mod:`~torchdoct.study.stats` (paired statistics), :mod:`~torchdoct.study.figures` and
 :mod:`~torchdoct.study.claims` (both read only the study and the statistics' tables),
-:mod:`~torchdoct.study.run` (:func:`run_study` writes everything) and :mod:`~torchdoct.study.bench`
-(its benchmark). Every public name is importable from ``torchdoct.study``.
+:mod:`~torchdoct.study.run` (:func:`run_study` writes everything); its benchmark is
+:mod:`torchdoct.bench.study`. Every public name is importable from ``torchdoct.study``.
 """
 
 from __future__ import annotations
 
-from .bench import bench_study, format_bench_study
 from .claims import claims_report
 from .figures import plot_comparison, plot_directions
 from .run import StudyResult, run_study, study_outputs
@@ -76,6 +75,4 @@ __all__ = [
     "plot_directions",
     "claims_report",
     "run_study",
-    "bench_study",
-    "format_bench_study",
 ]

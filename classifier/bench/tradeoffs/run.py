@@ -35,7 +35,7 @@ def run_tradeoffs(plan: TradeoffPlan, *, cache_dir=None, progress: bool = False,
     import torch
     from tqdm.auto import tqdm
 
-    from torchdoct.bench import machine_info
+    from torchdoct.runtime.machine import machine_info
 
     from classifier.dataset import Prior, make_dataset
     from classifier.features import load_spec

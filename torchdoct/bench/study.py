@@ -10,9 +10,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .run import run_study
-from .spec import Study, load_study
-from .sweeps import study_sweeps
+from ..runtime.machine import machine_info
+from ..study.run import run_study
+from ..study.spec import Study, load_study
+from ..study.sweeps import study_sweeps
 
 __all__ = ["bench_study", "format_bench_study"]
 
@@ -57,7 +58,6 @@ def bench_study(study: str | os.PathLike = "paper-reduced", *, trials: int | Non
 
     import torch
 
-    from ..bench import machine_info
 
     st = load_study(study)
     out: dict[str, Any] = {"benchmark": "study", "study": st.name, "machine": machine_info(),
