@@ -5,8 +5,8 @@ resolution differently for each motion type; this package learns that from simul
 (:mod:`classifier.dataset`, via :func:`torchdoct.simulate`), ships the model as ONNX and classifies
 every pixel of the maps written by ``torchdoct maps`` (``doct-classify``).
 
-Modules: :mod:`~classifier.features` (feature specs), :mod:`~classifier.dataset` (labelled
-simulation), :mod:`~classifier.model` (the network), :mod:`~classifier.train` (recipe),
+Modules: :mod:`~classifier.features` (feature specs), the training data (:mod:`~classifier.prior`,
+:mod:`~classifier.truth`, :mod:`~classifier.simulation`, :mod:`~classifier.dataset`), :mod:`~classifier.model` (the network), :mod:`~classifier.train` (recipe),
 :mod:`~classifier.export` (ONNX), :mod:`~classifier.infer` (classify maps; numpy + onnxruntime
 only: :mod:`~classifier.runtime`, :mod:`~classifier.matching`, :mod:`~classifier.pooling`,
 :mod:`~classifier.outputs`), :mod:`~classifier.rule` (the ``indeterminate`` outcome), :mod:`~classifier.report`.
@@ -28,7 +28,7 @@ _LAZY = {
     "TrainConfig": ("train", "TrainConfig"),
     "TrainResult": ("train", "TrainResult"),
     "make_dataset": ("dataset", "make_dataset"),
-    "Prior": ("dataset", "Prior"),
+    "Prior": ("prior", "Prior"),
     "export_onnx": ("export", "export_onnx"),
 }
 

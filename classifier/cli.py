@@ -56,7 +56,7 @@ def build_train_parser() -> argparse.ArgumentParser:
                         "beside the model")
     p.add_argument("--prior", default=None, metavar="TOML",
                    help="training prior (a SPEC.prior.toml written by --like, or your own: the fields of "
-                        "classifier.dataset.Prior); default: the shipped prior, or with --like the scaled one")
+                        "classifier.prior.Prior); default: the shipped prior, or with --like the scaled one")
     p.add_argument("--dry-run", action="store_true",
                    help="print the spec, the prior, the recipe, the expected time and the cache key, then stop")
     p.add_argument("--seed", type=int, default=d.seed)
@@ -176,12 +176,12 @@ def _prior(args: argparse.Namespace, spec, cfg):
 
 
 def _read_prior(path: str):
-    """A prior TOML file (the fields of :class:`classifier.dataset.Prior`), errors naming the file."""
+    """A prior TOML file (the fields of :class:`classifier.prior.Prior`), errors naming the file."""
     import tomllib
 
     from torchdoct.files import check_nesting
 
-    from .dataset import Prior
+    from .prior import Prior
 
     p = Path(path)
     try:
@@ -205,7 +205,8 @@ _RANGE_UNITS = {"diffusion": "D, µm²/s", "ballistic": "v, µm/s", "flow": "v, 
 
 def _print_plan(args, spec, prior, ranges, cfg, notes, paths) -> None:
     """What will be trained, printed before the work: spec, prior, recipe, expected time, cache key."""
-    from .dataset import CLASSES, dataset_key, default_cache_dir
+    from .dataset import dataset_key, default_cache_dir
+    from .prior import CLASSES
     from .features import toml_text
     from .own_system import estimate_seconds
     from .train import default_prior

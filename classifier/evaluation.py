@@ -18,7 +18,7 @@ shifted-prior and random-bulk-phase test splits of :func:`classifier.train.train
   (:func:`magnitude_metrics`).
 
 A *sample set* is a dict of arrays of equal length: ``x`` (model inputs), ``y`` (motion label), ``status``
-(0 where the ground truth says the motion is identifiable, :data:`classifier.dataset.STATUS`), ``draw``
+(0 where the ground truth says the motion is identifiable, :data:`classifier.truth.STATUS`), ``draw``
 (the independent unit of the bootstrap), ``magnitude`` (D in µm²/s or v in µm/s), ``polar_angle_deg``
 (the flow's angle from the depth axis; NaN for other motion), and for ``by_condition`` ``snr_db`` and
 ``static_fraction`` (:func:`classifier.train.eval_samples` makes them from a dataset). numpy only.
@@ -31,7 +31,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .dataset import CLASSES
+from .prior import CLASSES
 from .report import (COVERAGE_THRESHOLDS, bootstrap_draws, bootstrap_se, coverage_curve, evaluate, flow_recall_by_band,
                      magnitude_table)
 from .rule import INDETERMINATE

@@ -34,7 +34,7 @@ def build_metadata(result) -> dict[str, Any]:
     import torchdoct
 
     from . import __version__
-    from .dataset import CLASSES
+    from .prior import CLASSES
     from .features import metric_unit
 
     spec = result.spec

@@ -37,10 +37,10 @@ from torchdoct.measured import mapsfile
 from . import runtime
 from .matching import (SIGNATURE_MODEL, SIGNATURE_MODELS, MapsChannels, assemble_features, choose_default_model,
                        no_shipped_model_message)
-from .outputs import (CLASS_COLORS, MAGNITUDE_CHANNELS, MASKED, OUTPUT_FILES, Classification, _legend, _overlay,
-                      magnitude_maps, write_classification)
+from .outputs import (CLASS_COLORS, MAGNITUDE_CHANNELS, MASKED, OUTPUT_FILES, Classification, magnitude_maps,
+                      write_classification)
 from .features import physical_range
-from .pooling import effective_count, independent_fraction, model_inputs, pool_features
+from .pooling import independent_fraction, model_inputs, pool_features
 from .rule import REASONS, apply_rule
 from .runtime import DEFAULT_MODEL, ClassifierModel
 
@@ -73,10 +73,6 @@ _AUTO_RANGE_DB = 30.0
 #: ``doct-classify``'s and :func:`classify_maps`'s defaults: no pooling, the automatic background threshold.
 DEFAULT_POOL = 1
 DEFAULT_BACKGROUND_DB = "auto"
-#: The former private name of :func:`classifier.pooling.effective_count`.
-_effective_count = effective_count
-#: Names of the former single module kept importable from here (the legend and overlay of the outputs).
-_OUTPUT_HELPERS = (_legend, _overlay)
 
 
 def shipped_models():

@@ -3,7 +3,7 @@
 :func:`combine_fields` forms ``E_m + a·E_s + n`` (the static share of the mean intensity, common to the
 configurations or one per configuration, and circular Gaussian noise at an SNR, physics.md §5.2, §8);
 :func:`edge_static_fractions` gives the static share per configuration of a pixel near the edge of its
-moving region (physics.md §14). :mod:`classifier.dataset` draws the replicates and calls them.
+moving region (physics.md §14). :mod:`classifier.prior` draws the replicates and :mod:`classifier.simulation` calls them.
 """
 
 from __future__ import annotations

@@ -2,8 +2,8 @@
 system, the speeds the simulator can hold, and the expected time of a run (docs/physics.md §13).
 
 * :func:`identifiable_range`: the magnitudes at which a motion type is identifiable on a spec's system and
-  protocol (the ground truth of :func:`classifier.dataset.identifiability`, closed forms);
-* :func:`prior_for_spec`: a :class:`classifier.dataset.Prior` whose magnitude ranges are those ranges
+  protocol (the ground truth of :func:`classifier.truth.identifiability`, closed forms);
+* :func:`prior_for_spec`: a :class:`classifier.prior.Prior` whose magnitude ranges are those ranges
   widened by half a decade, whose density keeps the scatterers per resolution volume of the shipped
   prior, and whose speeds stop at :func:`speed_cap`;
 * :func:`estimate_seconds`: the expected time of :func:`classifier.train.train`, from a pilot.
@@ -17,8 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from .dataset import (BALLISTIC_LAWS, CLASSES, DEFAULT_TRUNCATION, Draw, Prior, _lateral_y, identifiability,
-                      scene_for)
+from .prior import BALLISTIC_LAWS, CLASSES, Draw, Prior
+from .simulation import DEFAULT_TRUNCATION, scene_for
+from .truth import lateral_y, identifiability
 from .features import FeatureSpec
 
 __all__ = ["identifiable_range", "prior_for_spec", "speed_cap", "estimate_seconds", "PRIOR_MARGIN_DECADES",
@@ -95,7 +96,7 @@ def prior_for_spec(spec: FeatureSpec, base: Prior | None = None,
 
     base = base or Prior()
     ref = n_eff(1.0, *REFERENCE_RESOLUTIONS_UM)
-    finest = min(n_eff(1.0, c.lateral_resolution_um, c.axial_resolution_um, **_lateral_y(c))
+    finest = min(n_eff(1.0, c.lateral_resolution_um, c.axial_resolution_um, **lateral_y(c))
                  for c in spec.configurations)
     density = tuple(float(f"{d * ref / finest:.3g}") for d in base.density_per_um3)
     base = _dc.replace(base, density_per_um3=density)
@@ -167,7 +168,8 @@ def estimate_seconds(spec: FeatureSpec, prior: Prior, cfg: Any, *, pilot_draws: 
     per epoch × the epoch cap (an upper bound: early stopping often ends sooner)."""
     from torchdoct.threads import resolve_threads, single_torch_thread
 
-    from .dataset import draw_parameters, simulate_draw
+    from .prior import draw_parameters
+    from .simulation import simulate_draw
 
     t0 = time.perf_counter()
     with single_torch_thread():

@@ -11,7 +11,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-from .dataset import CLASSES, DEFAULT_TRUNCATION, Prior
+from .prior import CLASSES, Prior
+from .simulation import DEFAULT_TRUNCATION
 from .features import FeatureSpec, load_spec
 
 __all__ = ["TrainConfig", "SPEC_RECIPES", "OWN_SIGNATURE_RECIPE", "recipe_for", "SCALED_PRIOR_SPECS", "default_prior",
@@ -39,16 +40,16 @@ class TrainConfig:
     #: same tolerance) or ``"hard"`` (the mode of the models trained before the taper existed)
     truncation: str = DEFAULT_TRUNCATION
     #: law of the flow's polar angle in the training prior when no prior is given
-    #: (:attr:`classifier.dataset.Prior.flow_polar_law`)
+    #: (:attr:`classifier.prior.Prior.flow_polar_law`)
     flow_polar_law: str = "isotropic"
     #: residual bulk-phase step SD range (rad) of the training prior when no prior is given
-    #: (:attr:`classifier.dataset.Prior.bulk_residual_step_rad`; for models that read the phase)
+    #: (:attr:`classifier.prior.Prior.bulk_residual_step_rad`; for models that read the phase)
     bulk_residual_step_rad: tuple[float, float] = (0.0, 0.0)
     #: share of the training draws with detection noise when no prior is given
-    #: (:attr:`classifier.dataset.Prior.noise_probability`; the noise-free rest is a limit no measurement reaches)
+    #: (:attr:`classifier.prior.Prior.noise_probability`; the noise-free rest is a limit no measurement reaches)
     noise_probability: float = 0.5
     #: share of the training replicates near a static edge when no prior is given
-    #: (:attr:`classifier.dataset.Prior.static_edge_probability`: each configuration its own static share)
+    #: (:attr:`classifier.prior.Prior.static_edge_probability`: each configuration its own static share)
     static_edge_probability: float = 0.0
     hidden: tuple[int, ...] = (64, 64)
     max_epochs: int = 200
@@ -235,7 +236,7 @@ def default_prior(cfg: TrainConfig) -> Prior:
     return prior
 
 
-#: Prior of the shifted-prior test set: nuisances the training prior (:class:`~classifier.dataset.Prior`)
+#: Prior of the shifted-prior test set: nuisances the training prior (:class:`~classifier.prior.Prior`)
 #: does not draw, or draws elsewhere. Flow at 10-80° from the depth axis (isotropic within that
 #: cone: cos of the polar angle ~ U[cos 80°, cos 10°]; training: the whole sphere), the density of the
 #: moving scatterers fixed at 0.05 µm⁻³ (training: U[0.02, 0.1]), no static fraction (training: with

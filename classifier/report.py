@@ -5,7 +5,7 @@ Metrics (classes = the model's classes, the last being ``indeterminate``):
 * **accuracy / balanced accuracy (all)**: decisions after the indeterminate rule against the
   truth including the indeterminate class (balanced = mean per-class recall);
 * **identifiable**: over samples whose motion is identifiable by the ground truth
-  (:func:`classifier.dataset.identifiability`): ``coverage`` = fraction the rule decides;
+  (:func:`classifier.truth.identifiability`): ``coverage`` = fraction the rule decides;
   ``accuracy`` and ``balanced_accuracy`` over the decided ones (motion classes only); ``strict``
   accuracy counts undecided samples as wrong;
 * **ECE**: expected calibration error of the top-class probability before the rule, 15 equal-width

@@ -8,7 +8,7 @@ completely within one frame interval, every frame is an independent speckle patt
 are those of independent speckle (LIV at its N_eff-dependent plateau, OCDS at the estimator's
 floor) for every motion type. In both regimes no method can tell the motion types apart.
 
-Ground truth (:func:`classifier.dataset.identifiability`): a sample is indeterminate when its moving
+Ground truth (:func:`classifier.truth.identifiability`): a sample is indeterminate when its moving
 scatterers do not decorrelate over the acquisition (intensity correlation coefficient
 ``ρ_I(T) ≥ 1 − ε`` at every configuration, ``T`` the first-to-last frame delay; "static") or when
 their field decorrelates completely within one frame interval (``|g1(Δt)|² ≤ ε`` at every

@@ -47,7 +47,9 @@ import numpy as np
 import torch
 
 from . import __version__
-from .dataset import CLASSES, STATUS, Dataset, Prior, make_dataset
+from .dataset import Dataset, make_dataset
+from .prior import CLASSES, Prior
+from .truth import STATUS
 from .features import METRIC_UNITS, FeatureSpec, load_spec
 from .evaluation import CLASS_NAMES, evaluate_set
 from .model import DECORRELATION_OFFSET, LIV_OFFSET_DB2, MotionClassifier

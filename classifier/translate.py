@@ -132,7 +132,7 @@ def build_table(target: Target, prior, *, trials: int = 128, seed: int = 0, prog
                 classes: Sequence[int] = (0, 1, 2)) -> TranslationTable:
     """Simulate the target for every class on a log-magnitude grid over ``prior``'s range (module docstring).
 
-    ``prior``: the source model's :class:`classifier.dataset.Prior` (its magnitude ranges and density).
+    ``prior``: the source model's :class:`classifier.prior.Prior` (its magnitude ranges and density).
     ``trials`` per grid point, split evenly over the direction variants. Seeds: grid point ``k`` of class
     ``c``, variant ``v`` uses ``SeedSequence(seed, spawn_key=(c, k, v))``: the table does not depend on
     the threads or on the other grid points."""
@@ -232,7 +232,7 @@ def translate_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], targe
 
     from torchdoct.measured.mapsfile import Maps
 
-    from .dataset import CLASSES, Prior
+    from .prior import CLASSES, Prior
     from .own_system import identifiable_range
     from .features import spec_from_dict
     from .infer import classify_maps

@@ -73,7 +73,8 @@ def run_ablation(*, draws_train: int = 360, draws_test: int = 90, pixels: int = 
     """Balanced accuracy, coverage and ECE per subset (module docstring); JSON-able."""
     from sklearn.ensemble import HistGradientBoostingClassifier
 
-    from classifier.dataset import Prior, make_dataset
+    from classifier.dataset import make_dataset
+    from classifier.prior import Prior
     from classifier.report import evaluate
     from classifier.rule import make_rule
     from classifier.train import CLASS_NAMES
@@ -117,10 +118,10 @@ def run_indeterminate(*, draws_train: int = 360, draws_test: int = 90, pixels: i
                       cache_dir=None, log=print) -> dict:
     """Can the signature tell the motion types apart where the ground truth says "decorrelated"?
 
-    The ground truth (:func:`classifier.dataset.identifiability`) calls a draw "decorrelated" when its
+    The ground truth (:func:`classifier.truth.identifiability`) calls a draw "decorrelated" when its
     field decorrelates within one frame interval at every configuration. What is then left of the
     intensity correlation is the incoherent transit term ``j/N_eff`` (physics.md §5.4), which may still
-    decay over the acquisition (:func:`classifier.dataset.transit_decay` > ε at some configuration,
+    decay over the acquisition (:func:`classifier.truth.transit_decay` > ε at some configuration,
     "transit visible") or not ("flat"). Here gradient boosting is trained on the same data as
     :func:`run_ablation` with those decorrelated draws labelled by their motion type instead of
     ``indeterminate``, and the balanced accuracy is measured per pixel in each regime of the test
@@ -130,7 +131,9 @@ def run_indeterminate(*, draws_train: int = 360, draws_test: int = 90, pixels: i
     """
     from sklearn.ensemble import HistGradientBoostingClassifier
 
-    from classifier.dataset import Prior, draw_parameters, make_dataset, transit_decay
+    from classifier.dataset import make_dataset
+    from classifier.prior import Prior, draw_parameters
+    from classifier.truth import transit_decay
     from classifier.features import load_spec
     from classifier.report import evaluate
     from classifier.rule import make_rule

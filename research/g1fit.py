@@ -40,7 +40,7 @@ every configuration) or does not beat the null model; or when the fitted curve l
 where the field cannot tell the motion types apart: it does not decorrelate over the acquisition
 (``|g1_fit(T)|² ≥ 1 − ε`` at every configuration, ``T`` the first-to-last frame delay) or it
 decorrelates completely within one frame interval (``|g1_fit(Δt)|² ≤ ε`` at every configuration):
-the ground truth's criteria (:func:`classifier.dataset.identifiability`) on the fitted curve, with
+the ground truth's criteria (:func:`classifier.truth.identifiability`) on the fitted curve, with
 ``|g1|²`` for ``ρ_I`` (the field carries no transit term ``j/N_eff``, which the signature network
 reads from the intensity; the ground truth counts pixels whose phase is lost in a frame but whose
 transit is visible as identifiable, so those count against the fit's coverage).
@@ -432,7 +432,7 @@ def _fit_kwargs(spec, prior, lags) -> dict[str, Any]:
 def _magnitude_errors(est_log10: np.ndarray, s: dict[str, np.ndarray], decided_correct: np.ndarray) -> dict:
     """Median |log10 error| on identifiable samples: (a) decided with the true class, (b) every
     identifiable sample with the true class's estimate (the training report's definition)."""
-    from classifier.dataset import CLASSES
+    from classifier.prior import CLASSES
 
     ident = s["status"] == 0
     rows = np.arange(len(s["y"]))
@@ -483,7 +483,8 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
     pixels of its report); ``lags`` default :data:`DEFAULT_LAGS` (those ≤ T − 3)."""
     from threadpoolctl import threadpool_limits
 
-    from classifier.dataset import Prior, make_dataset
+    from classifier.dataset import make_dataset
+    from classifier.prior import Prior
     from classifier.infer import load_model
     from classifier.report import evaluate
     from classifier.rule import apply_rule
@@ -607,7 +608,7 @@ def format_markdown(r: dict[str, Any]) -> str:
              "torchdoct.sim.theory, grid of "
              f"{r['fit']['grid_per_decade']} magnitudes per decade, {r['fit']['cos_polar_steps']} |cos θ| for flow; "
              f"class by {r['fit']['selection']}; indeterminate: {r['fit']['indeterminate']}).  ")
-    L.append("Identifiable = the ground truth of `classifier.dataset.identifiability`; coverage = decided share of "
+    L.append("Identifiable = the ground truth of `classifier.truth.identifiability`; coverage = decided share of "
              "them; accuracy over the decided ones. Magnitude error: median |log10 error| of D (µm²/s) or v (µm/s), "
              "(a) on identifiable pixels decided with the true class, (b) on every identifiable pixel with the true "
              "class's estimate (the training report's definition).")

@@ -127,7 +127,9 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
     import torchdoct
 
     from classifier import __version__
-    from classifier.dataset import STATUS, Prior, make_dataset
+    from classifier.dataset import make_dataset
+    from classifier.prior import Prior
+    from classifier.truth import STATUS
     from classifier.features import load_spec
     from classifier.rule import make_rule
     from classifier.train import (CLASS_NAMES, TrainConfig, class_targets, evaluation_sets, feature_masks, fit_network,

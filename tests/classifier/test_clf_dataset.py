@@ -10,8 +10,11 @@ import pytest
 import torch
 
 import torchdoct as td
-from classifier.dataset import (CLASSES, Draw, Prior, combine_fields, draw_parameters, identifiability, transit_decay,
-                                make_dataset, scene_for, simulate_draw)
+from classifier.dataset import make_dataset
+from classifier.nuisance import combine_fields
+from classifier.prior import CLASSES, Draw, Prior, draw_parameters
+from classifier.simulation import scene_for, simulate_draw
+from classifier.truth import identifiability, transit_decay
 from classifier.features import Configuration, FeatureSpec, load_spec
 
 TINY = FeatureSpec(name="tiny", configurations=(
@@ -267,7 +270,7 @@ def test_flow_angle_range_is_isotropic_within_it():
     u = [draw_parameters(wide, 2, "test", k) for k in range(2, 3000, 3)]
     # default: the historical law, cos(polar) = 2u - 1 bit for bit
     for k, d in zip(range(2, 3000, 3), u[:20]):
-        from classifier.dataset import _seed_sequence
+        from classifier.prior import _seed_sequence
 
         u0 = np.random.default_rng(_seed_sequence(2, "test", k)).random(4)[0]
         assert d.polar_angle_deg == math.degrees(math.acos(2.0 * u0 - 1.0))
@@ -289,7 +292,7 @@ def test_flow_angle_range_is_isotropic_within_it():
 # the edge of a moving region: a static share per configuration (physics.md §14)
 
 def test_edge_static_fractions_closed_form():
-    from classifier.dataset import edge_static_fractions
+    from classifier.nuisance import edge_static_fractions
 
     spec = load_spec("signature")  # original 4.9/3.8, axial=14, lateral=18 (isotropic)
     names = [c.name for c in spec.configurations]

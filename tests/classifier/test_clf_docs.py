@@ -50,7 +50,8 @@ def test_classifier_readme_and_legend_cite_the_repository_file(tmp_path):
     assert "](../docs/physics.md)" in readme
     from types import SimpleNamespace
 
-    from classifier.infer import _legend, load_model
+    from classifier.infer import load_model
+    from classifier.outputs import _legend
 
     model = load_model(None, threads=1)  # a shipped model: its metadata rule cites the reference
     assert "physics.md" in model.rule["definition"]

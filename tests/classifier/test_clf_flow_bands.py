@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from classifier.dataset import Prior, draw_parameters
+from classifier.prior import Prior, draw_parameters
 from classifier.report import flow_recall_by_band
 from classifier.rule import make_rule
 
@@ -59,7 +59,8 @@ def _field_spec():
 def test_bulk_residual_random_walk_leaves_intensity_and_shrinks_g1_as_predicted():
     """A residual bulk phase (random walk, step SD σ, common to the configurations) changes no intensity
     feature and multiplies |g1| of a static sample by E|⟨exp(iδ)⟩| over the T − 1 lag-1 pairs."""
-    from classifier.dataset import Draw, simulate_draw
+    from classifier.prior import Draw
+    from classifier.simulation import simulate_draw
 
     spec = _field_spec()
     draw = Draw(label=0, magnitude=1e-7, polar_angle_deg=0.0, azimuth_deg=0.0, density_per_um3=0.05, sim_seed=7,

@@ -14,7 +14,8 @@ import pytest
 
 from _clf_maps import feature_channels, maps_meta, save_maps
 from classifier.cli import classify_main
-from classifier.dataset import Draw, Prior, simulate_draw
+from classifier.prior import Draw, Prior
+from classifier.simulation import simulate_draw
 from classifier.export import build_metadata, export_onnx
 from classifier.infer import (MASKED, _effective_count, classify_maps, independent_fraction, load_model,
                               pool_features, read_maps)

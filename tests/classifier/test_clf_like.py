@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from _clf_maps import feature_channels, maps_meta, save_maps
-from classifier.dataset import CLASSES, Draw, Prior, identifiability
+from classifier.prior import CLASSES, Draw, Prior
+from classifier.truth import identifiability
 from classifier.own_system import REFERENCE_RESOLUTIONS_UM, identifiable_range, prior_for_spec
 from classifier.features import Configuration, FeatureSpec, load_spec, spec_from_dict, toml_text
 from classifier.matching import spec_from_maps
@@ -91,7 +92,7 @@ def test_prior_for_spec_keeps_n_eff_and_widens_each_range_by_the_margin():
 
 
 def test_speed_cap_bounds_the_scatterers_a_draw_simulates():
-    from classifier.dataset import scene_for
+    from classifier.simulation import scene_for
     from classifier.own_system import MAX_SCATTERERS_PER_TRIAL, speed_cap
     from torchdoct.sim.plan import make_plan
 

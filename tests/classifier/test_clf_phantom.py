@@ -4,7 +4,7 @@
 
 The phantom has nine discs in static tissue: diffusion D = 0.0003, 0.002, 0.01 µm²/s, random-ballistic
 v = 0.01, 0.05, 0.3 µm/s, flow v = 0.3, 1, 3 µm/s, all identifiable by the ground-truth definition
-(``classifier.dataset.identifiability``, checked below) and spanning the range where the model
+(``classifier.truth.identifiability``, checked below) and spanning the range where the model
 decides. All labelled moving pixels count (edge 0). The maps are B-scans reduced laterally along x
 only, so the default model is the B-scan signature model (``signature-bscan``). Six renderings
 (seeds 2026 = the file's, 1-5), 128 × 128 B-scan:
@@ -67,7 +67,8 @@ def chain(tmp_path_factory):
 
 
 def test_phantom_regions_are_identifiable():
-    from classifier.dataset import Draw, Prior, identifiability
+    from classifier.prior import Draw, Prior
+    from classifier.truth import identifiability
     from classifier.features import load_spec
     from torchdoct.image.phantom import load_phantom
 

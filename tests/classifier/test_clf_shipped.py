@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from classifier.dataset import Prior, draw_parameters, simulate_draw
+from classifier.prior import Prior, draw_parameters
+from classifier.simulation import simulate_draw
 from classifier.export import OPSET, model_from_onnx
 from classifier.features import load_spec
 from classifier.infer import DEFAULT_MODEL, load_model, shipped_models

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from _clf_maps import feature_channels, maps_meta, save_maps
-from classifier.dataset import Draw, Prior, simulate_draw
+from classifier.prior import Draw, Prior
+from classifier.simulation import simulate_draw
 from classifier.export import build_metadata, export_onnx, model_from_onnx, onnx_parity
 from classifier.features import load_spec
 from classifier.infer import MAGNITUDE_CHANNELS, MASKED, classify_maps, load_model, write_classification
@@ -204,7 +205,8 @@ def test_indeterminate_measurement_partitions_the_test_split(tmp_path):
     """``python -m research.ablation --indeterminate``: the three regimes partition the test pixels that
     are identifiable or decorrelated, and every score is a probability."""
     from research.ablation import run_indeterminate
-    from classifier.dataset import Prior, make_dataset
+    from classifier.dataset import make_dataset
+    from classifier.prior import Prior
 
     res = run_indeterminate(draws_train=12, draws_test=6, pixels=3000, cache_dir=tmp_path, log=None)
     te = make_dataset(__import__("research.ablation", fromlist=["candidate_spec"]).candidate_spec(), Prior(),

@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from classifier.dataset import STATUS, Prior, make_dataset
+from classifier.dataset import make_dataset
+from classifier.prior import Prior
+from classifier.truth import STATUS
 from classifier.features import load_spec
 from classifier.report import bootstrap_se, evaluate
 from classifier.rule import make_rule

@@ -309,7 +309,7 @@ def test_shifted_prior_test_set_is_evaluated_and_reported(cache_dir, tmp_path):
     import dataclasses
     import math
 
-    from classifier.dataset import Prior
+    from classifier.prior import Prior
     from classifier.report import format_markdown, plot_report
     from classifier.train import SHIFTED_PRIOR, SHIFTED_TARGETS, shifted_prior
 

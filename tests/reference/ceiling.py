@@ -11,7 +11,7 @@ and prints a summary. Kept whole: one research command whose data, fits, scores 
 to bottom, and whose functions the fast tests call one by one.
 
 **What it measures.** The shipped models are trained on the training prior
-(:class:`classifier.dataset.Prior`) and tested by :mod:`evaluate_models` on another prior and another
+(:class:`classifier.prior.Prior`) and tested by :mod:`evaluate_models` on another prior and another
 simulator. A model trained on draws of the *test* prior (a matched prior: optimistic) bounds what the
 features can give on that data; where it stays below a goal, the gap is the features' (what the
 configurations and estimators measure), and where it lies above the shipped model, the gap is the
@@ -21,14 +21,14 @@ shipped model's and its training prior's.
 ``--test-seed`` (0: the set of the ``*-independent.md`` reports), simulated by
 :func:`evaluate_models.draw_features` (the reference simulator, every configuration of the spec seeing
 the same scatterers; features by ``torchdoct.sim.signature``), ground truth by
-:func:`classifier.dataset.identifiability` under :func:`evaluate_models.independent_prior` with the
+:func:`classifier.truth.identifiability` under :func:`evaluate_models.independent_prior` with the
 shipped model's ε. Training sets: draws ``0..M−1`` of the same prior with seed ``--train-seed`` (1),
 so every training draw has its own parameters and simulator seed (disjoint from the test draws;
 the sizes are nested prefixes of one sequence), simulated
 
 * by the reference simulator (parts **a**, **b**), or
-* by torchdoct (:func:`classifier.dataset.simulate_draw`, the training data's simulator at the shipped
-  recipe's truncation, taper), the same draws as a :class:`classifier.dataset.Draw`
+* by torchdoct (:func:`classifier.simulation.simulate_draw`, the training data's simulator at the shipped
+  recipe's truncation, taper), the same draws as a :class:`classifier.prior.Draw`
   (:func:`evaluate_models.dataset_draw`) under :func:`evaluate_models.independent_prior` (part **c**):
   the same prior exactly, only the simulator differs from the test set's.
 
@@ -144,7 +144,7 @@ PART_TEXT = {
                 "prior's per-type speed ranges no longer help)",
     "b-shared": "part b with one speed range 0.01-3 µm/s for random-ballistic motion and flow in training",
     "d": "part c's classifier trained on torchdoct draws of the shipped signature recipe's training prior "
-         "(classifier.dataset.Prior, flow polar angle uniform; make_dataset, one nuisance replicate per draw)",
+         "(classifier.prior.Prior, flow polar angle uniform; make_dataset, one nuisance replicate per draw)",
     "e": "part d with the training prior scaled to the system (classifier.own_system.prior_for_spec of d's prior: "
          "each motion type's identifiable range ± half a decade, speeds capped at what the simulator holds)",
     "e-noise": "part e with detection noise in every training draw (SNR U[10, 40] dB; e: in half of them)",
@@ -158,7 +158,7 @@ PART_TEXT = {
              "them), same data",
 }
 #: Training priors of parts d and e, in the form of the models' own training data
-#: (:class:`classifier.dataset.Prior`, simulated by :func:`classifier.dataset.make_dataset`): ``"training"``
+#: (:class:`classifier.prior.Prior`, simulated by :func:`classifier.dataset.make_dataset`): ``"training"``
 #: the prior the shipped ``signature`` model was trained on, ``"scaled"`` the same scaled to the spec's
 #: system (:func:`classifier.own_system.prior_for_spec`). Each draw's pixels share one (static fraction, SNR)
 #: setting of the prior (one replicate), so a training draw holds as many pixels as in the other parts.
@@ -194,13 +194,13 @@ def _truncation(spec_name: str) -> tuple[float, str]:
 def simulate_features(spec, d: "em.IndependentDraw", trials: int, source: str, epsilon: float) -> np.ndarray:
     """Features ``[trials, F]`` (float32, the spec's order) of one independent draw by ``source``:
     ``"refsim"`` (:func:`evaluate_models.draw_features`) or ``"torchdoct"``
-    (:func:`classifier.dataset.simulate_draw` at the shipped recipe's truncation; empty-volume pixels
+    (:func:`classifier.simulation.simulate_draw` at the shipped recipe's truncation; empty-volume pixels
     as NaN rows, dropped like non-finite ones)."""
     if source == "refsim":
         return em.draw_features(spec, d, trials)
     if source != "torchdoct":
         raise ValueError(f"unknown source {source!r} (refsim or torchdoct)")
-    from classifier.dataset import simulate_draw
+    from classifier.simulation import simulate_draw
 
     tol, mode = _truncation(spec.name)
     x, zero = simulate_draw(spec, em.dataset_draw(d), em.independent_prior(epsilon), trials=trials,
@@ -307,7 +307,8 @@ def load_set(cache: FeatureCache, draws: int, *, features: np.ndarray | None = N
     """The draws ``0..draws−1`` of a cache as a :class:`classifier.dataset.Dataset` (ground truth as in
     :func:`evaluate_models.evaluate_model`; non-finite rows dropped). ``features``: an already
     simulated ``[draws, trials, F]`` array instead of the cache files (the tests)."""
-    from classifier.dataset import STATUS, Dataset, identifiability
+    from classifier.dataset import Dataset
+    from classifier.truth import STATUS, identifiability
 
     prior = em.independent_prior(cache.epsilon)
     cols: dict[str, list] = {k: [] for k in ("x", "y", "draw", "status", "magnitude", "snr_db", "polar_angle_deg")}
@@ -331,7 +332,7 @@ def load_set(cache: FeatureCache, draws: int, *, features: np.ndarray | None = N
 
 
 def dataset_prior(name: str, spec, epsilon: float):
-    """The :class:`classifier.dataset.Prior` of :data:`DATASET_PRIORS` ``name`` for ``spec``, with the
+    """The :class:`classifier.prior.Prior` of :data:`DATASET_PRIORS` ``name`` for ``spec``, with the
     shipped model's ε: ``"training"`` is ``Prior(flow_polar_law="uniform-angle")`` (the shipped
     ``signature`` recipe's prior: D in [1e-4, 15] µm²/s, one speed range [1e-3, 6] µm/s for random-ballistic
     motion and flow), ``"scaled"`` :func:`classifier.own_system.prior_for_spec` of it; ``"-noise"``: detection
@@ -340,7 +341,7 @@ def dataset_prior(name: str, spec, epsilon: float):
     (:func:`classifier.recipe.default_prior` of ``TrainConfig.for_spec(spec)``)."""
     import dataclasses
 
-    from classifier.dataset import Prior
+    from classifier.prior import Prior
     from classifier.own_system import prior_for_spec
 
     if name not in DATASET_PRIORS:

@@ -15,7 +15,7 @@ made):
 
 * motion type ``k mod 3``: diffusion, random-ballistic motion and flow in equal thirds;
 * magnitude log-uniform (independent draws, not the training's stratified sequence) over sub-ranges
-  inside each type's identifiable range (ground truth of :func:`classifier.dataset.identifiability`
+  inside each type's identifiable range (ground truth of :func:`classifier.truth.identifiability`
   for the signature spec at this density: diffusion 2e-5 to 0.025 µm²/s, random-ballistic motion
   0.005-0.7 µm/s (isotropic law; 0.003-2.3 for the uniform-angles law), flow above 0.09-0.14 µm/s):
   D ∈ [3e-4, 2e-2] µm²/s, ballistic v ∈ [1e-2, 0.5] µm/s, flow v ∈ [0.2, 3] µm/s (training: one
@@ -55,8 +55,8 @@ configuration is the approximation made here (it is also the training data's noi
 
 **Features**: :func:`torchdoct.sim.signature.signature` (the extractor ``torchdoct maps --signature``
 and the training data use) on the float64 fields, in the model's feature order, stored as float32 as
-in training. **Ground truth**: :func:`classifier.dataset.identifiability` of a
-:class:`classifier.dataset.Draw` with the model's ε, so "identifiable" means what it means in training.
+in training. **Ground truth**: :func:`classifier.truth.identifiability` of a
+:class:`classifier.prior.Draw` with the model's ε, so "identifiable" means what it means in training.
 
 **Metrics** (per pool 1 and 25; pool ``n`` = the mean of ``n`` trials of one draw, ``pool_pixels = n``,
 8 random subsets per draw, :func:`classifier.train.pooled_samples`, as in the training reports and as
@@ -133,7 +133,7 @@ PRIOR_TEXT = (f"motion type in equal thirds (draw k: type k mod 3); magnitude lo
               f"configuration's mean intensity, independent per configuration, frame and trial")
 SIM_TEXT = ("reference simulator (brute force, float64, exact paths; physics.md §5.1), every configuration of the "
             "model seeing the same scatterers on the same paths (one Poisson set in a box that reaches every "
-            "configuration's window of ±6 amplitude sigmas); features by torchdoct.sim.signature; ground truth by classifier.dataset.identifiability with the model's epsilon")
+            "configuration's window of ±6 amplitude sigmas); features by torchdoct.sim.signature; ground truth by classifier.truth.identifiability with the model's epsilon")
 _CLASSES = ("diffusion", "ballistic", "flow")
 _LAWS = ("isotropic", "uniform-angles")
 
@@ -179,9 +179,9 @@ def draw_independent(seed: int, k: int) -> IndependentDraw:
 
 
 def independent_prior(epsilon: float):
-    """The prior as a :class:`classifier.dataset.Prior` (for the ground truth and the report; one speed
+    """The prior as a :class:`classifier.prior.Prior` (for the ground truth and the report; one speed
     range spans both speed types, whose own ranges are :data:`RANGES`)."""
-    from classifier.dataset import Prior
+    from classifier.prior import Prior
 
     return Prior(diffusion_um2_per_s=RANGES["diffusion"],
                  speed_um_per_s=(min(RANGES["ballistic"][0], RANGES["flow"][0]),
@@ -192,8 +192,8 @@ def independent_prior(epsilon: float):
 
 
 def dataset_draw(d: IndependentDraw):
-    """The :class:`classifier.dataset.Draw` of an independent draw (for :func:`classifier.dataset.identifiability`)."""
-    from classifier.dataset import Draw
+    """The :class:`classifier.prior.Draw` of an independent draw (for :func:`classifier.truth.identifiability`)."""
+    from classifier.prior import Draw
 
     return Draw(label=d.label, magnitude=d.magnitude, polar_angle_deg=d.polar_angle_deg, azimuth_deg=d.azimuth_deg,
                 density_per_um3=DENSITY, sim_seed=d.sim_seed, nuisance=((0.0, d.snr_db),),
@@ -426,7 +426,8 @@ def evaluate_model(model: str, *, draws: int = DEFAULT_DRAWS, trials: int = DEFA
                    n_boot: int = N_BOOT, progress: bool = True) -> dict[str, Any]:
     """Simulate ``draws`` independent draws × ``trials`` pixels, classify them with ``model`` and return
     the report (JSON-able dict; module docstring)."""
-    from classifier.dataset import STATUS, Dataset, identifiability
+    from classifier.dataset import Dataset
+    from classifier.truth import STATUS, identifiability
     from classifier.evaluation import evaluate_set
     from classifier.train import pooled_samples
 

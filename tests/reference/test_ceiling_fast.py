@@ -181,7 +181,7 @@ def test_the_contrasts_are_the_log_decorrelation_slopes_and_configuration_differ
 
 @pytest.mark.slow
 def test_parts_d_and_e_train_on_the_shipped_and_the_scaled_prior_from_make_dataset(tmp_path):
-    from classifier.dataset import Prior
+    from classifier.prior import Prior
     from classifier.own_system import identifiable_range, prior_for_spec
 
     spec = load_spec("signature")

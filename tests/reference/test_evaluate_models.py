@@ -1,6 +1,6 @@
 """The evaluation on independent data (:mod:`evaluate_models`): its simulator shares scatterers between
 configurations, its prior is the documented one, and the harness is deterministic and counts the
-ground truth as :func:`classifier.dataset.identifiability` does.
+ground truth as :func:`classifier.truth.identifiability` does.
 
 Fast tests (default suite); the comparison of per-configuration feature means with :mod:`refsim`'s
 independent systems is marked slow.
@@ -17,7 +17,7 @@ import pytest
 import evaluate_models as em
 import refcompare as rc
 import refsim
-from classifier.dataset import STATUS, identifiability
+from classifier.truth import STATUS, identifiability
 from classifier.features import load_spec
 
 ORIGINAL = refsim.Optics(0.84, 4.9, 3.8)
@@ -126,7 +126,7 @@ def test_features_of_a_draw_do_not_depend_on_the_trial_count():
 
 
 def test_harness_deterministic_and_counts_ground_truth(monkeypatch):
-    """Same seed, same report; the ground truth per draw is classifier.dataset.identifiability's, and the
+    """Same seed, same report; the ground truth per draw is classifier.truth.identifiability's, and the
     identifiable samples are the trials of the identifiable draws. Diffusion is moved to D in [0.05, 0.1]
     µm²/s (decorrelated within a frame interval) so that both outcomes occur."""
     monkeypatch.setitem(em.RANGES, "diffusion", (0.05, 0.1))

@@ -24,7 +24,7 @@ from torchdoct.measured.bulkphase import (
     phase_steps,
     predicted_residual_rms,
 )
-from torchdoct.measured.io import Sequence, read_maps, validate_meta
+from torchdoct.measured.io import SequenceData, read_maps, validate_meta
 from torchdoct.measured.maps import compute_maps
 from torchdoct.sim.signature import signature
 
@@ -71,10 +71,10 @@ def with_bulk(e, phi):
     return e * np.expand_dims(np.exp(1j * phi), -2)
 
 
-def make_seq(data, *, volume=False) -> Sequence:
+def make_seq(data, *, volume=False) -> SequenceData:
     meta = {"axes": "TYZX" if volume else "TZX", "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 3.0} if volume else {})},
             "frame_times_s": [DT * i for i in range(data.shape[0])], "system": SYSTEM}
-    return Sequence(data=data, meta=validate_meta(meta, data.shape), source="test.npy")
+    return SequenceData(data=data, meta=validate_meta(meta, data.shape), source="test.npy")
 
 
 def residual(bp: BulkPhase, phi: np.ndarray) -> np.ndarray:

@@ -154,6 +154,7 @@ def test_training_data_resumes_from_the_draws_an_interruption_kept(tmp_path, mon
     simulates only the other 2 and gives the split of an uninterrupted run bit for bit; once the split is
     written, the kept draws are removed."""
     import classifier.dataset as dataset
+    from classifier.prior import Prior, draw_parameters
     from torchdoct.threads import using_threads
 
     kw = dict(draws=4, trials_per_draw=64, replicates=1)
@@ -180,7 +181,7 @@ def test_training_data_resumes_from_the_draws_an_interruption_kept(tmp_path, mon
     monkeypatch.setattr(dataset, "simulate_draw", lambda *a, **k: (calls.append(a[1].sim_seed), real(*a, **k))[1])
     with using_threads(2):
         ds = dataset.make_dataset("single-acquisition", cache_dir=tmp_path, **kw)
-    seeds = [dataset.draw_parameters(dataset.Prior(), 0, "train", k, 1).sim_seed for k in range(4)]
+    seeds = [draw_parameters(Prior(), 0, "train", k, 1).sim_seed for k in range(4)]
     assert sorted(calls) == sorted(seeds[2:])
     for name in ("x", "y", "draw", "group", "status", "magnitude", "density", "static_fraction", "snr_db"):
         assert np.array_equal(getattr(ds, name), getattr(ref, name), equal_nan=True), name

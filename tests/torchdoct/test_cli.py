@@ -248,12 +248,12 @@ def test_bad_output_paths_exit_2_not_1(tmp_scene_file, tmp_path, capsys):
 
 
 def test_failed_write_exits_1_with_one_line(tmp_scene_file, tmp_path, capsys, monkeypatch):
-    import torchdoct.cli as cli
+    import torchdoct.cli.simulate as simulate_command
 
     def full(path, write):
         raise OSError(28, "No space left on device", str(path))
 
-    monkeypatch.setattr(cli, "_atomic_write", full)
+    monkeypatch.setattr(simulate_command, "atomic_write", full)
     out = tmp_path / "x.npz"
     assert main(["simulate", str(tmp_scene_file), "--trials", "2", "--no-progress", "--out", str(out)]) == 1
     captured = capsys.readouterr()

@@ -14,7 +14,7 @@ from scipy import ndimage, optimize
 
 from torchdoct.sim import metrics
 from torchdoct.cli import main
-from torchdoct.measured.io import BlockRaster, Sequence, read_maps, read_sequence, validate_meta, write_sequence
+from torchdoct.measured.io import BlockRaster, SequenceData, read_maps, read_sequence, validate_meta, write_sequence
 from torchdoct.measured.maps import (
     box_smooth_zx,
     compute_maps,
@@ -46,13 +46,13 @@ def speckle(shape, *, corr=0.8, seed=0, dtype=np.complex64) -> np.ndarray:
     return np.array(out).astype(dtype)
 
 
-def make_seq(data, *, volume=False, raster=None, times=None) -> Sequence:
+def make_seq(data, *, volume=False, raster=None, times=None) -> SequenceData:
     t = times if times is not None else [DT * i for i in range(data.shape[0])]
     meta = {"axes": "TYZX" if volume else "TZX", "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 3.0} if volume else {})},
             "frame_times_s": t, "system": SYSTEM}
     if raster is not None:
         meta["block_raster"] = raster.to_dict()
-    return Sequence(data=data, meta=validate_meta(meta, data.shape), source="test.npy")
+    return SequenceData(data=data, meta=validate_meta(meta, data.shape), source="test.npy")
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -227,7 +227,7 @@ def test_volume_with_block_raster_drops_boundary_bscans():
 def test_slab_cut_follows_what_the_stages_need():
     """The slab loop cuts the axis its stages need least; halos of stages in sequence add up."""
     from torchdoct.measured.bulkphase import CORRECTION_AXIS_NEEDS
-    from torchdoct.measured.maps import slab_cut
+    from torchdoct.measured.slabs import slab_cut
     from torchdoct.measured.mapmetrics import SMOOTHING_AXIS_NEEDS
     from torchdoct.measured.resolution import reduction_axis_needs
 
@@ -268,7 +268,7 @@ def test_bad_requests():
         compute_maps(seq, ["original", "original"])
     with pytest.raises(ValueError, match="fewer than 2 delays"):
         compute_maps(seq, ["original"], ocds_delay_range_s=(0.2048, 0.25))
-    bare = Sequence(data=seq.data, meta={k: v for k, v in seq.meta.items() if k != "system"})
+    bare = SequenceData(data=seq.data, meta={k: v for k, v in seq.meta.items() if k != "system"})
     with pytest.raises(ValueError, match="--wavelength-um"):
         compute_maps(bare, ["original", "axial=14"])
     assert compute_maps(bare).channel_info("liv@original")["wavelength_um"] is None  # original: optics not needed
@@ -495,7 +495,7 @@ def test_one_axes_convention_for_render_preview_maps_and_overlay(tmp_path, monke
 
     plt.close(fig)
     # the classifier overlay draws with the same helper
-    from classifier import infer
+    from classifier import infer, outputs
 
     seen = []
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda self, *a, **k: seen.append(self))
@@ -503,7 +503,7 @@ def test_one_axes_convention_for_render_preview_maps_and_overlay(tmp_path, monke
                                classes=["diffusion"], mask=np.ones((6, 5), bool), background=np.zeros((6, 5), bool),
                                intensity_db=np.zeros((6, 5)), model=None, sources=["m.npz"], axes="CZX",
                                pitch_um={"z": 1.5, "x": 2.0}, info={"pool": 1})
-    infer._overlay(cls, str(tmp_path / "o.png"))
+    outputs._overlay(cls, str(tmp_path / "o.png"))
     ax = seen[0].axes[0]
     assert ax.get_xlabel() == figures.X_LABEL and ax.get_ylabel() == figures.Z_LABEL
     assert ax.images[0].get_extent() == pytest.approx([0.0, 5 * 2.0, 6 * 1.5, 0.0])

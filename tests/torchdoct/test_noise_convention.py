@@ -52,7 +52,7 @@ def test_no_other_module_converts_an_snr():
 
 def test_the_plan_and_the_training_data_use_it():
     import torchdoct as td
-    from classifier.dataset import combine_fields
+    from classifier.nuisance import combine_fields
     from torchdoct.sim.plan import make_plan
 
     system = td.OCTSystem(name="s", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)

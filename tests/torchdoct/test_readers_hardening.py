@@ -205,7 +205,8 @@ def _speckle_seq(tmp_path: Path, name: str, a: np.ndarray):
 def test_nan_samples_are_masked_per_pixel_not_spread(tmp_path):
     """One NaN sample (of 30,720) makes NaN only the pixels its reduction window reaches; every other
     pixel equals the clean data's maps (the zeroed sample's weight beyond 5 sigma' is below e^-12.5)."""
-    from torchdoct.measured.maps import compute_maps, nonfinite_mask
+    from torchdoct.measured.maps import compute_maps
+    from torchdoct.measured.slabs import nonfinite_mask
 
     a = _field((16, 40, 48), seed=3)
     clean = _speckle_seq(tmp_path, "clean.npy", a)

@@ -300,13 +300,13 @@ def test_the_signature_module_imports_nothing_of_measured():
 
 
 def _field_seq(shape, seed, *, volume=False):
-    from torchdoct.measured.io import Sequence, validate_meta
+    from torchdoct.measured.io import SequenceData, validate_meta
 
     t = shape[0]
     e = _ar1(int(np.prod(shape[1:])), t, 0.85, seed=seed).T.reshape(shape).numpy()  # complex128 [T, (Y), Z, X]
     meta = {"axes": "TYZX" if volume else "TZX", "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 3.0} if volume else {})},
             "frame_times_s": _times(t), "system": SYSTEM}
-    return Sequence(data=e, meta=validate_meta(meta, e.shape), source="test.npy")
+    return SequenceData(data=e, meta=validate_meta(meta, e.shape), source="test.npy")
 
 
 @pytest.mark.parametrize("volume", [False, True])
@@ -338,13 +338,13 @@ def test_signature_channels_of_small_slabs_equal_the_whole_volume(volume):
 def test_signature_maps_is_the_slab_loop_and_keeps_the_maps_bscans():
     """``signature_maps`` (maps computed first, the signature appended) gives the channels of one pass with
     ``signature=``, bit for bit, also for a block raster volume whose boundary B-scans the maps dropped."""
-    from torchdoct.measured.io import BlockRaster, Sequence, validate_meta
+    from torchdoct.measured.io import BlockRaster, SequenceData, validate_meta
     from torchdoct.measured.maps import compute_maps, signature_maps
 
     raster = BlockRaster(n_blocks=2, n_repeats=16, bscans_per_block=3, drop_boundary=1)
     base = _field_seq((16, 6, 10, 8), seed=23, volume=True)
     meta = dict(base.meta, block_raster=raster.to_dict())
-    seq = Sequence(data=base.data.astype(np.complex64), meta=validate_meta(meta, base.data.shape), source="r.npy")
+    seq = SequenceData(data=base.data.astype(np.complex64), meta=validate_meta(meta, base.data.shape), source="r.npy")
     res = ["original", "lateral=9.8"]
     one = compute_maps(seq, res, signature=True)
     assert one.meta["y_indices"] == [0, 1, 4, 5] and one.maps.shape[1] == 4

@@ -13,7 +13,7 @@ import torch
 
 from ..conventions import noise_power, noise_sigma
 from ..measured.bulkphase import METHODS, corrected_sequence, estimate_bulk_phase, phase_steps, predicted_residual_rms
-from ..measured.io import Sequence
+from ..measured.io import SequenceData
 from ..resources import check_bench
 from ..runtime.machine import machine_info
 from ..threads import one_torch_thread
@@ -127,7 +127,7 @@ def bench_bulk_phase_phantom(phantom: str = "vessel-slab", *, snr_db: _Seq[float
         phi = (torch.rand(n_t, n_x, generator=g, dtype=torch.float64) * 2 - 1) * math.pi
         phi[0] = 0.0
         data = (truth * torch.exp(1j * phi)[:, None, :]).to(torch.complex64)
-        seq = Sequence(data=data.numpy(), meta=meta, source=f"{phantom} (rendered)")
+        seq = SequenceData(data=data.numpy(), meta=meta, source=f"{phantom} (rendered)")
         ref = g1_4(truth)[static]
         se = float(ref.std()) / math.sqrt(ref.numel())
         for m in methods:

@@ -9,7 +9,7 @@ from typing import Any, Sequence as _Seq
 
 import torch
 
-from ..measured.io import Sequence, validate_meta
+from ..measured.io import SequenceData, validate_meta
 from ..measured.maps import compute_maps
 from ..resources import check_bench, maps_bytes
 from ..runtime.machine import machine_info
@@ -37,7 +37,7 @@ def bench_maps(*, frames: int = 32, shape: tuple[int, int] = (512, 512),
                           "frame_times_s": [i * 0.2048 for i in range(frames)],
                           "system": {"name": "840nm-high", "wavelength_um": 0.84, "lateral_resolution_um": 4.9,
                                      "axial_resolution_um": 3.8}}, data.shape)
-    seq = Sequence(data=data, meta=meta, source="bench")
+    seq = SequenceData(data=data, meta=meta, source="bench")
     compute_maps(seq, ["original"], metrics=metrics)  # warm-up
     best, best_t = math.inf, {}
     for _ in range(max(1, int(repeats))):

@@ -117,7 +117,7 @@ def _maps(args: argparse.Namespace) -> int:
     from ..files import check_out
     from ..measured.io import BlockRaster, MAPS_SUFFIXES, read_sequence, write_maps
     from ..measured.guards import set_max_input_gb
-    from ..measured.maps import compute_maps, write_pngs
+    from ..measured.maps import check_maps_request, compute_maps, write_pngs
 
     set_max_input_gb(args.max_input_gb)
     outs = []
@@ -148,22 +148,10 @@ def _maps(args: argparse.Namespace) -> int:
                         frame_interval_s=args.frame_interval_s, system=system or None, dataset=args.dataset,
                         block_raster=raster, allow_external_hdf5=args.allow_external_hdf5)
     resolutions = args.resolution or ["original"]
-    from ..measured.resolution import parse_resolution
-
-    changes = [parse_resolution(r).label for r in resolutions if parse_resolution(r).label != "original"]
-    if changes and not seq.is_complex:  # no optics option can help: say so before asking for them
-        raise ValueError(f"{seq.source} holds intensity only (dtype {seq.data.dtype}): a resolution change "
-                         f"({', '.join(changes)}) needs the complex field; use --resolution original only")
-    if changes:
-        _ = seq.system, seq.pitch_um  # a resolution change needs them: a clear error before any work
-        from ..measured.resolution import check_target_sampled
-
-        for r in resolutions:  # a target the pixel grid cannot hold: refused before the work
-            t = parse_resolution(r)
-            for kind, target in (("lateral", t.lateral_resolution_um), ("axial", t.axial_resolution_um)):
-                if target is not None:
-                    check_target_sampled(kind, float(seq.system[f"{kind}_resolution_um"]), float(target),
-                                         seq.pitch_um, seq.axes)
+    options = dict(metrics=metrics, signature=args.signature, ocds_delay_range_s=tuple(args.ocds_delay_range_s),
+                   ocds_scale=args.ocds_scale, ocds_estimator=args.ocds_estimator, edge_mode=args.edge_mode,
+                   normalization=args.normalization)
+    check_maps_request(seq, resolutions, **options)  # what compute_maps refuses, before the bulk-phase estimate
     if args.png_y is not None:  # the B-scan shown must exist
         n_y = dict(zip(seq.axes, seq.data.shape)).get("Y")
         if n_y is None:
@@ -194,12 +182,10 @@ def _maps(args: argparse.Namespace) -> int:
 
     check_maps(seq.source, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,  # disk space
                n_resolutions=len(resolutions), metrics=metrics, slab_elements=None, out_paths=outs)
-    maps = compute_maps(seq, resolutions, metrics=metrics, ocds_delay_range_s=tuple(args.ocds_delay_range_s),
-                        ocds_scale=args.ocds_scale, ocds_estimator=args.ocds_estimator,
-                        aliv_smoothing=not args.no_aliv_smoothing, aliv_max_window_s=args.aliv_max_window_s,
-                        axial_center=center, edge_mode=args.edge_mode, normalization=args.normalization,
+    maps = compute_maps(seq, resolutions, **options, aliv_smoothing=not args.no_aliv_smoothing,
+                        aliv_max_window_s=args.aliv_max_window_s, axial_center=center,
                         drop_boundary=args.drop_boundary > 0, device=args.device, bulk_phase=bulk,
-                        signature=args.signature, progress=not args.no_progress)
+                        progress=not args.no_progress)
     if args.signature:  # computed in the slab loop, from the same (bulk-corrected, reduced) field
         from ..measured.maps import signature_channels
 

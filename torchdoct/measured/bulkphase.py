@@ -93,7 +93,7 @@ import torch
 
 from ..conventions import noise_power
 from ..threads import one_torch_thread
-from .io import Sequence
+from .io import SequenceData
 
 __all__ = [
     "CORRECTION_AXIS_NEEDS",
@@ -303,7 +303,7 @@ class BulkPhase:
         return out
 
 
-def _check_sequence(seq: Sequence) -> str:
+def _check_sequence(seq: SequenceData) -> str:
     src = seq.source or "sequence"
     if not seq.is_complex:
         raise ValueError(f"{src} holds intensity only (dtype {seq.data.dtype}): bulk-phase correction needs the complex "
@@ -315,7 +315,7 @@ def _check_sequence(seq: Sequence) -> str:
 
 
 @one_torch_thread
-def estimate_bulk_phase(seq: Sequence, method: str = "weighted-mean", *, mask: str | float = "all",
+def estimate_bulk_phase(seq: SequenceData, method: str = "weighted-mean", *, mask: str | float = "all",
                         rows: str | _Seq[int] | None = None, bins: int = DEFAULT_BINS,
                         slab_elements: int = 1 << 23, device: str | torch.device | None = None,
                         progress: bool = False) -> BulkPhase:
@@ -382,7 +382,7 @@ def _phasor_shape(bp: BulkPhase, seq_shape: tuple[int, ...], axes: str) -> tuple
     return tuple(1 if d == zdim else s for d, s in enumerate(seq_shape))
 
 
-def phasor(bp: BulkPhase, seq: Sequence) -> np.ndarray:
+def phasor(bp: BulkPhase, seq: SequenceData) -> np.ndarray:
     """``exp(−iφ̂)`` with the sequence's dimensions and a depth dimension of 1 (broadcasts over depth),
     in the data's complex dtype."""
     shape = _phasor_shape(bp, tuple(seq.data.shape), seq.axes)
@@ -408,7 +408,7 @@ def apply_bulk_phase(field: np.ndarray | torch.Tensor, bp: BulkPhase, axes: str)
 CORRECTION_AXIS_NEEDS: dict[str, int | None] = {}
 
 
-def corrected_sequence(seq: Sequence, bp: BulkPhase) -> Sequence:
+def corrected_sequence(seq: SequenceData, bp: BulkPhase) -> SequenceData:
     """A corrected copy of ``seq`` (the whole field in memory, the data's dtype) whose metadata record
     the correction (``meta["bulk_phase"]``)."""
     _check_sequence(seq)
@@ -418,7 +418,7 @@ def corrected_sequence(seq: Sequence, bp: BulkPhase) -> Sequence:
         np.multiply(seq.data[k], ph[k], out=data[k])
     meta = dict(seq.meta)
     meta["bulk_phase"] = bp.meta()
-    return Sequence(data=data, meta=meta, labels=seq.labels, label_params=seq.label_params, source=seq.source)
+    return SequenceData(data=data, meta=meta, labels=seq.labels, label_params=seq.label_params, source=seq.source)
 
 
 # ----------------------------------------------------------------------------------------------

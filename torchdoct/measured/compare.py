@@ -35,7 +35,6 @@ from .mapsfile import Maps
 
 __all__ = [
     "ComparedConfiguration",
-    "Configuration",
     "ComparisonResult",
     "parse_config",
     "region_mask",
@@ -83,10 +82,6 @@ def parse_config(text: str) -> tuple[float | None, str]:
         except ValueError:
             raise ValueError(f"--config {text!r}: {a!r} is not a wavelength in µm (e.g. 0.84:original)") from None
     return wl, parse_resolution(t).label
-
-
-#: The former name of :class:`ComparedConfiguration` (the classifier's spec has its own ``Configuration``).
-Configuration = ComparedConfiguration
 
 
 def _channel_config(info: Mapping[str, Any]) -> ComparedConfiguration:

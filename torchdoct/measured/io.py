@@ -46,13 +46,12 @@ from .formats import SEQUENCE_SUFFIXES, reader_for
 from .guards import parse_json_object
 from .mapsfile import MAPS_SUFFIXES, Maps, read_maps, write_maps
 from .sequence import HOW as _HOW
-from .sequence import BlockRaster, Sequence, SequenceData, check_axes, finite_positive, sidecar_path, validate_meta
+from .sequence import BlockRaster, SequenceData, check_axes, finite_positive, sidecar_path, validate_meta
 
 __all__ = [
     "SEQUENCE_SUFFIXES",
     "MAPS_SUFFIXES",
     "SequenceData",
-    "Sequence",
     "BlockRaster",
     "Maps",
     "validate_meta",

@@ -58,7 +58,7 @@ then the B-scans next to the boundaries are dropped; ``meta["y_indices"]`` lists
 Work is done in slabs, so memory stays bounded and a progress bar shows: each stage says which axes it
 needs whole or with a halo (the lateral reduction the en-face axes, the axial window a halo of 5σ' + 1
 pixels along depth, the aLIV smoothing one pixel along Z and X, the bulk-phase correction and the per-pixel
-metrics and features nothing), and :func:`slab_cut` cuts the axis they need least (depth slabs with their
+metrics and features nothing), and :func:`~torchdoct.measured.slabs.slab_cut` cuts the axis they need least (depth slabs with their
 halo, or whole B-scans of a volume); results do not depend on the slab size beyond the window truncation at 5σ'.
 
 Signature channels (``signature``, ``torchdoct maps --signature``): the decorrelation-signature features of
@@ -76,6 +76,7 @@ figures in :mod:`torchdoct.measured.mapfigures` (their public names are importab
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from pathlib import Path
@@ -87,7 +88,7 @@ import torch
 from ..files import atomic_write, check_out
 from ..sim.signature import available_features, default_features, feature_unit, pixel_features
 from .bulkphase import CORRECTION_AXIS_NEEDS, BulkPhase, estimate_bulk_phase, phasor as _bulk_phasor
-from .io import Maps, Sequence
+from .io import Maps, SequenceData
 from ..threads import one_torch_thread
 from .mapfigures import DEFAULT_HUE_RANGE, FLAG_RGB, map_figure, percentile_range, png_name, pseudo_color
 from .mapmetrics import (
@@ -104,6 +105,7 @@ from .mapmetrics import (
     pixel_metrics,
     tau_bound_code,
 )
+from .slabs import nonfinite_reach, nonfinite_reach_px, slab_cut
 from .resolution import (
     EDGE_MODES,
     NORMALIZATIONS,
@@ -127,10 +129,9 @@ __all__ = [
     "fit_saturation",
     "tau_bound_code",
     "box_smooth_zx",
+    "MapsRequest",
+    "check_maps_request",
     "compute_maps",
-    "slab_cut",
-    "nonfinite_mask",
-    "nonfinite_reach_px",
     "signature_channels",
     "signature_maps",
     "pseudo_color",
@@ -171,52 +172,6 @@ def _peak_intensity(data: np.ndarray, src: str) -> float:
     return peak
 
 
-def _nonfinite_reach(bad: np.ndarray, spatial_axes: str, widths: Mapping[str, int], wrap: bool) -> np.ndarray:
-    """``bad`` (pixels with a non-finite sample, ``[(Y), Z, X]``) spread by ``±widths[c]`` pixels along each
-    axis letter ``c`` (the reach of a filter truncated at 5σ'); periodic when the reduction wraps."""
-    from scipy.ndimage import maximum_filter1d
-
-    out = bad.astype(np.uint8)
-    for c, w in widths.items():
-        if w > 0 and c in spatial_axes:
-            out = maximum_filter1d(out, size=2 * w + 1, axis=spatial_axes.index(c), mode="wrap" if wrap else "constant")
-    return out.astype(bool)
-
-
-def nonfinite_reach_px(seq: Sequence, target: str | ResolutionTarget) -> dict[str, int]:
-    """How far (pixels, per axis letter) a sample reaches through the reduction to ``target`` of ``seq``:
-    ``⌈5σ'/pitch⌉`` along each filtered axis (the window's truncation), nothing at the original."""
-    t = parse_resolution(target) if isinstance(target, str) else target
-    if t.lateral_resolution_um is None and t.axial_resolution_um is None:
-        return {}
-    system = seq.system
-    lat0, ax0 = float(system["lateral_resolution_um"]), float(system["axial_resolution_um"])
-    lat, ax = t.resolved(system)
-    reach = {}
-    if ax != ax0:
-        reach["Z"] = int(math.ceil(5.0 * axial_filter_sigma_um(ax0, ax) / seq.pitch_um["z"]))
-    if lat != lat0:
-        sl = lateral_filter_sigma_um(lat0, lat)
-        for c in "YX":
-            if c in seq.axes:
-                reach[c] = int(math.ceil(5.0 * sl / seq.pitch_um[c.lower()]))
-    return reach
-
-
-def nonfinite_mask(seq: Sequence, target: str | ResolutionTarget = "original", *,
-                   edge_mode: str = "reflect") -> np.ndarray | None:
-    """The pixels (``[(Y), Z, X]``) that a non-finite sample of ``seq`` reaches at ``target`` (the rule of
-    :func:`compute_maps`, module docstring), or ``None`` when every sample is finite."""
-    bad = None
-    for frame in seq.data:
-        fin = np.isfinite(frame)
-        if not fin.all():
-            bad = ~fin if bad is None else bad | ~fin
-    if bad is None:
-        return None
-    return _nonfinite_reach(bad, seq.axes[1:], nonfinite_reach_px(seq, target), edge_mode == "wrap")
-
-
 def _as_targets(resolutions: Iterable[str | ResolutionTarget]) -> list[ResolutionTarget]:
     targets = []
     for r in resolutions:
@@ -229,40 +184,412 @@ def _as_targets(resolutions: Iterable[str | ResolutionTarget]) -> list[Resolutio
     return targets
 
 
-def _add_halos(a: int | None, b: int | None) -> int | None:
-    return None if a is None or b is None else a + b
+@dataclasses.dataclass(frozen=True)
+class MapsRequest:
+    """What :func:`compute_maps` was asked for, checked against the sequence (:func:`check_maps_request`).
+
+    ``metrics``: the DOCT metrics in :data:`METRICS` order; ``features``: the signature channels (empty:
+    none); ``targets``: the resolutions in the order asked; ``system``: the optics the maps record (every
+    field when a target changes the resolution); ``signature_system``: the optics the signature channels
+    record; ``lateral_um`` / ``axial_um``: the original resolutions (``None`` when unknown);
+    ``changes``: the targets that change the resolution; ``source``: the name in messages."""
+
+    metrics: tuple[str, ...]
+    features: tuple[str, ...]
+    targets: tuple[ResolutionTarget, ...]
+    system: dict[str, Any]
+    signature_system: dict[str, Any] | None
+    lateral_um: float | None
+    axial_um: float | None
+    changes: tuple[ResolutionTarget, ...]
+    source: str
+
+    def optics(self, t: ResolutionTarget) -> tuple[float | None, float | None]:
+        """``(lateral, axial)`` resolution (µm) of target ``t``; ``(None, None)`` when the optics are unknown."""
+        return t.resolved(self.system) if self.lateral_um is not None else (None, None)
 
 
-def slab_cut(axes: str, field_needs: Iterable[Mapping[str, int | None]],
-             map_needs: Iterable[Mapping[str, int | None]] = ()) -> tuple[str, int | None, int]:
-    """Where the slab loop of :func:`compute_maps` cuts one resolution's work: ``(axis, halo, margin)``.
+def check_maps_request(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget] = ("original",), *,
+                       metrics: Iterable[str] = ("liv", "ocds", "mean_db"),
+                       signature: bool | _Seq[str] | None = None,
+                       ocds_delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S,
+                       ocds_scale: str = "db", ocds_estimator: str = "pearson", edge_mode: str = "reflect",
+                       normalization: str = "power", slab_elements: int = 1 << 23) -> MapsRequest:
+    """Stage 1 of :func:`compute_maps`, before any work: the metric and feature names, the options, the
+    resources (:func:`torchdoct.resources.check_maps`), the frames, the optics that each resolution target
+    needs and the pixel grid that must hold it, intensity-only data against a resolution change, and the
+    OCDS delay range. Raises ``ValueError`` (``TypeError``) naming the option and the fix; the arguments
+    are those of :func:`compute_maps`. A command calls it before its own costly steps (a bulk-phase
+    estimate)."""
+    wanted = [m for m in METRICS if m in set(metrics)]
+    unknown = sorted(set(metrics) - set(METRICS))
+    feats: tuple[str, ...] = ()
+    sig_system = None
+    if signature is not None and signature is not False:  # before any work: the names, the optics, the protocol
+        feats, _ = signature_channels(seq, None if signature is True else signature)
+        sig_system = seq.system  # the signature channels record the optics of every resolution
+    if unknown or not (wanted or feats):
+        raise ValueError(f"unknown metrics {unknown}; choose from {', '.join(METRICS)}")
+    if edge_mode not in EDGE_MODES:
+        raise ValueError(f"edge_mode must be one of {', '.join(EDGE_MODES)}; got {edge_mode!r}")
+    if normalization not in NORMALIZATIONS:
+        raise ValueError(f"normalization must be one of {', '.join(NORMALIZATIONS)}; got {normalization!r}")
+    targets = _as_targets(resolutions)
+    src = seq.source or "sequence"
+    from ..resources import check_maps  # the one resource check of every command, before any work
+    check_maps(src, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,
+               n_resolutions=len(targets), metrics=wanted + list(feats), slab_elements=slab_elements)
+    if seq.n_frames < 2:
+        raise ValueError(f"{src}: {seq.n_frames} frame along T; DOCT maps need at least 2 frames (LIV is a variance "
+                         "over frames); check the file or --axes")
+    recorded = {k: v for k, v in dict(seq.meta.get("system") or {}).items() if v is not None}
+    asked = [t for t in targets if t.lateral_resolution_um is not None or t.axial_resolution_um is not None]
+    if asked and not seq.is_complex and not ("lateral_resolution_um" in recorded and "axial_resolution_um" in recorded):
+        # no optics option can help intensity-only data: say so before asking for the optics
+        raise _intensity_only(seq, asked)
+    if asked:
+        system = seq.system  # a resolution target needs the original optics (a clear error names the options)
+    else:  # original resolution only: the optics are recorded when known, never required
+        system = recorded
+    known = "lateral_resolution_um" in system and "axial_resolution_um" in system
+    lat0 = float(system["lateral_resolution_um"]) if known else None
+    ax0 = float(system["axial_resolution_um"]) if known else None
+    req = MapsRequest(metrics=tuple(wanted), features=feats, targets=tuple(targets), system=system,
+                      signature_system=sig_system, lateral_um=lat0, axial_um=ax0, changes=(), source=src)
+    changes = tuple(t for t in targets if req.optics(t) != (lat0, ax0))
+    for t in targets:  # validate every target before any work
+        if t.lateral_resolution_um is not None:
+            lateral_filter_sigma_um(lat0, t.lateral_resolution_um)
+            if t in changes:  # the grid must hold the target PSF (two pixels at least)
+                check_target_sampled("lateral", lat0, t.lateral_resolution_um, seq.pitch_um, seq.axes)
+        if t.axial_resolution_um is not None:
+            axial_filter_sigma_um(ax0, t.axial_resolution_um)
+            if t in changes:
+                check_target_sampled("axial", ax0, t.axial_resolution_um, seq.pitch_um, seq.axes)
+    if changes and not seq.is_complex:
+        raise _intensity_only(seq, changes)
+    times = seq.frame_times_s
+    if "ocds" in wanted:
+        lo, hi = ocds_delay_range_s
+        if not (0 < lo < hi):
+            raise ValueError(f"ocds_delay_range_s must be 0 < lo < hi (s); got {ocds_delay_range_s!r}")
+        probe = torch.rand(1, len(times), generator=torch.Generator().manual_seed(0)) + 1.0
+        ocds_map(probe, times, delay_range_s=(lo, hi), scale=ocds_scale, estimator=ocds_estimator)
+    return dataclasses.replace(req, changes=changes)
 
-    Every stage says what it needs of each spatial axis of a piece (``None``: the axis whole; an integer:
-    a halo of that many pixels each side; absent: nothing): the field stages, run in order before the
-    per-pixel metrics and features (the bulk-phase correction, :data:`~torchdoct.measured.bulkphase.
-    CORRECTION_AXIS_NEEDS`; the resolution reduction, :func:`~torchdoct.measured.resolution.
-    reduction_axis_needs`), then the stages on the maps (the aLIV smoothing, :data:`~torchdoct.measured.
-    mapmetrics.SMOOTHING_AXIS_NEEDS`). Halos of stages in sequence add up. The cut axis is the one of Z, Y
-    (when the sequence has it) that no stage needs whole, with the smallest total ``halo`` (Z on a tie);
-    ``margin`` is the part of it the map stages need (the metrics are computed that many pixels beyond
-    each slab's own rows). When every candidate is needed whole, ``("Z", None, 0)``: one slab.
-    """
-    total: dict[str, int | None] = {}
-    on_maps: dict[str, int | None] = {}
-    for needs, into in ((field_needs, [total]), (map_needs, [total, on_maps])):
-        for n in needs:
-            for a, h in n.items():
-                for d in into:
-                    d[a] = _add_halos(d.get(a, 0), h)
-    cuts = [a for a in "ZY" if a in axes and total.get(a, 0) is not None]
-    if not cuts:
-        return "Z", None, 0
-    a = min(cuts, key=lambda c: (total.get(c, 0), "ZY".index(c)))
-    return a, total.get(a, 0), on_maps.get(a, 0) or 0
+
+def _intensity_only(seq: SequenceData, changes: Iterable[ResolutionTarget]) -> ValueError:
+    return ValueError(f"{seq.source or 'sequence'} holds intensity only (dtype {seq.data.dtype}): a resolution "
+                      f"change ({', '.join(t.label for t in changes)}) needs the complex field; use "
+                      "--resolution original only")
+
+
+def _bulk_phase_factor(seq: SequenceData, req: MapsRequest, bulk_phase: str | BulkPhase | None, *, slab_elements: int,
+                       device: torch.device, progress: bool) -> tuple[BulkPhase | None, np.ndarray | None]:
+    """Stage 2 of :func:`compute_maps`: the bulk phase (estimated here for a method name) and the phasor
+    that removes it, ``[T, (Y), 1, X]`` in the data's dtype, broadcast over depth (the multiplication of
+    :func:`~torchdoct.measured.bulkphase.corrected_sequence`); ``(None, None)`` without ``bulk_phase``."""
+    if isinstance(bulk_phase, str):
+        bulk_phase = estimate_bulk_phase(seq, bulk_phase, slab_elements=slab_elements, device=device, progress=progress)
+    elif bulk_phase is not None and not isinstance(bulk_phase, BulkPhase):
+        raise TypeError(f"bulk_phase must be a method name or a BulkPhase; got {type(bulk_phase).__name__}")
+    if bulk_phase is None:
+        return None, None
+    if not seq.is_complex:
+        raise ValueError(f"{req.source} holds intensity only (dtype {seq.data.dtype}): bulk-phase correction needs the "
+                         "complex field; give the complex sequence, or drop --bulk-phase")
+    return bulk_phase, _bulk_phasor(bulk_phase, seq)
+
+
+def _axial_center(seq: SequenceData, req: MapsRequest, axial_center: str | float) -> float | str:
+    """Stage 3 of :func:`compute_maps`: the centre of the axial window (cycles/pixel), measured from the
+    first frames' depth spectrum for ``"centroid"`` when an axial reduction needs it
+    (:func:`~torchdoct.measured.resolution.depth_spectrum_center`), else as given."""
+    if axial_center == "centroid" and seq.is_complex and any(t.axial_resolution_um is not None for t in req.changes):
+        data = seq.data
+        sub = torch.from_numpy(np.ascontiguousarray(data[: min(4, data.shape[0])], dtype=data.dtype.newbyteorder("=")))
+        return depth_spectrum_center(sub, axes=seq.axes)
+    if isinstance(axial_center, str) and axial_center not in ("zero", "centroid"):
+        raise ValueError(f"axial_center must be 'zero', 'centroid' or a number (cycles/pixel); got {axial_center!r}")
+    return axial_center
+
+
+def _empty_floor(seq: SequenceData, req: MapsRequest) -> tuple[float, float]:
+    """Stage 4 of :func:`compute_maps`: the largest finite intensity of the input and the floor below which a
+    reduced pixel counts as empty, ``(64·ε)²·max I`` (:data:`EMPTY_RULE`); refuses data without a finite
+    nonzero sample."""
+    peak = _peak_intensity(seq.data, req.source)
+    eps = float(np.finfo(_real_dtype(seq)).eps)
+    return peak, peak * (EMPTY_FLOOR_EPS_FACTOR * eps) ** 2
+
+
+def _real_dtype(seq: SequenceData) -> type:
+    """The dtype of the maps' computation: float64 for complex128/float64 input, else float32."""
+    return np.float64 if seq.data.dtype in (np.complex128, np.float64) else np.float32
+
+
+@dataclasses.dataclass(frozen=True)
+class _SlabPlan:
+    """How one resolution's work is cut: along ``axis`` (index into the data), ``length`` rows in slabs of
+    ``rows`` with a ``halo`` each side and a ``margin`` for the map stages; ``reach``: how far a non-finite
+    sample reaches (:func:`~torchdoct.measured.slabs.nonfinite_reach_px`)."""
+
+    target: ResolutionTarget
+    axis: int
+    length: int
+    halo: int
+    margin: int
+    rows: int
+    reach: dict[str, int]
+
+
+def _slab_plans(seq: SequenceData, req: MapsRequest, *, bulk: bool, smoothing_margin: bool, edge_mode: str,
+                slab_elements: int) -> list[_SlabPlan]:
+    """Stage 5 of :func:`compute_maps`: each resolution's cut, from what its stages need of the axes
+    (:func:`~torchdoct.measured.slabs.slab_cut`): the bulk-phase correction (``bulk``), the reduction of a target that changes the
+    resolution, the aLIV smoothing (``smoothing_margin``)."""
+    data, axes = seq.data, seq.axes
+    plans = []
+    for t in req.targets:
+        lat, ax = req.optics(t)
+        sig = axial_filter_sigma_um(req.axial_um, ax) / seq.pitch_um["z"] if ax != req.axial_um else 0.0
+        field_needs = [CORRECTION_AXIS_NEEDS] if bulk else []
+        if t in req.changes:
+            field_needs.append(reduction_axis_needs(axes, lateral=lat != req.lateral_um, axial_sigma_px=sig,
+                                                    edge_mode=edge_mode))
+        cut, halo, mrg = slab_cut(axes, field_needs, [SMOOTHING_AXIS_NEEDS] if smoothing_margin else [])
+        cdim = axes.index(cut)
+        n_c = data.shape[cdim]
+        rows = max(1, min(n_c, int(slab_elements) // max(int(np.prod(data.shape)) // n_c, 1)))
+        if halo is None:  # every axis it could cut is needed whole: one slab
+            halo, rows = 0, n_c
+        elif halo:  # a slab at least as deep as its halo on both sides
+            rows = min(n_c, max(rows, 2 * halo))
+        reach = nonfinite_reach_px(seq, t) if t in req.changes else {}
+        plans.append(_SlabPlan(target=t, axis=cdim, length=n_c, halo=halo, margin=mrg, rows=rows, reach=reach))
+    return plans
+
+
+def _channel_records(req: MapsRequest, outputs: _Seq[str]) -> list[dict[str, Any]]:
+    """Stage 6 of :func:`compute_maps`: one record per output channel (name, metric, unit, resolution, optics):
+    the DOCT channels of every resolution, then the signature channels of every resolution."""
+    channels: list[dict[str, Any]] = []
+    sig_channels: list[dict[str, Any]] = []
+    wl = req.system.get("wavelength_um")
+    for t in req.targets:
+        lat, ax = req.optics(t)
+        for m in outputs:
+            channels.append({"name": f"{m}@{t.label}", "metric": m, "unit": UNITS[m], "resolution": t.label,
+                             "wavelength_um": None if wl is None else float(wl), "lateral_resolution_um": lat,
+                             "axial_resolution_um": ax})
+        if req.features:
+            sig_system = req.signature_system
+            s_lat, s_ax = t.resolved(sig_system)
+            sig_channels += [{"name": f"{f}@{t.label}", "metric": f, "unit": feature_unit(f), "resolution": t.label,
+                              "wavelength_um": float(sig_system["wavelength_um"]), "lateral_resolution_um": s_lat,
+                              "axial_resolution_um": s_ax} for f in req.features]
+    return channels + sig_channels
+
+
+@dataclasses.dataclass
+class _SlabWork:
+    """What every slab of :func:`_fill_maps` shares: the sequence and request, the output array and what the
+    field stages need (the bulk phasor, the reduction's options, the empty floor, the metric options), and
+    the counts of non-finite samples and masked pixels it gathers."""
+
+    seq: SequenceData
+    req: MapsRequest
+    out: np.ndarray
+    outputs: list[str]
+    n_doct: int
+    keep_y: np.ndarray | None
+    bulk: np.ndarray | None
+    device: torch.device
+    axial_center: float | str
+    edge_mode: str
+    normalization: str
+    floor: float
+    smoothing_margin: int
+    metric_options: dict[str, Any]
+    chunk_pixels: int
+    n_nonfinite: int = 0
+    nonfinite_pixels: dict[str, int] = dataclasses.field(default_factory=dict)
+
+
+def _fill_maps(work: _SlabWork, plans: list[_SlabPlan], *, progress: bool, timings: dict[str, float] | None) -> None:
+    """Stage 7 of :func:`compute_maps`: the slab loop, resolution by resolution (:func:`_map_slab` per slab),
+    with a progress bar over the slabs and the seconds per resolution in ``timings``."""
+    total = sum(math.ceil(p.length / p.rows) for p in plans)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=total, desc="maps", unit="slab")
+    for ti, plan in enumerate(plans):
+        t0 = time.perf_counter()
+        for c0 in range(0, plan.length, plan.rows):
+            _map_slab(work, ti, plan, c0, min(plan.length, c0 + plan.rows))
+            if bar is not None:
+                bar.update(1)
+        if timings is not None:
+            timings[plan.target.label] = time.perf_counter() - t0
+    if bar is not None:
+        bar.close()
+
+
+def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int) -> None:
+    """The rows ``c0:c1`` of resolution ``ti`` along the plan's axis: read the slab with its halo, remove the
+    bulk phase, mask the non-finite samples (they enter the reduction as 0), reduce the resolution, form
+    the intensity (the empty floor after a reduction), compute the per-pixel metrics on the rows and the
+    map stages' margin, NaN the pixels the non-finite samples reach, and write the DOCT channels; then the
+    signature of the slab's own pixels from the same field."""
+    seq, req, out = work.seq, work.req, work.out
+    data, axes = seq.data, seq.axes
+    t, cdim, halo, mrg, reach = plan.target, plan.axis, plan.halo, plan.margin, plan.reach
+    changed = t in req.changes
+    outputs, feats = work.outputs, req.features
+    real_dtype = _real_dtype(seq)
+    a0, a1 = max(0, c0 - halo), min(plan.length, c1 + halo)
+    sel = [slice(None)] * data.ndim
+    sel[cdim] = slice(a0, a1)
+    raw = np.array(data[tuple(sel)], dtype=data.dtype.newbyteorder("="), copy=True)  # native byte order
+    corrected = None
+    if work.bulk is not None and (changed or feats):  # bulk phase removed before the A-lines are mixed
+        psel = list(sel)
+        psel[axes.index("Z")] = slice(None)
+        corrected = torch.from_numpy(np.multiply(raw, work.bulk[tuple(psel)])).to(work.device)
+    # the intensity maps at the original resolution read no phase: the field as recorded
+    block = corrected if changed and corrected is not None else torch.from_numpy(raw).to(work.device)
+    bad = None
+    fin = torch.isfinite(block)
+    if not bool(fin.all()):  # masked per pixel: non-finite samples enter the reduction as 0
+        bad = (~fin).any(dim=0).cpu().numpy()  # [(Y), Z, X] over a0:a1
+        if ti == 0:
+            work.n_nonfinite += int((~fin).narrow(cdim, c0 - a0, c1 - c0).sum())
+        block = torch.where(fin, block, torch.zeros_like(block))
+        if corrected is not None and not changed:
+            corrected = torch.where(fin, corrected, torch.zeros_like(corrected))
+    del fin
+    if changed:
+        red = reduce_resolution(block, pitch_um=seq.pitch_um, system=req.system,
+                                lateral_resolution_um=t.lateral_resolution_um,
+                                axial_resolution_um=t.axial_resolution_um, axes=axes,
+                                axial_center=work.axial_center, edge_mode=work.edge_mode,
+                                normalization=work.normalization)
+    else:
+        red = block
+    # the signature's field: the reduced one, or at the original resolution the bulk-corrected one
+    field = corrected if corrected is not None and not changed else red
+    m0, m1 = max(a0, c0 - mrg), min(a1, c1 + mrg)
+    red = red.narrow(cdim, m0 - a0, m1 - m0)
+    if red.is_complex():
+        inten = red.real ** 2 + red.imag ** 2
+    else:
+        inten = red.to(torch.float64 if real_dtype == np.float64 else torch.float32)
+    if changed:  # FFT round-off of the reduction is no signal: treated as I = 0 (module docstring)
+        inten = torch.where(inten > work.floor, inten, torch.zeros_like(inten))
+    wanted = list(req.metrics)
+    vals = pixel_metrics(inten, seq.frame_times_s, wanted, **work.metric_options,
+                         chunk_pixels=work.chunk_pixels) if wanted else {}
+    del inten
+    masks = {}
+    if bad is not None:
+        sp = axes[1:]
+        masks["pixel"] = nonfinite_reach(bad, sp, reach, work.edge_mode == "wrap")
+        if work.smoothing_margin:
+            grown = {c: reach.get(c, 0) + (work.smoothing_margin if c in "ZX" else 0) for c in "YZX"}
+            masks["smoothed"] = nonfinite_reach(bad, sp, grown, work.edge_mode == "wrap")
+        core = [slice(None)] * (data.ndim - 1)
+        core[cdim - 1] = slice(c0 - a0, c1 - a0)
+        masks = {k: v[tuple(core)] for k, v in masks.items()}
+        work.nonfinite_pixels[t.label] = work.nonfinite_pixels.get(t.label, 0) + int(np.count_nonzero(masks["pixel"]))
+    for mi, m in enumerate(outputs):
+        v = vals[m].narrow(cdim - 1, c0 - m0, c1 - c0).cpu().numpy()
+        if masks:
+            smoothed = m in ("aliv", "swiftness", FIT_FLAG) and "smoothed" in masks
+            v = np.where(masks["smoothed" if smoothed else "pixel"], np.nan, v)
+        idx = [ti * len(outputs) + mi] + [slice(None)] * (data.ndim - 1)
+        idx[cdim] = slice(c0, c1)
+        out[tuple(idx)] = v
+    if feats:  # the signature of the slab's own pixels (no halo), from the same field
+        x = field.narrow(cdim, c0 - a0, c1 - c0)
+        if not x.is_complex():
+            x = x.to(torch.float64 if real_dtype == np.float64 else torch.float32)
+        x = x.movedim(0, -1)  # [*spatial, T]
+        n_doct = work.n_doct
+        idx = [slice(n_doct + ti * len(feats), n_doct + (ti + 1) * len(feats))] + [slice(None)] * (data.ndim - 1)
+        idx[cdim] = slice(c0, c1)
+        ys = None
+        keep_y = work.keep_y
+        if keep_y is not None:  # only the B-scans kept
+            ys = np.flatnonzero(keep_y[c0:c1] if cdim == 1 else keep_y)
+            x = x[torch.as_tensor(ys)]
+            idx[1] = ys + (c0 if cdim == 1 else 0)
+        f = pixel_features(x, seq.frame_times_s, feats, chunk_pixels=work.chunk_pixels)[1]
+        f = f.movedim(-1, 0).cpu().numpy()  # [F, *spatial]
+        if masks:  # the pixels that non-finite samples reach, as for the DOCT channels
+            f = np.where(masks["pixel"] if ys is None else masks["pixel"][ys], np.nan, f)
+        out[tuple(idx)] = f
+    del field
+
+
+def _maps_result(work: _SlabWork, channels: list[dict[str, Any]], *, bulk_phase: BulkPhase | None, peak: float,
+                 axial_center: str | float, options: dict[str, Any]) -> Maps:
+    """Stage 8 of :func:`compute_maps`: the metadata (channels, optics, the metric and reduction options, the
+    empty rule, the bulk phase, the non-finite counts, the aLIV fit, the signature), the block raster's
+    boundary B-scans dropped, and the :class:`Maps` in float32."""
+    seq, req, out = work.seq, work.req, work.out
+    axes, outputs = seq.axes, work.outputs
+    fc = work.axial_center
+    wanted = req.metrics
+    meta: dict[str, Any] = {
+        "channels": channels,
+        "axes": "C" + axes[1:],
+        "pitch_um": seq.meta.get("pitch_um"),
+        "frame_times_s": seq.frame_times_s,
+        "system": req.system,
+        "ocds_delay_range_s": [float(v) for v in options["ocds_delay_range_s"]],
+        "ocds_scale": options["ocds_scale"],
+        "ocds_estimator": options["ocds_estimator"],
+        "source": seq.source,
+        "empty_rule": {"rule": EMPTY_RULE, "floor_relative_db": 10.0 * math.log10(work.floor / peak),
+                       "floor": work.floor, "max_intensity": peak},
+        "reduction": {"edge_mode": work.edge_mode, "normalization": work.normalization,
+                      "axial_center": axial_center if isinstance(axial_center, str) else float(axial_center),
+                      "axial_center_cycles_per_pixel": float(fc) if not isinstance(fc, str) else 0.0,
+                      "lateral_axes": "YX" if "Y" in axes else "X"},
+    }
+    if bulk_phase is not None:
+        meta["bulk_phase"] = bulk_phase.meta()
+    if work.n_nonfinite:
+        meta["nonfinite"] = {"samples": work.n_nonfinite,
+                             "masked_pixels": {t.label: work.nonfinite_pixels.get(t.label, 0) for t in req.targets},
+                             "rule": "pixels a non-finite sample reaches (its own; within 5 sigma of the reduction "
+                                     "window along each filtered axis) are NaN in every channel"}
+    if "aliv" in wanted or "swiftness" in wanted:
+        meta["aliv"] = {"smoothing": "box3x3" if options["aliv_smoothing"] else "none",
+                        "max_window_s": options["aliv_max_window_s"],
+                        "model": "a*(1-exp(-T/tau)); aliv=a, swiftness=1/tau"}
+    raster = seq.block_raster
+    if raster is not None:
+        meta["block_raster"] = raster.to_dict()
+        out = out[:, work.keep_y]
+        meta["y_indices"] = [int(i) for i in np.flatnonzero(work.keep_y)]
+    if FIT_FLAG in outputs:
+        meta["aliv"]["flag"] = (f"{FIT_FLAG} channel: 1 where the fit ended on the lower τ bound (curve flat over the "
+                                "windows), 2 on the upper bound (still rising at the longest window), 0 inside, NaN "
+                                "undefined; aLIV/Swiftness there are bounds of the model, not measurements")
+        meta["aliv"]["flagged_pixels"] = {
+            c["resolution"]: {"tau_at_lower_bound": int(np.sum(out[i] == 1)), "tau_at_upper_bound": int(np.sum(out[i] == 2))}
+            for i, c in enumerate(channels) if c["metric"] == FIT_FLAG}
+    if req.features:
+        meta["signature"] = {"features": list(req.features), "intensity_only": not seq.is_complex,
+                             "definition": "torchdoct.sim.signature (lags in frames)"}
+    return Maps(maps=out.astype(np.float32, copy=False), channels=tuple(c["name"] for c in channels), meta=meta)
 
 
 @one_torch_thread
-def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = ("original",), *,
+def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget] = ("original",), *,
                  metrics: Iterable[str] = ("liv", "ocds", "mean_db"),
                  ocds_delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S,
                  ocds_scale: str = "db", ocds_estimator: str = "pearson",
@@ -289,268 +616,45 @@ def compute_maps(seq: Sequence, resolutions: Iterable[str | ResolutionTarget] = 
     complex samples per depth slab; ``chunk_pixels``: pixels per metric chunk (memory only).
     ``timings`` (optional dict) receives seconds per resolution label. Returns :class:`Maps`
     (float32 ``[C, (Y), Z, X]``, channels ``f"{metric}@{resolution}"``).
+
+    The stages, in this order: :func:`check_maps_request` (everything that can be refused, before any
+    work), :func:`_bulk_phase_factor` (the bulk phase and its phasor), :func:`_axial_center` (the axial
+    window's centre), :func:`_empty_floor` (the largest intensity and the empty floor), :func:`_slab_plans`
+    (each resolution's cut), :func:`_channel_records` (the channels' names and optics), :func:`_fill_maps`
+    (the slab loop, :func:`_map_slab` per slab) and :func:`_maps_result` (metadata, block raster, float32).
     """
-    wanted = [m for m in METRICS if m in set(metrics)]
-    unknown = sorted(set(metrics) - set(METRICS))
-    feats: tuple[str, ...] = ()
-    if signature is not None and signature is not False:  # before any work: the names, the optics, the protocol
-        feats, _ = signature_channels(seq, None if signature is True else signature)
-        sig_system = seq.system  # the signature channels record the optics of every resolution
-    if unknown or not (wanted or feats):
-        raise ValueError(f"unknown metrics {unknown}; choose from {', '.join(METRICS)}")
-    if edge_mode not in EDGE_MODES:
-        raise ValueError(f"edge_mode must be one of {', '.join(EDGE_MODES)}; got {edge_mode!r}")
-    if normalization not in NORMALIZATIONS:
-        raise ValueError(f"normalization must be one of {', '.join(NORMALIZATIONS)}; got {normalization!r}")
-    targets = _as_targets(resolutions)
-    src = seq.source or "sequence"
-    from ..resources import check_maps  # the one resource check of every command, before any work
-    check_maps(src, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,
-               n_resolutions=len(targets), metrics=wanted + list(feats), slab_elements=slab_elements)
-    if seq.n_frames < 2:
-        raise ValueError(f"{src}: {seq.n_frames} frame along T; DOCT maps need at least 2 frames (LIV is a variance "
-                         "over frames); check the file or --axes")
-    if any(t.lateral_resolution_um is not None or t.axial_resolution_um is not None for t in targets):
-        system = seq.system  # a resolution target needs the original optics (a clear error names the options)
-    else:  # original resolution only: the optics are recorded when known, never required
-        system = {k: v for k, v in dict(seq.meta.get("system") or {}).items() if v is not None}
-    known = "lateral_resolution_um" in system and "axial_resolution_um" in system
-    lat0 = float(system["lateral_resolution_um"]) if known else None
-    ax0 = float(system["axial_resolution_um"]) if known else None
-
-    def optics(t: ResolutionTarget) -> tuple[float | None, float | None]:
-        return t.resolved(system) if known else (None, None)
-
-    changes = [t for t in targets if optics(t) != (lat0, ax0)]
-    for t in targets:  # validate every target before any work
-        if t.lateral_resolution_um is not None:
-            lateral_filter_sigma_um(lat0, t.lateral_resolution_um)
-            if t in changes:  # the grid must hold the target PSF (two pixels at least)
-                check_target_sampled("lateral", lat0, t.lateral_resolution_um, seq.pitch_um, seq.axes)
-        if t.axial_resolution_um is not None:
-            axial_filter_sigma_um(ax0, t.axial_resolution_um)
-            if t in changes:
-                check_target_sampled("axial", ax0, t.axial_resolution_um, seq.pitch_um, seq.axes)
-    if changes and not seq.is_complex:
-        raise ValueError(f"{seq.source or 'sequence'} holds intensity only (dtype {seq.data.dtype}): a resolution "
-                         f"change ({', '.join(t.label for t in changes)}) needs the complex field; use "
-                         "--resolution original only")
-    times = seq.frame_times_s
-    if "ocds" in wanted:
-        lo, hi = ocds_delay_range_s
-        if not (0 < lo < hi):
-            raise ValueError(f"ocds_delay_range_s must be 0 < lo < hi (s); got {ocds_delay_range_s!r}")
-        probe = torch.rand(1, len(times), generator=torch.Generator().manual_seed(0)) + 1.0
-        ocds_map(probe, times, delay_range_s=(lo, hi), scale=ocds_scale, estimator=ocds_estimator)
+    req = check_maps_request(seq, resolutions, metrics=metrics, signature=signature,
+                             ocds_delay_range_s=ocds_delay_range_s, ocds_scale=ocds_scale,
+                             ocds_estimator=ocds_estimator, edge_mode=edge_mode, normalization=normalization,
+                             slab_elements=slab_elements)
     dev = torch.device(device) if device is not None else torch.device("cpu")
-    if isinstance(bulk_phase, str):
-        bulk_phase = estimate_bulk_phase(seq, bulk_phase, slab_elements=slab_elements, device=dev, progress=progress)
-    elif bulk_phase is not None and not isinstance(bulk_phase, BulkPhase):
-        raise TypeError(f"bulk_phase must be a method name or a BulkPhase; got {type(bulk_phase).__name__}")
-    bulk = None
-    if bulk_phase is not None:
-        if not seq.is_complex:
-            raise ValueError(f"{src} holds intensity only (dtype {seq.data.dtype}): bulk-phase correction needs the "
-                             "complex field; give the complex sequence, or drop --bulk-phase")
-        # [T, (Y), 1, X] in the data's dtype, broadcast over depth: the multiplication of corrected_sequence
-        bulk = _bulk_phasor(bulk_phase, seq)
-    data = seq.data
-    native = data.dtype.newbyteorder("=")  # big-endian files are read in native byte order
-    axes = seq.axes
-    zdim = axes.index("Z")
-    fc: float | str = axial_center
-    if axial_center == "centroid" and seq.is_complex and any(t.axial_resolution_um is not None for t in changes):
-        sub = torch.from_numpy(np.ascontiguousarray(data[: min(4, data.shape[0])], dtype=native))
-        fc = depth_spectrum_center(sub, axes=axes)
-    elif isinstance(axial_center, str) and axial_center not in ("zero", "centroid"):
-        raise ValueError(f"axial_center must be 'zero', 'centroid' or a number (cycles/pixel); got {axial_center!r}")
-    margin = 1 if (aliv_smoothing and ("aliv" in wanted or "swiftness" in wanted)) else 0
-    real_dtype = np.float64 if data.dtype in (np.complex128, np.float64) else np.float32
-    peak = _peak_intensity(data, src)
-    floor = peak * (EMPTY_FLOOR_EPS_FACTOR * float(np.finfo(real_dtype).eps)) ** 2
-    outputs = wanted + ([FIT_FLAG] if ("aliv" in wanted or "swiftness" in wanted) else [])
-    n_doct = len(targets) * len(outputs)  # the DOCT channels, then the signature channels
+    bulk_phase, bulk = _bulk_phase_factor(seq, req, bulk_phase, slab_elements=slab_elements, device=dev,
+                                          progress=progress)
+    fc = _axial_center(seq, req, axial_center)
+    fitted = "aliv" in req.metrics or "swiftness" in req.metrics
+    margin = 1 if (aliv_smoothing and fitted) else 0
+    peak, floor = _empty_floor(seq, req)
+    outputs = list(req.metrics) + ([FIT_FLAG] if fitted else [])
+    n_doct = len(req.targets) * len(outputs)  # the DOCT channels, then the signature channels
     raster = seq.block_raster
-    keep_y = None  # the B-scans a block raster volume keeps (its others are dropped below)
+    keep_y = None  # the B-scans a block raster volume keeps (its others are dropped at the end)
     if raster is not None:
         keep_y = raster.keep_y() if drop_boundary else np.ones(raster.n_y, dtype=bool)
-    out = np.full((n_doct + len(targets) * len(feats), *data.shape[1:]), np.nan, dtype=real_dtype)
-
-    plans = []
-    for t in targets:  # each resolution's cut: from what its stages need of the axes (slab_cut)
-        lat, ax = optics(t)
-        sig = axial_filter_sigma_um(ax0, ax) / seq.pitch_um["z"] if ax != ax0 else 0.0
-        field_needs = [CORRECTION_AXIS_NEEDS] if bulk is not None else []
-        if t in changes:
-            field_needs.append(reduction_axis_needs(axes, lateral=lat != lat0, axial_sigma_px=sig,
-                                                    edge_mode=edge_mode))
-        cut, halo, mrg = slab_cut(axes, field_needs, [SMOOTHING_AXIS_NEEDS] if margin else [])
-        cdim = axes.index(cut)
-        n_c = data.shape[cdim]
-        rows = max(1, min(n_c, int(slab_elements) // max(int(np.prod(data.shape)) // n_c, 1)))
-        if halo is None:  # every axis it could cut is needed whole: one slab
-            halo, rows = 0, n_c
-        elif halo:  # a slab at least as deep as its halo on both sides
-            rows = min(n_c, max(rows, 2 * halo))
-        reach = nonfinite_reach_px(seq, t) if t in changes else {}
-        plans.append((t, cdim, n_c, halo, mrg, rows, reach))
-    total = sum(math.ceil(n_c / plan[5]) for plan in plans)
-    nonfinite_pixels: dict[str, int] = {}
-    n_nonfinite = 0
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=total, desc="maps", unit="slab")
-    channels: list[dict[str, Any]] = []
-    sig_channels: list[dict[str, Any]] = []
-    for ti, (t, cdim, n_c, halo, mrg, rows, reach) in enumerate(plans):
-        lat, ax = optics(t)
-        wl = system.get("wavelength_um")
-        for m in outputs:
-            channels.append({"name": f"{m}@{t.label}", "metric": m, "unit": UNITS[m], "resolution": t.label,
-                             "wavelength_um": None if wl is None else float(wl), "lateral_resolution_um": lat,
-                             "axial_resolution_um": ax})
-        if feats:
-            s_lat, s_ax = t.resolved(sig_system)
-            sig_channels += [{"name": f"{f}@{t.label}", "metric": f, "unit": feature_unit(f), "resolution": t.label,
-                              "wavelength_um": float(sig_system["wavelength_um"]), "lateral_resolution_um": s_lat,
-                              "axial_resolution_um": s_ax} for f in feats]
-        t0 = time.perf_counter()
-        for c0 in range(0, n_c, rows):
-            c1 = min(n_c, c0 + rows)
-            a0, a1 = max(0, c0 - halo), min(n_c, c1 + halo)
-            sel = [slice(None)] * data.ndim
-            sel[cdim] = slice(a0, a1)
-            raw = np.array(data[tuple(sel)], dtype=native, copy=True)
-            corrected = None
-            if bulk is not None and (t in changes or feats):  # bulk phase removed before the A-lines are mixed
-                psel = list(sel)
-                psel[zdim] = slice(None)
-                corrected = torch.from_numpy(np.multiply(raw, bulk[tuple(psel)])).to(dev)
-            # the intensity maps at the original resolution read no phase: the field as recorded
-            block = corrected if t in changes and corrected is not None else torch.from_numpy(raw).to(dev)
-            bad = None
-            fin = torch.isfinite(block)
-            if not bool(fin.all()):  # masked per pixel: non-finite samples enter the reduction as 0
-                bad = (~fin).any(dim=0).cpu().numpy()  # [(Y), Z, X] over a0:a1
-                if ti == 0:
-                    n_nonfinite += int((~fin).narrow(cdim, c0 - a0, c1 - c0).sum())
-                block = torch.where(fin, block, torch.zeros_like(block))
-                if corrected is not None and t not in changes:
-                    corrected = torch.where(fin, corrected, torch.zeros_like(corrected))
-            del fin
-            if t in changes:
-                red = reduce_resolution(block, pitch_um=seq.pitch_um, system=system,
-                                        lateral_resolution_um=t.lateral_resolution_um,
-                                        axial_resolution_um=t.axial_resolution_um, axes=axes,
-                                        axial_center=fc, edge_mode=edge_mode, normalization=normalization)
-            else:
-                red = block
-            # the signature's field: the reduced one, or at the original resolution the bulk-corrected one
-            field = corrected if corrected is not None and t not in changes else red
-            m0, m1 = max(a0, c0 - mrg), min(a1, c1 + mrg)
-            red = red.narrow(cdim, m0 - a0, m1 - m0)
-            if red.is_complex():
-                inten = red.real ** 2 + red.imag ** 2
-            else:
-                inten = red.to(torch.float64 if real_dtype == np.float64 else torch.float32)
-            if t in changes:  # FFT round-off of the reduction is no signal: treated as I = 0 (module docstring)
-                inten = torch.where(inten > floor, inten, torch.zeros_like(inten))
-            vals = pixel_metrics(inten, times, wanted, ocds_delay_range_s=tuple(ocds_delay_range_s),
-                                 ocds_scale=ocds_scale, ocds_estimator=ocds_estimator,
-                                 aliv_smoothing=aliv_smoothing, aliv_max_window_s=aliv_max_window_s,
-                                 chunk_pixels=chunk_pixels) if wanted else {}
-            del inten
-            masks = {}
-            if bad is not None:
-                sp = axes[1:]
-                masks["pixel"] = _nonfinite_reach(bad, sp, reach, edge_mode == "wrap")
-                if margin:
-                    grown = {c: reach.get(c, 0) + (margin if c in "ZX" else 0) for c in "YZX"}
-                    masks["smoothed"] = _nonfinite_reach(bad, sp, grown, edge_mode == "wrap")
-                core = [slice(None)] * (data.ndim - 1)
-                core[cdim - 1] = slice(c0 - a0, c1 - a0)
-                masks = {k: v[tuple(core)] for k, v in masks.items()}
-                nonfinite_pixels[t.label] = nonfinite_pixels.get(t.label, 0) + int(np.count_nonzero(masks["pixel"]))
-            for mi, m in enumerate(outputs):
-                v = vals[m].narrow(cdim - 1, c0 - m0, c1 - c0).cpu().numpy()
-                if masks:
-                    smoothed = m in ("aliv", "swiftness", FIT_FLAG) and "smoothed" in masks
-                    v = np.where(masks["smoothed" if smoothed else "pixel"], np.nan, v)
-                idx = [ti * len(outputs) + mi] + [slice(None)] * (data.ndim - 1)
-                idx[cdim] = slice(c0, c1)
-                out[tuple(idx)] = v
-            if feats:  # the signature of the slab's own pixels (no halo), from the same field
-                x = field.narrow(cdim, c0 - a0, c1 - c0)
-                if not x.is_complex():
-                    x = x.to(torch.float64 if real_dtype == np.float64 else torch.float32)
-                x = x.movedim(0, -1)  # [*spatial, T]
-                idx = [slice(n_doct + ti * len(feats), n_doct + (ti + 1) * len(feats))] + [slice(None)] * (data.ndim - 1)
-                idx[cdim] = slice(c0, c1)
-                ys = None
-                if keep_y is not None:  # only the B-scans kept
-                    ys = np.flatnonzero(keep_y[c0:c1] if cdim == 1 else keep_y)
-                    x = x[torch.as_tensor(ys)]
-                    idx[1] = ys + (c0 if cdim == 1 else 0)
-                f = pixel_features(x, times, feats, chunk_pixels=chunk_pixels)[1]
-                f = f.movedim(-1, 0).cpu().numpy()  # [F, *spatial]
-                if masks:  # the pixels that non-finite samples reach, as for the DOCT channels
-                    f = np.where(masks["pixel"] if ys is None else masks["pixel"][ys], np.nan, f)
-                out[tuple(idx)] = f
-            del field
-            if bar is not None:
-                bar.update(1)
-        if timings is not None:
-            timings[t.label] = time.perf_counter() - t0
-    if bar is not None:
-        bar.close()
-    channels += sig_channels
-    meta: dict[str, Any] = {
-        "channels": channels,
-        "axes": "C" + axes[1:],
-        "pitch_um": seq.meta.get("pitch_um"),
-        "frame_times_s": times,
-        "system": system,
-        "ocds_delay_range_s": [float(v) for v in ocds_delay_range_s],
-        "ocds_scale": ocds_scale,
-        "ocds_estimator": ocds_estimator,
-        "source": seq.source,
-        "empty_rule": {"rule": EMPTY_RULE, "floor_relative_db": 10.0 * math.log10(floor / peak),
-                       "floor": floor, "max_intensity": peak},
-        "reduction": {"edge_mode": edge_mode, "normalization": normalization,
-                      "axial_center": axial_center if isinstance(axial_center, str) else float(axial_center),
-                      "axial_center_cycles_per_pixel": float(fc) if not isinstance(fc, str) else 0.0,
-                      "lateral_axes": "YX" if "Y" in axes else "X"},
-    }
-    if bulk_phase is not None:
-        meta["bulk_phase"] = bulk_phase.meta()
-    if n_nonfinite:
-        meta["nonfinite"] = {"samples": n_nonfinite,
-                             "masked_pixels": {t.label: nonfinite_pixels.get(t.label, 0) for t in targets},
-                             "rule": "pixels a non-finite sample reaches (its own; within 5 sigma of the reduction "
-                                     "window along each filtered axis) are NaN in every channel"}
-    if "aliv" in wanted or "swiftness" in wanted:
-        meta["aliv"] = {"smoothing": "box3x3" if aliv_smoothing else "none", "max_window_s": aliv_max_window_s,
-                        "model": "a*(1-exp(-T/tau)); aliv=a, swiftness=1/tau"}
-    if raster is not None:
-        meta["block_raster"] = raster.to_dict()
-        out = out[:, keep_y]
-        meta["y_indices"] = [int(i) for i in np.flatnonzero(keep_y)]
-    if FIT_FLAG in outputs:
-        meta["aliv"]["flag"] = (f"{FIT_FLAG} channel: 1 where the fit ended on the lower τ bound (curve flat over the "
-                                "windows), 2 on the upper bound (still rising at the longest window), 0 inside, NaN "
-                                "undefined; aLIV/Swiftness there are bounds of the model, not measurements")
-        meta["aliv"]["flagged_pixels"] = {
-            c["resolution"]: {"tau_at_lower_bound": int(np.sum(out[i] == 1)), "tau_at_upper_bound": int(np.sum(out[i] == 2))}
-            for i, c in enumerate(channels) if c["metric"] == FIT_FLAG}
-    if feats:
-        meta["signature"] = {"features": list(feats), "intensity_only": not seq.is_complex,
-                             "definition": "torchdoct.sim.signature (lags in frames)"}
-    return Maps(maps=out.astype(np.float32, copy=False), channels=tuple(c["name"] for c in channels), meta=meta)
+    out = np.full((n_doct + len(req.targets) * len(req.features), *seq.data.shape[1:]), np.nan,
+                  dtype=_real_dtype(seq))
+    plans = _slab_plans(seq, req, bulk=bulk is not None, smoothing_margin=bool(margin), edge_mode=edge_mode,
+                        slab_elements=slab_elements)
+    channels = _channel_records(req, outputs)
+    options = dict(ocds_delay_range_s=tuple(ocds_delay_range_s), ocds_scale=ocds_scale, ocds_estimator=ocds_estimator,
+                   aliv_smoothing=aliv_smoothing, aliv_max_window_s=aliv_max_window_s)
+    work = _SlabWork(seq=seq, req=req, out=out, outputs=outputs, n_doct=n_doct, keep_y=keep_y, bulk=bulk, device=dev,
+                     axial_center=fc, edge_mode=edge_mode, normalization=normalization, floor=floor,
+                     smoothing_margin=margin, metric_options=options, chunk_pixels=chunk_pixels)
+    _fill_maps(work, plans, progress=progress, timings=timings)
+    return _maps_result(work, channels, bulk_phase=bulk_phase, peak=peak, axial_center=axial_center, options=options)
 
 
-def signature_channels(seq: Sequence, names: _Seq[str] | None = None) -> tuple[tuple[str, ...], str | None]:
+def signature_channels(seq: SequenceData, names: _Seq[str] | None = None) -> tuple[tuple[str, ...], str | None]:
     """The signature features that maps of ``seq`` get, and a sentence for the user (or ``None``).
 
     ``names``: default :func:`torchdoct.sim.signature.default_features` of the sequence's frame count, of
@@ -576,7 +680,7 @@ def signature_channels(seq: Sequence, names: _Seq[str] | None = None) -> tuple[t
     return feats, note
 
 
-def signature_maps(maps: Maps, seq: Sequence, resolutions: _Seq[str | ResolutionTarget] = ("original",), *,
+def signature_maps(maps: Maps, seq: SequenceData, resolutions: _Seq[str | ResolutionTarget] = ("original",), *,
                    names: _Seq[str] | None = None, chunk_pixels: int = 1 << 16) -> tuple[Maps, str | None]:
     """``maps`` (from :func:`compute_maps` of ``seq``) with the signature channels of every resolution
     appended: ``f"{feature}@{resolution}"``, metric = the feature name, its unit and the optics of the

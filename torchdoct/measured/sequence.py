@@ -32,7 +32,7 @@ from typing import Any, Mapping, Sequence as _Seq
 
 import numpy as np
 
-__all__ = ["SequenceData", "Sequence", "BlockRaster", "validate_meta", "sidecar_path", "finite_positive", "check_axes",
+__all__ = ["SequenceData", "BlockRaster", "validate_meta", "sidecar_path", "finite_positive", "check_axes",
            "CANONICAL_AXES", "HOW"]
 
 CANONICAL_AXES = ("TZX", "TYZX")
@@ -192,8 +192,6 @@ class SequenceData:
         return None if br is None else BlockRaster(**br)
 
 
-#: The former name of :class:`SequenceData` (it shadowed ``typing.Sequence``), kept for the public API.
-Sequence = SequenceData
 
 
 # ----------------------------------------------------------------------------------------------
@@ -243,7 +241,7 @@ def validate_meta(meta: Mapping[str, Any], shape: _Seq[int], *, where: str = "me
         raise ValueError(f"{where}: axes {axes!r} is not canonical (TZX or TYZX); transpose the data first")
     out["axes"] = axes
     pitch = out.get("pitch_um")
-    if pitch is None:  # only a resolution change needs it (Sequence.pitch_um says how to give it)
+    if pitch is None:  # only a resolution change needs it (SequenceData.pitch_um says how to give it)
         out.pop("pitch_um", None)
     else:
         if not isinstance(pitch, Mapping):

@@ -15,7 +15,7 @@ Four knobs are turned one at a time away from the shipped single-acquisition mod
   one-configuration features are the matching columns of the single-acquisition dataset: every
   configuration of a scene sees the same scatterers and its own independent noise, so these columns
   have exactly the distribution a one-system simulation would give; its ground truth is recomputed
-  with its single configuration (:func:`classifier.dataset.identifiability`), which makes more
+  with its single configuration (:func:`classifier.truth.identifiability`), which makes more
   draws indeterminate. Its simulation cost per draw is the single-acquisition one scaled by the ratio
   of the two measured on the same draws. Build time as above;
 * **model size**: hidden widths and depth; time = inference per sample (onnxruntime, the classify

@@ -43,9 +43,11 @@ def derive_dataset(ds, base, sub, prior):
 
     Features: ``sub``'s columns of ``ds.x`` (the same scatterers; each configuration has its own
     noise, so the columns are distributed as a simulation of ``sub`` alone). Ground truth:
-    :func:`classifier.dataset.identifiability` of every draw under ``sub`` (physics.md §5.3-5.4).
+    :func:`classifier.truth.identifiability` of every draw under ``sub`` (physics.md §5.3-5.4).
     """
-    from classifier.dataset import STATUS, Dataset, draw_parameters, identifiability
+    from classifier.dataset import Dataset
+    from classifier.prior import draw_parameters
+    from classifier.truth import STATUS, identifiability
 
     cols = _columns(base, sub)
     meta = ds.meta
@@ -79,9 +81,10 @@ def prefix_dataset(ds, draws: int):
 
 
 def _seconds_per_draw(spec, prior, plan: TradeoffPlan) -> float:
-    """Seconds per draw of :func:`classifier.dataset.simulate_draw` over training draws 0…m−1 (one
+    """Seconds per draw of :func:`classifier.simulation.simulate_draw` over training draws 0…m−1 (one
     untimed warm-up draw first)."""
-    from classifier.dataset import draw_parameters, simulate_draw
+    from classifier.prior import draw_parameters
+    from classifier.simulation import simulate_draw
     from classifier.train import TrainConfig
 
     tol = TrainConfig().truncation_tolerance

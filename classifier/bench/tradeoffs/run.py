@@ -37,7 +37,8 @@ def run_tradeoffs(plan: TradeoffPlan, *, cache_dir=None, progress: bool = False,
 
     from torchdoct.runtime.machine import machine_info
 
-    from classifier.dataset import Prior, make_dataset
+    from classifier.dataset import make_dataset
+    from classifier.prior import Prior
     from classifier.features import load_spec
     from classifier.infer import DEFAULT_MODEL, load_model, pool_features
     from classifier.rule import apply_rule, make_rule
