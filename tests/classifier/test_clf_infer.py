@@ -17,8 +17,8 @@ from classifier.cli import classify_main
 from classifier.prior import Draw, Prior
 from classifier.simulation import simulate_draw
 from classifier.export import build_metadata, export_onnx
-from classifier.infer import (MASKED, _effective_count, classify_maps, independent_fraction, load_model,
-                              pool_features, read_maps)
+from classifier.infer import MASKED, classify_maps, independent_fraction, load_model, pool_features, read_maps
+from classifier.pooling import effective_count
 from classifier.rule import apply_rule
 from classifier.train import TrainConfig, train
 
@@ -171,7 +171,7 @@ def test_independent_fraction_limits(setup):
     assert fine == pytest.approx(1 / 25, rel=1e-3)
     # effective count of two pixels with correlation r: 4 / (2 + 2r)
     r = math.exp(-1.0 / 2.0)
-    assert _effective_count(2, 1.0, 1.0) == pytest.approx(4.0 / (2.0 + 2.0 * r))
+    assert effective_count(2, 1.0, 1.0) == pytest.approx(4.0 / (2.0 + 2.0 * r))
 
 
 def test_pooling_feeds_the_independent_pixel_count(setup):
