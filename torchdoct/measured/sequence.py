@@ -192,8 +192,6 @@ class SequenceData:
         return None if br is None else BlockRaster(**br)
 
 
-
-
 # ----------------------------------------------------------------------------------------------
 # metadata
 
