@@ -230,6 +230,29 @@ def tradeoffs_fidelity(root: Path) -> str:
     return "\n\n".join([t, text, source("torchdoct bench tradeoffs --part fidelity --out FILE", p, machine(f))])
 
 
+def tradeoffs_classifier(root: Path) -> str:
+    d, p = load(root, "bench-tradeoffs.json")
+    c = d["classifier"]
+    rows = []
+    for axis in c["axes"].values():
+        for r in axis["rows"]:
+            cost = " / ".join(f"{k} {num(r.get(k))}" for k in axis["time_keys"])
+            p1, p25 = r["pools"].get("1", {}), r["pools"].get("25", {})
+            label = f"**{r['label']}**" if r.get("is_default") else r["label"]
+            rows.append([axis["title"], label, cost, pm(p1.get("balanced_accuracy"), p1.get("balanced_accuracy_se")),
+                         pm(p1.get("coverage"), p1.get("coverage_se")),
+                         pm(p25.get("balanced_accuracy"), p25.get("balanced_accuracy_se")) if p25 else ""])
+    t = table(["axis", "setting (shipped in bold)", "cost (s or µs)", "bal. acc. pool 1", "coverage pool 1",
+               "bal. acc. pool 25"], rows)
+    fronts = [f"{axis}: {v['defaults']} {'on' if v['defaults_on_front'] else 'off'} the front of {what}"
+              for axis, sm in c["summary"].items() for what, v in sm.items() if what.startswith("error @")]
+    ts = c["test_split"]
+    text = (f"Single-acquisition recipe, test split of {ts['draws']} draws × {ts['replicates']} replicates × "
+            f"{ts['trials_per_draw']} trials, ± bootstrap SE ({ts['bootstrap_resamples']} resamples). Pareto fronts "
+            f"of error against cost: " + "; ".join(fronts) + ".")
+    return "\n\n".join([t, text, source("torchdoct bench tradeoffs --part classifier --out FILE", p, machine(c))])
+
+
 def simulate_example(root: Path) -> str:
     d, p = load(root, "simulate-example.json")
     rows = [[name, pm(s["liv"]["mean"], s["liv"]["se"], 4), num(s["liv"]["sd"], 4), pm(s["ocds"]["mean"], s["ocds"]["se"], 4),
@@ -314,6 +337,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "tradeoffs-simulator": tradeoffs_simulator,
     "tradeoffs-study": tradeoffs_study,
     "tradeoffs-fidelity": tradeoffs_fidelity,
+    "tradeoffs-classifier": tradeoffs_classifier,
     "simulate-example": simulate_example,
     "quick-train": quick_train,
     "systems-validation": systems_validation,
