@@ -15,9 +15,10 @@ frames, ``τ = m·Δt``; offsets ``Δ`` on the grid ``{−R..R}`` pixels per axi
     V̂         = ⟨I(r, i)²⟩ / ⟨I(r, i)⟩² − 1
     ρ̂(Δ, m)   = Ĉ(Δ, m) / V̂
 
-where the averages of Ĉ run over the ``T − m`` frame pairs ``(i, i + m)`` of every pixel ``r`` of the
-window whose partner ``r + Δ`` is valid, and those of V̂ over every frame of every valid pixel of the
-window. Ĉ is the normalised intensity cross-covariance ``g2(Δ, τ) − 1``, whose expectation is
+where the average of the product runs over the ``T − m`` frame pairs ``(i, i + m)`` of every valid pixel
+``r`` of the window whose partner ``r + Δ`` is valid, ``⟨I(r, i)⟩`` over the first ``T − m`` frames of the
+window's valid pixels, ``⟨I(r+Δ, i+m)⟩`` over the last ``T − m`` frames of the valid pixels of the window
+moved by ``Δ``, and those of V̂ over every frame of every valid pixel of the window. Ĉ is the normalised intensity cross-covariance ``g2(Δ, τ) − 1``, whose expectation is
 ``|g1(Δ, τ)|² + j(Δ, τ)/N_eff`` (physics.md §5.4 with the offset; V̂ → ``1 + 1/N_eff``). No per-pixel
 temporal mean is removed: it would subtract the trajectory-averaged pattern and push the peak of a
 slow translation outward (derivation, §5).
@@ -201,7 +202,7 @@ def _lagged_product(head: torch.Tensor, tail: torch.Tensor, offset: Sequence[int
         src.append(slice(max(0, o), min(n, n + o)))
     hd = head[(dst[0], slice(None), *dst[1:])]
     tl = tail[(src[0], slice(None), *src[1:])]
-    out[tuple(dst)] = (hd * tl).mean(1, dtype=torch.float64)
+    out[tuple(dst)] = (hd * tl).sum(1).to(torch.float64) / hd.shape[1]  # in the data's precision: T terms
     return out
 
 
@@ -295,21 +296,37 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
     centre_idx = grid.index((0,) * ndim)
     nan = torch.tensor(math.nan, dtype=torch.float64)
     per_lag: dict[int, dict[str, torch.Tensor]] = {}
+    all_valid = bool(valid.all())
+    pad = [max_offset, max_offset] * ndim
+
+    def padded_box(v: torch.Tensor) -> torch.Tensor:  # box sums on the array grown by R: shifts stay exact
+        import torch.nn.functional as F
+        return _box_mean_sum(F.pad(v, pad), window)
+
+    def moved(v: torch.Tensor, off: Sequence[int]) -> torch.Tensor:  # padded map at r + Δ, on the array's grid
+        return v[(slice(None), *(slice(max_offset + o, max_offset + o + n) for o, n in zip(off, sp)))]
+
+    n_part = padded_box(vw)  # valid pixels of every (shifted) window
     for m in lags:
         head, tail = safe[:, : n_t - m], safe[:, m:]
-        h_mean = head.mean(1, dtype=torch.float64)
-        t_mean = tail.mean(1, dtype=torch.float64)
+        h_mean = _box_mean_sum(head.mean(1, dtype=torch.float64), window) / den_pix  # ⟨I(r, i)⟩, i < T − m
+        t_box = padded_box(tail.mean(1, dtype=torch.float64))
         rho = []
         for off in grid:
-            w = vw * _shifted(vw, off)  # the pixel pairs (r, r + Δ) with both valid
-            cnt = _box_mean_sum(w, window)
+            prod = _lagged_product(head, tail, off)
+            if all_valid:  # the product is 0 where the partner is outside the array
+                cnt = moved(n_part, [0] * ndim) if not any(off) else _box_mean_sum(vw * _shifted(vw, off), window)
+            else:
+                w = vw * _shifted(vw, off)  # the pixel pairs (r, r + Δ) with both valid
+                prod = prod * w
+                cnt = _box_mean_sum(w, window)
             pos = cnt > 0
-            cnt = torch.where(pos, cnt, torch.ones_like(cnt))
-            s_ii = _box_mean_sum(_lagged_product(head, tail, off) * w, window) / cnt
-            s_h = _box_mean_sum(h_mean * w, window) / cnt
-            s_t = _box_mean_sum(_shifted(t_mean, off) * w, window) / cnt
-            c = s_ii / torch.where(s_h * s_t > 0, s_h * s_t, torch.ones_like(s_h)) - 1.0  # Ĉ(Δ, m)
-            rho.append(torch.where(pos & (s_h * s_t > 0), c, nan) / var)
+            s_ii = _box_mean_sum(prod, window) / torch.where(pos, cnt, torch.ones_like(cnt))
+            n_t_w = moved(n_part, off)
+            s_t = moved(t_box, off) / torch.where(n_t_w > 0, n_t_w, torch.ones_like(n_t_w))  # ⟨I(r + Δ, i + m)⟩
+            norm = h_mean * s_t
+            c = s_ii / torch.where(norm > 0, norm, torch.ones_like(norm)) - 1.0  # Ĉ(Δ, m)
+            rho.append(torch.where(pos & (norm > 0), c, nan) / var)
         r = torch.stack(rho, 0)  # [G, B, *S]
         feats: dict[str, torch.Tensor] = {"centre": r[centre_idx]}
         filled = torch.where(torch.isnan(r), torch.full_like(r, -math.inf), r)
