@@ -608,3 +608,69 @@ def test_bulk_phase_correction_is_the_corrected_sequence_for_every_channel():
         np.testing.assert_array_equal(got.maps[i], (plain if doct_original else corrected).maps[i], err_msg=name)
     # the correction matters for the field features: the corrected field is more coherent than the recorded one
     assert np.median(got["g1_1@original"]) > np.median(plain["g1_1@original"]) + 0.3
+
+
+# ----------------------------------------------------------------------------------------------------------
+# speckle-motion channels (compute_maps(..., speckle=...)): the numbers of torchdoct.sim.speckle on the whole
+# field whatever the slabs, the other channels unchanged bit for bit, the window in the metadata, the
+# torch-free reader, refusals before any work
+# ----------------------------------------------------------------------------------------------------------
+
+def _speckle_reference(data: np.ndarray, pitch: dict, window: int, ndim: int) -> np.ndarray:
+    from torchdoct.sim.speckle import default_speckle_features, speckle_motion
+
+    return speckle_motion(torch.from_numpy(data), pitch, DT, window=window, ndim=ndim,
+                          names=default_speckle_features(ndim, n_frames=data.shape[0]))[1].numpy()
+
+
+@pytest.mark.parametrize("volume", [False, True])
+def test_speckle_channels_match_the_feature_module_across_slabs(volume):
+    shape = (12, 4, 20, 9) if volume else (12, 24, 13)
+    data = speckle(shape, corr=0.9, seed=3, dtype=np.complex128)
+    seq = make_seq(data, volume=volume)
+    from torchdoct.sim.speckle import default_speckle_features
+
+    names = default_speckle_features(3 if volume else 2, n_frames=shape[0])
+    whole = compute_maps(seq, ["original", "axial=14"], speckle=True, speckle_window=5)
+    slabs = compute_maps(seq, ["original", "axial=14"], speckle=True, speckle_window=5,
+                         slab_elements=12 * 4 * 9 * (4 if volume else 1) if volume else 12 * 13 * 4)
+    ref = _speckle_reference(data, seq.pitch_um, 5, 3 if volume else 2)
+    got = np.stack([whole[f"{n}@original"] for n in names])
+    np.testing.assert_allclose(got, ref.astype(np.float32), rtol=1e-5, atol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(np.stack([slabs[f"{n}@original"] for n in names]), got, rtol=1e-5, atol=1e-6,
+                               equal_nan=True)
+    plain = compute_maps(seq, ["original", "axial=14"])
+    for c in plain.channels:  # every other channel unchanged bit for bit
+        assert np.array_equal(whole[c], plain[c], equal_nan=True), c
+    assert whole.meta["speckle"]["window_px"] == 5 and whole.meta["speckle"]["resolution"] == "original"
+    rec = {c["name"]: c for c in whole.meta["channels"]}
+    assert rec["xc_speed@original"]["unit"] == "um/s" and rec["xc_speed@original"]["lateral_resolution_um"] == 4.9
+
+
+def test_speckle_channels_survive_the_torch_free_reader(tmp_path):
+    from torchdoct.measured.mapsfile import write_maps
+    from torchdoct.sim.speckle import speckle_feature_unit
+
+    data = speckle((10, 16, 12), corr=0.9, seed=4)
+    m = compute_maps(make_seq(data), ["original"], speckle=True)
+    for suffix in (".npz", ".tif"):
+        path = write_maps(tmp_path / f"m{suffix}", m)
+        back = read_maps(path)
+        assert back.channels == m.channels
+        np.testing.assert_array_equal(back["xc_shift_2@original"], m["xc_shift_2@original"])
+        units = {c["name"]: c["unit"] for c in back.meta["channels"]}
+        assert units["xc_shift_2@original"] == speckle_feature_unit("xc_shift_2") == "um"
+        assert back.meta["speckle"]["window_px"] == m.meta["speckle"]["window_px"]
+
+
+def test_speckle_channels_are_refused_without_a_pitch_or_an_original_resolution():
+    data = speckle((10, 16, 12), seed=5)
+    seq = make_seq(data)
+    with pytest.raises(ValueError, match="original resolution"):
+        compute_maps(seq, ["axial=14"], speckle=True)
+    with pytest.raises(ValueError, match="odd"):
+        compute_maps(seq, ["original"], speckle=True, speckle_window=4)
+    bare = SequenceData(data=data, meta=validate_meta({"axes": "TZX", "frame_times_s": [DT * i for i in range(10)],
+                                                       "system": SYSTEM}, data.shape), source="bare.npy")
+    with pytest.raises(ValueError, match="pitch"):
+        compute_maps(bare, ["original"], speckle=True)

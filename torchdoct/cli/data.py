@@ -29,6 +29,11 @@ def _maps_arguments(mp) -> None:
     mp.add_argument("--signature", action="store_true",
                     help="also write the decorrelation-signature channels (torchdoct.sim.signature) that the "
                          "classifier's signature model reads")
+    mp.add_argument("--speckle", action="store_true",
+                    help="also write the speckle-motion channels (torchdoct.sim.speckle; lagged cross-correlation of "
+                         "each pixel's window: peak offset, velocity, moving share) at the original resolution")
+    mp.add_argument("--speckle-window", type=int, default=9, metavar="N",
+                    help="window of the speckle-motion channels, N pixels per axis (odd; default 9)")
     mp.add_argument("--out", action="append", required=True, metavar="FILE",
                     help="output maps file, .tif or .npz (repeat to write both)")
     mp.add_argument("--force", action="store_true", help="overwrite existing outputs")
@@ -148,7 +153,8 @@ def _maps(args: argparse.Namespace) -> int:
                         frame_interval_s=args.frame_interval_s, system=system or None, dataset=args.dataset,
                         block_raster=raster, allow_external_hdf5=args.allow_external_hdf5)
     resolutions = args.resolution or ["original"]
-    options = dict(metrics=metrics, signature=args.signature, ocds_delay_range_s=tuple(args.ocds_delay_range_s),
+    options = dict(metrics=metrics, signature=args.signature, speckle=args.speckle or None,
+                   speckle_window=args.speckle_window, ocds_delay_range_s=tuple(args.ocds_delay_range_s),
                    ocds_scale=args.ocds_scale, ocds_estimator=args.ocds_estimator, edge_mode=args.edge_mode,
                    normalization=args.normalization)
     check_maps_request(seq, resolutions, **options)  # what compute_maps refuses, before the bulk-phase estimate

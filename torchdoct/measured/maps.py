@@ -87,6 +87,9 @@ import torch
 
 from ..files import atomic_write, check_out
 from ..sim.signature import available_features, default_features, feature_unit, pixel_features
+from ..sim.speckle import DEFAULT_MAX_OFFSET as SPECKLE_MAX_OFFSET
+from ..sim.speckle import DEFAULT_WINDOW as SPECKLE_WINDOW
+from ..sim.speckle import default_speckle_features, halo_pixels, speckle_feature_unit, speckle_motion
 from .bulkphase import CORRECTION_AXIS_NEEDS, BulkPhase, estimate_bulk_phase, phasor as _bulk_phasor
 from .io import Maps, SequenceData
 from ..threads import one_torch_thread
@@ -133,6 +136,8 @@ __all__ = [
     "check_maps_request",
     "compute_maps",
     "signature_channels",
+    "speckle_channels",
+    "speckle_target",
     "signature_maps",
     "pseudo_color",
     "map_figure",
@@ -192,7 +197,9 @@ class MapsRequest:
     none); ``targets``: the resolutions in the order asked; ``system``: the optics the maps record (every
     field when a target changes the resolution); ``signature_system``: the optics the signature channels
     record; ``lateral_um`` / ``axial_um``: the original resolutions (``None`` when unknown);
-    ``changes``: the targets that change the resolution; ``source``: the name in messages."""
+    ``changes``: the targets that change the resolution; ``source``: the name in messages;
+    ``speckle``: the speckle-motion channels (:mod:`torchdoct.sim.speckle`, at the first target that keeps
+    the original resolution; empty: none) and ``speckle_window`` their window (pixels per axis)."""
 
     metrics: tuple[str, ...]
     features: tuple[str, ...]
@@ -203,6 +210,8 @@ class MapsRequest:
     axial_um: float | None
     changes: tuple[ResolutionTarget, ...]
     source: str
+    speckle: tuple[str, ...] = ()
+    speckle_window: int = 0
 
     def optics(self, t: ResolutionTarget) -> tuple[float | None, float | None]:
         """``(lateral, axial)`` resolution (µm) of target ``t``; ``(None, None)`` when the optics are unknown."""
@@ -214,7 +223,8 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
                        signature: bool | _Seq[str] | None = None,
                        ocds_delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S,
                        ocds_scale: str = "db", ocds_estimator: str = "pearson", edge_mode: str = "reflect",
-                       normalization: str = "power", slab_elements: int = 1 << 23) -> MapsRequest:
+                       normalization: str = "power", slab_elements: int = 1 << 23,
+                       speckle: bool | _Seq[str] | None = None, speckle_window: int = SPECKLE_WINDOW) -> MapsRequest:
     """Stage 1 of :func:`compute_maps`, before any work: the metric and feature names, the options, the
     resources (:func:`torchdoct.resources.check_maps`), the frames, the optics that each resolution target
     needs and the pixel grid that must hold it, intensity-only data against a resolution change, and the
@@ -228,7 +238,10 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
     if signature is not None and signature is not False:  # before any work: the names, the optics, the protocol
         feats, _ = signature_channels(seq, None if signature is True else signature)
         sig_system = seq.system  # the signature channels record the optics of every resolution
-    if unknown or not (wanted or feats):
+    spk: tuple[str, ...] = ()
+    if speckle is not None and speckle is not False:
+        spk = speckle_channels(seq, None if speckle is True else speckle, window=speckle_window)
+    if unknown or not (wanted or feats or spk):
         raise ValueError(f"unknown metrics {unknown}; choose from {', '.join(METRICS)}")
     if edge_mode not in EDGE_MODES:
         raise ValueError(f"edge_mode must be one of {', '.join(EDGE_MODES)}; got {edge_mode!r}")
@@ -238,7 +251,7 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
     src = seq.source or "sequence"
     from ..resources import check_maps  # the one resource check of every command, before any work
     check_maps(src, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,
-               n_resolutions=len(targets), metrics=wanted + list(feats), slab_elements=slab_elements)
+               n_resolutions=len(targets), metrics=wanted + list(feats) + list(spk), slab_elements=slab_elements)
     if seq.n_frames < 2:
         raise ValueError(f"{src}: {seq.n_frames} frame along T; DOCT maps need at least 2 frames (LIV is a variance "
                          "over frames); check the file or --axes")
@@ -255,7 +268,8 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
     lat0 = float(system["lateral_resolution_um"]) if known else None
     ax0 = float(system["axial_resolution_um"]) if known else None
     req = MapsRequest(metrics=tuple(wanted), features=feats, targets=tuple(targets), system=system,
-                      signature_system=sig_system, lateral_um=lat0, axial_um=ax0, changes=(), source=src)
+                      signature_system=sig_system, lateral_um=lat0, axial_um=ax0, changes=(), source=src,
+                      speckle=spk, speckle_window=int(speckle_window) if spk else 0)
     changes = tuple(t for t in targets if req.optics(t) != (lat0, ax0))
     for t in targets:  # validate every target before any work
         if t.lateral_resolution_um is not None:
@@ -268,6 +282,9 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
                 check_target_sampled("axial", ax0, t.axial_resolution_um, seq.pitch_um, seq.axes)
     if changes and not seq.is_complex:
         raise _intensity_only(seq, changes)
+    if spk and all(t in changes for t in targets):
+        raise ValueError(f"{src}: the speckle-motion channels are computed at the original resolution (the finest "
+                         "speckle: the most independent grains per window); add --resolution original")
     times = seq.frame_times_s
     if "ocds" in wanted:
         lo, hi = ocds_delay_range_s
@@ -357,6 +374,9 @@ def _slab_plans(seq: SequenceData, req: MapsRequest, *, bulk: bool, smoothing_ma
         if t in req.changes:
             field_needs.append(reduction_axis_needs(axes, lateral=lat != req.lateral_um, axial_sigma_px=sig,
                                                     edge_mode=edge_mode))
+        if req.speckle and t is speckle_target(req):  # the window and its offsets beyond each slab
+            h = halo_pixels(req.speckle_window, SPECKLE_MAX_OFFSET)
+            field_needs.append({"Z": h, "Y": h})
         cut, halo, mrg = slab_cut(axes, field_needs, [SMOOTHING_AXIS_NEEDS] if smoothing_margin else [])
         cdim = axes.index(cut)
         n_c = data.shape[cdim]
@@ -388,7 +408,14 @@ def _channel_records(req: MapsRequest, outputs: _Seq[str]) -> list[dict[str, Any
             sig_channels += [{"name": f"{f}@{t.label}", "metric": f, "unit": feature_unit(f), "resolution": t.label,
                               "wavelength_um": float(sig_system["wavelength_um"]), "lateral_resolution_um": s_lat,
                               "axial_resolution_um": s_ax} for f in req.features]
-    return channels + sig_channels
+    spk_channels: list[dict[str, Any]] = []
+    if req.speckle:
+        t = speckle_target(req)
+        lat, ax = req.optics(t)
+        spk_channels = [{"name": f"{f}@{t.label}", "metric": f, "unit": speckle_feature_unit(f), "resolution": t.label,
+                         "wavelength_um": None if wl is None else float(wl), "lateral_resolution_um": lat,
+                         "axial_resolution_um": ax} for f in req.speckle]
+    return channels + sig_channels + spk_channels
 
 
 @dataclasses.dataclass
@@ -530,6 +557,24 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int) -> No
         if masks:  # the pixels that non-finite samples reach, as for the DOCT channels
             f = np.where(masks["pixel"] if ys is None else masks["pixel"][ys], np.nan, f)
         out[tuple(idx)] = f
+    if req.speckle and t is speckle_target(req):  # the windows of the slab's own pixels, read with their halo
+        x = field if field.is_complex() else field.to(torch.float64 if real_dtype == np.float64 else torch.float32)
+        times = seq.frame_times_s
+        f = speckle_motion(x, seq.pitch_um, float(times[1] - times[0]), req.speckle, window=req.speckle_window,
+                           max_offset=SPECKLE_MAX_OFFSET, ndim=data.ndim - 1)[1]  # [F, *spatial]
+        f = f.narrow(cdim, c0 - a0, c1 - c0).cpu().numpy()
+        base = work.n_doct + len(req.targets) * len(feats)
+        idx = [slice(base, base + len(req.speckle))] + [slice(None)] * (data.ndim - 1)
+        idx[cdim] = slice(c0, c1)
+        mk = masks.get("pixel")
+        if work.keep_y is not None:  # only the B-scans kept (their windows read the dropped ones too)
+            ys = np.flatnonzero(work.keep_y[c0:c1] if cdim == 1 else work.keep_y)
+            f = f[:, ys]
+            mk = None if mk is None else mk[ys]
+            idx[1] = ys + (c0 if cdim == 1 else 0)
+        if mk is not None:
+            f = np.where(mk, np.nan, f)
+        out[tuple(idx)] = f
     del field
 
 
@@ -585,7 +630,49 @@ def _maps_result(work: _SlabWork, channels: list[dict[str, Any]], *, bulk_phase:
     if req.features:
         meta["signature"] = {"features": list(req.features), "intensity_only": not seq.is_complex,
                              "definition": "torchdoct.sim.signature (lags in frames)"}
+    if req.speckle:
+        meta["speckle"] = {"features": list(req.speckle), "resolution": speckle_target(req).label,
+                           "window_px": req.speckle_window, "max_offset_px": SPECKLE_MAX_OFFSET,
+                           "halo_px": halo_pixels(req.speckle_window, SPECKLE_MAX_OFFSET),
+                           "definition": "torchdoct.sim.speckle (lags in frames; docs/concepts/speckle-motion.md)"}
     return Maps(maps=out.astype(np.float32, copy=False), channels=tuple(c["name"] for c in channels), meta=meta)
+
+
+def speckle_target(req: MapsRequest) -> ResolutionTarget:
+    """The resolution whose field gives the speckle-motion channels: the first target that keeps the
+    original resolution."""
+    return next(t for t in req.targets if t not in req.changes)
+
+
+def speckle_channels(seq: SequenceData, names: _Seq[str] | None = None, *,
+                     window: int = SPECKLE_WINDOW) -> tuple[str, ...]:
+    """The speckle-motion features that maps of ``seq`` get (default
+    :func:`torchdoct.sim.speckle.default_speckle_features` of its B-scans or volume), checked before any
+    work: the spatial axes (Z, X and Y), the pixel pitch of each, a uniform frame interval, the lags the
+    protocol holds, the window (odd pixels)."""
+    src = seq.source or "sequence"
+    sp = seq.axes[1:]
+    if sp not in ("ZX", "YZX"):
+        raise ValueError(f"{src}: speckle-motion channels need B-scans (TZX) or a volume (TYZX); got axes {seq.axes}")
+    ndim = len(sp)
+    pitch = seq.meta.get("pitch_um") or {}
+    missing = [c.lower() for c in sp if not pitch.get(c.lower())]
+    if missing:
+        raise ValueError(f"{src}: speckle-motion channels need the pixel pitch of {', '.join(missing)} (µm); give "
+                         "--pitch-um z=..,x=..[,y=..]")
+    times = [float(v) for v in seq.frame_times_s]
+    d = np.diff(times)
+    if d.size == 0 or d.min() <= 0 or d.max() - d.min() > 1e-6 * d.max():
+        raise ValueError(f"{src}: speckle-motion channels need a uniform frame interval; got intervals "
+                         f"{d.min() if d.size else None}-{d.max() if d.size else None} s")
+    names = tuple(names) if names is not None else default_speckle_features(ndim, n_frames=len(times))
+    probe = torch.ones(len(times), *([2 * halo_pixels(window, SPECKLE_MAX_OFFSET) + 1] * ndim))
+    try:  # the names, lags and window, on one small block
+        speckle_motion(probe, {c.lower(): 1.0 for c in sp}, float(d[0]), names, window=window,
+                       max_offset=SPECKLE_MAX_OFFSET, ndim=ndim)
+    except ValueError as err:
+        raise ValueError(f"{src}: speckle-motion channels (--speckle, --speckle-window): {err}") from None
+    return names
 
 
 @one_torch_thread
@@ -598,7 +685,8 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
                  drop_boundary: bool = True, device: str | torch.device | None = None,
                  bulk_phase: str | BulkPhase | None = None, signature: bool | _Seq[str] | None = None,
                  slab_elements: int = 1 << 23, chunk_pixels: int = 1 << 16, progress: bool = False,
-                 timings: dict[str, float] | None = None) -> Maps:
+                 timings: dict[str, float] | None = None, speckle: bool | _Seq[str] | None = None,
+                 speckle_window: int = SPECKLE_WINDOW) -> Maps:
     """DOCT maps of ``seq`` at every resolution in ``resolutions`` (see the module docstring).
 
     ``metrics``: any of ``liv``, ``ocds``, ``mean_db``, ``aliv``, ``swiftness``. ``axial_center``,
@@ -614,7 +702,11 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
     :func:`signature_channels` of the sequence (the intensity part of intensity-only data), or the
     feature names; recorded as ``meta["signature"]`` (``metrics`` may then be empty). ``slab_elements``:
     complex samples per depth slab; ``chunk_pixels``: pixels per metric chunk (memory only).
-    ``timings`` (optional dict) receives seconds per resolution label. Returns :class:`Maps`
+    ``timings`` (optional dict) receives seconds per resolution label. ``speckle``: also the speckle-motion
+    channels of :func:`speckle_channels` (``True`` for the defaults, or the names), after every other channel,
+    from the field of the first target that keeps the original resolution (bulk-corrected with
+    ``bulk_phase``), each pixel's ``speckle_window``-pixel window read across slab boundaries (a halo of
+    :func:`torchdoct.sim.speckle.halo_pixels` rows); recorded as ``meta["speckle"]``. Returns :class:`Maps`
     (float32 ``[C, (Y), Z, X]``, channels ``f"{metric}@{resolution}"``).
 
     The stages, in this order: :func:`check_maps_request` (everything that can be refused, before any
@@ -626,7 +718,7 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
     req = check_maps_request(seq, resolutions, metrics=metrics, signature=signature,
                              ocds_delay_range_s=ocds_delay_range_s, ocds_scale=ocds_scale,
                              ocds_estimator=ocds_estimator, edge_mode=edge_mode, normalization=normalization,
-                             slab_elements=slab_elements)
+                             slab_elements=slab_elements, speckle=speckle, speckle_window=speckle_window)
     dev = torch.device(device) if device is not None else torch.device("cpu")
     bulk_phase, bulk = _bulk_phase_factor(seq, req, bulk_phase, slab_elements=slab_elements, device=dev,
                                           progress=progress)
@@ -640,7 +732,7 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
     keep_y = None  # the B-scans a block raster volume keeps (its others are dropped at the end)
     if raster is not None:
         keep_y = raster.keep_y() if drop_boundary else np.ones(raster.n_y, dtype=bool)
-    out = np.full((n_doct + len(req.targets) * len(req.features), *seq.data.shape[1:]), np.nan,
+    out = np.full((n_doct + len(req.targets) * len(req.features) + len(req.speckle), *seq.data.shape[1:]), np.nan,
                   dtype=_real_dtype(seq))
     plans = _slab_plans(seq, req, bulk=bulk is not None, smoothing_margin=bool(margin), edge_mode=edge_mode,
                         slab_elements=slab_elements)

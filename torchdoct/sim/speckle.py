@@ -74,6 +74,7 @@ __all__ = [
     "is_speckle_feature",
     "speckle_feature_unit",
     "speckle_features",
+    "default_lags",
     "default_speckle_features",
     "halo_pixels",
     "speckle_motion",
@@ -127,18 +128,35 @@ def speckle_feature_unit(name: str) -> str:
     return UNITS[parse_speckle_feature(name)[0]]
 
 
-def default_speckle_features(ndim: int = 2, lags: Sequence[int] = DEFAULT_LAGS) -> tuple[str, ...]:
+def default_lags(n_frames: int = 32) -> tuple[int, ...]:
+    """:data:`DEFAULT_LAGS` (chosen for 32 frames) placed on an acquisition of ``n_frames``: lag ``m`` becomes
+    ``max(1, round(m·T/32))``, kept strictly increasing and at most ``T − 2`` (32 frames: the defaults)."""
+    out: list[int] = []
+    for m in DEFAULT_LAGS:
+        lag = max(1, int(math.floor(m * int(n_frames) / 32 + 0.5)))
+        if out and lag <= out[-1]:
+            lag = out[-1] + 1
+        if lag <= int(n_frames) - 2:
+            out.append(lag)
+    return tuple(out)
+
+
+def default_speckle_features(ndim: int = 2, lags: Sequence[int] | None = None, *,
+                             n_frames: int = 32) -> tuple[str, ...]:
     """The default features of a B-scan (``ndim = 2``) or a volume (``ndim = 3``): per lag the centred
-    value, the peak, the moving share, the antisymmetric amplitude and the shift length; then the speed."""
+    value, the peak, the moving share, the antisymmetric amplitude and the shift length; then the speed.
+    ``lags``: default :func:`default_lags` of ``n_frames``."""
+    lags = default_lags(n_frames) if lags is None else tuple(lags)
     if ndim not in SPATIAL_AXES:
         raise ValueError(f"speckle features need 2 (Z, X) or 3 (Y, Z, X) spatial axes; got {ndim}")
     per_lag = tuple(f"xc_{k}_{m}" for m in lags for k in ("centre", "peak", "share", "asym", "shift"))
     return per_lag + ("xc_speed",)
 
 
-def speckle_features(ndim: int = 2, lags: Sequence[int] = DEFAULT_LAGS) -> tuple[str, ...]:
-    """Every feature of ``lags`` for ``ndim`` spatial axes: the defaults, the signed shift per axis and lag,
-    and the velocity per axis."""
+def speckle_features(ndim: int = 2, lags: Sequence[int] | None = None, *, n_frames: int = 32) -> tuple[str, ...]:
+    """Every feature of ``lags`` (default :func:`default_lags` of ``n_frames``) for ``ndim`` spatial axes: the
+    defaults, the signed shift per axis and lag, and the velocity per axis."""
+    lags = default_lags(n_frames) if lags is None else tuple(lags)
     axes = SPATIAL_AXES[ndim]
     return (default_speckle_features(ndim, lags) + tuple(f"xc_shift_{c}_{m}" for m in lags for c in axes)
             + tuple(f"xc_velocity_{c}" for c in axes))
@@ -227,7 +245,7 @@ def _refine(lo: torch.Tensor, mid: torch.Tensor, hi: torch.Tensor) -> torch.Tens
 def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interval_s: float,
                    names: Sequence[str] | None = None, *, window: int = DEFAULT_WINDOW,
                    max_offset: int = DEFAULT_MAX_OFFSET, ndim: int = 2,
-                   velocity_lags: Sequence[int] = DEFAULT_LAGS) -> tuple[tuple[str, ...], torch.Tensor]:
+                   velocity_lags: Sequence[int] | None = None) -> tuple[tuple[str, ...], torch.Tensor]:
     """Speckle-motion features of every pixel's window (module docstring) → ``(names, [..., F, *S])``.
 
     ``x``: intensity (real, ≥ 0) or complex field, ``[..., T, Z, X]`` (``ndim = 2``) or
@@ -236,7 +254,8 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
     interval (s). ``names``: the features in output order (default :func:`default_speckle_features`).
     ``window``: pixels per spatial axis (odd), centred on each pixel; ``max_offset``: ``R``, the offset grid
     ``{−R..R}`` per axis; ``velocity_lags``: the lags of the velocity fit (``xc_velocity_*``,
-    ``xc_speed``). A pixel that is itself invalid (``I = 0`` or not finite at some frame) gets NaN. Output in float64 for float64/complex128 input, else float32.
+    ``xc_speed``; default :func:`default_lags` of the frame count). ``names`` default:
+    :func:`default_speckle_features` of the frame count. A pixel that is itself invalid (``I = 0`` or not finite at some frame) gets NaN. Output in float64 for float64/complex128 input, else float32.
     """
     import torch
 
@@ -246,7 +265,8 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
         raise ValueError(f"speckle features need an array [..., T, {', '.join(SPATIAL_AXES[ndim].upper())}]; got "
                          f"shape {tuple(x.shape)}")
     axes = SPATIAL_AXES[ndim]
-    names = tuple(names) if names is not None else default_speckle_features(ndim)
+    n_t = x.shape[-ndim - 1]
+    names = tuple(names) if names is not None else default_speckle_features(ndim, n_frames=n_t)
     if not names or len(set(names)) != len(names):
         raise ValueError(f"give each speckle feature once (at least one); got {list(names)}")
     parsed = [parse_speckle_feature(n) for n in names]
@@ -254,8 +274,7 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
         if ax is not None and ax not in axes:
             raise ValueError(f"speckle feature {n!r}: a {'volume' if ax == 'y' else 'B-scan'} has no axis {ax!r} "
                              f"(axes {', '.join(axes)})")
-    n_t = x.shape[-ndim - 1]
-    vlags = tuple(int(m) for m in velocity_lags)
+    vlags = tuple(int(m) for m in (default_lags(n_t) if velocity_lags is None else velocity_lags))
     if not vlags:
         raise ValueError("velocity_lags needs at least one lag")
     lags = sorted({m for _, _, m in parsed if m > 0}
