@@ -87,9 +87,9 @@ import torch
 
 from ..files import atomic_write, check_out
 from ..sim.signature import available_features, default_features, feature_unit, pixel_features
-from ..sim.speckle import DEFAULT_MAX_OFFSET as SPECKLE_MAX_OFFSET
-from ..sim.speckle import DEFAULT_WINDOW as SPECKLE_WINDOW
-from ..sim.speckle import default_speckle_features, halo_pixels, speckle_feature_unit, speckle_motion
+from ..sim.speckle import halo_pixels
+from .mapspeckle import (SPECKLE_MAX_OFFSET, SPECKLE_WINDOW, speckle_channel_records, speckle_channels, speckle_meta,
+                         speckle_slab, speckle_target)
 from .bulkphase import CORRECTION_AXIS_NEEDS, BulkPhase, estimate_bulk_phase, phasor as _bulk_phasor
 from .io import Maps, SequenceData
 from ..threads import one_torch_thread
@@ -408,13 +408,7 @@ def _channel_records(req: MapsRequest, outputs: _Seq[str]) -> list[dict[str, Any
             sig_channels += [{"name": f"{f}@{t.label}", "metric": f, "unit": feature_unit(f), "resolution": t.label,
                               "wavelength_um": float(sig_system["wavelength_um"]), "lateral_resolution_um": s_lat,
                               "axial_resolution_um": s_ax} for f in req.features]
-    spk_channels: list[dict[str, Any]] = []
-    if req.speckle:
-        t = speckle_target(req)
-        lat, ax = req.optics(t)
-        spk_channels = [{"name": f"{f}@{t.label}", "metric": f, "unit": speckle_feature_unit(f), "resolution": t.label,
-                         "wavelength_um": None if wl is None else float(wl), "lateral_resolution_um": lat,
-                         "axial_resolution_um": ax} for f in req.speckle]
+    spk_channels = speckle_channel_records(req, wl) if req.speckle else []
     return channels + sig_channels + spk_channels
 
 
@@ -558,22 +552,8 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int) -> No
             f = np.where(masks["pixel"] if ys is None else masks["pixel"][ys], np.nan, f)
         out[tuple(idx)] = f
     if req.speckle and t is speckle_target(req):  # the windows of the slab's own pixels, read with their halo
-        x = field if field.is_complex() else field.to(torch.float64 if real_dtype == np.float64 else torch.float32)
-        times = seq.frame_times_s
-        f = speckle_motion(x, seq.pitch_um, float(times[1] - times[0]), req.speckle, window=req.speckle_window,
-                           max_offset=SPECKLE_MAX_OFFSET, ndim=data.ndim - 1)[1]  # [F, *spatial]
-        f = f.narrow(cdim, c0 - a0, c1 - c0).cpu().numpy()
-        base = work.n_doct + len(req.targets) * len(feats)
-        idx = [slice(base, base + len(req.speckle))] + [slice(None)] * (data.ndim - 1)
-        idx[cdim] = slice(c0, c1)
-        mk = masks.get("pixel")
-        if work.keep_y is not None:  # only the B-scans kept (their windows read the dropped ones too)
-            ys = np.flatnonzero(work.keep_y[c0:c1] if cdim == 1 else work.keep_y)
-            f = f[:, ys]
-            mk = None if mk is None else mk[ys]
-            idx[1] = ys + (c0 if cdim == 1 else 0)
-        if mk is not None:
-            f = np.where(mk, np.nan, f)
+        idx, f = speckle_slab(field, seq, req, cdim, a0, c0, c1, base=work.n_doct + len(req.targets) * len(feats),
+                              keep_y=work.keep_y, mask=masks.get("pixel"))
         out[tuple(idx)] = f
     del field
 
@@ -631,48 +611,8 @@ def _maps_result(work: _SlabWork, channels: list[dict[str, Any]], *, bulk_phase:
         meta["signature"] = {"features": list(req.features), "intensity_only": not seq.is_complex,
                              "definition": "torchdoct.sim.signature (lags in frames)"}
     if req.speckle:
-        meta["speckle"] = {"features": list(req.speckle), "resolution": speckle_target(req).label,
-                           "window_px": req.speckle_window, "max_offset_px": SPECKLE_MAX_OFFSET,
-                           "halo_px": halo_pixels(req.speckle_window, SPECKLE_MAX_OFFSET),
-                           "definition": "torchdoct.sim.speckle (lags in frames; docs/concepts/speckle-motion.md)"}
+        meta["speckle"] = speckle_meta(req)
     return Maps(maps=out.astype(np.float32, copy=False), channels=tuple(c["name"] for c in channels), meta=meta)
-
-
-def speckle_target(req: MapsRequest) -> ResolutionTarget:
-    """The resolution whose field gives the speckle-motion channels: the first target that keeps the
-    original resolution."""
-    return next(t for t in req.targets if t not in req.changes)
-
-
-def speckle_channels(seq: SequenceData, names: _Seq[str] | None = None, *,
-                     window: int = SPECKLE_WINDOW) -> tuple[str, ...]:
-    """The speckle-motion features that maps of ``seq`` get (default
-    :func:`torchdoct.sim.speckle.default_speckle_features` of its B-scans or volume), checked before any
-    work: the spatial axes (Z, X and Y), the pixel pitch of each, a uniform frame interval, the lags the
-    protocol holds, the window (odd pixels)."""
-    src = seq.source or "sequence"
-    sp = seq.axes[1:]
-    if sp not in ("ZX", "YZX"):
-        raise ValueError(f"{src}: speckle-motion channels need B-scans (TZX) or a volume (TYZX); got axes {seq.axes}")
-    ndim = len(sp)
-    pitch = seq.meta.get("pitch_um") or {}
-    missing = [c.lower() for c in sp if not pitch.get(c.lower())]
-    if missing:
-        raise ValueError(f"{src}: speckle-motion channels need the pixel pitch of {', '.join(missing)} (µm); give "
-                         "--pitch-um z=..,x=..[,y=..]")
-    times = [float(v) for v in seq.frame_times_s]
-    d = np.diff(times)
-    if d.size == 0 or d.min() <= 0 or d.max() - d.min() > 1e-6 * d.max():
-        raise ValueError(f"{src}: speckle-motion channels need a uniform frame interval; got intervals "
-                         f"{d.min() if d.size else None}-{d.max() if d.size else None} s")
-    names = tuple(names) if names is not None else default_speckle_features(ndim, n_frames=len(times))
-    probe = torch.ones(len(times), *([2 * halo_pixels(window, SPECKLE_MAX_OFFSET) + 1] * ndim))
-    try:  # the names, lags and window, on one small block
-        speckle_motion(probe, {c.lower(): 1.0 for c in sp}, float(d[0]), names, window=window,
-                       max_offset=SPECKLE_MAX_OFFSET, ndim=ndim)
-    except ValueError as err:
-        raise ValueError(f"{src}: speckle-motion channels (--speckle, --speckle-window): {err}") from None
-    return names
 
 
 @one_torch_thread
