@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from torchdoct import interrupt as _interrupt
+from torchdoct.runtime import interrupt as _interrupt
 
 __all__ = ["build_train_parser", "build_classify_parser", "train_main", "classify_main"]
 
@@ -90,7 +90,7 @@ def _quick_text() -> str:
             f"at most {q['max_epochs']} epochs")
 
 
-@_interrupt.entry_point  # Ctrl-C/SIGTERM: one line, exit 130/143 (torchdoct.interrupt)
+@_interrupt.entry_point  # Ctrl-C/SIGTERM: one line, exit 130/143 (torchdoct.runtime.interrupt)
 def train_main(argv: Sequence[str] | None = None) -> int:
     """``doct-train``: returns the exit code (0 done, 2 bad input, 1 other failure)."""
     args = build_train_parser().parse_args(argv)
@@ -127,10 +127,10 @@ def _train(args: argparse.Namespace) -> int:
     if out.is_dir() and not args.dry_run:
         for s, p in paths.items():
             check_out(p, args.force, s, f"--out {out}")
-    from torchdoct.threads import set_default_threads
+    from torchdoct.runtime.threads import set_default_threads
 
-    set_default_threads(args.threads)  # simulation threads (torchdoct.threads); ValueError names the fix
-    from torchdoct.threads import limit_process_threads
+    set_default_threads(args.threads)  # simulation threads (torchdoct.runtime.threads); ValueError names the fix
+    from torchdoct.runtime.threads import limit_process_threads
 
     limit_process_threads()  # one torch/BLAS thread per worker: no stalls beside other busy processes
     base = QUICK if args.quick else {k: getattr(TrainConfig.for_spec(spec_key), k) for k in QUICK}
@@ -277,7 +277,7 @@ def _train_into(args: argparse.Namespace, cfg, paths: dict[str, Path], *, spec=N
     from .report import training_summary
     from .train import train_to_files
 
-    if not args.no_cache:  # should the run be interrupted (torchdoct.interrupt)
+    if not args.no_cache:  # should the run be interrupted (torchdoct.runtime.interrupt)
         from .dataset import default_cache_dir
 
         _interrupt.note(kept=f"the data splits simulated so far, in the cache {args.cache or default_cache_dir()}",
@@ -329,7 +329,7 @@ def build_classify_parser() -> argparse.ArgumentParser:
     return p
 
 
-@_interrupt.entry_point  # Ctrl-C/SIGTERM: one line, exit 130/143 (torchdoct.interrupt)
+@_interrupt.entry_point  # Ctrl-C/SIGTERM: one line, exit 130/143 (torchdoct.runtime.interrupt)
 def classify_main(argv: Sequence[str] | None = None) -> int:
     """``doct-classify``: returns the exit code (0 done, 2 bad input, 1 other failure)."""
     args = build_classify_parser().parse_args(argv)
@@ -352,7 +352,7 @@ def _classify(args: argparse.Namespace) -> int:
     set_max_input_gb(args.max_input_gb)  # the readers' limit on one declared array
     check_outputs(args.out, args.force)  # before the work: --out a file, or an earlier run's files without --force
     from torchdoct.measured.guards import max_input_bytes
-    from torchdoct.resources import check_classify
+    from torchdoct.runtime.resources import check_classify
 
     check_classify("doct-classify", args.maps, max_input_bytes())  # memory, before anything is read
     try:

@@ -142,8 +142,8 @@ def _positive_int(name: str, v: Any) -> int:
 def _check_resources(spec: FeatureSpec, split: str, draws: int, trials_per_draw: int, replicates: int,
                      path: Path | None) -> None:
     """The split's arrays fit in memory twice (the pieces of every draw and their concatenation) and once in
-    the cache's folder: :func:`torchdoct.resources.check_resources`, before any draw is simulated."""
-    from torchdoct.resources import check_resources
+    the cache's folder: :func:`torchdoct.runtime.resources.check_resources`, before any draw is simulated."""
+    from torchdoct.runtime.resources import check_resources
 
     n = draws * replicates * trials_per_draw
     per_sample = 4 * spec.n_features + 8 * (len(_ARRAYS) - 1) + (8 * len(spec.configurations) if spec.is_signature
@@ -202,7 +202,7 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
     status_counts = {s: 0 for s in STATUS}
     t0 = time.perf_counter()
     from torchdoct.study.cells import CellCache, CellJob, run_cached, run_cells
-    from torchdoct.threads import resolve_threads
+    from torchdoct.runtime.threads import resolve_threads
 
     def one(k: int):
         d = draw_parameters(prior, seed, split, k, replicates)

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from torchdoct import interrupt as _interrupt
+from torchdoct.runtime import interrupt as _interrupt
 
 #: Motion codes of rendered labels (``torchdoct.image.phantom.MOTION_CODES``) → classifier class names.
 MOVING_CODES = {2: "diffusion", 3: "ballistic", 4: "flow"}
@@ -260,7 +260,7 @@ def format_scores(scores: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-@_interrupt.entry_point  # a closed output pipe (| head) ends quietly; Ctrl-C: one line (torchdoct.interrupt)
+@_interrupt.entry_point  # a closed output pipe (| head) ends quietly; Ctrl-C: one line (torchdoct.runtime.interrupt)
 def main(argv: list[str] | None = None) -> int:
     """``python -m classifier.evaluate_images CLASSIFIED RENDERED [--edge-um E] [--json]``: print the scores."""
     import argparse

@@ -6,7 +6,7 @@
 ``[C, *S]``, NaN where masked), ``summary.json``, ``overlay.png`` (the classes on the mean intensity in
 colour-blind-safe colours, masked pixels black, the model named) and, for models with a magnitude head,
 ``magnitude.tif`` (:data:`MAGNITUDE_CHANNELS`) and its picture ``magnitude.png`` (D in µm²/s, speed in
-µm/s). The TIFFs carry ImageJ metadata (pixel size in µm, channel names: :mod:`torchdoct.imagej`).
+µm/s). The TIFFs carry ImageJ metadata (pixel size in µm, channel names: :mod:`torchdoct.measured.imagej`).
 """
 
 from __future__ import annotations
@@ -246,7 +246,7 @@ def write_classification(res: Classification, out_dir: str | os.PathLike, *, for
 def _write_into(res: Classification, paths: dict[str, Path], tifffile, atomic_write) -> list[str]:
     """Write the files of :func:`write_classification` to ``paths`` (staged); returns the names written."""
     names = OUTPUT_FILES + (MAGNITUDE_FILES if res.magnitude is not None else ())
-    from torchdoct.imagej import imagej_write_options
+    from torchdoct.measured.imagej import imagej_write_options
 
     def imagej(arr, channels, desc, unit=None):  # JSON description first, then ImageJ's: µm scale, channel names
         axes = ("C" if len(channels) > 1 or arr.ndim > len(res.axes) else "") + res.axes

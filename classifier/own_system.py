@@ -166,7 +166,7 @@ def estimate_seconds(spec: FeatureSpec, prior: Prior, cfg: Any, *, pilot_draws: 
     every split (train, validation, test, and the test-sized shifted-prior and bulk-phase splits when the
     recipe makes them) / the cores; the network's fit: :data:`FIT_SECONDS_PER_SAMPLE_EPOCH` × samples
     per epoch × the epoch cap (an upper bound: early stopping often ends sooner)."""
-    from torchdoct.threads import resolve_threads, single_torch_thread
+    from torchdoct.runtime.threads import resolve_threads, single_torch_thread
 
     from .prior import draw_parameters
     from .simulation import simulate_draw

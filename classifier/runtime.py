@@ -18,7 +18,7 @@ from typing import Any, Mapping
 
 import numpy as np
 from torchdoct.files import shipped_files
-from torchdoct.threads import map_ordered, resolve_threads
+from torchdoct.runtime.threads import map_ordered, resolve_threads
 
 from .features import FeatureSpec, shipped_or_path, spec_from_dict
 
@@ -149,7 +149,7 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     holding one (``doct-train --out DIR``).
 
     ``threads``: chunks of pixels classified side by side, each on one onnxruntime thread with spinning
-    off (default: ``$TORCHDOCT_THREADS``, else the usable cores; see :mod:`torchdoct.threads`).
+    off (default: ``$TORCHDOCT_THREADS``, else the usable cores; see :mod:`torchdoct.runtime.threads`).
     ``shipped``: the shipped models by name (default :func:`shipped_models`).
     """
     shipped = shipped_models() if shipped is None else shipped

@@ -346,7 +346,7 @@ def run(args) -> int:
         raise ValueError(f"--trials must be an integer >= 4; got {args.trials!r}")
     target = load_target(args.to, args.to_system)
     from torchdoct.measured.guards import max_input_bytes
-    from torchdoct.resources import check_classify
+    from torchdoct.runtime.resources import check_classify
 
     check_classify("torchdoct translate", args.maps, max_input_bytes())  # memory, before anything is read
     maps, res = translate_maps(args.maps, target, model=args.model, pool=args.pool,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 # One thread per pool (torch, OpenMP, OpenBLAS) for every library loaded from here on: parallel
-# regions stall when another process is busy (torchdoct.threads); set before numpy and torch load.
+# regions stall when another process is busy (torchdoct.runtime.threads); set before numpy and torch load.
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
@@ -16,7 +16,7 @@ import torch
 import torchdoct
 from _scenes import SMALL_SCENE_TOML
 
-# The threading policy of torchdoct (torchdoct.threads): tensor operations run on one torch thread;
+# The threading policy of torchdoct (torchdoct.runtime.threads): tensor operations run on one torch thread;
 # parallel work runs over independent pieces. Tests that call torch directly follow it too.
 torch.set_num_threads(1)
 _BLAS_ONE_THREAD = threadpoolctl.threadpool_limits(1)  # numpy's BLAS (reference renderers) likewise

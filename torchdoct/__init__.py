@@ -4,7 +4,7 @@ Units and resolution conventions: :mod:`torchdoct.conventions`.
 
 Importing ``torchdoct`` is light: the public names below and the subpackages load on first use
 (``torchdoct.simulate``, ``torchdoct.sim``), so the torch-free modules (:mod:`torchdoct.conventions`,
-:mod:`torchdoct.optics`, :mod:`torchdoct.measured.io`, :mod:`torchdoct.threads`, ...) can be imported
+:mod:`torchdoct.optics`, :mod:`torchdoct.measured.io`, :mod:`torchdoct.runtime.threads`, ...) can be imported
 without torch.
 """
 
@@ -32,7 +32,7 @@ _LAZY = {
     **dict.fromkeys(("SimulationResult", "simulate"), ".sim.simulate"),
 }
 #: Subpackages and modules reachable as attributes (``torchdoct.sim``) without an explicit import.
-_SUBMODULES = ("sim", "image", "measured", "study", "bench", "cli", "conventions", "optics", "threads", "figures")
+_SUBMODULES = ("sim", "image", "measured", "study", "bench", "cli", "runtime", "conventions", "optics", "figures")
 
 __all__ = [
     "Analysis", "Diffusion", "Flow", "Noise", "OCTSystem", "Population", "Protocol", "RandomBallistic",

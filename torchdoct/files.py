@@ -82,7 +82,7 @@ def _remove(path: Path) -> None:
 
 def _note_written(files: list[Path]) -> None:
     """Should the command be interrupted after this set is in place, its one line says so."""
-    from . import interrupt
+    from .runtime import interrupt
 
     if interrupt.active() and files:
         more = f" and {len(files) - 1} more" if len(files) > 1 else ""
@@ -90,9 +90,9 @@ def _note_written(files: list[Path]) -> None:
 
 
 def _signals_held():
-    """Ctrl-C and SIGTERM held back while an output set is renamed (:func:`torchdoct.interrupt.deferred`;
+    """Ctrl-C and SIGTERM held back while an output set is renamed (:func:`torchdoct.runtime.interrupt.deferred`;
     in the main thread of a command, where its handlers run)."""
-    from . import interrupt
+    from .runtime import interrupt
 
     if interrupt.active() and threading.current_thread() is threading.main_thread():
         return interrupt.deferred()
@@ -119,7 +119,7 @@ def output_set(paths: Iterable[str | os.PathLike], force: bool, what: str = "--o
 
     ``with output_set(paths, force) as stage: write(stage(p)) ...``: every file is written into a hidden
     staging folder beside it (``.FIRST.stage.tmp.XXXX``) and all are renamed into place when the block
-    ends without an error, with Ctrl-C and SIGTERM held back meanwhile (:mod:`torchdoct.interrupt`);
+    ends without an error, with Ctrl-C and SIGTERM held back meanwhile (:mod:`torchdoct.runtime.interrupt`);
     on an error or an interruption the staging folder is removed and the files already there are
     untouched. ``paths`` lists every file the set may hold: at the end, one the block did not write is
     removed when it exists (the earlier run's file, e.g. ``magnitude.tif`` of another model), so the

@@ -51,7 +51,7 @@ def bench_classify(*, size: int = 512, repeats: int = 3, model: str | None = Non
     """Pixels per second of ``classify_maps`` on a synthetic ``size × size`` maps file."""
     from ..infer import classify_maps, load_model
 
-    from torchdoct.resources import CLASSIFY_COPIES, check_bench
+    from torchdoct.runtime.resources import CLASSIFY_COPIES, check_bench
 
     mdl = load_model(model)
     channels = len(mdl.spec.features) + 1
@@ -86,7 +86,7 @@ def format_bench_classify(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-#: ``torchdoct bench classify`` (entry point ``torchdoct.bench``/``classify``, :mod:`torchdoct.extensions`).
+#: ``torchdoct bench classify`` (entry point ``torchdoct.bench``/``classify``, :mod:`torchdoct.cli.extensions`).
 HELP = "doct-classify throughput on a 512×512 synthetic maps file"
 DESCRIPTION = None
 

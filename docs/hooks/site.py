@@ -49,8 +49,8 @@ API = [
      ["torchdoct.study.sweep", "torchdoct.study.run", "torchdoct.study.claims"]),
     ("ground-floor", "Conventions and utilities", "Units and resolution conventions, optics, threads, figures, "
      "resources and files.",
-     ["torchdoct.conventions", "torchdoct.optics", "torchdoct.threads", "torchdoct.figures", "torchdoct.resources",
-      "torchdoct.files", "torchdoct.imagej"]),
+     ["torchdoct.conventions", "torchdoct.optics", "torchdoct.runtime.threads", "torchdoct.figures",
+      "torchdoct.runtime.resources", "torchdoct.files", "torchdoct.measured.imagej"]),
     ("classifier", "Classifier", "Classify maps (numpy and onnxruntime only), train, match a system, translate.",
      ["classifier.infer", "classifier.outputs", "classifier.pooling", "classifier.rule", "classifier.features",
       "classifier.matching", "classifier.own_system", "classifier.dataset", "classifier.train", "classifier.export",

@@ -182,8 +182,8 @@ def test_classes_are_the_three_motion_types():
 
 
 def test_dataset_does_not_depend_on_threads():
-    """Draws run side by side (torchdoct.threads); each has its own seeds, so the split is bit-identical."""
-    from torchdoct.threads import using_threads
+    """Draws run side by side (torchdoct.runtime.threads); each has its own seeds, so the split is bit-identical."""
+    from torchdoct.runtime.threads import using_threads
 
     with using_threads(1):
         one = make_dataset(TINY, split="test", draws=3, trials_per_draw=64, replicates=2, use_cache=False)

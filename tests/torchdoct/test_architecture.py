@@ -111,7 +111,7 @@ LOADS_BY_PATH = {"torchdoct.bench.cog": "the user's clone of the external COG si
 
 def test_torchdoct_never_imports_classifier():
     """At any level (functions included): the commands reach the classifier through entry points
-    (torchdoct/extensions.py), and classifier/bench/tradeoffs/plan.py reads no command-line parser."""
+    (torchdoct/cli/extensions.py), and classifier/bench/tradeoffs/plan.py reads no command-line parser."""
     for name, path in MODULES.items():
         tree = ast.parse(path.read_text(encoding="utf-8"))
         mods = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
@@ -125,7 +125,7 @@ def test_torchdoct_never_imports_classifier():
 def test_the_classifier_fills_the_command_table():
     from importlib.metadata import entry_points
 
-    from torchdoct import extensions
+    from torchdoct.cli import extensions
 
     bench = {e.name: e.value for e in entry_points(group=extensions.BENCH)}
     parts = {e.name: e.value for e in entry_points(group=extensions.TRADEOFFS)}
@@ -170,7 +170,7 @@ def _run(code: str) -> subprocess.CompletedProcess:
 
 @pytest.mark.parametrize("code", [
     "import classifier; classifier.classify_maps; classifier.read_maps; classifier.load_model",
-    "import torchdoct; import torchdoct.measured.io, torchdoct.optics, torchdoct.conventions, torchdoct.threads",
+    "import torchdoct; import torchdoct.measured.io, torchdoct.optics, torchdoct.conventions, torchdoct.runtime.threads",
 ])
 def test_torch_free_imports(code):
     out = _run(code + "\nimport sys\nbad = sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.'))\n"
@@ -262,6 +262,31 @@ def test_research_modules_stay_off_the_product_path():
             assert not any(part.startswith("_") for part in mod.split(".")), f"{name} imports private module {mod}"
             private = [a.name for a in node.names if a.name.startswith("_") and a.name != "__version__"]
             assert not private, f"{name} imports private names {private} from {mod}"
+
+
+def test_torchdoct_keeps_at_most_six_modules_beside_its_stage_packages():
+    """The top of torchdoct/ is the ground floor (conventions, optics, files, figures); the rest lives in
+    stage packages (runtime/ holds the process's ground floor: threads, interrupt, device, resources,
+    machine)."""
+    top = sorted(p.stem for p in (REPO / "torchdoct").glob("*.py") if p.name != "__init__.py")
+    assert len(top) <= 6, top
+    assert {"conventions", "optics"} <= set(top)
+    assert {"threads", "interrupt", "device", "resources", "machine"} <= {
+        p.stem for p in (REPO / "torchdoct" / "runtime").glob("*.py")}
+
+
+def test_every_command_goes_through_one_table():
+    """Built-in and extension commands (and benchmarks) are entries of one table each, with the same names."""
+    from torchdoct.cli import build_parser, commands
+    from torchdoct.cli.bench import benchmarks
+
+    table = commands()
+    assert {"simulate", "render", "maps", "study", "bench", "translate"} <= set(table)
+    assert {"classify", "maps", "all"} <= set(benchmarks())
+    for entry in [*table.values(), *benchmarks().values()]:
+        assert all(hasattr(entry, name) for name in ("HELP", "DESCRIPTION", "add_arguments", "run"))
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    assert list(sub.choices) == list(table)
 
 
 def test_package_data_holds_only_the_shipped_models_and_their_reports():

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import torchdoct.interrupt as interrupt
+import torchdoct.runtime.interrupt as interrupt
 from torchdoct.study.cells import CellCache, CellJob, cell_seed, run_cached, run_cells
 
 
@@ -155,7 +155,7 @@ def test_training_data_resumes_from_the_draws_an_interruption_kept(tmp_path, mon
     written, the kept draws are removed."""
     import classifier.dataset as dataset
     from classifier.prior import Prior, draw_parameters
-    from torchdoct.threads import using_threads
+    from torchdoct.runtime.threads import using_threads
 
     kw = dict(draws=4, trials_per_draw=64, replicates=1)
     with using_threads(1):

@@ -1,6 +1,6 @@
 """Interruption: Ctrl-C and SIGTERM end a command with one line and exit 130/143, no traceback; an output
 set appears whole or not at all; temporary files go; sweep workers die with their parent; a closed
-output pipe ends quietly (torchdoct.interrupt, torchdoct.files.output_set)."""
+output pipe ends quietly (torchdoct.runtime.interrupt, torchdoct.files.output_set)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import pytest
 
 from torchdoct.files import atomic_write, output_set
 from torchdoct.cli import main
-from torchdoct.interrupt import deferred, entry_point, note
+from torchdoct.runtime.interrupt import deferred, entry_point, note
 
 
 def _kill_self(sig=signal.SIGTERM):

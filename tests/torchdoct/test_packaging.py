@@ -18,13 +18,13 @@ from packaging.version import Version
 
 import classifier
 import torchdoct
-from torchdoct.interrupt import EXTRAS
+from torchdoct.runtime.interrupt import EXTRAS
 
 REPO = Path(__file__).resolve().parents[2]
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
 PROJECT = PYPROJECT["project"]
 
-#: Run in a subprocess first: every optional module (torchdoct.interrupt.EXTRAS) fails to import, as
+#: Run in a subprocess first: every optional module (torchdoct.runtime.interrupt.EXTRAS) fails to import, as
 #: on the base install.
 BLOCK = f"""
 import importlib.abc, sys

@@ -19,7 +19,7 @@ CLASSIFIER = ["Configuration", "FeatureSpec", "load_spec", "shipped_specs", "cla
               "read_maps", "shipped_models", "write_classification", "INDETERMINATE", "apply_rule", "train",
               "TrainConfig", "TrainResult", "make_dataset", "Prior", "export_onnx"]
 #: Functions the README and the docs name by their module path.
-DOCUMENTED = ["torchdoct.threads:set_default_threads", "torchdoct.measured.resolution:reduce_resolution",
+DOCUMENTED = ["torchdoct.runtime.threads:set_default_threads", "torchdoct.measured.resolution:reduce_resolution",
               "torchdoct.measured.maps:compute_maps", "torchdoct.study.sweep:run_sweeps", "torchdoct.study:run_study",
               "torchdoct.study:load_study", "torchdoct.figures:show_bscan", "torchdoct.sim.metrics:summarize",
               "torchdoct.measured.io:read_sequence"]

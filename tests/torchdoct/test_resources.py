@@ -1,4 +1,4 @@
-"""One resource check before work for every command (torchdoct.resources): an input whose estimate exceeds the
+"""One resource check before work for every command (torchdoct.runtime.resources): an input whose estimate exceeds the
 available memory (or its output the free disk) is refused before the work starts, in one line naming the
 input, the estimate, the available amount and the fix. The machine's memory is monkeypatched small, so the
 inputs stay tiny."""
@@ -11,7 +11,7 @@ import re
 import numpy as np
 import pytest
 
-import torchdoct.resources as resources
+import torchdoct.runtime.resources as resources
 from _refusal import refused
 from _scenes import SMALL_SCENE_TOML
 

@@ -1,4 +1,4 @@
-"""Threading policy (torchdoct.threads): one torch thread per worker, bit-identical for any thread count."""
+"""Threading policy (torchdoct.runtime.threads): one torch thread per worker, bit-identical for any thread count."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import torchdoct as td
-from torchdoct import threads as th
+from torchdoct.runtime import threads as th
 from torchdoct.cli import main
 
 

@@ -79,7 +79,7 @@ def bench_simulate(*, trials: int = 1024, dtype: str = "float32", repeats: int =
             bar.update()
         return best, res, best_cpu
 
-    from ..threads import resolve_threads
+    from ..runtime.threads import resolve_threads
 
     n_threads = resolve_threads(threads)
     for scene, (system, (mname, motion)) in zip(scenes, cells):
@@ -216,7 +216,7 @@ def _burn() -> None:  # pragma: no cover - runs in the neighbour process
     import sys
 
     from ..sim.config import load_scene
-    from ..threads import set_default_threads
+    from ..runtime.threads import set_default_threads
 
     torch.set_num_threads(1)
     set_default_threads(1)
@@ -297,7 +297,7 @@ def bench_load(*, command: Callable[[list[str]], int], repeats: int = 3, threads
     """
     import tempfile
 
-    from ..threads import resolve_threads
+    from ..runtime.threads import resolve_threads
 
     threads = resolve_threads(threads)
     rows: dict[str, dict[str, float]] = {}

@@ -14,9 +14,9 @@ import torch
 from ..conventions import noise_power, noise_sigma
 from ..measured.bulkphase import METHODS, corrected_sequence, estimate_bulk_phase, phase_steps, predicted_residual_rms
 from ..measured.io import SequenceData
-from ..resources import check_bench
+from ..runtime.resources import check_bench
 from ..runtime.machine import machine_info
-from ..threads import one_torch_thread
+from ..runtime.threads import one_torch_thread
 
 __all__ = ["residual_rms", "bench_bulk_phase", "bench_bulk_phase_phantom", "format_bench_bulk_phase"]
 

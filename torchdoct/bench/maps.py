@@ -11,7 +11,7 @@ import torch
 
 from ..measured.io import SequenceData, validate_meta
 from ..measured.maps import compute_maps
-from ..resources import check_bench, maps_bytes
+from ..runtime.resources import check_bench, maps_bytes
 from ..runtime.machine import machine_info
 
 __all__ = ["bench_maps"]

@@ -2,7 +2,7 @@
 
 One table of commands (:func:`commands`): the built-in ones (:mod:`.simulate`, :mod:`.render`,
 :mod:`.data`, :mod:`.study`, :mod:`.bench`) and those other installed packages add through the entry-point
-group ``torchdoct.commands`` (:mod:`torchdoct.extensions`: ``translate``). Every entry has the same four
+group ``torchdoct.commands`` (:mod:`torchdoct.cli.extensions`: ``translate``). Every entry has the same four
 names (:class:`~torchdoct.cli.command.Command`): ``HELP``, ``DESCRIPTION``, ``add_arguments(parser)``,
 ``run(args) -> int``; :func:`~torchdoct.cli.command.run_parsed` runs the parsed one.
 """
@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from typing import Any, Sequence
 
-from ..interrupt import entry_point
+from ..runtime.interrupt import entry_point
 from . import bench, data, render, simulate, study
 from .command import add_parsers, add_threads, run_parsed
 
@@ -26,7 +26,7 @@ EXIT_CODES = {
     2: "bad input or usage: unknown option, missing, empty or corrupt file, invalid value, unusable "
        "device, output that exists without --force (one `error:` line naming the file or option and "
        "the fix; nothing is written)",
-    130: "interrupted by Ctrl-C: one line says what was kept and how to resume (torchdoct.interrupt)",
+    130: "interrupted by Ctrl-C: one line says what was kept and how to resume (torchdoct.runtime.interrupt)",
     141: "the output pipe closed early (`| head`): ended quietly",
     143: "terminated by SIGTERM: one line says what was kept and how to resume",
 }
@@ -35,7 +35,7 @@ EXIT_CODES = {
 def commands() -> dict[str, Any]:
     """Every command of ``torchdoct``, by name: the built-in ones, then those other installed packages add
     (entry-point group ``torchdoct.commands``)."""
-    from .. import extensions
+    from . import extensions
 
     table: dict[str, Any] = {}
     for module in (simulate, render, data, study, bench):

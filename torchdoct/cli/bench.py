@@ -2,7 +2,7 @@
 :mod:`torchdoct.bench` that prints its table and writes its JSON only when ``--out`` asks for it.
 
 The built-in benchmarks and those other installed packages add (entry-point group ``torchdoct.bench``,
-:mod:`torchdoct.extensions`: ``classify``) share the table; ``bench all`` runs every entry but ``cog``.
+:mod:`torchdoct.cli.extensions`: ``classify``) share the table; ``bench all`` runs every entry but ``cog``.
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def _tradeoffs(args) -> int:
         res["study"] = tradeoffs.study_tradeoffs(trials_grid=grid, reference_trials=ref, progress=True)
         print(tradeoffs.format_study_table(res["study"]))
     if "classifier" in parts:
-        from .. import extensions
+        from . import extensions
 
         clf_tradeoffs = extensions.load(extensions.TRADEOFFS, "classifier",
                                         command="torchdoct bench tradeoffs --part classifier")
@@ -311,8 +311,8 @@ def _extension_benchmark(part: Any) -> Command:
 
 def benchmarks() -> dict[str, Any]:
     """Every benchmark of ``torchdoct bench``, by name: the built-in ones, then those of the entry-point group
-    ``torchdoct.bench`` (:func:`torchdoct.extensions.benchmarks`), then ``all``."""
-    from .. import extensions
+    ``torchdoct.bench`` (:func:`torchdoct.cli.extensions.benchmarks`), then ``all``."""
+    from . import extensions
 
     table: dict[str, Any] = {
         "simulate": Command("paper's 4 systems x 3 motions at their largest parameters", _simulate_arguments, _simulate),

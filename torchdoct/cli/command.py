@@ -1,7 +1,7 @@
 """The shape of a command and how a parsed command runs: the ground floor of the command line.
 
 Every command of ``torchdoct`` and every benchmark of ``torchdoct bench``, built in or added by another
-installed package (:mod:`torchdoct.extensions`), is one entry of a table with the same four names:
+installed package (:mod:`torchdoct.cli.extensions`), is one entry of a table with the same four names:
 ``HELP`` (one line), ``DESCRIPTION`` (or ``None``), ``add_arguments(parser)`` and ``run(args) -> int``. A
 built-in entry is a :class:`Command`; an extension's entry is the module it registers, with those names.
 """
@@ -38,7 +38,7 @@ NO_COMPUTE = {"scenes", "phantoms", "plan", "bench", "cog"}
 
 
 def add_threads(sub: Any) -> None:
-    """One knob on every command that computes: ``--threads N`` (:mod:`torchdoct.threads`); also on the
+    """One knob on every command that computes: ``--threads N`` (:mod:`torchdoct.runtime.threads`); also on the
     subcommands of a command whose parser holds them as ``subcommands`` (``bench``)."""
     for name, sp in sub.choices.items():
         inner = getattr(sp, "subcommands", None)
@@ -56,24 +56,24 @@ def run_parsed(args: argparse.Namespace) -> int:
     """Run a parsed command: set the threads, check ``--device``, call its ``run``; bad input is one
     ``error:`` line and exit 2, a refused read or write exit 1 (:data:`torchdoct.cli.EXIT_CODES`)."""
     from ..sim import config
-    from ..threads import limit_process_threads, set_default_threads
+    from ..runtime.threads import limit_process_threads, set_default_threads
 
     try:
         set_default_threads(getattr(args, "threads", None))
     except ValueError as err:
         print(f"error: --threads: {err}", file=sys.stderr)
         return 2
-    limit_process_threads()  # parallel work runs over independent pieces (torchdoct.threads)
+    limit_process_threads()  # parallel work runs over independent pieces (torchdoct.runtime.threads)
     try:
         if getattr(args, "device", None) is not None:  # every command with --device (simulate, render, maps)
-            from .._device import check_device
+            from ..runtime.device import check_device
 
             check_device(args.device)
         return int(args.func(args))
     except (config.SceneError, TypeError, ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    except BrokenPipeError:  # the reader of the output went away: torchdoct.interrupt ends quietly
+    except BrokenPipeError:  # the reader of the output went away: torchdoct.runtime.interrupt ends quietly
         raise
     except OSError as err:  # the system refused a read or write (permissions, disk full)
         print(f"error: {err}", file=sys.stderr)
@@ -107,7 +107,7 @@ def parse_floats(text: str, n: int | None = None, what: str = "value") -> list[f
 
 def workers(args: argparse.Namespace) -> int:
     """Cells side by side: ``--workers``, else ``--threads``, else the usable cores (one torch thread each)."""
-    from ..threads import resolve_threads
+    from ..runtime.threads import resolve_threads
 
     if args.workers is not None:
         return args.workers

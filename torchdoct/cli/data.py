@@ -184,7 +184,7 @@ def _maps(args: argparse.Namespace) -> int:
               f"{info['pairs_without_signal']} A-line pairs without signal")
     elif args.bulk_phase_mask != "all" or args.bulk_phase_rows is not None:
         raise ValueError("--bulk-phase-mask and --bulk-phase-rows need --bulk-phase METHOD")
-    from ..resources import check_maps
+    from ..runtime.resources import check_maps
 
     check_maps(seq.source, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,  # disk space
                n_resolutions=len(resolutions), metrics=metrics, slab_elements=None, out_paths=outs)
@@ -355,7 +355,7 @@ def _compare(args: argparse.Namespace) -> int:
         name, sep, path = spec.partition("=")
         named.append((name, path) if sep and name and "/" not in name else (Path(spec).stem, spec))
     from ..measured.guards import max_input_bytes
-    from ..resources import check_compare
+    from ..runtime.resources import check_compare
 
     check_compare([path for _, path in named], max_input_bytes())  # memory, before anything is read
     samples: dict[str, list] = {}

@@ -54,10 +54,10 @@ from ..sim.config import Population
 from ..conventions import (TAPER_START, amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
                           noise_sigma, truncation_half_widths_um, wavenumber_per_um)
 from .phantom import MOTION_CODES, Phantom
-from ..resources import check_resources
+from ..runtime.resources import check_resources
 from ..sim.samplers import unit_directions
 from ..sim.streams import seeded_generator
-from ..threads import map_ordered, one_torch_thread, resolve_threads
+from ..runtime.threads import map_ordered, one_torch_thread, resolve_threads
 
 __all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS", "MAX_SCATTERERS", "ScatterersLimitError",
            "save_preview", "preview_figure"]
@@ -369,7 +369,7 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
     """Render the complex image sequence of ``phantom`` for its systems (all, or the named ones).
 
     ``seed``, ``dtype`` and ``truncation_tolerance`` default to the scene's ``[simulation]`` values.
-    ``threads``: frames splatted at once, each on one torch thread (:mod:`torchdoct.threads`; default:
+    ``threads``: frames splatted at once, each on one torch thread (:mod:`torchdoct.runtime.threads`; default:
     the usable cores); the output is bit-identical for any value.
     All systems see the same scatterers. The expected number of scatterers seeded is checked first:
     over ``max_scatterers`` (default :data:`MAX_SCATTERERS`) it is a :class:`ScatterersLimitError`
@@ -406,7 +406,7 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
     box = (lo, hi)
 
     out_bytes = len(optics) * T * n_pix * (16 if dtype == torch.float64 else 8)
-    check_resources(  # the sequence plus one copy when written (torchdoct.resources)
+    check_resources(  # the sequence plus one copy when written (torchdoct.runtime.resources)
         "the rendered sequence", 2 * out_bytes,
         "render fewer pixels or frames, one system at a time (--system), or in float32",
         detail=f"{out_bytes / 2**30:.2f} GB alone: {len(optics)} system(s) × {T} frames × {n_pix} pixels, and one "

@@ -92,7 +92,7 @@ import numpy as np
 import torch
 
 from ..conventions import noise_power
-from ..threads import one_torch_thread
+from ..runtime.threads import one_torch_thread
 from .io import SequenceData
 
 __all__ = [

@@ -92,7 +92,7 @@ from .mapspeckle import (SPECKLE_MAX_OFFSET, SPECKLE_WINDOW, speckle_channel_rec
                          speckle_slab, speckle_target)
 from .bulkphase import CORRECTION_AXIS_NEEDS, BulkPhase, estimate_bulk_phase, phasor as _bulk_phasor
 from .io import Maps, SequenceData
-from ..threads import one_torch_thread
+from ..runtime.threads import one_torch_thread
 from .mapfigures import DEFAULT_HUE_RANGE, FLAG_RGB, map_figure, percentile_range, png_name, pseudo_color
 from .mapmetrics import (
     DEFAULT_OCDS_DELAY_RANGE_S,
@@ -226,7 +226,7 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
                        normalization: str = "power", slab_elements: int = 1 << 23,
                        speckle: bool | _Seq[str] | None = None, speckle_window: int = SPECKLE_WINDOW) -> MapsRequest:
     """Stage 1 of :func:`compute_maps`, before any work: the metric and feature names, the options, the
-    resources (:func:`torchdoct.resources.check_maps`), the frames, the optics that each resolution target
+    resources (:func:`torchdoct.runtime.resources.check_maps`), the frames, the optics that each resolution target
     needs and the pixel grid that must hold it, intensity-only data against a resolution change, and the
     OCDS delay range. Raises ``ValueError`` (``TypeError``) naming the option and the fix; the arguments
     are those of :func:`compute_maps`. A command calls it before its own costly steps (a bulk-phase
@@ -249,7 +249,7 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
         raise ValueError(f"normalization must be one of {', '.join(NORMALIZATIONS)}; got {normalization!r}")
     targets = _as_targets(resolutions)
     src = seq.source or "sequence"
-    from ..resources import check_maps  # the one resource check of every command, before any work
+    from ..runtime.resources import check_maps  # the one resource check of every command, before any work
     check_maps(src, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,
                n_resolutions=len(targets), metrics=wanted + list(feats) + list(spk), slab_elements=slab_elements)
     if seq.n_frames < 2:

@@ -129,7 +129,7 @@ class Maps:
 def write_maps(path: str | os.PathLike, maps: Maps, *, force: bool = False) -> Path:
     """Write :class:`Maps` to ``.npz`` (``maps``, ``channels``, ``meta_json``) or ``.tif`` (stack +
     JSON ImageDescription, then ImageJ metadata: pixel size in µm and channel names,
-    :mod:`torchdoct.imagej`), atomically; refuses to overwrite without ``force``."""
+    :mod:`torchdoct.measured.imagej`), atomically; refuses to overwrite without ``force``."""
     out = check_out(path, force, MAPS_SUFFIXES, what="maps output")
     arr = np.ascontiguousarray(maps.maps, dtype=np.float32)
     meta = dict(maps.meta)
@@ -143,7 +143,7 @@ def write_maps(path: str | os.PathLike, maps: Maps, *, force: bool = False) -> P
         def write(tmp: str) -> None:
             import tifffile
 
-            from ..imagej import imagej_write_options
+            from .imagej import imagej_write_options
 
             units = {ch.get("unit") for ch in meta.get("channels", []) if isinstance(ch, dict)}
             tifffile.imwrite(tmp, arr, **imagej_write_options(  # Fiji/napari: µm scale and channel names

@@ -1,13 +1,13 @@
 """Memory of a simulation, estimated before any work: the chunk size, the peak working memory of a
 chunk and of a whole run (:func:`simulation_bytes`), and the refusal when a run would not fit
 (:func:`check_simulation`: :class:`MemoryLimitError` from the one resource check of every command,
-:func:`torchdoct.resources.check_resources`, raised by :func:`torchdoct.simulate` before it starts,
+:func:`torchdoct.runtime.resources.check_resources`, raised by :func:`torchdoct.simulate` before it starts,
 naming the knob to turn). :func:`release_free_memory` returns freed heap to the OS between chunks.
 """
 
 from __future__ import annotations
 
-from ..resources import MemoryLimitError, available_memory_bytes, check_resources
+from ..runtime.resources import MemoryLimitError, available_memory_bytes, check_resources
 from .plan import BLOCK_TRIALS, Plan
 
 __all__ = ["MemoryLimitError", "CHUNK_ELEMENTS", "BYTES_PER_ELEMENT", "working_elements_per_trial", "chunk_bytes",

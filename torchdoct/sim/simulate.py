@@ -48,7 +48,7 @@ from .memory import (MemoryLimitError, available_memory_bytes, check_simulation,
 from .plan import BLOCK_TRIALS, Plan, make_plan
 from .samplers import scene_field, unit_directions
 from .streams import CapacityError, Draws, block_generator, seeded_generator
-from ..threads import map_ordered, resolve_threads, single_torch_thread
+from ..runtime.threads import map_ordered, resolve_threads, single_torch_thread
 
 #: ``CapacityError``, ``MemoryLimitError``, the generators, ``chunk_bytes``, ``available_memory_bytes`` and
 #: ``unit_directions`` are re-exported from their modules (their former home).
@@ -123,7 +123,7 @@ def simulate(
     float64). Defaults come from the scene's ``[simulation]`` table (``truncation``: ``"hard"`` or
     ``"taper"``, :class:`~torchdoct.sim.config.SimulationSettings`). ``chunk_trials`` (rounded up to a
     multiple of 64) only sets how many trials are computed at once; ``threads`` how many chunks are
-    computed at once, each with one torch thread (:mod:`torchdoct.threads`; default: the usable
+    computed at once, each with one torch thread (:mod:`torchdoct.runtime.threads`; default: the usable
     cores). Results are bit-identical for any value of either.
     """
     import time
@@ -149,7 +149,7 @@ def simulate(
     plan = make_plan(scene, truncation_tolerance=truncation_tolerance, truncation=truncation)
     n_blocks = -(-trials // BLOCK_TRIALS)
     # keep a chunk's largest working tensors near 8M elements, and give every thread a chunk; refused
-    # before any work when the chunks in flight and the output would not fit (torchdoct.resources)
+    # before any work when the chunks in flight and the output would not fit (torchdoct.runtime.resources)
     chunk_blocks = check_simulation(plan, trials=trials, n_systems=len(scene.systems),
                                     n_frames=scene.protocol.n_frames, threads=threads, chunk_trials=chunk_trials,
                                     dtype_bytes=torch.finfo(dtype).bits // 8)

@@ -14,7 +14,7 @@ draws of the classifier's training data (:func:`classifier.dataset.make_dataset`
   header holding the key), written atomically the moment it finishes, read back instead of recomputed;
   an unreadable or partial file is recomputed;
 * **interruption** (:func:`run_cached`): Ctrl-C or SIGTERM keeps every finished cell in the cache and
-  says so in one line (:func:`torchdoct.interrupt.note`): rerunning the same command resumes from them.
+  says so in one line (:func:`torchdoct.runtime.interrupt.note`): rerunning the same command resumes from them.
 
 Plain data in, plain data out: a payload and a result cross to a worker process or a Dask worker as
 they are (``task`` must then be a module-level function).
@@ -33,7 +33,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..interrupt import note
+from ..runtime.interrupt import note
 
 __all__ = ["cell_seed", "CellCache", "CellJob", "run_cells", "run_cached"]
 
@@ -123,9 +123,9 @@ def _connect(scheduler: str):
 
 def _worker_init(parent_pid: int | None = None) -> None:
     """A worker process computes on one core: one torch (and BLAS) thread, one simulation thread. It
-    ignores Ctrl-C and dies with its parent (:func:`torchdoct.interrupt.worker_init`)."""
-    from ..interrupt import worker_init
-    from ..threads import limit_process_threads, set_default_threads
+    ignores Ctrl-C and dies with its parent (:func:`torchdoct.runtime.interrupt.worker_init`)."""
+    from ..runtime.interrupt import worker_init
+    from ..runtime.threads import limit_process_threads, set_default_threads
 
     worker_init(parent_pid)
     limit_process_threads()
@@ -166,11 +166,11 @@ def run_cells(task: Callable[[Any], Any], payloads: Sequence[Any], *, done: Call
 
     ``batch``: payloads per thread, process or Dask task. ``scheduler``: address of a Dask distributed
     scheduler (None: this machine). Locally, with ``workers = 1`` or a single batch, one batch at a time
-    with ``workers`` as the default threads of the work inside a cell (:func:`torchdoct.threads.using_threads`);
+    with ``workers`` as the default threads of the work inside a cell (:func:`torchdoct.runtime.threads.using_threads`);
     otherwise ``workers`` batches side by side, each on one core: in threads of this process, or with
     ``processes`` in spawned worker processes (a process costs seconds to start; threads share the
     interpreter's lock). ``one_torch_thread``: this process's torch work on one intra-op thread
-    (:func:`torchdoct.threads.single_torch_thread`). ``done`` is called in the order of ``payloads`` in
+    (:func:`torchdoct.runtime.threads.single_torch_thread`). ``done`` is called in the order of ``payloads`` in
     this process's threads, as batches finish in worker processes and on Dask. ``task`` must be a
     module-level function for processes and Dask.
     """
@@ -182,7 +182,7 @@ def run_cells(task: Callable[[Any], Any], payloads: Sequence[Any], *, done: Call
     if processes and not one_at_a_time:
         _run_in_processes(task, payloads, batches, workers, done)
         return
-    from ..threads import map_ordered, single_torch_thread, using_threads
+    from ..runtime.threads import map_ordered, single_torch_thread, using_threads
 
     with using_threads(workers if one_at_a_time else 1), \
             (single_torch_thread() if one_torch_thread else contextlib.nullcontext()):
@@ -251,7 +251,7 @@ def run_cached(jobs: Sequence[CellJob], *, cache: CellCache, execute: Callable[[
     Cached jobs are decoded (``decode(job, arrays, header)``; an entry that does not decode is computed);
     the others run through ``execute(payloads, done)`` (a :func:`run_cells` call), and each finished one
     is stored at once (``encode(job, result) -> (arrays, header)``). ``before(indices to compute)`` runs
-    before any of them (the resource check: :func:`torchdoct.resources.check_resources`). On Ctrl-C or
+    before any of them (the resource check: :func:`torchdoct.runtime.resources.check_resources`). On Ctrl-C or
     SIGTERM the one line says how many ``what`` the cache keeps and how to resume; after the run (with
     ``final_note``), should the command be interrupted while it writes its outputs, that every cell is there.
     """
@@ -287,7 +287,7 @@ def run_cached(jobs: Sequence[CellJob], *, cache: CellCache, execute: Callable[[
     try:
         if pending:
             execute([jobs[j].payload for j in pending], done)
-    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: say what the cache keeps (torchdoct.interrupt)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: say what the cache keeps (torchdoct.runtime.interrupt)
         n_done = sum(finished[j] for j in pending)
         if cache.dir is not None:
             before = len(jobs) - len(pending)

@@ -47,12 +47,12 @@ Executors (:func:`run_sweeps`, through the cell runner :mod:`torchdoct.study.cel
 the seeds, the cache files and what an interruption keeps): this process on one core (``workers = 1``,
 the library default), ``workers`` cells side by side, each on one torch thread (the command line's
 ``--threads``, default one per usable core: on a shared machine, independent single-threaded pieces are
-far less sensitive to other load than torch's intra-op threads; :mod:`torchdoct.threads`): in threads
+far less sensitive to other load than torch's intra-op threads; :mod:`torchdoct.runtime.threads`): in threads
 of this process for small sweeps, in worker processes from :data:`_PROCESS_WORK` system-trials on (a
 process costs seconds to start, threads share the interpreter's lock), or an existing Dask distributed
 cluster (``scheduler = "tcp://host:8786"``), cells as tasks whose results come back to this process,
 which writes the cache and the table. Before any cell runs, the cells to compute are checked against
-the available memory and the cache's disk (:func:`torchdoct.resources.check_resources`).
+the available memory and the cache's disk (:func:`torchdoct.runtime.resources.check_resources`).
 
 The grid (a field's values, key paths into the scene) is :mod:`torchdoct.study.grid`'s.
 """
@@ -460,7 +460,7 @@ def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int 
     ``batch_cells``: cells per task; ``workers``: the cores to use when no scheduler is given: local
     cells side by side with one torch thread each (threads, or worker processes for large sweeps), or
     (1, or a single task) one cell at a time with that many
-    simulation threads (:mod:`torchdoct.threads`). Results depend on neither.
+    simulation threads (:mod:`torchdoct.runtime.threads`). Results depend on neither.
     """
     if isinstance(batch_cells, bool) or not isinstance(batch_cells, int) or batch_cells < 1:
         raise ValueError(f"batch_cells must be an integer >= 1; got {batch_cells!r}")
@@ -519,7 +519,7 @@ def check_sweep_resources(sweeps: Sequence[Sweep], *, trials: int | None = None,
                           cache_dir: str | os.PathLike | None = None, scheduler: str | None = None,
                           batch_cells: int = 1, workers: int = 1) -> None:
     """The resource check of :func:`run_sweeps` (same arguments), for a command to call before it makes its
-    output folder: the cells without a cache file must fit (:func:`torchdoct.resources.check_resources`)."""
+    output folder: the cells without a cache file must fit (:func:`torchdoct.runtime.resources.check_resources`)."""
     info, jobs = _jobs(sweeps, trials=trials, seed=seed, dtype=dtype, tolerance=tolerance)
     cache = CellCache(cache_dir)
     todo = [i for i, job in zip(info, jobs) if cache.dir is None or not cache.path(job.key).is_file()]
@@ -557,11 +557,11 @@ def _cell_bytes(scene: Scene, trials: int, threads: int, tolerance: float, dtype
 def _check_resources(todo: list[tuple], *, scheduler: str | None, workers: int, batch_cells: int,
                      cache_dir: str | os.PathLike | None, trials: int | None) -> None:
     """The cells to compute fit in memory (the largest cell's simulation times the cells side by side, plus
-    every cell's per-trial metrics) and their cache entries on disk: :func:`torchdoct.resources.check_resources`,
+    every cell's per-trial metrics) and their cache entries on disk: :func:`torchdoct.runtime.resources.check_resources`,
     before any cell runs."""
     if not todo:
         return
-    from ..resources import check_resources
+    from ..runtime.resources import check_resources
 
     batches = -(-len(todo) // batch_cells)
     side_by_side = scheduler is None and workers > 1 and batches > 1

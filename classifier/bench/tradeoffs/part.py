@@ -1,5 +1,5 @@
 """The classifier's part of ``torchdoct bench tradeoffs`` (entry point ``torchdoct.tradeoffs``/``classifier``,
-:mod:`torchdoct.extensions`): accuracy against time of the classifier's settings."""
+:mod:`torchdoct.cli.extensions`): accuracy against time of the classifier's settings."""
 
 from __future__ import annotations
 
