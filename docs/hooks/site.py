@@ -50,10 +50,12 @@ API = [
     ("ground-floor", "Conventions and utilities", "Units and resolution conventions, optics, threads, figures, "
      "resources and files.",
      ["torchdoct.conventions", "torchdoct.optics", "torchdoct.runtime.threads", "torchdoct.figures",
-      "torchdoct.runtime.resources", "torchdoct.files", "torchdoct.measured.imagej"]),
+      "torchdoct.runtime.resources", "torchdoct.runtime.interrupt", "torchdoct.runtime.machine", "torchdoct.files",
+      "torchdoct.measured.imagej"]),
     ("classifier", "Classifier", "Classify maps (numpy and onnxruntime only), train, match a system, translate.",
      ["classifier.infer", "classifier.outputs", "classifier.pooling", "classifier.rule", "classifier.features",
-      "classifier.matching", "classifier.own_system", "classifier.dataset", "classifier.train", "classifier.export",
+      "classifier.matching", "classifier.own_system", "classifier.prior", "classifier.truth", "classifier.simulation",
+      "classifier.dataset", "classifier.train", "classifier.export",
       "classifier.report", "classifier.evaluation", "classifier.evaluate_images", "classifier.translate"]),
 ]
 
