@@ -72,8 +72,10 @@ def features(k: int, seed: int, window: int, snr_db: float | None) -> dict[str, 
     from torchdoct.sim.speckle import speckle_motion
 
     p = draw_params(k, seed)
+    t0 = time.perf_counter()
     e = simulate_patch(trials=1, seed=seed * 1_000_003 + k, shape=SHAPE, pitch_um=(PITCH_UM, PITCH_UM),
                        n_frames=N_FRAMES, frame_interval_s=DT_S, snr_db=snr_db, **p)[0]  # [T, Z, X]
+    sim_s = time.perf_counter() - t0
     times = [i * DT_S for i in range(N_FRAMES)]
     names = available_features(default_features(N_FRAMES), False)
     _, sig = pixel_features((e.abs() ** 2).movedim(0, -1).to(torch.float64), times, names)  # [Z, X, F]
@@ -82,7 +84,30 @@ def features(k: int, seed: int, window: int, snr_db: float | None) -> dict[str, 
     pooled = sig[cz - h: cz + h + 1, cx - h: cx + h + 1].reshape(-1, sig.shape[-1])
     pooled = torch.nanmean(pooled, 0)
     _, sp = speckle_motion(e[None], {"z": PITCH_UM, "x": PITCH_UM}, DT_S, window=window)
-    return {"pixel": sig[cz, cx].numpy(), "pooled": pooled.numpy(), "speckle": sp[0, :, cz, cx].numpy()}
+    return {"pixel": sig[cz, cx].numpy(), "pooled": pooled.numpy(), "speckle": sp[0, :, cz, cx].numpy(),
+            "patch_seconds": sim_s}
+
+
+def pixel_seconds_per_trial(trials: int = 400, seed: int = 0) -> dict[str, float]:
+    """Wall time per trial of the point simulator (``torchdoct.simulate``, one pixel, float32, one thread, the
+    default truncation) for one mid-range cell of each motion: the cost of a per-pixel training sample."""
+    from torchdoct.sim.config import (Analysis, Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic,
+                                      Scene)
+    from torchdoct.sim.simulate import simulate
+
+    system = OCTSystem(name="840nm-high", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)
+    motions = {"diffusion": Diffusion(diffusion_um2_per_s=0.01), "ballistic": RandomBallistic(speed_um_per_s=0.05),
+               "flow": Flow(speed_um_per_s=0.3, polar_angle_deg=45.0)}
+    out = {}
+    for name, m in motions.items():
+        scene = Scene(systems=(system,), protocol=Protocol(n_frames=N_FRAMES, frame_interval_s=DT_S),
+                      analysis=Analysis(metrics=("liv", "ocds")), name=name,
+                      populations=(Population(density_per_um3=0.055, motion=(m,)),))
+        simulate(scene, trials=8, seed=seed, dtype="float32", threads=1, progress=False)  # warm-up
+        t0 = time.perf_counter()
+        simulate(scene, trials=trials, seed=seed, dtype="float32", threads=1, progress=False)
+        out[name] = (time.perf_counter() - t0) / trials
+    return out
 
 
 def run(per_class: int, window: int, seed: int, snr_db: float | None) -> dict:
@@ -98,8 +123,11 @@ def run(per_class: int, window: int, seed: int, snr_db: float | None) -> dict:
     y = np.array([k % 3 for k in range(n)])
     sets = {"pixel": ["pixel"], "pooled": ["pooled"], "speckle": ["speckle"], "pooled+speckle": ["pooled", "speckle"]}
     train, test = np.arange(n) % 2 == 0, np.arange(n) % 2 == 1
+    patch_s = float(sum(r["patch_seconds"] for r in rows))
+    pixel = pixel_seconds_per_trial()
     out: dict = {"per_class": per_class, "window": window, "seed": seed, "snr_db": snr_db,
-                 "simulation_seconds": sim_s, "priors": {"flow_um_s": FLOW_UM_S, "ballistic_um_s": BALLISTIC_UM_S,
+                 "simulation_seconds": sim_s, "patch_simulation_seconds_per_sample": patch_s / n,
+                 "pixel_simulation_seconds_per_sample": pixel, "priors": {"flow_um_s": FLOW_UM_S, "ballistic_um_s": BALLISTIC_UM_S,
                                                           "diffusion_um2_s": DIFFUSION_UM2_S},
                  "results": {}}
     for name, parts in sets.items():
@@ -115,6 +143,11 @@ def run(per_class: int, window: int, seed: int, snr_db: float | None) -> dict:
         out["results"][name] = {"balanced_accuracy": float(balanced_accuracy_score(y[test], pred)),
                                 "auc_flow_vs_ballistic": float(auc), "n_features": int(x.shape[1]),
                                 "confusion_true_by_predicted": conf.tolist()}
+    base = out["results"]["pooled"]["balanced_accuracy"]
+    gain = out["results"]["pooled+speckle"]["balanced_accuracy"] - base
+    extra = out["patch_simulation_seconds_per_sample"] - float(np.mean(list(pixel.values())))
+    out["balanced_accuracy_gain_over_pooled"] = gain
+    out["gain_per_extra_second_per_1000_samples"] = gain / (1000.0 * extra) if extra > 0 else None
     return out
 
 
@@ -124,8 +157,16 @@ def markdown(res: dict) -> str:
              "| features | n | balanced accuracy | ROC AUC flow vs ballistic |", "|---|---|---|---|"]
     for k, v in res["results"].items():
         lines.append(f"| {k} | {v['n_features']} | {v['balanced_accuracy']:.3f} | {v['auc_flow_vs_ballistic']:.3f} |")
-    lines += ["", f"Simulation: {res['simulation_seconds']:.0f} s for {3 * res['per_class']} patches "
-              "(one thread, under the machine's load at the time)."]
+    pix = res["pixel_simulation_seconds_per_sample"]
+    lines += ["", f"Simulation and features: {res['simulation_seconds']:.0f} s for {3 * res['per_class']} patches "
+              "(one thread, under the machine's load at the time).", "",
+              "| cost per training sample | seconds |", "|---|---|",
+              f"| patch simulation (13 × 13 pixels, one realisation) | {res['patch_simulation_seconds_per_sample']:.4f} |"]
+    lines += [f"| pixel simulation, {k} (torchdoct.simulate, one pixel) | {v:.5f} |" for k, v in pix.items()]
+    g = res["gain_per_extra_second_per_1000_samples"]
+    lines += ["", f"Balanced accuracy gained by the speckle features over the pooled signature: "
+              f"{res['balanced_accuracy_gain_over_pooled']:+.3f}"
+              + (f", i.e. {g:.2e} per extra second of simulation per 1000 samples." if g is not None else ".")]
     return "\n".join(lines) + "\n"
 
 
