@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from torchdoct import figures  # torch-free: the project's axes and colours
+
 from .rule import INDETERMINATE
 from .runtime import ClassifierModel
 
@@ -30,7 +32,7 @@ __all__ = ["MASKED", "CLASS_COLORS", "MASKED_COLOR", "OUTPUT_FILES", "MAGNITUDE_
 MASKED = 255
 #: Colours of the classes in the legend and overlay: the Okabe-Ito palette, told apart with any of the
 #: common colour-vision deficiencies (blue, orange, bluish green; indeterminate reddish purple).
-CLASS_COLORS = {"diffusion": "#0072B2", "ballistic": "#E69F00", "flow": "#009E73", INDETERMINATE: "#CC79A7"}
+CLASS_COLORS = {c: figures.CLASS_COLORS[c] for c in ("diffusion", "ballistic", "flow", INDETERMINATE)}
 #: Overlay colour of masked pixels (background or a NaN feature): black, unlike every class.
 MASKED_COLOR = "#000000"
 
@@ -139,7 +141,6 @@ def _overlay(res: Classification, path: str) -> None:
         rgb[sel] = 0.45 * rgb[sel] + 0.55 * np.array(to_rgb(CLASS_COLORS.get(c, "#000000")))
     masked = labels == MASKED  # no class tint: the intensity darkened towards black
     rgb[masked] = 0.45 * rgb[masked] + 0.55 * np.array(to_rgb(MASKED_COLOR))
-    from torchdoct import figures  # torch-free: the project's one axes convention
     extent, _ = figures.image_extent(labels.shape, res.pitch_um)
     h = 5.0
     wdt = h * (extent[1] - extent[0]) / max(extent[2] - extent[3], 1e-9)
@@ -191,7 +192,7 @@ def _magnitude_picture(res: Classification, path: str) -> None:
     h = 4.2
     wdt = h * (extent[1] - extent[0]) / max(extent[2] - extent[3], 1e-9)
     fig, axes = plt.subplots(1, 2, figsize=(2 * (min(max(wdt, 3.0), 10.0) + 1.6), h), constrained_layout=True)
-    cmap = plt.get_cmap("cividis").with_extremes(bad="#d9d9d9")
+    cmap = plt.get_cmap(figures.MAGNITUDE_CMAP).with_extremes(bad="#d9d9d9")
     for ax, (what, classes, unit) in zip(axes, panels):
         sel = np.isin(labels, [res.classes.index(c) for c in classes if c in res.classes]) & np.isfinite(mag)
         vals = np.where(sel, 10.0 ** np.where(sel, mag, 0.0), np.nan)

@@ -20,7 +20,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-__all__ = ["X_LABEL", "Z_LABEL", "X_LABEL_PX", "Z_LABEL_PX", "UNIT_TEXT", "image_extent", "show_bscan",
+__all__ = ["OKABE_ITO", "CLASS_COLORS", "LABEL_COLORS", "CONTINUOUS_CMAP", "MAGNITUDE_CMAP", "X_LABEL", "Z_LABEL", "X_LABEL_PX", "Z_LABEL_PX", "UNIT_TEXT", "image_extent", "show_bscan",
            "unit_text"]
 
 X_LABEL = "x (µm)"
@@ -28,6 +28,24 @@ Z_LABEL = "z, depth (µm)"
 X_LABEL_PX = "x (pixel)"
 Z_LABEL_PX = "z, depth (pixel)"
 #: Units as the maps files write them → as figures print them.
+#: The Okabe–Ito palette (Okabe & Ito, "Color Universal Design"): eight colours told apart with the common
+#: colour-vision deficiencies. Every categorical figure of the project takes its colours from here.
+OKABE_ITO = {"black": "#000000", "orange": "#E69F00", "sky blue": "#56B4E9", "bluish green": "#009E73",
+             "yellow": "#F0E442", "blue": "#0072B2", "vermillion": "#D55E00", "reddish purple": "#CC79A7"}
+#: Colour of each motion class, shared by the ground truth of rendered phantoms and the classifier's
+#: output, so a correct classification looks like its ground truth. Static tissue takes the colour of
+#: "indeterminate": it does not decorrelate over the acquisition, which is what the classifier calls it.
+CLASS_COLORS = {"diffusion": OKABE_ITO["blue"], "ballistic": OKABE_ITO["orange"], "flow": OKABE_ITO["bluish green"],
+                "indeterminate": OKABE_ITO["reddish purple"]}
+#: Ground-truth label colours of rendered phantoms (:data:`torchdoct.image.phantom.MOTION_CODES` names).
+LABEL_COLORS = {"empty": OKABE_ITO["black"], "static": CLASS_COLORS["indeterminate"],
+                "diffusion": CLASS_COLORS["diffusion"], "ballistic": CLASS_COLORS["ballistic"],
+                "flow": CLASS_COLORS["flow"], "mixed": OKABE_ITO["vermillion"]}
+#: Perceptual, colour-blind-safe colour maps of continuous quantities (matplotlib names): DOCT metrics,
+#: and the motion magnitude.
+CONTINUOUS_CMAP = "viridis"
+MAGNITUDE_CMAP = "cividis"
+
 UNIT_TEXT = {"dB^2": "dB²", "1/s": "s⁻¹", "dB": "dB", "code": "code"}
 
 

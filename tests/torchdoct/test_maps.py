@@ -22,6 +22,7 @@ from torchdoct.measured.maps import (
     liv_curve,
     ocds_map,
     png_name,
+    FLAG_RGB,
     pseudo_color,
 )
 from torchdoct.measured.resolution import reduce_resolution
@@ -277,16 +278,22 @@ def test_bad_requests():
 # ----------------------------------------------------------------------------------------------------------
 # pseudo colour
 # ----------------------------------------------------------------------------------------------------------
-def test_pseudo_color_hue_and_brightness():
+def test_pseudo_color_takes_the_perceptual_map_scaled_by_brightness():
+    import matplotlib
+
+    from torchdoct.figures import CONTINUOUS_CMAP
+
+    cm = matplotlib.colormaps[CONTINUOUS_CMAP]
+    ends = [tuple(int(round(c * 255)) for c in cm(x)[:3]) for x in (0.0, 1.0)]
     v = np.array([[0.0, 10.0, 5.0, np.nan]])
     db = np.array([[40.0, 40.0, 20.0, 40.0]])
     rgb = pseudo_color(v, db, value_range=(0, 10), db_range=(20, 40))
     assert rgb.dtype == np.uint8 and rgb.shape == (1, 4, 3)
-    assert tuple(rgb[0, 0]) == (255, 0, 0)  # low value: red, full brightness
-    assert tuple(rgb[0, 1]) == (0, 255, 0)  # high value: green
+    assert tuple(rgb[0, 0]) == ends[0]  # low value: the map's low end, full brightness
+    assert tuple(rgb[0, 1]) == ends[1]  # high value: the map's high end
     assert tuple(rgb[0, 2]) == (0, 0, 0)  # at the dB floor: black
-    assert tuple(rgb[0, 3]) == (255, 255, 255)  # NaN: grey scale
-    assert tuple(pseudo_color(np.array([[20.0]]), None, value_range=(0, 10))[0, 0]) == (0, 255, 0)  # clipped
+    assert tuple(rgb[0, 3]) == (153, 153, 153)  # NaN: grey
+    assert tuple(pseudo_color(np.array([[20.0]]), None, value_range=(0, 10))[0, 0]) == ends[1]  # clipped
     with pytest.raises(ValueError, match="hi > lo"):
         pseudo_color(v, db, value_range=(1, 1), db_range=(0, 1))
     assert png_name("out/maps.tif", "liv@axial=14,lateral=9.8").name == "maps_liv_axial14-lateral9p8.png"
@@ -423,8 +430,8 @@ def test_fits_on_a_tau_bound_are_flagged():
     assert "bound" in m.meta["aliv"]["flag"] and m.channel_info("aliv_fit@original")["unit"] == "code"
     # flagged pixels are shown in their own colour, distinct from every hue of the scale and from NaN grey
     rgb = pseudo_color(m["aliv@original"], None, value_range=(0, 30), flagged=code > 0)
-    assert tuple(rgb[0, 0]) == tuple(rgb[0, 1]) == (255, 0, 255)
-    assert all(tuple(rgb[z, x]) != (255, 0, 255) for z, x in zip(*np.nonzero(inside)))
+    assert tuple(rgb[0, 0]) == tuple(rgb[0, 1]) == FLAG_RGB
+    assert all(tuple(rgb[z, x]) != FLAG_RGB for z, x in zip(*np.nonzero(inside)))
 
 
 def test_empty_pixels_stay_undefined_after_an_axial_reduction():

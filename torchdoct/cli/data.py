@@ -86,7 +86,7 @@ def _maps_arguments(mp) -> None:
     p = mp.add_argument_group("pseudo-colour PNGs")
     p.add_argument("--png", action="store_true", help="write OUT_metric_resolution.png per channel")
     p.add_argument("--range", action="append", default=[], metavar="METRIC=LO,HI",
-                   help="hue range of a metric, e.g. liv=0,10 (default 1st-99th percentile)")
+                   help="colour-scale range of a metric, e.g. liv=0,10 (default 1st-99th percentile)")
     p.add_argument("--db-range", nargs=2, type=float, default=None, metavar=("LO", "HI"),
                    help="brightness range (dB) (default 5th-99.9th percentile)")
     p.add_argument("--png-y", type=int, default=None, help="B-scan index shown for volumes (default middle)")

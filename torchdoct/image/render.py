@@ -54,6 +54,7 @@ from ..sim.config import Population
 from ..conventions import (TAPER_START, amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
                           noise_sigma, truncation_half_widths_um, wavenumber_per_um)
 from .phantom import MOTION_CODES, Phantom
+from ..figures import CONTINUOUS_CMAP, LABEL_COLORS
 from ..runtime.resources import check_resources
 from ..sim.samplers import unit_directions
 from ..sim.streams import seeded_generator
@@ -516,7 +517,8 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
                         seed=seed, elapsed_s=time.perf_counter() - t_start, work=work)
 
 
-_LABEL_COLOURS = {0: "#000000", 1: "#7f7f7f", 2: "#1f77b4", 3: "#ff7f0e", 4: "#d62728", 5: "#9467bd"}
+#: Ground-truth colour per motion code: the classifier's class colours (:data:`torchdoct.figures.LABEL_COLORS`).
+_LABEL_COLOURS = {code: LABEL_COLORS[name] for name, code in MOTION_CODES.items()}
 
 
 def save_preview(result: RenderResult, path: str, system: str | int | None = None,
@@ -561,7 +563,7 @@ def preview_figure(result: RenderResult, system: str | int | None = None,
     im0 = show_bscan(ax[0], frame_db, pitch_um=pitch, cmap="gray", vmin=top - 40.0, vmax=top)
     ax[0].set_title("frame 0, intensity (dB)")
     fig.colorbar(im0, ax=ax[0], shrink=0.8).set_label("intensity (dB)")
-    cmap = plt.get_cmap("inferno").with_extremes(bad="#202020")
+    cmap = plt.get_cmap(CONTINUOUS_CMAP).with_extremes(bad="#808080")
     im1 = show_bscan(ax[1], liv_map.numpy(), pitch_um=pitch, cmap=cmap, vmin=liv_range_db2[0],
                      vmax=liv_range_db2[1])
     ax[1].set_title("LIV (dB²)")

@@ -1,5 +1,5 @@
-"""Figures of DOCT maps: the pseudo-colour composition (hue = the metric, brightness = the mean dB
-intensity), one quantitative figure per channel (:func:`map_figure`; the PNG set of ``torchdoct maps --png`` is
+"""Figures of DOCT maps: the pseudo-colour composition (colour = the metric on a perceptual,
+colour-blind-safe colour map, brightness = the mean dB intensity), one quantitative figure per channel (:func:`map_figure`; the PNG set of ``torchdoct maps --png`` is
 :func:`torchdoct.measured.maps.write_pngs`), with numpy and matplotlib; every public name is re-exported
 by :mod:`torchdoct.measured.maps`.
 """
@@ -17,25 +17,36 @@ from .mapmetrics import FIT_FLAG
 
 __all__ = ["DEFAULT_HUE_RANGE", "FLAG_RGB", "pseudo_color", "map_figure", "png_name", "percentile_range"]
 
-#: Default hue range of the pseudo-colour images: low values red (0), high values green (1/3).
-DEFAULT_HUE_RANGE = (0.0, 1.0 / 3.0)
-#: Colour of flagged pixels (aLIV/Swiftness fits on a τ bound) in the pseudo-colour images.
-FLAG_RGB = (255, 0, 255)
+#: Default part of the colour map (:data:`torchdoct.figures.CONTINUOUS_CMAP`, viridis) the value range spans:
+#: all of it, low values dark blue-purple (0), high values yellow (1).
+DEFAULT_HUE_RANGE = (0.0, 1.0)
+#: Colour of flagged pixels (aLIV/Swiftness fits on a τ bound) in the pseudo-colour images: Okabe–Ito
+#: vermillion, which viridis does not hold.
+FLAG_RGB = (213, 94, 0)
+
+
+def _cmap_rgb(frac: np.ndarray) -> np.ndarray:
+    """RGB in [0, 1] of the continuous colour map at ``frac`` ∈ [0, 1]."""
+    import matplotlib
+
+    from ..figures import CONTINUOUS_CMAP
+
+    return np.asarray(matplotlib.colormaps[CONTINUOUS_CMAP](frac))[..., :3]
 
 
 def pseudo_color(value: np.ndarray, intensity_db: np.ndarray | None, *, value_range: tuple[float, float],
                  db_range: tuple[float, float] | None = None,
                  hue_range: tuple[float, float] = DEFAULT_HUE_RANGE, flagged: np.ndarray | None = None) -> np.ndarray:
-    """RGB uint8 ``[H, W, 3]``: hue = ``value`` over ``value_range``, brightness = dB intensity.
+    """RGB uint8 ``[H, W, 3]``: colour = ``value`` over ``value_range``, brightness = dB intensity.
 
-    HSV composition as DOCT images are shown: hue ``hue_range[0] + (hue_range[1] − hue_range[0])·
-    clip((v − lo)/(hi − lo), 0, 1)`` (default red for low, green for high), saturation 1, value
-    ``clip((dB − db_lo)/(db_hi − db_lo), 0, 1)`` (1 everywhere without an intensity image). NaN values
-    are shown grey (saturation 0) at their brightness; ``flagged`` pixels (bool, e.g. an aLIV fit on a
-    τ bound) are shown in :data:`FLAG_RGB` (magenta, outside the red-green hue scale) at full brightness.
+    The composition DOCT images use, on a perceptual colour map that colour-blind readers can use
+    (:data:`torchdoct.figures.CONTINUOUS_CMAP`): colour at ``hue_range[0] + (hue_range[1] − hue_range[0])·
+    clip((v − lo)/(hi − lo), 0, 1)`` along the map (by default all of it, dark for low, yellow for high),
+    scaled by the brightness ``clip((dB − db_lo)/(db_hi − db_lo), 0, 1)`` (1 everywhere without an
+    intensity image). NaN values are shown grey at their brightness; ``flagged`` pixels (bool, e.g. an
+    aLIV fit on a τ bound) are shown in :data:`FLAG_RGB` (vermillion, outside the colour map) at full
+    brightness.
     """
-    from matplotlib.colors import hsv_to_rgb
-
     v = np.asarray(value, dtype=np.float64)
     lo, hi = (float(x) for x in value_range)
     if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
@@ -51,8 +62,8 @@ def pseudo_color(value: np.ndarray, intensity_db: np.ndarray | None, *, value_ra
         if not (math.isfinite(dlo) and math.isfinite(dhi) and dhi > dlo):
             raise ValueError(f"dB range must be finite with hi > lo; got {db_range!r}")
         bright = np.nan_to_num(np.clip((np.asarray(intensity_db, dtype=np.float64) - dlo) / (dhi - dlo), 0, 1))
-    sat = np.where(np.isfinite(v), 1.0, 0.0)
-    rgb = np.round(hsv_to_rgb(np.stack([np.mod(hue, 1.0), sat, bright], axis=-1)) * 255.0).astype(np.uint8)
+    colour = np.where(np.isfinite(v)[..., None], _cmap_rgb(np.clip(hue, 0.0, 1.0)), 0.6)
+    rgb = np.round(colour * bright[..., None] * 255.0).astype(np.uint8)
     if flagged is not None:
         rgb[np.asarray(flagged, dtype=bool)] = FLAG_RGB
     return rgb
@@ -108,7 +119,7 @@ def map_figure(maps: Maps, channel: str, *, value_range: tuple[float, float] | N
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import ListedColormap, Normalize, hsv_to_rgb
+    from matplotlib.colors import ListedColormap, Normalize
     from matplotlib.patches import Patch
 
     from ..figures import show_bscan, unit_text
@@ -157,8 +168,7 @@ def map_figure(maps: Maps, channel: str, *, value_range: tuple[float, float] | N
         rgb = pseudo_color(v, db, value_range=vr, db_range=dr if db is not None else None, hue_range=hue_range,
                            flagged=flagged)
         show_bscan(ax, rgb, pitch_um=maps.meta.get("pitch_um"))
-        hues = np.linspace(hue_range[0], hue_range[1], 256)
-        cmap = ListedColormap(hsv_to_rgb(np.stack([np.mod(hues, 1.0), np.ones(256), np.ones(256)], -1)))
+        cmap = ListedColormap(_cmap_rgb(np.linspace(hue_range[0], hue_range[1], 256)))
         sm = ScalarMappable(norm=Normalize(*vr), cmap=cmap)
         if n_nan:
             handles.append(Patch(color="0.6", label=f"undefined, no dB value: grey, black without intensity "
