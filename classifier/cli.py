@@ -94,6 +94,7 @@ def _quick_text() -> str:
 def train_main(argv: Sequence[str] | None = None) -> int:
     """``doct-train``: returns the exit code (0 done, 2 bad input, 1 other failure)."""
     args = build_train_parser().parse_args(argv)
+    _interrupt.silence_progress(args)
     return _run(_train, args)
 
 
@@ -326,6 +327,7 @@ def build_classify_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--max-input-gb", type=float, default=None, metavar="GB",
                    help="largest maps array to read (GiB; default 8 or $TORCHDOCT_MAX_INPUT_GB)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (as TQDM_DISABLE=1)")
     return p
 
 
@@ -333,6 +335,7 @@ def build_classify_parser() -> argparse.ArgumentParser:
 def classify_main(argv: Sequence[str] | None = None) -> int:
     """``doct-classify``: returns the exit code (0 done, 2 bad input, 1 other failure)."""
     args = build_classify_parser().parse_args(argv)
+    _interrupt.silence_progress(args)
     return _run(_classify, args)
 
 

@@ -38,6 +38,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from torchdoct.runtime.interrupt import progress_disabled
+
 __all__ = ["STATUS", "GRID_PER_DECADE", "FLOW_ANGLES_DEG", "Target", "load_target", "TranslationTable",
            "build_table", "translate_maps", "mixture_quantiles"]
 
@@ -144,7 +146,7 @@ def build_table(target: Target, prior, *, trials: int = 128, seed: int = 0, prog
     density = math.sqrt(prior.density_per_um3[0] * prior.density_per_um3[1])
     grids, samples = [], []
     bar = None
-    if progress:
+    if not progress_disabled(progress):
         from tqdm.auto import tqdm
 
         bar = tqdm(total=sum(_grid(prior, c).size for c in classes), unit="magnitude", desc="simulate target",

@@ -29,6 +29,7 @@ import torch
 
 from ..sim.config import Analysis, Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic, Scene
 from ..conventions import mean_intensity, truncation_error_bound
+from ..runtime.interrupt import progress_disabled
 from ..runtime.machine import machine_info
 from ..sim.simulate import simulate
 
@@ -111,7 +112,7 @@ def simulator_tradeoffs(*, trials: int = 8192, reference_trials: int = 16384,
     cells_out = []
     cells = tradeoff_cells()
     bar = tqdm(total=len(cells) * (2 + len(tolerances) + len(trials_grid) + len(chunk_trials)),
-               desc="trade-offs", disable=not progress)
+               desc="trade-offs", disable=progress_disabled(progress))
     for name, scene in cells.items():
         ref_res, ref, ref_wall = _run(scene, reference_trials, seed + 1, _REFERENCE_TOLERANCE, "float64")
         bar.update(1)
@@ -475,7 +476,7 @@ def feature_fidelity(*, trials: int = 8192, reference_trials: int = 16384, seed:
     if unknown:
         raise ValueError(f"unknown fidelity cell(s) {unknown}; known: {list(all_cells)}")
     cells = {k: all_cells[k] for k in wanted}
-    bar = tqdm(total=len(cells) * (1 + len(settings)), desc="fidelity", disable=not progress)
+    bar = tqdm(total=len(cells) * (1 + len(settings)), desc="fidelity", disable=progress_disabled(progress))
     per_setting: list[dict[str, Any]] = [{**s, "cells": [], "wall_s": 0.0, "trials": 0} for s in settings]
     ref_out = []
     for c, (name, scene) in enumerate(cells.items()):

@@ -14,7 +14,7 @@ from typing import Any, Sequence
 
 from ..runtime.interrupt import entry_point
 from . import bench, data, render, simulate, study
-from .command import add_parsers, add_threads, run_parsed
+from .command import add_no_progress, add_parsers, add_threads, run_parsed
 
 __all__ = ["build_parser", "commands", "main", "EXIT_CODES"]
 
@@ -52,6 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
     add_parsers(sub, commands())
     add_threads(sub)
+    add_no_progress(sub)
     return p
 
 

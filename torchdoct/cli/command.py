@@ -52,12 +52,25 @@ def add_threads(sub: Any) -> None:
                              "not depend on N")
 
 
+def add_no_progress(sub: Any) -> None:
+    """``--no-progress`` on every command, the same everywhere: no progress bar (as ``TQDM_DISABLE=1``)."""
+    for sp in sub.choices.values():
+        inner = getattr(sp, "subcommands", None)
+        if inner is not None:
+            add_no_progress(inner)
+        if not any("--no-progress" in a.option_strings for a in sp._actions):
+            sp.add_argument("--no-progress", action="store_true", help="no progress bar (as TQDM_DISABLE=1)")
+
+
 def run_parsed(args: argparse.Namespace) -> int:
     """Run a parsed command: set the threads, check ``--device``, call its ``run``; bad input is one
     ``error:`` line and exit 2, a refused read or write exit 1 (:data:`torchdoct.cli.EXIT_CODES`)."""
     from ..sim import config
     from ..runtime.threads import limit_process_threads, set_default_threads
 
+    from ..runtime.interrupt import silence_progress
+
+    silence_progress(args)
     try:
         set_default_threads(getattr(args, "threads", None))
     except ValueError as err:

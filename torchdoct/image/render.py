@@ -59,6 +59,7 @@ from ..runtime.resources import check_resources
 from ..sim.samplers import unit_directions
 from ..sim.streams import seeded_generator
 from ..runtime.threads import map_ordered, one_torch_thread, resolve_threads
+from ..runtime.interrupt import progress_disabled
 
 __all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS", "MAX_SCATTERERS", "ScatterersLimitError",
            "save_preview", "preview_figure"]
@@ -464,7 +465,7 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
             work["populations"][st.name] = {"scatterers": int(st.pos0.shape[0]), "evaluations": 0}
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=T, desc=f"render {phantom.name}", unit="frame", disable=not progress, leave=False)
+        bar = tqdm(total=T, desc=f"render {phantom.name}", unit="frame", disable=progress_disabled(progress), leave=False)
 
         def positions():  # frame by frame, in order: the walks advance here (one stream per population)
             for f in range(T):

@@ -93,6 +93,7 @@ import torch
 
 from ..conventions import noise_power
 from ..runtime.threads import one_torch_thread
+from ..runtime.interrupt import progress_disabled
 from .io import SequenceData
 
 __all__ = [
@@ -346,7 +347,7 @@ def estimate_bulk_phase(seq: SequenceData, method: str = "weighted-mean", *, mas
     phase = np.zeros((n_t, *[s for d, s in enumerate(data.shape) if d not in (0, zdim)]), dtype=np.float64)
     missing = 0
     bar = None
-    if progress:
+    if not progress_disabled(progress):
         from tqdm.auto import tqdm
 
         bar = tqdm(total=math.ceil(n_c / step_c), desc="bulk phase", unit="slab")

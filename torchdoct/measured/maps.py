@@ -93,6 +93,7 @@ from .mapspeckle import (SPECKLE_MAX_OFFSET, SPECKLE_WINDOW, speckle_channel_rec
 from .bulkphase import CORRECTION_AXIS_NEEDS, BulkPhase, estimate_bulk_phase, phasor as _bulk_phasor
 from .io import Maps, SequenceData
 from ..runtime.threads import one_torch_thread
+from ..runtime.interrupt import progress_disabled
 from .mapfigures import DEFAULT_HUE_RANGE, FLAG_RGB, map_figure, percentile_range, png_name, pseudo_color
 from .mapmetrics import (
     DEFAULT_OCDS_DELAY_RANGE_S,
@@ -442,7 +443,7 @@ def _fill_maps(work: _SlabWork, plans: list[_SlabPlan], *, progress: bool, timin
     with a progress bar over the slabs and the seconds per resolution in ``timings``."""
     total = sum(math.ceil(p.length / p.rows) for p in plans)
     bar = None
-    if progress:
+    if not progress_disabled(progress):
         from tqdm.auto import tqdm
 
         bar = tqdm(total=total, desc="maps", unit="slab")

@@ -31,7 +31,8 @@ import threading
 from types import SimpleNamespace
 from typing import Any, Callable, Iterator
 
-__all__ = ["Terminated", "entry_point", "note", "deferred", "worker_init", "EXIT_SIGINT", "EXIT_SIGTERM", "EXTRAS",
+__all__ = ["Terminated", "entry_point", "progress_disabled", "silence_progress",
+           "note", "deferred", "worker_init", "EXIT_SIGINT", "EXIT_SIGTERM", "EXTRAS",
            "EXIT_PIPE", "missing_extra"]
 
 EXIT_SIGINT = 128 + signal.SIGINT  # 130
@@ -143,6 +144,19 @@ def _flush() -> None:
         sys.stdout.flush()
 
 
+def progress_disabled(progress: bool = True) -> bool:
+    """Whether a progress bar is off: the caller's ``progress=False`` (``--no-progress``) or
+    ``TQDM_DISABLE`` set in the environment (read at the call, so it holds wherever tqdm was imported)."""
+    return not progress or os.environ.get("TQDM_DISABLE", "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def silence_progress(args: Any) -> None:
+    """``--no-progress`` given (``args.no_progress``): every progress bar of the run is off, as with
+    ``TQDM_DISABLE=1`` (which :func:`progress_disabled` and tqdm read)."""
+    if getattr(args, "no_progress", False):
+        os.environ["TQDM_DISABLE"] = "1"
+
+
 def entry_point(fn: Callable[..., int]) -> Callable[..., int]:
     """Wrap a console entry point ``fn(argv) -> exit code`` (module docstring): install the SIGINT and
     SIGTERM handlers for its duration (main thread only), turn an interruption into one line and the
@@ -156,6 +170,7 @@ def entry_point(fn: Callable[..., int]) -> Callable[..., int]:
         s.signum, s.pending, s.defer, s.kept, s.resume, s.active = None, None, 0, {}, None, True
         # progress bars (tqdm, imported later) appear only after PROGRESS_DELAY_S: none on a short run
         os.environ.setdefault("TQDM_DELAY", f"{PROGRESS_DELAY_S:g}")
+        tqdm_disable = os.environ.get("TQDM_DISABLE")  # --no-progress sets it for this call only
         previous = {}
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
@@ -182,6 +197,10 @@ def entry_point(fn: Callable[..., int]) -> Callable[..., int]:
             return 1
         finally:
             s.active = False
+            if tqdm_disable is None:
+                os.environ.pop("TQDM_DISABLE", None)
+            else:
+                os.environ["TQDM_DISABLE"] = tqdm_disable
             for sig, h in previous.items():
                 signal.signal(sig, h)
 

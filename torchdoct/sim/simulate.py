@@ -49,6 +49,7 @@ from .plan import BLOCK_TRIALS, Plan, make_plan
 from .samplers import scene_field, unit_directions
 from .streams import CapacityError, Draws, block_generator, seeded_generator
 from ..runtime.threads import map_ordered, resolve_threads, single_torch_thread
+from ..runtime.interrupt import progress_disabled
 
 #: ``CapacityError``, ``MemoryLimitError``, the generators, ``chunk_bytes``, ``available_memory_bytes`` and
 #: ``unit_directions`` are re-exported from their modules (their former home).
@@ -156,7 +157,7 @@ def simulate(
     t0 = time.perf_counter()
     pieces = []
     bar = None
-    if progress:
+    if not progress_disabled(progress):
         from tqdm.auto import tqdm
 
         bar = tqdm(total=trials, unit="trial", desc=f"simulate {scene.name or 'scene'}")

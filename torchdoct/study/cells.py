@@ -33,7 +33,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..runtime.interrupt import note
+from ..runtime.interrupt import note, progress_disabled
 
 __all__ = ["cell_seed", "CellCache", "CellJob", "run_cells", "run_cached"]
 
@@ -269,7 +269,7 @@ def run_cached(jobs: Sequence[CellJob], *, cache: CellCache, execute: Callable[[
     if before is not None:
         before(pending)
     bar = None
-    if progress and pending:
+    if not progress_disabled(progress) and pending:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=sum(jobs[j].weight for j in pending), unit=unit, desc=desc, dynamic_ncols=True)

@@ -19,6 +19,7 @@ from .figures import _save_figure, plot_comparison, plot_directions
 from .spec import Study, load_study
 from .stats import direction_differences, paired_differences
 from .sweeps import study_sweeps
+from ..runtime.interrupt import progress_disabled
 
 __all__ = ["StudyResult", "study_outputs", "run_study"]
 
@@ -94,7 +95,7 @@ def run_study(study: Study | str | os.PathLike, out_dir: str | os.PathLike, *, t
 
         # the figures take ~11 s for the paper study: a bar per figure (and the report), not silence
         bar = tqdm(total=len(study.comparisons) + bool(study.direction_parts) + 1, unit="step", leave=False,
-                   desc=f"study {study.name}: figures and claims report", disable=not progress)
+                   desc=f"study {study.name}: figures and claims report", disable=progress_disabled(progress))
         for c in study.comparisons:
             _save_figure(plot_comparison(study, c, diffs), at / c.figure, force)
             bar.update(1)

@@ -9,6 +9,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from torchdoct.runtime.interrupt import progress_disabled
+
 from .data import _seconds_per_draw, derive_dataset, one_configuration_spec, prefix_dataset
 from .evaluate import _best_time, _bootstrap_weights, _Evaluator, _fit, _ort_session
 from .pareto import _error_keys, _pareto
@@ -57,7 +59,7 @@ def run_tradeoffs(plan: TradeoffPlan, *, cache_dir=None, progress: bool = False,
              ONE_CONFIGURATION: one_configuration_spec()}
     default_hidden = tuple(DEFAULTS["hidden"])
     n_fits = len(plan.draws_grid) + 2 + sum(1 for h in plan.hidden_grid if h != default_hidden)
-    bar = tqdm(total=n_fits + 2, desc="classifier trade-offs", unit="step", disable=not progress)
+    bar = tqdm(total=n_fits + 2, desc="classifier trade-offs", unit="step", disable=progress_disabled(progress))
 
     # 1. datasets (cached): train/validation/test of the two simulated specs; one-configuration derived
     data: dict[str, dict[str, Any]] = {}
