@@ -443,6 +443,20 @@ def no_shipped_model_message(maps_list: Sequence[Maps | MapsChannels], reason: s
 
     short = reason.split(" Channels present in")[0].split(" Fix:")[0]
     short = re.sub(r"\s*\(fix:[^)]*\)", "", short).removeprefix(f"{m0.name}: ").rstrip(". ")
+    missing = re.search(r"maps lack the model feature '[^'@]+@([^']+)'", reason)
+    shipped_system = (math.isclose(float(system.get("wavelength_um") or 0), 0.84, rel_tol=1e-3)
+                      and math.isclose(float(system.get("lateral_resolution_um") or 0), 4.9, rel_tol=1e-3)
+                      and math.isclose(float(system.get("axial_resolution_um") or 0), 3.8, rel_tol=1e-3)
+                      and len(times) == 32 and math.isclose(float(times[1]) - float(times[0]), 0.2048, rel_tol=1e-3)
+                      and float(system.get("refractive_index") or 1) == 1.0)
+    have = list(dict.fromkeys(ch.get("resolution") for m in maps_list for ch in m.meta["channels"]
+                              if ch.get("resolution")))
+    if missing and shipped_system and missing.group(1) not in have:
+        # the shipped system, one resolution short: name the --resolution to add
+        res = missing.group(1)
+        return (f"{m0.name}: the maps lack the resolution {res} that the shipped models read (they hold "
+                f"{', '.join(have)}). Fix: add `--resolution {res}` to `torchdoct maps`, e.g. `torchdoct maps DATA "
+                + " ".join(f"--resolution {r}" for r in [*have, res]) + " ...`, then classify again")
     return (f"{m0.name}: no shipped model fits these maps ({'; '.join(parts)}; the shipped models know 840 nm at "
             f"4.9/3.8 µm, with 1310 nm for the two-wavelength ones, 32 frames 0.2048 s apart, n = 1): {short}. "
             f"Fix: train a model for this system from the maps themselves, `doct-train --like {files} --out MODEL_DIR` "
