@@ -17,7 +17,7 @@ from torchdoct.runtime import interrupt as _interrupt
 
 __all__ = ["build_train_parser", "build_classify_parser", "train_main", "classify_main"]
 
-#: ``doct-train --quick``: small splits for a first run (about a minute on 2 cores; classifier/README.md).
+#: ``doct-train --quick``: small splits for a first run (a rough model: to see the outputs).
 QUICK = {"draws_train": 90, "draws_validation": 24, "draws_test": 36, "trials_per_draw": 64, "replicates": 4,
          "max_epochs": 100}
 
@@ -61,7 +61,7 @@ def build_train_parser() -> argparse.ArgumentParser:
                    help="print the spec, the prior, the recipe, the expected time and the cache key, then stop")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--quick", action="store_true",
-                   help=f"small splits for a first run, about a minute on 2 cores ({_quick_text()}); "
+                   help=f"small splits for a first run, a rough model in a fraction of the full time ({_quick_text()}); "
                         "a smoke test of the whole recipe, far less accurate than the shipped model; "
                         "size options given as well win")
     p.add_argument("--draws-train", type=int, default=None,

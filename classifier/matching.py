@@ -460,5 +460,5 @@ def no_shipped_model_message(maps_list: Sequence[Maps | MapsChannels], reason: s
     return (f"{m0.name}: no shipped model fits these maps ({'; '.join(parts)}; the shipped models know 840 nm at "
             f"4.9/3.8 µm, with 1310 nm for the two-wavelength ones, 32 frames 0.2048 s apart, n = 1): {short}. "
             f"Fix: train a model for this system from the maps themselves, `doct-train --like {files} --out MODEL_DIR` "
-            "(it prints the expected time first; --quick gives a rough model in about a minute), then "
+            "(it prints the expected time first; --quick gives a rough model on small splits), then "
             f"`doct-classify {files} --model MODEL_DIR --out OUT`")

@@ -4,7 +4,7 @@ rendered ground truth (``research.systems``).
 
 The three systems of issue "your own system": ``system-1310nm`` (1310 nm, lateral 10 µm, axial 8 µm),
 ``system-fast`` (64 frames 12.8 ms apart), ``system-tissue-volume`` (a volume in tissue, n = 1.38). The
-``--quick`` models (90 training draws, about a minute) are rough; the full ``--like`` models and their
+``--quick`` models (90 training draws) are rough; the full ``--like`` models and their
 accuracy are in the README. Floors: the quick model's pool-5 balanced accuracy and coverage on the
 shipped rendering (seed 2026), measured with ``python -m research.systems --out DIR --quick
 --seeds 2026``, minus 0.05 (the spread of a quick model between training seeds is of that order; the

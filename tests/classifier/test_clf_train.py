@@ -295,7 +295,7 @@ def test_quick_sets_the_documented_sizes_and_explicit_sizes_win(tmp_path, monkey
 
 @pytest.mark.slow
 def test_quick_run_gives_a_usable_model(tmp_path, capsys):
-    """`doct-train --quick` (about a minute on 2 cores): the model decides and beats chance."""
+    """`doct-train --quick`: the model decides and beats chance."""
     out = tmp_path / "q"
     assert train_main(["--out", str(out), "--quick", "--no-progress", "--cache", str(tmp_path / "cache")]) == 0
     m1 = json.loads((out / "single-acquisition.json").read_text())["test"]["network"]["1"]

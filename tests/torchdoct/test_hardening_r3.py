@@ -226,7 +226,7 @@ def test_png_colour_ranges_are_shared_across_resolutions(seq, tmp_path, monkeypa
 
 
 def test_study_figures_phase_has_a_progress_bar(tmp_path, capsys):
-    """The figures and the claims report (~11 s for the paper study) advance a bar per step."""
+    """The figures and the claims report advance a bar per step."""
     import re
 
     from test_study import _write_tiny

@@ -93,7 +93,7 @@ def run_study(study: Study | str | os.PathLike, out_dir: str | os.PathLike, *, t
         t1 = time.perf_counter()
         from tqdm.auto import tqdm
 
-        # the figures take ~11 s for the paper study: a bar per figure (and the report), not silence
+        # the figures take a while for the paper study (torchdoct bench study): a bar per figure and the report
         bar = tqdm(total=len(study.comparisons) + bool(study.direction_parts) + 1, unit="step", leave=False,
                    desc=f"study {study.name}: figures and claims report", disable=progress_disabled(progress))
         for c in study.comparisons:

@@ -24,8 +24,8 @@ def _hidden_label(hidden: Sequence[int]) -> str:
 def classifier_tradeoffs(*, quick: bool = False, cache_dir=None, progress: bool = False) -> dict[str, Any]:
     """Measure the four trade-off axes of :mod:`classifier.bench.tradeoffs`; returns a JSON-ready dict.
 
-    ``quick``: :data:`QUICK_PLAN` (small splits, ~1.5 min at one thread) instead of the full
-    :class:`TradeoffPlan` (~10 min cold, datasets cached); ``cache_dir``: the dataset cache
+    ``quick``: :data:`QUICK_PLAN` (small splits) instead of the full
+    :class:`TradeoffPlan` (datasets cached); ``cache_dir``: the dataset cache
     (default :func:`classifier.dataset.default_cache_dir`); ``progress``: tqdm bars.
     """
     return run_tradeoffs(QUICK_PLAN if quick else TradeoffPlan(), cache_dir=cache_dir, progress=progress,
