@@ -315,9 +315,18 @@ def build_classify_parser() -> argparse.ArgumentParser:
                    help="average features over N x N (z, x) neighbourhoods first")
     p.add_argument("--background-db", default=DEFAULT_BACKGROUND_DB,
                    help="mask pixels whose mean dB intensity is below this; 'auto' = 99th percentile - 30 dB; 'none'")
+    p.add_argument("--decision", choices=("conformal", "rule"), default=None,
+                   help="conformal (the default for a model with a calibration file beside it): the prediction set "
+                        "of each pixel at error level --alpha; a single class is a decision, two classes a set "
+                        "label such as ballistic-or-flow, all three indeterminate (docs/abstention.md). rule: the "
+                        "model's argmax with its indeterminate class and --min-probability")
+    p.add_argument("--alpha", type=float, default=None,
+                   help="error level of the conformal sets (default 0.1): on data like the calibration set, a set "
+                        "holds the true class with probability at least 1 - alpha; larger alpha: smaller sets, "
+                        "more pixels decided")
     p.add_argument("--min-probability", type=float, default=None,
-                   help="override the model's threshold below which a pixel is indeterminate (higher: fewer "
-                        "pixels decided, more of them right; the model's report tabulates the trade-off)")
+                   help="with --decision rule: override the model's threshold below which a pixel is indeterminate "
+                        "(higher: fewer pixels decided, more of them right; the model's report tabulates the trade-off)")
     p.add_argument("--ignore-refractive-index", action="store_true",
                    help="accept maps whose system refractive index differs from the model's")
     p.add_argument("--threads", type=int, default=None, metavar="N",
@@ -361,7 +370,8 @@ def _classify(args: argparse.Namespace) -> int:
     try:
         res = infer.classify_maps(args.maps, args.model, pool=args.pool, background_db=bg,
                                   min_probability=args.min_probability,
-                                  ignore_refractive_index=args.ignore_refractive_index, threads=args.threads)
+                                  ignore_refractive_index=args.ignore_refractive_index, threads=args.threads,
+                                  decision=args.decision, alpha=args.alpha)
     except ValueError as err:
         raise ValueError(_signature_hint(str(err))) from None
     written = infer.write_classification(res, args.out, force=args.force)
@@ -375,8 +385,11 @@ def _classify(args: argparse.Namespace) -> int:
               f"({res.info['background_pixels']} background, {res.info['nan_pixels']} NaN"
               + (f", {res.info['out_of_range_pixels']} with a feature outside its physical range: masked"
                  if res.info.get("out_of_range_pixels") else "") + ")")
-        for c in res.classes:
-            print(f"  {c:>14}: {counts[c]:>9} ({counts[c] / total:6.1%})")
+        conf = res.info.get("conformal")
+        if conf:
+            print(f"  decision: conformal prediction sets at alpha {conf['alpha']:g} (docs/abstention.md)")
+        for c in res.label_names:
+            print(f"  {c:>22}: {counts[c]:>9} ({counts[c] / total:6.1%})")
         print(f"  {res.info['pixels_per_s']:.3g} pixels/s; wrote {', '.join(p.name for p in written)} to {args.out}")
         for note in ([res.info["model_choice"]] if res.info.get("model_choice") else []) + res.info.get("notes", []):
             print(f"note: {note}")

@@ -34,7 +34,7 @@ from typing import Sequence
 import numpy as np
 from torchdoct.measured import mapsfile
 
-from . import runtime
+from . import conformal, runtime
 from .matching import (SIGNATURE_MODEL, SIGNATURE_MODELS, MapsChannels, assemble_features, choose_default_model,
                        no_shipped_model_message)
 from .outputs import (CLASS_COLORS, MAGNITUDE_CHANNELS, MASKED, OUTPUT_FILES, Classification, magnitude_maps,
@@ -122,6 +122,33 @@ def _check_arguments(pool, min_probability) -> None:
         raise ValueError(f"min_probability must be in [0, 1); got {min_probability!r}")
 
 
+DECISIONS = ("conformal", "rule")
+
+
+def _check_alpha(alpha) -> None:
+    if alpha is None:
+        return
+    if isinstance(alpha, bool) or not isinstance(alpha, (int, float, np.floating)) or not 0.0 < float(alpha) < 1.0:
+        raise ValueError(f"alpha (--alpha) must be an error level in (0, 1), e.g. 0.1; got {alpha!r}")
+
+
+def _check_decision(decision: str | None, mdl: ClassifierModel, min_probability, alpha) -> str:
+    if decision is None:  # a threshold of the rule given alone asks for the rule
+        decision = "conformal" if mdl.calibration is not None and min_probability is None else "rule"
+    if decision == "conformal" and min_probability is not None:
+        raise ValueError("min_probability (--min-probability) is the threshold of --decision rule; the conformal "
+                         "decision's knob is alpha (--alpha): give one of them")
+    if decision == "rule" and alpha is not None:
+        raise ValueError("alpha (--alpha) is the error level of --decision conformal; the rule's knob is "
+                         "min_probability (--min-probability): give one of them")
+    if decision not in DECISIONS:
+        raise ValueError(f"decision (--decision) must be one of {', '.join(DECISIONS)}; got {decision!r}")
+    if decision == "conformal" and mdl.calibration is None:
+        raise ValueError(f"model {mdl.path.name} has no calibration ({runtime.calibration_path(mdl.path).name} beside "
+                         "it): calibrate it (python -m classifier.calibrate --model MODEL) or give --decision rule")
+    return decision
+
+
 def _check_pool(pool: int, maps) -> None:
     z_px, x_px = maps.spatial_shape[-2:]
     if pool > min(z_px, x_px):
@@ -132,10 +159,17 @@ def _check_pool(pool: int, maps) -> None:
 
 def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model: ClassifierModel | str | None = None,
                   *, pool: int = DEFAULT_POOL, background_db: str | float | None = DEFAULT_BACKGROUND_DB, min_probability: float | None = None,
-                  ignore_refractive_index: bool = False, threads: int | None = None) -> Classification:
-    """Classify every pixel of one or more maps files (module docstring, steps 1-6)."""
+                  ignore_refractive_index: bool = False, threads: int | None = None,
+                  decision: str | None = None, alpha: float | None = None) -> Classification:
+    """Classify every pixel of one or more maps files (module docstring, steps 1-6).
+
+    ``decision``: ``"conformal"`` (prediction sets at error level ``alpha``, :mod:`classifier.conformal`;
+    needs the model's calibration file), ``"rule"`` (the model's indeterminate rule, :mod:`classifier.rule`),
+    ``None``: conformal when the model has a calibration, else the rule. ``alpha``: default
+    :data:`classifier.conformal.DEFAULT_ALPHA`."""
     t0 = time.perf_counter()
     _check_arguments(pool, min_probability)
+    _check_alpha(alpha)
     if isinstance(paths, (str, os.PathLike)):
         paths = [paths]
     maps_list = [mapsfile.read_maps(p) for p in paths]
@@ -144,6 +178,7 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     if chosen:
         model, choice_note = default_model_for(maps_list)
     mdl = model if isinstance(model, ClassifierModel) else load_model(model, threads=threads)
+    decision = _check_decision(decision, mdl, min_probability, alpha)
     _check_pool(pool, maps_list[0])
     t_read = time.perf_counter()
     try:
@@ -172,6 +207,18 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     probs, mag_mean, mag_sd = mdl.predict_all(x)
     t_onnx = time.perf_counter()
     labels_flat, reasons = apply_rule(probs, mdl.classes, mdl.rule, min_probability)
+    set_names: list[str] = []
+    conformal_info = None
+    if decision == "conformal":
+        a = conformal.DEFAULT_ALPHA if alpha is None else float(alpha)
+        mode = mdl.calibration.get("mode", conformal.MODES[0])
+        labels_flat, set_size = conformal.decide(probs, x[:, -1], mdl.classes, mdl.calibration, a, mode)
+        set_names = conformal.set_label_names(mdl.classes)
+        conformal_info = {"alpha": a, "score": mdl.calibration["score"], "mode": mode,
+                          "thresholds": {str(p["pool_pixels"]): dict(zip(mdl.classes, map(float, conformal.pool_thresholds(
+                              p, len(mdl.classes), a, mode)))) for p in mdl.calibration["pools"]},
+                          "set_sizes": {str(k): int((set_size == k).sum()) for k in range(len(mdl.classes) + 1)},
+                          "guarantee": mdl.calibration.get("guarantee")}
     shape = valid.shape
     labels = np.full(valid.size, MASKED, np.uint8)
     labels[idx] = labels_flat.astype(np.uint8)
@@ -182,12 +229,16 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     n_pix = int(valid.size)
     background = bg if bg is not None else np.zeros(shape, bool)
     info.update({
-        "pixels": n_pix, "classified": int(idx.size), "pool": int(pool), "pool_independent_fraction": frac,
+        "pixels": n_pix, "classified": int(idx.size), "pool": int(pool), "decision": decision,
+        "pool_independent_fraction": frac,
         "background_db_threshold": thr, "nan_pixels": int((~finite).sum() - outside.sum()),
         "out_of_range_pixels": int(outside.sum()),
         "background_pixels": int((background & finite).sum()),
-        "indeterminate_reasons": {r: int((reasons == i).sum()) for i, r in enumerate(REASONS)},
+        # the rule's reasons (the conformal decision has its set sizes under "conformal")
+        "indeterminate_reasons": ({r: int((reasons == i).sum()) for i, r in enumerate(REASONS)}
+                                  if decision == "rule" else None),
         "min_probability": float(mdl.rule["min_probability"] if min_probability is None else min_probability),
+        "conformal": conformal_info,
         "seconds": {"read": t_read - t0, "features": t_feat - t_read, "onnxruntime": t_onnx - t_feat,
                     "rule": t_end - t_onnx, "total": t_end - t0},
         "pixels_per_s": n_pix / max(t_end - t_read, 1e-12),
@@ -196,4 +247,4 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     return Classification(labels=labels.reshape(shape), probabilities=pmaps.reshape((len(mdl.classes), *shape)),
                           classes=mdl.classes, mask=valid, background=background, intensity_db=mean_db, model=mdl,
                           sources=[m.name for m in maps_list], axes=axes, pitch_um=meta0.get("pitch_um"), info=info,
-                          magnitude=magnitude)
+                          magnitude=magnitude, set_labels=set_names)

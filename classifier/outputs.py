@@ -33,6 +33,14 @@ MASKED = 255
 #: Colours of the classes in the legend and overlay: the Okabe-Ito palette, told apart with any of the
 #: common colour-vision deficiencies (blue, orange, bluish green; indeterminate reddish purple).
 CLASS_COLORS = {c: figures.CLASS_COLORS[c] for c in ("diffusion", "ballistic", "flow", INDETERMINATE)}
+#: Set labels of the conformal decision (two motion classes, :mod:`classifier.conformal`): neutral greys,
+#: distinct from every class colour and from each other.
+SET_COLORS = {"diffusion-or-ballistic": "#9A9A9A", "diffusion-or-flow": "#C4C4C4", "ballistic-or-flow": "#E8E8E8"}
+
+
+def label_color(name: str) -> str:
+    """The colour of a class or set label (:data:`CLASS_COLORS`, :data:`SET_COLORS`)."""
+    return CLASS_COLORS.get(name) or SET_COLORS.get(name, "#000000")
 #: Overlay colour of masked pixels (background or a NaN feature): black, unlike every class.
 MASKED_COLOR = "#000000"
 
@@ -54,9 +62,16 @@ class Classification:
     info: dict[str, Any] = field(default_factory=dict)
     #: float32 [5, *S] (:data:`MAGNITUDE_CHANNELS`), NaN where masked or indeterminate; None without a magnitude head
     magnitude: np.ndarray | None = None
+    #: labels of prediction sets of two classes (values ``len(classes) + j``; conformal decision only)
+    set_labels: list[str] = field(default_factory=list)
+
+    @property
+    def label_names(self) -> list[str]:
+        """The names of the values of ``labels``: the model's classes, then the set labels."""
+        return list(self.classes) + list(self.set_labels)
 
     def counts(self) -> dict[str, int]:
-        out = {c: int((self.labels == i).sum()) for i, c in enumerate(self.classes)}
+        out = {c: int((self.labels == i).sum()) for i, c in enumerate(self.label_names)}
         out["masked"] = int((self.labels == MASKED).sum())
         return out
 
@@ -103,11 +118,17 @@ def _legend(res: Classification) -> dict[str, Any]:
     if isinstance(rule.get("definition"), str):
         rule["definition"] = _cite_repository(rule["definition"])
     return {
-        "classes": [{"value": i, "name": c, "color": CLASS_COLORS.get(c, "#000000")} for i, c in enumerate(res.classes)],
+        "classes": [{"value": i, "name": c, "color": label_color(c)}
+                    for i, c in enumerate(getattr(res, "label_names", res.classes))],
         "masked_value": MASKED,
         "masked_meaning": "background (mean dB intensity below the threshold) or a NaN feature",
         "rule": rule,
         "min_probability": res.info["min_probability"],
+        # the decision that made the labels: "rule" (above) or "conformal" (prediction sets at alpha)
+        "decision": res.info.get("decision", "rule"),
+        **({"conformal": {k: v for k, v in res.info["conformal"].items() if k != "set_sizes"},
+            "set_labels": "a set of two classes: the pixel is one of them, the data do not tell which "
+                          "(docs/abstention.md)"} if res.info.get("conformal") else {}),
         "axes": res.axes,
         "pitch_um": res.pitch_um,
     }
@@ -136,9 +157,9 @@ def _overlay(res: Classification, path: str) -> None:
     else:
         grey = np.full(labels.shape, 0.5)
     rgb = np.repeat(grey[..., None], 3, axis=-1)
-    for i, c in enumerate(res.classes):
+    for i, c in enumerate(res.label_names):
         sel = labels == i
-        rgb[sel] = 0.45 * rgb[sel] + 0.55 * np.array(to_rgb(CLASS_COLORS.get(c, "#000000")))
+        rgb[sel] = 0.45 * rgb[sel] + 0.55 * np.array(to_rgb(label_color(c)))
     masked = labels == MASKED  # no class tint: the intensity darkened towards black
     rgb[masked] = 0.45 * rgb[masked] + 0.55 * np.array(to_rgb(MASKED_COLOR))
     extent, _ = figures.image_extent(labels.shape, res.pitch_um)
@@ -148,7 +169,7 @@ def _overlay(res: Classification, path: str) -> None:
     figures.show_bscan(ax, rgb, pitch_um=res.pitch_um)
     counts = res.counts()
     total = max(int(res.mask.sum()), 1)
-    handles = [Patch(color=CLASS_COLORS.get(c, "#000000"), label=f"{c} ({counts[c] / total:.0%})") for c in res.classes]
+    handles = [Patch(color=label_color(c), label=f"{c} ({counts[c] / total:.0%})") for c in res.label_names]
     handles.append(Patch(facecolor=MASKED_COLOR, edgecolor="#808080",
                          label=f"masked: background or NaN ({counts['masked']} px)"))
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8,

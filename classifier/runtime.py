@@ -75,6 +75,8 @@ class ClassifierModel:
     session: Any
     threads: int = 1
     chunk_rows: int = CHUNK_ROWS
+    #: the conformal calibration stored beside the model (``NAME.calibration.json``, :mod:`classifier.conformal`), or None
+    calibration: dict[str, Any] | None = None
 
     def _chunks(self, fn, n: int) -> None:
         """``fn(slice)`` over fixed chunks of ``chunk_rows`` rows, ``threads`` chunks side by side (one
@@ -144,13 +146,15 @@ class ClassifierModel:
 
 
 def load_model(model: str | os.PathLike | None = None, *, threads: int | None = None,
-               shipped: Mapping[str, Path] | None = None, chunk_rows: int = CHUNK_ROWS) -> ClassifierModel:
+               shipped: Mapping[str, Path] | None = None, chunk_rows: int = CHUNK_ROWS,
+               calibration: bool = True) -> ClassifierModel:
     """Open an ONNX model: ``None`` (the shipped default), a shipped name, a ``.onnx`` path, or a directory
     holding one (``doct-train --out DIR``).
 
     ``threads``: chunks of pixels classified side by side, each on one onnxruntime thread with spinning
     off (default: ``$TORCHDOCT_THREADS``, else the usable cores; see :mod:`torchdoct.runtime.threads`).
-    ``shipped``: the shipped models by name (default :func:`shipped_models`).
+    ``shipped``: the shipped models by name (default :func:`shipped_models`). ``calibration``: read the
+    conformal calibration beside the model (:func:`read_calibration`; False: leave it, as the calibration does).
     """
     shipped = shipped_models() if shipped is None else shipped
     path = shipped_or_path(DEFAULT_MODEL if model is None else str(model), dict(shipped), "model")
@@ -174,7 +178,43 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     if meta.get("format") != FORMAT:
         raise ValueError(f"model {path.name}: metadata format {meta.get('format')!r}, this version reads {FORMAT!r}")
     _check_graph_matches_metadata(path, sess, meta)
-    return ClassifierModel(path=path, metadata=meta, session=sess, threads=n_threads, chunk_rows=chunk_rows)
+    return ClassifierModel(path=path, metadata=meta, session=sess, threads=n_threads, chunk_rows=chunk_rows,
+                           calibration=read_calibration(path, list(meta["output"]["classes"])) if calibration else None)
+
+
+#: Largest calibration file read (bytes): a shipped one holds a few thousand scores per pool.
+MAX_CALIBRATION_BYTES = 16 << 20
+
+
+def calibration_path(model_path: Path) -> Path:
+    """``NAME.calibration.json`` beside ``NAME.onnx``."""
+    return Path(model_path).with_name(Path(model_path).stem + ".calibration.json")
+
+
+def read_calibration(model_path: Path, classes: list[str]) -> dict[str, Any] | None:
+    """The model's conformal calibration (:mod:`classifier.conformal`), None when there is no file beside it;
+    a ``ValueError`` naming the file and the fix when it is unreadable or not for this model."""
+    from .conformal import check_calibration
+
+    p = calibration_path(model_path)
+    if not p.exists():
+        return None
+    if not p.is_file():
+        raise ValueError(f"{p}: not a regular file; remove it or calibrate the model again (python -m classifier.calibrate)")
+    if p.stat().st_size > MAX_CALIBRATION_BYTES:
+        raise ValueError(f"{p}: {p.stat().st_size} bytes, more than a calibration holds ({MAX_CALIBRATION_BYTES}); "
+                         "calibrate the model again")
+    try:
+        from torchdoct.files import check_nesting
+
+        raw = p.read_text(encoding="utf-8")
+        check_nesting(raw, p.name)
+        cal = json.loads(raw)
+    except (UnicodeDecodeError, ValueError) as err:
+        raise ValueError(f"{p}: not a calibration JSON file ({err}); calibrate the model again "
+                         "(python -m classifier.calibrate)") from None
+    check_calibration(cal, classes, str(p))
+    return cal
 
 
 def _check_graph_matches_metadata(path: Path, sess: Any, meta: Mapping[str, Any]) -> None:

@@ -348,3 +348,69 @@ def test_predictions_do_not_depend_on_chunks_or_threads(monkeypatch):
         got = load_model("signature", threads=threads).predict_all(x)
         for a, b in zip(ref, got):
             assert np.array_equal(a, b), (chunk, threads)
+
+
+def _calibrated_copy(setup, tmp_path, seed=3):
+    """A copy of the tiny model with a calibration beside it, from scores of its own test-like pixels."""
+    import shutil
+
+    from classifier.conformal import SCHEMA_VERSION, scores_lac
+
+    model = tmp_path / "cal.onnx"
+    shutil.copy(setup["model"], model)
+    m = load_model(model, threads=1)
+    rng = np.random.default_rng(seed)
+    pools = []
+    for n in (1, 4):
+        p = rng.dirichlet(np.ones(len(m.classes)), size=400)
+        truth = rng.integers(0, len(m.classes), 400)
+        pools.append({"pool_pixels": n, "samples": 400, "scores": [float(v) for v in scores_lac(p, truth)],
+                      "truth": [int(v) for v in truth]})
+    cal = {"schema_version": SCHEMA_VERSION, "model": m.spec.name, "score": "lac", "classes": m.classes,
+           "mode": "class-conditional", "pools": pools, "guarantee": "test"}
+    (tmp_path / "cal.calibration.json").write_text(json.dumps(cal))
+    return model
+
+
+def test_conformal_decision_is_the_default_with_a_calibration_and_writes_set_labels(setup, tmp_path):
+    from classifier.outputs import SET_COLORS
+
+    model = _calibrated_copy(setup, tmp_path)
+    res = classify_maps(setup["npz"], model, threads=1)
+    assert res.info["decision"] == "conformal" and res.info["conformal"]["alpha"] == 0.1
+    assert res.label_names[4:] == ["diffusion-or-ballistic", "diffusion-or-flow", "ballistic-or-flow"]
+    rule = classify_maps(setup["npz"], model, threads=1, decision="rule")
+    assert rule.info["decision"] == "rule" and rule.set_labels == []
+    np.testing.assert_array_equal(res.probabilities, rule.probabilities)  # the decision alone differs
+    assert classify_maps(setup["npz"], model, threads=1, min_probability=0.6).info["decision"] == "rule"
+    decided = [int(np.isin(classify_maps(setup["npz"], model, threads=1, alpha=a).labels, [0, 1, 2]).sum())
+               for a in (0.05, 0.3, 0.6)]
+    assert decided == sorted(decided)  # larger alpha: smaller sets, at least as many pixels decided
+    out = tmp_path / "o"
+    assert classify_main([str(setup["npz"]), "--model", str(model), "--out", str(out), "--threads", "1"]) == 0
+    legend = json.loads((out / "legend.json").read_text())
+    assert legend["decision"] == "conformal"
+    names = {c["name"]: c["color"] for c in legend["classes"]}
+    assert all(names[k] == v for k, v in SET_COLORS.items())
+    assert len(set(names.values())) == len(names)  # every label its own colour
+    for bad in (["--alpha", "0"], ["--alpha", "1.5"], ["--decision", "rule", "--alpha", "0.1"],
+                ["--decision", "conformal", "--min-probability", "0.6"]):
+        assert classify_main([str(setup["npz"]), "--model", str(model), "--out", str(tmp_path / "x"), *bad]) == 2
+    # a model without a calibration: the rule, and conformal asked for is refused with the fix
+    assert classify_maps(setup["npz"], setup["model"], threads=1).info["decision"] == "rule"
+    with pytest.raises(ValueError, match="classifier.calibrate"):
+        classify_maps(setup["npz"], setup["model"], threads=1, decision="conformal")
+
+
+def test_conformal_classify_path_does_not_import_torch(setup, tmp_path):
+    model = _calibrated_copy(setup, tmp_path)
+    code = ("import sys\nfrom classifier.cli import classify_main\n"
+            f"rc = classify_main([{str(setup['npz'])!r}, '--model', {str(model)!r}, "
+            f"'--out', {str(tmp_path / 'o')!r}, '--threads', '1', '--alpha', '0.2'])\n"
+            "assert rc == 0, rc\n"
+            "bad = sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.'))\n"
+            "assert not bad, bad\nprint('ok')\n")
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["info"]["decision"] == "conformal"

@@ -55,9 +55,13 @@ def _render_map_classify(tmp_path_factory, phantom: str):
                            "--resolution", "lateral=18", "--signature", "--out", str(maps), "--no-progress",
                            "--threads", "1"]) == 0
     out = {}
-    for pool in (1, 5):
+    for pool in (1, 5):  # the floors of this file are the rule's (--decision rule); conformal sets beside them
         out[pool] = d / f"classified-{pool}"
-        assert classify_main([str(maps), "--out", str(out[pool]), "--pool", str(pool), "--threads", "1"]) == 0
+        assert classify_main([str(maps), "--out", str(out[pool]), "--pool", str(pool), "--threads", "1",
+                              "--decision", "rule"]) == 0
+        out[f"conformal-{pool}"] = d / f"conformal-{pool}"
+        assert classify_main([str(maps), "--out", str(out[f"conformal-{pool}"]), "--pool", str(pool),
+                              "--threads", "1"]) == 0
     return seq, out
 
 
@@ -105,6 +109,21 @@ def test_motion_types_phantom_scores(chain, pool):
     # interior pixels (10 µm from any other label) are a subset, scored the same way
     inner = score_images(out[pool], seq, edge_um=10.0)["overall"]
     assert 0 < inner["pixels"] < o["pixels"]
+
+
+@pytest.mark.parametrize("pool", [1, 5])
+def test_conformal_sets_decide_fewer_pixels_wrong_than_the_rule(chain, oblique_chain, pool):
+    """The default decision (conformal sets at alpha 0.1) on the same maps as the rule: on both shipped
+    B-scan phantoms no motion type has more pixels decided as another type than under the rule, and the
+    undecided pixels are indeterminate or a two-class set."""
+    for seq, out in (chain, oblique_chain):
+        summary = json.loads((out[f"conformal-{pool}"] / "summary.json").read_text())
+        assert summary["info"]["decision"] == "conformal" and summary["info"]["conformal"]["alpha"] == 0.1
+        rule = score_images(out[pool], seq)["overall"]["per_class"]
+        conf = score_images(out[f"conformal-{pool}"], seq)["overall"]["per_class"]
+        for name, c in conf.items():
+            wrong = {k: sum(v for m, v in d["decided_as"].items() if m != name) for k, d in (("c", c), ("r", rule[name]))}
+            assert wrong["c"] <= wrong["r"], (name, c["decided_as"], rule[name]["decided_as"])
 
 
 def test_pooling_helps(chain):

@@ -1,0 +1,543 @@
+"""The phantom grid: the benchmark every model change is measured on (``python -m classifier.grid``).
+
+Every cell is a phantom built here from numbers derived from the model's system (none typed in), rendered
+by :func:`torchdoct.image.render.render`, turned into maps by the code of ``torchdoct maps --signature``
+(:func:`torchdoct.measured.maps.compute_maps` at the model's configurations) and classified by
+:func:`classifier.infer.classify_maps` (the decision rule ``doct-classify`` applies, or ``decision``).
+
+**Phantom of a cell.** Three bands side by side along x, one per motion type (diffusion, random-ballistic
+motion, flow): cylinders whose axis is the depth axis z, radius :data:`BAND_RADIUS_PX` pixels, spaced by
+:data:`BAND_GAP_PX` empty pixels; in a B-scan they are vertical bands, in a volume vertical rods. The
+moving density is the prior's lowest (:class:`classifier.dataset.Prior`), the protocol and optics the
+spec's first configuration (the system the model was trained for), pixels of a third of the finest
+lateral resolution (rounded to 0.5 µm).
+
+* **speed** (3 levels per motion): the magnitudes identifiable (:func:`classifier.dataset.identifiability`,
+  physics.md §5.3-5.4) at every polar and azimuth angle of the grid, on the log grid of
+  :func:`classifier.own_system.identifiable_range`; the levels lie at :data:`LEVEL_FRACTIONS` of that
+  range in log10 (slow, mid, fast);
+* **flow direction**: polar angle from the depth axis :data:`POLAR_DEG`, azimuth from +x :data:`AZIMUTH_DEG`
+  (azimuth 90°: across the B-scan plane);
+* **static context**: ``none`` (the bands in an empty medium), ``background`` (static tissue of the
+  moving density under every pixel: the field of a second, static phantom on the same grid is added, so
+  half the mean intensity of a moving pixel is static), ``edge`` (a static slab over the deepest quarter of
+  the image paints over the bands: the pixels next to it share their PSF with static tissue);
+* **noise**: none, or complex Gaussian noise :data:`SNR_DB` below the mean intensity (physics.md §8);
+* **geometry**: B-scan or volume (:data:`VOLUME_NY` planes along y);
+* **window**: the ``--pool`` of ``doct-classify`` (:data:`POOLS`).
+
+**Scores of a cell** (the pixels of each band whose box of half-width ``edge`` pixels holds no pixel of
+another band or of the empty medium; static neighbours are kept: they are the context; ``edge`` = half
+the coarsest configuration's resolution plus half the window; masked pixels are not scored):
+
+* ``coverage``: decided share (a single class, not ``indeterminate`` or a set of classes);
+* ``balanced_accuracy``: mean over the three motions of the right share of their decided pixels
+  (``None`` when a motion has no decided pixel);
+* ``wrong_share`` per motion: share of its scored pixels decided as another single class, and
+  ``wrong_share_max``, the worst of the three (the issue's "confidently wrong");
+* ``set_miss_share`` per motion: share given a set of classes that leaves the true one out;
+* ``identifiable`` per motion: the ground truth of the training (a motion outside it should be abstained on);
+* ``seconds``: render, maps and classification of the cell.
+
+Outputs (``write_grid``): ``grid.json`` (:data:`SCHEMA_VERSION`, the definitions above, the cells),
+``grid.csv``, ``grid.md`` and ``grid.png`` (worst wrong share and coverage per cell, cividis).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import itertools
+import json
+import math
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+__all__ = ["SCHEMA_VERSION", "GridCell", "full_cells", "quick_cells", "speed_levels", "phantom_dict",
+           "run_cell", "run_grid", "score_labels", "write_grid", "format_table", "main"]
+
+SCHEMA_VERSION = 1
+MOTIONS = ("diffusion", "ballistic", "flow")
+#: Rendered motion codes (torchdoct.image.phantom.MOTION_CODES) of the three bands.
+CODES = {"diffusion": 2, "ballistic": 3, "flow": 4}
+LEVELS = ("slow", "mid", "fast")
+#: Where the three speed levels lie in the identifiable range (fractions of its log10 span).
+LEVEL_FRACTIONS = (0.2, 0.5, 0.8)
+POLAR_DEG = (10.0, 45.0, 80.0)
+AZIMUTH_DEG = (0.0, 45.0, 90.0)
+CONTEXTS = ("none", "background", "edge")
+SNR_DB = 20.0
+NOISES: tuple[float | None, ...] = (None, SNR_DB)
+GEOMETRIES = ("bscan", "volume")
+POOLS = (1, 5)
+BAND_RADIUS_PX = 12
+BAND_GAP_PX = 8
+IMAGE_NZ = 64
+VOLUME_NY = 8
+
+
+@dataclass(frozen=True)
+class GridCell:
+    """One phantom of the grid (all its windows are scored from one rendering)."""
+
+    geometry: str
+    context: str
+    snr_db: float | None
+    level: str
+    polar_deg: float
+    azimuth_deg: float
+    seed: int = 0
+
+    @property
+    def key(self) -> str:
+        noise = "clean" if self.snr_db is None else f"{self.snr_db:g}dB"
+        return f"{self.geometry}-{self.context}-{noise}-{self.level}-p{self.polar_deg:g}-a{self.azimuth_deg:g}"
+
+
+def full_cells(seed: int = 0) -> list[GridCell]:
+    """Every cell: geometry × context × noise × speed level × polar × azimuth (the windows are per cell)."""
+    return [GridCell(g, c, n, lv, p, a, seed) for g, c, n, lv, p, a in itertools.product(
+        GEOMETRIES, CONTEXTS, NOISES, LEVELS, POLAR_DEG, AZIMUTH_DEG)]
+
+
+def quick_cells(seed: int = 0) -> list[GridCell]:
+    """``--quick``: B-scans at the mid speed and 20 dB, every polar angle at azimuth 0° and 90°, without
+    static tissue and with a static background, plus one static-edge B-scan and one volume of flow across
+    the plane without static tissue (14 phantoms)."""
+    cells = [GridCell("bscan", c, SNR_DB, "mid", p, a, seed)
+             for c in ("none", "background") for p in POLAR_DEG for a in (AZIMUTH_DEG[0], AZIMUTH_DEG[-1])]
+    cells.append(GridCell("bscan", "edge", SNR_DB, "mid", POLAR_DEG[1], AZIMUTH_DEG[0], seed))
+    cells.append(GridCell("volume", "none", SNR_DB, "mid", POLAR_DEG[-1], AZIMUTH_DEG[-1], seed))
+    return cells
+
+
+def _draw(label: int, magnitude: float, polar: float, azimuth: float, density: float):
+    from .dataset import Draw
+
+    return Draw(label=label, magnitude=float(magnitude), polar_angle_deg=float(polar), azimuth_deg=float(azimuth),
+                density_per_um3=float(density), sim_seed=0)
+
+
+def speed_levels(spec, prior=None) -> dict[str, dict[str, float]]:
+    """``{motion: {level: magnitude}}``: :data:`LEVEL_FRACTIONS` of the log range identifiable at every
+    grid direction (flow) and either direction law (random-ballistic motion) at the prior's lowest density."""
+    from .dataset import BALLISTIC_LAWS, Prior, identifiability
+    from .own_system import _RANGE_GRID
+
+    prior = prior or Prior()
+    density = float(min(prior.density_per_um3))
+    out: dict[str, dict[str, float]] = {}
+    for label, name in enumerate(MOTIONS):
+        ok = np.ones(_RANGE_GRID.size, bool)
+        if name == "flow":
+            variants = [dict(polar=p, azimuth=a) for p in POLAR_DEG for a in AZIMUTH_DEG]
+        else:
+            variants = [dict(law=law) for law in BALLISTIC_LAWS] if name == "ballistic" else [{}]
+        for v in variants:
+            for i, mag in enumerate(_RANGE_GRID):
+                if not ok[i]:
+                    continue
+                d = _draw(label, mag, v.get("polar", 0.0), v.get("azimuth", 0.0), density)
+                if "law" in v:
+                    import dataclasses
+
+                    d = dataclasses.replace(d, ballistic_directions=v["law"])
+                ok[i] = identifiability(spec, d, prior)[0] == "identifiable"
+        idx = np.flatnonzero(ok)
+        if idx.size == 0:
+            raise ValueError(f"spec {spec.name!r}: {name} is identifiable at no magnitude at every grid direction")
+        lo, hi = math.log10(_RANGE_GRID[idx[0]]), math.log10(_RANGE_GRID[idx[-1]])
+        out[name] = {lv: float(f"{10 ** (lo + f * (hi - lo)):.3g}") for lv, f in zip(LEVELS, LEVEL_FRACTIONS)}
+    return out
+
+
+def _pitch_um(spec) -> float:
+    finest = min(c.lateral_resolution_um for c in spec.configurations)
+    return max(0.5, round(finest / 3.0 * 2.0) / 2.0)
+
+
+def phantom_dict(cell: GridCell, spec, levels: dict[str, dict[str, float]], density: float) -> dict[str, Any]:
+    """The phantom of ``cell`` in the phantom-file schema (module docstring); a static background is a
+    second phantom (:func:`_static_dict`)."""
+    c0 = spec.configurations[0]
+    pitch = _pitch_um(spec)
+    r_um, gap_um = BAND_RADIUS_PX * pitch, BAND_GAP_PX * pitch
+    n_x = 3 * 2 * BAND_RADIUS_PX + 4 * BAND_GAP_PX
+    grid: dict[str, Any] = {"kind": cell.geometry, "n_x": n_x, "n_z": IMAGE_NZ, "pitch_x_um": pitch,
+                            "pitch_z_um": pitch}
+    if cell.geometry == "volume":
+        grid.update(n_y=VOLUME_NY, pitch_y_um=pitch)
+    else:
+        grid["y_um"] = 0.0
+    motions = {"diffusion": {"kind": "diffusion", "diffusion_um2_per_s": levels["diffusion"][cell.level]},
+               "ballistic": {"kind": "ballistic", "speed_um_per_s": levels["ballistic"][cell.level]},
+               "flow": {"kind": "flow", "speed_um_per_s": levels["flow"][cell.level],
+                        "polar_angle_deg": cell.polar_deg, "azimuth_deg": cell.azimuth_deg}}
+    regions = []
+    for k, name in enumerate(MOTIONS):
+        xc = (k - 1) * (2 * r_um + gap_um)
+        regions.append({"name": name, "shape": "cylinder", "center_um": [xc, 0.0, 0.0], "axis": [0.0, 0.0, 1.0],
+                        "radius_um": r_um, "density_per_um3": density, "motion": [motions[name]]})
+    if cell.context == "edge":
+        z_top = (IMAGE_NZ / 4.0) * pitch  # the deepest quarter (z increases into the sample)
+        regions.append({"name": "static-edge", "shape": "slab", "z_min_um": z_top,
+                        "z_max_um": IMAGE_NZ * pitch, "density_per_um3": density})
+    system = {"name": "grid-system", "wavelength_um": c0.wavelength_um,
+              "lateral_resolution_um": c0.lateral_resolution_um, "axial_resolution_um": c0.axial_resolution_um}
+    if spec.refractive_index != 1.0:
+        system["refractive_index"] = spec.refractive_index
+    d: dict[str, Any] = {"name": cell.key, "system": [system],
+                         "protocol": {"n_frames": spec.n_frames, "frame_interval_s": spec.frame_interval_s},
+                         "grid": grid, "region": regions, "simulation": {"seed": int(cell.seed)}}
+    if cell.snr_db is not None:
+        d["noise"] = {"snr_db": float(cell.snr_db)}
+    return d
+
+
+def _static_dict(moving: dict[str, Any], density: float) -> dict[str, Any]:
+    d = {k: v for k, v in moving.items() if k not in ("region", "noise")}
+    d["background"] = [{"name": "static-tissue", "density_per_um3": density}]
+    d["simulation"] = {"seed": int(moving["simulation"]["seed"]) + 1_000_003}
+    return d
+
+
+def score_labels(truth_codes: np.ndarray, classes: np.ndarray, class_names: Sequence[str], edge_px: int,
+                 masked: int = 255) -> dict[str, Any]:
+    """Scores of one classification against rendered motion codes (module docstring).
+
+    ``classes``: ``classes.tif`` values; ``class_names``: the legend's names in value order (a name
+    ``a-or-b`` is a set of classes, ``indeterminate`` the full set)."""
+    from scipy.ndimage import maximum_filter
+
+    out: dict[str, Any] = {"per_class": {}}
+    names = list(class_names)
+    single = {n: i for i, n in enumerate(names) if n in MOTIONS}
+    size = 2 * int(edge_px) + 1
+    recalls, scored, decided = [], 0, 0
+    for name in MOTIONS:
+        code = CODES[name]
+        other = np.isin(truth_codes, [c for c in (0, *CODES.values()) if c != code])
+        near = maximum_filter(other.astype(np.uint8), size=size, mode="constant") > 0 if edge_px > 0 else other
+        sel = (truth_codes == code) & ~near & (classes != masked)
+        n = int(sel.sum())
+        got = classes[sel]
+        dec = np.isin(got, list(single.values()))
+        right = int((got == single[name]).sum())
+        wrong = int(dec.sum()) - right
+        miss = 0
+        for i, nm in enumerate(names):
+            if nm not in MOTIONS and nm != "indeterminate" and name not in nm.split("-or-"):
+                miss += int((got == i).sum())
+        per = {"pixels": n, "decided": int(dec.sum()), "coverage": (float(dec.mean()) if n else None),
+               "recall": (right / int(dec.sum()) if dec.any() else None),
+               "wrong_share": (wrong / n if n else None), "set_miss_share": (miss / n if n else None)}
+        out["per_class"][name] = per
+        scored += n
+        decided += int(dec.sum())
+        if per["recall"] is not None:
+            recalls.append(per["recall"])
+    out["pixels"] = scored
+    out["coverage"] = decided / scored if scored else None
+    out["balanced_accuracy"] = float(np.mean(recalls)) if len(recalls) == len(MOTIONS) else None
+    ws = [p["wrong_share"] for p in out["per_class"].values() if p["wrong_share"] is not None]
+    out["wrong_share_max"] = max(ws) if ws else None
+    return out
+
+
+def _edge_px(spec, pitch: float, pool: int) -> int:
+    coarsest = max(max(c.lateral_resolution_um, c.axial_resolution_um) for c in spec.configurations)
+    return int(math.ceil(coarsest / 2.0 / pitch)) + pool // 2
+
+
+def run_cell(cell: GridCell, model, levels: dict[str, dict[str, float]], *, pools: Sequence[int] = POOLS,
+             decision: str | None = None, threads: int | None = None, prior=None) -> list[dict[str, Any]]:
+    """Render, map, classify and score one cell at every window of ``pools``: one row per window."""
+    from torchdoct.image.phantom import phantom_from_dict
+    from torchdoct.image.render import render
+    from torchdoct.measured.io import SequenceData, validate_meta
+    from torchdoct.measured.maps import compute_maps
+    from torchdoct.measured.mapsfile import write_maps
+
+    from .dataset import Prior, identifiability
+    from .infer import classify_maps
+
+    prior = prior or Prior()
+    spec = model.spec
+    density = float(min(prior.density_per_um3))
+    d = phantom_dict(cell, spec, levels, density)
+    t0 = time.perf_counter()
+    res = render(phantom_from_dict(d), seed=cell.seed, threads=threads)
+    data = res.data[0].numpy()
+    if cell.context == "background":
+        data = data + render(phantom_from_dict(_static_dict(d, density)), threads=threads).data[0].numpy()
+    meta = res.metadata(0)
+    meta.pop("phantom", None)
+    seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source=cell.key)
+    t_render = time.perf_counter()
+    maps = compute_maps(seq, [c.name for c in spec.configurations], metrics=("mean_db",),
+                        signature=list(spec.metrics))
+    t_maps = time.perf_counter()
+    ident = {}
+    for label, name in enumerate(MOTIONS):
+        mag = levels[name][cell.level]
+        ident[name] = identifiability(spec, _draw(label, mag, cell.polar_deg, cell.azimuth_deg, density), prior)[0]
+    rows = []
+    pitch = _pitch_um(spec)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = write_maps(Path(tmp) / "maps.npz", maps)
+        for pool in pools:
+            t1 = time.perf_counter()
+            kw = {} if decision is None else {"decision": decision}
+            c = classify_maps(path, model, pool=int(pool), threads=threads, **kw)
+            t2 = time.perf_counter()
+            s = score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool)))
+            rows.append({**asdict(cell), "key": cell.key, "pool": int(pool), "model": spec.name,
+                         "decision": c.info.get("decision", "rule"),
+                         "magnitudes": {m: levels[m][cell.level] for m in MOTIONS},
+                         "identifiable": ident, **s,
+                         "seconds": {"render": t_render - t0, "maps": t_maps - t_render, "classify": t2 - t1,
+                                     "total": (t_maps - t0) + (t2 - t1)}})
+    return rows
+
+
+def run_grid(cells: Iterable[GridCell], model: str | None = None, *, pools: Sequence[int] = POOLS,
+             decision: str | None = None, threads: int | None = None, progress: bool = True,
+             geometry_models: dict[str, str] | None = None,
+             levels: dict[str, dict[str, dict[str, float]]] | None = None) -> dict[str, Any]:
+    """Every cell of ``cells`` (module docstring) with ``model`` (default: the model ``doct-classify``
+    picks for the cell's maps: ``signature-bscan`` for B-scans, ``signature`` for volumes). ``levels``:
+    ``{geometry: speed_levels(...)}`` already computed (default: computed here)."""
+    from .infer import load_model
+
+    cells = list(cells)
+    defaults = geometry_models or {"bscan": "signature-bscan", "volume": "signature"}
+    names = {g: (model or defaults[g]) for g in {c.geometry for c in cells}}
+    models = {g: load_model(n, threads=threads) for g, n in names.items()}
+    levels = {g: (levels or {}).get(g) or speed_levels(m.spec) for g, m in models.items()}
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(cells), desc="phantom grid", unit="cell")
+    rows: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+    for cell in cells:
+        rows.extend(run_cell(cell, models[cell.geometry], levels[cell.geometry], pools=pools, decision=decision,
+                             threads=threads))
+        if bar is not None:
+            bar.update()
+    if bar is not None:
+        bar.close()
+    from torchdoct.bench import machine_info
+
+    return {"schema_version": SCHEMA_VERSION, "benchmark": "phantom-grid",
+            "definitions": _definitions(), "models": {g: m.spec.name for g, m in models.items()},
+            "decision": rows[0]["decision"] if rows else decision,
+            "speed_levels": {g: lv for g, lv in levels.items()},
+            "units": {"diffusion": "µm²/s", "ballistic": "µm/s", "flow": "µm/s", "seconds": "s"},
+            "cells": rows, "summary": summarize(rows), "seconds": time.perf_counter() - t0,
+            "machine": machine_info()}
+
+
+def _definitions() -> dict[str, str]:
+    doc = __doc__ or ""
+    return {"cells": doc[doc.index("**Phantom of a cell.**"):doc.index("**Scores of a cell**")].strip(),
+            "scores": doc[doc.index("**Scores of a cell**"):doc.index("Outputs (")].strip()}
+
+
+def summarize(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Per window: the worst cell's wrong share, the mean and the lowest coverage, cells over 10 % wrong."""
+    out = {}
+    for pool in sorted({r["pool"] for r in rows}):
+        rs = [r for r in rows if r["pool"] == pool]
+        ws = [r["wrong_share_max"] for r in rs if r["wrong_share_max"] is not None]
+        cov = [r["coverage"] for r in rs if r["coverage"] is not None]
+        bas = [r["balanced_accuracy"] for r in rs if r["balanced_accuracy"] is not None]
+        out[str(pool)] = {"cells": len(rs), "worst_wrong_share": max(ws) if ws else None,
+                          "cells_over_10pct_wrong": int(sum(w > 0.10 for w in ws)),
+                          "mean_coverage": float(np.mean(cov)) if cov else None,
+                          "min_coverage": min(cov) if cov else None,
+                          "mean_balanced_accuracy": float(np.mean(bas)) if bas else None}
+    return out
+
+
+_COLUMNS = ("key", "geometry", "context", "snr_db", "level", "polar_deg", "azimuth_deg", "pool", "model",
+            "decision", "pixels", "coverage", "balanced_accuracy", "wrong_share_max", "wrong_diffusion",
+            "wrong_ballistic", "wrong_flow", "set_miss_max", "flow_identifiable", "seconds")
+
+
+def _flat(r: dict[str, Any]) -> dict[str, Any]:
+    pc = r["per_class"]
+    miss = [p["set_miss_share"] for p in pc.values() if p["set_miss_share"] is not None]
+    return {"key": r["key"], "geometry": r["geometry"], "context": r["context"],
+            "snr_db": "none" if r["snr_db"] is None else r["snr_db"], "level": r["level"],
+            "polar_deg": r["polar_deg"], "azimuth_deg": r["azimuth_deg"], "pool": r["pool"], "model": r["model"],
+            "decision": r["decision"], "pixels": r["pixels"], "coverage": r["coverage"],
+            "balanced_accuracy": r["balanced_accuracy"], "wrong_share_max": r["wrong_share_max"],
+            **{f"wrong_{m}": pc[m]["wrong_share"] for m in MOTIONS}, "set_miss_max": max(miss) if miss else None,
+            "flow_identifiable": r["identifiable"]["flow"], "seconds": r["seconds"]["total"]}
+
+
+def _fmt(v: Any) -> str:
+    if v is None:
+        return "n/a"
+    if isinstance(v, float):
+        return f"{v:.3f}"
+    return str(v)
+
+
+def format_table(res: dict[str, Any]) -> str:
+    """The Markdown table: a summary per window, then one row per cell and window."""
+    lines = [f"# Phantom grid ({res['benchmark']}, schema {res['schema_version']})", "",
+             f"Models: {', '.join(f'{g}: `{m}`' for g, m in res['models'].items())}; decision: `{res['decision']}`. "
+             f"Speed levels (diffusion µm²/s, speeds µm/s): "
+             + "; ".join(f"{g}: " + ", ".join(f"{m} {'/'.join(f'{v:g}' for v in lv.values())}" for m, lv in levels.items())
+                         for g, levels in res["speed_levels"].items()) + ".", "",
+             "| window | cells | worst wrong share | cells > 10 % wrong | mean coverage | lowest coverage | mean balanced accuracy |",
+             "|---:|---:|---:|---:|---:|---:|---:|"]
+    for pool, s in res["summary"].items():
+        lines.append(f"| {pool} | {s['cells']} | {_fmt(s['worst_wrong_share'])} | {s['cells_over_10pct_wrong']} | "
+                     f"{_fmt(s['mean_coverage'])} | {_fmt(s['min_coverage'])} | {_fmt(s['mean_balanced_accuracy'])} |")
+    cols = [c for c in _COLUMNS if c not in ("key", "model", "decision")]
+    lines += ["", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in res["cells"]:
+        f = _flat(r)
+        lines.append("| " + " | ".join(_fmt(f[c]) for c in cols) + " |")
+    lines += ["", res["definitions"]["cells"], "", res["definitions"]["scores"]]
+    return "\n".join(lines) + "\n"
+
+
+def _csv_text(res: dict[str, Any]) -> str:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(_COLUMNS), lineterminator="\n")
+    w.writeheader()
+    for r in res["cells"]:
+        w.writerow({k: ("" if v is None else v) for k, v in _flat(r).items()})
+    return buf.getvalue()
+
+
+def plot_grid(res: dict[str, Any], path: str | Path) -> None:
+    """Heat maps: worst wrong share and coverage per cell (rows: geometry, context, noise; columns: speed
+    level, polar and azimuth angle of the flow), one pair per window; cividis, colour bars in fractions."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cells = res["cells"]
+    pools = sorted({r["pool"] for r in cells})
+    rkey = lambda r: (r["geometry"], r["context"], "none" if r["snr_db"] is None else f"{r['snr_db']:g} dB")  # noqa: E731
+    ckey = lambda r: (r["level"], r["polar_deg"], r["azimuth_deg"])  # noqa: E731
+    rows = sorted({rkey(r) for r in cells}, key=lambda k: (GEOMETRIES.index(k[0]), CONTEXTS.index(k[1]), k[2]))
+    cols = sorted({ckey(r) for r in cells}, key=lambda k: (LEVELS.index(k[0]), k[1], k[2]))
+    panels = [(pool, field) for pool in pools for field in ("wrong_share_max", "coverage")]
+    fig, axes = plt.subplots(len(panels), 1, figsize=(max(8.0, 0.22 * len(cols) + 5), len(panels) * (0.3 * len(rows) + 2.2)),
+                             squeeze=False, constrained_layout=True)
+    labels = {"wrong_share_max": ("worst wrong share", "fraction of a motion's pixels\ndecided as another class"),
+              "coverage": ("coverage", "decided fraction of\nthe scored pixels")}
+    for i, (pool, field) in enumerate(panels):
+        for j in (0,):
+            title, label = labels[field]
+            a = np.full((len(rows), len(cols)), np.nan)
+            for r in cells:
+                if r["pool"] == pool and r[field] is not None:
+                    a[rows.index(rkey(r)), cols.index(ckey(r))] = r[field]
+            ax = axes[i][j]
+            im = ax.imshow(a, cmap="cividis", vmin=0.0, vmax=1.0, aspect="auto")
+            ax.set_yticks(range(len(rows)), [" / ".join(k) for k in rows], fontsize=7)
+            ax.set_xticks(range(len(cols)), [f"{k[0]} {k[1]:g}°/{k[2]:g}°" for k in cols], rotation=90, fontsize=6)
+            ax.set_xlabel("flow speed level, polar / azimuth angle (deg)")
+            ax.set_ylabel("geometry / static context / noise")
+            ax.set_title(f"window {pool}×{pool}: {title} ({res['decision']} decision)", fontsize=9)
+            fig.colorbar(im, ax=ax, label=label, shrink=0.9)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+OUTPUTS = ("grid.json", "grid.csv", "grid.md", "grid.png")
+
+
+def write_grid(res: dict[str, Any], out_dir: str | Path, *, force: bool = False, stem: str = "grid") -> list[Path]:
+    """Write ``STEM.json``, ``.csv``, ``.md`` and ``.png`` into ``out_dir`` together (all or none)."""
+    from torchdoct.files import output_set
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / f"{stem}{s}" for s in (".json", ".csv", ".md", ".png")]
+    with output_set(paths, force, "--out") as stage:
+        stage(paths[0]).write_text(json.dumps(res, separators=(",", ":"), default=_json_default), encoding="utf-8")
+        stage(paths[1]).write_text(_csv_text(res), encoding="utf-8")
+        stage(paths[2]).write_text(format_table(res), encoding="utf-8")
+        plot_grid(res, stage(paths[3]))
+    return paths
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    raise TypeError(f"not JSON-able: {type(o).__name__}")
+
+
+def build_parser():
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m classifier.grid",
+                                description="The phantom grid: render, map, classify and score phantoms built from "
+                                            "the model's system; writes grid.json/.csv/.md/.png into --out.")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
+    p.add_argument("--quick", action="store_true", help="the 14-phantom subset (a few minutes on 2 cores)")
+    p.add_argument("--model", default=None, help="shipped model name or .onnx file (default: signature-bscan for "
+                                                 "B-scans, signature for volumes, the models doct-classify picks)")
+    p.add_argument("--decision", default=None, choices=("rule", "conformal"),
+                   help="decision rule (default: doct-classify's default)")
+    p.add_argument("--geometry", choices=GEOMETRIES, default=None, help="only B-scans or only volumes")
+    p.add_argument("--seed", type=int, default=0, help="rendering seed of every cell")
+    p.add_argument("--stem", default="grid", help="file names STEM.json, STEM.csv, ... (default grid)")
+    p.add_argument("--threads", type=int, default=None, metavar="N")
+    p.add_argument("--force", action="store_true", help="overwrite existing results")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    import sys
+
+    from torchdoct.files import safe_name
+
+    args = build_parser().parse_args(argv)
+    try:
+        safe_name(args.stem, "--stem", "give a plain file name")
+        out = Path(args.out)
+        if out.exists() and not out.is_dir():
+            raise ValueError(f"--out {out} is a file; give a directory")
+        if not args.force:
+            for s in (".json", ".csv", ".md", ".png"):
+                if (out / f"{args.stem}{s}").exists():
+                    raise ValueError(f"--out {out}: {args.stem}{s} exists; give --force to overwrite it")
+        cells = quick_cells(args.seed) if args.quick else full_cells(args.seed)
+        if args.geometry:
+            cells = [c for c in cells if c.geometry == args.geometry]
+        res = run_grid(cells, args.model, decision=args.decision, threads=args.threads,
+                       progress=not args.no_progress)
+        res["command"] = "python -m classifier.grid" + (" --quick" if args.quick else "") + (
+            f" --model {args.model}" if args.model else "") + (f" --decision {args.decision}" if args.decision else "") + (
+            f" --geometry {args.geometry}" if args.geometry else "") + (f" --seed {args.seed}" if args.seed else "") + (
+            f" --stem {args.stem}" if args.stem != "grid" else "") + " --out DIR"
+        written = write_grid(res, out, force=args.force, stem=args.stem)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    for pool, s in res["summary"].items():
+        print(f"window {pool}: {s['cells']} cells, worst wrong share {_fmt(s['worst_wrong_share'])}, "
+              f"{s['cells_over_10pct_wrong']} over 10 %, mean coverage {_fmt(s['mean_coverage'])}")
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

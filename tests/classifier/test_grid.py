@@ -1,0 +1,124 @@
+"""The phantom grid (classifier.grid): cells built from the model's system, scores that are exact on
+known label maps, and the results files' schema."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torchdoct")
+
+from classifier import grid  # noqa: E402
+from classifier.grid import GridCell, score_labels  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def levels():
+    from classifier.features import load_spec
+
+    return grid.speed_levels(load_spec("signature-bscan"))
+
+
+def test_speed_levels_are_identifiable_at_every_grid_direction(levels):
+    from classifier.dataset import Draw, Prior, identifiability
+    from classifier.features import load_spec
+
+    spec, prior = load_spec("signature-bscan"), Prior()
+    for label, name in enumerate(grid.MOTIONS):
+        vals = [levels[name][lv] for lv in grid.LEVELS]
+        assert vals == sorted(vals) and len(set(vals)) == 3
+        for v in vals:
+            for polar in grid.POLAR_DEG:
+                for az in grid.AZIMUTH_DEG:
+                    d = Draw(label=label, magnitude=v, polar_angle_deg=polar, azimuth_deg=az,
+                             density_per_um3=min(prior.density_per_um3), sim_seed=0)
+                    assert identifiability(spec, d, prior)[0] == "identifiable", (name, v, polar, az)
+
+
+def test_cell_phantoms_have_three_labelled_bands_and_the_context(levels):
+    from classifier.features import load_spec
+    from torchdoct.image.phantom import MOTION_CODES, phantom_from_dict
+    from torchdoct.image.render import _pixel_labels
+
+    spec = load_spec("signature-bscan")
+    for context in grid.CONTEXTS:
+        cell = GridCell("bscan", context, grid.SNR_DB, "mid", 45.0, 90.0)
+        ph = phantom_from_dict(grid.phantom_dict(cell, spec, levels, 0.02))
+        labels = _pixel_labels(ph)[0]
+        codes = set(np.unique(labels).tolist())
+        assert {MOTION_CODES[m] for m in grid.MOTIONS} <= codes
+        assert (MOTION_CODES["static"] in codes) == (context == "edge")
+        flow = [p for p in ph.scene.populations if p.motion and type(p.motion[0]).__name__ == "Flow"][0]
+        v = flow.flow_velocity_um_per_s
+        assert math.isclose(math.hypot(*v), levels["flow"]["mid"], rel_tol=1e-12)
+        assert abs(v[0]) < 1e-9 * levels["flow"]["mid"]  # azimuth 90°: across the B-scan plane, none along x
+
+
+def test_scores_are_exact_on_known_label_maps():
+    """Truth: three bands; decisions: right, another class, a set with or without the truth, indeterminate."""
+    names = ["diffusion", "ballistic", "flow", "indeterminate", "diffusion-or-ballistic", "diffusion-or-flow",
+             "ballistic-or-flow"]
+    truth = np.zeros((4, 30), np.int64)
+    truth[:, 0:10], truth[:, 10:20], truth[:, 20:30] = 2, 3, 4
+    got = np.zeros_like(truth, dtype=np.uint8)
+    got[:, 0:10] = 0  # diffusion: all right
+    got[:, 10:15], got[:, 15:20] = 2, 6  # ballistic: half flow (wrong), half ballistic-or-flow
+    got[:, 20:25], got[:, 25:30] = 3, 4  # flow: half indeterminate, half a set without flow
+    s = score_labels(truth, got, names, edge_px=0)
+    pc = s["per_class"]
+    assert pc["diffusion"]["wrong_share"] == 0 and pc["diffusion"]["recall"] == 1
+    assert pc["ballistic"]["wrong_share"] == 0.5 and pc["ballistic"]["recall"] == 0
+    assert pc["flow"]["coverage"] == 0 and pc["flow"]["set_miss_share"] == 0.5 and pc["flow"]["wrong_share"] == 0
+    assert s["wrong_share_max"] == 0.5 and s["coverage"] == pytest.approx(60 / 120)
+    assert s["balanced_accuracy"] is None  # flow has no decided pixel
+    # an edge of one pixel leaves out the columns next to another band, never the static neighbours
+    truth2 = truth.copy()
+    truth2[:, 0] = 1
+    e = score_labels(truth2, got, names, edge_px=1)
+    assert e["per_class"]["diffusion"]["pixels"] == 4 * 8 and e["per_class"]["ballistic"]["pixels"] == 4 * 8
+
+
+def test_grid_results_files_are_self_describing(tmp_path, levels):
+    cells = [GridCell("bscan", "none", grid.SNR_DB, "mid", 80.0, 90.0), GridCell("bscan", "background", None, "slow", 10.0, 0.0)]
+    res = grid.run_grid(cells, pools=(1, 5), threads=1, progress=False, levels={"bscan": levels})
+    files = grid.write_grid(res, tmp_path)
+    assert [p.name for p in files] == list(grid.OUTPUTS)
+    data = json.loads((tmp_path / "grid.json").read_text())
+    assert data["schema_version"] == grid.SCHEMA_VERSION and data["benchmark"] == "phantom-grid"
+    assert data["models"] == {"bscan": "signature-bscan"} and data["decision"] == "conformal"
+    assert "Scores of a cell" in data["definitions"]["scores"]
+    assert len(data["cells"]) == 4 and {r["pool"] for r in data["cells"]} == {1, 5}
+    for r in data["cells"]:
+        assert 0 <= r["coverage"] <= 1 and 0 <= r["wrong_share_max"] <= 1 and r["seconds"]["total"] > 0
+        assert r["pixels"] == sum(p["pixels"] for p in r["per_class"].values()) > 0
+        assert set(r["identifiable"]) == set(grid.MOTIONS)
+    with (tmp_path / "grid.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == list(grid._COLUMNS) and len(rows) == 4
+    md = (tmp_path / "grid.md").read_text()
+    assert "worst wrong share" in md and md.count("\n| bscan |") == 4
+    assert set(data["summary"]) == {"1", "5"}
+    with pytest.raises(ValueError, match="--force"):
+        grid.write_grid(res, tmp_path)  # nothing overwritten without force
+
+
+def test_grid_command_refuses_bad_output_before_any_work(tmp_path, capsys):
+    f = tmp_path / "f"
+    f.write_text("x")
+    assert grid.main(["--out", str(f), "--quick"]) == 2
+    assert "is a file" in capsys.readouterr().err
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "grid.md").write_text("mine")
+    assert grid.main(["--out", str(tmp_path / "d"), "--quick"]) == 2
+    assert "--force" in capsys.readouterr().err and (tmp_path / "d" / "grid.md").read_text() == "mine"
+
+
+@pytest.mark.slow
+def test_quick_grid_runs_end_to_end(tmp_path):
+    assert grid.main(["--out", str(tmp_path), "--quick", "--threads", "1", "--no-progress"]) == 0
+    data = json.loads((tmp_path / "grid.json").read_text())
+    assert len(data["cells"]) == 2 * len(grid.quick_cells())
