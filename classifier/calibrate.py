@@ -43,7 +43,7 @@ BINS = 10
 
 
 def _model_prior(model) -> Any:
-    from .dataset import Prior
+    from .prior import Prior
 
     report = Path(model.path).with_suffix(".json")
     if not report.is_file():

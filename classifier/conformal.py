@@ -3,7 +3,7 @@
 
 **Score** (least ambiguous set-valued classifier, LAC): ``s(x, y) = 1 − p_y(x)``, the network's probability
 of the true class ``y`` (the model's classes, ``indeterminate`` included: its ground truth is
-:func:`classifier.dataset.identifiability`).
+:func:`classifier.truth.identifiability`).
 
 **Calibration** (:mod:`classifier.calibrate`): ``n`` exchangeable samples drawn like the data (one per
 simulated parameter group, so that the samples are independent) give scores ``s_1 … s_n``; the threshold

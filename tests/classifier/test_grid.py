@@ -12,8 +12,8 @@ import pytest
 
 pytest.importorskip("torchdoct")
 
-from classifier import grid  # noqa: E402
-from classifier.grid import GridCell, score_labels  # noqa: E402
+from classifier.bench import grid  # noqa: E402
+from classifier.bench.grid import GridCell, score_labels  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +24,8 @@ def levels():
 
 
 def test_speed_levels_are_identifiable_at_every_grid_direction(levels):
-    from classifier.dataset import Draw, Prior, identifiability
+    from classifier.prior import Draw, Prior
+    from classifier.truth import identifiability
     from classifier.features import load_spec
 
     spec, prior = load_spec("signature-bscan"), Prior()

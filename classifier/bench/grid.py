@@ -1,4 +1,4 @@
-"""The phantom grid: the benchmark every model change is measured on (``python -m classifier.grid``).
+"""The phantom grid: the benchmark every model change is measured on (``python -m classifier.bench.grid``).
 
 Every cell is a phantom built here from numbers derived from the model's system (none typed in), rendered
 by :func:`torchdoct.image.render.render`, turned into maps by the code of ``torchdoct maps --signature``
@@ -8,11 +8,11 @@ by :func:`torchdoct.image.render.render`, turned into maps by the code of ``torc
 **Phantom of a cell.** Three bands side by side along x, one per motion type (diffusion, random-ballistic
 motion, flow): cylinders whose axis is the depth axis z, radius :data:`BAND_RADIUS_PX` pixels, spaced by
 :data:`BAND_GAP_PX` empty pixels; in a B-scan they are vertical bands, in a volume vertical rods. The
-moving density is the prior's lowest (:class:`classifier.dataset.Prior`), the protocol and optics the
+moving density is the prior's lowest (:class:`classifier.prior.Prior`), the protocol and optics the
 spec's first configuration (the system the model was trained for), pixels of a third of the finest
 lateral resolution (rounded to 0.5 µm).
 
-* **speed** (3 levels per motion): the magnitudes identifiable (:func:`classifier.dataset.identifiability`,
+* **speed** (3 levels per motion): the magnitudes identifiable (:func:`classifier.truth.identifiability`,
   physics.md §5.3-5.4) at every polar and azimuth angle of the grid, on the log grid of
   :func:`classifier.own_system.identifiable_range`; the levels lie at :data:`LEVEL_FRACTIONS` of that
   range in log10 (slow, mid, fast);
@@ -117,7 +117,7 @@ def quick_cells(seed: int = 0) -> list[GridCell]:
 
 
 def _draw(label: int, magnitude: float, polar: float, azimuth: float, density: float):
-    from .dataset import Draw
+    from ..prior import Draw
 
     return Draw(label=label, magnitude=float(magnitude), polar_angle_deg=float(polar), azimuth_deg=float(azimuth),
                 density_per_um3=float(density), sim_seed=0)
@@ -126,8 +126,9 @@ def _draw(label: int, magnitude: float, polar: float, azimuth: float, density: f
 def speed_levels(spec, prior=None) -> dict[str, dict[str, float]]:
     """``{motion: {level: magnitude}}``: :data:`LEVEL_FRACTIONS` of the log range identifiable at every
     grid direction (flow) and either direction law (random-ballistic motion) at the prior's lowest density."""
-    from .dataset import BALLISTIC_LAWS, Prior, identifiability
-    from .own_system import _RANGE_GRID
+    from ..own_system import _RANGE_GRID
+    from ..prior import BALLISTIC_LAWS, Prior
+    from ..truth import identifiability
 
     prior = prior or Prior()
     density = float(min(prior.density_per_um3))
@@ -259,12 +260,13 @@ def run_cell(cell: GridCell, model, levels: dict[str, dict[str, float]], *, pool
     """Render, map, classify and score one cell at every window of ``pools``: one row per window."""
     from torchdoct.image.phantom import phantom_from_dict
     from torchdoct.image.render import render
-    from torchdoct.measured.io import SequenceData, validate_meta
+    from torchdoct.measured.sequence import SequenceData, validate_meta
     from torchdoct.measured.maps import compute_maps
     from torchdoct.measured.mapsfile import write_maps
 
-    from .dataset import Prior, identifiability
-    from .infer import classify_maps
+    from ..infer import classify_maps
+    from ..prior import Prior
+    from ..truth import identifiability
 
     prior = prior or Prior()
     spec = model.spec
@@ -312,7 +314,7 @@ def run_grid(cells: Iterable[GridCell], model: str | None = None, *, pools: Sequ
     """Every cell of ``cells`` (module docstring) with ``model`` (default: the model ``doct-classify``
     picks for the cell's maps: ``signature-bscan`` for B-scans, ``signature`` for volumes). ``levels``:
     ``{geometry: speed_levels(...)}`` already computed (default: computed here)."""
-    from .infer import load_model
+    from ..infer import load_model
 
     cells = list(cells)
     defaults = geometry_models or {"bscan": "signature-bscan", "volume": "signature"}
@@ -333,7 +335,7 @@ def run_grid(cells: Iterable[GridCell], model: str | None = None, *, pools: Sequ
             bar.update()
     if bar is not None:
         bar.close()
-    from torchdoct.bench import machine_info
+    from torchdoct.runtime.machine import machine_info
 
     return {"schema_version": SCHEMA_VERSION, "benchmark": "phantom-grid",
             "definitions": _definitions(), "models": {g: m.spec.name for g, m in models.items()},
@@ -486,7 +488,7 @@ def _json_default(o: Any) -> Any:
 def build_parser():
     import argparse
 
-    p = argparse.ArgumentParser(prog="python -m classifier.grid",
+    p = argparse.ArgumentParser(prog="python -m classifier.bench.grid",
                                 description="The phantom grid: render, map, classify and score phantoms built from "
                                             "the model's system; writes grid.json/.csv/.md/.png into --out.")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
@@ -524,7 +526,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             cells = [c for c in cells if c.geometry == args.geometry]
         res = run_grid(cells, args.model, decision=args.decision, threads=args.threads,
                        progress=not args.no_progress)
-        res["command"] = "python -m classifier.grid" + (" --quick" if args.quick else "") + (
+        res["command"] = "python -m classifier.bench.grid" + (" --quick" if args.quick else "") + (
             f" --model {args.model}" if args.model else "") + (f" --decision {args.decision}" if args.decision else "") + (
             f" --geometry {args.geometry}" if args.geometry else "") + (f" --seed {args.seed}" if args.seed else "") + (
             f" --stem {args.stem}" if args.stem != "grid" else "") + " --out DIR"
