@@ -291,11 +291,19 @@ def test_every_command_goes_through_one_table():
 
 def test_package_data_holds_only_the_shipped_models_and_their_reports():
     """classifier/data/ ships what the commands read: each model's ONNX file with its training report
-    (.json, .md, .png of the same name); research reports live in research/results/."""
+    (.json, .md, .png of the same name) and, for a calibrated model, its conformal calibration
+    (NAME.calibration.json, read by doct-classify) and reliability diagram (NAME.reliability.png);
+    research reports live in research/results/."""
     data = REPO / "classifier" / "data"
     models = {p.stem for p in data.glob("*.onnx")}
     assert models
-    strays = sorted(p.name for p in data.iterdir() if p.stem not in models or p.suffix not in (".onnx", ".json", ".md", ".png"))
+    companions = {".calibration.json", ".reliability.png"}
+
+    def shipped(p):
+        return (p.stem in models and p.suffix in (".onnx", ".json", ".md", ".png")) or any(
+            p.name == m + c for m in models for c in companions)
+
+    strays = sorted(p.name for p in data.iterdir() if not shipped(p))
     assert not strays, f"not a shipped model or its report: {strays}"
     assert not (REPO / "classifier" / "research").exists()
 
