@@ -212,15 +212,22 @@ def test_cli_writes_outputs_and_refuses_to_overwrite(setup, tmp_path, capsys):
     assert classify_main([*argv, "--force", "--pool", "0"]) == 2
 
 
-def test_classify_path_does_not_import_torch(setup, tmp_path):
+def _classify_without_torch(npz, model, out, *extra: str) -> subprocess.CompletedProcess:
+    """``doct-classify NPZ --model MODEL --out OUT EXTRA…`` in a fresh interpreter; it asserts exit 0 and
+    that no ``torch`` module was loaded, then prints ``ok``."""
+    args = ", ".join(repr(a) for a in (str(npz), "--model", str(model), "--out", str(out), "--threads", "1", *extra))
     code = ("import sys\nfrom classifier.cli import classify_main\n"
-            f"rc = classify_main([{str(setup['npz'])!r}, '--model', {str(setup['model'])!r}, "
-            f"'--out', {str(tmp_path / 'o')!r}, '--threads', '1'])\n"
+            f"rc = classify_main([{args}])\n"
             "assert rc == 0, rc\n"
             "bad = sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.'))\n"
             "assert not bad, bad\nprint('ok')\n")
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                          cwd=Path(out).parent, timeout=120)
+
+
+def test_classify_path_does_not_import_torch(setup, tmp_path):
+    out = _classify_without_torch(setup["npz"], setup["model"], tmp_path / "o")
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip().endswith("ok")
 
@@ -404,13 +411,6 @@ def test_conformal_decision_is_the_default_with_a_calibration_and_writes_set_lab
 
 def test_conformal_classify_path_does_not_import_torch(setup, tmp_path):
     model = _calibrated_copy(setup, tmp_path)
-    code = ("import sys\nfrom classifier.cli import classify_main\n"
-            f"rc = classify_main([{str(setup['npz'])!r}, '--model', {str(model)!r}, "
-            f"'--out', {str(tmp_path / 'o')!r}, '--threads', '1', '--alpha', '0.2'])\n"
-            "assert rc == 0, rc\n"
-            "bad = sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.'))\n"
-            "assert not bad, bad\nprint('ok')\n")
-    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
+    out = _classify_without_torch(setup["npz"], model, tmp_path / "o", "--alpha", "0.2")
     assert out.returncode == 0, out.stderr
     assert json.loads((tmp_path / "o" / "summary.json").read_text())["info"]["decision"] == "conformal"

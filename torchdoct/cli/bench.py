@@ -180,24 +180,24 @@ def _maps_arguments(bm) -> None:
 def _maps(args: argparse.Namespace) -> int:
     from ..bench.maps import bench_maps
 
-    out = check_out(args.out, args.force, ".json", what="--out")
-    if args.frames < 2 or min(args.size) < 1:
-        raise ValueError("--frames must be >= 2 and --size positive")
-    metrics = ["liv", "ocds", "mean_db"] + (["aliv", "swiftness"] if args.aliv else [])
-    res = bench_maps(frames=args.frames, shape=tuple(args.size),
-                     resolutions=args.resolution or ["original", "axial=14", "lateral=18"],
-                     metrics=metrics, repeats=args.repeats, signature=args.signature, speckle=args.speckle)
-    per = ", ".join(f"{k} {v:.2f} s" for k, v in res["seconds_per_resolution"].items())
-    m = res["machine"]
-    print(f"maps of a complex64 {res['shape']} stack, {len(res['resolutions'])} resolutions, "
-          f"{'+'.join(res['metrics'] + ['signature'] * res['signature'] + ['speckle'] * res['speckle'])}: "
-          f"{res['seconds_total']:.2f} s total ({per}); "
-          f"target {res['target_seconds']:.0f} s; {m['cpu_count']} cores, torch {m['torch']} with "
-          f"{m['torch_threads']} threads")
-    if out is not None:  # asked for with --out: nothing is written into the current folder unasked
-        atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
-        print(f"wrote {out}")
-    return 0
+    def compute() -> dict[str, Any]:
+        if args.frames < 2 or min(args.size) < 1:
+            raise ValueError("--frames must be >= 2 and --size positive")
+        metrics = ["liv", "ocds", "mean_db"] + (["aliv", "swiftness"] if args.aliv else [])
+        return bench_maps(frames=args.frames, shape=tuple(args.size),
+                          resolutions=args.resolution or ["original", "axial=14", "lateral=18"],
+                          metrics=metrics, repeats=args.repeats, signature=args.signature, speckle=args.speckle)
+
+    def fmt(res: dict[str, Any]) -> str:
+        per = ", ".join(f"{k} {v:.2f} s" for k, v in res["seconds_per_resolution"].items())
+        m = res["machine"]
+        return (f"maps of a complex64 {res['shape']} stack, {len(res['resolutions'])} resolutions, "
+                f"{'+'.join(res['metrics'] + ['signature'] * res['signature'] + ['speckle'] * res['speckle'])}: "
+                f"{res['seconds_total']:.2f} s total ({per}); "
+                f"target {res['target_seconds']:.0f} s; {m['cpu_count']} cores, torch {m['torch']} with "
+                f"{m['torch_threads']} threads")
+
+    return run_benchmark(args, compute, fmt)
 
 
 def _bulk_phase_arguments(bb) -> None:
@@ -216,18 +216,16 @@ def _bulk_phase_arguments(bb) -> None:
 def _bulk_phase(args: argparse.Namespace) -> int:
     from ..bench.bulkphase import bench_bulk_phase, bench_bulk_phase_phantom, format_bench_bulk_phase
 
-    out = check_out(args.out, args.force, ".json", what="--out")
-    if args.frames < 2 or args.depth < 3 or args.lines < 2:
-        raise ValueError("--frames must be >= 2, --depth >= 3 and --lines >= 2")
-    res = bench_bulk_phase(snr_db=parse_floats(args.snr_db, None, "--snr-db"), n_z=args.depth, frames=args.frames,
-                           lines=args.lines, seed=args.seed)
-    if args.phantom:
-        res["phantom"] = bench_bulk_phase_phantom(args.phantom)
-    print(format_bench_bulk_phase(res))
-    if out is not None:  # asked for with --out: nothing is written into the current folder unasked
-        atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
-        print(f"wrote {out}")
-    return 0
+    def compute() -> dict[str, Any]:
+        if args.frames < 2 or args.depth < 3 or args.lines < 2:
+            raise ValueError("--frames must be >= 2, --depth >= 3 and --lines >= 2")
+        res = bench_bulk_phase(snr_db=parse_floats(args.snr_db, None, "--snr-db"), n_z=args.depth,
+                               frames=args.frames, lines=args.lines, seed=args.seed)
+        if args.phantom:
+            res["phantom"] = bench_bulk_phase_phantom(args.phantom)
+        return res
+
+    return run_benchmark(args, compute, format_bench_bulk_phase)
 
 
 def _study_arguments(bs) -> None:
