@@ -93,6 +93,7 @@ def test_signature_model_magnitude_outputs_match_torch():
 
 
 @pytest.mark.slow
+@pytest.mark.retrain
 @pytest.mark.parametrize("spec", ["single-acquisition", "signature"])
 def test_doct_train_reproduces_the_shipped_model(tmp_path, spec):
     """``doct-train`` with its defaults, from scratch (no cache), gives the shipped report's accuracy.

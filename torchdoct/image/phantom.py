@@ -384,7 +384,7 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
             msg = msg.replace(f"population[{j}]", w)
         raise type(err)(msg) from None
 
-    regions = []
+    regions: list[Region] = []
     for path, name, shape, r in region_specs:
         kw: dict[str, Any] = {"name": name, "shape": shape, "population": len(regions) + len(background)}
         if "center_um" in r:
