@@ -122,7 +122,7 @@ def test_maps_and_pngs_appear_together(tmp_path, capsys, seq, monkeypatch):
 # compare: identical samples
 # ----------------------------------------------------------------------------------------------------------
 def test_identical_samples_report_no_difference_testable(tmp_path, capsys):
-    from test_compare import make_maps
+    from _maps_data import make_maps
     from torchdoct.measured.io import write_maps
 
     m = tmp_path / "x.npz"
@@ -153,9 +153,9 @@ def test_a_system_name_that_cannot_be_a_file_name_is_refused(tmp_path, capsys, n
 
 
 def test_a_study_figure_name_that_cannot_be_a_file_name_is_refused(tmp_path, capsys):
-    from test_study import _write_tiny
+    from _studies import write_tiny_study
 
-    path = _write_tiny(tmp_path)
+    path = write_tiny_study(tmp_path)
     text = path.read_text(encoding="utf-8")
     assert 'figure = "fig6-wavelength"' in text
     path.write_text(text.replace('figure = "fig6-wavelength"', 'figure = "../fig\\u0007"'), encoding="utf-8")
@@ -166,30 +166,30 @@ def test_a_study_figure_name_that_cannot_be_a_file_name_is_refused(tmp_path, cap
 # outputs and caches that are regular files: refused before the work
 # ----------------------------------------------------------------------------------------------------------
 def test_cache_or_out_that_is_a_file_is_refused_before_the_work(tmp_path, capsys, monkeypatch):
-    from test_study import _write_tiny
+    from _studies import write_tiny_study
     import torchdoct.study.sweep as sweep_module
 
     def no_work(*args, **kwargs):
         raise AssertionError("the work started")
 
     monkeypatch.setattr(sweep_module, "_execute", no_work)
-    study = _write_tiny(tmp_path)
+    study = write_tiny_study(tmp_path)
     a_file = tmp_path / "plain.txt"
     a_file.write_text("x")
     refused(capsys, tmp_path, ["study", str(study), "--out", str(tmp_path / "o"), "--cache", str(a_file)],
             "--cache", "plain.txt", "is a file")
     refused(capsys, tmp_path, ["study", str(study), "--out", str(a_file)], "--out", "plain.txt", "not a directory")
     scene = tmp_path / "sw.toml"
-    from test_interrupt import SWEEP
+    from _scenes import DIFFUSION_SWEEP_TOML
 
-    scene.write_text(SWEEP.format(trials=16), encoding="utf-8")
+    scene.write_text(DIFFUSION_SWEEP_TOML.format(trials=16), encoding="utf-8")
     refused(capsys, tmp_path, ["sweep", str(scene), "--out", str(tmp_path / "o"), "--cache", str(a_file)],
             "--cache", "plain.txt", "is a file")
     refused(capsys, tmp_path, ["simulate", "example", "--out", str(tmp_path)], "--out")
 
 
 def test_compare_names_the_mask_that_does_not_fit(tmp_path, capsys):
-    from test_compare import make_maps
+    from _maps_data import make_maps
     from torchdoct.measured.io import write_maps
 
     m = tmp_path / "x.npz"

@@ -229,10 +229,10 @@ def test_study_figures_phase_has_a_progress_bar(tmp_path, capsys):
     """The figures and the claims report advance a bar per step."""
     import re
 
-    from test_study import _write_tiny
+    from _studies import write_tiny_study
     from torchdoct.study import run_study
 
-    run_study(_write_tiny(tmp_path), tmp_path / "out", cache_dir=None, workers=1, progress=True)
+    run_study(write_tiny_study(tmp_path), tmp_path / "out", cache_dir=None, workers=1, progress=True)
     err = capsys.readouterr().err.replace("\r", "\n")
     steps = re.findall(r"figures and claims report: +\d+%\S* *\| *(\d+)/(\d+)", err)
     assert steps and max(int(a) for a, _ in steps) >= 1, err[-2000:]  # it advanced, step by step

@@ -17,6 +17,8 @@ from torchdoct.files import atomic_write, output_set
 from torchdoct.cli import main
 from torchdoct.runtime.interrupt import deferred, entry_point, note
 
+from _scenes import DIFFUSION_SWEEP_TOML
+
 
 def _kill_self(sig=signal.SIGTERM):
     os.kill(os.getpid(), sig)
@@ -176,10 +178,10 @@ def test_render_interrupted_while_writing_leaves_nothing_and_reruns_without_forc
 
 @pytest.mark.slow  # ~14 s: the default suite stays under 5 min beside another job
 def test_study_interrupted_while_writing_keeps_its_cache_and_says_so(tmp_path, monkeypatch, capsys):
-    from test_study import _write_tiny
+    from _studies import write_tiny_study
     import torchdoct.study.run as run_module
 
-    path = _write_tiny(tmp_path, trials=16)
+    path = write_tiny_study(tmp_path, trials=16)
     real = run_module.claims_report
 
     def report(*args, **kwargs):  # tables and figures are written; SIGTERM comes now
@@ -205,34 +207,6 @@ def test_study_interrupted_while_writing_keeps_its_cache_and_says_so(tmp_path, m
 # ----------------------------------------------------------------------------------------------------------
 def _env() -> dict[str, str]:
     return {**os.environ, "OMP_NUM_THREADS": "1"}
-
-
-SWEEP = """
-name = "interrupt-test"
-[[system]]
-name = "840nm"
-wavelength_um = 0.84
-lateral_resolution_um = 4.9
-axial_resolution_um = 3.8
-[protocol]
-n_frames = 16
-frame_interval_s = 0.2048
-[[population]]
-density_per_um3 = 0.055
-[[population.motion]]
-kind = "diffusion"
-diffusion_um2_per_s = 0.1
-[analysis]
-metrics = ["liv", "ocds"]
-ocds_delay_range_s = [0.2048, 1.2288]
-[simulation]
-trials = {trials}
-seed = 5
-[sweep]
-[[sweep.field]]
-path = "population.0.motion.0.diffusion_um2_per_s"
-log = {{ start = 0.001, stop = 3.0, num = 16 }}
-"""
 
 
 def _children(pid: int) -> list[int]:
@@ -271,7 +245,7 @@ def sweeps():
 
 def _sweep(tmp_path, trials: int, workers: int) -> tuple[subprocess.Popen, Path]:
     scene = tmp_path / "sweep.toml"
-    scene.write_text(SWEEP.format(trials=trials), encoding="utf-8")
+    scene.write_text(DIFFUSION_SWEEP_TOML.format(trials=trials), encoding="utf-8")
     out = tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "torchdoct.cli", "sweep", str(scene), "--out", str(out),
                              "--workers", str(workers), "--no-progress"], env=_env(), stdout=subprocess.PIPE,

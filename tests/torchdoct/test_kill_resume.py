@@ -13,33 +13,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-SCENE = """
-name = "kill-test"
-[[system]]
-name = "840nm"
-wavelength_um = 0.84
-lateral_resolution_um = 4.9
-axial_resolution_um = 3.8
-[protocol]
-n_frames = 16
-frame_interval_s = 0.2048
-[[population]]
-density_per_um3 = 0.055
-[[population.motion]]
-kind = "diffusion"
-diffusion_um2_per_s = 0.1
-[analysis]
-metrics = ["liv", "ocds"]
-ocds_delay_range_s = [0.2048, 1.2288]
-[simulation]
-trials = 256
-seed = 5
-[sweep]
-[[sweep.field]]
-path = "population.0.motion.0.diffusion_um2_per_s"
-log = { start = 0.001, stop = 3.0, num = 16 }
-"""
-
+from _scenes import DIFFUSION_SWEEP_TOML
 
 def _cmd(scene: Path, out: Path, cache: Path) -> list[str]:
     return [sys.executable, "-m", "torchdoct.cli", "sweep", str(scene), "--out", str(out), "--cache", str(cache),
@@ -53,7 +27,7 @@ def _env() -> dict[str, str]:
 @pytest.mark.slow
 def test_killed_sweep_resumes_to_the_same_table(tmp_path):
     scene = tmp_path / "sweep.toml"
-    scene.write_text(SCENE, encoding="utf-8")
+    scene.write_text(DIFFUSION_SWEEP_TOML.format(trials=256), encoding="utf-8")
     ref = subprocess.run(_cmd(scene, tmp_path / "ref", tmp_path / "ref-cache"), env=_env(),
                          capture_output=True, text=True, timeout=600)
     assert ref.returncode == 0, ref.stderr

@@ -189,10 +189,10 @@ def test_sweep_from_the_cache_needs_no_simulation_memory(monkeypatch, tmp_path):
 
 def test_study_refused_before_any_cell(tiny_memory, monkeypatch, capsys, tmp_path):
     import torchdoct.study.sweep as sweep_module
-    from test_study import _write_tiny
+    from _studies import write_tiny_study
 
     monkeypatch.setattr(sweep_module, "_execute", _no_work)
-    study = _write_tiny(tmp_path)
+    study = write_tiny_study(tmp_path)
     refused(capsys, tmp_path, ["study", str(study), "--out", str(tmp_path / "o"), "--no-cache"],
             "needs about", "largest cell", "GB are available", "--trials", "--workers")
 

@@ -11,13 +11,13 @@ import json
 import math
 import os
 import re
-import tomllib
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
+from _studies import tiny_study_dict, write_tiny_study
 from torchdoct.cli import main
 from torchdoct.sim.config import SceneError
 from torchdoct.study import (
@@ -28,7 +28,6 @@ from torchdoct.study import (
     load_study,
     paired_differences,
     run_study,
-    shipped_studies,
     study_from_dict,
     study_outputs,
     study_sweeps,
@@ -39,50 +38,11 @@ REPO = Path(__file__).resolve().parents[2]
 NOTEBOOK = REPO / "notebooks" / "paper_reproduction.ipynb"
 
 
-def _tiny_dict(**study_changes) -> dict:
-    data = tomllib.loads((Path(shipped_studies()["paper-reduced"])).read_text(encoding="utf-8"))
-    data["name"] = "tiny"
-    data["study"].update({"trials": 64, "seed": 11, **study_changes})
-    data["scene"]["protocol"] = {"n_frames": 8, "frame_interval_s": 0.2048}
-    data["scene"]["analysis"]["ocds_delay_range_s"] = [0.2048, 0.6144]
-    for p in data["part"]:
-        p["values"] = [0.0, 0.01, 1.0] if p["name"] == "diffusion" else [0.0, 0.1, 3.0]
-        p["inset_max"] = 0.05 if p["name"] == "diffusion" else 0.5
-    return data
-
-
-def _write_tiny(tmp_path, **changes) -> Path:
-    """The tiny study as a TOML file (written by hand: the standard library has no TOML writer)."""
-    data = _tiny_dict(**changes)
-    lines = [f'name = "{data["name"]}"', "", "[study]"]
-    for k, v in data["study"].items():
-        if k != "comparison":
-            lines.append(f"{k} = {json.dumps(v)}")
-    for c in data["study"]["comparison"]:
-        lines += ["", "[[study.comparison]]", *(f"{k} = {json.dumps(v)}" for k, v in c.items())]
-    lines += ["", "[scene]"]
-    for s in data["scene"]["system"]:
-        lines += ["", "[[scene.system]]", *(f"{k} = {json.dumps(v)}" for k, v in s.items())]
-    lines += ["", "[scene.protocol]", *(f"{k} = {json.dumps(v)}" for k, v in data["scene"]["protocol"].items())]
-    lines += ["", "[[scene.population]]", "density_per_um3 = 0.055"]
-    lines += ["", "[scene.analysis]", *(f"{k} = {json.dumps(v)}" for k, v in data["scene"]["analysis"].items())]
-    for p in data["part"]:
-        lines += ["", "[[part]]"]
-        for k, v in p.items():
-            if k == "motion":
-                lines.append("motion = { " + ", ".join(f"{a} = {json.dumps(b)}" for a, b in v.items()) + " }")
-            else:
-                lines.append(f"{k} = {json.dumps(v)}")
-    path = tmp_path / "tiny.toml"
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return path
-
-
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     """The tiny study run once, from an empty cache (shared by the tests below)."""
     d = tmp_path_factory.mktemp("study")
-    path = _write_tiny(d)
+    path = write_tiny_study(d)
     return path, run_study(path, d / "out")
 
 
@@ -126,14 +86,14 @@ def test_shipped_paper_study_matches_the_paper_design():
     (lambda d: d["scene"]["system"][0].update(wavelength_um=840.0), "micrometres"),
 ])
 def test_study_file_errors_name_the_key(change, match):
-    data = _tiny_dict()
+    data = tiny_study_dict()
     change(data)
     with pytest.raises((SceneError, TypeError), match=match):
         study_from_dict(data)
 
 
 def test_study_sweeps_pairs_and_all():
-    st = study_from_dict(_tiny_dict())
+    st = study_from_dict(tiny_study_dict())
     sw = study_sweeps(st)
     assert len(sw) == len(st.parts) * 3
     for s in sw:
@@ -141,7 +101,7 @@ def test_study_sweeps_pairs_and_all():
         c = next(c for c in st.comparisons if c.name == comp)
         assert [x.name for x in s.scene.systems] == [c.reference, c.other]
         assert [cell.values["value"] for cell in s.cells] == list(st.part(part).values)
-    st_all = study_from_dict(_tiny_dict(grouping="all"))
+    st_all = study_from_dict(tiny_study_dict(grouping="all"))
     sw_all = study_sweeps(st_all)
     assert [s.name for s in sw_all] == [p.name for p in st.parts]
     assert len(sw_all[0].scene.systems) == 4
@@ -274,7 +234,7 @@ def test_rerun_uses_the_cache_and_refuses_to_overwrite(tiny_run, tmp_path):
 
 
 def test_grouping_all_runs_every_comparison_from_one_scene(tmp_path):
-    data = _tiny_dict(grouping="all")
+    data = tiny_study_dict(grouping="all")
     for p in data["part"]:
         p["values"] = p["values"][:2]
     st = study_from_dict(data)
@@ -286,7 +246,7 @@ def test_grouping_all_runs_every_comparison_from_one_scene(tmp_path):
 
 
 def test_cli_study(tmp_path, capsys):
-    path = _write_tiny(tmp_path)
+    path = write_tiny_study(tmp_path)
     out = tmp_path / "out"
     assert main(["study", str(path), "--out", str(out), "--no-progress", "--cache", str(tmp_path / "c"),
                  "--workers", "1"]) == 0
@@ -298,7 +258,7 @@ def test_cli_study(tmp_path, capsys):
 
 
 def test_cli_bench_study(tmp_path, capsys):
-    path = _write_tiny(tmp_path)
+    path = write_tiny_study(tmp_path)
     path.write_text(path.read_text().replace("[0.0, 0.01, 1.0]", "[0.0, 0.01]").replace("[0.0, 0.1, 3.0]", "[0.0, 0.1]"))
     out = tmp_path / "bench.json"
     assert main(["bench", "study", "--study", str(path), "--out", str(out), "--no-progress", "--workers", "1"]) == 0
@@ -335,7 +295,7 @@ def test_notebook_runs_top_to_bottom_on_the_reduced_study(tmp_path, monkeypatch)
 @pytest.mark.slow
 def test_bench_study_groupings(tmp_path, capsys):
     out = tmp_path / "bench.json"
-    path = _write_tiny(tmp_path)
+    path = write_tiny_study(tmp_path)
     assert main(["bench", "study", "--study", str(path), "--groupings", "--grouping-trials", "64",
                  "--out", str(out), "--no-progress", "--workers", "2"]) == 0
     res = json.loads(out.read_text())
