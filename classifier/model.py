@@ -13,7 +13,7 @@ needs to see raw features lives inside it, so the ONNX file is self-contained:
    random-ballistic motion and flow (Gaussian transit and Doppler terms; physics.md §5.3-5.4), and a
    resolution change scales flow's transit time only: on this scale the motion type is a slope
    against ``log m`` and the resolution dependence an offset between configurations, both linear
-   in the inputs (measured gain: classifier/README.md);
+   in the inputs (measured gain: research/classifier-history.md);
 2. standardisation with the training set's mean and SD (buffers);
 3. ``Linear → ReLU`` hidden layers, a linear output layer;
 4. a temperature (buffer, fitted on the validation split after training) and softmax.

@@ -34,7 +34,7 @@ draw ``k`` of a split (:func:`draw_parameters`).
   ``doct-classify`` decides every pixel down to 30 dB below the image's 99th percentile (its
   background mask), which on a system with 40-50 dB of peak SNR reaches 10-20 dB: the prior covers
   the pixels the model is asked about (with U[20, 40] dB the model was over-confident at 15-20 dB:
-  expected calibration error 0.11 there, classifier/README.md);
+  expected calibration error 0.11 there, research/classifier-history.md);
 * ``bulk_residual_step_rad`` (default (0, 0): phase-stable data): for models that read the field's
   phase on bulk-phase-corrected maps (``torchdoct maps --bulk-phase``), what the correction leaves: a
   random walk of the phase over the frames, common to the configurations, with a step SD ~ U[low, high]

@@ -125,42 +125,28 @@ class TrainConfig:
 
 
 #: Shipped recipes that differ from the :class:`TrainConfig` defaults (``doct-train --spec NAME``).
-#: The signature spec has 6× more features than LIV/OCDS: more draws, a network trained more slowly
-#: and more regularised (with the LIV/OCDS recipe it stopped at epoch 6: balanced accuracy 0.849 /
-#: 0.953 at pool 1 / 25, ECE 0.038; with this one 0.868 / 0.968, ECE 0.025 on the same splits), a
-#: test split twice as large (SE of the balanced accuracy 0.02 with 90 draws), and the random-bulk-
-#: phase test split. Width: in a trial with 480 training draws (and transit-only draws counted as
-#: identifiable), 64-64, 128-64 and 128-128 hidden units gave balanced accuracy 0.775 / 0.777 / 0.771
-#: (pool 1) and 0.931 / 0.939 / 0.943 (pool 25) on the same 90 test draws, all within one SE; 64-64
-#: costs a third of 128-128 per pixel in doct-classify. Training longer does not help (same splits,
-#: pool 1, differences paired over the test draws): with 150 epochs and patience 15 it stops at epoch
-#: 63 with the same best epoch 48 (identical model); with patience 25 (best epoch 95) or a cosine decay
-#: over 100 or 150 epochs it reaches 0.848-0.850 (−0.010 to −0.012, SE ≤ 0.005) at coverage
-#: 0.765-0.779 (+0.02-0.03), within 0.007 of 0.860 at the shipped coverage: the same accuracy-
-#: coverage curve, none of the 0.023 gap to gradient boosting closed (all of the above on the raw
-#: correlations). What closed it is the input scale: the correlation coefficients read as log
-#: decorrelation (classifier.model; +0.022 ± 0.005 per pixel, paired, classifier/README.md), after
-#: which 120 epochs stop at 70 with the same best epoch 55 as the cap of 60 (identical model). With
-#: that input the learning curve no longer flattened at 960 training draws (+0.016 ± 0.004 per pixel
-#: from 960 to 1920, paired): the recipe takes 1920 (research/results/signature-learning-curve.md).
+#: Why each choice, with the measurements behind it in the research reports (``research/results/``, each
+#: written by the command ``research/README.md`` gives; the history is in ``research/classifier-history.md``):
 #:
-#: Detection noise is in every training draw (``noise_probability = 1``, SNR U[10, 40] dB relative to the
-#: mean intensity; the shipped models before it: in half of them). Every measurement holds noise, and at
-#: 40 dB it is nearly absent, so the noise-free draws taught only a limit no data reach: a model that saw
-#: them reads the tiny decorrelation of slow motion at the first lags exactly, which any noise floor
-#: (``1 − ρ ≈ 2/SNR`` at every lag) hides. Measured on the independent reference simulator
-#: (research/results/independent-prior-ablation.md, gradient boosting + contrasts on 1200 draws, pool 1 at
-#: coverage 0.8): 0.839 ± 0.008 against 0.827 ± 0.010 with noise in half the draws; the ``signature``
-#: network 0.832 ± 0.007 at coverage 0.807 against 0.826 ± 0.007 at 0.793, pooled over 25 0.990 at 0.982
-#: against 0.982 at 0.981, and on its own shifted-prior test split 0.792 against 0.762 at coverage 0.66.
-#: The static scatterers stay (a static fraction U[0, 0.8] in half the draws: tissue has them), although
-#: the independent prior has none and training without them gains 0.015 there (the same report): that
-#: gain is the test prior's, not the physics'.
-#:
-#: The flow's polar angle is drawn uniform in angle (``flow_polar_law = "uniform-angle"``), not
-#: isotropically: near-axial flow, the direction an intensity signature tells least well from
-#: random-ballistic motion (it decorrelates by axial transit, which only the axial-reduced
-#: configuration slows; classifier/README.md), gets a third of the flow draws instead of 13 %.
+#: - The signature spec has several times more features than LIV/OCDS: more draws, a network trained
+#:   more slowly and more regularised (the LIV/OCDS recipe stops it after a few epochs), a test split twice
+#:   as large, and the random-bulk-phase test split. Wider networks did not score differently within one
+#:   SE on the same test draws and cost more per pixel in ``doct-classify``; training longer reached the
+#:   same accuracy–coverage curve. What helped is the input scale: the correlation coefficients read as log
+#:   decorrelation (:mod:`classifier.model`). With that input the learning curve keeps rising to the
+#:   recipe's training draws (``research/results/signature-learning-curve.md``).
+#: - Detection noise is in every training draw (``noise_probability = 1``, SNR U[10, 40] dB relative to the
+#:   mean intensity). Every measurement holds noise, and at 40 dB it is nearly absent, so noise-free draws
+#:   teach only a limit no data reach: a model that saw them reads the tiny decorrelation of slow motion at
+#:   the first lags exactly, which any noise floor (``1 − ρ ≈ 2/SNR`` at every lag) hides
+#:   (``research/results/independent-prior-ablation.md``, on the independent reference simulator).
+#: - The static scatterers stay (a static fraction U[0, 0.8] in half the draws: tissue has them), although
+#:   the independent prior has none and training without them scores higher there (the same report): that
+#:   gain is the test prior's, not the physics'.
+#: - The flow's polar angle is drawn uniform in angle (``flow_polar_law = "uniform-angle"``), not
+#:   isotropically: near-axial flow, the direction an intensity signature tells least well from
+#:   random-ballistic motion (it decorrelates by axial transit, which only the axial-reduced
+#:   configuration slows), gets more of the flow draws than an isotropic law gives it.
 SPEC_RECIPES: dict[str, dict[str, Any]] = {
     "signature": {"draws_train": 1920, "draws_validation": 90, "draws_test": 180, "replicates": 8,
                   "hidden": (64, 64), "learning_rate": 1e-3, "weight_decay": 1e-3, "patience": 15,
@@ -174,7 +160,7 @@ SPEC_RECIPES["two-wavelength-signature"] = dict(SPEC_RECIPES["signature"])
 SPEC_RECIPES["signature-bscan"] = dict(SPEC_RECIPES["signature"])
 #: The B-scan signature with the field group (|g1| at the first lags) for bulk-phase-corrected maps: the
 #: same recipe, with the residual of the correction in the prior (a random walk of step SD up to 0.05 rad:
-#: ``torchdoct maps --bulk-phase weighted-mean`` leaves ~0.036 rad per step on dynamic tissue at 30 dB,
+#: the residual ``torchdoct maps --bulk-phase weighted-mean`` leaves on dynamic tissue,
 #: docs/physics.md §12), and the random-bulk-phase test split showing what an uncorrected phase costs.
 SPEC_RECIPES["signature-bscan-field"] = {**SPEC_RECIPES["signature-bscan"], "bulk_residual_step_rad": (0.0, 0.05)}
 
@@ -182,11 +168,9 @@ SPEC_RECIPES["signature-bscan-field"] = {**SPEC_RECIPES["signature-bscan"], "bul
 #: Shipped specs trained with the :class:`TrainConfig` defaults (LIV/OCDS).
 _SHIPPED_DEFAULT_RECIPE = ("single-acquisition", "two-wavelength", "single-acquisition-bscan")
 #: Recipe of a signature spec of one's own (``doct-train --like``, a spec TOML): the shipped signature
-#: recipe (1920 training draws; without the random-bulk-phase test split, which only the models that read
-#: the phase need). Its cost is mostly the network's fit, on one thread so that the model does not depend
-#: on the cores: 1920 draws took 7-12 min for the shipped models; a --like run on a 1310-nm system took
-#: 5 min with 960 draws (pool 5 on its rendered phantom 0.919 at coverage 0.938), and the learning curve
-#: gives 960 draws −0.016 ± 0.004 per pixel against 1920 (research/results/signature-learning-curve.md).
+#: recipe (without the random-bulk-phase test split, which only the models that read the phase need; with a
+#: static edge in a quarter of the replicates). Its cost is mostly the network's fit, on one thread so that
+#: the model does not depend on the cores (the training time is in each model's report).
 OWN_SIGNATURE_RECIPE: dict[str, Any] = {**SPEC_RECIPES["signature"], "bulk_phase_test": False,
                                         "static_edge_probability": 0.25}
 
@@ -207,19 +191,11 @@ def recipe_for(spec: FeatureSpec) -> dict[str, Any]:
 
 #: Shipped specs whose default prior is scaled to their system (:func:`default_prior`,
 #: :func:`classifier.own_system.prior_for_spec`: each motion type's identifiable range ± half a decade, flow its
-#: own range, speeds capped at what the simulator holds; for ``signature`` D 6.19e-6-0.1 µm²/s, v 0.0011-6.63
-#: µm/s random-ballistic and 0.0287-6.06 µm/s flow, against 1e-4-15 and 1e-3-6 for both). Of the shipped
-#: prior's draws 46 % are static or decorrelated (the scaled one's 27 %), and flow below 0.09 µm/s is never
-#: identifiable. Measured on the independent reference simulator (research/results/independent-ceiling.md,
-#: parts d and e): gradient boosting on 1200 draws of the scaled prior +0.023 ± 0.007 per pixel (paired)
-#: against the shipped one; the ``signature`` network retrained on it 0.826 ± 0.007 at coverage 0.793
-#: against 0.803 ± 0.008 at 0.776 (flow 0.76 / 0.60 / 0.80 by polar band against 0.62 / 0.40 / 0.66;
-#: research/results/signature-independent.md). The B-scan models take it too (their PSF's y width kept:
-#: v up to 7.5 µm/s random-ballistic and 33.1 µm/s flow): ``signature-bscan`` on independent data 0.759 at
-#: 0.766 against 0.736 at 0.787, flow 0.80 / 0.45 / 0.40 against 0.64 / 0.29 / 0.23 (with noise in every
-#: draw; research/results/signature-bscan-independent.md). So does ``two-wavelength-signature`` (flow up to 82.5
-#: µm/s at its two small configurations), retrained with noise in every draw: 0.761 at 0.758 against 0.734 at
-#: 0.767, flow 0.61 / 0.62 / 0.62 against 0.38 / 0.41 / 0.39 (research/results/two-wavelength-signature-independent.md).
+#: own range, speeds capped at what the simulator holds; the B-scan models keep their PSF's y width). A fixed
+#: prior spends many draws on motion that is static or decorrelated at the spec's system and never shows slow
+#: flow that is identifiable; the scaled prior scored higher on the independent reference simulator, overall
+#: and for flow in every polar band (research/results/independent-ceiling.md, parts d and e, and each model's
+#: ``research/results/SPEC-independent.md``).
 SCALED_PRIOR_SPECS = ("signature", "signature-bscan", "signature-bscan-field", "two-wavelength-signature")
 
 

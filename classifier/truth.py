@@ -50,7 +50,7 @@ def identifiability(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, n
     The same definition holds for signature specs: a transit term ``j/N_eff`` that still decays over
     the acquisition after the field has decorrelated (:func:`transit_decay`) was measured not to tell
     diffusion from random-ballistic motion per pixel (``python -m classifier.ablation --indeterminate``,
-    ``classifier/README.md``), so "decorrelated" stays as wide as it is.
+    ``research/classifier-history.md``), so "decorrelated" stays as wide as it is.
     """
     status, first_a, last_a, _ = _criteria(spec, draw, prior)
     return status, first_a, last_a

@@ -40,7 +40,7 @@ intensity feature (``rho_db``, ``rho_lin``, ``lin_contrast``, ``db_variance``) e
 ``g1_m`` and ``phase_ramp`` are unchanged by a *linear* drift (``g1_phase_m`` shifts by ``−ω·m·Δt``) ``φ_i = ω·t_i`` (a constant bulk
 velocity), but no per-pixel statistic of the field survives an arbitrary phase per frame: the
 field group then measures the bulk phase, not the pixel (so models that use it need phase-stable
-or bulk-phase-corrected data; ``classifier/README.md`` reports the accuracy with a random bulk
+or bulk-phase-corrected data; ``research/classifier-history.md`` reports the accuracy with a random bulk
 phase per frame). Intensity-only data (e.g. TIFF intensities) give only the intensity group
 (:func:`available_features`).
 
@@ -51,7 +51,7 @@ Undefined values are NaN: a pixel with ``I = 0`` (or NaN) at some frame has no d
 NaN in every feature; a lag whose two sub-sequences are both constant has correlation 1 and one
 constant against a varying one 0 (the rules of :mod:`torchdoct.sim.metrics`).
 
-:data:`DEFAULT_FEATURES` is the content chosen by the ablation in ``classifier/README.md``.
+:data:`DEFAULT_FEATURES` is the content chosen by the ablation in ``research/classifier-history.md``.
 """
 
 from __future__ import annotations
@@ -87,7 +87,7 @@ _SCALARS = {"phase_ramp": "1", "lin_contrast": "1", "db_variance": "dB^2"}
 UNITS = {"rho_db": "1", "rho_lin": "1", "g1": "1", "g1_phase": "rad", **_SCALARS}
 #: Kinds that need the complex field (phase); the others need only the intensity.
 FIELD_FEATURES = ("g1", "g1_phase", "phase_ramp")
-#: Default lags (frames) of each group, chosen by the ablation in classifier/README.md: the linear
+#: Default lags (frames) of each group, chosen by the ablation in research/classifier-history.md: the linear
 #: intensity correlation at roughly log-spaced lags plus the two one-time statistics carry all that
 #: the dB correlations add (no dB lags), and ``|g1|`` at the first lags (the field part) adds a little
 #: on phase-stable data but nothing under a bulk phase drift.
