@@ -240,7 +240,10 @@ def translate_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], targe
     from .infer import classify_maps
 
     tgt = target if isinstance(target, Target) else load_target(target)
-    res = classify_maps(paths, model, pool=pool, min_probability=min_probability, threads=threads)
+    # One class per pixel, by the rule (most probable class above min_probability): a conformal set of two
+    # classes has no single target to translate to, and the translation is validated on the rule's
+    # decisions (research/results/translation-validation.md).
+    res = classify_maps(paths, model, pool=pool, min_probability=min_probability, threads=threads, decision="rule")
     mdl = res.model
     if res.magnitude is None:
         raise ValueError(f"model {mdl.path.name} has no magnitude head (an LIV/OCDS model); translation needs "
