@@ -45,3 +45,8 @@ def __getattr__(name: str):
         mod, attr = _LAZY[name]
         return getattr(importlib.import_module(f"{__name__}.{mod}"), attr)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    """The public API only: the names of ``__all__`` (not this module's helpers or loaded submodules)."""
+    return sorted(__all__)

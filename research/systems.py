@@ -54,14 +54,16 @@ def render_maps(out: Path, system: str, seed: int) -> tuple[Path, Path]:
     return seq, maps
 
 
-def train(out: Path, system: str, maps: Path, quick: bool) -> tuple[Path, dict]:
-    """The model of ``doct-train --like`` (trained unless present) and its report."""
+def train(out: Path, system: str, maps: Path, quick: bool, seed: int | None = None) -> tuple[Path, dict]:
+    """The model of ``doct-train --like`` (trained unless present; ``seed``: its ``--seed``, default
+    doct-train's) and its report."""
     from classifier.cli import train_main
 
     mdir = out / system
     found = sorted(mdir.glob("*.onnx")) if mdir.is_dir() else []
     if not found:
         argv = ["--like", str(maps), "--out", str(mdir), "--no-progress"] + (["--quick"] if quick else [])
+        argv += [] if seed is None else ["--seed", str(seed)]
         if train_main(argv) != 0:
             raise RuntimeError(f"doct-train {' '.join(argv)} failed")
         found = sorted(mdir.glob("*.onnx"))
@@ -69,12 +71,13 @@ def train(out: Path, system: str, maps: Path, quick: bool) -> tuple[Path, dict]:
     return found[0], report
 
 
-def evaluate(out: Path, system: str, seeds: list[int], quick: bool, min_probabilities: list[float] = ()) -> dict:
+def evaluate(out: Path, system: str, seeds: list[int], quick: bool, min_probabilities: list[float] = (),
+             train_seed: int | None = None) -> dict:
     from classifier.cli import classify_main
     from classifier.evaluate_images import score_images
 
     files = {s: render_maps(out, system, s) for s in seeds}
-    model, report = train(out, system, files[seeds[0]][1], quick)
+    model, report = train(out, system, files[seeds[0]][1], quick, train_seed)
     scores: dict[str, list] = {str(p): [] for p in POOLS}
     for s in seeds:
         seq, maps = files[s]

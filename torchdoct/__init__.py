@@ -54,4 +54,5 @@ def __getattr__(name: str):
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY) | set(_SUBMODULES))
+    """The public API only: the names of ``__all__`` and the stage packages (not this module's helpers)."""
+    return sorted(set(__all__) | set(_SUBMODULES))

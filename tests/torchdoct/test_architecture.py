@@ -331,3 +331,18 @@ def test_the_commands_load_no_research_module():
                "bad = sorted(m for m in sys.modules if m.startswith('research'))\n"
                "assert not bad, bad\nprint('ok')\n")
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_dir_of_the_packages_lists_only_their_public_api():
+    """``dir(torchdoct)`` and ``dir(classifier)`` show ``__all__`` (and torchdoct's stage packages), not the
+    helpers of their ``__init__`` (``importlib``, ``annotations``, the lazy tables), whatever was imported."""
+    import classifier
+    import torchdoct
+    import torchdoct.sim.simulate  # noqa: F401  (a loaded submodule must not widen the listing)
+
+    stages = {"sim", "image", "measured", "study", "bench", "cli", "runtime", "conventions", "optics", "figures"}
+    assert set(dir(torchdoct)) == set(torchdoct.__all__) | stages
+    assert set(dir(classifier)) == set(classifier.__all__)
+    assert not {"importlib", "annotations", "_LAZY", "_SUBMODULES"} & (set(dir(torchdoct)) | set(dir(classifier)))
+    for name in set(dir(torchdoct)) | set(dir(classifier)):  # every listed name resolves
+        assert getattr(torchdoct if name in dir(torchdoct) else classifier, name) is not None
