@@ -180,13 +180,13 @@ def _read_prior(path: str):
     """A prior TOML file (the fields of :class:`classifier.prior.Prior`), errors naming the file."""
     import tomllib
 
-    from torchdoct.files import check_nesting
+    from torchdoct.files import check_nesting, read_capped
 
     from .prior import Prior
 
     p = Path(path)
     try:
-        raw = p.read_bytes()
+        raw = read_capped(p, "--prior")
     except FileNotFoundError:
         raise FileNotFoundError(f"--prior {path}: no such file") from None
     try:

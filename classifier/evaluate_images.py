@@ -50,9 +50,13 @@ def read_rendered_labels(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarra
     ``label_params`` is ``None`` when the file has none. Raises ``ValueError`` naming the file and
     the fix when it is missing, unreadable or holds no ``labels``.
     """
+    from torchdoct.files import check_regular_file
+
     p = Path(path)
-    if not p.is_file():
-        raise ValueError(f"{p}: no such file; give the sequence file that `torchdoct render` wrote (.npz or .h5)")
+    try:
+        check_regular_file(p, "sequence file")
+    except FileNotFoundError:
+        raise ValueError(f"{p}: no such file; give the sequence file that `torchdoct render` wrote (.npz or .h5)") from None
     if p.suffix == ".npz":
         try:
             with np.load(p, allow_pickle=False) as z:

@@ -358,11 +358,13 @@ def shipped_or_path(key: str, shipped: dict[str, Path], what: str) -> Path:
     """The shipped file named ``key``, else the file at path ``key``; ``what`` names it in the error."""
     if key in shipped:
         return shipped[key]
-    path = Path(key)
-    if not path.exists():
+    from torchdoct.files import check_regular_file
+
+    try:
+        return check_regular_file(key, what)
+    except FileNotFoundError:
         raise FileNotFoundError(f"{what} {key!r}: no such file and not a shipped {what} "
-                                f"(shipped: {', '.join(shipped) or 'none'})")
-    return path
+                                f"(shipped: {', '.join(shipped) or 'none'})") from None
 
 
 def load_spec(name_or_path: str | Path | FeatureSpec) -> FeatureSpec:
@@ -370,11 +372,10 @@ def load_spec(name_or_path: str | Path | FeatureSpec) -> FeatureSpec:
     if isinstance(name_or_path, FeatureSpec):
         return name_or_path
     path = shipped_or_path(str(name_or_path), shipped_specs(), "feature spec")
-    from torchdoct.files import check_nesting
+    from torchdoct.files import check_nesting, read_capped
 
     try:
-        with open(path, "rb") as fh:
-            raw = fh.read()
+        raw = read_capped(path, "feature spec")
         check_nesting(raw, path.name, toml=True)  # before the parser's recursion
         data = tomllib.loads(raw.decode("utf-8"))
         check_nesting(data, path.name)  # dotted keys nest tables without brackets

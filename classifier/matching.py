@@ -290,12 +290,18 @@ def choose_default_model(maps_list: Sequence[Maps | MapsChannels], shipped: Mapp
         try:
             assemble_features(maps_list, sig, ignore_refractive_index=True)
         except ValueError as err:
-            missing = sum(_find_column(maps_list, col) is None for col in sig.columns[:-1])
-            failed.append((missing, name, err))
+            missing = [col for col in sig.columns[:-1] if _find_column(maps_list, col) is None]
+            failed.append((len(missing), name, err, missing, len(sig.columns) - 1))
             continue
         return name, None
-    _, name, err = min(failed, key=lambda f: f[0])  # ties: the earlier in SIGNATURE_MODELS
-    return liv_ocds, f"model {liv_ocds} (LIV/OCDS) instead of {name}: {err}"
+    _, name, err, missing, n_columns = min(failed, key=lambda f: f[0])  # ties: the earlier in SIGNATURE_MODELS
+    if missing:  # name the channels, not only the first error
+        names = [str(col.get("name") if isinstance(col, dict) else col) for col in missing]
+        more = f" and {len(names) - 3} more" if len(names) > 3 else ""
+        why = f"the maps lack its channel(s) {', '.join(names[:3])}{more} ({len(names)} of {n_columns}); {err}"
+    else:
+        why = str(err)
+    return liv_ocds, f"model {liv_ocds} (LIV/OCDS) instead of {name}: {why}"
 
 
 def _liv_ocds_model(maps_list: Sequence[Maps], shipped: Mapping[str, Path],

@@ -11,6 +11,7 @@ the indeterminate rule and the feature spec.
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -177,6 +178,7 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     meta = json.loads(props[METADATA_KEY])
     if meta.get("format") != FORMAT:
         raise ValueError(f"model {path.name}: metadata format {meta.get('format')!r}, this version reads {FORMAT!r}")
+    _check_metadata_types(path, meta)
     _check_graph_matches_metadata(path, sess, meta)
     return ClassifierModel(path=path, metadata=meta, session=sess, threads=n_threads, chunk_rows=chunk_rows,
                            calibration=read_calibration(path, list(meta["output"]["classes"])) if calibration else None)
@@ -215,6 +217,48 @@ def read_calibration(model_path: Path, classes: list[str]) -> dict[str, Any] | N
                          "(python -m classifier.calibrate)") from None
     check_calibration(cal, classes, str(p))
     return cal
+
+
+def _check_metadata_types(path: Path, meta: Any) -> None:
+    """Every metadata field the classify path reads has its type (a wrongly typed one is refused naming
+    the field, instead of being ignored or failing later): ``input.columns`` and ``output.classes`` lists
+    of names (columns: or tables with a ``name``), ``spec`` and ``rule`` tables, ``rule.min_probability`` in [0, 1), ``rule.epsilon`` a number,
+    ``rule.kind``/``rule.indeterminate_class`` strings, ``pool_pixels_max`` a positive integer,
+    ``magnitude`` a table when present."""
+    fix = "use the .onnx file as doct-train wrote it, or retrain with doct-train"
+
+    def bad(field: str, want: str, value: Any) -> ValueError:
+        return ValueError(f"model {path.name}: metadata field {field} must be {want}; got {type(value).__name__} "
+                          f"{str(value)[:40]!r}; {fix}")
+
+    def number(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+    if not isinstance(meta, dict):
+        raise bad("(the whole)", "a JSON object", meta)
+    for block, key in (("input", "columns"), ("output", "classes")):
+        b = meta.get(block)
+        v = b.get(key) if isinstance(b, dict) else None
+        if not isinstance(b, dict) or not isinstance(v, list) or not all(
+                isinstance(c, str) or (isinstance(c, dict) and isinstance(c.get("name"), str)) for c in v):
+            raise bad(f"{block}.{key}", "a list of names (or of tables with a name)", v if isinstance(b, dict) else b)
+    for key in ("spec", "rule"):
+        if not isinstance(meta.get(key), dict):
+            raise bad(key, "a table (JSON object)", meta.get(key))
+    rule = meta["rule"]
+    for key in ("kind", "indeterminate_class"):
+        if not isinstance(rule.get(key), str):
+            raise bad(f"rule.{key}", "a string", rule.get(key))
+    mp = rule.get("min_probability")
+    if not (number(mp) and 0.0 <= mp < 1.0):
+        raise bad("rule.min_probability", "a number in [0, 1)", mp)
+    if "epsilon" in rule and not number(rule["epsilon"]):
+        raise bad("rule.epsilon", "a number", rule["epsilon"])
+    pp = meta.get("pool_pixels_max", 1)
+    if isinstance(pp, bool) or not isinstance(pp, int) or pp < 1:
+        raise bad("pool_pixels_max", "a positive integer", pp)
+    if meta.get("magnitude") is not None and not isinstance(meta["magnitude"], dict):
+        raise bad("magnitude", "a table (JSON object)", meta["magnitude"])
 
 
 def _check_graph_matches_metadata(path: Path, sess: Any, meta: Mapping[str, Any]) -> None:

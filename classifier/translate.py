@@ -81,7 +81,7 @@ def load_target(path: str | os.PathLike, system: str | None = None) -> Target:
     from torchdoct.sim.config import read_toml, scene_from_dict
     from torchdoct.sim.scenes import shipped_scenes
 
-    p = file_or_shipped(path, {**shipped_scenes(), **shipped_phantoms()})
+    p = file_or_shipped(path, {**shipped_scenes(), **shipped_phantoms()}, "--to")
     if p is None:
         raise FileNotFoundError(f"--to {path}: no such file and not a shipped scene or phantom; give a TOML file "
                                 "with the target's [[system]] and [protocol]")

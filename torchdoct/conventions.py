@@ -64,6 +64,7 @@ __all__ = [
     "LENGTH_UNIT",
     "TIME_UNIT",
     "DB_PER_NEPER_INTENSITY",
+    "REFRACTIVE_INDEX_RANGE",
     "amplitude_sigma_lateral_um",
     "amplitude_sigma_axial_um",
     "lateral_resolution_from_sigma_um",
@@ -89,6 +90,10 @@ LENGTH_UNIT = "um"
 TIME_UNIT = "s"
 #: ``10/ln(10)``: dB per neper of intensity; ``10·log10 I = DB_PER_NEPER_INTENSITY · ln I``.
 DB_PER_NEPER_INTENSITY = 10.0 / math.log(10.0)
+
+#: Phase refractive index a system's medium may have, in scene files, sidecars and maps alike (air 1,
+#: tissue about 1.35-1.4, the densest optical glasses below 2; 5 leaves room and refuses typing errors).
+REFRACTIVE_INDEX_RANGE = (1.0, 5.0)
 
 _SQRT2 = math.sqrt(2.0)
 _SQRT_LN2 = math.sqrt(math.log(2.0))

@@ -1,14 +1,23 @@
 """File helpers shared by every command (standard library only): refuse to overwrite without
 ``force``, write atomically, write a set of outputs whole or not at all, check names that become
-file names and the nesting depth of parsed files, find the files shipped with the project."""
+file names and the nesting depth of parsed files, find the files shipped with the project.
+
+Reading (the one reader-side check of every input file): :func:`check_regular_file` refuses a path that
+is not a regular file (a FIFO, a character or block device, a socket, a directory) at once, with
+"is not a regular file", before anything opens it (opening a FIFO would block until a writer comes;
+``/dev/zero`` never ends); :func:`open_regular` opens without blocking and checks the opened file again
+(a path swapped for a FIFO in between); :func:`read_capped` reads a small text file (JSON sidecar, TOML
+scene, spec, prior) whole only when it is at most :data:`MAX_TEXT_BYTES` long."""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import os
 import re
 import shutil
+import stat
 import tempfile
 import threading
 from importlib import resources
@@ -16,11 +25,87 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
 __all__ = ["check_out", "atomic_write", "output_set", "OutputSet", "safe_name", "check_nesting", "MAX_NESTING",
-           "shipped_files", "file_or_shipped"]
+           "shipped_files", "file_or_shipped", "NotRegularFileError", "check_regular_file", "open_regular",
+           "read_capped", "MAX_TEXT_BYTES"]
 
 #: Deepest nesting of arrays/tables (TOML) or arrays/objects (JSON) that any input file may have: the
 #: project's own files need 5 at most; far deeper ones would exhaust the parser's recursion.
 MAX_NESTING = 64
+
+#: Largest text file (JSON sidecar or metadata, TOML scene, phantom, sweep, study, spec or prior) read
+#: whole: the project's own are a few KiB; a file (or a link to a device) longer than this is refused.
+MAX_TEXT_BYTES = 16 << 20
+
+
+class NotRegularFileError(ValueError):
+    """A path given as an input file names a FIFO, a device, a socket or a directory (exit 2)."""
+
+
+def _kind(mode: int) -> str:
+    return ("a directory" if stat.S_ISDIR(mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(mode)
+            else "a character device" if stat.S_ISCHR(mode) else "a block device" if stat.S_ISBLK(mode)
+            else "a socket" if stat.S_ISSOCK(mode) else "a special file")
+
+
+def _not_regular(what: str, path: Path, mode: int) -> NotRegularFileError:
+    return NotRegularFileError(f"{what} {path} is not a regular file (it is {_kind(mode)}); give the path of "
+                               "the file itself")
+
+
+def check_regular_file(path: str | os.PathLike, what: str = "input file") -> Path:
+    """``path`` as a :class:`~pathlib.Path` when it names a regular file (symbolic links followed).
+
+    Else, without opening anything: :class:`NotRegularFileError` (a ``ValueError``: exit 2) reading
+    "``what`` PATH is not a regular file (it is a FIFO ...)" for a FIFO, a device, a socket or a
+    directory; ``FileNotFoundError`` "``what`` PATH: no such file" for a missing path (or a link to
+    one); ``ValueError`` for a name the system cannot hold (too long). ``what`` names the role of the
+    file in the command (``"sequence file"``, ``"--mask"``, ...).
+    """
+    p = Path(path)
+    try:
+        st = os.stat(p)
+    except (FileNotFoundError, NotADirectoryError):
+        raise FileNotFoundError(f"{what} {p}: no such file") from None
+    except OSError as err:
+        if err.errno == errno.ENAMETOOLONG:
+            raise ValueError(f"{what} {p}: the name is too long for the file system ({err.strerror}); "
+                             "rename the file or move it to a shorter path") from None
+        if err.errno == errno.ELOOP:
+            raise ValueError(f"{what} {p}: a loop of symbolic links; point the link at the file itself") from None
+        raise
+    if not stat.S_ISREG(st.st_mode):
+        raise _not_regular(what, p, st.st_mode)
+    return p
+
+
+def open_regular(path: str | os.PathLike, what: str = "input file"):
+    """A binary file object of the regular file ``path`` (:func:`check_regular_file` first), opened with
+    ``O_NONBLOCK`` and checked again after opening, so that a FIFO put in its place meanwhile is
+    refused too instead of blocking the command."""
+    p = check_regular_file(path, what)
+    fh = open(p, "rb", opener=lambda name, flags: os.open(name, flags | getattr(os, "O_NONBLOCK", 0)))
+    try:
+        mode = os.fstat(fh.fileno()).st_mode
+        if not stat.S_ISREG(mode):
+            raise _not_regular(what, p, mode)
+    except BaseException:
+        fh.close()
+        raise
+    return fh
+
+
+def read_capped(path: str | os.PathLike, what: str = "input file", limit: int = MAX_TEXT_BYTES) -> bytes:
+    """The bytes of the regular file ``path`` (:func:`open_regular`), refused with a ``ValueError``
+    naming ``what`` and the limit when longer than ``limit`` bytes (by its size, and by reading at most
+    ``limit + 1`` bytes: a file that grows while read is refused too)."""
+    with open_regular(path, what) as fh:
+        size = os.fstat(fh.fileno()).st_size
+        data = fh.read(limit + 1) if size <= limit else b""
+    if size > limit or len(data) > limit:
+        raise ValueError(f"{what} {Path(path)}: {max(size, len(data))} bytes, over the {limit >> 20} MiB a text "
+                         "file of its kind may have (the project's own are a few KiB); check that this is the "
+                         "right file")
+    return data
 
 
 def check_out(path: str | os.PathLike | None, force: bool, suffix: str | Sequence[str],
@@ -226,9 +311,16 @@ def shipped_files(package: str, folder: str, suffix: str = ".toml") -> dict[str,
             if p.name.endswith(suffix)}
 
 
-def file_or_shipped(key: str | os.PathLike, shipped: dict[str, Path]) -> Path | None:
-    """``key`` if it is a file, else the shipped file of that name, else ``None``."""
+def file_or_shipped(key: str | os.PathLike, shipped: dict[str, Path], what: str = "file") -> Path | None:
+    """``key`` if it is a regular file, else the shipped file of that name, else ``None``; a path that
+    exists but is not a regular file (FIFO, device, directory) and is no shipped name is a
+    :class:`NotRegularFileError` naming ``what`` (:func:`check_regular_file`), never "not found"."""
     p = Path(key)
-    if p.is_file():
-        return p
-    return shipped.get(str(key))
+    try:
+        return check_regular_file(p, what)
+    except FileNotFoundError:
+        return shipped.get(str(key))
+    except NotRegularFileError:
+        if str(key) in shipped:  # a folder named like a shipped scene in the working directory
+            return shipped[str(key)]
+        raise

@@ -420,7 +420,7 @@ def test_refusals_name_the_file_and_the_fix():
     with pytest.raises(ValueError, match=r"test\.npy holds intensity only.*complex"):
         estimate_bulk_phase(inten, "weighted-mean")
     with pytest.raises(ValueError, match=r"test\.npy holds intensity only"):
-        compute_maps(inten, ["original"], bulk_phase="histogram")
+        compute_maps(inten, ["original"], metrics=["liv"], bulk_phase="histogram")
     seq = make_seq(make_field(6, 8, 4, snr_db=20.0).astype(np.complex64))
     with pytest.raises(ValueError, match="must be one of weighted-mean, histogram"):
         estimate_bulk_phase(seq, "sd")
@@ -432,7 +432,7 @@ def test_refusals_name_the_file_and_the_fix():
         estimate_bulk_phase(seq, "weighted-mean", rows="4:9")
     other = estimate_bulk_phase(make_seq(make_field(6, 8, 5, snr_db=20.0).astype(np.complex64)), "weighted-mean")
     with pytest.raises(ValueError, match="does not match the sequence"):
-        compute_maps(seq, ["lateral=18"], bulk_phase=other)
+        compute_maps(seq, ["original"], metrics=["liv"], bulk_phase=other)
 
 
 # ----------------------------------------------------------------------------------------------------------

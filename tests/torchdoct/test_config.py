@@ -65,7 +65,8 @@ def test_round_trip_with_frame_times_noise_and_all_motion_kinds():
     ]
     data["population"].append({"name": "static", "density_per_um3": 0.01, "reflectivity": 0.5})
     data["noise"] = {"snr_db": 25.0}
-    data["analysis"] = {"metrics": ["liv", "ocds", "autocorrelation"], "ocds_delay_range_s": [0.25, 1.5],
+    # no "ocds": its delays here rest on one frame pair each (refused, test_degenerate_ocds.py)
+    data["analysis"] = {"metrics": ["liv", "autocorrelation"], "ocds_delay_range_s": [0.25, 1.5],
                         "ocds_scale": "linear", "ocds_estimator": "biased"}
     data["simulation"] = {"trials": 10, "seed": 3, "truncation_tolerance": 1e-4, "dtype": "float64"}
     scene = scene_from_dict(data)
@@ -270,7 +271,7 @@ def test_missing_file_names_shipped_scenes(tmp_path):
 
 
 def test_directory_is_not_a_scene(tmp_path):
-    with pytest.raises(FileNotFoundError, match="not a file"):
+    with pytest.raises(ValueError, match="is not a regular file"):
         load_scene(tmp_path)
 
 

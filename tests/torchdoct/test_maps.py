@@ -272,7 +272,7 @@ def test_bad_requests():
     bare = SequenceData(data=seq.data, meta={k: v for k, v in seq.meta.items() if k != "system"})
     with pytest.raises(ValueError, match="--wavelength-um"):
         compute_maps(bare, ["original", "axial=14"])
-    assert compute_maps(bare).channel_info("liv@original")["wavelength_um"] is None  # original: optics not needed
+    assert compute_maps(bare, metrics=["liv"]).channel_info("liv@original")["wavelength_um"] is None  # original: optics not needed
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -375,10 +375,10 @@ def test_cli_block_raster_volume(tmp_path, capsys):
 
 def test_cli_bench_maps_runs(tmp_path, capsys):
     out = tmp_path / "bench.json"
-    assert main(["bench", "maps", "--frames", "8", "--size", "16", "12", "--out", str(out)]) == 0
+    assert main(["bench", "maps", "--frames", "12", "--size", "16", "12", "--out", str(out)]) == 0
     res = json.loads(out.read_text())
-    assert res["shape"] == [8, 16, 12] and set(res["seconds_per_resolution"]) == {"original", "axial=14", "lateral=18"}
-    assert main(["bench", "maps", "--frames", "8", "--size", "16", "12", "--out", str(out)]) == 2
+    assert res["shape"] == [12, 16, 12] and set(res["seconds_per_resolution"]) == {"original", "axial=14", "lateral=18"}
+    assert main(["bench", "maps", "--frames", "12", "--size", "16", "12", "--out", str(out)]) == 2
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -555,9 +555,9 @@ def test_biased_ocds_computes_only_the_lags_in_the_range(monkeypatch):
 
 def test_all_nan_or_empty_input_is_refused(tmp_path, capsys):
     for name, fill in (("nan", np.nan), ("zero", 0.0)):
-        data = np.full((8, 5, 6), fill, np.complex64)
+        data = np.full((12, 5, 6), fill, np.complex64)  # 12 frames: every default OCDS delay has 6+ pairs
         path = write_sequence(tmp_path / f"{name}.npz", data, {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},
-                                                               "frame_times_s": [DT * k for k in range(8)],
+                                                               "frame_times_s": [DT * k for k in range(12)],
                                                                "system": SYSTEM})
         with pytest.raises(ValueError, match=f"{name}.npz.*no (finite|nonzero)"):
             compute_maps(read_sequence(path), ["original"])

@@ -223,9 +223,9 @@ def test_non_uniform_frame_times_group_delays():
 
 
 def test_non_uniform_times_with_offset_match_uniform_times():
-    intensity = _intensity((4, 8), torch.float64, seed=10)
-    uniform = ocds(intensity, _times(8), delay_range_s=(0.2048, 0.8192))
-    shifted = ocds(intensity, [5.0 + t for t in _times(8)], delay_range_s=(0.2048, 0.8192))
+    intensity = _intensity((4, 10), torch.float64, seed=10)
+    uniform = ocds(intensity, _times(10), delay_range_s=(0.2048, 0.8192))
+    shifted = ocds(intensity, [5.0 + t for t in _times(10)], delay_range_s=(0.2048, 0.8192))
     torch.testing.assert_close(shifted, uniform, rtol=0, atol=1e-12)
 
 

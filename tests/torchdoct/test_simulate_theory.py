@@ -22,7 +22,9 @@ W1310 = td.OCTSystem(name="1310-high", wavelength_um=1.31, lateral_resolution_um
 
 
 def scene(motion=(), *, systems=(HIGH,), rho=RHO, n_frames=32, dt=DT, noise=None, delay=(0.2048, 1.2288)):
-    metrics = ("liv", "ocds") if n_frames * dt > delay[0] + delay[1] / 2 else ("liv",)
+    # OCDS only where its longest delay rests on 2 frame pairs or more (MIN_PAIRS_PER_DELAY)
+    metrics = ("liv", "ocds") if n_frames * dt > delay[0] + delay[1] / 2 and n_frames >= delay[1] / dt + 2 - 1e-9 \
+        else ("liv",)
     return td.Scene(systems=tuple(systems), protocol=td.Protocol(n_frames=n_frames, frame_interval_s=dt),
                     populations=(td.Population(density_per_um3=rho, motion=tuple(motion)),),
                     noise=noise, analysis=td.Analysis(metrics=metrics, ocds_delay_range_s=delay))

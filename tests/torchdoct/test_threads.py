@@ -100,6 +100,7 @@ def test_render_bit_identical_for_any_threads():
         "name": "threads",
         "system": [{"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}],
         "protocol": {"n_frames": 6, "frame_interval_s": 0.2048},
+        "analysis": {"metrics": ["liv", "ocds"], "ocds_delay_range_s": [0.2048, 0.8192]},  # 2+ pairs per delay
         "grid": {"kind": "bscan", "n_x": 12, "n_z": 12, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
         "region": [{"name": "flow", "shape": "slab", "z_min_um": -12.0, "z_max_um": 0.0, "density_per_um3": 0.05,
                     "motion": [{"kind": "flow", "speed_um_per_s": 2.0, "polar_angle_deg": 60.0}]}],

@@ -284,9 +284,12 @@ def _signature_feature(name: str) -> bool:
 
 
 def _load_mask(path: str) -> np.ndarray:
+    from ..files import check_regular_file
+
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"mask file {p} does not exist")
+    check_regular_file(p, "mask file")
     suf = p.suffix.lower()
     if suf in (".npy", ".npz"):
         try:

@@ -29,6 +29,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                         "cores; 1 runs one cell at a time on one core)")
     p.add_argument("--force", action="store_true", help="overwrite output files that exist")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--max-cells", type=int, default=None, metavar="N",
+                   help="run sweeps of more cells than the cap (default 10000; every cell is built before the first runs)")
 
 
 def _sweep_arguments(sw) -> None:
@@ -54,6 +56,9 @@ def _sweep(args) -> int:
 
     from ..study.sweep import check_cache_dir
 
+    from ..study.grid import set_max_cells
+
+    set_max_cells(args.max_cells)
     sweep = load_sweep(args.scene)
     check_cache_dir(_cache(args))  # a file there: refused before the output folder is made
     from ..study.sweep import check_sweep_resources
@@ -76,7 +81,9 @@ def _sweep(args) -> int:
 
 def _study(args) -> int:
     from ..study import run_study
+    from ..study.grid import set_max_cells
 
+    set_max_cells(args.max_cells)
     r = run_study(args.study, args.out, trials=args.trials, seed=args.seed,
                   cache_dir=None if args.no_cache else (args.cache if args.cache is not None else "default"),
                   scheduler=args.scheduler, batch_cells=args.batch_cells, workers=workers(args), force=args.force,

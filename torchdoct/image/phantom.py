@@ -40,6 +40,9 @@ SHAPES = ("sphere", "ellipsoid", "slab", "cylinder", "label-image")
 #: Label codes of the ground-truth motion map.
 MOTION_CODES = {"empty": 0, "static": 1, "diffusion": 2, "ballistic": 3, "flow": 4, "mixed": 5}
 MAX_PIXELS = 2**28
+#: Largest region radius (µm, 10 m): squared in :meth:`Region.contains`, a radius of 1e300 overflowed; a
+#: region larger than any field of view is given as a slab or as the background instead.
+MAX_LENGTH_UM = 1e7
 
 
 def motion_code(pops: Population | Sequence[Population] | None) -> int:
@@ -286,9 +289,13 @@ def _load_label_image(path: str, file: str, base_dir: Path | None, grid: Grid) -
     p = Path(file)
     if not p.is_absolute() and base_dir is not None:
         p = base_dir / p
-    if not p.is_file():
+    from ..files import check_regular_file
+
+    try:
+        check_regular_file(p, f"{path}.file: label image")
+    except FileNotFoundError:
         raise FileNotFoundError(f"{path}.file: label image {str(file)!r} not found "
-                                f"(relative paths are taken from the phantom file's directory)")
+                                f"(relative paths are taken from the phantom file's directory)") from None
     if p.suffix != ".npy":
         _fail(f"{path}.file", f"{file!r} is not a .npy file", "save the label image with numpy.save")
     try:
@@ -390,8 +397,8 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
         if "center_um" in r:
             kw["center_um"] = _vec3(f"{path}.center_um", r["center_um"])
         if shape == "sphere":
-            kw["radius_um"] = _number(f"{path}.radius_um", r["radius_um"], positive=True, unit="µm")
-            kw["inner_radius_um"] = _number(f"{path}.inner_radius_um", r.get("inner_radius_um", 0.0),
+            kw["radius_um"] = _number(f"{path}.radius_um", r["radius_um"], positive=True, hi=MAX_LENGTH_UM, unit="µm")
+            kw["inner_radius_um"] = _number(f"{path}.inner_radius_um", r.get("inner_radius_um", 0.0), hi=MAX_LENGTH_UM,
                                             nonneg=True, unit="µm")
             if kw["inner_radius_um"] >= kw["radius_um"]:
                 _fail(f"{path}.inner_radius_um", f"{kw['inner_radius_um']} µm is not below radius_um "
@@ -414,7 +421,7 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
             if norm == 0:
                 _fail(f"{path}.axis", "must not be the zero vector", "give the direction of the cylinder axis")
             kw["axis"] = tuple(a / norm for a in ax)
-            kw["radius_um"] = _number(f"{path}.radius_um", r["radius_um"], positive=True, unit="µm")
+            kw["radius_um"] = _number(f"{path}.radius_um", r["radius_um"], positive=True, hi=MAX_LENGTH_UM, unit="µm")
         else:
             kw["file"] = _string(f"{path}.file", r["file"])
             kw["value"] = _integer(f"{path}.value", r["value"])
@@ -439,7 +446,7 @@ def load_phantom(path: str | Path, *, grid: dict[str, Any] | None = None) -> Pha
     """
     shipped = shipped_phantoms()
     scenes = shipped_scenes()
-    p = file_or_shipped(path, {**scenes, **shipped})
+    p = file_or_shipped(path, {**scenes, **shipped}, "phantom file")
     if p is None:
         raise FileNotFoundError(f"phantom file {str(path)!r} not found; give a path to a .toml phantom "
                                 f"or scene file, or the name of a shipped phantom "

@@ -379,9 +379,12 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
     for what runs).
     """
     t_start = time.perf_counter()
+    from ..sim.config import check_scene_argument, whole_argument
+
+    check_scene_argument("td.render(phantom)", phantom, Phantom, "td.load_phantom")
     scene = phantom.scene
     sim = scene.simulation
-    seed = sim.seed if seed is None else int(seed)
+    seed = sim.seed if seed is None else whole_argument("seed", seed)
     tol = sim.truncation_tolerance if truncation_tolerance is None else float(truncation_tolerance)
     dtype = getattr(torch, dtype) if isinstance(dtype, str) else (dtype or getattr(torch, sim.dtype))
     if dtype not in (torch.float32, torch.float64):

@@ -28,9 +28,9 @@ from typing import Any, Iterable
 
 import numpy as np
 
-__all__ = ["TiffDamage", "check_npy_header", "refuse_object", "parse_json_object", "MAX_INPUT_ENV",
+__all__ = ["TiffDamage", "check_npy_header", "refuse_object", "parse_json_object", "json_loads", "MAX_INPUT_ENV",
            "DEFAULT_MAX_INPUT_GB", "max_input_bytes", "set_max_input_gb", "check_declared_size", "check_npy_size",
-           "check_npz_sizes", "check_tiff_pages", "check_hdf5_local"]
+           "check_npz_sizes", "check_tiff_pages", "check_hdf5_local", "check_memory_budget"]
 
 MAX_INPUT_ENV = "TORCHDOCT_MAX_INPUT_GB"
 DEFAULT_MAX_INPUT_GB = 8.0
@@ -84,7 +84,31 @@ def check_declared_size(where: str, shape: Iterable[int], itemsize: int, what: s
         raise ValueError(f"{where}: the {what} declares shape {dims} and would take {_human(n)} in memory, over "
                          f"the input limit of {_human(limit)}; if the data really are this large, raise the limit "
                          f"with --max-input-gb GB or the environment variable {MAX_INPUT_ENV}=GB")
+    check_memory_budget(where, n, f"the {what} declares shape {dims}")
     return n
+
+
+def check_memory_budget(where: str, n: int, what: str) -> None:
+    """Refuse reading ``n`` bytes that do not fit the memory budget
+    (:func:`torchdoct.resources.memory_budget`: ``MemAvailable``, ``RLIMIT_AS``, the cgroup limit) with a
+    :class:`torchdoct.resources.MemoryLimitError` (a ``ValueError``) naming ``where``, ``what`` it holds,
+    the budget, what sets it and the fix, before the read would fail half-way (and be taken for a
+    truncated file). An explicit input limit (``--max-input-gb``, ``TORCHDOCT_MAX_INPUT_GB``) overrides
+    the machine's estimate ``MemAvailable``, never a hard limit."""
+    from ..resources import MemoryLimitError, memory_budget
+
+    budget = memory_budget()
+    if budget is None or n <= budget.bytes:
+        return
+    explicit = _max_input_gb is not None or os.environ.get(MAX_INPUT_ENV, "").strip() != ""
+    if explicit and not budget.hard:
+        return
+    fix = ("read a smaller crop of it (fewer frames, B-scans or pixels), or give it as chunked input (HDF5 or "
+           "Zarr chunks, read slab by slab)")
+    fix += (", or raise that limit (ulimit -v, the container's memory limit)" if budget.hard
+            else ", or free memory; if you know the memory is there, --max-input-gb GB reads it anyway")
+    raise MemoryLimitError(f"{where}: not enough memory for the file: {what} ({_human(n)}) but the memory budget "
+                           f"is {_human(budget.bytes)} ({budget.source}); {fix}")
 
 
 def _npy_header(fh, where: str) -> tuple[tuple[int, ...], np.dtype]:
@@ -174,8 +198,11 @@ def check_hdf5_local(fh: Any, path: Path, allow_external: bool = False) -> None:
                     raise ValueError(f"{path.name}: {full} is an external link to {link.filename}:{link.path} "
                                      f"outside the input file; refused ({fix})")
                 continue
-            obj = group.get(name)
-            if obj is None:  # a dangling soft link
+            try:
+                obj = group.get(name)
+            except (KeyError, RuntimeError, OSError, ValueError):  # a soft link to itself or into a loop
+                obj = None
+            if obj is None:  # a dangling soft link: it is named only if it is the dataset asked for
                 continue
             if isinstance(obj, h5py.Group):
                 if obj.id in seen:  # a hard-link cycle
@@ -250,13 +277,28 @@ def check_npy_header(path: Path, what: str = "") -> None:
                          f"{'empty' if not head else 'a pickle or another format'}); write it with numpy.save")
 
 
+#: Digits of the longest JSON integer read as an integer: a longer one (a 100,000-digit number, which
+#: Python refuses to convert at all) is read as a float, i.e. inf, and refused by the field's own check.
+MAX_INT_DIGITS = 300
+
+
+def _parse_int(text: str):
+    return int(text) if len(text) <= MAX_INT_DIGITS else float(text)
+
+
+def json_loads(text: str | bytes) -> Any:
+    """``json.loads`` with integers of more than :data:`MAX_INT_DIGITS` digits read as floats (inf), so that
+    the field that holds one names it instead of Python's digit limit failing the whole parse."""
+    return json.loads(text, parse_int=_parse_int)
+
+
 def parse_json_object(text: str, where: str) -> dict:
     """The JSON object in ``text``; invalid JSON or another JSON type is a ``ValueError`` naming ``where``."""
     from ..files import check_nesting
 
     check_nesting(text, where)  # before the parser's recursion
     try:
-        d = json.loads(text)
+        d = json_loads(text)
     except json.JSONDecodeError as err:
         raise ValueError(f"{where}: invalid JSON ({err})") from None
     if not isinstance(d, dict):

@@ -41,7 +41,7 @@ from typing import Any, Mapping, Sequence as _Seq
 
 import numpy as np
 
-from ..files import atomic_write, check_out
+from ..files import atomic_write, check_out, check_regular_file, open_regular, read_capped
 from .formats import SEQUENCE_SUFFIXES, reader_for
 from .guards import parse_json_object
 from .mapsfile import MAPS_SUFFIXES, Maps, read_maps, write_maps
@@ -63,6 +63,16 @@ __all__ = [
 ]
 
 _WRITE_SUFFIXES = (".npy", ".npz", ".h5")
+
+
+def _sidecar_exists(side: Path) -> bool:
+    """Whether the sidecar ``side`` exists (a link to nothing counts: its reader names it). A legal
+    sequence name whose derived sidecar name is longer than the file system allows (a 255-character
+    ``.npy`` name gives a 256-character ``.json``) has no sidecar."""
+    try:
+        return os.path.lexists(side)
+    except (OSError, ValueError):
+        return False
 
 # ----------------------------------------------------------------------------------------------
 # sequence writer
@@ -215,12 +225,13 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"sequence file {p} does not exist")
+    check_regular_file(p, "sequence file")  # a FIFO, device or folder: at once, whatever its name
     fmt = reader_for(p)
     if fmt is None:
         raise ValueError(f"{p.name}: unknown sequence format; use {', '.join(SEQUENCE_SUFFIXES)}")
     suffix = p.suffix.lower()
-    with open(p, "rb"):  # a file the system does not let us read: PermissionError (exit 1), whatever the format
-        pass
+    with open_regular(p, "sequence file"):  # a FIFO swapped in meanwhile: refused; a file the system does not
+        pass  # let us read: PermissionError (exit 1), whatever the format
     try:
         loaded = fmt.load(p, dataset=dataset, allow_external_hdf5=allow_external_hdf5)
     except PermissionError:  # the system refuses: exit 1 at the command line, as for an unreadable sidecar
@@ -235,9 +246,9 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     meta: dict[str, Any] = {}
     if file_meta is not None:
         meta.update(file_meta)
-    elif side.exists():
+    elif _sidecar_exists(side):
         try:
-            side_text = side.read_text(encoding="utf-8")
+            side_text = read_capped(side, f"the metadata sidecar of {p.name}").decode("utf-8")
         except UnicodeDecodeError as err:
             raise ValueError(f"{side.name}: the metadata sidecar of {p.name} is not UTF-8 text (byte {err.start}); "
                              "it must be the JSON metadata file (fix it, or remove it and give the metadata as "

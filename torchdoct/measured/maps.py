@@ -115,6 +115,7 @@ from .resolution import (
     NORMALIZATIONS,
     ResolutionTarget,
     axial_filter_sigma_um,
+    check_target_in_view,
     check_target_sampled,
     depth_spectrum_center,
     lateral_filter_sigma_um,
@@ -277,10 +278,13 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
             lateral_filter_sigma_um(lat0, t.lateral_resolution_um)
             if t in changes:  # the grid must hold the target PSF (two pixels at least)
                 check_target_sampled("lateral", lat0, t.lateral_resolution_um, seq.pitch_um, seq.axes)
+                check_target_in_view("lateral", lat0, t.lateral_resolution_um, seq.pitch_um, seq.axes,
+                                     seq.data.shape)
         if t.axial_resolution_um is not None:
             axial_filter_sigma_um(ax0, t.axial_resolution_um)
             if t in changes:
                 check_target_sampled("axial", ax0, t.axial_resolution_um, seq.pitch_um, seq.axes)
+                check_target_in_view("axial", ax0, t.axial_resolution_um, seq.pitch_um, seq.axes, seq.data.shape)
     if changes and not seq.is_complex:
         raise _intensity_only(seq, changes)
     if spk and all(t in changes for t in targets):
@@ -291,6 +295,10 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
         lo, hi = ocds_delay_range_s
         if not (0 < lo < hi):
             raise ValueError(f"ocds_delay_range_s must be 0 < lo < hi (s); got {ocds_delay_range_s!r}")
+        from ..sim.config import check_ocds_pairs
+
+        check_ocds_pairs(times, (lo, hi), f"{seq.source or 'sequence'}: --ocds-delay-range-s",
+                         "narrow --ocds-delay-range-s, record more frames, or leave ocds out of --metrics")
         probe = torch.rand(1, len(times), generator=torch.Generator().manual_seed(0)) + 1.0
         ocds_map(probe, times, delay_range_s=(lo, hi), scale=ocds_scale, estimator=ocds_estimator)
     return dataclasses.replace(req, changes=changes)

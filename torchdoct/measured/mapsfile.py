@@ -33,7 +33,7 @@ import numpy as np
 
 from ..files import atomic_write, check_out
 from ..optics import ChannelOptics
-from .guards import MAX_INPUT_ENV, TiffDamage, check_npz_sizes, check_tiff_pages
+from .guards import MAX_INPUT_ENV, TiffDamage, check_npz_sizes, check_tiff_pages, json_loads
 
 __all__ = ["MAPS_SUFFIXES", "Maps", "read_maps", "write_maps"]
 
@@ -168,17 +168,17 @@ def read_maps(path: str | os.PathLike) -> Maps:
     ``meta_json`` that is not a JSON object, or metadata of the wrong shape is a ``ValueError`` naming
     the file, the field and the fix; maps that are not floating point are a ``TypeError``.
     """
+    from ..files import check_regular_file, open_regular
+
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"maps file {p} does not exist")
+    check_regular_file(p, "maps file")  # a FIFO, device or folder: at once, whatever its name
     if p.suffix.lower() not in MAPS_SUFFIXES:
         raise ValueError(f"maps file {p.name}: must be .npz or .tif/.tiff (the formats of `torchdoct maps`)")
-    if not p.is_file():
-        raise ValueError(f"maps file {p} is not a file")
-    if p.stat().st_size == 0:
-        raise ValueError(f"{p.name}: the file is empty (0 bytes). {_rewrite_fix(p)}")
-    with open(p, "rb"):  # a read the system refuses stays a PermissionError (exit 1), not 'unreadable' (2)
-        pass
+    with open_regular(p, "maps file") as fh:  # a FIFO, device or folder: refused at once; a read the system
+        if os.fstat(fh.fileno()).st_size == 0:  # refuses stays a PermissionError (exit 1), not 'unreadable' (2)
+            raise ValueError(f"{p.name}: the file is empty (0 bytes). {_rewrite_fix(p)}")
     if p.suffix.lower() == ".npz":
         arr, names, meta = _read_npz(p)
         where = f"{p.name} meta_json"
@@ -196,6 +196,10 @@ def read_maps(path: str | os.PathLike) -> Maps:
                          f"{len(channels) if isinstance(channels, list) else repr(channels)} for {arr.shape[0]} maps")
     _check_maps_meta(meta, arr.ndim, where)
     meta_names = tuple(ch["name"] for ch in channels)
+    dup = sorted({n for n in meta_names if meta_names.count(n) > 1})
+    if dup:  # a reader takes a channel by name: a repeated one would silently pick one of them
+        raise ValueError(f"{where}: channel name(s) {dup} appear more than once; every map needs its own name. "
+                         f"{_rewrite_fix(p)}")
     if names is not None:
         if names.dtype.kind not in "US":
             raise ValueError(f"{p.name}: 'channels' must be an array of channel names; got dtype {names.dtype}")
@@ -239,7 +243,7 @@ def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]
 
     check_nesting(str(raw.reshape(())), f"{path.name}: 'meta_json'")  # before the parser's recursion
     try:
-        meta = json.loads(str(raw.reshape(())))
+        meta = json_loads(str(raw.reshape(())))
     except ValueError as err:
         raise ValueError(f"{path.name}: 'meta_json' is not valid JSON ({err}). {_rewrite_fix(path)}") from None
     if not isinstance(meta, dict):
@@ -281,7 +285,7 @@ def _tiff_meta(path: Path, tf) -> dict[str, Any]:
 
             check_nesting(tag.value, f"{path.name}: TIFF ImageDescription")  # before the parser's recursion
             try:
-                meta = json.loads(tag.value)
+                meta = json_loads(tag.value)
             except (TypeError, ValueError):
                 continue
             if isinstance(meta, dict) and "channels" in meta:

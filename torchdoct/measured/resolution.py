@@ -75,6 +75,7 @@ __all__ = [
     "gaussian_filter_axis",
     "reduce_resolution",
     "check_target_sampled",
+    "check_target_in_view",
     "MIN_TARGET_PIXELS",
     "EDGE_MODES",
     "NORMALIZATIONS",
@@ -178,6 +179,39 @@ def check_target_sampled(kind: str, original_um: float, target_um: float, pitch_
                          f"allows (the grid holds no PSF narrower than {MIN_TARGET_PIXELS:g} pixels, and a reduction "
                          f"cannot sharpen); the smallest {kind} target these data allow is {smallest:g} µm: give "
                          f"{kind}={smallest:g} or more")
+
+
+def check_target_in_view(kind: str, original_um: float, target_um: float, pitch_um: Mapping[str, float],
+                         axes: str, shape: Any, option: str = "--resolution") -> None:
+    """Refuse a ``kind`` target that differs from the original but is wider than the field of view
+    (pixels × pitch) along an axis it filters: the reduced PSF would reach past the image on both sides,
+    so the edge extension, not the sample, would make the result (a mean 10 dB off, constant over the
+    image, for a pitch given 1000× too fine), and the kernel's padding would grow without bound. Names
+    ``option``, the axis, its extent and the fix. ``shape``: the field's shape in ``axes`` order."""
+    if _check_target(kind, original_um, target_um) == 0.0:
+        return
+    pitch = {str(k).lower(): v for k, v in dict(pitch_um or {}).items()}
+    dims = dict(zip(axes, [int(n) for n in shape]))
+    letters = "Z" if kind == "axial" else "".join(c for c in "YX" if c in axes)
+    for c in letters:
+        p = pitch.get(c.lower())
+        if c not in dims or not isinstance(p, (int, float)) or not (math.isfinite(p) and p > 0):
+            continue
+        fov = dims[c] * float(p)
+        if target_um > fov:
+            raise ValueError(f"{option}: a {kind} resolution of {target_um:g} µm is wider than the field of view along "
+                             f"{c.lower()} ({dims[c]} pixels × {p:g} µm = {fov:g} µm): the reduced PSF would reach "
+                             "past the image on both sides and the edges, not the sample, would make the maps; give "
+                             f"{kind}={fov:g} or less, or check the pitch (--pitch-um, µm per pixel)")
+
+
+def _check_kernel_bound(sigma_um: float, pitch: float, n: int, axis: str) -> None:
+    """The bound of the reduction kernel: its σ' at most the axis length (the padding, ⌈5σ'⌉ + 1 pixels a
+    side, then stays within about 11 times the axis)."""
+    if sigma_um / pitch > n:
+        raise ValueError(f"the reduction along {axis} needs a Gaussian of σ' = {sigma_um / pitch:.4g} pixels, wider "
+                         f"than the axis ({n} pixels × {pitch:g} µm): the target PSF exceeds the field of view; give "
+                         "a target no wider than the field of view, or check pitch_um (µm per pixel)")
 
 
 def lateral_filter_sigma_um(original_um: float, target_um: float) -> float:
@@ -391,6 +425,8 @@ def reduce_resolution(field: Any, *, pitch_um: Mapping[str, float], system: Any,
     for c in need:
         if c not in pitch or not (math.isfinite(pitch[c]) and pitch[c] > 0):
             raise ValueError(f"pitch_um needs a positive {c!r} entry (µm per pixel) for this reduction; got {pitch_um!r}")
+    for c in need:
+        _check_kernel_bound(sig_ax if c == "z" else sig_lat, pitch[c], x.shape[axes.index(c.upper())], c)
     y = x
     if sig_ax:
         if isinstance(axial_center, str):

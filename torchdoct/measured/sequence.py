@@ -199,7 +199,11 @@ class SequenceData:
 def finite_positive(where: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise TypeError(f"{where} must be a number; got {type(value).__name__} {value!r}")
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        raise ValueError(f"{where} must be a finite number > 0; got an integer of {len(str(abs(int(value))))} "
+                         "digits") from None
     if not math.isfinite(v) or v <= 0:
         raise ValueError(f"{where} must be a finite number > 0; got {value!r}")
     return v
@@ -255,10 +259,16 @@ def validate_meta(meta: Mapping[str, Any], shape: _Seq[int], *, where: str = "me
     times = out["frame_times_s"]
     if isinstance(times, (str, bytes)) or not hasattr(times, "__len__"):
         raise TypeError(f"{where}: frame_times_s must be a list of times in s; got {times!r}")
-    try:
-        t = [float(v) for v in times]
-    except (TypeError, ValueError):
-        raise TypeError(f"{where}: frame_times_s must be numbers (s); got {times!r}") from None
+    t = []
+    for i, v in enumerate(times):  # numbers only: strings are refused here as they are for pitch_um
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise TypeError(f"{where}: frame_times_s[{i}] must be a number of seconds; got {type(v).__name__} "
+                            f"{str(v)[:40]!r}")
+        try:
+            t.append(float(v))
+        except OverflowError:
+            raise ValueError(f"{where}: frame_times_s[{i}] must be a finite number of seconds; got an integer of "
+                             f"{len(str(abs(int(v))))} digits") from None
     if len(t) != shape[0]:
         raise ValueError(f"{where}: frame_times_s has {len(t)} entries but the data have T = {shape[0]} frames; "
                          f"{HOW['frame_times_s']}")
@@ -283,8 +293,12 @@ def validate_meta(meta: Mapping[str, Any], shape: _Seq[int], *, where: str = "me
                              "wavelengths are in micrometres (840 nm is 0.84)")
         n = s.get("refractive_index", 1.0)
         s["refractive_index"] = finite_positive(f"{where}: system.refractive_index", 1.0 if n is None else n)
-        if s["refractive_index"] < 1.0:
-            raise ValueError(f"{where}: system.refractive_index must be >= 1; got {s['refractive_index']}")
+        from ..conventions import REFRACTIVE_INDEX_RANGE
+
+        lo_n, hi_n = REFRACTIVE_INDEX_RANGE
+        if not lo_n <= s["refractive_index"] <= hi_n:
+            raise ValueError(f"{where}: system.refractive_index must be within [{lo_n:g}, {hi_n:g}] (the phase index "
+                             f"of the medium, tissue about 1.38); got {s['refractive_index']}")
         s.setdefault("name", "system")
         out["system"] = s
     br = out.get("block_raster")

@@ -2,8 +2,9 @@
 
 Every command estimates, before it allocates its working arrays, the peak memory it will need (and,
 where it writes a large output, the bytes that output takes on disk) and calls :func:`check_resources`.
-The check compares the estimate with the memory the machine has available (``MemAvailable`` of
-``/proc/meminfo``) and the free space of the output's file system, and refuses a run that would not fit
+The check compares the estimate with the memory this process may still take (:func:`memory_budget`:
+the smallest of the machine's ``MemAvailable``, the address-space limit ``RLIMIT_AS`` less the address
+space already in use, and the cgroup's memory limit less its usage, v1 or v2) and the free space of the output's file system, and refuses a run that would not fit
 with one :class:`ResourceLimitError` (:class:`MemoryLimitError` for memory, :class:`DiskLimitError` for
 disk): one line that names the input (a file, a field or a value), the estimate, the available amount
 and the fix (an option to lower or a smaller value). Where the machine does not say how much it has
@@ -32,10 +33,12 @@ from __future__ import annotations
 
 import os
 import shutil
+import stat
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, NamedTuple
 
-__all__ = ["ResourceLimitError", "MemoryLimitError", "DiskLimitError", "available_memory_bytes", "free_disk_bytes",
+__all__ = ["ResourceLimitError", "MemoryLimitError", "DiskLimitError", "MemoryBudget", "memory_budget",
+           "available_memory_bytes", "free_disk_bytes",
            "format_gb", "check_resources", "maps_bytes", "check_maps", "declared_array_bytes", "classify_bytes",
            "check_classify", "check_compare", "check_bench", "MAPS_WORK_COPIES", "CLASSIFY_COPIES",
            "COMPARE_COPIES"]
@@ -53,16 +56,119 @@ class DiskLimitError(ResourceLimitError):
     """An output would need more disk space than its file system has free (refused before any work)."""
 
 
-def available_memory_bytes() -> int | None:
-    """``MemAvailable`` of the machine (Linux ``/proc/meminfo``), or ``None`` where unknown."""
+class MemoryBudget(NamedTuple):
+    """The bytes this process may still allocate (``bytes``), what sets that figure (``source``, e.g.
+    ``"the address-space limit RLIMIT_AS"``) and whether it is a hard limit (``hard``: the allocation
+    fails past it) or the machine's estimate ``MemAvailable`` (which reclaimable caches may exceed)."""
+
+    bytes: int
+    source: str
+    hard: bool
+
+
+def _read_int(path: str) -> int | None:
     try:
-        with open("/proc/meminfo") as fh:
+        with open(path) as fh:
+            text = fh.read(64).strip()
+    except (OSError, UnicodeDecodeError):
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        return None  # "max" (cgroup v2: no limit) or unreadable
+
+
+def _mem_available(proc: str = "/proc") -> int | None:
+    try:
+        with open(f"{proc}/meminfo") as fh:
             for line in fh:
                 if line.startswith("MemAvailable:"):
                     return int(line.split()[1]) * 1024
-    except OSError:
+    except (OSError, ValueError, IndexError):
         return None
     return None
+
+
+def _address_space_headroom(proc: str = "/proc") -> int | None:
+    """``RLIMIT_AS`` (soft) less this process's address space (``VmSize``), or ``None`` without a limit."""
+    try:
+        import resource
+    except ImportError:  # not POSIX
+        return None
+    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    if soft == resource.RLIM_INFINITY or soft < 0:
+        return None
+    used = 0
+    try:
+        with open(f"{proc}/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmSize:"):
+                    used = int(line.split()[1]) * 1024
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    return max(int(soft) - used, 0)
+
+
+#: A cgroup v1 ``memory.limit_in_bytes`` at or above this is "no limit" (the kernel writes 2^63 rounded
+#: down to a page).
+_CGROUP_V1_UNLIMITED = 1 << 62
+
+
+def _cgroup_headroom(proc: str = "/proc", root: str = "/sys/fs/cgroup") -> int | None:
+    """The smallest limit-less-usage of this process's memory cgroup and its ancestors (v2
+    ``memory.max``/``memory.current``; v1 ``memory.limit_in_bytes``/``memory.usage_in_bytes``), or
+    ``None`` without a limit. The path in ``/proc/self/cgroup`` is taken under the mount and, where the
+    mount is the cgroup namespace's own root (containers), the mount itself counts."""
+    try:
+        with open(f"{proc}/self/cgroup") as fh:
+            lines = fh.read(1 << 16).splitlines()
+    except OSError:
+        return None
+    best: int | None = None
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        _, controllers, rel = parts
+        if parts[0] == "0" and controllers == "":
+            base, limit_name, usage_name = root, "memory.max", "memory.current"
+        elif "memory" in controllers.split(","):
+            base, limit_name, usage_name = os.path.join(root, "memory"), "memory.limit_in_bytes", "memory.usage_in_bytes"
+        else:
+            continue
+        rel = rel.strip("/")
+        levels = [os.path.join(base, *rel.split("/")[:i]) for i in range(len(rel.split("/")) if rel else 0, 0, -1)]
+        levels.append(base)
+        for d in levels:
+            limit = _read_int(os.path.join(d, limit_name))
+            if limit is None or limit >= _CGROUP_V1_UNLIMITED:
+                continue
+            usage = _read_int(os.path.join(d, usage_name)) or 0
+            room = max(limit - usage, 0)
+            best = room if best is None else min(best, room)
+    return best
+
+
+def memory_budget(*, proc: str = "/proc", cgroup_root: str = "/sys/fs/cgroup") -> MemoryBudget | None:
+    """The memory this process may still allocate: the smallest of ``MemAvailable`` (``/proc/meminfo``),
+    the address-space limit ``RLIMIT_AS`` less the address space in use, and the memory cgroup's limit
+    less its usage (v1 or v2, this cgroup and its ancestors); ``None`` where none is known (not Linux).
+    ``proc``/``cgroup_root``: where those files are (tests give a made-up tree)."""
+    found = [(b, src, hard) for b, src, hard in (
+        (_mem_available(proc), "MemAvailable of the machine", False),
+        (_address_space_headroom(proc), "the address-space limit RLIMIT_AS (ulimit -v) less what this process uses", True),
+        (_cgroup_headroom(proc, cgroup_root), "the memory limit of this process's cgroup (container) less its usage",
+         True)) if b is not None]
+    if not found:
+        return None
+    return MemoryBudget(*min(found, key=lambda f: f[0]))
+
+
+def available_memory_bytes() -> int | None:
+    """:func:`memory_budget`'s bytes, or ``None`` where unknown."""
+    budget = memory_budget()
+    return None if budget is None else budget.bytes
 
 
 def free_disk_bytes(path: str | os.PathLike) -> int | None:
@@ -94,8 +200,10 @@ def check_resources(what: str, need_bytes: float, fix: str, *, detail: str = "",
     """
     avail = available_memory_bytes()
     if avail is not None and need_bytes > avail:
+        budget = memory_budget()
+        source = f" ({budget.source})" if budget is not None and budget.bytes == avail and budget.hard else ""
         raise MemoryLimitError(f"{what} needs about {format_gb(need_bytes)}" + (f" ({detail})" if detail else "")
-                               + f" but only {format_gb(avail)} are available; {fix}")
+                               + f" but only {format_gb(avail)} are available{source}; {fix}")
     if out_path is not None and out_bytes > 0:
         free = free_disk_bytes(out_path)
         if free is not None and out_bytes > free:
@@ -159,6 +267,11 @@ def declared_array_bytes(path: str | os.PathLike) -> int:
     """Bytes of the arrays a file declares, without loading them: the ``.npy`` members' uncompressed
     sizes for ``.npz``, the file's size otherwise (TIFF stacks are stored uncompressed)."""
     p = Path(path)
+    try:
+        if not stat.S_ISREG(os.stat(p).st_mode):
+            return 0  # a FIFO, device or folder: its reader refuses it (opening it here would block)
+    except OSError:
+        return 0  # the reader names a missing file
     if p.suffix.lower() == ".npz":
         import zipfile
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -71,8 +72,12 @@ def _number(path: str, value: Any, *, positive: bool = False, nonneg: bool = Fal
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise TypeError(f"{path} must be a number{(' in ' + unit) if unit else ''}; "
                         f"got {type(value).__name__} {value!r}")
-    v = float(value)
     u = f" {unit}" if unit else ""
+    try:
+        v = float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        _fail(path, f"must be a finite number{u}; got an integer of {len(str(abs(value)))} digits, beyond any float",
+              "give a finite value")
     if not math.isfinite(v):
         _fail(path, f"must be a finite number{u}; got {value!r}", "give a finite value")
     if positive and v <= 0:
@@ -148,7 +153,10 @@ class OCTSystem:
             if getattr(self, key) is not None and getattr(self, key) > 1e4:
                 _fail(f"{p}.{key}", f"{getattr(self, key)} µm is larger than 1 cm",
                       "resolutions are in micrometres")
-        _number(f"{p}.refractive_index", self.refractive_index, lo=1.0, hi=5.0)
+        from ..conventions import REFRACTIVE_INDEX_RANGE
+
+        _number(f"{p}.refractive_index", self.refractive_index, lo=REFRACTIVE_INDEX_RANGE[0],
+                hi=REFRACTIVE_INDEX_RANGE[1])
 
     @property
     def lateral_widths_um(self) -> tuple[float, float]:
@@ -466,6 +474,12 @@ class Scene:
         if "ocds" in self.analysis.metrics:
             delays = self.delays_s
             inside = [d for d in delays if lo * (1 - 1e-9) <= d <= hi * (1 + 1e-9)]
+            if len(inside) >= 2:
+                try:
+                    check_ocds_pairs(self.protocol.times_s, (lo, hi), "analysis.ocds_delay_range_s",
+                                     "narrow ocds_delay_range_s or raise protocol.n_frames")
+                except ValueError as err:
+                    raise SceneError(str(err)) from None
             if len(inside) < 2:
                 _fail("analysis.ocds_delay_range_s",
                       f"[{lo}, {hi}] s holds {len(inside)} frame delay(s) of the protocol "
@@ -544,6 +558,77 @@ def _list_of_tables(path: str, value: Any) -> list:
         raise TypeError(f"{path} must be an array of tables ([[{path}]]); got {value!r}")
     check_count(path, len(value))
     return value
+
+
+#: Fewest frame pairs a delay of the OCDS fit may rest on (docs/reliability.md, "Degenerate estimators").
+#: Without correlation, the Pearson coefficient of N pairs has the variance 1/(N − 1): finite from N = 2
+#: on, undefined for one pair, whose correlation is the convention ρ = 1 (both sides constant), not an
+#: estimate: a fit through it returns a number set by the protocol alone (−2/Δt over 3 frames).
+MIN_PAIRS_PER_DELAY = 2
+
+
+def delay_pair_counts(frame_times_s: Any) -> list[tuple[float, int]]:
+    """``(delay_s, frame pairs)`` of every distinct delay of the frame times (s): ``(m·Δt, N − m)`` for a
+    uniform protocol (steps equal within 1e-9 relative, as :func:`torchdoct.sim.metrics.ocds`), else the
+    pairs ``i < j`` grouped by ``t_j − t_i`` rounded to 1e-9 s."""
+    t = [float(v) for v in frame_times_s]
+    n = len(t)
+    d = [b - a for a, b in zip(t, t[1:])]
+    if d and max(d) - min(d) <= 1e-9 * max(d):
+        dt = (t[-1] - t[0]) / (n - 1)
+        return [(m * dt, n - m) for m in range(1, n)]
+    counts: dict[float, int] = {}
+    for i in range(n):
+        for j in range(i + 1, n):
+            key = round(t[j] - t[i], 9)
+            counts[key] = counts.get(key, 0) + 1
+    return sorted(counts.items())
+
+
+def check_ocds_pairs(frame_times_s: Any, delay_range_s: Any, where: str = "ocds_delay_range_s",
+                     fix: str = "narrow the delay range or record more frames") -> None:
+    """Refuse (``ValueError``) an OCDS whose delay range includes a delay resting on fewer than
+    :data:`MIN_PAIRS_PER_DELAY` frame pairs, naming ``where``, the delay, its pairs, the largest delay
+    that has enough and the ``fix``."""
+    lo, hi = (float(v) for v in delay_range_s)
+    counts = delay_pair_counts(frame_times_s)
+    inside = [(d, c) for d, c in counts if lo * (1 - 1e-9) <= d <= hi * (1 + 1e-9)]
+    if len(inside) < 2:
+        return  # fewer than 2 delays: the slope's own check names it
+    thin = [(d, c) for d, c in inside if c < MIN_PAIRS_PER_DELAY]
+    if not thin:
+        return
+    enough = [d for d, c in inside if c >= MIN_PAIRS_PER_DELAY]
+    d, c = thin[0]
+    more = f" (and {len(thin) - 1} more delay(s) above it)" if len(thin) > 1 else ""
+    upto = (f"; the delays up to {max(enough):.6g} s have enough" if enough else "")
+    raise ValueError(f"{where}: [{lo:g}, {hi:g}] s includes the delay {d:.6g} s, which rests on {c} frame pair(s)"
+                     f"{more}; a lag correlation of fewer than {MIN_PAIRS_PER_DELAY} pairs is no estimate (one pair "
+                     f"has nothing to correlate: its ρ = 1 is a convention, whatever the data){upto}: {fix}")
+
+
+def whole_argument(name: str, value: Any) -> int:
+    """``value`` as an ``int`` when it is one (a Python or NumPy integer); a ``bool``, a float (even
+    ``2.0``) or anything else is a ``TypeError`` naming the argument ``name``: Python callers get no
+    silent truncation (``trials=2.5`` is not 2 trials)."""
+    import operator
+
+    if isinstance(value, bool) or isinstance(value, float) or not hasattr(type(value), "__index__"):
+        raise TypeError(f"{name} must be an integer; got {type(value).__name__} {value!r}"
+                        + (" (pass int(...) if truncation is meant)" if isinstance(value, float) else ""))
+    return operator.index(value)
+
+
+def check_scene_argument(func: str, value: Any, cls: type | None = None, loader: str = "td.load_scene") -> None:
+    """A ``TypeError`` when ``value`` (the first argument of ``func``) is not a ``cls`` (default
+    :class:`Scene`): a name or a path says to load it first with ``loader``."""
+    cls = Scene if cls is None else cls
+    if isinstance(value, cls):
+        return
+    if isinstance(value, (str, os.PathLike)):
+        raise TypeError(f"{func} takes a {cls.__name__}, not the name or path {str(value)!r}: load it first, "
+                        f"{func.split('(')[0]}({loader}({str(value)!r}))")
+    raise TypeError(f"{func} takes a {cls.__name__} (from {loader}); got {type(value).__name__}")
 
 
 def check_count(path: str, n: int) -> None:
@@ -638,14 +723,15 @@ def scene_from_dict(data: dict[str, Any]) -> Scene:
                  analysis=analysis, simulation=simulation, name=name, description=desc)
 
 
-def read_toml(path: str | Path) -> dict[str, Any]:
+def read_toml(path: str | Path, what: str = "TOML file") -> dict[str, Any]:
     """The tables of a TOML file; a syntax error or a file that is not UTF-8 text (an image or data
-    file given by mistake) is a :class:`SceneError` naming the file."""
-    from ..files import check_nesting
+    file given by mistake) is a :class:`SceneError` naming the file; a path that is not a regular file
+    or a file over :data:`torchdoct.files.MAX_TEXT_BYTES` is a ``ValueError`` naming ``what``
+    (:func:`torchdoct.files.read_capped`)."""
+    from ..files import check_nesting, read_capped
 
     try:
-        with open(path, "rb") as fh:
-            text = fh.read().decode("utf-8")
+        text = read_capped(path, what).decode("utf-8")
         check_nesting(text, str(path), toml=True)  # before the parser's recursion
         data = tomllib.loads(text)
         check_nesting(data, str(path))  # dotted keys nest tables without brackets

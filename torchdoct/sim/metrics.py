@@ -52,8 +52,28 @@ def _variance_last(x: torch.Tensor) -> torch.Tensor:
     return ((d - m) ** 2).mean(-1)
 
 
+def _check_intensity(func: str, intensity: Any, min_frames: int = 1) -> None:
+    """Refuse, naming the argument, what is not a real tensor of intensities ``[..., frames]``: a complex
+    field (its dB would be complex "variances"; pass ``field.abs() ** 2``, i.e. ``|E|²``), a number or
+    another type, a tensor without a frames axis or with fewer than ``min_frames`` frames."""
+    if not isinstance(intensity, torch.Tensor):
+        raise TypeError(f"{func}(intensity): intensity must be a torch.Tensor of linear intensities [..., frames]; "
+                        f"got {type(intensity).__name__}" + (" (one number has no frames)" if isinstance(
+                            intensity, (int, float)) else " (use torch.as_tensor)"))
+    if intensity.is_complex():
+        raise TypeError(f"{func}(intensity): intensity must be real linear intensity I = |E|²; got a complex "
+                        f"{intensity.dtype} field: pass field.abs() ** 2")
+    if intensity.ndim == 0:
+        raise ValueError(f"{func}(intensity): intensity is a 0-dimensional tensor; it needs a frames axis (the "
+                         "last) [..., frames]")
+    if intensity.shape[-1] < min_frames:
+        raise ValueError(f"{func}(intensity): {intensity.shape[-1]} frame(s) on the last axis (shape "
+                         f"{list(intensity.shape)}); {func} needs at least {min_frames}")
+
+
 def liv(intensity: torch.Tensor) -> torch.Tensor:
     """LIV (dB²): ddof-0 variance over the last axis (frames) of ``10·log10 I`` (physics.md §1)."""
+    _check_intensity("liv", intensity)
     return _variance_last(to_db(intensity))
 
 
@@ -138,6 +158,26 @@ def ocds_from_correlations(rho: torch.Tensor, delays_s: torch.Tensor,
     return -((y - y[..., :1]) * xc).sum(-1) / (xc * xc).sum()
 
 
+def _check_frame_times(func: str, frame_times_s: Any, n_frames: int) -> None:
+    """Refuse, naming the argument, frame times that are not finite numbers, one per frame, strictly
+    increasing."""
+    try:
+        t = [float(v) for v in frame_times_s]
+    except (TypeError, ValueError):
+        raise TypeError(f"{func}(frame_times_s): frame_times_s must be a sequence of numbers (s); got "
+                        f"{type(frame_times_s).__name__}") from None
+    if len(t) != n_frames:
+        raise ValueError(f"{func}(frame_times_s): {len(t)} frame times for {n_frames} frames; give one time (s) "
+                         "per frame")
+    bad = next((i for i, v in enumerate(t) if not math.isfinite(v)), None)
+    if bad is not None:
+        raise ValueError(f"{func}(frame_times_s): frame_times_s[{bad}] = {t[bad]} is not finite")
+    back = next((i for i in range(1, len(t)) if not t[i] > t[i - 1]), None)
+    if back is not None:
+        raise ValueError(f"{func}(frame_times_s): frame times must increase strictly; frame_times_s[{back}] = "
+                         f"{t[back]} s is not after frame_times_s[{back - 1}] = {t[back - 1]} s")
+
+
 def uniform_frame_interval_s(frame_times_s: Sequence[float]) -> float | None:
     """The frame interval (s) of a uniform protocol (steps equal within 1e-9 relative), else ``None``."""
     t = [float(v) for v in frame_times_s]
@@ -157,12 +197,17 @@ def ocds(intensity: torch.Tensor, frame_times_s: Sequence[float], *,
     ``delay_range_s`` are correlated (the others do not enter the slope); their values are those of
     :func:`lag_correlations`, and the slope is :func:`ocds_from_correlations`.
     """
+    from .config import check_ocds_pairs
+
+    _check_intensity("ocds", intensity, min_frames=3)
+    _check_frame_times("ocds", frame_times_s, intensity.shape[-1])
     if scale == "db":
         s = to_db(intensity)
     elif scale == "linear":
         s = intensity
     else:
         raise ValueError(f"scale must be 'db' or 'linear'; got {scale!r}")
+    check_ocds_pairs(frame_times_s, delay_range_s, "ocds(delay_range_s)")  # after the check of 2 delays
     dt = uniform_frame_interval_s(frame_times_s)
     if dt is None or estimator not in ("pearson", "biased"):
         delays, rho = lag_correlations(s, frame_times_s, estimator=estimator)

@@ -385,8 +385,9 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
 
     ``truncation_tolerance`` and ``truncation`` (``"hard"`` or ``"taper"``) default to the scene's
     ``[simulation]`` values; the taper changes no domain (it reaches 0 on the same ellipsoid)."""
-    from .config import check_count
+    from .config import check_count, check_scene_argument
 
+    check_scene_argument("td.make_plan(scene)", scene)
     check_count("system", len(scene.systems))  # a scene built in Python: the file's limits, before the work
     check_count("population", len(scene.populations))
     for i, p in enumerate(scene.populations):

@@ -17,11 +17,9 @@ def shipped_scenes() -> dict[str, Path]:
 def resolve_scene_path(scene: str | Path) -> Path:
     """A scene file path, or the path of the shipped scene of that name."""
     shipped = shipped_scenes()
-    found = file_or_shipped(scene, shipped)
+    found = file_or_shipped(scene, shipped, "scene file")
     if found is not None:
         return found
-    if Path(scene).exists():
-        raise FileNotFoundError(f"scene {str(scene)!r} is not a file")
     raise FileNotFoundError(
         f"scene file {str(scene)!r} not found; give a path to a .toml scene file or the name of a "
         f"shipped scene: {', '.join(shipped)}")

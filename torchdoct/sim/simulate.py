@@ -129,9 +129,14 @@ def simulate(
     """
     import time
 
+    from .config import check_scene_argument, whole_argument
+
+    check_scene_argument("td.simulate(scene)", scene)
     st = scene.simulation
-    trials = st.trials if trials is None else int(trials)
-    seed = st.seed if seed is None else int(seed)
+    trials = st.trials if trials is None else whole_argument("trials", trials)
+    seed = st.seed if seed is None else whole_argument("seed", seed)
+    if chunk_trials is not None:
+        chunk_trials = whole_argument("chunk_trials", chunk_trials)
     if trials < 1:
         raise ValueError(f"trials must be >= 1; got {trials}")
     if seed < 0:

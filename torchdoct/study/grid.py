@@ -16,10 +16,42 @@ import numpy as np
 
 from ..sim.config import _fail
 
-__all__ = ["field_values"]
+__all__ = ["field_values", "MAX_CELLS", "max_cells", "set_max_cells", "cells_over_cap"]
 
 _ARRAY_TABLES = ("system", "population")
 _SIG_DIGITS = 12
+
+#: The most cells a sweep may have unless ``--max-cells`` (:func:`set_max_cells`) says otherwise: every
+#: cell's scene is built and validated before the first is simulated, so the count is checked first.
+MAX_CELLS = 10_000
+_max_cells: int | None = None
+
+
+def set_max_cells(n: int | None) -> None:
+    """Set (``None``: clear) the cap on a sweep's cells over :data:`MAX_CELLS` (``--max-cells``)."""
+    global _max_cells
+    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
+        raise ValueError(f"--max-cells must be a positive integer; got {n!r}")
+    _max_cells = n
+
+
+def max_cells() -> int:
+    """The cap on a sweep's cells: ``--max-cells``, else :data:`MAX_CELLS`."""
+    return MAX_CELLS if _max_cells is None else _max_cells
+
+
+def cells_over_cap(where: str, n: int, what: str, estimate=None) -> None:
+    """Refuse ``n`` cells (or values of one field) over :func:`max_cells` before any is built, naming
+    ``where``, ``what`` makes them, the count and the fix; ``estimate()`` (called only then) returns the
+    seconds and bytes of building one cell, scaled to ``n`` in the message."""
+    cap = max_cells()
+    if n > cap:
+        extra = ""
+        if estimate is not None:
+            sec, nbytes = estimate()
+            extra = (f"; building them alone would take about {sec * n:,.0f} s and {nbytes * n / 2**30:,.2f} GB "
+                     "before the first is simulated")
+        _fail(where, f"{what} makes {n:,} cells, over the cap of {cap:,}{extra}", "sweep fewer values, use mode = \"zip\", or pass --max-cells N to run them all")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -53,6 +85,7 @@ def _range_spec(where: str, spec: Any, kind: str) -> list[float]:
         raise TypeError(f"{where}.{kind}.num must be an integer; got {num!r}")
     if num < 1:
         _fail(f"{where}.{kind}.num", f"must be >= 1; got {num}")
+    cells_over_cap(f"{where}.{kind}.num", num, f"num = {num:,}")
     if kind == "log":
         if start <= 0 or stop <= 0:
             _fail(f"{where}.log", f"start and stop must be > 0; got start = {start}, stop = {stop}",

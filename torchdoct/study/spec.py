@@ -103,7 +103,7 @@ def shipped_studies() -> dict[str, Path]:
 
 def _resolve(study: str | os.PathLike) -> Path:
     shipped = shipped_studies()
-    found = file_or_shipped(study, shipped)
+    found = file_or_shipped(study, shipped, "study file")
     if found is not None:
         return found
     raise FileNotFoundError(f"study {str(study)!r} not found; give a study .toml file or the name of a shipped "

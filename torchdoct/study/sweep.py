@@ -246,6 +246,24 @@ def make_sweep(scene_data: dict[str, Any], fields: Sequence[dict[str, Any]], *, 
             raise TypeError(f"{where}: tags must map strings to strings; got {k!r}: {v!r}")
         if k in RESERVED_COLUMNS:
             _fail(f"{where}.tags", f"{k!r} is a column of the table already", "rename the tag")
+    n_cells = (min(len(f.values) for f in parsed) if mode == "zip" else math.prod(len(f.values) for f in parsed))
+    from .grid import cells_over_cap
+
+    def one_cell() -> tuple[float, int]:  # the cost of building cell 0, measured on it
+        import pickle
+
+        t0 = time.perf_counter()
+        data = copy.deepcopy(base)
+        for f, parts in zip(parsed, paths):
+            _set_path(data, parts, f.values[0], where)
+        try:
+            scene = scene_from_dict(data)
+        except (SceneError, TypeError):
+            scene = data
+        return time.perf_counter() - t0, len(pickle.dumps((data, scene)))
+
+    cells_over_cap(where, n_cells, f"mode = {mode!r} over {' × '.join(str(len(f.values)) for f in parsed)} values",
+                   one_cell)
     if mode == "zip":
         lengths = {f.name: len(f.values) for f in parsed}
         if len(set(lengths.values())) > 1:
@@ -300,11 +318,15 @@ def parse_sweep(data: dict[str, Any], *, source: str = "scene") -> Sweep:
 
 def load_sweep(path: str | os.PathLike) -> Sweep:
     """Read a TOML scene file with a ``[sweep]`` table."""
+    from ..files import check_regular_file
+
     p = Path(path)
-    if not p.is_file():
+    try:
+        check_regular_file(p, "sweep file")
+    except FileNotFoundError:
         raise FileNotFoundError(f"sweep file {str(path)!r} not found; give the path of a .toml scene file "
-                                "with a [sweep] table")
-    data = read_toml(p)
+                                "with a [sweep] table") from None
+    data = read_toml(p, "sweep file")
     try:
         sweep = parse_sweep(data, source=p.name)
     except (SceneError, TypeError) as err:

@@ -55,9 +55,15 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
         raise ValueError(f"{path.name}: not a readable HDF5 / MATLAB v7.3 file ({err})") from None
     with fh:
         check_hdf5_local(fh, path, allow_external_hdf5)  # before any link is followed or any data read
-        names = [k for k in fh.keys() if not k.startswith("#") and isinstance(fh[k], h5py.Dataset)]
+        def resolved(k: str):  # None for a dangling soft link or one into a loop: only the one asked for is named
+            try:
+                return fh.get(k)
+            except (KeyError, RuntimeError, OSError, ValueError):
+                return None
+
+        names = [k for k in fh.keys() if not k.startswith("#") and isinstance(resolved(k), h5py.Dataset)]
         if dataset is None:
-            if "data" in names:
+            if "data" in names or "data" in fh.keys():  # a 'data' link to nothing is named below
                 dataset = "data"
             else:
                 cands = [n for n in names if n not in ("labels", "label_params")]
@@ -65,6 +71,11 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
                     raise ValueError(f"{path.name}: no dataset 'data' and {len(cands)} candidate datasets "
                                      f"({', '.join(cands) or 'none'}); name one with --dataset")
                 dataset = cands[0]
+        if dataset in fh.keys() and resolved(dataset) is None:
+            link = fh.get(dataset, getlink=True)
+            raise ValueError(f"{path.name}: dataset {dataset!r} is a link that leads to no dataset ("
+                             f"{type(link).__name__} to {getattr(link, 'path', '?')!r}: dangling or a loop); "
+                             "write the data into the file, or name another dataset with --dataset")
         if dataset not in fh or not isinstance(fh[dataset], h5py.Dataset):
             raise ValueError(f"{path.name}: no dataset {dataset!r} (datasets: {', '.join(names) or 'none'})")
         data = read_dataset(fh[dataset], f"{path.name}:{dataset}")

@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ..guards import TiffDamage, check_tiff_pages
+from ..guards import TiffDamage, check_tiff_pages, json_loads
 from .base import Loaded
 
 SUFFIXES = (".tif", ".tiff")
@@ -36,7 +36,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
 
         check_nesting(desc, f"{path.name}: TIFF ImageDescription")  # before the parser's recursion
         try:
-            d = json.loads(desc)
+            d = json_loads(desc)
         except json.JSONDecodeError:
             d = None
         if isinstance(d, dict) and "axes" in d and "frame_times_s" in d:

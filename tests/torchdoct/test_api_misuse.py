@@ -1,0 +1,67 @@
+"""Python API misuse (issue class 11): a wrong type or a meaningless value is a ``TypeError`` or
+``ValueError`` naming the argument and the fix, never an internal message, an ``AttributeError`` or a
+silent truncation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import torchdoct as td
+
+
+@pytest.mark.parametrize("call", [td.simulate, td.make_plan])
+def test_a_scene_name_instead_of_a_scene_says_to_load_it(call):
+    with pytest.raises(TypeError, match=r"td\.load_scene\('example'\)"):
+        call("example")
+    with pytest.raises(TypeError, match="takes a Scene"):
+        call(42)
+
+
+def test_a_phantom_name_instead_of_a_phantom_says_to_load_it():
+    with pytest.raises(TypeError, match=r"td\.load_phantom\('spheroid'\)"):
+        td.render("spheroid")
+
+
+@pytest.mark.parametrize("kw,value", [("trials", 2.5), ("trials", True), ("trials", 64.0), ("seed", 1.5),
+                                      ("seed", False), ("trials", "64"), ("chunk_trials", 64.5)])
+def test_non_integer_counts_and_seeds_are_refused_not_truncated(small_scene, kw, value):
+    with pytest.raises(TypeError, match=f"{kw} must be an integer"):
+        td.simulate(small_scene, **{kw: value})
+
+
+def test_numpy_integers_are_integers(small_scene):
+    a = td.simulate(small_scene, trials=np.int64(64), seed=np.int32(3))
+    b = td.simulate(small_scene, trials=64, seed=3)
+    assert torch.equal(a.signals, b.signals)
+
+
+def test_liv_of_a_complex_field_asks_for_intensity():
+    field = torch.randn(4, 8, dtype=torch.complex64, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(TypeError, match=r"liv\(intensity\).*complex.*abs\(\) \*\* 2"):
+        td.liv(field)
+    v = td.liv(field.abs() ** 2)
+    assert not v.is_complex() and torch.allclose(v, td.liv(field.real ** 2 + field.imag ** 2), rtol=1e-4)
+
+
+@pytest.mark.parametrize("value,error", [(3.0, TypeError), (torch.tensor(3.0), ValueError), ([1.0, 2.0], TypeError)])
+def test_liv_of_a_number_names_the_argument(value, error):
+    with pytest.raises(error, match=r"liv\(intensity\)"):
+        td.liv(value)
+
+
+def test_ocds_of_too_few_frames_or_bad_times_names_the_argument():
+    with pytest.raises(ValueError, match=r"ocds\(intensity\): 1 frame"):
+        td.ocds(torch.ones(1), [0.0])
+    x = torch.rand(4, 5, generator=torch.Generator().manual_seed(0)) + 0.5
+    with pytest.raises(ValueError, match=r"ocds\(frame_times_s\).*increase strictly.*frame_times_s\[2\]"):
+        td.ocds(x, [0.0, 0.2, 0.2, 0.4, 0.6])
+    with pytest.raises(ValueError, match=r"ocds\(frame_times_s\).*increase strictly.*frame_times_s\[1\]"):
+        td.ocds(x, [0.4, 0.2, 0.6, 0.8, 1.0])
+    with pytest.raises(ValueError, match=r"ocds\(frame_times_s\): 4 frame times for 5 frames"):
+        td.ocds(x, [0.0, 0.2, 0.4, 0.6])
+    with pytest.raises(ValueError, match=r"ocds\(frame_times_s\): frame_times_s\[1\] = nan"):
+        td.ocds(x, [0.0, float("nan"), 0.4, 0.6, 0.8])
+    with pytest.raises(TypeError, match=r"ocds\(intensity\).*complex"):
+        td.ocds(torch.ones(4, 5, dtype=torch.complex64), [0.0, 0.2, 0.4, 0.6, 0.8])
