@@ -118,8 +118,6 @@ def _background(mean_db: np.ndarray | None, background_db: str | float | None) -
 def _check_arguments(pool, min_probability) -> None:
     if isinstance(pool, bool) or not isinstance(pool, (int, np.integer)) or pool < 1:
         raise ValueError(f"pool must be a positive integer (N for N × N neighbourhoods); got {pool!r}")
-    if pool % 2 == 0:
-        raise ValueError(f"pool must be odd (an N × N window centred on its pixel: 1, 3, 5, ...); got {pool}")
     if min_probability is not None and not 0.0 <= float(min_probability) < 1.0:
         raise ValueError(f"min_probability must be in [0, 1); got {min_probability!r}")
 

@@ -1,5 +1,5 @@
 """Silent nonsense refused (issue class 6, the classifier's part): duplicate channel names in a maps
-file, an even --pool, a wrongly typed model metadata field; and the default model's fallback note names
+file, a wrongly typed model metadata field; and the default model's fallback note names
 the signature channels the maps lack."""
 
 from __future__ import annotations
@@ -35,13 +35,6 @@ def test_duplicate_channel_names_in_a_maps_file_are_refused(tmp_path, capsys):
 
     bad = _maps(tmp_path, twice)
     refused(capsys, tmp_path, [str(bad), "--out", str(tmp_path / "o")], "maps.npz", "more than once",
-            run=classify_main)
-
-
-@pytest.mark.parametrize("pool", ["2", "4"])
-def test_an_even_pool_is_refused(tmp_path, capsys, pool):
-    good = _maps(tmp_path)
-    refused(capsys, tmp_path, [str(good), "--pool", pool, "--out", str(tmp_path / "o")], "pool", "odd",
             run=classify_main)
 
 

@@ -236,8 +236,8 @@ def test_nan_samples_give_a_note_and_masked_signature(outdir, capsys):
     a[3, 2, 1] = np.nan
     a[5, 2, 1] = np.inf
     np.save(path, a)
-    assert main(_maps_argv(outdir, path, "--resolution", "original", "--resolution", "lateral=9",
-                           "--signature")) == 0  # 9 µm: within the 10-µm field of view (5 pixels × 2 µm)
+    assert main(_maps_argv(outdir, path, "--resolution", "original", "--resolution", "lateral=18",
+                           "--signature")) == 0
     out = capsys.readouterr().out
     assert "note: nan.npy: 2 samples are NaN or infinite, masked" in out and "(pixels: 1 at original" in out
     from torchdoct.measured.io import read_maps
@@ -247,7 +247,7 @@ def test_nan_samples_give_a_note_and_masked_signature(outdir, capsys):
         v = m.maps[i]
         if ch.endswith("@original") and not ch.startswith("aliv"):
             assert np.isnan(v[2, 1]) and np.isfinite(np.delete(v.ravel(), 2 * 5 + 1)).any(), ch
-        if ch.endswith("@lateral=9"):  # the reach covers this 5-pixel-wide B-scan's column 2 at depth 2
+        if ch.endswith("@lateral=18"):  # the reach covers this 5-pixel-wide B-scan's column 2 at depth 2
             assert np.isnan(v[2]).all() and np.isfinite(v[[0, 1, 3, 4, 5]]).any(), ch
 
 

@@ -22,13 +22,20 @@ def test_a_target_wider_than_the_field_of_view_is_refused_at_once(tmp_path, caps
     line = refused(capsys, tmp_path, ["maps", str(seq), "--pitch-um", "z=0.001,x=0.001", "--resolution",
                                       "lateral=18", "--metrics", "liv", "--out", str(tmp_path / "m.npz"),
                                       "--no-progress"],
-                   "--resolution", "lateral resolution of 18", "field of view", "--pitch-um")
+                   "--resolution", "field of view", "narrower than the original", "--pitch-um")
     assert "0.005 µm" in line  # 5 pixels × 0.001 µm
+
+
+def test_a_target_of_many_fields_of_view_is_refused(tmp_path, capsys, seq):
+    line = refused(capsys, tmp_path, ["maps", str(seq), "--resolution", "lateral=41", "--metrics", "liv", "--out",
+                                      str(tmp_path / "m.npz"), "--no-progress"],
+                   "--resolution", "lateral resolution of 41", "4 fields of view", "10 µm")
+    assert "lateral=40" in line
 
 
 def test_the_kernel_of_reduce_resolution_is_bounded_by_its_axis():
     x = torch.ones(2, 8, 8, dtype=torch.complex64)
-    with pytest.raises(ValueError, match="wider than the axis"):
+    with pytest.raises(ValueError, match="wider than 4 times the axis"):
         reduce_resolution(x, pitch_um={"z": 0.001, "x": 0.001}, system=SYSTEM, lateral_resolution_um=18.0)
 
 

@@ -181,13 +181,19 @@ def check_target_sampled(kind: str, original_um: float, target_um: float, pitch_
                          f"{kind}={smallest:g} or more")
 
 
+#: The widest reduction target, in fields of view of the axis it filters: the Gaussian's padding
+#: (⌈5σ′⌉ + 1 pixels a side) then stays within about 15 axis lengths (lateral) or 25 (axial).
+MAX_TARGET_FIELDS = 4.0
+
+
 def check_target_in_view(kind: str, original_um: float, target_um: float, pitch_um: Mapping[str, float],
                          axes: str, shape: Any, option: str = "--resolution") -> None:
-    """Refuse a ``kind`` target that differs from the original but is wider than the field of view
-    (pixels × pitch) along an axis it filters: the reduced PSF would reach past the image on both sides,
-    so the edge extension, not the sample, would make the result (a mean 10 dB off, constant over the
-    image, for a pitch given 1000× too fine), and the kernel's padding would grow without bound. Names
-    ``option``, the axis, its extent and the fix. ``shape``: the field's shape in ``axes`` order."""
+    """Refuse a ``kind`` reduction along an axis it filters whose field of view (pixels × pitch) is
+    narrower than the original PSF (the samples cannot be at that pitch: a pitch given 1000× too fine
+    made a mean 10 dB off, constant over the image) or whose target is wider than
+    :data:`MAX_TARGET_FIELDS` fields of view (the kernel's padding would grow without bound and the edge
+    extension, not the sample, would make the maps). Names ``option``, the axis, its extent and the fix.
+    ``shape``: the field's shape in ``axes`` order."""
     if _check_target(kind, original_um, target_um) == 0.0:
         return
     pitch = {str(k).lower(): v for k, v in dict(pitch_um or {}).items()}
@@ -198,19 +204,24 @@ def check_target_in_view(kind: str, original_um: float, target_um: float, pitch_
         if c not in dims or not isinstance(p, (int, float)) or not (math.isfinite(p) and p > 0):
             continue
         fov = dims[c] * float(p)
-        if target_um > fov:
-            raise ValueError(f"{option}: a {kind} resolution of {target_um:g} µm is wider than the field of view along "
-                             f"{c.lower()} ({dims[c]} pixels × {p:g} µm = {fov:g} µm): the reduced PSF would reach "
-                             "past the image on both sides and the edges, not the sample, would make the maps; give "
-                             f"{kind}={fov:g} or less, or check the pitch (--pitch-um, µm per pixel)")
+        if original_um > fov:
+            raise ValueError(f"{option}: the field of view along {c.lower()} ({dims[c]} pixels × {p:g} µm = {fov:g} µm) is "
+                             f"narrower than the original {kind} resolution of {original_um:g} µm, so the samples cannot "
+                             f"be at that pitch and a reduction to {target_um:g} µm would be made by the image's edges; "
+                             "check the pitch (--pitch-um, µm per pixel)")
+        if target_um > MAX_TARGET_FIELDS * fov:
+            raise ValueError(f"{option}: a {kind} resolution of {target_um:g} µm is wider than {MAX_TARGET_FIELDS:g} "
+                             f"fields of view along {c.lower()} ({dims[c]} pixels × {p:g} µm = {fov:g} µm): the edges, "
+                             f"not the sample, would make the maps; give {kind}={MAX_TARGET_FIELDS * fov:g} or less, "
+                             "or check the pitch (--pitch-um, µm per pixel)")
 
 
 def _check_kernel_bound(sigma_um: float, pitch: float, n: int, axis: str) -> None:
-    """The bound of the reduction kernel: its σ' at most the axis length (the padding, ⌈5σ'⌉ + 1 pixels a
-    side, then stays within about 11 times the axis)."""
-    if sigma_um / pitch > n:
+    """The bound of the reduction kernel: its σ' at most :data:`MAX_TARGET_FIELDS` axis lengths (the
+    padding, ⌈5σ'⌉ + 1 pixels a side, then stays within about 40 times the axis)."""
+    if sigma_um / pitch > MAX_TARGET_FIELDS * n:
         raise ValueError(f"the reduction along {axis} needs a Gaussian of σ' = {sigma_um / pitch:.4g} pixels, wider "
-                         f"than the axis ({n} pixels × {pitch:g} µm): the target PSF exceeds the field of view; give "
+                         f"than {MAX_TARGET_FIELDS:g} times the axis ({n} pixels × {pitch:g} µm); give "
                          "a target no wider than the field of view, or check pitch_um (µm per pixel)")
 
 
