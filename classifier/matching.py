@@ -298,7 +298,7 @@ def choose_default_model(maps_list: Sequence[Maps | MapsChannels], shipped: Mapp
     if missing:  # name the channels, not only the first error
         names = [str(col.get("name") if isinstance(col, dict) else col) for col in missing]
         more = f" and {len(names) - 3} more" if len(names) > 3 else ""
-        why = f"the maps lack its channel(s) {', '.join(names[:3])}{more} ({len(names)} of {n_columns}); {err}"
+        why = f"{err} (missing channel(s): {', '.join(names[:3])}{more}, {len(names)} of {n_columns})"
     else:
         why = str(err)
     return liv_ocds, f"model {liv_ocds} (LIV/OCDS) instead of {name}: {why}"

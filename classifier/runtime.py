@@ -222,7 +222,7 @@ def read_calibration(model_path: Path, classes: list[str]) -> dict[str, Any] | N
 def _check_metadata_types(path: Path, meta: Any) -> None:
     """Every metadata field the classify path reads has its type (a wrongly typed one is refused naming
     the field, instead of being ignored or failing later): ``input.columns`` and ``output.classes`` lists
-    of names (columns: or tables with a ``name``), ``spec`` and ``rule`` tables, ``rule.min_probability`` in [0, 1), ``rule.epsilon`` a number,
+    of names (columns: or tables with a ``name``), ``rule`` a table, ``spec`` a table when present, ``rule.min_probability`` in [0, 1), ``rule.epsilon`` a number,
     ``rule.kind``/``rule.indeterminate_class`` strings, ``pool_pixels_max`` a positive integer,
     ``magnitude`` a table when present."""
     fix = "use the .onnx file as doct-train wrote it, or retrain with doct-train"
@@ -242,9 +242,10 @@ def _check_metadata_types(path: Path, meta: Any) -> None:
         if not isinstance(b, dict) or not isinstance(v, list) or not all(
                 isinstance(c, str) or (isinstance(c, dict) and isinstance(c.get("name"), str)) for c in v):
             raise bad(f"{block}.{key}", "a list of names (or of tables with a name)", v if isinstance(b, dict) else b)
-    for key in ("spec", "rule"):
-        if not isinstance(meta.get(key), dict):
-            raise bad(key, "a table (JSON object)", meta.get(key))
+    if not isinstance(meta.get("rule"), dict):
+        raise bad("rule", "a table (JSON object)", meta.get("rule"))
+    if meta.get("spec") is not None and not isinstance(meta["spec"], dict):
+        raise bad("spec", "a table (JSON object)", meta["spec"])
     rule = meta["rule"]
     for key in ("kind", "indeterminate_class"):
         if not isinstance(rule.get(key), str):

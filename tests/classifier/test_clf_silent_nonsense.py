@@ -68,7 +68,7 @@ def test_the_fallback_note_names_the_missing_signature_channels():
     meta["signature"] = {"features": [], "intensity_only": False}
     maps = Maps(maps=np.ones((len(chans), 3, 3), np.float32), channels=tuple(c["name"] for c in chans), meta=meta)
     name, note = choose_default_model([maps], shipped_models(), lambda n: load_model(n, threads=1))
-    assert note is not None and "lack its channel(s)" in note
+    assert note is not None and "missing channel(s): " in note
     sig = load_model(note.split("instead of ")[1].split(":")[0], threads=1)
     first_missing = next(c["name"] for c in sig.columns[:-1] if c["name"] not in maps.channels)
     assert first_missing in note

@@ -196,10 +196,12 @@ def read_maps(path: str | os.PathLike) -> Maps:
                          f"{len(channels) if isinstance(channels, list) else repr(channels)} for {arr.shape[0]} maps")
     _check_maps_meta(meta, arr.ndim, where)
     meta_names = tuple(ch["name"] for ch in channels)
-    dup = sorted({n for n in meta_names if meta_names.count(n) > 1})
-    if dup:  # a reader takes a channel by name: a repeated one would silently pick one of them
-        raise ValueError(f"{where}: channel name(s) {dup} appear more than once; every map needs its own name. "
-                         f"{_rewrite_fix(p)}")
+    keys = [(ch.get("name"), ch.get("wavelength_um"), ch.get("lateral_resolution_um"), ch.get("axial_resolution_um"),
+             ch.get("lateral_resolution_y_um")) for ch in channels]
+    dup = sorted({str(k[0]) for k in keys if keys.count(k) > 1})
+    if dup:  # a reader takes a channel by name and optics: a repeated one would silently pick one of them
+        raise ValueError(f"{where}: channel(s) {dup} appear more than once with the same wavelength and "
+                         f"resolutions; every map needs its own name or optics. {_rewrite_fix(p)}")
     if names is not None:
         if names.dtype.kind not in "US":
             raise ValueError(f"{p.name}: 'channels' must be an array of channel names; got dtype {names.dtype}")
