@@ -55,7 +55,7 @@ def _run_limited(code: str, limit_bytes: int) -> subprocess.CompletedProcess:
 
 
 def test_the_address_space_limit_sets_the_budget():
-    out = _run_limited("from torchdoct.resources import memory_budget\nb = memory_budget()\n"
+    out = _run_limited("from torchdoct.runtime.resources import memory_budget\nb = memory_budget()\n"
                        "print(b.bytes, b.hard, b.source)", 3 * GIB)
     assert out.returncode == 0, out.stderr
     n, hard, source = out.stdout.split(" ", 2)

@@ -90,12 +90,12 @@ def check_declared_size(where: str, shape: Iterable[int], itemsize: int, what: s
 
 def check_memory_budget(where: str, n: int, what: str) -> None:
     """Refuse reading ``n`` bytes that do not fit the memory budget
-    (:func:`torchdoct.resources.memory_budget`: ``MemAvailable``, ``RLIMIT_AS``, the cgroup limit) with a
-    :class:`torchdoct.resources.MemoryLimitError` (a ``ValueError``) naming ``where``, ``what`` it holds,
+    (:func:`torchdoct.runtime.resources.memory_budget`: ``MemAvailable``, ``RLIMIT_AS``, the cgroup limit) with a
+    :class:`torchdoct.runtime.resources.MemoryLimitError` (a ``ValueError``) naming ``where``, ``what`` it holds,
     the budget, what sets it and the fix, before the read would fail half-way (and be taken for a
     truncated file). An explicit input limit (``--max-input-gb``, ``TORCHDOCT_MAX_INPUT_GB``) overrides
     the machine's estimate ``MemAvailable``, never a hard limit."""
-    from ..resources import MemoryLimitError, memory_budget
+    from ..runtime.resources import MemoryLimitError, memory_budget
 
     budget = memory_budget()
     if budget is None or n <= budget.bytes:
