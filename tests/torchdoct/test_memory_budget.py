@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from torchdoct import resources
+from torchdoct.runtime import resources
 
 GIB = 1 << 30
 
