@@ -38,7 +38,9 @@ def _inputs(n: int, seed: int) -> np.ndarray:
 def _metadata() -> dict:
     return {"format": "torchdoct-classifier/1", "classifier_version": "0", "torchdoct_version": "0",
             "input": {"columns": [{"name": n} for n in ("liv@a", "ocds@a", "liv@b", "ocds@b", "pool_pixels")]},
-            "output": {"classes": ["diffusion", "ballistic", "flow", "indeterminate"]}}
+            "output": {"classes": ["diffusion", "ballistic", "flow", "indeterminate"]},
+            "rule": {"kind": "class-or-threshold", "indeterminate_class": "indeterminate", "min_probability": 0.5,
+                     "epsilon": 0.05}}  # doct-train always writes its rule (the classify path reads it)
 
 
 def test_transform_is_the_documented_one():
