@@ -467,7 +467,7 @@ def test_cli_maps_bulk_phase_with_signature(tmp_path, capsys):
 
 
 def test_cli_maps_bulk_phase_errors(tmp_path, capsys):
-    d = make_field(6, 8, 4, snr_db=20.0).astype(np.complex64)
+    d = make_field(8, 8, 4, snr_db=20.0)  # 8 frames: the default OCDS delays (to 6 lags) rest on 2+ pairs.astype(np.complex64)
     src = write_npy(tmp_path, "seq", d)
     isrc = write_npy(tmp_path, "inten", (np.abs(d) ** 2).astype(np.float32))
     cases = [

@@ -90,9 +90,9 @@ def test_png_options_are_checked_before_the_work(tmp_path, capsys, seq, extra, n
 def test_png_y_outside_a_volume_is_refused(tmp_path, capsys):
     rng = np.random.default_rng(1)
     path = tmp_path / "vol.npy"
-    np.save(path, (rng.standard_normal((6, 3, 4, 5)) + 1j).astype(np.complex64))
+    np.save(path, (rng.standard_normal((8, 3, 4, 5)) + 1j).astype(np.complex64))  # 8 frames: OCDS delays have 2+ pairs
     path.with_suffix(".json").write_text(json.dumps({
-        "axes": "TYZX", "pitch_um": {"z": 2.0, "x": 2.0, "y": 2.0}, "frame_times_s": [0.2 * i for i in range(6)]}))
+        "axes": "TYZX", "pitch_um": {"z": 2.0, "x": 2.0, "y": 2.0}, "frame_times_s": [0.2 * i for i in range(8)]}))
     refused(capsys, tmp_path, ["maps", str(path), "--out", str(tmp_path / "m.npz"), "--png", "--png-y", "3",
                                "--no-progress"], "--png-y 3", "0..2")
 

@@ -1,5 +1,9 @@
 """DOCT maps of complex (or intensity) OCT sequences at one or more resolutions.
 
+Kept whole (over 800 lines): one request is checked, planned, reduced, measured and written in the eight
+named stages below, which share the request's checked state; splitting them would pass that state
+across modules without making a stage shorter.
+
 For every requested resolution (:func:`torchdoct.measured.resolution.parse_resolution`: ``original``,
 ``axial=14``, ``lateral=18``, ``axial=14,lateral=18``) the complex field is reduced
 (:func:`torchdoct.measured.resolution.reduce_resolution`, paper Eqs. 1-8), ``I = |E|²`` is formed, and per
