@@ -21,7 +21,8 @@ __all__ = ["COMMANDS"]
 
 
 def _maps_arguments(mp) -> None:
-    mp.add_argument("input", help="sequence file: .npy/.npz (+ .json sidecar), .h5 (incl. MATLAB v7.3), .tif")
+    mp.add_argument("input", help="sequence file: .npy/.npz/.raw/.bin (+ .json sidecar), .h5, .mat (v5, v7.3), .tif, "
+                                  ".ome.tif, a .zarr OME-Zarr folder or a folder of per-frame TIFFs (docs/formats.md)")
     mp.add_argument("--resolution", action="append", default=None, metavar="R",
                     help="original | axial=UM | lateral=UM | axial=UM,lateral=UM (repeat; default original)")
     mp.add_argument("--metrics", default="liv,ocds,mean_db", help="comma list of liv, ocds, mean_db (default all 3)")
@@ -48,6 +49,9 @@ def _maps_arguments(mp) -> None:
     g.add_argument("--refractive-index", type=float, default=None, help="refractive index n (default 1)")
     g.add_argument("--system-name", default=None, help="name of the OCT system")
     g.add_argument("--dataset", default=None, help="HDF5 dataset / MATLAB variable name")
+    g.add_argument("--scale", choices=("linear", "db", "complex"), default=None,
+                   help="what the samples are: complex field, linear intensity or dB intensity (converted to "
+                        "linear); checked against the values (default: complex data are the field, real data linear)")
     g.add_argument("--allow-external-hdf5", action="store_true",
                    help="read HDF5 external storage, external links and virtual datasets whose data lie in other "
                         "files (refused by default: they can make any readable file into data)")
@@ -151,7 +155,7 @@ def _maps(args: argparse.Namespace) -> int:
     seq = read_sequence(args.input, axes=args.axes, pitch_um=args.pitch_um,
                         frame_times_s=parse_floats(args.frame_times_s, None, "--frame-times-s") if args.frame_times_s else None,
                         frame_interval_s=args.frame_interval_s, system=system or None, dataset=args.dataset,
-                        block_raster=raster, allow_external_hdf5=args.allow_external_hdf5)
+                        block_raster=raster, allow_external_hdf5=args.allow_external_hdf5, scale=args.scale)
     resolutions = args.resolution or ["original"]
     options = dict(metrics=metrics, signature=args.signature, speckle=args.speckle or None,
                    speckle_window=args.speckle_window, ocds_delay_range_s=tuple(args.ocds_delay_range_s),

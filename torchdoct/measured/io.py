@@ -185,6 +185,40 @@ def _check_values(data: np.ndarray, name: str) -> int:
     return n_bad
 
 
+#: The scales of ``read_sequence(scale=...)`` / ``--scale``: what the stored samples are.
+SCALES = ("linear", "db", "complex")
+#: The largest dB value read (``10^(38.0)`` is near float32's largest number: a larger one is not a dB value).
+MAX_DB = 380.0
+
+
+def _apply_scale(data: Any, scale: str, name: str) -> Any:
+    """The samples as the maps read them, after checking they fit ``scale``: ``complex`` (the field; the data
+    must be complex), ``linear`` (an intensity; must be real, and non-negative as :func:`_check_values`
+    checks) or ``db`` (``10·log10`` of an intensity, converted to the linear ``10^(dB/10)``; real and at
+    most :data:`MAX_DB`)."""
+    if scale not in SCALES:
+        raise ValueError(f"--scale must be one of {', '.join(SCALES)}; got {scale!r}")
+    if scale == "complex":
+        if data.dtype.kind != "c":
+            raise ValueError(f"{name}: --scale complex, but the data are real ({data.dtype}): an intensity; give "
+                             "--scale linear or --scale db")
+        return data
+    if data.dtype.kind == "c":
+        raise ValueError(f"{name}: --scale {scale}, but the data are complex ({data.dtype}): the field; give "
+                         "--scale complex (or drop --scale)")
+    if scale == "linear":
+        return data
+    out = np.empty(data.shape, dtype=np.float64 if data.dtype == np.float64 else np.float32)
+    for k in range(data.shape[0]):  # frame by frame
+        frame = np.asarray(data[k], dtype=out.dtype)
+        top = float(np.max(frame, where=np.isfinite(frame), initial=-np.inf))
+        if top > MAX_DB:
+            raise ValueError(f"{name}: --scale db, but frame {k} holds {top:.4g}, over {MAX_DB:g} dB (10^(dB/10) "
+                             "would overflow): these are not dB values; give --scale linear for a linear intensity")
+        np.power(10.0, frame / 10.0, out=out[k])
+    return out
+
+
 def _parse_pitch(pitch: Any) -> dict[str, float]:
     if isinstance(pitch, str):
         out = {}
@@ -202,7 +236,8 @@ def _parse_pitch(pitch: Any) -> dict[str, float]:
 def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um: Mapping[str, float] | str | None = None,
                   frame_times_s: _Seq[float] | None = None, frame_interval_s: float | None = None,
                   system: Mapping[str, Any] | None = None, dataset: str | None = None,
-                  block_raster: BlockRaster | None = None, allow_external_hdf5: bool = False) -> SequenceData:
+                  block_raster: BlockRaster | None = None, allow_external_hdf5: bool = False,
+                  scale: str | None = None) -> SequenceData:
     """Read a sequence file (see the module docstring) into a :class:`SequenceData` in canonical order.
 
     Metadata come from the file (h5 attribute, TIFF JSON description) or its JSON sidecar; the
@@ -214,8 +249,10 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     stack, whose stored axes must then be a permutation of TZX with T the scan index, to
     ``[T, Y, Z, X]``; data already ``[T, Y, Z, X]`` just record it for boundary exclusion),
     ``allow_external_hdf5`` (read HDF5 external storage, external links and virtual datasets whose data
-    lie in other files; refused by default, :func:`torchdoct.measured.guards.check_hdf5_local`).
-    Declared sizes over :func:`torchdoct.measured.guards.max_input_bytes` are refused before reading;
+    lie in other files; refused by default, :func:`torchdoct.measured.guards.check_hdf5_local`),
+    ``scale`` (``linear``, ``db`` or ``complex``: what the samples are, checked; dB intensities are
+    converted to linear, :func:`_apply_scale`; default: complex data are the field, real data a linear
+    intensity). Declared sizes over :func:`torchdoct.measured.guards.max_input_bytes` are refused before reading;
     negative intensities and extended-precision dtypes are refused naming the file, the count and the
     fix; samples that are not finite (NaN, inf) are counted (``nonfinite_samples``) and their pixels are
     masked in the maps (:func:`torchdoct.measured.maps.compute_maps`). A file the system does not let us read raises ``PermissionError``.
@@ -225,13 +262,18 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"sequence file {p} does not exist")
-    check_regular_file(p, "sequence file")  # a FIFO, device or folder: at once, whatever its name
     fmt = reader_for(p)
+    if not (fmt is not None and getattr(fmt, "DIRECTORY", False) and p.is_dir()):
+        check_regular_file(p, "sequence file")  # a FIFO, device or folder: at once, whatever its name
     if fmt is None:
         raise ValueError(f"{p.name}: unknown sequence format; use {', '.join(SEQUENCE_SUFFIXES)}")
     suffix = p.suffix.lower()
-    with open_regular(p, "sequence file"):  # a FIFO swapped in meanwhile: refused; a file the system does not
-        pass  # let us read: PermissionError (exit 1), whatever the format
+    if getattr(fmt, "DIRECTORY", False):
+        if not p.is_dir():
+            raise ValueError(f"{p.name}: a {fmt.NAME} is a folder; give the folder")
+    else:
+        with open_regular(p, "sequence file"):  # a FIFO swapped in meanwhile: refused; a file the system does not
+            pass  # let us read: PermissionError (exit 1), whatever the format
     try:
         loaded = fmt.load(p, dataset=dataset, allow_external_hdf5=allow_external_hdf5)
     except PermissionError:  # the system refuses: exit 1 at the command line, as for an unreadable sidecar
@@ -240,11 +282,11 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
         raise ValueError(f"{p.name}: not a readable {suffix} file (truncated or corrupt: "
                          f"{type(err).__name__}: {err})") from None
     if dataset is not None and not fmt.DATASET:
-        raise ValueError(f"{p.name}: dataset= applies to .h5 files only")
+        raise ValueError(f"{p.name}: dataset= applies to .h5 and .mat files only")
     data, labels, params, file_meta = loaded.data, loaded.labels, loaded.label_params, loaded.meta
     side = sidecar_path(p)
     meta: dict[str, Any] = {}
-    if file_meta is not None:
+    if file_meta is not None and not (loaded.sidecar_fills and side.exists()):
         meta.update(file_meta)
     elif _sidecar_exists(side):
         try:
@@ -254,6 +296,7 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
                              "it must be the JSON metadata file (fix it, or remove it and give the metadata as "
                              "options)") from None
         meta.update(parse_json_object(side_text, side.name))
+        meta.update(file_meta or {})  # a format whose sidecar only fills in: the file's own values win
     if loaded.default_axes is not None and axes is None and "axes" not in meta:
         axes = loaded.default_axes
     # keyword overrides
@@ -287,6 +330,9 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
         raise ValueError(f"{p.name}: data have an empty axis (shape {list(data.shape)}); nothing to read")
     if not data.dtype.isnative:  # e.g. a big-endian '>c8' .npy: read into native byte order (torch needs it)
         data = data.astype(data.dtype.newbyteorder("="))
+    if scale is not None:
+        data = _apply_scale(data, scale, p.name)
+        meta["input_scale"] = scale
     n_nonfinite = _check_values(data, p.name)
     if meta.get("axes") is None:
         raise ValueError(f"{p.name}: missing 'axes'; {_HOW['axes']}")

@@ -8,7 +8,8 @@ carries. :func:`torchdoct.measured.io.read_sequence` then applies the rules ever
 sidecar, the keyword overrides, the dtype and value checks, the axes, :func:`validate_meta`) and returns
 one :class:`~torchdoct.measured.sequence.SequenceData` whatever the format.
 
-To add a format: a module here with those four names, listed in :data:`FORMATS`. See docs/formats.md.
+A module reading a folder has ``DIRECTORY = True``. To add a format: a module here with those names,
+listed in :data:`FORMATS`. See docs/formats.md.
 """
 
 from __future__ import annotations
@@ -17,21 +18,25 @@ import os
 from pathlib import Path
 from types import ModuleType
 
-from . import hdf5, npy, npz, tiff
+from . import hdf5, matlab, npy, npz, ometiff, omezarr, raw, tiff, tifffolder
 from .base import Loaded
 
 __all__ = ["Loaded", "FORMATS", "SEQUENCE_SUFFIXES", "reader_for"]
 
 
 #: The format modules, in the order their suffixes are tried (longest suffix first within a module).
-FORMATS: tuple[ModuleType, ...] = (npy, npz, hdf5, tiff)
+FORMATS: tuple[ModuleType, ...] = (npy, npz, hdf5, tiff, matlab, raw, ometiff, omezarr)
 
 SEQUENCE_SUFFIXES: tuple[str, ...] = tuple(s for m in FORMATS for s in m.SUFFIXES)
 
 
 def reader_for(path: str | os.PathLike) -> ModuleType | None:
-    """The format module that reads ``path`` (by its suffix, case-insensitive), or None."""
-    name = Path(path).name.lower()
+    """The format module that reads ``path`` (by its longest matching suffix, case-insensitive; a folder
+    not named ``.zarr`` is a folder of per-frame TIFFs), or None."""
+    p = Path(path)
+    name = p.name.lower()
+    if p.is_dir() and not name.endswith(omezarr.SUFFIXES):
+        return tifffolder
     best: tuple[int, ModuleType] | None = None
     for module in FORMATS:
         for suffix in module.SUFFIXES:

@@ -1,0 +1,279 @@
+"""The lab formats (torchdoct.measured.formats): one sequence stored as .npy, MATLAB v5, raw + sidecar,
+OME-TIFF and OME-Zarr (NGFF 0.4 and 0.5) gives the same maps, with the pitch and the frame times taken from
+each format's own metadata; the scale and orientation options; and every new reader's hardening (truncated,
+declared too large, wrong dtype, special file: exit 2, one error line, nothing written)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import _formats as F
+from _refusal import refused
+from torchdoct.measured import guards
+from torchdoct.measured.io import read_sequence
+
+pytest.importorskip("scipy")
+pytest.importorskip("tifffile")
+zarr = pytest.importorskip("zarr")
+
+SYSTEM = {"wavelength_um": 0.84, "lateral_resolution_um": 4.0, "axial_resolution_um": 3.0}
+#: float32 rounding of maps computed from one field in another memory layout (summation and FFT order):
+#: 256 ulp of the channel's largest value
+ULP256 = 256 * float(np.finfo(np.float32).eps)
+
+WRITERS = {
+    "npy": lambda d, a: F.write_npy(d / "s.npy", a),
+    "mat-v5": lambda d, a: F.write_mat(d / "s.mat", a),
+    "raw-big-endian-header": lambda d, a: F.write_raw(d / "s.raw", a),
+    "bin-little-endian": lambda d, a: F.write_raw(d / "s.bin", a, header=b"", big=False),
+    "ome-tiff-time-increment": lambda d, a: F.write_ome_tiff(d / "s.ome.tif", a),
+    "ome-tiff-plane-deltat": lambda d, a: F.write_ome_tiff(d / "s.ome.tif", a, per_plane=True),
+    "ome-zarr-0.4": lambda d, a: F.write_ome_zarr(d / "s.zarr", a, "0.4"),
+    "ome-zarr-0.5": lambda d, a: F.write_ome_zarr(d / "s.zarr", a, "0.5"),
+}
+
+
+@pytest.fixture(autouse=True)
+def _default_limit(monkeypatch):
+    monkeypatch.delenv(guards.MAX_INPUT_ENV, raising=False)
+    guards.set_max_input_gb(None)
+    yield
+    guards.set_max_input_gb(None)
+
+
+@pytest.fixture(scope="module")
+def reference_maps(tmp_path_factory):
+    """Maps of the field and of its intensity read from .npy, at the original and a reduced resolution."""
+    from torchdoct.measured.maps import compute_maps
+
+    d = tmp_path_factory.mktemp("ref")
+    a = F.field()
+    out = {"complex": compute_maps(read_sequence(F.write_npy(d / "c.npy", a), system=SYSTEM),
+                                   ["original", "lateral=8,axial=6"])}
+    out["intensity"] = compute_maps(read_sequence(F.write_npy(d / "i.npy", np.abs(a) ** 2)), ["original"])
+    return out
+
+
+def _same_maps(got, want):
+    assert got.channels == want.channels
+    for i, name in enumerate(want.channels):
+        w = want.maps[i]
+        np.testing.assert_array_equal(np.isnan(got.maps[i]), np.isnan(w), err_msg=name)
+        scale = float(np.nanmax(np.abs(w)))
+        np.testing.assert_allclose(got.maps[i], w, rtol=ULP256, atol=ULP256 * scale, err_msg=name)
+
+
+@pytest.mark.parametrize("kind", ["complex", "intensity"])
+@pytest.mark.parametrize("fmt", list(WRITERS))
+def test_one_sequence_in_every_format_gives_the_same_maps(tmp_path, reference_maps, fmt, kind):
+    from torchdoct.measured.maps import compute_maps
+
+    a = F.field() if kind == "complex" else (np.abs(F.field()) ** 2).astype(np.float32)
+    path = WRITERS[fmt](tmp_path, a)
+    seq = read_sequence(path, system=SYSTEM if kind == "complex" else None)
+    assert seq.axes == "TZX" and seq.data.shape == a.shape and seq.data.dtype == a.dtype
+    np.testing.assert_allclose(seq.frame_times_s, [k * F.DT_S for k in range(a.shape[0])], rtol=1e-12, atol=1e-15)
+    assert seq.pitch_um == pytest.approx(F.PITCH, rel=1e-12)
+    resolutions = ["original", "lateral=8,axial=6"] if kind == "complex" else ["original"]
+    _same_maps(compute_maps(seq, resolutions, slab_elements=3000), reference_maps[kind])
+
+
+def test_the_pitch_comes_from_the_format_not_from_a_stray_sidecar(tmp_path):
+    """OME metadata win over a sidecar, which only fills in what the file lacks (here: the system)."""
+    a = F.field(t=4)
+    path = F.write_ome_tiff(tmp_path / "s.ome.tif", a)
+    (tmp_path / "s.ome.json").write_text(json.dumps({"pitch_um": {"z": 9.0, "x": 9.0}, "system": SYSTEM}))
+    seq = read_sequence(path)
+    assert seq.pitch_um == pytest.approx(F.PITCH) and seq.system["lateral_resolution_um"] == 4.0
+
+
+def test_ome_zarr_is_read_chunk_by_chunk(tmp_path):
+    from torchdoct.measured.formats.lazy import LazyArray
+
+    a = F.field(t=8)
+    seq = read_sequence(F.write_ome_zarr(tmp_path / "s.zarr", a, chunks=(1, 12, 16)))
+    assert isinstance(seq.data, LazyArray)
+    np.testing.assert_array_equal(seq.data[2:5, 3], a[2:5, 3])
+
+
+def test_ome_volume_has_z_as_depth(tmp_path):
+    """OME-TIFF with SizeZ > 1: OME Z is depth (the optical axis), OME Y the slow lateral axis."""
+    import tifffile
+
+    v = F.field(t=4 * 3 * 5).reshape(4, 3, 5, 12, 16)[:, :, 0]  # [T, Zome=3, Yome=12, Xome=16]
+    p = tmp_path / "v.ome.tif"
+    tifffile.imwrite(p, v, ome=True, metadata={"axes": "TZYX", "PhysicalSizeZ": 2.5, "PhysicalSizeY": 7.0,
+                                                "PhysicalSizeX": 1.5, "TimeIncrement": 0.1})
+    seq = read_sequence(p)
+    assert seq.axes == "TYZX" and seq.data.shape == (4, 12, 3, 16)
+    assert seq.pitch_um == pytest.approx({"z": 2.5, "y": 7.0, "x": 1.5})
+    np.testing.assert_array_equal(seq.data[1, 5, 2], v[1, 2, 5])
+
+
+def test_folder_of_tiffs_is_read_in_name_order(tmp_path):
+    import tifffile
+
+    a = (np.abs(F.field(t=12)) ** 2).astype(np.float32)
+    d = tmp_path / "frames"
+    d.mkdir()
+    for k in range(12):  # f2 before f10: digits compared as numbers
+        tifffile.imwrite(d / f"f{k}.tif", a[k])
+    F.sidecar(d, t=12)
+    np.testing.assert_array_equal(read_sequence(d).data, a)
+
+
+def test_axes_override_reorients_a_mat_file(tmp_path):
+    a = F.field(t=4)
+    p = F.write_mat(tmp_path / "s.mat", a)
+    seq = read_sequence(p, axes="ZXT")
+    np.testing.assert_array_equal(seq.data, a)
+    assert read_sequence(p, axes="XZT").data.shape == (4, 16, 12)
+
+
+def test_db_scale_is_converted_to_linear_and_checked(tmp_path):
+    i = (np.abs(F.field(t=4)) ** 2).astype(np.float64) + 1e-3
+    p = F.write_npy(tmp_path / "db.npy", 10 * np.log10(i))
+    np.testing.assert_allclose(read_sequence(p, scale="db").data, i, rtol=1e-12)
+    with pytest.raises(ValueError, match="not dB values"):
+        read_sequence(F.write_npy(tmp_path / "lin.npy", i * 1e40), scale="db")
+    with pytest.raises(ValueError, match="negative"):  # dB read as linear: the fix names the dB conversion
+        read_sequence(p, scale="linear")
+    with pytest.raises(ValueError, match="--scale complex"):
+        read_sequence(F.write_npy(tmp_path / "c.npy", F.field(t=4)), scale="db")
+    with pytest.raises(ValueError, match="are real"):
+        read_sequence(p, scale="complex")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# hardening of every new reader: exit 2, one error line naming the file and the fix, nothing written
+# ----------------------------------------------------------------------------------------------------------
+def _argv(d: Path, src: Path, *extra: str) -> list[str]:
+    return ["maps", str(src), "--out", str(d / "out" / "m.npz"), "--no-progress", *extra]
+
+
+@pytest.fixture()
+def outdir(tmp_path):
+    (tmp_path / "out").mkdir()
+    return tmp_path
+
+
+def _truncate(path: Path, keep: float = 0.6) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[:int(len(data) * keep)])
+
+
+def _zarr_chunk(store: Path) -> Path:
+    chunks = sorted(p for p in store.rglob("*") if p.is_file() and not p.name.startswith((".", "zarr.json"))
+                    and p.parent.name != store.name)
+    return chunks[0]
+
+
+TRUNCATED = {
+    "mat": (lambda d, a: F.write_mat(d / "s.mat", a), lambda p: _truncate(p), ["s.mat", "truncated"]),
+    "raw": (lambda d, a: F.write_raw(d / "s.raw", a), lambda p: _truncate(p), ["s.raw", "truncated", "header_bytes"]),
+    "ome-tiff": (lambda d, a: F.write_ome_tiff(d / "s.ome.tif", a), lambda p: _truncate(p), ["s.ome.tif"]),
+    "ome-zarr": (lambda d, a: F.write_ome_zarr(d / "s.zarr", a), lambda p: _truncate(_zarr_chunk(p), 0.5),
+                 ["s.zarr", "chunk", "again completely"]),
+    "tiff-folder": (lambda d, a: F.write_tiff_folder(d / "fold", np.abs(a) ** 2),
+                    lambda p: _truncate(p / "frame3.tif", 0.5), ["frame3.tif", "truncated"]),
+}
+
+
+@pytest.mark.parametrize("fmt", list(TRUNCATED))
+def test_truncated_input_is_refused(outdir, capsys, fmt):
+    write, cut, names = TRUNCATED[fmt]
+    path = write(outdir, F.field(t=8))
+    cut(path)
+    refused(capsys, outdir, _argv(outdir, path), *names)
+
+
+@pytest.mark.parametrize("fmt", ["mat", "raw", "ome-tiff", "ome-zarr", "tiff-folder"])
+def test_declared_size_over_the_limit_is_refused_before_reading(outdir, capsys, fmt):
+    path = TRUNCATED[fmt][0](outdir, F.field(t=8))
+    refused(capsys, outdir, _argv(outdir, path, "--max-input-gb", "1e-6"), path.name, "--max-input-gb")
+
+
+def test_raw_sidecar_declaring_a_huge_shape_is_refused_before_the_file_is_mapped(outdir, capsys):
+    path = F.write_raw(outdir / "s.raw", F.field(t=4))
+    meta = json.loads(path.with_suffix(".json").read_text())
+    meta["shape"] = [4, 10 ** 6, 10 ** 6]
+    path.with_suffix(".json").write_text(json.dumps(meta))
+    refused(capsys, outdir, _argv(outdir, path), "s.raw", "--max-input-gb")
+
+
+def test_zarr_declaring_a_huge_array_is_refused_before_reading(outdir, capsys):
+    path = F.write_ome_zarr(outdir / "s.zarr", F.field(t=4))
+    group = zarr.open_group(str(path), mode="a")
+    group.create_array("0", shape=(4, 10 ** 6, 10 ** 6), dtype=np.complex64, chunks=(1, 16, 16), overwrite=True)
+    refused(capsys, outdir, _argv(outdir, path), "s.zarr", "--max-input-gb")
+
+
+def _wrong_dtype(fmt: str, d: Path) -> tuple[Path, list[str], list[str]]:
+    if fmt == "mat":
+        import scipy.io as sio
+
+        p = d / "s.mat"
+        sio.savemat(p, {"E": np.arange(8 * 6 * 5, dtype=np.int32).reshape(6, 5, 8)})
+        F.sidecar(p, t=8, axes="ZXT")
+        return p, [], ["s.mat", "neither complex"]
+    if fmt == "raw":
+        p = F.write_raw(d / "s.raw", F.field(t=8))
+        meta = json.loads(p.with_suffix(".json").read_text())
+        meta["dtype"] = "int64"
+        p.with_suffix(".json").write_text(json.dumps(meta))
+        return p, [], ["s.json", "int64", "complex64"]
+    if fmt == "ome-tiff":
+        return F.write_ome_tiff(d / "s.ome.tif", F.field(t=8)), ["--scale", "db"], ["s.ome.tif", "--scale complex"]
+    if fmt == "ome-zarr":
+        p = F.write_ome_zarr(d / "s.zarr", F.field(t=8))
+        zarr.open_group(str(p), mode="a").create_array("0", shape=(8, 12, 16), dtype=bool, overwrite=True)
+        return p, [], ["s.zarr", "bool", "not numeric"]
+    import tifffile
+
+    p = F.write_tiff_folder(d / "fold", (np.abs(F.field(t=8)) ** 2).astype(np.float32))
+    tifffile.imwrite(p / "frame5.tif", np.zeros((12, 16), np.uint16))
+    return p, [], ["frame5.tif", "same shape and dtype"]
+
+
+@pytest.mark.parametrize("fmt", ["mat", "raw", "ome-tiff", "ome-zarr", "tiff-folder"])
+def test_wrong_dtype_is_refused(outdir, capsys, fmt):
+    path, extra, names = _wrong_dtype(fmt, outdir)
+    refused(capsys, outdir, _argv(outdir, path, *extra), *names)
+
+
+@pytest.mark.parametrize("name", ["s.mat", "s.raw", "s.bin", "s.ome.tif", "s.zarr"])
+def test_special_file_is_refused_at_once(outdir, capsys, name):
+    path = outdir / name
+    os.mkfifo(path)  # a reader that opened it would block until a writer came
+    F.sidecar(path, t=8)
+    refused(capsys, outdir, _argv(outdir, path), name)
+
+
+def test_fifo_in_a_tiff_folder_is_refused_at_once(outdir, capsys):
+    path = F.write_tiff_folder(outdir / "fold", (np.abs(F.field(t=4)) ** 2).astype(np.float32))
+    os.mkfifo(path / "frame9.tif")
+    refused(capsys, outdir, _argv(outdir, path), "frame9.tif", "special file")
+
+
+def test_ome_tiff_declaring_more_planes_than_pages_is_refused(outdir, capsys):
+    path = F.write_ome_tiff(outdir / "s.ome.tif", F.field(t=8))
+    import tifffile
+
+    with tifffile.TiffFile(path) as tf:
+        xml = tf.pages[0].description
+    data = path.read_bytes().replace(b'SizeT="8"', b'SizeT="9"')
+    assert b'SizeT="9"' in data and 'SizeT="8"' in xml
+    path.write_bytes(data)
+    refused(capsys, outdir, _argv(outdir, path), "s.ome.tif", "SizeT=9", "pages")
+
+
+def test_ome_xml_with_entities_is_refused(tmp_path):
+    from torchdoct.measured.formats.ometiff import parse_ome
+
+    with pytest.raises(ValueError, match="entities"):
+        parse_ome('<?xml version="1.0"?><!DOCTYPE a [<!ENTITY x "y">]><OME/>', "s.ome.tif")

@@ -1,0 +1,95 @@
+"""A read-only array read on demand, slab by slab (:class:`LazyArray`): what a chunked store (OME-Zarr)
+hands to the maps, which read it in slabs (:func:`torchdoct.measured.maps.compute_maps`) so the whole
+sequence is never in memory. It supports what the readers and the slab loop use: ``shape``, ``dtype``,
+``ndim``, ``size``, ``transpose``, basic indexing (integers and slices) and iteration over the first axis."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+__all__ = ["LazyArray", "Squeezed"]
+
+
+class LazyArray:
+    """``source[...]`` (any object with ``shape``, ``dtype`` and numpy-style basic indexing, e.g. a zarr
+    array) seen through the axis permutation ``perm``; every read returns a numpy array. Errors of the
+    store while reading (a truncated or corrupt chunk) become a ``ValueError`` naming ``where``."""
+
+    def __init__(self, source: Any, where: str, perm: tuple[int, ...] | None = None):
+        self._src = source
+        self._where = where
+        self._perm = tuple(range(len(source.shape))) if perm is None else tuple(perm)
+        self.dtype = np.dtype(source.dtype)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(int(self._src.shape[i]) for i in self._perm)
+
+    @property
+    def ndim(self) -> int:
+        return len(self._perm)
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64))
+
+    @property
+    def nbytes(self) -> int:
+        return self.size * self.dtype.itemsize
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def transpose(self, *axes: Any) -> LazyArray:
+        order = tuple(axes[0]) if len(axes) == 1 and not isinstance(axes[0], int) else tuple(axes)
+        return LazyArray(self._src, self._where, tuple(self._perm[i] for i in order))
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        key = key if isinstance(key, tuple) else (key,)
+        if any(k is Ellipsis for k in key):
+            i = key.index(Ellipsis)
+            key = key[:i] + (slice(None),) * (self.ndim - len(key) + 1) + key[i + 1:]
+        key = key + (slice(None),) * (self.ndim - len(key))
+        if len(key) != self.ndim or not all(isinstance(k, (slice, int, np.integer)) for k in key):
+            raise IndexError("a LazyArray takes integers and slices only")
+        src_key = [slice(None)] * self.ndim
+        for mine, k in enumerate(key):
+            src_key[self._perm[mine]] = k
+        try:
+            block = np.asarray(self._src[tuple(src_key)])
+        except (ValueError, OSError, RuntimeError, TypeError, KeyError) as err:
+            raise ValueError(f"{self._where}: a chunk is unreadable, truncated or corrupt ({type(err).__name__}: "
+                             f"{err}); copy the store again completely") from None
+        kept = [self._perm[i] for i, k in enumerate(key) if isinstance(k, slice)]  # source axes left, in my order
+        order = sorted(kept)  # the block's axes are in source order
+        return block.transpose([order.index(a) for a in kept]) if kept != order else block
+
+    def astype(self, dtype: Any) -> np.ndarray:
+        """The whole array read and converted (an integer or byte-swapped store: read at once)."""
+        return self[...].astype(dtype)
+
+    def __iter__(self):
+        for i in range(self.shape[0]):
+            yield self[i]
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        out = self[...]
+        return out if dtype is None else out.astype(dtype)
+
+
+class Squeezed:
+    """``source`` without its axes ``drop`` (each of length 1): what :class:`LazyArray` reads when a store
+    keeps a singleton channel or depth axis."""
+
+    def __init__(self, source: Any, drop: tuple[int, ...]):
+        self._src, self._drop = source, tuple(sorted(drop))
+        self.dtype = source.dtype
+        self.shape = tuple(n for i, n in enumerate(source.shape) if i not in self._drop)
+
+    def __getitem__(self, key: tuple) -> Any:
+        full, it = [], iter(key)
+        for i in range(len(self._src.shape)):
+            full.append(0 if i in self._drop else next(it))
+        return self._src[tuple(full)]

@@ -1,0 +1,70 @@
+"""A folder of per-frame TIFFs (``FOLDER/`` holding ``*.tif`` / ``*.tiff``): one file per frame, in name
+order with runs of digits compared as numbers (``f2.tif`` before ``f10.tif``). Each file is one B-scan
+page ``[Z, X]`` (the sequence is ``TZX``) or a volume of ``[Z, X]`` pages (``TYZX``); every file must have
+the same shape and dtype. Intensity only (linear, or dB with ``--scale db``); the metadata come from the
+sidecar ``FOLDER.json`` beside the folder, or the options. Every file's pages are checked (one shape, the
+total within the input limit) before any is read; a damaged file is an error naming it."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..guards import TiffDamage, check_declared_size
+from .base import Loaded, regular_file
+
+SUFFIXES: tuple[str, ...] = ()  # a folder: chosen by :func:`torchdoct.measured.formats.reader_for`
+NAME = "folder of per-frame TIFFs (+ FOLDER.json sidecar)"
+DATASET = False
+DIRECTORY = True
+
+
+def _natural(name: str) -> list:
+    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", name)]
+
+
+def frame_files(folder: Path) -> list[Path]:
+    """The TIFFs of ``folder`` in name order (digits as numbers); hidden files are skipped."""
+    files = [p for p in folder.iterdir() if p.suffix.lower() in (".tif", ".tiff") and not p.name.startswith(".")]
+    return sorted(files, key=lambda p: _natural(p.name))
+
+
+def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = False) -> Loaded:
+    import tifffile
+
+    files = frame_files(path)
+    if len(files) < 2:
+        raise ValueError(f"{path.name}/: {len(files)} TIFF file(s); a folder sequence needs one TIFF per frame "
+                         "(at least 2)")
+    shape = dtype = None
+    for f in files:  # every file's shape before any pixel is read
+        regular_file(f, "frame file")
+        try:
+            with TiffDamage() as damage, tifffile.TiffFile(f) as tf:
+                pages = [tuple(pg.shape) for pg in tf.pages]
+                dts = {pg.dtype for pg in tf.pages}
+                damage.check()
+        except (tifffile.TiffFileError, OSError, ValueError) as err:
+            raise ValueError(f"{path.name}/{f.name}: not a readable TIFF ({err})") from None
+        if not pages or len(set(pages)) != 1 or len(dts) != 1 or len(pages[0]) != 2:
+            raise ValueError(f"{path.name}/{f.name}: pages of shapes {sorted(set(pages))}; each frame file must "
+                             "hold one or more [Z, X] pages of one shape")
+        this = (len(pages), *pages[0]) if len(pages) > 1 else pages[0]
+        if shape is None:
+            shape, dtype = this, dts.pop()
+            check_declared_size(f"{path.name}/", (len(files), *shape), np.dtype(dtype).itemsize,
+                                what=f"folder of {len(files)} frames")
+        elif this != shape or dts.pop() != dtype:
+            raise ValueError(f"{path.name}/{f.name}: shape {list(this)} differs from {files[0].name}'s "
+                             f"{list(shape)}; every frame file must have the same shape and dtype")
+    out = np.empty((len(files), *shape), dtype=dtype)
+    for i, f in enumerate(files):
+        try:
+            with TiffDamage() as damage, tifffile.TiffFile(f) as tf:
+                out[i] = tf.asarray(key=range(len(tf.pages))) if len(tf.pages) > 1 else tf.pages[0].asarray()
+                damage.check()
+        except (tifffile.TiffFileError, OSError, ValueError) as err:
+            raise ValueError(f"{path.name}/{f.name}: not a readable TIFF, truncated or corrupt ({err})") from None
+    return Loaded(data=out, default_axes="TZX" if out.ndim == 3 else "TYZX", integer_intensity=True)
