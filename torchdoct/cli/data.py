@@ -131,6 +131,9 @@ def _maps(args: argparse.Namespace) -> int:
     set_max_input_gb(args.max_input_gb)
     outs = []
     for o in args.out:
+        if Path(o).suffix == ".zarr" and Path(o).exists():  # a folder: never replaced, even with --force
+            raise ValueError(f"--out: {o} exists; an OME-Zarr folder is never overwritten: remove it or give another "
+                             "name")
         outs.append(check_out(o, args.force, MAPS_SUFFIXES, what="--out"))
     if len({p.resolve() for p in outs}) != len(outs):
         raise ValueError("--out given twice with the same file")

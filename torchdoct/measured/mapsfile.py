@@ -37,7 +37,7 @@ from .guards import MAX_INPUT_ENV, TiffDamage, check_npz_sizes, check_tiff_pages
 
 __all__ = ["MAPS_SUFFIXES", "Maps", "read_maps", "write_maps"]
 
-MAPS_SUFFIXES = (".npz", ".tif", ".tiff")
+MAPS_SUFFIXES = (".npz", ".tif", ".tiff", ".zarr")  # .tif includes .ome.tif (mapsome)
 _CHANNEL_TEXT = ("name", "metric", "unit", "resolution")
 _CHANNEL_OPTICS = ("wavelength_um", "lateral_resolution_um", "axial_resolution_um")
 
@@ -134,7 +134,26 @@ def write_maps(path: str | os.PathLike, maps: Maps, *, force: bool = False) -> P
     arr = np.ascontiguousarray(maps.maps, dtype=np.float32)
     meta = dict(maps.meta)
     text = json.dumps(meta)
-    if out.suffix == ".npz":
+    from . import mapsome
+
+    if mapsome.is_zarr(out):
+        import shutil
+        import tempfile
+
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp.zarr", dir=out.parent))
+        try:
+            mapsome.write_zarr(str(tmp), arr, list(maps.channels), meta)
+            if out.exists() and force:
+                shutil.rmtree(out)
+            os.replace(tmp, out)
+        finally:
+            if tmp.exists():
+                shutil.rmtree(tmp)
+        return out
+    if mapsome.is_ome_tiff(out):
+        def write(tmp: str) -> None:
+            mapsome.write_ome_tiff(tmp, arr, list(maps.channels), meta)
+    elif out.suffix == ".npz":
         def write(tmp: str) -> None:
             with open(tmp, "wb") as fh:
                 np.savez(fh, maps=arr, channels=np.asarray(maps.channels, dtype=np.str_),
@@ -173,9 +192,18 @@ def read_maps(path: str | os.PathLike) -> Maps:
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"maps file {p} does not exist")
-    check_regular_file(p, "maps file")  # a FIFO, device or folder: at once, whatever its name
+    if not (p.suffix.lower() == ".zarr" and p.is_dir()):  # an OME-Zarr is a folder
+        check_regular_file(p, "maps file")  # a FIFO, device or folder: at once, whatever its name
     if p.suffix.lower() not in MAPS_SUFFIXES:
-        raise ValueError(f"maps file {p.name}: must be .npz or .tif/.tiff (the formats of `torchdoct maps`)")
+        raise ValueError(f"maps file {p.name}: must be .npz, .tif/.tiff/.ome.tif or .zarr (the formats of "
+                         "`torchdoct maps`)")
+    from . import mapsome
+
+    if mapsome.is_zarr(p):
+        if not p.is_dir():
+            raise ValueError(f"maps file {p.name}: an OME-Zarr is a folder; give the .zarr folder")
+        arr, meta = mapsome.read_zarr(p)
+        return _finish(p, arr, None, meta, f"{p.name} attribute 'torchdoct'")
     with open_regular(p, "maps file") as fh:  # a FIFO, device or folder: refused at once; a read the system
         if os.fstat(fh.fileno()).st_size == 0:  # refuses stays a PermissionError (exit 1), not 'unreadable' (2)
             raise ValueError(f"{p.name}: the file is empty (0 bytes). {_rewrite_fix(p)}")
@@ -184,7 +212,12 @@ def read_maps(path: str | os.PathLike) -> Maps:
         where = f"{p.name} meta_json"
     else:
         arr, meta = _read_tiff(p)
-        names, where = None, f"{p.name} ImageDescription"
+        names, where = None, f"{p.name} {'OME annotation' if mapsome.is_ome_tiff(p) else 'ImageDescription'}"
+    return _finish(p, arr, names, meta, where)
+
+
+def _finish(p: Path, arr: np.ndarray, names: np.ndarray | None, meta: dict[str, Any], where: str) -> Maps:
+    """The checks every maps format shares, then :class:`Maps`."""
     if arr.dtype.kind != "f":
         raise TypeError(f"{p.name}: maps must be floating point (float32); got {arr.dtype}. {_rewrite_fix(p)}")
     if arr.ndim not in (3, 4) or 0 in arr.shape:
@@ -303,11 +336,17 @@ def _read_tiff(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
     try:
         with TiffDamage() as damage, tifffile.TiffFile(path) as tf:
             check_tiff_pages(path, tf)  # one shape on every page, total within the input limit
+            if path.name.lower().endswith((".ome.tif", ".ome.tiff")):
+                from .mapsome import read_ome_tiff
+
+                data, meta = read_ome_tiff(path, tf)
+                damage.check()
+                return data, meta
             data = tf.asarray()
             meta = _tiff_meta(path, tf)
             damage.check()
     except ValueError as err:
-        if "ImageDescription" in str(err) or MAX_INPUT_ENV in str(err) or "TIFF pages of two shapes" in str(err):
+        if "ImageDescription" in str(err) or "OME" in str(err) or MAX_INPUT_ENV in str(err) or "TIFF pages of two shapes" in str(err):
             raise
         raise ValueError(f"{path.name}: not a readable maps TIFF (truncated or corrupt: {err}). "
                          f"{_rewrite_fix(path)}") from None

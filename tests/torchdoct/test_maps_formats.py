@@ -1,0 +1,89 @@
+"""Maps written as OME-TIFF and OME-Zarr (torchdoct.measured.mapsome): channel names, physical sizes in µm
+and the metadata inside the file, read back by the one maps reader (that of doct-classify) unchanged, and
+read by tifffile's and zarr's own parsers with the same names and sizes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from torchdoct.measured.mapsfile import Maps, read_maps, write_maps
+
+tifffile = pytest.importorskip("tifffile")
+
+
+def _maps(volume: bool) -> Maps:
+    rng = np.random.default_rng(1)
+    shape = (3, 5, 12, 16) if volume else (3, 12, 16)
+    names = ["liv@original", "ocds@original", "mean_db@original"]
+    units = ["dB²", "1/s", "dB"]
+    chans = [{"name": n, "metric": n.split("@")[0], "unit": u, "resolution": "original", "wavelength_um": 0.84,
+              "lateral_resolution_um": 4.0, "axial_resolution_um": 3.0} for n, u in zip(names, units)]
+    pitch = {"z": 1.9, "y": 7.5, "x": 2.5} if volume else {"z": 1.9, "x": 2.5}
+    data = rng.standard_normal(shape).astype(np.float32)
+    data[0, ..., 0, 0] = np.nan
+    meta = {"axes": "CYZX" if volume else "CZX", "pitch_um": pitch, "channels": chans,
+            "system": {"name": "lab", "wavelength_um": 0.84}, "frame_times_s": [0.0, 0.2]}
+    return Maps(maps=data, channels=tuple(names), meta=meta)
+
+
+@pytest.mark.parametrize("volume", [False, True], ids=["bscan", "volume"])
+@pytest.mark.parametrize("suffix", [".ome.tif", ".zarr", ".npz", ".tif"])
+def test_maps_round_trip_through_every_maps_format(tmp_path, suffix, volume):
+    pytest.importorskip("zarr") if suffix == ".zarr" else None
+    m = _maps(volume)
+    back = read_maps(write_maps(tmp_path / f"m{suffix}", m))
+    assert back.channels == m.channels and back.meta == m.meta
+    np.testing.assert_array_equal(back.maps, m.maps)
+
+
+@pytest.mark.parametrize("volume", [False, True], ids=["bscan", "volume"])
+def test_ome_tiff_maps_carry_channel_names_and_physical_sizes_in_um(tmp_path, volume):
+    import xml.etree.ElementTree as ET
+
+    path = write_maps(tmp_path / "m.ome.tif", _maps(volume))
+    with tifffile.TiffFile(path) as tf:
+        assert tf.is_ome
+        series = tf.series[0]
+        # planes in XYCZT order (channel fastest): tifffile names the series ZCYX; OME Z is depth
+        assert series.axes == ("ZCYX" if volume else "CYX")
+        assert series.shape == ((12, 3, 5, 16) if volume else (3, 12, 16))
+        root = ET.fromstring(tf.ome_metadata)
+    ns = {"o": "http://www.openmicroscopy.org/Schemas/OME/2016-06"}
+    px = root.find("o:Image/o:Pixels", ns)
+    assert [c.get("Name") for c in px.findall("o:Channel", ns)] == ["liv@original", "ocds@original",
+                                                                     "mean_db@original"]
+    want = {"Z": 1.9, "Y": 7.5, "X": 2.5} if volume else {"Y": 1.9, "X": 2.5}  # OME Y of a B-scan is depth
+    for k, v in want.items():
+        assert float(px.get(f"PhysicalSize{k}")) == pytest.approx(v) and px.get(f"PhysicalSize{k}Unit") == "µm"
+    note = root.find("o:StructuredAnnotations/o:CommentAnnotation", ns)
+    assert note.get("Namespace") == "torchdoct" and '"system"' in note.find("o:Value", ns).text
+
+
+def test_ome_zarr_maps_have_ngff_axes_scale_and_labels(tmp_path):
+    zarr = pytest.importorskip("zarr")
+    path = write_maps(tmp_path / "m.zarr", _maps(True))
+    g = zarr.open_group(str(path), mode="r")
+    ms = g.attrs["multiscales"][0]
+    assert ms["version"] == "0.4" and [a["name"] for a in ms["axes"]] == ["c", "z", "y", "x"]
+    assert all(a["unit"] == "micrometer" for a in ms["axes"][1:])
+    assert ms["datasets"][0]["coordinateTransformations"][0]["scale"] == pytest.approx([1.0, 1.9, 7.5, 2.5])
+    assert [c["label"] for c in g.attrs["omero"]["channels"]][0] == "liv@original"
+    assert g["0"].shape == (3, 12, 5, 16)
+
+
+def test_truncated_ome_tiff_maps_are_refused(tmp_path):
+    path = write_maps(tmp_path / "m.ome.tif", _maps(True))
+    path.write_bytes(path.read_bytes()[:-2000])
+    with pytest.raises(ValueError, match="m.ome.tif"):
+        read_maps(path)
+
+
+def test_the_maps_reader_stays_torch_free(tmp_path):
+    import subprocess
+    import sys
+
+    path = write_maps(tmp_path / "m.ome.tif", _maps(False))
+    code = ("import sys; from torchdoct.measured.mapsfile import read_maps; read_maps(sys.argv[1]); "
+            "assert 'torch' not in sys.modules, 'torch imported'")
+    subprocess.run([sys.executable, "-c", code, str(path)], check=True)
