@@ -277,3 +277,34 @@ def test_ome_xml_with_entities_is_refused(tmp_path):
 
     with pytest.raises(ValueError, match="entities"):
         parse_ome('<?xml version="1.0"?><!DOCTYPE a [<!ENTITY x "y">]><OME/>', "s.ome.tif")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# sequence files carry their metadata inside
+# ----------------------------------------------------------------------------------------------------------
+def _meta(t: int) -> dict:
+    return {"axes": "TZX", "pitch_um": F.PITCH, "frame_times_s": [k * F.DT_S for k in range(t)],
+            "system": {"name": "lab", **SYSTEM, "refractive_index": 1.33}}
+
+
+def test_npz_sequence_travels_without_its_sidecar(tmp_path):
+    from torchdoct.measured.io import write_sequence
+
+    a = F.field(t=4)
+    p = write_sequence(tmp_path / "s.npz", a, _meta(4))
+    p.with_suffix(".json").unlink()
+    seq = read_sequence(p)
+    assert seq.pitch_um == F.PITCH and seq.system["refractive_index"] == 1.33
+    np.testing.assert_array_equal(seq.data, a)
+
+
+def test_hdf5_sequence_has_one_attribute_per_field(tmp_path):
+    h5py = pytest.importorskip("h5py")
+    from torchdoct.measured.io import write_sequence
+
+    p = write_sequence(tmp_path / "s.h5", F.field(t=4), _meta(4))
+    with h5py.File(p, "r") as fh:
+        attrs = dict(fh.attrs)
+    assert attrs["axes"] == "TZX" and attrs["pitch_um.z"] == F.PITCH["z"] and attrs["system.name"] == "lab"
+    np.testing.assert_allclose(attrs["frame_times_s"], [k * F.DT_S for k in range(4)])
+    assert attrs["system.refractive_index"] == 1.33 and json.loads(attrs["torchdoct"])["axes"] == "TZX"

@@ -96,13 +96,32 @@ def _check_label_array(name: str, arr: Any) -> np.ndarray | None:
     return a
 
 
+def _flat_attributes(meta: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """One HDF5 attribute per metadata field (nested tables as ``table.key``): strings, numbers and lists of
+    numbers; what is neither (None, lists of tables) is left to the JSON attribute ``torchdoct``."""
+    out: dict[str, Any] = {}
+    for key, value in meta.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(_flat_attributes(value, f"{name}."))
+        elif isinstance(value, (str, int, float)) and not isinstance(value, bool):
+            out[name] = value
+        elif isinstance(value, bool):
+            out[name] = np.bool_(value)
+        elif isinstance(value, (list, tuple)) and value and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            out[name] = np.asarray(value, dtype=np.float64)
+    return out
+
+
 def write_sequence(path: str | os.PathLike, data: Any, meta: Mapping[str, Any], *, labels: Any = None,
                    label_params: Any = None, force: bool = False) -> Path:
     """Write a complex sequence ``data`` (``[T, Z, X]`` / ``[T, Y, Z, X]``) with its metadata.
 
     Format by suffix: ``.npy`` + ``.json`` sidecar; ``.npz`` (``data``, optional ``labels`` /
-    ``label_params``) + sidecar; ``.h5`` (datasets ``data``, ``labels``, ``label_params``; the JSON
-    as root attribute ``torchdoct``). ``data`` may be numpy or torch, complex64 or complex128
+    ``label_params``, and the metadata JSON as ``meta_json``) + sidecar; ``.h5`` (datasets ``data``,
+    ``labels``, ``label_params``; the JSON as root attribute ``torchdoct`` and every field as its own
+    attribute, :func:`_flat_attributes`). ``data`` may be numpy or torch, complex64 or complex128
     (float intensity is accepted too). Metadata are validated (:func:`validate_meta`). Every file is
     written atomically; an existing data file or sidecar is an error unless ``force``.
     Returns the data file path.
@@ -131,7 +150,7 @@ def write_sequence(path: str | os.PathLike, data: Any, meta: Mapping[str, Any], 
             with open(tmp, "wb") as fh:
                 np.save(fh, arr, allow_pickle=False)
     elif out.suffix == ".npz":
-        arrays = {"data": arr}
+        arrays = {"data": arr, "meta_json": np.asarray(text)}  # the metadata inside too (the archive may travel alone)
         if lab is not None:
             arrays["labels"] = lab
         if par is not None:
@@ -153,7 +172,9 @@ def write_sequence(path: str | os.PathLike, data: Any, meta: Mapping[str, Any], 
                         fh.create_dataset(key, data=a.astype(object), dtype=h5py.string_dtype("utf-8"))
                     else:
                         fh.create_dataset(key, data=a)
-                fh.attrs["torchdoct"] = text
+                fh.attrs["torchdoct"] = text  # what the reader reads
+                for key, value in _flat_attributes(clean).items():  # one attribute per field, for HDF5 viewers
+                    fh.attrs[key] = value
 
     atomic_write(out, write)
     if side is not None:
