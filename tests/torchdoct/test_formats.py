@@ -308,3 +308,71 @@ def test_hdf5_sequence_has_one_attribute_per_field(tmp_path):
     assert attrs["axes"] == "TZX" and attrs["pitch_um.z"] == F.PITCH["z"] and attrs["system.name"] == "lab"
     np.testing.assert_allclose(attrs["frame_times_s"], [k * F.DT_S for k in range(4)])
     assert attrs["system.refractive_index"] == 1.33 and json.loads(attrs["torchdoct"])["axes"] == "TZX"
+
+
+# ----------------------------------------------------------------------------------------------------------
+# streaming: a memory-mapped input is read slab by slab within --max-memory-gb
+# ----------------------------------------------------------------------------------------------------------
+def test_streamed_npy_is_read_in_slabs_within_the_budget_and_gives_the_same_maps(tmp_path, monkeypatch):
+    from torchdoct.measured.formats import lazy
+    from torchdoct.measured.maps import compute_maps
+    from torchdoct.resources import MAPS_WORK_COPIES, slab_elements_within
+
+    a = F.field(t=32, z=64, x=48)
+    p = F.write_npy(tmp_path / "s.npy", a)
+    reads = []
+    real_getitem = lazy.MappedFile.__getitem__
+
+    def counted(self, key):
+        out = real_getitem(self, key)
+        reads.append(out.nbytes)
+        return out
+
+    monkeypatch.setattr(lazy.MappedFile, "__getitem__", counted)
+    seq = read_sequence(p, stream=True)
+    assert isinstance(seq.data, lazy.LazyArray)
+    budget_gb = 0.0004  # 429 kB: the output maps (37 kB) and slabs of a few rows
+    n = slab_elements_within(budget_gb, a.shape, 8, complex_samples=True, n_resolutions=1,
+                             metrics=["liv", "ocds", "mean_db"])
+    reads.clear()
+    got = compute_maps(seq, ["original"], slab_elements=n)
+    assert reads and max(reads) <= max(n * 8, a[0].nbytes)  # a slab, or one frame for the peak scan
+    assert MAPS_WORK_COPIES * n * 8 < budget_gb * (1 << 30)
+    want = compute_maps(read_sequence(p), ["original"])
+    np.testing.assert_array_equal(got.maps, want.maps)  # per-pixel metrics: the slab size changes nothing
+
+
+def test_a_budget_the_output_alone_fills_is_refused(outdir, capsys):
+    path = F.write_npy(outdir / "s.npy", F.field(t=8))
+    refused(capsys, outdir, _argv(outdir, path, "--max-memory-gb", "1e-7"), "--max-memory-gb", "output maps")
+
+
+def _peak_rss_growth(tmp_path: Path, argv: list[str]) -> int:
+    import subprocess
+    import sys
+
+    probe = ("import json, sys\nimport torch, torchdoct.measured.maps\nfrom torchdoct.cli import main\n"
+             "def st(k):\n    return next(int(l.split()[1]) * 1024 for l in open('/proc/self/status') if l.startswith(k))\n"
+             "b = st('VmRSS:')\nc = main(sys.argv[1:])\nprint(json.dumps([c, st('VmHWM:') - b]))\n")
+    out = subprocess.run([sys.executable, "-c", probe, *argv], capture_output=True, text=True, check=True,
+                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])})
+    code, growth = json.loads(out.stdout.strip().splitlines()[-1])
+    assert code == 0, out.stderr
+    return growth
+
+
+@pytest.mark.slow
+def test_peak_rss_of_a_streamed_input_stays_far_below_its_size(tmp_path):
+    """64 MiB memory-mapped input, 16 MiB budget: the peak resident growth stays below the input's size
+    (the default run keeps every page it touched)."""
+    rng = np.random.default_rng(0)
+    a = np.lib.format.open_memmap(tmp_path / "s.npy", mode="w+", dtype=np.complex64, shape=(32, 512, 512))
+    for t in range(32):
+        a[t] = (rng.standard_normal((512, 512)) + 1j * rng.standard_normal((512, 512))).astype(np.complex64)
+    a.flush()
+    del a
+    F.sidecar(tmp_path / "s.npy", t=32)
+    base = ["maps", str(tmp_path / "s.npy"), "--no-progress", "--force"]
+    default = _peak_rss_growth(tmp_path, base + ["--out", str(tmp_path / "a.npz")])
+    streamed = _peak_rss_growth(tmp_path, base + ["--out", str(tmp_path / "b.npz"), "--max-memory-gb", "0.016"])
+    assert streamed < 64 << 20 < default

@@ -55,6 +55,9 @@ def _maps_arguments(mp) -> None:
     g.add_argument("--allow-external-hdf5", action="store_true",
                    help="read HDF5 external storage, external links and virtual datasets whose data lie in other "
                         "files (refused by default: they can make any readable file into data)")
+    g.add_argument("--max-memory-gb", type=float, default=None, metavar="GB",
+                   help="working memory of the maps (slabs and output; GiB): the sequence is streamed through "
+                        "them in slabs that fit, memory-mapped and OME-Zarr inputs read slab by slab")
     g.add_argument("--max-input-gb", type=float, default=None, metavar="GB",
                    help="largest input array to read (GiB; default 8 or $TORCHDOCT_MAX_INPUT_GB)")
     g.add_argument("--block-raster", default=None, metavar="B:R:K",
@@ -158,7 +161,8 @@ def _maps(args: argparse.Namespace) -> int:
     seq = read_sequence(args.input, axes=args.axes, pitch_um=args.pitch_um,
                         frame_times_s=parse_floats(args.frame_times_s, None, "--frame-times-s") if args.frame_times_s else None,
                         frame_interval_s=args.frame_interval_s, system=system or None, dataset=args.dataset,
-                        block_raster=raster, allow_external_hdf5=args.allow_external_hdf5, scale=args.scale)
+                        block_raster=raster, allow_external_hdf5=args.allow_external_hdf5, scale=args.scale,
+                        stream=args.max_memory_gb is not None)
     resolutions = args.resolution or ["original"]
     options = dict(metrics=metrics, signature=args.signature, speckle=args.speckle or None,
                    speckle_window=args.speckle_window, ocds_delay_range_s=tuple(args.ocds_delay_range_s),
@@ -195,6 +199,12 @@ def _maps(args: argparse.Namespace) -> int:
 
     check_maps(seq.source, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,  # disk space
                n_resolutions=len(resolutions), metrics=metrics, slab_elements=None, out_paths=outs)
+    if args.max_memory_gb is not None:  # slabs that fit the budget (the default slab size otherwise)
+        from ..resources import slab_elements_within
+
+        options["slab_elements"] = slab_elements_within(
+            args.max_memory_gb, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,
+            n_resolutions=len(resolutions), metrics=metrics, source=seq.source)
     maps = compute_maps(seq, resolutions, **options, aliv_smoothing=not args.no_aliv_smoothing,
                         aliv_max_window_s=args.aliv_max_window_s, axial_center=center,
                         drop_boundary=args.drop_boundary > 0, device=args.device, bulk_phase=bulk,

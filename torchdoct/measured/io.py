@@ -258,7 +258,7 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
                   frame_times_s: _Seq[float] | None = None, frame_interval_s: float | None = None,
                   system: Mapping[str, Any] | None = None, dataset: str | None = None,
                   block_raster: BlockRaster | None = None, allow_external_hdf5: bool = False,
-                  scale: str | None = None) -> SequenceData:
+                  scale: str | None = None, stream: bool = False) -> SequenceData:
     """Read a sequence file (see the module docstring) into a :class:`SequenceData` in canonical order.
 
     Metadata come from the file (h5 attribute, TIFF JSON description) or its JSON sidecar; the
@@ -273,7 +273,9 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     lie in other files; refused by default, :func:`torchdoct.measured.guards.check_hdf5_local`),
     ``scale`` (``linear``, ``db`` or ``complex``: what the samples are, checked; dB intensities are
     converted to linear, :func:`_apply_scale`; default: complex data are the field, real data a linear
-    intensity). Declared sizes over :func:`torchdoct.measured.guards.max_input_bytes` are refused before reading;
+    intensity), ``stream`` (a memory-mapped ``.npy`` or raw binary is read slice by slice through
+    :class:`~torchdoct.measured.formats.lazy.MappedFile`, so only the slabs the maps read are ever
+    resident; an OME-Zarr always is). Declared sizes over :func:`torchdoct.measured.guards.max_input_bytes` are refused before reading;
     negative intensities and extended-precision dtypes are refused naming the file, the count and the
     fix; samples that are not finite (NaN, inf) are counted (``nonfinite_samples``) and their pixels are
     masked in the maps (:func:`torchdoct.measured.maps.compute_maps`). A file the system does not let us read raises ``PermissionError``.
@@ -305,6 +307,10 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     if dataset is not None and not fmt.DATASET:
         raise ValueError(f"{p.name}: dataset= applies to .h5 and .mat files only")
     data, labels, params, file_meta = loaded.data, loaded.labels, loaded.label_params, loaded.meta
+    if stream and isinstance(data, np.memmap) and data.dtype.isnative and data.flags.c_contiguous:
+        from .formats.lazy import LazyArray, MappedFile
+
+        data = LazyArray(MappedFile(data.filename, data.dtype, data.shape, data.offset), p.name)
     side = sidecar_path(p)
     meta: dict[str, Any] = {}
     if file_meta is not None and not (loaded.sidecar_fills and side.exists()):

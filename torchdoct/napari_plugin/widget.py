@@ -1,6 +1,7 @@
-"""npe2 dock widget: runs ``maps`` on the selected layer's source sequence and, when a model is chosen,
-``classify`` on those maps, in a worker thread with a progress bar; the results open as layers
-(:mod:`.reader`). Needs napari and Qt (imported when the widget is made, never by the reader/writer)."""
+"""npe2 dock widget: runs ``maps`` on the selected layer's source sequence and, when asked, ``doct-classify``
+on those maps (the command, in a subprocess: torchdoct never imports the classifier), in a worker thread
+with a progress bar; the results open as layers (:mod:`.reader`). Needs napari and Qt (imported when the
+widget is made, never by the reader/writer)."""
 
 from __future__ import annotations
 
@@ -18,14 +19,7 @@ def MapsWidget(napari_viewer: Any) -> Any:  # noqa: N802 (npe2 names a widget co
     res = QLineEdit("original")
     metrics = QLineEdit("liv,ocds,mean_db")
     model = QComboBox()
-    model.addItem("(no classification)")
-    try:
-        from classifier import shipped_models
-
-        for name in shipped_models():
-            model.addItem(name)
-    except ImportError:  # the classifier is optional here
-        pass
+    model.addItems(["(no classification)", "(shipped default model)"])
     run, bar, status = QPushButton("Run maps"), QProgressBar(), QLabel("")
     bar.setRange(0, 0)
     bar.hide()
@@ -45,31 +39,33 @@ def MapsWidget(napari_viewer: Any) -> Any:  # noqa: N802 (npe2 names a widget co
         return str(path)
 
     @thread_worker
-    def work(path: str, resolutions: list[str], mets: list[str], model_name: str | None):
-        from ..measured.io import read_sequence
-        from ..measured.maps import compute_maps
-
-        maps = compute_maps(read_sequence(path), resolutions, metrics=mets, progress=True)
-        classes = None
-        if model_name:
-            from classifier import classify_maps, load_model
-
-            classes = classify_maps(maps, load_model(model_name))
-        return maps, classes
-
-    def done(result: Any) -> None:
-        maps, classes = result
+    def work(path: str, resolutions: list[str], mets: list[str], classify: bool):
+        import shutil
+        import subprocess
         import tempfile
         from pathlib import Path
 
+        from ..measured.io import read_sequence
+        from ..measured.maps import compute_maps
         from ..measured.mapsfile import write_maps
-        from .reader import read_maps_layers
+        from .reader import read
 
+        maps = compute_maps(read_sequence(path), resolutions, metrics=mets, signature=classify, progress=True)
         with tempfile.TemporaryDirectory() as d:
-            for data, attrs, kind in read_maps_layers(write_maps(Path(d) / "maps.npz", maps)):
-                napari_viewer._add_layer_from_data(data, attrs, kind)
-        if classes is not None:
-            napari_viewer.add_labels(classes.labels.astype("int32") + 1, name="classes")
+            mpath = write_maps(Path(d) / "maps.npz", maps)
+            layers = read(mpath)
+            if classify:
+                exe = shutil.which("doct-classify")
+                if exe is None:
+                    raise ValueError("doct-classify is not installed (pip install the classifier with torchdoct)")
+                subprocess.run([exe, str(mpath), "--out", str(Path(d) / "classes")], check=True,
+                               capture_output=True, text=True)
+                layers += read(Path(d) / "classes" / "classes.tif")
+        return layers
+
+    def done(layers: Any) -> None:
+        for data, attrs, kind in layers:
+            getattr(napari_viewer, f"add_{kind}")(data, **attrs)
         bar.hide()
         status.setText("done")
 
@@ -81,10 +77,8 @@ def MapsWidget(napari_viewer: Any) -> Any:  # noqa: N802 (npe2 names a widget co
             return
         bar.show()
         status.setText("computing maps …")
-        name = model.currentText()
         worker = work(path, [r.strip() for r in res.text().split(";") if r.strip()],
-                      [m.strip() for m in metrics.text().split(",") if m.strip()],
-                      None if name.startswith("(") else name)
+                      [m.strip() for m in metrics.text().split(",") if m.strip()], model.currentIndex() == 1)
         worker.returned.connect(done)
         worker.errored.connect(lambda err: (bar.hide(), status.setText(f"error: {err}")))
         worker.start()

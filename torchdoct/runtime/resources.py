@@ -243,6 +243,29 @@ def maps_bytes(shape: Iterable[int], itemsize: int, *, complex_samples: bool, n_
     return MAPS_WORK_COPIES * slab + channels * pixels * real + out_disk, out_disk
 
 
+def slab_elements_within(budget_gb: float, shape: Iterable[int], itemsize: int, *, complex_samples: bool,
+                         n_resolutions: int, metrics: Iterable[str], source: str = "sequence") -> int:
+    """The largest ``slab_elements`` whose working memory (:func:`maps_bytes`: the output maps plus
+    :data:`MAPS_WORK_COPIES` copies of a slab) fits ``budget_gb`` GiB (``--max-memory-gb``); the interpreter
+    and torch themselves are not counted. A budget the output maps alone fill is a ``ValueError`` naming
+    the need."""
+    import math
+
+    if not (isinstance(budget_gb, (int, float)) and math.isfinite(budget_gb) and budget_gb > 0):
+        raise ValueError(f"--max-memory-gb must be a positive number of GiB; got {budget_gb!r}")
+    dims = [int(d) for d in shape]
+    fixed, _ = maps_bytes(dims, itemsize, complex_samples=complex_samples, n_resolutions=n_resolutions,
+                          metrics=list(metrics), slab_elements=0)
+    per_frame_row = dims[0] * int(itemsize)  # a slab holds at least every frame of one pixel row
+    free = int(budget_gb * (1 << 30)) - fixed
+    n = free // (MAPS_WORK_COPIES * int(itemsize))
+    if n < dims[0]:
+        raise ValueError(f"maps of {source}: --max-memory-gb {budget_gb:g} leaves no room for a slab: the output maps "
+                         f"alone take {fixed / (1 << 30):.3g} GiB and a slab needs {MAPS_WORK_COPIES} × "
+                         f"{per_frame_row} bytes more; raise --max-memory-gb or give fewer --resolution / --metrics")
+    return int(n)
+
+
 def check_maps(source: str, shape: Iterable[int], itemsize: int, *, complex_samples: bool, n_resolutions: int,
                metrics: Iterable[str], slab_elements: int | None, out_paths: Iterable[str | os.PathLike] = ()) -> None:
     """The resource check of ``torchdoct maps`` (:func:`maps_bytes`), naming the sequence ``source`` and the

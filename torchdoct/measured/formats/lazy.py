@@ -93,3 +93,22 @@ class Squeezed:
         for i in range(len(self._src.shape)):
             full.append(0 if i in self._drop else next(it))
         return self._src[tuple(full)]
+
+
+class MappedFile:
+    """A C-order array stored in a file at ``offset`` (a ``.npy`` body, a raw binary), read slice by slice:
+    each read maps the file, copies the slice and unmaps it, so the pages read do not stay in the process's
+    resident memory (a long-lived memory map keeps every page it touched)."""
+
+    def __init__(self, path: Any, dtype: Any, shape: tuple[int, ...], offset: int):
+        self._path, self.dtype, self.shape, self._offset = path, np.dtype(dtype), tuple(shape), int(offset)
+
+    def __getitem__(self, key: tuple) -> np.ndarray:
+        m = np.memmap(self._path, dtype=self.dtype, mode="r", offset=self._offset, shape=self.shape)
+        try:
+            return np.array(m[key], copy=True)
+        finally:
+            mm = getattr(m, "_mmap", None)
+            del m
+            if mm is not None:
+                mm.close()
