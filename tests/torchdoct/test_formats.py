@@ -316,7 +316,7 @@ def test_hdf5_sequence_has_one_attribute_per_field(tmp_path):
 def test_streamed_npy_is_read_in_slabs_within_the_budget_and_gives_the_same_maps(tmp_path, monkeypatch):
     from torchdoct.measured.formats import lazy
     from torchdoct.measured.maps import compute_maps
-    from torchdoct.resources import MAPS_WORK_COPIES, slab_elements_within
+    from torchdoct.runtime.resources import MAPS_WORK_COPIES, slab_elements_within
 
     a = F.field(t=32, z=64, x=48)
     p = F.write_npy(tmp_path / "s.npy", a)

@@ -200,7 +200,7 @@ def _maps(args: argparse.Namespace) -> int:
     check_maps(seq.source, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,  # disk space
                n_resolutions=len(resolutions), metrics=metrics, slab_elements=None, out_paths=outs)
     if args.max_memory_gb is not None:  # slabs that fit the budget (the default slab size otherwise)
-        from ..resources import slab_elements_within
+        from ..runtime.resources import slab_elements_within
 
         options["slab_elements"] = slab_elements_within(
             args.max_memory_gb, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,
