@@ -200,6 +200,32 @@ def _maps(args: argparse.Namespace) -> int:
     return run_benchmark(args, compute, fmt)
 
 
+def _stream_arguments(bs) -> None:
+    bs.add_argument("--sizes-gb", default="1,4,16", help="input sizes (GiB; default 1,4,16)")
+    bs.add_argument("--budget-gb", type=float, default=0.25, help="--max-memory-gb of the maps (default 0.25)")
+    bs.add_argument("--workdir", default=None, help="folder for the sparse inputs (default the temporary folder)")
+    bs.add_argument("--figure", default=None, metavar="FILE.png", help="also draw peak RSS against input size")
+    _add_out(bs)
+    bs.add_argument("--force", action="store_true", help="overwrite --out / --figure if they exist")
+
+
+def _stream(args) -> int:
+    from ..bench.stream import bench_stream, format_stream_table, plot_stream
+
+    out = check_out(args.out, args.force, ".json", what="--out")
+    fig = check_out(args.figure, args.force, ".png", what="--figure")
+    res = bench_stream(parse_floats(args.sizes_gb, None, "--sizes-gb"), budget_gb=args.budget_gb,
+                       workdir=args.workdir)
+    print(format_stream_table(res))
+    if out is not None:  # asked for with --out: nothing is written into the current folder unasked
+        atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
+        print(f"wrote {out}")
+    if fig is not None:
+        atomic_write(fig, lambda tmp: plot_stream(res, tmp))
+        print(f"wrote {fig}")
+    return 0
+
+
 def _bulk_phase_arguments(bb) -> None:
     bb.add_argument("--snr-db", default="10,20,30,40", help="comma list of SNRs (dB; default 10,20,30,40)")
     bb.add_argument("--depth", type=int, default=64, help="depth pixels per A-line (default 64)")
@@ -268,7 +294,8 @@ def _all_arguments(ba) -> None:
 
 
 #: ``bench all --quick``: the reduced sizes of the benchmarks without a ``--quick`` option.
-_QUICK = {"simulate": ["--trials", "256"], "tradeoffs": ["--quick"], "render": ["--repeats", "1"], "load": ["--repeats", "1"]}
+_QUICK = {"simulate": ["--trials", "256"], "tradeoffs": ["--quick"], "render": ["--repeats", "1"], "load": ["--repeats", "1"],
+          "stream": ["--sizes-gb", "0.0625,0.25"]}
 
 
 def _all(args) -> int:
@@ -322,6 +349,8 @@ def benchmarks() -> dict[str, Any]:
                        _cog_arguments, _cog),
         "render": Command("spheroid phantom: 32-frame 256×256 B-scan sequence", _render_arguments, _render),
         "maps": Command("time maps of a random complex stack at several resolutions", _maps_arguments, _maps),
+        "stream": Command("peak memory of streamed maps against input size (--max-memory-gb)", _stream_arguments,
+                          _stream),
         "bulk-phase": Command("residual phase error of the bulk-phase correction against SNR", _bulk_phase_arguments,
                               _bulk_phase),
         "study": Command("wall time of a whole study from an empty cache", _study_arguments, _study),
