@@ -7,24 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from torchdoct.measured.mapsfile import Maps, read_maps, write_maps
+from _formats import maps as _maps
+from torchdoct.measured.mapsfile import read_maps, write_maps
 
 tifffile = pytest.importorskip("tifffile")
-
-
-def _maps(volume: bool) -> Maps:
-    rng = np.random.default_rng(1)
-    shape = (3, 5, 12, 16) if volume else (3, 12, 16)
-    names = ["liv@original", "ocds@original", "mean_db@original"]
-    units = ["dB²", "1/s", "dB"]
-    chans = [{"name": n, "metric": n.split("@")[0], "unit": u, "resolution": "original", "wavelength_um": 0.84,
-              "lateral_resolution_um": 4.0, "axial_resolution_um": 3.0} for n, u in zip(names, units)]
-    pitch = {"z": 1.9, "y": 7.5, "x": 2.5} if volume else {"z": 1.9, "x": 2.5}
-    data = rng.standard_normal(shape).astype(np.float32)
-    data[0, ..., 0, 0] = np.nan
-    meta = {"axes": "CYZX" if volume else "CZX", "pitch_um": pitch, "channels": chans,
-            "system": {"name": "lab", "wavelength_um": 0.84}, "frame_times_s": [0.0, 0.2]}
-    return Maps(maps=data, channels=tuple(names), meta=meta)
 
 
 @pytest.mark.parametrize("volume", [False, True], ids=["bscan", "volume"])
