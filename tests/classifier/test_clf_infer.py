@@ -124,7 +124,7 @@ def test_read_maps_rejects_bad_files(setup, tmp_path):
     with pytest.raises(FileNotFoundError):
         read_maps(tmp_path / "none.npz")
     (tmp_path / "x.h5").write_bytes(b"")
-    with pytest.raises(ValueError, match=".npz or .tif"):
+    with pytest.raises(ValueError, match=r"\.npz, \.tif"):
         read_maps(tmp_path / "x.h5")
     np.savez(tmp_path / "nomaps.npz", other=np.zeros(3))
     with pytest.raises(ValueError, match="'maps'"):

@@ -343,8 +343,9 @@ def test_streamed_npy_is_read_in_slabs_within_the_budget_and_gives_the_same_maps
 
 
 def test_a_budget_the_output_alone_fills_is_refused(outdir, capsys):
-    path = F.write_npy(outdir / "s.npy", F.field(t=8))
-    refused(capsys, outdir, _argv(outdir, path, "--max-memory-gb", "1e-7"), "--max-memory-gb", "output maps")
+    path = F.write_npy(outdir / "s.npy", F.field(t=8))  # 8 frames: OCDS delays on 2+ pairs up to 6 frame intervals
+    refused(capsys, outdir, _argv(outdir, path, "--max-memory-gb", "1e-7", "--ocds-delay-range-s", "0.05", "0.3"),
+            "--max-memory-gb", "output maps")
 
 
 def _peak_rss_growth(tmp_path: Path, argv: list[str]) -> int:

@@ -32,14 +32,15 @@ SEQUENCE_SUFFIXES: tuple[str, ...] = tuple(s for m in FORMATS for s in m.SUFFIXE
 
 def reader_for(path: str | os.PathLike) -> ModuleType | None:
     """The format module that reads ``path`` (by its longest matching suffix, case-insensitive; a folder
-    not named ``.zarr`` is a folder of per-frame TIFFs), or None."""
+    named by no file format's suffix is a folder of per-frame TIFFs; a folder named like a file, such as
+    ``x.npy/``, gets that file's reader, whose regular-file check refuses it), or None."""
     p = Path(path)
     name = p.name.lower()
-    if p.is_dir() and not name.endswith(omezarr.SUFFIXES):
-        return tifffolder
     best: tuple[int, ModuleType] | None = None
     for module in FORMATS:
         for suffix in module.SUFFIXES:
             if name.endswith(suffix) and (best is None or len(suffix) > best[0]):
                 best = (len(suffix), module)
+    if best is None and p.is_dir():
+        return tifffolder
     return None if best is None else best[1]
