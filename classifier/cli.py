@@ -10,8 +10,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from torchdoct.runtime import interrupt as _interrupt
 
@@ -100,6 +100,7 @@ def train_main(argv: Sequence[str] | None = None) -> int:
 
 def _train(args: argparse.Namespace) -> int:
     from torchdoct.files import check_out, output_set, safe_name
+
     from .features import load_spec
     from .train import TrainConfig
 
@@ -207,9 +208,9 @@ _RANGE_UNITS = {"diffusion": "D, µm²/s", "ballistic": "v, µm/s", "flow": "v, 
 def _print_plan(args, spec, prior, ranges, cfg, notes, paths) -> None:
     """What will be trained, printed before the work: spec, prior, recipe, expected time, cache key."""
     from .dataset import dataset_key, default_cache_dir
-    from .prior import CLASSES
     from .features import toml_text
     from .own_system import estimate_seconds
+    from .prior import CLASSES
     from .train import default_prior
 
     prior = prior or default_prior(cfg)

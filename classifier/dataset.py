@@ -91,7 +91,7 @@ class Dataset:
             np.savez(fh, meta_json=np.asarray(json.dumps(self.meta)), **self.arrays(), **extra)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "Dataset":
+    def load(cls, path: str | os.PathLike) -> Dataset:
         with np.load(path, allow_pickle=False) as z:
             # splits stored before the polar angle was recorded have none: NaN (unknown)
             arrays = {k: z[k] if k in z.files else np.full(z["y"].shape, math.nan) for k in _ARRAYS}
@@ -199,10 +199,10 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
     cols: dict[str, list] = {k: [] for k in _ARRAYS}
     refs: list[np.ndarray] = []
     dropped = 0
-    status_counts = {s: 0 for s in STATUS}
+    status_counts = dict.fromkeys(STATUS, 0)
     t0 = time.perf_counter()
-    from torchdoct.study.cells import CellCache, CellJob, run_cached, run_cells
     from torchdoct.runtime.threads import resolve_threads
+    from torchdoct.study.cells import CellCache, CellJob, run_cached, run_cells
 
     def one(k: int):
         d = draw_parameters(prior, seed, split, k, replicates)

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from torchdoct.runtime import interrupt as _interrupt
 
 #: Motion codes of rendered labels (``torchdoct.image.phantom.MOTION_CODES``) → classifier class names.

@@ -26,14 +26,21 @@ A *sample set* is a dict of arrays of equal length: ``x`` (model inputs), ``y`` 
 
 from __future__ import annotations
 
-import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from .prior import CLASSES
-from .report import (COVERAGE_THRESHOLDS, bootstrap_draws, bootstrap_se, coverage_curve, evaluate, flow_recall_by_band,
-                     magnitude_table)
+from .report import (
+    COVERAGE_THRESHOLDS,
+    bootstrap_draws,
+    bootstrap_se,
+    coverage_curve,
+    evaluate,
+    flow_recall_by_band,
+    magnitude_table,
+)
 from .rule import INDETERMINATE
 
 __all__ = ["CLASS_NAMES", "evaluate_set", "magnitude_metrics", "bootstrap_draws", "coverage_thresholds",

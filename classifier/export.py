@@ -34,8 +34,8 @@ def build_metadata(result) -> dict[str, Any]:
     import torchdoct
 
     from . import __version__
-    from .prior import CLASSES
     from .features import metric_unit
+    from .prior import CLASSES
 
     spec = result.spec
     columns = []

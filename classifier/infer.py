@@ -29,17 +29,31 @@ from __future__ import annotations
 import math
 import os
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
+
 from torchdoct.measured import mapsfile
 
 from . import conformal, runtime
-from .matching import (SIGNATURE_MODEL, SIGNATURE_MODELS, MapsChannels, assemble_features, choose_default_model,
-                       no_shipped_model_message)
-from .outputs import (CLASS_COLORS, MAGNITUDE_CHANNELS, MASKED, OUTPUT_FILES, Classification, magnitude_maps,
-                      write_classification)
 from .features import physical_range
+from .matching import (
+    SIGNATURE_MODEL,
+    SIGNATURE_MODELS,
+    MapsChannels,
+    assemble_features,
+    choose_default_model,
+    no_shipped_model_message,
+)
+from .outputs import (
+    CLASS_COLORS,
+    MAGNITUDE_CHANNELS,
+    MASKED,
+    OUTPUT_FILES,
+    Classification,
+    magnitude_maps,
+    write_classification,
+)
 from .pooling import independent_fraction, model_inputs, pool_features
 from .rule import REASONS, apply_rule
 from .runtime import DEFAULT_MODEL, ClassifierModel

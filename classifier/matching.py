@@ -22,11 +22,13 @@ destroys those features (:mod:`torchdoct.sim.signature`).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
+
 from torchdoct.measured.mapsfile import Maps
 from torchdoct.optics import ChannelOptics
 from torchdoct.sim import signature as _signature
@@ -368,7 +370,7 @@ def spec_from_maps(maps_list: Sequence[Maps | MapsChannels], name: str | None = 
                              "`torchdoct maps --signature` options")
         corrected = all(m.meta.get("bulk_phase") for m in maps_list)
         intensity_only = any(s.get("intensity_only") for s in signature)
-        metrics = [f for f in names[0] if corrected and not intensity_only or not _signature.needs_field(f)]
+        metrics = [f for f in names[0] if (corrected and not intensity_only) or not _signature.needs_field(f)]
         if not corrected and not intensity_only and len(metrics) < len(names[0]):
             notes.append("the field group (g1_M) is left out: the maps were not bulk-phase corrected, and a bulk "
                          "phase per frame destroys it (`torchdoct maps --bulk-phase weighted-mean --signature` "

@@ -29,7 +29,7 @@ class, the SD then scaled by one factor fitted on the validation split (:meth:`m
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import nn

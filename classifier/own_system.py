@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from .features import FeatureSpec
 from .prior import BALLISTIC_LAWS, CLASSES, Draw, Prior
 from .simulation import DEFAULT_TRUNCATION, scene_for
-from .truth import lateral_y, identifiability
-from .features import FeatureSpec
+from .truth import identifiability, lateral_y
 
 __all__ = ["identifiable_range", "prior_for_spec", "speed_cap", "estimate_seconds", "PRIOR_MARGIN_DECADES",
            "REFERENCE_RESOLUTIONS_UM", "MAX_SCATTERERS_PER_TRIAL", "FIT_SECONDS_PER_SAMPLE_EPOCH"]

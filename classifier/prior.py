@@ -199,7 +199,7 @@ class Prior:
         return self.speed_um_per_s
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "Prior":
+    def from_dict(cls, data: dict[str, Any]) -> Prior:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:

@@ -11,9 +11,9 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+from .features import FeatureSpec, load_spec
 from .prior import CLASSES, Prior
 from .simulation import DEFAULT_TRUNCATION
-from .features import FeatureSpec, load_spec
 
 __all__ = ["TrainConfig", "SPEC_RECIPES", "OWN_SIGNATURE_RECIPE", "recipe_for", "SCALED_PRIOR_SPECS", "default_prior",
            "SHIFTED_PRIOR", "SHIFTED_TARGETS", "shifted_prior"]
@@ -72,7 +72,7 @@ class TrainConfig:
     shifted_test: bool | None = None
 
     @classmethod
-    def for_spec(cls, spec: str | FeatureSpec = "single-acquisition", **overrides: Any) -> "TrainConfig":
+    def for_spec(cls, spec: str | FeatureSpec = "single-acquisition", **overrides: Any) -> TrainConfig:
         """The recipe of ``spec`` with ``overrides``: a shipped spec's (:data:`SPEC_RECIPES`), else, for a spec
         of one's own (a TOML file, ``doct-train --like``), :func:`recipe_for` by its features."""
         if isinstance(spec, FeatureSpec):

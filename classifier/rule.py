@@ -29,7 +29,8 @@ i.e. the pixel is also left undecided when no class is more likely than ``min_pr
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

@@ -13,11 +13,13 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
+
 from torchdoct.files import shipped_files
 from torchdoct.runtime.threads import map_ordered, resolve_threads
 

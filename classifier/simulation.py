@@ -93,6 +93,7 @@ def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
     intensity (physics.md §5.2, §8; the model of :class:`torchdoct.Noise`).
     """
     import torch
+
     import torchdoct as td
     from torchdoct.conventions import mean_intensity
     from torchdoct.sim.metrics import compute_metrics

@@ -48,14 +48,23 @@ import torch
 
 from . import __version__
 from .dataset import Dataset, make_dataset
-from .prior import CLASSES, Prior
-from .truth import STATUS
-from .features import METRIC_UNITS, FeatureSpec, load_spec
 from .evaluation import CLASS_NAMES, evaluate_set
+from .features import METRIC_UNITS, FeatureSpec, load_spec
 from .model import DECORRELATION_OFFSET, LIV_OFFSET_DB2, MotionClassifier
-from .recipe import (OWN_SIGNATURE_RECIPE, SCALED_PRIOR_SPECS, SHIFTED_PRIOR, SHIFTED_TARGETS, SPEC_RECIPES,  # noqa: F401
-                     TrainConfig, default_prior, recipe_for, shifted_prior)
+from .prior import CLASSES, Prior
+from .recipe import (  # noqa: F401
+    OWN_SIGNATURE_RECIPE,
+    SCALED_PRIOR_SPECS,
+    SHIFTED_PRIOR,
+    SHIFTED_TARGETS,
+    SPEC_RECIPES,
+    TrainConfig,
+    default_prior,
+    recipe_for,
+    shifted_prior,
+)
 from .rule import make_rule
+from .truth import STATUS
 
 __all__ = ["TrainConfig", "TrainResult", "train", "fit_network", "pooled_samples", "CLASS_NAMES", "transform_numpy",
            "SHIFTED_PRIOR", "SHIFTED_TARGETS", "shifted_prior", "feature_masks", "eval_samples", "class_targets",

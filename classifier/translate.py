@@ -32,9 +32,10 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -234,10 +235,10 @@ def translate_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], targe
 
     from torchdoct.measured.mapsfile import Maps
 
-    from .prior import CLASSES, Prior
-    from .own_system import identifiable_range
     from .features import spec_from_dict
     from .infer import classify_maps
+    from .own_system import identifiable_range
+    from .prior import CLASSES, Prior
 
     tgt = target if isinstance(target, Target) else load_target(target)
     # One class per pixel, by the rule (most probable class above min_probability): a conformal set of two

@@ -65,8 +65,8 @@ def transit_decay(spec: FeatureSpec, draw: Draw, prior: Prior) -> np.ndarray:
 
 def _criteria(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
     """Status, ``|g1(Δt)|²``, ``ρ_I(T)`` and ``ρ_I(Δt) − ρ_I(T)`` per configuration (:func:`identifiability`)."""
-    from torchdoct.sim import theory
     from torchdoct.conventions import n_eff
+    from torchdoct.sim import theory
 
     taus = np.array([spec.frame_interval_s, (spec.n_frames - 1) * spec.frame_interval_s])
     first, last, drop = [], [], []

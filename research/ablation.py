@@ -17,8 +17,8 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -132,12 +132,12 @@ def run_indeterminate(*, draws_train: int = 360, draws_test: int = 90, pixels: i
     from sklearn.ensemble import HistGradientBoostingClassifier
 
     from classifier.dataset import make_dataset
-    from classifier.prior import Prior, draw_parameters
-    from classifier.truth import transit_decay
     from classifier.features import load_spec
+    from classifier.prior import Prior, draw_parameters
     from classifier.report import evaluate
     from classifier.rule import make_rule
     from classifier.train import CLASS_NAMES
+    from classifier.truth import transit_decay
 
     spec, prior = candidate_spec(), Prior()
     eps = prior.identifiability_epsilon

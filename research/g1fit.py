@@ -61,10 +61,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from types import SimpleNamespace
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -484,8 +485,8 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
     from threadpoolctl import threadpool_limits
 
     from classifier.dataset import make_dataset
-    from classifier.prior import Prior
     from classifier.infer import load_model
+    from classifier.prior import Prior
     from classifier.report import evaluate
     from classifier.rule import apply_rule
     from classifier.train import CLASS_NAMES, eval_samples

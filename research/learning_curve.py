@@ -28,8 +28,9 @@ import dataclasses
 import json
 import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -125,15 +126,22 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
     import torch
 
     import torchdoct
-
     from classifier import __version__
     from classifier.dataset import make_dataset
-    from classifier.prior import Prior
-    from classifier.truth import STATUS
     from classifier.features import load_spec
+    from classifier.prior import Prior
     from classifier.rule import make_rule
-    from classifier.train import (CLASS_NAMES, TrainConfig, class_targets, evaluation_sets, feature_masks, fit_network,
-                                  network_predictions, transform_numpy)
+    from classifier.train import (
+        CLASS_NAMES,
+        TrainConfig,
+        class_targets,
+        evaluation_sets,
+        feature_masks,
+        fit_network,
+        network_predictions,
+        transform_numpy,
+    )
+    from classifier.truth import STATUS
 
     say = log or (lambda *a, **k: None)
     sizes, n_max = _check_sizes(sizes, draws_max)
@@ -421,7 +429,7 @@ def _int_list(text: str) -> list[int]:
     try:
         return [int(v) for v in text.split(",") if v.strip()]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, e.g. 60,120,240; got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, e.g. 60,120,240; got {text!r}") from None
 
 
 def main(argv: Sequence[str] | None = None) -> int:

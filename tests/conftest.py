@@ -12,9 +12,9 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import pytest
 import threadpoolctl
 import torch
+from _scenes import SMALL_SCENE_TOML
 
 import torchdoct
-from _scenes import SMALL_SCENE_TOML
 
 # The threading policy of torchdoct (torchdoct.runtime.threads): tensor operations run on one torch thread;
 # parallel work runs over independent pieces. Tests that call torch directly follow it too.

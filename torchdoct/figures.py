@@ -16,7 +16,8 @@ torch-free classify path imports it (``import torchdoct`` is light).
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 

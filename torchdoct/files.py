@@ -20,9 +20,10 @@ import shutil
 import stat
 import tempfile
 import threading
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from importlib import resources
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import Any
 
 __all__ = ["check_out", "atomic_write", "output_set", "OutputSet", "safe_name", "check_nesting", "MAX_NESTING",
            "shipped_files", "file_or_shipped", "NotRegularFileError", "check_regular_file", "open_regular",

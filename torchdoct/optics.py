@@ -21,8 +21,9 @@ Standard library only (no numpy, no torch): the torch-free classify path imports
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 __all__ = ["REL_TOL", "same_value", "ChannelOptics"]
 
@@ -70,7 +71,7 @@ class ChannelOptics:
         """True when the lateral PSF has the same width along x and y (within :data:`REL_TOL`)."""
         return same_value(self.lateral_y_um, self.lateral_resolution_um)
 
-    def matches(self, other: "ChannelOptics", *, rel_tol: float = REL_TOL, lateral_y: bool = True) -> bool:
+    def matches(self, other: ChannelOptics, *, rel_tol: float = REL_TOL, lateral_y: bool = True) -> bool:
         """True when wavelength, lateral (x) and axial resolution agree within ``rel_tol`` relative, and,
         when ``lateral_y``, the lateral resolution along y too (an isotropic value's y is its x)."""
         return (same_value(self.wavelength_um, other.wavelength_um, rel_tol)
@@ -85,7 +86,7 @@ class ChannelOptics:
         return f"{self.wavelength_um * 1000:g} nm, lateral {lateral}, axial {self.axial_resolution_um:g} µm"
 
     @classmethod
-    def of_channel(cls, channel: Mapping[str, Any], meta: Mapping[str, Any] | None = None) -> "ChannelOptics | None":
+    def of_channel(cls, channel: Mapping[str, Any], meta: Mapping[str, Any] | None = None) -> ChannelOptics | None:
         """The optics of a maps channel (its metadata dict), or None when it records none.
 
         ``meta``: the maps metadata. When its ``reduction.lateral_axes`` is ``"X"`` (B-scan data reduced

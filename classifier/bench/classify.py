@@ -49,9 +49,9 @@ def _synthetic_maps(path: Path, spec, size: int, seed: int) -> Path:
 
 def bench_classify(*, size: int = 512, repeats: int = 3, model: str | None = None, seed: int = 0) -> dict[str, Any]:
     """Pixels per second of ``classify_maps`` on a synthetic ``size × size`` maps file."""
-    from ..infer import classify_maps, load_model
-
     from torchdoct.runtime.resources import CLASSIFY_COPIES, check_bench
+
+    from ..infer import classify_maps, load_model
 
     mdl = load_model(model)
     channels = len(mdl.spec.features) + 1

@@ -52,9 +52,10 @@ import json
 import math
 import tempfile
 import time
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -260,9 +261,9 @@ def run_cell(cell: GridCell, model, levels: dict[str, dict[str, float]], *, pool
     """Render, map, classify and score one cell at every window of ``pools``: one row per window."""
     from torchdoct.image.phantom import phantom_from_dict
     from torchdoct.image.render import render
-    from torchdoct.measured.sequence import SequenceData, validate_meta
     from torchdoct.measured.maps import compute_maps
     from torchdoct.measured.mapsfile import write_maps
+    from torchdoct.measured.sequence import SequenceData, validate_meta
 
     from ..infer import classify_maps
     from ..prior import Prior
@@ -340,7 +341,7 @@ def run_grid(cells: Iterable[GridCell], model: str | None = None, *, pools: Sequ
     return {"schema_version": SCHEMA_VERSION, "benchmark": "phantom-grid",
             "definitions": _definitions(), "models": {g: m.spec.name for g, m in models.items()},
             "decision": rows[0]["decision"] if rows else decision,
-            "speed_levels": {g: lv for g, lv in levels.items()},
+            "speed_levels": dict(levels.items()),
             "units": {"diffusion": "µm²/s", "ballistic": "µm/s", "flow": "µm/s", "seconds": "s"},
             "cells": rows, "summary": summarize(rows), "seconds": time.perf_counter() - t0,
             "machine": machine_info()}

@@ -163,9 +163,9 @@ def card(root: Path, name: str) -> str:
         out += [f"No independent evaluation is stored for this model; `python -m tests.reference.evaluate_models "
                 f"--model {name} --out DIR` writes one.", ""]
     out += ["## Limits", "",
-            f"- Trained for one protocol and one set of optics (the configurations above); maps of another system are "
-            f"refused, naming `doct-train --like MAPS` ([Your own system](../tutorials/own-system.md)).",
-            f"- Outside the prior's ranges the model was not trained; the magnitude head's intervals hold only inside them.",
+            "- Trained for one protocol and one set of optics (the configurations above); maps of another system are "
+            "refused, naming `doct-train --like MAPS` ([Your own system](../tutorials/own-system.md)).",
+            "- Outside the prior's ranges the model was not trained; the magnitude head's intervals hold only inside them.",
             *[f"- {x}" for x in limits], "",
             f"*Rendered at build time from `{report}`{' and `' + ind[1] + '`' if ind else ''}.*", ""]
     return "\n".join(out)

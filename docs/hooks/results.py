@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 #: Folders searched, in order, for a results file by its name (relative to the repository root).
 RESULT_DIRS = ("docs/results", "benchmarks/results", "benchmarks", "notebooks/bench", "research/results",

@@ -11,11 +11,11 @@ import torch
 
 import torchdoct as td
 from classifier.dataset import make_dataset
+from classifier.features import Configuration, FeatureSpec, load_spec
 from classifier.nuisance import combine_fields
 from classifier.prior import CLASSES, Draw, Prior, draw_parameters
 from classifier.simulation import scene_for, simulate_draw
 from classifier.truth import identifiability, transit_decay
-from classifier.features import Configuration, FeatureSpec, load_spec
 
 TINY = FeatureSpec(name="tiny", configurations=(
     Configuration(name="o", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8),))

@@ -21,9 +21,8 @@ import numpy as np
 import pytest
 
 torchdoct = pytest.importorskip("torchdoct")
-from torchdoct.cli import main as torchdoct_main  # noqa: E402
-
 from classifier.cli import classify_main  # noqa: E402
+from torchdoct.cli import main as torchdoct_main  # noqa: E402
 
 REPORT = json.loads((Path(__file__).resolve().parents[2] / "classifier" / "data" / "single-acquisition.json").read_text())
 REF = REPORT["test"]["network"]["4"]

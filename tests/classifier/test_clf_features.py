@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from classifier.features import (Configuration, FeatureSpec, load_spec, same_value, shipped_specs,
-                                 spec_from_dict)
+from classifier.features import Configuration, FeatureSpec, load_spec, same_value, shipped_specs, spec_from_dict
 
 
 def test_shipped_specs_are_the_documented_ones():

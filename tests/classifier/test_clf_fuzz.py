@@ -18,10 +18,10 @@ import pytest
 pytestmark = pytest.mark.slow  # a few hundred generated files: CI runs them with the slow suite
 
 hypothesis = pytest.importorskip("hypothesis")
+from _clf_maps import feature_channels, maps_meta, save_maps  # noqa: E402
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-from _clf_maps import feature_channels, maps_meta, save_maps  # noqa: E402
 from classifier.cli import classify_main  # noqa: E402
 from classifier.features import load_spec  # noqa: E402
 from classifier.infer import read_maps  # noqa: E402

@@ -11,15 +11,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from _clf_maps import feature_channels, maps_meta, save_maps
+
 from classifier.cli import classify_main
-from classifier.prior import Draw, Prior
-from classifier.simulation import simulate_draw
 from classifier.export import build_metadata, export_onnx
 from classifier.infer import MASKED, classify_maps, independent_fraction, load_model, pool_features, read_maps
 from classifier.pooling import effective_count
+from classifier.prior import Draw, Prior
 from classifier.rule import apply_rule
+from classifier.simulation import simulate_draw
 from classifier.train import TrainConfig, train
 
 REPO = Path(__file__).resolve().parents[2]
@@ -78,7 +78,7 @@ def test_classification_is_the_model_and_rule_on_valid_pixels(setup):
 
 
 def test_two_files_are_combined_channel_by_channel(setup, tmp_path):
-    spec, data, meta = setup["spec"], setup["data"], setup["meta"]
+    _spec, data, meta = setup["spec"], setup["data"], setup["meta"]
     ch = meta["channels"]
     first = [i for i, c in enumerate(ch) if c["wavelength_um"] == 0.84]
     second = [i for i, c in enumerate(ch) if c["wavelength_um"] == 1.31]
@@ -293,7 +293,7 @@ def test_unreadable_maps_files_are_named_with_the_fix(setup, tmp_path):
 
 
 def test_cli_unreadable_maps_exit_2_with_one_line(setup, tmp_path, capsys):
-    for name, (path, text) in _broken_maps_files(setup, tmp_path).items():
+    for name, (path, _text) in _broken_maps_files(setup, tmp_path).items():
         code = classify_main([str(path), "--model", str(setup["model"]), "--out", str(tmp_path / "o"),
                               "--threads", "1"])
         captured = capsys.readouterr()

@@ -9,17 +9,16 @@ import tomllib
 
 import numpy as np
 import pytest
-
 from _clf_maps import feature_channels, maps_meta, save_maps
-from classifier.prior import CLASSES, Draw, Prior
-from classifier.truth import identifiability
-from classifier.own_system import REFERENCE_RESOLUTIONS_UM, identifiable_range, prior_for_spec
+
 from classifier.features import Configuration, FeatureSpec, load_spec, spec_from_dict, toml_text
 from classifier.matching import spec_from_maps
+from classifier.own_system import REFERENCE_RESOLUTIONS_UM, identifiable_range, prior_for_spec
+from classifier.prior import CLASSES, Draw, Prior
+from classifier.truth import identifiability
 from torchdoct.conventions import n_eff
 from torchdoct.measured.mapsfile import read_maps
 from torchdoct.sim.signature import DEFAULT_FEATURES, DEFAULT_LINEAR_LAGS, default_features, signature_lags
-
 
 # -- signature lags follow the frame count --------------------------------------------------------------------------
 
@@ -92,8 +91,8 @@ def test_prior_for_spec_keeps_n_eff_and_widens_each_range_by_the_margin():
 
 
 def test_speed_cap_bounds_the_scatterers_a_draw_simulates():
-    from classifier.simulation import scene_for
     from classifier.own_system import MAX_SCATTERERS_PER_TRIAL, speed_cap
+    from classifier.simulation import scene_for
     from torchdoct.sim.plan import make_plan
 
     spec, prior = _spec(), Prior()

@@ -8,11 +8,11 @@ import dataclasses
 
 import numpy as np
 import pytest
-
 from _clf_maps import feature_channels, maps_meta, save_maps
+
 from classifier import matching
 from classifier.features import Configuration, load_spec, shipped_specs, spec_from_dict
-from classifier.infer import assemble_features, classify_maps, load_model
+from classifier.infer import assemble_features, load_model
 from torchdoct.measured.mapsfile import Maps, read_maps
 from torchdoct.optics import REL_TOL, ChannelOptics
 

@@ -25,12 +25,10 @@ import numpy as np
 import pytest
 
 torchdoct = pytest.importorskip("torchdoct")
-from torchdoct.cli import main as torchdoct_main  # noqa: E402
-
 from classifier.cli import classify_main  # noqa: E402
 from classifier.evaluate_images import MOVING_CODES, read_rendered_labels, score_images  # noqa: E402
-
 from tests.reference.floors import floor, load  # noqa: E402
+from torchdoct.cli import main as torchdoct_main  # noqa: E402
 
 RECORDED = load("phantoms")
 
@@ -71,9 +69,9 @@ def chain(tmp_path_factory):
 
 
 def test_phantom_regions_are_identifiable():
+    from classifier.features import load_spec
     from classifier.prior import Draw, Prior
     from classifier.truth import identifiability
-    from classifier.features import load_spec
     from torchdoct.image.phantom import load_phantom
 
     spec, prior = load_spec("signature"), Prior()

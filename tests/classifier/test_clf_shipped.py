@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from classifier.prior import Prior, draw_parameters
-from classifier.simulation import simulate_draw
 from classifier.export import OPSET, model_from_onnx
 from classifier.features import load_spec
 from classifier.infer import DEFAULT_MODEL, load_model, shipped_models
+from classifier.prior import Prior, draw_parameters
 from classifier.rule import INDETERMINATE
+from classifier.simulation import simulate_draw
 from classifier.train import CLASS_NAMES, TrainConfig, default_prior
 
 DATA = Path(__file__).resolve().parents[2] / "classifier" / "data"

@@ -8,15 +8,14 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from _clf_maps import feature_channels, maps_meta, save_maps
-from classifier.prior import Draw, Prior
-from classifier.simulation import simulate_draw
+
 from classifier.export import build_metadata, export_onnx, model_from_onnx, onnx_parity
 from classifier.features import load_spec
 from classifier.infer import MAGNITUDE_CHANNELS, MASKED, classify_maps, load_model, write_classification
+from classifier.prior import Draw, Prior
+from classifier.simulation import simulate_draw
 from classifier.train import TrainConfig, train
-from torchdoct.sim.signature import needs_field
 
 
 def _draw(label, magnitude, static=0.0, snr=math.nan):
@@ -162,10 +161,9 @@ axial_resolution_um = 3.8
 
 def test_maps_signature_then_classify_uses_the_signature_model(tmp_path, capsys):
     """torchdoct maps --signature → doct-classify (no --model): the channels match the shipped signature model."""
+    from classifier.cli import classify_main
     from torchdoct.cli import main as td_main
     from torchdoct.measured.io import write_sequence
-
-    from classifier.cli import classify_main
 
     rng = np.random.default_rng(3)
     t, z, x = 32, 12, 12
@@ -204,9 +202,9 @@ def test_ablation_subsets_are_candidates_and_name_the_shipped_content():
 def test_indeterminate_measurement_partitions_the_test_split(tmp_path):
     """``python -m research.ablation --indeterminate``: the three regimes partition the test pixels that
     are identifiable or decorrelated, and every score is a probability."""
-    from research.ablation import run_indeterminate
     from classifier.dataset import make_dataset
     from classifier.prior import Prior
+    from research.ablation import run_indeterminate
 
     res = run_indeterminate(draws_train=12, draws_test=6, pixels=3000, cache_dir=tmp_path, log=None)
     te = make_dataset(__import__("research.ablation", fromlist=["candidate_spec"]).candidate_spec(), Prior(),

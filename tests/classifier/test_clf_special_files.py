@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from _clf_maps import feature_channels, maps_meta, save_maps
 from _refusal import refused
+
 from classifier.cli import classify_main, train_main
 from classifier.features import load_spec
 

@@ -9,15 +9,27 @@ import numpy as np
 import pytest
 import torch
 
+from classifier.bench.tradeoffs import (
+    DEFAULTS,
+    TradeoffPlan,
+    _bootstrap_weights,
+    _Evaluator,
+    _fit,
+    _pareto,
+    derive_dataset,
+    format_table,
+    one_configuration_spec,
+    plot_tradeoffs,
+    prefix_dataset,
+    run_tradeoffs,
+)
 from classifier.dataset import make_dataset
-from classifier.prior import Prior
-from classifier.truth import STATUS
 from classifier.features import load_spec
+from classifier.prior import Prior
 from classifier.report import bootstrap_se, evaluate
 from classifier.rule import make_rule
-from classifier.bench.tradeoffs import (DEFAULTS, TradeoffPlan, _bootstrap_weights, _Evaluator, _fit, _pareto, derive_dataset,
-                                  format_table, one_configuration_spec, plot_tradeoffs, prefix_dataset, run_tradeoffs)
 from classifier.train import CLASS_NAMES, TrainConfig, train
+from classifier.truth import STATUS
 
 TINY = TradeoffPlan(draws_grid=(3, 6), draws_base=6, draws_validation=3, draws_test=6, replicates=2,
                     hidden_grid=((4,), (8, 8)), pools=(1, 4, 25), max_epochs=5, timing_draws=1, map_side=32,

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from _clf_maps import feature_channels, maps_meta, save_maps
+
 from classifier.export import build_metadata, export_onnx
 from classifier.features import load_spec
 from classifier.train import SCALED_PRIOR_SPECS, SPEC_RECIPES, TrainConfig, default_prior, train

@@ -10,8 +10,14 @@ import numpy as np
 import pytest
 
 from classifier import conformal
-from classifier.conformal import (conformal_quantile, pool_thresholds, prediction_sets, scores_lac, set_label_names,
-                                  set_labels)
+from classifier.conformal import (
+    conformal_quantile,
+    pool_thresholds,
+    prediction_sets,
+    scores_lac,
+    set_label_names,
+    set_labels,
+)
 
 CLASSES = ["diffusion", "ballistic", "flow", "indeterminate"]
 
@@ -125,7 +131,7 @@ def test_shipped_calibrations_load_with_the_model_and_cover_their_own_samples(na
             for k in range(len(m.classes)):
                 if (tr == k).any():
                     assert (sc[tr == k] <= q[k]).mean() >= 1 - alpha
-            for k, r in p["reliability"].items():
+            for r in p["reliability"].values():
                 assert 0.0 <= r["ece"] < 0.1
 
 

@@ -106,8 +106,17 @@ def test_bootstrap_draws_resamples_as_bootstrap_se():
 def test_training_report_is_evaluate_set_on_each_test_set(tmp_path):
     """The report's numbers of the test split, the bulk-phase set and the shifted prior are evaluate_set on
     the samples evaluation_sets draws from each, with the network's predictions."""
-    from classifier.train import (TrainConfig, evaluate_test_sets, evaluation_sets, fit_models, network_predictions,
-                                  plan_training, simulate_data, train, training_report)
+    from classifier.train import (
+        TrainConfig,
+        evaluate_test_sets,
+        evaluation_sets,
+        fit_models,
+        network_predictions,
+        plan_training,
+        simulate_data,
+        train,
+        training_report,
+    )
 
     cfg = TrainConfig(spec="two-wavelength", draws_train=9, draws_validation=6, draws_test=6, replicates=2,
                       max_epochs=2, singles_per_group=16, pooled_per_group=4, baselines=False, magnitude=True,
@@ -121,7 +130,7 @@ def test_training_report_is_evaluate_set_on_each_test_set(tmp_path):
     whole = train(cfg, cache_dir=tmp_path, log=None)  # the steps one after the other are train()
     assert whole.report["test"] == report["test"] and whole.report["shifted_prior"]["test"] == report["shifted_prior"]["test"]
     model = fitted.model
-    for name, ds, key, stream in (("test", data.splits["test"], None, 9), ("bulk_phase", data.bulk_phase, "bulk_phase", 9),
+    for name, ds, _key, stream in (("test", data.splits["test"], None, 9), ("bulk_phase", data.bulk_phase, "bulk_phase", 9),
                                   ("shifted_prior", data.shifted_prior, "shifted_prior", 10)):
         rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(stream,)))
         sets, _ = evaluation_sets(ds, cfg, plan.spec, rng)

@@ -175,10 +175,10 @@ def test_cli_refuses_existing_output(tmp_path, capsys):
 
 
 def test_bootstrap_fast_path_matches_the_report_definitions():
-    from research.g1fit import _abs_log10_error, _headline, _magnitude_errors
     from classifier.report import evaluate
     from classifier.rule import make_rule
     from classifier.train import CLASS_NAMES
+    from research.g1fit import _abs_log10_error, _headline, _magnitude_errors
 
     rng = np.random.default_rng(5)
     n = 3000

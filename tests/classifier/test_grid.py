@@ -12,8 +12,8 @@ import pytest
 
 pytest.importorskip("torchdoct")
 
-from classifier.bench import grid  # noqa: E402
-from classifier.bench.grid import GridCell, score_labels  # noqa: E402
+from classifier.bench import grid
+from classifier.bench.grid import GridCell, score_labels
 
 
 @pytest.fixture(scope="module")
@@ -24,9 +24,9 @@ def levels():
 
 
 def test_speed_levels_are_identifiable_at_every_grid_direction(levels):
+    from classifier.features import load_spec
     from classifier.prior import Draw, Prior
     from classifier.truth import identifiability
-    from classifier.features import load_spec
 
     spec, prior = load_spec("signature-bscan"), Prior()
     for label, name in enumerate(grid.MOTIONS):
@@ -53,7 +53,7 @@ def test_cell_phantoms_have_three_labelled_bands_and_the_context(levels):
         codes = set(np.unique(labels).tolist())
         assert {MOTION_CODES[m] for m in grid.MOTIONS} <= codes
         assert (MOTION_CODES["static"] in codes) == (context == "edge")
-        flow = [p for p in ph.scene.populations if p.motion and type(p.motion[0]).__name__ == "Flow"][0]
+        flow = next(p for p in ph.scene.populations if p.motion and type(p.motion[0]).__name__ == "Flow")
         v = flow.flow_velocity_um_per_s
         assert math.isclose(math.hypot(*v), levels["flow"]["mid"], rel_tol=1e-12)
         assert abs(v[0]) < 1e-9 * levels["flow"]["mid"]  # azimuth 90°: across the B-scan plane, none along x

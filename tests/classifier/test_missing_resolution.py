@@ -4,8 +4,8 @@ the ``--resolution`` to add to ``torchdoct maps``, not with a model to train."""
 from __future__ import annotations
 
 import numpy as np
-
 from _clf_maps import feature_channels, maps_meta, save_maps
+
 from classifier.cli import classify_main
 from classifier.features import load_spec
 

@@ -8,8 +8,8 @@ import json
 
 import numpy as np
 import pytest
-
 from _refusal import refused
+
 from classifier.cli import classify_main
 
 
@@ -40,6 +40,7 @@ def test_model_whose_network_differs_from_its_metadata_is_refused(tmp_path, caps
     with pytest.raises(ValueError, match="doct-train"):
         load_model(path)
     from _clf_maps import feature_channels, maps_meta, save_maps
+
     from classifier.features import load_spec
 
     spec = load_spec("single-acquisition-bscan")

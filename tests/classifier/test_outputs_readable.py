@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from _refusal import refused
+
 from classifier.cli import classify_main
 from torchdoct.cli import main as torchdoct_main
 

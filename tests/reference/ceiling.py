@@ -91,8 +91,9 @@ import math
 import os
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -191,7 +192,7 @@ def _truncation(spec_name: str) -> tuple[float, str]:
     return float(cfg.truncation_tolerance), str(cfg.truncation)
 
 
-def simulate_features(spec, d: "em.IndependentDraw", trials: int, source: str, epsilon: float) -> np.ndarray:
+def simulate_features(spec, d: em.IndependentDraw, trials: int, source: str, epsilon: float) -> np.ndarray:
     """Features ``[trials, F]`` (float32, the spec's order) of one independent draw by ``source``:
     ``"refsim"`` (:func:`evaluate_models.draw_features`) or ``"torchdoct"``
     (:func:`classifier.simulation.simulate_draw` at the shipped recipe's truncation; empty-volume pixels
@@ -210,7 +211,7 @@ def simulate_features(spec, d: "em.IndependentDraw", trials: int, source: str, e
     return x
 
 
-def draw_for(prior: str, seed: int, k: int) -> "em.IndependentDraw":
+def draw_for(prior: str, seed: int, k: int) -> em.IndependentDraw:
     """Draw ``k`` of seed ``seed`` of a training prior (:data:`TRAIN_PRIORS`): ``"matched"`` is
     :func:`evaluate_models.draw_independent`; ``"shared"`` the same draw with a random-ballistic or flow
     speed moved to the same quantile of the log-uniform :data:`SHARED_SPEED` (every other parameter and
@@ -241,7 +242,7 @@ class FeatureCache:
         tag = "" if prior == "matched" else f"-{prior}"
         self.dir = Path(root) / f"{source}-{spec.name}{tag}-seed{self.seed}-trials{self.trials}"
 
-    def draw(self, k: int) -> "em.IndependentDraw":
+    def draw(self, k: int) -> em.IndependentDraw:
         return draw_for(self.prior, self.seed, k)
 
     def path(self, k: int) -> Path:
@@ -341,8 +342,8 @@ def dataset_prior(name: str, spec, epsilon: float):
     (:func:`classifier.recipe.default_prior` of ``TrainConfig.for_spec(spec)``)."""
     import dataclasses
 
-    from classifier.prior import Prior
     from classifier.own_system import prior_for_spec
+    from classifier.prior import Prior
 
     if name not in DATASET_PRIORS:
         raise ValueError(f"unknown dataset prior {name!r}; choose among {list(DATASET_PRIORS)}")
@@ -668,8 +669,9 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
         fit_s[p] = time.perf_counter() - t1
         results[p] = res
     comparisons = paired_comparisons(kept, results, n_boot=n_boot, seed=test_seed)
-    import classifier
     import sklearn
+
+    import classifier
     import torchdoct
 
     return {"versions": {"classifier": classifier.__version__, "torchdoct": torchdoct.__version__,
@@ -763,8 +765,8 @@ def format_markdown(rep: dict[str, Any]) -> str:
          f"Every number below comes from one command: `{cmd}` (DIR: any directory; the simulated features are "
          "cached there per draw and a run resumes; `--budget-seconds S` stops after S s of simulation with exit "
          "status 3, to run it in chunks).", "",
-         f"## Pool 1 at coverage 0.80 (goal: balanced accuracy ≥ 0.88 at coverage ≥ 0.80, flow recall ≥ 0.80 in "
-         f"every polar band)", "",
+         "## Pool 1 at coverage 0.80 (goal: balanced accuracy ≥ 0.88 at coverage ≥ 0.80, flow recall ≥ 0.80 in "
+         "every polar band)", "",
          "| part | model | coverage | bal. acc. | recall diffusion / ballistic / flow | flow recall 0-30° / 30-60° / "
          "60-90° |", "|---|---|---:|---:|---|---|"]
     for p, res in rep["parts"].items():
@@ -894,7 +896,7 @@ def paired_comparisons(kept: dict, results: dict, *, n_boot: int, seed: int) -> 
     out = []
 
     def better(p):
-        rows = {v: results[p]["pools"]["1"]["by_size"] for v in VARIANTS}
+        rows = dict.fromkeys(VARIANTS, results[p]["pools"]["1"]["by_size"])
         big = max(rows["raw"], key=int)
         return max(VARIANTS, key=lambda v: results[p]["pools"]["1"]["by_size"][big][v]["coverage 0.8"]
                    ["balanced_accuracy"])

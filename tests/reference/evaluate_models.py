@@ -83,9 +83,10 @@ import math
 import os
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -427,9 +428,9 @@ def evaluate_model(model: str, *, draws: int = DEFAULT_DRAWS, trials: int = DEFA
     """Simulate ``draws`` independent draws × ``trials`` pixels, classify them with ``model`` and return
     the report (JSON-able dict; module docstring)."""
     from classifier.dataset import Dataset
-    from classifier.truth import STATUS, identifiability
     from classifier.evaluation import evaluate_set
     from classifier.train import pooled_samples
+    from classifier.truth import STATUS, identifiability
 
     for name, v, low in (("draws", draws, 1), ("trials", trials, 1), ("seed", seed, 0), ("n_boot", n_boot, 2)):
         if isinstance(v, bool) or not isinstance(v, int) or v < low:
@@ -449,7 +450,7 @@ def evaluate_model(model: str, *, draws: int = DEFAULT_DRAWS, trials: int = DEFA
     prior = independent_prior(float(rule["epsilon"]))
     cols: dict[str, list] = {k: [] for k in ("x", "y", "draw", "status", "magnitude", "snr_db", "polar_angle_deg")}
     per_draw = []
-    status_counts = {s: 0 for s in STATUS}
+    status_counts = dict.fromkeys(STATUS, 0)
     dropped = 0
     bar = None
     if progress:

@@ -48,8 +48,9 @@ import argparse
 import math
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -227,8 +228,9 @@ def run(out: Path, parts: Sequence[str], *, train_draws: int, test_draws: int, t
         if prior in ce.DATASET_PRIORS:
             res["train_prior_fields"] = ce.dataset_prior(prior, spec, epsilon).to_dict()
         results[p] = res
-    import classifier
     import sklearn
+
+    import classifier
     import torchdoct
 
     return {"versions": {"classifier": classifier.__version__, "torchdoct": torchdoct.__version__,

@@ -19,13 +19,12 @@ from __future__ import annotations
 import functools
 import math
 import tomllib
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
-from scipy import special
-
 import refsim
+from scipy import special
 
 __all__ = ["FAMILY_ALPHA", "CONFIGS", "RHO_LIN_LAGS", "FIELD_LAGS", "NAMES", "DENSITY", "N_FRAMES", "DT",
            "CELLS", "z_bound", "reference_features", "torchdoct_features", "compare", "format_failures"]
@@ -118,7 +117,7 @@ def _torch_features(signals, names: Sequence[str] = NAMES) -> dict[str, np.ndarr
     return out
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def reference_features(cell: str, trials: int, seed: int = 20261201,
                        configs: tuple[int, ...] = (0, 1, 2)) -> dict[str, np.ndarray]:
     """Features ``{name: [trials, configs]}`` of the reference simulator's fields for ``cell`` at the
@@ -151,6 +150,7 @@ def torchdoct_features(cell: str, trials: int, *, seed: int = 7, dtype: str = "f
                        **simulate_kw) -> dict[str, np.ndarray]:
     """Features of torchdoct's fields for ``cell`` (``truncation_tolerance=None``: the scene default)."""
     import torch
+
     import torchdoct as td
 
     res = td.simulate(torchdoct_scene(cell, configs), trials=trials, seed=seed, dtype=dtype,

@@ -46,8 +46,8 @@ per-system means, which do not depend on whether systems share scatterers).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from scipy import special

@@ -91,8 +91,7 @@ def features(k: int, seed: int, window: int, snr_db: float | None) -> dict[str, 
 def pixel_seconds_per_trial(trials: int = 400, seed: int = 0) -> dict[str, float]:
     """Wall time per trial of the point simulator (``torchdoct.simulate``, one pixel, float32, one thread, the
     default truncation) for one mid-range cell of each motion: the cost of a per-pixel training sample."""
-    from torchdoct.sim.config import (Analysis, Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic,
-                                      Scene)
+    from torchdoct.sim.config import Analysis, Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic, Scene
     from torchdoct.sim.simulate import simulate
 
     system = OCTSystem(name="840nm-high", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)

@@ -7,17 +7,17 @@ from __future__ import annotations
 
 import time
 
+import ceiling as ce
+import evaluate_models as em
 import numpy as np
 import pytest
 
-import ceiling as ce
-import evaluate_models as em
 from classifier.features import load_spec
 
 TRIALS = 8
 
 
-def _cache(tmp_path, seed: int, name: str = "signature", source: str = "refsim") -> "ce.FeatureCache":
+def _cache(tmp_path, seed: int, name: str = "signature", source: str = "refsim") -> ce.FeatureCache:
     return ce.FeatureCache(tmp_path / "cache", load_spec(name), source, seed, TRIALS, 0.05)
 
 
@@ -181,8 +181,8 @@ def test_the_contrasts_are_the_log_decorrelation_slopes_and_configuration_differ
 
 @pytest.mark.slow
 def test_parts_d_and_e_train_on_the_shipped_and_the_scaled_prior_from_make_dataset(tmp_path):
-    from classifier.prior import Prior
     from classifier.own_system import identifiable_range, prior_for_spec
+    from classifier.prior import Prior
 
     spec = load_spec("signature")
     d, e = ce.dataset_prior("training", spec, 0.05), ce.dataset_prior("scaled", spec, 0.05)

@@ -11,14 +11,14 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import evaluate_models as em
 import numpy as np
 import pytest
-
-import evaluate_models as em
 import refcompare as rc
 import refsim
-from classifier.truth import STATUS, identifiability
+
 from classifier.features import load_spec
+from classifier.truth import STATUS, identifiability
 
 ORIGINAL = refsim.Optics(0.84, 4.9, 3.8)
 AXIAL = refsim.Optics(0.84, 4.9, 14.0)

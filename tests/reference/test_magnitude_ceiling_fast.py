@@ -9,10 +9,9 @@ from __future__ import annotations
 import json
 import math
 
+import magnitude_ceiling as mc
 import numpy as np
 import pytest
-
-import magnitude_ceiling as mc
 
 SIGMA = 0.1
 

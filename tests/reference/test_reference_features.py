@@ -32,8 +32,8 @@ import dataclasses
 import inspect
 
 import pytest
-
 import refcompare as rc
+
 from torchdoct.sim.config import OCTSystem, SimulationSettings
 from torchdoct.sim.simulate import simulate
 

@@ -14,10 +14,10 @@ import math
 
 import numpy as np
 import pytest
-import torch
-
 import refcompare as rc
 import refsim
+import torch
+
 from torchdoct.sim.config import Analysis
 from torchdoct.sim.metrics import compute_metrics
 from torchdoct.sim.signature import signature

@@ -19,9 +19,9 @@ import math
 
 import numpy as np
 import pytest
-
 import refcompare as rc
 import refsim
+
 from torchdoct.sim import theory
 
 pytestmark = pytest.mark.slow

@@ -172,7 +172,7 @@ def test_training_data_resumes_from_the_draws_an_interruption_kept(tmp_path, mon
     monkeypatch.setattr(dataset, "simulate_draw", stops_at_the_third)
     with using_threads(1), pytest.raises(KeyboardInterrupt):
         dataset.make_dataset("single-acquisition", cache_dir=tmp_path, **kw)
-    kept = [p for p in tmp_path.iterdir()]
+    kept = list(tmp_path.iterdir())
     assert len(kept) == 1 and kept[0].name.startswith(".single-acquisition-train-") and kept[0].is_dir()
     assert len(list(kept[0].glob("draw-*.npz"))) == 2
     assert "kept 2 of the 4 draws of this split to compute in the cache" in interrupt.message(signal.SIGINT)

@@ -7,12 +7,13 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
+from _maps_data import make_maps
 from scipy import stats
 
-from _maps_data import make_maps
 from torchdoct.cli import main
 from torchdoct.measured.compare import compare_samples, parse_config, plot_comparison, region_mask, sample_means
 from torchdoct.measured.io import write_maps
+
 
 def test_sample_means_and_regions():
     rng = np.random.default_rng(0)

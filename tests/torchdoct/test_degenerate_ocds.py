@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 import torch
+from _refusal import refused
 
 import torchdoct as td
-from _refusal import refused
 from torchdoct.sim.config import MIN_PAIRS_PER_DELAY, SceneError, delay_pair_counts, scene_from_dict
 
 DT = 0.2048

@@ -9,11 +9,11 @@ import json
 import os
 from pathlib import Path
 
+import _formats as F
 import numpy as np
 import pytest
-
-import _formats as F
 from _refusal import refused
+
 from torchdoct.measured import guards
 from torchdoct.measured.io import read_sequence
 

@@ -16,16 +16,15 @@ import torch
 pytestmark = pytest.mark.slow  # ~1 min of generated cases: CI runs them with the slow suite
 
 hypothesis = pytest.importorskip("hypothesis")
+from _scenes import SMALL_SCENE_TOML  # noqa: E402
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from torchdoct.cli import main  # noqa: E402
-from torchdoct.sim.config import SceneError, scene_from_dict  # noqa: E402
 from torchdoct.image.phantom import phantom_from_dict  # noqa: E402
+from torchdoct.sim.config import SceneError, scene_from_dict  # noqa: E402
 from torchdoct.sim.plan import make_plan  # noqa: E402
 from torchdoct.sim.simulate import MemoryLimitError, simulate  # noqa: E402
-
-from _scenes import SMALL_SCENE_TOML  # noqa: E402
 
 BASE = tomllib.loads(SMALL_SCENE_TOML)
 BASE["noise"] = {"snr_db": 30.0}

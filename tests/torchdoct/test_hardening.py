@@ -15,9 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from _refusal import refused
-from _refusal import tree as _tree
+
 from torchdoct.cli import main
 
 DEEP = "[" * 5000 + "]" * 5000
@@ -123,6 +122,7 @@ def test_maps_and_pngs_appear_together(tmp_path, capsys, seq, monkeypatch):
 # ----------------------------------------------------------------------------------------------------------
 def test_identical_samples_report_no_difference_testable(tmp_path, capsys):
     from _maps_data import make_maps
+
     from torchdoct.measured.io import write_maps
 
     m = tmp_path / "x.npz"
@@ -167,6 +167,7 @@ def test_a_study_figure_name_that_cannot_be_a_file_name_is_refused(tmp_path, cap
 # ----------------------------------------------------------------------------------------------------------
 def test_cache_or_out_that_is_a_file_is_refused_before_the_work(tmp_path, capsys, monkeypatch):
     from _studies import write_tiny_study
+
     import torchdoct.study.sweep as sweep_module
 
     def no_work(*args, **kwargs):
@@ -190,6 +191,7 @@ def test_cache_or_out_that_is_a_file_is_refused_before_the_work(tmp_path, capsys
 
 def test_compare_names_the_mask_that_does_not_fit(tmp_path, capsys):
     from _maps_data import make_maps
+
     from torchdoct.measured.io import write_maps
 
     m = tmp_path / "x.npz"

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from _refusal import refused
 from _refusal import tree as _tree
+
 from torchdoct.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -230,6 +230,7 @@ def test_study_figures_phase_has_a_progress_bar(tmp_path, capsys):
     import re
 
     from _studies import write_tiny_study
+
     from torchdoct.study import run_study
 
     run_study(write_tiny_study(tmp_path), tmp_path / "out", cache_dir=None, workers=1, progress=True)

@@ -12,12 +12,11 @@ import time
 from pathlib import Path
 
 import pytest
-
-from torchdoct.files import atomic_write, output_set
-from torchdoct.cli import main
-from torchdoct.runtime.interrupt import deferred, entry_point, note
-
 from _scenes import DIFFUSION_SWEEP_TOML
+
+from torchdoct.cli import main
+from torchdoct.files import atomic_write, output_set
+from torchdoct.runtime.interrupt import deferred, entry_point, note
 
 
 def _kill_self(sig=signal.SIGTERM):
@@ -179,6 +178,7 @@ def test_render_interrupted_while_writing_leaves_nothing_and_reruns_without_forc
 @pytest.mark.slow  # ~14 s: the default suite stays under 5 min beside another job
 def test_study_interrupted_while_writing_keeps_its_cache_and_says_so(tmp_path, monkeypatch, capsys):
     from _studies import write_tiny_study
+
     import torchdoct.study.run as run_module
 
     path = write_tiny_study(tmp_path, trials=16)

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-
 from _scenes import DIFFUSION_SWEEP_TOML
+
 
 def _cmd(scene: Path, out: Path, cache: Path) -> list[str]:
     return [sys.executable, "-m", "torchdoct.cli", "sweep", str(scene), "--out", str(out), "--cache", str(cache),

@@ -12,20 +12,20 @@ import tifffile
 import torch
 from scipy import ndimage, optimize
 
-from torchdoct.sim import metrics
 from torchdoct.cli import main
 from torchdoct.measured.io import BlockRaster, SequenceData, read_maps, read_sequence, validate_meta, write_sequence
 from torchdoct.measured.maps import (
+    FLAG_RGB,
     box_smooth_zx,
     compute_maps,
     fit_saturation,
     liv_curve,
     ocds_map,
     png_name,
-    FLAG_RGB,
     pseudo_color,
 )
 from torchdoct.measured.resolution import reduce_resolution
+from torchdoct.sim import metrics
 
 SYSTEM = {"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
           "refractive_index": 1.0}
@@ -228,9 +228,9 @@ def test_volume_with_block_raster_drops_boundary_bscans():
 def test_slab_cut_follows_what_the_stages_need():
     """The slab loop cuts the axis its stages need least; halos of stages in sequence add up."""
     from torchdoct.measured.bulkphase import CORRECTION_AXIS_NEEDS
-    from torchdoct.measured.slabs import slab_cut
     from torchdoct.measured.mapmetrics import SMOOTHING_AXIS_NEEDS
     from torchdoct.measured.resolution import reduction_axis_needs
+    from torchdoct.measured.slabs import slab_cut
 
     axial = reduction_axis_needs("TYZX", lateral=False, axial_sigma_px=2.0)
     lateral = reduction_axis_needs("TYZX", lateral=True, axial_sigma_px=0.0)

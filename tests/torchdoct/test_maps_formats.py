@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from _formats import maps as _maps
+
 from torchdoct.measured.mapsfile import read_maps, write_maps
 
 tifffile = pytest.importorskip("tifffile")
@@ -54,7 +54,7 @@ def test_ome_zarr_maps_have_ngff_axes_scale_and_labels(tmp_path):
     assert ms["version"] == "0.4" and [a["name"] for a in ms["axes"]] == ["c", "z", "y", "x"]
     assert all(a["unit"] == "micrometer" for a in ms["axes"][1:])
     assert ms["datasets"][0]["coordinateTransformations"][0]["scale"] == pytest.approx([1.0, 1.9, 7.5, 2.5])
-    assert [c["label"] for c in g.attrs["omero"]["channels"]][0] == "liv@original"
+    assert next(c["label"] for c in g.attrs["omero"]["channels"]) == "liv@original"
     assert g["0"].shape == (3, 12, 5, 16)
 
 

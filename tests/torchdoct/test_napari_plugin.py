@@ -14,6 +14,7 @@ import pytest
 npe2 = pytest.importorskip("npe2")
 
 from _formats import maps as _maps  # noqa: E402
+
 from torchdoct.measured.mapsfile import read_maps, write_maps  # noqa: E402
 
 MANIFEST = Path(str(resources.files("torchdoct") / "napari_plugin" / "napari.yaml"))

@@ -8,8 +8,8 @@ import json
 
 import numpy as np
 import pytest
-
 from _refusal import refused
+
 from torchdoct.sim.config import SceneError, scene_from_dict
 
 BIG = int("1" + "0" * 400)

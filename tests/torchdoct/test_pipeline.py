@@ -8,18 +8,15 @@ the phase exp(i·2kn·z_j) of each scatterer is untouched.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
-import pytest
 import torch
 
 from torchdoct.cli import main
-from torchdoct.measured.io import read_maps, read_sequence
-from torchdoct.sim.metrics import liv, ocds
 from torchdoct.image.phantom import phantom_from_dict
 from torchdoct.image.render import render
+from torchdoct.measured.io import read_maps, read_sequence
 from torchdoct.measured.resolution import reduce_resolution
+from torchdoct.sim.metrics import liv, ocds
 
 HIGH = {"name": "high", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}
 

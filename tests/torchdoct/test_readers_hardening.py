@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from _refusal import refused
 from _refusal import tree as _tree
+
 from torchdoct.cli import main
 from torchdoct.measured import guards
 from torchdoct.measured.io import read_sequence

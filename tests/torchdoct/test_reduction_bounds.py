@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from _refusal import refused
+
 from torchdoct.conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
 from torchdoct.measured.resolution import gaussian_filter_axis, lateral_filter_sigma_um, reduce_resolution
 

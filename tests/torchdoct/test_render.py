@@ -3,24 +3,27 @@
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 import pytest
 import torch
 
-import sys
-
 import torchdoct.image.render  # noqa: F401  (the module; torchdoct.render is the function)
 
 render_mod = sys.modules["torchdoct.image.render"]
+from _stats import assert_within_se
+
 from torchdoct import simulate
-from torchdoct.sim.config import SceneError
-from torchdoct.conventions import (amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
-                                   truncation_radius_factor)
+from torchdoct.conventions import (
+    amplitude_sigma_axial_um,
+    amplitude_sigma_lateral_um,
+    mean_intensity,
+    truncation_radius_factor,
+)
 from torchdoct.image.phantom import MOTION_CODES, load_phantom, phantom_from_dict, shipped_phantoms
 from torchdoct.image.render import render
-
-from _stats import assert_within_se
+from torchdoct.sim.config import SceneError
 
 SYSTEM = {"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}
 

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from torchdoct.sim import metrics
 from torchdoct.conventions import (
     amplitude_sigma_axial_um,
     amplitude_sigma_lateral_um,
@@ -24,6 +23,7 @@ from torchdoct.measured.resolution import (
     parse_resolution,
     reduce_resolution,
 )
+from torchdoct.sim import metrics
 
 SYSTEM = {"name": "840nm-high", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}
 

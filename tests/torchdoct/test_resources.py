@@ -10,10 +10,10 @@ import re
 
 import numpy as np
 import pytest
-
-import torchdoct.runtime.resources as resources
 from _refusal import refused
 from _scenes import SMALL_SCENE_TOML
+
+import torchdoct.runtime.resources as resources
 
 KB = 1 << 10
 
@@ -188,8 +188,9 @@ def test_sweep_from_the_cache_needs_no_simulation_memory(monkeypatch, tmp_path):
 
 
 def test_study_refused_before_any_cell(tiny_memory, monkeypatch, capsys, tmp_path):
-    import torchdoct.study.sweep as sweep_module
     from _studies import write_tiny_study
+
+    import torchdoct.study.sweep as sweep_module
 
     monkeypatch.setattr(sweep_module, "_execute", _no_work)
     study = write_tiny_study(tmp_path)

@@ -7,7 +7,6 @@ import torch
 
 import torchdoct as td
 
-
 _HEAVY = {"paper-diffusion", "flowing-diffusers"}  # tens of ms per trial: slow suite
 
 

@@ -9,8 +9,8 @@ import os
 
 import numpy as np
 import pytest
-
 from _refusal import refused
+
 from torchdoct.measured.io import read_sequence
 
 

@@ -11,9 +11,9 @@ import torch
 from _stats import assert_within_se, batch_means, g1_at_lag
 
 import torchdoct as td
-from torchdoct.sim import theory as th
 from torchdoct.conventions import mean_intensity as mean_intensity_theory
 from torchdoct.conventions import n_eff
+from torchdoct.sim import theory as th
 from torchdoct.sim.plan import make_plan
 
 sim = importlib.import_module("torchdoct.sim.samplers")

@@ -6,13 +6,12 @@ import math
 
 import numpy as np
 import pytest
-import torch
 from _stats import assert_within_se, batch_means, contrast2, cov_at_lag, g1_at_lag, mean_intensity
 
 import torchdoct as td
-from torchdoct.sim import theory as th
 from torchdoct.conventions import mean_intensity as mean_intensity_theory
 from torchdoct.conventions import n_eff
+from torchdoct.sim import theory as th
 
 DT = 0.2048
 RHO = 0.055

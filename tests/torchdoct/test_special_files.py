@@ -11,8 +11,8 @@ import signal
 from pathlib import Path
 
 import pytest
-
 from _refusal import refused
+
 from torchdoct import files
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs are POSIX")

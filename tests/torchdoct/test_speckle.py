@@ -14,8 +14,13 @@ import pytest
 import torch
 
 from torchdoct.conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
-from torchdoct.sim.speckle import (default_speckle_features, halo_pixels, parse_speckle_feature, speckle_features,
-                                   speckle_motion)
+from torchdoct.sim.speckle import (
+    default_speckle_features,
+    halo_pixels,
+    parse_speckle_feature,
+    speckle_features,
+    speckle_motion,
+)
 
 Z_SE = 3.5
 DT = 0.2048

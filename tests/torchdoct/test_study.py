@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-
 from _studies import tiny_study_dict, write_tiny_study
+
 from torchdoct.cli import main
 from torchdoct.sim.config import SceneError
 from torchdoct.study import (

@@ -5,8 +5,8 @@ refused with the count, an estimate of building them (measured on the first cell
 from __future__ import annotations
 
 import pytest
-
 from _refusal import refused
+
 from torchdoct.study import grid
 from torchdoct.study.sweep import parse_sweep
 

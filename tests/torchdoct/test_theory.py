@@ -11,13 +11,13 @@ import math
 import numpy as np
 import pytest
 
-from torchdoct.sim import theory as th
 from torchdoct.conventions import (
     amplitude_sigma_axial_um,
     amplitude_sigma_lateral_um,
     n_eff,
     wavenumber_per_um,
 )
+from torchdoct.sim import theory as th
 
 DT_S = 0.2048
 N_FRAMES = 32

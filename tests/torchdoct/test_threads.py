@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import torchdoct as td
-from torchdoct.runtime import threads as th
 from torchdoct.cli import main
+from torchdoct.runtime import threads as th
 
 
 def test_simulate_bit_identical_for_any_threads_and_chunking(small_scene):
@@ -115,9 +115,9 @@ def test_render_bit_identical_for_any_threads():
 @pytest.mark.slow
 @pytest.mark.parametrize("process_work", [1, 10**12])  # worker processes; threads
 def test_sweep_cells_side_by_side_equal_one_at_a_time(monkeypatch, process_work):
-    from torchdoct.study import sweep as sw
     from torchdoct.sim.config import read_toml
     from torchdoct.sim.scenes import resolve_scene_path
+    from torchdoct.study import sweep as sw
 
     s = sw.make_sweep(read_toml(resolve_scene_path("example")),
                       [{"path": "population.0.motion.0.diffusion_um2_per_s", "values": [0.01, 0.1, 1.0]}], name="t")

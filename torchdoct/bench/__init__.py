@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 
@@ -82,7 +83,7 @@ def bench_simulate(*, trials: int = 1024, dtype: str = "float32", repeats: int =
     from ..runtime.threads import resolve_threads
 
     n_threads = resolve_threads(threads)
-    for scene, (system, (mname, motion)) in zip(scenes, cells):
+    for scene, (system, (mname, _motion)) in zip(scenes, cells):
         plan = make_plan(scene)
         simulate(scene, trials=64, seed=1, dtype=dtype, threads=threads)  # warm-up
         best, res, cpu = best_of(scene, threads)
@@ -215,8 +216,8 @@ def _burn() -> None:  # pragma: no cover - runs in the neighbour process
     """A second torchdoct job: simulate the example scene on one core, forever."""
     import sys
 
-    from ..sim.config import load_scene
     from ..runtime.threads import set_default_threads
+    from ..sim.config import load_scene
 
     torch.set_num_threads(1)
     set_default_threads(1)
@@ -231,7 +232,7 @@ class BusyNeighbour:
     """Context manager: a separate process that keeps one core busy with a torchdoct simulation
     (started on entry, killed on exit), as a second job on a shared machine would."""
 
-    def __enter__(self) -> "BusyNeighbour":
+    def __enter__(self) -> BusyNeighbour:
         import subprocess
         import sys
 

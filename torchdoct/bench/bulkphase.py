@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, Sequence as _Seq
+from collections.abc import Sequence as _Seq
+from typing import Any
 
 import numpy as np
 import torch
@@ -14,8 +15,8 @@ import torch
 from ..conventions import noise_power, noise_sigma
 from ..measured.bulkphase import METHODS, corrected_sequence, estimate_bulk_phase, phase_steps, predicted_residual_rms
 from ..measured.io import SequenceData
-from ..runtime.resources import check_bench
 from ..runtime.machine import machine_info
+from ..runtime.resources import check_bench
 from ..runtime.threads import one_torch_thread
 
 __all__ = ["residual_rms", "bench_bulk_phase", "bench_bulk_phase_phantom", "format_bench_bulk_phase"]
@@ -96,8 +97,7 @@ def bench_bulk_phase_phantom(phantom: str = "vessel-slab", *, snr_db: _Seq[float
     mean (rad), and the mean change of ``g1_4`` in the static pixels against the field without bulk
     motion, in units of the standard error of that mean (``g1_4_static_z``).
     """
-    from ..image.phantom import load_phantom
-    from ..image.phantom import MOTION_CODES
+    from ..image.phantom import MOTION_CODES, load_phantom
     from ..image.render import render
     from ..sim.signature import signature
 

@@ -26,9 +26,9 @@ from typing import Any
 from threadpoolctl import threadpool_limits
 
 from ..runtime.machine import machine_info
-from . import paper_motions, paper_systems
 from ..sim.config import Diffusion, Flow, Population, Protocol, RandomBallistic, Scene
 from ..sim.simulate import simulate
+from . import paper_motions, paper_systems
 
 __all__ = ["load_cog", "bench_cog", "format_cog_table"]
 

@@ -5,14 +5,15 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, Sequence as _Seq
+from collections.abc import Sequence as _Seq
+from typing import Any
 
 import torch
 
 from ..measured.io import SequenceData, validate_meta
 from ..measured.maps import compute_maps
-from ..runtime.resources import check_bench, maps_bytes
 from ..runtime.machine import machine_info
+from ..runtime.resources import check_bench, maps_bytes
 
 __all__ = ["bench_maps"]
 

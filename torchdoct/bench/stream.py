@@ -15,8 +15,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence as _Seq
 from pathlib import Path
-from typing import Any, Sequence as _Seq
+from typing import Any
 
 import numpy as np
 

@@ -22,15 +22,16 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
 
-from ..sim.config import Analysis, Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic, Scene
 from ..conventions import mean_intensity, truncation_error_bound
 from ..runtime.interrupt import progress_disabled
 from ..runtime.machine import machine_info
+from ..sim.config import Analysis, Diffusion, Flow, OCTSystem, Population, Protocol, RandomBallistic, Scene
 from ..sim.simulate import simulate
 
 __all__ = ["tradeoff_cells", "simulator_tradeoffs", "pareto_front", "recommend", "plot_tradeoffs",

@@ -10,7 +10,8 @@ names (:class:`~torchdoct.cli.command.Command`): ``HELP``, ``DESCRIPTION``, ``ad
 from __future__ import annotations
 
 import argparse
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 from ..runtime.interrupt import entry_point
 from . import bench, data, render, simulate, study

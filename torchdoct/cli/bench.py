@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from ..files import atomic_write, check_out
 from .command import Command, add_parsers, add_threads, command_main, parse_floats, run_parsed, workers

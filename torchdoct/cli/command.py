@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any, Callable, NamedTuple, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 __all__ = ["Command", "add_parsers", "add_threads", "run_parsed", "command_main", "parse_floats", "workers"]
 
@@ -65,10 +66,9 @@ def add_no_progress(sub: Any) -> None:
 def run_parsed(args: argparse.Namespace) -> int:
     """Run a parsed command: set the threads, check ``--device``, call its ``run``; bad input is one
     ``error:`` line and exit 2, a refused read or write exit 1 (:data:`torchdoct.cli.EXIT_CODES`)."""
-    from ..sim import config
-    from ..runtime.threads import limit_process_threads, set_default_threads
-
     from ..runtime.interrupt import silence_progress
+    from ..runtime.threads import limit_process_threads, set_default_threads
+    from ..sim import config
 
     silence_progress(args)
     try:

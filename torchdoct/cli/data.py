@@ -127,8 +127,8 @@ def _compare_arguments(cp) -> None:
 
 def _maps(args: argparse.Namespace) -> int:
     from ..files import check_out
-    from ..measured.io import BlockRaster, MAPS_SUFFIXES, read_sequence, write_maps
     from ..measured.guards import set_max_input_gb
+    from ..measured.io import MAPS_SUFFIXES, BlockRaster, read_sequence, write_maps
     from ..measured.maps import check_maps_request, compute_maps, write_pngs
 
     set_max_input_gb(args.max_input_gb)

@@ -75,16 +75,16 @@ def _outputs(out: Path, names: list[str]) -> dict[str, Path]:
 
 def _render(args) -> int:
     from ..files import atomic_write, check_out, output_set
-    from ..measured.io import write_sequence
     from ..image.phantom import load_phantom
     from ..image.render import render, save_preview
+    from ..measured.io import write_sequence
 
     ph = load_phantom(args.phantom, grid=_grid(args.grid, args.pitch_um))
     names = args.system or [s.name for s in ph.scene.systems]
     check_out(args.out, True, _SUFFIXES)  # suffix and directory; existence per file below
     outs = _outputs(Path(args.out), names)
     files = []  # the output set: written whole or not at all (an error, Ctrl-C, SIGTERM)
-    for n, p in outs.items():
+    for p in outs.values():
         files.append(check_out(p, args.force, _SUFFIXES))
         if p.suffix in (".npy", ".npz"):
             files.append(check_out(p.with_suffix(".json"), args.force, ".json", "metadata sidecar"))

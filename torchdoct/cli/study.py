@@ -52,11 +52,16 @@ def _cache(args) -> object:
 
 
 def _sweep(args) -> int:
-    from ..study.sweep import format_table, load_sweep, prepare_out_dir, run_sweep, sweep_outputs, write_sweep_outputs
-
-    from ..study.sweep import check_cache_dir
-
     from ..study.grid import set_max_cells
+    from ..study.sweep import (
+        check_cache_dir,
+        format_table,
+        load_sweep,
+        prepare_out_dir,
+        run_sweep,
+        sweep_outputs,
+        write_sweep_outputs,
+    )
 
     set_max_cells(args.max_cells)
     sweep = load_sweep(args.scene)

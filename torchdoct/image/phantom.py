@@ -21,16 +21,28 @@ stream; a diffusing core keeps its density). Ground-truth labels are the region 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 
 from ..files import file_or_shipped, shipped_files
-from ..sim.config import (Population, Scene, SceneError, _check_keys, _fail, _integer, _number, _string, check_count,
-                          read_toml, scene_from_dict)
+from ..sim.config import (
+    Population,
+    Scene,
+    SceneError,
+    _check_keys,
+    _fail,
+    _integer,
+    _number,
+    _string,
+    check_count,
+    read_toml,
+    scene_from_dict,
+)
 from ..sim.scenes import shipped_scenes
 
 __all__ = ["Grid", "Region", "Phantom", "load_phantom", "phantom_from_dict", "shipped_phantoms",

@@ -44,22 +44,30 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 
-from ..sim.config import Population
-from ..conventions import (TAPER_START, amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity,
-                          noise_sigma, truncation_half_widths_um, wavenumber_per_um)
-from .phantom import MOTION_CODES, Phantom
+from ..conventions import (
+    TAPER_START,
+    amplitude_sigma_axial_um,
+    amplitude_sigma_lateral_um,
+    mean_intensity,
+    noise_sigma,
+    truncation_half_widths_um,
+    wavenumber_per_um,
+)
 from ..figures import CONTINUOUS_CMAP, LABEL_COLORS
+from ..runtime.interrupt import progress_disabled
 from ..runtime.resources import check_resources
+from ..runtime.threads import map_ordered, one_torch_thread, resolve_threads
+from ..sim.config import Population
 from ..sim.samplers import unit_directions
 from ..sim.streams import seeded_generator
-from ..runtime.threads import map_ordered, one_torch_thread, resolve_threads
-from ..runtime.interrupt import progress_disabled
+from .phantom import MOTION_CODES, Phantom
 
 __all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS", "MAX_SCATTERERS", "ScatterersLimitError",
            "save_preview", "preview_figure"]

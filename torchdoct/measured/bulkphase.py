@@ -85,15 +85,16 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence as _Seq
 from dataclasses import dataclass, field
-from typing import Any, Sequence as _Seq
+from typing import Any
 
 import numpy as np
 import torch
 
 from ..conventions import noise_power
-from ..runtime.threads import one_torch_thread
 from ..runtime.interrupt import progress_disabled
+from ..runtime.threads import one_torch_thread
 from .io import SequenceData
 
 __all__ = [

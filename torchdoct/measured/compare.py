@@ -22,10 +22,12 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Iterable, Mapping
+from collections.abc import Sequence as _Seq
 from dataclasses import dataclass, field
 from itertools import combinations
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence as _Seq
+from typing import Any
 
 import numpy as np
 

@@ -23,8 +23,9 @@ import json
 import logging
 import math
 import os
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -235,7 +236,7 @@ class TiffDamage:
             damage.check()
     """
 
-    def __enter__(self) -> "TiffDamage":
+    def __enter__(self) -> TiffDamage:
         class _Collect(logging.Handler):
             def __init__(self):
                 super().__init__(logging.ERROR)

@@ -14,7 +14,8 @@ keeps (it takes the last ImageDescription that starts with ``ImageJ=``).
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 __all__ = ["imagej_write_options"]
 

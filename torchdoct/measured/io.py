@@ -36,8 +36,10 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+from collections.abc import Mapping
+from collections.abc import Sequence as _Seq
 from pathlib import Path
-from typing import Any, Mapping, Sequence as _Seq
+from typing import Any
 
 import numpy as np
 

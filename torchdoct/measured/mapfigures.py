@@ -7,13 +7,14 @@ by :mod:`torchdoct.measured.maps`.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
-from .mapsfile import Maps
 from .mapmetrics import FIT_FLAG
+from .mapsfile import Maps
 
 __all__ = ["DEFAULT_HUE_RANGE", "FLAG_RGB", "pseudo_color", "map_figure", "png_name", "percentile_range"]
 

@@ -7,7 +7,7 @@ public name here.
 from __future__ import annotations
 
 import math
-from typing import Sequence as _Seq
+from collections.abc import Sequence as _Seq
 
 import torch
 

@@ -83,28 +83,29 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Iterable, Mapping
+from collections.abc import Sequence as _Seq
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence as _Seq
+from typing import Any
 
 import numpy as np
 import torch
 
 from ..files import atomic_write, check_out
+from ..runtime.interrupt import progress_disabled
+from ..runtime.threads import one_torch_thread
 from ..sim.signature import available_features, default_features, feature_unit, pixel_features
 from ..sim.speckle import halo_pixels
-from .mapspeckle import (SPECKLE_MAX_OFFSET, SPECKLE_WINDOW, speckle_channel_records, speckle_channels, speckle_meta,
-                         speckle_slab, speckle_target)
-from .bulkphase import CORRECTION_AXIS_NEEDS, BulkPhase, estimate_bulk_phase, phasor as _bulk_phasor
+from .bulkphase import CORRECTION_AXIS_NEEDS, BulkPhase, estimate_bulk_phase
+from .bulkphase import phasor as _bulk_phasor
 from .io import Maps, SequenceData
-from ..runtime.threads import one_torch_thread
-from ..runtime.interrupt import progress_disabled
-from .mapfigures import DEFAULT_HUE_RANGE, FLAG_RGB, map_figure, percentile_range, png_name, pseudo_color
+from .mapfigures import DEFAULT_HUE_RANGE, FLAG_RGB, map_figure, percentile_range, png_name, pseudo_color  # noqa: F401 (FLAG_RGB re-exported)
 from .mapmetrics import (
     DEFAULT_OCDS_DELAY_RANGE_S,
     FIT_FLAG,
     METRICS,
     SMOOTHING_AXIS_NEEDS,
-    TAU_BOUND_LOG_TOL,
+    TAU_BOUND_LOG_TOL,  # noqa: F401 (re-exported)
     UNITS,
     box_smooth_zx,
     fit_saturation,
@@ -113,7 +114,15 @@ from .mapmetrics import (
     pixel_metrics,
     tau_bound_code,
 )
-from .slabs import nonfinite_reach, nonfinite_reach_px, slab_cut
+from .mapspeckle import (
+    SPECKLE_MAX_OFFSET,
+    SPECKLE_WINDOW,
+    speckle_channel_records,
+    speckle_channels,
+    speckle_meta,
+    speckle_slab,
+    speckle_target,
+)
 from .resolution import (
     EDGE_MODES,
     NORMALIZATIONS,
@@ -127,6 +136,7 @@ from .resolution import (
     reduce_resolution,
     reduction_axis_needs,
 )
+from .slabs import nonfinite_reach, nonfinite_reach_px, slab_cut
 
 __all__ = [
     "METRICS",

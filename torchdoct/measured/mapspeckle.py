@@ -6,7 +6,8 @@ docs/concepts/speckle-motion.md). ``req`` is the :class:`torchdoct.measured.maps
 
 from __future__ import annotations
 
-from typing import Any, Sequence as _Seq
+from collections.abc import Sequence as _Seq
+from typing import Any
 
 import numpy as np
 import torch

@@ -26,9 +26,11 @@ import dataclasses
 import json
 import math
 import os
+from collections.abc import Mapping
+from collections.abc import Sequence as _Seq
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence as _Seq
+from typing import Any
 
 import numpy as np
 
@@ -85,7 +87,7 @@ class BlockRaster:
                              f"(< bscans_per_block/2 = {self.bscans_per_block / 2:g}); got {self.drop_boundary}")
 
     @classmethod
-    def parse(cls, text: str, drop_boundary: int = 1) -> "BlockRaster":
+    def parse(cls, text: str, drop_boundary: int = 1) -> BlockRaster:
         """From ``"BLOCKS:REPEATS:BSCANS"`` (e.g. ``"8:32:16"``, the paper's protocol)."""
         parts = str(text).replace("x", ":").split(":")
         if len(parts) != 3:

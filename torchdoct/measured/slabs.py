@@ -11,7 +11,7 @@ non-finite sample enters the reduction as 0 and makes NaN every pixel within the
 from __future__ import annotations
 
 import math
-from typing import Iterable, Mapping
+from collections.abc import Iterable, Mapping
 
 import numpy as np
 

@@ -8,11 +8,10 @@ from __future__ import annotations
 from typing import Any
 
 
-def MapsWidget(napari_viewer: Any) -> Any:  # noqa: N802 (npe2 names a widget contribution like a class)
+def MapsWidget(napari_viewer: Any) -> Any:
     """The dock widget: resolutions, metrics, model, a Run button and a progress bar."""
-    from qtpy.QtWidgets import QComboBox, QLabel, QLineEdit, QProgressBar, QPushButton, QVBoxLayout, QWidget
-
     from napari.qt.threading import thread_worker
+    from qtpy.QtWidgets import QComboBox, QLabel, QLineEdit, QProgressBar, QPushButton, QVBoxLayout, QWidget
 
     w = QWidget()
     lay = QVBoxLayout(w)

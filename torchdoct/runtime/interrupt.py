@@ -28,8 +28,9 @@ import os
 import signal
 import sys
 import threading
+from collections.abc import Callable, Iterator
 from types import SimpleNamespace
-from typing import Any, Callable, Iterator
+from typing import Any
 
 __all__ = ["Terminated", "entry_point", "progress_disabled", "silence_progress",
            "note", "deferred", "worker_init", "EXIT_SIGINT", "EXIT_SIGTERM", "EXTRAS",

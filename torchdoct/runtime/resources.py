@@ -34,8 +34,9 @@ from __future__ import annotations
 import os
 import shutil
 import stat
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable, NamedTuple
+from typing import NamedTuple
 
 __all__ = ["ResourceLimitError", "MemoryLimitError", "DiskLimitError", "MemoryBudget", "memory_budget",
            "available_memory_bytes", "free_disk_bytes",

@@ -30,7 +30,8 @@ import contextlib
 import functools
 import os
 import threading
-from typing import Callable, Iterable, Iterator, TypeVar
+from collections.abc import Callable, Iterable, Iterator
+from typing import TypeVar
 
 __all__ = ["default_threads", "set_default_threads", "limit_process_threads", "using_threads", "resolve_threads",
            "single_torch_thread", "one_torch_thread", "map_ordered"]

@@ -18,7 +18,7 @@ import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import Any, Literal
 
 __all__ = [
     "SceneError",
@@ -297,7 +297,7 @@ class Flow:
         return (v * math.sin(th) * math.cos(ph), v * math.sin(th) * math.sin(ph), v * math.cos(th))
 
 
-Motion = Union[Diffusion, RandomBallistic, Flow]
+Motion = Diffusion | RandomBallistic | Flow
 _MOTION_TYPES = {"diffusion": Diffusion, "ballistic": RandomBallistic, "flow": Flow}
 
 
@@ -496,7 +496,7 @@ class Scene:
         ds = sorted({round(b - a, 9) for i, a in enumerate(t) for b in t[i + 1:]})
         return tuple(ds)
 
-    def replace(self, **changes: Any) -> "Scene":
+    def replace(self, **changes: Any) -> Scene:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:

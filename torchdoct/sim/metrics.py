@@ -23,7 +23,8 @@ their dB metrics to NaN explicitly, so summaries exclude and count them.
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import torch
 
@@ -84,7 +85,7 @@ def _delays(frame_times_s: Sequence[float]) -> tuple[list[float], list[tuple[lis
     dt = uniform_frame_interval_s(frame_times_s)
     if dt is not None:
         return ([m * dt for m in range(1, n)],
-                [(list(range(0, n - m)), list(range(m, n))) for m in range(1, n)])
+                [(list(range(n - m)), list(range(m, n))) for m in range(1, n)])
     groups: dict[float, tuple[list[int], list[int]]] = {}
     for i in range(n):
         for j in range(i + 1, n):

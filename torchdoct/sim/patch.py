@@ -32,13 +32,19 @@ a seed gives the same numbers whatever ``trials`` or the order of calls. Cost gr
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
 
-from ..conventions import (amplitude_sigma_axial_um, amplitude_sigma_lateral_um, mean_intensity, noise_sigma,
-                           truncation_radius_factor, wavenumber_per_um)
+from ..conventions import (
+    amplitude_sigma_axial_um,
+    amplitude_sigma_lateral_um,
+    mean_intensity,
+    noise_sigma,
+    truncation_radius_factor,
+    wavenumber_per_um,
+)
 from .samplers import unit_directions
 
 __all__ = ["MOTIONS", "PATCH_MAX_SCATTERERS", "patch_box_half_widths_um", "simulate_patch"]

@@ -44,19 +44,19 @@ from typing import Any
 
 import numpy as np
 
-from .config import Population, Scene
 from ..conventions import (
-    ens_paper,
-    mean_intensity,
-    wavenumber_per_um,
-    n_eff,
-    noise_power,
     amplitude_sigma_axial_um,
     amplitude_sigma_lateral_um,
+    ens_paper,
+    mean_intensity,
+    n_eff,
+    noise_power,
     truncation_field_error,
     truncation_half_widths_um,
     truncation_radius_factor,
+    wavenumber_per_um,
 )
+from .config import Population, Scene
 
 __all__ = ["PopulationPlan", "SystemPlan", "Plan", "make_plan", "capacity", "periodic_cell",
            "periodic_image_bound", "wrap_tolerance", "ellipsoid_entry_rate", "ellipsoid_entry_bound",

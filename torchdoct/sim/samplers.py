@@ -15,16 +15,16 @@ the reproducibility contract of :mod:`torchdoct.sim.simulate` is easiest to chec
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 
-from .config import Population, Scene
 from ..conventions import TAPER_START, amplitude_sigma_axial_um, amplitude_sigma_lateral_um, wavenumber_per_um
+from . import kernel
+from .config import Population, Scene
 from .plan import BLOCK_TRIALS, Plan, PopulationPlan, ellipsoid_entry_bound
 from .streams import CapacityError, Draws
-from . import kernel
 
 __all__ = ["unit_directions", "scene_field", "SAMPLERS"]
 
@@ -82,7 +82,7 @@ class _Optics:
     ry: list[float]  # [S] s_x²/s_y² (float64; exactly 1.0 for an isotropic lateral PSF)
 
     @classmethod
-    def of(cls, scene: Scene, dtype: torch.dtype, device: torch.device) -> "_Optics":
+    def of(cls, scene: Scene, dtype: torch.dtype, device: torch.device) -> _Optics:
         kn = [wavenumber_per_um(s.wavelength_um, s.refractive_index) for s in scene.systems]
         sx = [amplitude_sigma_lateral_um(s.lateral_resolution_um) for s in scene.systems]
         sy = [amplitude_sigma_lateral_um(s.lateral_widths_um[1]) for s in scene.systems]

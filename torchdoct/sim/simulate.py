@@ -41,15 +41,14 @@ from typing import Any
 
 import torch
 
-from .config import Scene
 from ..conventions import TRUNCATION_MODES, noise_sigma
-from .memory import (MemoryLimitError, available_memory_bytes, check_simulation, chunk_bytes,
-                     release_free_memory)
+from ..runtime.interrupt import progress_disabled
+from ..runtime.threads import map_ordered, resolve_threads, single_torch_thread
+from .config import Scene
+from .memory import MemoryLimitError, available_memory_bytes, check_simulation, chunk_bytes, release_free_memory
 from .plan import BLOCK_TRIALS, Plan, make_plan
 from .samplers import scene_field, unit_directions
 from .streams import CapacityError, Draws, block_generator, seeded_generator
-from ..runtime.threads import map_ordered, resolve_threads, single_torch_thread
-from ..runtime.interrupt import progress_disabled
 
 #: ``CapacityError``, ``MemoryLimitError``, the generators, ``chunk_bytes``, ``available_memory_bytes`` and
 #: ``unit_directions`` are re-exported from their modules (their former home).

@@ -59,7 +59,8 @@ from __future__ import annotations
 
 import math
 import re
-from typing import TYPE_CHECKING, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     import torch
@@ -270,7 +271,7 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
     if not names or len(set(names)) != len(names):
         raise ValueError(f"give each speckle feature once (at least one); got {list(names)}")
     parsed = [parse_speckle_feature(n) for n in names]
-    for n, (kind, ax, _) in zip(names, parsed):
+    for n, (_kind, ax, _) in zip(names, parsed):
         if ax is not None and ax not in axes:
             raise ValueError(f"speckle feature {n!r}: a {'volume' if ax == 'y' else 'B-scan'} has no axis {ax!r} "
                              f"(axes {', '.join(axes)})")
@@ -283,7 +284,7 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
     try:
         pitch = [float(pitch_um[c]) for c in axes]
     except (KeyError, TypeError, ValueError):
-        raise ValueError(f"speckle features need the pixel pitch (µm) of the axes {', '.join(axes)}; got {pitch_um!r}")
+        raise ValueError(f"speckle features need the pixel pitch (µm) of the axes {', '.join(axes)}; got {pitch_um!r}") from None
     if not all(p > 0 and math.isfinite(p) for p in pitch):
         raise ValueError(f"the pixel pitch must be positive and finite (µm); got {pitch_um!r}")
     dt = float(frame_interval_s)
@@ -363,7 +364,7 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
         coords = torch.tensor(grid, dtype=torch.long)  # [G, ndim]
         at = coords[arg]  # [B, *S, ndim] grid offset of the peak
         shift = []
-        for k, c in enumerate(axes):
+        for k in range(len(axes)):
             val = []
             for step in (-1, 0, 1):
                 nb = at.clone()

@@ -54,8 +54,7 @@ from .claims import claims_report
 from .figures import plot_comparison, plot_directions
 from .run import StudyResult, run_study, study_outputs
 from .spec import Comparison, Part, Study, load_study, shipped_studies, study_from_dict
-from .stats import Z_SIGNIFICANT, direction_differences, paired_differences
-from .stats import _crossing, _Curve  # noqa: F401  (private; the tests check the crossing on a _Curve)
+from .stats import Z_SIGNIFICANT, _crossing, _Curve, direction_differences, paired_differences  # noqa: F401  (private; the tests check the crossing on a _Curve)
 from .sweeps import study_sweeps
 
 __all__ = [

@@ -27,9 +27,10 @@ import hashlib
 import json
 import os
 import zipfile
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -195,7 +196,8 @@ def run_cells(task: Callable[[Any], Any], payloads: Sequence[Any], *, done: Call
 
 def _run_in_processes(task, payloads, batches, workers, done) -> None:
     import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed as done_first
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures import as_completed as done_first
 
     ctx = multiprocessing.get_context("spawn")  # no fork of a process that holds torch threads
     with ProcessPoolExecutor(max_workers=min(workers, len(batches)), mp_context=ctx,

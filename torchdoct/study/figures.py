@@ -9,8 +9,8 @@ ballistic, flow; columns LIV and OCDS; mean ± SD of both systems; an inset at s
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 

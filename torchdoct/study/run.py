@@ -13,13 +13,13 @@ from pathlib import Path
 from typing import Any
 
 from ..files import atomic_write, output_set
-from .sweep import SweepResult, check_cache_dir, check_sweep_resources, prepare_out_dir, run_sweeps, write_table
+from ..runtime.interrupt import progress_disabled
 from .claims import claims_report
 from .figures import _save_figure, plot_comparison, plot_directions
 from .spec import Study, load_study
 from .stats import direction_differences, paired_differences
+from .sweep import SweepResult, check_cache_dir, check_sweep_resources, prepare_out_dir, run_sweeps, write_table
 from .sweeps import study_sweeps
-from ..runtime.interrupt import progress_disabled
 
 __all__ = ["StudyResult", "study_outputs", "run_study"]
 

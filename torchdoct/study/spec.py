@@ -14,8 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..files import file_or_shipped, shipped_files
-from ..files import safe_name
+from ..files import file_or_shipped, safe_name, shipped_files
 from ..sim.config import SceneError, _check_keys, _fail, read_toml, scene_from_dict
 from .sweep import _normalize_arrays, field_values
 

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from .sweep import SweepResult
 from .spec import Study
+from .sweep import SweepResult
 from .sweeps import _groups, _sweep_name
 
 __all__ = ["Z_SIGNIFICANT", "Z_BRACKET", "paired_differences", "direction_differences"]
@@ -121,10 +121,10 @@ class _Curve:
     se: np.ndarray
     z: np.ndarray
 
-    def where(self, mask: np.ndarray) -> "_Curve":
+    def where(self, mask: np.ndarray) -> _Curve:
         return _Curve(*(a[mask] for a in (self.x, self.ref, self.other, self.diff, self.se, self.z)))
 
-    def flip(self) -> "_Curve":
+    def flip(self) -> _Curve:
         """reference − other instead of other − reference."""
         return _Curve(self.x, self.other, self.ref, -self.diff, self.se, -self.z)
 

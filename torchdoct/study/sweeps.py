@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import copy
 
-from .sweep import make_sweep
 from .spec import Study
+from .sweep import make_sweep
 
 __all__ = ["study_sweeps"]
 

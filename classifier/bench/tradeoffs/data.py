@@ -53,7 +53,7 @@ def derive_dataset(ds, base, sub, prior):
     meta = ds.meta
     draws = np.unique(ds.draw)
     lut = np.zeros(int(draws.max()) + 1 if draws.size else 0, np.int64)
-    counts = {s: 0 for s in STATUS}
+    counts = dict.fromkeys(STATUS, 0)
     for k in draws:
         d = draw_parameters(prior, int(meta["seed"]), meta["split"], int(k), int(meta["replicates"]))
         status, _, _ = identifiability(sub, d, prior)

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
-
 
 # ---------------------------------------------------------------------------------------------
 # training (the recipe of classifier.train.train, steps 3-5, on given datasets)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -37,14 +38,13 @@ def run_tradeoffs(plan: TradeoffPlan, *, cache_dir=None, progress: bool = False,
     import torch
     from tqdm.auto import tqdm
 
-    from torchdoct.runtime.machine import machine_info
-
     from classifier.dataset import make_dataset
-    from classifier.prior import Prior
     from classifier.features import load_spec
     from classifier.infer import DEFAULT_MODEL, load_model, pool_features
+    from classifier.prior import Prior
     from classifier.rule import apply_rule, make_rule
     from classifier.train import CLASS_NAMES, TrainConfig, eval_samples
+    from torchdoct.runtime.machine import machine_info
 
     if not isinstance(plan, TradeoffPlan):
         raise TypeError(f"plan must be a TradeoffPlan; got {type(plan).__name__}")

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .base import Loaded
 from ..guards import check_npy_header, check_npy_size, refuse_object
+from .base import Loaded
 
 SUFFIXES = (".npy",)
 NAME = "NumPy .npy (+ .json sidecar)"

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .base import Loaded
 from ..guards import check_npz_sizes, parse_json_object, refuse_object
 from ..sequence import sidecar_path
+from .base import Loaded
 
 SUFFIXES = (".npz",)
 NAME = "NumPy .npz (+ .json sidecar)"
