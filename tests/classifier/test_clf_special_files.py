@@ -5,40 +5,18 @@ regular file" (exit 2), never "no such file", never blocking on the open."""
 from __future__ import annotations
 
 import os
-import signal
-from pathlib import Path
 
 import numpy as np
 import pytest
 from _clf_maps import feature_channels, maps_meta, save_maps
 from _refusal import refused
+from _special import no_hang  # noqa: F401 (autouse fixture)
+from _special import special as _special
 
 from classifier.cli import classify_main, train_main
 from classifier.features import load_spec
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs are POSIX")
-
-
-@pytest.fixture(autouse=True)
-def no_hang():
-    def hung(*_):
-        raise AssertionError("the command blocked (opened a FIFO or read a device without end)")
-
-    old = signal.signal(signal.SIGALRM, hung)
-    signal.alarm(30)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
-
-
-def _special(path: Path, kind: str) -> Path:
-    if kind == "fifo":
-        os.mkfifo(path)
-    elif kind == "device":
-        path.symlink_to("/dev/zero")
-    else:
-        path.mkdir()
-    return path
 
 
 @pytest.mark.parametrize("kind", ["fifo", "device", "directory"])

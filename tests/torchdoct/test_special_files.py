@@ -7,41 +7,20 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 from pathlib import Path
 
 import pytest
 from _refusal import refused
+from _special import (
+    no_hang,  # noqa: F401 (autouse fixture)
+    special,
+)
 
 from torchdoct import files
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs are POSIX")
 
 KINDS = ("fifo", "device", "directory")
-
-
-@pytest.fixture(autouse=True)
-def no_hang():
-    """A command that blocks on a FIFO fails the test after 30 s instead of hanging the suite."""
-    def hung(*_):
-        raise AssertionError("the command blocked (opened a FIFO or read a device without end)")
-
-    old = signal.signal(signal.SIGALRM, hung)
-    signal.alarm(30)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
-
-
-def special(path: Path, kind: str) -> Path:
-    """Make ``path`` a FIFO, a link to the endless character device ``/dev/zero``, or a directory."""
-    if kind == "fifo":
-        os.mkfifo(path)
-    elif kind == "device":
-        path.symlink_to("/dev/zero")
-    else:
-        path.mkdir()
-    return path
 
 
 @pytest.mark.parametrize("kind", KINDS)
