@@ -160,13 +160,14 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     conformal calibration beside the model (:func:`read_calibration`; False: leave it, as the calibration does).
     """
     shipped = shipped_models() if shipped is None else shipped
-    path = shipped_or_path(DEFAULT_MODEL if model is None else str(model), dict(shipped), "model")
-    if path.is_dir():  # a doct-train output directory: its one model
-        found = sorted(path.glob("*.onnx"))
+    key = DEFAULT_MODEL if model is None else str(model)
+    if key not in shipped and Path(key).is_dir():  # a doct-train output directory: its one model
+        found = sorted(Path(key).glob("*.onnx"))
         if len(found) != 1:
-            raise ValueError(f"model directory {path}: holds {len(found)} .onnx files "
+            raise ValueError(f"model directory {key}: holds {len(found)} .onnx files "
                              f"({', '.join(p.name for p in found) or 'none'}); give the .onnx file itself")
-        path = found[0]
+        key = str(found[0])
+    path = shipped_or_path(key, dict(shipped), "model")
     if path.suffix != ".onnx":
         raise ValueError(f"model {path.name}: must be an .onnx file written by doct-train")
     n_threads = resolve_threads(threads)

@@ -109,6 +109,10 @@ def test_files_torchdoct_cannot_read_are_left_to_other_plugins(tmp_path):
 @pytest.mark.slow
 def test_offscreen_viewer_shows_maps_with_a_um_scale(tmp_path, monkeypatch):
     napari = pytest.importorskip("napari")
+    try:  # napari installs without a Qt binding; the viewer needs one (pip install "napari[pyqt5]")
+        import qtpy.QtWidgets  # noqa: F401
+    except Exception:  # qtpy raises its own error class when no binding is installed
+        pytest.skip("no Qt binding for napari's viewer (pip install 'napari[pyqt5]')")
     monkeypatch.setenv("QT_QPA_PLATFORM", "offscreen")
     path = write_maps(tmp_path / "m.ome.tif", _maps(False))
     viewer = napari.Viewer(show=False)
