@@ -328,6 +328,10 @@ def build_classify_parser() -> argparse.ArgumentParser:
     p.add_argument("--min-probability", type=float, default=None,
                    help="with --decision rule: override the model's threshold below which a pixel is indeterminate "
                         "(higher: fewer pixels decided, more of them right; the model's report tabulates the trade-off)")
+    p.add_argument("--decide-ballistic", action="store_true",
+                   help="keep the model's ballistic decisions where the physics cannot exclude flow (every B-scan "
+                        "pixel; a volume's pixels that have not decorrelated); by default they are ballistic-or-flow "
+                        "(docs/abstention.md)")
     p.add_argument("--ignore-refractive-index", action="store_true",
                    help="accept maps whose system refractive index differs from the model's")
     p.add_argument("--threads", type=int, default=None, metavar="N",
@@ -372,7 +376,8 @@ def _classify(args: argparse.Namespace) -> int:
         res = infer.classify_maps(args.maps, args.model, pool=args.pool, background_db=bg,
                                   min_probability=args.min_probability,
                                   ignore_refractive_index=args.ignore_refractive_index, threads=args.threads,
-                                  decision=args.decision, alpha=args.alpha)
+                                  decision=args.decision, alpha=args.alpha,
+                                  abstain_ambiguous=not args.decide_ballistic)
     except ValueError as err:
         raise ValueError(_signature_hint(str(err))) from None
     written = infer.write_classification(res, args.out, force=args.force)
@@ -389,6 +394,11 @@ def _classify(args: argparse.Namespace) -> int:
         conf = res.info.get("conformal")
         if conf:
             print(f"  decision: conformal prediction sets at alpha {conf['alpha']:g} (docs/abstention.md)")
+        amb = res.info.get("ambiguity")
+        if amb and sum(amb["changed_pixels"].values()):
+            print(f"  ballistic-or-flow where flow cannot be excluded: {amb['changed_pixels']['bscan_plane']} B-scan "
+                  f"pixels (flow across the plane), {amb['changed_pixels']['slow_decorrelation']} not decorrelated "
+                  "(--decide-ballistic keeps the model's decisions)")
         for c in res.label_names:
             print(f"  {c:>22}: {counts[c]:>9} ({counts[c] / total:6.1%})")
         print(f"  {res.info['pixels_per_s']:.3g} pixels/s; wrote {', '.join(p.name for p in written)} to {args.out}")

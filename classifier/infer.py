@@ -35,7 +35,7 @@ import numpy as np
 
 from torchdoct.measured import mapsfile
 
-from . import conformal, runtime
+from . import ambiguity, conformal, runtime
 from .features import physical_range
 from .matching import (
     SIGNATURE_MODEL,
@@ -174,13 +174,16 @@ def _check_pool(pool: int, maps) -> None:
 def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model: ClassifierModel | str | None = None,
                   *, pool: int = DEFAULT_POOL, background_db: str | float | None = DEFAULT_BACKGROUND_DB, min_probability: float | None = None,
                   ignore_refractive_index: bool = False, threads: int | None = None,
-                  decision: str | None = None, alpha: float | None = None) -> Classification:
+                  decision: str | None = None, alpha: float | None = None,
+                  abstain_ambiguous: bool = True) -> Classification:
     """Classify every pixel of one or more maps files (module docstring, steps 1-6).
 
     ``decision``: ``"conformal"`` (prediction sets at error level ``alpha``, :mod:`classifier.conformal`;
     needs the model's calibration file), ``"rule"`` (the model's indeterminate rule, :mod:`classifier.rule`),
     ``None``: conformal when the model has a calibration, else the rule. ``alpha``: default
-    :data:`classifier.conformal.DEFAULT_ALPHA`."""
+    :data:`classifier.conformal.DEFAULT_ALPHA`. ``abstain_ambiguous``: a ``ballistic`` decision becomes
+    ``ballistic-or-flow`` where the physics cannot exclude flow (:mod:`classifier.ambiguity`: every B-scan
+    pixel; a volume's pixels whose window has not decorrelated)."""
     t0 = time.perf_counter()
     _check_arguments(pool, min_probability)
     _check_alpha(alpha)
@@ -234,6 +237,18 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
                           "set_sizes": {str(k): int((set_size == k).sum()) for k in range(len(mdl.classes) + 1)},
                           "guarantee": mdl.calibration.get("guarantee")}
     shape = valid.shape
+    ambiguity_info = None
+    if abstain_ambiguous:
+        if not set_names:
+            set_names = conformal.set_label_names(mdl.classes)
+        channels = {c: m.maps[i] for m in maps_list for i, c in enumerate(m.channels) if c.startswith("xc_centre_")}
+        corr, source = ambiguity.slow_decorrelation(channels, mdl.columns, x, idx, mdl.spec.n_frames)
+        bscan = len(shape) == 2
+        labels_flat, changed = ambiguity.abstain_where_ambiguous(labels_flat, list(mdl.classes) + set_names,
+                                                                  bscan=bscan, correlation=corr)
+        ambiguity_info = {"rules": (["bscan_plane"] if bscan else []) + (["slow_decorrelation"] if corr is not None else []),
+                          "correlation": source, "decorrelated_below": ambiguity.DECORRELATED_BELOW,
+                          "changed_pixels": changed}
     labels = np.full(valid.size, MASKED, np.uint8)
     labels[idx] = labels_flat.astype(np.uint8)
     pmaps = np.full((len(mdl.classes), valid.size), np.nan, np.float32)
@@ -253,6 +268,7 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
                                   if decision == "rule" else None),
         "min_probability": float(mdl.rule["min_probability"] if min_probability is None else min_probability),
         "conformal": conformal_info,
+        "ambiguity": ambiguity_info,
         "seconds": {"read": t_read - t0, "features": t_feat - t_read, "onnxruntime": t_onnx - t_feat,
                     "rule": t_end - t_onnx, "total": t_end - t0},
         "pixels_per_s": n_pix / max(t_end - t_read, 1e-12),

@@ -161,7 +161,7 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     """
     shipped = shipped_models() if shipped is None else shipped
     key = DEFAULT_MODEL if model is None else str(model)
-    if key not in shipped and Path(key).is_dir():  # a doct-train output directory: its one model
+    if key not in shipped and not key.endswith(".onnx") and Path(key).is_dir():  # a doct-train output directory: its one model
         found = sorted(Path(key).glob("*.onnx"))
         if len(found) != 1:
             raise ValueError(f"model directory {key}: holds {len(found)} .onnx files "

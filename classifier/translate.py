@@ -244,7 +244,8 @@ def translate_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], targe
     # One class per pixel, by the rule (most probable class above min_probability): a conformal set of two
     # classes has no single target to translate to, and the translation is validated on the rule's
     # decisions (research/results/translation-validation.md).
-    res = classify_maps(paths, model, pool=pool, min_probability=min_probability, threads=threads, decision="rule")
+    res = classify_maps(paths, model, pool=pool, min_probability=min_probability, threads=threads, decision="rule",
+                       abstain_ambiguous=False)
     mdl = res.model
     if res.magnitude is None:
         raise ValueError(f"model {mdl.path.name} has no magnitude head (an LIV/OCDS model); translation needs "

@@ -257,8 +257,10 @@ def _edge_px(spec, pitch: float, pool: int) -> int:
 
 
 def run_cell(cell: GridCell, model, levels: dict[str, dict[str, float]], *, pools: Sequence[int] = POOLS,
-             decision: str | None = None, threads: int | None = None, prior=None) -> list[dict[str, Any]]:
-    """Render, map, classify and score one cell at every window of ``pools``: one row per window."""
+             decision: str | None = None, threads: int | None = None, prior=None,
+             abstain_ambiguous: bool = True) -> list[dict[str, Any]]:
+    """Render, map, classify and score one cell at every window of ``pools``: one row per window.
+    ``abstain_ambiguous``: doct-classify's default (:mod:`classifier.ambiguity`); False: ``--decide-ballistic``."""
     from torchdoct.image.phantom import phantom_from_dict
     from torchdoct.image.render import render
     from torchdoct.measured.maps import compute_maps
@@ -296,11 +298,11 @@ def run_cell(cell: GridCell, model, levels: dict[str, dict[str, float]], *, pool
         for pool in pools:
             t1 = time.perf_counter()
             kw = {} if decision is None else {"decision": decision}
-            c = classify_maps(path, model, pool=int(pool), threads=threads, **kw)
+            c = classify_maps(path, model, pool=int(pool), threads=threads, abstain_ambiguous=abstain_ambiguous, **kw)
             t2 = time.perf_counter()
             s = score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool)))
             rows.append({**asdict(cell), "key": cell.key, "pool": int(pool), "model": spec.name,
-                         "decision": c.info.get("decision", "rule"),
+                         "decision": c.info.get("decision", "rule"), "abstain_ambiguous": bool(abstain_ambiguous),
                          "magnitudes": {m: levels[m][cell.level] for m in MOTIONS},
                          "identifiable": ident, **s,
                          "seconds": {"render": t_render - t0, "maps": t_maps - t_render, "classify": t2 - t1,
@@ -311,7 +313,8 @@ def run_cell(cell: GridCell, model, levels: dict[str, dict[str, float]], *, pool
 def run_grid(cells: Iterable[GridCell], model: str | None = None, *, pools: Sequence[int] = POOLS,
              decision: str | None = None, threads: int | None = None, progress: bool = True,
              geometry_models: dict[str, str] | None = None,
-             levels: dict[str, dict[str, dict[str, float]]] | None = None) -> dict[str, Any]:
+             levels: dict[str, dict[str, dict[str, float]]] | None = None,
+             abstain_ambiguous: bool = True) -> dict[str, Any]:
     """Every cell of ``cells`` (module docstring) with ``model`` (default: the model ``doct-classify``
     picks for the cell's maps: ``signature-bscan`` for B-scans, ``signature`` for volumes). ``levels``:
     ``{geometry: speed_levels(...)}`` already computed (default: computed here)."""
@@ -331,7 +334,7 @@ def run_grid(cells: Iterable[GridCell], model: str | None = None, *, pools: Sequ
     t0 = time.perf_counter()
     for cell in cells:
         rows.extend(run_cell(cell, models[cell.geometry], levels[cell.geometry], pools=pools, decision=decision,
-                             threads=threads))
+                             threads=threads, abstain_ambiguous=abstain_ambiguous))
         if bar is not None:
             bar.update()
     if bar is not None:
@@ -340,7 +343,7 @@ def run_grid(cells: Iterable[GridCell], model: str | None = None, *, pools: Sequ
 
     return {"schema_version": SCHEMA_VERSION, "benchmark": "phantom-grid",
             "definitions": _definitions(), "models": {g: m.spec.name for g, m in models.items()},
-            "decision": rows[0]["decision"] if rows else decision,
+            "decision": rows[0]["decision"] if rows else decision, "abstain_ambiguous": bool(abstain_ambiguous),
             "speed_levels": dict(levels.items()),
             "units": {"diffusion": "µm²/s", "ballistic": "µm/s", "flow": "µm/s", "seconds": "s"},
             "cells": rows, "summary": summarize(rows), "seconds": time.perf_counter() - t0,
@@ -397,7 +400,8 @@ def _fmt(v: Any) -> str:
 def format_table(res: dict[str, Any]) -> str:
     """The Markdown table: a summary per window, then one row per cell and window."""
     lines = [f"# Phantom grid ({res['benchmark']}, schema {res['schema_version']})", "",
-             f"Models: {', '.join(f'{g}: `{m}`' for g, m in res['models'].items())}; decision: `{res['decision']}`. "
+             f"Models: {', '.join(f'{g}: `{m}`' for g, m in res['models'].items())}; decision: `{res['decision']}`"
+             + (", ballistic-or-flow where flow cannot be excluded (classifier.ambiguity)" if res.get('abstain_ambiguous', False) else ", the model's ballistic decisions kept") + ". "
              f"Speed levels (diffusion µm²/s, speeds µm/s): "
              + "; ".join(f"{g}: " + ", ".join(f"{m} {'/'.join(f'{v:g}' for v in lv.values())}" for m, lv in levels.items())
                          for g, levels in res["speed_levels"].items()) + ".", "",
@@ -498,6 +502,9 @@ def build_parser():
                                                  "B-scans, signature for volumes, the models doct-classify picks)")
     p.add_argument("--decision", default=None, choices=("rule", "conformal"),
                    help="decision rule (default: doct-classify's default)")
+    p.add_argument("--decide-ballistic", action="store_true",
+                   help="keep the model's ballistic decisions (doct-classify --decide-ballistic; default: "
+                        "ballistic-or-flow where the physics cannot exclude flow, classifier.ambiguity)")
     p.add_argument("--geometry", choices=GEOMETRIES, default=None, help="only B-scans or only volumes")
     p.add_argument("--seed", type=int, default=0, help="rendering seed of every cell")
     p.add_argument("--stem", default="grid", help="file names STEM.json, STEM.csv, ... (default grid)")
@@ -526,9 +533,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.geometry:
             cells = [c for c in cells if c.geometry == args.geometry]
         res = run_grid(cells, args.model, decision=args.decision, threads=args.threads,
-                       progress=not args.no_progress)
+                       progress=not args.no_progress, abstain_ambiguous=not args.decide_ballistic)
         res["command"] = "python -m classifier.bench.grid" + (" --quick" if args.quick else "") + (
             f" --model {args.model}" if args.model else "") + (f" --decision {args.decision}" if args.decision else "") + (
+            " --decide-ballistic" if args.decide_ballistic else "") + (
             f" --geometry {args.geometry}" if args.geometry else "") + (f" --seed {args.seed}" if args.seed else "") + (
             f" --stem {args.stem}" if args.stem != "grid" else "") + " --out DIR"
         written = write_grid(res, out, force=args.force, stem=args.stem)

@@ -57,7 +57,7 @@ def setup(tmp_path_factory):
 
 
 def test_classification_is_the_model_and_rule_on_valid_pixels(setup):
-    res = classify_maps(setup["npz"], setup["model"], threads=1)
+    res = classify_maps(setup["npz"], setup["model"], threads=1, abstain_ambiguous=False)
     assert res.labels.shape == (Z, X) and res.labels.dtype == np.uint8
     assert np.all(res.labels[8:, :] == MASKED) and res.labels[3, 5] == MASKED
     assert res.info["background_pixels"] == 2 * X and res.info["nan_pixels"] == 1
@@ -73,7 +73,7 @@ def test_classification_is_the_model_and_rule_on_valid_pixels(setup):
     assert np.all(np.isnan(res.probabilities[:, ~valid]))
     np.testing.assert_allclose(np.nansum(res.probabilities, axis=0)[valid], 1.0, atol=1e-5)
     # the TIFF flavour of the same maps gives the same result
-    res_tif = classify_maps(setup["tif"], setup["model"], threads=1)
+    res_tif = classify_maps(setup["tif"], setup["model"], threads=1, abstain_ambiguous=False)
     np.testing.assert_array_equal(res_tif.labels, res.labels)
 
 
@@ -197,7 +197,8 @@ def test_cli_writes_outputs_and_refuses_to_overwrite(setup, tmp_path, capsys):
         labels = tf.asarray()
         desc = json.loads(tf.pages[0].description)
     assert labels.shape == (Z, X) and [c["name"] for c in desc["legend"]["classes"]] == [
-        "diffusion", "ballistic", "flow", "indeterminate"]
+        "diffusion", "ballistic", "flow", "indeterminate", "diffusion-or-ballistic", "diffusion-or-flow",
+        "ballistic-or-flow"]
     assert desc["legend"]["masked_value"] == MASKED
     probs = tifffile.imread(out / "probabilities.tif")
     assert probs.shape == (4, Z, X)
@@ -238,8 +239,8 @@ def test_volume_maps_are_classified_per_bscan(setup, tmp_path):
     meta = {**setup["meta"], "axes": "CYZX", "pitch_um": {"z": 2.0, "x": 2.0, "y": 2.0}}
     path = save_maps(tmp_path / "vol.tif", data, meta)
     assert read_maps(path).data.shape == data.shape
-    flat = classify_maps(setup["npz"], setup["model"], pool=3, threads=1)
-    vol = classify_maps(path, setup["model"], pool=3, threads=1)
+    flat = classify_maps(setup["npz"], setup["model"], pool=3, threads=1, abstain_ambiguous=False)
+    vol = classify_maps(path, setup["model"], pool=3, threads=1, abstain_ambiguous=False)
     assert vol.labels.shape == (2, Z, X)
     for y in range(2):
         np.testing.assert_array_equal(vol.labels[y], flat.labels)
@@ -386,7 +387,7 @@ def test_conformal_decision_is_the_default_with_a_calibration_and_writes_set_lab
     res = classify_maps(setup["npz"], model, threads=1)
     assert res.info["decision"] == "conformal" and res.info["conformal"]["alpha"] == 0.1
     assert res.label_names[4:] == ["diffusion-or-ballistic", "diffusion-or-flow", "ballistic-or-flow"]
-    rule = classify_maps(setup["npz"], model, threads=1, decision="rule")
+    rule = classify_maps(setup["npz"], model, threads=1, decision="rule", abstain_ambiguous=False)
     assert rule.info["decision"] == "rule" and rule.set_labels == []
     np.testing.assert_array_equal(res.probabilities, rule.probabilities)  # the decision alone differs
     assert classify_maps(setup["npz"], model, threads=1, min_probability=0.6).info["decision"] == "rule"

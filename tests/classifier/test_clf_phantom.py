@@ -53,10 +53,10 @@ def _render_map_classify(tmp_path_factory, phantom: str):
                            "--resolution", "lateral=18", "--signature", "--out", str(maps), "--no-progress",
                            "--threads", "1"]) == 0
     out = {}
-    for pool in (1, 5):  # the floors of this file are the rule's (--decision rule); conformal sets beside them
+    for pool in (1, 5):  # the floors of this file are the model's (--decision rule --decide-ballistic); the default beside them
         out[pool] = d / f"classified-{pool}"
         assert classify_main([str(maps), "--out", str(out[pool]), "--pool", str(pool), "--threads", "1",
-                              "--decision", "rule"]) == 0
+                              "--decision", "rule", "--decide-ballistic"]) == 0
         out[f"conformal-{pool}"] = d / f"conformal-{pool}"
         assert classify_main([str(maps), "--out", str(out[f"conformal-{pool}"]), "--pool", str(pool),
                               "--threads", "1"]) == 0

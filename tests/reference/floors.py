@@ -80,7 +80,7 @@ def _phantom_run(work: Path, phantom: str, seed: int) -> dict:
     for pool in POOLS:
         d = work / f"{phantom}-{seed}-p{pool}"
         if classify_main([str(maps), "--out", str(d), "--pool", str(pool), "--threads", "1", "--decision", "rule",
-                          "--no-progress"]) != 0:
+                          "--decide-ballistic", "--no-progress"]) != 0:
             raise RuntimeError(f"doct-classify {maps} failed")
         run[str(pool)] = _overall(score_images(d, seq))
     return run

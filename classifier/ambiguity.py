@@ -1,0 +1,102 @@
+"""Where the physics cannot tell random-ballistic motion from flow: a ``ballistic`` decision becomes the
+set ``ballistic-or-flow`` (numpy only: the classify path). The derivation is in docs/abstention.md
+("What the data cannot tell") and docs/concepts/speckle-motion.md §3, §7.
+
+A network that reads one pixel's intensity (pooled or not) decides ``ballistic`` wherever the decay looks
+like random-ballistic motion. Two kinds of flow give that same evidence, and the network's calibration
+(split-conformal, marginal over the training prior's directions and speeds) does not cover them pixel by
+pixel:
+
+1. **Flow across a B-scan's plane.** In a B-scan (maps of axes ``ZX``) the speckle of a flow along ``y``
+   stays centred and only decays (speckle-motion §7): the same centred, decaying correlation as random
+   ballistic motion, diffusion aside. Neither the pixel's frames nor its in-plane neighbours can exclude
+   it, so in B-scan maps every ``ballistic`` decision is ``ballistic-or-flow``. Flow decisions stay: a
+   coherent in-plane shift or a transit decay the network reads as flow is not what random directions give.
+2. **Flow too slow to decorrelate by transit** (any geometry). A flow decorrelates the intensity only by
+   transit through the PSF, ``ρ(τ) = exp(−Σ_c v_c²τ²/(2s_c²))``; random-ballistic motion mostly by the
+   Doppler phase of random directions, about ``2kn·s`` (≈ 30 at 840 nm) times faster at one speed. The two
+   decay shapes (Gaussian against the phase average) differ only once the pixel has decorrelated. While the
+   window's correlation at the longest lag of the speckle features (``xc_centre_m``, half the acquisition
+   by default) stays at or above :data:`DECORRELATED_BELOW`, the shapes have not separated and a
+   ``ballistic`` decision is ``ballistic-or-flow``. Without the speckle channels the pooled intensity
+   correlation the model reads at the nearest lag (``rho_lin_m`` of the first configuration) stands in.
+
+The speckle shift that would tell such a flow apart (speckle-motion §6) is too small to exceed the spread
+of random-ballistic and diffusive windows at a 1 % false-detection level for these slow flows at the
+default 9-pixel window, so it is not used to upgrade a decision; the grid benchmark reports what each
+rule leaves (``python -m classifier.bench.grid``).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+__all__ = ["DECORRELATED_BELOW", "SET_LABEL", "abstain_where_ambiguous", "slow_decorrelation"]
+
+#: The window's intensity correlation at the longest lag below which a pixel counts as decorrelated
+#: (rule 2 of the module docstring): half of the correlation is gone.
+DECORRELATED_BELOW = 0.5
+#: The set label a ballistic decision becomes.
+SET_LABEL = "ballistic-or-flow"
+
+_XC_CENTRE = re.compile(r"^xc_centre_(\d+)@")
+_RHO_LIN = re.compile(r"^rho_lin_(\d+)$")
+
+
+def slow_decorrelation(channels: Mapping[str, np.ndarray], columns: Sequence[Mapping[str, Any]] | None = None,
+                       pooled: np.ndarray | None = None, idx: np.ndarray | None = None,
+                       n_frames: int = 32) -> tuple[np.ndarray | None, str | None]:
+    """The correlation that decides rule 2 per classified pixel, and where it came from.
+
+    ``channels``: name -> map of the maps files (the speckle channel ``xc_centre_m@…`` at the largest ``m``,
+    read at the classified pixels ``idx``); else ``pooled`` (the model's input rows) at the column of the
+    first configuration's ``rho_lin_m`` whose lag is nearest ``n_frames // 2``. ``(None, None)`` when
+    neither exists (rule 2 is then not applied; the classification's info says so)."""
+    best = None
+    for name in channels:
+        m = _XC_CENTRE.match(name)
+        if m and (best is None or int(m.group(1)) > best[0]):
+            best = (int(m.group(1)), name)
+    if best is not None:
+        vals = np.asarray(channels[best[1]], np.float64).reshape(-1)
+        return (vals if idx is None else vals[idx]), best[1]
+    if columns is None or pooled is None:
+        return None, None
+    target = max(1, int(n_frames) // 2)
+    first = columns[0].get("configuration") if columns else None
+    cands = []
+    for j, col in enumerate(columns[:-1]):
+        m = _RHO_LIN.match(str(col.get("metric", "")))
+        if m and col.get("configuration") == first:
+            cands.append((abs(int(m.group(1)) - target), j, str(col.get("name", col.get("metric")))))
+    if not cands:
+        return None, None
+    _, j, name = min(cands)
+    return np.asarray(pooled[:, j], np.float64), name
+
+
+def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: bool,
+                            correlation: np.ndarray | None) -> tuple[np.ndarray, dict[str, int]]:
+    """``labels`` (indices into ``names``, one per classified pixel) with ``ballistic`` turned into
+    :data:`SET_LABEL` where the module docstring's rules 1 (``bscan``) or 2 (``correlation`` ≥
+    :data:`DECORRELATED_BELOW`; NaN counts as not decorrelated) apply; and the pixels each rule changed.
+    ``names`` must hold ``ballistic`` and :data:`SET_LABEL` (else ``labels`` come back unchanged)."""
+    names = list(names)
+    counts = {"bscan_plane": 0, "slow_decorrelation": 0}
+    if "ballistic" not in names or SET_LABEL not in names:
+        return labels, counts
+    out = np.array(labels, copy=True)
+    ball = out == names.index("ballistic")
+    if bscan:
+        counts["bscan_plane"] = int(ball.sum())
+        out[ball] = names.index(SET_LABEL)
+        return out, counts
+    if correlation is not None:
+        slow = ball & ~(np.asarray(correlation, np.float64) < DECORRELATED_BELOW)
+        counts["slow_decorrelation"] = int(slow.sum())
+        out[slow] = names.index(SET_LABEL)
+    return out, counts
