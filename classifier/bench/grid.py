@@ -285,7 +285,7 @@ def run_cell(cell: GridCell, model, levels: dict[str, dict[str, float]], *, pool
     seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source=cell.key)
     t_render = time.perf_counter()
     maps = compute_maps(seq, [c.name for c in spec.configurations], metrics=("mean_db",),
-                        signature=list(spec.metrics))
+                        signature=list(spec.metrics), speckle=True)  # what maps --signature writes
     t_maps = time.perf_counter()
     ident = {}
     for label, name in enumerate(MOTIONS):
@@ -402,7 +402,7 @@ def format_table(res: dict[str, Any]) -> str:
     lines = [f"# Phantom grid ({res['benchmark']}, schema {res['schema_version']})", "",
              f"Models: {', '.join(f'{g}: `{m}`' for g, m in res['models'].items())}; decision: `{res['decision']}`"
              + (", ballistic-or-flow where flow cannot be excluded (classifier.ambiguity)" if res.get('abstain_ambiguous', False) else ", the model's ballistic decisions kept") + ". "
-             f"Speed levels (diffusion µm²/s, speeds µm/s): "
+             "Speed levels (diffusion µm²/s, speeds µm/s): "
              + "; ".join(f"{g}: " + ", ".join(f"{m} {'/'.join(f'{v:g}' for v in lv.values())}" for m, lv in levels.items())
                          for g, levels in res["speed_levels"].items()) + ".", "",
              "| window | cells | worst wrong share | cells > 10 % wrong | mean coverage | lowest coverage | mean balanced accuracy |",

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from classifier.ambiguity import DECORRELATED_BELOW, SET_LABEL, abstain_where_ambiguous, slow_decorrelation
+from classifier.ambiguity import DECORRELATED_BELOW, abstain_where_ambiguous, slow_decorrelation
 
 NAMES = ["diffusion", "ballistic", "flow", "indeterminate", "diffusion-or-ballistic", "diffusion-or-flow",
          "ballistic-or-flow"]

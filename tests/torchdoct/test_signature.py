@@ -236,7 +236,16 @@ def test_cli_maps_signature_channels(tmp_path, capsys):
     assert "intensity only" not in capsys.readouterr().out
     maps = read_maps(out)
     n = len(DEFAULT_FEATURES)
-    assert maps.maps.shape == (6 + 2 * n, 12, 10)
+    from torchdoct.sim.speckle import default_speckle_features
+
+    n_xc = len(default_speckle_features(2, n_frames=t))  # --signature adds the speckle channels, after the rest
+    assert maps.maps.shape == (6 + 2 * n + n_xc, 12, 10)
+    assert all(c.startswith("xc_") and c.endswith("@original") for c in maps.channels[6 + 2 * n:])
+    bare = tmp_path / "bare.npz"
+    assert main(["maps", str(seq_path), "--resolution", "original", "--resolution", "lateral=18", "--signature",
+                 "--no-speckle", "--out", str(bare), "--no-progress"]) == 0
+    np.testing.assert_array_equal(read_maps(bare).maps, maps.maps[:6 + 2 * n])  # the other channels are unchanged
+    maps = read_maps(bare)
     chans = maps.meta["channels"]
     assert [c["name"] for c in chans[6:6 + n]] == [f"{f}@original" for f in DEFAULT_FEATURES]
     lat = [c for c in chans if c["resolution"] == "lateral=18" and c["metric"] == "g1_1"]
@@ -253,7 +262,7 @@ def test_cli_maps_signature_channels(tmp_path, capsys):
     tifffile.imwrite(tmp_path / "i.tif", (np.abs(data) ** 2).astype(np.float32))
     assert main(["maps", str(tmp_path / "i.tif"), "--pitch-um", "z=1.5,x=2", "--frame-interval-s", "0.2048",
                  "--wavelength-um", "0.84", "--lateral-resolution-um", "4.9", "--axial-resolution-um", "3.8",
-                 "--signature", "--out", str(tmp_path / "i.npz"), "--no-progress"]) == 0
+                 "--signature", "--no-speckle", "--out", str(tmp_path / "i.npz"), "--no-progress"]) == 0
     assert "holds intensity only: the signature has only its intensity part" in capsys.readouterr().out
     imaps = read_maps(tmp_path / "i.npz")
     names = [c["metric"] for c in imaps.meta["channels"][3:]]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import glob
 import math
+import sys
 import zipfile
 from pathlib import Path
 
@@ -33,6 +34,9 @@ def _maps_arguments(mp) -> None:
     mp.add_argument("--speckle", action="store_true",
                     help="also write the speckle-motion channels (torchdoct.sim.speckle; lagged cross-correlation of "
                          "each pixel's window: peak offset, velocity, moving share) at the original resolution")
+    mp.add_argument("--no-speckle", action="store_true",
+                    help="with --signature: leave out the speckle-motion channels it adds by default for B-scans "
+                         "and volumes with a pixel pitch and a uniform frame interval")
     mp.add_argument("--speckle-window", type=int, default=9, metavar="N",
                     help="window of the speckle-motion channels, N pixels per axis (odd; default 9)")
     mp.add_argument("--out", action="append", required=True, metavar="FILE",
@@ -168,6 +172,15 @@ def _maps(args: argparse.Namespace) -> int:
                    speckle_window=args.speckle_window, ocds_delay_range_s=tuple(args.ocds_delay_range_s),
                    ocds_scale=args.ocds_scale, ocds_estimator=args.ocds_estimator, edge_mode=args.edge_mode,
                    normalization=args.normalization)
+    if args.speckle and args.no_speckle:
+        raise ValueError("--speckle and --no-speckle contradict each other: give one")
+    if args.signature and not args.speckle and not args.no_speckle:
+        # one flag gives a model what it reads: the speckle channels where the sequence allows them
+        try:
+            check_maps_request(seq, resolutions, **{**options, "speckle": True})
+            options["speckle"] = True
+        except ValueError as err:
+            print(f"note: --signature without the speckle-motion channels: {err}", file=sys.stderr)
     check_maps_request(seq, resolutions, **options)  # what compute_maps refuses, before the bulk-phase estimate
     if args.png_y is not None:  # the B-scan shown must exist
         n_y = dict(zip(seq.axes, seq.data.shape)).get("Y")
