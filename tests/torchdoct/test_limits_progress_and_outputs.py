@@ -1,4 +1,4 @@
-"""Adversarial rows, third pass: bounds checked before the work (render grids from pitch and extent,
+"""Adversarial rows: bounds checked before the work (render grids from pitch and extent,
 table counts of scene and phantom files), progress bars only on runs that last, benchmarks that write
 only when asked, and commands that say which files a pattern output becomes.
 

@@ -1,4 +1,4 @@
-"""Hardening of the readers (issue: bounded resources, safe HDF5, nonsense refused).
+"""The readers' limits: bounded resources, safe HDF5, nonsense refused.
 
 Each refusal is exit 2 with one ``error:`` line naming the file, what is wrong and the fix (the option
 or environment variable that allows it), no traceback and nothing written; a read the system refuses is
