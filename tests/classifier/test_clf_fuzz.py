@@ -14,8 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-pytestmark = pytest.mark.slow  # a few hundred generated files: CI runs them with the slow suite
+from _fuzz import examples
 
 hypothesis = pytest.importorskip("hypothesis")
 from _clf_maps import feature_channels, maps_meta, save_maps  # noqa: E402
@@ -32,7 +31,7 @@ META = maps_meta(SPEC, feature_channels(SPEC))
 DATA = np.random.default_rng(0).uniform(0.1, 1.0, size=(len(META["channels"]), Z, X)).astype(np.float32)
 DATA[-1] = 20.0  # mean_db: no background
 ERRORS = (ValueError, TypeError)
-SETTINGS = settings(max_examples=150, deadline=None, derandomize=True,
+SETTINGS = settings(max_examples=examples(150), deadline=None, derandomize=True,
                     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 BAD_VALUES = [None, "text", "", [], [1, "a"], {}, {"x": 1}, True, float("nan"), float("inf"), -1, 0, 1e300, 2**70]
 
@@ -157,7 +156,7 @@ def test_malformed_meta_json_and_pickles_fuzz(tmp_path, meta_json, kind):
     assert code == 2
 
 
-@settings(max_examples=40, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(40), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(pool=st.integers(-3, 3 * X))
 def test_pool_sizes_fuzz(good, tmp_path, pool):
     path = tmp_path / "maps.npz"

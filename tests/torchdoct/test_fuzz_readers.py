@@ -13,8 +13,7 @@ import pickle
 
 import numpy as np
 import pytest
-
-pytestmark = pytest.mark.slow  # a few hundred generated files: CI runs them with the slow suite
+from _fuzz import examples
 
 hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, given, settings  # noqa: E402
@@ -28,7 +27,7 @@ META = {"axes": "TZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": [0.204
         "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9,
                    "axial_resolution_um": 3.8, "refractive_index": 1.0}}
 ERRORS = (ValueError, TypeError, FileNotFoundError)
-SETTINGS = settings(max_examples=220, deadline=None, derandomize=True,
+SETTINGS = settings(max_examples=examples(220), deadline=None, derandomize=True,
                     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 
 
@@ -119,7 +118,7 @@ def test_broken_sequence_files_fail_clearly(tmp_path, case):
     assert kind in ("system",) or False, f"{kind} was accepted: {seq.data.shape} {seq.meta}"
 
 
-@settings(max_examples=30, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(30), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.sampled_from(["npy", "npz", "h5"]), st.integers(1, 6))
 def test_nan_pixels_give_nan_maps_only_there(tmp_path, fmt, n_bad):
     from torchdoct.measured.io import write_sequence
@@ -184,7 +183,7 @@ def test_pickle_bearing_files_are_refused_everywhere(tmp_path, capsys):
         assert not (tmp_path / "clf").exists()
 
 
-@settings(max_examples=40, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(40), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.sampled_from(["npy", "npz", "h5"]), st.sampled_from(["one-frame", "all-nan", "all-zero", "big-endian"]),
        st.sampled_from([np.complex64, np.complex128]))
 def test_readable_but_unusable_sequences(tmp_path, capsys, fmt, kind, dtype):
@@ -233,7 +232,7 @@ def broken_maps(draw):
     return kind, draw(st.floats(0.0, 0.95))
 
 
-@settings(max_examples=120, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(120), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(broken_maps())
 def test_broken_maps_files_fail_clearly(tmp_path, case):
     kind, cut = case

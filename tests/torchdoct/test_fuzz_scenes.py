@@ -12,8 +12,7 @@ import tomllib
 
 import pytest
 import torch
-
-pytestmark = pytest.mark.slow  # ~1 min of generated cases: CI runs them with the slow suite
+from _fuzz import examples
 
 hypothesis = pytest.importorskip("hypothesis")
 from _scenes import SMALL_SCENE_TOML  # noqa: E402
@@ -151,7 +150,7 @@ def _valid_or_clear(d, named, alt):
     return scene
 
 
-@settings(max_examples=250, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=examples(250), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(broken_scenes())
 def test_broken_scene_dicts_fail_clearly_or_run(case):
     d, named, alt = case
@@ -170,7 +169,7 @@ def test_broken_scene_dicts_fail_clearly_or_run(case):
                     assert not bool(bad.any()), f"non-finite {k} without the zero-intensity flag"
 
 
-@settings(max_examples=200, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow,
+@settings(max_examples=examples(200), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow,
                                                                    HealthCheck.function_scoped_fixture])
 @given(broken_scenes())
 def test_broken_scene_files_give_one_error_line(tmp_path, capsys, case):
@@ -219,7 +218,7 @@ PHANTOM = {"system": BASE["system"], "protocol": BASE["protocol"], "analysis": B
 PHANTOM_PATHS = sorted(set(_paths(PHANTOM)), key=str)
 
 
-@settings(max_examples=200, deadline=None, derandomize=True)
+@settings(max_examples=examples(200), deadline=None, derandomize=True)
 @given(st.sampled_from(PHANTOM_PATHS), st.sampled_from(BAD_VALUES + ["delete"]))
 def test_broken_phantoms_fail_clearly(path, value):
     d = copy.deepcopy(PHANTOM)
@@ -239,7 +238,7 @@ def test_broken_phantoms_fail_clearly(path, value):
 # valid extreme scenes run and give finite metrics or the documented zero-intensity policy
 
 
-@settings(max_examples=30, deadline=None, derandomize=True)
+@settings(max_examples=examples(30), deadline=None, derandomize=True)
 @given(density=st.sampled_from([1e-6, 1e-3, 0.055, 2.0]),
        motion=st.sampled_from([None, ("diffusion", 1e-8), ("diffusion", 50.0), ("ballistic", 1e-6),
                                ("ballistic", 100.0), ("flow", 1e-6), ("flow", 300.0)]),
@@ -276,7 +275,7 @@ def test_valid_extreme_scenes_run(density, motion, wavelength, frames):
 # files that are not scene text: binary data, truncated or corrupted TOML
 
 
-@settings(max_examples=150, deadline=None, derandomize=True,
+@settings(max_examples=examples(150), deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.one_of(st.binary(min_size=1, max_size=400),
                  st.tuples(st.integers(0, len(SMALL_SCENE_TOML)), st.binary(min_size=1, max_size=8))
@@ -292,7 +291,7 @@ def test_binary_or_corrupted_scene_files_give_one_error_line(tmp_path, capsys, c
             assert "scan.toml" in err, err
 
 
-@settings(max_examples=80, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(80), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.one_of(st.sampled_from(["cpu", "cpu:0", "cuda", "cuda:0", "cuda:-1", "cuda:1e9", "mps", "xpu", "meta",
                                   "CPU", "gpu", "", " ", "cpu:", ":0", "cuda:0:1"]),
                  st.text(max_size=12)))
