@@ -1,5 +1,5 @@
 """Where the physics cannot tell random-ballistic motion from flow: a ``ballistic`` decision becomes the
-set ``ballistic-or-flow`` (numpy only: the classify path). The derivation is in docs/abstention.md
+set ``ballistic-or-flow``, unless the speckle pattern moved coherently, which only flow does (numpy only: the classify path). The derivation is in docs/abstention.md
 ("What the data cannot tell") and docs/concepts/speckle-motion.md §3, §7.
 
 A network that reads one pixel's intensity (pooled or not) decides ``ballistic`` wherever the decay looks
@@ -21,10 +21,17 @@ pixel:
    ``ballistic`` decision is ``ballistic-or-flow``. Without the speckle channels the pooled intensity
    correlation the model reads at the nearest lag (``rho_lin_m`` of the first configuration) stands in.
 
-The speckle shift that would tell such a flow apart (speckle-motion §6) is too small to exceed the spread
-of random-ballistic and diffusive windows at a 1 % false-detection level for these slow flows at the
-default 9-pixel window, so it is not used to upgrade a decision; the grid benchmark reports what each
-rule leaves (``python -m classifier.bench.grid``).
+0. **Coherent motion seen** (any geometry; applied first). A flow carries the speckle pattern along: the
+   window's lag-``m`` cross-correlation keeps its value but moves off the centre offset (speckle-motion
+   §3), while random-ballistic motion and diffusion, symmetric in direction, keep the peak at the centre
+   and only let it decay. Where, at a lag ``m ≤ n_frames / 4`` (at least a quarter of the acquisition's
+   frame pairs, and short enough that a few low-density scatterers moving alone do not fake a
+   translation), the peak ``xc_peak_m`` is at least :data:`COHERENT_PEAK_MIN` and at least
+   :data:`COHERENT_MOVED_MIN` of it has moved off the centre, ``(xc_peak_m − xc_centre_m) / xc_peak_m``,
+   a ``ballistic`` decision or a ``ballistic-or-flow`` set is ``flow``. A flow too slow to move the pattern
+   by about a pixel within those lags is not seen this way and rule 2 applies to it; the grid benchmark
+   (``python -m classifier.bench.grid``) reports what each rule leaves, the ballistic wrong share being the
+   false-detection check.
 """
 
 from __future__ import annotations
@@ -35,16 +42,49 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DECORRELATED_BELOW", "SET_LABEL", "abstain_where_ambiguous", "slow_decorrelation"]
+__all__ = ["COHERENT_MOVED_MIN", "COHERENT_PEAK_MIN", "DECORRELATED_BELOW", "SET_LABEL", "abstain_where_ambiguous",
+           "coherent_motion", "slow_decorrelation"]
 
 #: The window's intensity correlation at the longest lag below which a pixel counts as decorrelated
 #: (rule 2 of the module docstring): half of the correlation is gone.
 DECORRELATED_BELOW = 0.5
+#: Rule 0: the smallest window peak correlation that counts as a pattern still there (half of it kept).
+COHERENT_PEAK_MIN = 0.5
+#: Rule 0: the smallest share of that peak moved off the centre offset that counts as coherent motion.
+COHERENT_MOVED_MIN = 0.5
 #: The set label a ballistic decision becomes.
 SET_LABEL = "ballistic-or-flow"
 
 _XC_CENTRE = re.compile(r"^xc_centre_(\d+)@")
 _RHO_LIN = re.compile(r"^rho_lin_(\d+)$")
+_XC_PEAK = re.compile(r"^xc_peak_(\d+)@(.+)$")
+
+
+def coherent_motion(channels: Mapping[str, np.ndarray], idx: np.ndarray | None = None,
+                    n_frames: int = 32) -> tuple[np.ndarray | None, list[str]]:
+    """Rule 0 per classified pixel (module docstring): True where the speckle pattern moved coherently at a
+    lag ``m ≤ n_frames // 4``; and the lags' channel names read. ``channels``: name -> map holding
+    ``xc_peak_m@…`` and ``xc_centre_m@…`` of one resolution, read at ``idx``. ``(None, [])`` without them.
+    NaN counts as not seen."""
+    found = None
+    used: list[str] = []
+    limit = max(1, int(n_frames) // 4)
+    for name in sorted(channels):
+        m = _XC_PEAK.match(name)
+        if not m or int(m.group(1)) > limit:
+            continue
+        centre = f"xc_centre_{m.group(1)}@{m.group(2)}"
+        if centre not in channels:
+            continue
+        peak = np.asarray(channels[name], np.float64).reshape(-1)
+        cen = np.asarray(channels[centre], np.float64).reshape(-1)
+        if idx is not None:
+            peak, cen = peak[idx], cen[idx]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            seen = (peak >= COHERENT_PEAK_MIN) & ((peak - cen) >= COHERENT_MOVED_MIN * peak)
+        found = seen if found is None else (found | seen)
+        used += [name, centre]
+    return found, used
 
 
 def slow_decorrelation(channels: Mapping[str, np.ndarray], columns: Sequence[Mapping[str, Any]] | None = None,
@@ -80,16 +120,22 @@ def slow_decorrelation(channels: Mapping[str, np.ndarray], columns: Sequence[Map
 
 
 def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: bool,
-                            correlation: np.ndarray | None) -> tuple[np.ndarray, dict[str, int]]:
-    """``labels`` (indices into ``names``, one per classified pixel) with ``ballistic`` turned into
-    :data:`SET_LABEL` where the module docstring's rules 1 (``bscan``) or 2 (``correlation`` ≥
+                            correlation: np.ndarray | None,
+                            coherent: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, int]]:
+    """``labels`` (indices into ``names``, one per classified pixel) with, first, ``ballistic`` and
+    :data:`SET_LABEL` turned into ``flow`` where ``coherent`` (rule 0, :func:`coherent_motion`), then the
+    remaining ``ballistic`` into :data:`SET_LABEL` where rules 1 (``bscan``) or 2 (``correlation`` ≥
     :data:`DECORRELATED_BELOW`; NaN counts as not decorrelated) apply; and the pixels each rule changed.
     ``names`` must hold ``ballistic`` and :data:`SET_LABEL` (else ``labels`` come back unchanged)."""
     names = list(names)
-    counts = {"bscan_plane": 0, "slow_decorrelation": 0}
+    counts = {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 0}
     if "ballistic" not in names or SET_LABEL not in names:
         return labels, counts
     out = np.array(labels, copy=True)
+    if coherent is not None and "flow" in names:
+        moved = np.isin(out, [names.index("ballistic"), names.index(SET_LABEL)]) & np.asarray(coherent, bool)
+        counts["coherent_motion"] = int(moved.sum())
+        out[moved] = names.index("flow")
     ball = out == names.index("ballistic")
     if bscan:
         counts["bscan_plane"] = int(ball.sum())

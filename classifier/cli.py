@@ -329,9 +329,9 @@ def build_classify_parser() -> argparse.ArgumentParser:
                    help="with --decision rule: override the model's threshold below which a pixel is indeterminate "
                         "(higher: fewer pixels decided, more of them right; the model's report tabulates the trade-off)")
     p.add_argument("--decide-ballistic", action="store_true",
-                   help="keep the model's ballistic decisions where the physics cannot exclude flow (every B-scan "
-                        "pixel; a volume's pixels that have not decorrelated); by default they are ballistic-or-flow "
-                        "(docs/abstention.md)")
+                   help="keep the model's ballistic decisions; by default they are flow where the speckle pattern "
+                        "moved coherently and ballistic-or-flow where the physics cannot exclude flow (every other "
+                        "B-scan pixel; a volume's pixels that have not decorrelated; docs/abstention.md)")
     p.add_argument("--ignore-refractive-index", action="store_true",
                    help="accept maps whose system refractive index differs from the model's")
     p.add_argument("--threads", type=int, default=None, metavar="N",
@@ -395,7 +395,10 @@ def _classify(args: argparse.Namespace) -> int:
         if conf:
             print(f"  decision: conformal prediction sets at alpha {conf['alpha']:g} (docs/abstention.md)")
         amb = res.info.get("ambiguity")
-        if amb and sum(amb["changed_pixels"].values()):
+        if amb and amb["changed_pixels"].get("coherent_motion"):
+            print(f"  flow where the speckle pattern moved coherently: {amb['changed_pixels']['coherent_motion']} pixels "
+                  "the model decided ballistic (--decide-ballistic keeps the model's decisions)")
+        if amb and amb["changed_pixels"]["bscan_plane"] + amb["changed_pixels"]["slow_decorrelation"]:
             print(f"  ballistic-or-flow where flow cannot be excluded: {amb['changed_pixels']['bscan_plane']} B-scan "
                   f"pixels (flow across the plane), {amb['changed_pixels']['slow_decorrelation']} not decorrelated "
                   "(--decide-ballistic keeps the model's decisions)")

@@ -183,7 +183,8 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     ``None``: conformal when the model has a calibration, else the rule. ``alpha``: default
     :data:`classifier.conformal.DEFAULT_ALPHA`. ``abstain_ambiguous``: a ``ballistic`` decision becomes
     ``ballistic-or-flow`` where the physics cannot exclude flow (:mod:`classifier.ambiguity`: every B-scan
-    pixel; a volume's pixels whose window has not decorrelated)."""
+    pixel; a volume's pixels whose window has not decorrelated), and ``flow`` where the speckle pattern
+    moved coherently."""
     t0 = time.perf_counter()
     _check_arguments(pool, min_probability)
     _check_alpha(alpha)
@@ -241,12 +242,17 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     if abstain_ambiguous:
         if not set_names:
             set_names = conformal.set_label_names(mdl.classes)
-        channels = {c: m.maps[i] for m in maps_list for i, c in enumerate(m.channels) if c.startswith("xc_centre_")}
-        corr, source = ambiguity.slow_decorrelation(channels, mdl.columns, x, idx, mdl.spec.n_frames)
+        channels = {c: m.maps[i] for m in maps_list for i, c in enumerate(m.channels) if c.startswith(("xc_centre_", "xc_peak_"))}
+        coherent, coherent_source = ambiguity.coherent_motion(channels, idx, mdl.spec.n_frames)
+        corr, source = ambiguity.slow_decorrelation({c: v for c, v in channels.items() if c.startswith("xc_centre_")},
+                                                    mdl.columns, x, idx, mdl.spec.n_frames)
         bscan = len(shape) == 2
         labels_flat, changed = ambiguity.abstain_where_ambiguous(labels_flat, list(mdl.classes) + set_names,
-                                                                  bscan=bscan, correlation=corr)
-        ambiguity_info = {"rules": (["bscan_plane"] if bscan else []) + (["slow_decorrelation"] if corr is not None else []),
+                                                                  bscan=bscan, correlation=corr, coherent=coherent)
+        ambiguity_info = {"rules": (["coherent_motion"] if coherent is not None else [])
+                          + (["bscan_plane"] if bscan else []) + (["slow_decorrelation"] if corr is not None else []),
+                          "coherent_channels": coherent_source, "coherent_peak_min": ambiguity.COHERENT_PEAK_MIN,
+                          "coherent_moved_min": ambiguity.COHERENT_MOVED_MIN,
                           "correlation": source, "decorrelated_below": ambiguity.DECORRELATED_BELOW,
                           "changed_pixels": changed}
     labels = np.full(valid.size, MASKED, np.uint8)

@@ -401,7 +401,7 @@ def format_table(res: dict[str, Any]) -> str:
     """The Markdown table: a summary per window, then one row per cell and window."""
     lines = [f"# Phantom grid ({res['benchmark']}, schema {res['schema_version']})", "",
              f"Models: {', '.join(f'{g}: `{m}`' for g, m in res['models'].items())}; decision: `{res['decision']}`"
-             + (", ballistic-or-flow where flow cannot be excluded (classifier.ambiguity)" if res.get('abstain_ambiguous', False) else ", the model's ballistic decisions kept") + ". "
+             + (", flow where the speckle moved coherently and ballistic-or-flow where flow cannot be excluded (classifier.ambiguity)" if res.get('abstain_ambiguous', False) else ", the model's ballistic decisions kept") + ". "
              "Speed levels (diffusion µm²/s, speeds µm/s): "
              + "; ".join(f"{g}: " + ", ".join(f"{m} {'/'.join(f'{v:g}' for v in lv.values())}" for m, lv in levels.items())
                          for g, levels in res["speed_levels"].items()) + ".", "",
@@ -504,7 +504,8 @@ def build_parser():
                    help="decision rule (default: doct-classify's default)")
     p.add_argument("--decide-ballistic", action="store_true",
                    help="keep the model's ballistic decisions (doct-classify --decide-ballistic; default: "
-                        "ballistic-or-flow where the physics cannot exclude flow, classifier.ambiguity)")
+                        "flow where the speckle moved coherently, ballistic-or-flow where the physics cannot "
+                        "exclude flow, classifier.ambiguity)")
     p.add_argument("--geometry", choices=GEOMETRIES, default=None, help="only B-scans or only volumes")
     p.add_argument("--seed", type=int, default=0, help="rendering seed of every cell")
     p.add_argument("--stem", default="grid", help="file names STEM.json, STEM.csv, ... (default grid)")

@@ -1,5 +1,5 @@
-"""Where the physics cannot exclude flow, a ballistic decision is ``ballistic-or-flow``
-(classifier.ambiguity): every ballistic decision of a B-scan, a volume's ballistic decisions whose window
+"""Where the speckle pattern moved coherently a ballistic decision is flow; where the physics cannot exclude
+flow it is ``ballistic-or-flow`` (classifier.ambiguity): every ballistic decision of a B-scan, a volume's ballistic decisions whose window
 has not decorrelated; what the rules read; and, on a rendered static-free B-scan of flow crossing the
 plane, no flow pixel decided as another class."""
 
@@ -8,7 +8,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from classifier.ambiguity import DECORRELATED_BELOW, abstain_where_ambiguous, slow_decorrelation
+from classifier.ambiguity import (
+    COHERENT_MOVED_MIN,
+    COHERENT_PEAK_MIN,
+    DECORRELATED_BELOW,
+    abstain_where_ambiguous,
+    coherent_motion,
+    slow_decorrelation,
+)
 
 NAMES = ["diffusion", "ballistic", "flow", "indeterminate", "diffusion-or-ballistic", "diffusion-or-flow",
          "ballistic-or-flow"]
@@ -17,7 +24,7 @@ NAMES = ["diffusion", "ballistic", "flow", "indeterminate", "diffusion-or-ballis
 def test_every_ballistic_decision_of_a_bscan_becomes_ballistic_or_flow():
     labels = np.array([0, 1, 2, 3, 1, 4, 6, 1])
     out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=np.zeros(8))
-    assert out.tolist() == [0, 6, 2, 3, 6, 4, 6, 6] and counts == {"bscan_plane": 3, "slow_decorrelation": 0}
+    assert out.tolist() == [0, 6, 2, 3, 6, 4, 6, 6] and counts == {"coherent_motion": 0, "bscan_plane": 3, "slow_decorrelation": 0}
     assert labels.tolist() == [0, 1, 2, 3, 1, 4, 6, 1]  # the input is not modified
 
 
@@ -25,9 +32,32 @@ def test_a_volume_keeps_ballistic_only_where_the_window_decorrelated():
     labels = np.array([1, 1, 1, 1, 0, 2])
     corr = np.array([DECORRELATED_BELOW - 1e-6, DECORRELATED_BELOW, 0.9, np.nan, 0.9, 0.9])
     out, counts = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=corr)
-    assert out.tolist() == [1, 6, 6, 6, 0, 2] and counts == {"bscan_plane": 0, "slow_decorrelation": 3}
+    assert out.tolist() == [1, 6, 6, 6, 0, 2] and counts == {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 3}
     same, none = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=None)
-    assert same.tolist() == labels.tolist() and none == {"bscan_plane": 0, "slow_decorrelation": 0}
+    assert same.tolist() == labels.tolist() and none == {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 0}
+
+
+def test_coherent_motion_needs_a_kept_peak_mostly_moved_off_centre_at_a_lag_up_to_a_quarter_acquisition():
+    p, c = COHERENT_PEAK_MIN, COHERENT_MOVED_MIN
+    # per pixel: a moved kept peak; a centred peak; a moved peak below the floor; half moved exactly; NaN
+    peak = np.array([0.9, 0.9, p - 1e-6, 0.8, np.nan])
+    centre = np.array([0.1, 0.9, 0.0, 0.8 * (1 - c), 0.1])
+    ch = {"xc_peak_4@original": peak, "xc_centre_4@original": centre,
+          # lag 16 > 32 // 4: a moved peak there does not count (few frame pairs, lone scatterers)
+          "xc_peak_16@original": np.full(5, 0.9), "xc_centre_16@original": np.zeros(5)}
+    seen, used = coherent_motion(ch, n_frames=32)
+    assert seen.tolist() == [True, False, False, True, False]
+    assert used == ["xc_peak_4@original", "xc_centre_4@original"]
+    assert coherent_motion(ch, idx=np.array([1, 0]), n_frames=32)[0].tolist() == [False, True]
+    assert coherent_motion({"xc_centre_4@original": centre}) == (None, [])
+
+
+def test_coherent_motion_turns_ballistic_and_ballistic_or_flow_into_flow_before_the_other_rules():
+    labels = np.array([1, 6, 0, 1, 1])
+    coherent = np.array([True, True, True, False, False])
+    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=None, coherent=coherent)
+    assert out.tolist() == [2, 2, 0, 6, 6]  # diffusion stays; the rest of the B-scan's ballistic is a set
+    assert counts == {"coherent_motion": 2, "bscan_plane": 2, "slow_decorrelation": 0}
 
 
 def test_labels_without_the_set_name_are_left_alone():
@@ -75,6 +105,9 @@ def test_flow_across_a_bscan_without_static_tissue_is_never_decided_as_another_c
         return round((c["recall"] or 0.0) * c["decided"])
 
     assert ruled["flow"]["wrong_share"] <= model["flow"]["wrong_share"] and right(ruled["ballistic"]) == 0
-    # the rules only turn ballistic decisions into a set: every right decision of the other classes stays
-    for name in ("diffusion", "flow"):
-        assert right(ruled[name]) == right(model[name]) and ruled[name]["decided"] <= model[name]["decided"]
+    # the rules only turn ballistic decisions into a set or, where the pattern moved, into flow: every right
+    # diffusion decision stays, and the flow pixels gain right decisions and lose wrong ones
+    assert right(ruled["diffusion"]) == right(model["diffusion"])
+    assert ruled["diffusion"]["decided"] <= model["diffusion"]["decided"]
+    assert right(ruled["flow"]) >= right(model["flow"])
+    assert ruled["flow"]["decided"] - right(ruled["flow"]) <= model["flow"]["decided"] - right(model["flow"])
