@@ -32,6 +32,16 @@ pixel:
    by about a pixel within those lags is not seen this way and rule 2 applies to it; the grid benchmark
    (``python -m classifier.bench.grid``) reports what each rule leaves, the ballistic wrong share being the
    false-detection check.
+3. **Decorrelated before the first lag** (any geometry; after rules 1 and 2). Where the moving part of a
+   pixel decorrelates within the shortest lag of the speckle features, no lag sees its pattern: a flow that
+   leaves the PSF (or the offset grid) within ``m₁·Δt`` keeps no moving peak for rule 0, and with static
+   tissue in the PSF only the centred, static part of the correlation stays (speckle-motion §3 (d):
+   ``C(0, τ) = |f_s + f_m g1_m(0, τ)|² + …`` falls to the constant ``f_s²(1 + 1/N_s)`` once ``g1_m`` is gone). Random
+   ballistic motion fast enough to decorrelate within ``m₁·Δt`` gives the same flat correlation, and one
+   pixel's frames at the shorter lags cannot tell the two apart (speckle-motion §6). Where
+   the decay left after the shortest lag, ``ρ(m₁) − ρ(m_last)``, is below :data:`FAST_REMAINING_MAX` of the
+   whole decay ``1 − ρ(m_last)`` (``xc_centre_m`` at the shortest and longest lags), a ``ballistic`` decision
+   is ``ballistic-or-flow``. The grid's static-background cells with fast flow are these pixels.
 """
 
 from __future__ import annotations
@@ -42,8 +52,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["COHERENT_MOVED_MIN", "COHERENT_PEAK_MIN", "DECORRELATED_BELOW", "SET_LABEL", "abstain_where_ambiguous",
-           "coherent_motion", "slow_decorrelation"]
+__all__ = ["COHERENT_MOVED_MIN", "COHERENT_PEAK_MIN", "DECORRELATED_BELOW", "FAST_REMAINING_MAX", "SET_LABEL",
+           "abstain_where_ambiguous", "coherent_motion", "fast_decorrelation", "slow_decorrelation"]
 
 #: The window's intensity correlation at the longest lag below which a pixel counts as decorrelated
 #: (rule 2 of the module docstring): half of the correlation is gone.
@@ -52,11 +62,15 @@ DECORRELATED_BELOW = 0.5
 COHERENT_PEAK_MIN = 0.5
 #: Rule 0: the smallest share of that peak moved off the centre offset that counts as coherent motion.
 COHERENT_MOVED_MIN = 0.5
+#: Rule 3: the largest share of the window's whole decay ``1 − ρ(m_last)`` still left after the shortest lag
+#: ``ρ(m₁) − ρ(m_last)`` that counts as decorrelated before the first lag (a fifth: most of the decay is over).
+FAST_REMAINING_MAX = 0.2
 #: The set label a ballistic decision becomes.
 SET_LABEL = "ballistic-or-flow"
 
 _XC_CENTRE = re.compile(r"^xc_centre_(\d+)@")
 _RHO_LIN = re.compile(r"^rho_lin_(\d+)$")
+_XC_CENTRE_RES = re.compile(r"^xc_centre_(\d+)@(.+)$")
 _XC_PEAK = re.compile(r"^xc_peak_(\d+)@(.+)$")
 
 
@@ -119,16 +133,43 @@ def slow_decorrelation(channels: Mapping[str, np.ndarray], columns: Sequence[Map
     return np.asarray(pooled[:, j], np.float64), name
 
 
+def fast_decorrelation(channels: Mapping[str, np.ndarray],
+                       idx: np.ndarray | None = None) -> tuple[np.ndarray | None, list[str]]:
+    """Rule 3 per classified pixel (module docstring): True where the window's correlation left after the
+    shortest lag is below :data:`FAST_REMAINING_MAX` of its whole decay, ``ρ(m₁) − ρ(m_last) <
+    FAST_REMAINING_MAX·(1 − ρ(m_last))`` with ``ρ(m) = xc_centre_m@…`` of one resolution (the first one
+    found), read at ``idx``; and the two channel names. ``(None, [])`` without two lags. NaN counts as not
+    decorrelated."""
+    by_res: dict[str, list[tuple[int, str]]] = {}
+    for name in channels:
+        m = _XC_CENTRE_RES.match(name)
+        if m:
+            by_res.setdefault(m.group(2), []).append((int(m.group(1)), name))
+    lags = next((sorted(v) for v in by_res.values() if len(v) >= 2), None)
+    if lags is None:
+        return None, []
+    first, last = lags[0][1], lags[-1][1]
+    a = np.asarray(channels[first], np.float64).reshape(-1)
+    b = np.asarray(channels[last], np.float64).reshape(-1)
+    if idx is not None:
+        a, b = a[idx], b[idx]
+    with np.errstate(invalid="ignore"):
+        fast = (a - b) < FAST_REMAINING_MAX * (1.0 - b)
+    return fast, [first, last]
+
+
 def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: bool,
                             correlation: np.ndarray | None,
-                            coherent: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, int]]:
+                            coherent: np.ndarray | None = None,
+                            fast: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, int]]:
     """``labels`` (indices into ``names``, one per classified pixel) with, first, ``ballistic`` and
     :data:`SET_LABEL` turned into ``flow`` where ``coherent`` (rule 0, :func:`coherent_motion`), then the
-    remaining ``ballistic`` into :data:`SET_LABEL` where rules 1 (``bscan``) or 2 (``correlation`` ≥
-    :data:`DECORRELATED_BELOW`; NaN counts as not decorrelated) apply; and the pixels each rule changed.
+    remaining ``ballistic`` into :data:`SET_LABEL` where rules 1 (``bscan``), 2 (``correlation`` ≥
+    :data:`DECORRELATED_BELOW`; NaN counts as not decorrelated) or 3 (``fast``, :func:`fast_decorrelation`)
+    apply; and the pixels each rule changed (a pixel counts for the first rule that changed it).
     ``names`` must hold ``ballistic`` and :data:`SET_LABEL` (else ``labels`` come back unchanged)."""
     names = list(names)
-    counts = {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 0}
+    counts = {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 0, "fast_decorrelation": 0}
     if "ballistic" not in names or SET_LABEL not in names:
         return labels, counts
     out = np.array(labels, copy=True)
@@ -145,4 +186,9 @@ def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: 
         slow = ball & ~(np.asarray(correlation, np.float64) < DECORRELATED_BELOW)
         counts["slow_decorrelation"] = int(slow.sum())
         out[slow] = names.index(SET_LABEL)
+        ball &= ~slow
+    if fast is not None:
+        gone = ball & np.asarray(fast, bool)
+        counts["fast_decorrelation"] = int(gone.sum())
+        out[gone] = names.index(SET_LABEL)
     return out, counts

@@ -398,9 +398,11 @@ def _classify(args: argparse.Namespace) -> int:
         if amb and amb["changed_pixels"].get("coherent_motion"):
             print(f"  flow where the speckle pattern moved coherently: {amb['changed_pixels']['coherent_motion']} pixels "
                   "the model decided ballistic (--decide-ballistic keeps the model's decisions)")
-        if amb and amb["changed_pixels"]["bscan_plane"] + amb["changed_pixels"]["slow_decorrelation"]:
-            print(f"  ballistic-or-flow where flow cannot be excluded: {amb['changed_pixels']['bscan_plane']} B-scan "
-                  f"pixels (flow across the plane), {amb['changed_pixels']['slow_decorrelation']} not decorrelated "
+        ch = amb["changed_pixels"] if amb else {}
+        if ch and ch["bscan_plane"] + ch["slow_decorrelation"] + ch.get("fast_decorrelation", 0):
+            print(f"  ballistic-or-flow where flow cannot be excluded: {ch['bscan_plane']} B-scan "
+                  f"pixels (flow across the plane), {ch['slow_decorrelation']} not decorrelated, "
+                  f"{ch.get('fast_decorrelation', 0)} decorrelated before the first lag "
                   "(--decide-ballistic keeps the model's decisions)")
         for c in res.label_names:
             print(f"  {c:>22}: {counts[c]:>9} ({counts[c] / total:6.1%})")

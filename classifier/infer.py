@@ -246,14 +246,18 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
         coherent, coherent_source = ambiguity.coherent_motion(channels, idx, mdl.spec.n_frames)
         corr, source = ambiguity.slow_decorrelation({c: v for c, v in channels.items() if c.startswith("xc_centre_")},
                                                     mdl.columns, x, idx, mdl.spec.n_frames)
+        fast, fast_source = ambiguity.fast_decorrelation(channels, idx)
         bscan = len(shape) == 2
         labels_flat, changed = ambiguity.abstain_where_ambiguous(labels_flat, list(mdl.classes) + set_names,
-                                                                  bscan=bscan, correlation=corr, coherent=coherent)
+                                                                  bscan=bscan, correlation=corr, coherent=coherent,
+                                                                  fast=fast)
         ambiguity_info = {"rules": (["coherent_motion"] if coherent is not None else [])
-                          + (["bscan_plane"] if bscan else []) + (["slow_decorrelation"] if corr is not None else []),
+                          + (["bscan_plane"] if bscan else []) + (["slow_decorrelation"] if corr is not None else [])
+                          + (["fast_decorrelation"] if fast is not None and not bscan else []),
                           "coherent_channels": coherent_source, "coherent_peak_min": ambiguity.COHERENT_PEAK_MIN,
                           "coherent_moved_min": ambiguity.COHERENT_MOVED_MIN,
                           "correlation": source, "decorrelated_below": ambiguity.DECORRELATED_BELOW,
+                          "fast_channels": fast_source, "fast_remaining_max": ambiguity.FAST_REMAINING_MAX,
                           "changed_pixels": changed}
     labels = np.full(valid.size, MASKED, np.uint8)
     labels[idx] = labels_flat.astype(np.uint8)

@@ -1,6 +1,6 @@
 """Where the speckle pattern moved coherently a ballistic decision is flow; where the physics cannot exclude
 flow it is ``ballistic-or-flow`` (classifier.ambiguity): every ballistic decision of a B-scan, a volume's ballistic decisions whose window
-has not decorrelated; what the rules read; and, on a rendered static-free B-scan of flow crossing the
+has not decorrelated or decorrelated before the shortest lag; what the rules read; and, on a rendered static-free B-scan of flow crossing the
 plane, no flow pixel decided as another class."""
 
 from __future__ import annotations
@@ -12,8 +12,10 @@ from classifier.ambiguity import (
     COHERENT_MOVED_MIN,
     COHERENT_PEAK_MIN,
     DECORRELATED_BELOW,
+    FAST_REMAINING_MAX,
     abstain_where_ambiguous,
     coherent_motion,
+    fast_decorrelation,
     slow_decorrelation,
 )
 
@@ -24,7 +26,7 @@ NAMES = ["diffusion", "ballistic", "flow", "indeterminate", "diffusion-or-ballis
 def test_every_ballistic_decision_of_a_bscan_becomes_ballistic_or_flow():
     labels = np.array([0, 1, 2, 3, 1, 4, 6, 1])
     out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=np.zeros(8))
-    assert out.tolist() == [0, 6, 2, 3, 6, 4, 6, 6] and counts == {"coherent_motion": 0, "bscan_plane": 3, "slow_decorrelation": 0}
+    assert out.tolist() == [0, 6, 2, 3, 6, 4, 6, 6] and counts == {"coherent_motion": 0, "bscan_plane": 3, "slow_decorrelation": 0, "fast_decorrelation": 0}
     assert labels.tolist() == [0, 1, 2, 3, 1, 4, 6, 1]  # the input is not modified
 
 
@@ -32,9 +34,9 @@ def test_a_volume_keeps_ballistic_only_where_the_window_decorrelated():
     labels = np.array([1, 1, 1, 1, 0, 2])
     corr = np.array([DECORRELATED_BELOW - 1e-6, DECORRELATED_BELOW, 0.9, np.nan, 0.9, 0.9])
     out, counts = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=corr)
-    assert out.tolist() == [1, 6, 6, 6, 0, 2] and counts == {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 3}
+    assert out.tolist() == [1, 6, 6, 6, 0, 2] and counts == {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 3, "fast_decorrelation": 0}
     same, none = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=None)
-    assert same.tolist() == labels.tolist() and none == {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 0}
+    assert same.tolist() == labels.tolist() and none == {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 0, "fast_decorrelation": 0}
 
 
 def test_coherent_motion_needs_a_kept_peak_mostly_moved_off_centre_at_a_lag_up_to_a_quarter_acquisition():
@@ -57,7 +59,31 @@ def test_coherent_motion_turns_ballistic_and_ballistic_or_flow_into_flow_before_
     coherent = np.array([True, True, True, False, False])
     out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=None, coherent=coherent)
     assert out.tolist() == [2, 2, 0, 6, 6]  # diffusion stays; the rest of the B-scan's ballistic is a set
-    assert counts == {"coherent_motion": 2, "bscan_plane": 2, "slow_decorrelation": 0}
+    assert counts == {"coherent_motion": 2, "bscan_plane": 2, "slow_decorrelation": 0, "fast_decorrelation": 0}
+
+
+def test_fast_decorrelation_is_a_decay_over_before_the_shortest_lag():
+    f = FAST_REMAINING_MAX
+    # per pixel (rho at lags 2 and 16): flat at a static plateau; decaying after lag 2 (fast ballistic);
+    # just over a fifth of the decay left; undecayed (rule 2's case, 0 < f of 0); NaN
+    first = np.array([0.32, 0.76, 0.3 + f * 0.7 + 1e-9, 1.0, np.nan])
+    last = np.array([0.30, 0.31, 0.3, 1.0, 0.3])
+    ch = {"xc_centre_16@original": last, "xc_centre_2@original": first,
+          "xc_centre_4@coarse": np.zeros(5)}  # another resolution with one lag is not mixed in
+    fast, used = fast_decorrelation(ch)
+    assert fast.tolist() == [True, False, False, False, False]
+    assert used == ["xc_centre_2@original", "xc_centre_16@original"]
+    assert fast_decorrelation(ch, idx=np.array([1, 0]))[0].tolist() == [False, True]
+    assert fast_decorrelation({"xc_centre_2@original": first}) == (None, [])
+
+
+def test_fast_decorrelation_makes_a_volume_ballistic_decision_a_set_after_the_slow_rule():
+    labels = np.array([1, 1, 1, 2, 0])
+    corr = np.array([0.9, 0.1, 0.1, 0.1, 0.1])
+    fast = np.array([True, True, False, True, True])
+    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=corr, fast=fast)
+    assert out.tolist() == [6, 6, 1, 2, 0]  # flow and diffusion decisions stay
+    assert counts == {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 1, "fast_decorrelation": 1}
 
 
 def test_labels_without_the_set_name_are_left_alone():
