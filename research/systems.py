@@ -11,7 +11,9 @@ For each system phantom (``system-1310nm``: 1310 nm, lateral 10 µm, axial 8 µm
    3.7× axially and laterally, as the paper) and ``--signature``;
 2. ``doct-train --like`` on the maps of the first seed (skipped when ``DIR/SYSTEM/`` already holds the model:
    its report gives the training time);
-3. ``doct-classify --model DIR/SYSTEM --pool P`` for every seed and P = 1, 5, scored with
+3. ``doct-classify --model DIR/SYSTEM --pool P --decide-ballistic`` (the model's own decisions, what the
+   recorded floors measure; the ballistic-or-flow rules of :mod:`classifier.ambiguity` are scored by the
+   phantom grid) for every seed and P = 1, 5, scored with
    :func:`classifier.evaluate_images.score_images` (all labelled moving pixels, edge 0): balanced accuracy,
    coverage, recall per motion type, magnitude error and interval coverage; with ``--min-probability P``
    also at pool 5 with that threshold of the indeterminate outcome.
@@ -83,13 +85,14 @@ def evaluate(out: Path, system: str, seeds: list[int], quick: bool, min_probabil
         seq, maps = files[s]
         for p in POOLS:
             cdir = out / f"cls-{system}-{s}-p{p}"
-            if classify_main([str(maps), "--model", str(model), "--out", str(cdir), "--pool", str(p), "--force"]) != 0:
+            if classify_main([str(maps), "--model", str(model), "--out", str(cdir), "--pool", str(p), "--force",
+                             "--decide-ballistic"]) != 0:
                 raise RuntimeError(f"doct-classify {maps} failed")
             scores[str(p)].append(score_images(cdir, seq, edge_um=0.0))
         for mp in min_probabilities:  # pool 5 again, with another threshold of the indeterminate outcome
             cdir = out / f"cls-{system}-{s}-p5-mp{mp:g}"
             if classify_main([str(maps), "--model", str(model), "--out", str(cdir), "--pool", "5",
-                              "--min-probability", f"{mp:g}", "--force"]) != 0:
+                              "--min-probability", f"{mp:g}", "--force", "--decide-ballistic"]) != 0:
                 raise RuntimeError(f"doct-classify {maps} --min-probability {mp:g} failed")
             scores.setdefault(f"5@{mp:g}", []).append(score_images(cdir, seq, edge_um=0.0))
     test = report["test"]["network"]["1"]
