@@ -1,5 +1,6 @@
 """Where the physics cannot tell random-ballistic motion from flow: a ``ballistic`` decision becomes the
-set ``ballistic-or-flow``, unless the speckle pattern moved coherently, which only flow does (numpy only: the classify path). The derivation is in docs/abstention.md
+set ``ballistic-or-flow``, unless the speckle pattern moved coherently, which only flow does: then every
+decision but ``indeterminate`` is ``flow`` (numpy only: the classify path). The derivation is in docs/abstention.md
 ("What the data cannot tell") and docs/concepts/speckle-motion.md §3, §7.
 
 A network that reads one pixel's intensity (pooled or not) decides ``ballistic`` wherever the decay looks
@@ -28,10 +29,11 @@ pixel:
    frame pairs, and short enough that a few low-density scatterers moving alone do not fake a
    translation), the peak ``xc_peak_m`` is at least :data:`COHERENT_PEAK_MIN` and at least
    :data:`COHERENT_MOVED_MIN` of it has moved off the centre, ``(xc_peak_m − xc_centre_m) / xc_peak_m``,
-   a ``ballistic`` decision or a ``ballistic-or-flow`` set is ``flow``. A flow too slow to move the pattern
+   a decision for a direction-symmetric motion (``ballistic``, ``diffusion``) or a set of them and flow
+   (:data:`COHERENT_TO_FLOW`) is ``flow``. A flow too slow to move the pattern
    by about a pixel within those lags is not seen this way and rule 2 applies to it; the grid benchmark
-   (``python -m classifier.bench.grid``) reports what each rule leaves, the ballistic wrong share being the
-   false-detection check.
+   (``python -m classifier.bench.grid``) reports what each rule leaves, the ballistic and diffusion wrong
+   shares being the false-detection check.
 3. **Decorrelated before the first lag** (any geometry; after rules 1 and 2). Where the moving part of a
    pixel decorrelates within the shortest lag of the speckle features, no lag sees its pattern: a flow that
    leaves the PSF (or the offset grid) within ``m₁·Δt`` keeps no moving peak for rule 0, and with static
@@ -52,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["COHERENT_MOVED_MIN", "COHERENT_PEAK_MIN", "DECORRELATED_BELOW", "FAST_REMAINING_MAX", "SET_LABEL",
+__all__ = ["COHERENT_MOVED_MIN", "COHERENT_TO_FLOW", "COHERENT_PEAK_MIN", "DECORRELATED_BELOW", "FAST_REMAINING_MAX", "SET_LABEL",
            "abstain_where_ambiguous", "coherent_motion", "fast_decorrelation", "slow_decorrelation"]
 
 #: The window's intensity correlation at the longest lag below which a pixel counts as decorrelated
@@ -65,6 +67,9 @@ COHERENT_MOVED_MIN = 0.5
 #: Rule 3: the largest share of the window's whole decay ``1 − ρ(m_last)`` still left after the shortest lag
 #: ``ρ(m₁) − ρ(m_last)`` that counts as decorrelated before the first lag (a fifth: most of the decay is over).
 FAST_REMAINING_MAX = 0.2
+#: Rule 0: the decisions and sets a coherent motion turns into ``flow`` (every outcome but ``flow`` and
+#: ``indeterminate``: each names only direction-symmetric motions besides flow).
+COHERENT_TO_FLOW = ("ballistic", "diffusion", "ballistic-or-flow", "diffusion-or-flow", "diffusion-or-ballistic")
 #: The set label a ballistic decision becomes.
 SET_LABEL = "ballistic-or-flow"
 
@@ -162,8 +167,8 @@ def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: 
                             correlation: np.ndarray | None,
                             coherent: np.ndarray | None = None,
                             fast: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, int]]:
-    """``labels`` (indices into ``names``, one per classified pixel) with, first, ``ballistic`` and
-    :data:`SET_LABEL` turned into ``flow`` where ``coherent`` (rule 0, :func:`coherent_motion`), then the
+    """``labels`` (indices into ``names``, one per classified pixel) with, first, the outcomes of
+    :data:`COHERENT_TO_FLOW` turned into ``flow`` where ``coherent`` (rule 0, :func:`coherent_motion`), then the
     remaining ``ballistic`` into :data:`SET_LABEL` where rules 1 (``bscan``), 2 (``correlation`` ≥
     :data:`DECORRELATED_BELOW`; NaN counts as not decorrelated) or 3 (``fast``, :func:`fast_decorrelation`)
     apply; and the pixels each rule changed (a pixel counts for the first rule that changed it).
@@ -174,7 +179,7 @@ def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: 
         return labels, counts
     out = np.array(labels, copy=True)
     if coherent is not None and "flow" in names:
-        moved = np.isin(out, [names.index("ballistic"), names.index(SET_LABEL)]) & np.asarray(coherent, bool)
+        moved = np.isin(out, [names.index(n) for n in COHERENT_TO_FLOW if n in names]) & np.asarray(coherent, bool)
         counts["coherent_motion"] = int(moved.sum())
         out[moved] = names.index("flow")
     ball = out == names.index("ballistic")

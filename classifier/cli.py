@@ -329,9 +329,10 @@ def build_classify_parser() -> argparse.ArgumentParser:
                    help="with --decision rule: override the model's threshold below which a pixel is indeterminate "
                         "(higher: fewer pixels decided, more of them right; the model's report tabulates the trade-off)")
     p.add_argument("--decide-ballistic", action="store_true",
-                   help="keep the model's ballistic decisions; by default they are flow where the speckle pattern "
-                        "moved coherently and ballistic-or-flow where the physics cannot exclude flow (every other "
-                        "B-scan pixel; a volume's pixels that have not decorrelated; docs/abstention.md)")
+                   help="keep the model's decisions; by default a ballistic or diffusion decision is flow where the "
+                        "speckle pattern moved coherently, and a ballistic one ballistic-or-flow where the physics "
+                        "cannot exclude flow (every other B-scan pixel; a volume's pixels that have not decorrelated "
+                        "or decorrelated before the shortest lag; docs/abstention.md)")
     p.add_argument("--ignore-refractive-index", action="store_true",
                    help="accept maps whose system refractive index differs from the model's")
     p.add_argument("--threads", type=int, default=None, metavar="N",
@@ -397,7 +398,7 @@ def _classify(args: argparse.Namespace) -> int:
         amb = res.info.get("ambiguity")
         if amb and amb["changed_pixels"].get("coherent_motion"):
             print(f"  flow where the speckle pattern moved coherently: {amb['changed_pixels']['coherent_motion']} pixels "
-                  "the model decided ballistic (--decide-ballistic keeps the model's decisions)")
+                  "decided as a direction-symmetric motion (--decide-ballistic keeps the model's decisions)")
         ch = amb["changed_pixels"] if amb else {}
         if ch and ch["bscan_plane"] + ch["slow_decorrelation"] + ch.get("fast_decorrelation", 0):
             print(f"  ballistic-or-flow where flow cannot be excluded: {ch['bscan_plane']} B-scan "

@@ -1,4 +1,4 @@
-"""Where the speckle pattern moved coherently a ballistic decision is flow; where the physics cannot exclude
+"""Where the speckle pattern moved coherently a decision for a direction-symmetric motion is flow; where the physics cannot exclude
 flow it is ``ballistic-or-flow`` (classifier.ambiguity): every ballistic decision of a B-scan, a volume's ballistic decisions whose window
 has not decorrelated or decorrelated before the shortest lag; what the rules read; and, on a rendered static-free B-scan of flow crossing the
 plane, no flow pixel decided as another class."""
@@ -54,12 +54,14 @@ def test_coherent_motion_needs_a_kept_peak_mostly_moved_off_centre_at_a_lag_up_t
     assert coherent_motion({"xc_centre_4@original": centre}) == (None, [])
 
 
-def test_coherent_motion_turns_ballistic_and_ballistic_or_flow_into_flow_before_the_other_rules():
-    labels = np.array([1, 6, 0, 1, 1])
-    coherent = np.array([True, True, True, False, False])
+def test_coherent_motion_turns_every_symmetric_motion_decision_into_flow_before_the_other_rules():
+    labels = np.array([1, 6, 0, 4, 5, 3, 2, 1, 1])
+    coherent = np.array([True, True, True, True, True, True, True, False, False])
     out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=None, coherent=coherent)
-    assert out.tolist() == [2, 2, 0, 6, 6]  # diffusion stays; the rest of the B-scan's ballistic is a set
-    assert counts == {"coherent_motion": 2, "bscan_plane": 2, "slow_decorrelation": 0, "fast_decorrelation": 0}
+    # ballistic, the sets and diffusion become flow; indeterminate and flow stay; the rest of the B-scan's
+    # ballistic is a set
+    assert out.tolist() == [2, 2, 2, 2, 2, 3, 2, 6, 6]
+    assert counts == {"coherent_motion": 5, "bscan_plane": 2, "slow_decorrelation": 0, "fast_decorrelation": 0}
 
 
 def test_fast_decorrelation_is_a_decay_over_before_the_shortest_lag():
