@@ -201,7 +201,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=CALIBRATION_SEED)
     ap.add_argument("--cache", default=None, help="dataset cache directory")
     ap.add_argument("--force", action="store_true")
-    ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar (as TQDM_DISABLE=1)")
     args = ap.parse_args(argv)
     try:
         if args.trials < max(POOLS):

@@ -80,7 +80,7 @@ def build_train_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=None, metavar="N",
                    help="cores to use for the simulation (default: the usable cores); one torch thread each")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (as TQDM_DISABLE=1)")
     return p
 
 

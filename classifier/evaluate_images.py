@@ -277,6 +277,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--edge-um", type=float, default=0.0,
                     help="leave out pixels within this distance (µm, per axis) of another label (default 0)")
     ap.add_argument("--json", action="store_true", help="print the scores as JSON")
+    ap.add_argument("--no-progress", action="store_true",
+                    help="accepted as on every command; scoring shows no progress bar")
     args = ap.parse_args(argv)
     try:
         scores = score_images(args.classified, args.rendered, edge_um=args.edge_um)

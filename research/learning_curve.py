@@ -444,12 +444,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--gb-pixels", type=int, default=60000,
                    help="samples for gradient boosting per size (0: no gradient boosting; default %(default)s)")
     p.add_argument("--cache", default=None, help="dataset cache directory (default ~/.cache/torchdoct/classifier)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (as TQDM_DISABLE=1)")
     args = p.parse_args(argv)
     try:
         check_outputs(args.out)
         res = run_learning_curve(sizes=args.sizes, draws_max=args.draws_max, draws_validation=args.draws_validation,
                                  draws_test=args.draws_test, max_epochs=args.max_epochs, gb_pixels=args.gb_pixels,
-                                 cache_dir=args.cache, progress=True)
+                                 cache_dir=args.cache, progress=not args.no_progress)
         paths = write_outputs(res, args.out)
     except ValueError as exc:
         print(f"error: {exc}", flush=True)
