@@ -268,11 +268,14 @@ def write_classification(res: Classification, out_dir: str | os.PathLike, *, for
 def _write_into(res: Classification, paths: dict[str, Path], tifffile, atomic_write) -> list[str]:
     """Write the files of :func:`write_classification` to ``paths`` (staged); returns the names written."""
     names = OUTPUT_FILES + (MAGNITUDE_FILES if res.magnitude is not None else ())
-    from torchdoct.measured.imagej import imagej_write_options
+    from torchdoct.measured.imagej import imagej_pages, imagej_write_options
 
-    def imagej(arr, channels, desc, unit=None):  # JSON description first, then ImageJ's: µm scale, channel names
+    def imagej(arr, channels, desc, unit=None):  # ImageJ's description (µm scale, channel names), the JSON as Info
         axes = ("C" if len(channels) > 1 or arr.ndim > len(res.axes) else "") + res.axes
         return imagej_write_options(arr.shape, axes, res.pitch_um, channels, description=desc, value_unit=unit)
+
+    def pages(arr, channels):  # a volume's channels fastest, as ImageJ reads a hyperstack
+        return imagej_pages(arr, ("C" if len(channels) > 1 or arr.ndim > len(res.axes) else "") + res.axes)
 
     legend = _legend(res)
     desc_classes = json.dumps({"legend": legend, "source": res.sources})
@@ -280,10 +283,10 @@ def _write_into(res: Classification, paths: dict[str, Path], tifffile, atomic_wr
                              "masked": "NaN", "source": res.sources})
     summary = {"counts": res.counts(), "sources": res.sources, "model": res.model.path.name,
                "model_spec": res.model.metadata["spec"]["name"], "info": res.info}
-    atomic_write(paths["classes.tif"], lambda t: tifffile.imwrite(t, res.labels, **imagej(
+    atomic_write(paths["classes.tif"], lambda t: tifffile.imwrite(t, pages(res.labels, ["class"]), **imagej(
         res.labels, ["class"], desc_classes)))
-    atomic_write(paths["probabilities.tif"], lambda t: tifffile.imwrite(t, res.probabilities, **imagej(
-        res.probabilities, list(res.classes), desc_probs, "probability")))
+    atomic_write(paths["probabilities.tif"], lambda t: tifffile.imwrite(
+        t, pages(res.probabilities, list(res.classes)), **imagej(res.probabilities, list(res.classes), desc_probs, "probability")))
 
     def dump(obj):
         def w(t):
@@ -300,7 +303,7 @@ def _write_into(res: Classification, paths: dict[str, Path], tifffile, atomic_wr
                                "intervals": "68 % = mean ± SD, 95 % = mean ± 1.96 SD of the model's Gaussian "
                                             "predictive distribution", "masked": "NaN (also where indeterminate)",
                                "source": res.sources})
-        atomic_write(paths["magnitude.tif"], lambda t: tifffile.imwrite(t, res.magnitude, **imagej(
-            res.magnitude, list(MAGNITUDE_CHANNELS), desc_mag)))
+        atomic_write(paths["magnitude.tif"], lambda t: tifffile.imwrite(
+            t, pages(res.magnitude, list(MAGNITUDE_CHANNELS)), **imagej(res.magnitude, list(MAGNITUDE_CHANNELS), desc_mag)))
         atomic_write(paths["magnitude.png"], lambda t: _magnitude_picture(res, t))
     return list(names)

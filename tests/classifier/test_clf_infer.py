@@ -195,7 +195,7 @@ def test_cli_writes_outputs_and_refuses_to_overwrite(setup, tmp_path, capsys):
 
     with tifffile.TiffFile(out / "classes.tif") as tf:
         labels = tf.asarray()
-        desc = json.loads(tf.pages[0].description)
+        desc = json.loads(tf.imagej_metadata["Info"])
     assert labels.shape == (Z, X) and [c["name"] for c in desc["legend"]["classes"]] == [
         "diffusion", "ballistic", "flow", "indeterminate", "diffusion-or-ballistic", "diffusion-or-flow",
         "ballistic-or-flow"]

@@ -1,7 +1,8 @@
 """Readable outputs: ``doct-classify``'s overlay tells indeterminate from masked pixels in colour-blind-safe
 colours and names the model, a magnitude picture with its units sits beside ``magnitude.tif``, and the
 TIFFs of ``doct-classify`` and ``torchdoct maps`` carry ImageJ metadata (pixel size in µm, channel names)
-that tifffile reads as ``imagej_metadata`` while the project's readers still find their JSON.
+that tifffile reads as ``imagej_metadata`` (one ImageDescription, ImageJ's; the project's JSON as its ``Info``),
+and the project's readers find their JSON there.
 
 Before: the overlay drew indeterminate grey over a grey image (masked pixels looked the same), named no
 model, used red/green; ``magnitude.tif`` had no picture and ``--force`` with a model without magnitudes
@@ -158,7 +159,10 @@ def test_classify_tiffs_carry_imagej_scale_and_channel_names(maps, tmp_path, cap
             x_res, y_res = page.tags["XResolution"].value, page.tags["YResolution"].value
             assert x_res[0] / x_res[1] == pytest.approx(1 / PITCH["x"]) and y_res[0] / y_res[1] == pytest.approx(
                 1 / PITCH["z"])
-            assert json.loads(page.description)["source"], "the project's JSON stays the first description"
+            descriptions = [t for t in page.tags.values() if t.code == 270]
+            assert len(descriptions) == 1 and page.description.startswith("ImageJ="), "one description, ImageJ's"
+            assert json.loads(ij["Info"])["source"], "the project's JSON is ImageJ's Info"
+            assert all(270 not in p.tags for p in tf.pages[1:])
             if name != "classes.tif":
                 assert tf.series[0].shape == (len(labels), 20, 24)
 
@@ -177,14 +181,16 @@ def test_maps_tiff_carries_imagej_scale_and_reads_back(tmp_path, capsys, shape, 
         ij = tf.imagej_metadata
         page = tf.pages[0]
         x_res = page.tags["XResolution"].value
+        series_axes, series_shape = tf.series[0].axes, tf.series[0].shape
+        assert [t.code for t in page.tags.values()].count(270) == 1 and all(270 not in p.tags for p in tf.pages[1:])
     names = ["liv@original", "ocds@original", "mean_db@original"]
     n_y = shape[1] if axes == "TYZX" else 1
-    assert ij["unit"] == "micron" and ij["Labels"] == [n for n in names for _ in range(n_y)]
+    assert ij["unit"] == "micron" and ij["Labels"] == [n for _ in range(n_y) for n in names]  # channel fastest
     assert x_res[0] / x_res[1] == pytest.approx(1 / pitch["x"])
+    assert ij["channels"] == 3 and "frames" not in ij  # the metrics on ImageJ's C axis, never on T
     if n_y > 1:
-        assert ij["spacing"] == pytest.approx(pitch["y"]) and ij["slices"] == n_y and ij["frames"] == 3
-    else:
-        assert ij["channels"] == 3
+        assert ij["spacing"] == pytest.approx(pitch["y"]) and ij["slices"] == n_y
+        assert series_axes == "ZCYX" and series_shape == (n_y, 3, *shape[2:])
     a, b = read_maps(tmp_path / "m.tif"), read_maps(tmp_path / "m.npz")
     assert a.channels == b.channels and np.array_equal(a.maps, b.maps, equal_nan=True)
 

@@ -294,7 +294,7 @@ def test_maps_round_trip(tmp_path, suffix):
         write_maps(p, m)
     if suffix == ".tif":
         with tifffile.TiffFile(p) as tf:
-            assert json.loads(tf.pages[0].description)["channels"][1]["axial_resolution_um"] == 14.0
+            assert json.loads(tf.imagej_metadata["Info"])["channels"][1]["axial_resolution_um"] == 14.0
 
 
 def test_validate_meta_is_exposed_and_returns_a_clean_copy():

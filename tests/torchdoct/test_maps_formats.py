@@ -73,3 +73,39 @@ def test_the_maps_reader_stays_torch_free(tmp_path):
     code = ("import sys; from torchdoct.measured.mapsfile import read_maps; read_maps(sys.argv[1]); "
             "assert 'torch' not in sys.modules, 'torch imported'")
     subprocess.run([sys.executable, "-c", code, str(path)], check=True)
+
+
+@pytest.mark.parametrize("volume", [False, True], ids=["bscan", "volume"])
+def test_imagej_maps_tiff_has_one_description_and_the_metrics_on_c(tmp_path, volume):
+    """Fiji sees a hyperstack of channels (and, for volumes, slices), never the metrics as frames; every page
+    has at most one ImageDescription; the maps JSON is ImageJ's Info."""
+    import json
+
+    m = _maps(volume)
+    path = write_maps(tmp_path / "m.tif", m)
+    with tifffile.TiffFile(path) as tf:
+        ij = tf.imagej_metadata
+        assert [sum(t.code == 270 for t in p.tags.values()) for p in tf.pages] == [1] + [0] * (len(tf.pages) - 1)
+        assert tf.pages[0].description.startswith("ImageJ=") and json.loads(ij["Info"]) == m.meta
+        assert ij["channels"] == 3 and "frames" not in ij
+        series = tf.series[0]
+        assert series.axes == ("ZCYX" if volume else "CYX")  # tifffile's names: ImageJ slices Z, channels C
+        stack = series.asarray()
+    # page k of the volume is B-scan k // 3, channel k % 3
+    want = m.maps.transpose(1, 0, 2, 3) if volume else m.maps
+    np.testing.assert_array_equal(stack, want)
+
+
+def test_maps_tiff_of_an_earlier_version_is_still_read(tmp_path):
+    """Before: the JSON as the first ImageDescription, ImageJ's second, the volume's channels slowest."""
+    import json
+
+    m = _maps(True)
+    path = tmp_path / "old.tif"
+    ij = "ImageJ=1.11a\nimages=15\nslices=5\nframes=3\nhyperstack=true\nmode=grayscale\nloop=false\n"
+    tifffile.imwrite(path, m.maps.reshape(-1, *m.maps.shape[-2:]), description=None, metadata=None,
+                     photometric="minisblack", extratags=[(270, "s", 0, json.dumps(m.meta), True),
+                                                          (270, "s", 0, ij, True)])
+    back = read_maps(path)
+    assert back.channels == m.channels and back.meta == m.meta
+    np.testing.assert_array_equal(back.maps, m.maps)

@@ -5,8 +5,11 @@ checks, all through :func:`read_maps`:
 
 * ``.npz`` with ``maps`` float32 ``[C, Z, X]`` or ``[C, Y, Z, X]``, ``channels`` (str array; optional
   when reading, the names then come from the metadata) and ``meta_json`` (one JSON text);
-* ``.tif`` / ``.tiff`` with the same stack as ``[Z, X]`` pages and the metadata JSON as the
-  ImageDescription (the axes restore ``[C, (Y,) Z, X]``).
+* ``.tif`` / ``.tiff``: an ImageJ hyperstack of ``[Z, X]`` pages, the metrics on ImageJ's channel axis
+  (a volume's pages channel fastest), one ImageDescription (ImageJ's) and the metadata JSON as ImageJ's
+  ``Info`` (:mod:`torchdoct.measured.imagej`; files of earlier versions, the JSON as the first
+  ImageDescription and the channels slowest, are read too); the axes restore ``[C, (Y,) Z, X]``;
+* ``.ome.tif`` and ``.zarr``: OME-TIFF and OME-Zarr (:mod:`torchdoct.measured.mapsome`).
 
 The metadata hold one dict per channel (``meta["channels"]``): ``name`` (``f"{metric}@{resolution}"``),
 ``metric``, ``unit``, ``resolution`` and the optics ``wavelength_um``, ``lateral_resolution_um``,
@@ -128,9 +131,10 @@ class Maps:
 
 
 def write_maps(path: str | os.PathLike, maps: Maps, *, force: bool = False) -> Path:
-    """Write :class:`Maps` to ``.npz`` (``maps``, ``channels``, ``meta_json``) or ``.tif`` (stack +
-    JSON ImageDescription, then ImageJ metadata: pixel size in µm and channel names,
-    :mod:`torchdoct.measured.imagej`), atomically; refuses to overwrite without ``force``."""
+    """Write :class:`Maps` to ``.npz`` (``maps``, ``channels``, ``meta_json``), ``.tif`` (an ImageJ
+    hyperstack: metrics on the channel axis, pixel size in µm, channel names, the JSON as ImageJ's ``Info``,
+    :mod:`torchdoct.measured.imagej`), ``.ome.tif`` or ``.zarr`` (:mod:`torchdoct.measured.mapsome`),
+    atomically; refuses to overwrite without ``force``."""
     out = check_out(path, force, MAPS_SUFFIXES, what="maps output")
     arr = np.ascontiguousarray(maps.maps, dtype=np.float32)
     meta = dict(maps.meta)
@@ -163,12 +167,13 @@ def write_maps(path: str | os.PathLike, maps: Maps, *, force: bool = False) -> P
         def write(tmp: str) -> None:
             import tifffile
 
-            from .imagej import imagej_write_options
+            from .imagej import imagej_pages, imagej_write_options
 
             units = {ch.get("unit") for ch in meta.get("channels", []) if isinstance(ch, dict)}
-            tifffile.imwrite(tmp, arr, **imagej_write_options(  # Fiji/napari: µm scale and channel names
-                arr.shape, meta.get("axes") or ("CYZX" if arr.ndim == 4 else "CZX"), meta.get("pitch_um"),
-                list(maps.channels), description=text, value_unit=units.pop() if len(units) == 1 else None))
+            axes = meta.get("axes") or ("CYZX" if arr.ndim == 4 else "CZX")
+            tifffile.imwrite(tmp, imagej_pages(arr, axes), **imagej_write_options(  # Fiji/napari: µm, channel names
+                arr.shape, axes, meta.get("pitch_um"), list(maps.channels), description=text,
+                value_unit=units.pop() if len(units) == 1 else None))
     atomic_write(out, write)
     return out
 
@@ -313,19 +318,20 @@ def _npz_arrays(path: Path, z, unreadable: tuple[type[BaseException], ...]) -> d
 
 
 def _tiff_meta(path: Path, tf) -> dict[str, Any]:
-    """The JSON maps description (an ImageDescription with ``channels``) of the first page."""
-    page = tf.pages[0]
-    for tag in page.tags.values():
-        if tag.name == "ImageDescription":
-            from ..files import check_nesting
+    """The JSON maps description (with ``channels``): ImageJ's ``Info``, or the first page's JSON
+    ImageDescription in files written before (:func:`torchdoct.measured.imagej.project_description`)."""
+    from ..files import check_nesting
+    from .imagej import project_description
 
-            check_nesting(tag.value, f"{path.name}: TIFF ImageDescription")  # before the parser's recursion
-            try:
-                meta = json_loads(tag.value)
-            except (TypeError, ValueError):
-                continue
-            if isinstance(meta, dict) and "channels" in meta:
-                return meta
+    text = project_description(tf)
+    if text is not None:
+        check_nesting(text, f"{path.name}: TIFF ImageDescription")  # before the parser's recursion
+        try:
+            meta = json_loads(text)
+        except (TypeError, ValueError):
+            meta = None
+        if isinstance(meta, dict) and "channels" in meta:
+            return meta
     raise ValueError(f"{path.name}: no JSON maps description (with 'channels') in the TIFF ImageDescription; "
                      "write it with `torchdoct maps ... --out FILE.tif`")
 
@@ -345,6 +351,11 @@ def _read_tiff(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
                 return data, meta
             data = tf.asarray()
             meta = _tiff_meta(path, tf)
+            n_ch = len(meta["channels"]) if isinstance(meta.get("channels"), list) else 0
+            if len(str(meta.get("axes", "CZX"))) == 4 and n_ch and data.size % n_ch == 0:  # volume pages
+                from .imagej import restore_channels
+
+                data = restore_channels(data, n_ch, tf)
             damage.check()
     except ValueError as err:
         if "ImageDescription" in str(err) or "OME" in str(err) or MAX_INPUT_ENV in str(err) or "TIFF pages of two shapes" in str(err):

@@ -3,7 +3,7 @@ scaled in µm (no napari or Qt import: testable through npe2 alone).
 
 * a **maps** file (any maps format, :func:`torchdoct.measured.mapsfile.read_maps`): one Image layer per
   channel, named by the channel (``liv@original``), metadata = the channel's entry and the file's;
-* a **class map** (``classes.tif`` of ``doct-classify``, its JSON description holding the legend): a Labels
+* a **class map** (``classes.tif`` of ``doct-classify``, its JSON holding the legend): a Labels
   layer whose label ``v + 1`` is class ``v`` in the legend's colour (napari keeps 0 for "no label": the
   masked pixels);
 * a **sequence** (:func:`torchdoct.measured.io.read_sequence`): the intensity ``10·log10 |E|²`` (dB) as
@@ -35,9 +35,11 @@ def _classes_legend(path: Path) -> dict[str, Any] | None:
         return None
     import tifffile
 
+    from ..measured.imagej import project_description
+
     with tifffile.TiffFile(path) as tf:
-        desc = tf.pages[0].description if len(tf.pages) else ""
-    if not desc.lstrip().startswith("{"):
+        desc = project_description(tf)  # ImageJ's Info (or the first JSON ImageDescription of earlier files)
+    if desc is None:
         return None
     from ..measured.guards import parse_json_object
 
