@@ -58,6 +58,33 @@ def test_ome_zarr_maps_have_ngff_axes_scale_and_labels(tmp_path):
     assert g["0"].shape == (3, 12, 5, 16)
 
 
+@pytest.mark.parametrize("volume", [False, True], ids=["bscan", "volume"])
+def test_ome_zarr_maps_hold_what_ngff_0_4_requires(tmp_path, volume):
+    """NGFF 0.4 (image metadata): multiscales with version, axes (name and type; 2 to 3 space axes last, in
+    z, y, x order, after the channel) and datasets whose one scale transform has a number per axis; omero
+    channels each with a colour and a window of start, min, end, max."""
+    zarr = pytest.importorskip("zarr")
+    m = _maps(volume)
+    g = zarr.open_group(str(write_maps(tmp_path / "m.zarr", m)), mode="r")
+    [ms] = g.attrs["multiscales"]
+    assert ms["version"] == "0.4" and isinstance(ms["name"], str)
+    axes = ms["axes"]
+    assert all(isinstance(a["name"], str) and a["type"] in ("channel", "space") for a in axes)
+    space = [a["name"] for a in axes if a["type"] == "space"]
+    assert space == (["z", "y", "x"] if volume else ["y", "x"]) and axes[0]["type"] == "channel"
+    for d in ms["datasets"]:
+        scales = [t for t in d["coordinateTransformations"] if t["type"] == "scale"]
+        assert len(scales) == 1 and len(scales[0]["scale"]) == len(axes) == g[d["path"]].ndim
+        assert all(isinstance(v, float) for v in scales[0]["scale"])
+    chans = g.attrs["omero"]["channels"]
+    assert [c["label"] for c in chans] == list(m.channels)
+    for i, c in enumerate(chans):
+        w = c["window"]
+        assert isinstance(c["color"], str) and len(c["color"]) == 6
+        assert w["min"] == w["start"] == pytest.approx(float(np.nanmin(m.maps[i])))
+        assert w["max"] == w["end"] == pytest.approx(float(np.nanmax(m.maps[i])))
+
+
 def test_truncated_ome_tiff_maps_are_refused(tmp_path):
     path = write_maps(tmp_path / "m.ome.tif", _maps(True))
     path.write_bytes(path.read_bytes()[:-2000])

@@ -8,7 +8,7 @@ OME ``CZYX`` with OME Z as depth (the optical axis, as in microscopy): ``Physica
 ``PhysicalSizeY`` = the y pitch. Channel names are ``f"{metric}@{resolution}"`` (``liv@original``, ...).
 The maps metadata JSON (system, optics per channel, ...) is kept in the file: an OME
 ``CommentAnnotation`` of namespace ``torchdoct`` (OME-TIFF), the group attribute ``torchdoct`` (OME-Zarr,
-NGFF 0.4 on zarr v2, ``omero`` channel labels).
+NGFF 0.4 on zarr v2, ``omero`` channel labels, colours and display windows).
 """
 
 from __future__ import annotations
@@ -120,8 +120,17 @@ def write_zarr(tmp: str, arr: np.ndarray, channels: list[str], meta: dict[str, A
     scale = [1.0] + [sizes.get(a, 1.0) for a in axes[1:]]
     group.attrs["multiscales"] = [{"version": "0.4", "name": "maps", "axes": ax, "datasets": [
         {"path": "0", "coordinateTransformations": [{"type": "scale", "scale": scale}]}]}]
-    group.attrs["omero"] = {"channels": [{"label": n, "active": True} for n in channels]}
+    group.attrs["omero"] = {"channels": [_omero_channel(n, ome[i]) for i, n in enumerate(channels)]}
     group.attrs[NAMESPACE] = meta
+
+
+def _omero_channel(name: str, plane: np.ndarray) -> dict[str, Any]:
+    """The ``omero`` entry of one channel as NGFF 0.4 requires it: its label, a grey colour and a display
+    window over the channel's finite values (0..1 when it has none)."""
+    finite = plane[np.isfinite(plane)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    return {"label": name, "active": True, "color": "FFFFFF",
+            "window": {"min": lo, "max": hi, "start": lo, "end": hi if hi > lo else lo + 1.0}}
 
 
 def read_zarr(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
