@@ -1,7 +1,8 @@
 """The lab formats (torchdoct.measured.formats): one sequence stored as .npy, MATLAB v5, raw + sidecar,
-OME-TIFF and OME-Zarr (NGFF 0.4 and 0.5) gives the same maps, with the pitch and the frame times taken from
-each format's own metadata; the scale and orientation options; and every new reader's hardening (truncated,
-declared too large, wrong dtype, special file: exit 2, one error line, nothing written)."""
+OME-TIFF, OME-Zarr (NGFF 0.4 and 0.5) and a folder of per-frame TIFFs gives the same maps (read_sequence and
+compute_maps, and ``torchdoct maps`` itself), with the pitch and the frame times taken from each format's own
+metadata; the scale and orientation options; and every new reader's hardening (truncated, declared too large,
+wrong dtype, special file: exit 2, one error line, nothing written)."""
 
 from __future__ import annotations
 
@@ -35,6 +36,7 @@ WRITERS = {
     "ome-tiff-plane-deltat": lambda d, a: F.write_ome_tiff(d / "s.ome.tif", a, per_plane=True),
     "ome-zarr-0.4": lambda d, a: F.write_ome_zarr(d / "s.zarr", a, "0.4"),
     "ome-zarr-0.5": lambda d, a: F.write_ome_zarr(d / "s.zarr", a, "0.5"),
+    "tiff-folder": lambda d, a: F.write_tiff_folder(d / "frames", a),
 }
 
 
@@ -81,6 +83,27 @@ def test_one_sequence_in_every_format_gives_the_same_maps(tmp_path, reference_ma
     assert seq.pitch_um == pytest.approx(F.PITCH, rel=1e-12)
     resolutions = ["original", "lateral=8,axial=6"] if kind == "complex" else ["original"]
     _same_maps(compute_maps(seq, resolutions, slab_elements=3000), reference_maps[kind])
+
+
+@pytest.mark.parametrize("fmt", list(WRITERS))
+def test_torchdoct_maps_gives_the_same_maps_file_from_every_format(tmp_path, fmt):
+    """As a user runs it: ``torchdoct maps FILE --out m.npz`` on each format's copy of one complex sequence
+    writes the maps of the .npy copy, with the pitch and frame times of the format's own metadata."""
+    from torchdoct.cli import main
+    from torchdoct.measured.mapsfile import read_maps
+
+    a = F.field(t=16)
+    opts = ["--no-progress", "--ocds-delay-range-s", "0.05", "0.3", "--resolution", "original",
+            "--resolution", "lateral=8,axial=6", "--wavelength-um", "0.84", "--lateral-resolution-um", "4",
+            "--axial-resolution-um", "3"]
+    (tmp_path / "ref").mkdir()
+    (tmp_path / "fmt").mkdir()
+    assert main(["maps", str(F.write_npy(tmp_path / "ref" / "s.npy", a)), "--out", str(tmp_path / "ref.npz"), *opts]) == 0
+    assert main(["maps", str(WRITERS[fmt](tmp_path / "fmt", a)), "--out", str(tmp_path / "m.npz"), *opts]) == 0
+    got, want = read_maps(tmp_path / "m.npz"), read_maps(tmp_path / "ref.npz")
+    assert got.meta["pitch_um"] == pytest.approx(F.PITCH, rel=1e-12)
+    np.testing.assert_allclose(got.meta["frame_times_s"], [k * F.DT_S for k in range(16)], rtol=1e-12, atol=1e-15)
+    _same_maps(got, want)
 
 
 def test_the_pitch_comes_from_the_format_not_from_a_stray_sidecar(tmp_path):

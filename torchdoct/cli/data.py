@@ -40,7 +40,8 @@ def _maps_arguments(mp) -> None:
     mp.add_argument("--speckle-window", type=int, default=9, metavar="N",
                     help="window of the speckle-motion channels, N pixels per axis (odd; default 9)")
     mp.add_argument("--out", action="append", required=True, metavar="FILE",
-                    help="output maps file, .tif or .npz (repeat to write both)")
+                    help="output maps file: .npz, .tif (ImageJ hyperstack), .ome.tif (OME-TIFF) or .zarr (OME-Zarr); "
+                         "repeat to write several")
     mp.add_argument("--force", action="store_true", help="overwrite existing outputs")
     g = mp.add_argument_group("metadata (override or supply the file's)")
     g.add_argument("--axes", default=None, help="stored axis order, e.g. TZX, TYZX, XZT (MATLAB [Z,X,T] in HDF5)")
