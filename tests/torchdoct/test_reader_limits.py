@@ -176,6 +176,32 @@ def test_npy_and_hdf5_declaring_huge_arrays_are_refused(outdir, capsys):
     refused(capsys, outdir, _maps_argv(outdir, h5), "huge.h5", "data", "512 GiB", "--max-input-gb")
 
 
+@pytest.mark.parametrize("extra, names", [
+    ((), ("frame_times_s", "T = 3 frames")),
+    (("--axes", "TYZX"), ("axes", "--axes")),
+    (("--block-raster", "2:2:4"), ("block raster 2:2:4", "[16, Z, X]", "--block-raster")),
+])
+def test_metadata_that_does_not_fit_the_declared_shape_is_refused_before_a_sample_is_read(
+        outdir, capsys, monkeypatch, extra, names):
+    from torchdoct.measured import io as mio
+
+    def touched(*args, **kwargs):
+        raise AssertionError("a sample was read before the metadata were checked against the declared shape")
+
+    monkeypatch.setattr(mio, "_check_values", touched)
+    monkeypatch.setattr(mio, "_apply_scale", touched)
+    path = _sidecar(outdir / "sparse.npy")  # the sidecar's 8 frame times against 3 declared frames
+    shape = (3, 64, 64) if not extra else (8, 64, 64)
+    if extra and extra[0] == "--block-raster":
+        shape = (6, 64, 64)
+        meta = dict(META, frame_times_s=[0.0, 0.2])
+        path.with_suffix(".json").write_text(json.dumps(meta))
+    with path.open("wb") as fh:  # a sparse file: the header, then holes
+        fh.write(_npy_bytes_declaring(shape))
+        fh.truncate(fh.tell() + int(np.prod(shape)) * 8)
+    refused(capsys, outdir, _maps_argv(outdir, path, *extra), "sparse.npy", *names)
+
+
 def test_tiff_over_the_limit_is_refused(outdir, capsys, monkeypatch):
     path = outdir / "stack.tif"
     tifffile.imwrite(path, np.zeros((64, 128, 128), np.float32), compression="zlib")  # 4 MiB, small on disk

@@ -256,6 +256,30 @@ def _parse_pitch(pitch: Any) -> dict[str, float]:
     return {str(k).lower(): v for k, v in pitch.items()}
 
 
+def _check_meta_before_reading(meta: Mapping[str, Any], stored_shape: _Seq[int], stored: str,
+                               block_raster: BlockRaster | None, frame_times_s: _Seq[float] | None,
+                               frame_interval_s: float | None, name: str) -> None:
+    """:func:`validate_meta` on the shape the file declares, before a sample is read: a frame count, pitch or
+    block raster that does not fit the array is refused at once, not after reading gigabytes."""
+    shape = [stored_shape[stored.index(c)] for c in ("TZX" if len(stored) == 3 else "TYZX")]
+    trial = dict(meta, axes="TZX" if len(stored) == 3 else "TYZX")
+    if block_raster is not None and len(stored) == 3:
+        if shape[0] != block_raster.n_bscans:
+            raise ValueError(f"{name}: block raster {block_raster.n_blocks}:{block_raster.n_repeats}:"
+                             f"{block_raster.bscans_per_block} needs [{block_raster.n_bscans}, Z, X] B-scans in "
+                             f"acquisition order; the data hold {shape[0]}; check --block-raster and --axes")
+        shape = [block_raster.n_repeats, block_raster.n_y, shape[1], shape[2]]
+        trial["axes"] = "TYZX"
+    if block_raster is not None:
+        trial["block_raster"] = block_raster.to_dict()
+    if frame_times_s is not None:
+        trial["frame_times_s"] = list(frame_times_s)
+    elif frame_interval_s is not None:
+        dt = finite_positive("frame_interval_s (s)", frame_interval_s)
+        trial["frame_times_s"] = [i * dt for i in range(shape[0])]
+    validate_meta(trial, shape, where=name)
+
+
 def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um: Mapping[str, float] | str | None = None,
                   frame_times_s: _Seq[float] | None = None, frame_interval_s: float | None = None,
                   system: Mapping[str, Any] | None = None, dataset: str | None = None,
@@ -357,16 +381,19 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
                          "dimensions")
     if 0 in data.shape:
         raise ValueError(f"{p.name}: data have an empty axis (shape {list(data.shape)}); nothing to read")
+    if scale is not None and scale not in SCALES:
+        raise ValueError(f"--scale must be one of {', '.join(SCALES)}; got {scale!r}")
+    if meta.get("axes") is None:
+        raise ValueError(f"{p.name}: missing 'axes'; {_HOW['axes']}")
+    stored = check_axes(meta["axes"], data.ndim, p.name)
+    canonical = "TZX" if len(stored) == 3 else "TYZX"
+    _check_meta_before_reading(meta, data.shape, stored, block_raster, frame_times_s, frame_interval_s, p.name)
     if not data.dtype.isnative:  # e.g. a big-endian '>c8' .npy: read into native byte order (torch needs it)
         data = data.astype(data.dtype.newbyteorder("="))
     if scale is not None:
         data = _apply_scale(data, scale, p.name)
         meta["input_scale"] = scale
     n_nonfinite = _check_values(data, p.name)
-    if meta.get("axes") is None:
-        raise ValueError(f"{p.name}: missing 'axes'; {_HOW['axes']}")
-    stored = check_axes(meta["axes"], data.ndim, p.name)
-    canonical = "TZX" if len(stored) == 3 else "TYZX"
     data = data.transpose([stored.index(c) for c in canonical]) if stored != canonical else data
     meta["axes"] = canonical
     if block_raster is not None:
