@@ -8,7 +8,9 @@ At build time it
 * replaces every ``<!-- render: NAME -->`` line of a page by the table of a results file
   (``docs/hooks/results.py``), so no measured number is typed into a page;
 * drops from the navigation the optional pages that are not in ``docs/`` (pages other parts of the
-  project add), so the site builds with or without them.
+  project add), so the site builds with or without them;
+* refuses a ``README.md`` that is no longer a front page (``docs/hooks/frontpage.py``): the policy is
+  checked where the site is built, and no test reads the README.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import re
 import sys
 from pathlib import Path
 
+from mkdocs.exceptions import PluginError
 from mkdocs.structure.files import File
 
 HERE = Path(__file__).resolve().parent
@@ -24,6 +27,7 @@ if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
 import cli_ref  # noqa: E402
+import frontpage  # noqa: E402
 import models  # noqa: E402
 import results  # noqa: E402
 
@@ -165,6 +169,11 @@ def _filter_nav(nav, docs_dir: Path):
 
 
 def on_config(config, **kwargs):
+    readme = ROOT / "README.md"
+    if readme.is_file():
+        problems = frontpage.problems(readme.read_text(encoding="utf-8"), ROOT)
+        if problems:
+            raise PluginError("README.md is not a front page: " + "; ".join(problems))
     if config.get("nav"):
         config["nav"] = _expand_nav(_filter_nav(config["nav"], Path(config["docs_dir"])))
     return config

@@ -1,0 +1,36 @@
+"""The README is a front page; the documentation build (``docs/hooks/site.py``) refuses one that is not.
+
+The policy is checked where the site is built (``mkdocs build --strict`` in CI), so no test reads the README.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+#: The README is a front page: what it is, one picture, install, the two commands, a short example, links.
+README_MAX_LINES = 300
+#: The two commands of the front page: install and run the main job; install and run the tests (.ci/run runs it).
+FRONT_PAGE_COMMANDS = ('pip install torch==2.13.0 ".[all]" && torchdoct simulate example',
+                       'pip install torch==2.13.0 ".[test]" && python -m pytest')
+_PICTURE = re.compile(r"!\[[^\]]*\]\(([^)]+\.png)\)")
+_TIMING = re.compile(r"\b\d+(?:\.\d+)?\s?(?:ms|s|min|h)\b(?![\w/])")
+_SCORE = re.compile(r"\b0\.\d{2,}\b")
+
+
+def problems(text: str, root: Path) -> list[str]:
+    """What keeps ``text`` (a README under ``root``) from being a front page; empty when it is one.
+    Measured figures (timings, scores) belong to the results files the site renders."""
+    out: list[str] = []
+    if len(text.splitlines()) > README_MAX_LINES:
+        out.append(f"{len(text.splitlines())} lines, more than {README_MAX_LINES}")
+    out += [f"the command `{c}` is missing" for c in FRONT_PAGE_COMMANDS if c not in text]
+    picture = _PICTURE.search(text)
+    if picture is None:
+        out.append("no picture")
+    elif not (root / picture.group(1)).is_file():
+        out.append(f"its picture {picture.group(1)} is not in the repository")
+    figures = _TIMING.findall(text) + _SCORE.findall(text)
+    if figures:
+        out.append(f"measured figures typed into it ({', '.join(figures)}): render them from a results file")
+    return out
