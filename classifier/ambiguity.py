@@ -44,6 +44,19 @@ pixel:
    the decay left after the shortest lag, ``ρ(m₁) − ρ(m_last)``, is below :data:`FAST_REMAINING_MAX` of the
    whole decay ``1 − ρ(m_last)`` (``xc_centre_m`` at the shortest and longest lags), a ``ballistic`` decision
    is ``ballistic-or-flow``. The grid's static-background cells with fast flow are these pixels.
+4. **The offset moved** (any geometry; last). With static tissue sharing the PSF (speckle-motion §3 (d)) a
+   flow's heterodyne term beats at its Doppler frequency, so the centred correlation falls by the phase (as
+   random motion's does) while the pattern has moved less than a pixel, and rules 0 and 2 see neither a
+   moved peak nor a slow decay. The peak *offset* still tells: a direction-symmetric motion keeps the
+   peak at the centre until transit (speckle-motion §3 (b), (c)), and while its pattern holds, the
+   estimate's error is the window's own grain structure, common to every lag, so the offset does not
+   change with the lag; a flow's offset is ``v⊥τ`` (the heterodyne peak ``v⊥τ/2``) and grows with it.
+   Where, over the lags ``m ≤ n_frames / 4``, the offset ``xc_shift_m`` at the shortest lag is at least
+   :data:`OFFSET_FIRST_MIN` of the pixel pitch, or the pattern held at the shortest lag (``xc_peak_m₁ ≥``
+   :data:`OFFSET_HOLD_MIN`) and the offset grew at every lag and by at least :data:`OFFSET_GROWTH_MIN` of
+   the pitch in all, flow cannot be excluded: a remaining ``ballistic`` decision is ``ballistic-or-flow``
+   and a ``diffusion`` decision ``diffusion-or-flow`` (:data:`OFFSET_TO_SET`). It only abstains: a random
+   motion whose pattern reached transit within the shortest lag loses coverage, never a right decision.
 """
 
 from __future__ import annotations
@@ -54,8 +67,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["COHERENT_MOVED_MIN", "COHERENT_TO_FLOW", "COHERENT_PEAK_MIN", "DECORRELATED_BELOW", "FAST_REMAINING_MAX", "SET_LABEL",
-           "abstain_where_ambiguous", "coherent_motion", "fast_decorrelation", "slow_decorrelation"]
+__all__ = ["COHERENT_MOVED_MIN", "COHERENT_TO_FLOW", "COHERENT_PEAK_MIN", "DECORRELATED_BELOW", "FAST_REMAINING_MAX",
+           "OFFSET_FIRST_MIN", "OFFSET_GROWTH_MIN", "OFFSET_HOLD_MIN", "OFFSET_TO_SET", "SET_LABEL",
+           "abstain_where_ambiguous", "coherent_motion", "fast_decorrelation", "offset_moved", "slow_decorrelation"]
 
 #: The window's intensity correlation at the longest lag below which a pixel counts as decorrelated
 #: (rule 2 of the module docstring): half of the correlation is gone.
@@ -70,6 +84,15 @@ FAST_REMAINING_MAX = 0.2
 #: Rule 0: the decisions and sets a coherent motion turns into ``flow`` (every outcome but ``flow`` and
 #: ``indeterminate``: each names only direction-symmetric motions besides flow).
 COHERENT_TO_FLOW = ("ballistic", "diffusion", "ballistic-or-flow", "diffusion-or-flow", "diffusion-or-ballistic")
+#: Rule 4: the offset at the shortest lag, in pixel pitches, from which flow cannot be excluded (the
+#: sub-pixel fit lands nearer a neighbouring offset than the centre).
+OFFSET_FIRST_MIN = 0.5
+#: Rule 4: the growth of the offset over the lags, in pixel pitches, from which flow cannot be excluded.
+OFFSET_GROWTH_MIN = 0.25
+#: Rule 4: the window's peak correlation at the shortest lag from which its pattern counts as held.
+OFFSET_HOLD_MIN = 0.8
+#: Rule 4: the decisions for a direction-symmetric motion and the set each becomes.
+OFFSET_TO_SET = {"ballistic": "ballistic-or-flow", "diffusion": "diffusion-or-flow"}
 #: The set label a ballistic decision becomes.
 SET_LABEL = "ballistic-or-flow"
 
@@ -77,6 +100,7 @@ _XC_CENTRE = re.compile(r"^xc_centre_(\d+)@")
 _RHO_LIN = re.compile(r"^rho_lin_(\d+)$")
 _XC_CENTRE_RES = re.compile(r"^xc_centre_(\d+)@(.+)$")
 _XC_PEAK = re.compile(r"^xc_peak_(\d+)@(.+)$")
+_XC_SHIFT = re.compile(r"^xc_shift_(\d+)@(.+)$")
 
 
 def coherent_motion(channels: Mapping[str, np.ndarray], idx: np.ndarray | None = None,
@@ -163,18 +187,59 @@ def fast_decorrelation(channels: Mapping[str, np.ndarray],
     return fast, [first, last]
 
 
+def offset_moved(channels: Mapping[str, np.ndarray], pitch_um: float | None, idx: np.ndarray | None = None,
+                 n_frames: int = 32) -> tuple[np.ndarray | None, list[str]]:
+    """Rule 4 per classified pixel (module docstring): True where the peak offset ``xc_shift_m@…`` (µm) of
+    one resolution, over its lags ``m ≤ n_frames // 4``, starts at least :data:`OFFSET_FIRST_MIN` pitches off
+    the centre, or grows at every lag by at least :data:`OFFSET_GROWTH_MIN` pitches in all while the pattern
+    held at the shortest lag (``xc_peak_m₁@…`` ≥ :data:`OFFSET_HOLD_MIN`); and the channel names read.
+    ``pitch_um``: the finest pixel pitch (µm). ``(None, [])`` without two lags, their peaks or a pitch. NaN
+    counts as not moved."""
+    if not pitch_um or not np.isfinite(pitch_um) or pitch_um <= 0:
+        return None, []
+    limit = max(1, int(n_frames) // 4)
+    by_res: dict[str, list[int]] = {}
+    for name in channels:
+        m = _XC_SHIFT.match(name)
+        if m and int(m.group(1)) <= limit and f"xc_peak_{m.group(1)}@{m.group(2)}" in channels:
+            by_res.setdefault(m.group(2), []).append(int(m.group(1)))
+    res = next((r for r, lags in sorted(by_res.items()) if len(lags) >= 2), None)
+    if res is None:
+        return None, []
+    lags = sorted(by_res[res])
+    names = [f"xc_shift_{m}@{res}" for m in lags]
+
+    def read(name: str) -> np.ndarray:
+        v = np.asarray(channels[name], np.float64).reshape(-1)
+        return v if idx is None else v[idx]
+
+    shift = [read(n) for n in names]
+    held_name = f"xc_peak_{lags[0]}@{res}"
+    with np.errstate(invalid="ignore"):
+        grew = read(held_name) >= OFFSET_HOLD_MIN
+        for a, b in zip(shift[:-1], shift[1:]):
+            grew &= b > a
+        grew &= (shift[-1] - shift[0]) >= OFFSET_GROWTH_MIN * pitch_um
+        moved = (shift[0] >= OFFSET_FIRST_MIN * pitch_um) | grew
+    return moved, names + [held_name]
+
+
 def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: bool,
                             correlation: np.ndarray | None,
                             coherent: np.ndarray | None = None,
-                            fast: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, int]]:
+                            fast: np.ndarray | None = None,
+                            moved: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, int]]:
     """``labels`` (indices into ``names``, one per classified pixel) with, first, the outcomes of
     :data:`COHERENT_TO_FLOW` turned into ``flow`` where ``coherent`` (rule 0, :func:`coherent_motion`), then the
     remaining ``ballistic`` into :data:`SET_LABEL` where rules 1 (``bscan``), 2 (``correlation`` ≥
     :data:`DECORRELATED_BELOW`; NaN counts as not decorrelated) or 3 (``fast``, :func:`fast_decorrelation`)
-    apply; and the pixels each rule changed (a pixel counts for the first rule that changed it).
+    apply, and last the remaining ``ballistic`` and ``diffusion`` into their set with flow
+    (:data:`OFFSET_TO_SET`) where ``moved`` (rule 4, :func:`offset_moved`); and the pixels each rule changed
+    (a pixel counts for the first rule that changed it).
     ``names`` must hold ``ballistic`` and :data:`SET_LABEL` (else ``labels`` come back unchanged)."""
     names = list(names)
-    counts = {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 0, "fast_decorrelation": 0}
+    counts = {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 0, "fast_decorrelation": 0,
+              "offset_moved": 0}
     if "ballistic" not in names or SET_LABEL not in names:
         return labels, counts
     out = np.array(labels, copy=True)
@@ -186,7 +251,7 @@ def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: 
     if bscan:
         counts["bscan_plane"] = int(ball.sum())
         out[ball] = names.index(SET_LABEL)
-        return out, counts
+        ball[:] = False
     if correlation is not None:
         slow = ball & ~(np.asarray(correlation, np.float64) < DECORRELATED_BELOW)
         counts["slow_decorrelation"] = int(slow.sum())
@@ -196,4 +261,10 @@ def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: 
         gone = ball & np.asarray(fast, bool)
         counts["fast_decorrelation"] = int(gone.sum())
         out[gone] = names.index(SET_LABEL)
+    if moved is not None:
+        for single, set_name in OFFSET_TO_SET.items():
+            if single in names and set_name in names:
+                sel = (out == names.index(single)) & np.asarray(moved, bool)
+                counts["offset_moved"] += int(sel.sum())
+                out[sel] = names.index(set_name)
     return out, counts

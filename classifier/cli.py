@@ -332,7 +332,8 @@ def build_classify_parser() -> argparse.ArgumentParser:
                    help="keep the model's decisions; by default a ballistic or diffusion decision is flow where the "
                         "speckle pattern moved coherently, and a ballistic one ballistic-or-flow where the physics "
                         "cannot exclude flow (every other B-scan pixel; a volume's pixels that have not decorrelated "
-                        "or decorrelated before the shortest lag; docs/abstention.md)")
+                        "or decorrelated before the shortest lag), and a ballistic or diffusion one its set with flow "
+                        "where the pattern's offset moved off the centre or grew with the lag; docs/abstention.md)")
     p.add_argument("--ignore-refractive-index", action="store_true",
                    help="accept maps whose system refractive index differs from the model's")
     p.add_argument("--threads", type=int, default=None, metavar="N",
@@ -405,6 +406,9 @@ def _classify(args: argparse.Namespace) -> int:
                   f"pixels (flow across the plane), {ch['slow_decorrelation']} not decorrelated, "
                   f"{ch.get('fast_decorrelation', 0)} decorrelated before the first lag "
                   "(--decide-ballistic keeps the model's decisions)")
+        if ch.get("offset_moved"):
+            print(f"  a set with flow where the pattern's offset moved: {ch['offset_moved']} ballistic or diffusion "
+                  "decisions (--decide-ballistic keeps the model's decisions)")
         for c in res.label_names:
             print(f"  {c:>22}: {counts[c]:>9} ({counts[c] / total:6.1%})")
         print(f"  {res.info['pixels_per_s']:.3g} pixels/s; wrote {', '.join(p.name for p in written)} to {args.out}")

@@ -30,6 +30,7 @@ import math
 import os
 import time
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -171,6 +172,14 @@ def _check_pool(pool: int, maps) -> None:
                          f"the same class. The largest valid pool is {min(z_px, x_px)}")
 
 
+def _finest_pitch_um(pitch: Any) -> float | None:
+    """The finest pixel pitch (µm) of a maps file's ``pitch_um`` (one value or one per axis), or ``None``."""
+    values = list(pitch.values()) if isinstance(pitch, dict) else [pitch]
+    good = [float(v) for v in values if isinstance(v, (int, float)) and not isinstance(v, bool) and float(v) > 0
+            and np.isfinite(float(v))]
+    return min(good) if good else None
+
+
 def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model: ClassifierModel | str | None = None,
                   *, pool: int = DEFAULT_POOL, background_db: str | float | None = DEFAULT_BACKGROUND_DB, min_probability: float | None = None,
                   ignore_refractive_index: bool = False, threads: int | None = None,
@@ -242,23 +251,28 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     if abstain_ambiguous:
         if not set_names:
             set_names = conformal.set_label_names(mdl.classes)
-        channels = {c: m.maps[i] for m in maps_list for i, c in enumerate(m.channels) if c.startswith(("xc_centre_", "xc_peak_"))}
+        channels = {c: m.maps[i] for m in maps_list for i, c in enumerate(m.channels) if c.startswith(("xc_centre_", "xc_peak_", "xc_shift_"))}
         coherent, coherent_source = ambiguity.coherent_motion(channels, idx, mdl.spec.n_frames)
         corr, source = ambiguity.slow_decorrelation({c: v for c, v in channels.items() if c.startswith("xc_centre_")},
                                                     mdl.columns, x, idx, mdl.spec.n_frames)
         fast, fast_source = ambiguity.fast_decorrelation(channels, idx)
+        pitch = _finest_pitch_um(meta0.get("pitch_um"))
+        moved, moved_source = ambiguity.offset_moved(channels, pitch, idx, mdl.spec.n_frames)
         bscan = len(shape) == 2
         labels_flat, changed = ambiguity.abstain_where_ambiguous(labels_flat, list(mdl.classes) + set_names,
                                                                   bscan=bscan, correlation=corr, coherent=coherent,
-                                                                  fast=fast)
+                                                                  fast=fast, moved=moved)
         ambiguity_info = {"rules": (["coherent_motion"] if coherent is not None else [])
                           + (["bscan_plane"] if bscan else []) + (["slow_decorrelation"] if corr is not None else [])
-                          + (["fast_decorrelation"] if fast is not None and not bscan else []),
+                          + (["fast_decorrelation"] if fast is not None and not bscan else [])
+                          + (["offset_moved"] if moved is not None else []),
                           "coherent_channels": coherent_source, "coherent_peak_min": ambiguity.COHERENT_PEAK_MIN,
                           "coherent_moved_min": ambiguity.COHERENT_MOVED_MIN,
                           "correlation": source, "decorrelated_below": ambiguity.DECORRELATED_BELOW,
                           "fast_channels": fast_source, "fast_remaining_max": ambiguity.FAST_REMAINING_MAX,
-                          "changed_pixels": changed}
+                          "offset_channels": moved_source, "offset_first_min_pitch": ambiguity.OFFSET_FIRST_MIN,
+                          "offset_growth_min_pitch": ambiguity.OFFSET_GROWTH_MIN,
+                          "offset_hold_min": ambiguity.OFFSET_HOLD_MIN, "changed_pixels": changed}
     labels = np.full(valid.size, MASKED, np.uint8)
     labels[idx] = labels_flat.astype(np.uint8)
     pmaps = np.full((len(mdl.classes), valid.size), np.nan, np.float32)

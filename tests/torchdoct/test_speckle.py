@@ -13,6 +13,8 @@ import math
 import pytest
 import torch
 
+from _speckle_fields import translated_speckle
+
 from torchdoct.conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
 from torchdoct.sim.speckle import (
     default_speckle_features,
@@ -28,24 +30,6 @@ T = 32
 S_X = amplitude_sigma_lateral_um(4.9)
 S_Z = amplitude_sigma_axial_um(3.8)
 PITCH = {"z": 1.0, "x": 1.0, "y": 1.0}
-
-
-def translated_speckle(n_fields: int, shape: tuple[int, ...], sigmas: tuple[float, ...],
-                       displacement_um, seed: int) -> torch.Tensor:
-    """``[n_fields, T, *shape]`` complex Gaussian speckle (amplitude PSF sigmas per axis, µm; 1-µm pixels)
-    translated at frame ``i`` by ``displacement_um(i)`` (a vector per axis, µm)."""
-    gen = torch.Generator().manual_seed(seed)
-    w = torch.randn(n_fields, *shape, dtype=torch.complex128, generator=gen)
-    ks = torch.meshgrid(*[torch.fft.fftfreq(n, d=1.0, dtype=torch.float64) * 2 * math.pi for n in shape],
-                        indexing="ij")
-    transfer = torch.exp(-sum(k ** 2 * s ** 2 / 2 for k, s in zip(ks, sigmas)))
-    spec = torch.fft.fftn(w, dim=tuple(range(1, len(shape) + 1))) * transfer
-    frames = []
-    for i in range(T):
-        d = displacement_um(i)
-        ramp = torch.exp(-1j * sum(k * di for k, di in zip(ks, d)))
-        frames.append(torch.fft.ifftn(spec * ramp, dim=tuple(range(1, len(shape) + 1))))
-    return torch.stack(frames, 1)
 
 
 def centre_features(field: torch.Tensor, names, ndim: int = 2, window: int = 9) -> torch.Tensor:
