@@ -1,6 +1,8 @@
 """Model cards, one per shipped model (``classifier/data/*.onnx``), rendered from the model's training report
-(the JSON that ``doct-train`` writes beside the ONNX file) and, where it exists, the report of the same model
-on independent data (``python -m tests.reference.evaluate_models --model NAME --out DIR``)."""
+(the JSON that ``doct-train`` writes beside the ONNX file), its conformal calibration where it has one
+(``python -m classifier.calibrate``), the recorded runs of the phantom grid that used it
+(``python -m classifier.bench.grid``, ``docs/benchmarks/grid-*.json``) and, where it exists, the report of the
+same model on independent data (``python -m tests.reference.evaluate_models --model NAME --out DIR``)."""
 
 from __future__ import annotations
 
@@ -11,6 +13,8 @@ from typing import Any
 from results import RESULT_DIRS, num, pm, table
 
 MODEL_DIR = "classifier/data"
+#: The recorded runs of the phantom grid (``python -m classifier.bench.grid --stem grid-NAME --out DIR``).
+GRID_DIR = "docs/benchmarks"
 
 _USE = {
     "single-acquisition": "volume maps (`TYZX`) at `original`, `axial=14`, `lateral=18` without `--signature`",
@@ -99,6 +103,58 @@ def _magnitude(mag: dict[str, Any]) -> str:
     return table(["pool", "median \\|log10 error\\|", "in 68 % interval", "in 95 % interval"], rows)
 
 
+def _calibration(root: Path, name: str) -> list[str]:
+    p = root / MODEL_DIR / f"{name}.calibration.json"
+    if not p.is_file():
+        return ["This model has no conformal calibration beside it, so `doct-classify` applies the rule above."]
+    c = json.loads(p.read_text(encoding="utf-8"))
+    return [f"**Default decision: conformal prediction sets.** The model is calibrated beside its ONNX file "
+            f"(`{p.relative_to(root).as_posix()}`, written by `{c['command']}`): `doct-classify` answers, per pixel, "
+            f"the set of classes the {c.get('mode', 'conformal')} calibration keeps at `--alpha` (default "
+            f"{num(c['default_alpha'])}). {c['guarantee']} A set of two motions is answered as such (for example "
+            "`ballistic-or-flow`), and where the physics cannot tell the motions apart the answer is a set too "
+            "([Abstention](../abstention.md)); `--decision rule` applies the rule above instead, "
+            "`--decide-ballistic` keeps the model's own ballistic decisions."]
+
+
+def _grid_runs(root: Path) -> list[tuple[Path, dict[str, Any]]]:
+    paths = sorted((root / GRID_DIR).glob("grid-*.json"), key=lambda p: (p.stem != "grid-default", p.stem))
+    runs = [(p, json.loads(p.read_text(encoding="utf-8"))) for p in paths]
+    return [(p, d) for p, d in runs if d.get("benchmark") == "phantom-grid"]
+
+
+def _grid(root: Path, name: str) -> list[str]:
+    """The recorded phantom-grid runs of this model: per run and window, its cells summarised as the grid
+    summarises a run (``classifier.bench.grid.summarize``)."""
+    from classifier.bench.grid import summarize
+
+    rows, used = [], set()
+    for p, d in _grid_runs(root):
+        used.update(d.get("models", {}).values())
+        cells = [c for c in d["cells"] if c.get("model") == name]
+        if not cells:
+            continue
+        decision = d.get("decision", "")
+        if d.get("abstain_ambiguous"):
+            decision += " + the ambiguity rules"
+        if d.get("abstain_ambiguous") is False or "--decide-ballistic" in d.get("command", ""):
+            decision += ", `--decide-ballistic`"
+        geometry = ", ".join(sorted({c["geometry"] for c in cells}))
+        for pool, s in summarize(cells).items():
+            rows.append([f"[`{p.stem}`](../benchmarks/{p.stem}.md)", decision, geometry, pool, s["cells"],
+                         num(s["mean_coverage"]), num(s["min_coverage"]), num(s["mean_balanced_accuracy"]),
+                         num(s["worst_wrong_share"]), s["cells_over_10pct_wrong"]])
+    if not rows:
+        models = ", ".join(f"`{m}`" for m in sorted(used)) or "no model"
+        return [f"No recorded run of the [phantom grid](../benchmarks/grid.md) uses this model (the recorded runs "
+                f"use {models}: the models `doct-classify` picks for signature maps).", ""]
+    return ["Phantoms built from the model's system, rendered, mapped and classified end to end, scored against "
+            "the rendered labels ([the phantom grid](../benchmarks/grid.md); each run's file gives every cell and "
+            "its `command`):", "",
+            table(["run", "decision", "geometry", "window (`--pool`)", "cells", "mean coverage", "lowest coverage",
+                   "mean balanced accuracy", "worst wrong share", "cells over 10 % wrong"], rows), ""]
+
+
 def card(root: Path, name: str) -> str:
     rp = root / MODEL_DIR / f"{name}.json"
     r = json.loads(rp.read_text(encoding="utf-8"))
@@ -128,6 +184,7 @@ def card(root: Path, name: str) -> str:
            f"{num(rule['min_probability'])} and the identifiability threshold ε = {num(rule.get('epsilon'))}.", "",
            "Trading coverage for accuracy on the own test split (pool 1):", "",
            _coverage_curve(r["coverage_curve"]["1"]), "",
+           *_calibration(root, name), "",
            "## Results on its own test split", "",
            "Coverage and accuracies over the identifiable test pixels (± bootstrap SE over draws):", "",
            _pools(r["test"]["network"], r.get("standard_errors", {})), ""]
@@ -141,6 +198,7 @@ def card(root: Path, name: str) -> str:
         sp = r["shifted_prior"]
         out += ["On a shifted prior (a test set drawn from a prior the model was not trained on):", "",
                 _pools(sp["test"], {}), ""]
+    out += ["## Results on the phantom grid", "", *_grid(root, name)]
     ind = _independent(root, name)
     out += ["## Results on independent data", ""]
     limits: list[str] = []
@@ -167,7 +225,8 @@ def card(root: Path, name: str) -> str:
             "refused, naming `doct-train --like MAPS` ([Your own system](../tutorials/own-system.md)).",
             "- Outside the prior's ranges the model was not trained; the magnitude head's intervals hold only inside them.",
             *[f"- {x}" for x in limits], "",
-            f"*Rendered at build time from `{report}`{' and `' + ind[1] + '`' if ind else ''}.*", ""]
+            f"*Rendered at build time from `{report}`{', `' + ind[1] + '`' if ind else ''} and the phantom grid's "
+            f"recorded runs (`{GRID_DIR}/grid-*.json`).*", ""]
     return "\n".join(out)
 
 
@@ -179,6 +238,8 @@ def index(root: Path) -> str:
         rows.append([f"[`{name}`]({name}.md)", _USE.get(name, ""), len(r["feature_names"]),
                      num(m.get("coverage_identifiable")), num(m.get("balanced_accuracy_identifiable"))])
     return "\n".join(["# Shipped models", "",
-                      "One card per model in `classifier/data/`, rendered from its training report at build time. "
+                      "One card per model in `classifier/data/`, rendered at build time from its training report, its "
+                      "calibration, the phantom grid's recorded runs and its report on independent data: the training "
+                      "data, the prior, when it abstains, its results and its limits. "
                       "`doct-classify MAPS --out DIR` picks the model whose features match the maps' channels.", "",
                       table(["model", "for", "features", "coverage (own test, pool 1)", "balanced accuracy"], rows), ""])
