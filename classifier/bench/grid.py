@@ -401,7 +401,8 @@ def format_table(res: dict[str, Any]) -> str:
     """The Markdown table: a summary per window, then one row per cell and window."""
     lines = [f"# Phantom grid ({res['benchmark']}, schema {res['schema_version']})", "",
              f"Models: {', '.join(f'{g}: `{m}`' for g, m in res['models'].items())}; decision: `{res['decision']}`"
-             + (", flow where the speckle moved coherently and ballistic-or-flow where flow cannot be excluded (classifier.ambiguity)" if res.get('abstain_ambiguous', False) else ", the model's ballistic decisions kept") + ". "
+             + (", flow where the speckle moved coherently, ballistic-or-flow where flow cannot be excluded and a set with flow where the "
+                "pattern's offset moved (classifier.ambiguity)" if res.get('abstain_ambiguous', False) else ", the model's decisions kept") + ". "
              "Speed levels (diffusion µm²/s, speeds µm/s): "
              + "; ".join(f"{g}: " + ", ".join(f"{m} {'/'.join(f'{v:g}' for v in lv.values())}" for m, lv in levels.items())
                          for g, levels in res["speed_levels"].items()) + ".", "",

@@ -12,7 +12,6 @@ import math
 
 import pytest
 import torch
-
 from _speckle_fields import translated_speckle
 
 from torchdoct.conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
