@@ -365,6 +365,48 @@ def test_streamed_npy_is_read_in_slabs_within_the_budget_and_gives_the_same_maps
     np.testing.assert_array_equal(got.maps, want.maps)  # per-pixel metrics: the slab size changes nothing
 
 
+@pytest.mark.parametrize("fmt", ["npy", "raw", "ome-zarr"])
+def test_a_streamed_input_is_bound_by_the_budget_not_by_the_default_input_limit(tmp_path, monkeypatch, fmt):
+    """Read slab by slab (--max-memory-gb), a .npy, raw binary or OME-Zarr over the default input limit is read;
+    read whole it is refused naming --max-input-gb, and an explicit limit binds a streamed input too."""
+    write = {"npy": lambda: F.write_npy(tmp_path / "s.npy", a), "raw": lambda: F.write_raw(tmp_path / "s.raw", a),
+             "ome-zarr": lambda: F.write_ome_zarr(tmp_path / "s.zarr", a)}[fmt]
+    a = F.field(t=8)
+    path = write()
+    monkeypatch.setattr(guards, "DEFAULT_MAX_INPUT_GB", 1e-6)  # 1 kB: the field is 12 kB
+    seq = read_sequence(path, stream=True)
+    np.testing.assert_array_equal(seq.data[2:5], a[2:5])
+    with pytest.raises(ValueError, match="--max-input-gb"):
+        read_sequence(path)
+    guards.set_max_input_gb(1e-6)
+    with pytest.raises(ValueError, match="--max-input-gb"):
+        read_sequence(path, stream=True)
+
+
+def test_streamed_big_endian_raw_and_integer_zarr_are_converted_as_they_are_read(tmp_path):
+    from torchdoct.measured.formats.lazy import LazyArray
+
+    a = F.field(t=8)
+    seq = read_sequence(F.write_raw(tmp_path / "s.raw", a), stream=True)  # big-endian samples
+    assert isinstance(seq.data, LazyArray) and seq.data.dtype == np.complex64 and seq.data.dtype.isnative
+    np.testing.assert_array_equal(seq.data[1:3, 4], a[1:3, 4])
+    counts = (np.abs(a) ** 2 * 1000).astype(np.uint16)
+    seq = read_sequence(F.write_ome_zarr(tmp_path / "c.zarr", counts))
+    assert isinstance(seq.data, LazyArray) and seq.data.dtype == np.float32  # OME-Zarr counts: an intensity
+    np.testing.assert_array_equal(seq.data[3], counts[3].astype(np.float32))
+
+
+def test_streamed_db_input_is_converted_slab_by_slab_to_the_same_intensity(tmp_path):
+    from torchdoct.measured.formats.lazy import LazyArray
+
+    i = (np.abs(F.field(t=8)) ** 2).astype(np.float32) + np.float32(1e-3)
+    p = F.write_npy(tmp_path / "db.npy", (10 * np.log10(i)).astype(np.float32))
+    streamed, whole = read_sequence(p, scale="db", stream=True), read_sequence(p, scale="db")
+    assert isinstance(streamed.data, LazyArray) and streamed.data.dtype == np.float32
+    np.testing.assert_array_equal(streamed.data[2:6, 3], whole.data[2:6, 3])
+    np.testing.assert_allclose(whole.data, i, rtol=1e-5)
+
+
 def test_a_budget_the_output_alone_fills_is_refused(outdir, capsys):
     path = F.write_npy(outdir / "s.npy", F.field(t=8))  # 8 frames: OCDS delays on 2+ pairs up to 6 frame intervals
     refused(capsys, outdir, _argv(outdir, path, "--max-memory-gb", "1e-7", "--ocds-delay-range-s", "0.05", "0.3"),

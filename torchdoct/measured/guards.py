@@ -10,7 +10,8 @@ Bounded sizes: every reader checks the size an array declares (a ``.npy`` header
 :func:`max_input_bytes` *before* allocating it, so a small file that declares or decompresses to a huge
 array (a zip bomb) is one clear error. The limit is 8 GiB unless the environment variable
 ``TORCHDOCT_MAX_INPUT_GB`` or the option ``--max-input-gb`` (which calls :func:`set_max_input_gb`) says
-otherwise.
+otherwise. Within :func:`streaming_reads` (``torchdoct maps --max-memory-gb``) an array read slab by slab
+is bound only by an explicit limit.
 
 Safe HDF5 (:func:`check_hdf5_local`): a dataset with external storage, an external link or a virtual
 dataset whose sources lie in another file would make any file the user can read into "data"; they are
@@ -19,6 +20,7 @@ refused unless the caller allows them explicitly (``allow_external=True``, ``--a
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -31,7 +33,7 @@ import numpy as np
 
 __all__ = ["TiffDamage", "check_npy_header", "refuse_object", "parse_json_object", "json_loads", "MAX_INPUT_ENV",
            "DEFAULT_MAX_INPUT_GB", "max_input_bytes", "set_max_input_gb", "check_declared_size", "check_npy_size",
-           "check_npz_sizes", "check_tiff_pages", "check_hdf5_local", "check_memory_budget"]
+           "check_npz_sizes", "check_tiff_pages", "check_hdf5_local", "check_memory_budget", "streaming_reads"]
 
 MAX_INPUT_ENV = "TORCHDOCT_MAX_INPUT_GB"
 DEFAULT_MAX_INPUT_GB = 8.0
@@ -73,13 +75,39 @@ def _human(n: int) -> str:
     return f"{n} bytes"
 
 
-def check_declared_size(where: str, shape: Iterable[int], itemsize: int, what: str = "array") -> int:
+_streaming = False  # set by streaming_reads(): arrays read slab by slab are not held whole
+
+
+def _explicit_limit() -> bool:
+    return _max_input_gb is not None or os.environ.get(MAX_INPUT_ENV, "").strip() != ""
+
+
+@contextlib.contextmanager
+def streaming_reads(on: bool = True):
+    """Within it (``torchdoct maps --max-memory-gb``), an array a reader hands over to be read slab by slab
+    (``check_declared_size(..., streamed=True)``: a memory-mapped ``.npy`` or raw binary, an OME-Zarr) is
+    never held whole, so neither the default input limit nor the memory budget applies to it; an explicit
+    limit (``--max-input-gb``, ``TORCHDOCT_MAX_INPUT_GB``) still does."""
+    global _streaming
+    before, _streaming = _streaming, bool(on)
+    try:
+        yield
+    finally:
+        _streaming = before
+
+
+def check_declared_size(where: str, shape: Iterable[int], itemsize: int, what: str = "array",
+                        streamed: bool = False) -> int:
     """The byte count ``prod(shape) * itemsize`` (exact integers: no overflow), or a ``ValueError`` naming
-    ``where``, the size and the option / environment variable that raises the limit when over it."""
+    ``where``, the size and the option / environment variable that raises the limit when over it.
+    ``streamed``: the caller reads the array slab by slab; within :func:`streaming_reads` only an explicit
+    limit applies to it."""
     n = int(itemsize)
     dims = [int(d) for d in shape]
     for d in dims:
         n *= d
+    if streamed and _streaming and not _explicit_limit():
+        return n
     limit = max_input_bytes()
     if n > limit:
         raise ValueError(f"{where}: the {what} declares shape {dims} and would take {_human(n)} in memory, over "
@@ -101,8 +129,7 @@ def check_memory_budget(where: str, n: int, what: str) -> None:
     budget = memory_budget()
     if budget is None or n <= budget.bytes:
         return
-    explicit = _max_input_gb is not None or os.environ.get(MAX_INPUT_ENV, "").strip() != ""
-    if explicit and not budget.hard:
+    if _explicit_limit() and not budget.hard:
         return
     fix = ("read a smaller crop of it (fewer frames, B-scans or pixels), or give it as chunked input (HDF5 or "
            "Zarr chunks, read slab by slab)")
@@ -126,12 +153,13 @@ def _npy_header(fh, where: str) -> tuple[tuple[int, ...], np.dtype]:
     return shape, dtype
 
 
-def check_npy_size(path: Path, what: str = "") -> None:
-    """A ``.npy`` file's declared array within :func:`max_input_bytes`, and the file long enough to hold it
-    (a truncated array is named as such, with the fix)."""
+def check_npy_size(path: Path, what: str = "", streamed: bool = False) -> None:
+    """A ``.npy`` file's declared array within :func:`max_input_bytes` (``streamed``: see
+    :func:`check_declared_size`), and the file long enough to hold it (a truncated array is named as such,
+    with the fix)."""
     with open(path, "rb") as fh:
         shape, dtype = _npy_header(fh, f"{what}{path.name}")
-        n = check_declared_size(f"{what}{path.name}", shape, dtype.itemsize)
+        n = check_declared_size(f"{what}{path.name}", shape, dtype.itemsize, streamed=streamed)
         have = os.fstat(fh.fileno()).st_size - fh.tell()
     if not dtype.hasobject and have < n:
         raise ValueError(f"{what}{path.name}: truncated: the header declares {list(shape)} {dtype} ({n} bytes of "

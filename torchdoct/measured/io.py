@@ -231,14 +231,22 @@ def _apply_scale(data: Any, scale: str, name: str) -> Any:
                          "--scale complex (or drop --scale)")
     if scale == "linear":
         return data
-    out = np.empty(data.shape, dtype=np.float64 if data.dtype == np.float64 else np.float32)
+    dtype = np.dtype(np.float64 if data.dtype == np.float64 else np.float32)
+    from .formats.lazy import LazyArray
+
+    lazy = isinstance(data, LazyArray)
+    out = None if lazy else np.empty(data.shape, dtype=dtype)
     for k in range(data.shape[0]):  # frame by frame
-        frame = np.asarray(data[k], dtype=out.dtype)
+        frame = np.asarray(data[k], dtype=dtype)
         top = float(np.max(frame, where=np.isfinite(frame), initial=-np.inf))
         if top > MAX_DB:
             raise ValueError(f"{name}: --scale db, but frame {k} holds {top:.4g}, over {MAX_DB:g} dB (10^(dB/10) "
                              "would overflow): these are not dB values; give --scale linear for a linear intensity")
-        np.power(10.0, frame / 10.0, out=out[k])
+        if out is not None:
+            np.power(10.0, frame / 10.0, out=out[k])
+    if lazy:  # a streamed input stays streamed: converted slab by slab as the maps read it
+        return data.converted(lambda b: np.power(10.0, b.astype(dtype, copy=False) / 10.0).astype(dtype, copy=False),
+                              dtype)
     return out
 
 
@@ -300,8 +308,9 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     ``scale`` (``linear``, ``db`` or ``complex``: what the samples are, checked; dB intensities are
     converted to linear, :func:`_apply_scale`; default: complex data are the field, real data a linear
     intensity), ``stream`` (a memory-mapped ``.npy`` or raw binary is read slice by slice through
-    :class:`~torchdoct.measured.formats.lazy.MappedFile`, so only the slabs the maps read are ever
-    resident; an OME-Zarr always is). Declared sizes over :func:`torchdoct.measured.guards.max_input_bytes` are refused before reading;
+    :class:`~torchdoct.measured.formats.lazy.MappedFile`, converted to native byte order or float32 as it
+    is read, so only the slabs the maps read are ever resident; an OME-Zarr always is; such inputs are
+    then bound by an explicit ``--max-input-gb`` only, :func:`torchdoct.measured.guards.streaming_reads`). Declared sizes over :func:`torchdoct.measured.guards.max_input_bytes` are refused before reading;
     negative intensities and extended-precision dtypes are refused naming the file, the count and the
     fix; samples that are not finite (NaN, inf) are counted (``nonfinite_samples``) and their pixels are
     masked in the maps (:func:`torchdoct.measured.maps.compute_maps`). A file the system does not let us read raises ``PermissionError``.
@@ -323,8 +332,11 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     else:
         with open_regular(p, "sequence file"):  # a FIFO swapped in meanwhile: refused; a file the system does not
             pass  # let us read: PermissionError (exit 1), whatever the format
+    from .guards import streaming_reads
+
     try:
-        loaded = fmt.load(p, dataset=dataset, allow_external_hdf5=allow_external_hdf5)
+        with streaming_reads(stream):  # arrays read slab by slab: bound by the budget, not the input limit
+            loaded = fmt.load(p, dataset=dataset, allow_external_hdf5=allow_external_hdf5)
     except PermissionError:  # the system refuses: exit 1 at the command line, as for an unreadable sidecar
         raise
     except (EOFError, OSError, zipfile.BadZipFile, KeyError) as err:
@@ -333,7 +345,7 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     if dataset is not None and not fmt.DATASET:
         raise ValueError(f"{p.name}: dataset= applies to .h5 and .mat files only")
     data, labels, params, file_meta = loaded.data, loaded.labels, loaded.label_params, loaded.meta
-    if stream and isinstance(data, np.memmap) and data.dtype.isnative and data.flags.c_contiguous:
+    if stream and isinstance(data, np.memmap) and data.flags.c_contiguous:  # any byte order: converted as read
         from .formats.lazy import LazyArray, MappedFile
 
         data = LazyArray(MappedFile(data.filename, data.dtype, data.shape, data.offset), p.name)

@@ -1,10 +1,12 @@
 """A read-only array read on demand, slab by slab (:class:`LazyArray`): what a chunked store (OME-Zarr)
 hands to the maps, which read it in slabs (:func:`torchdoct.measured.maps.compute_maps`) so the whole
 sequence is never in memory. It supports what the readers and the slab loop use: ``shape``, ``dtype``,
-``ndim``, ``size``, ``transpose``, basic indexing (integers and slices) and iteration over the first axis."""
+``ndim``, ``size``, ``transpose``, ``astype`` (converted as it is read), basic indexing (integers and slices)
+and iteration over the first axis."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -17,11 +19,14 @@ class LazyArray:
     array) seen through the axis permutation ``perm``; every read returns a numpy array. Errors of the
     store while reading (a truncated or corrupt chunk) become a ``ValueError`` naming ``where``."""
 
-    def __init__(self, source: Any, where: str, perm: tuple[int, ...] | None = None):
+    def __init__(self, source: Any, where: str, perm: tuple[int, ...] | None = None, cast: Any = None,
+                 convert: Callable[[np.ndarray], np.ndarray] | None = None):
         self._src = source
         self._where = where
         self._perm = tuple(range(len(source.shape))) if perm is None else tuple(perm)
-        self.dtype = np.dtype(source.dtype)
+        self._cast = None if cast is None else np.dtype(cast)
+        self._convert = convert
+        self.dtype = np.dtype(source.dtype) if cast is None else self._cast
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -44,7 +49,7 @@ class LazyArray:
 
     def transpose(self, *axes: Any) -> LazyArray:
         order = tuple(axes[0]) if len(axes) == 1 and not isinstance(axes[0], int) else tuple(axes)
-        return LazyArray(self._src, self._where, tuple(self._perm[i] for i in order))
+        return LazyArray(self._src, self._where, tuple(self._perm[i] for i in order), self._cast, self._convert)
 
     def __getitem__(self, key: Any) -> np.ndarray:
         key = key if isinstance(key, tuple) else (key,)
@@ -62,13 +67,25 @@ class LazyArray:
         except (ValueError, OSError, RuntimeError, TypeError, KeyError) as err:
             raise ValueError(f"{self._where}: a chunk is unreadable, truncated or corrupt ({type(err).__name__}: "
                              f"{err}); copy the store again completely") from None
+        if self._cast is not None:
+            block = block.astype(self._cast, copy=False)
+        if self._convert is not None:
+            block = self._convert(block)
         kept = [self._perm[i] for i, k in enumerate(key) if isinstance(k, slice)]  # source axes left, in my order
         order = sorted(kept)  # the block's axes are in source order
         return block.transpose([order.index(a) for a in kept]) if kept != order else block
 
-    def astype(self, dtype: Any) -> np.ndarray:
-        """The whole array read and converted (an integer or byte-swapped store: read at once)."""
-        return self[...].astype(dtype)
+    def astype(self, dtype: Any) -> LazyArray:
+        """The array seen as ``dtype``, still read on demand: each read is converted (an integer store read
+        as float32 intensity, a byte-swapped one in native order)."""
+        if self._convert is not None:
+            raise TypeError("astype after an elementwise conversion: convert first")
+        return LazyArray(self._src, self._where, self._perm, dtype)
+
+    def converted(self, fn: Callable[[np.ndarray], np.ndarray], dtype: Any) -> LazyArray:
+        """The array after the elementwise ``fn`` (which returns ``dtype``), applied to each block as it is read
+        (a dB intensity converted to linear, :func:`torchdoct.measured.io.read_sequence`)."""
+        return LazyArray(self._src, self._where, self._perm, dtype, fn)
 
     def __iter__(self):
         for i in range(self.shape[0]):

@@ -16,9 +16,10 @@ DATASET = False
 
 def load_array(path: Path) -> np.ndarray:
     """The array of a ``.npy`` file, memory-mapped read-only, after its header's checks (NPY magic,
-    declared size within the input limit, file long enough to hold it)."""
+    declared size within the input limit, file long enough to hold it; a memory map can be read slab by
+    slab: :func:`~torchdoct.measured.guards.streaming_reads`)."""
     check_npy_header(path)
-    check_npy_size(path)
+    check_npy_size(path, streamed=True)
     try:
         return np.load(path, mmap_mode="r", allow_pickle=False)
     except ValueError as err:

@@ -7,7 +7,8 @@ times from it and the ``t`` translation. Only that dataset is read, and chunk by
 Orientation (as for OME-TIFF, docs/formats.md): without a ``z`` axis (or with ``z`` of length 1) the
 planes are B-scans: ``y`` (rows) is depth z and ``x`` lateral x, ``[t, y, x]`` is read as ``TZX``; with a
 ``z`` axis, ``z`` is depth and ``[t, z, y, x]`` is read as ``TZYX``. A ``c`` axis must have length 1.
-A length or time axis without a unit gives no pitch / times (the options supply them). Object arrays
+A length or time axis without a unit gives no pitch / times (the options supply them). Integer arrays are
+intensities (read as float32, as OME-TIFF pages are). Object arrays
 (which a zarr v2 pickle codec would need) are refused before anything is read. The group's attribute
 ``torchdoct`` (as the maps writer stores it) supplies ``system`` and the other keys.
 """
@@ -86,7 +87,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
     if dt.hasobject or dt.kind not in "cfiu":
         raise TypeError(f"{where}/{key}: dtype {dt} is not numeric (object arrays would need unpickling); store "
                         "complex64/complex128 or float data")
-    check_declared_size(f"{where}/{key}", arr.shape, dt.itemsize)
+    check_declared_size(f"{where}/{key}", arr.shape, dt.itemsize, streamed=True)
     scale = _scale(datasets[0].get("coordinateTransformations"), len(names), "scale", f"{where}/{key}")
     top = _scale(ms.get("coordinateTransformations"), len(names), "scale", where)
     shift = _scale(datasets[0].get("coordinateTransformations"), len(names), "translation", f"{where}/{key}")
@@ -119,4 +120,5 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
             t0 = (shift[it] if shift is not None else 0.0) * dt_s / scale[it]
             meta["frame_times_s"] = [t0 + k * dt_s for k in range(size["t"])]
     source = Squeezed(arr, tuple(drop)) if drop else arr
-    return Loaded(data=LazyArray(source, f"{where}/{key}"), meta=meta, sidecar_fills=True)
+    return Loaded(data=LazyArray(source, f"{where}/{key}"), meta=meta, sidecar_fills=True,
+                  integer_intensity=dt.kind in "iu")

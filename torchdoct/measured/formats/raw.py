@@ -60,7 +60,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
     if isinstance(header, bool) or not isinstance(header, int) or header < 0:
         raise ValueError(f"{where}: header_bytes must be an integer >= 0; got {header!r}")
     dt = np.dtype(dtype).newbyteorder("<" if order == "little" else ">")
-    n = check_declared_size(f"{path.name} (shape from {side.name})", shape, dt.itemsize)
+    n = check_declared_size(f"{path.name} (shape from {side.name})", shape, dt.itemsize, streamed=True)
     have = os.stat(path).st_size
     if have < header + n:
         raise ValueError(f"{path.name}: truncated: {side.name} declares {shape} {dtype} after {header} header bytes "
