@@ -8,9 +8,8 @@ draw's features) and this module (a split of many draws: :func:`make_dataset`, c
 split, the numbers of draws, replicates and trials, the PSF truncation, the ground-truth definition
 and the torchdoct version, and is reused when the key matches.
 
-**Cost** (a 2-core machine, one thread, single-acquisition spec): about 0.53 s per draw, i.e. 8 ms per
-simulated trial of the three systems, 1 ms per feature vector after the 8 replicates; the
-two-wavelength spec costs about a tenth of that (:attr:`Dataset.meta` records it per split).
+**Cost**: the simulation of the draws dominates; :attr:`Dataset.meta` records the seconds per split, and
+each model's training report the seconds per draw and per simulated trial.
 """
 
 from __future__ import annotations

@@ -192,13 +192,12 @@ def estimate_seconds(spec: FeatureSpec, prior: Prior, cfg: Any, *, pilot_draws: 
             "baselines_s": baselines, "total_s": simulation + fit + baselines + REPORT_SECONDS}
 
 
-#: Seconds per training sample and epoch of the network's fit on one thread, measured on three
-#: ``doct-train --like`` runs on an idle 2-core machine (36-39 features, 64-64 hidden: 487-535 s, mean 504 s,
-#: for 60 epochs of 737,280 samples); :func:`estimate_seconds` scales it with the square root of the
-#: feature count.
+#: Seconds per training sample and epoch of the network's fit on one thread: the mean of three
+#: ``doct-train --like`` runs on an idle 2-core machine (64-64 hidden, 60 epochs of 737,280 samples);
+#: :func:`estimate_seconds` scales it with the square root of the feature count.
 FIT_SECONDS_PER_SAMPLE_EPOCH = 504.0 / (60 * 737_280)
 #: Seconds per training sample of the scikit-learn baselines (logistic regression and gradient boosting;
-#: the same runs: 123-144 s for 737,280 samples), skipped with ``--no-baselines``.
+#: the same runs), skipped with ``--no-baselines``.
 BASELINE_SECONDS_PER_SAMPLE = 131.0 / 737_280
-#: Seconds of the test sets' evaluation, the ONNX export and the report (the same runs: 20-40 s).
+#: Seconds of the test sets' evaluation, the ONNX export and the report (the middle of the same runs).
 REPORT_SECONDS = 30.0

@@ -234,7 +234,7 @@ def taper_window(s: float) -> float:
 
 @functools.lru_cache(maxsize=1)
 def _gauss_legendre_64():
-    """Nodes and weights of the 64-node Gauss–Legendre rule (an eigenproblem: computed once, 3 ms)."""
+    """Nodes and weights of the 64-node Gauss–Legendre rule (an eigenproblem: computed once)."""
     import numpy as np
 
     return np.polynomial.legendre.leggauss(64)

@@ -96,10 +96,8 @@ def test_signature_model_magnitude_outputs_match_torch():
 @pytest.mark.retrain
 @pytest.mark.parametrize("spec", ["single-acquisition", "signature"])
 def test_doct_train_reproduces_the_shipped_model(tmp_path, spec):
-    """``doct-train`` with its defaults, from scratch (no cache), gives the shipped report's accuracy.
-
-    About 1.5 minutes on one thread for single-acquisition; about 15 minutes on 2 cores for signature.
-    """
+    """``doct-train`` with its defaults, from scratch (no cache), gives the shipped report's accuracy
+    (marker ``retrain``: a full training each)."""
     from classifier.cli import train_main
 
     out = tmp_path / "model"

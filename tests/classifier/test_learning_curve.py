@@ -1,6 +1,6 @@
 """Learning curve of the signature classifier (``python -m research.learning_curve``), on tiny sizes.
 
-The tests that run the study (simulation of 12 draws, two trainings: about 15-20 s on 2 busy cores) are
+The tests that run the study (simulation of 12 draws, two trainings) are
 ``slow``; the prefix property, the refusals and the option errors are checked fast on their own.
 """
 

@@ -72,14 +72,11 @@ over the decided identifiable pixels, per-class recall) and :func:`classifier.re
 SE over test draws (:func:`evaluate_models._bootstrap`, threshold held fixed); differences between
 two classifiers on the same pixels with a paired bootstrap (:func:`paired_comparisons`).
 
-**Cost** (one core, measured on the default run: 300 test draws, 1200 training draws per set, all
-parts): simulation 1,110 s of CPU (reference simulator 0.27-0.32 s per draw for ``signature``'s three
-volume configurations, 0.11-0.12 s for the B-scan ones; torchdoct 0.04 s), fits and scores 430 s
-(60-90 s of wall time per part). Features are cached per draw under ``<out>/cache`` and a
-run stops cleanly after ``--budget-seconds`` of simulation (exit status 3: run it again to resume),
-so it can be run in chunks; the fits and the report come once every set is cached. Parts d and e
-simulate one :func:`classifier.dataset.make_dataset` split per prior (1,200 draws: 2-3 min of wall time
-on 2 cores each, not resumable within a split; the budget is checked between them) under
+**Cost**: the reference simulator's draws dominate (the report records the seconds). Features are cached
+per draw under ``<out>/cache`` and a run stops cleanly after ``--budget-seconds`` of simulation (exit
+status 3: run it again to resume), so it can be run in chunks; the fits and the report come once every
+set is cached. Parts d and e simulate one :func:`classifier.dataset.make_dataset` split per prior (1,200
+draws each, not resumable within a split; the budget is checked between them) under
 ``<out>/cache/make_dataset``.
 """
 

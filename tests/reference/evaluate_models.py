@@ -68,11 +68,9 @@ and speed decade, the accuracy-coverage table, accuracy against magnitude, the m
 errors: bootstrap over draws (the independent unit), :data:`N_BOOT` resamples. Beside every number its target
 (:data:`TARGETS`, issue 24).
 
-**Cost** (one core): the shipped ``signature`` model's default run (300 draws × 32 trials, three
-configurations) took 108 s of wall time (84 s of CPU; 0.36 s per draw: flow and random-ballistic
-draws 0.1-0.3 s, diffusion, whose Brownian steps and phases are drawn and evaluated at every frame,
-up to 1 s); ``two-wavelength-signature`` (two small configurations) 11 s. The bootstrap SE of the
-per-pixel balanced accuracy is 0.010 at 300 draws (0.013 at 150, measured).
+**Cost**: the reference simulator's draws (300 × 32 trials by default); diffusion draws cost the most, their
+Brownian steps and phases being drawn and evaluated at every frame. The report records the seconds, and
+its bootstrap standard errors beside every number.
 """
 
 from __future__ import annotations

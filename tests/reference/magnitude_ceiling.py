@@ -31,11 +31,10 @@ A matched prior (parts a, c: the independent prior itself, the same magnitude ra
 the regressor knows the ranges the test magnitudes are drawn from. Where even it stays above 0.06, the
 goal lies beyond what the features hold at this pool size.
 
-**Cost** (one core, the default parts and sizes; measured on the committed report's run): the
-simulation of what :mod:`ceiling`'s cache lacks (from scratch about 15 min: the reference-simulator test
-sets, part b's 1200 reference-simulator training draws, part c's torchdoct draws and one
-:func:`ceiling.dataset_set` split per prior), then 2-3 min of fits per part (about 20 min); a run
-interrupted during the simulation resumes from the cache.
+**Cost** (the default parts and sizes): the simulation of what :mod:`ceiling`'s cache lacks (the
+reference-simulator test sets, part b's 1200 reference-simulator training draws, part c's torchdoct draws
+and one :func:`ceiling.dataset_set` split per prior), then the fits of each part; a run interrupted during
+the simulation resumes from the cache.
 
 **Metrics** per pool (1 and 25, :data:`ceiling.POOLS`): median and mean ``|log10 error|`` of the median
 regressor, the shares of the test pixels inside the 68 % and 95 % intervals, the median interval

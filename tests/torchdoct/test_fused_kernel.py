@@ -183,7 +183,7 @@ def test_float32_and_float64_walks_share_the_realization():
     assert float((a - b).abs().max()) <= 1e-4 * float(b.abs().max())
 
 
-@pytest.mark.slow  # ~14 s: the default suite stays under 5 min beside another job
+@pytest.mark.slow  # longer than the default suite allows one test (CONTRIBUTING.md, markers)
 def test_a_source_checkout_builds_the_library_into_the_cache(tmp_path, monkeypatch):
     """Without an installed extension, the library is built once from _kernel.c into the user cache
     (and gives the same bits); without a compiler there is nothing to build."""

@@ -175,7 +175,7 @@ def test_render_interrupted_while_writing_leaves_nothing_and_reruns_without_forc
     assert _files(tmp_path) == {"r.npz", "r.json", "r.png"}
 
 
-@pytest.mark.slow  # ~14 s: the default suite stays under 5 min beside another job
+@pytest.mark.slow  # longer than the default suite allows one test (CONTRIBUTING.md, markers)
 def test_study_interrupted_while_writing_keeps_its_cache_and_says_so(tmp_path, monkeypatch, capsys):
     from _studies import write_tiny_study
 
@@ -282,7 +282,7 @@ def test_sweep_workers_die_with_their_parent(tmp_path, sig, sweeps):
     deadline = time.time() + 10
     while time.time() < deadline and any(_alive(k) for k in kids):
         time.sleep(0.1)
-    assert not any(_alive(k) for k in kids)  # before: alive 95 s later, 250 MB each
+    assert not any(_alive(k) for k in kids)  # before the fix the workers outlived the command
     if sig != signal.SIGKILL:
         assert proc.returncode == 128 + sig
         _one_line(err, "SIGTERM" if sig == signal.SIGTERM else "Ctrl-C")

@@ -211,7 +211,7 @@ def test_sparse_volume_policy(truncation):
     assert math.isfinite(s["liv"]["mean"])
 
 
-@pytest.mark.slow  # ~14 s: the default suite stays under 5 min beside another job
+@pytest.mark.slow  # longer than the default suite allows one test (CONTRIBUTING.md, markers)
 def test_crowded_volume_is_gaussian_speckle():
     """ENS 1e4: bounded chunks, C² → 1 and P(I > ⟨I⟩) → e^-1 (circular Gaussian field)."""
     rho = 1e4 / HIGH.lateral_resolution_um**2 / HIGH.axial_resolution_um

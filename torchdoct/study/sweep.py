@@ -454,9 +454,9 @@ class SweepResult:
 
 
 #: System-trials of a sweep from which local cells run in worker processes rather than threads: a
-#: worker process costs 2-3 s to start, threads share the interpreter's lock. Measured on 2 cores:
-#: 10,752 system-trials (the reduced study) 3.3 s in threads against 7.2 s in processes; 408,000
-#: (the paper study) 37 s in processes against about 70 s in threads.
+#: worker process costs seconds to start, threads share the interpreter's lock. Set between the reduced
+#: study, faster in threads on 2 cores, and the paper study, faster in processes (``torchdoct bench study``
+#: records the workers and the wall time of both).
 _PROCESS_WORK = 100_000
 
 

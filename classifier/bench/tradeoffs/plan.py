@@ -36,8 +36,8 @@ DEFAULTS = _defaults()
 
 @dataclass(frozen=True, kw_only=True)
 class TradeoffPlan:
-    """What :func:`run_tradeoffs` measures. The defaults are the full run (about 10 minutes at one
-    thread with a cold dataset cache, ~4 minutes warm).
+    """What :func:`run_tradeoffs` measures. The defaults are the full run (its time at one thread is in the
+    recorded ``bench-tradeoffs.json``; a warm dataset cache skips the simulation).
 
     ``draws_grid``: training draws of the first axis; ``draws_base``: training draws of the spec and
     model-size axes (must be in ``draws_grid``); ``hidden_grid``: hidden layer sizes of the
@@ -103,6 +103,6 @@ class TradeoffPlan:
                 for k, v in d.items()}
 
 
-#: ``classifier_tradeoffs(quick=True)``: small splits (about 1.5 minutes at one thread, cold cache).
+#: ``classifier_tradeoffs(quick=True)``: small splits, for a first look and the tests.
 QUICK_PLAN = TradeoffPlan(draws_grid=(12, 24, 48), draws_base=48, draws_validation=9, draws_test=30,
                           hidden_grid=((8,), (32, 32), (64, 64)), max_epochs=60, timing_draws=3, map_side=256)
