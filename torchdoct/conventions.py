@@ -84,6 +84,11 @@ __all__ = [
     "truncation_intensity_factor",
     "noise_power",
     "noise_sigma",
+    "TIME_RELATIVE_RESOLUTION",
+    "time_tolerance_s",
+    "uniform_frame_interval_s",
+    "delay_groups",
+    "delay_range_tolerance_s",
 ]
 
 LENGTH_UNIT = "um"
@@ -94,6 +99,54 @@ DB_PER_NEPER_INTENSITY = 10.0 / math.log(10.0)
 #: Phase refractive index a system's medium may have, in scene files, sidecars and maps alike (air 1,
 #: tissue about 1.35-1.4, the densest optical glasses below 2; 5 leaves room and refuses typing errors).
 REFRACTIVE_INDEX_RANGE = (1.0, 5.0)
+
+#: Frame times are known to this fraction of their largest magnitude: four spacings of single precision
+#: (times stored as float32, by an HDF5 attribute, a MATLAB ``single`` or a float32 tensor, are exact to half
+#: of one). Two frame steps or delays that differ by less are one.
+TIME_RELATIVE_RESOLUTION = 4 * 2.0**-23
+
+
+def time_tolerance_s(times_s) -> float:
+    """The resolution (s) of frame times: :data:`TIME_RELATIVE_RESOLUTION` of their largest magnitude."""
+    return TIME_RELATIVE_RESOLUTION * max((abs(float(v)) for v in times_s), default=0.0)
+
+
+def uniform_frame_interval_s(times_s) -> float | None:
+    """The frame interval (s) of a uniform protocol (every step equal within :func:`time_tolerance_s`),
+    else ``None``."""
+    t = [float(v) for v in times_s]
+    d = [b - a for a, b in zip(t, t[1:])]
+    if d and max(d) - min(d) <= time_tolerance_s(t):
+        return (t[-1] - t[0]) / (len(t) - 1)
+    return None
+
+
+def delay_range_tolerance_s(times_s, delay_range_s) -> float:
+    """How far (s) a delay of the frame times may lie outside ``delay_range_s = (lo, hi)`` and still count
+    as inside: the times' resolution (:func:`time_tolerance_s`), at least 1e-9 of the range's ends."""
+    lo, hi = (float(v) for v in delay_range_s)
+    return max(time_tolerance_s(times_s), 1e-9 * max(abs(lo), abs(hi)))
+
+
+def delay_groups(times_s) -> list[tuple[float, list[tuple[int, int]]]]:
+    """Every distinct delay ``t_j − t_i`` (s) of the frame times, ascending, with its frame index pairs
+    ``(i, j > i)`` in index order. Delays within :func:`time_tolerance_s` of a group's shortest are one delay, their mean;
+    a uniform protocol's delays are ``m·Δt`` exactly."""
+    t = [float(v) for v in times_s]
+    n = len(t)
+    dt = uniform_frame_interval_s(t)
+    if dt is not None:
+        return [(m * dt, [(i, i + m) for i in range(n - m)]) for m in range(1, n)]
+    tol = time_tolerance_s(t)
+    pairs = sorted((t[j] - t[i], i, j) for i in range(n) for j in range(i + 1, n))
+    groups: list[tuple[float, list[float], list[tuple[int, int]]]] = []
+    for d, i, j in pairs:
+        if not groups or d - groups[-1][0] > tol:
+            groups.append((d, [], []))
+        groups[-1][1].append(d)
+        groups[-1][2].append((i, j))
+    return [(math.fsum(ds) / len(ds), sorted(ij)) for _, ds, ij in groups]
+
 
 _SQRT2 = math.sqrt(2.0)
 _SQRT_LN2 = math.sqrt(math.log(2.0))

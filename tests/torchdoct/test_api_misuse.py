@@ -65,3 +65,25 @@ def test_ocds_of_too_few_frames_or_bad_times_names_the_argument():
         td.ocds(x, [0.0, float("nan"), 0.4, 0.6, 0.8])
     with pytest.raises(TypeError, match=r"ocds\(intensity\).*complex"):
         td.ocds(torch.ones(4, 5, dtype=torch.complex64), [0.0, 0.2, 0.4, 0.6, 0.8])
+
+
+def test_ocds_refuses_times_and_delay_ranges_that_are_not_numbers_naming_the_argument():
+    x = torch.rand(4, 8, generator=torch.Generator().manual_seed(0)) + 0.5
+    times = [0.2 * i for i in range(8)]
+    with pytest.raises(TypeError, match=r"ocds\(frame_times_s\).*str '0\.0'"):
+        td.ocds(x, [str(t) for t in times], delay_range_s=(0.2, 0.6))
+    for bad in [(float("nan"), 0.6), (0.6, 0.2), (0.2, float("inf"))]:
+        with pytest.raises(ValueError, match=r"ocds\(delay_range_s\): delay_range_s must be finite"):
+            td.ocds(x, times, delay_range_s=bad)
+    with pytest.raises(TypeError, match=r"ocds\(delay_range_s\)"):
+        td.ocds(x, times, delay_range_s=("0.2", "0.6"))
+    with pytest.raises(ValueError, match=r"ocds\(delay_range_s\).*fewer than 2 delays") as info:
+        td.ocds(x, times, delay_range_s=(0.01, 0.1))
+    assert "--" not in str(info.value)  # the API names its argument, not a command-line option
+
+
+def test_liv_of_one_frame_or_a_mask_is_refused():
+    with pytest.raises(ValueError, match=r"liv\(intensity\): 1 frame"):
+        td.liv(torch.ones(5, 1))
+    with pytest.raises(TypeError, match=r"liv\(intensity\).*bool"):
+        td.liv(torch.ones(5, 8, dtype=torch.bool))

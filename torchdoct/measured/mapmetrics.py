@@ -11,6 +11,7 @@ from collections.abc import Sequence as _Seq
 
 import torch
 
+from ..conventions import delay_groups, delay_range_tolerance_s
 from ..sim import metrics as _metrics
 
 __all__ = [
@@ -46,19 +47,10 @@ def ocds_map(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
 
 def _windows(frame_times_s: _Seq[float], max_window_s: float | None) -> list[tuple[float, list[tuple[int, int]]]]:
     """Distinct window spans ``T_w`` (s) and, for each, the (first, last) frame index pairs."""
-    t = [float(v) - float(frame_times_s[0]) for v in frame_times_s]
-    n = len(t)
-    dt = _metrics.uniform_frame_interval_s(frame_times_s)
-    if dt is not None:
-        out = [(m * dt, [(i, i + m) for i in range(n - m)]) for m in range(1, n)]
-    else:
-        groups: dict[float, list[tuple[int, int]]] = {}
-        for i in range(n):
-            for j in range(i + 1, n):
-                groups.setdefault(round(t[j] - t[i], 9), []).append((i, j))
-        out = [(k, groups[k]) for k in sorted(groups)]
+    out = delay_groups(frame_times_s)
     if max_window_s is not None:
-        out = [w for w in out if w[0] <= max_window_s * (1 + 1e-9)]
+        tol = delay_range_tolerance_s(frame_times_s, (0.0, max_window_s))
+        out = [w for w in out if w[0] <= max_window_s + tol]
     if len(out) < 2:
         raise ValueError("the LIV curve needs at least 2 time windows; check frame_times_s / max_window_s")
     return out

@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from ..conventions import delay_groups, delay_range_tolerance_s, uniform_frame_interval_s
+
 __all__ = [
     "SceneError",
     "OCTSystem",
@@ -225,9 +227,7 @@ class Protocol:
 
     @property
     def is_uniform(self) -> bool:
-        t = self.times_s
-        d = [b - a for a, b in zip(t, t[1:])]
-        return max(d) - min(d) <= 1e-9 * max(d)
+        return uniform_frame_interval_s(self.times_s) is not None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -473,7 +473,8 @@ class Scene:
         lo, hi = self.analysis.ocds_delay_range_s
         if "ocds" in self.analysis.metrics:
             delays = self.delays_s
-            inside = [d for d in delays if lo * (1 - 1e-9) <= d <= hi * (1 + 1e-9)]
+            tol = delay_range_tolerance_s(self.protocol.times_s, (lo, hi))
+            inside = [d for d in delays if lo - tol <= d <= hi + tol]
             if len(inside) >= 2:
                 try:
                     check_ocds_pairs(self.protocol.times_s, (lo, hi), "analysis.ocds_delay_range_s",
@@ -488,13 +489,8 @@ class Scene:
 
     @property
     def delays_s(self) -> tuple[float, ...]:
-        """Distinct frame-pair delays of the protocol (s), rounded to 1e-9 s."""
-        t = self.protocol.times_s
-        if self.protocol.is_uniform:
-            dt = self.protocol.duration_s / (len(t) - 1)
-            return tuple(m * dt for m in range(1, len(t)))
-        ds = sorted({round(b - a, 9) for i, a in enumerate(t) for b in t[i + 1:]})
-        return tuple(ds)
+        """Distinct frame-pair delays of the protocol (s), :func:`torchdoct.conventions.delay_groups`."""
+        return tuple(d for d, _ in delay_groups(self.protocol.times_s))
 
     def replace(self, **changes: Any) -> Scene:
         return dataclasses.replace(self, **changes)
@@ -569,20 +565,9 @@ MIN_PAIRS_PER_DELAY = 2
 
 def delay_pair_counts(frame_times_s: Any) -> list[tuple[float, int]]:
     """``(delay_s, frame pairs)`` of every distinct delay of the frame times (s): ``(m·Δt, N − m)`` for a
-    uniform protocol (steps equal within 1e-9 relative, as :func:`torchdoct.sim.metrics.ocds`), else the
-    pairs ``i < j`` grouped by ``t_j − t_i`` rounded to 1e-9 s."""
-    t = [float(v) for v in frame_times_s]
-    n = len(t)
-    d = [b - a for a, b in zip(t, t[1:])]
-    if d and max(d) - min(d) <= 1e-9 * max(d):
-        dt = (t[-1] - t[0]) / (n - 1)
-        return [(m * dt, n - m) for m in range(1, n)]
-    counts: dict[float, int] = {}
-    for i in range(n):
-        for j in range(i + 1, n):
-            key = round(t[j] - t[i], 9)
-            counts[key] = counts.get(key, 0) + 1
-    return sorted(counts.items())
+    uniform protocol, else the pairs ``i < j`` grouped by ``t_j − t_i``, both as
+    :func:`torchdoct.conventions.delay_groups` (and so :func:`torchdoct.sim.metrics.ocds`) group them."""
+    return [(d, len(ij)) for d, ij in delay_groups(frame_times_s)]
 
 
 def check_ocds_pairs(frame_times_s: Any, delay_range_s: Any, where: str = "ocds_delay_range_s",
@@ -592,7 +577,8 @@ def check_ocds_pairs(frame_times_s: Any, delay_range_s: Any, where: str = "ocds_
     that has enough and the ``fix``."""
     lo, hi = (float(v) for v in delay_range_s)
     counts = delay_pair_counts(frame_times_s)
-    inside = [(d, c) for d, c in counts if lo * (1 - 1e-9) <= d <= hi * (1 + 1e-9)]
+    tol = delay_range_tolerance_s(frame_times_s, (lo, hi))
+    inside = [(d, c) for d, c in counts if lo - tol <= d <= hi + tol]
     if len(inside) < 2:
         return  # fewer than 2 delays: the slope's own check names it
     thin = [(d, c) for d, c in inside if c < MIN_PAIRS_PER_DELAY]

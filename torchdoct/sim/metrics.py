@@ -28,6 +28,9 @@ from typing import Any
 
 import torch
 
+from ..conventions import delay_groups, delay_range_tolerance_s
+from ..conventions import uniform_frame_interval_s as _uniform_interval
+
 __all__ = [
     "to_db",
     "liv",
@@ -64,6 +67,8 @@ def _check_intensity(func: str, intensity: Any, min_frames: int = 1) -> None:
     if intensity.is_complex():
         raise TypeError(f"{func}(intensity): intensity must be real linear intensity I = |E|²; got a complex "
                         f"{intensity.dtype} field: pass field.abs() ** 2")
+    if intensity.dtype == torch.bool:
+        raise TypeError(f"{func}(intensity): intensity must be linear intensities; got a bool tensor (a mask?)")
     if intensity.ndim == 0:
         raise ValueError(f"{func}(intensity): intensity is a 0-dimensional tensor; it needs a frames axis (the "
                          "last) [..., frames]")
@@ -74,27 +79,15 @@ def _check_intensity(func: str, intensity: Any, min_frames: int = 1) -> None:
 
 def liv(intensity: torch.Tensor) -> torch.Tensor:
     """LIV (dB²): ddof-0 variance over the last axis (frames) of ``10·log10 I`` (physics.md §1)."""
-    _check_intensity("liv", intensity)
+    _check_intensity("liv", intensity, min_frames=2)  # the variance of one frame is 0 whatever the data
     return _variance_last(to_db(intensity))
 
 
 def _delays(frame_times_s: Sequence[float]) -> tuple[list[float], list[tuple[list[int], list[int]]]]:
-    """Distinct delays (s, rounded to 1e-9 s) and, for each, the frame index pairs (i, j>i)."""
-    t = [float(x) - float(frame_times_s[0]) for x in frame_times_s]
-    n = len(t)
-    dt = uniform_frame_interval_s(frame_times_s)
-    if dt is not None:
-        return ([m * dt for m in range(1, n)],
-                [(list(range(n - m)), list(range(m, n))) for m in range(1, n)])
-    groups: dict[float, tuple[list[int], list[int]]] = {}
-    for i in range(n):
-        for j in range(i + 1, n):
-            key = round(t[j] - t[i], 9)
-            g = groups.setdefault(key, ([], []))
-            g[0].append(i)
-            g[1].append(j)
-    keys = sorted(groups)
-    return keys, [groups[k] for k in keys]
+    """Distinct delays (s, :func:`torchdoct.conventions.delay_groups`) and, for each, the frame index pairs
+    (i, j>i)."""
+    groups = delay_groups(frame_times_s)
+    return [d for d, _ in groups], [([i for i, _ in ij], [j for _, j in ij]) for _, ij in groups]
 
 
 def _pearson(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -146,10 +139,14 @@ def lag_correlations(
 
 
 def ocds_from_correlations(rho: torch.Tensor, delays_s: torch.Tensor,
-                           delay_range_s: tuple[float, float] = (0.2048, 1.2288)) -> torch.Tensor:
-    """OCDS (s⁻¹) = − OLS slope of ``rho[..., L]`` against ``delays_s`` within ``delay_range_s``."""
+                           delay_range_s: tuple[float, float] = (0.2048, 1.2288), *,
+                           tolerance_s: float | None = None) -> torch.Tensor:
+    """OCDS (s⁻¹) = − OLS slope of ``rho[..., L]`` against ``delays_s`` within ``delay_range_s``, its ends
+    widened by ``tolerance_s`` (default: :func:`torchdoct.conventions.delay_range_tolerance_s` of the delays;
+    :func:`ocds` passes the frame times' own)."""
     lo, hi = delay_range_s
-    sel = (delays_s >= lo * (1 - 1e-9)) & (delays_s <= hi * (1 + 1e-9))
+    tol = delay_range_tolerance_s(delays_s.tolist(), delay_range_s) if tolerance_s is None else tolerance_s
+    sel = (delays_s >= lo - tol) & (delays_s <= hi + tol)
     if int(sel.sum()) < 2:
         raise ValueError(f"delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
                          f"(delays {delays_s.min().item():.6g} ... {delays_s.max().item():.6g} s)")
@@ -159,14 +156,47 @@ def ocds_from_correlations(rho: torch.Tensor, delays_s: torch.Tensor,
     return -((y - y[..., :1]) * xc).sum(-1) / (xc * xc).sum()
 
 
+def _time_value(v: Any) -> float:
+    """``v`` as seconds when it is a real number (a Python, NumPy or 0-d torch number); a string, a bool or
+    anything else is a ``TypeError`` (``"0.2"`` is not read as a time, as in the sidecars)."""
+    if isinstance(v, (str, bytes, bool)) or (isinstance(v, torch.Tensor) and (v.ndim or v.is_complex())):
+        raise TypeError(type(v).__name__)
+    if isinstance(v, complex) or getattr(getattr(v, "dtype", None), "kind", "") == "c":
+        raise TypeError(type(v).__name__)
+    return float(v)
+
+
+def _kinds(values: Any) -> str:
+    """What ``values`` holds, for a message: its type, and the type of its first element that is no number."""
+    try:
+        bad = next(v for v in values if isinstance(v, (str, bytes, bool)) or not hasattr(v, "__float__"))
+    except (TypeError, StopIteration):
+        return type(values).__name__
+    return f"{type(values).__name__} holding {type(bad).__name__} {str(bad)[:40]!r}"
+
+
+def _check_delay_range(func: str, delay_range_s: Any) -> tuple[float, float]:
+    """``delay_range_s`` as ``(lo, hi)``: two finite numbers of seconds, ``0 <= lo < hi``, else an error naming
+    the argument."""
+    try:
+        lo, hi = (_time_value(v) for v in delay_range_s)
+    except (TypeError, ValueError):
+        raise TypeError(f"{func}(delay_range_s): delay_range_s must be two numbers (lo, hi) in s; got "
+                        f"{delay_range_s!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo < hi):
+        raise ValueError(f"{func}(delay_range_s): delay_range_s must be finite with 0 <= lo < hi (s); got "
+                         f"({lo!r}, {hi!r})")
+    return lo, hi
+
+
 def _check_frame_times(func: str, frame_times_s: Any, n_frames: int) -> None:
     """Refuse, naming the argument, frame times that are not finite numbers, one per frame, strictly
     increasing."""
     try:
-        t = [float(v) for v in frame_times_s]
+        t = [_time_value(v) for v in frame_times_s]
     except (TypeError, ValueError):
         raise TypeError(f"{func}(frame_times_s): frame_times_s must be a sequence of numbers (s); got "
-                        f"{type(frame_times_s).__name__}") from None
+                        f"{_kinds(frame_times_s)}") from None
     if len(t) != n_frames:
         raise ValueError(f"{func}(frame_times_s): {len(t)} frame times for {n_frames} frames; give one time (s) "
                          "per frame")
@@ -180,12 +210,9 @@ def _check_frame_times(func: str, frame_times_s: Any, n_frames: int) -> None:
 
 
 def uniform_frame_interval_s(frame_times_s: Sequence[float]) -> float | None:
-    """The frame interval (s) of a uniform protocol (steps equal within 1e-9 relative), else ``None``."""
-    t = [float(v) for v in frame_times_s]
-    d = [b - a for a, b in zip(t, t[1:])]
-    if d and max(d) - min(d) <= 1e-9 * max(d):
-        return (t[-1] - t[0]) / (len(t) - 1)
-    return None
+    """The frame interval (s) of a uniform protocol (steps equal within the times' resolution,
+    :func:`torchdoct.conventions.uniform_frame_interval_s`), else ``None``."""
+    return _uniform_interval(frame_times_s)
 
 
 def ocds(intensity: torch.Tensor, frame_times_s: Sequence[float], *,
@@ -208,19 +235,21 @@ def ocds(intensity: torch.Tensor, frame_times_s: Sequence[float], *,
         s = intensity
     else:
         raise ValueError(f"scale must be 'db' or 'linear'; got {scale!r}")
+    delay_range_s = _check_delay_range("ocds", delay_range_s)
     check_ocds_pairs(frame_times_s, delay_range_s, "ocds(delay_range_s)")  # after the check of 2 delays
     dt = uniform_frame_interval_s(frame_times_s)
+    tol = delay_range_tolerance_s(frame_times_s, delay_range_s)
     if dt is None or estimator not in ("pearson", "biased"):
         delays, rho = lag_correlations(s, frame_times_s, estimator=estimator)
-        return ocds_from_correlations(rho, delays, delay_range_s)
+        return ocds_from_correlations(rho, delays, delay_range_s, tolerance_s=tol)
     n = s.shape[-1]
     if n != len(frame_times_s):
         raise ValueError(f"signal has {n} frames but {len(frame_times_s)} frame times were given")
     lo, hi = delay_range_s
-    lags = [m for m in range(1, n) if lo * (1 - 1e-9) <= m * dt <= hi * (1 + 1e-9)]
+    lags = [m for m in range(1, n) if lo - tol <= m * dt <= hi + tol]
     if len(lags) < 2:
-        raise ValueError(f"OCDS delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
-                         f"(frame interval {dt:.6g} s, {n} frames); give --ocds-delay-range-s")
+        raise ValueError(f"ocds(delay_range_s): delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
+                         f"(frame interval {dt:.6g} s, {n} frames); widen it to hold 2 multiples of the interval")
     if estimator == "pearson":
         rho = torch.stack([_pearson(s[..., : n - m], s[..., m:]) for m in lags], dim=-1)
     else:  # biased: as lag_correlations, for the lags in the range only
@@ -232,7 +261,7 @@ def ocds(intensity: torch.Tensor, frame_times_s: Sequence[float], *,
         rho = torch.stack([torch.where(ok, (xm[..., : n - m] * xm[..., m:]).sum(-1) / den, torch.ones_like(var))
                            for m in lags], dim=-1)
     delays = torch.tensor([m * dt for m in lags], dtype=s.dtype, device=s.device)
-    return ocds_from_correlations(rho, delays, (lo, hi))
+    return ocds_from_correlations(rho, delays, (lo, hi), tolerance_s=tol)
 
 
 def complex_variance(field: torch.Tensor) -> torch.Tensor:
