@@ -10,6 +10,7 @@ Commands (from the repository root, a development install; each writes one JSON 
 
     python -m tests.reference.floors phantoms --out tests/floors/phantoms.json [--seeds 2026,1,2,3,4,5]
     python -m tests.reference.floors systems --out tests/floors/systems-quick.json [--seeds 2026,1,2,3]
+    python -m tests.reference.floors slabs --out tests/floors/slabs.json [--seeds 7,1,2,3,4,5]
 
 ``phantoms``: the shipped phantoms ``motion-types`` and ``oblique-flow`` (B-scans) and
 ``oblique-flow-volume`` (a volume) → ``torchdoct render --seed S``
@@ -21,6 +22,11 @@ moving pixels, edge 0).
 rendering with seed S, ``doct-train --like --quick`` on its maps (with ``--seed S``; doct-train's default
 seed for the first, as the test trains), classified at pools 1 and 5. A run varies both the rendering and
 the training, the two things a test run on another machine can draw differently.
+
+``slabs``: the four-slab phantom of ``tests/classifier/test_clf_end_to_end.py`` (``tests/classifier/_slabs.py``),
+B-scan and volume, per seed S rendered with ``--seed S`` → ``torchdoct maps`` (LIV/OCDS) → ``doct-classify
+--pool 5 --decide-ballistic``, scored by ``_slabs.score`` (balanced accuracy, mean coverage of the motion
+slabs, the static slab's indeterminate share, away from the slab boundaries).
 """
 
 from __future__ import annotations
@@ -86,13 +92,13 @@ def _phantom_run(work: Path, phantom: str, seed: int) -> dict:
     return run
 
 
-def record_phantoms(seeds: list[int]) -> dict:
+def record_phantoms(seeds: list[int], progress: bool = True) -> dict:
     from tqdm import tqdm
 
     runs: dict[str, dict[str, dict[str, list]]] = {}
     todo = [(p, s) for p in PHANTOMS for s in seeds]
     with tempfile.TemporaryDirectory() as tmp:
-        for phantom, seed in tqdm(todo, desc="renderings", unit="run"):
+        for phantom, seed in tqdm(todo, desc="renderings", unit="run", disable=not progress):
             run = _phantom_run(Path(tmp), phantom, seed)
             for pool, vals in run.items():
                 slot = runs.setdefault(phantom, {}).setdefault(pool, {"seeds": []})
@@ -122,20 +128,54 @@ def record_systems(seeds: list[int]) -> dict:
     return runs
 
 
+def record_slabs(seeds: list[int], progress: bool = True) -> dict:
+    from tqdm import tqdm
+
+    from tests.classifier._slabs import FLOORED, GEOMETRIES, run_chain, score
+
+    runs: dict[str, dict[str, list]] = {g: {"seeds": []} for g in GEOMETRIES}
+    todo = [(g, s) for g in GEOMETRIES for s in seeds]
+    with tempfile.TemporaryDirectory() as tmp:
+        for geometry, seed in tqdm(todo, desc="renderings", unit="run", disable=not progress):
+            work = Path(tmp) / f"{geometry}-{seed}"
+            work.mkdir()
+            grid, z_axis = GEOMETRIES[geometry]
+            s = score(*run_chain(work, grid, seed)[:2], z_axis)
+            runs[geometry]["seeds"].append(seed)
+            for k in FLOORED:
+                runs[geometry].setdefault(k, []).append(s[k])
+    return runs
+
+
+#: What each kind records, as its file says.
+STATISTICS = {
+    "phantoms": "per rendering: score_images overall, all labelled moving pixels, edge 0; floor = mean - z*SD over "
+                "renderings (ceiling mean + z*SD for the magnitude error)",
+    "systems": "per rendering: score_images overall, all labelled moving pixels, edge 0; floor = mean - z*SD over "
+               "renderings (ceiling mean + z*SD for the magnitude error)",
+    "slabs": "per rendering: tests/classifier/_slabs.score (slab pixels at least 16 um from a boundary); "
+             "floor = mean - z*SD over renderings",
+}
+DEFAULT_SEEDS = {"phantoms": "2026,1,2,3,4,5", "systems": "2026,1,2,3", "slabs": "7,1,2,3,4,5"}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m tests.reference.floors", description=__doc__.split("\n\n")[0])
-    p.add_argument("what", choices=("phantoms", "systems"))
+    p.add_argument("what", choices=tuple(STATISTICS))
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--seeds", default=None, help="comma-separated rendering seeds (default: phantoms "
-                   "2026,1,2,3,4,5; systems 2026,1,2,3)")
+    p.add_argument("--seeds", default=None, help="comma-separated rendering seeds (default: "
+                   + "; ".join(f"{k} {v}" for k, v in DEFAULT_SEEDS.items()) + ")")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (as TQDM_DISABLE=1)")
     a = p.parse_args(argv)
-    default = "2026,1,2,3,4,5" if a.what == "phantoms" else "2026,1,2,3"
-    seeds = [int(s) for s in (a.seeds or default).split(",")]
-    runs = record_phantoms(seeds) if a.what == "phantoms" else record_systems(seeds)
+    seeds = [int(s) for s in (a.seeds or DEFAULT_SEEDS[a.what]).split(",")]
+    if a.what == "phantoms":
+        runs = record_phantoms(seeds, progress=not a.no_progress)
+    elif a.what == "systems":
+        runs = record_systems(seeds)
+    else:
+        runs = record_slabs(seeds, progress=not a.no_progress)
     command = f"python -m tests.reference.floors {a.what} --out {a.out.as_posix()} --seeds {','.join(map(str, seeds))}"
-    result = {"command": command, "z": Z, "statistic": "per rendering: score_images overall, all labelled moving "
-              "pixels, edge 0; floor = mean - z*SD over renderings (ceiling mean + z*SD for the magnitude error)",
-              "runs": runs}
+    result = {"command": command, "z": Z, "statistic": STATISTICS[a.what], "runs": runs}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
     print(f"wrote {a.out}")
