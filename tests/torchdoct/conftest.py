@@ -19,3 +19,22 @@ def seq(tmp_path):
         "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
                    "refractive_index": 1.0}}))
     return path
+
+
+@pytest.fixture()
+def outdir(tmp_path):
+    """``tmp_path`` with an empty ``out/`` folder for a command's outputs."""
+    (tmp_path / "out").mkdir()
+    return tmp_path
+
+
+@pytest.fixture()
+def default_input_limit(monkeypatch):
+    """The readers' default input-size limit: no ``$TORCHDOCT_MAX_INPUT_GB`` and no limit set by the API,
+    before and after the test (``torchdoct.measured.guards``)."""
+    from torchdoct.measured import guards
+
+    monkeypatch.delenv(guards.MAX_INPUT_ENV, raising=False)
+    guards.set_max_input_gb(None)
+    yield
+    guards.set_max_input_gb(None)

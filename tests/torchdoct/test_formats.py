@@ -40,12 +40,7 @@ WRITERS = {
 }
 
 
-@pytest.fixture(autouse=True)
-def _default_limit(monkeypatch):
-    monkeypatch.delenv(guards.MAX_INPUT_ENV, raising=False)
-    guards.set_max_input_gb(None)
-    yield
-    guards.set_max_input_gb(None)
+pytestmark = pytest.mark.usefixtures("default_input_limit")  # tests/torchdoct/conftest.py
 
 
 @pytest.fixture(scope="module")
@@ -177,12 +172,6 @@ def test_db_scale_is_converted_to_linear_and_checked(tmp_path):
 # ----------------------------------------------------------------------------------------------------------
 def _argv(d: Path, src: Path, *extra: str) -> list[str]:
     return ["maps", str(src), "--out", str(d / "out" / "m.npz"), "--no-progress", *extra]
-
-
-@pytest.fixture()
-def outdir(tmp_path):
-    (tmp_path / "out").mkdir()
-    return tmp_path
 
 
 def _truncate(path: Path, keep: float = 0.6) -> None:

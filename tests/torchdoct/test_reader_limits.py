@@ -29,12 +29,7 @@ META = {"axes": "TZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": [0.204
                    "refractive_index": 1.0}}
 
 
-@pytest.fixture(autouse=True)
-def _default_limit(monkeypatch):
-    monkeypatch.delenv(guards.MAX_INPUT_ENV, raising=False)
-    guards.set_max_input_gb(None)
-    yield
-    guards.set_max_input_gb(None)
+pytestmark = pytest.mark.usefixtures("default_input_limit")  # tests/torchdoct/conftest.py
 
 
 def _field(shape=(8, 6, 5), seed=0) -> np.ndarray:
@@ -49,12 +44,6 @@ def _sidecar(path: Path) -> Path:
 
 def _maps_argv(tmp_path: Path, src: Path, *extra: str) -> list[str]:
     return ["maps", str(src), "--out", str(tmp_path / "out" / "m.npz"), "--no-progress", *extra]
-
-
-@pytest.fixture()
-def outdir(tmp_path):
-    (tmp_path / "out").mkdir()
-    return tmp_path
 
 
 # ----------------------------------------------------------------------------------------------------------
