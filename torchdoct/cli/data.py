@@ -22,8 +22,9 @@ __all__ = ["COMMANDS"]
 
 
 def _maps_arguments(mp) -> None:
-    mp.add_argument("input", help="sequence file: .npy/.npz/.raw/.bin (+ .json sidecar), .h5, .mat (v5, v7.3), .tif, "
-                                  ".ome.tif, a .zarr OME-Zarr folder or a folder of per-frame TIFFs (docs/formats.md)")
+    mp.add_argument("input", nargs="+", help="sequence file: .npy/.npz/.raw/.bin (+ .json sidecar), .h5, .mat (v5, "
+                                             "v7.3), .tif, .ome.tif, a .zarr OME-Zarr folder or a folder of per-frame "
+                                             "TIFFs (docs/formats.md); several: each --out names its file with {stem}")
     mp.add_argument("--resolution", action="append", default=None, metavar="R",
                     help="original | axial=UM | lateral=UM | axial=UM,lateral=UM (repeat; default original)")
     mp.add_argument("--metrics", default="liv,ocds,mean_db", help="comma list of liv, ocds, mean_db (default all 3)")
@@ -43,6 +44,13 @@ def _maps_arguments(mp) -> None:
                     help="output maps file: .npz, .tif (ImageJ hyperstack), .ome.tif (OME-TIFF) or .zarr (OME-Zarr); "
                          "repeat to write several")
     mp.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    b = mp.add_argument_group("many inputs (torchdoct.cli.mapsbatch)")
+    b.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="inputs computed side by side in N worker processes, one core each (default 1: one after "
+                        "another)")
+    b.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="compute the inputs as tasks on an existing Dask distributed cluster (e.g. tcp://host:8786); "
+                        "the workers read and write the same paths")
     g = mp.add_argument_group("metadata (override or supply the file's)")
     g.add_argument("--axes", default=None, help="stored axis order, e.g. TZX, TYZX, XZT (MATLAB [Z,X,T] in HDF5)")
     g.add_argument("--pitch-um", default=None, help="pixel pitch in µm, e.g. z=1.5,x=2.0[,y=7.8]")
@@ -131,6 +139,28 @@ def _compare_arguments(cp) -> None:
 
 
 def _maps(args: argparse.Namespace) -> int:
+    """One input in this process (:func:`maps_one`), or many (:mod:`torchdoct.cli.mapsbatch`)."""
+    inputs = args.input if isinstance(args.input, list) else [args.input]
+    if len(inputs) == 1 and args.scheduler is None and (args.workers or 1) == 1:
+        from .mapsbatch import outputs_of
+
+        args.input, args.out = inputs[0], outputs_of(inputs, list(args.out))[0]
+        return maps_one(args)
+    from .mapsbatch import run_many
+
+    return run_many(args, maps_task)
+
+
+def maps_task(payload: dict) -> dict:
+    """One input of many (:func:`torchdoct.cli.mapsbatch.run_many`): :func:`maps_one` on ``payload``; module-level
+    so that worker processes and Dask workers import it."""
+    from .mapsbatch import run_task
+
+    return run_task(maps_one, payload)
+
+
+def maps_one(args: argparse.Namespace) -> int:
+    """``torchdoct maps`` on the one input ``args.input``."""
     from ..files import check_out
     from ..measured.guards import set_max_input_gb
     from ..measured.io import MAPS_SUFFIXES, BlockRaster, read_sequence, write_maps
@@ -432,7 +462,9 @@ COMMANDS = {
     "maps": Command("DOCT maps (LIV, OCDS, mean dB, aLIV, Swiftness) of an OCT sequence file",
                     _maps_arguments, _maps,
                     "Compute DOCT maps of a complex (or intensity) OCT sequence at one or more "
-                    "resolutions and write them to .tif/.npz, with optional pseudo-colour PNGs."),
+                    "resolutions and write them to .npz, .tif, .ome.tif or .zarr, with optional pseudo-colour "
+                    "PNGs. Several inputs run one after another, in worker processes (--workers) or on a Dask "
+                    "cluster (--scheduler)."),
     "compare": Command("per-sample mean LIV/OCDS per configuration and the paper's tests "
                        "(tests need >= 2 samples)",
                        _compare_arguments, _compare,
