@@ -147,6 +147,20 @@ def bench_maps(root: Path) -> str:
     return "\n\n".join([t, source("torchdoct bench maps --out FILE", p, machine(d))])
 
 
+def bench_stream(root: Path) -> str:
+    d, p = load(root, "bench-stream.json")
+    mib = 1 << 20
+    rows = [[num(r["input_gib"]), r["frames"], "×".join(map(str, r["shape"])), num(r["baseline_rss_bytes"] / mib),
+             num(r["peak_rss_bytes"] / mib), num(r["growth_bytes"] / mib), num(r["seconds"])] for r in d["runs"]]
+    t = table(["input (GiB)", "frames", "shape [T, Z, X]", "RSS after the imports (MiB)", "peak RSS (MiB)",
+               "growth (MiB)", "wall (s)"], rows)
+    sizes = ", ".join(num(r["input_gib"]) for r in d["runs"])
+    note = (f"`{d['command']}` with `--max-memory-gb {num(d['budget_gib'])}` "
+            f"({num(d['budget_gib'] * 1024)} MiB) on memory-mapped complex64 inputs of {sizes} GiB.")
+    return "\n\n".join([t, note, source("torchdoct bench stream --sizes-gb ... --out FILE --figure FILE.png", p,
+                                         machine(d))])
+
+
 def bench_classify(root: Path) -> str:
     rows, paths = [], []
     for name in ("bench-classify.json", "bench-classify-signature.json"):
@@ -333,6 +347,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "bench-cog": bench_cog,
     "bench-render": bench_render,
     "bench-maps": bench_maps,
+    "bench-stream": bench_stream,
     "bench-classify": bench_classify,
     "bench-load": bench_load,
     "tradeoffs-simulator": tradeoffs_simulator,
