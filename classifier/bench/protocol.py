@@ -260,8 +260,15 @@ def decide(channels: Mapping[str, np.ndarray], n_frames: int, pitch_um: float) -
     """Per pixel (flattened): the rules that fire (``coherent``, ``moved``, ``decorrelated``, ``fast``) and
     the outcome of each decision of :data:`DECISIONS` (codes :data:`CODES`, :data:`UNDECIDED`), from the
     speckle channels of one resolution (module docstring)."""
-    from ..ambiguity import (DECORRELATED_BELOW, SET_LABEL, abstain_where_ambiguous, coherent_motion,
-                             fast_decorrelation, offset_moved, slow_decorrelation)
+    from ..ambiguity import (
+        DECORRELATED_BELOW,
+        SET_LABEL,
+        abstain_where_ambiguous,
+        coherent_motion,
+        fast_decorrelation,
+        offset_moved,
+        slow_decorrelation,
+    )
 
     coherent, _ = coherent_motion(channels, n_frames=n_frames)
     moved, _ = offset_moved(channels, pitch_um, n_frames=n_frames)
