@@ -258,12 +258,27 @@ def test_wrong_dtype_is_refused(outdir, capsys, fmt):
     refused(capsys, outdir, _argv(outdir, path, *extra), *names)
 
 
+@pytest.mark.parametrize("kind", ["fifo", "device", "directory"])
 @pytest.mark.parametrize("name", ["s.mat", "s.raw", "s.bin", "s.ome.tif", "s.zarr"])
-def test_special_file_is_refused_at_once(outdir, capsys, name):
-    path = outdir / name
-    os.mkfifo(path)  # a reader that opened it would block until a writer came
+def test_special_file_is_refused_at_once(outdir, capsys, name, kind):
+    """A FIFO (a reader that opened it would block until a writer came), a link to an endless device or a
+    folder named like a file format; an OME-Zarr is a folder, so a folder named .zarr is its format's (an empty
+    one is no OME-Zarr) and a device or FIFO named .zarr is refused."""
+    from _special import special
+
+    path = special(outdir / name, kind)
     F.sidecar(path, t=8)
-    refused(capsys, outdir, _argv(outdir, path), name)
+    if name == "s.zarr" and kind == "directory":
+        refused(capsys, outdir, _argv(outdir, path), name, "not a readable zarr group", "zarr.json")
+    else:
+        refused(capsys, outdir, _argv(outdir, path), name, "not a regular file" if kind != "directory" else "")
+
+
+def test_a_plain_file_named_zarr_is_refused_naming_the_folder_it_must_be(outdir, capsys):
+    path = outdir / "s.zarr"
+    path.write_bytes(b"\x00" * 64)
+    F.sidecar(path, t=8)
+    refused(capsys, outdir, _argv(outdir, path), "s.zarr", "folder")
 
 
 def test_fifo_in_a_tiff_folder_is_refused_at_once(outdir, capsys):

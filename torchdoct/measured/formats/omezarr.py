@@ -64,7 +64,8 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
     try:
         group = zarr.open_group(str(path), mode="r")
     except Exception as err:
-        raise ValueError(f"{where}: not a readable zarr group ({type(err).__name__}: {err})") from None
+        raise ValueError(f"{where}: not a readable zarr group ({type(err).__name__}); an OME-Zarr image is a folder "
+                         "holding .zgroup and .zattrs (NGFF 0.4) or zarr.json (0.5): give that folder") from None
     version, ms = multiscale(dict(group.attrs), where)
     axes = ms.get("axes")
     if not isinstance(axes, list) or not axes:
