@@ -145,6 +145,29 @@ def test_folder_of_tiffs_is_read_in_name_order(tmp_path):
     np.testing.assert_array_equal(read_sequence(d).data, a)
 
 
+def test_ome_zarr_volume_has_z_as_depth(tmp_path):
+    """NGFF axes t, z, y, x: z is depth (the optical axis), y the slow lateral axis; the pitch per axis from the
+    scale transform in its unit."""
+    v = F.field(t=4 * 3 * 5).reshape(4, 3, 5, 12, 16)[:, :, 0]  # [T, Zngff=3, Yngff=12, Xngff=16]
+    group = zarr.open_group(str(tmp_path / "v.zarr"), mode="w", zarr_format=2)
+    group.create_array("0", shape=v.shape, dtype=v.dtype)[:] = v
+    axes = [{"name": "t", "type": "time", "unit": "second"}] + [
+        {"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"]
+    group.attrs["multiscales"] = [{"version": "0.4", "axes": axes, "datasets": [
+        {"path": "0", "coordinateTransformations": [{"type": "scale", "scale": [0.1, 2.5, 7.0, 1.5]}]}]}]
+    seq = read_sequence(tmp_path / "v.zarr")
+    assert seq.axes == "TYZX" and seq.data.shape == (4, 12, 3, 16)
+    assert seq.pitch_um == pytest.approx({"z": 2.5, "y": 7.0, "x": 1.5})
+    np.testing.assert_allclose(seq.frame_times_s, [0.0, 0.1, 0.2, 0.3])
+    np.testing.assert_array_equal(seq.data[1, 5, 2], v[1, 2, 5])
+
+
+def test_thorlabs_oct_is_refused_naming_the_exports_to_use(outdir, capsys):
+    path = outdir / "scan.oct"
+    path.write_bytes(b"PK\x05\x06" + b"\x00" * 18)  # an empty zip archive
+    refused(capsys, outdir, _argv(outdir, path), "scan.oct", "not read", "OME-TIFF")
+
+
 def test_axes_override_reorients_a_mat_file(tmp_path):
     a = F.field(t=4)
     p = F.write_mat(tmp_path / "s.mat", a)

@@ -323,6 +323,10 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     fmt = reader_for(p)
     if not (fmt is not None and getattr(fmt, "DIRECTORY", False) and p.is_dir()):
         check_regular_file(p, "sequence file")  # a FIFO, device or folder: at once, whatever its name
+    if fmt is None and p.suffix.lower() == ".oct":
+        raise ValueError(f"{p.name}: Thorlabs .oct files are not read (their layout has no public specification, "
+                         "docs/formats.md); export the data from ThorImageOCT to OME-TIFF, MATLAB or a raw binary "
+                         "with a JSON sidecar and read that")
     if fmt is None:
         raise ValueError(f"{p.name}: unknown sequence format; use {', '.join(SEQUENCE_SUFFIXES)}")
     suffix = p.suffix.lower()
