@@ -48,7 +48,8 @@ API = [
      ["torchdoct.image.phantom", "torchdoct.image.render"]),
     ("measured", "Measured data", "Readers, resolution reduction, bulk-phase correction, DOCT maps and statistics.",
      ["torchdoct.measured.io", "torchdoct.measured.sequence", "torchdoct.measured.resolution", "torchdoct.measured.bulkphase",
-      "torchdoct.measured.maps", "torchdoct.measured.mapsfile", "torchdoct.measured.compare"]),
+      "torchdoct.measured.maps", "torchdoct.measured.mapsfile", "torchdoct.measured.compare",
+      "torchdoct.measured.formats", "torchdoct.measured.guards"]),
     ("study", "Sweeps and the study", "Parameter sweeps and the reference paper's numerical study.",
      ["torchdoct.study.sweep", "torchdoct.study.run", "torchdoct.study.claims"]),
     ("ground-floor", "Conventions and utilities", "Units and resolution conventions, optics, threads, figures, "
@@ -56,8 +57,10 @@ API = [
      ["torchdoct.conventions", "torchdoct.optics", "torchdoct.runtime.threads", "torchdoct.figures",
       "torchdoct.runtime.resources", "torchdoct.runtime.interrupt", "torchdoct.runtime.machine", "torchdoct.files",
       "torchdoct.measured.imagej"]),
-    ("classifier", "Classifier", "Classify maps (numpy and onnxruntime only), train, match a system, translate.",
-     ["classifier.infer", "classifier.outputs", "classifier.pooling", "classifier.rule", "classifier.features",
+    ("classifier", "Classifier", "Classify maps (numpy and onnxruntime only), decide or abstain, train, match a "
+     "system, translate.",
+     ["classifier.infer", "classifier.outputs", "classifier.pooling", "classifier.rule", "classifier.conformal",
+      "classifier.calibrate", "classifier.ambiguity", "classifier.features",
       "classifier.matching", "classifier.own_system", "classifier.prior", "classifier.truth", "classifier.simulation",
       "classifier.dataset", "classifier.train", "classifier.export",
       "classifier.report", "classifier.evaluation", "classifier.evaluate_images", "classifier.translate"]),
