@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import functools
 import math
+import struct
 
 __all__ = [
     "LENGTH_UNIT",
@@ -84,7 +85,8 @@ __all__ = [
     "truncation_intensity_factor",
     "noise_power",
     "noise_sigma",
-    "TIME_RELATIVE_RESOLUTION",
+    "FLOAT32_SPACING",
+    "FLOAT64_SPACING",
     "time_tolerance_s",
     "uniform_frame_interval_s",
     "delay_groups",
@@ -100,15 +102,34 @@ DB_PER_NEPER_INTENSITY = 10.0 / math.log(10.0)
 #: tissue about 1.35-1.4, the densest optical glasses below 2; 5 leaves room and refuses typing errors).
 REFRACTIVE_INDEX_RANGE = (1.0, 5.0)
 
-#: Frame times are known to this fraction of their largest magnitude: four spacings of single precision
-#: (times stored as float32, by an HDF5 attribute, a MATLAB ``single`` or a float32 tensor, are exact to half
-#: of one). Two frame steps or delays that differ by less are one.
-TIME_RELATIVE_RESOLUTION = 4 * 2.0**-23
+#: Single precision's relative spacing, 2⁻²³: frame times stored as float32 (by an HDF5 attribute, a MATLAB
+#: ``single`` or a float32 tensor) are exact to half of it times their magnitude.
+FLOAT32_SPACING = 2.0**-23
+#: Double precision's relative spacing, 2⁻⁵².
+FLOAT64_SPACING = 2.0**-52
+
+
+def _is_single(v: float) -> bool:
+    """Whether ``v`` is a single-precision number (float32 rounds it to itself)."""
+    try:
+        return struct.unpack("f", struct.pack("f", v))[0] == v
+    except OverflowError:
+        return False
 
 
 def time_tolerance_s(times_s) -> float:
-    """The resolution (s) of frame times: :data:`TIME_RELATIVE_RESOLUTION` of their largest magnitude."""
-    return TIME_RELATIVE_RESOLUTION * max((abs(float(v)) for v in times_s), default=0.0)
+    """The resolution (s) of frame times: two steps or delays closer than this are one. At least 1e-9 of the
+    span (what times written with 9 digits resolve) and 8 double-precision spacings of the largest time;
+    when every time is a single-precision number (stored as float32), 4 single-precision spacings of the
+    largest time."""
+    t = [float(v) for v in times_s]
+    if not t:
+        return 0.0
+    top = max(abs(v) for v in t)
+    tol = max(1e-9 * (max(t) - min(t)), 8 * FLOAT64_SPACING * top)
+    if all(_is_single(v) for v in t):
+        tol = max(tol, 4 * FLOAT32_SPACING * top)
+    return tol
 
 
 def uniform_frame_interval_s(times_s) -> float | None:
@@ -145,7 +166,7 @@ def delay_groups(times_s) -> list[tuple[float, list[tuple[int, int]]]]:
             groups.append((d, [], []))
         groups[-1][1].append(d)
         groups[-1][2].append((i, j))
-    return [(math.fsum(ds) / len(ds), sorted(ij)) for _, ds, ij in groups]
+    return [(ds[0] + math.fsum(d - ds[0] for d in ds) / len(ds), sorted(ij)) for _, ds, ij in groups]
 
 
 _SQRT2 = math.sqrt(2.0)

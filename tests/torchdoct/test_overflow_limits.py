@@ -39,6 +39,25 @@ def test_a_number_beyond_any_float_in_a_sidecar_names_the_field(tmp_path, capsys
             "s.npy", field, absent=("OverflowError", "set_int_max_str_digits", "Exceeds the limit"))
 
 
+@pytest.mark.parametrize("first", [-1.7e308, -1e300, -1e5])
+def test_sidecar_frame_times_spanning_more_than_a_scene_may_are_refused_naming_the_field(tmp_path, capsys, first):
+    meta = _meta()
+    meta["frame_times_s"] = [first] + meta["frame_times_s"][1:]  # each finite; the span is not, or is over a day
+    seq = _seq(tmp_path, json.dumps(meta))
+    refused(capsys, tmp_path, ["maps", str(seq), "--out", str(tmp_path / "m.npz")],
+            "s.npy", "frame_times_s", "86400 s", absent=("OverflowError",))
+
+
+def test_ocds_of_frame_times_whose_span_overflows_names_the_argument():
+    import torch
+
+    import torchdoct as td
+
+    x = torch.rand(2, 8, generator=torch.Generator().manual_seed(0), dtype=torch.float64) + 0.5
+    with pytest.raises(ValueError, match=r"ocds\(frame_times_s\).*beyond any float"):
+        td.ocds(x, [-1e308] + [1e308 * (i / 7) for i in range(1, 8)], delay_range_s=(0.2, 0.6))
+
+
 def test_a_frame_time_of_ten_to_the_400_in_a_scene_file_names_the_field():
     d = {"system": [{"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}],
          "protocol": {"n_frames": 3, "frame_times_s": [0.0, 0.2, BIG]}, "population": [{"density_per_um3": 0.05}],

@@ -54,3 +54,11 @@ def test_maps_of_a_sidecar_with_single_precision_frame_times_equal_those_of_exac
         out[name] = read_maps(tmp_path / f"{name}-maps.npz")
     assert out["single"].channels == out["exact"].channels
     np.testing.assert_allclose(out["single"].maps, out["exact"].maps, rtol=1e-4, atol=1e-6)
+
+
+def test_timestamps_far_from_zero_in_double_precision_keep_their_distinct_delays():
+    bursts = [0.0, 0.1, 0.2, 0.5, 0.6, 0.7, 1.0, 1.1, 1.2]
+    epoch = [1.7e9 + t for t in bursts]  # seconds since 1970: double precision resolves them to a microsecond
+    got, want = delay_groups(epoch), delay_groups(bursts)
+    assert [ij for _, ij in got] == [ij for _, ij in want]
+    np.testing.assert_allclose([d for d, _ in got], [d for d, _ in want], atol=1e-6)

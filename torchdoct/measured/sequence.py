@@ -274,8 +274,14 @@ def validate_meta(meta: Mapping[str, Any], shape: _Seq[int], *, where: str = "me
     if len(t) != shape[0]:
         raise ValueError(f"{where}: frame_times_s has {len(t)} entries but the data have T = {shape[0]} frames; "
                          f"{HOW['frame_times_s']}")
-    if not all(math.isfinite(v) for v in t):
-        raise ValueError(f"{where}: frame_times_s must be finite; got {times!r}")
+    bad = next((i for i, v in enumerate(t) if not math.isfinite(v)), None)
+    if bad is not None:
+        raise ValueError(f"{where}: frame_times_s[{bad}] must be a finite number of seconds; got {times[bad]!r}")
+    from ..sim.config import MAX_DURATION_S
+
+    if t and not t[-1] - t[0] <= MAX_DURATION_S:  # as in scene files (an infinite span too)
+        raise ValueError(f"{where}: frame_times_s spans {t[0]:g} to {t[-1]:g} s, over {MAX_DURATION_S:g} s as in scene "
+                         "files; times are in seconds (204.8 ms is 0.2048)")
     if any(b <= a for a, b in zip(t, t[1:])):
         raise ValueError(f"{where}: frame_times_s must be strictly increasing (s)")
     out["frame_times_s"] = t

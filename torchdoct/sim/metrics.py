@@ -203,6 +203,9 @@ def _check_frame_times(func: str, frame_times_s: Any, n_frames: int) -> None:
     bad = next((i for i, v in enumerate(t) if not math.isfinite(v)), None)
     if bad is not None:
         raise ValueError(f"{func}(frame_times_s): frame_times_s[{bad}] = {t[bad]} is not finite")
+    if t and not math.isfinite(t[-1] - t[0]):
+        raise ValueError(f"{func}(frame_times_s): the times span {t[0]:g} to {t[-1]:g} s, beyond any float; give "
+                         "the times of the acquisition in s (e.g. from 0)")
     back = next((i for i in range(1, len(t)) if not t[i] > t[i - 1]), None)
     if back is not None:
         raise ValueError(f"{func}(frame_times_s): frame times must increase strictly; frame_times_s[{back}] = "
