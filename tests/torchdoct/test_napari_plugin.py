@@ -72,17 +72,27 @@ def test_npe2_writer_writes_maps_the_reader_reads_back(tmp_path, plugin):
     np.testing.assert_array_equal(back.maps, m.maps)
 
 
-def test_class_map_opens_as_labels_in_the_legend_colours(tmp_path, plugin):
+@pytest.mark.parametrize("layout", ["imagej-info", "json-description"])
+def test_class_map_opens_as_labels_in_the_legend_colours(tmp_path, plugin, layout):
+    """doct-classify's classes.tif (the legend in ImageJ's Info) and one of an earlier version (the legend as a
+    JSON ImageDescription)."""
     import json
 
     import tifffile
+
+    from torchdoct.measured.imagej import imagej_write_options
 
     legend = {"classes": [{"value": 0, "name": "diffusion", "color": "#0072B2"},
                           {"value": 1, "name": "flow", "color": "#E69F00"}],
               "masked_value": 255, "axes": "ZX", "pitch_um": {"z": 1.9, "x": 2.5}}
     labels = np.array([[0, 1, 255], [1, 0, 0]], dtype=np.uint8)
     path = tmp_path / "classes.tif"
-    tifffile.imwrite(path, labels, description=json.dumps({"legend": legend}))
+    text = json.dumps({"legend": legend})
+    if layout == "imagej-info":
+        tifffile.imwrite(path, labels, **imagej_write_options(labels.shape, "ZX", legend["pitch_um"], ["class"],
+                                                              description=text))
+    else:
+        tifffile.imwrite(path, labels, description=text)
     [(data, attrs, kind)] = npe2.read([str(path)], stack=False, plugin_name="torchdoct")
     assert kind == "labels" and tuple(attrs["scale"]) == pytest.approx((1.9, 2.5))
     np.testing.assert_array_equal(data, [[1, 2, 0], [2, 1, 1]])  # class v is label v + 1; masked is 0
