@@ -53,12 +53,46 @@ def onnx_session(model: str | os.PathLike | bytes, *, threads: int = 1, name: st
     opts.intra_op_num_threads = int(threads)
     opts.inter_op_num_threads = 1
     opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    opts.log_severity_level = 3  # errors only: onnxruntime's warnings would be lines beside ours
     source = model if isinstance(model, bytes) else str(model)
     try:
         return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
     except Exception as err:  # onnxruntime raises its own exception types
         label = name or ("serialized model" if isinstance(model, bytes) else Path(model).name)
-        raise ValueError(f"model {label}: not a readable ONNX model ({err})") from None
+        raise ValueError(_unreadable_model(label, str(err), ort.__version__)) from None
+
+
+#: The ``ai.onnx`` opsets onnxruntime guarantees (its lowest; the highest is its own, named in the message).
+MIN_OPSET = 7
+
+
+def _unreadable_model(label: str, err: str, version: str) -> str:
+    """One line for a model onnxruntime refused: an IR version or opset outside what this onnxruntime reads
+    names the supported range and the fix (:mod:`classifier.export` writes opset 17, IR version 8); any
+    other refusal is onnxruntime's own message on one line."""
+    import re
+
+    text = " ".join(err.split())
+    ir = re.search(r"Unsupported model IR version: (\d+), max supported IR version: (\d+)", text)
+    if ir:
+        return (f"model {label}: ONNX IR version {ir.group(1)} is not one onnxruntime {version} reads (IR versions "
+                f"up to {ir.group(2)}); export the model with IR version {ir.group(2)} or lower (doct-train writes "
+                "IR version 8, opset 17), or upgrade onnxruntime")
+    opset = re.search(r"Opset (\d+) is under development.*?till opset (\d+)", text)
+    old = re.search(r"No Op registered for (\w+) with domain_version of (\d+)", text)
+    if opset or (old and int(old.group(2)) < MIN_OPSET):
+        got, top = (opset.group(1), opset.group(2)) if opset else (old.group(2), _highest_opset())
+        return (f"model {label}: ONNX opset {got} is outside the opsets onnxruntime {version} supports "
+                f"({MIN_OPSET} to {top}); export the model at an opset in that range (doct-train writes opset 17)")
+    text = re.sub(r"/\S+\.(?:h|cc):\d+ [^)]*\)\s*", "", text)  # onnxruntime's source location and signature
+    return f"model {label}: not a readable ONNX model ({text})"
+
+
+def _highest_opset() -> int:
+    """The highest ``ai.onnx`` opset of this onnxruntime's operator schemas."""
+    from onnxruntime.capi import _pybind_state
+
+    return max(s.since_version for s in _pybind_state.get_all_operator_schema() if s.domain in ("", "ai.onnx"))
 
 
 def shipped_models() -> dict[str, Path]:

@@ -157,3 +157,26 @@ def test_doct_train_interrupted_says_what_the_cache_keeps(tmp_path, capsys, monk
     assert len(lines) == 1 and lines[0].startswith("interrupted (SIGTERM): kept the data splits simulated so far")
     assert str(tmp_path / "cache") in lines[0] and "rerun the same command" in lines[0]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("field,value,names", [
+    ("opset", 99, ("opset 99", "opsets onnxruntime", "(7 to ", "doct-train writes opset 17")),
+    ("opset", 1, ("opset 1", "(7 to ")),
+    ("ir_version", 99, ("IR version 99", "IR versions up to", "upgrade onnxruntime")),
+])
+def test_a_model_of_an_unsupported_opset_or_ir_version_names_the_supported_range(tmp_path, capsys, maps_file,
+                                                                                 field, value, names):
+    onnx = pytest.importorskip("onnx")
+    from classifier.runtime import shipped_models
+
+    proto = onnx.load(str(shipped_models()["single-acquisition"]))
+    if field == "opset":
+        proto.opset_import[0].version = value
+    else:
+        proto.ir_version = value
+    model = tmp_path / "model.onnx"
+    onnx.save(proto, str(model))
+    line = refused(capsys, tmp_path, classify_main, [str(maps_file), "--model", str(model), "--out",
+                                                     str(tmp_path / "o")], "model.onnx", *names,
+                   absent=("onnxruntime_src", "ONNXRuntimeError"))
+    assert "\n" not in line
