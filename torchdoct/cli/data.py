@@ -40,6 +40,12 @@ def _maps_arguments(mp) -> None:
                          "and volumes with a pixel pitch and a uniform frame interval")
     mp.add_argument("--speckle-window", type=int, default=9, metavar="N",
                     help="window of the speckle-motion channels, N pixels per axis (odd; default 9)")
+    mp.add_argument("--doppler", action="store_true",
+                    help="also write the Doppler phase against a static-tissue reference in the same A-line or B-scan "
+                         "(doppler_phase_M, rad, complex data; docs/concepts/doppler-reference.md); no reference: "
+                         "no channel")
+    mp.add_argument("--doppler-lags", default=None, metavar="M[,M..]",
+                    help="lags of the Doppler channels in frames (default 1; needs --doppler)")
     mp.add_argument("--out", action="append", required=True, metavar="FILE",
                     help="output maps file: .npz, .tif (ImageJ hyperstack), .ome.tif (OME-TIFF) or .zarr (OME-Zarr); "
                          "repeat to write several")
@@ -199,7 +205,12 @@ def maps_one(args: argparse.Namespace) -> int:
                         block_raster=raster, allow_external_hdf5=args.allow_external_hdf5, scale=args.scale,
                         stream=args.max_memory_gb is not None)
     resolutions = args.resolution or ["original"]
-    options = dict(metrics=metrics, signature=args.signature, speckle=args.speckle or None,
+    if args.doppler_lags is not None and not args.doppler:
+        raise ValueError("--doppler-lags sets the Doppler channels; add --doppler")
+    doppler = None
+    if args.doppler:
+        doppler = True if args.doppler_lags is None else [_lag(v) for v in args.doppler_lags.split(",") if v.strip()]
+    options = dict(metrics=metrics, signature=args.signature, speckle=args.speckle or None, doppler=doppler,
                    speckle_window=args.speckle_window, ocds_delay_range_s=tuple(args.ocds_delay_range_s),
                    ocds_scale=args.ocds_scale, ocds_estimator=args.ocds_estimator, edge_mode=args.edge_mode,
                    normalization=args.normalization)
@@ -259,6 +270,14 @@ def maps_one(args: argparse.Namespace) -> int:
         note = signature_channels(seq)[1]
         if note:
             print(f"note: {note}")
+    dop = maps.meta.get("doppler")
+    if dop:  # the reference found, or why there is no channel
+        for m, rec in (dop.get("per_lag") or {}).items():
+            print(f"Doppler reference at lag {m}: {rec['reference_share']:.1%} of the pixels; A-lines with their own "
+                  f"{rec['alines_own_reference']}, with their B-scan's {rec['alines_bscan_reference']}, without "
+                  f"{rec['alines_without_reference']} (NaN there)")
+        if dop.get("absent"):
+            print(f"note: --doppler: no Doppler channel: {dop['absent']}")
     nonfinite = maps.meta.get("nonfinite")
     if nonfinite:  # masked per pixel (compute_maps): say how many and where
         per = ", ".join(f"{n} at {res}" for res, n in nonfinite["masked_pixels"].items())
@@ -297,6 +316,13 @@ def maps_one(args: argparse.Namespace) -> int:
     return 0
 
 
+def _lag(text: str) -> int:
+    try:
+        return int(text.strip())
+    except ValueError:
+        raise ValueError(f"--doppler-lags: lags are whole numbers of frames, e.g. 1,2,4; got {text!r}") from None
+
+
 def _earlier_pngs(out: Path) -> list[Path]:
     """PNGs of an earlier ``maps --png`` run named after ``out`` (``STEM_METRIC_RESOLUTION.png``, METRIC a
     DOCT metric or a signature feature): the output set that ``--force`` replaces."""
@@ -306,7 +332,7 @@ def _earlier_pngs(out: Path) -> list[Path]:
     for p in sorted(out.parent.glob(f"{glob.escape(out.stem)}_*.png")):
         rest = p.stem[len(out.stem) + 1:]
         metric = rest.rsplit("_", 1)[0] if "_" in rest else ""
-        if metric in METRICS or (metric and _signature_feature(metric)):
+        if metric in METRICS or metric.startswith("doppler_phase_") or (metric and _signature_feature(metric)):
             found.append(p)
     return found
 

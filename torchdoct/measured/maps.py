@@ -98,6 +98,15 @@ from ..sim.signature import available_features, default_features, feature_unit, 
 from ..sim.speckle import halo_pixels
 from .bulkphase import CORRECTION_AXIS_NEEDS, BulkPhase, estimate_bulk_phase
 from .bulkphase import phasor as _bulk_phasor
+from .doppler import (
+    DopplerReference,
+    doppler_absent,
+    doppler_channel_records,
+    doppler_lags,
+    doppler_name,
+    doppler_slab,
+    estimate_doppler_reference,
+)
 from .io import Maps, SequenceData
 from .mapfigures import DEFAULT_HUE_RANGE, FLAG_RGB, map_figure, percentile_range, png_name, pseudo_color  # noqa: F401 (FLAG_RGB re-exported)
 from .mapmetrics import (
@@ -215,7 +224,8 @@ class MapsRequest:
     record; ``lateral_um`` / ``axial_um``: the original resolutions (``None`` when unknown);
     ``changes``: the targets that change the resolution; ``source``: the name in messages;
     ``speckle``: the speckle-motion channels (:mod:`torchdoct.sim.speckle`, at the first target that keeps
-    the original resolution; empty: none) and ``speckle_window`` their window (pixels per axis)."""
+    the original resolution; empty: none) and ``speckle_window`` their window (pixels per axis);
+    ``doppler``: the lags of the Doppler channels asked (:mod:`torchdoct.measured.doppler`; empty: none)."""
 
     metrics: tuple[str, ...]
     features: tuple[str, ...]
@@ -228,6 +238,7 @@ class MapsRequest:
     source: str
     speckle: tuple[str, ...] = ()
     speckle_window: int = 0
+    doppler: tuple[int, ...] = ()
 
     def optics(self, t: ResolutionTarget) -> tuple[float | None, float | None]:
         """``(lateral, axial)`` resolution (µm) of target ``t``; ``(None, None)`` when the optics are unknown."""
@@ -240,7 +251,8 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
                        ocds_delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S,
                        ocds_scale: str = "db", ocds_estimator: str = "pearson", edge_mode: str = "reflect",
                        normalization: str = "power", slab_elements: int = 1 << 23,
-                       speckle: bool | _Seq[str] | None = None, speckle_window: int = SPECKLE_WINDOW) -> MapsRequest:
+                       speckle: bool | _Seq[str] | None = None, speckle_window: int = SPECKLE_WINDOW,
+                       doppler: bool | _Seq[int] | None = None) -> MapsRequest:
     """Stage 1 of :func:`compute_maps`, before any work: the metric and feature names, the options, the
     resources (:func:`torchdoct.runtime.resources.check_maps`), the frames, the optics that each resolution target
     needs and the pixel grid that must hold it, intensity-only data against a resolution change, and the
@@ -257,7 +269,8 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
     spk: tuple[str, ...] = ()
     if speckle is not None and speckle is not False:
         spk = speckle_channels(seq, None if speckle is True else speckle, window=speckle_window)
-    if unknown or not (wanted or feats or spk):
+    dop = doppler_lags(seq, doppler)
+    if unknown or not (wanted or feats or spk or dop):
         raise ValueError(f"unknown metrics {unknown}; choose from {', '.join(METRICS)}")
     if edge_mode not in EDGE_MODES:
         raise ValueError(f"edge_mode must be one of {', '.join(EDGE_MODES)}; got {edge_mode!r}")
@@ -267,7 +280,8 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
     src = seq.source or "sequence"
     from ..runtime.resources import check_maps  # the one resource check of every command, before any work
     check_maps(src, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,
-               n_resolutions=len(targets), metrics=wanted + list(feats) + list(spk), slab_elements=slab_elements)
+               n_resolutions=len(targets), metrics=wanted + list(feats) + list(spk) + [doppler_name(m) for m in dop],
+               slab_elements=slab_elements)
     if seq.n_frames < 2:
         raise ValueError(f"{src}: {seq.n_frames} frame along T; DOCT maps need at least 2 frames (LIV is a variance "
                          "over frames); check the file or --axes")
@@ -285,7 +299,7 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
     ax0 = float(system["axial_resolution_um"]) if known else None
     req = MapsRequest(metrics=tuple(wanted), features=feats, targets=tuple(targets), system=system,
                       signature_system=sig_system, lateral_um=lat0, axial_um=ax0, changes=(), source=src,
-                      speckle=spk, speckle_window=int(speckle_window) if spk else 0)
+                      speckle=spk, speckle_window=int(speckle_window) if spk else 0, doppler=dop)
     changes = tuple(t for t in targets if req.optics(t) != (lat0, ax0))
     for t in targets:  # validate every target before any work
         if t.lateral_resolution_um is not None:
@@ -304,6 +318,9 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
     if spk and all(t in changes for t in targets):
         raise ValueError(f"{src}: the speckle-motion channels are computed at the original resolution (the finest "
                          "speckle: the most independent grains per window); add --resolution original")
+    if dop and all(t in changes for t in targets):
+        raise ValueError(f"{src}: the Doppler channels are computed at the original resolution; add --resolution "
+                         "original")
     times = seq.frame_times_s
     if "ocds" in wanted:
         lo, hi = ocds_delay_range_s
@@ -339,6 +356,19 @@ def _bulk_phase_factor(seq: SequenceData, req: MapsRequest, bulk_phase: str | Bu
         raise ValueError(f"{req.source} holds intensity only (dtype {seq.data.dtype}): bulk-phase correction needs the "
                          "complex field; give the complex sequence, or drop --bulk-phase")
     return bulk_phase, _bulk_phasor(bulk_phase, seq)
+
+
+def _doppler_stage(seq: SequenceData, req: MapsRequest, bulk: np.ndarray | None, *, slab_elements: int,
+                   progress: bool) -> tuple[DopplerReference | None, dict[str, Any] | None]:
+    """Stage 2b of :func:`compute_maps`: the static-tissue reference of the Doppler channels, over whole A-lines
+    before the slab loop (:func:`~torchdoct.measured.doppler.estimate_doppler_reference`), and
+    ``meta["doppler"]``; ``(None, None)`` when not asked, ``(None, why)`` for intensity-only input."""
+    if not req.doppler:
+        return None, None
+    if not seq.is_complex:
+        return None, doppler_absent(seq, req.doppler)
+    ref = estimate_doppler_reference(seq, req.doppler, bulk=bulk, slab_elements=slab_elements, progress=progress)
+    return ref, ref.meta()
 
 
 def _axial_center(seq: SequenceData, req: MapsRequest, axial_center: str | float) -> float | str:
@@ -458,6 +488,8 @@ class _SlabWork:
     chunk_pixels: int
     n_nonfinite: int = 0
     nonfinite_pixels: dict[str, int] = dataclasses.field(default_factory=dict)
+    doppler: DopplerReference | None = None
+    doppler_meta: dict[str, Any] | None = None
 
 
 def _fill_maps(work: _SlabWork, plans: list[_SlabPlan], *, progress: bool, timings: dict[str, float] | None) -> None:
@@ -578,7 +610,35 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int) -> No
         idx, f = speckle_slab(field, seq, req, cdim, a0, c0, c1, base=work.n_doct + len(req.targets) * len(feats),
                               keep_y=work.keep_y, mask=masks.get("pixel"))
         out[tuple(idx)] = f
+    if work.doppler is not None and work.doppler.lags and t is speckle_target(req):
+        _doppler_channels(work, raw, sel, cdim, a0, c0, c1, masks.get("pixel"))
     del field
+
+
+def _doppler_channels(work: _SlabWork, raw: np.ndarray, sel: list[slice], cdim: int, a0: int, c0: int, c1: int,
+                      mask: np.ndarray | None) -> None:
+    """The Doppler channels (the last ones) of the rows ``c0:c1`` from the slab ``raw`` as read (rows ``a0:``),
+    bulk-corrected as the reference was (:func:`~torchdoct.measured.doppler.doppler_slab`): only the kept
+    B-scans of a block raster, NaN where ``mask`` (the pixels non-finite samples reach) is set."""
+    seq, out, ref = work.seq, work.out, work.doppler
+    x = raw
+    if work.bulk is not None:
+        psel = list(sel)
+        psel[seq.axes.index("Z")] = slice(None)
+        x = np.multiply(raw, work.bulk[tuple(psel)])
+    x = torch.from_numpy(x).narrow(cdim, c0 - a0, c1 - c0)
+    f = doppler_slab(x, ref, cdim, c0, c1, chunk_pixels=work.chunk_pixels)
+    n = len(ref.lags)
+    idx: list[Any] = [slice(out.shape[0] - n, out.shape[0])] + [slice(None)] * (x.dim() - 1)
+    idx[cdim] = slice(c0, c1)
+    if work.keep_y is not None:
+        ys = np.flatnonzero(work.keep_y[c0:c1] if cdim == 1 else work.keep_y)
+        f = f[:, ys]
+        mask = None if mask is None else mask[ys]
+        idx[1] = ys + (c0 if cdim == 1 else 0)
+    if mask is not None:
+        f = np.where(mask, np.nan, f)
+    out[tuple(idx)] = f
 
 
 def _maps_result(work: _SlabWork, channels: list[dict[str, Any]], *, bulk_phase: BulkPhase | None, peak: float,
@@ -635,6 +695,8 @@ def _maps_result(work: _SlabWork, channels: list[dict[str, Any]], *, bulk_phase:
                              "definition": "torchdoct.sim.signature (lags in frames)"}
     if req.speckle:
         meta["speckle"] = speckle_meta(req)
+    if work.doppler_meta is not None:
+        meta["doppler"] = work.doppler_meta
     return Maps(maps=out.astype(np.float32, copy=False), channels=tuple(c["name"] for c in channels), meta=meta)
 
 
@@ -649,7 +711,7 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
                  bulk_phase: str | BulkPhase | None = None, signature: bool | _Seq[str] | None = None,
                  slab_elements: int = 1 << 23, chunk_pixels: int = 1 << 16, progress: bool = False,
                  timings: dict[str, float] | None = None, speckle: bool | _Seq[str] | None = None,
-                 speckle_window: int = SPECKLE_WINDOW) -> Maps:
+                 speckle_window: int = SPECKLE_WINDOW, doppler: bool | _Seq[int] | None = None) -> Maps:
     """DOCT maps of ``seq`` at every resolution in ``resolutions`` (see the module docstring).
 
     ``metrics``: any of ``liv``, ``ocds``, ``mean_db``, ``aliv``, ``swiftness``. ``axial_center``,
@@ -669,11 +731,16 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
     channels of :func:`speckle_channels` (``True`` for the defaults, or the names), after every other channel,
     from the field of the first target that keeps the original resolution (bulk-corrected with
     ``bulk_phase``), each pixel's ``speckle_window``-pixel window read across slab boundaries (a halo of
-    :func:`torchdoct.sim.speckle.halo_pixels` rows); recorded as ``meta["speckle"]``. Returns :class:`Maps`
-    (float32 ``[C, (Y), Z, X]``, channels ``f"{metric}@{resolution}"``).
+    :func:`torchdoct.sim.speckle.halo_pixels` rows); recorded as ``meta["speckle"]``. ``doppler``: also the
+    Doppler phase against a static-tissue reference (:mod:`torchdoct.measured.doppler`; ``True`` for lag 1,
+    or the lags in frames), last, at the original resolution; its reference is estimated first over whole
+    A-lines (:func:`_doppler_stage`); recorded as ``meta["doppler"]`` with the reference share; a lag
+    without any reference, or intensity-only input, gives no channel and says why there. Returns
+    :class:`Maps` (float32 ``[C, (Y), Z, X]``, channels ``f"{metric}@{resolution}"``).
 
     The stages, in this order: :func:`check_maps_request` (everything that can be refused, before any
-    work), :func:`_bulk_phase_factor` (the bulk phase and its phasor), :func:`_axial_center` (the axial
+    work), :func:`_bulk_phase_factor` (the bulk phase and its phasor), :func:`_doppler_stage` (the Doppler
+    channels' reference), :func:`_axial_center` (the axial
     window's centre), :func:`_empty_floor` (the largest intensity and the empty floor), :func:`_slab_plans`
     (each resolution's cut), :func:`_channel_records` (the channels' names and optics), :func:`_fill_maps`
     (the slab loop, :func:`_map_slab` per slab) and :func:`_maps_result` (metadata, block raster, float32).
@@ -681,10 +748,13 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
     req = check_maps_request(seq, resolutions, metrics=metrics, signature=signature,
                              ocds_delay_range_s=ocds_delay_range_s, ocds_scale=ocds_scale,
                              ocds_estimator=ocds_estimator, edge_mode=edge_mode, normalization=normalization,
-                             slab_elements=slab_elements, speckle=speckle, speckle_window=speckle_window)
+                             slab_elements=slab_elements, speckle=speckle, speckle_window=speckle_window,
+                             doppler=doppler)
     dev = torch.device(device) if device is not None else torch.device("cpu")
     bulk_phase, bulk = _bulk_phase_factor(seq, req, bulk_phase, slab_elements=slab_elements, device=dev,
                                           progress=progress)
+    dref, dmeta = _doppler_stage(seq, req, bulk, slab_elements=slab_elements, progress=progress)
+    n_dop = len(dref.lags) if dref is not None else 0
     fc = _axial_center(seq, req, axial_center)
     fitted = "aliv" in req.metrics or "swiftness" in req.metrics
     margin = 1 if (aliv_smoothing and fitted) else 0
@@ -695,16 +765,20 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
     keep_y = None  # the B-scans a block raster volume keeps (its others are dropped at the end)
     if raster is not None:
         keep_y = raster.keep_y() if drop_boundary else np.ones(raster.n_y, dtype=bool)
-    out = np.full((n_doct + len(req.targets) * len(req.features) + len(req.speckle), *seq.data.shape[1:]), np.nan,
-                  dtype=_real_dtype(seq))
+    out = np.full((n_doct + len(req.targets) * len(req.features) + len(req.speckle) + n_dop, *seq.data.shape[1:]),
+                  np.nan, dtype=_real_dtype(seq))
     plans = _slab_plans(seq, req, bulk=bulk is not None, smoothing_margin=bool(margin), edge_mode=edge_mode,
                         slab_elements=slab_elements)
     channels = _channel_records(req, outputs)
+    if n_dop:
+        t_dop = speckle_target(req)
+        channels += doppler_channel_records(dref, t_dop.label, req.optics(t_dop), req.system.get("wavelength_um"))
     options = dict(ocds_delay_range_s=tuple(ocds_delay_range_s), ocds_scale=ocds_scale, ocds_estimator=ocds_estimator,
                    aliv_smoothing=aliv_smoothing, aliv_max_window_s=aliv_max_window_s)
     work = _SlabWork(seq=seq, req=req, out=out, outputs=outputs, n_doct=n_doct, keep_y=keep_y, bulk=bulk, device=dev,
                      axial_center=fc, edge_mode=edge_mode, normalization=normalization, floor=floor,
-                     smoothing_margin=margin, metric_options=options, chunk_pixels=chunk_pixels)
+                     smoothing_margin=margin, metric_options=options, chunk_pixels=chunk_pixels, doppler=dref,
+                     doppler_meta=dmeta)
     _fill_maps(work, plans, progress=progress, timings=timings)
     return _maps_result(work, channels, bulk_phase=bulk_phase, peak=peak, axial_center=axial_center, options=options)
 

@@ -1,0 +1,202 @@
+"""Doppler phase against a static-tissue reference (torchdoct.measured.doppler, ``torchdoct maps --doppler``;
+docs/concepts/doppler-reference.md).
+
+The fields are point scatterers under the Gaussian PSF of physics.md §5.1 (840 nm, 4.9/3.8 µm, n = 1), one
+column of scatterers per A-line, layered in depth: static tissue, an axial flow layer (every scatterer
+moves deeper at ``v_z``), a random-ballistic layer (isotropic directions), in white noise; a random bulk
+phase per frame (and per A-line) multiplies the whole field where a test asks for it. The truth of the
+flow layer is ``−2kn·v_z·Δt`` per lag; its mean over A-lines (each A-line's mean over the layer's inner
+rows, A-lines independent) must recover it within 3.5 standard errors.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from torchdoct.cli import main
+from torchdoct.measured.doppler import min_reference_snr, min_whiteness, phase_tolerance
+from torchdoct.measured.io import SequenceData, read_maps, validate_meta
+from torchdoct.measured.maps import compute_maps
+
+WL, LAT, AX = 0.84, 4.9, 3.8
+SYSTEM = {"name": "840nm", "wavelength_um": WL, "lateral_resolution_um": LAT, "axial_resolution_um": AX,
+          "refractive_index": 1.0}
+K = 2 * math.pi / WL
+SX = LAT / (2 * math.sqrt(2))
+SZ = AX / (2 * math.sqrt(math.log(2)))
+DZ, DT, T = 1.5, 0.05, 32
+Z_SE = 3.5
+NAME = "doppler_phase_1@original"
+
+
+def layered_field(n_lines, layers, *, snr_db=30.0, seed=0, density=0.05):
+    """``[T, Z, X]`` complex128 field of A-lines through ``layers``: a list of ``(rows, motion, speed)`` with
+    ``motion`` one of ``static``, ``flow`` (axial, deeper) or ``ballistic``; white noise ``snr_db`` below the
+    mean intensity."""
+    rng = np.random.default_rng(seed)
+    n_z = sum(r for r, _, _ in layers)
+    zpix = np.arange(n_z) * DZ
+    half = 3 * SX
+    top, bottom = -3 * SZ, n_z * DZ + 3 * SZ
+    n_j = int(density * (2 * half) ** 2 * (bottom - top))
+    x0 = rng.uniform(-half, half, (n_lines, n_j))
+    y0 = rng.uniform(-half, half, (n_lines, n_j))
+    z0 = rng.uniform(top, bottom, (n_lines, n_j))
+    bounds = np.cumsum([r for r, _, _ in layers]) * DZ
+    layer = np.minimum(np.searchsorted(bounds, z0, side="right"), len(layers) - 1)
+    vel = np.zeros((n_lines, n_j, 3))
+    for i, (_, motion, speed) in enumerate(layers):
+        here = layer == i
+        if motion == "flow":
+            vel[here] = [0.0, 0.0, speed]
+        elif motion == "ballistic":
+            u = rng.standard_normal((int(here.sum()), 3))
+            vel[here] = speed * u / np.linalg.norm(u, axis=1, keepdims=True)
+    e = np.empty((T, n_lines, n_z), dtype=np.complex128)
+    for t in range(T):
+        x, y, z = (c + vel[..., i] * t * DT for i, c in enumerate((x0, y0, z0)))
+        amp = np.exp(-(x * x + y * y) / (2 * SX * SX) + 2j * K * z)
+        e[t] = np.einsum("lj,ljz->lz", amp, np.exp(-(z[..., None] - zpix) ** 2 / (2 * SZ * SZ)))
+    p = float(np.mean(np.abs(e) ** 2))
+    e += (rng.standard_normal(e.shape) + 1j * rng.standard_normal(e.shape)) * math.sqrt(p * 10 ** (-snr_db / 10) / 2)
+    return np.ascontiguousarray(e.transpose(0, 2, 1))  # [T, Z, X]
+
+
+def seq_of(data):
+    meta = {"axes": "TZX", "pitch_um": {"z": DZ, "x": 2.0}, "frame_times_s": [DT * i for i in range(T)],
+            "system": SYSTEM}
+    return SequenceData(data=data, meta=validate_meta(meta, data.shape), source="test.npy")
+
+
+def with_bulk(e, seed, per_aline=False):
+    rng = np.random.default_rng(seed)
+    phi = rng.uniform(-math.pi, math.pi, (T, 1, e.shape[2] if per_aline else 1))
+    return e * np.exp(1j * phi)
+
+
+def layer_mean(ch, rows):
+    """Mean and standard error over A-lines of each A-line's mean over ``rows`` (NaN-free)."""
+    a = np.nanmean(ch[rows], axis=0)
+    a = a[np.isfinite(a)]
+    return float(a.mean()), float(a.std(ddof=1) / math.sqrt(a.size))
+
+
+V_FLOW = 0.8  # µm/s: a Doppler step of 0.6 rad per frame, 1.2 µm of travel over the sequence
+LAYERS = [(16, "static", 0.0), (16, "flow", V_FLOW), (16, "ballistic", 0.3)]
+# the layers' inner rows: more than 2 s_z (4.6 µm, 3 rows) from a boundary, so the PSF does not mix them
+STATIC, FLOW, BALLISTIC = slice(0, 12), slice(20, 28), slice(36, 48)
+
+
+@pytest.fixture(scope="module")
+def field():
+    return layered_field(96, LAYERS, seed=3)
+
+
+@pytest.fixture(scope="module")
+def maps_with_bulk(field):
+    return compute_maps(seq_of(with_bulk(field, 11)), metrics=("liv", "mean_db"), doppler=True)
+
+
+def test_flow_velocity_is_recovered_under_a_random_bulk_phase(maps_with_bulk):
+    m = maps_with_bulk
+    assert m.channels[-1] == NAME
+    ch = m.maps[m.index(NAME)].astype(np.float64)
+    info = m.meta["doppler"]["per_lag"]["1"]
+    mean, se = layer_mean(ch, FLOW)
+    vz = mean * info["vz_um_per_s_per_rad"]
+    assert abs(mean - (-2 * K * V_FLOW * DT)) <= Z_SE * se, (mean, se, vz)
+    assert abs(vz - V_FLOW) <= Z_SE * se * abs(info["vz_um_per_s_per_rad"])
+    s_mean, s_se = layer_mean(ch, STATIC)  # the static tissue sits at 0
+    assert abs(s_mean) <= Z_SE * s_se, (s_mean, s_se)
+    # the reference is the static layer: its share, and no flow pixel in it
+    assert info["alines_own_reference"] + info["alines_bscan_reference"] == 96
+    assert 0.1 < info["reference_share"] < 1.0 / 3 + 0.01
+
+
+def test_random_ballistic_layer_has_zero_mean_phase(maps_with_bulk):
+    ch = maps_with_bulk.maps[maps_with_bulk.index(NAME)].astype(np.float64)
+    mean, se = layer_mean(ch, BALLISTIC)
+    assert abs(mean) <= Z_SE * se, (mean, se)
+
+
+def test_bulk_phase_does_not_change_the_channel(field, maps_with_bulk):
+    ref = maps_with_bulk.maps[maps_with_bulk.index(NAME)]
+    for seed, per_aline in ((12, True), (None, False)):
+        data = field if seed is None else with_bulk(field, seed, per_aline=per_aline)
+        m = compute_maps(seq_of(data), metrics=("liv", "mean_db"), doppler=True)
+        got = m.maps[m.index(NAME)]
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+        np.testing.assert_allclose(got, ref, atol=1e-4, equal_nan=True)
+
+
+def test_other_channels_are_bit_identical(field, maps_with_bulk):
+    data = with_bulk(field, 11)
+    plain = compute_maps(seq_of(data), metrics=("liv", "mean_db"))
+    assert maps_with_bulk.channels[:-1] == plain.channels
+    np.testing.assert_array_equal(maps_with_bulk.maps[:-1], plain.maps)
+    assert "doppler" not in plain.meta
+
+
+def test_without_static_tissue_the_channel_is_absent():
+    e = with_bulk(layered_field(48, [(16, "flow", V_FLOW), (16, "ballistic", 0.3)], seed=5), 13)
+    m = compute_maps(seq_of(e), metrics=("mean_db",), doppler=True)
+    assert not any(c.startswith("doppler_phase") for c in m.channels)
+    d = m.meta["doppler"]
+    assert d["channels"] == [] and "absent" in d and "static" in d["absent"]
+    assert d["per_lag"]["1"]["alines_without_reference"] == 48
+
+
+def test_intensity_only_input_gives_no_channel_and_a_note(tmp_path, capsys):
+    inten = np.abs(layered_field(8, LAYERS[:2], seed=1)) ** 2
+    m = compute_maps(seq_of(inten.astype(np.float32)), metrics=("mean_db",), doppler=True)
+    assert m.channels == ("mean_db@original",)
+    assert "intensity only" in m.meta["doppler"]["absent"]
+    np.save(tmp_path / "i.npy", inten.astype(np.float32))
+    (tmp_path / "i.json").write_text(json.dumps({"axes": "TZX", "pitch_um": {"z": DZ, "x": 2.0},
+                                                  "frame_times_s": [DT * i for i in range(T)], "system": SYSTEM}))
+    assert main(["maps", str(tmp_path / "i.npy"), "--metrics", "mean_db", "--doppler", "--out",
+                 str(tmp_path / "i.npz"), "--no-progress"]) == 0
+    assert "note: --doppler" in capsys.readouterr().out
+
+
+def test_slabs_and_lags_and_the_cli(tmp_path, capsys, field):
+    data = with_bulk(field[:, :, :24], 17)
+    whole = compute_maps(seq_of(data), metrics=("mean_db",), doppler=(1, 2))
+    # depth slabs of 5 rows (the maps) and lateral slabs of 5 A-lines (the reference): the same channels
+    cut = compute_maps(seq_of(data), metrics=("mean_db",), doppler=(1, 2), slab_elements=5 * data.shape[0] * 24)
+    np.testing.assert_array_equal(whole.maps, cut.maps)
+    assert whole.channels[-2:] == ("doppler_phase_1@original", "doppler_phase_2@original")
+    two = whole.maps[whole.index("doppler_phase_2@original")].astype(np.float64)
+    mean, se = layer_mean(two, FLOW)
+    assert abs(mean - (-2 * K * V_FLOW * 2 * DT)) <= Z_SE * se
+    np.save(tmp_path / "f.npy", data.astype(np.complex64))
+    (tmp_path / "f.json").write_text(json.dumps({"axes": "TZX", "pitch_um": {"z": DZ, "x": 2.0},
+                                                  "frame_times_s": [DT * i for i in range(T)], "system": SYSTEM}))
+    out = tmp_path / "f.npz"
+    assert main(["maps", str(tmp_path / "f.npy"), "--doppler", "--doppler-lags", "1,2", "--out", str(out),
+                 "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "Doppler reference" in text
+    maps = read_maps(out)
+    assert maps.meta["doppler"]["channels"] == ["doppler_phase_1", "doppler_phase_2"]
+    assert maps.meta["doppler"]["per_lag"]["1"]["reference_share"] > 0
+
+
+def test_the_rule_s_constants_follow_from_the_noise():
+    c = 0.05
+    s = min_reference_snr(c)
+    assert (2 * s + 1) / (s + 1) ** 2 == pytest.approx(c)  # a static pixel at that SNR has the threshold contrast
+    assert 0 < min_whiteness(32) < 1 and min_whiteness(32) < min_whiteness(128)
+    assert phase_tolerance(2, 32) > phase_tolerance(1, 32) > phase_tolerance(1, 64)
+
+
+def test_refusals():
+    e = layered_field(4, LAYERS[:1], seed=2)
+    with pytest.raises(ValueError, match="lag"):
+        compute_maps(seq_of(e), metrics=("mean_db",), doppler=(T,))
+    with pytest.raises(ValueError, match="original"):
+        compute_maps(seq_of(e), ["axial=7.6"], metrics=("mean_db",), doppler=True)
