@@ -65,14 +65,24 @@ def _same_maps(got, want):
         np.testing.assert_allclose(got.maps[i], w, rtol=ULP256, atol=ULP256 * scale, err_msg=name)
 
 
+#: Formats read slab by slab when streamed (torchdoct maps --max-memory-gb): memory-mapped (.npy, raw, an
+#: uncompressed OME-TIFF), chunked (OME-Zarr) or one file per frame (a folder of TIFFs); MATLAB v5 is read whole.
+STREAMED = {"npy", "raw-big-endian-header", "bin-little-endian", "ome-tiff-time-increment", "ome-tiff-plane-deltat",
+            "ome-zarr-0.4", "ome-zarr-0.5", "tiff-folder"}
+
+
+@pytest.mark.parametrize("read", ["whole", "streamed"])
 @pytest.mark.parametrize("kind", ["complex", "intensity"])
 @pytest.mark.parametrize("fmt", list(WRITERS))
-def test_one_sequence_in_every_format_gives_the_same_maps(tmp_path, reference_maps, fmt, kind):
+def test_one_sequence_in_every_format_gives_the_same_maps(tmp_path, reference_maps, fmt, kind, read):
+    from torchdoct.measured.formats.lazy import LazyArray
     from torchdoct.measured.maps import compute_maps
 
     a = F.field() if kind == "complex" else (np.abs(F.field()) ** 2).astype(np.float32)
     path = WRITERS[fmt](tmp_path, a)
-    seq = read_sequence(path, system=SYSTEM if kind == "complex" else None)
+    seq = read_sequence(path, system=SYSTEM if kind == "complex" else None, stream=read == "streamed")
+    lazy = isinstance(seq.data, LazyArray)
+    assert lazy == ((read == "streamed" and fmt in STREAMED) or fmt.startswith("ome-zarr")), type(seq.data)
     assert seq.axes == "TZX" and seq.data.shape == a.shape and seq.data.dtype == a.dtype
     np.testing.assert_allclose(seq.frame_times_s, [k * F.DT_S for k in range(a.shape[0])], rtol=1e-12, atol=1e-15)
     assert seq.pitch_um == pytest.approx(F.PITCH, rel=1e-12)
@@ -421,6 +431,28 @@ def test_streamed_big_endian_raw_and_integer_zarr_are_converted_as_they_are_read
     seq = read_sequence(F.write_ome_zarr(tmp_path / "c.zarr", counts))
     assert isinstance(seq.data, LazyArray) and seq.data.dtype == np.float32  # OME-Zarr counts: an intensity
     np.testing.assert_array_equal(seq.data[3], counts[3].astype(np.float32))
+
+
+def test_a_compressed_ome_tiff_is_read_whole_even_when_streamed(tmp_path):
+    import tifffile
+
+    from torchdoct.measured.formats.lazy import LazyArray
+
+    a = F.field(t=6)
+    p = tmp_path / "z.ome.tif"
+    tifffile.imwrite(p, a, ome=True, compression="zlib", metadata={"axes": "TYX", "TimeIncrement": 0.05,
+                                                                   "PhysicalSizeX": 1.5, "PhysicalSizeY": 1.0})
+    seq = read_sequence(p, stream=True)
+    assert not isinstance(seq.data, LazyArray)  # no run of raw bytes to map
+    np.testing.assert_array_equal(seq.data, a)
+
+
+def test_a_frame_file_damaged_after_the_check_is_named_when_streamed(tmp_path):
+    path = F.write_tiff_folder(tmp_path / "fold", (np.abs(F.field(t=6)) ** 2).astype(np.float32))
+    seq = read_sequence(path, stream=True)
+    _truncate(path / "frame4.tif", 0.5)
+    with pytest.raises(ValueError, match="frame4.tif"):
+        seq.data[:, 2:4]
 
 
 def test_streamed_db_input_is_converted_slab_by_slab_to_the_same_intensity(tmp_path):

@@ -76,7 +76,8 @@ def _maps_arguments(mp) -> None:
                         "files (refused by default: they can make any readable file into data)")
     g.add_argument("--max-memory-gb", type=float, default=None, metavar="GB",
                    help="working memory of the maps (slabs and output; GiB): the sequence is streamed through "
-                        "them in slabs that fit, memory-mapped and OME-Zarr inputs read slab by slab")
+                        "them in slabs that fit; .npy, raw, uncompressed OME-TIFF, OME-Zarr and TIFF-folder inputs read slab by "
+                        "slab (docs/formats.md)")
     g.add_argument("--max-input-gb", type=float, default=None, metavar="GB",
                    help="largest input array to read (GiB; default 8 or $TORCHDOCT_MAX_INPUT_GB)")
     g.add_argument("--block-raster", default=None, metavar="B:R:K",

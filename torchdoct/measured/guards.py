@@ -33,7 +33,8 @@ import numpy as np
 
 __all__ = ["TiffDamage", "check_npy_header", "refuse_object", "parse_json_object", "json_loads", "MAX_INPUT_ENV",
            "DEFAULT_MAX_INPUT_GB", "max_input_bytes", "set_max_input_gb", "check_declared_size", "check_npy_size",
-           "check_npz_sizes", "check_tiff_pages", "check_hdf5_local", "check_memory_budget", "streaming_reads"]
+           "check_npz_sizes", "check_tiff_pages", "check_hdf5_local", "check_memory_budget", "streaming_reads",
+           "streaming"]
 
 MAX_INPUT_ENV = "TORCHDOCT_MAX_INPUT_GB"
 DEFAULT_MAX_INPUT_GB = 8.0
@@ -94,6 +95,11 @@ def streaming_reads(on: bool = True):
         yield
     finally:
         _streaming = before
+
+
+def streaming() -> bool:
+    """Whether the reader runs within :func:`streaming_reads` (so it may hand over an array read slab by slab)."""
+    return _streaming
 
 
 def check_declared_size(where: str, shape: Iterable[int], itemsize: int, what: str = "array",
@@ -187,9 +193,10 @@ def check_npz_sizes(path: Path, what: str = "") -> None:
         return  # the caller's reader reports the damaged archive
 
 
-def check_tiff_pages(path: Path, tf: Any, what: str = "") -> None:
+def check_tiff_pages(path: Path, tf: Any, what: str = "", streamed: bool = False) -> None:
     """A TIFF's pages all of one shape and dtype (mixed pages are refused naming the first page that
-    differs, instead of reading some and dropping the rest) and their total within :func:`max_input_bytes`."""
+    differs, instead of reading some and dropping the rest) and their total within :func:`max_input_bytes`
+    (``streamed``: :func:`check_declared_size`)."""
     pages = tf.pages
     n = len(pages)
     if n == 0:
@@ -203,7 +210,8 @@ def check_tiff_pages(path: Path, tf: Any, what: str = "") -> None:
                              f"{i} is {list(page.shape)} {page.dtype}; a stack needs one shape on every page (write "
                              "the frames as one stack of equal images)")
     itemsize = dtype0.itemsize if dtype0 is not None else 1
-    check_declared_size(f"{what}{path.name}", (n, *shape0), itemsize, what=f"TIFF stack ({n} pages)")
+    check_declared_size(f"{what}{path.name}", (n, *shape0), itemsize, what=f"TIFF stack ({n} pages)",
+                        streamed=streamed)
 
 
 def check_hdf5_local(fh: Any, path: Path, allow_external: bool = False) -> None:

@@ -17,7 +17,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from ..guards import TiffDamage, check_tiff_pages, parse_json_object
+import numpy as np
+
+from ..guards import TiffDamage, check_tiff_pages, parse_json_object, streaming
 from .base import LENGTH_UM, TIME_S, Loaded, to_unit
 
 SUFFIXES = (".ome.tif", ".ome.tiff")
@@ -99,6 +101,23 @@ def ome_meta(ome: dict[str, Any], where: str) -> tuple[str, dict[str, Any]]:
     return ("TZYX" if volume else "TZX"), meta
 
 
+def _contiguous_offset(tf: Any, planes: int) -> int | None:
+    """The file offset of the first ``planes`` pages when they lie uncompressed, one after another, in one
+    run of bytes (then they can be memory-mapped and read slab by slab), else None."""
+    pages = tf.pages
+    if planes > len(pages):
+        return None
+    first = pages[0]
+    if first.compression != 1 or not first.is_contiguous:
+        return None
+    offset, nbytes = first.dataoffsets[0], first.nbytes
+    for i in range(1, planes):  # every page's strip is uncompressed and right after the one before
+        pg = pages[i]
+        if pg.compression != 1 or not pg.is_contiguous or pg.dataoffsets[0] != offset + i * nbytes:
+            return None
+    return int(offset)
+
+
 def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = False) -> Loaded:
     import tifffile
 
@@ -118,12 +137,17 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
             if planes > len(tf.pages):
                 raise ValueError(f"OME-XML declares SizeT={sizes['T']} × SizeZ={sizes['Z']} = {planes} planes but the "
                                  f"file holds {len(tf.pages)} pages; the file is truncated or its OME-XML is wrong")
-            check_tiff_pages(path, tf)  # one shape on every page, total within the input limit
+            offset = _contiguous_offset(tf, planes) if streaming() else None
+            check_tiff_pages(path, tf, streamed=offset is not None)  # one shape on every page, the size limit
             page = tf.pages[0]
             if tuple(page.shape) != (sizes["Y"], sizes["X"]):
                 raise ValueError(f"OME-XML declares planes of SizeY×SizeX = {sizes['Y']}×{sizes['X']} but the pages "
                                  f"are {list(page.shape)}")
-            data = tf.asarray(key=range(planes)) if planes > 1 else page.asarray()[None]
+            if offset is not None:  # read slab by slab (torchdoct maps --max-memory-gb)
+                dt = np.dtype(page.dtype).newbyteorder(tf.byteorder)
+                data = np.memmap(path, dtype=dt, mode="r", offset=offset, shape=(planes, sizes["Y"], sizes["X"]))
+            else:
+                data = tf.asarray(key=range(planes)) if planes > 1 else page.asarray()[None]
             damage.check()
     except (tifffile.TiffFileError, OSError, ValueError) as err:
         msg = str(err)
