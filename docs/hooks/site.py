@@ -46,8 +46,10 @@ API = [
       "torchdoct.sim.metrics", "torchdoct.sim.signature", "torchdoct.sim.theory", "torchdoct.sim.kernel"]),
     ("images", "Phantoms and rendering", "Phantom files and the image renderer.",
      ["torchdoct.image.phantom", "torchdoct.image.render"]),
-    ("measured", "Measured data", "Readers, resolution reduction, bulk-phase correction, DOCT maps and statistics.",
+    ("measured", "Measured data", "Readers, resolution reduction, bulk-phase correction, the Doppler reference, DOCT maps and "
+     "statistics.",
      ["torchdoct.measured.io", "torchdoct.measured.sequence", "torchdoct.measured.resolution", "torchdoct.measured.bulkphase",
+      "torchdoct.measured.doppler",
       "torchdoct.measured.maps", "torchdoct.measured.mapsfile", "torchdoct.measured.compare",
       "torchdoct.measured.formats", "torchdoct.measured.guards"]),
     ("study", "Sweeps and the study", "Parameter sweeps and the reference paper's numerical study.",
