@@ -178,6 +178,18 @@ def test_thorlabs_oct_is_refused_naming_the_exports_to_use(outdir, capsys):
     refused(capsys, outdir, _argv(outdir, path), "scan.oct", "not read", "OME-TIFF")
 
 
+def test_dataset_names_the_variable_of_a_mat_v5_file(outdir, capsys):
+    import scipy.io as sio
+
+    a = F.field(t=8)
+    p = outdir / "s.mat"
+    sio.savemat(p, {"E": np.ascontiguousarray(a.transpose(1, 2, 0)), "background": np.ones((3, 3))})
+    F.sidecar(p, t=8, axes="ZXT")
+    np.testing.assert_array_equal(read_sequence(p, dataset="E").data, a)
+    refused(capsys, outdir, _argv(outdir, p), "s.mat", "E", "background", "--dataset")
+    refused(capsys, outdir, _argv(outdir, p, "--dataset", "nope"), "s.mat", "'nope'", "E, background")
+
+
 def test_axes_override_reorients_a_mat_file(tmp_path):
     a = F.field(t=4)
     p = F.write_mat(tmp_path / "s.mat", a)
