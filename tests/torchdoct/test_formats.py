@@ -425,7 +425,7 @@ def test_a_streamed_input_is_bound_by_the_budget_not_by_the_default_input_limit(
     monkeypatch.setattr(guards, "DEFAULT_MAX_INPUT_GB", 1e-6)  # 1 kB: the field is 12 kB
     seq = read_sequence(path, stream=True)
     np.testing.assert_array_equal(seq.data[2:5], a[2:5])
-    with pytest.raises(ValueError, match="--max-input-gb"):
+    with pytest.raises(ValueError, match="--max-memory-gb GB .*, or raise the limit with --max-input-gb"):
         read_sequence(path)
     guards.set_max_input_gb(1e-6)
     with pytest.raises(ValueError, match="--max-input-gb"):

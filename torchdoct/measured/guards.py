@@ -117,8 +117,10 @@ def check_declared_size(where: str, shape: Iterable[int], itemsize: int, what: s
     limit = max_input_bytes()
     if n > limit:
         raise ValueError(f"{where}: the {what} declares shape {dims} and would take {_human(n)} in memory, over "
-                         f"the input limit of {_human(limit)}; if the data really are this large, raise the limit "
-                         f"with --max-input-gb GB or the environment variable {MAX_INPUT_ENV}=GB")
+                         f"the input limit of {_human(limit)}; if the data really are this large, "
+                         + ("stream them through the maps with --max-memory-gb GB (torchdoct maps), or " if streamed
+                            and not _explicit_limit() else "")
+                         + f"raise the limit with --max-input-gb GB or the environment variable {MAX_INPUT_ENV}=GB")
     check_memory_budget(where, n, f"the {what} declares shape {dims}")
     return n
 
