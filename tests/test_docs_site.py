@@ -147,3 +147,12 @@ def test_the_site_build_refuses_a_readme_that_is_not_a_front_page(tmp_path):
     assert any("missing" in p for p in frontpage.problems(good.replace("pytest", "unittest"), tmp_path))
     figures = frontpage.problems(good + "\nit takes 3.5 s and scores 0.871", tmp_path)
     assert any("3.5 s" in p and "0.871" in p for p in figures), figures
+
+
+def test_the_site_build_refuses_a_link_to_a_missing_file(tmp_path):
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "physics.md").write_text("# Physics")
+    sub = tmp_path / "pkg"
+    sub.mkdir()
+    text = "[p](../docs/physics.md) [s](../docs/physics.md#5-x) [w](https://example.org/a) [a](#top) [gone](physics.md)"
+    assert frontpage.broken_links(text, sub) == ["physics.md"]

@@ -1,6 +1,7 @@
-"""The README is a front page; the documentation build (``docs/hooks/site.py``) refuses one that is not.
+"""The README is a front page, and the repository's Markdown outside the site links to files that exist; the
+documentation build (``docs/hooks/site.py``) refuses a README or a link that is not.
 
-The policy is checked where the site is built (``mkdocs build --strict`` in CI), so no test reads the README.
+The policy is checked where the site is built (``mkdocs build --strict`` in CI), so no test reads the READMEs.
 """
 
 from __future__ import annotations
@@ -16,6 +17,9 @@ FRONT_PAGE_COMMANDS = ('pip install torch==2.13.0 ".[all]" && torchdoct simulate
 _PICTURE = re.compile(r"!\[[^\]]*\]\(([^)]+\.png)\)")
 _TIMING = re.compile(r"\b\d+(?:\.\d+)?\s?(?:ms|s|min|h)\b(?![\w/])")
 _SCORE = re.compile(r"\b0\.\d{2,}\b")
+#: The Markdown files of the repository outside ``docs/`` whose relative links must resolve.
+MARKDOWN = ("README.md", "CONTRIBUTING.md", "classifier/README.md", "research/README.md")
+_LINK = re.compile(r"\]\(([^)\s]+)\)")
 
 
 def problems(text: str, root: Path) -> list[str]:
@@ -33,4 +37,17 @@ def problems(text: str, root: Path) -> list[str]:
     figures = _TIMING.findall(text) + _SCORE.findall(text)
     if figures:
         out.append(f"measured figures typed into it ({', '.join(figures)}): render them from a results file")
+    return out
+
+
+def broken_links(text: str, folder: Path) -> list[str]:
+    """The relative links of Markdown ``text`` (a file in ``folder``) whose target is not in the repository
+    (web links and in-page anchors are not checked)."""
+    out = []
+    for target in _LINK.findall(text):
+        if "://" in target or target.startswith(("#", "mailto:")):
+            continue
+        path = target.split("#", 1)[0]
+        if path and not (folder / path).exists():
+            out.append(target)
     return out

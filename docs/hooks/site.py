@@ -9,8 +9,9 @@ At build time it
   (``docs/hooks/results.py``), so no measured number is typed into a page;
 * drops from the navigation the optional pages that are not in ``docs/`` (pages other parts of the
   project add), so the site builds with or without them;
-* refuses a ``README.md`` that is no longer a front page (``docs/hooks/frontpage.py``): the policy is
-  checked where the site is built, and no test reads the README.
+* refuses a ``README.md`` that is no longer a front page, and a link of the repository's Markdown outside
+  ``docs/`` to a file that does not exist (``docs/hooks/frontpage.py``): checked where the site is built, so
+  no test reads the READMEs.
 """
 
 from __future__ import annotations
@@ -179,6 +180,11 @@ def on_config(config, **kwargs):
         problems = frontpage.problems(readme.read_text(encoding="utf-8"), ROOT)
         if problems:
             raise PluginError("README.md is not a front page: " + "; ".join(problems))
+    for name in frontpage.MARKDOWN:
+        md = ROOT / name
+        broken = frontpage.broken_links(md.read_text(encoding="utf-8"), md.parent) if md.is_file() else []
+        if broken:
+            raise PluginError(f"{name} links to files that are not in the repository: {', '.join(broken)}")
     if config.get("nav"):
         config["nav"] = _expand_nav(_filter_nav(config["nav"], Path(config["docs_dir"])))
     return config
