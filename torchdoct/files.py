@@ -27,7 +27,7 @@ from typing import Any
 
 __all__ = ["check_out", "atomic_write", "output_set", "OutputSet", "safe_name", "check_nesting", "MAX_NESTING",
            "shipped_files", "file_or_shipped", "NotRegularFileError", "check_regular_file", "open_regular",
-           "read_capped", "MAX_TEXT_BYTES"]
+           "read_capped", "MAX_TEXT_BYTES", "WriteConflictError"]
 
 #: Deepest nesting of arrays/tables (TOML) or arrays/objects (JSON) that any input file may have: the
 #: project's own files need 5 at most; far deeper ones would exhaust the parser's recursion.
@@ -138,7 +138,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     is removed on error. ``tmp`` keeps ``path``'s suffix so writers that pick a format by suffix work.
     """
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=f".tmp{path.suffix}", dir=path.parent)
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)
@@ -152,10 +152,59 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
         raise
 
 
-def _stale_temporaries(directory: Path, name: str) -> list[Path]:
-    """Temporary files of ``name`` left in ``directory`` by a killed run (:func:`atomic_write`'s
-    ``.NAME.XXXX.tmpSUFFIX``, :func:`output_set`'s ``.NAME.stage.tmp.XXXX``)."""
+def _temporaries(directory: Path, name: str) -> list[Path]:
+    """Temporary files of ``name`` in ``directory``: :func:`atomic_write`'s ``.NAME.PID.XXXX.tmpSUFFIX`` and
+    :func:`output_set`'s ``.NAME.stage.PID.tmp.XXXX`` (PID: the writing process)."""
     return [Path(p) for p in glob.glob(os.path.join(glob.escape(str(directory)), f".{glob.escape(name)}.*.tmp*"))]
+
+
+def _writer_pid(temporary: Path, name: str) -> int | None:
+    """The process number in a temporary file's name of ``name`` (:func:`_temporaries`), or None (an older
+    run's name without one)."""
+    m = re.match(r"(?:stage\.)?(\d+)\.", temporary.name[len(name) + 2:])
+    return int(m.group(1)) if m else None
+
+
+def _live_writer(pid: int | None) -> str | None:
+    """``"process PID (its command)"`` while process ``pid`` runs and is a writer of this project; None when
+    it has ended (its temporaries are a killed run's leftovers, to be removed) or its number was reused."""
+    if pid is None:
+        return None
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return None
+    except PermissionError:
+        pass  # alive, another user's
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            command = fh.read(4096).replace(b"\0", b" ").decode("utf-8", "replace").strip()
+    except OSError:
+        return f"process {pid}"
+    if not any(word in command for word in ("torchdoct", "doct-", "classifier", "python", "pytest")):
+        return None
+    return f"process {pid} ({command[:120]})"
+
+
+def _stale_temporaries(directory: Path, name: str) -> list[Path]:
+    """Temporary files of ``name`` left in ``directory`` by a killed run (their writer has ended)."""
+    return [p for p in _temporaries(directory, name) if _live_writer(_writer_pid(p, name)) is None]
+
+
+class WriteConflictError(OSError):
+    """Another process is writing the same output now: not bad input (exit 1 at the command line)."""
+
+
+def _check_no_other_writer(finals: Sequence[Path], what: str) -> None:
+    """A :class:`WriteConflictError` naming the other process when one is writing any of ``finals`` now (its
+    temporary files are there and it runs): two runs writing one output is a write conflict, not bad input."""
+    for p in finals:
+        for tmp in _temporaries(p.parent, p.name):
+            pid = _writer_pid(tmp, p.name)
+            writer = None if pid == os.getpid() else _live_writer(pid)
+            if writer is not None:
+                raise WriteConflictError(f"{what}: write conflict: {writer} is writing {p} now; wait for it to end, or "
+                                 f"give this run another {what}")
 
 
 def _remove(path: Path) -> None:
@@ -210,7 +259,9 @@ def output_set(paths: Iterable[str | os.PathLike], force: bool, what: str = "--o
     untouched. ``paths`` lists every file the set may hold: at the end, one the block did not write is
     removed when it exists (the earlier run's file, e.g. ``magnitude.tif`` of another model), so the
     folder holds this run's set only. An existing file is an error unless ``force``; temporary files
-    of the set left by a killed run are removed first. The folders must exist.
+    of the set left by a killed run are removed first, while another process writing the same files now
+    (its temporary files carry its process number) is a write conflict naming it, checked at the start and
+    again before the renames. The folders must exist.
     """
     finals = [Path(p) for p in paths]
     if len(set(finals)) != len(finals):
@@ -223,6 +274,7 @@ def output_set(paths: Iterable[str | os.PathLike], force: bool, what: str = "--o
     for d in parents:
         if not d.is_dir():
             raise ValueError(f"{what}: directory {d} does not exist; create it first")
+    _check_no_other_writer(finals, what)
     for p in finals:
         for stale in _stale_temporaries(p.parent, p.name):
             _remove(stale)
@@ -230,12 +282,13 @@ def output_set(paths: Iterable[str | os.PathLike], force: bool, what: str = "--o
     stages: dict[Path, Path] = {}
     try:
         for d in parents:
-            stages[d] = Path(tempfile.mkdtemp(prefix=f".{first[d]}.stage.tmp.", dir=d))
+            stages[d] = Path(tempfile.mkdtemp(prefix=f".{first[d]}.stage.{os.getpid()}.tmp.", dir=d))
         yield OutputSet(finals, stages)
         extra = [str(q) for d, st in stages.items() for q in st.iterdir()
                  if d / q.name not in finals and not q.name.startswith(".")]
         if extra:
             raise RuntimeError(f"files written outside their output set: {extra}")
+        _check_no_other_writer(finals, what)  # one that began meanwhile: neither set lands
         with _signals_held():
             for p in finals:
                 staged = stages[p.parent] / p.name

@@ -124,6 +124,72 @@ def test_output_set_removes_the_temporary_files_a_killed_run_left(tmp_path):
     assert _files(tmp_path) == {"a.csv", other.name}
 
 
+def _sleeper() -> subprocess.Popen:
+    """Another running Python process (started: its command line is in place)."""
+    proc = subprocess.Popen([sys.executable, "-c", "import time; print(flush=True); time.sleep(60)"],
+                            stdout=subprocess.PIPE)
+    proc.stdout.readline()
+    proc.stdout.close()
+    return proc
+
+
+@pytest.mark.parametrize("temporary", [".a.csv.stage.{pid}.tmp.x8y7", ".a.csv.{pid}.k3j2h1.tmp.csv"])
+def test_a_set_another_running_process_is_writing_is_a_write_conflict_naming_it(tmp_path, temporary):
+    from torchdoct.files import WriteConflictError
+
+    a = tmp_path / "a.csv"
+    other = _sleeper()
+    try:
+        live = tmp_path / temporary.format(pid=other.pid)
+        live.mkdir() if "stage" in temporary else live.write_text("being written")
+        with pytest.raises(WriteConflictError, match=rf"write conflict: process {other.pid} \(.*python.*\) is "
+                                                     r"writing .*a\.csv now.*another --out"):
+            with output_set([a], force=True) as stage:
+                _write(stage, a, "1")
+        assert live.exists() and not a.exists()  # the other writer's files are left alone; nothing written
+    finally:
+        other.kill()
+        other.wait()
+    with output_set([a], force=True) as stage:  # it has ended: its leftovers are stale and go
+        _write(stage, a, "1")
+    assert _files(tmp_path) == {"a.csv"}
+
+
+def test_a_writer_that_starts_during_the_set_stops_both_sets_landing(tmp_path):
+    from torchdoct.files import WriteConflictError
+
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    other = _sleeper()
+    try:
+        with pytest.raises(WriteConflictError, match=f"process {other.pid}"):
+            with output_set([a, b], force=True) as stage:
+                _write(stage, a, "1")
+                (tmp_path / f".b.csv.stage.{other.pid}.tmp.q1w2").mkdir()  # the other run begins its set
+                _write(stage, b, "2")
+    finally:
+        other.kill()
+        other.wait()
+    assert not a.exists() and not b.exists()
+
+
+def test_a_sweep_losing_a_write_conflict_exits_1_naming_the_other_writer(tmp_path, capsys):
+    scene = tmp_path / "sweep.toml"
+    scene.write_text(DIFFUSION_SWEEP_TOML.format(trials=8))
+    out = tmp_path / "out"
+    out.mkdir()
+    other = _sleeper()
+    try:
+        (out / f".results.csv.stage.{other.pid}.tmp.abcd").mkdir()
+        code = main(["sweep", str(scene), "--out", str(out), "--no-progress", "--workers", "1", "--no-cache"])
+    finally:
+        other.kill()
+        other.wait()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1, err
+    assert err[0].startswith("error: --out: write conflict: process") and str(other.pid) in err[0]
+    assert "does not exist" not in err[0] and not (out / "results.csv").exists()
+
+
 def test_a_signal_during_the_renames_is_held_until_the_set_is_whole(tmp_path, monkeypatch, capsys):
     files = [tmp_path / f"f{i}.txt" for i in range(4)]
     real_replace = os.replace
