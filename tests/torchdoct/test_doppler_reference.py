@@ -200,3 +200,34 @@ def test_refusals():
         compute_maps(seq_of(e), metrics=("mean_db",), doppler=(T,))
     with pytest.raises(ValueError, match="original"):
         compute_maps(seq_of(e), ["axial=7.6"], metrics=("mean_db",), doppler=True)
+
+
+def test_thin_static_layer_falls_back_to_the_b_scan_reference():
+    """Five static rows per A-line are too few for an A-line reference: the B-scan's (a bulk phase common to the
+    B-scan at each frame) takes over, the same in one lateral slab and in slabs of four A-lines (four passes)."""
+    layers = [(5, "static", 0.0), (16, "flow", V_FLOW)]
+    e = with_bulk(layered_field(48, layers, seed=7), 19)
+    whole = compute_maps(seq_of(e), metrics=("mean_db",), doppler=True)
+    info = whole.meta["doppler"]["per_lag"]["1"]
+    assert info["alines_bscan_reference"] > 0 and info["bscans_with_reference"] == 1
+    ch = whole.maps[whole.index(NAME)].astype(np.float64)
+    mean, se = layer_mean(ch, slice(9, 21))
+    assert abs(mean - (-2 * K * V_FLOW * DT)) <= Z_SE * se, (mean, se)
+    cut = compute_maps(seq_of(e), metrics=("mean_db",), doppler=True, slab_elements=4 * T * e.shape[1])
+    np.testing.assert_array_equal(whole.maps, cut.maps)
+
+
+def test_volume_b_scans_and_slabs(field):
+    e = with_bulk(field[:, :, :48], 23, per_aline=True)
+    vol = np.ascontiguousarray(e.reshape(T, e.shape[1], 3, 16).transpose(0, 2, 1, 3))  # [T, Y, Z, X]
+    meta = {"axes": "TYZX", "pitch_um": {"z": DZ, "x": 2.0, "y": 2.0}, "frame_times_s": [DT * i for i in range(T)],
+            "system": SYSTEM}
+    seq = SequenceData(data=vol, meta=validate_meta(meta, vol.shape), source="v.npy")
+    whole = compute_maps(seq, metrics=("mean_db",), doppler=True)
+    cut = compute_maps(seq, metrics=("mean_db",), doppler=True, slab_elements=T * 16 * vol.shape[2])
+    np.testing.assert_array_equal(whole.maps, cut.maps)
+    ch = whole.maps[whole.index(NAME)].astype(np.float64)  # [Y, Z, X]
+    flat = ch.transpose(1, 0, 2).reshape(ch.shape[1], -1)  # [Z, A-lines]
+    mean, se = layer_mean(flat, FLOW)
+    assert abs(mean - (-2 * K * V_FLOW * DT)) <= Z_SE * se, (mean, se)
+    assert len(whole.meta["doppler"]["per_lag"]["1"]["bscan_reference_share"] or [0, 0, 0]) == 3

@@ -11,17 +11,19 @@ reference and the pixel at each frame (bulk motion) cancels exactly. The sign is
 (:mod:`torchdoct.sim.signature`): scatterers moving deeper at ``v_z`` give ``−2kn·v_z·m·Δt`` (wrapped to
 (−π, π]); random-ballistic motion and diffusion give a phase symmetric about 0.
 
-**Reference pixels** (per scope: the A-line, or the B-scan): a pixel is a candidate when its temporal
-intensity contrast ``Var_t I/(mean_t I)²`` over the whole sequence is at most :data:`REFERENCE_CONTRAST`
-(the bulk-invariant ``stable`` rule of :mod:`torchdoct.measured.bulkphase`; a static pixel at pixel SNR
-``s`` has ``(2s + 1)/(s + 1)²``, so a candidate has ``s ≳`` :func:`min_reference_snr`, i.e. it lies above
-the noise floor). Slow flow can pass it too (its speckle hardly changes while its phase turns), so the
-candidates are then split by their phase: the candidates' phases relative to the sum of all candidates
-are histogrammed (bins of width ``h``, each candidate weighted by ``1 − contrast/C``, the steadier the
-heavier), the peak population is kept (within ``1.5·h`` of the peak bin's centre), its sum is the
-reference, and the candidates within ``h`` of that reference form the final one. ``h`` is 3.5 standard
-deviations of a static pixel's phase at the SNR floor (:func:`phase_tolerance`), so the static tissue
-stays whole and a population that turns by more than ``h`` per lag stays out.
+**Reference pixels** (per scope: the A-line, or the B-scan; docs/concepts/doppler-reference.md §4): a pixel
+is a candidate when its intensity is *steady*, temporal contrast ``Var_t I/(mean_t I)²`` at most
+:data:`REFERENCE_CONTRAST` (the bulk-invariant ``stable`` rule of :mod:`torchdoct.measured.bulkphase`; a
+static pixel at pixel SNR ``s`` has ``(2s + 1)/(s + 1)²``, so a candidate has ``s ≳``
+:func:`min_reference_snr` and lies above the noise floor), and *white*, its von Neumann ratio at least
+:func:`min_whiteness` (noise, not a drift). Slow flow can pass both where its speckle sits near an
+intensity extremum, so the candidates are then split by phase: their phases relative to the sum of all
+candidates are histogrammed (bins of width ``h``, each weighted by ``1 − contrast/C``, the steadier the
+heavier), the peak population (within ``1.5·h`` of the peak bin's centre) gives a sum, and the candidates
+within ``h`` of it are the reference. ``h`` is 3.5 standard deviations of a static pixel's phase at the SNR
+floor (:func:`phase_tolerance`). The population counts when at least :data:`MIN_WHITE_SHARE` of the steady
+pixels within ``h`` of it are white (:func:`white_population`): static tissue is white nearly everywhere,
+slow flow mostly drifts.
 
 **Scope and minimum**: an A-line with at least :data:`MIN_REFERENCE_PIXELS` reference pixels uses its
 own reference; otherwise its B-scan's (the same rule on all the B-scan's pixels, which assumes a bulk
@@ -50,9 +52,10 @@ from ..runtime.interrupt import progress_disabled
 from .bulkphase import STABLE_CONTRAST
 from .sequence import SequenceData
 
-__all__ = ["DEFAULT_DOPPLER_LAGS", "REFERENCE_CONTRAST", "MIN_REFERENCE_PIXELS", "PHASE_TOLERANCE_Z",
-           "REFERENCE_RULE", "min_reference_snr", "min_whiteness", "white_population", "phase_tolerance", "doppler_lags", "DopplerReference",
-           "estimate_doppler_reference", "doppler_absent", "doppler_channel_records", "doppler_slab", "doppler_name"]
+__all__ = ["DEFAULT_DOPPLER_LAGS", "REFERENCE_CONTRAST", "MIN_REFERENCE_PIXELS", "MIN_WHITE_SHARE",
+           "PHASE_TOLERANCE_Z", "REFERENCE_RULE", "min_reference_snr", "min_whiteness", "white_population",
+           "phase_tolerance", "doppler_lags", "DopplerReference", "estimate_doppler_reference", "doppler_absent",
+           "doppler_channel_records", "doppler_slab", "doppler_name"]
 
 #: The lags (frames) of ``--doppler`` without ``--doppler-lags``: the shortest, the widest velocity range.
 DEFAULT_DOPPLER_LAGS = (1,)
@@ -62,16 +65,19 @@ REFERENCE_CONTRAST = STABLE_CONTRAST
 #: its pixels' (to first order in the noise), so at ``N ≥ 10`` it adds at most 10 % to the variance of a
 #: pixel at the reference's SNR.
 MIN_REFERENCE_PIXELS = 10
+#: Share of a reference population's steady, in-phase pixels that must fluctuate as white noise (a majority).
+MIN_WHITE_SHARE = 0.5
 #: Half width of the reference population, in standard deviations of a static pixel's phase.
 PHASE_TOLERANCE_Z = 3.5
 #: The rule, as the maps' metadata record it.
 REFERENCE_RULE = ("reference pixels: temporal intensity contrast Var_t I/(mean_t I)^2 <= {c:g} (a static pixel at "
                   "SNR >= {s:.1f}, above the noise floor) and white intensity fluctuations (von Neumann ratio "
-                  "sum (I_(t+1) - I_t)^2 / (2 sum (I_t - mean I)^2) >= {w:.3f}: noise, no drift), then the peak population of their phases relative to "
-                  "the sum of all candidates (histogram of bin width h, weights 1 - contrast/{c:g}), then the "
-                  "candidates within h of that population's sum; scope: the A-line with >= {n} reference pixels, "
-                  "else its B-scan with >= {n}, else none (NaN); channel: arg sum_t conj(C_t(p)) r_t/|r_t|, "
-                  "C_t = E_(t+m) conj(E_t), r_t the reference sum without p")
+                  "sum (I_(t+1) - I_t)^2 / (2 sum (I_t - mean I)^2) >= {w:.3f}: noise, no drift); then the peak "
+                  "population of their phases relative to the sum of all of them (histogram of bin width h, weights "
+                  "1 - contrast/{c:g}); then those within h of that population's sum; the population counts when at "
+                  "least {ws:.0%} of the steady pixels within h of it are white; scope: the A-line with >= {n} "
+                  "reference pixels, else its B-scan with >= {n}, else none (NaN); channel: arg sum_t conj(C_t(p)) "
+                  "r_t/|r_t|, C_t = E_(t+m) conj(E_t), r_t the reference sum without p")
 
 
 def doppler_name(m: int) -> str:
@@ -163,7 +169,8 @@ class DopplerReference:
             "unit": "rad",
             "sign": "g1_phase convention: scatterers moving deeper at v_z give -2kn*v_z*m*dt (wrapped)",
             "rule": REFERENCE_RULE.format(c=REFERENCE_CONTRAST, s=min_reference_snr(), n=MIN_REFERENCE_PIXELS,
-                                          w=min_whiteness(self.n_frames)),
+                                          w=min_whiteness(self.n_frames), ws=MIN_WHITE_SHARE),
+            "min_white_share": MIN_WHITE_SHARE,
             "min_whiteness": min_whiteness(self.n_frames),
             "reference_contrast": REFERENCE_CONTRAST,
             "min_reference_snr": min_reference_snr(),
@@ -200,29 +207,26 @@ def min_whiteness(n_frames: int, z: float = PHASE_TOLERANCE_Z) -> float:
 
 
 def _candidates(lines: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(candidate [L, Z] bool, weight [L, Z] float64, η [L, Z] float64)`` of A-lines ``[T, L, Z]``: steady
-    (contrast) and white (no drift: the von Neumann ratio η, 1 where the intensity is constant) intensity."""
+    """``(candidate, steady [L, Z] bool, weight [L, Z] float64)`` of A-lines ``[T, L, Z]``: steady (contrast)
+    and white (no drift: the von Neumann ratio; a constant intensity counts as white) intensity."""
     inten = (lines.real ** 2 + lines.imag ** 2).double()
     mean = inten.mean(0)
     dev2 = ((inten - mean) ** 2).sum(0)
     contrast = dev2 / inten.shape[0] / torch.where(mean > 0, mean * mean, torch.ones_like(mean))
     steps2 = ((inten[1:] - inten[:-1]) ** 2).sum(0)
     white = (steps2 >= 2.0 * min_whiteness(inten.shape[0]) * dev2) | (dev2 == 0)
-    cand = (contrast <= REFERENCE_CONTRAST) & (mean > 0) & torch.isfinite(contrast) & white
+    steady = (contrast <= REFERENCE_CONTRAST) & (mean > 0) & torch.isfinite(contrast)
+    cand = steady & white
     w = torch.where(cand, 1.0 - contrast / REFERENCE_CONTRAST, torch.zeros_like(contrast))
-    eta = torch.where(dev2 > 0, steps2 / (2.0 * torch.where(dev2 > 0, dev2, torch.ones_like(dev2))),
-                      torch.ones_like(dev2))
-    return cand, w, eta
+    return cand, steady, w
 
 
-def white_population(eta_sum: np.ndarray, count: np.ndarray, n_frames: int, z: float = PHASE_TOLERANCE_Z) -> np.ndarray:
-    """Whether a reference of ``count`` pixels whose von Neumann ratios sum to ``eta_sum`` fluctuates as white
-    noise does: its mean ratio at least ``1 − z·sd/√count`` (``sd²`` of :func:`min_whiteness`). Slow flow
-    can pass the per-pixel test where its speckle is near a maximum, but not as a population."""
-    t = int(n_frames)
-    sd = math.sqrt((t - 2) / ((t - 1) * (t + 1)))
-    n = np.maximum(count, 1)
-    return (count > 0) & (eta_sum / n >= 1.0 - z * sd / np.sqrt(n))
+def white_population(n_white: np.ndarray, n_steady: np.ndarray) -> np.ndarray:
+    """Whether a reference population is static tissue: of the steady pixels in phase with it (within ``h``),
+    at least :data:`MIN_WHITE_SHARE` fluctuate as white noise. A static pixel fails the per-pixel test with
+    the probability of a 3.5-sd excursion; slow flow passes it only where its speckle sits near an intensity
+    extremum, and as a population mostly drifts."""
+    return (n_steady > 0) & (n_white >= MIN_WHITE_SHARE * n_steady)
 
 
 def _products(lines: torch.Tensor, m: int) -> torch.Tensor:
@@ -274,16 +278,23 @@ def _near(psi: torch.Tensor, centre: torch.Tensor, half: float) -> torch.Tensor:
     return _wrap(psi - centre).abs() <= half
 
 
-def _select_complete(c: torch.Tensor, cand: torch.Tensor, w: torch.Tensor, gid: torch.Tensor, n_groups: int,
-                     h: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """The rule on groups whose pixels are all here: ``(reference sums [K, G], reference pixels [P])``."""
+def _select_complete(c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, w: torch.Tensor, gid: torch.Tensor,
+                     n_groups: int, h: float) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
+    """The rule on groups whose pixels are all here: ``(reference sums [K, G], reference pixels [P], white and
+    steady pixels in phase with each group's population [G])``."""
     r0 = _group_sum(c, cand, gid, n_groups)
     psi = _phase_to(c, r0, gid)
     centre = _peak_centres(_histogram(psi, w, gid, n_groups, h))
     sel = cand & _near(psi, centre[gid], 1.5 * 2.0 * math.pi / _n_bins(h))
     r1 = _group_sum(c, sel, gid, n_groups)
-    sel = cand & (_phase_to(c, r1, gid).abs() <= h)
-    return _group_sum(c, sel, gid, n_groups), sel
+    in_phase = _phase_to(c, r1, gid).abs() <= h
+    sel = cand & in_phase
+    n_white, n_steady = _in_phase_counts(sel, steady & in_phase, gid, n_groups)
+    return _group_sum(c, sel, gid, n_groups), sel, n_white, n_steady
+
+
+def _in_phase_counts(sel: torch.Tensor, steady: torch.Tensor, gid: torch.Tensor, n_groups: int):
+    return (np.bincount(gid[sel].numpy(), minlength=n_groups), np.bincount(gid[steady].numpy(), minlength=n_groups))
 
 
 def _slab_lines(block: torch.Tensor, volume: bool) -> torch.Tensor:
@@ -319,7 +330,7 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
     sums = {m: np.zeros((n_t - m, n_lines), dtype=np.complex128) for m in lags}
     own = {m: np.zeros(n_lines, dtype=np.int64) for m in lags}
     mask = {m: np.zeros((n_lines, n_z), dtype=bool) for m in lags}
-    own_eta = {m: np.zeros(n_lines) for m in lags}
+    own_steady = {m: np.zeros(n_lines, dtype=np.int64) for m in lags}
     n_cand = np.zeros(n_lines, dtype=np.int64)
     bar = None
     if not progress_disabled(progress):
@@ -340,29 +351,30 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
     for c0, c1 in slabs:  # the A-line scope: every group is whole in its slab
         lines, rows = read(c0, c1)
         n_l = lines.shape[1]
-        cand, w, eta = _candidates(lines)
+        cand, steady, w = _candidates(lines)
         n_cand[rows] = cand.sum(1).numpy()
         gid = torch.arange(n_l).repeat_interleave(n_z)
         for m in lags:
             c = _products(lines, m).reshape(n_t - m, -1)
-            r, sel = _select_complete(c, cand.reshape(-1), w.reshape(-1), gid, n_l, hs[m])
+            r, sel, n_white, n_steady = _select_complete(c, cand.reshape(-1), steady.reshape(-1), w.reshape(-1), gid,
+                                                         n_l, hs[m])
             sums[m][:, rows] = r.numpy()
             mask[m][rows] = sel.reshape(n_l, n_z).numpy()
-            own[m][rows] = mask[m][rows].sum(1)
-            own_eta[m][rows] = torch.where(sel.reshape(n_l, n_z), eta, torch.zeros_like(eta)).sum(1).numpy()
+            own[m][rows] = n_white
+            own_steady[m][rows] = n_steady
         if bar is not None:
             bar.update(1)
     if bar is not None:
         bar.close()
     # the B-scan scope, for the A-lines without their own reference
-    own_ok = {m: (own[m] >= MIN_REFERENCE_PIXELS) & white_population(own_eta[m], own[m], n_t) for m in lags}
+    own_ok = {m: (own[m] >= MIN_REFERENCE_PIXELS) & white_population(own[m], own_steady[m]) for m in lags}
     need = [m for m in lags if not own_ok[m].all()]
     bscan_sums: dict[int, np.ndarray] = {}
     bscan_n: dict[int, np.ndarray] = {}
     bscan_mask: dict[int, np.ndarray] = {}
-    bscan_eta: dict[int, np.ndarray] = {}
+    bscan_steady: dict[int, np.ndarray] = {}
     if need:
-        bscan_sums, bscan_n, bscan_mask, bscan_eta = _bscan_scope(read, slabs, need, hs, n_t=n_t, n_z=n_z, n_lines=n_lines,
+        bscan_sums, bscan_n, bscan_mask, bscan_steady = _bscan_scope(read, slabs, need, hs, n_t=n_t, n_z=n_z, n_lines=n_lines,
                                                        n_bscans=n_bscans, n_x=n_x, volume=volume)
     scope, out_sums, out_mask, info, present = {}, {}, {}, {}, []
     for m in lags:
@@ -372,7 +384,7 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
         mk = np.where(use_own[:, None], mask[m], False)
         b_ok = np.zeros(n_bscans, dtype=bool)
         if m in bscan_sums:
-            b_ok = (bscan_n[m] >= MIN_REFERENCE_PIXELS) & white_population(bscan_eta[m], bscan_n[m], n_t)
+            b_ok = (bscan_n[m] >= MIN_REFERENCE_PIXELS) & white_population(bscan_n[m], bscan_steady[m])
             line_b = np.repeat(np.arange(n_bscans), n_x) if volume else np.zeros(n_lines, dtype=np.int64)
             fall = ~use_own & b_ok[line_b]
             sc = np.where(fall, 2, sc).astype(np.int8)
@@ -411,21 +423,21 @@ def _bscan_scope(read, slabs, lags, hs, *, n_t, n_z, n_lines, n_bscans, n_x, vol
     """The rule with the B-scan as the scope, in four passes over the slabs (the B-scan of a ``[T, Z, X]``
     sequence may span several): the candidates' sum, their phase histogram, the peak population's sum, the
     final reference. Returns per lag the sums ``[T−m, B]``, the counts ``[B]``, the pixels ``[L, Z]`` and the
-    sums of their von Neumann ratios ``[B]``."""
+    steady pixels in phase with the population ``[B]``."""
     r0 = {m: torch.zeros(n_t - m, n_bscans, dtype=torch.complex128) for m in lags}
     hist = {m: torch.zeros(n_bscans, _n_bins(hs[m]), dtype=torch.float64) for m in lags}
     r1 = {m: torch.zeros(n_t - m, n_bscans, dtype=torch.complex128) for m in lags}
     r2 = {m: torch.zeros(n_t - m, n_bscans, dtype=torch.complex128) for m in lags}
     count = {m: np.zeros(n_bscans, dtype=np.int64) for m in lags}
-    eta_sum = {m: np.zeros(n_bscans) for m in lags}
+    n_steady = {m: np.zeros(n_bscans, dtype=np.int64) for m in lags}
     pix = {m: np.zeros((n_lines, n_z), dtype=bool) for m in lags}
     centre: dict[int, torch.Tensor] = {}
     for step in range(4):
         for c0, c1 in slabs:
             lines, rows = read(c0, c1)
             n_l = lines.shape[1]
-            cand, w, eta = _candidates(lines)
-            cand, w, eta = cand.reshape(-1), w.reshape(-1), eta.reshape(-1)
+            cand, steady, w = _candidates(lines)
+            cand, steady, w = cand.reshape(-1), steady.reshape(-1), w.reshape(-1)
             line_ids = torch.arange(rows.start, rows.stop)
             gid = (line_ids // n_x if volume else torch.zeros(n_l, dtype=torch.long)).repeat_interleave(n_z)
             for m in lags:
@@ -440,14 +452,16 @@ def _bscan_scope(read, slabs, lags, hs, *, n_t, n_z, n_lines, n_bscans, n_x, vol
                     sel = cand & _near(psi, centre[m][gid], 1.5 * 2.0 * math.pi / _n_bins(hs[m]))
                     r1[m] += _group_sum(c, sel, gid, n_bscans)
                 else:
-                    sel = cand & (_phase_to(c, r1[m], gid).abs() <= hs[m])
+                    in_phase = _phase_to(c, r1[m], gid).abs() <= hs[m]
+                    sel = cand & in_phase
                     r2[m] += _group_sum(c, sel, gid, n_bscans)
-                    count[m] += np.bincount(gid[sel].numpy(), minlength=n_bscans)
-                    eta_sum[m] += np.bincount(gid[sel].numpy(), weights=eta[sel].numpy(), minlength=n_bscans)
+                    n_w, n_s = _in_phase_counts(sel, steady & in_phase, gid, n_bscans)
+                    count[m] += n_w
+                    n_steady[m] += n_s
                     pix[m][rows] = sel.reshape(n_l, n_z).numpy()
         if step == 1:
             centre = {m: _peak_centres(hist[m]) for m in lags}
-    return {m: r2[m].numpy() for m in lags}, count, pix, eta_sum
+    return {m: r2[m].numpy() for m in lags}, count, pix, n_steady
 
 
 # ----------------------------------------------------------------------------------------------
@@ -472,28 +486,22 @@ def doppler_slab(x: torch.Tensor, ref: DopplerReference, cdim: int, c0: int, c1:
     spatial = x.shape[1:]
     flat = x.reshape(n_t, -1)
     out = np.full((len(ref.lags), *spatial), np.nan)
+    n_x = spatial[-1]
+    ys = slice(c0, c1) if cdim == 1 and len(spatial) == 3 else slice(None)  # a volume cut in Y: its B-scans
+    lead = spatial[:-2]  # (), or the B-scans of the slab
+    line = (np.arange(int(np.prod(lead, dtype=np.int64))).reshape(*lead, 1, 1) * n_x + np.arange(n_x))
+    line = torch.from_numpy(np.array(np.broadcast_to(line, spatial)).reshape(-1))  # each pixel's A-line
     for li, m in enumerate(ref.lags):
-        s_full = ref.sums[m]  # [T−m, (Y), X]
-        mk_full = ref.mask[m]  # [(Y), Z, X]
-        sc_full = ref.scope[m]  # [(Y), X]
-        sel = [slice(None)] * (len(spatial))
+        sums = torch.from_numpy(np.ascontiguousarray(ref.sums[m][:, ys]).reshape(n_t - m, -1))  # [T−m, lines]
+        none = (ref.scope[m][ys] == 0).reshape(-1)[line.numpy()]
+        sel = [slice(None)] * len(spatial)
         sel[cdim - 1] = slice(c0, c1)
-        mk = mk_full[tuple(sel)]
-        if cdim == 1 and len(spatial) == 3:  # a volume cut in Y: the A-lines of these B-scans
-            sums = s_full[:, c0:c1][..., None, :]
-            sc = sc_full[c0:c1][..., None, :]
-        else:
-            sums = np.expand_dims(s_full, -2)
-            sc = np.expand_dims(sc_full, -2)
-        sums = np.broadcast_to(sums, (n_t - m, *spatial)).reshape(n_t - m, -1)
-        none = np.broadcast_to(sc == 0, spatial).reshape(-1)
-        mk = mk.reshape(-1)
+        mk = torch.from_numpy(np.ascontiguousarray(ref.mask[m][tuple(sel)]).reshape(-1))
         val = np.empty(flat.shape[1])
         for p0 in range(0, flat.shape[1], chunk_pixels):
             p1 = min(flat.shape[1], p0 + chunk_pixels)
             c = _products(flat[:, p0:p1], m)
-            r = torch.from_numpy(np.ascontiguousarray(sums[:, p0:p1]))
-            r = r - torch.where(torch.from_numpy(mk[p0:p1])[None], c, torch.zeros_like(c))
+            r = sums[:, line[p0:p1]] - torch.where(mk[p0:p1][None], c, torch.zeros_like(c))
             d = (c.conj() * _unit(r)).sum(0)
             v = torch.angle(d).numpy()
             val[p0:p1] = np.where((d.abs() > 0).numpy() & np.isfinite(v), v, np.nan)
