@@ -55,7 +55,7 @@ def bench_stream(sizes_gb: _Seq[float] = (1.0, 4.0, 16.0), budget_gb: float = 0.
         raise ValueError(f"bench stream: {base} has {free} bytes free; give --workdir on a disk with room")
     runs = []
     for gb in sizes_gb:
-        frames = max(2, int(round(gb * (1 << 30) / frame_bytes)))
+        frames = max(8, int(round(gb * (1 << 30) / frame_bytes)))  # 8: OCDS's default delays on 2+ frame pairs
         with tempfile.TemporaryDirectory(dir=base) as d:
             path = _write_input(Path(d), frames)
             argv = ["maps", str(path), "--out", str(Path(d) / "m.npz"), "--no-progress",
@@ -70,7 +70,8 @@ def bench_stream(sizes_gb: _Seq[float] = (1.0, 4.0, 16.0), budget_gb: float = 0.
                      "baseline_rss_bytes": rss0, "peak_rss_bytes": peak, "growth_bytes": peak - rss0,
                      "seconds": seconds})
     return {"benchmark": "stream", "command": "torchdoct maps INPUT.npy --max-memory-gb BUDGET",
-            "budget_gib": budget_gb, "bscan": list(_BSCAN), "runs": runs, "machine": machine_info()}
+            "budget_gib": budget_gb, "sizes_gib_asked": [float(g) for g in sizes_gb], "bscan": list(_BSCAN),
+            "runs": runs, "machine": machine_info()}
 
 
 def format_stream_table(res: dict[str, Any]) -> str:
