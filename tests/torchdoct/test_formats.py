@@ -382,6 +382,19 @@ def test_hdf5_sequence_has_one_attribute_per_field(tmp_path):
     assert attrs["system.refractive_index"] == 1.33 and json.loads(attrs["torchdoct"])["axes"] == "TZX"
 
 
+def test_an_hdf5_field_attribute_edited_apart_from_the_json_is_refused(outdir, capsys):
+    """An HDF5 viewer shows one attribute per field; one edited there and not in the JSON attribute that is
+    read would be ignored without a word: it is refused, naming both values."""
+    h5py = pytest.importorskip("h5py")
+    from torchdoct.measured.io import write_sequence
+
+    p = write_sequence(outdir / "s.h5", F.field(t=8), _meta(8))
+    assert read_sequence(p).pitch_um == F.PITCH
+    with h5py.File(p, "a") as fh:
+        fh.attrs["pitch_um.z"] = 2.5
+    refused(capsys, outdir, _argv(outdir, p), "s.h5", "'pitch_um.z'", "2.5", "1.0", "edit both")
+
+
 # ----------------------------------------------------------------------------------------------------------
 # streaming: a memory-mapped input is read slab by slab within --max-memory-gb
 # ----------------------------------------------------------------------------------------------------------

@@ -45,6 +45,7 @@ import numpy as np
 
 from ..files import atomic_write, check_out, check_regular_file, open_regular, read_capped
 from .formats import SEQUENCE_SUFFIXES, reader_for
+from .formats.hdf5 import flat_attributes as _flat_attributes
 from .guards import parse_json_object
 from .mapsfile import MAPS_SUFFIXES, Maps, read_maps, write_maps
 from .sequence import HOW as _HOW
@@ -96,24 +97,6 @@ def _check_label_array(name: str, arr: Any) -> np.ndarray | None:
     if a.dtype.kind not in "biufcUS":
         raise TypeError(f"{name} must be a numeric or string array; got dtype {a.dtype}")
     return a
-
-
-def _flat_attributes(meta: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """One HDF5 attribute per metadata field (nested tables as ``table.key``): strings, numbers and lists of
-    numbers; what is neither (None, lists of tables) is left to the JSON attribute ``torchdoct``."""
-    out: dict[str, Any] = {}
-    for key, value in meta.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, Mapping):
-            out.update(_flat_attributes(value, f"{name}."))
-        elif isinstance(value, (str, int, float)) and not isinstance(value, bool):
-            out[name] = value
-        elif isinstance(value, bool):
-            out[name] = np.bool_(value)
-        elif isinstance(value, (list, tuple)) and value and all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
-            out[name] = np.asarray(value, dtype=np.float64)
-    return out
 
 
 def write_sequence(path: str | os.PathLike, data: Any, meta: Mapping[str, Any], *, labels: Any = None,

@@ -1,11 +1,13 @@
 """HDF5 ``.h5`` sequences, MATLAB v7.3 included: dataset ``data`` (complex, or a MATLAB compound
 ``{real, imag}``), optional ``labels`` / ``label_params``, the JSON metadata as the root's string attribute
 ``torchdoct`` (a MATLAB file has none: a sidecar or options give them; ``dataset=`` names its variable
-unless it holds only one). External storage, external links and virtual datasets whose data lie in
+unless it holds only one), beside one attribute per field for HDF5 viewers (:func:`flat_attributes`), which
+must agree with it. External storage, external links and virtual datasets whose data lie in
 other files are refused unless allowed (:func:`torchdoct.measured.guards.check_hdf5_local`)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +19,40 @@ from .base import Loaded
 SUFFIXES = (".h5",)
 NAME = "HDF5 .h5 (MATLAB v7.3)"
 DATASET = True
+
+
+def flat_attributes(meta: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """One HDF5 attribute per metadata field (nested tables as ``table.key``): strings, numbers and lists of
+    numbers; what is neither (None, lists of tables) is left to the JSON attribute ``torchdoct``."""
+    out: dict[str, Any] = {}
+    for key, value in meta.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(flat_attributes(value, f"{name}."))
+        elif isinstance(value, (str, int, float)) and not isinstance(value, bool):
+            out[name] = value
+        elif isinstance(value, bool):
+            out[name] = np.bool_(value)
+        elif isinstance(value, (list, tuple)) and value and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            out[name] = np.asarray(value, dtype=np.float64)
+    return out
+
+
+def check_flat_attributes(attrs: Any, meta: Mapping[str, Any], where: str) -> None:
+    """Every per-field attribute (:func:`flat_attributes`) the file holds must agree with the JSON attribute
+    ``torchdoct`` that is read: one edited in an HDF5 viewer and not the other is a ``ValueError`` naming the
+    attribute, both values and the fix (instead of the edit being ignored without a word)."""
+    for key, want in flat_attributes(meta).items():
+        if key not in attrs:
+            continue
+        got = attrs[key]
+        got = got.decode("utf-8", "replace") if isinstance(got, bytes) else got
+        same = (got == want) if isinstance(want, str) else (
+            np.shape(got) == np.shape(want) and bool(np.all(np.asarray(got, dtype=np.float64) == want)))
+        if not same:
+            raise ValueError(f"{where}: attribute {key!r} = {got!r} disagrees with the JSON attribute 'torchdoct' "
+                             f"({want!r}), which is what is read; edit both to the same value, or delete {key!r}")
 
 
 def read_dataset(ds: Any, where: str) -> np.ndarray:
@@ -91,4 +127,5 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
                     raise ValueError(f"{path.name}: attribute 'torchdoct' is not UTF-8 text (byte {err.start}); it "
                                      "must hold the JSON metadata (write the file again)") from None
             meta = parse_json_object(str(raw), f"{path.name} attribute 'torchdoct'")
+            check_flat_attributes(fh.attrs, meta, path.name)
     return Loaded(data=data, labels=labels, label_params=params, meta=meta)
