@@ -155,7 +155,7 @@ def _maps(args: argparse.Namespace) -> int:
         return maps_one(args)
     from .mapsbatch import run_many
 
-    return run_many(args, maps_task)
+    return run_many(args, maps_task, maps_one)
 
 
 def maps_task(payload: dict) -> dict:

@@ -56,23 +56,28 @@ def outputs_of(inputs: list[str], outs: list[str]) -> list[list[str]]:
     return per
 
 
-def run_task(task: Callable[[argparse.Namespace], int], payload: dict[str, Any]) -> dict[str, Any]:
+def run_task(task: Callable[[argparse.Namespace], int], payload: dict[str, Any], capture: bool = True
+             ) -> dict[str, Any]:
     """One input's run: ``task`` (the single-input command) on the parsed options ``payload``, through
-    :func:`torchdoct.cli.command.run_parsed` (one ``error:`` line and exit 2 on bad input); its exit code and
-    what it printed."""
+    :func:`torchdoct.cli.command.run_parsed` (one ``error:`` line and exit 2 on bad input); its exit code and,
+    with ``capture`` (in a worker), what it printed (else it prints as it goes)."""
     from .command import run_parsed
 
     args = argparse.Namespace(**payload)
     args.func = task
+    if not capture:
+        return {"code": int(run_parsed(args)), "stdout": "", "stderr": ""}
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         code = run_parsed(args)
     return {"code": int(code), "stdout": out.getvalue(), "stderr": err.getvalue()}
 
 
-def run_many(args: argparse.Namespace, task: Callable[[dict[str, Any]], dict[str, Any]]) -> int:
-    """``torchdoct maps`` over ``args.input`` (module docstring); ``task(payload)``: one input's run, a
-    module-level function (worker processes and Dask import it) that calls :func:`run_task`."""
+def run_many(args: argparse.Namespace, task: Callable[[dict[str, Any]], dict[str, Any]],
+             one: Callable[[argparse.Namespace], int]) -> int:
+    """``torchdoct maps`` over ``args.input`` (module docstring); ``task(payload)``: one input's run in a worker,
+    a module-level function (worker processes and Dask import it) that calls :func:`run_task`; ``one``: the
+    single-input command, run here for inputs one after another (printing and showing progress as it goes)."""
     from ..files import check_out
     from ..measured.io import MAPS_SUFFIXES
     from ..study.cells import run_cells
@@ -103,7 +108,11 @@ def run_many(args: argparse.Namespace, task: Callable[[dict[str, Any]], dict[str
         sys.stdout.flush()
         codes[k] = res["code"]
 
-    run_cells(task, payloads, done=done, workers=workers, processes=workers > 1, scheduler=args.scheduler)
+    if workers == 1 and args.scheduler is None:  # here, one after another
+        for k, payload in enumerate(payloads):
+            codes[k] = run_task(one, payload, capture=False)["code"]
+    else:
+        run_cells(task, payloads, done=done, workers=workers, processes=workers > 1, scheduler=args.scheduler)
     failed = [inputs[k] for k in sorted(codes) if codes[k] != 0]
     if failed:
         print(f"note: {len(failed)} of {len(inputs)} inputs refused ({', '.join(failed)}); the others' maps were "
