@@ -534,7 +534,7 @@ def format_table(res: dict[str, Any]) -> str:
     b = m["ballistic"]
     lines = [f"# What accuracy costs in acquisition time ({res['benchmark']}, schema {res['schema_version']})", "",
              f"System of spec `{s['spec']}`: {s['wavelength_um'] * 1000:g} nm, lateral {s['lateral_resolution_um']:g} µm, "
-             f"axial {s['axial_resolution_um']:g} µm, trained protocol {s['n_frames']} frames at "
+             f"axial {s['axial_resolution_um']:g} µm, own protocol {s['n_frames']} frames at "
              f"{s['frame_interval_s']:g} s. Flow {m['flow']['speed_um_per_s']:g} µm/s at polar "
              f"{m['flow']['polar_angle_deg']:g}°, azimuth {m['flow']['azimuth_deg']:g}°; random-ballistic "
              f"{b['speed_um_per_s']:g} µm/s ({b['directions']}"
@@ -646,7 +646,7 @@ def write_protocol(res: dict[str, Any], out_dir: str | Path, *, force: bool = Fa
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / f"{stem}{s}" for s in SUFFIXES]
     with output_set(paths, force, "--out") as stage:
-        stage(paths[0]).write_text(json.dumps(res, indent=1, default=_json_default), encoding="utf-8")
+        stage(paths[0]).write_text(json.dumps(res, separators=(",", ":"), default=_json_default), encoding="utf-8")
         stage(paths[1]).write_text(_csv_text(res), encoding="utf-8")
         stage(paths[2]).write_text(format_table(res), encoding="utf-8")
         plot_protocol(res, stage(paths[3]))
@@ -775,7 +775,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                            snr_db=args.snr_db, threads=args.threads, progress=not args.no_progress)
         res["command"] = _command_line(args)
         written = write_protocol(res, out, force=args.force, stem=args.stem)
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     for line in headline(res, "rules"):

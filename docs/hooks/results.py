@@ -341,6 +341,64 @@ def validation_table(root: Path) -> str:
                              f"{d['n_frames']} frames at {d['frame_interval_s']} s, {d['dtype']}.", source(d["command"], p)])
 
 
+# ---------------------------------------------------------------- what accuracy costs in acquisition time
+#: Where ``python -m classifier.bench.protocol --stem protocol-NAME --out DIR`` runs are recorded.
+PROTOCOL_DIR = "docs/benchmarks"
+
+
+def _protocol(root: Path, name: str) -> str:
+    """A recorded run of ``python -m classifier.bench.protocol``: per decision, the frame counts at the
+    system's interval in one line per window, then per variant the coverage, balanced accuracy on decided
+    pixels, worst wrong share, each band's coverage and accuracy, and the seconds."""
+    p = root / PROTOCOL_DIR / f"{name}.json"
+    if not p.is_file():
+        raise MissingResult(f"results file {name}.json not found in {PROTOCOL_DIR}")
+    d = json.loads(p.read_text(encoding="utf-8"))
+    rel = p.relative_to(root).as_posix()
+    m, s, ph = d["motions"], d["system"], d["phantom"]
+    bal = m["ballistic"]
+    setting = (f"System of spec `{s['spec']}` ({num(s['wavelength_um'] * 1000)} nm, lateral {num(s['lateral_resolution_um'])} µm, "
+               f"axial {num(s['axial_resolution_um'])} µm, own protocol {s['n_frames']} frames at {num(s['frame_interval_s'])} s); "
+               f"flow {num(m['flow']['speed_um_per_s'])} µm/s at polar {num(m['flow']['polar_angle_deg'])}°, azimuth "
+               f"{num(m['flow']['azimuth_deg'])}°; random-ballistic motion {num(bal['speed_um_per_s'])} µm/s "
+               + (f"(matched to the flow's single-pixel correlation at {num(bal['matched_at_s'])} s)" if bal["matched"]
+                  else "(stated)")
+               + f"; pitch {num(ph['pitch_um'])} µm, {ph['seeds']} scatterer realisation(s) per protocol, "
+               + ("no noise" if ph["snr_db"] is None else f"{num(ph['snr_db'])} dB SNR") + ".")
+    head = ["frames", "interval (s)", "acquisition (s)", "window (px)", "coverage", "balanced accuracy",
+            "worst wrong share", "flow coverage", "flow accuracy", "ballistic coverage", "ballistic accuracy",
+            "compute (s)"]
+    parts = [setting]
+    for dec in ("rules", "offset-as-flow"):
+        rs = [r for r in d["rows"] if r["decision"] == dec]
+        if not rs:
+            continue
+        lines = []
+        for f, w in sorted({(r["interval_factor"], r["window"]) for r in rs}):  # the frame counts at the system's interval
+            line = sorted((r for r in rs if (r["interval_factor"], r["window"]) == (f, w)), key=lambda r: r["n_frames"])
+            if len(line) > 1 and f == 1.0:
+                lines.append(f"* interval {num(f)}× the system's, window {w} px: " + "; ".join(
+                    f"{r['n_frames']} frames → accuracy {num(r['balanced_accuracy'])}, coverage {num(r['coverage'])}, "
+                    f"wrong {num(r['wrong_share_max'])}" for r in line))
+        rows = [[r["n_frames"], num(r["interval_s"]), num(r["acquisition_s"]), r["window"], num(r["coverage"]),
+                 num(r["balanced_accuracy"]), num(r["wrong_share_max"]),
+                 *[num(r["per_band"][b][k]) for b in ("flow", "ballistic") for k in ("coverage", "accuracy")],
+                 num(r["seconds"]["total"])] for r in rs]
+        parts += [f"**Decision `{dec}`** (flow vs ballistic):", "\n".join(lines), table(head, rows)]
+    total = f"{num(d['seconds'])} s in all"
+    parts.append(source(d["command"], rel, f"{total}; {machine(d)}; per band and rule: `{name}.csv`, `{name}.md`, "
+                        f"plot `{name}.png`"))
+    return "\n\n".join(p for p in parts if p)
+
+
+def protocol_full(root: Path) -> str:
+    return _protocol(root, "protocol-full")
+
+
+def protocol_quick(root: Path) -> str:
+    return _protocol(root, "protocol-quick")
+
+
 RENDERERS: dict[str, Callable[[Path], str]] = {
     "bench-simulate": bench_simulate,
     "bench-study": bench_study,
@@ -359,6 +417,8 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "systems-validation": systems_validation,
     "translation-validation": translation_validation,
     "validation-table": validation_table,
+    "protocol-full": protocol_full,
+    "protocol-quick": protocol_quick,
 }
 
 
