@@ -12,8 +12,10 @@ from pathlib import Path
 #: The README is a front page: what it is, one picture, install, the two commands, a short example, links.
 README_MAX_LINES = 300
 #: The two commands of the front page: install and run the main job; install and run the tests (.ci/run runs it).
-FRONT_PAGE_COMMANDS = ('pip install torch==2.13.0 ".[all]" && torchdoct simulate example',
-                       'pip install torch==2.13.0 ".[test]" && python -m pytest')
+FRONT_PAGE_COMMANDS = (
+    'pip install torch==2.13.0 ".[all]" && torchdoct simulate example',
+    'pip install torch==2.13.0 ".[test]" && python -m pytest',
+)
 _PICTURE = re.compile(r"!\[[^\]]*\]\(([^)]+\.png)\)")
 _TIMING = re.compile(r"\b\d+(?:\.\d+)?\s?(?:ms|s|min|h)\b(?![\w/])")
 _SCORE = re.compile(r"\b0\.\d{2,}\b")

@@ -74,8 +74,8 @@ ocds_delay_range_s = [0.2048, 1.2288]
 [simulation]
 seed = 7
 """
-BSCAN = "kind = \"bscan\"\nn_x = 96\nn_z = 128\npitch_x_um = 2.0\npitch_z_um = 2.0"
-VOLUME = "kind = \"volume\"\nn_y = 24\nn_x = 48\nn_z = 128\npitch_x_um = 2.0\npitch_y_um = 2.0\npitch_z_um = 2.0"
+BSCAN = 'kind = "bscan"\nn_x = 96\nn_z = 128\npitch_x_um = 2.0\npitch_z_um = 2.0'
+VOLUME = 'kind = "volume"\nn_y = 24\nn_x = 48\nn_z = 128\npitch_x_um = 2.0\npitch_y_um = 2.0\npitch_z_um = 2.0'
 #: The geometries: (grid table, depth axis of the labels).
 GEOMETRIES = {"bscan": (BSCAN, 0), "volume": (VOLUME, 1)}
 #: The phantom's own rendering seed (``[simulation] seed``), the one the test renders.
@@ -97,8 +97,8 @@ def run_chain(work: Path, grid: str, seed: int | None = None) -> tuple[np.ndarra
     seq, maps, out = work / "seq.npz", work / "maps.npz", work / "classified"
     seeded = [] if seed is None else ["--seed", str(seed)]
     assert torchdoct_main(["render", str(phantom), *seeded, "--out", str(seq), "--no-progress", "--no-preview"]) == 0
-    assert torchdoct_main(["maps", str(seq), "--resolution", "original", "--resolution", "axial=14",
-                           "--resolution", "lateral=18", "--out", str(maps), "--no-progress"]) == 0
+    resolutions = ["--resolution", "original", "--resolution", "axial=14", "--resolution", "lateral=18"]
+    assert torchdoct_main(["maps", str(seq), *resolutions, "--out", str(maps), "--no-progress"]) == 0
     # the model's decisions, which the reference scores (the default's ballistic-or-flow: test_clf_ambiguity)
     assert classify_main([str(maps), "--out", str(out), "--pool", "5", "--threads", "1", "--decide-ballistic"]) == 0
     with np.load(seq) as z:
