@@ -229,9 +229,9 @@ def white_population(n_white: np.ndarray, n_steady: np.ndarray) -> np.ndarray:
     return (n_steady > 0) & (n_white >= MIN_WHITE_SHARE * n_steady)
 
 
-def _products(lines: torch.Tensor, m: int) -> torch.Tensor:
+def _products(x: torch.Tensor, m: int) -> torch.Tensor:
     """``C_t = E_{t+m} E_t*`` (complex128 ``[T−m, ...]``), 0 where not finite."""
-    x = lines.to(torch.complex128)
+    x = x.to(torch.complex128)
     c = x[m:] * x[:-m].conj()
     return torch.where(torch.isfinite(c.real) & torch.isfinite(c.imag), c, torch.zeros_like(c))
 
@@ -241,15 +241,17 @@ def _unit(r: torch.Tensor) -> torch.Tensor:
     return torch.where(a > 0, r / torch.where(a > 0, a, torch.ones_like(a)), torch.zeros_like(r))
 
 
-def _group_sum(c: torch.Tensor, sel: torch.Tensor, gid: torch.Tensor, n_groups: int) -> torch.Tensor:
-    """``Σ`` over the selected pixels of each group: ``c [K, P]``, ``sel [P]``, ``gid [P]`` → ``[K, G]``."""
-    out = torch.zeros(c.shape[0], n_groups, dtype=c.dtype)
-    return out.index_add_(1, gid, torch.where(sel[None], c, torch.zeros_like(c)))
+# The rule runs on groups of pixels (a scope each: an A-line, or a B-scan) held as ``[G, S]`` (``S`` pixels per
+# group), the products as ``[K, G, S]`` and the reference sums as ``[K, G]`` (``K = T − m`` frame pairs).
 
 
-def _phase_to(c: torch.Tensor, ref: torch.Tensor, gid: torch.Tensor) -> torch.Tensor:
-    """Each pixel's phase relative to its group's reference sum: ``arg Σ_t C_t · conj(R_t/|R_t|)`` ``[P]``."""
-    return torch.angle((c * _unit(ref)[:, gid].conj()).sum(0))
+def _group_sum(c: torch.Tensor, sel: torch.Tensor) -> torch.Tensor:
+    return torch.where(sel[None], c, torch.zeros_like(c)).sum(-1)
+
+
+def _phase_to(c: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Each pixel's phase relative to its group's reference sum: ``arg Σ_t C_t · conj(R_t/|R_t|)`` ``[G, S]``."""
+    return torch.angle((c * _unit(ref).conj()[..., None]).sum(0))
 
 
 def _wrap(a: torch.Tensor) -> torch.Tensor:
@@ -260,11 +262,13 @@ def _n_bins(h: float) -> int:
     return max(8, int(math.ceil(2.0 * math.pi / h)))
 
 
-def _histogram(psi: torch.Tensor, w: torch.Tensor, gid: torch.Tensor, n_groups: int, h: float) -> torch.Tensor:
+def _histogram(psi: torch.Tensor, w: torch.Tensor, h: float) -> torch.Tensor:
+    """``[G, bins]``: each group's ``w``-weighted histogram of ``psi`` over (−π, π]."""
     nb = _n_bins(h)
+    g = psi.shape[0]
     b = torch.clamp(((psi + math.pi) / (2.0 * math.pi) * nb).long(), 0, nb - 1)
-    out = torch.zeros(n_groups * nb, dtype=torch.float64)
-    return out.index_add_(0, gid * nb + b, w).reshape(n_groups, nb)
+    b = b + torch.arange(g)[:, None] * nb
+    return torch.zeros(g * nb, dtype=torch.float64).index_add_(0, b.reshape(-1), w.reshape(-1)).reshape(g, nb)
 
 
 def _peak_centres(hist: torch.Tensor) -> torch.Tensor:
@@ -274,27 +278,28 @@ def _peak_centres(hist: torch.Tensor) -> torch.Tensor:
     return (sm.argmax(1).double() + 0.5) * (2.0 * math.pi / nb) - math.pi
 
 
-def _near(psi: torch.Tensor, centre: torch.Tensor, half: float) -> torch.Tensor:
-    return _wrap(psi - centre).abs() <= half
+def _near_peak(psi: torch.Tensor, centre: torch.Tensor, h: float) -> torch.Tensor:
+    """Within 1.5 bins of the peak bin's centre (``centre [G]``)."""
+    return _wrap(psi - centre[:, None]).abs() <= 1.5 * 2.0 * math.pi / _n_bins(h)
 
 
-def _select_complete(c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, w: torch.Tensor, gid: torch.Tensor,
-                     n_groups: int, h: float) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
-    """The rule on groups whose pixels are all here: ``(reference sums [K, G], reference pixels [P], white and
-    steady pixels in phase with each group's population [G])``."""
-    r0 = _group_sum(c, cand, gid, n_groups)
-    psi = _phase_to(c, r0, gid)
-    centre = _peak_centres(_histogram(psi, w, gid, n_groups, h))
-    sel = cand & _near(psi, centre[gid], 1.5 * 2.0 * math.pi / _n_bins(h))
-    r1 = _group_sum(c, sel, gid, n_groups)
-    in_phase = _phase_to(c, r1, gid).abs() <= h
+def _last_step(c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, r1: torch.Tensor,
+               h: float) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
+    """The candidates within ``h`` of the population's sum ``r1``: ``(their sums [K, G], the pixels [G, S],
+    their count [G], the steady pixels within h [G])``."""
+    in_phase = _phase_to(c, r1).abs() <= h
     sel = cand & in_phase
-    n_white, n_steady = _in_phase_counts(sel, steady & in_phase, gid, n_groups)
-    return _group_sum(c, sel, gid, n_groups), sel, n_white, n_steady
+    return (_group_sum(c, sel), sel, sel.sum(-1).numpy().astype(np.int64),
+            (steady & in_phase).sum(-1).numpy().astype(np.int64))
 
 
-def _in_phase_counts(sel: torch.Tensor, steady: torch.Tensor, gid: torch.Tensor, n_groups: int):
-    return (np.bincount(gid[sel].numpy(), minlength=n_groups), np.bincount(gid[steady].numpy(), minlength=n_groups))
+def _select_complete(c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, w: torch.Tensor,
+                     h: float) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
+    """The rule on groups whose pixels are all here (``c [K, G, S]``, the masks and weights ``[G, S]``): the
+    candidates' sum, the peak of their phase histogram, the peak population's sum, then :func:`_last_step`."""
+    psi = _phase_to(c, _group_sum(c, cand))
+    sel = cand & _near_peak(psi, _peak_centres(_histogram(psi, w, h)), h)
+    return _last_step(c, cand, steady, _group_sum(c, sel), h)
 
 
 def _slab_lines(block: torch.Tensor, volume: bool) -> torch.Tensor:
@@ -307,11 +312,12 @@ def _slab_lines(block: torch.Tensor, volume: bool) -> torch.Tensor:
 
 @torch.no_grad()
 def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.ndarray | None = None,
-                               slab_elements: int = 1 << 23, device: torch.device | None = None,
-                               progress: bool = False) -> DopplerReference:
+                               slab_elements: int = 1 << 23, progress: bool = False) -> DopplerReference:
     """The reference of every lag (module docstring), in lateral slabs of whole A-lines (X columns of a
     B-scan sequence, whole B-scans of a volume) of at most ``slab_elements`` samples. ``bulk``: the bulk-phase
-    phasor ``[T, (Y), 1, X]`` of :func:`torchdoct.measured.maps.compute_maps`, applied first."""
+    phasor ``[T, (Y), 1, X]`` of :func:`torchdoct.measured.maps.compute_maps`, applied first. A B-scan scope
+    whole in its slab (every B-scan of a volume, a B-scan sequence in one slab) is decided there; a B-scan
+    split across slabs takes four more passes (:func:`_bscan_passes`)."""
     data, axes = seq.data, seq.axes
     volume = axes == "TYZX"
     n_t = data.shape[0]
@@ -327,69 +333,58 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
     n_bscans = data.shape[1] if volume else 1
     n_x = data.shape[-1]
     hs = {m: phase_tolerance(m, n_t) for m in lags}
-    sums = {m: np.zeros((n_t - m, n_lines), dtype=np.complex128) for m in lags}
-    own = {m: np.zeros(n_lines, dtype=np.int64) for m in lags}
-    mask = {m: np.zeros((n_lines, n_z), dtype=bool) for m in lags}
-    own_steady = {m: np.zeros(n_lines, dtype=np.int64) for m in lags}
-    n_cand = np.zeros(n_lines, dtype=np.int64)
+    own = {m: _Scope(n_t - m, n_lines, n_z) for m in lags}
+    bscan = {m: _Scope(n_t - m, n_bscans, n_lines // n_bscans * n_z) for m in lags}
+    split = not volume and len(slabs) > 1  # the one B-scan of a sequence spans several slabs
+    n_cand = 0
     bar = None
     if not progress_disabled(progress):
         from tqdm.auto import tqdm
 
         bar = tqdm(total=len(slabs), desc="doppler reference", unit="slab")
 
-    def read(c0: int, c1: int) -> tuple[torch.Tensor, slice]:
+    def read(c0: int, c1: int) -> tuple[torch.Tensor, slice, slice]:
+        """The slab's A-lines ``[T, L, Z]`` (complex128), their rows among all A-lines and their B-scans."""
         sel = [slice(None)] * data.ndim
         sel[cdim] = slice(c0, c1)
         raw = np.array(data[tuple(sel)], dtype=native, copy=True)
         if bulk is not None:
             raw = np.multiply(raw, bulk[tuple(sel)])
-        lines = _slab_lines(torch.from_numpy(raw), volume)
+        lines = _slab_lines(torch.from_numpy(raw), volume).to(torch.complex128)
         first = c0 * n_x if volume else c0
-        return lines, slice(first, first + lines.shape[1])
+        return lines, slice(first, first + lines.shape[1]), slice(c0, c1) if volume else slice(0, 1)
 
-    for c0, c1 in slabs:  # the A-line scope: every group is whole in its slab
-        lines, rows = read(c0, c1)
-        n_l = lines.shape[1]
-        cand, steady, w = _candidates(lines)
-        n_cand[rows] = cand.sum(1).numpy()
-        gid = torch.arange(n_l).repeat_interleave(n_z)
+    for c0, c1 in slabs:  # the A-line scope (whole in its slab), and the B-scan scope where it is whole too
+        lines, rows, bs = read(c0, c1)
+        cand, steady, w = _candidates(lines)  # [L, Z]
+        n_cand += int(cand.sum())
+        n_g = bs.stop - bs.start
         for m in lags:
-            c = _products(lines, m).reshape(n_t - m, -1)
-            r, sel, n_white, n_steady = _select_complete(c, cand.reshape(-1), steady.reshape(-1), w.reshape(-1), gid,
-                                                         n_l, hs[m])
-            sums[m][:, rows] = r.numpy()
-            mask[m][rows] = sel.reshape(n_l, n_z).numpy()
-            own[m][rows] = n_white
-            own_steady[m][rows] = n_steady
+            c = _products(lines, m)  # [K, L, Z]
+            r, sel, n_sel, n_steady = _select_complete(c, cand, steady, w, hs[m])
+            own[m].put(rows, r, sel, n_sel, n_steady)
+            if not split and not own[m].ok(rows).all():  # some A-line needs its B-scan's reference
+                g = (lambda a, n_g=n_g: a.reshape(*a.shape[:-2], n_g, -1))  # noqa: E731 (pixels by B-scan)
+                r, sel, n_sel, n_steady = _select_complete(g(c), g(cand), g(steady), g(w), hs[m])
+                bscan[m].put(bs, r, sel, n_sel, n_steady)
         if bar is not None:
             bar.update(1)
     if bar is not None:
         bar.close()
-    # the B-scan scope, for the A-lines without their own reference
-    own_ok = {m: (own[m] >= MIN_REFERENCE_PIXELS) & white_population(own[m], own_steady[m]) for m in lags}
-    need = [m for m in lags if not own_ok[m].all()]
-    bscan_sums: dict[int, np.ndarray] = {}
-    bscan_n: dict[int, np.ndarray] = {}
-    bscan_mask: dict[int, np.ndarray] = {}
-    bscan_steady: dict[int, np.ndarray] = {}
-    if need:
-        bscan_sums, bscan_n, bscan_mask, bscan_steady = _bscan_scope(read, slabs, need, hs, n_t=n_t, n_z=n_z, n_lines=n_lines,
-                                                       n_bscans=n_bscans, n_x=n_x, volume=volume)
+    if split:
+        need = [m for m in lags if not own[m].ok(slice(None)).all()]
+        if need:
+            _bscan_passes(read, slabs, need, hs, bscan, n_lines=n_lines)
     scope, out_sums, out_mask, info, present = {}, {}, {}, {}, []
+    line_b = np.repeat(np.arange(n_bscans), n_x) if volume else np.zeros(n_lines, dtype=np.int64)
     for m in lags:
-        use_own = own_ok[m]
-        sc = np.where(use_own, 1, 0).astype(np.int8)
-        s = np.where(use_own[None], sums[m], 0)
-        mk = np.where(use_own[:, None], mask[m], False)
-        b_ok = np.zeros(n_bscans, dtype=bool)
-        if m in bscan_sums:
-            b_ok = (bscan_n[m] >= MIN_REFERENCE_PIXELS) & white_population(bscan_n[m], bscan_steady[m])
-            line_b = np.repeat(np.arange(n_bscans), n_x) if volume else np.zeros(n_lines, dtype=np.int64)
-            fall = ~use_own & b_ok[line_b]
-            sc = np.where(fall, 2, sc).astype(np.int8)
-            s = np.where(fall[None], bscan_sums[m][:, line_b], s)
-            mk = np.where(fall[:, None], bscan_mask[m], mk)
+        use_own = own[m].ok(slice(None))
+        b_ok = bscan[m].ok(slice(None))
+        fall = ~use_own & b_ok[line_b]
+        sc = np.where(use_own, 1, np.where(fall, 2, 0)).astype(np.int8)
+        s = np.where(use_own[None], own[m].sums, np.where(fall[None], bscan[m].sums[:, line_b], 0))
+        pixels_b = bscan[m].pixels.reshape(n_lines, n_z)  # the B-scan scope's pixels, by A-line
+        mk = np.where(use_own[:, None], own[m].pixels, fall[:, None] & pixels_b)  # [L, Z]
         scope[m] = sc.reshape(lat_shape)
         out_sums[m] = s.reshape(n_t - m, *lat_shape)
         out_mask[m] = np.moveaxis(mk.reshape(*lat_shape, n_z), -1, -2)  # [(Y), Z, X]
@@ -398,15 +393,16 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
             "h": hs[m],
             "reference_pixels": int(mk.sum()),
             "reference_share": float(mk.sum()) / (n_lines * n_z),
-            "candidate_share": float(n_cand.sum()) / (n_lines * n_z),
+            "candidate_share": n_cand / (n_lines * n_z),
             "alines": n_lines,
             "alines_own_reference": int(use_own.sum()),
-            "alines_bscan_reference": int((sc == 2).sum()),
+            "alines_bscan_reference": int(fall.sum()),
             "alines_without_reference": int((sc == 0).sum()),
             "aline_reference_share": {"min": float(line_share.min()), "median": float(np.median(line_share)),
                                       "max": float(line_share.max())},
-            "bscans_with_reference": int(b_ok.sum()) if m in bscan_sums else None,
-            "bscan_reference_share": ([float(v) / (n_x * n_z) for v in bscan_n[m]] if m in bscan_n else None),
+            "bscans_with_reference": int(b_ok.sum()),
+            "bscan_reference_share": [float(v) / (n_lines // n_bscans * n_z) if e else None
+                                      for v, e in zip(bscan[m].count, bscan[m].evaluated)],
         }
         if (sc > 0).any():
             present.append(m)
@@ -419,49 +415,68 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
                             bulk_corrected=bulk is not None, n_frames=n_t)
 
 
-def _bscan_scope(read, slabs, lags, hs, *, n_t, n_z, n_lines, n_bscans, n_x, volume):
-    """The rule with the B-scan as the scope, in four passes over the slabs (the B-scan of a ``[T, Z, X]``
-    sequence may span several): the candidates' sum, their phase histogram, the peak population's sum, the
-    final reference. Returns per lag the sums ``[T−m, B]``, the counts ``[B]``, the pixels ``[L, Z]`` and the
-    steady pixels in phase with the population ``[B]``."""
-    r0 = {m: torch.zeros(n_t - m, n_bscans, dtype=torch.complex128) for m in lags}
-    hist = {m: torch.zeros(n_bscans, _n_bins(hs[m]), dtype=torch.float64) for m in lags}
-    r1 = {m: torch.zeros(n_t - m, n_bscans, dtype=torch.complex128) for m in lags}
-    r2 = {m: torch.zeros(n_t - m, n_bscans, dtype=torch.complex128) for m in lags}
-    count = {m: np.zeros(n_bscans, dtype=np.int64) for m in lags}
-    n_steady = {m: np.zeros(n_bscans, dtype=np.int64) for m in lags}
-    pix = {m: np.zeros((n_lines, n_z), dtype=bool) for m in lags}
-    centre: dict[int, torch.Tensor] = {}
+class _Scope:
+    """The reference of every group of one scope kind (A-lines, or B-scans): sums ``[K, G]``, pixels ``[G, S]``
+    (``S`` pixels per group, A-line by A-line and depth by depth), the count and the steady pixels in phase,
+    and which groups were evaluated (a B-scan only where some A-line needs it)."""
+
+    def __init__(self, k: int, n_groups: int, per_group: int) -> None:
+        self.sums = np.zeros((k, n_groups), dtype=np.complex128)
+        self.count = np.zeros(n_groups, dtype=np.int64)
+        self.steady = np.zeros(n_groups, dtype=np.int64)
+        self.pixels = np.zeros((n_groups, per_group), dtype=bool)
+        self.evaluated = np.zeros(n_groups, dtype=bool)
+
+    def put(self, rows: slice, r: torch.Tensor, sel: torch.Tensor, n_sel: np.ndarray, n_steady: np.ndarray) -> None:
+        self.sums[:, rows] = r.numpy()
+        self.count[rows] = n_sel
+        self.steady[rows] = n_steady
+        self.pixels[rows] = sel.numpy().reshape(self.pixels[rows].shape)
+        self.evaluated[rows] = True
+
+    def ok(self, rows: slice) -> np.ndarray:
+        """Groups with a reference: enough pixels, and white as a population (:func:`white_population`)."""
+        n = self.count[rows]
+        return (n >= MIN_REFERENCE_PIXELS) & white_population(n, self.steady[rows])
+
+
+def _bscan_passes(read, slabs, lags, hs, bscan: dict[int, _Scope], *, n_lines: int) -> None:
+    """The B-scan scope of a B-scan sequence split across slabs, in four passes (one group, every pixel): the
+    candidates' sum, their phase histogram, the peak population's sum, then :func:`_last_step`; results into
+    ``bscan``."""
+    sums: dict[int, list[torch.Tensor]] = {m: [] for m in lags}
+    hist: dict[int, torch.Tensor] = {}
+    sel_parts: dict[int, list[np.ndarray]] = {m: [] for m in lags}
+    count = {m: np.zeros(1, dtype=np.int64) for m in lags}
+    steady_n = {m: np.zeros(1, dtype=np.int64) for m in lags}
     for step in range(4):
+        acc: dict[int, Any] = dict.fromkeys(lags, 0)
         for c0, c1 in slabs:
-            lines, rows = read(c0, c1)
-            n_l = lines.shape[1]
-            cand, steady, w = _candidates(lines)
-            cand, steady, w = cand.reshape(-1), steady.reshape(-1), w.reshape(-1)
-            line_ids = torch.arange(rows.start, rows.stop)
-            gid = (line_ids // n_x if volume else torch.zeros(n_l, dtype=torch.long)).repeat_interleave(n_z)
+            lines, _, _ = read(c0, c1)
+            cand, steady, w = (a.reshape(1, -1) for a in _candidates(lines))
             for m in lags:
-                c = _products(lines, m).reshape(n_t - m, -1)
+                c = _products(lines, m).reshape(lines.shape[0] - m, 1, -1)
                 if step == 0:
-                    r0[m] += _group_sum(c, cand, gid, n_bscans)
+                    acc[m] = acc[m] + _group_sum(c, cand)
                     continue
-                psi = _phase_to(c, r0[m], gid)
+                psi = _phase_to(c, sums[m][0])
                 if step == 1:
-                    hist[m] += _histogram(psi, w, gid, n_bscans, hs[m])
+                    acc[m] = acc[m] + _histogram(psi, w, hs[m])
                 elif step == 2:
-                    sel = cand & _near(psi, centre[m][gid], 1.5 * 2.0 * math.pi / _n_bins(hs[m]))
-                    r1[m] += _group_sum(c, sel, gid, n_bscans)
+                    acc[m] = acc[m] + _group_sum(c, cand & _near_peak(psi, _peak_centres(hist[m]), hs[m]))
                 else:
-                    in_phase = _phase_to(c, r1[m], gid).abs() <= hs[m]
-                    sel = cand & in_phase
-                    r2[m] += _group_sum(c, sel, gid, n_bscans)
-                    n_w, n_s = _in_phase_counts(sel, steady & in_phase, gid, n_bscans)
-                    count[m] += n_w
-                    n_steady[m] += n_s
-                    pix[m][rows] = sel.reshape(n_l, n_z).numpy()
-        if step == 1:
-            centre = {m: _peak_centres(hist[m]) for m in lags}
-    return {m: r2[m].numpy() for m in lags}, count, pix, n_steady
+                    r, sel, n_sel, n_steady = _last_step(c, cand, steady, sums[m][1], hs[m])
+                    acc[m] = acc[m] + r
+                    sel_parts[m].append(sel.numpy().reshape(-1))
+                    count[m] += n_sel
+                    steady_n[m] += n_steady
+        for m in lags:
+            if step == 1:
+                hist[m] = acc[m]
+            else:
+                sums[m].append(acc[m])
+    for m in lags:
+        bscan[m].put(slice(0, 1), sums[m][2], torch.from_numpy(np.concatenate(sel_parts[m])), count[m], steady_n[m])
 
 
 # ----------------------------------------------------------------------------------------------
