@@ -74,6 +74,12 @@ Pixels that non-finite samples reach are NaN, as in the other channels; otherwis
 rule holds (NaN where ``I = 0`` at some frame, :mod:`torchdoct.sim.signature`), without the floor of
 :data:`EMPTY_RULE`.
 
+Doppler channels (``doppler``, ``torchdoct maps --doppler``): ``doppler_phase_{m}`` at the original resolution,
+the phase of each pixel's lag-``m`` field correlation relative to a static-tissue reference of its A-line or
+B-scan (:mod:`torchdoct.measured.doppler`, docs/concepts/doppler-reference.md), last. The reference needs whole
+A-lines, so it is estimated before the slab loop over lateral slabs of its own; the loop then computes the
+channel per pixel. No reference anywhere, or intensity-only input: no channel, and ``meta["doppler"]`` says why.
+
 The module runs the slab loop; the per-pixel metrics are in :mod:`torchdoct.measured.mapmetrics` and the
 figures in :mod:`torchdoct.measured.mapfigures` (their public names are importable from here too).
 """
