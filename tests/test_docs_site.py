@@ -156,3 +156,22 @@ def test_the_site_build_refuses_a_link_to_a_missing_file(tmp_path):
     sub.mkdir()
     text = "[p](../docs/physics.md) [s](../docs/physics.md#5-x) [w](https://example.org/a) [a](#top) [gone](physics.md)"
     assert frontpage.broken_links(text, sub) == ["physics.md"]
+
+
+def test_the_recorded_bulk_phase_run_agrees_with_the_first_order_prediction():
+    """``notebooks/bench/bench-bulk-phase.json`` (physics.md §12 renders it): on static speckle the weighted mean
+    is within 4 standard errors of :func:`~torchdoct.measured.bulkphase.predicted_residual_rms` at every SNR; on
+    the phantom the stable mask leaves the static tissue's g1_4 within 1 SE of its value without bulk motion and
+    a smaller residual than every pixel does (§12.3)."""
+    d = json.loads((REPO / "notebooks" / "bench" / "bench-bulk-phase.json").read_text(encoding="utf-8"))
+    assert d["benchmark"] == "bulk-phase" and d["n_z"] > 1 and d["machine"]
+    wm = [r for r in d["rows"] if r["method"] == "weighted-mean"]
+    assert {r["snr_db"] for r in wm} == {r["snr_db"] for r in d["rows"]}
+    for r in wm:
+        assert abs(r["residual_rms_rad"] - r["predicted_rms_rad"]) <= 4 * r["se_rad"], r
+    rows = d["phantom"]["rows"]
+    for r in rows:
+        if r["mask"].startswith("stable"):
+            assert abs(r["g1_4_static_z"]) < 1, r
+            every = next(a for a in rows if (a["snr_db"], a["method"], a["mask"]) == (r["snr_db"], r["method"], "all"))
+            assert r["residual_rms_rad"] < every["residual_rms_rad"], (r, every)
