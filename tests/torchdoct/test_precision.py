@@ -62,3 +62,45 @@ def test_timestamps_far_from_zero_in_double_precision_keep_their_distinct_delays
     got, want = delay_groups(epoch), delay_groups(bursts)
     assert [ij for _, ij in got] == [ij for _, ij in want]
     np.testing.assert_allclose([d for d, _ in got], [d for d, _ in want], atol=1e-6)
+
+
+def _scaled(scene, reflectivity):
+    return scene.replace(populations=tuple(p.__class__(**{**p.__dict__, "reflectivity": reflectivity})
+                                           for p in scene.populations))
+
+
+def test_a_reflectivity_whose_intensity_underflows_float32_is_refused_naming_it_and_float64_gives_its_liv(
+        small_scene):
+    tiny = _scaled(small_scene, 1e-30)
+    with pytest.raises(ValueError, match=r"population\[0\]\.reflectivity = 1e-30.*float32.*dtype='float64'") as info:
+        td.simulate(tiny, trials=64, seed=1, dtype="float32")
+    assert "truncation" not in str(info.value)  # the cause named is the intensity scale
+    ref = td.simulate(small_scene, trials=64, seed=1, dtype="float64").metrics()
+    got = td.simulate(tiny, trials=64, seed=1, dtype="float64").metrics()
+    for name in ("liv", "ocds"):  # scale-free
+        assert torch.isfinite(got[name]).all()
+        torch.testing.assert_close(got[name], ref[name], rtol=1e-9, atol=1e-9)
+
+
+def _moving(scene, speed):
+    motion = td.RandomBallistic(speed_um_per_s=speed)
+    return scene.replace(populations=(scene.populations[0].__class__(density_per_um3=0.055, motion=(motion,)),))
+
+
+def test_a_motion_below_float32_resolution_is_refused_naming_it_and_runs_in_float64(small_scene):
+    slow = _moving(small_scene, 1e-6)
+    with pytest.raises(ValueError, match=r"population\[0\]\.motion\[0\]\.speed_um_per_s.*float32 spacings.*"
+                                         r"rounding noise.*--dtype float64"):
+        td.simulate(slow, trials=64, seed=1, dtype="float32")
+    ocds = td.simulate(slow, trials=64, seed=1, dtype="float64").metrics()["ocds"]
+    assert ocds.abs().max() < 1e-6  # float64 resolves it: this slow a motion barely decorrelates
+    noisy = slow.replace(noise=td.Noise(snr_db=30.0))  # the noise changes every frame far more: float32 holds it
+    assert torch.isfinite(td.simulate(noisy, trials=64, seed=1, dtype="float32").metrics()["ocds"]).all()
+
+
+def test_the_slowest_motion_of_the_training_prior_runs_in_float32(small_scene):
+    from classifier.prior import Prior
+
+    slowest = Prior().speed_um_per_s[0]
+    assert torch.isfinite(td.simulate(_moving(small_scene, slowest), trials=64, seed=1,
+                                      dtype="float32").metrics()["ocds"]).all()
