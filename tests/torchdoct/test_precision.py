@@ -104,3 +104,27 @@ def test_the_slowest_motion_of_the_training_prior_runs_in_float32(small_scene):
     slowest = Prior().speed_um_per_s[0]
     assert torch.isfinite(td.simulate(_moving(small_scene, slowest), trials=64, seed=1,
                                       dtype="float32").metrics()["ocds"]).all()
+
+
+def test_maps_of_a_field_whose_intensity_underflows_name_the_cause_and_complex128_gives_the_same_liv(
+        seq, tmp_path, capsys):
+    from _refusal import refused
+
+    from torchdoct.cli import main
+
+    field = np.load(seq)
+    meta = seq.with_suffix(".json").read_text()
+    runs = {}
+    for name, data in (("tiny", (field * 1e-30).astype(np.complex64)),
+                       ("tiny128", field.astype(np.complex128) * 1e-30)):
+        path = tmp_path / f"{name}.npy"
+        np.save(path, data)
+        path.with_suffix(".json").write_text(meta)
+        runs[name] = path
+    refused(capsys, tmp_path, ["maps", str(runs["tiny"]), "--metrics", "liv", "--out", str(tmp_path / "t.npz")],
+            "tiny.npy", "underflows float32", "complex128", "multiply it by 1e+30",
+            absent=("no finite nonzero", "check the file"))
+    for name, path in (("ref", seq), ("tiny128", runs["tiny128"])):
+        assert main(["maps", str(path), "--metrics", "liv", "--no-progress", "--out", str(tmp_path / f"{name}-m.npz")]) == 0
+    ref, got = read_maps(tmp_path / "ref-m.npz"), read_maps(tmp_path / "tiny128-m.npz")
+    np.testing.assert_allclose(got.maps, ref.maps, rtol=1e-4, atol=1e-4)

@@ -187,10 +187,17 @@ EMPTY_RULE = ("a pixel has no dB value where I = 0 or NaN at some frame; after a
               "complex128) counts as I = 0: FFT round-off of the reduction, not signal")
 
 
+#: Decades the largest intensity of the data must keep above the smallest normal number of its data type:
+#: speckle falls this far below its peak in fewer than 1 sample in 10¹⁴ (as
+#: :data:`torchdoct.sim.simulate.FLOAT32_INTENSITY_MARGIN`).
+INTENSITY_MARGIN = 1e14
+
+
 def _peak_intensity(data: np.ndarray, src: str) -> float:
     """Largest finite ``|E|²`` (or intensity) of ``data``, frame by frame; refuses data without any
-    finite nonzero sample (every map would be NaN)."""
-    peak = 0.0
+    finite nonzero sample (every map would be NaN), and data whose intensities overflow or underflow their
+    data type (within :data:`INTENSITY_MARGIN` of its smallest normal number), naming the fix."""
+    peak = top = 0.0
     for k in range(data.shape[0]):
         f = np.asarray(data[k])
         with np.errstate(over="ignore", invalid="ignore"):
@@ -202,6 +209,15 @@ def _peak_intensity(data: np.ndarray, src: str) -> float:
                              f"{float(np.finfo(v.dtype).max):.3g}); scale the field down (e.g. divide it by "
                              f"{10 ** math.ceil(math.log10(top) - 15):.0e}) or store it as complex128")
         peak = max(peak, float(np.max(v, where=np.isfinite(v), initial=0.0)))
+        top = max(top, float(np.max(np.abs(f), where=np.isfinite(f), initial=0.0)))
+    dtype = np.dtype(np.float64 if data.dtype in (np.complex128, np.float64) else np.float32)
+    if top > 0 and not peak >= float(np.finfo(dtype).tiny) * INTENSITY_MARGIN:
+        sq = "|E|²" if np.iscomplexobj(data) else "the intensity"
+        raise ValueError(f"{src}: {sq} underflows {dtype} (the largest sample is {top:.3g}; {dtype} holds intensities "
+                         f"down to {float(np.finfo(dtype).tiny):.3g}, and speckle falls decades below its peak): no "
+                         f"pixel would have a dB value; LIV and OCDS do not depend on the scale: scale the data up (e.g. "
+                         f"multiply it by {10 ** -math.floor(math.log10(top)):.0e}) or store it as "
+                         f"{'complex128' if np.iscomplexobj(data) else 'float64'}")
     if not peak > 0:
         raise ValueError(f"{src}: holds no finite nonzero sample (every value is NaN, infinite or 0), so no pixel "
                          "has a dB value; check the file (and --dataset / --axes)")
