@@ -146,6 +146,9 @@ class Configuration:
         """:meth:`ChannelOptics.matches` of :attr:`optics` and ``optics`` (a :class:`ChannelOptics`, or
         wavelength, lateral and axial resolution of an isotropic system)."""
         if not isinstance(optics, ChannelOptics):
+            if lateral_resolution_um is None or axial_resolution_um is None:
+                raise TypeError("matches(wavelength_um, lateral_resolution_um, axial_resolution_um): give all three "
+                                "resolutions with a wavelength, or one ChannelOptics")
             optics = ChannelOptics(float(optics), float(lateral_resolution_um), float(axial_resolution_um))
         return self.optics.matches(optics, lateral_y=lateral_y)
 

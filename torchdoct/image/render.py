@@ -468,6 +468,7 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
             work["stages"].append("diffusion: one Gaussian step per frame, splat per frame")
         # drop straight-path scatterers that never count at any frame
         for st in drift:
+            assert st.vel is not None  # moving without a walk: a straight path
             ever = torch.zeros(st.pos0.shape[0], dtype=torch.bool)
             for t in t_rel:
                 ever |= _inside(phantom, st, st.pos0 + st.vel * t, box)
