@@ -21,9 +21,9 @@ intensity extremum, so the candidates are then split by phase: their phases rela
 candidates are histogrammed (bins of width ``h``, each weighted by ``1 − contrast/C``, the steadier the
 heavier), the peak population (within ``1.5·h`` of the peak bin's centre) gives a sum, and the candidates
 within ``h`` of it are the reference. ``h`` is 3.5 standard deviations of a static pixel's phase at the SNR
-floor (:func:`phase_tolerance`). The population counts when at least :data:`MIN_WHITE_SHARE` of the steady
-pixels within ``h`` of it are white (:func:`white_population`): static tissue is white nearly everywhere,
-slow flow mostly drifts.
+floor (:func:`phase_tolerance`). The population counts when significantly more than :data:`MIN_WHITE_SHARE`
+of the steady pixels within ``h`` of it are white (:func:`white_population`): static tissue is white nearly
+everywhere, slow flow mostly drifts.
 
 **Scope and minimum**: an A-line with at least :data:`MIN_REFERENCE_PIXELS` reference pixels uses its
 own reference; otherwise its B-scan's (the same rule on all the B-scan's pixels, which assumes a bulk
@@ -53,7 +53,7 @@ from .bulkphase import STABLE_CONTRAST
 from .sequence import SequenceData
 
 __all__ = ["DEFAULT_DOPPLER_LAGS", "REFERENCE_CONTRAST", "MIN_REFERENCE_PIXELS", "MIN_WHITE_SHARE",
-           "PHASE_TOLERANCE_Z", "REFERENCE_RULE", "min_reference_snr", "min_whiteness", "white_population",
+           "WHITE_TEST_LEVEL", "PHASE_TOLERANCE_Z", "REFERENCE_RULE", "min_reference_snr", "min_whiteness", "white_population",
            "phase_tolerance", "doppler_lags", "DopplerReference", "estimate_doppler_reference", "doppler_absent",
            "doppler_channel_records", "doppler_slab", "doppler_name"]
 
@@ -65,8 +65,10 @@ REFERENCE_CONTRAST = STABLE_CONTRAST
 #: its pixels' (to first order in the noise), so at ``N ≥ 10`` it adds at most 10 % to the variance of a
 #: pixel at the reference's SNR.
 MIN_REFERENCE_PIXELS = 10
-#: Share of a reference population's steady, in-phase pixels that must fluctuate as white noise (a majority).
+#: A reference population's steady, in-phase pixels must be white significantly more often than this share
+#: (a majority), at the level below (:func:`white_population`).
 MIN_WHITE_SHARE = 0.5
+WHITE_TEST_LEVEL = 0.01
 #: Half width of the reference population, in standard deviations of a static pixel's phase.
 PHASE_TOLERANCE_Z = 3.5
 #: The rule, as the maps' metadata record it.
@@ -74,8 +76,9 @@ REFERENCE_RULE = ("reference pixels: temporal intensity contrast Var_t I/(mean_t
                   "SNR >= {s:.1f}, above the noise floor) and white intensity fluctuations (von Neumann ratio "
                   "sum (I_(t+1) - I_t)^2 / (2 sum (I_t - mean I)^2) >= {w:.3f}: noise, no drift); then the peak "
                   "population of their phases relative to the sum of all of them (histogram of bin width h, weights "
-                  "1 - contrast/{c:g}); then those within h of that population's sum; the population counts when at "
-                  "least {ws:.0%} of the steady pixels within h of it are white; scope: the A-line with >= {n} "
+                  "1 - contrast/{c:g}); then those within h of that population's sum; the population counts when "
+                  "more than {ws:.0%} of the steady pixels within h of it are white (one-sided binomial test at "
+                  "{lv:g}); scope: the A-line with >= {n} "
                   "reference pixels, else its B-scan with >= {n}, else none (NaN); channel: arg sum_t conj(C_t(p)) "
                   "r_t/|r_t|, C_t = E_(t+m) conj(E_t), r_t the reference sum without p")
 
@@ -169,7 +172,8 @@ class DopplerReference:
             "unit": "rad",
             "sign": "g1_phase convention: scatterers moving deeper at v_z give -2kn*v_z*m*dt (wrapped)",
             "rule": REFERENCE_RULE.format(c=REFERENCE_CONTRAST, s=min_reference_snr(), n=MIN_REFERENCE_PIXELS,
-                                          w=min_whiteness(self.n_frames), ws=MIN_WHITE_SHARE),
+                                          w=min_whiteness(self.n_frames), ws=MIN_WHITE_SHARE,
+                                          lv=WHITE_TEST_LEVEL),
             "min_white_share": MIN_WHITE_SHARE,
             "min_whiteness": min_whiteness(self.n_frames),
             "reference_contrast": REFERENCE_CONTRAST,
@@ -222,11 +226,18 @@ def _candidates(lines: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.
 
 
 def white_population(n_white: np.ndarray, n_steady: np.ndarray) -> np.ndarray:
-    """Whether a reference population is static tissue: of the steady pixels in phase with it (within ``h``),
-    at least :data:`MIN_WHITE_SHARE` fluctuate as white noise. A static pixel fails the per-pixel test with
-    the probability of a 3.5-sd excursion; slow flow passes it only where its speckle sits near an intensity
-    extremum, and as a population mostly drifts."""
-    return (n_steady > 0) & (n_white >= MIN_WHITE_SHARE * n_steady)
+    """Whether a reference population is static tissue: of the ``n_steady`` steady pixels in phase with it
+    (within ``h``), ``n_white`` fluctuate as white noise, significantly more than :data:`MIN_WHITE_SHARE`
+    (one-sided binomial test at :data:`WHITE_TEST_LEVEL`). A static pixel fails the per-pixel test with the
+    probability of a 3.5-sd excursion (only pixels that share the PSF with a moving neighbour drift); slow
+    flow passes it only where its speckle sits near an intensity extremum, and as a population mostly drifts.
+    The test is on a count, so a few drifting pixels at a layer's edge do not reject a large population, and
+    a small one must be clearly white."""
+    from scipy.stats import binom
+
+    n = np.asarray(n_steady)
+    k_min = binom.isf(WHITE_TEST_LEVEL, np.maximum(n, 1), MIN_WHITE_SHARE) + 1  # P(X >= k_min) <= level
+    return (n > 0) & (np.asarray(n_white) >= k_min)
 
 
 def _products(x: torch.Tensor, m: int) -> torch.Tensor:
