@@ -48,27 +48,36 @@ pixel:
    flow's heterodyne term beats at its Doppler frequency, so the centred correlation falls by the phase (as
    random motion's does) while the pattern has moved less than a pixel, and rules 0 and 2 see neither a
    moved peak nor a slow decay. The peak *offset* still tells: a direction-symmetric motion keeps the
-   peak at the centre until transit (speckle-motion §3 (b), (c)), and while its pattern holds, the
-   estimate's error is the window's own grain structure, common to every lag, so the offset does not
-   change with the lag; a flow's offset is ``v⊥τ`` (the heterodyne peak ``v⊥τ/2``) and grows with it.
-   Where, over the lags ``m ≤ n_frames / 4``, the offset ``xc_shift_m`` at the shortest lag is at least
-   :data:`OFFSET_FIRST_MIN` of the pixel pitch, or the pattern held at the shortest lag (``xc_peak_m₁ ≥``
-   :data:`OFFSET_HOLD_MIN`) and the offset grew at every lag and by at least :data:`OFFSET_GROWTH_MIN` of
-   the pitch in all, flow cannot be excluded: a remaining ``ballistic`` decision is ``ballistic-or-flow``
-   and a ``diffusion`` decision ``diffusion-or-flow`` (:data:`OFFSET_TO_SET`). It only abstains: a random
-   motion whose pattern reached transit within the shortest lag loses coverage, never a right decision.
+   peak at the centre until transit (speckle-motion §3 (b), (c)), while a flow's offset is ``v⊥τ`` (the
+   heterodyne peak's ``v⊥τ/2``) and grows with the lag. Over the lags ``m ≤ n_frames / 4``:
+
+   * where the offset ``xc_shift_m`` at the shortest lag is at least :data:`OFFSET_FIRST_MIN` of the pixel
+     pitch (off the centre: a fast flow's heterodyne peak), a ``ballistic`` or ``diffusion`` decision becomes
+     its set with flow (``ballistic-or-flow``, ``diffusion-or-flow``);
+   * where the pattern held at the shortest lag (``xc_peak_m₁ ≥`` :data:`OFFSET_HOLD_MIN`) and the offset
+     grew at every lag and by at least :data:`OFFSET_GROWTH_MIN` of the pitch in all (a slow flow beating
+     against static tissue), a ``ballistic`` decision becomes ``ballistic-or-flow``. While a pattern holds,
+     the offset estimate's error is the window's own grain structure, common to every lag; but it grows as
+     the pattern decays in place, and a diffusing pattern with noise decays enough to grow it. A beat
+     decays as ``cos(2kn·v_z τ)``, quadratic at short lags as random-ballistic motion's phase decay is,
+     not as diffusion's exponential (physics.md §5.3), so the network reads such a flow as ballistic and
+     diffusion decisions are left to the first clause.
+
+   It only abstains: a random motion that reached transit within the shortest lag, or whose decaying
+   pattern let the offset wander, loses coverage, never a right decision.
 """
 
 from __future__ import annotations
 
 import re
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 __all__ = ["COHERENT_MOVED_MIN", "COHERENT_TO_FLOW", "COHERENT_PEAK_MIN", "DECORRELATED_BELOW", "FAST_REMAINING_MAX",
-           "OFFSET_FIRST_MIN", "OFFSET_GROWTH_MIN", "OFFSET_HOLD_MIN", "OFFSET_TO_SET", "SET_LABEL",
+           "OFFSET_FIRST_MIN", "OFFSET_GREW_TO_SET", "OFFSET_GROWTH_MIN", "OFFSET_HOLD_MIN", "OFFSET_TO_SET",
+           "OffsetMotion", "SET_LABEL",
            "abstain_where_ambiguous", "coherent_motion", "fast_decorrelation", "offset_moved", "slow_decorrelation"]
 
 #: The window's intensity correlation at the longest lag below which a pixel counts as decorrelated
@@ -91,8 +100,10 @@ OFFSET_FIRST_MIN = 0.5
 OFFSET_GROWTH_MIN = 0.25
 #: Rule 4: the window's peak correlation at the shortest lag from which its pattern counts as held.
 OFFSET_HOLD_MIN = 0.8
-#: Rule 4: the decisions for a direction-symmetric motion and the set each becomes.
+#: Rule 4: the decisions for a direction-symmetric motion that an offset off the centre at the shortest lag
+#: turns into a set with flow, and the decisions that a growing offset does.
 OFFSET_TO_SET = {"ballistic": "ballistic-or-flow", "diffusion": "diffusion-or-flow"}
+OFFSET_GREW_TO_SET = {"ballistic": "ballistic-or-flow"}
 #: The set label a ballistic decision becomes.
 SET_LABEL = "ballistic-or-flow"
 
@@ -187,14 +198,21 @@ def fast_decorrelation(channels: Mapping[str, np.ndarray],
     return fast, [first, last]
 
 
+class OffsetMotion(NamedTuple):
+    """Rule 4's two clauses per classified pixel (module docstring)."""
+
+    off_centre: np.ndarray  #: the offset at the shortest lag is off the centre
+    grew: np.ndarray  #: the pattern held at the shortest lag and its offset grew with the lag
+
+
 def offset_moved(channels: Mapping[str, np.ndarray], pitch_um: float | None, idx: np.ndarray | None = None,
-                 n_frames: int = 32) -> tuple[np.ndarray | None, list[str]]:
-    """Rule 4 per classified pixel (module docstring): True where the peak offset ``xc_shift_m@…`` (µm) of
-    one resolution, over its lags ``m ≤ n_frames // 4``, starts at least :data:`OFFSET_FIRST_MIN` pitches off
-    the centre, or grows at every lag by at least :data:`OFFSET_GROWTH_MIN` pitches in all while the pattern
-    held at the shortest lag (``xc_peak_m₁@…`` ≥ :data:`OFFSET_HOLD_MIN`); and the channel names read.
-    ``pitch_um``: the finest pixel pitch (µm). ``(None, [])`` without two lags, their peaks or a pitch. NaN
-    counts as not moved."""
+                 n_frames: int = 32) -> tuple[OffsetMotion | None, list[str]]:
+    """Rule 4 per classified pixel (module docstring): where the peak offset ``xc_shift_m@…`` (µm) of one
+    resolution, over its lags ``m ≤ n_frames // 4``, starts at least :data:`OFFSET_FIRST_MIN` pitches off the
+    centre (``off_centre``), and where it grows at every lag by at least :data:`OFFSET_GROWTH_MIN` pitches in
+    all while the pattern held at the shortest lag (``xc_peak_m₁@…`` ≥ :data:`OFFSET_HOLD_MIN`; ``grew``);
+    and the channel names read. ``pitch_um``: the finest pixel pitch (µm). ``(None, [])`` without two lags,
+    their peaks or a pitch. NaN counts as not moved."""
     if not pitch_um or not np.isfinite(pitch_um) or pitch_um <= 0:
         return None, []
     limit = max(1, int(n_frames) // 4)
@@ -220,22 +238,23 @@ def offset_moved(channels: Mapping[str, np.ndarray], pitch_um: float | None, idx
         for a, b in zip(shift[:-1], shift[1:]):
             grew &= b > a
         grew &= (shift[-1] - shift[0]) >= OFFSET_GROWTH_MIN * pitch_um
-        moved = (shift[0] >= OFFSET_FIRST_MIN * pitch_um) | grew
-    return moved, names + [held_name]
+        off_centre = shift[0] >= OFFSET_FIRST_MIN * pitch_um
+    return OffsetMotion(off_centre, grew), names + [held_name]
 
 
 def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: bool,
                             correlation: np.ndarray | None,
                             coherent: np.ndarray | None = None,
                             fast: np.ndarray | None = None,
-                            moved: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, int]]:
+                            moved: OffsetMotion | None = None) -> tuple[np.ndarray, dict[str, int]]:
     """``labels`` (indices into ``names``, one per classified pixel) with, first, the outcomes of
     :data:`COHERENT_TO_FLOW` turned into ``flow`` where ``coherent`` (rule 0, :func:`coherent_motion`), then the
     remaining ``ballistic`` into :data:`SET_LABEL` where rules 1 (``bscan``), 2 (``correlation`` ≥
     :data:`DECORRELATED_BELOW`; NaN counts as not decorrelated) or 3 (``fast``, :func:`fast_decorrelation`)
-    apply, and last the remaining ``ballistic`` and ``diffusion`` into their set with flow
-    (:data:`OFFSET_TO_SET`) where ``moved`` (rule 4, :func:`offset_moved`); and the pixels each rule changed
-    (a pixel counts for the first rule that changed it).
+    apply, and last the remaining ``ballistic`` and ``diffusion`` into their set with flow where
+    ``moved.off_centre`` (:data:`OFFSET_TO_SET`) and the remaining ``ballistic`` where ``moved.grew``
+    (:data:`OFFSET_GREW_TO_SET`; rule 4, :func:`offset_moved`); and the pixels each rule changed (a pixel
+    counts for the first rule that changed it).
     ``names`` must hold ``ballistic`` and :data:`SET_LABEL` (else ``labels`` come back unchanged)."""
     names = list(names)
     counts = {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 0, "fast_decorrelation": 0,
@@ -244,9 +263,9 @@ def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: 
         return labels, counts
     out = np.array(labels, copy=True)
     if coherent is not None and "flow" in names:
-        moved = np.isin(out, [names.index(n) for n in COHERENT_TO_FLOW if n in names]) & np.asarray(coherent, bool)
-        counts["coherent_motion"] = int(moved.sum())
-        out[moved] = names.index("flow")
+        to_flow = np.isin(out, [names.index(n) for n in COHERENT_TO_FLOW if n in names]) & np.asarray(coherent, bool)
+        counts["coherent_motion"] = int(to_flow.sum())
+        out[to_flow] = names.index("flow")
     ball = out == names.index("ballistic")
     if bscan:
         counts["bscan_plane"] = int(ball.sum())
@@ -262,9 +281,10 @@ def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: 
         counts["fast_decorrelation"] = int(gone.sum())
         out[gone] = names.index(SET_LABEL)
     if moved is not None:
-        for single, set_name in OFFSET_TO_SET.items():
-            if single in names and set_name in names:
-                sel = (out == names.index(single)) & np.asarray(moved, bool)
-                counts["offset_moved"] += int(sel.sum())
-                out[sel] = names.index(set_name)
+        for mask, table in ((moved.off_centre, OFFSET_TO_SET), (moved.grew, OFFSET_GREW_TO_SET)):
+            for single, set_name in table.items():
+                if single in names and set_name in names:
+                    sel = (out == names.index(single)) & np.asarray(mask, bool)
+                    counts["offset_moved"] += int(sel.sum())
+                    out[sel] = names.index(set_name)
     return out, counts
