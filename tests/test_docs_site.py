@@ -58,6 +58,10 @@ def test_number_formatting_keeps_significant_figures_and_marks_missing_values():
     assert results.pm(0.74003, 0.02268) == "0.74 ± 0.023"
 
 
+#: float32 machine epsilon (the simulator's default dtype).
+FLOAT32_EPS = 2.0 ** -23
+
+
 def test_the_recorded_example_run_is_what_the_simulator_gives_for_its_seed():
     """``docs/results/simulate-example.json`` = ``torchdoct simulate example --json``, reproduced here."""
     td = pytest.importorskip("torchdoct")
@@ -70,7 +74,12 @@ def test_the_recorded_example_run_is_what_the_simulator_gives_for_its_seed():
             rec, now = metrics[metric], summary[system][metric]
             assert rec["n"] == now["n"]
             assert math.isclose(rec["se"], rec["sd"] / math.sqrt(rec["n"]), rel_tol=1e-9)
-            assert rec["mean"] == now["mean"] and rec["sd"] == now["sd"], (system, metric)
+            # bit for bit on one machine whatever the threads or chunks (tests/torchdoct/test_threads.py); another
+            # CPU's vector log/exp may round a float32 trial value differently in its last places, which moves
+            # a mean over the trials by at most a few float32 epsilons
+            tol = 4 * FLOAT32_EPS
+            assert math.isclose(rec["mean"], now["mean"], rel_tol=tol), (system, metric, rec["mean"], now["mean"])
+            assert math.isclose(rec["sd"], now["sd"], rel_tol=tol), (system, metric, rec["sd"], now["sd"])
     # the paper's small-motion finding, resolved: the shorter wavelength decorrelates faster (higher LIV)
     a, b = recorded["840nm-high"]["liv"], recorded["1310nm-high"]["liv"]
     assert (a["mean"] - b["mean"]) / math.hypot(a["se"], b["se"]) > 2
