@@ -282,14 +282,13 @@ def decide(channels: Mapping[str, np.ndarray], n_frames: int, pitch_um: float) -
     names = ["ballistic", "flow", SET_LABEL]
     to_code = np.array([CODES["ballistic"], CODES["flow"], UNDECIDED])
     start = np.zeros(coherent.shape, np.int64)
-    out: dict[str, np.ndarray] = {"coherent": coherent, "moved": moved, "decorrelated": decorrelated, "fast": fast}
-    # Rules 2-4 on the all-ballistic labels, then rule 0: the same outcome as rule 0 first (it turns every
-    # outcome here but flow into flow). abstain_where_ambiguous is given ``coherent`` only for the second
-    # decision, where ``moved`` is folded into it: given both, its rule-0 mask shadows ``moved``.
-    labels, _ = abstain_where_ambiguous(start, names, bscan=False, correlation=corr, fast=fast, moved=moved)
-    labels[np.asarray(coherent, bool)] = names.index("flow")
+    any_moved = np.asarray(moved.off_centre, bool) | np.asarray(moved.grew, bool)
+    out: dict[str, np.ndarray] = {"coherent": coherent, "moved": any_moved, "decorrelated": decorrelated,
+                                  "fast": fast}
+    labels, _ = abstain_where_ambiguous(start, names, bscan=False, correlation=corr, coherent=coherent, fast=fast,
+                                        moved=moved)
     out["rules"] = to_code[labels]
-    labels, _ = abstain_where_ambiguous(start, names, bscan=False, correlation=corr, coherent=coherent | moved,
+    labels, _ = abstain_where_ambiguous(start, names, bscan=False, correlation=corr, coherent=coherent | any_moved,
                                         fast=fast)
     out["offset-as-flow"] = to_code[labels]
     return out
