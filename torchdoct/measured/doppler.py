@@ -187,8 +187,9 @@ class DopplerReference:
             out["refractive_index"] = self.refractive_index
         if not self.lags:
             out["absent"] = ("no A-line and no B-scan holds the reference the rule needs (at least "
-                             f"{MIN_REFERENCE_PIXELS} steady, phase-consistent pixels): no static tissue to measure "
-                             "the Doppler phase against, so no channel rather than a made-up value")
+                             f"{MIN_REFERENCE_PIXELS} steady, white, phase-consistent pixels whose population "
+                             "fluctuates as noise, not as a drift): no static tissue to measure the Doppler phase "
+                             "against, so no channel rather than a made-up value")
         return out
 
 
@@ -199,7 +200,7 @@ def doppler_absent(seq: SequenceData, lags: _Seq[int]) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------------------------
-# the pieces of the estimate (A-lines ``[T, L, Z]``, pixels flattened to ``[T, P]`` with a group id each)
+# the pieces of the estimate (A-lines ``[T, L, Z]``; groups of pixels ``[G, S]``, below)
 
 
 def min_whiteness(n_frames: int, z: float = PHASE_TOLERANCE_Z) -> float:
