@@ -421,7 +421,7 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
     system = dict(seq.meta.get("system") or {})
     wl = system.get("wavelength_um")
     return DopplerReference(asked=tuple(lags), lags=tuple(present), sums=out_sums, scope=scope, mask=out_mask,
-                            info=info, frame_interval_s=float(uniform_frame_interval_s(seq.frame_times_s)),
+                            info=info, frame_interval_s=float(uniform_frame_interval_s(seq.frame_times_s) or 0.0),
                             wavelength_um=None if wl is None else float(wl),
                             refractive_index=float(system.get("refractive_index") or 1.0),
                             bulk_corrected=bulk is not None, n_frames=n_t)
@@ -516,11 +516,12 @@ def doppler_slab(x: torch.Tensor, ref: DopplerReference, cdim: int, c0: int, c1:
     n_x = spatial[-1]
     ys = slice(c0, c1) if cdim == 1 and len(spatial) == 3 else slice(None)  # a volume cut in Y: its B-scans
     lead = spatial[:-2]  # (), or the B-scans of the slab
-    line = (np.arange(int(np.prod(lead, dtype=np.int64))).reshape(*lead, 1, 1) * n_x + np.arange(n_x))
-    line = torch.from_numpy(np.array(np.broadcast_to(line, spatial)).reshape(-1))  # each pixel's A-line
+    first = np.arange(int(np.prod(lead, dtype=np.int64))).reshape(*lead, 1, 1) * n_x + np.arange(n_x)
+    line_np = np.array(np.broadcast_to(first, spatial)).reshape(-1)  # each pixel's A-line
+    line = torch.from_numpy(line_np)
     for li, m in enumerate(ref.lags):
         sums = torch.from_numpy(np.ascontiguousarray(ref.sums[m][:, ys]).reshape(n_t - m, -1))  # [T−m, lines]
-        none = (ref.scope[m][ys] == 0).reshape(-1)[line.numpy()]
+        none = (ref.scope[m][ys] == 0).reshape(-1)[line_np]
         sel = [slice(None)] * len(spatial)
         sel[cdim - 1] = slice(c0, c1)
         mk = torch.from_numpy(np.ascontiguousarray(ref.mask[m][tuple(sel)]).reshape(-1))
