@@ -217,10 +217,11 @@ def _speckle_seq(tmp_path: Path, name: str, a: np.ndarray):
     return read_sequence(write_sequence(tmp_path / name, a, meta))
 
 
-def test_nan_samples_are_masked_per_pixel_not_spread(tmp_path):
-    """One NaN sample (of 30,720) makes NaN only the pixels its reduction window reaches; every other
-    pixel equals the clean data's maps (the zeroed sample's weight beyond 5 sigma' is below e^-12.5)."""
-    from torchdoct.measured.maps import compute_maps
+def test_one_nan_sample_costs_its_neighbourhood_a_share_of_its_window_not_its_pixels(tmp_path):
+    """One NaN sample (of 30,720): at the original resolution its pixel alone is NaN; after a reduction no pixel
+    is (normalised convolution), the valid-weight channel is below 1 only within the window's reach of it
+    (5 sigma') and every pixel beyond equals the clean data's maps."""
+    from torchdoct.measured.maps import MIN_VALID_WEIGHT, compute_maps
     from torchdoct.measured.slabs import nonfinite_mask
 
     a = _field((16, 40, 48), seed=3)
@@ -233,16 +234,34 @@ def test_nan_samples_are_masked_per_pixel_not_spread(tmp_path):
     mc = compute_maps(clean, res)
     md = compute_maps(dirty, res)
     assert md.meta["nonfinite"]["samples"] == 1
-    # lateral 4.9 -> 18 um at 2 um pitch: sigma' = 6.1 um = 3.06 px, reach ceil(5 sigma') = 16 px along x
-    assert md.meta["nonfinite"]["masked_pixels"] == {"original": 1, "lateral=18": 33, "axial=14,lateral=18": 33 * 40}
-    for i, ch in enumerate(md.channels):
+    assert md.meta["nonfinite"]["masked_pixels"] == {"original": 1, "lateral=18": 0, "axial=14,lateral=18": 0}
+    for r in res:
+        w = md.maps[md.channels.index(f"valid_weight@{r}")]
+        reach = nonfinite_mask(dirty, r)  # within 5 sigma' of the sample (its pixel at the original)
+        assert np.all(w[~reach] == 1.0) and w[20, 24] == w.min() < 1.0, r  # the deficit is largest at the sample
+        assert w.min() >= (0.0 if r == "original" else MIN_VALID_WEIGHT), r
+    for i, ch in enumerate(mc.channels):
         r = ch.split("@")[1]
-        mask = nonfinite_mask(dirty, r)
-        assert np.all(np.isnan(md.maps[i][mask])), ch
-        keep = ~mask & np.isfinite(mc.maps[i])
-        assert keep.sum() >= 40 * 48 - 33 * 40 - 1
-        np.testing.assert_allclose(md.maps[i][keep], mc.maps[i][keep], rtol=1e-4, atol=1e-3, err_msg=ch)
-        assert np.isfinite(md.maps[i][keep]).all()
+        got = md.maps[md.channels.index(ch)]
+        reach = nonfinite_mask(dirty, r)
+        if r == "original":
+            assert np.isnan(got[20, 24]) and np.isfinite(got[reach == 0][np.isfinite(mc.maps[i][reach == 0])]).all()
+        else:
+            assert np.array_equal(np.isfinite(got), np.isfinite(mc.maps[i])), ch  # no pixel lost
+        keep = ~reach & np.isfinite(mc.maps[i])
+        np.testing.assert_allclose(got[keep], mc.maps[i][keep], rtol=1e-4, atol=1e-3, err_msg=ch)
+
+
+def test_a_region_of_missing_samples_voids_only_the_pixels_whose_window_rests_mostly_on_it(tmp_path):
+    from torchdoct.measured.maps import MIN_VALID_WEIGHT, compute_maps
+
+    a = _field((16, 40, 48), seed=4)
+    a[:, :, 20:30] = np.nan  # ten dead A-lines
+    m = compute_maps(_speckle_seq(tmp_path, "dead.npy", a), ["lateral=18"])
+    w = m.maps[m.channels.index("valid_weight@lateral=18")]
+    liv = m.maps[m.channels.index("liv@lateral=18")]
+    assert np.array_equal(np.isnan(liv), w < MIN_VALID_WEIGHT)
+    assert np.isnan(liv[:, 24]).all() and np.isfinite(liv[:, :15]).all() and np.isfinite(liv[:, 35:]).all()
 
 
 def test_nan_samples_give_a_note_and_masked_signature(outdir, capsys):
@@ -260,10 +279,12 @@ def test_nan_samples_give_a_note_and_masked_signature(outdir, capsys):
     m = read_maps(outdir / "out" / "m.npz")
     for i, ch in enumerate(m.channels):
         v = m.maps[i]
-        if ch.endswith("@original") and not ch.startswith("aliv"):
+        if ch.endswith("@original") and not ch.startswith(("aliv", "valid_weight")):
             assert np.isnan(v[2, 1]) and np.isfinite(np.delete(v.ravel(), 2 * 5 + 1)).any(), ch
-        if ch.endswith("@lateral=18"):  # the reach covers this 5-pixel-wide B-scan's column 2 at depth 2
-            assert np.isnan(v[2]).all() and np.isfinite(v[[0, 1, 3, 4, 5]]).any(), ch
+        if ch.endswith("@lateral=18") and not ch.startswith("valid_weight"):  # normalised: no pixel lost
+            assert np.isfinite(v[2]).any(), ch
+    w = m.maps[m.channels.index("valid_weight@lateral=18")]
+    assert np.all(w[[0, 1, 3, 4, 5]] == 1.0) and np.all(w[2] < 1.0)
 
 
 def test_negative_intensities_are_refused(outdir, capsys):

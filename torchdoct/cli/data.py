@@ -283,8 +283,9 @@ def maps_one(args: argparse.Namespace) -> int:
     if nonfinite:  # masked per pixel (compute_maps): say how many and where
         per = ", ".join(f"{n} at {res}" for res, n in nonfinite["masked_pixels"].items())
         n = nonfinite["samples"]
-        print(f"note: {seq.source}: {n} sample{'s are' if n != 1 else ' is'} NaN or infinite, masked: the pixels "
-              f"{'they reach' if n != 1 else 'it reaches'} are NaN in every channel (pixels: {per})")
+        print(f"note: {seq.source}: {n} sample{'s are' if n != 1 else ' is'} NaN or infinite, masked: a reduction "
+              "re-weights the finite samples (valid_weight@… channels: the share of each window on them) and a "
+              f"pixel is NaN where that share is below half, or at its own pixel at the original (pixels: {per})")
     shape = "×".join(str(s) for s in maps.maps.shape[1:])
     print(f"{seq.source}: {seq.n_frames} frames, {'complex' if seq.is_complex else 'intensity'} "
           f"{list(seq.data.shape)} ({seq.axes}) → {len(maps.channels)} channels [{maps.meta['axes']}] {shape}")

@@ -92,7 +92,7 @@ def percentile_range(values: list[np.ndarray], lo_pct: float, hi_pct: float) -> 
 
 
 _TITLES = {"liv": "LIV", "ocds": "OCDS", "mean_db": "mean intensity", "aliv": "aLIV", "swiftness": "Swiftness",
-           FIT_FLAG: "aLIV fit on a τ bound"}
+           FIT_FLAG: "aLIV fit on a τ bound", "valid_weight": "share of the window on finite samples"}
 
 
 def _optics_text(info: Mapping[str, Any]) -> str:

@@ -18,6 +18,7 @@ __all__ = [
     "SMOOTHING_AXIS_NEEDS",
     "METRICS",
     "FIT_FLAG",
+    "VALID_WEIGHT",
     "UNITS",
     "DEFAULT_OCDS_DELAY_RANGE_S",
     "TAU_BOUND_LOG_TOL",
@@ -33,7 +34,11 @@ METRICS = ("liv", "ocds", "mean_db", "aliv", "swiftness")
 #: Channel written with ``aliv``/``swiftness``: where the saturation fit ended on a τ bound
 #: (:func:`tau_bound_code`: 0 inside, 1 lower bound, 2 upper bound, NaN undefined).
 FIT_FLAG = "aliv_fit"
-UNITS = {"liv": "dB^2", "ocds": "1/s", "mean_db": "dB", "aliv": "dB^2", "swiftness": "1/s", FIT_FLAG: "code"}
+#: Channel written where the input has non-finite samples: the share of the reduction window's weight that
+#: fell on finite samples (1 everywhere else; at the original resolution 1 or 0), :mod:`torchdoct.measured.maps`.
+VALID_WEIGHT = "valid_weight"
+UNITS = {"liv": "dB^2", "ocds": "1/s", "mean_db": "dB", "aliv": "dB^2", "swiftness": "1/s", FIT_FLAG: "code",
+         VALID_WEIGHT: "fraction"}
 DEFAULT_OCDS_DELAY_RANGE_S = (0.2048, 1.2288)
 
 

@@ -27,11 +27,14 @@ pixel (time last, ``[..., T]``) the channels below are computed:
   (:func:`fit_saturation`); ``aliv = a``, ``swiftness = 1/τ``.
 
 Non-finite samples (NaN or inf in some frame) are masked per pixel instead of reaching the reduction's FFT
-(where one NaN would make every reduced pixel NaN): they enter the reduction as 0, and every channel is NaN
-at the pixels whose value they reach: the pixel itself at the original resolution, and after a reduction
-every pixel within the ``⌈5σ'⌉`` pixels of the window's truncation along each filtered axis (plus the 3×3
-smoothing for aLIV/Swiftness); ``meta["nonfinite"]`` counts the samples and the masked pixels per
-resolution. Undefined values are NaN: pixels with ``I = 0`` have no dB value (LIV, OCDS, aLIV,
+(where one NaN would make every reduced pixel NaN). At the original resolution the pixel itself is NaN in
+every channel. A reduction is a normalised convolution (:func:`_normalized`): a pixel with a non-finite
+sample enters with weight 0 at every frame (so the weights do not change in time), and each reduced pixel
+is divided by the share of its window that fell on finite pixels, written as the ``valid_weight@RES``
+channel (1 where no non-finite sample is within reach); a reduced pixel is NaN only where that share is
+below :data:`MIN_VALID_WEIGHT` (plus the 3×3 smoothing for aLIV/Swiftness). A missing sample costs its
+neighbourhood a share of its window, not its pixels. ``meta["nonfinite"]`` counts the samples and the
+masked pixels per resolution. Undefined values are NaN: pixels with ``I = 0`` have no dB value (LIV, OCDS, aLIV,
 Swiftness NaN; ``mean_db`` NaN only if ``I = 0`` at every frame), and Swiftness is NaN where the fit
 gives ``a = 0`` (no fluctuation, τ undefined). After a resolution reduction the same rule holds with a
 floor: ``I ≤ (64·ε)²·max I`` (ε the machine epsilon of the data type, ``max I`` the largest finite
@@ -122,6 +125,7 @@ from .mapmetrics import (
     SMOOTHING_AXIS_NEEDS,
     TAU_BOUND_LOG_TOL,  # noqa: F401 (re-exported)
     UNITS,
+    VALID_WEIGHT,
     box_smooth_zx,
     fit_saturation,
     liv_curve,
@@ -406,6 +410,29 @@ def _axial_center(seq: SequenceData, req: MapsRequest, axial_center: str | float
     return axial_center
 
 
+#: The share of a reduced pixel's window weight that must fall on finite samples for the pixel to have a
+#: value (:func:`_normalized`): below half, the value would rest more on the missing samples' surroundings
+#: than on the pixel's own neighbourhood.
+MIN_VALID_WEIGHT = 0.5
+
+
+def _normalized(red: torch.Tensor, bad: np.ndarray, seq: SequenceData, req: MapsRequest, t: ResolutionTarget,
+                axes: str, edge_mode: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normalised convolution of a reduced slab whose pixels ``bad`` (``[(Y), Z, X]``, a non-finite sample at
+    some frame) entered with weight 0 at every frame: the window's weight on the finite pixels,
+    ``W = (g ∗ w) / (g ∗ 1)`` with ``g`` the reduction's envelope (unit sum, no carrier; the same padding), and
+    the reduced field ``red / W`` where ``W >= MIN_VALID_WEIGHT`` (else left as it is: those pixels are NaN in
+    the maps). A missing sample costs its neighbourhood a share of its window, not its value."""
+    kw = dict(pitch_um=seq.pitch_um, system=req.system, lateral_resolution_um=t.lateral_resolution_um,
+              axial_resolution_um=t.axial_resolution_um, axes=axes, axial_center=0.0, edge_mode=edge_mode,
+              normalization="sum")
+    w = torch.from_numpy(~bad).to(red.device, torch.complex128).unsqueeze(0)
+    weight = reduce_resolution(w, **kw).real[0] / reduce_resolution(torch.ones_like(w), **kw).real[0]
+    use = weight >= MIN_VALID_WEIGHT
+    scale = torch.where(use, weight, torch.ones_like(weight)).to(red.real.dtype)
+    return red / scale, weight.clamp(0.0, 1.0)
+
+
 def _empty_floor(seq: SequenceData, req: MapsRequest) -> tuple[float, float]:
     """Stage 4 of :func:`compute_maps`: the largest finite intensity of the input and the floor below which a
     reduced pixel counts as empty, ``(64·ε)²·max I`` (:data:`EMPTY_RULE`); refuses data without a finite
@@ -567,15 +594,22 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int) -> No
         block = torch.where(fin, block, torch.zeros_like(block))
         if corrected is not None and not changed:
             corrected = torch.where(fin, corrected, torch.zeros_like(corrected))
+        if changed:  # a pixel with a non-finite sample enters every frame with weight 0 (no change in time)
+            block = torch.where(torch.from_numpy(bad).to(block.device), torch.zeros_like(block), block)
     del fin
+    weight = None  # the share of the window's weight on finite samples, [(Y), Z, X] over a0:a1
     if changed:
         red = reduce_resolution(block, pitch_um=seq.pitch_um, system=req.system,
                                 lateral_resolution_um=t.lateral_resolution_um,
                                 axial_resolution_um=t.axial_resolution_um, axes=axes,
                                 axial_center=work.axial_center, edge_mode=work.edge_mode,
                                 normalization=work.normalization)
+        if bad is not None:
+            red, weight = _normalized(red, bad, seq, req, t, axes, work.edge_mode)
     else:
         red = block
+        if bad is not None:
+            weight = torch.from_numpy((~bad).astype(np.float64))
     # the signature's field: the reduced one, or at the original resolution the bulk-corrected one
     field = corrected if corrected is not None and not changed else red
     m0, m1 = max(a0, c0 - mrg), min(a1, c1 + mrg)
@@ -591,19 +625,22 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int) -> No
                          chunk_pixels=work.chunk_pixels) if wanted else {}
     del inten
     masks = {}
+    if weight is not None:
+        vals[VALID_WEIGHT] = weight.narrow(cdim - 1, m0 - a0, m1 - m0).to(torch.float64)
     if bad is not None:
         sp = axes[1:]
-        masks["pixel"] = nonfinite_reach(bad, sp, reach, work.edge_mode == "wrap")
+        lost = (weight < MIN_VALID_WEIGHT).cpu().numpy()
+        masks["pixel"] = lost
         if work.smoothing_margin:
-            grown = {c: reach.get(c, 0) + (work.smoothing_margin if c in "ZX" else 0) for c in "YZX"}
-            masks["smoothed"] = nonfinite_reach(bad, sp, grown, work.edge_mode == "wrap")
+            grown = {c: work.smoothing_margin if c in "ZX" else 0 for c in "YZX"}
+            masks["smoothed"] = nonfinite_reach(lost, sp, grown, work.edge_mode == "wrap")
         core = [slice(None)] * (data.ndim - 1)
         core[cdim - 1] = slice(c0 - a0, c1 - a0)
         masks = {k: v[tuple(core)] for k, v in masks.items()}
         work.nonfinite_pixels[t.label] = work.nonfinite_pixels.get(t.label, 0) + int(np.count_nonzero(masks["pixel"]))
     for mi, m in enumerate(outputs):
         v = vals[m].narrow(cdim - 1, c0 - m0, c1 - c0).cpu().numpy()
-        if masks:
+        if masks and m != VALID_WEIGHT:
             smoothed = m in ("aliv", "swiftness", FIT_FLAG) and "smoothed" in masks
             v = np.where(masks["smoothed" if smoothed else "pixel"], np.nan, v)
         idx = [ti * len(outputs) + mi] + [slice(None)] * (data.ndim - 1)
@@ -781,7 +818,7 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
     fitted = "aliv" in req.metrics or "swiftness" in req.metrics
     margin = 1 if (aliv_smoothing and fitted) else 0
     peak, floor = _empty_floor(seq, req)
-    outputs = list(req.metrics) + ([FIT_FLAG] if fitted else [])
+    outputs = list(req.metrics) + ([FIT_FLAG] if fitted else []) + ([VALID_WEIGHT] if seq.nonfinite_samples else [])
     n_doct = len(req.targets) * len(outputs)  # the DOCT channels, then the signature channels
     raster = seq.block_raster
     keep_y = None  # the B-scans a block raster volume keeps (its others are dropped at the end)
