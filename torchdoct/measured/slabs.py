@@ -3,9 +3,9 @@ sample reaches through it.
 
 Every stage of the maps says what it needs of each spatial axis of a piece (the bulk-phase correction,
 the resolution reduction, the aLIV smoothing); :func:`slab_cut` cuts the axis they need least. A
-non-finite sample enters the reduction as 0 and makes NaN every pixel within the window's truncation
-(``⌈5σ'⌉`` pixels along each filtered axis): :func:`nonfinite_reach_px`, :func:`nonfinite_reach`,
-:func:`nonfinite_mask`.
+non-finite sample reaches the pixels within the window's truncation (``⌈5σ'⌉`` pixels along each
+filtered axis), where the maps re-weight the finite samples (:func:`torchdoct.measured.maps._normalized`):
+:func:`nonfinite_reach_px`, :func:`nonfinite_reach`, :func:`nonfinite_mask`.
 """
 
 from __future__ import annotations
@@ -56,7 +56,8 @@ def nonfinite_reach_px(seq: SequenceData, target: str | ResolutionTarget) -> dic
 def nonfinite_mask(seq: SequenceData, target: str | ResolutionTarget = "original", *,
                    edge_mode: str = "reflect") -> np.ndarray | None:
     """The pixels (``[(Y), Z, X]``) that a non-finite sample of ``seq`` reaches at ``target`` (the rule of
-    :func:`~torchdoct.measured.maps.compute_maps`, module docstring), or ``None`` when every sample is finite."""
+    :func:`~torchdoct.measured.maps.compute_maps` re-weights them after a reduction and makes them NaN at the
+    original, module docstring), or ``None`` when every sample is finite."""
     bad = None
     for frame in seq.data:
         fin = np.isfinite(frame)
