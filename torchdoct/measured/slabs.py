@@ -55,9 +55,9 @@ def nonfinite_reach_px(seq: SequenceData, target: str | ResolutionTarget) -> dic
 
 def nonfinite_mask(seq: SequenceData, target: str | ResolutionTarget = "original", *,
                    edge_mode: str = "reflect") -> np.ndarray | None:
-    """The pixels (``[(Y), Z, X]``) that a non-finite sample of ``seq`` reaches at ``target`` (the rule of
-    :func:`~torchdoct.measured.maps.compute_maps` re-weights them after a reduction and makes them NaN at the
-    original, module docstring), or ``None`` when every sample is finite."""
+    """The pixels (``[(Y), Z, X]``) that a non-finite sample of ``seq`` reaches at ``target``
+    (:func:`~torchdoct.measured.maps.compute_maps` re-weights them after a reduction and makes them NaN at the
+    original; its module docstring), or ``None`` when every sample is finite."""
     bad = None
     for frame in seq.data:
         fin = np.isfinite(frame)
