@@ -133,6 +133,10 @@ def _background(mean_db: np.ndarray | None, background_db: str | float | None) -
 def _check_arguments(pool, min_probability) -> None:
     if isinstance(pool, bool) or not isinstance(pool, (int, np.integer)) or pool < 1:
         raise ValueError(f"pool must be a positive integer (N for N × N neighbourhoods); got {pool!r}")
+    if pool % 2 == 0:
+        raise ValueError(f"pool (--pool) must be odd: an N × N window is centred on its pixel only for odd N (an even "
+                         f"{pool} centres it half a pixel up and left, shifting every class); give {pool - 1} or "
+                         f"{pool + 1}")
     if min_probability is not None and not 0.0 <= float(min_probability) < 1.0:
         raise ValueError(f"min_probability must be in [0, 1); got {min_probability!r}")
 
@@ -167,9 +171,10 @@ def _check_decision(decision: str | None, mdl: ClassifierModel, min_probability,
 def _check_pool(pool: int, maps) -> None:
     z_px, x_px = maps.spatial_shape[-2:]
     if pool > min(z_px, x_px):
+        largest = min(z_px, x_px) - 1 + min(z_px, x_px) % 2  # odd, as every pool
         raise ValueError(f"{maps.name}: pool {pool} (--pool) is larger than its {z_px} × {x_px} (z × x) "
                          f"B-scans: every {pool} × {pool} window would average most of the image and give all pixels "
-                         f"the same class. The largest valid pool is {min(z_px, x_px)}")
+                         f"the same class. The largest valid pool is {largest}")
 
 
 def _finest_pitch_um(pitch: Any) -> float | None:

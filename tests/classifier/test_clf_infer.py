@@ -305,18 +305,30 @@ def test_cli_unreadable_maps_exit_2_with_one_line(setup, tmp_path, capsys):
 
 
 def test_pool_larger_than_the_image_is_refused(setup, tmp_path, capsys):
-    assert classify_maps(setup["npz"], str(setup["model"]), pool=min(Z, X), threads=1).info["pool"] == Z
-    for pool in (Z + 1, X + 1, 1000):
+    assert Z % 2 == 0  # the largest valid pool is the largest odd one
+    assert classify_maps(setup["npz"], str(setup["model"]), pool=Z - 1, threads=1).info["pool"] == Z - 1
+    for pool in (Z + 1, X + 1, 1001):
         with pytest.raises(ValueError) as info:
             classify_maps(setup["npz"], str(setup["model"]), pool=pool, threads=1)
         msg = str(info.value)
-        assert f"{Z} × {X}" in msg and f"largest valid pool is {Z}" in msg and "maps.npz" in msg, msg
+        assert f"{Z} × {X}" in msg and f"largest valid pool is {Z - 1}" in msg and "maps.npz" in msg, msg
     out = tmp_path / "o"
     assert classify_main([str(setup["npz"]), "--model", str(setup["model"]), "--out", str(out), "--threads", "1",
-                          "--pool", str(X)]) == 2
+                          "--pool", str(X + 1)]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("error: ") and "--pool" in err and f"largest valid pool is {Z}" in err
+    assert err.startswith("error: ") and "--pool" in err and f"largest valid pool is {Z - 1}" in err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("pool", [2, 4, 10])
+def test_an_even_pool_is_refused_naming_the_odd_ones_beside_it(setup, tmp_path, capsys, pool):
+    with pytest.raises(ValueError, match=rf"pool \(--pool\) must be odd.*half a pixel.*give {pool - 1} or {pool + 1}"):
+        classify_maps(setup["npz"], str(setup["model"]), pool=pool, threads=1)
+    out = tmp_path / "o"
+    assert classify_main([str(setup["npz"]), "--model", str(setup["model"]), "--out", str(out), "--threads", "1",
+                          "--pool", str(pool)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: pool (--pool) must be odd") and not out.exists()
 
 
 def test_cli_exit_codes_follow_the_convention(setup, tmp_path, capsys, monkeypatch):
