@@ -205,6 +205,13 @@ def test_the_rule_s_constants_follow_from_the_noise():
     assert (2 * s + 1) / (s + 1) ** 2 == pytest.approx(c)  # a static pixel at that SNR has the threshold contrast
     assert 0 < min_whiteness(32) < 1 and min_whiteness(32) < min_whiteness(128)
     assert phase_tolerance(2, 32) > phase_tolerance(1, 32) > phase_tolerance(1, 64)
+    from scipy.stats import binom
+
+    from torchdoct.measured.doppler import WHITE_TEST_LEVEL, _binomial_threshold, white_population
+
+    n = np.array([1, 2, 5, 10, 15, 30, 100, 1000, 12345])
+    np.testing.assert_array_equal(_binomial_threshold(n, 0.5, WHITE_TEST_LEVEL), binom.isf(WHITE_TEST_LEVEL, n, 0.5) + 1)
+    assert white_population(np.array([10, 9, 950, 0]), np.array([10, 15, 1000, 0])).tolist() == [True, False, True, False]
 
 
 def test_refusals():

@@ -234,18 +234,36 @@ def white_population(n_white: np.ndarray, n_steady: np.ndarray) -> np.ndarray:
     flow passes it only where its speckle sits near an intensity extremum, and as a population mostly drifts.
     The test is on a count, so a few drifting pixels at a layer's edge do not reject a large population, and
     a small one must be clearly white."""
-    from scipy.stats import binom
+    n = np.asarray(n_steady, dtype=np.int64)
+    return (n > 0) & (np.asarray(n_white) >= _binomial_threshold(n, MIN_WHITE_SHARE, WHITE_TEST_LEVEL))
 
-    n = np.asarray(n_steady)
-    k_min = binom.isf(WHITE_TEST_LEVEL, np.maximum(n, 1), MIN_WHITE_SHARE) + 1  # P(X >= k_min) <= level
-    return (n > 0) & (np.asarray(n_white) >= k_min)
+
+def _binomial_threshold(n: np.ndarray, p: float, level: float) -> np.ndarray:
+    """The smallest ``k`` with ``P(X ≥ k) ≤ level`` for ``X ~ Binomial(n, p)`` (elementwise; bisection on
+    :func:`scipy.special.bdtr`)."""
+    from scipy.special import bdtr
+
+    lo, hi = np.zeros_like(n), n + 1
+    while (lo < hi).any():
+        mid = (lo + hi) // 2
+        tail = np.where(mid > 0, 1.0 - bdtr(np.maximum(mid - 1, 0), n, p), 1.0)  # P(X >= mid)
+        small = tail <= level
+        hi = np.where((lo < hi) & small, mid, hi)
+        lo = np.where((lo < hi) & ~small, mid + 1, lo)
+    return lo
 
 
 def _products(x: torch.Tensor, m: int) -> torch.Tensor:
-    """``C_t = E_{t+m} E_t*`` (complex128 ``[T−m, ...]``), 0 where not finite."""
-    x = x.to(torch.complex128)
+    """``C_t = E_{t+m} E_t*`` (``[T−m, ...]``, complex128 for double-precision data, else complex64), 0 where
+    not finite."""
+    x = x.to(_work_dtype(x))
     c = x[m:] * x[:-m].conj()
-    return torch.where(torch.isfinite(c.real) & torch.isfinite(c.imag), c, torch.zeros_like(c))
+    fin = torch.isfinite(c)
+    return c if bool(fin.all()) else torch.where(fin, c, torch.zeros_like(c))
+
+
+def _work_dtype(x: torch.Tensor) -> torch.dtype:
+    return torch.complex128 if x.dtype in (torch.complex128, torch.float64) else torch.complex64
 
 
 def _unit(r: torch.Tensor) -> torch.Tensor:
@@ -258,12 +276,12 @@ def _unit(r: torch.Tensor) -> torch.Tensor:
 
 
 def _group_sum(c: torch.Tensor, sel: torch.Tensor) -> torch.Tensor:
-    return torch.where(sel[None], c, torch.zeros_like(c)).sum(-1)
+    return torch.einsum("kgs,gs->kg", c, sel.to(c.dtype))
 
 
 def _phase_to(c: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     """Each pixel's phase relative to its group's reference sum: ``arg Σ_t C_t · conj(R_t/|R_t|)`` ``[G, S]``."""
-    return torch.angle((c * _unit(ref).conj()[..., None]).sum(0))
+    return torch.angle(torch.einsum("kgs,kg->gs", c, _unit(ref).conj()))
 
 
 def _wrap(a: torch.Tensor) -> torch.Tensor:
@@ -356,13 +374,13 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
         bar = tqdm(total=len(slabs), desc="doppler reference", unit="slab")
 
     def read(c0: int, c1: int) -> tuple[torch.Tensor, slice, slice]:
-        """The slab's A-lines ``[T, L, Z]`` (complex128), their rows among all A-lines and their B-scans."""
+        """The slab's A-lines ``[T, L, Z]``, their rows among all A-lines and their B-scans."""
         sel = [slice(None)] * data.ndim
         sel[cdim] = slice(c0, c1)
         raw = np.array(data[tuple(sel)], dtype=native, copy=True)
         if bulk is not None:
             raw = np.multiply(raw, bulk[tuple(sel)])
-        lines = _slab_lines(torch.from_numpy(raw), volume).to(torch.complex128)
+        lines = _slab_lines(torch.from_numpy(raw), volume)
         first = c0 * n_x if volume else c0
         return lines, slice(first, first + lines.shape[1]), slice(c0, c1) if volume else slice(0, 1)
 
@@ -520,7 +538,7 @@ def doppler_slab(x: torch.Tensor, ref: DopplerReference, cdim: int, c0: int, c1:
     line_np = np.array(np.broadcast_to(first, spatial)).reshape(-1)  # each pixel's A-line
     line = torch.from_numpy(line_np)
     for li, m in enumerate(ref.lags):
-        sums = torch.from_numpy(np.ascontiguousarray(ref.sums[m][:, ys]).reshape(n_t - m, -1))  # [T−m, lines]
+        sums = torch.from_numpy(np.ascontiguousarray(ref.sums[m][:, ys]).reshape(n_t - m, -1)).to(_work_dtype(x))  # [T−m, lines]
         none = (ref.scope[m][ys] == 0).reshape(-1)[line_np]
         sel = [slice(None)] * len(spatial)
         sel[cdim - 1] = slice(c0, c1)
