@@ -235,6 +235,14 @@ def test_thin_static_layer_falls_back_to_the_b_scan_reference():
     assert abs(mean - (-2 * K * V_FLOW * DT)) <= Z_SE * se, (mean, se)
     cut = compute_maps(seq_of(e), metrics=("mean_db",), doppler=True, slab_elements=4 * T * e.shape[1])
     np.testing.assert_array_equal(whole.maps, cut.maps)
+    # a bulk phase of its own per A-line: the B-scan holds no common reference, so no channel (in one slab
+    # and in four passes), not a reference borrowed from the few A-lines that happen to share a phase
+    e = with_bulk(layered_field(48, layers, seed=7), 29, per_aline=True)
+    for slab in (1 << 23, 4 * T * e.shape[1]):
+        m = compute_maps(seq_of(e), metrics=("mean_db",), doppler=True, slab_elements=slab)
+        assert NAME not in m.channels
+        cov = m.meta["doppler"]["per_lag"]["1"]["bscan_aline_coverage"][0]
+        assert cov < 0.5, cov
 
 
 def test_volume_b_scans_and_slabs(field):

@@ -53,7 +53,7 @@ from .bulkphase import STABLE_CONTRAST
 from .sequence import SequenceData
 
 __all__ = ["DEFAULT_DOPPLER_LAGS", "REFERENCE_CONTRAST", "MIN_REFERENCE_PIXELS", "MIN_WHITE_SHARE",
-           "WHITE_TEST_LEVEL", "PHASE_TOLERANCE_Z", "REFERENCE_RULE", "min_reference_snr", "min_whiteness", "white_population",
+           "WHITE_TEST_LEVEL", "MIN_BSCAN_COVERAGE", "PHASE_TOLERANCE_Z", "REFERENCE_RULE", "min_reference_snr", "min_whiteness", "white_population",
            "phase_tolerance", "doppler_lags", "DopplerReference", "estimate_doppler_reference", "doppler_absent",
            "doppler_channel_records", "doppler_slab", "doppler_name"]
 
@@ -69,6 +69,9 @@ MIN_REFERENCE_PIXELS = 10
 #: (a majority), at the level below (:func:`white_population`).
 MIN_WHITE_SHARE = 0.5
 WHITE_TEST_LEVEL = 0.01
+#: A B-scan's reference counts when at least this share of its A-lines with a candidate hold some of its
+#: pixels: the bulk phase it removes is common to the B-scan.
+MIN_BSCAN_COVERAGE = 0.5
 #: Half width of the reference population, in standard deviations of a static pixel's phase.
 PHASE_TOLERANCE_Z = 3.5
 #: The rule, as the maps' metadata record it.
@@ -79,7 +82,8 @@ REFERENCE_RULE = ("reference pixels: temporal intensity contrast Var_t I/(mean_t
                   "1 - contrast/{c:g}); then those within h of that population's sum; the population counts when "
                   "more than {ws:.0%} of the steady pixels within h of it are white (one-sided binomial test at "
                   "{lv:g}); scope: the A-line with >= {n} "
-                  "reference pixels, else its B-scan with >= {n}, else none (NaN); channel: arg sum_t conj(C_t(p)) "
+                  "reference pixels, else its B-scan with >= {n} whose reference reaches >= {cov:.0%} of the A-lines "
+                  "with a candidate, else none (NaN); channel: arg sum_t conj(C_t(p)) "
                   "r_t/|r_t|, C_t = E_(t+m) conj(E_t), r_t the reference sum without p")
 
 
@@ -173,7 +177,8 @@ class DopplerReference:
             "sign": "g1_phase convention: scatterers moving deeper at v_z give -2kn*v_z*m*dt (wrapped)",
             "rule": REFERENCE_RULE.format(c=REFERENCE_CONTRAST, s=min_reference_snr(), n=MIN_REFERENCE_PIXELS,
                                           w=min_whiteness(self.n_frames), ws=MIN_WHITE_SHARE,
-                                          lv=WHITE_TEST_LEVEL),
+                                          lv=WHITE_TEST_LEVEL, cov=MIN_BSCAN_COVERAGE),
+            "min_bscan_coverage": MIN_BSCAN_COVERAGE,
             "min_white_share": MIN_WHITE_SHARE,
             "min_whiteness": min_whiteness(self.n_frames),
             "reference_contrast": REFERENCE_CONTRAST,
@@ -367,6 +372,7 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
     bscan = {m: _Scope(n_t - m, n_bscans, n_lines // n_bscans * n_z) for m in lags}
     split = not volume and len(slabs) > 1  # the one B-scan of a sequence spans several slabs
     n_cand = 0
+    line_cand = np.zeros(n_lines, dtype=bool)  # the A-lines with a candidate
     bar = None
     if not progress_disabled(progress):
         from tqdm.auto import tqdm
@@ -388,6 +394,7 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
         lines, rows, bs = read(c0, c1)
         cand, steady, w = _candidates(lines)  # [L, Z]
         n_cand += int(cand.sum())
+        line_cand[rows] = cand.any(1).numpy()
         n_g = bs.stop - bs.start
         for m in lags:
             c = _products(lines, m)  # [K, L, Z]
@@ -409,7 +416,12 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
     line_b = np.repeat(np.arange(n_bscans), n_x) if volume else np.zeros(n_lines, dtype=np.int64)
     for m in lags:
         use_own = own[m].ok(slice(None))
-        b_ok = bscan[m].ok(slice(None))
+        # a B-scan's reference must be common to its A-lines: of those with a candidate, at least half hold
+        # some in phase with it (a bulk phase that differs between A-lines leaves only the few that share it)
+        lines_in = bscan[m].pixels.reshape(n_bscans, -1, n_z).any(-1).sum(1)
+        lines_cand = line_cand.reshape(n_bscans, -1).sum(1)
+        coverage = lines_in / np.maximum(lines_cand, 1)
+        b_ok = bscan[m].ok(slice(None)) & (coverage >= MIN_BSCAN_COVERAGE)
         fall = ~use_own & b_ok[line_b]
         sc = np.where(use_own, 1, np.where(fall, 2, 0)).astype(np.int8)
         s = np.where(use_own[None], own[m].sums, np.where(fall[None], bscan[m].sums[:, line_b], 0))
@@ -433,6 +445,7 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
             "bscans_with_reference": int(b_ok.sum()),
             "bscan_reference_share": [float(v) / (n_lines // n_bscans * n_z) if e else None
                                       for v, e in zip(bscan[m].count, bscan[m].evaluated)],
+            "bscan_aline_coverage": [float(v) if e else None for v, e in zip(coverage, bscan[m].evaluated)],
         }
         if (sc > 0).any():
             present.append(m)
