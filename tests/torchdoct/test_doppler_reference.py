@@ -299,3 +299,11 @@ def test_rendered_vessel_phantom_with_oblique_flow():
         a = np.array(cols)
         mean, se = float(a.mean()), float(a.std(ddof=1) / math.sqrt(a.size))
         assert abs(mean - truth) <= Z_SE * se, (code, mean, truth, se)
+
+
+def test_a_non_finite_sample_masks_its_pixel(field):
+    e = with_bulk(field[:, :, :24], 31)
+    e[7, 22, 5] = np.nan
+    m = compute_maps(seq_of(e), metrics=("mean_db",), doppler=True)
+    ch = m.maps[m.index(NAME)]
+    assert np.isnan(ch[22, 5]) and np.isfinite(ch[FLOW]).sum() == ch[FLOW].size - 1
