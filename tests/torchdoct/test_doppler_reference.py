@@ -307,3 +307,22 @@ def test_a_non_finite_sample_masks_its_pixel(field):
     m = compute_maps(seq_of(e), metrics=("mean_db",), doppler=True)
     ch = m.maps[m.index(NAME)]
     assert np.isnan(ch[22, 5]) and np.isfinite(ch[FLOW]).sum() == ch[FLOW].size - 1
+
+
+@pytest.mark.parametrize("lag", [1, 4])
+def test_static_pixel_phase_spread_is_the_predicted_one(lag):
+    """Static pixels of one amplitude at SNR s = 100 in white noise, 20 per A-line, a random bulk phase per
+    frame: the channel's standard deviation over the pixels is the first-order prediction of
+    docs/concepts/doppler-reference.md §3, ``√((1 + 1/N)(m/(s(T − m)²) + 1/(2s²(T − m))))`` with ``N = 19``
+    (leave-one-out), the formula that sets the reference's width h (6000 pixels: within 5 %)."""
+    rng = np.random.default_rng(lag)
+    snr, n_z, n_lines = 100.0, 20, 300
+    s = np.exp(1j * rng.uniform(0, 2 * np.pi, (n_z, n_lines))) * math.sqrt(snr)
+    e = s[None] + (rng.standard_normal((T, n_z, n_lines)) + 1j * rng.standard_normal((T, n_z, n_lines))) / math.sqrt(2)
+    e = e * np.exp(1j * rng.uniform(-np.pi, np.pi, (T, 1, 1)))
+    m = compute_maps(seq_of(e), metrics=("mean_db",), doppler=(lag,))
+    ch = m.maps[m.index(f"doppler_phase_{lag}@original")].astype(np.float64)
+    assert np.isfinite(ch).all()
+    n, big_n = T - lag, n_z - 1
+    predicted = math.sqrt((1 + 1 / big_n) * (lag / (snr * n * n) + 1 / (2 * snr * snr * n)))
+    assert abs(float(ch.std()) / predicted - 1) < 0.05, (ch.std(), predicted)
