@@ -35,8 +35,9 @@ NAME = "doppler_phase_1@original"
 
 def layered_field(n_lines, layers, *, snr_db=30.0, seed=0, density=0.05):
     """``[T, Z, X]`` complex128 field of A-lines through ``layers``: a list of ``(rows, motion, speed)`` with
-    ``motion`` one of ``static``, ``flow`` (axial, deeper) or ``ballistic``; white noise ``snr_db`` below the
-    mean intensity."""
+    ``motion`` one of ``static``, ``flow`` (axial, deeper, speed µm/s), ``ballistic`` (speed µm/s) or
+    ``diffusion`` (speed: D in µm²/s, a Gaussian step of variance 2DΔt per axis and frame); white noise
+    ``snr_db`` below the mean intensity."""
     rng = np.random.default_rng(seed)
     n_z = sum(r for r, _, _ in layers)
     zpix = np.arange(n_z) * DZ
@@ -49,16 +50,22 @@ def layered_field(n_lines, layers, *, snr_db=30.0, seed=0, density=0.05):
     bounds = np.cumsum([r for r, _, _ in layers]) * DZ
     layer = np.minimum(np.searchsorted(bounds, z0, side="right"), len(layers) - 1)
     vel = np.zeros((n_lines, n_j, 3))
+    diff = np.zeros((n_lines, n_j))  # D per scatterer
     for i, (_, motion, speed) in enumerate(layers):
         here = layer == i
-        if motion == "flow":
+        if motion == "diffusion":
+            diff[here] = speed
+        elif motion == "flow":
             vel[here] = [0.0, 0.0, speed]
         elif motion == "ballistic":
             u = rng.standard_normal((int(here.sum()), 3))
             vel[here] = speed * u / np.linalg.norm(u, axis=1, keepdims=True)
     e = np.empty((T, n_lines, n_z), dtype=np.complex128)
+    walk = np.zeros((3, n_lines, n_j))
     for t in range(T):
-        x, y, z = (c + vel[..., i] * t * DT for i, c in enumerate((x0, y0, z0)))
+        if t and diff.any():
+            walk += rng.standard_normal(walk.shape) * np.sqrt(2 * diff * DT)
+        x, y, z = (c + vel[..., i] * t * DT + walk[i] for i, c in enumerate((x0, y0, z0)))
         amp = np.exp(-(x * x + y * y) / (2 * SX * SX) + 2j * K * z)
         e[t] = np.einsum("lj,ljz->lz", amp, np.exp(-(z[..., None] - zpix) ** 2 / (2 * SZ * SZ)))
     p = float(np.mean(np.abs(e) ** 2))
@@ -122,6 +129,17 @@ def test_random_ballistic_layer_has_zero_mean_phase(maps_with_bulk):
     ch = maps_with_bulk.maps[maps_with_bulk.index(NAME)].astype(np.float64)
     mean, se = layer_mean(ch, BALLISTIC)
     assert abs(mean) <= Z_SE * se, (mean, se)
+
+
+def test_diffusing_layer_has_zero_mean_phase_beside_the_flow():
+    """D = 0.05 µm²/s: g1 at one frame is exp(−4k²nD·Δt) ≈ 0.6, real and positive (physics.md §5.3 (a))."""
+    layers = [(16, "static", 0.0), (16, "flow", V_FLOW), (16, "diffusion", 0.05)]
+    m = compute_maps(seq_of(with_bulk(layered_field(64, layers, seed=8), 37)), metrics=("mean_db",), doppler=True)
+    ch = m.maps[m.index(NAME)].astype(np.float64)
+    mean, se = layer_mean(ch, BALLISTIC)  # the third layer's inner rows
+    assert abs(mean) <= Z_SE * se, (mean, se)
+    mean, se = layer_mean(ch, FLOW)
+    assert abs(mean - (-2 * K * V_FLOW * DT)) <= Z_SE * se, (mean, se)
 
 
 def test_bulk_phase_does_not_change_the_channel(field, maps_with_bulk):
