@@ -173,6 +173,8 @@ def _maps_arguments(bm) -> None:
     bm.add_argument("--aliv", action="store_true", help="include aLIV and Swiftness")
     bm.add_argument("--signature", action="store_true", help="include the signature channels (maps --signature)")
     bm.add_argument("--speckle", action="store_true", help="include the speckle-motion channels (maps --speckle)")
+    bm.add_argument("--doppler", action="store_true",
+                    help="include the Doppler reference (maps --doppler; the random field has none, so no channel)")
     bm.add_argument("--repeats", type=int, default=1, help="timed repeats (best is kept)")
     _add_out(bm)
     bm.add_argument("--force", action="store_true", help="overwrite --out if it exists")
@@ -187,13 +189,14 @@ def _maps(args: argparse.Namespace) -> int:
         metrics = ["liv", "ocds", "mean_db"] + (["aliv", "swiftness"] if args.aliv else [])
         return bench_maps(frames=args.frames, shape=tuple(args.size),
                           resolutions=args.resolution or ["original", "axial=14", "lateral=18"],
-                          metrics=metrics, repeats=args.repeats, signature=args.signature, speckle=args.speckle)
+                          metrics=metrics, repeats=args.repeats, signature=args.signature, speckle=args.speckle,
+                          doppler=args.doppler)
 
     def fmt(res: dict[str, Any]) -> str:
         per = ", ".join(f"{k} {v:.2f} s" for k, v in res["seconds_per_resolution"].items())
         m = res["machine"]
         return (f"maps of a complex64 {res['shape']} stack, {len(res['resolutions'])} resolutions, "
-                f"{'+'.join(res['metrics'] + ['signature'] * res['signature'] + ['speckle'] * res['speckle'])}: "
+                f"{'+'.join(res['metrics'] + ['signature'] * res['signature'] + ['speckle'] * res['speckle'] + ['doppler'] * res.get('doppler', False))}: "
                 f"{res['seconds_total']:.2f} s total ({per}); "
                 f"target {res['target_seconds']:.0f} s; {m['cpu_count']} cores, torch {m['torch']} with "
                 f"{m['torch_threads']} threads")
