@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import glob
 import math
+import struct
 import sys
 import zipfile
 from pathlib import Path
@@ -422,7 +423,7 @@ def _load_mask(path: str) -> np.ndarray:
                 raise
             raise ValueError(f"mask {p.name}: not a readable TIFF, truncated or corrupt "
                              f"({type(err).__name__}: {err})") from None
-        except (tifffile.TiffFileError, OSError, IndexError) as err:
+        except (tifffile.TiffFileError, OSError, IndexError, KeyError, struct.error) as err:  # a damaged file
             raise ValueError(f"mask {p.name}: not a readable TIFF, truncated or corrupt "
                              f"({type(err).__name__}: {err})") from None
     raise ValueError(f"mask {p.name}: use .npy, .npz or .tif")

@@ -73,7 +73,7 @@ Signature channels (``signature``, ``torchdoct maps --signature``): the decorrel
 field, computed in the same slab loop from the same reduced field as the other channels, pixel by pixel;
 channels ``f"{feature}@{resolution}"`` after the DOCT channels. With ``bulk_phase`` they read the
 corrected field at every resolution (the original one included: the field features read the phase).
-Pixels that non-finite samples reach are NaN, as in the other channels; otherwise the signature's own
+Pixels that non-finite samples leave without a value (above) are NaN, as in the other channels; otherwise the signature's own
 rule holds (NaN where ``I = 0`` at some frame, :mod:`torchdoct.sim.signature`), without the floor of
 :data:`EMPTY_RULE`.
 
@@ -570,7 +570,7 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int) -> No
     signature of the slab's own pixels from the same field."""
     seq, req, out = work.seq, work.req, work.out
     data, axes = seq.data, seq.axes
-    t, cdim, halo, mrg, reach = plan.target, plan.axis, plan.halo, plan.margin, plan.reach
+    t, cdim, halo, mrg = plan.target, plan.axis, plan.halo, plan.margin
     changed = t in req.changes
     outputs, feats = work.outputs, req.features
     real_dtype = _real_dtype(seq)

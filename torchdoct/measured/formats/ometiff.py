@@ -14,6 +14,7 @@ writes) supplies ``system`` and the other keys; the OME values win for the pitch
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -149,7 +150,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
             else:
                 data = tf.asarray(key=range(planes)) if planes > 1 else page.asarray()[None]
             damage.check()
-    except (tifffile.TiffFileError, OSError, ValueError) as err:
+    except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError, struct.error) as err:  # a damaged file
         msg = str(err)
         raise ValueError(msg if msg.startswith(where) else f"{where}: not a readable OME-TIFF ({msg})") from None
     order = px.get("DimensionOrder", "XYZCT")  # fastest first: the planes run in order[2:]

@@ -57,6 +57,37 @@ def _scale(transforms: Any, n: int, kind: str, where: str) -> list[float] | None
     return None
 
 
+#: Metadata files of a zarr array folder (the others hold chunks).
+_ZARR_METADATA = (".zarray", ".zattrs", ".zgroup", ".zmetadata", "zarr.json")
+
+
+def _check_chunk_files(folder: Path, arr: Any, where: str) -> None:
+    """Refuse a store whose chunk files cannot hold their chunk, before any is decompressed: a Blosc chunk
+    whose header's compressed size is not the file's (a truncated one: Blosc would decode bytes beyond it
+    into numbers), an uncompressed one of another size than the chunk. Other codecs check their own
+    streams when they decode."""
+    compressors = [type(c).__name__.lower() for c in (getattr(arr, "compressors", None) or ())]
+    if getattr(arr, "filters", None) or not folder.is_dir():
+        return
+    nbytes = int(np.prod(arr.chunks, dtype=np.int64)) * np.dtype(arr.dtype).itemsize
+    for f in folder.rglob("*"):
+        if f.name in _ZARR_METADATA or not f.is_file():
+            continue
+        size = f.stat().st_size
+        if len(compressors) == 1 and compressors[0].startswith("blosc"):
+            with f.open("rb") as fh:
+                head = fh.read(16)
+            ok = len(head) == 16 and int.from_bytes(head[12:16], "little") == size
+            ok = ok and int.from_bytes(head[4:8], "little") == nbytes
+        elif not compressors:
+            ok = size == nbytes
+        else:
+            continue
+        if not ok:
+            raise ValueError(f"{where}: chunk {f.relative_to(folder)} holds {size} bytes, not the chunk its header "
+                             "declares: truncated or corrupt; copy the store again completely")
+
+
 def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = False) -> Loaded:
     import zarr
 
@@ -89,6 +120,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
         raise TypeError(f"{where}/{key}: dtype {dt} is not numeric (object arrays would need unpickling); store "
                         "complex64/complex128 or float data")
     check_declared_size(f"{where}/{key}", arr.shape, dt.itemsize, streamed=True)
+    _check_chunk_files(path / key, arr, f"{where}/{key}")
     scale = _scale(datasets[0].get("coordinateTransformations"), len(names), "scale", f"{where}/{key}")
     top = _scale(ms.get("coordinateTransformations"), len(names), "scale", where)
     shift = _scale(datasets[0].get("coordinateTransformations"), len(names), "translation", f"{where}/{key}")

@@ -7,6 +7,7 @@ input limit before anything is read."""
 from __future__ import annotations
 
 import json
+import struct
 from pathlib import Path
 
 from ..guards import TiffDamage, check_tiff_pages, json_loads
@@ -28,7 +29,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
                 data = tf.asarray(key=range(len(tf.pages)))
             desc = tf.pages[0].description if len(tf.pages) else ""
             damage.check()
-    except (tifffile.TiffFileError, OSError, ValueError) as err:
+    except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError, struct.error) as err:  # a damaged file
         raise ValueError(f"{path.name}: not a readable TIFF stack ({err})") from None
     meta = None
     if desc and desc.lstrip().startswith("{"):

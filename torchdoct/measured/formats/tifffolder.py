@@ -10,6 +10,7 @@ the slabs need them (:class:`FrameFiles`)."""
 from __future__ import annotations
 
 import re
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +51,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
                 pages = [tuple(pg.shape) for pg in tf.pages]
                 dts = {pg.dtype for pg in tf.pages}
                 damage.check()
-        except (tifffile.TiffFileError, OSError, ValueError) as err:
+        except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError, struct.error) as err:  # a damaged file
             raise ValueError(f"{path.name}/{f.name}: not a readable TIFF ({err})") from None
         if not pages or len(set(pages)) != 1 or len(dts) != 1 or len(pages[0]) != 2:
             raise ValueError(f"{path.name}/{f.name}: pages of shapes {sorted(set(pages))}; each frame file must "
@@ -92,7 +93,7 @@ class FrameFiles:
                 with TiffDamage() as damage, tifffile.TiffFile(f) as tf:
                     frame = tf.asarray(key=range(len(tf.pages))) if len(tf.pages) > 1 else tf.pages[0].asarray()
                     damage.check()
-            except (tifffile.TiffFileError, OSError, ValueError) as err:
+            except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError, struct.error) as err:  # a damaged file
                 raise ValueError(f"{self._folder.name}/{f.name}: not a readable TIFF, truncated or corrupt ({err})"
                                  ) from None
             if tuple(frame.shape) != self.shape[1:] or frame.dtype != self.dtype:  # changed since it was checked
