@@ -27,7 +27,7 @@ from typing import Any
 
 __all__ = ["check_out", "atomic_write", "output_set", "OutputSet", "safe_name", "check_nesting", "MAX_NESTING",
            "shipped_files", "file_or_shipped", "NotRegularFileError", "check_regular_file", "open_regular",
-           "read_capped", "MAX_TEXT_BYTES", "WriteConflictError"]
+           "read_capped", "MAX_TEXT_BYTES", "WriteConflictError", "check_name_lengths"]
 
 #: Deepest nesting of arrays/tables (TOML) or arrays/objects (JSON) that any input file may have: the
 #: project's own files need 5 at most; far deeper ones would exhaust the parser's recursion.
@@ -122,6 +122,7 @@ def check_out(path: str | os.PathLike | None, force: bool, suffix: str | Sequenc
     allowed = (suffix,) if isinstance(suffix, str) else tuple(suffix)
     if out.suffix not in allowed:
         raise ValueError(f"{what} must end in {' or '.join(allowed)}; got {str(path)!r}")
+    check_name_lengths([out], what)
     if out.is_dir():
         raise ValueError(f"{what}: {out} is a directory; give a file name")
     if out.exists() and not force:
@@ -138,7 +139,8 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     is removed on error. ``tmp`` keeps ``path``'s suffix so writers that pick a format by suffix work.
     """
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f"{_temp_stem(path.parent, path.name)}.{os.getpid()}.",
+                               suffix=f".tmp{path.suffix[:8]}", dir=path.parent)
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)
@@ -152,16 +154,49 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
         raise
 
 
+def _name_max(directory: Path) -> int:
+    """The longest file name the file system of ``directory`` allows (255 where it does not say)."""
+    try:
+        return int(os.pathconf(directory, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
+
+
+#: Characters a temporary file's name adds to ``.NAME``: the process number, the random part, ``.stage``,
+#: ``.tmp`` and a suffix of up to 8.
+_TEMP_EXTRA = 48
+
+
+def _temp_stem(directory: Path, name: str) -> str:
+    """``.NAME`` of the temporary files of ``name``, NAME cut so that their whole names stay within the file
+    system's limit (a legal 255-character output name has temporaries too)."""
+    return "." + name[: max(1, _name_max(directory) - _TEMP_EXTRA)]
+
+
+def check_name_lengths(paths: Iterable[str | os.PathLike], what: str = "--out") -> None:
+    """A ``ValueError`` naming ``what`` and the fix when a file name of ``paths`` (an output, or one derived
+    from it: a sidecar, a PNG per channel) is longer than its file system allows, before anything is written."""
+    for p in paths:
+        p = Path(p)
+        limit = _name_max(p.parent if p.parent.is_dir() else Path("."))
+        if len(os.fsencode(p.name)) > limit:
+            raise ValueError(f"{what}: the file name {p.name[:40]}… is {len(os.fsencode(p.name))} bytes, longer than "
+                             f"the file system allows ({limit}); give a shorter --out (the names of the files "
+                             "written beside it add to its name)")
+
+
 def _temporaries(directory: Path, name: str) -> list[Path]:
     """Temporary files of ``name`` in ``directory``: :func:`atomic_write`'s ``.NAME.PID.XXXX.tmpSUFFIX`` and
-    :func:`output_set`'s ``.NAME.stage.PID.tmp.XXXX`` (PID: the writing process)."""
-    return [Path(p) for p in glob.glob(os.path.join(glob.escape(str(directory)), f".{glob.escape(name)}.*.tmp*"))]
+    :func:`output_set`'s ``.NAME.stage.PID.tmp.XXXX`` (PID: the writing process; NAME cut by
+    :func:`_temp_stem`)."""
+    stem = glob.escape(_temp_stem(directory, name))
+    return [Path(p) for p in glob.glob(os.path.join(glob.escape(str(directory)), f"{stem}.*.tmp*"))]
 
 
 def _writer_pid(temporary: Path, name: str) -> int | None:
     """The process number in a temporary file's name of ``name`` (:func:`_temporaries`), or None (an older
     run's name without one)."""
-    m = re.match(r"(?:stage\.)?(\d+)\.", temporary.name[len(name) + 2:])
+    m = re.match(r"(?:stage\.)?(\d+)\.", temporary.name[len(_temp_stem(temporary.parent, name)) + 1:])
     return int(m.group(1)) if m else None
 
 
@@ -266,6 +301,7 @@ def output_set(paths: Iterable[str | os.PathLike], force: bool, what: str = "--o
     finals = [Path(p) for p in paths]
     if len(set(finals)) != len(finals):
         raise ValueError(f"{what}: a file is listed twice in one output set")
+    check_name_lengths(finals, what)
     if not force:
         clash = [str(p) for p in finals if p.exists()]
         if clash:
@@ -282,7 +318,7 @@ def output_set(paths: Iterable[str | os.PathLike], force: bool, what: str = "--o
     stages: dict[Path, Path] = {}
     try:
         for d in parents:
-            stages[d] = Path(tempfile.mkdtemp(prefix=f".{first[d]}.stage.{os.getpid()}.tmp.", dir=d))
+            stages[d] = Path(tempfile.mkdtemp(prefix=f"{_temp_stem(d, first[d])}.stage.{os.getpid()}.tmp.", dir=d))
         yield OutputSet(finals, stages)
         extra = [str(q) for d, st in stages.items() for q in st.iterdir()
                  if d / q.name not in finals and not q.name.startswith(".")]

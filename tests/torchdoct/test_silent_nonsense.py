@@ -54,3 +54,32 @@ def test_a_255_character_name_whose_sidecar_name_is_too_long_is_read(tmp_path):
     seq = _seq(tmp_path, None, name)
     got = read_sequence(seq, axes="TZX", frame_interval_s=0.2048)
     assert got.data.shape == (12, 6, 5)
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".npz"])
+def test_a_255_character_npy_or_npz_name_is_read_and_mapped(tmp_path, suffix):
+    from torchdoct.cli import main
+
+    limit = os.pathconf(tmp_path, "PC_NAME_MAX")
+    seq = _seq(tmp_path, None, "x" * (limit - len(suffix)) + suffix) if suffix == ".npy" else None
+    if seq is None:
+        seq = tmp_path / ("x" * (limit - 4) + ".npz")
+        np.savez(seq, data=(np.random.default_rng(0).standard_normal((12, 6, 5)) + 1j).astype(np.complex64))
+    out = tmp_path / ("m" * (limit - 4) + ".npz")  # a 255-character output: its temporaries fit too
+    assert main(["maps", str(seq), "--axes", "TZX", "--frame-interval-s", "0.2048", "--metrics", "liv",
+                 "--no-progress", "--out", str(out)]) == 0
+    assert out.exists() and [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_an_output_whose_derived_names_are_too_long_is_refused_before_the_work(tmp_path, capsys, monkeypatch):
+    import torchdoct.measured.maps as maps_module
+
+    def started(*args, **kwargs):
+        raise AssertionError("the maps were computed before the output names were checked")
+
+    monkeypatch.setattr(maps_module, "compute_maps", started)
+    limit = os.pathconf(tmp_path, "PC_NAME_MAX")
+    seq = _seq(tmp_path, _meta())
+    out = tmp_path / ("m" * (limit - 4) + ".npz")  # legal itself; its PNGs (STEM_liv_original.png) are not
+    refused(capsys, tmp_path, ["maps", str(seq), "--metrics", "liv", "--png", "--out", str(out)],
+            "longer than the file system allows", "give a shorter --out", absent=("Errno",))

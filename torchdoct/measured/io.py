@@ -49,7 +49,15 @@ from .formats.hdf5 import flat_attributes as _flat_attributes
 from .guards import parse_json_object
 from .mapsfile import MAPS_SUFFIXES, Maps, read_maps, write_maps
 from .sequence import HOW as _HOW
-from .sequence import BlockRaster, SequenceData, check_axes, finite_positive, sidecar_path, validate_meta
+from .sequence import (
+    BlockRaster,
+    SequenceData,
+    check_axes,
+    finite_positive,
+    sidecar_exists,
+    sidecar_path,
+    validate_meta,
+)
 
 __all__ = [
     "SEQUENCE_SUFFIXES",
@@ -69,13 +77,8 @@ _WRITE_SUFFIXES = (".npy", ".npz", ".h5")
 
 
 def _sidecar_exists(side: Path) -> bool:
-    """Whether the sidecar ``side`` exists (a link to nothing counts: its reader names it). A legal
-    sequence name whose derived sidecar name is longer than the file system allows (a 255-character
-    ``.npy`` name gives a 256-character ``.json``) has no sidecar."""
-    try:
-        return os.path.lexists(side)
-    except (OSError, ValueError):
-        return False
+    return sidecar_exists(side)
+
 
 # ----------------------------------------------------------------------------------------------
 # sequence writer
@@ -338,7 +341,7 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
         data = LazyArray(MappedFile(data.filename, data.dtype, data.shape, data.offset), p.name)
     side = sidecar_path(p)
     meta: dict[str, Any] = {}
-    if file_meta is not None and not (loaded.sidecar_fills and side.exists()):
+    if file_meta is not None and not (loaded.sidecar_fills and _sidecar_exists(side)):
         meta.update(file_meta)
     elif _sidecar_exists(side):
         try:

@@ -34,7 +34,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SequenceData", "BlockRaster", "validate_meta", "sidecar_path", "finite_positive", "check_axes",
+__all__ = ["SequenceData", "BlockRaster", "validate_meta", "sidecar_path", "sidecar_exists", "finite_positive",
+           "check_axes",
            "CANONICAL_AXES", "HOW"]
 
 CANONICAL_AXES = ("TZX", "TYZX")
@@ -51,6 +52,16 @@ HOW = {
 def sidecar_path(path: str | os.PathLike) -> Path:
     """The JSON sidecar of a sequence file: same directory and stem, suffix ``.json``."""
     return Path(path).with_suffix(".json")
+
+
+def sidecar_exists(side: Path) -> bool:
+    """Whether the sidecar ``side`` exists (a link to nothing counts: its reader names it). A legal
+    sequence name whose derived sidecar name is longer than the file system allows (a 255-character
+    ``.npy`` or ``.npz`` name gives a 256-character ``.json``) has no sidecar."""
+    try:
+        return os.path.lexists(side)
+    except (OSError, ValueError):
+        return False
 
 
 # ----------------------------------------------------------------------------------------------

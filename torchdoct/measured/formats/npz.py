@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..guards import check_npz_sizes, parse_json_object, refuse_object
-from ..sequence import sidecar_path
+from ..sequence import sidecar_exists, sidecar_path
 from .base import Loaded
 
 SUFFIXES = (".npz",)
@@ -42,7 +42,7 @@ def load_arrays(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray |
 def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = False) -> Loaded:
     data, labels, params, raw = load_arrays(path)
     meta = None
-    if raw is not None and not sidecar_path(path).exists():  # the sidecar, when there is one, is read instead
+    if raw is not None and not sidecar_exists(sidecar_path(path)):  # the sidecar, when there is one, is read instead
         if raw.dtype.kind not in "US" or raw.size != 1:
             raise ValueError(f"{path.name}: 'meta_json' must be a JSON text (a 0-d string array); got a {raw.dtype} "
                              f"array of shape {list(raw.shape)}")

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..guards import check_declared_size, parse_json_object
-from ..sequence import sidecar_path
+from ..sequence import sidecar_exists, sidecar_path
 from .base import Loaded
 
 SUFFIXES = (".raw", ".bin")
@@ -32,12 +32,15 @@ DTYPES = ("complex64", "complex128", "float32", "float64", "uint8", "uint16")
 
 
 def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = False) -> Loaded:
+    from ...files import read_capped
+
     side = sidecar_path(path)
-    if not side.is_file():
+    if not sidecar_exists(side):
         raise ValueError(f"{path.name}: a raw binary needs its JSON sidecar {side.name} declaring dtype, shape "
-                         "(and byte_order, header_bytes); write one beside it")
+                         "(and byte_order, header_bytes); write one beside it (a name short enough that the "
+                         "sidecar's is legal too)")
     try:
-        text = side.read_text(encoding="utf-8")
+        text = read_capped(side, f"the sidecar of {path.name}").decode("utf-8")
     except UnicodeDecodeError as err:
         raise ValueError(f"{side.name}: the sidecar of {path.name} is not UTF-8 text (byte {err.start})") from None
     meta = parse_json_object(text, side.name)
