@@ -66,6 +66,9 @@ def check_regular_file(path: str | os.PathLike, what: str = "input file") -> Pat
     try:
         st = os.stat(p)
     except (FileNotFoundError, NotADirectoryError):
+        if os.path.islink(p):
+            raise FileNotFoundError(f"{what} {p} is a symbolic link to {os.readlink(p)}, which does not exist; "
+                                    "point the link at the file itself") from None
         raise FileNotFoundError(f"{what} {p}: no such file") from None
     except OSError as err:
         if err.errno == errno.ENAMETOOLONG:

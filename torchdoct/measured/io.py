@@ -304,7 +304,7 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     ``ValueError`` naming the key and the option that gives it.
     """
     p = Path(path)
-    if not p.exists():
+    if not os.path.lexists(p):  # a link that loops or leads nowhere: named by check_regular_file
         raise FileNotFoundError(f"sequence file {p} does not exist")
     fmt = reader_for(p)
     if not (fmt is not None and getattr(fmt, "DIRECTORY", False) and p.is_dir()):
