@@ -38,14 +38,17 @@ def test_check_regular_file_names_the_kind_and_never_says_not_found(tmp_path, ki
 def test_a_link_that_loops_or_leads_nowhere_is_named_as_such(tmp_path, capsys):
     from _refusal import refused
 
-    loop = tmp_path / "loop.npz"
+    links, out = tmp_path / "links", tmp_path / "out"
+    links.mkdir()
+    out.mkdir()
+    loop = links / "loop.npz"
     loop.symlink_to("loop.npz")
-    dangling = tmp_path / "dangling.npz"
+    dangling = links / "dangling.npz"
     dangling.symlink_to("nowhere.npz")
-    argv = ["maps", "", "--out", str(tmp_path / "m.npz"), "--no-progress"]
-    refused(capsys, tmp_path, [argv[0], str(loop), *argv[2:]], "loop.npz", "a loop of symbolic links")
-    refused(capsys, tmp_path, [argv[0], str(dangling), *argv[2:]], "dangling.npz", "a symbolic link to nowhere.npz",
-            "does not exist")
+    refused(capsys, out, ["maps", str(loop), "--out", str(out / "m.npz"), "--no-progress"], "loop.npz",
+            "a loop of symbolic links")
+    refused(capsys, out, ["maps", str(dangling), "--out", str(out / "m.npz"), "--no-progress"], "dangling.npz",
+            "a symbolic link to nowhere.npz", "does not exist")
 
 
 def test_read_capped_refuses_a_text_file_over_the_cap(tmp_path):
