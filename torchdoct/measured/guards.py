@@ -102,6 +102,11 @@ def streaming() -> bool:
     return _streaming
 
 
+class InputRefusal(ValueError):
+    """A refusal whose message is whole (a declared size over the limit, TIFF pages of two shapes): a reader
+    that wraps the errors of a damaged file in "not a readable …" passes it on as it is."""
+
+
 def check_declared_size(where: str, shape: Iterable[int], itemsize: int, what: str = "array",
                         streamed: bool = False) -> int:
     """The byte count ``prod(shape) * itemsize`` (exact integers: no overflow), or a ``ValueError`` naming
@@ -116,7 +121,7 @@ def check_declared_size(where: str, shape: Iterable[int], itemsize: int, what: s
         return n
     limit = max_input_bytes()
     if n > limit:
-        raise ValueError(f"{where}: the {what} declares shape {dims} and would take {_human(n)} in memory, over "
+        raise InputRefusal(f"{where}: the {what} declares shape {dims} and would take {_human(n)} in memory, over "
                          f"the input limit of {_human(limit)}; if the data really are this large, "
                          + ("stream them through the maps with --max-memory-gb GB (torchdoct maps), or " if streamed
                             and not _explicit_limit() else "")
@@ -208,7 +213,7 @@ def check_tiff_pages(path: Path, tf: Any, what: str = "", streamed: bool = False
     for i in range(1, n):
         page = pages[i]
         if tuple(page.shape) != shape0 or page.dtype != dtype0:
-            raise ValueError(f"{what}{path.name}: TIFF pages of two shapes: page 0 is {list(shape0)} {dtype0}, page "
+            raise InputRefusal(f"{what}{path.name}: TIFF pages of two shapes: page 0 is {list(shape0)} {dtype0}, page "
                              f"{i} is {list(page.shape)} {page.dtype}; a stack needs one shape on every page (write "
                              "the frames as one stack of equal images)")
     itemsize = dtype0.itemsize if dtype0 is not None else 1

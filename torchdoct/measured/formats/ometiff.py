@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from ..guards import TiffDamage, check_tiff_pages, parse_json_object, streaming
+from ...runtime.resources import MemoryLimitError
+from ..guards import InputRefusal, TiffDamage, check_tiff_pages, parse_json_object, streaming
 from .base import LENGTH_UM, TIME_S, Loaded, to_unit
 
 SUFFIXES = (".ome.tif", ".ome.tiff")
@@ -150,6 +151,8 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
             else:
                 data = tf.asarray(key=range(planes)) if planes > 1 else page.asarray()[None]
             damage.check()
+    except (InputRefusal, MemoryLimitError):  # whole messages: a size, two page shapes
+        raise
     except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError, struct.error) as err:  # a damaged file
         msg = str(err)
         raise ValueError(msg if msg.startswith(where) else f"{where}: not a readable OME-TIFF ({msg})") from None

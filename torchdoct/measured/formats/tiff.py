@@ -10,7 +10,8 @@ import json
 import struct
 from pathlib import Path
 
-from ..guards import TiffDamage, check_tiff_pages, json_loads
+from ...runtime.resources import MemoryLimitError
+from ..guards import InputRefusal, TiffDamage, check_tiff_pages, json_loads
 from .base import Loaded
 
 SUFFIXES = (".tif", ".tiff")
@@ -29,6 +30,8 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
                 data = tf.asarray(key=range(len(tf.pages)))
             desc = tf.pages[0].description if len(tf.pages) else ""
             damage.check()
+    except (InputRefusal, MemoryLimitError):  # whole messages: a size, two page shapes
+        raise
     except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError, struct.error) as err:  # a damaged file
         raise ValueError(f"{path.name}: not a readable TIFF stack ({err})") from None
     meta = None

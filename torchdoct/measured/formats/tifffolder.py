@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from ..guards import TiffDamage, check_declared_size, streaming
+from ...runtime.resources import MemoryLimitError
+from ..guards import InputRefusal, TiffDamage, check_declared_size, streaming
 from .base import Loaded, regular_file
 from .lazy import LazyArray
 
@@ -51,6 +52,8 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
                 pages = [tuple(pg.shape) for pg in tf.pages]
                 dts = {pg.dtype for pg in tf.pages}
                 damage.check()
+        except (InputRefusal, MemoryLimitError):  # whole messages: a size, two page shapes
+            raise
         except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError, struct.error) as err:  # a damaged file
             raise ValueError(f"{path.name}/{f.name}: not a readable TIFF ({err})") from None
         if not pages or len(set(pages)) != 1 or len(dts) != 1 or len(pages[0]) != 2:
@@ -93,6 +96,8 @@ class FrameFiles:
                 with TiffDamage() as damage, tifffile.TiffFile(f) as tf:
                     frame = tf.asarray(key=range(len(tf.pages))) if len(tf.pages) > 1 else tf.pages[0].asarray()
                     damage.check()
+            except (InputRefusal, MemoryLimitError):  # whole messages: a size, two page shapes
+                raise
             except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError, struct.error) as err:  # a damaged file
                 raise ValueError(f"{self._folder.name}/{f.name}: not a readable TIFF, truncated or corrupt ({err})"
                                  ) from None
