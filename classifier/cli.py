@@ -181,7 +181,7 @@ def _read_prior(path: str):
     """A prior TOML file (the fields of :class:`classifier.prior.Prior`), errors naming the file."""
     import tomllib
 
-    from torchdoct.files import check_nesting, read_capped
+    from torchdoct.files import check_nesting, read_capped, toml_loads
 
     from .prior import Prior
 
@@ -192,7 +192,7 @@ def _read_prior(path: str):
         raise FileNotFoundError(f"--prior {path}: no such file") from None
     try:
         check_nesting(raw, p.name, toml=True)
-        data = tomllib.loads(raw.decode("utf-8"))
+        data = toml_loads(raw.decode("utf-8"))
         return Prior.from_dict(data)
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"--prior {p.name}: not valid TOML: {err}") from None

@@ -375,12 +375,12 @@ def load_spec(name_or_path: str | Path | FeatureSpec) -> FeatureSpec:
     if isinstance(name_or_path, FeatureSpec):
         return name_or_path
     path = shipped_or_path(str(name_or_path), shipped_specs(), "feature spec")
-    from torchdoct.files import check_nesting, read_capped
+    from torchdoct.files import check_nesting, read_capped, toml_loads
 
     try:
         raw = read_capped(path, "feature spec")
         check_nesting(raw, path.name, toml=True)  # before the parser's recursion
-        data = tomllib.loads(raw.decode("utf-8"))
+        data = toml_loads(raw.decode("utf-8"))
         check_nesting(data, path.name)  # dotted keys nest tables without brackets
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"{path.name}: not valid TOML: {err}") from None

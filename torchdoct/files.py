@@ -27,7 +27,7 @@ from typing import Any
 
 __all__ = ["check_out", "atomic_write", "output_set", "OutputSet", "safe_name", "check_nesting", "MAX_NESTING",
            "shipped_files", "file_or_shipped", "NotRegularFileError", "check_regular_file", "open_regular",
-           "read_capped", "MAX_TEXT_BYTES", "WriteConflictError", "check_name_lengths"]
+           "read_capped", "MAX_TEXT_BYTES", "WriteConflictError", "check_name_lengths", "toml_loads"]
 
 #: Deepest nesting of arrays/tables (TOML) or arrays/objects (JSON) that any input file may have: the
 #: project's own files need 5 at most; far deeper ones would exhaust the parser's recursion.
@@ -355,6 +355,28 @@ def safe_name(name: str, what: str, fix: str = "rename it") -> str:
         raise ValueError(f"{what} {name!r} becomes part of a file name but {why}: no path separators or "
                          f"control characters; {fix}")
     return name
+
+
+def toml_loads(text: str) -> dict[str, Any]:
+    """``tomllib.loads(text)``; an integer beyond Python's digit limit (thousands of digits, far beyond TOML's
+    64-bit integers) is a ``tomllib.TOMLDecodeError`` naming its line and key, instead of Python's message
+    about ``sys.set_int_max_str_digits`` that names neither."""
+    import tomllib
+
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError:
+        raise
+    except ValueError as err:
+        if "integer string conversion" not in str(err):
+            raise
+        for i, line in enumerate(text.splitlines(), 1):
+            m = re.search(r"([\w.\-\"']+)\s*=\s*[+-]?(\d[\d_]{299,})", line)
+            if m:
+                raise tomllib.TOMLDecodeError(f"line {i}: {m.group(1)} is an integer of {len(m.group(2))} digits, far "
+                                              "beyond TOML's 64-bit integers; check the value") from None
+        raise tomllib.TOMLDecodeError("an integer of thousands of digits, far beyond TOML's 64-bit integers; "
+                                      "check the values") from None
 
 
 _JSON_TOKENS = re.compile(r'"(?:\\.|[^"\\])*"|[\[\]{}]')

@@ -96,3 +96,17 @@ def test_hdf5_links_to_nothing_or_to_themselves(tmp_path, capsys):
         f.attrs["torchdoct"] = json.dumps(_meta())
     refused(capsys, tmp_path, ["maps", str(bad), "--metrics", "liv", "--out", str(tmp_path / "m.npz")],
             "bad.h5", "'data'", "link", absent=("RuntimeError", "corrupt"))
+
+
+@pytest.mark.parametrize("command", ["simulate", "plan", "render"])
+def test_an_integer_of_thousands_of_digits_in_a_toml_file_names_its_line_and_key(tmp_path, capsys, command):
+    from _scenes import SMALL_SCENE_TOML
+
+    text = SMALL_SCENE_TOML.replace("seed = 7", "seed = 1" + "0" * 100_000)
+    assert text != SMALL_SCENE_TOML
+    path = tmp_path / "huge.toml"
+    path.write_text(text)
+    line = next(i for i, ln in enumerate(text.splitlines(), 1) if ln.startswith("seed"))
+    argv = [command, str(path)] + (["--out", str(tmp_path / "r.npz")] if command == "render" else [])
+    refused(capsys, tmp_path, argv, "huge.toml", f"line {line}", "seed", "100001 digits",
+            absent=("set_int_max_str_digits", "Exceeds the limit"))

@@ -714,12 +714,12 @@ def read_toml(path: str | Path, what: str = "TOML file") -> dict[str, Any]:
     file given by mistake) is a :class:`SceneError` naming the file; a path that is not a regular file
     or a file over :data:`torchdoct.files.MAX_TEXT_BYTES` is a ``ValueError`` naming ``what``
     (:func:`torchdoct.files.read_capped`)."""
-    from ..files import check_nesting, read_capped
+    from ..files import check_nesting, read_capped, toml_loads
 
     try:
         text = read_capped(path, what).decode("utf-8")
         check_nesting(text, str(path), toml=True)  # before the parser's recursion
-        data = tomllib.loads(text)
+        data = toml_loads(text)
         check_nesting(data, str(path))  # dotted keys nest tables without brackets
         return data
     except tomllib.TOMLDecodeError as err:
