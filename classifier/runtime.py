@@ -211,8 +211,17 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
         raise ValueError(f"model {path.name}: no '{METADATA_KEY}' metadata; it was not written by doct-train")
     from torchdoct.files import check_nesting
 
+    from torchdoct.measured.guards import json_loads
+
     check_nesting(props[METADATA_KEY], f"model {path.name}: metadata")  # before the parser's recursion
-    meta = json.loads(props[METADATA_KEY])
+    try:  # an integer of thousands of digits is read as inf, and named by the field's type check
+        meta = json_loads(props[METADATA_KEY])
+    except ValueError as err:
+        raise ValueError(f"model {path.name}: its '{METADATA_KEY}' metadata is not valid JSON ({err}); export the "
+                         "model again with doct-train") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"model {path.name}: its '{METADATA_KEY}' metadata is not a JSON object; export the model "
+                         "again with doct-train")
     if meta.get("format") != FORMAT:
         raise ValueError(f"model {path.name}: metadata format {meta.get('format')!r}, this version reads {FORMAT!r}")
     _check_metadata_types(path, meta)
@@ -245,10 +254,11 @@ def read_calibration(model_path: Path, classes: list[str]) -> dict[str, Any] | N
                          "calibrate the model again")
     try:
         from torchdoct.files import check_nesting
+        from torchdoct.measured.guards import json_loads
 
         raw = p.read_text(encoding="utf-8")
         check_nesting(raw, p.name)
-        cal = json.loads(raw)
+        cal = json_loads(raw)
     except (UnicodeDecodeError, ValueError) as err:
         raise ValueError(f"{p}: not a calibration JSON file ({err}); calibrate the model again "
                          "(python -m classifier.calibrate)") from None

@@ -38,8 +38,12 @@ def test_duplicate_channel_names_in_a_maps_file_are_refused(tmp_path, capsys):
             run=classify_main)
 
 
+HUGE = object()  # an integer of 5000 digits, written into the JSON text (Python's json cannot write it)
+
+
 @pytest.mark.parametrize("field,value", [("rule.min_probability", "0.5"), ("pool_pixels_max", 2.5),
-                                         ("rule.kind", 3), ("output.classes", "diffusion")])
+                                         ("rule.kind", 3), ("output.classes", "diffusion"),
+                                         ("pool_pixels_max", HUGE)])
 def test_a_wrongly_typed_model_metadata_field_is_refused_naming_it(tmp_path, field, value):
     onnx = pytest.importorskip("onnx")
     from classifier.runtime import METADATA_KEY, load_model, shipped_models
@@ -48,8 +52,8 @@ def test_a_wrongly_typed_model_metadata_field_is_refused_naming_it(tmp_path, fie
     prop = next(p for p in model.metadata_props if p.key == METADATA_KEY)
     meta = json.loads(prop.value)
     block, _, key = field.rpartition(".")
-    (meta[block] if block else meta)[key] = value
-    prop.value = json.dumps(meta)
+    (meta[block] if block else meta)[key] = "HUGE" if value is HUGE else value
+    prop.value = json.dumps(meta).replace('"HUGE"', "1" * 5000)
     path = tmp_path / "edited.onnx"
     onnx.save(model, str(path))
     with pytest.raises(ValueError, match="edited.onnx: metadata field " + re.escape(field) + " must be"):
