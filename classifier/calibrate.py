@@ -49,7 +49,15 @@ def _model_prior(model) -> Any:
     report = Path(model.path).with_suffix(".json")
     if not report.is_file():
         raise ValueError(f"{report}: the model's training report is missing; calibration draws from the prior it records")
-    data = json.loads(report.read_text(encoding="utf-8"))
+    from torchdoct.files import read_capped
+    from torchdoct.measured.guards import parse_json_object
+
+    try:
+        data = parse_json_object(read_capped(report, "the model's training report").decode("utf-8"), report.name)
+    except UnicodeDecodeError:
+        raise ValueError(f"{report}: the model's training report is not UTF-8 text; train the model again") from None
+    if not isinstance(data.get("prior"), dict):
+        raise ValueError(f"{report}: the model's training report has no 'prior' table; train the model again")
     return Prior.from_dict(data["prior"]), data.get("config", {})
 
 

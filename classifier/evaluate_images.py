@@ -34,6 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from torchdoct.files import read_capped
+from torchdoct.measured.guards import json_loads
 from torchdoct.runtime import interrupt as _interrupt
 
 #: Motion codes of rendered labels (``torchdoct.image.phantom.MOTION_CODES``) → classifier class names.
@@ -91,7 +93,7 @@ def _read_classified(out_dir: Path) -> tuple[np.ndarray, dict[str, Any], np.ndar
         if not (out_dir / name).is_file():
             raise ValueError(f"{out_dir}: {name} is missing; run doct-classify with --out {out_dir}")
     try:
-        legend = json.loads((out_dir / "legend.json").read_text(encoding="utf-8"))
+        legend = json_loads(read_capped(out_dir / "legend.json", "legend.json").decode("utf-8"))
         classes = tifffile.imread(out_dir / "classes.tif")
     except (OSError, ValueError) as exc:
         raise ValueError(f"{out_dir}: unreadable doct-classify output ({exc}); run doct-classify again") from None
@@ -228,8 +230,8 @@ def score_images(classified_dir: str | os.PathLike, labels: np.ndarray | str | o
     summary = out_dir / "summary.json"
     if summary.is_file():
         try:
-            result["pool"] = json.loads(summary.read_text(encoding="utf-8")).get("info", {}).get("pool")
-        except ValueError:
+            result["pool"] = json_loads(read_capped(summary, "summary.json").decode("utf-8")).get("info", {}).get("pool")
+        except (ValueError, AttributeError):  # not doct-classify's summary: no pool recorded
             result["pool"] = None
     regions = []
     if magnitude is not None:

@@ -10,7 +10,6 @@ the indeterminate rule and the feature spec.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Mapping
@@ -210,7 +209,6 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     if METADATA_KEY not in props:
         raise ValueError(f"model {path.name}: no '{METADATA_KEY}' metadata; it was not written by doct-train")
     from torchdoct.files import check_nesting
-
     from torchdoct.measured.guards import json_loads
 
     check_nesting(props[METADATA_KEY], f"model {path.name}: metadata")  # before the parser's recursion
