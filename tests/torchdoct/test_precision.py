@@ -82,6 +82,12 @@ def test_a_reflectivity_whose_intensity_underflows_float32_is_refused_naming_it_
         torch.testing.assert_close(got[name], ref[name], rtol=1e-9, atol=1e-9)
 
 
+def test_a_reflectivity_beyond_float64_is_refused_in_float64_without_offering_float64(small_scene):
+    with pytest.raises(ValueError, match=r"population\[0\]\.reflectivity = 1e-160.*outside what float64 computes") as info:
+        td.simulate(_scaled(small_scene, 1e-160), trials=64, seed=1, dtype="float64")
+    assert "simulate in float64" not in str(info.value) and "relative to the brightest" in str(info.value)
+
+
 def _moving(scene, speed):
     motion = td.RandomBallistic(speed_um_per_s=speed)
     return scene.replace(populations=(scene.populations[0].__class__(density_per_um3=0.055, motion=(motion,)),))

@@ -193,7 +193,7 @@ EMPTY_RULE = ("a pixel has no dB value where I = 0 or NaN at some frame; after a
 
 #: Decades the largest intensity of the data must keep above the smallest normal number of its data type:
 #: speckle falls this far below its peak in fewer than 1 sample in 10¹⁴ (as
-#: :data:`torchdoct.sim.simulate.FLOAT32_INTENSITY_MARGIN`).
+#: :data:`torchdoct.sim.simulate.INTENSITY_MARGIN`).
 INTENSITY_MARGIN = 1e14
 
 

@@ -456,9 +456,13 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
                                        entry_capacity=capacity(flux * T) if moving else 0))
         elif p.max_speed_um_per_s == 0:
             D = p.diffusion_um2_per_s
-            mean_b2 = sum(q.density_per_um3 * q.reflectivity**2 for q in scene.populations)
-            w_int = rho * p.reflectivity**4 / mean_b2**2
-            w_field = rho * p.reflectivity**2 / mean_b2
+            # the weights are scale-free: reflectivities divided by the power of two just above the largest (exact,
+            # so the weights are those of the unscaled ones), so that 1e-160 neither underflows nor divides by 0
+            unit = 2.0 ** math.frexp(max(q.reflectivity for q in scene.populations))[1]
+            b = p.reflectivity / unit
+            mean_b2 = sum(q.density_per_um3 * (q.reflectivity / unit) ** 2 for q in scene.populations)
+            w_int = rho * b**4 / mean_b2**2
+            w_field = rho * b**2 / mean_b2
             optics = [(amplitude_sigma_lateral_um(s.lateral_resolution_um), amplitude_sigma_axial_um(s.axial_resolution_um),
                        2.0 * wavenumber_per_um(s.wavelength_um, s.refractive_index))
                       + (() if s.lateral_resolution_y_um is None else (amplitude_sigma_lateral_um(s.lateral_resolution_y_um),))

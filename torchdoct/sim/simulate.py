@@ -104,52 +104,52 @@ def _simulate_chunk(scene: Scene, plan: Plan, blocks: list[int], seed: int, dtyp
     return total.contiguous()
 
 
-#: Decades of intensity kept between a mean intensity and float32's limits: a speckle intensity falls this
-#: far below its mean in fewer than 1 sample in 10¹⁴, so no sample of any run underflows or is subnormal.
-FLOAT32_INTENSITY_MARGIN = 1e14
-#: Float32 spacings of the scatterer positions a motion must move per frame: below, the change of every
-#: phase from frame to frame is within a few roundings of the phase itself, and LIV and OCDS are noise.
-MIN_FLOAT32_SPACINGS_PER_FRAME = 10.0
+#: Decades of intensity kept between a mean intensity and its data type's limits: a speckle intensity falls
+#: this far below its mean in fewer than 1 sample in 10¹⁴, so no sample of any run underflows or is subnormal.
+INTENSITY_MARGIN = 1e14
+#: Spacings of the data type at the scatterer positions a motion must move per frame: below, the change of
+#: every phase from frame to frame is within a few roundings of the phase itself, and LIV and OCDS are noise.
+MIN_SPACINGS_PER_FRAME = 10.0
 
 
-def check_float32_precision(scene: Scene, plan: Plan) -> None:
-    """Refuse (``ValueError`` naming the field and the fix) a float32 simulation whose numbers float32 cannot
-    hold: a system's mean intensity (:attr:`SystemPlan.mean_intensity`) within
-    :data:`FLOAT32_INTENSITY_MARGIN` of float32's smallest or largest normal number, or a motion that moves
-    less than :data:`MIN_FLOAT32_SPACINGS_PER_FRAME` float32 spacings of the positions (at the domain's
-    half-width) over the shortest frame step while nothing else changes the signal (no motion that moves more,
-    no noise: those swamp its rounding). LIV and OCDS do not depend on the intensity scale; float64 holds
-    both."""
-    fix = "simulate in float64 (--dtype float64, or dtype='float64')"
-    info = torch.finfo(torch.float32)
-    lo, hi = info.tiny * FLOAT32_INTENSITY_MARGIN, info.max / FLOAT32_INTENSITY_MARGIN
+def check_precision(scene: Scene, plan: Plan, dtype: torch.dtype) -> None:
+    """Refuse (``ValueError`` naming the field and the fix) a simulation whose numbers ``dtype`` cannot hold:
+    a system's mean intensity (:attr:`SystemPlan.mean_intensity`) within :data:`INTENSITY_MARGIN` of the
+    type's smallest or largest normal number, or a motion that moves less than :data:`MIN_SPACINGS_PER_FRAME`
+    spacings of the type at the positions (the domain's half-width) over the shortest frame step while
+    nothing else changes the signal (no motion that moves more, no noise: those swamp its rounding). LIV
+    and OCDS do not depend on the intensity scale; float64 holds what float32 cannot."""
+    name = "float32" if dtype == torch.float32 else "float64"
+    wider = "simulate in float64 (--dtype float64, or dtype='float64'), or " if dtype == torch.float32 else ""
+    info = torch.finfo(dtype)
+    lo, hi = info.tiny * INTENSITY_MARGIN, info.max / INTENSITY_MARGIN
     refl = ", ".join(f"population[{i}].reflectivity = {p.reflectivity:g}" for i, p in enumerate(scene.populations))
     for sp in plan.systems:
         if not lo <= sp.mean_intensity <= hi:
             raise ValueError(f"system {sp.name!r}: the mean intensity is {sp.mean_intensity:.3g} ({refl}), outside "
-                             f"what float32 computes without underflow or overflow ({lo:.3g} to {hi:.3g}); LIV and "
-                             "OCDS do not depend on the intensity scale: give the reflectivities relative to the "
-                             f"brightest scatterer (the largest 1), or {fix}")
+                             f"what {name} computes without underflow or overflow ({lo:.3g} to {hi:.3g}); LIV and "
+                             f"OCDS do not depend on the intensity scale: {wider}give the reflectivities relative to "
+                             "the brightest scatterer (the largest 1)")
     t = scene.protocol.times_s
     step = min(b - a for a, b in zip(t, t[1:]))
     top = max(plan.domain_half_widths_um)
-    spacing = top * info.eps  # float32's spacing at the largest position
+    spacing = top * info.eps  # the type's spacing at the largest position
     slow, resolved = [], False
     for i, pop in enumerate(scene.populations):
         for j, motion in enumerate(pop.motion):
             speed = getattr(motion, "speed_um_per_s", None)
             moved = speed * step if speed is not None else (2.0 * motion.diffusion_um2_per_s * step) ** 0.5
             key = "speed_um_per_s" if speed is not None else "diffusion_um2_per_s"
-            if moved >= MIN_FLOAT32_SPACINGS_PER_FRAME * spacing:
+            if moved >= MIN_SPACINGS_PER_FRAME * spacing:
                 resolved = True
             elif moved > 0:
                 slow.append((f"population[{i}].motion[{j}].{key}", moved))
     if slow and not resolved and not plan.has_noise:  # else the other changes swamp its rounding
         key, moved = slow[0]
         raise ValueError(f"{key}: moves {moved:.3g} µm per frame step ({step:g} s), less than "
-                         f"{MIN_FLOAT32_SPACINGS_PER_FRAME:g} float32 spacings of the scatterer positions ({spacing:.3g} µm "
+                         f"{MIN_SPACINGS_PER_FRAME:g} {name} spacings of the scatterer positions ({spacing:.3g} µm "
                          f"at {top:.3g} µm), and nothing else in the scene (another motion, noise) changes the signal: "
-                         f"in float32 its LIV and OCDS would be rounding noise; {fix}, or leave the motion out (at this "
+                         f"in {name} its LIV and OCDS would be rounding noise; {wider}leave the motion out (at this "
                          "speed it is static)")
 
 
@@ -201,8 +201,7 @@ def simulate(
     if truncation is not None and truncation not in TRUNCATION_MODES:
         raise ValueError(f"truncation must be one of {TRUNCATION_MODES}; got {truncation!r}")
     plan = make_plan(scene, truncation_tolerance=truncation_tolerance, truncation=truncation)
-    if dtype == torch.float32:
-        check_float32_precision(scene, plan)
+    check_precision(scene, plan, dtype)
     n_blocks = -(-trials // BLOCK_TRIALS)
     # keep a chunk's largest working tensors near 8M elements, and give every thread a chunk; refused
     # before any work when the chunks in flight and the output would not fit (torchdoct.runtime.resources)
