@@ -134,3 +134,20 @@ def test_maps_of_a_field_whose_intensity_underflows_name_the_cause_and_complex12
         assert main(["maps", str(path), "--metrics", "liv", "--no-progress", "--out", str(tmp_path / f"{name}-m.npz")]) == 0
     ref, got = read_maps(tmp_path / "ref-m.npz"), read_maps(tmp_path / "tiny128-m.npz")
     np.testing.assert_allclose(got.maps, ref.maps, rtol=1e-4, atol=1e-4)
+
+
+def test_render_of_a_phantom_whose_image_would_underflow_float32_is_refused_naming_the_file(tmp_path, capsys):
+    import re
+
+    from _refusal import refused
+
+    from torchdoct.files import shipped_files
+
+    text = shipped_files("torchdoct", "data/phantoms")["spheroid"].read_text()
+    text = re.sub(r"reflectivity = [0-9.]+", "reflectivity = 1e-30", text)
+    text = re.sub(r"density_per_um3 = ([0-9.e-]+)\n(?!reflectivity)", r"density_per_um3 = \1\nreflectivity = 1e-30\n", text)
+    path = tmp_path / "dim.toml"
+    path.write_text(text)
+    refused(capsys, tmp_path, ["render", str(path), "--grid", "16x16", "--pitch-um", "2", "--no-progress",
+                               "--out", str(tmp_path / "r.npz")], "dim.toml", "reflectivity = 1e-30", "float32",
+            "--dtype float64")

@@ -96,9 +96,12 @@ def _render(args) -> int:
         print(f"{len(outs)} systems: one file per system, {Path(args.out).stem}-SYSTEM{Path(args.out).suffix} "
               f"({', '.join(p.name for p in outs.values())}), not {Path(args.out).name}; --system NAME renders one "
               f"system into {Path(args.out).name}", flush=True)
-    res = render(ph, systems=names, seed=args.seed, dtype=args.dtype, device=args.device,
-                 truncation_tolerance=args.tolerance, progress=not args.no_progress,
-                 max_scatterers=args.max_scatterers)
+    try:
+        res = render(ph, systems=names, seed=args.seed, dtype=args.dtype, device=args.device,
+                     truncation_tolerance=args.tolerance, progress=not args.no_progress,
+                     max_scatterers=args.max_scatterers)
+    except ValueError as err:  # what the phantom asks that the run cannot hold: named with its file
+        raise ValueError(f"{args.phantom}: {err}") from None
     print(f"rendered {ph.name!r}: {res.phantom.grid.axes} {tuple(res.data.shape[1:])}, "
           f"{len(names)} system(s), seed {res.seed}, {res.elapsed_s:.2f} s")
     print("stages: " + "; ".join(res.work["stages"]))

@@ -64,9 +64,12 @@ def _simulate(args) -> int:
 
     out = check_out(args.out, args.force, ".npz")
     scene = config.load_scene(args.scene)
-    result = simulate(scene, trials=args.trials, seed=args.seed, dtype=args.dtype,
-                      device=args.device, truncation_tolerance=args.tolerance,
-                      progress=not args.no_progress)
+    try:
+        result = simulate(scene, trials=args.trials, seed=args.seed, dtype=args.dtype,
+                          device=args.device, truncation_tolerance=args.tolerance,
+                          progress=not args.no_progress)
+    except ValueError as err:  # what the scene asks that the run cannot hold: named with its file
+        raise ValueError(f"{args.scene}: {err}") from None
     metrics = result.metrics()
     summary = summarize(metrics, result.system_names)
     if args.json:

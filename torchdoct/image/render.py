@@ -372,6 +372,19 @@ def _pixel_labels(phantom: Phantom) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 @one_torch_thread
+def _check_intensity_scale(scene: Any, names: Sequence[str], dtype: torch.dtype) -> None:
+    """The brightest population's mean intensity per system within what ``dtype`` holds
+    (:func:`torchdoct.sim.simulate.check_intensity_scale`): else the image would be zeros."""
+    from ..conventions import mean_intensity
+    from ..sim.simulate import check_intensity_scale
+
+    brightest = {s.name: max(mean_intensity(p.density_per_um3, s.lateral_resolution_um, s.axial_resolution_um,
+                                            p.reflectivity, lateral_resolution_y_um=s.lateral_resolution_y_um)
+                             for p in scene.populations)
+                 for s in scene.systems if s.name in names}
+    check_intensity_scale(scene, brightest, dtype)
+
+
 def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed: int | None = None,
            dtype: str | torch.dtype | None = None, device: str | torch.device | None = None,
            truncation_tolerance: float | None = None, threads: int | None = None,
@@ -404,6 +417,7 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
     for nm in names:
         if nm not in all_names:
             raise ValueError(f"system {nm!r} is not in the phantom; its systems are {all_names}")
+    _check_intensity_scale(scene, names, dtype)
     optics = _optics(phantom, names, tol, sim.truncation == "taper")
     half = tuple(max(o.half[a] for o in optics) for a in range(3))
     grid = phantom.grid

@@ -112,6 +112,23 @@ INTENSITY_MARGIN = 1e14
 MIN_SPACINGS_PER_FRAME = 10.0
 
 
+def check_intensity_scale(scene: Scene, mean_intensity: dict[str, float], dtype: torch.dtype) -> None:
+    """Refuse (``ValueError`` naming the reflectivities and the fix) a system whose mean intensity
+    (``mean_intensity[name]``; for an image, its brightest population's) lies within :data:`INTENSITY_MARGIN`
+    of the smallest or largest normal number of ``dtype``."""
+    name = "float32" if dtype == torch.float32 else "float64"
+    wider = "use float64 (--dtype float64, or dtype='float64'), or " if dtype == torch.float32 else ""
+    info = torch.finfo(dtype)
+    lo, hi = info.tiny * INTENSITY_MARGIN, info.max / INTENSITY_MARGIN
+    refl = ", ".join(f"population[{i}].reflectivity = {p.reflectivity:g}" for i, p in enumerate(scene.populations))
+    for system, value in mean_intensity.items():
+        if not lo <= value <= hi:
+            raise ValueError(f"system {system!r}: the mean intensity is {value:.3g} ({refl}), outside what {name} "
+                             f"computes without underflow or overflow ({lo:.3g} to {hi:.3g}); LIV and OCDS do not "
+                             f"depend on the intensity scale: {wider}give the reflectivities relative to the brightest "
+                             "scatterer (the largest 1)")
+
+
 def check_precision(scene: Scene, plan: Plan, dtype: torch.dtype) -> None:
     """Refuse (``ValueError`` naming the field and the fix) a simulation whose numbers ``dtype`` cannot hold:
     a system's mean intensity (:attr:`SystemPlan.mean_intensity`) within :data:`INTENSITY_MARGIN` of the
@@ -122,14 +139,7 @@ def check_precision(scene: Scene, plan: Plan, dtype: torch.dtype) -> None:
     name = "float32" if dtype == torch.float32 else "float64"
     wider = "simulate in float64 (--dtype float64, or dtype='float64'), or " if dtype == torch.float32 else ""
     info = torch.finfo(dtype)
-    lo, hi = info.tiny * INTENSITY_MARGIN, info.max / INTENSITY_MARGIN
-    refl = ", ".join(f"population[{i}].reflectivity = {p.reflectivity:g}" for i, p in enumerate(scene.populations))
-    for sp in plan.systems:
-        if not lo <= sp.mean_intensity <= hi:
-            raise ValueError(f"system {sp.name!r}: the mean intensity is {sp.mean_intensity:.3g} ({refl}), outside "
-                             f"what {name} computes without underflow or overflow ({lo:.3g} to {hi:.3g}); LIV and "
-                             f"OCDS do not depend on the intensity scale: {wider}give the reflectivities relative to "
-                             "the brightest scatterer (the largest 1)")
+    check_intensity_scale(scene, {sp.name: sp.mean_intensity for sp in plan.systems}, dtype)
     t = scene.protocol.times_s
     step = min(b - a for a, b in zip(t, t[1:]))
     top = max(plan.domain_half_widths_um)
