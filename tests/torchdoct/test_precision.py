@@ -151,3 +151,15 @@ def test_render_of_a_phantom_whose_image_would_underflow_float32_is_refused_nami
     refused(capsys, tmp_path, ["render", str(path), "--grid", "16x16", "--pitch-um", "2", "--no-progress",
                                "--out", str(tmp_path / "r.npz")], "dim.toml", "reflectivity = 1e-30", "float32",
             "--dtype float64")
+
+
+def test_a_sweep_with_a_cell_below_float32_resolution_is_refused_before_any_cell_runs(tmp_path, capsys):
+    from _refusal import refused
+    from _scenes import DIFFUSION_SWEEP_TOML
+
+    text = DIFFUSION_SWEEP_TOML.format(trials=8).replace("start = 0.001", "start = 1e-14")
+    assert "1e-14" in text
+    path = tmp_path / "slow.toml"
+    path.write_text(text)
+    refused(capsys, tmp_path, ["sweep", str(path), "--out", str(tmp_path / "out"), "--no-progress"], "slow.toml",
+            "cell 0", "diffusion_um2_per_s", "float32 spacings", "--dtype float64")

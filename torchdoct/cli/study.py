@@ -68,9 +68,12 @@ def _sweep(args) -> int:
     check_cache_dir(_cache(args))  # a file there: refused before the output folder is made
     from ..study.sweep import check_sweep_resources
 
-    check_sweep_resources([sweep], trials=args.trials, seed=args.seed, dtype=args.dtype, tolerance=args.tolerance,
-                          cache_dir=_cache(args), scheduler=args.scheduler, batch_cells=args.batch_cells,
-                          workers=workers(args))  # memory and disk, before the output folder is made
+    try:
+        check_sweep_resources([sweep], trials=args.trials, seed=args.seed, dtype=args.dtype, tolerance=args.tolerance,
+                              cache_dir=_cache(args), scheduler=args.scheduler, batch_cells=args.batch_cells,
+                              workers=workers(args))  # precision, memory and disk, before the output folder is made
+    except ValueError as err:
+        raise ValueError(f"{args.scene}: {err}") from None
     prepare_out_dir(args.out, sweep_outputs(args.out), args.force)
     res = run_sweep(sweep, trials=args.trials, seed=args.seed, dtype=args.dtype, tolerance=args.tolerance,
                     cache_dir=_cache(args), scheduler=args.scheduler, batch_cells=args.batch_cells,

@@ -566,13 +566,35 @@ def _decode(job: CellJob, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -
 
 
 @functools.lru_cache(maxsize=4096)
-def _cell_bytes(scene: Scene, trials: int, threads: int, tolerance: float, dtype_bytes: int) -> int:
-    """Peak memory of one cell's simulation (:func:`torchdoct.sim.memory.simulation_bytes`); remembered, so a
-    command's check before its output folder and :func:`run_sweeps`' own plan each cell once."""
-    from ..sim.memory import simulation_bytes
+def _cell_plan(scene: Scene, tolerance: float) -> Any:
+    """One cell's plan (:func:`torchdoct.sim.plan.make_plan`); remembered, so a command's check before its
+    output folder and :func:`run_sweeps`' own plan each cell once."""
     from ..sim.plan import make_plan
 
-    plan = make_plan(scene, truncation_tolerance=tolerance)
+    return make_plan(scene, truncation_tolerance=tolerance)
+
+
+def _check_cell_precision(job: tuple) -> None:
+    """The cell's numbers within what its dtype holds (:func:`torchdoct.sim.simulate.check_precision`), else a
+    ``ValueError`` naming the sweep and the cell, before any cell runs."""
+    import torch
+
+    from ..sim.simulate import check_precision
+
+    sw, cell, _, _, dt, tol, _ = job
+    try:
+        check_precision(cell.scene, _cell_plan(cell.scene, tol), getattr(torch, dt))
+    except ValueError as err:
+        desc = ", ".join(f"{p} = {v!r}" for p, v in cell.assignments)
+        raise ValueError(f"sweep {sw.name!r}, cell {cell.index} ({desc}): {err}") from None
+
+
+@functools.lru_cache(maxsize=4096)
+def _cell_bytes(scene: Scene, trials: int, threads: int, tolerance: float, dtype_bytes: int) -> int:
+    """Peak memory of one cell's simulation (:func:`torchdoct.sim.memory.simulation_bytes`); remembered."""
+    from ..sim.memory import simulation_bytes
+
+    plan = _cell_plan(scene, tolerance)
     return simulation_bytes(plan, trials=trials, n_systems=len(scene.systems), n_frames=scene.protocol.n_frames,
                             threads=threads, dtype_bytes=dtype_bytes)[0]
 
@@ -591,6 +613,7 @@ def _check_resources(todo: list[tuple], *, scheduler: str | None, workers: int, 
     largest, where = 0, todo[0]
     results = 0
     for job in todo:
+        _check_cell_precision(job)
         sw, cell, s, n, dt, tol, key = job
         results += n * len(cell.scene.systems) * (len(SCALAR_METRICS) + 1) * 8
         if scheduler is None:  # on a cluster the cells' memory is the workers'
