@@ -233,7 +233,8 @@ def check_hdf5_local(fh: Any, path: Path, allow_external: bool = False) -> None:
 
     def walk(group: Any, prefix: str, depth: int) -> None:
         if depth > 64:
-            raise ValueError(f"{path.name}: HDF5 groups nested over 64 levels at {prefix or '/'}; refused")
+            raise ValueError(f"{path.name}: HDF5 groups nested over 64 levels at {prefix[:80] or '/'}…; copy the dataset "
+                             "into a file of its own (h5py: dst['data'] = src['data'][()])")
         for name in group.keys():
             full = f"{prefix}/{name}"
             link = group.get(name, getlink=True)
