@@ -251,6 +251,9 @@ def n_eff(density_per_um3: float, lateral_resolution_um: float, axial_resolution
 
 def truncation_radius_factor(tolerance: float) -> float:
     """``c = √(2·ln(1/tolerance))``: the amplitude PSF ``exp(-u²/2)`` drops below ``tolerance`` at ``u = c``."""
+    if isinstance(tolerance, bool) or (not isinstance(tolerance, (int, float)) and not hasattr(tolerance, "__float__")):
+        raise TypeError(f"truncation tolerance must be a number in (0, 1); got {type(tolerance).__name__} "
+                        f"{str(tolerance)[:40]!r}")
     if not (0.0 < tolerance < 1.0):
         raise ValueError(f"truncation tolerance must be in (0, 1); got {tolerance!r}")
     return math.sqrt(2.0 * math.log(1.0 / tolerance))

@@ -87,3 +87,29 @@ def test_liv_of_one_frame_or_a_mask_is_refused():
         td.liv(torch.ones(5, 1))
     with pytest.raises(TypeError, match=r"liv\(intensity\).*bool"):
         td.liv(torch.ones(5, 8, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("call,what", [(td.load_scene, "td.load_scene"), (td.load_phantom, "td.load_phantom")])
+@pytest.mark.parametrize("value", [42, None, ""])
+def test_a_loader_given_no_path_says_what_it_takes(call, what, value):
+    with pytest.raises(TypeError, match=rf"{what}\(path\) takes the path of a .* file or the name of a shipped"):
+        call(value)
+
+
+def test_a_wrong_device_tolerance_or_system_list_is_named(small_scene):
+    with pytest.raises(ValueError, match="device 'gpu' is not a torch device name"):
+        td.simulate(small_scene, trials=4, device="gpu")
+    with pytest.raises(TypeError, match="truncation tolerance must be a number in"):
+        td.simulate(small_scene, trials=4, truncation_tolerance="1e-3")
+    with pytest.raises(TypeError, match="systems must be a system name or a list"):
+        td.render(td.load_phantom("spheroid"), systems=3)
+
+
+def test_ocds_takes_frame_times_in_order_from_any_sequence_but_not_from_a_mapping():
+    x = torch.rand(4, 8, generator=torch.Generator().manual_seed(0), dtype=torch.float64) + 0.5
+    times = [0.2 * i for i in range(8)]
+    want = td.ocds(x, times, delay_range_s=(0.2, 0.6))
+    for given in (tuple(times), (t for t in times), np.asarray(times), torch.tensor(times, dtype=torch.float64)):
+        torch.testing.assert_close(td.ocds(x, given, delay_range_s=(0.2, 0.6)), want, rtol=0, atol=0)
+    with pytest.raises(TypeError, match=r"ocds\(frame_times_s\).*got dict"):
+        td.ocds(x, dict(enumerate(times)), delay_range_s=(0.2, 0.6))

@@ -456,6 +456,9 @@ def load_phantom(path: str | Path, *, grid: dict[str, Any] | None = None) -> Pha
 
     ``grid`` (the keys of ``[grid]``) replaces the file's grid, or supplies one to a scene file.
     """
+    from ..sim.config import check_path_argument
+
+    check_path_argument("td.load_phantom(path)", path, "phantom")
     shipped = shipped_phantoms()
     scenes = shipped_scenes()
     p = file_or_shipped(path, {**scenes, **shipped}, "phantom file")

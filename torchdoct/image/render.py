@@ -410,9 +410,13 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
     dtype = getattr(torch, dtype) if isinstance(dtype, str) else (dtype or getattr(torch, sim.dtype))
     if dtype not in (torch.float32, torch.float64):
         raise ValueError(f"dtype must be float32 or float64; got {dtype}")
-    device = torch.device(device or "cpu")
+    from ..runtime.device import check_device
+
+    device = torch.device(check_device(None if device is None else str(device), "device") or "cpu")
     threads = resolve_threads(threads)
     all_names = [s.name for s in scene.systems]
+    if systems is not None and not isinstance(systems, (str, list, tuple)):
+        raise TypeError(f"systems must be a system name or a list of them; got {type(systems).__name__} {systems!r}")
     names = all_names if systems is None else ([systems] if isinstance(systems, str) else list(systems))
     for nm in names:
         if nm not in all_names:

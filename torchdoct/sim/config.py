@@ -617,6 +617,14 @@ def check_scene_argument(func: str, value: Any, cls: type | None = None, loader:
     raise TypeError(f"{func} takes a {cls.__name__} (from {loader}); got {type(value).__name__}")
 
 
+def check_path_argument(func: str, value: Any, what: str) -> None:
+    """A ``TypeError`` naming ``func`` when ``value`` is neither a path (``str``, ``os.PathLike``) nor a name:
+    ``td.load_scene(42)`` says what it takes instead of an internal message."""
+    if not isinstance(value, (str, os.PathLike)) or (isinstance(value, str) and not value.strip()):
+        raise TypeError(f"{func} takes the path of a {what} file or the name of a shipped {what}; got "
+                        f"{type(value).__name__} {str(value)[:40]!r}")
+
+
 def check_count(path: str, n: int) -> None:
     """Refuse more than :data:`MAX_TABLES` tables of one kind (``path``: ``system``, ``population[0].motion``,
     ``region``, ...) before any of them is read or validated."""
@@ -733,6 +741,7 @@ def load_scene(path: str | Path) -> Scene:
     """Read and validate a TOML scene file, or a shipped scene by name (see :func:`torchdoct.sim.scenes`)."""
     from .scenes import resolve_scene_path
 
+    check_path_argument("td.load_scene(path)", path, "scene")
     p = resolve_scene_path(path)
     data = read_toml(p)
     try:

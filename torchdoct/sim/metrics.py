@@ -189,10 +189,14 @@ def _check_delay_range(func: str, delay_range_s: Any) -> tuple[float, float]:
     return lo, hi
 
 
-def _check_frame_times(func: str, frame_times_s: Any, n_frames: int) -> None:
-    """Refuse, naming the argument, frame times that are not finite numbers, one per frame, strictly
-    increasing."""
+def _check_frame_times(func: str, frame_times_s: Any, n_frames: int) -> list[float]:
+    """The frame times as floats (s); refuse, naming the argument, frame times that are not finite numbers
+    in order (a dict or set is not), one per frame, strictly increasing."""
+    from collections.abc import Mapping, Set
+
     try:
+        if isinstance(frame_times_s, (Mapping, Set, str, bytes)):  # no order, or not numbers
+            raise TypeError(type(frame_times_s).__name__)
         t = [_time_value(v) for v in frame_times_s]
     except (TypeError, ValueError):
         raise TypeError(f"{func}(frame_times_s): frame_times_s must be a sequence of numbers (s); got "
@@ -210,6 +214,7 @@ def _check_frame_times(func: str, frame_times_s: Any, n_frames: int) -> None:
     if back is not None:
         raise ValueError(f"{func}(frame_times_s): frame times must increase strictly; frame_times_s[{back}] = "
                          f"{t[back]} s is not after frame_times_s[{back - 1}] = {t[back - 1]} s")
+    return t
 
 
 def uniform_frame_interval_s(frame_times_s: Sequence[float]) -> float | None:
@@ -231,7 +236,7 @@ def ocds(intensity: torch.Tensor, frame_times_s: Sequence[float], *,
     from .config import check_ocds_pairs
 
     _check_intensity("ocds", intensity, min_frames=3)
-    _check_frame_times("ocds", frame_times_s, intensity.shape[-1])
+    frame_times_s = _check_frame_times("ocds", frame_times_s, intensity.shape[-1])  # a list of floats
     if scale == "db":
         s = to_db(intensity)
     elif scale == "linear":

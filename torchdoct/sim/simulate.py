@@ -206,7 +206,9 @@ def simulate(
         dtype = getattr(torch, dtype)
     if dtype not in (torch.float32, torch.float64):
         raise ValueError(f"dtype must be torch.float32 or torch.float64; got {dtype}")
-    device = torch.device(device or "cpu")
+    from ..runtime.device import check_device
+
+    device = torch.device(check_device(None if device is None else str(device), "device") or "cpu")
     threads = resolve_threads(threads)
     if truncation is not None and truncation not in TRUNCATION_MODES:
         raise ValueError(f"truncation must be one of {TRUNCATION_MODES}; got {truncation!r}")
