@@ -91,3 +91,27 @@ def test_one_pair_has_nothing_to_correlate():
     _, rho_a = lag_correlations(a, [0.0, DT])
     _, rho_b = lag_correlations(b, [0.0, DT])
     assert rho_a.item() == rho_b.item() == 1.0
+
+
+@pytest.mark.parametrize("n_frames,max_window,accepted", [(3, None, False), (4, None, True), (32, 0.3, False),
+                                                           (32, 0.62, True)])
+def test_aliv_needs_more_time_windows_than_the_two_parameters_of_its_fit(tmp_path, capsys, seq, n_frames, max_window,
+                                                                         accepted):
+    import json
+
+    from torchdoct.cli import main
+
+    data = np.load(seq)
+    meta = json.loads(seq.with_suffix(".json").read_text())
+    idx = np.arange(n_frames) % data.shape[0]
+    path = tmp_path / "s.npy"
+    np.save(path, data[idx])
+    meta["frame_times_s"] = _times(n_frames)
+    path.with_suffix(".json").write_text(json.dumps(meta))
+    argv = ["maps", str(path), "--metrics", "liv,aliv", "--no-progress", "--out", str(tmp_path / "out" / "m.npz")]
+    argv += [] if max_window is None else ["--aliv-max-window-s", str(max_window)]
+    (tmp_path / "out").mkdir()
+    if accepted:
+        assert main(argv) == 0
+    else:
+        refused(capsys, tmp_path / "out", argv, "s.npy", "at least 3 time windows", "--metrics")

@@ -165,7 +165,7 @@ def test_sweep_refused_before_any_cell(tiny_memory, monkeypatch, capsys, tmp_pat
 
     assert main(["sweep", str(scene), "--out", str(out), "--trials", "64", "--workers", "2"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: sweep 'tiny' needs about") and "\n" not in err
+    assert err.startswith(f"error: {scene}: sweep 'tiny' needs about") and "\n" not in err  # names the file
     for name in ("largest cell", "population.0.motion.0.diffusion_um2_per_s", "× 2 cell(s) side by side",
                  "GB are available", "--trials, now 64", "--workers, now 2", "--tolerance"):
         assert name in err, (name, err)

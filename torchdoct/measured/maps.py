@@ -271,6 +271,28 @@ class MapsRequest:
         return t.resolved(self.system) if self.lateral_um is not None else (None, None)
 
 
+#: Time windows the saturation fit of aLIV and Swiftness needs: more than its two parameters, so that it is
+#: a fit (two windows would give ``a`` and ``τ`` exactly through any two values, noise and all).
+MIN_ALIV_WINDOWS = 3
+
+
+def _check_aliv_windows(times: _Seq[float], max_window_s: float | None, src: str) -> None:
+    """Refuse aLIV/Swiftness over fewer than :data:`MIN_ALIV_WINDOWS` distinct time windows, naming the file,
+    the count and the fix."""
+    from ..conventions import delay_groups, delay_range_tolerance_s
+
+    spans = [d for d, _ in delay_groups(times)]
+    if max_window_s is not None:
+        tol = delay_range_tolerance_s(times, (0.0, max_window_s))
+        spans = [d for d in spans if d <= max_window_s + tol]
+    if len(spans) < MIN_ALIV_WINDOWS:
+        limit = "" if max_window_s is None else f" up to --aliv-max-window-s {max_window_s:g} s"
+        raise ValueError(f"{src}: aLIV and Swiftness fit a·(1 − exp(−T/τ)) to the LIV curve, two parameters, so they "
+                         f"need at least {MIN_ALIV_WINDOWS} time windows; the {len(times)} frames give {len(spans)}"
+                         f"{limit}; record more frames{', raise --aliv-max-window-s' if limit else ''}, or leave aliv "
+                         "and swiftness out of --metrics")
+
+
 def check_maps_request(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget] = ("original",), *,
                        metrics: Iterable[str] = ("liv", "ocds", "mean_db"),
                        signature: bool | _Seq[str] | None = None,
@@ -278,7 +300,8 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
                        ocds_scale: str = "db", ocds_estimator: str = "pearson", edge_mode: str = "reflect",
                        normalization: str = "power", slab_elements: int = 1 << 23,
                        speckle: bool | _Seq[str] | None = None, speckle_window: int = SPECKLE_WINDOW,
-                       doppler: bool | _Seq[int] | None = None) -> MapsRequest:
+                       doppler: bool | _Seq[int] | None = None,
+                       aliv_max_window_s: float | None = None) -> MapsRequest:
     """Stage 1 of :func:`compute_maps`, before any work: the metric and feature names, the options, the
     resources (:func:`torchdoct.runtime.resources.check_maps`), the frames, the optics that each resolution target
     needs and the pixel grid that must hold it, intensity-only data against a resolution change, and the
@@ -348,6 +371,8 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
         raise ValueError(f"{src}: the Doppler channels are computed at the original resolution; add --resolution "
                          "original")
     times = seq.frame_times_s
+    if "aliv" in wanted or "swiftness" in wanted:
+        _check_aliv_windows(times, aliv_max_window_s, src)
     if "ocds" in wanted:
         lo, hi = ocds_delay_range_s
         if not (0 < lo < hi):
@@ -808,7 +833,7 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
                              ocds_delay_range_s=ocds_delay_range_s, ocds_scale=ocds_scale,
                              ocds_estimator=ocds_estimator, edge_mode=edge_mode, normalization=normalization,
                              slab_elements=slab_elements, speckle=speckle, speckle_window=speckle_window,
-                             doppler=doppler)
+                             doppler=doppler, aliv_max_window_s=aliv_max_window_s)
     dev = torch.device(device) if device is not None else torch.device("cpu")
     bulk_phase, bulk = _bulk_phase_factor(seq, req, bulk_phase, slab_elements=slab_elements, device=dev,
                                           progress=progress)
