@@ -99,7 +99,14 @@ def _read_classified(out_dir: Path) -> tuple[np.ndarray, dict[str, Any], np.ndar
         raise ValueError(f"{out_dir}: unreadable doct-classify output ({exc}); run doct-classify again") from None
     mag = None
     if (out_dir / "magnitude.tif").is_file():
-        mag = tifffile.imread(out_dir / "magnitude.tif").astype(np.float64)
+        from torchdoct.measured.imagej import restore_channels
+
+        from .outputs import MAGNITUDE_CHANNELS
+
+        with tifffile.TiffFile(out_dir / "magnitude.tif") as tf:
+            mag = tf.asarray().astype(np.float64)
+            if classes.ndim == 3:  # a volume's ImageJ pages: channel fastest, back to [C, Y, Z, X]
+                mag = restore_channels(mag, len(MAGNITUDE_CHANNELS), tf)
     return classes, legend, mag
 
 
