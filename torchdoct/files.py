@@ -27,7 +27,8 @@ from typing import Any
 
 __all__ = ["check_out", "atomic_write", "output_set", "OutputSet", "safe_name", "check_nesting", "MAX_NESTING",
            "shipped_files", "file_or_shipped", "NotRegularFileError", "check_regular_file", "open_regular",
-           "read_capped", "MAX_TEXT_BYTES", "WriteConflictError", "check_name_lengths", "toml_loads"]
+           "read_capped", "MAX_TEXT_BYTES", "WriteConflictError", "check_name_lengths", "toml_loads",
+           "check_folder_files"]
 
 #: Deepest nesting of arrays/tables (TOML) or arrays/objects (JSON) that any input file may have: the
 #: project's own files need 5 at most; far deeper ones would exhaust the parser's recursion.
@@ -80,6 +81,15 @@ def check_regular_file(path: str | os.PathLike, what: str = "input file") -> Pat
     if not stat.S_ISREG(st.st_mode):
         raise _not_regular(what, p, st.st_mode)
     return p
+
+
+def check_folder_files(path: str | os.PathLike, what: str = "folder") -> None:
+    """Every entry under the folder ``path`` is a folder or a regular file (:func:`check_regular_file` on each
+    file, by ``stat`` alone), before a reader opens any: a FIFO or a device among a Zarr store's metadata or
+    chunks would block the read or never end."""
+    for root, _dirs, names in os.walk(path):
+        for name in names:
+            check_regular_file(Path(root) / name, f"a file of the {what} {Path(path).name}:")
 
 
 def open_regular(path: str | os.PathLike, what: str = "input file"):

@@ -130,3 +130,33 @@ def test_a_sidecar_over_the_text_cap_is_refused_naming_it(tmp_path, capsys, seq,
     monkeypatch.setattr(files, "MAX_TEXT_BYTES", len(text) - 1)
     monkeypatch.setattr(files.read_capped, "__defaults__", ("input file", len(text) - 1))
     refused(capsys, tmp_path, ["maps", str(seq), "--out", str(tmp_path / "m.npz")], "seq.json", "bytes, over")
+
+
+@pytest.mark.parametrize("role", ["sequence", "maps"])
+@pytest.mark.parametrize("kind", ["fifo", "device"])
+def test_a_special_file_inside_a_zarr_store_is_refused_before_zarr_opens_it(tmp_path, role, kind):
+    """A chunk of an OME-Zarr sequence or maps folder that is a FIFO blocked the read in zarr's own threads
+    (a signal could not end it); read in a child process, so that a regression fails instead of hanging."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("zarr")
+    from _formats import field, maps, write_ome_zarr
+
+    if role == "sequence":
+        store = write_ome_zarr(tmp_path / "seq.zarr", field(t=8, z=6, x=5))
+        code = "from torchdoct.measured.io import read_sequence as r"
+    else:
+        from torchdoct.measured.mapsfile import write_maps
+
+        store = tmp_path / "maps.zarr"
+        write_maps(store, maps(volume=False))
+        code = "from torchdoct.measured.io import read_maps as r"
+    chunk = next(p for p in sorted(store.rglob("*")) if p.is_file() and not p.name.startswith(".")
+                 and p.name != "zarr.json")
+    chunk.unlink()
+    special(chunk, kind)
+    script = f"{code}\ntry:\n    r({str(store)!r})\nexcept ValueError as e:\n    print(e)\n    raise SystemExit(2)\n"
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "is not a regular file" in proc.stdout and chunk.name in proc.stdout, proc.stdout

@@ -138,8 +138,11 @@ def read_zarr(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
     declared size is checked before the array is read, object dtypes are refused."""
     import zarr
 
+    from ..files import check_folder_files
+    from .formats.omezarr import check_chunk_files
     from .guards import check_declared_size
 
+    check_folder_files(path, "OME-Zarr maps")  # a FIFO among its files would block zarr's read
     try:
         group = zarr.open_group(str(path), mode="r")
         meta = group.attrs.get(NAMESPACE)
@@ -147,6 +150,8 @@ def read_zarr(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
     except Exception as err:
         raise ValueError(f"{path.name}: not a readable OME-Zarr maps folder ({type(err).__name__}: {err}); write it "
                          "with `torchdoct maps ... --out FILE.zarr`") from None
+    if hasattr(arr, "chunks"):
+        check_chunk_files(path / "0", arr, f"{path.name}/0")  # a truncated chunk is not decoded into numbers
     if not isinstance(meta, dict) or "channels" not in meta:
         raise ValueError(f"{path.name}: no 'torchdoct' maps metadata in the group's attributes; write it with "
                          "`torchdoct maps ... --out FILE.zarr`")

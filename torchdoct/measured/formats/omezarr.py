@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from ...files import check_folder_files
 from ..guards import check_declared_size
 from .base import LENGTH_UM, TIME_S, Loaded, to_unit
 from .lazy import LazyArray, Squeezed
@@ -61,7 +62,7 @@ def _scale(transforms: Any, n: int, kind: str, where: str) -> list[float] | None
 _ZARR_METADATA = (".zarray", ".zattrs", ".zgroup", ".zmetadata", "zarr.json")
 
 
-def _check_chunk_files(folder: Path, arr: Any, where: str) -> None:
+def check_chunk_files(folder: Path, arr: Any, where: str) -> None:
     """Refuse a store whose chunk files cannot hold their chunk, before any is decompressed: a Blosc chunk
     whose header's compressed size is not the file's (a truncated one: Blosc would decode bytes beyond it
     into numbers), an uncompressed one of another size than the chunk. Other codecs check their own
@@ -92,6 +93,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
     import zarr
 
     where = path.name
+    check_folder_files(path, "OME-Zarr store")  # a FIFO among its files would block zarr's read
     try:
         group = zarr.open_group(str(path), mode="r")
     except Exception as err:
@@ -120,7 +122,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
         raise TypeError(f"{where}/{key}: dtype {dt} is not numeric (object arrays would need unpickling); store "
                         "complex64/complex128 or float data")
     check_declared_size(f"{where}/{key}", arr.shape, dt.itemsize, streamed=True)
-    _check_chunk_files(path / key, arr, f"{where}/{key}")
+    check_chunk_files(path / key, arr, f"{where}/{key}")
     scale = _scale(datasets[0].get("coordinateTransformations"), len(names), "scale", f"{where}/{key}")
     top = _scale(ms.get("coordinateTransformations"), len(names), "scale", where)
     shift = _scale(datasets[0].get("coordinateTransformations"), len(names), "translation", f"{where}/{key}")
