@@ -1,6 +1,6 @@
 """One fuzz harness over every sequence reader (:data:`torchdoct.measured.formats.FORMATS` and the folder of
 TIFFs): a generated file, valid or damaged (truncated, garbage, sizes declared beyond the data, HDF5 link
-graphs, OME-XML sizes, sidecar values), is read by ``read_sequence`` in a child process with a time limit
+graphs, OME-XML sizes, sidecar values, a FIFO in place of the data), is read by ``read_sequence`` in a child process with a time limit
 and an address-space limit, and answered as every command answers it (``error:`` line, exit 2). The
 property: a correct result (the data as written) or exit 2 with one ``error:`` line naming the file; never
 a traceback, a hang or unbounded memory. The short profile runs in the default suite, the full one in CI
@@ -35,7 +35,7 @@ T, Z, X = 8, 6, 5
 TIME_LIMIT_S = 60
 ADDRESS_SPACE = 4 << 30
 FORMAT_NAMES = ("npy", "npz", "h5", "tif", "mat", "raw", "ome.tif", "zarr", "folder")
-MUTATIONS = ("none", "truncate", "garbage", "huge", "sidecar", "links")
+MUTATIONS = ("none", "truncate", "garbage", "huge", "sidecar", "links", "special")
 READER = """
 import sys
 import numpy as np
@@ -206,6 +206,7 @@ def test_every_reader_answers_any_file_with_its_data_or_one_error_line(tmp_path_
     d = tmp_path_factory.mktemp("case")
     a = _field(seed)
     path = _write(fmt, d, a)
+    data_name = _data_file(path).name  # before a mutation replaces it
     legal = True
     if mutation == "truncate":
         target = _data_file(path)
@@ -220,6 +221,11 @@ def test_every_reader_answers_any_file_with_its_data_or_one_error_line(tmp_path_
         legal = not _declare_huge(fmt, path, n)
     elif mutation == "sidecar":
         legal = not _bad_sidecar(path, which if which in ("strings", "digits", "beyond-float", "index") else "frames")
+    elif mutation == "special":  # the data file (a chunk, a frame) a FIFO: refused, never read (it would block)
+        target = _data_file(path)
+        target.unlink()
+        os.mkfifo(target)
+        legal = False
     elif mutation == "links" and fmt == "h5":
         legal = _links(path, which if which in ("self", "loop") else "dangling")
     out = d / "read.npy"
@@ -234,7 +240,7 @@ def test_every_reader_answers_any_file_with_its_data_or_one_error_line(tmp_path_
         return
     assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])
     assert len(err) == 1 and err[0].startswith("error: "), proc.stderr[-2000:]
-    assert any(s in err[0] for s in (path.name, path.stem, _data_file(path).name)), err[0]
+    assert any(s in err[0] for s in (path.name, path.stem, data_name)), err[0]
     assert not (legal and mutation == "none"), err[0]
 
 

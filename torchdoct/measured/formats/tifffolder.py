@@ -16,9 +16,10 @@ from typing import Any
 
 import numpy as np
 
+from ...files import check_regular_file
 from ...runtime.resources import MemoryLimitError
 from ..guards import InputRefusal, TiffDamage, check_declared_size, streaming
-from .base import Loaded, regular_file
+from .base import Loaded
 from .lazy import LazyArray
 
 SUFFIXES: tuple[str, ...] = ()  # a folder: chosen by :func:`torchdoct.measured.formats.reader_for`
@@ -46,7 +47,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
                          "(at least 2)")
     shape = dtype = None
     for f in files:  # every file's shape before any pixel is read
-        regular_file(f, "frame file")
+        check_regular_file(f, "frame file")  # the one reader-side check: a FIFO would block the read
         try:
             with TiffDamage() as damage, tifffile.TiffFile(f) as tf:
                 pages = [tuple(pg.shape) for pg in tf.pages]
