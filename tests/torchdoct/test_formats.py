@@ -329,7 +329,7 @@ def test_a_plain_file_named_zarr_is_refused_naming_the_folder_it_must_be(outdir,
 def test_fifo_in_a_tiff_folder_is_refused_at_once(outdir, capsys):
     path = F.write_tiff_folder(outdir / "fold", (np.abs(F.field(t=4)) ** 2).astype(np.float32))
     os.mkfifo(path / "frame9.tif")
-    refused(capsys, outdir, _argv(outdir, path), "frame9.tif", "special file")
+    refused(capsys, outdir, _argv(outdir, path), "fold/frame9.tif", "is not a regular file (it is a FIFO")
 
 
 def test_ome_tiff_declaring_more_planes_than_pages_is_refused(outdir, capsys):
