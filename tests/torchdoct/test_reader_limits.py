@@ -433,3 +433,45 @@ def test_unreadable_maps_tiff_is_a_system_refusal(tmp_path, capsys, monkeypatch)
 
     monkeypatch.setattr(builtins, "open", guarded)
     refused(capsys, tmp_path, ["compare", f"A={path}"], "locked.tif", "Permission denied", code=1)
+
+
+LABEL_PHANTOM = """name = "lab"
+[grid]
+kind = "bscan"
+n_x = 32
+n_z = 32
+pitch_x_um = 2.0
+pitch_z_um = 2.0
+[[system]]
+name = "s"
+wavelength_um = 0.84
+lateral_resolution_um = 4.9
+axial_resolution_um = 3.8
+[protocol]
+n_frames = 8
+frame_interval_s = 0.2048
+[[region]]
+name = "r"
+shape = "label-image"
+file = "labels.npy"
+value = 1
+density_per_um3 = 0.05
+"""
+
+
+@pytest.mark.parametrize("shape,dtype,names", [((1 << 18, 1 << 18), np.int64, ("(262144, 262144)", "does not match")),
+                                               ((32, 32), np.float64, ("float64", "not integer"))])
+def test_a_label_image_is_judged_by_its_header_before_a_byte_of_it_is_read(tmp_path, monkeypatch, shape, dtype, names):
+    import torchdoct as td
+    from torchdoct.image import phantom as phantom_module
+    from torchdoct.sim.config import SceneError
+
+    def read(*args, **kwargs):
+        raise AssertionError("the label image was read before its header was checked")
+
+    monkeypatch.setattr(phantom_module.np, "load", read)
+    (tmp_path / "labels.npy").write_bytes(_npy_bytes_declaring(shape, dtype))  # a header only: 128 bytes
+    (tmp_path / "ph.toml").write_text(LABEL_PHANTOM)
+    with pytest.raises(SceneError, match="region\\[0\\]\\.file") as info:
+        td.load_phantom(tmp_path / "ph.toml")
+    assert all(n in str(info.value) for n in names), str(info.value)

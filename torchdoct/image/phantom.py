@@ -310,18 +310,27 @@ def _load_label_image(path: str, file: str, base_dir: Path | None, grid: Grid) -
                                 f"(relative paths are taken from the phantom file's directory)") from None
     if p.suffix != ".npy":
         _fail(f"{path}.file", f"{file!r} is not a .npy file", "save the label image with numpy.save")
-    try:
-        img = np.load(p, allow_pickle=False)
+    from ..measured.guards import check_npy_size, npy_header
+
+    try:  # the header's shape and dtype before a byte of data is read (a header may declare terabytes)
+        shape, dtype = npy_header(p, f"{path}.file: label image {p.name}")
     except ValueError as err:
-        _fail(f"{path}.file", f"cannot read {file!r} without unpickling ({err})",
-              "save a plain integer array")
-    if img.dtype.kind not in "iub":
-        _fail(f"{path}.file", f"label image dtype {img.dtype} is not integer", "save integer labels")
+        _fail(f"{path}.file", str(err), "save the label image with numpy.save")
+    if dtype.hasobject:
+        _fail(f"{path}.file", f"{file!r} holds an object array, which would need unpickling; refused",
+              "save a plain integer array with numpy.save")
+    if dtype.kind not in "iub":
+        _fail(f"{path}.file", f"label image dtype {dtype} is not integer", "save integer labels")
     want = [grid.shape[-2:]] if grid.kind == "bscan" else [grid.shape[-2:], grid.shape]
-    if tuple(img.shape) not in [tuple(w) for w in want]:
-        _fail(f"{path}.file", f"label image shape {img.shape} does not match the grid "
+    if tuple(shape) not in [tuple(w) for w in want]:
+        _fail(f"{path}.file", f"label image shape {tuple(shape)} does not match the grid "
               f"({' or '.join(str(tuple(w)) for w in want)} as [Z, X] or [Y, Z, X])",
               "give one label per grid pixel")
+    try:
+        check_npy_size(p, f"{path}.file: label image ")  # within the input limit, and not truncated
+        img = np.load(p, allow_pickle=False)
+    except ValueError as err:
+        _fail(f"{path}.file", f"cannot read {file!r} ({err})", "save a plain integer array with numpy.save")
     return img
 
 

@@ -34,7 +34,7 @@ import numpy as np
 __all__ = ["TiffDamage", "check_npy_header", "refuse_object", "parse_json_object", "json_loads", "MAX_INPUT_ENV",
            "DEFAULT_MAX_INPUT_GB", "max_input_bytes", "set_max_input_gb", "check_declared_size", "check_npy_size",
            "check_npz_sizes", "check_tiff_pages", "check_hdf5_local", "check_memory_budget", "streaming_reads",
-           "streaming"]
+           "streaming", "npy_header"]
 
 MAX_INPUT_ENV = "TORCHDOCT_MAX_INPUT_GB"
 DEFAULT_MAX_INPUT_GB = 8.0
@@ -150,6 +150,14 @@ def check_memory_budget(where: str, n: int, what: str) -> None:
             else ", or free memory; if you know the memory is there, --max-input-gb GB reads it anyway")
     raise MemoryLimitError(f"{where}: not enough memory for the file: {what} ({_human(n)}) but the memory budget "
                            f"is {_human(budget.bytes)} ({budget.source}); {fix}")
+
+
+def npy_header(path: Path, where: str) -> tuple[tuple[int, ...], np.dtype]:
+    """The shape and dtype a ``.npy`` file declares, read from its header alone (the NPY magic checked first:
+    :func:`check_npy_header`), so that a caller can refuse them before a byte of data is read."""
+    check_npy_header(path)
+    with open(path, "rb") as fh:
+        return _npy_header(fh, where)
 
 
 def _npy_header(fh, where: str) -> tuple[tuple[int, ...], np.dtype]:
