@@ -60,7 +60,10 @@ def read_rendered_labels(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarra
         check_regular_file(p, "sequence file")
     except FileNotFoundError:
         raise ValueError(f"{p}: no such file; give the sequence file that `torchdoct render` wrote (.npz or .h5)") from None
+    from torchdoct.measured.guards import check_declared_size, check_npz_sizes
+
     if p.suffix == ".npz":
+        check_npz_sizes(p)  # every member's declared size before any is decompressed
         try:
             with np.load(p, allow_pickle=False) as z:
                 names = set(z.files)
@@ -73,6 +76,9 @@ def read_rendered_labels(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarra
 
         try:
             with h5py.File(p, "r") as fh:
+                for key in ("labels", "label_params"):
+                    if key in fh and hasattr(fh[key], "shape"):
+                        check_declared_size(f"{p.name}[{key}]", fh[key].shape, fh[key].dtype.itemsize, "dataset")
                 labels = fh["labels"][()] if "labels" in fh else None
                 params = fh["label_params"][()] if "label_params" in fh else None
         except OSError as exc:

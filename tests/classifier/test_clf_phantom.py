@@ -169,6 +169,20 @@ def test_scores_of_a_perfect_and_an_abstaining_classifier(chain, tmp_path):
     assert inner == want
 
 
+def test_ground_truth_declaring_a_tebibyte_is_refused_before_a_member_is_read(tmp_path):
+    import io
+    import zipfile
+
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": "|i1", "fortran_order": False, "shape": (1 << 20, 1 << 20)})
+    path = tmp_path / "truth.npz"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("labels.npy", buf.getvalue() + bytes(1000))
+    assert path.stat().st_size < 4096
+    with pytest.raises(ValueError, match=r"truth\.npz\[labels\].*1 TiB.*TORCHDOCT_MAX_INPUT_GB"):
+        read_rendered_labels(path)
+
+
 def test_bad_inputs_are_named(chain, tmp_path):
     seq, out = chain
     labels, _ = read_rendered_labels(seq)
