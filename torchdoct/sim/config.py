@@ -566,8 +566,14 @@ MIN_PAIRS_PER_DELAY = 2
 def delay_pair_counts(frame_times_s: Any) -> list[tuple[float, int]]:
     """``(delay_s, frame pairs)`` of every distinct delay of the frame times (s): ``(m·Δt, N − m)`` for a
     uniform protocol, else the pairs ``i < j`` grouped by ``t_j − t_i``, both as
-    :func:`torchdoct.conventions.delay_groups` (and so :func:`torchdoct.sim.metrics.ocds`) group them."""
-    return [(d, len(ij)) for d, ij in delay_groups(frame_times_s)]
+    :func:`torchdoct.conventions.delay_groups` (and so :func:`torchdoct.sim.metrics.ocds`) group them. A uniform
+    protocol's counts are computed, not its N·(N − 1)/2 pairs listed (the maps check every slab's OCDS: listing
+    the pairs made each check grow as N², gigabytes and minutes for thousands of frames)."""
+    times = [float(v) for v in frame_times_s]
+    dt = uniform_frame_interval_s(times)
+    if dt is not None:
+        return [(m * dt, len(times) - m) for m in range(1, len(times))]
+    return [(d, len(ij)) for d, ij in delay_groups(times)]
 
 
 def check_ocds_pairs(frame_times_s: Any, delay_range_s: Any, where: str = "ocds_delay_range_s",
