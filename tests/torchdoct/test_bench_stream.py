@@ -14,8 +14,10 @@ pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Vm
 def test_bench_stream_records_peak_memory_per_input_size(tmp_path):
     from torchdoct.bench.stream import bench_stream, format_stream_table, plot_stream
 
-    res = bench_stream((0.0156,), budget_gb=0.05, workdir=tmp_path)  # 8 frames of 512 x 512 complex64
+    seen = []
+    res = bench_stream((0.0156,), budget_gb=0.05, workdir=tmp_path, on_run=seen.append)  # 8 frames, 512 x 512
     [run] = res["runs"]
+    assert [r["complete"] for r in seen] == [True] and seen[0]["runs"] == res["runs"]  # each size as it ends
     assert run["frames"] == 8 and run["shape"] == [8, 512, 512] and res["sizes_gib_asked"] == [0.0156]
     assert 0 < run["baseline_rss_bytes"] <= run["peak_rss_bytes"] and run["growth_bytes"] >= 0
     assert "peak RSS MiB" in format_stream_table(res)

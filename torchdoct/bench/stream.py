@@ -15,6 +15,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from collections.abc import Sequence as _Seq
 from pathlib import Path
 from typing import Any
@@ -44,10 +45,13 @@ def _write_input(folder: Path, frames: int) -> Path:
 
 
 def bench_stream(sizes_gb: _Seq[float] = (1.0, 4.0, 16.0), budget_gb: float = 0.25,
-                 workdir: str | os.PathLike | None = None) -> dict[str, Any]:
+                 workdir: str | os.PathLike | None = None,
+                 on_run: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
     """Peak resident growth of ``torchdoct maps --max-memory-gb budget_gb`` on inputs of ``sizes_gb`` GiB
     (module docstring); ``workdir``: where the inputs are written (default the system's temporary folder),
-    each removed after its run. A folder without room for the largest (sparse) input is refused first."""
+    each removed after its run. A folder without room for the largest (sparse) input is refused first.
+    ``on_run(result)``: called after each size with the result so far (``complete`` false until the last), so
+    that a long run stopped half-way keeps the sizes it finished."""
     frame_bytes = 8 * _BSCAN[0] * _BSCAN[1]
     base = Path(workdir) if workdir is not None else Path(tempfile.gettempdir())
     free = shutil.disk_usage(base).free
@@ -69,9 +73,15 @@ def bench_stream(sizes_gb: _Seq[float] = (1.0, 4.0, 16.0), budget_gb: float = 0.
         runs.append({"input_gib": frames * frame_bytes / (1 << 30), "frames": frames, "shape": [frames, *_BSCAN],
                      "baseline_rss_bytes": rss0, "peak_rss_bytes": peak, "growth_bytes": peak - rss0,
                      "seconds": seconds})
+        if on_run is not None:
+            on_run(_result(budget_gb, sizes_gb, runs, complete=len(runs) == len(sizes_gb)))
+    return _result(budget_gb, sizes_gb, runs, complete=True)
+
+
+def _result(budget_gb: float, sizes_gb: _Seq[float], runs: list[dict[str, Any]], complete: bool) -> dict[str, Any]:
     return {"benchmark": "stream", "command": "torchdoct maps INPUT.npy --max-memory-gb BUDGET",
-            "budget_gib": budget_gb, "sizes_gib_asked": [float(g) for g in sizes_gb], "bscan": list(_BSCAN),
-            "runs": runs, "machine": machine_info()}
+            "budget_gib": budget_gb, "sizes_gib_asked": [float(g) for g in sizes_gb], "complete": complete,
+            "bscan": list(_BSCAN), "runs": list(runs), "machine": machine_info()}
 
 
 def format_stream_table(res: dict[str, Any]) -> str:

@@ -218,8 +218,12 @@ def _stream(args) -> int:
 
     out = check_out(args.out, args.force, ".json", what="--out")
     fig = check_out(args.figure, args.force, ".png", what="--figure")
+    def keep(partial: dict) -> None:  # each size as it finishes: a run stopped half-way keeps what it measured
+        if out is not None and not partial["complete"]:
+            atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(partial, indent=2)))
+
     res = bench_stream(parse_floats(args.sizes_gb, None, "--sizes-gb"), budget_gb=args.budget_gb,
-                       workdir=args.workdir)
+                       workdir=args.workdir, on_run=keep)
     print(format_stream_table(res))
     if out is not None:  # asked for with --out: nothing is written into the current folder unasked
         atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
