@@ -564,6 +564,7 @@ class _SlabWork:
     nonfinite_pixels: dict[str, int] = dataclasses.field(default_factory=dict)
     doppler: DopplerReference | None = None
     doppler_meta: dict[str, Any] | None = None
+    slab_elements: int = 0
 
 
 def _fill_maps(work: _SlabWork, plans: list[_SlabPlan], *, progress: bool, timings: dict[str, float] | None) -> None:
@@ -578,7 +579,9 @@ def _fill_maps(work: _SlabWork, plans: list[_SlabPlan], *, progress: bool, timin
     for ti, plan in enumerate(plans):
         t0 = time.perf_counter()
         for c0 in range(0, plan.length, plan.rows):
-            _map_slab(work, ti, plan, c0, min(plan.length, c0 + plan.rows))
+            c1 = min(plan.length, c0 + plan.rows)
+            for cols in _column_chunks(work, plan, c1 - c0):
+                _map_slab(work, ti, plan, c0, c1, cols)
             if bar is not None:
                 bar.update(1)
         if timings is not None:
@@ -587,7 +590,25 @@ def _fill_maps(work: _SlabWork, plans: list[_SlabPlan], *, progress: bool, timin
         bar.close()
 
 
-def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int) -> None:
+def _column_chunks(work: _SlabWork, plan: _SlabPlan, rows: int) -> list[slice | None]:
+    """The X ranges a slab of ``rows`` rows is computed in: the whole width (``[None]``), or, when the slab
+    (every frame of even one row) holds more than ``work.slab_elements`` samples and its work is per pixel
+    alone (the original resolution, no bulk phase, signature, speckle, Doppler or map smoothing), columns
+    that fit: a long sequence then stays within ``--max-memory-gb`` (the per-pixel metrics do not depend
+    on which pixels are computed together)."""
+    data = work.seq.data
+    per_row = int(np.prod(data.shape, dtype=np.int64)) // data.shape[plan.axis]
+    n_x = data.shape[-1]
+    per_pixel = (plan.target not in work.req.changes and work.bulk is None and not work.req.features
+                 and not work.req.speckle and work.doppler is None and plan.halo == 0 and plan.margin == 0
+                 and work.smoothing_margin == 0)
+    if not work.slab_elements or not per_pixel or rows * per_row <= work.slab_elements:
+        return [None]
+    width = max(1, int(work.slab_elements) // max(rows * per_row // n_x, 1))
+    return [slice(x0, min(n_x, x0 + width)) for x0 in range(0, n_x, width)]
+
+
+def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int, cols: slice | None = None) -> None:
     """The rows ``c0:c1`` of resolution ``ti`` along the plan's axis: read the slab with its halo, remove the
     bulk phase, mask the non-finite samples (they enter the reduction as 0), reduce the resolution, form
     the intensity (the empty floor after a reduction), compute the per-pixel metrics on the rows and the
@@ -602,6 +623,8 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int) -> No
     a0, a1 = max(0, c0 - halo), min(plan.length, c1 + halo)
     sel = [slice(None)] * data.ndim
     sel[cdim] = slice(a0, a1)
+    if cols is not None:  # a column range of a per-pixel slab (_column_chunks)
+        sel[-1] = cols
     raw = np.array(data[tuple(sel)], dtype=data.dtype.newbyteorder("="), copy=True)  # native byte order
     corrected = None
     if work.bulk is not None and (changed or feats):  # bulk phase removed before the A-lines are mixed
@@ -670,6 +693,8 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int) -> No
             v = np.where(masks["smoothed" if smoothed else "pixel"], np.nan, v)
         idx = [ti * len(outputs) + mi] + [slice(None)] * (data.ndim - 1)
         idx[cdim] = slice(c0, c1)
+        if cols is not None:
+            idx[-1] = cols
         out[tuple(idx)] = v
     if feats:  # the signature of the slab's own pixels (no halo), from the same field
         x = field.narrow(cdim, c0 - a0, c1 - c0)
@@ -862,7 +887,7 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
     work = _SlabWork(seq=seq, req=req, out=out, outputs=outputs, n_doct=n_doct, keep_y=keep_y, bulk=bulk, device=dev,
                      axial_center=fc, edge_mode=edge_mode, normalization=normalization, floor=floor,
                      smoothing_margin=margin, metric_options=options, chunk_pixels=chunk_pixels, doppler=dref,
-                     doppler_meta=dmeta)
+                     doppler_meta=dmeta, slab_elements=slab_elements)
     _fill_maps(work, plans, progress=progress, timings=timings)
     return _maps_result(work, channels, bulk_phase=bulk_phase, peak=peak, axial_center=axial_center, options=options)
 

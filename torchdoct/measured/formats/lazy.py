@@ -113,19 +113,55 @@ class Squeezed:
 
 
 class MappedFile:
-    """A C-order array stored in a file at ``offset`` (a ``.npy`` body, a raw binary), read slice by slice:
-    each read maps the file, copies the slice and unmaps it, so the pages read do not stay in the process's
-    resident memory (a long-lived memory map keeps every page it touched)."""
+    """A C-order array stored in a file at ``offset`` (a ``.npy`` body, a raw binary, uncompressed OME-TIFF
+    planes), read slice by slice with plain file reads: for each frame (first index) the one run of bytes
+    that holds the rows asked for, then the columns kept. Nothing is memory-mapped, so the pages read never
+    count in the process's resident memory (a memory map's pages do while it is mapped, and a slab across
+    thousands of frames touches at least a page of every frame)."""
 
     def __init__(self, path: Any, dtype: Any, shape: tuple[int, ...], offset: int):
         self._path, self.dtype, self.shape, self._offset = path, np.dtype(dtype), tuple(shape), int(offset)
 
-    def __getitem__(self, key: tuple) -> np.ndarray:
-        m = np.memmap(self._path, dtype=self.dtype, mode="r", offset=self._offset, shape=self.shape)
-        try:
-            return np.array(m[key], copy=True)
-        finally:
-            mm = getattr(m, "_mmap", None)
-            del m
-            if mm is not None:
-                mm.close()
+    def __getitem__(self, key: Any) -> np.ndarray:
+        key = key if isinstance(key, tuple) else (key,)
+        key = key + (slice(None),) * (len(self.shape) - len(key))
+        frames = range(self.shape[0])[key[0]]
+        inner = self.shape[1:]
+        if not inner:  # a 1-D array: one read of the frames' span
+            picked = [frames] if isinstance(frames, int) else list(frames)
+            whole = np.asarray([self._read(t, 0, 1, ())[0] for t in picked], dtype=self.dtype)
+            return whole[0] if isinstance(frames, int) else whole
+        rows = range(inner[0])[key[1]]
+        lo, hi = (rows, rows + 1) if isinstance(rows, int) else ((min(rows), max(rows) + 1) if len(rows) else (0, 0))
+        take = (rows - lo) if isinstance(rows, int) else np.asarray(rows, dtype=np.intp) - lo
+        rest = tuple(key[2:])
+        out = None
+        picked = [frames] if isinstance(frames, int) else frames
+        with open(self._path, "rb") as fh:
+            for k, t in enumerate(picked):
+                block = self._read_from(fh, t, lo, hi, inner[1:])
+                part = block[take][rest] if isinstance(take, int) else block[take][(slice(None), *rest)]
+                if isinstance(frames, int):
+                    return np.ascontiguousarray(part)
+                if out is None:
+                    out = np.empty((len(frames), *part.shape), dtype=self.dtype)
+                out[k] = part
+        if out is None:  # no frame asked for
+            shape = np.empty((0, *inner), dtype=self.dtype)[(slice(None), key[1], *rest)].shape
+            out = np.empty(shape, dtype=self.dtype)
+        return out
+
+    def _read(self, t: int, lo: int, hi: int, tail: tuple[int, ...]) -> np.ndarray:
+        with open(self._path, "rb") as fh:
+            return self._read_from(fh, t, lo, hi, tail)
+
+    def _read_from(self, fh: Any, t: int, lo: int, hi: int, tail: tuple[int, ...]) -> np.ndarray:
+        """Rows ``lo:hi`` of frame ``t`` (each row ``tail`` samples) from the open file ``fh``."""
+        per_row = int(np.prod(tail, dtype=np.int64)) if tail else 1
+        per_frame = int(np.prod(self.shape[1:], dtype=np.int64)) if len(self.shape) > 1 else 1
+        count = (hi - lo) * per_row
+        fh.seek(self._offset + (t * per_frame + lo * per_row) * self.dtype.itemsize)
+        block = np.fromfile(fh, dtype=self.dtype, count=count)
+        if block.size != count:
+            raise OSError(f"the file ends inside frame {t} (truncated)")
+        return block.reshape(hi - lo, *tail)
