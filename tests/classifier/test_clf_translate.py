@@ -57,6 +57,7 @@ def two_systems(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow  # an end-to-end command run; the default suite covers its parts
 def test_translate_command_writes_values_intervals_and_codes(two_systems, capsys):
     from torchdoct.cli import main
     from torchdoct.measured.mapsfile import read_maps

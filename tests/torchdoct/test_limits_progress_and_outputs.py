@@ -225,6 +225,7 @@ def test_png_colour_ranges_are_shared_across_resolutions(seq, tmp_path, monkeypa
     assert seen["liv@original"] != seen["ocds@original"]
 
 
+@pytest.mark.slow  # an end-to-end command run; the default suite covers its parts
 def test_study_figures_phase_has_a_progress_bar(tmp_path, capsys):
     """The figures and the claims report advance a bar per step."""
     import re

@@ -222,6 +222,7 @@ def test_crossing_finder():
     assert cr["bracket"] == (0.1, 5.0)
 
 
+@pytest.mark.slow  # an end-to-end command run; the default suite covers its parts
 def test_rerun_uses_the_cache_and_refuses_to_overwrite(tiny_run, tmp_path):
     path, r = tiny_run
     out = r.files[0].parent
@@ -245,6 +246,7 @@ def test_grouping_all_runs_every_comparison_from_one_scene(tmp_path):
     assert (ref == 1).all()  # one reference curve shared by the three comparisons
 
 
+@pytest.mark.slow  # an end-to-end command run; the default suite covers its parts
 def test_cli_study(tmp_path, capsys):
     path = write_tiny_study(tmp_path)
     out = tmp_path / "out"
