@@ -3,8 +3,9 @@ TIFFs): a generated file, valid or damaged (truncated, garbage, sizes declared b
 graphs, OME-XML sizes, sidecar values, a FIFO in place of the data), is read by ``read_sequence`` in a child process with a time limit
 and an address-space limit, and answered as every command answers it (``error:`` line, exit 2). The
 property: a correct result (the data as written) or exit 2 with one ``error:`` line naming the file; never
-a traceback, a hang or unbounded memory. The short profile runs in the default suite, the full one in CI
-(``TORCHDOCT_FUZZ=full``, tests/_fuzz.py)."""
+a traceback, a hang or unbounded memory. The short profile runs in the default suite; the full one
+(``TORCHDOCT_FUZZ=full``, tests/_fuzz.py) by the command of CONTRIBUTING.md (each case starts a process: a
+few minutes on a busy machine, beyond what CI's budget leaves)."""
 
 from __future__ import annotations
 
