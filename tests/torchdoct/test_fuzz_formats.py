@@ -4,8 +4,8 @@ graphs, OME-XML sizes, sidecar values, a FIFO in place of the data), is read by 
 and an address-space limit, and answered as every command answers it (``error:`` line, exit 2). The
 property: a correct result (the data as written) or exit 2 with one ``error:`` line naming the file; never
 a traceback, a hang or unbounded memory. The short profile runs in the default suite; the full one
-(``TORCHDOCT_FUZZ=full``, tests/_fuzz.py) by the command of CONTRIBUTING.md (each case starts a process: a
-few minutes on a busy machine, beyond what CI's budget leaves)."""
+(``TORCHDOCT_FUZZ=full``, tests/_fuzz.py) by the command of CONTRIBUTING.md (each case runs in a process under a
+wall-time limit, which a heavily loaded machine can exceed: not a gate for CI)."""
 
 from __future__ import annotations
 
