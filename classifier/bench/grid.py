@@ -485,6 +485,22 @@ def write_grid(res: dict[str, Any], out_dir: str | Path, *, force: bool = False,
     return paths
 
 
+def check_output_dir(out_dir: str | Path, stem: str, suffixes: Sequence[str], force: bool) -> Path:
+    """``--out``/``--stem`` of a benchmark writing ``STEM`` + each suffix, checked before any work: a plain
+    stem, a directory (or none yet), and no result overwritten without ``force``."""
+    from torchdoct.files import safe_name
+
+    safe_name(stem, "--stem", "give a plain file name")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file; give a directory")
+    if not force:
+        for s in suffixes:
+            if (out / f"{stem}{s}").exists():
+                raise ValueError(f"--out {out}: {stem}{s} exists; give --force to overwrite it")
+    return out
+
+
 def _json_default(o: Any) -> Any:
     if isinstance(o, (np.floating, np.integer)):
         return o.item()
@@ -519,18 +535,9 @@ def build_parser():
 def main(argv: Sequence[str] | None = None) -> int:
     import sys
 
-    from torchdoct.files import safe_name
-
     args = build_parser().parse_args(argv)
     try:
-        safe_name(args.stem, "--stem", "give a plain file name")
-        out = Path(args.out)
-        if out.exists() and not out.is_dir():
-            raise ValueError(f"--out {out} is a file; give a directory")
-        if not args.force:
-            for s in (".json", ".csv", ".md", ".png"):
-                if (out / f"{args.stem}{s}").exists():
-                    raise ValueError(f"--out {out}: {args.stem}{s} exists; give --force to overwrite it")
+        out = check_output_dir(args.out, args.stem, (".json", ".csv", ".md", ".png"), args.force)
         cells = quick_cells(args.seed) if args.quick else full_cells(args.seed)
         if args.geometry:
             cells = [c for c in cells if c.geometry == args.geometry]

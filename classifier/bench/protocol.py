@@ -735,18 +735,11 @@ def _command_line(args) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     import sys
 
-    from torchdoct.files import safe_name
+    from .grid import check_output_dir
 
     args = build_parser().parse_args(argv)
     try:
-        safe_name(args.stem, "--stem", "give a plain file name")
-        out = Path(args.out)
-        if out.exists() and not out.is_dir():
-            raise ValueError(f"--out {out} is a file; give a directory")
-        if not args.force:
-            for s in SUFFIXES:
-                if (out / f"{args.stem}{s}").exists():
-                    raise ValueError(f"--out {out}: {args.stem}{s} exists; give --force to overwrite it")
+        out = check_output_dir(args.out, args.stem, SUFFIXES, args.force)
         frames = _numbers(args.frames, int, "--frames")
         factors = _numbers(args.intervals, float, "--intervals")
         windows = _numbers(args.windows, int, "--windows")
