@@ -23,6 +23,14 @@ class BuildExt(build_ext):
             super().build_extension(ext)
 
 
-setup(ext_modules=[Extension("torchdoct.sim._kernel", ["torchdoct/sim/_kernel.c"], optional=True,
-                             extra_compile_args=CFLAGS + OPTIONAL_CFLAGS)],
-      cmdclass={"build_ext": BuildExt})
+setup(
+    ext_modules=[
+        Extension(
+            "torchdoct.sim._kernel",
+            ["torchdoct/sim/_kernel.c"],
+            optional=True,
+            extra_compile_args=CFLAGS + OPTIONAL_CFLAGS,
+        )
+    ],
+    cmdclass={"build_ext": BuildExt},
+)

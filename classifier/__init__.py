@@ -33,9 +33,24 @@ _LAZY = {
 }
 
 __all__ = [
-    "__version__", "Configuration", "FeatureSpec", "load_spec", "shipped_specs", "classify_maps", "load_model",
-    "read_maps", "shipped_models", "write_classification", "INDETERMINATE", "apply_rule",
-    "train", "TrainConfig", "TrainResult", "make_dataset", "Prior", "export_onnx",
+    "__version__",
+    "Configuration",
+    "FeatureSpec",
+    "load_spec",
+    "shipped_specs",
+    "classify_maps",
+    "load_model",
+    "read_maps",
+    "shipped_models",
+    "write_classification",
+    "INDETERMINATE",
+    "apply_rule",
+    "train",
+    "TrainConfig",
+    "TrainResult",
+    "make_dataset",
+    "Prior",
+    "export_onnx",
 ]
 
 

@@ -75,10 +75,25 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["COHERENT_MOVED_MIN", "COHERENT_TO_FLOW", "COHERENT_PEAK_MIN", "DECORRELATED_BELOW", "FAST_REMAINING_MAX",
-           "OFFSET_FIRST_MIN", "OFFSET_GREW_TO_SET", "OFFSET_GROWTH_MIN", "OFFSET_HOLD_MIN", "OFFSET_TO_SET",
-           "OffsetMotion", "SET_LABEL",
-           "abstain_where_ambiguous", "coherent_motion", "fast_decorrelation", "offset_moved", "slow_decorrelation"]
+__all__ = [
+    "COHERENT_MOVED_MIN",
+    "COHERENT_TO_FLOW",
+    "COHERENT_PEAK_MIN",
+    "DECORRELATED_BELOW",
+    "FAST_REMAINING_MAX",
+    "OFFSET_FIRST_MIN",
+    "OFFSET_GREW_TO_SET",
+    "OFFSET_GROWTH_MIN",
+    "OFFSET_HOLD_MIN",
+    "OFFSET_TO_SET",
+    "OffsetMotion",
+    "SET_LABEL",
+    "abstain_where_ambiguous",
+    "coherent_motion",
+    "fast_decorrelation",
+    "offset_moved",
+    "slow_decorrelation",
+]
 
 #: The window's intensity correlation at the longest lag below which a pixel counts as decorrelated
 #: (rule 2 of the module docstring): half of the correlation is gone.
@@ -114,8 +129,9 @@ _XC_PEAK = re.compile(r"^xc_peak_(\d+)@(.+)$")
 _XC_SHIFT = re.compile(r"^xc_shift_(\d+)@(.+)$")
 
 
-def coherent_motion(channels: Mapping[str, np.ndarray], idx: np.ndarray | None = None,
-                    n_frames: int = 32) -> tuple[np.ndarray | None, list[str]]:
+def coherent_motion(
+    channels: Mapping[str, np.ndarray], idx: np.ndarray | None = None, n_frames: int = 32
+) -> tuple[np.ndarray | None, list[str]]:
     """Rule 0 per classified pixel (module docstring): True where the speckle pattern moved coherently at a
     lag ``m ≤ n_frames // 4``; and the lags' channel names read. ``channels``: name -> map holding
     ``xc_peak_m@…`` and ``xc_centre_m@…`` of one resolution, read at ``idx``. ``(None, [])`` without them.
@@ -141,9 +157,13 @@ def coherent_motion(channels: Mapping[str, np.ndarray], idx: np.ndarray | None =
     return found, used
 
 
-def slow_decorrelation(channels: Mapping[str, np.ndarray], columns: Sequence[Mapping[str, Any]] | None = None,
-                       pooled: np.ndarray | None = None, idx: np.ndarray | None = None,
-                       n_frames: int = 32) -> tuple[np.ndarray | None, str | None]:
+def slow_decorrelation(
+    channels: Mapping[str, np.ndarray],
+    columns: Sequence[Mapping[str, Any]] | None = None,
+    pooled: np.ndarray | None = None,
+    idx: np.ndarray | None = None,
+    n_frames: int = 32,
+) -> tuple[np.ndarray | None, str | None]:
     """The correlation that decides rule 2 per classified pixel, and where it came from.
 
     ``channels``: name -> map of the maps files (the speckle channel ``xc_centre_m@…`` at the largest ``m``,
@@ -173,8 +193,9 @@ def slow_decorrelation(channels: Mapping[str, np.ndarray], columns: Sequence[Map
     return np.asarray(pooled[:, j], np.float64), name
 
 
-def fast_decorrelation(channels: Mapping[str, np.ndarray],
-                       idx: np.ndarray | None = None) -> tuple[np.ndarray | None, list[str]]:
+def fast_decorrelation(
+    channels: Mapping[str, np.ndarray], idx: np.ndarray | None = None
+) -> tuple[np.ndarray | None, list[str]]:
     """Rule 3 per classified pixel (module docstring): True where the window's correlation left after the
     shortest lag is below :data:`FAST_REMAINING_MAX` of its whole decay, ``ρ(m₁) − ρ(m_last) <
     FAST_REMAINING_MAX·(1 − ρ(m_last))`` with ``ρ(m) = xc_centre_m@…`` of one resolution (the first one
@@ -205,8 +226,9 @@ class OffsetMotion(NamedTuple):
     grew: np.ndarray  #: the pattern held at the shortest lag and its offset grew with the lag
 
 
-def offset_moved(channels: Mapping[str, np.ndarray], pitch_um: float | None, idx: np.ndarray | None = None,
-                 n_frames: int = 32) -> tuple[OffsetMotion | None, list[str]]:
+def offset_moved(
+    channels: Mapping[str, np.ndarray], pitch_um: float | None, idx: np.ndarray | None = None, n_frames: int = 32
+) -> tuple[OffsetMotion | None, list[str]]:
     """Rule 4 per classified pixel (module docstring): where the peak offset ``xc_shift_m@…`` (µm) of one
     resolution, over its lags ``m ≤ n_frames // 4``, starts at least :data:`OFFSET_FIRST_MIN` pitches off the
     centre (``off_centre``), and where it grows at every lag by at least :data:`OFFSET_GROWTH_MIN` pitches in
@@ -242,11 +264,16 @@ def offset_moved(channels: Mapping[str, np.ndarray], pitch_um: float | None, idx
     return OffsetMotion(off_centre, grew), names + [held_name]
 
 
-def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: bool,
-                            correlation: np.ndarray | None,
-                            coherent: np.ndarray | None = None,
-                            fast: np.ndarray | None = None,
-                            moved: OffsetMotion | None = None) -> tuple[np.ndarray, dict[str, int]]:
+def abstain_where_ambiguous(
+    labels: np.ndarray,
+    names: Sequence[str],
+    *,
+    bscan: bool,
+    correlation: np.ndarray | None,
+    coherent: np.ndarray | None = None,
+    fast: np.ndarray | None = None,
+    moved: OffsetMotion | None = None,
+) -> tuple[np.ndarray, dict[str, int]]:
     """``labels`` (indices into ``names``, one per classified pixel) with, first, the outcomes of
     :data:`COHERENT_TO_FLOW` turned into ``flow`` where ``coherent`` (rule 0, :func:`coherent_motion`), then the
     remaining ``ballistic`` into :data:`SET_LABEL` where rules 1 (``bscan``), 2 (``correlation`` ≥
@@ -257,8 +284,13 @@ def abstain_where_ambiguous(labels: np.ndarray, names: Sequence[str], *, bscan: 
     counts for the first rule that changed it).
     ``names`` must hold ``ballistic`` and :data:`SET_LABEL` (else ``labels`` come back unchanged)."""
     names = list(names)
-    counts = {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 0, "fast_decorrelation": 0,
-              "offset_moved": 0}
+    counts = {
+        "coherent_motion": 0,
+        "bscan_plane": 0,
+        "slow_decorrelation": 0,
+        "fast_decorrelation": 0,
+        "offset_moved": 0,
+    }
     if "ballistic" not in names or SET_LABEL not in names:
         return labels, counts
     out = np.array(labels, copy=True)

@@ -48,7 +48,9 @@ def _model_prior(model) -> Any:
 
     report = Path(model.path).with_suffix(".json")
     if not report.is_file():
-        raise ValueError(f"{report}: the model's training report is missing; calibration draws from the prior it records")
+        raise ValueError(
+            f"{report}: the model's training report is missing; calibration draws from the prior it records"
+        )
     from torchdoct.files import read_capped
     from torchdoct.measured.guards import parse_json_object
 
@@ -61,8 +63,9 @@ def _model_prior(model) -> Any:
     return Prior.from_dict(data["prior"]), data.get("config", {})
 
 
-def calibration_samples(model, *, draws: int, trials: int = 32, seed: int = CALIBRATION_SEED,
-                        cache_dir=None, progress: bool = True) -> tuple[dict[int, dict[str, np.ndarray]], dict[str, Any]]:
+def calibration_samples(
+    model, *, draws: int, trials: int = 32, seed: int = CALIBRATION_SEED, cache_dir=None, progress: bool = True
+) -> tuple[dict[int, dict[str, np.ndarray]], dict[str, Any]]:
     """``({pool: samples}, description)`` of the calibration split (module docstring)."""
     from .dataset import make_dataset
     from .train import _groups, pooled_samples
@@ -70,9 +73,19 @@ def calibration_samples(model, *, draws: int, trials: int = 32, seed: int = CALI
     prior, config = _model_prior(model)
     spec = model.spec
     replicates = int(config.get("replicates", 8))
-    ds = make_dataset(spec, prior, seed=int(seed), split="test", draws=int(draws), trials_per_draw=int(trials),
-                      replicates=replicates, truncation_tolerance=float(config.get("truncation_tolerance", 1e-2)),
-                      truncation=str(config.get("truncation", "taper")), cache_dir=cache_dir, progress=progress)
+    ds = make_dataset(
+        spec,
+        prior,
+        seed=int(seed),
+        split="test",
+        draws=int(draws),
+        trials_per_draw=int(trials),
+        replicates=replicates,
+        truncation_tolerance=float(config.get("truncation_tolerance", 1e-2)),
+        truncation=str(config.get("truncation", "taper")),
+        cache_dir=cache_dir,
+        progress=progress,
+    )
     rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(1,)))
     groups = _groups(ds)
     out = {}
@@ -82,13 +95,20 @@ def calibration_samples(model, *, draws: int, trials: int = 32, seed: int = CALI
     flow = ds.y[first] == 2
     polar = ds.polar_angle_deg[first]
     static_free = ds.static_fraction[first] == 0
-    desc = {"source": "the model's training prior (its report), split 'test' at the calibration seed",
-            "seed": int(seed), "draws": int(draws), "replicates": replicates, "trials_per_group": int(trials),
-            "groups": len(groups), "static_free_groups": int(static_free.sum()),
-            "flow_groups": int(flow.sum()),
-            "flow_groups_polar_above_60deg": int((flow & (polar > 60)).sum()),
-            "flow_groups_polar_above_60deg_static_free": int((flow & (polar > 60) & static_free).sum()),
-            "identifiable_groups": int((ds.status[first] == 0).sum()), "prior": prior.to_dict()}
+    desc = {
+        "source": "the model's training prior (its report), split 'test' at the calibration seed",
+        "seed": int(seed),
+        "draws": int(draws),
+        "replicates": replicates,
+        "trials_per_group": int(trials),
+        "groups": len(groups),
+        "static_free_groups": int(static_free.sum()),
+        "flow_groups": int(flow.sum()),
+        "flow_groups_polar_above_60deg": int((flow & (polar > 60)).sum()),
+        "flow_groups_polar_above_60deg_static_free": int((flow & (polar > 60) & static_free).sum()),
+        "identifiable_groups": int((ds.status[first] == 0).sum()),
+        "prior": prior.to_dict(),
+    }
     return out, desc
 
 
@@ -107,30 +127,49 @@ def reliability(probabilities: np.ndarray, truth: np.ndarray, classes: Sequence[
             if sel.any():
                 pred, obs = float(p[sel].mean()), float(hit[sel].mean())
                 ece += sel.mean() * abs(obs - pred)
-                rows.append({"bin": [float(edges[j]), float(edges[j + 1])], "predicted": pred, "observed": obs,
-                             "count": int(sel.sum())})
+                rows.append(
+                    {
+                        "bin": [float(edges[j]), float(edges[j + 1])],
+                        "predicted": pred,
+                        "observed": obs,
+                        "count": int(sel.sum()),
+                    }
+                )
         out[name] = {"ece": float(ece), "bins": rows}
     return out
 
 
-def calibrate(model_name: str, *, draws: int = 240, trials: int = 32, seed: int = CALIBRATION_SEED,
-              cache_dir=None, progress: bool = True) -> dict[str, Any]:
+def calibrate(
+    model_name: str,
+    *,
+    draws: int = 240,
+    trials: int = 32,
+    seed: int = CALIBRATION_SEED,
+    cache_dir=None,
+    progress: bool = True,
+) -> dict[str, Any]:
     """The calibration record of a model (module docstring)."""
     from . import runtime
     from .train import class_targets
 
     model = runtime.load_model(model_name, threads=1, calibration=False)
-    samples, desc = calibration_samples(model, draws=draws, trials=trials, seed=seed, cache_dir=cache_dir,
-                                        progress=progress)
+    samples, desc = calibration_samples(
+        model, draws=draws, trials=trials, seed=seed, cache_dir=cache_dir, progress=progress
+    )
     classes = model.classes
     pools = []
     for n, s in samples.items():
         p = model.predict(s["x"])
         truth = class_targets(s)
         sc = np.ceil(scores_lac(p, truth) * 1e6) / 1e6
-        entry: dict[str, Any] = {"pool_pixels": int(n), "samples": int(sc.size),
-                                 "class_counts": {c: int((truth == k).sum()) for k, c in enumerate(classes)},
-                                 "thresholds": {}, "set_sizes": {}, "reliability": reliability(p, truth, classes)}
+        entry: dict[str, Any] = {
+            "pool_pixels": int(n),
+            "samples": int(sc.size),
+            "class_counts": {c: int((truth == k).sum()) for k, c in enumerate(classes)},
+            "thresholds": {},
+            "set_sizes": {},
+            "reliability": reliability(p, truth, classes),
+        }
         entry["scores"] = [float(v) for v in sc]
         entry["truth"] = [int(v) for v in truth]
         for a in REPORTED_ALPHAS:
@@ -141,21 +180,35 @@ def calibrate(model_name: str, *, draws: int = 240, trials: int = 32, seed: int 
             entry["set_sizes"][f"{a:g}"] = {
                 "mean_set_size": float(members.sum(1).mean()),
                 "in_sample_coverage": float(members[np.arange(truth.size), truth].mean()),
-                "in_sample_coverage_per_class": {c: float(members[truth == k, k].mean()) if (truth == k).any() else None
-                                                 for k, c in enumerate(classes)},
-                "decided": float(np.isin(labels, [k for k, c in enumerate(classes) if c != "indeterminate"]).mean())}
-        pools.append({k: entry[k] for k in entry if k not in ("scores", "truth")} | {"scores": entry["scores"],
-                                                                                      "truth": entry["truth"]})
-    return {"schema_version": SCHEMA_VERSION, "model": model.spec.name, "score": "lac", "classes": classes,
-            "default_alpha": DEFAULT_ALPHA, "pools": pools, "description": desc,
-            "command": f"python -m classifier.calibrate --model {model.spec.name} --draws {draws} --trials {trials}"
-                       + (f" --seed {seed}" if seed != CALIBRATION_SEED else ""),
-            "mode": "class-conditional",
-            "guarantee": ("For a pixel drawn like the calibration samples (the model's training prior, one pool "
-                          "size) whose true class is k, the prediction set holds k with probability at least "
-                          "1 - alpha, for every class k (class-conditional split-conformal coverage). Not promised: "
-                          "coverage per phantom, per speed, per direction or per pixel; anything on data unlike "
-                          "the training prior.")}
+                "in_sample_coverage_per_class": {
+                    c: float(members[truth == k, k].mean()) if (truth == k).any() else None
+                    for k, c in enumerate(classes)
+                },
+                "decided": float(np.isin(labels, [k for k, c in enumerate(classes) if c != "indeterminate"]).mean()),
+            }
+        pools.append(
+            {k: entry[k] for k in entry if k not in ("scores", "truth")}
+            | {"scores": entry["scores"], "truth": entry["truth"]}
+        )
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "model": model.spec.name,
+        "score": "lac",
+        "classes": classes,
+        "default_alpha": DEFAULT_ALPHA,
+        "pools": pools,
+        "description": desc,
+        "command": f"python -m classifier.calibrate --model {model.spec.name} --draws {draws} --trials {trials}"
+        + (f" --seed {seed}" if seed != CALIBRATION_SEED else ""),
+        "mode": "class-conditional",
+        "guarantee": (
+            "For a pixel drawn like the calibration samples (the model's training prior, one pool "
+            "size) whose true class is k, the prediction set holds k with probability at least "
+            "1 - alpha, for every class k (class-conditional split-conformal coverage). Not promised: "
+            "coverage per phantom, per speed, per direction or per pixel; anything on data unlike "
+            "the training prior."
+        ),
+    }
 
 
 def plot_reliability(cal: dict[str, Any], path: str | Path) -> None:
@@ -214,18 +267,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.trials < max(POOLS):
             raise ValueError(f"--trials {args.trials} is below the largest pool size {max(POOLS)}; give at least that")
-        cal = calibrate(args.model, draws=args.draws, trials=args.trials, seed=args.seed, cache_dir=args.cache,
-                        progress=not args.no_progress)
+        cal = calibrate(
+            args.model,
+            draws=args.draws,
+            trials=args.trials,
+            seed=args.seed,
+            cache_dir=args.cache,
+            progress=not args.no_progress,
+        )
         from . import runtime
 
-        out = Path(args.out) if args.out else Path(runtime.load_model(args.model, threads=1, calibration=False).path).parent
+        out = (
+            Path(args.out)
+            if args.out
+            else Path(runtime.load_model(args.model, threads=1, calibration=False).path).parent
+        )
         written = write_calibration(cal, out, force=args.force)
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     for p in cal["pools"]:
-        print(f"pool_pixels {p['pool_pixels']}: n = {p['samples']}, thresholds {p['thresholds']}, "
-              f"ECE " + ", ".join(f"{c} {r['ece']:.3f}" for c, r in p["reliability"].items()))
+        print(
+            f"pool_pixels {p['pool_pixels']}: n = {p['samples']}, thresholds {p['thresholds']}, "
+            f"ECE " + ", ".join(f"{c} {r['ece']:.3f}" for c, r in p["reliability"].items())
+        )
     print("wrote " + ", ".join(str(p) for p in written))
     return 0
 

@@ -18,8 +18,14 @@ from torchdoct.runtime import interrupt as _interrupt
 __all__ = ["build_train_parser", "build_classify_parser", "train_main", "classify_main"]
 
 #: ``doct-train --quick``: small splits for a first run (a rough model: to see the outputs).
-QUICK = {"draws_train": 90, "draws_validation": 24, "draws_test": 36, "trials_per_draw": 64, "replicates": 4,
-         "max_epochs": 100}
+QUICK = {
+    "draws_train": 90,
+    "draws_validation": 24,
+    "draws_test": 36,
+    "trials_per_draw": 64,
+    "replicates": 4,
+    "max_epochs": 100,
+}
 
 _ERRORS = (ValueError, TypeError, FileNotFoundError)  # bad input: exit code 2 (torchdoct.cli.EXIT_CODES)
 
@@ -45,40 +51,74 @@ def build_train_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="doct-train",
         description="Simulate labelled DOCT features, train the motion-type classifier, export ONNX and a report. "
-                    "Without options it reproduces the shipped single-acquisition model.")
+        "Without options it reproduces the shipped single-acquisition model.",
+    )
     p.add_argument("--out", required=True, help="output directory: SPEC.onnx, SPEC.json/.md/.png (report)")
-    p.add_argument("--spec", default=None, help=f"feature spec: a shipped name ('single-acquisition', 'signature', "
-                                              f"'signature-bscan', ...; default {d.spec!r}) or a TOML file")
-    p.add_argument("--like", nargs="+", metavar="MAPS", default=None,
-                   help="train for the system of these maps (from `torchdoct maps`): the spec from their metadata "
-                        "(resolutions, wavelength, frame times, refractive index, reduction axes, signature "
-                        "features) and a prior scaled to that system; writes SPEC.spec.toml and SPEC.prior.toml "
-                        "beside the model")
-    p.add_argument("--prior", default=None, metavar="TOML",
-                   help="training prior (a SPEC.prior.toml written by --like, or your own: the fields of "
-                        "classifier.prior.Prior); default: the shipped prior, or with --like the scaled one")
-    p.add_argument("--dry-run", action="store_true",
-                   help="print the spec, the prior, the recipe, the expected time and the cache key, then stop")
+    p.add_argument(
+        "--spec",
+        default=None,
+        help=f"feature spec: a shipped name ('single-acquisition', 'signature', "
+        f"'signature-bscan', ...; default {d.spec!r}) or a TOML file",
+    )
+    p.add_argument(
+        "--like",
+        nargs="+",
+        metavar="MAPS",
+        default=None,
+        help="train for the system of these maps (from `torchdoct maps`): the spec from their metadata "
+        "(resolutions, wavelength, frame times, refractive index, reduction axes, signature "
+        "features) and a prior scaled to that system; writes SPEC.spec.toml and SPEC.prior.toml "
+        "beside the model",
+    )
+    p.add_argument(
+        "--prior",
+        default=None,
+        metavar="TOML",
+        help="training prior (a SPEC.prior.toml written by --like, or your own: the fields of "
+        "classifier.prior.Prior); default: the shipped prior, or with --like the scaled one",
+    )
+    p.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print the spec, the prior, the recipe, the expected time and the cache key, then stop",
+    )
     p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--quick", action="store_true",
-                   help=f"small splits for a first run, a rough model in a fraction of the full time ({_quick_text()}); "
-                        "a smoke test of the whole recipe, far less accurate than the shipped model; "
-                        "size options given as well win")
-    p.add_argument("--draws-train", type=int, default=None,
-                   help=f"parameter draws in the training split (default {d.draws_train})")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"small splits for a first run, a rough model in a fraction of the full time ({_quick_text()}); "
+        "a smoke test of the whole recipe, far less accurate than the shipped model; "
+        "size options given as well win",
+    )
+    p.add_argument(
+        "--draws-train", type=int, default=None, help=f"parameter draws in the training split (default {d.draws_train})"
+    )
     p.add_argument("--draws-validation", type=int, default=None, help=f"(default {d.draws_validation})")
     p.add_argument("--draws-test", type=int, default=None, help=f"(default {d.draws_test})")
     p.add_argument("--trials-per-draw", type=int, default=None, help=f"(default {d.trials_per_draw})")
-    p.add_argument("--replicates", type=int, default=None,
-                   help=f"(static fraction, SNR) settings per simulated draw (default {d.replicates})")
+    p.add_argument(
+        "--replicates",
+        type=int,
+        default=None,
+        help=f"(static fraction, SNR) settings per simulated draw (default {d.replicates})",
+    )
     p.add_argument("--max-epochs", type=int, default=None, help=f"(default {d.max_epochs})")
-    p.add_argument("--min-probability", type=float, default=d.min_probability,
-                   help="indeterminate below this top-class probability")
+    p.add_argument(
+        "--min-probability",
+        type=float,
+        default=d.min_probability,
+        help="indeterminate below this top-class probability",
+    )
     p.add_argument("--no-baselines", action="store_true", help="skip the scikit-learn baselines")
     p.add_argument("--cache", default=None, help="dataset cache directory (default ~/.cache/torchdoct/classifier)")
     p.add_argument("--no-cache", action="store_true", help="neither read nor write the dataset cache")
-    p.add_argument("--threads", type=int, default=None, metavar="N",
-                   help="cores to use for the simulation (default: the usable cores); one torch thread each")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        metavar="N",
+        help="cores to use for the simulation (default: the usable cores); one torch thread each",
+    )
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (as TQDM_DISABLE=1)")
     return p
@@ -86,8 +126,10 @@ def build_train_parser() -> argparse.ArgumentParser:
 
 def _quick_text() -> str:
     q = QUICK
-    return (f"draws {q['draws_train']}/{q['draws_validation']}/{q['draws_test']}, {q['replicates']} replicates, "
-            f"at most {q['max_epochs']} epochs")
+    return (
+        f"draws {q['draws_train']}/{q['draws_validation']}/{q['draws_test']}, {q['replicates']} replicates, "
+        f"at most {q['max_epochs']} epochs"
+    )
 
 
 @_interrupt.entry_point  # Ctrl-C/SIGTERM: one line, exit 130/143 (torchdoct.runtime.interrupt)
@@ -117,8 +159,11 @@ def _train(args: argparse.Namespace) -> int:
     else:
         spec_key = str(args.spec or TrainConfig().spec)
         spec = load_spec(spec_key)
-    safe_name(spec.name, f"feature spec name (the outputs are SPEC.onnx, ...; in {args.spec or 'the maps'})",
-              "give the spec a plain name")
+    safe_name(
+        spec.name,
+        f"feature spec name (the outputs are SPEC.onnx, ...; in {args.spec or 'the maps'})",
+        "give the spec a plain name",
+    )
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a directory")
@@ -138,8 +183,9 @@ def _train(args: argparse.Namespace) -> int:
     base = QUICK if args.quick else {k: getattr(TrainConfig.for_spec(spec_key), k) for k in QUICK}
     sizes = {k: base[k] if getattr(args, k) is None else getattr(args, k) for k in QUICK}  # explicit sizes win
     try:
-        cfg = TrainConfig.for_spec(spec_key, seed=args.seed, min_probability=args.min_probability,
-                                   baselines=not args.no_baselines, **sizes)
+        cfg = TrainConfig.for_spec(
+            spec_key, seed=args.seed, min_probability=args.min_probability, baselines=not args.no_baselines, **sizes
+        )
     except (TypeError, ValueError) as err:
         raise type(err)(_as_typed(str(err))) from None
     prior, ranges = _prior(args, spec, cfg)
@@ -154,7 +200,9 @@ def _train(args: argparse.Namespace) -> int:
         with output_set([paths[s] for s in order], args.force, f"--out {out}") as stage:  # all files or none
             line = _train_into(args, cfg, {s: stage(p) for s, p in paths.items()}, spec=spec, prior=prior)
             if args.like:
-                _write_like_files(spec, prior, ranges, args, {s: stage(paths[s]) for s in (".spec.toml", ".prior.toml")})
+                _write_like_files(
+                    spec, prior, ranges, args, {s: stage(paths[s]) for s in (".spec.toml", ".prior.toml")}
+                )
     finally:
         if created and out.exists() and not any(out.iterdir()):
             out.rmdir()
@@ -214,46 +262,80 @@ def _print_plan(args, spec, prior, ranges, cfg, notes, paths) -> None:
     from .train import default_prior
 
     prior = prior or default_prior(cfg)
-    print(f"spec {spec.name}: {spec.n_features} features ({len(spec.metrics)} × {len(spec.configurations)} "
-          f"configurations), {spec.n_frames} frames {spec.frame_interval_s:g} s apart, n = {spec.refractive_index:g}")
+    print(
+        f"spec {spec.name}: {spec.n_features} features ({len(spec.metrics)} × {len(spec.configurations)} "
+        f"configurations), {spec.n_frames} frames {spec.frame_interval_s:g} s apart, n = {spec.refractive_index:g}"
+    )
     print(toml_text(spec.to_dict()).rstrip().replace("\n", "\n    ").join(("    ", "")))
     for note in notes:
         print(f"note: {note}")
-    print("prior (log-uniform magnitudes" + (", the identifiable range widened by half a decade each side):"
-                                            if ranges else "):"))
+    print(
+        "prior (log-uniform magnitudes"
+        + (", the identifiable range widened by half a decade each side):" if ranges else "):")
+    )
     for label, name in enumerate(CLASSES):
         lo, hi = prior.magnitude_range(label)
         ident = f" (identifiable {ranges[name][0]:.3g}-{ranges[name][1]:.3g}" if ranges else ""
         if ranges and f"{name}_simulated_max" in ranges:
-            ident += (f"; simulated up to {ranges[name + '_simulated_max'][0]:.3g}: a faster one sweeps more than "
-                      "1e4 scatterers per simulated pixel, classify it with care")
+            ident += (
+                f"; simulated up to {ranges[name + '_simulated_max'][0]:.3g}: a faster one sweeps more than "
+                "1e4 scatterers per simulated pixel, classify it with care"
+            )
         ident += ")" if ranges else ""
         print(f"    {name:>9} ({_RANGE_UNITS[name]}): {lo:.3g}-{hi:.3g}{ident}")
-    print(f"    density {prior.density_per_um3[0]:.3g}-{prior.density_per_um3[1]:.3g} µm⁻³, SNR "
-          f"{prior.snr_db[0]:g}-{prior.snr_db[1]:g} dB (p = {prior.noise_probability:g}), static fraction "
-          f"{prior.static_fraction[0]:g}-{prior.static_fraction[1]:g} (p = {prior.static_probability:g}), flow "
-          f"polar angle {prior.flow_polar_law}" + (f", residual bulk phase step {prior.bulk_residual_step_rad[1]:g} rad"
-                                                   if prior.bulk_residual_step_rad[1] > 0 else "")
-          + (f", a static edge {prior.static_edge_distance[0]:g}-{prior.static_edge_distance[1]:g} PSF SDs away "
-             f"(p = {prior.static_edge_probability:g}; each configuration its own static share)"
-             if prior.static_edge_probability > 0 else ""))
-    print(f"recipe: draws {cfg.draws_train}/{cfg.draws_validation}/{cfg.draws_test} (train/validation/test) × "
-          f"{cfg.replicates} replicates × {cfg.trials_per_draw} trials, at most {cfg.max_epochs} epochs, "
-          f"seed {cfg.seed}, PSF {cfg.truncation} at {cfg.truncation_tolerance:g}")
+    print(
+        f"    density {prior.density_per_um3[0]:.3g}-{prior.density_per_um3[1]:.3g} µm⁻³, SNR "
+        f"{prior.snr_db[0]:g}-{prior.snr_db[1]:g} dB (p = {prior.noise_probability:g}), static fraction "
+        f"{prior.static_fraction[0]:g}-{prior.static_fraction[1]:g} (p = {prior.static_probability:g}), flow "
+        f"polar angle {prior.flow_polar_law}"
+        + (
+            f", residual bulk phase step {prior.bulk_residual_step_rad[1]:g} rad"
+            if prior.bulk_residual_step_rad[1] > 0
+            else ""
+        )
+        + (
+            f", a static edge {prior.static_edge_distance[0]:g}-{prior.static_edge_distance[1]:g} PSF SDs away "
+            f"(p = {prior.static_edge_probability:g}; each configuration its own static share)"
+            if prior.static_edge_probability > 0
+            else ""
+        )
+    )
+    print(
+        f"recipe: draws {cfg.draws_train}/{cfg.draws_validation}/{cfg.draws_test} (train/validation/test) × "
+        f"{cfg.replicates} replicates × {cfg.trials_per_draw} trials, at most {cfg.max_epochs} epochs, "
+        f"seed {cfg.seed}, PSF {cfg.truncation} at {cfg.truncation_tolerance:g}"
+    )
     est = estimate_seconds(spec, prior, cfg, pilot_draws=3 if args.quick else 6, threads=args.threads)
-    print(f"expected time: about {est['total_s'] / 60:.1f} min (simulation {est['simulation_s'] / 60:.1f} min: "
-          f"{est['draws']} draws at {est['pilot_s_per_draw']:.2f} s each on the cores, from a pilot of the first "
-          f"draws; the network's fit at most {est['fit_s'] / 60:.1f} min"
-          + (f"; the scikit-learn baselines {est['baselines_s'] / 60:.1f} min, --no-baselines skips them"
-             if est["baselines_s"] else "") + ")")
+    print(
+        f"expected time: about {est['total_s'] / 60:.1f} min (simulation {est['simulation_s'] / 60:.1f} min: "
+        f"{est['draws']} draws at {est['pilot_s_per_draw']:.2f} s each on the cores, from a pilot of the first "
+        f"draws; the network's fit at most {est['fit_s'] / 60:.1f} min"
+        + (
+            f"; the scikit-learn baselines {est['baselines_s'] / 60:.1f} min, --no-baselines skips them"
+            if est["baselines_s"]
+            else ""
+        )
+        + ")"
+    )
     if not args.no_cache:
-        key, _ = dataset_key(spec, prior, cfg.seed, "train", cfg.draws_train, cfg.trials_per_draw, cfg.replicates,
-                             cfg.truncation_tolerance, truncation=cfg.truncation)
+        key, _ = dataset_key(
+            spec,
+            prior,
+            cfg.seed,
+            "train",
+            cfg.draws_train,
+            cfg.trials_per_draw,
+            cfg.replicates,
+            cfg.truncation_tolerance,
+            truncation=cfg.truncation,
+        )
         print(f"cache: {args.cache or default_cache_dir()} (training split key {key[:16]}; a rerun reuses it)")
     if args.like:
         extra = "".join(f" --{k.replace('_', '-')} {getattr(args, k)}" for k in QUICK if getattr(args, k) is not None)
-        print(f"the same model again: doct-train --spec {paths['.spec.toml']} --prior {paths['.prior.toml']} --out "
-              f"{args.out} --seed {cfg.seed}" + (" --quick" if args.quick else "") + extra)
+        print(
+            f"the same model again: doct-train --spec {paths['.spec.toml']} --prior {paths['.prior.toml']} --out "
+            f"{args.out} --seed {cfg.seed}" + (" --quick" if args.quick else "") + extra
+        )
 
 
 def _write_like_files(spec, prior, ranges, args, paths) -> None:
@@ -261,15 +343,21 @@ def _write_like_files(spec, prior, ranges, args, paths) -> None:
     from .features import toml_text
 
     sources = ", ".join(Path(p).name for p in args.like)
-    paths[".spec.toml"].write_text(toml_text(spec.to_dict(), f"Feature spec derived by doct-train --like from "
-                                                             f"{sources}."), encoding="utf-8")
+    paths[".spec.toml"].write_text(
+        toml_text(spec.to_dict(), f"Feature spec derived by doct-train --like from {sources}."), encoding="utf-8"
+    )
     ranges = ranges or {}
-    header = (f"Training prior of {spec.name}, scaled to its system (classifier.own_system.prior_for_spec): magnitude "
-              "ranges = identifiable ranges\n(closed forms) widened by half a decade, speeds capped where a "
-              "simulated pixel would hold too many scatterers.\nIdentifiable: "
-              + "; ".join(f"{k} {v[0]:.3g}-{v[1]:.3g}" for k, v in ranges.items() if len(v) == 2)
-              + "".join(f"; {k.split('_')[0]} simulated up to {v[0]:.3g} µm/s" for k, v in ranges.items()
-                        if k.endswith("_simulated_max")))
+    header = (
+        f"Training prior of {spec.name}, scaled to its system (classifier.own_system.prior_for_spec): magnitude "
+        "ranges = identifiable ranges\n(closed forms) widened by half a decade, speeds capped where a "
+        "simulated pixel would hold too many scatterers.\nIdentifiable: "
+        + "; ".join(f"{k} {v[0]:.3g}-{v[1]:.3g}" for k, v in ranges.items() if len(v) == 2)
+        + "".join(
+            f"; {k.split('_')[0]} simulated up to {v[0]:.3g} µm/s"
+            for k, v in ranges.items()
+            if k.endswith("_simulated_max")
+        )
+    )
     paths[".prior.toml"].write_text(toml_text(prior.to_dict(), header), encoding="utf-8")
 
 
@@ -282,10 +370,19 @@ def _train_into(args: argparse.Namespace, cfg, paths: dict[str, Path], *, spec=N
     if not args.no_cache:  # should the run be interrupted (torchdoct.runtime.interrupt)
         from .dataset import default_cache_dir
 
-        _interrupt.note(kept=f"the data splits simulated so far, in the cache {args.cache or default_cache_dir()}",
-                        resume="rerun the same command: those splits come from the cache")
-    res = train_to_files(cfg, paths, prior=prior, spec=spec, cache_dir=args.cache, use_cache=not args.no_cache,
-                         progress=not args.no_progress)
+        _interrupt.note(
+            kept=f"the data splits simulated so far, in the cache {args.cache or default_cache_dir()}",
+            resume="rerun the same command: those splits come from the cache",
+        )
+    res = train_to_files(
+        cfg,
+        paths,
+        prior=prior,
+        spec=spec,
+        cache_dir=args.cache,
+        use_cache=not args.no_cache,
+        progress=not args.no_progress,
+    )
     return training_summary(res.report)
 
 
@@ -295,8 +392,9 @@ def _as_typed(message: str) -> str:
     import re
 
     options = {a.dest: a.option_strings[0] for a in build_train_parser()._actions if a.option_strings}
-    text = re.sub(r"TrainConfig\.(\w+)", lambda m: options.get(m.group(1), f"the training recipe's {m.group(1)}"),
-                  message)
+    text = re.sub(
+        r"TrainConfig\.(\w+)", lambda m: options.get(m.group(1), f"the training recipe's {m.group(1)}"), message
+    )
     return re.sub(r"\b[a-z0-9]+(?:_[a-z0-9]+)+\b", lambda m: options.get(m.group(0), m.group(0)), text)
 
 
@@ -306,43 +404,80 @@ def build_classify_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="doct-classify",
         description="Classify every pixel of DOCT maps (from `torchdoct maps`) as diffusion, random-ballistic "
-                    "motion, flow or indeterminate. Writes classes.tif (+ legend.json), probabilities.tif, "
-                    "overlay.png and summary.json into --out.")
+        "motion, flow or indeterminate. Writes classes.tif (+ legend.json), probabilities.tif, "
+        "overlay.png and summary.json into --out.",
+    )
     p.add_argument("maps", nargs="+", help="maps file(s) (.npz or .tif); several files are combined channel by channel")
-    p.add_argument("--model", default=None, help="ONNX model file or shipped model name (default: the shipped signature model whose features "
-                        "the maps hold, two-wavelength-signature for both bands, else single-acquisition)")
+    p.add_argument(
+        "--model",
+        default=None,
+        help="ONNX model file or shipped model name (default: the shipped signature model whose features "
+        "the maps hold, two-wavelength-signature for both bands, else single-acquisition)",
+    )
     p.add_argument("--out", required=True, help="output directory (created if missing)")
-    p.add_argument("--pool", type=int, default=DEFAULT_POOL,
-                   help="average features over N x N (z, x) neighbourhoods first")
-    p.add_argument("--background-db", default=DEFAULT_BACKGROUND_DB,
-                   help="mask pixels whose mean dB intensity is below this; 'auto' = 99th percentile - 30 dB; 'none'")
-    p.add_argument("--decision", choices=("conformal", "rule"), default=None,
-                   help="conformal (the default for a model with a calibration file beside it): the prediction set "
-                        "of each pixel at error level --alpha; a single class is a decision, two classes a set "
-                        "label such as ballistic-or-flow, all three indeterminate (docs/abstention.md). rule: the "
-                        "model's argmax with its indeterminate class and --min-probability")
-    p.add_argument("--alpha", type=float, default=None,
-                   help="error level of the conformal sets (default 0.1): on data like the calibration set, a set "
-                        "holds the true class with probability at least 1 - alpha; larger alpha: smaller sets, "
-                        "more pixels decided")
-    p.add_argument("--min-probability", type=float, default=None,
-                   help="with --decision rule: override the model's threshold below which a pixel is indeterminate "
-                        "(higher: fewer pixels decided, more of them right; the model's report tabulates the trade-off)")
-    p.add_argument("--decide-ballistic", action="store_true",
-                   help="keep the model's decisions; by default a ballistic or diffusion decision is flow where the "
-                        "speckle pattern moved coherently, and a ballistic one ballistic-or-flow where the physics "
-                        "cannot exclude flow (every other B-scan pixel; a volume's pixels that have not decorrelated "
-                        "or decorrelated before the shortest lag), and a ballistic or diffusion one its set with flow "
-                        "where the pattern's offset moved off the centre or grew with the lag; docs/abstention.md)")
-    p.add_argument("--ignore-refractive-index", action="store_true",
-                   help="accept maps whose system refractive index differs from the model's")
-    p.add_argument("--threads", type=int, default=None, metavar="N",
-                   help="cores to use: chunks of pixels side by side, one onnxruntime thread each (default: "
-                        "$TORCHDOCT_THREADS, else the usable cores); results do not depend on N")
+    p.add_argument(
+        "--pool", type=int, default=DEFAULT_POOL, help="average features over N x N (z, x) neighbourhoods first"
+    )
+    p.add_argument(
+        "--background-db",
+        default=DEFAULT_BACKGROUND_DB,
+        help="mask pixels whose mean dB intensity is below this; 'auto' = 99th percentile - 30 dB; 'none'",
+    )
+    p.add_argument(
+        "--decision",
+        choices=("conformal", "rule"),
+        default=None,
+        help="conformal (the default for a model with a calibration file beside it): the prediction set "
+        "of each pixel at error level --alpha; a single class is a decision, two classes a set "
+        "label such as ballistic-or-flow, all three indeterminate (docs/abstention.md). rule: the "
+        "model's argmax with its indeterminate class and --min-probability",
+    )
+    p.add_argument(
+        "--alpha",
+        type=float,
+        default=None,
+        help="error level of the conformal sets (default 0.1): on data like the calibration set, a set "
+        "holds the true class with probability at least 1 - alpha; larger alpha: smaller sets, "
+        "more pixels decided",
+    )
+    p.add_argument(
+        "--min-probability",
+        type=float,
+        default=None,
+        help="with --decision rule: override the model's threshold below which a pixel is indeterminate "
+        "(higher: fewer pixels decided, more of them right; the model's report tabulates the trade-off)",
+    )
+    p.add_argument(
+        "--decide-ballistic",
+        action="store_true",
+        help="keep the model's decisions; by default a ballistic or diffusion decision is flow where the "
+        "speckle pattern moved coherently, and a ballistic one ballistic-or-flow where the physics "
+        "cannot exclude flow (every other B-scan pixel; a volume's pixels that have not decorrelated "
+        "or decorrelated before the shortest lag), and a ballistic or diffusion one its set with flow "
+        "where the pattern's offset moved off the centre or grew with the lag; docs/abstention.md)",
+    )
+    p.add_argument(
+        "--ignore-refractive-index",
+        action="store_true",
+        help="accept maps whose system refractive index differs from the model's",
+    )
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        metavar="N",
+        help="cores to use: chunks of pixels side by side, one onnxruntime thread each (default: "
+        "$TORCHDOCT_THREADS, else the usable cores); results do not depend on N",
+    )
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.add_argument("--max-input-gb", type=float, default=None, metavar="GB",
-                   help="largest maps array to read (GiB; default 8 or $TORCHDOCT_MAX_INPUT_GB)")
+    p.add_argument(
+        "--max-input-gb",
+        type=float,
+        default=None,
+        metavar="GB",
+        help="largest maps array to read (GiB; default 8 or $TORCHDOCT_MAX_INPUT_GB)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar (as TQDM_DISABLE=1)")
     return p
 
@@ -375,11 +510,18 @@ def _classify(args: argparse.Namespace) -> int:
 
     check_classify("doct-classify", args.maps, max_input_bytes())  # memory, before anything is read
     try:
-        res = infer.classify_maps(args.maps, args.model, pool=args.pool, background_db=bg,
-                                  min_probability=args.min_probability,
-                                  ignore_refractive_index=args.ignore_refractive_index, threads=args.threads,
-                                  decision=args.decision, alpha=args.alpha,
-                                  abstain_ambiguous=not args.decide_ballistic)
+        res = infer.classify_maps(
+            args.maps,
+            args.model,
+            pool=args.pool,
+            background_db=bg,
+            min_probability=args.min_probability,
+            ignore_refractive_index=args.ignore_refractive_index,
+            threads=args.threads,
+            decision=args.decision,
+            alpha=args.alpha,
+            abstain_ambiguous=not args.decide_ballistic,
+        )
     except ValueError as err:
         raise ValueError(_signature_hint(str(err))) from None
     written = infer.write_classification(res, args.out, force=args.force)
@@ -388,27 +530,39 @@ def _classify(args: argparse.Namespace) -> int:
         print(json.dumps({"counts": counts, "info": res.info, "written": [str(p) for p in written]}, indent=1))
     else:
         total = max(res.info["classified"], 1)
-        print(f"model {res.model.path.name} ({res.model.metadata['spec']['name']}), pool {res.info['pool']}: "
-              f"{res.info['classified']} of {res.info['pixels']} pixels classified "
-              f"({res.info['background_pixels']} background, {res.info['nan_pixels']} NaN"
-              + (f", {res.info['out_of_range_pixels']} with a feature outside its physical range: masked"
-                 if res.info.get("out_of_range_pixels") else "") + ")")
+        print(
+            f"model {res.model.path.name} ({res.model.metadata['spec']['name']}), pool {res.info['pool']}: "
+            f"{res.info['classified']} of {res.info['pixels']} pixels classified "
+            f"({res.info['background_pixels']} background, {res.info['nan_pixels']} NaN"
+            + (
+                f", {res.info['out_of_range_pixels']} with a feature outside its physical range: masked"
+                if res.info.get("out_of_range_pixels")
+                else ""
+            )
+            + ")"
+        )
         conf = res.info.get("conformal")
         if conf:
             print(f"  decision: conformal prediction sets at alpha {conf['alpha']:g} (docs/abstention.md)")
         amb = res.info.get("ambiguity")
         if amb and amb["changed_pixels"].get("coherent_motion"):
-            print(f"  flow where the speckle pattern moved coherently: {amb['changed_pixels']['coherent_motion']} pixels "
-                  "decided as a direction-symmetric motion (--decide-ballistic keeps the model's decisions)")
+            print(
+                f"  flow where the speckle pattern moved coherently: {amb['changed_pixels']['coherent_motion']} pixels "
+                "decided as a direction-symmetric motion (--decide-ballistic keeps the model's decisions)"
+            )
         ch = amb["changed_pixels"] if amb else {}
         if ch and ch["bscan_plane"] + ch["slow_decorrelation"] + ch.get("fast_decorrelation", 0):
-            print(f"  ballistic-or-flow where flow cannot be excluded: {ch['bscan_plane']} B-scan "
-                  f"pixels (flow across the plane), {ch['slow_decorrelation']} not decorrelated, "
-                  f"{ch.get('fast_decorrelation', 0)} decorrelated before the first lag "
-                  "(--decide-ballistic keeps the model's decisions)")
+            print(
+                f"  ballistic-or-flow where flow cannot be excluded: {ch['bscan_plane']} B-scan "
+                f"pixels (flow across the plane), {ch['slow_decorrelation']} not decorrelated, "
+                f"{ch.get('fast_decorrelation', 0)} decorrelated before the first lag "
+                "(--decide-ballistic keeps the model's decisions)"
+            )
         if ch.get("offset_moved"):
-            print(f"  a set with flow where the pattern's offset moved: {ch['offset_moved']} ballistic or diffusion "
-                  "decisions (--decide-ballistic keeps the model's decisions)")
+            print(
+                f"  a set with flow where the pattern's offset moved: {ch['offset_moved']} ballistic or diffusion "
+                "decisions (--decide-ballistic keeps the model's decisions)"
+            )
         for c in res.label_names:
             print(f"  {c:>22}: {counts[c]:>9} ({counts[c] / total:6.1%})")
         print(f"  {res.info['pixels_per_s']:.3g} pixels/s; wrote {', '.join(p.name for p in written)} to {args.out}")
@@ -425,10 +579,12 @@ def _signature_hint(message: str) -> str:
     m = re.search(r"maps lack the model feature '([^'@]+)@", message)
     if m is None or m.group(1) in ("liv", "ocds", "mean_db", "aliv", "swiftness") or "--signature" in message:
         return message
-    return (f"{message}. The model reads decorrelation-signature channels ({m.group(1)}, ...), which "
-            "`torchdoct maps` writes only with --signature: compute the maps again with `torchdoct maps DATA "
-            "--resolution ... --signature --out MAPS`, or classify with the LIV/OCDS model (--model "
-            "single-acquisition-bscan for B-scans, single-acquisition for volumes)")
+    return (
+        f"{message}. The model reads decorrelation-signature channels ({m.group(1)}, ...), which "
+        "`torchdoct maps` writes only with --signature: compute the maps again with `torchdoct maps DATA "
+        "--resolution ... --signature --out MAPS`, or classify with the LIV/OCDS model (--model "
+        "single-acquisition-bscan for B-scans, single-acquisition for volumes)"
+    )
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -41,8 +41,19 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SCHEMA_VERSION", "conformal_quantile", "scores_lac", "prediction_sets", "set_label_names",
-           "set_labels", "pool_thresholds", "thresholds_for", "decide", "check_calibration", "MODES"]
+__all__ = [
+    "SCHEMA_VERSION",
+    "conformal_quantile",
+    "scores_lac",
+    "prediction_sets",
+    "set_label_names",
+    "set_labels",
+    "pool_thresholds",
+    "thresholds_for",
+    "decide",
+    "check_calibration",
+    "MODES",
+]
 
 SCHEMA_VERSION = 1
 INDETERMINATE = "indeterminate"
@@ -99,26 +110,38 @@ def set_labels(members: np.ndarray, classes: Sequence[str]) -> np.ndarray:
 def check_calibration(cal: dict[str, Any], classes: Sequence[str], where: str) -> None:
     """A ``ValueError`` naming ``where`` and the field when a calibration record is not one this version reads."""
     if not isinstance(cal, dict) or cal.get("schema_version") != SCHEMA_VERSION:
-        raise ValueError(f"{where}: calibration schema_version {cal.get('schema_version') if isinstance(cal, dict) else None!r} "
-                         f"is not {SCHEMA_VERSION}; calibrate the model again (python -m classifier.calibrate)")
+        raise ValueError(
+            f"{where}: calibration schema_version {cal.get('schema_version') if isinstance(cal, dict) else None!r} "
+            f"is not {SCHEMA_VERSION}; calibrate the model again (python -m classifier.calibrate)"
+        )
     if cal.get("mode", MODES[0]) not in MODES:
-        raise ValueError(f"{where}: calibration mode {cal.get('mode')!r} is not one of {', '.join(MODES)}; "
-                         "calibrate the model again")
+        raise ValueError(
+            f"{where}: calibration mode {cal.get('mode')!r} is not one of {', '.join(MODES)}; calibrate the model again"
+        )
     if cal.get("score") != "lac" or list(cal.get("classes", [])) != list(classes):
-        raise ValueError(f"{where}: calibration of classes {cal.get('classes')!r} with score {cal.get('score')!r}; "
-                         f"the model's classes are {list(classes)} (score 'lac'): calibrate this model again")
+        raise ValueError(
+            f"{where}: calibration of classes {cal.get('classes')!r} with score {cal.get('score')!r}; "
+            f"the model's classes are {list(classes)} (score 'lac'): calibrate this model again"
+        )
     pools = cal.get("pools")
     if not isinstance(pools, list) or not pools:
         raise ValueError(f"{where}: calibration has no 'pools' list; calibrate the model again")
     for p in pools:
         sc = p.get("scores") if isinstance(p, dict) else None
         tr = p.get("truth") if isinstance(p, dict) else None
-        if not isinstance(sc, list) or not sc or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in sc) \
-                or not isinstance(tr, list) or len(tr) != len(sc) \
-                or not all(isinstance(v, int) and 0 <= v < len(classes) for v in tr) \
-                or not isinstance(p.get("pool_pixels"), (int, float)):
-            raise ValueError(f"{where}: calibration pool {p.get('pool_pixels') if isinstance(p, dict) else p!r} lacks "
-                             "'pool_pixels', finite 'scores' or a class index per score in 'truth'; calibrate the model again")
+        if (
+            not isinstance(sc, list)
+            or not sc
+            or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in sc)
+            or not isinstance(tr, list)
+            or len(tr) != len(sc)
+            or not all(isinstance(v, int) and 0 <= v < len(classes) for v in tr)
+            or not isinstance(p.get("pool_pixels"), (int, float))
+        ):
+            raise ValueError(
+                f"{where}: calibration pool {p.get('pool_pixels') if isinstance(p, dict) else p!r} lacks "
+                "'pool_pixels', finite 'scores' or a class index per score in 'truth'; calibrate the model again"
+            )
 
 
 MODES = ("class-conditional", "marginal")
@@ -149,8 +172,14 @@ def thresholds_for(cal: dict[str, Any], pool_pixels: np.ndarray, alpha: float, m
     return qs[k]
 
 
-def decide(probabilities: np.ndarray, pool_pixels: np.ndarray, classes: Sequence[str], cal: dict[str, Any],
-           alpha: float, mode: str = MODES[0]) -> tuple[np.ndarray, np.ndarray]:
+def decide(
+    probabilities: np.ndarray,
+    pool_pixels: np.ndarray,
+    classes: Sequence[str],
+    cal: dict[str, Any],
+    alpha: float,
+    mode: str = MODES[0],
+) -> tuple[np.ndarray, np.ndarray]:
     """``(labels [N], set_size [N])``: the label of every row's prediction set (:func:`set_labels`) and
     the number of model classes in it."""
     q = thresholds_for(cal, pool_pixels, alpha, mode)

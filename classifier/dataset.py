@@ -38,8 +38,7 @@ __all__ = [
     "make_dataset",
 ]
 
-_ARRAYS = ("x", "y", "draw", "group", "status", "magnitude", "density", "static_fraction", "snr_db",
-           "polar_angle_deg")
+_ARRAYS = ("x", "y", "draw", "group", "status", "magnitude", "density", "static_fraction", "snr_db", "polar_angle_deg")
 
 
 @dataclass
@@ -105,16 +104,34 @@ def default_cache_dir() -> Path:
     return Path(base) / "torchdoct" / "classifier"
 
 
-def dataset_key(spec: FeatureSpec, prior: Prior, seed: int, split: str, draws: int, trials_per_draw: int,
-                replicates: int, truncation_tolerance: float, bulk_phase: bool = False,
-                truncation: str = "hard") -> tuple[str, dict[str, Any]]:
+def dataset_key(
+    spec: FeatureSpec,
+    prior: Prior,
+    seed: int,
+    split: str,
+    draws: int,
+    trials_per_draw: int,
+    replicates: int,
+    truncation_tolerance: float,
+    bulk_phase: bool = False,
+    truncation: str = "hard",
+) -> tuple[str, dict[str, Any]]:
     """Cache key (hex SHA-256) and the JSON-able description it hashes."""
     import torchdoct
 
-    desc = {"spec": spec.to_dict(), "prior": prior.to_dict(), "seed": int(seed), "split": split,
-            "draws": int(draws), "trials_per_draw": int(trials_per_draw), "replicates": int(replicates),
-            "truncation_tolerance": float(truncation_tolerance), "torchdoct_version": torchdoct.__version__,
-            "identifiability": IDENTIFIABILITY_VERSION, "format": 3}
+    desc = {
+        "spec": spec.to_dict(),
+        "prior": prior.to_dict(),
+        "seed": int(seed),
+        "split": split,
+        "draws": int(draws),
+        "trials_per_draw": int(trials_per_draw),
+        "replicates": int(replicates),
+        "truncation_tolerance": float(truncation_tolerance),
+        "torchdoct_version": torchdoct.__version__,
+        "identifiability": IDENTIFIABILITY_VERSION,
+        "format": 3,
+    }
     if spec.is_signature:
         desc["signature_extractor"] = _signature_version()
     if bulk_phase:
@@ -138,30 +155,46 @@ def _positive_int(name: str, v: Any) -> int:
     return v
 
 
-def _check_resources(spec: FeatureSpec, split: str, draws: int, trials_per_draw: int, replicates: int,
-                     path: Path | None) -> None:
+def _check_resources(
+    spec: FeatureSpec, split: str, draws: int, trials_per_draw: int, replicates: int, path: Path | None
+) -> None:
     """The split's arrays fit in memory twice (the pieces of every draw and their concatenation) and once in
     the cache's folder: :func:`torchdoct.runtime.resources.check_resources`, before any draw is simulated."""
     from torchdoct.runtime.resources import check_resources
 
     n = draws * replicates * trials_per_draw
-    per_sample = 4 * spec.n_features + 8 * (len(_ARRAYS) - 1) + (8 * len(spec.configurations) if spec.is_signature
-                                                                   else 0)
+    per_sample = (
+        4 * spec.n_features + 8 * (len(_ARRAYS) - 1) + (8 * len(spec.configurations) if spec.is_signature else 0)
+    )
     check_resources(  # on disk: the finished draws until the split is written, then the split
-        f"the {split} split of {spec.name!r}", 2 * n * per_sample,
+        f"the {split} split of {spec.name!r}",
+        2 * n * per_sample,
         "lower the draws (doct-train --draws-train, --draws-validation, --draws-test), --trials-per-draw or "
         "--replicates",
         detail=f"{n} samples = {draws} draws × {replicates} replicates × {trials_per_draw} trials, "
-               f"{per_sample} bytes each, twice while gathered",
-        out_path=None if path is None else path.parent, out_bytes=2 * n * per_sample,
-        out_fix="free disk space there, give another --cache directory, or --no-cache")
+        f"{per_sample} bytes each, twice while gathered",
+        out_path=None if path is None else path.parent,
+        out_bytes=2 * n * per_sample,
+        out_fix="free disk space there, give another --cache directory, or --no-cache",
+    )
 
 
-def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: int = 0, split: str = "train",
-                 draws: int = 300, trials_per_draw: int = 64, replicates: int = 8,
-                 truncation_tolerance: float = 1e-2, cache_dir: str | os.PathLike | None = None,
-                 use_cache: bool = True, progress: bool = False, bulk_phase: bool = False,
-                 truncation: str = DEFAULT_TRUNCATION) -> Dataset:
+def make_dataset(
+    spec: FeatureSpec | str,
+    prior: Prior | None = None,
+    *,
+    seed: int = 0,
+    split: str = "train",
+    draws: int = 300,
+    trials_per_draw: int = 64,
+    replicates: int = 8,
+    truncation_tolerance: float = 1e-2,
+    cache_dir: str | os.PathLike | None = None,
+    use_cache: bool = True,
+    progress: bool = False,
+    bulk_phase: bool = False,
+    truncation: str = DEFAULT_TRUNCATION,
+) -> Dataset:
     """Simulate (or load from the cache) one split of labelled feature vectors.
 
     ``draws`` parameter draws × ``replicates`` (static fraction, SNR) settings × ``trials_per_draw``
@@ -183,8 +216,9 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
     _positive_int("replicates", replicates)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer; got {seed!r}")
-    key, desc = dataset_key(spec, prior, seed, split, draws, trials_per_draw, replicates, truncation_tolerance,
-                            bulk_phase, truncation)
+    key, desc = dataset_key(
+        spec, prior, seed, split, draws, trials_per_draw, replicates, truncation_tolerance, bulk_phase, truncation
+    )
     path = None
     if use_cache:
         cdir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
@@ -205,23 +239,41 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
 
     def one(k: int):
         d = draw_parameters(prior, seed, split, k, replicates)
-        return simulate_draw(spec, d, prior, trials=trials_per_draw, truncation_tolerance=truncation_tolerance,
-                             bulk_phase=bulk_phase, truncation=truncation)
+        return simulate_draw(
+            spec,
+            d,
+            prior,
+            trials=trials_per_draw,
+            truncation_tolerance=truncation_tolerance,
+            bulk_phase=bulk_phase,
+            truncation=truncation,
+        )
 
     # draws side by side on the usable cores, in threads (the cell runner, torchdoct.study.cells: one
     # torch thread each; every draw has its own seeds, so the dataset does not depend on the number of
     # threads); each finished draw is kept beside the split's cache file until the split is written, so
     # an interrupted run resumes from the draws it finished
     draw_cache = CellCache(None if path is None else path.with_name(f".{path.stem}.draws"))
-    jobs = [CellJob(key=f"draw-{k}-{hashlib.sha256(f'{key}:{k}'.encode()).hexdigest()[:24]}", payload=k)
-            for k in range(draws)]
+    jobs = [
+        CellJob(key=f"draw-{k}-{hashlib.sha256(f'{key}:{k}'.encode()).hexdigest()[:24]}", payload=k)
+        for k in range(draws)
+    ]
 
     def execute(payloads: list, done) -> None:
         run_cells(one, payloads, done=done, workers=resolve_threads(None), one_torch_thread=True)
 
     results, _ = run_cached(
-        jobs, cache=draw_cache, execute=execute, encode=_encode_draw, decode=_decode_draw, progress=progress,
-        desc=f"simulate {spec.name}/{split}", unit="draw", what="draws of this split", final_note=False)
+        jobs,
+        cache=draw_cache,
+        execute=execute,
+        encode=_encode_draw,
+        decode=_decode_draw,
+        progress=progress,
+        desc=f"simulate {spec.name}/{split}",
+        unit="draw",
+        what="draws of this split",
+        final_note=False,
+    )
     for k, res in enumerate(results):  # gathered in draw order
         d = draw_parameters(prior, seed, split, k, replicates)
         x, zero = res[0], res[1]
@@ -249,10 +301,19 @@ def make_dataset(spec: FeatureSpec | str, prior: Prior | None = None, *, seed: i
     elapsed = time.perf_counter() - t0
     arrays = {k: np.concatenate(v) for k, v in cols.items()}
     arrays["x"] = arrays["x"].astype(np.float32).reshape(-1, spec.n_features)
-    meta = {"key": key, **desc, "feature_names": list(spec.feature_names), "classes": list(CLASSES),
-            "status_names": list(STATUS), "draw_status_counts": status_counts, "dropped_empty": dropped,
-            "elapsed_s": elapsed, "seconds_per_draw": elapsed / draws,
-            "seconds_per_trial": elapsed / (draws * trials_per_draw), "from_cache": False}
+    meta = {
+        "key": key,
+        **desc,
+        "feature_names": list(spec.feature_names),
+        "classes": list(CLASSES),
+        "status_names": list(STATUS),
+        "draw_status_counts": status_counts,
+        "dropped_empty": dropped,
+        "elapsed_s": elapsed,
+        "seconds_per_draw": elapsed / draws,
+        "seconds_per_trial": elapsed / (draws * trials_per_draw),
+        "from_cache": False,
+    }
     x_ref = np.concatenate(refs).astype(np.float32) if refs else None
     ds = Dataset(**arrays, meta=meta, x_ref=x_ref)
     if path is not None:

@@ -59,7 +59,9 @@ def read_rendered_labels(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarra
     try:
         check_regular_file(p, "sequence file")
     except FileNotFoundError:
-        raise ValueError(f"{p}: no such file; give the sequence file that `torchdoct render` wrote (.npz or .h5)") from None
+        raise ValueError(
+            f"{p}: no such file; give the sequence file that `torchdoct render` wrote (.npz or .h5)"
+        ) from None
     from torchdoct.measured.guards import check_declared_size, check_npz_sizes
 
     if p.suffix == ".npz":
@@ -131,8 +133,9 @@ def _interior(labels: np.ndarray, edge_px: tuple[int, ...]) -> np.ndarray:
     return (lo == labels) & (hi == labels)
 
 
-def _scores(truth: np.ndarray, decided: np.ndarray, mag_err: np.ndarray | None,
-            in68: np.ndarray | None, in95: np.ndarray | None) -> dict[str, Any]:
+def _scores(
+    truth: np.ndarray, decided: np.ndarray, mag_err: np.ndarray | None, in68: np.ndarray | None, in95: np.ndarray | None
+) -> dict[str, Any]:
     """Scores of the scored pixels: ``truth`` and ``decided`` index the motion types
     (``list(MOVING_CODES.values())``); ``decided`` is -1 where indeterminate."""
     names = list(MOVING_CODES.values())
@@ -148,8 +151,12 @@ def _scores(truth: np.ndarray, decided: np.ndarray, mag_err: np.ndarray | None,
             continue
         d = t & dec
         rec = float((decided[d] == k).mean()) if d.any() else None
-        per[name] = {"pixels": int(t.sum()), "coverage": float(d.sum() / t.sum()), "recall": rec,
-                     "decided_as": {n: int((decided[t] == j).sum()) for j, n in enumerate(names)}}
+        per[name] = {
+            "pixels": int(t.sum()),
+            "coverage": float(d.sum() / t.sum()),
+            "recall": rec,
+            "decided_as": {n: int((decided[t] == j).sum()) for j, n in enumerate(names)},
+        }
         if rec is not None:
             recalls.append(rec)
     out["per_class"] = per
@@ -167,8 +174,13 @@ def _scores(truth: np.ndarray, decided: np.ndarray, mag_err: np.ndarray | None,
     return out
 
 
-def score_images(classified_dir: str | os.PathLike, labels: np.ndarray | str | os.PathLike,
-                 label_params: np.ndarray | None = None, *, edge_um: float = 0.0) -> dict[str, Any]:
+def score_images(
+    classified_dir: str | os.PathLike,
+    labels: np.ndarray | str | os.PathLike,
+    label_params: np.ndarray | None = None,
+    *,
+    edge_um: float = 0.0,
+) -> dict[str, Any]:
     """Scores of the ``doct-classify`` output in ``classified_dir`` against rendered labels (module docstring).
 
     ``labels``: the motion codes per pixel (same spatial shape as ``classes.tif``), or the path of the
@@ -187,13 +199,16 @@ def score_images(classified_dir: str | os.PathLike, labels: np.ndarray | str | o
     labels = np.asarray(labels)
     classes, legend, mag = _read_classified(out_dir)
     if classes.shape != labels.shape:
-        raise ValueError(f"{out_dir}/classes.tif has shape {classes.shape} but the labels have {labels.shape}; "
-                         "give the labels of the phantom rendering that these maps were computed from")
+        raise ValueError(
+            f"{out_dir}/classes.tif has shape {classes.shape} but the labels have {labels.shape}; "
+            "give the labels of the phantom rendering that these maps were computed from"
+        )
     try:
         values = {str(c["name"]): int(c["value"]) for c in legend["classes"]}
     except (KeyError, TypeError, ValueError):
-        raise ValueError(f"{out_dir}/legend.json: no list of classes with 'name' and 'value'; "
-                         "run doct-classify again") from None
+        raise ValueError(
+            f"{out_dir}/legend.json: no list of classes with 'name' and 'value'; run doct-classify again"
+        ) from None
     names = list(values)
     missing = [n for n in MOVING_CODES.values() if n not in names]
     if missing:
@@ -208,8 +223,10 @@ def score_images(classified_dir: str | os.PathLike, labels: np.ndarray | str | o
     axes = str(legend.get("axes", ""))
     pitch = legend.get("pitch_um") or {}
     if edge_um > 0 and (len(axes) != labels.ndim or any(a.lower() not in pitch for a in axes)):
-        raise ValueError(f"{out_dir}/legend.json: no pixel pitch per axis ({axes!r}, {pitch!r}); "
-                         "edge_um needs maps with a pitch (torchdoct maps --pitch-um)")
+        raise ValueError(
+            f"{out_dir}/legend.json: no pixel pitch per axis ({axes!r}, {pitch!r}); "
+            "edge_um needs maps with a pitch (torchdoct maps --pitch-um)"
+        )
     edge_px = tuple(int(math.floor(edge_um / float(pitch[a.lower()]) + 1e-9)) for a in axes) if edge_um > 0 else ()
     keep = _interior(labels, edge_px) if edge_px else np.ones(labels.shape, bool)
     keep &= np.isin(labels, list(MOVING_CODES)) & (classes != _MASKED)
@@ -221,8 +238,10 @@ def score_images(classified_dir: str | os.PathLike, labels: np.ndarray | str | o
     if label_params is not None:
         label_params = np.asarray(label_params, np.float64)
         if label_params.shape != (2, *labels.shape):
-            raise ValueError(f"label_params has shape {label_params.shape}; want (2, *labels.shape) = "
-                             f"{(2, *labels.shape)} (D in µm²/s and speed in µm/s per pixel)")
+            raise ValueError(
+                f"label_params has shape {label_params.shape}; want (2, *labels.shape) = "
+                f"{(2, *labels.shape)} (D in µm²/s and speed in µm/s per pixel)"
+            )
         magnitude = np.full(labels.shape, np.nan)
         for code, name in MOVING_CODES.items():
             sel = labels == code
@@ -236,14 +255,21 @@ def score_images(classified_dir: str | os.PathLike, labels: np.ndarray | str | o
         in95 = (mag[3] <= true_log) & (true_log <= mag[4])
 
     def sub(sel: np.ndarray) -> dict[str, Any]:
-        return _scores(truth[sel], decided[sel], None if mag_err is None else mag_err[sel], None if in68 is None else in68[sel],
-                       None if in95 is None else in95[sel])
+        return _scores(
+            truth[sel],
+            decided[sel],
+            None if mag_err is None else mag_err[sel],
+            None if in68 is None else in68[sel],
+            None if in95 is None else in95[sel],
+        )
 
     result: dict[str, Any] = {"edge_um": edge_um, "overall": sub(keep)}
     summary = out_dir / "summary.json"
     if summary.is_file():
         try:
-            result["pool"] = json_loads(read_capped(summary, "summary.json").decode("utf-8")).get("info", {}).get("pool")
+            result["pool"] = (
+                json_loads(read_capped(summary, "summary.json").decode("utf-8")).get("info", {}).get("pool")
+            )
         except (ValueError, AttributeError):  # not doct-classify's summary: no pool recorded
             result["pool"] = None
     regions = []
@@ -253,30 +279,38 @@ def score_images(classified_dir: str | os.PathLike, labels: np.ndarray | str | o
             for value in np.unique(magnitude[sel]):
                 r = sub(sel & (magnitude == value))
                 r.pop("balanced_accuracy", None)
-                regions.append({"motion": name, "value": float(value),
-                                "unit": "µm²/s" if name == "diffusion" else "µm/s", **r})
+                regions.append(
+                    {"motion": name, "value": float(value), "unit": "µm²/s" if name == "diffusion" else "µm/s", **r}
+                )
     result["regions"] = regions
     return result
 
 
 def format_scores(scores: dict[str, Any]) -> str:
     """A few lines of text: the overall scores and one line per region."""
+
     def f(v: Any) -> str:
         return "n/a" if v is None else f"{v:.3f}"
 
     o = scores["overall"]
-    lines = [f"pool {scores.get('pool')}, edge {scores['edge_um']:g} µm: {o['pixels']} labelled moving pixels, "
-             f"coverage {f(o['coverage'])}, balanced accuracy {f(o['balanced_accuracy'])}, accuracy {f(o['accuracy'])}"]
+    lines = [
+        f"pool {scores.get('pool')}, edge {scores['edge_um']:g} µm: {o['pixels']} labelled moving pixels, "
+        f"coverage {f(o['coverage'])}, balanced accuracy {f(o['balanced_accuracy'])}, accuracy {f(o['accuracy'])}"
+    ]
     m = o.get("magnitude")
     if m:
-        lines.append(f"  magnitude (right type, {m['pixels']} px): median |log10 error| {f(m['median_abs_log10_error'])}, "
-                     f"in 68 % / 95 % interval {f(m['in_68'])} / {f(m['in_95'])}")
+        lines.append(
+            f"  magnitude (right type, {m['pixels']} px): median |log10 error| {f(m['median_abs_log10_error'])}, "
+            f"in 68 % / 95 % interval {f(m['in_68'])} / {f(m['in_95'])}"
+        )
     for r in scores["regions"]:
         c = r["per_class"].get(r["motion"], {})
         mm = r.get("magnitude") or {}
-        lines.append(f"  {r['motion']:>9} {r['value']:<7g} {r['unit']:<5}: {r['pixels']:5d} px, coverage {f(r['coverage'])}, "
-                     f"recall {f(c.get('recall'))}, decided as {c.get('decided_as')}, "
-                     f"median |log10 error| {f(mm.get('median_abs_log10_error'))}")
+        lines.append(
+            f"  {r['motion']:>9} {r['value']:<7g} {r['unit']:<5}: {r['pixels']:5d} px, coverage {f(r['coverage'])}, "
+            f"recall {f(c.get('recall'))}, decided as {c.get('decided_as')}, "
+            f"median |log10 error| {f(mm.get('median_abs_log10_error'))}"
+        )
     return "\n".join(lines)
 
 
@@ -285,15 +319,22 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m classifier.evaluate_images CLASSIFIED RENDERED [--edge-um E] [--json]``: print the scores."""
     import argparse
 
-    ap = argparse.ArgumentParser(prog="python -m classifier.evaluate_images",
-                                 description="Score a doct-classify output against the labels of a rendered phantom.")
+    ap = argparse.ArgumentParser(
+        prog="python -m classifier.evaluate_images",
+        description="Score a doct-classify output against the labels of a rendered phantom.",
+    )
     ap.add_argument("classified", help="the --out directory of doct-classify")
     ap.add_argument("rendered", help="the sequence file of `torchdoct render` (.npz or .h5) the maps came from")
-    ap.add_argument("--edge-um", type=float, default=0.0,
-                    help="leave out pixels within this distance (µm, per axis) of another label (default 0)")
+    ap.add_argument(
+        "--edge-um",
+        type=float,
+        default=0.0,
+        help="leave out pixels within this distance (µm, per axis) of another label (default 0)",
+    )
     ap.add_argument("--json", action="store_true", help="print the scores as JSON")
-    ap.add_argument("--no-progress", action="store_true",
-                    help="accepted as on every command; scoring shows no progress bar")
+    ap.add_argument(
+        "--no-progress", action="store_true", help="accepted as on every command; scoring shows no progress bar"
+    )
     args = ap.parse_args(argv)
     try:
         scores = score_images(args.classified, args.rendered, edge_um=args.edge_um)

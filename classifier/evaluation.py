@@ -43,8 +43,7 @@ from .report import (
 )
 from .rule import INDETERMINATE
 
-__all__ = ["CLASS_NAMES", "evaluate_set", "magnitude_metrics", "bootstrap_draws", "coverage_thresholds",
-           "CONDITIONS"]
+__all__ = ["CLASS_NAMES", "evaluate_set", "magnitude_metrics", "bootstrap_draws", "coverage_thresholds", "CONDITIONS"]
 
 #: Output classes of every model: the motion types, then ``indeterminate``.
 CLASS_NAMES = (*CLASSES, INDETERMINATE)
@@ -59,8 +58,16 @@ def coverage_thresholds(rule: dict[str, Any]) -> list[float]:
     return sorted({*COVERAGE_THRESHOLDS, float(rule["min_probability"])})
 
 
-def magnitude_metrics(mean: np.ndarray, sd: np.ndarray, y: np.ndarray, status: np.ndarray, magnitude: np.ndarray,
-                      *, class_names: Sequence[str] = CLASSES, class_samples: bool = True) -> dict[str, Any]:
+def magnitude_metrics(
+    mean: np.ndarray,
+    sd: np.ndarray,
+    y: np.ndarray,
+    status: np.ndarray,
+    magnitude: np.ndarray,
+    *,
+    class_names: Sequence[str] = CLASSES,
+    class_samples: bool = True,
+) -> dict[str, Any]:
     """|log10 error| of the predicted magnitude and the coverage of its intervals, on identifiable samples.
 
     ``mean``, ``sd``: predicted log10 magnitude and its predictive SD per motion class, ``[N, K]`` (only the
@@ -78,8 +85,11 @@ def magnitude_metrics(mean: np.ndarray, sd: np.ndarray, y: np.ndarray, status: n
     mu = mean[ident][rows, yy].astype(np.float64)
     s = sd[ident][rows, yy].astype(np.float64)
     err = np.abs(mu - np.log10(magnitude[ident]))
-    out: dict[str, Any] = {"samples": int(yy.size), "median_abs_log10_error": float(np.median(err)),
-                           "mean_abs_log10_error": float(err.mean())}
+    out: dict[str, Any] = {
+        "samples": int(yy.size),
+        "median_abs_log10_error": float(np.median(err)),
+        "mean_abs_log10_error": float(err.mean()),
+    }
     for key, k in _INTERVALS:
         out[key] = float(np.mean(err <= k * s))
     out["median_predicted_sd"] = float(np.median(s))
@@ -98,8 +108,7 @@ def magnitude_metrics(mean: np.ndarray, sd: np.ndarray, y: np.ndarray, status: n
 
 
 def _band_scalars(fb: dict[str, Any]) -> dict[str, float]:
-    return {f"{kind}:{name}": r["recall"] for kind in ("polar_bands", "speed_decades")
-            for name, r in fb[kind].items()}
+    return {f"{kind}:{name}": r["recall"] for kind in ("polar_bands", "speed_decades") for name, r in fb[kind].items()}
 
 
 #: The acquisition conditions of ``by_condition``: (noise, static fraction) present or not.
@@ -112,11 +121,22 @@ def _conditions(s: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return dict(zip(CONDITIONS, (~noisy & ~mixed, ~noisy & mixed, noisy & ~mixed, noisy & mixed)))
 
 
-def evaluate_set(probabilities: np.ndarray, samples: dict[str, np.ndarray], rule: dict[str, Any], *,
-                 class_names: Sequence[str] = CLASS_NAMES, magnitude: tuple[np.ndarray, np.ndarray] | None = None,
-                 ranges: Sequence[tuple[float, float]] | None = None, detail: bool = True,
-                 by_condition: bool = False, resampled_errors: bool = False, thresholds: Sequence[float] | None = None,
-                 n_boot: int = 200, seed: int = 0, class_samples: bool = True) -> dict[str, Any]:
+def evaluate_set(
+    probabilities: np.ndarray,
+    samples: dict[str, np.ndarray],
+    rule: dict[str, Any],
+    *,
+    class_names: Sequence[str] = CLASS_NAMES,
+    magnitude: tuple[np.ndarray, np.ndarray] | None = None,
+    ranges: Sequence[tuple[float, float]] | None = None,
+    detail: bool = True,
+    by_condition: bool = False,
+    resampled_errors: bool = False,
+    thresholds: Sequence[float] | None = None,
+    n_boot: int = 200,
+    seed: int = 0,
+    class_samples: bool = True,
+) -> dict[str, Any]:
     """The metrics block (module docstring) of one sample set, decided by ``rule`` (:mod:`classifier.rule`).
 
     ``probabilities`` ``[N, C]`` over ``class_names`` (the last ``indeterminate``); ``samples`` the sample set
@@ -138,24 +158,47 @@ def evaluate_set(probabilities: np.ndarray, samples: dict[str, np.ndarray], rule
         theta, mag = samples["polar_angle_deg"], samples["magnitude"]
         out["flow_bands"] = flow_recall_by_band(p, y, st, theta, mag, names, rule)
         if resampled_errors:
-            out["flow_bands_se"] = bootstrap_draws(lambda i: _band_scalars(flow_recall_by_band(
-                p[i], y[i], st[i], theta[i], mag[i], names, rule)), dr, n_boot=n_boot, seed=seed)
-            out["recall_se"] = bootstrap_draws(lambda i: evaluate(p[i], y[i], st[i], names, rule)["recall_identifiable"],
-                                               dr, n_boot=n_boot, seed=seed)
-        out["coverage_curve"] = coverage_curve(p, y, st, names, rule,
-                                               coverage_thresholds(rule) if thresholds is None else thresholds)
+            out["flow_bands_se"] = bootstrap_draws(
+                lambda i: _band_scalars(flow_recall_by_band(p[i], y[i], st[i], theta[i], mag[i], names, rule)),
+                dr,
+                n_boot=n_boot,
+                seed=seed,
+            )
+            out["recall_se"] = bootstrap_draws(
+                lambda i: evaluate(p[i], y[i], st[i], names, rule)["recall_identifiable"], dr, n_boot=n_boot, seed=seed
+            )
+        out["coverage_curve"] = coverage_curve(
+            p, y, st, names, rule, coverage_thresholds(rule) if thresholds is None else thresholds
+        )
         if ranges is not None:
             out["by_magnitude"] = magnitude_table(p, y, st, mag, names, rule, ranges)
     if by_condition:
-        out["by_condition"] = {name: evaluate(p[m], y[m], st[m], names, rule)
-                               for name, m in _conditions(samples).items() if m.any()}
+        out["by_condition"] = {
+            name: evaluate(p[m], y[m], st[m], names, rule) for name, m in _conditions(samples).items() if m.any()
+        }
     if magnitude is not None:
         mean, sd = magnitude
         motion = names[:-1]
-        out["magnitude"] = magnitude_metrics(mean, sd, y, st, samples["magnitude"], class_names=motion,
-                                             class_samples=class_samples)
+        out["magnitude"] = magnitude_metrics(
+            mean, sd, y, st, samples["magnitude"], class_names=motion, class_samples=class_samples
+        )
         if resampled_errors:
-            out["magnitude_se"] = bootstrap_draws(lambda i: {k: v for k, v in magnitude_metrics(
-                mean[i], sd[i], y[i], st[i], samples["magnitude"][i], class_names=motion,
-                class_samples=class_samples).items() if isinstance(v, float)}, dr, n_boot=n_boot, seed=seed)
+            out["magnitude_se"] = bootstrap_draws(
+                lambda i: {
+                    k: v
+                    for k, v in magnitude_metrics(
+                        mean[i],
+                        sd[i],
+                        y[i],
+                        st[i],
+                        samples["magnitude"][i],
+                        class_names=motion,
+                        class_samples=class_samples,
+                    ).items()
+                    if isinstance(v, float)
+                },
+                dr,
+                n_boot=n_boot,
+                seed=seed,
+            )
     return out

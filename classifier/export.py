@@ -21,8 +21,17 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["OPSET", "METADATA_KEY", "FORMAT", "build_metadata", "onnx_model", "export_onnx", "onnx_parity",
-           "runtime_checks", "model_from_onnx"]
+__all__ = [
+    "OPSET",
+    "METADATA_KEY",
+    "FORMAT",
+    "build_metadata",
+    "onnx_model",
+    "export_onnx",
+    "onnx_parity",
+    "runtime_checks",
+    "model_from_onnx",
+]
 
 from .runtime import FORMAT, METADATA_KEY, onnx_session
 
@@ -40,32 +49,68 @@ def build_metadata(result) -> dict[str, Any]:
     spec = result.spec
     columns = []
     for (metric, conf), name in zip(spec.features, spec.feature_names):
-        columns.append({"name": name, "metric": metric, "unit": metric_unit(metric), "configuration": conf.name,
-                        "wavelength_um": conf.wavelength_um, "lateral_resolution_um": conf.lateral_resolution_um,
-                        "axial_resolution_um": conf.axial_resolution_um})
+        columns.append(
+            {
+                "name": name,
+                "metric": metric,
+                "unit": metric_unit(metric),
+                "configuration": conf.name,
+                "wavelength_um": conf.wavelength_um,
+                "lateral_resolution_um": conf.lateral_resolution_um,
+                "axial_resolution_um": conf.axial_resolution_um,
+            }
+        )
         if conf.lateral_resolution_y_um is not None:  # an anisotropic lateral PSF (isotropic: no key)
             columns[-1]["lateral_resolution_y_um"] = conf.lateral_resolution_y_um
-    columns.append({"name": "pool_pixels", "metric": "pool_pixels", "unit": "pixels",
-                    "description": "number of independent pixels averaged into the feature vector (1 = one pixel)"})
+    columns.append(
+        {
+            "name": "pool_pixels",
+            "metric": "pool_pixels",
+            "unit": "pixels",
+            "description": "number of independent pixels averaged into the feature vector (1 = one pixel)",
+        }
+    )
     rep = result.report
     summary = {}
     for pool, m in rep["test"]["network"].items():
-        summary[pool] = {k: m[k] for k in ("accuracy_all", "balanced_accuracy_all", "coverage_identifiable",
-                                           "accuracy_identifiable", "balanced_accuracy_identifiable", "ece")}
+        summary[pool] = {
+            k: m[k]
+            for k in (
+                "accuracy_all",
+                "balanced_accuracy_all",
+                "coverage_identifiable",
+                "accuracy_identifiable",
+                "balanced_accuracy_identifiable",
+                "ece",
+            )
+        }
     return {
         "format": FORMAT,
         "classifier_version": __version__,
         "torchdoct_version": torchdoct.__version__,
         "onnx_opset": OPSET,
         "input": {"name": "features", "dtype": "float32", "shape": ["N", len(columns)], "columns": columns},
-        "output": {"name": "probabilities", "dtype": "float32", "shape": ["N", len(rep["classes"])],
-                   "classes": list(rep["classes"])},
-        **({"magnitude": {"outputs": ["log10_magnitude", "log10_magnitude_sd"], "shape": ["N", len(CLASSES)],
-                          "classes": list(CLASSES),
-                          "units": {"diffusion": "log10(µm^2/s)", "ballistic": "log10(µm/s)", "flow": "log10(µm/s)"},
-                          "meaning": "per motion class k: predicted log10 magnitude given class k and the SD of a "
-                                     "Gaussian predictive distribution (68 % interval = mean ± SD, 95 % = ± 1.96 SD)",
-                          "test": rep["magnitude"]}} if "magnitude" in rep else {}),
+        "output": {
+            "name": "probabilities",
+            "dtype": "float32",
+            "shape": ["N", len(rep["classes"])],
+            "classes": list(rep["classes"]),
+        },
+        **(
+            {
+                "magnitude": {
+                    "outputs": ["log10_magnitude", "log10_magnitude_sd"],
+                    "shape": ["N", len(CLASSES)],
+                    "classes": list(CLASSES),
+                    "units": {"diffusion": "log10(µm^2/s)", "ballistic": "log10(µm/s)", "flow": "log10(µm/s)"},
+                    "meaning": "per motion class k: predicted log10 magnitude given class k and the SD of a "
+                    "Gaussian predictive distribution (68 % interval = mean ± SD, 95 % = ± 1.96 SD)",
+                    "test": rep["magnitude"],
+                }
+            }
+            if "magnitude" in rep
+            else {}
+        ),
         "rule": result.rule,
         "pool_pixels_max": result.config.max_pool_pixels,
         "spec": spec.to_dict(),
@@ -137,31 +182,46 @@ def onnx_model(model, metadata: dict[str, Any]):
     outputs = [helper.make_tensor_value_info("probabilities", TensorProto.FLOAT, ["N", model.n_classes])]
     k = getattr(model, "n_magnitude", 0)
     if k:  # magnitude heads on the last hidden layer: mean and SD = exp(logvar/2)·scale (classifier.model)
-        inits += [numpy_helper.from_array(_np(model.magnitude_mean.weight), "mag_mean_w"),
-                  numpy_helper.from_array(_np(model.magnitude_mean.bias), "mag_mean_b"),
-                  numpy_helper.from_array(_np(model.magnitude_logvar.weight), "mag_logvar_w"),
-                  numpy_helper.from_array(_np(model.magnitude_logvar.bias), "mag_logvar_b"),
-                  numpy_helper.from_array(np.array(0.5, np.float32), "half"),
-                  numpy_helper.from_array(np.array(float(model.magnitude_sd_scale), np.float32), "mag_sd_scale")]
-        nodes += [helper.make_node("Gemm", [hidden_out, "mag_mean_w", "mag_mean_b"], ["log10_magnitude"], transB=1),
-                  helper.make_node("Gemm", [hidden_out, "mag_logvar_w", "mag_logvar_b"], ["mag_logvar"], transB=1),
-                  helper.make_node("Mul", ["mag_logvar", "half"], ["mag_half_logvar"]),
-                  helper.make_node("Exp", ["mag_half_logvar"], ["mag_sd_raw"]),
-                  helper.make_node("Mul", ["mag_sd_raw", "mag_sd_scale"], ["log10_magnitude_sd"])]
-        outputs += [helper.make_tensor_value_info("log10_magnitude", TensorProto.FLOAT, ["N", k]),
-                    helper.make_tensor_value_info("log10_magnitude_sd", TensorProto.FLOAT, ["N", k])]
+        inits += [
+            numpy_helper.from_array(_np(model.magnitude_mean.weight), "mag_mean_w"),
+            numpy_helper.from_array(_np(model.magnitude_mean.bias), "mag_mean_b"),
+            numpy_helper.from_array(_np(model.magnitude_logvar.weight), "mag_logvar_w"),
+            numpy_helper.from_array(_np(model.magnitude_logvar.bias), "mag_logvar_b"),
+            numpy_helper.from_array(np.array(0.5, np.float32), "half"),
+            numpy_helper.from_array(np.array(float(model.magnitude_sd_scale), np.float32), "mag_sd_scale"),
+        ]
+        nodes += [
+            helper.make_node("Gemm", [hidden_out, "mag_mean_w", "mag_mean_b"], ["log10_magnitude"], transB=1),
+            helper.make_node("Gemm", [hidden_out, "mag_logvar_w", "mag_logvar_b"], ["mag_logvar"], transB=1),
+            helper.make_node("Mul", ["mag_logvar", "half"], ["mag_half_logvar"]),
+            helper.make_node("Exp", ["mag_half_logvar"], ["mag_sd_raw"]),
+            helper.make_node("Mul", ["mag_sd_raw", "mag_sd_scale"], ["log10_magnitude_sd"]),
+        ]
+        outputs += [
+            helper.make_tensor_value_info("log10_magnitude", TensorProto.FLOAT, ["N", k]),
+            helper.make_tensor_value_info("log10_magnitude_sd", TensorProto.FLOAT, ["N", k]),
+        ]
     graph = helper.make_graph(
-        nodes, "motion_classifier",
+        nodes,
+        "motion_classifier",
         [helper.make_tensor_value_info("features", TensorProto.FLOAT, ["N", width])],
-        outputs, initializer=inits)
-    proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
-                              producer_name="torchdoct-classifier", producer_version=metadata.get("classifier_version", ""),
-                              doc_string="DOCT motion-type classifier: features [N, F+1] -> class probabilities [N, C]; "
-                                         f"see metadata key '{METADATA_KEY}'")
+        outputs,
+        initializer=inits,
+    )
+    proto = helper.make_model(
+        graph,
+        opset_imports=[helper.make_opsetid("", OPSET)],
+        producer_name="torchdoct-classifier",
+        producer_version=metadata.get("classifier_version", ""),
+        doc_string="DOCT motion-type classifier: features [N, F+1] -> class probabilities [N, C]; "
+        f"see metadata key '{METADATA_KEY}'",
+    )
     proto.ir_version = 8  # the IR version of opset 17
-    props = {METADATA_KEY: json.dumps(metadata, default=_plain),
-             "classes": json.dumps(metadata["output"]["classes"]),
-             "feature_names": json.dumps([c["name"] for c in metadata["input"]["columns"]])}
+    props = {
+        METADATA_KEY: json.dumps(metadata, default=_plain),
+        "classes": json.dumps(metadata["output"]["classes"]),
+        "feature_names": json.dumps([c["name"] for c in metadata["input"]["columns"]]),
+    }
     helper.set_model_props(proto, props)
     onnx.checker.check_model(proto)
     return proto
@@ -199,7 +259,7 @@ def onnx_parity(model, path, x: np.ndarray, chunk: int = 65536) -> float:
     sess = onnx_session(path)
     worst = 0.0
     for i in range(0, len(x), chunk):
-        xb = np.ascontiguousarray(x[i:i + chunk], dtype=np.float32)
+        xb = np.ascontiguousarray(x[i : i + chunk], dtype=np.float32)
         p_ort = sess.run(["probabilities"], {"features": xb})[0]
         with torch.no_grad():
             p_t = model(torch.from_numpy(xb)).numpy()
@@ -208,8 +268,11 @@ def onnx_parity(model, path, x: np.ndarray, chunk: int = 65536) -> float:
             m_ort, s_ort = sess.run(["log10_magnitude", "log10_magnitude_sd"], {"features": xb})
             with torch.no_grad():
                 m_t, s_t = (v.numpy() for v in model.magnitude(torch.from_numpy(xb)))
-            worst = max(worst, float(np.abs(m_ort - m_t).max()),
-                        float((np.abs(s_ort - s_t) / np.maximum(np.abs(s_t), 1.0)).max()))
+            worst = max(
+                worst,
+                float(np.abs(m_ort - m_t).max()),
+                float((np.abs(s_ort - s_t) / np.maximum(np.abs(s_t), 1.0)).max()),
+            )
     return worst
 
 
@@ -232,7 +295,9 @@ def runtime_checks(result, path, repeats: int = 3) -> float:
         best = min(best, time.perf_counter() - t)
     rep = result.report
     rep["timing"]["network (onnxruntime, 1 thread)"] = {
-        "train_s": rep["timing"]["network"]["train_s"], "inference_us_per_sample": best / len(xs) * 1e6}
+        "train_s": rep["timing"]["network"]["train_s"],
+        "inference_us_per_sample": best / len(xs) * 1e6,
+    }
     rep["onnx_parity_max_abs_diff"] = parity
     rep["onnx_opset"] = OPSET
     return parity
@@ -266,8 +331,14 @@ def model_from_onnx(path):
     hidden = [w.shape[0] for w in weights[:-1]]
     k = init["mag_mean_w"].shape[0] if "mag_mean_w" in init else 0
     with torch.random.fork_rng(devices=[]):  # the initial weights are overwritten; keep the global RNG untouched
-        model = MotionClassifier(width - 1, weights[-1].shape[0], np.flatnonzero(liv_mask[:-1]).tolist(), hidden,
-                                 n_magnitude=k, correlation_columns=np.flatnonzero(corr_mask[:-1]).tolist())
+        model = MotionClassifier(
+            width - 1,
+            weights[-1].shape[0],
+            np.flatnonzero(liv_mask[:-1]).tolist(),
+            hidden,
+            n_magnitude=k,
+            correlation_columns=np.flatnonzero(corr_mask[:-1]).tolist(),
+        )
     with torch.no_grad():
         model.feature_mean.copy_(torch.from_numpy(init["feature_mean"]))
         model.feature_scale.copy_(torch.from_numpy(init["feature_scale"]))

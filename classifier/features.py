@@ -54,6 +54,7 @@ __all__ = [
 #: Metrics a feature may use, with the unit strings of the maps format.
 METRIC_UNITS = {"liv": "dB^2", "ocds": "1/s"}
 
+
 def _signature():
     """:mod:`torchdoct.sim.signature` (names and units of the signature features; no torch at import)."""
     return _signature_module
@@ -138,17 +139,26 @@ class Configuration:
     @property
     def optics(self) -> ChannelOptics:
         """The configuration's optics as the project's one value (:class:`torchdoct.optics.ChannelOptics`)."""
-        return ChannelOptics(self.wavelength_um, self.lateral_resolution_um, self.axial_resolution_um,
-                             self.lateral_resolution_y_um)
+        return ChannelOptics(
+            self.wavelength_um, self.lateral_resolution_um, self.axial_resolution_um, self.lateral_resolution_y_um
+        )
 
-    def matches(self, optics: ChannelOptics | float, lateral_resolution_um: float | None = None,
-                axial_resolution_um: float | None = None, *, lateral_y: bool = True) -> bool:
+    def matches(
+        self,
+        optics: ChannelOptics | float,
+        lateral_resolution_um: float | None = None,
+        axial_resolution_um: float | None = None,
+        *,
+        lateral_y: bool = True,
+    ) -> bool:
         """:meth:`ChannelOptics.matches` of :attr:`optics` and ``optics`` (a :class:`ChannelOptics`, or
         wavelength, lateral and axial resolution of an isotropic system)."""
         if not isinstance(optics, ChannelOptics):
             if lateral_resolution_um is None or axial_resolution_um is None:
-                raise TypeError("matches(wavelength_um, lateral_resolution_um, axial_resolution_um): give all three "
-                                "resolutions with a wavelength, or one ChannelOptics")
+                raise TypeError(
+                    "matches(wavelength_um, lateral_resolution_um, axial_resolution_um): give all three "
+                    "resolutions with a wavelength, or one ChannelOptics"
+                )
             optics = ChannelOptics(float(optics), float(lateral_resolution_um), float(axial_resolution_um))
         return self.optics.matches(optics, lateral_y=lateral_y)
 
@@ -199,18 +209,22 @@ class FeatureSpec:
         if len(set(names)) != len(names):
             raise ValueError(f"spec {self.name!r}: duplicate configuration names {names}")
         for i, a in enumerate(self.configurations):
-            for b in self.configurations[i + 1:]:
+            for b in self.configurations[i + 1 :]:
                 if a.optics.matches(b.optics):
-                    raise ValueError(f"spec {self.name!r}: configurations {a.name!r} and {b.name!r} are the same system")
+                    raise ValueError(
+                        f"spec {self.name!r}: configurations {a.name!r} and {b.name!r} are the same system"
+                    )
         if not self.metrics:
             raise ValueError(f"spec {self.name!r}: metrics must not be empty")
         for m in self.metrics:
             try:
                 metric_unit(m)
             except ValueError:
-                raise ValueError(f"spec {self.name!r}: metric {m!r} is not supported; use {sorted(METRIC_UNITS)} "
-                                 "or signature features (rho_db_M, rho_lin_M, g1_M, g1_phase_M, phase_ramp, "
-                                 "lin_contrast, db_variance; torchdoct.sim.signature)") from None
+                raise ValueError(
+                    f"spec {self.name!r}: metric {m!r} is not supported; use {sorted(METRIC_UNITS)} "
+                    "or signature features (rho_db_M, rho_lin_M, g1_M, g1_phase_M, phase_ramp, "
+                    "lin_contrast, db_variance; torchdoct.sim.signature)"
+                ) from None
         if len(set(self.metrics)) != len(self.metrics):
             raise ValueError(f"spec {self.name!r}: a metric is listed twice: {list(self.metrics)}")
         if isinstance(self.n_frames, bool) or not isinstance(self.n_frames, int) or self.n_frames < 3:
@@ -218,9 +232,12 @@ class FeatureSpec:
         _num("protocol.frame_interval_s", self.frame_interval_s)
         rng = self.ocds_delay_range_s
         if len(rng) != 2 or _num("analysis.ocds_delay_range_s[1]", rng[1]) <= _num(
-                "analysis.ocds_delay_range_s[0]", rng[0]):
-            raise ValueError(f"analysis.ocds_delay_range_s must be [min_s, max_s] with max > min; "
-                             f"got {list(self.ocds_delay_range_s)}")
+            "analysis.ocds_delay_range_s[0]", rng[0]
+        ):
+            raise ValueError(
+                f"analysis.ocds_delay_range_s must be [min_s, max_s] with max > min; "
+                f"got {list(self.ocds_delay_range_s)}"
+            )
         if self.ocds_scale not in ("db", "linear"):
             raise ValueError(f"analysis.ocds_scale must be 'db' or 'linear'; got {self.ocds_scale!r}")
         if self.ocds_estimator not in ("pearson", "biased"):
@@ -269,8 +286,11 @@ class FeatureSpec:
             "metrics": list(self.metrics),
             "refractive_index": self.refractive_index,
             "protocol": {"n_frames": self.n_frames, "frame_interval_s": self.frame_interval_s},
-            "analysis": {"ocds_delay_range_s": list(self.ocds_delay_range_s), "ocds_scale": self.ocds_scale,
-                         "ocds_estimator": self.ocds_estimator},
+            "analysis": {
+                "ocds_delay_range_s": list(self.ocds_delay_range_s),
+                "ocds_scale": self.ocds_scale,
+                "ocds_estimator": self.ocds_estimator,
+            },
             "configuration": [c.to_dict() for c in self.configurations],
         }
 
@@ -295,8 +315,13 @@ def toml_text(data: dict[str, Any], header: str = "") -> str:
     """``data`` as TOML: its plain keys, then its tables (``[name]``) and arrays of tables (``[[name]]``),
     one level deep (the spec and prior files); ``None`` values are left out. ``header``: comment lines."""
     lines = [f"# {line}" if line else "#" for line in header.splitlines()]
-    plain = {k: v for k, v in data.items() if v is not None and not isinstance(v, dict)
-             and not (isinstance(v, list) and v and all(isinstance(x, dict) for x in v))}
+    plain = {
+        k: v
+        for k, v in data.items()
+        if v is not None
+        and not isinstance(v, dict)
+        and not (isinstance(v, list) and v and all(isinstance(x, dict) for x in v))
+    }
     lines += [f"{k} = {_toml_value(v)}" for k, v in plain.items()]
     for k, v in data.items():
         if isinstance(v, dict):
@@ -326,17 +351,22 @@ def spec_from_dict(data: dict[str, Any]) -> FeatureSpec:
     """Build a validated :class:`FeatureSpec` from the spec-file schema (see ``classifier/specs/``)."""
     _keys("spec", data, _TOP_KEYS, {"name", "configuration"})
     prot = _keys("spec.protocol", data.get("protocol", {}), {"n_frames", "frame_interval_s"}, set())
-    ana = _keys("spec.analysis", data.get("analysis", {}),
-                {"ocds_delay_range_s", "ocds_scale", "ocds_estimator"}, set())
+    ana = _keys(
+        "spec.analysis", data.get("analysis", {}), {"ocds_delay_range_s", "ocds_scale", "ocds_estimator"}, set()
+    )
     confs = data["configuration"]
     if not isinstance(confs, list):
         raise TypeError("spec.configuration must be an array of tables ([[configuration]])")
     keys = {"name", "wavelength_um", "lateral_resolution_um", "axial_resolution_um"}
-    configurations = tuple(Configuration(**_keys(f"spec.configuration[{i}]", c, keys | {"lateral_resolution_y_um"},
-                                                 keys))
-                           for i, c in enumerate(confs))
-    kw: dict[str, Any] = {"name": data["name"], "configurations": configurations,
-                          "description": data.get("description", "")}
+    configurations = tuple(
+        Configuration(**_keys(f"spec.configuration[{i}]", c, keys | {"lateral_resolution_y_um"}, keys))
+        for i, c in enumerate(confs)
+    )
+    kw: dict[str, Any] = {
+        "name": data["name"],
+        "configurations": configurations,
+        "description": data.get("description", ""),
+    }
     if "metrics" in data:
         if not isinstance(data["metrics"], list):
             raise TypeError(f"spec.metrics must be a list of metric names; got {data['metrics']!r}")
@@ -366,8 +396,9 @@ def shipped_or_path(key: str, shipped: dict[str, Path], what: str) -> Path:
     try:
         return check_regular_file(key, what)
     except FileNotFoundError:
-        raise FileNotFoundError(f"{what} {key!r}: no such file and not a shipped {what} "
-                                f"(shipped: {', '.join(shipped) or 'none'})") from None
+        raise FileNotFoundError(
+            f"{what} {key!r}: no such file and not a shipped {what} (shipped: {', '.join(shipped) or 'none'})"
+        ) from None
 
 
 def load_spec(name_or_path: str | Path | FeatureSpec) -> FeatureSpec:
@@ -385,8 +416,10 @@ def load_spec(name_or_path: str | Path | FeatureSpec) -> FeatureSpec:
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"{path.name}: not valid TOML: {err}") from None
     except UnicodeDecodeError as err:
-        raise ValueError(f"{path.name}: not a TOML text file (byte {err.start} is not UTF-8 text); give a feature "
-                         "spec (TOML, UTF-8) or a shipped spec name, not a data or image file") from None
+        raise ValueError(
+            f"{path.name}: not a TOML text file (byte {err.start} is not UTF-8 text); give a feature "
+            "spec (TOML, UTF-8) or a shipped spec name, not a data or image file"
+        ) from None
     try:
         return spec_from_dict(data)
     except (TypeError, ValueError) as err:

@@ -114,7 +114,9 @@ def default_model_for(maps_list) -> tuple[str, str | None]:
     return choose_default_model(maps_list, shipped_models(), lambda name: load_model(name, threads=1))
 
 
-def _background(mean_db: np.ndarray | None, background_db: str | float | None) -> tuple[np.ndarray | None, float | None]:
+def _background(
+    mean_db: np.ndarray | None, background_db: str | float | None
+) -> tuple[np.ndarray | None, float | None]:
     if mean_db is None or background_db is None or background_db == "none":
         return None, None
     if background_db == "auto":
@@ -134,9 +136,11 @@ def _check_arguments(pool, min_probability) -> None:
     if isinstance(pool, bool) or not isinstance(pool, (int, np.integer)) or pool < 1:
         raise ValueError(f"pool must be a positive integer (N for N × N neighbourhoods); got {pool!r}")
     if pool % 2 == 0:
-        raise ValueError(f"pool (--pool) must be odd: an N × N window is centred on its pixel only for odd N (an even "
-                         f"{pool} centres it half a pixel up and left, shifting every class); give {pool - 1} or "
-                         f"{pool + 1}")
+        raise ValueError(
+            f"pool (--pool) must be odd: an N × N window is centred on its pixel only for odd N (an even "
+            f"{pool} centres it half a pixel up and left, shifting every class); give {pool - 1} or "
+            f"{pool + 1}"
+        )
     if min_probability is not None and not 0.0 <= float(min_probability) < 1.0:
         raise ValueError(f"min_probability must be in [0, 1); got {min_probability!r}")
 
@@ -155,16 +159,22 @@ def _check_decision(decision: str | None, mdl: ClassifierModel, min_probability,
     if decision is None:  # a threshold of the rule given alone asks for the rule
         decision = "conformal" if mdl.calibration is not None and min_probability is None else "rule"
     if decision == "conformal" and min_probability is not None:
-        raise ValueError("min_probability (--min-probability) is the threshold of --decision rule; the conformal "
-                         "decision's knob is alpha (--alpha): give one of them")
+        raise ValueError(
+            "min_probability (--min-probability) is the threshold of --decision rule; the conformal "
+            "decision's knob is alpha (--alpha): give one of them"
+        )
     if decision == "rule" and alpha is not None:
-        raise ValueError("alpha (--alpha) is the error level of --decision conformal; the rule's knob is "
-                         "min_probability (--min-probability): give one of them")
+        raise ValueError(
+            "alpha (--alpha) is the error level of --decision conformal; the rule's knob is "
+            "min_probability (--min-probability): give one of them"
+        )
     if decision not in DECISIONS:
         raise ValueError(f"decision (--decision) must be one of {', '.join(DECISIONS)}; got {decision!r}")
     if decision == "conformal" and mdl.calibration is None:
-        raise ValueError(f"model {mdl.path.name} has no calibration ({runtime.calibration_path(mdl.path).name} beside "
-                         "it): calibrate it (python -m classifier.calibrate --model MODEL) or give --decision rule")
+        raise ValueError(
+            f"model {mdl.path.name} has no calibration ({runtime.calibration_path(mdl.path).name} beside "
+            "it): calibrate it (python -m classifier.calibrate --model MODEL) or give --decision rule"
+        )
     return decision
 
 
@@ -172,24 +182,37 @@ def _check_pool(pool: int, maps) -> None:
     z_px, x_px = maps.spatial_shape[-2:]
     if pool > min(z_px, x_px):
         largest = min(z_px, x_px) - 1 + min(z_px, x_px) % 2  # odd, as every pool
-        raise ValueError(f"{maps.name}: pool {pool} (--pool) is larger than its {z_px} × {x_px} (z × x) "
-                         f"B-scans: every {pool} × {pool} window would average most of the image and give all pixels "
-                         f"the same class. The largest valid pool is {largest}")
+        raise ValueError(
+            f"{maps.name}: pool {pool} (--pool) is larger than its {z_px} × {x_px} (z × x) "
+            f"B-scans: every {pool} × {pool} window would average most of the image and give all pixels "
+            f"the same class. The largest valid pool is {largest}"
+        )
 
 
 def _finest_pitch_um(pitch: Any) -> float | None:
     """The finest pixel pitch (µm) of a maps file's ``pitch_um`` (one value or one per axis), or ``None``."""
     values = list(pitch.values()) if isinstance(pitch, dict) else [pitch]
-    good = [float(v) for v in values if isinstance(v, (int, float)) and not isinstance(v, bool) and float(v) > 0
-            and np.isfinite(float(v))]
+    good = [
+        float(v)
+        for v in values
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and float(v) > 0 and np.isfinite(float(v))
+    ]
     return min(good) if good else None
 
 
-def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model: ClassifierModel | str | None = None,
-                  *, pool: int = DEFAULT_POOL, background_db: str | float | None = DEFAULT_BACKGROUND_DB, min_probability: float | None = None,
-                  ignore_refractive_index: bool = False, threads: int | None = None,
-                  decision: str | None = None, alpha: float | None = None,
-                  abstain_ambiguous: bool = True) -> Classification:
+def classify_maps(
+    paths: str | os.PathLike | Sequence[str | os.PathLike],
+    model: ClassifierModel | str | None = None,
+    *,
+    pool: int = DEFAULT_POOL,
+    background_db: str | float | None = DEFAULT_BACKGROUND_DB,
+    min_probability: float | None = None,
+    ignore_refractive_index: bool = False,
+    threads: int | None = None,
+    decision: str | None = None,
+    alpha: float | None = None,
+    abstain_ambiguous: bool = True,
+) -> Classification:
     """Classify every pixel of one or more maps files (module docstring, steps 1-6).
 
     ``decision``: ``"conformal"`` (prediction sets at error level ``alpha``, :mod:`classifier.conformal`;
@@ -225,8 +248,10 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     finite = np.isfinite(feats.sum(axis=0, dtype=np.float64))
     # a feature outside the values a real sequence can give (classifier.features.physical_range): corrupt
     # input the network never saw; masked like a non-finite pixel, and counted
-    lo, hi = (np.array(b, np.float32)[:, None, ...] for b in zip(*(
-        physical_range(col["metric"], mdl.spec.n_frames) for col in mdl.columns[:-1])))
+    lo, hi = (
+        np.array(b, np.float32)[:, None, ...]
+        for b in zip(*(physical_range(col["metric"], mdl.spec.n_frames) for col in mdl.columns[:-1]))
+    )
     flat = feats.reshape(len(feats), -1)
     outside = (np.any((flat < lo) | (flat > hi), axis=0) & finite.reshape(-1)).reshape(finite.shape)
     finite &= ~outside
@@ -246,38 +271,66 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
         mode = mdl.calibration.get("mode", conformal.MODES[0])
         labels_flat, set_size = conformal.decide(probs, x[:, -1], mdl.classes, mdl.calibration, a, mode)
         set_names = conformal.set_label_names(mdl.classes)
-        conformal_info = {"alpha": a, "score": mdl.calibration["score"], "mode": mode,
-                          "thresholds": {str(p["pool_pixels"]): dict(zip(mdl.classes, map(float, conformal.pool_thresholds(
-                              p, len(mdl.classes), a, mode)))) for p in mdl.calibration["pools"]},
-                          "set_sizes": {str(k): int((set_size == k).sum()) for k in range(len(mdl.classes) + 1)},
-                          "guarantee": mdl.calibration.get("guarantee")}
+        conformal_info = {
+            "alpha": a,
+            "score": mdl.calibration["score"],
+            "mode": mode,
+            "thresholds": {
+                str(p["pool_pixels"]): dict(
+                    zip(mdl.classes, map(float, conformal.pool_thresholds(p, len(mdl.classes), a, mode)))
+                )
+                for p in mdl.calibration["pools"]
+            },
+            "set_sizes": {str(k): int((set_size == k).sum()) for k in range(len(mdl.classes) + 1)},
+            "guarantee": mdl.calibration.get("guarantee"),
+        }
     shape = valid.shape
     ambiguity_info = None
     if abstain_ambiguous:
         if not set_names:
             set_names = conformal.set_label_names(mdl.classes)
-        channels = {c: m.maps[i] for m in maps_list for i, c in enumerate(m.channels) if c.startswith(("xc_centre_", "xc_peak_", "xc_shift_"))}
+        channels = {
+            c: m.maps[i]
+            for m in maps_list
+            for i, c in enumerate(m.channels)
+            if c.startswith(("xc_centre_", "xc_peak_", "xc_shift_"))
+        }
         coherent, coherent_source = ambiguity.coherent_motion(channels, idx, mdl.spec.n_frames)
-        corr, source = ambiguity.slow_decorrelation({c: v for c, v in channels.items() if c.startswith("xc_centre_")},
-                                                    mdl.columns, x, idx, mdl.spec.n_frames)
+        corr, source = ambiguity.slow_decorrelation(
+            {c: v for c, v in channels.items() if c.startswith("xc_centre_")}, mdl.columns, x, idx, mdl.spec.n_frames
+        )
         fast, fast_source = ambiguity.fast_decorrelation(channels, idx)
         pitch = _finest_pitch_um(meta0.get("pitch_um"))
         moved, moved_source = ambiguity.offset_moved(channels, pitch, idx, mdl.spec.n_frames)
         bscan = len(shape) == 2
-        labels_flat, changed = ambiguity.abstain_where_ambiguous(labels_flat, list(mdl.classes) + set_names,
-                                                                  bscan=bscan, correlation=corr, coherent=coherent,
-                                                                  fast=fast, moved=moved)
-        ambiguity_info = {"rules": (["coherent_motion"] if coherent is not None else [])
-                          + (["bscan_plane"] if bscan else []) + (["slow_decorrelation"] if corr is not None else [])
-                          + (["fast_decorrelation"] if fast is not None and not bscan else [])
-                          + (["offset_moved"] if moved is not None else []),
-                          "coherent_channels": coherent_source, "coherent_peak_min": ambiguity.COHERENT_PEAK_MIN,
-                          "coherent_moved_min": ambiguity.COHERENT_MOVED_MIN,
-                          "correlation": source, "decorrelated_below": ambiguity.DECORRELATED_BELOW,
-                          "fast_channels": fast_source, "fast_remaining_max": ambiguity.FAST_REMAINING_MAX,
-                          "offset_channels": moved_source, "offset_first_min_pitch": ambiguity.OFFSET_FIRST_MIN,
-                          "offset_growth_min_pitch": ambiguity.OFFSET_GROWTH_MIN,
-                          "offset_hold_min": ambiguity.OFFSET_HOLD_MIN, "changed_pixels": changed}
+        labels_flat, changed = ambiguity.abstain_where_ambiguous(
+            labels_flat,
+            list(mdl.classes) + set_names,
+            bscan=bscan,
+            correlation=corr,
+            coherent=coherent,
+            fast=fast,
+            moved=moved,
+        )
+        ambiguity_info = {
+            "rules": (["coherent_motion"] if coherent is not None else [])
+            + (["bscan_plane"] if bscan else [])
+            + (["slow_decorrelation"] if corr is not None else [])
+            + (["fast_decorrelation"] if fast is not None and not bscan else [])
+            + (["offset_moved"] if moved is not None else []),
+            "coherent_channels": coherent_source,
+            "coherent_peak_min": ambiguity.COHERENT_PEAK_MIN,
+            "coherent_moved_min": ambiguity.COHERENT_MOVED_MIN,
+            "correlation": source,
+            "decorrelated_below": ambiguity.DECORRELATED_BELOW,
+            "fast_channels": fast_source,
+            "fast_remaining_max": ambiguity.FAST_REMAINING_MAX,
+            "offset_channels": moved_source,
+            "offset_first_min_pitch": ambiguity.OFFSET_FIRST_MIN,
+            "offset_growth_min_pitch": ambiguity.OFFSET_GROWTH_MIN,
+            "offset_hold_min": ambiguity.OFFSET_HOLD_MIN,
+            "changed_pixels": changed,
+        }
     labels = np.full(valid.size, MASKED, np.uint8)
     labels[idx] = labels_flat.astype(np.uint8)
     pmaps = np.full((len(mdl.classes), valid.size), np.nan, np.float32)
@@ -286,24 +339,47 @@ def classify_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], model:
     t_end = time.perf_counter()
     n_pix = int(valid.size)
     background = bg if bg is not None else np.zeros(shape, bool)
-    info.update({
-        "pixels": n_pix, "classified": int(idx.size), "pool": int(pool), "decision": decision,
-        "pool_independent_fraction": frac,
-        "background_db_threshold": thr, "nan_pixels": int((~finite).sum() - outside.sum()),
-        "out_of_range_pixels": int(outside.sum()),
-        "background_pixels": int((background & finite).sum()),
-        # the rule's reasons (the conformal decision has its set sizes under "conformal")
-        "indeterminate_reasons": ({r: int((reasons == i).sum()) for i, r in enumerate(REASONS)}
-                                  if decision == "rule" else None),
-        "min_probability": float(mdl.rule["min_probability"] if min_probability is None else min_probability),
-        "conformal": conformal_info,
-        "ambiguity": ambiguity_info,
-        "seconds": {"read": t_read - t0, "features": t_feat - t_read, "onnxruntime": t_onnx - t_feat,
-                    "rule": t_end - t_onnx, "total": t_end - t0},
-        "pixels_per_s": n_pix / max(t_end - t_read, 1e-12),
-    })
+    info.update(
+        {
+            "pixels": n_pix,
+            "classified": int(idx.size),
+            "pool": int(pool),
+            "decision": decision,
+            "pool_independent_fraction": frac,
+            "background_db_threshold": thr,
+            "nan_pixels": int((~finite).sum() - outside.sum()),
+            "out_of_range_pixels": int(outside.sum()),
+            "background_pixels": int((background & finite).sum()),
+            # the rule's reasons (the conformal decision has its set sizes under "conformal")
+            "indeterminate_reasons": (
+                {r: int((reasons == i).sum()) for i, r in enumerate(REASONS)} if decision == "rule" else None
+            ),
+            "min_probability": float(mdl.rule["min_probability"] if min_probability is None else min_probability),
+            "conformal": conformal_info,
+            "ambiguity": ambiguity_info,
+            "seconds": {
+                "read": t_read - t0,
+                "features": t_feat - t_read,
+                "onnxruntime": t_onnx - t_feat,
+                "rule": t_end - t_onnx,
+                "total": t_end - t0,
+            },
+            "pixels_per_s": n_pix / max(t_end - t_read, 1e-12),
+        }
+    )
     axes = str(meta0.get("axes", "C" + ("YZX" if len(shape) == 3 else "ZX")))[1:]
-    return Classification(labels=labels.reshape(shape), probabilities=pmaps.reshape((len(mdl.classes), *shape)),
-                          classes=mdl.classes, mask=valid, background=background, intensity_db=mean_db, model=mdl,
-                          sources=[m.name for m in maps_list], axes=axes, pitch_um=meta0.get("pitch_um"), info=info,
-                          magnitude=magnitude, set_labels=set_names)
+    return Classification(
+        labels=labels.reshape(shape),
+        probabilities=pmaps.reshape((len(mdl.classes), *shape)),
+        classes=mdl.classes,
+        mask=valid,
+        background=background,
+        intensity_db=mean_db,
+        model=mdl,
+        sources=[m.name for m in maps_list],
+        axes=axes,
+        pitch_um=meta0.get("pitch_um"),
+        info=info,
+        magnitude=magnitude,
+        set_labels=set_names,
+    )

@@ -50,9 +50,15 @@ class MotionClassifier(nn.Module):
     (the ``pool_pixels`` column comes on top).
     """
 
-    def __init__(self, n_features: int, n_classes: int, log_columns: Sequence[int],
-                 hidden: Sequence[int] = (64, 64), n_magnitude: int = 0,
-                 correlation_columns: Sequence[int] = ()):
+    def __init__(
+        self,
+        n_features: int,
+        n_classes: int,
+        log_columns: Sequence[int],
+        hidden: Sequence[int] = (64, 64),
+        n_magnitude: int = 0,
+        correlation_columns: Sequence[int] = (),
+    ):
         super().__init__()
         if n_features < 1 or n_classes < 2:
             raise ValueError(f"need n_features >= 1 and n_classes >= 2; got {n_features}, {n_classes}")
@@ -93,13 +99,15 @@ class MotionClassifier(nn.Module):
     def transform(self, x: torch.Tensor) -> torch.Tensor:
         """Fixed transforms of step 1 (the last column is ``pool_pixels``)."""
         if x.dim() != 2 or x.shape[1] != self.n_features + 1:
-            raise ValueError(f"features must be [N, {self.n_features + 1}] (spec features + pool_pixels); "
-                             f"got {tuple(x.shape)}")
+            raise ValueError(
+                f"features must be [N, {self.n_features + 1}] (spec features + pool_pixels); got {tuple(x.shape)}"
+            )
         liv = torch.log(torch.clamp(x, min=0.0) + LIV_OFFSET_DB2)
         pool = torch.log(torch.clamp(x, min=1.0))
         decorrelation = torch.log(torch.clamp(1.0 - x, min=0.0) + DECORRELATION_OFFSET)
-        return torch.where(self.liv_mask, liv, torch.where(self.corr_mask, decorrelation,
-                                                           torch.where(self.pool_mask, pool, x)))
+        return torch.where(
+            self.liv_mask, liv, torch.where(self.corr_mask, decorrelation, torch.where(self.pool_mask, pool, x))
+        )
 
     def set_normalization(self, x: torch.Tensor) -> None:
         """Store mean and SD of the transformed training features (SD floored at 1e-6)."""

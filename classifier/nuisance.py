@@ -66,7 +66,8 @@ def combine_fields(moving, static, static_fraction, snr_db: float, mean_intensit
         mean_i = torch.as_tensor(mean_intensity_moving, dtype=torch.float32).view(1, -1, 1)
         amp = noise_sigma((1.0 + a * a) * mean_i, snr_db)
         shape = e.shape
-        noise = torch.complex(torch.randn(shape, generator=generator) * amp,
-                              torch.randn(shape, generator=generator) * amp)
+        noise = torch.complex(
+            torch.randn(shape, generator=generator) * amp, torch.randn(shape, generator=generator) * amp
+        )
         e = e + noise
     return e

@@ -24,9 +24,17 @@ from torchdoct import figures  # torch-free: the project's axes and colours
 from .rule import INDETERMINATE
 from .runtime import ClassifierModel
 
-__all__ = ["MASKED", "CLASS_COLORS", "MASKED_COLOR", "OUTPUT_FILES", "MAGNITUDE_FILES",
-           "MAGNITUDE_CHANNELS", "Classification", "magnitude_maps",
-           "write_classification"]
+__all__ = [
+    "MASKED",
+    "CLASS_COLORS",
+    "MASKED_COLOR",
+    "OUTPUT_FILES",
+    "MAGNITUDE_FILES",
+    "MAGNITUDE_CHANNELS",
+    "Classification",
+    "magnitude_maps",
+    "write_classification",
+]
 
 #: Class-map value of background and NaN pixels.
 MASKED = 255
@@ -41,6 +49,8 @@ SET_COLORS = {"diffusion-or-ballistic": "#9A9A9A", "diffusion-or-flow": "#C4C4C4
 def label_color(name: str) -> str:
     """The colour of a class or set label (:data:`CLASS_COLORS`, :data:`SET_COLORS`)."""
     return CLASS_COLORS.get(name) or SET_COLORS.get(name, "#000000")
+
+
 #: Overlay colour of masked pixels (background or a NaN feature): black, unlike every class.
 MASKED_COLOR = "#000000"
 
@@ -86,8 +96,9 @@ MAGNITUDE_CHANNELS = ("log10_magnitude", "lower_68", "upper_68", "lower_95", "up
 _Z95 = 1.959964
 
 
-def magnitude_maps(labels: np.ndarray, mean: np.ndarray, sd: np.ndarray, idx: np.ndarray,
-                   shape: tuple[int, ...]) -> np.ndarray:
+def magnitude_maps(
+    labels: np.ndarray, mean: np.ndarray, sd: np.ndarray, idx: np.ndarray, shape: tuple[int, ...]
+) -> np.ndarray:
     """The ``magnitude.tif`` stack ``[5, *shape]`` (:data:`MAGNITUDE_CHANNELS`): at the decided pixels
     (``labels`` < K, the motion classes), the log10 magnitude of the decided class and its 68 % / 95 %
     intervals (mean ± SD, mean ± 1.96 SD of the model's Gaussian predictive distribution); NaN elsewhere.
@@ -118,17 +129,25 @@ def _legend(res: Classification) -> dict[str, Any]:
     if isinstance(rule.get("definition"), str):
         rule["definition"] = _cite_repository(rule["definition"])
     return {
-        "classes": [{"value": i, "name": c, "color": label_color(c)}
-                    for i, c in enumerate(getattr(res, "label_names", res.classes))],
+        "classes": [
+            {"value": i, "name": c, "color": label_color(c)}
+            for i, c in enumerate(getattr(res, "label_names", res.classes))
+        ],
         "masked_value": MASKED,
         "masked_meaning": "background (mean dB intensity below the threshold) or a NaN feature",
         "rule": rule,
         "min_probability": res.info["min_probability"],
         # the decision that made the labels: "rule" (above) or "conformal" (prediction sets at alpha)
         "decision": res.info.get("decision", "rule"),
-        **({"conformal": {k: v for k, v in res.info["conformal"].items() if k != "set_sizes"},
-            "set_labels": "a set of two classes: the pixel is one of them, the data do not tell which "
-                          "(docs/abstention.md)"} if res.info.get("conformal") else {}),
+        **(
+            {
+                "conformal": {k: v for k, v in res.info["conformal"].items() if k != "set_sizes"},
+                "set_labels": "a set of two classes: the pixel is one of them, the data do not tell which "
+                "(docs/abstention.md)",
+            }
+            if res.info.get("conformal")
+            else {}
+        ),
         "axes": res.axes,
         "pitch_um": res.pitch_um,
     }
@@ -170,12 +189,15 @@ def _overlay(res: Classification, path: str) -> None:
     counts = res.counts()
     total = max(int(res.mask.sum()), 1)
     handles = [Patch(color=label_color(c), label=f"{c} ({counts[c] / total:.0%})") for c in res.label_names]
-    handles.append(Patch(facecolor=MASKED_COLOR, edgecolor="#808080",
-                         label=f"masked: background or NaN ({counts['masked']} px)"))
-    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8,
-              title="class (% of classified)")
-    ax.set_title(f"motion type on mean intensity, model {_model_name(res)}, pool {res.info['pool']}{title_extra}",
-                 fontsize=9)
+    handles.append(
+        Patch(facecolor=MASKED_COLOR, edgecolor="#808080", label=f"masked: background or NaN ({counts['masked']} px)")
+    )
+    ax.legend(
+        handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="class (% of classified)"
+    )
+    ax.set_title(
+        f"motion type on mean intensity, model {_model_name(res)}, pool {res.info['pool']}{title_extra}", fontsize=9
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=120, bbox_inches="tight")  # the legend beside the image stays whole
     plt.close(fig)
@@ -207,8 +229,10 @@ def _magnitude_picture(res: Classification, path: str) -> None:
     if labels.ndim == 3:
         mid = labels.shape[0] // 2
         mag, labels, title_extra = mag[mid], labels[mid], f", B-scan y = {mid}"
-    panels = [("diffusion", ("diffusion",), "D (µm²/s)"),
-              ("ballistic or flow", tuple(c for c in ("ballistic", "flow") if c in res.classes), "speed (µm/s)")]
+    panels = [
+        ("diffusion", ("diffusion",), "D (µm²/s)"),
+        ("ballistic or flow", tuple(c for c in ("ballistic", "flow") if c in res.classes), "speed (µm/s)"),
+    ]
     extent, _ = figures.image_extent(labels.shape, res.pitch_um)
     h = 4.2
     wdt = h * (extent[1] - extent[0]) / max(extent[2] - extent[3], 1e-9)
@@ -218,13 +242,16 @@ def _magnitude_picture(res: Classification, path: str) -> None:
         sel = np.isin(labels, [res.classes.index(c) for c in classes if c in res.classes]) & np.isfinite(mag)
         vals = np.where(sel, 10.0 ** np.where(sel, mag, 0.0), np.nan)
         fin = vals[np.isfinite(vals)]
-        lo, hi = (np.percentile(fin, [1, 99]) if fin.size else (1e-3, 1.0))
+        lo, hi = np.percentile(fin, [1, 99]) if fin.size else (1e-3, 1.0)
         hi = max(hi, lo * 1.0001)
         im = figures.show_bscan(ax, vals, pitch_um=res.pitch_um, cmap=cmap, norm=LogNorm(vmin=lo, vmax=hi))
         fig.colorbar(im, ax=ax, shrink=0.85).set_label(unit)
         ax.set_title(f"{what}: {unit}, {fin.size} px (grey: not this class)", fontsize=8)
-    fig.suptitle(f"predicted magnitude (median of the model's distribution), model {_model_name(res)}, "
-                 f"pool {res.info['pool']}{title_extra}", fontsize=9)
+    fig.suptitle(
+        f"predicted magnitude (median of the model's distribution), model {_model_name(res)}, "
+        f"pool {res.info['pool']}{title_extra}",
+        fontsize=9,
+    )
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
@@ -238,8 +265,10 @@ def check_outputs(out_dir: str | os.PathLike, force: bool) -> dict[str, Path]:
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a directory")
-    return {name: (check_out(out / name, force, Path(name).suffix, f"--out {out}: {name}") if out.is_dir()
-                   else out / name) for name in OUTPUT_FILES + MAGNITUDE_FILES}
+    return {
+        name: (check_out(out / name, force, Path(name).suffix, f"--out {out}: {name}") if out.is_dir() else out / name)
+        for name in OUTPUT_FILES + MAGNITUDE_FILES
+    }
 
 
 def write_classification(res: Classification, out_dir: str | os.PathLike, *, force: bool = False) -> list[Path]:
@@ -279,31 +308,57 @@ def _write_into(res: Classification, paths: dict[str, Path], tifffile, atomic_wr
 
     legend = _legend(res)
     desc_classes = json.dumps({"legend": legend, "source": res.sources})
-    desc_probs = json.dumps({"channels": res.classes, "axes": "C" + res.axes, "unit": "probability",
-                             "masked": "NaN", "source": res.sources})
-    summary = {"counts": res.counts(), "sources": res.sources, "model": res.model.path.name,
-               "model_spec": res.model.metadata["spec"]["name"], "info": res.info}
-    atomic_write(paths["classes.tif"], lambda t: tifffile.imwrite(t, pages(res.labels, ["class"]), **imagej(
-        res.labels, ["class"], desc_classes)))
-    atomic_write(paths["probabilities.tif"], lambda t: tifffile.imwrite(
-        t, pages(res.probabilities, list(res.classes)), **imagej(res.probabilities, list(res.classes), desc_probs, "probability")))
+    desc_probs = json.dumps(
+        {"channels": res.classes, "axes": "C" + res.axes, "unit": "probability", "masked": "NaN", "source": res.sources}
+    )
+    summary = {
+        "counts": res.counts(),
+        "sources": res.sources,
+        "model": res.model.path.name,
+        "model_spec": res.model.metadata["spec"]["name"],
+        "info": res.info,
+    }
+    atomic_write(
+        paths["classes.tif"],
+        lambda t: tifffile.imwrite(t, pages(res.labels, ["class"]), **imagej(res.labels, ["class"], desc_classes)),
+    )
+    atomic_write(
+        paths["probabilities.tif"],
+        lambda t: tifffile.imwrite(
+            t,
+            pages(res.probabilities, list(res.classes)),
+            **imagej(res.probabilities, list(res.classes), desc_probs, "probability"),
+        ),
+    )
 
     def dump(obj):
         def w(t):
             with open(t, "w", encoding="utf-8") as fh:
                 json.dump(obj, fh, indent=1)
+
         return w
 
     atomic_write(paths["legend.json"], dump(legend))
     atomic_write(paths["summary.json"], dump(summary))
     atomic_write(paths["overlay.png"], lambda t: _overlay(res, t))
     if res.magnitude is not None:
-        desc_mag = json.dumps({"channels": list(MAGNITUDE_CHANNELS), "axes": "C" + res.axes,
-                               "unit": "log10(µm^2/s) where the class is diffusion, log10(µm/s) where ballistic or flow",
-                               "intervals": "68 % = mean ± SD, 95 % = mean ± 1.96 SD of the model's Gaussian "
-                                            "predictive distribution", "masked": "NaN (also where indeterminate)",
-                               "source": res.sources})
-        atomic_write(paths["magnitude.tif"], lambda t: tifffile.imwrite(
-            t, pages(res.magnitude, list(MAGNITUDE_CHANNELS)), **imagej(res.magnitude, list(MAGNITUDE_CHANNELS), desc_mag)))
+        desc_mag = json.dumps(
+            {
+                "channels": list(MAGNITUDE_CHANNELS),
+                "axes": "C" + res.axes,
+                "unit": "log10(µm^2/s) where the class is diffusion, log10(µm/s) where ballistic or flow",
+                "intervals": "68 % = mean ± SD, 95 % = mean ± 1.96 SD of the model's Gaussian predictive distribution",
+                "masked": "NaN (also where indeterminate)",
+                "source": res.sources,
+            }
+        )
+        atomic_write(
+            paths["magnitude.tif"],
+            lambda t: tifffile.imwrite(
+                t,
+                pages(res.magnitude, list(MAGNITUDE_CHANNELS)),
+                **imagej(res.magnitude, list(MAGNITUDE_CHANNELS), desc_mag),
+            ),
+        )
         atomic_write(paths["magnitude.png"], lambda t: _magnitude_picture(res, t))
     return list(names)

@@ -22,8 +22,16 @@ from .prior import BALLISTIC_LAWS, CLASSES, Draw, Prior
 from .simulation import DEFAULT_TRUNCATION, scene_for
 from .truth import identifiability, lateral_y
 
-__all__ = ["identifiable_range", "prior_for_spec", "speed_cap", "estimate_seconds", "PRIOR_MARGIN_DECADES",
-           "REFERENCE_RESOLUTIONS_UM", "MAX_SCATTERERS_PER_TRIAL", "FIT_SECONDS_PER_SAMPLE_EPOCH"]
+__all__ = [
+    "identifiable_range",
+    "prior_for_spec",
+    "speed_cap",
+    "estimate_seconds",
+    "PRIOR_MARGIN_DECADES",
+    "REFERENCE_RESOLUTIONS_UM",
+    "MAX_SCATTERERS_PER_TRIAL",
+    "FIT_SECONDS_PER_SAMPLE_EPOCH",
+]
 
 #: Nuisances over which :func:`identifiable_range` takes the widest range: flow at every polar angle
 #: (degrees from the depth axis; azimuth 0, the lateral widths along x and y both enter through the
@@ -59,24 +67,33 @@ def identifiable_range(spec: FeatureSpec, label: int, prior: Prior | None = None
     for i, mag in enumerate(_RANGE_GRID):
         for v in variants:
             for dens in sorted(set(prior.density_per_um3)):
-                d = Draw(label=label, magnitude=float(mag), polar_angle_deg=v.get("polar_angle_deg", 0.0),
-                         azimuth_deg=0.0, density_per_um3=dens, sim_seed=0,
-                         ballistic_directions=v.get("ballistic_directions", "isotropic"))
+                d = Draw(
+                    label=label,
+                    magnitude=float(mag),
+                    polar_angle_deg=v.get("polar_angle_deg", 0.0),
+                    azimuth_deg=0.0,
+                    density_per_um3=dens,
+                    sim_seed=0,
+                    ballistic_directions=v.get("ballistic_directions", "isotropic"),
+                )
                 if identifiability(spec, d, prior)[0] == "identifiable":
                     ok[i] = True
                     break
             if ok[i]:
                 break
     if not ok.any():
-        raise ValueError(f"spec {spec.name!r}: {CLASSES[label]} is identifiable at no magnitude from "
-                         f"{_RANGE_GRID[0]:g} to {_RANGE_GRID[-1]:g} with {spec.n_frames} frames "
-                         f"{spec.frame_interval_s:g} s apart")
+        raise ValueError(
+            f"spec {spec.name!r}: {CLASSES[label]} is identifiable at no magnitude from "
+            f"{_RANGE_GRID[0]:g} to {_RANGE_GRID[-1]:g} with {spec.n_frames} frames "
+            f"{spec.frame_interval_s:g} s apart"
+        )
     idx = np.flatnonzero(ok)
     return float(_RANGE_GRID[idx[0]]), float(_RANGE_GRID[idx[-1]])
 
 
-def prior_for_spec(spec: FeatureSpec, base: Prior | None = None,
-                   margin_decades: float = PRIOR_MARGIN_DECADES) -> tuple[Prior, dict[str, list[float]]]:
+def prior_for_spec(
+    spec: FeatureSpec, base: Prior | None = None, margin_decades: float = PRIOR_MARGIN_DECADES
+) -> tuple[Prior, dict[str, list[float]]]:
     """``base`` (default :class:`Prior`) with its magnitude ranges and density scaled to the spec's system
     and protocol.
 
@@ -96,8 +113,9 @@ def prior_for_spec(spec: FeatureSpec, base: Prior | None = None,
 
     base = base or Prior()
     ref = n_eff(1.0, *REFERENCE_RESOLUTIONS_UM)
-    finest = min(n_eff(1.0, c.lateral_resolution_um, c.axial_resolution_um, **lateral_y(c))
-                 for c in spec.configurations)
+    finest = min(
+        n_eff(1.0, c.lateral_resolution_um, c.axial_resolution_um, **lateral_y(c)) for c in spec.configurations
+    )
     density = tuple(float(f"{d * ref / finest:.3g}") for d in base.density_per_um3)
     base = _dc.replace(base, density_per_um3=density)
     ranges = {CLASSES[label]: list(identifiable_range(spec, label, base)) for label in range(len(CLASSES))}
@@ -114,8 +132,12 @@ def prior_for_spec(spec: FeatureSpec, base: Prior | None = None,
             ranges[f"{name}_simulated_max"] = [float(f"{cap:.3g}")]
             hi = float(f"{cap:.3g}")
         speed[name] = (lo, max(hi, lo))
-    prior = _dc.replace(base, diffusion_um2_per_s=widen(ranges["diffusion"]), speed_um_per_s=speed["ballistic"],
-                        flow_speed_um_per_s=speed["flow"])
+    prior = _dc.replace(
+        base,
+        diffusion_um2_per_s=widen(ranges["diffusion"]),
+        speed_um_per_s=speed["ballistic"],
+        flow_speed_um_per_s=speed["flow"],
+    )
     return prior, ranges
 
 
@@ -139,8 +161,15 @@ def speed_cap(spec: FeatureSpec, prior: Prior, label: int) -> float:
         laws = BALLISTIC_LAWS if label == 1 else ("isotropic",)
         for a in angles:
             for law in laws:
-                d = Draw(label=label, magnitude=v, polar_angle_deg=a, azimuth_deg=0.0,
-                         density_per_um3=prior.density_per_um3[1], sim_seed=0, ballistic_directions=law)
+                d = Draw(
+                    label=label,
+                    magnitude=v,
+                    polar_angle_deg=a,
+                    azimuth_deg=0.0,
+                    density_per_um3=prior.density_per_um3[1],
+                    sim_seed=0,
+                    ballistic_directions=law,
+                )
                 plan = make_plan(scene_for(spec, d, prior), truncation_tolerance=1e-2, truncation=DEFAULT_TRUNCATION)
                 worst = max(worst, plan.expected_scatterers_per_trial)
         return worst
@@ -158,8 +187,9 @@ def speed_cap(spec: FeatureSpec, prior: Prior, label: int) -> float:
     return lo
 
 
-def estimate_seconds(spec: FeatureSpec, prior: Prior, cfg: Any, *, pilot_draws: int = 6,
-                     threads: int | None = None) -> dict[str, float]:
+def estimate_seconds(
+    spec: FeatureSpec, prior: Prior, cfg: Any, *, pilot_draws: int = 6, threads: int | None = None
+) -> dict[str, float]:
     """Expected time of :func:`classifier.train.train` with the recipe ``cfg`` (a
     :class:`classifier.train.TrainConfig`), in s, from a pilot: the first ``pilot_draws`` draws of the training split
     simulated and timed (their numbers are not kept). Simulation: the mean time per draw × the draws of
@@ -175,8 +205,14 @@ def estimate_seconds(spec: FeatureSpec, prior: Prior, cfg: Any, *, pilot_draws: 
     with single_torch_thread():
         for k in range(int(pilot_draws)):
             d = draw_parameters(prior, cfg.seed, "train", k, cfg.replicates)
-            simulate_draw(spec, d, prior, trials=cfg.trials_per_draw, truncation_tolerance=cfg.truncation_tolerance,
-                          truncation=cfg.truncation)
+            simulate_draw(
+                spec,
+                d,
+                prior,
+                trials=cfg.trials_per_draw,
+                truncation_tolerance=cfg.truncation_tolerance,
+                truncation=cfg.truncation,
+            )
     per_draw = (time.perf_counter() - t0) / max(int(pilot_draws), 1)
     extra = 0
     if spec.is_signature if cfg.shifted_test is None else cfg.shifted_test:
@@ -188,8 +224,14 @@ def estimate_seconds(spec: FeatureSpec, prior: Prior, cfg: Any, *, pilot_draws: 
     samples = cfg.draws_train * cfg.replicates * (cfg.singles_per_group + cfg.pooled_per_group)
     fit = FIT_SECONDS_PER_SAMPLE_EPOCH * samples * cfg.max_epochs * (spec.n_features / 36.0) ** 0.5
     baselines = BASELINE_SECONDS_PER_SAMPLE * samples if cfg.baselines else 0.0
-    return {"pilot_s_per_draw": per_draw, "draws": draws, "simulation_s": simulation, "fit_s": fit,
-            "baselines_s": baselines, "total_s": simulation + fit + baselines + REPORT_SECONDS}
+    return {
+        "pilot_s_per_draw": per_draw,
+        "draws": draws,
+        "simulation_s": simulation,
+        "fit_s": fit,
+        "baselines_s": baselines,
+        "total_s": simulation + fit + baselines + REPORT_SECONDS,
+    }
 
 
 #: Seconds per training sample and epoch of the network's fit on one thread: the mean of three

@@ -79,7 +79,7 @@ def effective_count(n: int, pitch_um: float, sigma_um: float) -> float:
     """Effective number of independent samples among n pixels (speckle intensity correlation)."""
     k = np.arange(n)
     d = (k[:, None] - k[None, :]) * pitch_um
-    r = np.exp(-(d ** 2) / (2.0 * sigma_um ** 2))
+    r = np.exp(-(d**2) / (2.0 * sigma_um**2))
     return float(n * n / r.sum())
 
 
@@ -99,8 +99,9 @@ def independent_fraction(n: int, pitch_um: dict[str, Any] | None, spec: FeatureS
     return effective_count(n, px, s_x) * effective_count(n, pz, s_z) / (n * n)
 
 
-def model_inputs(features: np.ndarray, valid: np.ndarray, n: int, fraction: float,
-                 pool_pixels_max: int) -> tuple[np.ndarray, np.ndarray]:
+def model_inputs(
+    features: np.ndarray, valid: np.ndarray, n: int, fraction: float, pool_pixels_max: int
+) -> tuple[np.ndarray, np.ndarray]:
     """The model's input rows of the valid pixels and their flat indices: ``(x [N, F+1] float32, idx [N])``.
 
     Columns: the features pooled over N × N (:func:`pool_features`), then ``pool_pixels``, the valid

@@ -142,36 +142,54 @@ class Prior:
     static_edge_distance: tuple[float, float] = (0.0, 3.0)
 
     def __post_init__(self) -> None:
-        for key, pos in (("diffusion_um2_per_s", True), ("speed_um_per_s", True), ("density_per_um3", True),
-                         ("static_fraction", False), ("snr_db", False), ("flow_polar_angle_deg", False),
-                         ("bulk_residual_step_rad", False), ("static_edge_distance", False)):
+        for key, pos in (
+            ("diffusion_um2_per_s", True),
+            ("speed_um_per_s", True),
+            ("density_per_um3", True),
+            ("static_fraction", False),
+            ("snr_db", False),
+            ("flow_polar_angle_deg", False),
+            ("bulk_residual_step_rad", False),
+            ("static_edge_distance", False),
+        ):
             object.__setattr__(self, key, _range(key, getattr(self, key), positive=pos))
         if self.flow_speed_um_per_s is not None:
-            object.__setattr__(self, "flow_speed_um_per_s",
-                               _range("flow_speed_um_per_s", self.flow_speed_um_per_s, positive=True))
+            object.__setattr__(
+                self, "flow_speed_um_per_s", _range("flow_speed_um_per_s", self.flow_speed_um_per_s, positive=True)
+            )
         if self.static_fraction[0] < 0 or self.static_fraction[1] >= 1:
             raise ValueError(f"prior.static_fraction must lie in [0, 1); got {self.static_fraction}")
         if self.static_edge_distance[0] < 0:
-            raise ValueError(f"prior.static_edge_distance must be >= 0 (PSF SDs from the edge); "
-                             f"got {list(self.static_edge_distance)}")
+            raise ValueError(
+                f"prior.static_edge_distance must be >= 0 (PSF SDs from the edge); "
+                f"got {list(self.static_edge_distance)}"
+            )
         for key in ("static_probability", "noise_probability", "static_edge_probability"):
             v = getattr(self, key)
             if not isinstance(v, (int, float)) or not 0.0 <= float(v) <= 1.0:
                 raise ValueError(f"prior.{key} must be a probability in [0, 1]; got {v!r}")
         if self.flow_polar_angle_deg[0] < 0 or self.flow_polar_angle_deg[1] > 180:
-            raise ValueError(f"prior.flow_polar_angle_deg must lie in [0, 180] (degrees from the depth axis); "
-                             f"got {list(self.flow_polar_angle_deg)}")
+            raise ValueError(
+                f"prior.flow_polar_angle_deg must lie in [0, 180] (degrees from the depth axis); "
+                f"got {list(self.flow_polar_angle_deg)}"
+            )
         if not isinstance(self.flow_polar_law, str) or self.flow_polar_law not in FLOW_POLAR_LAWS:
-            raise ValueError(f"prior.flow_polar_law must be one of {list(FLOW_POLAR_LAWS)} ('isotropic': cos of the "
-                             f"polar angle uniform, 'uniform-angle': the polar angle itself uniform, which puts "
-                             f"three times more draws within 30° of the beam axis); got {self.flow_polar_law!r}")
+            raise ValueError(
+                f"prior.flow_polar_law must be one of {list(FLOW_POLAR_LAWS)} ('isotropic': cos of the "
+                f"polar angle uniform, 'uniform-angle': the polar angle itself uniform, which puts "
+                f"three times more draws within 30° of the beam axis); got {self.flow_polar_law!r}"
+            )
         if not isinstance(self.ballistic_directions, str) or self.ballistic_directions not in BALLISTIC_PRIORS:
-            raise ValueError(f"prior.ballistic_directions must be one of {list(BALLISTIC_PRIORS)} ('both': each "
-                             f"ballistic draw takes one of torchdoct.RandomBallistic's two direction laws with "
-                             f"probability 1/2); got {self.ballistic_directions!r}")
+            raise ValueError(
+                f"prior.ballistic_directions must be one of {list(BALLISTIC_PRIORS)} ('both': each "
+                f"ballistic draw takes one of torchdoct.RandomBallistic's two direction laws with "
+                f"probability 1/2); got {self.ballistic_directions!r}"
+            )
         if self.bulk_residual_step_rad[0] < 0 or self.bulk_residual_step_rad[1] > math.pi:
-            raise ValueError(f"prior.bulk_residual_step_rad must lie in [0, π] (rad per frame); "
-                             f"got {list(self.bulk_residual_step_rad)}")
+            raise ValueError(
+                f"prior.bulk_residual_step_rad must lie in [0, π] (rad per frame); "
+                f"got {list(self.bulk_residual_step_rad)}"
+            )
         if not 0.0 < float(self.identifiability_epsilon) < 0.5:
             raise ValueError(f"prior.identifiability_epsilon must be in (0, 0.5); got {self.identifiability_epsilon!r}")
 
@@ -230,8 +248,9 @@ class Draw:
 
     def __post_init__(self) -> None:
         if self.ballistic_directions not in BALLISTIC_LAWS:
-            raise ValueError(f"Draw.ballistic_directions must be one of {list(BALLISTIC_LAWS)}; "
-                             f"got {self.ballistic_directions!r}")
+            raise ValueError(
+                f"Draw.ballistic_directions must be one of {list(BALLISTIC_LAWS)}; got {self.ballistic_directions!r}"
+            )
 
     @property
     def motion(self) -> str:
@@ -297,6 +316,14 @@ def draw_parameters(prior: Prior, seed: int, split: str, k: int, replicates: int
         law = "isotropic"
         if label == 1 and np.random.default_rng(_seed_sequence(seed, split, k, _LAW_STREAM)).random() >= 0.5:
             law = "uniform-angles"
-    return Draw(label=label, magnitude=magnitude, polar_angle_deg=polar, azimuth_deg=azimuth,
-                density_per_um3=float(density), sim_seed=sim_seed, nuisance=tuple(nuisance),
-                ballistic_directions=law, static_edges=tuple(edges) if any(e is not None for e in edges) else ())
+    return Draw(
+        label=label,
+        magnitude=magnitude,
+        polar_angle_deg=polar,
+        azimuth_deg=azimuth,
+        density_per_um3=float(density),
+        sim_seed=sim_seed,
+        nuisance=tuple(nuisance),
+        ballistic_directions=law,
+        static_edges=tuple(edges) if any(e is not None for e in edges) else (),
+    )

@@ -15,8 +15,17 @@ from .features import FeatureSpec, load_spec
 from .prior import CLASSES, Prior
 from .simulation import DEFAULT_TRUNCATION
 
-__all__ = ["TrainConfig", "SPEC_RECIPES", "OWN_SIGNATURE_RECIPE", "recipe_for", "SCALED_PRIOR_SPECS", "default_prior",
-           "SHIFTED_PRIOR", "SHIFTED_TARGETS", "shifted_prior"]
+__all__ = [
+    "TrainConfig",
+    "SPEC_RECIPES",
+    "OWN_SIGNATURE_RECIPE",
+    "recipe_for",
+    "SCALED_PRIOR_SPECS",
+    "default_prior",
+    "SHIFTED_PRIOR",
+    "SHIFTED_TARGETS",
+    "shifted_prior",
+]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -89,29 +98,52 @@ class TrainConfig:
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
         object.__setattr__(self, "eval_pools", tuple(int(n) for n in self.eval_pools))
         object.__setattr__(self, "bulk_residual_step_rad", tuple(float(v) for v in self.bulk_residual_step_rad))
-        for key in ("draws_train", "draws_validation", "draws_test", "trials_per_draw", "max_epochs",
-                    "batch_size", "singles_per_group", "pooled_per_group", "max_pool_pixels", "replicates"):
+        for key in (
+            "draws_train",
+            "draws_validation",
+            "draws_test",
+            "trials_per_draw",
+            "max_epochs",
+            "batch_size",
+            "singles_per_group",
+            "pooled_per_group",
+            "max_pool_pixels",
+            "replicates",
+        ):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"TrainConfig.{key} must be a positive integer; got {v!r}")
         for key in ("draws_train", "draws_validation", "draws_test"):
             if getattr(self, key) < len(CLASSES):
-                raise ValueError(f"TrainConfig.{key} must be >= {len(CLASSES)} (one draw per motion type); "
-                                 f"got {getattr(self, key)}")
+                raise ValueError(
+                    f"TrainConfig.{key} must be >= {len(CLASSES)} (one draw per motion type); got {getattr(self, key)}"
+                )
         if self.max_pool_pixels > self.trials_per_draw:
-            raise ValueError(f"TrainConfig.max_pool_pixels ({self.max_pool_pixels}) must not exceed "
-                             f"trials_per_draw ({self.trials_per_draw})")
+            raise ValueError(
+                f"TrainConfig.max_pool_pixels ({self.max_pool_pixels}) must not exceed "
+                f"trials_per_draw ({self.trials_per_draw})"
+            )
         if any(n < 1 or n > self.trials_per_draw for n in self.eval_pools) or 1 not in self.eval_pools:
-            raise ValueError(f"TrainConfig.eval_pools must include 1 and lie in [1, trials_per_draw]; "
-                             f"got {self.eval_pools}")
-        if isinstance(self.noise_probability, bool) or not isinstance(self.noise_probability, (int, float)) \
-                or not 0.0 <= float(self.noise_probability) <= 1.0:
-            raise ValueError(f"TrainConfig.noise_probability must be a probability in [0, 1]; "
-                             f"got {self.noise_probability!r}")
-        if isinstance(self.static_edge_probability, bool) or not isinstance(self.static_edge_probability, (int, float)) \
-                or not 0.0 <= float(self.static_edge_probability) <= 1.0:
-            raise ValueError(f"TrainConfig.static_edge_probability must be a probability in [0, 1]; "
-                             f"got {self.static_edge_probability!r}")
+            raise ValueError(
+                f"TrainConfig.eval_pools must include 1 and lie in [1, trials_per_draw]; got {self.eval_pools}"
+            )
+        if (
+            isinstance(self.noise_probability, bool)
+            or not isinstance(self.noise_probability, (int, float))
+            or not 0.0 <= float(self.noise_probability) <= 1.0
+        ):
+            raise ValueError(
+                f"TrainConfig.noise_probability must be a probability in [0, 1]; got {self.noise_probability!r}"
+            )
+        if (
+            isinstance(self.static_edge_probability, bool)
+            or not isinstance(self.static_edge_probability, (int, float))
+            or not 0.0 <= float(self.static_edge_probability) <= 1.0
+        ):
+            raise ValueError(
+                f"TrainConfig.static_edge_probability must be a probability in [0, 1]; "
+                f"got {self.static_edge_probability!r}"
+            )
         if not 0.0 <= self.min_probability < 1.0:
             raise ValueError(f"TrainConfig.min_probability must be in [0, 1); got {self.min_probability!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
@@ -148,10 +180,20 @@ class TrainConfig:
 #:   random-ballistic motion (it decorrelates by axial transit, which only the axial-reduced
 #:   configuration slows), gets more of the flow draws than an isotropic law gives it.
 SPEC_RECIPES: dict[str, dict[str, Any]] = {
-    "signature": {"draws_train": 1920, "draws_validation": 90, "draws_test": 180, "replicates": 8,
-                  "hidden": (64, 64), "learning_rate": 1e-3, "weight_decay": 1e-3, "patience": 15,
-                  "max_epochs": 60, "bulk_phase_test": True, "flow_polar_law": "uniform-angle",
-                  "noise_probability": 1.0},
+    "signature": {
+        "draws_train": 1920,
+        "draws_validation": 90,
+        "draws_test": 180,
+        "replicates": 8,
+        "hidden": (64, 64),
+        "learning_rate": 1e-3,
+        "weight_decay": 1e-3,
+        "patience": 15,
+        "max_epochs": 60,
+        "bulk_phase_test": True,
+        "flow_polar_law": "uniform-angle",
+        "noise_probability": 1.0,
+    },
 }
 #: The two-wavelength signature spec (the signature's 24 intensity features at 840 and 1310 nm) and the
 #: B-scan signature spec (the lateral reduction along x only) take it too (noise in every draw, the prior
@@ -171,8 +213,11 @@ _SHIPPED_DEFAULT_RECIPE = ("single-acquisition", "two-wavelength", "single-acqui
 #: recipe (without the random-bulk-phase test split, which only the models that read the phase need; with a
 #: static edge in a quarter of the replicates). Its cost is mostly the network's fit, on one thread so that
 #: the model does not depend on the cores (the training time is in each model's report).
-OWN_SIGNATURE_RECIPE: dict[str, Any] = {**SPEC_RECIPES["signature"], "bulk_phase_test": False,
-                                        "static_edge_probability": 0.25}
+OWN_SIGNATURE_RECIPE: dict[str, Any] = {
+    **SPEC_RECIPES["signature"],
+    "bulk_phase_test": False,
+    "static_edge_probability": 0.25,
+}
 
 
 def recipe_for(spec: FeatureSpec) -> dict[str, Any]:
@@ -184,8 +229,9 @@ def recipe_for(spec: FeatureSpec) -> dict[str, Any]:
         return {}
     recipe = dict(OWN_SIGNATURE_RECIPE)
     if spec.needs_field:
-        recipe.update(bulk_phase_test=True,
-                      bulk_residual_step_rad=SPEC_RECIPES["signature-bscan-field"]["bulk_residual_step_rad"])
+        recipe.update(
+            bulk_phase_test=True, bulk_residual_step_rad=SPEC_RECIPES["signature-bscan-field"]["bulk_residual_step_rad"]
+        )
     return recipe
 
 
@@ -203,8 +249,12 @@ def default_prior(cfg: TrainConfig) -> Prior:
     """The prior of a recipe when none is given: :class:`Prior` with the recipe's flow polar law and
     residual bulk phase, scaled to the spec's system (:func:`classifier.own_system.prior_for_spec`) for the
     shipped specs of :data:`SCALED_PRIOR_SPECS`."""
-    prior = Prior(flow_polar_law=cfg.flow_polar_law, bulk_residual_step_rad=cfg.bulk_residual_step_rad,
-                  noise_probability=cfg.noise_probability, static_edge_probability=cfg.static_edge_probability)
+    prior = Prior(
+        flow_polar_law=cfg.flow_polar_law,
+        bulk_residual_step_rad=cfg.bulk_residual_step_rad,
+        noise_probability=cfg.noise_probability,
+        static_edge_probability=cfg.static_edge_probability,
+    )
     if str(cfg.spec) in SCALED_PRIOR_SPECS:
         from .own_system import prior_for_spec
 
@@ -222,8 +272,14 @@ def default_prior(cfg: TrainConfig) -> Prior:
 #: from the prior trained on). Its split is the test split of the same seed (its draws have the test
 #: draws' motion types, magnitudes and simulator seeds; the nuisances above are its own) and is cached
 #: apart (the cache key holds the prior).
-SHIFTED_PRIOR = Prior(ballistic_directions="both", flow_polar_angle_deg=(10.0, 80.0), density_per_um3=(0.05, 0.05),
-                      static_probability=0.0, noise_probability=1.0, snr_db=(15.0, 25.0))
+SHIFTED_PRIOR = Prior(
+    ballistic_directions="both",
+    flow_polar_angle_deg=(10.0, 80.0),
+    density_per_um3=(0.05, 0.05),
+    static_probability=0.0,
+    noise_probability=1.0,
+    snr_db=(15.0, 25.0),
+)
 #: What must hold on the shifted-prior test set, per pixel (pool 1): balanced accuracy over the
 #: decided identifiable samples at least, expected calibration error at most.
 SHIFTED_TARGETS = {"pool": "1", "balanced_accuracy_identifiable": 0.85, "ece": 0.05}
@@ -236,7 +292,11 @@ def shifted_prior(prior: Prior | None = None) -> Prior:
     prior = prior or Prior()
     scale = prior.density_per_um3[0] / Prior().density_per_um3[0]  # a prior scaled to another system (N_eff)
     density = tuple(float(f"{d * scale:.3g}") for d in SHIFTED_PRIOR.density_per_um3) if scale != 1.0 else None
-    return dataclasses.replace(SHIFTED_PRIOR, diffusion_um2_per_s=prior.diffusion_um2_per_s,
-                               speed_um_per_s=prior.speed_um_per_s, flow_speed_um_per_s=prior.flow_speed_um_per_s,
-                               identifiability_epsilon=prior.identifiability_epsilon,
-                               **({} if density is None else {"density_per_um3": density}))
+    return dataclasses.replace(
+        SHIFTED_PRIOR,
+        diffusion_um2_per_s=prior.diffusion_um2_per_s,
+        speed_um_per_s=prior.speed_um_per_s,
+        flow_speed_um_per_s=prior.flow_speed_um_per_s,
+        identifiability_epsilon=prior.identifiability_epsilon,
+        **({} if density is None else {"density_per_um3": density}),
+    )

@@ -10,6 +10,9 @@ Metrics (classes = the model's classes, the last being ``indeterminate``):
   accuracy counts undecided samples as wrong;
 * **ECE**: expected calibration error of the top-class probability before the rule, 15 equal-width
   bins, truth including the indeterminate class.
+
+Kept whole (over 800 lines): the metrics and the sections of the report that render them share one
+results dictionary; keeping the metric beside the section that prints it keeps the schema in one place.
 """
 
 from __future__ import annotations
@@ -23,9 +26,21 @@ import numpy as np
 
 from .rule import REASONS, apply_rule
 
-__all__ = ["expected_calibration_error", "evaluate", "bootstrap_draws", "bootstrap_se", "coverage_curve", "magnitude_table",
-           "write_report", "format_markdown", "undefined_reason", "summary_line", "training_summary", "finite",
-           "COVERAGE_THRESHOLDS"]
+__all__ = [
+    "expected_calibration_error",
+    "evaluate",
+    "bootstrap_draws",
+    "bootstrap_se",
+    "coverage_curve",
+    "magnitude_table",
+    "write_report",
+    "format_markdown",
+    "undefined_reason",
+    "summary_line",
+    "training_summary",
+    "finite",
+    "COVERAGE_THRESHOLDS",
+]
 
 #: ``min_probability`` values of the accuracy-coverage table (:func:`coverage_curve`).
 COVERAGE_THRESHOLDS = (0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
@@ -57,8 +72,9 @@ def _recalls(truth: np.ndarray, pred: np.ndarray, classes: Sequence[int]) -> lis
     return out
 
 
-def evaluate(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, class_names: Sequence[str],
-             rule: dict[str, Any]) -> dict[str, Any]:
+def evaluate(
+    probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, class_names: Sequence[str], rule: dict[str, Any]
+) -> dict[str, Any]:
     """All metrics of the module docstring for one set of samples.
 
     ``y`` motion labels (0..C−2), ``status`` 0 where identifiable (ground truth).
@@ -98,8 +114,15 @@ def evaluate(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, class
 POLAR_BANDS = ((0.0, 30.0), (30.0, 60.0), (60.0, 90.0))
 
 
-def flow_recall_by_band(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, polar_angle_deg: np.ndarray,
-                        magnitude: np.ndarray, class_names: Sequence[str], rule: dict[str, Any]) -> dict[str, Any]:
+def flow_recall_by_band(
+    probabilities: np.ndarray,
+    y: np.ndarray,
+    status: np.ndarray,
+    polar_angle_deg: np.ndarray,
+    magnitude: np.ndarray,
+    class_names: Sequence[str],
+    rule: dict[str, Any],
+) -> dict[str, Any]:
     """Flow recall by polar band and by speed decade, on identifiable flow samples.
 
     Per band (``θ`` folded to ``min(θ, 180° − θ)``, :data:`POLAR_BANDS`) and per decade of the speed
@@ -116,20 +139,24 @@ def flow_recall_by_band(probabilities: np.ndarray, y: np.ndarray, status: np.nda
     def row(mask: np.ndarray) -> dict[str, Any]:
         dec = mask & (pred != ind)
         n_dec = int(dec.sum())
-        return {"samples": int(mask.sum()), "coverage": float(n_dec / max(int(mask.sum()), 1)),
-                "recall": float((pred[dec] == flow).mean()) if n_dec else math.nan,
-                "as": {c: float((pred[dec] == i).mean()) if n_dec else math.nan
-                       for i, c in enumerate(class_names[:-1])}}
+        return {
+            "samples": int(mask.sum()),
+            "coverage": float(n_dec / max(int(mask.sum()), 1)),
+            "recall": float((pred[dec] == flow).mean()) if n_dec else math.nan,
+            "as": {c: float((pred[dec] == i).mean()) if n_dec else math.nan for i, c in enumerate(class_names[:-1])},
+        }
 
-    bands = {f"{lo:g}-{hi:g}": row(sel & (theta >= lo) & ((theta < hi) | (hi == 90.0)))
-             for lo, hi in POLAR_BANDS}
+    bands = {f"{lo:g}-{hi:g}": row(sel & (theta >= lo) & ((theta < hi) | (hi == 90.0))) for lo, hi in POLAR_BANDS}
     decades = {f"1e{int(d)}": row(sel & (decade == d)) for d in np.unique(decade[sel])}
-    return {"polar_bands": {k: v for k, v in bands.items() if v["samples"]},
-            "speed_decades": {k: v for k, v in decades.items() if v["samples"]}}
+    return {
+        "polar_bands": {k: v for k, v in bands.items() if v["samples"]},
+        "speed_decades": {k: v for k, v in decades.items() if v["samples"]},
+    }
 
 
-def bootstrap_draws(fn: Callable[[np.ndarray], dict[str, float]], draw: np.ndarray, *, n_boot: int = 200,
-                    seed: int = 0) -> dict[str, float]:
+def bootstrap_draws(
+    fn: Callable[[np.ndarray], dict[str, float]], draw: np.ndarray, *, n_boot: int = 200, seed: int = 0
+) -> dict[str, float]:
     """Standard errors of the scalars ``fn(index) -> {name: value}`` from ``n_boot`` resamples of the draws
     (the independent unit) with a seeded generator: the SD (ddof 1) of each scalar's finite values, NaN
     with fewer than 2 of them; ``{}`` with fewer than 2 draws. The resampling of
@@ -152,16 +179,31 @@ def bootstrap_draws(fn: Callable[[np.ndarray], dict[str, float]], draw: np.ndarr
     return out
 
 
-def bootstrap_se(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, draw: np.ndarray,
-                 class_names: Sequence[str], rule: dict[str, Any], *, n_boot: int = 200, seed: int = 0,
-                 keys: Sequence[str] = ("accuracy_identifiable", "balanced_accuracy_identifiable",
-                                        "coverage_identifiable", "accuracy_all", "ece")) -> dict[str, float]:
+def bootstrap_se(
+    probabilities: np.ndarray,
+    y: np.ndarray,
+    status: np.ndarray,
+    draw: np.ndarray,
+    class_names: Sequence[str],
+    rule: dict[str, Any],
+    *,
+    n_boot: int = 200,
+    seed: int = 0,
+    keys: Sequence[str] = (
+        "accuracy_identifiable",
+        "balanced_accuracy_identifiable",
+        "coverage_identifiable",
+        "accuracy_all",
+        "ece",
+    ),
+) -> dict[str, float]:
     """Standard errors of :func:`evaluate`'s metrics from a bootstrap over *draws* (the independent
     unit: trials of a draw share its parameters), ``n_boot`` resamples with a seeded generator
     (:func:`bootstrap_draws`).
 
     NaN (undefined, see :func:`undefined_reason`) with fewer than 2 draws, or when fewer than 2
     resamples give a defined value."""
+
     def scalars(i: np.ndarray) -> dict[str, float]:
         m = evaluate(probabilities[i], y[i], status[i], class_names, rule)
         return {k: m[k] for k in keys}
@@ -170,8 +212,14 @@ def bootstrap_se(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, d
     return {k: se.get(k, math.nan) for k in keys}
 
 
-def coverage_curve(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, class_names: Sequence[str],
-                   rule: dict[str, Any], thresholds: Sequence[float] = COVERAGE_THRESHOLDS) -> list[dict[str, Any]]:
+def coverage_curve(
+    probabilities: np.ndarray,
+    y: np.ndarray,
+    status: np.ndarray,
+    class_names: Sequence[str],
+    rule: dict[str, Any],
+    thresholds: Sequence[float] = COVERAGE_THRESHOLDS,
+) -> list[dict[str, Any]]:
     """Accuracy against coverage as the rule's ``min_probability`` varies, the rest of the rule fixed:
     what ``doct-classify --min-probability`` trades. Per threshold: coverage, accuracy and balanced
     accuracy on the identifiable samples (as :func:`evaluate`) and the share of the non-identifiable
@@ -181,19 +229,30 @@ def coverage_curve(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray,
     for t in thresholds:
         m = evaluate(probabilities, y, status, class_names, {**rule, "min_probability": float(t)})
         non = m["confusion"][-1]  # truth indeterminate = the non-identifiable samples, by decision
-        rows.append({"min_probability": float(t), "coverage_identifiable": m["coverage_identifiable"],
-                     "accuracy_identifiable": m["accuracy_identifiable"],
-                     "balanced_accuracy_identifiable": m["balanced_accuracy_identifiable"],
-                     "non_identifiable_decided": (sum(non) - non[-1]) / sum(non) if sum(non) else math.nan})
+        rows.append(
+            {
+                "min_probability": float(t),
+                "coverage_identifiable": m["coverage_identifiable"],
+                "accuracy_identifiable": m["accuracy_identifiable"],
+                "balanced_accuracy_identifiable": m["balanced_accuracy_identifiable"],
+                "non_identifiable_decided": (sum(non) - non[-1]) / sum(non) if sum(non) else math.nan,
+            }
+        )
     return rows
 
 
 #: Why a metric of :func:`evaluate` can be undefined (None in the JSON report, "n/a" in the text).
 _NO_IDENTIFIABLE = "the test set has no identifiable sample"
-_NONE_DECIDED = ("no identifiable test sample was decided: coverage 0, the network called all of them "
-                 "indeterminate; train on more draws or lower --min-probability")
-_IDENTIFIABLE_KEYS = ("accuracy_identifiable", "balanced_accuracy_identifiable", "strict_accuracy_identifiable",
-                      "coverage_identifiable")
+_NONE_DECIDED = (
+    "no identifiable test sample was decided: coverage 0, the network called all of them "
+    "indeterminate; train on more draws or lower --min-probability"
+)
+_IDENTIFIABLE_KEYS = (
+    "accuracy_identifiable",
+    "balanced_accuracy_identifiable",
+    "strict_accuracy_identifiable",
+    "coverage_identifiable",
+)
 
 
 def _undefined(v: Any) -> bool:
@@ -222,16 +281,20 @@ def summary_line(metrics: dict[str, Any]) -> str:
         said.add(reason)
         return f"n/a ({reason})"
 
-    return (f"accuracy {f('accuracy_all')}, balanced {f('balanced_accuracy_all')}; identifiable: coverage "
-            f"{f('coverage_identifiable')}, accuracy {f('accuracy_identifiable')}, balanced "
-            f"{f('balanced_accuracy_identifiable')}; ECE {f('ece')}")
+    return (
+        f"accuracy {f('accuracy_all')}, balanced {f('balanced_accuracy_all')}; identifiable: coverage "
+        f"{f('coverage_identifiable')}, accuracy {f('accuracy_identifiable')}, balanced "
+        f"{f('balanced_accuracy_identifiable')}; ECE {f('ece')}"
+    )
 
 
 def training_summary(report: dict[str, Any]) -> str:
     """The line ``doct-train`` prints after a run: the network's test metrics at pool 1
     (:func:`summary_line`), the ONNX parity and the total time."""
-    return (f"test (pool 1): {summary_line(report['test']['network']['1'])}; ONNX max |dp| "
-            f"{report['onnx_parity_max_abs_diff']:.1e}; total {report['total_s']:.0f} s")
+    return (
+        f"test (pool 1): {summary_line(report['test']['network']['1'])}; ONNX max |dp| "
+        f"{report['onnx_parity_max_abs_diff']:.1e}; total {report['total_s']:.0f} s"
+    )
 
 
 def finite(obj: Any) -> Any:
@@ -246,9 +309,16 @@ def finite(obj: Any) -> Any:
     return obj
 
 
-def magnitude_table(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray, magnitude: np.ndarray,
-                    class_names: Sequence[str], rule: dict[str, Any], ranges: Sequence[tuple[float, float]],
-                    bins: int = 8) -> list[dict[str, Any]]:
+def magnitude_table(
+    probabilities: np.ndarray,
+    y: np.ndarray,
+    status: np.ndarray,
+    magnitude: np.ndarray,
+    class_names: Sequence[str],
+    rule: dict[str, Any],
+    ranges: Sequence[tuple[float, float]],
+    bins: int = 8,
+) -> list[dict[str, Any]]:
     """Per motion class and log-magnitude bin: counts, truth-indeterminate fraction, predicted
     indeterminate fraction, and accuracy on the identifiable, decided samples."""
     ind = len(class_names) - 1
@@ -266,14 +336,20 @@ def magnitude_table(probabilities: np.ndarray, y: np.ndarray, status: np.ndarray
             st = status[m][sel]
             pr = pred[m][sel]
             dec = (st == 0) & (pr != ind)
-            rows.append({
-                "class": class_names[c], "low": float(edges[b]), "high": float(edges[b + 1]), "samples": int(sel.sum()),
-                "truth_indeterminate": float((st != 0).mean()),
-                "truth_static": float((st == 1).mean()), "truth_decorrelated": float((st == 2).mean()),
-                "predicted_indeterminate": float((pr == ind).mean()),
-                "accuracy_decided": float((pr[dec] == c).mean()) if dec.any() else math.nan,
-                "coverage": float(dec.sum() / max((st == 0).sum(), 1)) if (st == 0).any() else math.nan,
-            })
+            rows.append(
+                {
+                    "class": class_names[c],
+                    "low": float(edges[b]),
+                    "high": float(edges[b + 1]),
+                    "samples": int(sel.sum()),
+                    "truth_indeterminate": float((st != 0).mean()),
+                    "truth_static": float((st == 1).mean()),
+                    "truth_decorrelated": float((st == 2).mean()),
+                    "predicted_indeterminate": float((pr == ind).mean()),
+                    "accuracy_decided": float((pr[dec] == c).mean()) if dec.any() else math.nan,
+                    "coverage": float(dec.sum() / max((st == 0).sum(), 1)) if (st == 0).any() else math.nan,
+                }
+            )
     return rows
 
 
@@ -285,8 +361,9 @@ def _fmt(v: Any, digits: int = 3) -> str:
     return str(v)
 
 
-def _section(L: list[str], title: str, note: str | None, header: Sequence[str], align: str,
-             rows: Sequence[Sequence[Any]]) -> None:
+def _section(
+    L: list[str], title: str, note: str | None, header: Sequence[str], align: str, rows: Sequence[Sequence[Any]]
+) -> None:
     """Append a Markdown section: ``## title``, an optional note, a table (``align``: ``-`` left,
     ``r`` right per column) and a blank line."""
     L += [f"## {title}", ""] + ([note, ""] if note else [])
@@ -299,26 +376,50 @@ def _section(L: list[str], title: str, note: str | None, header: Sequence[str], 
 def _magnitude_rows(L: list[str], title: str, rows: Sequence[dict[str, Any]]) -> None:
     """Append one :func:`magnitude_table` as a Markdown table under the heading ``title``."""
     L += [title, ""]
-    L.append("| class | magnitude | samples | truth static | truth decorrelated | decided indeterminate "
-             "| coverage (identifiable) | accuracy (decided) |")
+    L.append(
+        "| class | magnitude | samples | truth static | truth decorrelated | decided indeterminate "
+        "| coverage (identifiable) | accuracy (decided) |"
+    )
     L.append("|---|---|---:|---:|---:|---:|---:|---:|")
     for row in rows:
-        L.append(f"| {row['class']} | {row['low']:.2g}–{row['high']:.2g} | {row['samples']} | "
-                 f"{_fmt(row['truth_static'], 2)} | {_fmt(row['truth_decorrelated'], 2)} | "
-                 f"{_fmt(row['predicted_indeterminate'], 2)} | {_fmt(row['coverage'], 2)} | "
-                 f"{_fmt(row['accuracy_decided'], 2)} |")
+        L.append(
+            f"| {row['class']} | {row['low']:.2g}–{row['high']:.2g} | {row['samples']} | "
+            f"{_fmt(row['truth_static'], 2)} | {_fmt(row['truth_decorrelated'], 2)} | "
+            f"{_fmt(row['predicted_indeterminate'], 2)} | {_fmt(row['coverage'], 2)} | "
+            f"{_fmt(row['accuracy_decided'], 2)} |"
+        )
     L.append("")
 
 
 def _coverage_section(L: list[str], title: str, curves: dict[str, list[dict[str, Any]]], rule: dict[str, Any]) -> None:
     """One :func:`coverage_curve` table per report section, pools one after the other."""
-    _section(L, title, f"The rule at each min_probability (the model's: {rule['min_probability']:g}); identifiable "
-             "test samples, and the share of the non-identifiable ones given a motion class.",
-             ["pool", "min_probability", "coverage", "acc. identifiable", "bal. acc. identifiable",
-              "non-identifiable decided"], "rrrrrr",
-             [[pool, f"{c['min_probability']:g}", _fmt(c["coverage_identifiable"]), _fmt(c["accuracy_identifiable"]),
-               _fmt(c["balanced_accuracy_identifiable"]), _fmt(c["non_identifiable_decided"])]
-              for pool, rows in curves.items() for c in rows])
+    _section(
+        L,
+        title,
+        f"The rule at each min_probability (the model's: {rule['min_probability']:g}); identifiable "
+        "test samples, and the share of the non-identifiable ones given a motion class.",
+        [
+            "pool",
+            "min_probability",
+            "coverage",
+            "acc. identifiable",
+            "bal. acc. identifiable",
+            "non-identifiable decided",
+        ],
+        "rrrrrr",
+        [
+            [
+                pool,
+                f"{c['min_probability']:g}",
+                _fmt(c["coverage_identifiable"]),
+                _fmt(c["accuracy_identifiable"]),
+                _fmt(c["balanced_accuracy_identifiable"]),
+                _fmt(c["non_identifiable_decided"]),
+            ]
+            for pool, rows in curves.items()
+            for c in rows
+        ],
+    )
 
 
 def flow_bands_section(L: list[str], title: str, bands: dict[str, dict[str, Any]]) -> None:
@@ -328,30 +429,54 @@ def flow_bands_section(L: list[str], title: str, bands: dict[str, dict[str, Any]
         for kind, key in (("polar", "polar_bands"), ("speed", "speed_decades")):
             for name, r in fb.get(key, {}).items():
                 label = f"{name}°" if kind == "polar" else f"{name} µm/s decade"
-                rows.append([pool, label, r["samples"], _fmt(r["coverage"]), _fmt(r["recall"]),
-                             _fmt(r["as"].get("ballistic", math.nan)), _fmt(r["as"].get("diffusion", math.nan))])
-    _section(L, title, "Identifiable flow samples by the polar angle of the flow from the beam axis (folded into "
-             "0–90°) and by speed decade: share decided (coverage), share of the decided called flow (recall), "
-             "ballistic, diffusion.", ["pool", "band", "samples", "coverage", "flow recall", "as ballistic",
-                                        "as diffusion"], "rlrrrrr", rows)
+                rows.append(
+                    [
+                        pool,
+                        label,
+                        r["samples"],
+                        _fmt(r["coverage"]),
+                        _fmt(r["recall"]),
+                        _fmt(r["as"].get("ballistic", math.nan)),
+                        _fmt(r["as"].get("diffusion", math.nan)),
+                    ]
+                )
+    _section(
+        L,
+        title,
+        "Identifiable flow samples by the polar angle of the flow from the beam axis (folded into "
+        "0–90°) and by speed decade: share decided (coverage), share of the decided called flow (recall), "
+        "ballistic, diffusion.",
+        ["pool", "band", "samples", "coverage", "flow recall", "as ballistic", "as diffusion"],
+        "rlrrrrr",
+        rows,
+    )
 
 
 def _shifted_section(L: list[str], sp: dict[str, Any], rule: dict[str, Any]) -> None:
     """The shifted-prior test set (``report["shifted_prior"]``, :data:`classifier.train.SHIFTED_PRIOR`)."""
     pr = sp["prior"]
-    noise = (f"noise with probability {pr['noise_probability']:g} at SNR {pr['snr_db'][0]:g}–{pr['snr_db'][1]:g} dB"
-             if pr["noise_probability"] > 0 else "no noise")
-    static = ("no static fraction" if pr["static_probability"] == 0 else
-              f"static fraction {pr['static_fraction'][0]:g}–{pr['static_fraction'][1]:g} with probability "
-              f"{pr['static_probability']:g}")
+    noise = (
+        f"noise with probability {pr['noise_probability']:g} at SNR {pr['snr_db'][0]:g}–{pr['snr_db'][1]:g} dB"
+        if pr["noise_probability"] > 0
+        else "no noise"
+    )
+    static = (
+        "no static fraction"
+        if pr["static_probability"] == 0
+        else f"static fraction {pr['static_fraction'][0]:g}–{pr['static_fraction'][1]:g} with probability "
+        f"{pr['static_probability']:g}"
+    )
     dens = pr["density_per_um3"]
     dens_s = f"{dens[0]:g}" if dens[0] == dens[1] else f"{dens[0]:g}–{dens[1]:g}"
-    note = (f"The network on test draws from another prior: flow at {pr['flow_polar_angle_deg'][0]:g}–"
-            f"{pr['flow_polar_angle_deg'][1]:g}° from the depth axis (isotropic within), moving-scatterer density "
-            f"{dens_s} µm⁻³, {static}, {noise}, random-ballistic direction laws: {pr['ballistic_directions']}; "
-            f"motion types, magnitudes and simulator seeds those of the test draws. {sp['draws']} draws, "
-            f"{sp['samples']} samples; ground truth per draw: "
-            + ", ".join(f"{k} {v}" for k, v in sp["draw_status_counts"].items()) + ".")
+    note = (
+        f"The network on test draws from another prior: flow at {pr['flow_polar_angle_deg'][0]:g}–"
+        f"{pr['flow_polar_angle_deg'][1]:g}° from the depth axis (isotropic within), moving-scatterer density "
+        f"{dens_s} µm⁻³, {static}, {noise}, random-ballistic direction laws: {pr['ballistic_directions']}; "
+        f"motion types, magnitudes and simulator seeds those of the test draws. {sp['draws']} draws, "
+        f"{sp['samples']} samples; ground truth per draw: "
+        + ", ".join(f"{k} {v}" for k, v in sp["draw_status_counts"].items())
+        + "."
+    )
     ses = sp.get("standard_errors", {})
 
     def pm(pool: str, key: str) -> str:
@@ -359,36 +484,68 @@ def _shifted_section(L: list[str], sp: dict[str, Any], rule: dict[str, Any]) -> 
         se = ses.get(pool, {}).get(key)
         return _fmt(v) + ("" if se is None or _undefined(se) or _undefined(v) else f" ± {se:.3f}")
 
-    _section(L, "Shifted-prior test set (network)", note,
-             ["pool", "samples", "coverage", "acc. identifiable", "bal. acc. identifiable", "ECE", "indeterminate"],
-             "rrrrrrr",
-             [[pool, m["samples"], pm(pool, "coverage_identifiable"), pm(pool, "accuracy_identifiable"),
-               pm(pool, "balanced_accuracy_identifiable"), pm(pool, "ece"), _fmt(m["indeterminate_fraction"])]
-              for pool, m in sp["test"].items()])
+    _section(
+        L,
+        "Shifted-prior test set (network)",
+        note,
+        ["pool", "samples", "coverage", "acc. identifiable", "bal. acc. identifiable", "ECE", "indeterminate"],
+        "rrrrrrr",
+        [
+            [
+                pool,
+                m["samples"],
+                pm(pool, "coverage_identifiable"),
+                pm(pool, "accuracy_identifiable"),
+                pm(pool, "balanced_accuracy_identifiable"),
+                pm(pool, "ece"),
+                _fmt(m["indeterminate_fraction"]),
+            ]
+            for pool, m in sp["test"].items()
+        ],
+    )
     if ses:
         L += ["± : standard error, bootstrap over the draws.", ""]
-    reasons = sorted({why for m in sp["test"].values() for key in _IDENTIFIABLE_KEYS
-                      if (why := undefined_reason(m, key))})
+    reasons = sorted(
+        {why for m in sp["test"].values() for key in _IDENTIFIABLE_KEYS if (why := undefined_reason(m, key))}
+    )
     if reasons:
         L += [f"n/a: {why}.  " for why in reasons] + [""]
     t = sp.get("targets")
     if t is not None:
         m = sp["test"][t["pool"]]
-        L += [f"Targets (pool {t['pool']}): balanced accuracy (identifiable) ≥ "
-              f"{t['balanced_accuracy_identifiable']:g}: {_fmt(m['balanced_accuracy_identifiable'])}; "
-              f"ECE ≤ {t['ece']:g}: {_fmt(m['ece'])}; "
-              f"**{'met' if t['met'] else 'not met'}**.", ""]
+        L += [
+            f"Targets (pool {t['pool']}): balanced accuracy (identifiable) ≥ "
+            f"{t['balanced_accuracy_identifiable']:g}: {_fmt(m['balanced_accuracy_identifiable'])}; "
+            f"ECE ≤ {t['ece']:g}: {_fmt(m['ece'])}; "
+            f"**{'met' if t['met'] else 'not met'}**.",
+            "",
+        ]
     if "coverage_curve" in sp:
-        _coverage_section(L, "Shifted prior: accuracy against coverage (`--min-probability`)", sp["coverage_curve"], rule)
+        _coverage_section(
+            L, "Shifted prior: accuracy against coverage (`--min-probability`)", sp["coverage_curve"], rule
+        )
     if "flow_bands" in sp:
         flow_bands_section(L, "Shifted prior: flow recall by direction and speed", sp["flow_bands"])
     for pool, rows in sp.get("by_magnitude", {}).items():
         _magnitude_rows(L, f"### Shifted prior: accuracy against motion magnitude, pool {pool}", rows)
     if "magnitude" in sp:
-        _section(L, "Shifted prior: motion magnitude (network; identifiable samples, head of the true class)", None,
-                 ["pool", "samples", "median abs. log10 error", "68 % coverage", "95 % coverage"], "rrrrr",
-                 [[pool, m["samples"], _fmt(m.get("median_abs_log10_error")), _fmt(m.get("coverage_68")),
-                   _fmt(m.get("coverage_95"))] for pool, m in sp["magnitude"].items()])
+        _section(
+            L,
+            "Shifted prior: motion magnitude (network; identifiable samples, head of the true class)",
+            None,
+            ["pool", "samples", "median abs. log10 error", "68 % coverage", "95 % coverage"],
+            "rrrrr",
+            [
+                [
+                    pool,
+                    m["samples"],
+                    _fmt(m.get("median_abs_log10_error")),
+                    _fmt(m.get("coverage_68")),
+                    _fmt(m.get("coverage_95")),
+                ]
+                for pool, m in sp["magnitude"].items()
+            ],
+        )
 
 
 def format_markdown(report: dict[str, Any]) -> str:
@@ -398,59 +555,89 @@ def format_markdown(report: dict[str, Any]) -> str:
     L = [f"# Motion-type classifier report: `{r['spec']['name']}`", ""]
     L.append(f"Spec: {r['spec']['description']}  ")
     L.append(f"Features: {', '.join(r['feature_names'])} (+ `pool_pixels`)  ")
-    L.append(f"Classes: {', '.join(cls)}; rule: {r['rule']['definition']} min_probability = "
-             f"{r['rule']['min_probability']}, epsilon = {r['rule']['epsilon']}.  ")
+    L.append(
+        f"Classes: {', '.join(cls)}; rule: {r['rule']['definition']} min_probability = "
+        f"{r['rule']['min_probability']}, epsilon = {r['rule']['epsilon']}.  "
+    )
     d = r["data"]
-    L.append(f"Data: seed {r['seed']}; draws train/validation/test = {d['draws']['train']}/"
-             f"{d['draws']['validation']}/{d['draws']['test']} × {d['replicates']} (static fraction, SNR) replicates × "
-             f"{d['trials_per_draw']} trials; simulation {d['simulation_s']:.1f} s ({d['s_per_draw']:.3f} s per draw, "
-             f"{d['ms_per_trial']:.2f} ms per simulated trial; torch threads: {d['threads']}); training {r['training']['seconds']:.1f} s, {r['training']['epochs']} epochs, "
-             f"temperature {r['training']['temperature']:.3f}.")
+    L.append(
+        f"Data: seed {r['seed']}; draws train/validation/test = {d['draws']['train']}/"
+        f"{d['draws']['validation']}/{d['draws']['test']} × {d['replicates']} (static fraction, SNR) replicates × "
+        f"{d['trials_per_draw']} trials; simulation {d['simulation_s']:.1f} s ({d['s_per_draw']:.3f} s per draw, "
+        f"{d['ms_per_trial']:.2f} ms per simulated trial; torch threads: {d['threads']}); training {r['training']['seconds']:.1f} s, {r['training']['epochs']} epochs, "
+        f"temperature {r['training']['temperature']:.3f}."
+    )
     L.append("")
     L.append("## Test set, by pooled pixels")
     L.append("")
-    L.append("`pool` = independent pixels (trials of one draw) averaged per feature vector. Identifiable = "
-             "ground truth; accuracy over the decided ones; coverage = decided share; strict counts undecided as wrong.")
+    L.append(
+        "`pool` = independent pixels (trials of one draw) averaged per feature vector. Identifiable = "
+        "ground truth; accuracy over the decided ones; coverage = decided share; strict counts undecided as wrong."
+    )
     L.append("")
-    L.append("| model | pool | acc. all | bal. acc. all | coverage | acc. identifiable | bal. acc. identifiable "
-             "| strict acc. | ECE | indeterminate |")
+    L.append(
+        "| model | pool | acc. all | bal. acc. all | coverage | acc. identifiable | bal. acc. identifiable "
+        "| strict acc. | ECE | indeterminate |"
+    )
     L.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for name, per in r["test"].items():
         for pool, m in per.items():
-            L.append(f"| {name} | {pool} | {_fmt(m['accuracy_all'])} | {_fmt(m['balanced_accuracy_all'])} | "
-                     f"{_fmt(m['coverage_identifiable'])} | {_fmt(m['accuracy_identifiable'])} | "
-                     f"{_fmt(m['balanced_accuracy_identifiable'])} | {_fmt(m['strict_accuracy_identifiable'])} | "
-                     f"{_fmt(m['ece'])} | {_fmt(m['indeterminate_fraction'])} |")
+            L.append(
+                f"| {name} | {pool} | {_fmt(m['accuracy_all'])} | {_fmt(m['balanced_accuracy_all'])} | "
+                f"{_fmt(m['coverage_identifiable'])} | {_fmt(m['accuracy_identifiable'])} | "
+                f"{_fmt(m['balanced_accuracy_identifiable'])} | {_fmt(m['strict_accuracy_identifiable'])} | "
+                f"{_fmt(m['ece'])} | {_fmt(m['indeterminate_fraction'])} |"
+            )
     L.append("")
-    reasons = sorted({why for per in r["test"].values() for m in per.values() for key in _IDENTIFIABLE_KEYS
-                      if (why := undefined_reason(m, key))})
+    reasons = sorted(
+        {
+            why
+            for per in r["test"].values()
+            for m in per.values()
+            for key in _IDENTIFIABLE_KEYS
+            if (why := undefined_reason(m, key))
+        }
+    )
     for why in reasons:
         L.append(f"n/a: {why}.  ")
     if reasons:
         L.append("")
     if "standard_errors" in r:
-        L.append("Standard errors of the network's numbers (bootstrap over test draws, the independent unit): " +
-                 "; ".join(f"pool {pool}: " + ", ".join(f"{k.replace('_', ' ')} "
-                                                        + ("n/a" if _undefined(v) else f"±{v:.3f}")
-                                                        for k, v in se.items())
-                           for pool, se in r["standard_errors"].items()) + ".  ")
+        L.append(
+            "Standard errors of the network's numbers (bootstrap over test draws, the independent unit): "
+            + "; ".join(
+                f"pool {pool}: "
+                + ", ".join(
+                    f"{k.replace('_', ' ')} " + ("n/a" if _undefined(v) else f"±{v:.3f}") for k, v in se.items()
+                )
+                for pool, se in r["standard_errors"].items()
+            )
+            + ".  "
+        )
         if any(_undefined(v) for se in r["standard_errors"].values() for v in se.values()):
-            L.append("n/a: the metric is undefined in all but at most one bootstrap resample, or the test set "
-                     "has fewer than 2 draws.")
+            L.append(
+                "n/a: the metric is undefined in all but at most one bootstrap resample, or the test set "
+                "has fewer than 2 draws."
+            )
         L.append("")
     if "coverage_curve" in r:
-        _coverage_section(L, "Accuracy against coverage (network): the `--min-probability` trade-off",
-                          r["coverage_curve"], r["rule"])
+        _coverage_section(
+            L, "Accuracy against coverage (network): the `--min-probability` trade-off", r["coverage_curve"], r["rule"]
+        )
     if "flow_bands" in r:
         flow_bands_section(L, "Flow recall by direction and speed (network)", r["flow_bands"])
     L.append("## Models: training and inference time")
     L.append("")
-    L.append("| model | training [s] | inference [µs/sample] | acc. identifiable (pool 1) | bal. acc. identifiable (pool 1) |")
+    L.append(
+        "| model | training [s] | inference [µs/sample] | acc. identifiable (pool 1) | bal. acc. identifiable (pool 1) |"
+    )
     L.append("|---|---:|---:|---:|---:|")
     for name, t in r["timing"].items():
         m = r["test"].get(name, r["test"]["network"])["1"]
-        L.append(f"| {name} | {_fmt(t['train_s'], 2)} | {t['inference_us_per_sample']:.2f} | "
-                 f"{_fmt(m['accuracy_identifiable'])} | {_fmt(m['balanced_accuracy_identifiable'])} |")
+        L.append(
+            f"| {name} | {_fmt(t['train_s'], 2)} | {t['inference_us_per_sample']:.2f} | "
+            f"{_fmt(m['accuracy_identifiable'])} | {_fmt(m['balanced_accuracy_identifiable'])} |"
+        )
     L.append("")
     for pool in r["confusion_pools"]:
         cm = r["test"]["network"][pool]["confusion"]
@@ -463,36 +650,87 @@ def format_markdown(report: dict[str, Any]) -> str:
         L.append("")
     L.append("## Where the outcome is indeterminate, and accuracy against motion magnitude (network)")
     L.append("")
-    L.append("Magnitude: D in µm²/s (diffusion), v in µm/s (ballistic, flow). Truth static/decorrelated: "
-             "share of samples whose ground truth is indeterminate for that reason.")
+    L.append(
+        "Magnitude: D in µm²/s (diffusion), v in µm/s (ballistic, flow). Truth static/decorrelated: "
+        "share of samples whose ground truth is indeterminate for that reason."
+    )
     L.append("")
     for pool, rows in r["by_magnitude"].items():
         _magnitude_rows(L, f"### pool {pool}", rows)
     if "by_condition" in r:
-        _section(L, "Accuracy by acquisition condition (network, identifiable samples, pool 1)", None,
-                 ["condition", "samples", "coverage", "accuracy (decided)", "balanced accuracy (decided)"], "-rrrr",
-                 [[name, m["identifiable_samples"], _fmt(m["coverage_identifiable"]), _fmt(m["accuracy_identifiable"]),
-                   _fmt(m["balanced_accuracy_identifiable"])] for name, m in r["by_condition"].items()])
+        _section(
+            L,
+            "Accuracy by acquisition condition (network, identifiable samples, pool 1)",
+            None,
+            ["condition", "samples", "coverage", "accuracy (decided)", "balanced accuracy (decided)"],
+            "-rrrr",
+            [
+                [
+                    name,
+                    m["identifiable_samples"],
+                    _fmt(m["coverage_identifiable"]),
+                    _fmt(m["accuracy_identifiable"]),
+                    _fmt(m["balanced_accuracy_identifiable"]),
+                ]
+                for name, m in r["by_condition"].items()
+            ],
+        )
     if "magnitude" in r:
-        _section(L, "Motion magnitude (network; identifiable test samples, head of the true class)",
-                 "log10 D (µm²/s) for diffusion, log10 v (µm/s) for ballistic motion and flow; interval = mean ± SD "
-                 "(68 %) and ± 1.96 SD (95 %) of the predicted Gaussian.",
-                 ["pool", "samples", "median abs. log10 error", "mean abs. log10 error", "68 % coverage",
-                  "95 % coverage", "median SD", "median error diffusion / ballistic / flow"], "rrrrrrr-",
-                 [[pool, m["samples"], _fmt(m.get("median_abs_log10_error")), _fmt(m.get("mean_abs_log10_error")),
-                   _fmt(m.get("coverage_68")), _fmt(m.get("coverage_95")), _fmt(m.get("median_predicted_sd")),
-                   " / ".join(_fmt(m.get("by_class", {}).get(c, {}).get("median_abs_log10_error")) for c in cls[:-1])]
-                  for pool, m in r["magnitude"].items()])
+        _section(
+            L,
+            "Motion magnitude (network; identifiable test samples, head of the true class)",
+            "log10 D (µm²/s) for diffusion, log10 v (µm/s) for ballistic motion and flow; interval = mean ± SD "
+            "(68 %) and ± 1.96 SD (95 %) of the predicted Gaussian.",
+            [
+                "pool",
+                "samples",
+                "median abs. log10 error",
+                "mean abs. log10 error",
+                "68 % coverage",
+                "95 % coverage",
+                "median SD",
+                "median error diffusion / ballistic / flow",
+            ],
+            "rrrrrrr-",
+            [
+                [
+                    pool,
+                    m["samples"],
+                    _fmt(m.get("median_abs_log10_error")),
+                    _fmt(m.get("mean_abs_log10_error")),
+                    _fmt(m.get("coverage_68")),
+                    _fmt(m.get("coverage_95")),
+                    _fmt(m.get("median_predicted_sd")),
+                    " / ".join(_fmt(m.get("by_class", {}).get(c, {}).get("median_abs_log10_error")) for c in cls[:-1]),
+                ]
+                for pool, m in r["magnitude"].items()
+            ],
+        )
     if "bulk_phase" in r:
-        _section(L, "Random bulk phase per frame (network; the test draws with a uniform random phase per frame)", None,
-                 ["pool", "coverage", "acc. identifiable", "bal. acc. identifiable", "ECE"], "rrrrr",
-                 [[pool, _fmt(m["coverage_identifiable"]), _fmt(m["accuracy_identifiable"]),
-                   _fmt(m["balanced_accuracy_identifiable"]), _fmt(m["ece"])] for pool, m in r["bulk_phase"].items()])
+        _section(
+            L,
+            "Random bulk phase per frame (network; the test draws with a uniform random phase per frame)",
+            None,
+            ["pool", "coverage", "acc. identifiable", "bal. acc. identifiable", "ECE"],
+            "rrrrr",
+            [
+                [
+                    pool,
+                    _fmt(m["coverage_identifiable"]),
+                    _fmt(m["accuracy_identifiable"]),
+                    _fmt(m["balanced_accuracy_identifiable"]),
+                    _fmt(m["ece"]),
+                ]
+                for pool, m in r["bulk_phase"].items()
+            ],
+        )
     if "shifted_prior" in r:
         _shifted_section(L, r["shifted_prior"], r["rule"])
     if "onnx_parity_max_abs_diff" in r:
-        L.append(f"ONNX (opset {r.get('onnx_opset')}) against torch on the test set: max |Δp| = "
-                 f"{r['onnx_parity_max_abs_diff']:.2e}.")
+        L.append(
+            f"ONNX (opset {r.get('onnx_opset')}) against torch on the test set: max |Δp| = "
+            f"{r['onnx_parity_max_abs_diff']:.2e}."
+        )
         L.append("")
     return "\n".join(L)
 
@@ -514,8 +752,15 @@ def plot_report(report: dict[str, Any], path: str) -> None:
         ax.imshow(frac, cmap="Blues", vmin=0, vmax=1)
         for i in range(len(cls)):
             for j in range(len(cls)):
-                ax.text(j, i, f"{frac[i, j]:.2f}", ha="center", va="center",
-                        color="white" if frac[i, j] > 0.6 else "black", fontsize=8)
+                ax.text(
+                    j,
+                    i,
+                    f"{frac[i, j]:.2f}",
+                    ha="center",
+                    va="center",
+                    color="white" if frac[i, j] > 0.6 else "black",
+                    fontsize=8,
+                )
         ax.set_xticks(range(len(cls)), cls, rotation=30, fontsize=8)
         ax.set_yticks(range(len(cls)), cls, fontsize=8)
         ax.set_xlabel("decision")
@@ -542,14 +787,25 @@ def plot_report(report: dict[str, Any], path: str) -> None:
         for pool, style in zip(pools, ("-", "--")):
             rows = [row for row in r["by_magnitude"][pool] if row["class"] == c]
             mid = [math.sqrt(row["low"] * row["high"]) for row in rows]
-            ax.plot(mid, [row["accuracy_decided"] for row in rows], "o" + style, color=colors.get(c, "k"),
-                    label=f"accuracy (decided), pool {pool}")
-            ax.plot(mid, [row["predicted_indeterminate"] for row in rows], "s" + style, color="grey",
-                    label=f"decided indeterminate, pool {pool}")
+            ax.plot(
+                mid,
+                [row["accuracy_decided"] for row in rows],
+                "o" + style,
+                color=colors.get(c, "k"),
+                label=f"accuracy (decided), pool {pool}",
+            )
+            ax.plot(
+                mid,
+                [row["predicted_indeterminate"] for row in rows],
+                "s" + style,
+                color="grey",
+                label=f"decided indeterminate, pool {pool}",
+            )
         rows = [row for row in r["by_magnitude"][pools[0]] if row["class"] == c]
         mid = [math.sqrt(row["low"] * row["high"]) for row in rows]
-        ax.fill_between(mid, 0, [row["truth_indeterminate"] for row in rows], color="red", alpha=0.15,
-                        label="truth indeterminate")
+        ax.fill_between(
+            mid, 0, [row["truth_indeterminate"] for row in rows], color="red", alpha=0.15, label="truth indeterminate"
+        )
         ax.set_xscale("log")
         ax.set_ylim(0, 1.02)
         ax.set_xlabel(units.get(c, "magnitude"))

@@ -55,12 +55,18 @@ def make_rule(epsilon: float, min_probability: float = DEFAULT_MIN_PROBABILITY) 
     """The rule as stored in model metadata (JSON-able)."""
     if not 0.0 <= float(min_probability) < 1.0:
         raise ValueError(f"min_probability must be in [0, 1); got {min_probability!r}")
-    return {"kind": "class-or-threshold", "indeterminate_class": INDETERMINATE,
-            "min_probability": float(min_probability), "epsilon": float(epsilon), "definition": _DEFINITION}
+    return {
+        "kind": "class-or-threshold",
+        "indeterminate_class": INDETERMINATE,
+        "min_probability": float(min_probability),
+        "epsilon": float(epsilon),
+        "definition": _DEFINITION,
+    }
 
 
-def apply_rule(probabilities: np.ndarray, class_names: Sequence[str], rule: dict[str, Any],
-               min_probability: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def apply_rule(
+    probabilities: np.ndarray, class_names: Sequence[str], rule: dict[str, Any], min_probability: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Decide each row of ``probabilities [N, C]``.
 
     Returns ``(labels [N] int, reasons [N] int)``: labels index ``class_names`` (indeterminate rows
@@ -71,8 +77,10 @@ def apply_rule(probabilities: np.ndarray, class_names: Sequence[str], rule: dict
     if p.ndim != 2 or p.shape[1] != len(class_names):
         raise ValueError(f"probabilities must be [N, {len(class_names)}]; got {p.shape}")
     if rule.get("kind") != "class-or-threshold":
-        raise ValueError(f"unknown indeterminate rule kind {rule.get('kind')!r} (this version knows "
-                         "'class-or-threshold'); update the classifier package")
+        raise ValueError(
+            f"unknown indeterminate rule kind {rule.get('kind')!r} (this version knows "
+            "'class-or-threshold'); update the classifier package"
+        )
     name = rule["indeterminate_class"]
     if name not in class_names:
         raise ValueError(f"rule names class {name!r}, which is not among the model's classes {list(class_names)}")

@@ -24,8 +24,16 @@ from torchdoct.runtime.threads import map_ordered, resolve_threads
 
 from .features import FeatureSpec, shipped_or_path, spec_from_dict
 
-__all__ = ["METADATA_KEY", "FORMAT", "CHUNK_ROWS", "DEFAULT_MODEL", "onnx_session", "ClassifierModel",
-           "shipped_models", "load_model"]
+__all__ = [
+    "METADATA_KEY",
+    "FORMAT",
+    "CHUNK_ROWS",
+    "DEFAULT_MODEL",
+    "onnx_session",
+    "ClassifierModel",
+    "shipped_models",
+    "load_model",
+]
 
 #: Key of the model's metadata JSON in the ONNX ``metadata_props``.
 METADATA_KEY = "torchdoct_classifier"
@@ -74,15 +82,19 @@ def _unreadable_model(label: str, err: str, version: str) -> str:
     text = " ".join(err.split())
     ir = re.search(r"Unsupported model IR version: (\d+), max supported IR version: (\d+)", text)
     if ir:
-        return (f"model {label}: ONNX IR version {ir.group(1)} is not one onnxruntime {version} reads (IR versions "
-                f"up to {ir.group(2)}); export the model with IR version {ir.group(2)} or lower (doct-train writes "
-                "IR version 8, opset 17), or upgrade onnxruntime")
+        return (
+            f"model {label}: ONNX IR version {ir.group(1)} is not one onnxruntime {version} reads (IR versions "
+            f"up to {ir.group(2)}); export the model with IR version {ir.group(2)} or lower (doct-train writes "
+            "IR version 8, opset 17), or upgrade onnxruntime"
+        )
     opset = re.search(r"Opset (\d+) is under development.*?till opset (\d+)", text)
     old = re.search(r"No Op registered for (\w+) with domain_version of (\d+)", text)
     if opset or (old and int(old.group(2)) < MIN_OPSET):
         got, top = (opset.group(1), opset.group(2)) if opset else (old.group(2), _highest_opset())
-        return (f"model {label}: ONNX opset {got} is outside the opsets onnxruntime {version} supports "
-                f"({MIN_OPSET} to {top}); export the model at an opset in that range (doct-train writes opset 17)")
+        return (
+            f"model {label}: ONNX opset {got} is outside the opsets onnxruntime {version} supports "
+            f"({MIN_OPSET} to {top}); export the model at an opset in that range (doct-train writes opset 17)"
+        )
     text = re.sub(r"/\S+\.(?:h|cc):\d+ [^)]*\)\s*", "", text)  # onnxruntime's source location and signature
     return f"model {label}: not a readable ONNX model ({text})"
 
@@ -159,7 +171,9 @@ class ClassifierModel:
         """Probabilities ``[N, C]`` of inputs ``[N, F+1]`` (features + pool_pixels), float32."""
         return self.predict_all(x, magnitude=False)[0]
 
-    def predict_all(self, x: np.ndarray, magnitude: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    def predict_all(
+        self, x: np.ndarray, magnitude: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """``(probabilities [N, C], log10 magnitude [N, K], its SD [N, K])`` from one pass of the network
         (the magnitude pair is None for models without a magnitude head or when ``magnitude`` is False)."""
         x = np.ascontiguousarray(x, dtype=np.float32)
@@ -181,9 +195,14 @@ class ClassifierModel:
         return out[0], (out[1] if len(out) > 1 else None), (out[2] if len(out) > 1 else None)
 
 
-def load_model(model: str | os.PathLike | None = None, *, threads: int | None = None,
-               shipped: Mapping[str, Path] | None = None, chunk_rows: int = CHUNK_ROWS,
-               calibration: bool = True) -> ClassifierModel:
+def load_model(
+    model: str | os.PathLike | None = None,
+    *,
+    threads: int | None = None,
+    shipped: Mapping[str, Path] | None = None,
+    chunk_rows: int = CHUNK_ROWS,
+    calibration: bool = True,
+) -> ClassifierModel:
     """Open an ONNX model: ``None`` (the shipped default), a shipped name, a ``.onnx`` path, or a directory
     holding one (``doct-train --out DIR``).
 
@@ -194,11 +213,15 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     """
     shipped = shipped_models() if shipped is None else shipped
     key = DEFAULT_MODEL if model is None else str(model)
-    if key not in shipped and not key.endswith(".onnx") and Path(key).is_dir():  # a doct-train output directory: its one model
+    if (
+        key not in shipped and not key.endswith(".onnx") and Path(key).is_dir()
+    ):  # a doct-train output directory: its one model
         found = sorted(Path(key).glob("*.onnx"))
         if len(found) != 1:
-            raise ValueError(f"model directory {key}: holds {len(found)} .onnx files "
-                             f"({', '.join(p.name for p in found) or 'none'}); give the .onnx file itself")
+            raise ValueError(
+                f"model directory {key}: holds {len(found)} .onnx files "
+                f"({', '.join(p.name for p in found) or 'none'}); give the .onnx file itself"
+            )
         key = str(found[0])
     path = shipped_or_path(key, dict(shipped), "model")
     if path.suffix != ".onnx":
@@ -215,17 +238,27 @@ def load_model(model: str | os.PathLike | None = None, *, threads: int | None = 
     try:  # an integer of thousands of digits is read as inf, and named by the field's type check
         meta = json_loads(props[METADATA_KEY])
     except ValueError as err:
-        raise ValueError(f"model {path.name}: its '{METADATA_KEY}' metadata is not valid JSON ({err}); export the "
-                         "model again with doct-train") from None
+        raise ValueError(
+            f"model {path.name}: its '{METADATA_KEY}' metadata is not valid JSON ({err}); export the "
+            "model again with doct-train"
+        ) from None
     if not isinstance(meta, dict):
-        raise ValueError(f"model {path.name}: its '{METADATA_KEY}' metadata is not a JSON object; export the model "
-                         "again with doct-train")
+        raise ValueError(
+            f"model {path.name}: its '{METADATA_KEY}' metadata is not a JSON object; export the model "
+            "again with doct-train"
+        )
     if meta.get("format") != FORMAT:
         raise ValueError(f"model {path.name}: metadata format {meta.get('format')!r}, this version reads {FORMAT!r}")
     _check_metadata_types(path, meta)
     _check_graph_matches_metadata(path, sess, meta)
-    return ClassifierModel(path=path, metadata=meta, session=sess, threads=n_threads, chunk_rows=chunk_rows,
-                           calibration=read_calibration(path, list(meta["output"]["classes"])) if calibration else None)
+    return ClassifierModel(
+        path=path,
+        metadata=meta,
+        session=sess,
+        threads=n_threads,
+        chunk_rows=chunk_rows,
+        calibration=read_calibration(path, list(meta["output"]["classes"])) if calibration else None,
+    )
 
 
 #: Largest calibration file read (bytes): a shipped one holds a few thousand scores per pool.
@@ -246,10 +279,14 @@ def read_calibration(model_path: Path, classes: list[str]) -> dict[str, Any] | N
     if not p.exists():
         return None
     if not p.is_file():
-        raise ValueError(f"{p}: not a regular file; remove it or calibrate the model again (python -m classifier.calibrate)")
+        raise ValueError(
+            f"{p}: not a regular file; remove it or calibrate the model again (python -m classifier.calibrate)"
+        )
     if p.stat().st_size > MAX_CALIBRATION_BYTES:
-        raise ValueError(f"{p}: {p.stat().st_size} bytes, more than a calibration holds ({MAX_CALIBRATION_BYTES}); "
-                         "calibrate the model again")
+        raise ValueError(
+            f"{p}: {p.stat().st_size} bytes, more than a calibration holds ({MAX_CALIBRATION_BYTES}); "
+            "calibrate the model again"
+        )
     try:
         from torchdoct.files import check_nesting
         from torchdoct.measured.guards import json_loads
@@ -258,8 +295,9 @@ def read_calibration(model_path: Path, classes: list[str]) -> dict[str, Any] | N
         check_nesting(raw, p.name)
         cal = json_loads(raw)
     except (UnicodeDecodeError, ValueError) as err:
-        raise ValueError(f"{p}: not a calibration JSON file ({err}); calibrate the model again "
-                         "(python -m classifier.calibrate)") from None
+        raise ValueError(
+            f"{p}: not a calibration JSON file ({err}); calibrate the model again (python -m classifier.calibrate)"
+        ) from None
     check_calibration(cal, classes, str(p))
     return cal
 
@@ -273,8 +311,10 @@ def _check_metadata_types(path: Path, meta: Any) -> None:
     fix = "use the .onnx file as doct-train wrote it, or retrain with doct-train"
 
     def bad(field: str, want: str, value: Any) -> ValueError:
-        return ValueError(f"model {path.name}: metadata field {field} must be {want}; got {type(value).__name__} "
-                          f"{str(value)[:40]!r}; {fix}")
+        return ValueError(
+            f"model {path.name}: metadata field {field} must be {want}; got {type(value).__name__} "
+            f"{str(value)[:40]!r}; {fix}"
+        )
 
     def number(v: Any) -> bool:
         return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
@@ -284,8 +324,11 @@ def _check_metadata_types(path: Path, meta: Any) -> None:
     for block, key in (("input", "columns"), ("output", "classes")):
         b = meta.get(block)
         v = b.get(key) if isinstance(b, dict) else None
-        if not isinstance(b, dict) or not isinstance(v, list) or not all(
-                isinstance(c, str) or (isinstance(c, dict) and isinstance(c.get("name"), str)) for c in v):
+        if (
+            not isinstance(b, dict)
+            or not isinstance(v, list)
+            or not all(isinstance(c, str) or (isinstance(c, dict) and isinstance(c.get("name"), str)) for c in v)
+        ):
             raise bad(f"{block}.{key}", "a list of names (or of tables with a name)", v if isinstance(b, dict) else b)
     if not isinstance(meta.get("rule"), dict):
         raise bad("rule", "a table (JSON object)", meta.get("rule"))
@@ -326,5 +369,6 @@ def _check_graph_matches_metadata(path: Path, sess: Any, meta: Mapping[str, Any]
             raise ValueError(f"model {path.name}: the network has no '{name}' {kind}; {fix}")
         if len(shape) != 2 or (isinstance(shape[1], int) and shape[1] != width):
             what = "input columns" if name == "features" else "columns"
-            raise ValueError(f"model {path.name}: the network's '{name}' is {shape}, but its metadata declares "
-                             f"{width} {what}; {fix}")
+            raise ValueError(
+                f"model {path.name}: the network's '{name}' is {shape}, but its metadata declares {width} {what}; {fix}"
+            )

@@ -49,11 +49,17 @@ def scene_for(spec: FeatureSpec, draw: Draw, prior: Prior, population: str = "mo
     """
     import torchdoct as td
 
-    systems = tuple(td.OCTSystem(name=c.name, wavelength_um=c.wavelength_um,
-                                 lateral_resolution_um=c.lateral_resolution_um,
-                                 axial_resolution_um=c.axial_resolution_um,
-                                 refractive_index=spec.refractive_index, **lateral_y(c))
-                    for c in spec.configurations)
+    systems = tuple(
+        td.OCTSystem(
+            name=c.name,
+            wavelength_um=c.wavelength_um,
+            lateral_resolution_um=c.lateral_resolution_um,
+            axial_resolution_um=c.axial_resolution_um,
+            refractive_index=spec.refractive_index,
+            **lateral_y(c),
+        )
+        for c in spec.configurations
+    )
     if population == "static":
         motion: tuple = ()
     elif population != "moving":
@@ -63,18 +69,33 @@ def scene_for(spec: FeatureSpec, draw: Draw, prior: Prior, population: str = "mo
     elif draw.label == 1:
         motion = (td.RandomBallistic(speed_um_per_s=draw.magnitude, directions=draw.ballistic_directions),)
     else:
-        motion = (td.Flow(speed_um_per_s=draw.magnitude, polar_angle_deg=draw.polar_angle_deg,
-                          azimuth_deg=draw.azimuth_deg),)
-    return td.Scene(name=f"{spec.name}-{draw.motion}-{population}", systems=systems,
-                    protocol=td.Protocol(n_frames=spec.n_frames, frame_interval_s=spec.frame_interval_s),
-                    populations=(td.Population(name=population, density_per_um3=draw.density_per_um3,
-                                               motion=motion),),
-                    analysis=td.Analysis(metrics=("liv", "ocds"), ocds_delay_range_s=spec.ocds_delay_range_s,
-                                         ocds_scale=spec.ocds_scale, ocds_estimator=spec.ocds_estimator))
+        motion = (
+            td.Flow(speed_um_per_s=draw.magnitude, polar_angle_deg=draw.polar_angle_deg, azimuth_deg=draw.azimuth_deg),
+        )
+    return td.Scene(
+        name=f"{spec.name}-{draw.motion}-{population}",
+        systems=systems,
+        protocol=td.Protocol(n_frames=spec.n_frames, frame_interval_s=spec.frame_interval_s),
+        populations=(td.Population(name=population, density_per_um3=draw.density_per_um3, motion=motion),),
+        analysis=td.Analysis(
+            metrics=("liv", "ocds"),
+            ocds_delay_range_s=spec.ocds_delay_range_s,
+            ocds_scale=spec.ocds_scale,
+            ocds_estimator=spec.ocds_estimator,
+        ),
+    )
 
 
-def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
-                  truncation_tolerance: float, bulk_phase: bool = False, truncation: str = DEFAULT_TRUNCATION):
+def simulate_draw(
+    spec: FeatureSpec,
+    draw: Draw,
+    prior: Prior,
+    *,
+    trials: int,
+    truncation_tolerance: float,
+    bulk_phase: bool = False,
+    truncation: str = DEFAULT_TRUNCATION,
+):
     """Feature vectors ``[R, trials, F]`` (float32, spec order) and the empty-volume mask ``[R, trials]``.
 
     For a signature spec (:attr:`FeatureSpec.is_signature`) the features come from
@@ -99,22 +120,39 @@ def simulate_draw(spec: FeatureSpec, draw: Draw, prior: Prior, *, trials: int,
     from torchdoct.sim.metrics import compute_metrics
 
     # one thread per draw: draws run side by side (make_dataset)
-    moving = td.simulate(scene_for(spec, draw, prior, "moving"), trials=trials, seed=draw.sim_seed,
-                         dtype="float32", truncation_tolerance=truncation_tolerance, truncation=truncation,
-                         threads=1, progress=False)
+    moving = td.simulate(
+        scene_for(spec, draw, prior, "moving"),
+        trials=trials,
+        seed=draw.sim_seed,
+        dtype="float32",
+        truncation_tolerance=truncation_tolerance,
+        truncation=truncation,
+        threads=1,
+        progress=False,
+    )
     nuisance = draw.nuisance or ((0.0, math.nan),)
     edges = draw.static_edges or (None,) * len(nuisance)
     shares = [f if e is None else edge_static_fractions(spec.configurations, e) for (f, _), e in zip(nuisance, edges)]
     static = None
     if any(f > 0 for f, _ in nuisance) or any(e is not None for e in edges):
-        static = td.simulate(scene_for(spec, draw, prior, "static"), trials=trials, seed=draw.sim_seed ^ 0x5A5A5A5A,
-                             dtype="float32", truncation_tolerance=truncation_tolerance, truncation=truncation,
-                             threads=1, progress=False).signals
-    mean_i = [mean_intensity(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um, **lateral_y(c))
-              for c in spec.configurations]
+        static = td.simulate(
+            scene_for(spec, draw, prior, "static"),
+            trials=trials,
+            seed=draw.sim_seed ^ 0x5A5A5A5A,
+            dtype="float32",
+            truncation_tolerance=truncation_tolerance,
+            truncation=truncation,
+            threads=1,
+            progress=False,
+        ).signals
+    mean_i = [
+        mean_intensity(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um, **lateral_y(c))
+        for c in spec.configurations
+    ]
     gen = torch.Generator().manual_seed(draw.sim_seed ^ 0x3C3C3C3C)
-    signals = torch.cat([combine_fields(moving.signals, static, f, snr, mean_i, gen)
-                         for f, (_, snr) in zip(shares, nuisance)])
+    signals = torch.cat(
+        [combine_fields(moving.signals, static, f, snr, mean_i, gen) for f, (_, snr) in zip(shares, nuisance)]
+    )
     lo, hi = prior.bulk_residual_step_rad
     if hi > 0:  # the residual of a bulk-phase correction: a random walk per trial, common to the configurations
         rgen = torch.Generator().manual_seed(draw.sim_seed ^ 0x1E1E1E1E)

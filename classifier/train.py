@@ -32,6 +32,9 @@
 (``doct-train``). Everything is seeded from ``TrainConfig.seed`` (the evaluation samples of each test
 set from their own stream, so the order of the steps changes no number); the global torch RNG is not
 used (weights are initialised inside :func:`torch.random.fork_rng`).
+
+Kept whole (over 800 lines): the public steps of the pipeline pass one plan and one data set along;
+each step is a function of this file, in the order :func:`train` calls them.
 """
 
 from __future__ import annotations
@@ -66,11 +69,35 @@ from .recipe import (  # noqa: F401
 from .rule import make_rule
 from .truth import STATUS
 
-__all__ = ["TrainConfig", "TrainResult", "train", "fit_network", "pooled_samples", "CLASS_NAMES", "transform_numpy",
-           "SHIFTED_PRIOR", "SHIFTED_TARGETS", "shifted_prior", "feature_masks", "eval_samples", "class_targets",
-           "evaluation_sets", "TrainPlan", "plan_training", "TrainingData", "simulate_data", "FittedModels",
-           "fit_models", "evaluate_test_sets", "training_report", "reference_model", "network_predictions",
-           "interval_scale", "train_to_files"]
+__all__ = [
+    "TrainConfig",
+    "TrainResult",
+    "train",
+    "fit_network",
+    "pooled_samples",
+    "CLASS_NAMES",
+    "transform_numpy",
+    "SHIFTED_PRIOR",
+    "SHIFTED_TARGETS",
+    "shifted_prior",
+    "feature_masks",
+    "eval_samples",
+    "class_targets",
+    "evaluation_sets",
+    "TrainPlan",
+    "plan_training",
+    "TrainingData",
+    "simulate_data",
+    "FittedModels",
+    "fit_models",
+    "evaluate_test_sets",
+    "training_report",
+    "reference_model",
+    "network_predictions",
+    "interval_scale",
+    "train_to_files",
+]
+
 
 def _uses_magnitude(cfg: TrainConfig, spec: FeatureSpec) -> bool:
     return spec.is_signature if cfg.magnitude is None else bool(cfg.magnitude)
@@ -86,8 +113,11 @@ def _correlation_columns(spec: FeatureSpec) -> list[int]:
     (``rho_lin_m``, ``rho_db_m``, ``g1_m``; :mod:`classifier.model`)."""
     from torchdoct.sim.signature import parse_feature
 
-    return [i for i, (m, _) in enumerate(spec.features)
-            if m not in METRIC_UNITS and parse_feature(m)[0] in ("rho_lin", "rho_db", "g1")]
+    return [
+        i
+        for i, (m, _) in enumerate(spec.features)
+        if m not in METRIC_UNITS and parse_feature(m)[0] in ("rho_lin", "rho_db", "g1")
+    ]
 
 
 def feature_masks(spec: FeatureSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -148,7 +178,7 @@ def pooled_samples(ds: Dataset, sizes_per_group: list[np.ndarray], rng: np.rando
     drawn at once, in group order (the same numbers as drawing them group by group), and groups of equal
     size are permuted and summed together in blocks of :data:`_POOL_BLOCK` elements.
     """
-    groups = _groups(ds)[:len(sizes_per_group)]
+    groups = _groups(ds)[: len(sizes_per_group)]
     sizes = [np.minimum(np.asarray(s, dtype=np.int64), g.size) for g, s in zip(groups, sizes_per_group)]
     n = np.array([s.size for s in sizes], dtype=np.int64)
     t = np.array([g.size for g in groups], dtype=np.int64)
@@ -161,7 +191,7 @@ def pooled_samples(ds: Dataset, sizes_per_group: list[np.ndarray], rng: np.rando
         ks = np.flatnonzero((t == tt) & (n > 0))
         blocks = np.array_split(ks, min(ks.size, max(1, int(math.ceil(float(n[ks].sum()) * tt * f / _POOL_BLOCK)))))
         for block in blocks:
-            perm = np.argsort(np.concatenate([u[u_start[k]:u_start[k + 1]] for k in block]).reshape(-1, tt), axis=1)
+            perm = np.argsort(np.concatenate([u[u_start[k] : u_start[k + 1]] for k in block]).reshape(-1, tt), axis=1)
             trials = np.concatenate([np.broadcast_to(groups[k], (n[k], tt)) for k in block])
             cs = np.cumsum(ds.x[np.take_along_axis(trials, perm, axis=1)].astype(np.float64), axis=1)
             sz = np.concatenate([sizes[k] for k in block])
@@ -214,12 +244,16 @@ def class_targets(s: dict[str, np.ndarray]) -> np.ndarray:
 
 def _magnitude_targets(s: dict[str, np.ndarray]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``log10`` magnitude, motion label and identifiable mask of samples (the magnitude head's targets)."""
-    return (torch.from_numpy(np.log10(s["magnitude"]).astype(np.float32)), torch.from_numpy(s["y"].astype(np.int64)),
-            torch.from_numpy(s["status"] == 0))
+    return (
+        torch.from_numpy(np.log10(s["magnitude"]).astype(np.float32)),
+        torch.from_numpy(s["y"].astype(np.int64)),
+        torch.from_numpy(s["status"] == 0),
+    )
 
 
-def _gaussian_nll(mu: torch.Tensor, logvar: torch.Tensor, target: torch.Tensor, label: torch.Tensor,
-                  ident: torch.Tensor) -> torch.Tensor:
+def _gaussian_nll(
+    mu: torch.Tensor, logvar: torch.Tensor, target: torch.Tensor, label: torch.Tensor, ident: torch.Tensor
+) -> torch.Tensor:
     """Gaussian NLL (without the constant) of the true class's head, mean over identifiable samples."""
     if not bool(ident.any()):
         return mu.sum() * 0.0
@@ -246,7 +280,9 @@ def _timed_predict(fn, x: np.ndarray, repeats: int = 3) -> tuple[np.ndarray, flo
     return out, best / max(len(x), 1) * 1e6
 
 
-def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, progress: bool = False) -> dict[str, Any]:
+def fit_network(
+    train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, progress: bool = False
+) -> dict[str, Any]:
     """Train the network on given splits: seeded samples, AdamW, early stopping on the validation
     loss, then temperature scaling. Timed from the first sample to the fitted temperature.
 
@@ -261,9 +297,14 @@ def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, p
     train0 = _epoch_samples(train_ds, cfg, rng)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed)
-        model = MotionClassifier(spec.n_features, len(CLASS_NAMES), liv_cols, cfg.hidden,
-                                 n_magnitude=len(CLASSES) if mag else 0,
-                                 correlation_columns=_correlation_columns(spec))
+        model = MotionClassifier(
+            spec.n_features,
+            len(CLASS_NAMES),
+            liv_cols,
+            cfg.hidden,
+            n_magnitude=len(CLASSES) if mag else 0,
+            correlation_columns=_correlation_columns(spec),
+        )
     model.set_normalization(torch.from_numpy(train0["x"]))
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
     xv = torch.from_numpy(val["x"])
@@ -275,6 +316,7 @@ def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, p
             return torch.nn.functional.cross_entropy(model.logits(xb), tb)
         logits, mu, lv = model.heads(xb)
         return torch.nn.functional.cross_entropy(logits, tb) + cfg.magnitude_weight * _gaussian_nll(mu, lv, *mb)
+
     best: tuple[float, Any, int] = (math.inf, None, 0)
     samples = train0
     epoch = 0
@@ -300,7 +342,7 @@ def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, p
                 upcoming = pool.submit(_epoch_samples, train_ds, cfg, rng)
             model.train()
             for b in range(0, len(order), cfg.batch_size):
-                sel = order[b:b + cfg.batch_size]
+                sel = order[b : b + cfg.batch_size]
                 loss = loss_of(x[sel], t[sel], tuple(a[sel] for a in mt))
                 opt.zero_grad()
                 loss.backward()
@@ -331,9 +373,16 @@ def fit_network(train_ds: Dataset, val_ds: Dataset, spec, cfg: TrainConfig, *, p
             sd = torch.exp(0.5 * lv.gather(1, label[:, None])[:, 0])
             z = (torch.abs(target - m) / sd)[ident].double().numpy()
             model.magnitude_sd_scale.fill_(interval_scale(z))
-    return {"model": model, "training_s": time.perf_counter() - t0, "epochs": epoch, "best_epoch": best[2],
-            "validation_loss": best[0], "temperature": temperature,
-            "parameters": int(sum(p.numel() for p in model.net.parameters())), "first_samples": train0}
+    return {
+        "model": model,
+        "training_s": time.perf_counter() - t0,
+        "epochs": epoch,
+        "best_epoch": best[2],
+        "validation_loss": best[0],
+        "temperature": temperature,
+        "parameters": int(sum(p.numel() for p in model.net.parameters())),
+        "first_samples": train0,
+    }
 
 
 #: Nominal shares of the central 68 % and 95 % predictive intervals (±1 and ±1.959964 SD).
@@ -390,9 +439,14 @@ def reference_model(spec: FeatureSpec):
         except ValueError:
             continue
         ref = mdl.spec
-        if (not ref.is_signature and len(ref.configurations) == len(spec.configurations)
-                and all(a.matches(b.wavelength_um, b.lateral_resolution_um, b.axial_resolution_um)
-                        for a, b in zip(ref.configurations, spec.configurations))):
+        if (
+            not ref.is_signature
+            and len(ref.configurations) == len(spec.configurations)
+            and all(
+                a.matches(b.wavelength_um, b.lateral_resolution_um, b.axial_resolution_um)
+                for a, b in zip(ref.configurations, spec.configurations)
+            )
+        ):
             return mdl
     return None
 
@@ -431,17 +485,23 @@ class TrainPlan:
     shifted_test: bool
 
 
-def plan_training(config: TrainConfig | None = None, prior: Prior | None = None,
-                  spec: FeatureSpec | str | None = None) -> TrainPlan:
+def plan_training(
+    config: TrainConfig | None = None, prior: Prior | None = None, spec: FeatureSpec | str | None = None
+) -> TrainPlan:
     """The :class:`TrainPlan` of a recipe (default :class:`TrainConfig`), a prior (default
     :func:`default_prior`) and a spec (default ``config.spec``: a shipped name or a TOML file)."""
     cfg = config or TrainConfig()
     prior = prior or default_prior(cfg)
     spec = load_spec(cfg.spec if spec is None else spec)
-    return TrainPlan(config=cfg, prior=prior, spec=spec, rule=make_rule(prior.identifiability_epsilon, cfg.min_probability),
-                     magnitude=_uses_magnitude(cfg, spec),
-                     bulk_phase_test=bool(spec.needs_field if cfg.bulk_phase_test is None else cfg.bulk_phase_test),
-                     shifted_test=bool(spec.is_signature if cfg.shifted_test is None else cfg.shifted_test))
+    return TrainPlan(
+        config=cfg,
+        prior=prior,
+        spec=spec,
+        rule=make_rule(prior.identifiability_epsilon, cfg.min_probability),
+        magnitude=_uses_magnitude(cfg, spec),
+        bulk_phase_test=bool(spec.needs_field if cfg.bulk_phase_test is None else cfg.bulk_phase_test),
+        shifted_test=bool(spec.is_signature if cfg.shifted_test is None else cfg.shifted_test),
+    )
 
 
 @dataclass
@@ -459,21 +519,31 @@ class TrainingData:
         return sum(ds.meta["elapsed_s"] for ds in (*self.splits.values(), self.bulk_phase) if ds is not None)
 
 
-def simulate_data(plan: TrainPlan, *, cache_dir=None, use_cache: bool = True, progress: bool = False,
-                  log=print) -> TrainingData:
+def simulate_data(
+    plan: TrainPlan, *, cache_dir=None, use_cache: bool = True, progress: bool = False, log=print
+) -> TrainingData:
     """Simulate (or load from the cache) every dataset of the plan (:func:`classifier.dataset.make_dataset`,
     seeded by the recipe's seed and the split: the order changes no number)."""
     cfg, spec, prior = plan.config, plan.spec, plan.prior
     say = log or (lambda *a, **k: None)
-    common = dict(seed=cfg.seed, trials_per_draw=cfg.trials_per_draw, replicates=cfg.replicates,
-                  truncation_tolerance=cfg.truncation_tolerance, truncation=cfg.truncation, cache_dir=cache_dir,
-                  use_cache=use_cache, progress=progress)
+    common = dict(
+        seed=cfg.seed,
+        trials_per_draw=cfg.trials_per_draw,
+        replicates=cfg.replicates,
+        truncation_tolerance=cfg.truncation_tolerance,
+        truncation=cfg.truncation,
+        cache_dir=cache_dir,
+        use_cache=use_cache,
+        progress=progress,
+    )
     splits: dict[str, Dataset] = {}
     for split, draws in (("train", cfg.draws_train), ("validation", cfg.draws_validation), ("test", cfg.draws_test)):
         ds = make_dataset(spec, prior, split=split, draws=draws, **common)
         splits[split] = ds
-        say(f"{split}: {len(ds)} samples from {draws} draws ({'cache' if ds.meta['from_cache'] else 'simulated'}, "
-            f"{ds.meta['seconds_per_draw']:.3f} s/draw); ground truth per draw: {ds.meta['draw_status_counts']}")
+        say(
+            f"{split}: {len(ds)} samples from {draws} draws ({'cache' if ds.meta['from_cache'] else 'simulated'}, "
+            f"{ds.meta['seconds_per_draw']:.3f} s/draw); ground truth per draw: {ds.meta['draw_status_counts']}"
+        )
     data = TrainingData(splits)
     if plan.bulk_phase_test:
         data.bulk_phase = make_dataset(spec, prior, split="test", draws=cfg.draws_test, bulk_phase=True, **common)
@@ -503,8 +573,10 @@ def fit_models(plan: TrainPlan, data: TrainingData, *, progress: bool = False, l
     say = log or (lambda *a, **k: None)
     fit = fit_network(data.splits["train"], data.splits["validation"], spec, cfg, progress=progress)
     model = fit["model"]
-    say(f"network: {fit['epochs']} epochs (best {fit['best_epoch']}, validation loss {fit['validation_loss']:.4f}), "
-        f"temperature {fit['temperature']:.3f}, {fit['training_s']:.1f} s")
+    say(
+        f"network: {fit['epochs']} epochs (best {fit['best_epoch']}, validation loss {fit['validation_loss']:.4f}), "
+        f"temperature {fit['temperature']:.3f}, {fit['training_s']:.1f} s"
+    )
     predictors: dict[str, Any] = {"network": lambda xx: network_predictions(model, {"x": xx})[0]}
     train_s = {"network": fit["training_s"]}
     if cfg.baselines:
@@ -517,13 +589,17 @@ def fit_models(plan: TrainPlan, data: TrainingData, *, progress: bool = False, l
         train0 = fit["first_samples"]
         xb = transform_numpy(train0["x"], mask, cmask)
         yb = class_targets(train0)
-        for name, est in (("logistic_regression", make_pipeline(StandardScaler(), LogisticRegression(max_iter=2000))),
-                          ("gradient_boosting", HistGradientBoostingClassifier(max_iter=300, random_state=cfg.seed))):
+        for name, est in (
+            ("logistic_regression", make_pipeline(StandardScaler(), LogisticRegression(max_iter=2000))),
+            ("gradient_boosting", HistGradientBoostingClassifier(max_iter=300, random_state=cfg.seed)),
+        ):
             t1 = time.perf_counter()
             est.fit(xb, yb)
             train_s[name] = time.perf_counter() - t1
             full = np.eye(len(CLASS_NAMES))[est.classes_]  # a class absent from a small training split: p = 0
-            predictors[name] = (lambda e, f: (lambda xx: e.predict_proba(transform_numpy(xx, mask, cmask)) @ f))(est, full)
+            predictors[name] = (lambda e, f: lambda xx: e.predict_proba(transform_numpy(xx, mask, cmask)) @ f)(
+                est, full
+            )
             say(f"{name}: trained in {train_s[name]:.2f} s")
     return FittedModels(network=fit, predictors=predictors, train_s=train_s)
 
@@ -568,8 +644,17 @@ def evaluate_test_sets(plan: TrainPlan, data: TrainingData, fitted: FittedModels
             p, mag = network_predictions(model, s, magnitude)
             if own and pool == "1":  # the same numbers, timed
                 p, inference_us["network"] = _timed_predict(fitted.predictors["network"], s["x"])
-            out[pool] = evaluate_set(p, s, rule, magnitude=mag, ranges=ranges, detail=ranges is not None and pool in conf,
-                                     by_condition=own and pool == "1", seed=cfg.seed, class_samples=False)
+            out[pool] = evaluate_set(
+                p,
+                s,
+                rule,
+                magnitude=mag,
+                ranges=ranges,
+                detail=ranges is not None and pool in conf,
+                by_condition=own and pool == "1",
+                seed=cfg.seed,
+                class_samples=False,
+            )
         return out
 
     # the test split: the network, the baselines, the shipped LIV/OCDS model
@@ -598,30 +683,43 @@ def evaluate_test_sets(plan: TrainPlan, data: TrainingData, fitted: FittedModels
                 p = reference.predict(s["x"])
             test[name][pool] = evaluate_set(p, s, rule, detail=False)
     if plan.magnitude:
-        say("magnitude (pool 1): " + ", ".join(f"{k} {v:.3f}" for k, v in test["network"]["1"]["magnitude"].items()
-                                               if isinstance(v, float)))
-    out: dict[str, Any] = {"test": test, "inference_us": inference_us, "bulk_phase": None, "shifted_prior": None,
-                           "test_inputs": tests["1"]["x"]}
+        say(
+            "magnitude (pool 1): "
+            + ", ".join(f"{k} {v:.3f}" for k, v in test["network"]["1"]["magnitude"].items() if isinstance(v, float))
+        )
+    out: dict[str, Any] = {
+        "test": test,
+        "inference_us": inference_us,
+        "bulk_phase": None,
+        "shifted_prior": None,
+        "test_inputs": tests["1"]["x"],
+    }
     if data.bulk_phase is not None:  # the test draws with a random bulk phase per frame
         btests, _ = samples("bulk_phase", data.bulk_phase)
         bulk = network_blocks(btests, None, pools=("1", "25"), magnitude=False)
         out["bulk_phase"] = bulk
         m1 = bulk["1"]["metrics"]
-        say(f"random bulk phase per frame: balanced accuracy (identifiable, pool 1) "
-            f"{m1['balanced_accuracy_identifiable']:.3f}, coverage {m1['coverage_identifiable']:.3f}")
+        say(
+            f"random bulk phase per frame: balanced accuracy (identifiable, pool 1) "
+            f"{m1['balanced_accuracy_identifiable']:.3f}, coverage {m1['coverage_identifiable']:.3f}"
+        )
     if data.shifted_prior is not None:  # test draws from the shifted prior
         sp = shifted_prior(prior)
         stests, _ = samples("shifted_prior", data.shifted_prior)
         shifted = network_blocks(stests, [sp.diffusion_um2_per_s, sp.speed_um_per_s, sp.speed_um_per_s])
         out["shifted_prior"] = shifted
         m1, ds = shifted["1"]["metrics"], data.shifted_prior
-        say(f"shifted prior ({len(ds)} samples, {'cache' if ds.meta['from_cache'] else 'simulated'}): "
+        say(
+            f"shifted prior ({len(ds)} samples, {'cache' if ds.meta['from_cache'] else 'simulated'}): "
             f"balanced accuracy (identifiable, pool 1) {m1['balanced_accuracy_identifiable']:.3f}, coverage "
-            f"{m1['coverage_identifiable']:.3f}, ECE {m1['ece']:.3f}")
+            f"{m1['coverage_identifiable']:.3f}, ECE {m1['ece']:.3f}"
+        )
     return out
 
 
-def training_report(plan: TrainPlan, data: TrainingData, fitted: FittedModels, evaluation: dict[str, Any]) -> dict[str, Any]:
+def training_report(
+    plan: TrainPlan, data: TrainingData, fitted: FittedModels, evaluation: dict[str, Any]
+) -> dict[str, Any]:
     """Step 5 of :func:`train`: the report (written by :func:`classifier.report.write_report`)."""
     import torchdoct
 
@@ -659,8 +757,13 @@ def training_report(plan: TrainPlan, data: TrainingData, fitted: FittedModels, e
             "from_cache": {k: v.meta["from_cache"] for k, v in splits.items()},
             "threads": torch.get_num_threads(),
         },
-        "training": {"seconds": fit["training_s"], "epochs": fit["epochs"], "best_epoch": fit["best_epoch"],
-                     "validation_loss": fit["validation_loss"], "temperature": fit["temperature"]},
+        "training": {
+            "seconds": fit["training_s"],
+            "epochs": fit["epochs"],
+            "best_epoch": fit["best_epoch"],
+            "validation_loss": fit["validation_loss"],
+            "temperature": fit["temperature"],
+        },
         "test": {name: _by_pool(blocks, "metrics") for name, blocks in evaluation["test"].items()},
         "timing": timing,
         "confusion_pools": conf,
@@ -683,9 +786,13 @@ def training_report(plan: TrainPlan, data: TrainingData, fitted: FittedModels, e
 def _shifted_report(plan: TrainPlan, ds: Dataset, blocks: dict[str, dict[str, Any]], conf: list[str]) -> dict[str, Any]:
     """The shifted-prior section of the report, with its targets (:data:`SHIFTED_TARGETS`)."""
     rep = {
-        "prior": shifted_prior(plan.prior).to_dict(), "draws": plan.config.draws_test, "samples": len(ds),
-        "draw_status_counts": ds.meta["draw_status_counts"], "dropped_empty": ds.meta["dropped_empty"],
-        "simulation_s": ds.meta["elapsed_s"], "from_cache": ds.meta["from_cache"],
+        "prior": shifted_prior(plan.prior).to_dict(),
+        "draws": plan.config.draws_test,
+        "samples": len(ds),
+        "draw_status_counts": ds.meta["draw_status_counts"],
+        "dropped_empty": ds.meta["dropped_empty"],
+        "simulation_s": ds.meta["elapsed_s"],
+        "from_cache": ds.meta["from_cache"],
         "test": _by_pool(blocks, "metrics"),
         "standard_errors": _by_pool(blocks, "standard_errors", conf),
         "by_magnitude": _by_pool(blocks, "by_magnitude", conf),
@@ -698,33 +805,62 @@ def _shifted_report(plan: TrainPlan, ds: Dataset, blocks: dict[str, dict[str, An
     if tp in rep["test"]:
         m = rep["test"][tp]
         bal, ece = m["balanced_accuracy_identifiable"], m["ece"]
-        rep["targets"] = {**SHIFTED_TARGETS,
-                          "met": bool(math.isfinite(bal) and bal >= SHIFTED_TARGETS["balanced_accuracy_identifiable"]
-                                      and ece <= SHIFTED_TARGETS["ece"])}
+        rep["targets"] = {
+            **SHIFTED_TARGETS,
+            "met": bool(
+                math.isfinite(bal)
+                and bal >= SHIFTED_TARGETS["balanced_accuracy_identifiable"]
+                and ece <= SHIFTED_TARGETS["ece"]
+            ),
+        }
     return rep
 
 
-def train(config: TrainConfig | None = None, prior: Prior | None = None, *, cache_dir=None, use_cache: bool = True,
-          progress: bool = False, log=print, spec: FeatureSpec | None = None) -> TrainResult:
+def train(
+    config: TrainConfig | None = None,
+    prior: Prior | None = None,
+    *,
+    cache_dir=None,
+    use_cache: bool = True,
+    progress: bool = False,
+    log=print,
+    spec: FeatureSpec | None = None,
+) -> TrainResult:
     """Run the recipe of the module docstring; returns the model, the report and the test inputs.
 
     ``spec``: the feature spec as a value (``doct-train --like``); default ``config.spec`` (a shipped
     name or a TOML file)."""
-    plan = plan_training(config, prior, spec)                                            # 1. the recipe
+    plan = plan_training(config, prior, spec)  # 1. the recipe
     data = simulate_data(plan, cache_dir=cache_dir, use_cache=use_cache, progress=progress, log=log)  # 2. samples
-    fitted = fit_models(plan, data, progress=progress, log=log)                          # 3. fit
-    evaluation = evaluate_test_sets(plan, data, fitted, log=log)                         # 4. every test set
-    report = training_report(plan, data, fitted, evaluation)                             # 5. the report
+    fitted = fit_models(plan, data, progress=progress, log=log)  # 3. fit
+    evaluation = evaluate_test_sets(plan, data, fitted, log=log)  # 4. every test set
+    report = training_report(plan, data, fitted, evaluation)  # 5. the report
     datasets = dict(data.splits)
     if data.shifted_prior is not None:
         datasets["shifted_prior"] = data.shifted_prior
-    return TrainResult(model=fitted.model, report=report, spec=plan.spec, prior=plan.prior, config=plan.config,
-                       rule=plan.rule, test_inputs=evaluation["test_inputs"], datasets=datasets)
+    return TrainResult(
+        model=fitted.model,
+        report=report,
+        spec=plan.spec,
+        prior=plan.prior,
+        config=plan.config,
+        rule=plan.rule,
+        test_inputs=evaluation["test_inputs"],
+        datasets=datasets,
+    )
 
 
-def train_to_files(config: TrainConfig | None, paths: dict[str, Any], *, prior: Prior | None = None,
-                   spec: FeatureSpec | None = None, cache_dir=None, use_cache: bool = True, progress: bool = False,
-                   log=print) -> TrainResult:
+def train_to_files(
+    config: TrainConfig | None,
+    paths: dict[str, Any],
+    *,
+    prior: Prior | None = None,
+    spec: FeatureSpec | None = None,
+    cache_dir=None,
+    use_cache: bool = True,
+    progress: bool = False,
+    log=print,
+) -> TrainResult:
     """:func:`train`, then the model exported to ``paths[".onnx"]`` (:func:`classifier.export.export_onnx`),
     checked and timed in onnxruntime (:func:`classifier.export.runtime_checks`), and the report written to
     ``paths[".json"]``, ``[".md"]`` and ``[".png"]`` (:func:`classifier.report.write_report`; NaN and inf as

@@ -41,12 +41,25 @@ import numpy as np
 
 from torchdoct.runtime.interrupt import progress_disabled
 
-__all__ = ["STATUS", "GRID_PER_DECADE", "FLOW_ANGLES_DEG", "Target", "load_target", "TranslationTable",
-           "build_table", "translate_maps", "mixture_quantiles"]
+__all__ = [
+    "STATUS",
+    "GRID_PER_DECADE",
+    "FLOW_ANGLES_DEG",
+    "Target",
+    "load_target",
+    "TranslationTable",
+    "build_table",
+    "translate_maps",
+    "mixture_quantiles",
+]
 
 #: Codes of the ``translation`` channel.
-STATUS = {0: "translated", 1: "masked (background, NaN or out-of-range features)", 2: "indeterminate",
-          3: "magnitude outside the identifiable range of the source system"}
+STATUS = {
+    0: "translated",
+    1: "masked (background, NaN or out-of-range features)",
+    2: "indeterminate",
+    3: "magnitude outside the identifiable range of the source system",
+}
 #: Magnitude grid points per decade of :func:`build_table` (the model's magnitude SD is 0.1-0.2 decades).
 GRID_PER_DECADE = 6
 #: Flow polar angles (degrees from the depth axis) of the table: the midpoints of four equal bands of
@@ -84,8 +97,10 @@ def load_target(path: str | os.PathLike, system: str | None = None) -> Target:
 
     p = file_or_shipped(path, {**shipped_scenes(), **shipped_phantoms()}, "--to")
     if p is None:
-        raise FileNotFoundError(f"--to {path}: no such file and not a shipped scene or phantom; give a TOML file "
-                                "with the target's [[system]] and [protocol]")
+        raise FileNotFoundError(
+            f"--to {path}: no such file and not a shipped scene or phantom; give a TOML file "
+            "with the target's [[system]] and [protocol]"
+        )
     p = Path(p)
     data = read_toml(p)
     if not isinstance(data, dict) or "system" not in data or "protocol" not in data:
@@ -102,8 +117,9 @@ def load_target(path: str | os.PathLike, system: str | None = None) -> Target:
     if system is not None:
         chosen = tuple(s for s in scene.systems if s.name == system)
         if not chosen:
-            raise ValueError(f"--to-system {system!r}: {p.name} has the systems "
-                             f"{', '.join(s.name for s in scene.systems)}")
+            raise ValueError(
+                f"--to-system {system!r}: {p.name} has the systems {', '.join(s.name for s in scene.systems)}"
+            )
         scene = dataclasses.replace(scene, systems=chosen)
     return Target(scene=scene, path=p)
 
@@ -127,12 +143,21 @@ def _motions(label: int, magnitude: float):
         return [td.Diffusion(diffusion_um2_per_s=magnitude)]
     if label == 1:
         return [td.RandomBallistic(speed_um_per_s=magnitude, directions=law) for law in ("isotropic", "uniform-angles")]
-    return [td.Flow(speed_um_per_s=magnitude, polar_angle_deg=a, azimuth_deg=45.0 + 90.0 * i)
-            for i, a in enumerate(FLOW_ANGLES_DEG)]
+    return [
+        td.Flow(speed_um_per_s=magnitude, polar_angle_deg=a, azimuth_deg=45.0 + 90.0 * i)
+        for i, a in enumerate(FLOW_ANGLES_DEG)
+    ]
 
 
-def build_table(target: Target, prior, *, trials: int = 128, seed: int = 0, progress: bool = False,
-                classes: Sequence[int] = (0, 1, 2)) -> TranslationTable:
+def build_table(
+    target: Target,
+    prior,
+    *,
+    trials: int = 128,
+    seed: int = 0,
+    progress: bool = False,
+    classes: Sequence[int] = (0, 1, 2),
+) -> TranslationTable:
     """Simulate the target for every class on a log-magnitude grid over ``prior``'s range (module docstring).
 
     ``prior``: the source model's :class:`classifier.prior.Prior` (its magnitude ranges and density).
@@ -150,8 +175,9 @@ def build_table(target: Target, prior, *, trials: int = 128, seed: int = 0, prog
     if not progress_disabled(progress):
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=sum(_grid(prior, c).size for c in classes), unit="magnitude", desc="simulate target",
-                   delay=1.0)
+        bar = tqdm(
+            total=sum(_grid(prior, c).size for c in classes), unit="magnitude", desc="simulate target", delay=1.0
+        )
     for c in range(3):
         if c not in classes:
             grids.append(np.zeros(0))
@@ -160,17 +186,18 @@ def build_table(target: Target, prior, *, trials: int = 128, seed: int = 0, prog
         grid = _grid(prior, c)
         out = {m: np.empty((grid.size, trials, len(target.systems))) for m in _METRICS}
         for k, lg in enumerate(grid):
-            motions = _motions(c, float(10.0 ** lg))
+            motions = _motions(c, float(10.0**lg))
             per = [trials // len(motions) + (1 if v < trials % len(motions) else 0) for v in range(len(motions))]
             row = 0
             for v, (motion, n) in enumerate(zip(motions, per)):
-                scene = dataclasses.replace(target.scene, populations=(
-                    td.Population(name="sample", density_per_um3=density, motion=(motion,)),))
+                scene = dataclasses.replace(
+                    target.scene, populations=(td.Population(name="sample", density_per_um3=density, motion=(motion,)),)
+                )
                 ss = np.random.SeedSequence(int(seed), spawn_key=(c, k, v))
                 res = td.simulate(scene, trials=n, seed=int(ss.generate_state(1, np.uint32)[0]), threads=1)
                 met = compute_metrics(res.signals, res.frame_times_s, scene.analysis)
                 for m in _METRICS:
-                    out[m][k, row:row + n] = met[m].double().numpy()
+                    out[m][k, row : row + n] = met[m].double().numpy()
                 row += n
             if bar is not None:
                 bar.update(1)
@@ -178,10 +205,18 @@ def build_table(target: Target, prior, *, trials: int = 128, seed: int = 0, prog
         samples.append(out)
     if bar is not None:
         bar.close()
-    return TranslationTable(log10_grid=grids, samples=samples, system_names=tuple(s.name for s in target.systems),
-                            meta={"trials_per_magnitude": int(trials), "seed": int(seed),
-                                  "density_per_um3": density, "grid_per_decade": GRID_PER_DECADE,
-                                  "flow_angles_deg": list(FLOW_ANGLES_DEG)})
+    return TranslationTable(
+        log10_grid=grids,
+        samples=samples,
+        system_names=tuple(s.name for s in target.systems),
+        meta={
+            "trials_per_magnitude": int(trials),
+            "seed": int(seed),
+            "density_per_um3": density,
+            "grid_per_decade": GRID_PER_DECADE,
+            "flow_angles_deg": list(FLOW_ANGLES_DEG),
+        },
+    )
 
 
 def _grid(prior, label: int) -> np.ndarray:
@@ -190,8 +225,14 @@ def _grid(prior, label: int) -> np.ndarray:
     return np.linspace(lo, hi, n)
 
 
-def mixture_quantiles(mu: np.ndarray, sigma: np.ndarray, grid: np.ndarray, values: np.ndarray,
-                      quantiles: Sequence[float] = QUANTILES, n_levels: int = 512) -> np.ndarray:
+def mixture_quantiles(
+    mu: np.ndarray,
+    sigma: np.ndarray,
+    grid: np.ndarray,
+    values: np.ndarray,
+    quantiles: Sequence[float] = QUANTILES,
+    n_levels: int = 512,
+) -> np.ndarray:
     """Quantiles ``[len(quantiles), P]`` of per-pixel mixtures: pixel ``p`` weighs grid point ``k`` (log10
     magnitude ``grid[k]``) by ``N(grid[k]; mu[p], sigma[p]²)`` and each grid point contributes its samples
     ``values[k, :]`` (empirical distribution). ``sigma`` is floored at half the grid step (the grid
@@ -207,8 +248,12 @@ def mixture_quantiles(mu: np.ndarray, sigma: np.ndarray, grid: np.ndarray, value
     sig = np.maximum(sigma, 0.5 * step)
     levels = np.unique(np.quantile(finite, np.linspace(0.0, 1.0, n_levels)))
     counts = np.isfinite(values).sum(axis=1).clip(min=1)
-    cdf_k = np.stack([(np.sort(np.where(np.isfinite(v), v, np.inf))[None, :] <= levels[:, None]).sum(1) / n
-                      for v, n in zip(values, counts)])  # [K, L]
+    cdf_k = np.stack(
+        [
+            (np.sort(np.where(np.isfinite(v), v, np.inf))[None, :] <= levels[:, None]).sum(1) / n
+            for v, n in zip(values, counts)
+        ]
+    )  # [K, L]
     for lo in range(0, mu.size, 8192):
         sl = slice(lo, lo + 8192)
         w = np.exp(-0.5 * ((grid[None, :] - mu[sl, None]) / sig[sl, None]) ** 2)
@@ -223,9 +268,18 @@ def mixture_quantiles(mu: np.ndarray, sigma: np.ndarray, grid: np.ndarray, value
     return out
 
 
-def translate_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], target: str | os.PathLike | Target, *,
-                   model=None, pool: int = 1, min_probability: float | None = None, trials: int = 128,
-                   seed: int = 0, threads: int | None = None, progress: bool = False):
+def translate_maps(
+    paths: str | os.PathLike | Sequence[str | os.PathLike],
+    target: str | os.PathLike | Target,
+    *,
+    model=None,
+    pool: int = 1,
+    min_probability: float | None = None,
+    trials: int = 128,
+    seed: int = 0,
+    threads: int | None = None,
+    progress: bool = False,
+):
     """Translated maps (:class:`torchdoct.measured.mapsfile.Maps`) of ``paths`` on ``target`` (module docstring).
 
     Channels per target system ``S``: ``liv@S`` (dB²), ``ocds@S`` (1/s), their 68 % intervals
@@ -244,13 +298,22 @@ def translate_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], targe
     # One class per pixel, by the rule (most probable class above min_probability): a conformal set of two
     # classes has no single target to translate to, and the translation is validated on the rule's
     # decisions (research/results/translation-validation.md).
-    res = classify_maps(paths, model, pool=pool, min_probability=min_probability, threads=threads, decision="rule",
-                       abstain_ambiguous=False)
+    res = classify_maps(
+        paths,
+        model,
+        pool=pool,
+        min_probability=min_probability,
+        threads=threads,
+        decision="rule",
+        abstain_ambiguous=False,
+    )
     mdl = res.model
     if res.magnitude is None:
-        raise ValueError(f"model {mdl.path.name} has no magnitude head (an LIV/OCDS model); translation needs "
-                         "the motion magnitude: classify with a signature model (`torchdoct maps --signature`, "
-                         "or `doct-train --like MAPS`)")
+        raise ValueError(
+            f"model {mdl.path.name} has no magnitude head (an LIV/OCDS model); translation needs "
+            "the motion magnitude: classify with a signature model (`torchdoct maps --signature`, "
+            "or `doct-train --like MAPS`)"
+        )
     prior = Prior.from_dict(mdl.metadata["prior"])
     spec = spec_from_dict(mdl.metadata["spec"])
     shape = res.labels.shape
@@ -269,8 +332,14 @@ def translate_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], targe
     status[decided & ~inside] = 3
     status[decided & inside] = 0
     with torch.inference_mode():
-        table = build_table(tgt, prior, trials=trials, seed=seed, progress=progress,
-                            classes=sorted({int(c) for c in np.unique(labels[status == 0])}))
+        table = build_table(
+            tgt,
+            prior,
+            trials=trials,
+            seed=seed,
+            progress=progress,
+            classes=sorted({int(c) for c in np.unique(labels[status == 0])}),
+        )
     planes, names, chans = [], [], []
     for s, system in enumerate(tgt.systems):
         vals = {m: np.full((3, labels.size), np.nan) for m in _METRICS}
@@ -279,38 +348,62 @@ def translate_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], targe
             if sel.size == 0:
                 continue
             for m in _METRICS:
-                vals[m][:, sel] = mixture_quantiles(mu[sel], sigma[sel], table.log10_grid[c],
-                                                    table.samples[c][m][:, :, s])
-        optics = {"wavelength_um": system.wavelength_um, "lateral_resolution_um": system.lateral_resolution_um,
-                  "axial_resolution_um": system.axial_resolution_um}
+                vals[m][:, sel] = mixture_quantiles(
+                    mu[sel], sigma[sel], table.log10_grid[c], table.samples[c][m][:, :, s]
+                )
+        optics = {
+            "wavelength_um": system.wavelength_um,
+            "lateral_resolution_um": system.lateral_resolution_um,
+            "axial_resolution_um": system.axial_resolution_um,
+        }
         for m in _METRICS:
             for q, suffix in ((0, ""), (1, "_lower_68"), (2, "_upper_68")):
                 planes.append(vals[m][q])
                 names.append(f"{m}{suffix}@{system.name}")
-                chans.append({"name": names[-1], "metric": f"{m}{suffix}", "unit": _UNITS[m],
-                              "resolution": system.name, **optics})
+                chans.append(
+                    {
+                        "name": names[-1],
+                        "metric": f"{m}{suffix}",
+                        "unit": _UNITS[m],
+                        "resolution": system.name,
+                        **optics,
+                    }
+                )
         planes.append(status.astype(np.float64))
         names.append(f"translation@{system.name}")
         chans.append({"name": names[-1], "metric": "translation", "unit": "1", "resolution": system.name, **optics})
     scene = tgt.scene
     src = res.sources
     meta = {
-        "axes": "C" + res.axes, "pitch_um": res.pitch_um, "channels": chans,
+        "axes": "C" + res.axes,
+        "pitch_um": res.pitch_um,
+        "channels": chans,
         "frame_times_s": [float(t) for t in scene.protocol.times_s],
-        "system": {"name": tgt.systems[0].name, "wavelength_um": tgt.systems[0].wavelength_um,
-                   "lateral_resolution_um": tgt.systems[0].lateral_resolution_um,
-                   "axial_resolution_um": tgt.systems[0].axial_resolution_um,
-                   "refractive_index": tgt.systems[0].refractive_index},
-        "ocds_delay_range_s": list(scene.analysis.ocds_delay_range_s), "ocds_scale": scene.analysis.ocds_scale,
-        "ocds_estimator": scene.analysis.ocds_estimator, "source": ", ".join(src),
-        "translation": {"from": src, "to": tgt.path.name, "model": mdl.path.name, "pool": int(pool),
-                        "status_codes": {str(k): v for k, v in STATUS.items()},
-                        "status_counts": {STATUS[k]: int((status == k).sum()) for k in STATUS},
-                        "identifiable_range_source": {CLASSES[c]: list(ident[c]) for c in ident},
-                        "noise_snr_db": None if scene.noise is None else scene.noise.snr_db,
-                        "method": "simulated target per class and log10 magnitude; per pixel the mixture weighted by "
-                                  "the classifier's magnitude posterior: median and 16-84 % quantiles "
-                                  "(classifier.translate)", **table.meta},
+        "system": {
+            "name": tgt.systems[0].name,
+            "wavelength_um": tgt.systems[0].wavelength_um,
+            "lateral_resolution_um": tgt.systems[0].lateral_resolution_um,
+            "axial_resolution_um": tgt.systems[0].axial_resolution_um,
+            "refractive_index": tgt.systems[0].refractive_index,
+        },
+        "ocds_delay_range_s": list(scene.analysis.ocds_delay_range_s),
+        "ocds_scale": scene.analysis.ocds_scale,
+        "ocds_estimator": scene.analysis.ocds_estimator,
+        "source": ", ".join(src),
+        "translation": {
+            "from": src,
+            "to": tgt.path.name,
+            "model": mdl.path.name,
+            "pool": int(pool),
+            "status_codes": {str(k): v for k, v in STATUS.items()},
+            "status_counts": {STATUS[k]: int((status == k).sum()) for k in STATUS},
+            "identifiable_range_source": {CLASSES[c]: list(ident[c]) for c in ident},
+            "noise_snr_db": None if scene.noise is None else scene.noise.snr_db,
+            "method": "simulated target per class and log10 magnitude; per pixel the mixture weighted by "
+            "the classifier's magnitude posterior: median and 16-84 % quantiles "
+            "(classifier.translate)",
+            **table.meta,
+        },
     }
     stack = np.stack(planes).reshape((len(planes), *shape)).astype(np.float32)
     return Maps(maps=stack, channels=tuple(names), meta=meta), res
@@ -320,24 +413,32 @@ def translate_maps(paths: str | os.PathLike | Sequence[str | os.PathLike], targe
 # `torchdoct translate` (registered in the entry-point group torchdoct.commands)
 
 HELP = "translate LIV and OCDS maps to another OCT system (classified motion type and magnitude → simulator)"
-DESCRIPTION = ("What the sample of MAPS would give on the system of --to: classify every pixel (motion type and "
-               "magnitude with its interval), simulate the target system for that motion, and write per pixel the "
-               "target's LIV (dB²) and OCDS (1/s) with their 68 % intervals and a translation code (0 translated, "
-               "1 masked, 2 indeterminate, 3 magnitude outside the source's identifiable range).")
+DESCRIPTION = (
+    "What the sample of MAPS would give on the system of --to: classify every pixel (motion type and "
+    "magnitude with its interval), simulate the target system for that motion, and write per pixel the "
+    "target's LIV (dB²) and OCDS (1/s) with their 68 % intervals and a translation code (0 translated, "
+    "1 masked, 2 indeterminate, 3 magnitude outside the source's identifiable range)."
+)
 
 
 def add_arguments(p) -> None:
     """The options of ``torchdoct translate``."""
     p.add_argument("maps", nargs="+", help="maps file(s) of the source system (from `torchdoct maps --signature`)")
-    p.add_argument("--to", required=True, metavar="TARGET",
-                   help="the target: a scene or phantom file (or a shipped one's name) whose [[system]], [protocol], "
-                        "[analysis] and [noise] describe the other system")
+    p.add_argument(
+        "--to",
+        required=True,
+        metavar="TARGET",
+        help="the target: a scene or phantom file (or a shipped one's name) whose [[system]], [protocol], "
+        "[analysis] and [noise] describe the other system",
+    )
     p.add_argument("--to-system", default=None, metavar="NAME", help="only this system of the --to file")
     p.add_argument("--out", required=True, help="output maps file (.npz or .tif)")
     p.add_argument("--model", default=None, help="classifier model (default: as doct-classify chooses)")
     p.add_argument("--pool", type=int, default=1, help="average the features over N × N pixels first (doct-classify)")
     p.add_argument("--min-probability", type=float, default=None, help="the classifier's indeterminate threshold")
-    p.add_argument("--trials", type=int, default=128, help="simulated target pixels per class and magnitude (default 128)")
+    p.add_argument(
+        "--trials", type=int, default=128, help="simulated target pixels per class and magnitude (default 128)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="overwrite an existing output")
     p.add_argument("--no-progress", action="store_true")
@@ -356,17 +457,28 @@ def run(args) -> int:
     from torchdoct.runtime.resources import check_classify
 
     check_classify("torchdoct translate", args.maps, max_input_bytes())  # memory, before anything is read
-    maps, res = translate_maps(args.maps, target, model=args.model, pool=args.pool,
-                               min_probability=args.min_probability, trials=args.trials, seed=args.seed,
-                               progress=not args.no_progress)
+    maps, res = translate_maps(
+        args.maps,
+        target,
+        model=args.model,
+        pool=args.pool,
+        min_probability=args.min_probability,
+        trials=args.trials,
+        seed=args.seed,
+        progress=not args.no_progress,
+    )
     write_maps(out, maps, force=args.force)
     counts = maps.meta["translation"]["status_counts"]
-    print(f"model {res.model.path.name}: {res.info['classified']} of {res.info['pixels']} pixels classified; "
-          + ", ".join(f"{v} {k}" for k, v in counts.items()))
+    print(
+        f"model {res.model.path.name}: {res.info['classified']} of {res.info['pixels']} pixels classified; "
+        + ", ".join(f"{v} {k}" for k, v in counts.items())
+    )
     for name in maps.channels:
         if name.startswith(("liv@", "ocds@")):
             v = maps[name]
-            print(f"  {name}: median {np.nanmedian(v) if np.isfinite(v).any() else float('nan'):.4g} "
-                  f"{_UNITS[name.split('@')[0]]}")
+            print(
+                f"  {name}: median {np.nanmedian(v) if np.isfinite(v).any() else float('nan'):.4g} "
+                f"{_UNITS[name.split('@')[0]]}"
+            )
     print(f"wrote {out}")
     return 0

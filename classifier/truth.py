@@ -34,6 +34,7 @@ __all__ = [
     "lateral_y",
 ]
 
+
 def lateral_y(c) -> dict[str, float]:
     """``{"lateral_resolution_y_um": Δy}`` for a configuration with an anisotropic lateral PSF (a B-scan's
     x-only lateral reduction keeps the original width along y), else ``{}`` (isotropic)."""
@@ -71,26 +72,48 @@ def _criteria(spec: FeatureSpec, draw: Draw, prior: Prior) -> tuple[str, np.ndar
     taus = np.array([spec.frame_interval_s, (spec.n_frames - 1) * spec.frame_interval_s])
     first, last, drop = [], [], []
     for c in spec.configurations:
-        res = dict(lateral_resolution_um=c.lateral_resolution_um, axial_resolution_um=c.axial_resolution_um,
-                   **lateral_y(c))
+        res = dict(
+            lateral_resolution_um=c.lateral_resolution_um, axial_resolution_um=c.axial_resolution_um, **lateral_y(c)
+        )
         if draw.label == 0:
-            g1 = theory.g1_diffusion(taus, diffusion_um2_per_s=draw.magnitude, wavelength_um=c.wavelength_um,
-                                     refractive_index=spec.refractive_index, **res)
+            g1 = theory.g1_diffusion(
+                taus,
+                diffusion_um2_per_s=draw.magnitude,
+                wavelength_um=c.wavelength_um,
+                refractive_index=spec.refractive_index,
+                **res,
+            )
             j = theory.j_diffusion(taus, diffusion_um2_per_s=draw.magnitude, **res)
         elif draw.label == 1:
-            g1 = theory.g1_ballistic(taus, speed_um_per_s=draw.magnitude, wavelength_um=c.wavelength_um,
-                                     refractive_index=spec.refractive_index,
-                                     directions=draw.ballistic_directions, **res)
-            j = theory.j_ballistic(taus, speed_um_per_s=draw.magnitude, directions=draw.ballistic_directions,
-                                   **res)
+            g1 = theory.g1_ballistic(
+                taus,
+                speed_um_per_s=draw.magnitude,
+                wavelength_um=c.wavelength_um,
+                refractive_index=spec.refractive_index,
+                directions=draw.ballistic_directions,
+                **res,
+            )
+            j = theory.j_ballistic(taus, speed_um_per_s=draw.magnitude, directions=draw.ballistic_directions, **res)
         else:
-            g1 = theory.g1_flow(taus, speed_um_per_s=draw.magnitude, polar_angle_deg=draw.polar_angle_deg,
-                                azimuth_deg=draw.azimuth_deg, wavelength_um=c.wavelength_um,
-                                refractive_index=spec.refractive_index, **res)
-            j = theory.j_flow(taus, speed_um_per_s=draw.magnitude, polar_angle_deg=draw.polar_angle_deg,
-                              azimuth_deg=draw.azimuth_deg, **res)
+            g1 = theory.g1_flow(
+                taus,
+                speed_um_per_s=draw.magnitude,
+                polar_angle_deg=draw.polar_angle_deg,
+                azimuth_deg=draw.azimuth_deg,
+                wavelength_um=c.wavelength_um,
+                refractive_index=spec.refractive_index,
+                **res,
+            )
+            j = theory.j_flow(
+                taus,
+                speed_um_per_s=draw.magnitude,
+                polar_angle_deg=draw.polar_angle_deg,
+                azimuth_deg=draw.azimuth_deg,
+                **res,
+            )
         rho = theory.intensity_correlation_coefficient(
-            g1, j, n_eff(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um, **lateral_y(c)))
+            g1, j, n_eff(draw.density_per_um3, c.lateral_resolution_um, c.axial_resolution_um, **lateral_y(c))
+        )
         first.append(float(np.abs(g1[0]) ** 2))
         last.append(float(rho[1]))
         drop.append(float(rho[0] - rho[1]))

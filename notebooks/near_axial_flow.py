@@ -29,23 +29,36 @@ from torchdoct.sim import theory
 DT, DENSITY, WAVELENGTH = 0.2048, 0.05, 0.84
 LAGS = np.array([1, 4, 16])
 #: (name, lateral x, lateral y, axial) resolutions, µm
-CONFIGS = (("original", 4.9, 4.9, 3.8), ("axial=14", 4.9, 4.9, 14.0), ("lateral=18", 18.0, 18.0, 3.8),
-           ("lateral=18 (B-scan)", 18.0, 4.9, 3.8))
+CONFIGS = (
+    ("original", 4.9, 4.9, 3.8),
+    ("axial=14", 4.9, 4.9, 14.0),
+    ("lateral=18", 18.0, 18.0, 3.8),
+    ("lateral=18 (B-scan)", 18.0, 4.9, 3.8),
+)
 
 
-def rho(kind: str, v: float, cfg: tuple, theta: float = 0.0, azimuth: float = 0.0,
-        law: str = "isotropic") -> np.ndarray:
+def rho(
+    kind: str, v: float, cfg: tuple, theta: float = 0.0, azimuth: float = 0.0, law: str = "isotropic"
+) -> np.ndarray:
     """Expected ρ_I at :data:`LAGS` for flow or random-ballistic motion of speed v (µm/s)."""
     _, lx, ly, ax = cfg
     res = dict(lateral_resolution_um=lx, axial_resolution_um=ax, lateral_resolution_y_um=ly)
     taus = LAGS * DT
     if kind == "flow":
-        g1 = theory.g1_flow(taus, speed_um_per_s=v, polar_angle_deg=theta, azimuth_deg=azimuth,
-                            wavelength_um=WAVELENGTH, refractive_index=1.0, **res)
+        g1 = theory.g1_flow(
+            taus,
+            speed_um_per_s=v,
+            polar_angle_deg=theta,
+            azimuth_deg=azimuth,
+            wavelength_um=WAVELENGTH,
+            refractive_index=1.0,
+            **res,
+        )
         j = theory.j_flow(taus, speed_um_per_s=v, polar_angle_deg=theta, azimuth_deg=azimuth, **res)
     else:
-        g1 = theory.g1_ballistic(taus, speed_um_per_s=v, wavelength_um=WAVELENGTH, refractive_index=1.0,
-                                 directions=law, **res)
+        g1 = theory.g1_ballistic(
+            taus, speed_um_per_s=v, wavelength_um=WAVELENGTH, refractive_index=1.0, directions=law, **res
+        )
         j = theory.j_ballistic(taus, speed_um_per_s=v, directions=law, **res)
     return theory.intensity_correlation_coefficient(g1, j, n_eff(DENSITY, lx, ax, lateral_resolution_y_um=ly))
 
@@ -57,12 +70,17 @@ def table() -> list[str]:
         v = 1.0
         flow = [rho("flow", v, c, theta, azimuth) for c in CONFIGS]
         where = f"θ = {theta:g}°" + (", along y" if azimuth == 90.0 else "")
-        lines.append(f"| flow {v:g} µm/s, {where} | " + " | ".join(" / ".join(f"{x:.2f}" for x in r) for r in flow) + " |")
+        lines.append(
+            f"| flow {v:g} µm/s, {where} | " + " | ".join(" / ".join(f"{x:.2f}" for x in r) for r in flow) + " |"
+        )
         target = flow[0][1]
         vb = brentq(lambda s: rho("ballistic", s, CONFIGS[0])[1] - target, 1e-4, 100.0)
         ball = [rho("ballistic", vb, c) for c in CONFIGS]
-        lines.append(f"| random-ballistic {vb:.3f} µm/s (same lag 4 on original) | "
-                     + " | ".join(" / ".join(f"{x:.2f}" for x in r) for r in ball) + " |")
+        lines.append(
+            f"| random-ballistic {vb:.3f} µm/s (same lag 4 on original) | "
+            + " | ".join(" / ".join(f"{x:.2f}" for x in r) for r in ball)
+            + " |"
+        )
     return lines
 
 

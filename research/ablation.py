@@ -33,8 +33,12 @@ _LEVEL = ("lin_contrast", "db_variance")
 
 
 def _set(db=(), lin=(), g1=(), extra=()) -> tuple[str, ...]:
-    return (tuple(f"rho_db_{m}" for m in db) + tuple(f"rho_lin_{m}" for m in lin) + tuple(f"g1_{m}" for m in g1)
-            + tuple(extra))
+    return (
+        tuple(f"rho_db_{m}" for m in db)
+        + tuple(f"rho_lin_{m}" for m in lin)
+        + tuple(f"g1_{m}" for m in g1)
+        + tuple(extra)
+    )
 
 
 #: Feature subsets (per configuration) compared by the ablation.
@@ -68,8 +72,16 @@ def candidate_spec():
     return spec_from_dict(d)
 
 
-def run_ablation(*, draws_train: int = 360, draws_test: int = 90, pixels: int = 30000, seed: int = 0,
-                 subsets: Sequence[str] | None = None, cache_dir=None, log=print) -> dict:
+def run_ablation(
+    *,
+    draws_train: int = 360,
+    draws_test: int = 90,
+    pixels: int = 30000,
+    seed: int = 0,
+    subsets: Sequence[str] | None = None,
+    cache_dir=None,
+    log=print,
+) -> dict:
     """Balanced accuracy, coverage and ECE per subset (module docstring); JSON-able."""
     from sklearn.ensemble import HistGradientBoostingClassifier
 
@@ -83,15 +95,24 @@ def run_ablation(*, draws_train: int = 360, draws_test: int = 90, pixels: int = 
     prior = Prior()
     kw = dict(seed=seed, cache_dir=cache_dir)
     tr = make_dataset(spec, prior, split="train", draws=draws_train, **kw)
-    tests = {"test": make_dataset(spec, prior, split="test", draws=draws_test, **kw),
-             "test, random bulk phase per frame": make_dataset(spec, prior, split="test", draws=draws_test,
-                                                                bulk_phase=True, **kw)}
+    tests = {
+        "test": make_dataset(spec, prior, split="test", draws=draws_test, **kw),
+        "test, random bulk phase per frame": make_dataset(
+            spec, prior, split="test", draws=draws_test, bulk_phase=True, **kw
+        ),
+    }
     names = [n.split("@")[0] for n in tr.meta["feature_names"]]
     rule = make_rule(prior.identifiability_epsilon, 0.5)
     sub = np.random.default_rng(seed).choice(len(tr), min(pixels, len(tr)), replace=False)
     y = np.where(tr.status == 0, tr.y, len(CLASS_NAMES) - 1)
-    out = {"method": __doc__.split("\n\n")[1].replace("\n", " "), "draws_train": draws_train,
-           "draws_test": draws_test, "pixels": int(len(sub)), "seed": seed, "subsets": {}}
+    out = {
+        "method": __doc__.split("\n\n")[1].replace("\n", " "),
+        "draws_train": draws_train,
+        "draws_test": draws_test,
+        "pixels": int(len(sub)),
+        "seed": seed,
+        "subsets": {},
+    }
     for name in subsets or SUBSETS:
         want = set(SUBSETS[name])
         cols = [i for i, n in enumerate(names) if n in want]
@@ -101,21 +122,26 @@ def run_ablation(*, draws_train: int = 360, draws_test: int = 90, pixels: int = 
         row: dict = {"features_per_configuration": len(want), "features": len(cols)}
         for label, ds in tests.items():
             m = evaluate(gb.predict_proba(ds.x[:, cols]), ds.y, ds.status, CLASS_NAMES, rule)
-            row[label] = {k: m[k] for k in ("balanced_accuracy_identifiable", "coverage_identifiable",
-                                            "accuracy_identifiable", "ece")}
+            row[label] = {
+                k: m[k]
+                for k in ("balanced_accuracy_identifiable", "coverage_identifiable", "accuracy_identifiable", "ece")
+            }
         row["seconds"] = time.perf_counter() - t0
         out["subsets"][name] = row
         if log:
             t = row["test"]
-            log(f"{name}: {len(cols)} features, balanced accuracy {t['balanced_accuracy_identifiable']:.3f}, "
+            log(
+                f"{name}: {len(cols)} features, balanced accuracy {t['balanced_accuracy_identifiable']:.3f}, "
                 f"coverage {t['coverage_identifiable']:.3f}; with bulk phase "
                 f"{row['test, random bulk phase per frame']['balanced_accuracy_identifiable']:.3f} / "
-                f"{row['test, random bulk phase per frame']['coverage_identifiable']:.3f}")
+                f"{row['test, random bulk phase per frame']['coverage_identifiable']:.3f}"
+            )
     return out
 
 
-def run_indeterminate(*, draws_train: int = 360, draws_test: int = 90, pixels: int = 60000, seed: int = 0,
-                      cache_dir=None, log=print) -> dict:
+def run_indeterminate(
+    *, draws_train: int = 360, draws_test: int = 90, pixels: int = 60000, seed: int = 0, cache_dir=None, log=print
+) -> dict:
     """Can the signature tell the motion types apart where the ground truth says "decorrelated"?
 
     The ground truth (:func:`classifier.truth.identifiability`) calls a draw "decorrelated" when its
@@ -145,7 +171,9 @@ def run_indeterminate(*, draws_train: int = 360, draws_test: int = 90, pixels: i
     tr = make_dataset(spec, prior, split="train", draws=draws_train, **kw)
     te = make_dataset(spec, prior, split="test", draws=draws_test, **kw)
 
-    def regimes(ds, split):  # per sample: 0 identifiable/static, 1 decorrelated + transit visible, 2 decorrelated + flat
+    def regimes(
+        ds, split
+    ):  # per sample: 0 identifiable/static, 1 decorrelated + transit visible, 2 decorrelated + flat
         per_draw = {}
         for k in np.unique(ds.draw):
             d = draw_parameters(prior, seed, split, int(k))
@@ -160,30 +188,50 @@ def run_indeterminate(*, draws_train: int = 360, draws_test: int = 90, pixels: i
     names = [n.split("@")[0] for n in tr.meta["feature_names"]]
     shipped = set(load_spec("signature").metrics)
     rule = make_rule(eps, 0.5)
-    out = {"method": " ".join(run_indeterminate.__doc__.split("\n\n")[1].split()), "draws_train": draws_train,
-           "draws_test": draws_test, "pixels": int(len(sub)), "seed": seed, "epsilon": eps,
-           "test_samples": {"identifiable": int((te.status == 0).sum()), "decorrelated, transit visible":
-                            int((r_te == 1).sum()), "decorrelated, flat": int((r_te == 2).sum())}, "features": {}}
+    out = {
+        "method": " ".join(run_indeterminate.__doc__.split("\n\n")[1].split()),
+        "draws_train": draws_train,
+        "draws_test": draws_test,
+        "pixels": int(len(sub)),
+        "seed": seed,
+        "epsilon": eps,
+        "test_samples": {
+            "identifiable": int((te.status == 0).sum()),
+            "decorrelated, transit visible": int((r_te == 1).sum()),
+            "decorrelated, flat": int((r_te == 2).sum()),
+        },
+        "features": {},
+    }
     for label, want in (("signature spec content", shipped), ("every candidate feature", set(names))):
         cols = [i for i, n in enumerate(names) if n in want]
         gb = HistGradientBoostingClassifier(max_iter=200, random_state=seed, early_stopping=False)
         gb.fit(tr.x[sub][:, cols], y[sub])
         p = gb.predict_proba(te.x[:, cols]) @ np.eye(len(CLASS_NAMES))[gb.classes_]
         row = {}
-        for name, m in (("identifiable", te.status == 0), ("decorrelated, transit visible", r_te == 1),
-                        ("decorrelated, flat", r_te == 2)):
+        for name, m in (
+            ("identifiable", te.status == 0),
+            ("decorrelated, transit visible", r_te == 1),
+            ("decorrelated, flat", r_te == 2),
+        ):
             if not m.any():
                 continue
             # score the decorrelated pixels as if they were identifiable: their motion label is the truth
             status = np.zeros(int(m.sum()), np.int64)
             e = evaluate(p[m], te.y[m], status, CLASS_NAMES, rule)
-            row[name] = {k: e[k] for k in ("balanced_accuracy_identifiable", "coverage_identifiable",
-                                           "recall_identifiable")}
+            row[name] = {
+                k: e[k] for k in ("balanced_accuracy_identifiable", "coverage_identifiable", "recall_identifiable")
+            }
             row[name]["samples_per_class"] = {c: int((te.y[m] == i).sum()) for i, c in enumerate(CLASS_NAMES[:-1])}
         out["features"][label] = row
         if log:
-            log(f"{label}: " + "; ".join(f"{n} balanced accuracy {v['balanced_accuracy_identifiable']:.3f} "
-                                         f"(coverage {v['coverage_identifiable']:.3f})" for n, v in row.items()))
+            log(
+                f"{label}: "
+                + "; ".join(
+                    f"{n} balanced accuracy {v['balanced_accuracy_identifiable']:.3f} "
+                    f"(coverage {v['coverage_identifiable']:.3f})"
+                    for n, v in row.items()
+                )
+            )
     return out
 
 
@@ -193,9 +241,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--draws-train", type=int, default=360)
     p.add_argument("--draws-test", type=int, default=90)
     p.add_argument("--cache", default=None, help="dataset cache directory (default ~/.cache/torchdoct/classifier)")
-    p.add_argument("--indeterminate", action="store_true",
-                   help="instead: can the signature separate the motion types where the ground truth says "
-                        "'decorrelated'? (run_indeterminate)")
+    p.add_argument(
+        "--indeterminate",
+        action="store_true",
+        help="instead: can the signature separate the motion types where the ground truth says "
+        "'decorrelated'? (run_indeterminate)",
+    )
     args = p.parse_args(argv)
     out = Path(args.out)
     if out.exists():

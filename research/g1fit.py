@@ -55,6 +55,9 @@ slowly varying speckle stays coherent within them), and its lags are strongly co
 ``python -m research.g1fit --out PATH.json`` compares the fit with the shipped ``signature``
 network on the very test pixels of its report (:func:`evaluate_against_network`). The module stays
 whole (over 600 lines): the comparison is the fit's only caller and reads its grid and outcome codes.
+
+Kept whole (over 800 lines): the fit, its evaluation against the network and its report are one
+experiment, run by :func:`main`; it is research code, outside the installed packages.
 """
 
 from __future__ import annotations
@@ -71,8 +74,20 @@ import numpy as np
 
 from classifier.report import bootstrap_draws
 
-__all__ = ["GRID_PER_DECADE", "DEFAULT_LAGS", "FLOW_EXTRA_PARAMETERS", "REASONS", "G1Fit", "fit_g1", "g1_columns",
-           "complex_g1", "superset_spec", "evaluate_against_network", "format_markdown", "main"]
+__all__ = [
+    "GRID_PER_DECADE",
+    "DEFAULT_LAGS",
+    "FLOW_EXTRA_PARAMETERS",
+    "REASONS",
+    "G1Fit",
+    "fit_g1",
+    "g1_columns",
+    "complex_g1",
+    "superset_spec",
+    "evaluate_against_network",
+    "format_markdown",
+    "main",
+]
 
 #: Candidate magnitudes per decade (log grid step 1/20 dex).
 GRID_PER_DECADE = 20
@@ -136,8 +151,9 @@ def _log_grid(lo: float, hi: float) -> np.ndarray:
 
 
 @lru_cache(maxsize=8)
-def _tables(configs: tuple, lags: tuple, dt: float, n_frames: int, n: float, laws: tuple,
-            d_range: tuple, v_range: tuple) -> dict[str, Any]:
+def _tables(
+    configs: tuple, lags: tuple, dt: float, n_frames: int, n: float, laws: tuple, d_range: tuple, v_range: tuple
+) -> dict[str, Any]:
     """Candidate curves of the three models: real ``g [K, C, L]`` (flow: the transit decay only),
     ``|g1|`` at Δt and at T ``[K, C]``, magnitudes ``[K]`` and, for flow, ``|cos θ|`` and the Doppler
     step ``q·v·|cos θ|·Δt`` (rad)."""
@@ -164,11 +180,18 @@ def _tables(configs: tuple, lags: tuple, dt: float, n_frames: int, n: float, law
             if name == "diffusion":
                 g = theory.g1_diffusion(t, diffusion_um2_per_s=mag[:, None], **kw)
             elif name == "ballistic":
-                g = np.concatenate([theory.g1_ballistic(t, speed_um_per_s=mag[law == i, None], directions=d, **kw)
-                                    for i, d in enumerate(laws)])
+                g = np.concatenate(
+                    [
+                        theory.g1_ballistic(t, speed_um_per_s=mag[law == i, None], directions=d, **kw)
+                        for i, d in enumerate(laws)
+                    ]
+                )
             else:
-                g = np.abs(theory.g1_flow(t, speed_um_per_s=mag[:, None],
-                                          polar_angle_deg=np.degrees(np.arccos(cos))[:, None], **kw))
+                g = np.abs(
+                    theory.g1_flow(
+                        t, speed_um_per_s=mag[:, None], polar_angle_deg=np.degrees(np.arccos(cos))[:, None], **kw
+                    )
+                )
             curves.append(g[:, :-2])
             first.append(np.abs(g[:, -2]))
             last.append(np.abs(g[:, -1]))
@@ -176,12 +199,19 @@ def _tables(configs: tuple, lags: tuple, dt: float, n_frames: int, n: float, law
         w = np.asarray([n_frames - m for m in lags], np.float64)
         keep = ((g * g) @ w).min(axis=1) > 1e-12 * w.sum()  # a curve that is 0 at every lag explains nothing
         q = 2.0 * (2.0 * math.pi * n / configs[0][0])
-        out[name] = {"g": g[keep], "first": np.stack(first, 1)[keep], "last": np.stack(last, 1)[keep],
-                     "magnitude": mag[keep], "cos": cos[keep] if name == "flow" else None, "law": law[keep],
-                     "step": (q * mag * cos * dt)[keep] if name == "flow" else None,
-                     # half the Doppler-step spacing of neighbouring |cos θ| at the same speed (rad per frame)
-                     "tol": np.maximum(0.5 * q * mag * dt / (COS_POLAR_STEPS - 1), PHASE_TOLERANCE_RAD)[keep]
-                     if name == "flow" else None}
+        out[name] = {
+            "g": g[keep],
+            "first": np.stack(first, 1)[keep],
+            "last": np.stack(last, 1)[keep],
+            "magnitude": mag[keep],
+            "cos": cos[keep] if name == "flow" else None,
+            "law": law[keep],
+            "step": (q * mag * cos * dt)[keep] if name == "flow" else None,
+            # half the Doppler-step spacing of neighbouring |cos θ| at the same speed (rad per frame)
+            "tol": np.maximum(0.5 * q * mag * dt / (COS_POLAR_STEPS - 1), PHASE_TOLERANCE_RAD)[keep]
+            if name == "flow"
+            else None,
+        }
     return out
 
 
@@ -237,7 +267,7 @@ def _phase_search(y: np.ndarray, w: np.ndarray, lags: np.ndarray) -> np.ndarray:
     ``Ms + A·r_m·e^{imφ}`` (module docstring) over the phase grid and envelopes, refined by a parabola."""
     n, c, L = y.shape
     phis = -math.pi + 2.0 * math.pi * (np.arange(PHASE_STEPS) + 1) / PHASE_STEPS
-    env = np.stack([np.exp(-(lags / m) ** 2) if math.isfinite(m) else np.ones(L) for m in ENVELOPES_LAGS])  # [E, L]
+    env = np.stack([np.exp(-((lags / m) ** 2)) if math.isfinite(m) else np.ones(L) for m in ENVELOPES_LAGS])  # [E, L]
     rot = np.exp(-1j * lags[:, None] * phis[None, :])  # [L, J]
     kern = (w * env)[:, :, None] * rot[None]  # [E, L, J]
     a11 = w.sum()
@@ -271,7 +301,7 @@ def _fit_chunk(y: np.ndarray, tab: dict, w: np.ndarray, lags: np.ndarray, use_ph
     if not use_phase:  # |ĝ1| against |g1|: flow's Doppler term and the pixel's phase drift both dropped
         y = np.abs(y).astype(np.complex128)
     b1 = (y.real @ w)[:, None, :]  # [N, 1, C]
-    syy = ((y.real ** 2 + y.imag ** 2) @ w).sum(axis=1)  # [N]
+    syy = ((y.real**2 + y.imag**2) @ w).sum(axis=1)  # [N]
     phi = _phase_search(y, w, lags) if use_phase else np.zeros(n)
     b1p = np.maximum(b1[:, 0], 0.0)
     res: dict[str, np.ndarray] = {"syy": syy, "phi": phi, "rss0": np.maximum(syy - (b1p * b1p / a11).sum(axis=1), 0.0)}
@@ -289,8 +319,7 @@ def _fit_chunk(y: np.ndarray, tab: dict, w: np.ndarray, lags: np.ndarray, use_ph
             b2 = np.stack([y.real[:, k] * w @ g[:, k].T for k in range(c)], axis=-1)
             a12 = ((g * w).sum(axis=2))[None]  # [1, K, C]
         # candidate search in float32 (R of every candidate), the chosen one again in float64 below
-        r = _reduction(b1, b2, a11, a12,
-                       a22[None])
+        r = _reduction(b1, b2, a11, a12, a22[None])
         tot = r.sum(axis=2, dtype=np.float64)  # [N, K]
         sign = None
         if name == "flow" and use_phase:  # candidates whose Doppler step agrees with φ (either direction, mod 2π)
@@ -304,16 +333,30 @@ def _fit_chunk(y: np.ndarray, tab: dict, w: np.ndarray, lags: np.ndarray, use_ph
         k = tot.argmax(axis=1)
         rows = np.arange(n)
         rk, ms, mf = _nnls2(b1[:, 0], b2[rows, k], a11, a12[0 if a12.shape[0] == 1 else rows, k], a22[k])
-        res[name] = {"k": k, "rss": np.maximum(syy - rk.sum(axis=1), 0.0), "ms": ms, "mf": mf,
-                     "deeper": None if sign is None else sign[rows, k]}
+        res[name] = {
+            "k": k,
+            "rss": np.maximum(syy - rk.sum(axis=1), 0.0),
+            "ms": ms,
+            "mf": mf,
+            "deeper": None if sign is None else sign[rows, k],
+        }
     return res
 
 
-def fit_g1(y: np.ndarray, configurations: Sequence[tuple[float, float, float]], lags: Sequence[int], *,
-           frame_interval_s: float, n_frames: int, refractive_index: float = 1.0,
-           ballistic_directions: str = "both", diffusion_range_um2_per_s: tuple[float, float] = (1e-4, 15.0),
-           speed_range_um_per_s: tuple[float, float] = (1e-3, 6.0), epsilon: float = 0.05,
-           use_phase: bool = True) -> G1Fit:
+def fit_g1(
+    y: np.ndarray,
+    configurations: Sequence[tuple[float, float, float]],
+    lags: Sequence[int],
+    *,
+    frame_interval_s: float,
+    n_frames: int,
+    refractive_index: float = 1.0,
+    ballistic_directions: str = "both",
+    diffusion_range_um2_per_s: tuple[float, float] = (1e-4, 15.0),
+    speed_range_um_per_s: tuple[float, float] = (1e-3, 6.0),
+    epsilon: float = 0.05,
+    use_phase: bool = True,
+) -> G1Fit:
     """Fit every pixel of ``y [N, C, L]`` (complex ĝ1 at ``lags`` of the ``C`` configurations
     ``(wavelength_um, lateral_resolution_um, axial_resolution_um)``; module docstring).
 
@@ -330,14 +373,25 @@ def fit_g1(y: np.ndarray, configurations: Sequence[tuple[float, float, float]], 
     if not lags_t or min(lags_t) < 1 or max(lags_t) > n_frames - 1 or len(set(lags_t)) != len(lags_t):
         raise ValueError(f"lags must be distinct integers in [1, n_frames - 1 = {n_frames - 1}]; got {list(lags_t)}")
     if len({round(w, 9) for w, _, _ in confs}) != 1:
-        raise ValueError("the configurations must share one wavelength (one Doppler step per pixel); got "
-                         f"{sorted({w for w, _, _ in confs})} µm")
+        raise ValueError(
+            "the configurations must share one wavelength (one Doppler step per pixel); got "
+            f"{sorted({w for w, _, _ in confs})} µm"
+        )
     laws = ("isotropic", "uniform-angles") if ballistic_directions == "both" else (ballistic_directions,)
     if not set(laws) <= {"isotropic", "uniform-angles"}:
-        raise ValueError(f"ballistic_directions must be 'isotropic', 'uniform-angles' or 'both'; got "
-                         f"{ballistic_directions!r}")
-    tab = _tables(confs, lags_t, float(frame_interval_s), int(n_frames), float(refractive_index),
-                  laws, tuple(diffusion_range_um2_per_s), tuple(speed_range_um_per_s))
+        raise ValueError(
+            f"ballistic_directions must be 'isotropic', 'uniform-angles' or 'both'; got {ballistic_directions!r}"
+        )
+    tab = _tables(
+        confs,
+        lags_t,
+        float(frame_interval_s),
+        int(n_frames),
+        float(refractive_index),
+        laws,
+        tuple(diffusion_range_um2_per_s),
+        tuple(speed_range_um_per_s),
+    )
     n, c, L = y.shape
     valid = np.isfinite(y.real).all(axis=(1, 2)) & np.isfinite(y.imag).all(axis=(1, 2))
     yc = np.where(valid[:, None, None], y, 0.0).astype(np.complex128)
@@ -347,7 +401,7 @@ def fit_g1(y: np.ndarray, configurations: Sequence[tuple[float, float, float]], 
     params = np.array([2 * c + 1, 2 * c + 1, 2 * c + 1 + FLOW_EXTRA_PARAMETERS], np.float64)
     out = {k: [] for k in ("k", "rss", "ms", "mf", "deeper", "phi", "rss0", "syy")}
     for s in range(0, n, _CHUNK):
-        r = _fit_chunk(yc[s:s + _CHUNK], tab, w, lags_a, use_phase)
+        r = _fit_chunk(yc[s : s + _CHUNK], tab, w, lags_a, use_phase)
         out["phi"].append(r["phi"])
         out["rss0"].append(r["rss0"])
         out["syy"].append(r["syy"])
@@ -357,8 +411,19 @@ def fit_g1(y: np.ndarray, configurations: Sequence[tuple[float, float, float]], 
     cat = {k: (np.concatenate(v) if v else np.zeros((0,))) for k, v in out.items()}
     if n == 0:
         e = np.zeros(0)
-        return G1Fit(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), e, np.zeros((0, 3)), e,
-                     np.zeros((0, c)), np.zeros((0, c)), np.zeros((0, 3)), np.zeros((0, 3)), e)
+        return G1Fit(
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            e,
+            np.zeros((0, 3)),
+            e,
+            np.zeros((0, c)),
+            np.zeros((0, c)),
+            np.zeros((0, 3)),
+            np.zeros((0, 3)),
+            e,
+        )
     rss = cat["rss"]
     floor = 1e-12 * cat["syy"] + 1e-300  # residuals below this are rounding: a perfect fit of any model
     ratio = np.maximum(rss, floor[:, None]) / np.maximum(cat["rss0"], floor)[:, None]
@@ -382,10 +447,19 @@ def fit_g1(y: np.ndarray, configurations: Sequence[tuple[float, float, float]], 
     polar = np.degrees(np.arccos(np.where(cat["deeper"], cosf, -cosf)))
     mag = mags[rows, model]
     nanv = np.where(valid, 1.0, np.nan)
-    return G1Fit(label=label.astype(np.int64), reason=reason, model=np.where(valid, model, -1).astype(np.int64),
-                 magnitude=mag * nanv, magnitude_by_model=mags * nanv[:, None], polar_angle_deg=polar * nanv,
-                 static=ms * nanv[:, None], moving=mf * nanv[:, None], rss=rss * nanv[:, None],
-                 bic=bic * nanv[:, None], phase_step_rad=cat["phi"] * nanv)
+    return G1Fit(
+        label=label.astype(np.int64),
+        reason=reason,
+        model=np.where(valid, model, -1).astype(np.int64),
+        magnitude=mag * nanv,
+        magnitude_by_model=mags * nanv[:, None],
+        polar_angle_deg=polar * nanv,
+        static=ms * nanv[:, None],
+        moving=mf * nanv[:, None],
+        rss=rss * nanv[:, None],
+        bic=bic * nanv[:, None],
+        phase_step_rad=cat["phi"] * nanv,
+    )
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -422,12 +496,17 @@ def complex_g1(x: np.ndarray, mag_cols: Sequence[int], phase_cols: Sequence[int]
 
 
 def _fit_kwargs(spec, prior, lags) -> dict[str, Any]:
-    return dict(configurations=[(c.wavelength_um, c.lateral_resolution_um, c.axial_resolution_um)
-                                for c in spec.configurations], lags=tuple(lags),
-                frame_interval_s=spec.frame_interval_s, n_frames=spec.n_frames,
-                refractive_index=spec.refractive_index, ballistic_directions=prior.ballistic_directions,
-                diffusion_range_um2_per_s=prior.diffusion_um2_per_s, speed_range_um_per_s=prior.speed_um_per_s,
-                epsilon=prior.identifiability_epsilon)
+    return dict(
+        configurations=[(c.wavelength_um, c.lateral_resolution_um, c.axial_resolution_um) for c in spec.configurations],
+        lags=tuple(lags),
+        frame_interval_s=spec.frame_interval_s,
+        n_frames=spec.n_frames,
+        refractive_index=spec.refractive_index,
+        ballistic_directions=prior.ballistic_directions,
+        diffusion_range_um2_per_s=prior.diffusion_um2_per_s,
+        speed_range_um_per_s=prior.speed_um_per_s,
+        epsilon=prior.identifiability_epsilon,
+    )
 
 
 def _magnitude_errors(est_log10: np.ndarray, s: dict[str, np.ndarray], decided_correct: np.ndarray) -> dict:
@@ -441,10 +520,16 @@ def _magnitude_errors(est_log10: np.ndarray, s: dict[str, np.ndarray], decided_c
     out: dict[str, Any] = {}
     for key, m in (("decided_correct", ident & decided_correct), ("identifiable_true_class", ident)):
         e = err[m & np.isfinite(err)]
-        out[key] = {"samples": int(e.size), "median_abs_log10_error": float(np.median(e)) if e.size else math.nan,
-                    "by_class": {CLASSES[c]: float(np.median(err[m & (s["y"] == c) & np.isfinite(err)]))
-                                 if np.any(m & (s["y"] == c) & np.isfinite(err)) else math.nan
-                                 for c in range(len(CLASSES))}}
+        out[key] = {
+            "samples": int(e.size),
+            "median_abs_log10_error": float(np.median(e)) if e.size else math.nan,
+            "by_class": {
+                CLASSES[c]: float(np.median(err[m & (s["y"] == c) & np.isfinite(err)]))
+                if np.any(m & (s["y"] == c) & np.isfinite(err))
+                else math.nan
+                for c in range(len(CLASSES))
+            },
+        }
     return out
 
 
@@ -460,9 +545,11 @@ def _headline(pred: np.ndarray, y: np.ndarray, status: np.ndarray, err: np.ndarr
     dec = ident & (pred != 3)
     rec = [float((pred[dec & (y == c)] == c).mean()) for c in range(3) if np.any(dec & (y == c))]
     ok = dec & (pred == y) & np.isfinite(err)
-    return {"balanced_accuracy_identifiable": float(np.mean(rec)) if rec else math.nan,
-            "coverage_identifiable": float(dec.sum() / max(ident.sum(), 1)),
-            "median_abs_log10_error": float(np.median(err[ok])) if ok.any() else math.nan}
+    return {
+        "balanced_accuracy_identifiable": float(np.mean(rec)) if rec else math.nan,
+        "coverage_identifiable": float(dec.sum() / max(ident.sum(), 1)),
+        "median_abs_log10_error": float(np.median(err[ok])) if ok.any() else math.nan,
+    }
 
 
 def _timed(fn, *args, repeats: int = 2) -> tuple[Any, float]:
@@ -476,8 +563,15 @@ def _timed(fn, *args, repeats: int = 2) -> tuple[Any, float]:
     return out, best
 
 
-def evaluate_against_network(model: str = "signature", *, draws: int | None = None, lags: Sequence[int] | None = None,
-                             cache_dir=None, timing_pixels: int = 4096, log=print) -> dict[str, Any]:
+def evaluate_against_network(
+    model: str = "signature",
+    *,
+    draws: int | None = None,
+    lags: Sequence[int] | None = None,
+    cache_dir=None,
+    timing_pixels: int = 4096,
+    log=print,
+) -> dict[str, Any]:
     """The fit and the shipped network on the same test pixels (pool 1 and 25, with and without a
     random bulk phase per frame): balanced accuracy, coverage, accuracy, confusion, magnitude error,
     µs per pixel (one thread). ``draws``: test draws (default the model's, which reproduces the
@@ -495,12 +589,18 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
     net = load_model(model, threads=1)
     spec = net.spec
     if not spec.is_signature or "train_config" not in net.metadata or "prior" not in net.metadata:
-        raise ValueError(f"model {net.path.name}: the comparison needs a signature model written by doct-train "
-                         f"(spec {spec.name!r} reads {', '.join(spec.metrics)}); use --model signature")
+        raise ValueError(
+            f"model {net.path.name}: the comparison needs a signature model written by doct-train "
+            f"(spec {spec.name!r} reads {', '.join(spec.metrics)}); use --model signature"
+        )
     prior = Prior.from_dict(net.metadata["prior"])
     tc = net.metadata["train_config"]
-    cfg = SimpleNamespace(**{k: tc[k] for k in ("seed", "draws_test", "trials_per_draw", "replicates",
-                                                 "truncation_tolerance", "eval_pools")})
+    cfg = SimpleNamespace(
+        **{
+            k: tc[k]
+            for k in ("seed", "draws_test", "trials_per_draw", "replicates", "truncation_tolerance", "eval_pools")
+        }
+    )
     rule = net.rule
     lags = tuple(lags or (m for m in DEFAULT_LAGS if m <= spec.n_frames - 3))
     n_draws = int(draws or cfg.draws_test)
@@ -511,30 +611,55 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
     mag_cols, ph_cols = g1_columns(names, sup, lags)
     n_conf = len(spec.configurations)
     report: dict[str, Any] = {
-        "model": str(net.path.name), "spec": spec.name, "configurations": [c.describe() for c in spec.configurations],
-        "seed": cfg.seed, "draws_test": n_draws, "trials_per_draw": cfg.trials_per_draw,
-        "replicates": cfg.replicates, "truncation_tolerance": cfg.truncation_tolerance, "prior": prior.to_dict(),
-        "lags": list(lags), "rule": rule["definition"], "fit": {
-            "grid_per_decade": GRID_PER_DECADE, "cos_polar_steps": COS_POLAR_STEPS, "phase_steps": PHASE_STEPS,
+        "model": str(net.path.name),
+        "spec": spec.name,
+        "configurations": [c.describe() for c in spec.configurations],
+        "seed": cfg.seed,
+        "draws_test": n_draws,
+        "trials_per_draw": cfg.trials_per_draw,
+        "replicates": cfg.replicates,
+        "truncation_tolerance": cfg.truncation_tolerance,
+        "prior": prior.to_dict(),
+        "lags": list(lags),
+        "rule": rule["definition"],
+        "fit": {
+            "grid_per_decade": GRID_PER_DECADE,
+            "cos_polar_steps": COS_POLAR_STEPS,
+            "phase_steps": PHASE_STEPS,
             "envelopes_lags": [m if math.isfinite(m) else "flat" for m in ENVELOPES_LAGS],
             "selection": f"lowest BIC n ln(RSS/n) + p ln n, n = 2 C L, p = 2C+1 (diffusion, ballistic), "
-                         f"2C+{1 + FLOW_EXTRA_PARAMETERS} (flow: speed, polar angle, phase step), against the null "
-                         "model g1 = Ms (p = C)",
+            f"2C+{1 + FLOW_EXTRA_PARAMETERS} (flow: speed, polar angle, phase step), against the null "
+            "model g1 = Ms (p = C)",
             "indeterminate": "non-finite input; no moving term (Mf = 0 at every configuration, or the null model "
-                             "wins); |g1_fit(T)|^2 >= 1 - eps at every configuration (static); |g1_fit(dt)|^2 <= eps "
-                             "at every configuration (decorrelated)"},
+            "wins); |g1_fit(T)|^2 >= 1 - eps at every configuration (static); |g1_fit(dt)|^2 <= eps "
+            "at every configuration (decorrelated)",
+        },
         "network_reads_field": bool(spec.needs_field),
-        "sets": {}}
+        "sets": {},
+    }
     for bulk in (False, True):
         label = "random bulk phase per frame" if bulk else "phase-stable"
-        ds = make_dataset(sup, prior, seed=cfg.seed, split="test", draws=n_draws, trials_per_draw=cfg.trials_per_draw,
-                          replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance, truncation=cfg.truncation,
-                          cache_dir=cache_dir, bulk_phase=bulk)
+        ds = make_dataset(
+            sup,
+            prior,
+            seed=cfg.seed,
+            split="test",
+            draws=n_draws,
+            trials_per_draw=cfg.trials_per_draw,
+            replicates=cfg.replicates,
+            truncation_tolerance=cfg.truncation_tolerance,
+            truncation=cfg.truncation,
+            cache_dir=cache_dir,
+            bulk_phase=bulk,
+        )
         src = "cache" if ds.meta["from_cache"] else "simulated"
         say(f"{label}: {len(ds)} test pixels from {n_draws} draws ({src})")
         y = complex_g1(ds.x, mag_cols, ph_cols, n_conf)
-        joint = dataclasses.replace(ds, x=np.concatenate(
-            [ds.x[:, net_cols], y.real.reshape(len(ds), -1), y.imag.reshape(len(ds), -1)], axis=1), x_ref=None)
+        joint = dataclasses.replace(
+            ds,
+            x=np.concatenate([ds.x[:, net_cols], y.real.reshape(len(ds), -1), y.imag.reshape(len(ds), -1)], axis=1),
+            x_ref=None,
+        )
         rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))  # the report's pools
         pools = {}
         for n in cfg.eval_pools:
@@ -546,7 +671,7 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
         cl = n_conf * len(lags)
         for pool, s in pools.items():
             x_net = np.concatenate([s["x"][:, :f], s["x"][:, -1:]], axis=1).astype(np.float32)
-            yy = (s["x"][:, f:f + cl] + 1j * s["x"][:, f + cl:f + 2 * cl]).reshape(-1, n_conf, len(lags))
+            yy = (s["x"][:, f : f + cl] + 1j * s["x"][:, f + cl : f + 2 * cl]).reshape(-1, n_conf, len(lags))
             p_net = net.predict(x_net)
             mu, _ = net.predict_magnitude(x_net)
             with threadpool_limits(1):
@@ -557,19 +682,31 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
             with np.errstate(divide="ignore", invalid="ignore"):
                 fit_log = np.log10(fit.magnitude_by_model)
             row = {"samples": int(len(s["y"])), "identifiable": int((s["status"] == 0).sum())}
-            for name, m, est, dec in (("network", m_net, mu.astype(np.float64), dec_net),
-                                      ("g1 fit", m_fit, fit_log, fit.label)):
-                row[name] = {k: m[k] for k in ("balanced_accuracy_identifiable", "coverage_identifiable",
-                                               "accuracy_identifiable", "strict_accuracy_identifiable",
-                                               "accuracy_all", "balanced_accuracy_all", "recall_identifiable",
-                                               "confusion")}
+            for name, m, est, dec in (
+                ("network", m_net, mu.astype(np.float64), dec_net),
+                ("g1 fit", m_fit, fit_log, fit.label),
+            ):
+                row[name] = {
+                    k: m[k]
+                    for k in (
+                        "balanced_accuracy_identifiable",
+                        "coverage_identifiable",
+                        "accuracy_identifiable",
+                        "strict_accuracy_identifiable",
+                        "accuracy_all",
+                        "balanced_accuracy_all",
+                        "recall_identifiable",
+                        "confusion",
+                    )
+                }
                 row[name]["magnitude"] = _magnitude_errors(est, s, dec == s["y"])
             row["g1 fit"]["reasons"] = {r: int((fit.reason == i).sum()) for i, r in enumerate(REASONS)}
             if pool == "1" and not bulk:
                 if n_draws == cfg.draws_test:
                     ref = net.metadata.get("test_summary_by_pool", {}).get("1", {})
                     row["network"]["matches_model_report"] = {
-                        k: (ref.get(k), m_net[k]) for k in ("balanced_accuracy_identifiable", "coverage_identifiable")}
+                        k: (ref.get(k), m_net[k]) for k in ("balanced_accuracy_identifiable", "coverage_identifiable")
+                    }
                 sub = slice(0, min(timing_pixels, len(yy)))
                 with threadpool_limits(1):
                     _, t_fit = _timed(lambda: fit_g1(yy[sub], **kw))
@@ -584,11 +721,14 @@ def evaluate_against_network(model: str = "signature", *, draws: int | None = No
                     y_, st_ = s["y"][ix], s["status"][ix]
                     a, b = _headline(dec_net[ix], y_, st_, err_net[ix]), _headline(fit.label[ix], y_, st_, err_fit[ix])
                     return {k: a[k] - b[k] for k in a}
+
                 row["difference_se"] = bootstrap_draws(diffs, s["draw"], seed=cfg.seed)  # paired: one resample, both
             out[pool] = row
-            say(f"  pool {pool}: network bal. acc. {m_net['balanced_accuracy_identifiable']:.3f} coverage "
+            say(
+                f"  pool {pool}: network bal. acc. {m_net['balanced_accuracy_identifiable']:.3f} coverage "
                 f"{m_net['coverage_identifiable']:.3f}; g1 fit {m_fit['balanced_accuracy_identifiable']:.3f} / "
-                f"{m_fit['coverage_identifiable']:.3f}")
+                f"{m_fit['coverage_identifiable']:.3f}"
+            )
         report["sets"][label] = out
     return report
 
@@ -600,66 +740,94 @@ def _f(v: Any, digits: int = 3) -> str:
 def format_markdown(r: dict[str, Any]) -> str:
     """The comparison as Markdown: the tables of the JSON and how much the network beats the fit by."""
     L = ["# The signature network against a per-pixel least-squares g1 fit (DLS-OCT baseline)", ""]
-    L.append(f"Model `{r['model']}` (spec `{r['spec']}`: {'; '.join(r['configurations'])}). Test split of its report: "
-             f"seed {r['seed']}, {r['draws_test']} draws × {r['replicates']} (static fraction, SNR) replicates × "
-             f"{r['trials_per_draw']} trials, PSF truncation {r['truncation_tolerance']}; the same pixels for both "
-             "methods. The network reads its signature features; the fit reads the complex "
-             f"ĝ1 = g1_m·exp(i·g1_phase_m) at lags {', '.join(map(str, r['lags']))} (frames) of every configuration "
-             "(`research/g1fit.py`: closed forms of "
-             "torchdoct.sim.theory, grid of "
-             f"{r['fit']['grid_per_decade']} magnitudes per decade, {r['fit']['cos_polar_steps']} |cos θ| for flow; "
-             f"class by {r['fit']['selection']}; indeterminate: {r['fit']['indeterminate']}).  ")
-    L.append("Identifiable = the ground truth of `classifier.truth.identifiability`; coverage = decided share of "
-             "them; accuracy over the decided ones. Magnitude error: median |log10 error| of D (µm²/s) or v (µm/s), "
-             "(a) on identifiable pixels decided with the true class, (b) on every identifiable pixel with the true "
-             "class's estimate (the training report's definition).")
+    L.append(
+        f"Model `{r['model']}` (spec `{r['spec']}`: {'; '.join(r['configurations'])}). Test split of its report: "
+        f"seed {r['seed']}, {r['draws_test']} draws × {r['replicates']} (static fraction, SNR) replicates × "
+        f"{r['trials_per_draw']} trials, PSF truncation {r['truncation_tolerance']}; the same pixels for both "
+        "methods. The network reads its signature features; the fit reads the complex "
+        f"ĝ1 = g1_m·exp(i·g1_phase_m) at lags {', '.join(map(str, r['lags']))} (frames) of every configuration "
+        "(`research/g1fit.py`: closed forms of "
+        "torchdoct.sim.theory, grid of "
+        f"{r['fit']['grid_per_decade']} magnitudes per decade, {r['fit']['cos_polar_steps']} |cos θ| for flow; "
+        f"class by {r['fit']['selection']}; indeterminate: {r['fit']['indeterminate']}).  "
+    )
+    L.append(
+        "Identifiable = the ground truth of `classifier.truth.identifiability`; coverage = decided share of "
+        "them; accuracy over the decided ones. Magnitude error: median |log10 error| of D (µm²/s) or v (µm/s), "
+        "(a) on identifiable pixels decided with the true class, (b) on every identifiable pixel with the true "
+        "class's estimate (the training report's definition)."
+    )
     L.append("")
     for label, per in r["sets"].items():
         L += [f"## {label}", ""]
         if label != "phase-stable":
-            L.append("A uniform random phase per frame (bulk motion) scrambles every field sum G(m), hence ĝ1 and its "
-                     "phase: the fit has nothing left to fit. "
-                     + ("The network reads intensity features only, which the bulk phase leaves unchanged: its "
-                        "numbers are those of the phase-stable data." if not r.get("network_reads_field") else ""))
+            L.append(
+                "A uniform random phase per frame (bulk motion) scrambles every field sum G(m), hence ĝ1 and its "
+                "phase: the fit has nothing left to fit. "
+                + (
+                    "The network reads intensity features only, which the bulk phase leaves unchanged: its "
+                    "numbers are those of the phase-stable data."
+                    if not r.get("network_reads_field")
+                    else ""
+                )
+            )
             L.append("")
-        L.append("| pool | method | bal. acc. identifiable | coverage | acc. identifiable | strict acc. | acc. all "
-                 "| magnitude error (a) | (b) | (a) diffusion / ballistic / flow |")
+        L.append(
+            "| pool | method | bal. acc. identifiable | coverage | acc. identifiable | strict acc. | acc. all "
+            "| magnitude error (a) | (b) | (a) diffusion / ballistic / flow |"
+        )
         L.append("|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
         for pool, row in per.items():
             for name in ("network", "g1 fit"):
                 m = row[name]
                 a, b = m["magnitude"]["decided_correct"], m["magnitude"]["identifiable_true_class"]
-                L.append(f"| {pool} | {name} | {_f(m['balanced_accuracy_identifiable'])} | "
-                         f"{_f(m['coverage_identifiable'])} | {_f(m['accuracy_identifiable'])} | "
-                         f"{_f(m['strict_accuracy_identifiable'])} | {_f(m['accuracy_all'])} | "
-                         f"{_f(a['median_abs_log10_error'])} | {_f(b['median_abs_log10_error'])} | "
-                         + " / ".join(_f(v) for v in a["by_class"].values()) + " |")
+                L.append(
+                    f"| {pool} | {name} | {_f(m['balanced_accuracy_identifiable'])} | "
+                    f"{_f(m['coverage_identifiable'])} | {_f(m['accuracy_identifiable'])} | "
+                    f"{_f(m['strict_accuracy_identifiable'])} | {_f(m['accuracy_all'])} | "
+                    f"{_f(a['median_abs_log10_error'])} | {_f(b['median_abs_log10_error'])} | "
+                    + " / ".join(_f(v) for v in a["by_class"].values())
+                    + " |"
+                )
         L.append("")
         for pool, row in per.items():
             fit = row["g1 fit"]
-            L.append(f"Pool {pool}: {row['samples']} samples, {row['identifiable']} identifiable; the fit's outcomes: "
-                     + ", ".join(f"{k} {v}" for k, v in fit["reasons"].items()) + ".  ")
+            L.append(
+                f"Pool {pool}: {row['samples']} samples, {row['identifiable']} identifiable; the fit's outcomes: "
+                + ", ".join(f"{k} {v}" for k, v in fit["reasons"].items())
+                + ".  "
+            )
             if "us_per_pixel" in row:
                 t = row["us_per_pixel"]
-                L.append(f"Cost per pixel (one thread, {t['pixels']} pixels, features given): network "
-                         f"{t['network']:.2f} µs, g1 fit {t['g1 fit']:.0f} µs "
-                         f"({t['g1 fit'] / t['network']:.0f}×).  ")
+                L.append(
+                    f"Cost per pixel (one thread, {t['pixels']} pixels, features given): network "
+                    f"{t['network']:.2f} µs, g1 fit {t['g1 fit']:.0f} µs "
+                    f"({t['g1 fit'] / t['network']:.0f}×).  "
+                )
             if "matches_model_report" in row["network"]:
                 chk = row["network"]["matches_model_report"]
-                L.append("Network against its own report on these pixels (balanced accuracy, coverage): "
-                         + "; ".join(f"{k}: report {_f(v[0], 4)}, here {_f(v[1], 4)}" for k, v in chk.items()) + ".  ")
+                L.append(
+                    "Network against its own report on these pixels (balanced accuracy, coverage): "
+                    + "; ".join(f"{k}: report {_f(v[0], 4)}, here {_f(v[1], 4)}" for k, v in chk.items())
+                    + ".  "
+                )
         L.append("")
         for pool, row in per.items():
             for name in ("network", "g1 fit"):
                 cm = row[name]["confusion"]
                 cls = ["diffusion", "ballistic", "flow", "indeterminate"]
-                L.append(f"Confusion, {name}, pool {pool} (rows truth, columns decision; {', '.join(cls)}): "
-                         + "; ".join(f"{c}: {' '.join(str(v) for v in rr)}" for c, rr in zip(cls, cm)) + ".  ")
+                L.append(
+                    f"Confusion, {name}, pool {pool} (rows truth, columns decision; {', '.join(cls)}): "
+                    + "; ".join(f"{c}: {' '.join(str(v) for v in rr)}" for c, rr in zip(cls, cm))
+                    + ".  "
+                )
         L.append("")
     L += ["## By how much the network beats the fit", ""]
-    L.append("Differences network − fit on the same samples; SE = standard error from a paired bootstrap over test "
-             "draws (phase-stable data). Magnitude error (a) compares different pixel sets (each method's own "
-             "correctly decided ones), (b) the same identifiable pixels.")
+    L.append(
+        "Differences network − fit on the same samples; SE = standard error from a paired bootstrap over test "
+        "draws (phase-stable data). Magnitude error (a) compares different pixel sets (each method's own "
+        "correctly decided ones), (b) the same identifiable pixels."
+    )
     L.append("")
     for label, per in r["sets"].items():
         for pool, row in per.items():
@@ -672,17 +840,34 @@ def format_markdown(r: dict[str, Any]) -> str:
 
             def sed(k: str) -> str:
                 return f" (SE {se[k]:.3f})" if k in se and math.isfinite(se[k]) else ""
-            better = [n for n, ok in (("balanced accuracy", d_ba > 0), ("coverage", d_cov > 0),
-                                      ("magnitude error (a)", ea < eb), ("magnitude error (b)", fa < fb)) if ok]
-            worse = [n for n in ("balanced accuracy", "coverage", "magnitude error (a)", "magnitude error (b)")
-                     if n not in better]
-            cost = (f"; cost per pixel {row['us_per_pixel']['g1 fit'] / row['us_per_pixel']['network']:.0f}× lower"
-                    if "us_per_pixel" in row else "")
-            L.append(f"- {label}, pool {pool}: balanced accuracy {d_ba:+.3f}{sed('balanced_accuracy_identifiable')}, "
-                     f"coverage {d_cov:+.3f}{sed('coverage_identifiable')}; magnitude error (a) {_f(ea)} against "
-                     f"{_f(eb)} ({ea - eb:+.3f} dex{sed('median_abs_log10_error')}), (b) {_f(fa)} against {_f(fb)} "
-                     f"({fa - fb:+.3f} dex){cost}. The network is better in "
-                     f"{', '.join(better) or 'nothing'}" + (f"; not in {', '.join(worse)}" if worse else "") + ".")
+
+            better = [
+                n
+                for n, ok in (
+                    ("balanced accuracy", d_ba > 0),
+                    ("coverage", d_cov > 0),
+                    ("magnitude error (a)", ea < eb),
+                    ("magnitude error (b)", fa < fb),
+                )
+                if ok
+            ]
+            worse = [
+                n
+                for n in ("balanced accuracy", "coverage", "magnitude error (a)", "magnitude error (b)")
+                if n not in better
+            ]
+            cost = (
+                f"; cost per pixel {row['us_per_pixel']['g1 fit'] / row['us_per_pixel']['network']:.0f}× lower"
+                if "us_per_pixel" in row
+                else ""
+            )
+            L.append(
+                f"- {label}, pool {pool}: balanced accuracy {d_ba:+.3f}{sed('balanced_accuracy_identifiable')}, "
+                f"coverage {d_cov:+.3f}{sed('coverage_identifiable')}; magnitude error (a) {_f(ea)} against "
+                f"{_f(eb)} ({ea - eb:+.3f} dex{sed('median_abs_log10_error')}), (b) {_f(fa)} against {_f(fb)} "
+                f"({fa - fb:+.3f} dex){cost}. The network is better in "
+                f"{', '.join(better) or 'nothing'}" + (f"; not in {', '.join(worse)}" if worse else "") + "."
+            )
     L.append("")
     return "\n".join(L)
 
@@ -699,10 +884,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m research.g1fit", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, help="JSON output file; the Markdown is written beside it (.md)")
     p.add_argument("--model", default="signature", help="shipped model name or .onnx path (default signature)")
-    p.add_argument("--draws", type=int, default=None,
-                   help="test draws (default: the model's, which reproduces the pixels of its report)")
-    p.add_argument("--lags", default=None,
-                   help="fit lags in frames, comma-separated (default " + ",".join(map(str, DEFAULT_LAGS)) + ")")
+    p.add_argument(
+        "--draws",
+        type=int,
+        default=None,
+        help="test draws (default: the model's, which reproduces the pixels of its report)",
+    )
+    p.add_argument(
+        "--lags",
+        default=None,
+        help="fit lags in frames, comma-separated (default " + ",".join(map(str, DEFAULT_LAGS)) + ")",
+    )
     p.add_argument("--cache", default=None, help="dataset cache directory (default ~/.cache/torchdoct/classifier)")
     args = p.parse_args(argv)
     out = Path(args.out)

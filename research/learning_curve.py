@@ -34,8 +34,15 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DEFAULT_SIZES", "draw_prefix", "run_learning_curve", "format_markdown", "plot_learning_curve",
-           "write_outputs", "main"]
+__all__ = [
+    "DEFAULT_SIZES",
+    "draw_prefix",
+    "run_learning_curve",
+    "format_markdown",
+    "plot_learning_curve",
+    "write_outputs",
+    "main",
+]
 
 #: Default nested training sizes (draws); the shipped recipe uses 1920.
 DEFAULT_SIZES = (60, 120, 240, 480, 960, 1920, 3840)
@@ -66,8 +73,9 @@ def _check_sizes(sizes: Sequence[int], draws_max: int | None) -> tuple[tuple[int
     return sizes, n_max
 
 
-def _magnitude_errors(magnitude: tuple[np.ndarray, np.ndarray] | None,
-                      s: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def _magnitude_errors(
+    magnitude: tuple[np.ndarray, np.ndarray] | None, s: dict[str, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
     """|log10 magnitude error| of the true class's head on identifiable samples, and their draws
     (``magnitude``: the network's predicted ``(log10 magnitude, SD)``, :func:`classifier.train.network_predictions`)."""
     ident = s["status"] == 0
@@ -103,23 +111,40 @@ def _metrics(p: np.ndarray, s: dict[str, np.ndarray], rule: dict, seed: int) -> 
     return out
 
 
-def _paired_difference(p_a: np.ndarray, p_b: np.ndarray, s: dict[str, np.ndarray], rule: dict, seed: int,
-                       key: str = "balanced_accuracy_identifiable") -> tuple[float, float]:
+def _paired_difference(
+    p_a: np.ndarray,
+    p_b: np.ndarray,
+    s: dict[str, np.ndarray],
+    rule: dict,
+    seed: int,
+    key: str = "balanced_accuracy_identifiable",
+) -> tuple[float, float]:
     """``metric(p_b) − metric(p_a)`` on the same samples and its SE (both on the same resampled draws)."""
     from classifier.evaluation import CLASS_NAMES
     from classifier.report import evaluate
 
     def diff(i):
-        return (evaluate(p_b[i], s["y"][i], s["status"][i], CLASS_NAMES, rule)[key]
-                - evaluate(p_a[i], s["y"][i], s["status"][i], CLASS_NAMES, rule)[key])
+        return (
+            evaluate(p_b[i], s["y"][i], s["status"][i], CLASS_NAMES, rule)[key]
+            - evaluate(p_a[i], s["y"][i], s["status"][i], CLASS_NAMES, rule)[key]
+        )
 
     return float(diff(np.arange(len(s["y"])))), _bootstrap(diff, s["draw"], seed=seed)
 
 
-def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int | None = None,
-                       draws_validation: int | None = None, draws_test: int | None = None,
-                       max_epochs: int | None = None, gb_pixels: int = 60000, seed: int = 0, cache_dir=None,
-                       progress: bool = False, log=print) -> dict[str, Any]:
+def run_learning_curve(
+    *,
+    sizes: Sequence[int] = DEFAULT_SIZES,
+    draws_max: int | None = None,
+    draws_validation: int | None = None,
+    draws_test: int | None = None,
+    max_epochs: int | None = None,
+    gb_pixels: int = 60000,
+    seed: int = 0,
+    cache_dir=None,
+    progress: bool = False,
+    log=print,
+) -> dict[str, Any]:
     """The study of the module docstring; returns a JSON-able dict (``rows``: one per size).
 
     ``progress``: progress bars (stderr) for the simulation and the epochs; ``log``: one line per stage."""
@@ -162,13 +187,26 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
     data, sim_s = {}, {}
     for split, n in (("train", n_max), ("validation", cfg.draws_validation), ("test", cfg.draws_test)):
         say(f"{split}: {n} draws ...", flush=True)
-        ds = make_dataset(spec, prior, seed=cfg.seed, split=split, draws=n, trials_per_draw=cfg.trials_per_draw,
-                          replicates=cfg.replicates, truncation_tolerance=cfg.truncation_tolerance, truncation=cfg.truncation,
-                          cache_dir=cache_dir, progress=progress)
+        ds = make_dataset(
+            spec,
+            prior,
+            seed=cfg.seed,
+            split=split,
+            draws=n,
+            trials_per_draw=cfg.trials_per_draw,
+            replicates=cfg.replicates,
+            truncation_tolerance=cfg.truncation_tolerance,
+            truncation=cfg.truncation,
+            cache_dir=cache_dir,
+            progress=progress,
+        )
         data[split] = ds
         sim_s[split] = float(ds.meta["elapsed_s"])
-        say(f"{split}: {len(ds)} samples ({'from the cache; ' if ds.meta['from_cache'] else ''}simulated in "
-            f"{ds.meta['elapsed_s']:.0f} s); ground truth per draw {ds.meta['draw_status_counts']}", flush=True)
+        say(
+            f"{split}: {len(ds)} samples ({'from the cache; ' if ds.meta['from_cache'] else ''}simulated in "
+            f"{ds.meta['elapsed_s']:.0f} s); ground truth per draw {ds.meta['draw_status_counts']}",
+            flush=True,
+        )
 
     ev_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9,)))  # as doct-train
     tests, _ = evaluation_sets(data["test"], cfg, spec, ev_rng)
@@ -180,13 +218,20 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
     for n in sizes:
         tr = draw_prefix(data["train"], n)
         per_draw = tr.status[np.unique(tr.draw, return_index=True)[1]]  # ground truth of each draw
-        row: dict[str, Any] = {"draws": n, "samples": len(tr),
-                               "draw_status_counts": {name: int((per_draw == i).sum()) for i, name in enumerate(STATUS)}}
+        row: dict[str, Any] = {
+            "draws": n,
+            "samples": len(tr),
+            "draw_status_counts": {name: int((per_draw == i).sum()) for i, name in enumerate(STATUS)},
+        }
         fit = fit_network(tr, data["validation"], spec, cfg, progress=progress)
         model = fit["model"]
-        net: dict[str, Any] = {"training_s": fit["training_s"], "epochs": fit["epochs"],
-                               "best_epoch": fit["best_epoch"], "validation_loss": fit["validation_loss"],
-                               "temperature": fit["temperature"]}
+        net: dict[str, Any] = {
+            "training_s": fit["training_s"],
+            "epochs": fit["epochs"],
+            "best_epoch": fit["best_epoch"],
+            "validation_loss": fit["validation_loss"],
+            "temperature": fit["temperature"],
+        }
         probs[n] = {}
         for pool, s in tests.items():
             p, mag = network_predictions(model, s, magnitude=model.n_magnitude > 0)
@@ -197,10 +242,16 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
             m["median_abs_log10_error_se"] = _bootstrap(lambda i: float(np.median(err[i])), edraw, seed=cfg.seed)
             net[pool] = m
         row["network"] = net
-        say(f"{n} draws: network {fit['epochs']} epochs (best {fit['best_epoch']}), {fit['training_s']:.0f} s; "
-            + "; ".join(f"pool {p}: balanced accuracy {net[p]['balanced_accuracy_identifiable']:.3f} "
-                        f"± {net[p]['balanced_accuracy_identifiable_se']:.3f}, coverage "
-                        f"{net[p]['coverage_identifiable']:.3f}" for p in tests), flush=True)
+        say(
+            f"{n} draws: network {fit['epochs']} epochs (best {fit['best_epoch']}), {fit['training_s']:.0f} s; "
+            + "; ".join(
+                f"pool {p}: balanced accuracy {net[p]['balanced_accuracy_identifiable']:.3f} "
+                f"± {net[p]['balanced_accuracy_identifiable_se']:.3f}, coverage "
+                f"{net[p]['coverage_identifiable']:.3f}"
+                for p in tests
+            ),
+            flush=True,
+        )
         if gb_pixels:
             from sklearn.ensemble import HistGradientBoostingClassifier
 
@@ -210,15 +261,22 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
             t0 = time.perf_counter()
             gb = HistGradientBoostingClassifier(max_iter=300, random_state=cfg.seed)
             gb.fit(transform_numpy(s0["x"][sub], mask, cmask), class_targets(s0)[sub])
-            gbr: dict[str, Any] = {"training_s": time.perf_counter() - t0, "pixels": int(len(sub)),
-                                   "iterations": int(gb.n_iter_)}
+            gbr: dict[str, Any] = {
+                "training_s": time.perf_counter() - t0,
+                "pixels": int(len(sub)),
+                "iterations": int(gb.n_iter_),
+            }
             full = np.eye(len(CLASS_NAMES))[gb.classes_]  # a class absent from the samples: p = 0
             for pool, s in tests.items():
                 gbr[pool] = _metrics(gb.predict_proba(transform_numpy(s["x"], mask, cmask)) @ full, s, rule, cfg.seed)
             row["gradient_boosting"] = gbr
-            say(f"{n} draws: gradient boosting on {len(sub)} samples, {gbr['training_s']:.0f} s; "
-                + "; ".join(f"pool {p}: balanced accuracy {gbr[p]['balanced_accuracy_identifiable']:.3f}"
-                            for p in tests), flush=True)
+            say(
+                f"{n} draws: gradient boosting on {len(sub)} samples, {gbr['training_s']:.0f} s; "
+                + "; ".join(
+                    f"pool {p}: balanced accuracy {gbr[p]['balanced_accuracy_identifiable']:.3f}" for p in tests
+                ),
+                flush=True,
+            )
         rows.append(row)
 
     flat: dict[str, Any] = {}
@@ -227,16 +285,30 @@ def run_learning_curve(*, sizes: Sequence[int] = DEFAULT_SIZES, draws_max: int |
         for pool, s in tests.items():
             d, se = _paired_difference(probs[a][pool], probs[b][pool], s, rule, cfg.seed)
             flat[pool] = {"from_draws": a, "to_draws": b, "difference": d, "difference_se": se}
-    return _finite_or_none({
-        "method": " ".join(__doc__.split("\n\n")[1].split()),
-        "classifier_version": __version__, "torchdoct_version": torchdoct.__version__,
-        "torch_version": torch.__version__, "threads": torch.get_num_threads(),
-        "spec": spec.name, "config": cfg.to_dict(), "prior": prior.to_dict(), "rule": rule, "seed": cfg.seed,
-        "sizes": list(sizes), "draws_max": n_max, "draws_shipped": TrainConfig.for_spec("signature").draws_train,
-        "draws_validation": cfg.draws_validation, "draws_test": cfg.draws_test,
-        "test_samples": {p: int(len(s["y"])) for p, s in tests.items()},
-        "gb_pixels": gb_pixels, "simulation_s": sim_s, "rows": rows, "flattening": flat,
-    })
+    return _finite_or_none(
+        {
+            "method": " ".join(__doc__.split("\n\n")[1].split()),
+            "classifier_version": __version__,
+            "torchdoct_version": torchdoct.__version__,
+            "torch_version": torch.__version__,
+            "threads": torch.get_num_threads(),
+            "spec": spec.name,
+            "config": cfg.to_dict(),
+            "prior": prior.to_dict(),
+            "rule": rule,
+            "seed": cfg.seed,
+            "sizes": list(sizes),
+            "draws_max": n_max,
+            "draws_shipped": TrainConfig.for_spec("signature").draws_train,
+            "draws_validation": cfg.draws_validation,
+            "draws_test": cfg.draws_test,
+            "test_samples": {p: int(len(s["y"])) for p, s in tests.items()},
+            "gb_pixels": gb_pixels,
+            "simulation_s": sim_s,
+            "rows": rows,
+            "flattening": flat,
+        }
+    )
 
 
 def _finite_or_none(o: Any) -> Any:
@@ -273,82 +345,119 @@ def flattening_sentence(res: dict[str, Any]) -> str:
     for pool, f in res["flattening"].items():
         d, se = f["difference"], f["difference_se"]
         if d is None or se is None:
-            parts.append(f"at pool {pool} the change from {f['from_draws']} to {f['to_draws']} draws is undefined "
-                         "(a model decided no identifiable test pixel, or fewer than 2 test draws)")
+            parts.append(
+                f"at pool {pool} the change from {f['from_draws']} to {f['to_draws']} draws is undefined "
+                "(a model decided no identifiable test pixel, or fewer than 2 test draws)"
+            )
             continue
         if se <= 0:
-            verdict = "no bootstrap spread: the two models decide alike on every test draw" if d == 0 else \
-                "no bootstrap spread"
+            verdict = (
+                "no bootstrap spread: the two models decide alike on every test draw"
+                if d == 0
+                else "no bootstrap spread"
+            )
         elif abs(d) <= 2 * se:
             verdict = f"{abs(d) / se:.1f} SE from zero: flat at this test set's resolution"
         else:
             verdict = f"{abs(d) / se:.1f} SE from zero: not flat yet"
-        parts.append(f"at pool {pool} balanced accuracy changes by {d:+.3f} ± {se:.3f} from {f['from_draws']} to "
-                     f"{f['to_draws']} draws ({verdict})")
+        parts.append(
+            f"at pool {pool} balanced accuracy changes by {d:+.3f} ± {se:.3f} from {f['from_draws']} to "
+            f"{f['to_draws']} draws ({verdict})"
+        )
     if not parts:
         return "One training size only: no flattening can be judged."
-    return ("Between the two largest training sizes " + "; ".join(parts)
-            + " (paired bootstrap over test draws; one training seed).")
+    return (
+        "Between the two largest training sizes "
+        + "; ".join(parts)
+        + " (paired bootstrap over test draws; one training seed)."
+    )
 
 
 def epoch_cap_sentence(res: dict[str, Any]) -> str:
     """Which sizes the recipe's epoch cap stopped before early stopping did (their accuracy is a lower bound)."""
     c = res["config"]
-    capped = [r["draws"] for r in res["rows"]
-              if r["network"]["epochs"] >= c["max_epochs"] and r["network"]["epochs"] - r["network"]["best_epoch"] < c["patience"]]
+    capped = [
+        r["draws"]
+        for r in res["rows"]
+        if r["network"]["epochs"] >= c["max_epochs"]
+        and r["network"]["epochs"] - r["network"]["best_epoch"] < c["patience"]
+    ]
     if not capped:
         return f"Early stopping (patience {c['patience']}) ended every training before the recipe's cap of {c['max_epochs']} epochs."
-    return (f"The recipe's cap of {c['max_epochs']} epochs ended the training at {', '.join(map(str, capped))} draws "
-            f"before early stopping (patience {c['patience']}) did (best epoch in the table): an epoch has fewer samples "
-            "on fewer draws, so these points may also be limited by the number of optimisation steps (lower bounds "
-            "where the best epoch is near the cap).")
+    return (
+        f"The recipe's cap of {c['max_epochs']} epochs ended the training at {', '.join(map(str, capped))} draws "
+        f"before early stopping (patience {c['patience']}) did (best epoch in the table): an epoch has fewer samples "
+        "on fewer draws, so these points may also be limited by the number of optimisation steps (lower bounds "
+        "where the best epoch is near the cap)."
+    )
 
 
 def format_markdown(res: dict[str, Any]) -> str:
     """The study as Markdown: method, one table per model, where the curve flattens."""
     c = res["config"]
-    L = [f"# Learning curve of the `{res['spec']}` classifier", "", _markdown_text(res["method"]), "",
-         f"Recipe: hidden {c['hidden']}, learning rate {c['learning_rate']}, weight decay {c['weight_decay']}, "
-         f"at most {c['max_epochs']} epochs (patience {c['patience']}), seed {res['seed']}; each draw = "
-         f"{c['replicates']} (static fraction, SNR) replicates × {c['trials_per_draw']} trials; validation "
-         f"{res['draws_validation']} draws, test {res['draws_test']} draws ({res['test_samples'].get('1', 'n/a')} "
-         f"pixels at pool 1); shipped model: {res['draws_shipped']} training draws. Simulation "
-         + ", ".join(f"{k} {v:.0f} s" for k, v in res["simulation_s"].items())
-         + f"; torch threads {res['threads']}.", "",
-         "**" + flattening_sentence(res) + "**", "", epoch_cap_sentence(res), "",
-         "## Network (shipped recipe)", "",
-         "Balanced accuracy and coverage on identifiable pixels (ground truth), ± bootstrap SE over test draws "
-         "(n/a: the model decided no identifiable test pixel); "
-         "magnitude error: median |log10 D or v error| (µm²/s, µm/s) of the true class's head.", "",
-         "| training draws | identifiable / static / decorrelated draws | pool | balanced accuracy | coverage | ECE "
-         "| median abs. log10 magnitude error | epochs (best) | training [s] |",
-         "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    L = [
+        f"# Learning curve of the `{res['spec']}` classifier",
+        "",
+        _markdown_text(res["method"]),
+        "",
+        f"Recipe: hidden {c['hidden']}, learning rate {c['learning_rate']}, weight decay {c['weight_decay']}, "
+        f"at most {c['max_epochs']} epochs (patience {c['patience']}), seed {res['seed']}; each draw = "
+        f"{c['replicates']} (static fraction, SNR) replicates × {c['trials_per_draw']} trials; validation "
+        f"{res['draws_validation']} draws, test {res['draws_test']} draws ({res['test_samples'].get('1', 'n/a')} "
+        f"pixels at pool 1); shipped model: {res['draws_shipped']} training draws. Simulation "
+        + ", ".join(f"{k} {v:.0f} s" for k, v in res["simulation_s"].items())
+        + f"; torch threads {res['threads']}.",
+        "",
+        "**" + flattening_sentence(res) + "**",
+        "",
+        epoch_cap_sentence(res),
+        "",
+        "## Network (shipped recipe)",
+        "",
+        "Balanced accuracy and coverage on identifiable pixels (ground truth), ± bootstrap SE over test draws "
+        "(n/a: the model decided no identifiable test pixel); "
+        "magnitude error: median |log10 D or v error| (µm²/s, µm/s) of the true class's head.",
+        "",
+        "| training draws | identifiable / static / decorrelated draws | pool | balanced accuracy | coverage | ECE "
+        "| median abs. log10 magnitude error | epochs (best) | training [s] |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in res["rows"]:
         n = r["network"]
         for p in _POOLS:
             if p in n:
                 counts = " / ".join(str(v) for v in r["draw_status_counts"].values())
-                L.append(f"| {r['draws']} | {counts} | {p} | {_pm(n[p], 'balanced_accuracy_identifiable')} | "
-                         f"{_pm(n[p], 'coverage_identifiable')} | {_pm(n[p], 'ece')} | "
-                         f"{_pm(n[p], 'median_abs_log10_error')} | {n['epochs']} ({n['best_epoch']}) | "
-                         f"{n['training_s']:.1f} |")
+                L.append(
+                    f"| {r['draws']} | {counts} | {p} | {_pm(n[p], 'balanced_accuracy_identifiable')} | "
+                    f"{_pm(n[p], 'coverage_identifiable')} | {_pm(n[p], 'ece')} | "
+                    f"{_pm(n[p], 'median_abs_log10_error')} | {n['epochs']} ({n['best_epoch']}) | "
+                    f"{n['training_s']:.1f} |"
+                )
     L.append("")
     if any("gradient_boosting" in r for r in res["rows"]):
-        L += ["## Gradient boosting (the report's baseline)", "",
-              f"At most {res['gb_pixels']} training samples drawn from the network's first-epoch samples.", "",
-              "| training draws | samples | pool | balanced accuracy | coverage | ECE | training [s] |",
-              "|---:|---:|---:|---:|---:|---:|---:|"]
+        L += [
+            "## Gradient boosting (the report's baseline)",
+            "",
+            f"At most {res['gb_pixels']} training samples drawn from the network's first-epoch samples.",
+            "",
+            "| training draws | samples | pool | balanced accuracy | coverage | ECE | training [s] |",
+            "|---:|---:|---:|---:|---:|---:|---:|",
+        ]
         for r in res["rows"]:
             g = r.get("gradient_boosting")
             if g is None:
                 continue
             for p in _POOLS:
                 if p in g:
-                    L.append(f"| {r['draws']} | {g['pixels']} | {p} | {_pm(g[p], 'balanced_accuracy_identifiable')} | "
-                             f"{_pm(g[p], 'coverage_identifiable')} | {_pm(g[p], 'ece')} | {g['training_s']:.1f} |")
+                    L.append(
+                        f"| {r['draws']} | {g['pixels']} | {p} | {_pm(g[p], 'balanced_accuracy_identifiable')} | "
+                        f"{_pm(g[p], 'coverage_identifiable')} | {_pm(g[p], 'ece')} | {g['training_s']:.1f} |"
+                    )
         L.append("")
-    L.append(f"Versions: classifier {res['classifier_version']}, torchdoct {res['torchdoct_version']}, "
-             f"torch {res['torch_version']}.")
+    L.append(
+        f"Versions: classifier {res['classifier_version']}, torchdoct {res['torchdoct_version']}, "
+        f"torch {res['torch_version']}."
+    )
     return "\n".join(L) + "\n"
 
 
@@ -361,8 +470,10 @@ def plot_learning_curve(res: dict[str, Any], path) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
     x = np.array([r["draws"] for r in res["rows"]], dtype=float)
-    for ax, key, label in ((axes[0], "balanced_accuracy_identifiable", "balanced accuracy, identifiable pixels"),
-                           (axes[1], "coverage_identifiable", "coverage: decided share of identifiable pixels")):
+    for ax, key, label in (
+        (axes[0], "balanced_accuracy_identifiable", "balanced accuracy, identifiable pixels"),
+        (axes[1], "coverage_identifiable", "coverage: decided share of identifiable pixels"),
+    ):
         for model, style, name in (("network", "-", "network"), ("gradient_boosting", "--", "gradient boosting")):
             if not all(model in r for r in res["rows"]):
                 continue
@@ -371,20 +482,34 @@ def plot_learning_curve(res: dict[str, Any], path) -> None:
                     continue
                 y = np.array([r[model][pool][key] for r in res["rows"]], dtype=float)  # None → NaN
                 e = np.array([r[model][pool][key + "_se"] for r in res["rows"]], dtype=float)
-                ax.errorbar(x, y, yerr=np.nan_to_num(e), fmt=marker + style, color=color, capsize=3,
-                            alpha=1.0 if model == "network" else 0.6, label=f"{name}, pool {pool} pixel(s)")
+                ax.errorbar(
+                    x,
+                    y,
+                    yerr=np.nan_to_num(e),
+                    fmt=marker + style,
+                    color=color,
+                    capsize=3,
+                    alpha=1.0 if model == "network" else 0.6,
+                    label=f"{name}, pool {pool} pixel(s)",
+                )
         if x.min() <= res["draws_shipped"] <= x.max():
-            ax.axvline(res["draws_shipped"], color="grey", ls=":", lw=1, label=f"shipped ({res['draws_shipped']} draws)")
+            ax.axvline(
+                res["draws_shipped"], color="grey", ls=":", lw=1, label=f"shipped ({res['draws_shipped']} draws)"
+            )
         ax.set_xscale("log")
         ax.set_xticks(x, [str(int(v)) for v in x])
         ax.minorticks_off()
-        ax.set_xlabel(f"training draws (× {res['config']['replicates']} replicates × "
-                      f"{res['config']['trials_per_draw']} trials)")
+        ax.set_xlabel(
+            f"training draws (× {res['config']['replicates']} replicates × {res['config']['trials_per_draw']} trials)"
+        )
         ax.set_ylabel(f"{label} (fraction)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    fig.suptitle(f"{res['spec']} classifier: test metrics against training size (error bars: bootstrap SE "
-                 f"over {res['draws_test']} test draws)", fontsize=10)
+    fig.suptitle(
+        f"{res['spec']} classifier: test metrics against training size (error bars: bootstrap SE "
+        f"over {res['draws_test']} test draws)",
+        fontsize=10,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -435,22 +560,37 @@ def _int_list(text: str) -> list[int]:
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m research.learning_curve", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, help="JSON output file (the .md and .png are written beside it)")
-    p.add_argument("--sizes", type=_int_list, default=list(DEFAULT_SIZES),
-                   help="nested training sizes in draws, increasing (default %(default)s)")
+    p.add_argument(
+        "--sizes",
+        type=_int_list,
+        default=list(DEFAULT_SIZES),
+        help="nested training sizes in draws, increasing (default %(default)s)",
+    )
     p.add_argument("--draws-max", type=int, default=None, help="draws of the training split (default: largest size)")
     p.add_argument("--draws-validation", type=int, default=None, help="validation draws (default: the recipe's)")
     p.add_argument("--draws-test", type=int, default=None, help="test draws (default: the recipe's)")
     p.add_argument("--max-epochs", type=int, default=None, help="epoch cap (default: the recipe's)")
-    p.add_argument("--gb-pixels", type=int, default=60000,
-                   help="samples for gradient boosting per size (0: no gradient boosting; default %(default)s)")
+    p.add_argument(
+        "--gb-pixels",
+        type=int,
+        default=60000,
+        help="samples for gradient boosting per size (0: no gradient boosting; default %(default)s)",
+    )
     p.add_argument("--cache", default=None, help="dataset cache directory (default ~/.cache/torchdoct/classifier)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (as TQDM_DISABLE=1)")
     args = p.parse_args(argv)
     try:
         check_outputs(args.out)
-        res = run_learning_curve(sizes=args.sizes, draws_max=args.draws_max, draws_validation=args.draws_validation,
-                                 draws_test=args.draws_test, max_epochs=args.max_epochs, gb_pixels=args.gb_pixels,
-                                 cache_dir=args.cache, progress=not args.no_progress)
+        res = run_learning_curve(
+            sizes=args.sizes,
+            draws_max=args.draws_max,
+            draws_validation=args.draws_validation,
+            draws_test=args.draws_test,
+            max_epochs=args.max_epochs,
+            gb_pixels=args.gb_pixels,
+            cache_dir=args.cache,
+            progress=not args.no_progress,
+        )
         paths = write_outputs(res, args.out)
     except ValueError as exc:
         print(f"error: {exc}", flush=True)

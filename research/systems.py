@@ -35,13 +35,28 @@ from . import torchdoct_command
 
 #: Phantom → (maps options, description).
 SYSTEMS = {
-    "system-1310nm": (["--resolution", "original", "--resolution", "axial=30", "--resolution", "lateral=37"],
-                      "1310 nm, lateral 10 µm, axial 8 µm; B-scans reduced to axial 30 / lateral 37 µm"),
-    "system-fast": (["--resolution", "original", "--resolution", "axial=14", "--resolution", "lateral=18",
-                     "--ocds-delay-range-s", "0.0128", "0.0768"],
-                    "840 nm 4.9/3.8 µm, 64 frames 12.8 ms apart; B-scans reduced to axial 14 / lateral 18 µm"),
-    "system-tissue-volume": (["--resolution", "original", "--resolution", "axial=14", "--resolution", "lateral=18"],
-                             "840 nm 4.9/3.8 µm in tissue (n = 1.38); a volume reduced isotropically"),
+    "system-1310nm": (
+        ["--resolution", "original", "--resolution", "axial=30", "--resolution", "lateral=37"],
+        "1310 nm, lateral 10 µm, axial 8 µm; B-scans reduced to axial 30 / lateral 37 µm",
+    ),
+    "system-fast": (
+        [
+            "--resolution",
+            "original",
+            "--resolution",
+            "axial=14",
+            "--resolution",
+            "lateral=18",
+            "--ocds-delay-range-s",
+            "0.0128",
+            "0.0768",
+        ],
+        "840 nm 4.9/3.8 µm, 64 frames 12.8 ms apart; B-scans reduced to axial 14 / lateral 18 µm",
+    ),
+    "system-tissue-volume": (
+        ["--resolution", "original", "--resolution", "axial=14", "--resolution", "lateral=18"],
+        "840 nm 4.9/3.8 µm in tissue (n = 1.38); a volume reduced isotropically",
+    ),
 }
 POOLS = (1, 5)
 
@@ -49,10 +64,12 @@ POOLS = (1, 5)
 def render_maps(out: Path, system: str, seed: int) -> tuple[Path, Path]:
     seq, maps = out / f"{system}-{seed}.npz", out / f"{system}-{seed}-maps.npz"
     if not maps.exists():
-        torchdoct_command(["render", system, "--out", str(seq), "--seed", str(seed), "--no-preview", "--no-progress",
-                    "--force"])
-        torchdoct_command(["maps", str(seq), *SYSTEMS[system][0], "--signature", "--out", str(maps), "--no-progress",
-                    "--force"])
+        torchdoct_command(
+            ["render", system, "--out", str(seq), "--seed", str(seed), "--no-preview", "--no-progress", "--force"]
+        )
+        torchdoct_command(
+            ["maps", str(seq), *SYSTEMS[system][0], "--signature", "--out", str(maps), "--no-progress", "--force"]
+        )
     return seq, maps
 
 
@@ -73,8 +90,14 @@ def train(out: Path, system: str, maps: Path, quick: bool, seed: int | None = No
     return found[0], report
 
 
-def evaluate(out: Path, system: str, seeds: list[int], quick: bool, min_probabilities: list[float] = (),
-             train_seed: int | None = None) -> dict:
+def evaluate(
+    out: Path,
+    system: str,
+    seeds: list[int],
+    quick: bool,
+    min_probabilities: list[float] = (),
+    train_seed: int | None = None,
+) -> dict:
     from classifier.cli import classify_main
     from classifier.evaluate_images import score_images
 
@@ -85,24 +108,64 @@ def evaluate(out: Path, system: str, seeds: list[int], quick: bool, min_probabil
         seq, maps = files[s]
         for p in POOLS:
             cdir = out / f"cls-{system}-{s}-p{p}"
-            if classify_main([str(maps), "--model", str(model), "--out", str(cdir), "--pool", str(p), "--force",
-                             "--decide-ballistic"]) != 0:
+            if (
+                classify_main(
+                    [
+                        str(maps),
+                        "--model",
+                        str(model),
+                        "--out",
+                        str(cdir),
+                        "--pool",
+                        str(p),
+                        "--force",
+                        "--decide-ballistic",
+                    ]
+                )
+                != 0
+            ):
                 raise RuntimeError(f"doct-classify {maps} failed")
             scores[str(p)].append(score_images(cdir, seq, edge_um=0.0))
         for mp in min_probabilities:  # pool 5 again, with another threshold of the indeterminate outcome
             cdir = out / f"cls-{system}-{s}-p5-mp{mp:g}"
-            if classify_main([str(maps), "--model", str(model), "--out", str(cdir), "--pool", "5",
-                              "--min-probability", f"{mp:g}", "--force", "--decide-ballistic"]) != 0:
+            if (
+                classify_main(
+                    [
+                        str(maps),
+                        "--model",
+                        str(model),
+                        "--out",
+                        str(cdir),
+                        "--pool",
+                        "5",
+                        "--min-probability",
+                        f"{mp:g}",
+                        "--force",
+                        "--decide-ballistic",
+                    ]
+                )
+                != 0
+            ):
                 raise RuntimeError(f"doct-classify {maps} --min-probability {mp:g} failed")
             scores.setdefault(f"5@{mp:g}", []).append(score_images(cdir, seq, edge_um=0.0))
     test = report["test"]["network"]["1"]
-    return {"system": system, "description": SYSTEMS[system][1], "model": model.name,
-            "spec": report["spec"], "prior": report["prior"],
-            "training_s": report.get("total_s"), "simulation_s": report["data"]["simulation_s"],
-            "fit_s": report["training"]["seconds"], "draws": report["data"]["draws"],
-            "own_test_pool1": {"balanced_accuracy_identifiable": test["balanced_accuracy_identifiable"],
-                               "coverage_identifiable": test["coverage_identifiable"]},
-            "seeds": seeds, "scores": scores}
+    return {
+        "system": system,
+        "description": SYSTEMS[system][1],
+        "model": model.name,
+        "spec": report["spec"],
+        "prior": report["prior"],
+        "training_s": report.get("total_s"),
+        "simulation_s": report["data"]["simulation_s"],
+        "fit_s": report["training"]["seconds"],
+        "draws": report["data"]["draws"],
+        "own_test_pool1": {
+            "balanced_accuracy_identifiable": test["balanced_accuracy_identifiable"],
+            "coverage_identifiable": test["coverage_identifiable"],
+        },
+        "seeds": seeds,
+        "scores": scores,
+    }
 
 
 def _overall(scores: list[dict], key: str) -> tuple[float, float]:
@@ -111,13 +174,18 @@ def _overall(scores: list[dict], key: str) -> tuple[float, float]:
 
 
 def to_markdown(result: dict) -> str:
-    L = ["# Your own system, end to end: rendered phantoms → maps → doct-train --like → doct-classify", "",
-         f"Command: `{result['command']}`. Scores over all labelled moving pixels (edge 0) of the renderings "
-         f"(seeds {result['seeds']}), mean ± SD over the renderings; the model trained on the first seed's maps. "
-         "Goals: pool 5 balanced accuracy ≥ 0.93 at coverage ≥ 0.90; doct-train --like ≤ 15 min on 2 cores.", "",
-         "| system | training (simulation + fit) | own test split, pool 1 | pool 1: balanced accuracy @ coverage "
-         "| pool 5: balanced accuracy @ coverage | pool 5 recall diffusion / ballistic / flow | magnitude: median "
-         "\\|log10 error\\|, 68 % / 95 % cover (pool 5) |", "|---|---|---|---|---|---|---|"]
+    L = [
+        "# Your own system, end to end: rendered phantoms → maps → doct-train --like → doct-classify",
+        "",
+        f"Command: `{result['command']}`. Scores over all labelled moving pixels (edge 0) of the renderings "
+        f"(seeds {result['seeds']}), mean ± SD over the renderings; the model trained on the first seed's maps. "
+        "Goals: pool 5 balanced accuracy ≥ 0.93 at coverage ≥ 0.90; doct-train --like ≤ 15 min on 2 cores.",
+        "",
+        "| system | training (simulation + fit) | own test split, pool 1 | pool 1: balanced accuracy @ coverage "
+        "| pool 5: balanced accuracy @ coverage | pool 5 recall diffusion / ballistic / flow | magnitude: median "
+        "\\|log10 error\\|, 68 % / 95 % cover (pool 5) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     extra = any(k.startswith("5@") for r in result["systems"] for k in r["scores"])
     if extra:  # pool 5 at other thresholds of the indeterminate outcome: one more column
         L[-2] += " pool 5 with `--min-probability`: balanced accuracy @ coverage |"
@@ -128,9 +196,12 @@ def to_markdown(result: dict) -> str:
             b, bs = _overall(r["scores"][p], "balanced_accuracy")
             c, cs = _overall(r["scores"][p], "coverage")
             cells.append(f"{b:.3f} ± {bs:.3f} @ {c:.3f} ± {cs:.3f}")
-        rec = {k: np.mean([(s["overall"]["per_class"].get(k) or {}).get("recall") or np.nan for s in r["scores"]["5"]])
-               for k in ("diffusion", "ballistic", "flow")}
+        rec = {
+            k: np.mean([(s["overall"]["per_class"].get(k) or {}).get("recall") or np.nan for s in r["scores"]["5"]])
+            for k in ("diffusion", "ballistic", "flow")
+        }
         mags = [s["overall"].get("magnitude") or {} for s in r["scores"]["5"]]
+
         def mm(key):
             return np.mean([m.get(key) if m.get(key) is not None else np.nan for m in mags])
 
@@ -141,11 +212,13 @@ def to_markdown(result: dict) -> str:
             c, cs = _overall(r["scores"][key], "coverage")
             thresholds.append(f"{key[2:]}: {b:.3f} ± {bs:.3f} @ {c:.3f} ± {cs:.3f}")
         t = r["training_s"]
-        L.append(f"| {r['system']}: {r['description']} | {t / 60:.1f} min ({r['simulation_s'] / 60:.1f} + "
-                 f"{r['fit_s'] / 60:.1f}) | {r['own_test_pool1']['balanced_accuracy_identifiable']:.3f} @ "
-                 f"{r['own_test_pool1']['coverage_identifiable']:.3f} | {cells[0]} | {cells[1]} | "
-                 f"{rec['diffusion']:.3f} / {rec['ballistic']:.3f} / {rec['flow']:.3f} | {mag} |"
-                 + (f" {'; '.join(thresholds)} |" if extra else ""))
+        L.append(
+            f"| {r['system']}: {r['description']} | {t / 60:.1f} min ({r['simulation_s'] / 60:.1f} + "
+            f"{r['fit_s'] / 60:.1f}) | {r['own_test_pool1']['balanced_accuracy_identifiable']:.3f} @ "
+            f"{r['own_test_pool1']['coverage_identifiable']:.3f} | {cells[0]} | {cells[1]} | "
+            f"{rec['diffusion']:.3f} / {rec['ballistic']:.3f} / {rec['flow']:.3f} | {mag} |"
+            + (f" {'; '.join(thresholds)} |" if extra else "")
+        )
     return "\n".join(L) + "\n"
 
 
@@ -155,18 +228,29 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--system", action="append", choices=list(SYSTEMS), help="(repeat; default all three)")
     p.add_argument("--seeds", default="2026,1,2,3,4,5", help="rendering seeds, the first trains (default 2026,1,...,5)")
     p.add_argument("--quick", action="store_true", help="doct-train --like --quick (about a minute per system)")
-    p.add_argument("--min-probability", type=float, action="append", default=[],
-                   help="also classify at pool 5 with this doct-classify --min-probability (repeat)")
+    p.add_argument(
+        "--min-probability",
+        type=float,
+        action="append",
+        default=[],
+        help="also classify at pool 5 with this doct-classify --min-probability (repeat)",
+    )
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     seeds = [int(s) for s in args.seeds.split(",")]
     t0 = time.perf_counter()
     systems = [evaluate(out, s, seeds, args.quick, args.min_probability) for s in (args.system or list(SYSTEMS))]
-    result = {"command": "python -m research.systems --out DIR" + "".join(f" --system {s}" for s in args.system or [])
-              + (f" --seeds {args.seeds}" if args.seeds != "2026,1,2,3,4,5" else "") + (" --quick" if args.quick else "")
-              + "".join(f" --min-probability {mp:g}" for mp in args.min_probability),
-              "seeds": seeds, "systems": systems, "seconds": time.perf_counter() - t0}
+    result = {
+        "command": "python -m research.systems --out DIR"
+        + "".join(f" --system {s}" for s in args.system or [])
+        + (f" --seeds {args.seeds}" if args.seeds != "2026,1,2,3,4,5" else "")
+        + (" --quick" if args.quick else "")
+        + "".join(f" --min-probability {mp:g}" for mp in args.min_probability),
+        "seeds": seeds,
+        "systems": systems,
+        "seconds": time.perf_counter() - t0,
+    }
     (out / "systems-validation.json").write_text(json.dumps(result, indent=1, default=float))
     (out / "systems-validation.md").write_text(to_markdown(result))
     print(to_markdown(result))

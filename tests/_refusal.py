@@ -11,8 +11,9 @@ def tree(d: Path) -> dict[str, int]:
     return {str(p.relative_to(d)): p.stat().st_mtime_ns for p in d.rglob("*")}
 
 
-def refused(capsys, tmp_path: Path, argv: list[str], *names: str, code: int = 2, run=None,
-            absent: tuple[str, ...] = ()) -> str:
+def refused(
+    capsys, tmp_path: Path, argv: list[str], *names: str, code: int = 2, run=None, absent: tuple[str, ...] = ()
+) -> str:
     """``run(argv)`` (default: the ``torchdoct`` command) exits with ``code`` and one ``error:`` line naming
     every one of ``names`` and none of ``absent``, no traceback, and writes nothing under ``tmp_path``."""
     if run is None:

@@ -32,8 +32,7 @@ def guard_global_torch_state():
     dtype = torch.get_default_dtype()
     rng_state = torch.get_rng_state().clone()
     yield
-    assert torch.get_default_dtype() == dtype, (
-        f"default dtype changed from {dtype} to {torch.get_default_dtype()}")
+    assert torch.get_default_dtype() == dtype, f"default dtype changed from {dtype} to {torch.get_default_dtype()}"
     assert torch.equal(torch.get_rng_state(), rng_state), "the global torch RNG state was changed"
 
 
@@ -42,15 +41,15 @@ def small_scene() -> torchdoct.Scene:
     """One 840-nm system (4.9/3.8 µm), 8 frames at 0.2048 s, one diffusing population."""
     return torchdoct.Scene(
         name="small",
-        systems=(torchdoct.OCTSystem(name="840nm", wavelength_um=0.84, lateral_resolution_um=4.9,
-                                     axial_resolution_um=3.8),),
+        systems=(
+            torchdoct.OCTSystem(name="840nm", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8),
+        ),
         protocol=torchdoct.Protocol(n_frames=8, frame_interval_s=0.2048),
-        populations=(torchdoct.Population(density_per_um3=0.055,
-                                          motion=(torchdoct.Diffusion(diffusion_um2_per_s=0.1),)),),
+        populations=(
+            torchdoct.Population(density_per_um3=0.055, motion=(torchdoct.Diffusion(diffusion_um2_per_s=0.1),)),
+        ),
         analysis=torchdoct.Analysis(metrics=("liv", "ocds"), ocds_delay_range_s=(0.2048, 0.6144)),
     )
-
-
 
 
 @pytest.fixture

@@ -59,7 +59,7 @@ def test_number_formatting_keeps_significant_figures_and_marks_missing_values():
 
 
 #: float32 machine epsilon (the simulator's default dtype).
-FLOAT32_EPS = 2.0 ** -23
+FLOAT32_EPS = 2.0**-23
 
 
 def test_the_recorded_example_run_is_what_the_simulator_gives_for_its_seed():
@@ -126,8 +126,15 @@ def test_every_shipped_model_has_a_card_from_its_report(name):
     cov = [c["coverage_identifiable"] for c in sorted(curve, key=lambda c: c["min_probability"])]
     assert cov == sorted(cov, reverse=True), "a higher --min-probability cannot decide more pixels"
     card = models.card(REPO, name)
-    for heading in ("## Specification", "## Training data", "## When it abstains", "## Results on its own test split",
-                    "## Results on the phantom grid", "## Results on independent data", "## Limits"):
+    for heading in (
+        "## Specification",
+        "## Training data",
+        "## When it abstains",
+        "## Results on its own test split",
+        "## Results on the phantom grid",
+        "## Results on independent data",
+        "## Limits",
+    ):
         assert heading in card, heading
 
 

@@ -21,9 +21,24 @@ del _metadata
 
 #: Public name → the module that owns it (imported on first access).
 _LAZY = {
-    **dict.fromkeys(("Analysis", "Diffusion", "Flow", "Noise", "OCTSystem", "Population", "Protocol",
-                     "RandomBallistic", "Scene", "SceneError", "SimulationSettings", "load_scene",
-                     "scene_from_dict"), ".sim.config"),
+    **dict.fromkeys(
+        (
+            "Analysis",
+            "Diffusion",
+            "Flow",
+            "Noise",
+            "OCTSystem",
+            "Population",
+            "Protocol",
+            "RandomBallistic",
+            "Scene",
+            "SceneError",
+            "SimulationSettings",
+            "load_scene",
+            "scene_from_dict",
+        ),
+        ".sim.config",
+    ),
     **dict.fromkeys(("complex_variance", "lag_correlations", "liv", "ocds", "to_db"), ".sim.metrics"),
     **dict.fromkeys(("Phantom", "load_phantom", "phantom_from_dict"), ".image.phantom"),
     **dict.fromkeys(("Plan", "make_plan"), ".sim.plan"),
@@ -35,11 +50,35 @@ _LAZY = {
 _SUBMODULES = ("sim", "image", "measured", "study", "bench", "cli", "runtime", "conventions", "optics", "figures")
 
 __all__ = [
-    "Analysis", "Diffusion", "Flow", "Noise", "OCTSystem", "Population", "Protocol", "RandomBallistic",
-    "Scene", "SceneError", "SimulationSettings", "load_scene", "scene_from_dict",
-    "complex_variance", "lag_correlations", "liv", "ocds", "to_db",
-    "Phantom", "load_phantom", "phantom_from_dict", "RenderResult", "render",
-    "Plan", "make_plan", "shipped_scenes", "SimulationResult", "simulate", "__version__",
+    "Analysis",
+    "Diffusion",
+    "Flow",
+    "Noise",
+    "OCTSystem",
+    "Population",
+    "Protocol",
+    "RandomBallistic",
+    "Scene",
+    "SceneError",
+    "SimulationSettings",
+    "load_scene",
+    "scene_from_dict",
+    "complex_variance",
+    "lag_correlations",
+    "liv",
+    "ocds",
+    "to_db",
+    "Phantom",
+    "load_phantom",
+    "phantom_from_dict",
+    "RenderResult",
+    "render",
+    "Plan",
+    "make_plan",
+    "shipped_scenes",
+    "SimulationResult",
+    "simulate",
+    "__version__",
 ]
 
 

@@ -202,8 +202,9 @@ def _lateral_y(lateral_resolution_um: float, lateral_resolution_y_um: float | No
     return lateral_resolution_um if lateral_resolution_y_um is None else lateral_resolution_y_um
 
 
-def psf_integral_um3(lateral_resolution_um: float, axial_resolution_um: float, *,
-                     lateral_resolution_y_um: float | None = None) -> float:
+def psf_integral_um3(
+    lateral_resolution_um: float, axial_resolution_um: float, *, lateral_resolution_y_um: float | None = None
+) -> float:
     """``∫|h|² d³r = π^{3/2}·s_x·s_y·s_z`` (µm³), the intensity-PSF volume (physics.md §5.2)."""
     sx = amplitude_sigma_lateral_um(lateral_resolution_um)
     sy = amplitude_sigma_lateral_um(_lateral_y(lateral_resolution_um, lateral_resolution_y_um))
@@ -223,13 +224,20 @@ def mean_intensity(
 
     ``reflectivity`` is the field amplitude ``b`` of one scatterer; intensities scale as ``b²``.
     """
-    return density_per_um3 * reflectivity**2 * psf_integral_um3(
-        lateral_resolution_um, axial_resolution_um, lateral_resolution_y_um=lateral_resolution_y_um
+    return (
+        density_per_um3
+        * reflectivity**2
+        * psf_integral_um3(lateral_resolution_um, axial_resolution_um, lateral_resolution_y_um=lateral_resolution_y_um)
     )
 
 
-def ens_paper(density_per_um3: float, lateral_resolution_um: float, axial_resolution_um: float, *,
-              lateral_resolution_y_um: float | None = None) -> float:
+def ens_paper(
+    density_per_um3: float,
+    lateral_resolution_um: float,
+    axial_resolution_um: float,
+    *,
+    lateral_resolution_y_um: float | None = None,
+) -> float:
     """Effective number of scatterers as the reference paper counts it: ``ρ·Δx·Δy·Δz`` (``ρ·Δx²·Δz``)."""
     lat_y = _lateral_y(lateral_resolution_um, lateral_resolution_y_um)
     if lat_y == lateral_resolution_um:
@@ -237,8 +245,13 @@ def ens_paper(density_per_um3: float, lateral_resolution_um: float, axial_resolu
     return density_per_um3 * lateral_resolution_um * lat_y * axial_resolution_um
 
 
-def n_eff(density_per_um3: float, lateral_resolution_um: float, axial_resolution_um: float, *,
-          lateral_resolution_y_um: float | None = None) -> float:
+def n_eff(
+    density_per_um3: float,
+    lateral_resolution_um: float,
+    axial_resolution_um: float,
+    *,
+    lateral_resolution_y_um: float | None = None,
+) -> float:
     """Speckle-governing scatterer count ``N_eff = ρ·(2π)^{3/2}·s_x·s_y·s_z`` (physics.md §5.4-5.5).
 
     ``N_eff = ρ (∫|h|²)² / ∫|h|⁴`` and ``C_I² = 1 + 1/N_eff``.
@@ -252,15 +265,19 @@ def n_eff(density_per_um3: float, lateral_resolution_um: float, axial_resolution
 def truncation_radius_factor(tolerance: float) -> float:
     """``c = √(2·ln(1/tolerance))``: the amplitude PSF ``exp(-u²/2)`` drops below ``tolerance`` at ``u = c``."""
     if isinstance(tolerance, bool) or (not isinstance(tolerance, (int, float)) and not hasattr(tolerance, "__float__")):
-        raise TypeError(f"truncation tolerance must be a number in (0, 1); got {type(tolerance).__name__} "
-                        f"{str(tolerance)[:40]!r}")
+        raise TypeError(
+            f"truncation tolerance must be a number in (0, 1); got {type(tolerance).__name__} {str(tolerance)[:40]!r}"
+        )
     if not (0.0 < tolerance < 1.0):
         raise ValueError(f"truncation tolerance must be in (0, 1); got {tolerance!r}")
     return math.sqrt(2.0 * math.log(1.0 / tolerance))
 
 
 def truncation_half_widths_um(
-    lateral_resolution_um: float, axial_resolution_um: float, tolerance: float, *,
+    lateral_resolution_um: float,
+    axial_resolution_um: float,
+    tolerance: float,
+    *,
     lateral_resolution_y_um: float | None = None,
 ) -> tuple[float, float, float]:
     """Half-widths (x, y, z) in µm of the box outside which the amplitude PSF is below ``tolerance``

@@ -21,8 +21,21 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["OKABE_ITO", "CLASS_COLORS", "LABEL_COLORS", "CONTINUOUS_CMAP", "MAGNITUDE_CMAP", "X_LABEL", "Z_LABEL", "X_LABEL_PX", "Z_LABEL_PX", "UNIT_TEXT", "image_extent", "show_bscan",
-           "unit_text"]
+__all__ = [
+    "OKABE_ITO",
+    "CLASS_COLORS",
+    "LABEL_COLORS",
+    "CONTINUOUS_CMAP",
+    "MAGNITUDE_CMAP",
+    "X_LABEL",
+    "Z_LABEL",
+    "X_LABEL_PX",
+    "Z_LABEL_PX",
+    "UNIT_TEXT",
+    "image_extent",
+    "show_bscan",
+    "unit_text",
+]
 
 X_LABEL = "x (µm)"
 Z_LABEL = "z, depth (µm)"
@@ -31,17 +44,34 @@ Z_LABEL_PX = "z, depth (pixel)"
 #: Units as the maps files write them → as figures print them.
 #: The Okabe–Ito palette (Okabe & Ito, "Color Universal Design"): eight colours told apart with the common
 #: colour-vision deficiencies. Every categorical figure of the project takes its colours from here.
-OKABE_ITO = {"black": "#000000", "orange": "#E69F00", "sky blue": "#56B4E9", "bluish green": "#009E73",
-             "yellow": "#F0E442", "blue": "#0072B2", "vermillion": "#D55E00", "reddish purple": "#CC79A7"}
+OKABE_ITO = {
+    "black": "#000000",
+    "orange": "#E69F00",
+    "sky blue": "#56B4E9",
+    "bluish green": "#009E73",
+    "yellow": "#F0E442",
+    "blue": "#0072B2",
+    "vermillion": "#D55E00",
+    "reddish purple": "#CC79A7",
+}
 #: Colour of each motion class, shared by the ground truth of rendered phantoms and the classifier's
 #: output, so a correct classification looks like its ground truth. Static tissue takes the colour of
 #: "indeterminate": it does not decorrelate over the acquisition, which is what the classifier calls it.
-CLASS_COLORS = {"diffusion": OKABE_ITO["blue"], "ballistic": OKABE_ITO["orange"], "flow": OKABE_ITO["bluish green"],
-                "indeterminate": OKABE_ITO["reddish purple"]}
+CLASS_COLORS = {
+    "diffusion": OKABE_ITO["blue"],
+    "ballistic": OKABE_ITO["orange"],
+    "flow": OKABE_ITO["bluish green"],
+    "indeterminate": OKABE_ITO["reddish purple"],
+}
 #: Ground-truth label colours of rendered phantoms (:data:`torchdoct.image.phantom.MOTION_CODES` names).
-LABEL_COLORS = {"empty": OKABE_ITO["black"], "static": CLASS_COLORS["indeterminate"],
-                "diffusion": CLASS_COLORS["diffusion"], "ballistic": CLASS_COLORS["ballistic"],
-                "flow": CLASS_COLORS["flow"], "mixed": OKABE_ITO["vermillion"]}
+LABEL_COLORS = {
+    "empty": OKABE_ITO["black"],
+    "static": CLASS_COLORS["indeterminate"],
+    "diffusion": CLASS_COLORS["diffusion"],
+    "ballistic": CLASS_COLORS["ballistic"],
+    "flow": CLASS_COLORS["flow"],
+    "mixed": OKABE_ITO["vermillion"],
+}
 #: Perceptual, colour-blind-safe colour maps of continuous quantities (matplotlib names): DOCT metrics,
 #: and the motion magnitude.
 CONTINUOUS_CMAP = "viridis"
@@ -66,8 +96,9 @@ def _pitch(pitch_um: Mapping[str, Any] | None, key: str) -> float | None:
     return v if math.isfinite(v) and v > 0 else None
 
 
-def image_extent(shape_zx: tuple[int, int], pitch_um: Mapping[str, Any] | None = None,
-                 origin_um: tuple[float, float] = (0.0, 0.0)) -> tuple[tuple[float, float, float, float], bool]:
+def image_extent(
+    shape_zx: tuple[int, int], pitch_um: Mapping[str, Any] | None = None, origin_um: tuple[float, float] = (0.0, 0.0)
+) -> tuple[tuple[float, float, float, float], bool]:
     """``((left, right, bottom, top), in_um)`` for ``imshow`` of a ``[Z, X]`` image (pixel edges).
 
     ``pitch_um``: ``{"z": Δz, "x": Δx}`` (µm); ``origin_um``: ``(z0, x0)``, the top-left pixel edge.
@@ -81,8 +112,14 @@ def image_extent(shape_zx: tuple[int, int], pitch_um: Mapping[str, Any] | None =
     return (x0, x0 + nx * px, z0 + nz * pz, z0), True
 
 
-def show_bscan(ax: Any, image: np.ndarray, *, pitch_um: Mapping[str, Any] | None = None,
-               origin_um: tuple[float, float] = (0.0, 0.0), **imshow_kw: Any) -> Any:
+def show_bscan(
+    ax: Any,
+    image: np.ndarray,
+    *,
+    pitch_um: Mapping[str, Any] | None = None,
+    origin_um: tuple[float, float] = (0.0, 0.0),
+    **imshow_kw: Any,
+) -> Any:
     """``ax.imshow`` of a ``[Z, X]`` (or ``[Z, X, 3]``) image with the project's axes convention.
 
     Sets the extent (:func:`image_extent`), the axis labels and ``interpolation="nearest"`` (pixels

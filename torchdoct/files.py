@@ -25,10 +25,26 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-__all__ = ["check_out", "atomic_write", "output_set", "OutputSet", "safe_name", "check_nesting", "MAX_NESTING",
-           "shipped_files", "file_or_shipped", "NotRegularFileError", "check_regular_file", "open_regular",
-           "read_capped", "MAX_TEXT_BYTES", "WriteConflictError", "check_name_lengths", "toml_loads",
-           "check_folder_files"]
+__all__ = [
+    "check_out",
+    "atomic_write",
+    "output_set",
+    "OutputSet",
+    "safe_name",
+    "check_nesting",
+    "MAX_NESTING",
+    "shipped_files",
+    "file_or_shipped",
+    "NotRegularFileError",
+    "check_regular_file",
+    "open_regular",
+    "read_capped",
+    "MAX_TEXT_BYTES",
+    "WriteConflictError",
+    "check_name_lengths",
+    "toml_loads",
+    "check_folder_files",
+]
 
 #: Deepest nesting of arrays/tables (TOML) or arrays/objects (JSON) that any input file may have: the
 #: project's own files need 5 at most; far deeper ones would exhaust the parser's recursion.
@@ -44,14 +60,25 @@ class NotRegularFileError(ValueError):
 
 
 def _kind(mode: int) -> str:
-    return ("a directory" if stat.S_ISDIR(mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(mode)
-            else "a character device" if stat.S_ISCHR(mode) else "a block device" if stat.S_ISBLK(mode)
-            else "a socket" if stat.S_ISSOCK(mode) else "a special file")
+    return (
+        "a directory"
+        if stat.S_ISDIR(mode)
+        else "a FIFO (named pipe)"
+        if stat.S_ISFIFO(mode)
+        else "a character device"
+        if stat.S_ISCHR(mode)
+        else "a block device"
+        if stat.S_ISBLK(mode)
+        else "a socket"
+        if stat.S_ISSOCK(mode)
+        else "a special file"
+    )
 
 
 def _not_regular(what: str, path: Path, mode: int) -> NotRegularFileError:
-    return NotRegularFileError(f"{what} {path} is not a regular file (it is {_kind(mode)}); give the path of "
-                               "the file itself")
+    return NotRegularFileError(
+        f"{what} {path} is not a regular file (it is {_kind(mode)}); give the path of the file itself"
+    )
 
 
 def check_regular_file(path: str | os.PathLike, what: str = "input file") -> Path:
@@ -68,13 +95,17 @@ def check_regular_file(path: str | os.PathLike, what: str = "input file") -> Pat
         st = os.stat(p)
     except (FileNotFoundError, NotADirectoryError):
         if os.path.islink(p):
-            raise FileNotFoundError(f"{what} {p} is a symbolic link to {os.readlink(p)}, which does not exist; "
-                                    "point the link at the file itself") from None
+            raise FileNotFoundError(
+                f"{what} {p} is a symbolic link to {os.readlink(p)}, which does not exist; "
+                "point the link at the file itself"
+            ) from None
         raise FileNotFoundError(f"{what} {p}: no such file") from None
     except OSError as err:
         if err.errno == errno.ENAMETOOLONG:
-            raise ValueError(f"{what} {p}: the name is too long for the file system ({err.strerror}); "
-                             "rename the file or move it to a shorter path") from None
+            raise ValueError(
+                f"{what} {p}: the name is too long for the file system ({err.strerror}); "
+                "rename the file or move it to a shorter path"
+            ) from None
         if err.errno == errno.ELOOP:
             raise ValueError(f"{what} {p}: a loop of symbolic links; point the link at the file itself") from None
         raise
@@ -116,14 +147,17 @@ def read_capped(path: str | os.PathLike, what: str = "input file", limit: int = 
         size = os.fstat(fh.fileno()).st_size
         data = fh.read(limit + 1) if size <= limit else b""
     if size > limit or len(data) > limit:
-        raise ValueError(f"{what} {Path(path)}: {max(size, len(data))} bytes, over the {limit >> 20} MiB a text "
-                         "file of its kind may have (the project's own are a few KiB); check that this is the "
-                         "right file")
+        raise ValueError(
+            f"{what} {Path(path)}: {max(size, len(data))} bytes, over the {limit >> 20} MiB a text "
+            "file of its kind may have (the project's own are a few KiB); check that this is the "
+            "right file"
+        )
     return data
 
 
-def check_out(path: str | os.PathLike | None, force: bool, suffix: str | Sequence[str],
-              what: str = "--out") -> Path | None:
+def check_out(
+    path: str | os.PathLike | None, force: bool, suffix: str | Sequence[str], what: str = "--out"
+) -> Path | None:
     """Validate an output path before any work is done.
 
     ``suffix`` is one allowed suffix or a sequence of them. Raises ``ValueError`` naming ``what`` and
@@ -152,8 +186,9 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     is removed on error. ``tmp`` keeps ``path``'s suffix so writers that pick a format by suffix work.
     """
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f"{_temp_stem(path.parent, path.name)}.{os.getpid()}.",
-                               suffix=f".tmp{path.suffix[:8]}", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(
+        prefix=f"{_temp_stem(path.parent, path.name)}.{os.getpid()}.", suffix=f".tmp{path.suffix[:8]}", dir=path.parent
+    )
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)
@@ -193,9 +228,11 @@ def check_name_lengths(paths: Iterable[str | os.PathLike], what: str = "--out") 
         p = Path(p)
         limit = _name_max(p.parent if p.parent.is_dir() else Path("."))
         if len(os.fsencode(p.name)) > limit:
-            raise ValueError(f"{what}: the file name {p.name[:40]}… is {len(os.fsencode(p.name))} bytes, longer than "
-                             f"the file system allows ({limit}); give a shorter --out (the names of the files "
-                             "written beside it add to its name)")
+            raise ValueError(
+                f"{what}: the file name {p.name[:40]}… is {len(os.fsencode(p.name))} bytes, longer than "
+                f"the file system allows ({limit}); give a shorter --out (the names of the files "
+                "written beside it add to its name)"
+            )
 
 
 def _temporaries(directory: Path, name: str) -> list[Path]:
@@ -209,7 +246,7 @@ def _temporaries(directory: Path, name: str) -> list[Path]:
 def _writer_pid(temporary: Path, name: str) -> int | None:
     """The process number in a temporary file's name of ``name`` (:func:`_temporaries`), or None (an older
     run's name without one)."""
-    m = re.match(r"(?:stage\.)?(\d+)\.", temporary.name[len(_temp_stem(temporary.parent, name)) + 1:])
+    m = re.match(r"(?:stage\.)?(\d+)\.", temporary.name[len(_temp_stem(temporary.parent, name)) + 1 :])
     return int(m.group(1)) if m else None
 
 
@@ -251,8 +288,10 @@ def _check_no_other_writer(finals: Sequence[Path], what: str) -> None:
             pid = _writer_pid(tmp, p.name)
             writer = None if pid == os.getpid() else _live_writer(pid)
             if writer is not None:
-                raise WriteConflictError(f"{what}: write conflict: {writer} is writing {p} now; wait for it to end, or "
-                                 f"give this run another {what}")
+                raise WriteConflictError(
+                    f"{what}: write conflict: {writer} is writing {p} now; wait for it to end, or "
+                    f"give this run another {what}"
+                )
 
 
 def _remove(path: Path) -> None:
@@ -333,8 +372,12 @@ def output_set(paths: Iterable[str | os.PathLike], force: bool, what: str = "--o
         for d in parents:
             stages[d] = Path(tempfile.mkdtemp(prefix=f"{_temp_stem(d, first[d])}.stage.{os.getpid()}.tmp.", dir=d))
         yield OutputSet(finals, stages)
-        extra = [str(q) for d, st in stages.items() for q in st.iterdir()
-                 if d / q.name not in finals and not q.name.startswith(".")]
+        extra = [
+            str(q)
+            for d, st in stages.items()
+            for q in st.iterdir()
+            if d / q.name not in finals and not q.name.startswith(".")
+        ]
         if extra:
             raise RuntimeError(f"files written outside their output set: {extra}")
         _check_no_other_writer(finals, what)  # one that began meanwhile: neither set lands
@@ -360,10 +403,16 @@ def safe_name(name: str, what: str, fix: str = "rename it") -> str:
     naming ``what`` and the fix."""
     bad = _UNSAFE.search(name) if isinstance(name, str) else None
     if not isinstance(name, str) or bad or name.strip() in ("", ".", "..") or len(name) > 100:
-        why = (f"holds {bad.group()!r}" if bad else "is too long (over 100 characters)" if len(str(name)) > 100
-               else "is empty, '.' or '..'")
-        raise ValueError(f"{what} {name!r} becomes part of a file name but {why}: no path separators or "
-                         f"control characters; {fix}")
+        why = (
+            f"holds {bad.group()!r}"
+            if bad
+            else "is too long (over 100 characters)"
+            if len(str(name)) > 100
+            else "is empty, '.' or '..'"
+        )
+        raise ValueError(
+            f"{what} {name!r} becomes part of a file name but {why}: no path separators or control characters; {fix}"
+        )
     return name
 
 
@@ -383,10 +432,13 @@ def toml_loads(text: str) -> dict[str, Any]:
         for i, line in enumerate(text.splitlines(), 1):
             m = re.search(r"([\w.\-\"']+)\s*=\s*[+-]?(\d[\d_]{299,})", line)
             if m:
-                raise tomllib.TOMLDecodeError(f"line {i}: {m.group(1)} is an integer of {len(m.group(2))} digits, far "
-                                              "beyond TOML's 64-bit integers; check the value") from None
-        raise tomllib.TOMLDecodeError("an integer of thousands of digits, far beyond TOML's 64-bit integers; "
-                                      "check the values") from None
+                raise tomllib.TOMLDecodeError(
+                    f"line {i}: {m.group(1)} is an integer of {len(m.group(2))} digits, far "
+                    "beyond TOML's 64-bit integers; check the value"
+                ) from None
+        raise tomllib.TOMLDecodeError(
+            "an integer of thousands of digits, far beyond TOML's 64-bit integers; check the values"
+        ) from None
 
 
 _JSON_TOKENS = re.compile(r'"(?:\\.|[^"\\])*"|[\[\]{}]')
@@ -425,15 +477,20 @@ def check_nesting(data: Any, where: str, *, toml: bool = False, limit: int = MAX
             depth = max(depth, d)
             stack.extend((v, d + 1) for v in obj if isinstance(v, (dict, list, tuple)))
     if depth > limit:
-        raise ValueError(f"{where}: nested more than {limit} levels deep (arrays or tables inside each other); "
-                         "valid files nest a few levels: check that this is the right file")
+        raise ValueError(
+            f"{where}: nested more than {limit} levels deep (arrays or tables inside each other); "
+            "valid files nest a few levels: check that this is the right file"
+        )
 
 
 def shipped_files(package: str, folder: str, suffix: str = ".toml") -> dict[str, Path]:
     """Name (file name without ``suffix``) -> path of every ``folder/*suffix`` file shipped in ``package``."""
     root = resources.files(package).joinpath(*folder.split("/"))
-    return {p.name[: -len(suffix)]: Path(str(p)) for p in sorted(root.iterdir(), key=lambda q: q.name)
-            if p.name.endswith(suffix)}
+    return {
+        p.name[: -len(suffix)]: Path(str(p))
+        for p in sorted(root.iterdir(), key=lambda q: q.name)
+        if p.name.endswith(suffix)
+    }
 
 
 def file_or_shipped(key: str | os.PathLike, shipped: dict[str, Path], what: str = "file") -> Path | None:

@@ -74,15 +74,20 @@ class ChannelOptics:
     def matches(self, other: ChannelOptics, *, rel_tol: float = REL_TOL, lateral_y: bool = True) -> bool:
         """True when wavelength, lateral (x) and axial resolution agree within ``rel_tol`` relative, and,
         when ``lateral_y``, the lateral resolution along y too (an isotropic value's y is its x)."""
-        return (same_value(self.wavelength_um, other.wavelength_um, rel_tol)
-                and same_value(self.lateral_resolution_um, other.lateral_resolution_um, rel_tol)
-                and same_value(self.axial_resolution_um, other.axial_resolution_um, rel_tol)
-                and (not lateral_y or same_value(self.lateral_y_um, other.lateral_y_um, rel_tol)))
+        return (
+            same_value(self.wavelength_um, other.wavelength_um, rel_tol)
+            and same_value(self.lateral_resolution_um, other.lateral_resolution_um, rel_tol)
+            and same_value(self.axial_resolution_um, other.axial_resolution_um, rel_tol)
+            and (not lateral_y or same_value(self.lateral_y_um, other.lateral_y_um, rel_tol))
+        )
 
     def describe(self) -> str:
         """``"840 nm, lateral 4.9 µm, axial 3.8 µm"`` (``lateral 18 × 4.9 µm (x × y)`` when anisotropic)."""
-        lateral = (f"{self.lateral_resolution_um:g} µm" if self.isotropic
-                   else f"{self.lateral_resolution_um:g} × {self.lateral_y_um:g} µm (x × y)")
+        lateral = (
+            f"{self.lateral_resolution_um:g} µm"
+            if self.isotropic
+            else f"{self.lateral_resolution_um:g} × {self.lateral_y_um:g} µm (x × y)"
+        )
         return f"{self.wavelength_um * 1000:g} nm, lateral {lateral}, axial {self.axial_resolution_um:g} µm"
 
     @classmethod
@@ -95,7 +100,9 @@ class ChannelOptics:
         unreduced one; otherwise y = x.
         """
         try:
-            values = [_number(channel.get(k)) for k in ("wavelength_um", "lateral_resolution_um", "axial_resolution_um")]
+            values = [
+                _number(channel.get(k)) for k in ("wavelength_um", "lateral_resolution_um", "axial_resolution_um")
+            ]
         except AttributeError:
             return None
         if any(v is None for v in values):

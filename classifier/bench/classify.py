@@ -26,24 +26,53 @@ def _synthetic_maps(path: Path, spec, size: int, seed: int) -> Path:
     rng = np.random.default_rng(seed)
     chans, arrays = [], []
     for metric, c in spec.features:
-        chans.append({"name": f"{metric}@{c.name}", "metric": metric, "unit": metric_unit(metric),
-                      "resolution": c.name, "wavelength_um": c.wavelength_um,
-                      "lateral_resolution_um": c.lateral_resolution_um, "axial_resolution_um": c.axial_resolution_um})
+        chans.append(
+            {
+                "name": f"{metric}@{c.name}",
+                "metric": metric,
+                "unit": metric_unit(metric),
+                "resolution": c.name,
+                "wavelength_um": c.wavelength_um,
+                "lateral_resolution_um": c.lateral_resolution_um,
+                "axial_resolution_um": c.axial_resolution_um,
+            }
+        )
         lo, hi = (0.0, 35.0) if metric == "liv" else (-0.2, 1.2)
         arrays.append(rng.uniform(lo, hi, (size, size)))
     c0 = spec.configurations[0]
-    chans.append({"name": f"mean_db@{c0.name}", "metric": "mean_db", "unit": "dB", "resolution": c0.name,
-                  "wavelength_um": c0.wavelength_um, "lateral_resolution_um": c0.lateral_resolution_um,
-                  "axial_resolution_um": c0.axial_resolution_um})
+    chans.append(
+        {
+            "name": f"mean_db@{c0.name}",
+            "metric": "mean_db",
+            "unit": "dB",
+            "resolution": c0.name,
+            "wavelength_um": c0.wavelength_um,
+            "lateral_resolution_um": c0.lateral_resolution_um,
+            "axial_resolution_um": c0.axial_resolution_um,
+        }
+    )
     arrays.append(rng.uniform(-5.0, 5.0, (size, size)))
-    meta = {"channels": chans, "axes": "CZX", "pitch_um": {"z": 2.0, "x": 2.0},
-            "frame_times_s": [i * spec.frame_interval_s for i in range(spec.n_frames)],
-            "system": {"name": "synthetic", "wavelength_um": c0.wavelength_um,
-                       "lateral_resolution_um": c0.lateral_resolution_um,
-                       "axial_resolution_um": c0.axial_resolution_um, "refractive_index": spec.refractive_index},
-            "ocds_delay_range_s": list(spec.ocds_delay_range_s), "source": "synthetic"}
-    np.savez(path, maps=np.stack(arrays).astype(np.float32), channels=np.array([c["name"] for c in chans]),
-             meta_json=np.asarray(json.dumps(meta)))
+    meta = {
+        "channels": chans,
+        "axes": "CZX",
+        "pitch_um": {"z": 2.0, "x": 2.0},
+        "frame_times_s": [i * spec.frame_interval_s for i in range(spec.n_frames)],
+        "system": {
+            "name": "synthetic",
+            "wavelength_um": c0.wavelength_um,
+            "lateral_resolution_um": c0.lateral_resolution_um,
+            "axial_resolution_um": c0.axial_resolution_um,
+            "refractive_index": spec.refractive_index,
+        },
+        "ocds_delay_range_s": list(spec.ocds_delay_range_s),
+        "source": "synthetic",
+    }
+    np.savez(
+        path,
+        maps=np.stack(arrays).astype(np.float32),
+        channels=np.array([c["name"] for c in chans]),
+        meta_json=np.asarray(json.dumps(meta)),
+    )
     return path
 
 
@@ -56,8 +85,12 @@ def bench_classify(*, size: int = 512, repeats: int = 3, model: str | None = Non
     mdl = load_model(model)
     channels = len(mdl.spec.features) + 1
     # the channels drawn in float64, the float32 file, and classification's copies of it
-    check_bench("torchdoct bench classify", (8 + 4 + 4 * CLASSIFY_COPIES) * channels * int(size) ** 2,
-                f"{size}×{size} pixels, {channels} channels", "give a smaller --size")
+    check_bench(
+        "torchdoct bench classify",
+        (8 + 4 + 4 * CLASSIFY_COPIES) * channels * int(size) ** 2,
+        f"{size}×{size} pixels, {channels} channels",
+        "give a smaller --size",
+    )
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         path = _synthetic_maps(Path(tmp) / "maps.npz", mdl.spec, size, seed)
@@ -69,18 +102,37 @@ def bench_classify(*, size: int = 512, repeats: int = 3, model: str | None = Non
                 res = classify_maps(path, mdl, pool=pool, background_db=None)
                 best = min(best, time.perf_counter() - t0)
                 info = res.info
-            rows.append({"pool": pool, "pixels": size * size, "seconds": best, "pixels_per_s": size * size / best,
-                         "classified": info["classified"], "stages_s": info["seconds"]})
+            rows.append(
+                {
+                    "pool": pool,
+                    "pixels": size * size,
+                    "seconds": best,
+                    "pixels_per_s": size * size / best,
+                    "classified": info["classified"],
+                    "stages_s": info["seconds"],
+                }
+            )
     from torchdoct.runtime.machine import machine_info
 
-    return {"benchmark": "classify", "model": mdl.spec.name, "size": size, "repeats": repeats, "rows": rows,
-            "target_pixels_per_s": 1e6, "onnxruntime_threads": os.environ.get("OMP_NUM_THREADS"),
-            "machine": machine_info()}
+    return {
+        "benchmark": "classify",
+        "model": mdl.spec.name,
+        "size": size,
+        "repeats": repeats,
+        "rows": rows,
+        "target_pixels_per_s": 1e6,
+        "onnxruntime_threads": os.environ.get("OMP_NUM_THREADS"),
+        "machine": machine_info(),
+    }
 
 
 def format_bench_classify(res: dict[str, Any]) -> str:
-    lines = [f"doct-classify on a {res['size']}×{res['size']} synthetic maps file, model {res['model']!r} "
-             f"(target {res['target_pixels_per_s']:.0e} pixels/s)", "| pool | seconds | pixels/s |", "|---:|---:|---:|"]
+    lines = [
+        f"doct-classify on a {res['size']}×{res['size']} synthetic maps file, model {res['model']!r} "
+        f"(target {res['target_pixels_per_s']:.0e} pixels/s)",
+        "| pool | seconds | pixels/s |",
+        "|---:|---:|---:|",
+    ]
     for r in res["rows"]:
         lines.append(f"| {r['pool']} | {r['seconds']:.3f} | {r['pixels_per_s']:.3g} |")
     return "\n".join(lines)
@@ -94,8 +146,12 @@ DESCRIPTION = None
 def add_arguments(bc) -> None:
     bc.add_argument("--size", type=int, default=512, help="pixels per side")
     bc.add_argument("--repeats", type=int, default=3)
-    bc.add_argument("--out", default=None, metavar="FILE.json",
-                    help="also write the result as JSON (default: printed only, nothing written)")
+    bc.add_argument(
+        "--out",
+        default=None,
+        metavar="FILE.json",
+        help="also write the result as JSON (default: printed only, nothing written)",
+    )
     bc.add_argument("--model", default=None, help="shipped model name or .onnx path (default: the LIV/OCDS model)")
     bc.add_argument("--force", action="store_true")
 

@@ -59,8 +59,20 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SCHEMA_VERSION", "GridCell", "full_cells", "quick_cells", "speed_levels", "phantom_dict",
-           "run_cell", "run_grid", "score_labels", "write_grid", "format_table", "main"]
+__all__ = [
+    "SCHEMA_VERSION",
+    "GridCell",
+    "full_cells",
+    "quick_cells",
+    "speed_levels",
+    "phantom_dict",
+    "run_cell",
+    "run_grid",
+    "score_labels",
+    "write_grid",
+    "format_table",
+    "main",
+]
 
 SCHEMA_VERSION = 1
 MOTIONS = ("diffusion", "ballistic", "flow")
@@ -102,16 +114,22 @@ class GridCell:
 
 def full_cells(seed: int = 0) -> list[GridCell]:
     """Every cell: geometry × context × noise × speed level × polar × azimuth (the windows are per cell)."""
-    return [GridCell(g, c, n, lv, p, a, seed) for g, c, n, lv, p, a in itertools.product(
-        GEOMETRIES, CONTEXTS, NOISES, LEVELS, POLAR_DEG, AZIMUTH_DEG)]
+    return [
+        GridCell(g, c, n, lv, p, a, seed)
+        for g, c, n, lv, p, a in itertools.product(GEOMETRIES, CONTEXTS, NOISES, LEVELS, POLAR_DEG, AZIMUTH_DEG)
+    ]
 
 
 def quick_cells(seed: int = 0) -> list[GridCell]:
     """``--quick``: B-scans at the mid speed and 20 dB, every polar angle at azimuth 0° and 90°, without
     static tissue and with a static background, plus one static-edge B-scan and one volume of flow across
     the plane without static tissue (14 phantoms)."""
-    cells = [GridCell("bscan", c, SNR_DB, "mid", p, a, seed)
-             for c in ("none", "background") for p in POLAR_DEG for a in (AZIMUTH_DEG[0], AZIMUTH_DEG[-1])]
+    cells = [
+        GridCell("bscan", c, SNR_DB, "mid", p, a, seed)
+        for c in ("none", "background")
+        for p in POLAR_DEG
+        for a in (AZIMUTH_DEG[0], AZIMUTH_DEG[-1])
+    ]
     cells.append(GridCell("bscan", "edge", SNR_DB, "mid", POLAR_DEG[1], AZIMUTH_DEG[0], seed))
     cells.append(GridCell("volume", "none", SNR_DB, "mid", POLAR_DEG[-1], AZIMUTH_DEG[-1], seed))
     return cells
@@ -120,8 +138,14 @@ def quick_cells(seed: int = 0) -> list[GridCell]:
 def _draw(label: int, magnitude: float, polar: float, azimuth: float, density: float):
     from ..prior import Draw
 
-    return Draw(label=label, magnitude=float(magnitude), polar_angle_deg=float(polar), azimuth_deg=float(azimuth),
-                density_per_um3=float(density), sim_seed=0)
+    return Draw(
+        label=label,
+        magnitude=float(magnitude),
+        polar_angle_deg=float(polar),
+        azimuth_deg=float(azimuth),
+        density_per_um3=float(density),
+        sim_seed=0,
+    )
 
 
 def speed_levels(spec, prior=None) -> dict[str, dict[str, float]]:
@@ -170,32 +194,68 @@ def phantom_dict(cell: GridCell, spec, levels: dict[str, dict[str, float]], dens
     pitch = _pitch_um(spec)
     r_um, gap_um = BAND_RADIUS_PX * pitch, BAND_GAP_PX * pitch
     n_x = 3 * 2 * BAND_RADIUS_PX + 4 * BAND_GAP_PX
-    grid: dict[str, Any] = {"kind": cell.geometry, "n_x": n_x, "n_z": IMAGE_NZ, "pitch_x_um": pitch,
-                            "pitch_z_um": pitch}
+    grid: dict[str, Any] = {
+        "kind": cell.geometry,
+        "n_x": n_x,
+        "n_z": IMAGE_NZ,
+        "pitch_x_um": pitch,
+        "pitch_z_um": pitch,
+    }
     if cell.geometry == "volume":
         grid.update(n_y=VOLUME_NY, pitch_y_um=pitch)
     else:
         grid["y_um"] = 0.0
-    motions = {"diffusion": {"kind": "diffusion", "diffusion_um2_per_s": levels["diffusion"][cell.level]},
-               "ballistic": {"kind": "ballistic", "speed_um_per_s": levels["ballistic"][cell.level]},
-               "flow": {"kind": "flow", "speed_um_per_s": levels["flow"][cell.level],
-                        "polar_angle_deg": cell.polar_deg, "azimuth_deg": cell.azimuth_deg}}
+    motions = {
+        "diffusion": {"kind": "diffusion", "diffusion_um2_per_s": levels["diffusion"][cell.level]},
+        "ballistic": {"kind": "ballistic", "speed_um_per_s": levels["ballistic"][cell.level]},
+        "flow": {
+            "kind": "flow",
+            "speed_um_per_s": levels["flow"][cell.level],
+            "polar_angle_deg": cell.polar_deg,
+            "azimuth_deg": cell.azimuth_deg,
+        },
+    }
     regions = []
     for k, name in enumerate(MOTIONS):
         xc = (k - 1) * (2 * r_um + gap_um)
-        regions.append({"name": name, "shape": "cylinder", "center_um": [xc, 0.0, 0.0], "axis": [0.0, 0.0, 1.0],
-                        "radius_um": r_um, "density_per_um3": density, "motion": [motions[name]]})
+        regions.append(
+            {
+                "name": name,
+                "shape": "cylinder",
+                "center_um": [xc, 0.0, 0.0],
+                "axis": [0.0, 0.0, 1.0],
+                "radius_um": r_um,
+                "density_per_um3": density,
+                "motion": [motions[name]],
+            }
+        )
     if cell.context == "edge":
         z_top = (IMAGE_NZ / 4.0) * pitch  # the deepest quarter (z increases into the sample)
-        regions.append({"name": "static-edge", "shape": "slab", "z_min_um": z_top,
-                        "z_max_um": IMAGE_NZ * pitch, "density_per_um3": density})
-    system = {"name": "grid-system", "wavelength_um": c0.wavelength_um,
-              "lateral_resolution_um": c0.lateral_resolution_um, "axial_resolution_um": c0.axial_resolution_um}
+        regions.append(
+            {
+                "name": "static-edge",
+                "shape": "slab",
+                "z_min_um": z_top,
+                "z_max_um": IMAGE_NZ * pitch,
+                "density_per_um3": density,
+            }
+        )
+    system = {
+        "name": "grid-system",
+        "wavelength_um": c0.wavelength_um,
+        "lateral_resolution_um": c0.lateral_resolution_um,
+        "axial_resolution_um": c0.axial_resolution_um,
+    }
     if spec.refractive_index != 1.0:
         system["refractive_index"] = spec.refractive_index
-    d: dict[str, Any] = {"name": cell.key, "system": [system],
-                         "protocol": {"n_frames": spec.n_frames, "frame_interval_s": spec.frame_interval_s},
-                         "grid": grid, "region": regions, "simulation": {"seed": int(cell.seed)}}
+    d: dict[str, Any] = {
+        "name": cell.key,
+        "system": [system],
+        "protocol": {"n_frames": spec.n_frames, "frame_interval_s": spec.frame_interval_s},
+        "grid": grid,
+        "region": regions,
+        "simulation": {"seed": int(cell.seed)},
+    }
     if cell.snr_db is not None:
         d["noise"] = {"snr_db": float(cell.snr_db)}
     return d
@@ -208,8 +268,9 @@ def _static_dict(moving: dict[str, Any], density: float) -> dict[str, Any]:
     return d
 
 
-def score_labels(truth_codes: np.ndarray, classes: np.ndarray, class_names: Sequence[str], edge_px: int,
-                 masked: int = 255) -> dict[str, Any]:
+def score_labels(
+    truth_codes: np.ndarray, classes: np.ndarray, class_names: Sequence[str], edge_px: int, masked: int = 255
+) -> dict[str, Any]:
     """Scores of one classification against rendered motion codes (module docstring).
 
     ``classes``: ``classes.tif`` values; ``class_names``: the legend's names in value order (a name
@@ -235,9 +296,14 @@ def score_labels(truth_codes: np.ndarray, classes: np.ndarray, class_names: Sequ
         for i, nm in enumerate(names):
             if nm not in MOTIONS and nm != "indeterminate" and name not in nm.split("-or-"):
                 miss += int((got == i).sum())
-        per = {"pixels": n, "decided": int(dec.sum()), "coverage": (float(dec.mean()) if n else None),
-               "recall": (right / int(dec.sum()) if dec.any() else None),
-               "wrong_share": (wrong / n if n else None), "set_miss_share": (miss / n if n else None)}
+        per = {
+            "pixels": n,
+            "decided": int(dec.sum()),
+            "coverage": (float(dec.mean()) if n else None),
+            "recall": (right / int(dec.sum()) if dec.any() else None),
+            "wrong_share": (wrong / n if n else None),
+            "set_miss_share": (miss / n if n else None),
+        }
         out["per_class"][name] = per
         scored += n
         decided += int(dec.sum())
@@ -256,9 +322,17 @@ def _edge_px(spec, pitch: float, pool: int) -> int:
     return int(math.ceil(coarsest / 2.0 / pitch)) + pool // 2
 
 
-def run_cell(cell: GridCell, model, levels: dict[str, dict[str, float]], *, pools: Sequence[int] = POOLS,
-             decision: str | None = None, threads: int | None = None, prior=None,
-             abstain_ambiguous: bool = True) -> list[dict[str, Any]]:
+def run_cell(
+    cell: GridCell,
+    model,
+    levels: dict[str, dict[str, float]],
+    *,
+    pools: Sequence[int] = POOLS,
+    decision: str | None = None,
+    threads: int | None = None,
+    prior=None,
+    abstain_ambiguous: bool = True,
+) -> list[dict[str, Any]]:
     """Render, map, classify and score one cell at every window of ``pools``: one row per window.
     ``abstain_ambiguous``: doct-classify's default (:mod:`classifier.ambiguity`); False: ``--decide-ballistic``."""
     from torchdoct.image.phantom import phantom_from_dict
@@ -284,8 +358,9 @@ def run_cell(cell: GridCell, model, levels: dict[str, dict[str, float]], *, pool
     meta.pop("phantom", None)
     seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source=cell.key)
     t_render = time.perf_counter()
-    maps = compute_maps(seq, [c.name for c in spec.configurations], metrics=("mean_db",),
-                        signature=list(spec.metrics), speckle=True)  # what maps --signature writes
+    maps = compute_maps(
+        seq, [c.name for c in spec.configurations], metrics=("mean_db",), signature=list(spec.metrics), speckle=True
+    )  # what maps --signature writes
     t_maps = time.perf_counter()
     ident = {}
     for label, name in enumerate(MOTIONS):
@@ -301,20 +376,40 @@ def run_cell(cell: GridCell, model, levels: dict[str, dict[str, float]], *, pool
             c = classify_maps(path, model, pool=int(pool), threads=threads, abstain_ambiguous=abstain_ambiguous, **kw)
             t2 = time.perf_counter()
             s = score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool)))
-            rows.append({**asdict(cell), "key": cell.key, "pool": int(pool), "model": spec.name,
-                         "decision": c.info.get("decision", "rule"), "abstain_ambiguous": bool(abstain_ambiguous),
-                         "magnitudes": {m: levels[m][cell.level] for m in MOTIONS},
-                         "identifiable": ident, **s,
-                         "seconds": {"render": t_render - t0, "maps": t_maps - t_render, "classify": t2 - t1,
-                                     "total": (t_maps - t0) + (t2 - t1)}})
+            rows.append(
+                {
+                    **asdict(cell),
+                    "key": cell.key,
+                    "pool": int(pool),
+                    "model": spec.name,
+                    "decision": c.info.get("decision", "rule"),
+                    "abstain_ambiguous": bool(abstain_ambiguous),
+                    "magnitudes": {m: levels[m][cell.level] for m in MOTIONS},
+                    "identifiable": ident,
+                    **s,
+                    "seconds": {
+                        "render": t_render - t0,
+                        "maps": t_maps - t_render,
+                        "classify": t2 - t1,
+                        "total": (t_maps - t0) + (t2 - t1),
+                    },
+                }
+            )
     return rows
 
 
-def run_grid(cells: Iterable[GridCell], model: str | None = None, *, pools: Sequence[int] = POOLS,
-             decision: str | None = None, threads: int | None = None, progress: bool = True,
-             geometry_models: dict[str, str] | None = None,
-             levels: dict[str, dict[str, dict[str, float]]] | None = None,
-             abstain_ambiguous: bool = True) -> dict[str, Any]:
+def run_grid(
+    cells: Iterable[GridCell],
+    model: str | None = None,
+    *,
+    pools: Sequence[int] = POOLS,
+    decision: str | None = None,
+    threads: int | None = None,
+    progress: bool = True,
+    geometry_models: dict[str, str] | None = None,
+    levels: dict[str, dict[str, dict[str, float]]] | None = None,
+    abstain_ambiguous: bool = True,
+) -> dict[str, Any]:
     """Every cell of ``cells`` (module docstring) with ``model`` (default: the model ``doct-classify``
     picks for the cell's maps: ``signature-bscan`` for B-scans, ``signature`` for volumes). ``levels``:
     ``{geometry: speed_levels(...)}`` already computed (default: computed here)."""
@@ -333,27 +428,45 @@ def run_grid(cells: Iterable[GridCell], model: str | None = None, *, pools: Sequ
     rows: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     for cell in cells:
-        rows.extend(run_cell(cell, models[cell.geometry], levels[cell.geometry], pools=pools, decision=decision,
-                             threads=threads, abstain_ambiguous=abstain_ambiguous))
+        rows.extend(
+            run_cell(
+                cell,
+                models[cell.geometry],
+                levels[cell.geometry],
+                pools=pools,
+                decision=decision,
+                threads=threads,
+                abstain_ambiguous=abstain_ambiguous,
+            )
+        )
         if bar is not None:
             bar.update()
     if bar is not None:
         bar.close()
     from torchdoct.runtime.machine import machine_info
 
-    return {"schema_version": SCHEMA_VERSION, "benchmark": "phantom-grid",
-            "definitions": _definitions(), "models": {g: m.spec.name for g, m in models.items()},
-            "decision": rows[0]["decision"] if rows else decision, "abstain_ambiguous": bool(abstain_ambiguous),
-            "speed_levels": dict(levels.items()),
-            "units": {"diffusion": "µm²/s", "ballistic": "µm/s", "flow": "µm/s", "seconds": "s"},
-            "cells": rows, "summary": summarize(rows), "seconds": time.perf_counter() - t0,
-            "machine": machine_info()}
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "benchmark": "phantom-grid",
+        "definitions": _definitions(),
+        "models": {g: m.spec.name for g, m in models.items()},
+        "decision": rows[0]["decision"] if rows else decision,
+        "abstain_ambiguous": bool(abstain_ambiguous),
+        "speed_levels": dict(levels.items()),
+        "units": {"diffusion": "µm²/s", "ballistic": "µm/s", "flow": "µm/s", "seconds": "s"},
+        "cells": rows,
+        "summary": summarize(rows),
+        "seconds": time.perf_counter() - t0,
+        "machine": machine_info(),
+    }
 
 
 def _definitions() -> dict[str, str]:
     doc = __doc__ or ""
-    return {"cells": doc[doc.index("**Phantom of a cell.**"):doc.index("**Scores of a cell**")].strip(),
-            "scores": doc[doc.index("**Scores of a cell**"):doc.index("Outputs (")].strip()}
+    return {
+        "cells": doc[doc.index("**Phantom of a cell.**") : doc.index("**Scores of a cell**")].strip(),
+        "scores": doc[doc.index("**Scores of a cell**") : doc.index("Outputs (")].strip(),
+    }
 
 
 def summarize(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
@@ -364,29 +477,64 @@ def summarize(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
         ws = [r["wrong_share_max"] for r in rs if r["wrong_share_max"] is not None]
         cov = [r["coverage"] for r in rs if r["coverage"] is not None]
         bas = [r["balanced_accuracy"] for r in rs if r["balanced_accuracy"] is not None]
-        out[str(pool)] = {"cells": len(rs), "worst_wrong_share": max(ws) if ws else None,
-                          "cells_over_10pct_wrong": int(sum(w > 0.10 for w in ws)),
-                          "mean_coverage": float(np.mean(cov)) if cov else None,
-                          "min_coverage": min(cov) if cov else None,
-                          "mean_balanced_accuracy": float(np.mean(bas)) if bas else None}
+        out[str(pool)] = {
+            "cells": len(rs),
+            "worst_wrong_share": max(ws) if ws else None,
+            "cells_over_10pct_wrong": int(sum(w > 0.10 for w in ws)),
+            "mean_coverage": float(np.mean(cov)) if cov else None,
+            "min_coverage": min(cov) if cov else None,
+            "mean_balanced_accuracy": float(np.mean(bas)) if bas else None,
+        }
     return out
 
 
-_COLUMNS = ("key", "geometry", "context", "snr_db", "level", "polar_deg", "azimuth_deg", "pool", "model",
-            "decision", "pixels", "coverage", "balanced_accuracy", "wrong_share_max", "wrong_diffusion",
-            "wrong_ballistic", "wrong_flow", "set_miss_max", "flow_identifiable", "seconds")
+_COLUMNS = (
+    "key",
+    "geometry",
+    "context",
+    "snr_db",
+    "level",
+    "polar_deg",
+    "azimuth_deg",
+    "pool",
+    "model",
+    "decision",
+    "pixels",
+    "coverage",
+    "balanced_accuracy",
+    "wrong_share_max",
+    "wrong_diffusion",
+    "wrong_ballistic",
+    "wrong_flow",
+    "set_miss_max",
+    "flow_identifiable",
+    "seconds",
+)
 
 
 def _flat(r: dict[str, Any]) -> dict[str, Any]:
     pc = r["per_class"]
     miss = [p["set_miss_share"] for p in pc.values() if p["set_miss_share"] is not None]
-    return {"key": r["key"], "geometry": r["geometry"], "context": r["context"],
-            "snr_db": "none" if r["snr_db"] is None else r["snr_db"], "level": r["level"],
-            "polar_deg": r["polar_deg"], "azimuth_deg": r["azimuth_deg"], "pool": r["pool"], "model": r["model"],
-            "decision": r["decision"], "pixels": r["pixels"], "coverage": r["coverage"],
-            "balanced_accuracy": r["balanced_accuracy"], "wrong_share_max": r["wrong_share_max"],
-            **{f"wrong_{m}": pc[m]["wrong_share"] for m in MOTIONS}, "set_miss_max": max(miss) if miss else None,
-            "flow_identifiable": r["identifiable"]["flow"], "seconds": r["seconds"]["total"]}
+    return {
+        "key": r["key"],
+        "geometry": r["geometry"],
+        "context": r["context"],
+        "snr_db": "none" if r["snr_db"] is None else r["snr_db"],
+        "level": r["level"],
+        "polar_deg": r["polar_deg"],
+        "azimuth_deg": r["azimuth_deg"],
+        "pool": r["pool"],
+        "model": r["model"],
+        "decision": r["decision"],
+        "pixels": r["pixels"],
+        "coverage": r["coverage"],
+        "balanced_accuracy": r["balanced_accuracy"],
+        "wrong_share_max": r["wrong_share_max"],
+        **{f"wrong_{m}": pc[m]["wrong_share"] for m in MOTIONS},
+        "set_miss_max": max(miss) if miss else None,
+        "flow_identifiable": r["identifiable"]["flow"],
+        "seconds": r["seconds"]["total"],
+    }
 
 
 def _fmt(v: Any) -> str:
@@ -399,18 +547,32 @@ def _fmt(v: Any) -> str:
 
 def format_table(res: dict[str, Any]) -> str:
     """The Markdown table: a summary per window, then one row per cell and window."""
-    lines = [f"# Phantom grid ({res['benchmark']}, schema {res['schema_version']})", "",
-             f"Models: {', '.join(f'{g}: `{m}`' for g, m in res['models'].items())}; decision: `{res['decision']}`"
-             + (", flow where the speckle moved coherently, ballistic-or-flow where flow cannot be excluded and a set with flow where the "
-                "pattern's offset moved (classifier.ambiguity)" if res.get('abstain_ambiguous', False) else ", the model's decisions kept") + ". "
-             "Speed levels (diffusion µm²/s, speeds µm/s): "
-             + "; ".join(f"{g}: " + ", ".join(f"{m} {'/'.join(f'{v:g}' for v in lv.values())}" for m, lv in levels.items())
-                         for g, levels in res["speed_levels"].items()) + ".", "",
-             "| window | cells | worst wrong share | cells > 10 % wrong | mean coverage | lowest coverage | mean balanced accuracy |",
-             "|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        f"# Phantom grid ({res['benchmark']}, schema {res['schema_version']})",
+        "",
+        f"Models: {', '.join(f'{g}: `{m}`' for g, m in res['models'].items())}; decision: `{res['decision']}`"
+        + (
+            ", flow where the speckle moved coherently, ballistic-or-flow where flow cannot be excluded and a set with flow where the "
+            "pattern's offset moved (classifier.ambiguity)"
+            if res.get("abstain_ambiguous", False)
+            else ", the model's decisions kept"
+        )
+        + ". "
+        "Speed levels (diffusion µm²/s, speeds µm/s): "
+        + "; ".join(
+            f"{g}: " + ", ".join(f"{m} {'/'.join(f'{v:g}' for v in lv.values())}" for m, lv in levels.items())
+            for g, levels in res["speed_levels"].items()
+        )
+        + ".",
+        "",
+        "| window | cells | worst wrong share | cells > 10 % wrong | mean coverage | lowest coverage | mean balanced accuracy |",
+        "|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for pool, s in res["summary"].items():
-        lines.append(f"| {pool} | {s['cells']} | {_fmt(s['worst_wrong_share'])} | {s['cells_over_10pct_wrong']} | "
-                     f"{_fmt(s['mean_coverage'])} | {_fmt(s['min_coverage'])} | {_fmt(s['mean_balanced_accuracy'])} |")
+        lines.append(
+            f"| {pool} | {s['cells']} | {_fmt(s['worst_wrong_share'])} | {s['cells_over_10pct_wrong']} | "
+            f"{_fmt(s['mean_coverage'])} | {_fmt(s['min_coverage'])} | {_fmt(s['mean_balanced_accuracy'])} |"
+        )
     cols = [c for c in _COLUMNS if c not in ("key", "model", "decision")]
     lines += ["", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in res["cells"]:
@@ -444,10 +606,17 @@ def plot_grid(res: dict[str, Any], path: str | Path) -> None:
     rows = sorted({rkey(r) for r in cells}, key=lambda k: (GEOMETRIES.index(k[0]), CONTEXTS.index(k[1]), k[2]))
     cols = sorted({ckey(r) for r in cells}, key=lambda k: (LEVELS.index(k[0]), k[1], k[2]))
     panels = [(pool, field) for pool in pools for field in ("wrong_share_max", "coverage")]
-    fig, axes = plt.subplots(len(panels), 1, figsize=(max(8.0, 0.22 * len(cols) + 5), len(panels) * (0.3 * len(rows) + 2.2)),
-                             squeeze=False, constrained_layout=True)
-    labels = {"wrong_share_max": ("worst wrong share", "fraction of a motion's pixels\ndecided as another class"),
-              "coverage": ("coverage", "decided fraction of\nthe scored pixels")}
+    fig, axes = plt.subplots(
+        len(panels),
+        1,
+        figsize=(max(8.0, 0.22 * len(cols) + 5), len(panels) * (0.3 * len(rows) + 2.2)),
+        squeeze=False,
+        constrained_layout=True,
+    )
+    labels = {
+        "wrong_share_max": ("worst wrong share", "fraction of a motion's pixels\ndecided as another class"),
+        "coverage": ("coverage", "decided fraction of\nthe scored pixels"),
+    }
     for i, (pool, field) in enumerate(panels):
         for j in (0,):
             title, label = labels[field]
@@ -510,19 +679,32 @@ def _json_default(o: Any) -> Any:
 def build_parser():
     import argparse
 
-    p = argparse.ArgumentParser(prog="python -m classifier.bench.grid",
-                                description="The phantom grid: render, map, classify and score phantoms built from "
-                                            "the model's system; writes grid.json/.csv/.md/.png into --out.")
+    p = argparse.ArgumentParser(
+        prog="python -m classifier.bench.grid",
+        description="The phantom grid: render, map, classify and score phantoms built from "
+        "the model's system; writes grid.json/.csv/.md/.png into --out.",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
     p.add_argument("--quick", action="store_true", help="the 14-phantom subset (a few minutes on 2 cores)")
-    p.add_argument("--model", default=None, help="shipped model name or .onnx file (default: signature-bscan for "
-                                                 "B-scans, signature for volumes, the models doct-classify picks)")
-    p.add_argument("--decision", default=None, choices=("rule", "conformal"),
-                   help="decision rule (default: doct-classify's default)")
-    p.add_argument("--decide-ballistic", action="store_true",
-                   help="keep the model's ballistic decisions (doct-classify --decide-ballistic; default: "
-                        "flow where the speckle moved coherently, ballistic-or-flow where the physics cannot "
-                        "exclude flow, classifier.ambiguity)")
+    p.add_argument(
+        "--model",
+        default=None,
+        help="shipped model name or .onnx file (default: signature-bscan for "
+        "B-scans, signature for volumes, the models doct-classify picks)",
+    )
+    p.add_argument(
+        "--decision",
+        default=None,
+        choices=("rule", "conformal"),
+        help="decision rule (default: doct-classify's default)",
+    )
+    p.add_argument(
+        "--decide-ballistic",
+        action="store_true",
+        help="keep the model's ballistic decisions (doct-classify --decide-ballistic; default: "
+        "flow where the speckle moved coherently, ballistic-or-flow where the physics cannot "
+        "exclude flow, classifier.ambiguity)",
+    )
     p.add_argument("--geometry", choices=GEOMETRIES, default=None, help="only B-scans or only volumes")
     p.add_argument("--seed", type=int, default=0, help="rendering seed of every cell")
     p.add_argument("--stem", default="grid", help="file names STEM.json, STEM.csv, ... (default grid)")
@@ -541,20 +723,34 @@ def main(argv: Sequence[str] | None = None) -> int:
         cells = quick_cells(args.seed) if args.quick else full_cells(args.seed)
         if args.geometry:
             cells = [c for c in cells if c.geometry == args.geometry]
-        res = run_grid(cells, args.model, decision=args.decision, threads=args.threads,
-                       progress=not args.no_progress, abstain_ambiguous=not args.decide_ballistic)
-        res["command"] = "python -m classifier.bench.grid" + (" --quick" if args.quick else "") + (
-            f" --model {args.model}" if args.model else "") + (f" --decision {args.decision}" if args.decision else "") + (
-            " --decide-ballistic" if args.decide_ballistic else "") + (
-            f" --geometry {args.geometry}" if args.geometry else "") + (f" --seed {args.seed}" if args.seed else "") + (
-            f" --stem {args.stem}" if args.stem != "grid" else "") + " --out DIR"
+        res = run_grid(
+            cells,
+            args.model,
+            decision=args.decision,
+            threads=args.threads,
+            progress=not args.no_progress,
+            abstain_ambiguous=not args.decide_ballistic,
+        )
+        res["command"] = (
+            "python -m classifier.bench.grid"
+            + (" --quick" if args.quick else "")
+            + (f" --model {args.model}" if args.model else "")
+            + (f" --decision {args.decision}" if args.decision else "")
+            + (" --decide-ballistic" if args.decide_ballistic else "")
+            + (f" --geometry {args.geometry}" if args.geometry else "")
+            + (f" --seed {args.seed}" if args.seed else "")
+            + (f" --stem {args.stem}" if args.stem != "grid" else "")
+            + " --out DIR"
+        )
         written = write_grid(res, out, force=args.force, stem=args.stem)
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     for pool, s in res["summary"].items():
-        print(f"window {pool}: {s['cells']} cells, worst wrong share {_fmt(s['worst_wrong_share'])}, "
-              f"{s['cells_over_10pct_wrong']} over 10 %, mean coverage {_fmt(s['mean_coverage'])}")
+        print(
+            f"window {pool}: {s['cells']} cells, worst wrong share {_fmt(s['worst_wrong_share'])}, "
+            f"{s['cells_over_10pct_wrong']} over 10 %, mean coverage {_fmt(s['mean_coverage'])}"
+        )
     print("wrote " + ", ".join(str(p) for p in written))
     return 0
 

@@ -56,6 +56,10 @@ pixels, plus half the window plus the offset grid's reach
 
 Outputs (:func:`write_protocol`): ``STEM.json`` (:data:`SCHEMA_VERSION`, the definitions above, the
 command, the machine, one row per variant and decision), ``STEM.csv``, ``STEM.md`` and ``STEM.png``.
+
+Kept whole (over 800 lines): the benchmark's phantom, decision, scoring, table, figure and command line
+share its variant definitions and the results schema they write; one file is one benchmark, as in
+:mod:`classifier.bench.grid`.
 """
 
 from __future__ import annotations
@@ -73,9 +77,21 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SCHEMA_VERSION", "Variant", "full_variants", "quick_variants", "matched_ballistic_speed",
-           "phantom_dict", "decide", "scored_mask", "score_outcome", "run_protocol", "format_table",
-           "write_protocol", "main"]
+__all__ = [
+    "SCHEMA_VERSION",
+    "Variant",
+    "full_variants",
+    "quick_variants",
+    "matched_ballistic_speed",
+    "phantom_dict",
+    "decide",
+    "scored_mask",
+    "score_outcome",
+    "run_protocol",
+    "format_table",
+    "write_protocol",
+    "main",
+]
 
 SCHEMA_VERSION = 1
 BANDS = ("ballistic", "flow")
@@ -112,15 +128,17 @@ class Variant:
         return f"T{self.n_frames}-dt{self.interval_factor:g}x-w{self.window}"
 
 
-def full_variants(frames: Sequence[int] = FRAMES, factors: Sequence[float] = INTERVAL_FACTORS,
-                  windows: Sequence[int] = WINDOWS) -> list[Variant]:
+def full_variants(
+    frames: Sequence[int] = FRAMES, factors: Sequence[float] = INTERVAL_FACTORS, windows: Sequence[int] = WINDOWS
+) -> list[Variant]:
     """Every combination of ``frames`` × ``factors`` × ``windows``."""
     _check_axes(frames, factors, windows)
     return [Variant(int(n), float(f), int(w)) for n, f, w in itertools.product(frames, factors, windows)]
 
 
-def quick_variants(frames: Sequence[int] = FRAMES, factors: Sequence[float] = INTERVAL_FACTORS,
-                   windows: Sequence[int] = WINDOWS) -> list[Variant]:
+def quick_variants(
+    frames: Sequence[int] = FRAMES, factors: Sequence[float] = INTERVAL_FACTORS, windows: Sequence[int] = WINDOWS
+) -> list[Variant]:
     """``--quick``: one axis at a time around the centre (the first frame count, the interval nearest the
     system's, the middle window): every frame count, every interval, every window, the others held
     (7 variants of the defaults, from 5 renderings)."""
@@ -141,8 +159,9 @@ def _check_axes(frames: Sequence[int], factors: Sequence[float], windows: Sequen
         raise ValueError("give at least one frame count, one interval factor and one window")
     for n in frames:
         if isinstance(n, bool) or int(n) != n or n < 8:
-            raise ValueError(f"--frames: every frame count must be an integer >= 8 (the speckle lags need "
-                             f"it); got {n!r}")
+            raise ValueError(
+                f"--frames: every frame count must be an integer >= 8 (the speckle lags need it); got {n!r}"
+            )
         if len(default_lags(int(n))) < 2:
             raise ValueError(f"--frames {n}: the speckle features need two lags")
     for f in factors:
@@ -168,8 +187,9 @@ def _density() -> float:
     return float(min(Prior().density_per_um3))
 
 
-def _rho_intensity(motion: str, speed: float, tau_s: float, spec, density: float, polar: float = 0.0,
-                   azimuth: float = 0.0) -> float:
+def _rho_intensity(
+    motion: str, speed: float, tau_s: float, spec, density: float, polar: float = 0.0, azimuth: float = 0.0
+) -> float:
     """Closed-form single-pixel intensity correlation coefficient (physics.md §5.4) of the moving
     scatterers at ``tau_s`` for the spec's first configuration."""
     from torchdoct.conventions import n_eff
@@ -179,15 +199,29 @@ def _rho_intensity(motion: str, speed: float, tau_s: float, spec, density: float
     res = dict(lateral_resolution_um=c.lateral_resolution_um, axial_resolution_um=c.axial_resolution_um)
     tau = np.array([float(tau_s)])
     if motion == "flow":
-        g1 = theory.g1_flow(tau, speed_um_per_s=speed, polar_angle_deg=polar, azimuth_deg=azimuth,
-                            wavelength_um=c.wavelength_um, refractive_index=spec.refractive_index, **res)
+        g1 = theory.g1_flow(
+            tau,
+            speed_um_per_s=speed,
+            polar_angle_deg=polar,
+            azimuth_deg=azimuth,
+            wavelength_um=c.wavelength_um,
+            refractive_index=spec.refractive_index,
+            **res,
+        )
         j = theory.j_flow(tau, speed_um_per_s=speed, polar_angle_deg=polar, azimuth_deg=azimuth, **res)
     else:
-        g1 = theory.g1_ballistic(tau, speed_um_per_s=speed, wavelength_um=c.wavelength_um,
-                                 refractive_index=spec.refractive_index, directions="isotropic", **res)
+        g1 = theory.g1_ballistic(
+            tau,
+            speed_um_per_s=speed,
+            wavelength_um=c.wavelength_um,
+            refractive_index=spec.refractive_index,
+            directions="isotropic",
+            **res,
+        )
         j = theory.j_ballistic(tau, speed_um_per_s=speed, directions="isotropic", **res)
-    rho = theory.intensity_correlation_coefficient(g1, j, n_eff(density, c.lateral_resolution_um,
-                                                                c.axial_resolution_um))
+    rho = theory.intensity_correlation_coefficient(
+        g1, j, n_eff(density, c.lateral_resolution_um, c.axial_resolution_um)
+    )
     return float(np.asarray(rho).reshape(-1)[0])
 
 
@@ -198,8 +232,13 @@ def match_lag_s(spec) -> float:
     return float(max(default_lags(spec.n_frames)) * spec.frame_interval_s)
 
 
-def matched_ballistic_speed(spec, flow_speed: float = FLOW_SPEED, polar_deg: float = FLOW_POLAR_DEG,
-                            azimuth_deg: float = FLOW_AZIMUTH_DEG, density: float | None = None) -> float:
+def matched_ballistic_speed(
+    spec,
+    flow_speed: float = FLOW_SPEED,
+    polar_deg: float = FLOW_POLAR_DEG,
+    azimuth_deg: float = FLOW_AZIMUTH_DEG,
+    density: float | None = None,
+) -> float:
     """The random-ballistic speed (µm/s, isotropic directions; 3 significant figures) whose single-pixel
     intensity correlation at :func:`match_lag_s` equals the flow's (module docstring): the lowest such
     speed on a log grid, refined by bisection. ``ValueError`` when the flow's correlation is outside what
@@ -211,9 +250,11 @@ def matched_ballistic_speed(spec, flow_speed: float = FLOW_SPEED, polar_deg: flo
     rho = np.array([_rho_intensity("ballistic", v, tau, spec, density) for v in grid])
     below = np.flatnonzero(rho <= target)
     if below.size == 0 or below[0] == 0:
-        raise ValueError(f"flow at {flow_speed:g} µm/s has single-pixel correlation {target:.3g} at {tau:.3g} s, "
-                         f"which random-ballistic motion does not match between {_MATCH_RANGE[0]:g} and "
-                         f"{_MATCH_RANGE[1]:g} µm/s; give --ballistic-speed")
+        raise ValueError(
+            f"flow at {flow_speed:g} µm/s has single-pixel correlation {target:.3g} at {tau:.3g} s, "
+            f"which random-ballistic motion does not match between {_MATCH_RANGE[0]:g} and "
+            f"{_MATCH_RANGE[1]:g} µm/s; give --ballistic-speed"
+        )
     lo, hi = math.log(grid[below[0] - 1]), math.log(grid[below[0]])
     for _ in range(40):
         mid = 0.5 * (lo + hi)
@@ -224,33 +265,66 @@ def matched_ballistic_speed(spec, flow_speed: float = FLOW_SPEED, polar_deg: flo
     return float(f"{math.exp(0.5 * (lo + hi)):.3g}")
 
 
-def phantom_dict(spec, n_frames: int, interval_s: float, *, flow_speed: float, ballistic_speed: float,
-                 polar_deg: float = FLOW_POLAR_DEG, azimuth_deg: float = FLOW_AZIMUTH_DEG,
-                 density: float | None = None, seed: int = 0, snr_db: float | None = None,
-                 radius_px: int = BAND_RADIUS_PX, n_z: int = IMAGE_NZ) -> dict[str, Any]:
+def phantom_dict(
+    spec,
+    n_frames: int,
+    interval_s: float,
+    *,
+    flow_speed: float,
+    ballistic_speed: float,
+    polar_deg: float = FLOW_POLAR_DEG,
+    azimuth_deg: float = FLOW_AZIMUTH_DEG,
+    density: float | None = None,
+    seed: int = 0,
+    snr_db: float | None = None,
+    radius_px: int = BAND_RADIUS_PX,
+    n_z: int = IMAGE_NZ,
+) -> dict[str, Any]:
     """The phantom of one protocol (module docstring) in the phantom-file schema."""
     c0 = spec.configurations[0]
     pitch = _pitch_um(spec)
     density = _density() if density is None else float(density)
     r_um, gap_um = radius_px * pitch, BAND_GAP_PX * pitch
     n_x = 2 * 2 * radius_px + 3 * BAND_GAP_PX
-    motions = {"ballistic": {"kind": "ballistic", "speed_um_per_s": float(ballistic_speed)},
-               "flow": {"kind": "flow", "speed_um_per_s": float(flow_speed), "polar_angle_deg": float(polar_deg),
-                        "azimuth_deg": float(azimuth_deg)}}
+    motions = {
+        "ballistic": {"kind": "ballistic", "speed_um_per_s": float(ballistic_speed)},
+        "flow": {
+            "kind": "flow",
+            "speed_um_per_s": float(flow_speed),
+            "polar_angle_deg": float(polar_deg),
+            "azimuth_deg": float(azimuth_deg),
+        },
+    }
     regions = []
     for k, name in enumerate(BANDS):
         xc = (k - 0.5) * (2 * r_um + gap_um)
-        regions.append({"name": name, "shape": "cylinder", "center_um": [xc, 0.0, 0.0], "axis": [0.0, 0.0, 1.0],
-                        "radius_um": r_um, "density_per_um3": density, "motion": [motions[name]]})
-    system = {"name": "protocol-system", "wavelength_um": c0.wavelength_um,
-              "lateral_resolution_um": c0.lateral_resolution_um, "axial_resolution_um": c0.axial_resolution_um}
+        regions.append(
+            {
+                "name": name,
+                "shape": "cylinder",
+                "center_um": [xc, 0.0, 0.0],
+                "axis": [0.0, 0.0, 1.0],
+                "radius_um": r_um,
+                "density_per_um3": density,
+                "motion": [motions[name]],
+            }
+        )
+    system = {
+        "name": "protocol-system",
+        "wavelength_um": c0.wavelength_um,
+        "lateral_resolution_um": c0.lateral_resolution_um,
+        "axial_resolution_um": c0.axial_resolution_um,
+    }
     if spec.refractive_index != 1.0:
         system["refractive_index"] = spec.refractive_index
-    d: dict[str, Any] = {"name": f"protocol-T{n_frames}-dt{interval_s:g}", "system": [system],
-                         "protocol": {"n_frames": int(n_frames), "frame_interval_s": float(interval_s)},
-                         "grid": {"kind": "bscan", "n_x": n_x, "n_z": int(n_z), "pitch_x_um": pitch,
-                                  "pitch_z_um": pitch, "y_um": 0.0},
-                         "region": regions, "simulation": {"seed": int(seed)}}
+    d: dict[str, Any] = {
+        "name": f"protocol-T{n_frames}-dt{interval_s:g}",
+        "system": [system],
+        "protocol": {"n_frames": int(n_frames), "frame_interval_s": float(interval_s)},
+        "grid": {"kind": "bscan", "n_x": n_x, "n_z": int(n_z), "pitch_x_um": pitch, "pitch_z_um": pitch, "y_um": 0.0},
+        "region": regions,
+        "simulation": {"seed": int(seed)},
+    }
     if snr_db is not None:
         d["noise"] = {"snr_db": float(snr_db)}
     return d
@@ -275,21 +349,23 @@ def decide(channels: Mapping[str, np.ndarray], n_frames: int, pitch_um: float) -
     corr, _ = slow_decorrelation(channels, n_frames=n_frames)
     fast, _ = fast_decorrelation(channels)
     if coherent is None or moved is None or corr is None or fast is None:
-        raise ValueError("the maps lack the speckle channels the decision reads (xc_centre, xc_peak, xc_shift "
-                         "at two lags or more)")
+        raise ValueError(
+            "the maps lack the speckle channels the decision reads (xc_centre, xc_peak, xc_shift at two lags or more)"
+        )
     with np.errstate(invalid="ignore"):
         decorrelated = np.asarray(corr, np.float64) < DECORRELATED_BELOW
     names = ["ballistic", "flow", SET_LABEL]
     to_code = np.array([CODES["ballistic"], CODES["flow"], UNDECIDED])
     start = np.zeros(coherent.shape, np.int64)
     any_moved = np.asarray(moved.off_centre, bool) | np.asarray(moved.grew, bool)
-    out: dict[str, np.ndarray] = {"coherent": coherent, "moved": any_moved, "decorrelated": decorrelated,
-                                  "fast": fast}
-    labels, _ = abstain_where_ambiguous(start, names, bscan=False, correlation=corr, coherent=coherent, fast=fast,
-                                        moved=moved)
+    out: dict[str, np.ndarray] = {"coherent": coherent, "moved": any_moved, "decorrelated": decorrelated, "fast": fast}
+    labels, _ = abstain_where_ambiguous(
+        start, names, bscan=False, correlation=corr, coherent=coherent, fast=fast, moved=moved
+    )
     out["rules"] = to_code[labels]
-    labels, _ = abstain_where_ambiguous(start, names, bscan=False, correlation=corr, coherent=coherent | any_moved,
-                                        fast=fast)
+    labels, _ = abstain_where_ambiguous(
+        start, names, bscan=False, correlation=corr, coherent=coherent | any_moved, fast=fast
+    )
     out["offset-as-flow"] = to_code[labels]
     return out
 
@@ -313,8 +389,12 @@ def _edge_px(spec, pitch: float, window: int) -> int:
     return int(math.ceil(coarser / 2.0 / pitch)) + int(window) // 2 + int(SPECKLE_MAX_OFFSET)
 
 
-def count_outcome(outcome: np.ndarray, truth_codes: np.ndarray, masks: Mapping[str, np.ndarray],
-                  fired: Mapping[str, np.ndarray] | None = None) -> dict[str, dict[str, int]]:
+def count_outcome(
+    outcome: np.ndarray,
+    truth_codes: np.ndarray,
+    masks: Mapping[str, np.ndarray],
+    fired: Mapping[str, np.ndarray] | None = None,
+) -> dict[str, dict[str, int]]:
     """Counts per band: ``pixels`` scored, ``decided``, ``right``, ``wrong`` and, for ``fired`` (rule name ->
     boolean per pixel), the pixels where each fires."""
     outcome = np.asarray(outcome).reshape(-1)
@@ -324,8 +404,12 @@ def count_outcome(outcome: np.ndarray, truth_codes: np.ndarray, masks: Mapping[s
         got = outcome[sel]
         code = CODES[band]
         other = CODES[BANDS[1 - BANDS.index(band)]]
-        c = {"pixels": int(sel.sum()), "decided": int(np.isin(got, list(CODES.values())).sum()),
-             "right": int((got == code).sum()), "wrong": int((got == other).sum())}
+        c = {
+            "pixels": int(sel.sum()),
+            "decided": int(np.isin(got, list(CODES.values())).sum()),
+            "right": int((got == code).sum()),
+            "wrong": int((got == other).sum()),
+        }
         for name, f in (fired or {}).items():
             c[name] = int(np.asarray(f, bool).reshape(-1)[sel].sum())
         out[band] = c
@@ -338,17 +422,25 @@ def score_outcome(counts: Mapping[str, Mapping[str, int]]) -> dict[str, Any]:
     for band in BANDS:
         c = counts[band]
         n, dec = c["pixels"], c["decided"]
-        per[band] = {"pixels": n, "decided": dec, "coverage": dec / n if n else None,
-                     "accuracy": c["right"] / dec if dec else None, "wrong_share": c["wrong"] / n if n else None,
-                     "rules": {k: (c[k] / n if n else None) for k in ("coherent", "moved", "decorrelated", "fast")
-                               if k in c}}
+        per[band] = {
+            "pixels": n,
+            "decided": dec,
+            "coverage": dec / n if n else None,
+            "accuracy": c["right"] / dec if dec else None,
+            "wrong_share": c["wrong"] / n if n else None,
+            "rules": {k: (c[k] / n if n else None) for k in ("coherent", "moved", "decorrelated", "fast") if k in c},
+        }
     n = sum(counts[b]["pixels"] for b in BANDS)
     dec = sum(counts[b]["decided"] for b in BANDS)
     acc = [per[b]["accuracy"] for b in BANDS]
     ws = [per[b]["wrong_share"] for b in BANDS if per[b]["wrong_share"] is not None]
-    return {"per_band": per, "pixels": n, "coverage": dec / n if n else None,
-            "balanced_accuracy": float(np.mean(acc)) if all(a is not None for a in acc) else None,
-            "wrong_share_max": max(ws) if ws else None}
+    return {
+        "per_band": per,
+        "pixels": n,
+        "coverage": dec / n if n else None,
+        "balanced_accuracy": float(np.mean(acc)) if all(a is not None for a in acc) else None,
+        "wrong_share_max": max(ws) if ws else None,
+    }
 
 
 def _render_seq(d: dict[str, Any], seed: int, threads: int | None):
@@ -363,11 +455,22 @@ def _render_seq(d: dict[str, Any], seed: int, threads: int | None):
     return SequenceData(data=data, meta=validate_meta(meta, data.shape), source=d["name"]), np.asarray(res.labels)
 
 
-def run_protocol(variants: Sequence[Variant], spec=None, *, flow_speed: float = FLOW_SPEED,
-                 ballistic_speed: float | None = None, polar_deg: float = FLOW_POLAR_DEG,
-                 azimuth_deg: float = FLOW_AZIMUTH_DEG, seeds: int = SEEDS_FULL, seed: int = 0,
-                 snr_db: float | None = None, radius_px: int = BAND_RADIUS_PX, n_z: int = IMAGE_NZ,
-                 threads: int | None = None, progress: bool = True) -> dict[str, Any]:
+def run_protocol(
+    variants: Sequence[Variant],
+    spec=None,
+    *,
+    flow_speed: float = FLOW_SPEED,
+    ballistic_speed: float | None = None,
+    polar_deg: float = FLOW_POLAR_DEG,
+    azimuth_deg: float = FLOW_AZIMUTH_DEG,
+    seeds: int = SEEDS_FULL,
+    seed: int = 0,
+    snr_db: float | None = None,
+    radius_px: int = BAND_RADIUS_PX,
+    n_z: int = IMAGE_NZ,
+    threads: int | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
     """Render, map, decide and score every variant (module docstring). ``spec``: a
     :class:`~classifier.features.FeatureSpec` or a name/path (default ``signature-bscan``)."""
     from torchdoct.measured.maps import compute_maps
@@ -385,8 +488,11 @@ def run_protocol(variants: Sequence[Variant], spec=None, *, flow_speed: float = 
     for name, v in (("--flow-speed", flow_speed), ("--ballistic-speed", ballistic_speed)):
         if v is not None and not (math.isfinite(v) and v > 0):
             raise ValueError(f"{name} must be a positive speed (µm/s); got {v}")
-    _check_axes(sorted({v.n_frames for v in variants}), sorted({v.interval_factor for v in variants}),
-                sorted({v.window for v in variants}))
+    _check_axes(
+        sorted({v.n_frames for v in variants}),
+        sorted({v.interval_factor for v in variants}),
+        sorted({v.window for v in variants}),
+    )
     density = _density()
     matched = ballistic_speed is None
     if matched:
@@ -407,9 +513,20 @@ def run_protocol(variants: Sequence[Variant], spec=None, *, flow_speed: float = 
         mine = [v for v in variants if (v.n_frames, v.interval_factor) == (n_frames, factor)]
         for k in range(int(seeds)):
             s = int(seed) + k
-            d = phantom_dict(spec, n_frames, interval, flow_speed=flow_speed, ballistic_speed=ballistic_speed,
-                             polar_deg=polar_deg, azimuth_deg=azimuth_deg, density=density, seed=s, snr_db=snr_db,
-                             radius_px=radius_px, n_z=n_z)
+            d = phantom_dict(
+                spec,
+                n_frames,
+                interval,
+                flow_speed=flow_speed,
+                ballistic_speed=ballistic_speed,
+                polar_deg=polar_deg,
+                azimuth_deg=azimuth_deg,
+                density=density,
+                seed=s,
+                snr_db=snr_db,
+                radius_px=radius_px,
+                n_z=n_z,
+            )
             t0 = time.perf_counter()
             seq, truth = _render_seq(d, s, threads)
             t_render = time.perf_counter() - t0
@@ -431,8 +548,13 @@ def run_protocol(variants: Sequence[Variant], spec=None, *, flow_speed: float = 
                             acc[b][key] = acc[b].get(key, 0) + val
                     sc = score_outcome(c)
                     per_seed.setdefault((v, decision), []).append(
-                        {"seed": s, "coverage": sc["coverage"], "balanced_accuracy": sc["balanced_accuracy"],
-                         "wrong_share_max": sc["wrong_share_max"]})
+                        {
+                            "seed": s,
+                            "coverage": sc["coverage"],
+                            "balanced_accuracy": sc["balanced_accuracy"],
+                            "wrong_share_max": sc["wrong_share_max"],
+                        }
+                    )
                 seconds[v]["maps"] += t2 - t1
                 seconds[v]["decide"] += time.perf_counter() - t2
             if bar is not None:
@@ -445,57 +567,145 @@ def run_protocol(variants: Sequence[Variant], spec=None, *, flow_speed: float = 
         for decision in DECISIONS:
             sec = dict(seconds[v])
             sec["total"] = sec["render"] + sec["maps"] + sec["decide"]
-            rows.append({**asdict(v), "key": v.key, "decision": decision, "interval_s": interval,
-                         "acquisition_s": v.n_frames * interval, "lags_frames": list(default_lags(v.n_frames)),
-                         "edge_px": _edge_px(spec, pitch, v.window), "window_um": v.window * pitch,
-                         **score_outcome(counts[(v, decision)]), "per_seed": per_seed[(v, decision)],
-                         "seconds": sec})
+            rows.append(
+                {
+                    **asdict(v),
+                    "key": v.key,
+                    "decision": decision,
+                    "interval_s": interval,
+                    "acquisition_s": v.n_frames * interval,
+                    "lags_frames": list(default_lags(v.n_frames)),
+                    "edge_px": _edge_px(spec, pitch, v.window),
+                    "window_um": v.window * pitch,
+                    **score_outcome(counts[(v, decision)]),
+                    "per_seed": per_seed[(v, decision)],
+                    "seconds": sec,
+                }
+            )
     c0 = spec.configurations[0]
-    return {"schema_version": SCHEMA_VERSION, "benchmark": "protocol", "definitions": _definitions(),
-            "system": {"spec": spec.name, "wavelength_um": c0.wavelength_um,
-                       "lateral_resolution_um": c0.lateral_resolution_um,
-                       "axial_resolution_um": c0.axial_resolution_um, "refractive_index": spec.refractive_index,
-                       "n_frames": spec.n_frames, "frame_interval_s": spec.frame_interval_s},
-            "phantom": {"pitch_um": pitch, "density_per_um3": density, "band_radius_px": int(radius_px),
-                        "band_gap_px": BAND_GAP_PX, "n_z": int(n_z), "seeds": int(seeds), "first_seed": int(seed),
-                        "snr_db": snr_db},
-            "motions": {"flow": {"speed_um_per_s": float(flow_speed), "polar_angle_deg": float(polar_deg),
-                                 "azimuth_deg": float(azimuth_deg)},
-                        "ballistic": {"speed_um_per_s": float(ballistic_speed), "directions": "isotropic",
-                                      "matched": bool(matched),
-                                      "matched_at_s": match_lag_s(spec) if matched else None}},
-            "units": {"speed": "µm/s", "interval_s": "s", "acquisition_s": "s", "window": "px", "window_um": "µm",
-                      "seconds": "s"},
-            "rows": rows, "seconds": time.perf_counter() - t_all, "machine": machine_info()}
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "benchmark": "protocol",
+        "definitions": _definitions(),
+        "system": {
+            "spec": spec.name,
+            "wavelength_um": c0.wavelength_um,
+            "lateral_resolution_um": c0.lateral_resolution_um,
+            "axial_resolution_um": c0.axial_resolution_um,
+            "refractive_index": spec.refractive_index,
+            "n_frames": spec.n_frames,
+            "frame_interval_s": spec.frame_interval_s,
+        },
+        "phantom": {
+            "pitch_um": pitch,
+            "density_per_um3": density,
+            "band_radius_px": int(radius_px),
+            "band_gap_px": BAND_GAP_PX,
+            "n_z": int(n_z),
+            "seeds": int(seeds),
+            "first_seed": int(seed),
+            "snr_db": snr_db,
+        },
+        "motions": {
+            "flow": {
+                "speed_um_per_s": float(flow_speed),
+                "polar_angle_deg": float(polar_deg),
+                "azimuth_deg": float(azimuth_deg),
+            },
+            "ballistic": {
+                "speed_um_per_s": float(ballistic_speed),
+                "directions": "isotropic",
+                "matched": bool(matched),
+                "matched_at_s": match_lag_s(spec) if matched else None,
+            },
+        },
+        "units": {
+            "speed": "µm/s",
+            "interval_s": "s",
+            "acquisition_s": "s",
+            "window": "px",
+            "window_um": "µm",
+            "seconds": "s",
+        },
+        "rows": rows,
+        "seconds": time.perf_counter() - t_all,
+        "machine": machine_info(),
+    }
 
 
 def _definitions() -> dict[str, str]:
     doc = __doc__ or ""
-    cut = lambda a, b: doc[doc.index(a):doc.index(b)].strip()  # noqa: E731
-    return {"phantom": cut("**Phantom of a protocol.**", "**Variants.**"),
-            "variants": cut("**Variants.**", "**Decision**"),
-            "decision": cut("**Decision**", "**Scores of a variant**"),
-            "scores": cut("**Scores of a variant**", "Outputs (")}
+    cut = lambda a, b: doc[doc.index(a) : doc.index(b)].strip()  # noqa: E731
+    return {
+        "phantom": cut("**Phantom of a protocol.**", "**Variants.**"),
+        "variants": cut("**Variants.**", "**Decision**"),
+        "decision": cut("**Decision**", "**Scores of a variant**"),
+        "scores": cut("**Scores of a variant**", "Outputs ("),
+    }
 
 
 # ---------------------------------------------------------------------------------------------- outputs
 
-_COLUMNS = ("key", "decision", "n_frames", "interval_factor", "interval_s", "acquisition_s", "window", "window_um",
-            "pixels", "coverage", "balanced_accuracy", "wrong_share_max", "coverage_ballistic", "accuracy_ballistic",
-            "wrong_ballistic", "coverage_flow", "accuracy_flow", "wrong_flow", "coherent_flow", "moved_flow",
-            "coherent_ballistic", "moved_ballistic", "decorrelated_ballistic", "fast_ballistic", "seconds")
+_COLUMNS = (
+    "key",
+    "decision",
+    "n_frames",
+    "interval_factor",
+    "interval_s",
+    "acquisition_s",
+    "window",
+    "window_um",
+    "pixels",
+    "coverage",
+    "balanced_accuracy",
+    "wrong_share_max",
+    "coverage_ballistic",
+    "accuracy_ballistic",
+    "wrong_ballistic",
+    "coverage_flow",
+    "accuracy_flow",
+    "wrong_flow",
+    "coherent_flow",
+    "moved_flow",
+    "coherent_ballistic",
+    "moved_ballistic",
+    "decorrelated_ballistic",
+    "fast_ballistic",
+    "seconds",
+)
 
 
 def _flat(r: dict[str, Any]) -> dict[str, Any]:
     pb = r["per_band"]
-    out = {k: r[k] for k in ("key", "decision", "n_frames", "interval_factor", "interval_s", "acquisition_s",
-                             "window", "window_um", "pixels", "coverage", "balanced_accuracy", "wrong_share_max")}
+    out = {
+        k: r[k]
+        for k in (
+            "key",
+            "decision",
+            "n_frames",
+            "interval_factor",
+            "interval_s",
+            "acquisition_s",
+            "window",
+            "window_um",
+            "pixels",
+            "coverage",
+            "balanced_accuracy",
+            "wrong_share_max",
+        )
+    }
     for b in BANDS:
         out[f"coverage_{b}"] = pb[b]["coverage"]
         out[f"accuracy_{b}"] = pb[b]["accuracy"]
         out[f"wrong_{b}"] = pb[b]["wrong_share"]
-    for k in ("coherent_flow", "moved_flow", "coherent_ballistic", "moved_ballistic", "decorrelated_ballistic",
-              "fast_ballistic"):
+    for k in (
+        "coherent_flow",
+        "moved_flow",
+        "coherent_ballistic",
+        "moved_ballistic",
+        "decorrelated_ballistic",
+        "fast_ballistic",
+    ):
         rule, band = k.rsplit("_", 1)
         out[k] = pb[band]["rules"].get(rule)
     out["seconds"] = r["seconds"]["total"]
@@ -520,10 +730,15 @@ def headline(res: dict[str, Any], decision: str = "rules") -> list[str]:
         rs = sorted((r for r in rows if (r["interval_factor"], r["window"]) == (f, w)), key=lambda r: r["n_frames"])
         if len(rs) < 2:
             continue
-        parts = [f"{r['n_frames']} frames ({_fmt(r['acquisition_s'])} s) → accuracy {_fmt(r['balanced_accuracy'])}, "
-                 f"coverage {_fmt(r['coverage'])}, wrong {_fmt(r['wrong_share_max'])}" for r in rs]
-        lines.append(f"flow at {m['flow']['speed_um_per_s']:g} µm/s vs ballistic at "
-                     f"{m['ballistic']['speed_um_per_s']:g} µm/s, interval {f:g}×, window {w}: " + "; ".join(parts))
+        parts = [
+            f"{r['n_frames']} frames ({_fmt(r['acquisition_s'])} s) → accuracy {_fmt(r['balanced_accuracy'])}, "
+            f"coverage {_fmt(r['coverage'])}, wrong {_fmt(r['wrong_share_max'])}"
+            for r in rs
+        ]
+        lines.append(
+            f"flow at {m['flow']['speed_um_per_s']:g} µm/s vs ballistic at "
+            f"{m['ballistic']['speed_um_per_s']:g} µm/s, interval {f:g}×, window {w}: " + "; ".join(parts)
+        )
     return lines
 
 
@@ -531,15 +746,20 @@ def format_table(res: dict[str, Any]) -> str:
     """The Markdown report: the setting, the headline lines, one table per decision, the definitions."""
     s, m, ph = res["system"], res["motions"], res["phantom"]
     b = m["ballistic"]
-    lines = [f"# What accuracy costs in acquisition time ({res['benchmark']}, schema {res['schema_version']})", "",
-             f"System of spec `{s['spec']}`: {s['wavelength_um'] * 1000:g} nm, lateral {s['lateral_resolution_um']:g} µm, "
-             f"axial {s['axial_resolution_um']:g} µm, own protocol {s['n_frames']} frames at "
-             f"{s['frame_interval_s']:g} s. Flow {m['flow']['speed_um_per_s']:g} µm/s at polar "
-             f"{m['flow']['polar_angle_deg']:g}°, azimuth {m['flow']['azimuth_deg']:g}°; random-ballistic "
-             f"{b['speed_um_per_s']:g} µm/s ({b['directions']}"
-             + (f", matched to the flow's single-pixel correlation at {b['matched_at_s']:g} s" if b["matched"] else "")
-             + f"). Pitch {ph['pitch_um']:g} µm, {ph['seeds']} seed(s), "
-             + ("no noise" if ph["snr_db"] is None else f"{ph['snr_db']:g} dB SNR") + ".", ""]
+    lines = [
+        f"# What accuracy costs in acquisition time ({res['benchmark']}, schema {res['schema_version']})",
+        "",
+        f"System of spec `{s['spec']}`: {s['wavelength_um'] * 1000:g} nm, lateral {s['lateral_resolution_um']:g} µm, "
+        f"axial {s['axial_resolution_um']:g} µm, own protocol {s['n_frames']} frames at "
+        f"{s['frame_interval_s']:g} s. Flow {m['flow']['speed_um_per_s']:g} µm/s at polar "
+        f"{m['flow']['polar_angle_deg']:g}°, azimuth {m['flow']['azimuth_deg']:g}°; random-ballistic "
+        f"{b['speed_um_per_s']:g} µm/s ({b['directions']}"
+        + (f", matched to the flow's single-pixel correlation at {b['matched_at_s']:g} s" if b["matched"] else "")
+        + f"). Pitch {ph['pitch_um']:g} µm, {ph['seeds']} seed(s), "
+        + ("no noise" if ph["snr_db"] is None else f"{ph['snr_db']:g} dB SNR")
+        + ".",
+        "",
+    ]
     if res.get("command"):
         lines += [f"Command: `{res['command']}`", ""]
     for decision in DECISIONS:
@@ -548,12 +768,38 @@ def format_table(res: dict[str, Any]) -> str:
             continue
         lines += [f"## Decision `{decision}`", ""]
         lines += [f"* {h}" for h in headline(res, decision)]
-        cols = ("n_frames", "interval_s", "acquisition_s", "window", "coverage", "balanced_accuracy",
-                "wrong_share_max", "coverage_flow", "accuracy_flow", "wrong_flow", "coverage_ballistic",
-                "accuracy_ballistic", "wrong_ballistic", "seconds")
-        head = ("frames", "interval (s)", "acquisition (s)", "window (px)", "coverage", "balanced accuracy",
-                "worst wrong share", "flow coverage", "flow accuracy", "flow wrong", "ballistic coverage",
-                "ballistic accuracy", "ballistic wrong", "compute (s)")
+        cols = (
+            "n_frames",
+            "interval_s",
+            "acquisition_s",
+            "window",
+            "coverage",
+            "balanced_accuracy",
+            "wrong_share_max",
+            "coverage_flow",
+            "accuracy_flow",
+            "wrong_flow",
+            "coverage_ballistic",
+            "accuracy_ballistic",
+            "wrong_ballistic",
+            "seconds",
+        )
+        head = (
+            "frames",
+            "interval (s)",
+            "acquisition (s)",
+            "window (px)",
+            "coverage",
+            "balanced accuracy",
+            "worst wrong share",
+            "flow coverage",
+            "flow accuracy",
+            "flow wrong",
+            "ballistic coverage",
+            "ballistic accuracy",
+            "ballistic wrong",
+            "compute (s)",
+        )
         lines += ["", "| " + " | ".join(head) + " |", "|" + "---:|" * len(head)]
         for r in rows:
             f = _flat(r)
@@ -593,26 +839,37 @@ def plot_protocol(res: dict[str, Any], path: str | Path) -> None:
     decisions = [d for d in DECISIONS if any(r["decision"] == d for r in rows)]
     windows = sorted({r["window"] for r in rows})
     frames = sorted({r["n_frames"] for r in rows})
-    fields = (("coverage", "coverage", "decided share of the bands (fraction)"),
-              ("balanced_accuracy", "balanced accuracy on decided pixels", "right share, mean of the bands (fraction)"),
-              ("wrong_share_max", "worst wrong share", "decided as the other class (fraction)"))
+    fields = (
+        ("coverage", "coverage", "decided share of the bands (fraction)"),
+        ("balanced_accuracy", "balanced accuracy on decided pixels", "right share, mean of the bands (fraction)"),
+        ("wrong_share_max", "worst wrong share", "decided as the other class (fraction)"),
+    )
     times = sorted({r["acquisition_s"] for r in rows})
-    fig, axes = plt.subplots(len(decisions), 3, figsize=(13, 3.6 * len(decisions)), squeeze=False,
-                             constrained_layout=True)
+    fig, axes = plt.subplots(
+        len(decisions), 3, figsize=(13, 3.6 * len(decisions)), squeeze=False, constrained_layout=True
+    )
     for i, decision in enumerate(decisions):
         rs = [r for r in rows if r["decision"] == decision]
         for j, (field, label, unit) in enumerate(fields):
             ax = axes[i][j]
             for f, w in sorted({(r["interval_factor"], r["window"]) for r in rs}):
-                line = sorted((r for r in rs if (r["interval_factor"], r["window"]) == (f, w)),
-                              key=lambda r: r["acquisition_s"])
+                line = sorted(
+                    (r for r in rs if (r["interval_factor"], r["window"]) == (f, w)), key=lambda r: r["acquisition_s"]
+                )
                 xs = [r["acquisition_s"] for r in line]
                 ys = [np.nan if r[field] is None else r[field] for r in line]
                 colour = _OKABE_ITO[windows.index(w) % len(_OKABE_ITO)]
                 ax.plot(xs, ys, "-", color=colour, alpha=0.5, lw=1)
                 for r, y in zip(line, ys):
-                    ax.plot(r["acquisition_s"], y, _MARKERS[frames.index(r["n_frames"]) % len(_MARKERS)],
-                            color=colour, ms=6, mec="black", mew=0.4)
+                    ax.plot(
+                        r["acquisition_s"],
+                        y,
+                        _MARKERS[frames.index(r["n_frames"]) % len(_MARKERS)],
+                        color=colour,
+                        ms=6,
+                        mec="black",
+                        mew=0.4,
+                    )
             ax.set_xscale("log")
             ax.xaxis.set_minor_locator(NullLocator())
             ax.set_xticks(times, [f"{t:.3g}" for t in times], fontsize=7)
@@ -621,14 +878,21 @@ def plot_protocol(res: dict[str, Any], path: str | Path) -> None:
             ax.set_ylabel(unit, fontsize=8)
             ax.set_title(f"{decision}: {label}", fontsize=9)
             ax.grid(alpha=0.3)
-    handles = [Line2D([], [], color=_OKABE_ITO[k % len(_OKABE_ITO)], lw=2, label=f"window {w} px")
-               for k, w in enumerate(windows)]
-    handles += [Line2D([], [], ls="", marker=_MARKERS[k % len(_MARKERS)], color="grey", mec="black",
-                       label=f"{n} frames") for k, n in enumerate(frames)]
+    handles = [
+        Line2D([], [], color=_OKABE_ITO[k % len(_OKABE_ITO)], lw=2, label=f"window {w} px")
+        for k, w in enumerate(windows)
+    ]
+    handles += [
+        Line2D([], [], ls="", marker=_MARKERS[k % len(_MARKERS)], color="grey", mec="black", label=f"{n} frames")
+        for k, n in enumerate(frames)
+    ]
     fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=8)
     m = res["motions"]
-    fig.suptitle(f"flow {m['flow']['speed_um_per_s']:g} µm/s vs random-ballistic "
-                 f"{m['ballistic']['speed_um_per_s']:g} µm/s, spec {res['system']['spec']}", fontsize=10)
+    fig.suptitle(
+        f"flow {m['flow']['speed_um_per_s']:g} µm/s vs random-ballistic "
+        f"{m['ballistic']['speed_um_per_s']:g} µm/s, spec {res['system']['spec']}",
+        fontsize=10,
+    )
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -636,8 +900,9 @@ def plot_protocol(res: dict[str, Any], path: str | Path) -> None:
 SUFFIXES = (".json", ".csv", ".md", ".png")
 
 
-def write_protocol(res: dict[str, Any], out_dir: str | Path, *, force: bool = False,
-                   stem: str = "protocol") -> list[Path]:
+def write_protocol(
+    res: dict[str, Any], out_dir: str | Path, *, force: bool = False, stem: str = "protocol"
+) -> list[Path]:
     """Write ``STEM.json``, ``.csv``, ``.md`` and ``.png`` into ``out_dir`` together (all or none)."""
     from torchdoct.files import output_set
 
@@ -679,31 +944,56 @@ def build_parser():
     p = argparse.ArgumentParser(
         prog="python -m classifier.bench.protocol",
         description="What accuracy costs in acquisition time: render flow and random-ballistic bands for every "
-                    "frame count, frame interval and window, decide each pixel from the speckle pattern's "
-                    "physics (classifier.ambiguity) and score coverage, accuracy and wrong share; writes "
-                    "STEM.json/.csv/.md/.png into --out.")
+        "frame count, frame interval and window, decide each pixel from the speckle pattern's "
+        "physics (classifier.ambiguity) and score coverage, accuracy and wrong share; writes "
+        "STEM.json/.csv/.md/.png into --out.",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
-    p.add_argument("--quick", action="store_true",
-                   help=f"one axis at a time around the centre, {SEEDS_QUICK} seeds (within 5 minutes on 2 cores)")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"one axis at a time around the centre, {SEEDS_QUICK} seeds (within 5 minutes on 2 cores)",
+    )
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--spec", default=None, metavar="NAME|FILE.toml",
-                     help="the system: a shipped feature spec or a spec file (default signature-bscan, the "
-                          "shipped signature model's system)")
-    src.add_argument("--like", nargs="+", default=None, metavar="MAPS",
-                     help="the system of these maps files (as doct-train --like derives it)")
+    src.add_argument(
+        "--spec",
+        default=None,
+        metavar="NAME|FILE.toml",
+        help="the system: a shipped feature spec or a spec file (default signature-bscan, the "
+        "shipped signature model's system)",
+    )
+    src.add_argument(
+        "--like",
+        nargs="+",
+        default=None,
+        metavar="MAPS",
+        help="the system of these maps files (as doct-train --like derives it)",
+    )
     p.add_argument("--frames", default=",".join(map(str, FRAMES)), help="frame counts (default %(default)s)")
-    p.add_argument("--intervals", default=",".join(f"{f:g}" for f in INTERVAL_FACTORS),
-                   help="frame intervals as multiples of the system's (default %(default)s)")
-    p.add_argument("--windows", default=",".join(map(str, WINDOWS)),
-                   help="speckle windows, odd pixels (default %(default)s)")
+    p.add_argument(
+        "--intervals",
+        default=",".join(f"{f:g}" for f in INTERVAL_FACTORS),
+        help="frame intervals as multiples of the system's (default %(default)s)",
+    )
+    p.add_argument(
+        "--windows", default=",".join(map(str, WINDOWS)), help="speckle windows, odd pixels (default %(default)s)"
+    )
     p.add_argument("--flow-speed", type=float, default=FLOW_SPEED, help="flow speed, µm/s (default %(default)s)")
     p.add_argument("--polar", type=float, default=FLOW_POLAR_DEG, help="flow polar angle from the beam, deg")
     p.add_argument("--azimuth", type=float, default=FLOW_AZIMUTH_DEG, help="flow azimuth from +x, deg")
-    p.add_argument("--ballistic-speed", type=float, default=None,
-                   help="random-ballistic speed, µm/s (default: matched to the flow's single-pixel correlation)")
+    p.add_argument(
+        "--ballistic-speed",
+        type=float,
+        default=None,
+        help="random-ballistic speed, µm/s (default: matched to the flow's single-pixel correlation)",
+    )
     p.add_argument("--snr-db", type=float, default=None, help="add noise at this SNR (default none)")
-    p.add_argument("--seeds", type=int, default=None,
-                   help=f"scatterer realisations per protocol (default {SEEDS_FULL}, --quick {SEEDS_QUICK})")
+    p.add_argument(
+        "--seeds",
+        type=int,
+        default=None,
+        help=f"scatterer realisations per protocol (default {SEEDS_FULL}, --quick {SEEDS_QUICK})",
+    )
     p.add_argument("--seed", type=int, default=0, help="first rendering seed")
     p.add_argument("--stem", default="protocol", help="file names STEM.json, STEM.csv, ... (default protocol)")
     p.add_argument("--threads", type=int, default=None, metavar="N")
@@ -720,13 +1010,19 @@ def _command_line(args) -> str:
         parts.append(f"--spec {args.spec}")
     if args.like:
         parts.append("--like MAPS")
-    for opt, val, default in (("--frames", args.frames, ",".join(map(str, FRAMES))),
-                              ("--intervals", args.intervals, ",".join(f"{f:g}" for f in INTERVAL_FACTORS)),
-                              ("--windows", args.windows, ",".join(map(str, WINDOWS))),
-                              ("--flow-speed", args.flow_speed, FLOW_SPEED), ("--polar", args.polar, FLOW_POLAR_DEG),
-                              ("--azimuth", args.azimuth, FLOW_AZIMUTH_DEG),
-                              ("--ballistic-speed", args.ballistic_speed, None), ("--snr-db", args.snr_db, None),
-                              ("--seeds", args.seeds, None), ("--seed", args.seed, 0), ("--stem", args.stem, "protocol")):
+    for opt, val, default in (
+        ("--frames", args.frames, ",".join(map(str, FRAMES))),
+        ("--intervals", args.intervals, ",".join(f"{f:g}" for f in INTERVAL_FACTORS)),
+        ("--windows", args.windows, ",".join(map(str, WINDOWS))),
+        ("--flow-speed", args.flow_speed, FLOW_SPEED),
+        ("--polar", args.polar, FLOW_POLAR_DEG),
+        ("--azimuth", args.azimuth, FLOW_AZIMUTH_DEG),
+        ("--ballistic-speed", args.ballistic_speed, None),
+        ("--snr-db", args.snr_db, None),
+        ("--seeds", args.seeds, None),
+        ("--seed", args.seed, 0),
+        ("--stem", args.stem, "protocol"),
+    ):
         if val != default:
             parts.append(f"{opt} {val:g}" if isinstance(val, float) else f"{opt} {val}")
     return " ".join(parts + ["--out DIR"])
@@ -762,9 +1058,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             from ..features import load_spec
 
             spec = load_spec(args.spec or "signature-bscan")
-        res = run_protocol(variants, spec, flow_speed=args.flow_speed, ballistic_speed=args.ballistic_speed,
-                           polar_deg=args.polar, azimuth_deg=args.azimuth, seeds=seeds, seed=args.seed,
-                           snr_db=args.snr_db, threads=args.threads, progress=not args.no_progress)
+        res = run_protocol(
+            variants,
+            spec,
+            flow_speed=args.flow_speed,
+            ballistic_speed=args.ballistic_speed,
+            polar_deg=args.polar,
+            azimuth_deg=args.azimuth,
+            seeds=seeds,
+            seed=args.seed,
+            snr_db=args.snr_db,
+            threads=args.threads,
+            progress=not args.no_progress,
+        )
         res["command"] = _command_line(args)
         written = write_protocol(res, out, force=args.force, stem=args.stem)
     except (ValueError, OSError) as err:

@@ -11,9 +11,11 @@ def _parsers() -> dict[str, tuple[str, argparse.ArgumentParser]]:
     from classifier.cli import build_classify_parser, build_train_parser
     from torchdoct.cli import build_parser
 
-    return {"torchdoct": ("torchdoct", build_parser()),
-            "doct-train": ("doct-train", build_train_parser()),
-            "doct-classify": ("doct-classify", build_classify_parser())}
+    return {
+        "torchdoct": ("torchdoct", build_parser()),
+        "doct-train": ("doct-train", build_train_parser()),
+        "doct-classify": ("doct-classify", build_classify_parser()),
+    }
 
 
 def _arg_row(parser: argparse.ArgumentParser, a: argparse.Action) -> list[str]:
@@ -43,8 +45,11 @@ def _section(parser: argparse.ArgumentParser, level: int, summary: str = "") -> 
     if parser.description and parser.description != summary:
         out += [parser.description, ""]
     out += ["```text", parser.format_usage().replace("usage: ", "").strip(), "```", ""]
-    rows = [_arg_row(parser, a) for a in parser._actions
-            if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction))]
+    rows = [
+        _arg_row(parser, a)
+        for a in parser._actions
+        if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction))
+    ]
     if rows:
         out += ["| argument | what it does | default |", "|---|---|---|"]
         out += ["| " + " | ".join(r) + " |" for r in rows] + [""]
@@ -60,9 +65,13 @@ def _section(parser: argparse.ArgumentParser, level: int, summary: str = "") -> 
 
 def page(name: str) -> str:
     prog, parser = _parsers()[name]
-    out = [f"# `{prog}`", "",
-           f"Generated at build time from the parser of `{prog}`; `{prog} --help` prints the same. "
-           "Exit codes are on the [command line page](index.md).", ""]
+    out = [
+        f"# `{prog}`",
+        "",
+        f"Generated at build time from the parser of `{prog}`; `{prog} --help` prints the same. "
+        "Exit codes are on the [command line page](index.md).",
+        "",
+    ]
     body = _section(parser, 2)
     return "\n".join(out + body[2:])
 

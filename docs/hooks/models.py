@@ -40,21 +40,42 @@ def _independent(root: Path, name: str) -> tuple[dict[str, Any], str] | None:
 
 
 def _spec_table(spec: dict[str, Any]) -> str:
-    rows = [[c["name"], num(c["wavelength_um"] * 1000, 4), num(c["lateral_resolution_um"]),
-             num(c.get("lateral_resolution_y_um", c["lateral_resolution_um"])), num(c["axial_resolution_um"])]
-            for c in spec["configuration"]]
-    return table(["configuration", "wavelength (nm)", "lateral 1/e² width x (µm)", "lateral width y (µm)",
-                  "axial FWHM (µm)"], rows)
+    rows = [
+        [
+            c["name"],
+            num(c["wavelength_um"] * 1000, 4),
+            num(c["lateral_resolution_um"]),
+            num(c.get("lateral_resolution_y_um", c["lateral_resolution_um"])),
+            num(c["axial_resolution_um"]),
+        ]
+        for c in spec["configuration"]
+    ]
+    return table(
+        ["configuration", "wavelength (nm)", "lateral 1/e² width x (µm)", "lateral width y (µm)", "axial FWHM (µm)"],
+        rows,
+    )
 
 
 def _prior_table(prior: dict[str, Any]) -> str:
-    unit = {"diffusion_um2_per_s": "D (µm²/s)", "speed_um_per_s": "random-ballistic speed (µm/s)",
-            "flow_speed_um_per_s": "flow speed (µm/s)", "flow_polar_angle_deg": "flow polar angle (°)",
-            "density_per_um3": "density (µm⁻³)", "snr_db": "SNR (dB)", "static_fraction": "static fraction"}
+    unit = {
+        "diffusion_um2_per_s": "D (µm²/s)",
+        "speed_um_per_s": "random-ballistic speed (µm/s)",
+        "flow_speed_um_per_s": "flow speed (µm/s)",
+        "flow_polar_angle_deg": "flow polar angle (°)",
+        "density_per_um3": "density (µm⁻³)",
+        "snr_db": "SNR (dB)",
+        "static_fraction": "static fraction",
+    }
     rows = []
     for k, v in prior.items():
         label = unit.get(k, k.replace("_", " "))
-        val = f"{num(v[0])} – {num(v[1])}" if isinstance(v, list) and len(v) == 2 else num(v) if isinstance(v, (int, float)) else str(v)
+        val = (
+            f"{num(v[0])} – {num(v[1])}"
+            if isinstance(v, list) and len(v) == 2
+            else num(v)
+            if isinstance(v, (int, float))
+            else str(v)
+        )
         rows.append([label, val])
     return table(["prior", "range or value"], rows)
 
@@ -63,12 +84,27 @@ def _pools(test: dict[str, Any], se: dict[str, Any]) -> str:
     rows = []
     for pool, m in test.items():
         s = se.get(pool, {})
-        rows.append([pool, pm(m.get("coverage_identifiable"), s.get("coverage_identifiable")),
-                     pm(m.get("balanced_accuracy_identifiable"), s.get("balanced_accuracy_identifiable")),
-                     pm(m.get("accuracy_identifiable"), s.get("accuracy_identifiable")), pm(m.get("ece"), s.get("ece")),
-                     num(m.get("indeterminate_fraction"))])
-    return table(["pool (pixels)", "coverage (identifiable)", "balanced accuracy (decided)", "accuracy (decided)",
-                  "ECE", "indeterminate share (all)"], rows)
+        rows.append(
+            [
+                pool,
+                pm(m.get("coverage_identifiable"), s.get("coverage_identifiable")),
+                pm(m.get("balanced_accuracy_identifiable"), s.get("balanced_accuracy_identifiable")),
+                pm(m.get("accuracy_identifiable"), s.get("accuracy_identifiable")),
+                pm(m.get("ece"), s.get("ece")),
+                num(m.get("indeterminate_fraction")),
+            ]
+        )
+    return table(
+        [
+            "pool (pixels)",
+            "coverage (identifiable)",
+            "balanced accuracy (decided)",
+            "accuracy (decided)",
+            "ECE",
+            "indeterminate share (all)",
+        ],
+        rows,
+    )
 
 
 def _baselines(test: dict[str, Any], timing: dict[str, Any]) -> str:
@@ -78,19 +114,37 @@ def _baselines(test: dict[str, Any], timing: dict[str, Any]) -> str:
         if not m:
             continue
         t = timing.get(name, {})
-        rows.append([name, num(m.get("coverage_identifiable")), num(m.get("balanced_accuracy_identifiable")),
-                     num(m.get("ece")), num(t.get("train_s")), num(t.get("inference_us_per_sample"))])
+        rows.append(
+            [
+                name,
+                num(m.get("coverage_identifiable")),
+                num(m.get("balanced_accuracy_identifiable")),
+                num(m.get("ece")),
+                num(t.get("train_s")),
+                num(t.get("inference_us_per_sample")),
+            ]
+        )
     for name, t in timing.items():
         if name not in test:
             rows.append([name, "", "", "", num(t.get("train_s")), num(t.get("inference_us_per_sample"))])
-    return table(["model (pool 1)", "coverage", "balanced accuracy", "ECE", "training (s)", "inference (µs/sample)"], rows)
+    return table(
+        ["model (pool 1)", "coverage", "balanced accuracy", "ECE", "training (s)", "inference (µs/sample)"], rows
+    )
 
 
 def _coverage_curve(curve: list[dict[str, Any]]) -> str:
-    rows = [[num(r["min_probability"]), num(r["coverage_identifiable"]), num(r["balanced_accuracy_identifiable"]),
-             num(r.get("non_identifiable_decided"))] for r in curve]
-    return table(["`--min-probability`", "coverage (identifiable)", "balanced accuracy", "non-identifiable pixels decided"],
-                 rows)
+    rows = [
+        [
+            num(r["min_probability"]),
+            num(r["coverage_identifiable"]),
+            num(r["balanced_accuracy_identifiable"]),
+            num(r.get("non_identifiable_decided")),
+        ]
+        for r in curve
+    ]
+    return table(
+        ["`--min-probability`", "coverage (identifiable)", "balanced accuracy", "non-identifiable pixels decided"], rows
+    )
 
 
 def _flow_bands(fb: dict[str, Any]) -> str:
@@ -99,7 +153,10 @@ def _flow_bands(fb: dict[str, Any]) -> str:
 
 
 def _magnitude(mag: dict[str, Any]) -> str:
-    rows = [[pool, num(m["median_abs_log10_error"]), num(m["coverage_68"]), num(m["coverage_95"])] for pool, m in mag.items()]
+    rows = [
+        [pool, num(m["median_abs_log10_error"]), num(m["coverage_68"]), num(m["coverage_95"])]
+        for pool, m in mag.items()
+    ]
     return table(["pool", "median \\|log10 error\\|", "in 68 % interval", "in 95 % interval"], rows)
 
 
@@ -108,13 +165,15 @@ def _calibration(root: Path, name: str) -> list[str]:
     if not p.is_file():
         return ["This model has no conformal calibration beside it, so `doct-classify` applies the rule above."]
     c = json.loads(p.read_text(encoding="utf-8"))
-    return [f"**Default decision: conformal prediction sets.** The model is calibrated beside its ONNX file "
-            f"(`{p.relative_to(root).as_posix()}`, written by `{c['command']}`): `doct-classify` answers, per pixel, "
-            f"the set of classes the {c.get('mode', 'conformal')} calibration keeps at `--alpha` (default "
-            f"{num(c['default_alpha'])}). {c['guarantee']} A set of two motions is answered as such (for example "
-            "`ballistic-or-flow`), and where the physics cannot tell the motions apart the answer is a set too "
-            "([Abstention](../abstention.md)); `--decision rule` applies the rule above instead, "
-            "`--decide-ballistic` keeps the model's own ballistic decisions."]
+    return [
+        f"**Default decision: conformal prediction sets.** The model is calibrated beside its ONNX file "
+        f"(`{p.relative_to(root).as_posix()}`, written by `{c['command']}`): `doct-classify` answers, per pixel, "
+        f"the set of classes the {c.get('mode', 'conformal')} calibration keeps at `--alpha` (default "
+        f"{num(c['default_alpha'])}). {c['guarantee']} A set of two motions is answered as such (for example "
+        "`ballistic-or-flow`), and where the physics cannot tell the motions apart the answer is a set too "
+        "([Abstention](../abstention.md)); `--decision rule` applies the rule above instead, "
+        "`--decide-ballistic` keeps the model's own ballistic decisions."
+    ]
 
 
 def _grid_runs(root: Path) -> list[tuple[Path, dict[str, Any]]]:
@@ -141,18 +200,49 @@ def _grid(root: Path, name: str) -> list[str]:
             decision += ", `--decide-ballistic`"
         geometry = ", ".join(sorted({c["geometry"] for c in cells}))
         for pool, s in summarize(cells).items():
-            rows.append([f"[`{p.stem}`](../benchmarks/{p.stem}.md)", decision, geometry, pool, s["cells"],
-                         num(s["mean_coverage"]), num(s["min_coverage"]), num(s["mean_balanced_accuracy"]),
-                         num(s["worst_wrong_share"]), s["cells_over_10pct_wrong"]])
+            rows.append(
+                [
+                    f"[`{p.stem}`](../benchmarks/{p.stem}.md)",
+                    decision,
+                    geometry,
+                    pool,
+                    s["cells"],
+                    num(s["mean_coverage"]),
+                    num(s["min_coverage"]),
+                    num(s["mean_balanced_accuracy"]),
+                    num(s["worst_wrong_share"]),
+                    s["cells_over_10pct_wrong"],
+                ]
+            )
     if not rows:
         models = ", ".join(f"`{m}`" for m in sorted(used)) or "no model"
-        return [f"No recorded run of the [phantom grid](../benchmarks/grid.md) uses this model (the recorded runs "
-                f"use {models}: the models `doct-classify` picks for signature maps).", ""]
-    return ["Phantoms built from the model's system, rendered, mapped and classified end to end, scored against "
-            "the rendered labels ([the phantom grid](../benchmarks/grid.md); each run's file gives every cell and "
-            "its `command`):", "",
-            table(["run", "decision", "geometry", "window (`--pool`)", "cells", "mean coverage", "lowest coverage",
-                   "mean balanced accuracy", "worst wrong share", "cells over 10 % wrong"], rows), ""]
+        return [
+            f"No recorded run of the [phantom grid](../benchmarks/grid.md) uses this model (the recorded runs "
+            f"use {models}: the models `doct-classify` picks for signature maps).",
+            "",
+        ]
+    return [
+        "Phantoms built from the model's system, rendered, mapped and classified end to end, scored against "
+        "the rendered labels ([the phantom grid](../benchmarks/grid.md); each run's file gives every cell and "
+        "its `command`):",
+        "",
+        table(
+            [
+                "run",
+                "decision",
+                "geometry",
+                "window (`--pool`)",
+                "cells",
+                "mean coverage",
+                "lowest coverage",
+                "mean balanced accuracy",
+                "worst wrong share",
+                "cells over 10 % wrong",
+            ],
+            rows,
+        ),
+        "",
+    ]
 
 
 def card(root: Path, name: str) -> str:
@@ -161,72 +251,130 @@ def card(root: Path, name: str) -> str:
     spec, cfg, rule = r["spec"], r["config"], r["rule"]
     report = rp.relative_to(root).as_posix()
     retrain = "doct-train --out DIR" if name == "single-acquisition" else f"doct-train --spec {name} --out DIR"
-    out = [f"# Model card: `{name}`", "",
-           f"{spec['description']}.", "",
-           f"**Used for:** {_USE.get(name, 'maps whose channels match the configurations below')}; `doct-classify` "
-           "picks it by matching every feature to a maps channel by its optics.", "",
-           f"**Files:** `{MODEL_DIR}/{name}.onnx` (the model), `{report}` (this card's source: the training report), "
-           f"`{MODEL_DIR}/{name}.md` (the report as text). **Retrain:** `{retrain}` (seed {r['seed']}; classifier "
-           f"{r['classifier_version']}, torchdoct {r['torchdoct_version']}, torch {r['torch_version']}).", "",
-           "## Specification", "",
-           f"{len(r['feature_names'])} features: {', '.join(f'`{m}`' for m in spec['metrics'])} at each configuration; "
-           f"{spec['protocol']['n_frames']} frames {num(spec['protocol']['frame_interval_s'], 4)} s apart, refractive index "
-           f"{num(spec['refractive_index'])}; classes {', '.join(r['classes'])}.", "",
-           _spec_table(spec), "",
-           "## Training data", "",
-           f"Simulated by `torchdoct` ({cfg['truncation']} PSF truncation at {num(cfg['truncation_tolerance'])}): "
-           f"{cfg['draws_train']} / {cfg['draws_validation']} / {cfg['draws_test']} draws (train / validation / test) "
-           f"× {cfg['replicates']} replicates × {cfg['trials_per_draw']} trials; network {' × '.join(map(str, cfg['hidden']))} "
-           f"hidden units. Each draw samples the prior below:", "",
-           _prior_table(r["prior"]), "",
-           "## When it abstains", "",
-           f"The rule: {rule['definition']} The default `--min-probability` is "
-           f"{num(rule['min_probability'])} and the identifiability threshold ε = {num(rule.get('epsilon'))}.", "",
-           "Trading coverage for accuracy on the own test split (pool 1):", "",
-           _coverage_curve(r["coverage_curve"]["1"]), "",
-           *_calibration(root, name), "",
-           "## Results on its own test split", "",
-           "Coverage and accuracies over the identifiable test pixels (± bootstrap SE over draws):", "",
-           _pools(r["test"]["network"], r.get("standard_errors", {})), ""]
+    out = [
+        f"# Model card: `{name}`",
+        "",
+        f"{spec['description']}.",
+        "",
+        f"**Used for:** {_USE.get(name, 'maps whose channels match the configurations below')}; `doct-classify` "
+        "picks it by matching every feature to a maps channel by its optics.",
+        "",
+        f"**Files:** `{MODEL_DIR}/{name}.onnx` (the model), `{report}` (this card's source: the training report), "
+        f"`{MODEL_DIR}/{name}.md` (the report as text). **Retrain:** `{retrain}` (seed {r['seed']}; classifier "
+        f"{r['classifier_version']}, torchdoct {r['torchdoct_version']}, torch {r['torch_version']}).",
+        "",
+        "## Specification",
+        "",
+        f"{len(r['feature_names'])} features: {', '.join(f'`{m}`' for m in spec['metrics'])} at each configuration; "
+        f"{spec['protocol']['n_frames']} frames {num(spec['protocol']['frame_interval_s'], 4)} s apart, refractive index "
+        f"{num(spec['refractive_index'])}; classes {', '.join(r['classes'])}.",
+        "",
+        _spec_table(spec),
+        "",
+        "## Training data",
+        "",
+        f"Simulated by `torchdoct` ({cfg['truncation']} PSF truncation at {num(cfg['truncation_tolerance'])}): "
+        f"{cfg['draws_train']} / {cfg['draws_validation']} / {cfg['draws_test']} draws (train / validation / test) "
+        f"× {cfg['replicates']} replicates × {cfg['trials_per_draw']} trials; network {' × '.join(map(str, cfg['hidden']))} "
+        f"hidden units. Each draw samples the prior below:",
+        "",
+        _prior_table(r["prior"]),
+        "",
+        "## When it abstains",
+        "",
+        f"The rule: {rule['definition']} The default `--min-probability` is "
+        f"{num(rule['min_probability'])} and the identifiability threshold ε = {num(rule.get('epsilon'))}.",
+        "",
+        "Trading coverage for accuracy on the own test split (pool 1):",
+        "",
+        _coverage_curve(r["coverage_curve"]["1"]),
+        "",
+        *_calibration(root, name),
+        "",
+        "## Results on its own test split",
+        "",
+        "Coverage and accuracies over the identifiable test pixels (± bootstrap SE over draws):",
+        "",
+        _pools(r["test"]["network"], r.get("standard_errors", {})),
+        "",
+    ]
     out += ["Against baselines trained on the same data:", "", _baselines(r["test"], r.get("timing", {})), ""]
     if r.get("flow_bands", {}).get("1"):
         out += ["Flow recall by polar angle (pool 1):", "", _flow_bands(r["flow_bands"]["1"]), ""]
     if r.get("magnitude"):
-        out += ["Motion magnitude (log10 D or v) on the pixels decided with the right type:", "",
-                _magnitude(r["magnitude"]), ""]
+        out += [
+            "Motion magnitude (log10 D or v) on the pixels decided with the right type:",
+            "",
+            _magnitude(r["magnitude"]),
+            "",
+        ]
     if r.get("shifted_prior"):
         sp = r["shifted_prior"]
-        out += ["On a shifted prior (a test set drawn from a prior the model was not trained on):", "",
-                _pools(sp["test"], {}), ""]
+        out += [
+            "On a shifted prior (a test set drawn from a prior the model was not trained on):",
+            "",
+            _pools(sp["test"], {}),
+            "",
+        ]
     out += ["## Results on the phantom grid", "", *_grid(root, name)]
     ind = _independent(root, name)
     out += ["## Results on independent data", ""]
     limits: list[str] = []
     if ind:
         e, ep = ind
-        out += [f"An independent brute-force simulator (sharing no code with the kernel) on a prior the model was not "
-                f"trained on: {e['prior']['text']}. {e['draws']} draws; ± bootstrap SE over draws.", "",
-                table(["pool", "coverage", "balanced accuracy", "ECE"],
-                      [[pool, pm(v["metrics"]["coverage_identifiable"], v["standard_errors"].get("coverage_identifiable")),
-                        pm(v["metrics"]["balanced_accuracy_identifiable"],
-                           v["standard_errors"].get("balanced_accuracy_identifiable")),
-                        pm(v["metrics"]["ece"], v["standard_errors"].get("ece"))] for pool, v in e["results"].items()]), "",
-                "Goals:", "",
-                table(["target", "value", "goal", "met"],
-                      [[t["what"], num(t["value"]), t["goal"], "yes" if t["met"] else "**no**"] for t in e["targets"]]), "",
-                f"*Written by `python -m tests.reference.evaluate_models --model {name} --out DIR` into `{ep}`.*", ""]
-        limits += [f"{t['what']}: {num(t['value'])} against the goal {t['goal']} (independent data)."
-                   for t in e["targets"] if not t["met"]]
+        out += [
+            f"An independent brute-force simulator (sharing no code with the kernel) on a prior the model was not "
+            f"trained on: {e['prior']['text']}. {e['draws']} draws; ± bootstrap SE over draws.",
+            "",
+            table(
+                ["pool", "coverage", "balanced accuracy", "ECE"],
+                [
+                    [
+                        pool,
+                        pm(v["metrics"]["coverage_identifiable"], v["standard_errors"].get("coverage_identifiable")),
+                        pm(
+                            v["metrics"]["balanced_accuracy_identifiable"],
+                            v["standard_errors"].get("balanced_accuracy_identifiable"),
+                        ),
+                        pm(v["metrics"]["ece"], v["standard_errors"].get("ece")),
+                    ]
+                    for pool, v in e["results"].items()
+                ],
+            ),
+            "",
+            "Goals:",
+            "",
+            table(
+                ["target", "value", "goal", "met"],
+                [[t["what"], num(t["value"]), t["goal"], "yes" if t["met"] else "**no**"] for t in e["targets"]],
+            ),
+            "",
+            f"*Written by `python -m tests.reference.evaluate_models --model {name} --out DIR` into `{ep}`.*",
+            "",
+        ]
+        limits += [
+            f"{t['what']}: {num(t['value'])} against the goal {t['goal']} (independent data)."
+            for t in e["targets"]
+            if not t["met"]
+        ]
     else:
-        out += [f"No independent evaluation is stored for this model; `python -m tests.reference.evaluate_models "
-                f"--model {name} --out DIR` writes one.", ""]
-    out += ["## Limits", "",
-            "- Trained for one protocol and one set of optics (the configurations above); maps of another system are "
-            "refused, naming `doct-train --like MAPS` ([Your own system](../tutorials/own-system.md)).",
-            "- Outside the prior's ranges the model was not trained; the magnitude head's intervals hold only inside them.",
-            *[f"- {x}" for x in limits], "",
-            f"*Rendered at build time from `{report}`{', `' + ind[1] + '`' if ind else ''} and the phantom grid's "
-            f"recorded runs (`{GRID_DIR}/grid-*.json`).*", ""]
+        out += [
+            f"No independent evaluation is stored for this model; `python -m tests.reference.evaluate_models "
+            f"--model {name} --out DIR` writes one.",
+            "",
+        ]
+    out += [
+        "## Limits",
+        "",
+        "- Trained for one protocol and one set of optics (the configurations above); maps of another system are "
+        "refused, naming `doct-train --like MAPS` ([Your own system](../tutorials/own-system.md)).",
+        "- Outside the prior's ranges the model was not trained; the magnitude head's intervals hold only inside them.",
+        *[f"- {x}" for x in limits],
+        "",
+        f"*Rendered at build time from `{report}`{', `' + ind[1] + '`' if ind else ''} and the phantom grid's "
+        f"recorded runs (`{GRID_DIR}/grid-*.json`).*",
+        "",
+    ]
     return "\n".join(out)
 
 
@@ -235,11 +383,25 @@ def index(root: Path) -> str:
     for name in shipped(root):
         r = json.loads((root / MODEL_DIR / f"{name}.json").read_text(encoding="utf-8"))
         m = r["test"]["network"].get("1", {})
-        rows.append([f"[`{name}`]({name}.md)", _USE.get(name, ""), len(r["feature_names"]),
-                     num(m.get("coverage_identifiable")), num(m.get("balanced_accuracy_identifiable"))])
-    return "\n".join(["# Shipped models", "",
-                      "One card per model in `classifier/data/`, rendered at build time from its training report, its "
-                      "calibration, the phantom grid's recorded runs and its report on independent data: the training "
-                      "data, the prior, when it abstains, its results and its limits. "
-                      "`doct-classify MAPS --out DIR` picks the model whose features match the maps' channels.", "",
-                      table(["model", "for", "features", "coverage (own test, pool 1)", "balanced accuracy"], rows), ""])
+        rows.append(
+            [
+                f"[`{name}`]({name}.md)",
+                _USE.get(name, ""),
+                len(r["feature_names"]),
+                num(m.get("coverage_identifiable")),
+                num(m.get("balanced_accuracy_identifiable")),
+            ]
+        )
+    return "\n".join(
+        [
+            "# Shipped models",
+            "",
+            "One card per model in `classifier/data/`, rendered at build time from its training report, its "
+            "calibration, the phantom grid's recorded runs and its report on independent data: the training "
+            "data, the prior, when it abstains, its results and its limits. "
+            "`doct-classify MAPS --out DIR` picks the model whose features match the maps' channels.",
+            "",
+            table(["model", "for", "features", "coverage (own test, pool 1)", "balanced accuracy"], rows),
+            "",
+        ]
+    )

@@ -18,8 +18,14 @@ from pathlib import Path
 from typing import Any
 
 #: Folders searched, in order, for a results file by its name (relative to the repository root).
-RESULT_DIRS = ("docs/results", "benchmarks/results", "benchmarks", "notebooks/bench", "research/results",
-               "classifier/data")
+RESULT_DIRS = (
+    "docs/results",
+    "benchmarks/results",
+    "benchmarks",
+    "notebooks/bench",
+    "research/results",
+    "classifier/data",
+)
 
 
 class MissingResult(LookupError):
@@ -52,7 +58,7 @@ def num(x: Any, digits: int = 3) -> str:
         return "0"
     if abs(x) >= 1e5 or abs(x) < 1e-3:
         return f"{x:.{digits - 1}e}"
-    if abs(x) >= 10 ** digits:
+    if abs(x) >= 10**digits:
         return str(round(x))
     return f"{x:.{digits}g}"
 
@@ -82,83 +88,204 @@ def machine(d: dict[str, Any]) -> str:
     m = d.get("machine")
     if not m:
         return ""
-    return (f"machine: {m.get('cpu_count')} cores, torch {m.get('torch')}, {m.get('torch_threads')} torch "
-            f"thread(s), Python {m.get('python')}")
+    return (
+        f"machine: {m.get('cpu_count')} cores, torch {m.get('torch')}, {m.get('torch_threads')} torch "
+        f"thread(s), Python {m.get('python')}"
+    )
 
 
 # ---------------------------------------------------------------- benchmarks
 def bench_simulate(root: Path) -> str:
     d, p = load(root, "bench-simulate.json")
     thr = d.get("threads")
-    rows = [[c["system"], c["motion"], num(c["scatterers_per_trial"], 4), num(c["ms_per_trial"]),
-             num(c["evaluations_per_s"]), num(c["of_evaluation_limit"]), num(c.get("ms_per_trial_1_thread")),
-             num(c.get("ms_per_trial_loaded")), num(c.get("loaded_over_1_thread_alone"))] for c in d["cells"]]
-    t = table(["system", "motion", "scatterers/trial", f"ms/trial ({thr} threads)", "evaluations/s",
-               "of the limit", "ms/trial, 1 thread", "ms/trial beside a busy job", "÷ 1 thread alone"], rows)
-    summary = (f"Mean over the cells: {num(d['mean_ms_per_trial'])} ms/trial on {thr} threads, "
-               f"{num(d.get('mean_ms_per_trial_1_thread'))} on one, {num(d.get('mean_ms_per_trial_loaded'))} beside "
-               f"a busy job (target {num(d['target_ms_per_trial'])}); {d['trials_per_cell']} trials per cell, "
-               f"{d['dtype']}, best of {d['repeats']}; the limit is {num(d['evaluation_limit_per_s'])} "
-               "scatterer-frame evaluations per second per core.")
+    rows = [
+        [
+            c["system"],
+            c["motion"],
+            num(c["scatterers_per_trial"], 4),
+            num(c["ms_per_trial"]),
+            num(c["evaluations_per_s"]),
+            num(c["of_evaluation_limit"]),
+            num(c.get("ms_per_trial_1_thread")),
+            num(c.get("ms_per_trial_loaded")),
+            num(c.get("loaded_over_1_thread_alone")),
+        ]
+        for c in d["cells"]
+    ]
+    t = table(
+        [
+            "system",
+            "motion",
+            "scatterers/trial",
+            f"ms/trial ({thr} threads)",
+            "evaluations/s",
+            "of the limit",
+            "ms/trial, 1 thread",
+            "ms/trial beside a busy job",
+            "÷ 1 thread alone",
+        ],
+        rows,
+    )
+    summary = (
+        f"Mean over the cells: {num(d['mean_ms_per_trial'])} ms/trial on {thr} threads, "
+        f"{num(d.get('mean_ms_per_trial_1_thread'))} on one, {num(d.get('mean_ms_per_trial_loaded'))} beside "
+        f"a busy job (target {num(d['target_ms_per_trial'])}); {d['trials_per_cell']} trials per cell, "
+        f"{d['dtype']}, best of {d['repeats']}; the limit is {num(d['evaluation_limit_per_s'])} "
+        "scatterer-frame evaluations per second per core."
+    )
     return "\n\n".join([t, summary, source("torchdoct bench simulate --load --repeats 2 --out FILE", p, machine(d))])
 
 
 def bench_study(root: Path) -> str:
     rows, paths = [], []
-    for name, what in (("bench-study-paper.json", "idle"), ("bench-study-paper-loaded.json", "beside a busy job"),
-                       ("bench-study.json", "idle")):
+    for name, what in (
+        ("bench-study-paper.json", "idle"),
+        ("bench-study-paper-loaded.json", "beside a busy job"),
+        ("bench-study.json", "idle"),
+    ):
         try:
             d, p = load(root, name)
         except MissingResult:
             continue
         paths.append(p)
-        rows.append([d["study"], what, d["cells"], num(d["system_trials"]), d["trials_per_point"], num(d["wall_s"]),
-                     num(d["simulate_s"]), num(d["figures_s"]), d.get("workers")])
-    t = table(["study", "machine", "cells", "system-trials", "trials/point", "wall (s)", "simulation (s)",
-               "figures and report (s)", "workers"], rows)
+        rows.append(
+            [
+                d["study"],
+                what,
+                d["cells"],
+                num(d["system_trials"]),
+                d["trials_per_point"],
+                num(d["wall_s"]),
+                num(d["simulate_s"]),
+                num(d["figures_s"]),
+                d.get("workers"),
+            ]
+        )
+    t = table(
+        [
+            "study",
+            "machine",
+            "cells",
+            "system-trials",
+            "trials/point",
+            "wall (s)",
+            "simulation (s)",
+            "figures and report (s)",
+            "workers",
+        ],
+        rows,
+    )
     return "\n\n".join([t, source("torchdoct bench study [--study paper] --out FILE", ", ".join(paths))])
 
 
 def bench_cog(root: Path) -> str:
     d, p = load(root, "bench-cog.json")
-    rows = [[c["system"], c["motion"], num(c["cog_scatterers"]), num(c["torchdoct_scatterers"], 4),
-             num(c["cog_ms_per_trial"]), num(c["torchdoct_ms_per_trial"]), f"{num(c['ratio'])}×"] for c in d["cells"]]
-    t = table(["system", "motion", "COG scatterers/trial", "torchdoct scatterers/trial", "COG ms/trial",
-               "torchdoct ms/trial", "COG ÷ torchdoct"], rows)
-    return "\n\n".join([t, f"Geometric mean of the ratios: {num(d['geometric_mean_ratio'])}× (one core each, CPU "
-                           f"time, best of {d['repeats']}).", source("torchdoct bench cog --cog DIR --out FILE", p)])
+    rows = [
+        [
+            c["system"],
+            c["motion"],
+            num(c["cog_scatterers"]),
+            num(c["torchdoct_scatterers"], 4),
+            num(c["cog_ms_per_trial"]),
+            num(c["torchdoct_ms_per_trial"]),
+            f"{num(c['ratio'])}×",
+        ]
+        for c in d["cells"]
+    ]
+    t = table(
+        [
+            "system",
+            "motion",
+            "COG scatterers/trial",
+            "torchdoct scatterers/trial",
+            "COG ms/trial",
+            "torchdoct ms/trial",
+            "COG ÷ torchdoct",
+        ],
+        rows,
+    )
+    return "\n\n".join(
+        [
+            t,
+            f"Geometric mean of the ratios: {num(d['geometric_mean_ratio'])}× (one core each, CPU "
+            f"time, best of {d['repeats']}).",
+            source("torchdoct bench cog --cog DIR --out FILE", p),
+        ]
+    )
 
 
 def bench_render(root: Path) -> str:
     d, p = load(root, "bench-render.json")
     pops = ", ".join(f"{k}: {num(v['scatterers'])} scatterers" for k, v in d["populations"].items())
-    t = table(["phantom", "shape [S, T, Z, X]", "pitch (µm)", "wall (s), best", "pixel-frames/s", "target (s)"],
-              [[d["phantom"], "×".join(map(str, d["shape_STZX"])), ", ".join(f"{k} {v}" for k, v in d["pitch_um"].items()),
-                num(d["wall_s_best"]), num(d["pixel_frames_per_s"]), num(d["target_s"])]])
+    t = table(
+        ["phantom", "shape [S, T, Z, X]", "pitch (µm)", "wall (s), best", "pixel-frames/s", "target (s)"],
+        [
+            [
+                d["phantom"],
+                "×".join(map(str, d["shape_STZX"])),
+                ", ".join(f"{k} {v}" for k, v in d["pitch_um"].items()),
+                num(d["wall_s_best"]),
+                num(d["pixel_frames_per_s"]),
+                num(d["target_s"]),
+            ]
+        ],
+    )
     return "\n\n".join([t, f"Populations: {pops}.", source("torchdoct bench render --out FILE", p, machine(d))])
 
 
 def bench_maps(root: Path) -> str:
     d, p = load(root, "bench-maps.json")
     per = d["seconds_per_resolution"]
-    t = table(["stack", "channels", "total (s)", *[f"{k} (s)" for k in per], "target (s)"],
-              [[f"{d['shape']} {d['dtype']}", ", ".join(d["metrics"]), num(d["seconds_total"]),
-                *[num(v) for v in per.values()], num(d["target_seconds"])]])
+    t = table(
+        ["stack", "channels", "total (s)", *[f"{k} (s)" for k in per], "target (s)"],
+        [
+            [
+                f"{d['shape']} {d['dtype']}",
+                ", ".join(d["metrics"]),
+                num(d["seconds_total"]),
+                *[num(v) for v in per.values()],
+                num(d["target_seconds"]),
+            ]
+        ],
+    )
     return "\n\n".join([t, source("torchdoct bench maps --out FILE", p, machine(d))])
 
 
 def bench_stream(root: Path) -> str:
     d, p = load(root, "bench-stream.json")
     mib = 1 << 20
-    rows = [[num(r["input_gib"]), r["frames"], "×".join(map(str, r["shape"])), num(r["baseline_rss_bytes"] / mib),
-             num(r["peak_rss_bytes"] / mib), num(r["growth_bytes"] / mib), num(r["seconds"])] for r in d["runs"]]
-    t = table(["input (GiB)", "frames", "shape [T, Z, X]", "RSS after the imports (MiB)", "peak RSS (MiB)",
-               "growth (MiB)", "wall (s)"], rows)
+    rows = [
+        [
+            num(r["input_gib"]),
+            r["frames"],
+            "×".join(map(str, r["shape"])),
+            num(r["baseline_rss_bytes"] / mib),
+            num(r["peak_rss_bytes"] / mib),
+            num(r["growth_bytes"] / mib),
+            num(r["seconds"]),
+        ]
+        for r in d["runs"]
+    ]
+    t = table(
+        [
+            "input (GiB)",
+            "frames",
+            "shape [T, Z, X]",
+            "RSS after the imports (MiB)",
+            "peak RSS (MiB)",
+            "growth (MiB)",
+            "wall (s)",
+        ],
+        rows,
+    )
     sizes = ", ".join(num(r["input_gib"]) for r in d["runs"])
-    note = (f"`{d['command']}` with `--max-memory-gb {num(d['budget_gib'])}` "
-            f"({num(d['budget_gib'] * 1024)} MiB) on memory-mapped complex64 inputs of {sizes} GiB.")
-    return "\n\n".join([t, note, source("torchdoct bench stream --sizes-gb ... --out FILE --figure FILE.png", p,
-                                         machine(d))])
+    note = (
+        f"`{d['command']}` with `--max-memory-gb {num(d['budget_gib'])}` "
+        f"({num(d['budget_gib'] * 1024)} MiB) on memory-mapped complex64 inputs of {sizes} GiB."
+    )
+    return "\n\n".join(
+        [t, note, source("torchdoct bench stream --sizes-gb ... --out FILE --figure FILE.png", p, machine(d))]
+    )
 
 
 def bench_classify(root: Path) -> str:
@@ -171,11 +298,33 @@ def bench_classify(root: Path) -> str:
         paths.append(p)
         for r in d["rows"]:
             st = r.get("stages_s", {})
-            rows.append([d["model"], r["pool"], f"{d['size']} × {d['size']}", num(r["pixels_per_s"]),
-                         num(st.get("read")), num(st.get("features")), num(st.get("onnxruntime")), num(st.get("rule")),
-                         num(d["target_pixels_per_s"])])
-    t = table(["model", "pool", "maps", "pixels/s", "read (s)", "features (s)", "onnxruntime (s)", "rule (s)",
-               "target pixels/s"], rows)
+            rows.append(
+                [
+                    d["model"],
+                    r["pool"],
+                    f"{d['size']} × {d['size']}",
+                    num(r["pixels_per_s"]),
+                    num(st.get("read")),
+                    num(st.get("features")),
+                    num(st.get("onnxruntime")),
+                    num(st.get("rule")),
+                    num(d["target_pixels_per_s"]),
+                ]
+            )
+    t = table(
+        [
+            "model",
+            "pool",
+            "maps",
+            "pixels/s",
+            "read (s)",
+            "features (s)",
+            "onnxruntime (s)",
+            "rule (s)",
+            "target pixels/s",
+        ],
+        rows,
+    )
     return "\n\n".join([t, source("torchdoct bench classify [--model signature] --out FILE", ", ".join(paths))])
 
 
@@ -191,12 +340,27 @@ def bench_bulk_phase(root: Path) -> str:
         wm, hi = by.get((snr, "weighted-mean")), by.get((snr, "histogram"))
         ref = wm or hi
         first_order = 1e3 / math.sqrt(2 * d["n_z"] * 10 ** (snr / 10))
-        rows.append([num(snr), f"{first_order:.2f}", f"{1e3 * ref['predicted_rms_rad']:.2f}",
-                     *[x for r in (wm, hi) for x in ((f"{1e3 * r['residual_rms_rad']:.2f} ± {1e3 * r['se_rad']:.2f}",
-                                                      f"{r['ratio']:.3f}") if r else ("", ""))]])
+        rows.append(
+            [
+                num(snr),
+                f"{first_order:.2f}",
+                f"{1e3 * ref['predicted_rms_rad']:.2f}",
+                *[
+                    x
+                    for r in (wm, hi)
+                    for x in (
+                        (f"{1e3 * r['residual_rms_rad']:.2f} ± {1e3 * r['se_rad']:.2f}", f"{r['ratio']:.3f}")
+                        if r
+                        else ("", "")
+                    )
+                ],
+            ]
+        )
     t = table(["SNR (dB)", "1/√(2·N·SNR)", "predicted", "weighted-mean", "ratio", "histogram", "ratio"], rows)
-    text = (f"Residuals in mrad: {num(d['lines'])} A-lines of {d['n_z']} rows of static speckle, {d['frames']} frames, "
-            f"seed {d['seed']}; {d['model']}; ± the standard error over A-lines; ratio = measured ÷ predicted.")
+    text = (
+        f"Residuals in mrad: {num(d['lines'])} A-lines of {d['n_z']} rows of static speckle, {d['frames']} frames, "
+        f"seed {d['seed']}; {d['model']}; ± the standard error over A-lines; ratio = measured ÷ predicted."
+    )
     return "\n\n".join([t, text, source(_BULK_PHASE_COMMAND, p, machine(d))])
 
 
@@ -206,26 +370,57 @@ def bench_bulk_phase_phantom(root: Path) -> str:
     ph = d["phantom"]
     columns = list(dict.fromkeys((r["method"], r["mask"]) for r in ph["rows"]))
     by = {(r["snr_db"], r["method"], r["mask"]): r for r in ph["rows"]}
-    rows = [[f"{num(snr)} dB", *[f"{by[(snr, m, k)]['residual_rms_rad']:.4f} ({by[(snr, m, k)]['g1_4_static_z']:+.1f})"
-                                 if (snr, m, k) in by else "" for m, k in columns]]
-            for snr in sorted({r["snr_db"] for r in ph["rows"]})]
+    rows = [
+        [
+            f"{num(snr)} dB",
+            *[
+                f"{by[(snr, m, k)]['residual_rms_rad']:.4f} ({by[(snr, m, k)]['g1_4_static_z']:+.1f})"
+                if (snr, m, k) in by
+                else ""
+                for m, k in columns
+            ],
+        ]
+        for snr in sorted({r["snr_db"] for r in ph["rows"]})
+    ]
     t = table(["SNR", *[f"{m}, {k}" for m, k in columns]], rows)
-    text = (f"`{ph['phantom']}` rendered with seed {ph['seed']} ({' × '.join(map(str, ph['shape']))} [T, Z, X]); "
-            f"{ph['model']}. Each cell: the RMS residual in rad, and in parentheses the mean change of the static "
-            "tissue's g1_4 in standard errors of that mean.")
+    text = (
+        f"`{ph['phantom']}` rendered with seed {ph['seed']} ({' × '.join(map(str, ph['shape']))} [T, Z, X]); "
+        f"{ph['model']}. Each cell: the RMS residual in rad, and in parentheses the mean change of the static "
+        "tissue's g1_4 in standard errors of that mean."
+    )
     return "\n\n".join([t, text, source(_BULK_PHASE_COMMAND, p, machine(ph))])
 
 
 def bench_load(root: Path) -> str:
     d, p = load(root, "bench-load.json")
-    rows = [[r["workload"], num(r["alone_1_thread_s"]), num(r["alone_s"]), num(r["loaded_s"]),
-             num(r["loaded_over_1_thread_alone"])] for r in d["rows"]]
-    t = table(["command", "1 thread alone (s)", f"{d['threads']} threads alone (s)",
-               f"{d['threads']} threads beside a busy job (s)", "÷ 1 thread alone"], rows)
+    rows = [
+        [
+            r["workload"],
+            num(r["alone_1_thread_s"]),
+            num(r["alone_s"]),
+            num(r["loaded_s"]),
+            num(r["loaded_over_1_thread_alone"]),
+        ]
+        for r in d["rows"]
+    ]
+    t = table(
+        [
+            "command",
+            "1 thread alone (s)",
+            f"{d['threads']} threads alone (s)",
+            f"{d['threads']} threads beside a busy job (s)",
+            "÷ 1 thread alone",
+        ],
+        rows,
+    )
     worst = max(r["loaded_over_1_thread_alone"] for r in d["rows"])
-    return "\n\n".join([t, f"Worst ratio {num(worst)} (target ≤ {num(d['target_ratio'])}); the busy job: "
-                           f"{d['neighbour']}.", source(f"torchdoct bench load --repeats {d['repeats']} --out FILE", p,
-                                                        machine(d))])
+    return "\n\n".join(
+        [
+            t,
+            f"Worst ratio {num(worst)} (target ≤ {num(d['target_ratio'])}); the busy job: {d['neighbour']}.",
+            source(f"torchdoct bench load --repeats {d['repeats']} --out FILE", p, machine(d)),
+        ]
+    )
 
 
 def tradeoffs_simulator(root: Path) -> str:
@@ -234,29 +429,57 @@ def tradeoffs_simulator(root: Path) -> str:
     rows = []
     for c in s["cells"]:
         for t in c["tolerance"]:
-            rows.append([num(t["tolerance"]), c["cell"], num(t["ms_per_trial"]),
-                         pm(t["mean_intensity_rel_error"], t["mean_intensity_rel_se"], 2),
-                         pm(t["liv_bias"], t["liv_bias_se"], 2), pm(t["ocds_bias"], t["ocds_bias_se"], 2)])
+            rows.append(
+                [
+                    num(t["tolerance"]),
+                    c["cell"],
+                    num(t["ms_per_trial"]),
+                    pm(t["mean_intensity_rel_error"], t["mean_intensity_rel_se"], 2),
+                    pm(t["liv_bias"], t["liv_bias_se"], 2),
+                    pm(t["ocds_bias"], t["ocds_bias_se"], 2),
+                ]
+            )
     rows.sort(key=lambda r: -float(r[0]))
     ref = s["cells"][0]["reference"]
     t = table(["tolerance", "cell", "ms/trial", "⟨I⟩ relative error", "LIV bias (dB²)", "OCDS bias (1/s)"], rows)
-    dt = [[c["cell"], num(c["dtype"]["float32_ms_per_trial"]), num(c["dtype"]["float64_ms_per_trial"]),
-           num(c["dtype"]["liv_max_abs_diff"])] for c in s["cells"]]
+    dt = [
+        [
+            c["cell"],
+            num(c["dtype"]["float32_ms_per_trial"]),
+            num(c["dtype"]["float64_ms_per_trial"]),
+            num(c["dtype"]["liv_max_abs_diff"]),
+        ]
+        for c in s["cells"]
+    ]
     t2 = table(["cell", "float32 ms/trial", "float64 ms/trial", "largest per-trial LIV difference (dB²)"], dt)
-    text = (f"{num(s['trials_per_point'])} trials per tolerance against a {num(ref['trials'])}-trial {ref['dtype']} "
-            f"reference at tolerance {num(ref['tolerance'])}; bias ± standard error of the mean.")
+    text = (
+        f"{num(s['trials_per_point'])} trials per tolerance against a {num(ref['trials'])}-trial {ref['dtype']} "
+        f"reference at tolerance {num(ref['tolerance'])}; bias ± standard error of the mean."
+    )
     return "\n\n".join([t, text, t2, source("torchdoct bench tradeoffs --part simulator --out FILE", p, machine(s))])
 
 
 def tradeoffs_study(root: Path) -> str:
     d, p = load(root, "bench-tradeoffs.json")
     s = d["study"]
-    rows = [[r["trials"], num(r["wall_s"]), f"{num(r['liv_rms_error'])} ({num(r['liv_rms_expected'])})",
-             f"{num(r['ocds_rms_error'])} ({num(r['ocds_rms_expected'])})"] for r in s["rows"]]
+    rows = [
+        [
+            r["trials"],
+            num(r["wall_s"]),
+            f"{num(r['liv_rms_error'])} ({num(r['liv_rms_expected'])})",
+            f"{num(r['ocds_rms_error'])} ({num(r['ocds_rms_expected'])})",
+        ]
+        for r in s["rows"]
+    ]
     t = table(["trials per point", "wall (s)", "LIV RMS error, dB² (expected)", "OCDS RMS error, 1/s (expected)"], rows)
-    return "\n\n".join([t, f"`{s['study']}`, {s['cells']} cells, against a {s['reference_trials']}-trial reference; "
-                           "in brackets the error expected from the standard errors.",
-                        source("torchdoct bench tradeoffs --part study --out FILE", p)])
+    return "\n\n".join(
+        [
+            t,
+            f"`{s['study']}`, {s['cells']} cells, against a {s['reference_trials']}-trial reference; "
+            "in brackets the error expected from the standard errors.",
+            source("torchdoct bench tradeoffs --part study --out FILE", p),
+        ]
+    )
 
 
 def tradeoffs_fidelity(root: Path) -> str:
@@ -269,16 +492,28 @@ def tradeoffs_fidelity(root: Path) -> str:
         lo = [r for r in feats if r["feature"] in ("liv", "ocds")]
         zlo = max((abs(r["z"]) for r in lo if r["z"] == r["z"]), default=float("nan"))
         ms = sum(c["ms_per_trial"] for c in s["cells"]) / len(s["cells"])
-        rows.append([s["truncation"], num(s["truncation_tolerance"]), s["dtype"], num(ms),
-                     f"{num(abs(worst['z']), 2)} (`{worst['feature']}`@{worst['config']})", num(zlo, 2)])
-    t = table(["truncation", "tolerance", "dtype", "ms/trial", "max \\|z\\| (feature@configuration)",
-               "max \\|z\\| LIV/OCDS"], rows)
+        rows.append(
+            [
+                s["truncation"],
+                num(s["truncation_tolerance"]),
+                s["dtype"],
+                num(ms),
+                f"{num(abs(worst['z']), 2)} (`{worst['feature']}`@{worst['config']})",
+                num(zlo, 2),
+            ]
+        )
+    t = table(
+        ["truncation", "tolerance", "dtype", "ms/trial", "max \\|z\\| (feature@configuration)", "max \\|z\\| LIV/OCDS"],
+        rows,
+    )
     ch = f["cheapest_without_resolvable_bias"]
     ref = f["reference"]
-    text = (f"{num(f['trials'])} trials per setting against {num(f['reference_trials'])} at tolerance "
-            f"{num(ref['truncation_tolerance'])} ({ref['truncation']}, {ref['dtype']}); family-wise α = {f['alpha']}. "
-            f"Cheapest setting without a resolvable bias: {ch['truncation']} at {num(ch['truncation_tolerance'])}, "
-            f"{ch['dtype']}.")
+    text = (
+        f"{num(f['trials'])} trials per setting against {num(f['reference_trials'])} at tolerance "
+        f"{num(ref['truncation_tolerance'])} ({ref['truncation']}, {ref['dtype']}); family-wise α = {f['alpha']}. "
+        f"Cheapest setting without a resolvable bias: {ch['truncation']} at {num(ch['truncation_tolerance'])}, "
+        f"{ch['dtype']}."
+    )
     return "\n\n".join([t, text, source("torchdoct bench tradeoffs --part fidelity --out FILE", p, machine(f))])
 
 
@@ -291,26 +526,60 @@ def tradeoffs_classifier(root: Path) -> str:
             cost = " / ".join(f"{k} {num(r.get(k))}" for k in axis["time_keys"])
             p1, p25 = r["pools"].get("1", {}), r["pools"].get("25", {})
             label = f"**{r['label']}**" if r.get("is_default") else r["label"]
-            rows.append([axis["title"], label, cost, pm(p1.get("balanced_accuracy"), p1.get("balanced_accuracy_se")),
-                         pm(p1.get("coverage"), p1.get("coverage_se")),
-                         pm(p25.get("balanced_accuracy"), p25.get("balanced_accuracy_se")) if p25 else ""])
-    t = table(["axis", "setting (shipped in bold)", "cost (s or µs)", "bal. acc. pool 1", "coverage pool 1",
-               "bal. acc. pool 25"], rows)
-    fronts = [f"{axis}: {v['defaults']} {'on' if v['defaults_on_front'] else 'off'} the front of {what}"
-              for axis, sm in c["summary"].items() for what, v in sm.items() if what.startswith("error @")]
+            rows.append(
+                [
+                    axis["title"],
+                    label,
+                    cost,
+                    pm(p1.get("balanced_accuracy"), p1.get("balanced_accuracy_se")),
+                    pm(p1.get("coverage"), p1.get("coverage_se")),
+                    pm(p25.get("balanced_accuracy"), p25.get("balanced_accuracy_se")) if p25 else "",
+                ]
+            )
+    t = table(
+        [
+            "axis",
+            "setting (shipped in bold)",
+            "cost (s or µs)",
+            "bal. acc. pool 1",
+            "coverage pool 1",
+            "bal. acc. pool 25",
+        ],
+        rows,
+    )
+    fronts = [
+        f"{axis}: {v['defaults']} {'on' if v['defaults_on_front'] else 'off'} the front of {what}"
+        for axis, sm in c["summary"].items()
+        for what, v in sm.items()
+        if what.startswith("error @")
+    ]
     ts = c["test_split"]
-    text = (f"Single-acquisition recipe, test split of {ts['draws']} draws × {ts['replicates']} replicates × "
-            f"{ts['trials_per_draw']} trials, ± bootstrap SE ({ts['bootstrap_resamples']} resamples). Pareto fronts "
-            f"of error against cost: " + "; ".join(fronts) + ".")
+    text = (
+        f"Single-acquisition recipe, test split of {ts['draws']} draws × {ts['replicates']} replicates × "
+        f"{ts['trials_per_draw']} trials, ± bootstrap SE ({ts['bootstrap_resamples']} resamples). Pareto fronts "
+        f"of error against cost: " + "; ".join(fronts) + "."
+    )
     return "\n\n".join([t, text, source("torchdoct bench tradeoffs --part classifier --out FILE", p, machine(c))])
 
 
 def simulate_example(root: Path) -> str:
     d, p = load(root, "simulate-example.json")
-    rows = [[name, pm(s["liv"]["mean"], s["liv"]["se"], 4), num(s["liv"]["sd"], 4), pm(s["ocds"]["mean"], s["ocds"]["se"], 4),
-             num(s["ocds"]["sd"], 4), s["liv"]["n"], s["zero_intensity_trials"]] for name, s in d.items()]
-    t = table(["system", "LIV mean ± SE (dB²)", "LIV SD (dB²)", "OCDS mean ± SE (1/s)", "OCDS SD (1/s)", "trials",
-               "empty"], rows)
+    rows = [
+        [
+            name,
+            pm(s["liv"]["mean"], s["liv"]["se"], 4),
+            num(s["liv"]["sd"], 4),
+            pm(s["ocds"]["mean"], s["ocds"]["se"], 4),
+            num(s["ocds"]["sd"], 4),
+            s["liv"]["n"],
+            s["zero_intensity_trials"],
+        ]
+        for name, s in d.items()
+    ]
+    t = table(
+        ["system", "LIV mean ± SE (dB²)", "LIV SD (dB²)", "OCDS mean ± SE (1/s)", "OCDS SD (1/s)", "trials", "empty"],
+        rows,
+    )
     return "\n\n".join([t, source("torchdoct simulate example --json > FILE", p)])
 
 
@@ -318,19 +587,30 @@ def simulate_example(root: Path) -> str:
 def quick_train(root: Path) -> str:
     d, p = load(root, "quick-single-acquisition.json")
     t1, se = d["test"]["network"]["1"], d["standard_errors"]["1"]
-    rows = [[k.replace("_", " "), pm(t1[k], se.get(k))] for k in
-            ("coverage_identifiable", "accuracy_identifiable", "balanced_accuracy_identifiable", "ece")]
+    rows = [
+        [k.replace("_", " "), pm(t1[k], se.get(k))]
+        for k in ("coverage_identifiable", "accuracy_identifiable", "balanced_accuracy_identifiable", "ece")
+    ]
     t = table(["pool 1, own test split", "value ± bootstrap SE"], rows)
     dr = d["data"]["draws"]
-    return "\n\n".join([t, f"Draws train / validation / test: {dr['train']} / {dr['validation']} / {dr['test']}.",
-                        source("doct-train --quick --no-cache --out DIR", p, "the report is `DIR/single-acquisition.json`")])
+    return "\n\n".join(
+        [
+            t,
+            f"Draws train / validation / test: {dr['train']} / {dr['validation']} / {dr['test']}.",
+            source("doct-train --quick --no-cache --out DIR", p, "the report is `DIR/single-acquisition.json`"),
+        ]
+    )
 
 
 def _pool_row(label: str, m: dict[str, Any], se: dict[str, Any] | None) -> list[str]:
     se = se or {}
-    return [label, pm(m.get("coverage_identifiable"), se.get("coverage_identifiable")),
-            pm(m.get("balanced_accuracy_identifiable"), se.get("balanced_accuracy_identifiable")),
-            pm(m.get("accuracy_identifiable"), se.get("accuracy_identifiable")), pm(m.get("ece"), se.get("ece"))]
+    return [
+        label,
+        pm(m.get("coverage_identifiable"), se.get("coverage_identifiable")),
+        pm(m.get("balanced_accuracy_identifiable"), se.get("balanced_accuracy_identifiable")),
+        pm(m.get("accuracy_identifiable"), se.get("accuracy_identifiable")),
+        pm(m.get("ece"), se.get("ece")),
+    ]
 
 
 def systems_validation(root: Path) -> str:
@@ -339,14 +619,31 @@ def systems_validation(root: Path) -> str:
     for s in d["systems"]:
         sc = {k: v[0]["overall"] for k, v in s["scores"].items()}
         own = s.get("own_test_pool1", {})
-        rows.append([f"`{s['system']}`: {s['description']}", num(s["training_s"] / 60, 3),
-                     f"{num(own.get('balanced_accuracy_identifiable'))} @ {num(own.get('coverage_identifiable'))}",
-                     *[f"{num(o['balanced_accuracy'])} @ {num(o['coverage'])}" for o in sc.values()]])
+        rows.append(
+            [
+                f"`{s['system']}`: {s['description']}",
+                num(s["training_s"] / 60, 3),
+                f"{num(own.get('balanced_accuracy_identifiable'))} @ {num(own.get('coverage_identifiable'))}",
+                *[f"{num(o['balanced_accuracy'])} @ {num(o['coverage'])}" for o in sc.values()],
+            ]
+        )
     pools = list(d["systems"][0]["scores"])
-    t = table(["system", "`doct-train --like` (min)", "own test split, pool 1",
-               *[f"pool {k}: bal. acc. @ coverage" for k in pools]], rows)
-    return "\n\n".join([t, f"Seeds {', '.join(map(str, d['seeds']))}; pool `5@0.6` is `--pool 5 --min-probability 0.6`.",
-                        source(d["command"], p)])
+    t = table(
+        [
+            "system",
+            "`doct-train --like` (min)",
+            "own test split, pool 1",
+            *[f"pool {k}: bal. acc. @ coverage" for k in pools],
+        ],
+        rows,
+    )
+    return "\n\n".join(
+        [
+            t,
+            f"Seeds {', '.join(map(str, d['seeds']))}; pool `5@0.6` is `--pool 5 --min-probability 0.6`.",
+            source(d["command"], p),
+        ]
+    )
 
 
 def translation_validation(root: Path) -> str:
@@ -356,26 +653,69 @@ def translation_validation(root: Path) -> str:
         if not isinstance(s, dict) or "liv" not in s:
             continue
         lv, oc = s["liv"], s["ocds"]
-        rows.append([motion, num(s.get("translated_share")),
-                     f"{num(lv['median_abs_bias_over_sd'], 2)} ({num(lv['regions_within_goal'], 2)})", num(lv["coverage_68"], 2),
-                     f"{num(oc['median_abs_bias_over_sd'], 2)} ({num(oc['regions_within_goal'], 2)})", num(oc["coverage_68"], 2),
-                     f"{num(lv['untranslated_median_abs_bias_over_sd'], 2)} / {num(oc['untranslated_median_abs_bias_over_sd'], 2)}"])
+        rows.append(
+            [
+                motion,
+                num(s.get("translated_share")),
+                f"{num(lv['median_abs_bias_over_sd'], 2)} ({num(lv['regions_within_goal'], 2)})",
+                num(lv["coverage_68"], 2),
+                f"{num(oc['median_abs_bias_over_sd'], 2)} ({num(oc['regions_within_goal'], 2)})",
+                num(oc["coverage_68"], 2),
+                f"{num(lv['untranslated_median_abs_bias_over_sd'], 2)} / {num(oc['untranslated_median_abs_bias_over_sd'], 2)}",
+            ]
+        )
     g = d["goals"]
-    rows.append(["goal", "", f"≤ {num(g['abs_bias_over_sd'], 2)}", f"{g['coverage_68'][0]}-{g['coverage_68'][1]}",
-                 f"≤ {num(g['abs_bias_over_sd'], 2)}", f"{g['coverage_68'][0]}-{g['coverage_68'][1]}", ""])
-    t = table(["motion", "translated", "LIV: \\|bias\\|/SD median (regions within goal)", "LIV: 68 % cover",
-               "OCDS: \\|bias\\|/SD median (within goal)", "OCDS: 68 % cover", "untranslated LIV / OCDS \\|bias\\|/SD"], rows)
+    rows.append(
+        [
+            "goal",
+            "",
+            f"≤ {num(g['abs_bias_over_sd'], 2)}",
+            f"{g['coverage_68'][0]}-{g['coverage_68'][1]}",
+            f"≤ {num(g['abs_bias_over_sd'], 2)}",
+            f"{g['coverage_68'][0]}-{g['coverage_68'][1]}",
+            "",
+        ]
+    )
+    t = table(
+        [
+            "motion",
+            "translated",
+            "LIV: \\|bias\\|/SD median (regions within goal)",
+            "LIV: 68 % cover",
+            "OCDS: \\|bias\\|/SD median (within goal)",
+            "OCDS: 68 % cover",
+            "untranslated LIV / OCDS \\|bias\\|/SD",
+        ],
+        rows,
+    )
     return "\n\n".join([t, source(d["command"], p)])
 
 
 def validation_table(root: Path) -> str:
     d, p = load(root, "validation-table.json")
-    rows = [[r["motion"], f"{num(r['lag_s'], 4)} s", r["g1_simulated"], r["g1_theory"],
-             pm(r["intensity_cov_simulated"], r["intensity_cov_se"], 4), num(r["intensity_cov_theory"], 4),
-             num(r["max_abs_z"], 2)] for r in d["rows"]]
-    t = table(["motion", "τ", "g1 simulated", "g1 theory", "⟨I I_τ⟩/⟨I⟩² − 1 simulated", "theory", "largest \\|z\\|"], rows)
-    return "\n\n".join([t, f"{num(d['trials'])} trials per row, seed {d['seed']}, {d['density_per_um3']} µm⁻³, "
-                             f"{d['n_frames']} frames at {d['frame_interval_s']} s, {d['dtype']}.", source(d["command"], p)])
+    rows = [
+        [
+            r["motion"],
+            f"{num(r['lag_s'], 4)} s",
+            r["g1_simulated"],
+            r["g1_theory"],
+            pm(r["intensity_cov_simulated"], r["intensity_cov_se"], 4),
+            num(r["intensity_cov_theory"], 4),
+            num(r["max_abs_z"], 2),
+        ]
+        for r in d["rows"]
+    ]
+    t = table(
+        ["motion", "τ", "g1 simulated", "g1 theory", "⟨I I_τ⟩/⟨I⟩² − 1 simulated", "theory", "largest \\|z\\|"], rows
+    )
+    return "\n\n".join(
+        [
+            t,
+            f"{num(d['trials'])} trials per row, seed {d['seed']}, {d['density_per_um3']} µm⁻³, "
+            f"{d['n_frames']} frames at {d['frame_interval_s']} s, {d['dtype']}.",
+            source(d["command"], p),
+        ]
+    )
 
 
 # ---------------------------------------------------------------- what accuracy costs in acquisition time
@@ -394,37 +734,74 @@ def _protocol(root: Path, name: str) -> str:
     rel = p.relative_to(root).as_posix()
     m, s, ph = d["motions"], d["system"], d["phantom"]
     bal = m["ballistic"]
-    setting = (f"System of spec `{s['spec']}` ({num(s['wavelength_um'] * 1000)} nm, lateral {num(s['lateral_resolution_um'])} µm, "
-               f"axial {num(s['axial_resolution_um'])} µm, own protocol {s['n_frames']} frames at {num(s['frame_interval_s'])} s); "
-               f"flow {num(m['flow']['speed_um_per_s'])} µm/s at polar {num(m['flow']['polar_angle_deg'])}°, azimuth "
-               f"{num(m['flow']['azimuth_deg'])}°; random-ballistic motion {num(bal['speed_um_per_s'])} µm/s "
-               + (f"(matched to the flow's single-pixel correlation at {num(bal['matched_at_s'])} s)" if bal["matched"]
-                  else "(stated)")
-               + f"; pitch {num(ph['pitch_um'])} µm, {ph['seeds']} scatterer realisation(s) per protocol, "
-               + ("no noise" if ph["snr_db"] is None else f"{num(ph['snr_db'])} dB SNR") + ".")
-    head = ["frames", "interval (s)", "acquisition (s)", "window (px)", "coverage", "balanced accuracy",
-            "worst wrong share", "flow coverage", "flow accuracy", "ballistic coverage", "ballistic accuracy",
-            "compute (s)"]
+    setting = (
+        f"System of spec `{s['spec']}` ({num(s['wavelength_um'] * 1000)} nm, lateral {num(s['lateral_resolution_um'])} µm, "
+        f"axial {num(s['axial_resolution_um'])} µm, own protocol {s['n_frames']} frames at {num(s['frame_interval_s'])} s); "
+        f"flow {num(m['flow']['speed_um_per_s'])} µm/s at polar {num(m['flow']['polar_angle_deg'])}°, azimuth "
+        f"{num(m['flow']['azimuth_deg'])}°; random-ballistic motion {num(bal['speed_um_per_s'])} µm/s "
+        + (
+            f"(matched to the flow's single-pixel correlation at {num(bal['matched_at_s'])} s)"
+            if bal["matched"]
+            else "(stated)"
+        )
+        + f"; pitch {num(ph['pitch_um'])} µm, {ph['seeds']} scatterer realisation(s) per protocol, "
+        + ("no noise" if ph["snr_db"] is None else f"{num(ph['snr_db'])} dB SNR")
+        + "."
+    )
+    head = [
+        "frames",
+        "interval (s)",
+        "acquisition (s)",
+        "window (px)",
+        "coverage",
+        "balanced accuracy",
+        "worst wrong share",
+        "flow coverage",
+        "flow accuracy",
+        "ballistic coverage",
+        "ballistic accuracy",
+        "compute (s)",
+    ]
     parts = [setting]
     for dec in ("rules", "offset-as-flow"):
         rs = [r for r in d["rows"] if r["decision"] == dec]
         if not rs:
             continue
         lines = []
-        for f, w in sorted({(r["interval_factor"], r["window"]) for r in rs}):  # the frame counts at the system's interval
+        for f, w in sorted(
+            {(r["interval_factor"], r["window"]) for r in rs}
+        ):  # the frame counts at the system's interval
             line = sorted((r for r in rs if (r["interval_factor"], r["window"]) == (f, w)), key=lambda r: r["n_frames"])
             if len(line) > 1 and f == 1.0:
-                lines.append(f"* interval {num(f)}× the system's, window {w} px: " + "; ".join(
-                    f"{r['n_frames']} frames → accuracy {num(r['balanced_accuracy'])}, coverage {num(r['coverage'])}, "
-                    f"wrong {num(r['wrong_share_max'])}" for r in line))
-        rows = [[r["n_frames"], num(r["interval_s"]), num(r["acquisition_s"]), r["window"], num(r["coverage"]),
-                 num(r["balanced_accuracy"]), num(r["wrong_share_max"]),
-                 *[num(r["per_band"][b][k]) for b in ("flow", "ballistic") for k in ("coverage", "accuracy")],
-                 num(r["seconds"]["total"])] for r in rs]
+                lines.append(
+                    f"* interval {num(f)}× the system's, window {w} px: "
+                    + "; ".join(
+                        f"{r['n_frames']} frames → accuracy {num(r['balanced_accuracy'])}, coverage {num(r['coverage'])}, "
+                        f"wrong {num(r['wrong_share_max'])}"
+                        for r in line
+                    )
+                )
+        rows = [
+            [
+                r["n_frames"],
+                num(r["interval_s"]),
+                num(r["acquisition_s"]),
+                r["window"],
+                num(r["coverage"]),
+                num(r["balanced_accuracy"]),
+                num(r["wrong_share_max"]),
+                *[num(r["per_band"][b][k]) for b in ("flow", "ballistic") for k in ("coverage", "accuracy")],
+                num(r["seconds"]["total"]),
+            ]
+            for r in rs
+        ]
         parts += [f"**Decision `{dec}`** (flow vs ballistic):", "\n".join(lines), table(head, rows)]
     total = f"{num(d['seconds'])} s in all"
-    parts.append(source(d["command"], rel, f"{total}; {machine(d)}; per band and rule: `{name}.csv`, `{name}.md`, "
-                        f"plot `{name}.png`"))
+    parts.append(
+        source(
+            d["command"], rel, f"{total}; {machine(d)}; per band and rule: `{name}.csv`, `{name}.md`, plot `{name}.png`"
+        )
+    )
     return "\n\n".join(p for p in parts if p)
 
 

@@ -35,38 +35,106 @@ import results  # noqa: E402
 ROOT = HERE.parents[1]
 
 #: Pages shown in the navigation only when the file exists in docs/ at build time.
-OPTIONAL = {"reliability.md", "formats.md", "napari.md", "concepts/speckle-motion.md", "abstention.md",
-            "benchmarks/grid.md"}
+OPTIONAL = {
+    "reliability.md",
+    "formats.md",
+    "napari.md",
+    "concepts/speckle-motion.md",
+    "abstention.md",
+    "benchmarks/grid.md",
+}
 
 #: The public API by stage: (page, title, what it is, modules). A module that moved into a subpackage is
 #: found by its last name (``torchdoct.figures`` -> ``torchdoct.plot.figures``); one that is gone is left out.
 API = [
-    ("simulation", "Simulation", "Scenes, plans, the simulator, metrics, the decorrelation signature and the "
-     "closed forms they are tested against.",
-     ["torchdoct.sim.config", "torchdoct.sim.scenes", "torchdoct.sim.plan", "torchdoct.sim.simulate",
-      "torchdoct.sim.metrics", "torchdoct.sim.signature", "torchdoct.sim.theory", "torchdoct.sim.kernel"]),
-    ("images", "Phantoms and rendering", "Phantom files and the image renderer.",
-     ["torchdoct.image.phantom", "torchdoct.image.render"]),
-    ("measured", "Measured data", "Readers, resolution reduction, bulk-phase correction, the Doppler reference, DOCT maps and "
-     "statistics.",
-     ["torchdoct.measured.io", "torchdoct.measured.sequence", "torchdoct.measured.resolution", "torchdoct.measured.bulkphase",
-      "torchdoct.measured.doppler",
-      "torchdoct.measured.maps", "torchdoct.measured.mapsfile", "torchdoct.measured.compare",
-      "torchdoct.measured.formats", "torchdoct.measured.guards"]),
-    ("study", "Sweeps and the study", "Parameter sweeps and the reference paper's numerical study.",
-     ["torchdoct.study.sweep", "torchdoct.study.run", "torchdoct.study.claims"]),
-    ("ground-floor", "Conventions and utilities", "Units and resolution conventions, optics, threads, figures, "
-     "resources and files.",
-     ["torchdoct.conventions", "torchdoct.optics", "torchdoct.runtime.threads", "torchdoct.figures",
-      "torchdoct.runtime.resources", "torchdoct.runtime.interrupt", "torchdoct.runtime.machine", "torchdoct.files",
-      "torchdoct.measured.imagej"]),
-    ("classifier", "Classifier", "Classify maps (numpy and onnxruntime only), decide or abstain, train, match a "
-     "system, translate.",
-     ["classifier.infer", "classifier.outputs", "classifier.pooling", "classifier.rule", "classifier.conformal",
-      "classifier.calibrate", "classifier.ambiguity", "classifier.features",
-      "classifier.matching", "classifier.own_system", "classifier.prior", "classifier.truth", "classifier.simulation",
-      "classifier.dataset", "classifier.train", "classifier.export",
-      "classifier.report", "classifier.evaluation", "classifier.evaluate_images", "classifier.translate"]),
+    (
+        "simulation",
+        "Simulation",
+        "Scenes, plans, the simulator, metrics, the decorrelation signature and the "
+        "closed forms they are tested against.",
+        [
+            "torchdoct.sim.config",
+            "torchdoct.sim.scenes",
+            "torchdoct.sim.plan",
+            "torchdoct.sim.simulate",
+            "torchdoct.sim.metrics",
+            "torchdoct.sim.signature",
+            "torchdoct.sim.theory",
+            "torchdoct.sim.kernel",
+        ],
+    ),
+    (
+        "images",
+        "Phantoms and rendering",
+        "Phantom files and the image renderer.",
+        ["torchdoct.image.phantom", "torchdoct.image.render"],
+    ),
+    (
+        "measured",
+        "Measured data",
+        "Readers, resolution reduction, bulk-phase correction, the Doppler reference, DOCT maps and statistics.",
+        [
+            "torchdoct.measured.io",
+            "torchdoct.measured.sequence",
+            "torchdoct.measured.resolution",
+            "torchdoct.measured.bulkphase",
+            "torchdoct.measured.doppler",
+            "torchdoct.measured.maps",
+            "torchdoct.measured.mapsfile",
+            "torchdoct.measured.compare",
+            "torchdoct.measured.formats",
+            "torchdoct.measured.guards",
+        ],
+    ),
+    (
+        "study",
+        "Sweeps and the study",
+        "Parameter sweeps and the reference paper's numerical study.",
+        ["torchdoct.study.sweep", "torchdoct.study.run", "torchdoct.study.claims"],
+    ),
+    (
+        "ground-floor",
+        "Conventions and utilities",
+        "Units and resolution conventions, optics, threads, figures, resources and files.",
+        [
+            "torchdoct.conventions",
+            "torchdoct.optics",
+            "torchdoct.runtime.threads",
+            "torchdoct.figures",
+            "torchdoct.runtime.resources",
+            "torchdoct.runtime.interrupt",
+            "torchdoct.runtime.machine",
+            "torchdoct.files",
+            "torchdoct.measured.imagej",
+        ],
+    ),
+    (
+        "classifier",
+        "Classifier",
+        "Classify maps (numpy and onnxruntime only), decide or abstain, train, match a system, translate.",
+        [
+            "classifier.infer",
+            "classifier.outputs",
+            "classifier.pooling",
+            "classifier.rule",
+            "classifier.conformal",
+            "classifier.calibrate",
+            "classifier.ambiguity",
+            "classifier.features",
+            "classifier.matching",
+            "classifier.own_system",
+            "classifier.prior",
+            "classifier.truth",
+            "classifier.simulation",
+            "classifier.dataset",
+            "classifier.train",
+            "classifier.export",
+            "classifier.report",
+            "classifier.evaluation",
+            "classifier.evaluate_images",
+            "classifier.translate",
+        ],
+    ),
 ]
 
 
@@ -93,11 +161,17 @@ def _api_pages() -> dict[str, str]:
         body += [f"::: {m}\n" for m in found]
         pages[f"reference/api/{slug}.md"] = "\n".join(body)
         rows.append([f"[{title}]({slug}.md)", what, ", ".join(f"`{m}`" for m in found)])
-    pages["reference/api/index.md"] = "\n".join([
-        "# Python API", "",
-        "Generated from the docstrings at build time (mkdocstrings). Everything the command line does is one "
-        "call of these functions; the names `import torchdoct as td` exposes are listed in `torchdoct.__all__`.", "",
-        results.table(["page", "what", "modules"], rows), ""])
+    pages["reference/api/index.md"] = "\n".join(
+        [
+            "# Python API",
+            "",
+            "Generated from the docstrings at build time (mkdocstrings). Everything the command line does is one "
+            "call of these functions; the names `import torchdoct as td` exposes are listed in `torchdoct.__all__`.",
+            "",
+            results.table(["page", "what", "modules"], rows),
+            "",
+        ]
+    )
     return pages
 
 
@@ -108,16 +182,26 @@ def _exit_codes() -> str:
     from torchdoct.cli import EXIT_CODES
 
     rows = [[str(code), text] for code, text in EXIT_CODES.items()]
-    return "\n".join(["# Command line", "",
-                      "Three programs: `torchdoct` (simulation, rendering, maps, studies, benchmarks, translation), "
-                      "`doct-train` (train a classifier) and `doct-classify` (classify maps). The pages below are "
-                      "generated from their parsers at build time.", "",
-                      *[f"- [`{n}`]({n}.md)" for n in cli_ref.names()], "",
-                      "## Exit codes (every command)", "",
-                      results.table(["code", "meaning"], rows), "",
-                      "Every command that computes takes `--threads N` (default: the usable cores, or "
-                      "`$TORCHDOCT_THREADS`); the numbers do not depend on it. Every long command takes "
-                      "`--no-progress`, and `TQDM_DISABLE=1` silences progress bars everywhere.", ""])
+    return "\n".join(
+        [
+            "# Command line",
+            "",
+            "Three programs: `torchdoct` (simulation, rendering, maps, studies, benchmarks, translation), "
+            "`doct-train` (train a classifier) and `doct-classify` (classify maps). The pages below are "
+            "generated from their parsers at build time.",
+            "",
+            *[f"- [`{n}`]({n}.md)" for n in cli_ref.names()],
+            "",
+            "## Exit codes (every command)",
+            "",
+            results.table(["code", "meaning"], rows),
+            "",
+            "Every command that computes takes `--threads N` (default: the usable cores, or "
+            "`$TORCHDOCT_THREADS`); the numbers do not depend on it. Every long command takes "
+            "`--no-progress`, and `TQDM_DISABLE=1` silences progress bars everywhere.",
+            "",
+        ]
+    )
 
 
 def _changelog() -> str:
@@ -128,8 +212,11 @@ def _changelog() -> str:
 
 
 def _generated() -> dict[str, str]:
-    pages = {"reference/cli/index.md": _exit_codes(), "changelog.md": _changelog(),
-             "models/index.md": models.index(ROOT)}
+    pages = {
+        "reference/cli/index.md": _exit_codes(),
+        "changelog.md": _changelog(),
+        "models/index.md": models.index(ROOT),
+    }
     for name in cli_ref.names():
         pages[f"reference/cli/{name}.md"] = cli_ref.page(name)
     for name in models.shipped(ROOT):
@@ -143,7 +230,7 @@ def _expand_nav(nav):
     out = []
     for item in nav:
         if isinstance(item, dict):
-            (title, value), = item.items()
+            ((title, value),) = item.items()
             if value == "models/index.md":
                 item = {title: ["models/index.md", *[{n: f"models/{n}.md"} for n in models.shipped(ROOT)]]}
             elif value == "reference/api/index.md":
@@ -158,7 +245,7 @@ def _filter_nav(nav, docs_dir: Path):
     out = []
     for item in nav:
         if isinstance(item, dict):
-            (title, value), = item.items()
+            ((title, value),) = item.items()
             if isinstance(value, list):
                 value = _filter_nav(value, docs_dir)
                 if value:

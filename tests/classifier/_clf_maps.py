@@ -11,8 +11,17 @@ import numpy as np
 from classifier.features import FeatureSpec, metric_unit
 
 
-def maps_meta(spec: FeatureSpec, channels: list[dict[str, Any]], *, pitch_um=None, n_frames=None,
-              frame_interval_s=None, ocds_delay_range_s=None, refractive_index=None, axes="CZX") -> dict[str, Any]:
+def maps_meta(
+    spec: FeatureSpec,
+    channels: list[dict[str, Any]],
+    *,
+    pitch_um=None,
+    n_frames=None,
+    frame_interval_s=None,
+    ocds_delay_range_s=None,
+    refractive_index=None,
+    axes="CZX",
+) -> dict[str, Any]:
     c0 = spec.configurations[0]
     n = spec.n_frames if n_frames is None else n_frames
     dt = spec.frame_interval_s if frame_interval_s is None else frame_interval_s
@@ -21,9 +30,13 @@ def maps_meta(spec: FeatureSpec, channels: list[dict[str, Any]], *, pitch_um=Non
         "axes": axes,
         "pitch_um": pitch_um if pitch_um is not None else {"z": 2.0, "x": 2.0},
         "frame_times_s": [i * dt for i in range(n)],
-        "system": {"name": "synthetic", "wavelength_um": c0.wavelength_um,
-                   "lateral_resolution_um": c0.lateral_resolution_um, "axial_resolution_um": c0.axial_resolution_um,
-                   "refractive_index": spec.refractive_index if refractive_index is None else refractive_index},
+        "system": {
+            "name": "synthetic",
+            "wavelength_um": c0.wavelength_um,
+            "lateral_resolution_um": c0.lateral_resolution_um,
+            "axial_resolution_um": c0.axial_resolution_um,
+            "refractive_index": spec.refractive_index if refractive_index is None else refractive_index,
+        },
         "ocds_delay_range_s": list(spec.ocds_delay_range_s if ocds_delay_range_s is None else ocds_delay_range_s),
         "source": "synthetic.npy",
     }
@@ -32,14 +45,30 @@ def maps_meta(spec: FeatureSpec, channels: list[dict[str, Any]], *, pitch_um=Non
 def feature_channels(spec: FeatureSpec, with_mean_db: bool = True) -> list[dict[str, Any]]:
     out = []
     for metric, c in spec.features:
-        out.append({"name": f"{metric}@{c.name}", "metric": metric, "unit": metric_unit(metric),
-                    "resolution": c.name, "wavelength_um": c.wavelength_um,
-                    "lateral_resolution_um": c.lateral_resolution_um, "axial_resolution_um": c.axial_resolution_um})
+        out.append(
+            {
+                "name": f"{metric}@{c.name}",
+                "metric": metric,
+                "unit": metric_unit(metric),
+                "resolution": c.name,
+                "wavelength_um": c.wavelength_um,
+                "lateral_resolution_um": c.lateral_resolution_um,
+                "axial_resolution_um": c.axial_resolution_um,
+            }
+        )
     if with_mean_db:
         c = spec.configurations[0]
-        out.append({"name": f"mean_db@{c.name}", "metric": "mean_db", "unit": "dB", "resolution": c.name,
-                    "wavelength_um": c.wavelength_um, "lateral_resolution_um": c.lateral_resolution_um,
-                    "axial_resolution_um": c.axial_resolution_um})
+        out.append(
+            {
+                "name": f"mean_db@{c.name}",
+                "metric": "mean_db",
+                "unit": "dB",
+                "resolution": c.name,
+                "wavelength_um": c.wavelength_um,
+                "lateral_resolution_um": c.lateral_resolution_um,
+                "axial_resolution_um": c.axial_resolution_um,
+            }
+        )
     return out
 
 
@@ -47,8 +76,12 @@ def save_maps(path: Path, data: np.ndarray, meta: dict[str, Any]) -> Path:
     path = Path(path)
     data = np.asarray(data, np.float32)
     if path.suffix == ".npz":
-        np.savez(path, maps=data, channels=np.array([c["name"] for c in meta["channels"]]),
-                 meta_json=np.asarray(json.dumps(meta)))
+        np.savez(
+            path,
+            maps=data,
+            channels=np.array([c["name"] for c in meta["channels"]]),
+            meta_json=np.asarray(json.dumps(meta)),
+        )
     else:
         import tifffile
 

@@ -26,14 +26,27 @@ from classifier.ambiguity import (
     slow_decorrelation,
 )
 
-NAMES = ["diffusion", "ballistic", "flow", "indeterminate", "diffusion-or-ballistic", "diffusion-or-flow",
-         "ballistic-or-flow"]
+NAMES = [
+    "diffusion",
+    "ballistic",
+    "flow",
+    "indeterminate",
+    "diffusion-or-ballistic",
+    "diffusion-or-flow",
+    "ballistic-or-flow",
+]
 
 
 def test_every_ballistic_decision_of_a_bscan_becomes_ballistic_or_flow():
     labels = np.array([0, 1, 2, 3, 1, 4, 6, 1])
     out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=np.zeros(8))
-    assert out.tolist() == [0, 6, 2, 3, 6, 4, 6, 6] and counts == {"coherent_motion": 0, "bscan_plane": 3, "slow_decorrelation": 0, "fast_decorrelation": 0, "offset_moved": 0}
+    assert out.tolist() == [0, 6, 2, 3, 6, 4, 6, 6] and counts == {
+        "coherent_motion": 0,
+        "bscan_plane": 3,
+        "slow_decorrelation": 0,
+        "fast_decorrelation": 0,
+        "offset_moved": 0,
+    }
     assert labels.tolist() == [0, 1, 2, 3, 1, 4, 6, 1]  # the input is not modified
 
 
@@ -41,9 +54,21 @@ def test_a_volume_keeps_ballistic_only_where_the_window_decorrelated():
     labels = np.array([1, 1, 1, 1, 0, 2])
     corr = np.array([DECORRELATED_BELOW - 1e-6, DECORRELATED_BELOW, 0.9, np.nan, 0.9, 0.9])
     out, counts = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=corr)
-    assert out.tolist() == [1, 6, 6, 6, 0, 2] and counts == {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 3, "fast_decorrelation": 0, "offset_moved": 0}
+    assert out.tolist() == [1, 6, 6, 6, 0, 2] and counts == {
+        "coherent_motion": 0,
+        "bscan_plane": 0,
+        "slow_decorrelation": 3,
+        "fast_decorrelation": 0,
+        "offset_moved": 0,
+    }
     same, none = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=None)
-    assert same.tolist() == labels.tolist() and none == {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 0, "fast_decorrelation": 0, "offset_moved": 0}
+    assert same.tolist() == labels.tolist() and none == {
+        "coherent_motion": 0,
+        "bscan_plane": 0,
+        "slow_decorrelation": 0,
+        "fast_decorrelation": 0,
+        "offset_moved": 0,
+    }
 
 
 def test_coherent_motion_needs_a_kept_peak_mostly_moved_off_centre_at_a_lag_up_to_a_quarter_acquisition():
@@ -51,9 +76,13 @@ def test_coherent_motion_needs_a_kept_peak_mostly_moved_off_centre_at_a_lag_up_t
     # per pixel: a moved kept peak; a centred peak; a moved peak below the floor; half moved exactly; NaN
     peak = np.array([0.9, 0.9, p - 1e-6, 0.8, np.nan])
     centre = np.array([0.1, 0.9, 0.0, 0.8 * (1 - c), 0.1])
-    ch = {"xc_peak_4@original": peak, "xc_centre_4@original": centre,
-          # lag 16 > 32 // 4: a moved peak there does not count (few frame pairs, lone scatterers)
-          "xc_peak_16@original": np.full(5, 0.9), "xc_centre_16@original": np.zeros(5)}
+    ch = {
+        "xc_peak_4@original": peak,
+        "xc_centre_4@original": centre,
+        # lag 16 > 32 // 4: a moved peak there does not count (few frame pairs, lone scatterers)
+        "xc_peak_16@original": np.full(5, 0.9),
+        "xc_centre_16@original": np.zeros(5),
+    }
     seen, used = coherent_motion(ch, n_frames=32)
     assert seen.tolist() == [True, False, False, True, False]
     assert used == ["xc_peak_4@original", "xc_centre_4@original"]
@@ -68,7 +97,13 @@ def test_coherent_motion_turns_every_symmetric_motion_decision_into_flow_before_
     # ballistic, the sets and diffusion become flow; indeterminate and flow stay; the rest of the B-scan's
     # ballistic is a set
     assert out.tolist() == [2, 2, 2, 2, 2, 3, 2, 6, 6]
-    assert counts == {"coherent_motion": 5, "bscan_plane": 2, "slow_decorrelation": 0, "fast_decorrelation": 0, "offset_moved": 0}
+    assert counts == {
+        "coherent_motion": 5,
+        "bscan_plane": 2,
+        "slow_decorrelation": 0,
+        "fast_decorrelation": 0,
+        "offset_moved": 0,
+    }
 
 
 def test_fast_decorrelation_is_a_decay_over_before_the_shortest_lag():
@@ -77,8 +112,11 @@ def test_fast_decorrelation_is_a_decay_over_before_the_shortest_lag():
     # just over a fifth of the decay left; undecayed (rule 2's case, 0 < f of 0); NaN
     first = np.array([0.32, 0.76, 0.3 + f * 0.7 + 1e-9, 1.0, np.nan])
     last = np.array([0.30, 0.31, 0.3, 1.0, 0.3])
-    ch = {"xc_centre_16@original": last, "xc_centre_2@original": first,
-          "xc_centre_4@coarse": np.zeros(5)}  # another resolution with one lag is not mixed in
+    ch = {
+        "xc_centre_16@original": last,
+        "xc_centre_2@original": first,
+        "xc_centre_4@coarse": np.zeros(5),
+    }  # another resolution with one lag is not mixed in
     fast, used = fast_decorrelation(ch)
     assert fast.tolist() == [True, False, False, False, False]
     assert used == ["xc_centre_2@original", "xc_centre_16@original"]
@@ -92,13 +130,20 @@ def test_fast_decorrelation_makes_a_volume_ballistic_decision_a_set_after_the_sl
     fast = np.array([True, True, False, True, True])
     out, counts = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=corr, fast=fast)
     assert out.tolist() == [6, 6, 1, 2, 0]  # flow and diffusion decisions stay
-    assert counts == {"coherent_motion": 0, "bscan_plane": 0, "slow_decorrelation": 1, "fast_decorrelation": 1, "offset_moved": 0}
+    assert counts == {
+        "coherent_motion": 0,
+        "bscan_plane": 0,
+        "slow_decorrelation": 1,
+        "fast_decorrelation": 1,
+        "offset_moved": 0,
+    }
 
 
 def test_labels_without_the_set_name_are_left_alone():
     labels = np.array([1, 1])
-    out, counts = abstain_where_ambiguous(labels, ["diffusion", "ballistic", "flow", "indeterminate"], bscan=True,
-                                          correlation=None)
+    out, counts = abstain_where_ambiguous(
+        labels, ["diffusion", "ballistic", "flow", "indeterminate"], bscan=True, correlation=None
+    )
     assert out.tolist() == [1, 1] and sum(counts.values()) == 0
 
 
@@ -106,11 +151,13 @@ def test_the_slow_rule_reads_the_longest_speckle_lag_else_the_pooled_half_acquis
     ch = {"xc_centre_4@original": np.full((2, 3), 0.1), "xc_centre_16@original": np.arange(6.0).reshape(2, 3)}
     vals, src = slow_decorrelation(ch, idx=np.array([5, 0]))
     assert src == "xc_centre_16@original" and vals.tolist() == [5.0, 0.0]
-    cols = [{"name": "rho_lin_8@a", "metric": "rho_lin_8", "configuration": "a"},
-            {"name": "rho_lin_16@b", "metric": "rho_lin_16", "configuration": "b"},
-            {"name": "rho_lin_11@a", "metric": "rho_lin_11", "configuration": "a"},
-            {"name": "rho_lin_22@a", "metric": "rho_lin_22", "configuration": "a"},
-            {"name": "pool_pixels"}]
+    cols = [
+        {"name": "rho_lin_8@a", "metric": "rho_lin_8", "configuration": "a"},
+        {"name": "rho_lin_16@b", "metric": "rho_lin_16", "configuration": "b"},
+        {"name": "rho_lin_11@a", "metric": "rho_lin_11", "configuration": "a"},
+        {"name": "rho_lin_22@a", "metric": "rho_lin_22", "configuration": "a"},
+        {"name": "pool_pixels"},
+    ]
     pooled = np.array([[0.1, 0.2, 0.3, 0.4, 1.0]])
     vals, src = slow_decorrelation({}, cols, pooled, n_frames=32)  # |11 - 16| < |22 - 16|; b is not first
     assert src == "rho_lin_11@a" and vals.tolist() == [0.3]
@@ -129,12 +176,14 @@ def test_offset_rule_fires_on_an_offset_off_centre_or_growing_while_the_pattern_
     p = 1.5
     first = OFFSET_FIRST_MIN * p
     grow = OFFSET_GROWTH_MIN * p
-    rows = [[first, first, first, 0.0],                        # a grid step off at the shortest lag
-            [0.9 * first, 0.9 * first, 0.9 * first, 9.0],      # off by less, not growing; lag 16 is not read
-            [0.1, 0.1 + grow / 2, 0.1 + 1.01 * grow, 0.0],     # grew at every lag, by the minimum in all
-            [0.1, 0.1 + grow, 0.1 + grow, 0.0],                # grew, but not at every lag
-            [0.1, 0.1 + grow / 2, 0.1 + 0.99 * grow, 0.0],     # grew at every lag, by less than the minimum
-            [np.nan, 1.0, 2.0, 3.0]]                           # NaN: not seen
+    rows = [
+        [first, first, first, 0.0],  # a grid step off at the shortest lag
+        [0.9 * first, 0.9 * first, 0.9 * first, 9.0],  # off by less, not growing; lag 16 is not read
+        [0.1, 0.1 + grow / 2, 0.1 + 1.01 * grow, 0.0],  # grew at every lag, by the minimum in all
+        [0.1, 0.1 + grow, 0.1 + grow, 0.0],  # grew, but not at every lag
+        [0.1, 0.1 + grow / 2, 0.1 + 0.99 * grow, 0.0],  # grew at every lag, by less than the minimum
+        [np.nan, 1.0, 2.0, 3.0],
+    ]  # NaN: not seen
     moved, used = _offsets(rows, OFFSET_HOLD_MIN, p)
     assert moved.off_centre.tolist() == [True, False, False, False, False, False]
     assert moved.grew.tolist() == [False, False, True, False, False, False]
@@ -167,11 +216,17 @@ def test_every_rule_applies_in_one_call_each_to_the_pixels_the_earlier_rules_lef
     corr = np.array([0.0, 0.9, 0.0, 0.0, 0.0, 0.0])
     fast = np.array([False, False, False, True, False, False])
     moved = OffsetMotion(np.array([True, True, True, True, True, False]), np.zeros(6, bool))
-    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=corr, coherent=coherent,
-                                          fast=fast, moved=moved)
+    out, counts = abstain_where_ambiguous(
+        labels, NAMES, bscan=False, correlation=corr, coherent=coherent, fast=fast, moved=moved
+    )
     assert out.tolist() == [2, 6, 5, 6, 6, 0]
-    assert counts == {"coherent_motion": 1, "bscan_plane": 0, "slow_decorrelation": 1, "fast_decorrelation": 1,
-                      "offset_moved": 2}
+    assert counts == {
+        "coherent_motion": 1,
+        "bscan_plane": 0,
+        "slow_decorrelation": 1,
+        "fast_decorrelation": 1,
+        "offset_moved": 2,
+    }
 
 
 def _speckle_channels(field, n_frames=32):
@@ -181,7 +236,7 @@ def _speckle_channels(field, n_frames=32):
     names = default_speckle_features(2, n_frames=n_frames)
     h = halo_pixels() + 1
     c = field.shape[-1] // 2
-    crop = field[..., c - h:c + h + 1, c - h:c + h + 1]
+    crop = field[..., c - h : c + h + 1, c - h : c + h + 1]
     _, f = speckle_motion(crop, {"z": 1.0, "x": 1.0}, 0.2048, names, ndim=2)
     vals = f[..., h, h].numpy()
     return {f"{n}@original": vals[:, i] for i, n in enumerate(names)}
@@ -207,8 +262,14 @@ def test_offset_rule_sees_sub_pixel_flow_beating_against_static_speckle_and_rare
     fwd = translated_speckle(n, shape, sig, lambda i: (step[0] * i, step[1] * i), seed=22)
     flow = _speckle_channels(static + fwd * torch.exp(-0.4j * frames))
     rates = torch.linspace(-0.8, 0.8, 16, dtype=torch.float64)
-    moving = sum(translated_speckle(n, shape, sig, lambda i: (0.0, 0.0), seed=30 + k, n_frames=1)
-                 * torch.exp(-1j * float(r) * frames) for k, r in enumerate(rates)) / 4.0
+    moving = (
+        sum(
+            translated_speckle(n, shape, sig, lambda i: (0.0, 0.0), seed=30 + k, n_frames=1)
+            * torch.exp(-1j * float(r) * frames)
+            for k, r in enumerate(rates)
+        )
+        / 4.0
+    )
     sym = _speckle_channels(static + moving)
     moved_flow, _ = offset_moved(flow, 1.0, n_frames=32)
     moved_sym, _ = offset_moved(sym, 1.0, n_frames=32)
@@ -231,17 +292,18 @@ def crossing():
     model = load_model("signature-bscan")
     levels = grid.speed_levels(load_spec("signature-bscan"))
     cell = grid.GridCell("bscan", "none", 20.0, "mid", 80.0, 90.0, seed=3)
-    return {k: grid.run_cell(cell, model, levels, pools=(5,), threads=1, abstain_ambiguous=k)[0]
-            for k in (True, False)}
+    return {k: grid.run_cell(cell, model, levels, pools=(5,), threads=1, abstain_ambiguous=k)[0] for k in (True, False)}
 
 
 def test_flow_across_a_bscan_without_static_tissue_is_never_decided_as_another_class(crossing):
     ruled, model = crossing[True]["per_class"], crossing[False]["per_class"]
     assert ruled["flow"]["wrong_share"] <= 0.10  # issue target: abstaining is right here
+
     def right(c):
         return round((c["recall"] or 0.0) * c["decided"])
 
     assert ruled["flow"]["wrong_share"] <= model["flow"]["wrong_share"] and right(ruled["ballistic"]) == 0
+
     # the rules turn decisions into sets or, where the pattern moved, into flow: the diffusion pixels gain no
     # wrong decision nor a set without diffusion (rule 4 gives some right ones the set diffusion-or-flow), and
     # the flow pixels gain right decisions and lose wrong ones

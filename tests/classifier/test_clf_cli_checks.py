@@ -52,38 +52,79 @@ def maps_file(tmp_path):
 # ----------------------------------------------------------------------------------------------------------
 # doct-train
 # ----------------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("option,value", [("--draws-train", "0"), ("--draws-test", "1"), ("--max-epochs", "-1"),
-                                          ("--min-probability", "2"), ("--seed", "-1"), ("--replicates", "0")])
+@pytest.mark.parametrize(
+    "option,value",
+    [
+        ("--draws-train", "0"),
+        ("--draws-test", "1"),
+        ("--max-epochs", "-1"),
+        ("--min-probability", "2"),
+        ("--seed", "-1"),
+        ("--replicates", "0"),
+    ],
+)
 def test_doct_train_names_options_as_typed(tmp_path, capsys, no_work, option, value):
-    refused(capsys, tmp_path, train_main, ["--out", str(tmp_path / "o"), option, value, "--no-progress"],
-            option, absent=("TrainConfig",))
+    refused(
+        capsys,
+        tmp_path,
+        train_main,
+        ["--out", str(tmp_path / "o"), option, value, "--no-progress"],
+        option,
+        absent=("TrainConfig",),
+    )
 
 
 def test_doct_train_names_a_recipe_field_that_no_option_sets(tmp_path, capsys, no_work):
-    line = refused(capsys, tmp_path, train_main, ["--out", str(tmp_path / "o"), "--trials-per-draw", "1"],
-                   "--trials-per-draw", absent=("TrainConfig",))
+    line = refused(
+        capsys,
+        tmp_path,
+        train_main,
+        ["--out", str(tmp_path / "o"), "--trials-per-draw", "1"],
+        "--trials-per-draw",
+        absent=("TrainConfig",),
+    )
     assert "the training recipe's max_pool_pixels" in line
 
 
 def test_doct_train_refuses_a_cache_that_is_a_file_and_a_spec_name_that_is_a_path(tmp_path, capsys, no_work):
     plain = tmp_path / "plain.txt"
     plain.write_text("x")
-    refused(capsys, tmp_path, train_main, ["--out", str(tmp_path / "o"), "--cache", str(plain)],
-            "--cache", "plain.txt", "is a file")
+    refused(
+        capsys,
+        tmp_path,
+        train_main,
+        ["--out", str(tmp_path / "o"), "--cache", str(plain)],
+        "--cache",
+        "plain.txt",
+        "is a file",
+    )
     text = (SPECS / "single-acquisition.toml").read_text(encoding="utf-8")
     spec = tmp_path / "spec.toml"
     spec.write_text(text.replace('name = "single-acquisition"', 'name = "../model\\u0007"'), encoding="utf-8")
-    refused(capsys, tmp_path, train_main, ["--out", str(tmp_path / "o"), "--spec", str(spec)],
-            "feature spec name", "'../model\\x07'")
+    refused(
+        capsys,
+        tmp_path,
+        train_main,
+        ["--out", str(tmp_path / "o"), "--spec", str(spec)],
+        "feature spec name",
+        "'../model\\x07'",
+    )
 
 
-@pytest.mark.parametrize("text", ["a = " + "[" * 5000 + "]" * 5000, ".".join(["k"] * 5000) + " = 1"],
-                         ids=["arrays", "dotted-keys"])
+@pytest.mark.parametrize(
+    "text", ["a = " + "[" * 5000 + "]" * 5000, ".".join(["k"] * 5000) + " = 1"], ids=["arrays", "dotted-keys"]
+)
 def test_doct_train_refuses_a_deeply_nested_spec(tmp_path, capsys, no_work, text):
     spec = tmp_path / "deep.toml"
     spec.write_text(text + "\n")
-    refused(capsys, tmp_path, train_main, ["--out", str(tmp_path / "o"), "--spec", str(spec)],
-            "deep.toml", "nested more than")
+    refused(
+        capsys,
+        tmp_path,
+        train_main,
+        ["--out", str(tmp_path / "o"), "--spec", str(spec)],
+        "deep.toml",
+        "nested more than",
+    )
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -101,8 +142,12 @@ def test_doct_classify_checks_its_outputs_before_the_work(tmp_path, capsys, no_w
 
 def test_doct_classify_refuses_deeply_nested_maps_metadata(tmp_path, capsys):
     maps = tmp_path / "deep.npz"
-    np.savez(maps, maps=np.zeros((3, 4, 4), np.float32), channels=np.array(["a", "b", "c"]),
-             meta_json=np.asarray('{"channels": ' + "[" * 5000 + "]" * 5000 + "}"))
+    np.savez(
+        maps,
+        maps=np.zeros((3, 4, 4), np.float32),
+        channels=np.array(["a", "b", "c"]),
+        meta_json=np.asarray('{"channels": ' + "[" * 5000 + "]" * 5000 + "}"),
+    )
     refused(capsys, tmp_path, classify_main, [str(maps), "--out", str(tmp_path / "o")], "deep.npz", "nested more than")
 
 
@@ -111,14 +156,21 @@ def test_doct_classify_force_leaves_only_this_runs_set(tmp_path, capsys, maps_fi
     out.mkdir()
     (out / "magnitude.tif").write_bytes(b"of an earlier run with the signature model")
     (out / "notes.txt").write_text("the user's own file")
-    assert classify_main([str(maps_file), "--model", "single-acquisition", "--out", str(out), "--force",
-                          "--threads", "1"]) == 0
-    assert {p.name for p in out.iterdir()} == {"classes.tif", "probabilities.tif", "legend.json", "summary.json",
-                                               "overlay.png", "notes.txt"}  # no stale magnitude.tif beside them
+    assert (
+        classify_main([str(maps_file), "--model", "single-acquisition", "--out", str(out), "--force", "--threads", "1"])
+        == 0
+    )
+    assert {p.name for p in out.iterdir()} == {
+        "classes.tif",
+        "probabilities.tif",
+        "legend.json",
+        "summary.json",
+        "overlay.png",
+        "notes.txt",
+    }  # no stale magnitude.tif beside them
 
 
-def test_doct_classify_interrupted_while_writing_leaves_the_folder_as_it_was(tmp_path, capsys, maps_file,
-                                                                             monkeypatch):
+def test_doct_classify_interrupted_while_writing_leaves_the_folder_as_it_was(tmp_path, capsys, maps_file, monkeypatch):
     import tifffile
 
     real = tifffile.imwrite
@@ -159,13 +211,17 @@ def test_doct_train_interrupted_says_what_the_cache_keeps(tmp_path, capsys, monk
     assert not out.exists()
 
 
-@pytest.mark.parametrize("field,value,names", [
-    ("opset", 99, ("opset 99", "opsets onnxruntime", "(7 to ", "doct-train writes opset 17")),
-    ("opset", 1, ("opset 1", "(7 to ")),
-    ("ir_version", 99, ("IR version 99", "IR versions up to", "upgrade onnxruntime")),
-])
-def test_a_model_of_an_unsupported_opset_or_ir_version_names_the_supported_range(tmp_path, capsys, maps_file,
-                                                                                 field, value, names):
+@pytest.mark.parametrize(
+    "field,value,names",
+    [
+        ("opset", 99, ("opset 99", "opsets onnxruntime", "(7 to ", "doct-train writes opset 17")),
+        ("opset", 1, ("opset 1", "(7 to ")),
+        ("ir_version", 99, ("IR version 99", "IR versions up to", "upgrade onnxruntime")),
+    ],
+)
+def test_a_model_of_an_unsupported_opset_or_ir_version_names_the_supported_range(
+    tmp_path, capsys, maps_file, field, value, names
+):
     onnx = pytest.importorskip("onnx")
     from classifier.runtime import shipped_models
 
@@ -176,7 +232,13 @@ def test_a_model_of_an_unsupported_opset_or_ir_version_names_the_supported_range
         proto.ir_version = value
     model = tmp_path / "model.onnx"
     onnx.save(proto, str(model))
-    line = refused(capsys, tmp_path, classify_main, [str(maps_file), "--model", str(model), "--out",
-                                                     str(tmp_path / "o")], "model.onnx", *names,
-                   absent=("onnxruntime_src", "ONNXRuntimeError"))
+    line = refused(
+        capsys,
+        tmp_path,
+        classify_main,
+        [str(maps_file), "--model", str(model), "--out", str(tmp_path / "o")],
+        "model.onnx",
+        *names,
+        absent=("onnxruntime_src", "ONNXRuntimeError"),
+    )
     assert "\n" not in line

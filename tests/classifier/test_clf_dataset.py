@@ -17,13 +17,24 @@ from classifier.prior import CLASSES, Draw, Prior, draw_parameters
 from classifier.simulation import scene_for, simulate_draw
 from classifier.truth import identifiability, transit_decay
 
-TINY = FeatureSpec(name="tiny", configurations=(
-    Configuration(name="o", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8),))
+TINY = FeatureSpec(
+    name="tiny",
+    configurations=(Configuration(name="o", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8),),
+)
 
 
-def _draw(label: int, magnitude: float, density: float = 0.06, nuisance=((0.0, math.nan),), polar: float = 45.0) -> Draw:
-    return Draw(label=label, magnitude=magnitude, polar_angle_deg=polar, azimuth_deg=0.0, density_per_um3=density,
-                sim_seed=11, nuisance=tuple(nuisance))
+def _draw(
+    label: int, magnitude: float, density: float = 0.06, nuisance=((0.0, math.nan),), polar: float = 45.0
+) -> Draw:
+    return Draw(
+        label=label,
+        magnitude=magnitude,
+        polar_angle_deg=polar,
+        azimuth_deg=0.0,
+        density_per_um3=density,
+        sim_seed=11,
+        nuisance=tuple(nuisance),
+    )
 
 
 def test_draws_are_stratified_reproducible_and_prefix_stable():
@@ -98,8 +109,9 @@ def test_transit_decay_is_the_closed_form_and_the_definition_is_the_same_for_sig
         want = []
         for c in sig.configurations:
             res = dict(lateral_resolution_um=c.lateral_resolution_um, axial_resolution_um=c.axial_resolution_um)
-            g1 = theory.g1_diffusion(taus, diffusion_um2_per_s=m, wavelength_um=c.wavelength_um,
-                                     refractive_index=sig.refractive_index, **res)
+            g1 = theory.g1_diffusion(
+                taus, diffusion_um2_per_s=m, wavelength_um=c.wavelength_um, refractive_index=sig.refractive_index, **res
+            )
             j = theory.j_diffusion(taus, diffusion_um2_per_s=m, **res)
             rho = theory.intensity_correlation_coefficient(g1, j, n_eff(d.density_per_um3, **res))
             want.append(rho[0] - rho[1])
@@ -122,15 +134,15 @@ def test_combine_fields_intensity_and_noise_power():
     f = 0.6
     out = combine_fields(e_m, e_s, f, math.nan, [1.0, 1.0], gen)
     a2 = f / (1 - f)
-    i = (out.real ** 2 + out.imag ** 2).double()
-    ref = (e_m.real ** 2 + e_m.imag ** 2).double().mean() + a2 * (e_s.real ** 2 + e_s.imag ** 2).double().mean()
+    i = (out.real**2 + out.imag**2).double()
+    ref = (e_m.real**2 + e_m.imag**2).double().mean() + a2 * (e_s.real**2 + e_s.imag**2).double().mean()
     se = float(i.mean(dim=(1, 2)).std() / math.sqrt(shape[0]))
     assert abs(float(i.mean()) - float(ref)) <= 4 * se
     # noise alone (zero moving field): power (1 + a^2)·<I>/10^(snr/10) per system, circular
     zero = torch.zeros(shape, dtype=torch.complex64)
     mean_i = [2.0, 0.5]
     noise = combine_fields(zero, zero, f, 10.0, mean_i, gen)
-    p = (noise.real ** 2 + noise.imag ** 2).double()
+    p = (noise.real**2 + noise.imag**2).double()
     for s_idx, m in enumerate(mean_i):
         want = (1 + a2) * m / 10.0
         got = p[:, s_idx].mean()
@@ -197,8 +209,9 @@ def test_prior_direction_laws_and_flow_angle_range_are_validated():
     assert Prior().ballistic_directions == "both" and Prior().flow_polar_angle_deg == (0.0, 180.0)
     for law in ("both", "isotropic", "uniform-angles"):
         assert Prior.from_dict(Prior(ballistic_directions=law).to_dict()).ballistic_directions == law
-    with pytest.raises(ValueError,
-                       match=r"ballistic_directions must be one of \['both', 'isotropic', 'uniform-angles'\]"):
+    with pytest.raises(
+        ValueError, match=r"ballistic_directions must be one of \['both', 'isotropic', 'uniform-angles'\]"
+    ):
         Prior(ballistic_directions="cog")
     with pytest.raises(ValueError, match="ballistic_directions"):
         Prior(ballistic_directions=None)
@@ -207,8 +220,15 @@ def test_prior_direction_laws_and_flow_angle_range_are_validated():
     with pytest.raises(ValueError, match="flow_polar_angle_deg"):
         Prior(flow_polar_angle_deg=(80.0, 10.0))
     with pytest.raises(ValueError, match="Draw.ballistic_directions"):
-        _draw(1, 0.1).__class__(label=1, magnitude=0.1, polar_angle_deg=0.0, azimuth_deg=0.0, density_per_um3=0.05,
-                                sim_seed=1, ballistic_directions="both")
+        _draw(1, 0.1).__class__(
+            label=1,
+            magnitude=0.1,
+            polar_angle_deg=0.0,
+            azimuth_deg=0.0,
+            density_per_um3=0.05,
+            sim_seed=1,
+            ballistic_directions="both",
+        )
 
 
 def test_stored_priors_still_load():
@@ -216,9 +236,17 @@ def test_stored_priors_still_load():
     angle had a range) load: a missing key takes its default, which reproduces the old draws."""
     from classifier.infer import load_model, shipped_models
 
-    old = {"diffusion_um2_per_s": [0.0001, 15.0], "speed_um_per_s": [0.001, 6.0], "ballistic_directions": "isotropic",
-           "density_per_um3": [0.02, 0.1], "static_probability": 0.5, "static_fraction": [0.0, 0.8],
-           "noise_probability": 0.5, "snr_db": [20.0, 40.0], "identifiability_epsilon": 0.05}
+    old = {
+        "diffusion_um2_per_s": [0.0001, 15.0],
+        "speed_um_per_s": [0.001, 6.0],
+        "ballistic_directions": "isotropic",
+        "density_per_um3": [0.02, 0.1],
+        "static_probability": 0.5,
+        "static_fraction": [0.0, 0.8],
+        "noise_probability": 0.5,
+        "snr_db": [20.0, 40.0],
+        "identifiability_epsilon": 0.05,
+    }
     stored = [old] + [load_model(name, threads=1).metadata["prior"] for name in shipped_models()]
     for data in stored:
         p = Prior.from_dict(data)
@@ -291,6 +319,7 @@ def test_flow_angle_range_is_isotropic_within_it():
 # ----------------------------------------------------------------------------------------------------------
 # the edge of a moving region: a static share per configuration (physics.md §14)
 
+
 def test_edge_static_fractions_closed_form():
     from classifier.nuisance import edge_static_fractions
 
@@ -326,8 +355,10 @@ def test_combine_fields_takes_a_static_share_per_system():
         share = float(p_static.mean() / p_total.mean())
         se = float(p_static.std() / math.sqrt(p_static.numel())) / float(p_total.mean())
         assert abs(share - f) <= 5 * se + 0.01, (c, share, f)  # 0.01: the ratio's own spread
-    assert torch.equal(combine_fields(e_m, e_s, [0.3, 0.3], math.nan, [1.0, 1.0], gen),
-                       combine_fields(e_m, e_s, 0.3, math.nan, [1.0, 1.0], gen))
+    assert torch.equal(
+        combine_fields(e_m, e_s, [0.3, 0.3], math.nan, [1.0, 1.0], gen),
+        combine_fields(e_m, e_s, 0.3, math.nan, [1.0, 1.0], gen),
+    )
     with pytest.raises(ValueError, match="2 systems"):
         combine_fields(e_m, e_s, [0.1, 0.2, 0.3], math.nan, [1.0, 1.0], gen)
 
@@ -366,8 +397,16 @@ def test_flow_near_a_static_edge_beats_at_its_doppler_period():
     nm = len(spec.metrics)
     out = {}
     for name, edges in (("none", ()), ("edge", ((0.5, 1.0, 0.0, 0.0),))):
-        d = Draw(label=2, magnitude=v, polar_angle_deg=0.0, azimuth_deg=0.0, density_per_um3=0.05, sim_seed=21,
-                 nuisance=((0.0, math.nan),), static_edges=edges)
+        d = Draw(
+            label=2,
+            magnitude=v,
+            polar_angle_deg=0.0,
+            azimuth_deg=0.0,
+            density_per_um3=0.05,
+            sim_seed=21,
+            nuisance=((0.0, math.nan),),
+            static_edges=edges,
+        )
         x = simulate_draw(spec, d, prior, trials=256, truncation_tolerance=1e-2)[0][0]
         r4, r8 = x[:, lat * nm + i4], x[:, lat * nm + i8]
         diff = r8 - r4

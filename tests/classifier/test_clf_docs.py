@@ -24,8 +24,12 @@ def test_physics_reference_is_in_the_repository_with_every_cited_section():
     assert PHYSICS.is_file(), "docs/physics.md is cited by the package and must be in the repository"
     have = _sections()
     assert {"1", "2.4", "3", "5.1", "5.3", "5.4", "5.5", "5.7", "10.2", "11"} <= have
-    files = [p for d in ("torchdoct", "classifier") for p in sorted((REPO / d).rglob("*"))
-             if p.suffix in (".py", ".md", ".toml") and p.is_file()]
+    files = [
+        p
+        for d in ("torchdoct", "classifier")
+        for p in sorted((REPO / d).rglob("*"))
+        if p.suffix in (".py", ".md", ".toml") and p.is_file()
+    ]
     files += [p for p in sorted((REPO / "docs").rglob("*.md")) if "hooks" not in p.parts]  # the site's pages
     missing = {}
     n = 0

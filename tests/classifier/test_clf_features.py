@@ -8,17 +8,35 @@ from classifier.features import Configuration, FeatureSpec, load_spec, same_valu
 
 
 def test_shipped_specs_are_the_documented_ones():
-    assert set(shipped_specs()) == {"single-acquisition", "two-wavelength", "signature", "two-wavelength-signature",
-                                    "signature-bscan", "signature-bscan-field", "single-acquisition-bscan"}
+    assert set(shipped_specs()) == {
+        "single-acquisition",
+        "two-wavelength",
+        "signature",
+        "two-wavelength-signature",
+        "signature-bscan",
+        "signature-bscan-field",
+        "single-acquisition-bscan",
+    }
     single = load_spec("single-acquisition")
     assert [(c.wavelength_um, c.lateral_resolution_um, c.axial_resolution_um) for c in single.configurations] == [
-        (0.84, 4.9, 3.8), (0.84, 4.9, 14.0), (0.84, 18.0, 3.8)]
-    assert single.feature_names == ("liv@original", "ocds@original", "liv@axial=14", "ocds@axial=14",
-                                    "liv@lateral=18", "ocds@lateral=18")
+        (0.84, 4.9, 3.8),
+        (0.84, 4.9, 14.0),
+        (0.84, 18.0, 3.8),
+    ]
+    assert single.feature_names == (
+        "liv@original",
+        "ocds@original",
+        "liv@axial=14",
+        "ocds@axial=14",
+        "liv@lateral=18",
+        "ocds@lateral=18",
+    )
     assert single.feature_units == ("dB^2", "1/s") * 3
     two = load_spec("two-wavelength")
     assert [(c.wavelength_um, c.lateral_resolution_um, c.axial_resolution_um) for c in two.configurations] == [
-        (0.84, 4.9, 3.8), (1.31, 4.9, 3.8)]
+        (0.84, 4.9, 3.8),
+        (1.31, 4.9, 3.8),
+    ]
     for spec in (single, two):  # the paper's protocol (§2.1.2)
         assert spec.n_frames == 32 and spec.frame_interval_s == 0.2048
         assert spec.ocds_delay_range_s == (0.2048, 1.2288)
@@ -44,18 +62,21 @@ def _base() -> dict:
     return load_spec("two-wavelength").to_dict()
 
 
-@pytest.mark.parametrize("mutate, err, text", [
-    (lambda d: d.update(colour="red"), ValueError, "unknown key"),
-    (lambda d: d["configuration"][0].update(wavelength_um=840.0), ValueError, "0.84"),
-    (lambda d: d["configuration"][1].update(name="840nm"), ValueError, "duplicate configuration"),
-    (lambda d: d["configuration"][1].update(wavelength_um=0.84), ValueError, "same system"),
-    (lambda d: d.update(metrics=["liv", "aliv"]), ValueError, "not supported"),
-    (lambda d: d.update(metrics="liv"), TypeError, "list"),
-    (lambda d: d["analysis"].update(ocds_delay_range_s=[1.0, 0.5]), ValueError, "max > min"),
-    (lambda d: d["protocol"].update(n_frames=2), ValueError, "n_frames"),
-    (lambda d: d["configuration"][0].update(lateral_resolution_um=-1.0), ValueError, "lateral_resolution_um"),
-    (lambda d: d.update(configuration=[]), ValueError, "at least one"),
-])
+@pytest.mark.parametrize(
+    "mutate, err, text",
+    [
+        (lambda d: d.update(colour="red"), ValueError, "unknown key"),
+        (lambda d: d["configuration"][0].update(wavelength_um=840.0), ValueError, "0.84"),
+        (lambda d: d["configuration"][1].update(name="840nm"), ValueError, "duplicate configuration"),
+        (lambda d: d["configuration"][1].update(wavelength_um=0.84), ValueError, "same system"),
+        (lambda d: d.update(metrics=["liv", "aliv"]), ValueError, "not supported"),
+        (lambda d: d.update(metrics="liv"), TypeError, "list"),
+        (lambda d: d["analysis"].update(ocds_delay_range_s=[1.0, 0.5]), ValueError, "max > min"),
+        (lambda d: d["protocol"].update(n_frames=2), ValueError, "n_frames"),
+        (lambda d: d["configuration"][0].update(lateral_resolution_um=-1.0), ValueError, "lateral_resolution_um"),
+        (lambda d: d.update(configuration=[]), ValueError, "at least one"),
+    ],
+)
 def test_bad_specs_are_rejected_with_the_field_named(mutate, err, text):
     d = _base()
     mutate(d)
@@ -65,8 +86,11 @@ def test_bad_specs_are_rejected_with_the_field_named(mutate, err, text):
 
 def test_load_spec_from_file_and_missing_file(tmp_path):
     p = tmp_path / "mine.toml"
-    p.write_text('name = "mine"\n[[configuration]]\nname = "a"\nwavelength_um = 1.0\n'
-                 'lateral_resolution_um = 5.0\naxial_resolution_um = 4.0\n', encoding="utf-8")
+    p.write_text(
+        'name = "mine"\n[[configuration]]\nname = "a"\nwavelength_um = 1.0\n'
+        "lateral_resolution_um = 5.0\naxial_resolution_um = 4.0\n",
+        encoding="utf-8",
+    )
     spec = load_spec(p)
     assert isinstance(spec, FeatureSpec) and spec.feature_names == ("liv@a", "ocds@a")
     with pytest.raises(FileNotFoundError, match="shipped"):

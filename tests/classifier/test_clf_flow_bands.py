@@ -29,8 +29,12 @@ def test_bands_fold_the_polar_angle_and_count_each_decision():
     near = out["polar_bands"]["0-30"]
     assert near["samples"] == 4 and near["coverage"] == 0.75
     assert math.isclose(near["recall"], 2 / 3) and math.isclose(near["as"]["ballistic"], 1 / 3)
-    assert out["polar_bands"]["30-60"] == {"samples": 2, "coverage": 1.0, "recall": 1.0,
-                                           "as": {"diffusion": 0.0, "ballistic": 0.0, "flow": 1.0}}
+    assert out["polar_bands"]["30-60"] == {
+        "samples": 2,
+        "coverage": 1.0,
+        "recall": 1.0,
+        "as": {"diffusion": 0.0, "ballistic": 0.0, "flow": 1.0},
+    }
     assert out["polar_bands"]["60-90"]["recall"] == 0.0  # 89°: called diffusion
     assert out["speed_decades"]["1e-2"]["samples"] == 1 and out["speed_decades"]["1e0"]["samples"] == 2
 
@@ -63,21 +67,37 @@ def test_bulk_residual_random_walk_leaves_intensity_and_shrinks_g1_as_predicted(
     from classifier.simulation import simulate_draw
 
     spec = _field_spec()
-    draw = Draw(label=0, magnitude=1e-7, polar_angle_deg=0.0, azimuth_deg=0.0, density_per_um3=0.05, sim_seed=7,
-                nuisance=((0.0, math.nan),))
+    draw = Draw(
+        label=0,
+        magnitude=1e-7,
+        polar_angle_deg=0.0,
+        azimuth_deg=0.0,
+        density_per_um3=0.05,
+        sim_seed=7,
+        nuisance=((0.0, math.nan),),
+    )
     sigma = 0.3
     x0, _, _ = simulate_draw(spec, draw, Prior(), trials=128, truncation_tolerance=1e-2)
-    x1, _, _ = simulate_draw(spec, draw, Prior(bulk_residual_step_rad=(sigma, sigma)), trials=128,
-                             truncation_tolerance=1e-2)
+    x1, _, _ = simulate_draw(
+        spec, draw, Prior(bulk_residual_step_rad=(sigma, sigma)), trials=128, truncation_tolerance=1e-2
+    )
     names = list(spec.feature_names)
     g1 = [i for i, n in enumerate(names) if n.startswith("g1_1@")]
     inten = [i for i, n in enumerate(names) if not n.startswith("g1_")]
     # intensity features of a moving sample (D = 0.1 µm²/s): unchanged up to float32 rounding of the phasor
-    moving = Draw(label=0, magnitude=0.1, polar_angle_deg=0.0, azimuth_deg=0.0, density_per_um3=0.05, sim_seed=7,
-                  nuisance=((0.0, math.nan),))
+    moving = Draw(
+        label=0,
+        magnitude=0.1,
+        polar_angle_deg=0.0,
+        azimuth_deg=0.0,
+        density_per_um3=0.05,
+        sim_seed=7,
+        nuisance=((0.0, math.nan),),
+    )
     m0, _, _ = simulate_draw(spec, moving, Prior(), trials=64, truncation_tolerance=1e-2)
-    m1, _, _ = simulate_draw(spec, moving, Prior(bulk_residual_step_rad=(sigma, sigma)), trials=64,
-                             truncation_tolerance=1e-2)
+    m1, _, _ = simulate_draw(
+        spec, moving, Prior(bulk_residual_step_rad=(sigma, sigma)), trials=64, truncation_tolerance=1e-2
+    )
     np.testing.assert_allclose(m1[0][:, inten], m0[0][:, inten], rtol=1e-4, atol=1e-4)
     base = x0[0][:, g1[0]].astype(np.float64)
     assert base.mean() > 0.999  # a (nearly) static sample: |g1| ≈ 1 without the residual

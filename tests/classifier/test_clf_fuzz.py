@@ -31,8 +31,12 @@ META = maps_meta(SPEC, feature_channels(SPEC))
 DATA = np.random.default_rng(0).uniform(0.1, 1.0, size=(len(META["channels"]), Z, X)).astype(np.float32)
 DATA[-1] = 20.0  # mean_db: no background
 ERRORS = (ValueError, TypeError)
-SETTINGS = settings(max_examples=examples(150), deadline=None, derandomize=True,
-                    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+SETTINGS = settings(
+    max_examples=examples(150),
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 BAD_VALUES = [None, "text", "", [], [1, "a"], {}, {"x": 1}, True, float("nan"), float("inf"), -1, 0, 1e300, 2**70]
 
 
@@ -85,8 +89,11 @@ def test_the_valid_file_classifies(good, tmp_path):
 
 
 @SETTINGS
-@given(fmt=st.sampled_from(["npz", "tif"]), cut=st.floats(0.0, 1.0, exclude_max=True),
-       flips=st.lists(st.tuples(st.floats(0.0, 1.0, exclude_max=True), st.integers(1, 255)), max_size=3))
+@given(
+    fmt=st.sampled_from(["npz", "tif"]),
+    cut=st.floats(0.0, 1.0, exclude_max=True),
+    flips=st.lists(st.tuples(st.floats(0.0, 1.0, exclude_max=True), st.integers(1, 255)), max_size=3),
+)
 def test_truncated_or_corrupted_maps_files_fuzz(good, tmp_path, fmt, cut, flips):
     raw = bytearray(good[fmt])
     for where, xor in flips:
@@ -122,12 +129,17 @@ def test_broken_meta_json_keys_fuzz(tmp_path, data):
 
 
 @SETTINGS
-@given(meta_json=st.one_of(st.text(max_size=40), st.recursive(
-    st.none() | st.booleans() | st.floats(allow_nan=False) | st.text(max_size=5),
-    lambda c: st.lists(c, max_size=3) | st.dictionaries(st.text(max_size=5), c, max_size=3), max_leaves=8)
-    .map(json.dumps)),
-       kind=st.sampled_from(["text", "pickled-meta", "pickled-maps", "pickled-npy", "number-meta", "int-maps",
-                             "1d-maps"]))
+@given(
+    meta_json=st.one_of(
+        st.text(max_size=40),
+        st.recursive(
+            st.none() | st.booleans() | st.floats(allow_nan=False) | st.text(max_size=5),
+            lambda c: st.lists(c, max_size=3) | st.dictionaries(st.text(max_size=5), c, max_size=3),
+            max_leaves=8,
+        ).map(json.dumps),
+    ),
+    kind=st.sampled_from(["text", "pickled-meta", "pickled-maps", "pickled-npy", "number-meta", "int-maps", "1d-maps"]),
+)
 def test_malformed_meta_json_and_pickles_fuzz(tmp_path, meta_json, kind):
     path = tmp_path / "odd.npz"
     maps, meta = DATA, np.asarray(meta_json)
@@ -156,7 +168,12 @@ def test_malformed_meta_json_and_pickles_fuzz(tmp_path, meta_json, kind):
     assert code == 2
 
 
-@settings(max_examples=examples(40), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=examples(40),
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
 @given(pool=st.integers(-3, 3 * X))
 def test_pool_sizes_fuzz(good, tmp_path, pool):
     path = tmp_path / "maps.npz"

@@ -27,17 +27,42 @@ def _sequence(tmp_path, axes: str):
     for i in range(1, t):  # partially decorrelating speckle
         e[i] = 0.9 * e[i - 1] + math.sqrt(1 - 0.81) * (rng.standard_normal(shape) + 1j * rng.standard_normal(shape))
     pitch = {"z": 1.5, "x": 2.0} if axes == "TZX" else {"y": 2.0, "z": 1.5, "x": 2.0}
-    return write_sequence(tmp_path / f"seq-{axes}.npz", e, {
-        "axes": axes, "pitch_um": pitch, "frame_times_s": [0.2048 * i for i in range(t)],
-        "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}})
+    return write_sequence(
+        tmp_path / f"seq-{axes}.npz",
+        e,
+        {
+            "axes": axes,
+            "pitch_um": pitch,
+            "frame_times_s": [0.2048 * i for i in range(t)],
+            "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8},
+        },
+    )
 
 
 def _maps(tmp_path, seq, name: str, *extra: str):
     from torchdoct.cli import main as td_main
 
     out = tmp_path / name
-    assert td_main(["maps", str(seq), "--resolution", "original", "--resolution", "axial=14", "--resolution",
-                    "lateral=18", "--signature", *extra, "--out", str(out), "--no-progress"]) == 0
+    assert (
+        td_main(
+            [
+                "maps",
+                str(seq),
+                "--resolution",
+                "original",
+                "--resolution",
+                "axial=14",
+                "--resolution",
+                "lateral=18",
+                "--signature",
+                *extra,
+                "--out",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     return out
 
 
@@ -45,9 +70,11 @@ def _maps(tmp_path, seq, name: str, *extra: str):
 def maps(tmp_path_factory):
     d = tmp_path_factory.mktemp("geometry")
     bscan = _sequence(d, "TZX")
-    return {"bscan": _maps(d, bscan, "bscan.npz"),
-            "bscan-corrected": _maps(d, bscan, "bscan-bp.npz", "--bulk-phase", "weighted-mean"),
-            "volume": _maps(d, _sequence(d, "TYZX"), "volume.npz")}
+    return {
+        "bscan": _maps(d, bscan, "bscan.npz"),
+        "bscan-corrected": _maps(d, bscan, "bscan-bp.npz", "--bulk-phase", "weighted-mean"),
+        "volume": _maps(d, _sequence(d, "TYZX"), "volume.npz"),
+    }
 
 
 def test_default_model_follows_geometry_and_phase_correction(maps):
@@ -58,8 +85,11 @@ def test_default_model_follows_geometry_and_phase_correction(maps):
 
 
 def test_a_model_of_the_other_geometry_is_refused_naming_the_right_one(maps):
-    with pytest.raises(ValueError, match=r"B-scan maps \(lateral resolution reduced along x only\).*"
-                                         r"--model signature-bscan"):
+    with pytest.raises(
+        ValueError,
+        match=r"B-scan maps \(lateral resolution reduced along x only\).*"
+        r"--model signature-bscan",
+    ):
         classify_maps(maps["bscan"], "signature", threads=1, background_db="none")
     with pytest.raises(ValueError, match=r"volume maps \(isotropic\).*--model signature\)"):
         classify_maps(maps["volume"], "signature-bscan", threads=1, background_db="none")

@@ -30,19 +30,38 @@ Z, X = 10, 24  # rows 0-7: three 8-column regions of simulated pixels; rows 8-9:
 def setup(tmp_path_factory):
     """A tiny two-wavelength model and a synthetic maps file of simulated pixels."""
     tmp = tmp_path_factory.mktemp("clf-infer")
-    res = train(TrainConfig(spec="two-wavelength", draws_train=9, draws_validation=6, draws_test=6, replicates=2,
-                            max_epochs=4, singles_per_group=16, pooled_per_group=4), cache_dir=tmp / "cache", log=None)
+    res = train(
+        TrainConfig(
+            spec="two-wavelength",
+            draws_train=9,
+            draws_validation=6,
+            draws_test=6,
+            replicates=2,
+            max_epochs=4,
+            singles_per_group=16,
+            pooled_per_group=4,
+        ),
+        cache_dir=tmp / "cache",
+        log=None,
+    )
     model_path = tmp / "tiny.onnx"
     export_onnx(res.model, build_metadata(res), model_path)
     spec = res.spec
     feats = np.zeros((spec.n_features, Z, X), np.float32)
     truth = np.full((Z, X), -1)
     for label, mag, col in ((0, 3e-3, 0), (1, 0.2, 8), (2, 2.0, 16)):
-        d = Draw(label=label, magnitude=mag, polar_angle_deg=60.0, azimuth_deg=0.0, density_per_um3=0.06,
-                 sim_seed=100 + label, nuisance=((0.0, math.nan),))
+        d = Draw(
+            label=label,
+            magnitude=mag,
+            polar_angle_deg=60.0,
+            azimuth_deg=0.0,
+            density_per_um3=0.06,
+            sim_seed=100 + label,
+            nuisance=((0.0, math.nan),),
+        )
         x, zero = simulate_draw(spec, d, Prior(), trials=64, truncation_tolerance=1e-2)
-        feats[:, :8, col:col + 8] = x[0].T.reshape(spec.n_features, 8, 8)
-        truth[:8, col:col + 8] = label
+        feats[:, :8, col : col + 8] = x[0].T.reshape(spec.n_features, 8, 8)
+        truth[:8, col : col + 8] = label
     rng = np.random.default_rng(0)
     feats[:, 8:, :] = rng.uniform(0.1, 1.0, size=(spec.n_features, 2, X))  # finite, but background
     feats[1, 3, 5] = np.nan
@@ -52,8 +71,16 @@ def setup(tmp_path_factory):
     meta = maps_meta(spec, feature_channels(spec))
     npz = save_maps(tmp / "maps.npz", data, meta)
     tif = save_maps(tmp / "maps.tif", data, meta)
-    return {"tmp": tmp, "model": model_path, "spec": spec, "npz": npz, "tif": tif, "data": data, "meta": meta,
-            "truth": truth}
+    return {
+        "tmp": tmp,
+        "model": model_path,
+        "spec": spec,
+        "npz": npz,
+        "tif": tif,
+        "data": data,
+        "meta": meta,
+        "truth": truth,
+    }
 
 
 def test_classification_is_the_model_and_rule_on_valid_pixels(setup):
@@ -91,12 +118,15 @@ def test_two_files_are_combined_channel_by_channel(setup, tmp_path):
         classify_maps([a], setup["model"], threads=1)
 
 
-@pytest.mark.parametrize("change, text", [
-    (dict(n_frames=16), "16 frames"),
-    (dict(frame_interval_s=0.1), "0.2048 s apart"),
-    (dict(ocds_delay_range_s=[0.2048, 0.8192]), "OCDS delay range"),
-    (dict(refractive_index=1.37), "refractive_index"),
-])
+@pytest.mark.parametrize(
+    "change, text",
+    [
+        (dict(n_frames=16), "16 frames"),
+        (dict(frame_interval_s=0.1), "0.2048 s apart"),
+        (dict(ocds_delay_range_s=[0.2048, 0.8192]), "OCDS delay range"),
+        (dict(refractive_index=1.37), "refractive_index"),
+    ],
+)
 def test_protocol_and_system_mismatches_are_named(setup, tmp_path, change, text):
     meta = maps_meta(setup["spec"], feature_channels(setup["spec"]), **change)
     path = save_maps(tmp_path / "m.npz", setup["data"], meta)
@@ -157,7 +187,9 @@ def test_pool_features_equals_brute_force():
                     w = valid[y, zs, xs]
                     assert counts[y, z, x] == (w.sum() if n > 1 else valid[y, z, x])
                     if n > 1 and w.any():
-                        np.testing.assert_allclose(pooled[:, y, z, x], f[:, y, zs, xs][:, w].mean(1), rtol=1e-5, atol=1e-6)
+                        np.testing.assert_allclose(
+                            pooled[:, y, z, x], f[:, y, zs, xs][:, w].mean(1), rtol=1e-5, atol=1e-6
+                        )
     with pytest.raises(ValueError, match="pool"):
         pool_features(f, valid, 0)
 
@@ -197,8 +229,14 @@ def test_cli_writes_outputs_and_refuses_to_overwrite(setup, tmp_path, capsys):
         labels = tf.asarray()
         desc = json.loads(tf.imagej_metadata["Info"])
     assert labels.shape == (Z, X) and [c["name"] for c in desc["legend"]["classes"]] == [
-        "diffusion", "ballistic", "flow", "indeterminate", "diffusion-or-ballistic", "diffusion-or-flow",
-        "ballistic-or-flow"]
+        "diffusion",
+        "ballistic",
+        "flow",
+        "indeterminate",
+        "diffusion-or-ballistic",
+        "diffusion-or-flow",
+        "ballistic-or-flow",
+    ]
     assert desc["legend"]["masked_value"] == MASKED
     probs = tifffile.imread(out / "probabilities.tif")
     assert probs.shape == (4, Z, X)
@@ -217,14 +255,17 @@ def _classify_without_torch(npz, model, out, *extra: str) -> subprocess.Complete
     """``doct-classify NPZ --model MODEL --out OUT EXTRA…`` in a fresh interpreter; it asserts exit 0 and
     that no ``torch`` module was loaded, then prints ``ok``."""
     args = ", ".join(repr(a) for a in (str(npz), "--model", str(model), "--out", str(out), "--threads", "1", *extra))
-    code = ("import sys\nfrom classifier.cli import classify_main\n"
-            f"rc = classify_main([{args}])\n"
-            "assert rc == 0, rc\n"
-            "bad = sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.'))\n"
-            "assert not bad, bad\nprint('ok')\n")
+    code = (
+        "import sys\nfrom classifier.cli import classify_main\n"
+        f"rc = classify_main([{args}])\n"
+        "assert rc == 0, rc\n"
+        "bad = sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.'))\n"
+        "assert not bad, bad\nprint('ok')\n"
+    )
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                          cwd=Path(out).parent, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=Path(out).parent, timeout=120
+    )
 
 
 def test_classify_path_does_not_import_torch(setup, tmp_path):
@@ -267,10 +308,12 @@ def _broken_maps_files(setup, tmp_path) -> dict[str, tuple[Path, str]]:
     put("text.npz", b"maps,meta\n1,2\n", "not a .npz")
     put("empty.tif", b"", "empty")
     put("truncated.tif", tif[: len(tif) // 3], "truncated")
-    for name, meta_json, text in (("badjson.npz", np.asarray("{not json"), "not valid JSON"),
-                                  ("listjson.npz", np.asarray(json.dumps([1, 2])), "JSON object"),
-                                  ("pickled.npz", np.array([meta], dtype=object), "pickle"),
-                                  ("numjson.npz", np.arange(3.0), "JSON text")):
+    for name, meta_json, text in (
+        ("badjson.npz", np.asarray("{not json"), "not valid JSON"),
+        ("listjson.npz", np.asarray(json.dumps([1, 2])), "JSON object"),
+        ("pickled.npz", np.array([meta], dtype=object), "pickle"),
+        ("numjson.npz", np.arange(3.0), "JSON text"),
+    ):
         p = tmp_path / name
         np.savez(p, maps=data, meta_json=meta_json)
         files[name] = (p, text)
@@ -295,8 +338,9 @@ def test_unreadable_maps_files_are_named_with_the_fix(setup, tmp_path):
 
 def test_cli_unreadable_maps_exit_2_with_one_line(setup, tmp_path, capsys):
     for name, (path, _text) in _broken_maps_files(setup, tmp_path).items():
-        code = classify_main([str(path), "--model", str(setup["model"]), "--out", str(tmp_path / "o"),
-                              "--threads", "1"])
+        code = classify_main(
+            [str(path), "--model", str(setup["model"]), "--out", str(tmp_path / "o"), "--threads", "1"]
+        )
         captured = capsys.readouterr()
         assert code == 2, (name, captured.err)
         assert captured.err.startswith("error: ") and captured.err.count("\n") == 1, captured.err
@@ -313,8 +357,22 @@ def test_pool_larger_than_the_image_is_refused(setup, tmp_path, capsys):
         msg = str(info.value)
         assert f"{Z} × {X}" in msg and f"largest valid pool is {Z - 1}" in msg and "maps.npz" in msg, msg
     out = tmp_path / "o"
-    assert classify_main([str(setup["npz"]), "--model", str(setup["model"]), "--out", str(out), "--threads", "1",
-                          "--pool", str(X + 1)]) == 2
+    assert (
+        classify_main(
+            [
+                str(setup["npz"]),
+                "--model",
+                str(setup["model"]),
+                "--out",
+                str(out),
+                "--threads",
+                "1",
+                "--pool",
+                str(X + 1),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith("error: ") and "--pool" in err and f"largest valid pool is {Z - 1}" in err
     assert not out.exists()
@@ -325,8 +383,22 @@ def test_an_even_pool_is_refused_naming_the_odd_ones_beside_it(setup, tmp_path, 
     with pytest.raises(ValueError, match=rf"pool \(--pool\) must be odd.*half a pixel.*give {pool - 1} or {pool + 1}"):
         classify_maps(setup["npz"], str(setup["model"]), pool=pool, threads=1)
     out = tmp_path / "o"
-    assert classify_main([str(setup["npz"]), "--model", str(setup["model"]), "--out", str(out), "--threads", "1",
-                          "--pool", str(pool)]) == 2
+    assert (
+        classify_main(
+            [
+                str(setup["npz"]),
+                "--model",
+                str(setup["model"]),
+                "--out",
+                str(out),
+                "--threads",
+                "1",
+                "--pool",
+                str(pool),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: pool (--pool) must be odd") and not out.exists()
 
@@ -384,10 +456,23 @@ def _calibrated_copy(setup, tmp_path, seed=3):
     for n in (1, 4):
         p = rng.dirichlet(np.ones(len(m.classes)), size=400)
         truth = rng.integers(0, len(m.classes), 400)
-        pools.append({"pool_pixels": n, "samples": 400, "scores": [float(v) for v in scores_lac(p, truth)],
-                      "truth": [int(v) for v in truth]})
-    cal = {"schema_version": SCHEMA_VERSION, "model": m.spec.name, "score": "lac", "classes": m.classes,
-           "mode": "class-conditional", "pools": pools, "guarantee": "test"}
+        pools.append(
+            {
+                "pool_pixels": n,
+                "samples": 400,
+                "scores": [float(v) for v in scores_lac(p, truth)],
+                "truth": [int(v) for v in truth],
+            }
+        )
+    cal = {
+        "schema_version": SCHEMA_VERSION,
+        "model": m.spec.name,
+        "score": "lac",
+        "classes": m.classes,
+        "mode": "class-conditional",
+        "pools": pools,
+        "guarantee": "test",
+    }
     (tmp_path / "cal.calibration.json").write_text(json.dumps(cal))
     return model
 
@@ -403,8 +488,10 @@ def test_conformal_decision_is_the_default_with_a_calibration_and_writes_set_lab
     assert rule.info["decision"] == "rule" and rule.set_labels == []
     np.testing.assert_array_equal(res.probabilities, rule.probabilities)  # the decision alone differs
     assert classify_maps(setup["npz"], model, threads=1, min_probability=0.6).info["decision"] == "rule"
-    decided = [int(np.isin(classify_maps(setup["npz"], model, threads=1, alpha=a).labels, [0, 1, 2]).sum())
-               for a in (0.05, 0.3, 0.6)]
+    decided = [
+        int(np.isin(classify_maps(setup["npz"], model, threads=1, alpha=a).labels, [0, 1, 2]).sum())
+        for a in (0.05, 0.3, 0.6)
+    ]
     assert decided == sorted(decided)  # larger alpha: smaller sets, at least as many pixels decided
     out = tmp_path / "o"
     assert classify_main([str(setup["npz"]), "--model", str(model), "--out", str(out), "--threads", "1"]) == 0
@@ -413,8 +500,12 @@ def test_conformal_decision_is_the_default_with_a_calibration_and_writes_set_lab
     names = {c["name"]: c["color"] for c in legend["classes"]}
     assert all(names[k] == v for k, v in SET_COLORS.items())
     assert len(set(names.values())) == len(names)  # every label its own colour
-    for bad in (["--alpha", "0"], ["--alpha", "1.5"], ["--decision", "rule", "--alpha", "0.1"],
-                ["--decision", "conformal", "--min-probability", "0.6"]):
+    for bad in (
+        ["--alpha", "0"],
+        ["--alpha", "1.5"],
+        ["--decision", "rule", "--alpha", "0.1"],
+        ["--decision", "conformal", "--min-probability", "0.6"],
+    ):
         assert classify_main([str(setup["npz"]), "--model", str(model), "--out", str(tmp_path / "x"), *bad]) == 2
     # a model without a calibration: the rule, and conformal asked for is refused with the fix
     assert classify_maps(setup["npz"], setup["model"], threads=1).info["decision"] == "rule"

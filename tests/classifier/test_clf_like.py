@@ -22,6 +22,7 @@ from torchdoct.sim.signature import DEFAULT_FEATURES, DEFAULT_LINEAR_LAGS, defau
 
 # -- signature lags follow the frame count --------------------------------------------------------------------------
 
+
 def test_signature_lags_keep_the_reference_protocol_and_scale_with_the_frames():
     assert default_features(32) == DEFAULT_FEATURES  # the shipped models' protocol is unchanged
     assert signature_lags(DEFAULT_LINEAR_LAGS, 32) == DEFAULT_LINEAR_LAGS
@@ -35,21 +36,53 @@ def test_signature_lags_keep_the_reference_protocol_and_scale_with_the_frames():
 
 # -- identifiable ranges and the scaled prior -------------------------------------------------------------------------
 
+
 def _spec(dt=0.2048, n=1.0, lat=4.9, ax=3.8, wl=0.84, y=None):
-    cs = (Configuration(name="original", wavelength_um=wl, lateral_resolution_um=lat, axial_resolution_um=ax),
-          Configuration(name="axial", wavelength_um=wl, lateral_resolution_um=lat, axial_resolution_um=ax * 3.7),
-          Configuration(name="lateral", wavelength_um=wl, lateral_resolution_um=lat * 3.7, axial_resolution_um=ax,
-                        lateral_resolution_y_um=y))
-    return FeatureSpec(name="t", configurations=cs, metrics=("rho_lin_1",), frame_interval_s=dt,
-                       ocds_delay_range_s=(dt, 6 * dt), refractive_index=n)
+    cs = (
+        Configuration(name="original", wavelength_um=wl, lateral_resolution_um=lat, axial_resolution_um=ax),
+        Configuration(name="axial", wavelength_um=wl, lateral_resolution_um=lat, axial_resolution_um=ax * 3.7),
+        Configuration(
+            name="lateral",
+            wavelength_um=wl,
+            lateral_resolution_um=lat * 3.7,
+            axial_resolution_um=ax,
+            lateral_resolution_y_um=y,
+        ),
+    )
+    return FeatureSpec(
+        name="t",
+        configurations=cs,
+        metrics=("rho_lin_1",),
+        frame_interval_s=dt,
+        ocds_delay_range_s=(dt, 6 * dt),
+        refractive_index=n,
+    )
 
 
 def _status(spec, label, mag, prior):
-    variants = ([dict(polar_angle_deg=a) for a in (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)] if label == 2 else
-                [dict(ballistic_directions=law) for law in ("isotropic", "uniform-angles")] if label == 1 else [{}])
-    return {identifiability(spec, Draw(label=label, magnitude=mag, azimuth_deg=0.0, density_per_um3=d, sim_seed=0,
-                                       **{"polar_angle_deg": 0.0, **v}), prior)[0]
-            for v in variants for d in prior.density_per_um3}
+    variants = (
+        [dict(polar_angle_deg=a) for a in (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)]
+        if label == 2
+        else [dict(ballistic_directions=law) for law in ("isotropic", "uniform-angles")]
+        if label == 1
+        else [{}]
+    )
+    return {
+        identifiability(
+            spec,
+            Draw(
+                label=label,
+                magnitude=mag,
+                azimuth_deg=0.0,
+                density_per_um3=d,
+                sim_seed=0,
+                **{"polar_angle_deg": 0.0, **v},
+            ),
+            prior,
+        )[0]
+        for v in variants
+        for d in prior.density_per_um3
+    }
 
 
 @pytest.mark.parametrize("label", [0, 1, 2])
@@ -58,8 +91,8 @@ def test_identifiable_range_is_where_the_closed_forms_say(label):
     lo, hi = identifiable_range(spec, label, prior)
     step = 10.0 ** (1.0 / 24.0)  # the grid's resolution
     assert "identifiable" in _status(spec, label, lo, prior) and "identifiable" in _status(spec, label, hi, prior)
-    assert _status(spec, label, lo / step ** 1.01, prior) == {"static"}  # below: every variant static
-    above = _status(spec, label, hi * step ** 1.01, prior)
+    assert _status(spec, label, lo / step**1.01, prior) == {"static"}  # below: every variant static
+    above = _status(spec, label, hi * step**1.01, prior)
     assert "identifiable" not in above and above <= {"decorrelated", "static"}
 
 
@@ -84,8 +117,8 @@ def test_prior_for_spec_keeps_n_eff_and_widens_each_range_by_the_margin():
     assert n_eff(prior.density_per_um3[0], 10.0, 8.0) == pytest.approx(ref, rel=2e-3)
     for label, name in enumerate(CLASSES):
         lo, hi = prior.magnitude_range(label)
-        assert lo == pytest.approx(ranges[name][0] / 10 ** 0.5, rel=5e-3)
-        top = min(ranges[name][1] * 10 ** 0.5, ranges.get(f"{name}_simulated_max", [math.inf])[0])
+        assert lo == pytest.approx(ranges[name][0] / 10**0.5, rel=5e-3)
+        top = min(ranges[name][1] * 10**0.5, ranges.get(f"{name}_simulated_max", [math.inf])[0])
         assert hi == pytest.approx(top, rel=5e-3)
     assert prior.flow_speed_um_per_s is not None and prior.flow_speed_um_per_s[0] > prior.speed_um_per_s[0]
 
@@ -99,10 +132,25 @@ def test_speed_cap_bounds_the_scatterers_a_draw_simulates():
     cap = speed_cap(spec, prior, 2)
 
     def count(v):
-        return max(make_plan(scene_for(spec, Draw(label=2, magnitude=v, polar_angle_deg=a, azimuth_deg=0.0,
-                                                  density_per_um3=prior.density_per_um3[1], sim_seed=0), prior),
-                             truncation_tolerance=1e-2, truncation="taper").expected_scatterers_per_trial
-                   for a in (0.0, 45.0, 90.0))
+        return max(
+            make_plan(
+                scene_for(
+                    spec,
+                    Draw(
+                        label=2,
+                        magnitude=v,
+                        polar_angle_deg=a,
+                        azimuth_deg=0.0,
+                        density_per_um3=prior.density_per_um3[1],
+                        sim_seed=0,
+                    ),
+                    prior,
+                ),
+                truncation_tolerance=1e-2,
+                truncation="taper",
+            ).expected_scatterers_per_trial
+            for a in (0.0, 45.0, 90.0)
+        )
 
     assert count(cap) <= MAX_SCATTERERS_PER_TRIAL < count(1.03 * cap)
     assert 3.0 < cap < 30.0  # a volume at the reference system: the shipped prior's 6 µm/s is inside
@@ -118,6 +166,7 @@ def test_flow_speed_range_is_optional_and_leaves_old_priors_unchanged():
 
 
 # -- the spec from the maps -------------------------------------------------------------------------------------------
+
 
 def _bscan_maps(tmp_path, *, bulk_phase=False, intensity_only=False, name="own.npz", spec="signature-bscan"):
     s = load_spec(spec)
@@ -141,8 +190,12 @@ def test_spec_from_bscan_maps_is_the_shipped_bscan_spec(tmp_path):
     assert spec.metrics == shipped.metrics  # the field group left out: not bulk-phase corrected
     assert any("bulk-phase" in n for n in notes)
     assert [c.optics for c in spec.configurations] == [c.optics for c in shipped.configurations]
-    assert (spec.n_frames, spec.frame_interval_s, spec.ocds_delay_range_s, spec.refractive_index) == \
-        (shipped.n_frames, shipped.frame_interval_s, shipped.ocds_delay_range_s, shipped.refractive_index)
+    assert (spec.n_frames, spec.frame_interval_s, spec.ocds_delay_range_s, spec.refractive_index) == (
+        shipped.n_frames,
+        shipped.frame_interval_s,
+        shipped.ocds_delay_range_s,
+        shipped.refractive_index,
+    )
     assert spec_from_dict(tomllib.loads(toml_text(spec.to_dict()))) == spec  # the SPEC.spec.toml round trip
 
 
@@ -163,6 +216,7 @@ def test_spec_from_maps_refuses_channels_without_optics(tmp_path):
 
 # -- the commands -------------------------------------------------------------------------------------------------------
 
+
 def test_like_dry_run_prints_spec_prior_time_and_key_and_writes_nothing(tmp_path, capsys):
     from classifier.cli import train_main
 
@@ -174,8 +228,15 @@ def test_like_dry_run_prints_spec_prior_time_and_key_and_writes_nothing(tmp_path
     out = tmp_path / "model"
     assert train_main(["--like", str(path), "--out", str(out), "--dry-run", "--quick", "--no-cache"]) == 0
     text = capsys.readouterr().out
-    for needle in ("spec like-own", "axial_resolution_um = 14.0", "identifiable", "expected time: about",
-                   "simulated up to", "--spec", "--prior"):
+    for needle in (
+        "spec like-own",
+        "axial_resolution_um = 14.0",
+        "identifiable",
+        "expected time: about",
+        "simulated up to",
+        "--spec",
+        "--prior",
+    ):
         assert needle in text, needle
     assert not out.exists()
     assert train_main(["--like", str(path), "--spec", "signature", "--out", str(out)]) == 2  # exclusive
@@ -185,8 +246,9 @@ def test_classify_without_a_fitting_shipped_model_names_the_like_command(tmp_pat
     from classifier.cli import classify_main
 
     s = load_spec("signature-bscan")
-    other = dataclasses.replace(s, configurations=tuple(dataclasses.replace(c, wavelength_um=1.31)
-                                                          for c in s.configurations))
+    other = dataclasses.replace(
+        s, configurations=tuple(dataclasses.replace(c, wavelength_um=1.31) for c in s.configurations)
+    )
     chans = feature_channels(other)
     meta = maps_meta(other, chans, n_frames=64, frame_interval_s=0.0128)
     meta["signature"] = {"features": list(s.metrics), "intensity_only": False}
@@ -212,8 +274,20 @@ def test_like_writes_spec_and_prior_that_retrain_the_same_model(tmp_path, capsys
     meta = dict(m.meta)
     meta.pop("reduction")
     path = save_maps(tmp_path / "vol.npz", m.maps, meta)
-    tiny = ["--quick", "--draws-train", "6", "--draws-validation", "3", "--draws-test", "3", "--max-epochs", "2",
-            "--no-baselines", "--no-cache", "--no-progress"]
+    tiny = [
+        "--quick",
+        "--draws-train",
+        "6",
+        "--draws-validation",
+        "3",
+        "--draws-test",
+        "3",
+        "--max-epochs",
+        "2",
+        "--no-baselines",
+        "--no-cache",
+        "--no-progress",
+    ]
     a, b = tmp_path / "a", tmp_path / "b"
     assert train_main(["--like", str(path), "--out", str(a), *tiny]) == 0
     printed = capsys.readouterr().out

@@ -36,11 +36,19 @@ def _inputs(n: int, seed: int) -> np.ndarray:
 
 
 def _metadata() -> dict:
-    return {"format": "torchdoct-classifier/1", "classifier_version": "0", "torchdoct_version": "0",
-            "input": {"columns": [{"name": n} for n in ("liv@a", "ocds@a", "liv@b", "ocds@b", "pool_pixels")]},
-            "output": {"classes": ["diffusion", "ballistic", "flow", "indeterminate"]},
-            "rule": {"kind": "class-or-threshold", "indeterminate_class": "indeterminate", "min_probability": 0.5,
-                     "epsilon": 0.05}}  # doct-train always writes its rule (the classify path reads it)
+    return {
+        "format": "torchdoct-classifier/1",
+        "classifier_version": "0",
+        "torchdoct_version": "0",
+        "input": {"columns": [{"name": n} for n in ("liv@a", "ocds@a", "liv@b", "ocds@b", "pool_pixels")]},
+        "output": {"classes": ["diffusion", "ballistic", "flow", "indeterminate"]},
+        "rule": {
+            "kind": "class-or-threshold",
+            "indeterminate_class": "indeterminate",
+            "min_probability": 0.5,
+            "epsilon": 0.05,
+        },
+    }  # doct-train always writes its rule (the classify path reads it)
 
 
 def test_transform_is_the_documented_one():
@@ -109,15 +117,29 @@ def test_correlation_columns_read_as_log_decorrelation(tmp_path):
         assert slope == pytest.approx(power * float(np.mean((big / (big + DECORRELATION_OFFSET)).numpy())), rel=0.25)
     x = torch.tensor([[1.0, 1.2, 0.5, 3.0, 1.0], [-0.4, 0.0, 0.5, -1.0, 4.0]])
     t = m.transform(x)
-    np.testing.assert_allclose(t[:, :2], np.log(np.clip(1.0 - x[:, :2].numpy(), 0, None) + DECORRELATION_OFFSET),
-                               rtol=1e-6)  # rho >= 1 (a static pixel) sits at log(offset)
+    np.testing.assert_allclose(
+        t[:, :2], np.log(np.clip(1.0 - x[:, :2].numpy(), 0, None) + DECORRELATION_OFFSET), rtol=1e-6
+    )  # rho >= 1 (a static pixel) sits at log(offset)
     np.testing.assert_array_equal(t[:, 2], x[:, 2])
     path = tmp_path / "c.onnx"
-    path.write_bytes(onnx_model(m.eval(), {**_metadata(), "input": {"columns": [{"name": n} for n in (
-        "rho_lin_1@a", "rho_lin_2@a", "lin_contrast@a", "db_variance@a", "pool_pixels")]}}).SerializeToString())
+    path.write_bytes(
+        onnx_model(
+            m.eval(),
+            {
+                **_metadata(),
+                "input": {
+                    "columns": [
+                        {"name": n}
+                        for n in ("rho_lin_1@a", "rho_lin_2@a", "lin_contrast@a", "db_variance@a", "pool_pixels")
+                    ]
+                },
+            },
+        ).SerializeToString()
+    )
     rng = np.random.default_rng(0)
-    xs = np.concatenate([rng.uniform(-0.3, 1.0, (2000, 3)), rng.uniform(0, 40, (2000, 1)),
-                         rng.integers(1, 49, (2000, 1))], 1).astype(np.float32)
+    xs = np.concatenate(
+        [rng.uniform(-0.3, 1.0, (2000, 3)), rng.uniform(0, 40, (2000, 1)), rng.integers(1, 49, (2000, 1))], 1
+    ).astype(np.float32)
     xs[:5, :2] = 1.0
     assert onnx_parity(m, path, xs) <= 1e-5
     back = model_from_onnx(path)
@@ -175,4 +197,5 @@ def test_correlation_columns_of_the_shipped_specs():
     m = model_from_onnx(shipped_models()["signature"])
     assert np.flatnonzero(m.corr_mask.numpy()).tolist() == _correlation_columns(load_spec("signature"))
     assert np.flatnonzero(m.liv_mask.numpy()).tolist() == [
-        i for i, (metric, _) in enumerate(load_spec("signature").features) if metric == "db_variance"]
+        i for i, (metric, _) in enumerate(load_spec("signature").features) if metric == "db_variance"
+    ]

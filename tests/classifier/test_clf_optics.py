@@ -37,23 +37,41 @@ def test_match_tolerance_and_isotropic_default():
 
 
 def _channel(lateral: float) -> dict:
-    return {"name": f"liv@{lateral}", "metric": "liv", "unit": "dB^2", "resolution": "r", "wavelength_um": 0.84,
-            "lateral_resolution_um": lateral, "axial_resolution_um": 3.8}
+    return {
+        "name": f"liv@{lateral}",
+        "metric": "liv",
+        "unit": "dB^2",
+        "resolution": "r",
+        "wavelength_um": 0.84,
+        "lateral_resolution_um": lateral,
+        "axial_resolution_um": 3.8,
+    }
 
 
 @pytest.mark.parametrize("axes,reduced_y", [("X", 4.9), ("YX", None)])
 def test_a_channel_reduced_along_x_only_keeps_the_original_width_along_y(tmp_path, axes, reduced_y):
-    meta = {"channels": [_channel(4.9), _channel(18.0)], "axes": "CZX", "system": {"lateral_resolution_um": 4.9},
-            "reduction": {"lateral_axes": axes}}
+    meta = {
+        "channels": [_channel(4.9), _channel(18.0)],
+        "axes": "CZX",
+        "system": {"lateral_resolution_um": 4.9},
+        "reduction": {"lateral_axes": axes},
+    }
     path = tmp_path / "m.npz"
-    np.savez(path, maps=np.zeros((2, 3, 3), np.float32), channels=np.array(["liv@4.9", "liv@18.0"]),
-             meta_json=np.asarray(__import__("json").dumps(meta)))
+    np.savez(
+        path,
+        maps=np.zeros((2, 3, 3), np.float32),
+        channels=np.array(["liv@4.9", "liv@18.0"]),
+        meta_json=np.asarray(__import__("json").dumps(meta)),
+    )
     m = read_maps(path)
     assert m.optics("liv@4.9") == ChannelOptics(0.84, 4.9, 3.8)  # not reduced: y = x
     assert m.optics(1) == ChannelOptics(0.84, 18.0, 3.8, reduced_y)
     assert m.find("liv", lateral_resolution_um=18.0) == ["liv@18.0"]  # find matches on x
-    no_optics = Maps(maps=np.zeros((1, 2, 2), np.float32), channels=["x"],
-                     meta={"channels": [{**_channel(4.9), "name": "x", "wavelength_um": None}]})
+    no_optics = Maps(
+        maps=np.zeros((1, 2, 2), np.float32),
+        channels=["x"],
+        meta={"channels": [{**_channel(4.9), "name": "x", "wavelength_um": None}]},
+    )
     assert no_optics.optics(0) is None and no_optics.find("liv") == []
 
 
@@ -68,8 +86,13 @@ def test_spec_lateral_resolution_y_is_optional_and_leaves_isotropic_specs_unchan
     assert spec.configurations[2].optics == ChannelOptics(0.84, 18.0, 3.8, 4.9)
     assert spec_from_dict(spec.to_dict()) == spec
     with pytest.raises(ValueError, match="lateral_resolution_y_um"):
-        Configuration(name="o", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8,
-                      lateral_resolution_y_um=-1.0)
+        Configuration(
+            name="o",
+            wavelength_um=0.84,
+            lateral_resolution_um=4.9,
+            axial_resolution_um=3.8,
+            lateral_resolution_y_um=-1.0,
+        )
     c = spec.configurations[2]
     assert c.matches(ChannelOptics(0.84, 18.0, 3.8, 4.9)) and not c.matches(0.84, 18.0, 3.8)
     assert c.matches(0.84, 18.0, 3.8, lateral_y=False)
@@ -87,8 +110,11 @@ def test_doct_classify_refuses_a_model_of_the_other_geometry(tmp_path, monkeypat
     path = save_maps(tmp_path / "bscan.npz", data, meta)
     model = load_model("single-acquisition", threads=1)
     assert matching.MATCH_LATERAL_Y is True
-    with pytest.raises(ValueError, match=r"channel 'liv@lateral=18' has 840 nm, lateral 18 × 4.9 µm \(x × y\).*"
-                                         r"B-scan maps.*single-acquisition-bscan"):
+    with pytest.raises(
+        ValueError,
+        match=r"channel 'liv@lateral=18' has 840 nm, lateral 18 × 4.9 µm \(x × y\).*"
+        r"B-scan maps.*single-acquisition-bscan",
+    ):
         assemble_features([read_maps(path)], model)
     volume = save_maps(tmp_path / "vol.npz", data, {**meta, "reduction": {"lateral_axes": "YX"}})
     assert assemble_features([read_maps(volume)], model)[2]["notes"] == []  # isotropic channels match

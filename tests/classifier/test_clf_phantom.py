@@ -47,19 +47,58 @@ def _render_map_classify(tmp_path_factory, phantom: str):
     """The README's chain on a shipped phantom: render → maps --signature → doct-classify at pools 1 and 5."""
     d = tmp_path_factory.mktemp(phantom)
     seq, maps = d / "seq.npz", d / "maps.npz"
-    assert torchdoct_main(["render", phantom, "--out", str(seq), "--no-progress", "--no-preview",
-                           "--threads", "1"]) == 0
-    assert torchdoct_main(["maps", str(seq), "--resolution", "original", "--resolution", "axial=14",
-                           "--resolution", "lateral=18", "--signature", "--out", str(maps), "--no-progress",
-                           "--threads", "1"]) == 0
+    assert (
+        torchdoct_main(["render", phantom, "--out", str(seq), "--no-progress", "--no-preview", "--threads", "1"]) == 0
+    )
+    assert (
+        torchdoct_main(
+            [
+                "maps",
+                str(seq),
+                "--resolution",
+                "original",
+                "--resolution",
+                "axial=14",
+                "--resolution",
+                "lateral=18",
+                "--signature",
+                "--out",
+                str(maps),
+                "--no-progress",
+                "--threads",
+                "1",
+            ]
+        )
+        == 0
+    )
     out = {}
-    for pool in (1, 5):  # the floors of this file are the model's (--decision rule --decide-ballistic); the default beside them
+    for pool in (
+        1,
+        5,
+    ):  # the floors of this file are the model's (--decision rule --decide-ballistic); the default beside them
         out[pool] = d / f"classified-{pool}"
-        assert classify_main([str(maps), "--out", str(out[pool]), "--pool", str(pool), "--threads", "1",
-                              "--decision", "rule", "--decide-ballistic"]) == 0
+        assert (
+            classify_main(
+                [
+                    str(maps),
+                    "--out",
+                    str(out[pool]),
+                    "--pool",
+                    str(pool),
+                    "--threads",
+                    "1",
+                    "--decision",
+                    "rule",
+                    "--decide-ballistic",
+                ]
+            )
+            == 0
+        )
         out[f"conformal-{pool}"] = d / f"conformal-{pool}"
-        assert classify_main([str(maps), "--out", str(out[f"conformal-{pool}"]), "--pool", str(pool),
-                              "--threads", "1"]) == 0
+        assert (
+            classify_main([str(maps), "--out", str(out[f"conformal-{pool}"]), "--pool", str(pool), "--threads", "1"])
+            == 0
+        )
     return seq, out
 
 
@@ -84,8 +123,14 @@ def test_phantom_regions_are_identifiable():
         m = pop.motion[0]
         label = kinds[type(m).__name__]
         mag = m.diffusion_um2_per_s if label == 0 else m.speed_um_per_s
-        draw = Draw(label=label, magnitude=mag, polar_angle_deg=getattr(m, "polar_angle_deg", 0.0), azimuth_deg=0.0,
-                    density_per_um3=pop.density_per_um3, sim_seed=0)
+        draw = Draw(
+            label=label,
+            magnitude=mag,
+            polar_angle_deg=getattr(m, "polar_angle_deg", 0.0),
+            azimuth_deg=0.0,
+            density_per_um3=pop.density_per_um3,
+            sim_seed=0,
+        )
         assert identifiability(spec, draw, prior)[0] == "identifiable", (pop.name, mag)
         seen.add((label, mag))
     assert sorted({lab for lab, _ in seen}) == [0, 1, 2] and len(seen) == 9  # three magnitudes per type
@@ -120,7 +165,9 @@ def test_conformal_sets_decide_fewer_pixels_wrong_than_the_rule(chain, oblique_c
         rule = score_images(out[pool], seq)["overall"]["per_class"]
         conf = score_images(out[f"conformal-{pool}"], seq)["overall"]["per_class"]
         for name, c in conf.items():
-            wrong = {k: sum(v for m, v in d["decided_as"].items() if m != name) for k, d in (("c", c), ("r", rule[name]))}
+            wrong = {
+                k: sum(v for m, v in d["decided_as"].items() if m != name) for k, d in (("c", c), ("r", rule[name]))
+            }
             assert wrong["c"] <= wrong["r"], (name, c["decided_as"], rule[name]["decided_as"])
 
 
@@ -158,14 +205,14 @@ def test_scores_of_a_perfect_and_an_abstaining_classifier(chain, tmp_path):
     # edge exclusion: a label image with one disc of radius 28 µm (2-µm pixels) keeps the pixels
     # farther than 10 µm (5 pixels per axis, a box) from the rest
     z, x = np.meshgrid(np.arange(40) - 19.5, np.arange(40) - 19.5, indexing="ij")
-    lab = np.where(z ** 2 + x ** 2 <= 14.0 ** 2, 2, 1).astype(np.uint8)
+    lab = np.where(z**2 + x**2 <= 14.0**2, 2, 1).astype(np.uint8)
     d = tmp_path / "perfect"
     tifffile.imwrite(d / "classes.tif", np.where(lab == 2, value["diffusion"], value["indeterminate"]).astype(np.uint8))
     full = score_images(d, lab)["overall"]["pixels"]
     inner = score_images(d, lab, edge_um=10.0)["overall"]["pixels"]
     assert full == int((lab == 2).sum())
     zz, xx = np.nonzero(lab == 2)
-    want = sum(bool(np.all(lab[max(a - 5, 0):a + 6, max(b - 5, 0):b + 6] == 2)) for a, b in zip(zz, xx))
+    want = sum(bool(np.all(lab[max(a - 5, 0) : a + 6, max(b - 5, 0) : b + 6] == 2)) for a, b in zip(zz, xx))
     assert inner == want
 
 

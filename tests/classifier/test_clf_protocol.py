@@ -34,9 +34,17 @@ def test_full_variants_are_every_combination_and_quick_one_axis_at_a_time():
     assert Variant(64, 0.5, 13).key == "T64-dt0.5x-w13"
 
 
-@pytest.mark.parametrize("frames,factors,windows", [((4,), (1.0,), (9,)), ((32,), (0.0,), (9,)),
-                                                    ((32,), (1.0,), (8,)), ((32, 32), (1.0,), (9,)),
-                                                    ((), (1.0,), (9,)), ((32,), (float("nan"),), (9,))])
+@pytest.mark.parametrize(
+    "frames,factors,windows",
+    [
+        ((4,), (1.0,), (9,)),
+        ((32,), (0.0,), (9,)),
+        ((32,), (1.0,), (8,)),
+        ((32, 32), (1.0,), (9,)),
+        ((), (1.0,), (9,)),
+        ((32,), (float("nan"),), (9,)),
+    ],
+)
 def test_bad_axes_are_refused(frames, factors, windows):
     with pytest.raises(ValueError):
         P.full_variants(frames, factors, windows)
@@ -93,9 +101,9 @@ def test_scores_are_exact_on_known_label_arrays():
     truth[0, 12:22] = F
     masks = {"ballistic": truth[0] == B, "flow": truth[0] == F}
     out = np.full(24, U)
-    out[2:7] = B                       # ballistic: 5 right, 5 undecided
-    out[12:18] = F                     # flow: 6 right,
-    out[18:20] = B                     # 2 decided ballistic, 2 undecided
+    out[2:7] = B  # ballistic: 5 right, 5 undecided
+    out[12:18] = F  # flow: 6 right,
+    out[18:20] = B  # 2 decided ballistic, 2 undecided
     c = P.count_outcome(out, truth, masks, {"coherent": out == F})
     assert c["ballistic"] == {"pixels": 10, "decided": 5, "right": 5, "wrong": 0, "coherent": 0}
     assert c["flow"] == {"pixels": 10, "decided": 8, "right": 6, "wrong": 2, "coherent": 6}
@@ -112,7 +120,7 @@ def test_scores_are_exact_on_known_label_arrays():
 
 def test_scored_pixels_keep_their_box_inside_the_band_and_the_image():
     truth = np.zeros((9, 20), np.int64)
-    truth[:, 2:9] = B   # 7 columns
+    truth[:, 2:9] = B  # 7 columns
     truth[:, 9:20] = F  # 11 columns, touching the image's right edge
     mb = P.scored_mask(truth, B, 2)
     assert mb.sum() == 5 * 3 and mb[2:7, 4:7].all()  # rows 2..6 (image edge), columns 4..6
@@ -129,8 +137,11 @@ def test_matched_ballistic_speed_gives_the_flows_single_pixel_correlation():
     tau, dens = P.match_lag_s(spec), P._density()
     flow = P._rho_intensity("flow", P.FLOW_SPEED, tau, spec, dens, P.FLOW_POLAR_DEG, P.FLOW_AZIMUTH_DEG)
     assert P._rho_intensity("ballistic", v, tau, spec, dens) == pytest.approx(flow, abs=5e-3)
-    assert P._rho_intensity("ballistic", 2 * v, tau, spec, dens) < flow < P._rho_intensity("ballistic", v / 2, tau,
-                                                                                            spec, dens)
+    assert (
+        P._rho_intensity("ballistic", 2 * v, tau, spec, dens)
+        < flow
+        < P._rho_intensity("ballistic", v / 2, tau, spec, dens)
+    )
     with pytest.raises(ValueError, match="--ballistic-speed"):  # a flow that has not moved: nothing matches
         P.matched_ballistic_speed(spec, flow_speed=1e-9)
 
@@ -145,10 +156,16 @@ def test_a_tiny_run_writes_four_self_describing_files_and_refuses_to_overwrite(t
     res = json.loads((tmp_path / "protocol.json").read_text(encoding="utf-8"))
     assert res["schema_version"] == P.SCHEMA_VERSION and res["benchmark"] == "protocol"
     assert set(res["definitions"]) == {"phantom", "variants", "decision", "scores"}
-    assert res["command"].startswith("python -m classifier.bench.protocol") and "--ballistic-speed 0.05" in res["command"]
+    assert (
+        res["command"].startswith("python -m classifier.bench.protocol") and "--ballistic-speed 0.05" in res["command"]
+    )
     assert {"cpu_count", "torch"} <= set(res["machine"])
-    assert res["motions"]["ballistic"] == {"speed_um_per_s": 0.05, "directions": "isotropic", "matched": False,
-                                           "matched_at_s": None}
+    assert res["motions"]["ballistic"] == {
+        "speed_um_per_s": 0.05,
+        "directions": "isotropic",
+        "matched": False,
+        "matched_at_s": None,
+    }
     assert len(res["rows"]) == 2 * len(P.DECISIONS)
     for r in res["rows"]:
         assert r["acquisition_s"] == pytest.approx(r["n_frames"] * r["interval_s"])
@@ -167,9 +184,21 @@ def test_a_tiny_run_writes_four_self_describing_files_and_refuses_to_overwrite(t
     assert (tmp_path / "protocol.json").read_bytes() == before
 
 
-@pytest.mark.parametrize("extra", [["--windows", "4"], ["--frames", "4"], ["--intervals", "0"], ["--intervals", "x"],
-                                   ["--seeds", "0"], ["--flow-speed", "-1"], ["--polar", "200"], ["--stem", "a/b"],
-                                   ["--threads", "0"], ["--spec", "no-such-spec"]])
+@pytest.mark.parametrize(
+    "extra",
+    [
+        ["--windows", "4"],
+        ["--frames", "4"],
+        ["--intervals", "0"],
+        ["--intervals", "x"],
+        ["--seeds", "0"],
+        ["--flow-speed", "-1"],
+        ["--polar", "200"],
+        ["--stem", "a/b"],
+        ["--threads", "0"],
+        ["--spec", "no-such-spec"],
+    ],
+)
 def test_bad_arguments_exit_2_with_one_error_line_and_write_nothing(tmp_path, capsys, extra):
     out = tmp_path / "out"
     assert P.main(["--out", str(out), "--no-progress", *extra]) == 2

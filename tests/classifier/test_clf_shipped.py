@@ -24,8 +24,18 @@ DATA = Path(__file__).resolve().parents[2] / "classifier" / "data"
 REPRODUCTION_Z = 2.0
 
 
-@pytest.mark.parametrize("name", ["single-acquisition", "two-wavelength", "signature", "two-wavelength-signature",
-                                  "signature-bscan", "signature-bscan-field", "single-acquisition-bscan"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "single-acquisition",
+        "two-wavelength",
+        "signature",
+        "two-wavelength-signature",
+        "signature-bscan",
+        "signature-bscan-field",
+        "single-acquisition-bscan",
+    ],
+)
 def test_shipped_model_metadata_and_report(name):
     assert DEFAULT_MODEL == "single-acquisition" and name in shipped_models()
     model = load_model(name, threads=1)
@@ -110,5 +120,7 @@ def test_doct_train_reproduces_the_shipped_model(tmp_path, spec):
             assert abs(new["test"]["network"][pool][key] - old["test"]["network"][pool][key]) <= tol, (pool, key)
     if "magnitude" in old:
         for pool in ("1", "25"):
-            assert abs(new["magnitude"][pool]["median_abs_log10_error"]
-                       - old["magnitude"][pool]["median_abs_log10_error"]) <= 0.05, pool
+            assert (
+                abs(new["magnitude"][pool]["median_abs_log10_error"] - old["magnitude"][pool]["median_abs_log10_error"])
+                <= 0.05
+            ), pool

@@ -19,8 +19,15 @@ from classifier.train import TrainConfig, train
 
 
 def _draw(label, magnitude, static=0.0, snr=math.nan):
-    return Draw(label=label, magnitude=magnitude, polar_angle_deg=50.0, azimuth_deg=10.0, density_per_um3=0.05,
-                sim_seed=4242 + label, nuisance=((static, snr),))
+    return Draw(
+        label=label,
+        magnitude=magnitude,
+        polar_angle_deg=50.0,
+        azimuth_deg=10.0,
+        density_per_um3=0.05,
+        sim_seed=4242 + label,
+        nuisance=((static, snr),),
+    )
 
 
 def test_signature_spec_features_and_same_pixels_as_liv_ocds():
@@ -46,9 +53,22 @@ def test_signature_spec_features_and_same_pixels_as_liv_ocds():
 def magnitude_model(tmp_path_factory):
     """A tiny two-wavelength model with the magnitude head (cheap to simulate)."""
     tmp = tmp_path_factory.mktemp("clf-mag")
-    res = train(TrainConfig(spec="two-wavelength", draws_train=12, draws_validation=6, draws_test=6, replicates=2,
-                            max_epochs=4, singles_per_group=16, pooled_per_group=4, magnitude=True,
-                            baselines=False), cache_dir=tmp / "cache", log=None)
+    res = train(
+        TrainConfig(
+            spec="two-wavelength",
+            draws_train=12,
+            draws_validation=6,
+            draws_test=6,
+            replicates=2,
+            max_epochs=4,
+            singles_per_group=16,
+            pooled_per_group=4,
+            magnitude=True,
+            baselines=False,
+        ),
+        cache_dir=tmp / "cache",
+        log=None,
+    )
     path = tmp / "mag.onnx"
     export_onnx(res.model, build_metadata(res), path)
     return res, path
@@ -137,17 +157,31 @@ def test_default_model_follows_the_maps_channels(tmp_path, capsys):
 
 def test_a_model_that_needs_the_phase_refuses_intensity_only_maps(tmp_path):
     spec_path = tmp_path / "phase.toml"
-    spec_path.write_text('''name = "phase-test"
+    spec_path.write_text("""name = "phase-test"
 metrics = ["rho_lin_1", "g1_1"]
 [[configuration]]
 name = "original"
 wavelength_um = 0.84
 lateral_resolution_um = 4.9
 axial_resolution_um = 3.8
-''')
-    res = train(TrainConfig(spec=str(spec_path), draws_train=6, draws_validation=3, draws_test=3, replicates=1,
-                            max_epochs=2, singles_per_group=8, pooled_per_group=2, baselines=False, eval_pools=(1, 4),
-                            max_pool_pixels=8), cache_dir=tmp_path / "cache", log=None)
+""")
+    res = train(
+        TrainConfig(
+            spec=str(spec_path),
+            draws_train=6,
+            draws_validation=3,
+            draws_test=3,
+            replicates=1,
+            max_epochs=2,
+            singles_per_group=8,
+            pooled_per_group=2,
+            baselines=False,
+            eval_pools=(1, 4),
+            max_pool_pixels=8,
+        ),
+        cache_dir=tmp_path / "cache",
+        log=None,
+    )
     assert res.spec.needs_field
     path = tmp_path / "phase.onnx"
     export_onnx(res.model, build_metadata(res), path)
@@ -171,14 +205,36 @@ def test_maps_signature_then_classify_uses_the_signature_model(tmp_path, capsys)
     e[0] = rng.standard_normal((z, x)) + 1j * rng.standard_normal((z, x))
     for i in range(1, t):  # partially decorrelating speckle
         e[i] = 0.9 * e[i - 1] + math.sqrt(1 - 0.81) * (rng.standard_normal((z, x)) + 1j * rng.standard_normal((z, x)))
-    seq = write_sequence(tmp_path / "seq.npz", e, {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},
-                                                   "frame_times_s": [0.2048 * i for i in range(t)],
-                                                   "system": {"name": "s", "wavelength_um": 0.84,
-                                                              "lateral_resolution_um": 4.9,
-                                                              "axial_resolution_um": 3.8}})
+    seq = write_sequence(
+        tmp_path / "seq.npz",
+        e,
+        {
+            "axes": "TZX",
+            "pitch_um": {"z": 1.5, "x": 2.0},
+            "frame_times_s": [0.2048 * i for i in range(t)],
+            "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8},
+        },
+    )
     maps = tmp_path / "maps.npz"
-    assert td_main(["maps", str(seq), "--resolution", "original", "--resolution", "axial=14", "--resolution",
-                    "lateral=18", "--signature", "--out", str(maps), "--no-progress"]) == 0
+    assert (
+        td_main(
+            [
+                "maps",
+                str(seq),
+                "--resolution",
+                "original",
+                "--resolution",
+                "axial=14",
+                "--resolution",
+                "lateral=18",
+                "--signature",
+                "--out",
+                str(maps),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     assert classify_main([str(maps), "--out", str(tmp_path / "out"), "--background-db", "none"]) == 0
     out = capsys.readouterr().out
@@ -207,8 +263,13 @@ def test_indeterminate_measurement_partitions_the_test_split(tmp_path):
     from research.ablation import run_indeterminate
 
     res = run_indeterminate(draws_train=12, draws_test=6, pixels=3000, cache_dir=tmp_path, log=None)
-    te = make_dataset(__import__("research.ablation", fromlist=["candidate_spec"]).candidate_spec(), Prior(),
-                      split="test", draws=6, cache_dir=tmp_path)
+    te = make_dataset(
+        __import__("research.ablation", fromlist=["candidate_spec"]).candidate_spec(),
+        Prior(),
+        split="test",
+        draws=6,
+        cache_dir=tmp_path,
+    )
     counts = res["test_samples"]
     assert counts["identifiable"] == int((te.status == 0).sum())
     assert counts["decorrelated, transit visible"] + counts["decorrelated, flat"] == int((te.status == 2).sum())

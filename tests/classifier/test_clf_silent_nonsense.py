@@ -23,8 +23,9 @@ def _maps(tmp_path, channels=None, name="maps.npz"):
     n = spec.n_features
     feats = np.concatenate([rng.uniform(0.0, 12.0, (n // 2, 6, 7)), rng.uniform(0.0, 0.5, (n - n // 2, 6, 7))])
     chans = feature_channels(spec) if channels is None else channels(feature_channels(spec))
-    return save_maps(tmp_path / name, np.concatenate([feats, np.full((1, 6, 7), 20.0)]).astype(np.float32),
-                     maps_meta(spec, chans))
+    return save_maps(
+        tmp_path / name, np.concatenate([feats, np.full((1, 6, 7), 20.0)]).astype(np.float32), maps_meta(spec, chans)
+    )
 
 
 def test_duplicate_channel_names_in_a_maps_file_are_refused(tmp_path, capsys):
@@ -34,16 +35,22 @@ def test_duplicate_channel_names_in_a_maps_file_are_refused(tmp_path, capsys):
         return ch
 
     bad = _maps(tmp_path, twice)
-    refused(capsys, tmp_path, [str(bad), "--out", str(tmp_path / "o")], "maps.npz", "more than once",
-            run=classify_main)
+    refused(capsys, tmp_path, [str(bad), "--out", str(tmp_path / "o")], "maps.npz", "more than once", run=classify_main)
 
 
 HUGE = object()  # an integer of 5000 digits, written into the JSON text (Python's json cannot write it)
 
 
-@pytest.mark.parametrize("field,value", [("rule.min_probability", "0.5"), ("pool_pixels_max", 2.5),
-                                         ("rule.kind", 3), ("output.classes", "diffusion"),
-                                         ("pool_pixels_max", HUGE)])
+@pytest.mark.parametrize(
+    "field,value",
+    [
+        ("rule.min_probability", "0.5"),
+        ("pool_pixels_max", 2.5),
+        ("rule.kind", 3),
+        ("output.classes", "diffusion"),
+        ("pool_pixels_max", HUGE),
+    ],
+)
 def test_a_wrongly_typed_model_metadata_field_is_refused_naming_it(tmp_path, field, value):
     onnx = pytest.importorskip("onnx")
     from classifier.runtime import METADATA_KEY, load_model, shipped_models

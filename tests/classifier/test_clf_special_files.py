@@ -26,10 +26,14 @@ def test_a_special_file_given_to_the_classifier_is_refused_at_once(tmp_path, cap
     rng = np.random.default_rng(0)
     n = spec.n_features
     feats = np.concatenate([rng.uniform(0.0, 12.0, (n // 2, 6, 7)), rng.uniform(0.0, 0.5, (n - n // 2, 6, 7))])
-    good = save_maps(tmp_path / "maps.npz", np.concatenate([feats, np.full((1, 6, 7), 20.0)]).astype(np.float32),
-                     maps_meta(spec, feature_channels(spec)))
-    bad = _special(tmp_path / {"spec": "bad.toml", "prior": "bad.toml", "model": "bad.onnx",
-                               "maps": "bad.npz"}[role], kind)
+    good = save_maps(
+        tmp_path / "maps.npz",
+        np.concatenate([feats, np.full((1, 6, 7), 20.0)]).astype(np.float32),
+        maps_meta(spec, feature_channels(spec)),
+    )
+    bad = _special(
+        tmp_path / {"spec": "bad.toml", "prior": "bad.toml", "model": "bad.onnx", "maps": "bad.npz"}[role], kind
+    )
     out = str(tmp_path / "o")
     run, argv = {
         "spec": (train_main, ["--spec", str(bad), "--out", out, "--dry-run"]),

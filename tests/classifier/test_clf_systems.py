@@ -22,7 +22,6 @@ from tests.reference.floors import SYSTEMS, floor, load  # noqa: E402
 RECORDED = load("systems-quick")
 
 
-
 @pytest.mark.parametrize("system", SYSTEMS)
 def test_like_quick_model_classifies_its_system(system, tmp_path):
     from research.systems import evaluate

@@ -31,9 +31,20 @@ from classifier.rule import make_rule
 from classifier.train import CLASS_NAMES, TrainConfig, train
 from classifier.truth import STATUS
 
-TINY = TradeoffPlan(draws_grid=(3, 6), draws_base=6, draws_validation=3, draws_test=6, replicates=2,
-                    hidden_grid=((4,), (8, 8)), pools=(1, 4, 25), max_epochs=5, timing_draws=1, map_side=32,
-                    timing_repeats=1, n_boot=50)
+TINY = TradeoffPlan(
+    draws_grid=(3, 6),
+    draws_base=6,
+    draws_validation=3,
+    draws_test=6,
+    replicates=2,
+    hidden_grid=((4,), (8, 8)),
+    pools=(1, 4, 25),
+    max_epochs=5,
+    timing_draws=1,
+    map_side=32,
+    timing_repeats=1,
+    n_boot=50,
+)
 
 
 @pytest.fixture(scope="module")
@@ -52,13 +63,18 @@ def test_result_is_json_ready_and_round_trips(result):
     assert set(result["axes"]) == {"training_draws", "feature_spec", "model_size", "pool"}
     assert [r["draws_train"] for r in result["axes"]["training_draws"]["rows"]] == list(TINY.draws_grid)
     assert [r["label"] for r in result["axes"]["feature_spec"]["rows"]] == [
-        "one-configuration", "single-acquisition", "two-wavelength"]
+        "one-configuration",
+        "single-acquisition",
+        "two-wavelength",
+    ]
     assert [r["pool"] for r in result["axes"]["pool"]["rows"]] == list(TINY.pools)
     assert result["plan"] == TINY.to_dict() and result["defaults"] == DEFAULTS
     # fronts: both errors against an axis's primary cost, the balanced error against the others
     assert {(p["time_key"], p["error_key"], p["pool"]) for p in result["axes"]["model_size"]["pareto"]} == {
-        (tk, ek, pool) for tk, ek in (("inference_ort_us", "error"), ("inference_ort_us", "strict_error"),
-                                      ("training_s", "error")) for pool in ("1", "25")}
+        (tk, ek, pool)
+        for tk, ek in (("inference_ort_us", "error"), ("inference_ort_us", "strict_error"), ("training_s", "error"))
+        for pool in ("1", "25")
+    }
 
 
 def test_pareto_fronts_are_non_dominated_and_complete(result):
@@ -72,8 +88,12 @@ def test_pareto_fronts_are_non_dominated_and_complete(result):
         errors = [p["error"] for p in front]
         assert times == sorted(times) and all(a > b for a, b in zip(errors, errors[1:]))
         for f in front:  # nothing beats a front point in both time and error
-            assert not any(q["time"] <= f["time"] and q["error"] <= f["error"]
-                           and (q["time"] < f["time"] or q["error"] < f["error"]) for q in pts.values())
+            assert not any(
+                q["time"] <= f["time"]
+                and q["error"] <= f["error"]
+                and (q["time"] < f["time"] or q["error"] < f["error"])
+                for q in pts.values()
+            )
         for p in pts.values():  # every other point is (weakly) dominated by a front point
             assert any(f["time"] <= p["time"] and f["error"] <= p["error"] for f in front)
         if e["defaults"] is not None and e["defaults"] not in pts:  # left off for low coverage
@@ -100,11 +120,22 @@ def test_pareto_dominance_and_one_se_rule_on_constructed_points():
         return (z - z.mean()) / z.std(ddof=1)
 
     z1, z2, z3 = unit(), unit(), unit()
-    errors = {"A": (1.0, 0.30, 0.05 * z2), "B": (2.0, 0.25, 0.1 * z1), "C": (3.0, 0.26, 0.1 * z1 + 0.001 * z3),
-              "D": (4.0, 0.20, 0.0 * z1), "E": (0.5, 0.10, 0.0 * z1)}
+    errors = {
+        "A": (1.0, 0.30, 0.05 * z2),
+        "B": (2.0, 0.25, 0.1 * z1),
+        "C": (3.0, 0.26, 0.1 * z1 + 0.001 * z3),
+        "D": (4.0, 0.20, 0.0 * z1),
+        "E": (0.5, 0.10, 0.0 * z1),
+    }
     coverage = {"A": 0.5, "B": 0.5, "C": 0.5, "D": 0.5, "E": 0.05}  # E decides too little to count
-    rows = [{"label": k, "t_s": t, "pools": {"1": {"error": e, "error_se": 0.0, "coverage": coverage[k],
-                                                   "coverage_se": 0.0}}} for k, (t, e, _) in errors.items()]
+    rows = [
+        {
+            "label": k,
+            "t_s": t,
+            "pools": {"1": {"error": e, "error_se": 0.0, "coverage": coverage[k], "coverage_se": 0.0}},
+        }
+        for k, (t, e, _) in errors.items()
+    ]
     reps = {(k, "1"): {"error": e + noise, "coverage": coverage[k] + 0.0 * z1} for k, (_, e, noise) in errors.items()}
     out = _pareto("x", rows, reps, "t_s", "1", "C", 0.1)
     assert out["front"] == ["A", "B", "D"] and [x["label"] for x in out["excluded"]] == ["E"]
@@ -113,8 +144,9 @@ def test_pareto_dominance_and_one_se_rule_on_constructed_points():
     assert dom["label"] == "B" and dom["z"] == pytest.approx(0.01 / 0.001, rel=1e-6)
     # best D; B is 0.05 worse with paired SE 0.1 (kept), A 0.10 worse with paired SE 0.05 (dropped)
     assert out["best"] == "D" and out["recommended"] == "B"
-    loose = _pareto("x", rows, {**reps, ("C", "1"): {"error": 0.26 + 0.1 * z2, "coverage": 0.5 + 0.0 * z1}},
-                    "t_s", "1", "C", 0.1)
+    loose = _pareto(
+        "x", rows, {**reps, ("C", "1"): {"error": 0.26 + 0.1 * z2, "coverage": 0.5 + 0.0 * z1}}, "t_s", "1", "C", 0.1
+    )
     assert loose["defaults_significantly_dominated"] is False  # 0.01 against a paired SE of ~0.14
     # a cheaper setting as accurate but deciding clearly less is not recommended
     fewer = {**reps, ("B", "1"): {"error": reps[("B", "1")]["error"], "coverage": 0.3 + 0.01 * z3}}
@@ -134,11 +166,18 @@ def test_defaults_are_marked_where_the_grid_holds_them(result):
 def test_recorded_times_are_positive(result):
     for name in ("training_draws", "feature_spec", "model_size"):
         for row in result["axes"][name]["rows"]:
-            for key in ("simulation_s", "validation_simulation_s", "training_s", "build_s", "inference_torch_us",
-                        "inference_ort_us"):
+            for key in (
+                "simulation_s",
+                "validation_simulation_s",
+                "training_s",
+                "build_s",
+                "inference_torch_us",
+                "inference_ort_us",
+            ):
                 assert row[key] > 0, (name, row["label"], key)
-            assert row["build_s"] == pytest.approx(row["simulation_s"] + row["validation_simulation_s"]
-                                                   + row["training_s"])
+            assert row["build_s"] == pytest.approx(
+                row["simulation_s"] + row["validation_simulation_s"] + row["training_s"]
+            )
             assert row["epochs"] >= row["best_epoch"] >= 1
     assert all(r["inference_us_per_pixel"] > 0 for r in result["axes"]["pool"]["rows"])
     assert all(v > 0 for v in result["simulation_seconds_per_draw"].values()) and result["total_s"] > 0
@@ -158,8 +197,10 @@ def test_every_setting_is_evaluated_on_the_same_test_draws(result):
     # one-configuration keeps the single-acquisition samples; its identifiable ones are a subset
     spec_rows = {r["label"]: r["pools"]["1"] for r in result["axes"]["feature_spec"]["rows"]}
     assert spec_rows["one-configuration"]["samples"] == spec_rows["single-acquisition"]["samples"]
-    assert (spec_rows["one-configuration"]["identifiable_samples"]
-            <= spec_rows["single-acquisition"]["identifiable_samples"])
+    assert (
+        spec_rows["one-configuration"]["identifiable_samples"]
+        <= spec_rows["single-acquisition"]["identifiable_samples"]
+    )
 
 
 def test_one_configuration_columns_and_ground_truth(cache_dir, result):
@@ -167,9 +208,13 @@ def test_one_configuration_columns_and_ground_truth(cache_dir, result):
     one = one_configuration_spec()
     assert len(one.configurations) == 1 and one.configurations[0].matches(0.84, 4.9, 3.8)
     assert (one.n_frames, one.frame_interval_s, one.ocds_delay_range_s) == (
-        spec.n_frames, spec.frame_interval_s, spec.ocds_delay_range_s)
-    ds = make_dataset(spec, seed=TINY.seed, split="test", draws=TINY.draws_test, replicates=TINY.replicates,
-                      cache_dir=cache_dir)
+        spec.n_frames,
+        spec.frame_interval_s,
+        spec.ocds_delay_range_s,
+    )
+    ds = make_dataset(
+        spec, seed=TINY.seed, split="test", draws=TINY.draws_test, replicates=TINY.replicates, cache_dir=cache_dir
+    )
     assert ds.meta["from_cache"]  # written by the module run
     sub = derive_dataset(ds, spec, one, Prior())
     names = list(spec.feature_names)
@@ -182,8 +227,17 @@ def test_one_configuration_columns_and_ground_truth(cache_dir, result):
 
 
 def test_prefix_equals_a_smaller_split_and_fit_reproduces_train(tmp_path):
-    cfg = TrainConfig(spec="two-wavelength", draws_train=9, draws_validation=6, draws_test=6, replicates=2,
-                      max_epochs=3, singles_per_group=16, pooled_per_group=4, baselines=False)
+    cfg = TrainConfig(
+        spec="two-wavelength",
+        draws_train=9,
+        draws_validation=6,
+        draws_test=6,
+        replicates=2,
+        max_epochs=3,
+        singles_per_group=16,
+        pooled_per_group=4,
+        baselines=False,
+    )
     full = make_dataset("two-wavelength", seed=0, split="train", draws=12, replicates=2, cache_dir=tmp_path)
     res = train(cfg, cache_dir=tmp_path, log=None)
     pre = prefix_dataset(full, 9)
@@ -219,7 +273,9 @@ def test_evaluator_matches_report_evaluate_and_bootstrap_se():
     assert m["strict_accuracy_common"] == pytest.approx(ref["strict_accuracy_identifiable"], abs=1e-12)
     assert m["balanced_accuracy_se"] == pytest.approx(se["balanced_accuracy_identifiable"], rel=1e-9)
     assert m["coverage_se"] == pytest.approx(se["coverage_identifiable"], rel=1e-9)
-    assert reps["error"].shape == reps["coverage"].shape == (60,) and m["error"] == pytest.approx(1 - m["balanced_accuracy"])
+    assert reps["error"].shape == reps["coverage"].shape == (60,) and m["error"] == pytest.approx(
+        1 - m["balanced_accuracy"]
+    )
 
 
 def test_plan_validation():

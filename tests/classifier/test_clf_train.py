@@ -15,8 +15,16 @@ from classifier.report import coverage_curve, evaluate, expected_calibration_err
 from classifier.rule import INDETERMINATE, apply_rule, make_rule
 from classifier.train import CLASS_NAMES, TrainConfig, pooled_samples, train
 
-TINY_RECIPE = dict(spec="two-wavelength", draws_train=9, draws_validation=6, draws_test=6, replicates=2,
-                   max_epochs=4, singles_per_group=16, pooled_per_group=4)
+TINY_RECIPE = dict(
+    spec="two-wavelength",
+    draws_train=9,
+    draws_validation=6,
+    draws_test=6,
+    replicates=2,
+    max_epochs=4,
+    singles_per_group=16,
+    pooled_per_group=4,
+)
 
 
 @pytest.fixture(scope="module")
@@ -27,10 +35,14 @@ def cache_dir(tmp_path_factory):
 def test_rule_decides_and_abstains():
     rule = make_rule(0.05, 0.5)
     names = list(CLASS_NAMES)
-    p = np.array([[0.7, 0.1, 0.1, 0.1],    # clear diffusion
-                  [0.4, 0.35, 0.2, 0.05],  # top < 0.5: low probability
-                  [0.1, 0.1, 0.1, 0.7],    # indeterminate class
-                  [0.2, 0.5, 0.2, 0.1]])   # exactly the threshold: decided
+    p = np.array(
+        [
+            [0.7, 0.1, 0.1, 0.1],  # clear diffusion
+            [0.4, 0.35, 0.2, 0.05],  # top < 0.5: low probability
+            [0.1, 0.1, 0.1, 0.7],  # indeterminate class
+            [0.2, 0.5, 0.2, 0.1],
+        ]
+    )  # exactly the threshold: decided
     labels, reasons = apply_rule(p, names, rule)
     assert labels.tolist() == [0, 3, 3, 1] and reasons.tolist() == [0, 2, 1, 0]
     labels, _ = apply_rule(p, names, rule, min_probability=0.0)
@@ -56,8 +68,16 @@ def test_ece_and_evaluate_on_constructed_cases():
     # evaluate: confusion counts, coverage and accuracies by hand
     y = np.array([0, 0, 1, 2, 1, 2])
     status = np.array([0, 0, 0, 0, 1, 2])  # last two: truth indeterminate
-    p3 = np.array([[0.9, 0.05, 0.03, 0.02], [0.3, 0.3, 0.2, 0.2], [0.1, 0.8, 0.05, 0.05],
-                   [0.6, 0.2, 0.1, 0.1], [0.05, 0.05, 0.1, 0.8], [0.7, 0.1, 0.1, 0.1]])
+    p3 = np.array(
+        [
+            [0.9, 0.05, 0.03, 0.02],
+            [0.3, 0.3, 0.2, 0.2],
+            [0.1, 0.8, 0.05, 0.05],
+            [0.6, 0.2, 0.1, 0.1],
+            [0.05, 0.05, 0.1, 0.8],
+            [0.7, 0.1, 0.1, 0.1],
+        ]
+    )
     m = evaluate(p3, y, status, CLASS_NAMES, make_rule(0.05, 0.5))
     assert np.array(m["confusion"]).sum() == 6
     assert m["confusion"][0] == [1, 0, 0, 1] and m["confusion"][3] == [1, 0, 0, 1]
@@ -72,13 +92,17 @@ def test_coverage_curve_trades_coverage_for_accuracy_by_the_threshold():
     """The --min-probability trade-off on a constructed case: decided sets nest, counts by hand."""
     y = np.array([0, 0, 1, 2, 1, 2, 0])
     status = np.array([0, 0, 0, 0, 0, 1, 2])  # last two: truth indeterminate
-    p = np.array([[0.9, 0.05, 0.03, 0.02],    # right, confident
-                  [0.45, 0.4, 0.1, 0.05],     # right, unsure
-                  [0.65, 0.2, 0.1, 0.05],     # wrong (ballistic called diffusion)
-                  [0.1, 0.1, 0.75, 0.05],     # right
-                  [0.1, 0.2, 0.1, 0.6],       # indeterminate class: never decided
-                  [0.55, 0.3, 0.1, 0.05],     # non-identifiable, decided below 0.55
-                  [0.05, 0.05, 0.05, 0.85]])
+    p = np.array(
+        [
+            [0.9, 0.05, 0.03, 0.02],  # right, confident
+            [0.45, 0.4, 0.1, 0.05],  # right, unsure
+            [0.65, 0.2, 0.1, 0.05],  # wrong (ballistic called diffusion)
+            [0.1, 0.1, 0.75, 0.05],  # right
+            [0.1, 0.2, 0.1, 0.6],  # indeterminate class: never decided
+            [0.55, 0.3, 0.1, 0.05],  # non-identifiable, decided below 0.55
+            [0.05, 0.05, 0.05, 0.85],
+        ]
+    )
     rule = make_rule(0.05, 0.5)
     rows = coverage_curve(p, y, status, CLASS_NAMES, rule, thresholds=(0.4, 0.5, 0.7, 0.95))
     assert [r["min_probability"] for r in rows] == [0.4, 0.5, 0.7, 0.95]
@@ -96,9 +120,17 @@ def test_coverage_curve_trades_coverage_for_accuracy_by_the_threshold():
 def _toy_dataset() -> Dataset:
     rng = np.random.default_rng(0)
     n = 3 * 10
-    return Dataset(x=rng.normal(size=(n, 2)).astype(np.float32), y=np.repeat([0, 1, 2], 10),
-                   draw=np.repeat([0, 1, 2], 10), group=np.repeat([0, 1, 2], 10), status=np.zeros(n, np.int64),
-                   magnitude=np.ones(n), density=np.ones(n), static_fraction=np.zeros(n), snr_db=np.full(n, np.nan))
+    return Dataset(
+        x=rng.normal(size=(n, 2)).astype(np.float32),
+        y=np.repeat([0, 1, 2], 10),
+        draw=np.repeat([0, 1, 2], 10),
+        group=np.repeat([0, 1, 2], 10),
+        status=np.zeros(n, np.int64),
+        magnitude=np.ones(n),
+        density=np.ones(n),
+        static_fraction=np.zeros(n),
+        snr_db=np.full(n, np.nan),
+    )
 
 
 def test_pooled_samples_are_subset_means_of_one_group():
@@ -125,11 +157,25 @@ def test_pooled_samples_do_not_depend_on_how_the_groups_are_blocked(monkeypatch)
     counts = np.array([10, 7, 10, 4, 10, 9])
     group = np.repeat(np.arange(counts.size), counts)
     n = int(counts.sum())
-    ds = Dataset(x=rng.normal(size=(n, 3)).astype(np.float32), y=group % 3, draw=group, group=group,
-                 status=np.zeros(n, np.int64), magnitude=np.ones(n), density=np.ones(n),
-                 static_fraction=np.zeros(n), snr_db=np.full(n, np.nan))
-    sizes = [np.array([3, 10, 2]), np.array([], np.int64), np.array([5]), np.array([9, 1]), np.array([2] * 5),
-             np.array([8])]
+    ds = Dataset(
+        x=rng.normal(size=(n, 3)).astype(np.float32),
+        y=group % 3,
+        draw=group,
+        group=group,
+        status=np.zeros(n, np.int64),
+        magnitude=np.ones(n),
+        density=np.ones(n),
+        static_fraction=np.zeros(n),
+        snr_db=np.full(n, np.nan),
+    )
+    sizes = [
+        np.array([3, 10, 2]),
+        np.array([], np.int64),
+        np.array([5]),
+        np.array([9, 1]),
+        np.array([2] * 5),
+        np.array([8]),
+    ]
     one_by_one, g1 = [], np.random.default_rng(7)
     for k in range(counts.size):
         keep = group == k
@@ -182,8 +228,25 @@ def test_tiny_training_is_reproducible_and_exports_with_parity(cache_dir, tmp_pa
     assert "`--min-probability` trade-off" in format_markdown(rep)
     # doct-train: files, ONNX parity on the test set, refusal to overwrite
     out = tmp_path / "model"
-    argv = ["--out", str(out), "--spec", "two-wavelength", "--draws-train", "9", "--draws-validation", "6",
-            "--draws-test", "6", "--replicates", "2", "--max-epochs", "4", "--cache", str(cache_dir), "--no-progress"]
+    argv = [
+        "--out",
+        str(out),
+        "--spec",
+        "two-wavelength",
+        "--draws-train",
+        "9",
+        "--draws-validation",
+        "6",
+        "--draws-test",
+        "6",
+        "--replicates",
+        "2",
+        "--max-epochs",
+        "4",
+        "--cache",
+        str(cache_dir),
+        "--no-progress",
+    ]
     assert train_main(argv) == 0
     report = json.loads((out / "two-wavelength.json").read_text())
     assert report["onnx_parity_max_abs_diff"] <= 1e-5 and report["onnx_opset"] == 17
@@ -204,16 +267,37 @@ def test_parity_on_the_test_split(cache_dir, tmp_path):
     assert onnx_parity(res.model, path, res.test_inputs) <= 1e-5
 
 
-TINY_ARGV = ["--spec", "two-wavelength", "--draws-train", "9", "--draws-validation", "6", "--draws-test", "6",
-             "--replicates", "2", "--no-progress"]
+TINY_ARGV = [
+    "--spec",
+    "two-wavelength",
+    "--draws-train",
+    "9",
+    "--draws-validation",
+    "6",
+    "--draws-test",
+    "6",
+    "--replicates",
+    "2",
+    "--no-progress",
+]
 
 
 def test_undecided_network_reports_na_with_the_reason(cache_dir, tmp_path, capsys):
     """A network that decides no identifiable test sample: the metrics over decided samples are
     undefined; the run still succeeds and says n/a and why, in the summary line and the report."""
     out = tmp_path / "model"
-    argv = ["--out", str(out), *TINY_ARGV, "--max-epochs", "1", "--min-probability", "0.999", "--no-baselines",
-            "--cache", str(cache_dir)]
+    argv = [
+        "--out",
+        str(out),
+        *TINY_ARGV,
+        "--max-epochs",
+        "1",
+        "--min-probability",
+        "0.999",
+        "--no-baselines",
+        "--cache",
+        str(cache_dir),
+    ]
     assert train_main(argv) == 0
     printed = capsys.readouterr().out
     report = json.loads((out / "two-wavelength.json").read_text())
@@ -225,8 +309,12 @@ def test_undecided_network_reports_na_with_the_reason(cache_dir, tmp_path, capsy
     assert len(own) == 1 and own[0]["coverage_identifiable"] == 0.0 and own[0]["accuracy_identifiable"] is None
     md = (out / "two-wavelength.md").read_text()
     assert "| n/a |" in md and "n/a: no identifiable test sample was decided" in md
-    assert sorted(p.name for p in out.iterdir()) == ["two-wavelength.json", "two-wavelength.md",
-                                                      "two-wavelength.onnx", "two-wavelength.png"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "two-wavelength.json",
+        "two-wavelength.md",
+        "two-wavelength.onnx",
+        "two-wavelength.png",
+    ]
 
 
 def test_baselines_cover_classes_absent_from_a_small_training_split(cache_dir, tmp_path, capsys):
@@ -234,9 +322,25 @@ def test_baselines_cover_classes_absent_from_a_small_training_split(cache_dir, t
     indeterminate class; their probabilities still have one column per class (0 for the absent one)
     and the run succeeds (was 'probabilities must be [N, 4]; got (192, 3)' after training)."""
     out = tmp_path / "model"
-    argv = ["--out", str(out), "--spec", "single-acquisition", "--draws-train", "3", "--draws-validation", "3",
-            "--draws-test", "3", "--replicates", "1", "--max-epochs", "1", "--cache", str(cache_dir),
-            "--no-progress"]
+    argv = [
+        "--out",
+        str(out),
+        "--spec",
+        "single-acquisition",
+        "--draws-train",
+        "3",
+        "--draws-validation",
+        "3",
+        "--draws-test",
+        "3",
+        "--replicates",
+        "1",
+        "--max-epochs",
+        "1",
+        "--cache",
+        str(cache_dir),
+        "--no-progress",
+    ]
     assert train_main(argv) == 0, capsys.readouterr().err
     assert "'static': 0, 'decorrelated': 0" in capsys.readouterr().out.splitlines()[0]  # the case under test
     report = json.loads((out / "single-acquisition.json").read_text())
@@ -337,8 +441,10 @@ def test_shifted_prior_test_set_is_evaluated_and_reported(cache_dir, tmp_path):
     assert set(sp["by_magnitude"]) == {"1", "25"} and sp["by_magnitude"]["1"]
     assert all(math.isfinite(v) for v in sp["standard_errors"]["1"].values())
     m1 = sp["test"]["1"]
-    want = (m1["balanced_accuracy_identifiable"] >= SHIFTED_TARGETS["balanced_accuracy_identifiable"]
-            and m1["ece"] <= SHIFTED_TARGETS["ece"])
+    want = (
+        m1["balanced_accuracy_identifiable"] >= SHIFTED_TARGETS["balanced_accuracy_identifiable"]
+        and m1["ece"] <= SHIFTED_TARGETS["ece"]
+    )
     assert sp["targets"]["met"] == want
     for pool, rows in sp["coverage_curve"].items():  # the shifted set's --min-probability trade-off
         at_rule = next(r for r in rows if r["min_probability"] == res.report["rule"]["min_probability"])
@@ -353,8 +459,16 @@ def test_shifted_prior_test_set_is_evaluated_and_reported(cache_dir, tmp_path):
     from classifier.dataset import make_dataset
 
     cfg = res.config
-    again = make_dataset(cfg.spec, SHIFTED_PRIOR, seed=cfg.seed, split="test", draws=cfg.draws_test,
-                         trials_per_draw=cfg.trials_per_draw, replicates=cfg.replicates, cache_dir=cache_dir)
+    again = make_dataset(
+        cfg.spec,
+        SHIFTED_PRIOR,
+        seed=cfg.seed,
+        split="test",
+        draws=cfg.draws_test,
+        trials_per_draw=cfg.trials_per_draw,
+        replicates=cfg.replicates,
+        cache_dir=cache_dir,
+    )
     assert again.meta["from_cache"] and np.array_equal(again.x, ds.x)  # cached under its own key
 
 
@@ -369,7 +483,7 @@ def test_interval_scale_matches_the_nominal_interval_shares():
     # heavy tails (Student t, 4 dof): the maximum-likelihood factor sqrt(<z^2>) puts 77 % in the 68 %
     # interval; the fitted one misses each level by less and by < 0.04 (the least-squares compromise)
     t = np.abs(rng.standard_t(4, 200_000))
-    c, ml = interval_scale(t), float(np.sqrt(np.mean(t ** 2)))
+    c, ml = interval_scale(t), float(np.sqrt(np.mean(t**2)))
 
     def miss(f):
         return np.array([abs(np.mean(t <= f) - 0.6827), abs(np.mean(t <= 1.959964 * f) - 0.9545)])

@@ -49,11 +49,42 @@ def two_systems(tmp_path_factory):
     from torchdoct.cli import main
 
     d = tmp_path_factory.mktemp("tr")
-    assert main(["render", "motion-types-two-systems", "--out", str(d / "mt2.npz"), "--no-preview", "--no-progress",
-                 "--threads", "1"]) == 0
-    assert main(["maps", str(d / "mt2-840nm-high.npz"), "--resolution", "original", "--resolution", "axial=14",
-                 "--resolution", "lateral=18", "--signature", "--out", str(d / "src.npz"), "--no-progress",
-                 "--threads", "1"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "motion-types-two-systems",
+                "--out",
+                str(d / "mt2.npz"),
+                "--no-preview",
+                "--no-progress",
+                "--threads",
+                "1",
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "maps",
+                str(d / "mt2-840nm-high.npz"),
+                "--resolution",
+                "original",
+                "--resolution",
+                "axial=14",
+                "--resolution",
+                "lateral=18",
+                "--signature",
+                "--out",
+                str(d / "src.npz"),
+                "--no-progress",
+                "--threads",
+                "1",
+            ]
+        )
+        == 0
+    )
     return d
 
 
@@ -64,8 +95,24 @@ def test_translate_command_writes_values_intervals_and_codes(two_systems, capsys
 
     d = two_systems
     out = d / "tr.npz"
-    assert main(["translate", str(d / "src.npz"), "--to", "motion-types-two-systems", "--to-system", "1310nm-10um",
-                 "--out", str(out), "--trials", "16", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "translate",
+                str(d / "src.npz"),
+                "--to",
+                "motion-types-two-systems",
+                "--to-system",
+                "1310nm-10um",
+                "--out",
+                str(out),
+                "--trials",
+                "16",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     m = read_maps(out)
     code = m["translation@1310nm-10um"]
     liv, lo, hi = (m[f"liv{s}@1310nm-10um"] for s in ("", "_lower_68", "_upper_68"))
@@ -78,8 +125,21 @@ def test_translate_command_writes_values_intervals_and_codes(two_systems, capsys
     before = out.read_bytes()
     assert main(["translate", str(d / "src.npz"), "--to", "motion-types-two-systems", "--out", str(out)]) == 2
     assert out.read_bytes() == before
-    assert main(["translate", str(d / "src.npz"), "--to", "motion-types-two-systems", "--model",
-                 "single-acquisition-bscan", "--out", str(d / "liv.npz")]) == 2
+    assert (
+        main(
+            [
+                "translate",
+                str(d / "src.npz"),
+                "--to",
+                "motion-types-two-systems",
+                "--model",
+                "single-acquisition-bscan",
+                "--out",
+                str(d / "liv.npz"),
+            ]
+        )
+        == 2
+    )
     assert "magnitude" in capsys.readouterr().err and not (d / "liv.npz").exists()
 
 

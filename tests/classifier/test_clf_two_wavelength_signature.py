@@ -62,8 +62,14 @@ def test_spec_is_the_signature_at_the_two_wavelength_configurations():
     assert spec.metrics == sig.metrics and spec.is_signature and not spec.needs_field
     assert spec.configurations == two.configurations
     assert spec.feature_names == tuple(f"{m}@{c}" for c in ("840nm", "1310nm") for m in sig.metrics)
-    for key in ("n_frames", "frame_interval_s", "ocds_delay_range_s", "ocds_scale", "ocds_estimator",
-                "refractive_index"):
+    for key in (
+        "n_frames",
+        "frame_interval_s",
+        "ocds_delay_range_s",
+        "ocds_scale",
+        "ocds_estimator",
+        "refractive_index",
+    ):
         assert getattr(spec, key) == getattr(sig, key) == getattr(two, key), key
     # the shipped recipe is the signature one (wider network, random-bulk-phase test split, noise in every
     # draw), its prior scaled to the two-band system
@@ -77,10 +83,24 @@ def test_spec_is_the_signature_at_the_two_wavelength_configurations():
 def tiny_model(tmp_path_factory) -> Path:
     """A tiny two-wavelength signature model (its columns and metadata; its accuracy is not used)."""
     tmp = tmp_path_factory.mktemp("clf-2wl-sig")
-    res = train(TrainConfig.for_spec(NAME, draws_train=6, draws_validation=3, draws_test=3, replicates=1,
-                                     max_epochs=2, singles_per_group=8, pooled_per_group=2, baselines=False,
-                                     eval_pools=(1, 4), max_pool_pixels=8, bulk_phase_test=False),
-                cache_dir=tmp / "cache", log=None)
+    res = train(
+        TrainConfig.for_spec(
+            NAME,
+            draws_train=6,
+            draws_validation=3,
+            draws_test=3,
+            replicates=1,
+            max_epochs=2,
+            singles_per_group=8,
+            pooled_per_group=2,
+            baselines=False,
+            eval_pools=(1, 4),
+            max_pool_pixels=8,
+            bulk_phase_test=False,
+        ),
+        cache_dir=tmp / "cache",
+        log=None,
+    )
     path = tmp / f"{NAME}.onnx"
     export_onnx(res.model, build_metadata(res), path)
     return path
@@ -99,11 +119,30 @@ def rendered_maps(tmp_path_factory) -> dict[str, Path]:
     out = {}
     for band in ("840nm", "1310nm"):
         out[band] = tmp / f"maps-{band}.npz"
-        assert td_main(["maps", str(tmp / f"seq-{band}.npz"), "--signature", "--out", str(out[band]),
-                        "--no-progress"]) == 0
+        assert (
+            td_main(["maps", str(tmp / f"seq-{band}.npz"), "--signature", "--out", str(out[band]), "--no-progress"])
+            == 0
+        )
     out["single"] = tmp / "maps-single.npz"
-    assert td_main(["maps", str(tmp / "seq-840nm.npz"), "--resolution", "original", "--resolution", "axial=14",
-                    "--resolution", "lateral=18", "--signature", "--out", str(out["single"]), "--no-progress"]) == 0
+    assert (
+        td_main(
+            [
+                "maps",
+                str(tmp / "seq-840nm.npz"),
+                "--resolution",
+                "original",
+                "--resolution",
+                "axial=14",
+                "--resolution",
+                "lateral=18",
+                "--signature",
+                "--out",
+                str(out["single"]),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     return out
 
 
@@ -140,8 +179,7 @@ def test_rendered_dual_band_maps_assemble_into_the_spec_columns(tiny_model, rend
     # the two bands differ (diffusion decorrelates faster at the shorter wavelength: physics.md §5.3)
     f = assemble_features(two, model)[0]
     assert np.nanmean(f[0]) < np.nanmean(f[12])  # rho_lin_1: 840 nm below 1310 nm
-    res = classify_maps([rendered_maps["840nm"], rendered_maps["1310nm"]], tiny_model, threads=1,
-                        background_db="none")
+    res = classify_maps([rendered_maps["840nm"], rendered_maps["1310nm"]], tiny_model, threads=1, background_db="none")
     assert res.info["classified"] == 16 * 16 and res.magnitude is not None
     # one band alone lacks the other band's columns, and the error says how to give them
     with pytest.raises(ValueError, match=r"rho_lin_1@1310nm.*second file"):

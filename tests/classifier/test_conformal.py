@@ -104,9 +104,17 @@ def test_set_labels_name_the_motion_classes_in_the_set():
     names = CLASSES + set_label_names(CLASSES)
     assert names[4:] == ["diffusion-or-ballistic", "diffusion-or-flow", "ballistic-or-flow"]
     rows = {  # membership over (diffusion, ballistic, flow, indeterminate) -> label
-        (0, 0, 1, 0): "flow", (0, 0, 1, 1): "flow", (0, 0, 0, 1): "indeterminate", (0, 0, 0, 0): "indeterminate",
-        (0, 1, 1, 0): "ballistic-or-flow", (1, 0, 1, 1): "diffusion-or-flow", (1, 1, 0, 0): "diffusion-or-ballistic",
-        (1, 1, 1, 0): "indeterminate", (1, 1, 1, 1): "indeterminate", (1, 0, 0, 0): "diffusion"}
+        (0, 0, 1, 0): "flow",
+        (0, 0, 1, 1): "flow",
+        (0, 0, 0, 1): "indeterminate",
+        (0, 0, 0, 0): "indeterminate",
+        (0, 1, 1, 0): "ballistic-or-flow",
+        (1, 0, 1, 1): "diffusion-or-flow",
+        (1, 1, 0, 0): "diffusion-or-ballistic",
+        (1, 1, 1, 0): "indeterminate",
+        (1, 1, 1, 1): "indeterminate",
+        (1, 0, 0, 0): "diffusion",
+    }
     got = set_labels(np.array(list(rows), bool), CLASSES)
     assert [names[g] for g in got] == list(rows.values())
 
@@ -145,9 +153,12 @@ def test_a_corrupt_calibration_is_refused_naming_the_file(tmp_path):
     shutil.copy(src, dst)
     bad = tmp_path / "m.calibration.json"
     good = json.loads(src.with_name("signature-bscan.calibration.json").read_text())
-    for text in ("{not json", json.dumps({**good, "schema_version": 99}),
-                 json.dumps({**good, "classes": ["a", "b", "c", "d"]}),
-                 json.dumps({**good, "pools": [{**good["pools"][0], "truth": [9] * good["pools"][0]["samples"]}]})):
+    for text in (
+        "{not json",
+        json.dumps({**good, "schema_version": 99}),
+        json.dumps({**good, "classes": ["a", "b", "c", "d"]}),
+        json.dumps({**good, "pools": [{**good["pools"][0], "truth": [9] * good["pools"][0]["samples"]}]}),
+    ):
         bad.write_text(text)
         with pytest.raises(ValueError, match="m.calibration.json"):
             load_model(dst, threads=1)

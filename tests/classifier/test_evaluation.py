@@ -27,11 +27,16 @@ def _samples(n_draws: int = 12, per_draw: int = 10, seed: int = 0) -> tuple[np.n
     logits = rng.normal(size=(n, 4))
     logits[np.arange(n), np.where(status == 0, y, 3)] += 1.5
     p = np.exp(logits) / np.exp(logits).sum(1, keepdims=True)
-    s = {"x": np.zeros((n, 2), np.float32), "y": y, "status": status, "draw": draw,
-         "magnitude": 10.0 ** rng.uniform(-2, 1, n_draws)[draw],
-         "polar_angle_deg": np.where(y == 2, rng.uniform(0, 180, n_draws)[draw], np.nan),
-         "snr_db": np.where(rng.random(n_draws) < 0.5, 20.0, np.inf)[draw],
-         "static_fraction": np.where(rng.random(n_draws) < 0.5, 0.3, 0.0)[draw]}
+    s = {
+        "x": np.zeros((n, 2), np.float32),
+        "y": y,
+        "status": status,
+        "draw": draw,
+        "magnitude": 10.0 ** rng.uniform(-2, 1, n_draws)[draw],
+        "polar_angle_deg": np.where(y == 2, rng.uniform(0, 180, n_draws)[draw], np.nan),
+        "snr_db": np.where(rng.random(n_draws) < 0.5, 20.0, np.inf)[draw],
+        "static_fraction": np.where(rng.random(n_draws) < 0.5, 0.3, 0.0)[draw],
+    }
     return p, s
 
 
@@ -57,8 +62,9 @@ def test_the_block_is_the_report_functions_on_the_same_samples():
     conds = b["by_condition"]
     assert sum(m["samples"] for m in conds.values()) == len(y)
     noisy_static = np.isfinite(s["snr_db"]) & (s["static_fraction"] > 0)
-    assert conds["noise and static fraction"] == evaluate(p[noisy_static], y[noisy_static], st[noisy_static],
-                                                          CLASS_NAMES, rule)
+    assert conds["noise and static fraction"] == evaluate(
+        p[noisy_static], y[noisy_static], st[noisy_static], CLASS_NAMES, rule
+    )
     lean = evaluate_set(p, s, rule, detail=False)
     assert list(lean) == ["samples", "metrics"]  # the metrics alone: the baselines and the bulk-phase set
 
@@ -80,8 +86,12 @@ def test_magnitude_metrics_on_a_constructed_case():
     assert m["coverage_68"] == pytest.approx(3 / 5)  # 0.1, 0.2, 0.3 ≤ 0.4
     assert m["coverage_95"] == pytest.approx(4 / 5)  # and 0.5 ≤ 1.96 · 0.4
     assert m["median_predicted_sd"] == pytest.approx(0.4)
-    assert m["by_class"]["ballistic"] == {"samples": 2, "median_abs_log10_error": pytest.approx(0.85),
-                                          "coverage_68": 0.5, "coverage_95": 0.5}
+    assert m["by_class"]["ballistic"] == {
+        "samples": 2,
+        "median_abs_log10_error": pytest.approx(0.85),
+        "coverage_68": 0.5,
+        "coverage_95": 0.5,
+    }
     assert "samples" not in magnitude_metrics(mean, sd, y, status, magnitude, class_samples=False)["by_class"]["flow"]
     assert magnitude_metrics(mean, sd, y, np.ones(6, np.int64), magnitude) == {"samples": 0}
 
@@ -91,14 +101,25 @@ def test_bootstrap_draws_resamples_as_bootstrap_se():
     p, s = _samples()
     rule = make_rule(0.05, 0.5)
     y, st, dr = s["y"], s["status"], s["draw"]
-    se = bootstrap_draws(lambda i: {"ece": evaluate(p[i], y[i], st[i], CLASS_NAMES, rule)["ece"]}, dr, n_boot=50,
-                         seed=4)
+    se = bootstrap_draws(
+        lambda i: {"ece": evaluate(p[i], y[i], st[i], CLASS_NAMES, rule)["ece"]}, dr, n_boot=50, seed=4
+    )
     assert se["ece"] == bootstrap_se(p, y, st, dr, CLASS_NAMES, rule, n_boot=50, seed=4)["ece"]
     assert bootstrap_draws(lambda i: {"n": float(len(i))}, np.zeros(5), n_boot=10) == {}  # one draw: none
-    b = evaluate_set(p, s, rule, magnitude=(np.zeros((len(y), 3)), np.ones((len(y), 3))), resampled_errors=True,
-                     n_boot=50, seed=4)
-    assert list(b) == ["samples", "metrics", "standard_errors", "flow_bands", "flow_bands_se", "recall_se",
-                       "coverage_curve", "magnitude", "magnitude_se"]
+    b = evaluate_set(
+        p, s, rule, magnitude=(np.zeros((len(y), 3)), np.ones((len(y), 3))), resampled_errors=True, n_boot=50, seed=4
+    )
+    assert list(b) == [
+        "samples",
+        "metrics",
+        "standard_errors",
+        "flow_bands",
+        "flow_bands_se",
+        "recall_se",
+        "coverage_curve",
+        "magnitude",
+        "magnitude_se",
+    ]
     assert set(b["recall_se"]) == {"diffusion", "ballistic", "flow"}
     assert all(math.isfinite(v) and v >= 0 for v in b["magnitude_se"].values())
 
@@ -118,9 +139,20 @@ def test_training_report_is_evaluate_set_on_each_test_set(tmp_path):
         training_report,
     )
 
-    cfg = TrainConfig(spec="two-wavelength", draws_train=9, draws_validation=6, draws_test=6, replicates=2,
-                      max_epochs=2, singles_per_group=16, pooled_per_group=4, baselines=False, magnitude=True,
-                      shifted_test=True, bulk_phase_test=True)
+    cfg = TrainConfig(
+        spec="two-wavelength",
+        draws_train=9,
+        draws_validation=6,
+        draws_test=6,
+        replicates=2,
+        max_epochs=2,
+        singles_per_group=16,
+        pooled_per_group=4,
+        baselines=False,
+        magnitude=True,
+        shifted_test=True,
+        bulk_phase_test=True,
+    )
     plan = plan_training(cfg)
     assert plan.magnitude and plan.shifted_test and plan.bulk_phase_test
     data = simulate_data(plan, cache_dir=tmp_path, log=None)
@@ -128,10 +160,16 @@ def test_training_report_is_evaluate_set_on_each_test_set(tmp_path):
     evaluation = evaluate_test_sets(plan, data, fitted, log=None)
     report = training_report(plan, data, fitted, evaluation)
     whole = train(cfg, cache_dir=tmp_path, log=None)  # the steps one after the other are train()
-    assert whole.report["test"] == report["test"] and whole.report["shifted_prior"]["test"] == report["shifted_prior"]["test"]
+    assert (
+        whole.report["test"] == report["test"]
+        and whole.report["shifted_prior"]["test"] == report["shifted_prior"]["test"]
+    )
     model = fitted.model
-    for name, ds, _key, stream in (("test", data.splits["test"], None, 9), ("bulk_phase", data.bulk_phase, "bulk_phase", 9),
-                                  ("shifted_prior", data.shifted_prior, "shifted_prior", 10)):
+    for name, ds, _key, stream in (
+        ("test", data.splits["test"], None, 9),
+        ("bulk_phase", data.bulk_phase, "bulk_phase", 9),
+        ("shifted_prior", data.shifted_prior, "shifted_prior", 10),
+    ):
         rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(stream,)))
         sets, _ = evaluation_sets(ds, cfg, plan.spec, rng)
         s = sets["1"]
@@ -154,10 +192,17 @@ def test_training_report_is_evaluate_set_on_each_test_set(tmp_path):
 def _private_classifier_imports(path: Path) -> list[str]:
     found = []
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "classifier" \
-                and node.level == 0:
-            found += [f"{path.relative_to(ROOT)}: from {node.module} import {a.name}" for a in node.names
-                      if a.name.startswith("_") and not a.name.endswith("__")]
+        if (
+            isinstance(node, ast.ImportFrom)
+            and node.module
+            and node.module.split(".")[0] == "classifier"
+            and node.level == 0
+        ):
+            found += [
+                f"{path.relative_to(ROOT)}: from {node.module} import {a.name}"
+                for a in node.names
+                if a.name.startswith("_") and not a.name.endswith("__")
+            ]
     return found
 
 

@@ -39,9 +39,11 @@ def _on_grid(k: int) -> float:
 # magnitudes on the grid (10^(k/20)): diffusion 1e-3..0.03 µm²/s, ballistic 0.01..0.1 µm/s (both laws),
 # flow 0.3..3 µm/s at 60°, 90° (transverse) and 107° (upwards, cos θ = −0.3)
 _UP = 180.0 - math.degrees(math.acos(0.3))
-CASES = [("diffusion", _on_grid(k), 60.0, "isotropic") for k in (-60, -50, -40, -30)] + \
-        [("ballistic", _on_grid(k), 60.0, law) for k in (-40, -30, -20) for law in ("isotropic", "uniform-angles")] + \
-        [("flow", _on_grid(k), th, "isotropic") for k in (-10, 0, 10) for th in (60.0, 90.0, _UP)]
+CASES = (
+    [("diffusion", _on_grid(k), 60.0, "isotropic") for k in (-60, -50, -40, -30)]
+    + [("ballistic", _on_grid(k), 60.0, law) for k in (-40, -30, -20) for law in ("isotropic", "uniform-angles")]
+    + [("flow", _on_grid(k), th, "isotropic") for k in (-10, 0, 10) for th in (60.0, 90.0, _UP)]
+)
 
 
 def test_noise_free_curves_are_classified_and_sized():
@@ -95,7 +97,7 @@ def test_batched_equals_per_pixel(monkeypatch):
     monkeypatch.setattr(g1fit, "_CHUNK", 5)  # several chunks, one of them partial
     whole = fit_g1(y, **KW)
     for i in range(len(y)):
-        one = fit_g1(y[i:i + 1], **KW)
+        one = fit_g1(y[i : i + 1], **KW)
         for field in ("label", "reason", "model", "magnitude", "magnitude_by_model", "polar_angle_deg"):
             np.testing.assert_array_equal(getattr(one, field)[0], getattr(whole, field)[i], err_msg=field)
         # the Doppler phase step comes from a float32 search (g1fit._phase_search), whose BLAS products may
@@ -103,15 +105,17 @@ def test_batched_equals_per_pixel(monkeypatch):
         # round-off of the criterion (measured 3e-7 rad; bound 1e-5 rad, 1e-4 of a phase-grid step), and the
         # flow model's amplitudes and RSS, which use that step, agree to ~1e-6 relative
         for field in ("static", "moving", "rss"):
-            np.testing.assert_allclose(getattr(one, field)[0], getattr(whole, field)[i], rtol=1e-6, atol=1e-9,
-                                       err_msg=field)
+            np.testing.assert_allclose(
+                getattr(one, field)[0], getattr(whole, field)[i], rtol=1e-6, atol=1e-9, err_msg=field
+            )
         np.testing.assert_allclose(one.phase_step_rad[0], whole.phase_step_rad[i], rtol=0, atol=1e-5)
 
 
 def test_undefined_and_indeterminate_pixels():
     good = 0.2 + 0.7 * _curve("flow", 1.0)
-    y = np.stack([good, good, good, np.zeros_like(good), np.full_like(good, 0.9),
-                  0.3 + 0.6 * _curve("diffusion", 30.0), good])
+    y = np.stack(
+        [good, good, good, np.zeros_like(good), np.full_like(good, 0.9), 0.3 + 0.6 * _curve("diffusion", 30.0), good]
+    )
     y[0, 1, 3] = np.nan
     y[1, 0, 0] = complex(np.inf, 0.0)
     y[2, 2, 9] = complex(0.0, np.nan)
@@ -145,7 +149,7 @@ def test_superset_spec_columns_and_complex_curve():
 
     spec = load_spec("signature")
     sup = superset_spec(spec, (1, 2, 5))
-    assert sup.configurations == spec.configurations and sup.metrics[:len(spec.metrics)] == spec.metrics
+    assert sup.configurations == spec.configurations and sup.metrics[: len(spec.metrics)] == spec.metrics
     mag, ph = g1_columns(sup.feature_names, sup, (1, 2, 5))
     x = np.zeros((1, sup.n_features), np.float32)
     x[0, mag] = np.arange(9) + 1
@@ -183,8 +187,11 @@ def test_bootstrap_fast_path_matches_the_report_definitions():
     rng = np.random.default_rng(5)
     n = 3000
     pred = rng.integers(0, 4, n)
-    s = {"y": rng.integers(0, 3, n), "status": rng.choice(3, n, p=[0.6, 0.2, 0.2]),
-         "magnitude": 10 ** rng.uniform(-3, 1, n)}
+    s = {
+        "y": rng.integers(0, 3, n),
+        "status": rng.choice(3, n, p=[0.6, 0.2, 0.2]),
+        "magnitude": 10 ** rng.uniform(-3, 1, n),
+    }
     est = np.log10(s["magnitude"])[:, None] + rng.normal(0, 0.2, (n, 3))
     fast = _headline(pred, s["y"], s["status"], _abs_log10_error(est, s))
     full = evaluate(np.eye(4)[pred], s["y"], s["status"], CLASS_NAMES, make_rule(0.05))

@@ -35,8 +35,14 @@ def test_speed_levels_are_identifiable_at_every_grid_direction(levels):
         for v in vals:
             for polar in grid.POLAR_DEG:
                 for az in grid.AZIMUTH_DEG:
-                    d = Draw(label=label, magnitude=v, polar_angle_deg=polar, azimuth_deg=az,
-                             density_per_um3=min(prior.density_per_um3), sim_seed=0)
+                    d = Draw(
+                        label=label,
+                        magnitude=v,
+                        polar_angle_deg=polar,
+                        azimuth_deg=az,
+                        density_per_um3=min(prior.density_per_um3),
+                        sim_seed=0,
+                    )
                     assert identifiability(spec, d, prior)[0] == "identifiable", (name, v, polar, az)
 
 
@@ -61,8 +67,15 @@ def test_cell_phantoms_have_three_labelled_bands_and_the_context(levels):
 
 def test_scores_are_exact_on_known_label_maps():
     """Truth: three bands; decisions: right, another class, a set with or without the truth, indeterminate."""
-    names = ["diffusion", "ballistic", "flow", "indeterminate", "diffusion-or-ballistic", "diffusion-or-flow",
-             "ballistic-or-flow"]
+    names = [
+        "diffusion",
+        "ballistic",
+        "flow",
+        "indeterminate",
+        "diffusion-or-ballistic",
+        "diffusion-or-flow",
+        "ballistic-or-flow",
+    ]
     truth = np.zeros((4, 30), np.int64)
     truth[:, 0:10], truth[:, 10:20], truth[:, 20:30] = 2, 3, 4
     got = np.zeros_like(truth, dtype=np.uint8)
@@ -84,7 +97,10 @@ def test_scores_are_exact_on_known_label_maps():
 
 
 def test_grid_results_files_are_self_describing(tmp_path, levels):
-    cells = [GridCell("bscan", "none", grid.SNR_DB, "mid", 80.0, 90.0), GridCell("bscan", "background", None, "slow", 10.0, 0.0)]
+    cells = [
+        GridCell("bscan", "none", grid.SNR_DB, "mid", 80.0, 90.0),
+        GridCell("bscan", "background", None, "slow", 10.0, 0.0),
+    ]
     res = grid.run_grid(cells, pools=(1, 5), threads=1, progress=False, levels={"bscan": levels})
     files = grid.write_grid(res, tmp_path)
     assert [p.name for p in files] == list(grid.OUTPUTS)

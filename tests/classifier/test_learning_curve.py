@@ -39,7 +39,7 @@ def test_prefix_of_a_split_is_the_smaller_split(tmp_path):
         np.testing.assert_array_equal(getattr(pre, k), v, err_msg=k)
     np.testing.assert_array_equal(pre.x_ref, small.x_ref)
     np.testing.assert_array_equal(pre.x, big.x[: len(pre)])
-    assert set(np.unique(big.draw[len(pre):])) == {3, 4, 5}
+    assert set(np.unique(big.draw[len(pre) :])) == {3, 4, 5}
 
 
 def test_refuses_existing_outputs_before_any_work(tmp_path, capsys):
@@ -108,9 +108,15 @@ def test_second_run_refuses_to_overwrite(tiny_run, capsys):
     assert {s: out.with_suffix(s).read_bytes() for s in before} == before
 
 
-@pytest.mark.parametrize("args, words", [(["--sizes", "6,3"], "increase"), (["--sizes", "2,6"], ">= 3"),
-                                         (["--sizes", "3,6", "--draws-max", "4"], "--draws-max"),
-                                         (["--gb-pixels", "-1"], "--gb-pixels")])
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--sizes", "6,3"], "increase"),
+        (["--sizes", "2,6"], ">= 3"),
+        (["--sizes", "3,6", "--draws-max", "4"], "--draws-max"),
+        (["--gb-pixels", "-1"], "--gb-pixels"),
+    ],
+)
 def test_bad_options_are_one_line_errors(tmp_path, capsys, args, words):
     assert main(["--out", str(tmp_path / "c.json"), *args]) == 2
     msg = capsys.readouterr().out.strip()

@@ -13,8 +13,9 @@ from classifier.features import load_spec
 def test_a_missing_resolution_names_the_resolution_to_add(tmp_path, capsys):
     spec = load_spec("single-acquisition-bscan")
     channels = [c for c in feature_channels(spec) if c["resolution"] != "lateral=18"]
-    path = save_maps(tmp_path / "maps.npz", np.full((len(channels), 8, 8), 0.5, np.float32),
-                     maps_meta(spec, channels, axes="CZX"))
+    path = save_maps(
+        tmp_path / "maps.npz", np.full((len(channels), 8, 8), 0.5, np.float32), maps_meta(spec, channels, axes="CZX")
+    )
     out = tmp_path / "out"
     assert classify_main([str(path), "--out", str(out), "--threads", "1", "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -29,10 +29,21 @@ def _edited(tmp_path, name, change):
     return path
 
 
-@pytest.mark.parametrize("name, change, words", [
-    ("width.onnx", lambda m: m["input"].update(columns=m["input"]["columns"][1:]), ("'features'", "6 input columns")),
-    ("classes.onnx", lambda m: m["output"].update(classes=m["output"]["classes"] + ["extra"]), ("'probabilities'",
-                                                                                                "5 columns"))])
+@pytest.mark.parametrize(
+    "name, change, words",
+    [
+        (
+            "width.onnx",
+            lambda m: m["input"].update(columns=m["input"]["columns"][1:]),
+            ("'features'", "6 input columns"),
+        ),
+        (
+            "classes.onnx",
+            lambda m: m["output"].update(classes=m["output"]["classes"] + ["extra"]),
+            ("'probabilities'", "5 columns"),
+        ),
+    ],
+)
 def test_model_whose_network_differs_from_its_metadata_is_refused(tmp_path, capsys, name, change, words):
     from classifier.runtime import load_model
 
@@ -46,8 +57,14 @@ def test_model_whose_network_differs_from_its_metadata_is_refused(tmp_path, caps
     spec = load_spec("single-acquisition-bscan")
     data = np.full((spec.n_features + 1, 4, 5), 5.0, np.float32)
     maps = save_maps(tmp_path / "maps.npz", data, maps_meta(spec, feature_channels(spec)))
-    refused(capsys, tmp_path, [str(maps), "--model", str(path), "--out", str(tmp_path / "o")], name, *words,
-            run=classify_main)
+    refused(
+        capsys,
+        tmp_path,
+        [str(maps), "--model", str(path), "--out", str(tmp_path / "o")],
+        name,
+        *words,
+        run=classify_main,
+    )
 
 
 def test_shipped_models_match_their_metadata():

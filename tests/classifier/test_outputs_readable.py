@@ -28,10 +28,22 @@ PITCH = {"z": 2.0, "x": 1.5}
 def _sequence(path: Path, shape: tuple[int, ...], axes: str, pitch: dict) -> Path:
     rng = np.random.default_rng(1)
     np.save(path, (rng.standard_normal(shape) + 1j * rng.standard_normal(shape)).astype(np.complex64))
-    path.with_suffix(".json").write_text(json.dumps({
-        "axes": axes, "pitch_um": pitch, "frame_times_s": [0.2048 * i for i in range(shape[0])],
-        "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
-                   "refractive_index": 1.0}}))
+    path.with_suffix(".json").write_text(
+        json.dumps(
+            {
+                "axes": axes,
+                "pitch_um": pitch,
+                "frame_times_s": [0.2048 * i for i in range(shape[0])],
+                "system": {
+                    "name": "s",
+                    "wavelength_um": 0.84,
+                    "lateral_resolution_um": 4.9,
+                    "axial_resolution_um": 3.8,
+                    "refractive_index": 1.0,
+                },
+            }
+        )
+    )
     return path
 
 
@@ -41,8 +53,22 @@ def maps(tmp_path_factory):
     d = tmp_path_factory.mktemp("maps")
     seq = _sequence(d / "seq.npy", (32, 20, 24), "TZX", PITCH)
     res = ["--resolution", "original", "--resolution", "axial=14", "--resolution", "lateral=18"]
-    assert torchdoct_main(["maps", str(seq), *res, "--signature", "--no-progress", "--out", str(d / "sig.npz"),
-                           "--out", str(d / "sig.tif")]) == 0
+    assert (
+        torchdoct_main(
+            [
+                "maps",
+                str(seq),
+                *res,
+                "--signature",
+                "--no-progress",
+                "--out",
+                str(d / "sig.npz"),
+                "--out",
+                str(d / "sig.tif"),
+            ]
+        )
+        == 0
+    )
     assert torchdoct_main(["maps", str(seq), *res, "--no-progress", "--out", str(d / "plain.npz")]) == 0
     return d
 
@@ -107,10 +133,19 @@ def test_overlay_pixels_of_masked_and_indeterminate_differ(tmp_path):
         rule = {}
 
     labels = np.array([[3, MASKED], [0, 1]], np.uint8)
-    res = Classification(labels=labels, probabilities=np.zeros((4, 2, 2), np.float32),
-                         classes=["diffusion", "ballistic", "flow", "indeterminate"], mask=labels != MASKED,
-                         background=labels == MASKED, intensity_db=np.full((2, 2), 10.0), model=_Model(),
-                         sources=["x"], axes="ZX", pitch_um={"z": 1.0, "x": 1.0}, info={"pool": 1})
+    res = Classification(
+        labels=labels,
+        probabilities=np.zeros((4, 2, 2), np.float32),
+        classes=["diffusion", "ballistic", "flow", "indeterminate"],
+        mask=labels != MASKED,
+        background=labels == MASKED,
+        intensity_db=np.full((2, 2), 10.0),
+        model=_Model(),
+        sources=["x"],
+        axes="ZX",
+        pitch_um={"z": 1.0, "x": 1.0},
+        info={"pool": 1},
+    )
     seen = {}
     real = Figure.savefig
 
@@ -137,8 +172,21 @@ def test_magnitude_picture_with_units_and_force_removes_it(maps, tmp_path, figur
     assert "D (µm²/s)" in labels and "speed (µm/s)" in labels
     assert "signature-bscan" in fig._suptitle.get_text()
     # another model without a magnitude head, --force: the earlier run's magnitude files go with the set
-    assert classify_main([str(maps / "sig.npz"), "--model", "single-acquisition-bscan", "--out", str(out),
-                          "--force", "--threads", "1"]) == 0
+    assert (
+        classify_main(
+            [
+                str(maps / "sig.npz"),
+                "--model",
+                "single-acquisition-bscan",
+                "--out",
+                str(out),
+                "--force",
+                "--threads",
+                "1",
+            ]
+        )
+        == 0
+    )
     assert not (out / "magnitude.png").exists() and not (out / "magnitude.tif").exists()
 
 
@@ -147,9 +195,11 @@ def test_classify_tiffs_carry_imagej_scale_and_channel_names(maps, tmp_path, cap
 
     out = tmp_path / "out"
     assert classify_main([str(maps / "sig.npz"), "--out", str(out), "--threads", "1"]) == 0
-    expect = {"probabilities.tif": ["diffusion", "ballistic", "flow", "indeterminate"],
-              "magnitude.tif": ["log10_magnitude", "lower_68", "upper_68", "lower_95", "upper_95"],
-              "classes.tif": "class"}
+    expect = {
+        "probabilities.tif": ["diffusion", "ballistic", "flow", "indeterminate"],
+        "magnitude.tif": ["log10_magnitude", "lower_68", "upper_68", "lower_95", "upper_95"],
+        "classes.tif": "class",
+    }
     for name, labels in expect.items():
         with tifffile.TiffFile(out / name) as tf:
             ij = tf.imagej_metadata
@@ -158,7 +208,8 @@ def test_classify_tiffs_carry_imagej_scale_and_channel_names(maps, tmp_path, cap
             page = tf.pages[0]
             x_res, y_res = page.tags["XResolution"].value, page.tags["YResolution"].value
             assert x_res[0] / x_res[1] == pytest.approx(1 / PITCH["x"]) and y_res[0] / y_res[1] == pytest.approx(
-                1 / PITCH["z"])
+                1 / PITCH["z"]
+            )
             descriptions = [t for t in page.tags.values() if t.code == 270]
             assert len(descriptions) == 1 and page.description.startswith("ImageJ="), "one description, ImageJ's"
             assert json.loads(ij["Info"])["source"], "the project's JSON is ImageJ's Info"
@@ -167,16 +218,21 @@ def test_classify_tiffs_carry_imagej_scale_and_channel_names(maps, tmp_path, cap
                 assert tf.series[0].shape == (len(labels), 20, 24)
 
 
-@pytest.mark.parametrize("shape, axes, pitch", [((32, 20, 24), "TZX", PITCH),
-                                                ((32, 3, 10, 12), "TYZX", {"z": 2.0, "x": 1.5, "y": 4.0})])
+@pytest.mark.parametrize(
+    "shape, axes, pitch", [((32, 20, 24), "TZX", PITCH), ((32, 3, 10, 12), "TYZX", {"z": 2.0, "x": 1.5, "y": 4.0})]
+)
 def test_maps_tiff_carries_imagej_scale_and_reads_back(tmp_path, capsys, shape, axes, pitch):
     import tifffile
 
     from torchdoct.measured.io import read_maps
 
     seq = _sequence(tmp_path / "seq.npy", shape, axes, pitch)
-    assert torchdoct_main(["maps", str(seq), "--no-progress", "--out", str(tmp_path / "m.tif"),
-                           "--out", str(tmp_path / "m.npz")]) == 0
+    assert (
+        torchdoct_main(
+            ["maps", str(seq), "--no-progress", "--out", str(tmp_path / "m.tif"), "--out", str(tmp_path / "m.npz")]
+        )
+        == 0
+    )
     with tifffile.TiffFile(tmp_path / "m.tif") as tf:
         ij = tf.imagej_metadata
         page = tf.pages[0]
@@ -196,5 +252,11 @@ def test_maps_tiff_carries_imagej_scale_and_reads_back(tmp_path, capsys, shape, 
 
 
 def test_signature_model_on_maps_without_signature_names_the_option(maps, tmp_path, capsys):
-    refused(capsys, tmp_path, [str(maps / "plain.npz"), "--model", "signature-bscan", "--out", str(tmp_path / "o")],
-            "plain.npz", "--signature", run=classify_main)
+    refused(
+        capsys,
+        tmp_path,
+        [str(maps / "plain.npz"), "--model", "signature-bscan", "--out", str(tmp_path / "o")],
+        "plain.npz",
+        "--signature",
+        run=classify_main,
+    )

@@ -40,5 +40,6 @@ def test_doct_train_quick_reproduces_the_recorded_run(tmp_path):
         assert abs(test[key] - rec["test"]["network"]["1"][key]) <= 2 * se[key], (key, test[key], se[key])
     # deterministic on this machine: a second run from an empty cache writes the same model, byte for byte
     assert train_main(["--quick", "--no-cache", "--no-progress", "--out", str(tmp_path / "second")]) == 0
-    assert ((tmp_path / "first" / "single-acquisition.onnx").read_bytes()
-            == (tmp_path / "second" / "single-acquisition.onnx").read_bytes())
+    assert (tmp_path / "first" / "single-acquisition.onnx").read_bytes() == (
+        tmp_path / "second" / "single-acquisition.onnx"
+    ).read_bytes()

@@ -99,8 +99,23 @@ try:  # run as `python -m tests.reference.ceiling`
 except ImportError:  # imported by the tests (tests/reference on sys.path)
     import evaluate_models as em
 
-__all__ = ["PARTS", "SHIPPED", "COVERAGES", "POOLS", "TRAIN_POOLED_PER_DRAW", "FeatureCache", "load_set",
-           "pool_samples", "subset", "fit_gb", "coverage_threshold", "score", "part_columns", "run", "main"]
+__all__ = [
+    "PARTS",
+    "SHIPPED",
+    "COVERAGES",
+    "POOLS",
+    "TRAIN_POOLED_PER_DRAW",
+    "FeatureCache",
+    "load_set",
+    "pool_samples",
+    "subset",
+    "fit_gb",
+    "coverage_threshold",
+    "score",
+    "part_columns",
+    "run",
+    "main",
+]
 
 #: part -> (spec, training-data simulator, feature columns: "all" or "intensity").
 #: Speed range (µm/s) shared by random-ballistic motion and flow in the ``"shared"`` training prior.
@@ -127,33 +142,44 @@ PARTS: dict[str, tuple[str, str, str, str]] = {
     "f-int": ("signature-bscan-field", "torchdoct", "intensity", "recipe"),
 }
 #: The shipped model each part is compared with (scored on the same test pixels).
-SHIPPED = {"a": "signature", "b": "signature-bscan-field", "b-int": "signature-bscan", "c": "signature",
-           "a-shared": "signature", "b-shared": "signature-bscan-field", "d": "signature", "e": "signature",
-           "e-noise": "signature", "e-nostatic": "signature", "e-nostatic-noise": "signature",
-           "f": "signature-bscan-field", "f-int": "signature-bscan"}
+SHIPPED = {
+    "a": "signature",
+    "b": "signature-bscan-field",
+    "b-int": "signature-bscan",
+    "c": "signature",
+    "a-shared": "signature",
+    "b-shared": "signature-bscan-field",
+    "d": "signature",
+    "e": "signature",
+    "e-noise": "signature",
+    "e-nostatic": "signature",
+    "e-nostatic-noise": "signature",
+    "f": "signature-bscan-field",
+    "f-int": "signature-bscan",
+}
 PART_TEXT = {
     "a": "signature features (volume), trained on reference-simulator draws of the independent prior",
     "b": "signature-bscan-field features (B-scan, intensity + field group g1, phase-stable), reference-simulator "
-         "draws of the independent prior",
+    "draws of the independent prior",
     "b-int": "the intensity columns of b alone (the signature-bscan features), same data",
     "c": "signature features (volume), trained on torchdoct (taper) draws of the independent prior, tested on the "
-         "reference simulator",
+    "reference simulator",
     "a-shared": "part a with one speed range 0.01-3 µm/s for random-ballistic motion and flow in training (the "
-                "prior's per-type speed ranges no longer help)",
+    "prior's per-type speed ranges no longer help)",
     "b-shared": "part b with one speed range 0.01-3 µm/s for random-ballistic motion and flow in training",
     "d": "part c's classifier trained on torchdoct draws of the shipped signature recipe's training prior "
-         "(classifier.prior.Prior, flow polar angle uniform; make_dataset, one nuisance replicate per draw)",
+    "(classifier.prior.Prior, flow polar angle uniform; make_dataset, one nuisance replicate per draw)",
     "e": "part d with the training prior scaled to the system (classifier.own_system.prior_for_spec of d's prior: "
-         "each motion type's identifiable range ± half a decade, speeds capped at what the simulator holds)",
+    "each motion type's identifiable range ± half a decade, speeds capped at what the simulator holds)",
     "e-noise": "part e with detection noise in every training draw (SNR U[10, 40] dB; e: in half of them)",
     "e-nostatic": "part e without static scatterers in any training draw (e: a static fraction U[0, 0.8] in half "
-                  "of them); the independent prior has none: what the static nuisance of training costs there",
+    "of them); the independent prior has none: what the static nuisance of training costs there",
     "e-nostatic-noise": "part e with both changes: noise in every draw and no static scatterers",
     "f": "signature-bscan-field features (B-scan, intensity + field group g1), trained on torchdoct draws of the "
-         "shipped signature-bscan-field recipe's own training prior (classifier.recipe.default_prior: scaled to the "
-         "system, noise in every draw, a residual bulk phase step U[0, 0.05] rad; one nuisance replicate per draw)",
+    "shipped signature-bscan-field recipe's own training prior (classifier.recipe.default_prior: scaled to the "
+    "system, noise in every draw, a residual bulk phase step U[0, 0.05] rad; one nuisance replicate per draw)",
     "f-int": "the intensity columns of f alone (signature-bscan's features; the residual bulk phase does not touch "
-             "them), same data",
+    "them), same data",
 }
 #: Training priors of parts d and e, in the form of the models' own training data
 #: (:class:`classifier.prior.Prior`, simulated by :func:`classifier.dataset.make_dataset`): ``"training"``
@@ -171,8 +197,16 @@ N_BOOT = 200
 #: Classifier inputs: the raw features, or with :func:`derived_features` (the ceiling is the better one).
 VARIANTS = ("raw", "derived")
 VARIANT_TEXT = {"raw": "GB", "derived": "GB + contrasts"}
-GB_PARAMS = {"max_iter": 400, "learning_rate": 0.1, "max_leaf_nodes": 31, "min_samples_leaf": 40,
-             "l2_regularization": 1.0, "early_stopping": True, "validation_fraction": 0.15, "n_iter_no_change": 20}
+GB_PARAMS = {
+    "max_iter": 400,
+    "learning_rate": 0.1,
+    "max_leaf_nodes": 31,
+    "min_samples_leaf": 40,
+    "l2_regularization": 1.0,
+    "early_stopping": True,
+    "validation_fraction": 0.15,
+    "n_iter_no_change": 20,
+}
 _CLASSES = ("diffusion", "ballistic", "flow")
 _CLASS_NAMES = (*_CLASSES, "indeterminate")
 EXIT_INCOMPLETE = 3
@@ -201,8 +235,14 @@ def simulate_features(spec, d: em.IndependentDraw, trials: int, source: str, eps
     from classifier.simulation import simulate_draw
 
     tol, mode = _truncation(spec.name)
-    x, zero = simulate_draw(spec, em.dataset_draw(d), em.independent_prior(epsilon), trials=trials,
-                            truncation_tolerance=tol, truncation=mode)[:2]
+    x, zero = simulate_draw(
+        spec,
+        em.dataset_draw(d),
+        em.independent_prior(epsilon),
+        trials=trials,
+        truncation_tolerance=tol,
+        truncation=mode,
+    )[:2]
     x = x[0].astype(np.float32)
     x[zero[0]] = np.nan
     return x
@@ -230,8 +270,9 @@ class FeatureCache:
     """Per-draw feature files ``<root>/<source>-<spec>[-<prior>]-seed<S>-trials<T>/k<k>.npy`` (atomic
     writes; the prior named unless ``"matched"``)."""
 
-    def __init__(self, root: str | os.PathLike, spec, source: str, seed: int, trials: int, epsilon: float,
-                 prior: str = "matched"):
+    def __init__(
+        self, root: str | os.PathLike, spec, source: str, seed: int, trials: int, epsilon: float, prior: str = "matched"
+    ):
         if prior not in TRAIN_PRIORS:
             raise ValueError(f"unknown training prior {prior!r}; choose among {list(TRAIN_PRIORS)}")
         self.spec, self.source, self.seed, self.trials, self.epsilon = spec, source, int(seed), int(trials), epsilon
@@ -264,8 +305,7 @@ class FeatureCache:
         try:
             for k in todo:
                 t = time.process_time()
-                x = simulate_features(self.spec, self.draw(k), self.trials, self.source,
-                                      self.epsilon)
+                x = simulate_features(self.spec, self.draw(k), self.trials, self.source, self.epsilon)
                 tmp = self.dir / f".k{k:05d}.tmp.npy"
                 np.save(tmp, x.astype(np.float32))
                 os.replace(tmp, self.path(k))
@@ -296,8 +336,10 @@ class FeatureCache:
     def load(self, k: int) -> np.ndarray:
         x = np.load(self.path(k), allow_pickle=False)
         if x.ndim != 2 or x.shape != (self.trials, self.spec.n_features):
-            raise ValueError(f"{self.path(k)}: features of shape {x.shape}, expected "
-                             f"({self.trials}, {self.spec.n_features}); delete it to simulate it again")
+            raise ValueError(
+                f"{self.path(k)}: features of shape {x.shape}, expected "
+                f"({self.trials}, {self.spec.n_features}); delete it to simulate it again"
+            )
         return x
 
 
@@ -324,9 +366,18 @@ def load_set(cache: FeatureCache, draws: int, *, features: np.ndarray | None = N
         cols["snr_db"].append(np.full(n, d.snr_db))
         cols["polar_angle_deg"].append(np.full(n, d.polar_angle_deg if d.label == 2 else math.nan))
     a = {k: np.concatenate(v) for k, v in cols.items()}
-    return Dataset(x=a["x"].reshape(-1, cache.spec.n_features), y=a["y"], draw=a["draw"], group=a["draw"],
-                   status=a["status"], magnitude=a["magnitude"], density=np.full(a["y"].shape, em.DENSITY),
-                   static_fraction=np.zeros(a["y"].shape), snr_db=a["snr_db"], polar_angle_deg=a["polar_angle_deg"])
+    return Dataset(
+        x=a["x"].reshape(-1, cache.spec.n_features),
+        y=a["y"],
+        draw=a["draw"],
+        group=a["draw"],
+        status=a["status"],
+        magnitude=a["magnitude"],
+        density=np.full(a["y"].shape, em.DENSITY),
+        static_fraction=np.zeros(a["y"].shape),
+        snr_db=a["snr_db"],
+        polar_angle_deg=a["polar_angle_deg"],
+    )
 
 
 def dataset_prior(name: str, spec, epsilon: float):
@@ -348,7 +399,9 @@ def dataset_prior(name: str, spec, epsilon: float):
         from classifier.recipe import default_prior
         from classifier.train import TrainConfig
 
-        return dataclasses.replace(default_prior(TrainConfig.for_spec(spec.name)), identifiability_epsilon=float(epsilon))
+        return dataclasses.replace(
+            default_prior(TrainConfig.for_spec(spec.name)), identifiability_epsilon=float(epsilon)
+        )
     prior = Prior(flow_polar_law="uniform-angle", identifiability_epsilon=float(epsilon))
     if name.startswith("scaled"):
         prior = prior_for_spec(spec, prior)[0]
@@ -359,8 +412,18 @@ def dataset_prior(name: str, spec, epsilon: float):
     return dataclasses.replace(prior, identifiability_epsilon=float(epsilon))
 
 
-def dataset_set(out: Path, spec, name: str, seed: int, draws: int, trials: int, epsilon: float, *,
-                simulate: bool = True, progress: bool = False):
+def dataset_set(
+    out: Path,
+    spec,
+    name: str,
+    seed: int,
+    draws: int,
+    trials: int,
+    epsilon: float,
+    *,
+    simulate: bool = True,
+    progress: bool = False,
+):
     """The training split of parts d and e: :func:`classifier.dataset.make_dataset` of
     :func:`dataset_prior` ``name`` (split ``"train"`` of ``seed``, ``draws`` draws, ``trials`` trials, one
     replicate, the shipped recipe's truncation), cached under ``<out>/cache/make_dataset`` (any
@@ -374,8 +437,19 @@ def dataset_set(out: Path, spec, name: str, seed: int, draws: int, trials: int, 
         key, _ = dataset_key(spec, prior, seed, "train", draws, trials, 1, tol, False, mode)
         if not (cdir / f"{spec.name}-train-{key[:16]}.npz").exists():
             return None
-    return make_dataset(spec, prior, seed=int(seed), split="train", draws=int(draws), trials_per_draw=int(trials),
-                        replicates=1, truncation_tolerance=tol, truncation=mode, cache_dir=cdir, progress=progress)
+    return make_dataset(
+        spec,
+        prior,
+        seed=int(seed),
+        split="train",
+        draws=int(draws),
+        trials_per_draw=int(trials),
+        replicates=1,
+        truncation_tolerance=tol,
+        truncation=mode,
+        cache_dir=cdir,
+        progress=progress,
+    )
 
 
 def subset(ds, index: np.ndarray):
@@ -392,8 +466,14 @@ def pool_samples(ds, pool: int, seed: int, per_draw: int = em.POOLED_PER_DRAW) -
     from classifier.train import pooled_samples
 
     if pool == 1:
-        return {"x": ds.x, "y": ds.y, "status": ds.status, "draw": ds.draw, "magnitude": ds.magnitude,
-                "polar_angle_deg": ds.polar_angle_deg}
+        return {
+            "x": ds.x,
+            "y": ds.y,
+            "status": ds.status,
+            "draw": ds.draw,
+            "magnitude": ds.magnitude,
+            "polar_angle_deg": ds.polar_angle_deg,
+        }
     rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(1, int(pool))))
     s = pooled_samples(ds, [np.full(per_draw, pool) for _ in np.unique(ds.group)], rng)
     s["x"] = s["x"][:, :-1] if s["x"].shape[1] == ds.x.shape[1] + 1 else s["x"]
@@ -498,8 +578,9 @@ def coverage_threshold(probabilities: np.ndarray, status: np.ndarray, q: float) 
     return float(conf[n - 1])
 
 
-def score(probabilities: np.ndarray, s: dict[str, np.ndarray], *, threshold: float, n_boot: int = N_BOOT,
-          seed: int = 0) -> dict[str, Any]:
+def score(
+    probabilities: np.ndarray, s: dict[str, np.ndarray], *, threshold: float, n_boot: int = N_BOOT, seed: int = 0
+) -> dict[str, Any]:
     """Metrics of the decisions ``max p ≥ threshold`` (the module docstring) with bootstrap SEs."""
     from classifier.report import evaluate, flow_recall_by_band
     from classifier.rule import make_rule
@@ -511,19 +592,25 @@ def score(probabilities: np.ndarray, s: dict[str, np.ndarray], *, threshold: flo
         return evaluate(probabilities[i], y[i], st[i], _CLASS_NAMES, rule)
 
     def fb(i):
-        return flow_recall_by_band(probabilities[i], y[i], st[i], s["polar_angle_deg"][i], s["magnitude"][i],
-                                   _CLASS_NAMES, rule)
+        return flow_recall_by_band(
+            probabilities[i], y[i], st[i], s["polar_angle_deg"][i], s["magnitude"][i], _CLASS_NAMES, rule
+        )
 
     allx = np.arange(len(y))
     m, b = ev(allx), fb(allx)
-    out = {"min_probability": float(threshold), "coverage": m["coverage_identifiable"],
-           "balanced_accuracy": m["balanced_accuracy_identifiable"], "accuracy": m["accuracy_identifiable"],
-           "recall": m["recall_identifiable"],
-           "flow_polar_bands": {k: v["recall"] for k, v in b["polar_bands"].items()},
-           "flow_polar_bands_coverage": {k: v["coverage"] for k, v in b["polar_bands"].items()},
-           "flow_polar_bands_as": {k: v["as"] for k, v in b["polar_bands"].items()},
-           "flow_speed_decades": {k: v["recall"] for k, v in b["speed_decades"].items()}}
+    out = {
+        "min_probability": float(threshold),
+        "coverage": m["coverage_identifiable"],
+        "balanced_accuracy": m["balanced_accuracy_identifiable"],
+        "accuracy": m["accuracy_identifiable"],
+        "recall": m["recall_identifiable"],
+        "flow_polar_bands": {k: v["recall"] for k, v in b["polar_bands"].items()},
+        "flow_polar_bands_coverage": {k: v["coverage"] for k, v in b["polar_bands"].items()},
+        "flow_polar_bands_as": {k: v["as"] for k, v in b["polar_bands"].items()},
+        "flow_speed_decades": {k: v["recall"] for k, v in b["speed_decades"].items()},
+    }
     if n_boot >= 2:
+
         def scalars(i):
             mm, bb = ev(i), fb(i)
             d = {"coverage": mm["coverage_identifiable"], "balanced_accuracy": mm["balanced_accuracy_identifiable"]}
@@ -536,13 +623,19 @@ def score(probabilities: np.ndarray, s: dict[str, np.ndarray], *, threshold: flo
     return out
 
 
-def score_curve(probabilities: np.ndarray, s: dict[str, np.ndarray], *, n_boot: int, seed: int,
-                rule_threshold: float = 0.5) -> dict[str, Any]:
+def score_curve(
+    probabilities: np.ndarray, s: dict[str, np.ndarray], *, n_boot: int, seed: int, rule_threshold: float = 0.5
+) -> dict[str, Any]:
     """:func:`score` at every coverage of :data:`COVERAGES` and at the shipped rule's threshold."""
-    out = {f"coverage {q:g}": score(probabilities, s, threshold=coverage_threshold(probabilities, s["status"], q),
-                                    n_boot=n_boot, seed=seed) for q in COVERAGES}
-    out[f"min_probability {rule_threshold:g}"] = score(probabilities, s, threshold=rule_threshold, n_boot=n_boot,
-                                                       seed=seed)
+    out = {
+        f"coverage {q:g}": score(
+            probabilities, s, threshold=coverage_threshold(probabilities, s["status"], q), n_boot=n_boot, seed=seed
+        )
+        for q in COVERAGES
+    }
+    out[f"min_probability {rule_threshold:g}"] = score(
+        probabilities, s, threshold=rule_threshold, n_boot=n_boot, seed=seed
+    )
     return out
 
 
@@ -571,8 +664,17 @@ def _shipped_probs(mdl, spec, x: np.ndarray, pool: int) -> np.ndarray:
     return probs.astype(np.float64)
 
 
-def caches_for(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: int, trials: int,
-               train_seed: int, test_seed: int, epsilon: float) -> list[tuple[FeatureCache, int]]:
+def caches_for(
+    out: Path,
+    parts: Sequence[str],
+    *,
+    sizes: Sequence[int],
+    test_draws: int,
+    trials: int,
+    train_seed: int,
+    test_seed: int,
+    epsilon: float,
+) -> list[tuple[FeatureCache, int]]:
     """Every (cache, draws) the parts need, test sets first; one cache per (source, spec, seed)."""
     from classifier.features import load_spec
 
@@ -590,14 +692,33 @@ def caches_for(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_dr
     return sorted(need.values(), key=lambda cn: (cn[0].seed != test_seed, cn[0].source, cn[0].spec.name, cn[0].prior))
 
 
-def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: int, trials: int, train_seed: int,
-        test_seed: int, n_boot: int, budget_s: float | None, progress: bool) -> dict[str, Any] | None:
+def run(
+    out: Path,
+    parts: Sequence[str],
+    *,
+    sizes: Sequence[int],
+    test_draws: int,
+    trials: int,
+    train_seed: int,
+    test_seed: int,
+    n_boot: int,
+    budget_s: float | None,
+    progress: bool,
+) -> dict[str, Any] | None:
     """Simulate what is missing (within ``budget_s``); when everything is cached, fit and score every
     part and size and return the report (else None)."""
     t0 = time.perf_counter()
     epsilon = float(_shipped(SHIPPED["a"]).rule["epsilon"])
-    caches = caches_for(out, parts, sizes=sizes, test_draws=test_draws, trials=trials, train_seed=train_seed,
-                        test_seed=test_seed, epsilon=epsilon)
+    caches = caches_for(
+        out,
+        parts,
+        sizes=sizes,
+        test_draws=test_draws,
+        trials=trials,
+        train_seed=train_seed,
+        test_seed=test_seed,
+        epsilon=epsilon,
+    )
     deadline = None if budget_s is None else t0 + float(budget_s)
     for c, n in caches:
         if not c.fill(n, deadline, progress):
@@ -608,13 +729,13 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
     for p in parts:
         spec_name, _, _, prior = PARTS[p]
         if prior in DATASET_PRIORS and (spec_name, prior) not in datasets:
-            ds = dataset_set(out, load_spec(spec_name), prior, train_seed, max(sizes), trials, epsilon,
-                             simulate=False)
+            ds = dataset_set(out, load_spec(spec_name), prior, train_seed, max(sizes), trials, epsilon, simulate=False)
             if ds is None:
                 if deadline is not None and time.perf_counter() > deadline:
                     return None
-                ds = dataset_set(out, load_spec(spec_name), prior, train_seed, max(sizes), trials, epsilon,
-                                 progress=progress)
+                ds = dataset_set(
+                    out, load_spec(spec_name), prior, train_seed, max(sizes), trials, epsilon, progress=progress
+                )
             datasets[(spec_name, prior)] = ds
     sim_s = time.perf_counter() - t0
 
@@ -629,12 +750,20 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
         if prior in DATASET_PRIORS:
             train_all = datasets[(spec_name, prior)]
         else:
-            train_all = load_set(FeatureCache(out / "cache", spec, source, train_seed, trials, epsilon, prior),
-                                 max(sizes))
+            train_all = load_set(
+                FeatureCache(out / "cache", spec, source, train_seed, trials, epsilon, prior), max(sizes)
+            )
         mdl = _shipped(SHIPPED[p])
-        res: dict[str, Any] = {"spec": spec_name, "train_source": source, "features": which, "train_prior": prior,
-                               "feature_names": [spec.feature_names[i] for i in cols], "shipped": SHIPPED[p],
-                               "text": PART_TEXT[p], "pools": {}}
+        res: dict[str, Any] = {
+            "spec": spec_name,
+            "train_source": source,
+            "features": which,
+            "train_prior": prior,
+            "feature_names": [spec.feature_names[i] for i in cols],
+            "shipped": SHIPPED[p],
+            "text": PART_TEXT[p],
+            "pools": {},
+        }
         t1 = time.perf_counter()
         for pool in POOLS:
             ts = pool_samples(test, pool, test_seed)
@@ -652,10 +781,15 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
                     gb = fit_gb(design(spec, trs["x"], cols, variant == "derived"), trs["y"], seed=train_seed)
                     probs = predict_gb(gb, design(spec, ts["x"], cols, variant == "derived"))
                     r["by_size"][str(n)][variant] = {
-                        "train_draws": int(n), "train_samples": int(len(trs["y"])), "gb_iterations": int(gb.n_iter_),
+                        "train_draws": int(n),
+                        "train_samples": int(len(trs["y"])),
+                        "gb_iterations": int(gb.n_iter_),
                         "inputs": int(gb.n_features_in_),
-                        **_curve_for_size(score_curve(probs, ts, n_boot=n_boot if n == max(sizes) else 0,
-                                                      seed=test_seed), n == max(sizes))}
+                        **_curve_for_size(
+                            score_curve(probs, ts, n_boot=n_boot if n == max(sizes) else 0, seed=test_seed),
+                            n == max(sizes),
+                        ),
+                    }
                     if pool == 1 and n == max(sizes):
                         kept[(p, variant)] = (probs, ts, spec_name)
             res["pools"][str(pool)] = r
@@ -671,22 +805,48 @@ def run(out: Path, parts: Sequence[str], *, sizes: Sequence[int], test_draws: in
     import classifier
     import torchdoct
 
-    return {"versions": {"classifier": classifier.__version__, "torchdoct": torchdoct.__version__,
-                         "sklearn": sklearn.__version__},
-            "command": command_line(parts, sizes, test_draws, trials, train_seed, test_seed, n_boot),
-            "test_seed": int(test_seed), "train_seed": int(train_seed), "test_draws": int(test_draws),
-            "train_sizes": [int(n) for n in sorted(sizes)], "trials_per_draw": int(trials), "pools": list(POOLS),
-            "coverages": list(COVERAGES), "variants": list(VARIANTS), "epsilon": epsilon, "gb_params": GB_PARAMS,
-            "train_pooled_per_draw": TRAIN_POOLED_PER_DRAW, "test_pooled_per_draw": em.POOLED_PER_DRAW,
-            "n_boot": int(n_boot), "prior": em.PRIOR_TEXT, "simulation": em.SIM_TEXT,
-            "targets": em.TARGETS, "parts": results, "comparisons": comparisons,
-            "seconds": {"this_run_simulation": sim_s, "fits_and_scores": fit_s,
-                        "simulation_per_set": {**_cache_seconds(caches), **{
-                            f"make_dataset-{ds.meta['spec']['name']}-{pr}-prior-seed{train_seed}-trials{trials} "
-                            f"(wall, every core)": {
-                                "draws": int(max(sizes)), "cpu_seconds": float(ds.meta.get("elapsed_s", math.nan)),
-                                "cpu_seconds_per_draw": float(ds.meta.get("seconds_per_draw", math.nan))}
-                            for (_, pr), ds in datasets.items()}}}}
+    return {
+        "versions": {
+            "classifier": classifier.__version__,
+            "torchdoct": torchdoct.__version__,
+            "sklearn": sklearn.__version__,
+        },
+        "command": command_line(parts, sizes, test_draws, trials, train_seed, test_seed, n_boot),
+        "test_seed": int(test_seed),
+        "train_seed": int(train_seed),
+        "test_draws": int(test_draws),
+        "train_sizes": [int(n) for n in sorted(sizes)],
+        "trials_per_draw": int(trials),
+        "pools": list(POOLS),
+        "coverages": list(COVERAGES),
+        "variants": list(VARIANTS),
+        "epsilon": epsilon,
+        "gb_params": GB_PARAMS,
+        "train_pooled_per_draw": TRAIN_POOLED_PER_DRAW,
+        "test_pooled_per_draw": em.POOLED_PER_DRAW,
+        "n_boot": int(n_boot),
+        "prior": em.PRIOR_TEXT,
+        "simulation": em.SIM_TEXT,
+        "targets": em.TARGETS,
+        "parts": results,
+        "comparisons": comparisons,
+        "seconds": {
+            "this_run_simulation": sim_s,
+            "fits_and_scores": fit_s,
+            "simulation_per_set": {
+                **_cache_seconds(caches),
+                **{
+                    f"make_dataset-{ds.meta['spec']['name']}-{pr}-prior-seed{train_seed}-trials{trials} "
+                    f"(wall, every core)": {
+                        "draws": int(max(sizes)),
+                        "cpu_seconds": float(ds.meta.get("elapsed_s", math.nan)),
+                        "cpu_seconds_per_draw": float(ds.meta.get("seconds_per_draw", math.nan)),
+                    }
+                    for (_, pr), ds in datasets.items()
+                },
+            },
+        },
+    }
 
 
 #: Decisions kept in the report for the training sets other than the largest (the learning curve).
@@ -703,15 +863,20 @@ def _cache_seconds(caches) -> dict[str, dict[str, float]]:
     for c, n in caches:
         sec = c.seconds()
         v = [sec[str(k)] for k in range(n) if str(k) in sec]
-        out[c.dir.name] = {"draws": int(n), "cpu_seconds": float(sum(v)),
-                           "cpu_seconds_per_draw": float(np.mean(v)) if v else math.nan}
+        out[c.dir.name] = {
+            "draws": int(n),
+            "cpu_seconds": float(sum(v)),
+            "cpu_seconds_per_draw": float(np.mean(v)) if v else math.nan,
+        }
     return out
 
 
 def command_line(parts, sizes, test_draws, trials, train_seed, test_seed, n_boot) -> str:
-    return (f"python -m tests.reference.ceiling --out DIR --parts {','.join(parts)} --sizes "
-            f"{','.join(str(n) for n in sorted(sizes))} --test-draws {test_draws} --trials {trials} "
-            f"--train-seed {train_seed} --test-seed {test_seed} --boot {n_boot}")
+    return (
+        f"python -m tests.reference.ceiling --out DIR --parts {','.join(parts)} --sizes "
+        f"{','.join(str(n) for n in sorted(sizes))} --test-draws {test_draws} --trials {trials} "
+        f"--train-seed {train_seed} --test-seed {test_seed} --boot {n_boot}"
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -744,75 +909,119 @@ def format_markdown(rep: dict[str, Any]) -> str:
     cmd = rep["command"]
     big = str(max(rep["train_sizes"]))
     keys = [f"coverage {q:g}" for q in rep["coverages"]] + ["min_probability 0.5"]
-    L = ["# The ceiling of the signature features on independent data", "",
-         f"Test set: {rep['test_draws']} draws × {rep['trials_per_draw']} pixels of the independent prior, seed "
-         f"{rep['test_seed']} (the set of the `*-independent.md` reports), {rep['simulation']}. Training sets: the "
-         f"first {', '.join(str(n) for n in rep['train_sizes'])} draws of the same prior with seed {rep['train_seed']} "
-         f"(disjoint draws: their own parameters and simulator seeds). Prior: {rep['prior']}.", "",
-         "Classifier: HistGradientBoosting (" + ", ".join(f"{k}={v}" for k, v in rep["gb_params"].items())
-         + "; one thread), three classes, one classifier per pool (pool 25: "
-         f"{rep['train_pooled_per_draw']} means of 25 pixels per training draw; test pools as evaluate_models: "
-         f"{rep['test_pooled_per_draw']} per draw), on the raw features (**GB**) or with the cross-configuration "
-         "and cross-lag contrasts of the log decorrelation added (**GB + contrasts**, `ceiling.derived_features`). "
-         "A matched prior: an optimistic ceiling. Decisions: the top class where its probability passes the "
-         "threshold that decides the stated share of the identifiable test pixels (coverage), or 0.5 (the shipped "
-         "rule). The shipped model of each part is scored on the same test pixels at the same coverages (paired). "
-         f"± = bootstrap SE over test draws ({rep['n_boot']} resamples; the largest training set and the shipped "
-         "models).", "",
-         f"Every number below comes from one command: `{cmd}` (DIR: any directory; the simulated features are "
-         "cached there per draw and a run resumes; `--budget-seconds S` stops after S s of simulation with exit "
-         "status 3, to run it in chunks).", "",
-         "## Pool 1 at coverage 0.80 (goal: balanced accuracy ≥ 0.88 at coverage ≥ 0.80, flow recall ≥ 0.80 in "
-         "every polar band)", "",
-         "| part | model | coverage | bal. acc. | recall diffusion / ballistic / flow | flow recall 0-30° / 30-60° / "
-         "60-90° |", "|---|---|---:|---:|---|---|"]
+    L = [
+        "# The ceiling of the signature features on independent data",
+        "",
+        f"Test set: {rep['test_draws']} draws × {rep['trials_per_draw']} pixels of the independent prior, seed "
+        f"{rep['test_seed']} (the set of the `*-independent.md` reports), {rep['simulation']}. Training sets: the "
+        f"first {', '.join(str(n) for n in rep['train_sizes'])} draws of the same prior with seed {rep['train_seed']} "
+        f"(disjoint draws: their own parameters and simulator seeds). Prior: {rep['prior']}.",
+        "",
+        "Classifier: HistGradientBoosting ("
+        + ", ".join(f"{k}={v}" for k, v in rep["gb_params"].items())
+        + "; one thread), three classes, one classifier per pool (pool 25: "
+        f"{rep['train_pooled_per_draw']} means of 25 pixels per training draw; test pools as evaluate_models: "
+        f"{rep['test_pooled_per_draw']} per draw), on the raw features (**GB**) or with the cross-configuration "
+        "and cross-lag contrasts of the log decorrelation added (**GB + contrasts**, `ceiling.derived_features`). "
+        "A matched prior: an optimistic ceiling. Decisions: the top class where its probability passes the "
+        "threshold that decides the stated share of the identifiable test pixels (coverage), or 0.5 (the shipped "
+        "rule). The shipped model of each part is scored on the same test pixels at the same coverages (paired). "
+        f"± = bootstrap SE over test draws ({rep['n_boot']} resamples; the largest training set and the shipped "
+        "models).",
+        "",
+        f"Every number below comes from one command: `{cmd}` (DIR: any directory; the simulated features are "
+        "cached there per draw and a run resumes; `--budget-seconds S` stops after S s of simulation with exit "
+        "status 3, to run it in chunks).",
+        "",
+        "## Pool 1 at coverage 0.80 (goal: balanced accuracy ≥ 0.88 at coverage ≥ 0.80, flow recall ≥ 0.80 in "
+        "every polar band)",
+        "",
+        "| part | model | coverage | bal. acc. | recall diffusion / ballistic / flow | flow recall 0-30° / 30-60° / "
+        "60-90° |",
+        "|---|---|---:|---:|---|---|",
+    ]
     for p, res in rep["parts"].items():
         r1 = res["pools"]["1"]
         for v in rep["variants"]:
             L.append(_row(f"{p} | {VARIANT_TEXT[v]}, {big} draws", r1["by_size"][big][v]["coverage 0.8"]))
         L.append(_row(f"{p} | shipped `{res['shipped']}`", r1["shipped"]["coverage 0.8"]))
-    L += ["", "Parts: " + "; ".join(f"**{p}** {res['text']}" for p, res in rep["parts"].items()) + ".", "",
-          f"Reproduce: `{cmd}`.", ""]
+    L += [
+        "",
+        "Parts: " + "; ".join(f"**{p}** {res['text']}" for p, res in rep["parts"].items()) + ".",
+        "",
+        f"Reproduce: `{cmd}`.",
+        "",
+    ]
     L += findings(rep)
-    L += ["",
-          "## Against training size (pool 1; balanced accuracy at coverage 0.8 and 1.0, flow recall by polar band "
-          "at coverage 0.8)", "",
-          "| part | inputs | training draws | bal. acc. at 0.8 | bal. acc. at 1.0 | flow 0-30° / 30-60° / 60-90° |",
-          "|---|---|---:|---:|---:|---|"]
+    L += [
+        "",
+        "## Against training size (pool 1; balanced accuracy at coverage 0.8 and 1.0, flow recall by polar band "
+        "at coverage 0.8)",
+        "",
+        "| part | inputs | training draws | bal. acc. at 0.8 | bal. acc. at 1.0 | flow 0-30° / 30-60° / 60-90° |",
+        "|---|---|---:|---:|---:|---|",
+    ]
     for p, res in rep["parts"].items():
         for v in rep["variants"]:
             for n, rn in res["pools"]["1"]["by_size"].items():
                 c8, c1 = rn[v]["coverage 0.8"], rn[v]["coverage 1"]
-                L.append(f"| {p} | {VARIANT_TEXT[v]} | {n} | {_pm(c8, 'balanced_accuracy')} | "
-                         f"{_pm(c1, 'balanced_accuracy')} | "
-                         + " / ".join(_f(c8["flow_polar_bands"].get(b)) for b in ("0-30", "30-60", "60-90")) + " |")
+                L.append(
+                    f"| {p} | {VARIANT_TEXT[v]} | {n} | {_pm(c8, 'balanced_accuracy')} | "
+                    f"{_pm(c1, 'balanced_accuracy')} | "
+                    + " / ".join(_f(c8["flow_polar_bands"].get(b)) for b in ("0-30", "30-60", "60-90"))
+                    + " |"
+                )
     L += ["", f"Reproduce: `{cmd}`."]
     for p, res in rep["parts"].items():
-        L += ["", f"## Part {p}: {res['text']}", "", f"Spec `{res['spec']}`, {len(res['feature_names'])} features "
-              f"({res['features']}), training simulator {res['train_source']}, training prior {res['train_prior']}; "
-              f"compared with `{res['shipped']}`.", ""]
+        L += [
+            "",
+            f"## Part {p}: {res['text']}",
+            "",
+            f"Spec `{res['spec']}`, {len(res['feature_names'])} features "
+            f"({res['features']}), training simulator {res['train_source']}, training prior {res['train_prior']}; "
+            f"compared with `{res['shipped']}`.",
+            "",
+        ]
         for pool, r in res["pools"].items():
-            L += [f"### Pool {pool} ({r['test_samples']} test samples; classifiers trained on {big} draws)", "",
-                  "| model | decision | coverage | bal. acc. | recall diffusion / ballistic / flow | flow recall "
-                  "0-30° / 30-60° / 60-90° |", "|---|---|---:|---:|---|---|"]
+            L += [
+                f"### Pool {pool} ({r['test_samples']} test samples; classifiers trained on {big} draws)",
+                "",
+                "| model | decision | coverage | bal. acc. | recall diffusion / ballistic / flow | flow recall "
+                "0-30° / 30-60° / 60-90° |",
+                "|---|---|---:|---:|---|---|",
+            ]
             for v in rep["variants"]:
                 for key in keys:
                     L.append(_row(f"{VARIANT_TEXT[v]} | {key}", r["by_size"][big][v][key]))
             for key in keys:
                 L.append(_row(f"shipped `{res['shipped']}` | {key}", r["shipped"][key]))
-            L += ["", "Flow recall by speed decade at coverage 0.8: "
-                  + "; ".join(f"{VARIANT_TEXT[v]} {_dec(r['by_size'][big][v]['coverage 0.8'])}" for v in rep["variants"])
-                  + f"; shipped {_dec(r['shipped']['coverage 0.8'])}.", "", f"Reproduce: `{cmd}`.", ""]
+            L += [
+                "",
+                "Flow recall by speed decade at coverage 0.8: "
+                + "; ".join(f"{VARIANT_TEXT[v]} {_dec(r['by_size'][big][v]['coverage 0.8'])}" for v in rep["variants"])
+                + f"; shipped {_dec(r['shipped']['coverage 0.8'])}.",
+                "",
+                f"Reproduce: `{cmd}`.",
+                "",
+            ]
     s = rep["seconds"]
-    L += ["Cost (CPU, one core): simulation " + ", ".join(
-        f"{k} {v['draws']} draws {v['cpu_seconds']:.0f} s ({v['cpu_seconds_per_draw']:.2f} s per draw)"
-        for k, v in s["simulation_per_set"].items()) + "; fits and scores (wall) "
-        + ", ".join(f"{p} {v:.0f} s" for p, v in s["fits_and_scores"].items()) + ".", ""]
+    L += [
+        "Cost (CPU, one core): simulation "
+        + ", ".join(
+            f"{k} {v['draws']} draws {v['cpu_seconds']:.0f} s ({v['cpu_seconds_per_draw']:.2f} s per draw)"
+            for k, v in s["simulation_per_set"].items()
+        )
+        + "; fits and scores (wall) "
+        + ", ".join(f"{p} {v:.0f} s" for p, v in s["fits_and_scores"].items())
+        + ".",
+        "",
+    ]
     return "\n".join(L)
 
 
-def _best(res: dict[str, Any], size: str, variants: Sequence[str], pool: str = "1",
-          key: str = "coverage 0.8") -> tuple[str, dict[str, Any]]:
+def _best(
+    res: dict[str, Any], size: str, variants: Sequence[str], pool: str = "1", key: str = "coverage 0.8"
+) -> tuple[str, dict[str, Any]]:
     """The variant with the highest balanced accuracy at ``key`` and its scores."""
     rows = {v: res["pools"][pool]["by_size"][size][v][key] for v in variants}
     v = max(rows, key=lambda k: rows[k]["balanced_accuracy"])
@@ -831,18 +1040,27 @@ def findings(rep: dict[str, Any]) -> list[str]:
         sh = parts[p]["pools"]["1"]["shipped"]["coverage 0.8"]
         bands = r["flow_polar_bands"]
         low = min(bands.values())
-        L.append(f"- **{p}** ({VARIANT_TEXT[v]}): {_pm(r, 'balanced_accuracy')} against the goal {goal:g} "
-                 f"({'above' if r['balanced_accuracy'] >= goal else 'below'}); flow recall "
-                 + " / ".join(_f(bands[b]) for b in ("0-30", "30-60", "60-90"))
-                 + f" ({'every band' if low >= band_goal else 'not every band'} ≥ {band_goal:g}); shipped "
-                 f"`{parts[p]['shipped']}` {_pm(sh, 'balanced_accuracy')} at the same coverage: ceiling − shipped "
-                 f"= {r['balanced_accuracy'] - sh['balanced_accuracy']:+.3f}.")
-    L += ["", "Paired differences of the balanced accuracy at coverage 0.8 (same test pixels; ± paired bootstrap "
-          "SE over test draws):", ""]
+        L.append(
+            f"- **{p}** ({VARIANT_TEXT[v]}): {_pm(r, 'balanced_accuracy')} against the goal {goal:g} "
+            f"({'above' if r['balanced_accuracy'] >= goal else 'below'}); flow recall "
+            + " / ".join(_f(bands[b]) for b in ("0-30", "30-60", "60-90"))
+            + f" ({'every band' if low >= band_goal else 'not every band'} ≥ {band_goal:g}); shipped "
+            f"`{parts[p]['shipped']}` {_pm(sh, 'balanced_accuracy')} at the same coverage: ceiling − shipped "
+            f"= {r['balanced_accuracy'] - sh['balanced_accuracy']:+.3f}."
+        )
+    L += [
+        "",
+        "Paired differences of the balanced accuracy at coverage 0.8 (same test pixels; ± paired bootstrap "
+        "SE over test draws):",
+        "",
+    ]
     for c in rep.get("comparisons", []):
         se = c.get("se")
-        L.append(f"- {c['what']}: {c['x']} − {c['y']} = {c['difference']:+.3f}"
-                 + (f" ± {se:.3f}" if se is not None and math.isfinite(se) else "") + ".")
+        L.append(
+            f"- {c['what']}: {c['x']} − {c['y']} = {c['difference']:+.3f}"
+            + (f" ± {se:.3f}" if se is not None and math.isfinite(se) else "")
+            + "."
+        )
     L += ["", "Against training size (the better inputs):", ""]
     for p, res in parts.items():
         n = [str(k) for k in rep["train_sizes"]]
@@ -856,13 +1074,15 @@ def findings(rep: dict[str, Any]) -> list[str]:
 
 
 #: Paired differences reported (pool 1, coverage 0.8; each part at its better inputs): (x, y, what).
-PAIRS = (("a", "c", "simulator gap: trained on the reference simulator − trained on torchdoct (same prior, same test)"),
-         ("a", "a-shared", "what the matched prior's per-type speed ranges give (matched − shared speed range)"),
-         ("b", "b-shared", "the same on B-scans with the field group (matched − shared)"),
-         ("b", "b-int", "the field group on phase-stable B-scans (intensity + g1 − intensity alone)"),
-         ("e", "d", "training prior: scaled to the system − the shipped recipe's (same simulator, draws, classifier)"),
-         ("c", "e", "what the scaled prior leaves to the matched one (independent prior − scaled prior)"),
-         ("c", "d", "prior gap of the shipped recipe (independent prior − the shipped recipe's prior)"))
+PAIRS = (
+    ("a", "c", "simulator gap: trained on the reference simulator − trained on torchdoct (same prior, same test)"),
+    ("a", "a-shared", "what the matched prior's per-type speed ranges give (matched − shared speed range)"),
+    ("b", "b-shared", "the same on B-scans with the field group (matched − shared)"),
+    ("b", "b-int", "the field group on phase-stable B-scans (intensity + g1 − intensity alone)"),
+    ("e", "d", "training prior: scaled to the system − the shipped recipe's (same simulator, draws, classifier)"),
+    ("c", "e", "what the scaled prior leaves to the matched one (independent prior − scaled prior)"),
+    ("c", "d", "prior gap of the shipped recipe (independent prior − the shipped recipe's prior)"),
+)
 
 
 def paired_difference(a: tuple, b: tuple, n_boot: int, seed: int) -> dict[str, float]:
@@ -895,22 +1115,40 @@ def paired_comparisons(kept: dict, results: dict, *, n_boot: int, seed: int) -> 
     def better(p):
         rows = dict.fromkeys(VARIANTS, results[p]["pools"]["1"]["by_size"])
         big = max(rows["raw"], key=int)
-        return max(VARIANTS, key=lambda v: results[p]["pools"]["1"]["by_size"][big][v]["coverage 0.8"]
-                   ["balanced_accuracy"])
+        return max(
+            VARIANTS, key=lambda v: results[p]["pools"]["1"]["by_size"][big][v]["coverage 0.8"]["balanced_accuracy"]
+        )
 
     for p in results:
         v = better(p)
-        out.append({"x": f"{p} ({VARIANT_TEXT[v]})", "y": f"shipped {results[p]['shipped']}",
-                    "what": f"ceiling − shipped model, part {p}",
-                    **paired_difference(kept[(p, v)], kept[(p, "shipped")], n_boot, seed)})
+        out.append(
+            {
+                "x": f"{p} ({VARIANT_TEXT[v]})",
+                "y": f"shipped {results[p]['shipped']}",
+                "what": f"ceiling − shipped model, part {p}",
+                **paired_difference(kept[(p, v)], kept[(p, "shipped")], n_boot, seed),
+            }
+        )
     for x, y, what in PAIRS:
         if x in results and y in results:
             vx, vy = better(x), better(y)
-            out.append({"x": f"{x} ({VARIANT_TEXT[vx]})", "y": f"{y} ({VARIANT_TEXT[vy]})", "what": what,
-                        **paired_difference(kept[(x, vx)], kept[(y, vy)], n_boot, seed)})
+            out.append(
+                {
+                    "x": f"{x} ({VARIANT_TEXT[vx]})",
+                    "y": f"{y} ({VARIANT_TEXT[vy]})",
+                    "what": what,
+                    **paired_difference(kept[(x, vx)], kept[(y, vy)], n_boot, seed),
+                }
+            )
     for p in results:  # what the contrasts add
-        out.append({"x": f"{p} (GB + contrasts)", "y": f"{p} (GB)", "what": f"the contrasts, part {p}",
-                    **paired_difference(kept[(p, "derived")], kept[(p, "raw")], n_boot, seed)})
+        out.append(
+            {
+                "x": f"{p} (GB + contrasts)",
+                "y": f"{p} (GB)",
+                "what": f"the contrasts, part {p}",
+                **paired_difference(kept[(p, "derived")], kept[(p, "raw")], n_boot, seed),
+            }
+        )
     return out
 
 
@@ -921,11 +1159,15 @@ def _summary(rep: dict[str, Any]) -> str:
         for pool in ("1", "25"):
             r = res["pools"][pool]
             for who, rr in [(f"{VARIANT_TEXT[v]} {n}", r["by_size"][n][v]) for v in rep["variants"]] + [
-                    (f"shipped {res['shipped']}", r["shipped"])]:
+                (f"shipped {res['shipped']}", r["shipped"])
+            ]:
                 c = rr["coverage 0.8"]
-                lines.append(f"{p} pool {pool} {who}: bal. acc. {_f(c['balanced_accuracy'])} at {_f(c['coverage'])}; "
-                             f"flow bands " + " / ".join(_f(v) for v in c["flow_polar_bands"].values())
-                             + f"; coverage 1.0: {_f(rr['coverage 1']['balanced_accuracy'])}")
+                lines.append(
+                    f"{p} pool {pool} {who}: bal. acc. {_f(c['balanced_accuracy'])} at {_f(c['coverage'])}; "
+                    f"flow bands "
+                    + " / ".join(_f(v) for v in c["flow_polar_bands"].values())
+                    + f"; coverage 1.0: {_f(rr['coverage 1']['balanced_accuracy'])}"
+                )
     return "\n".join(lines)
 
 
@@ -971,10 +1213,12 @@ def _ints(text: str, what: str) -> list[int]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m tests.reference.ceiling",
-                                 description="Ceiling of the signature features on the independent data: gradient "
-                                             "boosting trained on draws of the independent prior. Writes "
-                                             "<out>/independent-ceiling.json and .md.")
+    ap = argparse.ArgumentParser(
+        prog="python -m tests.reference.ceiling",
+        description="Ceiling of the signature features on the independent data: gradient "
+        "boosting trained on draws of the independent prior. Writes "
+        "<out>/independent-ceiling.json and .md.",
+    )
     ap.add_argument("--out", required=True, help="output directory (also holds the feature cache, <out>/cache)")
     ap.add_argument("--parts", default=",".join(PARTS), help=f"parts among {list(PARTS)} (default all)")
     ap.add_argument("--sizes", default=",".join(str(n) for n in DEFAULT_SIZES), help="training draws (nested)")
@@ -983,8 +1227,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--train-seed", type=int, default=1)
     ap.add_argument("--test-seed", type=int, default=0)
     ap.add_argument("--boot", type=int, default=N_BOOT)
-    ap.add_argument("--budget-seconds", type=float, default=None,
-                    help="stop simulating after this many seconds (exit status 3; run again to resume)")
+    ap.add_argument(
+        "--budget-seconds",
+        type=float,
+        default=None,
+        help="stop simulating after this many seconds (exit status 3; run again to resume)",
+    )
     ap.add_argument("--force", action="store_true", help="overwrite existing report files")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
@@ -1005,12 +1253,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         import torch
 
         torch.set_num_threads(1)  # one core: the numbers do not depend on it (every draw has its own seeds)
-        rep = run(out, parts, sizes=sizes, test_draws=args.test_draws, trials=args.trials,
-                  train_seed=args.train_seed, test_seed=args.test_seed, n_boot=args.boot,
-                  budget_s=args.budget_seconds, progress=not args.no_progress)
+        rep = run(
+            out,
+            parts,
+            sizes=sizes,
+            test_draws=args.test_draws,
+            trials=args.trials,
+            train_seed=args.train_seed,
+            test_seed=args.test_seed,
+            n_boot=args.boot,
+            budget_s=args.budget_seconds,
+            progress=not args.no_progress,
+        )
         if rep is None:
-            print(f"simulation budget used; features cached under {out / 'cache'}: run the same command again to "
-                  "resume", file=sys.stderr)
+            print(
+                f"simulation budget used; features cached under {out / 'cache'}: run the same command again to resume",
+                file=sys.stderr,
+            )
             return EXIT_INCOMPLETE
         paths = write_report(rep, out, force=args.force)
     except (ValueError, FileNotFoundError, FileExistsError) as err:

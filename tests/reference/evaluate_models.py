@@ -93,10 +93,29 @@ try:  # run as `python -m tests.reference.evaluate_models`
 except ImportError:  # imported by the tests (tests/reference on sys.path)
     import refsim
 
-__all__ = ["DEFAULT_DRAWS", "DEFAULT_TRIALS", "BLOCK_TRIALS", "DENSITY", "RANGES", "SNR_DB", "POLAR_DEG", "POOLS",
-           "TARGETS", "IndependentDraw", "draw_independent", "independent_prior", "dataset_draw", "optics_for",
-           "motion_for", "source_box_um", "simulate_joint", "draw_features", "evaluate_model", "format_markdown",
-           "main"]
+__all__ = [
+    "DEFAULT_DRAWS",
+    "DEFAULT_TRIALS",
+    "BLOCK_TRIALS",
+    "DENSITY",
+    "RANGES",
+    "SNR_DB",
+    "POLAR_DEG",
+    "POOLS",
+    "TARGETS",
+    "IndependentDraw",
+    "draw_independent",
+    "independent_prior",
+    "dataset_draw",
+    "optics_for",
+    "motion_for",
+    "source_box_um",
+    "simulate_joint",
+    "draw_features",
+    "evaluate_model",
+    "format_markdown",
+    "main",
+]
 
 DEFAULT_DRAWS = 300
 DEFAULT_TRIALS = 32
@@ -122,17 +141,21 @@ TARGETS = {
     "flow_recall_every_polar_band": 0.80,
     "magnitude_pool_1": {"median_abs_log10_error": 0.06, "coverage_68": (0.65, 0.71), "coverage_95": (0.93, 0.97)},
 }
-PRIOR_TEXT = (f"motion type in equal thirds (draw k: type k mod 3); magnitude log-uniform (independent draws): "
-              f"D in [{RANGES['diffusion'][0]:g}, {RANGES['diffusion'][1]:g}] µm²/s, random-ballistic v in "
-              f"[{RANGES['ballistic'][0]:g}, {RANGES['ballistic'][1]:g}] µm/s, flow v in [{RANGES['flow'][0]:g}, "
-              f"{RANGES['flow'][1]:g}] µm/s (inside each type's identifiable range); flow polar angle uniform in "
-              f"[{POLAR_DEG[0]:g}°, {POLAR_DEG[1]:g}°] from the depth axis, azimuth uniform; random-ballistic "
-              f"direction law isotropic or uniform-angles, 1:1; moving-scatterer density {DENSITY:g} µm⁻³; no static "
-              f"scatterers; noise always on at SNR U[{SNR_DB[0]:g}, {SNR_DB[1]:g}] dB relative to each "
-              f"configuration's mean intensity, independent per configuration, frame and trial")
-SIM_TEXT = ("reference simulator (brute force, float64, exact paths; physics.md §5.1), every configuration of the "
-            "model seeing the same scatterers on the same paths (one Poisson set in a box that reaches every "
-            "configuration's window of ±6 amplitude sigmas); features by torchdoct.sim.signature; ground truth by classifier.truth.identifiability with the model's epsilon")
+PRIOR_TEXT = (
+    f"motion type in equal thirds (draw k: type k mod 3); magnitude log-uniform (independent draws): "
+    f"D in [{RANGES['diffusion'][0]:g}, {RANGES['diffusion'][1]:g}] µm²/s, random-ballistic v in "
+    f"[{RANGES['ballistic'][0]:g}, {RANGES['ballistic'][1]:g}] µm/s, flow v in [{RANGES['flow'][0]:g}, "
+    f"{RANGES['flow'][1]:g}] µm/s (inside each type's identifiable range); flow polar angle uniform in "
+    f"[{POLAR_DEG[0]:g}°, {POLAR_DEG[1]:g}°] from the depth axis, azimuth uniform; random-ballistic "
+    f"direction law isotropic or uniform-angles, 1:1; moving-scatterer density {DENSITY:g} µm⁻³; no static "
+    f"scatterers; noise always on at SNR U[{SNR_DB[0]:g}, {SNR_DB[1]:g}] dB relative to each "
+    f"configuration's mean intensity, independent per configuration, frame and trial"
+)
+SIM_TEXT = (
+    "reference simulator (brute force, float64, exact paths; physics.md §5.1), every configuration of the "
+    "model seeing the same scatterers on the same paths (one Poisson set in a box that reaches every "
+    "configuration's window of ±6 amplitude sigmas); features by torchdoct.sim.signature; ground truth by classifier.truth.identifiability with the model's epsilon"
+)
 _CLASSES = ("diffusion", "ballistic", "flow")
 _LAWS = ("isotropic", "uniform-angles")
 
@@ -172,9 +195,16 @@ def draw_independent(seed: int, k: int) -> IndependentDraw:
     law = _LAWS[int(u[3] >= 0.5)]
     snr = SNR_DB[0] + u[4] * (SNR_DB[1] - SNR_DB[0])
     sim_seed = int(ss.generate_state(2, np.uint64)[1] >> np.uint64(2))
-    return IndependentDraw(k=int(k), label=label, magnitude=magnitude, polar_angle_deg=float(polar),
-                           azimuth_deg=float(360.0 * u[2]), ballistic_directions=law, snr_db=float(snr),
-                           sim_seed=sim_seed)
+    return IndependentDraw(
+        k=int(k),
+        label=label,
+        magnitude=magnitude,
+        polar_angle_deg=float(polar),
+        azimuth_deg=float(360.0 * u[2]),
+        ballistic_directions=law,
+        snr_db=float(snr),
+        sim_seed=sim_seed,
+    )
 
 
 def independent_prior(epsilon: float):
@@ -182,21 +212,34 @@ def independent_prior(epsilon: float):
     range spans both speed types, whose own ranges are :data:`RANGES`)."""
     from classifier.prior import Prior
 
-    return Prior(diffusion_um2_per_s=RANGES["diffusion"],
-                 speed_um_per_s=(min(RANGES["ballistic"][0], RANGES["flow"][0]),
-                                 max(RANGES["ballistic"][1], RANGES["flow"][1])),
-                 ballistic_directions="both", flow_polar_angle_deg=POLAR_DEG, flow_polar_law="uniform-angle",
-                 density_per_um3=(DENSITY, DENSITY), static_probability=0.0, noise_probability=1.0, snr_db=SNR_DB,
-                 identifiability_epsilon=float(epsilon))
+    return Prior(
+        diffusion_um2_per_s=RANGES["diffusion"],
+        speed_um_per_s=(min(RANGES["ballistic"][0], RANGES["flow"][0]), max(RANGES["ballistic"][1], RANGES["flow"][1])),
+        ballistic_directions="both",
+        flow_polar_angle_deg=POLAR_DEG,
+        flow_polar_law="uniform-angle",
+        density_per_um3=(DENSITY, DENSITY),
+        static_probability=0.0,
+        noise_probability=1.0,
+        snr_db=SNR_DB,
+        identifiability_epsilon=float(epsilon),
+    )
 
 
 def dataset_draw(d: IndependentDraw):
     """The :class:`classifier.prior.Draw` of an independent draw (for :func:`classifier.truth.identifiability`)."""
     from classifier.prior import Draw
 
-    return Draw(label=d.label, magnitude=d.magnitude, polar_angle_deg=d.polar_angle_deg, azimuth_deg=d.azimuth_deg,
-                density_per_um3=DENSITY, sim_seed=d.sim_seed, nuisance=((0.0, d.snr_db),),
-                ballistic_directions=d.ballistic_directions)
+    return Draw(
+        label=d.label,
+        magnitude=d.magnitude,
+        polar_angle_deg=d.polar_angle_deg,
+        azimuth_deg=d.azimuth_deg,
+        density_per_um3=DENSITY,
+        sim_seed=d.sim_seed,
+        nuisance=((0.0, d.snr_db),),
+        ballistic_directions=d.ballistic_directions,
+    )
 
 
 def optics_for(spec) -> list[refsim.Optics]:
@@ -204,9 +247,15 @@ def optics_for(spec) -> list[refsim.Optics]:
     out = []
     for c in spec.configurations:
         ly = getattr(c, "lateral_resolution_y_um", None)
-        out.append(refsim.Optics(float(c.wavelength_um), float(c.lateral_resolution_um), float(c.axial_resolution_um),
-                                 lateral_y_um=None if ly is None else float(ly),
-                                 refractive_index=float(spec.refractive_index)))
+        out.append(
+            refsim.Optics(
+                float(c.wavelength_um),
+                float(c.lateral_resolution_um),
+                float(c.axial_resolution_um),
+                lateral_y_um=None if ly is None else float(ly),
+                refractive_index=float(spec.refractive_index),
+            )
+        )
     return out
 
 
@@ -215,16 +264,18 @@ def motion_for(d: IndependentDraw) -> refsim.Motion:
         return refsim.Motion("diffusion", diffusion_um2_per_s=d.magnitude)
     if d.label == 1:
         return refsim.Motion("ballistic", speed_um_per_s=d.magnitude, directions=d.ballistic_directions)
-    return refsim.Motion("flow", speed_um_per_s=d.magnitude, polar_angle_deg=d.polar_angle_deg,
-                         azimuth_deg=d.azimuth_deg)
+    return refsim.Motion(
+        "flow", speed_um_per_s=d.magnitude, polar_angle_deg=d.polar_angle_deg, azimuth_deg=d.azimuth_deg
+    )
 
 
 # ------------------------------------------------------------------------------------------------
 # simulation: one set of scatterers for every configuration
 
 
-def source_box_um(optics: Sequence[refsim.Optics], motion: refsim.Motion, duration_s: float,
-                  box_sigmas: float = refsim.BOX_SIGMAS) -> tuple[np.ndarray, np.ndarray]:
+def source_box_um(
+    optics: Sequence[refsim.Optics], motion: refsim.Motion, duration_s: float, box_sigmas: float = refsim.BOX_SIGMAS
+) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper corners (µm) of the box the scatterers are drawn from (module docstring).
 
     The windows ``|x_a| ≤ c·s_a`` of every configuration (``c`` = ``box_sigmas``) have the bounding box
@@ -247,8 +298,16 @@ def source_box_um(optics: Sequence[refsim.Optics], motion: refsim.Motion, durati
     return -H - r, H + r
 
 
-def _joint_block(optics: Sequence[refsim.Optics], motion: refsim.Motion, density: float, times: np.ndarray,
-                 trials: int, rng: np.random.Generator, snr_db: float | None, box_sigmas: float) -> np.ndarray:
+def _joint_block(
+    optics: Sequence[refsim.Optics],
+    motion: refsim.Motion,
+    density: float,
+    times: np.ndarray,
+    trials: int,
+    rng: np.random.Generator,
+    snr_db: float | None,
+    box_sigmas: float,
+) -> np.ndarray:
     """Fields ``[trials, C, T]`` of one block: one Poisson set of scatterers and paths for all configurations.
 
     Per configuration, only the scatterers whose path can enter its window ``|x_a| < c·s_a`` (``c`` =
@@ -275,8 +334,9 @@ def _joint_block(optics: Sequence[refsim.Optics], motion: refsim.Motion, density
         near = [np.all(np.abs(pos0) < (h + reach)[:, None], axis=0) for h in half]
     else:  # the bounding box of the straight path [p0, p0 + v·T] meets the window
         end = pos0 + vel * duration
-        near = [np.all((np.minimum(pos0, end) < h[:, None]) & (np.maximum(pos0, end) > -h[:, None]), axis=0)
-                for h in half]
+        near = [
+            np.all((np.minimum(pos0, end) < h[:, None]) & (np.maximum(pos0, end) > -h[:, None]), axis=0) for h in half
+        ]
     used = np.flatnonzero(np.any(near, axis=0))  # scatterers some configuration sees
     p0, v, who_all = pos0[:, used], vel[:, used], owner[used]
     sel = [np.flatnonzero(n[used]) for n in near]  # per configuration, into `used`
@@ -351,8 +411,9 @@ class _TrialSums:
         return out
 
 
-def _add_noise(out: np.ndarray, optics: Sequence[refsim.Optics], density: float, snr_db: float | None,
-               rng: np.random.Generator) -> np.ndarray:
+def _add_noise(
+    out: np.ndarray, optics: Sequence[refsim.Optics], density: float, snr_db: float | None, rng: np.random.Generator
+) -> np.ndarray:
     """Circular complex Gaussian noise, independent per configuration, trial and frame, of power
     ``⟨I⟩/10^(SNR/10)`` with ``⟨I⟩`` the configuration's mean intensity (physics.md §5.2, §8)."""
     if snr_db is None:
@@ -364,9 +425,18 @@ def _add_noise(out: np.ndarray, optics: Sequence[refsim.Optics], density: float,
     return out
 
 
-def simulate_joint(optics: Sequence[refsim.Optics], motion: refsim.Motion, *, density_per_um3: float, n_frames: int,
-                   frame_interval_s: float, trials: int, seed: int, snr_db: float | None = None,
-                   box_sigmas: float = refsim.BOX_SIGMAS) -> np.ndarray:
+def simulate_joint(
+    optics: Sequence[refsim.Optics],
+    motion: refsim.Motion,
+    *,
+    density_per_um3: float,
+    n_frames: int,
+    frame_interval_s: float,
+    trials: int,
+    seed: int,
+    snr_db: float | None = None,
+    box_sigmas: float = refsim.BOX_SIGMAS,
+) -> np.ndarray:
     """Complex fields ``[trials, configurations, frames]`` (complex128), every configuration seeing the
     same scatterers (module docstring); noise (``snr_db``, None = none) independent per configuration.
     Frames at ``t_i = i·frame_interval_s``; block ``b`` of :data:`BLOCK_TRIALS` trials draws from
@@ -377,7 +447,7 @@ def simulate_joint(optics: Sequence[refsim.Optics], motion: refsim.Motion, *, de
         rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(b,)))
         e = _joint_block(optics, motion, float(density_per_um3), times, BLOCK_TRIALS, rng, snr_db, box_sigmas)
         lo = b * BLOCK_TRIALS
-        out[lo:lo + BLOCK_TRIALS] = e[: int(trials) - lo]
+        out[lo : lo + BLOCK_TRIALS] = e[: int(trials) - lo]
     return out
 
 
@@ -387,8 +457,16 @@ def draw_features(spec, d: IndependentDraw, trials: int) -> np.ndarray:
 
     from torchdoct.sim.signature import signature
 
-    e = simulate_joint(optics_for(spec), motion_for(d), density_per_um3=DENSITY, n_frames=spec.n_frames,
-                       frame_interval_s=spec.frame_interval_s, trials=trials, seed=d.sim_seed, snr_db=d.snr_db)
+    e = simulate_joint(
+        optics_for(spec),
+        motion_for(d),
+        density_per_um3=DENSITY,
+        n_frames=spec.n_frames,
+        frame_interval_s=spec.frame_interval_s,
+        trials=trials,
+        seed=d.sim_seed,
+        snr_db=d.snr_db,
+    )
     _, sig = signature(torch.from_numpy(e), spec.frame_times_s, names=spec.metrics)  # [trials, C, metrics]
     return sig.reshape(sig.shape[0], -1).numpy().astype(np.float32)
 
@@ -413,16 +491,25 @@ def _resolve_model(model: str):
     if p.is_dir():
         found = sorted(p.glob("*.onnx"))
         if len(found) != 1:
-            raise ValueError(f"--model {model}: a directory must hold exactly one .onnx model (doct-train --out); "
-                             f"found {[f.name for f in found] or 'none'}. Fix: give the .onnx file itself")
+            raise ValueError(
+                f"--model {model}: a directory must hold exactly one .onnx model (doct-train --out); "
+                f"found {[f.name for f in found] or 'none'}. Fix: give the .onnx file itself"
+            )
         p = found[0]
         return load_model(str(p), threads=1), p.stem
     mdl = load_model(model, threads=1)
     return mdl, (mdl.path.stem if p.suffix == ".onnx" else str(model))
 
 
-def evaluate_model(model: str, *, draws: int = DEFAULT_DRAWS, trials: int = DEFAULT_TRIALS, seed: int = 0,
-                   n_boot: int = N_BOOT, progress: bool = True) -> dict[str, Any]:
+def evaluate_model(
+    model: str,
+    *,
+    draws: int = DEFAULT_DRAWS,
+    trials: int = DEFAULT_TRIALS,
+    seed: int = 0,
+    n_boot: int = N_BOOT,
+    progress: bool = True,
+) -> dict[str, Any]:
     """Simulate ``draws`` independent draws × ``trials`` pixels, classify them with ``model`` and return
     the report (JSON-able dict; module docstring)."""
     from classifier.dataset import Dataset
@@ -437,12 +524,16 @@ def evaluate_model(model: str, *, draws: int = DEFAULT_DRAWS, trials: int = DEFA
     mdl, name = _resolve_model(model)
     spec = mdl.spec
     if not spec.is_signature:
-        raise ValueError(f"model {name}: its features are {list(spec.metrics)}; this evaluation computes the "
-                         "signature features (torchdoct.sim.signature) and needs a signature model")
+        raise ValueError(
+            f"model {name}: its features are {list(spec.metrics)}; this evaluation computes the "
+            "signature features (torchdoct.sim.signature) and needs a signature model"
+        )
     names = [col["name"] for col in mdl.columns[:-1]]
     if names != list(spec.feature_names) or mdl.columns[-1]["metric"] != "pool_pixels":
-        raise ValueError(f"model {name}: its input columns {names + [mdl.columns[-1]['name']]} are not its spec's "
-                         f"features {list(spec.feature_names)} followed by pool_pixels; re-export it with doct-train")
+        raise ValueError(
+            f"model {name}: its input columns {names + [mdl.columns[-1]['name']]} are not its spec's "
+            f"features {list(spec.feature_names)} followed by pool_pixels; re-export it with doct-train"
+        )
     classes = mdl.classes
     rule = mdl.rule
     prior = independent_prior(float(rule["epsilon"]))
@@ -478,43 +569,84 @@ def evaluate_model(model: str, *, draws: int = DEFAULT_DRAWS, trials: int = DEFA
         bar.close()
     sim_s = time.perf_counter() - t_sim
     a = {k: np.concatenate(v) for k, v in cols.items()}
-    ds = Dataset(x=a["x"].reshape(-1, spec.n_features), y=a["y"], draw=a["draw"], group=a["draw"], status=a["status"],
-                 magnitude=a["magnitude"], density=np.full(a["y"].shape, DENSITY),
-                 static_fraction=np.zeros(a["y"].shape), snr_db=a["snr_db"], polar_angle_deg=a["polar_angle_deg"])
+    ds = Dataset(
+        x=a["x"].reshape(-1, spec.n_features),
+        y=a["y"],
+        draw=a["draw"],
+        group=a["draw"],
+        status=a["status"],
+        magnitude=a["magnitude"],
+        density=np.full(a["y"].shape, DENSITY),
+        static_fraction=np.zeros(a["y"].shape),
+        snr_db=a["snr_db"],
+        polar_angle_deg=a["polar_angle_deg"],
+    )
     pools = sorted({min(int(p), trials) for p in POOLS})
     ranges = [RANGES[c] for c in _CLASSES]
     results: dict[str, Any] = {}
     for pool in pools:
         if pool == 1:
-            s = {"x": np.concatenate([ds.x, np.ones((len(ds), 1), np.float32)], axis=1), "y": ds.y,
-                 "status": ds.status, "draw": ds.draw, "magnitude": ds.magnitude,
-                 "polar_angle_deg": ds.polar_angle_deg}
+            s = {
+                "x": np.concatenate([ds.x, np.ones((len(ds), 1), np.float32)], axis=1),
+                "y": ds.y,
+                "status": ds.status,
+                "draw": ds.draw,
+                "magnitude": ds.magnitude,
+                "polar_angle_deg": ds.polar_angle_deg,
+            }
         else:
             rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(1, pool)))
             groups = np.unique(ds.group)
             s = pooled_samples(ds, [np.full(POOLED_PER_DRAW, pool) for _ in groups], rng)
         probs, mean, sd = mdl.predict_all(s["x"])
-        results[str(pool)] = evaluate_set(probs, s, rule, class_names=classes, ranges=ranges,
-                                          magnitude=None if mean is None else (mean, sd), resampled_errors=True,
-                                          n_boot=n_boot, seed=seed)
+        results[str(pool)] = evaluate_set(
+            probs,
+            s,
+            rule,
+            class_names=classes,
+            ranges=ranges,
+            magnitude=None if mean is None else (mean, sd),
+            resampled_errors=True,
+            n_boot=n_boot,
+            seed=seed,
+        )
     import classifier
     import torchdoct
 
     report = {
         "versions": {"classifier": classifier.__version__, "torchdoct": torchdoct.__version__},
-        "model": name, "model_path": mdl.path.name, "spec": spec.to_dict(), "classes": classes, "rule": rule,
-        "seed": int(seed), "draws": int(draws), "trials_per_draw": int(trials), "pools": [str(p) for p in pools],
-        "pooled_subsets_per_draw": POOLED_PER_DRAW, "n_boot": int(n_boot),
-        "prior": {"text": PRIOR_TEXT, "ranges": {k: list(v) for k, v in RANGES.items()}, "density_per_um3": DENSITY,
-                  "snr_db": list(SNR_DB), "flow_polar_angle_deg": list(POLAR_DEG),
-                  "as_classifier_prior": prior.to_dict()},
-        "simulation": {"text": SIM_TEXT, "box_sigmas": refsim.BOX_SIGMAS, "block_trials": BLOCK_TRIALS,
-                       "noise": "independent per configuration at the draw's SNR relative to the configuration's "
-                                "mean intensity (measured reductions share one noisy field: an approximation)"},
-        "draw_status_counts": status_counts, "dropped_nonfinite": dropped, "per_draw": per_draw,
-        "results": results, "targets": _targets(results),
-        "seconds": {"simulation_and_features": sim_s, "total": time.perf_counter() - t0,
-                    "per_draw": sim_s / draws},
+        "model": name,
+        "model_path": mdl.path.name,
+        "spec": spec.to_dict(),
+        "classes": classes,
+        "rule": rule,
+        "seed": int(seed),
+        "draws": int(draws),
+        "trials_per_draw": int(trials),
+        "pools": [str(p) for p in pools],
+        "pooled_subsets_per_draw": POOLED_PER_DRAW,
+        "n_boot": int(n_boot),
+        "prior": {
+            "text": PRIOR_TEXT,
+            "ranges": {k: list(v) for k, v in RANGES.items()},
+            "density_per_um3": DENSITY,
+            "snr_db": list(SNR_DB),
+            "flow_polar_angle_deg": list(POLAR_DEG),
+            "as_classifier_prior": prior.to_dict(),
+        },
+        "simulation": {
+            "text": SIM_TEXT,
+            "box_sigmas": refsim.BOX_SIGMAS,
+            "block_trials": BLOCK_TRIALS,
+            "noise": "independent per configuration at the draw's SNR relative to the configuration's "
+            "mean intensity (measured reductions share one noisy field: an approximation)",
+        },
+        "draw_status_counts": status_counts,
+        "dropped_nonfinite": dropped,
+        "per_draw": per_draw,
+        "results": results,
+        "targets": _targets(results),
+        "seconds": {"simulation_and_features": sim_s, "total": time.perf_counter() - t0, "per_draw": sim_s / draws},
     }
     return report
 
@@ -535,23 +667,38 @@ def _targets(results: dict[str, Any]) -> list[dict[str, Any]]:
         m = results[pool]["metrics"]
         t = TARGETS[key]
         bal, cov = m["balanced_accuracy_identifiable"], m["coverage_identifiable"]
-        add(f"pool {pool}: balanced accuracy (identifiable, decided)", bal,
-            f">= {t['balanced_accuracy_identifiable']:g}", ok(bal, lambda v: v >= t["balanced_accuracy_identifiable"]))
-        add(f"pool {pool}: coverage (identifiable)", cov, f">= {t['coverage_identifiable']:g}",
-            ok(cov, lambda v: v >= t["coverage_identifiable"]))
+        add(
+            f"pool {pool}: balanced accuracy (identifiable, decided)",
+            bal,
+            f">= {t['balanced_accuracy_identifiable']:g}",
+            ok(bal, lambda v: v >= t["balanced_accuracy_identifiable"]),
+        )
+        add(
+            f"pool {pool}: coverage (identifiable)",
+            cov,
+            f">= {t['coverage_identifiable']:g}",
+            ok(cov, lambda v: v >= t["coverage_identifiable"]),
+        )
         if "ece" in t:
             add(f"pool {pool}: ECE", m["ece"], f"<= {t['ece']:g}", ok(m["ece"], lambda v: v <= t["ece"]))
     if "1" in results:
         goal = TARGETS["flow_recall_every_polar_band"]
         for band, r in results["1"]["flow_bands"]["polar_bands"].items():
-            add(f"pool 1: flow recall, polar band {band}°", r["recall"], f">= {goal:g}",
-                ok(r["recall"], lambda v: v >= goal))
+            add(
+                f"pool 1: flow recall, polar band {band}°",
+                r["recall"],
+                f">= {goal:g}",
+                ok(r["recall"], lambda v: v >= goal),
+            )
         mg = results["1"].get("magnitude")
         if mg and mg.get("samples"):
             t = TARGETS["magnitude_pool_1"]
-            add("pool 1: median |log10 magnitude error|", mg["median_abs_log10_error"],
+            add(
+                "pool 1: median |log10 magnitude error|",
+                mg["median_abs_log10_error"],
                 f"<= {t['median_abs_log10_error']:g}",
-                ok(mg["median_abs_log10_error"], lambda v: v <= t["median_abs_log10_error"]))
+                ok(mg["median_abs_log10_error"], lambda v: v <= t["median_abs_log10_error"]),
+            )
             for lvl in ("68", "95"):
                 lo, hi = t[f"coverage_{lvl}"]
                 v = mg[f"coverage_{lvl}"]
@@ -577,86 +724,144 @@ def _pm(v: Any, se: Any) -> str:
 
 def format_markdown(r: dict[str, Any]) -> str:
     """The report as a short Markdown text."""
-    L = [f"# `{r['model']}` on independent data", "",
-         f"{r['draws']} draws × {r['trials_per_draw']} trials, seed {r['seed']}; {r['simulation']['text']}.", "",
-         f"Prior (not the training prior): {r['prior']['text']}.", "",
-         "Ground truth per draw: " + ", ".join(f"{k} {v}" for k, v in r["draw_status_counts"].items())
-         + f"; non-finite feature vectors dropped: {r['dropped_nonfinite']}. Decisions by the model's rule "
-           f"(min_probability {r['rule']['min_probability']:g}); ± = bootstrap SE over draws ({r['n_boot']} resamples).", "",
-         "## Targets", "", "| goal | measured | target | met |", "|---|---:|---:|---|"]
+    L = [
+        f"# `{r['model']}` on independent data",
+        "",
+        f"{r['draws']} draws × {r['trials_per_draw']} trials, seed {r['seed']}; {r['simulation']['text']}.",
+        "",
+        f"Prior (not the training prior): {r['prior']['text']}.",
+        "",
+        "Ground truth per draw: "
+        + ", ".join(f"{k} {v}" for k, v in r["draw_status_counts"].items())
+        + f"; non-finite feature vectors dropped: {r['dropped_nonfinite']}. Decisions by the model's rule "
+        f"(min_probability {r['rule']['min_probability']:g}); ± = bootstrap SE over draws ({r['n_boot']} resamples).",
+        "",
+        "## Targets",
+        "",
+        "| goal | measured | target | met |",
+        "|---|---:|---:|---|",
+    ]
     for t in r["targets"]:
-        L.append(f"| {t['what']} | {_f(t['value'])} | {t['goal']} | "
-                 f"{'n/a' if t['met'] is None else ('yes' if t['met'] else '**no**')} |")
-    L += ["", "## By pool", "",
-          "| pool | samples | coverage | bal. acc. | accuracy | recall diffusion / ballistic / flow | ECE | "
-          "indeterminate |", "|---:|---:|---:|---:|---:|---|---:|---:|"]
+        L.append(
+            f"| {t['what']} | {_f(t['value'])} | {t['goal']} | "
+            f"{'n/a' if t['met'] is None else ('yes' if t['met'] else '**no**')} |"
+        )
+    L += [
+        "",
+        "## By pool",
+        "",
+        "| pool | samples | coverage | bal. acc. | accuracy | recall diffusion / ballistic / flow | ECE | "
+        "indeterminate |",
+        "|---:|---:|---:|---:|---:|---|---:|---:|",
+    ]
     for pool, res in r["results"].items():
         m, se, rse = res["metrics"], res["standard_errors"], res["recall_se"]
         rec = " / ".join(_pm(m["recall_identifiable"][c], rse.get(c)) for c in _CLASSES)
-        L.append(f"| {pool} | {res['samples']} | {_pm(m['coverage_identifiable'], se.get('coverage_identifiable'))} | "
-                 f"{_pm(m['balanced_accuracy_identifiable'], se.get('balanced_accuracy_identifiable'))} | "
-                 f"{_pm(m['accuracy_identifiable'], se.get('accuracy_identifiable'))} | {rec} | "
-                 f"{_pm(m['ece'], se.get('ece'))} | {_f(m['indeterminate_fraction'])} |")
-    L += ["", "## Flow recall by polar band and speed decade (identifiable flow)", "",
-          "| pool | band | samples | coverage | flow recall | as ballistic | as diffusion |",
-          "|---:|---|---:|---:|---:|---:|---:|"]
+        L.append(
+            f"| {pool} | {res['samples']} | {_pm(m['coverage_identifiable'], se.get('coverage_identifiable'))} | "
+            f"{_pm(m['balanced_accuracy_identifiable'], se.get('balanced_accuracy_identifiable'))} | "
+            f"{_pm(m['accuracy_identifiable'], se.get('accuracy_identifiable'))} | {rec} | "
+            f"{_pm(m['ece'], se.get('ece'))} | {_f(m['indeterminate_fraction'])} |"
+        )
+    L += [
+        "",
+        "## Flow recall by polar band and speed decade (identifiable flow)",
+        "",
+        "| pool | band | samples | coverage | flow recall | as ballistic | as diffusion |",
+        "|---:|---|---:|---:|---:|---:|---:|",
+    ]
     for pool, res in r["results"].items():
         fb, fse = res["flow_bands"], res["flow_bands_se"]
         for kind, unit in (("polar_bands", "°"), ("speed_decades", " µm/s")):
             for band, b in fb[kind].items():
-                L.append(f"| {pool} | {band}{unit} | {b['samples']} | {_f(b['coverage'])} | "
-                         f"{_pm(b['recall'], fse.get(f'{kind}:{band}'))} | {_f(b['as'].get('ballistic'))} | "
-                         f"{_f(b['as'].get('diffusion'))} |")
-    L += ["", "## Accuracy against coverage (`--min-probability`)", "",
-          "| pool | min_probability | coverage | accuracy | bal. accuracy | non-identifiable decided |",
-          "|---:|---:|---:|---:|---:|---:|"]
+                L.append(
+                    f"| {pool} | {band}{unit} | {b['samples']} | {_f(b['coverage'])} | "
+                    f"{_pm(b['recall'], fse.get(f'{kind}:{band}'))} | {_f(b['as'].get('ballistic'))} | "
+                    f"{_f(b['as'].get('diffusion'))} |"
+                )
+    L += [
+        "",
+        "## Accuracy against coverage (`--min-probability`)",
+        "",
+        "| pool | min_probability | coverage | accuracy | bal. accuracy | non-identifiable decided |",
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
     for pool, res in r["results"].items():
         for c in res["coverage_curve"]:
-            L.append(f"| {pool} | {c['min_probability']:g} | {_f(c['coverage_identifiable'])} | "
-                     f"{_f(c['accuracy_identifiable'])} | {_f(c['balanced_accuracy_identifiable'])} | "
-                     f"{_f(c['non_identifiable_decided'])} |")
+            L.append(
+                f"| {pool} | {c['min_probability']:g} | {_f(c['coverage_identifiable'])} | "
+                f"{_f(c['accuracy_identifiable'])} | {_f(c['balanced_accuracy_identifiable'])} | "
+                f"{_f(c['non_identifiable_decided'])} |"
+            )
     if any("magnitude" in res for res in r["results"].values()):
-        L += ["", "## Magnitude (identifiable pixels, head of the true class)", "",
-              "| pool | samples | median abs. log10 error | 68 % coverage | 95 % coverage | median error diffusion / "
-              "ballistic / flow |", "|---:|---:|---:|---:|---:|---|"]
+        L += [
+            "",
+            "## Magnitude (identifiable pixels, head of the true class)",
+            "",
+            "| pool | samples | median abs. log10 error | 68 % coverage | 95 % coverage | median error diffusion / "
+            "ballistic / flow |",
+            "|---:|---:|---:|---:|---:|---|",
+        ]
         for pool, res in r["results"].items():
             mg, mse = res.get("magnitude"), res.get("magnitude_se", {})
             if not mg or not mg.get("samples"):
                 continue
-            L.append(f"| {pool} | {mg['samples']} | {_pm(mg['median_abs_log10_error'], mse.get('median_abs_log10_error'))}"
-                     f" | {_pm(mg['coverage_68'], mse.get('coverage_68'))} | {_pm(mg['coverage_95'], mse.get('coverage_95'))}"
-                     f" | " + " / ".join(_f(mg["by_class"].get(c, {}).get("median_abs_log10_error")) for c in _CLASSES)
-                     + " |")
-    L += ["", "## Accuracy against magnitude (pool 1)", "",
-          "| class | magnitude | samples | truth indeterminate | decided indeterminate | coverage | accuracy |",
-          "|---|---|---:|---:|---:|---:|---:|"]
+            L.append(
+                f"| {pool} | {mg['samples']} | {_pm(mg['median_abs_log10_error'], mse.get('median_abs_log10_error'))}"
+                f" | {_pm(mg['coverage_68'], mse.get('coverage_68'))} | {_pm(mg['coverage_95'], mse.get('coverage_95'))}"
+                f" | "
+                + " / ".join(_f(mg["by_class"].get(c, {}).get("median_abs_log10_error")) for c in _CLASSES)
+                + " |"
+            )
+    L += [
+        "",
+        "## Accuracy against magnitude (pool 1)",
+        "",
+        "| class | magnitude | samples | truth indeterminate | decided indeterminate | coverage | accuracy |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
     for row in r["results"][r["pools"][0]]["by_magnitude"]:
-        L.append(f"| {row['class']} | {row['low']:.2g}–{row['high']:.2g} | {row['samples']} | "
-                 f"{_f(row['truth_indeterminate'], 2)} | {_f(row['predicted_indeterminate'], 2)} | "
-                 f"{_f(row['coverage'], 2)} | {_f(row['accuracy_decided'], 2)} |")
+        L.append(
+            f"| {row['class']} | {row['low']:.2g}–{row['high']:.2g} | {row['samples']} | "
+            f"{_f(row['truth_indeterminate'], 2)} | {_f(row['predicted_indeterminate'], 2)} | "
+            f"{_f(row['coverage'], 2)} | {_f(row['accuracy_decided'], 2)} |"
+        )
     s = r["seconds"]
-    L += ["", f"Time: simulation and features {s['simulation_and_features']:.0f} s ({s['per_draw']:.2f} s per draw), "
-              f"{s['total']:.0f} s in all.", ""]
+    L += [
+        "",
+        f"Time: simulation and features {s['simulation_and_features']:.0f} s ({s['per_draw']:.2f} s per draw), "
+        f"{s['total']:.0f} s in all.",
+        "",
+    ]
     return "\n".join(L)
 
 
 def _summary(r: dict[str, Any]) -> str:
-    lines = [f"{r['model']} on independent data ({r['draws']} draws × {r['trials_per_draw']} trials, seed {r['seed']}; "
-             + ", ".join(f"{k} {v}" for k, v in r["draw_status_counts"].items()) + f"; {r['seconds']['total']:.0f} s)"]
+    lines = [
+        f"{r['model']} on independent data ({r['draws']} draws × {r['trials_per_draw']} trials, seed {r['seed']}; "
+        + ", ".join(f"{k} {v}" for k, v in r["draw_status_counts"].items())
+        + f"; {r['seconds']['total']:.0f} s)"
+    ]
     for pool, res in r["results"].items():
         m, se = res["metrics"], res["standard_errors"]
         rec = ", ".join(f"{c} {_f(m['recall_identifiable'][c])}" for c in _CLASSES)
         bands = ", ".join(f"{b} {_f(v['recall'])}" for b, v in res["flow_bands"]["polar_bands"].items())
-        lines.append(f"  pool {pool}: balanced accuracy {_pm(m['balanced_accuracy_identifiable'], se.get('balanced_accuracy_identifiable'))}"
-                     f" at coverage {_pm(m['coverage_identifiable'], se.get('coverage_identifiable'))}, ECE "
-                     f"{_pm(m['ece'], se.get('ece'))}; recall {rec}; flow by polar band {bands}")
+        lines.append(
+            f"  pool {pool}: balanced accuracy {_pm(m['balanced_accuracy_identifiable'], se.get('balanced_accuracy_identifiable'))}"
+            f" at coverage {_pm(m['coverage_identifiable'], se.get('coverage_identifiable'))}, ECE "
+            f"{_pm(m['ece'], se.get('ece'))}; recall {rec}; flow by polar band {bands}"
+        )
         mg = res.get("magnitude")
         if mg and mg.get("samples"):
-            lines.append(f"          magnitude: median |log10 error| {_f(mg['median_abs_log10_error'])}, 68 % / 95 % "
-                         f"coverage {_f(mg['coverage_68'])} / {_f(mg['coverage_95'])}")
+            lines.append(
+                f"          magnitude: median |log10 error| {_f(mg['median_abs_log10_error'])}, 68 % / 95 % "
+                f"coverage {_f(mg['coverage_68'])} / {_f(mg['coverage_95'])}"
+            )
     missed = [t["what"] for t in r["targets"] if t["met"] is False]
-    lines.append(f"  targets met: {sum(t['met'] is True for t in r['targets'])} of {len(r['targets'])}"
-                 + (f"; not met: {'; '.join(missed)}" if missed else ""))
+    lines.append(
+        f"  targets met: {sum(t['met'] is True for t in r['targets'])} of {len(r['targets'])}"
+        + (f"; not met: {'; '.join(missed)}" if missed else "")
+    )
     return "\n".join(lines)
 
 
@@ -689,14 +894,17 @@ def write_report(report: dict[str, Any], out: str | os.PathLike, *, force: bool 
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m tests.reference.evaluate_models",
-                                 description="Evaluate a signature classifier on data it never saw: the reference "
-                                             "simulator (shared scatterers per model configuration) and an independent "
-                                             "prior. Writes <out>/<model>-independent.json and .md.")
+    ap = argparse.ArgumentParser(
+        prog="python -m tests.reference.evaluate_models",
+        description="Evaluate a signature classifier on data it never saw: the reference "
+        "simulator (shared scatterers per model configuration) and an independent "
+        "prior. Writes <out>/<model>-independent.json and .md.",
+    )
     ap.add_argument("--model", required=True, help="shipped model name, .onnx file, or directory holding one .onnx")
     ap.add_argument("--draws", type=int, default=DEFAULT_DRAWS, help=f"parameter draws (default {DEFAULT_DRAWS})")
-    ap.add_argument("--trials", type=int, default=DEFAULT_TRIALS,
-                    help=f"independent pixels per draw (default {DEFAULT_TRIALS})")
+    ap.add_argument(
+        "--trials", type=int, default=DEFAULT_TRIALS, help=f"independent pixels per draw (default {DEFAULT_TRIALS})"
+    )
     ap.add_argument("--seed", type=int, default=0, help="seed of the draws, the simulation and the pools (default 0)")
     ap.add_argument("--out", required=True, help="output directory")
     ap.add_argument("--boot", type=int, default=N_BOOT, help=f"bootstrap resamples over draws (default {N_BOOT})")
@@ -704,8 +912,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = ap.parse_args(argv)
     try:
-        report = evaluate_model(args.model, draws=args.draws, trials=args.trials, seed=args.seed, n_boot=args.boot,
-                                progress=not args.no_progress)
+        report = evaluate_model(
+            args.model,
+            draws=args.draws,
+            trials=args.trials,
+            seed=args.seed,
+            n_boot=args.boot,
+            progress=not args.no_progress,
+        )
         paths = write_report(report, args.out, force=args.force)
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -77,16 +77,47 @@ def _phantom_run(work: Path, phantom: str, seed: int) -> dict:
     from torchdoct.cli import main as torchdoct_main
 
     seq, maps = work / f"{phantom}-{seed}.npz", work / f"{phantom}-{seed}-maps.npz"
-    if torchdoct_main(["render", phantom, "--seed", str(seed), "--out", str(seq), "--no-progress", "--no-preview",
-                       "--threads", "1"]) != 0:
+    if (
+        torchdoct_main(
+            [
+                "render",
+                phantom,
+                "--seed",
+                str(seed),
+                "--out",
+                str(seq),
+                "--no-progress",
+                "--no-preview",
+                "--threads",
+                "1",
+            ]
+        )
+        != 0
+    ):
         raise RuntimeError(f"torchdoct render {phantom} --seed {seed} failed")
     if torchdoct_main(["maps", str(seq), *MAPS_OPTIONS, "--out", str(maps), "--no-progress", "--threads", "1"]) != 0:
         raise RuntimeError(f"torchdoct maps {seq} failed")
     run = {}
     for pool in POOLS:
         d = work / f"{phantom}-{seed}-p{pool}"
-        if classify_main([str(maps), "--out", str(d), "--pool", str(pool), "--threads", "1", "--decision", "rule",
-                          "--decide-ballistic", "--no-progress"]) != 0:
+        if (
+            classify_main(
+                [
+                    str(maps),
+                    "--out",
+                    str(d),
+                    "--pool",
+                    str(pool),
+                    "--threads",
+                    "1",
+                    "--decision",
+                    "rule",
+                    "--decide-ballistic",
+                    "--no-progress",
+                ]
+            )
+            != 0
+        ):
             raise RuntimeError(f"doct-classify {maps} failed")
         run[str(pool)] = _overall(score_images(d, seq))
     return run
@@ -118,8 +149,7 @@ def record_systems(seeds: list[int]) -> dict:
             for i, seed in enumerate(seeds):
                 work = Path(tmp) / f"{system}-{seed}"
                 work.mkdir()
-                r = evaluate(work, system, [seed], quick=True,
-                             train_seed=None if i == 0 else seed)
+                r = evaluate(work, system, [seed], quick=True, train_seed=None if i == 0 else seed)
                 for pool in map(str, POOLS):
                     slot = runs[system][pool]
                     slot["seeds"].append(seed)
@@ -150,11 +180,11 @@ def record_slabs(seeds: list[int], progress: bool = True) -> dict:
 #: What each kind records, as its file says.
 STATISTICS = {
     "phantoms": "per rendering: score_images overall, all labelled moving pixels, edge 0; floor = mean - z*SD over "
-                "renderings (ceiling mean + z*SD for the magnitude error)",
+    "renderings (ceiling mean + z*SD for the magnitude error)",
     "systems": "per rendering: score_images overall, all labelled moving pixels, edge 0; floor = mean - z*SD over "
-               "renderings (ceiling mean + z*SD for the magnitude error)",
+    "renderings (ceiling mean + z*SD for the magnitude error)",
     "slabs": "per rendering: tests/classifier/_slabs.score (slab pixels at least 16 um from a boundary); "
-             "floor = mean - z*SD over renderings",
+    "floor = mean - z*SD over renderings",
 }
 DEFAULT_SEEDS = {"phantoms": "2026,1,2,3,4,5", "systems": "2026,1,2,3", "slabs": "7,1,2,3,4,5"}
 
@@ -163,8 +193,13 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m tests.reference.floors", description=__doc__.split("\n\n")[0])
     p.add_argument("what", choices=tuple(STATISTICS))
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--seeds", default=None, help="comma-separated rendering seeds (default: "
-                   + "; ".join(f"{k} {v}" for k, v in DEFAULT_SEEDS.items()) + ")")
+    p.add_argument(
+        "--seeds",
+        default=None,
+        help="comma-separated rendering seeds (default: "
+        + "; ".join(f"{k} {v}" for k, v in DEFAULT_SEEDS.items())
+        + ")",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar (as TQDM_DISABLE=1)")
     a = p.parse_args(argv)
     seeds = [int(s) for s in (a.seeds or DEFAULT_SEEDS[a.what]).split(",")]

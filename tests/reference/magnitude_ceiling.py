@@ -60,14 +60,31 @@ except ImportError:  # imported by the tests (tests/reference on sys.path)
     import ceiling as ce
     import evaluate_models as em
 
-__all__ = ["QUANTILES", "GBR_PARAMS", "CALIBRATION_SHARE", "fit_quantiles", "predict_quantiles", "interval_metrics", "run", "main"]
+__all__ = [
+    "QUANTILES",
+    "GBR_PARAMS",
+    "CALIBRATION_SHARE",
+    "fit_quantiles",
+    "predict_quantiles",
+    "interval_metrics",
+    "run",
+    "main",
+]
 
 #: Quantile levels: the median, the central 68.27 % interval, the central 95.45 % interval.
 QUANTILES = (0.5, 0.158655, 0.841345, 0.02275, 0.97725)
 #: Stated shares of the two central intervals.
 LEVELS = (("coverage_68", 0.6827), ("coverage_95", 0.9545))
-GBR_PARAMS = {"max_iter": 400, "learning_rate": 0.1, "max_leaf_nodes": 31, "min_samples_leaf": 40,
-              "l2_regularization": 1.0, "early_stopping": True, "validation_fraction": 0.15, "n_iter_no_change": 20}
+GBR_PARAMS = {
+    "max_iter": 400,
+    "learning_rate": 0.1,
+    "max_leaf_nodes": 31,
+    "min_samples_leaf": 40,
+    "l2_regularization": 1.0,
+    "early_stopping": True,
+    "validation_fraction": 0.15,
+    "n_iter_no_change": 20,
+}
 #: Share of the training draws held out to conformalise the intervals (:func:`fit_quantiles`).
 CALIBRATION_SHARE = 0.25
 DEFAULT_PARTS = ("c", "d", "e", "e-noise", "e-nostatic-noise", "b", "b-int", "f", "f-int")
@@ -99,8 +116,12 @@ def fit_quantiles(x: np.ndarray, target: np.ndarray, group: np.ndarray | None = 
     if held.all() or not held.any():
         raise ValueError("the quantile regressors need at least two groups (draws) of training samples")
     with threadpool_limits(1):
-        models = [HistGradientBoostingRegressor(loss="quantile", quantile=q, random_state=int(seed),
-                                                **GBR_PARAMS).fit(x[~held], target[~held]) for q in QUANTILES]
+        models = [
+            HistGradientBoostingRegressor(loss="quantile", quantile=q, random_state=int(seed), **GBR_PARAMS).fit(
+                x[~held], target[~held]
+            )
+            for q in QUANTILES
+        ]
     pred = predict_quantiles({"models": models, "corrections": (0.0, 0.0)}, x[held])
     t = target[held]
     corrections = []
@@ -128,8 +149,9 @@ def predict_quantiles(fit: dict[str, Any], x: np.ndarray) -> np.ndarray:
     return np.stack([med, lo68, hi68, lo95, hi95], axis=1)
 
 
-def interval_metrics(pred: np.ndarray, truth: np.ndarray, label: np.ndarray, draw: np.ndarray, *,
-                     n_boot: int, seed: int) -> dict[str, Any]:
+def interval_metrics(
+    pred: np.ndarray, truth: np.ndarray, label: np.ndarray, draw: np.ndarray, *, n_boot: int, seed: int
+) -> dict[str, Any]:
     """Median and mean ``|pred[:, 0] − truth|``, the shares of ``truth`` inside ``[pred[:, 1], pred[:, 2]]``
     (``coverage_68``) and ``[pred[:, 3], pred[:, 4]]`` (``coverage_95``), the median half-widths, per
     motion class ``label`` too, with bootstrap SEs over ``draw``."""
@@ -138,8 +160,11 @@ def interval_metrics(pred: np.ndarray, truth: np.ndarray, label: np.ndarray, dra
     in95 = (truth >= pred[:, 3]) & (truth <= pred[:, 4])
 
     def scalars(i: np.ndarray) -> dict[str, float]:
-        d = {"median_abs_log10_error": float(np.median(err[i])), "coverage_68": float(np.mean(in68[i])),
-             "coverage_95": float(np.mean(in95[i]))}
+        d = {
+            "median_abs_log10_error": float(np.median(err[i])),
+            "coverage_68": float(np.mean(in68[i])),
+            "coverage_95": float(np.mean(in95[i])),
+        }
         for c, name in enumerate(_CLASSES):
             m = label[i] == c
             if np.any(m):
@@ -147,16 +172,23 @@ def interval_metrics(pred: np.ndarray, truth: np.ndarray, label: np.ndarray, dra
                 d[f"{name}:coverage_68"] = float(np.mean(in68[i][m]))
         return d
 
-    out: dict[str, Any] = {"samples": int(len(err)), **scalars(np.arange(len(err))),
-                           "mean_abs_log10_error": float(err.mean()),
-                           "median_half_width_68": float(np.median(pred[:, 2] - pred[:, 1]) / 2),
-                           "median_half_width_95": float(np.median(pred[:, 4] - pred[:, 3]) / 2)}
+    out: dict[str, Any] = {
+        "samples": int(len(err)),
+        **scalars(np.arange(len(err))),
+        "mean_abs_log10_error": float(err.mean()),
+        "median_half_width_68": float(np.median(pred[:, 2] - pred[:, 1]) / 2),
+        "median_half_width_95": float(np.median(pred[:, 4] - pred[:, 3]) / 2),
+    }
     out["by_class"] = {}
     for c, name in enumerate(_CLASSES):
         m = label == c
         if np.any(m):
-            out["by_class"][name] = {"samples": int(m.sum()), "median_abs_log10_error": float(np.median(err[m])),
-                                     "coverage_68": float(np.mean(in68[m])), "coverage_95": float(np.mean(in95[m]))}
+            out["by_class"][name] = {
+                "samples": int(m.sum()),
+                "median_abs_log10_error": float(np.median(err[m])),
+                "coverage_68": float(np.mean(in68[m])),
+                "coverage_95": float(np.mean(in95[m])),
+            }
     if n_boot >= 2:
         out["se"] = em._bootstrap(scalars, draw, n_boot, seed)
     return out
@@ -180,15 +212,33 @@ def _identifiable(s: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: v[keep] for k, v in s.items() if isinstance(v, np.ndarray) and len(v) == len(keep)}
 
 
-def run(out: Path, parts: Sequence[str], *, train_draws: int, test_draws: int, trials: int, train_seed: int,
-        test_seed: int, n_boot: int, progress: bool) -> dict[str, Any]:
+def run(
+    out: Path,
+    parts: Sequence[str],
+    *,
+    train_draws: int,
+    test_draws: int,
+    trials: int,
+    train_seed: int,
+    test_seed: int,
+    n_boot: int,
+    progress: bool,
+) -> dict[str, Any]:
     """Simulate what is missing (the :mod:`ceiling` caches), fit and score every part; the report."""
     from classifier.features import load_spec
 
     t0 = time.perf_counter()
     epsilon = float(ce._shipped(ce.SHIPPED["a"]).rule["epsilon"])
-    for c, n in ce.caches_for(out, parts, sizes=[train_draws], test_draws=test_draws, trials=trials,
-                              train_seed=train_seed, test_seed=test_seed, epsilon=epsilon):
+    for c, n in ce.caches_for(
+        out,
+        parts,
+        sizes=[train_draws],
+        test_draws=test_draws,
+        trials=trials,
+        train_seed=train_seed,
+        test_seed=test_seed,
+        epsilon=epsilon,
+    ):
         c.fill(n, None, progress)
     sim_s = time.perf_counter() - t0
     results: dict[str, Any] = {}
@@ -200,14 +250,21 @@ def run(out: Path, parts: Sequence[str], *, train_draws: int, test_draws: int, t
         if prior in ce.DATASET_PRIORS:
             train_all = ce.dataset_set(out, spec, prior, train_seed, train_draws, trials, epsilon, progress=progress)
         else:
-            train_all = ce.load_set(ce.FeatureCache(out / "cache", spec, source, train_seed, trials, epsilon, prior),
-                                    train_draws)
+            train_all = ce.load_set(
+                ce.FeatureCache(out / "cache", spec, source, train_seed, trials, epsilon, prior), train_draws
+            )
         keep = (train_all.draw < train_draws) & (train_all.status == 0)
         train = ce.subset(train_all, np.flatnonzero(keep))
         mdl = ce._shipped(ce.SHIPPED[p])
         t1 = time.perf_counter()
-        res: dict[str, Any] = {"spec": spec_name, "train_source": source, "train_prior": prior,
-                               "shipped": ce.SHIPPED[p], "text": ce.PART_TEXT[p], "pools": {}}
+        res: dict[str, Any] = {
+            "spec": spec_name,
+            "train_source": source,
+            "train_prior": prior,
+            "shipped": ce.SHIPPED[p],
+            "text": ce.PART_TEXT[p],
+            "pools": {},
+        }
         for pool in ce.POOLS:
             ts = _identifiable(ce.pool_samples(test, pool, test_seed))
             trs = ce.pool_samples(train, pool, train_seed, per_draw=ce.TRAIN_POOLED_PER_DRAW)
@@ -215,14 +272,20 @@ def run(out: Path, parts: Sequence[str], *, train_draws: int, test_draws: int, t
             pred = np.full((len(truth), len(QUANTILES)), np.nan)
             for c in range(len(_CLASSES)):
                 m, mt = ts["y"] == c, trs["y"] == c
-                models = fit_quantiles(ce.design(spec, trs["x"][mt], cols, True), np.log10(trs["magnitude"][mt]),
-                                       trs["draw"][mt], seed=train_seed)
+                models = fit_quantiles(
+                    ce.design(spec, trs["x"][mt], cols, True),
+                    np.log10(trs["magnitude"][mt]),
+                    trs["draw"][mt],
+                    seed=train_seed,
+                )
                 pred[m] = predict_quantiles(models, ce.design(spec, ts["x"][m], cols, True))
             shipped = _shipped_intervals(mdl, spec, ts["x"], pool, ts["y"])
             res["pools"][str(pool)] = {
-                "test_samples": int(len(truth)), "train_samples": int(len(trs["y"])),
+                "test_samples": int(len(truth)),
+                "train_samples": int(len(trs["y"])),
                 "quantile_gb": interval_metrics(pred, truth, ts["y"], ts["draw"], n_boot=n_boot, seed=test_seed),
-                "shipped": interval_metrics(shipped, truth, ts["y"], ts["draw"], n_boot=n_boot, seed=test_seed)}
+                "shipped": interval_metrics(shipped, truth, ts["y"], ts["draw"], n_boot=n_boot, seed=test_seed),
+            }
         res["fit_seconds"] = time.perf_counter() - t1
         if prior in ce.DATASET_PRIORS:
             res["train_prior_fields"] = ce.dataset_prior(prior, spec, epsilon).to_dict()
@@ -232,20 +295,36 @@ def run(out: Path, parts: Sequence[str], *, train_draws: int, test_draws: int, t
     import classifier
     import torchdoct
 
-    return {"versions": {"classifier": classifier.__version__, "torchdoct": torchdoct.__version__,
-                         "sklearn": sklearn.__version__},
-            "command": command_line(parts, train_draws, test_draws, trials, train_seed, test_seed, n_boot),
-            "test_seed": int(test_seed), "train_seed": int(train_seed), "test_draws": int(test_draws),
-            "train_draws": int(train_draws), "trials_per_draw": int(trials), "pools": list(ce.POOLS),
-            "quantiles": list(QUANTILES), "gbr_params": GBR_PARAMS, "n_boot": int(n_boot), "prior": em.PRIOR_TEXT,
-            "simulation": em.SIM_TEXT, "targets": em.TARGETS["magnitude_pool_1"], "parts": results,
-            "seconds": {"simulation": sim_s, "fits": {p: r["fit_seconds"] for p, r in results.items()}}}
+    return {
+        "versions": {
+            "classifier": classifier.__version__,
+            "torchdoct": torchdoct.__version__,
+            "sklearn": sklearn.__version__,
+        },
+        "command": command_line(parts, train_draws, test_draws, trials, train_seed, test_seed, n_boot),
+        "test_seed": int(test_seed),
+        "train_seed": int(train_seed),
+        "test_draws": int(test_draws),
+        "train_draws": int(train_draws),
+        "trials_per_draw": int(trials),
+        "pools": list(ce.POOLS),
+        "quantiles": list(QUANTILES),
+        "gbr_params": GBR_PARAMS,
+        "n_boot": int(n_boot),
+        "prior": em.PRIOR_TEXT,
+        "simulation": em.SIM_TEXT,
+        "targets": em.TARGETS["magnitude_pool_1"],
+        "parts": results,
+        "seconds": {"simulation": sim_s, "fits": {p: r["fit_seconds"] for p, r in results.items()}},
+    }
 
 
 def command_line(parts, train_draws, test_draws, trials, train_seed, test_seed, n_boot) -> str:
-    return (f"python -m tests.reference.magnitude_ceiling --out DIR --parts {','.join(parts)} --train-draws "
-            f"{train_draws} --test-draws {test_draws} --trials {trials} --train-seed {train_seed} --test-seed "
-            f"{test_seed} --boot {n_boot}")
+    return (
+        f"python -m tests.reference.magnitude_ceiling --out DIR --parts {','.join(parts)} --train-draws "
+        f"{train_draws} --test-draws {test_draws} --trials {trials} --train-seed {train_seed} --test-seed "
+        f"{test_seed} --boot {n_boot}"
+    )
 
 
 def _f(v: Any, d: int = 3) -> str:
@@ -260,50 +339,77 @@ def _pm(r: dict[str, Any], key: str) -> str:
 def format_markdown(rep: dict[str, Any]) -> str:
     t = rep["targets"]
     cmd = rep["command"]
-    L = ["# The ceiling of the motion magnitude on independent data", "",
-         f"Test set: {rep['test_draws']} draws × {rep['trials_per_draw']} pixels of the independent prior, seed "
-         f"{rep['test_seed']} (the set of the `*-independent.md` reports), {rep['simulation']}; identifiable pixels, "
-         f"the head of the true class. Prior: {rep['prior']}.", "",
-         f"Regressors: per part, pool and motion class, HistGradientBoostingRegressor with the quantile loss at "
-         f"{', '.join(f'{q:g}' for q in rep['quantiles'])} (the conditional median and the ends of the central "
-         "68.27 % and 95.45 % intervals; " + ", ".join(f"{k}={v}" for k, v in rep["gbr_params"].items())
-         + f"; one thread), trained on the identifiable pixels of the first {rep['train_draws']} draws of the part's "
-         f"training data (seed {rep['train_seed']}), inputs the features and their contrasts (`ceiling.design`). "
-         "The shipped model: its head of the true class, mean ± SD and ± 1.96 SD, on the same pixels. ± = "
-         f"bootstrap SE over test draws ({rep['n_boot']} resamples).", "",
-         f"Every number below comes from one command: `{cmd}` (DIR: any directory; the features are cached there "
-         "and shared with `tests.reference.ceiling`).", "",
-         f"## Pool 1 (goals: median |log10 error| ≤ {t['median_abs_log10_error']}, 68 % interval holding "
-         f"{t['coverage_68'][0]}-{t['coverage_68'][1]}, 95 % holding {t['coverage_95'][0]}-{t['coverage_95'][1]})", "",
-         "| part | training prior | model | median abs. log10 error | diffusion / ballistic / flow | 68 % coverage "
-         "| 95 % coverage | median half-width 68 % |", "|---|---|---|---:|---|---:|---:|---:|"]
+    L = [
+        "# The ceiling of the motion magnitude on independent data",
+        "",
+        f"Test set: {rep['test_draws']} draws × {rep['trials_per_draw']} pixels of the independent prior, seed "
+        f"{rep['test_seed']} (the set of the `*-independent.md` reports), {rep['simulation']}; identifiable pixels, "
+        f"the head of the true class. Prior: {rep['prior']}.",
+        "",
+        f"Regressors: per part, pool and motion class, HistGradientBoostingRegressor with the quantile loss at "
+        f"{', '.join(f'{q:g}' for q in rep['quantiles'])} (the conditional median and the ends of the central "
+        "68.27 % and 95.45 % intervals; "
+        + ", ".join(f"{k}={v}" for k, v in rep["gbr_params"].items())
+        + f"; one thread), trained on the identifiable pixels of the first {rep['train_draws']} draws of the part's "
+        f"training data (seed {rep['train_seed']}), inputs the features and their contrasts (`ceiling.design`). "
+        "The shipped model: its head of the true class, mean ± SD and ± 1.96 SD, on the same pixels. ± = "
+        f"bootstrap SE over test draws ({rep['n_boot']} resamples).",
+        "",
+        f"Every number below comes from one command: `{cmd}` (DIR: any directory; the features are cached there "
+        "and shared with `tests.reference.ceiling`).",
+        "",
+        f"## Pool 1 (goals: median |log10 error| ≤ {t['median_abs_log10_error']}, 68 % interval holding "
+        f"{t['coverage_68'][0]}-{t['coverage_68'][1]}, 95 % holding {t['coverage_95'][0]}-{t['coverage_95'][1]})",
+        "",
+        "| part | training prior | model | median abs. log10 error | diffusion / ballistic / flow | 68 % coverage "
+        "| 95 % coverage | median half-width 68 % |",
+        "|---|---|---|---:|---|---:|---:|---:|",
+    ]
 
     def row(p: str, res: dict[str, Any], pool: str) -> list[str]:
         rows = []
         for key, name in (("quantile_gb", "quantile GB"), ("shipped", f"shipped `{res['shipped']}`")):
             r = res["pools"][pool][key]
-            rows.append(f"| {p} | {res['train_prior']} | {name} | {_pm(r, 'median_abs_log10_error')} | "
-                        + " / ".join(_f(r["by_class"].get(c, {}).get("median_abs_log10_error")) for c in _CLASSES)
-                        + f" | {_pm(r, 'coverage_68')} | {_pm(r, 'coverage_95')} | {_f(r['median_half_width_68'])} |")
+            rows.append(
+                f"| {p} | {res['train_prior']} | {name} | {_pm(r, 'median_abs_log10_error')} | "
+                + " / ".join(_f(r["by_class"].get(c, {}).get("median_abs_log10_error")) for c in _CLASSES)
+                + f" | {_pm(r, 'coverage_68')} | {_pm(r, 'coverage_95')} | {_f(r['median_half_width_68'])} |"
+            )
         return rows
 
     for p, res in rep["parts"].items():
         L += row(p, res, "1")
     L += ["", "Parts: " + "; ".join(f"**{p}** {res['text']}" for p, res in rep["parts"].items()) + ".", ""]
     L += findings(rep) + [""]
-    L += ["## Pool 25", "", "| part | training prior | model | median abs. log10 error | diffusion / ballistic / "
-          "flow | 68 % coverage | 95 % coverage | median half-width 68 % |", "|---|---|---|---:|---|---:|---:|---:|"]
+    L += [
+        "## Pool 25",
+        "",
+        "| part | training prior | model | median abs. log10 error | diffusion / ballistic / "
+        "flow | 68 % coverage | 95 % coverage | median half-width 68 % |",
+        "|---|---|---|---:|---|---:|---:|---:|",
+    ]
     for p, res in rep["parts"].items():
         L += row(p, res, "25")
-    L += ["", "## 68 % coverage by motion class (pool 1)", "",
-          "| part | model | diffusion | ballistic | flow |", "|---|---|---:|---:|---:|"]
+    L += [
+        "",
+        "## 68 % coverage by motion class (pool 1)",
+        "",
+        "| part | model | diffusion | ballistic | flow |",
+        "|---|---|---:|---:|---:|",
+    ]
     for p, res in rep["parts"].items():
         for key, name in (("quantile_gb", "quantile GB"), ("shipped", f"shipped `{res['shipped']}`")):
             bc = res["pools"]["1"][key]["by_class"]
             L.append(f"| {p} | {name} | " + " | ".join(_f(bc.get(c, {}).get("coverage_68")) for c in _CLASSES) + " |")
-    L += ["", f"Reproduce: `{cmd}`.", "",
-          f"Cost: simulation of what was not cached {rep['seconds']['simulation']:.0f} s; fits and scores (wall) "
-          + ", ".join(f"{p} {v:.0f} s" for p, v in rep["seconds"]["fits"].items()) + ".", ""]
+    L += [
+        "",
+        f"Reproduce: `{cmd}`.",
+        "",
+        f"Cost: simulation of what was not cached {rep['seconds']['simulation']:.0f} s; fits and scores (wall) "
+        + ", ".join(f"{p} {v:.0f} s" for p, v in rep["seconds"]["fits"].items())
+        + ".",
+        "",
+    ]
     return "\n".join(L)
 
 
@@ -318,16 +424,20 @@ def findings(rep: dict[str, Any]) -> list[str]:
     for p, res in rep["parts"].items():
         g, s = res["pools"]["1"]["quantile_gb"], res["pools"]["1"]["shipped"]
         err, c68, c95 = g["median_abs_log10_error"], g["coverage_68"], g["coverage_95"]
-        kind = ("the matched prior: the best the features give when the test prior is known"
-                if res["train_prior"] in ("matched", "shared") else
-                "a prior a model for unknown samples can be trained on: intervals calibrated honestly on it")
-        L.append(f"- **{p}** ({kind}): median |log10 error| {err:.3f} ± {g.get('se', {}).get('median_abs_log10_error', 0):.3f} "
-                 f"({'meets' if err <= t['median_abs_log10_error'] else 'above'} the goal "
-                 f"{t['median_abs_log10_error']}); 68 % / 95 % intervals hold {c68:.3f} / {c95:.3f} "
-                 f"({_inside(c68, t['coverage_68'])} / {_inside(c95, t['coverage_95'])} "
-                 f"{t['coverage_68'][0]}-{t['coverage_68'][1]} / {t['coverage_95'][0]}-{t['coverage_95'][1]}); "
-                 f"shipped `{res['shipped']}` on the same pixels {s['median_abs_log10_error']:.3f}, "
-                 f"{s['coverage_68']:.3f} / {s['coverage_95']:.3f}.")
+        kind = (
+            "the matched prior: the best the features give when the test prior is known"
+            if res["train_prior"] in ("matched", "shared")
+            else "a prior a model for unknown samples can be trained on: intervals calibrated honestly on it"
+        )
+        L.append(
+            f"- **{p}** ({kind}): median |log10 error| {err:.3f} ± {g.get('se', {}).get('median_abs_log10_error', 0):.3f} "
+            f"({'meets' if err <= t['median_abs_log10_error'] else 'above'} the goal "
+            f"{t['median_abs_log10_error']}); 68 % / 95 % intervals hold {c68:.3f} / {c95:.3f} "
+            f"({_inside(c68, t['coverage_68'])} / {_inside(c95, t['coverage_95'])} "
+            f"{t['coverage_68'][0]}-{t['coverage_68'][1]} / {t['coverage_95'][0]}-{t['coverage_95'][1]}); "
+            f"shipped `{res['shipped']}` on the same pixels {s['median_abs_log10_error']:.3f}, "
+            f"{s['coverage_68']:.3f} / {s['coverage_95']:.3f}."
+        )
     return L
 
 
@@ -336,9 +446,11 @@ def _summary(rep: dict[str, Any]) -> str:
     for p, res in rep["parts"].items():
         for key in ("quantile_gb", "shipped"):
             r = res["pools"]["1"][key]
-            lines.append(f"part {p} ({res['train_prior']}) {key}: pool 1 median |log10 error| "
-                         f"{r['median_abs_log10_error']:.3f}, 68 % / 95 % coverage {r['coverage_68']:.3f} / "
-                         f"{r['coverage_95']:.3f}")
+            lines.append(
+                f"part {p} ({res['train_prior']}) {key}: pool 1 median |log10 error| "
+                f"{r['median_abs_log10_error']:.3f}, 68 % / 95 % coverage {r['coverage_68']:.3f} / "
+                f"{r['coverage_95']:.3f}"
+            )
     return "\n".join(lines)
 
 
@@ -347,10 +459,12 @@ def write_report(rep: dict[str, Any], out: Path, force: bool = False) -> list[Pa
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m tests.reference.magnitude_ceiling",
-                                 description="Ceiling of the motion magnitude on the independent data: quantile "
-                                             "gradient boosting per motion class. Writes "
-                                             "<out>/independent-magnitude-ceiling.json and .md.")
+    ap = argparse.ArgumentParser(
+        prog="python -m tests.reference.magnitude_ceiling",
+        description="Ceiling of the motion magnitude on the independent data: quantile "
+        "gradient boosting per motion class. Writes "
+        "<out>/independent-magnitude-ceiling.json and .md.",
+    )
     ap.add_argument("--out", required=True, help="output directory (also holds the feature cache, <out>/cache)")
     ap.add_argument("--parts", default=",".join(DEFAULT_PARTS), help=f"parts among {list(ce.PARTS)}")
     ap.add_argument("--train-draws", type=int, default=DEFAULT_TRAIN_DRAWS)
@@ -378,9 +492,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         import torch
 
         torch.set_num_threads(1)
-        rep = run(out, parts, train_draws=args.train_draws, test_draws=args.test_draws, trials=args.trials,
-                  train_seed=args.train_seed, test_seed=args.test_seed, n_boot=args.boot,
-                  progress=not args.no_progress)
+        rep = run(
+            out,
+            parts,
+            train_draws=args.train_draws,
+            test_draws=args.test_draws,
+            trials=args.trials,
+            train_seed=args.train_seed,
+            test_seed=args.test_seed,
+            n_boot=args.boot,
+            progress=not args.no_progress,
+        )
         paths = write_report(rep, out, force=args.force)
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -26,8 +26,22 @@ import numpy as np
 import refsim
 from scipy import special
 
-__all__ = ["FAMILY_ALPHA", "CONFIGS", "RHO_LIN_LAGS", "FIELD_LAGS", "NAMES", "DENSITY", "N_FRAMES", "DT",
-           "CELLS", "z_bound", "reference_features", "torchdoct_features", "compare", "format_failures"]
+__all__ = [
+    "FAMILY_ALPHA",
+    "CONFIGS",
+    "RHO_LIN_LAGS",
+    "FIELD_LAGS",
+    "NAMES",
+    "DENSITY",
+    "N_FRAMES",
+    "DT",
+    "CELLS",
+    "z_bound",
+    "reference_features",
+    "torchdoct_features",
+    "compare",
+    "format_failures",
+]
 
 #: Family-wise false-alarm rate of one comparison test (over all its features and configurations).
 FAMILY_ALPHA = 1e-3
@@ -43,9 +57,16 @@ _S = _spec()
 #: (name, wavelength µm, lateral 1/e² width along x µm, axial FWHM µm, lateral width along y µm or None
 #: = as x): the signature spec's three configurations (indices 0-2), then a B-scan's x-only lateral
 #: reduction to 18 µm that keeps 4.9 µm along y (index 3).
-CONFIGS = tuple((c["name"], c["wavelength_um"], c["lateral_resolution_um"], c["axial_resolution_um"],
-                 c.get("lateral_resolution_y_um")) for c in _S["configuration"]) + (
-    ("lateral=18 x-only", 0.84, 18.0, 3.8, 4.9),)
+CONFIGS = tuple(
+    (
+        c["name"],
+        c["wavelength_um"],
+        c["lateral_resolution_um"],
+        c["axial_resolution_um"],
+        c.get("lateral_resolution_y_um"),
+    )
+    for c in _S["configuration"]
+) + (("lateral=18 x-only", 0.84, 18.0, 3.8, 4.9),)
 RHO_LIN_LAGS = tuple(int(m.rsplit("_", 1)[1]) for m in _S["metrics"] if m.startswith("rho_lin_"))
 FIELD_LAGS = (1, 2, 3, 4, 6, 8)  # torchdoct.sim.signature.DEFAULT_FIELD_LAGS (the field group's lags)
 N_FRAMES = int(_S["protocol"]["n_frames"])
@@ -118,12 +139,20 @@ def _torch_features(signals, names: Sequence[str] = NAMES) -> dict[str, np.ndarr
 
 
 @functools.cache
-def reference_features(cell: str, trials: int, seed: int = 20261201,
-                       configs: tuple[int, ...] = (0, 1, 2)) -> dict[str, np.ndarray]:
+def reference_features(
+    cell: str, trials: int, seed: int = 20261201, configs: tuple[int, ...] = (0, 1, 2)
+) -> dict[str, np.ndarray]:
     """Features ``{name: [trials, configs]}`` of the reference simulator's fields for ``cell`` at the
     configurations ``configs`` (indices into :data:`CONFIGS`; cached per session)."""
-    e = refsim.simulate(_optics(configs), _motion(cell), density_per_um3=DENSITY, n_frames=N_FRAMES, frame_interval_s=DT,
-                        trials=trials, seed=seed)
+    e = refsim.simulate(
+        _optics(configs),
+        _motion(cell),
+        density_per_um3=DENSITY,
+        n_frames=N_FRAMES,
+        frame_interval_s=DT,
+        trials=trials,
+        seed=seed,
+    )
     return _torch_features(e)
 
 
@@ -138,23 +167,47 @@ def torchdoct_scene(cell: str, configs: Sequence[int] = (0, 1, 2)):
         motion = td.RandomBallistic(speed_um_per_s=m.speed_um_per_s, directions=m.directions)
     else:
         motion = td.Diffusion(diffusion_um2_per_s=m.diffusion_um2_per_s)
-    systems = tuple(td.OCTSystem(name=n, wavelength_um=wl, lateral_resolution_um=lat, axial_resolution_um=ax,
-                                 **({} if lat_y is None else {"lateral_resolution_y_um": lat_y}))
-                    for n, wl, lat, ax, lat_y in (CONFIGS[i] for i in configs))
-    return td.Scene(systems=systems, protocol=td.Protocol(n_frames=N_FRAMES, frame_interval_s=DT),
-                    populations=(td.Population(density_per_um3=DENSITY, motion=(motion,)),), name=cell)
+    systems = tuple(
+        td.OCTSystem(
+            name=n,
+            wavelength_um=wl,
+            lateral_resolution_um=lat,
+            axial_resolution_um=ax,
+            **({} if lat_y is None else {"lateral_resolution_y_um": lat_y}),
+        )
+        for n, wl, lat, ax, lat_y in (CONFIGS[i] for i in configs)
+    )
+    return td.Scene(
+        systems=systems,
+        protocol=td.Protocol(n_frames=N_FRAMES, frame_interval_s=DT),
+        populations=(td.Population(density_per_um3=DENSITY, motion=(motion,)),),
+        name=cell,
+    )
 
 
-def torchdoct_features(cell: str, trials: int, *, seed: int = 7, dtype: str = "float32",
-                       truncation_tolerance: float | None = None, configs: Sequence[int] = (0, 1, 2),
-                       **simulate_kw) -> dict[str, np.ndarray]:
+def torchdoct_features(
+    cell: str,
+    trials: int,
+    *,
+    seed: int = 7,
+    dtype: str = "float32",
+    truncation_tolerance: float | None = None,
+    configs: Sequence[int] = (0, 1, 2),
+    **simulate_kw,
+) -> dict[str, np.ndarray]:
     """Features of torchdoct's fields for ``cell`` (``truncation_tolerance=None``: the scene default)."""
     import torch
 
     import torchdoct as td
 
-    res = td.simulate(torchdoct_scene(cell, configs), trials=trials, seed=seed, dtype=dtype,
-                      truncation_tolerance=truncation_tolerance, **simulate_kw)
+    res = td.simulate(
+        torchdoct_scene(cell, configs),
+        trials=trials,
+        seed=seed,
+        dtype=dtype,
+        truncation_tolerance=truncation_tolerance,
+        **simulate_kw,
+    )
     return _torch_features(res.signals.to(torch.complex128))
 
 
@@ -167,13 +220,29 @@ def compare(a: dict[str, np.ndarray], b: dict[str, np.ndarray], configs: Sequenc
             fx, fy = x[np.isfinite(x)], y[np.isfinite(y)]
             se = math.hypot(fx.std(ddof=1) / math.sqrt(fx.size), fy.std(ddof=1) / math.sqrt(fy.size))
             d = float(fx.mean() - fy.mean())
-            rows.append({"feature": name, "config": cname, "a": float(fx.mean()), "b": float(fy.mean()),
-                         "bias": d, "se": se, "z": d / se if se > 0 else (0.0 if d == 0 else math.inf),
-                         "nan_a": int(x.size - fx.size), "nan_b": int(y.size - fy.size)})
+            rows.append(
+                {
+                    "feature": name,
+                    "config": cname,
+                    "a": float(fx.mean()),
+                    "b": float(fy.mean()),
+                    "bias": d,
+                    "se": se,
+                    "z": d / se if se > 0 else (0.0 if d == 0 else math.inf),
+                    "nan_a": int(x.size - fx.size),
+                    "nan_b": int(y.size - fy.size),
+                }
+            )
     return rows
 
 
 def format_failures(rows: list[dict], bound: float, top: int = 8) -> str:
     worst = sorted(rows, key=lambda r: -abs(r["z"]))[:top]
-    return "; ".join(f"{r['feature']}@{r['config']}: {r['a']:.5g} vs {r['b']:.5g} (bias {r['bias']:+.2g} ± "
-                     f"{r['se']:.2g}, z {r['z']:+.1f})" for r in worst) + f"; |z| bound {bound:.2f}"
+    return (
+        "; ".join(
+            f"{r['feature']}@{r['config']}: {r['a']:.5g} vs {r['b']:.5g} (bias {r['bias']:+.2g} ± "
+            f"{r['se']:.2g}, z {r['z']:+.1f})"
+            for r in worst
+        )
+        + f"; |z| bound {bound:.2f}"
+    )

@@ -52,8 +52,18 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import special
 
-__all__ = ["BOX_SIGMAS", "BLOCK", "Optics", "Motion", "box_lengths_um", "neglected_field_fraction",
-           "mean_intensity", "simulate", "features", "feature_names"]
+__all__ = [
+    "BOX_SIGMAS",
+    "BLOCK",
+    "Optics",
+    "Motion",
+    "box_lengths_um",
+    "neglected_field_fraction",
+    "mean_intensity",
+    "simulate",
+    "features",
+    "feature_names",
+]
 
 #: Half-width of the scatterer box beyond the motion margin, in amplitude-PSF sigmas per axis.
 BOX_SIGMAS = 6.0
@@ -77,8 +87,11 @@ class Optics:
     def sigmas_um(self) -> tuple[float, float, float]:
         """Amplitude-PSF sigmas (s_x, s_y, s_z): Δx/(2√2), Δy/(2√2), Δz/(2√ln2) (physics.md §5.1)."""
         dy = self.lateral_resolution_um if self.lateral_y_um is None else self.lateral_y_um
-        return (self.lateral_resolution_um / (2.0 * math.sqrt(2.0)), dy / (2.0 * math.sqrt(2.0)),
-                self.axial_resolution_um / (2.0 * math.sqrt(math.log(2.0))))
+        return (
+            self.lateral_resolution_um / (2.0 * math.sqrt(2.0)),
+            dy / (2.0 * math.sqrt(2.0)),
+            self.axial_resolution_um / (2.0 * math.sqrt(math.log(2.0))),
+        )
 
     @property
     def kn(self) -> float:
@@ -145,8 +158,17 @@ def _directions(rng: np.random.Generator, n: int, law: str) -> np.ndarray:
     return np.stack([st * np.cos(phi), st * np.sin(phi), mu], axis=1)
 
 
-def _block(optics: Optics, motion: Motion, density: float, times: np.ndarray, trials: int, rng: np.random.Generator,
-           reflectivity: float, snr_db: float | None, box_sigmas: float) -> np.ndarray:
+def _block(
+    optics: Optics,
+    motion: Motion,
+    density: float,
+    times: np.ndarray,
+    trials: int,
+    rng: np.random.Generator,
+    reflectivity: float,
+    snr_db: float | None,
+    box_sigmas: float,
+) -> np.ndarray:
     L = box_lengths_um(optics, motion, float(times[-1] - times[0]), box_sigmas)
     counts = rng.poisson(density * float(np.prod(L)), size=trials)
     m = int(counts.sum())
@@ -175,8 +197,9 @@ def _block(optics: Optics, motion: Motion, density: float, times: np.ndarray, tr
         p = pos - L * np.floor(pos / L + 0.5)  # periodic wrap into [−L/2, L/2)
         amp = np.exp(-(p * p) @ w) * reflectivity
         ph = two_kn * p[:, 2]
-        out[:, i] = (np.bincount(owner, weights=amp * np.cos(ph), minlength=trials)
-                     + 1j * np.bincount(owner, weights=amp * np.sin(ph), minlength=trials))
+        out[:, i] = np.bincount(owner, weights=amp * np.cos(ph), minlength=trials) + 1j * np.bincount(
+            owner, weights=amp * np.sin(ph), minlength=trials
+        )
     if snr_db is not None:
         n0 = mean_intensity(optics, density, reflectivity) / 10.0 ** (snr_db / 10.0)
         sd = math.sqrt(n0 / 2.0)
@@ -184,9 +207,19 @@ def _block(optics: Optics, motion: Motion, density: float, times: np.ndarray, tr
     return out
 
 
-def simulate(optics: Optics | Sequence[Optics], motion: Motion, *, density_per_um3: float, n_frames: int,
-             frame_interval_s: float, trials: int, seed: int, reflectivity: float = 1.0,
-             snr_db: float | None = None, box_sigmas: float = BOX_SIGMAS) -> np.ndarray:
+def simulate(
+    optics: Optics | Sequence[Optics],
+    motion: Motion,
+    *,
+    density_per_um3: float,
+    n_frames: int,
+    frame_interval_s: float,
+    trials: int,
+    seed: int,
+    reflectivity: float = 1.0,
+    snr_db: float | None = None,
+    box_sigmas: float = BOX_SIGMAS,
+) -> np.ndarray:
     """Complex signals ``[trials, systems, frames]`` (complex128) of the module's model.
 
     ``optics``: one system or a sequence (each with its own, independent scatterers). Frames at
@@ -200,7 +233,7 @@ def simulate(optics: Optics | Sequence[Optics], motion: Motion, *, density_per_u
             rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(s, k)))
             e = _block(opt, motion, density_per_um3, times, BLOCK, rng, reflectivity, snr_db, box_sigmas)
             lo = k * BLOCK
-            out[lo:lo + BLOCK, s] = e[: trials - lo]
+            out[lo : lo + BLOCK, s] = e[: trials - lo]
     return out
 
 
@@ -210,9 +243,13 @@ def simulate(optics: Optics | Sequence[Optics], motion: Motion, *, density_per_u
 
 def feature_names(rho_lin_lags: Sequence[int], field_lags: Sequence[int]) -> tuple[str, ...]:
     """Every feature a shipped model reads or the field group offers, plus LIV and OCDS."""
-    return (tuple(f"rho_lin_{m}" for m in rho_lin_lags) + ("lin_contrast", "db_variance")
-            + tuple(f"g1_{m}" for m in field_lags) + tuple(f"g1_phase_{m}" for m in field_lags)
-            + ("phase_ramp", "liv", "ocds"))
+    return (
+        tuple(f"rho_lin_{m}" for m in rho_lin_lags)
+        + ("lin_contrast", "db_variance")
+        + tuple(f"g1_{m}" for m in field_lags)
+        + tuple(f"g1_phase_{m}" for m in field_lags)
+        + ("phase_ramp", "liv", "ocds")
+    )
 
 
 def _pearson(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -221,8 +258,9 @@ def _pearson(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a * b).mean(-1) / np.sqrt((a * a).mean(-1) * (b * b).mean(-1))
 
 
-def features(e: np.ndarray, frame_interval_s: float, names: Sequence[str],
-             ocds_lags: Sequence[int] = (1, 2, 3, 4, 5, 6)) -> dict[str, np.ndarray]:
+def features(
+    e: np.ndarray, frame_interval_s: float, names: Sequence[str], ocds_lags: Sequence[int] = (1, 2, 3, 4, 5, 6)
+) -> dict[str, np.ndarray]:
     """Features of complex signals ``e [..., T]`` by name (numpy, float64).
 
     ``rho_lin_m``: Pearson correlation of I = |E|² between frames i and i+m (the T − m pairs);
@@ -259,7 +297,7 @@ def features(e: np.ndarray, frame_interval_s: float, names: Sequence[str],
             out[name] = z.real / np.abs(z)
         elif name == "ocds":
             lags = np.asarray(ocds_lags, dtype=np.float64)
-            rho = np.stack([_pearson(db[..., : n - int(m)], db[..., int(m):]) for m in ocds_lags], -1)
+            rho = np.stack([_pearson(db[..., : n - int(m)], db[..., int(m) :]) for m in ocds_lags], -1)
             x = (lags - lags.mean()) * frame_interval_s
             out[name] = -(rho * x).sum(-1) / (x * x).sum()
         else:

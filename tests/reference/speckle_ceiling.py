@@ -57,9 +57,14 @@ def draw_params(k: int, seed: int) -> dict:
 
     def logu(lo, hi):
         return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+
     if cls == "flow":
-        return {"motion": "flow", "speed_um_s": logu(*FLOW_UM_S),
-                "polar_deg": math.degrees(math.acos(rng.uniform(-1.0, 1.0))), "azimuth_deg": rng.uniform(0, 360)}
+        return {
+            "motion": "flow",
+            "speed_um_s": logu(*FLOW_UM_S),
+            "polar_deg": math.degrees(math.acos(rng.uniform(-1.0, 1.0))),
+            "azimuth_deg": rng.uniform(0, 360),
+        }
     if cls == "ballistic":
         return {"motion": "ballistic", "speed_um_s": logu(*BALLISTIC_UM_S)}
     return {"motion": "diffusion", "diffusion_um2_s": logu(*DIFFUSION_UM2_S)}
@@ -73,19 +78,31 @@ def features(k: int, seed: int, window: int, snr_db: float | None) -> dict[str, 
 
     p = draw_params(k, seed)
     t0 = time.perf_counter()
-    e = simulate_patch(trials=1, seed=seed * 1_000_003 + k, shape=SHAPE, pitch_um=(PITCH_UM, PITCH_UM),
-                       n_frames=N_FRAMES, frame_interval_s=DT_S, snr_db=snr_db, **p)[0]  # [T, Z, X]
+    e = simulate_patch(
+        trials=1,
+        seed=seed * 1_000_003 + k,
+        shape=SHAPE,
+        pitch_um=(PITCH_UM, PITCH_UM),
+        n_frames=N_FRAMES,
+        frame_interval_s=DT_S,
+        snr_db=snr_db,
+        **p,
+    )[0]  # [T, Z, X]
     sim_s = time.perf_counter() - t0
     times = [i * DT_S for i in range(N_FRAMES)]
     names = available_features(default_features(N_FRAMES), False)
     _, sig = pixel_features((e.abs() ** 2).movedim(0, -1).to(torch.float64), times, names)  # [Z, X, F]
     cz, cx = SHAPE[0] // 2, SHAPE[1] // 2
     h = window // 2
-    pooled = sig[cz - h: cz + h + 1, cx - h: cx + h + 1].reshape(-1, sig.shape[-1])
+    pooled = sig[cz - h : cz + h + 1, cx - h : cx + h + 1].reshape(-1, sig.shape[-1])
     pooled = torch.nanmean(pooled, 0)
     _, sp = speckle_motion(e[None], {"z": PITCH_UM, "x": PITCH_UM}, DT_S, window=window)
-    return {"pixel": sig[cz, cx].numpy(), "pooled": pooled.numpy(), "speckle": sp[0, :, cz, cx].numpy(),
-            "patch_seconds": sim_s}
+    return {
+        "pixel": sig[cz, cx].numpy(),
+        "pooled": pooled.numpy(),
+        "speckle": sp[0, :, cz, cx].numpy(),
+        "patch_seconds": sim_s,
+    }
 
 
 def pixel_seconds_per_trial(trials: int = 400, seed: int = 0) -> dict[str, float]:
@@ -95,13 +112,20 @@ def pixel_seconds_per_trial(trials: int = 400, seed: int = 0) -> dict[str, float
     from torchdoct.sim.simulate import simulate
 
     system = OCTSystem(name="840nm-high", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)
-    motions = {"diffusion": Diffusion(diffusion_um2_per_s=0.01), "ballistic": RandomBallistic(speed_um_per_s=0.05),
-               "flow": Flow(speed_um_per_s=0.3, polar_angle_deg=45.0)}
+    motions = {
+        "diffusion": Diffusion(diffusion_um2_per_s=0.01),
+        "ballistic": RandomBallistic(speed_um_per_s=0.05),
+        "flow": Flow(speed_um_per_s=0.3, polar_angle_deg=45.0),
+    }
     out = {}
     for name, m in motions.items():
-        scene = Scene(systems=(system,), protocol=Protocol(n_frames=N_FRAMES, frame_interval_s=DT_S),
-                      analysis=Analysis(metrics=("liv", "ocds")), name=name,
-                      populations=(Population(density_per_um3=0.055, motion=(m,)),))
+        scene = Scene(
+            systems=(system,),
+            protocol=Protocol(n_frames=N_FRAMES, frame_interval_s=DT_S),
+            analysis=Analysis(metrics=("liv", "ocds")),
+            name=name,
+            populations=(Population(density_per_um3=0.055, motion=(m,)),),
+        )
         simulate(scene, trials=8, seed=seed, dtype="float32", threads=1, progress=False)  # warm-up
         t0 = time.perf_counter()
         simulate(scene, trials=trials, seed=seed, dtype="float32", threads=1, progress=False)
@@ -124,11 +148,17 @@ def run(per_class: int, window: int, seed: int, snr_db: float | None) -> dict:
     train, test = np.arange(n) % 2 == 0, np.arange(n) % 2 == 1
     patch_s = float(sum(r["patch_seconds"] for r in rows))
     pixel = pixel_seconds_per_trial()
-    out: dict = {"per_class": per_class, "window": window, "seed": seed, "snr_db": snr_db,
-                 "simulation_seconds": sim_s, "patch_simulation_seconds_per_sample": patch_s / n,
-                 "pixel_simulation_seconds_per_sample": pixel, "priors": {"flow_um_s": FLOW_UM_S, "ballistic_um_s": BALLISTIC_UM_S,
-                                                          "diffusion_um2_s": DIFFUSION_UM2_S},
-                 "results": {}}
+    out: dict = {
+        "per_class": per_class,
+        "window": window,
+        "seed": seed,
+        "snr_db": snr_db,
+        "simulation_seconds": sim_s,
+        "patch_simulation_seconds_per_sample": patch_s / n,
+        "pixel_simulation_seconds_per_sample": pixel,
+        "priors": {"flow_um_s": FLOW_UM_S, "ballistic_um_s": BALLISTIC_UM_S, "diffusion_um2_s": DIFFUSION_UM2_S},
+        "results": {},
+    }
     for name, parts in sets.items():
         x = np.concatenate([np.stack([r[p] for r in rows]) for p in parts], axis=1).astype(np.float64)
         clf = HistGradientBoostingClassifier(random_state=0).fit(x[train], y[train])
@@ -139,9 +169,12 @@ def run(per_class: int, window: int, seed: int, snr_db: float | None) -> dict:
         conf = np.zeros((3, 3), dtype=int)
         for t, q in zip(y[test], pred):
             conf[t, q] += 1
-        out["results"][name] = {"balanced_accuracy": float(balanced_accuracy_score(y[test], pred)),
-                                "auc_flow_vs_ballistic": float(auc), "n_features": int(x.shape[1]),
-                                "confusion_true_by_predicted": conf.tolist()}
+        out["results"][name] = {
+            "balanced_accuracy": float(balanced_accuracy_score(y[test], pred)),
+            "auc_flow_vs_ballistic": float(auc),
+            "n_features": int(x.shape[1]),
+            "confusion_true_by_predicted": conf.tolist(),
+        }
     base = out["results"]["pooled"]["balanced_accuracy"]
     gain = out["results"]["pooled+speckle"]["balanced_accuracy"] - base
     extra = out["patch_simulation_seconds_per_sample"] - float(np.mean(list(pixel.values())))
@@ -151,21 +184,33 @@ def run(per_class: int, window: int, seed: int, snr_db: float | None) -> dict:
 
 
 def markdown(res: dict) -> str:
-    lines = [f"# Speckle-motion ceiling (static-free B-scan patches, window {res['window']}, "
-             f"{res['per_class']} draws per class, SNR {res['snr_db'] or 'none'})", "",
-             "| features | n | balanced accuracy | ROC AUC flow vs ballistic |", "|---|---|---|---|"]
+    lines = [
+        f"# Speckle-motion ceiling (static-free B-scan patches, window {res['window']}, "
+        f"{res['per_class']} draws per class, SNR {res['snr_db'] or 'none'})",
+        "",
+        "| features | n | balanced accuracy | ROC AUC flow vs ballistic |",
+        "|---|---|---|---|",
+    ]
     for k, v in res["results"].items():
         lines.append(f"| {k} | {v['n_features']} | {v['balanced_accuracy']:.3f} | {v['auc_flow_vs_ballistic']:.3f} |")
     pix = res["pixel_simulation_seconds_per_sample"]
-    lines += ["", f"Simulation and features: {res['simulation_seconds']:.0f} s for {3 * res['per_class']} patches "
-              "(one thread, under the machine's load at the time).", "",
-              "| cost per training sample | seconds |", "|---|---|",
-              f"| patch simulation (13 × 13 pixels, one realisation) | {res['patch_simulation_seconds_per_sample']:.4f} |"]
+    lines += [
+        "",
+        f"Simulation and features: {res['simulation_seconds']:.0f} s for {3 * res['per_class']} patches "
+        "(one thread, under the machine's load at the time).",
+        "",
+        "| cost per training sample | seconds |",
+        "|---|---|",
+        f"| patch simulation (13 × 13 pixels, one realisation) | {res['patch_simulation_seconds_per_sample']:.4f} |",
+    ]
     lines += [f"| pixel simulation, {k} (torchdoct.simulate, one pixel) | {v:.5f} |" for k, v in pix.items()]
     g = res["gain_per_extra_second_per_1000_samples"]
-    lines += ["", f"Balanced accuracy gained by the speckle features over the pooled signature: "
-              f"{res['balanced_accuracy_gain_over_pooled']:+.3f}"
-              + (f", i.e. {g:.2e} per extra second of simulation per 1000 samples." if g is not None else ".")]
+    lines += [
+        "",
+        f"Balanced accuracy gained by the speckle features over the pooled signature: "
+        f"{res['balanced_accuracy_gain_over_pooled']:+.3f}"
+        + (f", i.e. {g:.2e} per extra second of simulation per 1000 samples." if g is not None else "."),
+    ]
     return "\n".join(lines) + "\n"
 
 

@@ -31,13 +31,17 @@ def test_training_draws_are_disjoint_from_the_test_draws(tmp_path):
     for d in train:
         lo, hi = em.RANGES[d.motion]
         assert lo <= d.magnitude <= hi
-    caches = ce.caches_for(tmp_path, ["a", "b", "c"], sizes=[6, 12], test_draws=9, trials=TRIALS, train_seed=1,
-                           test_seed=0, epsilon=0.05)
+    caches = ce.caches_for(
+        tmp_path, ["a", "b", "c"], sizes=[6, 12], test_draws=9, trials=TRIALS, train_seed=1, test_seed=0, epsilon=0.05
+    )
     dirs = {c.dir.name: n for c, n in caches}
-    assert dirs == {f"refsim-signature-seed0-trials{TRIALS}": 9, f"refsim-signature-bscan-field-seed0-trials{TRIALS}": 9,
-                    f"refsim-signature-seed1-trials{TRIALS}": 12,
-                    f"refsim-signature-bscan-field-seed1-trials{TRIALS}": 12,
-                    f"torchdoct-signature-seed1-trials{TRIALS}": 12}
+    assert dirs == {
+        f"refsim-signature-seed0-trials{TRIALS}": 9,
+        f"refsim-signature-bscan-field-seed0-trials{TRIALS}": 9,
+        f"refsim-signature-seed1-trials{TRIALS}": 12,
+        f"refsim-signature-bscan-field-seed1-trials{TRIALS}": 12,
+        f"torchdoct-signature-seed1-trials{TRIALS}": 12,
+    }
     assert ce.main(["--out", str(tmp_path / "x"), "--train-seed", "0", "--test-seed", "0"]) == 2
 
 
@@ -73,9 +77,13 @@ def test_cache_resumes_to_the_same_features_and_the_fit_is_deterministic(tmp_pat
 def _samples(n_per_class: int = 60, seed: int = 0) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     y = np.repeat(np.arange(3), n_per_class)
-    return {"y": y, "status": np.zeros_like(y), "draw": np.arange(y.size) // 4,
-            "magnitude": np.where(y == 0, 1e-3, 0.2 + 2.0 * rng.random(y.size)),
-            "polar_angle_deg": np.where(y == 2, 90.0 * rng.random(y.size), np.nan)}
+    return {
+        "y": y,
+        "status": np.zeros_like(y),
+        "draw": np.arange(y.size) // 4,
+        "magnitude": np.where(y == 0, 1e-3, 0.2 + 2.0 * rng.random(y.size)),
+        "polar_angle_deg": np.where(y == 2, 90.0 * rng.random(y.size), np.nan),
+    }
 
 
 def test_a_perfect_predictor_scores_one_and_a_known_confusion_scores_exactly():
@@ -84,8 +92,9 @@ def test_a_perfect_predictor_scores_one_and_a_known_confusion_scores_exactly():
     r = ce.score(perfect, s, threshold=ce.coverage_threshold(perfect, s["status"], 1.0), n_boot=20)
     assert r["coverage"] == 1.0 and r["balanced_accuracy"] == 1.0
     assert all(v == 1.0 for v in r["recall"].values())
-    assert set(r["flow_polar_bands"]) == {"0-30", "30-60", "60-90"} and all(v == 1.0 for v in
-                                                                             r["flow_polar_bands"].values())
+    assert set(r["flow_polar_bands"]) == {"0-30", "30-60", "60-90"} and all(
+        v == 1.0 for v in r["flow_polar_bands"].values()
+    )
     assert r["se"]["balanced_accuracy"] == 0.0
     # every flow called ballistic: recalls 1 / 1 / 0, balanced accuracy 2/3, every band 0
     wrong = perfect.copy()
@@ -133,16 +142,24 @@ def test_the_shared_speed_prior_moves_only_the_speeds_to_the_same_quantile(tmp_p
         m, s = em.draw_independent(1, k), ce.draw_for("shared", 1, k)
         assert ce.draw_for("matched", 1, k) == m
         assert (s.label, s.sim_seed, s.polar_angle_deg, s.snr_db, s.ballistic_directions) == (
-            m.label, m.sim_seed, m.polar_angle_deg, m.snr_db, m.ballistic_directions)
+            m.label,
+            m.sim_seed,
+            m.polar_angle_deg,
+            m.snr_db,
+            m.ballistic_directions,
+        )
         if m.label == 0:
             assert s == m
             continue
         a, b = (math.log(v) for v in em.RANGES[m.motion])
         assert ce.SHARED_SPEED[0] <= s.magnitude <= ce.SHARED_SPEED[1]
-        assert (math.log(s.magnitude) - lo) / (hi - lo) == pytest.approx((math.log(m.magnitude) - a) / (b - a),
-                                                                       abs=1e-12)
-    assert _cache(tmp_path, 1).dir != ce.FeatureCache(tmp_path / "cache", load_spec("signature"), "refsim", 1, TRIALS,
-                                                      0.05, "shared").dir
+        assert (math.log(s.magnitude) - lo) / (hi - lo) == pytest.approx(
+            (math.log(m.magnitude) - a) / (b - a), abs=1e-12
+        )
+    assert (
+        _cache(tmp_path, 1).dir
+        != ce.FeatureCache(tmp_path / "cache", load_spec("signature"), "refsim", 1, TRIALS, 0.05, "shared").dir
+    )
     with pytest.raises(ValueError):
         ce.draw_for("wide", 1, 0)
 
@@ -175,8 +192,10 @@ def test_the_contrasts_are_the_log_decorrelation_slopes_and_configuration_differ
     assert z[1, len(lags) - 2] == pytest.approx(1.0, abs=0.01)
     # the intensity-only columns of the field spec give no g1 contrast
     fspec = load_spec("signature-bscan-field")
-    assert ce.derived_features(fspec, np.full((1, fspec.n_features), 0.5), ce.part_columns(fspec, "intensity")
-                               ).shape[1] == n_slopes + n_diff
+    assert (
+        ce.derived_features(fspec, np.full((1, fspec.n_features), 0.5), ce.part_columns(fspec, "intensity")).shape[1]
+        == n_slopes + n_diff
+    )
 
 
 @pytest.mark.slow
@@ -195,8 +214,9 @@ def test_parts_d_and_e_train_on_the_shipped_and_the_scaled_prior_from_make_datas
     with pytest.raises(ValueError):
         ce.dataset_prior("matched", spec, 0.05)
     # no simulation for them in the feature caches: make_dataset's own split under <out>/cache/make_dataset
-    caches = ce.caches_for(tmp_path, ["d", "e"], sizes=[6], test_draws=9, trials=TRIALS, train_seed=1, test_seed=0,
-                           epsilon=0.05)
+    caches = ce.caches_for(
+        tmp_path, ["d", "e"], sizes=[6], test_draws=9, trials=TRIALS, train_seed=1, test_seed=0, epsilon=0.05
+    )
     assert {c.dir.name: n for c, n in caches} == {f"refsim-signature-seed0-trials{TRIALS}": 9}
     assert ce.dataset_set(tmp_path, spec, "scaled", 1, 6, TRIALS, 0.05, simulate=False) is None
     ds = ce.dataset_set(tmp_path, spec, "scaled", 1, 6, TRIALS, 0.05)

@@ -29,7 +29,7 @@ STATIC = refsim.Motion("static")
 def _gauss_integral(*inv_two_var: np.ndarray) -> float:
     """∫ exp(−Σ_a k_a x_a²) d³x = π^{3/2}/√(Π k_a), with k_a the sum of the given per-axis coefficients."""
     k = np.sum(inv_two_var, axis=0)
-    return float(math.pi ** 1.5 / math.sqrt(np.prod(k)))
+    return float(math.pi**1.5 / math.sqrt(np.prod(k)))
 
 
 def _intensity_correlation(density: float, a: refsim.Optics, b: refsim.Optics) -> float:
@@ -55,10 +55,20 @@ def _corr_and_se(i1: np.ndarray, i2: np.ndarray, n_boot: int = 300) -> tuple[flo
 def test_equal_configurations_see_identical_fields():
     """Two configurations with the same optics get the same scatterers and paths: identical fields (the
     limit of equal resolution of a dataset and its reduction), for static and moving scenes."""
-    for motion in (STATIC, refsim.Motion("flow", speed_um_per_s=1.0, polar_angle_deg=30.0),
-                   refsim.Motion("diffusion", diffusion_um2_per_s=0.01)):
-        e = em.simulate_joint([ORIGINAL, AXIAL, ORIGINAL], motion, density_per_um3=0.04, n_frames=6,
-                              frame_interval_s=0.2048, trials=16, seed=1)
+    for motion in (
+        STATIC,
+        refsim.Motion("flow", speed_um_per_s=1.0, polar_angle_deg=30.0),
+        refsim.Motion("diffusion", diffusion_um2_per_s=0.01),
+    ):
+        e = em.simulate_joint(
+            [ORIGINAL, AXIAL, ORIGINAL],
+            motion,
+            density_per_um3=0.04,
+            n_frames=6,
+            frame_interval_s=0.2048,
+            trials=16,
+            seed=1,
+        )
         assert np.array_equal(e[:, 0], e[:, 2]), motion.kind
         assert not np.allclose(e[:, 0], e[:, 1]), motion.kind
 
@@ -107,12 +117,17 @@ def test_prior_is_the_documented_one():
 def test_optics_follow_the_spec_including_a_bscan_lateral_width_along_y():
     """Wavelength, lateral x (and y where a configuration gives it), axial width and refractive index
     come from the model's spec; a configuration without ``lateral_resolution_y_um`` is isotropic."""
-    conf = [SimpleNamespace(wavelength_um=0.84, lateral_resolution_um=18.0, axial_resolution_um=3.8,
-                            lateral_resolution_y_um=4.9),
-            SimpleNamespace(wavelength_um=1.31, lateral_resolution_um=4.9, axial_resolution_um=14.0)]
+    conf = [
+        SimpleNamespace(
+            wavelength_um=0.84, lateral_resolution_um=18.0, axial_resolution_um=3.8, lateral_resolution_y_um=4.9
+        ),
+        SimpleNamespace(wavelength_um=1.31, lateral_resolution_um=4.9, axial_resolution_um=14.0),
+    ]
     optics = em.optics_for(SimpleNamespace(configurations=conf, refractive_index=1.33))
-    assert optics == [refsim.Optics(0.84, 18.0, 3.8, lateral_y_um=4.9, refractive_index=1.33),
-                      refsim.Optics(1.31, 4.9, 14.0, lateral_y_um=None, refractive_index=1.33)]
+    assert optics == [
+        refsim.Optics(0.84, 18.0, 3.8, lateral_y_um=4.9, refractive_index=1.33),
+        refsim.Optics(1.31, 4.9, 14.0, lateral_y_um=None, refractive_index=1.33),
+    ]
     assert optics[0].sigmas_um[1] == pytest.approx(4.9 / (2 * math.sqrt(2)))
 
 
@@ -155,9 +170,11 @@ def test_shared_scatterers_leave_each_configuration_as_refsim_simulates_it():
     means of simulate_joint and refsim.simulate (independent systems) agree within the Bonferroni bound
     of refcompare, for flow, random-ballistic motion and diffusion at the three signature configurations."""
     names = ("rho_lin_1", "rho_lin_2", "rho_lin_4", "rho_lin_8", "rho_lin_16", "lin_contrast", "db_variance")
-    motions = (refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=20.0, azimuth_deg=30.0),
-               refsim.Motion("ballistic", speed_um_per_s=0.1, directions="uniform-angles"),
-               refsim.Motion("diffusion", diffusion_um2_per_s=0.003))
+    motions = (
+        refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=20.0, azimuth_deg=30.0),
+        refsim.Motion("ballistic", speed_um_per_s=0.1, directions="uniform-angles"),
+        refsim.Motion("diffusion", diffusion_um2_per_s=0.003),
+    )
     optics = [ORIGINAL, AXIAL, LATERAL]
     n = 768
     bound = rc.z_bound(len(names) * len(optics) * len(motions))
@@ -166,5 +183,7 @@ def test_shared_scatterers_leave_each_configuration_as_refsim_simulates_it():
         fa = refsim.features(em.simulate_joint(optics, motion, seed=1, **kw), 0.2048, names)
         fb = refsim.features(refsim.simulate(optics, motion, seed=2, **kw), 0.2048, names)
         for name in names:
-            z = (fa[name].mean(0) - fb[name].mean(0)) / np.sqrt(fa[name].var(0, ddof=1) / n + fb[name].var(0, ddof=1) / n)
+            z = (fa[name].mean(0) - fb[name].mean(0)) / np.sqrt(
+                fa[name].var(0, ddof=1) / n + fb[name].var(0, ddof=1) / n
+            )
             assert np.all(np.abs(z) < bound), (motion.kind, name, z)

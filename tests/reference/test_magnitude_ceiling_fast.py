@@ -42,7 +42,7 @@ def test_quantile_regressors_recover_a_known_gaussian():
         assert abs(r[key] - p) < 3 * se, (key, r[key], p, se)
     # median |N(0, σ)| = 0.6745 σ; SE of a sample median: 1 / (2 f(m) √n), f = 2 φ(0.6745) / σ
     m = 0.6744898 * SIGMA
-    f = 2 * math.exp(-0.5 * 0.6744898 ** 2) / math.sqrt(2 * math.pi) / SIGMA
+    f = 2 * math.exp(-0.5 * 0.6744898**2) / math.sqrt(2 * math.pi) / SIGMA
     se_med = 1 / (2 * f * math.sqrt(n_test))
     # an error δ of the fitted median (SE σ√(π/2)/√n_cell) raises median |N + δ| by about δ²/(2σ)·...: bounded
     bias = (3 * SIGMA * math.sqrt(math.pi / 2) / math.sqrt(n_cell)) ** 2 / SIGMA
@@ -76,8 +76,21 @@ def test_too_few_samples_is_refused():
 
 
 def test_small_run_writes_its_report(tmp_path, capsys):
-    args = ["--out", str(tmp_path), "--parts", "c", "--train-draws", "12", "--test-draws", "6", "--trials", "32",
-            "--boot", "2", "--no-progress"]
+    args = [
+        "--out",
+        str(tmp_path),
+        "--parts",
+        "c",
+        "--train-draws",
+        "12",
+        "--test-draws",
+        "6",
+        "--trials",
+        "32",
+        "--boot",
+        "2",
+        "--no-progress",
+    ]
     assert mc.main(args) == 0
     rep = json.loads((tmp_path / "independent-magnitude-ceiling.json").read_text())
     r1 = rep["parts"]["c"]["pools"]["1"]

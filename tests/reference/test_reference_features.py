@@ -45,15 +45,20 @@ TD_TRIALS = 8192
 TD_TRIALS_OF = {"default": 4096, "1e-3 float32": TD_TRIALS, "1e-4 float64": 2048}
 _DEFAULTS = SimulationSettings()
 _HAS_TRUNCATION_MODE = "truncation" in inspect.signature(simulate).parameters
-DEFAULT_IS_HARD_1E2 = (_DEFAULTS.truncation_tolerance == 1e-2
-                       and getattr(_DEFAULTS, "truncation", "hard") == "hard")
+DEFAULT_IS_HARD_1E2 = _DEFAULTS.truncation_tolerance == 1e-2 and getattr(_DEFAULTS, "truncation", "hard") == "hard"
 #: Cells whose features a hard truncation at 1e-2 biases beyond the bound, measured (``--runxfail``
 #: shows the worst features): slow flow at every angle, worst |z| 19 (20°, rho_lin_1@axial=14
 #: 0.9896 vs 0.9973), 29 (0°, rho_lin_1@axial=14 0.9843 vs 0.9985), 13 (45°), 19 (70°) and 26
 #: (90°, rho_lin_1@lateral=18 0.9872 vs 0.9984); OCDS is biased too at 0° and 90° (z ≈ +7). Slow
 #: diffusion and slow random-ballistic motion stay within the bound at 1e-2.
-BIASED_AT_HARD_1E2 = {"flow v=0.5 θ=20°", "flow v=0.5 θ=0°", "flow v=0.5 θ=45°", "flow v=0.5 θ=70°", "flow v=0.5 θ=90°",
-                      "flow v=0.2 θ=0°"}
+BIASED_AT_HARD_1E2 = {
+    "flow v=0.5 θ=20°",
+    "flow v=0.5 θ=0°",
+    "flow v=0.5 θ=45°",
+    "flow v=0.5 θ=70°",
+    "flow v=0.5 θ=90°",
+    "flow v=0.2 θ=0°",
+}
 #: A hard cut at 1e-3 still biases slower axial flow: flow 0.2 µm/s along the beam axis, rho_lin_1 at
 #: axial=14 −0.0020 ± 0.0002 against torchdoct at 1e-6 (``torchdoct bench tradeoffs --part fidelity``);
 #: kept as a strict xfail, the measured reason a hard 1e-3 is not the cure.
@@ -75,11 +80,20 @@ def _params():
         for label in SETTINGS:
             marks = []
             if label == "default" and DEFAULT_IS_HARD_1E2 and cell in BIASED_AT_HARD_1E2:
-                marks.append(pytest.mark.xfail(strict=True, reason="the default hard PSF truncation at 1e-2 "
-                                                                   "biases slow motion at short lags (issue 24)"))
+                marks.append(
+                    pytest.mark.xfail(
+                        strict=True,
+                        reason="the default hard PSF truncation at 1e-2 biases slow motion at short lags (issue 24)",
+                    )
+                )
             if label == "1e-3 float32" and cell in BIASED_AT_HARD_1E3:
-                marks.append(pytest.mark.xfail(strict=True, reason="a hard PSF truncation at 1e-3 still biases the "
-                                                                   "short-lag intensity correlation of slow axial flow"))
+                marks.append(
+                    pytest.mark.xfail(
+                        strict=True,
+                        reason="a hard PSF truncation at 1e-3 still biases the "
+                        "short-lag intensity correlation of slow axial flow",
+                    )
+                )
             if label == "1e-4 float64":
                 marks.append(pytest.mark.extended)
             out.append(pytest.param(cell, label, marks=marks, id=f"{cell}-{label}"))

@@ -26,8 +26,16 @@ from torchdoct.sim.signature import signature
 def test_numpy_features_equal_torchdoct_extractors():
     """refsim.features (numpy, from the definitions) == torchdoct.sim.signature / metrics, float64."""
     optics = [refsim.Optics(0.84, 4.9, 3.8), refsim.Optics(0.84, 18.0, 3.8, lateral_y_um=4.9)]
-    e = refsim.simulate(optics, refsim.Motion("flow", speed_um_per_s=1.0, polar_angle_deg=30.0), density_per_um3=0.05,
-                        n_frames=32, frame_interval_s=0.2048, trials=40, seed=3, snr_db=20.0)
+    e = refsim.simulate(
+        optics,
+        refsim.Motion("flow", speed_um_per_s=1.0, polar_angle_deg=30.0),
+        density_per_um3=0.05,
+        n_frames=32,
+        frame_interval_s=0.2048,
+        trials=40,
+        seed=3,
+        snr_db=20.0,
+    )
     ours = refsim.features(e, 0.2048, rc.NAMES)
     times = [i * 0.2048 for i in range(32)]
     x = torch.from_numpy(e)
@@ -48,8 +56,9 @@ def test_reproducible_and_independent_of_trial_count():
     a = refsim.simulate(refsim.Optics(0.84, 4.9, 3.8), m, trials=100, **kw)
     b = refsim.simulate(refsim.Optics(0.84, 4.9, 3.8), m, trials=70, **kw)
     assert np.array_equal(a[:70], b)
-    assert not np.array_equal(a[:, 0, 0], refsim.simulate(refsim.Optics(0.84, 4.9, 3.8), m, trials=100,
-                                                           **{**kw, "seed": 12})[:, 0, 0])
+    assert not np.array_equal(
+        a[:, 0, 0], refsim.simulate(refsim.Optics(0.84, 4.9, 3.8), m, trials=100, **{**kw, "seed": 12})[:, 0, 0]
+    )
 
 
 def test_box_and_neglected_fraction():
@@ -68,8 +77,9 @@ def test_one_time_statistics_match_closed_forms(lateral_y):
     """⟨I⟩ and C² of static scatterers against physics.md §5.2/§5.4 (per-axis sigmas), z from batch means."""
     o = refsim.Optics(0.84, 4.9, 3.8, lateral_y_um=lateral_y)
     rho = 0.05
-    e = refsim.simulate(o, refsim.Motion("static"), density_per_um3=rho, n_frames=2, frame_interval_s=0.2,
-                        trials=6400, seed=5)[:, 0, 0]
+    e = refsim.simulate(
+        o, refsim.Motion("static"), density_per_um3=rho, n_frames=2, frame_interval_s=0.2, trials=6400, seed=5
+    )[:, 0, 0]
     inten = np.abs(e) ** 2
     sx, sy, sz = o.sigmas_um
     i_theory = rho * math.pi**1.5 * sx * sy * sz

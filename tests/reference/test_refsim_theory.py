@@ -38,12 +38,14 @@ def _theory_isotropic(motion: refsim.Motion, cfg: int, taus: np.ndarray) -> tupl
         g1 = theory.g1_diffusion(taus, diffusion_um2_per_s=motion.diffusion_um2_per_s, wavelength_um=wl, **res)
         j = theory.j_diffusion(taus, diffusion_um2_per_s=motion.diffusion_um2_per_s, **res)
     elif motion.kind == "ballistic":
-        g1 = theory.g1_ballistic(taus, speed_um_per_s=motion.speed_um_per_s, wavelength_um=wl,
-                                 directions=motion.directions, **res)
+        g1 = theory.g1_ballistic(
+            taus, speed_um_per_s=motion.speed_um_per_s, wavelength_um=wl, directions=motion.directions, **res
+        )
         j = theory.j_ballistic(taus, speed_um_per_s=motion.speed_um_per_s, directions=motion.directions, **res)
     else:
-        g1 = theory.g1_flow(taus, speed_um_per_s=motion.speed_um_per_s, polar_angle_deg=motion.polar_angle_deg,
-                            wavelength_um=wl, **res)
+        g1 = theory.g1_flow(
+            taus, speed_um_per_s=motion.speed_um_per_s, polar_angle_deg=motion.polar_angle_deg, wavelength_um=wl, **res
+        )
         j = theory.j_flow(taus, speed_um_per_s=motion.speed_um_per_s, polar_angle_deg=motion.polar_angle_deg, **res)
     return np.asarray(g1, dtype=np.complex128), np.asarray(j, dtype=np.float64)
 
@@ -88,8 +90,11 @@ def _check(e: np.ndarray, optics: refsim.Optics, g1: np.ndarray, j: np.ndarray) 
     labels = ["<I> rel"] + [f"{w}({m})" for m in LAGS for w in ("Re g1", "Im g1", "cov")]
     z = (full - expect) / se
     bound = rc.z_bound(len(z))
-    bad = [f"{lab}: {f:.5f} vs {x:.5f} (SE {s:.5f}, z {zz:+.1f})"
-           for lab, f, x, s, zz in zip(labels, full, expect, se, z) if abs(zz) > bound]
+    bad = [
+        f"{lab}: {f:.5f} vs {x:.5f} (SE {s:.5f}, z {zz:+.1f})"
+        for lab, f, x, s, zz in zip(labels, full, expect, se, z)
+        if abs(zz) > bound
+    ]
     assert not bad, f"|z| > {bound:.2f}: " + "; ".join(bad)
 
 
@@ -97,7 +102,12 @@ _ISO_CASES = [
     ("diffusion D=0.005", refsim.Motion("diffusion", diffusion_um2_per_s=0.005), 0, 1536),
     ("diffusion D=0.05", refsim.Motion("diffusion", diffusion_um2_per_s=0.05), 0, 1536),
     ("ballistic iso v=0.1", refsim.Motion("ballistic", speed_um_per_s=0.1), 0, 1536),
-    ("ballistic uniform-angles v=0.1", refsim.Motion("ballistic", speed_um_per_s=0.1, directions="uniform-angles"), 0, 1536),
+    (
+        "ballistic uniform-angles v=0.1",
+        refsim.Motion("ballistic", speed_um_per_s=0.1, directions="uniform-angles"),
+        0,
+        1536,
+    ),
     ("flow v=0.5 θ=0°", refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=0.0), 0, 1536),
     ("flow v=0.5 θ=20°", refsim.Motion("flow", speed_um_per_s=0.5, polar_angle_deg=20.0, azimuth_deg=30.0), 0, 1536),
     ("flow v=1 θ=45°", refsim.Motion("flow", speed_um_per_s=1.0, polar_angle_deg=45.0, azimuth_deg=200.0), 0, 1536),
@@ -113,15 +123,22 @@ _ISO_CASES = [
 def test_reference_matches_closed_forms(name, motion, cfg, trials):
     _, wl, lat, ax, _ = rc.CONFIGS[cfg]
     optics = refsim.Optics(wl, lat, ax)
-    e = refsim.simulate(optics, motion, density_per_um3=RHO, n_frames=32, frame_interval_s=DT, trials=trials,
-                        seed=101 + cfg)[:, 0]
+    e = refsim.simulate(
+        optics, motion, density_per_um3=RHO, n_frames=32, frame_interval_s=DT, trials=trials, seed=101 + cfg
+    )[:, 0]
     g1, j = _theory_isotropic(motion, cfg, np.array(LAGS) * DT)
     _check(e, optics, g1, j)
 
 
 _ANISO_CASES = [
-    ("flow v=1 θ=60° az=30° x=18 y=4.9", refsim.Motion("flow", speed_um_per_s=1.0, polar_angle_deg=60.0, azimuth_deg=30.0)),
-    ("flow v=1 θ=60° az=120° x=18 y=4.9", refsim.Motion("flow", speed_um_per_s=1.0, polar_angle_deg=60.0, azimuth_deg=120.0)),
+    (
+        "flow v=1 θ=60° az=30° x=18 y=4.9",
+        refsim.Motion("flow", speed_um_per_s=1.0, polar_angle_deg=60.0, azimuth_deg=30.0),
+    ),
+    (
+        "flow v=1 θ=60° az=120° x=18 y=4.9",
+        refsim.Motion("flow", speed_um_per_s=1.0, polar_angle_deg=60.0, azimuth_deg=120.0),
+    ),
     ("diffusion D=0.05 x=18 y=4.9", refsim.Motion("diffusion", diffusion_um2_per_s=0.05)),
     ("diffusion D=0.5 x=18 y=4.9", refsim.Motion("diffusion", diffusion_um2_per_s=0.5)),
 ]
@@ -131,7 +148,8 @@ _ANISO_CASES = [
 def test_reference_anisotropic_lateral_psf(name, motion):
     """A B-scan's x-only lateral reduction: Δx = 18 µm, Δy = 4.9 µm, Δz = 3.8 µm at 840 nm."""
     optics = refsim.Optics(0.84, 18.0, 3.8, lateral_y_um=4.9)
-    e = refsim.simulate(optics, motion, density_per_um3=RHO, n_frames=32, frame_interval_s=DT, trials=1024,
-                        seed=202)[:, 0]
+    e = refsim.simulate(optics, motion, density_per_um3=RHO, n_frames=32, frame_interval_s=DT, trials=1024, seed=202)[
+        :, 0
+    ]
     g1, j = _theory_anisotropic(motion, optics, np.array(LAGS) * DT)
     _check(e, optics, g1, j)

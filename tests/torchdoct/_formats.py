@@ -43,16 +43,27 @@ def write_mat(path: Path, a: np.ndarray) -> Path:
 def write_raw(path: Path, a: np.ndarray, header: bytes = b"HEAD" * 4, big: bool = True) -> Path:
     dt = a.dtype.newbyteorder(">" if big else "<")
     path.write_bytes(header + a.astype(dt).tobytes())
-    sidecar(path, t=a.shape[0], dtype=a.dtype.name, shape=list(a.shape), byte_order="big" if big else "little",
-            header_bytes=len(header))
+    sidecar(
+        path,
+        t=a.shape[0],
+        dtype=a.dtype.name,
+        shape=list(a.shape),
+        byte_order="big" if big else "little",
+        header_bytes=len(header),
+    )
     return path
 
 
 def write_ome_tiff(path: Path, a: np.ndarray, per_plane: bool = False) -> Path:
     import tifffile
 
-    md = {"axes": "TYX", "PhysicalSizeX": PITCH["x"] * 1000, "PhysicalSizeXUnit": "nm",
-          "PhysicalSizeY": PITCH["z"], "PhysicalSizeYUnit": "µm"}
+    md = {
+        "axes": "TYX",
+        "PhysicalSizeX": PITCH["x"] * 1000,
+        "PhysicalSizeXUnit": "nm",
+        "PhysicalSizeY": PITCH["z"],
+        "PhysicalSizeYUnit": "µm",
+    }
     if per_plane:
         md["Plane"] = {"DeltaT": [k * DT_S * 1000 for k in range(a.shape[0])], "DeltaTUnit": ["ms"] * a.shape[0]}
     else:
@@ -64,10 +75,21 @@ def write_ome_tiff(path: Path, a: np.ndarray, per_plane: bool = False) -> Path:
 def write_ome_zarr(path: Path, a: np.ndarray, version: str = "0.4", chunks: tuple[int, ...] | None = None) -> Path:
     import zarr
 
-    axes = [{"name": "t", "type": "time", "unit": "millisecond"}, {"name": "y", "type": "space", "unit": "micrometer"},
-            {"name": "x", "type": "space", "unit": "micrometer"}]
-    ms = {"axes": axes, "datasets": [{"path": "0", "coordinateTransformations": [
-        {"type": "scale", "scale": [DT_S * 1000, PITCH["z"], PITCH["x"]]}]}], "name": "sequence"}
+    axes = [
+        {"name": "t", "type": "time", "unit": "millisecond"},
+        {"name": "y", "type": "space", "unit": "micrometer"},
+        {"name": "x", "type": "space", "unit": "micrometer"},
+    ]
+    ms = {
+        "axes": axes,
+        "datasets": [
+            {
+                "path": "0",
+                "coordinateTransformations": [{"type": "scale", "scale": [DT_S * 1000, PITCH["z"], PITCH["x"]]}],
+            }
+        ],
+        "name": "sequence",
+    }
     group = zarr.open_group(str(path), mode="w", zarr_format=2 if version == "0.4" else 3)
     arr = group.create_array("0", shape=a.shape, dtype=a.dtype, chunks=chunks or (4, *a.shape[1:]))
     arr[:] = a
@@ -96,11 +118,26 @@ def maps(volume: bool):
     shape = (3, 5, 12, 16) if volume else (3, 12, 16)
     names = ["liv@original", "ocds@original", "mean_db@original"]
     units = ["dB²", "1/s", "dB"]
-    chans = [{"name": n, "metric": n.split("@")[0], "unit": u, "resolution": "original", "wavelength_um": 0.84,
-              "lateral_resolution_um": 4.0, "axial_resolution_um": 3.0} for n, u in zip(names, units)]
+    chans = [
+        {
+            "name": n,
+            "metric": n.split("@")[0],
+            "unit": u,
+            "resolution": "original",
+            "wavelength_um": 0.84,
+            "lateral_resolution_um": 4.0,
+            "axial_resolution_um": 3.0,
+        }
+        for n, u in zip(names, units)
+    ]
     pitch = {"z": 1.9, "y": 7.5, "x": 2.5} if volume else {"z": 1.9, "x": 2.5}
     data = rng.standard_normal(shape).astype(np.float32)
     data[0, ..., 0, 0] = np.nan
-    meta = {"axes": "CYZX" if volume else "CZX", "pitch_um": pitch, "channels": chans,
-            "system": {"name": "lab", "wavelength_um": 0.84}, "frame_times_s": [0.0, 0.2]}
+    meta = {
+        "axes": "CYZX" if volume else "CZX",
+        "pitch_um": pitch,
+        "channels": chans,
+        "system": {"name": "lab", "wavelength_um": 0.84},
+        "frame_times_s": [0.0, 0.2],
+    }
     return Maps(maps=data, channels=tuple(names), meta=meta)

@@ -6,8 +6,13 @@ import numpy as np
 
 from torchdoct.measured.io import Maps
 
-RES = {"original": (4.9, 3.8), "axial=7.6": (4.9, 7.6), "axial=11.4": (4.9, 11.4), "axial=14": (4.9, 14.0),
-       "axial=14,lateral=18": (18.0, 14.0)}
+RES = {
+    "original": (4.9, 3.8),
+    "axial=7.6": (4.9, 7.6),
+    "axial=11.4": (4.9, 11.4),
+    "axial=14": (4.9, 14.0),
+    "axial=14,lateral=18": (18.0, 14.0),
+}
 
 
 def make_maps(rng, resolutions, *, wavelength=0.84, shift=None, shape=(6, 7), nan_at=None, source="s.npy"):
@@ -25,8 +30,24 @@ def make_maps(rng, resolutions, *, wavelength=0.84, shift=None, shape=(6, 7), na
             if nan_at is not None and metric == "liv":
                 a[nan_at] = np.nan
             arrays.append(a)
-            chans.append({"name": f"{metric}@{r}", "metric": metric, "unit": unit, "resolution": r,
-                          "wavelength_um": wavelength, "lateral_resolution_um": lat, "axial_resolution_um": ax})
-    meta = {"channels": chans, "axes": "CZX", "pitch_um": {"z": 1.5, "x": 2.0}, "frame_times_s": [0.0, 0.2],
-            "system": {}, "ocds_delay_range_s": [0.2048, 1.2288], "source": source}
+            chans.append(
+                {
+                    "name": f"{metric}@{r}",
+                    "metric": metric,
+                    "unit": unit,
+                    "resolution": r,
+                    "wavelength_um": wavelength,
+                    "lateral_resolution_um": lat,
+                    "axial_resolution_um": ax,
+                }
+            )
+    meta = {
+        "channels": chans,
+        "axes": "CZX",
+        "pitch_um": {"z": 1.5, "x": 2.0},
+        "frame_times_s": [0.0, 0.2],
+        "system": {},
+        "ocds_delay_range_s": [0.2048, 1.2288],
+        "source": source,
+    }
     return Maps(maps=np.array(arrays, dtype=np.float32), channels=[c["name"] for c in chans], meta=meta)

@@ -9,8 +9,9 @@ import numpy as np
 import torch
 
 
-def batch_means(stat: Callable[[torch.Tensor], complex | float], signals: torch.Tensor,
-                n_batches: int = 64) -> tuple[complex, float, float]:
+def batch_means(
+    stat: Callable[[torch.Tensor], complex | float], signals: torch.Tensor, n_batches: int = 64
+) -> tuple[complex, float, float]:
     """Statistic on all trials, and the standard error of its real and imaginary parts.
 
     ``stat`` maps complex signals [trials, frames] to a number. Trials are independent, so the SE
@@ -30,26 +31,30 @@ def assert_within_se(est: float, ref: float, se: float, z: float = 4.0, what: st
 
 
 def mean_intensity(E: torch.Tensor) -> float:
-    return float((E.real ** 2 + E.imag ** 2).mean())
+    return float((E.real**2 + E.imag**2).mean())
 
 
 def g1_at_lag(lag: int) -> Callable[[torch.Tensor], complex]:
     """⟨E(t) E*(t+τ)⟩ / ⟨I⟩ over all frame pairs at ``lag`` (physics.md §5.3 convention)."""
+
     def stat(E: torch.Tensor) -> complex:
         num = (E[:, :-lag] * E[:, lag:].conj()).mean()
         return complex(num) / mean_intensity(E)
+
     return stat
 
 
 def cov_at_lag(lag: int) -> Callable[[torch.Tensor], float]:
     """⟨I(t) I(t+τ)⟩ / ⟨I⟩² − 1 (physics.md §5.4: = |g1|² + j/N_eff)."""
+
     def stat(E: torch.Tensor) -> float:
-        I = E.real ** 2 + E.imag ** 2
+        I = E.real**2 + E.imag**2
         return float((I[:, :-lag] * I[:, lag:]).mean()) / mean_intensity(E) ** 2 - 1.0
+
     return stat
 
 
 def contrast2(E: torch.Tensor) -> float:
     """C² = Var I / ⟨I⟩² over all trials and frames."""
-    I = E.real ** 2 + E.imag ** 2
+    I = E.real**2 + E.imag**2
     return float((I * I).mean()) / float(I.mean()) ** 2 - 1.0

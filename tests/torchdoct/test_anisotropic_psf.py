@@ -20,17 +20,26 @@ from torchdoct.sim.config import scene_from_dict
 DT = 0.2048
 RHO = 0.055
 # a B-scan channel after a lateral reduction along x only: 18 µm along x, the system's 4.9 µm along y
-BSCAN = td.OCTSystem(name="bscan-lat18", wavelength_um=0.84, lateral_resolution_um=18.0, axial_resolution_um=3.8,
-                     lateral_resolution_y_um=4.9)
+BSCAN = td.OCTSystem(
+    name="bscan-lat18",
+    wavelength_um=0.84,
+    lateral_resolution_um=18.0,
+    axial_resolution_um=3.8,
+    lateral_resolution_y_um=4.9,
+)
 HIGH = td.OCTSystem(name="840-high", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)
 
 needs_compiled = pytest.mark.skipif(not kernel.compiled(), reason="the compiled kernel was not built")
 
 
 def _scene(motion=(), systems=(BSCAN,), n_frames=8, rho=RHO, **sim):
-    return td.Scene(systems=tuple(systems), protocol=td.Protocol(n_frames=n_frames, frame_interval_s=DT),
-                    populations=(td.Population(density_per_um3=rho, motion=tuple(motion)),),
-                    analysis=td.Analysis(metrics=("liv",)), simulation=td.SimulationSettings(**sim))
+    return td.Scene(
+        systems=tuple(systems),
+        protocol=td.Protocol(n_frames=n_frames, frame_interval_s=DT),
+        populations=(td.Population(density_per_um3=rho, motion=tuple(motion)),),
+        analysis=td.Analysis(metrics=("liv",)),
+        simulation=td.SimulationSettings(**sim),
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -38,7 +47,11 @@ def _scene(motion=(), systems=(BSCAN,), n_frames=8, rho=RHO, **sim):
 
 
 def test_conventions_use_one_sigma_per_axis():
-    sx, sy, sz = cv.amplitude_sigma_lateral_um(18.0), cv.amplitude_sigma_lateral_um(4.9), cv.amplitude_sigma_axial_um(3.8)
+    sx, sy, sz = (
+        cv.amplitude_sigma_lateral_um(18.0),
+        cv.amplitude_sigma_lateral_um(4.9),
+        cv.amplitude_sigma_axial_um(3.8),
+    )
     kw = dict(lateral_resolution_y_um=4.9)
     assert cv.psf_integral_um3(18.0, 3.8, **kw) == pytest.approx(math.pi**1.5 * sx * sy * sz, rel=1e-14)
     assert cv.n_eff(RHO, 18.0, 3.8, **kw) == pytest.approx(RHO * (2 * math.pi) ** 1.5 * sx * sy * sz, rel=1e-14)
@@ -54,10 +67,20 @@ def test_conventions_use_one_sigma_per_axis():
 
 
 def test_scene_file_key_round_trips_and_is_left_out_when_not_given():
-    d = {"system": [{"name": "b", "wavelength_um": 0.84, "lateral_resolution_um": 18.0, "axial_resolution_um": 3.8,
-                     "lateral_resolution_y_um": 4.9}],
-         "protocol": {"n_frames": 4, "frame_interval_s": DT}, "population": [{"density_per_um3": RHO}],
-         "analysis": {"metrics": ["liv"]}}
+    d = {
+        "system": [
+            {
+                "name": "b",
+                "wavelength_um": 0.84,
+                "lateral_resolution_um": 18.0,
+                "axial_resolution_um": 3.8,
+                "lateral_resolution_y_um": 4.9,
+            }
+        ],
+        "protocol": {"n_frames": 4, "frame_interval_s": DT},
+        "population": [{"density_per_um3": RHO}],
+        "analysis": {"metrics": ["liv"]},
+    }
     sc = scene_from_dict(d)
     assert sc.systems[0].lateral_resolution_y_um == 4.9
     assert sc.systems[0].lateral_widths_um == (18.0, 4.9)
@@ -73,8 +96,9 @@ def test_scene_file_key_round_trips_and_is_left_out_when_not_given():
 def test_plan_reports_the_anisotropic_box_and_counts():
     plan = td.make_plan(_scene((td.Diffusion(diffusion_um2_per_s=1.0),)))
     s = plan.systems[0]
-    assert s.truncation_half_widths_um == pytest.approx(cv.truncation_half_widths_um(18.0, 3.8, 1e-2,
-                                                                                    lateral_resolution_y_um=4.9))
+    assert s.truncation_half_widths_um == pytest.approx(
+        cv.truncation_half_widths_um(18.0, 3.8, 1e-2, lateral_resolution_y_um=4.9)
+    )
     assert s.n_eff == pytest.approx(cv.n_eff(RHO, 18.0, 3.8, lateral_resolution_y_um=4.9))
     assert s.truncation_half_widths_um[0] > 3 * s.truncation_half_widths_um[1]
     # the periodic cell holds the box on every axis
@@ -100,14 +124,23 @@ def test_anisotropic_ballistic_matches_the_direct_average(law, v, tau):
     rng = np.random.default_rng(int(100 * v + 10 * tau))
     n = 1_000_000
     nx, ny, nz = _directions(law, n, rng)
-    sx, sy, sz = cv.amplitude_sigma_lateral_um(18.0), cv.amplitude_sigma_lateral_um(4.9), cv.amplitude_sigma_axial_um(3.8)
+    sx, sy, sz = (
+        cv.amplitude_sigma_lateral_um(18.0),
+        cv.amplitude_sigma_lateral_um(4.9),
+        cv.amplitude_sigma_axial_um(3.8),
+    )
     k = cv.wavenumber_per_um(0.84)
     u = v * tau
     quad = u * u * (nx**2 / sx**2 + ny**2 / sy**2 + nz**2 / sz**2)
     g_mc = np.cos(2 * k * u * nz) * np.exp(-quad / 4)
     j_mc = np.exp(-quad / 2)
-    kw = dict(speed_um_per_s=v, lateral_resolution_um=18.0, axial_resolution_um=3.8, directions=law,
-              lateral_resolution_y_um=4.9)
+    kw = dict(
+        speed_um_per_s=v,
+        lateral_resolution_um=18.0,
+        axial_resolution_um=3.8,
+        directions=law,
+        lateral_resolution_y_um=4.9,
+    )
     g = float(th.g1_ballistic(tau, wavelength_um=0.84, **kw))
     j = float(th.j_ballistic(tau, **kw))
     assert_within_se(g_mc.mean(), g, g_mc.std() / math.sqrt(n), what="g1")
@@ -123,14 +156,20 @@ def test_anisotropic_ballistic_reduces_to_the_isotropic_closed_forms(law):
         for v in (0.01, 0.3, 6.0, 30.0):
             kw = dict(speed_um_per_s=v, lateral_resolution_um=lat, axial_resolution_um=ax, directions=law)
             near = dict(kw, lateral_resolution_y_um=lat * (1 + 1e-12))
-            assert np.abs(th.g1_ballistic(tau, wavelength_um=0.84, **kw)
-                          - th.g1_ballistic(tau, wavelength_um=0.84, **near)).max() < 1e-9
+            assert (
+                np.abs(
+                    th.g1_ballistic(tau, wavelength_um=0.84, **kw) - th.g1_ballistic(tau, wavelength_um=0.84, **near)
+                ).max()
+                < 1e-9
+            )
             assert np.abs(th.j_ballistic(tau, **kw) - th.j_ballistic(tau, **near)).max() < 1e-9
     a = dict(speed_um_per_s=2.0, axial_resolution_um=3.8, directions=law)
     g_xy = th.g1_ballistic(tau, wavelength_um=0.84, lateral_resolution_um=18.0, lateral_resolution_y_um=4.9, **a)
     g_yx = th.g1_ballistic(tau, wavelength_um=0.84, lateral_resolution_um=4.9, lateral_resolution_y_um=18.0, **a)
     assert np.abs(g_xy - g_yx).max() < 1e-12
-    assert np.all(th.g1_ballistic(0.0, wavelength_um=0.84, lateral_resolution_um=18.0, lateral_resolution_y_um=4.9, **a) == 1.0)
+    assert np.all(
+        th.g1_ballistic(0.0, wavelength_um=0.84, lateral_resolution_um=18.0, lateral_resolution_y_um=4.9, **a) == 1.0
+    )
 
 
 def test_anisotropic_diffusion_and_flow_closed_forms():
@@ -153,11 +192,16 @@ def test_anisotropic_diffusion_and_flow_closed_forms():
     along_y = th.g1_flow(tau, azimuth_deg=90.0, **fl, **kw)
     assert np.allclose(along_x, th.g1_flow(tau, **fl, lateral_resolution_um=18.0, axial_resolution_um=3.8), rtol=1e-12)
     assert np.allclose(along_y, th.g1_flow(tau, **fl, lateral_resolution_um=4.9, axial_resolution_um=3.8), rtol=1e-12)
-    assert np.allclose(th.j_flow(tau, speed_um_per_s=2.0, polar_angle_deg=90.0, azimuth_deg=90.0, **kw),
-                       np.abs(along_y) ** 2, rtol=1e-12)
-    for f, extra in ((th.g1_diffusion, dict(diffusion_um2_per_s=D, wavelength_um=0.84)),
-                     (th.j_diffusion, dict(diffusion_um2_per_s=D)),
-                     (th.g1_flow, dict(speed_um_per_s=1.0, polar_angle_deg=30.0, wavelength_um=0.84, azimuth_deg=40.0))):
+    assert np.allclose(
+        th.j_flow(tau, speed_um_per_s=2.0, polar_angle_deg=90.0, azimuth_deg=90.0, **kw),
+        np.abs(along_y) ** 2,
+        rtol=1e-12,
+    )
+    for f, extra in (
+        (th.g1_diffusion, dict(diffusion_um2_per_s=D, wavelength_um=0.84)),
+        (th.j_diffusion, dict(diffusion_um2_per_s=D)),
+        (th.g1_flow, dict(speed_um_per_s=1.0, polar_angle_deg=30.0, wavelength_um=0.84, azimuth_deg=40.0)),
+    ):
         iso = dict(lateral_resolution_um=4.9, axial_resolution_um=3.8)
         assert np.array_equal(f(tau, **extra, **iso), f(tau, **extra, **iso, lateral_resolution_y_um=4.9))
 
@@ -196,9 +240,11 @@ def test_simulator_matches_the_anisotropic_closed_forms(motion):
         assert_within_se(cov.real, float(abs(g) ** 2 + j / ne), se, what=f"cov lag {lag}")
 
 
-@pytest.mark.parametrize("motion", [td.Diffusion(diffusion_um2_per_s=15.0),
-                                    td.Flow(speed_um_per_s=3.0, polar_angle_deg=70.0, azimuth_deg=90.0)],
-                         ids=["diffusion", "flow-y"])
+@pytest.mark.parametrize(
+    "motion",
+    [td.Diffusion(diffusion_um2_per_s=15.0), td.Flow(speed_um_per_s=3.0, polar_angle_deg=70.0, azimuth_deg=90.0)],
+    ids=["diffusion", "flow-y"],
+)
 def test_fused_float32_agrees_with_float64_when_anisotropic(motion):
     """The fused kernel's anisotropic exponent follows the same scatterers as the float64 torch code."""
     sc = _scene((motion,), systems=(BSCAN, HIGH))
@@ -209,8 +255,13 @@ def test_fused_float32_agrees_with_float64_when_anisotropic(motion):
 
 def test_equal_y_width_is_bit_identical_to_none():
     motions = (td.Diffusion(diffusion_um2_per_s=2.0), td.Flow(speed_um_per_s=2.0, polar_angle_deg=30.0))
-    same = td.OCTSystem(name="840-high", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8,
-                        lateral_resolution_y_um=4.9)
+    same = td.OCTSystem(
+        name="840-high",
+        wavelength_um=0.84,
+        lateral_resolution_um=4.9,
+        axial_resolution_um=3.8,
+        lateral_resolution_y_um=4.9,
+    )
     for m in motions:
         for dt in ("float32", "float64"):
             a = td.simulate(_scene((m,), systems=(HIGH,)), trials=70, seed=2, dtype=dt, threads=1).signals
@@ -229,9 +280,17 @@ def test_anisotropic_walk_and_paths_are_bit_identical_on_both_backends(taper):
     counts = torch.randint(0, 60, (7,), generator=g)
     M = int(counts.sum())
     pos = ((torch.rand(3, M, generator=g) * 2 - 1) * torch.tensor([9.0, 4.0, 5.0]).view(3, 1)).contiguous()
-    args = dict(counts=counts, key=777, sigmas=[0.8, 1.3, 0.2, 2.5], L=(18.0, 8.0, 10.0),
-                groups=[(0.1, 0.2, 7.3), (0.03, 0.25)], group_of=[0, 1, 0], q_turns=[2.38, 1.53, 2.0],
-                log_tol=math.log(1e-2), taper=taper)
+    args = dict(
+        counts=counts,
+        key=777,
+        sigmas=[0.8, 1.3, 0.2, 2.5],
+        L=(18.0, 8.0, 10.0),
+        groups=[(0.1, 0.2, 7.3), (0.03, 0.25)],
+        group_of=[0, 1, 0],
+        q_turns=[2.38, 1.53, 2.0],
+        log_tol=math.log(1e-2),
+        taper=taper,
+    )
     p1, p2 = pos.clone(), pos.clone()
     a = kernel.walk_periodic(p1, **args)
     b = kernel.walk_periodic(p2, **args, force_torch=True)
@@ -244,8 +303,14 @@ def test_anisotropic_walk_and_paths_are_bit_identical_on_both_backends(taper):
     v = (u(3, n, c) * 2 - 1) * 3.0
     t_ref = u(n, c) * 6.0
     times = torch.linspace(0.0, 6.2, 31, dtype=torch.float64)
-    kw = dict(q_turns=[2.38, 1.53], a_lat=[0.0247, 0.0833], a_ax=[0.213, 0.213], ry=[13.5, 1.0],
-              log_tol=math.log(1e-2), taper=taper)
+    kw = dict(
+        q_turns=[2.38, 1.53],
+        a_lat=[0.0247, 0.0833],
+        a_ax=[0.213, 0.213],
+        ry=[13.5, 1.0],
+        log_tol=math.log(1e-2),
+        taper=taper,
+    )
     pa = kernel.path_fields(p, v, t_ref, times=times, **kw)
     pb = kernel.path_fields(p, v, t_ref, times=times, **kw, force_torch=True)
     assert torch.equal(pa, pb) and bool((pa != 0).any())
@@ -261,24 +326,42 @@ def test_render_uses_the_y_width():
     from torchdoct.image.phantom import phantom_from_dict
     from torchdoct.image.render import render
 
-    system = {"name": "b", "wavelength_um": 0.84, "lateral_resolution_um": 9.0, "axial_resolution_um": 3.8,
-              "lateral_resolution_y_um": 3.0}
+    system = {
+        "name": "b",
+        "wavelength_um": 0.84,
+        "lateral_resolution_um": 9.0,
+        "axial_resolution_um": 3.8,
+        "lateral_resolution_y_um": 3.0,
+    }
 
     def phantom(grid):
-        return phantom_from_dict({"name": "t", "system": [system], "protocol": {"n_frames": 2, "frame_interval_s": DT},
-                                  "grid": grid, "analysis": {"metrics": ["liv"]}, "background": {"density_per_um3": RHO}})
+        return phantom_from_dict(
+            {
+                "name": "t",
+                "system": [system],
+                "protocol": {"n_frames": 2, "frame_interval_s": DT},
+                "grid": grid,
+                "analysis": {"metrics": ["liv"]},
+                "background": {"density_per_um3": RHO},
+            }
+        )
 
     bscan = phantom({"n_x": 40, "n_z": 40, "pitch_x_um": 12.0, "pitch_z_um": 6.0})
     vals = torch.cat([render(bscan, seed=s, dtype="float64").intensity()[..., 0].reshape(-1) for s in range(4)])
-    assert_within_se(float(vals.mean()), cv.mean_intensity(RHO, 9.0, 3.8, lateral_resolution_y_um=3.0),
-                     float(vals.std() / math.sqrt(vals.numel())), what="<I>")
-    vol = phantom({"kind": "volume", "n_x": 24, "n_y": 24, "n_z": 8, "pitch_x_um": 1.5, "pitch_y_um": 1.5,
-                   "pitch_z_um": 4.0})
+    assert_within_se(
+        float(vals.mean()),
+        cv.mean_intensity(RHO, 9.0, 3.8, lateral_resolution_y_um=3.0),
+        float(vals.std() / math.sqrt(vals.numel())),
+        what="<I>",
+    )
+    vol = phantom(
+        {"kind": "volume", "n_x": 24, "n_y": 24, "n_z": 8, "pitch_x_um": 1.5, "pitch_y_um": 1.5, "pitch_z_um": 4.0}
+    )
     sx, sy = cv.amplitude_sigma_lateral_um(9.0), cv.amplitude_sigma_lateral_um(3.0)
     est = {("x", 1): [], ("x", 3): [], ("y", 1): [], ("y", 2): []}
     for seed in range(6):
         i = render(vol, seed=seed, dtype="float64").intensity()[..., 0]  # [Y, Z, X]
-        for (axis, lag) in est:
+        for axis, lag in est:
             dim = 2 if axis == "x" else 0
             a = i.narrow(dim, 0, i.shape[dim] - lag).reshape(-1)
             b = i.narrow(dim, lag, i.shape[dim] - lag).reshape(-1)
@@ -287,5 +370,9 @@ def test_render_uses_the_y_width():
     for (axis, lag), v in est.items():
         s = sx if axis == "x" else sy
         v = np.asarray(v)
-        assert_within_se(v.mean(), math.exp(-(1.5 * lag) ** 2 / (2 * s * s)), v.std(ddof=1) / math.sqrt(len(v)),
-                         what=f"{axis} lag {lag}")
+        assert_within_se(
+            v.mean(),
+            math.exp(-((1.5 * lag) ** 2) / (2 * s * s)),
+            v.std(ddof=1) / math.sqrt(len(v)),
+            what=f"{axis} lag {lag}",
+        )

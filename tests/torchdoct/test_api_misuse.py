@@ -24,8 +24,18 @@ def test_a_phantom_name_instead_of_a_phantom_says_to_load_it():
         td.render("spheroid")
 
 
-@pytest.mark.parametrize("kw,value", [("trials", 2.5), ("trials", True), ("trials", 64.0), ("seed", 1.5),
-                                      ("seed", False), ("trials", "64"), ("chunk_trials", 64.5)])
+@pytest.mark.parametrize(
+    "kw,value",
+    [
+        ("trials", 2.5),
+        ("trials", True),
+        ("trials", 64.0),
+        ("seed", 1.5),
+        ("seed", False),
+        ("trials", "64"),
+        ("chunk_trials", 64.5),
+    ],
+)
 def test_non_integer_counts_and_seeds_are_refused_not_truncated(small_scene, kw, value):
     with pytest.raises(TypeError, match=f"{kw} must be an integer"):
         td.simulate(small_scene, **{kw: value})
@@ -42,7 +52,7 @@ def test_liv_of_a_complex_field_asks_for_intensity():
     with pytest.raises(TypeError, match=r"liv\(intensity\).*complex.*abs\(\) \*\* 2"):
         td.liv(field)
     v = td.liv(field.abs() ** 2)
-    assert not v.is_complex() and torch.allclose(v, td.liv(field.real ** 2 + field.imag ** 2), rtol=1e-4)
+    assert not v.is_complex() and torch.allclose(v, td.liv(field.real**2 + field.imag**2), rtol=1e-4)
 
 
 @pytest.mark.parametrize("value,error", [(3.0, TypeError), (torch.tensor(3.0), ValueError), ([1.0, 2.0], TypeError)])

@@ -54,7 +54,7 @@ def _module_level_imports(name: str, path: Path) -> set[str]:
             elif isinstance(node, ast.ImportFrom):
                 if node.level:
                     base = package.split(".")
-                    base = base[:len(base) - (node.level - 1)]
+                    base = base[: len(base) - (node.level - 1)]
                     mod = ".".join(base + ([node.module] if node.module else []))
                 else:
                     mod = node.module or ""
@@ -78,7 +78,7 @@ def _first_circle(graph: dict[str, set[str]]) -> list[str] | None:
         stack.append(node)
         for nxt in sorted(graph[node]):
             if state.get(nxt) == 1:
-                return stack[stack.index(nxt):] + [nxt]
+                return stack[stack.index(nxt) :] + [nxt]
             if nxt not in state:
                 found = walk(nxt)
                 if found:
@@ -106,7 +106,9 @@ def test_no_import_circle_between_the_project_modules():
 
 
 #: Modules that load a file by its path, and why: none of the project's own files.
-LOADS_BY_PATH = {"torchdoct.bench.cog": "the user's clone of the external COG simulator (torchdoct bench cog --cog DIR)"}
+LOADS_BY_PATH = {
+    "torchdoct.bench.cog": "the user's clone of the external COG simulator (torchdoct bench cog --cog DIR)"
+}
 
 
 def test_torchdoct_never_imports_classifier():
@@ -138,8 +140,11 @@ def test_the_classifier_fills_the_command_table():
 
 
 def test_no_module_loads_a_project_file_by_path():
-    loaders = {name for name, path in MODULES.items()
-               if any(w in path.read_text(encoding="utf-8") for w in ("spec_from_file_location", "SourceFileLoader"))}
+    loaders = {
+        name
+        for name, path in MODULES.items()
+        if any(w in path.read_text(encoding="utf-8") for w in ("spec_from_file_location", "SourceFileLoader"))
+    }
     assert loaders == set(LOADS_BY_PATH)
 
 
@@ -154,12 +159,18 @@ def _classes_and_functions():
 def test_one_maps_class_and_one_channel_optics_match():
     maps = [name for name, cls, _ in _classes_and_functions() if cls.name == "Maps"]
     assert maps == ["torchdoct.measured.mapsfile"]
-    matches = {(name, cls.name): fn for name, cls, fns in _classes_and_functions() for fn in fns if fn.name == "matches"}
+    matches = {
+        (name, cls.name): fn for name, cls, fns in _classes_and_functions() for fn in fns if fn.name == "matches"
+    }
     assert set(matches) == {("torchdoct.optics", "ChannelOptics"), ("classifier.features", "Configuration")}
     # the spec's configuration delegates to the one match
     assert "self.optics.matches(" in ast.unparse(matches[("classifier.features", "Configuration")])
-    funcs = {n.name for path in MODULES.values() for n in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
-             if isinstance(n, ast.FunctionDef)}
+    funcs = {
+        n.name
+        for path in MODULES.values()
+        for n in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+        if isinstance(n, ast.FunctionDef)
+    }
     assert "_channel_matches" not in funcs
 
 
@@ -168,20 +179,27 @@ def _run(code: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
 
 
-@pytest.mark.parametrize("code", [
-    "import classifier; classifier.classify_maps; classifier.read_maps; classifier.load_model",
-    "import torchdoct; import torchdoct.measured.io, torchdoct.optics, torchdoct.conventions, torchdoct.runtime.threads",
-])
+@pytest.mark.parametrize(
+    "code",
+    [
+        "import classifier; classifier.classify_maps; classifier.read_maps; classifier.load_model",
+        "import torchdoct; import torchdoct.measured.io, torchdoct.optics, torchdoct.conventions, torchdoct.runtime.threads",
+    ],
+)
 def test_torch_free_imports(code):
-    out = _run(code + "\nimport sys\nbad = sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.'))\n"
-                      "assert not bad, bad\nprint('ok')\n")
+    out = _run(
+        code + "\nimport sys\nbad = sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.'))\n"
+        "assert not bad, bad\nprint('ok')\n"
+    )
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
 
 
 def test_import_torchdoct_is_lazy_but_complete():
-    out = _run("import sys, torchdoct\nassert 'torch' not in sys.modules\n"
-               "assert callable(torchdoct.simulate) and 'torch' in sys.modules\n"
-               "assert torchdoct.sim.simulate.simulate is torchdoct.simulate\nprint('ok')\n")
+    out = _run(
+        "import sys, torchdoct\nassert 'torch' not in sys.modules\n"
+        "assert callable(torchdoct.simulate) and 'torch' in sys.modules\n"
+        "assert torchdoct.sim.simulate.simulate is torchdoct.simulate\nprint('ok')\n"
+    )
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
 
 
@@ -209,7 +227,7 @@ def _all_imports(name: str, path: Path) -> dict[str, bool]:
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.split(".")
-                mod = ".".join(base[:len(base) - (node.level - 1)] + ([node.module] if node.module else []))
+                mod = ".".join(base[: len(base) - (node.level - 1)] + ([node.module] if node.module else []))
             else:
                 mod = node.module or ""
             found.update(f"{mod}.{a.name}" if f"{mod}.{a.name}" in MODULES else mod for a in node.names)
@@ -232,16 +250,22 @@ def test_no_import_circle_counting_the_imports_inside_functions():
     # the checker sees function-level edges: the benchmark's machine record, imported inside a function
     assert "torchdoct.runtime.machine" in graph["classifier.bench.classify"]
     # the original circle of the classifier's benchmark: torchdoct reaches classifier through entry points
-    assert not any(b.startswith("classifier") for a, targets in graph.items() if a.startswith("torchdoct")
-                   for b in targets)
+    assert not any(
+        b.startswith("classifier") for a, targets in graph.items() if a.startswith("torchdoct") for b in targets
+    )
 
 
 def test_research_modules_stay_off_the_product_path():
     """No module outside research imports it (the benchmark reaches the trade-offs part through
     the entry-point table), and the research modules use only public names of classifier and torchdoct."""
     research = {name for name in MODULES if name == RESEARCH or name.startswith(RESEARCH + ".")}
-    assert {"research.ablation", "research.g1fit", "research.learning_curve", "research.systems",
-            "research.translation"} <= research
+    assert {
+        "research.ablation",
+        "research.g1fit",
+        "research.learning_curve",
+        "research.systems",
+        "research.translation",
+    } <= research
     for name, path in MODULES.items():
         if name not in research:
             bad = sorted(m for m in _all_imports(name, path) if m in research)
@@ -254,7 +278,7 @@ def test_research_modules_stay_off_the_product_path():
                 continue
             if node.level:
                 base = package.split(".")
-                mod = ".".join(base[:len(base) - (node.level - 1)] + ([node.module] if node.module else []))
+                mod = ".".join(base[: len(base) - (node.level - 1)] + ([node.module] if node.module else []))
             else:
                 mod = node.module or ""
             if mod.split(".")[0] not in PACKAGES or mod == RESEARCH or mod.startswith(RESEARCH + "."):
@@ -272,7 +296,8 @@ def test_torchdoct_keeps_at_most_six_modules_beside_its_stage_packages():
     assert len(top) <= 6, top
     assert {"conventions", "optics"} <= set(top)
     assert {"threads", "interrupt", "device", "resources", "machine"} <= {
-        p.stem for p in (REPO / "torchdoct" / "runtime").glob("*.py")}
+        p.stem for p in (REPO / "torchdoct" / "runtime").glob("*.py")
+    }
 
 
 def test_every_command_goes_through_one_table():
@@ -301,7 +326,8 @@ def test_package_data_holds_only_the_shipped_models_and_their_reports():
 
     def shipped(p):
         return (p.stem in models and p.suffix in (".onnx", ".json", ".md", ".png")) or any(
-            p.name == m + c for m in models for c in companions)
+            p.name == m + c for m in models for c in companions
+        )
 
     strays = sorted(p.name for p in data.iterdir() if not shipped(p))
     assert not strays, f"not a shipped model or its report: {strays}"
@@ -315,21 +341,30 @@ def test_research_and_reference_scripts_require_their_output_folder():
     outs = []
     for path in scripts:
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "add_argument"
-                    and node.args and isinstance(node.args[0], ast.Constant) and node.args[0].value == "--out"):
+            if (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Attribute)
+                and node.func.attr == "add_argument"
+                and node.args
+                and isinstance(node.args[0], ast.Constant)
+                and node.args[0].value == "--out"
+            ):
                 kw = {k.arg: k.value for k in node.keywords}
                 outs.append(path.name)
                 assert "default" not in kw, f"{path.name}: --out has a default"
-                assert isinstance(kw.get("required"), ast.Constant) and kw["required"].value is True, \
+                assert isinstance(kw.get("required"), ast.Constant) and kw["required"].value is True, (
                     f"{path.name}: --out must be required"
+                )
     assert {"ablation.py", "g1fit.py", "learning_curve.py", "ceiling.py", "evaluate_models.py"} <= set(outs)
 
 
 def test_the_commands_load_no_research_module():
-    out = _run("import sys\nimport classifier.cli, classifier.bench, classifier.train, classifier.export\n"
-               "import torchdoct.cli, torchdoct.bench, torchdoct.cli.bench, torchdoct.cli.data, torchdoct.cli.render\n"
-               "bad = sorted(m for m in sys.modules if m.startswith('research'))\n"
-               "assert not bad, bad\nprint('ok')\n")
+    out = _run(
+        "import sys\nimport classifier.cli, classifier.bench, classifier.train, classifier.export\n"
+        "import torchdoct.cli, torchdoct.bench, torchdoct.cli.bench, torchdoct.cli.data, torchdoct.cli.render\n"
+        "bad = sorted(m for m in sys.modules if m.startswith('research'))\n"
+        "assert not bad, bad\nprint('ok')\n"
+    )
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
 
 

@@ -15,7 +15,7 @@ from torchdoct.sim.config import Diffusion, Flow, RandomBallistic
 
 #: A stand-in with COG's point-simulator interface (the benchmark reads nothing else of it). It imports
 #: cupy at the top, as COG's module does.
-FAKE = textwrap.dedent('''
+FAKE = textwrap.dedent("""
     import numpy as np
     import cupy as cp
 
@@ -40,7 +40,7 @@ FAKE = textwrap.dedent('''
         def generate(self, sp):
             z = sp.scatterArray[2]
             self.complexOctPixel = np.sum(np.exp(1j * 4 * np.pi / self.num0dParam.waveLength * z))
-''')
+""")
 
 
 def test_motions_map_to_cog_si_parameters():
@@ -54,8 +54,25 @@ def test_motions_map_to_cog_si_parameters():
 def test_bench_cog_times_every_paper_cell(tmp_path):
     (tmp_path / "doctSimulator.py").write_text(FAKE)
     out = tmp_path / "bench-cog.json"
-    assert main(["bench", "cog", "--cog", str(tmp_path), "--cog-trials", "1", "--trials", "64", "--repeats", "1",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "cog",
+                "--cog",
+                str(tmp_path),
+                "--cog-trials",
+                "1",
+                "--trials",
+                "64",
+                "--repeats",
+                "1",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     res = json.loads(out.read_text())
     assert len(res["cells"]) == 12
     assert {r["system"] for r in res["cells"]} == {"840nm-high", "1310nm-high", "840nm-axial14", "840nm-lateral18"}

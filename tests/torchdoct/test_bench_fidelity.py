@@ -15,8 +15,10 @@ from torchdoct.cli import main
 
 
 def test_fidelity_resolves_a_loose_truncation_and_not_a_tight_one():
-    settings = [{"truncation_tolerance": 0.1, "truncation": "hard", "dtype": "float32"},
-                {"truncation_tolerance": 1e-4, "truncation": "hard", "dtype": "float32"}]
+    settings = [
+        {"truncation_tolerance": 0.1, "truncation": "hard", "dtype": "float32"},
+        {"truncation_tolerance": 1e-4, "truncation": "hard", "dtype": "float32"},
+    ]
     res = tradeoffs.feature_fidelity(trials=256, reference_trials=256, settings=settings, cells=["flow v=0.2 θ=0°"])
     loose, tight = res["settings"]
     assert loose["resolvable_bias"] and "rho_lin_1" in loose["resolvable_features"]
@@ -38,7 +40,8 @@ def test_fidelity_rejects_unknown_cell():
 def test_fidelity_settings_include_taper_when_the_simulator_has_it():
     rows = tradeoffs.fidelity_settings()
     assert {(r["truncation_tolerance"], r["dtype"]) for r in rows if r["truncation"] == "hard"} == {
-        (t, d) for t in (1e-2, 1e-3, 1e-4) for d in ("float32", "float64")}
+        (t, d) for t in (1e-2, 1e-3, 1e-4) for d in ("float32", "float64")
+    }
     if "taper" in tradeoffs._truncation_modes():
         assert any(r["truncation"] == "taper" for r in rows)
 

@@ -28,8 +28,13 @@ from torchdoct.measured.io import SequenceData, read_maps, validate_meta
 from torchdoct.measured.maps import compute_maps
 from torchdoct.sim.signature import signature
 
-SYSTEM = {"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
-          "refractive_index": 1.0}
+SYSTEM = {
+    "name": "840nm",
+    "wavelength_um": 0.84,
+    "lateral_resolution_um": 4.9,
+    "axial_resolution_um": 3.8,
+    "refractive_index": 1.0,
+}
 DT = 0.2048
 
 
@@ -72,8 +77,12 @@ def with_bulk(e, phi):
 
 
 def make_seq(data, *, volume=False) -> SequenceData:
-    meta = {"axes": "TYZX" if volume else "TZX", "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 3.0} if volume else {})},
-            "frame_times_s": [DT * i for i in range(data.shape[0])], "system": SYSTEM}
+    meta = {
+        "axes": "TYZX" if volume else "TZX",
+        "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 3.0} if volume else {})},
+        "frame_times_s": [DT * i for i in range(data.shape[0])],
+        "system": SYSTEM,
+    }
     return SequenceData(data=data, meta=validate_meta(meta, data.shape), source="test.npy")
 
 
@@ -113,9 +122,10 @@ def test_histogram_residual_is_within_five_percent_of_the_weighted_mean(snr_db):
 
 def test_residual_at_high_snr_is_one_over_root_two_n_snr():
     """At high SNR the random-walk term vanishes: residual → 1/√(2·N_z·SNR) (fixed-amplitude A-line)."""
-    snr = 10.0 ** 4.0
+    snr = 10.0**4.0
     assert predicted_residual_rms(40.0, 64, 32, speckle=False) == pytest.approx(
-        math.sqrt((1 - 1 / 32) / (2 * 64 * snr)), rel=3e-3)
+        math.sqrt((1 - 1 / 32) / (2 * 64 * snr)), rel=3e-3
+    )
 
 
 def test_noise_only_rows_add_only_the_random_walk_term_and_rows_or_median_mask_skip_them():
@@ -125,8 +135,9 @@ def test_noise_only_rows_add_only_the_random_walk_term_and_rows_or_median_mask_s
     g = torch.Generator().manual_seed(7)
 
     def cn(*shape):
-        return torch.complex(torch.randn(*shape, generator=g, dtype=torch.float64),
-                             torch.randn(*shape, generator=g, dtype=torch.float64)) / math.sqrt(2.0)
+        return torch.complex(
+            torch.randn(*shape, generator=g, dtype=torch.float64), torch.randn(*shape, generator=g, dtype=torch.float64)
+        ) / math.sqrt(2.0)
 
     sig = torch.cat([cn(lines, n), torch.zeros(lines, n, dtype=torch.complex128)], -1)
     noise = cn(t, lines, 2 * n) * math.sqrt(10.0 ** (-snr_db / 10.0))
@@ -354,7 +365,7 @@ def test_flow_layer_doppler_ramp_survives_the_histogram_and_is_biased_by_the_wei
     steps = np.diff(bp_w.phase, axis=0) - np.diff(phi, axis=0)
     err = np.angle(np.exp(1j * (steps - b)))
     noise = predicted_residual_rms(30.0, z, t) * math.sqrt(2)  # RMS of one step's error, about
-    assert float(np.sqrt((err ** 2).mean())) < 2 * noise, (np.sqrt((err ** 2).mean()), noise)
+    assert float(np.sqrt((err**2).mean())) < 2 * noise, (np.sqrt((err**2).mean()), noise)
     bias = float(b.mean())
     assert bias > 0.03  # a visible share of δ is taken from the layer ...
     assert abs(float(f_w[flow, :, 0].mean()) - (-delta + bias)) < 0.01
@@ -379,8 +390,9 @@ def test_volume_per_y_x_and_slab_invariance():
         r = r - r.mean(0)
         assert np.abs(r).max() < 5 * predicted_residual_rms(30.0, z, t), np.abs(r).max()
     bs = make_seq(with_bulk(truth[:, 0], phi[:, 0]).astype(np.complex64))
-    np.testing.assert_array_equal(estimate_bulk_phase(bs, "histogram").phase,
-                                  estimate_bulk_phase(bs, "histogram", slab_elements=1).phase)  # one A-line per slab
+    np.testing.assert_array_equal(
+        estimate_bulk_phase(bs, "histogram").phase, estimate_bulk_phase(bs, "histogram", slab_elements=1).phase
+    )  # one A-line per slab
     # maps with the correction do not depend on the slab size either
     m1 = compute_maps(seq, ["lateral=18"], bulk_phase=a)
     m2 = compute_maps(seq, ["lateral=18"], bulk_phase=a, slab_elements=5000)
@@ -440,8 +452,12 @@ def test_refusals_name_the_file_and_the_fix():
 # ----------------------------------------------------------------------------------------------------------
 def write_npy(tmp_path, name, data):
     np.save(tmp_path / f"{name}.npy", data)
-    meta = {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0}, "frame_times_s": [DT * i for i in range(data.shape[0])],
-            "system": SYSTEM}
+    meta = {
+        "axes": "TZX",
+        "pitch_um": {"z": 1.5, "x": 2.0},
+        "frame_times_s": [DT * i for i in range(data.shape[0])],
+        "system": SYSTEM,
+    }
     (tmp_path / f"{name}.json").write_text(json.dumps(meta))
     return str(tmp_path / f"{name}.npy")
 
@@ -452,9 +468,26 @@ def test_cli_maps_bulk_phase_with_signature(tmp_path, capsys):
     phi = bulk_phase_of(t, (x,), 12)
     src = write_npy(tmp_path, "seq", with_bulk(truth, phi).astype(np.complex64))
     out = tmp_path / "m.npz"
-    rc = main(["maps", src, "--resolution", "original", "--resolution", "lateral=18", "--signature",
-               "--bulk-phase", "histogram", "--bulk-phase-mask", "median", "--bulk-phase-rows", "2:22",
-               "--out", str(out), "--no-progress"])
+    rc = main(
+        [
+            "maps",
+            src,
+            "--resolution",
+            "original",
+            "--resolution",
+            "lateral=18",
+            "--signature",
+            "--bulk-phase",
+            "histogram",
+            "--bulk-phase-mask",
+            "median",
+            "--bulk-phase-rows",
+            "2:22",
+            "--out",
+            str(out),
+            "--no-progress",
+        ]
+    )
     assert rc == 0
     text = capsys.readouterr().out
     assert "bulk phase (histogram, mask median)" in text
@@ -467,7 +500,9 @@ def test_cli_maps_bulk_phase_with_signature(tmp_path, capsys):
 
 
 def test_cli_maps_bulk_phase_errors(tmp_path, capsys):
-    d = make_field(8, 8, 4, snr_db=20.0)  # 8 frames: the default OCDS delays (to 6 lags) rest on 2+ pairs.astype(np.complex64)
+    d = make_field(
+        8, 8, 4, snr_db=20.0
+    )  # 8 frames: the default OCDS delays (to 6 lags) rest on 2+ pairs.astype(np.complex64)
     src = write_npy(tmp_path, "seq", d)
     isrc = write_npy(tmp_path, "inten", (np.abs(d) ** 2).astype(np.float32))
     cases = [

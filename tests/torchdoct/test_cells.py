@@ -39,8 +39,12 @@ def _collect(**kw) -> tuple[list, list[int]]:
 def test_every_executor_gives_the_same_cells():
     ref, order = _collect(workers=1)
     assert order == list(range(len(PAYLOADS)))
-    for kw in (dict(workers=2), dict(workers=3, batch=2), dict(workers=2, batch=7),
-               dict(workers=2, one_torch_thread=True)):
+    for kw in (
+        dict(workers=2),
+        dict(workers=3, batch=2),
+        dict(workers=2, batch=7),
+        dict(workers=2, one_torch_thread=True),
+    ):
         got, order = _collect(**kw)
         assert order == list(range(len(PAYLOADS))), kw  # threads: done in the order of the cells
         assert all(np.array_equal(a, b) for a, b in zip(got, ref)), kw
@@ -73,8 +77,9 @@ def test_cache_returns_what_was_stored(tmp_path):
     cache.put("k1", arrays, {"note": "x"})
     got, meta = cache.get("k1")
     assert meta == {"cache_key": "k1", "note": "x"}
-    assert set(got) == {"a", "flag"} and all(np.array_equal(got[k], arrays[k]) and got[k].dtype == arrays[k].dtype
-                                             for k in arrays)
+    assert set(got) == {"a", "flag"} and all(
+        np.array_equal(got[k], arrays[k]) and got[k].dtype == arrays[k].dtype for k in arrays
+    )
     assert [p.name for p in (tmp_path / "c").iterdir()] == ["k1.npz"]  # written atomically: no temporary file
     assert cache.get("k2") is None
     (tmp_path / "c" / "k2.npz").write_bytes((tmp_path / "c" / "k1.npz").read_bytes())  # another key's content
@@ -86,8 +91,9 @@ def test_cache_returns_what_was_stored(tmp_path):
 
 @pytest.fixture()
 def fresh_notes(monkeypatch):
-    monkeypatch.setattr(interrupt, "_STATE", SimpleNamespace(signum=None, defer=0, pending=None, kept={},
-                                                             resume=None, active=False))
+    monkeypatch.setattr(
+        interrupt, "_STATE", SimpleNamespace(signum=None, defer=0, pending=None, kept={}, resume=None, active=False)
+    )
 
 
 def _jobs() -> list[CellJob]:

@@ -74,10 +74,8 @@ def test_plan_example_json(capsys):
     assert main(["plan", "example", "--json"]) == 0
     plan = json.loads(capsys.readouterr().out)
     assert {"stages", "systems", "populations"} <= set(plan)
-    assert [s["name"] for s in plan["systems"]] == ["840nm-high", "1310nm-high", "840nm-axial14",
-                                                    "840nm-lateral18"]
-    np.testing.assert_allclose([s["ens_paper"] for s in plan["systems"]], [5.018, 5.018, 18.488, 67.716],
-                               atol=5e-4)
+    assert [s["name"] for s in plan["systems"]] == ["840nm-high", "1310nm-high", "840nm-axial14", "840nm-lateral18"]
+    np.testing.assert_allclose([s["ens_paper"] for s in plan["systems"]], [5.018, 5.018, 18.488, 67.716], atol=5e-4)
     assert plan["populations"][0]["sampler"] == "diffusive"
 
 
@@ -138,8 +136,22 @@ def test_simulate_writes_npz_and_refuses_to_overwrite(tmp_scene_file, tmp_path, 
 
 def test_simulate_float64(tmp_scene_file, tmp_path, capsys):
     out = tmp_path / "y.npz"
-    assert main(["simulate", str(tmp_scene_file), "--trials", "64", "--dtype", "float64", "--out", str(out),
-                 "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                str(tmp_scene_file),
+                "--trials",
+                "64",
+                "--dtype",
+                "float64",
+                "--out",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     with np.load(out, allow_pickle=False) as z:
         assert z["signals"].dtype == np.complex128 and z["signals"].shape == (64, 1, 8)
@@ -183,7 +195,7 @@ def test_missing_scene_file_exits_2(tmp_path, capsys, command):
     assert "missing.toml" in err and "not found" in err and "example" in err
 
 
-@pytest.mark.parametrize("content", [bytes(range(256)) * 4, b"\xff\xfe[system]\n", b"name = \"\xe9\"\n"])
+@pytest.mark.parametrize("content", [bytes(range(256)) * 4, b"\xff\xfe[system]\n", b'name = "\xe9"\n'])
 def test_binary_scene_file_exits_2_naming_the_file(tmp_path, capsys, content):
     path = tmp_path / "scan.toml"
     path.write_bytes(content)
@@ -199,19 +211,26 @@ def test_binary_scene_file_exits_2_naming_the_file(tmp_path, capsys, content):
 _NO_CUDA = not torch.cuda.is_available()
 
 
-@pytest.mark.parametrize("device, text", [("bogus", "not a torch device"), ("gpu", "not a torch device"),
-                                          ("cuda:x", "not a torch device"),
-                                          pytest.param("cuda", "CUDA", marks=pytest.mark.skipif(
-                                              not _NO_CUDA, reason="a CUDA device exists")),
-                                          pytest.param("cuda:0", "CUDA", marks=pytest.mark.skipif(
-                                              not _NO_CUDA, reason="a CUDA device exists")),
-                                          ("cuda:99", "CUDA"), ("meta", "meta")])
+@pytest.mark.parametrize(
+    "device, text",
+    [
+        ("bogus", "not a torch device"),
+        ("gpu", "not a torch device"),
+        ("cuda:x", "not a torch device"),
+        pytest.param("cuda", "CUDA", marks=pytest.mark.skipif(not _NO_CUDA, reason="a CUDA device exists")),
+        pytest.param("cuda:0", "CUDA", marks=pytest.mark.skipif(not _NO_CUDA, reason="a CUDA device exists")),
+        ("cuda:99", "CUDA"),
+        ("meta", "meta"),
+    ],
+)
 @pytest.mark.parametrize("command", ["simulate", "render", "maps"])
 def test_unusable_device_exits_2_listing_the_devices(tmp_scene_file, tmp_path, capsys, command, device, text):
     out = tmp_path / ("x.npz" if command != "maps" else "m.npz")
-    argv = {"simulate": ["simulate", str(tmp_scene_file), "--trials", "2", "--no-progress"],
-            "render": ["render", "spheroid", "--out", str(out), "--no-progress"],
-            "maps": ["maps", str(tmp_path / "seq.npy"), "--out", str(out)]}[command]
+    argv = {
+        "simulate": ["simulate", str(tmp_scene_file), "--trials", "2", "--no-progress"],
+        "render": ["render", "spheroid", "--out", str(out), "--no-progress"],
+        "maps": ["maps", str(tmp_path / "seq.npy"), "--out", str(out)],
+    }[command]
     assert main(argv + ["--device", device]) == 2
     captured = capsys.readouterr()
     assert captured.out == "" and captured.err.startswith("error: ") and captured.err.count("\n") == 1, captured.err
@@ -232,11 +251,13 @@ def test_cpu_device_is_accepted(tmp_scene_file, capsys):
 def test_bad_output_paths_exit_2_not_1(tmp_scene_file, tmp_path, capsys):
     existing = tmp_path / "old.npz"
     existing.write_bytes(b"keep")
-    for argv, text in ((["simulate", str(tmp_scene_file), "--out", str(tmp_path / "x.txt")], ".npz"),
-                       (["simulate", str(tmp_scene_file), "--out", str(existing)], "--force"),
-                       (["simulate", str(tmp_scene_file), "--out", str(tmp_path / "no" / "x.npz")], "create it"),
-                       (["bench", "simulate", "--out", str(tmp_path / "b.txt")], ".json"),
-                       (["bench", "classify", "--out", str(existing)], ".json")):
+    for argv, text in (
+        (["simulate", str(tmp_scene_file), "--out", str(tmp_path / "x.txt")], ".npz"),
+        (["simulate", str(tmp_scene_file), "--out", str(existing)], "--force"),
+        (["simulate", str(tmp_scene_file), "--out", str(tmp_path / "no" / "x.npz")], "create it"),
+        (["bench", "simulate", "--out", str(tmp_path / "b.txt")], ".json"),
+        (["bench", "classify", "--out", str(existing)], ".json"),
+    ):
         assert main(argv + (["--no-progress"] if argv[0] == "simulate" else [])) == 2, argv  # not SystemExit
         err = capsys.readouterr().err
         assert err.startswith("error: ") and err.count("\n") == 1 and text in err, err

@@ -29,7 +29,8 @@ def test_sample_means_and_regions():
     bright = region_mask(m, threshold_db=10.0)
     assert not bright[0].any() and bright[1:].all()  # mean_db of row 0 is 0 dB
     assert sample_means(m, bright)[cfgs[1]]["ocds"][0] == pytest.approx(
-        m["ocds@axial=14"][1:].astype(np.float64).mean(), rel=1e-12)
+        m["ocds@axial=14"][1:].astype(np.float64).mean(), rel=1e-12
+    )
     mask = np.zeros((6, 7), dtype=int)
     mask[2:4, 1:3] = 1
     assert region_mask(m, mask=mask).sum() == 4
@@ -97,8 +98,21 @@ def test_wavelength_pairs_across_maps_files(tmp_path, capsys):
             np.save(tmp_path / f"mask{i}_{tag}.npy", mask)
             masks += ["--mask", str(tmp_path / f"mask{i}_{tag}.npy")]
     out, per, plot = tmp_path / "t.csv", tmp_path / "p.csv", tmp_path / "f.png"
-    argv = ["compare", *args, *masks, "--config", "0.84:axial=14,lateral=18", "--config", "1.31:original",
-            "--out", str(out), "--per-sample", str(per), "--plot", str(plot)]
+    argv = [
+        "compare",
+        *args,
+        *masks,
+        "--config",
+        "0.84:axial=14,lateral=18",
+        "--config",
+        "1.31:original",
+        "--out",
+        str(out),
+        "--per-sample",
+        str(per),
+        "--plot",
+        str(plot),
+    ]
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "840nm axial=14,lateral=18" in text and "1310nm original" in text
@@ -126,7 +140,9 @@ def test_errors_and_plot(tmp_path):
         compare_samples({"a": [(m, region_mask(m))], "b": [(m2, region_mask(m2))]}, configs=["original", "axial=14"])
     with pytest.raises(ValueError, match="not a wavelength"):
         parse_config("nm:original")
-    res = compare_samples({"a": [(m, region_mask(m))], "b": [(make_maps(rng, ["original", "axial=14"]), np.ones((6, 7), bool))]})
+    res = compare_samples(
+        {"a": [(m, region_mask(m))], "b": [(make_maps(rng, ["original", "axial=14"]), np.ones((6, 7), bool))]}
+    )
     p = plot_comparison(res, tmp_path / "f.svg")
     assert p.read_text().startswith("<?xml")
     with pytest.raises(ValueError, match="exists"):
@@ -148,9 +164,9 @@ def _render(rng, *, nz=36, nx=36, pz=1.5, px=2.0, frames=8, dt=0.2048, d_um2_per
     moving = rng.random(n) < 0.5
     out = np.empty((frames, nz, nx), np.complex64)
     for t in range(frames):
-        c = np.exp(-p[:, 1] ** 2 / (2 * sx * sx) + 2j * k * p[:, 2])
-        hz = np.exp(-(z_um[:, None] - p[None, :, 2]) ** 2 / (2 * sz * sz))
-        hx = np.exp(-(p[:, None, 0] - x_um[None, :]) ** 2 / (2 * sx * sx))
+        c = np.exp(-(p[:, 1] ** 2) / (2 * sx * sx) + 2j * k * p[:, 2])
+        hz = np.exp(-((z_um[:, None] - p[None, :, 2]) ** 2) / (2 * sz * sz))
+        hx = np.exp(-((p[:, None, 0] - x_um[None, :]) ** 2) / (2 * sx * sx))
         out[t] = (hz * c[None, :]) @ hx
         p = p + rng.normal(0, math.sqrt(2 * d_um2_per_s * dt), p.shape) * moving[:, None]
     return out
@@ -163,18 +179,53 @@ def test_whole_path_from_sequence_files_to_the_statistics_table(tmp_path, capsys
     rng = np.random.default_rng(5)
     maps_args = []
     for i in range(3):
-        seq = write_sequence(tmp_path / f"sample{i}.h5", _render(rng),
-                             {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0}, "frame_times_s": [0.2048 * t for t in range(8)],
-                              "system": {"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9,
-                                         "axial_resolution_um": 3.8, "refractive_index": 1.0}})
+        seq = write_sequence(
+            tmp_path / f"sample{i}.h5",
+            _render(rng),
+            {
+                "axes": "TZX",
+                "pitch_um": {"z": 1.5, "x": 2.0},
+                "frame_times_s": [0.2048 * t for t in range(8)],
+                "system": {
+                    "name": "840nm",
+                    "wavelength_um": 0.84,
+                    "lateral_resolution_um": 4.9,
+                    "axial_resolution_um": 3.8,
+                    "refractive_index": 1.0,
+                },
+            },
+        )
         out = tmp_path / f"sample{i}_maps.tif"
-        assert main(["maps", str(seq), "--resolution", "original", "--resolution", "axial=14", "--resolution",
-                     "lateral=18", "--ocds-delay-range-s", "0.2048", "0.6144", "--out", str(out), "--png",
-                     "--no-progress"]) == 0
+        assert (
+            main(
+                [
+                    "maps",
+                    str(seq),
+                    "--resolution",
+                    "original",
+                    "--resolution",
+                    "axial=14",
+                    "--resolution",
+                    "lateral=18",
+                    "--ocds-delay-range-s",
+                    "0.2048",
+                    "0.6144",
+                    "--out",
+                    str(out),
+                    "--png",
+                    "--no-progress",
+                ]
+            )
+            == 0
+        )
         maps_args.append(str(out))
     table = tmp_path / "stats.csv"
-    assert main(["compare", *maps_args, "--threshold-db", "-30", "--out", str(table), "--plot",
-                 str(tmp_path / "stats.png")]) == 0
+    assert (
+        main(
+            ["compare", *maps_args, "--threshold-db", "-30", "--out", str(table), "--plot", str(tmp_path / "stats.png")]
+        )
+        == 0
+    )
     t = pd.read_csv(table)
     assert list(t["test"]) == ["Kruskal-Wallis"] + ["paired t-test"] * 3 + ["Kruskal-Wallis"] + ["paired t-test"] * 3
     assert t["p_value"].between(0, 1).all() and (tmp_path / "stats.png").exists()
@@ -186,13 +237,16 @@ def test_one_sample_gives_the_summary_without_tests(tmp_path, capsys):
     m = make_maps(rng, ["original", "axial=14"], shift={"axial=14": 2.0})
     res = compare_samples({"only": [(m, region_mask(m))]})
     assert len(res.tests) == 0 and list(res.tests.columns)[:3] == ["metric", "test", "config_a"]
-    np.testing.assert_allclose(res.values("liv")[0], [np.nanmean(m["liv@original"]), np.nanmean(m["liv@axial=14"])],
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        res.values("liv")[0], [np.nanmean(m["liv@original"]), np.nanmean(m["liv@axial=14"])], rtol=1e-6
+    )
     text = res.format()
     assert "1 sample" in text and "no tests" in text and "at least 2 samples" in text
     path = tmp_path / "only.npz"
     write_maps(path, m)
-    assert main(["compare", str(path), "--per-sample", str(tmp_path / "per.csv"), "--plot", str(tmp_path / "p.png")]) == 0
+    assert (
+        main(["compare", str(path), "--per-sample", str(tmp_path / "per.csv"), "--plot", str(tmp_path / "p.png")]) == 0
+    )
     out = capsys.readouterr().out
     assert "no tests" in out and (tmp_path / "per.csv").exists() and (tmp_path / "p.png").exists()
     assert len(pd.read_csv(tmp_path / "per.csv")) == 2 * 2  # 2 configurations × 2 metrics

@@ -48,9 +48,12 @@ def test_non_uniform_frame_times_count_the_pairs_of_each_delay():
 
 
 def test_a_scene_with_too_few_frames_for_its_delay_range_is_refused():
-    d = {"system": [{"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}],
-         "protocol": {"n_frames": 8, "frame_interval_s": DT}, "population": [{"density_per_um3": 0.05}],
-         "analysis": {"metrics": ["liv", "ocds"], "ocds_delay_range_s": [DT, 7 * DT]}}
+    d = {
+        "system": [{"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}],
+        "protocol": {"n_frames": 8, "frame_interval_s": DT},
+        "population": [{"density_per_um3": 0.05}],
+        "analysis": {"metrics": ["liv", "ocds"], "ocds_delay_range_s": [DT, 7 * DT]},
+    }
     with pytest.raises(SceneError, match=r"analysis\.ocds_delay_range_s.*1\.4336 s.*1 frame pair.*n_frames"):
         scene_from_dict(d)
     d["analysis"]["ocds_delay_range_s"] = [DT, 6 * DT]
@@ -58,9 +61,23 @@ def test_a_scene_with_too_few_frames_for_its_delay_range_is_refused():
 
 
 def test_maps_refuse_a_degenerate_delay_range_naming_the_file_and_the_option(tmp_path, capsys, seq):
-    line = refused(capsys, tmp_path, ["maps", str(seq), "--ocds-delay-range-s", "0.2048", "1.4336", "--out",
-                                      str(tmp_path / "m.npz"), "--no-progress"],
-                   "seq.npy", "--ocds-delay-range-s", "1 frame pair")
+    line = refused(
+        capsys,
+        tmp_path,
+        [
+            "maps",
+            str(seq),
+            "--ocds-delay-range-s",
+            "0.2048",
+            "1.4336",
+            "--out",
+            str(tmp_path / "m.npz"),
+            "--no-progress",
+        ],
+        "seq.npy",
+        "--ocds-delay-range-s",
+        "1 frame pair",
+    )
     assert "--metrics" in line
 
 
@@ -93,10 +110,12 @@ def test_one_pair_has_nothing_to_correlate():
     assert rho_a.item() == rho_b.item() == 1.0
 
 
-@pytest.mark.parametrize("n_frames,max_window,accepted", [(3, None, False), (4, None, True), (32, 0.3, False),
-                                                           (32, 0.62, True)])
-def test_aliv_needs_more_time_windows_than_the_two_parameters_of_its_fit(tmp_path, capsys, seq, n_frames, max_window,
-                                                                         accepted):
+@pytest.mark.parametrize(
+    "n_frames,max_window,accepted", [(3, None, False), (4, None, True), (32, 0.3, False), (32, 0.62, True)]
+)
+def test_aliv_needs_more_time_windows_than_the_two_parameters_of_its_fit(
+    tmp_path, capsys, seq, n_frames, max_window, accepted
+):
     import json
 
     from torchdoct.cli import main

@@ -11,11 +11,15 @@ from torchdoct.conventions import delay_groups
 from torchdoct.sim import config
 
 
-@pytest.mark.parametrize("times", [
-    [k * 0.2048 for k in range(40)],
-    [float(v) for v in np.arange(40, dtype=np.float32) * np.float32(0.0123)],  # single-precision steps
-    [0.0, 0.1, 0.25, 0.3, 0.7, 0.75],  # not uniform: grouped from the pairs
-], ids=["uniform", "uniform-float32", "irregular"])
+@pytest.mark.parametrize(
+    "times",
+    [
+        [k * 0.2048 for k in range(40)],
+        [float(v) for v in np.arange(40, dtype=np.float32) * np.float32(0.0123)],  # single-precision steps
+        [0.0, 0.1, 0.25, 0.3, 0.7, 0.75],  # not uniform: grouped from the pairs
+    ],
+    ids=["uniform", "uniform-float32", "irregular"],
+)
 def test_pair_counts_are_those_of_the_delay_grouping(times):
     assert config.delay_pair_counts(times) == [(d, len(ij)) for d, ij in delay_groups(times)]
 

@@ -23,8 +23,13 @@ from torchdoct.measured.io import SequenceData, read_maps, validate_meta
 from torchdoct.measured.maps import compute_maps
 
 WL, LAT, AX = 0.84, 4.9, 3.8
-SYSTEM = {"name": "840nm", "wavelength_um": WL, "lateral_resolution_um": LAT, "axial_resolution_um": AX,
-          "refractive_index": 1.0}
+SYSTEM = {
+    "name": "840nm",
+    "wavelength_um": WL,
+    "lateral_resolution_um": LAT,
+    "axial_resolution_um": AX,
+    "refractive_index": 1.0,
+}
 K = 2 * math.pi / WL
 SX = LAT / (2 * math.sqrt(2))
 SZ = AX / (2 * math.sqrt(math.log(2)))
@@ -67,15 +72,19 @@ def layered_field(n_lines, layers, *, snr_db=30.0, seed=0, density=0.05):
             walk += rng.standard_normal(walk.shape) * np.sqrt(2 * diff * DT)
         x, y, z = (c + vel[..., i] * t * DT + walk[i] for i, c in enumerate((x0, y0, z0)))
         amp = np.exp(-(x * x + y * y) / (2 * SX * SX) + 2j * K * z)
-        e[t] = np.einsum("lj,ljz->lz", amp, np.exp(-(z[..., None] - zpix) ** 2 / (2 * SZ * SZ)))
+        e[t] = np.einsum("lj,ljz->lz", amp, np.exp(-((z[..., None] - zpix) ** 2) / (2 * SZ * SZ)))
     p = float(np.mean(np.abs(e) ** 2))
     e += (rng.standard_normal(e.shape) + 1j * rng.standard_normal(e.shape)) * math.sqrt(p * 10 ** (-snr_db / 10) / 2)
     return np.ascontiguousarray(e.transpose(0, 2, 1))  # [T, Z, X]
 
 
 def seq_of(data):
-    meta = {"axes": "TZX", "pitch_um": {"z": DZ, "x": 2.0}, "frame_times_s": [DT * i for i in range(T)],
-            "system": SYSTEM}
+    meta = {
+        "axes": "TZX",
+        "pitch_um": {"z": DZ, "x": 2.0},
+        "frame_times_s": [DT * i for i in range(T)],
+        "system": SYSTEM,
+    }
     return SequenceData(data=data, meta=validate_meta(meta, data.shape), source="test.npy")
 
 
@@ -167,8 +176,13 @@ def test_other_channels_are_bit_identical(field, maps_with_bulk):
     assert "doppler" not in plain.meta
 
 
-@pytest.mark.parametrize("layers", [[(16, "flow", V_FLOW), (16, "ballistic", 0.3)],  # flow beside ballistic
-                                    [(40, "flow", V_FLOW), (8, "ballistic", 0.3)]])  # a thick flow layer
+@pytest.mark.parametrize(
+    "layers",
+    [
+        [(16, "flow", V_FLOW), (16, "ballistic", 0.3)],  # flow beside ballistic
+        [(40, "flow", V_FLOW), (8, "ballistic", 0.3)],
+    ],
+)  # a thick flow layer
 def test_without_static_tissue_the_channel_is_absent(layers):
     """The slow flow's speckle moves 1.2 µm over the sequence (half the axial PSF's s_z): many of its pixels pass
     the steadiness test, some the whiteness test too, and they share one Doppler phase; as a population they
@@ -187,10 +201,31 @@ def test_intensity_only_input_gives_no_channel_and_a_note(tmp_path, capsys):
     assert m.channels == ("mean_db@original",)
     assert "intensity only" in m.meta["doppler"]["absent"]
     np.save(tmp_path / "i.npy", inten.astype(np.float32))
-    (tmp_path / "i.json").write_text(json.dumps({"axes": "TZX", "pitch_um": {"z": DZ, "x": 2.0},
-                                                  "frame_times_s": [DT * i for i in range(T)], "system": SYSTEM}))
-    assert main(["maps", str(tmp_path / "i.npy"), "--metrics", "mean_db", "--doppler", "--out",
-                 str(tmp_path / "i.npz"), "--no-progress"]) == 0
+    (tmp_path / "i.json").write_text(
+        json.dumps(
+            {
+                "axes": "TZX",
+                "pitch_um": {"z": DZ, "x": 2.0},
+                "frame_times_s": [DT * i for i in range(T)],
+                "system": SYSTEM,
+            }
+        )
+    )
+    assert (
+        main(
+            [
+                "maps",
+                str(tmp_path / "i.npy"),
+                "--metrics",
+                "mean_db",
+                "--doppler",
+                "--out",
+                str(tmp_path / "i.npz"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "note: --doppler" in capsys.readouterr().out
 
 
@@ -205,11 +240,23 @@ def test_slabs_and_lags_and_the_cli(tmp_path, capsys, field):
     mean, se = layer_mean(two, FLOW)
     assert abs(mean - (-2 * K * V_FLOW * 2 * DT)) <= Z_SE * se
     np.save(tmp_path / "f.npy", data.astype(np.complex64))
-    (tmp_path / "f.json").write_text(json.dumps({"axes": "TZX", "pitch_um": {"z": DZ, "x": 2.0},
-                                                  "frame_times_s": [DT * i for i in range(T)], "system": SYSTEM}))
+    (tmp_path / "f.json").write_text(
+        json.dumps(
+            {
+                "axes": "TZX",
+                "pitch_um": {"z": DZ, "x": 2.0},
+                "frame_times_s": [DT * i for i in range(T)],
+                "system": SYSTEM,
+            }
+        )
+    )
     out = tmp_path / "f.npz"
-    assert main(["maps", str(tmp_path / "f.npy"), "--doppler", "--doppler-lags", "1,2", "--out", str(out),
-                 "--no-progress"]) == 0
+    assert (
+        main(
+            ["maps", str(tmp_path / "f.npy"), "--doppler", "--doppler-lags", "1,2", "--out", str(out), "--no-progress"]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     assert "Doppler reference" in text
     maps = read_maps(out)
@@ -228,8 +275,15 @@ def test_the_rule_s_constants_follow_from_the_noise():
     from torchdoct.measured.doppler import WHITE_TEST_LEVEL, _binomial_threshold, white_population
 
     n = np.array([1, 2, 5, 10, 15, 30, 100, 1000, 12345])
-    np.testing.assert_array_equal(_binomial_threshold(n, 0.5, WHITE_TEST_LEVEL), binom.isf(WHITE_TEST_LEVEL, n, 0.5) + 1)
-    assert white_population(np.array([10, 9, 950, 0]), np.array([10, 15, 1000, 0])).tolist() == [True, False, True, False]
+    np.testing.assert_array_equal(
+        _binomial_threshold(n, 0.5, WHITE_TEST_LEVEL), binom.isf(WHITE_TEST_LEVEL, n, 0.5) + 1
+    )
+    assert white_population(np.array([10, 9, 950, 0]), np.array([10, 15, 1000, 0])).tolist() == [
+        True,
+        False,
+        True,
+        False,
+    ]
 
 
 def test_refusals():
@@ -266,8 +320,12 @@ def test_thin_static_layer_falls_back_to_the_b_scan_reference():
 def test_volume_b_scans_and_slabs(field):
     e = with_bulk(field[:, :, :48], 23, per_aline=True)
     vol = np.ascontiguousarray(e.reshape(T, e.shape[1], 3, 16).transpose(0, 2, 1, 3))  # [T, Y, Z, X]
-    meta = {"axes": "TYZX", "pitch_um": {"z": DZ, "x": 2.0, "y": 2.0}, "frame_times_s": [DT * i for i in range(T)],
-            "system": SYSTEM}
+    meta = {
+        "axes": "TYZX",
+        "pitch_um": {"z": DZ, "x": 2.0, "y": 2.0},
+        "frame_times_s": [DT * i for i in range(T)],
+        "system": SYSTEM,
+    }
     seq = SequenceData(data=vol, meta=validate_meta(meta, vol.shape), source="v.npy")
     whole = compute_maps(seq, metrics=("mean_db",), doppler=True)
     cut = compute_maps(seq, metrics=("mean_db",), doppler=True, slab_elements=T * 16 * vol.shape[2])
@@ -295,8 +353,9 @@ def test_rendered_vessel_phantom_with_oblique_flow():
     p = load_phantom("vessel-slab")
     pops = list(p.scene.populations)
     vessel = next(i for i, q in enumerate(pops) if q.name == "vessel")
-    pops[vessel] = dataclasses.replace(pops[vessel], motion=(Flow(speed_um_per_s=0.6, polar_angle_deg=60.0,
-                                                                  azimuth_deg=30.0),))
+    pops[vessel] = dataclasses.replace(
+        pops[vessel], motion=(Flow(speed_um_per_s=0.6, polar_angle_deg=60.0, azimuth_deg=30.0),)
+    )
     p = dataclasses.replace(p, scene=dataclasses.replace(p.scene, populations=tuple(pops)))
     res = render(p, seed=1, threads=1)
     e = res.data[0].numpy().astype(np.complex128)
@@ -306,10 +365,15 @@ def test_rendered_vessel_phantom_with_oblique_flow():
     e = e + (rng.standard_normal(e.shape) + 1j * rng.standard_normal(e.shape)) * math.sqrt(power * 1e-3 / 2)
     e = (e * np.exp(1j * rng.uniform(-math.pi, math.pi, (e.shape[0], 1, e.shape[2])))).astype(np.complex64)
     dt = 0.2048
-    meta = {"axes": "TZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": [dt * i for i in range(e.shape[0])],
-            "system": SYSTEM}
-    m = compute_maps(SequenceData(data=e, meta=validate_meta(meta, e.shape), source="vessel.npy"),
-                     metrics=("mean_db",), doppler=True)
+    meta = {
+        "axes": "TZX",
+        "pitch_um": {"z": 2.0, "x": 2.0},
+        "frame_times_s": [dt * i for i in range(e.shape[0])],
+        "system": SYSTEM,
+    }
+    m = compute_maps(
+        SequenceData(data=e, meta=validate_meta(meta, e.shape), source="vessel.npy"), metrics=("mean_db",), doppler=True
+    )
     ch = m.maps[m.index(NAME)].astype(np.float64)
     for code, truth in ((4, -2 * K * 0.3 * dt), (1, 0.0)):  # the vessel, the static tissue
         inner = binary_erosion(lab == code, iterations=4)

@@ -50,8 +50,11 @@ def reference_maps(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("ref")
     a = F.field()
-    out = {"complex": compute_maps(read_sequence(F.write_npy(d / "c.npy", a), system=SYSTEM),
-                                   ["original", "lateral=8,axial=6"])}
+    out = {
+        "complex": compute_maps(
+            read_sequence(F.write_npy(d / "c.npy", a), system=SYSTEM), ["original", "lateral=8,axial=6"]
+        )
+    }
     out["intensity"] = compute_maps(read_sequence(F.write_npy(d / "i.npy", np.abs(a) ** 2)), ["original"])
     return out
 
@@ -67,8 +70,16 @@ def _same_maps(got, want):
 
 #: Formats read slab by slab when streamed (torchdoct maps --max-memory-gb): memory-mapped (.npy, raw, an
 #: uncompressed OME-TIFF), chunked (OME-Zarr) or one file per frame (a folder of TIFFs); MATLAB v5 is read whole.
-STREAMED = {"npy", "raw-big-endian-header", "bin-little-endian", "ome-tiff-time-increment", "ome-tiff-plane-deltat",
-            "ome-zarr-0.4", "ome-zarr-0.5", "tiff-folder"}
+STREAMED = {
+    "npy",
+    "raw-big-endian-header",
+    "bin-little-endian",
+    "ome-tiff-time-increment",
+    "ome-tiff-plane-deltat",
+    "ome-zarr-0.4",
+    "ome-zarr-0.5",
+    "tiff-folder",
+}
 
 
 @pytest.mark.parametrize("read", ["whole", "streamed"])
@@ -98,12 +109,27 @@ def test_torchdoct_maps_gives_the_same_maps_file_from_every_format(tmp_path, fmt
     from torchdoct.measured.mapsfile import read_maps
 
     a = F.field(t=16)
-    opts = ["--no-progress", "--ocds-delay-range-s", "0.05", "0.3", "--resolution", "original",
-            "--resolution", "lateral=8,axial=6", "--wavelength-um", "0.84", "--lateral-resolution-um", "4",
-            "--axial-resolution-um", "3"]
+    opts = [
+        "--no-progress",
+        "--ocds-delay-range-s",
+        "0.05",
+        "0.3",
+        "--resolution",
+        "original",
+        "--resolution",
+        "lateral=8,axial=6",
+        "--wavelength-um",
+        "0.84",
+        "--lateral-resolution-um",
+        "4",
+        "--axial-resolution-um",
+        "3",
+    ]
     (tmp_path / "ref").mkdir()
     (tmp_path / "fmt").mkdir()
-    assert main(["maps", str(F.write_npy(tmp_path / "ref" / "s.npy", a)), "--out", str(tmp_path / "ref.npz"), *opts]) == 0
+    assert (
+        main(["maps", str(F.write_npy(tmp_path / "ref" / "s.npy", a)), "--out", str(tmp_path / "ref.npz"), *opts]) == 0
+    )
     assert main(["maps", str(WRITERS[fmt](tmp_path / "fmt", a)), "--out", str(tmp_path / "m.npz"), *opts]) == 0
     got, want = read_maps(tmp_path / "m.npz"), read_maps(tmp_path / "ref.npz")
     assert got.meta["pitch_um"] == pytest.approx(F.PITCH, rel=1e-12)
@@ -135,8 +161,18 @@ def test_ome_volume_has_z_as_depth(tmp_path):
 
     v = F.field(t=4 * 3 * 5).reshape(4, 3, 5, 12, 16)[:, :, 0]  # [T, Zome=3, Yome=12, Xome=16]
     p = tmp_path / "v.ome.tif"
-    tifffile.imwrite(p, v, ome=True, metadata={"axes": "TZYX", "PhysicalSizeZ": 2.5, "PhysicalSizeY": 7.0,
-                                                "PhysicalSizeX": 1.5, "TimeIncrement": 0.1})
+    tifffile.imwrite(
+        p,
+        v,
+        ome=True,
+        metadata={
+            "axes": "TZYX",
+            "PhysicalSizeZ": 2.5,
+            "PhysicalSizeY": 7.0,
+            "PhysicalSizeX": 1.5,
+            "TimeIncrement": 0.1,
+        },
+    )
     seq = read_sequence(p)
     assert seq.axes == "TYZX" and seq.data.shape == (4, 12, 3, 16)
     assert seq.pitch_um == pytest.approx({"z": 2.5, "y": 7.0, "x": 1.5})
@@ -162,9 +198,17 @@ def test_ome_zarr_volume_has_z_as_depth(tmp_path):
     group = zarr.open_group(str(tmp_path / "v.zarr"), mode="w", zarr_format=2)
     group.create_array("0", shape=v.shape, dtype=v.dtype)[:] = v
     axes = [{"name": "t", "type": "time", "unit": "second"}] + [
-        {"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"]
-    group.attrs["multiscales"] = [{"version": "0.4", "axes": axes, "datasets": [
-        {"path": "0", "coordinateTransformations": [{"type": "scale", "scale": [0.1, 2.5, 7.0, 1.5]}]}]}]
+        {"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"
+    ]
+    group.attrs["multiscales"] = [
+        {
+            "version": "0.4",
+            "axes": axes,
+            "datasets": [
+                {"path": "0", "coordinateTransformations": [{"type": "scale", "scale": [0.1, 2.5, 7.0, 1.5]}]}
+            ],
+        }
+    ]
     seq = read_sequence(tmp_path / "v.zarr")
     assert seq.axes == "TYZX" and seq.data.shape == (4, 12, 3, 16)
     assert seq.pitch_um == pytest.approx({"z": 2.5, "y": 7.0, "x": 1.5})
@@ -221,12 +265,15 @@ def _argv(d: Path, src: Path, *extra: str) -> list[str]:
 
 def _truncate(path: Path, keep: float = 0.6) -> None:
     data = path.read_bytes()
-    path.write_bytes(data[:int(len(data) * keep)])
+    path.write_bytes(data[: int(len(data) * keep)])
 
 
 def _zarr_chunk(store: Path) -> Path:
-    chunks = sorted(p for p in store.rglob("*") if p.is_file() and not p.name.startswith((".", "zarr.json"))
-                    and p.parent.name != store.name)
+    chunks = sorted(
+        p
+        for p in store.rglob("*")
+        if p.is_file() and not p.name.startswith((".", "zarr.json")) and p.parent.name != store.name
+    )
     return chunks[0]
 
 
@@ -234,10 +281,16 @@ TRUNCATED = {
     "mat": (lambda d, a: F.write_mat(d / "s.mat", a), lambda p: _truncate(p), ["s.mat", "truncated"]),
     "raw": (lambda d, a: F.write_raw(d / "s.raw", a), lambda p: _truncate(p), ["s.raw", "truncated", "header_bytes"]),
     "ome-tiff": (lambda d, a: F.write_ome_tiff(d / "s.ome.tif", a), lambda p: _truncate(p), ["s.ome.tif"]),
-    "ome-zarr": (lambda d, a: F.write_ome_zarr(d / "s.zarr", a), lambda p: _truncate(_zarr_chunk(p), 0.5),
-                 ["s.zarr", "chunk", "again completely"]),
-    "tiff-folder": (lambda d, a: F.write_tiff_folder(d / "fold", np.abs(a) ** 2),
-                    lambda p: _truncate(p / "frame3.tif", 0.5), ["frame3.tif", "truncated"]),
+    "ome-zarr": (
+        lambda d, a: F.write_ome_zarr(d / "s.zarr", a),
+        lambda p: _truncate(_zarr_chunk(p), 0.5),
+        ["s.zarr", "chunk", "again completely"],
+    ),
+    "tiff-folder": (
+        lambda d, a: F.write_tiff_folder(d / "fold", np.abs(a) ** 2),
+        lambda p: _truncate(p / "frame3.tif", 0.5),
+        ["frame3.tif", "truncated"],
+    ),
 }
 
 
@@ -258,7 +311,7 @@ def test_declared_size_over_the_limit_is_refused_before_reading(outdir, capsys, 
 def test_raw_sidecar_declaring_a_huge_shape_is_refused_before_the_file_is_mapped(outdir, capsys):
     path = F.write_raw(outdir / "s.raw", F.field(t=4))
     meta = json.loads(path.with_suffix(".json").read_text())
-    meta["shape"] = [4, 10 ** 6, 10 ** 6]
+    meta["shape"] = [4, 10**6, 10**6]
     path.with_suffix(".json").write_text(json.dumps(meta))
     refused(capsys, outdir, _argv(outdir, path), "s.raw", "--max-input-gb")
 
@@ -266,7 +319,7 @@ def test_raw_sidecar_declaring_a_huge_shape_is_refused_before_the_file_is_mapped
 def test_zarr_declaring_a_huge_array_is_refused_before_reading(outdir, capsys):
     path = F.write_ome_zarr(outdir / "s.zarr", F.field(t=4))
     group = zarr.open_group(str(path), mode="a")
-    group.create_array("0", shape=(4, 10 ** 6, 10 ** 6), dtype=np.complex64, chunks=(1, 16, 16), overwrite=True)
+    group.create_array("0", shape=(4, 10**6, 10**6), dtype=np.complex64, chunks=(1, 16, 16), overwrite=True)
     refused(capsys, outdir, _argv(outdir, path), "s.zarr", "--max-input-gb")
 
 
@@ -355,8 +408,12 @@ def test_ome_xml_with_entities_is_refused(tmp_path):
 # sequence files carry their metadata inside
 # ----------------------------------------------------------------------------------------------------------
 def _meta(t: int) -> dict:
-    return {"axes": "TZX", "pitch_um": F.PITCH, "frame_times_s": [k * F.DT_S for k in range(t)],
-            "system": {"name": "lab", **SYSTEM, "refractive_index": 1.33}}
+    return {
+        "axes": "TZX",
+        "pitch_um": F.PITCH,
+        "frame_times_s": [k * F.DT_S for k in range(t)],
+        "system": {"name": "lab", **SYSTEM, "refractive_index": 1.33},
+    }
 
 
 def test_npz_sequence_travels_without_its_sidecar(tmp_path):
@@ -417,8 +474,9 @@ def test_streamed_npy_is_read_in_slabs_within_the_budget_and_gives_the_same_maps
     seq = read_sequence(p, stream=True)
     assert isinstance(seq.data, lazy.LazyArray)
     budget_gb = 0.0004  # 429 kB: the output maps (37 kB) and slabs of a few rows
-    n = slab_elements_within(budget_gb, a.shape, 8, complex_samples=True, n_resolutions=1,
-                             metrics=["liv", "ocds", "mean_db"])
+    n = slab_elements_within(
+        budget_gb, a.shape, 8, complex_samples=True, n_resolutions=1, metrics=["liv", "ocds", "mean_db"]
+    )
     reads.clear()
     got = compute_maps(seq, ["original"], slab_elements=n)
     assert reads and max(reads) <= max(n * 8, a[0].nbytes)  # a slab, or one frame for the peak scan
@@ -431,8 +489,11 @@ def test_streamed_npy_is_read_in_slabs_within_the_budget_and_gives_the_same_maps
 def test_a_streamed_input_is_bound_by_the_budget_not_by_the_default_input_limit(tmp_path, monkeypatch, fmt):
     """Read slab by slab (--max-memory-gb), a .npy, raw binary or OME-Zarr over the default input limit is read;
     read whole it is refused naming --max-input-gb, and an explicit limit binds a streamed input too."""
-    write = {"npy": lambda: F.write_npy(tmp_path / "s.npy", a), "raw": lambda: F.write_raw(tmp_path / "s.raw", a),
-             "ome-zarr": lambda: F.write_ome_zarr(tmp_path / "s.zarr", a)}[fmt]
+    write = {
+        "npy": lambda: F.write_npy(tmp_path / "s.npy", a),
+        "raw": lambda: F.write_raw(tmp_path / "s.raw", a),
+        "ome-zarr": lambda: F.write_ome_zarr(tmp_path / "s.zarr", a),
+    }[fmt]
     a = F.field(t=8)
     path = write()
     monkeypatch.setattr(guards, "DEFAULT_MAX_INPUT_GB", 1e-6)  # 1 kB: the field is 12 kB
@@ -465,8 +526,13 @@ def test_a_compressed_ome_tiff_is_read_whole_even_when_streamed(tmp_path):
 
     a = F.field(t=6)
     p = tmp_path / "z.ome.tif"
-    tifffile.imwrite(p, a, ome=True, compression="zlib", metadata={"axes": "TYX", "TimeIncrement": 0.05,
-                                                                   "PhysicalSizeX": 1.5, "PhysicalSizeY": 1.0})
+    tifffile.imwrite(
+        p,
+        a,
+        ome=True,
+        compression="zlib",
+        metadata={"axes": "TYX", "TimeIncrement": 0.05, "PhysicalSizeX": 1.5, "PhysicalSizeY": 1.0},
+    )
     seq = read_sequence(p, stream=True)
     assert not isinstance(seq.data, LazyArray)  # no run of raw bytes to map
     np.testing.assert_array_equal(seq.data, a)
@@ -493,19 +559,31 @@ def test_streamed_db_input_is_converted_slab_by_slab_to_the_same_intensity(tmp_p
 
 def test_a_budget_the_output_alone_fills_is_refused(outdir, capsys):
     path = F.write_npy(outdir / "s.npy", F.field(t=8))  # 8 frames: OCDS delays on 2+ pairs up to 6 frame intervals
-    refused(capsys, outdir, _argv(outdir, path, "--max-memory-gb", "1e-7", "--ocds-delay-range-s", "0.05", "0.3"),
-            "--max-memory-gb", "output maps")
+    refused(
+        capsys,
+        outdir,
+        _argv(outdir, path, "--max-memory-gb", "1e-7", "--ocds-delay-range-s", "0.05", "0.3"),
+        "--max-memory-gb",
+        "output maps",
+    )
 
 
 def _peak_rss_growth(tmp_path: Path, argv: list[str]) -> int:
     import subprocess
     import sys
 
-    probe = ("import json, sys\nimport torch, torchdoct.measured.maps\nfrom torchdoct.cli import main\n"
-             "def st(k):\n    return next(int(l.split()[1]) * 1024 for l in open('/proc/self/status') if l.startswith(k))\n"
-             "b = st('VmRSS:')\nc = main(sys.argv[1:])\nprint(json.dumps([c, st('VmHWM:') - b]))\n")
-    out = subprocess.run([sys.executable, "-c", probe, *argv], capture_output=True, text=True, check=True,
-                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])})
+    probe = (
+        "import json, sys\nimport torch, torchdoct.measured.maps\nfrom torchdoct.cli import main\n"
+        "def st(k):\n    return next(int(l.split()[1]) * 1024 for l in open('/proc/self/status') if l.startswith(k))\n"
+        "b = st('VmRSS:')\nc = main(sys.argv[1:])\nprint(json.dumps([c, st('VmHWM:') - b]))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", probe, *argv],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])},
+    )
     code, growth = json.loads(out.stdout.strip().splitlines()[-1])
     assert code == 0, out.stderr
     return growth
@@ -535,8 +613,9 @@ def _long_input(folder: Path, frames: int) -> Path:
     a[0] = (rng.standard_normal((16, 64)) + 1j * rng.standard_normal((16, 64))).astype(np.complex64)
     a.flush()
     del a
-    (folder / "s.json").write_text(json.dumps({"axes": "TZX", "pitch_um": F.PITCH,
-                                               "frame_times_s": [k * 0.2048 for k in range(frames)]}))
+    (folder / "s.json").write_text(
+        json.dumps({"axes": "TZX", "pitch_um": F.PITCH, "frame_times_s": [k * 0.2048 for k in range(frames)]})
+    )
     return folder / "s.npy"
 
 
@@ -550,7 +629,20 @@ def test_peak_memory_of_streamed_maps_does_not_grow_with_the_frames(tmp_path):
         d = tmp_path / str(frames)
         d.mkdir()
         path = _long_input(d, frames)
-        growth.append(_peak_rss_growth(d, ["maps", str(path), "--no-progress", "--out", str(d / "m.npz"),
-                                           "--max-memory-gb", "0.016", "--threads", "1"]))
+        growth.append(
+            _peak_rss_growth(
+                d,
+                [
+                    "maps",
+                    str(path),
+                    "--no-progress",
+                    "--out",
+                    str(d / "m.npz"),
+                    "--max-memory-gb",
+                    "0.016",
+                    "--threads",
+                    "1",
+                ],
+            )
+        )
     assert growth[1] < growth[0] + (32 << 20), growth
-

@@ -33,7 +33,9 @@ def test_exp_is_accurate_to_two_ulp_and_exact_at_zero(force_torch):
     assert float(((got - ref).abs() / ref).max()) <= 2 * 2.0**-23
     assert float(kernel.exp_neg(torch.zeros(1), force_torch=force_torch)) == 1.0
     # clamped far below the range used (the callers truncate at ln tol first)
-    assert float(kernel.exp_neg(torch.tensor([-1e30]), force_torch=force_torch)) == pytest.approx(math.exp(-87), rel=1e-6)
+    assert float(kernel.exp_neg(torch.tensor([-1e30]), force_torch=force_torch)) == pytest.approx(
+        math.exp(-87), rel=1e-6
+    )
 
 
 @pytest.mark.parametrize("force_torch", [False, True])
@@ -124,8 +126,16 @@ def test_walk_is_bit_identical_on_both_backends():
     counts[3] = 0  # an empty trial
     M = int(counts.sum())
     pos = ((torch.rand(3, M, generator=g) * 2 - 1) * torch.tensor([6.0, 5.0, 7.0]).view(3, 1)).contiguous()
-    args = dict(counts=counts, key=1234567, sigmas=[0.8, 1.3, 0.2, 2.5, 0.9], L=(12.0, 10.0, 14.0),
-                groups=[(0.1, 0.2), (0.03, 0.25)], group_of=[0, 1, 0], q_turns=[2.38, 1.53, 2.0], log_tol=math.log(1e-3))
+    args = dict(
+        counts=counts,
+        key=1234567,
+        sigmas=[0.8, 1.3, 0.2, 2.5, 0.9],
+        L=(12.0, 10.0, 14.0),
+        groups=[(0.1, 0.2), (0.03, 0.25)],
+        group_of=[0, 1, 0],
+        q_turns=[2.38, 1.53, 2.0],
+        log_tol=math.log(1e-3),
+    )
     p1, p2 = pos.clone(), pos.clone()
     a = kernel.walk_periodic(p1, **args)
     b = kernel.walk_periodic(p2, **args, force_torch=True)
@@ -151,10 +161,15 @@ def test_straight_paths_are_bit_identical_on_both_backends():
 def _scene() -> td.Scene:
     sys = td.OCTSystem(name="840", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)
     wide = td.OCTSystem(name="840-lat18", wavelength_um=0.84, lateral_resolution_um=18.0, axial_resolution_um=3.8)
-    return td.Scene(systems=(sys, wide), protocol=td.Protocol(n_frames=12, frame_interval_s=0.2048),
-                    populations=(td.Population(density_per_um3=0.03, motion=(td.Diffusion(diffusion_um2_per_s=15.0),)),
-                                 td.Population(density_per_um3=0.02, motion=(td.RandomBallistic(speed_um_per_s=6.0),)),
-                                 td.Population(density_per_um3=0.02, motion=(td.Flow(speed_um_per_s=4.0, polar_angle_deg=45.0),))))
+    return td.Scene(
+        systems=(sys, wide),
+        protocol=td.Protocol(n_frames=12, frame_interval_s=0.2048),
+        populations=(
+            td.Population(density_per_um3=0.03, motion=(td.Diffusion(diffusion_um2_per_s=15.0),)),
+            td.Population(density_per_um3=0.02, motion=(td.RandomBallistic(speed_um_per_s=6.0),)),
+            td.Population(density_per_um3=0.02, motion=(td.Flow(speed_um_per_s=4.0, polar_angle_deg=45.0),)),
+        ),
+    )
 
 
 @needs_compiled
@@ -176,8 +191,11 @@ def test_a_simulation_is_bit_identical_on_both_backends(monkeypatch):
 def test_float32_and_float64_walks_share_the_realization():
     """The walk's normals come from (key, frame, index), whatever the dtype: the two runs follow the
     same scatterers and differ only by float32 rounding."""
-    scene = td.Scene(systems=_scene().systems[:1], protocol=td.Protocol(n_frames=8, frame_interval_s=0.2048),
-                     populations=(td.Population(density_per_um3=0.03, motion=(td.Diffusion(diffusion_um2_per_s=15.0),)),))
+    scene = td.Scene(
+        systems=_scene().systems[:1],
+        protocol=td.Protocol(n_frames=8, frame_interval_s=0.2048),
+        populations=(td.Population(density_per_um3=0.03, motion=(td.Diffusion(diffusion_um2_per_s=15.0),)),),
+    )
     a = td.simulate(scene, trials=64, seed=9, dtype="float32", threads=1).signals.to(torch.complex128)
     b = td.simulate(scene, trials=64, seed=9, dtype="float64", threads=1).signals
     assert float((a - b).abs().max()) <= 1e-4 * float(b.abs().max())
@@ -214,8 +232,12 @@ def test_setup_py_builds_with_the_kernels_compiler_flags():
     from pathlib import Path
 
     tree = ast.parse((Path(__file__).resolve().parents[2] / "setup.py").read_text())
-    flags = {node.targets[0].id: ast.literal_eval(node.value) for node in tree.body
-             if isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name)
-             and node.targets[0].id in ("CFLAGS", "OPTIONAL_CFLAGS")}
+    flags = {
+        node.targets[0].id: ast.literal_eval(node.value)
+        for node in tree.body
+        if isinstance(node, ast.Assign)
+        and isinstance(node.targets[0], ast.Name)
+        and node.targets[0].id in ("CFLAGS", "OPTIONAL_CFLAGS")
+    }
     assert tuple(flags["CFLAGS"]) == kernel.CFLAGS and "-ffp-contract=off" in kernel.CFLAGS
     assert tuple(flags["OPTIONAL_CFLAGS"]) == kernel.OPTIONAL_CFLAGS

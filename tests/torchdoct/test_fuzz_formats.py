@@ -62,8 +62,14 @@ def _limits():
 
 def _read_in_child(path, out):
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    return subprocess.run([sys.executable, "-c", READER, str(path), str(out)], capture_output=True, text=True,
-                          timeout=TIME_LIMIT_S, preexec_fn=_limits, env=env)
+    return subprocess.run(
+        [sys.executable, "-c", READER, str(path), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=TIME_LIMIT_S,
+        preexec_fn=_limits,
+        env=env,
+    )
 
 
 def _field(seed):
@@ -105,8 +111,11 @@ def _write(fmt, d, a):
 def _data_file(path):
     """The file whose bytes hold the samples (a chunk of a Zarr store, a frame of a folder)."""
     if path.is_dir():
-        files = sorted(p for p in path.rglob("*") if p.is_file() and not p.name.startswith(".")
-                       and p.suffix not in (".json", ".zattrs", ".zgroup", ".zarray"))
+        files = sorted(
+            p
+            for p in path.rglob("*")
+            if p.is_file() and not p.name.startswith(".") and p.suffix not in (".json", ".zattrs", ".zgroup", ".zarray")
+        )
         return files[0]
     return path
 
@@ -126,7 +135,11 @@ def _declare_huge(fmt, path, n):
         side.write_text(json.dumps(meta))
         if fmt == "npy":
             raw = bytearray(path.read_bytes())
-            head = raw[: 128].decode("latin1").replace(f"({T}, {Z}, {X})", f"({n}, {Z}, {X})".ljust(len(f"({T}, {Z}, {X})")))
+            head = (
+                raw[:128]
+                .decode("latin1")
+                .replace(f"({T}, {Z}, {X})", f"({n}, {Z}, {X})".ljust(len(f"({T}, {Z}, {X})")))
+            )
             if len(head.encode("latin1")) == 128:
                 raw[:128] = head.encode("latin1")
             path.write_bytes(bytes(raw))
@@ -138,8 +151,9 @@ def _declare_huge(fmt, path, n):
     elif fmt == "h5":
         with h5py.File(path, "a") as fh:
             del fh["data"]
-            fh.create_dataset("data", shape=(n, Z * 1000, X * 1000), dtype=np.complex64, chunks=(1, 64, 64),
-                              compression="gzip")
+            fh.create_dataset(
+                "data", shape=(n, Z * 1000, X * 1000), dtype=np.complex64, chunks=(1, 64, 64), compression="gzip"
+            )
     elif fmt == "zarr":
         zarray = path / "0" / ".zarray"
         meta = json.loads(zarray.read_text())
@@ -168,13 +182,18 @@ def _bad_sidecar(path, which):
         meta["frame_times_s"] = [str(t) for t in meta["frame_times_s"]]
         side.write_text(json.dumps(meta))
     elif which == "digits":
-        side.write_text(text.replace('"pitch_um": {', '"pitch_um": {"z": 1' + "0" * 100_000 + ", ", 1)
-                        .replace(', "z": 1.0', ""))
+        side.write_text(
+            text.replace('"pitch_um": {', '"pitch_um": {"z": 1' + "0" * 100_000 + ", ", 1).replace(', "z": 1.0', "")
+        )
     elif which == "beyond-float":
         side.write_text(text.replace('"frame_times_s": [0.0', '"frame_times_s": [1e400', 1))
     elif which == "index":
-        meta["system"] = {"wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
-                          "refractive_index": 1e6}
+        meta["system"] = {
+            "wavelength_um": 0.84,
+            "lateral_resolution_um": 4.9,
+            "axial_resolution_um": 3.8,
+            "refractive_index": 1e6,
+        }
         side.write_text(json.dumps(meta))
     else:  # the frame count of another file
         meta["frame_times_s"] = meta["frame_times_s"][:-1]
@@ -195,15 +214,23 @@ def _links(path, which):
     return which != "self"
 
 
-@settings(max_examples=examples(120), deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
-@given(fmt=st.sampled_from(FORMAT_NAMES), mutation=st.sampled_from(MUTATIONS), cut=st.floats(0.0, 0.95),
-       n=st.sampled_from([T + 1, 90_000_000, 1 << 40]), which=st.sampled_from(["strings", "digits", "beyond-float",
-                                                                             "index", "frames", "self", "loop",
-                                                                             "dangling"]),
-       seed=st.integers(0, 3))
-def test_every_reader_answers_any_file_with_its_data_or_one_error_line(tmp_path_factory, fmt, mutation, cut, n, which,
-                                                                        seed):
+@settings(
+    max_examples=examples(120),
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(
+    fmt=st.sampled_from(FORMAT_NAMES),
+    mutation=st.sampled_from(MUTATIONS),
+    cut=st.floats(0.0, 0.95),
+    n=st.sampled_from([T + 1, 90_000_000, 1 << 40]),
+    which=st.sampled_from(["strings", "digits", "beyond-float", "index", "frames", "self", "loop", "dangling"]),
+    seed=st.integers(0, 3),
+)
+def test_every_reader_answers_any_file_with_its_data_or_one_error_line(
+    tmp_path_factory, fmt, mutation, cut, n, which, seed
+):
     d = tmp_path_factory.mktemp("case")
     a = _field(seed)
     path = _write(fmt, d, a)

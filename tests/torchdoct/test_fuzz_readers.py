@@ -23,12 +23,25 @@ from torchdoct.cli import main  # noqa: E402
 from torchdoct.measured.io import read_maps, read_sequence  # noqa: E402
 
 T, Z, X = 8, 6, 5
-META = {"axes": "TZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": [0.2048 * i for i in range(T)],
-        "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9,
-                   "axial_resolution_um": 3.8, "refractive_index": 1.0}}
+META = {
+    "axes": "TZX",
+    "pitch_um": {"z": 2.0, "x": 2.0},
+    "frame_times_s": [0.2048 * i for i in range(T)],
+    "system": {
+        "name": "s",
+        "wavelength_um": 0.84,
+        "lateral_resolution_um": 4.9,
+        "axial_resolution_um": 3.8,
+        "refractive_index": 1.0,
+    },
+}
 ERRORS = (ValueError, TypeError, FileNotFoundError)
-SETTINGS = settings(max_examples=examples(220), deadline=None, derandomize=True,
-                    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+SETTINGS = settings(
+    max_examples=examples(220),
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 
 
 def _field(rng, shape=(T, Z, X), dtype=np.complex64):
@@ -56,8 +69,23 @@ def _write(path, data, meta, fmt, sidecar=True):
 @st.composite
 def broken_sequences(draw):
     fmt = draw(st.sampled_from(["npy", "npz", "h5"]))
-    kind = draw(st.sampled_from(["truncate", "dtype", "rank", "axes", "frames", "pitch", "zero", "sidecar",
-                                 "not-json", "system", "binary-meta"]))
+    kind = draw(
+        st.sampled_from(
+            [
+                "truncate",
+                "dtype",
+                "rank",
+                "axes",
+                "frames",
+                "pitch",
+                "zero",
+                "sidecar",
+                "not-json",
+                "system",
+                "binary-meta",
+            ]
+        )
+    )
     meta = json.loads(json.dumps(META))
     shape = (T, Z, X)
     dtype = np.complex64
@@ -72,16 +100,33 @@ def broken_sequences(draw):
     if kind == "axes":
         meta["axes"] = draw(st.sampled_from(["TZ", "TZXY", "TTX", "ABC", "", 5, None]))
     if kind == "frames":
-        meta["frame_times_s"] = draw(st.sampled_from([[0.0, 0.1], [0.1 * i for i in range(T)][::-1],
-                                                      [float("nan")] * T, "0.2", [0.0] * T]))
+        meta["frame_times_s"] = draw(
+            st.sampled_from([[0.0, 0.1], [0.1 * i for i in range(T)][::-1], [float("nan")] * T, "0.2", [0.0] * T])
+        )
     if kind == "pitch":
-        meta["pitch_um"] = draw(st.sampled_from([{"z": 2.0}, {"z": -1.0, "x": 2.0}, {"z": float("nan"), "x": 1.0},
-                                                 {"z": "2", "x": 2.0}, [2.0, 2.0], {"z": 0.0, "x": 2.0}]))
+        meta["pitch_um"] = draw(
+            st.sampled_from(
+                [
+                    {"z": 2.0},
+                    {"z": -1.0, "x": 2.0},
+                    {"z": float("nan"), "x": 1.0},
+                    {"z": "2", "x": 2.0},
+                    [2.0, 2.0],
+                    {"z": 0.0, "x": 2.0},
+                ]
+            )
+        )
     if kind == "system":
-        meta["system"] = draw(st.sampled_from([{"wavelength_um": -0.84}, {"wavelength_um": 840.0,
-                                               "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8},
-                                               "840nm", {"wavelength_um": 0.84, "lateral_resolution_um": 0.0,
-                                                         "axial_resolution_um": 3.8}]))
+        meta["system"] = draw(
+            st.sampled_from(
+                [
+                    {"wavelength_um": -0.84},
+                    {"wavelength_um": 840.0, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8},
+                    "840nm",
+                    {"wavelength_um": 0.84, "lateral_resolution_um": 0.0, "axial_resolution_um": 3.8},
+                ]
+            )
+        )
     cut = draw(st.floats(0.0, 0.95))
     return fmt, kind, shape, dtype, meta, cut
 
@@ -109,8 +154,11 @@ def test_broken_sequence_files_fail_clearly(tmp_path, case):
     except ERRORS as err:
         msg = str(err)
         assert kind != "binary-meta" or (path.name in msg and ("not UTF-8 text" in msg or "invalid JSON" in msg)), msg
-        assert path.name in msg or path.stem in msg or any(
-            k in msg for k in ("axes", "frame", "pitch", "system", "wavelength", "resolution", "json", "JSON")), msg
+        assert (
+            path.name in msg
+            or path.stem in msg
+            or any(k in msg for k in ("axes", "frame", "pitch", "system", "wavelength", "resolution", "json", "JSON"))
+        ), msg
         code = main(["maps", str(path), "--out", str(tmp_path / "m.npz"), "--no-progress"])
         assert code == 2
         return
@@ -118,7 +166,12 @@ def test_broken_sequence_files_fail_clearly(tmp_path, case):
     assert kind in ("system",) or False, f"{kind} was accepted: {seq.data.shape} {seq.meta}"
 
 
-@settings(max_examples=examples(30), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=examples(30),
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
 @given(st.sampled_from(["npy", "npz", "h5"]), st.integers(1, 6))
 def test_nan_pixels_give_nan_maps_only_there(tmp_path, fmt, n_bad):
     from torchdoct.measured.io import write_sequence
@@ -130,8 +183,7 @@ def test_nan_pixels_give_nan_maps_only_there(tmp_path, fmt, n_bad):
     zz, xx = np.unravel_index(bad, (Z, X))
     data[rng.integers(0, T), zz, xx] = np.nan
     path = write_sequence(tmp_path / f"nan.{fmt}", data, META, force=True)
-    maps = compute_maps(read_sequence(path), ["original"], metrics=("liv", "ocds"),
-                        ocds_delay_range_s=(0.2048, 0.6144))
+    maps = compute_maps(read_sequence(path), ["original"], metrics=("liv", "ocds"), ocds_delay_range_s=(0.2048, 0.6144))
     for c, name in enumerate(maps.channels):
         m = maps.maps[c]
         if name.startswith("valid_weight@"):  # the share of each pixel's window on finite samples
@@ -166,13 +218,26 @@ def test_pickle_bearing_files_are_refused_everywhere(tmp_path, capsys):
         read_maps(tmp_path / "objmaps.npz")
     from torchdoct.measured.io import Maps, write_maps
 
-    chans = [{"name": "liv@original", "metric": "liv", "unit": "dB^2", "resolution": "original",
-              "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}]
-    good = write_maps(tmp_path / "good.npz", Maps(maps=np.zeros((1, Z, X), np.float32), channels=["liv@original"],
-                                                  meta={"channels": chans, "axes": "CZX"}))
+    chans = [
+        {
+            "name": "liv@original",
+            "metric": "liv",
+            "unit": "dB^2",
+            "resolution": "original",
+            "wavelength_um": 0.84,
+            "lateral_resolution_um": 4.9,
+            "axial_resolution_um": 3.8,
+        }
+    ]
+    good = write_maps(
+        tmp_path / "good.npz",
+        Maps(maps=np.zeros((1, Z, X), np.float32), channels=["liv@original"], meta={"channels": chans, "axes": "CZX"}),
+    )
     for mask in ("obj.npy", "obj.npz"):  # object-array masks: refused naming the file, never unpickled
-        assert main(["compare", f"a={good}", f"b={good}", "--mask", str(tmp_path / mask), "--mask",
-                     str(tmp_path / mask)]) == 2
+        assert (
+            main(["compare", f"a={good}", f"b={good}", "--mask", str(tmp_path / mask), "--mask", str(tmp_path / mask)])
+            == 2
+        )
         err = capsys.readouterr().err
         assert err.startswith("error: mask ") and mask in err and "allow_pickle" not in err
     assert main(["compare", str(tmp_path / "objmaps.npz"), str(tmp_path / "objmaps.npz")]) == 2
@@ -180,15 +245,27 @@ def test_pickle_bearing_files_are_refused_everywhere(tmp_path, capsys):
 
     for model in ("model.pkl", "model-as.onnx"):
         (tmp_path / "model-as.onnx").write_bytes((tmp_path / "model.pkl").read_bytes())
-        assert classify_main([str(tmp_path / "objmaps.npz"), "--model", str(tmp_path / model),
-                              "--out", str(tmp_path / "clf")]) == 2
+        assert (
+            classify_main(
+                [str(tmp_path / "objmaps.npz"), "--model", str(tmp_path / model), "--out", str(tmp_path / "clf")]
+            )
+            == 2
+        )
         assert capsys.readouterr().err.startswith("error: ")
         assert not (tmp_path / "clf").exists()
 
 
-@settings(max_examples=examples(40), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(st.sampled_from(["npy", "npz", "h5"]), st.sampled_from(["one-frame", "all-nan", "all-zero", "big-endian"]),
-       st.sampled_from([np.complex64, np.complex128]))
+@settings(
+    max_examples=examples(40),
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+@given(
+    st.sampled_from(["npy", "npz", "h5"]),
+    st.sampled_from(["one-frame", "all-nan", "all-zero", "big-endian"]),
+    st.sampled_from([np.complex64, np.complex128]),
+)
 def test_readable_but_unusable_sequences(tmp_path, capsys, fmt, kind, dtype):
     """Files the reader accepts: a one-frame or all-NaN/all-zero stack is refused by ``maps`` naming the
     file; a big-endian stack gives the same maps as the native one."""
@@ -216,8 +293,17 @@ def test_readable_but_unusable_sequences(tmp_path, capsys, fmt, kind, dtype):
             read_sequence(path)
     else:
         assert read_sequence(path).data.dtype.isnative
-    args = ["--ocds-delay-range-s", "0.2048", "0.6144", "--aliv", "--no-progress", "--resolution", "original",
-            "--resolution", "axial=14"]
+    args = [
+        "--ocds-delay-range-s",
+        "0.2048",
+        "0.6144",
+        "--aliv",
+        "--no-progress",
+        "--resolution",
+        "original",
+        "--resolution",
+        "axial=14",
+    ]
     code = cli(["maps", str(path), "--out", str(tmp_path / "m.npz"), *args])
     if kind == "big-endian":
         assert code == 0 and cli(["maps", str(native), "--out", str(tmp_path / "n.npz"), *args]) == 0
@@ -229,20 +315,58 @@ def test_readable_but_unusable_sequences(tmp_path, capsys, fmt, kind, dtype):
 
 @st.composite
 def broken_maps(draw):
-    kind = draw(st.sampled_from(["truncate", "shape", "channels", "meta", "dtype", "missing-key", "meta-number",
-                                 "meta-list", "meta-channel-names", "meta-channel-no-metric", "meta-optics-text",
-                                 "meta-axes", "meta-not-text", "meta-pitch"]))
+    kind = draw(
+        st.sampled_from(
+            [
+                "truncate",
+                "shape",
+                "channels",
+                "meta",
+                "dtype",
+                "missing-key",
+                "meta-number",
+                "meta-list",
+                "meta-channel-names",
+                "meta-channel-no-metric",
+                "meta-optics-text",
+                "meta-axes",
+                "meta-not-text",
+                "meta-pitch",
+            ]
+        )
+    )
     return kind, draw(st.floats(0.0, 0.95))
 
 
-@settings(max_examples=examples(120), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=examples(120),
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
 @given(broken_maps())
 def test_broken_maps_files_fail_clearly(tmp_path, case):
     kind, cut = case
-    chans = [{"name": "liv@original", "metric": "liv", "unit": "dB^2", "resolution": "original",
-              "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}]
-    meta = {"channels": chans, "axes": "CZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": META["frame_times_s"],
-            "system": META["system"], "ocds_delay_range_s": [0.2048, 1.2288], "source": "x"}
+    chans = [
+        {
+            "name": "liv@original",
+            "metric": "liv",
+            "unit": "dB^2",
+            "resolution": "original",
+            "wavelength_um": 0.84,
+            "lateral_resolution_um": 4.9,
+            "axial_resolution_um": 3.8,
+        }
+    ]
+    meta = {
+        "channels": chans,
+        "axes": "CZX",
+        "pitch_um": {"z": 2.0, "x": 2.0},
+        "frame_times_s": META["frame_times_s"],
+        "system": META["system"],
+        "ocds_delay_range_s": [0.2048, 1.2288],
+        "source": "x",
+    }
     maps = np.zeros((1, Z, X), np.float32)
     arrays = {"maps": maps, "channels": np.array(["liv@original"]), "meta_json": np.array(json.dumps(meta))}
     if kind == "shape":
@@ -256,12 +380,16 @@ def test_broken_maps_files_fail_clearly(tmp_path, case):
     elif kind == "missing-key":
         del arrays["meta_json"]
     elif kind.startswith("meta-"):
-        bad = {"meta-number": "5", "meta-list": "[1]",
-               "meta-channel-names": json.dumps({**meta, "channels": ["liv@original"]}),
-               "meta-channel-no-metric": json.dumps({**meta, "channels": [{"name": "liv@original"}]}),
-               "meta-optics-text": json.dumps({**meta, "channels": [{**chans[0], "wavelength_um": "840nm"}]}),
-               "meta-axes": json.dumps({**meta, "axes": "CYZX"}), "meta-pitch": json.dumps({**meta, "pitch_um": [2, 2]}),
-               "meta-not-text": np.arange(3.0)}[kind]
+        bad = {
+            "meta-number": "5",
+            "meta-list": "[1]",
+            "meta-channel-names": json.dumps({**meta, "channels": ["liv@original"]}),
+            "meta-channel-no-metric": json.dumps({**meta, "channels": [{"name": "liv@original"}]}),
+            "meta-optics-text": json.dumps({**meta, "channels": [{**chans[0], "wavelength_um": "840nm"}]}),
+            "meta-axes": json.dumps({**meta, "axes": "CYZX"}),
+            "meta-pitch": json.dumps({**meta, "pitch_um": [2, 2]}),
+            "meta-not-text": np.arange(3.0),
+        }[kind]
         arrays["meta_json"] = np.asarray(bad)
     path = tmp_path / f"maps-{kind}.npz"
     np.savez(path, **arrays)

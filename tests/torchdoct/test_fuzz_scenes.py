@@ -27,12 +27,38 @@ from torchdoct.sim.simulate import MemoryLimitError, simulate  # noqa: E402
 
 BASE = tomllib.loads(SMALL_SCENE_TOML)
 BASE["noise"] = {"snr_db": 30.0}
-BASE["population"].append({"name": "flowing", "density_per_um3": 0.01, "reflectivity": 0.5,
-                           "motion": [{"kind": "flow", "speed_um_per_s": 1.0, "polar_angle_deg": 30.0},
-                                      {"kind": "ballistic", "speed_um_per_s": 0.2, "directions": "isotropic"}]})
+BASE["population"].append(
+    {
+        "name": "flowing",
+        "density_per_um3": 0.01,
+        "reflectivity": 0.5,
+        "motion": [
+            {"kind": "flow", "speed_um_per_s": 1.0, "polar_angle_deg": 30.0},
+            {"kind": "ballistic", "speed_um_per_s": 0.2, "directions": "isotropic"},
+        ],
+    }
+)
 
-BAD_VALUES = [None, "text", "", [], [1, 2], {}, {"x": 1}, True, math.nan, math.inf, -math.inf, -1, 0, -0.5,
-              1e300, -1e300, 10**12, 2**70]
+BAD_VALUES = [
+    None,
+    "text",
+    "",
+    [],
+    [1, 2],
+    {},
+    {"x": 1},
+    True,
+    math.nan,
+    math.inf,
+    -math.inf,
+    -1,
+    0,
+    -0.5,
+    1e300,
+    -1e300,
+    10**12,
+    2**70,
+]
 
 
 def _paths(obj, prefix=()):
@@ -93,8 +119,20 @@ def broken_scenes(draw):
     d = copy.deepcopy(BASE)
     kind = draw(st.sampled_from(["replace", "delete", "unknown", "special"]))
     if kind == "special":
-        which = draw(st.sampled_from(["dup-system", "no-population", "no-system", "motion-kind", "frames",
-                                      "ocds-range", "delay-order", "times"]))
+        which = draw(
+            st.sampled_from(
+                [
+                    "dup-system",
+                    "no-population",
+                    "no-system",
+                    "motion-kind",
+                    "frames",
+                    "ocds-range",
+                    "delay-order",
+                    "times",
+                ]
+            )
+        )
         if which == "dup-system":
             d["system"].append(dict(d["system"][0]))
             return d, "system", "name"
@@ -111,8 +149,9 @@ def broken_scenes(draw):
             d["protocol"]["n_frames"] = draw(st.sampled_from([1, 0, -3, 10**7, 10**12]))
             return d, "n_frames", "n_frames"
         if which == "ocds-range":
-            d["analysis"]["ocds_delay_range_s"] = draw(st.sampled_from([[5.0, 9.0], [0.6, 0.2], [0.0, 0.0],
-                                                                        [math.nan, 1.0], [0.2]]))
+            d["analysis"]["ocds_delay_range_s"] = draw(
+                st.sampled_from([[5.0, 9.0], [0.6, 0.2], [0.0, 0.0], [math.nan, 1.0], [0.2]])
+            )
             return d, "ocds_delay_range_s", "ocds_delay_range_s"
         if which == "delay-order":
             d["protocol"] = {"n_frames": 3, "frame_times_s": [0.0, 0.2, 0.1]}
@@ -169,8 +208,12 @@ def test_broken_scene_dicts_fail_clearly_or_run(case):
                     assert not bool(bad.any()), f"non-finite {k} without the zero-intensity flag"
 
 
-@settings(max_examples=examples(200), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow,
-                                                                   HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=examples(200),
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
 @given(broken_scenes())
 def test_broken_scene_files_give_one_error_line(tmp_path, capsys, case):
     d, named, alt = case
@@ -209,12 +252,23 @@ def test_not_toml_and_missing_files(tmp_path, capsys):
 # ------------------------------------------------------------------------------------------------
 # phantoms
 
-PHANTOM = {"system": BASE["system"], "protocol": BASE["protocol"], "analysis": BASE["analysis"],
-           "grid": {"n_x": 8, "n_z": 8, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
-           "region": [{"name": "ball", "shape": "sphere", "center_um": [0.0, 0.0, 0.0], "radius_um": 6.0,
-                       "density_per_um3": 0.05},
-                      {"name": "vessel", "shape": "cylinder", "axis": [1.0, 0.0, 0.0], "radius_um": 3.0,
-                       "density_per_um3": 0.05, "motion": [{"kind": "flow", "speed_um_per_s": 1.0}]}]}
+PHANTOM = {
+    "system": BASE["system"],
+    "protocol": BASE["protocol"],
+    "analysis": BASE["analysis"],
+    "grid": {"n_x": 8, "n_z": 8, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
+    "region": [
+        {"name": "ball", "shape": "sphere", "center_um": [0.0, 0.0, 0.0], "radius_um": 6.0, "density_per_um3": 0.05},
+        {
+            "name": "vessel",
+            "shape": "cylinder",
+            "axis": [1.0, 0.0, 0.0],
+            "radius_um": 3.0,
+            "density_per_um3": 0.05,
+            "motion": [{"kind": "flow", "speed_um_per_s": 1.0}],
+        },
+    ],
+}
 PHANTOM_PATHS = sorted(set(_paths(PHANTOM)), key=str)
 
 
@@ -239,11 +293,22 @@ def test_broken_phantoms_fail_clearly(path, value):
 
 
 @settings(max_examples=examples(30), deadline=None, derandomize=True)
-@given(density=st.sampled_from([1e-6, 1e-3, 0.055, 2.0]),
-       motion=st.sampled_from([None, ("diffusion", 1e-8), ("diffusion", 50.0), ("ballistic", 1e-6),
-                               ("ballistic", 100.0), ("flow", 1e-6), ("flow", 300.0)]),
-       wavelength=st.sampled_from([0.2, 0.84, 5.0]),
-       frames=st.sampled_from([2, 3, 200]))
+@given(
+    density=st.sampled_from([1e-6, 1e-3, 0.055, 2.0]),
+    motion=st.sampled_from(
+        [
+            None,
+            ("diffusion", 1e-8),
+            ("diffusion", 50.0),
+            ("ballistic", 1e-6),
+            ("ballistic", 100.0),
+            ("flow", 1e-6),
+            ("flow", 300.0),
+        ]
+    ),
+    wavelength=st.sampled_from([0.2, 0.84, 5.0]),
+    frames=st.sampled_from([2, 3, 200]),
+)
 def test_valid_extreme_scenes_run(density, motion, wavelength, frames):
     d = copy.deepcopy(BASE)
     del d["noise"]
@@ -254,8 +319,7 @@ def test_valid_extreme_scenes_run(density, motion, wavelength, frames):
         d["population"][0]["motion"] = [{"kind": kind, key: val}]
     d["system"][0]["wavelength_um"] = wavelength
     d["protocol"] = {"n_frames": frames, "frame_interval_s": 0.2048}
-    d["analysis"] = {"metrics": ["liv", "ocds"] if frames >= 4 else ["liv"],
-                     "ocds_delay_range_s": [0.2048, 0.6144]}
+    d["analysis"] = {"metrics": ["liv", "ocds"] if frames >= 4 else ["liv"], "ocds_delay_range_s": [0.2048, 0.6144]}
     scene = scene_from_dict(d)
     try:
         res = simulate(scene, trials=64, seed=3)
@@ -278,11 +342,20 @@ def test_valid_extreme_scenes_run(density, motion, wavelength, frames):
 # files that are not scene text: binary data, truncated or corrupted TOML
 
 
-@settings(max_examples=examples(150), deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(st.one_of(st.binary(min_size=1, max_size=400),
-                 st.tuples(st.integers(0, len(SMALL_SCENE_TOML)), st.binary(min_size=1, max_size=8))
-                 .map(lambda t: SMALL_SCENE_TOML.encode()[:t[0]] + t[1])))
+@settings(
+    max_examples=examples(150),
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+@given(
+    st.one_of(
+        st.binary(min_size=1, max_size=400),
+        st.tuples(st.integers(0, len(SMALL_SCENE_TOML)), st.binary(min_size=1, max_size=8)).map(
+            lambda t: SMALL_SCENE_TOML.encode()[: t[0]] + t[1]
+        ),
+    )
+)
 def test_binary_or_corrupted_scene_files_give_one_error_line(tmp_path, capsys, content):
     path = tmp_path / "scan.toml"
     path.write_bytes(content)
@@ -294,10 +367,37 @@ def test_binary_or_corrupted_scene_files_give_one_error_line(tmp_path, capsys, c
             assert "scan.toml" in err, err
 
 
-@settings(max_examples=examples(80), deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(st.one_of(st.sampled_from(["cpu", "cpu:0", "cuda", "cuda:0", "cuda:-1", "cuda:1e9", "mps", "xpu", "meta",
-                                  "CPU", "gpu", "", " ", "cpu:", ":0", "cuda:0:1"]),
-                 st.text(max_size=12)))
+@settings(
+    max_examples=examples(80),
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+@given(
+    st.one_of(
+        st.sampled_from(
+            [
+                "cpu",
+                "cpu:0",
+                "cuda",
+                "cuda:0",
+                "cuda:-1",
+                "cuda:1e9",
+                "mps",
+                "xpu",
+                "meta",
+                "CPU",
+                "gpu",
+                "",
+                " ",
+                "cpu:",
+                ":0",
+                "cuda:0:1",
+            ]
+        ),
+        st.text(max_size=12),
+    )
+)
 def test_device_strings_give_one_error_line(tmp_path, capsys, device):
     path = tmp_path / "scene.toml"
     path.write_text(SMALL_SCENE_TOML, encoding="utf-8")

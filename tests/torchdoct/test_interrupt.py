@@ -60,8 +60,9 @@ def test_sigterm_and_ctrl_c_give_one_line_and_the_signal_exit_code(capsys):
 
     assert plain() == 143
     line = _one_line(capsys.readouterr().err, "SIGTERM")  # the notes of the earlier run are not repeated
-    assert line == ("interrupted (SIGTERM): no output was written (outputs appear only when complete); "
-                    "rerun the same command")
+    assert line == (
+        "interrupted (SIGTERM): no output was written (outputs appear only when complete); rerun the same command"
+    )
 
 
 def test_deferred_holds_the_signal_until_the_block_ends(capsys):
@@ -126,8 +127,9 @@ def test_output_set_removes_the_temporary_files_a_killed_run_left(tmp_path):
 
 def _sleeper() -> subprocess.Popen:
     """Another running Python process (started: its command line is in place)."""
-    proc = subprocess.Popen([sys.executable, "-c", "import time; print(flush=True); time.sleep(60)"],
-                            stdout=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "import time; print(flush=True); time.sleep(60)"], stdout=subprocess.PIPE
+    )
     proc.stdout.readline()
     proc.stdout.close()
     return proc
@@ -142,8 +144,11 @@ def test_a_set_another_running_process_is_writing_is_a_write_conflict_naming_it(
     try:
         live = tmp_path / temporary.format(pid=other.pid)
         live.mkdir() if "stage" in temporary else live.write_text("being written")
-        with pytest.raises(WriteConflictError, match=rf"write conflict: process {other.pid} \(.*python.*\) is "
-                                                     r"writing .*a\.csv now.*another --out"):
+        with pytest.raises(
+            WriteConflictError,
+            match=rf"write conflict: process {other.pid} \(.*python.*\) is "
+            r"writing .*a\.csv now.*another --out",
+        ):
             with output_set([a], force=True) as stage:
                 _write(stage, a, "1")
         assert live.exists() and not a.exists()  # the other writer's files are left alone; nothing written
@@ -313,9 +318,25 @@ def _sweep(tmp_path, trials: int, workers: int) -> tuple[subprocess.Popen, Path]
     scene = tmp_path / "sweep.toml"
     scene.write_text(DIFFUSION_SWEEP_TOML.format(trials=trials), encoding="utf-8")
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "torchdoct.cli", "sweep", str(scene), "--out", str(out),
-                             "--workers", str(workers), "--no-progress"], env=_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "torchdoct.cli",
+            "sweep",
+            str(scene),
+            "--out",
+            str(out),
+            "--workers",
+            str(workers),
+            "--no-progress",
+        ],
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     deadline = time.time() + 300
     while time.time() < deadline and not list(out.glob("cache/[!.]*.npz")):
         time.sleep(0.05)
@@ -374,8 +395,9 @@ with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("
 def test_a_worker_stopped_while_it_sends_a_result_does_not_hang_the_command():
     """The CI hang of a SIGTERM'd sweep (torchdoct.study.cells._stop_workers): the pool's manager thread
     waited forever for the rest of half a message, and the interpreter joins it at exit."""
-    proc = subprocess.run([sys.executable, "-c", HALF_A_RESULT], capture_output=True, text=True, timeout=120,
-                          env=_env())
+    proc = subprocess.run(
+        [sys.executable, "-c", HALF_A_RESULT], capture_output=True, text=True, timeout=120, env=_env()
+    )
     assert proc.returncode == 0 and proc.stdout.strip() == "manager thread alive: False", proc.stderr
     assert proc.stderr == ""  # no traceback from the manager thread (e.g. a cancelled future set broken)
 

@@ -24,10 +24,18 @@ from torchdoct.measured.io import (
 
 
 def _meta(t=4, volume=False, **extra):
-    m = {"axes": "TYZX" if volume else "TZX", "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 7.8} if volume else {})},
-         "frame_times_s": [0.2048 * i for i in range(t)],
-         "system": {"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
-                    "refractive_index": 1.0}}
+    m = {
+        "axes": "TYZX" if volume else "TZX",
+        "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 7.8} if volume else {})},
+        "frame_times_s": [0.2048 * i for i in range(t)],
+        "system": {
+            "name": "840nm",
+            "wavelength_um": 0.84,
+            "lateral_resolution_um": 4.9,
+            "axial_resolution_um": 3.8,
+            "refractive_index": 1.0,
+        },
+    }
     m.update(extra)
     return m
 
@@ -81,19 +89,22 @@ def test_refuses_to_overwrite_either_file(tmp_path):
     np.testing.assert_array_equal(read_sequence(p).data, data * 2)
 
 
-@pytest.mark.parametrize("change,match", [
-    (lambda m: m.update(axes="TYZX"), "4 letters but the data have 3"),
-    (lambda m: m.update(axes="XZT"), "not canonical"),
-    (lambda m: m.update(axes="TZQ"), "permutation of TZX"),
-    (lambda m: m["pitch_um"].pop("x"), "missing \\['x'\\]"),
-    (lambda m: m["pitch_um"].update(y=3.0), "keys \\['y'\\]"),
-    (lambda m: m["pitch_um"].update(z=-1.0), "pitch_um\\['z'\\]"),
-    (lambda m: m.update(frame_times_s=[0.0, 0.1]), "2 entries but the data have T = 4"),
-    (lambda m: m.update(frame_times_s=[0.0, 0.2, 0.1, 0.3]), "strictly increasing"),
-    (lambda m: m["system"].update(wavelength_um=840.0), "wavelengths are in micrometres"),
-    (lambda m: m["system"].update(axial_resolution_um=float("nan")), "axial_resolution_um"),
-    (lambda m: m.pop("frame_times_s"), "missing 'frame_times_s'"),
-])
+@pytest.mark.parametrize(
+    "change,match",
+    [
+        (lambda m: m.update(axes="TYZX"), "4 letters but the data have 3"),
+        (lambda m: m.update(axes="XZT"), "not canonical"),
+        (lambda m: m.update(axes="TZQ"), "permutation of TZX"),
+        (lambda m: m["pitch_um"].pop("x"), "missing \\['x'\\]"),
+        (lambda m: m["pitch_um"].update(y=3.0), "keys \\['y'\\]"),
+        (lambda m: m["pitch_um"].update(z=-1.0), "pitch_um\\['z'\\]"),
+        (lambda m: m.update(frame_times_s=[0.0, 0.1]), "2 entries but the data have T = 4"),
+        (lambda m: m.update(frame_times_s=[0.0, 0.2, 0.1, 0.3]), "strictly increasing"),
+        (lambda m: m["system"].update(wavelength_um=840.0), "wavelengths are in micrometres"),
+        (lambda m: m["system"].update(axial_resolution_um=float("nan")), "axial_resolution_um"),
+        (lambda m: m.pop("frame_times_s"), "missing 'frame_times_s'"),
+    ],
+)
 def test_meta_validation(tmp_path, change, match):
     meta = _meta()
     change(meta)
@@ -129,8 +140,13 @@ def test_missing_metadata_names_the_option(tmp_path):
     assert seq.frame_times_s == [0.0, 0.5, 1.0, 1.5]
     with pytest.raises(ValueError, match="--wavelength-um"):
         seq.system
-    seq = read_sequence(tmp_path / "raw.npy", axes="TZX", pitch_um={"z": 1, "x": 2}, frame_times_s=[0, 1, 2, 4],
-                        system={"wavelength_um": 1.31, "lateral_resolution_um": 18, "axial_resolution_um": 14})
+    seq = read_sequence(
+        tmp_path / "raw.npy",
+        axes="TZX",
+        pitch_um={"z": 1, "x": 2},
+        frame_times_s=[0, 1, 2, 4],
+        system={"wavelength_um": 1.31, "lateral_resolution_um": 18, "axial_resolution_um": 14},
+    )
     assert seq.system["lateral_resolution_um"] == 18.0 and seq.system["refractive_index"] == 1.0
     with pytest.raises(FileNotFoundError):
         read_sequence(tmp_path / "nothing.npy")
@@ -229,10 +245,23 @@ def test_tiff_written_page_by_page_and_truncated_tiffs(tmp_path, capsys):
     (tmp_path / "cut.tif").write_bytes(raw[: len(raw) // 2])
     with pytest.raises(ValueError, match=r"cut\.tif: not a readable TIFF stack"):
         read_sequence(tmp_path / "cut.tif", frame_interval_s=0.2)
-    chans = [{"name": f"liv@r{i}", "metric": "liv", "unit": "dB^2", "resolution": f"r{i}", "wavelength_um": 0.84,
-              "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8} for i in range(3)]
-    m = Maps(maps=np.ones((3, 64, 64), np.float32), channels=[c["name"] for c in chans],
-             meta={"channels": chans, "axes": "CZX"})
+    chans = [
+        {
+            "name": f"liv@r{i}",
+            "metric": "liv",
+            "unit": "dB^2",
+            "resolution": f"r{i}",
+            "wavelength_um": 0.84,
+            "lateral_resolution_um": 4.9,
+            "axial_resolution_um": 3.8,
+        }
+        for i in range(3)
+    ]
+    m = Maps(
+        maps=np.ones((3, 64, 64), np.float32),
+        channels=[c["name"] for c in chans],
+        meta={"channels": chans, "axes": "CZX"},
+    )
     raw = write_maps(tmp_path / "m.tif", m).read_bytes()
     (tmp_path / "mcut.tif").write_bytes(raw[: int(len(raw) * 0.8)])
     with pytest.raises(ValueError, match=r"mcut\.tif: not a readable maps TIFF \(truncated or corrupt"):
@@ -256,8 +285,9 @@ def test_block_raster_unpack_and_boundaries(tmp_path):
     assert list(np.flatnonzero(~raster.keep_y())) == [4, 5, 9, 10]
     assert BlockRaster(n_blocks=3, n_repeats=4, bscans_per_block=5, drop_boundary=0).keep_y().all()
     np.save(tmp_path / "flat.npy", code)
-    seq = read_sequence(tmp_path / "flat.npy", axes="TZX", pitch_um="z=1,x=2,y=8", frame_interval_s=0.2048,
-                        block_raster=raster)
+    seq = read_sequence(
+        tmp_path / "flat.npy", axes="TZX", pitch_um="z=1,x=2,y=8", frame_interval_s=0.2048, block_raster=raster
+    )
     assert seq.axes == "TYZX" and seq.data.shape == (4, 15, 2, 3)
     assert seq.block_raster == raster and seq.meta["block_raster"]["n_blocks"] == 3
     with pytest.raises(ValueError, match="acquisition order"):
@@ -270,12 +300,35 @@ def test_block_raster_unpack_and_boundaries(tmp_path):
 
 def _maps():
     arr = np.random.default_rng(3).random((2, 4, 5)).astype(np.float32)
-    chans = [{"name": "liv@original", "metric": "liv", "unit": "dB^2", "resolution": "original", "wavelength_um": 0.84,
-              "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8},
-             {"name": "liv@axial=14", "metric": "liv", "unit": "dB^2", "resolution": "axial=14", "wavelength_um": 0.84,
-              "lateral_resolution_um": 4.9, "axial_resolution_um": 14.0}]
-    meta = {"channels": chans, "axes": "CZX", "pitch_um": {"z": 1.5, "x": 2.0}, "frame_times_s": [0.0, 0.2],
-            "system": _meta()["system"], "ocds_delay_range_s": [0.2048, 1.2288], "source": "seq.npy"}
+    chans = [
+        {
+            "name": "liv@original",
+            "metric": "liv",
+            "unit": "dB^2",
+            "resolution": "original",
+            "wavelength_um": 0.84,
+            "lateral_resolution_um": 4.9,
+            "axial_resolution_um": 3.8,
+        },
+        {
+            "name": "liv@axial=14",
+            "metric": "liv",
+            "unit": "dB^2",
+            "resolution": "axial=14",
+            "wavelength_um": 0.84,
+            "lateral_resolution_um": 4.9,
+            "axial_resolution_um": 14.0,
+        },
+    ]
+    meta = {
+        "channels": chans,
+        "axes": "CZX",
+        "pitch_um": {"z": 1.5, "x": 2.0},
+        "frame_times_s": [0.0, 0.2],
+        "system": _meta()["system"],
+        "ocds_delay_range_s": [0.2048, 1.2288],
+        "source": "seq.npy",
+    }
     return Maps(maps=arr, channels=[c["name"] for c in chans], meta=meta)
 
 
@@ -306,10 +359,23 @@ def test_validate_meta_is_exposed_and_returns_a_clean_copy():
 
 @pytest.mark.parametrize("shape,axes", [((1, 4, 5), "CZX"), ((1, 3, 4, 5), "CYZX"), ((2, 3, 4, 5), "CYZX")])
 def test_maps_tiff_keeps_single_channels_and_volumes(tmp_path, shape, axes):
-    chans = [{"name": f"liv@r{i}", "metric": "liv", "unit": "dB^2", "resolution": f"r{i}", "wavelength_um": 0.84,
-              "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8} for i in range(shape[0])]
-    m = Maps(maps=np.random.default_rng(5).random(shape).astype(np.float32), channels=[c["name"] for c in chans],
-             meta={"channels": chans, "axes": axes})
+    chans = [
+        {
+            "name": f"liv@r{i}",
+            "metric": "liv",
+            "unit": "dB^2",
+            "resolution": f"r{i}",
+            "wavelength_um": 0.84,
+            "lateral_resolution_um": 4.9,
+            "axial_resolution_um": 3.8,
+        }
+        for i in range(shape[0])
+    ]
+    m = Maps(
+        maps=np.random.default_rng(5).random(shape).astype(np.float32),
+        channels=[c["name"] for c in chans],
+        meta={"channels": chans, "axes": axes},
+    )
     r = read_maps(write_maps(tmp_path / "m.tif", m))
     assert r.maps.shape == shape
     np.testing.assert_array_equal(r.maps, m.maps)
@@ -322,8 +388,9 @@ def _bad_meta_variants():
         "number": "5",
         "list": "[1, 2]",
         "channel-names-only": json.dumps({**good, "channels": [c["name"] for c in chans]}),
-        "channel-without-metric": json.dumps({**good, "channels": [{k: v for k, v in c.items() if k != "metric"}
-                                                                   for c in chans]}),
+        "channel-without-metric": json.dumps(
+            {**good, "channels": [{k: v for k, v in c.items() if k != "metric"} for c in chans]}
+        ),
         "wavelength-text": json.dumps({**good, "channels": [{**c, "wavelength_um": "abc"} for c in chans]}),
         "name-mismatch": json.dumps({**good, "channels": [{**c, "name": "x@y"} for c in chans]}),
         "axes-rank": json.dumps({**good, "axes": "CYZX"}),
@@ -363,8 +430,20 @@ def test_object_array_masks_are_refused_naming_the_file(tmp_path, capsys):
     np.savez(tmp_path / "obj.npz", mask=np.array([{"a": 1}], dtype=object))
     (tmp_path / "cut.npz").write_bytes(b"PK\x03\x04broken")
     for name in ("obj.npy", "obj.npz", "cut.npz"):
-        assert main(["compare", f"a={maps_path}", f"b={maps_path}", "--mask", str(tmp_path / name), "--mask",
-                     str(tmp_path / name)]) == 2
+        assert (
+            main(
+                [
+                    "compare",
+                    f"a={maps_path}",
+                    f"b={maps_path}",
+                    "--mask",
+                    str(tmp_path / name),
+                    "--mask",
+                    str(tmp_path / name),
+                ]
+            )
+            == 2
+        )
         err = capsys.readouterr().err
         assert err.startswith("error: ") and name in err and "allow_pickle" not in err, err
 

@@ -122,8 +122,9 @@ def test_drift_paths_follow_their_laws():
     n_prop = torch.full((N,), 20)
     for law, mean_mu2 in ((0, 1.0 / 3.0), (1, 0.5)):
         w_max = 6.0 / min(H)
-        p, v, t_ref, count = kernel.drift_paths(list(range(7, 47)), n0, n_prop, H, (0.0, 0.0, 0.0), [(6.0, law)],
-                                                w_max, T, 20)
+        p, v, t_ref, count = kernel.drift_paths(
+            list(range(7, 47)), n0, n_prop, H, (0.0, 0.0, 0.0), [(6.0, law)], w_max, T, 20
+        )
         x = [p[i] / H[i] for i in range(3)]
         r3 = (x[0] ** 2 + x[1] ** 2 + x[2] ** 2) ** 1.5
         slot = torch.arange(p.shape[2])[None, :].expand(N, -1)
@@ -145,18 +146,26 @@ def test_drift_paths_follow_their_laws():
         assert bool((p[0][~(first | later)] == 1e6).all()) and bool((v[:, ~(first | later)] == 0).all())
 
 
-@pytest.mark.parametrize("motion", [
-    (td.RandomBallistic(speed_um_per_s=4.0, directions="uniform-angles"),),
-    (td.Flow(speed_um_per_s=5.0, polar_angle_deg=45.0),),
-    (td.Diffusion(diffusion_um2_per_s=3.0),),
-])
+@pytest.mark.parametrize(
+    "motion",
+    [
+        (td.RandomBallistic(speed_um_per_s=4.0, directions="uniform-angles"),),
+        (td.Flow(speed_um_per_s=5.0, polar_angle_deg=45.0),),
+        (td.Diffusion(diffusion_um2_per_s=3.0),),
+    ],
+)
 def test_bit_identical_whatever_the_chunk_with_systems_of_different_boxes(motion):
     """Three PSF boxes (each system group evaluates its own culled paths), a second static population
     of another reflectivity; the slots computed follow each chunk's largest count, the numbers do not."""
-    sc = td.Scene(systems=(HIGH, AX14, LAT18), protocol=td.Protocol(n_frames=12, frame_interval_s=0.25),
-                  populations=(td.Population(density_per_um3=0.04, motion=motion),
-                               td.Population(density_per_um3=0.01, reflectivity=0.6, motion=())),
-                  analysis=td.Analysis(metrics=("liv",)))
+    sc = td.Scene(
+        systems=(HIGH, AX14, LAT18),
+        protocol=td.Protocol(n_frames=12, frame_interval_s=0.25),
+        populations=(
+            td.Population(density_per_um3=0.04, motion=motion),
+            td.Population(density_per_um3=0.01, reflectivity=0.6, motion=()),
+        ),
+        analysis=td.Analysis(metrics=("liv",)),
+    )
     ref = td.simulate(sc, trials=200, seed=11, threads=1, chunk_trials=64).signals
     for chunk, threads in ((256, 1), (128, 2), (None, 2)):
         out = td.simulate(sc, trials=200, seed=11, threads=threads, chunk_trials=chunk).signals
@@ -164,4 +173,3 @@ def test_bit_identical_whatever_the_chunk_with_systems_of_different_boxes(motion
     # fewer trials: the same first trials
     assert torch.equal(td.simulate(sc, trials=70, seed=11, threads=1).signals, ref[:70])
     assert bool(torch.isfinite(ref.real).all()) and float(ref.abs().max()) > 0.0
-

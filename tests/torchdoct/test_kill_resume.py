@@ -16,8 +16,22 @@ from _scenes import DIFFUSION_SWEEP_TOML
 
 
 def _cmd(scene: Path, out: Path, cache: Path) -> list[str]:
-    return [sys.executable, "-m", "torchdoct.cli", "sweep", str(scene), "--out", str(out), "--cache", str(cache),
-            "--workers", "1", "--batch-cells", "1", "--no-progress"]
+    return [
+        sys.executable,
+        "-m",
+        "torchdoct.cli",
+        "sweep",
+        str(scene),
+        "--out",
+        str(out),
+        "--cache",
+        str(cache),
+        "--workers",
+        "1",
+        "--batch-cells",
+        "1",
+        "--no-progress",
+    ]
 
 
 def _env() -> dict[str, str]:
@@ -28,13 +42,19 @@ def _env() -> dict[str, str]:
 def test_killed_sweep_resumes_to_the_same_table(tmp_path):
     scene = tmp_path / "sweep.toml"
     scene.write_text(DIFFUSION_SWEEP_TOML.format(trials=256), encoding="utf-8")
-    ref = subprocess.run(_cmd(scene, tmp_path / "ref", tmp_path / "ref-cache"), env=_env(),
-                         capture_output=True, text=True, timeout=600)
+    ref = subprocess.run(
+        _cmd(scene, tmp_path / "ref", tmp_path / "ref-cache"), env=_env(), capture_output=True, text=True, timeout=600
+    )
     assert ref.returncode == 0, ref.stderr
     cache = tmp_path / "cache"
     out = tmp_path / "out"
-    proc = subprocess.Popen(_cmd(scene, out, cache), env=_env(), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(
+        _cmd(scene, out, cache),
+        env=_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     deadline = time.time() + 300
     while time.time() < deadline and len(list(cache.glob("[!.]*.npz"))) < 4:
         time.sleep(0.05)

@@ -30,27 +30,29 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def _run(argv: list[str], cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
     """A command as a user runs it (a fresh interpreter: tqdm and the environment as at start-up)."""
-    return subprocess.run([sys.executable, "-m", "torchdoct.cli", *argv], cwd=cwd, capture_output=True, text=True,
-                          env={**os.environ, **(env or {})}, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "torchdoct.cli", *argv],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        env={**os.environ, **(env or {})},
+        timeout=300,
+    )
 
 
 #: The process's peak resident memory (kB) as the kernel counts it for this program: VmHWM belongs to the
 #: address space made by exec, whereas ru_maxrss keeps the high-water mark of the forking parent (pytest).
-_VMHWM = ("int(next(l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM:')))")
+_VMHWM = "int(next(l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM:')))"
 
 
 def _peak_rss_mb(argv: list[str], cwd: Path) -> tuple[int, float, str]:
     """Exit code, peak resident memory (MB) and stderr of ``torchdoct argv`` run in a fresh interpreter."""
-    code = ("import sys\n"
-            "from torchdoct.cli import main\n"
-            f"rc = main({argv!r})\n"
-            f"print('PEAK_KB', {_VMHWM})\n"
-            "sys.exit(rc)\n")
+    code = (
+        f"import sys\nfrom torchdoct.cli import main\nrc = main({argv!r})\nprint('PEAK_KB', {_VMHWM})\nsys.exit(rc)\n"
+    )
     p = subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, timeout=300)
     kb = [ln.split()[1] for ln in p.stdout.splitlines() if ln.startswith("PEAK_KB")]
     return p.returncode, (int(kb[0]) / 1024 if kb else float("nan")), p.stderr
-
-
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -61,8 +63,23 @@ def _peak_rss_mb(argv: list[str], cwd: Path) -> tuple[int, float, str]:
 def test_render_with_a_pitch_far_below_the_psf_stays_small(tmp_path, pitch):
     """A PSF window is never wider than the grid: 1e-3 µm pixels cost the grid's 16 × 16 pixels, not
     a 20,000 × 20,000 window per scatterer (3.2 GB per chunk before)."""
-    rc, peak, err = _peak_rss_mb(["render", "example", "--grid", "16x16", "--pitch-um", pitch, "--system",
-                                  "840nm-high", "--no-preview", "--no-progress", "--out", "r.h5"], tmp_path)
+    rc, peak, err = _peak_rss_mb(
+        [
+            "render",
+            "example",
+            "--grid",
+            "16x16",
+            "--pitch-um",
+            pitch,
+            "--system",
+            "840nm-high",
+            "--no-preview",
+            "--no-progress",
+            "--out",
+            "r.h5",
+        ],
+        tmp_path,
+    )
     assert rc == 0, err
     assert peak < 1024, f"peak RSS {peak:.0f} MB"
     assert (tmp_path / "r.h5").is_file()
@@ -88,15 +105,34 @@ def test_window_clamped_to_the_grid_changes_no_number(monkeypatch):
 
 def test_render_of_a_huge_field_of_view_is_refused_before_the_work(tmp_path, capsys):
     """64 × 64 pixels of 1 m: ~3e15 scatterers, refused naming the count, the memory and the options."""
-    line = refused(capsys, tmp_path, ["render", "example", "--grid", "64x64", "--pitch-um", "1e6",
-                                      "--out", str(tmp_path / "r.h5")], "example", "scatterers", "GB",
-                   "--pitch-um", "--max-scatterers")
+    line = refused(
+        capsys,
+        tmp_path,
+        ["render", "example", "--grid", "64x64", "--pitch-um", "1e6", "--out", str(tmp_path / "r.h5")],
+        "example",
+        "scatterers",
+        "GB",
+        "--pitch-um",
+        "--max-scatterers",
+    )
     assert "e+15" in line
 
 
 def test_max_scatterers_sets_the_limit(tmp_path, capsys):
-    argv = ["render", "example", "--grid", "8x8", "--pitch-um", "2", "--system", "840nm-high", "--no-preview",
-            "--no-progress", "--out", str(tmp_path / "r.h5")]
+    argv = [
+        "render",
+        "example",
+        "--grid",
+        "8x8",
+        "--pitch-um",
+        "2",
+        "--system",
+        "840nm-high",
+        "--no-preview",
+        "--no-progress",
+        "--out",
+        str(tmp_path / "r.h5"),
+    ]
     refused(capsys, tmp_path, argv + ["--max-scatterers", "100"], "--max-scatterers", "the limit is 100")
     assert main(argv) == 0
     assert (tmp_path / "r.h5").is_file()
@@ -112,6 +148,7 @@ def test_render_says_which_files_several_systems_become(tmp_path, capsys, monkey
     monkeypatch.setattr(r, "render", stop)
     with pytest.raises(KeyboardInterrupt):
         from torchdoct.cli import _main
+
         _main(["render", "example", "--grid", "8x8", "--pitch-um", "2", "--out", str(tmp_path / "medium.h5")])
     out = capsys.readouterr().out
     assert "4 systems: one file per system" in out
@@ -126,8 +163,10 @@ def test_render_says_which_files_several_systems_become(tmp_path, capsys, monkey
 
 
 def _scene_text(systems: int = 1, populations: int = 1, motions: int = 1) -> str:
-    s = "".join(f'[[system]]\nname = "s{i}"\nwavelength_um = 0.84\nlateral_resolution_um = 4.9\n'
-                f'axial_resolution_um = 3.8\n\n' for i in range(systems))
+    s = "".join(
+        f'[[system]]\nname = "s{i}"\nwavelength_um = 0.84\nlateral_resolution_um = 4.9\naxial_resolution_um = 3.8\n\n'
+        for i in range(systems)
+    )
     m = '[[population.motion]]\nkind = "diffusion"\ndiffusion_um2_per_s = 0.003\n' * motions
     p = "".join(f"[[population]]\ndensity_per_um3 = 0.01\n{m}" for _ in range(populations))
     return f'name = "many"\n{s}[protocol]\nn_frames = 8\nframe_interval_s = 0.2048\n{p}'
@@ -143,9 +182,14 @@ def test_scene_of_100000_systems_is_refused_in_seconds(tmp_path, capsys):
     assert time.perf_counter() - t0 < 30, line
 
 
-@pytest.mark.parametrize("kw, names", [({"systems": 65}, ("system", "65")),
-                                       ({"populations": 1025}, ("population", "1025")),
-                                       ({"motions": 17}, ("motion", "17"))])
+@pytest.mark.parametrize(
+    "kw, names",
+    [
+        ({"systems": 65}, ("system", "65")),
+        ({"populations": 1025}, ("population", "1025")),
+        ({"motions": 17}, ("motion", "17")),
+    ],
+)
 def test_table_counts_over_the_limit_are_refused(tmp_path, capsys, kw, names):
     f = tmp_path / "many.toml"
     f.write_text(_scene_text(**kw))
@@ -159,11 +203,13 @@ def test_table_counts_at_the_limit_are_planned(tmp_path, capsys):
 
 
 def test_phantom_with_too_many_regions_is_refused(tmp_path, capsys):
-    region = ('[[region]]\nshape = "slab"\nz_min_um = -1.0\nz_max_um = 1.0\ndensity_per_um3 = 0.01\n')
+    region = '[[region]]\nshape = "slab"\nz_min_um = -1.0\nz_max_um = 1.0\ndensity_per_um3 = 0.01\n'
     f = tmp_path / "ph.toml"
-    f.write_text('name = "ph"\n[[system]]\nname = "s"\nwavelength_um = 0.84\nlateral_resolution_um = 4.9\n'
-                 'axial_resolution_um = 3.8\n[protocol]\nn_frames = 8\nframe_interval_s = 0.2048\n'
-                 '[grid]\nn_x = 8\nn_z = 8\npitch_x_um = 2.0\npitch_z_um = 2.0\n' + region * 1025)
+    f.write_text(
+        'name = "ph"\n[[system]]\nname = "s"\nwavelength_um = 0.84\nlateral_resolution_um = 4.9\n'
+        "axial_resolution_um = 3.8\n[protocol]\nn_frames = 8\nframe_interval_s = 0.2048\n"
+        "[grid]\nn_x = 8\nn_z = 8\npitch_x_um = 2.0\npitch_z_um = 2.0\n" + region * 1025
+    )
     refused(capsys, tmp_path, ["render", str(f), "--out", str(tmp_path / "r.h5")], "ph.toml", "region", "1025")
 
 
@@ -194,8 +240,13 @@ def test_a_short_run_shows_no_progress_bar(seq):
     assert p.returncode == 0 and "slab/s" in p.stderr, p.stderr
 
 
-@pytest.mark.parametrize("argv", [["bench", "maps", "--frames", "8", "--size", "8", "8", "--resolution", "original"],
-                                  ["bench", "classify", "--size", "16", "--repeats", "1"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["bench", "maps", "--frames", "8", "--size", "8", "8", "--resolution", "original"],
+        ["bench", "classify", "--size", "16", "--repeats", "1"],
+    ],
+)
 def test_bench_writes_json_only_when_asked(tmp_path, capsys, monkeypatch, argv):
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 0
@@ -218,8 +269,23 @@ def test_png_colour_ranges_are_shared_across_resolutions(seq, tmp_path, monkeypa
         return real(maps, name, **kw)
 
     monkeypatch.setattr(mm, "map_figure", record)
-    assert main(["maps", str(seq), "--resolution", "original", "--resolution", "lateral=8", "--png",
-                 "--no-progress", "--out", str(tmp_path / "m.npz")]) == 0
+    assert (
+        main(
+            [
+                "maps",
+                str(seq),
+                "--resolution",
+                "original",
+                "--resolution",
+                "lateral=8",
+                "--png",
+                "--no-progress",
+                "--out",
+                str(tmp_path / "m.npz"),
+            ]
+        )
+        == 0
+    )
     for metric in ("liv", "ocds", "mean_db"):
         assert seen[f"{metric}@original"] == seen[f"{metric}@lateral=8"], (metric, seen)
     assert seen["liv@original"] != seen["ocds@original"]
@@ -254,20 +320,23 @@ def _bomb_inputs(d: Path) -> dict[str, Path]:
 
     def npy_header(shape, dtype) -> bytes:
         buf = io.BytesIO()
-        np.lib.format.write_array_header_1_0(buf, {"descr": np.dtype(dtype).str, "fortran_order": False,
-                                                   "shape": shape})
+        np.lib.format.write_array_header_1_0(
+            buf, {"descr": np.dtype(dtype).str, "fortran_order": False, "shape": shape}
+        )
         return buf.getvalue()
 
-    meta = {"axes": "TZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": [0.2048 * i for i in range(32)],
-            "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9,
-                       "axial_resolution_um": 3.8}}
+    meta = {
+        "axes": "TZX",
+        "pitch_um": {"z": 2.0, "x": 2.0},
+        "frame_times_s": [0.2048 * i for i in range(32)],
+        "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8},
+    }
     out = {"npz": d / "liar.npz", "h5": d / "huge.h5", "maps": d / "maps.npz", "scene": d / "big.toml"}
     with zipfile.ZipFile(out["npz"], "w", zipfile.ZIP_DEFLATED) as zf:
         zf.writestr("data.npy", npy_header((1200, 1 << 14, 8000), np.complex64) + bytes(1000))
     out["npz"].with_suffix(".json").write_text(json.dumps(meta))
     with h5py.File(out["h5"], "w") as fh:
-        fh.create_dataset("data", shape=(4096, 4096, 4096), dtype=np.complex64, chunks=(1, 64, 64),
-                          compression="gzip")
+        fh.create_dataset("data", shape=(4096, 4096, 4096), dtype=np.complex64, chunks=(1, 64, 64), compression="gzip")
         fh.attrs["torchdoct"] = json.dumps(meta)
     with zipfile.ZipFile(out["maps"], "w") as zf:
         zf.writestr("maps.npy", npy_header((3, 1 << 16, 1 << 16), np.float32) + bytes(64))
@@ -293,9 +362,11 @@ def test_peak_memory_on_the_bombs_stays_within_the_budget(tmp_path):
         rc, peak, err = _peak_rss_mb(argv, tmp_path)
         assert rc == 2 and "Traceback" not in err, (what, err)
         assert peak < budget_mb, f"{what}: peak {peak:.0f} MB over the {budget_mb} MB budget"
-    code = ("import sys\nfrom classifier.cli import classify_main\n"
-            f"rc = classify_main([{str(b['maps'])!r}, '--out', 'c'])\n"
-            f"print('PEAK_KB', {_VMHWM})\nsys.exit(rc)\n")
+    code = (
+        "import sys\nfrom classifier.cli import classify_main\n"
+        f"rc = classify_main([{str(b['maps'])!r}, '--out', 'c'])\n"
+        f"print('PEAK_KB', {_VMHWM})\nsys.exit(rc)\n"
+    )
     p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
     peak = int(next(ln.split()[1] for ln in p.stdout.splitlines() if ln.startswith("PEAK_KB"))) / 1024
     assert p.returncode == 2 and peak < 300, (p.stderr, peak)
@@ -308,13 +379,39 @@ def test_peak_memory_of_maps_within_its_budget(tmp_path):
     of 300 MB + 10 × the input array (measured 417 MB)."""
     rng = np.random.default_rng(0)
     shape = (32, 256, 256)
-    a = (rng.standard_normal(shape, dtype=np.float32) + 1j * rng.standard_normal(shape, dtype=np.float32))
+    a = rng.standard_normal(shape, dtype=np.float32) + 1j * rng.standard_normal(shape, dtype=np.float32)
     np.save(tmp_path / "s.npy", a.astype(np.complex64))
-    (tmp_path / "s.json").write_text(json.dumps({
-        "axes": "TZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": [0.2048 * i for i in range(32)],
-        "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}}))
-    rc, peak, err = _peak_rss_mb(["maps", "s.npy", "--resolution", "original", "--resolution", "axial=14",
-                                  "--resolution", "lateral=18", "--no-progress", "--out", "m.npz"], tmp_path)
+    (tmp_path / "s.json").write_text(
+        json.dumps(
+            {
+                "axes": "TZX",
+                "pitch_um": {"z": 2.0, "x": 2.0},
+                "frame_times_s": [0.2048 * i for i in range(32)],
+                "system": {
+                    "name": "s",
+                    "wavelength_um": 0.84,
+                    "lateral_resolution_um": 4.9,
+                    "axial_resolution_um": 3.8,
+                },
+            }
+        )
+    )
+    rc, peak, err = _peak_rss_mb(
+        [
+            "maps",
+            "s.npy",
+            "--resolution",
+            "original",
+            "--resolution",
+            "axial=14",
+            "--resolution",
+            "lateral=18",
+            "--no-progress",
+            "--out",
+            "m.npz",
+        ],
+        tmp_path,
+    )
     assert rc == 0, err
     assert peak < 300 + 10 * a.astype(np.complex64).nbytes / 2**20, peak
 
@@ -325,8 +422,14 @@ def test_float32_overflow_of_the_intensity_is_named(seq, capsys):
     big = seq.with_name("big.npy")
     np.save(big, (np.load(seq) * np.float32(1e25)).astype(np.complex64))
     big.with_suffix(".json").write_text(seq.with_suffix(".json").read_text())
-    line = refused(capsys, seq.parent, ["maps", str(big), "--no-progress", "--out", str(seq.parent / "m.npz")],
-                   "big.npy", "overflows float32", "complex128")
+    line = refused(
+        capsys,
+        seq.parent,
+        ["maps", str(big), "--no-progress", "--out", str(seq.parent / "m.npz")],
+        "big.npy",
+        "overflows float32",
+        "complex128",
+    )
     assert "no finite nonzero" not in line
 
 
@@ -343,8 +446,23 @@ def test_maps_force_replaces_the_earlier_png_set(seq, tmp_path, capsys):
     """``maps --png --force`` with fewer resolutions: the earlier run's PNGs of this output go (they would
     sit beside maps that no longer hold their channels); the user's other files stay."""
     out = seq.parent / "m.npz"
-    assert main(["maps", str(seq), "--resolution", "original", "--resolution", "lateral=8", "--png", "--no-progress",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "maps",
+                str(seq),
+                "--resolution",
+                "original",
+                "--resolution",
+                "lateral=8",
+                "--png",
+                "--no-progress",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     old = seq.parent / "m_liv_lateral8.png"
     assert old.is_file()
     mine = seq.parent / "m_notes.png"

@@ -27,8 +27,13 @@ from torchdoct.measured.maps import (
 from torchdoct.measured.resolution import reduce_resolution
 from torchdoct.sim import metrics
 
-SYSTEM = {"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
-          "refractive_index": 1.0}
+SYSTEM = {
+    "name": "840nm",
+    "wavelength_um": 0.84,
+    "lateral_resolution_um": 4.9,
+    "axial_resolution_um": 3.8,
+    "refractive_index": 1.0,
+}
 DT = 0.2048
 
 
@@ -49,8 +54,12 @@ def speckle(shape, *, corr=0.8, seed=0, dtype=np.complex64) -> np.ndarray:
 
 def make_seq(data, *, volume=False, raster=None, times=None) -> SequenceData:
     t = times if times is not None else [DT * i for i in range(data.shape[0])]
-    meta = {"axes": "TYZX" if volume else "TZX", "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 3.0} if volume else {})},
-            "frame_times_s": t, "system": SYSTEM}
+    meta = {
+        "axes": "TYZX" if volume else "TZX",
+        "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 3.0} if volume else {})},
+        "frame_times_s": t,
+        "system": SYSTEM,
+    }
     if raster is not None:
         meta["block_raster"] = raster.to_dict()
     return SequenceData(data=data, meta=validate_meta(meta, data.shape), source="test.npy")
@@ -90,8 +99,9 @@ def test_ocds_of_the_lags_in_range_equals_the_slope_of_every_lag(scale, estimato
     assert torch.equal(metrics.ocds(i, times, scale=scale, estimator=estimator), got)  # the maps' OCDS is this one
     nonuniform = [0.0, 0.1, 0.3, 0.4, 0.6, 0.7, 0.9, 1.0, 1.2, 1.3, 1.5, 1.6, 1.8, 1.9, 2.1, 2.2]
     d, r = metrics.lag_correlations(metrics.to_db(i), nonuniform)
-    assert torch.equal(ocds_map(i, nonuniform, delay_range_s=(0.1, 0.6)),
-                       metrics.ocds_from_correlations(r, d, (0.1, 0.6)))
+    assert torch.equal(
+        ocds_map(i, nonuniform, delay_range_s=(0.1, 0.6)), metrics.ocds_from_correlations(r, d, (0.1, 0.6))
+    )
     with pytest.raises(ValueError, match="fewer than 2 delays"):
         ocds_map(i, times, delay_range_s=(0.3, 0.35))
 
@@ -100,8 +110,12 @@ def test_zero_intensity_pixels_are_nan():
     data = speckle((8, 4, 5))
     data[3, 1, 1] = 0  # one empty frame
     data[:, 2, 2] = 0  # always empty
-    m = compute_maps(make_seq(data), ["original"], metrics=["liv", "ocds", "mean_db", "aliv", "swiftness"],
-                     ocds_delay_range_s=(0.2048, 0.6144))
+    m = compute_maps(
+        make_seq(data),
+        ["original"],
+        metrics=["liv", "ocds", "mean_db", "aliv", "swiftness"],
+        ocds_delay_range_s=(0.2048, 0.6144),
+    )
     for name in ("liv", "ocds", "aliv", "swiftness"):
         assert np.isnan(m[f"{name}@original"][1, 1]) and np.isnan(m[f"{name}@original"][2, 2])
     assert np.isfinite(m["mean_db@original"][1, 1]) and np.isnan(m["mean_db@original"][2, 2])
@@ -122,7 +136,7 @@ def test_liv_curve_brute_force(times):
     np.testing.assert_allclose(w.numpy(), spans, atol=1e-9)
     for k, span in enumerate(spans):
         runs = [(a, b) for a in range(len(t)) for b in range(a + 1, len(t)) if abs(t[b] - t[a] - span) < 1e-9]
-        ref = np.mean([np.var(db[:, a:b + 1], axis=1) for a, b in runs], axis=0)
+        ref = np.mean([np.var(db[:, a : b + 1], axis=1) for a, b in runs], axis=0)
         np.testing.assert_allclose(c[:, k].numpy(), ref, rtol=1e-9, atol=1e-9)
     w2, c2 = liv_curve(i, times, max_window_s=0.45)
     assert float(w2.max()) <= 0.45 and c2.shape[-1] == int((w <= 0.45 + 1e-12).sum())
@@ -140,8 +154,17 @@ def _curve_fit(t, y):
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        p, _ = optimize.curve_fit(model, t, y, p0=(20.0, 1.0), bounds=([0, 0], [np.inf, np.inf]),
-                                  ftol=1e-14, xtol=1e-14, gtol=1e-14, max_nfev=10000)
+        p, _ = optimize.curve_fit(
+            model,
+            t,
+            y,
+            p0=(20.0, 1.0),
+            bounds=([0, 0], [np.inf, np.inf]),
+            ftol=1e-14,
+            xtol=1e-14,
+            gtol=1e-14,
+            max_nfev=10000,
+        )
     return p
 
 
@@ -183,8 +206,13 @@ def test_maps_at_reduced_resolution_and_slab_invariance():
     seq = make_seq(data)
     kw = dict(metrics=["liv", "ocds", "mean_db", "aliv", "swiftness"], ocds_delay_range_s=(0.2048, 0.6144))
     big = compute_maps(seq, ["original", "axial=14", "lateral=18", "axial=14,lateral=18"], **kw)
-    small = compute_maps(seq, ["original", "axial=14", "lateral=18", "axial=14,lateral=18"],
-                         slab_elements=10 * 20 * 7, chunk_pixels=37, **kw)
+    small = compute_maps(
+        seq,
+        ["original", "axial=14", "lateral=18", "axial=14,lateral=18"],
+        slab_elements=10 * 20 * 7,
+        chunk_pixels=37,
+        **kw,
+    )
     # slabs see the axial window truncated at 5σ' (tail e^-12.5 ≈ 4e-6 of the field); dB metrics of dark
     # pixels amplify that a little
     np.testing.assert_allclose(small.maps, big.maps, rtol=1e-4, atol=1e-4)
@@ -221,8 +249,9 @@ def test_volume_with_block_raster_drops_boundary_bscans():
     # float32 rounding of the per-pixel sums (torch orders a reduction by the batch's shape)
     orig = compute_maps(seq, ["original"], **kw)
     for size in (8 * 1 * 5 * 6, 8 * 3 * 5 * 6):
-        np.testing.assert_allclose(compute_maps(seq, ["original"], slab_elements=size, **kw).maps, orig.maps,
-                                   rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(
+            compute_maps(seq, ["original"], slab_elements=size, **kw).maps, orig.maps, rtol=1e-5, atol=1e-5
+        )
 
 
 def test_slab_cut_follows_what_the_stages_need():
@@ -272,7 +301,9 @@ def test_bad_requests():
     bare = SequenceData(data=seq.data, meta={k: v for k, v in seq.meta.items() if k != "system"})
     with pytest.raises(ValueError, match="--wavelength-um"):
         compute_maps(bare, ["original", "axial=14"])
-    assert compute_maps(bare, metrics=["liv"]).channel_info("liv@original")["wavelength_um"] is None  # original: optics not needed
+    assert (
+        compute_maps(bare, metrics=["liv"]).channel_info("liv@original")["wavelength_um"] is None
+    )  # original: optics not needed
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -304,13 +335,39 @@ def test_pseudo_color_takes_the_perceptual_map_scaled_by_brightness():
 # ----------------------------------------------------------------------------------------------------------
 def test_cli_maps_end_to_end(tmp_path, capsys):
     data = speckle((10, 24, 16), seed=9)
-    seq_path = write_sequence(tmp_path / "seq.npz", data,
-                              {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},
-                               "frame_times_s": [DT * k for k in range(10)], "system": SYSTEM})
+    seq_path = write_sequence(
+        tmp_path / "seq.npz",
+        data,
+        {
+            "axes": "TZX",
+            "pitch_um": {"z": 1.5, "x": 2.0},
+            "frame_times_s": [DT * k for k in range(10)],
+            "system": SYSTEM,
+        },
+    )
     out_tif, out_npz = tmp_path / "maps.tif", tmp_path / "maps.npz"
-    argv = ["maps", str(seq_path), "--resolution", "original", "--resolution", "axial=14", "--resolution",
-            "lateral=18", "--aliv", "--ocds-delay-range-s", "0.2048", "0.6144", "--out", str(out_tif), "--out",
-            str(out_npz), "--png", "--range", "liv=0,30", "--no-progress"]
+    argv = [
+        "maps",
+        str(seq_path),
+        "--resolution",
+        "original",
+        "--resolution",
+        "axial=14",
+        "--resolution",
+        "lateral=18",
+        "--aliv",
+        "--ocds-delay-range-s",
+        "0.2048",
+        "0.6144",
+        "--out",
+        str(out_tif),
+        "--out",
+        str(out_npz),
+        "--png",
+        "--range",
+        "liv=0,30",
+        "--no-progress",
+    ]
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "swiftness@lateral=18" in text and f"wrote {out_npz}" in text
@@ -323,8 +380,12 @@ def test_cli_maps_end_to_end(tmp_path, capsys):
     assert a.meta["ocds_delay_range_s"] == [0.2048, 0.6144]
     pngs = sorted(p.name for p in tmp_path.glob("*.png"))
     assert len(pngs) == 15 and "maps_ocds_axial14.png" in pngs
-    direct = compute_maps(read_sequence(seq_path), ["original", "axial=14", "lateral=18"],
-                          metrics=["liv", "ocds", "mean_db", "aliv", "swiftness"], ocds_delay_range_s=(0.2048, 0.6144))
+    direct = compute_maps(
+        read_sequence(seq_path),
+        ["original", "axial=14", "lateral=18"],
+        metrics=["liv", "ocds", "mean_db", "aliv", "swiftness"],
+        ocds_delay_range_s=(0.2048, 0.6144),
+    )
     np.testing.assert_array_equal(a.maps, direct.maps)
     # never overwrites without --force, and checks before working
     assert main(argv) == 2
@@ -336,8 +397,22 @@ def test_cli_maps_errors(tmp_path, capsys):
     np.save(tmp_path / "raw.npy", speckle((8, 5, 6)))
     assert main(["maps", str(tmp_path / "raw.npy"), "--out", str(tmp_path / "m.npz"), "--no-progress"]) == 2
     assert "--axes" in capsys.readouterr().err
-    argv = ["maps", str(tmp_path / "raw.npy"), "--axes", "TZX", "--pitch-um", "z=1.5,x=2", "--frame-interval-s",
-            "0.2048", "--out", str(tmp_path / "m.npz"), "--no-progress", "--ocds-delay-range-s", "0.2048", "0.6144"]
+    argv = [
+        "maps",
+        str(tmp_path / "raw.npy"),
+        "--axes",
+        "TZX",
+        "--pitch-um",
+        "z=1.5,x=2",
+        "--frame-interval-s",
+        "0.2048",
+        "--out",
+        str(tmp_path / "m.npz"),
+        "--no-progress",
+        "--ocds-delay-range-s",
+        "0.2048",
+        "0.6144",
+    ]
     assert main(argv + ["--resolution", "axial=14"]) == 2
     assert "--wavelength-um" in capsys.readouterr().err
     sys_args = ["--wavelength-um", "0.84", "--lateral-resolution-um", "4.9", "--axial-resolution-um", "3.8"]
@@ -347,12 +422,43 @@ def test_cli_maps_errors(tmp_path, capsys):
     assert read_maps(tmp_path / "m.npz").meta["system"]["lateral_resolution_um"] == 4.9
     inten = np.abs(speckle((8, 5, 6))) ** 2
     tifffile.imwrite(tmp_path / "i.tif", inten.astype(np.float32))
-    assert main(["maps", str(tmp_path / "i.tif"), "--pitch-um", "z=1.5,x=2", "--frame-interval-s", "0.2048",
-                 "--resolution", "lateral=18", "--out", str(tmp_path / "i.npz"), "--no-progress"] + sys_args) == 2
+    assert (
+        main(
+            [
+                "maps",
+                str(tmp_path / "i.tif"),
+                "--pitch-um",
+                "z=1.5,x=2",
+                "--frame-interval-s",
+                "0.2048",
+                "--resolution",
+                "lateral=18",
+                "--out",
+                str(tmp_path / "i.npz"),
+                "--no-progress",
+            ]
+            + sys_args
+        )
+        == 2
+    )
     assert "intensity only" in capsys.readouterr().err
     # without the optics the intensity-only refusal comes first, not a request for optics that cannot help
-    assert main(["maps", str(tmp_path / "i.tif"), "--frame-interval-s", "0.2048", "--resolution", "lateral=18",
-                 "--out", str(tmp_path / "i.npz"), "--no-progress"]) == 2
+    assert (
+        main(
+            [
+                "maps",
+                str(tmp_path / "i.tif"),
+                "--frame-interval-s",
+                "0.2048",
+                "--resolution",
+                "lateral=18",
+                "--out",
+                str(tmp_path / "i.npz"),
+                "--no-progress",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "i.tif holds intensity only" in err and "--wavelength-um" not in err and "pitch" not in err
     assert not (tmp_path / "i.npz").exists()
@@ -361,12 +467,38 @@ def test_cli_maps_errors(tmp_path, capsys):
 def test_cli_block_raster_volume(tmp_path, capsys):
     raster = BlockRaster(n_blocks=2, n_repeats=8, bscans_per_block=4)
     vol = speckle((8, 8, 4, 5), seed=10)
-    flat = np.concatenate([vol[:, 4 * b:4 * (b + 1)].reshape(-1, 4, 5) for b in range(2)])  # acquisition order
+    flat = np.concatenate([vol[:, 4 * b : 4 * (b + 1)].reshape(-1, 4, 5) for b in range(2)])  # acquisition order
     np.save(tmp_path / "flat.npy", flat)
-    assert main(["maps", str(tmp_path / "flat.npy"), "--axes", "TZX", "--pitch-um", "z=1.5,x=2,y=8",
-                 "--frame-interval-s", "0.2048", "--block-raster", "2:8:4", "--wavelength-um", "0.84",
-                 "--lateral-resolution-um", "4.9", "--axial-resolution-um", "3.8", "--ocds-delay-range-s",
-                 "0.2048", "0.6144", "--out", str(tmp_path / "v.npz"), "--no-progress", "--png"]) == 0
+    assert (
+        main(
+            [
+                "maps",
+                str(tmp_path / "flat.npy"),
+                "--axes",
+                "TZX",
+                "--pitch-um",
+                "z=1.5,x=2,y=8",
+                "--frame-interval-s",
+                "0.2048",
+                "--block-raster",
+                "2:8:4",
+                "--wavelength-um",
+                "0.84",
+                "--lateral-resolution-um",
+                "4.9",
+                "--axial-resolution-um",
+                "3.8",
+                "--ocds-delay-range-s",
+                "0.2048",
+                "0.6144",
+                "--out",
+                str(tmp_path / "v.npz"),
+                "--no-progress",
+                "--png",
+            ]
+        )
+        == 0
+    )
     m = read_maps(tmp_path / "v.npz")
     assert m.maps.shape == (3, 6, 4, 5) and m.meta["block_raster"] == raster.to_dict()
     direct = compute_maps(make_seq(vol, volume=True, raster=raster), ["original"], ocds_delay_range_s=(0.2048, 0.6144))
@@ -506,10 +638,19 @@ def test_one_axes_convention_for_render_preview_maps_and_overlay(tmp_path, monke
 
     seen = []
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda self, *a, **k: seen.append(self))
-    cls = infer.Classification(labels=np.zeros((6, 5), np.uint8), probabilities=np.zeros((1, 6, 5), np.float32),
-                               classes=["diffusion"], mask=np.ones((6, 5), bool), background=np.zeros((6, 5), bool),
-                               intensity_db=np.zeros((6, 5)), model=None, sources=["m.npz"], axes="CZX",
-                               pitch_um={"z": 1.5, "x": 2.0}, info={"pool": 1})
+    cls = infer.Classification(
+        labels=np.zeros((6, 5), np.uint8),
+        probabilities=np.zeros((1, 6, 5), np.float32),
+        classes=["diffusion"],
+        mask=np.ones((6, 5), bool),
+        background=np.zeros((6, 5), bool),
+        intensity_db=np.zeros((6, 5)),
+        model=None,
+        sources=["m.npz"],
+        axes="CZX",
+        pitch_um={"z": 1.5, "x": 2.0},
+        info={"pool": 1},
+    )
     outputs._overlay(cls, str(tmp_path / "o.png"))
     ax = seen[0].axes[0]
     assert ax.get_xlabel() == figures.X_LABEL and ax.get_ylabel() == figures.Z_LABEL
@@ -520,8 +661,25 @@ def test_intensity_tiff_at_original_resolution_needs_no_optics(tmp_path, capsys)
     inten = (np.abs(speckle((8, 5, 6), seed=15)) ** 2).astype(np.float32)
     tifffile.imwrite(tmp_path / "cog.tif", inten)
     out = tmp_path / "m.npz"
-    assert main(["maps", str(tmp_path / "cog.tif"), "--frame-interval-s", "0.2048", "--ocds-delay-range-s",
-                 "0.2048", "0.6144", "--aliv", "--out", str(out), "--png", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "maps",
+                str(tmp_path / "cog.tif"),
+                "--frame-interval-s",
+                "0.2048",
+                "--ocds-delay-range-s",
+                "0.2048",
+                "0.6144",
+                "--aliv",
+                "--out",
+                str(out),
+                "--png",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     m = read_maps(out)
     i = torch.from_numpy(inten).movedim(0, -1)
     np.testing.assert_allclose(m["liv@original"], metrics.liv(i).numpy(), rtol=1e-5, atol=1e-5)
@@ -530,8 +688,20 @@ def test_intensity_tiff_at_original_resolution_needs_no_optics(tmp_path, capsys)
     capsys.readouterr()
     # a resolution change still needs them, and says which
     np.save(tmp_path / "raw.npy", speckle((8, 5, 6)))
-    argv = ["maps", str(tmp_path / "raw.npy"), "--axes", "TZX", "--frame-interval-s", "0.2048",
-            "--ocds-delay-range-s", "0.2048", "0.6144", "--out", str(tmp_path / "r.npz"), "--no-progress"]
+    argv = [
+        "maps",
+        str(tmp_path / "raw.npy"),
+        "--axes",
+        "TZX",
+        "--frame-interval-s",
+        "0.2048",
+        "--ocds-delay-range-s",
+        "0.2048",
+        "0.6144",
+        "--out",
+        str(tmp_path / "r.npz"),
+        "--no-progress",
+    ]
     assert main(argv) == 0
     assert main(argv + ["--resolution", "axial=14", "--force"]) == 2
     err = capsys.readouterr().err
@@ -556,9 +726,16 @@ def test_biased_ocds_computes_only_the_lags_in_the_range(monkeypatch):
 def test_all_nan_or_empty_input_is_refused(tmp_path, capsys):
     for name, fill in (("nan", np.nan), ("zero", 0.0)):
         data = np.full((12, 5, 6), fill, np.complex64)  # 12 frames: every default OCDS delay has 6+ pairs
-        path = write_sequence(tmp_path / f"{name}.npz", data, {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},
-                                                               "frame_times_s": [DT * k for k in range(12)],
-                                                               "system": SYSTEM})
+        path = write_sequence(
+            tmp_path / f"{name}.npz",
+            data,
+            {
+                "axes": "TZX",
+                "pitch_um": {"z": 1.5, "x": 2.0},
+                "frame_times_s": [DT * k for k in range(12)],
+                "system": SYSTEM,
+            },
+        )
         with pytest.raises(ValueError, match=f"{name}.npz.*no (finite|nonzero)"):
             compute_maps(read_sequence(path), ["original"])
         out = tmp_path / f"{name}-maps.npz"
@@ -567,8 +744,11 @@ def test_all_nan_or_empty_input_is_refused(tmp_path, capsys):
 
 
 def test_one_frame_input_is_refused_naming_the_file(tmp_path, capsys):
-    path = write_sequence(tmp_path / "one.npy", speckle((1, 5, 6)), {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},
-                                                                     "frame_times_s": [0.0], "system": SYSTEM})
+    path = write_sequence(
+        tmp_path / "one.npy",
+        speckle((1, 5, 6)),
+        {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0}, "frame_times_s": [0.0], "system": SYSTEM},
+    )
     with pytest.raises(ValueError, match="one.npy.*1 frame.*at least 2"):
         compute_maps(read_sequence(path), ["original"], metrics=["liv"])
     assert main(["maps", str(path), "--out", str(tmp_path / "m.npz"), "--no-progress"]) == 2
@@ -578,17 +758,38 @@ def test_one_frame_input_is_refused_naming_the_file(tmp_path, capsys):
 
 def test_big_endian_npy_is_read(tmp_path, capsys):
     data = speckle((8, 5, 6), seed=17)
-    meta = {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0}, "frame_times_s": [DT * k for k in range(8)],
-            "system": SYSTEM}
+    meta = {
+        "axes": "TZX",
+        "pitch_um": {"z": 1.5, "x": 2.0},
+        "frame_times_s": [DT * k for k in range(8)],
+        "system": SYSTEM,
+    }
     write_sequence(tmp_path / "le.npy", data, meta)
     np.save(tmp_path / "be.npy", data.astype(">c8"))
     (tmp_path / "be.json").write_text(json.dumps(meta))
     outs = []
     for stem in ("le", "be"):
         outs.append(tmp_path / f"{stem}-maps.npz")
-        assert main(["maps", str(tmp_path / f"{stem}.npy"), "--resolution", "original", "--resolution", "axial=14",
-                     "--ocds-delay-range-s", "0.2048", "0.6144", "--aliv", "--out", str(outs[-1]),
-                     "--no-progress"]) == 0
+        assert (
+            main(
+                [
+                    "maps",
+                    str(tmp_path / f"{stem}.npy"),
+                    "--resolution",
+                    "original",
+                    "--resolution",
+                    "axial=14",
+                    "--ocds-delay-range-s",
+                    "0.2048",
+                    "0.6144",
+                    "--aliv",
+                    "--out",
+                    str(outs[-1]),
+                    "--no-progress",
+                ]
+            )
+            == 0
+        )
     np.testing.assert_array_equal(read_maps(outs[0]).maps, read_maps(outs[1]).maps)
 
 
@@ -623,11 +824,18 @@ def test_bulk_phase_correction_is_the_corrected_sequence_for_every_channel():
 # torch-free reader, refusals before any work
 # ----------------------------------------------------------------------------------------------------------
 
+
 def _speckle_reference(data: np.ndarray, pitch: dict, window: int, ndim: int) -> np.ndarray:
     from torchdoct.sim.speckle import default_speckle_features, speckle_motion
 
-    return speckle_motion(torch.from_numpy(data), pitch, DT, window=window, ndim=ndim,
-                          names=default_speckle_features(ndim, n_frames=data.shape[0]))[1].numpy()
+    return speckle_motion(
+        torch.from_numpy(data),
+        pitch,
+        DT,
+        window=window,
+        ndim=ndim,
+        names=default_speckle_features(ndim, n_frames=data.shape[0]),
+    )[1].numpy()
 
 
 @pytest.mark.parametrize("volume", [False, True])
@@ -639,13 +847,19 @@ def test_speckle_channels_match_the_feature_module_across_slabs(volume):
 
     names = default_speckle_features(3 if volume else 2, n_frames=shape[0])
     whole = compute_maps(seq, ["original", "axial=14"], speckle=True, speckle_window=5)
-    slabs = compute_maps(seq, ["original", "axial=14"], speckle=True, speckle_window=5,
-                         slab_elements=12 * 4 * 9 * (4 if volume else 1) if volume else 12 * 13 * 4)
+    slabs = compute_maps(
+        seq,
+        ["original", "axial=14"],
+        speckle=True,
+        speckle_window=5,
+        slab_elements=12 * 4 * 9 * (4 if volume else 1) if volume else 12 * 13 * 4,
+    )
     ref = _speckle_reference(data, seq.pitch_um, 5, 3 if volume else 2)
     got = np.stack([whole[f"{n}@original"] for n in names])
     np.testing.assert_allclose(got, ref.astype(np.float32), rtol=1e-5, atol=1e-6, equal_nan=True)
-    np.testing.assert_allclose(np.stack([slabs[f"{n}@original"] for n in names]), got, rtol=1e-5, atol=1e-6,
-                               equal_nan=True)
+    np.testing.assert_allclose(
+        np.stack([slabs[f"{n}@original"] for n in names]), got, rtol=1e-5, atol=1e-6, equal_nan=True
+    )
     plain = compute_maps(seq, ["original", "axial=14"])
     for c in plain.channels:  # every other channel unchanged bit for bit
         assert np.array_equal(whole[c], plain[c], equal_nan=True), c
@@ -677,7 +891,10 @@ def test_speckle_channels_are_refused_without_a_pitch_or_an_original_resolution(
         compute_maps(seq, ["axial=14"], speckle=True)
     with pytest.raises(ValueError, match="odd"):
         compute_maps(seq, ["original"], speckle=True, speckle_window=4)
-    bare = SequenceData(data=data, meta=validate_meta({"axes": "TZX", "frame_times_s": [DT * i for i in range(10)],
-                                                       "system": SYSTEM}, data.shape), source="bare.npy")
+    bare = SequenceData(
+        data=data,
+        meta=validate_meta({"axes": "TZX", "frame_times_s": [DT * i for i in range(10)], "system": SYSTEM}, data.shape),
+        source="bare.npy",
+    )
     with pytest.raises(ValueError, match="pitch"):
         compute_maps(bare, ["original"], speckle=True)

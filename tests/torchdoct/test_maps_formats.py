@@ -37,8 +37,7 @@ def test_ome_tiff_maps_carry_channel_names_and_physical_sizes_in_um(tmp_path, vo
         root = ET.fromstring(tf.ome_metadata)
     ns = {"o": "http://www.openmicroscopy.org/Schemas/OME/2016-06"}
     px = root.find("o:Image/o:Pixels", ns)
-    assert [c.get("Name") for c in px.findall("o:Channel", ns)] == ["liv@original", "ocds@original",
-                                                                     "mean_db@original"]
+    assert [c.get("Name") for c in px.findall("o:Channel", ns)] == ["liv@original", "ocds@original", "mean_db@original"]
     want = {"Z": 1.9, "Y": 7.5, "X": 2.5} if volume else {"Y": 1.9, "X": 2.5}  # OME Y of a B-scan is depth
     for k, v in want.items():
         assert float(px.get(f"PhysicalSize{k}")) == pytest.approx(v) and px.get(f"PhysicalSize{k}Unit") == "µm"
@@ -97,8 +96,10 @@ def test_the_maps_reader_stays_torch_free(tmp_path):
     import sys
 
     path = write_maps(tmp_path / "m.ome.tif", _maps(False))
-    code = ("import sys; from torchdoct.measured.mapsfile import read_maps; read_maps(sys.argv[1]); "
-            "assert 'torch' not in sys.modules, 'torch imported'")
+    code = (
+        "import sys; from torchdoct.measured.mapsfile import read_maps; read_maps(sys.argv[1]); "
+        "assert 'torch' not in sys.modules, 'torch imported'"
+    )
     subprocess.run([sys.executable, "-c", code, str(path)], check=True)
 
 
@@ -130,9 +131,14 @@ def test_maps_tiff_of_an_earlier_version_is_still_read(tmp_path):
     m = _maps(True)
     path = tmp_path / "old.tif"
     ij = "ImageJ=1.11a\nimages=15\nslices=5\nframes=3\nhyperstack=true\nmode=grayscale\nloop=false\n"
-    tifffile.imwrite(path, m.maps.reshape(-1, *m.maps.shape[-2:]), description=None, metadata=None,
-                     photometric="minisblack", extratags=[(270, "s", 0, json.dumps(m.meta), True),
-                                                          (270, "s", 0, ij, True)])
+    tifffile.imwrite(
+        path,
+        m.maps.reshape(-1, *m.maps.shape[-2:]),
+        description=None,
+        metadata=None,
+        photometric="minisblack",
+        extratags=[(270, "s", 0, json.dumps(m.meta), True), (270, "s", 0, ij, True)],
+    )
     back = read_maps(path)
     assert back.channels == m.channels and back.meta == m.meta
     np.testing.assert_array_equal(back.maps, m.maps)

@@ -21,8 +21,11 @@ def inputs(tmp_path):
     """Three sequences in three formats: a.npy, b.ome.tif, c.zarr (each its own field)."""
     d = tmp_path / "in"
     d.mkdir()
-    return [F.write_npy(d / "a.npy", F.field(t=8, seed=1)), F.write_ome_tiff(d / "b.ome.tif", F.field(t=8, seed=2)),
-            F.write_ome_zarr(d / "c.zarr", F.field(t=8, seed=3))]
+    return [
+        F.write_npy(d / "a.npy", F.field(t=8, seed=1)),
+        F.write_ome_tiff(d / "b.ome.tif", F.field(t=8, seed=2)),
+        F.write_ome_zarr(d / "c.zarr", F.field(t=8, seed=3)),
+    ]
 
 
 def _single(tmp_path, path):
@@ -49,32 +52,56 @@ def test_many_inputs_run_as_tasks_on_a_dask_cluster(tmp_path, inputs):
     distributed = pytest.importorskip("dask.distributed")
     out = tmp_path / "out"
     out.mkdir()
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
-                                  dashboard_address=None) as cluster:
-        assert main(["maps", *map(str, inputs), "--out", str(out / "{stem}.ome.tif"), *OPTS,
-                     "--scheduler", cluster.scheduler_address]) == 0
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
+        assert (
+            main(
+                [
+                    "maps",
+                    *map(str, inputs),
+                    "--out",
+                    str(out / "{stem}.ome.tif"),
+                    *OPTS,
+                    "--scheduler",
+                    cluster.scheduler_address,
+                ]
+            )
+            == 0
+        )
     for path, stem in zip(inputs, ["a", "b", "c"]):
         want = _single(tmp_path, path)
         np.testing.assert_array_equal(read_maps(out / f"{stem}.ome.tif").maps, want.maps)
 
 
 def test_an_out_without_stem_is_refused_for_many_inputs(tmp_path, inputs, capsys):
-    refused(capsys, tmp_path / "in", ["maps", *map(str, inputs), "--out", str(tmp_path / "m.npz"), *OPTS],
-            "--out", "{stem}")
+    refused(
+        capsys, tmp_path / "in", ["maps", *map(str, inputs), "--out", str(tmp_path / "m.npz"), *OPTS], "--out", "{stem}"
+    )
 
 
 def test_two_inputs_of_one_stem_are_refused_before_any_work(tmp_path, inputs, capsys):
     twin = F.write_raw(tmp_path / "a.raw", F.field(t=8))  # stem "a", as in/a.npy
-    refused(capsys, tmp_path / "in", ["maps", str(inputs[0]), str(twin), "--out", str(tmp_path / "{stem}.npz"),
-                                      *OPTS], "a.npz", "a.npy", "a.raw")
+    refused(
+        capsys,
+        tmp_path / "in",
+        ["maps", str(inputs[0]), str(twin), "--out", str(tmp_path / "{stem}.npz"), *OPTS],
+        "a.npz",
+        "a.npy",
+        "a.raw",
+    )
     assert not (tmp_path / "a.npz").exists()
 
 
 def test_a_missing_input_or_an_existing_output_is_refused_before_any_work(tmp_path, inputs, capsys):
     out = tmp_path / "out"
     out.mkdir()
-    refused(capsys, out, ["maps", str(inputs[0]), str(tmp_path / "nope.npy"), "--out", str(out / "{stem}.npz"),
-                          *OPTS], "nope.npy")
+    refused(
+        capsys,
+        out,
+        ["maps", str(inputs[0]), str(tmp_path / "nope.npy"), "--out", str(out / "{stem}.npz"), *OPTS],
+        "nope.npy",
+    )
     (out / "c.npz").write_bytes(b"x")
     refused(capsys, out, ["maps", *map(str, inputs), "--out", str(out / "{stem}.npz"), *OPTS], "c.npz", "--force")
     assert sorted(p.name for p in out.iterdir()) == ["c.npz"]
@@ -89,5 +116,6 @@ def test_one_input_refused_does_not_stop_the_others(tmp_path, inputs, capsys):
     assert main(["maps", str(inputs[0]), str(bad), str(inputs[2]), "--out", str(out / "{stem}.npz"), *OPTS]) == 2
     err = capsys.readouterr().err
     assert [line for line in err.splitlines() if line.startswith("error:")] == [
-        next(line for line in err.splitlines() if line.startswith("error: d.npy"))]
+        next(line for line in err.splitlines() if line.startswith("error: d.npy"))
+    ]
     assert "1 of 3 inputs refused (" in err and sorted(p.name for p in out.iterdir()) == ["a.npz", "c.npz"]

@@ -32,8 +32,9 @@ print(json.dumps({"maxrss_kb": peak_kb, "finite": bool(res.signals.isfinite().al
 
 def _peak_rss_gb(motion: str, trials: int) -> float:
     env = dict(os.environ, MALLOC_ARENA_MAX="2")  # less allocator fragmentation noise
-    out = subprocess.run([sys.executable, "-c", _SCRIPT, motion, str(trials)], capture_output=True,
-                         text=True, check=True, env=env)
+    out = subprocess.run(
+        [sys.executable, "-c", _SCRIPT, motion, str(trials)], capture_output=True, text=True, check=True, env=env
+    )
     info = json.loads(out.stdout.strip().splitlines()[-1])
     assert info["finite"]
     return info["maxrss_kb"] / 2**20

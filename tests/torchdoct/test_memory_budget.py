@@ -50,13 +50,15 @@ def test_a_cgroup_v1_limit_counts_and_its_unlimited_value_does_not(tmp_path):
 
 
 def _run_limited(code: str, limit_bytes: int) -> subprocess.CompletedProcess:
-    pre = (f"import resource; resource.setrlimit(resource.RLIMIT_AS, ({limit_bytes}, resource.RLIM_INFINITY))\n")
+    pre = f"import resource; resource.setrlimit(resource.RLIMIT_AS, ({limit_bytes}, resource.RLIM_INFINITY))\n"
     return subprocess.run([sys.executable, "-c", pre + code], capture_output=True, text=True, timeout=120)
 
 
 def test_the_address_space_limit_sets_the_budget():
-    out = _run_limited("from torchdoct.runtime.resources import memory_budget\nb = memory_budget()\n"
-                       "print(b.bytes, b.hard, b.source)", 3 * GIB)
+    out = _run_limited(
+        "from torchdoct.runtime.resources import memory_budget\nb = memory_budget()\nprint(b.bytes, b.hard, b.source)",
+        3 * GIB,
+    )
     assert out.returncode == 0, out.stderr
     n, hard, source = out.stdout.split(" ", 2)
     assert 0 < int(n) < 3 * GIB and hard == "True" and "RLIMIT_AS" in source
@@ -76,7 +78,8 @@ def test_a_file_over_the_address_space_limit_is_not_enough_memory_not_truncated(
         "resource.setrlimit(resource.RLIMIT_AS, (used + int(1.4 * 2**30), resource.RLIM_INFINITY))\n"
         f"sys.exit(torchdoct.cli.main(['maps', {str(seq)!r}, '--axes', 'TYZX', '--pitch-um', 'z=2,x=2,y=2', "
         "'--frame-interval-s', '0.01', '--wavelength-um', '0.84', '--lateral-resolution-um', '4.9', "
-        f"'--axial-resolution-um', '3.8', '--out', {str(tmp_path / 'm.npz')!r}]))")
+        f"'--axial-resolution-um', '3.8', '--out', {str(tmp_path / 'm.npz')!r}]))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert out.returncode == 2 and len(lines) == 1, out.stderr
@@ -89,15 +92,17 @@ def test_a_file_over_the_address_space_limit_is_not_enough_memory_not_truncated(
 def test_an_explicit_input_limit_overrides_mem_available_only(monkeypatch):
     from torchdoct.measured import guards
 
-    monkeypatch.setattr(resources, "memory_budget", lambda: resources.MemoryBudget(GIB, "MemAvailable of the machine",
-                                                                                  False))
+    monkeypatch.setattr(
+        resources, "memory_budget", lambda: resources.MemoryBudget(GIB, "MemAvailable of the machine", False)
+    )
     with pytest.raises(resources.MemoryLimitError, match="--max-input-gb GB reads it anyway"):
         guards.check_declared_size("x.npy", (2, GIB), 1)
     guards.set_max_input_gb(4.0)
     try:
         assert guards.check_declared_size("x.npy", (2, GIB), 1) == 2 * GIB
-        monkeypatch.setattr(resources, "memory_budget",
-                            lambda: resources.MemoryBudget(GIB, "the address-space limit RLIMIT_AS", True))
+        monkeypatch.setattr(
+            resources, "memory_budget", lambda: resources.MemoryBudget(GIB, "the address-space limit RLIMIT_AS", True)
+        )
         with pytest.raises(resources.MemoryLimitError, match="RLIMIT_AS.*raise that limit"):
             guards.check_declared_size("x.npy", (2, GIB), 1)
     finally:

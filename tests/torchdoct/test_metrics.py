@@ -123,8 +123,8 @@ def test_pearson_lag_correlation_of_ar1_averages_to_a_power_m():
     r = rho[:, :6].numpy()
     se = r.std(0, ddof=1) / math.sqrt(reps)
     bias_allowance = 1.5 * (1 + a) / (1 - a) / (n_frames - m)
-    err = np.abs(r.mean(0) - a ** m)
-    assert np.all(err <= Z * se + bias_allowance), (r.mean(0), a ** m, se, bias_allowance)
+    err = np.abs(r.mean(0) - a**m)
+    assert np.all(err <= Z * se + bias_allowance), (r.mean(0), a**m, se, bias_allowance)
     # and the estimate really decays like a^m: lag 1 far above lag 3, lag 3 above lag 6
     assert r.mean(0)[0] > 0.45 and r.mean(0)[2] < 0.15 and abs(r.mean(0)[5]) < 0.03
 
@@ -157,8 +157,7 @@ def test_ocds_is_minus_ols_slope_of_the_correlations(dtype):
         np.testing.assert_allclose(got.double().numpy(), ref, rtol=0, atol=1e-6 if dtype == torch.float64 else 1e-4)
         # closed form of physics.md §2.4: −Σ (m − 3.5) ρ_m / (17.5 Δt)
         closed = -((np.arange(1, 7) - 3.5) * rho[:, :6].double().numpy()).sum(-1) / (17.5 * DT_S)
-        np.testing.assert_allclose(got.double().numpy(), closed, rtol=0,
-                                   atol=1e-9 if dtype == torch.float64 else 1e-4)
+        np.testing.assert_allclose(got.double().numpy(), closed, rtol=0, atol=1e-9 if dtype == torch.float64 else 1e-4)
     # a decaying correlation (ρ_m = 0.8^m) gives a positive OCDS on average
     assert ocds(intensity, times).double().mean().item() > 0
 
@@ -167,8 +166,7 @@ def test_ocds_linear_scale_uses_linear_intensity():
     intensity = _intensity((10, 16), torch.float64, seed=8)
     times = _times(16)
     delays, rho = lag_correlations(intensity, times)
-    torch.testing.assert_close(ocds(intensity, times, scale="linear"),
-                               ocds_from_correlations(rho, delays))
+    torch.testing.assert_close(ocds(intensity, times, scale="linear"), ocds_from_correlations(rho, delays))
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -271,7 +269,7 @@ def test_metrics_work_on_any_leading_shape(dtype):
     rng = np.random.default_rng(13)
     z = rng.standard_normal((2, 3, 5, n_frames)) + 1j * rng.standard_normal((2, 3, 5, n_frames))
     field = torch.from_numpy(z).to(torch.complex128 if dtype == torch.float64 else torch.complex64)
-    intensity = field.real ** 2 + field.imag ** 2
+    intensity = field.real**2 + field.imag**2
     times = _times(n_frames)
     kw = dict(delay_range_s=(0.2048, 1.2288))
     batched = {
@@ -306,8 +304,9 @@ def test_compute_metrics_flags_zero_intensity_and_summarize_excludes_it(dtype):
     signals[4, 1, 0] = 0
     signals[4, 0, :] = 0  # an all-empty trial
     times = _times(n_frames)
-    analysis = Analysis(metrics=("liv", "ocds", "complex_variance", "autocorrelation"),
-                        ocds_delay_range_s=(0.2048, 0.6144))
+    analysis = Analysis(
+        metrics=("liv", "ocds", "complex_variance", "autocorrelation"), ocds_delay_range_s=(0.2048, 0.6144)
+    )
     out = compute_metrics(signals, times, analysis)
     zero = torch.zeros(n_trials, n_systems, dtype=torch.bool)
     zero[1, 0] = zero[4, 1] = zero[4, 0] = True
@@ -320,7 +319,7 @@ def test_compute_metrics_flags_zero_intensity_and_summarize_excludes_it(dtype):
     assert torch.isfinite(out["autocorrelation"][~zero]).all()
     assert torch.isfinite(out["complex_variance"]).all()
     # the finite entries are the plain metrics of those rows
-    intensity = signals.real ** 2 + signals.imag ** 2
+    intensity = signals.real**2 + signals.imag**2
     torch.testing.assert_close(out["liv"][~zero], liv(intensity[~zero]))
     torch.testing.assert_close(out["ocds"][~zero], ocds(intensity[~zero], times, delay_range_s=(0.2048, 0.6144)))
 

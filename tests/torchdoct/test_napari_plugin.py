@@ -82,15 +82,22 @@ def test_class_map_opens_as_labels_in_the_legend_colours(tmp_path, plugin, layou
 
     from torchdoct.measured.imagej import imagej_write_options
 
-    legend = {"classes": [{"value": 0, "name": "diffusion", "color": "#0072B2"},
-                          {"value": 1, "name": "flow", "color": "#E69F00"}],
-              "masked_value": 255, "axes": "ZX", "pitch_um": {"z": 1.9, "x": 2.5}}
+    legend = {
+        "classes": [
+            {"value": 0, "name": "diffusion", "color": "#0072B2"},
+            {"value": 1, "name": "flow", "color": "#E69F00"},
+        ],
+        "masked_value": 255,
+        "axes": "ZX",
+        "pitch_um": {"z": 1.9, "x": 2.5},
+    }
     labels = np.array([[0, 1, 255], [1, 0, 0]], dtype=np.uint8)
     path = tmp_path / "classes.tif"
     text = json.dumps({"legend": legend})
     if layout == "imagej-info":
-        tifffile.imwrite(path, labels, **imagej_write_options(labels.shape, "ZX", legend["pitch_um"], ["class"],
-                                                              description=text))
+        tifffile.imwrite(
+            path, labels, **imagej_write_options(labels.shape, "ZX", legend["pitch_um"], ["class"], description=text)
+        )
     else:
         tifffile.imwrite(path, labels, description=text)
     [(data, attrs, kind)] = npe2.read([str(path)], stack=False, plugin_name="torchdoct")
@@ -103,8 +110,9 @@ def test_sequence_opens_as_db_intensity_over_time(tmp_path, plugin):
     import _formats as F
 
     a = F.field(t=4)
-    [(data, attrs, kind)] = npe2.read([str(F.write_ome_tiff(tmp_path / "s.ome.tif", a))], stack=False,
-                                      plugin_name="torchdoct")
+    [(data, attrs, kind)] = npe2.read(
+        [str(F.write_ome_tiff(tmp_path / "s.ome.tif", a))], stack=False, plugin_name="torchdoct"
+    )
     np.testing.assert_allclose(data, 10 * np.log10(np.abs(a.astype(np.complex128)) ** 2), rtol=1e-5)
     assert tuple(attrs["scale"]) == pytest.approx((1.0, F.PITCH["z"], F.PITCH["x"]))
 

@@ -34,7 +34,7 @@ def test_numbers_tensors_and_arrays_keep_their_type():
     assert s.dtype == torch.float32 and torch.equal(s, torch.sqrt(t / 10.0 ** (13.0 / 10.0) / 2.0))
     a = np.array([1.0, 2.5])
     assert isinstance(noise_sigma(a, 13.0), np.ndarray)
-    np.testing.assert_array_equal(noise_sigma(a, 13.0), np.sqrt(a / 10.0 ** 1.3 / 2.0))
+    np.testing.assert_array_equal(noise_sigma(a, 13.0), np.sqrt(a / 10.0**1.3 / 2.0))
 
 
 def test_no_other_module_converts_an_snr():
@@ -56,9 +56,13 @@ def test_the_plan_and_the_training_data_use_it():
     from torchdoct.sim.plan import make_plan
 
     system = td.OCTSystem(name="s", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)
-    sc = td.Scene(systems=(system,), protocol=td.Protocol(n_frames=4, frame_interval_s=0.2),
-                  populations=(td.Population(density_per_um3=0.05),), noise=td.Noise(snr_db=12.5),
-                  analysis=td.Analysis(metrics=("liv",)))
+    sc = td.Scene(
+        systems=(system,),
+        protocol=td.Protocol(n_frames=4, frame_interval_s=0.2),
+        populations=(td.Population(density_per_um3=0.05),),
+        noise=td.Noise(snr_db=12.5),
+        analysis=td.Analysis(metrics=("liv",)),
+    )
     sp = make_plan(sc).systems[0]
     assert sp.mean_intensity == mean_intensity(0.05, 4.9, 3.8)
     assert sp.noise_power == noise_power(sp.mean_intensity, 12.5)

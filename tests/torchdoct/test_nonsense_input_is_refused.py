@@ -23,14 +23,14 @@ DEEP = "[" * 5000 + "]" * 5000
 SPHEROID = Path(__file__).resolve().parents[2] / "torchdoct" / "data" / "phantoms" / "spheroid.toml"
 
 
-
-
 # ----------------------------------------------------------------------------------------------------------
 # nesting depth: one check before each parser (RecursionError tracebacks before)
 # ----------------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("text", ["a = " + DEEP, ".".join(["x"] * 5000) + " = 1",
-                                  "a = " + "{x = " * 3000 + "1" + "}" * 3000],
-                         ids=["arrays", "dotted-keys", "inline-tables"])
+@pytest.mark.parametrize(
+    "text",
+    ["a = " + DEEP, ".".join(["x"] * 5000) + " = 1", "a = " + "{x = " * 3000 + "1" + "}" * 3000],
+    ids=["arrays", "dotted-keys", "inline-tables"],
+)
 def test_deeply_nested_scene_is_refused(tmp_path, capsys, text):
     path = tmp_path / "deep.toml"
     path.write_text(text + "\n")
@@ -50,11 +50,20 @@ def test_shallow_brackets_in_strings_and_comments_are_not_nesting(tmp_path, caps
 
 def test_deeply_nested_sidecar_and_maps_metadata_are_refused(tmp_path, capsys, seq):
     seq.with_suffix(".json").write_text('{"axes": ' + DEEP + "}")
-    refused(capsys, tmp_path, ["maps", str(seq), "--out", str(tmp_path / "m.npz"), "--no-progress"],
-            "seq.json", "nested more than")
+    refused(
+        capsys,
+        tmp_path,
+        ["maps", str(seq), "--out", str(tmp_path / "m.npz"), "--no-progress"],
+        "seq.json",
+        "nested more than",
+    )
     maps = tmp_path / "maps.npz"
-    np.savez(maps, maps=np.zeros((3, 4, 4), np.float32), channels=np.array(["a", "b", "c"]),
-             meta_json=np.asarray('{"channels": ' + DEEP + "}"))
+    np.savez(
+        maps,
+        maps=np.zeros((3, 4, 4), np.float32),
+        channels=np.array(["a", "b", "c"]),
+        meta_json=np.asarray('{"channels": ' + DEEP + "}"),
+    )
     refused(capsys, tmp_path, ["compare", f"A={maps}", f"B={maps}"], "maps.npz", "meta_json", "nested more than")
 
 
@@ -63,37 +72,52 @@ def test_deeply_nested_sidecar_and_maps_metadata_are_refused(tmp_path, capsys, s
 # ----------------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("res", ["axial=1e200", "lateral=1e300", "axial=14,lateral=1e20", "axial=0", "lateral=-3"])
 def test_overflowing_or_absurd_resolution_is_refused(tmp_path, capsys, seq, res):
-    refused(capsys, tmp_path, ["maps", str(seq), "--resolution", res, "--out", str(tmp_path / "m.npz"),
-                               "--no-progress"], "--resolution", "µm")
+    refused(
+        capsys,
+        tmp_path,
+        ["maps", str(seq), "--resolution", res, "--out", str(tmp_path / "m.npz"), "--no-progress"],
+        "--resolution",
+        "µm",
+    )
 
 
 # ----------------------------------------------------------------------------------------------------------
 # PNG options: checked before anything is written (the .npz was written, then exit 2, before)
 # ----------------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("extra,names", [
-    (["--png", "--range", "foo=0,1"], ["--range", "'foo'", "liv, ocds, mean_db"]),
-    (["--png", "--range", "liv=10,0"], ["--range liv", "LO < HI"]),
-    (["--png", "--range", "liv=nan,1"], ["--range liv", "finite"]),
-    (["--png", "--db-range", "nan", "nan"], ["--db-range", "finite"]),
-    (["--png", "--db-range", "30", "10"], ["--db-range", "LO < HI"]),
-    (["--png", "--png-y", "99"], ["--png-y", "not a volume"]),
-    (["--png", "--png-y", "-1"], ["--png-y", ">= 0"]),
-    (["--range", "liv=0,10"], ["--range", "--png"]),
-    (["--png-y", "0"], ["--png-y", "--png"]),
-])
+@pytest.mark.parametrize(
+    "extra,names",
+    [
+        (["--png", "--range", "foo=0,1"], ["--range", "'foo'", "liv, ocds, mean_db"]),
+        (["--png", "--range", "liv=10,0"], ["--range liv", "LO < HI"]),
+        (["--png", "--range", "liv=nan,1"], ["--range liv", "finite"]),
+        (["--png", "--db-range", "nan", "nan"], ["--db-range", "finite"]),
+        (["--png", "--db-range", "30", "10"], ["--db-range", "LO < HI"]),
+        (["--png", "--png-y", "99"], ["--png-y", "not a volume"]),
+        (["--png", "--png-y", "-1"], ["--png-y", ">= 0"]),
+        (["--range", "liv=0,10"], ["--range", "--png"]),
+        (["--png-y", "0"], ["--png-y", "--png"]),
+    ],
+)
 def test_png_options_are_checked_before_the_work(tmp_path, capsys, seq, extra, names):
-    refused(capsys, tmp_path, ["maps", str(seq), "--out", str(tmp_path / "m.npz"), "--no-progress", *extra],
-            *names)
+    refused(capsys, tmp_path, ["maps", str(seq), "--out", str(tmp_path / "m.npz"), "--no-progress", *extra], *names)
 
 
 def test_png_y_outside_a_volume_is_refused(tmp_path, capsys):
     rng = np.random.default_rng(1)
     path = tmp_path / "vol.npy"
     np.save(path, (rng.standard_normal((8, 3, 4, 5)) + 1j).astype(np.complex64))  # 8 frames: OCDS delays have 2+ pairs
-    path.with_suffix(".json").write_text(json.dumps({
-        "axes": "TYZX", "pitch_um": {"z": 2.0, "x": 2.0, "y": 2.0}, "frame_times_s": [0.2 * i for i in range(8)]}))
-    refused(capsys, tmp_path, ["maps", str(path), "--out", str(tmp_path / "m.npz"), "--png", "--png-y", "3",
-                               "--no-progress"], "--png-y 3", "0..2")
+    path.with_suffix(".json").write_text(
+        json.dumps(
+            {"axes": "TYZX", "pitch_um": {"z": 2.0, "x": 2.0, "y": 2.0}, "frame_times_s": [0.2 * i for i in range(8)]}
+        )
+    )
+    refused(
+        capsys,
+        tmp_path,
+        ["maps", str(path), "--out", str(tmp_path / "m.npz"), "--png", "--png-y", "3", "--no-progress"],
+        "--png-y 3",
+        "0..2",
+    )
 
 
 def test_maps_and_pngs_appear_together(tmp_path, capsys, seq, monkeypatch):
@@ -113,8 +137,12 @@ def test_maps_and_pngs_appear_together(tmp_path, capsys, seq, monkeypatch):
     assert list(out.iterdir()) == []  # the .npz was left without its PNGs before
     monkeypatch.undo()
     assert main(["maps", str(seq), "--out", str(out / "m.npz"), "--png", "--no-progress"]) == 0  # no --force
-    assert {p.name for p in out.iterdir()} == {"m.npz", "m_liv_original.png", "m_ocds_original.png",
-                                               "m_mean_db_original.png"}
+    assert {p.name for p in out.iterdir()} == {
+        "m.npz",
+        "m_liv_original.png",
+        "m_ocds_original.png",
+        "m_mean_db_original.png",
+    }
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -144,12 +172,17 @@ def test_identical_samples_report_no_difference_testable(tmp_path, capsys):
 @pytest.mark.parametrize("name", ["a\\nb\\u0007", "../up", "a/b", "..", "a\\\\b"])
 def test_a_system_name_that_cannot_be_a_file_name_is_refused(tmp_path, capsys, name):
     text = SPHEROID.read_text(encoding="utf-8")
-    system = text[text.index("[[system]]"):text.index("[protocol]")]
+    system = text[text.index("[[system]]") : text.index("[protocol]")]
     two = system.replace('name = "840nm-high"', f'name = "{name}"') + system.replace("840nm-high", "second")
     path = tmp_path / "ph.toml"
     path.write_text(text.replace(system, two), encoding="utf-8")
-    refused(capsys, tmp_path, ["render", str(path), "--grid", "8x8", "--pitch-um", "2",
-                               "--out", str(tmp_path / "r.npz"), "--no-progress"], "system name", "--system")
+    refused(
+        capsys,
+        tmp_path,
+        ["render", str(path), "--grid", "8x8", "--pitch-um", "2", "--out", str(tmp_path / "r.npz"), "--no-progress"],
+        "system name",
+        "--system",
+    )
 
 
 def test_a_study_figure_name_that_cannot_be_a_file_name_is_refused(tmp_path, capsys):
@@ -177,15 +210,27 @@ def test_cache_or_out_that_is_a_file_is_refused_before_the_work(tmp_path, capsys
     study = write_tiny_study(tmp_path)
     a_file = tmp_path / "plain.txt"
     a_file.write_text("x")
-    refused(capsys, tmp_path, ["study", str(study), "--out", str(tmp_path / "o"), "--cache", str(a_file)],
-            "--cache", "plain.txt", "is a file")
+    refused(
+        capsys,
+        tmp_path,
+        ["study", str(study), "--out", str(tmp_path / "o"), "--cache", str(a_file)],
+        "--cache",
+        "plain.txt",
+        "is a file",
+    )
     refused(capsys, tmp_path, ["study", str(study), "--out", str(a_file)], "--out", "plain.txt", "not a directory")
     scene = tmp_path / "sw.toml"
     from _scenes import DIFFUSION_SWEEP_TOML
 
     scene.write_text(DIFFUSION_SWEEP_TOML.format(trials=16), encoding="utf-8")
-    refused(capsys, tmp_path, ["sweep", str(scene), "--out", str(tmp_path / "o"), "--cache", str(a_file)],
-            "--cache", "plain.txt", "is a file")
+    refused(
+        capsys,
+        tmp_path,
+        ["sweep", str(scene), "--out", str(tmp_path / "o"), "--cache", str(a_file)],
+        "--cache",
+        "plain.txt",
+        "is a file",
+    )
     refused(capsys, tmp_path, ["simulate", "example", "--out", str(tmp_path)], "--out")
 
 
@@ -198,5 +243,10 @@ def test_compare_names_the_mask_that_does_not_fit(tmp_path, capsys):
     write_maps(m, make_maps(np.random.default_rng(0), ["original", "axial=14"]))
     mask = tmp_path / "small-mask.npy"
     np.save(mask, np.ones((3, 3), bool))
-    refused(capsys, tmp_path, ["compare", f"A={m}", f"B={m}", "--mask", str(mask), "--mask", str(mask),
-                               "--out", str(tmp_path / "t.csv")], "--mask", "small-mask.npy")
+    refused(
+        capsys,
+        tmp_path,
+        ["compare", f"A={m}", f"B={m}", "--mask", str(mask), "--mask", str(mask), "--out", str(tmp_path / "t.csv")],
+        "--mask",
+        "small-mask.npy",
+    )

@@ -16,8 +16,9 @@ def test_accuracy_vs_time_notebook_runs(tmp_path, monkeypatch):
     monkeypatch.setenv("TORCHDOCT_QUICK", "1")
     monkeypatch.setenv("TORCHDOCT_BENCH_DIR", str(tmp_path / "no-bench"))
     nb = nbformat.read(NOTEBOOK, as_version=4)
-    nbclient.NotebookClient(nb, timeout=900, kernel_name="python3",
-                            resources={"metadata": {"path": str(tmp_path)}}).execute()
+    nbclient.NotebookClient(
+        nb, timeout=900, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
+    ).execute()
     assert (tmp_path / "tradeoffs.png").stat().st_size > 1000
     outputs = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []))
     assert "on the front" in outputs and "Error" not in outputs

@@ -39,8 +39,9 @@ sys.meta_path.insert(0, _Block())
 
 def _run(code: str, cwd: Path) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    return subprocess.run([sys.executable, "-c", BLOCK + code], capture_output=True, text=True, env=env, cwd=cwd,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-c", BLOCK + code], capture_output=True, text=True, env=env, cwd=cwd, timeout=300
+    )
 
 
 def _norm(name: str) -> str:
@@ -65,8 +66,10 @@ def _closure(requirements: list[str]) -> set[str]:
             seen.add((name, e))
             names.add(name)
             if name == "torchdoct":
-                todo += [(Requirement(r), "") for r in (PROJECT["dependencies"] if e == ""
-                                                         else PROJECT["optional-dependencies"][e])]
+                todo += [
+                    (Requirement(r), "")
+                    for r in (PROJECT["dependencies"] if e == "" else PROJECT["optional-dependencies"][e])
+                ]
                 continue
             try:
                 todo += [(Requirement(r), e) for r in (metadata.requires(req.name) or [])]
@@ -111,27 +114,66 @@ def signature_maps(tmp_path_factory):
 
     tmp = tmp_path_factory.mktemp("packaging")
     seq, maps = tmp / "mt.npz", tmp / "mt-maps.npz"
-    assert main(["render", "motion-types", "--grid", "24x24", "--pitch-um", "2", "--out", str(seq), "--threads", "1",
-                 "--no-progress", "--no-preview"]) == 0
-    assert main(["maps", str(seq), "--resolution", "original", "--resolution", "axial=14", "--resolution",
-                 "lateral=18", "--signature", "--out", str(maps), "--threads", "1", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "motion-types",
+                "--grid",
+                "24x24",
+                "--pitch-um",
+                "2",
+                "--out",
+                str(seq),
+                "--threads",
+                "1",
+                "--no-progress",
+                "--no-preview",
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "maps",
+                str(seq),
+                "--resolution",
+                "original",
+                "--resolution",
+                "axial=14",
+                "--resolution",
+                "lateral=18",
+                "--signature",
+                "--out",
+                str(maps),
+                "--threads",
+                "1",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     return maps
 
 
 def test_doct_classify_runs_on_the_base_install(signature_maps, tmp_path):
     """doct-classify with the shipped default model, every optional module unimportable: it classifies,
     imports no torch, and every third-party module it loads comes with the base dependencies."""
-    code = ("before = set(sys.modules)  # the interpreter's start-up (site's .pth hooks) is not doct-classify\n"
-            f"from classifier.cli import classify_main\n"
-            f"rc = classify_main([{str(signature_maps)!r}, '--out', 'out', '--threads', '1', '--json'])\n"
-            "import json\n"
-            "print(json.dumps({'rc': rc, 'modules': sorted({m.split('.')[0] for m in set(sys.modules) - before})}))\n")
+    code = (
+        "before = set(sys.modules)  # the interpreter's start-up (site's .pth hooks) is not doct-classify\n"
+        f"from classifier.cli import classify_main\n"
+        f"rc = classify_main([{str(signature_maps)!r}, '--out', 'out', '--threads', '1', '--json'])\n"
+        "import json\n"
+        "print(json.dumps({'rc': rc, 'modules': sorted({m.split('.')[0] for m in set(sys.modules) - before})}))\n"
+    )
     out = _run(code, tmp_path)
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout.strip().splitlines()[-1])
     assert report["rc"] == 0
     assert {"classes.tif", "probabilities.tif", "overlay.png", "summary.json"} <= {
-        p.name for p in (tmp_path / "out").iterdir()}
+        p.name for p in (tmp_path / "out").iterdir()
+    }
     assert "torch" not in report["modules"]
     dists = metadata.packages_distributions()
     third_party = {m for m in report["modules"] if m in dists and m not in ("torchdoct", "classifier")}

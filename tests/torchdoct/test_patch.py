@@ -30,7 +30,7 @@ def test_static_patch_has_the_mean_intensity_and_contrast_of_the_poisson_medium(
     expect = mean_intensity(0.055, 4.9, 3.8)
     assert abs(mean - expect) < Z_SE * se
     c2 = i / expect
-    m2, se2 = _mean_se(c2 ** 2)  # ⟨I²⟩/⟨I⟩² = 2 + 1/N_eff (physics.md §5.4)
+    m2, se2 = _mean_se(c2**2)  # ⟨I²⟩/⟨I⟩² = 2 + 1/N_eff (physics.md §5.4)
     assert abs(m2 - (2.0 + 1.0 / n_eff(0.055, 4.9, 3.8))) < Z_SE * se2
 
 
@@ -52,7 +52,9 @@ def test_flow_patch_moves_its_speckle_at_the_in_plane_velocity(flow_features):
         assert se < 0.25 * abs(expect)
 
 
-@pytest.mark.parametrize("motion, kwargs", [("ballistic", {"speed_um_s": 0.12}), ("diffusion", {"diffusion_um2_s": 0.03})])
+@pytest.mark.parametrize(
+    "motion, kwargs", [("ballistic", {"speed_um_s": 0.12}), ("diffusion", {"diffusion_um2_s": 0.03})]
+)
 def test_direction_symmetric_patches_stay_centred(motion, kwargs):
     e = simulate_patch(motion, trials=24, seed=2, **kwargs)
     _, f = speckle_motion(e, PITCH, DT, ("xc_velocity_z", "xc_velocity_x"))
@@ -69,13 +71,28 @@ def test_a_trial_is_the_same_whatever_the_number_of_trials():
 
 
 def test_volume_patch_has_its_axes_and_static_share():
-    e = simulate_patch("diffusion", trials=1, seed=0, shape=(3, 4, 5), pitch_um=(2.0, 2.0, 2.0), n_frames=3,
-                       diffusion_um2_s=0.01, static_fraction=0.5, snr_db=20.0)
+    e = simulate_patch(
+        "diffusion",
+        trials=1,
+        seed=0,
+        shape=(3, 4, 5),
+        pitch_um=(2.0, 2.0, 2.0),
+        n_frames=3,
+        diffusion_um2_s=0.01,
+        static_fraction=0.5,
+        snr_db=20.0,
+    )
     assert e.shape == (1, 3, 3, 4, 5) and bool(torch.isfinite(e).all())
 
 
-@pytest.mark.parametrize("kwargs, match", [({"motion": "swim"}, "motion"), ({"static_fraction": 1.0}, "static"),
-                                           ({"speed_um_s": 1e4, "motion": "ballistic"}, "expected scatterers")])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"motion": "swim"}, "motion"),
+        ({"static_fraction": 1.0}, "static"),
+        ({"speed_um_s": 1e4, "motion": "ballistic"}, "expected scatterers"),
+    ],
+)
 def test_bad_patch_requests_are_refused(kwargs, match):
     args = {"motion": "flow", "trials": 1, "seed": 0}
     args.update(kwargs)

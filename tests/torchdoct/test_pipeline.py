@@ -22,16 +22,22 @@ HIGH = {"name": "high", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "ax
 
 
 def _phantom(systems, grid, n_frames=6, density=0.05):
-    analysis = {"metrics": ["liv", "ocds"], "ocds_delay_range_s": [0.2048, 0.6144]} if n_frames >= 4 else {
-        "metrics": ["liv"]}
-    return phantom_from_dict({
-        "name": "pipe", "system": systems, "grid": grid,
-        "protocol": {"n_frames": n_frames, "frame_interval_s": 0.2048},
-        "background": [{"density_per_um3": density,
-                        "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.02}]}],
-        "analysis": analysis,
-        "simulation": {"seed": 11, "truncation_tolerance": 1e-6},
-    })
+    analysis = (
+        {"metrics": ["liv", "ocds"], "ocds_delay_range_s": [0.2048, 0.6144]} if n_frames >= 4 else {"metrics": ["liv"]}
+    )
+    return phantom_from_dict(
+        {
+            "name": "pipe",
+            "system": systems,
+            "grid": grid,
+            "protocol": {"n_frames": n_frames, "frame_interval_s": 0.2048},
+            "background": [
+                {"density_per_um3": density, "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.02}]}
+            ],
+            "analysis": analysis,
+            "simulation": {"seed": 11, "truncation_tolerance": 1e-6},
+        }
+    )
 
 
 def _rel_err(a: np.ndarray, b: np.ndarray) -> float:
@@ -43,8 +49,9 @@ def test_axial_reduction_of_a_render_equals_a_direct_render():
     ph = _phantom([HIGH, ax14], {"n_x": 16, "n_z": 96, "pitch_x_um": 2.0, "pitch_z_um": 1.0})
     res = render(ph, dtype="float64")
     high, direct = res.data[0].numpy(), res.data[1].numpy()
-    red = reduce_resolution(high, pitch_um=ph.grid.pitch_um, system=ph.scene.systems[0],
-                            axial_resolution_um=14.0, normalization="peak")
+    red = reduce_resolution(
+        high, pitch_um=ph.grid.pitch_um, system=ph.scene.systems[0], axial_resolution_um=14.0, normalization="peak"
+    )
     inner = slice(34, 62)  # 34 µm from the depth edges: beyond the filter's reach
     assert _rel_err(red[:, inner], direct[:, inner]) < 1e-4
     # and the untouched high-resolution field is far from it (the test can fail)
@@ -53,14 +60,19 @@ def test_axial_reduction_of_a_render_equals_a_direct_render():
 
 def test_lateral_reduction_of_a_rendered_volume_equals_a_direct_render():
     lat18 = dict(HIGH, name="lat18", lateral_resolution_um=18.0)
-    grid = {"kind": "volume", "n_x": 40, "n_y": 40, "n_z": 6, "pitch_x_um": 2.0, "pitch_y_um": 2.0,
-            "pitch_z_um": 2.0}
+    grid = {"kind": "volume", "n_x": 40, "n_y": 40, "n_z": 6, "pitch_x_um": 2.0, "pitch_y_um": 2.0, "pitch_z_um": 2.0}
     ph = _phantom([HIGH, lat18], grid, n_frames=2, density=0.01)
     ph = phantom_from_dict({**ph.to_dict(), "simulation": {"seed": 11, "truncation_tolerance": 1e-5}})
     res = render(ph, dtype="float64")
     high, direct = res.data[0].numpy(), res.data[1].numpy()
-    red = reduce_resolution(high, pitch_um=ph.grid.pitch_um, system=ph.scene.systems[0], axes="TYZX",
-                            lateral_resolution_um=18.0, normalization="peak")
+    red = reduce_resolution(
+        high,
+        pitch_um=ph.grid.pitch_um,
+        system=ph.scene.systems[0],
+        axes="TYZX",
+        lateral_resolution_um=18.0,
+        normalization="peak",
+    )
     inner = slice(15, 25)  # 30 µm (5 filter sigmas) from the lateral edges
     got, want = red[:, inner, :, inner], direct[:, inner, :, inner]
     assert _rel_err(got, want) < 1e-3
@@ -78,22 +90,67 @@ def test_cli_render_maps_compare(tmp_path, capsys):
     lines = ['name = "pipe"']
     for s in (HIGH, ax14):
         lines += ["[[system]]"] + [f"{k} = {v!r}".replace("'", '"') for k, v in s.items()]
-    lines += ["[protocol]", "n_frames = 8", "frame_interval_s = 0.2048",
-              "[grid]", "n_x = 12", "n_z = 120", "pitch_x_um = 2.0", "pitch_z_um = 1.0",
-              "[[background]]", "density_per_um3 = 0.05",
-              "[[background.motion]]", 'kind = "diffusion"', "diffusion_um2_per_s = 0.02",
-              "[analysis]", 'metrics = ["liv", "ocds"]', "ocds_delay_range_s = [0.2048, 0.6144]",
-              "[simulation]", "truncation_tolerance = 1e-6"]
+    lines += [
+        "[protocol]",
+        "n_frames = 8",
+        "frame_interval_s = 0.2048",
+        "[grid]",
+        "n_x = 12",
+        "n_z = 120",
+        "pitch_x_um = 2.0",
+        "pitch_z_um = 1.0",
+        "[[background]]",
+        "density_per_um3 = 0.05",
+        "[[background.motion]]",
+        'kind = "diffusion"',
+        "diffusion_um2_per_s = 0.02",
+        "[analysis]",
+        'metrics = ["liv", "ocds"]',
+        "ocds_delay_range_s = [0.2048, 0.6144]",
+        "[simulation]",
+        "truncation_tolerance = 1e-6",
+    ]
     src.write_text("\n".join(lines) + "\n", encoding="utf-8")
     maps_files = []
     for seed in (1, 2, 3):
         seq = tmp_path / f"s{seed}.npz"
-        assert main(["render", str(src), "--out", str(seq), "--seed", str(seed), "--no-progress",
-                     "--no-preview", "--dtype", "float64"]) == 0
+        assert (
+            main(
+                [
+                    "render",
+                    str(src),
+                    "--out",
+                    str(seq),
+                    "--seed",
+                    str(seed),
+                    "--no-progress",
+                    "--no-preview",
+                    "--dtype",
+                    "float64",
+                ]
+            )
+            == 0
+        )
         out = tmp_path / f"s{seed}-maps.npz"
-        assert main(["maps", str(tmp_path / f"s{seed}-high.npz"), "--resolution", "original",
-                     "--resolution", "axial=14", "--ocds-delay-range-s", "0.2048", "0.6144",
-                     "--out", str(out), "--no-progress"]) == 0
+        assert (
+            main(
+                [
+                    "maps",
+                    str(tmp_path / f"s{seed}-high.npz"),
+                    "--resolution",
+                    "original",
+                    "--resolution",
+                    "axial=14",
+                    "--ocds-delay-range-s",
+                    "0.2048",
+                    "0.6144",
+                    "--out",
+                    str(out),
+                    "--no-progress",
+                ]
+            )
+            == 0
+        )
         maps_files.append(out)
     m = read_maps(maps_files[0])
     direct = read_sequence(tmp_path / "s1-ax14.npz")

@@ -49,8 +49,21 @@ def test_maps_of_a_sidecar_with_single_precision_frame_times_equal_those_of_exac
     single.with_suffix(".json").write_text(json.dumps(meta))
     out = {}
     for name, path in (("exact", seq), ("single", single)):
-        assert main(["maps", str(path), "--ocds-delay-range-s", "0.2048", "1.2288", "--no-progress",
-                     "--out", str(tmp_path / f"{name}-maps.npz")]) == 0
+        assert (
+            main(
+                [
+                    "maps",
+                    str(path),
+                    "--ocds-delay-range-s",
+                    "0.2048",
+                    "1.2288",
+                    "--no-progress",
+                    "--out",
+                    str(tmp_path / f"{name}-maps.npz"),
+                ]
+            )
+            == 0
+        )
         out[name] = read_maps(tmp_path / f"{name}-maps.npz")
     assert out["single"].channels == out["exact"].channels
     np.testing.assert_allclose(out["single"].maps, out["exact"].maps, rtol=1e-4, atol=1e-6)
@@ -65,12 +78,12 @@ def test_timestamps_far_from_zero_in_double_precision_keep_their_distinct_delays
 
 
 def _scaled(scene, reflectivity):
-    return scene.replace(populations=tuple(p.__class__(**{**p.__dict__, "reflectivity": reflectivity})
-                                           for p in scene.populations))
+    return scene.replace(
+        populations=tuple(p.__class__(**{**p.__dict__, "reflectivity": reflectivity}) for p in scene.populations)
+    )
 
 
-def test_a_reflectivity_whose_intensity_underflows_float32_is_refused_naming_it_and_float64_gives_its_liv(
-        small_scene):
+def test_a_reflectivity_whose_intensity_underflows_float32_is_refused_naming_it_and_float64_gives_its_liv(small_scene):
     tiny = _scaled(small_scene, 1e-30)
     with pytest.raises(ValueError, match=r"population\[0\]\.reflectivity = 1e-30.*float32.*dtype='float64'") as info:
         td.simulate(tiny, trials=64, seed=1, dtype="float32")
@@ -83,7 +96,9 @@ def test_a_reflectivity_whose_intensity_underflows_float32_is_refused_naming_it_
 
 
 def test_a_reflectivity_beyond_float64_is_refused_in_float64_without_offering_float64(small_scene):
-    with pytest.raises(ValueError, match=r"population\[0\]\.reflectivity = 1e-160.*outside what float64 computes") as info:
+    with pytest.raises(
+        ValueError, match=r"population\[0\]\.reflectivity = 1e-160.*outside what float64 computes"
+    ) as info:
         td.simulate(_scaled(small_scene, 1e-160), trials=64, seed=1, dtype="float64")
     assert "simulate in float64" not in str(info.value) and "relative to the brightest" in str(info.value)
 
@@ -95,8 +110,11 @@ def _moving(scene, speed):
 
 def test_a_motion_below_float32_resolution_is_refused_naming_it_and_runs_in_float64(small_scene):
     slow = _moving(small_scene, 1e-6)
-    with pytest.raises(ValueError, match=r"population\[0\]\.motion\[0\]\.speed_um_per_s.*float32 spacings.*"
-                                         r"rounding noise.*--dtype float64"):
+    with pytest.raises(
+        ValueError,
+        match=r"population\[0\]\.motion\[0\]\.speed_um_per_s.*float32 spacings.*"
+        r"rounding noise.*--dtype float64",
+    ):
         td.simulate(slow, trials=64, seed=1, dtype="float32")
     ocds = td.simulate(slow, trials=64, seed=1, dtype="float64").metrics()["ocds"]
     assert ocds.abs().max() < 1e-6  # float64 resolves it: this slow a motion barely decorrelates
@@ -108,12 +126,14 @@ def test_the_slowest_motion_of_the_training_prior_runs_in_float32(small_scene):
     from classifier.prior import Prior
 
     slowest = Prior().speed_um_per_s[0]
-    assert torch.isfinite(td.simulate(_moving(small_scene, slowest), trials=64, seed=1,
-                                      dtype="float32").metrics()["ocds"]).all()
+    assert torch.isfinite(
+        td.simulate(_moving(small_scene, slowest), trials=64, seed=1, dtype="float32").metrics()["ocds"]
+    ).all()
 
 
 def test_maps_of_a_field_whose_intensity_underflows_name_the_cause_and_complex128_gives_the_same_liv(
-        seq, tmp_path, capsys):
+    seq, tmp_path, capsys
+):
     from _refusal import refused
 
     from torchdoct.cli import main
@@ -121,17 +141,29 @@ def test_maps_of_a_field_whose_intensity_underflows_name_the_cause_and_complex12
     field = np.load(seq)
     meta = seq.with_suffix(".json").read_text()
     runs = {}
-    for name, data in (("tiny", (field * 1e-30).astype(np.complex64)),
-                       ("tiny128", field.astype(np.complex128) * 1e-30)):
+    for name, data in (
+        ("tiny", (field * 1e-30).astype(np.complex64)),
+        ("tiny128", field.astype(np.complex128) * 1e-30),
+    ):
         path = tmp_path / f"{name}.npy"
         np.save(path, data)
         path.with_suffix(".json").write_text(meta)
         runs[name] = path
-    refused(capsys, tmp_path, ["maps", str(runs["tiny"]), "--metrics", "liv", "--out", str(tmp_path / "t.npz")],
-            "tiny.npy", "underflows float32", "complex128", "multiply it by 1e+30",
-            absent=("no finite nonzero", "check the file"))
+    refused(
+        capsys,
+        tmp_path,
+        ["maps", str(runs["tiny"]), "--metrics", "liv", "--out", str(tmp_path / "t.npz")],
+        "tiny.npy",
+        "underflows float32",
+        "complex128",
+        "multiply it by 1e+30",
+        absent=("no finite nonzero", "check the file"),
+    )
     for name, path in (("ref", seq), ("tiny128", runs["tiny128"])):
-        assert main(["maps", str(path), "--metrics", "liv", "--no-progress", "--out", str(tmp_path / f"{name}-m.npz")]) == 0
+        assert (
+            main(["maps", str(path), "--metrics", "liv", "--no-progress", "--out", str(tmp_path / f"{name}-m.npz")])
+            == 0
+        )
     ref, got = read_maps(tmp_path / "ref-m.npz"), read_maps(tmp_path / "tiny128-m.npz")
     np.testing.assert_allclose(got.maps, ref.maps, rtol=1e-4, atol=1e-4)
 
@@ -145,12 +177,20 @@ def test_render_of_a_phantom_whose_image_would_underflow_float32_is_refused_nami
 
     text = shipped_files("torchdoct", "data/phantoms")["spheroid"].read_text()
     text = re.sub(r"reflectivity = [0-9.]+", "reflectivity = 1e-30", text)
-    text = re.sub(r"density_per_um3 = ([0-9.e-]+)\n(?!reflectivity)", r"density_per_um3 = \1\nreflectivity = 1e-30\n", text)
+    text = re.sub(
+        r"density_per_um3 = ([0-9.e-]+)\n(?!reflectivity)", r"density_per_um3 = \1\nreflectivity = 1e-30\n", text
+    )
     path = tmp_path / "dim.toml"
     path.write_text(text)
-    refused(capsys, tmp_path, ["render", str(path), "--grid", "16x16", "--pitch-um", "2", "--no-progress",
-                               "--out", str(tmp_path / "r.npz")], "dim.toml", "reflectivity = 1e-30", "float32",
-            "--dtype float64")
+    refused(
+        capsys,
+        tmp_path,
+        ["render", str(path), "--grid", "16x16", "--pitch-um", "2", "--no-progress", "--out", str(tmp_path / "r.npz")],
+        "dim.toml",
+        "reflectivity = 1e-30",
+        "float32",
+        "--dtype float64",
+    )
 
 
 def test_a_sweep_with_a_cell_below_float32_resolution_is_refused_before_any_cell_runs(tmp_path, capsys):
@@ -161,5 +201,13 @@ def test_a_sweep_with_a_cell_below_float32_resolution_is_refused_before_any_cell
     assert "1e-14" in text
     path = tmp_path / "slow.toml"
     path.write_text(text)
-    refused(capsys, tmp_path, ["sweep", str(path), "--out", str(tmp_path / "out"), "--no-progress"], "slow.toml",
-            "cell 0", "diffusion_um2_per_s", "float32 spacings", "--dtype float64")
+    refused(
+        capsys,
+        tmp_path,
+        ["sweep", str(path), "--out", str(tmp_path / "out"), "--no-progress"],
+        "slow.toml",
+        "cell 0",
+        "diffusion_um2_per_s",
+        "float32 spacings",
+        "--dtype float64",
+    )

@@ -56,8 +56,24 @@ def test_no_progress_leaves_the_environment_as_it_was(monkeypatch, capsys):
 def _simulate(extra_args, extra_env):
     env = {k: v for k, v in os.environ.items() if not k.startswith("TQDM_")}
     env.update(TQDM_DELAY="0", PYTHONPATH=str(REPO), **extra_env)
-    r = subprocess.run([sys.executable, "-m", "torchdoct.cli", "simulate", "example", "--trials", "256",
-                        "--threads", "1", *extra_args], capture_output=True, text=True, env=env, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torchdoct.cli",
+            "simulate",
+            "example",
+            "--trials",
+            "256",
+            "--threads",
+            "1",
+            *extra_args,
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
     return r.stderr
 

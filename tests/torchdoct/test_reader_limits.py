@@ -24,9 +24,18 @@ from torchdoct.measured.io import read_sequence
 h5py = pytest.importorskip("h5py")
 tifffile = pytest.importorskip("tifffile")
 
-META = {"axes": "TZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": [0.2048 * i for i in range(8)],
-        "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
-                   "refractive_index": 1.0}}
+META = {
+    "axes": "TZX",
+    "pitch_um": {"z": 2.0, "x": 2.0},
+    "frame_times_s": [0.2048 * i for i in range(8)],
+    "system": {
+        "name": "s",
+        "wavelength_um": 0.84,
+        "lateral_resolution_um": 4.9,
+        "axial_resolution_um": 3.8,
+        "refractive_index": 1.0,
+    },
+}
 
 
 pytestmark = pytest.mark.usefixtures("default_input_limit")  # tests/torchdoct/conftest.py
@@ -83,12 +92,15 @@ def _h5_virtual(tmp_path: Path) -> tuple[Path, Path]:
     return path, other
 
 
-@pytest.mark.parametrize("make, what", [(_h5_external_storage, "external file"), (_h5_external_link, "external link"),
-                                        (_h5_virtual, "virtual dataset")])
+@pytest.mark.parametrize(
+    "make, what",
+    [(_h5_external_storage, "external file"), (_h5_external_link, "external link"), (_h5_virtual, "virtual dataset")],
+)
 def test_hdf5_pointing_outside_the_file_is_refused_unless_allowed(outdir, capsys, make, what):
     path, target = make(outdir)
-    line = refused(capsys, outdir, _maps_argv(outdir, path), path.name, "/data", target.name, what,
-                   "--allow-external-hdf5")
+    line = refused(
+        capsys, outdir, _maps_argv(outdir, path), path.name, "/data", target.name, what, "--allow-external-hdf5"
+    )
     assert "\n" not in line
     with pytest.raises(ValueError, match="allow_external_hdf5=True"):
         read_sequence(path)
@@ -113,8 +125,7 @@ def test_virtual_dataset_inside_the_file_is_read(tmp_path):
 # ----------------------------------------------------------------------------------------------------------
 def _npy_bytes_declaring(shape: tuple[int, ...], dtype=np.complex64, payload: bytes = b"") -> bytes:
     buf = io.BytesIO()
-    np.lib.format.write_array_header_1_0(buf, {"descr": np.dtype(dtype).str, "fortran_order": False,
-                                               "shape": shape})
+    np.lib.format.write_array_header_1_0(buf, {"descr": np.dtype(dtype).str, "fortran_order": False, "shape": shape})
     return buf.getvalue() + payload
 
 
@@ -124,8 +135,7 @@ def test_tiny_npz_declaring_a_tebibyte_is_refused(outdir, capsys):
         zf.writestr("data.npy", _npy_bytes_declaring((1200, 1 << 14, 8000)) + bytes(1000))
     _sidecar(path)
     assert path.stat().st_size < 1300
-    line = refused(capsys, outdir, _maps_argv(outdir, path), "liar.npz", "TiB", "--max-input-gb",
-                   guards.MAX_INPUT_ENV)
+    line = refused(capsys, outdir, _maps_argv(outdir, path), "liar.npz", "TiB", "--max-input-gb", guards.MAX_INPUT_ENV)
     assert "1.14 TiB" in line  # 1200 * 16384 * 8000 * 8 bytes = 1.258e15
 
 
@@ -158,20 +168,23 @@ def test_npy_and_hdf5_declaring_huge_arrays_are_refused(outdir, capsys):
     refused(capsys, outdir, _maps_argv(outdir, npy), "huge.npy", "512 GiB", "--max-input-gb")
     h5 = outdir / "huge.h5"
     with h5py.File(h5, "w") as fh:  # chunked and compressed, never written: a few KB on disk
-        fh.create_dataset("data", shape=(4096, 4096, 4096), dtype=np.complex64, chunks=(1, 64, 64),
-                          compression="gzip")
+        fh.create_dataset("data", shape=(4096, 4096, 4096), dtype=np.complex64, chunks=(1, 64, 64), compression="gzip")
         fh.attrs["torchdoct"] = json.dumps(META)
     assert h5.stat().st_size < 100_000
     refused(capsys, outdir, _maps_argv(outdir, h5), "huge.h5", "data", "512 GiB", "--max-input-gb")
 
 
-@pytest.mark.parametrize("extra, names", [
-    ((), ("frame_times_s", "T = 3 frames")),
-    (("--axes", "TYZX"), ("axes", "--axes")),
-    (("--block-raster", "2:2:4"), ("block raster 2:2:4", "[16, Z, X]", "--block-raster")),
-])
+@pytest.mark.parametrize(
+    "extra, names",
+    [
+        ((), ("frame_times_s", "T = 3 frames")),
+        (("--axes", "TYZX"), ("axes", "--axes")),
+        (("--block-raster", "2:2:4"), ("block raster 2:2:4", "[16, Z, X]", "--block-raster")),
+    ],
+)
 def test_metadata_that_does_not_fit_the_declared_shape_is_refused_before_a_sample_is_read(
-        outdir, capsys, monkeypatch, extra, names):
+    outdir, capsys, monkeypatch, extra, names
+):
     from torchdoct.measured import io as mio
 
     def touched(*args, **kwargs):
@@ -195,8 +208,16 @@ def test_tiff_over_the_limit_is_refused(outdir, capsys, monkeypatch):
     path = outdir / "stack.tif"
     tifffile.imwrite(path, np.zeros((64, 128, 128), np.float32), compression="zlib")  # 4 MiB, small on disk
     monkeypatch.setenv(guards.MAX_INPUT_ENV, "0.001")
-    refused(capsys, outdir, _maps_argv(outdir, path, "--pitch-um", "z=2,x=2", "--frame-interval-s", "0.2"),
-            "stack.tif", "64 pages", "4 MiB", "--max-input-gb", absent=("not a readable",))  # a size, not damage
+    refused(
+        capsys,
+        outdir,
+        _maps_argv(outdir, path, "--pitch-um", "z=2,x=2", "--frame-interval-s", "0.2"),
+        "stack.tif",
+        "64 pages",
+        "4 MiB",
+        "--max-input-gb",
+        absent=("not a readable",),
+    )  # a size, not damage
 
 
 def test_maps_file_over_the_limit_is_refused_in_compare(tmp_path, capsys):
@@ -270,8 +291,7 @@ def test_nan_samples_give_a_note_and_masked_signature(outdir, capsys):
     a[3, 2, 1] = np.nan
     a[5, 2, 1] = np.inf
     np.save(path, a)
-    assert main(_maps_argv(outdir, path, "--resolution", "original", "--resolution", "lateral=18",
-                           "--signature")) == 0
+    assert main(_maps_argv(outdir, path, "--resolution", "original", "--resolution", "lateral=18", "--signature")) == 0
     out = capsys.readouterr().out
     assert "note: nan.npy: 2 samples are NaN or infinite, masked" in out and "(pixels: 1 at original" in out
     from torchdoct.measured.io import read_maps
@@ -300,8 +320,14 @@ def test_tiff_pages_of_two_shapes_are_refused(outdir, capsys):
     with tifffile.TiffWriter(path) as tw:
         for k in range(4):
             tw.write(np.ones((6, 5) if k < 2 else (6, 4), np.float32))
-    refused(capsys, outdir, _maps_argv(outdir, path, "--pitch-um", "z=2,x=2", "--frame-interval-s", "0.2"),
-            "mixed.tif", "page 0 is [6, 5]", "page 2 is [6, 4]")
+    refused(
+        capsys,
+        outdir,
+        _maps_argv(outdir, path, "--pitch-um", "z=2,x=2", "--frame-interval-s", "0.2"),
+        "mixed.tif",
+        "page 0 is [6, 5]",
+        "page 2 is [6, 4]",
+    )
 
 
 def test_extended_precision_is_refused_naming_the_fix(outdir, capsys):
@@ -339,11 +365,14 @@ def test_unreadable_input_is_a_system_refusal(outdir, capsys, monkeypatch):
 # ----------------------------------------------------------------------------------------------------------
 # 4. a target resolution the pixel grid cannot hold
 # ----------------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("pitch, res, names", [
-    ("z=2,x=20", "lateral=18", ["lateral resolution of 18 µm", "x pitch of 20 µm", "lateral=40"]),
-    ("z=10,x=2", "axial=14", ["axial resolution of 14 µm", "z pitch of 10 µm", "axial=20"]),
-    ("z=2,x=20", "lateral=0.05", ["lateral resolution of 0.05 µm", "lateral=40"]),
-])
+@pytest.mark.parametrize(
+    "pitch, res, names",
+    [
+        ("z=2,x=20", "lateral=18", ["lateral resolution of 18 µm", "x pitch of 20 µm", "lateral=40"]),
+        ("z=10,x=2", "axial=14", ["axial resolution of 14 µm", "z pitch of 10 µm", "axial=20"]),
+        ("z=2,x=20", "lateral=0.05", ["lateral resolution of 0.05 µm", "lateral=40"]),
+    ],
+)
 def test_resolution_finer_than_the_pitch_allows_is_refused(outdir, capsys, pitch, res, names):
     path = _sidecar(outdir / "coarse.npy")
     np.save(path, _field())
@@ -354,8 +383,12 @@ def test_resolution_finer_than_the_pitch_allows_is_refused(outdir, capsys, pitch
     from torchdoct.measured.maps import compute_maps
 
     with pytest.raises(ValueError, match="smallest"):
-        compute_maps(read_sequence(path, pitch_um=pitch, system={"lateral_resolution_um": 0.04}
-                                   if res == "lateral=0.05" else None), [res])
+        compute_maps(
+            read_sequence(
+                path, pitch_um=pitch, system={"lateral_resolution_um": 0.04} if res == "lateral=0.05" else None
+            ),
+            [res],
+        )
 
 
 def test_resolution_of_two_pixels_is_accepted(outdir):
@@ -382,9 +415,14 @@ def test_maps_file_over_the_limit_is_refused_in_doct_classify(tmp_path, capsys):
 def test_mask_over_the_limit_is_refused(tmp_path, capsys, monkeypatch, suffix):
     from torchdoct.measured.io import Maps, write_maps
 
-    maps = Maps(maps=np.ones((1, 6, 5), np.float32), channels=("liv@original",),
-                meta={"channels": [{"name": "liv@original", "metric": "liv", "unit": "dB^2",
-                                    "resolution": "original"}], "axes": "CZX"})
+    maps = Maps(
+        maps=np.ones((1, 6, 5), np.float32),
+        channels=("liv@original",),
+        meta={
+            "channels": [{"name": "liv@original", "metric": "liv", "unit": "dB^2", "resolution": "original"}],
+            "axes": "CZX",
+        },
+    )
     write_maps(tmp_path / "a.npz", maps)
     mask = np.ones((64, 64), bool)
     path = tmp_path / f"mask{suffix}"
@@ -394,9 +432,15 @@ def test_mask_over_the_limit_is_refused(tmp_path, capsys, monkeypatch, suffix):
         np.savez_compressed(path, mask=mask)
     else:
         tifffile.imwrite(path, mask.astype(np.uint8))
-    monkeypatch.setenv(guards.MAX_INPUT_ENV, str(1000 / 2 ** 30))  # 1000 bytes
-    line = refused(capsys, tmp_path, ["compare", f"A={tmp_path / 'a.npz'}", "--mask", str(path)],
-                   f"mask mask{suffix}", "4 KiB", "--max-input-gb")
+    monkeypatch.setenv(guards.MAX_INPUT_ENV, str(1000 / 2**30))  # 1000 bytes
+    line = refused(
+        capsys,
+        tmp_path,
+        ["compare", f"A={tmp_path / 'a.npz'}", "--mask", str(path)],
+        f"mask mask{suffix}",
+        "4 KiB",
+        "--max-input-gb",
+    )
     assert "mask mask mask" not in line
 
 
@@ -415,8 +459,14 @@ def test_unreadable_hdf5_or_tiff_is_a_system_refusal(outdir, capsys, monkeypatch
         return real_open(file, *a, **k)
 
     monkeypatch.setattr(builtins, "open", guarded)
-    refused(capsys, outdir, _maps_argv(outdir, path, "--pitch-um", "z=2,x=2", "--frame-interval-s", "0.2"),
-            f"locked{suffix}", "Permission denied", code=1)
+    refused(
+        capsys,
+        outdir,
+        _maps_argv(outdir, path, "--pitch-um", "z=2,x=2", "--frame-interval-s", "0.2"),
+        f"locked{suffix}",
+        "Permission denied",
+        code=1,
+    )
 
 
 def test_unreadable_maps_tiff_is_a_system_refusal(tmp_path, capsys, monkeypatch):
@@ -459,8 +509,13 @@ density_per_um3 = 0.05
 """
 
 
-@pytest.mark.parametrize("shape,dtype,names", [((1 << 18, 1 << 18), np.int64, ("(262144, 262144)", "does not match")),
-                                               ((32, 32), np.float64, ("float64", "not integer"))])
+@pytest.mark.parametrize(
+    "shape,dtype,names",
+    [
+        ((1 << 18, 1 << 18), np.int64, ("(262144, 262144)", "does not match")),
+        ((32, 32), np.float64, ("float64", "not integer")),
+    ],
+)
 def test_a_label_image_is_judged_by_its_header_before_a_byte_of_it_is_read(tmp_path, monkeypatch, shape, dtype, names):
     import torchdoct as td
     from torchdoct.image import phantom as phantom_module

@@ -29,9 +29,15 @@ SYSTEM = {"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, 
 
 
 def _phantom(grid, regions=(), background=None, n_frames=8, noise=None, **extra):
-    d = {"name": "t", "system": [SYSTEM], "protocol": {"n_frames": n_frames, "frame_interval_s": 0.2048},
-         "grid": grid, "analysis": {"metrics": ["liv", "ocds"], "ocds_delay_range_s": [0.2048, 0.6144]},
-         "simulation": {"seed": 3}, **extra}
+    d = {
+        "name": "t",
+        "system": [SYSTEM],
+        "protocol": {"n_frames": n_frames, "frame_interval_s": 0.2048},
+        "grid": grid,
+        "analysis": {"metrics": ["liv", "ocds"], "ocds_delay_range_s": [0.2048, 0.6144]},
+        "simulation": {"seed": 3},
+        **extra,
+    }
     if regions:
         d["region"] = list(regions)
     if background is not None:
@@ -57,22 +63,30 @@ def test_shipped_phantoms_load_and_round_trip():
         assert again.scene == ph.scene and again.grid == ph.grid and again.regions == ph.regions
 
 
-@pytest.mark.parametrize("change, match", [
-    (lambda d: d["region"][0].update(colour=1), r"region\[0\]: unknown key"),
-    (lambda d: d["region"][0].pop("shape"), r"region\[0\]: missing key 'shape'"),
-    (lambda d: d["region"][0].update(shape="cube"), r"region\[0\]\.shape"),
-    (lambda d: d["region"][0].update(inner_radius_um=50.0), r"region\[0\]\.inner_radius_um"),
-    (lambda d: d["region"][0].update(density_per_um3=-1.0), r"region\[0\]\.density_per_um3"),
-    (lambda d: d["region"][0].update(density_per_um3=float("nan")), r"region\[0\]\.density_per_um3"),
-    (lambda d: d["region"][0].update(motion=[{"kind": "swim"}]), r"region\[0\]\.motion\[0\]\.kind"),
-    (lambda d: d["grid"].update(pitch_x_um=0.0), r"grid\.pitch_x_um"),
-    (lambda d: d["grid"].update(kind="volume"), r"grid.*n_y"),
-    (lambda d: d.update(population=[{"density_per_um3": 0.1}]), r"population.*\[\[region\]\]"),
-    (lambda d: d["region"].append(dict(d["region"][0])), r"duplicate region name"),
-])
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (lambda d: d["region"][0].update(colour=1), r"region\[0\]: unknown key"),
+        (lambda d: d["region"][0].pop("shape"), r"region\[0\]: missing key 'shape'"),
+        (lambda d: d["region"][0].update(shape="cube"), r"region\[0\]\.shape"),
+        (lambda d: d["region"][0].update(inner_radius_um=50.0), r"region\[0\]\.inner_radius_um"),
+        (lambda d: d["region"][0].update(density_per_um3=-1.0), r"region\[0\]\.density_per_um3"),
+        (lambda d: d["region"][0].update(density_per_um3=float("nan")), r"region\[0\]\.density_per_um3"),
+        (lambda d: d["region"][0].update(motion=[{"kind": "swim"}]), r"region\[0\]\.motion\[0\]\.kind"),
+        (lambda d: d["grid"].update(pitch_x_um=0.0), r"grid\.pitch_x_um"),
+        (lambda d: d["grid"].update(kind="volume"), r"grid.*n_y"),
+        (lambda d: d.update(population=[{"density_per_um3": 0.1}]), r"population.*\[\[region\]\]"),
+        (lambda d: d["region"].append(dict(d["region"][0])), r"duplicate region name"),
+    ],
+)
 def test_bad_phantoms_name_the_key(change, match):
-    d = {"system": [SYSTEM], "protocol": {"n_frames": 4, "frame_interval_s": 0.2}, "grid": dict(SMALL_GRID),
-         "analysis": {"metrics": ["liv"]}, "region": [{"name": "ball", "shape": "sphere", "radius_um": 20.0, "density_per_um3": 0.05}]}
+    d = {
+        "system": [SYSTEM],
+        "protocol": {"n_frames": 4, "frame_interval_s": 0.2},
+        "grid": dict(SMALL_GRID),
+        "analysis": {"metrics": ["liv"]},
+        "region": [{"name": "ball", "shape": "sphere", "radius_um": 20.0, "density_per_um3": 0.05}],
+    }
     change(d)
     with pytest.raises((SceneError, TypeError), match=match):
         phantom_from_dict(d)
@@ -82,10 +96,22 @@ def test_label_image_region(tmp_path):
     img = np.zeros((20, 24), dtype=np.int16)
     img[5:12, 3:9] = 7
     np.save(tmp_path / "lab.npy", img)
-    d = {"system": [SYSTEM], "protocol": {"n_frames": 2, "frame_interval_s": 0.2}, "grid": dict(SMALL_GRID),
-         "analysis": {"metrics": ["liv"]},
-         "region": [{"name": "cells", "shape": "label-image", "file": "lab.npy", "value": 7,
-                     "density_per_um3": 0.05, "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.1}]}]}
+    d = {
+        "system": [SYSTEM],
+        "protocol": {"n_frames": 2, "frame_interval_s": 0.2},
+        "grid": dict(SMALL_GRID),
+        "analysis": {"metrics": ["liv"]},
+        "region": [
+            {
+                "name": "cells",
+                "shape": "label-image",
+                "file": "lab.npy",
+                "value": 7,
+                "density_per_um3": 0.05,
+                "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.1}],
+            }
+        ],
+    }
     ph = phantom_from_dict(d, base_dir=tmp_path)
     res = render(ph)
     assert np.array_equal(res.labels == MOTION_CODES["diffusion"], img == 7)
@@ -116,9 +142,18 @@ def test_static_phantom_is_one_splat_and_frames_identical():
 
 
 def test_empty_outside_regions_and_labels():
-    ph = _phantom({"n_x": 40, "n_z": 30, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
-                  regions=[{"name": "ball", "shape": "sphere", "radius_um": 12.0, "density_per_um3": 0.1,
-                            "motion": [{"kind": "ballistic", "speed_um_per_s": 0.5}]}])
+    ph = _phantom(
+        {"n_x": 40, "n_z": 30, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
+        regions=[
+            {
+                "name": "ball",
+                "shape": "sphere",
+                "radius_um": 12.0,
+                "density_per_um3": 0.1,
+                "motion": [{"kind": "ballistic", "speed_um_per_s": 0.5}],
+            }
+        ],
+    )
     res = render(ph)
     x = ph.grid.coords_um("x")[None, :]
     z = ph.grid.coords_um("z")[:, None]
@@ -136,10 +171,20 @@ def test_empty_outside_regions_and_labels():
 
 def test_later_regions_paint_over_earlier_ones():
     """A static ball over a diffusing slab: inside the ball only static scatterers count."""
-    ph = _phantom({"n_x": 40, "n_z": 40, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
-                  regions=[{"name": "slab", "shape": "slab", "z_min_um": -100.0, "z_max_um": 100.0,
-                            "density_per_um3": 0.05, "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.1}]},
-                           {"name": "ball", "shape": "sphere", "radius_um": 30.0, "density_per_um3": 0.05}])
+    ph = _phantom(
+        {"n_x": 40, "n_z": 40, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
+        regions=[
+            {
+                "name": "slab",
+                "shape": "slab",
+                "z_min_um": -100.0,
+                "z_max_um": 100.0,
+                "density_per_um3": 0.05,
+                "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.1}],
+            },
+            {"name": "ball", "shape": "sphere", "radius_um": 30.0, "density_per_um3": 0.05},
+        ],
+    )
     res = render(ph)
     x = ph.grid.coords_um("x")[None, :]
     z = ph.grid.coords_um("z")[:, None]
@@ -147,7 +192,9 @@ def test_later_regions_paint_over_earlier_ones():
     assert np.all(res.labels[r <= 30] == MOTION_CODES["static"])
     assert np.all(res.labels[r > 30.5] == MOTION_CODES["diffusion"])
     liv = res.maps()["liv"].numpy()
-    deep = r < 30.0 - truncation_radius_factor(1e-2) * amplitude_sigma_axial_um(3.8) - 5 * math.sqrt(2 * 0.1 * 7 * 0.2048)
+    deep = r < 30.0 - truncation_radius_factor(1e-2) * amplitude_sigma_axial_um(3.8) - 5 * math.sqrt(
+        2 * 0.1 * 7 * 0.2048
+    )
     assert deep.sum() > 20 and np.all(liv[deep] == 0)
     assert np.all(liv[r > 45] > 0)
 
@@ -161,26 +208,54 @@ def test_flow_region_is_rigid_translation_without_per_frame_draws(monkeypatch):
         return real(*a, **k)
 
     monkeypatch.setattr(render_mod.torch, "randn", spy)
-    ph = _phantom(SMALL_GRID, regions=[{"name": "vessel", "shape": "cylinder", "axis": [1, 0, 0],
-                                        "radius_um": 10.0, "density_per_um3": 0.08,
-                                        "motion": [{"kind": "flow", "speed_um_per_s": 2.0,
-                                                    "polar_angle_deg": 90.0}]}])
+    ph = _phantom(
+        SMALL_GRID,
+        regions=[
+            {
+                "name": "vessel",
+                "shape": "cylinder",
+                "axis": [1, 0, 0],
+                "radius_um": 10.0,
+                "density_per_um3": 0.08,
+                "motion": [{"kind": "flow", "speed_um_per_s": 2.0, "polar_angle_deg": 90.0}],
+            }
+        ],
+    )
     res = render(ph)
     assert calls == [] and "diffusion" not in " ".join(res.work["stages"])
     # a flow along x by exactly one pixel per frame shifts the image by one pixel per frame
-    ph2 = _phantom(SMALL_GRID, regions=[{"name": "vessel", "shape": "slab", "z_min_um": -50.0, "z_max_um": 50.0,
-                                         "density_per_um3": 0.08,
-                                         "motion": [{"kind": "flow", "speed_um_per_s": 2.0 / 0.2048,
-                                                     "polar_angle_deg": 90.0}]}])
+    ph2 = _phantom(
+        SMALL_GRID,
+        regions=[
+            {
+                "name": "vessel",
+                "shape": "slab",
+                "z_min_um": -50.0,
+                "z_max_um": 50.0,
+                "density_per_um3": 0.08,
+                "motion": [{"kind": "flow", "speed_um_per_s": 2.0 / 0.2048, "polar_angle_deg": 90.0}],
+            }
+        ],
+    )
     e = render(ph2, dtype="float64").data[0]
     assert torch.allclose(e[1, :, 1:], e[0, :, :-1], rtol=1e-9, atol=1e-12)
 
 
 def test_reproducible_and_independent_of_chunking(monkeypatch):
-    ph = _phantom(SMALL_GRID, regions=[{"name": "core", "shape": "sphere", "radius_um": 15.0,
-                                        "density_per_um3": 0.06,
-                                        "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.05}]}],
-                  background={"density_per_um3": 0.02}, noise=25.0)
+    ph = _phantom(
+        SMALL_GRID,
+        regions=[
+            {
+                "name": "core",
+                "shape": "sphere",
+                "radius_um": 15.0,
+                "density_per_um3": 0.06,
+                "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.05}],
+            }
+        ],
+        background={"density_per_um3": 0.02},
+        noise=25.0,
+    )
     a = render(ph, seed=5).data
     assert torch.equal(a, render(ph, seed=5).data)
     monkeypatch.setattr(render_mod, "_SPLAT_ELEMENTS", 97)
@@ -189,10 +264,13 @@ def test_reproducible_and_independent_of_chunking(monkeypatch):
 
 
 def test_float32_matches_float64():
-    ph = _phantom({"n_x": 16, "n_z": 16, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
-                  background={"density_per_um3": 0.05,
-                              "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.02},
-                                         {"kind": "flow", "speed_um_per_s": 1.0}]})
+    ph = _phantom(
+        {"n_x": 16, "n_z": 16, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
+        background={
+            "density_per_um3": 0.05,
+            "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.02}, {"kind": "flow", "speed_um_per_s": 1.0}],
+        },
+    )
     # far from the origin: phases must stay accurate at large absolute depth
     a = render(ph, dtype="float64").data
     b = render(ph, dtype="float32").data
@@ -202,8 +280,13 @@ def test_float32_matches_float64():
 
 def test_noise_stage_only_when_asked_and_at_its_power():
     grid = {"n_x": 64, "n_z": 64, "pitch_x_um": 2.0, "pitch_z_um": 2.0}
-    ph = _phantom(grid, regions=[{"name": "ball", "shape": "sphere", "radius_um": 5.0, "center_um": [200.0, 0, 0],
-                                  "density_per_um3": 0.055}], noise=20.0)
+    ph = _phantom(
+        grid,
+        regions=[
+            {"name": "ball", "shape": "sphere", "radius_um": 5.0, "center_um": [200.0, 0, 0], "density_per_um3": 0.055}
+        ],
+        noise=20.0,
+    )
     res = render(ph)
     assert "noise at 20.0 dB" in res.work["stages"]
     i = (res.data[0].abs() ** 2).double()
@@ -213,10 +296,10 @@ def test_noise_stage_only_when_asked_and_at_its_power():
 
 
 def test_volume_shape_and_plane_statistics():
-    grid = {"kind": "volume", "n_x": 12, "n_y": 10, "n_z": 14, "pitch_x_um": 2.0, "pitch_y_um": 2.0,
-            "pitch_z_um": 2.0}
-    ph = _phantom(grid, background={"density_per_um3": 0.05,
-                                    "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.01}]})
+    grid = {"kind": "volume", "n_x": 12, "n_y": 10, "n_z": 14, "pitch_x_um": 2.0, "pitch_y_um": 2.0, "pitch_z_um": 2.0}
+    ph = _phantom(
+        grid, background={"density_per_um3": 0.05, "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.01}]}
+    )
     res = render(ph)
     assert res.data.shape == (1, 8, 10, 14, 12) and res.labels.shape == (10, 14, 12)
     assert np.all(res.labels == MOTION_CODES["diffusion"])
@@ -252,7 +335,7 @@ def test_speckle_correlation_matches_psf():
     for (ax, lag), vals in est.items():
         s = sx if ax == 1 else sz
         v = np.asarray(vals)
-        assert_within_se(v.mean(), math.exp(-lag**2 / (2 * s * s)), v.std(ddof=1) / math.sqrt(len(v)))
+        assert_within_se(v.mean(), math.exp(-(lag**2) / (2 * s * s)), v.std(ddof=1) / math.sqrt(len(v)))
 
 
 def test_uniform_region_matches_point_model():
@@ -271,8 +354,9 @@ def test_uniform_region_matches_point_model():
     ph = _phantom(grid, background=bg, n_frames=16)
     sim = simulate(ph.scene, trials=1024, seed=9, dtype=torch.float64)
     met = sim.metrics()
-    pt = np.stack([(sim.signals.abs() ** 2).mean(-1)[:, 0].numpy(), met["liv"][:, 0].numpy(),
-                   met["ocds"][:, 0].numpy()], -1)
+    pt = np.stack(
+        [(sim.signals.abs() ** 2).mean(-1)[:, 0].numpy(), met["liv"][:, 0].numpy(), met["ocds"][:, 0].numpy()], -1
+    )
     assert not np.isnan(pix).any() and not np.isnan(pt).any()
     for k in range(3):
         a, b = pix[:, k], pt[:, k]
@@ -293,11 +377,13 @@ def test_cli_render_writes_sequence_labels_preview_and_refuses_overwrite(tmp_pat
     src = tmp_path / "ph.toml"
     src.write_text(
         'name = "mini"\n[[system]]\nname = "840nm"\nwavelength_um = 0.84\nlateral_resolution_um = 4.9\n'
-        'axial_resolution_um = 3.8\n[protocol]\nn_frames = 6\nframe_interval_s = 0.2048\n'
-        '[grid]\nn_x = 20\nn_z = 16\npitch_x_um = 2.0\npitch_z_um = 2.0\n'
+        "axial_resolution_um = 3.8\n[protocol]\nn_frames = 6\nframe_interval_s = 0.2048\n"
+        "[grid]\nn_x = 20\nn_z = 16\npitch_x_um = 2.0\npitch_z_um = 2.0\n"
         '[[region]]\nname = "ball"\nshape = "sphere"\nradius_um = 10.0\ndensity_per_um3 = 0.05\n'
         '[[region.motion]]\nkind = "diffusion"\ndiffusion_um2_per_s = 0.02\n'
-        '[analysis]\nmetrics = ["liv", "ocds"]\nocds_delay_range_s = [0.2048, 0.6144]\n', encoding="utf-8")
+        '[analysis]\nmetrics = ["liv", "ocds"]\nocds_delay_range_s = [0.2048, 0.6144]\n',
+        encoding="utf-8",
+    )
     out = tmp_path / "seq.npz"
     assert main(["render", str(src), "--out", str(out), "--no-progress"]) == 0
     seq = read_sequence(out)
@@ -321,8 +407,10 @@ def test_any_scene_renders_as_a_uniform_medium(tmp_path, tmp_scene_file, capsys)
     from torchdoct.measured.io import read_sequence
 
     out = tmp_path / "scene.npy"
-    assert main(["render", str(tmp_scene_file), "--grid", "12x10", "--pitch-um", "3", "--out", str(out),
-                 "--no-progress"]) == 0
+    assert (
+        main(["render", str(tmp_scene_file), "--grid", "12x10", "--pitch-um", "3", "--out", str(out), "--no-progress"])
+        == 0
+    )
     seq = read_sequence(out)
     assert seq.data.shape == (8, 12, 10) and seq.meta["pitch_um"] == {"z": 3.0, "x": 3.0}
     labels = np.load(tmp_path / "scene.labels.npz", allow_pickle=False)
@@ -330,14 +418,19 @@ def test_any_scene_renders_as_a_uniform_medium(tmp_path, tmp_scene_file, capsys)
     assert np.all(labels["labels"] == MOTION_CODES["diffusion"]) and np.all(np.abs(seq.data) > 0)
     assert main(["render", str(tmp_scene_file), "--out", str(tmp_path / "b.npy")]) == 2
     assert "[grid]" in capsys.readouterr().err
-    assert main(["render", str(tmp_scene_file), "--grid", "4x", "--pitch-um", "1", "--out",
-                 str(tmp_path / "c.npy")]) == 2
+    assert (
+        main(["render", str(tmp_scene_file), "--grid", "4x", "--pitch-um", "1", "--out", str(tmp_path / "c.npy")]) == 2
+    )
 
 
 def test_mixed_background_populations_label():
-    ph = _phantom(SMALL_GRID, background=[{"density_per_um3": 0.03},
-                                          {"density_per_um3": 0.02, "name": "moving",
-                                           "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.2}]}])
+    ph = _phantom(
+        SMALL_GRID,
+        background=[
+            {"density_per_um3": 0.03},
+            {"density_per_um3": 0.02, "name": "moving", "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.2}]},
+        ],
+    )
     res = render(ph)
     assert np.all(res.labels == MOTION_CODES["diffusion"])
     assert np.allclose(res.label_params[0], 0.2)

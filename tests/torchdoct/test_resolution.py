@@ -31,21 +31,29 @@ SYSTEM = {"name": "840nm-high", "wavelength_um": 0.84, "lateral_resolution_um": 
 # ----------------------------------------------------------------------------------------------------------
 # helpers: a pixel-grid sum of Gaussian PSFs (common phase convention: exp(i·2kn·z_j), no carrier)
 # ----------------------------------------------------------------------------------------------------------
-def render_tzx(pos: np.ndarray, amp: np.ndarray, z_um: np.ndarray, x_um: np.ndarray, *, sx: float, sy: float,
-               sz: float, k: float) -> np.ndarray:
+def render_tzx(
+    pos: np.ndarray, amp: np.ndarray, z_um: np.ndarray, x_um: np.ndarray, *, sx: float, sy: float, sz: float, k: float
+) -> np.ndarray:
     """E[t, z_p, x_p] = Σ_j b_j·h(r_j − r_p)·exp(i2k z_j) at y_p = 0; pos [T, J, 3] (x, y, z) in µm."""
     out = np.empty((pos.shape[0], len(z_um), len(x_um)), dtype=np.complex128)
     for t in range(pos.shape[0]):
         x, y, z = pos[t, :, 0], pos[t, :, 1], pos[t, :, 2]
         c = amp * np.exp(-y * y / (2 * sy * sy)) * np.exp(2j * k * z)
-        hz = np.exp(-(z_um[:, None] - z[None, :]) ** 2 / (2 * sz * sz))
-        hx = np.exp(-(x[:, None] - x_um[None, :]) ** 2 / (2 * sx * sx))
+        hz = np.exp(-((z_um[:, None] - z[None, :]) ** 2) / (2 * sz * sz))
+        hx = np.exp(-((x[:, None] - x_um[None, :]) ** 2) / (2 * sx * sx))
         out[t] = (hz * c[None, :]) @ hx
     return out
 
 
-def scatterers(rng: np.random.Generator, box: tuple[tuple[float, float], ...], density: float, n_frames: int,
-               dt_s: float, d_um2_per_s: float, moving_fraction: float) -> np.ndarray:
+def scatterers(
+    rng: np.random.Generator,
+    box: tuple[tuple[float, float], ...],
+    density: float,
+    n_frames: int,
+    dt_s: float,
+    d_um2_per_s: float,
+    moving_fraction: float,
+) -> np.ndarray:
     """Poisson scatterers in ``box`` ((x0,x1),(y0,y1),(z0,z1)); a fraction diffuses (N(0, 2DΔt) per axis)."""
     lo = np.array([b[0] for b in box])
     hi = np.array([b[1] for b in box])
@@ -76,8 +84,7 @@ def intensity_width(profile: np.ndarray, pitch: float, level: float) -> float:
 # ----------------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("orig,target", [(4.9, 9.8), (4.9, 14.7), (4.9, 18.0), (3.0, 3.1)])
 def test_lateral_sigma_is_paper_eq4(orig, target):
-    assert lateral_filter_sigma_um(orig, target) == pytest.approx(0.5 * math.sqrt((target**2 - orig**2) / 2),
-                                                                  rel=1e-12)
+    assert lateral_filter_sigma_um(orig, target) == pytest.approx(0.5 * math.sqrt((target**2 - orig**2) / 2), rel=1e-12)
 
 
 @pytest.mark.parametrize("orig,target", [(3.8, 7.6), (3.8, 11.4), (3.8, 14.0)])
@@ -94,13 +101,18 @@ def test_finer_target_is_an_error_and_equal_is_identity():
     with pytest.raises(ValueError, match="finer than the original"):
         lateral_filter_sigma_um(4.9, 4.0)
     with pytest.raises(ValueError, match="finer than the original"):
-        reduce_resolution(np.zeros((2, 4, 4), np.complex64), pitch_um={"z": 1, "x": 1}, system=SYSTEM,
-                          axial_resolution_um=3.0)
+        reduce_resolution(
+            np.zeros((2, 4, 4), np.complex64), pitch_um={"z": 1, "x": 1}, system=SYSTEM, axial_resolution_um=3.0
+        )
     assert lateral_filter_sigma_um(4.9, 4.9) == 0.0
     assert axial_window_sigma_per_um(3.8, 3.8) == math.inf
     field = np.ones((2, 4, 4), np.complex64)
-    assert reduce_resolution(field, pitch_um={"z": 1, "x": 1}, system=SYSTEM, lateral_resolution_um=4.9,
-                             axial_resolution_um=3.8) is field
+    assert (
+        reduce_resolution(
+            field, pitch_um={"z": 1, "x": 1}, system=SYSTEM, lateral_resolution_um=4.9, axial_resolution_um=3.8
+        )
+        is field
+    )
     t = torch.ones(2, 4, 4, dtype=torch.complex128)
     assert reduce_resolution(t, pitch_um={"z": 1, "x": 1}, system=SYSTEM) is t
 
@@ -117,20 +129,35 @@ def test_parse_resolution_labels():
 
 def test_bad_inputs():
     with pytest.raises(TypeError, match="complex"):
-        reduce_resolution(np.ones((2, 4, 4), np.float32), pitch_um={"z": 1, "x": 1}, system=SYSTEM,
-                          lateral_resolution_um=9.8)
+        reduce_resolution(
+            np.ones((2, 4, 4), np.float32), pitch_um={"z": 1, "x": 1}, system=SYSTEM, lateral_resolution_um=9.8
+        )
     with pytest.raises(ValueError, match="pitch_um"):
-        reduce_resolution(np.ones((2, 4, 4), np.complex64), pitch_um={"z": 1}, system=SYSTEM,
-                          lateral_resolution_um=9.8)
+        reduce_resolution(np.ones((2, 4, 4), np.complex64), pitch_um={"z": 1}, system=SYSTEM, lateral_resolution_um=9.8)
     with pytest.raises(ValueError, match="axes"):
-        reduce_resolution(np.ones((2, 4, 4), np.complex64), pitch_um={"z": 1, "x": 1}, system=SYSTEM,
-                          lateral_resolution_um=9.8, axes="TYZX")
+        reduce_resolution(
+            np.ones((2, 4, 4), np.complex64),
+            pitch_um={"z": 1, "x": 1},
+            system=SYSTEM,
+            lateral_resolution_um=9.8,
+            axes="TYZX",
+        )
     with pytest.raises(ValueError, match="edge_mode"):
-        reduce_resolution(np.ones((2, 4, 4), np.complex64), pitch_um={"z": 1, "x": 1}, system=SYSTEM,
-                          lateral_resolution_um=9.8, edge_mode="nearest")
+        reduce_resolution(
+            np.ones((2, 4, 4), np.complex64),
+            pitch_um={"z": 1, "x": 1},
+            system=SYSTEM,
+            lateral_resolution_um=9.8,
+            edge_mode="nearest",
+        )
     with pytest.raises(ValueError, match="normalization"):
-        reduce_resolution(np.ones((2, 4, 4), np.complex64), pitch_um={"z": 1, "x": 1}, system=SYSTEM,
-                          lateral_resolution_um=9.8, normalization="energy")
+        reduce_resolution(
+            np.ones((2, 4, 4), np.complex64),
+            pitch_um={"z": 1, "x": 1},
+            system=SYSTEM,
+            lateral_resolution_um=9.8,
+            normalization="energy",
+        )
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -143,18 +170,25 @@ def _point_psf(pz: float, px: float, nz: int, nx: int, frac=(0.37, 0.21)) -> tup
     x0 = (nx // 2 + frac[1]) * px
     sz = amplitude_sigma_axial_um(SYSTEM["axial_resolution_um"])
     sx = amplitude_sigma_lateral_um(SYSTEM["lateral_resolution_um"])
-    e = np.exp(-(z[:, None] - z0) ** 2 / (2 * sz * sz) - (x[None, :] - x0) ** 2 / (2 * sx * sx) + 0.7j)
+    e = np.exp(-((z[:, None] - z0) ** 2) / (2 * sz * sz) - (x[None, :] - x0) ** 2 / (2 * sx * sx) + 0.7j)
     return e[None].astype(np.complex128), z0, x0
 
 
-@pytest.mark.parametrize("lat,ax", [(None, 7.6), (None, 11.4), (None, 14.0), (9.8, None), (14.7, None),
-                                    (18.0, None), (18.0, 14.0)])
+@pytest.mark.parametrize(
+    "lat,ax", [(None, 7.6), (None, 11.4), (None, 14.0), (9.8, None), (14.7, None), (18.0, None), (18.0, 14.0)]
+)
 @pytest.mark.parametrize("norm", ["power", "peak", "sum"])
 def test_point_psf_has_the_target_width(lat, ax, norm):
     pz = px = 0.5
     e, _, _ = _point_psf(pz, px, 240, 240)
-    r = reduce_resolution(e, pitch_um={"z": pz, "x": px}, system=SYSTEM, lateral_resolution_um=lat,
-                          axial_resolution_um=ax, normalization=norm)
+    r = reduce_resolution(
+        e,
+        pitch_um={"z": pz, "x": px},
+        system=SYSTEM,
+        lateral_resolution_um=lat,
+        axial_resolution_um=ax,
+        normalization=norm,
+    )
     i = np.abs(r[0]) ** 2
     kz, kx = np.unravel_index(np.argmax(i), i.shape)
     fwhm_z = intensity_width(i[:, kx], pz, 0.5)
@@ -176,10 +210,14 @@ def test_point_psf_widths_in_a_volume_along_y_and_x():
     z = np.arange(3) * 1.0
     sx = amplitude_sigma_lateral_um(4.9)
     sz = amplitude_sigma_axial_um(3.8)
-    e = np.exp(-(y[:, None, None] - 30.2) ** 2 / (2 * sx * sx) - (z[None, :, None] - 1.0) ** 2 / (2 * sz * sz)
-               - (x[None, None, :] - 29.9) ** 2 / (2 * sx * sx))[None].astype(np.complex64)
-    r = reduce_resolution(torch.from_numpy(e), pitch_um={"y": p, "z": 1.0, "x": p}, system=SYSTEM,
-                          lateral_resolution_um=14.7, axes="TYZX")
+    e = np.exp(
+        -((y[:, None, None] - 30.2) ** 2) / (2 * sx * sx)
+        - (z[None, :, None] - 1.0) ** 2 / (2 * sz * sz)
+        - (x[None, None, :] - 29.9) ** 2 / (2 * sx * sx)
+    )[None].astype(np.complex64)
+    r = reduce_resolution(
+        torch.from_numpy(e), pitch_um={"y": p, "z": 1.0, "x": p}, system=SYSTEM, lateral_resolution_um=14.7, axes="TYZX"
+    )
     assert isinstance(r, torch.Tensor) and r.dtype == torch.complex64
     i = (r.abs() ** 2)[0, :, 1, :].double().numpy()
     ky, kx = np.unravel_index(np.argmax(i), i.shape)
@@ -191,8 +229,9 @@ def test_point_psf_width_at_a_coarse_pitch():
     """At 1.5 µm (z) × 2 µm (x) pixels the exact Gaussian transfer function keeps the widths."""
     pz, px = 1.5, 2.0
     e, _, _ = _point_psf(pz, px, 120, 120)
-    r = reduce_resolution(e, pitch_um={"z": pz, "x": px}, system=SYSTEM, lateral_resolution_um=18.0,
-                          axial_resolution_um=14.0)
+    r = reduce_resolution(
+        e, pitch_um={"z": pz, "x": px}, system=SYSTEM, lateral_resolution_um=18.0, axial_resolution_um=14.0
+    )
     i = np.abs(r[0]) ** 2
     kz, kx = np.unravel_index(np.argmax(i), i.shape)
     # Gaussian fit of log-intensity near the peak (sampling-free width estimate)
@@ -216,7 +255,7 @@ def test_edge_modes_on_a_constant_field():
     y = gaussian_filter_axis(c, 2, 3.0, edge_mode="constant")
     assert torch.allclose(y[..., 15], c[..., 15], atol=1e-6)
     j = np.arange(-60, 61)
-    g = np.exp(-j**2 / 18.0)
+    g = np.exp(-(j**2) / 18.0)
     inside = g[(j >= 0) & (j < 30)].sum() / g.sum()  # the part of the sampled kernel that is on the grid
     assert float(y[0, 0, 0].abs()) / abs(2 - 1j) == pytest.approx(inside, rel=1e-6)
     g = gaussian_filter_axis(c, 1, 2.0, gain=1.7)
@@ -236,11 +275,17 @@ def test_numpy_in_numpy_out_and_dtypes():
     for dt in (np.complex64, np.complex128):
         x = (rng.standard_normal((3, 20, 16)) + 1j * rng.standard_normal((3, 20, 16))).astype(dt)
         x.flags.writeable = False
-        y = reduce_resolution(x, pitch_um={"z": 1.0, "x": 1.5}, system=SYSTEM, axial_resolution_um=7.6,
-                              lateral_resolution_um=9.8)
+        y = reduce_resolution(
+            x, pitch_um={"z": 1.0, "x": 1.5}, system=SYSTEM, axial_resolution_um=7.6, lateral_resolution_um=9.8
+        )
         assert isinstance(y, np.ndarray) and y.dtype == dt and y.shape == x.shape
-        t = reduce_resolution(torch.from_numpy(x.copy()), pitch_um={"z": 1.0, "x": 1.5}, system=SYSTEM,
-                              axial_resolution_um=7.6, lateral_resolution_um=9.8)
+        t = reduce_resolution(
+            torch.from_numpy(x.copy()),
+            pitch_um={"z": 1.0, "x": 1.5},
+            system=SYSTEM,
+            axial_resolution_um=7.6,
+            lateral_resolution_um=9.8,
+        )
         np.testing.assert_allclose(t.numpy(), y, rtol=0, atol=1e-5 if dt == np.complex64 else 1e-12)
 
 
@@ -252,8 +297,9 @@ def test_axial_centroid_window_follows_a_depth_carrier():
     assert depth_spectrum_center(e * carrier) == pytest.approx(fc, abs=1e-3)
     assert abs(depth_spectrum_center(e)) < 1e-3
     ref = reduce_resolution(e, pitch_um={"z": 1.0, "x": 1.0}, system=SYSTEM, axial_resolution_um=14.0)
-    got = reduce_resolution(e * carrier, pitch_um={"z": 1.0, "x": 1.0}, system=SYSTEM, axial_resolution_um=14.0,
-                            axial_center="centroid")
+    got = reduce_resolution(
+        e * carrier, pitch_um={"z": 1.0, "x": 1.0}, system=SYSTEM, axial_resolution_um=14.0, axial_center="centroid"
+    )
     np.testing.assert_allclose(np.abs(got), np.abs(ref), atol=1e-3 * np.abs(ref).max())
     wrong = reduce_resolution(e * carrier, pitch_um={"z": 1.0, "x": 1.0}, system=SYSTEM, axial_resolution_um=14.0)
     assert np.abs(wrong).max() < 0.1 * np.abs(ref).max()  # a zero-centred window misses the carrier band
@@ -271,8 +317,7 @@ def _stats(e: np.ndarray) -> tuple[float, float, float]:
     """Mean intensity, mean LIV and mean OCDS over the pixels of E [T, Z, X]."""
     i = torch.from_numpy(np.abs(e) ** 2).movedim(0, -1)
     times = [t * DT_S for t in range(e.shape[0])]
-    return (float(i.mean()), float(metrics.liv(i).mean()),
-            float(metrics.ocds(i, times, delay_range_s=DELAYS).mean()))
+    return (float(i.mean()), float(metrics.liv(i).mean()), float(metrics.ocds(i, times, delay_range_s=DELAYS).mean()))
 
 
 @pytest.mark.parametrize("case", ["axial", "lateral"])

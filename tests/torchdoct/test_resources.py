@@ -44,10 +44,14 @@ def test_check_resources_names_the_input_estimate_available_and_fix(monkeypatch,
     assert str(err.value) == ("input x needs about 5.00 GB (5 pieces) but only 3.00 GB are available; lower --n")
     assert isinstance(err.value, ValueError)  # exit code 2 on the command line
     monkeypatch.setattr(resources, "free_disk_bytes", lambda path: 1 << 30)
-    with pytest.raises(resources.DiskLimitError, match=r"output .*out\.npz takes about 2\.00 GB on disk but only "
-                                                        r"1\.00 GB are free there; write elsewhere"):
-        resources.check_resources("input x", 0, "lower --n", out_path=tmp_path / "out.npz", out_bytes=2 << 30,
-                                  out_fix="write elsewhere")
+    with pytest.raises(
+        resources.DiskLimitError,
+        match=r"output .*out\.npz takes about 2\.00 GB on disk but only "
+        r"1\.00 GB are free there; write elsewhere",
+    ):
+        resources.check_resources(
+            "input x", 0, "lower --n", out_path=tmp_path / "out.npz", out_bytes=2 << 30, out_fix="write elsewhere"
+        )
 
 
 def test_unknown_memory_refuses_nothing(monkeypatch):
@@ -62,14 +66,16 @@ def test_free_disk_of_a_path_not_yet_made_is_its_parents(tmp_path):
 
 def test_maps_estimate_closed_form():
     """[T=8, Z=6, X=5] complex64, 2 resolutions × (liv, aliv + fit flag): slab = the whole sequence."""
-    need, disk = resources.maps_bytes((8, 6, 5), 8, complex_samples=True, n_resolutions=2, metrics=["liv", "aliv"],
-                                      slab_elements=1 << 23)
+    need, disk = resources.maps_bytes(
+        (8, 6, 5), 8, complex_samples=True, n_resolutions=2, metrics=["liv", "aliv"], slab_elements=1 << 23
+    )
     channels, pixels = 2 * 3, 30
     assert disk == channels * pixels * 4
     assert need == resources.MAPS_WORK_COPIES * 8 * 6 * 5 * 8 + channels * pixels * 4 + disk
     # a slab smaller than the sequence bounds the working memory
-    need_small, _ = resources.maps_bytes((8, 6, 5), 8, complex_samples=True, n_resolutions=2,
-                                         metrics=["liv", "aliv"], slab_elements=10)
+    need_small, _ = resources.maps_bytes(
+        (8, 6, 5), 8, complex_samples=True, n_resolutions=2, metrics=["liv", "aliv"], slab_elements=10
+    )
     assert need_small == resources.MAPS_WORK_COPIES * 10 * 8 + channels * pixels * 4 + disk
 
 
@@ -108,8 +114,9 @@ def test_simulate_estimate_is_the_one_it_checks(monkeypatch):
 
     scene = torchdoct.load_scene("example")
     plan = make_plan(scene, truncation_tolerance=scene.simulation.truncation_tolerance)
-    need = simulation_bytes(plan, trials=128, n_systems=len(scene.systems), n_frames=scene.protocol.n_frames,
-                            threads=1)[0]
+    need = simulation_bytes(
+        plan, trials=128, n_systems=len(scene.systems), n_frames=scene.protocol.n_frames, threads=1
+    )[0]
     monkeypatch.setattr(resources, "available_memory_bytes", lambda: need - 1)
     with pytest.raises(resources.MemoryLimitError):
         torchdoct.simulate(scene, trials=128, threads=1)
@@ -118,14 +125,28 @@ def test_simulate_estimate_is_the_one_it_checks(monkeypatch):
 
 
 def test_render_refused(tiny_memory, capsys, tmp_path):
-    refused(capsys, tmp_path,
-            ["render", "example", "--grid", "8x8", "--pitch-um", "2", "--out", str(tmp_path / "r.h5")],
-            "the rendered sequence needs about", "GB are available", "--system", "float32")
+    refused(
+        capsys,
+        tmp_path,
+        ["render", "example", "--grid", "8x8", "--pitch-um", "2", "--out", str(tmp_path / "r.h5")],
+        "the rendered sequence needs about",
+        "GB are available",
+        "--system",
+        "float32",
+    )
 
 
 def test_maps_refused_before_the_slab_loop(tiny_memory, capsys, seq):
-    line = refused(capsys, seq.parent, ["maps", str(seq), "--no-progress", "--out", str(seq.parent / "m.npz")],
-                   "maps of seq.npy", "sequence [8, 6, 5]", "GB are available", "--resolution", "--metrics")
+    line = refused(
+        capsys,
+        seq.parent,
+        ["maps", str(seq), "--no-progress", "--out", str(seq.parent / "m.npz")],
+        "maps of seq.npy",
+        "sequence [8, 6, 5]",
+        "GB are available",
+        "--resolution",
+        "--metrics",
+    )
     assert _gb_numbers(line)[1] == 0.0  # 1 KiB available
 
 
@@ -139,17 +160,27 @@ def test_maps_library_call_refused(tiny_memory, seq):
 
 def test_maps_output_larger_than_the_free_disk_refused(monkeypatch, capsys, seq):
     monkeypatch.setattr(resources, "free_disk_bytes", lambda path: 100)  # the maps take 3 × 30 × 4 bytes
-    refused(capsys, seq.parent, ["maps", str(seq), "--no-progress", "--out", str(seq.parent / "m.npz")],
-            "maps of seq.npy", "m.npz takes about", "on disk", "write --out elsewhere")
+    refused(
+        capsys,
+        seq.parent,
+        ["maps", str(seq), "--no-progress", "--out", str(seq.parent / "m.npz")],
+        "maps of seq.npy",
+        "m.npz takes about",
+        "on disk",
+        "write --out elsewhere",
+    )
 
 
-SWEEP_TOML = SMALL_SCENE_TOML + """
+SWEEP_TOML = (
+    SMALL_SCENE_TOML
+    + """
 [sweep]
 name = "tiny"
 [[sweep.field]]
 path = "population.0.motion.0.diffusion_um2_per_s"
 values = [0.01, 0.1, 1.0]
 """
+)
 
 
 def test_sweep_refused_before_any_cell(tiny_memory, monkeypatch, capsys, tmp_path):
@@ -166,8 +197,15 @@ def test_sweep_refused_before_any_cell(tiny_memory, monkeypatch, capsys, tmp_pat
     assert main(["sweep", str(scene), "--out", str(out), "--trials", "64", "--workers", "2"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"error: {scene}: sweep 'tiny' needs about") and "\n" not in err  # names the file
-    for name in ("largest cell", "population.0.motion.0.diffusion_um2_per_s", "× 2 cell(s) side by side",
-                 "GB are available", "--trials, now 64", "--workers, now 2", "--tolerance"):
+    for name in (
+        "largest cell",
+        "population.0.motion.0.diffusion_um2_per_s",
+        "× 2 cell(s) side by side",
+        "GB are available",
+        "--trials, now 64",
+        "--workers, now 2",
+        "--tolerance",
+    ):
         assert name in err, (name, err)
     assert set(tmp_path.rglob("*")) == before  # no cache folder, no table
 
@@ -194,8 +232,16 @@ def test_study_refused_before_any_cell(tiny_memory, monkeypatch, capsys, tmp_pat
 
     monkeypatch.setattr(sweep_module, "_execute", _no_work)
     study = write_tiny_study(tmp_path)
-    refused(capsys, tmp_path, ["study", str(study), "--out", str(tmp_path / "o"), "--no-cache"],
-            "needs about", "largest cell", "GB are available", "--trials", "--workers")
+    refused(
+        capsys,
+        tmp_path,
+        ["study", str(study), "--out", str(tmp_path / "o"), "--no-cache"],
+        "needs about",
+        "largest cell",
+        "GB are available",
+        "--trials",
+        "--workers",
+    )
 
 
 def test_training_data_refused_before_any_draw(tiny_memory, monkeypatch, tmp_path):
@@ -226,8 +272,14 @@ def test_doct_train_refused(tiny_memory, monkeypatch, capsys, tmp_path):
 
     monkeypatch.setattr(dataset, "simulate_draw", _no_work)
     out = tmp_path / "model"
-    refused(capsys, tmp_path, ["--quick", "--out", str(out), "--cache", str(tmp_path / "cache"), "--no-progress"],
-            "split of 'single-acquisition' needs about", "--draws-train", run=train_main)
+    refused(
+        capsys,
+        tmp_path,
+        ["--quick", "--out", str(out), "--cache", str(tmp_path / "cache"), "--no-progress"],
+        "split of 'single-acquisition' needs about",
+        "--draws-train",
+        run=train_main,
+    )
 
 
 def _maps_file(seq, capsys) -> object:
@@ -247,8 +299,16 @@ def test_doct_classify_refused_before_reading(monkeypatch, capsys, seq):
 
     monkeypatch.setattr(mapsfile, "read_maps", _no_work)
     monkeypatch.setattr(resources, "available_memory_bytes", lambda: KB)
-    line = refused(capsys, seq.parent, [str(maps), "--out", str(seq.parent / "c")], "doct-classify of m.npz",
-                   "needs about", "GB are available", "crop", run=classify_main)
+    line = refused(
+        capsys,
+        seq.parent,
+        [str(maps), "--out", str(seq.parent / "c")],
+        "doct-classify of m.npz",
+        "needs about",
+        "GB are available",
+        "crop",
+        run=classify_main,
+    )
     assert "4 × the maps arrays" in line
 
 
@@ -263,8 +323,14 @@ def test_translate_refused_before_reading(monkeypatch, capsys, seq):
         pass
     if "--to" not in capsys.readouterr().out:
         pytest.skip("torchdoct translate is not registered in this installation")
-    refused(capsys, seq.parent, ["translate", str(maps), "--to", "example", "--out", str(seq.parent / "t.npz")],
-            "torchdoct translate of m.npz", "needs about", "crop")
+    refused(
+        capsys,
+        seq.parent,
+        ["translate", str(maps), "--to", "example", "--out", str(seq.parent / "t.npz")],
+        "torchdoct translate of m.npz",
+        "needs about",
+        "crop",
+    )
 
 
 def test_compare_refused_before_reading(monkeypatch, capsys, seq):
@@ -273,8 +339,15 @@ def test_compare_refused_before_reading(monkeypatch, capsys, seq):
 
     monkeypatch.setattr(mapsfile, "read_maps", _no_work)
     monkeypatch.setattr(resources, "available_memory_bytes", lambda: KB)
-    line = refused(capsys, seq.parent, ["compare", f"a={maps}", f"b={maps}", "--out", str(seq.parent / "c.csv")],
-                   "torchdoct compare of m.npz, m.npz", "needs about", "GB are available", "fewer maps files")
+    line = refused(
+        capsys,
+        seq.parent,
+        ["compare", f"a={maps}", f"b={maps}", "--out", str(seq.parent / "c.csv")],
+        "torchdoct compare of m.npz, m.npz",
+        "needs about",
+        "GB are available",
+        "fewer maps files",
+    )
     declared = resources.declared_array_bytes(maps)
     assert f"{resources.COMPARE_COPIES} × the maps arrays" in line
     # the estimate: every file's declared arrays, COMPARE_COPIES times; exactly that much memory passes the check
@@ -285,14 +358,20 @@ def test_compare_refused_before_reading(monkeypatch, capsys, seq):
         resources.check_compare([maps, maps])
 
 
-@pytest.mark.parametrize("argv,names", [
-    (["bench", "maps", "--size", "64", "64", "--frames", "8"], ("torchdoct bench maps", "[8, 64, 64]", "--size")),
-    (["bench", "bulk-phase", "--lines", "100", "--depth", "16", "--frames", "8"],
-     ("torchdoct bench bulk-phase", "100 A-lines", "--lines")),
-    (["bench", "classify", "--size", "64"], ("torchdoct bench classify", "64×64 pixels", "--size")),
-])
-def test_benchmarks_with_a_size_refused_before_making_their_input(tiny_memory, monkeypatch, capsys, tmp_path,
-                                                                 argv, names):
+@pytest.mark.parametrize(
+    "argv,names",
+    [
+        (["bench", "maps", "--size", "64", "64", "--frames", "8"], ("torchdoct bench maps", "[8, 64, 64]", "--size")),
+        (
+            ["bench", "bulk-phase", "--lines", "100", "--depth", "16", "--frames", "8"],
+            ("torchdoct bench bulk-phase", "100 A-lines", "--lines"),
+        ),
+        (["bench", "classify", "--size", "64"], ("torchdoct bench classify", "64×64 pixels", "--size")),
+    ],
+)
+def test_benchmarks_with_a_size_refused_before_making_their_input(
+    tiny_memory, monkeypatch, capsys, tmp_path, argv, names
+):
     import torch
 
     monkeypatch.setattr(torch, "randn", _no_work)  # the synthetic inputs are never drawn

@@ -10,8 +10,9 @@ import torchdoct as td
 _HEAVY = {"paper-diffusion", "flowing-diffusers"}  # tens of ms per trial: slow suite
 
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in _HEAVY else n
-                                  for n in sorted(td.shipped_scenes())])
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.slow) if n in _HEAVY else n for n in sorted(td.shipped_scenes())]
+)
 def test_shipped_scene_simulates(name):
     scene = td.load_scene(name)
     plan = td.make_plan(scene)

@@ -38,8 +38,9 @@ def _times(n):
 
 def _speckle(shape, seed=0):
     g = torch.Generator().manual_seed(seed)
-    return torch.complex(torch.randn(*shape, generator=g, dtype=torch.float64),
-                         torch.randn(*shape, generator=g, dtype=torch.float64)) / math.sqrt(2.0)
+    return torch.complex(
+        torch.randn(*shape, generator=g, dtype=torch.float64), torch.randn(*shape, generator=g, dtype=torch.float64)
+    ) / math.sqrt(2.0)
 
 
 def _ar1(pixels, frames, a, seed=0):
@@ -92,7 +93,7 @@ def test_ar1_field_matches_the_closed_forms(a):
     names, f = signature(e, _times(t), names=("g1_1", "g1_3", "rho_lin_1", "rho_lin_3", "rho_db_1", "rho_db_3"))
     got = {n: f[:, i] for i, n in enumerate(names)}
     for m in (1, 3):
-        g = a ** m
+        g = a**m
         expect = {f"g1_{m}": g, f"rho_lin_{m}": g * g, f"rho_db_{m}": float(theory.rho_db_gaussian_limit(g))}
         for k, v in expect.items():
             mean, se = _mean_se(got[k])
@@ -131,7 +132,7 @@ def test_names_shapes_units_and_intensity_only():
     names, f = signature(e, _times(32))
     assert names == DEFAULT_FEATURES == default_features(32)
     assert f.shape == (2, 3, 4, len(names)) and f.dtype == torch.float32
-    inten = (e.abs() ** 2)
+    inten = e.abs() ** 2
     names_i, fi = signature(inten, _times(32))
     assert names_i == available_features(DEFAULT_FEATURES, False) and not any(needs_field(n) for n in names_i)
     assert all(n in names for n in names_i) and fi.shape[-1] == len(names_i)
@@ -176,7 +177,7 @@ def test_g1_phase_of_a_pure_rotation_is_the_wrapped_angle(omega):
         got = float(f[0, i])
         assert -math.pi < got <= math.pi
         assert abs(math.remainder(got - want, 2 * math.pi)) < 1e-9, (m, got, want)
-    torch.testing.assert_close(f[0, len(lags):], torch.ones(len(lags), dtype=torch.float64))
+    torch.testing.assert_close(f[0, len(lags) :], torch.ones(len(lags), dtype=torch.float64))
 
 
 def test_g1_phase_sign_follows_the_flow_closed_form():
@@ -185,8 +186,14 @@ def test_g1_phase_sign_follows_the_flow_closed_form():
     t = 32
     e = _speckle((4, 1), seed=11) * torch.exp(1j * 0.7 * torch.arange(t, dtype=torch.float64))
     _, f = signature(e, _times(t), names=("g1_phase_1", "g1_phase_3"))
-    flow = theory.g1_flow(np.array([1, 3]) * DT_S, speed_um_per_s=0.7 / (2 * 2 * math.pi / 0.84 * DT_S),
-                          polar_angle_deg=0.0, wavelength_um=0.84, lateral_resolution_um=1e6, axial_resolution_um=1e6)
+    flow = theory.g1_flow(
+        np.array([1, 3]) * DT_S,
+        speed_um_per_s=0.7 / (2 * 2 * math.pi / 0.84 * DT_S),
+        polar_angle_deg=0.0,
+        wavelength_um=0.84,
+        lateral_resolution_um=1e6,
+        axial_resolution_um=1e6,
+    )
     torch.testing.assert_close(f, torch.from_numpy(np.angle(flow))[None, :].expand(4, 2), rtol=0, atol=1e-6)
     torch.testing.assert_close(f[0], torch.tensor([-0.7, -2.1], dtype=torch.float64))
 
@@ -228,11 +235,29 @@ def test_cli_maps_signature_channels(tmp_path, capsys):
 
     t = 32
     data = _ar1(12 * 10, t, 0.7, seed=8).T.reshape(t, 12, 10).numpy().astype(np.complex64)
-    seq_path = write_sequence(tmp_path / "seq.npz", data, {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0},
-                                                          "frame_times_s": _times(t), "system": SYSTEM})
+    seq_path = write_sequence(
+        tmp_path / "seq.npz",
+        data,
+        {"axes": "TZX", "pitch_um": {"z": 1.5, "x": 2.0}, "frame_times_s": _times(t), "system": SYSTEM},
+    )
     out = tmp_path / "maps.npz"
-    assert main(["maps", str(seq_path), "--resolution", "original", "--resolution", "lateral=18", "--signature",
-                 "--out", str(out), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "maps",
+                str(seq_path),
+                "--resolution",
+                "original",
+                "--resolution",
+                "lateral=18",
+                "--signature",
+                "--out",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "intensity only" not in capsys.readouterr().out
     maps = read_maps(out)
     n = len(DEFAULT_FEATURES)
@@ -240,29 +265,69 @@ def test_cli_maps_signature_channels(tmp_path, capsys):
 
     n_xc = len(default_speckle_features(2, n_frames=t))  # --signature adds the speckle channels, after the rest
     assert maps.maps.shape == (6 + 2 * n + n_xc, 12, 10)
-    assert all(c.startswith("xc_") and c.endswith("@original") for c in maps.channels[6 + 2 * n:])
+    assert all(c.startswith("xc_") and c.endswith("@original") for c in maps.channels[6 + 2 * n :])
     bare = tmp_path / "bare.npz"
-    assert main(["maps", str(seq_path), "--resolution", "original", "--resolution", "lateral=18", "--signature",
-                 "--no-speckle", "--out", str(bare), "--no-progress"]) == 0
-    np.testing.assert_array_equal(read_maps(bare).maps, maps.maps[:6 + 2 * n])  # the other channels are unchanged
+    assert (
+        main(
+            [
+                "maps",
+                str(seq_path),
+                "--resolution",
+                "original",
+                "--resolution",
+                "lateral=18",
+                "--signature",
+                "--no-speckle",
+                "--out",
+                str(bare),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
+    np.testing.assert_array_equal(read_maps(bare).maps, maps.maps[: 6 + 2 * n])  # the other channels are unchanged
     maps = read_maps(bare)
     chans = maps.meta["channels"]
-    assert [c["name"] for c in chans[6:6 + n]] == [f"{f}@original" for f in DEFAULT_FEATURES]
+    assert [c["name"] for c in chans[6 : 6 + n]] == [f"{f}@original" for f in DEFAULT_FEATURES]
     lat = [c for c in chans if c["resolution"] == "lateral=18" and c["metric"] == "g1_1"]
     assert len(lat) == 1 and lat[0]["lateral_resolution_um"] == 18.0 and lat[0]["unit"] == "1"
     assert maps.meta["signature"]["intensity_only"] is False
     # the channels are the extractor applied to the (reduced) field, pixel by pixel
     seq = read_sequence(seq_path)
-    red = reduce_resolution(torch.from_numpy(seq.data), pitch_um=seq.pitch_um, system=seq.system,
-                            lateral_resolution_um=18.0, axes="TZX")
+    red = reduce_resolution(
+        torch.from_numpy(seq.data), pitch_um=seq.pitch_um, system=seq.system, lateral_resolution_um=18.0, axes="TZX"
+    )
     _, ref = signature(red.movedim(0, -1), _times(t))
-    got = maps.maps[[i for i, c in enumerate(chans) if c["resolution"] == "lateral=18" and c["metric"] in DEFAULT_FEATURES]]
+    got = maps.maps[
+        [i for i, c in enumerate(chans) if c["resolution"] == "lateral=18" and c["metric"] in DEFAULT_FEATURES]
+    ]
     np.testing.assert_allclose(got, ref.permute(2, 0, 1).numpy(), rtol=1e-5, atol=1e-6)
     # intensity-only input: only the intensity part, and the tool says so
     tifffile.imwrite(tmp_path / "i.tif", (np.abs(data) ** 2).astype(np.float32))
-    assert main(["maps", str(tmp_path / "i.tif"), "--pitch-um", "z=1.5,x=2", "--frame-interval-s", "0.2048",
-                 "--wavelength-um", "0.84", "--lateral-resolution-um", "4.9", "--axial-resolution-um", "3.8",
-                 "--signature", "--no-speckle", "--out", str(tmp_path / "i.npz"), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "maps",
+                str(tmp_path / "i.tif"),
+                "--pitch-um",
+                "z=1.5,x=2",
+                "--frame-interval-s",
+                "0.2048",
+                "--wavelength-um",
+                "0.84",
+                "--lateral-resolution-um",
+                "4.9",
+                "--axial-resolution-um",
+                "3.8",
+                "--signature",
+                "--no-speckle",
+                "--out",
+                str(tmp_path / "i.npz"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "holds intensity only: the signature has only its intensity part" in capsys.readouterr().out
     imaps = read_maps(tmp_path / "i.npz")
     names = [c["metric"] for c in imaps.meta["channels"][3:]]
@@ -313,8 +378,12 @@ def _field_seq(shape, seed, *, volume=False):
 
     t = shape[0]
     e = _ar1(int(np.prod(shape[1:])), t, 0.85, seed=seed).T.reshape(shape).numpy()  # complex128 [T, (Y), Z, X]
-    meta = {"axes": "TYZX" if volume else "TZX", "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 3.0} if volume else {})},
-            "frame_times_s": _times(t), "system": SYSTEM}
+    meta = {
+        "axes": "TYZX" if volume else "TZX",
+        "pitch_um": {"z": 1.5, "x": 2.0, **({"y": 3.0} if volume else {})},
+        "frame_times_s": _times(t),
+        "system": SYSTEM,
+    }
     return SequenceData(data=e, meta=validate_meta(meta, e.shape), source="test.npy")
 
 
@@ -330,14 +399,18 @@ def test_signature_channels_of_small_slabs_equal_the_whole_volume(volume):
     seq = _field_seq((t, 4, 30, 9) if volume else (t, 40, 12), seed=22, volume=volume)
     res = ["original", "lateral=18", "axial=14"]
     names = default_features(t) + ("g1_phase_1", "phase_ramp")
-    small = compute_maps(seq, res, metrics=("liv",), signature=names, slab_elements=t * 9 * 4 * 3,
-                         chunk_pixels=11)
+    small = compute_maps(seq, res, metrics=("liv",), signature=names, slab_elements=t * 9 * 4 * 3, chunk_pixels=11)
     assert small.meta["signature"]["features"] == list(names)
     for r in res:
         target = parse_resolution(r)
-        whole = reduce_resolution(torch.from_numpy(seq.data), pitch_um=seq.pitch_um, system=SYSTEM,
-                                  lateral_resolution_um=target.lateral_resolution_um,
-                                  axial_resolution_um=target.axial_resolution_um, axes=seq.axes)
+        whole = reduce_resolution(
+            torch.from_numpy(seq.data),
+            pitch_um=seq.pitch_um,
+            system=SYSTEM,
+            lateral_resolution_um=target.lateral_resolution_um,
+            axial_resolution_um=target.axial_resolution_um,
+            axes=seq.axes,
+        )
         _, ref = signature(whole.movedim(0, -1), _times(t), names)
         got = np.stack([small[f"{n}@{r}"] for n in names], -1)
         tol = 1e-4 if target.axial_resolution_um else 1e-9

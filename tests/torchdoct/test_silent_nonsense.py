@@ -15,9 +15,19 @@ from torchdoct.measured.io import read_sequence
 
 
 def _meta(n=12, **system):
-    return {"axes": "TZX", "pitch_um": {"z": 2.0, "x": 2.0}, "frame_times_s": [0.2048 * i for i in range(n)],
-            "system": {"name": "s", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
-                       "refractive_index": 1.0, **system}}
+    return {
+        "axes": "TZX",
+        "pitch_um": {"z": 2.0, "x": 2.0},
+        "frame_times_s": [0.2048 * i for i in range(n)],
+        "system": {
+            "name": "s",
+            "wavelength_um": 0.84,
+            "lateral_resolution_um": 4.9,
+            "axial_resolution_um": 3.8,
+            "refractive_index": 1.0,
+            **system,
+        },
+    }
 
 
 def _seq(tmp_path, meta, name="s.npy"):
@@ -32,15 +42,27 @@ def test_frame_times_given_as_strings_are_refused_as_pitches_are(tmp_path, capsy
     meta = _meta()
     meta["frame_times_s"] = [str(t) for t in meta["frame_times_s"]]
     seq = _seq(tmp_path, meta)
-    refused(capsys, tmp_path, ["maps", str(seq), "--metrics", "liv", "--out", str(tmp_path / "m.npz")],
-            "s.npy", "frame_times_s[0]", "number of seconds")
+    refused(
+        capsys,
+        tmp_path,
+        ["maps", str(seq), "--metrics", "liv", "--out", str(tmp_path / "m.npz")],
+        "s.npy",
+        "frame_times_s[0]",
+        "number of seconds",
+    )
 
 
 @pytest.mark.parametrize("n", [1e6, 0.5, 5.01])
 def test_a_refractive_index_outside_the_scene_files_range_is_refused(tmp_path, capsys, n):
     seq = _seq(tmp_path, _meta(refractive_index=n))
-    refused(capsys, tmp_path, ["maps", str(seq), "--metrics", "liv", "--out", str(tmp_path / "m.npz")],
-            "s.npy", "system.refractive_index", "[1, 5]")
+    refused(
+        capsys,
+        tmp_path,
+        ["maps", str(seq), "--metrics", "liv", "--out", str(tmp_path / "m.npz")],
+        "s.npy",
+        "system.refractive_index",
+        "[1, 5]",
+    )
 
 
 @pytest.mark.parametrize("n", [1.0, 1.38, 5.0])
@@ -66,8 +88,24 @@ def test_a_255_character_npy_or_npz_name_is_read_and_mapped(tmp_path, suffix):
         seq = tmp_path / ("x" * (limit - 4) + ".npz")
         np.savez(seq, data=(np.random.default_rng(0).standard_normal((12, 6, 5)) + 1j).astype(np.complex64))
     out = tmp_path / ("m" * (limit - 4) + ".npz")  # a 255-character output: its temporaries fit too
-    assert main(["maps", str(seq), "--axes", "TZX", "--frame-interval-s", "0.2048", "--metrics", "liv",
-                 "--no-progress", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "maps",
+                str(seq),
+                "--axes",
+                "TZX",
+                "--frame-interval-s",
+                "0.2048",
+                "--metrics",
+                "liv",
+                "--no-progress",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert out.exists() and [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
@@ -81,5 +119,11 @@ def test_an_output_whose_derived_names_are_too_long_is_refused_before_the_work(t
     limit = os.pathconf(tmp_path, "PC_NAME_MAX")
     seq = _seq(tmp_path, _meta())
     out = tmp_path / ("m" * (limit - 4) + ".npz")  # legal itself; its PNGs (STEM_liv_original.png) are not
-    refused(capsys, tmp_path, ["maps", str(seq), "--metrics", "liv", "--png", "--out", str(out)],
-            "longer than the file system allows", "give a shorter --out", absent=("Errno",))
+    refused(
+        capsys,
+        tmp_path,
+        ["maps", str(seq), "--metrics", "liv", "--png", "--out", str(out)],
+        "longer than the file system allows",
+        "give a shorter --out",
+        absent=("Errno",),
+    )

@@ -25,13 +25,31 @@ W1310 = td.OCTSystem(name="1310-high", wavelength_um=1.31, lateral_resolution_um
 AX14 = td.OCTSystem(name="840-ax14", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=14.0)
 
 
-def scene(motion=(), *, systems=(HIGH,), rho=0.055, n_frames=32, noise=None, metrics=("liv", "ocds"),
-          delay=(0.2048, 1.2288), populations=None, times=None):
-    protocol = (td.Protocol(n_frames=n_frames, frame_interval_s=DT) if times is None
-                else td.Protocol(n_frames=len(times), frame_times_s=tuple(times)))
+def scene(
+    motion=(),
+    *,
+    systems=(HIGH,),
+    rho=0.055,
+    n_frames=32,
+    noise=None,
+    metrics=("liv", "ocds"),
+    delay=(0.2048, 1.2288),
+    populations=None,
+    times=None,
+):
+    protocol = (
+        td.Protocol(n_frames=n_frames, frame_interval_s=DT)
+        if times is None
+        else td.Protocol(n_frames=len(times), frame_times_s=tuple(times))
+    )
     pops = populations or (td.Population(density_per_um3=rho, motion=tuple(motion)),)
-    return td.Scene(systems=tuple(systems), protocol=protocol, populations=pops, noise=noise,
-                    analysis=td.Analysis(metrics=metrics, ocds_delay_range_s=delay))
+    return td.Scene(
+        systems=tuple(systems),
+        protocol=protocol,
+        populations=pops,
+        noise=noise,
+        analysis=td.Analysis(metrics=metrics, ocds_delay_range_s=delay),
+    )
 
 
 MOTIONS = {
@@ -49,8 +67,7 @@ MOTIONS = {
 
 @pytest.mark.parametrize("kind", list(MOTIONS))
 def test_same_seed_bit_identical_whatever_chunking(kind):
-    sc = scene(MOTIONS[kind], systems=(HIGH, AX14), n_frames=8, noise=td.Noise(snr_db=25.0),
-               delay=(0.2048, 0.6144))
+    sc = scene(MOTIONS[kind], systems=(HIGH, AX14), n_frames=8, noise=td.Noise(snr_db=25.0), delay=(0.2048, 0.6144))
     a = td.simulate(sc, trials=150, seed=3, chunk_trials=64)
     b = td.simulate(sc, trials=150, seed=3, chunk_trials=1000)
     c = td.simulate(sc, trials=300, seed=3, chunk_trials=128)
@@ -64,8 +81,9 @@ def test_systems_share_one_realization():
     """Two identical systems under different names see exactly the same scatterers."""
     twin = td.OCTSystem(name="twin", wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8)
     for motion in MOTIONS.values():
-        res = td.simulate(scene(motion, systems=(HIGH, AX14, twin), n_frames=8, delay=(0.2048, 0.6144)),
-                          trials=64, seed=1)
+        res = td.simulate(
+            scene(motion, systems=(HIGH, AX14, twin), n_frames=8, delay=(0.2048, 0.6144)), trials=64, seed=1
+        )
         assert torch.equal(res.signals[:, 0], res.signals[:, 2])
 
 
@@ -115,9 +133,12 @@ def test_no_per_frame_draws_and_no_noise_unless_asked(kind, monkeypatch):
     duration = 7 * DT
     for n_frames in (8, 32):
         ctr = _Counter(monkeypatch)
-        sc = td.Scene(systems=(HIGH,), protocol=td.Protocol(n_frames=n_frames, frame_interval_s=duration / (n_frames - 1)),
-                      populations=(td.Population(density_per_um3=0.055, motion=MOTIONS[kind]),),
-                      analysis=td.Analysis(metrics=("liv",)))
+        sc = td.Scene(
+            systems=(HIGH,),
+            protocol=td.Protocol(n_frames=n_frames, frame_interval_s=duration / (n_frames - 1)),
+            populations=(td.Population(density_per_um3=0.055, motion=MOTIONS[kind]),),
+            analysis=td.Analysis(metrics=("liv",)),
+        )
         plan = make_plan(sc)
         assert "noise" not in plan.stages and "random walk (per-frame draws)" not in plan.stages
         assert all(not p.per_frame_random_draws for p in plan.populations)
@@ -130,7 +151,10 @@ def test_no_per_frame_draws_and_no_noise_unless_asked(kind, monkeypatch):
         # one evaluation per scatterer, whatever the number of frames
         assert counts[8][1] == counts[32][1]
         assert make_plan(scene((), n_frames=32)).stages == (
-            "seed scatterers", "signal (one evaluation, constant over frames)", "metrics")
+            "seed scatterers",
+            "signal (one evaluation, constant over frames)",
+            "metrics",
+        )
 
 
 def test_noise_stage_draws_once_per_frame_and_system(monkeypatch):
@@ -236,10 +260,14 @@ def test_tiny_motion_follows_small_motion_asymptote(kind, factor, dtype):
     Doubling the parameter with the same seed keeps the scatterers; the median over trials of
     LIV(2p)/LIV(p) must be within 5 % of 2 or 4, in float32 as in float64.
     """
+
     def motion(x):
-        return {"diffusion": (td.Diffusion(diffusion_um2_per_s=1e-6 * x),),
-                "ballistic": (td.RandomBallistic(speed_um_per_s=1e-4 * x),),
-                "flow": (td.Flow(speed_um_per_s=1e-4 * x, polar_angle_deg=45.0),)}[kind]
+        return {
+            "diffusion": (td.Diffusion(diffusion_um2_per_s=1e-6 * x),),
+            "ballistic": (td.RandomBallistic(speed_um_per_s=1e-4 * x),),
+            "flow": (td.Flow(speed_um_per_s=1e-4 * x, polar_angle_deg=45.0),),
+        }[kind]
+
     a = td.simulate(scene(motion(1)), trials=256, seed=1, dtype=dtype).metrics()["liv"][:, 0].double()
     b = td.simulate(scene(motion(2)), trials=256, seed=1, dtype=dtype).metrics()["liv"][:, 0].double()
     assert bool(torch.isfinite(a).all()) and bool((a > 0).all())
@@ -249,8 +277,7 @@ def test_tiny_motion_follows_small_motion_asymptote(kind, factor, dtype):
 
 @pytest.mark.parametrize("kind", ["diffusion", "ballistic", "flow"])
 def test_float32_matches_float64(kind):
-    sc = scene(MOTIONS[kind] if kind != "flow" else (td.Flow(speed_um_per_s=3.0, polar_angle_deg=45.0),),
-               n_frames=32)
+    sc = scene(MOTIONS[kind] if kind != "flow" else (td.Flow(speed_um_per_s=3.0, polar_angle_deg=45.0),), n_frames=32)
     a = td.simulate(sc, trials=128, seed=5, dtype="float32")
     b = td.simulate(sc, trials=128, seed=5, dtype="float64")
     assert a.signals.dtype == torch.complex64 and b.signals.dtype == torch.complex128
@@ -281,11 +308,13 @@ def test_huge_motion_saturates():
 def test_extreme_wavelengths(wavelength):
     system = td.OCTSystem(name="w", wavelength_um=wavelength, lateral_resolution_um=4.9, axial_resolution_um=3.8)
     motion = td.Diffusion(diffusion_um2_per_s=0.002)
-    res = td.simulate(scene((motion,), systems=(system,), n_frames=4, metrics=("liv",)), trials=2048, seed=3,
-                      dtype="float64")
+    res = td.simulate(
+        scene((motion,), systems=(system,), n_frames=4, metrics=("liv",)), trials=2048, seed=3, dtype="float64"
+    )
     E = res.signals[:, 0]
-    g_th = th.g1_diffusion(DT, diffusion_um2_per_s=0.002, wavelength_um=wavelength, lateral_resolution_um=4.9,
-                           axial_resolution_um=3.8)
+    g_th = th.g1_diffusion(
+        DT, diffusion_um2_per_s=0.002, wavelength_um=wavelength, lateral_resolution_um=4.9, axial_resolution_um=3.8
+    )
     est, se_re, _ = batch_means(g1_at_lag(1), E)
     assert_within_se(est.real, float(g_th), se_re, what=f"g1 at {wavelength} µm")
 
@@ -302,8 +331,9 @@ def test_thousand_frame_protocol():
         per_trial = part.double().mean(1)
         assert_within_se(float(per_trial.mean()), mi, float(per_trial.std() / math.sqrt(per_trial.numel())))
     est, se_re, _ = batch_means(g1_at_lag(1), res.signals[:, 0].to(torch.complex128), n_batches=16)
-    g_th = th.g1_diffusion(DT, diffusion_um2_per_s=0.01, wavelength_um=0.84, lateral_resolution_um=4.9,
-                           axial_resolution_um=3.8)
+    g_th = th.g1_diffusion(
+        DT, diffusion_um2_per_s=0.01, wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8
+    )
     assert_within_se(est.real, float(g_th), se_re)
     assert bool(torch.isfinite(res.metrics()["ocds"]).all())
 
@@ -318,10 +348,12 @@ def test_explicit_frame_times():
 
     def g1(x):
         num = sum((x[:, i] * x[:, j].conj()).mean() for i, j in pairs) / len(pairs)
-        return complex(num) / float((x.real ** 2 + x.imag ** 2).mean())
+        return complex(num) / float((x.real**2 + x.imag**2).mean())
+
     est, se_re, _ = batch_means(g1, E)
-    g_th = th.g1_diffusion(0.2048, diffusion_um2_per_s=0.005, wavelength_um=0.84, lateral_resolution_um=4.9,
-                           axial_resolution_um=3.8)
+    g_th = th.g1_diffusion(
+        0.2048, diffusion_um2_per_s=0.005, wavelength_um=0.84, lateral_resolution_um=4.9, axial_resolution_um=3.8
+    )
     assert_within_se(est.real, float(g_th), se_re)
 
 
@@ -339,18 +371,23 @@ def test_noise_power_and_low_snr_liv():
     # noise-dominated: LIV → (N−1)/N·31.03 dB²
     low = td.simulate(scene((), n_frames=16, noise=td.Noise(snr_db=-40.0), metrics=("liv",)), trials=2048, seed=3)
     liv = low.metrics()["liv"][:, 0].double()
-    assert_within_se(float(liv.mean()), 15 / 16 * th.db_variance_gaussian_speckle(),
-                     float(liv.std() / math.sqrt(liv.numel())), what="noise LIV")
+    assert_within_se(
+        float(liv.mean()),
+        15 / 16 * th.db_variance_gaussian_speckle(),
+        float(liv.std() / math.sqrt(liv.numel())),
+        what="noise LIV",
+    )
 
 
 def test_two_populations_add_intensities():
     """70 % static + 30 % diffusing: ⟨I⟩ adds up, and the static part stays correlated forever."""
-    pops = (td.Population(density_per_um3=0.0385, name="static"),
-            td.Population(density_per_um3=0.0165, name="diffusing",
-                          motion=(td.Diffusion(diffusion_um2_per_s=0.5),)))
+    pops = (
+        td.Population(density_per_um3=0.0385, name="static"),
+        td.Population(density_per_um3=0.0165, name="diffusing", motion=(td.Diffusion(diffusion_um2_per_s=0.5),)),
+    )
     res = td.simulate(scene(populations=pops, n_frames=8, metrics=("liv",)), trials=4096, seed=2, dtype="float64")
     E = res.signals[:, 0]
-    mi, se, _ = batch_means(lambda x: float((x.real ** 2 + x.imag ** 2).mean()), E)
+    mi, se, _ = batch_means(lambda x: float((x.real**2 + x.imag**2).mean()), E)
     assert_within_se(mi.real, mean_intensity_theory(0.055, 4.9, 3.8), se, what="<I>")
     est, se_re, _ = batch_means(g1_at_lag(7), E)
     # g1 = 0.7·1 + 0.3·g1_diffusion(7Δt) (≈ 0)
@@ -372,8 +409,8 @@ def _axis_terms_by_quadrature(s, L, v, q, k):
     d = np.linspace(k * L - 12 * math.hypot(sd, s), k * L + 12 * math.hypot(sd, s), 1201)
     dx, dd = x[1] - x[0], d[1] - d[0]
     X, Dd = np.meshgrid(x, d, indexing="ij")
-    nd = np.exp(-Dd**2 / (2 * v)) / math.sqrt(2 * math.pi * v)
-    a = lambda u: np.exp(-u**2 / (2 * s * s))  # noqa: E731
+    nd = np.exp(-(Dd**2) / (2 * v)) / math.sqrt(2 * math.pi * v)
+    a = lambda u: np.exp(-(u**2) / (2 * s * s))  # noqa: E731
     w_norm = math.sqrt(math.pi) * s  # ∫|a|² = ∫ exp(−x²/s²)
     inten = float((a(X) ** 2 * a(X + Dd - k * L) ** 2 * nd).sum() * dx * dd) / w_norm**2
     field = abs(complex((a(X) * a(X + Dd - k * L) * np.exp(1j * q * Dd) * nd).sum() * dx * dd)) / w_norm
@@ -390,7 +427,9 @@ def test_periodic_image_bound_matches_quadrature():
     v = 2 * D * tau
     terms = []
     for a, s in enumerate((s_x, s_x, s_z)):
-        terms.append({k: _axis_terms_by_quadrature(s, 2 * half[a], v, q if a == 2 else 0.0, k) for k in (-2, -1, 0, 1, 2)})
+        terms.append(
+            {k: _axis_terms_by_quadrature(s, 2 * half[a], v, q if a == 2 else 0.0, k) for k in (-2, -1, 0, 1, 2)}
+        )
     prod_all_i = math.prod(sum(t[k][0] for k in t) for t in terms)
     prod_0_i = math.prod(t[0][0] for t in terms)
     prod_all_f = math.prod(sum(t[k][1] for k in t) for t in terms)

@@ -22,11 +22,18 @@ W1310 = td.OCTSystem(name="1310-high", wavelength_um=1.31, lateral_resolution_um
 
 def scene(motion=(), *, systems=(HIGH,), rho=RHO, n_frames=32, dt=DT, noise=None, delay=(0.2048, 1.2288)):
     # OCDS only where its longest delay rests on 2 frame pairs or more (MIN_PAIRS_PER_DELAY)
-    metrics = ("liv", "ocds") if n_frames * dt > delay[0] + delay[1] / 2 and n_frames >= delay[1] / dt + 2 - 1e-9 \
+    metrics = (
+        ("liv", "ocds")
+        if n_frames * dt > delay[0] + delay[1] / 2 and n_frames >= delay[1] / dt + 2 - 1e-9
         else ("liv",)
-    return td.Scene(systems=tuple(systems), protocol=td.Protocol(n_frames=n_frames, frame_interval_s=dt),
-                    populations=(td.Population(density_per_um3=rho, motion=tuple(motion)),),
-                    noise=noise, analysis=td.Analysis(metrics=metrics, ocds_delay_range_s=delay))
+    )
+    return td.Scene(
+        systems=tuple(systems),
+        protocol=td.Protocol(n_frames=n_frames, frame_interval_s=dt),
+        populations=(td.Population(density_per_um3=rho, motion=tuple(motion)),),
+        noise=noise,
+        analysis=td.Analysis(metrics=metrics, ocds_delay_range_s=delay),
+    )
 
 
 CASES = [
@@ -44,14 +51,16 @@ CASES = [
     # Seed 21: with seed 11 one of this case's checks (intensity covariance at lag 2) lands at
     # |z| = 4.2 — batch-means standard errors of intensity covariances are themselves noisy at 4,096
     # trials — while seeds 20-31 all pass and three runs of 8,192 trials agree with theory (|z| ≤ 2.5).
-    pytest.param(td.RandomBallistic(speed_um_per_s=6.0, directions="uniform-angles"), LAT18, 21,
-                 id="ballistic-angles-6-lat18"),
+    pytest.param(
+        td.RandomBallistic(speed_um_per_s=6.0, directions="uniform-angles"), LAT18, 21, id="ballistic-angles-6-lat18"
+    ),
     pytest.param(td.Diffusion(diffusion_um2_per_s=15.0), LAT18, id="diffusion-15-lat18"),
 ]
 
 
-@pytest.mark.parametrize("motion, system, seed", [c if len(c.values) == 3 else pytest.param(*c.values, 11, id=c.id)
-                                                  for c in CASES])
+@pytest.mark.parametrize(
+    "motion, system, seed", [c if len(c.values) == 3 else pytest.param(*c.values, 11, id=c.id) for c in CASES]
+)
 def test_mean_intensity_g1_and_intensity_autocorrelation(motion, system, seed):
     """⟨I⟩ (§5.2), g1(τ) (§5.3) and ⟨I I_τ⟩/⟨I⟩² − 1 = |g1|² + j/N_eff (§5.4) at lags 1, 2, 6."""
     res = td.simulate(scene((motion,), systems=(system,), n_frames=8), trials=4096, seed=seed, dtype="float64")

@@ -28,8 +28,11 @@ def test_check_regular_file_names_the_kind_and_never_says_not_found(tmp_path, ki
     p = special(tmp_path / "x.npy", kind)
     with pytest.raises(files.NotRegularFileError, match="is not a regular file") as err:
         files.check_regular_file(p, "sequence file")
-    assert "sequence file" in str(err.value) and {"fifo": "FIFO", "device": "character device",
-                                                  "directory": "directory"}[kind] in str(err.value)
+    assert "sequence file" in str(err.value) and {
+        "fifo": "FIFO",
+        "device": "character device",
+        "directory": "directory",
+    }[kind] in str(err.value)
     assert "not found" not in str(err.value) and isinstance(err.value, ValueError)
     with pytest.raises(FileNotFoundError, match="no such file"):
         files.check_regular_file(tmp_path / "missing.npy", "sequence file")
@@ -45,10 +48,21 @@ def test_a_link_that_loops_or_leads_nowhere_is_named_as_such(tmp_path, capsys):
     loop.symlink_to("loop.npz")
     dangling = links / "dangling.npz"
     dangling.symlink_to("nowhere.npz")
-    refused(capsys, out, ["maps", str(loop), "--out", str(out / "m.npz"), "--no-progress"], "loop.npz",
-            "a loop of symbolic links")
-    refused(capsys, out, ["maps", str(dangling), "--out", str(out / "m.npz"), "--no-progress"], "dangling.npz",
-            "a symbolic link to nowhere.npz", "does not exist")
+    refused(
+        capsys,
+        out,
+        ["maps", str(loop), "--out", str(out / "m.npz"), "--no-progress"],
+        "loop.npz",
+        "a loop of symbolic links",
+    )
+    refused(
+        capsys,
+        out,
+        ["maps", str(dangling), "--out", str(out / "m.npz"), "--no-progress"],
+        "dangling.npz",
+        "a symbolic link to nowhere.npz",
+        "does not exist",
+    )
 
 
 def test_read_capped_refuses_a_text_file_over_the_cap(tmp_path):
@@ -69,13 +83,15 @@ def _maps_file(tmp_path, seq, capsys) -> Path:
 
 
 @pytest.mark.parametrize("kind", KINDS)
-@pytest.mark.parametrize("role", ["sequence", "sidecar", "maps", "mask", "scene", "sweep", "study", "phantom",
-                                  "to-scene", "label-image"])
+@pytest.mark.parametrize(
+    "role", ["sequence", "sidecar", "maps", "mask", "scene", "sweep", "study", "phantom", "to-scene", "label-image"]
+)
 def test_a_special_file_in_any_input_role_is_refused_at_once(tmp_path, capsys, seq, role, kind):
     d = tmp_path / "in"
     d.mkdir()
-    ext = {"sequence": ".npy", "sidecar": ".json", "maps": ".npz", "mask": ".npy", "label-image": ".npy"}.get(role,
-                                                                                                          ".toml")
+    ext = {"sequence": ".npy", "sidecar": ".json", "maps": ".npz", "mask": ".npy", "label-image": ".npy"}.get(
+        role, ".toml"
+    )
     bad = d / f"bad{ext}"
     if role == "sidecar":
         data = d / "bad.npy"
@@ -84,9 +100,10 @@ def test_a_special_file_in_any_input_role_is_refused_at_once(tmp_path, capsys, s
         (d / "ph.toml").write_text(
             'name = "p"\n[[system]]\nname = "s"\nwavelength_um = 0.84\nlateral_resolution_um = 4.9\n'
             'axial_resolution_um = 3.8\n[protocol]\nn_frames = 2\nframe_interval_s = 0.2\n[analysis]\nmetrics = ["liv"]\n'
-            '[grid]\nn_z = 8\nn_x = 8\npitch_z_um = 2.0\npitch_x_um = 2.0\n'
+            "[grid]\nn_z = 8\nn_x = 8\npitch_z_um = 2.0\npitch_x_um = 2.0\n"
             '[[region]]\nname = "cells"\nshape = "label-image"\nfile = "bad.npy"\nvalue = 7\n'
-            'density_per_um3 = 0.05\n')
+            "density_per_um3 = 0.05\n"
+        )
     special(bad, kind)
     out = d / "o"
     out.mkdir()
@@ -102,8 +119,11 @@ def test_a_special_file_in_any_input_role_is_refused_at_once(tmp_path, capsys, s
     }.get(role)
     if role in ("mask", "to-scene"):
         good = _maps_file(d, seq, capsys)
-        argv = (["compare", str(good), "--mask", str(bad)] if role == "mask"
-                else ["translate", str(good), "--to", str(bad), "--out", str(out / "t.npz")])
+        argv = (
+            ["compare", str(good), "--mask", str(bad)]
+            if role == "mask"
+            else ["translate", str(good), "--to", str(bad), "--out", str(out / "t.npz")]
+        )
     line = refused(capsys, d, argv, "bad", "is not a regular file")
     assert "not found" not in line and "does not exist" not in line and "Errno" not in line
 
@@ -120,8 +140,14 @@ def test_a_sidecar_linked_to_an_endless_device_is_not_read(tmp_path, capsys, seq
     side = seq.with_suffix(".json")
     side.unlink()
     side.symlink_to("/dev/zero")
-    refused(capsys, tmp_path, ["maps", str(seq), "--out", str(tmp_path / "m.npz")], "sidecar", "seq.json",
-            "character device")
+    refused(
+        capsys,
+        tmp_path,
+        ["maps", str(seq), "--out", str(tmp_path / "m.npz")],
+        "sidecar",
+        "seq.json",
+        "character device",
+    )
 
 
 def test_a_sidecar_over_the_text_cap_is_refused_naming_it(tmp_path, capsys, seq, monkeypatch):
@@ -152,8 +178,9 @@ def test_a_special_file_inside_a_zarr_store_is_refused_before_zarr_opens_it(tmp_
         store = tmp_path / "maps.zarr"
         write_maps(store, maps(volume=False))
         code = "from torchdoct.measured.io import read_maps as r"
-    chunk = next(p for p in sorted(store.rglob("*")) if p.is_file() and not p.name.startswith(".")
-                 and p.name != "zarr.json")
+    chunk = next(
+        p for p in sorted(store.rglob("*")) if p.is_file() and not p.name.startswith(".") and p.name != "zarr.json"
+    )
     chunk.unlink()
     special(chunk, kind)
     script = f"{code}\ntry:\n    r({str(store)!r})\nexcept ValueError as e:\n    print(e)\n    raise SystemExit(2)\n"

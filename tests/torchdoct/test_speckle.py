@@ -51,6 +51,7 @@ def flow_bscan():
 
     def d(i):
         return (v[0] * i * DT, v[1] * i * DT)
+
     return v, translated_speckle(48, (32, 32), (S_Z, S_X), d, seed=11)
 
 
@@ -76,12 +77,13 @@ def test_translated_gaussian_speckle_keeps_correlation_one_at_its_peak():
 
     def d(i):
         return (v[0] * i * DT, v[1] * i * DT)
+
     field = translated_speckle(48, (40, 40), (S_Z, S_X), d, seed=21)
     n_ind = effective_count(w, 1.0, S_X) * effective_count(w, 1.0, S_Z)
     f = centre_features(field, ("xc_centre_8", "xc_centre_16", "xc_peak_16"), window=w)
     for i, m in enumerate((8, 16)):
         dz, dx = v[0] * m * DT, v[1] * m * DT
-        expect = math.exp(-dx ** 2 / (2 * S_X ** 2) - dz ** 2 / (2 * S_Z ** 2))
+        expect = math.exp(-(dx**2) / (2 * S_X**2) - dz**2 / (2 * S_Z**2))
         mean, se = _mean_se(f[:, i])
         assert abs(mean - expect) < Z_SE * se + 1.0 / n_ind, (m, mean, expect, se)
     mean, se = _mean_se(f[:, 2])
@@ -95,6 +97,7 @@ def test_direction_symmetric_motion_has_no_antisymmetric_part(flow_bscan):
 
     def back(i):
         return (-v[0] * i * DT, -v[1] * i * DT)
+
     field2 = translated_speckle(48, (32, 32), (S_Z, S_X), back, seed=12)
     names = ("xc_shift_z_16", "xc_shift_x_16", "xc_velocity_z", "xc_velocity_x", "xc_share_16")
     sym = centre_features(field + field2, names)
@@ -140,6 +143,7 @@ def test_volume_sees_the_offset_along_y():
 
     def d(i):
         return (v[0] * i * DT, v[1] * i * DT, v[2] * i * DT)
+
     field = translated_speckle(24, (16, 16, 16), (S_X, S_Z, S_X), d, seed=5)
     f = centre_features(field, ("xc_velocity_y", "xc_velocity_z", "xc_velocity_x"), ndim=3, window=5)
     for i, expect in enumerate(v):
@@ -157,13 +161,16 @@ def test_invalid_pixel_is_nan_and_leaves_its_neighbours_defined(flow_bscan):
     assert torch.isfinite(f[0, :, 8, 9]).all()
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"window": 4}, "odd"),
-    ({"max_offset": 0}, "max_offset"),
-    ({"names": ("xc_centre_31",)}, "lag"),
-    ({"names": ("xc_shift_y_2",)}, "no axis"),
-    ({"names": ("xc_bogus_2",)}, "unknown speckle feature"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"window": 4}, "odd"),
+        ({"max_offset": 0}, "max_offset"),
+        ({"names": ("xc_centre_31",)}, "lag"),
+        ({"names": ("xc_shift_y_2",)}, "no axis"),
+        ({"names": ("xc_bogus_2",)}, "unknown speckle feature"),
+    ],
+)
 def test_bad_arguments_are_refused(kwargs, match):
     x = torch.rand(1, T, 12, 12, generator=torch.Generator().manual_seed(0)) + 0.1
     with pytest.raises(ValueError, match=match):

@@ -52,13 +52,21 @@ def tiny_run(tmp_path_factory):
 def test_shipped_paper_study_matches_the_paper_design():
     st = load_study("paper")
     assert st.trials == 500 and st.dtype == "float32" and st.grouping in ("pairs", "all")
-    systems = {s["name"]: (s["wavelength_um"], s["lateral_resolution_um"], s["axial_resolution_um"])
-               for s in st.scene_data["system"]}
-    assert systems == {"840nm-high": (0.84, 4.9, 3.8), "1310nm-high": (1.31, 4.9, 3.8),
-                       "840nm-axial14": (0.84, 4.9, 14.0), "840nm-lateral18": (0.84, 18.0, 3.8)}
+    systems = {
+        s["name"]: (s["wavelength_um"], s["lateral_resolution_um"], s["axial_resolution_um"])
+        for s in st.scene_data["system"]
+    }
+    assert systems == {
+        "840nm-high": (0.84, 4.9, 3.8),
+        "1310nm-high": (1.31, 4.9, 3.8),
+        "840nm-axial14": (0.84, 4.9, 14.0),
+        "840nm-lateral18": (0.84, 18.0, 3.8),
+    }
     assert {(c.name, c.reference, c.other) for c in st.comparisons} == {
-        ("wavelength", "840nm-high", "1310nm-high"), ("axial", "840nm-high", "840nm-axial14"),
-        ("lateral", "840nm-high", "840nm-lateral18")}
+        ("wavelength", "840nm-high", "1310nm-high"),
+        ("axial", "840nm-high", "840nm-axial14"),
+        ("lateral", "840nm-high", "840nm-lateral18"),
+    }
     assert st.scene_data["population"][0]["density_per_um3"] == 0.055
     assert st.scene_data["protocol"] == {"n_frames": 32, "frame_interval_s": 0.2048}
     assert st.scene_data["analysis"]["ocds_delay_range_s"] == [0.2048, 1.2288]
@@ -74,17 +82,23 @@ def test_shipped_paper_study_matches_the_paper_design():
     assert load_study("paper-reduced").trials < st.trials
 
 
-@pytest.mark.parametrize("change, match", [
-    (lambda d: d["study"].update(colour="blue"), r"study: unknown key\(s\) \['colour'\]"),
-    (lambda d: d["study"]["comparison"][0].update(other="900nm"), r"comparison\[0\].other: '900nm' is not a system"),
-    (lambda d: d["study"].update(figure_parts=["diffusion", "nope", "flow"]), "'nope' is not a part"),
-    (lambda d: d["study"].update(direction_parts=["ballistic", "flow"]), "differ only in directions"),
-    (lambda d: d["part"][0].update(parameter="speed_um_per_s"), "is not a key of part"),
-    (lambda d: d["part"][0]["motion"].update(diffusion_um2_per_s=-1.0), r"part\[0\].motion"),
-    (lambda d: d["part"][0].update(values=[0.0, -1.0]), "values must be numbers >= 0"),
-    (lambda d: d["study"].update(grouping="triples"), "grouping"),
-    (lambda d: d["scene"]["system"][0].update(wavelength_um=840.0), "micrometres"),
-])
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (lambda d: d["study"].update(colour="blue"), r"study: unknown key\(s\) \['colour'\]"),
+        (
+            lambda d: d["study"]["comparison"][0].update(other="900nm"),
+            r"comparison\[0\].other: '900nm' is not a system",
+        ),
+        (lambda d: d["study"].update(figure_parts=["diffusion", "nope", "flow"]), "'nope' is not a part"),
+        (lambda d: d["study"].update(direction_parts=["ballistic", "flow"]), "differ only in directions"),
+        (lambda d: d["part"][0].update(parameter="speed_um_per_s"), "is not a key of part"),
+        (lambda d: d["part"][0]["motion"].update(diffusion_um2_per_s=-1.0), r"part\[0\].motion"),
+        (lambda d: d["part"][0].update(values=[0.0, -1.0]), "values must be numbers >= 0"),
+        (lambda d: d["study"].update(grouping="triples"), "grouping"),
+        (lambda d: d["scene"]["system"][0].update(wavelength_um=840.0), "micrometres"),
+    ],
+)
 def test_study_file_errors_name_the_key(change, match):
     data = tiny_study_dict()
     change(data)
@@ -136,18 +150,24 @@ def test_paired_differences_are_the_per_trial_differences(tiny_run):
     d = r.differences
     assert len(d) == 4 * 3 * 3 * 2  # parts × comparisons × values × metrics
     ok = d["n"] == d["trials"]
-    np.testing.assert_allclose(d.loc[ok, "diff"], d.loc[ok, "mean_other"] - d.loc[ok, "mean_reference"],
-                               rtol=1e-9, atol=1e-9)
-    row = d[(d["part"] == "diffusion") & (d["comparison"] == "axial") & (d["value"] == 0.01)
-            & (d["metric"] == "liv")].iloc[0]
+    np.testing.assert_allclose(
+        d.loc[ok, "diff"], d.loc[ok, "mean_other"] - d.loc[ok, "mean_reference"], rtol=1e-9, atol=1e-9
+    )
+    row = d[
+        (d["part"] == "diffusion") & (d["comparison"] == "axial") & (d["value"] == 0.01) & (d["metric"] == "liv")
+    ].iloc[0]
     cell = next(c for c in r.sweep_result.of_sweep("diffusion/axial") if c.cell.values["value"] == 0.01)
-    per = (cell.metrics["liv"][:, 1].astype(np.float64) - cell.metrics["liv"][:, 0])
+    per = cell.metrics["liv"][:, 1].astype(np.float64) - cell.metrics["liv"][:, 0]
     assert row["diff"] == pytest.approx(per.mean(), rel=1e-12)
     assert row["se"] == pytest.approx(per.std(ddof=1) / math.sqrt(per.size), rel=1e-12)
     # the reference system's numbers in the table are the same cell's
     t = r.table
-    ref = t[(t["sweep"] == "diffusion/axial") & (t["value"] == 0.01) & (t["metric"] == "liv")
-            & (t["system"] == "840nm-high")].iloc[0]
+    ref = t[
+        (t["sweep"] == "diffusion/axial")
+        & (t["value"] == 0.01)
+        & (t["metric"] == "liv")
+        & (t["system"] == "840nm-high")
+    ].iloc[0]
     assert ref["mean"] == pytest.approx(row["mean_reference"], rel=1e-12)
 
 
@@ -187,8 +207,18 @@ def test_claims_report_quotes_the_tables(tiny_run):
     _, r = tiny_run
     text = (r.files[0].parent / "claims.md").read_text(encoding="utf-8")
     assert text == r.report
-    for s in ("## Claims", "§3.3.1, Fig. 6(a)", "§3.3.2, Fig. 7(a)", "§3.3.2, Fig. 8(f)", "§4.1", "§4.2 (P2)",
-              "§4.2 (P12, P13)", "1.2 µm²/s", "isotropic", "## Where this run disagrees"):
+    for s in (
+        "## Claims",
+        "§3.3.1, Fig. 6(a)",
+        "§3.3.2, Fig. 7(a)",
+        "§3.3.2, Fig. 8(f)",
+        "§4.1",
+        "§4.2 (P2)",
+        "§4.2 (P12, P13)",
+        "1.2 µm²/s",
+        "isotropic",
+        "## Where this run disagrees",
+    ):
         assert s in text, s
     rows = [ln for ln in text.splitlines() if re.match(r"^\| \d+ \|", ln)]
     assert len(rows) >= 40
@@ -250,8 +280,10 @@ def test_grouping_all_runs_every_comparison_from_one_scene(tmp_path):
 def test_cli_study(tmp_path, capsys):
     path = write_tiny_study(tmp_path)
     out = tmp_path / "out"
-    assert main(["study", str(path), "--out", str(out), "--no-progress", "--cache", str(tmp_path / "c"),
-                 "--workers", "1"]) == 0
+    assert (
+        main(["study", str(path), "--out", str(out), "--no-progress", "--cache", str(tmp_path / "c"), "--workers", "1"])
+        == 0
+    )
     text = capsys.readouterr().out
     assert "36 cells (36 computed, 0 from the cache)" in text and f"wrote {out / 'claims.md'}" in text
     assert not (out / "cache").exists() and any((tmp_path / "c").glob("*.npz"))
@@ -261,7 +293,9 @@ def test_cli_study(tmp_path, capsys):
 
 def test_cli_bench_study(tmp_path, capsys):
     path = write_tiny_study(tmp_path)
-    path.write_text(path.read_text().replace("[0.0, 0.01, 1.0]", "[0.0, 0.01]").replace("[0.0, 0.1, 3.0]", "[0.0, 0.1]"))
+    path.write_text(
+        path.read_text().replace("[0.0, 0.01, 1.0]", "[0.0, 0.01]").replace("[0.0, 0.1, 3.0]", "[0.0, 0.1]")
+    )
     out = tmp_path / "bench.json"
     assert main(["bench", "study", "--study", str(path), "--out", str(out), "--no-progress", "--workers", "1"]) == 0
     res = json.loads(out.read_text())
@@ -284,12 +318,17 @@ def test_notebook_runs_top_to_bottom_on_the_reduced_study(tmp_path, monkeypatch)
     monkeypatch.setenv("TORCHDOCT_STUDY_OUT", str(out))
     nb = nbformat.read(NOTEBOOK, as_version=4)
     assert all(not c.get("outputs") for c in nb.cells if c.cell_type == "code")  # stored without outputs
-    nbclient.NotebookClient(nb, timeout=1200, kernel_name="python3",
-                            resources={"metadata": {"path": str(tmp_path)}}).execute()
+    nbclient.NotebookClient(
+        nb, timeout=1200, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
+    ).execute()
     for f in ("results.parquet", "claims.md", "fig6-wavelength.png", "fig7-axial.png", "fig8-lateral.png"):
         assert (out / f).is_file()
-    text = "".join(str(o.get("text", "")) + json.dumps(o.get("data", {})) for c in nb.cells if c.cell_type == "code"
-                   for o in c.get("outputs", []))
+    text = "".join(
+        str(o.get("text", "")) + json.dumps(o.get("data", {}))
+        for c in nb.cells
+        if c.cell_type == "code"
+        for o in c.get("outputs", [])
+    )
     assert "image/png" in text and "Claims" in text
     assert not any(o.get("output_type") == "error" for c in nb.cells for o in c.get("outputs", []))
 
@@ -298,8 +337,25 @@ def test_notebook_runs_top_to_bottom_on_the_reduced_study(tmp_path, monkeypatch)
 def test_bench_study_groupings(tmp_path, capsys):
     out = tmp_path / "bench.json"
     path = write_tiny_study(tmp_path)
-    assert main(["bench", "study", "--study", str(path), "--groupings", "--grouping-trials", "64",
-                 "--out", str(out), "--no-progress", "--workers", "2"]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "study",
+                "--study",
+                str(path),
+                "--groupings",
+                "--grouping-trials",
+                "64",
+                "--out",
+                str(out),
+                "--no-progress",
+                "--workers",
+                "2",
+            ]
+        )
+        == 0
+    )
     res = json.loads(out.read_text())
     assert {g["part"] for g in res["groupings"]} == {"diffusion", "ballistic", "flow"}
     assert all(g["all_s"] > 0 and g["pairs_s"] > 0 for g in res["groupings"])

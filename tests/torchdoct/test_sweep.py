@@ -105,22 +105,30 @@ def test_field_values_linear_log_explicit_and_union():
     assert all(float(f"{v:.12g}") == v for v in lg)  # rounded to 12 significant digits
     # explicit values keep their order; several sources give the sorted union without duplicates
     assert field_values({"values": [3.0, 1.0, 2.0]}) == (3.0, 1.0, 2.0)
-    u = field_values({"values": [0.0, 1.0], "log": {"start": 0.1, "stop": 1.0, "num": 2},
-                      "linear": {"start": 1.0, "stop": 3.0, "num": 3}})
+    u = field_values(
+        {
+            "values": [0.0, 1.0],
+            "log": {"start": 0.1, "stop": 1.0, "num": 2},
+            "linear": {"start": 1.0, "stop": 3.0, "num": 3},
+        }
+    )
     assert u == (0.0, 0.1, 1.0, 2.0, 3.0)
     assert field_values({"values": ["isotropic", "uniform-angles"]}) == ("isotropic", "uniform-angles")
     assert field_values({"linear": {"start": 2.0, "stop": 0.0, "num": 3}}) == (2.0, 1.0, 0.0)
 
 
-@pytest.mark.parametrize("spec, match", [
-    ({}, "gives no values"),
-    ({"log": {"start": 0.0, "stop": 1.0, "num": 3}}, "start and stop must be > 0"),
-    ({"linear": {"start": 0.0, "stop": 1.0, "num": 0}}, "num: must be >= 1"),
-    ({"linear": {"start": 0.0, "stop": 1.0}}, "missing"),
-    ({"linear": {"start": 0.0, "stop": 1.0, "num": 3, "step": 1}}, "unknown"),
-    ({"values": ["a"], "linear": {"start": 0.0, "stop": 1.0, "num": 2}}, "non-numeric"),
-    ({"linear": {"start": float("nan"), "stop": 1.0, "num": 2}}, "finite"),
-])
+@pytest.mark.parametrize(
+    "spec, match",
+    [
+        ({}, "gives no values"),
+        ({"log": {"start": 0.0, "stop": 1.0, "num": 3}}, "start and stop must be > 0"),
+        ({"linear": {"start": 0.0, "stop": 1.0, "num": 0}}, "num: must be >= 1"),
+        ({"linear": {"start": 0.0, "stop": 1.0}}, "missing"),
+        ({"linear": {"start": 0.0, "stop": 1.0, "num": 3, "step": 1}}, "unknown"),
+        ({"values": ["a"], "linear": {"start": 0.0, "stop": 1.0, "num": 2}}, "non-numeric"),
+        ({"linear": {"start": float("nan"), "stop": 1.0, "num": 2}}, "finite"),
+    ],
+)
 def test_field_values_errors_name_the_field(spec, match):
     with pytest.raises(SceneError, match=match) as err:
         field_values(spec, "sweep.field[2]")
@@ -135,12 +143,17 @@ def test_field_values_type_errors():
 
 
 def test_product_and_zip_cells():
-    fields = [{"path": D_PATH, "name": "D", "values": [0.0, 0.1, 1.0]},
-              {"path": "system.1.axial_resolution_um", "name": "dz_1310", "values": [3.8, 14.0]}]
+    fields = [
+        {"path": D_PATH, "name": "D", "values": [0.0, 0.1, 1.0]},
+        {"path": "system.1.axial_resolution_um", "name": "dz_1310", "values": [3.8, 14.0]},
+    ]
     prod = make_sweep(BASE, fields)
     assert len(prod.cells) == 6
-    assert [c.values for c in prod.cells[:3]] == [{"D": 0.0, "dz_1310": 3.8}, {"D": 0.0, "dz_1310": 14.0},
-                                                  {"D": 0.1, "dz_1310": 3.8}]
+    assert [c.values for c in prod.cells[:3]] == [
+        {"D": 0.0, "dz_1310": 3.8},
+        {"D": 0.0, "dz_1310": 14.0},
+        {"D": 0.1, "dz_1310": 3.8},
+    ]
     c = prod.cells[1]
     assert c.scene.systems[1].axial_resolution_um == 14.0 and c.scene.systems[0].axial_resolution_um == 3.8
     assert c.scene.populations[0].motion[0].diffusion_um2_per_s == 0.0
@@ -153,24 +166,32 @@ def test_product_and_zip_cells():
 def test_missing_tables_are_created_and_single_tables_accepted():
     base = {k: v for k, v in BASE.items() if k != "population"}
     base["population"] = {"density_per_um3": 0.055, "motion": {"kind": "flow", "speed_um_per_s": 1.0}}
-    sw = make_sweep(base, [{"path": "noise.snr_db", "values": [20.0, 40.0]},
-                           {"path": "population.0.motion.0.speed_um_per_s", "values": [0.5]}])
+    sw = make_sweep(
+        base,
+        [
+            {"path": "noise.snr_db", "values": [20.0, 40.0]},
+            {"path": "population.0.motion.0.speed_um_per_s", "values": [0.5]},
+        ],
+    )
     assert [c.scene.noise.snr_db for c in sw.cells] == [20.0, 40.0]
     assert sw.cells[0].scene.populations[0].motion[0].speed_um_per_s == 0.5
     assert [f.name for f in sw.fields] == ["snr_db", "speed_um_per_s"]
 
 
-@pytest.mark.parametrize("field, match", [
-    ({"path": "system.2.axial_resolution_um", "values": [3.0]}, r"system has 2 entries \(indices 0..1\)"),
-    ({"path": "system.first.axial_resolution_um", "values": [3.0]}, "is an array; 'first' is not an index"),
-    ({"path": "protocol.n_frames.x", "values": [3.0]}, "is a value"),
-    ({"path": "system.0.axial_resolution_mm", "values": [3.0]}, "unknown key"),
-    ({"path": "system.0.axial_resolution_um", "values": [-3.0]}, "must be > 0"),
-    ({"path": "simulation.seed", "values": [1, 2]}, "cannot be swept|trials and seed"),
-    ({"path": "population..density_per_um3", "values": [0.1]}, "empty segment"),
-    ({"path": D_PATH, "name": "mean", "values": [0.1]}, "column of the table"),
-    ({"path": D_PATH, "values": [0.1], "step": 2}, "unknown key"),
-])
+@pytest.mark.parametrize(
+    "field, match",
+    [
+        ({"path": "system.2.axial_resolution_um", "values": [3.0]}, r"system has 2 entries \(indices 0..1\)"),
+        ({"path": "system.first.axial_resolution_um", "values": [3.0]}, "is an array; 'first' is not an index"),
+        ({"path": "protocol.n_frames.x", "values": [3.0]}, "is a value"),
+        ({"path": "system.0.axial_resolution_mm", "values": [3.0]}, "unknown key"),
+        ({"path": "system.0.axial_resolution_um", "values": [-3.0]}, "must be > 0"),
+        ({"path": "simulation.seed", "values": [1, 2]}, "cannot be swept|trials and seed"),
+        ({"path": "population..density_per_um3", "values": [0.1]}, "empty segment"),
+        ({"path": D_PATH, "name": "mean", "values": [0.1]}, "column of the table"),
+        ({"path": D_PATH, "values": [0.1], "step": 2}, "unknown key"),
+    ],
+)
 def test_bad_fields_name_the_path_and_fix(field, match):
     with pytest.raises(SceneError, match=match) as err:
         make_sweep(BASE, [field])
@@ -189,14 +210,22 @@ def test_bad_cell_error_names_the_cell_and_path():
 
 def test_duplicate_fields_and_cells_are_rejected():
     with pytest.raises(SceneError, match="swept twice"):
-        make_sweep(BASE, [{"path": D_PATH, "name": "a", "values": [0.1]}, {"path": D_PATH, "name": "b", "values": [1.0]}])
+        make_sweep(
+            BASE, [{"path": D_PATH, "name": "a", "values": [0.1]}, {"path": D_PATH, "name": "b", "values": [1.0]}]
+        )
     with pytest.raises(SceneError, match="cells 0 and 2 are the same"):
         make_sweep(BASE, [{"path": D_PATH, "values": [0.1, 1.0, 0.1]}])
     with pytest.raises(SceneError, match="cells 0 and 1 are the same"):
         make_sweep(BASE, [{"path": D_PATH, "values": [0.1, 0.1]}, {"path": "name", "values": ["x", "x"]}], mode="zip")
     # a repeated value in one zipped field is fine when the cells differ
-    assert len(make_sweep(BASE, [{"path": D_PATH, "values": [0.1, 0.1]}, {"path": "name", "values": ["x", "y"]}],
-                          mode="zip").cells) == 2
+    assert (
+        len(
+            make_sweep(
+                BASE, [{"path": D_PATH, "values": [0.1, 0.1]}, {"path": "name", "values": ["x", "y"]}], mode="zip"
+            ).cells
+        )
+        == 2
+    )
 
 
 def test_parse_sweep_validates_the_scene_without_the_sweep_table(tmp_path):
@@ -236,19 +265,37 @@ def test_cell_seed_depends_on_base_seed_and_key_only():
 def test_cache_key_covers_what_changes_the_numbers(monkeypatch):
     scene = _sweep([0.1]).cells[0].scene
     k = cache_key(scene, seed=1, trials=64, dtype="float32", tolerance=1e-3)
-    assert k == cache_key(scene.replace(name="other", description="renamed"), seed=1, trials=64, dtype="float32",
-                          tolerance=1e-3)
-    changed = [cache_key(scene, seed=2, trials=64, dtype="float32", tolerance=1e-3),
-               cache_key(scene, seed=1, trials=128, dtype="float32", tolerance=1e-3),
-               cache_key(scene, seed=1, trials=64, dtype="float64", tolerance=1e-3),
-               cache_key(scene, seed=1, trials=64, dtype="float32", tolerance=1e-4),
-               cache_key(scene_from_dict({**BASE, "protocol": {"n_frames": 9, "frame_interval_s": 0.2048}}),
-                         seed=1, trials=64, dtype="float32", tolerance=1e-3),
-               cache_key(scene.replace(simulation=torchdoct.SimulationSettings(truncation="hard")),
-                         seed=1, trials=64, dtype="float32", tolerance=1e-3)]
+    assert k == cache_key(
+        scene.replace(name="other", description="renamed"), seed=1, trials=64, dtype="float32", tolerance=1e-3
+    )
+    changed = [
+        cache_key(scene, seed=2, trials=64, dtype="float32", tolerance=1e-3),
+        cache_key(scene, seed=1, trials=128, dtype="float32", tolerance=1e-3),
+        cache_key(scene, seed=1, trials=64, dtype="float64", tolerance=1e-3),
+        cache_key(scene, seed=1, trials=64, dtype="float32", tolerance=1e-4),
+        cache_key(
+            scene_from_dict({**BASE, "protocol": {"n_frames": 9, "frame_interval_s": 0.2048}}),
+            seed=1,
+            trials=64,
+            dtype="float32",
+            tolerance=1e-3,
+        ),
+        cache_key(
+            scene.replace(simulation=torchdoct.SimulationSettings(truncation="hard")),
+            seed=1,
+            trials=64,
+            dtype="float32",
+            tolerance=1e-3,
+        ),
+    ]
     # the default truncation is the taper: a scene that names it has the same key
-    assert k == cache_key(scene.replace(simulation=torchdoct.SimulationSettings(truncation="taper")), seed=1,
-                          trials=64, dtype="float32", tolerance=1e-3)
+    assert k == cache_key(
+        scene.replace(simulation=torchdoct.SimulationSettings(truncation="taper")),
+        seed=1,
+        trials=64,
+        dtype="float32",
+        tolerance=1e-3,
+    )
     monkeypatch.setattr(torchdoct, "__version__", "0.0.0-test")
     changed.append(cache_key(scene, seed=1, trials=64, dtype="float32", tolerance=1e-3))
     assert len({k, *changed}) == len(changed) + 1
@@ -308,14 +355,16 @@ def test_cache_resumes_and_reruns_only_changed_cells(tmp_path):
     assert (again.computed, again.cached) == (1, 2)
     pd.testing.assert_frame_equal(again.table(), run_sweep(_sweep([0.0, 0.1, 1.0])).table())
     # renaming the scene changes nothing; more trials or another density recompute everything
-    renamed = make_sweep({**BASE, "description": "same cells"}, [{"path": D_PATH, "name": "D_um2_per_s",
-                                                                   "values": [0.0, 0.1]}])
+    renamed = make_sweep(
+        {**BASE, "description": "same cells"}, [{"path": D_PATH, "name": "D_um2_per_s", "values": [0.0, 0.1]}]
+    )
     assert run_sweep(renamed, cache_dir=cache).computed == 0
     assert run_sweep(_sweep([0.0, 0.1]), cache_dir=cache, trials=128).computed == 2
-    denser = {**BASE, "population": [{"density_per_um3": 0.06,
-                                      "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.1}]}]}
-    r = run_sweep(make_sweep(denser, [{"path": D_PATH, "name": "D_um2_per_s", "values": [0.0, 0.1]}]),
-                  cache_dir=cache)
+    denser = {
+        **BASE,
+        "population": [{"density_per_um3": 0.06, "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.1}]}],
+    }
+    r = run_sweep(make_sweep(denser, [{"path": D_PATH, "name": "D_um2_per_s", "values": [0.0, 0.1]}]), cache_dir=cache)
     assert r.computed == 2
     assert [c.seed for c in r.cells] == [c.seed for c in first.cells]  # same keys: same seeds
 
@@ -332,8 +381,12 @@ def test_unreadable_cache_entry_is_recomputed(tmp_path):
 
 def test_run_argument_errors():
     sw = _sweep([0.1])
-    for kw, match in (({"batch_cells": 0}, "batch_cells"), ({"trials": 0}, "trials"), ({"dtype": "float16"}, "dtype"),
-                      ({"tolerance": 2.0}, "tolerance")):
+    for kw, match in (
+        ({"batch_cells": 0}, "batch_cells"),
+        ({"trials": 0}, "trials"),
+        ({"dtype": "float16"}, "dtype"),
+        ({"tolerance": 2.0}, "tolerance"),
+    ):
         with pytest.raises(ValueError, match=match):
             run_sweep(sw, **kw)
     with pytest.raises(ValueError, match="unique"):
@@ -372,8 +425,10 @@ def test_cli_sweep_resumes_and_refuses_to_overwrite(tmp_path, capsys):
     assert "pass --force" in capsys.readouterr().err
     assert main(["sweep", str(path), "--out", str(out), "--no-progress", "--force"]) == 0
     assert "(0 computed, 3 from the cache)" in capsys.readouterr().out
-    assert main(["sweep", str(path), "--out", str(out), "--force", "--no-progress", "--trials", "128",
-                 "--workers", "2"]) == 0  # two cells side by side
+    assert (
+        main(["sweep", str(path), "--out", str(out), "--force", "--no-progress", "--trials", "128", "--workers", "2"])
+        == 0
+    )  # two cells side by side
     assert "(3 computed, 0 from the cache)" in capsys.readouterr().out
     t = pd.read_parquet(out / "results.parquet")
     assert t["trials"].eq(128).all()
@@ -387,7 +442,9 @@ def test_dask_local_cluster_gives_identical_numbers(tmp_path):
     distributed = pytest.importorskip("dask.distributed")
     sw = _sweep([0.0, 0.01, 0.1])
     local = run_sweep(sw).table()
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
         remote = run_sweep(sw, scheduler=cluster.scheduler_address, batch_cells=2, cache_dir=tmp_path / "c").table()
     pd.testing.assert_frame_equal(local, remote)
     assert len(list((tmp_path / "c").glob("*.npz"))) == 3  # the client writes the cache

@@ -47,16 +47,30 @@ def test_a_million_cell_product_is_refused_before_any_cell_is_built(tmp_path, ca
     monkeypatch.setattr(sweep, "scene_from_dict", lambda d: built.append(1) or real(d))
     f = tmp_path / "big.toml"
     f.write_text(BASE.format(a=1000, b=1000))
-    line = refused(capsys, tmp_path, ["sweep", str(f), "--out", str(tmp_path / "o")],
-                   "big.toml", "1,000,000 cells", "cap of 10,000", "--max-cells", "GB")
+    line = refused(
+        capsys,
+        tmp_path,
+        ["sweep", str(f), "--out", str(tmp_path / "o")],
+        "big.toml",
+        "1,000,000 cells",
+        "cap of 10,000",
+        "--max-cells",
+        "GB",
+    )
     assert "1000 × 1000" in line and len(built) <= 2  # the base scene and the one cell of the estimate
 
 
 def test_a_huge_num_is_refused_before_its_values_are_made(tmp_path, capsys):
     f = tmp_path / "num.toml"
-    f.write_text(BASE.format(a=10 ** 12, b=2))
-    refused(capsys, tmp_path, ["sweep", str(f), "--out", str(tmp_path / "o")],
-            "sweep.field[0].linear.num", "1,000,000,000,000", "--max-cells")
+    f.write_text(BASE.format(a=10**12, b=2))
+    refused(
+        capsys,
+        tmp_path,
+        ["sweep", str(f), "--out", str(tmp_path / "o")],
+        "sweep.field[0].linear.num",
+        "1,000,000,000,000",
+        "--max-cells",
+    )
 
 
 def test_max_cells_moves_the_cap_both_ways():

@@ -69,15 +69,18 @@ def test_diffusion_closed_forms_match_gaussian_expectation(system):
     sx, sz = _widths(lat, ax)
     q = 2.0 * wavenumber_per_um(wl)
     for diff in DIFFUSIONS:
-        g1 = th.g1_diffusion(LAGS_S, diffusion_um2_per_s=diff, wavelength_um=wl,
-                             lateral_resolution_um=lat, axial_resolution_um=ax)
+        g1 = th.g1_diffusion(
+            LAGS_S, diffusion_um2_per_s=diff, wavelength_um=wl, lateral_resolution_um=lat, axial_resolution_um=ax
+        )
         j = th.j_diffusion(LAGS_S, diffusion_um2_per_s=diff, lateral_resolution_um=lat, axial_resolution_um=ax)
         for i, tau in enumerate(LAGS_S):
             sigma = math.sqrt(2.0 * diff * tau)
-            g1_num = (_gauss_expectation_1d(sigma, 1 / (4 * sx**2), 0.0) ** 2
-                      * _gauss_expectation_1d(sigma, 1 / (4 * sz**2), q))
-            j_num = (_gauss_expectation_1d(sigma, 1 / (2 * sx**2), 0.0) ** 2
-                     * _gauss_expectation_1d(sigma, 1 / (2 * sz**2), 0.0))
+            g1_num = _gauss_expectation_1d(sigma, 1 / (4 * sx**2), 0.0) ** 2 * _gauss_expectation_1d(
+                sigma, 1 / (4 * sz**2), q
+            )
+            j_num = _gauss_expectation_1d(sigma, 1 / (2 * sx**2), 0.0) ** 2 * _gauss_expectation_1d(
+                sigma, 1 / (2 * sz**2), 0.0
+            )
             assert abs(g1[i] - g1_num) < ATOL, (diff, tau)
             assert abs(j[i] - j_num) < ATOL, (diff, tau)
 
@@ -151,17 +154,28 @@ def test_flow_matches_explicit_displacement(system):
     for v in SPEEDS:
         for theta_deg in (0.0, 30.0, 45.0, 90.0, 135.0):
             th_rad = math.radians(theta_deg)
-            g1 = th.g1_flow(LAGS_S, speed_um_per_s=v, polar_angle_deg=theta_deg, wavelength_um=wl,
-                            lateral_resolution_um=lat, axial_resolution_um=ax)
-            j = th.j_flow(LAGS_S, speed_um_per_s=v, polar_angle_deg=theta_deg,
-                          lateral_resolution_um=lat, axial_resolution_um=ax)
+            g1 = th.g1_flow(
+                LAGS_S,
+                speed_um_per_s=v,
+                polar_angle_deg=theta_deg,
+                wavelength_um=wl,
+                lateral_resolution_um=lat,
+                axial_resolution_um=ax,
+            )
+            j = th.j_flow(
+                LAGS_S, speed_um_per_s=v, polar_angle_deg=theta_deg, lateral_resolution_um=lat, axial_resolution_um=ax
+            )
             assert g1.dtype == np.complex128
             np.testing.assert_allclose(j, np.abs(g1) ** 2, rtol=0, atol=1e-14)
             for psi in np.linspace(0.0, 2 * np.pi, 7):  # the azimuth must not matter
-                d = v * LAGS_S[:, None] * np.array(
-                    [math.sin(th_rad) * math.cos(psi), math.sin(th_rad) * math.sin(psi), math.cos(th_rad)])
-                ref = np.exp(-2j * kn * d[:, 2] - (d[:, 0] ** 2 + d[:, 1] ** 2) / (4 * sx**2)
-                             - d[:, 2] ** 2 / (4 * sz**2))
+                d = (
+                    v
+                    * LAGS_S[:, None]
+                    * np.array([math.sin(th_rad) * math.cos(psi), math.sin(th_rad) * math.sin(psi), math.cos(th_rad)])
+                )
+                ref = np.exp(
+                    -2j * kn * d[:, 2] - (d[:, 0] ** 2 + d[:, 1] ** 2) / (4 * sx**2) - d[:, 2] ** 2 / (4 * sz**2)
+                )
                 ref_j = np.exp(-(d[:, 0] ** 2 + d[:, 1] ** 2) / (2 * sx**2) - d[:, 2] ** 2 / (2 * sz**2))
                 np.testing.assert_allclose(g1, ref, rtol=0, atol=1e-12)
                 np.testing.assert_allclose(j, ref_j, rtol=0, atol=1e-12)
@@ -176,22 +190,38 @@ def test_flow_moving_deeper_has_negative_phase():
 # 2. physics.md §6 reference table (840 nm, 4.9/3.8 µm, ρ = 0.055 µm⁻³): g1 and cov = |g1|² + j/N_eff
 # ----------------------------------------------------------------------------------------------------------
 _TAB6 = [  # (kind, parameter, lag index, g1 theory, cov theory) as printed in physics.md §6
-    ("diff", 0.005, 0, 0.7949, 0.8002), ("diff", 0.005, 1, 0.6319, 0.5675),
-    ("diff", 0.005, 2, 0.2526, 0.2315), ("diff", 0.005, 3, 0.0008, 0.1641),
-    ("diff", 0.5, 0, 0.0, 0.1548), ("diff", 0.5, 1, 0.0, 0.1428),
-    ("diff", 0.5, 2, 0.0, 0.1076), ("diff", 0.5, 3, 0.0, 0.0363),
-    ("iso", 0.1, 0, 0.9844, 1.1376), ("iso", 0.1, 1, 0.9385, 1.0492),
-    ("iso", 0.1, 2, 0.5240, 0.4428), ("iso", 0.1, 3, -0.0078, 0.1592),
-    ("iso", 3.0, 0, 0.0244, 0.1603), ("iso", 3.0, 1, -0.0225, 0.1364),
-    ("iso", 3.0, 2, -0.0093, 0.0253), ("iso", 3.0, 3, 0.0, 0.0),
-    ("cog", 0.1, 0, 0.9766, 1.1224), ("cog", 0.1, 1, 0.9082, 0.9934),
-    ("cog", 0.1, 2, 0.3173, 0.2689), ("cog", 0.1, 3, -0.1901, 0.1960),
-    ("cog", 3.0, 0, -0.1328, 0.1780), ("cog", 3.0, 1, 0.0536, 0.1412),
-    ("cog", 3.0, 2, -0.0320, 0.0310), ("cog", 3.0, 3, 0.0, 0.0),
-    ("flow", 0.1, 0, 0.9766 - 0.2149j, 1.1685), ("flow", 0.1, 1, 0.9075 - 0.4198j, 1.1683),
-    ("flow", 0.1, 2, 0.2674 - 0.9626j, 1.1662), ("flow", 0.1, 3, 0.8841 - 0.4084j, 1.1083),
-    ("flow", 1.0, 0, -0.5595 - 0.8255j, 1.1621), ("flow", 1.0, 1, -0.3664 + 0.9187j, 1.1431),
-    ("flow", 1.0, 2, 0.8223 - 0.3794j, 0.9584), ("flow", 1.0, 3, -0.0266 + 0.0657j, 0.0059),
+    ("diff", 0.005, 0, 0.7949, 0.8002),
+    ("diff", 0.005, 1, 0.6319, 0.5675),
+    ("diff", 0.005, 2, 0.2526, 0.2315),
+    ("diff", 0.005, 3, 0.0008, 0.1641),
+    ("diff", 0.5, 0, 0.0, 0.1548),
+    ("diff", 0.5, 1, 0.0, 0.1428),
+    ("diff", 0.5, 2, 0.0, 0.1076),
+    ("diff", 0.5, 3, 0.0, 0.0363),
+    ("iso", 0.1, 0, 0.9844, 1.1376),
+    ("iso", 0.1, 1, 0.9385, 1.0492),
+    ("iso", 0.1, 2, 0.5240, 0.4428),
+    ("iso", 0.1, 3, -0.0078, 0.1592),
+    ("iso", 3.0, 0, 0.0244, 0.1603),
+    ("iso", 3.0, 1, -0.0225, 0.1364),
+    ("iso", 3.0, 2, -0.0093, 0.0253),
+    ("iso", 3.0, 3, 0.0, 0.0),
+    ("cog", 0.1, 0, 0.9766, 1.1224),
+    ("cog", 0.1, 1, 0.9082, 0.9934),
+    ("cog", 0.1, 2, 0.3173, 0.2689),
+    ("cog", 0.1, 3, -0.1901, 0.1960),
+    ("cog", 3.0, 0, -0.1328, 0.1780),
+    ("cog", 3.0, 1, 0.0536, 0.1412),
+    ("cog", 3.0, 2, -0.0320, 0.0310),
+    ("cog", 3.0, 3, 0.0, 0.0),
+    ("flow", 0.1, 0, 0.9766 - 0.2149j, 1.1685),
+    ("flow", 0.1, 1, 0.9075 - 0.4198j, 1.1683),
+    ("flow", 0.1, 2, 0.2674 - 0.9626j, 1.1662),
+    ("flow", 0.1, 3, 0.8841 - 0.4084j, 1.1083),
+    ("flow", 1.0, 0, -0.5595 - 0.8255j, 1.1621),
+    ("flow", 1.0, 1, -0.3664 + 0.9187j, 1.1431),
+    ("flow", 1.0, 2, 0.8223 - 0.3794j, 0.9584),
+    ("flow", 1.0, 3, -0.0266 + 0.0657j, 0.0059),
 ]
 _HALF_LAST_DIGIT = 0.5e-4 + 1e-9
 
@@ -200,15 +230,21 @@ def _g1_j(kind, param, tau, wavelength_um=0.84, lat=4.9, ax=3.8):
     g = dict(wavelength_um=wavelength_um, lateral_resolution_um=lat, axial_resolution_um=ax)
     jw = dict(lateral_resolution_um=lat, axial_resolution_um=ax)
     if kind == "diff":
-        return (th.g1_diffusion(tau, diffusion_um2_per_s=param, **g),
-                th.j_diffusion(tau, diffusion_um2_per_s=param, **jw))
+        return (
+            th.g1_diffusion(tau, diffusion_um2_per_s=param, **g),
+            th.j_diffusion(tau, diffusion_um2_per_s=param, **jw),
+        )
     if kind in ("iso", "cog"):
         directions = "isotropic" if kind == "iso" else "uniform-angles"
-        return (th.g1_ballistic(tau, speed_um_per_s=param, directions=directions, **g),
-                th.j_ballistic(tau, speed_um_per_s=param, directions=directions, **jw))
+        return (
+            th.g1_ballistic(tau, speed_um_per_s=param, directions=directions, **g),
+            th.j_ballistic(tau, speed_um_per_s=param, directions=directions, **jw),
+        )
     if kind == "flow":
-        return (th.g1_flow(tau, speed_um_per_s=param, polar_angle_deg=45.0, **g),
-                th.j_flow(tau, speed_um_per_s=param, polar_angle_deg=45.0, **jw))
+        return (
+            th.g1_flow(tau, speed_um_per_s=param, polar_angle_deg=45.0, **g),
+            th.j_flow(tau, speed_um_per_s=param, polar_angle_deg=45.0, **jw),
+        )
     raise AssertionError(kind)
 
 
@@ -282,10 +318,15 @@ def test_equal_widths_beta_zero_limits():
     q = 2 * wavenumber_per_um(0.84) * u
     from scipy.special import j0
 
-    np.testing.assert_allclose(th.g1_ballistic(tau, speed_um_per_s=v, **kw), np.exp(-a) * np.sinc(q / np.pi),
-                               rtol=0, atol=1e-12)
-    np.testing.assert_allclose(th.g1_ballistic(tau, speed_um_per_s=v, directions="uniform-angles", **kw),
-                               np.exp(-a) * j0(q), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        th.g1_ballistic(tau, speed_um_per_s=v, **kw), np.exp(-a) * np.sinc(q / np.pi), rtol=0, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        th.g1_ballistic(tau, speed_um_per_s=v, directions="uniform-angles", **kw),
+        np.exp(-a) * j0(q),
+        rtol=0,
+        atol=1e-12,
+    )
 
 
 def test_isotropic_branch_switch_is_continuous():
@@ -296,8 +337,9 @@ def test_isotropic_branch_switch_is_continuous():
     lat = 2 * math.sqrt(2.0) * sx
     ax = 2 * math.sqrt(math.log(2.0)) * sz
     for v, tau in [(0.1, 1.2288), (0.01, 0.2048), (3.0, 6.3488), (1e-4, 0.2048)]:
-        g1 = th.g1_ballistic(tau, speed_um_per_s=v, wavelength_um=0.84, lateral_resolution_um=lat,
-                             axial_resolution_um=ax)
+        g1 = th.g1_ballistic(
+            tau, speed_um_per_s=v, wavelength_um=0.84, lateral_resolution_um=lat, axial_resolution_um=ax
+        )
         u = v * tau
         a, b = u**2 / (4 * sx**2), u**2 / (4 * sz**2)
         q = 2 * wavenumber_per_um(0.84) * u
@@ -331,8 +373,14 @@ def test_uniform_angles_series_large_q_and_large_a_minus_b():
         for u in (0.5, 50.0, 660.0):
             q, a, b = 2 * kn * u, u**2 / (4 * sx**2), u**2 / (4 * sz**2)
             ref = np.mean(np.exp(-1j * q * cphi - a * sphi**2 - b * cphi**2)).real
-            got = th.g1_ballistic(u, speed_um_per_s=1.0, directions="uniform-angles", wavelength_um=0.84,
-                                  lateral_resolution_um=lat, axial_resolution_um=ax)
+            got = th.g1_ballistic(
+                u,
+                speed_um_per_s=1.0,
+                directions="uniform-angles",
+                wavelength_um=0.84,
+                lateral_resolution_um=lat,
+                axial_resolution_um=ax,
+            )
             assert abs(got - ref) < 1e-9, (lat, ax, u)
 
 
@@ -347,18 +395,32 @@ def test_uniform_angles_extreme_width_ratio():
         assert abs(a - b) > 2e8 and min(a, b) < 50
         ref = np.mean(np.exp(-1j * q * cphi - a * sphi**2 - b * cphi**2)).real
         ref_j = np.mean(np.exp(-2 * a * sphi**2 - 2 * b * cphi**2))
-        got = th.g1_ballistic(u, speed_um_per_s=1.0, directions="uniform-angles", wavelength_um=0.84,
-                              lateral_resolution_um=lat, axial_resolution_um=ax)
-        got_j = th.j_ballistic(u, speed_um_per_s=1.0, directions="uniform-angles", lateral_resolution_um=lat,
-                               axial_resolution_um=ax)
+        got = th.g1_ballistic(
+            u,
+            speed_um_per_s=1.0,
+            directions="uniform-angles",
+            wavelength_um=0.84,
+            lateral_resolution_um=lat,
+            axial_resolution_um=ax,
+        )
+        got_j = th.j_ballistic(
+            u, speed_um_per_s=1.0, directions="uniform-angles", lateral_resolution_um=lat, axial_resolution_um=ax
+        )
         assert abs(got - ref) < 1e-10 and abs(got_j - ref_j) < 1e-10, (lat, ax)
 
 
 def test_flow_modulus_independent_of_wavelength():
     tau = np.linspace(0.0, 6.3488, 50)
     g840 = th.g1_flow(tau, speed_um_per_s=1.0, polar_angle_deg=45.0, **HIGH_RES)
-    g1310 = th.g1_flow(tau, speed_um_per_s=1.0, polar_angle_deg=45.0, wavelength_um=1.31,
-                       lateral_resolution_um=4.9, axial_resolution_um=3.8, refractive_index=1.37)
+    g1310 = th.g1_flow(
+        tau,
+        speed_um_per_s=1.0,
+        polar_angle_deg=45.0,
+        wavelength_um=1.31,
+        lateral_resolution_um=4.9,
+        axial_resolution_um=3.8,
+        refractive_index=1.37,
+    )
     np.testing.assert_allclose(np.abs(g840), np.abs(g1310), rtol=1e-13, atol=0)
     assert not np.allclose(g840, g1310)
 
@@ -390,13 +452,15 @@ def test_broadcasting_and_dtypes():
         for r in range(2):
             for c in range(3):
                 assert g[r, c] == pytest.approx(
-                    float(th.g1_ballistic(tau[r, 0], speed_um_per_s=speeds[c], directions=directions,
-                                          **HIGH_RES)), abs=1e-15)
+                    float(th.g1_ballistic(tau[r, 0], speed_um_per_s=speeds[c], directions=directions, **HIGH_RES)),
+                    abs=1e-15,
+                )
     scalar = th.g1_diffusion(0.2048, diffusion_um2_per_s=0.005, **HIGH_RES)
     assert isinstance(scalar, np.ndarray) and scalar.shape == () and scalar.dtype == np.float64
     wl = np.array([0.84, 1.31])
-    g = th.g1_diffusion(0.2048, diffusion_um2_per_s=0.005, wavelength_um=wl, lateral_resolution_um=4.9,
-                        axial_resolution_um=3.8)
+    g = th.g1_diffusion(
+        0.2048, diffusion_um2_per_s=0.005, wavelength_um=wl, lateral_resolution_um=4.9, axial_resolution_um=3.8
+    )
     assert g.shape == (2,) and g[1] > g[0]
     assert th.j_flow(tau, speed_um_per_s=speeds, polar_angle_deg=45.0, **HIGH_RES_J).shape == (2, 3)
     assert th.g1_flow(tau, speed_um_per_s=speeds, polar_angle_deg=45.0, **HIGH_RES).shape == (2, 3)
@@ -411,8 +475,14 @@ def test_invalid_inputs_raise():
     with pytest.raises(ValueError):
         th.j_ballistic(1.0, speed_um_per_s=0.1, directions="sphere", **HIGH_RES_J)
     with pytest.raises(ValueError):
-        th.g1_flow(1.0, speed_um_per_s=0.1, polar_angle_deg=0.0, wavelength_um=0.84, lateral_resolution_um=0.0,
-                   axial_resolution_um=3.8)
+        th.g1_flow(
+            1.0,
+            speed_um_per_s=0.1,
+            polar_angle_deg=0.0,
+            wavelength_um=0.84,
+            lateral_resolution_um=0.0,
+            axial_resolution_um=3.8,
+        )
     with pytest.raises(ValueError):
         th.liv_gaussian_limit(np.zeros(30), 32)
     with pytest.raises(ValueError):

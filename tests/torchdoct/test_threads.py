@@ -96,16 +96,28 @@ def test_cli_threads_option(capsys, tmp_path):
 
 
 def test_render_bit_identical_for_any_threads():
-    ph = td.phantom_from_dict({
-        "name": "threads",
-        "system": [{"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}],
-        "protocol": {"n_frames": 6, "frame_interval_s": 0.2048},
-        "analysis": {"metrics": ["liv", "ocds"], "ocds_delay_range_s": [0.2048, 0.8192]},  # 2+ pairs per delay
-        "grid": {"kind": "bscan", "n_x": 12, "n_z": 12, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
-        "region": [{"name": "flow", "shape": "slab", "z_min_um": -12.0, "z_max_um": 0.0, "density_per_um3": 0.05,
-                    "motion": [{"kind": "flow", "speed_um_per_s": 2.0, "polar_angle_deg": 60.0}]}],
-        "background": [{"density_per_um3": 0.05, "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.5}]}],
-    })  # a walk and straight paths
+    ph = td.phantom_from_dict(
+        {
+            "name": "threads",
+            "system": [
+                {"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}
+            ],
+            "protocol": {"n_frames": 6, "frame_interval_s": 0.2048},
+            "analysis": {"metrics": ["liv", "ocds"], "ocds_delay_range_s": [0.2048, 0.8192]},  # 2+ pairs per delay
+            "grid": {"kind": "bscan", "n_x": 12, "n_z": 12, "pitch_x_um": 2.0, "pitch_z_um": 2.0},
+            "region": [
+                {
+                    "name": "flow",
+                    "shape": "slab",
+                    "z_min_um": -12.0,
+                    "z_max_um": 0.0,
+                    "density_per_um3": 0.05,
+                    "motion": [{"kind": "flow", "speed_um_per_s": 2.0, "polar_angle_deg": 60.0}],
+                }
+            ],
+            "background": [{"density_per_um3": 0.05, "motion": [{"kind": "diffusion", "diffusion_um2_per_s": 0.5}]}],
+        }
+    )  # a walk and straight paths
     ref = td.render(ph, seed=3, threads=1).data
     assert ref.abs().max() > 0
     assert torch.equal(td.render(ph, seed=3, threads=2).data, ref)
@@ -119,8 +131,11 @@ def test_sweep_cells_side_by_side_equal_one_at_a_time(monkeypatch, process_work)
     from torchdoct.sim.scenes import resolve_scene_path
     from torchdoct.study import sweep as sw
 
-    s = sw.make_sweep(read_toml(resolve_scene_path("example")),
-                      [{"path": "population.0.motion.0.diffusion_um2_per_s", "values": [0.01, 0.1, 1.0]}], name="t")
+    s = sw.make_sweep(
+        read_toml(resolve_scene_path("example")),
+        [{"path": "population.0.motion.0.diffusion_um2_per_s", "values": [0.01, 0.1, 1.0]}],
+        name="t",
+    )
     ref = sw.run_sweeps([s], trials=128, workers=1).table()
     monkeypatch.setattr(sw, "_PROCESS_WORK", process_work)
     got = sw.run_sweeps([s], trials=128, workers=2).table()

@@ -103,14 +103,25 @@ def test_window_and_tapered_kernels_are_bit_identical_on_both_backends():
 
 @needs_compiled
 def test_a_tapered_simulation_is_bit_identical_on_both_backends(monkeypatch):
-    sc = td.Scene(systems=(HIGH, td.OCTSystem(name="b", wavelength_um=0.84, lateral_resolution_um=18.0,
-                                              axial_resolution_um=3.8, lateral_resolution_y_um=4.9)),
-                  protocol=td.Protocol(n_frames=12, frame_interval_s=0.2048),
-                  populations=(td.Population(density_per_um3=0.03, motion=(td.Diffusion(diffusion_um2_per_s=15.0),)),
-                               td.Population(density_per_um3=0.02, motion=(td.RandomBallistic(speed_um_per_s=6.0),)),
-                               td.Population(density_per_um3=0.02,
-                                             motion=(td.Flow(speed_um_per_s=4.0, polar_angle_deg=45.0),))),
-                  simulation=td.SimulationSettings(truncation="taper"))
+    sc = td.Scene(
+        systems=(
+            HIGH,
+            td.OCTSystem(
+                name="b",
+                wavelength_um=0.84,
+                lateral_resolution_um=18.0,
+                axial_resolution_um=3.8,
+                lateral_resolution_y_um=4.9,
+            ),
+        ),
+        protocol=td.Protocol(n_frames=12, frame_interval_s=0.2048),
+        populations=(
+            td.Population(density_per_um3=0.03, motion=(td.Diffusion(diffusion_um2_per_s=15.0),)),
+            td.Population(density_per_um3=0.02, motion=(td.RandomBallistic(speed_um_per_s=6.0),)),
+            td.Population(density_per_um3=0.02, motion=(td.Flow(speed_um_per_s=4.0, polar_angle_deg=45.0),)),
+        ),
+        simulation=td.SimulationSettings(truncation="taper"),
+    )
     a = td.simulate(sc, trials=70, seed=3, threads=1).signals
     monkeypatch.setenv("TORCHDOCT_KERNEL", "torch")
     kernel._library.cache_clear()
@@ -144,17 +155,28 @@ def test_a_scatterer_enters_continuously_with_the_taper(dtype):
 
 
 def _scene(motion, **sim):
-    return td.Scene(systems=(HIGH,), protocol=td.Protocol(n_frames=4, frame_interval_s=0.2048),
-                    populations=(td.Population(density_per_um3=RHO, motion=motion),),
-                    analysis=td.Analysis(metrics=("liv",)), simulation=td.SimulationSettings(**sim))
+    return td.Scene(
+        systems=(HIGH,),
+        protocol=td.Protocol(n_frames=4, frame_interval_s=0.2048),
+        populations=(td.Population(density_per_um3=RHO, motion=motion),),
+        analysis=td.Analysis(metrics=("liv",)),
+        simulation=td.SimulationSettings(**sim),
+    )
 
 
-@pytest.mark.parametrize("motion, hard_ellipsoid", [
-    ((), False),  # static: the box, untruncated inside it when hard
-    ((td.Diffusion(diffusion_um2_per_s=1.0),), True),  # periodic walk
-    ((td.Flow(speed_um_per_s=2.0, polar_angle_deg=30.0),), True),  # straight paths
-    ((td.Diffusion(diffusion_um2_per_s=0.5), td.Flow(speed_um_per_s=1.0, polar_angle_deg=60.0)), False),  # walk with drift
-], ids=["static", "diffusion", "flow", "diffusion-and-flow"])
+@pytest.mark.parametrize(
+    "motion, hard_ellipsoid",
+    [
+        ((), False),  # static: the box, untruncated inside it when hard
+        ((td.Diffusion(diffusion_um2_per_s=1.0),), True),  # periodic walk
+        ((td.Flow(speed_um_per_s=2.0, polar_angle_deg=30.0),), True),  # straight paths
+        (
+            (td.Diffusion(diffusion_um2_per_s=0.5), td.Flow(speed_um_per_s=1.0, polar_angle_deg=60.0)),
+            False,
+        ),  # walk with drift
+    ],
+    ids=["static", "diffusion", "flow", "diffusion-and-flow"],
+)
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_mean_intensity_is_the_closed_form_of_the_window(motion, hard_ellipsoid, dtype):
     """⟨I⟩ = E[w²]·ρπ^{3/2}s_x²s_z at a coarse tolerance (0.3) where the window's share is resolved."""
@@ -163,8 +185,7 @@ def test_mean_intensity_is_the_closed_form_of_the_window(motion, hard_ellipsoid,
     for mode in ("hard", "taper"):
         if mode == "hard" and not hard_ellipsoid:
             continue
-        res = td.simulate(_scene(motion, truncation=mode, truncation_tolerance=tol), trials=4096, seed=12,
-                          dtype=dtype)
+        res = td.simulate(_scene(motion, truncation=mode, truncation_tolerance=tol), trials=4096, seed=12, dtype=dtype)
         mi, se, _ = batch_means(mean_intensity, res.signals[:, 0, :])
         assert_within_se(mi.real, cv.truncation_intensity_factor(tol, mode) * full, se, what=f"<I> {mode}")
 
@@ -207,15 +228,31 @@ def test_rendered_mean_intensity_is_the_product_of_the_axis_windows(mode):
     tol = 0.5
     c = cv.truncation_radius_factor(tol)
     w = (lambda u: cv.taper_window(u * u / (c * c))) if mode == "taper" else (lambda u: 1.0)
-    f = integrate.quad(lambda u: math.exp(-u * u) * w(u) ** 2, -c, c, points=[-c * math.sqrt(cv.TAPER_START),
-                                                                             c * math.sqrt(cv.TAPER_START)])[0]
+    f = integrate.quad(
+        lambda u: math.exp(-u * u) * w(u) ** 2,
+        -c,
+        c,
+        points=[-c * math.sqrt(cv.TAPER_START), c * math.sqrt(cv.TAPER_START)],
+    )[0]
     f /= math.sqrt(math.pi)
-    system = {"name": "b", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8,
-              "lateral_resolution_y_um": 9.0}
-    ph = phantom_from_dict({"name": "t", "system": [system], "protocol": {"n_frames": 2, "frame_interval_s": 0.2048},
-                            "grid": {"n_x": 50, "n_z": 50, "pitch_x_um": 20.0, "pitch_z_um": 20.0},
-                            "analysis": {"metrics": ["liv"]}, "background": {"density_per_um3": RHO},
-                            "simulation": {"truncation": mode, "truncation_tolerance": tol}})
+    system = {
+        "name": "b",
+        "wavelength_um": 0.84,
+        "lateral_resolution_um": 4.9,
+        "axial_resolution_um": 3.8,
+        "lateral_resolution_y_um": 9.0,
+    }
+    ph = phantom_from_dict(
+        {
+            "name": "t",
+            "system": [system],
+            "protocol": {"n_frames": 2, "frame_interval_s": 0.2048},
+            "grid": {"n_x": 50, "n_z": 50, "pitch_x_um": 20.0, "pitch_z_um": 20.0},
+            "analysis": {"metrics": ["liv"]},
+            "background": {"density_per_um3": RHO},
+            "simulation": {"truncation": mode, "truncation_tolerance": tol},
+        }
+    )
     vals = torch.cat([render(ph, seed=s, dtype="float64").intensity()[..., 0].reshape(-1) for s in range(6)])
     ref = f**3 * cv.mean_intensity(RHO, 4.9, 3.8, lateral_resolution_y_um=9.0)
     assert_within_se(float(vals.mean()), ref, float(vals.std() / math.sqrt(vals.numel())), what=f"<I> {mode}")

@@ -49,8 +49,15 @@ def paper_motions() -> dict[str, Any]:
 EVALUATION_LIMIT_PER_S = 1.0e9
 
 
-def bench_simulate(*, trials: int = 1024, dtype: str = "float32", repeats: int = 1, threads: int | None = None,
-                   load: bool = False, progress: bool = False) -> dict[str, Any]:
+def bench_simulate(
+    *,
+    trials: int = 1024,
+    dtype: str = "float32",
+    repeats: int = 1,
+    threads: int | None = None,
+    load: bool = False,
+    progress: bool = False,
+) -> dict[str, Any]:
     """Time the 12 paper cells; returns a JSON-ready dict (see the module docstring).
 
     ``threads``: as in :func:`torchdoct.simulate`. ``load``: also time every cell on one thread alone
@@ -64,9 +71,15 @@ def bench_simulate(*, trials: int = 1024, dtype: str = "float32", repeats: int =
         from tqdm.auto import tqdm
 
         bar = tqdm(total=len(cells) * (3 if load else 1), desc="bench simulate", unit="cell")
-    scenes = [Scene(systems=(system,), protocol=protocol,
-                    populations=(Population(density_per_um3=0.055, motion=(motion,)),), name=f"{system.name} {mname}")
-              for system, (mname, motion) in cells]
+    scenes = [
+        Scene(
+            systems=(system,),
+            protocol=protocol,
+            populations=(Population(density_per_um3=0.055, motion=(motion,)),),
+            name=f"{system.name} {mname}",
+        )
+        for system, (mname, motion) in cells
+    ]
 
     def best_of(scene: Scene, t: int | None) -> tuple[float, Any, float]:
         """Best wall time, a result, best CPU time of the process (s)."""
@@ -87,20 +100,25 @@ def bench_simulate(*, trials: int = 1024, dtype: str = "float32", repeats: int =
         plan = make_plan(scene)
         simulate(scene, trials=64, seed=1, dtype=dtype, threads=threads)  # warm-up
         best, res, cpu = best_of(scene, threads)
-        rows.append({
-            "system": system.name,
-            "motion": mname,
-            "scatterers_per_trial": plan.expected_scatterers_per_trial,
-            "evaluations_per_trial": plan.evaluations_per_trial,
-            "seconds": best,
-            "ms_per_trial": 1e3 * best / trials,
-            "trials_per_s": trials / best,
-            "evaluations_per_s": plan.evaluations_per_trial * trials / best,
-            "of_evaluation_limit": plan.evaluations_per_trial * trials / best / (EVALUATION_LIMIT_PER_S * n_threads),
-            "cpu_ms_per_trial": 1e3 * cpu / trials,
-            "evaluations_per_cpu_s": plan.evaluations_per_trial * trials / cpu,
-            "finite": bool(torch.isfinite(res.signals.real).all()),
-        })
+        rows.append(
+            {
+                "system": system.name,
+                "motion": mname,
+                "scatterers_per_trial": plan.expected_scatterers_per_trial,
+                "evaluations_per_trial": plan.evaluations_per_trial,
+                "seconds": best,
+                "ms_per_trial": 1e3 * best / trials,
+                "trials_per_s": trials / best,
+                "evaluations_per_s": plan.evaluations_per_trial * trials / best,
+                "of_evaluation_limit": plan.evaluations_per_trial
+                * trials
+                / best
+                / (EVALUATION_LIMIT_PER_S * n_threads),
+                "cpu_ms_per_trial": 1e3 * cpu / trials,
+                "evaluations_per_cpu_s": plan.evaluations_per_trial * trials / cpu,
+                "finite": bool(torch.isfinite(res.signals.real).all()),
+            }
+        )
     if load:
         for scene, row in zip(scenes, rows):
             row["ms_per_trial_1_thread"] = 1e3 * best_of(scene, 1)[0] / trials
@@ -114,10 +132,12 @@ def bench_simulate(*, trials: int = 1024, dtype: str = "float32", repeats: int =
     mean_cpu = sum(r["cpu_ms_per_trial"] for r in rows) / len(rows)
     extra: dict[str, Any] = {}
     if load:
-        extra = {"mean_ms_per_trial_1_thread": sum(r["ms_per_trial_1_thread"] for r in rows) / len(rows),
-                 "mean_ms_per_trial_loaded": sum(r["ms_per_trial_loaded"] for r in rows) / len(rows),
-                 "worst_loaded_over_1_thread_alone": max(r["loaded_over_1_thread_alone"] for r in rows),
-                 "neighbour": "one process simulating the example scene on one core"}
+        extra = {
+            "mean_ms_per_trial_1_thread": sum(r["ms_per_trial_1_thread"] for r in rows) / len(rows),
+            "mean_ms_per_trial_loaded": sum(r["ms_per_trial_loaded"] for r in rows) / len(rows),
+            "worst_loaded_over_1_thread_alone": max(r["loaded_over_1_thread_alone"] for r in rows),
+            "neighbour": "one process simulating the example scene on one core",
+        }
     return {
         "benchmark": "simulate",
         "trials_per_cell": trials,
@@ -139,34 +159,44 @@ def bench_simulate(*, trials: int = 1024, dtype: str = "float32", repeats: int =
 def format_simulate_table(result: dict[str, Any]) -> str:
     load = "mean_ms_per_trial_loaded" in result
     t = result.get("threads", "?")
-    head = (f"| system | motion | scatterers/trial | ms/trial ({t} threads) | trials/s | evaluations/s | of limit | "
-            f"CPU ms/trial | evaluations per CPU s |")
+    head = (
+        f"| system | motion | scatterers/trial | ms/trial ({t} threads) | trials/s | evaluations/s | of limit | "
+        f"CPU ms/trial | evaluations per CPU s |"
+    )
     rule = "|---|---|---:|---:|---:|---:|---:|---:|---:|"
     if load:
         head += " ms/trial (1 thread) | ms/trial beside a busy job | ÷ 1 thread alone |"
         rule += "---:|---:|---:|"
     lines = [head, rule]
     for r in result["cells"]:
-        line = (f"| {r['system']} | {r['motion']} | {r['scatterers_per_trial']:.0f} | "
-                f"{r['ms_per_trial']:.3f} | {r['trials_per_s']:.0f} | {r['evaluations_per_s']:.3g} | "
-                f"{r.get('of_evaluation_limit', float('nan')):.3f} | {r.get('cpu_ms_per_trial', float('nan')):.3f} | "
-                f"{r.get('evaluations_per_cpu_s', float('nan')):.3g} |")
+        line = (
+            f"| {r['system']} | {r['motion']} | {r['scatterers_per_trial']:.0f} | "
+            f"{r['ms_per_trial']:.3f} | {r['trials_per_s']:.0f} | {r['evaluations_per_s']:.3g} | "
+            f"{r.get('of_evaluation_limit', float('nan')):.3f} | {r.get('cpu_ms_per_trial', float('nan')):.3f} | "
+            f"{r.get('evaluations_per_cpu_s', float('nan')):.3g} |"
+        )
         if load:
-            line += (f" {r['ms_per_trial_1_thread']:.3f} | {r['ms_per_trial_loaded']:.3f} | "
-                     f"{r['loaded_over_1_thread_alone']:.2f} |")
+            line += (
+                f" {r['ms_per_trial_1_thread']:.3f} | {r['ms_per_trial_loaded']:.3f} | "
+                f"{r['loaded_over_1_thread_alone']:.2f} |"
+            )
         lines.append(line)
     m = result["machine"]
     lines.append("")
-    lines.append(f"mean {result['mean_ms_per_trial']:.3f} ms/trial (CPU {result.get('mean_cpu_ms_per_trial', float('nan')):.3f} "
-                 f"ms/trial, all threads) over {len(result['cells'])} cells "
-                 f"(target {result['target_ms_per_trial']} ms); paper study (~186,000 trials) "
-                 f"≈ {result['paper_study_estimate_s']:.0f} s; {result['trials_per_cell']} trials/cell, "
-                 f"{result['dtype']}, {m['cpu_count']} cores, {t} simulation threads with one torch thread each; "
-                 f"evaluation limit {result.get('evaluation_limit_per_s', EVALUATION_LIMIT_PER_S):.0e}/s per core")
+    lines.append(
+        f"mean {result['mean_ms_per_trial']:.3f} ms/trial (CPU {result.get('mean_cpu_ms_per_trial', float('nan')):.3f} "
+        f"ms/trial, all threads) over {len(result['cells'])} cells "
+        f"(target {result['target_ms_per_trial']} ms); paper study (~186,000 trials) "
+        f"≈ {result['paper_study_estimate_s']:.0f} s; {result['trials_per_cell']} trials/cell, "
+        f"{result['dtype']}, {m['cpu_count']} cores, {t} simulation threads with one torch thread each; "
+        f"evaluation limit {result.get('evaluation_limit_per_s', EVALUATION_LIMIT_PER_S):.0e}/s per core"
+    )
     if load:
-        lines.append(f"beside a busy job: mean {result['mean_ms_per_trial_loaded']:.3f} ms/trial "
-                     f"(1 thread alone {result['mean_ms_per_trial_1_thread']:.3f}); worst cell "
-                     f"{result['worst_loaded_over_1_thread_alone']:.2f}× its one-thread time alone (target 1.5×)")
+        lines.append(
+            f"beside a busy job: mean {result['mean_ms_per_trial_loaded']:.3f} ms/trial "
+            f"(1 thread alone {result['mean_ms_per_trial_1_thread']:.3f}); worst cell "
+            f"{result['worst_loaded_over_1_thread_alone']:.2f}× its one-thread time alone (target 1.5×)"
+        )
     return "\n".join(lines)
 
 
@@ -236,8 +266,11 @@ class BusyNeighbour:
         import subprocess
         import sys
 
-        self.proc = subprocess.Popen([sys.executable, "-c", "from torchdoct.bench import _burn; _burn()"],
-                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", "from torchdoct.bench import _burn; _burn()"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+        )
         line = self.proc.stdout.readline()
         if b"ready" not in line:
             self.proc.kill()
@@ -257,17 +290,35 @@ def _workloads(tmp: Path, command: Callable[[list[str]], int]) -> dict[str, Any]
     from ..study.sweep import make_sweep, run_sweeps
 
     example = load_scene("example")
-    sweep = make_sweep(read_toml(resolve_scene_path("example")),
-                       [{"path": "population.0.motion.0.diffusion_um2_per_s",
-                         "log": {"start": 0.001, "stop": 15.0, "num": 32}}], name="bench-load")
+    sweep = make_sweep(
+        read_toml(resolve_scene_path("example")),
+        [{"path": "population.0.motion.0.diffusion_um2_per_s", "log": {"start": 0.001, "stop": 15.0, "num": 32}}],
+        name="bench-load",
+    )
 
     def render(threads: int) -> None:
         import contextlib
         import io
 
         with contextlib.redirect_stdout(io.StringIO()):
-            code = command(["render", "example", "--grid", "64x64", "--pitch-um", "2", "--system", "840nm-high",
-                         "--out", str(tmp / "r.npz"), "--force", "--no-progress", "--threads", str(threads)])
+            code = command(
+                [
+                    "render",
+                    "example",
+                    "--grid",
+                    "64x64",
+                    "--pitch-um",
+                    "2",
+                    "--system",
+                    "840nm-high",
+                    "--out",
+                    str(tmp / "r.npz"),
+                    "--force",
+                    "--no-progress",
+                    "--threads",
+                    str(threads),
+                ]
+            )
         if code != 0:
             raise RuntimeError("torchdoct render example failed")
 
@@ -275,19 +326,24 @@ def _workloads(tmp: Path, command: Callable[[list[str]], int]) -> dict[str, Any]
         "simulate example (500 trials)": lambda t: simulate(example, trials=500, threads=t),
         "render example --grid 64x64 --system 840nm-high": render,
         "sweep example, 32 cells × 64 trials": lambda t: run_sweeps([sweep], trials=64, workers=t),
-        "simulate paper cell, diffusion D=15, 840 nm (256 trials)": lambda t: simulate(_paper_cell(), trials=256,
-                                                                                   threads=t),
+        "simulate paper cell, diffusion D=15, 840 nm (256 trials)": lambda t: simulate(
+            _paper_cell(), trials=256, threads=t
+        ),
     }
 
 
 def _paper_cell() -> Scene:
-    return Scene(systems=(paper_systems()[0],), protocol=Protocol(n_frames=32, frame_interval_s=0.2048),
-                 populations=(Population(density_per_um3=0.055, motion=(paper_motions()["diffusion D=15"],)),),
-                 name="840nm-high diffusion D=15")
+    return Scene(
+        systems=(paper_systems()[0],),
+        protocol=Protocol(n_frames=32, frame_interval_s=0.2048),
+        populations=(Population(density_per_um3=0.055, motion=(paper_motions()["diffusion D=15"],)),),
+        name="840nm-high diffusion D=15",
+    )
 
 
-def bench_load(*, command: Callable[[list[str]], int], repeats: int = 3, threads: int | None = None,
-               progress: bool = False) -> dict[str, Any]:
+def bench_load(
+    *, command: Callable[[list[str]], int], repeats: int = 3, threads: int | None = None, progress: bool = False
+) -> dict[str, Any]:
     """Each workload alone on one thread, alone with ``threads`` (default: the usable cores), and with
     ``threads`` beside a busy neighbour process (:class:`BusyNeighbour`); best of ``repeats`` each.
 
@@ -327,7 +383,7 @@ def bench_load(*, command: Callable[[list[str]], int], repeats: int = 3, threads
             if bar is not None:
                 bar.update()
         with BusyNeighbour():
-            for name, mode in steps[2 * len(work):]:
+            for name, mode in steps[2 * len(work) :]:
                 rows[name][mode] = best(work[name], threads)
                 if bar is not None:
                     bar.update()
@@ -336,23 +392,42 @@ def bench_load(*, command: Callable[[list[str]], int], repeats: int = 3, threads
     out = []
     for name, r in rows.items():
         one = r["alone, 1 thread"]
-        out.append({"workload": name, "alone_1_thread_s": one, "alone_s": r[f"alone, {threads} threads"],
-                    "loaded_s": r[f"loaded, {threads} threads"],
-                    "speedup_alone": one / r[f"alone, {threads} threads"],
-                    "loaded_over_1_thread_alone": r[f"loaded, {threads} threads"] / one})
-    return {"benchmark": "load", "threads": threads, "repeats": repeats, "target_ratio": 1.5,
-            "neighbour": "one process simulating the example scene on one core", "machine": machine_info(),
-            "rows": out}
+        out.append(
+            {
+                "workload": name,
+                "alone_1_thread_s": one,
+                "alone_s": r[f"alone, {threads} threads"],
+                "loaded_s": r[f"loaded, {threads} threads"],
+                "speedup_alone": one / r[f"alone, {threads} threads"],
+                "loaded_over_1_thread_alone": r[f"loaded, {threads} threads"] / one,
+            }
+        )
+    return {
+        "benchmark": "load",
+        "threads": threads,
+        "repeats": repeats,
+        "target_ratio": 1.5,
+        "neighbour": "one process simulating the example scene on one core",
+        "machine": machine_info(),
+        "rows": out,
+    }
 
 
 def format_load_table(result: dict[str, Any]) -> str:
     t = result["threads"]
-    lines = [f"| workload | 1 thread alone (s) | {t} threads alone (s) | {t} threads beside a busy job (s) | "
-             f"beside a busy job ÷ 1 thread alone |", "|---|---:|---:|---:|---:|"]
+    lines = [
+        f"| workload | 1 thread alone (s) | {t} threads alone (s) | {t} threads beside a busy job (s) | "
+        f"beside a busy job ÷ 1 thread alone |",
+        "|---|---:|---:|---:|---:|",
+    ]
     for r in result["rows"]:
-        lines.append(f"| {r['workload']} | {r['alone_1_thread_s']:.2f} | {r['alone_s']:.2f} | {r['loaded_s']:.2f} | "
-                     f"{r['loaded_over_1_thread_alone']:.2f} |")
+        lines.append(
+            f"| {r['workload']} | {r['alone_1_thread_s']:.2f} | {r['alone_s']:.2f} | {r['loaded_s']:.2f} | "
+            f"{r['loaded_over_1_thread_alone']:.2f} |"
+        )
     lines.append("")
-    lines.append(f"target: beside a busy job within {result['target_ratio']}× of the one-thread time alone; "
-                 f"best of {result['repeats']}; {result['machine']['cpu_count']} cores")
+    lines.append(
+        f"target: beside a busy job within {result['target_ratio']}× of the one-thread time alone; "
+        f"best of {result['repeats']}; {result['machine']['cpu_count']} cores"
+    )
     return "\n".join(lines)

@@ -28,8 +28,9 @@ def _synthetic(n_lines: int, n_z: int, n_frames: int, snr_db: float, seed: int) 
     g = torch.Generator().manual_seed(int(seed))
 
     def cn(*shape: int) -> torch.Tensor:
-        return torch.complex(torch.randn(*shape, generator=g, dtype=torch.float64),
-                             torch.randn(*shape, generator=g, dtype=torch.float64)) / math.sqrt(2.0)
+        return torch.complex(
+            torch.randn(*shape, generator=g, dtype=torch.float64), torch.randn(*shape, generator=g, dtype=torch.float64)
+        ) / math.sqrt(2.0)
 
     s = cn(n_lines, n_z)
     noise = cn(n_frames, n_lines, n_z) * math.sqrt(noise_power(1.0, float(snr_db)))
@@ -52,8 +53,15 @@ def residual_rms(steps: torch.Tensor, phi: torch.Tensor) -> tuple[float, float]:
 
 
 @one_torch_thread
-def bench_bulk_phase(*, snr_db: _Seq[float] = (10.0, 20.0, 30.0, 40.0), n_z: int = 64, frames: int = 32,
-                     lines: int = 2000, methods: _Seq[str] = METHODS, seed: int = 0) -> dict[str, Any]:
+def bench_bulk_phase(
+    *,
+    snr_db: _Seq[float] = (10.0, 20.0, 30.0, 40.0),
+    n_z: int = 64,
+    frames: int = 32,
+    lines: int = 2000,
+    methods: _Seq[str] = METHODS,
+    seed: int = 0,
+) -> dict[str, Any]:
     """Residual phase error of each method against SNR on synthetic A-lines (measured; the first-order
     prediction of :func:`predicted_residual_rms` beside it).
 
@@ -65,8 +73,12 @@ def bench_bulk_phase(*, snr_db: _Seq[float] = (10.0, 20.0, 30.0, 40.0), n_z: int
 
     # one SNR's A-lines at once: speckle, noise and phasors in complex128, the complex64 lines and the
     # methods' phase differences (about 8 complex128 copies of [T, L, Z])
-    check_bench("torchdoct bench bulk-phase", 8 * 16 * int(frames) * int(lines) * int(n_z),
-                f"{frames} frames × {lines} A-lines × {n_z} depths per SNR", "give fewer --lines, --depth or --frames")
+    check_bench(
+        "torchdoct bench bulk-phase",
+        8 * 16 * int(frames) * int(lines) * int(n_z),
+        f"{frames} frames × {lines} A-lines × {n_z} depths per SNR",
+        "give fewer --lines, --depth or --frames",
+    )
     rows = []
     for k, snr in enumerate(snr_db):
         x, phi = _synthetic(lines, n_z, frames, snr, seed + k)
@@ -76,18 +88,39 @@ def bench_bulk_phase(*, snr_db: _Seq[float] = (10.0, 20.0, 30.0, 40.0), n_z: int
             steps, _ = phase_steps(x, m)
             dt = time.perf_counter() - t0
             rms, se = residual_rms(steps, phi)
-            rows.append({"snr_db": float(snr), "method": m, "residual_rms_rad": rms, "se_rad": se,
-                         "predicted_rms_rad": pred, "ratio": rms / pred, "seconds": dt})
-    return {"benchmark": "bulk-phase", "n_z": int(n_z), "frames": int(frames), "lines": int(lines), "seed": int(seed),
-            "model": "static fully developed speckle, white circular Gaussian noise, uniform random bulk phase per "
-                     "frame and A-line; residual = RMS over frames about the A-line's mean, mask all",
-            "rows": rows, "machine": machine_info()}
+            rows.append(
+                {
+                    "snr_db": float(snr),
+                    "method": m,
+                    "residual_rms_rad": rms,
+                    "se_rad": se,
+                    "predicted_rms_rad": pred,
+                    "ratio": rms / pred,
+                    "seconds": dt,
+                }
+            )
+    return {
+        "benchmark": "bulk-phase",
+        "n_z": int(n_z),
+        "frames": int(frames),
+        "lines": int(lines),
+        "seed": int(seed),
+        "model": "static fully developed speckle, white circular Gaussian noise, uniform random bulk phase per "
+        "frame and A-line; residual = RMS over frames about the A-line's mean, mask all",
+        "rows": rows,
+        "machine": machine_info(),
+    }
 
 
 @one_torch_thread
-def bench_bulk_phase_phantom(phantom: str = "vessel-slab", *, snr_db: _Seq[float] = (20.0, 30.0, 40.0),
-                             methods: _Seq[str] = METHODS, masks: _Seq[str] = ("all", "median", "stable", "stable:0.1"),
-                             seed: int = 1) -> dict[str, Any]:
+def bench_bulk_phase_phantom(
+    phantom: str = "vessel-slab",
+    *,
+    snr_db: _Seq[float] = (20.0, 30.0, 40.0),
+    methods: _Seq[str] = METHODS,
+    masks: _Seq[str] = ("all", "median", "stable", "stable:0.1"),
+    seed: int = 1,
+) -> dict[str, Any]:
     """Residual phase error on a rendered phantom with moving regions (measured, never asserted).
 
     The phantom (a shipped name or a file, :func:`torchdoct.load_phantom`) is rendered once with
@@ -110,7 +143,7 @@ def bench_bulk_phase_phantom(phantom: str = "vessel-slab", *, snr_db: _Seq[float
     static = labels == MOTION_CODES["static"]
     if not bool(static.any()):
         raise ValueError(f"phantom {phantom!r} has no static pixels to set the SNR by")
-    p_static = float((field.real ** 2 + field.imag ** 2).mean(0)[static].mean())
+    p_static = float((field.real**2 + field.imag**2).mean(0)[static].mean())
     meta = res.metadata()
     times = list(meta["frame_times_s"])
     n_t, _, n_x = field.shape
@@ -121,8 +154,10 @@ def bench_bulk_phase_phantom(phantom: str = "vessel-slab", *, snr_db: _Seq[float
     rows = []
     for k, snr in enumerate(snr_db):
         g = torch.Generator().manual_seed(int(seed) * 1000 + k)
-        noise = torch.complex(torch.randn(*field.shape, generator=g, dtype=torch.float64),
-                              torch.randn(*field.shape, generator=g, dtype=torch.float64))
+        noise = torch.complex(
+            torch.randn(*field.shape, generator=g, dtype=torch.float64),
+            torch.randn(*field.shape, generator=g, dtype=torch.float64),
+        )
         truth = field + noise * noise_sigma(p_static, float(snr))
         phi = (torch.rand(n_t, n_x, generator=g, dtype=torch.float64) * 2 - 1) * math.pi
         phi[0] = 0.0
@@ -139,28 +174,49 @@ def bench_bulk_phase_phantom(phantom: str = "vessel-slab", *, snr_db: _Seq[float
                 r = r - r.mean(0, keepdim=True)
                 corr = torch.from_numpy(corrected_sequence(seq, bp).data)
                 dz = float((g1_4(corr)[static] - ref).mean()) / se
-                rows.append({"snr_db": float(snr), "method": m, "mask": bp.meta()["mask"],
-                             "residual_rms_rad": float(torch.sqrt((r * r).mean())), "g1_4_static_z": dz,
-                             "seconds": dt})
-    return {"benchmark": "bulk-phase-phantom", "phantom": phantom, "seed": int(seed), "shape": list(field.shape),
-            "model": "rendered phantom + white noise relative to its static pixels' mean intensity + uniform random "
-                     "bulk phase per frame and A-line; residual = RMS over frames about the A-line's mean",
-            "rows": rows, "machine": machine_info()}
+                rows.append(
+                    {
+                        "snr_db": float(snr),
+                        "method": m,
+                        "mask": bp.meta()["mask"],
+                        "residual_rms_rad": float(torch.sqrt((r * r).mean())),
+                        "g1_4_static_z": dz,
+                        "seconds": dt,
+                    }
+                )
+    return {
+        "benchmark": "bulk-phase-phantom",
+        "phantom": phantom,
+        "seed": int(seed),
+        "shape": list(field.shape),
+        "model": "rendered phantom + white noise relative to its static pixels' mean intensity + uniform random "
+        "bulk phase per frame and A-line; residual = RMS over frames about the A-line's mean",
+        "rows": rows,
+        "machine": machine_info(),
+    }
 
 
 def format_bench_bulk_phase(res: dict[str, Any]) -> str:
     """The table of :func:`bench_bulk_phase` (and of :func:`bench_bulk_phase_phantom` under ``"phantom"``) as text."""
-    out = [f"bulk-phase residual, {res['lines']} A-lines × {res['n_z']} depth pixels × {res['frames']} frames",
-           f"{'SNR dB':>7}  {'method':>14}  {'residual rad':>13}  {'± SE':>8}  {'predicted':>10}  {'ratio':>6}"]
+    out = [
+        f"bulk-phase residual, {res['lines']} A-lines × {res['n_z']} depth pixels × {res['frames']} frames",
+        f"{'SNR dB':>7}  {'method':>14}  {'residual rad':>13}  {'± SE':>8}  {'predicted':>10}  {'ratio':>6}",
+    ]
     for r in res["rows"]:
-        out.append(f"{r['snr_db']:7.0f}  {r['method']:>14}  {r['residual_rms_rad']:13.5f}  {r['se_rad']:8.5f}  "
-                   f"{r['predicted_rms_rad']:10.5f}  {r['ratio']:6.3f}")
+        out.append(
+            f"{r['snr_db']:7.0f}  {r['method']:>14}  {r['residual_rms_rad']:13.5f}  {r['se_rad']:8.5f}  "
+            f"{r['predicted_rms_rad']:10.5f}  {r['ratio']:6.3f}"
+        )
     ph = res.get("phantom")
     if ph:
-        out.append(f"rendered phantom {ph['phantom']} {ph['shape']} (seed {ph['seed']}): residual, and the static "
-                   "pixels' mean g1_4 change in SE")
+        out.append(
+            f"rendered phantom {ph['phantom']} {ph['shape']} (seed {ph['seed']}): residual, and the static "
+            "pixels' mean g1_4 change in SE"
+        )
         out.append(f"{'SNR dB':>7}  {'method':>14}  {'mask':>11}  {'residual rad':>13}  {'g1_4 z':>7}")
         for r in ph["rows"]:
-            out.append(f"{r['snr_db']:7.0f}  {r['method']:>14}  {r['mask']:>11}  {r['residual_rms_rad']:13.5f}  "
-                       f"{r['g1_4_static_z']:7.2f}")
+            out.append(
+                f"{r['snr_db']:7.0f}  {r['method']:>14}  {r['mask']:>11}  {r['residual_rms_rad']:13.5f}  "
+                f"{r['g1_4_static_z']:7.2f}"
+            )
     return "\n".join(out)

@@ -39,9 +39,11 @@ def load_cog(directory: str | Path):
     """The ``doctSimulator`` module of a COG clone at ``directory`` (ValueError naming the fix if absent)."""
     path = Path(directory).expanduser() / "doctSimulator.py"
     if not path.is_file():
-        raise ValueError(f"--cog {directory}: no doctSimulator.py there; clone the COG DOCT simulation library "
-                         "(github.com/ComputationalOpticsGroup/COG-dynamic-OCT-contrast-simulation-library) and "
-                         "pass its folder")
+        raise ValueError(
+            f"--cog {directory}: no doctSimulator.py there; clone the COG DOCT simulation library "
+            "(github.com/ComputationalOpticsGroup/COG-dynamic-OCT-contrast-simulation-library) and "
+            "pass its folder"
+        )
     stubs = {}
     for name in ("cupy", "cupyx"):
         if importlib.util.find_spec(name) is None:
@@ -65,8 +67,11 @@ def _cog_motion(motion) -> tuple[str, Any]:
     if isinstance(motion, RandomBallistic):
         return "randomBallistic", motion.speed_um_per_s * 1e-6
     if isinstance(motion, Flow):
-        return "flow", [motion.speed_um_per_s * 1e-6, math.radians(motion.polar_angle_deg),
-                        math.radians(motion.azimuth_deg)]
+        return "flow", [
+            motion.speed_um_per_s * 1e-6,
+            math.radians(motion.polar_angle_deg),
+            math.radians(motion.azimuth_deg),
+        ]
     raise ValueError(f"no COG equivalent of {motion!r}")
 
 
@@ -86,8 +91,9 @@ def _cog_trial(dos, system, motion) -> int:
     return int(sp.numScatter)
 
 
-def bench_cog(cog: str | Path, *, cog_trials: int = 10, trials: int = 1024, repeats: int = 3,
-              progress: bool = False) -> dict[str, Any]:
+def bench_cog(
+    cog: str | Path, *, cog_trials: int = 10, trials: int = 1024, repeats: int = 3, progress: bool = False
+) -> dict[str, Any]:
     """CPU time per trial of COG and torchdoct on the 12 paper cells, one thread each."""
     dos = load_cog(cog)
     cells = [(s, m) for m in paper_motions().items() for s in paper_systems()]
@@ -100,8 +106,9 @@ def bench_cog(cog: str | Path, *, cog_trials: int = 10, trials: int = 1024, repe
     protocol = Protocol(n_frames=_FRAMES, frame_interval_s=_DT)
     with threadpool_limits(1):
         for system, (mname, motion) in cells:
-            scene = Scene(systems=(system,), protocol=protocol,
-                          populations=(Population(density_per_um3=0.055, motion=(motion,)),))
+            scene = Scene(
+                systems=(system,), protocol=protocol, populations=(Population(density_per_um3=0.055, motion=(motion,)),)
+            )
             _cog_trial(dos, system, motion)
             simulate(scene, trials=64, seed=1, threads=1)  # warm-up
             cog_s, ours_s, n_cog = math.inf, math.inf, 0
@@ -113,9 +120,17 @@ def bench_cog(cog: str | Path, *, cog_trials: int = 10, trials: int = 1024, repe
                 c0 = time.process_time()
                 res = simulate(scene, trials=trials, seed=2 + r, threads=1)
                 ours_s = min(ours_s, (time.process_time() - c0) / trials)
-            rows.append({"system": system.name, "motion": mname, "cog_ms_per_trial": 1e3 * cog_s,
-                         "cog_scatterers": n_cog, "torchdoct_ms_per_trial": 1e3 * ours_s,
-                         "torchdoct_scatterers": res.plan.expected_scatterers_per_trial, "ratio": cog_s / ours_s})
+            rows.append(
+                {
+                    "system": system.name,
+                    "motion": mname,
+                    "cog_ms_per_trial": 1e3 * cog_s,
+                    "cog_scatterers": n_cog,
+                    "torchdoct_ms_per_trial": 1e3 * ours_s,
+                    "torchdoct_scatterers": res.plan.expected_scatterers_per_trial,
+                    "ratio": cog_s / ours_s,
+                }
+            )
             if bar is not None:
                 bar.update()
     if bar is not None:
@@ -123,17 +138,30 @@ def bench_cog(cog: str | Path, *, cog_trials: int = 10, trials: int = 1024, repe
     ratios = [r["ratio"] for r in rows]
     from ..sim import kernel
 
-    return {"benchmark": "cog", "cog_trials": cog_trials, "trials": trials, "repeats": repeats, "cells": rows,
-            "geometric_mean_ratio": math.exp(sum(math.log(x) for x in ratios) / len(ratios)),
-            "kernel": kernel.backend(), "machine": machine_info()}
+    return {
+        "benchmark": "cog",
+        "cog_trials": cog_trials,
+        "trials": trials,
+        "repeats": repeats,
+        "cells": rows,
+        "geometric_mean_ratio": math.exp(sum(math.log(x) for x in ratios) / len(ratios)),
+        "kernel": kernel.backend(),
+        "machine": machine_info(),
+    }
 
 
 def format_cog_table(res: dict[str, Any]) -> str:
-    lines = ["| system | motion | COG ms/trial (scatterers) | torchdoct ms/trial (scatterers) | COG ÷ torchdoct |",
-             "|---|---|---:|---:|---:|"]
+    lines = [
+        "| system | motion | COG ms/trial (scatterers) | torchdoct ms/trial (scatterers) | COG ÷ torchdoct |",
+        "|---|---|---:|---:|---:|",
+    ]
     for r in res["cells"]:
-        lines.append(f"| {r['system']} | {r['motion']} | {r['cog_ms_per_trial']:.2f} ({r['cog_scatterers']}) | "
-                     f"{r['torchdoct_ms_per_trial']:.3f} ({r['torchdoct_scatterers']:.0f}) | {r['ratio']:.0f}× |")
-    lines.append(f"\ngeometric mean {res['geometric_mean_ratio']:.0f}× (one thread each, CPU time, best of "
-                 f"{res['repeats']}; torchdoct kernel: {res['kernel']})")
+        lines.append(
+            f"| {r['system']} | {r['motion']} | {r['cog_ms_per_trial']:.2f} ({r['cog_scatterers']}) | "
+            f"{r['torchdoct_ms_per_trial']:.3f} ({r['torchdoct_scatterers']:.0f}) | {r['ratio']:.0f}× |"
+        )
+    lines.append(
+        f"\ngeometric mean {res['geometric_mean_ratio']:.0f}× (one thread each, CPU time, best of "
+        f"{res['repeats']}; torchdoct kernel: {res['kernel']})"
+    )
     return "\n".join(lines)

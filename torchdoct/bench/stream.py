@@ -26,9 +26,11 @@ from ..runtime.machine import machine_info
 
 __all__ = ["bench_stream", "format_stream_table", "plot_stream"]
 
-_PROBE = ("import json, sys\nimport torch, torchdoct.measured.maps\nfrom torchdoct.cli import main\n"
-          "def st(k):\n    return next(int(l.split()[1]) * 1024 for l in open('/proc/self/status') if l.startswith(k))\n"
-          "b = st('VmRSS:')\nc = main(sys.argv[1:])\nprint(json.dumps([c, b, st('VmHWM:')]))\n")
+_PROBE = (
+    "import json, sys\nimport torch, torchdoct.measured.maps\nfrom torchdoct.cli import main\n"
+    "def st(k):\n    return next(int(l.split()[1]) * 1024 for l in open('/proc/self/status') if l.startswith(k))\n"
+    "b = st('VmRSS:')\nc = main(sys.argv[1:])\nprint(json.dumps([c, b, st('VmHWM:')]))\n"
+)
 _BSCAN = (512, 512)
 
 
@@ -44,9 +46,12 @@ def _write_input(folder: Path, frames: int) -> Path:
     return path
 
 
-def bench_stream(sizes_gb: _Seq[float] = (1.0, 4.0, 16.0), budget_gb: float = 0.25,
-                 workdir: str | os.PathLike | None = None,
-                 on_run: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
+def bench_stream(
+    sizes_gb: _Seq[float] = (1.0, 4.0, 16.0),
+    budget_gb: float = 0.25,
+    workdir: str | os.PathLike | None = None,
+    on_run: Callable[[dict[str, Any]], None] | None = None,
+) -> dict[str, Any]:
     """Peak resident growth of ``torchdoct maps --max-memory-gb budget_gb`` on inputs of ``sizes_gb`` GiB
     (module docstring); ``workdir``: where the inputs are written (default the system's temporary folder),
     each removed after its run. A folder without room for the largest (sparse) input is refused first.
@@ -62,34 +67,60 @@ def bench_stream(sizes_gb: _Seq[float] = (1.0, 4.0, 16.0), budget_gb: float = 0.
         frames = max(8, int(round(gb * (1 << 30) / frame_bytes)))  # 8: OCDS's default delays on 2+ frame pairs
         with tempfile.TemporaryDirectory(dir=base) as d:
             path = _write_input(Path(d), frames)
-            argv = ["maps", str(path), "--out", str(Path(d) / "m.npz"), "--no-progress",
-                    "--max-memory-gb", str(budget_gb)]
+            argv = [
+                "maps",
+                str(path),
+                "--out",
+                str(Path(d) / "m.npz"),
+                "--no-progress",
+                "--max-memory-gb",
+                str(budget_gb),
+            ]
             t0 = time.perf_counter()
             out = subprocess.run([sys.executable, "-c", _PROBE, *argv], capture_output=True, text=True)
             seconds = time.perf_counter() - t0
             if out.returncode != 0:
                 raise RuntimeError(f"bench stream: torchdoct maps failed on {gb} GiB: {out.stderr.strip()[-400:]}")
             code, rss0, peak = json.loads(out.stdout.strip().splitlines()[-1])
-        runs.append({"input_gib": frames * frame_bytes / (1 << 30), "frames": frames, "shape": [frames, *_BSCAN],
-                     "baseline_rss_bytes": rss0, "peak_rss_bytes": peak, "growth_bytes": peak - rss0,
-                     "seconds": seconds})
+        runs.append(
+            {
+                "input_gib": frames * frame_bytes / (1 << 30),
+                "frames": frames,
+                "shape": [frames, *_BSCAN],
+                "baseline_rss_bytes": rss0,
+                "peak_rss_bytes": peak,
+                "growth_bytes": peak - rss0,
+                "seconds": seconds,
+            }
+        )
         if on_run is not None:
             on_run(_result(budget_gb, sizes_gb, runs, complete=len(runs) == len(sizes_gb)))
     return _result(budget_gb, sizes_gb, runs, complete=True)
 
 
 def _result(budget_gb: float, sizes_gb: _Seq[float], runs: list[dict[str, Any]], complete: bool) -> dict[str, Any]:
-    return {"benchmark": "stream", "command": "torchdoct maps INPUT.npy --max-memory-gb BUDGET",
-            "budget_gib": budget_gb, "sizes_gib_asked": [float(g) for g in sizes_gb], "complete": complete,
-            "bscan": list(_BSCAN), "runs": list(runs), "machine": machine_info()}
+    return {
+        "benchmark": "stream",
+        "command": "torchdoct maps INPUT.npy --max-memory-gb BUDGET",
+        "budget_gib": budget_gb,
+        "sizes_gib_asked": [float(g) for g in sizes_gb],
+        "complete": complete,
+        "bscan": list(_BSCAN),
+        "runs": list(runs),
+        "machine": machine_info(),
+    }
 
 
 def format_stream_table(res: dict[str, Any]) -> str:
-    lines = [f"torchdoct maps --max-memory-gb {res['budget_gib']:g} on memory-mapped complex64 inputs:",
-             f"{'input GiB':>10}  {'frames':>7}  {'peak RSS MiB':>12}  {'growth MiB':>10}  {'s':>7}"]
+    lines = [
+        f"torchdoct maps --max-memory-gb {res['budget_gib']:g} on memory-mapped complex64 inputs:",
+        f"{'input GiB':>10}  {'frames':>7}  {'peak RSS MiB':>12}  {'growth MiB':>10}  {'s':>7}",
+    ]
     for r in res["runs"]:
-        lines.append(f"{r['input_gib']:10.3g}  {r['frames']:7d}  {r['peak_rss_bytes'] / 2**20:12.0f}  "
-                     f"{r['growth_bytes'] / 2**20:10.0f}  {r['seconds']:7.1f}")
+        lines.append(
+            f"{r['input_gib']:10.3g}  {r['frames']:7d}  {r['peak_rss_bytes'] / 2**20:12.0f}  "
+            f"{r['growth_bytes'] / 2**20:10.0f}  {r['seconds']:7.1f}"
+        )
     return "\n".join(lines)
 
 
@@ -103,8 +134,7 @@ def plot_stream(res: dict[str, Any], path: str | os.PathLike) -> None:
     x = [r["input_gib"] for r in res["runs"]]
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
     ax.plot(x, [r["peak_rss_bytes"] / 2**20 for r in res["runs"]], "o-", color="#0072B2", label="peak RSS")
-    ax.plot(x, [r["growth_bytes"] / 2**20 for r in res["runs"]], "s-", color="#E69F00",
-            label="growth over the imports")
+    ax.plot(x, [r["growth_bytes"] / 2**20 for r in res["runs"]], "s-", color="#E69F00", label="growth over the imports")
     ax.plot(x, x and [v * 1024 for v in x], ":", color="#999999", label="input size")
     ax.axhline(res["budget_gib"] * 1024, color="#009E73", ls="--", label="--max-memory-gb")
     ax.set_xscale("log")

@@ -23,11 +23,11 @@ __all__ = ["build_parser", "commands", "main", "EXIT_CODES"]
 EXIT_CODES = {
     0: "done",
     1: "failed for a reason other than the input: the system refused a read or write (permissions, disk "
-       "full; one `error:` line), another run was writing the same outputs (a write conflict naming it) or an "
-       "internal error (a traceback: please report it)",
+    "full; one `error:` line), another run was writing the same outputs (a write conflict naming it) or an "
+    "internal error (a traceback: please report it)",
     2: "bad input or usage: unknown option, missing, empty or corrupt file, invalid value, unusable "
-       "device, output that exists without --force (one `error:` line naming the file or option and "
-       "the fix; nothing is written)",
+    "device, output that exists without --force (one `error:` line naming the file or option and "
+    "the fix; nothing is written)",
     130: "interrupted by Ctrl-C: one line says what was kept and how to resume (torchdoct.runtime.interrupt)",
     141: "the output pipe closed early (`| head`): ended quietly",
     143: "terminated by SIGTERM: one line says what was kept and how to resume",

@@ -42,8 +42,11 @@ def _simulate_arguments(bs) -> None:
     bs.add_argument("--trials", type=int, default=1024, help="trials per cell")
     bs.add_argument("--repeats", type=int, default=1, help="repeats per cell (best is kept)")
     bs.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    bs.add_argument("--load", action="store_true",
-                    help="also time every cell on one thread, and beside a busy process that it starts and stops")
+    bs.add_argument(
+        "--load",
+        action="store_true",
+        help="also time every cell on one thread, and beside a busy process that it starts and stops",
+    )
     _add_out(bs)
     bs.add_argument("--force", action="store_true", help="overwrite --out if it exists")
 
@@ -51,21 +54,40 @@ def _simulate_arguments(bs) -> None:
 def _simulate(args) -> int:
     from .. import bench
 
-    return run_benchmark(args, lambda: bench.bench_simulate(trials=args.trials, dtype=args.dtype, repeats=args.repeats,
-                                                            threads=args.threads, load=args.load, progress=True),
-                         bench.format_simulate_table)
+    return run_benchmark(
+        args,
+        lambda: bench.bench_simulate(
+            trials=args.trials,
+            dtype=args.dtype,
+            repeats=args.repeats,
+            threads=args.threads,
+            load=args.load,
+            progress=True,
+        ),
+        bench.format_simulate_table,
+    )
 
 
 def _tradeoffs_arguments(bt) -> None:
     bt.add_argument("--part", choices=("all", "simulator", "study", "classifier", "fidelity"), default="all")
     bt.add_argument("--trials", type=int, default=8192, help="simulator: trials per tolerance point")
     bt.add_argument("--reference-trials", type=int, default=16384, help="simulator: trials of the reference")
-    bt.add_argument("--fidelity-trials", type=int, default=4096,
-                    help="fidelity: trials per cell and simulator setting (bias of every model feature)")
-    bt.add_argument("--fidelity-reference-trials", type=int, default=8192,
-                    help="fidelity: trials per cell of the tight reference (tolerance 1e-6, float64)")
+    bt.add_argument(
+        "--fidelity-trials",
+        type=int,
+        default=4096,
+        help="fidelity: trials per cell and simulator setting (bias of every model feature)",
+    )
+    bt.add_argument(
+        "--fidelity-reference-trials",
+        type=int,
+        default=8192,
+        help="fidelity: trials per cell of the tight reference (tolerance 1e-6, float64)",
+    )
     bt.add_argument("--quick", action="store_true", help="reduced sizes (minutes)")
-    _add_out(bt, "also write the result as JSON (PNGs of the fronts beside it) (default: printed only, nothing written)")
+    _add_out(
+        bt, "also write the result as JSON (PNGs of the fronts beside it) (default: printed only, nothing written)"
+    )
     bt.add_argument("--force", action="store_true", help="overwrite --out if it exists")
 
 
@@ -75,8 +97,15 @@ def _tradeoffs(args) -> int:
 
     out = check_out(args.out, args.force, ".json")
     parts = ["simulator", "study", "classifier", "fidelity"] if args.part == "all" else [args.part]
-    pngs = {} if out is None else {p: Path(args.out).with_name(f"{Path(args.out).stem}-{p}.png")
-                                   for p in parts if p not in ("study", "fidelity")}
+    pngs = (
+        {}
+        if out is None
+        else {
+            p: Path(args.out).with_name(f"{Path(args.out).stem}-{p}.png")
+            for p in parts
+            if p not in ("study", "fidelity")
+        }
+    )
     for png in pngs.values():
         check_out(str(png), args.force, ".png")
     res: dict[str, Any] = {}
@@ -91,8 +120,9 @@ def _tradeoffs(args) -> int:
     if "classifier" in parts:
         from . import extensions
 
-        clf_tradeoffs = extensions.load(extensions.TRADEOFFS, "classifier",
-                                        command="torchdoct bench tradeoffs --part classifier")
+        clf_tradeoffs = extensions.load(
+            extensions.TRADEOFFS, "classifier", command="torchdoct bench tradeoffs --part classifier"
+        )
         res["classifier"] = clf_tradeoffs.compute(quick=args.quick, progress=True)
         print(clf_tradeoffs.format_table(res["classifier"]))
     if "fidelity" in parts:
@@ -120,9 +150,13 @@ def _load(args) -> int:
     from .. import bench
     from .render import COMMANDS as RENDER
 
-    return run_benchmark(args, lambda: bench.bench_load(repeats=args.repeats, threads=args.threads, progress=True,
-                                                        command=command_main(RENDER)),
-                         bench.format_load_table)
+    return run_benchmark(
+        args,
+        lambda: bench.bench_load(
+            repeats=args.repeats, threads=args.threads, progress=True, command=command_main(RENDER)
+        ),
+        bench.format_load_table,
+    )
 
 
 def _cog_arguments(bg) -> None:
@@ -137,8 +171,13 @@ def _cog_arguments(bg) -> None:
 def _cog(args) -> int:
     from ..bench import cog
 
-    return run_benchmark(args, lambda: cog.bench_cog(args.cog, cog_trials=args.cog_trials, trials=args.trials,
-                                                     repeats=args.repeats, progress=True), cog.format_cog_table)
+    return run_benchmark(
+        args,
+        lambda: cog.bench_cog(
+            args.cog, cog_trials=args.cog_trials, trials=args.trials, repeats=args.repeats, progress=True
+        ),
+        cog.format_cog_table,
+    )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -168,13 +207,17 @@ def _render(args) -> int:
 def _maps_arguments(bm) -> None:
     bm.add_argument("--frames", type=int, default=32)
     bm.add_argument("--size", nargs=2, type=int, default=[512, 512], metavar=("Z", "X"))
-    bm.add_argument("--resolution", action="append", default=None, metavar="R",
-                    help="default: original, axial=14, lateral=18")
+    bm.add_argument(
+        "--resolution", action="append", default=None, metavar="R", help="default: original, axial=14, lateral=18"
+    )
     bm.add_argument("--aliv", action="store_true", help="include aLIV and Swiftness")
     bm.add_argument("--signature", action="store_true", help="include the signature channels (maps --signature)")
     bm.add_argument("--speckle", action="store_true", help="include the speckle-motion channels (maps --speckle)")
-    bm.add_argument("--doppler", action="store_true",
-                    help="include the Doppler reference (maps --doppler; the random field has none, so no channel)")
+    bm.add_argument(
+        "--doppler",
+        action="store_true",
+        help="include the Doppler reference (maps --doppler; the random field has none, so no channel)",
+    )
     bm.add_argument("--repeats", type=int, default=1, help="timed repeats (best is kept)")
     _add_out(bm)
     bm.add_argument("--force", action="store_true", help="overwrite --out if it exists")
@@ -187,19 +230,27 @@ def _maps(args: argparse.Namespace) -> int:
         if args.frames < 2 or min(args.size) < 1:
             raise ValueError("--frames must be >= 2 and --size positive")
         metrics = ["liv", "ocds", "mean_db"] + (["aliv", "swiftness"] if args.aliv else [])
-        return bench_maps(frames=args.frames, shape=tuple(args.size),
-                          resolutions=args.resolution or ["original", "axial=14", "lateral=18"],
-                          metrics=metrics, repeats=args.repeats, signature=args.signature, speckle=args.speckle,
-                          doppler=args.doppler)
+        return bench_maps(
+            frames=args.frames,
+            shape=tuple(args.size),
+            resolutions=args.resolution or ["original", "axial=14", "lateral=18"],
+            metrics=metrics,
+            repeats=args.repeats,
+            signature=args.signature,
+            speckle=args.speckle,
+            doppler=args.doppler,
+        )
 
     def fmt(res: dict[str, Any]) -> str:
         per = ", ".join(f"{k} {v:.2f} s" for k, v in res["seconds_per_resolution"].items())
         m = res["machine"]
-        return (f"maps of a complex64 {res['shape']} stack, {len(res['resolutions'])} resolutions, "
-                f"{'+'.join(res['metrics'] + ['signature'] * res['signature'] + ['speckle'] * res['speckle'] + ['doppler'] * res.get('doppler', False))}: "
-                f"{res['seconds_total']:.2f} s total ({per}); "
-                f"target {res['target_seconds']:.0f} s; {m['cpu_count']} cores, torch {m['torch']} with "
-                f"{m['torch_threads']} threads")
+        return (
+            f"maps of a complex64 {res['shape']} stack, {len(res['resolutions'])} resolutions, "
+            f"{'+'.join(res['metrics'] + ['signature'] * res['signature'] + ['speckle'] * res['speckle'] + ['doppler'] * res.get('doppler', False))}: "
+            f"{res['seconds_total']:.2f} s total ({per}); "
+            f"target {res['target_seconds']:.0f} s; {m['cpu_count']} cores, torch {m['torch']} with "
+            f"{m['torch_threads']} threads"
+        )
 
     return run_benchmark(args, compute, fmt)
 
@@ -218,12 +269,14 @@ def _stream(args) -> int:
 
     out = check_out(args.out, args.force, ".json", what="--out")
     fig = check_out(args.figure, args.force, ".png", what="--figure")
+
     def keep(partial: dict) -> None:  # each size as it finishes: a run stopped half-way keeps what it measured
         if out is not None and not partial["complete"]:
             atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(partial, indent=2)))
 
-    res = bench_stream(parse_floats(args.sizes_gb, None, "--sizes-gb"), budget_gb=args.budget_gb,
-                       workdir=args.workdir, on_run=keep)
+    res = bench_stream(
+        parse_floats(args.sizes_gb, None, "--sizes-gb"), budget_gb=args.budget_gb, workdir=args.workdir, on_run=keep
+    )
     print(format_stream_table(res))
     if out is not None:  # asked for with --out: nothing is written into the current folder unasked
         atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2)))
@@ -240,9 +293,13 @@ def _bulk_phase_arguments(bb) -> None:
     bb.add_argument("--frames", type=int, default=32)
     bb.add_argument("--lines", type=int, default=2000, help="A-lines per SNR (default 2000)")
     bb.add_argument("--seed", type=int, default=0)
-    bb.add_argument("--phantom", default=None, metavar="NAME",
-                    help="also render this B-scan phantom (e.g. vessel-slab, which has moving regions) and measure "
-                         "every method and mask on it at 20, 30, 40 dB")
+    bb.add_argument(
+        "--phantom",
+        default=None,
+        metavar="NAME",
+        help="also render this B-scan phantom (e.g. vessel-slab, which has moving regions) and measure "
+        "every method and mask on it at 20, 30, 40 dB",
+    )
     _add_out(bb)
     bb.add_argument("--force", action="store_true", help="overwrite --out if it exists")
 
@@ -253,8 +310,13 @@ def _bulk_phase(args: argparse.Namespace) -> int:
     def compute() -> dict[str, Any]:
         if args.frames < 2 or args.depth < 3 or args.lines < 2:
             raise ValueError("--frames must be >= 2, --depth >= 3 and --lines >= 2")
-        res = bench_bulk_phase(snr_db=parse_floats(args.snr_db, None, "--snr-db"), n_z=args.depth,
-                               frames=args.frames, lines=args.lines, seed=args.seed)
+        res = bench_bulk_phase(
+            snr_db=parse_floats(args.snr_db, None, "--snr-db"),
+            n_z=args.depth,
+            frames=args.frames,
+            lines=args.lines,
+            seed=args.seed,
+        )
         if args.phantom:
             res["phantom"] = bench_bulk_phase_phantom(args.phantom)
         return res
@@ -265,15 +327,26 @@ def _bulk_phase(args: argparse.Namespace) -> int:
 def _study_arguments(bs) -> None:
     bs.add_argument("--study", default="paper-reduced", help="study file or shipped name (default paper-reduced)")
     bs.add_argument("--trials", type=int, default=None, help="trials per point (default: the study's)")
-    bs.add_argument("--groupings", action="store_true",
-                    help="also time cells with all systems in one scene vs the comparisons' pairs")
+    bs.add_argument(
+        "--groupings",
+        action="store_true",
+        help="also time cells with all systems in one scene vs the comparisons' pairs",
+    )
     bs.add_argument("--grouping-trials", type=int, default=128, help="trials per timed cell for --groupings")
-    bs.add_argument("--study-out", default=None, metavar="DIR",
-                    help="keep the study's table, figures and report in DIR (default: a temporary directory)")
+    bs.add_argument(
+        "--study-out",
+        default=None,
+        metavar="DIR",
+        help="keep the study's table, figures and report in DIR (default: a temporary directory)",
+    )
     _add_out(bs)
     bs.add_argument("--force", action="store_true", help="overwrite --out (and --study-out files) if they exist")
-    bs.add_argument("--workers", type=int, default=None,
-                    help="cells computed side by side (default: --threads, else the usable cores)")
+    bs.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="cells computed side by side (default: --threads, else the usable cores)",
+    )
     bs.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -281,9 +354,16 @@ def _study(args) -> int:
     from ..bench.study import bench_study, format_bench_study
 
     out = check_out(args.out, args.force, ".json")
-    res = bench_study(args.study, trials=args.trials, groupings=args.groupings, grouping_trials=args.grouping_trials,
-                      study_out=args.study_out, force=args.force, workers=workers(args),
-                      progress=not args.no_progress)
+    res = bench_study(
+        args.study,
+        trials=args.trials,
+        groupings=args.groupings,
+        grouping_trials=args.grouping_trials,
+        study_out=args.study_out,
+        force=args.force,
+        workers=workers(args),
+        progress=not args.no_progress,
+    )
     print(format_bench_study(res))
     if out is not None:  # asked for with --out: nothing is written into the current folder unasked
         atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(res, indent=2), encoding="utf-8"))
@@ -302,8 +382,13 @@ def _all_arguments(ba) -> None:
 
 
 #: ``bench all --quick``: the reduced sizes of the benchmarks without a ``--quick`` option.
-_QUICK = {"simulate": ["--trials", "256"], "tradeoffs": ["--quick"], "render": ["--repeats", "1"], "load": ["--repeats", "1"],
-          "stream": ["--sizes-gb", "0.0625,0.25"]}
+_QUICK = {
+    "simulate": ["--trials", "256"],
+    "tradeoffs": ["--quick"],
+    "render": ["--repeats", "1"],
+    "load": ["--repeats", "1"],
+    "stream": ["--sizes-gb", "0.0625,0.25"],
+}
 
 
 def _all(args) -> int:
@@ -338,8 +423,9 @@ def _all(args) -> int:
 def _extension_benchmark(part: Any) -> Command:
     """A benchmark another installed package registers (entry-point group ``torchdoct.bench``): a module
     with ``HELP``, ``DESCRIPTION``, ``add_arguments(parser)`` and ``benchmark(args) -> (compute, format)``."""
-    return Command(part.HELP, part.add_arguments, lambda args: run_benchmark(args, *part.benchmark(args)),
-                   part.DESCRIPTION)
+    return Command(
+        part.HELP, part.add_arguments, lambda args: run_benchmark(args, *part.benchmark(args)), part.DESCRIPTION
+    )
 
 
 def benchmarks() -> dict[str, Any]:
@@ -348,25 +434,33 @@ def benchmarks() -> dict[str, Any]:
     from . import extensions
 
     table: dict[str, Any] = {
-        "simulate": Command("paper's 4 systems x 3 motions at their largest parameters", _simulate_arguments, _simulate),
-        "tradeoffs": Command("what accuracy costs in time: simulator, study and classifier", _tradeoffs_arguments,
-                             _tradeoffs),
-        "load": Command("simulate, render and sweep: alone on 1 and N threads, and beside a busy process",
-                        _load_arguments, _load),
-        "cog": Command("the paper's 12 cells against the COG point simulator (a clone of it), one core",
-                       _cog_arguments, _cog),
+        "simulate": Command(
+            "paper's 4 systems x 3 motions at their largest parameters", _simulate_arguments, _simulate
+        ),
+        "tradeoffs": Command(
+            "what accuracy costs in time: simulator, study and classifier", _tradeoffs_arguments, _tradeoffs
+        ),
+        "load": Command(
+            "simulate, render and sweep: alone on 1 and N threads, and beside a busy process", _load_arguments, _load
+        ),
+        "cog": Command(
+            "the paper's 12 cells against the COG point simulator (a clone of it), one core", _cog_arguments, _cog
+        ),
         "render": Command("spheroid phantom: 32-frame 256×256 B-scan sequence", _render_arguments, _render),
         "maps": Command("time maps of a random complex stack at several resolutions", _maps_arguments, _maps),
-        "stream": Command("peak memory of streamed maps against input size (--max-memory-gb)", _stream_arguments,
-                          _stream),
-        "bulk-phase": Command("residual phase error of the bulk-phase correction against SNR", _bulk_phase_arguments,
-                              _bulk_phase),
+        "stream": Command(
+            "peak memory of streamed maps against input size (--max-memory-gb)", _stream_arguments, _stream
+        ),
+        "bulk-phase": Command(
+            "residual phase error of the bulk-phase correction against SNR", _bulk_phase_arguments, _bulk_phase
+        ),
         "study": Command("wall time of a whole study from an empty cache", _study_arguments, _study),
     }
     for name, part in extensions.benchmarks():
         table[name] = _extension_benchmark(part)
-    table["all"] = Command("every benchmark, each writing DIR/bench-NAME.json (not cog, which needs --cog)",
-                           _all_arguments, _all)
+    table["all"] = Command(
+        "every benchmark, each writing DIR/bench-NAME.json (not cog, which needs --cog)", _all_arguments, _all
+    )
     return table
 
 

@@ -47,10 +47,15 @@ def add_threads(sub: Any) -> None:
             add_threads(inner)
         if name in NO_COMPUTE or any("--threads" in a.option_strings for a in sp._actions):
             continue
-        sp.add_argument("--threads", type=int, default=None, metavar="N",
-                        help="cores to use (default: the usable cores, or $TORCHDOCT_THREADS); each works "
-                             "with one torch thread, so other busy processes do not stall it; results do "
-                             "not depend on N")
+        sp.add_argument(
+            "--threads",
+            type=int,
+            default=None,
+            metavar="N",
+            help="cores to use (default: the usable cores, or $TORCHDOCT_THREADS); each works "
+            "with one torch thread, so other busy processes do not stall it; results do "
+            "not depend on N",
+        )
 
 
 def add_no_progress(sub: Any) -> None:

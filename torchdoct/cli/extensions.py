@@ -53,5 +53,7 @@ def load(group: str, name: str, *, command: str) -> Any:
     for ep in entry_points(group=group):
         if ep.name == name:
             return ep.load()
-    raise ValueError(f"`{command}` needs the package that provides {name!r} (entry-point group {group!r}): "
-                     "install the project with its classifier (pip install .)")
+    raise ValueError(
+        f"`{command}` needs the package that provides {name!r} (entry-point group {group!r}): "
+        "install the project with its classifier (pip install .)"
+    )

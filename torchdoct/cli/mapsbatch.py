@@ -32,7 +32,7 @@ def stem(path: str) -> str:
     name = Path(path).name
     for suffix in sorted(SEQUENCE_SUFFIXES, key=len, reverse=True):
         if name.lower().endswith(suffix) and len(name) > len(suffix):
-            return name[:-len(suffix)]
+            return name[: -len(suffix)]
     return name
 
 
@@ -42,22 +42,27 @@ def outputs_of(inputs: list[str], outs: list[str]) -> list[list[str]]:
     if len(inputs) > 1:
         plain = [o for o in outs if "{stem}" not in o]
         if plain:
-            raise ValueError(f"--out {plain[0]}: with {len(inputs)} inputs every --out names each input's file with "
-                             "{stem}, e.g. --out maps/{stem}.ome.tif")
+            raise ValueError(
+                f"--out {plain[0]}: with {len(inputs)} inputs every --out names each input's file with "
+                "{stem}, e.g. --out maps/{stem}.ome.tif"
+            )
     per = [[o.replace("{stem}", stem(i)) for o in outs] for i in inputs]
     seen: dict[Path, str] = {}
     for i, paths in zip(inputs, per):
         for o in paths:
             key = Path(o).resolve()
             if key in seen:
-                raise ValueError(f"--out {o}: inputs {seen[key]} and {i} would both write it (the same {{stem}}); "
-                                 "give inputs of different names or a folder per input in --out")
+                raise ValueError(
+                    f"--out {o}: inputs {seen[key]} and {i} would both write it (the same {{stem}}); "
+                    "give inputs of different names or a folder per input in --out"
+                )
             seen[key] = i
     return per
 
 
-def run_task(task: Callable[[argparse.Namespace], int], payload: dict[str, Any], capture: bool = True
-             ) -> dict[str, Any]:
+def run_task(
+    task: Callable[[argparse.Namespace], int], payload: dict[str, Any], capture: bool = True
+) -> dict[str, Any]:
     """One input's run: ``task`` (the single-input command) on the parsed options ``payload``, through
     :func:`torchdoct.cli.command.run_parsed` (one ``error:`` line and exit 2 on bad input); its exit code and,
     with ``capture`` (in a worker), what it printed (else it prints as it goes)."""
@@ -73,8 +78,9 @@ def run_task(task: Callable[[argparse.Namespace], int], payload: dict[str, Any],
     return {"code": int(code), "stdout": out.getvalue(), "stderr": err.getvalue()}
 
 
-def run_many(args: argparse.Namespace, task: Callable[[dict[str, Any]], dict[str, Any]],
-             one: Callable[[argparse.Namespace], int]) -> int:
+def run_many(
+    args: argparse.Namespace, task: Callable[[dict[str, Any]], dict[str, Any]], one: Callable[[argparse.Namespace], int]
+) -> int:
     """``torchdoct maps`` over ``args.input`` (module docstring); ``task(payload)``: one input's run in a worker,
     a module-level function (worker processes and Dask import it) that calls :func:`run_task`; ``one``: the
     single-input command, run here for inputs one after another (printing and showing progress as it goes)."""
@@ -90,16 +96,19 @@ def run_many(args: argparse.Namespace, task: Callable[[dict[str, Any]], dict[str
     for paths in per:
         for o in paths:
             if Path(o).suffix == ".zarr" and Path(o).exists():
-                raise ValueError(f"--out: {o} exists; an OME-Zarr folder is never overwritten: remove it or give "
-                                 "another name")
+                raise ValueError(
+                    f"--out: {o} exists; an OME-Zarr folder is never overwritten: remove it or give another name"
+                )
             check_out(o, args.force, MAPS_SUFFIXES, what="--out")
     workers = args.workers or 1
     if workers < 1:
         raise ValueError(f"--workers must be >= 1; got {workers}")
     quiet = args.no_progress or workers > 1 or args.scheduler is not None  # bars of several runs would mix
     base = {k: v for k, v in vars(args).items() if k not in ("func", "input", "out")}
-    payloads = [{**base, "input": i, "out": o, "no_progress": quiet,
-                 "threads": 1 if workers > 1 else args.threads} for i, o in zip(inputs, per)]
+    payloads = [
+        {**base, "input": i, "out": o, "no_progress": quiet, "threads": 1 if workers > 1 else args.threads}
+        for i, o in zip(inputs, per)
+    ]
     codes: dict[int, int] = {}
 
     def done(k: int, res: dict[str, Any]) -> None:
@@ -115,7 +124,9 @@ def run_many(args: argparse.Namespace, task: Callable[[dict[str, Any]], dict[str
         run_cells(task, payloads, done=done, workers=workers, processes=workers > 1, scheduler=args.scheduler)
     failed = [inputs[k] for k in sorted(codes) if codes[k] != 0]
     if failed:
-        print(f"note: {len(failed)} of {len(inputs)} inputs refused ({', '.join(failed)}); the others' maps were "
-              "written", file=sys.stderr)
+        print(
+            f"note: {len(failed)} of {len(inputs)} inputs refused ({', '.join(failed)}); the others' maps were written",
+            file=sys.stderr,
+        )
         return max(codes.values())
     return 0

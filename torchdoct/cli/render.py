@@ -17,12 +17,19 @@ def _phantoms_arguments(ph) -> None:
 
 def _render_arguments(r) -> None:
     r.add_argument("phantom", help="phantom or scene TOML file, or a shipped phantom or scene name")
-    r.add_argument("--grid", default=None, metavar="NZxNX|NYxNZxNX",
-                   help="pixels per axis (B-scan NZxNX, volume NYxNZxNX); replaces the file's [grid]")
+    r.add_argument(
+        "--grid",
+        default=None,
+        metavar="NZxNX|NYxNZxNX",
+        help="pixels per axis (B-scan NZxNX, volume NYxNZxNX); replaces the file's [grid]",
+    )
     r.add_argument("--pitch-um", type=float, default=None, help="pixel pitch (µm, all axes) with --grid")
-    r.add_argument("--out", required=True,
-                   help="output .npz, .npy or .h5 (with several systems: one file per system, "
-                        "named STEM-SYSTEM.SUFFIX); .npy/.npz get a .json metadata sidecar")
+    r.add_argument(
+        "--out",
+        required=True,
+        help="output .npz, .npy or .h5 (with several systems: one file per system, "
+        "named STEM-SYSTEM.SUFFIX); .npy/.npz get a .json metadata sidecar",
+    )
     r.add_argument("--system", action="append", default=None, help="render only this system (repeatable)")
     r.add_argument("--seed", type=int, default=None)
     r.add_argument("--dtype", choices=("float32", "float64"), default=None)
@@ -31,9 +38,13 @@ def _render_arguments(r) -> None:
     r.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
     r.add_argument("--force", action="store_true", help="overwrite existing outputs")
     r.add_argument("--no-progress", action="store_true")
-    r.add_argument("--max-scatterers", type=float, default=None, metavar="N",
-                   help="largest expected number of seeded scatterers (default 2e7, about 2.4 GB); checked "
-                        "before the work")
+    r.add_argument(
+        "--max-scatterers",
+        type=float,
+        default=None,
+        metavar="N",
+        help="largest expected number of seeded scatterers (default 2e7, about 2.4 GB); checked before the work",
+    )
 
 
 def _phantoms(args) -> int:
@@ -93,17 +104,29 @@ def _render(args) -> int:
         if not args.no_preview:
             files.append(check_out(p.with_suffix(".png"), args.force, ".png", "preview"))
     if len(outs) > 1:  # say it before the work: --out is a pattern here, not the file written
-        print(f"{len(outs)} systems: one file per system, {Path(args.out).stem}-SYSTEM{Path(args.out).suffix} "
-              f"({', '.join(p.name for p in outs.values())}), not {Path(args.out).name}; --system NAME renders one "
-              f"system into {Path(args.out).name}", flush=True)
+        print(
+            f"{len(outs)} systems: one file per system, {Path(args.out).stem}-SYSTEM{Path(args.out).suffix} "
+            f"({', '.join(p.name for p in outs.values())}), not {Path(args.out).name}; --system NAME renders one "
+            f"system into {Path(args.out).name}",
+            flush=True,
+        )
     try:
-        res = render(ph, systems=names, seed=args.seed, dtype=args.dtype, device=args.device,
-                     truncation_tolerance=args.tolerance, progress=not args.no_progress,
-                     max_scatterers=args.max_scatterers)
+        res = render(
+            ph,
+            systems=names,
+            seed=args.seed,
+            dtype=args.dtype,
+            device=args.device,
+            truncation_tolerance=args.tolerance,
+            progress=not args.no_progress,
+            max_scatterers=args.max_scatterers,
+        )
     except ValueError as err:  # what the phantom asks that the run cannot hold: named with its file
         raise ValueError(f"{args.phantom}: {err}") from None
-    print(f"rendered {ph.name!r}: {res.phantom.grid.axes} {tuple(res.data.shape[1:])}, "
-          f"{len(names)} system(s), seed {res.seed}, {res.elapsed_s:.2f} s")
+    print(
+        f"rendered {ph.name!r}: {res.phantom.grid.axes} {tuple(res.data.shape[1:])}, "
+        f"{len(names)} system(s), seed {res.seed}, {res.elapsed_s:.2f} s"
+    )
     print("stages: " + "; ".join(res.work["stages"]))
     for pop, w in res.work["populations"].items():
         print(f"  {pop}: " + ", ".join(f"{k} {v}" for k, v in w.items()))
@@ -117,8 +140,14 @@ def _render(args) -> int:
                 atomic_write(stage(lab), lambda tmp: _save_labels(tmp, res))
                 write_sequence(stage(p), res.data[k].cpu().numpy(), meta, force=args.force)
             else:
-                write_sequence(stage(p), res.data[k].cpu().numpy(), meta, labels=res.labels,
-                               label_params=res.label_params, force=args.force)
+                write_sequence(
+                    stage(p),
+                    res.data[k].cpu().numpy(),
+                    meta,
+                    labels=res.labels,
+                    label_params=res.label_params,
+                    force=args.force,
+                )
             if not args.no_preview:
                 atomic_write(stage(p.with_suffix(".png")), lambda tmp, k=k: save_preview(res, tmp, k))
     for p in files:
@@ -135,5 +164,7 @@ def _save_labels(path: str, res) -> None:
 
 COMMANDS = {
     "phantoms": Command("list the shipped phantoms", _phantoms_arguments, _phantoms),
-    "render": Command("render a phantom's complex image sequence, labels and a PNG preview", _render_arguments, _render),
+    "render": Command(
+        "render a phantom's complex image sequence, labels and a PNG preview", _render_arguments, _render
+    ),
 }

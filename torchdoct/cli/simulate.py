@@ -65,9 +65,15 @@ def _simulate(args) -> int:
     out = check_out(args.out, args.force, ".npz")
     scene = config.load_scene(args.scene)
     try:
-        result = simulate(scene, trials=args.trials, seed=args.seed, dtype=args.dtype,
-                          device=args.device, truncation_tolerance=args.tolerance,
-                          progress=not args.no_progress)
+        result = simulate(
+            scene,
+            trials=args.trials,
+            seed=args.seed,
+            dtype=args.dtype,
+            device=args.device,
+            truncation_tolerance=args.tolerance,
+            progress=not args.no_progress,
+        )
     except ValueError as err:  # what the scene asks that the run cannot hold: named with its file
         raise ValueError(f"{args.scene}: {err}") from None
     metrics = result.metrics()
@@ -84,11 +90,15 @@ def _simulate(args) -> int:
 
 def _format_summary(summary: dict[str, Any], result) -> str:
     sc = result.scene
-    lines = [f"scene {sc.name!r}: {result.trials} trials, seed {result.seed}, "
-             f"{sc.protocol.n_frames} frames, {result.signals.dtype}, {result.elapsed_s:.2f} s"]
+    lines = [
+        f"scene {sc.name!r}: {result.trials} trials, seed {result.seed}, "
+        f"{sc.protocol.n_frames} frames, {result.signals.dtype}, {result.elapsed_s:.2f} s"
+    ]
     est = sc.analysis.ocds_estimator
-    lines.append(f"LIV: ddof-0 variance of 10·log10 I (dB²); OCDS: −slope of the {est} correlation of the "
-                 f"{sc.analysis.ocds_scale} intensity over {list(sc.analysis.ocds_delay_range_s)} s (1/s)")
+    lines.append(
+        f"LIV: ddof-0 variance of 10·log10 I (dB²); OCDS: −slope of the {est} correlation of the "
+        f"{sc.analysis.ocds_scale} intensity over {list(sc.analysis.ocds_delay_range_s)} s (1/s)"
+    )
     lines.append(f"{'system':>16}  {'LIV mean ± SD (SE) [dB²]':>28}  {'OCDS mean ± SD (SE) [1/s]':>30}  empty")
     for name, row in summary.items():
         cells = []
@@ -100,8 +110,10 @@ def _format_summary(summary: dict[str, Any], result) -> str:
                 cells.append("-")
         lines.append(f"{name:>16}  {cells[0]:>28}  {cells[1]:>30}  {row['zero_intensity_trials']}")
     if any(r["zero_intensity_trials"] for r in summary.values()):
-        lines.append("empty: trials with I = 0 at some frame (no scatterer within the PSF truncation); "
-                     "their dB metrics are NaN and excluded from the means")
+        lines.append(
+            "empty: trials with I = 0 at some frame (no scatterer within the PSF truncation); "
+            "their dB metrics are NaN and excluded from the means"
+        )
     return "\n".join(lines)
 
 

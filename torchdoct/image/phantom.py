@@ -45,8 +45,16 @@ from ..sim.config import (
 )
 from ..sim.scenes import shipped_scenes
 
-__all__ = ["Grid", "Region", "Phantom", "load_phantom", "phantom_from_dict", "shipped_phantoms",
-           "MOTION_CODES", "motion_code"]
+__all__ = [
+    "Grid",
+    "Region",
+    "Phantom",
+    "load_phantom",
+    "phantom_from_dict",
+    "shipped_phantoms",
+    "MOTION_CODES",
+    "motion_code",
+]
 
 SHAPES = ("sphere", "ellipsoid", "slab", "cylinder", "label-image")
 #: Label codes of the ground-truth motion map.
@@ -99,8 +107,11 @@ class Grid:
         if self.kind == "bscan" and self.n_y != 1:
             _fail("grid.n_y", f"a B-scan has one plane; got n_y = {self.n_y}", 'set kind = "volume"')
         if self.n_x * self.n_y * self.n_z > MAX_PIXELS:
-            _fail("grid.n_x, n_y, n_z", f"{self.n_x:.4g} × {self.n_y:.4g} × {self.n_z:.4g} pixels exceed {MAX_PIXELS}",
-                  "use fewer pixels or a coarser pitch")
+            _fail(
+                "grid.n_x, n_y, n_z",
+                f"{self.n_x:.4g} × {self.n_y:.4g} × {self.n_z:.4g} pixels exceed {MAX_PIXELS}",
+                "use fewer pixels or a coarser pitch",
+            )
 
     @property
     def axes(self) -> str:
@@ -120,8 +131,9 @@ class Grid:
 
     def coords_um(self, axis: str) -> np.ndarray:
         """Pixel-centre coordinates along ``axis`` ("x", "y" or "z"), float64."""
-        n, p = {"x": (self.n_x, self.pitch_x_um), "y": (self.n_y, self.pitch_y_um),
-                "z": (self.n_z, self.pitch_z_um)}[axis]
+        n, p = {"x": (self.n_x, self.pitch_x_um), "y": (self.n_y, self.pitch_y_um), "z": (self.n_z, self.pitch_z_um)}[
+            axis
+        ]
         if axis == "y" and self.kind == "bscan":
             return np.array([self.y_um])
         return (np.arange(n) - (n - 1) / 2.0) * p
@@ -232,17 +244,25 @@ class Phantom:
         """
         rows = []
         groups = ([("background", list(self.background))] if self.background else []) + [
-            (r.name, [r.population]) for r in self.regions]
+            (r.name, [r.population]) for r in self.regions
+        ]
         for name, idx in groups:
             pops = [self.scene.populations[i] for i in idx]
-            speeds = [math.sqrt(sum(c * c for c in p.flow_velocity_um_per_s))
-                      + sum(b.speed_um_per_s for b in p.ballistic) for p in pops]
-            rows.append({"name": name, "motion_code": motion_code(pops),
-                         "motion": sorted({type(m).__name__ for p in pops for m in p.active_motion}) or ["static"],
-                         "diffusion_um2_per_s": max(p.diffusion_um2_per_s for p in pops),
-                         "speed_um_per_s": max(speeds),
-                         "density_per_um3": sum(p.density_per_um3 for p in pops),
-                         "populations": len(pops)})
+            speeds = [
+                math.sqrt(sum(c * c for c in p.flow_velocity_um_per_s)) + sum(b.speed_um_per_s for b in p.ballistic)
+                for p in pops
+            ]
+            rows.append(
+                {
+                    "name": name,
+                    "motion_code": motion_code(pops),
+                    "motion": sorted({type(m).__name__ for p in pops for m in p.active_motion}) or ["static"],
+                    "diffusion_um2_per_s": max(p.diffusion_um2_per_s for p in pops),
+                    "speed_um_per_s": max(speeds),
+                    "density_per_um3": sum(p.density_per_um3 for p in pops),
+                    "populations": len(pops),
+                }
+            )
         return rows
 
     def to_dict(self) -> dict[str, Any]:
@@ -251,8 +271,7 @@ class Phantom:
         pops = sd.pop("population")
         out = dict(sd)
         g = self.grid
-        grid = {"kind": g.kind, "n_x": g.n_x, "n_z": g.n_z, "pitch_x_um": g.pitch_x_um,
-                "pitch_z_um": g.pitch_z_um}
+        grid = {"kind": g.kind, "n_x": g.n_x, "n_z": g.n_z, "pitch_x_um": g.pitch_x_um, "pitch_z_um": g.pitch_z_um}
         if g.kind == "volume":
             grid.update(n_y=g.n_y, pitch_y_um=g.pitch_y_um)
         else:
@@ -306,8 +325,10 @@ def _load_label_image(path: str, file: str, base_dir: Path | None, grid: Grid) -
     try:
         check_regular_file(p, f"{path}.file: label image")
     except FileNotFoundError:
-        raise FileNotFoundError(f"{path}.file: label image {str(file)!r} not found "
-                                f"(relative paths are taken from the phantom file's directory)") from None
+        raise FileNotFoundError(
+            f"{path}.file: label image {str(file)!r} not found "
+            f"(relative paths are taken from the phantom file's directory)"
+        ) from None
     if p.suffix != ".npy":
         _fail(f"{path}.file", f"{file!r} is not a .npy file", "save the label image with numpy.save")
     from ..measured.guards import check_npy_size, npy_header
@@ -317,15 +338,21 @@ def _load_label_image(path: str, file: str, base_dir: Path | None, grid: Grid) -
     except ValueError as err:
         _fail(f"{path}.file", str(err), "save the label image with numpy.save")
     if dtype.hasobject:
-        _fail(f"{path}.file", f"{file!r} holds an object array, which would need unpickling; refused",
-              "save a plain integer array with numpy.save")
+        _fail(
+            f"{path}.file",
+            f"{file!r} holds an object array, which would need unpickling; refused",
+            "save a plain integer array with numpy.save",
+        )
     if dtype.kind not in "iub":
         _fail(f"{path}.file", f"label image dtype {dtype} is not integer", "save integer labels")
     want = [grid.shape[-2:]] if grid.kind == "bscan" else [grid.shape[-2:], grid.shape]
     if tuple(shape) not in [tuple(w) for w in want]:
-        _fail(f"{path}.file", f"label image shape {tuple(shape)} does not match the grid "
-              f"({' or '.join(str(tuple(w)) for w in want)} as [Z, X] or [Y, Z, X])",
-              "give one label per grid pixel")
+        _fail(
+            f"{path}.file",
+            f"label image shape {tuple(shape)} does not match the grid "
+            f"({' or '.join(str(tuple(w)) for w in want)} as [Z, X] or [Y, Z, X])",
+            "give one label per grid pixel",
+        )
     try:
         check_npy_size(p, f"{path}.file: label image ")  # within the input limit, and not truncated
         img = np.load(p, allow_pickle=False)
@@ -341,20 +368,43 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
     data = dict(data)
     if "population" in data:  # a plain scene: its populations are a uniform background
         if "region" in data or "background" in data:
-            _fail("population", "a phantom places its scatterers in [[region]] and [[background]] tables",
-                  "move each [[population]] into a [[region]] with a shape, or into [[background]]")
+            _fail(
+                "population",
+                "a phantom places its scatterers in [[region]] and [[background]] tables",
+                "move each [[population]] into a [[region]] with a shape, or into [[background]]",
+            )
         data["background"] = data.pop("population")
-    allowed = {"name", "description", "system", "protocol", "noise", "analysis", "simulation",
-               "grid", "region", "background"}
+    allowed = {
+        "name",
+        "description",
+        "system",
+        "protocol",
+        "noise",
+        "analysis",
+        "simulation",
+        "grid",
+        "region",
+        "background",
+    }
     _check_keys("phantom", data, allowed, {"system", "protocol"})
     if "grid" not in data:
-        _fail("grid", "missing the [grid] table (pixels and pitch)",
-              "add [grid] with n_x, n_z, pitch_x_um, pitch_z_um (or pass --grid/--pitch-um to render)")
+        _fail(
+            "grid",
+            "missing the [grid] table (pixels and pitch)",
+            "add [grid] with n_x, n_z, pitch_x_um, pitch_z_um (or pass --grid/--pitch-um to render)",
+        )
     if "region" not in data and "background" not in data:
-        _fail("region", "a phantom needs at least one [[region]] or [[background]] population",
-              "add a [[region]] table with a shape and a density")
-    g = _check_keys("grid", data["grid"], {"kind", "n_x", "n_z", "n_y", "pitch_x_um", "pitch_z_um",
-                                            "pitch_y_um", "y_um"}, {"n_x", "n_z", "pitch_x_um", "pitch_z_um"})
+        _fail(
+            "region",
+            "a phantom needs at least one [[region]] or [[background]] population",
+            "add a [[region]] table with a shape and a density",
+        )
+    g = _check_keys(
+        "grid",
+        data["grid"],
+        {"kind", "n_x", "n_z", "n_y", "pitch_x_um", "pitch_z_um", "pitch_y_um", "y_um"},
+        {"n_x", "n_z", "pitch_x_um", "pitch_z_um"},
+    )
     if g.get("kind", "bscan") == "volume":
         for key in ("n_y", "pitch_y_um"):
             if key not in g:
@@ -381,8 +431,11 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
         raise TypeError(f"region must be an array of tables ([[region]]); got {regions_raw!r}")
     check_count("region", len(regions_raw))
     if not regions_raw and not bgs:
-        _fail("region", "a phantom needs at least one [[region]] or [[background]] population",
-              "add a [[region]] table with a shape and a density")
+        _fail(
+            "region",
+            "a phantom needs at least one [[region]] or [[background]] population",
+            "add a [[region]] table with a shape and a density",
+        )
     region_specs = []
     names = set()
     for i, r in enumerate(regions_raw):
@@ -392,8 +445,9 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
         if "shape" not in r:
             _fail(path, "missing key 'shape'", f"set shape = one of {', '.join(map(repr, SHAPES))}")
         shape = _string(f"{path}.shape", r["shape"], SHAPES)
-        _check_keys(path, r, {"name", "shape", *_SHAPE_KEYS[shape], *_POP_KEYS},
-                    {"density_per_um3", *_SHAPE_REQUIRED[shape]})
+        _check_keys(
+            path, r, {"name", "shape", *_SHAPE_KEYS[shape], *_POP_KEYS}, {"density_per_um3", *_SHAPE_REQUIRED[shape]}
+        )
         name = _string(f"{path}.name", r.get("name", f"region{i}"))
         if name in names or name.startswith("background"):
             _fail(f"{path}.name", f"duplicate region name {name!r}", "give each region a unique name")
@@ -419,11 +473,15 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
             kw["center_um"] = _vec3(f"{path}.center_um", r["center_um"])
         if shape == "sphere":
             kw["radius_um"] = _number(f"{path}.radius_um", r["radius_um"], positive=True, hi=MAX_LENGTH_UM, unit="µm")
-            kw["inner_radius_um"] = _number(f"{path}.inner_radius_um", r.get("inner_radius_um", 0.0), hi=MAX_LENGTH_UM,
-                                            nonneg=True, unit="µm")
+            kw["inner_radius_um"] = _number(
+                f"{path}.inner_radius_um", r.get("inner_radius_um", 0.0), hi=MAX_LENGTH_UM, nonneg=True, unit="µm"
+            )
             if kw["inner_radius_um"] >= kw["radius_um"]:
-                _fail(f"{path}.inner_radius_um", f"{kw['inner_radius_um']} µm is not below radius_um "
-                      f"{kw['radius_um']} µm", "a shell needs inner_radius_um < radius_um")
+                _fail(
+                    f"{path}.inner_radius_um",
+                    f"{kw['inner_radius_um']} µm is not below radius_um {kw['radius_um']} µm",
+                    "a shell needs inner_radius_um < radius_um",
+                )
         elif shape == "ellipsoid":
             radii = _vec3(f"{path}.radii_um", r["radii_um"])
             for a, v in enumerate(radii):
@@ -448,8 +506,11 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
             kw["value"] = _integer(f"{path}.value", r["value"])
             img = _load_label_image(path, kw["file"], base_dir, grid)
             if not (img == kw["value"]).any():
-                _fail(f"{path}.value", f"label {kw['value']} does not occur in {kw['file']!r}",
-                      "give a label value present in the image")
+                _fail(
+                    f"{path}.value",
+                    f"label {kw['value']} does not occur in {kw['file']!r}",
+                    "give a label value present in the image",
+                )
             kw["label_image"] = img
         regions.append(Region(**kw))
     return Phantom(scene=scene, grid=grid, regions=tuple(regions), background=background)
@@ -472,9 +533,11 @@ def load_phantom(path: str | Path, *, grid: dict[str, Any] | None = None) -> Pha
     scenes = shipped_scenes()
     p = file_or_shipped(path, {**scenes, **shipped}, "phantom file")
     if p is None:
-        raise FileNotFoundError(f"phantom file {str(path)!r} not found; give a path to a .toml phantom "
-                                f"or scene file, or the name of a shipped phantom "
-                                f"({', '.join(shipped)}) or scene ({', '.join(scenes)})")
+        raise FileNotFoundError(
+            f"phantom file {str(path)!r} not found; give a path to a .toml phantom "
+            f"or scene file, or the name of a shipped phantom "
+            f"({', '.join(shipped)}) or scene ({', '.join(scenes)})"
+        )
     data = read_toml(p)
     if grid is not None:
         data["grid"] = dict(grid)
@@ -483,6 +546,5 @@ def load_phantom(path: str | Path, *, grid: dict[str, Any] | None = None) -> Pha
     except (SceneError, TypeError) as err:
         raise type(err)(f"{p.name}: {err}") from None
     if not ph.scene.name:
-        ph = Phantom(scene=ph.scene.replace(name=p.stem), grid=ph.grid, regions=ph.regions,
-                     background=ph.background)
+        ph = Phantom(scene=ph.scene.replace(name=p.stem), grid=ph.grid, regions=ph.regions, background=ph.background)
     return ph

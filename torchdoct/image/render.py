@@ -69,8 +69,15 @@ from ..sim.samplers import unit_directions
 from ..sim.streams import seeded_generator
 from .phantom import MOTION_CODES, Phantom
 
-__all__ = ["render", "RenderResult", "DIFFUSION_REACH_SIGMAS", "MAX_SCATTERERS", "ScatterersLimitError",
-           "save_preview", "preview_figure"]
+__all__ = [
+    "render",
+    "RenderResult",
+    "DIFFUSION_REACH_SIGMAS",
+    "MAX_SCATTERERS",
+    "ScatterersLimitError",
+    "save_preview",
+    "preview_figure",
+]
 
 _F64 = torch.float64
 _TWO_PI = 2.0 * math.pi
@@ -153,17 +160,21 @@ class RenderResult:
 
     def metadata(self, system: str | int | None = None) -> dict[str, Any]:
         """Sequence-file metadata (axes, pitch, frame times, system, labels legend, provenance)."""
-        s = self.phantom.scene.systems[[x.name for x in self.phantom.scene.systems].index(
-            self.system_names[self.system_index(system)])]
+        s = self.phantom.scene.systems[
+            [x.name for x in self.phantom.scene.systems].index(self.system_names[self.system_index(system)])
+        ]
         return {
             "axes": self.phantom.grid.axes,
             "pitch_um": self.phantom.grid.pitch_um,
             "frame_times_s": list(self.frame_times_s),
-            "system": {"name": s.name, "wavelength_um": s.wavelength_um,
-                       "lateral_resolution_um": s.lateral_resolution_um,
-                       "axial_resolution_um": s.axial_resolution_um, "refractive_index": s.refractive_index,
-                       **({} if s.lateral_resolution_y_um is None
-                          else {"lateral_resolution_y_um": s.lateral_resolution_y_um})},
+            "system": {
+                "name": s.name,
+                "wavelength_um": s.wavelength_um,
+                "lateral_resolution_um": s.lateral_resolution_um,
+                "axial_resolution_um": s.axial_resolution_um,
+                "refractive_index": s.refractive_index,
+                **({} if s.lateral_resolution_y_um is None else {"lateral_resolution_y_um": s.lateral_resolution_y_um}),
+            },
             "phantom": self.phantom.to_dict(),
             "seed": self.seed,
             "labels_legend": {str(v): k for k, v in MOTION_CODES.items()},
@@ -186,9 +197,17 @@ class RenderResult:
         i = self.intensity(system)
         zero = (i <= 0).any(-1)
         an = self.phantom.scene.analysis
-        out = {"liv": liv(i), "mean_db": to_db(i.clamp_min(torch.finfo(i.dtype).tiny)).mean(-1),
-               "ocds": ocds(i, self.frame_times_s, delay_range_s=an.ocds_delay_range_s,
-                            scale=an.ocds_scale, estimator=an.ocds_estimator)}
+        out = {
+            "liv": liv(i),
+            "mean_db": to_db(i.clamp_min(torch.finfo(i.dtype).tiny)).mean(-1),
+            "ocds": ocds(
+                i,
+                self.frame_times_s,
+                delay_range_s=an.ocds_delay_range_s,
+                scale=an.ocds_scale,
+                estimator=an.ocds_estimator,
+            ),
+        }
         return {k: torch.where(zero, torch.full_like(v, math.nan), v) for k, v in out.items()}
 
 
@@ -196,13 +215,23 @@ def _optics(phantom: Phantom, names: Sequence[str], tol: float, taper: bool = Fa
     out = []
     for s in phantom.scene.systems:
         if s.name in names:
-            out.append(_SystemOptics(
-                s.name, amplitude_sigma_lateral_um(s.lateral_resolution_um),
-                amplitude_sigma_axial_um(s.axial_resolution_um),
-                wavenumber_per_um(s.wavelength_um, s.refractive_index),
-                truncation_half_widths_um(s.lateral_resolution_um, s.axial_resolution_um, tol,
-                                          lateral_resolution_y_um=s.lateral_resolution_y_um),
-                sy=amplitude_sigma_lateral_um(s.lateral_widths_um[1]), log_tol=math.log(tol), taper=taper))
+            out.append(
+                _SystemOptics(
+                    s.name,
+                    amplitude_sigma_lateral_um(s.lateral_resolution_um),
+                    amplitude_sigma_axial_um(s.axial_resolution_um),
+                    wavenumber_per_um(s.wavelength_um, s.refractive_index),
+                    truncation_half_widths_um(
+                        s.lateral_resolution_um,
+                        s.axial_resolution_um,
+                        tol,
+                        lateral_resolution_y_um=s.lateral_resolution_y_um,
+                    ),
+                    sy=amplitude_sigma_lateral_um(s.lateral_widths_um[1]),
+                    log_tol=math.log(tol),
+                    taper=taper,
+                )
+            )
     return out
 
 
@@ -214,8 +243,9 @@ def _reach_um(pop: Population, duration_s: float) -> tuple[float, float, float]:
     return tuple(abs(vf[a]) * duration_s + vb * duration_s + diff for a in range(3))  # type: ignore[return-value]
 
 
-def _seed_box(phantom: Phantom, index: int, region: int | None, half: tuple[float, ...],
-              duration_s: float) -> tuple[list[float], list[float], float]:
+def _seed_box(
+    phantom: Phantom, index: int, region: int | None, half: tuple[float, ...], duration_s: float
+) -> tuple[list[float], list[float], float]:
     """The box a population is seeded in (lower and upper corner, µm) and its expected scatterer count:
     the grid's extent plus the PSF truncation half-width plus the population's reach, cut to its region."""
     pop = phantom.scene.populations[index]
@@ -234,8 +264,9 @@ def _seed_box(phantom: Phantom, index: int, region: int | None, half: tuple[floa
     return lo, hi, pop.density_per_um3 * volume
 
 
-def _seed_population(phantom: Phantom, index: int, region: int | None, half: tuple[float, ...],
-                     duration_s: float, seed: int) -> _PopulationState | None:
+def _seed_population(
+    phantom: Phantom, index: int, region: int | None, half: tuple[float, ...], duration_s: float, seed: int
+) -> _PopulationState | None:
     pop = phantom.scene.populations[index]
     gen = seeded_generator(seed, index)
     lo, hi, mean = _seed_box(phantom, index, region, half, duration_s)
@@ -256,13 +287,15 @@ def _seed_population(phantom: Phantom, index: int, region: int | None, half: tup
     return st
 
 
-def _inside(phantom: Phantom, st: _PopulationState, pos: torch.Tensor, reach_box: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+def _inside(
+    phantom: Phantom, st: _PopulationState, pos: torch.Tensor, reach_box: tuple[torch.Tensor, torch.Tensor]
+) -> torch.Tensor:
     """Scatterers that count at this frame: inside their region and within some pixel's PSF box."""
     keep = ((pos >= reach_box[0]) & (pos <= reach_box[1])).all(-1)
     if st.region is not None:
         keep &= phantom.regions[st.region].contains(pos, phantom.grid)
     # later regions paint over earlier ones; the background lies under every region
-    later = phantom.regions if st.region is None else phantom.regions[st.region + 1:]
+    later = phantom.regions if st.region is None else phantom.regions[st.region + 1 :]
     for r in later:
         keep &= ~r.contains(pos, phantom.grid)
     return keep
@@ -281,8 +314,16 @@ def _window_pixels(half: float, pitch: float, n: int) -> int:
     return int(min(math.floor(2.0 * half / pitch) + 2, n))
 
 
-def _axis_window(coord: torch.Tensor, first: float, pitch: float, n: int, half: float, sigma: float,
-                 dtype: torch.dtype, taper_log_tol: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def _axis_window(
+    coord: torch.Tensor,
+    first: float,
+    pitch: float,
+    n: int,
+    half: float,
+    sigma: float,
+    dtype: torch.dtype,
+    taper_log_tol: float | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """PSF amplitude window along one axis: pixel indices [N, K] (clamped) and weights [N, K].
 
     Weights are ``exp(−d²/(2σ²))`` for pixels within ``half`` of the scatterer, else 0; with
@@ -301,8 +342,9 @@ def _axis_window(coord: torch.Tensor, first: float, pitch: float, n: int, half: 
     return idx.clamp_(0, n - 1).long(), w
 
 
-def _splat(out: torch.Tensor, pos: torch.Tensor, refl: float, opt: _SystemOptics, phantom: Phantom,
-           dtype: torch.dtype) -> int:
+def _splat(
+    out: torch.Tensor, pos: torch.Tensor, refl: float, opt: _SystemOptics, phantom: Phantom, dtype: torch.dtype
+) -> int:
     """Add the field of scatterers at ``pos`` [N, 3] (float64) to ``out`` (flat complex image)."""
     grid = phantom.grid
     n = pos.shape[0]
@@ -319,7 +361,7 @@ def _splat(out: torch.Tensor, pos: torch.Tensor, refl: float, opt: _SystemOptics
     sy = opt.sy or opt.sx
     lt = opt.log_tol if opt.taper else None
     for s in range(0, n, chunk):
-        p = pos[s:s + chunk]
+        p = pos[s : s + chunk]
         phase = torch.remainder(2.0 * opt.kn * p[:, 2], _TWO_PI).to(dtype)
         ix, wx = _axis_window(p[:, 0], x0, grid.pitch_x_um, grid.n_x, hx, opt.sx, dtype, lt)
         iz, wz = _axis_window(p[:, 2], z0, grid.pitch_z_um, grid.n_z, hz, opt.sz, dtype, lt)
@@ -334,7 +376,7 @@ def _splat(out: torch.Tensor, pos: torch.Tensor, refl: float, opt: _SystemOptics
                 a = a * _axis_taper(ey, lt)
             a = a.to(dtype)
         w = torch.complex(a * torch.cos(phase), a * torch.sin(phase))
-        wzx = (wz[:, :, None] * wx[:, None, :])  # [N, kz, kx]
+        wzx = wz[:, :, None] * wx[:, None, :]  # [N, kz, kx]
         idx = iz[:, :, None] * grid.n_x + ix[:, None, :]
         if volume:
             wzx = wy[:, :, None, None] * wzx[:, None]
@@ -378,17 +420,35 @@ def _check_intensity_scale(scene: Any, names: Sequence[str], dtype: torch.dtype)
     from ..conventions import mean_intensity
     from ..sim.simulate import check_intensity_scale
 
-    brightest = {s.name: max(mean_intensity(p.density_per_um3, s.lateral_resolution_um, s.axial_resolution_um,
-                                            p.reflectivity, lateral_resolution_y_um=s.lateral_resolution_y_um)
-                             for p in scene.populations)
-                 for s in scene.systems if s.name in names}
+    brightest = {
+        s.name: max(
+            mean_intensity(
+                p.density_per_um3,
+                s.lateral_resolution_um,
+                s.axial_resolution_um,
+                p.reflectivity,
+                lateral_resolution_y_um=s.lateral_resolution_y_um,
+            )
+            for p in scene.populations
+        )
+        for s in scene.systems
+        if s.name in names
+    }
     check_intensity_scale(scene, brightest, dtype)
 
 
-def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed: int | None = None,
-           dtype: str | torch.dtype | None = None, device: str | torch.device | None = None,
-           truncation_tolerance: float | None = None, threads: int | None = None,
-           progress: bool = False, max_scatterers: float | None = None) -> RenderResult:
+def render(
+    phantom: Phantom,
+    *,
+    systems: Sequence[str] | str | None = None,
+    seed: int | None = None,
+    dtype: str | torch.dtype | None = None,
+    device: str | torch.device | None = None,
+    truncation_tolerance: float | None = None,
+    threads: int | None = None,
+    progress: bool = False,
+    max_scatterers: float | None = None,
+) -> RenderResult:
     """Render the complex image sequence of ``phantom`` for its systems (all, or the named ones).
 
     ``seed``, ``dtype`` and ``truncation_tolerance`` default to the scene's ``[simulation]`` values.
@@ -438,10 +498,12 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
 
     out_bytes = len(optics) * T * n_pix * (16 if dtype == torch.float64 else 8)
     check_resources(  # the sequence plus one copy when written (torchdoct.runtime.resources)
-        "the rendered sequence", 2 * out_bytes,
+        "the rendered sequence",
+        2 * out_bytes,
         "render fewer pixels or frames, one system at a time (--system), or in float32",
         detail=f"{out_bytes / 2**30:.2f} GB alone: {len(optics)} system(s) × {T} frames × {n_pix} pixels, and one "
-               "copy when written")
+        "copy when written",
+    )
 
     states = []
     pop_regions: list[int | None] = [None] * len(scene.populations)
@@ -450,13 +512,16 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
     expected = sum(_seed_box(phantom, ip, pop_regions[ip], half, duration)[2] for ip in range(len(scene.populations)))
     limit = MAX_SCATTERERS if max_scatterers is None else float(max_scatterers)
     if not expected <= limit:  # checked before anything is drawn or allocated (NaN/inf included)
-        fov = " × ".join(f"{grid.extent_um(a)[1] - grid.extent_um(a)[0] + p:.4g}"
-                         for a, p in (("x", grid.pitch_x_um), ("z", grid.pitch_z_um)))
+        fov = " × ".join(
+            f"{grid.extent_um(a)[1] - grid.extent_um(a)[0] + p:.4g}"
+            for a, p in (("x", grid.pitch_x_um), ("z", grid.pitch_z_um))
+        )
         raise ScatterersLimitError(
             f"{phantom.name}: the grid ({' × '.join(str(n) for n in grid.shape)} pixels, field of view {fov} µm "
             f"x × z) and the PSF and motion reach around it would hold {expected:.3g} scatterers, about "
             f"{expected * _BYTES_PER_SCATTERER / 2**30:.3g} GB; the limit is {limit:.3g}: use fewer pixels or a "
-            f"smaller --pitch-um, or raise the limit with --max-scatterers N")
+            f"smaller --pitch-um, or raise the limit with --max-scatterers N"
+        )
     for ip in range(len(scene.populations)):
         st = _seed_population(phantom, ip, pop_regions[ip], half, duration, seed)
         if st is not None:
@@ -495,7 +560,9 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
             work["populations"][st.name] = {"scatterers": int(st.pos0.shape[0]), "evaluations": 0}
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=T, desc=f"render {phantom.name}", unit="frame", disable=progress_disabled(progress), leave=False)
+        bar = tqdm(
+            total=T, desc=f"render {phantom.name}", unit="frame", disable=progress_disabled(progress), leave=False
+        )
 
         def positions():  # frame by frame, in order: the walks advance here (one stream per population)
             for f in range(T):
@@ -531,10 +598,16 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
         work["stages"].append(f"noise at {scene.noise.snr_db} dB")
         for k, o in enumerate(optics):
             sysobj = scene.systems[all_names.index(o.name)]
-            i_ref = max(mean_intensity(p.density_per_um3, sysobj.lateral_resolution_um,
-                                       sysobj.axial_resolution_um, p.reflectivity,
-                                       lateral_resolution_y_um=sysobj.lateral_resolution_y_um)
-                        for p in scene.populations)
+            i_ref = max(
+                mean_intensity(
+                    p.density_per_um3,
+                    sysobj.lateral_resolution_um,
+                    sysobj.axial_resolution_um,
+                    p.reflectivity,
+                    lateral_resolution_y_um=sysobj.lateral_resolution_y_um,
+                )
+                for p in scene.populations
+            )
             sigma = noise_sigma(i_ref, scene.noise.snr_db)
             g = seeded_generator(seed, 1 << 20, all_names.index(o.name))
             noise = torch.randn(T, n_pix, 2, generator=g, dtype=_F64).to(dtype) * sigma
@@ -543,17 +616,27 @@ def render(phantom: Phantom, *, systems: Sequence[str] | str | None = None, seed
         work["stages"].append("no noise stage")
     labels, params, regions = _pixel_labels(phantom)
     data = data.reshape(len(optics), T, *grid.shape)
-    return RenderResult(phantom=phantom, data=data, system_names=[o.name for o in optics], labels=labels,
-                        label_params=params, regions=regions, frame_times_s=tuple(scene.protocol.times_s),
-                        seed=seed, elapsed_s=time.perf_counter() - t_start, work=work)
+    return RenderResult(
+        phantom=phantom,
+        data=data,
+        system_names=[o.name for o in optics],
+        labels=labels,
+        label_params=params,
+        regions=regions,
+        frame_times_s=tuple(scene.protocol.times_s),
+        seed=seed,
+        elapsed_s=time.perf_counter() - t_start,
+        work=work,
+    )
 
 
 #: Ground-truth colour per motion code: the classifier's class colours (:data:`torchdoct.figures.LABEL_COLORS`).
 _LABEL_COLOURS = {code: LABEL_COLORS[name] for name, code in MOTION_CODES.items()}
 
 
-def save_preview(result: RenderResult, path: str, system: str | int | None = None,
-                 liv_range_db2: tuple[float, float] = (0.0, 30.0)) -> None:
+def save_preview(
+    result: RenderResult, path: str, system: str | int | None = None, liv_range_db2: tuple[float, float] = (0.0, 30.0)
+) -> None:
     """PNG preview (:func:`preview_figure`) written to ``path``."""
     import matplotlib.pyplot as plt
 
@@ -564,8 +647,9 @@ def save_preview(result: RenderResult, path: str, system: str | int | None = Non
         plt.close(fig)
 
 
-def preview_figure(result: RenderResult, system: str | int | None = None,
-                   liv_range_db2: tuple[float, float] = (0.0, 30.0)) -> Any:
+def preview_figure(
+    result: RenderResult, system: str | int | None = None, liv_range_db2: tuple[float, float] = (0.0, 30.0)
+) -> Any:
     """Preview figure: frame 0 in dB, the LIV map (dB²) and the ground-truth motion labels, on the
     project's µm axes (:mod:`torchdoct.figures`; pixel edges at the phantom's coordinates)."""
     import matplotlib
@@ -595,20 +679,28 @@ def preview_figure(result: RenderResult, system: str | int | None = None,
     ax[0].set_title("frame 0, intensity (dB)")
     fig.colorbar(im0, ax=ax[0], shrink=0.8).set_label("intensity (dB)")
     cmap = plt.get_cmap(CONTINUOUS_CMAP).with_extremes(bad="#808080")
-    im1 = show_bscan(ax[1], liv_map.numpy(), pitch_um=pitch, cmap=cmap, vmin=liv_range_db2[0],
-                     vmax=liv_range_db2[1])
+    im1 = show_bscan(ax[1], liv_map.numpy(), pitch_um=pitch, cmap=cmap, vmin=liv_range_db2[0], vmax=liv_range_db2[1])
     ax[1].set_title("LIV (dB²)")
     fig.colorbar(im1, ax=ax[1], shrink=0.8).set_label("LIV (dB²)")
     codes = sorted(_LABEL_COLOURS)
-    show_bscan(ax[2], labels, pitch_um=pitch, cmap=ListedColormap([_LABEL_COLOURS[c] for c in codes]),
-               vmin=-0.5, vmax=len(codes) - 0.5)
+    show_bscan(
+        ax[2],
+        labels,
+        pitch_um=pitch,
+        cmap=ListedColormap([_LABEL_COLOURS[c] for c in codes]),
+        vmin=-0.5,
+        vmax=len(codes) - 0.5,
+    )
     ax[2].set_title("ground truth: motion")
     names = {v: k for k, v in MOTION_CODES.items()}
     present = sorted({int(c) for c in np.unique(labels)})
-    ax[2].legend(handles=[Patch(color=_LABEL_COLOURS[c], label=names[c]) for c in present],
-                 loc="lower right", fontsize=8)
+    ax[2].legend(
+        handles=[Patch(color=_LABEL_COLOURS[c], label=names[c]) for c in present], loc="lower right", fontsize=8
+    )
     s = result.phantom.scene.systems[[x.name for x in result.phantom.scene.systems].index(result.system_names[k])]
-    fig.suptitle(f"{result.phantom.name}: {s.name} ({s.wavelength_um * 1000:.0f} nm, "
-                 f"{s.lateral_resolution_um}/{s.axial_resolution_um} µm), {len(result.frame_times_s)} frames, "
-                 f"seed {result.seed}")
+    fig.suptitle(
+        f"{result.phantom.name}: {s.name} ({s.wavelength_um * 1000:.0f} nm, "
+        f"{s.lateral_resolution_um}/{s.axial_resolution_um} µm), {len(result.frame_times_s)} frames, "
+        f"seed {result.seed}"
+    )
     return fig

@@ -155,8 +155,9 @@ def parse_mask(mask: str | float | None) -> str | float:
     try:
         v = float(text)
     except ValueError:
-        raise ValueError(f"--bulk-phase-mask must be all, median, stable[:C] or a dB threshold (e.g. -30); got "
-                         f"{mask!r}") from None
+        raise ValueError(
+            f"--bulk-phase-mask must be all, median, stable[:C] or a dB threshold (e.g. -30); got {mask!r}"
+        ) from None
     if not math.isfinite(v):
         raise ValueError(f"--bulk-phase-mask: a dB threshold must be finite; got {mask!r}")
     return v
@@ -184,8 +185,9 @@ def parse_rows(rows: str | _Seq[int] | None, n_z: int | None = None) -> tuple[in
         if z1 == -1:
             z1 = n_z
         if not 0 <= z0 < z1 <= n_z:
-            raise ValueError(f"--bulk-phase-rows {z0}:{z1} must satisfy 0 <= Z0 < Z1 <= {n_z} (the depth rows of the "
-                             "data)")
+            raise ValueError(
+                f"--bulk-phase-rows {z0}:{z1} must satisfy 0 <= Z0 < Z1 <= {n_z} (the depth rows of the data)"
+            )
     return (z0, z1)
 
 
@@ -193,8 +195,9 @@ def _wrap(a: torch.Tensor) -> torch.Tensor:
     return torch.remainder(a + math.pi, 2.0 * math.pi) - math.pi
 
 
-def phase_steps(lines: torch.Tensor, method: str = "weighted-mean", *, mask: str | float = "all",
-                bins: int = DEFAULT_BINS) -> tuple[torch.Tensor, torch.Tensor]:
+def phase_steps(
+    lines: torch.Tensor, method: str = "weighted-mean", *, mask: str | float = "all", bins: int = DEFAULT_BINS
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Bulk phase steps of A-lines ``lines [T, L, Z]`` (complex; ``L`` A-lines of ``Z`` depth pixels).
 
     Returns ``(steps [T−1, L] float64 rad, no_signal [T−1, L] bool)``: ``steps[i]`` is the estimate of
@@ -213,7 +216,7 @@ def phase_steps(lines: torch.Tensor, method: str = "weighted-mean", *, mask: str
     elif mask == "all":
         keep = None
     elif isinstance(mask, str) and mask.startswith("stable:"):  # intensity steady over the sequence (bulk-invariant)
-        inten = (lines.real ** 2 + lines.imag ** 2).double()
+        inten = (lines.real**2 + lines.imag**2).double()
         mean = inten.mean(0)
         contrast = inten.var(0, unbiased=False) / torch.where(mean > 0, mean * mean, torch.ones_like(mean))
         keep = ((contrast <= float(mask[7:])) & (mean > 0))[None].expand_as(w)
@@ -297,7 +300,7 @@ class BulkPhase:
             "rows": None if self.rows is None else [int(self.rows[0]), int(self.rows[1])],
             "applied": "to the complex field before the resolution reduction and the signature features",
             "pairs_without_signal": int(self.pairs_without_signal),
-            "step_rms_rad": float(np.sqrt(np.mean(wrapped ** 2))) if wrapped.size else 0.0,
+            "step_rms_rad": float(np.sqrt(np.mean(wrapped**2))) if wrapped.size else 0.0,
             "definition": "torchdoct.measured.bulkphase (physics.md §12)",
         }
         if self.method == "histogram":
@@ -308,19 +311,28 @@ class BulkPhase:
 def _check_sequence(seq: SequenceData) -> str:
     src = seq.source or "sequence"
     if not seq.is_complex:
-        raise ValueError(f"{src} holds intensity only (dtype {seq.data.dtype}): bulk-phase correction needs the complex "
-                         "field (the phase of every pixel); give the complex sequence (.npy/.npz/.h5, complex64 or "
-                         "complex128), or drop --bulk-phase")
+        raise ValueError(
+            f"{src} holds intensity only (dtype {seq.data.dtype}): bulk-phase correction needs the complex "
+            "field (the phase of every pixel); give the complex sequence (.npy/.npz/.h5, complex64 or "
+            "complex128), or drop --bulk-phase"
+        )
     if seq.n_frames < 2:
         raise ValueError(f"{src}: {seq.n_frames} frame along T; bulk-phase correction needs at least 2 frames")
     return src
 
 
 @one_torch_thread
-def estimate_bulk_phase(seq: SequenceData, method: str = "weighted-mean", *, mask: str | float = "all",
-                        rows: str | _Seq[int] | None = None, bins: int = DEFAULT_BINS,
-                        slab_elements: int = 1 << 23, device: str | torch.device | None = None,
-                        progress: bool = False) -> BulkPhase:
+def estimate_bulk_phase(
+    seq: SequenceData,
+    method: str = "weighted-mean",
+    *,
+    mask: str | float = "all",
+    rows: str | _Seq[int] | None = None,
+    bins: int = DEFAULT_BINS,
+    slab_elements: int = 1 << 23,
+    device: str | torch.device | None = None,
+    progress: bool = False,
+) -> BulkPhase:
     """The bulk phase of every A-line and frame of ``seq`` (module docstring), slab by slab.
 
     Each slab holds whole A-lines (all frames, the depth rows used): X columns of a ``[T, Z, X]``
@@ -371,16 +383,26 @@ def estimate_bulk_phase(seq: SequenceData, method: str = "weighted-mean", *, mas
             bar.update(1)
     if bar is not None:
         bar.close()
-    return BulkPhase(phase=phase, method=method, mask=mask, rows=rows_t, bins=int(bins) if method == "histogram" else None,
-                     pairs_without_signal=missing, source=src, seconds=time.perf_counter() - t0)
+    return BulkPhase(
+        phase=phase,
+        method=method,
+        mask=mask,
+        rows=rows_t,
+        bins=int(bins) if method == "histogram" else None,
+        pairs_without_signal=missing,
+        source=src,
+        seconds=time.perf_counter() - t0,
+    )
 
 
 def _phasor_shape(bp: BulkPhase, seq_shape: tuple[int, ...], axes: str) -> tuple[int, ...]:
     zdim = axes.index("Z")
     want = tuple(s for d, s in enumerate(seq_shape) if d != zdim)
     if tuple(bp.phase.shape) != want:
-        raise ValueError(f"bulk phase of shape {list(bp.phase.shape)} does not match the sequence "
-                         f"{list(seq_shape)} ({axes}): estimate it from this sequence")
+        raise ValueError(
+            f"bulk phase of shape {list(bp.phase.shape)} does not match the sequence "
+            f"{list(seq_shape)} ({axes}): estimate it from this sequence"
+        )
     return tuple(1 if d == zdim else s for d, s in enumerate(seq_shape))
 
 
@@ -427,8 +449,16 @@ def corrected_sequence(seq: SequenceData, bp: BulkPhase) -> SequenceData:
 # residual error: theory and measurement
 
 
-def predicted_residual_rms(snr_db: float, n_z: int, n_frames: int, *, speckle: bool = True,
-                           noise_only: int = 0, moving_fraction: float = 0.0, moving_g: float = 1.0) -> float:
+def predicted_residual_rms(
+    snr_db: float,
+    n_z: int,
+    n_frames: int,
+    *,
+    speckle: bool = True,
+    noise_only: int = 0,
+    moving_fraction: float = 0.0,
+    moving_g: float = 1.0,
+) -> float:
     """First-order RMS residual phase (rad) over the frames of an A-line (module docstring; physics.md §12),
     about its frame mean, with the signal power per pixel 1 and white noise at ``snr_db``.
 
@@ -458,9 +488,9 @@ def predicted_residual_rms(snr_db: float, n_z: int, n_frames: int, *, speckle: b
         inv_a, inv_a2 = 1.0 / (n * a), 1.0 / (n * n * a * a)
     sigma2 = noise_power(1.0, float(snr_db))  # signal power 1
     walk = (t * t - 1.0) / (6.0 * t)
-    ms = (1.0 - 1.0 / t) * sigma2 / 2.0 * inv_a / a + walk * n_used * sigma2 ** 2 / 2.0 * inv_a2
+    ms = (1.0 - 1.0 / t) * sigma2 / 2.0 * inv_a / a + walk * n_used * sigma2**2 / 2.0 * inv_a2
     if fm > 0:
         lags = np.abs(np.arange(t)[:, None] - np.arange(t)[None, :])
-        about_mean = 1.0 - float(np.mean(g ** lags))
+        about_mean = 1.0 - float(np.mean(g**lags))
         ms += n * fs * fm / 2.0 * inv_a2 * about_mean + walk * n * (1.0 - g * g) * fm * fm / 2.0 * inv_a2
     return math.sqrt(ms)

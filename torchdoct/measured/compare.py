@@ -47,8 +47,22 @@ __all__ = [
 ]
 
 #: Columns of the tests table (one row per test).
-TEST_COLUMNS = ["metric", "test", "config_a", "config_b", "n_samples", "mean_a", "sd_a", "mean_b", "sd_b",
-                "mean_diff_b_minus_a", "statistic", "p_value", "significant", "posthoc"]
+TEST_COLUMNS = [
+    "metric",
+    "test",
+    "config_a",
+    "config_b",
+    "n_samples",
+    "mean_a",
+    "sd_a",
+    "mean_b",
+    "sd_b",
+    "mean_diff_b_minus_a",
+    "statistic",
+    "p_value",
+    "significant",
+    "posthoc",
+]
 
 
 @dataclass(frozen=True)
@@ -87,12 +101,21 @@ def parse_config(text: str) -> tuple[float | None, str]:
 
 
 def _channel_config(info: Mapping[str, Any]) -> ComparedConfiguration:
-    return ComparedConfiguration(float(info["wavelength_um"]), float(info["lateral_resolution_um"]),
-                         float(info["axial_resolution_um"]), str(info.get("resolution", "")))
+    return ComparedConfiguration(
+        float(info["wavelength_um"]),
+        float(info["lateral_resolution_um"]),
+        float(info["axial_resolution_um"]),
+        str(info.get("resolution", "")),
+    )
 
 
-def region_mask(maps: Maps, *, mask: np.ndarray | None = None, threshold_db: float | None = None,
-                threshold_resolution: str | None = None) -> np.ndarray:
+def region_mask(
+    maps: Maps,
+    *,
+    mask: np.ndarray | None = None,
+    threshold_db: float | None = None,
+    threshold_resolution: str | None = None,
+) -> np.ndarray:
     """Boolean region of ``maps`` (spatial shape) from a mask, an intensity threshold, or everything."""
     spatial = maps.maps.shape[1:]
     if mask is not None and threshold_db is not None:
@@ -100,8 +123,10 @@ def region_mask(maps: Maps, *, mask: np.ndarray | None = None, threshold_db: flo
     if mask is not None:
         m = np.asarray(mask)
         if m.shape != spatial:
-            raise ValueError(f"mask has shape {list(m.shape)} but the maps are {list(spatial)} "
-                             f"({maps.meta.get('source') or 'maps'}); give a mask of the maps' spatial shape")
+            raise ValueError(
+                f"mask has shape {list(m.shape)} but the maps are {list(spatial)} "
+                f"({maps.meta.get('source') or 'maps'}); give a mask of the maps' spatial shape"
+            )
         if m.dtype != bool:
             if not np.all(np.isin(m, (0, 1))):
                 raise ValueError("mask must be boolean or 0/1")
@@ -110,20 +135,26 @@ def region_mask(maps: Maps, *, mask: np.ndarray | None = None, threshold_db: flo
     if threshold_db is not None:
         if not math.isfinite(float(threshold_db)):
             raise ValueError(f"threshold_db must be finite (dB); got {threshold_db!r}")
-        cands = [c for c in maps.meta["channels"] if c["metric"] == "mean_db"
-                 and (threshold_resolution is None or c["resolution"] == threshold_resolution)]
+        cands = [
+            c
+            for c in maps.meta["channels"]
+            if c["metric"] == "mean_db" and (threshold_resolution is None or c["resolution"] == threshold_resolution)
+        ]
         if not cands:
-            raise ValueError(f"an intensity threshold needs a mean_db channel"
-                             f"{'' if threshold_resolution is None else ' at ' + threshold_resolution!r} in "
-                             f"{maps.meta.get('source') or 'the maps'}; compute maps with mean_db or give --mask")
+            raise ValueError(
+                f"an intensity threshold needs a mean_db channel"
+                f"{'' if threshold_resolution is None else ' at ' + threshold_resolution!r} in "
+                f"{maps.meta.get('source') or 'the maps'}; compute maps with mean_db or give --mask"
+            )
         db = maps[cands[0]["name"]]
         with np.errstate(invalid="ignore"):
             return np.asarray(db >= float(threshold_db))
     return np.ones(spatial, dtype=bool)
 
 
-def sample_means(maps: Maps, region: np.ndarray, metrics: Iterable[str] = ("liv", "ocds")
-                 ) -> dict[ComparedConfiguration, dict[str, tuple[float, int]]]:
+def sample_means(
+    maps: Maps, region: np.ndarray, metrics: Iterable[str] = ("liv", "ocds")
+) -> dict[ComparedConfiguration, dict[str, tuple[float, int]]]:
     """``{configuration: {metric: (mean over finite region pixels, pixel count)}}`` of one maps file."""
     out: dict[ComparedConfiguration, dict[str, tuple[float, int]]] = {}
     wanted = set(metrics)
@@ -131,10 +162,12 @@ def sample_means(maps: Maps, region: np.ndarray, metrics: Iterable[str] = ("liv"
         if info["metric"] not in wanted:
             continue
         if any(info.get(k) is None for k in ("wavelength_um", "lateral_resolution_um", "axial_resolution_um")):
-            raise ValueError(f"{maps.meta.get('source') or 'maps'}: channel {info['name']} has no optics (the maps were "
-                             "computed without them); configurations are matched by wavelength and resolutions: "
-                             "recompute the maps with --wavelength-um, --lateral-resolution-um and "
-                             "--axial-resolution-um")
+            raise ValueError(
+                f"{maps.meta.get('source') or 'maps'}: channel {info['name']} has no optics (the maps were "
+                "computed without them); configurations are matched by wavelength and resolutions: "
+                "recompute the maps with --wavelength-um, --lateral-resolution-um and "
+                "--axial-resolution-um"
+            )
         v = maps.maps[i][region]
         v = v[np.isfinite(v)]
         mean = float(np.mean(v, dtype=np.float64)) if v.size else math.nan
@@ -178,13 +211,18 @@ class ComparisonResult:
                 lines.append(f"  {c:>28}  {np.mean(v[:, j]):10.4f}{sd}")
             for _, r in self.tests[self.tests["metric"] == metric].iterrows():
                 pair = r["config_a"] if r["config_b"] == "" else f"{r['config_a']} vs {r['config_b']}"
-                extra = "" if r["test"] == "Kruskal-Wallis" or r["posthoc"] is None else (
-                    " (post hoc)" if r["posthoc"] else " (Kruskal-Wallis not significant)")
+                extra = (
+                    ""
+                    if r["test"] == "Kruskal-Wallis" or r["posthoc"] is None
+                    else (" (post hoc)" if r["posthoc"] else " (Kruskal-Wallis not significant)")
+                )
                 if not math.isfinite(r["statistic"]):
                     lines.append(f"  {r['test']}: {pair}: no difference testable (the same in every sample)")
                     continue
-                lines.append(f"  {r['test']}: {pair}: statistic {r['statistic']:.4g}, p = {r['p_value']:.4g} "
-                             f"{significance_stars(r['p_value'], self.alpha)}{extra}")
+                lines.append(
+                    f"  {r['test']}: {pair}: statistic {r['statistic']:.4g}, p = {r['p_value']:.4g} "
+                    f"{significance_stars(r['p_value'], self.alpha)}{extra}"
+                )
         if self.note:
             lines.append(self.note)
         return "\n".join(lines)
@@ -209,8 +247,13 @@ def _quiet(fn, *args):
     return float(r.statistic), float(r.pvalue)
 
 
-def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, metrics: _Seq[str] = ("liv", "ocds"),
-                    configs: _Seq[str] | None = None, alpha: float = 0.05) -> ComparisonResult:
+def compare_samples(
+    samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]],
+    *,
+    metrics: _Seq[str] = ("liv", "ocds"),
+    configs: _Seq[str] | None = None,
+    alpha: float = 0.05,
+) -> ComparisonResult:
     """Paper statistics over samples. ``samples``: ``{name: [(maps, region), ...]}`` (one sample may
     hold the maps of several systems). ``configs``: ``"[WAVELENGTH_UM:]RESOLUTION"`` specs selecting
     and ordering configurations (default: every configuration present in all samples, in order of
@@ -240,12 +283,13 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
         chosen = []
         for spec in configs:
             wl, label = parse_config(spec)
-            hits = [c for c in order if c.resolution == label
-                    and (wl is None or same_value(c.wavelength_um, wl))]
+            hits = [c for c in order if c.resolution == label and (wl is None or same_value(c.wavelength_um, wl))]
             if len(hits) != 1:
                 have = ", ".join(c.label(True) for c in order)
-                raise ValueError(f"--config {spec!r} matches {len(hits)} configurations (have: {have}); "
-                                 "add the wavelength as WAVELENGTH_UM:RESOLUTION")
+                raise ValueError(
+                    f"--config {spec!r} matches {len(hits)} configurations (have: {have}); "
+                    "add the wavelength as WAVELENGTH_UM:RESOLUTION"
+                )
             chosen.append(hits[0])
     else:
         chosen = [c for c in order if all(c in per[s] for s in per)]
@@ -262,15 +306,21 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
     labels = [c.label(multi_wl) for c in chosen]
     if len(set(labels)) != len(labels):
         labels = [c.label(True) + f" ({c.lateral_resolution_um:g}/{c.axial_resolution_um:g} µm)" for c in chosen]
-    rows = [{"sample": s, "configuration": lab, "metric": m, "mean": per[s][c][m][0], "n_pixels": per[s][c][m][1]}
-            for s in per for c, lab in zip(chosen, labels) for m in metrics]
+    rows = [
+        {"sample": s, "configuration": lab, "metric": m, "mean": per[s][c][m][0], "n_pixels": per[s][c][m][1]}
+        for s in per
+        for c, lab in zip(chosen, labels)
+        for m in metrics
+    ]
     per_sample = pd.DataFrame(rows)
     result = ComparisonResult(per_sample=per_sample, tests=None, configs=labels, metrics=metrics, alpha=alpha)
     tests = []
     untestable: list[str] = []
     if len(per) < 2:
-        result.note = (f"1 sample ({next(iter(per))}): no tests; the paired tests need at least 2 samples "
-                       "(one mean per sample and configuration)")
+        result.note = (
+            f"1 sample ({next(iter(per))}): no tests; the paired tests need at least 2 samples "
+            "(one mean per sample and configuration)"
+        )
     for m in metrics:
         v = result.values(m)
         if not np.all(np.isfinite(v)):
@@ -292,9 +342,22 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
             else:
                 stat, p = _quiet(stats.ttest_rel, v[:, i], v[:, j])
             (ma, sa), (mb, sb) = summary(i), summary(j)
-            return {"metric": m, "test": "paired t-test", "config_a": labels[i], "config_b": labels[j], "n_samples": n,
-                    "mean_a": ma, "sd_a": sa, "mean_b": mb, "sd_b": sb, "mean_diff_b_minus_a": mb - ma,
-                    "statistic": stat, "p_value": p, "significant": bool(p < alpha), "posthoc": posthoc}
+            return {
+                "metric": m,
+                "test": "paired t-test",
+                "config_a": labels[i],
+                "config_b": labels[j],
+                "n_samples": n,
+                "mean_a": ma,
+                "sd_a": sa,
+                "mean_b": mb,
+                "sd_b": sb,
+                "mean_diff_b_minus_a": mb - ma,
+                "statistic": stat,
+                "p_value": p,
+                "significant": bool(p < alpha),
+                "posthoc": posthoc,
+            }
 
         if len(chosen) == 2:
             tests.append(ttest(0, 1, None))
@@ -305,17 +368,40 @@ def compare_samples(samples: Mapping[str, _Seq[tuple[Maps, np.ndarray]]], *, met
             else:
                 stat, p = _quiet(stats.kruskal, *[v[:, j] for j in range(v.shape[1])])
             sig = bool(p < alpha)
-            tests.append({"metric": m, "test": "Kruskal-Wallis", "config_a": "all", "config_b": "", "n_samples": n,
-                          "mean_a": math.nan, "sd_a": math.nan, "mean_b": math.nan, "sd_b": math.nan,
-                          "mean_diff_b_minus_a": math.nan, "statistic": stat, "p_value": p, "significant": sig,
-                          "posthoc": None})
+            tests.append(
+                {
+                    "metric": m,
+                    "test": "Kruskal-Wallis",
+                    "config_a": "all",
+                    "config_b": "",
+                    "n_samples": n,
+                    "mean_a": math.nan,
+                    "sd_a": math.nan,
+                    "mean_b": math.nan,
+                    "sd_b": math.nan,
+                    "mean_diff_b_minus_a": math.nan,
+                    "statistic": stat,
+                    "p_value": p,
+                    "significant": sig,
+                    "posthoc": None,
+                }
+            )
             for i, j in combinations(range(len(chosen)), 2):
                 tests.append(ttest(i, j, sig))
     result.tests = pd.DataFrame(tests, columns=TEST_COLUMNS)
     if untestable:
-        result.note = "\n".join(filter(None, [result.note, (
-            f"no difference testable for {', '.join(untestable)}: the samples give the same paired difference "
-            "(statistic and p NaN; identical samples, or one maps file given as two samples?)")]))
+        result.note = "\n".join(
+            filter(
+                None,
+                [
+                    result.note,
+                    (
+                        f"no difference testable for {', '.join(untestable)}: the samples give the same paired difference "
+                        "(statistic and p NaN; identical samples, or one maps file given as two samples?)"
+                    ),
+                ],
+            )
+        )
     return result
 
 

@@ -52,10 +52,27 @@ from ..runtime.interrupt import progress_disabled
 from .bulkphase import STABLE_CONTRAST
 from .sequence import SequenceData
 
-__all__ = ["DEFAULT_DOPPLER_LAGS", "REFERENCE_CONTRAST", "MIN_REFERENCE_PIXELS", "MIN_WHITE_SHARE",
-           "WHITE_TEST_LEVEL", "MIN_BSCAN_COVERAGE", "PHASE_TOLERANCE_Z", "REFERENCE_RULE", "min_reference_snr", "min_whiteness", "white_population",
-           "phase_tolerance", "doppler_lags", "DopplerReference", "estimate_doppler_reference", "doppler_absent",
-           "doppler_channel_records", "doppler_slab", "doppler_name"]
+__all__ = [
+    "DEFAULT_DOPPLER_LAGS",
+    "REFERENCE_CONTRAST",
+    "MIN_REFERENCE_PIXELS",
+    "MIN_WHITE_SHARE",
+    "WHITE_TEST_LEVEL",
+    "MIN_BSCAN_COVERAGE",
+    "PHASE_TOLERANCE_Z",
+    "REFERENCE_RULE",
+    "min_reference_snr",
+    "min_whiteness",
+    "white_population",
+    "phase_tolerance",
+    "doppler_lags",
+    "DopplerReference",
+    "estimate_doppler_reference",
+    "doppler_absent",
+    "doppler_channel_records",
+    "doppler_slab",
+    "doppler_name",
+]
 
 #: The lags (frames) of ``--doppler`` without ``--doppler-lags``: the shortest, the widest velocity range.
 DEFAULT_DOPPLER_LAGS = (1,)
@@ -75,16 +92,18 @@ MIN_BSCAN_COVERAGE = 0.5
 #: Half width of the reference population, in standard deviations of a static pixel's phase.
 PHASE_TOLERANCE_Z = 3.5
 #: The rule, as the maps' metadata record it.
-REFERENCE_RULE = ("reference pixels: temporal intensity contrast Var_t I/(mean_t I)^2 <= {c:g} (a static pixel at "
-                  "SNR >= {s:.1f}, above the noise floor) and white intensity fluctuations (von Neumann ratio "
-                  "sum (I_(t+1) - I_t)^2 / (2 sum (I_t - mean I)^2) >= {w:.3f}: noise, no drift); then the peak "
-                  "population of their phases relative to the sum of all of them (histogram of bin width h, weights "
-                  "1 - contrast/{c:g}); then those within h of that population's sum; the population counts when "
-                  "more than {ws:.0%} of the steady pixels within h of it are white (one-sided binomial test at "
-                  "{lv:g}); scope: the A-line with >= {n} "
-                  "reference pixels, else its B-scan with >= {n} whose reference reaches >= {cov:.0%} of the A-lines "
-                  "with a candidate, else none (NaN); channel: arg sum_t conj(C_t(p)) "
-                  "r_t/|r_t|, C_t = E_(t+m) conj(E_t), r_t the reference sum without p")
+REFERENCE_RULE = (
+    "reference pixels: temporal intensity contrast Var_t I/(mean_t I)^2 <= {c:g} (a static pixel at "
+    "SNR >= {s:.1f}, above the noise floor) and white intensity fluctuations (von Neumann ratio "
+    "sum (I_(t+1) - I_t)^2 / (2 sum (I_t - mean I)^2) >= {w:.3f}: noise, no drift); then the peak "
+    "population of their phases relative to the sum of all of them (histogram of bin width h, weights "
+    "1 - contrast/{c:g}); then those within h of that population's sum; the population counts when "
+    "more than {ws:.0%} of the steady pixels within h of it are white (one-sided binomial test at "
+    "{lv:g}); scope: the A-line with >= {n} "
+    "reference pixels, else its B-scan with >= {n} whose reference reaches >= {cov:.0%} of the A-lines "
+    "with a candidate, else none (NaN); channel: arg sum_t conj(C_t(p)) "
+    "r_t/|r_t|, C_t = E_(t+m) conj(E_t), r_t the reference sum without p"
+)
 
 
 def doppler_name(m: int) -> str:
@@ -99,8 +118,14 @@ def min_reference_snr(contrast: float = REFERENCE_CONTRAST) -> float:
     return ((1.0 - c) + math.sqrt(1.0 - c)) / c
 
 
-def phase_tolerance(m: int, n_frames: int, *, contrast: float = REFERENCE_CONTRAST,
-                    min_pixels: int = MIN_REFERENCE_PIXELS, z: float = PHASE_TOLERANCE_Z) -> float:
+def phase_tolerance(
+    m: int,
+    n_frames: int,
+    *,
+    contrast: float = REFERENCE_CONTRAST,
+    min_pixels: int = MIN_REFERENCE_PIXELS,
+    z: float = PHASE_TOLERANCE_Z,
+) -> float:
     """``h`` (rad): ``z`` standard deviations of the lag-``m`` phase of a static pixel at the SNR floor ``s``
     relative to a reference of ``min_pixels`` such pixels, over ``T − m`` frame pairs. To first order in the
     noise the per-frame errors telescope, ``Var = (1 + 1/N)·m/(s(T − m)²)``; the noise-times-noise part adds
@@ -130,8 +155,10 @@ def doppler_lags(seq: SequenceData, lags: bool | _Seq[int] | None) -> tuple[int,
     if seq.axes not in ("TZX", "TYZX"):
         raise ValueError(f"{src}: the Doppler channels need B-scans (TZX) or a volume (TYZX); got {seq.axes}")
     if uniform_frame_interval_s(seq.frame_times_s) is None:
-        raise ValueError(f"{src}: the Doppler channels need a uniform frame interval (the phase per lag is a "
-                         "velocity only at one delay)")
+        raise ValueError(
+            f"{src}: the Doppler channels need a uniform frame interval (the phase per lag is a "
+            "velocity only at one delay)"
+        )
     for m in out:
         if t - m < 2:
             raise ValueError(f"{src}: Doppler lag {m} leaves {t - m} frame pair of {t} frames; give a lag <= {t - 2}")
@@ -175,9 +202,15 @@ class DopplerReference:
             "channels": [doppler_name(m) for m in self.lags],
             "unit": "rad",
             "sign": "g1_phase convention: scatterers moving deeper at v_z give -2kn*v_z*m*dt (wrapped)",
-            "rule": REFERENCE_RULE.format(c=REFERENCE_CONTRAST, s=min_reference_snr(), n=MIN_REFERENCE_PIXELS,
-                                          w=min_whiteness(self.n_frames), ws=MIN_WHITE_SHARE,
-                                          lv=WHITE_TEST_LEVEL, cov=MIN_BSCAN_COVERAGE),
+            "rule": REFERENCE_RULE.format(
+                c=REFERENCE_CONTRAST,
+                s=min_reference_snr(),
+                n=MIN_REFERENCE_PIXELS,
+                w=min_whiteness(self.n_frames),
+                ws=MIN_WHITE_SHARE,
+                lv=WHITE_TEST_LEVEL,
+                cov=MIN_BSCAN_COVERAGE,
+            ),
             "min_bscan_coverage": MIN_BSCAN_COVERAGE,
             "min_white_share": MIN_WHITE_SHARE,
             "min_whiteness": min_whiteness(self.n_frames),
@@ -191,17 +224,23 @@ class DopplerReference:
         if self.wavelength_um is not None:
             out["refractive_index"] = self.refractive_index
         if not self.lags:
-            out["absent"] = ("no A-line and no B-scan holds the reference the rule needs (at least "
-                             f"{MIN_REFERENCE_PIXELS} steady, white, phase-consistent pixels whose population "
-                             "fluctuates as noise, not as a drift): no static tissue to measure the Doppler phase "
-                             "against, so no channel rather than a made-up value")
+            out["absent"] = (
+                "no A-line and no B-scan holds the reference the rule needs (at least "
+                f"{MIN_REFERENCE_PIXELS} steady, white, phase-consistent pixels whose population "
+                "fluctuates as noise, not as a drift): no static tissue to measure the Doppler phase "
+                "against, so no channel rather than a made-up value"
+            )
         return out
 
 
 def doppler_absent(seq: SequenceData, lags: _Seq[int]) -> dict[str, Any]:
     """``meta["doppler"]`` when the input holds intensity only: no channel, and why."""
-    return {"lags": list(lags), "channels": [], "absent": f"{seq.source or 'the sequence'} holds intensity only: the "
-            "Doppler phase needs the complex field", "definition": "torchdoct.measured.doppler"}
+    return {
+        "lags": list(lags),
+        "channels": [],
+        "absent": f"{seq.source or 'the sequence'} holds intensity only: the Doppler phase needs the complex field",
+        "definition": "torchdoct.measured.doppler",
+    }
 
 
 # ----------------------------------------------------------------------------------------------
@@ -219,7 +258,7 @@ def min_whiteness(n_frames: int, z: float = PHASE_TOLERANCE_Z) -> float:
 def _candidates(lines: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(candidate, steady [L, Z] bool, weight [L, Z] float64)`` of A-lines ``[T, L, Z]``: steady (contrast)
     and white (no drift: the von Neumann ratio; a constant intensity counts as white) intensity."""
-    inten = (lines.real ** 2 + lines.imag ** 2).double()
+    inten = (lines.real**2 + lines.imag**2).double()
     mean = inten.mean(0)
     dev2 = ((inten - mean) ** 2).sum(0)
     contrast = dev2 / inten.shape[0] / torch.where(mean > 0, mean * mean, torch.ones_like(mean))
@@ -318,18 +357,24 @@ def _near_peak(psi: torch.Tensor, centre: torch.Tensor, h: float) -> torch.Tenso
     return _wrap(psi - centre[:, None]).abs() <= 1.5 * 2.0 * math.pi / _n_bins(h)
 
 
-def _last_step(c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, r1: torch.Tensor,
-               h: float) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
+def _last_step(
+    c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, r1: torch.Tensor, h: float
+) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
     """The candidates within ``h`` of the population's sum ``r1``: ``(their sums [K, G], the pixels [G, S],
     their count [G], the steady pixels within h [G])``."""
     in_phase = _phase_to(c, r1).abs() <= h
     sel = cand & in_phase
-    return (_group_sum(c, sel), sel, sel.sum(-1).numpy().astype(np.int64),
-            (steady & in_phase).sum(-1).numpy().astype(np.int64))
+    return (
+        _group_sum(c, sel),
+        sel,
+        sel.sum(-1).numpy().astype(np.int64),
+        (steady & in_phase).sum(-1).numpy().astype(np.int64),
+    )
 
 
-def _select_complete(c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, w: torch.Tensor,
-                     h: float) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
+def _select_complete(
+    c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, w: torch.Tensor, h: float
+) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
     """The rule on groups whose pixels are all here (``c [K, G, S]``, the masks and weights ``[G, S]``): the
     candidates' sum, the peak of their phase histogram, the peak population's sum, then :func:`_last_step`."""
     psi = _phase_to(c, _group_sum(c, cand))
@@ -346,8 +391,14 @@ def _slab_lines(block: torch.Tensor, volume: bool) -> torch.Tensor:
 
 
 @torch.no_grad()
-def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.ndarray | None = None,
-                               slab_elements: int = 1 << 23, progress: bool = False) -> DopplerReference:
+def estimate_doppler_reference(
+    seq: SequenceData,
+    lags: _Seq[int],
+    *,
+    bulk: np.ndarray | None = None,
+    slab_elements: int = 1 << 23,
+    progress: bool = False,
+) -> DopplerReference:
     """The reference of every lag (module docstring), in lateral slabs of whole A-lines (X columns of a
     B-scan sequence, whole B-scans of a volume) of at most ``slab_elements`` samples. ``bulk``: the bulk-phase
     phasor ``[T, (Y), 1, X]`` of :func:`torchdoct.measured.maps.compute_maps`, applied first. A B-scan scope
@@ -401,7 +452,7 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
             r, sel, n_sel, n_steady = _select_complete(c, cand, steady, w, hs[m])
             own[m].put(rows, r, sel, n_sel, n_steady)
             if not split and not own[m].ok(rows).all():  # some A-line needs its B-scan's reference
-                g = (lambda a, n_g=n_g: a.reshape(*a.shape[:-2], n_g, -1))  # noqa: E731 (pixels by B-scan)
+                g = lambda a, n_g=n_g: a.reshape(*a.shape[:-2], n_g, -1)  # noqa: E731 (pixels by B-scan)
                 r, sel, n_sel, n_steady = _select_complete(g(c), g(cand), g(steady), g(w), hs[m])
                 bscan[m].put(bs, r, sel, n_sel, n_steady)
         if bar is not None:
@@ -440,22 +491,35 @@ def estimate_doppler_reference(seq: SequenceData, lags: _Seq[int], *, bulk: np.n
             "alines_own_reference": int(use_own.sum()),
             "alines_bscan_reference": int(fall.sum()),
             "alines_without_reference": int((sc == 0).sum()),
-            "aline_reference_share": {"min": float(line_share.min()), "median": float(np.median(line_share)),
-                                      "max": float(line_share.max())},
+            "aline_reference_share": {
+                "min": float(line_share.min()),
+                "median": float(np.median(line_share)),
+                "max": float(line_share.max()),
+            },
             "bscans_with_reference": int(b_ok.sum()),
-            "bscan_reference_share": [float(v) / (n_lines // n_bscans * n_z) if e else None
-                                      for v, e in zip(bscan[m].count, bscan[m].evaluated)],
+            "bscan_reference_share": [
+                float(v) / (n_lines // n_bscans * n_z) if e else None
+                for v, e in zip(bscan[m].count, bscan[m].evaluated)
+            ],
             "bscan_aline_coverage": [float(v) if e else None for v, e in zip(coverage, bscan[m].evaluated)],
         }
         if (sc > 0).any():
             present.append(m)
     system = dict(seq.meta.get("system") or {})
     wl = system.get("wavelength_um")
-    return DopplerReference(asked=tuple(lags), lags=tuple(present), sums=out_sums, scope=scope, mask=out_mask,
-                            info=info, frame_interval_s=float(uniform_frame_interval_s(seq.frame_times_s) or 0.0),
-                            wavelength_um=None if wl is None else float(wl),
-                            refractive_index=float(system.get("refractive_index") or 1.0),
-                            bulk_corrected=bulk is not None, n_frames=n_t)
+    return DopplerReference(
+        asked=tuple(lags),
+        lags=tuple(present),
+        sums=out_sums,
+        scope=scope,
+        mask=out_mask,
+        info=info,
+        frame_interval_s=float(uniform_frame_interval_s(seq.frame_times_s) or 0.0),
+        wavelength_um=None if wl is None else float(wl),
+        refractive_index=float(system.get("refractive_index") or 1.0),
+        bulk_corrected=bulk is not None,
+        n_frames=n_t,
+    )
 
 
 class _Scope:
@@ -526,17 +590,28 @@ def _bscan_passes(read, slabs, lags, hs, bscan: dict[int, _Scope], *, n_lines: i
 # the channels in the maps' slab loop
 
 
-def doppler_channel_records(ref: DopplerReference, label: str, optics: tuple[float | None, float | None],
-                            wavelength_um: float | None) -> list[dict[str, Any]]:
+def doppler_channel_records(
+    ref: DopplerReference, label: str, optics: tuple[float | None, float | None], wavelength_um: float | None
+) -> list[dict[str, Any]]:
     """One channel record per present lag (name, metric, unit rad, resolution, optics of the original)."""
     lat, ax = optics
-    return [{"name": f"{doppler_name(m)}@{label}", "metric": doppler_name(m), "unit": "rad", "resolution": label,
-             "wavelength_um": None if wavelength_um is None else float(wavelength_um), "lateral_resolution_um": lat,
-             "axial_resolution_um": ax} for m in ref.lags]
+    return [
+        {
+            "name": f"{doppler_name(m)}@{label}",
+            "metric": doppler_name(m),
+            "unit": "rad",
+            "resolution": label,
+            "wavelength_um": None if wavelength_um is None else float(wavelength_um),
+            "lateral_resolution_um": lat,
+            "axial_resolution_um": ax,
+        }
+        for m in ref.lags
+    ]
 
 
-def doppler_slab(x: torch.Tensor, ref: DopplerReference, cdim: int, c0: int, c1: int, *,
-                 chunk_pixels: int = 1 << 16) -> np.ndarray:
+def doppler_slab(
+    x: torch.Tensor, ref: DopplerReference, cdim: int, c0: int, c1: int, *, chunk_pixels: int = 1 << 16
+) -> np.ndarray:
     """The Doppler channels ``[len(ref.lags), (Y), Z, X]`` of the rows ``c0:c1`` (along data axis ``cdim``) of
     the field ``x`` (``[T, (Y), rows, X]``, those rows only, bulk-corrected as the reference was): NaN
     where the A-line has no reference or the pixel's sum is 0 or not finite."""
@@ -551,7 +626,9 @@ def doppler_slab(x: torch.Tensor, ref: DopplerReference, cdim: int, c0: int, c1:
     line_np = np.array(np.broadcast_to(first, spatial)).reshape(-1)  # each pixel's A-line
     line = torch.from_numpy(line_np)
     for li, m in enumerate(ref.lags):
-        sums = torch.from_numpy(np.ascontiguousarray(ref.sums[m][:, ys]).reshape(n_t - m, -1)).to(_work_dtype(x))  # [T−m, lines]
+        sums = torch.from_numpy(np.ascontiguousarray(ref.sums[m][:, ys]).reshape(n_t - m, -1)).to(
+            _work_dtype(x)
+        )  # [T−m, lines]
         none = (ref.scope[m][ys] == 0).reshape(-1)[line_np]
         sel = [slice(None)] * len(spatial)
         sel[cdim - 1] = slice(c0, c1)

@@ -31,10 +31,26 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["TiffDamage", "check_npy_header", "refuse_object", "parse_json_object", "json_loads", "MAX_INPUT_ENV",
-           "DEFAULT_MAX_INPUT_GB", "max_input_bytes", "set_max_input_gb", "check_declared_size", "check_npy_size",
-           "check_npz_sizes", "check_tiff_pages", "check_hdf5_local", "check_memory_budget", "streaming_reads",
-           "streaming", "npy_header"]
+__all__ = [
+    "TiffDamage",
+    "check_npy_header",
+    "refuse_object",
+    "parse_json_object",
+    "json_loads",
+    "MAX_INPUT_ENV",
+    "DEFAULT_MAX_INPUT_GB",
+    "max_input_bytes",
+    "set_max_input_gb",
+    "check_declared_size",
+    "check_npy_size",
+    "check_npz_sizes",
+    "check_tiff_pages",
+    "check_hdf5_local",
+    "check_memory_budget",
+    "streaming_reads",
+    "streaming",
+    "npy_header",
+]
 
 MAX_INPUT_ENV = "TORCHDOCT_MAX_INPUT_GB"
 DEFAULT_MAX_INPUT_GB = 8.0
@@ -107,8 +123,9 @@ class InputRefusal(ValueError):
     that wraps the errors of a damaged file in "not a readable …" passes it on as it is."""
 
 
-def check_declared_size(where: str, shape: Iterable[int], itemsize: int, what: str = "array",
-                        streamed: bool = False) -> int:
+def check_declared_size(
+    where: str, shape: Iterable[int], itemsize: int, what: str = "array", streamed: bool = False
+) -> int:
     """The byte count ``prod(shape) * itemsize`` (exact integers: no overflow), or a ``ValueError`` naming
     ``where``, the size and the option / environment variable that raises the limit when over it.
     ``streamed``: the caller reads the array slab by slab; within :func:`streaming_reads` only an explicit
@@ -121,11 +138,16 @@ def check_declared_size(where: str, shape: Iterable[int], itemsize: int, what: s
         return n
     limit = max_input_bytes()
     if n > limit:
-        raise InputRefusal(f"{where}: the {what} declares shape {dims} and would take {_human(n)} in memory, over "
-                         f"the input limit of {_human(limit)}; if the data really are this large, "
-                         + ("stream them through the maps with --max-memory-gb GB (torchdoct maps), or " if streamed
-                            and not _explicit_limit() else "")
-                         + f"raise the limit with --max-input-gb GB or the environment variable {MAX_INPUT_ENV}=GB")
+        raise InputRefusal(
+            f"{where}: the {what} declares shape {dims} and would take {_human(n)} in memory, over "
+            f"the input limit of {_human(limit)}; if the data really are this large, "
+            + (
+                "stream them through the maps with --max-memory-gb GB (torchdoct maps), or "
+                if streamed and not _explicit_limit()
+                else ""
+            )
+            + f"raise the limit with --max-input-gb GB or the environment variable {MAX_INPUT_ENV}=GB"
+        )
     check_memory_budget(where, n, f"the {what} declares shape {dims}")
     return n
 
@@ -144,12 +166,19 @@ def check_memory_budget(where: str, n: int, what: str) -> None:
         return
     if _explicit_limit() and not budget.hard:
         return
-    fix = ("read a smaller crop of it (fewer frames, B-scans or pixels), or give it as chunked input (HDF5 or "
-           "Zarr chunks, read slab by slab)")
-    fix += (", or raise that limit (ulimit -v, the container's memory limit)" if budget.hard
-            else ", or free memory; if you know the memory is there, --max-input-gb GB reads it anyway")
-    raise MemoryLimitError(f"{where}: not enough memory for the file: {what} ({_human(n)}) but the memory budget "
-                           f"is {_human(budget.bytes)} ({budget.source}); {fix}")
+    fix = (
+        "read a smaller crop of it (fewer frames, B-scans or pixels), or give it as chunked input (HDF5 or "
+        "Zarr chunks, read slab by slab)"
+    )
+    fix += (
+        ", or raise that limit (ulimit -v, the container's memory limit)"
+        if budget.hard
+        else ", or free memory; if you know the memory is there, --max-input-gb GB reads it anyway"
+    )
+    raise MemoryLimitError(
+        f"{where}: not enough memory for the file: {what} ({_human(n)}) but the memory budget "
+        f"is {_human(budget.bytes)} ({budget.source}); {fix}"
+    )
 
 
 def npy_header(path: Path, where: str) -> tuple[tuple[int, ...], np.dtype]:
@@ -183,8 +212,10 @@ def check_npy_size(path: Path, what: str = "", streamed: bool = False) -> None:
         n = check_declared_size(f"{what}{path.name}", shape, dtype.itemsize, streamed=streamed)
         have = os.fstat(fh.fileno()).st_size - fh.tell()
     if not dtype.hasobject and have < n:
-        raise ValueError(f"{what}{path.name}: truncated: the header declares {list(shape)} {dtype} ({n} bytes of "
-                         f"data) but the file holds {have}; copy or write the file again completely")
+        raise ValueError(
+            f"{what}{path.name}: truncated: the header declares {list(shape)} {dtype} ({n} bytes of "
+            f"data) but the file holds {have}; copy or write the file again completely"
+        )
 
 
 def check_npz_sizes(path: Path, what: str = "") -> None:
@@ -221,12 +252,13 @@ def check_tiff_pages(path: Path, tf: Any, what: str = "", streamed: bool = False
     for i in range(1, n):
         page = pages[i]
         if tuple(page.shape) != shape0 or page.dtype != dtype0:
-            raise InputRefusal(f"{what}{path.name}: TIFF pages of two shapes: page 0 is {list(shape0)} {dtype0}, page "
-                             f"{i} is {list(page.shape)} {page.dtype}; a stack needs one shape on every page (write "
-                             "the frames as one stack of equal images)")
+            raise InputRefusal(
+                f"{what}{path.name}: TIFF pages of two shapes: page 0 is {list(shape0)} {dtype0}, page "
+                f"{i} is {list(page.shape)} {page.dtype}; a stack needs one shape on every page (write "
+                "the frames as one stack of equal images)"
+            )
     itemsize = dtype0.itemsize if dtype0 is not None else 1
-    check_declared_size(f"{what}{path.name}", (n, *shape0), itemsize, what=f"TIFF stack ({n} pages)",
-                        streamed=streamed)
+    check_declared_size(f"{what}{path.name}", (n, *shape0), itemsize, what=f"TIFF stack ({n} pages)", streamed=streamed)
 
 
 def check_hdf5_local(fh: Any, path: Path, allow_external: bool = False) -> None:
@@ -235,21 +267,27 @@ def check_hdf5_local(fh: Any, path: Path, allow_external: bool = False) -> None:
     ``allow_external``."""
     import h5py
 
-    fix = ("if you trust the file and want those files read, give --allow-external-hdf5 (read_sequence: "
-           "allow_external_hdf5=True); otherwise copy the data into the file (e.g. h5repack)")
+    fix = (
+        "if you trust the file and want those files read, give --allow-external-hdf5 (read_sequence: "
+        "allow_external_hdf5=True); otherwise copy the data into the file (e.g. h5repack)"
+    )
     seen: set = set()
 
     def walk(group: Any, prefix: str, depth: int) -> None:
         if depth > 64:
-            raise ValueError(f"{path.name}: HDF5 groups nested over 64 levels at {prefix[:80] or '/'}…; copy the dataset "
-                             "into a file of its own (h5py: dst['data'] = src['data'][()])")
+            raise ValueError(
+                f"{path.name}: HDF5 groups nested over 64 levels at {prefix[:80] or '/'}…; copy the dataset "
+                "into a file of its own (h5py: dst['data'] = src['data'][()])"
+            )
         for name in group.keys():
             full = f"{prefix}/{name}"
             link = group.get(name, getlink=True)
             if isinstance(link, h5py.ExternalLink):
                 if not allow_external:
-                    raise ValueError(f"{path.name}: {full} is an external link to {link.filename}:{link.path} "
-                                     f"outside the input file; refused ({fix})")
+                    raise ValueError(
+                        f"{path.name}: {full} is an external link to {link.filename}:{link.path} "
+                        f"outside the input file; refused ({fix})"
+                    )
                 continue
             try:
                 obj = group.get(name)
@@ -265,14 +303,23 @@ def check_hdf5_local(fh: Any, path: Path, allow_external: bool = False) -> None:
             elif isinstance(obj, h5py.Dataset):
                 if obj.external and not allow_external:
                     files = ", ".join(sorted({str(e[0]) for e in obj.external}))
-                    raise ValueError(f"{path.name}: dataset {full} stores its data in external file(s) {files} "
-                                     f"outside the input file; refused ({fix})")
+                    raise ValueError(
+                        f"{path.name}: dataset {full} stores its data in external file(s) {files} "
+                        f"outside the input file; refused ({fix})"
+                    )
                 if obj.is_virtual and not allow_external:
-                    others = sorted({vs.file_name for vs in obj.virtual_sources()
-                                     if vs.file_name not in (".", str(path), os.path.basename(str(path)))})
+                    others = sorted(
+                        {
+                            vs.file_name
+                            for vs in obj.virtual_sources()
+                            if vs.file_name not in (".", str(path), os.path.basename(str(path)))
+                        }
+                    )
                     if others:
-                        raise ValueError(f"{path.name}: virtual dataset {full} takes its data from "
-                                         f"{', '.join(others)} outside the input file; refused ({fix})")
+                        raise ValueError(
+                            f"{path.name}: virtual dataset {full} takes its data from "
+                            f"{', '.join(others)} outside the input file; refused ({fix})"
+                        )
 
     walk(fh, "", 0)
 
@@ -326,8 +373,10 @@ def check_npy_header(path: Path, what: str = "") -> None:
     with open(path, "rb") as fh:
         head = fh.read(6)
     if head != b"\x93NUMPY":
-        raise ValueError(f"{what}{path.name}: not a NumPy .npy file (no NPY header: "
-                         f"{'empty' if not head else 'a pickle or another format'}); write it with numpy.save")
+        raise ValueError(
+            f"{what}{path.name}: not a NumPy .npy file (no NPY header: "
+            f"{'empty' if not head else 'a pickle or another format'}); write it with numpy.save"
+        )
 
 
 #: Digits of the longest JSON integer read as an integer: a longer one (a 100,000-digit number, which

@@ -32,9 +32,15 @@ def imagej_pages(arr: np.ndarray, axes: str) -> np.ndarray:
     return arr
 
 
-def imagej_write_options(shape: Sequence[int], axes: str, pitch_um: Mapping[str, float] | None,
-                         channel_names: Sequence[str], *, description: str,
-                         value_unit: str | None = None) -> dict[str, Any]:
+def imagej_write_options(
+    shape: Sequence[int],
+    axes: str,
+    pitch_um: Mapping[str, float] | None,
+    channel_names: Sequence[str],
+    *,
+    description: str,
+    value_unit: str | None = None,
+) -> dict[str, Any]:
     """Keyword arguments for ``tifffile.imwrite`` that write one ImageDescription (ImageJ's hyperstack
     description) and the IJMetadata tag holding the slice labels and ``description`` (the project's JSON) as
     ImageJ's ``Info``, for a stack of ``shape`` (``[C, (Y,) Z, X]``, before :func:`imagej_pages`) with

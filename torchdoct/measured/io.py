@@ -102,8 +102,15 @@ def _check_label_array(name: str, arr: Any) -> np.ndarray | None:
     return a
 
 
-def write_sequence(path: str | os.PathLike, data: Any, meta: Mapping[str, Any], *, labels: Any = None,
-                   label_params: Any = None, force: bool = False) -> Path:
+def write_sequence(
+    path: str | os.PathLike,
+    data: Any,
+    meta: Mapping[str, Any],
+    *,
+    labels: Any = None,
+    label_params: Any = None,
+    force: bool = False,
+) -> Path:
     """Write a complex sequence ``data`` (``[T, Z, X]`` / ``[T, Y, Z, X]``) with its metadata.
 
     Format by suffix: ``.npy`` + ``.json`` sidecar; ``.npz`` (``data``, optional ``labels`` /
@@ -134,6 +141,7 @@ def write_sequence(path: str | os.PathLike, data: Any, meta: Mapping[str, Any], 
         side = check_out(sidecar_path(out), force, ".json", what=f"sidecar of {out.name}")
 
     if out.suffix == ".npy":
+
         def write(tmp: str) -> None:
             with open(tmp, "wb") as fh:
                 np.save(fh, arr, allow_pickle=False)
@@ -148,6 +156,7 @@ def write_sequence(path: str | os.PathLike, data: Any, meta: Mapping[str, Any], 
             with open(tmp, "wb") as fh:
                 np.savez(fh, **arrays)
     else:
+
         def write(tmp: str) -> None:
             import h5py
 
@@ -185,12 +194,15 @@ def _check_values(data: np.ndarray, name: str) -> int:
         if data.dtype.kind == "f":
             n_neg += int(np.count_nonzero(frame < 0))
     if n_bad == data.size:
-        raise ValueError(f"{name}: holds no finite sample (all {n_bad} are NaN or inf); check the file (and "
-                         "--dataset / --axes)")
+        raise ValueError(
+            f"{name}: holds no finite sample (all {n_bad} are NaN or inf); check the file (and --dataset / --axes)"
+        )
     if n_neg:
-        raise ValueError(f"{name}: {n_neg} of {data.size} intensity samples are negative; a linear intensity is >= 0 "
-                         "(a dB or background-subtracted image is not one). Fix: store the linear intensity |E|^2, "
-                         "e.g. 10**(dB/10), or clip the subtracted background at 0")
+        raise ValueError(
+            f"{name}: {n_neg} of {data.size} intensity samples are negative; a linear intensity is >= 0 "
+            "(a dB or background-subtracted image is not one). Fix: store the linear intensity |E|^2, "
+            "e.g. 10**(dB/10), or clip the subtracted background at 0"
+        )
     return n_bad
 
 
@@ -209,12 +221,16 @@ def _apply_scale(data: Any, scale: str, name: str) -> Any:
         raise ValueError(f"--scale must be one of {', '.join(SCALES)}; got {scale!r}")
     if scale == "complex":
         if data.dtype.kind != "c":
-            raise ValueError(f"{name}: --scale complex, but the data are real ({data.dtype}): an intensity; give "
-                             "--scale linear or --scale db")
+            raise ValueError(
+                f"{name}: --scale complex, but the data are real ({data.dtype}): an intensity; give "
+                "--scale linear or --scale db"
+            )
         return data
     if data.dtype.kind == "c":
-        raise ValueError(f"{name}: --scale {scale}, but the data are complex ({data.dtype}): the field; give "
-                         "--scale complex (or drop --scale)")
+        raise ValueError(
+            f"{name}: --scale {scale}, but the data are complex ({data.dtype}): the field; give "
+            "--scale complex (or drop --scale)"
+        )
     if scale == "linear":
         return data
     dtype = np.dtype(np.float64 if data.dtype == np.float64 else np.float32)
@@ -226,13 +242,16 @@ def _apply_scale(data: Any, scale: str, name: str) -> Any:
         frame = np.asarray(data[k], dtype=dtype)
         top = float(np.max(frame, where=np.isfinite(frame), initial=-np.inf))
         if top > MAX_DB:
-            raise ValueError(f"{name}: --scale db, but frame {k} holds {top:.4g}, over {MAX_DB:g} dB (10^(dB/10) "
-                             "would overflow): these are not dB values; give --scale linear for a linear intensity")
+            raise ValueError(
+                f"{name}: --scale db, but frame {k} holds {top:.4g}, over {MAX_DB:g} dB (10^(dB/10) "
+                "would overflow): these are not dB values; give --scale linear for a linear intensity"
+            )
         if out is not None:
             np.power(10.0, frame / 10.0, out=out[k])
     if lazy:  # a streamed input stays streamed: converted slab by slab as the maps read it
-        return data.converted(lambda b: np.power(10.0, b.astype(dtype, copy=False) / 10.0).astype(dtype, copy=False),
-                              dtype)
+        return data.converted(
+            lambda b: np.power(10.0, b.astype(dtype, copy=False) / 10.0).astype(dtype, copy=False), dtype
+        )
     return out
 
 
@@ -250,18 +269,26 @@ def _parse_pitch(pitch: Any) -> dict[str, float]:
     return {str(k).lower(): v for k, v in pitch.items()}
 
 
-def _check_meta_before_reading(meta: Mapping[str, Any], stored_shape: _Seq[int], stored: str,
-                               block_raster: BlockRaster | None, frame_times_s: _Seq[float] | None,
-                               frame_interval_s: float | None, name: str) -> None:
+def _check_meta_before_reading(
+    meta: Mapping[str, Any],
+    stored_shape: _Seq[int],
+    stored: str,
+    block_raster: BlockRaster | None,
+    frame_times_s: _Seq[float] | None,
+    frame_interval_s: float | None,
+    name: str,
+) -> None:
     """:func:`validate_meta` on the shape the file declares, before a sample is read: a frame count, pitch or
     block raster that does not fit the array is refused at once, not after reading gigabytes."""
     shape = [stored_shape[stored.index(c)] for c in ("TZX" if len(stored) == 3 else "TYZX")]
     trial = dict(meta, axes="TZX" if len(stored) == 3 else "TYZX")
     if block_raster is not None and len(stored) == 3:
         if shape[0] != block_raster.n_bscans:
-            raise ValueError(f"{name}: block raster {block_raster.n_blocks}:{block_raster.n_repeats}:"
-                             f"{block_raster.bscans_per_block} needs [{block_raster.n_bscans}, Z, X] B-scans in "
-                             f"acquisition order; the data hold {shape[0]}; check --block-raster and --axes")
+            raise ValueError(
+                f"{name}: block raster {block_raster.n_blocks}:{block_raster.n_repeats}:"
+                f"{block_raster.bscans_per_block} needs [{block_raster.n_bscans}, Z, X] B-scans in "
+                f"acquisition order; the data hold {shape[0]}; check --block-raster and --axes"
+            )
         shape = [block_raster.n_repeats, block_raster.n_y, shape[1], shape[2]]
         trial["axes"] = "TYZX"
     if block_raster is not None:
@@ -274,11 +301,20 @@ def _check_meta_before_reading(meta: Mapping[str, Any], stored_shape: _Seq[int],
     validate_meta(trial, shape, where=name)
 
 
-def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um: Mapping[str, float] | str | None = None,
-                  frame_times_s: _Seq[float] | None = None, frame_interval_s: float | None = None,
-                  system: Mapping[str, Any] | None = None, dataset: str | None = None,
-                  block_raster: BlockRaster | None = None, allow_external_hdf5: bool = False,
-                  scale: str | None = None, stream: bool = False) -> SequenceData:
+def read_sequence(
+    path: str | os.PathLike,
+    *,
+    axes: str | None = None,
+    pitch_um: Mapping[str, float] | str | None = None,
+    frame_times_s: _Seq[float] | None = None,
+    frame_interval_s: float | None = None,
+    system: Mapping[str, Any] | None = None,
+    dataset: str | None = None,
+    block_raster: BlockRaster | None = None,
+    allow_external_hdf5: bool = False,
+    scale: str | None = None,
+    stream: bool = False,
+) -> SequenceData:
     """Read a sequence file (see the module docstring) into a :class:`SequenceData` in canonical order.
 
     Metadata come from the file (h5 attribute, TIFF JSON description) or its JSON sidecar; the
@@ -310,9 +346,11 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     if not (fmt is not None and getattr(fmt, "DIRECTORY", False) and p.is_dir()):
         check_regular_file(p, "sequence file")  # a FIFO, device or folder: at once, whatever its name
     if fmt is None and p.suffix.lower() == ".oct":
-        raise ValueError(f"{p.name}: Thorlabs .oct files are not read (their layout has no public specification, "
-                         "docs/formats.md); export the data from ThorImageOCT to OME-TIFF, MATLAB or a raw binary "
-                         "with a JSON sidecar and read that")
+        raise ValueError(
+            f"{p.name}: Thorlabs .oct files are not read (their layout has no public specification, "
+            "docs/formats.md); export the data from ThorImageOCT to OME-TIFF, MATLAB or a raw binary "
+            "with a JSON sidecar and read that"
+        )
     if fmt is None:
         raise ValueError(f"{p.name}: unknown sequence format; use {', '.join(SEQUENCE_SUFFIXES)}")
     suffix = p.suffix.lower()
@@ -330,8 +368,9 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
     except PermissionError:  # the system refuses: exit 1 at the command line, as for an unreadable sidecar
         raise
     except (EOFError, OSError, zipfile.BadZipFile, KeyError) as err:
-        raise ValueError(f"{p.name}: not a readable {suffix} file (truncated or corrupt: "
-                         f"{type(err).__name__}: {err})") from None
+        raise ValueError(
+            f"{p.name}: not a readable {suffix} file (truncated or corrupt: {type(err).__name__}: {err})"
+        ) from None
     if dataset is not None and not fmt.DATASET:
         raise ValueError(f"{p.name}: dataset= applies to .h5 and .mat files only")
     data, labels, params, file_meta = loaded.data, loaded.labels, loaded.label_params, loaded.meta
@@ -347,9 +386,11 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
         try:
             side_text = read_capped(side, f"the metadata sidecar of {p.name}").decode("utf-8")
         except UnicodeDecodeError as err:
-            raise ValueError(f"{side.name}: the metadata sidecar of {p.name} is not UTF-8 text (byte {err.start}); "
-                             "it must be the JSON metadata file (fix it, or remove it and give the metadata as "
-                             "options)") from None
+            raise ValueError(
+                f"{side.name}: the metadata sidecar of {p.name} is not UTF-8 text (byte {err.start}); "
+                "it must be the JSON metadata file (fix it, or remove it and give the metadata as "
+                "options)"
+            ) from None
         meta.update(parse_json_object(side_text, side.name))
         meta.update(file_meta or {})  # a format whose sidecar only fills in: the file's own values win
     if loaded.default_axes is not None and axes is None and "axes" not in meta:
@@ -369,18 +410,22 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
         meta["system"] = merged
 
     if (data.dtype.kind == "c" and data.dtype.itemsize > 16) or (data.dtype.kind == "f" and data.dtype.itemsize > 8):
-        raise TypeError(f"{p.name}: data dtype {data.dtype} (extended precision) is not supported; convert it to "
-                        f"{'complex128' if data.dtype.kind == 'c' else 'float64'} (e.g. a.astype(np."
-                        f"{'complex128' if data.dtype.kind == 'c' else 'float64'})) and save again")
+        raise TypeError(
+            f"{p.name}: data dtype {data.dtype} (extended precision) is not supported; convert it to "
+            f"{'complex128' if data.dtype.kind == 'c' else 'float64'} (e.g. a.astype(np."
+            f"{'complex128' if data.dtype.kind == 'c' else 'float64'})) and save again"
+        )
     if data.dtype.kind not in "cf":
         if data.dtype.kind in "iu" and loaded.integer_intensity:
             data = data.astype(np.float32)
         else:
-            raise TypeError(f"{p.name}: data dtype {data.dtype} is neither complex (complex OCT) nor float "
-                            "(linear intensity)")
+            raise TypeError(
+                f"{p.name}: data dtype {data.dtype} is neither complex (complex OCT) nor float (linear intensity)"
+            )
     if data.ndim not in (3, 4):
-        raise ValueError(f"{p.name}: data have shape {list(data.shape)}; expected 3 ([T, Z, X]) or 4 ([T, Y, Z, X]) "
-                         "dimensions")
+        raise ValueError(
+            f"{p.name}: data have shape {list(data.shape)}; expected 3 ([T, Z, X]) or 4 ([T, Y, Z, X]) dimensions"
+        )
     if 0 in data.shape:
         raise ValueError(f"{p.name}: data have an empty axis (shape {list(data.shape)}); nothing to read")
     if scale is not None and scale not in SCALES:
@@ -403,8 +448,10 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
             data = block_raster.unpack(data)
             meta["axes"] = "TYZX"
         elif data.shape[1] != block_raster.n_y or data.shape[0] != block_raster.n_repeats:
-            raise ValueError(f"{p.name}: block raster {block_raster.n_blocks}:{block_raster.n_repeats}:"
-                             f"{block_raster.bscans_per_block} does not match [T, Y, Z, X] = {list(data.shape)}")
+            raise ValueError(
+                f"{p.name}: block raster {block_raster.n_blocks}:{block_raster.n_repeats}:"
+                f"{block_raster.bscans_per_block} does not match [T, Y, Z, X] = {list(data.shape)}"
+            )
         meta["block_raster"] = block_raster.to_dict()
     if frame_times_s is not None:
         meta["frame_times_s"] = list(frame_times_s)
@@ -412,5 +459,6 @@ def read_sequence(path: str | os.PathLike, *, axes: str | None = None, pitch_um:
         dt = finite_positive("frame_interval_s (s)", frame_interval_s)
         meta["frame_times_s"] = [i * dt for i in range(data.shape[0])]
     clean = validate_meta(meta, data.shape, where=p.name)
-    return SequenceData(data=data, meta=clean, labels=labels, label_params=params, source=p.name,
-                        nonfinite_samples=n_nonfinite)
+    return SequenceData(
+        data=data, meta=clean, labels=labels, label_params=params, source=p.name, nonfinite_samples=n_nonfinite
+    )

@@ -35,9 +35,15 @@ def _cmap_rgb(frac: np.ndarray) -> np.ndarray:
     return np.asarray(matplotlib.colormaps[CONTINUOUS_CMAP](frac))[..., :3]
 
 
-def pseudo_color(value: np.ndarray, intensity_db: np.ndarray | None, *, value_range: tuple[float, float],
-                 db_range: tuple[float, float] | None = None,
-                 hue_range: tuple[float, float] = DEFAULT_HUE_RANGE, flagged: np.ndarray | None = None) -> np.ndarray:
+def pseudo_color(
+    value: np.ndarray,
+    intensity_db: np.ndarray | None,
+    *,
+    value_range: tuple[float, float],
+    db_range: tuple[float, float] | None = None,
+    hue_range: tuple[float, float] = DEFAULT_HUE_RANGE,
+    flagged: np.ndarray | None = None,
+) -> np.ndarray:
     """RGB uint8 ``[H, W, 3]``: colour = ``value`` over ``value_range``, brightness = dB intensity.
 
     The composition DOCT images use, on a perceptual colour map that colour-blind readers can use
@@ -91,8 +97,15 @@ def percentile_range(values: list[np.ndarray], lo_pct: float, hi_pct: float) -> 
     return float(lo), float(hi)
 
 
-_TITLES = {"liv": "LIV", "ocds": "OCDS", "mean_db": "mean intensity", "aliv": "aLIV", "swiftness": "Swiftness",
-           FIT_FLAG: "aLIV fit on a τ bound", "valid_weight": "share of the window on finite samples"}
+_TITLES = {
+    "liv": "LIV",
+    "ocds": "OCDS",
+    "mean_db": "mean intensity",
+    "aliv": "aLIV",
+    "swiftness": "Swiftness",
+    FIT_FLAG: "aLIV fit on a τ bound",
+    "valid_weight": "share of the window on finite samples",
+}
 
 
 def _optics_text(info: Mapping[str, Any]) -> str:
@@ -102,9 +115,15 @@ def _optics_text(info: Mapping[str, Any]) -> str:
     return f"lateral {float(lat):g} µm, axial {float(ax):g} µm" + (f", {float(wl) * 1000:g} nm" if wl else "")
 
 
-def map_figure(maps: Maps, channel: str, *, value_range: tuple[float, float] | None = None,
-               db_range: tuple[float, float] | None = None, hue_range: tuple[float, float] = DEFAULT_HUE_RANGE,
-               y_index: int | None = None) -> Any:
+def map_figure(
+    maps: Maps,
+    channel: str,
+    *,
+    value_range: tuple[float, float] | None = None,
+    db_range: tuple[float, float] | None = None,
+    hue_range: tuple[float, float] = DEFAULT_HUE_RANGE,
+    y_index: int | None = None,
+) -> Any:
     """A quantitative figure of one channel: the image on µm axes (:mod:`torchdoct.figures`), a colour
     bar with the unit and the value range, the channel name and its resolution in the title.
 
@@ -144,7 +163,8 @@ def map_figure(maps: Maps, channel: str, *, value_range: tuple[float, float] | N
     name = _TITLES.get(metric, metric)
     h, w = v.shape
     aspect = (w * float((maps.meta.get("pitch_um") or {}).get("x", 1.0) or 1.0)) / max(
-        h * float((maps.meta.get("pitch_um") or {}).get("z", 1.0) or 1.0), 1e-9)
+        h * float((maps.meta.get("pitch_um") or {}).get("z", 1.0) or 1.0), 1e-9
+    )
     fig_w = min(max(4.5 * aspect, 3.5), 11.0) + 2.6
     fig, ax = plt.subplots(figsize=(fig_w, 5.0))
     handles = []
@@ -157,8 +177,9 @@ def map_figure(maps: Maps, channel: str, *, value_range: tuple[float, float] | N
         if n_nan:
             handles.append(Patch(color="#6f9fcf", label=f"no intensity ({n_nan} px)"))
     else:
-        db_name = next((c["name"] for c in maps.meta["channels"] if c["metric"] == "mean_db"
-                        and c["resolution"] == res), None)
+        db_name = next(
+            (c["name"] for c in maps.meta["channels"] if c["metric"] == "mean_db" and c["resolution"] == res), None
+        )
         db = plane(db_name) if db_name else None
         dr = db_range or (percentile_range([db], 5.0, 99.9) if db is not None else None)
         flag_name = f"{FIT_FLAG}@{res}"
@@ -166,14 +187,16 @@ def map_figure(maps: Maps, channel: str, *, value_range: tuple[float, float] | N
         if metric in ("aliv", "swiftness") and flag_name in maps.channels:
             with np.errstate(invalid="ignore"):
                 flagged = plane(flag_name) > 0
-        rgb = pseudo_color(v, db, value_range=vr, db_range=dr if db is not None else None, hue_range=hue_range,
-                           flagged=flagged)
+        rgb = pseudo_color(
+            v, db, value_range=vr, db_range=dr if db is not None else None, hue_range=hue_range, flagged=flagged
+        )
         show_bscan(ax, rgb, pitch_um=maps.meta.get("pitch_um"))
         cmap = ListedColormap(_cmap_rgb(np.linspace(hue_range[0], hue_range[1], 256)))
         sm = ScalarMappable(norm=Normalize(*vr), cmap=cmap)
         if n_nan:
-            handles.append(Patch(color="0.6", label=f"undefined, no dB value: grey, black without intensity "
-                                                    f"({n_nan} px)"))
+            handles.append(
+                Patch(color="0.6", label=f"undefined, no dB value: grey, black without intensity ({n_nan} px)")
+            )
         if flagged is not None and flagged.any():
             handles.append(Patch(color=np.array(FLAG_RGB) / 255.0, label=f"fit on a τ bound ({int(flagged.sum())} px)"))
         if db is not None:

@@ -37,14 +37,26 @@ FIT_FLAG = "aliv_fit"
 #: Channel written where the input has non-finite samples: the share of the reduction window's weight that
 #: fell on finite samples (1 everywhere else; at the original resolution 1 or 0), :mod:`torchdoct.measured.maps`.
 VALID_WEIGHT = "valid_weight"
-UNITS = {"liv": "dB^2", "ocds": "1/s", "mean_db": "dB", "aliv": "dB^2", "swiftness": "1/s", FIT_FLAG: "code",
-         VALID_WEIGHT: "fraction"}
+UNITS = {
+    "liv": "dB^2",
+    "ocds": "1/s",
+    "mean_db": "dB",
+    "aliv": "dB^2",
+    "swiftness": "1/s",
+    FIT_FLAG: "code",
+    VALID_WEIGHT: "fraction",
+}
 DEFAULT_OCDS_DELAY_RANGE_S = (0.2048, 1.2288)
 
 
-def ocds_map(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
-             delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S, scale: str = "db",
-             estimator: str = "pearson") -> torch.Tensor:
+def ocds_map(
+    intensity: torch.Tensor,
+    frame_times_s: _Seq[float],
+    *,
+    delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S,
+    scale: str = "db",
+    estimator: str = "pearson",
+) -> torch.Tensor:
     """OCDS (1/s) of intensities ``[..., T]``: :func:`torchdoct.sim.metrics.ocds` itself (the one OCDS of
     the simulator and the maps), with the maps' default delay range."""
     return _metrics.ocds(intensity, frame_times_s, delay_range_s=delay_range_s, scale=scale, estimator=estimator)
@@ -61,8 +73,9 @@ def _windows(frame_times_s: _Seq[float], max_window_s: float | None) -> list[tup
     return out
 
 
-def liv_curve(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
-              max_window_s: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def liv_curve(
+    intensity: torch.Tensor, frame_times_s: _Seq[float], *, max_window_s: float | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """LIV curve (physics.md §3 step 1): ``(windows_s [W], curve [..., W])`` in dB², float64.
 
     ``curve[..., w]`` is the mean over start positions of the ddof-0 variance of ``10·log10 I`` over
@@ -80,8 +93,8 @@ def liv_curve(intensity: torch.Tensor, frame_times_s: _Seq[float], *,
     for _, pairs in wins:
         if uniform:  # runs i … i+m for every start i: contiguous slices of the cumulative sums
             m = pairs[0][1] - pairs[0][0]
-            d1 = (c1[..., m + 1:] - c1[..., : n - m]) / (m + 1)
-            d2 = (c2[..., m + 1:] - c2[..., : n - m]) / (m + 1)
+            d1 = (c1[..., m + 1 :] - c1[..., : n - m]) / (m + 1)
+            d2 = (c2[..., m + 1 :] - c2[..., : n - m]) / (m + 1)
         else:
             i = torch.tensor([p[0] for p in pairs], device=s.device)
             j = torch.tensor([p[1] + 1 for p in pairs], device=s.device)
@@ -126,8 +139,14 @@ def box_smooth_zx(curves: torch.Tensor, defined: torch.Tensor | None = None) -> 
     return out.permute(0, 2, 3, 1).reshape(*lead, z, x, w)
 
 
-def fit_saturation(windows_s: torch.Tensor, curve: torch.Tensor, *, tau_bounds_s: tuple[float, float] | None = None,
-                   grid: int = 64, iterations: int = 24) -> tuple[torch.Tensor, torch.Tensor]:
+def fit_saturation(
+    windows_s: torch.Tensor,
+    curve: torch.Tensor,
+    *,
+    tau_bounds_s: tuple[float, float] | None = None,
+    grid: int = 64,
+    iterations: int = 24,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Least-squares fit of ``a·(1 − exp(−T_w/τ))`` to every curve ``[..., W]``; returns ``(a, τ)``.
 
     Vectorized over pixels (no per-pixel loop), float64. For fixed τ the best ``a ≥ 0`` is closed-form,
@@ -172,8 +191,12 @@ def fit_saturation(windows_s: torch.Tensor, curve: torch.Tensor, *, tau_bounds_s
         ua = torch.where(left, ua, uc)
         new_u = torch.where(left, ub - r * (ub - ua), ua + r * (ub - ua))
         qn = profile(new_u)
-        uc, ud, qc, qd = (torch.where(left, new_u, ud), torch.where(left, uc, new_u),
-                          torch.where(left, qn, qd), torch.where(left, qc, qn))
+        uc, ud, qc, qd = (
+            torch.where(left, new_u, ud),
+            torch.where(left, uc, new_u),
+            torch.where(left, qn, qd),
+            torch.where(left, qc, qn),
+        )
     u_best = torch.where(qc >= qd, uc, ud)
     tau = torch.exp(u_best)
     f = -torch.expm1(-t[None, :] / tau[:, None])
@@ -189,8 +212,9 @@ def _default_tau_bounds(windows_s: torch.Tensor) -> tuple[float, float]:
 TAU_BOUND_LOG_TOL = 1e-3
 
 
-def tau_bound_code(tau: torch.Tensor, windows_s: torch.Tensor,
-                   tau_bounds_s: tuple[float, float] | None = None) -> torch.Tensor:
+def tau_bound_code(
+    tau: torch.Tensor, windows_s: torch.Tensor, tau_bounds_s: tuple[float, float] | None = None
+) -> torch.Tensor:
     """Where a :func:`fit_saturation` fit ended on a τ bound: 0 inside, 1 at the lower bound (the
     curve is flat over the windows: it saturated before the shortest one), 2 at the upper bound (the
     curve is still rising linearly at the longest window); ``|ln τ − ln bound| <`` :data:`TAU_BOUND_LOG_TOL`.
@@ -202,10 +226,18 @@ def tau_bound_code(tau: torch.Tensor, windows_s: torch.Tensor,
     return torch.where(math.log(hi) - u < TAU_BOUND_LOG_TOL, torch.full_like(u, 2.0), code)
 
 
-def pixel_metrics(intensity: torch.Tensor, frame_times_s: list[float], wanted: list[str], *,
-                   ocds_delay_range_s: tuple[float, float], ocds_scale: str, ocds_estimator: str,
-                   aliv_smoothing: bool, aliv_max_window_s: float | None,
-                   chunk_pixels: int) -> dict[str, torch.Tensor]:
+def pixel_metrics(
+    intensity: torch.Tensor,
+    frame_times_s: list[float],
+    wanted: list[str],
+    *,
+    ocds_delay_range_s: tuple[float, float],
+    ocds_scale: str,
+    ocds_estimator: str,
+    aliv_smoothing: bool,
+    aliv_max_window_s: float | None,
+    chunk_pixels: int,
+) -> dict[str, torch.Tensor]:
     """Metrics of ``intensity [T, *spatial]`` → ``{name: [*spatial]}`` (the definitions: module docstring of
     :mod:`torchdoct.measured.maps`); ``chunk_pixels`` pixels at a time (memory only)."""
     spatial = intensity.shape[1:]
@@ -217,20 +249,26 @@ def pixel_metrics(intensity: torch.Tensor, frame_times_s: list[float], wanted: l
     if "aliv" in wanted or "swiftness" in wanted:
         curves = []
     for p0 in range(0, n_pix, chunk_pixels):
-        x = it[p0:p0 + chunk_pixels]
+        x = it[p0 : p0 + chunk_pixels]
         zero = ~(x > 0).all(-1)  # I = 0 or NaN at some frame: no dB value
         safe = torch.where(zero[:, None], torch.ones_like(x), x) if bool(zero.any()) else x
         if "liv" in out:
-            out["liv"][p0:p0 + len(x)] = torch.where(zero, nan, _metrics.liv(safe))
+            out["liv"][p0 : p0 + len(x)] = torch.where(zero, nan, _metrics.liv(safe))
         if "ocds" in out:
-            v = ocds_map(safe if ocds_scale == "db" else x, frame_times_s, delay_range_s=ocds_delay_range_s,
-                         scale=ocds_scale, estimator=ocds_estimator)
+            v = ocds_map(
+                safe if ocds_scale == "db" else x,
+                frame_times_s,
+                delay_range_s=ocds_delay_range_s,
+                scale=ocds_scale,
+                estimator=ocds_estimator,
+            )
             bad = zero if ocds_scale == "db" else ~torch.isfinite(x).all(-1)
-            out["ocds"][p0:p0 + len(x)] = torch.where(bad, nan, v)
+            out["ocds"][p0 : p0 + len(x)] = torch.where(bad, nan, v)
         if "mean_db" in out:
             m = x.mean(-1)
-            out["mean_db"][p0:p0 + len(x)] = torch.where(m > 0, _metrics.to_db(torch.where(m > 0, m, torch.ones_like(m))),
-                                                          torch.full_like(m, nan))
+            out["mean_db"][p0 : p0 + len(x)] = torch.where(
+                m > 0, _metrics.to_db(torch.where(m > 0, m, torch.ones_like(m))), torch.full_like(m, nan)
+            )
         if curves is not None:
             windows, c = liv_curve(safe, frame_times_s, max_window_s=aliv_max_window_s)
             curves.append(c)
@@ -245,9 +283,9 @@ def pixel_metrics(intensity: torch.Tensor, frame_times_s: list[float], wanted: l
         tau_out = torch.empty(n_pix, dtype=torch.float64, device=c.device)
         step = max(1, chunk_pixels // 4)
         for p0 in range(0, n_pix, step):
-            a, tau = fit_saturation(windows, c[p0:p0 + step])
-            a_out[p0:p0 + step] = a
-            tau_out[p0:p0 + step] = tau
+            a, tau = fit_saturation(windows, c[p0 : p0 + step])
+            a_out[p0 : p0 + step] = a
+            tau_out[p0 : p0 + step] = tau
         a_out = torch.where(zero_all, nan, a_out)
         swift = torch.where(zero_all | (a_out == 0), nan, 1.0 / tau_out)
         code = torch.where(a_out == 0, 0.0, tau_bound_code(tau_out, windows))  # a = 0: no τ to flag

@@ -186,9 +186,11 @@ __all__ = [
 
 #: The leakage floor of a resolution reduction is ``(EMPTY_FLOOR_EPS_FACTOR·ε)²·max I`` (ε of the data type).
 EMPTY_FLOOR_EPS_FACTOR = 64
-EMPTY_RULE = ("a pixel has no dB value where I = 0 or NaN at some frame; after a resolution reduction I <= "
-              "(64·eps)²·max I (eps of the data type, max I over the input; -102 dB for complex64, -277 dB for "
-              "complex128) counts as I = 0: FFT round-off of the reduction, not signal")
+EMPTY_RULE = (
+    "a pixel has no dB value where I = 0 or NaN at some frame; after a resolution reduction I <= "
+    "(64·eps)²·max I (eps of the data type, max I over the input; -102 dB for complex64, -277 dB for "
+    "complex128) counts as I = 0: FFT round-off of the reduction, not signal"
+)
 
 
 #: Decades the largest intensity of the data must keep above the smallest normal number of its data type:
@@ -209,22 +211,28 @@ def _peak_intensity(data: np.ndarray, src: str) -> float:
         overflow = ~np.isfinite(v) & np.isfinite(f)  # |E|² beyond the data type of finite samples
         if overflow.any():
             top = float(np.max(np.abs(f[overflow])))
-            raise ValueError(f"{src}: |E|² overflows {v.dtype} (|E| up to {top:.3g}, the largest {v.dtype} |E|² is "
-                             f"{float(np.finfo(v.dtype).max):.3g}); scale the field down (e.g. divide it by "
-                             f"{10 ** math.ceil(math.log10(top) - 15):.0e}) or store it as complex128")
+            raise ValueError(
+                f"{src}: |E|² overflows {v.dtype} (|E| up to {top:.3g}, the largest {v.dtype} |E|² is "
+                f"{float(np.finfo(v.dtype).max):.3g}); scale the field down (e.g. divide it by "
+                f"{10 ** math.ceil(math.log10(top) - 15):.0e}) or store it as complex128"
+            )
         peak = max(peak, float(np.max(v, where=np.isfinite(v), initial=0.0)))
         top = max(top, float(np.max(np.abs(f), where=np.isfinite(f), initial=0.0)))
     dtype = np.dtype(np.float64 if data.dtype in (np.complex128, np.float64) else np.float32)
     if top > 0 and not peak >= float(np.finfo(dtype).tiny) * INTENSITY_MARGIN:
         sq = "|E|²" if np.iscomplexobj(data) else "the intensity"
-        raise ValueError(f"{src}: {sq} underflows {dtype} (the largest sample is {top:.3g}; {dtype} holds intensities "
-                         f"down to {float(np.finfo(dtype).tiny):.3g}, and speckle falls decades below its peak): no "
-                         f"pixel would have a dB value; LIV and OCDS do not depend on the scale: scale the data up (e.g. "
-                         f"multiply it by {10 ** -math.floor(math.log10(top)):.0e}) or store it as "
-                         f"{'complex128' if np.iscomplexobj(data) else 'float64'}")
+        raise ValueError(
+            f"{src}: {sq} underflows {dtype} (the largest sample is {top:.3g}; {dtype} holds intensities "
+            f"down to {float(np.finfo(dtype).tiny):.3g}, and speckle falls decades below its peak): no "
+            f"pixel would have a dB value; LIV and OCDS do not depend on the scale: scale the data up (e.g. "
+            f"multiply it by {10 ** -math.floor(math.log10(top)):.0e}) or store it as "
+            f"{'complex128' if np.iscomplexobj(data) else 'float64'}"
+        )
     if not peak > 0:
-        raise ValueError(f"{src}: holds no finite nonzero sample (every value is NaN, infinite or 0), so no pixel "
-                         "has a dB value; check the file (and --dataset / --axes)")
+        raise ValueError(
+            f"{src}: holds no finite nonzero sample (every value is NaN, infinite or 0), so no pixel "
+            "has a dB value; check the file (and --dataset / --axes)"
+        )
     return peak
 
 
@@ -287,21 +295,31 @@ def _check_aliv_windows(times: _Seq[float], max_window_s: float | None, src: str
         spans = [d for d in spans if d <= max_window_s + tol]
     if len(spans) < MIN_ALIV_WINDOWS:
         limit = "" if max_window_s is None else f" up to --aliv-max-window-s {max_window_s:g} s"
-        raise ValueError(f"{src}: aLIV and Swiftness fit a·(1 − exp(−T/τ)) to the LIV curve, two parameters, so they "
-                         f"need at least {MIN_ALIV_WINDOWS} time windows; the {len(times)} frames give {len(spans)}"
-                         f"{limit}; record more frames{', raise --aliv-max-window-s' if limit else ''}, or leave aliv "
-                         "and swiftness out of --metrics")
+        raise ValueError(
+            f"{src}: aLIV and Swiftness fit a·(1 − exp(−T/τ)) to the LIV curve, two parameters, so they "
+            f"need at least {MIN_ALIV_WINDOWS} time windows; the {len(times)} frames give {len(spans)}"
+            f"{limit}; record more frames{', raise --aliv-max-window-s' if limit else ''}, or leave aliv "
+            "and swiftness out of --metrics"
+        )
 
 
-def check_maps_request(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget] = ("original",), *,
-                       metrics: Iterable[str] = ("liv", "ocds", "mean_db"),
-                       signature: bool | _Seq[str] | None = None,
-                       ocds_delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S,
-                       ocds_scale: str = "db", ocds_estimator: str = "pearson", edge_mode: str = "reflect",
-                       normalization: str = "power", slab_elements: int = 1 << 23,
-                       speckle: bool | _Seq[str] | None = None, speckle_window: int = SPECKLE_WINDOW,
-                       doppler: bool | _Seq[int] | None = None,
-                       aliv_max_window_s: float | None = None) -> MapsRequest:
+def check_maps_request(
+    seq: SequenceData,
+    resolutions: Iterable[str | ResolutionTarget] = ("original",),
+    *,
+    metrics: Iterable[str] = ("liv", "ocds", "mean_db"),
+    signature: bool | _Seq[str] | None = None,
+    ocds_delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S,
+    ocds_scale: str = "db",
+    ocds_estimator: str = "pearson",
+    edge_mode: str = "reflect",
+    normalization: str = "power",
+    slab_elements: int = 1 << 23,
+    speckle: bool | _Seq[str] | None = None,
+    speckle_window: int = SPECKLE_WINDOW,
+    doppler: bool | _Seq[int] | None = None,
+    aliv_max_window_s: float | None = None,
+) -> MapsRequest:
     """Stage 1 of :func:`compute_maps`, before any work: the metric and feature names, the options, the
     resources (:func:`torchdoct.runtime.resources.check_maps`), the frames, the optics that each resolution target
     needs and the pixel grid that must hold it, intensity-only data against a resolution change, and the
@@ -328,12 +346,21 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
     targets = _as_targets(resolutions)
     src = seq.source or "sequence"
     from ..runtime.resources import check_maps  # the one resource check of every command, before any work
-    check_maps(src, seq.data.shape, seq.data.dtype.itemsize, complex_samples=seq.is_complex,
-               n_resolutions=len(targets), metrics=wanted + list(feats) + list(spk) + [doppler_name(m) for m in dop],
-               slab_elements=slab_elements)
+
+    check_maps(
+        src,
+        seq.data.shape,
+        seq.data.dtype.itemsize,
+        complex_samples=seq.is_complex,
+        n_resolutions=len(targets),
+        metrics=wanted + list(feats) + list(spk) + [doppler_name(m) for m in dop],
+        slab_elements=slab_elements,
+    )
     if seq.n_frames < 2:
-        raise ValueError(f"{src}: {seq.n_frames} frame along T; DOCT maps need at least 2 frames (LIV is a variance "
-                         "over frames); check the file or --axes")
+        raise ValueError(
+            f"{src}: {seq.n_frames} frame along T; DOCT maps need at least 2 frames (LIV is a variance "
+            "over frames); check the file or --axes"
+        )
     recorded = {k: v for k, v in dict(seq.meta.get("system") or {}).items() if v is not None}
     asked = [t for t in targets if t.lateral_resolution_um is not None or t.axial_resolution_um is not None]
     if asked and not seq.is_complex and not ("lateral_resolution_um" in recorded and "axial_resolution_um" in recorded):
@@ -346,17 +373,27 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
     known = "lateral_resolution_um" in system and "axial_resolution_um" in system
     lat0 = float(system["lateral_resolution_um"]) if known else None
     ax0 = float(system["axial_resolution_um"]) if known else None
-    req = MapsRequest(metrics=tuple(wanted), features=feats, targets=tuple(targets), system=system,
-                      signature_system=sig_system, lateral_um=lat0, axial_um=ax0, changes=(), source=src,
-                      speckle=spk, speckle_window=int(speckle_window) if spk else 0, doppler=dop)
+    req = MapsRequest(
+        metrics=tuple(wanted),
+        features=feats,
+        targets=tuple(targets),
+        system=system,
+        signature_system=sig_system,
+        lateral_um=lat0,
+        axial_um=ax0,
+        changes=(),
+        source=src,
+        speckle=spk,
+        speckle_window=int(speckle_window) if spk else 0,
+        doppler=dop,
+    )
     changes = tuple(t for t in targets if req.optics(t) != (lat0, ax0))
     for t in targets:  # validate every target before any work
         if t.lateral_resolution_um is not None:
             lateral_filter_sigma_um(lat0, t.lateral_resolution_um)
             if t in changes:  # the grid must hold the target PSF (two pixels at least)
                 check_target_sampled("lateral", lat0, t.lateral_resolution_um, seq.pitch_um, seq.axes)
-                check_target_in_view("lateral", lat0, t.lateral_resolution_um, seq.pitch_um, seq.axes,
-                                     seq.data.shape)
+                check_target_in_view("lateral", lat0, t.lateral_resolution_um, seq.pitch_um, seq.axes, seq.data.shape)
         if t.axial_resolution_um is not None:
             axial_filter_sigma_um(ax0, t.axial_resolution_um)
             if t in changes:
@@ -365,11 +402,14 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
     if changes and not seq.is_complex:
         raise _intensity_only(seq, changes)
     if spk and all(t in changes for t in targets):
-        raise ValueError(f"{src}: the speckle-motion channels are computed at the original resolution (the finest "
-                         "speckle: the most independent grains per window); add --resolution original")
+        raise ValueError(
+            f"{src}: the speckle-motion channels are computed at the original resolution (the finest "
+            "speckle: the most independent grains per window); add --resolution original"
+        )
     if dop and all(t in changes for t in targets):
-        raise ValueError(f"{src}: the Doppler channels are computed at the original resolution; add --resolution "
-                         "original")
+        raise ValueError(
+            f"{src}: the Doppler channels are computed at the original resolution; add --resolution original"
+        )
     times = seq.frame_times_s
     if "aliv" in wanted or "swiftness" in wanted:
         _check_aliv_windows(times, aliv_max_window_s, src)
@@ -379,21 +419,34 @@ def check_maps_request(seq: SequenceData, resolutions: Iterable[str | Resolution
             raise ValueError(f"ocds_delay_range_s must be 0 < lo < hi (s); got {ocds_delay_range_s!r}")
         from ..sim.config import check_ocds_pairs
 
-        check_ocds_pairs(times, (lo, hi), f"{seq.source or 'sequence'}: --ocds-delay-range-s",
-                         "narrow --ocds-delay-range-s, record more frames, or leave ocds out of --metrics")
+        check_ocds_pairs(
+            times,
+            (lo, hi),
+            f"{seq.source or 'sequence'}: --ocds-delay-range-s",
+            "narrow --ocds-delay-range-s, record more frames, or leave ocds out of --metrics",
+        )
         probe = torch.rand(1, len(times), generator=torch.Generator().manual_seed(0)) + 1.0
         ocds_map(probe, times, delay_range_s=(lo, hi), scale=ocds_scale, estimator=ocds_estimator)
     return dataclasses.replace(req, changes=changes)
 
 
 def _intensity_only(seq: SequenceData, changes: Iterable[ResolutionTarget]) -> ValueError:
-    return ValueError(f"{seq.source or 'sequence'} holds intensity only (dtype {seq.data.dtype}): a resolution "
-                      f"change ({', '.join(t.label for t in changes)}) needs the complex field; use "
-                      "--resolution original only")
+    return ValueError(
+        f"{seq.source or 'sequence'} holds intensity only (dtype {seq.data.dtype}): a resolution "
+        f"change ({', '.join(t.label for t in changes)}) needs the complex field; use "
+        "--resolution original only"
+    )
 
 
-def _bulk_phase_factor(seq: SequenceData, req: MapsRequest, bulk_phase: str | BulkPhase | None, *, slab_elements: int,
-                       device: torch.device, progress: bool) -> tuple[BulkPhase | None, np.ndarray | None]:
+def _bulk_phase_factor(
+    seq: SequenceData,
+    req: MapsRequest,
+    bulk_phase: str | BulkPhase | None,
+    *,
+    slab_elements: int,
+    device: torch.device,
+    progress: bool,
+) -> tuple[BulkPhase | None, np.ndarray | None]:
     """Stage 2 of :func:`compute_maps`: the bulk phase (estimated here for a method name) and the phasor
     that removes it, ``[T, (Y), 1, X]`` in the data's dtype, broadcast over depth (the multiplication of
     :func:`~torchdoct.measured.bulkphase.corrected_sequence`); ``(None, None)`` without ``bulk_phase``."""
@@ -404,13 +457,16 @@ def _bulk_phase_factor(seq: SequenceData, req: MapsRequest, bulk_phase: str | Bu
     if bulk_phase is None:
         return None, None
     if not seq.is_complex:
-        raise ValueError(f"{req.source} holds intensity only (dtype {seq.data.dtype}): bulk-phase correction needs the "
-                         "complex field; give the complex sequence, or drop --bulk-phase")
+        raise ValueError(
+            f"{req.source} holds intensity only (dtype {seq.data.dtype}): bulk-phase correction needs the "
+            "complex field; give the complex sequence, or drop --bulk-phase"
+        )
     return bulk_phase, _bulk_phasor(bulk_phase, seq)
 
 
-def _doppler_stage(seq: SequenceData, req: MapsRequest, bulk: np.ndarray | None, *, slab_elements: int,
-                   progress: bool) -> tuple[DopplerReference | None, dict[str, Any] | None]:
+def _doppler_stage(
+    seq: SequenceData, req: MapsRequest, bulk: np.ndarray | None, *, slab_elements: int, progress: bool
+) -> tuple[DopplerReference | None, dict[str, Any] | None]:
     """Stage 2b of :func:`compute_maps`: the static-tissue reference of the Doppler channels, over whole A-lines
     before the slab loop (:func:`~torchdoct.measured.doppler.estimate_doppler_reference`), and
     ``meta["doppler"]``; ``(None, None)`` when not asked, ``(None, why)`` for intensity-only input."""
@@ -441,16 +497,30 @@ def _axial_center(seq: SequenceData, req: MapsRequest, axial_center: str | float
 MIN_VALID_WEIGHT = 0.5
 
 
-def _normalized(red: torch.Tensor, bad: np.ndarray, seq: SequenceData, req: MapsRequest, t: ResolutionTarget,
-                axes: str, edge_mode: str) -> tuple[torch.Tensor, torch.Tensor]:
+def _normalized(
+    red: torch.Tensor,
+    bad: np.ndarray,
+    seq: SequenceData,
+    req: MapsRequest,
+    t: ResolutionTarget,
+    axes: str,
+    edge_mode: str,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Normalised convolution of a reduced slab whose pixels ``bad`` (``[(Y), Z, X]``, a non-finite sample at
     some frame) entered with weight 0 at every frame: the window's weight on the finite pixels,
     ``W = (g ∗ w) / (g ∗ 1)`` with ``g`` the reduction's envelope (unit sum, no carrier; the same padding), and
     the reduced field ``red / W`` where ``W >= MIN_VALID_WEIGHT`` (else left as it is: those pixels are NaN in
     the maps). A missing sample costs its neighbourhood a share of its window, not its value."""
-    kw = dict(pitch_um=seq.pitch_um, system=req.system, lateral_resolution_um=t.lateral_resolution_um,
-              axial_resolution_um=t.axial_resolution_um, axes=axes, axial_center=0.0, edge_mode=edge_mode,
-              normalization="sum")
+    kw = dict(
+        pitch_um=seq.pitch_um,
+        system=req.system,
+        lateral_resolution_um=t.lateral_resolution_um,
+        axial_resolution_um=t.axial_resolution_um,
+        axes=axes,
+        axial_center=0.0,
+        edge_mode=edge_mode,
+        normalization="sum",
+    )
     w = torch.from_numpy(~bad).to(red.device, torch.complex128).unsqueeze(0)
     weight = reduce_resolution(w, **kw).real[0] / reduce_resolution(torch.ones_like(w), **kw).real[0]
     use = weight >= MIN_VALID_WEIGHT
@@ -487,8 +557,9 @@ class _SlabPlan:
     reach: dict[str, int]
 
 
-def _slab_plans(seq: SequenceData, req: MapsRequest, *, bulk: bool, smoothing_margin: bool, edge_mode: str,
-                slab_elements: int) -> list[_SlabPlan]:
+def _slab_plans(
+    seq: SequenceData, req: MapsRequest, *, bulk: bool, smoothing_margin: bool, edge_mode: str, slab_elements: int
+) -> list[_SlabPlan]:
     """Stage 5 of :func:`compute_maps`: each resolution's cut, from what its stages need of the axes
     (:func:`~torchdoct.measured.slabs.slab_cut`): the bulk-phase correction (``bulk``), the reduction of a target that changes the
     resolution, the aLIV smoothing (``smoothing_margin``)."""
@@ -499,8 +570,9 @@ def _slab_plans(seq: SequenceData, req: MapsRequest, *, bulk: bool, smoothing_ma
         sig = axial_filter_sigma_um(req.axial_um, ax) / seq.pitch_um["z"] if ax != req.axial_um else 0.0
         field_needs = [CORRECTION_AXIS_NEEDS] if bulk else []
         if t in req.changes:
-            field_needs.append(reduction_axis_needs(axes, lateral=lat != req.lateral_um, axial_sigma_px=sig,
-                                                    edge_mode=edge_mode))
+            field_needs.append(
+                reduction_axis_needs(axes, lateral=lat != req.lateral_um, axial_sigma_px=sig, edge_mode=edge_mode)
+            )
         if req.speckle and t is speckle_target(req):  # the window and its offsets beyond each slab
             h = halo_pixels(req.speckle_window, SPECKLE_MAX_OFFSET)
             field_needs.append({"Z": h, "Y": h})
@@ -526,15 +598,32 @@ def _channel_records(req: MapsRequest, outputs: _Seq[str]) -> list[dict[str, Any
     for t in req.targets:
         lat, ax = req.optics(t)
         for m in outputs:
-            channels.append({"name": f"{m}@{t.label}", "metric": m, "unit": UNITS[m], "resolution": t.label,
-                             "wavelength_um": None if wl is None else float(wl), "lateral_resolution_um": lat,
-                             "axial_resolution_um": ax})
+            channels.append(
+                {
+                    "name": f"{m}@{t.label}",
+                    "metric": m,
+                    "unit": UNITS[m],
+                    "resolution": t.label,
+                    "wavelength_um": None if wl is None else float(wl),
+                    "lateral_resolution_um": lat,
+                    "axial_resolution_um": ax,
+                }
+            )
         if req.features:
             sig_system = req.signature_system
             s_lat, s_ax = t.resolved(sig_system)
-            sig_channels += [{"name": f"{f}@{t.label}", "metric": f, "unit": feature_unit(f), "resolution": t.label,
-                              "wavelength_um": float(sig_system["wavelength_um"]), "lateral_resolution_um": s_lat,
-                              "axial_resolution_um": s_ax} for f in req.features]
+            sig_channels += [
+                {
+                    "name": f"{f}@{t.label}",
+                    "metric": f,
+                    "unit": feature_unit(f),
+                    "resolution": t.label,
+                    "wavelength_um": float(sig_system["wavelength_um"]),
+                    "lateral_resolution_um": s_lat,
+                    "axial_resolution_um": s_ax,
+                }
+                for f in req.features
+            ]
     spk_channels = speckle_channel_records(req, wl) if req.speckle else []
     return channels + sig_channels + spk_channels
 
@@ -599,9 +688,16 @@ def _column_chunks(work: _SlabWork, plan: _SlabPlan, rows: int) -> list[slice | 
     data = work.seq.data
     per_row = int(np.prod(data.shape, dtype=np.int64)) // data.shape[plan.axis]
     n_x = data.shape[-1]
-    per_pixel = (plan.target not in work.req.changes and work.bulk is None and not work.req.features
-                 and not work.req.speckle and work.doppler is None and plan.halo == 0 and plan.margin == 0
-                 and work.smoothing_margin == 0)
+    per_pixel = (
+        plan.target not in work.req.changes
+        and work.bulk is None
+        and not work.req.features
+        and not work.req.speckle
+        and work.doppler is None
+        and plan.halo == 0
+        and plan.margin == 0
+        and work.smoothing_margin == 0
+    )
     if not work.slab_elements or not per_pixel or rows * per_row <= work.slab_elements:
         return [None]
     width = max(1, int(work.slab_elements) // max(rows * per_row // n_x, 1))
@@ -647,11 +743,17 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int, cols:
     del fin
     weight = None  # the share of the window's weight on finite samples, [(Y), Z, X] over a0:a1
     if changed:
-        red = reduce_resolution(block, pitch_um=seq.pitch_um, system=req.system,
-                                lateral_resolution_um=t.lateral_resolution_um,
-                                axial_resolution_um=t.axial_resolution_um, axes=axes,
-                                axial_center=work.axial_center, edge_mode=work.edge_mode,
-                                normalization=work.normalization)
+        red = reduce_resolution(
+            block,
+            pitch_um=seq.pitch_um,
+            system=req.system,
+            lateral_resolution_um=t.lateral_resolution_um,
+            axial_resolution_um=t.axial_resolution_um,
+            axes=axes,
+            axial_center=work.axial_center,
+            edge_mode=work.edge_mode,
+            normalization=work.normalization,
+        )
         if bad is not None:
             red, weight = _normalized(red, bad, seq, req, t, axes, work.edge_mode)
     else:
@@ -663,14 +765,17 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int, cols:
     m0, m1 = max(a0, c0 - mrg), min(a1, c1 + mrg)
     red = red.narrow(cdim, m0 - a0, m1 - m0)
     if red.is_complex():
-        inten = red.real ** 2 + red.imag ** 2
+        inten = red.real**2 + red.imag**2
     else:
         inten = red.to(torch.float64 if real_dtype == np.float64 else torch.float32)
     if changed:  # FFT round-off of the reduction is no signal: treated as I = 0 (module docstring)
         inten = torch.where(inten > work.floor, inten, torch.zeros_like(inten))
     wanted = list(req.metrics)
-    vals = pixel_metrics(inten, seq.frame_times_s, wanted, **work.metric_options,
-                         chunk_pixels=work.chunk_pixels) if wanted else {}
+    vals = (
+        pixel_metrics(inten, seq.frame_times_s, wanted, **work.metric_options, chunk_pixels=work.chunk_pixels)
+        if wanted
+        else {}
+    )
     del inten
     masks = {}
     if weight is not None:
@@ -716,16 +821,27 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int, cols:
             f = np.where(masks["pixel"] if ys is None else masks["pixel"][ys], np.nan, f)
         out[tuple(idx)] = f
     if req.speckle and t is speckle_target(req):  # the windows of the slab's own pixels, read with their halo
-        idx, f = speckle_slab(field, seq, req, cdim, a0, c0, c1, base=work.n_doct + len(req.targets) * len(feats),
-                              keep_y=work.keep_y, mask=masks.get("pixel"))
+        idx, f = speckle_slab(
+            field,
+            seq,
+            req,
+            cdim,
+            a0,
+            c0,
+            c1,
+            base=work.n_doct + len(req.targets) * len(feats),
+            keep_y=work.keep_y,
+            mask=masks.get("pixel"),
+        )
         out[tuple(idx)] = f
     if work.doppler is not None and work.doppler.lags and t is speckle_target(req):
         _doppler_channels(work, raw, sel, cdim, a0, c0, c1, masks.get("pixel"))
     del field
 
 
-def _doppler_channels(work: _SlabWork, raw: np.ndarray, sel: list[slice], cdim: int, a0: int, c0: int, c1: int,
-                      mask: np.ndarray | None) -> None:
+def _doppler_channels(
+    work: _SlabWork, raw: np.ndarray, sel: list[slice], cdim: int, a0: int, c0: int, c1: int, mask: np.ndarray | None
+) -> None:
     """The Doppler channels (the last ones) of the rows ``c0:c1`` from the slab ``raw`` as read (rows ``a0:``),
     bulk-corrected as the reference was (:func:`~torchdoct.measured.doppler.doppler_slab`): only the kept
     B-scans of a block raster, NaN where ``mask`` (the pixels non-finite samples reach) is set."""
@@ -750,8 +866,15 @@ def _doppler_channels(work: _SlabWork, raw: np.ndarray, sel: list[slice], cdim: 
     out[tuple(idx)] = f
 
 
-def _maps_result(work: _SlabWork, channels: list[dict[str, Any]], *, bulk_phase: BulkPhase | None, peak: float,
-                 axial_center: str | float, options: dict[str, Any]) -> Maps:
+def _maps_result(
+    work: _SlabWork,
+    channels: list[dict[str, Any]],
+    *,
+    bulk_phase: BulkPhase | None,
+    peak: float,
+    axial_center: str | float,
+    options: dict[str, Any],
+) -> Maps:
     """Stage 8 of :func:`compute_maps`: the metadata (channels, optics, the metric and reduction options, the
     empty rule, the bulk phase, the non-finite counts, the aLIV fit, the signature), the block raster's
     boundary B-scans dropped, and the :class:`Maps` in float32."""
@@ -769,39 +892,60 @@ def _maps_result(work: _SlabWork, channels: list[dict[str, Any]], *, bulk_phase:
         "ocds_scale": options["ocds_scale"],
         "ocds_estimator": options["ocds_estimator"],
         "source": seq.source,
-        "empty_rule": {"rule": EMPTY_RULE, "floor_relative_db": 10.0 * math.log10(work.floor / peak),
-                       "floor": work.floor, "max_intensity": peak},
-        "reduction": {"edge_mode": work.edge_mode, "normalization": work.normalization,
-                      "axial_center": axial_center if isinstance(axial_center, str) else float(axial_center),
-                      "axial_center_cycles_per_pixel": float(fc) if not isinstance(fc, str) else 0.0,
-                      "lateral_axes": "YX" if "Y" in axes else "X"},
+        "empty_rule": {
+            "rule": EMPTY_RULE,
+            "floor_relative_db": 10.0 * math.log10(work.floor / peak),
+            "floor": work.floor,
+            "max_intensity": peak,
+        },
+        "reduction": {
+            "edge_mode": work.edge_mode,
+            "normalization": work.normalization,
+            "axial_center": axial_center if isinstance(axial_center, str) else float(axial_center),
+            "axial_center_cycles_per_pixel": float(fc) if not isinstance(fc, str) else 0.0,
+            "lateral_axes": "YX" if "Y" in axes else "X",
+        },
     }
     if bulk_phase is not None:
         meta["bulk_phase"] = bulk_phase.meta()
     if work.n_nonfinite:
-        meta["nonfinite"] = {"samples": work.n_nonfinite,
-                             "masked_pixels": {t.label: work.nonfinite_pixels.get(t.label, 0) for t in req.targets},
-                             "rule": "pixels a non-finite sample reaches (its own; within 5 sigma of the reduction "
-                                     "window along each filtered axis) are NaN in every channel"}
+        meta["nonfinite"] = {
+            "samples": work.n_nonfinite,
+            "masked_pixels": {t.label: work.nonfinite_pixels.get(t.label, 0) for t in req.targets},
+            "rule": "pixels a non-finite sample reaches (its own; within 5 sigma of the reduction "
+            "window along each filtered axis) are NaN in every channel",
+        }
     if "aliv" in wanted or "swiftness" in wanted:
-        meta["aliv"] = {"smoothing": "box3x3" if options["aliv_smoothing"] else "none",
-                        "max_window_s": options["aliv_max_window_s"],
-                        "model": "a*(1-exp(-T/tau)); aliv=a, swiftness=1/tau"}
+        meta["aliv"] = {
+            "smoothing": "box3x3" if options["aliv_smoothing"] else "none",
+            "max_window_s": options["aliv_max_window_s"],
+            "model": "a*(1-exp(-T/tau)); aliv=a, swiftness=1/tau",
+        }
     raster = seq.block_raster
     if raster is not None:
         meta["block_raster"] = raster.to_dict()
         out = out[:, work.keep_y]
         meta["y_indices"] = [int(i) for i in np.flatnonzero(work.keep_y)]
     if FIT_FLAG in outputs:
-        meta["aliv"]["flag"] = (f"{FIT_FLAG} channel: 1 where the fit ended on the lower τ bound (curve flat over the "
-                                "windows), 2 on the upper bound (still rising at the longest window), 0 inside, NaN "
-                                "undefined; aLIV/Swiftness there are bounds of the model, not measurements")
+        meta["aliv"]["flag"] = (
+            f"{FIT_FLAG} channel: 1 where the fit ended on the lower τ bound (curve flat over the "
+            "windows), 2 on the upper bound (still rising at the longest window), 0 inside, NaN "
+            "undefined; aLIV/Swiftness there are bounds of the model, not measurements"
+        )
         meta["aliv"]["flagged_pixels"] = {
-            c["resolution"]: {"tau_at_lower_bound": int(np.sum(out[i] == 1)), "tau_at_upper_bound": int(np.sum(out[i] == 2))}
-            for i, c in enumerate(channels) if c["metric"] == FIT_FLAG}
+            c["resolution"]: {
+                "tau_at_lower_bound": int(np.sum(out[i] == 1)),
+                "tau_at_upper_bound": int(np.sum(out[i] == 2)),
+            }
+            for i, c in enumerate(channels)
+            if c["metric"] == FIT_FLAG
+        }
     if req.features:
-        meta["signature"] = {"features": list(req.features), "intensity_only": not seq.is_complex,
-                             "definition": "torchdoct.sim.signature (lags in frames)"}
+        meta["signature"] = {
+            "features": list(req.features),
+            "intensity_only": not seq.is_complex,
+            "definition": "torchdoct.sim.signature (lags in frames)",
+        }
     if req.speckle:
         meta["speckle"] = speckle_meta(req)
     if work.doppler_meta is not None:
@@ -810,17 +954,31 @@ def _maps_result(work: _SlabWork, channels: list[dict[str, Any]], *, bulk_phase:
 
 
 @one_torch_thread
-def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget] = ("original",), *,
-                 metrics: Iterable[str] = ("liv", "ocds", "mean_db"),
-                 ocds_delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S,
-                 ocds_scale: str = "db", ocds_estimator: str = "pearson",
-                 aliv_smoothing: bool = True, aliv_max_window_s: float | None = None,
-                 axial_center: str | float = "zero", edge_mode: str = "reflect", normalization: str = "power",
-                 drop_boundary: bool = True, device: str | torch.device | None = None,
-                 bulk_phase: str | BulkPhase | None = None, signature: bool | _Seq[str] | None = None,
-                 slab_elements: int = 1 << 23, chunk_pixels: int = 1 << 16, progress: bool = False,
-                 timings: dict[str, float] | None = None, speckle: bool | _Seq[str] | None = None,
-                 speckle_window: int = SPECKLE_WINDOW, doppler: bool | _Seq[int] | None = None) -> Maps:
+def compute_maps(
+    seq: SequenceData,
+    resolutions: Iterable[str | ResolutionTarget] = ("original",),
+    *,
+    metrics: Iterable[str] = ("liv", "ocds", "mean_db"),
+    ocds_delay_range_s: tuple[float, float] = DEFAULT_OCDS_DELAY_RANGE_S,
+    ocds_scale: str = "db",
+    ocds_estimator: str = "pearson",
+    aliv_smoothing: bool = True,
+    aliv_max_window_s: float | None = None,
+    axial_center: str | float = "zero",
+    edge_mode: str = "reflect",
+    normalization: str = "power",
+    drop_boundary: bool = True,
+    device: str | torch.device | None = None,
+    bulk_phase: str | BulkPhase | None = None,
+    signature: bool | _Seq[str] | None = None,
+    slab_elements: int = 1 << 23,
+    chunk_pixels: int = 1 << 16,
+    progress: bool = False,
+    timings: dict[str, float] | None = None,
+    speckle: bool | _Seq[str] | None = None,
+    speckle_window: int = SPECKLE_WINDOW,
+    doppler: bool | _Seq[int] | None = None,
+) -> Maps:
     """DOCT maps of ``seq`` at every resolution in ``resolutions`` (see the module docstring).
 
     ``metrics``: any of ``liv``, ``ocds``, ``mean_db``, ``aliv``, ``swiftness``. ``axial_center``,
@@ -854,14 +1012,26 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
     (each resolution's cut), :func:`_channel_records` (the channels' names and optics), :func:`_fill_maps`
     (the slab loop, :func:`_map_slab` per slab) and :func:`_maps_result` (metadata, block raster, float32).
     """
-    req = check_maps_request(seq, resolutions, metrics=metrics, signature=signature,
-                             ocds_delay_range_s=ocds_delay_range_s, ocds_scale=ocds_scale,
-                             ocds_estimator=ocds_estimator, edge_mode=edge_mode, normalization=normalization,
-                             slab_elements=slab_elements, speckle=speckle, speckle_window=speckle_window,
-                             doppler=doppler, aliv_max_window_s=aliv_max_window_s)
+    req = check_maps_request(
+        seq,
+        resolutions,
+        metrics=metrics,
+        signature=signature,
+        ocds_delay_range_s=ocds_delay_range_s,
+        ocds_scale=ocds_scale,
+        ocds_estimator=ocds_estimator,
+        edge_mode=edge_mode,
+        normalization=normalization,
+        slab_elements=slab_elements,
+        speckle=speckle,
+        speckle_window=speckle_window,
+        doppler=doppler,
+        aliv_max_window_s=aliv_max_window_s,
+    )
     dev = torch.device(device) if device is not None else torch.device("cpu")
-    bulk_phase, bulk = _bulk_phase_factor(seq, req, bulk_phase, slab_elements=slab_elements, device=dev,
-                                          progress=progress)
+    bulk_phase, bulk = _bulk_phase_factor(
+        seq, req, bulk_phase, slab_elements=slab_elements, device=dev, progress=progress
+    )
     dref, dmeta = _doppler_stage(seq, req, bulk, slab_elements=slab_elements, progress=progress)
     n_dop = len(dref.lags) if dref is not None else 0
     fc = _axial_center(seq, req, axial_center)
@@ -874,20 +1044,45 @@ def compute_maps(seq: SequenceData, resolutions: Iterable[str | ResolutionTarget
     keep_y = None  # the B-scans a block raster volume keeps (its others are dropped at the end)
     if raster is not None:
         keep_y = raster.keep_y() if drop_boundary else np.ones(raster.n_y, dtype=bool)
-    out = np.full((n_doct + len(req.targets) * len(req.features) + len(req.speckle) + n_dop, *seq.data.shape[1:]),
-                  np.nan, dtype=_real_dtype(seq))
-    plans = _slab_plans(seq, req, bulk=bulk is not None, smoothing_margin=bool(margin), edge_mode=edge_mode,
-                        slab_elements=slab_elements)
+    out = np.full(
+        (n_doct + len(req.targets) * len(req.features) + len(req.speckle) + n_dop, *seq.data.shape[1:]),
+        np.nan,
+        dtype=_real_dtype(seq),
+    )
+    plans = _slab_plans(
+        seq, req, bulk=bulk is not None, smoothing_margin=bool(margin), edge_mode=edge_mode, slab_elements=slab_elements
+    )
     channels = _channel_records(req, outputs)
     if n_dop:
         t_dop = speckle_target(req)
         channels += doppler_channel_records(dref, t_dop.label, req.optics(t_dop), req.system.get("wavelength_um"))
-    options = dict(ocds_delay_range_s=tuple(ocds_delay_range_s), ocds_scale=ocds_scale, ocds_estimator=ocds_estimator,
-                   aliv_smoothing=aliv_smoothing, aliv_max_window_s=aliv_max_window_s)
-    work = _SlabWork(seq=seq, req=req, out=out, outputs=outputs, n_doct=n_doct, keep_y=keep_y, bulk=bulk, device=dev,
-                     axial_center=fc, edge_mode=edge_mode, normalization=normalization, floor=floor,
-                     smoothing_margin=margin, metric_options=options, chunk_pixels=chunk_pixels, doppler=dref,
-                     doppler_meta=dmeta, slab_elements=slab_elements)
+    options = dict(
+        ocds_delay_range_s=tuple(ocds_delay_range_s),
+        ocds_scale=ocds_scale,
+        ocds_estimator=ocds_estimator,
+        aliv_smoothing=aliv_smoothing,
+        aliv_max_window_s=aliv_max_window_s,
+    )
+    work = _SlabWork(
+        seq=seq,
+        req=req,
+        out=out,
+        outputs=outputs,
+        n_doct=n_doct,
+        keep_y=keep_y,
+        bulk=bulk,
+        device=dev,
+        axial_center=fc,
+        edge_mode=edge_mode,
+        normalization=normalization,
+        floor=floor,
+        smoothing_margin=margin,
+        metric_options=options,
+        chunk_pixels=chunk_pixels,
+        doppler=dref,
+        doppler_meta=dmeta,
+        slab_elements=slab_elements,
+    )
     _fill_maps(work, plans, progress=progress, timings=timings)
     return _maps_result(work, channels, bulk_phase=bulk_phase, peak=peak, axial_center=axial_center, options=options)
 
@@ -908,18 +1103,28 @@ def signature_channels(seq: SequenceData, names: _Seq[str] | None = None) -> tup
     if len(feats) < len(wanted):
         if names is not None:
             missing = [n for n in wanted if n not in feats]
-            raise ValueError(f"{seq.source or 'sequence'} holds intensity only: the signature features "
-                             f"{', '.join(missing)} need the complex field (phase)")
-        note = (f"{seq.source or 'sequence'} holds intensity only: the signature has only its intensity part "
-                f"({len(feats)} of {len(wanted)} features per resolution; no g1/phase features); models that "
-                "need the phase will refuse these maps")
+            raise ValueError(
+                f"{seq.source or 'sequence'} holds intensity only: the signature features "
+                f"{', '.join(missing)} need the complex field (phase)"
+            )
+        note = (
+            f"{seq.source or 'sequence'} holds intensity only: the signature has only its intensity part "
+            f"({len(feats)} of {len(wanted)} features per resolution; no g1/phase features); models that "
+            "need the phase will refuse these maps"
+        )
     probe = torch.ones(1, len(times), dtype=torch.complex64 if seq.is_complex else torch.float32)
     pixel_features(probe, times, feats)  # the names, lags and frame times, on one pixel
     return feats, note
 
 
-def signature_maps(maps: Maps, seq: SequenceData, resolutions: _Seq[str | ResolutionTarget] = ("original",), *,
-                   names: _Seq[str] | None = None, chunk_pixels: int = 1 << 16) -> tuple[Maps, str | None]:
+def signature_maps(
+    maps: Maps,
+    seq: SequenceData,
+    resolutions: _Seq[str | ResolutionTarget] = ("original",),
+    *,
+    names: _Seq[str] | None = None,
+    chunk_pixels: int = 1 << 16,
+) -> tuple[Maps, str | None]:
     """``maps`` (from :func:`compute_maps` of ``seq``) with the signature channels of every resolution
     appended: ``f"{feature}@{resolution}"``, metric = the feature name, its unit and the optics of the
     resolution; ``meta["signature"]`` records the features.
@@ -934,16 +1139,23 @@ def signature_maps(maps: Maps, seq: SequenceData, resolutions: _Seq[str | Resolu
     feats, note = signature_channels(seq, names)
     keep = maps.meta.get("y_indices")
     raster = seq.block_raster
-    sig = compute_maps(seq, resolutions, metrics=(), signature=feats,
-                       axial_center=red_meta.get("axial_center_cycles_per_pixel", 0.0) or "zero",
-                       edge_mode=red_meta.get("edge_mode", "reflect"),
-                       normalization=red_meta.get("normalization", "power"),
-                       drop_boundary=raster is not None and keep is not None and len(keep) < raster.n_y,
-                       chunk_pixels=chunk_pixels)
+    sig = compute_maps(
+        seq,
+        resolutions,
+        metrics=(),
+        signature=feats,
+        axial_center=red_meta.get("axial_center_cycles_per_pixel", 0.0) or "zero",
+        edge_mode=red_meta.get("edge_mode", "reflect"),
+        normalization=red_meta.get("normalization", "power"),
+        drop_boundary=raster is not None and keep is not None and len(keep) < raster.n_y,
+        chunk_pixels=chunk_pixels,
+    )
     block = sig.maps
     if keep is not None and sig.meta.get("y_indices") != list(keep):
-        raise ValueError(f"maps keep the B-scans {list(keep)}, but {seq.source or 'the sequence'} gives "
-                         f"{sig.meta.get('y_indices')}: give the sequence the maps were computed from")
+        raise ValueError(
+            f"maps keep the B-scans {list(keep)}, but {seq.source or 'the sequence'} gives "
+            f"{sig.meta.get('y_indices')}: give the sequence the maps were computed from"
+        )
     meta = dict(maps.meta)
     meta["channels"] = list(maps.meta["channels"]) + list(sig.meta["channels"])
     meta["signature"] = sig.meta["signature"]
@@ -955,9 +1167,17 @@ def signature_maps(maps: Maps, seq: SequenceData, resolutions: _Seq[str | Resolu
 # the PNG set
 
 
-def write_pngs(maps: Maps, out_path: str | Path, *, ranges: Mapping[str, tuple[float, float]] | None = None,
-               db_range: tuple[float, float] | None = None, hue_range: tuple[float, float] = DEFAULT_HUE_RANGE,
-               y_index: int | None = None, force: bool = False, check_only: bool = False) -> list[Path]:
+def write_pngs(
+    maps: Maps,
+    out_path: str | Path,
+    *,
+    ranges: Mapping[str, tuple[float, float]] | None = None,
+    db_range: tuple[float, float] | None = None,
+    hue_range: tuple[float, float] = DEFAULT_HUE_RANGE,
+    y_index: int | None = None,
+    force: bool = False,
+    check_only: bool = False,
+) -> list[Path]:
     """One figure PNG per channel (:func:`map_figure`), named by :func:`png_name`; the ``aliv_fit``
     flags are drawn inside the aLIV/Swiftness images, not as images of their own.
 
@@ -993,8 +1213,9 @@ def write_pngs(maps: Maps, out_path: str | Path, *, ranges: Mapping[str, tuple[f
         db_range = percentile_range(by_metric["mean_db"], 5.0, 99.9)
     for info, path in zip(infos, paths):
         metric = info["metric"]
-        vr = ranges.get(metric) or (db_range if metric == "mean_db" and db_range else
-                                    percentile_range(by_metric[metric], 1.0, 99.0))
+        vr = ranges.get(metric) or (
+            db_range if metric == "mean_db" and db_range else percentile_range(by_metric[metric], 1.0, 99.0)
+        )
         fig = map_figure(maps, info["name"], value_range=vr, db_range=db_range, hue_range=hue_range, y_index=y_index)
         try:
             atomic_write(path, lambda tmp, fig=fig: fig.savefig(tmp, format="png", dpi=100))

@@ -107,8 +107,15 @@ class Maps:
         i = self.index(channel) if isinstance(channel, str) else int(channel)
         return ChannelOptics.of_channel(self.meta["channels"][i], self.meta)
 
-    def find(self, metric: str, *, wavelength_um: float | None = None, lateral_resolution_um: float | None = None,
-             axial_resolution_um: float | None = None, rtol: float = 1e-6) -> list[str]:
+    def find(
+        self,
+        metric: str,
+        *,
+        wavelength_um: float | None = None,
+        lateral_resolution_um: float | None = None,
+        axial_resolution_um: float | None = None,
+        rtol: float = 1e-6,
+    ) -> list[str]:
         """Names of channels of ``metric`` whose optics match the given values within ``rtol`` (a value
         not given matches any; the lateral resolution is the one along x)."""
         out = []
@@ -116,11 +123,11 @@ class Maps:
             optics = self.optics(i)
             if info["metric"] != metric or optics is None:
                 continue
-            want = ChannelOptics(optics.wavelength_um if wavelength_um is None else float(wavelength_um),
-                                 optics.lateral_resolution_um if lateral_resolution_um is None
-                                 else float(lateral_resolution_um),
-                                 optics.axial_resolution_um if axial_resolution_um is None
-                                 else float(axial_resolution_um))
+            want = ChannelOptics(
+                optics.wavelength_um if wavelength_um is None else float(wavelength_um),
+                optics.lateral_resolution_um if lateral_resolution_um is None else float(lateral_resolution_um),
+                optics.axial_resolution_um if axial_resolution_um is None else float(axial_resolution_um),
+            )
             if want.matches(optics, rel_tol=rtol, lateral_y=False):
                 out.append(info["name"])
         return out
@@ -156,14 +163,16 @@ def write_maps(path: str | os.PathLike, maps: Maps, *, force: bool = False) -> P
                 shutil.rmtree(tmp)
         return out
     if mapsome.is_ome_tiff(out):
+
         def write(tmp: str) -> None:
             mapsome.write_ome_tiff(tmp, arr, list(maps.channels), meta)
     elif out.suffix == ".npz":
+
         def write(tmp: str) -> None:
             with open(tmp, "wb") as fh:
-                np.savez(fh, maps=arr, channels=np.asarray(maps.channels, dtype=np.str_),
-                         meta_json=np.asarray(text))
+                np.savez(fh, maps=arr, channels=np.asarray(maps.channels, dtype=np.str_), meta_json=np.asarray(text))
     else:
+
         def write(tmp: str) -> None:
             import tifffile
 
@@ -171,9 +180,19 @@ def write_maps(path: str | os.PathLike, maps: Maps, *, force: bool = False) -> P
 
             units = {ch.get("unit") for ch in meta.get("channels", []) if isinstance(ch, dict)}
             axes = meta.get("axes") or ("CYZX" if arr.ndim == 4 else "CZX")
-            tifffile.imwrite(tmp, imagej_pages(arr, axes), **imagej_write_options(  # Fiji/napari: µm, channel names
-                arr.shape, axes, meta.get("pitch_um"), list(maps.channels), description=text,
-                value_unit=units.pop() if len(units) == 1 else None))
+            tifffile.imwrite(
+                tmp,
+                imagej_pages(arr, axes),
+                **imagej_write_options(  # Fiji/napari: µm, channel names
+                    arr.shape,
+                    axes,
+                    meta.get("pitch_um"),
+                    list(maps.channels),
+                    description=text,
+                    value_unit=units.pop() if len(units) == 1 else None,
+                ),
+            )
+
     atomic_write(out, write)
     return out
 
@@ -201,8 +220,9 @@ def read_maps(path: str | os.PathLike) -> Maps:
     if not (p.suffix.lower() == ".zarr" and p.is_dir()):  # an OME-Zarr is a folder
         check_regular_file(p, "maps file")  # a FIFO, device or folder: at once, whatever its name
     if p.suffix.lower() not in MAPS_SUFFIXES:
-        raise ValueError(f"maps file {p.name}: must be .npz, .tif/.tiff/.ome.tif or .zarr (the formats of "
-                         "`torchdoct maps`)")
+        raise ValueError(
+            f"maps file {p.name}: must be .npz, .tif/.tiff/.ome.tif or .zarr (the formats of `torchdoct maps`)"
+        )
     from . import mapsome
 
     if mapsome.is_zarr(p):
@@ -227,20 +247,33 @@ def _finish(p: Path, arr: np.ndarray, names: np.ndarray | None, meta: dict[str, 
     if arr.dtype.kind != "f":
         raise TypeError(f"{p.name}: maps must be floating point (float32); got {arr.dtype}. {_rewrite_fix(p)}")
     if arr.ndim not in (3, 4) or 0 in arr.shape:
-        raise ValueError(f"{p.name}: maps must be [C, Z, X] or [C, Y, Z, X] with no empty axis; got shape "
-                         f"{list(arr.shape)}")
+        raise ValueError(
+            f"{p.name}: maps must be [C, Z, X] or [C, Y, Z, X] with no empty axis; got shape {list(arr.shape)}"
+        )
     channels = meta.get("channels")
     if not isinstance(channels, list) or len(channels) != arr.shape[0]:
-        raise ValueError(f"{where}: 'channels' must list one entry per map; got "
-                         f"{len(channels) if isinstance(channels, list) else repr(channels)} for {arr.shape[0]} maps")
+        raise ValueError(
+            f"{where}: 'channels' must list one entry per map; got "
+            f"{len(channels) if isinstance(channels, list) else repr(channels)} for {arr.shape[0]} maps"
+        )
     _check_maps_meta(meta, arr.ndim, where)
     meta_names = tuple(ch["name"] for ch in channels)
-    keys = [(ch.get("name"), ch.get("wavelength_um"), ch.get("lateral_resolution_um"), ch.get("axial_resolution_um"),
-             ch.get("lateral_resolution_y_um")) for ch in channels]
+    keys = [
+        (
+            ch.get("name"),
+            ch.get("wavelength_um"),
+            ch.get("lateral_resolution_um"),
+            ch.get("axial_resolution_um"),
+            ch.get("lateral_resolution_y_um"),
+        )
+        for ch in channels
+    ]
     dup = sorted({str(k[0]) for k in keys if keys.count(k) > 1})
     if dup:  # a reader takes a channel by name and optics: a repeated one would silently pick one of them
-        raise ValueError(f"{where}: channel(s) {dup} appear more than once with the same wavelength and "
-                         f"resolutions; every map needs its own name or optics. {_rewrite_fix(p)}")
+        raise ValueError(
+            f"{where}: channel(s) {dup} appear more than once with the same wavelength and "
+            f"resolutions; every map needs its own name or optics. {_rewrite_fix(p)}"
+        )
     if names is not None:
         if names.dtype.kind not in "US":
             raise ValueError(f"{p.name}: 'channels' must be an array of channel names; got dtype {names.dtype}")
@@ -249,8 +282,10 @@ def _finish(p: Path, arr: np.ndarray, names: np.ndarray | None, meta: dict[str, 
             raise ValueError(f"{p.name}: 'channels' holds {len(names)} names for {len(meta_names)} maps")
         for i, (a, b) in enumerate(zip(meta_names, names)):
             if a != b:
-                raise ValueError(f"{where}: channels[{i}].name {a!r} differs from the channel name {b!r} (the file "
-                                 "was not written by torchdoct maps or was edited; recompute the maps)")
+                raise ValueError(
+                    f"{where}: channels[{i}].name {a!r} differs from the channel name {b!r} (the file "
+                    "was not written by torchdoct maps or was edited; recompute the maps)"
+                )
     return Maps(maps=arr.astype(np.float32, copy=False), channels=meta_names, meta=meta, path=p)
 
 
@@ -268,18 +303,26 @@ def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]
         except (*unreadable, ValueError) as err:
             fh.seek(0)
             if "Object arrays" in str(err) or fh.read(1) == b"\x80":  # a .npy of objects, or a pickle stream
-                raise ValueError(f"{path.name}: holds Python objects (a pickle), not a maps archive; pickles are never "
-                                 f"loaded (loading one can run code). {_rewrite_fix(path)}") from None
-            raise ValueError(f"{path.name}: not a readable .npz archive: the file is truncated, corrupted or not "
-                             f"a .npz file ({err}). {_rewrite_fix(path)}") from None
+                raise ValueError(
+                    f"{path.name}: holds Python objects (a pickle), not a maps archive; pickles are never "
+                    f"loaded (loading one can run code). {_rewrite_fix(path)}"
+                ) from None
+            raise ValueError(
+                f"{path.name}: not a readable .npz archive: the file is truncated, corrupted or not "
+                f"a .npz file ({err}). {_rewrite_fix(path)}"
+            ) from None
         if not isinstance(z, np.lib.npyio.NpzFile):
-            raise ValueError(f"{path.name}: holds one bare array, not a maps archive ('maps', 'channels', "
-                             f"'meta_json'). {_rewrite_fix(path)}")
+            raise ValueError(
+                f"{path.name}: holds one bare array, not a maps archive ('maps', 'channels', "
+                f"'meta_json'). {_rewrite_fix(path)}"
+            )
         arrays = _npz_arrays(path, z, unreadable)
     raw = arrays["meta_json"]
     if raw.dtype.kind not in "US" or raw.size != 1:
-        raise ValueError(f"{path.name}: 'meta_json' must be a JSON text (a 0-d string array); got a "
-                         f"{raw.dtype} array of shape {list(raw.shape)}. {_rewrite_fix(path)}")
+        raise ValueError(
+            f"{path.name}: 'meta_json' must be a JSON text (a 0-d string array); got a "
+            f"{raw.dtype} array of shape {list(raw.shape)}. {_rewrite_fix(path)}"
+        )
     from ..files import check_nesting
 
     check_nesting(str(raw.reshape(())), f"{path.name}: 'meta_json'")  # before the parser's recursion
@@ -288,8 +331,10 @@ def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]
     except ValueError as err:
         raise ValueError(f"{path.name}: 'meta_json' is not valid JSON ({err}). {_rewrite_fix(path)}") from None
     if not isinstance(meta, dict):
-        raise ValueError(f"{path.name}: 'meta_json' must be a JSON object ({{\"channels\": [...], ...}}); got a "
-                         f"{type(meta).__name__}. {_rewrite_fix(path)}")
+        raise ValueError(
+            f"{path.name}: 'meta_json' must be a JSON object ({{\"channels\": [...], ...}}); got a "
+            f"{type(meta).__name__}. {_rewrite_fix(path)}"
+        )
     return arrays["maps"], arrays.get("channels"), meta
 
 
@@ -297,8 +342,10 @@ def _npz_arrays(path: Path, z, unreadable: tuple[type[BaseException], ...]) -> d
     with z:
         for key in ("maps", "meta_json"):
             if key not in z:
-                raise ValueError(f"{path.name}: missing array {key!r} (maps files have 'maps', 'channels', "
-                                 "'meta_json'; write them with `torchdoct maps`)")
+                raise ValueError(
+                    f"{path.name}: missing array {key!r} (maps files have 'maps', 'channels', "
+                    "'meta_json'; write them with `torchdoct maps`)"
+                )
         arrays = {}
         for key in ("maps", "meta_json", "channels"):
             if key not in z:
@@ -307,13 +354,18 @@ def _npz_arrays(path: Path, z, unreadable: tuple[type[BaseException], ...]) -> d
                 arrays[key] = z[key]
             except ValueError as err:  # object arrays: numpy refuses them without allow_pickle
                 if "pickle" not in str(err) and "Object arrays" not in str(err):
-                    raise ValueError(f"{path.name}: array {key!r} is unreadable ({err}). {_rewrite_fix(path)}") from None
-                raise ValueError(f"{path.name}: array {key!r} holds Python objects (a pickle); pickles are never "
-                                 "loaded (loading one can run code). Fix: store 'maps' as a float array and "
-                                 "'meta_json' as a JSON string, as `torchdoct maps` writes them") from None
+                    raise ValueError(
+                        f"{path.name}: array {key!r} is unreadable ({err}). {_rewrite_fix(path)}"
+                    ) from None
+                raise ValueError(
+                    f"{path.name}: array {key!r} holds Python objects (a pickle); pickles are never "
+                    "loaded (loading one can run code). Fix: store 'maps' as a float array and "
+                    "'meta_json' as a JSON string, as `torchdoct maps` writes them"
+                ) from None
             except unreadable as err:
-                raise ValueError(f"{path.name}: array {key!r} is truncated or corrupted ({err}). "
-                                 f"{_rewrite_fix(path)}") from None
+                raise ValueError(
+                    f"{path.name}: array {key!r} is truncated or corrupted ({err}). {_rewrite_fix(path)}"
+                ) from None
     return arrays
 
 
@@ -332,8 +384,10 @@ def _tiff_meta(path: Path, tf) -> dict[str, Any]:
             meta = None
         if isinstance(meta, dict) and "channels" in meta:
             return meta
-    raise ValueError(f"{path.name}: no JSON maps description (with 'channels') in the TIFF ImageDescription; "
-                     "write it with `torchdoct maps ... --out FILE.tif`")
+    raise ValueError(
+        f"{path.name}: no JSON maps description (with 'channels') in the TIFF ImageDescription; "
+        "write it with `torchdoct maps ... --out FILE.tif`"
+    )
 
 
 def _read_tiff(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
@@ -358,21 +412,31 @@ def _read_tiff(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
                 data = restore_channels(data, n_ch, tf)
             damage.check()
     except ValueError as err:
-        if "ImageDescription" in str(err) or "OME" in str(err) or MAX_INPUT_ENV in str(err) or "TIFF pages of two shapes" in str(err):
+        if (
+            "ImageDescription" in str(err)
+            or "OME" in str(err)
+            or MAX_INPUT_ENV in str(err)
+            or "TIFF pages of two shapes" in str(err)
+        ):
             raise
-        raise ValueError(f"{path.name}: not a readable maps TIFF (truncated or corrupt: {err}). "
-                         f"{_rewrite_fix(path)}") from None
+        raise ValueError(
+            f"{path.name}: not a readable maps TIFF (truncated or corrupt: {err}). {_rewrite_fix(path)}"
+        ) from None
     except Exception as err:  # tifffile raises many types on damaged files (struct, index, OS errors)
-        raise ValueError(f"{path.name}: not a readable maps TIFF (truncated or corrupt: {type(err).__name__}: "
-                         f"{err}). {_rewrite_fix(path)}") from None
+        raise ValueError(
+            f"{path.name}: not a readable maps TIFF (truncated or corrupt: {type(err).__name__}: "
+            f"{err}). {_rewrite_fix(path)}"
+        ) from None
     n_ch = len(meta["channels"]) if isinstance(meta.get("channels"), list) else 0
     n_sp = len(str(meta.get("axes", "CZX"))) - 1  # pages are [Z, X] images: restore [C, (Y), Z, X]
     shape = (n_ch, -1, *data.shape[-2:]) if n_sp == 3 else (n_ch, *data.shape[-2:])
     try:
         data = data.reshape(shape)
     except ValueError:
-        raise ValueError(f"{path.name}: a stack of shape {list(data.shape)} does not hold {n_ch} channels "
-                         f"of axes {meta.get('axes')!r}") from None
+        raise ValueError(
+            f"{path.name}: a stack of shape {list(data.shape)} does not hold {n_ch} channels "
+            f"of axes {meta.get('axes')!r}"
+        ) from None
     return data, meta
 
 

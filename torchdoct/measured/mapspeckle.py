@@ -17,8 +17,15 @@ from ..sim.speckle import DEFAULT_WINDOW as SPECKLE_WINDOW
 from ..sim.speckle import default_speckle_features, halo_pixels, speckle_feature_unit, speckle_motion
 from .sequence import SequenceData
 
-__all__ = ["SPECKLE_MAX_OFFSET", "SPECKLE_WINDOW", "speckle_target", "speckle_channels", "speckle_channel_records",
-           "speckle_meta", "speckle_slab"]
+__all__ = [
+    "SPECKLE_MAX_OFFSET",
+    "SPECKLE_WINDOW",
+    "speckle_target",
+    "speckle_channels",
+    "speckle_channel_records",
+    "speckle_meta",
+    "speckle_slab",
+]
 
 
 def speckle_target(req: Any) -> Any:
@@ -27,8 +34,9 @@ def speckle_target(req: Any) -> Any:
     return next(t for t in req.targets if t not in req.changes)
 
 
-def speckle_channels(seq: SequenceData, names: _Seq[str] | None = None, *,
-                     window: int = SPECKLE_WINDOW) -> tuple[str, ...]:
+def speckle_channels(
+    seq: SequenceData, names: _Seq[str] | None = None, *, window: int = SPECKLE_WINDOW
+) -> tuple[str, ...]:
     """The speckle-motion features that maps of ``seq`` get (default
     :func:`torchdoct.sim.speckle.default_speckle_features` of its B-scans or volume), checked before any
     work: the spatial axes (Z, X and Y), the pixel pitch of each, a uniform frame interval, the lags the
@@ -41,27 +49,47 @@ def speckle_channels(seq: SequenceData, names: _Seq[str] | None = None, *,
     pitch = seq.meta.get("pitch_um") or {}
     missing = [c.lower() for c in sp if not pitch.get(c.lower())]
     if missing:
-        raise ValueError(f"{src}: speckle-motion channels need the pixel pitch of {', '.join(missing)} (µm); give "
-                         "--pitch-um z=..,x=..[,y=..]")
+        raise ValueError(
+            f"{src}: speckle-motion channels need the pixel pitch of {', '.join(missing)} (µm); give "
+            "--pitch-um z=..,x=..[,y=..]"
+        )
     times = [float(v) for v in seq.frame_times_s]
     d = np.diff(times)
     if d.size == 0 or d.min() <= 0 or d.max() - d.min() > 1e-6 * d.max():
-        raise ValueError(f"{src}: speckle-motion channels need a uniform frame interval; got intervals "
-                         f"{d.min() if d.size else None}-{d.max() if d.size else None} s")
+        raise ValueError(
+            f"{src}: speckle-motion channels need a uniform frame interval; got intervals "
+            f"{d.min() if d.size else None}-{d.max() if d.size else None} s"
+        )
     names = tuple(names) if names is not None else default_speckle_features(ndim, n_frames=len(times))
     probe = torch.ones(len(times), *([2 * halo_pixels(window, SPECKLE_MAX_OFFSET) + 1] * ndim))
     try:  # the names, lags and window, on one small block
-        speckle_motion(probe, {c.lower(): 1.0 for c in sp}, float(d[0]), names, window=window,
-                       max_offset=SPECKLE_MAX_OFFSET, ndim=ndim)
+        speckle_motion(
+            probe,
+            {c.lower(): 1.0 for c in sp},
+            float(d[0]),
+            names,
+            window=window,
+            max_offset=SPECKLE_MAX_OFFSET,
+            ndim=ndim,
+        )
     except ValueError as err:
         raise ValueError(f"{src}: speckle-motion channels (--speckle, --speckle-window): {err}") from None
     return names
 
 
-
-
-def speckle_slab(field: torch.Tensor, seq: SequenceData, req: Any, cdim: int, a0: int, c0: int, c1: int, *,
-                 base: int, keep_y: np.ndarray | None, mask: np.ndarray | None) -> tuple[list[Any], np.ndarray]:
+def speckle_slab(
+    field: torch.Tensor,
+    seq: SequenceData,
+    req: Any,
+    cdim: int,
+    a0: int,
+    c0: int,
+    c1: int,
+    *,
+    base: int,
+    keep_y: np.ndarray | None,
+    mask: np.ndarray | None,
+) -> tuple[list[Any], np.ndarray]:
     """The speckle-motion channels of the rows ``c0:c1`` (along data axis ``cdim``) from ``field``
     (``[T, (Y), Z, X]`` over the rows ``a0:``, the slab with its halo), as ``(index into the maps array,
     values [F, ...])``: only the kept B-scans of a block raster (their windows read the dropped ones too),
@@ -69,8 +97,15 @@ def speckle_slab(field: torch.Tensor, seq: SequenceData, req: Any, cdim: int, a0
     real = torch.float64 if field.dtype in (torch.complex128, torch.float64) else torch.float32
     x = field if field.is_complex() else field.to(real)
     times = seq.frame_times_s
-    f = speckle_motion(x, seq.pitch_um, float(times[1] - times[0]), req.speckle, window=req.speckle_window,
-                       max_offset=SPECKLE_MAX_OFFSET, ndim=field.dim() - 1)[1]  # [F, *spatial]
+    f = speckle_motion(
+        x,
+        seq.pitch_um,
+        float(times[1] - times[0]),
+        req.speckle,
+        window=req.speckle_window,
+        max_offset=SPECKLE_MAX_OFFSET,
+        ndim=field.dim() - 1,
+    )[1]  # [F, *spatial]
     f = f.narrow(cdim, c0 - a0, c1 - c0).cpu().numpy()
     idx: list[Any] = [slice(base, base + len(req.speckle))] + [slice(None)] * (field.dim() - 1)
     idx[cdim] = slice(c0, c1)
@@ -88,13 +123,27 @@ def speckle_channel_records(req: Any, wavelength_um: float | None) -> list[dict[
     """One channel record per speckle feature (name, metric, unit, resolution, optics of the original)."""
     t = speckle_target(req)
     lat, ax = req.optics(t)
-    return [{"name": f"{f}@{t.label}", "metric": f, "unit": speckle_feature_unit(f), "resolution": t.label,
-             "wavelength_um": None if wavelength_um is None else float(wavelength_um), "lateral_resolution_um": lat,
-             "axial_resolution_um": ax} for f in req.speckle]
+    return [
+        {
+            "name": f"{f}@{t.label}",
+            "metric": f,
+            "unit": speckle_feature_unit(f),
+            "resolution": t.label,
+            "wavelength_um": None if wavelength_um is None else float(wavelength_um),
+            "lateral_resolution_um": lat,
+            "axial_resolution_um": ax,
+        }
+        for f in req.speckle
+    ]
 
 
 def speckle_meta(req: Any) -> dict[str, Any]:
     """``meta["speckle"]`` of the maps: the features, the resolution, the window, the offset grid, the halo."""
-    return {"features": list(req.speckle), "resolution": speckle_target(req).label, "window_px": req.speckle_window,
-            "max_offset_px": SPECKLE_MAX_OFFSET, "halo_px": halo_pixels(req.speckle_window, SPECKLE_MAX_OFFSET),
-            "definition": "torchdoct.sim.speckle (lags in frames; docs/concepts/speckle-motion.md)"}
+    return {
+        "features": list(req.speckle),
+        "resolution": speckle_target(req).label,
+        "window_px": req.speckle_window,
+        "max_offset_px": SPECKLE_MAX_OFFSET,
+        "halo_px": halo_pixels(req.speckle_window, SPECKLE_MAX_OFFSET),
+        "definition": "torchdoct.sim.speckle (lags in frames; docs/concepts/speckle-motion.md)",
+    }

@@ -97,8 +97,9 @@ class ResolutionTarget:
     def __post_init__(self) -> None:
         for key in ("lateral_resolution_um", "axial_resolution_um"):
             v = getattr(self, key)
-            if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool)
-                                  or not math.isfinite(v) or v <= 0):
+            if v is not None and (
+                not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v <= 0
+            ):
                 raise ValueError(f"target {key} must be a finite number > 0 (µm); got {v!r}")
 
     @property
@@ -131,15 +132,18 @@ def parse_resolution(text: str) -> ResolutionTarget:
     for part in t.split(","):
         key, sep, val = part.partition("=")
         if not sep or key not in ("axial", "lateral") or key in vals:
-            raise ValueError(f"--resolution must be 'original', 'axial=UM', 'lateral=UM' or 'axial=UM,lateral=UM'; "
-                             f"got {text!r}")
+            raise ValueError(
+                f"--resolution must be 'original', 'axial=UM', 'lateral=UM' or 'axial=UM,lateral=UM'; got {text!r}"
+            )
         try:
             vals[key] = float(val)
         except ValueError:
             raise ValueError(f"--resolution {text!r}: {val!r} is not a number (µm)") from None
         if not (math.isfinite(vals[key]) and 0 < vals[key] <= MAX_RESOLUTION_UM):  # 1e200 overflows its square
-            raise ValueError(f"--resolution {text!r}: {key} must be a number of µm in (0, {MAX_RESOLUTION_UM:g}] "
-                             f"(resolutions are in micrometres; {MAX_RESOLUTION_UM:g} µm is 1 cm)")
+            raise ValueError(
+                f"--resolution {text!r}: {key} must be a number of µm in (0, {MAX_RESOLUTION_UM:g}] "
+                f"(resolutions are in micrometres; {MAX_RESOLUTION_UM:g} µm is 1 cm)"
+            )
     return ResolutionTarget(lateral_resolution_um=vals.get("lateral"), axial_resolution_um=vals.get("axial"))
 
 
@@ -150,8 +154,10 @@ def _check_target(kind: str, original_um: float, target_um: float) -> float:
     if abs(target_um - original_um) <= _REL_SAME * original_um:
         return 0.0
     if target_um < original_um:
-        raise ValueError(f"target {kind} resolution {target_um:g} µm is finer than the original {original_um:g} µm; "
-                         "a resolution can only be reduced (give a target >= the original)")
+        raise ValueError(
+            f"target {kind} resolution {target_um:g} µm is finer than the original {original_um:g} µm; "
+            "a resolution can only be reduced (give a target >= the original)"
+        )
     return target_um * target_um - original_um * original_um
 
 
@@ -159,8 +165,14 @@ def _check_target(kind: str, original_um: float, target_um: float) -> float:
 MIN_TARGET_PIXELS = 2.0
 
 
-def check_target_sampled(kind: str, original_um: float, target_um: float, pitch_um: Mapping[str, float],
-                         axes: str, option: str = "--resolution") -> None:
+def check_target_sampled(
+    kind: str,
+    original_um: float,
+    target_um: float,
+    pitch_um: Mapping[str, float],
+    axes: str,
+    option: str = "--resolution",
+) -> None:
     """Refuse a ``kind`` (``"lateral"`` / ``"axial"``) target that differs from the original but is narrower
     than :data:`MIN_TARGET_PIXELS` pixels along an axis it filters (lateral: X, and Y when ``axes`` has it;
     axial: Z), naming ``option`` and the smallest target the data allow. Axes without a pitch are left to
@@ -169,17 +181,22 @@ def check_target_sampled(kind: str, original_um: float, target_um: float, pitch_
         return
     pitch = {str(k).lower(): v for k, v in dict(pitch_um or {}).items()}
     letters = "z" if kind == "axial" else "".join(c.lower() for c in "YX" if c in axes)
-    known = {c: float(pitch[c]) for c in letters if c in pitch and isinstance(pitch[c], (int, float))
-             and math.isfinite(pitch[c]) and pitch[c] > 0}
+    known = {
+        c: float(pitch[c])
+        for c in letters
+        if c in pitch and isinstance(pitch[c], (int, float)) and math.isfinite(pitch[c]) and pitch[c] > 0
+    }
     if not known:
         return
     c, p = max(known.items(), key=lambda kv: kv[1])
     smallest = max(MIN_TARGET_PIXELS * p, original_um)
     if target_um < MIN_TARGET_PIXELS * p:
-        raise ValueError(f"{option}: a {kind} resolution of {target_um:g} µm is finer than the {c} pitch of {p:g} µm "
-                         f"allows (the grid holds no PSF narrower than {MIN_TARGET_PIXELS:g} pixels, and a reduction "
-                         f"cannot sharpen); the smallest {kind} target these data allow is {smallest:g} µm: give "
-                         f"{kind}={smallest:g} or more")
+        raise ValueError(
+            f"{option}: a {kind} resolution of {target_um:g} µm is finer than the {c} pitch of {p:g} µm "
+            f"allows (the grid holds no PSF narrower than {MIN_TARGET_PIXELS:g} pixels, and a reduction "
+            f"cannot sharpen); the smallest {kind} target these data allow is {smallest:g} µm: give "
+            f"{kind}={smallest:g} or more"
+        )
 
 
 #: The widest reduction target, in fields of view of the axis it filters: the Gaussian's padding
@@ -187,8 +204,15 @@ def check_target_sampled(kind: str, original_um: float, target_um: float, pitch_
 MAX_TARGET_FIELDS = 4.0
 
 
-def check_target_in_view(kind: str, original_um: float, target_um: float, pitch_um: Mapping[str, float],
-                         axes: str, shape: Any, option: str = "--resolution") -> None:
+def check_target_in_view(
+    kind: str,
+    original_um: float,
+    target_um: float,
+    pitch_um: Mapping[str, float],
+    axes: str,
+    shape: Any,
+    option: str = "--resolution",
+) -> None:
     """Refuse a ``kind`` reduction along an axis it filters whose field of view (pixels × pitch) is
     narrower than the original PSF (the samples cannot be at that pitch: a pitch given 1000× too fine
     made a mean 10 dB off, constant over the image) or whose target is wider than
@@ -206,24 +230,30 @@ def check_target_in_view(kind: str, original_um: float, target_um: float, pitch_
             continue
         fov = dims[c] * float(p)
         if original_um > fov:
-            raise ValueError(f"{option}: the field of view along {c.lower()} ({dims[c]} pixels × {p:g} µm = {fov:g} µm) is "
-                             f"narrower than the original {kind} resolution of {original_um:g} µm, so the samples cannot "
-                             f"be at that pitch and a reduction to {target_um:g} µm would be made by the image's edges; "
-                             "check the pitch (--pitch-um, µm per pixel)")
+            raise ValueError(
+                f"{option}: the field of view along {c.lower()} ({dims[c]} pixels × {p:g} µm = {fov:g} µm) is "
+                f"narrower than the original {kind} resolution of {original_um:g} µm, so the samples cannot "
+                f"be at that pitch and a reduction to {target_um:g} µm would be made by the image's edges; "
+                "check the pitch (--pitch-um, µm per pixel)"
+            )
         if target_um > MAX_TARGET_FIELDS * fov:
-            raise ValueError(f"{option}: a {kind} resolution of {target_um:g} µm is wider than {MAX_TARGET_FIELDS:g} "
-                             f"fields of view along {c.lower()} ({dims[c]} pixels × {p:g} µm = {fov:g} µm): the edges, "
-                             f"not the sample, would make the maps; give {kind}={MAX_TARGET_FIELDS * fov:g} or less, "
-                             "or check the pitch (--pitch-um, µm per pixel)")
+            raise ValueError(
+                f"{option}: a {kind} resolution of {target_um:g} µm is wider than {MAX_TARGET_FIELDS:g} "
+                f"fields of view along {c.lower()} ({dims[c]} pixels × {p:g} µm = {fov:g} µm): the edges, "
+                f"not the sample, would make the maps; give {kind}={MAX_TARGET_FIELDS * fov:g} or less, "
+                "or check the pitch (--pitch-um, µm per pixel)"
+            )
 
 
 def _check_kernel_bound(sigma_um: float, pitch: float, n: int, axis: str) -> None:
     """The bound of the reduction kernel: its σ' at most :data:`MAX_TARGET_FIELDS` axis lengths (the
     padding, ⌈5σ'⌉ + 1 pixels a side, then stays within about 40 times the axis)."""
     if sigma_um / pitch > MAX_TARGET_FIELDS * n:
-        raise ValueError(f"the reduction along {axis} needs a Gaussian of σ' = {sigma_um / pitch:.4g} pixels, wider "
-                         f"than {MAX_TARGET_FIELDS:g} times the axis ({n} pixels × {pitch:g} µm); give "
-                         "a target no wider than the field of view, or check pitch_um (µm per pixel)")
+        raise ValueError(
+            f"the reduction along {axis} needs a Gaussian of σ' = {sigma_um / pitch:.4g} pixels, wider "
+            f"than {MAX_TARGET_FIELDS:g} times the axis ({n} pixels × {pitch:g} µm); give "
+            "a target no wider than the field of view, or check pitch_um (µm per pixel)"
+        )
 
 
 def lateral_filter_sigma_um(original_um: float, target_um: float) -> float:
@@ -270,8 +300,15 @@ def _reflect_index(n: int, lo: int, hi: int, device: torch.device) -> torch.Tens
     return torch.where(m < n, m, 2 * n - 1 - m)
 
 
-def gaussian_filter_axis(x: torch.Tensor, dim: int, sigma_px: float, *, gain: float = 1.0,
-                         center_cycles_per_px: float = 0.0, edge_mode: str = "reflect") -> torch.Tensor:
+def gaussian_filter_axis(
+    x: torch.Tensor,
+    dim: int,
+    sigma_px: float,
+    *,
+    gain: float = 1.0,
+    center_cycles_per_px: float = 0.0,
+    edge_mode: str = "reflect",
+) -> torch.Tensor:
     """Convolve complex ``x`` along ``dim`` with ``gain·N(0, σ²)·exp(i2π f_c j)`` (σ in pixels).
 
     Implemented as a window ``gain·exp(−2π² (f − f_c)² σ²)`` on the FFT of the padded axis (see the
@@ -309,7 +346,7 @@ def gaussian_filter_axis(x: torch.Tensor, dim: int, sigma_px: float, *, gain: fl
             widths[k], widths[k + 1] = pad, length - n - pad
             xp = torch.nn.functional.pad(x, widths)
     f = torch.fft.fftfreq(length, device=x.device, dtype=torch.float64)
-    h = (gain * torch.exp(-2.0 * math.pi ** 2 * sigma_px ** 2 * f * f)).to(real)
+    h = (gain * torch.exp(-2.0 * math.pi**2 * sigma_px**2 * f * f)).to(real)
     shape = [1] * x.ndim
     shape[dim] = length
     y = torch.fft.ifft(torch.fft.fft(xp, dim=dim) * h.reshape(shape), dim=dim)
@@ -363,8 +400,9 @@ def _check_axes(axes: str, ndim: int) -> str:
         raise TypeError(f"axes must be a string such as 'TZX' or 'TYZX'; got {axes!r}")
     a = axes.upper()
     if len(a) != ndim or len(set(a)) != len(a) or "Z" not in a or "X" not in a:
-        raise ValueError(f"axes {axes!r} must name each of the {ndim} dimensions once and include Z and X "
-                         "(e.g. 'TZX' or 'TYZX')")
+        raise ValueError(
+            f"axes {axes!r} must name each of the {ndim} dimensions once and include Z and X (e.g. 'TZX' or 'TYZX')"
+        )
     return a
 
 
@@ -385,8 +423,9 @@ def _gain(normalization: str, ratio: float) -> float:
     raise ValueError(f"normalization must be one of {', '.join(NORMALIZATIONS)}; got {normalization!r}")
 
 
-def reduction_axis_needs(axes: str, *, lateral: bool, axial_sigma_px: float,
-                         edge_mode: str = "reflect") -> dict[str, int | None]:
+def reduction_axis_needs(
+    axes: str, *, lateral: bool, axial_sigma_px: float, edge_mode: str = "reflect"
+) -> dict[str, int | None]:
     """What :func:`reduce_resolution` needs of each spatial axis when it runs on a piece of the field (the
     slab planner of :func:`torchdoct.measured.maps.compute_maps` reads it): ``None`` = that axis whole (the
     lateral Gaussian runs along every en-face axis, Y and X, across the whole plane; the axial filter with
@@ -401,10 +440,18 @@ def reduction_axis_needs(axes: str, *, lateral: bool, axial_sigma_px: float,
     return needs
 
 
-def reduce_resolution(field: Any, *, pitch_um: Mapping[str, float], system: Any,
-                      lateral_resolution_um: float | None = None, axial_resolution_um: float | None = None,
-                      axes: str = "TZX", axial_center: str | float = "zero", edge_mode: str = "reflect",
-                      normalization: str = "power") -> Any:
+def reduce_resolution(
+    field: Any,
+    *,
+    pitch_um: Mapping[str, float],
+    system: Any,
+    lateral_resolution_um: float | None = None,
+    axial_resolution_um: float | None = None,
+    axes: str = "TZX",
+    axial_center: str | float = "zero",
+    edge_mode: str = "reflect",
+    normalization: str = "power",
+) -> Any:
     """Reduce the resolution of complex OCT ``field`` to the target (paper Eqs. 1-8).
 
     ``field``: torch tensor or numpy array, complex64/complex128, any layout named by ``axes`` (one
@@ -420,8 +467,10 @@ def reduce_resolution(field: Any, *, pitch_um: Mapping[str, float], system: Any,
     is_numpy = not isinstance(field, torch.Tensor)
     x = _as_tensor(field)
     if not x.is_complex():
-        raise TypeError("resolution reduction needs the complex OCT field (complex64/complex128); intensity-only "
-                        f"data (dtype {x.dtype}, e.g. a TIFF stack) allow only the original resolution")
+        raise TypeError(
+            "resolution reduction needs the complex OCT field (complex64/complex128); intensity-only "
+            f"data (dtype {x.dtype}, e.g. a TIFF stack) allow only the original resolution"
+        )
     axes = _check_axes(axes, x.ndim)
     if edge_mode not in EDGE_MODES:
         raise ValueError(f"edge_mode must be one of {', '.join(EDGE_MODES)}; got {edge_mode!r}")
@@ -436,7 +485,9 @@ def reduce_resolution(field: Any, *, pitch_um: Mapping[str, float], system: Any,
     need = (["z"] if sig_ax else []) + ([c.lower() for c in "YX" if c in axes] if sig_lat else [])
     for c in need:
         if c not in pitch or not (math.isfinite(pitch[c]) and pitch[c] > 0):
-            raise ValueError(f"pitch_um needs a positive {c!r} entry (µm per pixel) for this reduction; got {pitch_um!r}")
+            raise ValueError(
+                f"pitch_um needs a positive {c!r} entry (µm per pixel) for this reduction; got {pitch_um!r}"
+            )
     for c in need:
         _check_kernel_bound(sig_ax if c == "z" else sig_lat, pitch[c], x.shape[axes.index(c.upper())], c)
     y = x
@@ -447,15 +498,22 @@ def reduce_resolution(field: Any, *, pitch_um: Mapping[str, float], system: Any,
             elif axial_center == "centroid":
                 fc = depth_spectrum_center(x, axes=axes)
             else:
-                raise ValueError(f"axial_center must be 'zero', 'centroid' or a number (cycles/pixel); "
-                                 f"got {axial_center!r}")
+                raise ValueError(
+                    f"axial_center must be 'zero', 'centroid' or a number (cycles/pixel); got {axial_center!r}"
+                )
         else:
             fc = float(axial_center)
             if not (math.isfinite(fc) and -0.5 <= fc <= 0.5):
                 raise ValueError(f"axial_center must be within [-0.5, 0.5] cycles/pixel; got {axial_center!r}")
         ratio = amplitude_sigma_axial_um(float(axial_resolution_um)) / amplitude_sigma_axial_um(ax0)
-        y = gaussian_filter_axis(y, axes.index("Z"), sig_ax / pitch["z"], gain=_gain(normalization, ratio),
-                                 center_cycles_per_px=fc, edge_mode=edge_mode)
+        y = gaussian_filter_axis(
+            y,
+            axes.index("Z"),
+            sig_ax / pitch["z"],
+            gain=_gain(normalization, ratio),
+            center_cycles_per_px=fc,
+            edge_mode=edge_mode,
+        )
     if sig_lat:
         ratio = amplitude_sigma_lateral_um(float(lateral_resolution_um)) / amplitude_sigma_lateral_um(lat0)
         g = _gain(normalization, ratio)

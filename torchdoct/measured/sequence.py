@@ -34,9 +34,17 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SequenceData", "BlockRaster", "validate_meta", "sidecar_path", "sidecar_exists", "finite_positive",
-           "check_axes",
-           "CANONICAL_AXES", "HOW"]
+__all__ = [
+    "SequenceData",
+    "BlockRaster",
+    "validate_meta",
+    "sidecar_path",
+    "sidecar_exists",
+    "finite_positive",
+    "check_axes",
+    "CANONICAL_AXES",
+    "HOW",
+]
 
 CANONICAL_AXES = ("TZX", "TYZX")
 #: How to give each metadata key that a file may lack (the option or the sidecar key), for the errors.
@@ -44,8 +52,9 @@ HOW = {
     "axes": "give --axes (e.g. TZX, TYZX, or the stored order such as XZT) or 'axes' in the sidecar JSON",
     "pitch_um": "give --pitch-um z=..,x=..[,y=..] (µm) or 'pitch_um' in the sidecar JSON",
     "frame_times_s": "give --frame-interval-s DT, --frame-times-s t0,t1,.. or 'frame_times_s' in the sidecar JSON",
-    "system": ("give --wavelength-um, --lateral-resolution-um and --axial-resolution-um or 'system' in the "
-               "sidecar JSON"),
+    "system": (
+        "give --wavelength-um, --lateral-resolution-um and --axial-resolution-um or 'system' in the sidecar JSON"
+    ),
 }
 
 
@@ -94,8 +103,10 @@ class BlockRaster:
         if self.n_repeats < 2:
             raise ValueError(f"block raster n_repeats must be >= 2 (frames per location); got {self.n_repeats}")
         if self.drop_boundary < 0 or 2 * self.drop_boundary >= self.bscans_per_block:
-            raise ValueError(f"block raster drop_boundary must be >= 0 and leave B-scans in each block "
-                             f"(< bscans_per_block/2 = {self.bscans_per_block / 2:g}); got {self.drop_boundary}")
+            raise ValueError(
+                f"block raster drop_boundary must be >= 0 and leave B-scans in each block "
+                f"(< bscans_per_block/2 = {self.bscans_per_block / 2:g}); got {self.drop_boundary}"
+            )
 
     @classmethod
     def parse(cls, text: str, drop_boundary: int = 1) -> BlockRaster:
@@ -125,8 +136,10 @@ class BlockRaster:
         Acquisition index of (block b, repeat r, position k) is ``(b·n_repeats + r)·bscans_per_block + k``.
         """
         if data.ndim != 3 or data.shape[0] != self.n_bscans:
-            raise ValueError(f"block raster {self.n_blocks}:{self.n_repeats}:{self.bscans_per_block} needs data "
-                             f"[{self.n_bscans}, Z, X] in acquisition order; got shape {list(data.shape)}")
+            raise ValueError(
+                f"block raster {self.n_blocks}:{self.n_repeats}:{self.bscans_per_block} needs data "
+                f"[{self.n_bscans}, Z, X] in acquisition order; got shape {list(data.shape)}"
+            )
         z, x = data.shape[1:]
         a = data.reshape(self.n_blocks, self.n_repeats, self.bscans_per_block, z, x)
         return a.transpose(1, 0, 2, 3, 4).reshape(self.n_repeats, self.n_y, z, x)
@@ -137,7 +150,7 @@ class BlockRaster:
         d = self.drop_boundary
         for b in range(1, self.n_blocks):
             edge = b * self.bscans_per_block
-            keep[edge - d:edge + d] = False
+            keep[edge - d : edge + d] = False
         return keep
 
     def to_dict(self) -> dict[str, int]:
@@ -192,11 +205,15 @@ class SequenceData:
     def system(self) -> dict[str, Any]:
         """The system dict; a ``ValueError`` says how to give it when it is missing or incomplete."""
         sysd = self.meta.get("system")
-        missing = [k for k in ("wavelength_um", "lateral_resolution_um", "axial_resolution_um")
-                   if not isinstance(sysd, Mapping) or sysd.get(k) is None]
+        missing = [
+            k
+            for k in ("wavelength_um", "lateral_resolution_um", "axial_resolution_um")
+            if not isinstance(sysd, Mapping) or sysd.get(k) is None
+        ]
         if missing:
-            raise ValueError(f"{self.source or 'sequence'}: system metadata missing {', '.join(missing)}; "
-                             f"{HOW['system']}")
+            raise ValueError(
+                f"{self.source or 'sequence'}: system metadata missing {', '.join(missing)}; {HOW['system']}"
+            )
         return dict(sysd)
 
     @property
@@ -215,8 +232,9 @@ def finite_positive(where: str, value: Any) -> float:
     try:
         v = float(value)
     except OverflowError:  # an integer of hundreds of digits
-        raise ValueError(f"{where} must be a finite number > 0; got an integer of {len(str(abs(int(value))))} "
-                         "digits") from None
+        raise ValueError(
+            f"{where} must be a finite number > 0; got an integer of {len(str(abs(int(value))))} digits"
+        ) from None
     if not math.isfinite(v) or v <= 0:
         raise ValueError(f"{where} must be a finite number > 0; got {value!r}")
     return v
@@ -227,16 +245,26 @@ def check_axes(axes: Any, ndim: int | None, where: str) -> str:
         raise TypeError(f"{where}: axes must be a string such as 'TZX' or 'TYZX'; got {axes!r}")
     a = axes.upper()
     if sorted(a) not in (sorted("TZX"), sorted("TYZX")):
-        raise ValueError(f"{where}: axes {axes!r} must be a permutation of TZX or TYZX (T frames, Y slow lateral, "
-                         "Z depth, X fast lateral)")
+        raise ValueError(
+            f"{where}: axes {axes!r} must be a permutation of TZX or TYZX (T frames, Y slow lateral, "
+            "Z depth, X fast lateral)"
+        )
     if ndim is not None and len(a) != ndim:
-        raise ValueError(f"{where}: axes {axes!r} has {len(a)} letters but the data have {ndim} dimensions; "
-                         "give --axes matching the stored array")
+        raise ValueError(
+            f"{where}: axes {axes!r} has {len(a)} letters but the data have {ndim} dimensions; "
+            "give --axes matching the stored array"
+        )
     return a
 
 
-def validate_meta(meta: Mapping[str, Any], shape: _Seq[int], *, where: str = "metadata",
-                  require_system: bool = False, require_pitch: bool = False) -> dict[str, Any]:
+def validate_meta(
+    meta: Mapping[str, Any],
+    shape: _Seq[int],
+    *,
+    where: str = "metadata",
+    require_system: bool = False,
+    require_pitch: bool = False,
+) -> dict[str, Any]:
     """Check metadata against canonical-order data of ``shape``; return a cleaned copy.
 
     Checks: ``axes`` is ``TZX`` or ``TYZX`` and matches the rank; ``pitch_um`` (when present, or when
@@ -275,24 +303,31 @@ def validate_meta(meta: Mapping[str, Any], shape: _Seq[int], *, where: str = "me
     t = []
     for i, v in enumerate(times):  # numbers only: strings are refused here as they are for pitch_um
         if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-            raise TypeError(f"{where}: frame_times_s[{i}] must be a number of seconds; got {type(v).__name__} "
-                            f"{str(v)[:40]!r}")
+            raise TypeError(
+                f"{where}: frame_times_s[{i}] must be a number of seconds; got {type(v).__name__} {str(v)[:40]!r}"
+            )
         try:
             t.append(float(v))
         except OverflowError:
-            raise ValueError(f"{where}: frame_times_s[{i}] must be a finite number of seconds; got an integer of "
-                             f"{len(str(abs(int(v))))} digits") from None
+            raise ValueError(
+                f"{where}: frame_times_s[{i}] must be a finite number of seconds; got an integer of "
+                f"{len(str(abs(int(v))))} digits"
+            ) from None
     if len(t) != shape[0]:
-        raise ValueError(f"{where}: frame_times_s has {len(t)} entries but the data have T = {shape[0]} frames; "
-                         f"{HOW['frame_times_s']}")
+        raise ValueError(
+            f"{where}: frame_times_s has {len(t)} entries but the data have T = {shape[0]} frames; "
+            f"{HOW['frame_times_s']}"
+        )
     bad = next((i for i, v in enumerate(t) if not math.isfinite(v)), None)
     if bad is not None:
         raise ValueError(f"{where}: frame_times_s[{bad}] must be a finite number of seconds; got {times[bad]!r}")
     from ..sim.config import MAX_DURATION_S
 
     if t and not t[-1] - t[0] <= MAX_DURATION_S:  # as in scene files (an infinite span too)
-        raise ValueError(f"{where}: frame_times_s spans {t[0]:g} to {t[-1]:g} s, over {MAX_DURATION_S:g} s as in scene "
-                         "files; times are in seconds (204.8 ms is 0.2048)")
+        raise ValueError(
+            f"{where}: frame_times_s spans {t[0]:g} to {t[-1]:g} s, over {MAX_DURATION_S:g} s as in scene "
+            "files; times are in seconds (204.8 ms is 0.2048)"
+        )
     if any(b <= a for a, b in zip(t, t[1:])):
         raise ValueError(f"{where}: frame_times_s must be strictly increasing (s)")
     out["frame_times_s"] = t
@@ -308,16 +343,20 @@ def validate_meta(meta: Mapping[str, Any], shape: _Seq[int], *, where: str = "me
                 continue
             s[key] = finite_positive(f"{where}: system.{key}", s[key])
         if s.get("wavelength_um") is not None and not (0.1 <= s["wavelength_um"] <= 20.0):
-            raise ValueError(f"{where}: system.wavelength_um = {s['wavelength_um']} is outside 0.1-20 µm; "
-                             "wavelengths are in micrometres (840 nm is 0.84)")
+            raise ValueError(
+                f"{where}: system.wavelength_um = {s['wavelength_um']} is outside 0.1-20 µm; "
+                "wavelengths are in micrometres (840 nm is 0.84)"
+            )
         n = s.get("refractive_index", 1.0)
         s["refractive_index"] = finite_positive(f"{where}: system.refractive_index", 1.0 if n is None else n)
         from ..conventions import REFRACTIVE_INDEX_RANGE
 
         lo_n, hi_n = REFRACTIVE_INDEX_RANGE
         if not lo_n <= s["refractive_index"] <= hi_n:
-            raise ValueError(f"{where}: system.refractive_index must be within [{lo_n:g}, {hi_n:g}] (the phase index "
-                             f"of the medium, tissue about 1.38); got {s['refractive_index']}")
+            raise ValueError(
+                f"{where}: system.refractive_index must be within [{lo_n:g}, {hi_n:g}] (the phase index "
+                f"of the medium, tissue about 1.38); got {s['refractive_index']}"
+            )
         s.setdefault("name", "system")
         out["system"] = s
     br = out.get("block_raster")
@@ -326,8 +365,10 @@ def validate_meta(meta: Mapping[str, Any], shape: _Seq[int], *, where: str = "me
         if not isinstance(raster, BlockRaster):
             raise TypeError(f"{where}: block_raster must be a dict; got {br!r}")
         if axes != "TYZX" or shape[1] != raster.n_y or shape[0] != raster.n_repeats:
-            raise ValueError(f"{where}: block_raster {raster.to_dict()} does not match data {list(shape)} "
-                             f"({axes}): need T = n_repeats and Y = n_blocks·bscans_per_block")
+            raise ValueError(
+                f"{where}: block_raster {raster.to_dict()} does not match data {list(shape)} "
+                f"({axes}): need T = n_repeats and Y = n_blocks·bscans_per_block"
+            )
         out["block_raster"] = raster.to_dict()
     try:
         json.dumps(out)

@@ -53,8 +53,9 @@ def nonfinite_reach_px(seq: SequenceData, target: str | ResolutionTarget) -> dic
     return reach
 
 
-def nonfinite_mask(seq: SequenceData, target: str | ResolutionTarget = "original", *,
-                   edge_mode: str = "reflect") -> np.ndarray | None:
+def nonfinite_mask(
+    seq: SequenceData, target: str | ResolutionTarget = "original", *, edge_mode: str = "reflect"
+) -> np.ndarray | None:
     """The pixels (``[(Y), Z, X]``) that a non-finite sample of ``seq`` reaches at ``target``
     (:func:`~torchdoct.measured.maps.compute_maps` re-weights them after a reduction and makes them NaN at the
     original; its module docstring), or ``None`` when every sample is finite."""
@@ -72,8 +73,9 @@ def _add_halos(a: int | None, b: int | None) -> int | None:
     return None if a is None or b is None else a + b
 
 
-def slab_cut(axes: str, field_needs: Iterable[Mapping[str, int | None]],
-             map_needs: Iterable[Mapping[str, int | None]] = ()) -> tuple[str, int | None, int]:
+def slab_cut(
+    axes: str, field_needs: Iterable[Mapping[str, int | None]], map_needs: Iterable[Mapping[str, int | None]] = ()
+) -> tuple[str, int | None, int]:
     """Where the slab loop of :func:`~torchdoct.measured.maps.compute_maps` cuts one resolution's work: ``(axis, halo, margin)``.
 
     Every stage says what it needs of each spatial axis of a piece (``None``: the axis whole; an integer:

@@ -66,8 +66,18 @@ def read_classes(path: Path, legend: dict[str, Any]) -> list[LayerData]:
     colors: dict[Any, str] = {None: "transparent", 0: "transparent"}
     colors.update({int(c["value"]) + 1: str(c["color"]) for c in legend["classes"]})
     axes = str(legend.get("axes") or ("YZX" if labels.ndim == 3 else "ZX"))
-    return [(labels, {"name": f"{path.stem} classes", "scale": _scale(legend.get("pitch_um"), axes),
-                      "colormap": colors, "metadata": {"legend": legend, "source": path.name}}, "labels")]
+    return [
+        (
+            labels,
+            {
+                "name": f"{path.stem} classes",
+                "scale": _scale(legend.get("pitch_um"), axes),
+                "colormap": colors,
+                "metadata": {"legend": legend, "source": path.name},
+            },
+            "labels",
+        )
+    ]
 
 
 def read_maps_layers(path: Path) -> list[LayerData]:
@@ -82,8 +92,18 @@ def read_maps_layers(path: Path) -> list[LayerData]:
     for i, name in enumerate(m.channels):
         info = m.meta["channels"][i]
         colormap = "gray" if info.get("metric") == "mean_db" else "viridis"
-        out.append((m.maps[i], {"name": name, "scale": scale, "colormap": colormap,
-                                "metadata": {"channel": info, "maps": meta, "source": path.name}}, "image"))
+        out.append(
+            (
+                m.maps[i],
+                {
+                    "name": name,
+                    "scale": scale,
+                    "colormap": colormap,
+                    "metadata": {"channel": info, "maps": meta, "source": path.name},
+                },
+                "image",
+            )
+        )
     return out
 
 
@@ -95,12 +115,22 @@ def read_sequence_layers(path: Path) -> list[LayerData]:
     frames = []
     for k in range(seq.n_frames):  # frame by frame: never the whole complex field at once beside it
         f = np.asarray(seq.data[k])
-        inten = f.real ** 2 + f.imag ** 2 if np.iscomplexobj(f) else f.astype(np.float64)
+        inten = f.real**2 + f.imag**2 if np.iscomplexobj(f) else f.astype(np.float64)
         with np.errstate(divide="ignore", invalid="ignore"):
             frames.append((10 * np.log10(inten)).astype(np.float32))
     scale = (1.0, *_scale(seq.meta.get("pitch_um"), seq.axes[1:]))
-    return [(np.stack(frames), {"name": f"{path.name} (dB)", "scale": scale, "colormap": "gray",
-                                "metadata": {"sequence": seq.meta, "source": path.name}}, "image")]
+    return [
+        (
+            np.stack(frames),
+            {
+                "name": f"{path.name} (dB)",
+                "scale": scale,
+                "colormap": "gray",
+                "metadata": {"sequence": seq.meta, "source": path.name},
+            },
+            "image",
+        )
+    ]
 
 
 def read(path: str | os.PathLike | list) -> list[LayerData]:

@@ -57,8 +57,9 @@ def MapsWidget(napari_viewer: Any) -> Any:
                 exe = shutil.which("doct-classify")
                 if exe is None:
                     raise ValueError("doct-classify is not installed (pip install the classifier with torchdoct)")
-                subprocess.run([exe, str(mpath), "--out", str(Path(d) / "classes")], check=True,
-                               capture_output=True, text=True)
+                subprocess.run(
+                    [exe, str(mpath), "--out", str(Path(d) / "classes")], check=True, capture_output=True, text=True
+                )
                 layers += read(Path(d) / "classes" / "classes.tif")
         return layers
 
@@ -76,8 +77,12 @@ def MapsWidget(napari_viewer: Any) -> Any:
             return
         bar.show()
         status.setText("computing maps …")
-        worker = work(path, [r.strip() for r in res.text().split(";") if r.strip()],
-                      [m.strip() for m in metrics.text().split(",") if m.strip()], model.currentIndex() == 1)
+        worker = work(
+            path,
+            [r.strip() for r in res.text().split(";") if r.strip()],
+            [m.strip() for m in metrics.text().split(",") if m.strip()],
+            model.currentIndex() == 1,
+        )
         worker.returned.connect(done)
         worker.errored.connect(lambda err: (bar.hide(), status.setText(f"error: {err}")))
         worker.start()

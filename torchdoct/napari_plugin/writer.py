@@ -24,15 +24,25 @@ def write_maps(path: str, layers: list[tuple[Any, dict[str, Any], str]]) -> list
             raise ValueError(f"layer {attrs.get('name')!r} is a {kind} layer; DOCT maps are Image layers")
         a = np.asarray(data, dtype=np.float32)
         if arrays and a.shape != arrays[0].shape:
-            raise ValueError(f"layer {attrs.get('name')!r} has shape {a.shape}, not {arrays[0].shape}; maps channels "
-                             "share one grid")
+            raise ValueError(
+                f"layer {attrs.get('name')!r} has shape {a.shape}, not {arrays[0].shape}; maps channels share one grid"
+            )
         arrays.append(a)
         info = (attrs.get("metadata") or {}).get("channel")
         name = str(attrs.get("name"))
-        chans.append(dict(info) if isinstance(info, dict) else
-                     {"name": name, "metric": name.split("@")[0], "unit": "", "resolution":
-                      name.split("@")[1] if "@" in name else "original", "wavelength_um": None,
-                      "lateral_resolution_um": None, "axial_resolution_um": None})
+        chans.append(
+            dict(info)
+            if isinstance(info, dict)
+            else {
+                "name": name,
+                "metric": name.split("@")[0],
+                "unit": "",
+                "resolution": name.split("@")[1] if "@" in name else "original",
+                "wavelength_um": None,
+                "lateral_resolution_um": None,
+                "axial_resolution_um": None,
+            }
+        )
     stack = np.stack(arrays)
     meta = dict(first_meta.get("maps") or {})
     axes = "CZX" if stack.ndim == 3 else "CYZX"

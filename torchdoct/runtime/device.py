@@ -53,6 +53,8 @@ def check_device(device: str | None, what: str = "--device") -> str | None:
             reason = f"no {kind} device is available to torch {torch.__version__}"
         raise ValueError(f"{what} {device!r}: {reason}; {fix}")
     if dev.index is not None and dev.type != "mps" and dev.index >= backend.device_count():
-        raise ValueError(f"{what} {device!r}: there are {backend.device_count()} {dev.type.upper()} devices "
-                         f"(0-{backend.device_count() - 1}); {fix}")
+        raise ValueError(
+            f"{what} {device!r}: there are {backend.device_count()} {dev.type.upper()} devices "
+            f"(0-{backend.device_count() - 1}); {fix}"
+        )
     return device

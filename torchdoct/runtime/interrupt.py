@@ -32,18 +32,32 @@ from collections.abc import Callable, Iterator
 from types import SimpleNamespace
 from typing import Any
 
-__all__ = ["Terminated", "entry_point", "progress_disabled", "silence_progress",
-           "note", "deferred", "worker_init", "EXIT_SIGINT", "EXIT_SIGTERM", "EXTRAS",
-           "EXIT_PIPE", "missing_extra"]
+__all__ = [
+    "Terminated",
+    "entry_point",
+    "progress_disabled",
+    "silence_progress",
+    "note",
+    "deferred",
+    "worker_init",
+    "EXIT_SIGINT",
+    "EXIT_SIGTERM",
+    "EXTRAS",
+    "EXIT_PIPE",
+    "missing_extra",
+]
 
 EXIT_SIGINT = 128 + signal.SIGINT  # 130
 EXIT_SIGTERM = 128 + signal.SIGTERM  # 143
 EXIT_PIPE = 128 + 13  # 141: SIGPIPE, the reader of the output went away
 
 #: Optional top-level modules → the extra of ``pyproject.toml`` that installs them.
-EXTRAS = {**dict.fromkeys(("torch", "scipy", "pandas", "pyarrow", "threadpoolctl"), "sim"),
-          **dict.fromkeys(("sklearn", "onnx"), "train"), **dict.fromkeys(("dask", "distributed"), "dask"),
-          **dict.fromkeys(("napari", "npe2"), "napari")}
+EXTRAS = {
+    **dict.fromkeys(("torch", "scipy", "pandas", "pyarrow", "threadpoolctl"), "sim"),
+    **dict.fromkeys(("sklearn", "onnx"), "train"),
+    **dict.fromkeys(("dask", "distributed"), "dask"),
+    **dict.fromkeys(("napari", "npe2"), "napari"),
+}
 
 _NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
 #: A command's progress bar shows only once its run has taken this long (s); ``$TQDM_DELAY`` overrides.
@@ -114,7 +128,9 @@ def note(kept: str | None = None, resume: str | None = None, key: str = "") -> N
 def message(signum: int) -> str:
     """The one line printed when the command is interrupted by ``signum``."""
     s = _state()
-    what = f"kept {'; '.join(s.kept.values())}" if s.kept else "no output was written (outputs appear only when complete)"
+    what = (
+        f"kept {'; '.join(s.kept.values())}" if s.kept else "no output was written (outputs appear only when complete)"
+    )
     return f"interrupted ({_NAMES.get(signum, f'signal {signum}')}): {what}; {s.resume or 'rerun the same command'}"
 
 
@@ -215,8 +231,10 @@ def missing_extra(err: ModuleNotFoundError) -> str | None:
     if extra is None:
         return None
     pin = "torch==2.13.0 " if extra in ("sim", "train") else ""  # the CPU build of torch, pinned first
-    return (f"error: this command needs {top}, which the install left out; install the {extra!r} extra: "
-            f"pip install {pin}'torchdoct[{extra}]'")
+    return (
+        f"error: this command needs {top}, which the install left out; install the {extra!r} extra: "
+        f"pip install {pin}'torchdoct[{extra}]'"
+    )
 
 
 def worker_init(parent_pid: int | None = None) -> None:

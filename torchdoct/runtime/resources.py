@@ -38,11 +38,27 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import NamedTuple
 
-__all__ = ["ResourceLimitError", "MemoryLimitError", "DiskLimitError", "MemoryBudget", "memory_budget",
-           "available_memory_bytes", "free_disk_bytes",
-           "format_gb", "check_resources", "maps_bytes", "check_maps", "declared_array_bytes", "classify_bytes",
-           "check_classify", "check_compare", "check_bench", "MAPS_WORK_COPIES", "CLASSIFY_COPIES",
-           "COMPARE_COPIES"]
+__all__ = [
+    "ResourceLimitError",
+    "MemoryLimitError",
+    "DiskLimitError",
+    "MemoryBudget",
+    "memory_budget",
+    "available_memory_bytes",
+    "free_disk_bytes",
+    "format_gb",
+    "check_resources",
+    "maps_bytes",
+    "check_maps",
+    "declared_array_bytes",
+    "classify_bytes",
+    "check_classify",
+    "check_compare",
+    "check_bench",
+    "MAPS_WORK_COPIES",
+    "CLASSIFY_COPIES",
+    "COMPARE_COPIES",
+]
 
 
 class ResourceLimitError(ValueError):
@@ -135,7 +151,11 @@ def _cgroup_headroom(proc: str = "/proc", root: str = "/sys/fs/cgroup") -> int |
         if parts[0] == "0" and controllers == "":
             base, limit_name, usage_name = root, "memory.max", "memory.current"
         elif "memory" in controllers.split(","):
-            base, limit_name, usage_name = os.path.join(root, "memory"), "memory.limit_in_bytes", "memory.usage_in_bytes"
+            base, limit_name, usage_name = (
+                os.path.join(root, "memory"),
+                "memory.limit_in_bytes",
+                "memory.usage_in_bytes",
+            )
         else:
             continue
         rel = rel.strip("/")
@@ -156,11 +176,23 @@ def memory_budget(*, proc: str = "/proc", cgroup_root: str = "/sys/fs/cgroup") -
     the address-space limit ``RLIMIT_AS`` less the address space in use, and the memory cgroup's limit
     less its usage (v1 or v2, this cgroup and its ancestors); ``None`` where none is known (not Linux).
     ``proc``/``cgroup_root``: where those files are (tests give a made-up tree)."""
-    found = [(b, src, hard) for b, src, hard in (
-        (_mem_available(proc), "MemAvailable of the machine", False),
-        (_address_space_headroom(proc), "the address-space limit RLIMIT_AS (ulimit -v) less what this process uses", True),
-        (_cgroup_headroom(proc, cgroup_root), "the memory limit of this process's cgroup (container) less its usage",
-         True)) if b is not None]
+    found = [
+        (b, src, hard)
+        for b, src, hard in (
+            (_mem_available(proc), "MemAvailable of the machine", False),
+            (
+                _address_space_headroom(proc),
+                "the address-space limit RLIMIT_AS (ulimit -v) less what this process uses",
+                True,
+            ),
+            (
+                _cgroup_headroom(proc, cgroup_root),
+                "the memory limit of this process's cgroup (container) less its usage",
+                True,
+            ),
+        )
+        if b is not None
+    ]
     if not found:
         return None
     return MemoryBudget(*min(found, key=lambda f: f[0]))
@@ -188,9 +220,16 @@ def format_gb(n: float) -> str:
     return f"{n / 2**30:.2f} GB"
 
 
-def check_resources(what: str, need_bytes: float, fix: str, *, detail: str = "",
-                    out_path: str | os.PathLike | None = None, out_bytes: float = 0,
-                    out_fix: str | None = None) -> None:
+def check_resources(
+    what: str,
+    need_bytes: float,
+    fix: str,
+    *,
+    detail: str = "",
+    out_path: str | os.PathLike | None = None,
+    out_bytes: float = 0,
+    out_fix: str | None = None,
+) -> None:
     """Refuse, before any work, a run that would not fit.
 
     ``what`` names the input (``"maps of scan.npy"``, ``"sweep 'diffusion' cell 3 (...)"``); the
@@ -203,13 +242,18 @@ def check_resources(what: str, need_bytes: float, fix: str, *, detail: str = "",
     if avail is not None and need_bytes > avail:
         budget = memory_budget()
         source = f" ({budget.source})" if budget is not None and budget.bytes == avail and budget.hard else ""
-        raise MemoryLimitError(f"{what} needs about {format_gb(need_bytes)}" + (f" ({detail})" if detail else "")
-                               + f" but only {format_gb(avail)} are available{source}; {fix}")
+        raise MemoryLimitError(
+            f"{what} needs about {format_gb(need_bytes)}"
+            + (f" ({detail})" if detail else "")
+            + f" but only {format_gb(avail)} are available{source}; {fix}"
+        )
     if out_path is not None and out_bytes > 0:
         free = free_disk_bytes(out_path)
         if free is not None and out_bytes > free:
-            raise DiskLimitError(f"{what}: the output {out_path} takes about {format_gb(out_bytes)} on disk but only "
-                                 f"{format_gb(free)} are free there; {out_fix or fix}")
+            raise DiskLimitError(
+                f"{what}: the output {out_path} takes about {format_gb(out_bytes)} on disk but only "
+                f"{format_gb(free)} are free there; {out_fix or fix}"
+            )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -221,8 +265,15 @@ def check_resources(what: str, need_bytes: float, fix: str, *, detail: str = "",
 MAPS_WORK_COPIES = 10
 
 
-def maps_bytes(shape: Iterable[int], itemsize: int, *, complex_samples: bool, n_resolutions: int,
-               metrics: Iterable[str], slab_elements: int) -> tuple[int, int]:
+def maps_bytes(
+    shape: Iterable[int],
+    itemsize: int,
+    *,
+    complex_samples: bool,
+    n_resolutions: int,
+    metrics: Iterable[str],
+    slab_elements: int,
+) -> tuple[int, int]:
     """Peak working memory and output bytes (float32 maps) of ``torchdoct maps``.
 
     ``shape``: the sequence ``[T, (Y,) Z, X]``, its sample ``itemsize`` (bytes) and whether the samples
@@ -244,8 +295,16 @@ def maps_bytes(shape: Iterable[int], itemsize: int, *, complex_samples: bool, n_
     return MAPS_WORK_COPIES * slab + channels * pixels * real + out_disk, out_disk
 
 
-def slab_elements_within(budget_gb: float, shape: Iterable[int], itemsize: int, *, complex_samples: bool,
-                         n_resolutions: int, metrics: Iterable[str], source: str = "sequence") -> int:
+def slab_elements_within(
+    budget_gb: float,
+    shape: Iterable[int],
+    itemsize: int,
+    *,
+    complex_samples: bool,
+    n_resolutions: int,
+    metrics: Iterable[str],
+    source: str = "sequence",
+) -> int:
     """The largest ``slab_elements`` whose working memory (:func:`maps_bytes`: the output maps plus
     :data:`MAPS_WORK_COPIES` copies of a slab) fits ``budget_gb`` GiB (``--max-memory-gb``); the interpreter
     and torch themselves are not counted. A budget the output maps alone fill is a ``ValueError`` naming
@@ -255,36 +314,68 @@ def slab_elements_within(budget_gb: float, shape: Iterable[int], itemsize: int, 
     if not (isinstance(budget_gb, (int, float)) and math.isfinite(budget_gb) and budget_gb > 0):
         raise ValueError(f"--max-memory-gb must be a positive number of GiB; got {budget_gb!r}")
     dims = [int(d) for d in shape]
-    fixed, _ = maps_bytes(dims, itemsize, complex_samples=complex_samples, n_resolutions=n_resolutions,
-                          metrics=list(metrics), slab_elements=0)
+    fixed, _ = maps_bytes(
+        dims,
+        itemsize,
+        complex_samples=complex_samples,
+        n_resolutions=n_resolutions,
+        metrics=list(metrics),
+        slab_elements=0,
+    )
     per_frame_row = dims[0] * int(itemsize)  # a slab holds at least every frame of one pixel row
     free = int(budget_gb * (1 << 30)) - fixed
     n = free // (MAPS_WORK_COPIES * int(itemsize))
     if n < dims[0]:
-        raise ValueError(f"maps of {source}: --max-memory-gb {budget_gb:g} leaves no room for a slab: the output maps "
-                         f"alone take {fixed / (1 << 30):.3g} GiB and a slab needs {MAPS_WORK_COPIES} × "
-                         f"{per_frame_row} bytes more; raise --max-memory-gb or give fewer --resolution / --metrics")
+        raise ValueError(
+            f"maps of {source}: --max-memory-gb {budget_gb:g} leaves no room for a slab: the output maps "
+            f"alone take {fixed / (1 << 30):.3g} GiB and a slab needs {MAPS_WORK_COPIES} × "
+            f"{per_frame_row} bytes more; raise --max-memory-gb or give fewer --resolution / --metrics"
+        )
     return int(n)
 
 
-def check_maps(source: str, shape: Iterable[int], itemsize: int, *, complex_samples: bool, n_resolutions: int,
-               metrics: Iterable[str], slab_elements: int | None, out_paths: Iterable[str | os.PathLike] = ()) -> None:
+def check_maps(
+    source: str,
+    shape: Iterable[int],
+    itemsize: int,
+    *,
+    complex_samples: bool,
+    n_resolutions: int,
+    metrics: Iterable[str],
+    slab_elements: int | None,
+    out_paths: Iterable[str | os.PathLike] = (),
+) -> None:
     """The resource check of ``torchdoct maps`` (:func:`maps_bytes`), naming the sequence ``source`` and the
     options that lower the need: the memory (not with ``slab_elements=None``) and the disk space of the
     ``out_paths`` (float32 maps)."""
     dims = [int(d) for d in shape]
     metrics = list(metrics)
-    need, out_disk = maps_bytes(dims, itemsize, complex_samples=complex_samples, n_resolutions=n_resolutions,
-                                metrics=metrics, slab_elements=slab_elements or 0)
+    need, out_disk = maps_bytes(
+        dims,
+        itemsize,
+        complex_samples=complex_samples,
+        n_resolutions=n_resolutions,
+        metrics=metrics,
+        slab_elements=slab_elements or 0,
+    )
     what = f"maps of {source}"
-    fix = ("give fewer --resolution values or --metrics, or crop the sequence (fewer B-scans, depths or A-lines); "
-           "the slab size (slab_elements) bounds the working memory")
+    fix = (
+        "give fewer --resolution values or --metrics, or crop the sequence (fewer B-scans, depths or A-lines); "
+        "the slab size (slab_elements) bounds the working memory"
+    )
     if slab_elements is not None:
-        check_resources(what, need, fix,
-                        detail=f"sequence {dims}, {n_resolutions} resolution(s), {len(metrics)} metric(s)")
+        check_resources(
+            what, need, fix, detail=f"sequence {dims}, {n_resolutions} resolution(s), {len(metrics)} metric(s)"
+        )
     for o in out_paths:
-        check_resources(what, 0, fix, out_path=o, out_bytes=out_disk,
-                        out_fix="free disk space there, write --out elsewhere, or " + fix.split(";")[0])
+        check_resources(
+            what,
+            0,
+            fix,
+            out_path=o,
+            out_bytes=out_disk,
+            out_fix="free disk space there, write --out elsewhere, or " + fix.split(";")[0],
+        )
 
 
 def declared_array_bytes(path: str | os.PathLike) -> int:
@@ -331,15 +422,24 @@ def _declared_total(paths: Iterable[str | os.PathLike], limit_bytes: int | None)
 def _check_maps_files(what: str, paths: list, copies: int, fix: str, limit_bytes: int | None) -> None:
     need = copies * _declared_total(paths, limit_bytes)
     names = ", ".join(Path(p).name for p in paths)
-    check_resources(f"{what} of {names}", need, fix,
-                    detail=f"{copies} × the maps arrays the files declare, {format_gb(need / copies)}")
+    check_resources(
+        f"{what} of {names}",
+        need,
+        fix,
+        detail=f"{copies} × the maps arrays the files declare, {format_gb(need / copies)}",
+    )
 
 
 def check_classify(command: str, paths: Iterable[str | os.PathLike], limit_bytes: int | None = None) -> None:
     """The resource check of ``doct-classify`` (``command``) and ``torchdoct translate``: :func:`classify_bytes`
     of the maps ``paths``, naming them and the fix."""
-    _check_maps_files(command, list(paths), CLASSIFY_COPIES,
-                      "classify a crop of the maps (fewer B-scans or pixels), or fewer maps files at once", limit_bytes)
+    _check_maps_files(
+        command,
+        list(paths),
+        CLASSIFY_COPIES,
+        "classify a crop of the maps (fewer B-scans or pixels), or fewer maps files at once",
+        limit_bytes,
+    )
 
 
 #: Copies of the maps that ``torchdoct compare`` holds at once: every file's channels as read, and the
@@ -350,8 +450,13 @@ COMPARE_COPIES = 2
 def check_compare(paths: Iterable[str | os.PathLike], limit_bytes: int | None = None) -> None:
     """The resource check of ``torchdoct compare``: :data:`COMPARE_COPIES` × the declared arrays of every maps
     file (all samples are held at once for the tests), naming the files and the fix."""
-    _check_maps_files("torchdoct compare", list(paths), COMPARE_COPIES,
-                      "compare fewer maps files at once, or crops of them (fewer B-scans or pixels)", limit_bytes)
+    _check_maps_files(
+        "torchdoct compare",
+        list(paths),
+        COMPARE_COPIES,
+        "compare fewer maps files at once, or crops of them (fewer B-scans or pixels)",
+        limit_bytes,
+    )
 
 
 def check_bench(command: str, need_bytes: float, sizes: str, fix: str) -> None:

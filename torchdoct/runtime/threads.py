@@ -33,8 +33,16 @@ import threading
 from collections.abc import Callable, Iterable, Iterator
 from typing import TypeVar
 
-__all__ = ["default_threads", "set_default_threads", "limit_process_threads", "using_threads", "resolve_threads",
-           "single_torch_thread", "one_torch_thread", "map_ordered"]
+__all__ = [
+    "default_threads",
+    "set_default_threads",
+    "limit_process_threads",
+    "using_threads",
+    "resolve_threads",
+    "single_torch_thread",
+    "one_torch_thread",
+    "map_ordered",
+]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -68,8 +76,9 @@ def default_threads() -> int:
         try:
             return _check(int(env), "TORCHDOCT_THREADS")
         except ValueError:
-            raise ValueError(f"TORCHDOCT_THREADS must be an integer >= 1 (the number of cores to use); "
-                             f"got {env!r}") from None
+            raise ValueError(
+                f"TORCHDOCT_THREADS must be an integer >= 1 (the number of cores to use); got {env!r}"
+            ) from None
     return _usable_cores()
 
 
@@ -138,10 +147,12 @@ def single_torch_thread() -> Iterator[None]:
 
 def one_torch_thread(fn: Callable[..., R]) -> Callable[..., R]:
     """Decorator: ``fn`` runs inside :func:`single_torch_thread`."""
+
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         with single_torch_thread():
             return fn(*args, **kwargs)
+
     return wrapper
 
 

@@ -8,6 +8,10 @@ the fix.
 
 Units follow :mod:`torchdoct.conventions`: lengths µm, times s, wavelength in vacuum µm, lateral
 resolution = 1/e² full width of the intensity PSF, axial resolution = intensity FWHM.
+
+Kept whole (over 800 lines): the scene's frozen dataclasses share one set of checkers (``_number``,
+``_integer``, ``_string``, ``_check_keys``) that name every key path the same way; splitting the classes
+from their checkers would make every error message a cross-module contract.
 """
 
 from __future__ import annotations
@@ -69,17 +73,29 @@ def _fail(path: str, msg: str, fix: str | None = None) -> None:
     raise SceneError(text)
 
 
-def _number(path: str, value: Any, *, positive: bool = False, nonneg: bool = False,
-            lo: float | None = None, hi: float | None = None, unit: str = "") -> float:
+def _number(
+    path: str,
+    value: Any,
+    *,
+    positive: bool = False,
+    nonneg: bool = False,
+    lo: float | None = None,
+    hi: float | None = None,
+    unit: str = "",
+) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise TypeError(f"{path} must be a number{(' in ' + unit) if unit else ''}; "
-                        f"got {type(value).__name__} {value!r}")
+        raise TypeError(
+            f"{path} must be a number{(' in ' + unit) if unit else ''}; got {type(value).__name__} {value!r}"
+        )
     u = f" {unit}" if unit else ""
     try:
         v = float(value)
     except OverflowError:  # an integer of hundreds of digits
-        _fail(path, f"must be a finite number{u}; got an integer of {len(str(abs(value)))} digits, beyond any float",
-              "give a finite value")
+        _fail(
+            path,
+            f"must be a finite number{u}; got an integer of {len(str(abs(value)))} digits, beyond any float",
+            "give a finite value",
+        )
     if not math.isfinite(v):
         _fail(path, f"must be a finite number{u}; got {value!r}", "give a finite value")
     if positive and v <= 0:
@@ -145,20 +161,23 @@ class OCTSystem:
             _fail(f"{p}.name", "must not be empty", "give each system a short unique name")
         _number(f"{p}.wavelength_um", self.wavelength_um, positive=True, unit="µm")
         if not (0.1 <= self.wavelength_um <= 20.0):
-            _fail(f"{p}.wavelength_um", f"{self.wavelength_um} µm is outside 0.1-20 µm",
-                  "wavelengths are in micrometres: 840 nm is 0.84")
+            _fail(
+                f"{p}.wavelength_um",
+                f"{self.wavelength_um} µm is outside 0.1-20 µm",
+                "wavelengths are in micrometres: 840 nm is 0.84",
+            )
         _number(f"{p}.lateral_resolution_um", self.lateral_resolution_um, positive=True, unit="µm")
         _number(f"{p}.axial_resolution_um", self.axial_resolution_um, positive=True, unit="µm")
         if self.lateral_resolution_y_um is not None:
             _number(f"{p}.lateral_resolution_y_um", self.lateral_resolution_y_um, positive=True, unit="µm")
         for key in ("lateral_resolution_um", "lateral_resolution_y_um", "axial_resolution_um"):
             if getattr(self, key) is not None and getattr(self, key) > 1e4:
-                _fail(f"{p}.{key}", f"{getattr(self, key)} µm is larger than 1 cm",
-                      "resolutions are in micrometres")
+                _fail(f"{p}.{key}", f"{getattr(self, key)} µm is larger than 1 cm", "resolutions are in micrometres")
         from ..conventions import REFRACTIVE_INDEX_RANGE
 
-        _number(f"{p}.refractive_index", self.refractive_index, lo=REFRACTIVE_INDEX_RANGE[0],
-                hi=REFRACTIVE_INDEX_RANGE[1])
+        _number(
+            f"{p}.refractive_index", self.refractive_index, lo=REFRACTIVE_INDEX_RANGE[0], hi=REFRACTIVE_INDEX_RANGE[1]
+        )
 
     @property
     def lateral_widths_um(self) -> tuple[float, float]:
@@ -184,28 +203,37 @@ class Protocol:
     def __post_init__(self) -> None:
         _integer("protocol.n_frames", self.n_frames, lo=2, hi=MAX_FRAMES)
         if (self.frame_interval_s is None) == (self.frame_times_s is None):
-            _fail("protocol", "give exactly one of frame_interval_s and frame_times_s",
-                  "e.g. frame_interval_s = 0.2048")
+            _fail(
+                "protocol", "give exactly one of frame_interval_s and frame_times_s", "e.g. frame_interval_s = 0.2048"
+            )
         if self.frame_interval_s is not None:
             _number("protocol.frame_interval_s", self.frame_interval_s, positive=True, unit="s")
             if self.frame_interval_s * (self.n_frames - 1) > MAX_DURATION_S:
-                _fail("protocol.frame_interval_s", f"{self.frame_interval_s} s × {self.n_frames - 1} intervals "
-                      f"exceeds {MAX_DURATION_S:g} s", "times are in seconds: 204.8 ms is 0.2048")
+                _fail(
+                    "protocol.frame_interval_s",
+                    f"{self.frame_interval_s} s × {self.n_frames - 1} intervals exceeds {MAX_DURATION_S:g} s",
+                    "times are in seconds: 204.8 ms is 0.2048",
+                )
         else:
             times = self.frame_times_s
             if not isinstance(times, (list, tuple)):
                 raise TypeError(f"protocol.frame_times_s must be a list of times in s; got {times!r}")
-            times = tuple(_number(f"protocol.frame_times_s[{i}]", t, unit="s")
-                          for i, t in enumerate(times))
+            times = tuple(_number(f"protocol.frame_times_s[{i}]", t, unit="s") for i, t in enumerate(times))
             object.__setattr__(self, "frame_times_s", times)
             if len(times) != self.n_frames:
-                _fail("protocol.frame_times_s", f"has {len(times)} entries but n_frames = {self.n_frames}",
-                      "make n_frames equal to the number of frame times")
+                _fail(
+                    "protocol.frame_times_s",
+                    f"has {len(times)} entries but n_frames = {self.n_frames}",
+                    "make n_frames equal to the number of frame times",
+                )
             if any(b <= a for a, b in zip(times, times[1:])):
                 _fail("protocol.frame_times_s", "must be strictly increasing")
             if times[-1] - times[0] > MAX_DURATION_S:
-                _fail("protocol.frame_times_s", f"span {times[-1] - times[0]:g} s exceeds {MAX_DURATION_S:g} s",
-                      "times are in seconds")
+                _fail(
+                    "protocol.frame_times_s",
+                    f"span {times[-1] - times[0]:g} s exceeds {MAX_DURATION_S:g} s",
+                    "times are in seconds",
+                )
 
     @property
     def times_s(self) -> tuple[float, ...]:
@@ -238,8 +266,13 @@ class Diffusion:
     kind: Literal["diffusion"] = "diffusion"
 
     def validate(self, path: str) -> None:
-        _number(f"{path}.diffusion_um2_per_s", self.diffusion_um2_per_s, nonneg=True, hi=MAX_DIFFUSION_UM2_PER_S,
-                unit="µm²/s")
+        _number(
+            f"{path}.diffusion_um2_per_s",
+            self.diffusion_um2_per_s,
+            nonneg=True,
+            hi=MAX_DIFFUSION_UM2_PER_S,
+            unit="µm²/s",
+        )
 
     @property
     def is_zero(self) -> bool:
@@ -317,12 +350,18 @@ class Population:
         p = f"population[{self.name!r}]" if self.name else "population"
         _number(f"{p}.density_per_um3", self.density_per_um3, positive=True, unit="µm⁻³")
         if self.density_per_um3 > 1e3:
-            _fail(f"{p}.density_per_um3", f"{self.density_per_um3} per µm³ is beyond 1000",
-                  "density is per cubic micrometre: 0.055 means 5.5e7 per mm³")
+            _fail(
+                f"{p}.density_per_um3",
+                f"{self.density_per_um3} per µm³ is beyond 1000",
+                "density is per cubic micrometre: 0.055 means 5.5e7 per mm³",
+            )
         _number(f"{p}.reflectivity", self.reflectivity, positive=True)
         if self.reflectivity > 1e6:
-            _fail(f"{p}.reflectivity", f"{self.reflectivity} is beyond 1e6",
-                  "reflectivity is a relative field amplitude (1 = the reference scatterer); use relative values")
+            _fail(
+                f"{p}.reflectivity",
+                f"{self.reflectivity} is beyond 1e6",
+                "reflectivity is a relative field amplitude (1 = the reference scatterer); use relative values",
+            )
         object.__setattr__(self, "motion", tuple(self.motion))
         for i, m in enumerate(self.motion):
             if not isinstance(m, (Diffusion, RandomBallistic, Flow)):
@@ -406,8 +445,7 @@ class Analysis:
         r = self.ocds_delay_range_s
         if not isinstance(r, (list, tuple)) or len(r) != 2:
             raise TypeError(f"analysis.ocds_delay_range_s must be [min_s, max_s]; got {r!r}")
-        r = tuple(_number(f"analysis.ocds_delay_range_s[{i}]", x, positive=True, unit="s")
-                  for i, x in enumerate(r))
+        r = tuple(_number(f"analysis.ocds_delay_range_s[{i}]", x, positive=True, unit="s") for i, x in enumerate(r))
         if r[1] <= r[0]:
             _fail("analysis.ocds_delay_range_s", f"max must exceed min; got {list(r)}")
         object.__setattr__(self, "ocds_delay_range_s", r)
@@ -477,15 +515,21 @@ class Scene:
             inside = [d for d in delays if lo - tol <= d <= hi + tol]
             if len(inside) >= 2:
                 try:
-                    check_ocds_pairs(self.protocol.times_s, (lo, hi), "analysis.ocds_delay_range_s",
-                                     "narrow ocds_delay_range_s or raise protocol.n_frames")
+                    check_ocds_pairs(
+                        self.protocol.times_s,
+                        (lo, hi),
+                        "analysis.ocds_delay_range_s",
+                        "narrow ocds_delay_range_s or raise protocol.n_frames",
+                    )
                 except ValueError as err:
                     raise SceneError(str(err)) from None
             if len(inside) < 2:
-                _fail("analysis.ocds_delay_range_s",
-                      f"[{lo}, {hi}] s holds {len(inside)} frame delay(s) of the protocol "
-                      f"(delays {delays[0]:.6g} ... {delays[-1]:.6g} s); OCDS needs at least 2",
-                      "widen the range or lengthen the protocol")
+                _fail(
+                    "analysis.ocds_delay_range_s",
+                    f"[{lo}, {hi}] s holds {len(inside)} frame delay(s) of the protocol "
+                    f"(delays {delays[0]:.6g} ... {delays[-1]:.6g} s); OCDS needs at least 2",
+                    "widen the range or lengthen the protocol",
+                )
 
     @property
     def delays_s(self) -> tuple[float, ...]:
@@ -502,8 +546,10 @@ class Scene:
             out["name"] = self.name
         if self.description:
             out["description"] = self.description
-        out["system"] = [{k: v for k, v in dataclasses.asdict(s).items()
-                          if not (k == "lateral_resolution_y_um" and v is None)} for s in self.systems]
+        out["system"] = [
+            {k: v for k, v in dataclasses.asdict(s).items() if not (k == "lateral_resolution_y_um" and v is None)}
+            for s in self.systems
+        ]
         pr: dict[str, Any] = {"n_frames": self.protocol.n_frames}
         if self.protocol.frame_interval_s is not None:
             pr["frame_interval_s"] = self.protocol.frame_interval_s
@@ -576,8 +622,12 @@ def delay_pair_counts(frame_times_s: Any) -> list[tuple[float, int]]:
     return [(d, len(ij)) for d, ij in delay_groups(times)]
 
 
-def check_ocds_pairs(frame_times_s: Any, delay_range_s: Any, where: str = "ocds_delay_range_s",
-                     fix: str = "narrow the delay range or record more frames") -> None:
+def check_ocds_pairs(
+    frame_times_s: Any,
+    delay_range_s: Any,
+    where: str = "ocds_delay_range_s",
+    fix: str = "narrow the delay range or record more frames",
+) -> None:
     """Refuse (``ValueError``) an OCDS whose delay range includes a delay resting on fewer than
     :data:`MIN_PAIRS_PER_DELAY` frame pairs, naming ``where``, the delay, its pairs, the largest delay
     that has enough and the ``fix``."""
@@ -593,10 +643,12 @@ def check_ocds_pairs(frame_times_s: Any, delay_range_s: Any, where: str = "ocds_
     enough = [d for d, c in inside if c >= MIN_PAIRS_PER_DELAY]
     d, c = thin[0]
     more = f" (and {len(thin) - 1} more delay(s) above it)" if len(thin) > 1 else ""
-    upto = (f"; the delays up to {max(enough):.6g} s have enough" if enough else "")
-    raise ValueError(f"{where}: [{lo:g}, {hi:g}] s includes the delay {d:.6g} s, which rests on {c} frame pair(s)"
-                     f"{more}; a lag correlation of fewer than {MIN_PAIRS_PER_DELAY} pairs is no estimate (one pair "
-                     f"has nothing to correlate: its ρ = 1 is a convention, whatever the data){upto}: {fix}")
+    upto = f"; the delays up to {max(enough):.6g} s have enough" if enough else ""
+    raise ValueError(
+        f"{where}: [{lo:g}, {hi:g}] s includes the delay {d:.6g} s, which rests on {c} frame pair(s)"
+        f"{more}; a lag correlation of fewer than {MIN_PAIRS_PER_DELAY} pairs is no estimate (one pair "
+        f"has nothing to correlate: its ρ = 1 is a convention, whatever the data){upto}: {fix}"
+    )
 
 
 def whole_argument(name: str, value: Any) -> int:
@@ -606,8 +658,10 @@ def whole_argument(name: str, value: Any) -> int:
     import operator
 
     if isinstance(value, bool) or isinstance(value, float) or not hasattr(type(value), "__index__"):
-        raise TypeError(f"{name} must be an integer; got {type(value).__name__} {value!r}"
-                        + (" (pass int(...) if truncation is meant)" if isinstance(value, float) else ""))
+        raise TypeError(
+            f"{name} must be an integer; got {type(value).__name__} {value!r}"
+            + (" (pass int(...) if truncation is meant)" if isinstance(value, float) else "")
+        )
     return operator.index(value)
 
 
@@ -618,8 +672,10 @@ def check_scene_argument(func: str, value: Any, cls: type | None = None, loader:
     if isinstance(value, cls):
         return
     if isinstance(value, (str, os.PathLike)):
-        raise TypeError(f"{func} takes a {cls.__name__}, not the name or path {str(value)!r}: load it first, "
-                        f"{func.split('(')[0]}({loader}({str(value)!r}))")
+        raise TypeError(
+            f"{func} takes a {cls.__name__}, not the name or path {str(value)!r}: load it first, "
+            f"{func.split('(')[0]}({loader}({str(value)!r}))"
+        )
     raise TypeError(f"{func} takes a {cls.__name__} (from {loader}); got {type(value).__name__}")
 
 
@@ -627,8 +683,10 @@ def check_path_argument(func: str, value: Any, what: str) -> None:
     """A ``TypeError`` naming ``func`` when ``value`` is neither a path (``str``, ``os.PathLike``) nor a name:
     ``td.load_scene(42)`` says what it takes instead of an internal message."""
     if not isinstance(value, (str, os.PathLike)) or (isinstance(value, str) and not value.strip()):
-        raise TypeError(f"{func} takes the path of a {what} file or the name of a shipped {what}; got "
-                        f"{type(value).__name__} {str(value)[:40]!r}")
+        raise TypeError(
+            f"{func} takes the path of a {what} file or the name of a shipped {what}; got "
+            f"{type(value).__name__} {str(value)[:40]!r}"
+        )
 
 
 def check_count(path: str, n: int) -> None:
@@ -637,8 +695,11 @@ def check_count(path: str, n: int) -> None:
     kind = path.rsplit(".", 1)[-1]
     limit = MAX_TABLES.get(kind)
     if limit is not None and n > limit:
-        _fail(path, f"{n} [[{kind}]] tables; at most {limit} are accepted (each is validated and planned)",
-              f"split the file into several with at most {limit} each")
+        _fail(
+            path,
+            f"{n} [[{kind}]] tables; at most {limit} are accepted (each is validated and planned)",
+            f"split the file into several with at most {limit} each",
+        )
 
 
 def _build(path: str, cls: type, kwargs: dict[str, Any]) -> Any:
@@ -654,13 +715,19 @@ def _build(path: str, cls: type, kwargs: dict[str, Any]) -> Any:
             prefixes.append(f"population[{kwargs.get('name')!r}]" if kwargs.get("name") else "population")
         for pre in prefixes:
             if msg.startswith(pre + "."):
-                msg = path + msg[len(pre):]
+                msg = path + msg[len(pre) :]
                 break
         raise type(err)(msg) from None
 
 
-_SYSTEM_KEYS = {"name", "wavelength_um", "lateral_resolution_um", "axial_resolution_um", "refractive_index",
-                "lateral_resolution_y_um"}
+_SYSTEM_KEYS = {
+    "name",
+    "wavelength_um",
+    "lateral_resolution_um",
+    "axial_resolution_um",
+    "refractive_index",
+    "lateral_resolution_y_um",
+}
 _MOTION_KEYS = {
     "diffusion": {"kind", "diffusion_um2_per_s"},
     "ballistic": {"kind", "speed_um_per_s", "directions"},
@@ -675,15 +742,18 @@ _MOTION_REQUIRED = {
 
 def scene_from_dict(data: dict[str, Any]) -> Scene:
     """Build a validated :class:`Scene` from the scene-file schema (see the README)."""
-    _check_keys("scene", data, {"name", "description", "system", "protocol", "population", "noise",
-                                "analysis", "simulation"}, {"system", "protocol", "population"})
+    _check_keys(
+        "scene",
+        data,
+        {"name", "description", "system", "protocol", "population", "noise", "analysis", "simulation"},
+        {"system", "protocol", "population"},
+    )
     systems = []
     for i, s in enumerate(_list_of_tables("system", data["system"])):
         p = f"system[{i}]"
         _check_keys(p, s, _SYSTEM_KEYS, _SYSTEM_KEYS - {"refractive_index", "lateral_resolution_y_um"})
         systems.append(_build(p, OCTSystem, dict(s)))
-    pr = _check_keys("protocol", data["protocol"], {"n_frames", "frame_interval_s", "frame_times_s"},
-                     {"n_frames"})
+    pr = _check_keys("protocol", data["protocol"], {"n_frames", "frame_interval_s", "frame_times_s"}, {"n_frames"})
     protocol = Protocol(**pr)
     populations = []
     for i, pop in enumerate(_list_of_tables("population", data["population"])):
@@ -711,16 +781,30 @@ def scene_from_dict(data: dict[str, Any]) -> Scene:
     if "noise" in data:
         n = _check_keys("noise", data["noise"], {"snr_db"}, {"snr_db"})
         noise = Noise(**n)
-    analysis = Analysis(**_check_keys("analysis", data.get("analysis", {}),
-                                      {"metrics", "ocds_delay_range_s", "ocds_scale", "ocds_estimator"}))
-    simulation = SimulationSettings(**_check_keys(
-        "simulation", data.get("simulation", {}), {"trials", "seed", "truncation_tolerance", "dtype", "truncation"}))
+    analysis = Analysis(
+        **_check_keys(
+            "analysis", data.get("analysis", {}), {"metrics", "ocds_delay_range_s", "ocds_scale", "ocds_estimator"}
+        )
+    )
+    simulation = SimulationSettings(
+        **_check_keys(
+            "simulation", data.get("simulation", {}), {"trials", "seed", "truncation_tolerance", "dtype", "truncation"}
+        )
+    )
     name = data.get("name", "")
     desc = data.get("description", "")
     _string("name", name)
     _string("description", desc)
-    return Scene(systems=tuple(systems), protocol=protocol, populations=tuple(populations), noise=noise,
-                 analysis=analysis, simulation=simulation, name=name, description=desc)
+    return Scene(
+        systems=tuple(systems),
+        protocol=protocol,
+        populations=tuple(populations),
+        noise=noise,
+        analysis=analysis,
+        simulation=simulation,
+        name=name,
+        description=desc,
+    )
 
 
 def read_toml(path: str | Path, what: str = "TOML file") -> dict[str, Any]:
@@ -739,8 +823,10 @@ def read_toml(path: str | Path, what: str = "TOML file") -> dict[str, Any]:
     except tomllib.TOMLDecodeError as err:
         raise SceneError(f"{path}: not valid TOML: {err}") from None
     except UnicodeDecodeError as err:
-        raise SceneError(f"{path}: not a TOML text file (byte {err.start} is not UTF-8 text); give the scene, "
-                         "phantom or study file (TOML, UTF-8), not a data or image file") from None
+        raise SceneError(
+            f"{path}: not a TOML text file (byte {err.start} is not UTF-8 text); give the scene, "
+            "phantom or study file (TOML, UTF-8), not a data or image file"
+        ) from None
 
 
 def load_scene(path: str | Path) -> Scene:

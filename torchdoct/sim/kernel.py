@@ -36,6 +36,10 @@ PSF: the exponent is ``−a_lat·(x² + ry·y²) − a_ax·z²`` with ``a_lat = 
 and ``a_ax = 1/(2s_z²)``; ``ry = 1`` (the isotropic lateral PSF) gives the same bits as ``x² + y²``.
 Truncation: amplitudes are 0 below ``log_tol``; with the taper (:func:`taper_constants`) the amplitude
 above it is multiplied by the window :func:`taper_weights` of the exponent (physics.md §5.9).
+
+Kept whole (over 800 lines): each kernel is written twice, in C and in torch, as the same float32
+operation sequence; keeping both references beside the loader and the shared polynomial helpers is what
+lets a reader check them against each other line by line.
 """
 
 from __future__ import annotations
@@ -53,9 +57,24 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["compiled", "backend", "exp_neg", "sincos_turns", "log_pos", "normals", "walk_periodic",
-           "eval_straight", "uniforms24", "uniform_cell", "drift_paths", "path_fields", "sums_to_field", "QUANT_SCALE",
-           "taper_weights", "taper_constants"]
+__all__ = [
+    "compiled",
+    "backend",
+    "exp_neg",
+    "sincos_turns",
+    "log_pos",
+    "normals",
+    "walk_periodic",
+    "eval_straight",
+    "uniforms24",
+    "uniform_cell",
+    "drift_paths",
+    "path_fields",
+    "sums_to_field",
+    "QUANT_SCALE",
+    "taper_weights",
+    "taper_constants",
+]
 
 _F32 = torch.float32
 #: Field terms are quantized to 2^-30 before the exact integer sum.
@@ -64,7 +83,16 @@ _h = float.fromhex  # the C source writes the same constants as hex literals
 _RINT_MAGIC = 12582912.0  # 1.5·2^23
 _EXP_FLOOR = -87.0
 _LOG2E, _LN2_HI, _LN2_LO = _h("0x1.715476p+0"), _h("0x1.62e4p-1"), _h("0x1.7f7d1cp-20")
-_EXP_C = (_h("0x1.a01a02p-13"), _h("0x1.6c16c2p-10"), _h("0x1.111112p-7"), _h("0x1.555556p-5"), _h("0x1.555556p-3"), 0.5, 1.0, 1.0)
+_EXP_C = (
+    _h("0x1.a01a02p-13"),
+    _h("0x1.6c16c2p-10"),
+    _h("0x1.111112p-7"),
+    _h("0x1.555556p-5"),
+    _h("0x1.555556p-3"),
+    0.5,
+    1.0,
+    1.0,
+)
 _TWO_PI = _h("0x1.921fb6p+2")
 _SIN_C = (_h("0x1.71de3ap-19"), -_h("0x1.a01a02p-13"), _h("0x1.111112p-7"), -_h("0x1.555556p-3"))
 _COS_C = (-_h("0x1.27e4fcp-22"), _h("0x1.a01a02p-16"), -_h("0x1.6c16c2p-10"), _h("0x1.555556p-5"), -0.5)
@@ -86,7 +114,8 @@ OPTIONAL_CFLAGS = ("--param=vect-partial-vector-usage=2",)
 
 def _cache_dir() -> Path:
     base = os.environ.get("TORCHDOCT_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "torchdoct")
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "torchdoct"
+    )
     return Path(base)
 
 
@@ -108,8 +137,9 @@ def _build_from_source() -> Path | None:
     os.close(fd)
     for extra in (list(OPTIONAL_CFLAGS), []):
         try:
-            subprocess.run([cc, *flags, *extra, str(src), "-o", tmp, "-lm"], check=True, capture_output=True,
-                           timeout=300)
+            subprocess.run(
+                [cc, *flags, *extra, str(src), "-o", tmp, "-lm"], check=True, capture_output=True, timeout=300
+            )
             os.replace(tmp, out)
             return out
         except (OSError, subprocess.SubprocessError):
@@ -140,10 +170,13 @@ def _library():
         except OSError:
             continue
     if lib is None:
-        warnings.warn("torchdoct's compiled kernel is not available (no built extension and no C compiler to "
-                      "build it); the torch reference gives the same numbers, 20-40 times more slowly. Install "
-                      "a C compiler (gcc or clang) and reinstall (`pip install .`) to build it.",
-                      RuntimeWarning, stacklevel=3)
+        warnings.warn(
+            "torchdoct's compiled kernel is not available (no built extension and no C compiler to "
+            "build it); the torch reference gives the same numbers, 20-40 times more slowly. Install "
+            "a C compiler (gcc or clang) and reinstall (`pip install .`) to build it.",
+            RuntimeWarning,
+            stacklevel=3,
+        )
         return None
     p, i64, i32, u64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32, ctypes.c_uint64, ctypes.c_float
     lib.tdk_exp_neg.argtypes = [i64, p, p]
@@ -349,10 +382,20 @@ def sums_to_field(acc: torch.Tensor) -> torch.Tensor:
 # the two kernels
 
 
-def walk_periodic(pos: torch.Tensor, counts: torch.Tensor, key: int, sigmas: list[float],
-                  L: tuple[float, ...], groups: list[tuple[float, ...]], group_of: list[int],
-                  q_turns: list[float], log_tol: float, *, taper: bool = False,
-                  force_torch: bool = False) -> torch.Tensor:
+def walk_periodic(
+    pos: torch.Tensor,
+    counts: torch.Tensor,
+    key: int,
+    sigmas: list[float],
+    L: tuple[float, ...],
+    groups: list[tuple[float, ...]],
+    group_of: list[int],
+    q_turns: list[float],
+    log_tol: float,
+    *,
+    taper: bool = False,
+    force_torch: bool = False,
+) -> torch.Tensor:
     """Pure diffusion on the periodic cell for one block of trials, float32 (physics.md §5.1).
 
     ``pos`` [3, M] (µm, component-major; updated in place): the scatterers of the block, laid out
@@ -378,8 +421,28 @@ def walk_periodic(pos: torch.Tensor, counts: torch.Tensor, key: int, sigmas: lis
         sg, Lt, iLt = arr(sigmas or [0.0]), arr(list(L)), arr([1.0 / x for x in L])
         al, az, ryt = arr([g[0] for g in groups]), arr([g[1] for g in groups]), arr(ry)
         go, qt = arr(group_of, torch.int32), arr(q_turns)
-        rc = lib.tdk_walk_periodic(M, nt, _ptr(cnt), _ptr(pos), key & _M64, T, _ptr(sg), _ptr(Lt), _ptr(iLt), G,
-                                   _ptr(al), _ptr(az), _ptr(ryt), S, _ptr(go), _ptr(qt), log_tol, e0, tk, _ptr(acc))
+        rc = lib.tdk_walk_periodic(
+            M,
+            nt,
+            _ptr(cnt),
+            _ptr(pos),
+            key & _M64,
+            T,
+            _ptr(sg),
+            _ptr(Lt),
+            _ptr(iLt),
+            G,
+            _ptr(al),
+            _ptr(az),
+            _ptr(ryt),
+            S,
+            _ptr(go),
+            _ptr(qt),
+            log_tol,
+            e0,
+            tk,
+            _ptr(acc),
+        )
         if rc != 0:
             raise MemoryError(f"the periodic walk could not allocate scratch memory for {M} scatterers")
         return acc
@@ -412,9 +475,18 @@ def walk_periodic(pos: torch.Tensor, counts: torch.Tensor, key: int, sigmas: lis
     return acc
 
 
-def eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi_turns: torch.Tensor,
-                  omega_turns: torch.Tensor, times: torch.Tensor, log_tol: float, *, taper: bool = False,
-                  force_torch: bool = False) -> torch.Tensor:
+def eval_straight(
+    e: torch.Tensor,
+    a2: torch.Tensor,
+    t_star: torch.Tensor,
+    phi_turns: torch.Tensor,
+    omega_turns: torch.Tensor,
+    times: torch.Tensor,
+    log_tol: float,
+    *,
+    taper: bool = False,
+    force_torch: bool = False,
+) -> torch.Tensor:
     """Straight paths, float32 (physics.md §5.1): for each trial (row) and path (column) of the
     [N, C] coefficients, the PSF exponent ``e + a2·τ²`` and the phase ``φ + ω·τ`` (turns) at
     ``τ = t − t*``; the path adds ``exp(exponent)·e^{i·2π·phase}`` (times the window :func:`taper_weights` of
@@ -428,8 +500,21 @@ def eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi_t
     lib = _use_c(force_torch)
     if lib is not None:
         acc = torch.empty(N, T, 2, dtype=torch.int64)
-        lib.tdk_eval_straight(N, C, _ptr(e), _ptr(a2), _ptr(t_star), _ptr(phi_turns), _ptr(omega_turns), T,
-                              _ptr(tt), log_tol32, e0, tk, _ptr(acc))
+        lib.tdk_eval_straight(
+            N,
+            C,
+            _ptr(e),
+            _ptr(a2),
+            _ptr(t_star),
+            _ptr(phi_turns),
+            _ptr(omega_turns),
+            T,
+            _ptr(tt),
+            log_tol32,
+            e0,
+            tk,
+            _ptr(acc),
+        )
         return acc
     acc = torch.zeros(N, T, 2, dtype=torch.int64)
     rows = max(1, (1 << 20) // max(1, C * T))
@@ -460,8 +545,12 @@ def uniforms24(keys: np.ndarray, stream: int, trial: np.ndarray, slot: np.ndarra
     """Uniforms on [0, 1) with 24 bits (float32): SplitMix64 of ``keys`` at the counter
     ``stream·2⁵⁶ + trial·2⁴⁸ + slot·2⁸ + comp`` (arrays broadcast; ``trial`` is the trial within its
     block of 64)."""
-    idx = ((np.uint64(stream) << np.uint64(56)) | (trial.astype(np.uint64) << np.uint64(48))
-           | (slot.astype(np.uint64) << np.uint64(8)) | np.uint64(comp))
+    idx = (
+        (np.uint64(stream) << np.uint64(56))
+        | (trial.astype(np.uint64) << np.uint64(48))
+        | (slot.astype(np.uint64) << np.uint64(8))
+        | np.uint64(comp)
+    )
     with np.errstate(over="ignore"):
         z = keys.astype(np.uint64) + idx * np.uint64(0x9E3779B97F4A7C15)
         z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
@@ -505,8 +594,9 @@ def _velocity(ctx, stream: int, slot: np.ndarray) -> list[torch.Tensor]:
 
 
 def _cbrt_unit(u: torch.Tensor) -> torch.Tensor:
-    y = exp_neg(log_pos(torch.where(u == 0.0, torch.ones_like(u), u), force_torch=True) * _THIRD32,
-                force_torch=True).double()
+    y = exp_neg(
+        log_pos(torch.where(u == 0.0, torch.ones_like(u), u), force_torch=True) * _THIRD32, force_torch=True
+    ).double()
     ud = u.double()
     for _ in range(2):
         y2 = y * y
@@ -514,9 +604,19 @@ def _cbrt_unit(u: torch.Tensor) -> torch.Tensor:
     return torch.where(u == 0.0, torch.zeros_like(y), y)
 
 
-def drift_paths(keys: list[int], n0: torch.Tensor, n_prop: torch.Tensor, H: tuple[float, float, float],
-                flow: tuple[float, float, float], ballistic: list[tuple[float, int]], w_max: float, T: float,
-                E: int, *, force_torch: bool = False):
+def drift_paths(
+    keys: list[int],
+    n0: torch.Tensor,
+    n_prop: torch.Tensor,
+    H: tuple[float, float, float],
+    flow: tuple[float, float, float],
+    ballistic: list[tuple[float, int]],
+    w_max: float,
+    T: float,
+    E: int,
+    *,
+    force_torch: bool = False,
+):
     """Straight paths of a population for trials ``N = 64·len(keys)`` (physics.md §5.1, sampler in
     :mod:`torchdoct.sim.plan`): ``n0`` initial paths uniform in the ellipsoid of half-axes ``H`` (µm) at
     ``t = 0``, and the entrants among ``n_prop`` proposals (velocity kept with probability
@@ -543,11 +643,29 @@ def drift_paths(keys: list[int], n0: torch.Tensor, n_prop: torch.Tensor, H: tupl
         speeds = torch.tensor([b[0] for b in ballistic] or [0.0], dtype=_F64)
         laws = torch.tensor([b[1] for b in ballistic] or [0], dtype=torch.int32)
         Ht, ft = torch.tensor(H, dtype=_F64), torch.tensor(flow, dtype=_F64)
-        rc = lib.tdk_drift_paths(N, _ptr(ku), _ptr(n0c), _ptr(npc), _ptr(Ht), _ptr(ft), len(ballistic), _ptr(speeds),
-                                 _ptr(laws), float(w_max), float(T), int(E), cap, _ptr(p), _ptr(v), _ptr(t_ref),
-                                 _ptr(count))
+        rc = lib.tdk_drift_paths(
+            N,
+            _ptr(ku),
+            _ptr(n0c),
+            _ptr(npc),
+            _ptr(Ht),
+            _ptr(ft),
+            len(ballistic),
+            _ptr(speeds),
+            _ptr(laws),
+            float(w_max),
+            float(T),
+            int(E),
+            cap,
+            _ptr(p),
+            _ptr(v),
+            _ptr(t_ref),
+            _ptr(count),
+        )
         if rc < 0:
-            raise MemoryError(f"the straight-path sampler could not allocate scratch memory for {int(npc.max())} proposals")
+            raise MemoryError(
+                f"the straight-path sampler could not allocate scratch memory for {int(npc.max())} proposals"
+            )
         if rc > 0:
             raise OverflowError(rc - 1)
         C = max(1, int(count.max()))
@@ -606,9 +724,20 @@ def _norm_w(al: float, az: float, ry: float, x, y, z, xx, yy, zz):
     return -(al * (x * xx + (y * yy) * ry)) - az * (z * zz)
 
 
-def path_fields(p: torch.Tensor, v: torch.Tensor, t_ref: torch.Tensor, q_turns: list[float], a_lat: list[float],
-                a_ax: list[float], times: torch.Tensor, log_tol: float, *, ry: list[float] | None = None,
-                taper: bool = False, force_torch: bool = False) -> torch.Tensor:
+def path_fields(
+    p: torch.Tensor,
+    v: torch.Tensor,
+    t_ref: torch.Tensor,
+    q_turns: list[float],
+    a_lat: list[float],
+    a_ax: list[float],
+    times: torch.Tensor,
+    log_tol: float,
+    *,
+    ry: list[float] | None = None,
+    taper: bool = False,
+    force_torch: bool = False,
+) -> torch.Tensor:
     """Fields of straight paths ``p + v·(t − t_ref)`` ([3, N, C] float64, µm, µm/s; [N, C] s) for the
     systems ``(q_turns, a_lat, a_ax, ry)`` (2n/λ in turns per µm, 1/(2s_x²), 1/(2s_z²), s_x²/s_y²; ``ry``
     all 1 when ``None``), physics.md §5.1.
@@ -632,8 +761,26 @@ def path_fields(p: torch.Tensor, v: torch.Tensor, t_ref: torch.Tensor, q_turns: 
             p, v, t_ref = p.contiguous(), v.contiguous(), t_ref.contiguous()
         acc = torch.empty(N, S, T, 2, dtype=torch.int64)
         qa, la, za, ra = (torch.tensor(x, dtype=_F64) for x in (q_turns, a_lat, a_ax, ry))
-        rc = lib.tdk_path_fields(N, C, _ptr(p), _ptr(v), _ptr(t_ref), p.stride(0), p.stride(1), S, _ptr(qa), _ptr(la),
-                                 _ptr(za), _ptr(ra), T, _ptr(tt), float(np.float32(log_tol)), e0, tk, _ptr(acc))
+        rc = lib.tdk_path_fields(
+            N,
+            C,
+            _ptr(p),
+            _ptr(v),
+            _ptr(t_ref),
+            p.stride(0),
+            p.stride(1),
+            S,
+            _ptr(qa),
+            _ptr(la),
+            _ptr(za),
+            _ptr(ra),
+            T,
+            _ptr(tt),
+            float(np.float32(log_tol)),
+            e0,
+            tk,
+            _ptr(acc),
+        )
         if rc != 0:
             raise MemoryError(f"the straight-path evaluation could not allocate scratch memory for {C} paths")
         return acc
@@ -648,6 +795,15 @@ def path_fields(p: torch.Tensor, v: torch.Tensor, t_ref: torch.Tensor, q_turns: 
         shift = torch.where(a2 != 0.0, -(num / torch.where(a2 != 0.0, a2, torch.ones_like(a2))), torch.zeros_like(a2))
         rx, ryy, rz = px + vx * shift, py + vy * shift, pz + vz * shift
         x = rz * qs
-        out[:, s] = eval_straight(_norm_w(al, az, yr, rx, ryy, rz, rx, ryy, rz), a2, t_ref + shift,
-                                  x - torch.floor(x), vz * qs, tt, log_tol, taper=taper, force_torch=True)
+        out[:, s] = eval_straight(
+            _norm_w(al, az, yr, rx, ryy, rz, rx, ryy, rz),
+            a2,
+            t_ref + shift,
+            x - torch.floor(x),
+            vz * qs,
+            tt,
+            log_tol,
+            taper=taper,
+            force_torch=True,
+        )
     return out

@@ -10,8 +10,17 @@ from __future__ import annotations
 from ..runtime.resources import MemoryLimitError, available_memory_bytes, check_resources
 from .plan import BLOCK_TRIALS, Plan
 
-__all__ = ["MemoryLimitError", "CHUNK_ELEMENTS", "BYTES_PER_ELEMENT", "working_elements_per_trial", "chunk_bytes",
-           "simulation_bytes", "check_simulation", "available_memory_bytes", "release_free_memory"]
+__all__ = [
+    "MemoryLimitError",
+    "CHUNK_ELEMENTS",
+    "BYTES_PER_ELEMENT",
+    "working_elements_per_trial",
+    "chunk_bytes",
+    "simulation_bytes",
+    "check_simulation",
+    "available_memory_bytes",
+    "release_free_memory",
+]
 
 #: Largest working tensor of a chunk (elements) for the default chunk size: a chunk's state stays near
 #: the cache (one block of 64 trials for most scenes; measured 10-50 % faster than 8M-element chunks).
@@ -25,8 +34,11 @@ BYTES_PER_ELEMENT = 40
 
 def working_elements_per_trial(plan: Plan) -> float:
     """Largest working tensor of one trial (elements): the slots of the biggest population."""
-    return max(3 * (p.capacity + p.entry_capacity + p.entry_proposal_capacity + p.immigrant_proposal_capacity)
-               + (p.evaluations_per_trial if p.sampler == "drift" else 0) for p in plan.populations)
+    return max(
+        3 * (p.capacity + p.entry_capacity + p.entry_proposal_capacity + p.immigrant_proposal_capacity)
+        + (p.evaluations_per_trial if p.sampler == "drift" else 0)
+        for p in plan.populations
+    )
 
 
 def chunk_bytes(plan: Plan, chunk_trials: int, n_systems: int, n_frames: int) -> int:
@@ -35,8 +47,16 @@ def chunk_bytes(plan: Plan, chunk_trials: int, n_systems: int, n_frames: int) ->
     return int(per_trial * chunk_trials * BYTES_PER_ELEMENT)
 
 
-def simulation_bytes(plan: Plan, *, trials: int, n_systems: int, n_frames: int, threads: int,
-                     chunk_trials: int | None = None, dtype_bytes: int = 4) -> tuple[int, int, int]:
+def simulation_bytes(
+    plan: Plan,
+    *,
+    trials: int,
+    n_systems: int,
+    n_frames: int,
+    threads: int,
+    chunk_trials: int | None = None,
+    dtype_bytes: int = 4,
+) -> tuple[int, int, int]:
     """Peak memory of :func:`torchdoct.simulate` and how it runs: ``(bytes, blocks per chunk, chunks in
     flight)``.
 
@@ -58,20 +78,36 @@ def simulation_bytes(plan: Plan, *, trials: int, n_systems: int, n_frames: int, 
     return need, chunk_blocks, in_flight
 
 
-def check_simulation(plan: Plan, *, trials: int, n_systems: int, n_frames: int, threads: int,
-                     chunk_trials: int | None = None, dtype_bytes: int = 4) -> int:
+def check_simulation(
+    plan: Plan,
+    *,
+    trials: int,
+    n_systems: int,
+    n_frames: int,
+    threads: int,
+    chunk_trials: int | None = None,
+    dtype_bytes: int = 4,
+) -> int:
     """:func:`simulation_bytes` checked against the available memory (one line naming the chunk, the
     scatterers and the knobs to turn); returns the blocks per chunk."""
-    need, chunk_blocks, in_flight = simulation_bytes(plan, trials=trials, n_systems=n_systems, n_frames=n_frames,
-                                                     threads=threads, chunk_trials=chunk_trials,
-                                                     dtype_bytes=dtype_bytes)
+    need, chunk_blocks, in_flight = simulation_bytes(
+        plan,
+        trials=trials,
+        n_systems=n_systems,
+        n_frames=n_frames,
+        threads=threads,
+        chunk_trials=chunk_trials,
+        dtype_bytes=dtype_bytes,
+    )
     check_resources(
-        "this simulation", need,
+        "this simulation",
+        need,
         f"lower chunk_trials (minimum {BLOCK_TRIALS}) or threads, loosen the truncation tolerance "
         f"(simulation.truncation_tolerance, now {plan.truncation_tolerance:g}), run fewer trials per call, "
         "or lower the density",
         detail=f"{chunk_blocks * BLOCK_TRIALS} trials per chunk, {plan.expected_scatterers_per_trial:.4g} scatterers "
-               f"per trial, {in_flight} chunk(s) at once, plus the output")
+        f"per trial, {in_flight} chunk(s) at once, plus the output",
+    )
     return chunk_blocks
 
 

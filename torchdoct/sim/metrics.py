@@ -61,20 +61,27 @@ def _check_intensity(func: str, intensity: Any, min_frames: int = 1) -> None:
     field (its dB would be complex "variances"; pass ``field.abs() ** 2``, i.e. ``|E|²``), a number or
     another type, a tensor without a frames axis or with fewer than ``min_frames`` frames."""
     if not isinstance(intensity, torch.Tensor):
-        raise TypeError(f"{func}(intensity): intensity must be a torch.Tensor of linear intensities [..., frames]; "
-                        f"got {type(intensity).__name__}" + (" (one number has no frames)" if isinstance(
-                            intensity, (int, float)) else " (use torch.as_tensor)"))
+        raise TypeError(
+            f"{func}(intensity): intensity must be a torch.Tensor of linear intensities [..., frames]; "
+            f"got {type(intensity).__name__}"
+            + (" (one number has no frames)" if isinstance(intensity, (int, float)) else " (use torch.as_tensor)")
+        )
     if intensity.is_complex():
-        raise TypeError(f"{func}(intensity): intensity must be real linear intensity I = |E|²; got a complex "
-                        f"{intensity.dtype} field: pass field.abs() ** 2")
+        raise TypeError(
+            f"{func}(intensity): intensity must be real linear intensity I = |E|²; got a complex "
+            f"{intensity.dtype} field: pass field.abs() ** 2"
+        )
     if intensity.dtype == torch.bool:
         raise TypeError(f"{func}(intensity): intensity must be linear intensities; got a bool tensor (a mask?)")
     if intensity.ndim == 0:
-        raise ValueError(f"{func}(intensity): intensity is a 0-dimensional tensor; it needs a frames axis (the "
-                         "last) [..., frames]")
+        raise ValueError(
+            f"{func}(intensity): intensity is a 0-dimensional tensor; it needs a frames axis (the last) [..., frames]"
+        )
     if intensity.shape[-1] < min_frames:
-        raise ValueError(f"{func}(intensity): {intensity.shape[-1]} frame(s) on the last axis (shape "
-                         f"{list(intensity.shape)}); {func} needs at least {min_frames}")
+        raise ValueError(
+            f"{func}(intensity): {intensity.shape[-1]} frame(s) on the last axis (shape "
+            f"{list(intensity.shape)}); {func} needs at least {min_frames}"
+        )
 
 
 def liv(intensity: torch.Tensor) -> torch.Tensor:
@@ -131,16 +138,19 @@ def lag_correlations(
             ii = torch.tensor(i, device=signal.device)
             jj = torch.tensor(j, device=signal.device)
             s = (xm.index_select(-1, ii) * xm.index_select(-1, jj)).sum(-1)
-            cols.append(torch.where(var > 0, s / torch.where(var > 0, var, torch.ones_like(var)),
-                                    torch.ones_like(var)))
+            cols.append(torch.where(var > 0, s / torch.where(var > 0, var, torch.ones_like(var)), torch.ones_like(var)))
     else:
         raise ValueError(f"estimator must be 'pearson' or 'biased'; got {estimator!r}")
     return torch.tensor(delays, dtype=signal.dtype, device=signal.device), torch.stack(cols, dim=-1)
 
 
-def ocds_from_correlations(rho: torch.Tensor, delays_s: torch.Tensor,
-                           delay_range_s: tuple[float, float] = (0.2048, 1.2288), *,
-                           tolerance_s: float | None = None) -> torch.Tensor:
+def ocds_from_correlations(
+    rho: torch.Tensor,
+    delays_s: torch.Tensor,
+    delay_range_s: tuple[float, float] = (0.2048, 1.2288),
+    *,
+    tolerance_s: float | None = None,
+) -> torch.Tensor:
     """OCDS (s⁻¹) = − OLS slope of ``rho[..., L]`` against ``delays_s`` within ``delay_range_s``, its ends
     widened by ``tolerance_s`` (default: :func:`torchdoct.conventions.delay_range_tolerance_s` of the delays;
     :func:`ocds` passes the frame times' own)."""
@@ -148,8 +158,10 @@ def ocds_from_correlations(rho: torch.Tensor, delays_s: torch.Tensor,
     tol = delay_range_tolerance_s(delays_s.tolist(), delay_range_s) if tolerance_s is None else tolerance_s
     sel = (delays_s >= lo - tol) & (delays_s <= hi + tol)
     if int(sel.sum()) < 2:
-        raise ValueError(f"delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
-                         f"(delays {delays_s.min().item():.6g} ... {delays_s.max().item():.6g} s)")
+        raise ValueError(
+            f"delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
+            f"(delays {delays_s.min().item():.6g} ... {delays_s.max().item():.6g} s)"
+        )
     x = delays_s[sel]
     y = rho[..., sel]
     xc = x - x.mean()
@@ -181,11 +193,13 @@ def _check_delay_range(func: str, delay_range_s: Any) -> tuple[float, float]:
     try:
         lo, hi = (_time_value(v) for v in delay_range_s)
     except (TypeError, ValueError):
-        raise TypeError(f"{func}(delay_range_s): delay_range_s must be two numbers (lo, hi) in s; got "
-                        f"{delay_range_s!r}") from None
+        raise TypeError(
+            f"{func}(delay_range_s): delay_range_s must be two numbers (lo, hi) in s; got {delay_range_s!r}"
+        ) from None
     if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo < hi):
-        raise ValueError(f"{func}(delay_range_s): delay_range_s must be finite with 0 <= lo < hi (s); got "
-                         f"({lo!r}, {hi!r})")
+        raise ValueError(
+            f"{func}(delay_range_s): delay_range_s must be finite with 0 <= lo < hi (s); got ({lo!r}, {hi!r})"
+        )
     return lo, hi
 
 
@@ -199,21 +213,27 @@ def _check_frame_times(func: str, frame_times_s: Any, n_frames: int) -> list[flo
             raise TypeError(type(frame_times_s).__name__)
         t = [_time_value(v) for v in frame_times_s]
     except (TypeError, ValueError):
-        raise TypeError(f"{func}(frame_times_s): frame_times_s must be a sequence of numbers (s); got "
-                        f"{_kinds(frame_times_s)}") from None
+        raise TypeError(
+            f"{func}(frame_times_s): frame_times_s must be a sequence of numbers (s); got {_kinds(frame_times_s)}"
+        ) from None
     if len(t) != n_frames:
-        raise ValueError(f"{func}(frame_times_s): {len(t)} frame times for {n_frames} frames; give one time (s) "
-                         "per frame")
+        raise ValueError(
+            f"{func}(frame_times_s): {len(t)} frame times for {n_frames} frames; give one time (s) per frame"
+        )
     bad = next((i for i, v in enumerate(t) if not math.isfinite(v)), None)
     if bad is not None:
         raise ValueError(f"{func}(frame_times_s): frame_times_s[{bad}] = {t[bad]} is not finite")
     if t and not math.isfinite(t[-1] - t[0]):
-        raise ValueError(f"{func}(frame_times_s): the times span {t[0]:g} to {t[-1]:g} s, beyond any float; give "
-                         "the times of the acquisition in s (e.g. from 0)")
+        raise ValueError(
+            f"{func}(frame_times_s): the times span {t[0]:g} to {t[-1]:g} s, beyond any float; give "
+            "the times of the acquisition in s (e.g. from 0)"
+        )
     back = next((i for i in range(1, len(t)) if not t[i] > t[i - 1]), None)
     if back is not None:
-        raise ValueError(f"{func}(frame_times_s): frame times must increase strictly; frame_times_s[{back}] = "
-                         f"{t[back]} s is not after frame_times_s[{back - 1}] = {t[back - 1]} s")
+        raise ValueError(
+            f"{func}(frame_times_s): frame times must increase strictly; frame_times_s[{back}] = "
+            f"{t[back]} s is not after frame_times_s[{back - 1}] = {t[back - 1]} s"
+        )
     return t
 
 
@@ -223,9 +243,14 @@ def uniform_frame_interval_s(frame_times_s: Sequence[float]) -> float | None:
     return _uniform_interval(frame_times_s)
 
 
-def ocds(intensity: torch.Tensor, frame_times_s: Sequence[float], *,
-         delay_range_s: tuple[float, float] = (0.2048, 1.2288), scale: str = "db",
-         estimator: str = "pearson") -> torch.Tensor:
+def ocds(
+    intensity: torch.Tensor,
+    frame_times_s: Sequence[float],
+    *,
+    delay_range_s: tuple[float, float] = (0.2048, 1.2288),
+    scale: str = "db",
+    estimator: str = "pearson",
+) -> torch.Tensor:
     """OCDS (s⁻¹) of intensities ``[..., frames]`` (physics.md §2.4; see the module docstring).
 
     The one OCDS of the project: the simulator's metrics (:func:`compute_metrics`) and the maps
@@ -256,8 +281,10 @@ def ocds(intensity: torch.Tensor, frame_times_s: Sequence[float], *,
     lo, hi = delay_range_s
     lags = [m for m in range(1, n) if lo - tol <= m * dt <= hi + tol]
     if len(lags) < 2:
-        raise ValueError(f"ocds(delay_range_s): delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
-                         f"(frame interval {dt:.6g} s, {n} frames); widen it to hold 2 multiples of the interval")
+        raise ValueError(
+            f"ocds(delay_range_s): delay range [{lo}, {hi}] s holds fewer than 2 delays of the protocol "
+            f"(frame interval {dt:.6g} s, {n} frames); widen it to hold 2 multiples of the interval"
+        )
     if estimator == "pearson":
         rho = torch.stack([_pearson(s[..., : n - m], s[..., m:]) for m in lags], dim=-1)
     else:  # biased: as lag_correlations, for the lags in the range only
@@ -266,8 +293,10 @@ def ocds(intensity: torch.Tensor, frame_times_s: Sequence[float], *,
         var = (xm * xm).sum(-1)
         ok = var > 0
         den = torch.where(ok, var, torch.ones_like(var))
-        rho = torch.stack([torch.where(ok, (xm[..., : n - m] * xm[..., m:]).sum(-1) / den, torch.ones_like(var))
-                           for m in lags], dim=-1)
+        rho = torch.stack(
+            [torch.where(ok, (xm[..., : n - m] * xm[..., m:]).sum(-1) / den, torch.ones_like(var)) for m in lags],
+            dim=-1,
+        )
     delays = torch.tensor([m * dt for m in lags], dtype=s.dtype, device=s.device)
     return ocds_from_correlations(rho, delays, (lo, hi), tolerance_s=tol)
 
@@ -277,7 +306,7 @@ def complex_variance(field: torch.Tensor) -> torch.Tensor:
     d = field - field[..., :1]
     m = d.mean(-1, keepdim=True)
     r = d - m
-    return (r.real ** 2 + r.imag ** 2).mean(-1)
+    return (r.real**2 + r.imag**2).mean(-1)
 
 
 def compute_metrics(signals: torch.Tensor, frame_times_s: Sequence[float], analysis: Any) -> dict[str, Any]:
@@ -287,20 +316,25 @@ def compute_metrics(signals: torch.Tensor, frame_times_s: Sequence[float], analy
     ``[..., L]`` with ``autocorrelation_delays_s``), plus ``zero_intensity`` (bool ``[...]``: some
     frame has I = 0, i.e. an empty resolution volume; dB metrics of those entries are NaN).
     """
-    intensity = signals.real ** 2 + signals.imag ** 2
+    intensity = signals.real**2 + signals.imag**2
     zero = (intensity <= 0).any(-1)
     out: dict[str, Any] = {"zero_intensity": zero}
     nan = torch.tensor(float("nan"), dtype=intensity.dtype, device=intensity.device)
     db_needed = "liv" in analysis.metrics or (
-        analysis.ocds_scale == "db" and ("ocds" in analysis.metrics or "autocorrelation" in analysis.metrics))
+        analysis.ocds_scale == "db" and ("ocds" in analysis.metrics or "autocorrelation" in analysis.metrics)
+    )
     safe = torch.where(zero[..., None], torch.ones_like(intensity), intensity) if db_needed else intensity
     for name in analysis.metrics:
         if name == "liv":
             out["liv"] = torch.where(zero, nan, liv(safe))
         elif name == "ocds":
-            v = ocds(safe if analysis.ocds_scale == "db" else intensity, frame_times_s,
-                     delay_range_s=analysis.ocds_delay_range_s, scale=analysis.ocds_scale,
-                     estimator=analysis.ocds_estimator)
+            v = ocds(
+                safe if analysis.ocds_scale == "db" else intensity,
+                frame_times_s,
+                delay_range_s=analysis.ocds_delay_range_s,
+                scale=analysis.ocds_scale,
+                estimator=analysis.ocds_estimator,
+            )
             out["ocds"] = torch.where(zero, nan, v) if analysis.ocds_scale == "db" else v
         elif name == "complex_variance":
             out["complex_variance"] = complex_variance(signals)

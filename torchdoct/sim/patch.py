@@ -69,8 +69,13 @@ def _reach(motion: str, speed: float, diff: float, duration: float, n: tuple[flo
     return (0.0, 0.0, 0.0)
 
 
-def patch_box_half_widths_um(shape: Sequence[int], pitch_um: Sequence[float], sigmas_um: Sequence[float],
-                             reach_um: Sequence[float], tolerance: float) -> tuple[float, float, float]:
+def patch_box_half_widths_um(
+    shape: Sequence[int],
+    pitch_um: Sequence[float],
+    sigmas_um: Sequence[float],
+    reach_um: Sequence[float],
+    tolerance: float,
+) -> tuple[float, float, float]:
     """Half-widths ``(x, y, z)`` (µm) of the seeded box (module docstring); ``shape``/``pitch_um`` in
     array order ``(Z, X)`` or ``(Y, Z, X)``, ``sigmas_um``/``reach_um`` as ``(x, y, z)``."""
     c = truncation_radius_factor(tolerance)
@@ -81,29 +86,48 @@ def patch_box_half_widths_um(shape: Sequence[int], pitch_um: Sequence[float], si
     return tuple(ext[a] + c * s + r for a, s, r in zip("xyz", sigmas_um, reach_um))
 
 
-def simulate_patch(motion: str, *, trials: int, seed: int, shape: Sequence[int] = (13, 13),
-                   pitch_um: Sequence[float] = (2.0, 2.0), n_frames: int = 32, frame_interval_s: float = 0.2048,
-                   speed_um_s: float = 0.0, diffusion_um2_s: float = 0.0, polar_deg: float = 0.0,
-                   azimuth_deg: float = 0.0, density_per_um3: float = 0.055, wavelength_um: float = 0.84,
-                   lateral_resolution_um: float = 4.9, axial_resolution_um: float = 3.8,
-                   lateral_resolution_y_um: float | None = None, refractive_index: float = 1.0,
-                   direction_law: str = "isotropic", static_fraction: float = 0.0, snr_db: float | None = None,
-                   tolerance: float = 1e-3, dtype: torch.dtype = torch.complex64) -> torch.Tensor:
+def simulate_patch(
+    motion: str,
+    *,
+    trials: int,
+    seed: int,
+    shape: Sequence[int] = (13, 13),
+    pitch_um: Sequence[float] = (2.0, 2.0),
+    n_frames: int = 32,
+    frame_interval_s: float = 0.2048,
+    speed_um_s: float = 0.0,
+    diffusion_um2_s: float = 0.0,
+    polar_deg: float = 0.0,
+    azimuth_deg: float = 0.0,
+    density_per_um3: float = 0.055,
+    wavelength_um: float = 0.84,
+    lateral_resolution_um: float = 4.9,
+    axial_resolution_um: float = 3.8,
+    lateral_resolution_y_um: float | None = None,
+    refractive_index: float = 1.0,
+    direction_law: str = "isotropic",
+    static_fraction: float = 0.0,
+    snr_db: float | None = None,
+    tolerance: float = 1e-3,
+    dtype: torch.dtype = torch.complex64,
+) -> torch.Tensor:
     """Complex fields ``[trials, T, *shape]`` of a patch (module docstring; µm, s, degrees)."""
     if motion not in MOTIONS:
         raise ValueError(f"patch motion must be one of {', '.join(MOTIONS)}; got {motion!r}")
     shape = tuple(int(n) for n in shape)
     pitch = tuple(float(p) for p in pitch_um)
     if len(shape) not in (2, 3) or len(pitch) != len(shape) or min(shape) < 1 or min(pitch) <= 0:
-        raise ValueError(f"a patch is (Z, X) or (Y, Z, X) pixels with a positive pitch per axis; got shape {shape}, "
-                         f"pitch {pitch}")
+        raise ValueError(
+            f"a patch is (Z, X) or (Y, Z, X) pixels with a positive pitch per axis; got shape {shape}, pitch {pitch}"
+        )
     if not 0.0 <= static_fraction < 1.0:
         raise ValueError(f"static_fraction must be in [0, 1); got {static_fraction!r}")
     if trials < 1 or n_frames < 2 or not frame_interval_s > 0:
         raise ValueError("a patch needs trials >= 1, n_frames >= 2 and a positive frame interval")
     sx = amplitude_sigma_lateral_um(lateral_resolution_um)
-    sy = amplitude_sigma_lateral_um(lateral_resolution_y_um if lateral_resolution_y_um is not None
-                                    else lateral_resolution_um)
+    sy = amplitude_sigma_lateral_um(
+        lateral_resolution_y_um if lateral_resolution_y_um is not None else lateral_resolution_um
+    )
     sz = amplitude_sigma_axial_um(axial_resolution_um)
     kn2 = 2.0 * wavenumber_per_um(wavelength_um, refractive_index)
     duration = (n_frames - 1) * frame_interval_s
@@ -113,22 +137,27 @@ def simulate_patch(motion: str, *, trials: int, seed: int, shape: Sequence[int] 
     half_s = patch_box_half_widths_um(shape, pitch, (sx, sy, sz), (0.0, 0.0, 0.0), tolerance)
     vol = 8.0 * half[0] * half[1] * half[2]
     if density_per_um3 * vol > PATCH_MAX_SCATTERERS:
-        raise ValueError(f"a patch box of {density_per_um3 * vol:.3g} expected scatterers per trial exceeds "
-                         f"{PATCH_MAX_SCATTERERS:.0e}: lower the speed, the diffusion or the patch size")
+        raise ValueError(
+            f"a patch box of {density_per_um3 * vol:.3g} expected scatterers per trial exceeds "
+            f"{PATCH_MAX_SCATTERERS:.0e}: lower the speed, the diffusion or the patch size"
+        )
     letters = "zx" if len(shape) == 2 else "yzx"
     axis_px = {a: (torch.arange(n, dtype=torch.float64) - (n - 1) / 2.0) * p for a, n, p in zip(letters, shape, pitch)}
     if "y" not in axis_px:
         axis_px["y"] = torch.zeros(1, dtype=torch.float64)
     sig = {"x": sx, "y": sy, "z": sz}
     a_static = math.sqrt(static_fraction / (1.0 - static_fraction)) if static_fraction > 0 else 0.0
-    mean_i = mean_intensity(density_per_um3, lateral_resolution_um, axial_resolution_um,
-                            lateral_resolution_y_um=lateral_resolution_y_um) * (1.0 + a_static ** 2)
+    mean_i = mean_intensity(
+        density_per_um3, lateral_resolution_um, axial_resolution_um, lateral_resolution_y_um=lateral_resolution_y_um
+    ) * (1.0 + a_static**2)
     out = torch.empty(trials, n_frames, *shape, dtype=dtype)
 
     def field(pos: torch.Tensor, amp: float) -> torch.Tensor:
         """The patch's field of scatterers ``pos [N, 3]`` (x, y, z) → ``[(Y), Z, X]`` complex128."""
-        w = {a: torch.exp(-(pos[:, None, i] - axis_px[a][None, :]) ** 2 / (2.0 * sig[a] ** 2))
-             for i, a in enumerate("xyz")}
+        w = {
+            a: torch.exp(-((pos[:, None, i] - axis_px[a][None, :]) ** 2) / (2.0 * sig[a] ** 2))
+            for i, a in enumerate("xyz")
+        }
         phase = torch.remainder(kn2 * pos[:, 2], 2.0 * math.pi)
         az = (w["z"] * amp) * torch.polar(torch.ones_like(phase), phase)[:, None]  # [N, Z]
         if len(shape) == 2:
@@ -155,8 +184,13 @@ def simulate_patch(motion: str, *, trials: int, seed: int, shape: Sequence[int] 
         noise = None
         if snr_db is not None:
             s_n = noise_sigma(mean_i, float(snr_db))
-            noise = torch.complex(torch.randn(n_frames, *shape, generator=g, dtype=torch.float64),
-                                  torch.randn(n_frames, *shape, generator=g, dtype=torch.float64)) * s_n
+            noise = (
+                torch.complex(
+                    torch.randn(n_frames, *shape, generator=g, dtype=torch.float64),
+                    torch.randn(n_frames, *shape, generator=g, dtype=torch.float64),
+                )
+                * s_n
+            )
         for t in range(n_frames):
             if motion in ("flow", "ballistic"):
                 pos = pos0 + vel * (t * frame_interval_s)

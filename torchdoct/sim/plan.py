@@ -58,9 +58,19 @@ from ..conventions import (
 )
 from .config import Population, Scene
 
-__all__ = ["PopulationPlan", "SystemPlan", "Plan", "make_plan", "capacity", "periodic_cell",
-           "periodic_image_bound", "wrap_tolerance", "ellipsoid_entry_rate", "ellipsoid_entry_bound",
-           "expected_entry_flux"]
+__all__ = [
+    "PopulationPlan",
+    "SystemPlan",
+    "Plan",
+    "make_plan",
+    "capacity",
+    "periodic_cell",
+    "periodic_image_bound",
+    "wrap_tolerance",
+    "ellipsoid_entry_rate",
+    "ellipsoid_entry_bound",
+    "expected_entry_flux",
+]
 
 #: Trials per reproducibility block: trial ``i`` draws its randomness from the stream of block
 #: ``i // BLOCK_TRIALS``, seeded from (seed, block index), so results never depend on chunking.
@@ -90,8 +100,9 @@ def _face_areas(h: tuple[float, float, float]) -> list[tuple[int, float]]:
 
 
 @functools.lru_cache(maxsize=16)
-def _velocity_sample_of(flow: tuple[float, ...], ballistic: tuple[tuple[float, str], ...],
-                        n_samples: int = 200_000) -> np.ndarray:
+def _velocity_sample_of(
+    flow: tuple[float, ...], ballistic: tuple[tuple[float, str], ...], n_samples: int = 200_000
+) -> np.ndarray:
     """Cached by the velocity law: a plan asks for it once per group of systems."""
     rng = np.random.default_rng(12345)
     v = np.tile(np.asarray(flow, dtype=float), (n_samples, 1))
@@ -116,7 +127,9 @@ def _mean_scaled_speed(v: np.ndarray, h: tuple[float, float, float]) -> float:
 
 
 @functools.lru_cache(maxsize=256)
-def _sample_mean(stat, flow: tuple[float, ...], ballistic: tuple[tuple[float, str], ...], h: tuple[float, float, float]):
+def _sample_mean(
+    stat, flow: tuple[float, ...], ballistic: tuple[tuple[float, str], ...], h: tuple[float, float, float]
+):
     """``stat`` over the fixed-seed sample of a velocity law (cached: sweeps ask for it per cell)."""
     return stat(_velocity_sample_of(flow, ballistic), h)
 
@@ -177,8 +190,9 @@ def _bound_lags(times_s: tuple[float, ...]) -> np.ndarray:
     return np.unique(np.concatenate([np.geomspace(d_min, d_max, 256), np.linspace(d_min, d_max, 256)]))
 
 
-def periodic_image_bound(half_widths_um, optics, diffusion_um2_per_s: float, lags_s,
-                         w_intensity: float, w_field: float) -> float:
+def periodic_image_bound(
+    half_widths_um, optics, diffusion_um2_per_s: float, lags_s, w_intensity: float, w_field: float
+) -> float:
     """Largest spurious share of a two-frame correlation from a periodic cell (pure diffusion).
 
     A scatterer displaced by ``Δ`` (Gaussian, variance ``2·D·τ`` per axis after delay τ) is evaluated
@@ -211,10 +225,10 @@ def periodic_image_bound(half_widths_um, optics, diffusion_um2_per_s: float, lag
             w = 2.0 * s * s + v
             kmax = int(math.ceil(12.0 * math.sqrt(float(w.max())) / L[a])) + 1
             k = np.arange(-kmax, kmax + 1, dtype=float)[None, :]
-            g = np.exp(-(k * L[a]) ** 2 / (2.0 * s2[:, None])) / np.sqrt(2.0 * np.pi * s2[:, None])
+            g = np.exp(-((k * L[a]) ** 2) / (2.0 * s2[:, None])) / np.sqrt(2.0 * np.pi * s2[:, None])
             i_all *= g.sum(1)
             i_0 *= g[:, kmax]
-            f = np.sqrt(2.0 * s * s / w)[:, None] * np.exp(-(k * L[a]) ** 2 / (2.0 * w[:, None]))
+            f = np.sqrt(2.0 * s * s / w)[:, None] * np.exp(-((k * L[a]) ** 2) / (2.0 * w[:, None]))
             if a == 2:
                 f = f * np.exp(-0.5 * q * q * v * 2.0 * s * s / w)[:, None]
             f_all *= f.sum(1)
@@ -223,8 +237,9 @@ def periodic_image_bound(half_widths_um, optics, diffusion_um2_per_s: float, lag
     return worst
 
 
-def periodic_cell(psf_half_widths_um, optics, diffusion_um2_per_s: float, times_s, w_intensity: float,
-                  w_field: float, target: float) -> tuple[tuple[float, float, float], float]:
+def periodic_cell(
+    psf_half_widths_um, optics, diffusion_um2_per_s: float, times_s, w_intensity: float, w_field: float, target: float
+) -> tuple[tuple[float, float, float], float]:
     """The smallest cell ``B + g`` (``g ≥ 0`` µm added to every half-width) whose
     :func:`periodic_image_bound` over the protocol's delays is at most ``target``; returns the cell's
     half-widths (µm) and its bound."""
@@ -342,37 +357,53 @@ class Plan:
         lines = [f"plan for scene {self.scene_name!r}: {self.n_frames} frames over {self.duration_s:g} s"]
         lines.append("stages: " + " -> ".join(self.stages))
         mode = "tapered to 0 at" if self.truncation == "taper" else "cut at"
-        lines.append(f"PSF amplitude {mode} tolerance {self.truncation_tolerance:g} "
-                     f"(relative mean-square field change {self.truncation_error_bound:.2g})")
+        lines.append(
+            f"PSF amplitude {mode} tolerance {self.truncation_tolerance:g} "
+            f"(relative mean-square field change {self.truncation_error_bound:.2g})"
+        )
         lines.append("systems (all see the same scatterers):")
         for s in self.systems:
             h = s.truncation_half_widths_um
             noise = "" if s.noise_power is None else f", noise power {s.noise_power:.4g}"
             ens = "ρΔx²Δz" if h[0] == h[1] else "ρΔxΔyΔz"
-            lines.append(f"  {s.name:>14}: ENS(paper, {ens}) {s.ens_paper:8.3f}   N_eff {s.n_eff:8.3f}   "
-                         f"<I> {s.mean_intensity:.4g}   PSF box ±({h[0]:.2f}, {h[1]:.2f}, {h[2]:.2f}) µm{noise}")
+            lines.append(
+                f"  {s.name:>14}: ENS(paper, {ens}) {s.ens_paper:8.3f}   N_eff {s.n_eff:8.3f}   "
+                f"<I> {s.mean_intensity:.4g}   PSF box ±({h[0]:.2f}, {h[1]:.2f}, {h[2]:.2f}) µm{noise}"
+            )
         lines.append("populations:")
         for p in self.populations:
             h = p.domain_half_widths_um
-            lines.append(f"  [{p.index}] {p.name or '-'}: {p.sampler} ({', '.join(p.motions) or 'no motion'}), "
-                         f"ρ = {p.density_per_um3:g} µm⁻³")
+            lines.append(
+                f"  [{p.index}] {p.name or '-'}: {p.sampler} ({', '.join(p.motions) or 'no motion'}), "
+                f"ρ = {p.density_per_um3:g} µm⁻³"
+            )
             if p.immigrant_method == "periodic":
-                lines.append(f"      random walk on a periodic cell = PSF box + {p.step_margin_um:.2f} µm per side "
-                             f"(wrap-around adds <= {p.wrap_error_bound:.2g} to any two-frame correlation)")
+                lines.append(
+                    f"      random walk on a periodic cell = PSF box + {p.step_margin_um:.2f} µm per side "
+                    f"(wrap-around adds <= {p.wrap_error_bound:.2g} to any two-frame correlation)"
+                )
             elif p.sampler == "diffusive":
-                lines.append(f"      random walk, tracked region = PSF box + {p.step_margin_um:.2f} µm per side, "
-                             f"immigrants drawn from the surrounding shell")
+                lines.append(
+                    f"      random walk, tracked region = PSF box + {p.step_margin_um:.2f} µm per side, "
+                    f"immigrants drawn from the surrounding shell"
+                )
             if p.sampler == "drift":
-                lines.append("      straight paths that meet the tolerance ellipsoid (semi-axes = the PSF box "
-                             "half-widths) during the protocol")
+                lines.append(
+                    "      straight paths that meet the tolerance ellipsoid (semi-axes = the PSF box "
+                    "half-widths) during the protocol"
+                )
             if len(p.system_groups) > 1:
                 lines.append("      each system evaluates only the scatterers that reach its own PSF box")
-            lines.append(f"      domain ±({h[0]:.2f}, {h[1]:.2f}, {h[2]:.2f}) µm, "
-                         f"{p.expected_scatterers_per_trial:.1f} scatterers/trial expected, "
-                         f"{p.evaluations_per_trial:.4g} scatterer-frame evaluations/trial, "
-                         f"per-frame random draws: {'yes' if p.per_frame_random_draws else 'no'}")
-        lines.append(f"total: {self.expected_scatterers_per_trial:.1f} scatterers/trial, "
-                     f"{self.evaluations_per_trial:.4g} scatterer-frame evaluations/trial")
+            lines.append(
+                f"      domain ±({h[0]:.2f}, {h[1]:.2f}, {h[2]:.2f}) µm, "
+                f"{p.expected_scatterers_per_trial:.1f} scatterers/trial expected, "
+                f"{p.evaluations_per_trial:.4g} scatterer-frame evaluations/trial, "
+                f"per-frame random draws: {'yes' if p.per_frame_random_draws else 'no'}"
+            )
+        lines.append(
+            f"total: {self.expected_scatterers_per_trial:.1f} scatterers/trial, "
+            f"{self.evaluations_per_trial:.4g} scatterer-frame evaluations/trial"
+        )
         if trials is not None:
             lines.append(f"for {trials} trials: {self.evaluations_per_trial * trials:.4g} evaluations")
         for n in self.notes:
@@ -399,44 +430,66 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
     T = protocol.duration_s
     n_frames = protocol.n_frames
     S = len(scene.systems)
-    halfs = [truncation_half_widths_um(s.lateral_resolution_um, s.axial_resolution_um, tol,
-                                       lateral_resolution_y_um=s.lateral_resolution_y_um)
-             for s in scene.systems]
+    halfs = [
+        truncation_half_widths_um(
+            s.lateral_resolution_um, s.axial_resolution_um, tol, lateral_resolution_y_um=s.lateral_resolution_y_um
+        )
+        for s in scene.systems
+    ]
     H = tuple(max(h[a] for h in halfs) for a in range(3))
     rho_total = sum(p.density_per_um3 for p in scene.populations)
 
     systems = []
     for s, h in zip(scene.systems, halfs):
-        mi = sum(mean_intensity(p.density_per_um3, s.lateral_resolution_um, s.axial_resolution_um,
-                                p.reflectivity, lateral_resolution_y_um=s.lateral_resolution_y_um)
-                 for p in scene.populations)
+        mi = sum(
+            mean_intensity(
+                p.density_per_um3,
+                s.lateral_resolution_um,
+                s.axial_resolution_um,
+                p.reflectivity,
+                lateral_resolution_y_um=s.lateral_resolution_y_um,
+            )
+            for p in scene.populations
+        )
         noise = None if scene.noise is None else noise_power(mi, scene.noise.snr_db)
-        systems.append(SystemPlan(
-            name=s.name, truncation_half_widths_um=h,
-            ens_paper=ens_paper(rho_total, s.lateral_resolution_um, s.axial_resolution_um,
-                                lateral_resolution_y_um=s.lateral_resolution_y_um),
-            n_eff=n_eff(rho_total, s.lateral_resolution_um, s.axial_resolution_um,
-                        lateral_resolution_y_um=s.lateral_resolution_y_um),
-            mean_intensity=mi, noise_power=noise))
+        systems.append(
+            SystemPlan(
+                name=s.name,
+                truncation_half_widths_um=h,
+                ens_paper=ens_paper(
+                    rho_total,
+                    s.lateral_resolution_um,
+                    s.axial_resolution_um,
+                    lateral_resolution_y_um=s.lateral_resolution_y_um,
+                ),
+                n_eff=n_eff(
+                    rho_total,
+                    s.lateral_resolution_um,
+                    s.axial_resolution_um,
+                    lateral_resolution_y_um=s.lateral_resolution_y_um,
+                ),
+                mean_intensity=mi,
+                noise_power=noise,
+            )
+        )
 
     pops = []
     notes = []
     stages = []
     for i, p in enumerate(scene.populations):
         kind = p.motion_class
-        motions = tuple(m.kind + ("" if m.kind != "ballistic" else f" ({m.directions})")
-                        for m in p.active_motion)
+        motions = tuple(m.kind + ("" if m.kind != "ballistic" else f" ({m.directions})") for m in p.active_motion)
         zero = [m.kind for m in p.motion if m.is_zero]
         if zero:
             notes.append(f"population {i}: motion entries with zero parameter ({', '.join(zero)}) do nothing")
         rho = p.density_per_um3
         if kind == "static":
             n = rho * _box_volume(H)
-            groups = tuple((h, idx, rho * _box_volume(h), capacity(rho * _box_volume(h)))
-                           for h, idx in _groups(halfs))
+            groups = tuple((h, idx, rho * _box_volume(h), capacity(rho * _box_volume(h))) for h, idx in _groups(halfs))
             evals = sum(g[2] * len(g[1]) for g in groups)
-            pops.append(PopulationPlan(i, p.name, "static", motions, rho, H, n, capacity(n), False, evals,
-                                       system_groups=groups))
+            pops.append(
+                PopulationPlan(i, p.name, "static", motions, rho, H, n, capacity(n), False, evals, system_groups=groups)
+            )
         elif kind == "drift":
             n0 = rho * 4.0 * math.pi / 3.0 * math.prod(H)
             flux = ellipsoid_entry_rate(p, H)
@@ -450,10 +503,24 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
             # every sampled path is evaluated at every frame of its group's systems (amplitudes below
             # the tolerance are set to 0)
             evals = sum(g[2] * len(g[1]) for g in groups) * n_frames
-            pops.append(PopulationPlan(i, p.name, "drift", motions, rho, H, n, capacity(n0), False,
-                                       evals, system_groups=tuple(groups), entry_proposal_rate_per_s=prop_rate,
-                                       entry_proposal_capacity=capacity(prop_rate * T) if moving else 0,
-                                       entry_capacity=capacity(flux * T) if moving else 0))
+            pops.append(
+                PopulationPlan(
+                    i,
+                    p.name,
+                    "drift",
+                    motions,
+                    rho,
+                    H,
+                    n,
+                    capacity(n0),
+                    False,
+                    evals,
+                    system_groups=tuple(groups),
+                    entry_proposal_rate_per_s=prop_rate,
+                    entry_proposal_capacity=capacity(prop_rate * T) if moving else 0,
+                    entry_capacity=capacity(flux * T) if moving else 0,
+                )
+            )
         elif p.max_speed_um_per_s == 0:
             D = p.diffusion_um2_per_s
             # the weights are scale-free: reflectivities divided by the power of two just above the largest (exact,
@@ -463,17 +530,41 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
             mean_b2 = sum(q.density_per_um3 * (q.reflectivity / unit) ** 2 for q in scene.populations)
             w_int = rho * b**4 / mean_b2**2
             w_field = rho * b**2 / mean_b2
-            optics = [(amplitude_sigma_lateral_um(s.lateral_resolution_um), amplitude_sigma_axial_um(s.axial_resolution_um),
-                       2.0 * wavenumber_per_um(s.wavelength_um, s.refractive_index))
-                      + (() if s.lateral_resolution_y_um is None else (amplitude_sigma_lateral_um(s.lateral_resolution_y_um),))
-                      for s in scene.systems]
-            cell, bound = _periodic_cell_cached(tuple(H), tuple(optics), D, tuple(protocol.times_s), w_int, w_field,
-                                                wrap_tolerance(tol))
+            optics = [
+                (
+                    amplitude_sigma_lateral_um(s.lateral_resolution_um),
+                    amplitude_sigma_axial_um(s.axial_resolution_um),
+                    2.0 * wavenumber_per_um(s.wavelength_um, s.refractive_index),
+                )
+                + (
+                    ()
+                    if s.lateral_resolution_y_um is None
+                    else (amplitude_sigma_lateral_um(s.lateral_resolution_y_um),)
+                )
+                for s in scene.systems
+            ]
+            cell, bound = _periodic_cell_cached(
+                tuple(H), tuple(optics), D, tuple(protocol.times_s), w_int, w_field, wrap_tolerance(tol)
+            )
             n = rho * _box_volume(cell)
             evals = n * n_frames * S  # every scatterer of the cell, every frame, every system
-            pops.append(PopulationPlan(i, p.name, "diffusive", motions, rho, cell, n, capacity(n), True, evals,
-                                       immigrant_method="periodic", step_margin_um=cell[0] - H[0],
-                                       wrap_error_bound=bound))
+            pops.append(
+                PopulationPlan(
+                    i,
+                    p.name,
+                    "diffusive",
+                    motions,
+                    rho,
+                    cell,
+                    n,
+                    capacity(n),
+                    True,
+                    evals,
+                    immigrant_method="periodic",
+                    step_margin_um=cell[0] - H[0],
+                    wrap_error_bound=bound,
+                )
+            )
         else:
             D = p.diffusion_um2_per_s
             dtm = protocol.max_interval_s
@@ -483,10 +574,24 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
             outer = tuple(r + margin for r in R)
             n = rho * _box_volume(R)
             n_prop = rho * (_box_volume(outer) - _box_volume(R))
-            pops.append(PopulationPlan(i, p.name, "diffusive", motions, rho, R, n, capacity(n), True,
-                                       n * n_frames * S, immigrant_method="shell", step_margin_um=margin,
-                                       immigrant_shell_half_widths_um=outer,
-                                       immigrant_proposal_capacity=capacity(n_prop)))
+            pops.append(
+                PopulationPlan(
+                    i,
+                    p.name,
+                    "diffusive",
+                    motions,
+                    rho,
+                    R,
+                    n,
+                    capacity(n),
+                    True,
+                    n * n_frames * S,
+                    immigrant_method="shell",
+                    step_margin_um=margin,
+                    immigrant_shell_half_widths_um=outer,
+                    immigrant_proposal_capacity=capacity(n_prop),
+                )
+            )
     kinds = {p.sampler for p in pops}
     stages.append("seed scatterers")
     if "drift" in kinds:
@@ -500,7 +605,17 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
     if scene.noise is not None:
         stages.append("noise")
     stages.append("metrics")
-    return Plan(scene_name=scene.name, stages=tuple(stages), truncation_tolerance=tol,
-                truncation_error_bound=truncation_field_error(tol, mode), domain_half_widths_um=H,
-                systems=tuple(systems), populations=tuple(pops), n_frames=n_frames, duration_s=T,
-                has_noise=scene.noise is not None, notes=tuple(notes), truncation=mode)
+    return Plan(
+        scene_name=scene.name,
+        stages=tuple(stages),
+        truncation_tolerance=tol,
+        truncation_error_bound=truncation_field_error(tol, mode),
+        domain_half_widths_um=H,
+        systems=tuple(systems),
+        populations=tuple(pops),
+        n_frames=n_frames,
+        duration_s=T,
+        has_noise=scene.noise is not None,
+        notes=tuple(notes),
+        truncation=mode,
+    )

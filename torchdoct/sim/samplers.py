@@ -62,8 +62,11 @@ def _directions(draws: Draws, law: str, n: int) -> torch.Tensor:
 
 def _velocities(pop: Population, draws: Draws, n: int) -> torch.Tensor:
     """Drift velocity of each scatterer (µm/s), [N, n, 3]: flow + Σ ballistic speed·direction."""
-    v = torch.tensor(pop.flow_velocity_um_per_s, dtype=_F64, device=draws.device).expand(
-        BLOCK_TRIALS * len(draws.gens), n, 3).clone()
+    v = (
+        torch.tensor(pop.flow_velocity_um_per_s, dtype=_F64, device=draws.device)
+        .expand(BLOCK_TRIALS * len(draws.gens), n, 3)
+        .clone()
+    )
     for b in pop.ballistic:
         v += b.speed_um_per_s * _directions(draws, b.directions, n)
     return v
@@ -71,7 +74,6 @@ def _velocities(pop: Population, draws: Draws, n: int) -> torch.Tensor:
 
 def _inside(pos: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
     return (pos.abs() <= half).all(dim=-1)
-
 
 
 @dataclass
@@ -87,10 +89,12 @@ class _Optics:
         sx = [amplitude_sigma_lateral_um(s.lateral_resolution_um) for s in scene.systems]
         sy = [amplitude_sigma_lateral_um(s.lateral_widths_um[1]) for s in scene.systems]
         sz = [amplitude_sigma_axial_um(s.axial_resolution_um) for s in scene.systems]
-        return cls(torch.tensor(kn, dtype=_F64, device=device),
-                   torch.tensor([0.5 / x**2 for x in sx], dtype=dtype, device=device),
-                   torch.tensor([0.5 / z**2 for z in sz], dtype=dtype, device=device),
-                   [1.0 if x == y else (x / y) ** 2 for x, y in zip(sx, sy)])
+        return cls(
+            torch.tensor(kn, dtype=_F64, device=device),
+            torch.tensor([0.5 / x**2 for x in sx], dtype=dtype, device=device),
+            torch.tensor([0.5 / z**2 for z in sz], dtype=dtype, device=device),
+            [1.0 if x == y else (x / y) ** 2 for x, y in zip(sx, sy)],
+        )
 
 
 def _sum_field(amp: torch.Tensor, phase: torch.Tensor, dim: int) -> torch.Tensor:
@@ -114,8 +118,7 @@ def _truncated_amplitude(exponent: torch.Tensor, log_tol: float) -> torch.Tensor
 
 def _amplitude(exponent: torch.Tensor) -> torch.Tensor:
     """``exp(exponent)`` with arguments below ``-_EXP_FLOOR`` giving exactly 0 (in place on exponent)."""
-    return torch.nn.functional.threshold(torch.exp(exponent.clamp_(min=-_EXP_FLOOR)),
-                                         2.0 * math.exp(-_EXP_FLOOR), 0.0)
+    return torch.nn.functional.threshold(torch.exp(exponent.clamp_(min=-_EXP_FLOOR)), 2.0 * math.exp(-_EXP_FLOOR), 0.0)
 
 
 def _taper_window(exponent: torch.Tensor, log_tol: float) -> torch.Tensor:
@@ -126,8 +129,15 @@ def _taper_window(exponent: torch.Tensor, log_tol: float) -> torch.Tensor:
     return 1.0 - t * t * t * (10.0 - 15.0 * t + 6.0 * t * t)
 
 
-def _path_coefficients(p: torch.Tensor, v: torch.Tensor | None, t_ref: torch.Tensor | None,
-                       kn: float, a_lat: float, a_ax: float, ry: float = 1.0):
+def _path_coefficients(
+    p: torch.Tensor,
+    v: torch.Tensor | None,
+    t_ref: torch.Tensor | None,
+    kn: float,
+    a_lat: float,
+    a_ax: float,
+    ry: float = 1.0,
+):
     """Per-scatterer coefficients of the field exponent of one system, about the closest approach.
 
     For a straight path ``r(t) = p + v·(t − t_ref)`` the PSF exponent is a quadratic in t; written
@@ -159,9 +169,18 @@ def _path_coefficients(p: torch.Tensor, v: torch.Tensor | None, t_ref: torch.Ten
     return e, a2, t_star, phi, vz * (2.0 * kn)
 
 
-def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tensor | None,
-                times: torch.Tensor, optics: _Optics, systems: tuple[int, ...], refl: float,
-                dtype: torch.dtype, tolerance: float, taper: bool = False) -> torch.Tensor:
+def _eval_paths(
+    p_ref: torch.Tensor,
+    vel: torch.Tensor | None,
+    t_ref: torch.Tensor | None,
+    times: torch.Tensor,
+    optics: _Optics,
+    systems: tuple[int, ...],
+    refl: float,
+    dtype: torch.dtype,
+    tolerance: float,
+    taper: bool = False,
+) -> torch.Tensor:
     """Field [N, len(systems), T] of scatterers on straight paths ``p_ref + vel·(t − t_ref)``
     (positions and velocities component-major, [3, N, C]); ``taper``: amplitudes times the taper window.
 
@@ -173,8 +192,9 @@ def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tens
     if vel is None:
         out = torch.empty(N, len(systems), dtype=cdt, device=p_ref.device)
         for k, s in enumerate(systems):
-            e, _, _, phi, _ = _path_coefficients(p_ref, None, None, float(optics.kn[s]),
-                                                 float(optics.a_lat[s]), float(optics.a_ax[s]), optics.ry[s])
+            e, _, _, phi, _ = _path_coefficients(
+                p_ref, None, None, float(optics.kn[s]), float(optics.a_lat[s]), float(optics.a_ax[s]), optics.ry[s]
+            )
             e = e.to(dtype)
             w = _taper_window(e, math.log(tolerance)) if taper else None
             amp = _amplitude(e)
@@ -187,15 +207,25 @@ def _eval_paths(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tens
     log_tol = math.log(tolerance)
     if dtype == torch.float32 and p_ref.device.type == "cpu":
         # the fused kernel: float64 coefficients, float32 evaluation, exact sums (torchdoct.sim.kernel)
-        acc = kernel.path_fields(p_ref, vel, t_ref, [2.0 * float(optics.kn[s]) / _TWO_PI for s in systems],
-                                 [float(optics.a_lat[s]) for s in systems], [float(optics.a_ax[s]) for s in systems],
-                                 times, log_tol, ry=[optics.ry[s] for s in systems], taper=taper)
+        acc = kernel.path_fields(
+            p_ref,
+            vel,
+            t_ref,
+            [2.0 * float(optics.kn[s]) / _TWO_PI for s in systems],
+            [float(optics.a_lat[s]) for s in systems],
+            [float(optics.a_ax[s]) for s in systems],
+            times,
+            log_tol,
+            ry=[optics.ry[s] for s in systems],
+            taper=taper,
+        )
         field = kernel.sums_to_field(acc)
         return field * refl if refl != 1.0 else field
     out = torch.empty(N, len(systems), T, dtype=cdt, device=p_ref.device)
     for k, s in enumerate(systems):
-        coef = _path_coefficients(p_ref, vel, t_ref, float(optics.kn[s]), float(optics.a_lat[s]),
-                                  float(optics.a_ax[s]), optics.ry[s])
+        coef = _path_coefficients(
+            p_ref, vel, t_ref, float(optics.kn[s]), float(optics.a_lat[s]), float(optics.a_ax[s]), optics.ry[s]
+        )
         out[:, k] = _eval_straight(*coef, times, log_tol, refl, dtype, taper)
     return out
 
@@ -208,9 +238,18 @@ _PIECE_ELEMENTS = 1 << 18
 _PAD_EXPONENT = -1.0e30
 
 
-def _eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi: torch.Tensor,
-                 omega: torch.Tensor, times: torch.Tensor, log_tol: float, refl: float,
-                 dtype: torch.dtype, taper: bool = False) -> torch.Tensor:
+def _eval_straight(
+    e: torch.Tensor,
+    a2: torch.Tensor,
+    t_star: torch.Tensor,
+    phi: torch.Tensor,
+    omega: torch.Tensor,
+    times: torch.Tensor,
+    log_tol: float,
+    refl: float,
+    dtype: torch.dtype,
+    taper: bool = False,
+) -> torch.Tensor:
     """Field [N, T] of straight paths, counting each path only at the frames where its amplitude
     exceeds the tolerance.
 
@@ -237,8 +276,9 @@ def _eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi:
         return torch.complex(re, im)
     if T > _TILE_FRAMES:
         moving = a2 < 0
-        half = torch.sqrt(torch.where(moving, (log_tol - e) / torch.where(moving, a2, -torch.ones_like(a2)),
-                                      torch.zeros_like(e)))
+        half = torch.sqrt(
+            torch.where(moving, (log_tol - e) / torch.where(moving, a2, -torch.ones_like(a2)), torch.zeros_like(e))
+        )
         lo = torch.where(moving, t_star - half, torch.full_like(e, -math.inf))
         hi = torch.where(moving, t_star + half, torch.full_like(e, math.inf))
     coef = (e, a2, t_star, phi, omega)
@@ -264,7 +304,7 @@ def _eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi:
             per_piece = max(1, _PIECE_ELEMENTS // (width * (f1 - f0)))
             tt = t[f0:f1]
             for i0 in range(0, vis.shape[0], per_piece):
-                c = packed[i0:i0 + per_piece, :, :, None]  # [k, 5, width, 1]
+                c = packed[i0 : i0 + per_piece, :, :, None]  # [k, 5, width, 1]
                 tau = tt - c[:, 2]  # [k, width, frames]
                 ex = tau * tau
                 ex.mul_(c[:, 1]).add_(c[:, 0])
@@ -281,8 +321,13 @@ def _eval_straight(e: torch.Tensor, a2: torch.Tensor, t_star: torch.Tensor, phi:
     return torch.complex(re, im)
 
 
-def _path_meets_box(p_ref: torch.Tensor, vel: torch.Tensor | None, t_ref: torch.Tensor | None,
-                    T: float, half: tuple[float, float, float]) -> torch.Tensor:
+def _path_meets_box(
+    p_ref: torch.Tensor,
+    vel: torch.Tensor | None,
+    t_ref: torch.Tensor | None,
+    T: float,
+    half: tuple[float, float, float],
+) -> torch.Tensor:
     """Whether ``p_ref + vel·(t − t_ref)`` is inside the box for some t in [0, T] (slab test;
     positions and velocities [3, N, C])."""
     if vel is None:
@@ -313,8 +358,18 @@ def _eval_culled(pp: PopulationPlan, pop: Population, p_ref, vel, t_ref, times, 
     S = optics.kn.numel()
     if vel is not None and dtype == torch.float32 and p_ref.device.type == "cpu":
         # the fused kernel skips, per system, the paths that stay below the tolerance: no culling here
-        return _eval_paths(p_ref, vel, t_ref, times, optics, tuple(range(S)), pop.reflectivity, dtype,
-                           plan.truncation_tolerance, plan.truncation == "taper")
+        return _eval_paths(
+            p_ref,
+            vel,
+            t_ref,
+            times,
+            optics,
+            tuple(range(S)),
+            pop.reflectivity,
+            dtype,
+            plan.truncation_tolerance,
+            plan.truncation == "taper",
+        )
     out = torch.empty(N, S, times.numel(), dtype=_complex_of(dtype), device=p_ref.device)
     T = float(times[-1])
     for half, idx, _, cap in pp.system_groups:
@@ -325,8 +380,16 @@ def _eval_culled(pp: PopulationPlan, pop: Population, p_ref, vel, t_ref, times, 
             tensors = [t for t in (p_ref, vel, t_ref) if t is not None]
             _, got = _compact(mask, cap, f"population {pp.index} systems {idx}", *tensors, fill=(_FAR, 0.0, 0.0))
             sel = (got[0], got[1], got[2]) if vel is not None else (got[0], None, None)
-        out[:, list(idx)] = _eval_paths(*sel, times, optics, tuple(idx), pop.reflectivity, dtype,
-                                        plan.truncation_tolerance, plan.truncation == "taper")
+        out[:, list(idx)] = _eval_paths(
+            *sel,
+            times,
+            optics,
+            tuple(idx),
+            pop.reflectivity,
+            dtype,
+            plan.truncation_tolerance,
+            plan.truncation == "taper",
+        )
     return out
 
 
@@ -384,17 +447,29 @@ def _simulate_drift(pp: PopulationPlan, pop: Population, draws: Draws, times, op
     E = pp.entry_capacity if pp.entry_proposal_capacity else 0
     T = float(times[-1])
     if E:
-        n_prop = draws.poisson(pp.entry_proposal_rate_per_s * T, pp.entry_proposal_capacity,
-                               f"population {pp.index} entrants")
+        n_prop = draws.poisson(
+            pp.entry_proposal_rate_per_s * T, pp.entry_proposal_capacity, f"population {pp.index} entrants"
+        )
     else:
         n_prop = torch.zeros_like(n0)
     keys = draws.keys()
     ballistic = [(b.speed_um_per_s, 0 if b.directions == "isotropic" else 1) for b in pop.ballistic]
     try:
-        p, v, t_ref, _ = kernel.drift_paths(keys, n0, n_prop, tuple(H), tuple(pop.flow_velocity_um_per_s), ballistic,
-                                            ellipsoid_entry_bound(pop, H), T, E)
+        p, v, t_ref, _ = kernel.drift_paths(
+            keys,
+            n0,
+            n_prop,
+            tuple(H),
+            tuple(pop.flow_velocity_um_per_s),
+            ballistic,
+            ellipsoid_entry_bound(pop, H),
+            T,
+            E,
+        )
     except OverflowError:
-        raise CapacityError(f"population {pp.index} entrants: accepted entrants exceed the {E} reserved slots") from None
+        raise CapacityError(
+            f"population {pp.index} entrants: accepted entrants exceed the {E} reserved slots"
+        ) from None
     dev = draws.device
     return _eval_culled(pp, pop, p.to(dev), v.to(dev), t_ref.to(dev), times, optics, dtype, plan)
 
@@ -470,19 +545,36 @@ def _simulate_periodic(pp: PopulationPlan, pop: Population, draws: Draws, times,
         rows = slice(i * BLOCK_TRIALS, (i + 1) * BLOCK_TRIALS)
         pos = kernel.uniform_cell(key, M, tuple(pp.domain_half_widths_um)).to(device=dev, dtype=dtype)
         if fused:
-            acc = kernel.walk_periodic(pos, n[rows], key, sigmas, cell, psf_groups, group_of, q_turns, log_tol,
-                                       taper=taper)
+            acc = kernel.walk_periodic(
+                pos, n[rows], key, sigmas, cell, psf_groups, group_of, q_turns, log_tol, taper=taper
+            )
             field = kernel.sums_to_field(acc)
             out[rows] = field * refl if refl != 1.0 else field
         else:
-            out[rows] = _walk_periodic_block(pos, key, M, n[rows], L, inv_L, q, groups, refl, log_tol, sigmas, S,
-                                             T, dtype, dev, taper)
+            out[rows] = _walk_periodic_block(
+                pos, key, M, n[rows], L, inv_L, q, groups, refl, log_tol, sigmas, S, T, dtype, dev, taper
+            )
     return out
 
 
-def _walk_periodic_block(pos: torch.Tensor, key: int, M: int, n: torch.Tensor, L, inv_L, q, groups, refl: float,
-                         log_tol: float, sigmas: list[float], S: int, T: int, dtype, dev,
-                         taper: bool = False) -> torch.Tensor:
+def _walk_periodic_block(
+    pos: torch.Tensor,
+    key: int,
+    M: int,
+    n: torch.Tensor,
+    L,
+    inv_L,
+    q,
+    groups,
+    refl: float,
+    log_tol: float,
+    sigmas: list[float],
+    S: int,
+    T: int,
+    dtype,
+    dev,
+    taper: bool = False,
+) -> torch.Tensor:
     """The field [64, S, T] of one block's ``M`` scatterers (``n`` per trial) walking on the cell, in
     torch (float64, or a device other than the CPU): the same normals as the fused kernel."""
     res = torch.empty(T, 2, S, n.numel(), dtype=dtype, device=dev)
@@ -563,8 +655,10 @@ def _simulate_diffusive(pp: PopulationPlan, pop: Population, draws: Draws, times
     boxes: dict[tuple[float, float, float], list[int]] = {}
     for s, sp in enumerate(plan.systems):
         boxes.setdefault(sp.truncation_half_widths_um, []).append(s)
-    groups = [(torch.tensor([1.0 / h for h in half], dtype=_F64, device=dev).view(1, 3, 1), idx)
-              for half, idx in boxes.items()]
+    groups = [
+        (torch.tensor([1.0 / h for h in half], dtype=_F64, device=dev).view(1, 3, 1), idx)
+        for half, idx in boxes.items()
+    ]
 
     def evaluate(f: int) -> None:
         for inv_box, systems in groups:
@@ -637,8 +731,9 @@ SAMPLERS: dict[str, Callable] = {
 }
 
 
-def scene_field(scene: Scene, plan: Plan, draws: Draws, times: torch.Tensor, dtype: torch.dtype,
-                device: torch.device) -> torch.Tensor:
+def scene_field(
+    scene: Scene, plan: Plan, draws: Draws, times: torch.Tensor, dtype: torch.dtype, device: torch.device
+) -> torch.Tensor:
     """The noise-free complex field ``[trials, systems, frames]`` of one chunk: every population's
     sampler on the chunk's draws, summed in population order."""
     optics = _Optics.of(scene, dtype, device)

@@ -22,4 +22,5 @@ def resolve_scene_path(scene: str | Path) -> Path:
         return found
     raise FileNotFoundError(
         f"scene file {str(scene)!r} not found; give a path to a .toml scene file or the name of a "
-        f"shipped scene: {', '.join(shipped)}")
+        f"shipped scene: {', '.join(shipped)}"
+    )

@@ -97,8 +97,12 @@ DEFAULT_LINEAR_LAGS = (1, 2, 3, 4, 6, 8, 11, 16, 22, 28)
 DEFAULT_FIELD_LAGS = (1, 2, 3, 4, 6, 8)
 #: The default signature for the paper's protocol (32 frames), as ``torchdoct maps --signature``
 #: writes it: names, in order (intensity part first, then the field part).
-DEFAULT_FEATURES = (tuple(f"rho_db_{m}" for m in DEFAULT_DB_LAGS) + tuple(f"rho_lin_{m}" for m in DEFAULT_LINEAR_LAGS)
-                    + ("lin_contrast", "db_variance") + tuple(f"g1_{m}" for m in DEFAULT_FIELD_LAGS))
+DEFAULT_FEATURES = (
+    tuple(f"rho_db_{m}" for m in DEFAULT_DB_LAGS)
+    + tuple(f"rho_lin_{m}" for m in DEFAULT_LINEAR_LAGS)
+    + ("lin_contrast", "db_variance")
+    + tuple(f"g1_{m}" for m in DEFAULT_FIELD_LAGS)
+)
 
 
 def parse_feature(name: str) -> tuple[str, int]:
@@ -107,8 +111,10 @@ def parse_feature(name: str) -> tuple[str, int]:
         return name, 0
     m = _PATTERN.match(str(name))
     if m is None:
-        raise ValueError(f"unknown signature feature {name!r}: use rho_db_M, rho_lin_M, g1_M, g1_phase_M (M = lag "
-                         f"in frames >= 1) or {', '.join(_SCALARS)}")
+        raise ValueError(
+            f"unknown signature feature {name!r}: use rho_db_M, rho_lin_M, g1_M, g1_phase_M (M = lag "
+            f"in frames >= 1) or {', '.join(_SCALARS)}"
+        )
     return m.group(1), int(m.group(2))
 
 
@@ -156,11 +162,16 @@ def signature_lags(lags: Sequence[int], n_frames: int) -> tuple[int, ...]:
 def default_features(n_frames: int) -> tuple[str, ...]:
     """:data:`DEFAULT_FEATURES` for a sequence of ``n_frames``: every group's lags placed on the acquisition
     by :func:`signature_lags` (for 32 frames exactly :data:`DEFAULT_FEATURES`)."""
-    groups = ((kind, signature_lags(lags, n_frames)) for kind, lags in
-              (("rho_db", DEFAULT_DB_LAGS), ("rho_lin", DEFAULT_LINEAR_LAGS)))
+    groups = (
+        (kind, signature_lags(lags, n_frames))
+        for kind, lags in (("rho_db", DEFAULT_DB_LAGS), ("rho_lin", DEFAULT_LINEAR_LAGS))
+    )
     intensity = tuple(f"{kind}_{m}" for kind, lags in groups for m in lags)
-    return intensity + ("lin_contrast", "db_variance") + tuple(
-        f"g1_{m}" for m in signature_lags(DEFAULT_FIELD_LAGS, n_frames))
+    return (
+        intensity
+        + ("lin_contrast", "db_variance")
+        + tuple(f"g1_{m}" for m in signature_lags(DEFAULT_FIELD_LAGS, n_frames))
+    )
 
 
 def _uniform(frame_times_s: Sequence[float], n: int) -> None:
@@ -169,12 +180,15 @@ def _uniform(frame_times_s: Sequence[float], n: int) -> None:
         raise ValueError(f"signal has {n} frames but {len(t)} frame times were given")
     d = [b - a for a, b in zip(t, t[1:])]
     if not d or min(d) <= 0 or max(d) - min(d) > 1e-6 * max(d):
-        raise ValueError("the signature needs at least 2 frames at a uniform, increasing frame interval; "
-                         f"got intervals {min(d) if d else None}-{max(d) if d else None} s")
+        raise ValueError(
+            "the signature needs at least 2 frames at a uniform, increasing frame interval; "
+            f"got intervals {min(d) if d else None}-{max(d) if d else None} s"
+        )
 
 
-def signature(x: torch.Tensor, frame_times_s: Sequence[float],
-              names: Sequence[str] | None = None) -> tuple[tuple[str, ...], torch.Tensor]:
+def signature(
+    x: torch.Tensor, frame_times_s: Sequence[float], names: Sequence[str] | None = None
+) -> tuple[tuple[str, ...], torch.Tensor]:
     """Signature features of ``x [..., T]`` (module docstring) → ``(names, features [..., F])``.
 
     ``x``: complex field, or real non-negative intensity (then only intensity features can be
@@ -201,10 +215,12 @@ def signature(x: torch.Tensor, frame_times_s: Sequence[float],
         if lag > n - 3:
             raise ValueError(f"signature feature {nm!r}: lag {lag} needs at least {lag + 3} frames; got {n}")
         if kind in FIELD_FEATURES and not is_complex:
-            raise ValueError(f"signature feature {nm!r} needs the complex field (phase); the data hold intensity "
-                             "only, which gives only rho_db_*, rho_lin_*, lin_contrast and db_variance")
+            raise ValueError(
+                f"signature feature {nm!r} needs the complex field (phase); the data hold intensity "
+                "only, which gives only rho_db_*, rho_lin_*, lin_contrast and db_variance"
+            )
     if is_complex:
-        inten = x.real ** 2 + x.imag ** 2
+        inten = x.real**2 + x.imag**2
     else:
         inten = x
     bad = ~(inten > 0).all(-1)  # I = 0 or NaN at some frame: no dB value
@@ -240,8 +256,11 @@ def signature(x: torch.Tensor, frame_times_s: Sequence[float],
             v = torch.where(gm.abs() > 0, v, torch.full_like(v, math.nan))
         else:  # phase_ramp
             z = g(2) * g(1).conj() ** 2
-            v = torch.where(z.abs() > 0, z.real / torch.where(z.abs() > 0, z.abs(), torch.ones_like(z.real)),
-                            torch.zeros_like(z.real))
+            v = torch.where(
+                z.abs() > 0,
+                z.real / torch.where(z.abs() > 0, z.abs(), torch.ones_like(z.real)),
+                torch.zeros_like(z.real),
+            )
         cols[nm] = v
     out = torch.stack([cols[nm] for nm in names], dim=-1)
     if bool(bad.any()):
@@ -249,8 +268,9 @@ def signature(x: torch.Tensor, frame_times_s: Sequence[float],
     return names, out
 
 
-def pixel_features(field: torch.Tensor, frame_times_s: Sequence[float], spec_or_names=None, *,
-                   chunk_pixels: int | None = None) -> tuple[tuple[str, ...], torch.Tensor]:
+def pixel_features(
+    field: torch.Tensor, frame_times_s: Sequence[float], spec_or_names=None, *, chunk_pixels: int | None = None
+) -> tuple[tuple[str, ...], torch.Tensor]:
     """The features a signature model reads from every pixel of ``field [..., T]`` → ``(names, [..., F])``.
 
     The one feature function of both sides: :func:`classifier.dataset.simulate_draw` (simulated fields
@@ -282,5 +302,5 @@ def pixel_features(field: torch.Tensor, frame_times_s: Sequence[float], spec_or_
     out = torch.empty(flat.shape[0], len(names), dtype=first.dtype, device=first.device)
     out[:chunk_pixels] = first
     for p0 in range(chunk_pixels, flat.shape[0], chunk_pixels):
-        out[p0:p0 + chunk_pixels] = signature(flat[p0:p0 + chunk_pixels], frame_times_s, names=names)[1]
+        out[p0 : p0 + chunk_pixels] = signature(flat[p0 : p0 + chunk_pixels], frame_times_s, names=names)[1]
     return names, out.reshape(*lead, len(names))

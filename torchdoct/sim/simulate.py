@@ -52,8 +52,17 @@ from .streams import CapacityError, Draws, block_generator, seeded_generator
 
 #: ``CapacityError``, ``MemoryLimitError``, the generators, ``chunk_bytes``, ``available_memory_bytes`` and
 #: ``unit_directions`` are re-exported from their modules (their former home).
-__all__ = ["simulate", "SimulationResult", "CapacityError", "MemoryLimitError", "block_generator", "seeded_generator",
-           "chunk_bytes", "available_memory_bytes", "unit_directions"]
+__all__ = [
+    "simulate",
+    "SimulationResult",
+    "CapacityError",
+    "MemoryLimitError",
+    "block_generator",
+    "seeded_generator",
+    "chunk_bytes",
+    "available_memory_bytes",
+    "unit_directions",
+]
 
 
 @dataclass
@@ -71,7 +80,7 @@ class SimulationResult:
 
     @property
     def intensity(self) -> torch.Tensor:
-        return self.signals.real ** 2 + self.signals.imag ** 2
+        return self.signals.real**2 + self.signals.imag**2
 
     @property
     def system_names(self) -> tuple[str, ...]:
@@ -89,15 +98,18 @@ class SimulationResult:
         return summarize(self.metrics(), self.system_names)
 
 
-
-def _simulate_chunk(scene: Scene, plan: Plan, blocks: list[int], seed: int, dtype: torch.dtype,
-                    device: torch.device) -> torch.Tensor:
+def _simulate_chunk(
+    scene: Scene, plan: Plan, blocks: list[int], seed: int, dtype: torch.dtype, device: torch.device
+) -> torch.Tensor:
     draws = Draws([block_generator(seed, b) for b in blocks], device)
     times = torch.tensor(scene.protocol.times_s, dtype=torch.float64, device=device)
     total = scene_field(scene, plan, draws, times, dtype, device)
     if plan.has_noise:
-        amp = torch.tensor([noise_sigma(s.mean_intensity, scene.noise.snr_db) for s in plan.systems],
-                           dtype=torch.float64, device=device).view(1, -1, 1)
+        amp = torch.tensor(
+            [noise_sigma(s.mean_intensity, scene.noise.snr_db) for s in plan.systems],
+            dtype=torch.float64,
+            device=device,
+        ).view(1, -1, 1)
         shape = (len(scene.systems), times.numel())
         noise = torch.complex(draws.randn(*shape) * amp, draws.randn(*shape) * amp).to(total.dtype)
         total = total + noise
@@ -123,10 +135,12 @@ def check_intensity_scale(scene: Scene, mean_intensity: dict[str, float], dtype:
     refl = ", ".join(f"population[{i}].reflectivity = {p.reflectivity:g}" for i, p in enumerate(scene.populations))
     for system, value in mean_intensity.items():
         if not lo <= value <= hi:
-            raise ValueError(f"system {system!r}: the mean intensity is {value:.3g} ({refl}), outside what {name} "
-                             f"computes without underflow or overflow ({lo:.3g} to {hi:.3g}); LIV and OCDS do not "
-                             f"depend on the intensity scale: {wider}give the reflectivities relative to the brightest "
-                             "scatterer (the largest 1)")
+            raise ValueError(
+                f"system {system!r}: the mean intensity is {value:.3g} ({refl}), outside what {name} "
+                f"computes without underflow or overflow ({lo:.3g} to {hi:.3g}); LIV and OCDS do not "
+                f"depend on the intensity scale: {wider}give the reflectivities relative to the brightest "
+                "scatterer (the largest 1)"
+            )
 
 
 def check_precision(scene: Scene, plan: Plan, dtype: torch.dtype) -> None:
@@ -156,11 +170,13 @@ def check_precision(scene: Scene, plan: Plan, dtype: torch.dtype) -> None:
                 slow.append((f"population[{i}].motion[{j}].{key}", moved))
     if slow and not resolved and not plan.has_noise:  # else the other changes swamp its rounding
         key, moved = slow[0]
-        raise ValueError(f"{key}: moves {moved:.3g} µm per frame step ({step:g} s), less than "
-                         f"{MIN_SPACINGS_PER_FRAME:g} {name} spacings of the scatterer positions ({spacing:.3g} µm "
-                         f"at {top:.3g} µm), and nothing else in the scene (another motion, noise) changes the signal: "
-                         f"in {name} its LIV and OCDS would be rounding noise; {wider}leave the motion out (at this "
-                         "speed it is static)")
+        raise ValueError(
+            f"{key}: moves {moved:.3g} µm per frame step ({step:g} s), less than "
+            f"{MIN_SPACINGS_PER_FRAME:g} {name} spacings of the scatterer positions ({spacing:.3g} µm "
+            f"at {top:.3g} µm), and nothing else in the scene (another motion, noise) changes the signal: "
+            f"in {name} its LIV and OCDS would be rounding noise; {wider}leave the motion out (at this "
+            "speed it is static)"
+        )
 
 
 def simulate(
@@ -217,9 +233,15 @@ def simulate(
     n_blocks = -(-trials // BLOCK_TRIALS)
     # keep a chunk's largest working tensors near 8M elements, and give every thread a chunk; refused
     # before any work when the chunks in flight and the output would not fit (torchdoct.runtime.resources)
-    chunk_blocks = check_simulation(plan, trials=trials, n_systems=len(scene.systems),
-                                    n_frames=scene.protocol.n_frames, threads=threads, chunk_trials=chunk_trials,
-                                    dtype_bytes=torch.finfo(dtype).bits // 8)
+    chunk_blocks = check_simulation(
+        plan,
+        trials=trials,
+        n_systems=len(scene.systems),
+        n_frames=scene.protocol.n_frames,
+        threads=threads,
+        chunk_trials=chunk_trials,
+        dtype_bytes=torch.finfo(dtype).bits // 8,
+    )
     t0 = time.perf_counter()
     pieces = []
     bar = None
@@ -231,8 +253,10 @@ def simulate(
     last_trim = time.perf_counter()
     chunks = [list(range(b0, min(n_blocks, b0 + chunk_blocks))) for b0 in range(0, n_blocks, chunk_blocks)]
     with single_torch_thread():
-        for blocks, piece in zip(chunks, map_ordered(
-                lambda blocks: _simulate_chunk(scene, plan, blocks, seed, dtype, device), chunks, threads)):
+        for blocks, piece in zip(
+            chunks,
+            map_ordered(lambda blocks: _simulate_chunk(scene, plan, blocks, seed, dtype, device), chunks, threads),
+        ):
             pieces.append(piece)
             if time.perf_counter() - last_trim > 2.0:  # amortized: a trim costs a few ms of page faults
                 release_free_memory()
@@ -244,5 +268,12 @@ def simulate(
     if bar is not None:
         bar.close()
     signals = torch.cat(pieces)[:trials]
-    return SimulationResult(scene=scene, plan=plan, signals=signals, seed=seed, trials=trials,
-                            frame_times_s=scene.protocol.times_s, elapsed_s=time.perf_counter() - t0)
+    return SimulationResult(
+        scene=scene,
+        plan=plan,
+        signals=signals,
+        seed=seed,
+        trials=trials,
+        frame_times_s=scene.protocol.times_s,
+        elapsed_s=time.perf_counter() - t0,
+    )

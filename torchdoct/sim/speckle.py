@@ -93,8 +93,18 @@ SPATIAL_AXES = {2: "zx", 3: "yzx"}
 _PATTERN = re.compile(r"^xc_(centre|peak|share|asym|shift|shift_[xyz])_([1-9][0-9]*)$")
 _VEL = re.compile(r"^xc_velocity_([xyz])$")
 #: Unit of every feature kind.
-UNITS = {"centre": "1", "peak": "1", "share": "1", "asym": "1", "shift": "um", "shift_x": "um", "shift_y": "um", "shift_z": "um",
-         "velocity": "um/s", "speed": "um/s"}
+UNITS = {
+    "centre": "1",
+    "peak": "1",
+    "share": "1",
+    "asym": "1",
+    "shift": "um",
+    "shift_x": "um",
+    "shift_y": "um",
+    "shift_z": "um",
+    "velocity": "um/s",
+    "speed": "um/s",
+}
 
 
 def parse_speckle_feature(name: str) -> tuple[str, str | None, int]:
@@ -108,8 +118,10 @@ def parse_speckle_feature(name: str) -> tuple[str, str | None, int]:
         return "velocity", m.group(1), 0
     m = _PATTERN.match(name)
     if m is None:
-        raise ValueError(f"unknown speckle feature {name!r}: use xc_centre_M, xc_peak_M, xc_share_M, xc_asym_M, xc_shift_M, "
-                         "xc_shift_{z,x,y}_M (M = lag in frames >= 1), xc_velocity_{z,x,y} or xc_speed")
+        raise ValueError(
+            f"unknown speckle feature {name!r}: use xc_centre_M, xc_peak_M, xc_share_M, xc_asym_M, xc_shift_M, "
+            "xc_shift_{z,x,y}_M (M = lag in frames >= 1), xc_velocity_{z,x,y} or xc_speed"
+        )
     kind = m.group(1)
     axis = kind[-1] if kind.startswith("shift_") else None
     return ("shift" if axis else kind), axis, int(m.group(2))
@@ -142,8 +154,9 @@ def default_lags(n_frames: int = 32) -> tuple[int, ...]:
     return tuple(out)
 
 
-def default_speckle_features(ndim: int = 2, lags: Sequence[int] | None = None, *,
-                             n_frames: int = 32) -> tuple[str, ...]:
+def default_speckle_features(
+    ndim: int = 2, lags: Sequence[int] | None = None, *, n_frames: int = 32
+) -> tuple[str, ...]:
     """The default features of a B-scan (``ndim = 2``) or a volume (``ndim = 3``): per lag the centred
     value, the peak, the moving share, the antisymmetric amplitude and the shift length; then the speed.
     ``lags``: default :func:`default_lags` of ``n_frames``."""
@@ -159,8 +172,11 @@ def speckle_features(ndim: int = 2, lags: Sequence[int] | None = None, *, n_fram
     defaults, the signed shift per axis and lag, and the velocity per axis."""
     lags = default_lags(n_frames) if lags is None else tuple(lags)
     axes = SPATIAL_AXES[ndim]
-    return (default_speckle_features(ndim, lags) + tuple(f"xc_shift_{c}_{m}" for m in lags for c in axes)
-            + tuple(f"xc_velocity_{c}" for c in axes))
+    return (
+        default_speckle_features(ndim, lags)
+        + tuple(f"xc_shift_{c}_{m}" for m in lags for c in axes)
+        + tuple(f"xc_velocity_{c}" for c in axes)
+    )
 
 
 def halo_pixels(window: int = DEFAULT_WINDOW, max_offset: int = DEFAULT_MAX_OFFSET) -> int:
@@ -243,10 +259,17 @@ def _refine(lo: torch.Tensor, mid: torch.Tensor, hi: torch.Tensor) -> torch.Tens
     return d.clamp(-1.0, 1.0)
 
 
-def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interval_s: float,
-                   names: Sequence[str] | None = None, *, window: int = DEFAULT_WINDOW,
-                   max_offset: int = DEFAULT_MAX_OFFSET, ndim: int = 2,
-                   velocity_lags: Sequence[int] | None = None) -> tuple[tuple[str, ...], torch.Tensor]:
+def speckle_motion(
+    x: torch.Tensor,
+    pitch_um: Mapping[str, float],
+    frame_interval_s: float,
+    names: Sequence[str] | None = None,
+    *,
+    window: int = DEFAULT_WINDOW,
+    max_offset: int = DEFAULT_MAX_OFFSET,
+    ndim: int = 2,
+    velocity_lags: Sequence[int] | None = None,
+) -> tuple[tuple[str, ...], torch.Tensor]:
     """Speckle-motion features of every pixel's window (module docstring) → ``(names, [..., F, *S])``.
 
     ``x``: intensity (real, ≥ 0) or complex field, ``[..., T, Z, X]`` (``ndim = 2``) or
@@ -263,8 +286,10 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
     if ndim not in SPATIAL_AXES:
         raise ValueError(f"speckle features need 2 (Z, X) or 3 (Y, Z, X) spatial axes; got ndim={ndim!r}")
     if x.dim() < ndim + 1:
-        raise ValueError(f"speckle features need an array [..., T, {', '.join(SPATIAL_AXES[ndim].upper())}]; got "
-                         f"shape {tuple(x.shape)}")
+        raise ValueError(
+            f"speckle features need an array [..., T, {', '.join(SPATIAL_AXES[ndim].upper())}]; got "
+            f"shape {tuple(x.shape)}"
+        )
     axes = SPATIAL_AXES[ndim]
     n_t = x.shape[-ndim - 1]
     names = tuple(names) if names is not None else default_speckle_features(ndim, n_frames=n_t)
@@ -273,18 +298,24 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
     parsed = [parse_speckle_feature(n) for n in names]
     for n, (_kind, ax, _) in zip(names, parsed):
         if ax is not None and ax not in axes:
-            raise ValueError(f"speckle feature {n!r}: a {'volume' if ax == 'y' else 'B-scan'} has no axis {ax!r} "
-                             f"(axes {', '.join(axes)})")
+            raise ValueError(
+                f"speckle feature {n!r}: a {'volume' if ax == 'y' else 'B-scan'} has no axis {ax!r} "
+                f"(axes {', '.join(axes)})"
+            )
     vlags = tuple(int(m) for m in (default_lags(n_t) if velocity_lags is None else velocity_lags))
     if not vlags:
         raise ValueError("velocity_lags needs at least one lag")
-    lags = sorted({m for _, _, m in parsed if m > 0}
-                  | (set(vlags) if any(k in ("velocity", "speed") for k, _, _ in parsed) else set()))
+    lags = sorted(
+        {m for _, _, m in parsed if m > 0}
+        | (set(vlags) if any(k in ("velocity", "speed") for k, _, _ in parsed) else set())
+    )
     _check(window, max_offset, lags, n_t)
     try:
         pitch = [float(pitch_um[c]) for c in axes]
     except (KeyError, TypeError, ValueError):
-        raise ValueError(f"speckle features need the pixel pitch (µm) of the axes {', '.join(axes)}; got {pitch_um!r}") from None
+        raise ValueError(
+            f"speckle features need the pixel pitch (µm) of the axes {', '.join(axes)}; got {pitch_um!r}"
+        ) from None
     if not all(p > 0 and math.isfinite(p) for p in pitch):
         raise ValueError(f"the pixel pitch must be positive and finite (µm); got {pitch_um!r}")
     dt = float(frame_interval_s)
@@ -293,7 +324,7 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
 
     wide = x.dtype in (torch.complex128, torch.float64)
     real = torch.float64 if wide else torch.float32
-    inten = (x.real ** 2 + x.imag ** 2) if x.is_complex() else x.to(real)
+    inten = (x.real**2 + x.imag**2) if x.is_complex() else x.to(real)
     lead = inten.shape[: -ndim - 1]
     sp = inten.shape[-ndim:]
     inten = inten.reshape(-1, n_t, *sp)
@@ -321,6 +352,7 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
 
     def padded_box(v: torch.Tensor) -> torch.Tensor:  # box sums on the array grown by R: shifts stay exact
         import torch.nn.functional as F
+
         return _box_mean_sum(F.pad(v, pad), window)
 
     def moved(v: torch.Tensor, off: Sequence[int]) -> torch.Tensor:  # padded map at r + Δ, on the array's grid
@@ -387,7 +419,7 @@ def speckle_motion(x: torch.Tensor, pitch_um: Mapping[str, float], frame_interva
         taus = [m * dt for m in vlags]
         den = sum(t * t for t in taus)
         vel = {c: sum(t * per_lag[m][f"shift_{c}"] for t, m in zip(taus, vlags)) / den for c in axes}
-        speed = torch.sqrt(sum(v ** 2 for v in vel.values()))
+        speed = torch.sqrt(sum(v**2 for v in vel.values()))
     cols = []
     for kind, ax, m in parsed:
         if kind == "velocity":

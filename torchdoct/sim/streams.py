@@ -76,6 +76,7 @@ class Draws:
     def ragged(self, fn, k: int, sizes: list[int], out: torch.Tensor | None = None) -> torch.Tensor:
         """``fn`` draws (``torch.rand``/``torch.randn``) of shape ``[k, Σ sizes]`` in float32: block ``b``
         draws its ``[k, sizes[b]]`` from its own generator, so a block's numbers never depend on the chunk."""
+
         def one(i: int) -> torch.Tensor:
             return fn((k, sizes[i]), generator=self.gens[i], dtype=torch.float32)
 
@@ -110,4 +111,3 @@ def _poisson_cdf(mean: float, n: int) -> torch.Tensor:
     k = torch.arange(n, dtype=_F64)
     logp = k * math.log(mean) - mean - torch.lgamma(k + 1.0)
     return torch.cumsum(torch.exp(logp), 0).clamp_(max=1.0)
-

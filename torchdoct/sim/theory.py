@@ -312,8 +312,9 @@ def _gl_unit(n: int) -> tuple[np.ndarray, np.ndarray]:
     return 0.5 * (x + 1.0), 0.5 * w
 
 
-def _ballistic_anisotropic(q: np.ndarray, a_x: np.ndarray, a_y: np.ndarray, b_ax: np.ndarray,
-                           directions: str) -> np.ndarray:
+def _ballistic_anisotropic(
+    q: np.ndarray, a_x: np.ndarray, a_y: np.ndarray, b_ax: np.ndarray, directions: str
+) -> np.ndarray:
     """``E_n[cos(Q n_z) exp(−A_x n_x² − A_y n_y² − B n_z²)]`` over the direction law (1-D arrays).
 
     The azimuth average is exact: ``⟨e^{−s²(A_x cos²φ + A_y sin²φ)}⟩_φ = e^{−s²·m}·ive(0, s²·|A_x − A_y|/2)``
@@ -335,7 +336,7 @@ def _ballistic_anisotropic(q: np.ndarray, a_x: np.ndarray, a_y: np.ndarray, b_ax
         n = int(min(_ANISO_MAX_NODES, math.ceil(2.0 ** (bkt / 4.0))))
         x, w = _gl_unit(n)
         for lo in range(0, idx.size, max(1, 4_000_000 // n)):
-            sl = idx[lo:lo + max(1, 4_000_000 // n)]
+            sl = idx[lo : lo + max(1, 4_000_000 // n)]
             if directions == "isotropic":
                 mu = x[None, :]
                 s2 = 1.0 - mu * mu
@@ -447,8 +448,9 @@ def g1_flow(
 # ----------------------------------------------------------------------------------------------------------
 # incoherent (Poisson) term j (physics.md §5.4)
 # ----------------------------------------------------------------------------------------------------------
-def j_diffusion(tau_s, *, diffusion_um2_per_s, lateral_resolution_um, axial_resolution_um,
-                lateral_resolution_y_um=None) -> np.ndarray:
+def j_diffusion(
+    tau_s, *, diffusion_um2_per_s, lateral_resolution_um, axial_resolution_um, lateral_resolution_y_um=None
+) -> np.ndarray:
     """Poisson-term overlap j(τ) for diffusion (physics.md §5.4 (a), §5.8).
 
     ``j = 1 / [(1 + 2Dτ/s_x²) √(1 + 2Dτ/s_z²)]``; j(0) = 1 (with a separate y width the first factor is
@@ -488,7 +490,12 @@ def _erf_ratio(x: np.ndarray) -> np.ndarray:
 
 
 def j_ballistic(
-    tau_s, *, speed_um_per_s, lateral_resolution_um, axial_resolution_um, directions="isotropic",
+    tau_s,
+    *,
+    speed_um_per_s,
+    lateral_resolution_um,
+    axial_resolution_um,
+    directions="isotropic",
     lateral_resolution_y_um=None,
 ) -> np.ndarray:
     """Poisson-term overlap j(τ) for random-ballistic motion (physics.md §5.4 (b), (b′)).
@@ -525,8 +532,16 @@ def j_ballistic(
     return out.reshape(shape)
 
 
-def j_flow(tau_s, *, speed_um_per_s, polar_angle_deg, lateral_resolution_um, axial_resolution_um,
-           lateral_resolution_y_um=None, azimuth_deg=0.0) -> np.ndarray:
+def j_flow(
+    tau_s,
+    *,
+    speed_um_per_s,
+    polar_angle_deg,
+    lateral_resolution_um,
+    axial_resolution_um,
+    lateral_resolution_y_um=None,
+    azimuth_deg=0.0,
+) -> np.ndarray:
     """Poisson-term overlap j(τ) for mono-directional flow (physics.md §5.4 (c)): ``j = |g1_flow|²``.
 
     ``j = exp(−v²τ²[sin²θ/(2s_x²) + cos²θ/(2s_z²)])``, wavelength independent (with a separate y width,
@@ -542,8 +557,9 @@ def j_flow(tau_s, *, speed_um_per_s, polar_angle_deg, lateral_resolution_um, axi
     if sy is None:
         out = np.exp(-(u**2) * (np.sin(theta) ** 2 / (2.0 * sx**2) + np.cos(theta) ** 2 / (2.0 * sz**2)))
     else:
-        out = np.exp(-(u**2) * (_flow_lateral(np.sin(theta), sx, sy, azimuth_deg) / 2.0
-                                + np.cos(theta) ** 2 / (2.0 * sz**2)))
+        out = np.exp(
+            -(u**2) * (_flow_lateral(np.sin(theta), sx, sy, azimuth_deg) / 2.0 + np.cos(theta) ** 2 / (2.0 * sz**2))
+        )
     return np.asarray(out, dtype=np.float64)
 
 
@@ -554,20 +570,29 @@ def g1_and_j(motion, system, tau_s) -> tuple[np.ndarray, np.ndarray]:
     """``(g1(τ), j(τ))`` of one motion model seen by one system (physics.md §5.3-5.4): ``motion`` a
     ``Diffusion``, ``RandomBallistic`` or ``Flow`` and ``system`` an ``OCTSystem`` of
     :mod:`torchdoct.sim.config` (read by their fields: µm, µm²/s, µm/s, degrees); ``tau_s`` in s."""
-    kw = dict(lateral_resolution_um=system.lateral_resolution_um, axial_resolution_um=system.axial_resolution_um,
-              lateral_resolution_y_um=getattr(system, "lateral_resolution_y_um", None))
+    kw = dict(
+        lateral_resolution_um=system.lateral_resolution_um,
+        axial_resolution_um=system.axial_resolution_um,
+        lateral_resolution_y_um=getattr(system, "lateral_resolution_y_um", None),
+    )
     if hasattr(motion, "diffusion_um2_per_s"):
         D = motion.diffusion_um2_per_s
-        return (g1_diffusion(tau_s, diffusion_um2_per_s=D, wavelength_um=system.wavelength_um, **kw),
-                j_diffusion(tau_s, diffusion_um2_per_s=D, **kw))
+        return (
+            g1_diffusion(tau_s, diffusion_um2_per_s=D, wavelength_um=system.wavelength_um, **kw),
+            j_diffusion(tau_s, diffusion_um2_per_s=D, **kw),
+        )
     if hasattr(motion, "directions"):
         v, d = motion.speed_um_per_s, motion.directions
-        return (g1_ballistic(tau_s, speed_um_per_s=v, wavelength_um=system.wavelength_um, directions=d, **kw),
-                j_ballistic(tau_s, speed_um_per_s=v, directions=d, **kw))
+        return (
+            g1_ballistic(tau_s, speed_um_per_s=v, wavelength_um=system.wavelength_um, directions=d, **kw),
+            j_ballistic(tau_s, speed_um_per_s=v, directions=d, **kw),
+        )
     v, a = motion.speed_um_per_s, motion.polar_angle_deg
     kw["azimuth_deg"] = getattr(motion, "azimuth_deg", 0.0)
-    return (g1_flow(tau_s, speed_um_per_s=v, polar_angle_deg=a, wavelength_um=system.wavelength_um, **kw),
-            j_flow(tau_s, speed_um_per_s=v, polar_angle_deg=a, **kw))
+    return (
+        g1_flow(tau_s, speed_um_per_s=v, polar_angle_deg=a, wavelength_um=system.wavelength_um, **kw),
+        j_flow(tau_s, speed_um_per_s=v, polar_angle_deg=a, **kw),
+    )
 
 
 def _n_eff_arr(n_eff_value) -> np.ndarray:
@@ -626,9 +651,7 @@ def liv_gaussian_limit(g1_abs_at_lags, n_frames):
         raise ValueError(f"`n_frames` must be an integer >= 2; got {n_frames!r}")
     g = np.abs(np.asarray(g1_abs_at_lags))
     if g.ndim == 0 or g.shape[-1] != n - 1:
-        raise ValueError(
-            f"`g1_abs_at_lags` must have last dimension n_frames - 1 = {n - 1}; got shape {g.shape}"
-        )
+        raise ValueError(f"`g1_abs_at_lags` must have last dimension n_frames - 1 = {n - 1}; got shape {g.shape}")
     m = np.arange(1, n, dtype=np.float64)
     acc = (dilog(g**2) * (n - m)).sum(axis=-1)
     out = DB_PER_NEPER_INTENSITY**2 * ((math.pi**2 / 6.0) * (1.0 - 1.0 / n) - 2.0 * acc / n**2)

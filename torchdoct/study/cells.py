@@ -117,9 +117,11 @@ def _connect(scheduler: str):
     try:
         return Client(scheduler, set_as_default=False, timeout="10s")
     except (OSError, TimeoutError, ValueError) as err:
-        raise ValueError(f"--scheduler {scheduler!r}: cannot connect ({err}); start a scheduler "
-                         "(dask scheduler) and workers that have torchdoct installed, and give its address "
-                         "such as tcp://host:8786") from None
+        raise ValueError(
+            f"--scheduler {scheduler!r}: cannot connect ({err}); start a scheduler "
+            "(dask scheduler) and workers that have torchdoct installed, and give its address "
+            "such as tcp://host:8786"
+        ) from None
 
 
 def _worker_init(parent_pid: int | None = None) -> None:
@@ -160,9 +162,17 @@ def _stop_workers(pool) -> None:
         manager.join(timeout=30)
 
 
-def run_cells(task: Callable[[Any], Any], payloads: Sequence[Any], *, done: Callable[[int, Any], None],
-              workers: int = 1, batch: int = 1, processes: bool = False, scheduler: str | None = None,
-              one_torch_thread: bool = False) -> None:
+def run_cells(
+    task: Callable[[Any], Any],
+    payloads: Sequence[Any],
+    *,
+    done: Callable[[int, Any], None],
+    workers: int = 1,
+    batch: int = 1,
+    processes: bool = False,
+    scheduler: str | None = None,
+    one_torch_thread: bool = False,
+) -> None:
     """Run ``task(payload)`` for every payload; ``done(i, result)`` in this process as each finishes.
 
     ``batch``: payloads per thread, process or Dask task. ``scheduler``: address of a Dask distributed
@@ -185,10 +195,13 @@ def run_cells(task: Callable[[Any], Any], payloads: Sequence[Any], *, done: Call
         return
     from ..runtime.threads import map_ordered, single_torch_thread, using_threads
 
-    with using_threads(workers if one_at_a_time else 1), \
-            (single_torch_thread() if one_torch_thread else contextlib.nullcontext()):
-        results = map_ordered(lambda b: _run_batch(task, [payloads[i] for i in b]), batches,
-                              1 if one_at_a_time else workers)
+    with (
+        using_threads(workers if one_at_a_time else 1),
+        single_torch_thread() if one_torch_thread else contextlib.nullcontext(),
+    ):
+        results = map_ordered(
+            lambda b: _run_batch(task, [payloads[i] for i in b]), batches, 1 if one_at_a_time else workers
+        )
         for b, res in zip(batches, results):
             for i, r in zip(b, res):
                 done(i, r)
@@ -200,8 +213,9 @@ def _run_in_processes(task, payloads, batches, workers, done) -> None:
     from concurrent.futures import as_completed as done_first
 
     ctx = multiprocessing.get_context("spawn")  # no fork of a process that holds torch threads
-    with ProcessPoolExecutor(max_workers=min(workers, len(batches)), mp_context=ctx,
-                             initializer=_worker_init, initargs=(os.getpid(),)) as pool:
+    with ProcessPoolExecutor(
+        max_workers=min(workers, len(batches)), mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
+    ) as pool:
         try:
             futures = {pool.submit(_run_batch, task, [payloads[i] for i in b]): b for b in batches}
             for fut in done_first(futures):
@@ -242,12 +256,20 @@ class CellJob:
     weight: int = 1
 
 
-def run_cached(jobs: Sequence[CellJob], *, cache: CellCache, execute: Callable[[list, Callable], None],
-               encode: Callable[[CellJob, Any], tuple[dict[str, np.ndarray], dict[str, Any]]],
-               decode: Callable[[CellJob, dict[str, np.ndarray], dict[str, Any]], Any],
-               progress: bool = False, desc: str = "cells", unit: str = "trial", what: str = "cells",
-               before: Callable[[list[int]], None] | None = None,
-               final_note: bool = True) -> tuple[list[Any], list[int]]:
+def run_cached(
+    jobs: Sequence[CellJob],
+    *,
+    cache: CellCache,
+    execute: Callable[[list, Callable], None],
+    encode: Callable[[CellJob, Any], tuple[dict[str, np.ndarray], dict[str, Any]]],
+    decode: Callable[[CellJob, dict[str, np.ndarray], dict[str, Any]], Any],
+    progress: bool = False,
+    desc: str = "cells",
+    unit: str = "trial",
+    what: str = "cells",
+    before: Callable[[list[int]], None] | None = None,
+    final_note: bool = True,
+) -> tuple[list[Any], list[int]]:
     """Results of every job (from the cache, or computed): ``(results, indices computed)``.
 
     Cached jobs are decoded (``decode(job, arrays, header)``; an entry that does not decode is computed);
@@ -293,9 +315,13 @@ def run_cached(jobs: Sequence[CellJob], *, cache: CellCache, execute: Callable[[
         n_done = sum(finished[j] for j in pending)
         if cache.dir is not None:
             before = len(jobs) - len(pending)
-            note(kept=f"{n_done} of the {len(pending)} {what} to compute" + (f" (and {before} found there before)"
-                      if before else "") + f" in the cache {cache.dir}",
-                 resume="rerun the same command to resume from them", key="cache")
+            note(
+                kept=f"{n_done} of the {len(pending)} {what} to compute"
+                + (f" (and {before} found there before)" if before else "")
+                + f" in the cache {cache.dir}",
+                resume="rerun the same command to resume from them",
+                key="cache",
+            )
         else:
             note(resume=f"rerun the same command (without --no-cache, finished {what} would be kept)")
         raise
@@ -303,6 +329,9 @@ def run_cached(jobs: Sequence[CellJob], *, cache: CellCache, execute: Callable[[
         if bar is not None:
             bar.close()
     if final_note and cache.dir is not None:  # should the command be interrupted while it writes its outputs
-        note(kept=f"all {len(jobs)} {what} in the cache {cache.dir}",
-             resume=f"rerun the same command: the {what} come from the cache", key="cache")
+        note(
+            kept=f"all {len(jobs)} {what} in the cache {cache.dir}",
+            resume=f"rerun the same command: the {what} come from the cache",
+            key="cache",
+        )
     return results, pending

@@ -24,8 +24,10 @@ _METRIC_LABEL = {"liv": "LIV (dB²)", "ocds": "OCDS (s⁻¹)"}
 
 def _system_label(study: Study, name: str) -> str:
     s = study.system(name)
-    return (f"{name}: {1000 * s['wavelength_um']:.0f} nm, {s['lateral_resolution_um']:g} µm lat., "
-            f"{s['axial_resolution_um']:g} µm ax.")
+    return (
+        f"{name}: {1000 * s['wavelength_um']:.0f} nm, {s['lateral_resolution_um']:g} µm lat., "
+        f"{s['axial_resolution_um']:g} µm ax."
+    )
 
 
 def _new_figure(width: float, height: float):
@@ -49,8 +51,10 @@ def _inset_bounds(ax, xs: Sequence[np.ndarray], ys: Sequence[np.ndarray]) -> lis
         pts.append(((xx - x0) / (x1 - x0), (np.interp(xx, x, y) - y0) / (y1 - y0)))
     best, count = candidates[0], math.inf
     for b in candidates:
-        n = sum(int(np.sum((u >= b[0] - 0.03) & (u <= b[0] + b[2] + 0.03) & (w >= b[1] - 0.05)
-                           & (w <= b[1] + b[3] + 0.05))) for u, w in pts)
+        n = sum(
+            int(np.sum((u >= b[0] - 0.03) & (u <= b[0] + b[2] + 0.03) & (w >= b[1] - 0.05) & (w <= b[1] + b[3] + 0.05)))
+            for u, w in pts
+        )
         if n < count:
             best, count = b, n
     return best
@@ -103,10 +107,22 @@ def plot_comparison(study: Study, comparison: Comparison, differences):
         for c, metric in enumerate(metrics):
             t = d[(d["part"] == pname) & (d["metric"] == metric)].sort_values("value")
             x = t["value"].to_numpy(float)
-            curves = [(x, t["mean_reference"].to_numpy(float), t["sd_reference"].to_numpy(float), "tab:blue",
-                       _system_label(study, comparison.reference)),
-                      (x, t["mean_other"].to_numpy(float), t["sd_other"].to_numpy(float), "tab:orange",
-                       _system_label(study, comparison.other))]
+            curves = [
+                (
+                    x,
+                    t["mean_reference"].to_numpy(float),
+                    t["sd_reference"].to_numpy(float),
+                    "tab:blue",
+                    _system_label(study, comparison.reference),
+                ),
+                (
+                    x,
+                    t["mean_other"].to_numpy(float),
+                    t["sd_other"].to_numpy(float),
+                    "tab:orange",
+                    _system_label(study, comparison.other),
+                ),
+            ]
             title = f"{pname}: {metric.upper()}"
             _panel(axes[r][c], part, curves, metric, letters[r * ncol + c], title)
     handles, labels = axes[0][0].get_legend_handles_labels()
@@ -135,8 +151,7 @@ def plot_directions(study: Study, directions):
         ax.set_xscale("symlog", linthresh=0.01)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7, ncol=2, loc="upper left")
-    fig.suptitle(f"Random ballistic motion: direction law {la} (solid) vs {lb} (dashed), mean over trials",
-                 fontsize=10)
+    fig.suptitle(f"Random ballistic motion: direction law {la} (solid) vs {lb} (dashed), mean over trials", fontsize=10)
     return fig
 
 

@@ -49,9 +49,15 @@ def cells_over_cap(where: str, n: int, what: str, estimate=None) -> None:
         extra = ""
         if estimate is not None:
             sec, nbytes = estimate()
-            extra = (f"; building them alone would take about {sec * n:,.0f} s and {nbytes * n / 2**30:,.2f} GB "
-                     "before the first is simulated")
-        _fail(where, f"{what} makes {n:,} cells, over the cap of {cap:,}{extra}", "sweep fewer values, use mode = \"zip\", or pass --max-cells N to run them all")
+            extra = (
+                f"; building them alone would take about {sec * n:,.0f} s and {nbytes * n / 2**30:,.2f} GB "
+                "before the first is simulated"
+            )
+        _fail(
+            where,
+            f"{what} makes {n:,} cells, over the cap of {cap:,}{extra}",
+            'sweep fewer values, use mode = "zip", or pass --max-cells N to run them all',
+        )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -73,8 +79,12 @@ def _range_spec(where: str, spec: Any, kind: str) -> list[float]:
     unknown = sorted(set(spec) - {"start", "stop", "num"})
     missing = sorted({"start", "stop", "num"} - set(spec))
     if unknown or missing:
-        _fail(f"{where}.{kind}", f"needs exactly the keys start, stop, num; "
-              f"{'unknown ' + str(unknown) if unknown else 'missing ' + str(missing)}", f"write {kind} = {example}")
+        _fail(
+            f"{where}.{kind}",
+            f"needs exactly the keys start, stop, num; "
+            f"{'unknown ' + str(unknown) if unknown else 'missing ' + str(missing)}",
+            f"write {kind} = {example}",
+        )
     start, stop, num = spec["start"], spec["stop"], spec["num"]
     for key, v in (("start", start), ("stop", stop)):
         if not _is_number(v):
@@ -88,8 +98,11 @@ def _range_spec(where: str, spec: Any, kind: str) -> list[float]:
     cells_over_cap(f"{where}.{kind}.num", num, f"num = {num:,}")
     if kind == "log":
         if start <= 0 or stop <= 0:
-            _fail(f"{where}.log", f"start and stop must be > 0; got start = {start}, stop = {stop}",
-                  "add 0 with values = [0.0] and start the log range above 0")
+            _fail(
+                f"{where}.log",
+                f"start and stop must be > 0; got start = {start}, stop = {stop}",
+                "add 0 with values = [0.0] and start the log range above 0",
+            )
         vals = np.geomspace(float(start), float(stop), num) if num > 1 else np.array([float(start)])
     else:
         vals = np.linspace(float(start), float(stop), num) if num > 1 else np.array([float(start)])
@@ -116,8 +129,11 @@ def field_values(spec: dict[str, Any], where: str = "sweep.field") -> tuple[Any,
     if len(sources) > 1:
         bad = [v for v in out if not _is_number(v)]
         if bad:
-            _fail(where, f"combines {', '.join(sources)} but has non-numeric values {bad[:3]}",
-                  "give non-numeric values alone in values = [...]")
+            _fail(
+                where,
+                f"combines {', '.join(sources)} but has non-numeric values {bad[:3]}",
+                "give non-numeric values alone in values = [...]",
+            )
         uniq: list[float] = []
         for v in sorted(out):
             if not uniq or not math.isclose(v, uniq[-1], rel_tol=1e-12, abs_tol=0.0):
@@ -132,8 +148,9 @@ def field_values(spec: dict[str, Any], where: str = "sweep.field") -> tuple[Any,
 
 def _split_path(path: str, where: str) -> list[str]:
     if not isinstance(path, str) or not path.strip():
-        raise TypeError(f"{where}.path must be a dotted key path such as "
-                        f"'population.0.motion.0.diffusion_um2_per_s'; got {path!r}")
+        raise TypeError(
+            f"{where}.path must be a dotted key path such as 'population.0.motion.0.diffusion_um2_per_s'; got {path!r}"
+        )
     parts = path.split(".")
     if any(not p for p in parts):
         _fail(f"{where}.path", f"{path!r} has an empty segment", "separate keys by single dots")
@@ -160,13 +177,19 @@ def _set_path(data: dict[str, Any], parts: list[str], value: Any, where: str) ->
         here = ".".join(parts[:depth]) or "the scene"
         if isinstance(node, list):
             if not key.isdigit():
-                _fail(f"{where}.path", f"{path!r}: {here} is an array; {key!r} is not an index",
-                      f"use a position 0..{len(node) - 1}, e.g. {'.'.join(parts[:depth] + ['0'] + parts[depth + 1:])!r}")
+                _fail(
+                    f"{where}.path",
+                    f"{path!r}: {here} is an array; {key!r} is not an index",
+                    f"use a position 0..{len(node) - 1}, e.g. {'.'.join(parts[:depth] + ['0'] + parts[depth + 1 :])!r}",
+                )
             i = int(key)
             if i >= len(node):
-                _fail(f"{where}.path", f"{path!r}: {here} has {len(node)} entr{'y' if len(node) == 1 else 'ies'} "
-                      f"(indices 0..{len(node) - 1}); index {i} is out of range",
-                      f"add the entry to the scene or use an index below {len(node)}")
+                _fail(
+                    f"{where}.path",
+                    f"{path!r}: {here} has {len(node)} entr{'y' if len(node) == 1 else 'ies'} "
+                    f"(indices 0..{len(node) - 1}); index {i} is out of range",
+                    f"add the entry to the scene or use an index below {len(node)}",
+                )
             if last:
                 node[i] = copy.deepcopy(value)
             else:
@@ -179,5 +202,8 @@ def _set_path(data: dict[str, Any], parts: list[str], value: Any, where: str) ->
                     node[key] = {}
                 node = node[key]
         else:
-            _fail(f"{where}.path", f"{path!r}: {here} is a value ({node!r}), not a table or array",
-                  "point the path at a key inside a table")
+            _fail(
+                f"{where}.path",
+                f"{path!r}: {here} is a value ({node!r}), not a table or array",
+                "point the path at a key inside a table",
+            )

@@ -86,13 +86,31 @@ class Study:
         return next(s for s in self.scene_data["system"] if s["name"] == name)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "description": self.description,
-                "study": {"trials": self.trials, "seed": self.seed, "dtype": self.dtype, "grouping": self.grouping,
-                          "figure_parts": list(self.figure_parts), "direction_parts": list(self.direction_parts),
-                          "comparison": [c.__dict__ for c in self.comparisons]},
-                "scene": self.scene_data,
-                "part": [{"name": p.name, "label": p.label, "parameter": p.parameter, "inset_max": p.inset_max,
-                          "motion": p.motion, "values": list(p.values)} for p in self.parts]}
+        return {
+            "name": self.name,
+            "description": self.description,
+            "study": {
+                "trials": self.trials,
+                "seed": self.seed,
+                "dtype": self.dtype,
+                "grouping": self.grouping,
+                "figure_parts": list(self.figure_parts),
+                "direction_parts": list(self.direction_parts),
+                "comparison": [c.__dict__ for c in self.comparisons],
+            },
+            "scene": self.scene_data,
+            "part": [
+                {
+                    "name": p.name,
+                    "label": p.label,
+                    "parameter": p.parameter,
+                    "inset_max": p.inset_max,
+                    "motion": p.motion,
+                    "values": list(p.values),
+                }
+                for p in self.parts
+            ],
+        }
 
 
 def shipped_studies() -> dict[str, Path]:
@@ -105,8 +123,9 @@ def _resolve(study: str | os.PathLike) -> Path:
     found = file_or_shipped(study, shipped, "study file")
     if found is not None:
         return found
-    raise FileNotFoundError(f"study {str(study)!r} not found; give a study .toml file or the name of a shipped "
-                            f"study: {', '.join(shipped)}")
+    raise FileNotFoundError(
+        f"study {str(study)!r} not found; give a study .toml file or the name of a shipped study: {', '.join(shipped)}"
+    )
 
 
 def load_study(study: str | os.PathLike) -> Study:
@@ -122,8 +141,12 @@ def load_study(study: str | os.PathLike) -> Study:
 def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Study:
     """A validated :class:`Study` from the study-file schema (:mod:`torchdoct.study`)."""
     _check_keys("study file", data, {"name", "description", "study", "scene", "part"}, {"study", "scene", "part"})
-    st = _check_keys("study", data["study"], {"trials", "seed", "dtype", "grouping", "figure_parts", "direction_parts",
-                                        "comparison"}, {"comparison", "figure_parts"})
+    st = _check_keys(
+        "study",
+        data["study"],
+        {"trials", "seed", "dtype", "grouping", "figure_parts", "direction_parts", "comparison"},
+        {"comparison", "figure_parts"},
+    )
     trials = st.get("trials", 500)
     seed = st.get("seed", 0)
     for k, v in (("trials", trials), ("seed", seed)):
@@ -152,7 +175,9 @@ def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Stu
     comparisons = []
     for i, c in enumerate(comps):
         w = f"study.comparison[{i}]"
-        _check_keys(w, c, {"name", "figure", "title", "paper_figure", "reference", "other"}, {"name", "reference", "other"})
+        _check_keys(
+            w, c, {"name", "figure", "title", "paper_figure", "reference", "other"}, {"name", "reference", "other"}
+        )
         for k in ("reference", "other"):
             if _str(f"{w}.{k}", c[k]) not in system_names:
                 _fail(f"{w}.{k}", f"{c[k]!r} is not a system of [scene]", f"use one of {system_names}")
@@ -161,17 +186,29 @@ def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Stu
         name = _str(f"{w}.name", c["name"])
         figure = _str(f"{w}.figure", c.get("figure", f"fig-{name}"))
         try:  # the figure's files are OUT/FIGURE.png and .svg
-            safe_name(figure, f"{w}.figure" if "figure" in c else f"{w}.name (the figure is fig-NAME)",
-                      "give a plain name such as fig-6")
+            safe_name(
+                figure,
+                f"{w}.figure" if "figure" in c else f"{w}.name (the figure is fig-NAME)",
+                "give a plain name such as fig-6",
+            )
         except ValueError as err:
             raise SceneError(str(err)) from None
         if "." in figure:
-            _fail(f"{w}.figure", f"{figure!r} holds a dot; its files are FIGURE.png and FIGURE.svg",
-                  "give a name without a suffix, such as fig-6")
-        comparisons.append(Comparison(name=name, figure=figure,
-                                      title=_str(f"{w}.title", c.get("title", name)),
-                                      reference=c["reference"], other=c["other"],
-                                      paper_figure=_str(f"{w}.paper_figure", c.get("paper_figure", c.get("figure", name)))))
+            _fail(
+                f"{w}.figure",
+                f"{figure!r} holds a dot; its files are FIGURE.png and FIGURE.svg",
+                "give a name without a suffix, such as fig-6",
+            )
+        comparisons.append(
+            Comparison(
+                name=name,
+                figure=figure,
+                title=_str(f"{w}.title", c.get("title", name)),
+                reference=c["reference"],
+                other=c["other"],
+                paper_figure=_str(f"{w}.paper_figure", c.get("paper_figure", c.get("figure", name))),
+            )
+        )
     names = [c.name for c in comparisons]
     if len(set(names)) != len(names) or "all" in names:
         _fail("study.comparison", f"names must be unique and not 'all'; got {names}")
@@ -180,8 +217,12 @@ def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Stu
     parts = []
     for i, p in enumerate(parts_data):
         w = f"part[{i}]"
-        _check_keys(w, p, {"name", "label", "parameter", "inset_max", "motion", "values", "linear", "log"},
-              {"name", "parameter", "motion"})
+        _check_keys(
+            w,
+            p,
+            {"name", "label", "parameter", "inset_max", "motion", "values", "linear", "log"},
+            {"name", "parameter", "motion"},
+        )
         motion = p["motion"]
         if not isinstance(motion, dict) or "kind" not in motion:
             raise TypeError(f"{w}.motion must be a motion table with a kind; got {motion!r}")
@@ -201,9 +242,16 @@ def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Stu
         inset = p.get("inset_max", max(values) / 10 if max(values) > 0 else 1.0)
         if isinstance(inset, bool) or not isinstance(inset, (int, float)) or not inset > 0:
             raise TypeError(f"{w}.inset_max must be a number > 0; got {inset!r}")
-        parts.append(Part(name=_str(f"{w}.name", p["name"]), label=_str(f"{w}.label", p.get("label", param)),
-                          parameter=param, inset_max=float(inset), motion=dict(motion),
-                          values=tuple(float(v) for v in values)))
+        parts.append(
+            Part(
+                name=_str(f"{w}.name", p["name"]),
+                label=_str(f"{w}.label", p.get("label", param)),
+                parameter=param,
+                inset_max=float(inset),
+                motion=dict(motion),
+                values=tuple(float(v) for v in values),
+            )
+        )
     pnames = [p.name for p in parts]
     if len(set(pnames)) != len(pnames):
         _fail("part", f"part names must be unique; got {pnames}")
@@ -216,17 +264,29 @@ def study_from_dict(data: dict[str, Any], *, default_name: str = "study") -> Stu
     dir_parts = st.get("direction_parts", [])
     if dir_parts:
         if not isinstance(dir_parts, list) or len(dir_parts) != 2 or any(n not in pnames for n in dir_parts):
-            _fail("study.direction_parts", f"must name two parts; got {dir_parts!r}", f"use names of [[part]]: {pnames}")
+            _fail(
+                "study.direction_parts", f"must name two parts; got {dir_parts!r}", f"use names of [[part]]: {pnames}"
+            )
         a, b = (next(p for p in parts if p.name == n) for n in dir_parts)
         strip = lambda m: {k: v for k, v in m.items() if k != "directions"}  # noqa: E731
-        if a.kind != "ballistic" or b.kind != "ballistic" or strip(a.motion) != strip(b.motion) \
-                or a.values != b.values:
-            _fail("study.direction_parts", f"{dir_parts} must be ballistic parts with the same values that differ "
-                  "only in directions")
-    return Study(name=_str("name", data.get("name", default_name)), description=data.get("description", ""),
-                 trials=trials, seed=seed, dtype=dtype, grouping=grouping, comparisons=tuple(comparisons),
-                 parts=tuple(parts), figure_parts=tuple(fig_parts), direction_parts=tuple(dir_parts),
-                 scene_data=scene)
+        if a.kind != "ballistic" or b.kind != "ballistic" or strip(a.motion) != strip(b.motion) or a.values != b.values:
+            _fail(
+                "study.direction_parts",
+                f"{dir_parts} must be ballistic parts with the same values that differ only in directions",
+            )
+    return Study(
+        name=_str("name", data.get("name", default_name)),
+        description=data.get("description", ""),
+        trials=trials,
+        seed=seed,
+        dtype=dtype,
+        grouping=grouping,
+        comparisons=tuple(comparisons),
+        parts=tuple(parts),
+        figure_parts=tuple(fig_parts),
+        direction_parts=tuple(dir_parts),
+        scene_data=scene,
+    )
 
 
 def _xunit(part: Part) -> str:

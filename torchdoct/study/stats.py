@@ -33,7 +33,7 @@ Z_BRACKET = 2.0
 def _paired(a: np.ndarray, b: np.ndarray) -> tuple[float, float, int]:
     """Mean and SE of ``b − a`` over trials where both are finite."""
     ok = np.isfinite(a) & np.isfinite(b)
-    d = (b[ok].astype(np.float64) - a[ok].astype(np.float64))
+    d = b[ok].astype(np.float64) - a[ok].astype(np.float64)
     n = int(d.size)
     mean = float(d.mean()) if n else math.nan
     se = float(d.std(ddof=1) / math.sqrt(n)) if n > 1 else math.nan
@@ -66,11 +66,28 @@ def paired_differences(study: Study, result: SweepResult):
                     mr, sr = _ms(arr[:, i_ref])
                     mo, so = _ms(arr[:, i_oth])
                     d, se, n = _paired(arr[:, i_ref], arr[:, i_oth])
-                    rows.append({"part": part.name, "comparison": c.name, "motion": part.kind,
-                                 "parameter": part.parameter, "value": cr.cell.values["value"], "metric": metric,
-                                 "reference": c.reference, "other": c.other, "mean_reference": mr, "sd_reference": sr,
-                                 "mean_other": mo, "sd_other": so, "diff": d, "se": se, "z": _z(d, se), "n": n,
-                                 "trials": cr.trials, "seed": cr.seed})
+                    rows.append(
+                        {
+                            "part": part.name,
+                            "comparison": c.name,
+                            "motion": part.kind,
+                            "parameter": part.parameter,
+                            "value": cr.cell.values["value"],
+                            "metric": metric,
+                            "reference": c.reference,
+                            "other": c.other,
+                            "mean_reference": mr,
+                            "sd_reference": sr,
+                            "mean_other": mo,
+                            "sd_other": so,
+                            "diff": d,
+                            "se": se,
+                            "z": _z(d, se),
+                            "n": n,
+                            "trials": cr.trials,
+                            "seed": cr.seed,
+                        }
+                    )
     return pd.DataFrame(rows)
 
 
@@ -102,11 +119,25 @@ def direction_differences(study: Study, result: SweepResult):
                 ma, sa = _ms(a.metrics[metric][:, ia])
                 mb, sb = _ms(b.metrics[metric][:, ib])
                 d, se, n = _paired(a.metrics[metric][:, ia], b.metrics[metric][:, ib])
-                rows.append({"system": system, "value": v, "metric": metric, "part_a": pa, "part_b": pb,
-                             "directions_a": study.part(pa).motion.get("directions", "isotropic"),
-                             "directions_b": study.part(pb).motion.get("directions", "isotropic"),
-                             "mean_a": ma, "sd_a": sa, "mean_b": mb, "sd_b": sb, "diff": d, "se": se,
-                             "z": _z(d, se), "n": n})
+                rows.append(
+                    {
+                        "system": system,
+                        "value": v,
+                        "metric": metric,
+                        "part_a": pa,
+                        "part_b": pb,
+                        "directions_a": study.part(pa).motion.get("directions", "isotropic"),
+                        "directions_b": study.part(pb).motion.get("directions", "isotropic"),
+                        "mean_a": ma,
+                        "sd_a": sa,
+                        "mean_b": mb,
+                        "sd_b": sb,
+                        "diff": d,
+                        "se": se,
+                        "z": _z(d, se),
+                        "n": n,
+                    }
+                )
     return pd.DataFrame(rows)
 
 
@@ -157,7 +188,7 @@ def _pooled(c: _Curve) -> tuple[float, float, float, int]:
     if k == 0:
         return math.nan, math.nan, math.nan, 0
     mean = float(np.mean(c.diff))
-    se = float(math.sqrt(np.sum(c.se ** 2)) / k)
+    se = float(math.sqrt(np.sum(c.se**2)) / k)
     return mean, se, _z(mean, se), k
 
 
@@ -174,16 +205,22 @@ def _crossing(c: _Curve) -> dict[str, Any] | None:
     if c.x.size < 2:
         return None
     z = np.clip(_zfin(c), -50, 50)
-    score = [z[: k + 1].sum() - z[k + 1:].sum() for k in range(c.x.size - 1)]
+    score = [z[: k + 1].sum() - z[k + 1 :].sum() for k in range(c.x.size - 1)]
     k = int(np.argmax(score))
     left, right = c.where(np.arange(c.x.size) <= k), c.where(np.arange(c.x.size) > k)
     pl, pr = _pooled(left), _pooled(right)
     pos = [i for i in range(k + 1) if z[i] >= Z_BRACKET]
     neg = [i for i in range(k + 1, c.x.size) if z[i] <= -Z_BRACKET]
     bracket = (float(c.x[pos[-1]] if pos else c.x[0]), float(c.x[neg[0]] if neg else c.x[-1]))
-    return {"x_lo": float(c.x[k]), "x_hi": float(c.x[k + 1]), "x": float(math.sqrt(c.x[k] * c.x[k + 1])),
-            "bracket": bracket, "left": pl, "right": pr,
-            "found": pl[2] >= Z_SIGNIFICANT and pr[2] <= -Z_SIGNIFICANT}
+    return {
+        "x_lo": float(c.x[k]),
+        "x_hi": float(c.x[k + 1]),
+        "x": float(math.sqrt(c.x[k] * c.x[k + 1])),
+        "bracket": bracket,
+        "left": pl,
+        "right": pr,
+        "found": pl[2] >= Z_SIGNIFICANT and pr[2] <= -Z_SIGNIFICANT,
+    }
 
 
 def _x_reach(x: np.ndarray, y: np.ndarray, frac: float = 0.9) -> float:

@@ -55,6 +55,9 @@ which writes the cache and the table. Before any cell runs, the cells to compute
 the available memory and the cache's disk (:func:`torchdoct.runtime.resources.check_resources`).
 
 The grid (a field's values, key paths into the scene) is :mod:`torchdoct.study.grid`'s.
+
+Kept whole (over 800 lines): the cell key, the cache encoding, the resource checks and the writers share
+the canonical form of a cell; a split would pass that form between modules without making a step shorter.
 """
 
 from __future__ import annotations
@@ -107,9 +110,25 @@ __all__ = [
 #: Metrics with one number per trial and system, and their units: the rows of the table.
 SCALAR_METRICS = {"liv": "dB^2", "ocds": "1/s", "complex_variance": "linear intensity"}
 #: Columns of the table that a sweep field or tag may not take as its name.
-RESERVED_COLUMNS = ("sweep", "cell", "system", "wavelength_um", "lateral_resolution_um",
-                    "axial_resolution_um", "refractive_index", "metric", "unit", "mean", "sd", "se", "n",
-                    "empty", "trials", "seed", "cache_key")
+RESERVED_COLUMNS = (
+    "sweep",
+    "cell",
+    "system",
+    "wavelength_um",
+    "lateral_resolution_um",
+    "axial_resolution_um",
+    "refractive_index",
+    "metric",
+    "unit",
+    "mean",
+    "sd",
+    "se",
+    "n",
+    "empty",
+    "trials",
+    "seed",
+    "cache_key",
+)
 #: Bump when the cached content changes meaning; part of every cache key.
 CACHE_FORMAT = 1
 
@@ -181,9 +200,13 @@ class Sweep:
 
     def to_dict(self) -> dict[str, Any]:
         """The resolved sweep: base scene (defaults filled in), fields with their values, tags."""
-        return {"name": self.name, "mode": self.mode, "tags": dict(self.tags),
-                "fields": [{"path": f.path, "name": f.name, "values": list(f.values)} for f in self.fields],
-                "scene": self.scene.to_dict()}
+        return {
+            "name": self.name,
+            "mode": self.mode,
+            "tags": dict(self.tags),
+            "fields": [{"path": f.path, "name": f.name, "values": list(f.values)} for f in self.fields],
+            "scene": self.scene.to_dict(),
+        }
 
 
 def cell_key(assignments: Iterable[tuple[str, Any]]) -> str:
@@ -191,8 +214,15 @@ def cell_key(assignments: Iterable[tuple[str, Any]]) -> str:
     return _canonical({p: _norm_value(v) for p, v in sorted(assignments)})
 
 
-def make_sweep(scene_data: dict[str, Any], fields: Sequence[dict[str, Any]], *, mode: str = "product",
-               name: str | None = None, tags: dict[str, str] | None = None, where: str = "sweep") -> Sweep:
+def make_sweep(
+    scene_data: dict[str, Any],
+    fields: Sequence[dict[str, Any]],
+    *,
+    mode: str = "product",
+    name: str | None = None,
+    tags: dict[str, str] | None = None,
+    where: str = "sweep",
+) -> Sweep:
     """Build and validate a :class:`Sweep` from a scene dict (file schema) and field specs.
 
     Every field spec is a dict with ``path``, optional ``name`` and ``values``/``linear``/``log``.
@@ -206,8 +236,11 @@ def make_sweep(scene_data: dict[str, Any], fields: Sequence[dict[str, Any]], *, 
     if mode not in ("product", "zip"):
         _fail(f"{where}.mode", f"must be 'product' or 'zip'; got {mode!r}")
     if not isinstance(fields, (list, tuple)) or not fields:
-        _fail(f"{where}.field", "a sweep needs at least one [[sweep.field]]",
-              'add [[sweep.field]] with path = "..." and values = [...]')
+        _fail(
+            f"{where}.field",
+            "a sweep needs at least one [[sweep.field]]",
+            'add [[sweep.field]] with path = "..." and values = [...]',
+        )
     name = name if name is not None else (base_scene.name or "sweep")
     if not isinstance(name, str) or not name:
         raise TypeError(f"{where}.name must be a non-empty string; got {name!r}")
@@ -227,8 +260,12 @@ def make_sweep(scene_data: dict[str, Any], fields: Sequence[dict[str, Any]], *, 
         if parts[0] == "sweep":
             _fail(f"{fw}.path", "a sweep cannot sweep itself", "point the path into the scene")
         if parts[0] == "simulation" and len(parts) > 1 and parts[1] in ("trials", "seed"):
-            _fail(f"{fw}.path", f"{spec['path']!r}: trials and seed are set for the whole sweep (each cell "
-                  "derives its own seed from the base seed)", "use --trials / --seed instead of sweeping them")
+            _fail(
+                f"{fw}.path",
+                f"{spec['path']!r}: trials and seed are set for the whole sweep (each cell "
+                "derives its own seed from the base seed)",
+                "use --trials / --seed instead of sweeping them",
+            )
         col = spec.get("name", parts[-1])
         if "name" not in spec and (col in RESERVED_COLUMNS or col in tags or col in [f.name for f in parsed]):
             col = spec["path"]  # the last key is taken: the whole path names the column
@@ -237,7 +274,7 @@ def make_sweep(scene_data: dict[str, Any], fields: Sequence[dict[str, Any]], *, 
         if col in RESERVED_COLUMNS or col in tags:
             _fail(f"{fw}.name", f"{col!r} is a column of the table already", "give the field another name")
         if col in [f.name for f in parsed]:
-            _fail(f"{fw}.name", f"two fields are named {col!r}", "set name = \"...\" on one of them")
+            _fail(f"{fw}.name", f"two fields are named {col!r}", 'set name = "..." on one of them')
         if spec["path"] in [f.path for f in parsed]:
             _fail(f"{fw}.path", f"{spec['path']!r} is swept twice", "sweep each path once")
         parsed.append(SweepField(path=spec["path"], name=col, values=field_values(spec, fw)))
@@ -247,7 +284,7 @@ def make_sweep(scene_data: dict[str, Any], fields: Sequence[dict[str, Any]], *, 
             raise TypeError(f"{where}: tags must map strings to strings; got {k!r}: {v!r}")
         if k in RESERVED_COLUMNS:
             _fail(f"{where}.tags", f"{k!r} is a column of the table already", "rename the tag")
-    n_cells = (min(len(f.values) for f in parsed) if mode == "zip" else math.prod(len(f.values) for f in parsed))
+    n_cells = min(len(f.values) for f in parsed) if mode == "zip" else math.prod(len(f.values) for f in parsed)
     from .grid import cells_over_cap
 
     def one_cell() -> tuple[float, int]:  # the cost of building cell 0, measured on it
@@ -263,13 +300,17 @@ def make_sweep(scene_data: dict[str, Any], fields: Sequence[dict[str, Any]], *, 
             scene = data
         return time.perf_counter() - t0, len(pickle.dumps((data, scene)))
 
-    cells_over_cap(where, n_cells, f"mode = {mode!r} over {' × '.join(str(len(f.values)) for f in parsed)} values",
-                   one_cell)
+    cells_over_cap(
+        where, n_cells, f"mode = {mode!r} over {' × '.join(str(len(f.values)) for f in parsed)} values", one_cell
+    )
     if mode == "zip":
         lengths = {f.name: len(f.values) for f in parsed}
         if len(set(lengths.values())) > 1:
-            _fail(f"{where}.mode", f"zip needs fields of equal length; got {lengths}",
-                  "give every field the same number of values or use mode = \"product\"")
+            _fail(
+                f"{where}.mode",
+                f"zip needs fields of equal length; got {lengths}",
+                'give every field the same number of values or use mode = "product"',
+            )
         combos = list(zip(*[f.values for f in parsed]))
     else:
         import itertools
@@ -292,10 +333,25 @@ def make_sweep(scene_data: dict[str, Any], fields: Sequence[dict[str, Any]], *, 
         if key in seen:
             _fail(where, f"cells {seen[key]} and {idx} are the same ({desc})", "remove the duplicate values")
         seen[key] = idx
-        cells.append(Cell(sweep=name, index=idx, assignments=tuple(assignments),
-                          names=tuple(f.name for f in parsed), scene=scene, key=key))
-    return Sweep(name=name, scene_data=base, scene=base_scene, fields=tuple(parsed), mode=mode,
-                 tags=tuple(tags.items()), cells=tuple(cells))
+        cells.append(
+            Cell(
+                sweep=name,
+                index=idx,
+                assignments=tuple(assignments),
+                names=tuple(f.name for f in parsed),
+                scene=scene,
+                key=key,
+            )
+        )
+    return Sweep(
+        name=name,
+        scene_data=base,
+        scene=base_scene,
+        fields=tuple(parsed),
+        mode=mode,
+        tags=tuple(tags.items()),
+        cells=tuple(cells),
+    )
 
 
 def parse_sweep(data: dict[str, Any], *, source: str = "scene") -> Sweep:
@@ -325,8 +381,9 @@ def load_sweep(path: str | os.PathLike) -> Sweep:
     try:
         check_regular_file(p, "sweep file")
     except FileNotFoundError:
-        raise FileNotFoundError(f"sweep file {str(path)!r} not found; give the path of a .toml scene file "
-                                "with a [sweep] table") from None
+        raise FileNotFoundError(
+            f"sweep file {str(path)!r} not found; give the path of a .toml scene file with a [sweep] table"
+        ) from None
     data = read_toml(p, "sweep file")
     try:
         sweep = parse_sweep(data, source=p.name)
@@ -352,8 +409,12 @@ def _run_scene_dict(scene: Scene, *, trials: int, seed: int, dtype: str, toleran
     d = scene.to_dict()
     d.pop("name", None)
     d.pop("description", None)
-    d["simulation"] = {"trials": int(trials), "seed": int(seed), "dtype": str(dtype),
-                       "truncation_tolerance": float(tolerance)}
+    d["simulation"] = {
+        "trials": int(trials),
+        "seed": int(seed),
+        "dtype": str(dtype),
+        "truncation_tolerance": float(tolerance),
+    }
     if scene.simulation.truncation != "hard":  # keys of hard cells stay as they were
         d["simulation"]["truncation"] = scene.simulation.truncation
     return d
@@ -361,8 +422,11 @@ def _run_scene_dict(scene: Scene, *, trials: int, seed: int, dtype: str, toleran
 
 def cache_key(scene: Scene, *, seed: int, trials: int, dtype: str, tolerance: float) -> str:
     """Hash (hex, 40 characters) of the resolved cell, seed, trials, dtype, tolerance and version."""
-    payload = {"format": CACHE_FORMAT, "version": _version(),
-               "scene": _run_scene_dict(scene, trials=trials, seed=seed, dtype=dtype, tolerance=tolerance)}
+    payload = {
+        "format": CACHE_FORMAT,
+        "version": _version(),
+        "scene": _run_scene_dict(scene, trials=trials, seed=seed, dtype=dtype, tolerance=tolerance),
+    }
     return hashlib.sha256(_canonical(payload).encode()).hexdigest()[:40]
 
 
@@ -384,15 +448,24 @@ def run_cell(payload: dict[str, Any]) -> dict[str, Any]:
     scene = scene_from_dict(payload["scene"])
     st = scene.simulation
     t0 = time.perf_counter()
-    res = simulate(scene, trials=st.trials, seed=st.seed, dtype=st.dtype,
-                   truncation_tolerance=st.truncation_tolerance, progress=False)
-    analysis = dataclasses.replace(scene.analysis,
-                                   metrics=tuple(m for m in scene.analysis.metrics if m in SCALAR_METRICS))
+    res = simulate(
+        scene,
+        trials=st.trials,
+        seed=st.seed,
+        dtype=st.dtype,
+        truncation_tolerance=st.truncation_tolerance,
+        progress=False,
+    )
+    analysis = dataclasses.replace(
+        scene.analysis, metrics=tuple(m for m in scene.analysis.metrics if m in SCALAR_METRICS)
+    )
     m = compute_metrics(res.signals, res.frame_times_s, analysis)
-    return {"metrics": {k: m[k].cpu().numpy() for k in analysis.metrics},
-            "zero_intensity": m["zero_intensity"].cpu().numpy(),
-            "system_names": [s.name for s in scene.systems],
-            "elapsed_s": time.perf_counter() - t0}
+    return {
+        "metrics": {k: m[k].cpu().numpy() for k in analysis.metrics},
+        "zero_intensity": m["zero_intensity"].cpu().numpy(),
+        "system_names": [s.name for s in scene.systems],
+        "elapsed_s": time.perf_counter() - t0,
+    }
 
 
 def run_cell_batch(payloads: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -460,20 +533,43 @@ class SweepResult:
 _PROCESS_WORK = 100_000
 
 
-def _execute(payloads: list[dict[str, Any]], *, scheduler: str | None, batch_cells: int, workers: int,
-             done: Callable[[int, dict[str, Any]], None]) -> None:
+def _execute(
+    payloads: list[dict[str, Any]],
+    *,
+    scheduler: str | None,
+    batch_cells: int,
+    workers: int,
+    done: Callable[[int, dict[str, Any]], None],
+) -> None:
     """Run payloads through the cell runner (:func:`torchdoct.study.cells.run_cells`): side by side in
     threads, in worker processes from :data:`_PROCESS_WORK` system-trials on, or on a Dask cluster;
     ``done(i, result)`` as each finishes."""
     work = sum(p["scene"]["simulation"]["trials"] * len(p["scene"]["system"]) for p in payloads)
-    run_cells(run_cell, payloads, done=done, workers=workers, batch=batch_cells, scheduler=scheduler,
-              processes=work >= _PROCESS_WORK)
+    run_cells(
+        run_cell,
+        payloads,
+        done=done,
+        workers=workers,
+        batch=batch_cells,
+        scheduler=scheduler,
+        processes=work >= _PROCESS_WORK,
+    )
 
 
-def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int | None = None,
-               dtype: str | None = None, tolerance: float | None = None,
-               cache_dir: str | os.PathLike | None = None, scheduler: str | None = None,
-               batch_cells: int = 1, workers: int = 1, progress: bool = False, desc: str = "sweep") -> SweepResult:
+def run_sweeps(
+    sweeps: Sequence[Sweep],
+    *,
+    trials: int | None = None,
+    seed: int | None = None,
+    dtype: str | None = None,
+    tolerance: float | None = None,
+    cache_dir: str | os.PathLike | None = None,
+    scheduler: str | None = None,
+    batch_cells: int = 1,
+    workers: int = 1,
+    progress: bool = False,
+    desc: str = "sweep",
+) -> SweepResult:
     """Run every cell of ``sweeps`` (cached cells are loaded, not recomputed).
 
     ``trials``, ``seed``, ``dtype`` and ``tolerance`` override each sweep's ``[simulation]`` values;
@@ -507,18 +603,38 @@ def run_sweeps(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int 
         _execute(payloads, scheduler=scheduler, batch_cells=batch_cells, workers=workers, done=done)
 
     results, pending = run_cached(
-        jobs, cache=CellCache(cache_dir), execute=execute, encode=_encode, decode=_decode, progress=progress,
-        desc=desc, unit="trial", what="cells",
-        before=lambda todo: _check_resources([info[j] for j in todo], scheduler=scheduler, workers=workers,
-                                             batch_cells=batch_cells, cache_dir=cache_dir, trials=trials))
+        jobs,
+        cache=CellCache(cache_dir),
+        execute=execute,
+        encode=_encode,
+        decode=_decode,
+        progress=progress,
+        desc=desc,
+        unit="trial",
+        what="cells",
+        before=lambda todo: _check_resources(
+            [info[j] for j in todo],
+            scheduler=scheduler,
+            workers=workers,
+            batch_cells=batch_cells,
+            cache_dir=cache_dir,
+            trials=trials,
+        ),
+    )
     computed = set(pending)
     cells = [_cell_result(info[j], res, cached=j not in computed) for j, res in enumerate(results)]
-    return SweepResult(sweeps=tuple(sweeps), cells=cells, elapsed_s=time.perf_counter() - t0,
-                       computed=len(pending), cached=len(jobs) - len(pending))
+    return SweepResult(
+        sweeps=tuple(sweeps),
+        cells=cells,
+        elapsed_s=time.perf_counter() - t0,
+        computed=len(pending),
+        cached=len(jobs) - len(pending),
+    )
 
 
-def _jobs(sweeps: Sequence[Sweep], *, trials: int | None, seed: int | None, dtype: str | None,
-          tolerance: float | None) -> tuple[list[tuple], list[CellJob]]:
+def _jobs(
+    sweeps: Sequence[Sweep], *, trials: int | None, seed: int | None, dtype: str | None, tolerance: float | None
+) -> tuple[list[tuple], list[CellJob]]:
     """Every cell as it runs: ``(sweep, cell, seed, trials, dtype, tolerance, cache key)`` and its
     :class:`~torchdoct.study.cells.CellJob` (the payload of :func:`run_cell`)."""
     info, jobs = [], []
@@ -532,22 +648,36 @@ def _jobs(sweeps: Sequence[Sweep], *, trials: int | None, seed: int | None, dtyp
             tol = tolerance if tolerance is not None else st.truncation_tolerance
             key = cache_key(cell.scene, seed=s, trials=n, dtype=dt, tolerance=tol)
             info.append((sw, cell, s, n, dt, tol, key))
-            jobs.append(CellJob(key=key, payload={"scene": _run_scene_dict(cell.scene, trials=n, seed=s, dtype=dt,
-                                                                           tolerance=tol)}, weight=n))
+            jobs.append(
+                CellJob(
+                    key=key,
+                    payload={"scene": _run_scene_dict(cell.scene, trials=n, seed=s, dtype=dt, tolerance=tol)},
+                    weight=n,
+                )
+            )
     return info, jobs
 
 
-def check_sweep_resources(sweeps: Sequence[Sweep], *, trials: int | None = None, seed: int | None = None,
-                          dtype: str | None = None, tolerance: float | None = None,
-                          cache_dir: str | os.PathLike | None = None, scheduler: str | None = None,
-                          batch_cells: int = 1, workers: int = 1) -> None:
+def check_sweep_resources(
+    sweeps: Sequence[Sweep],
+    *,
+    trials: int | None = None,
+    seed: int | None = None,
+    dtype: str | None = None,
+    tolerance: float | None = None,
+    cache_dir: str | os.PathLike | None = None,
+    scheduler: str | None = None,
+    batch_cells: int = 1,
+    workers: int = 1,
+) -> None:
     """The resource check of :func:`run_sweeps` (same arguments), for a command to call before it makes its
     output folder: the cells without a cache file must fit (:func:`torchdoct.runtime.resources.check_resources`)."""
     info, jobs = _jobs(sweeps, trials=trials, seed=seed, dtype=dtype, tolerance=tolerance)
     cache = CellCache(cache_dir)
     todo = [i for i, job in zip(info, jobs) if cache.dir is None or not cache.path(job.key).is_file()]
-    _check_resources(todo, scheduler=scheduler, workers=workers, batch_cells=batch_cells, cache_dir=cache_dir,
-                     trials=trials)
+    _check_resources(
+        todo, scheduler=scheduler, workers=workers, batch_cells=batch_cells, cache_dir=cache_dir, trials=trials
+    )
 
 
 def _encode(job: CellJob, res: dict[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -555,14 +685,23 @@ def _encode(job: CellJob, res: dict[str, Any]) -> tuple[dict[str, np.ndarray], d
     ``metric_<name>``, ``zero_intensity`` and a header with the resolved scene that ran."""
     arrays = {f"metric_{k}": v for k, v in res["metrics"].items()}
     arrays["zero_intensity"] = res["zero_intensity"]
-    return arrays, {"format": CACHE_FORMAT, "version": _version(), "scene": job.payload["scene"],
-                    "metrics": list(res["metrics"]), "system_names": list(res["system_names"]),
-                    "elapsed_s": res["elapsed_s"]}
+    return arrays, {
+        "format": CACHE_FORMAT,
+        "version": _version(),
+        "scene": job.payload["scene"],
+        "metrics": list(res["metrics"]),
+        "system_names": list(res["system_names"]),
+        "elapsed_s": res["elapsed_s"],
+    }
 
 
 def _decode(job: CellJob, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> dict[str, Any]:
-    return {"metrics": {k: arrays[f"metric_{k}"] for k in meta["metrics"]}, "zero_intensity": arrays["zero_intensity"],
-            "system_names": meta["system_names"], "elapsed_s": meta.get("elapsed_s", 0.0)}
+    return {
+        "metrics": {k: arrays[f"metric_{k}"] for k in meta["metrics"]},
+        "zero_intensity": arrays["zero_intensity"],
+        "system_names": meta["system_names"],
+        "elapsed_s": meta.get("elapsed_s", 0.0),
+    }
 
 
 @functools.lru_cache(maxsize=4096)
@@ -595,12 +734,25 @@ def _cell_bytes(scene: Scene, trials: int, threads: int, tolerance: float, dtype
     from ..sim.memory import simulation_bytes
 
     plan = _cell_plan(scene, tolerance)
-    return simulation_bytes(plan, trials=trials, n_systems=len(scene.systems), n_frames=scene.protocol.n_frames,
-                            threads=threads, dtype_bytes=dtype_bytes)[0]
+    return simulation_bytes(
+        plan,
+        trials=trials,
+        n_systems=len(scene.systems),
+        n_frames=scene.protocol.n_frames,
+        threads=threads,
+        dtype_bytes=dtype_bytes,
+    )[0]
 
 
-def _check_resources(todo: list[tuple], *, scheduler: str | None, workers: int, batch_cells: int,
-                     cache_dir: str | os.PathLike | None, trials: int | None) -> None:
+def _check_resources(
+    todo: list[tuple],
+    *,
+    scheduler: str | None,
+    workers: int,
+    batch_cells: int,
+    cache_dir: str | os.PathLike | None,
+    trials: int | None,
+) -> None:
     """The cells to compute fit in memory (the largest cell's simulation times the cells side by side, plus
     every cell's per-trial metrics) and their cache entries on disk: :func:`torchdoct.runtime.resources.check_resources`,
     before any cell runs."""
@@ -624,15 +776,21 @@ def _check_resources(todo: list[tuple], *, scheduler: str | None, workers: int, 
     sw, cell, _, n, _, tol, _ = where
     names = list(dict.fromkeys(job[0].name for job in todo))
     desc = ", ".join(f"{p} = {v!r}" for p, v in cell.assignments)
-    fix = (f"lower the trials per cell (--trials, now {n}), run fewer cells side by side (--workers, now {workers}), "
-           f"or loosen the truncation tolerance (--tolerance or simulation.truncation_tolerance, now {tol:g})")
-    check_resources(f"sweep {names[0]!r}" if len(names) == 1 else f"running {len(todo)} cells of {len(names)} sweeps",
-                    largest * at_once + results, fix,
-                    detail=f"the largest cell, {'' if len(names) == 1 else repr(sw.name) + ' '}{cell.index} ({desc}), "
-                           f"{largest / 2**30:.2f} GB with {n} trials, × {at_once} cell(s) side by side, plus the "
-                           f"per-trial metrics of {len(todo)} cells",
-                    out_path=cache_dir, out_bytes=results if cache_dir is not None else 0,
-                    out_fix="free disk space there, give another --cache directory, or --no-cache")
+    fix = (
+        f"lower the trials per cell (--trials, now {n}), run fewer cells side by side (--workers, now {workers}), "
+        f"or loosen the truncation tolerance (--tolerance or simulation.truncation_tolerance, now {tol:g})"
+    )
+    check_resources(
+        f"sweep {names[0]!r}" if len(names) == 1 else f"running {len(todo)} cells of {len(names)} sweeps",
+        largest * at_once + results,
+        fix,
+        detail=f"the largest cell, {'' if len(names) == 1 else repr(sw.name) + ' '}{cell.index} ({desc}), "
+        f"{largest / 2**30:.2f} GB with {n} trials, × {at_once} cell(s) side by side, plus the "
+        f"per-trial metrics of {len(todo)} cells",
+        out_path=cache_dir,
+        out_bytes=results if cache_dir is not None else 0,
+        out_fix="free disk space there, give another --cache directory, or --no-cache",
+    )
 
 
 def run_sweep(sweep: Sweep, **kwargs: Any) -> SweepResult:
@@ -642,9 +800,20 @@ def run_sweep(sweep: Sweep, **kwargs: Any) -> SweepResult:
 
 def _cell_result(job, res: dict[str, Any], cached: bool) -> CellResult:
     sw, cell, s, n, dt, tol, key = job
-    return CellResult(cell=cell, sweep=sw, seed=s, trials=n, dtype=dt, tolerance=tol, cache_key=key,
-                      metrics=dict(res["metrics"]), zero_intensity=np.asarray(res["zero_intensity"]),
-                      system_names=tuple(res["system_names"]), elapsed_s=float(res["elapsed_s"]), cached=cached)
+    return CellResult(
+        cell=cell,
+        sweep=sw,
+        seed=s,
+        trials=n,
+        dtype=dt,
+        tolerance=tol,
+        cache_key=key,
+        metrics=dict(res["metrics"]),
+        zero_intensity=np.asarray(res["zero_intensity"]),
+        system_names=tuple(res["system_names"]),
+        elapsed_s=float(res["elapsed_s"]),
+        cached=cached,
+    )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -674,14 +843,25 @@ def results_table(cells: Sequence[CellResult]):
                 sd = float(v.std(ddof=1)) if n > 1 else math.nan
                 row = {"sweep": c.cell.sweep, **dict(c.sweep.tags), "cell": c.cell.index}
                 row.update({k: _column_value(x) for k, x in c.cell.values.items()})
-                row.update({"system": sname, "wavelength_um": sy.wavelength_um,
-                            "lateral_resolution_um": sy.lateral_resolution_um,
-                            "axial_resolution_um": sy.axial_resolution_um,
-                            "refractive_index": sy.refractive_index, "metric": metric,
-                            "unit": SCALAR_METRICS[metric], "mean": mean, "sd": sd,
-                            "se": sd / math.sqrt(n) if n > 1 else math.nan, "n": n,
-                            "empty": int(np.asarray(c.zero_intensity[:, s_idx]).sum()),
-                            "trials": c.trials, "seed": c.seed, "cache_key": c.cache_key})
+                row.update(
+                    {
+                        "system": sname,
+                        "wavelength_um": sy.wavelength_um,
+                        "lateral_resolution_um": sy.lateral_resolution_um,
+                        "axial_resolution_um": sy.axial_resolution_um,
+                        "refractive_index": sy.refractive_index,
+                        "metric": metric,
+                        "unit": SCALAR_METRICS[metric],
+                        "mean": mean,
+                        "sd": sd,
+                        "se": sd / math.sqrt(n) if n > 1 else math.nan,
+                        "n": n,
+                        "empty": int(np.asarray(c.zero_intensity[:, s_idx]).sum()),
+                        "trials": c.trials,
+                        "seed": c.seed,
+                        "cache_key": c.cache_key,
+                    }
+                )
                 rows.append(row)
     df = pd.DataFrame(rows)
     for col in df.columns:  # Parquet needs one type per column: mixed field values become text
@@ -705,10 +885,19 @@ def write_table(table, stem: str | os.PathLike, *, force: bool = False) -> list[
 
 
 def _run_record(result: SweepResult) -> list[dict[str, Any]]:
-    return [{"sweep": c.cell.sweep, "cell": c.cell.index, "values": {k: _column_value(v) for k, v in
-                                                                    c.cell.values.items()},
-             "seed": c.seed, "trials": c.trials, "dtype": c.dtype, "truncation_tolerance": c.tolerance,
-             "cache_key": c.cache_key} for c in result.cells]
+    return [
+        {
+            "sweep": c.cell.sweep,
+            "cell": c.cell.index,
+            "values": {k: _column_value(v) for k, v in c.cell.values.items()},
+            "seed": c.seed,
+            "trials": c.trials,
+            "dtype": c.dtype,
+            "truncation_tolerance": c.tolerance,
+            "cache_key": c.cache_key,
+        }
+        for c in result.cells
+    ]
 
 
 def sweep_outputs(out_dir: str | os.PathLike, stem: str = "results") -> list[Path]:
@@ -734,21 +923,27 @@ def prepare_out_dir(out_dir: str | os.PathLike, files: Sequence[Path], force: bo
         d.mkdir()
     clash = [p for p in files if p.exists()]
     if clash and not force:
-        raise ValueError(f"{what}: {', '.join(str(p) for p in clash)} exist(s); pass --force to overwrite "
-                         "(finished cells come from the cache either way)")
+        raise ValueError(
+            f"{what}: {', '.join(str(p) for p in clash)} exist(s); pass --force to overwrite "
+            "(finished cells come from the cache either way)"
+        )
     return d
 
 
-def write_sweep_outputs(result: SweepResult, out_dir: str | os.PathLike, *, force: bool = False,
-                        stem: str = "results") -> list[Path]:
+def write_sweep_outputs(
+    result: SweepResult, out_dir: str | os.PathLike, *, force: bool = False, stem: str = "results"
+) -> list[Path]:
     """Write the tidy table (CSV, Parquet) and ``sweep.json`` (resolved sweeps, cells, seeds, keys):
     the three appear together or not at all (:func:`torchdoct.files.output_set`)."""
     from ..files import atomic_write, output_set
 
     files = sweep_outputs(out_dir, stem)
     prepare_out_dir(out_dir, files, force)
-    record = {"torchdoct_version": _version(), "sweeps": [s.to_dict() for s in result.sweeps],
-              "cells": _run_record(result)}
+    record = {
+        "torchdoct_version": _version(),
+        "sweeps": [s.to_dict() for s in result.sweeps],
+        "cells": _run_record(result),
+    }
     with output_set(files, force) as stage:
         write_table(result.table(), stage(files[0]).with_suffix(""), force=force)
         atomic_write(stage(files[2]), lambda tmp: Path(tmp).write_text(json.dumps(record, indent=2), encoding="utf-8"))
@@ -771,14 +966,19 @@ def format_table(table, metrics: Sequence[str] = ("liv", "ocds")) -> str:
         for r in t.to_dict("records"):
             k = (r["sweep"], r["cell"])
             if k not in labels:
-                parts = [f"{c}={r[c]:.6g}" if isinstance(r[c], float) else f"{c}={r[c]}"
-                         for c in value_cols if not _missing(r[c])]
+                parts = [
+                    f"{c}={r[c]:.6g}" if isinstance(r[c], float) else f"{c}={r[c]}"
+                    for c in value_cols
+                    if not _missing(r[c])
+                ]
                 labels[k] = (f"{r['sweep']}: " if multi else "") + ", ".join(parts)
             rows.setdefault(k, {})[r["system"]] = f"{r['mean']:.4g} ({r['se']:.2g})"
         width = max(len(v) for v in labels.values())
         cw = max(16, *(len(s) for s in systems))
-        lines = [f"{metric} mean (SE) [{t['unit'].iloc[0]}]",
-                 " " * width + "  " + "  ".join(f"{s:>{cw}}" for s in systems)]
+        lines = [
+            f"{metric} mean (SE) [{t['unit'].iloc[0]}]",
+            " " * width + "  " + "  ".join(f"{s:>{cw}}" for s in systems),
+        ]
         for k, lab in labels.items():
             lines.append(f"{lab:<{width}}  " + "  ".join(f"{rows[k].get(s, '-'):>{cw}}" for s in systems))
         out.append("\n".join(lines))

@@ -38,8 +38,12 @@ def study_sweeps(study: Study):
             motions.append(copy.deepcopy(part.motion))
             data.setdefault("simulation", {}).update({"trials": study.trials, "seed": study.seed, "dtype": study.dtype})
             path = f"population.0.motion.{len(motions) - 1}.{part.parameter}"
-            sweeps.append(make_sweep(data, [{"path": path, "name": "value", "values": list(part.values)}],
-                                     name=_sweep_name(part.name, comp),
-                                     tags={"part": part.name, "comparison": comp, "motion": part.kind,
-                                           "parameter": part.parameter}))
+            sweeps.append(
+                make_sweep(
+                    data,
+                    [{"path": path, "name": "value", "values": list(part.values)}],
+                    name=_sweep_name(part.name, comp),
+                    tags={"part": part.name, "comparison": comp, "motion": part.kind, "parameter": part.parameter},
+                )
+            )
     return sweeps

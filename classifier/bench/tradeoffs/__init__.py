@@ -57,5 +57,15 @@ from .plan import DEFAULTS, ONE_CONFIGURATION, QUICK_PLAN, TradeoffPlan
 from .report import format_table, plot_tradeoffs
 from .run import classifier_tradeoffs, run_tradeoffs
 
-__all__ = ["DEFAULTS", "TradeoffPlan", "QUICK_PLAN", "one_configuration_spec", "derive_dataset", "prefix_dataset",
-           "classifier_tradeoffs", "run_tradeoffs", "format_table", "plot_tradeoffs"]
+__all__ = [
+    "DEFAULTS",
+    "TradeoffPlan",
+    "QUICK_PLAN",
+    "one_configuration_spec",
+    "derive_dataset",
+    "prefix_dataset",
+    "classifier_tradeoffs",
+    "run_tradeoffs",
+    "format_table",
+    "plot_tradeoffs",
+]

@@ -22,16 +22,23 @@ def one_configuration_spec():
     keep = [c for c in base.configurations if c.matches(*_ONE_CONFIGURATION_SYSTEM)]
     if len(keep) != 1:
         raise ValueError("the single-acquisition spec has no 840-nm 4.9/3.8-µm configuration to keep")
-    return dataclasses.replace(base, name=ONE_CONFIGURATION, configurations=tuple(keep),
-                               description="840 nm at the original 4.9/3.8 µm only (one configuration)")
+    return dataclasses.replace(
+        base,
+        name=ONE_CONFIGURATION,
+        configurations=tuple(keep),
+        description="840 nm at the original 4.9/3.8 µm only (one configuration)",
+    )
 
 
 def _columns(base, sub) -> list[int]:
     """Indices of ``sub``'s features among ``base``'s, matched by metric and configuration values."""
     cols = []
     for metric, conf in sub.features:
-        hit = [i for i, (m, c) in enumerate(base.features)
-               if m == metric and c.matches(conf.wavelength_um, conf.lateral_resolution_um, conf.axial_resolution_um)]
+        hit = [
+            i
+            for i, (m, c) in enumerate(base.features)
+            if m == metric and c.matches(conf.wavelength_um, conf.lateral_resolution_um, conf.axial_resolution_um)
+        ]
         if len(hit) != 1:
             raise ValueError(f"spec {base.name!r} has no unique feature {metric}@{conf.describe()} for {sub.name!r}")
         cols.append(hit[0])
@@ -62,8 +69,13 @@ def derive_dataset(ds, base, sub, prior):
     arrays = ds.arrays()
     arrays["x"] = np.ascontiguousarray(ds.x[:, cols])
     arrays["status"] = lut[ds.draw]
-    new_meta = {**meta, "spec": sub.to_dict(), "feature_names": list(sub.feature_names),
-                "draw_status_counts": counts, "derived_from": {"spec": base.name, "columns": cols}}
+    new_meta = {
+        **meta,
+        "spec": sub.to_dict(),
+        "feature_names": list(sub.feature_names),
+        "draw_status_counts": counts,
+        "derived_from": {"spec": base.name, "columns": cols},
+    }
     return Dataset(**arrays, meta=new_meta)
 
 
@@ -92,8 +104,9 @@ def _seconds_per_draw(spec, prior, plan: TradeoffPlan) -> float:
 
     def run(k: int) -> None:
         d = draw_parameters(prior, plan.seed, "train", k, plan.replicates)
-        simulate_draw(spec, d, prior, trials=plan.trials_per_draw, truncation_tolerance=tol,
-                      truncation=TrainConfig().truncation)
+        simulate_draw(
+            spec, d, prior, trials=plan.trials_per_draw, truncation_tolerance=tol, truncation=TrainConfig().truncation
+        )
 
     run(m)
     t0 = time.perf_counter()

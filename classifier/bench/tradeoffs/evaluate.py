@@ -37,8 +37,15 @@ def _bootstrap_weights(n_draws: int, n_boot: int, seed: int) -> np.ndarray:
     return w
 
 
-def _draw_counts(pred: np.ndarray, y: np.ndarray, status: np.ndarray, draw: np.ndarray, common: np.ndarray,
-                 n_draws: int, n_motion: int) -> dict[str, np.ndarray]:
+def _draw_counts(
+    pred: np.ndarray,
+    y: np.ndarray,
+    status: np.ndarray,
+    draw: np.ndarray,
+    common: np.ndarray,
+    n_draws: int,
+    n_motion: int,
+) -> dict[str, np.ndarray]:
     ind = n_motion
     ident = status == 0
     decided = ident & (pred != ind)
@@ -46,9 +53,13 @@ def _draw_counts(pred: np.ndarray, y: np.ndarray, status: np.ndarray, draw: np.n
     def count(mask: np.ndarray) -> np.ndarray:
         return np.bincount(draw[mask], minlength=n_draws).astype(np.float64)
 
-    return {"ident": count(ident), "dec": np.stack([count(decided & (y == c)) for c in range(n_motion)], 1),
-            "cor": np.stack([count(decided & (y == c) & (pred == c)) for c in range(n_motion)], 1),
-            "common": count(common), "common_correct": count(common & (pred == y))}
+    return {
+        "ident": count(ident),
+        "dec": np.stack([count(decided & (y == c)) for c in range(n_motion)], 1),
+        "cor": np.stack([count(decided & (y == c) & (pred == c)) for c in range(n_motion)], 1),
+        "common": count(common),
+        "common_correct": count(common & (pred == y)),
+    }
 
 
 def _weighted_stats(counts: dict[str, np.ndarray], w: np.ndarray) -> dict[str, np.ndarray]:
@@ -94,17 +105,27 @@ class _Evaluator:
         point = _weighted_stats(counts, np.ones((1, n_draws)))
         reps = _weighted_stats(counts, self.weights)
         bal = m["balanced_accuracy_identifiable"]
-        out = {"samples": m["samples"], "identifiable_samples": m["identifiable_samples"],
-               "balanced_accuracy": bal, "balanced_accuracy_se": _sd(reps["balanced_accuracy"]),
-               "coverage": m["coverage_identifiable"], "coverage_se": _sd(reps["coverage"]),
-               "accuracy": m["accuracy_identifiable"], "ece": m["ece"],
-               "strict_accuracy_common": float(point["strict_accuracy_common"][0]),
-               "strict_accuracy_common_se": _sd(reps["strict_accuracy_common"]),
-               "error": 1.0 - bal, "error_se": _sd(reps["balanced_accuracy"])}
+        out = {
+            "samples": m["samples"],
+            "identifiable_samples": m["identifiable_samples"],
+            "balanced_accuracy": bal,
+            "balanced_accuracy_se": _sd(reps["balanced_accuracy"]),
+            "coverage": m["coverage_identifiable"],
+            "coverage_se": _sd(reps["coverage"]),
+            "accuracy": m["accuracy_identifiable"],
+            "ece": m["ece"],
+            "strict_accuracy_common": float(point["strict_accuracy_common"][0]),
+            "strict_accuracy_common_se": _sd(reps["strict_accuracy_common"]),
+            "error": 1.0 - bal,
+            "error_se": _sd(reps["balanced_accuracy"]),
+        }
         out["strict_error"] = 1.0 - out["strict_accuracy_common"]
         out["strict_error_se"] = out["strict_accuracy_common_se"]
-        return out, {"error": 1.0 - reps["balanced_accuracy"], "coverage": reps["coverage"],
-                     "strict_error": 1.0 - reps["strict_accuracy_common"]}
+        return out, {
+            "error": 1.0 - reps["balanced_accuracy"],
+            "coverage": reps["coverage"],
+            "strict_error": 1.0 - reps["strict_accuracy_common"],
+        }
 
 
 def _best_time(fn: Callable[[], Any], repeats: int) -> float:
@@ -122,6 +143,9 @@ def _ort_session(model, spec, threads: int):
     from classifier.runtime import onnx_session
     from classifier.train import CLASS_NAMES
 
-    meta = {"classifier_version": __version__, "output": {"classes": list(CLASS_NAMES)},
-            "input": {"columns": [{"name": n} for n in (*spec.feature_names, "pool_pixels")]}}
+    meta = {
+        "classifier_version": __version__,
+        "output": {"classes": list(CLASS_NAMES)},
+        "input": {"columns": [{"name": n} for n in (*spec.feature_names, "pool_pixels")]},
+    }
     return onnx_session(onnx_model(model, meta).SerializeToString(), threads=threads)

@@ -13,8 +13,16 @@ from .evaluate import _sd
 _Z_DOMINATED = 2.0
 
 
-def _pareto(axis: str, rows: list[dict[str, Any]], reps: dict[tuple[str, str], dict[str, np.ndarray]], time_key: str,
-            pool: str, default_label: str | None, min_coverage: float, error_key: str = "error") -> dict[str, Any]:
+def _pareto(
+    axis: str,
+    rows: list[dict[str, Any]],
+    reps: dict[tuple[str, str], dict[str, np.ndarray]],
+    time_key: str,
+    pool: str,
+    default_label: str | None,
+    min_coverage: float,
+    error_key: str = "error",
+) -> dict[str, Any]:
     """Front, defaults and one-standard-error recommendation for one (axis, time key, pool, error).
 
     ``error_key``: ``"error"`` (1 − balanced accuracy of the decided samples) or ``"strict_error"``
@@ -37,17 +45,42 @@ def _pareto(axis: str, rows: list[dict[str, Any]], reps: dict[tuple[str, str], d
         elif error_key == "error" and (c is None or c < min_coverage):
             excluded.append({"label": r["label"], "reason": f"coverage {c:.3f} < {min_coverage:g}"})
         else:
-            pts.append({"label": r["label"], "time_s": float(t), "error": float(e), "error_se": m[f"{error_key}_se"],
-                        "coverage": float(c), "coverage_se": m["coverage_se"]})
+            pts.append(
+                {
+                    "label": r["label"],
+                    "time_s": float(t),
+                    "error": float(e),
+                    "error_se": m[f"{error_key}_se"],
+                    "coverage": float(c),
+                    "coverage_se": m["coverage_se"],
+                }
+            )
     front = [p["label"] for p in pareto_front(pts)]
-    out: dict[str, Any] = {"axis": axis, "time_key": time_key, "pool": pool, "error_key": error_key,
-                           "min_coverage": min_coverage if error_key == "error" else None,
-                           "front": front, "excluded": excluded,
-                           "points": [{"label": p["label"], "time": p["time_s"], "error": p["error"],
-                                       "error_se": p["error_se"], "coverage": p["coverage"]} for p in pts],
-                           "defaults": default_label if any(r["label"] == default_label for r in rows) else None,
-                           "defaults_on_front": None, "defaults_dominated_by": [],
-                           "defaults_significantly_dominated": None, "best": None, "recommended": None}
+    out: dict[str, Any] = {
+        "axis": axis,
+        "time_key": time_key,
+        "pool": pool,
+        "error_key": error_key,
+        "min_coverage": min_coverage if error_key == "error" else None,
+        "front": front,
+        "excluded": excluded,
+        "points": [
+            {
+                "label": p["label"],
+                "time": p["time_s"],
+                "error": p["error"],
+                "error_se": p["error_se"],
+                "coverage": p["coverage"],
+            }
+            for p in pts
+        ],
+        "defaults": default_label if any(r["label"] == default_label for r in rows) else None,
+        "defaults_on_front": None,
+        "defaults_dominated_by": [],
+        "defaults_significantly_dominated": None,
+        "best": None,
+        "recommended": None,
+    }
     if not pts:
         return out
 
@@ -62,8 +95,9 @@ def _pareto(axis: str, rows: list[dict[str, Any]], reps: dict[tuple[str, str], d
             if q["time_s"] < d["time_s"] and q["error"] < d["error"]:
                 se = paired_se(d["label"], q["label"], error_key)
                 gain = d["error"] - q["error"]
-                dom.append({"label": q["label"], "error_gain": gain, "paired_se": se,
-                            "z": gain / se if se > 0 else math.inf})
+                dom.append(
+                    {"label": q["label"], "error_gain": gain, "paired_se": se, "z": gain / se if se > 0 else math.inf}
+                )
         out["defaults_dominated_by"] = dom
         out["defaults_significantly_dominated"] = any(x["z"] > _Z_DOMINATED for x in dom)
     best = min(pts, key=lambda p: (p["error"], p["time_s"]))
@@ -71,9 +105,9 @@ def _pareto(axis: str, rows: list[dict[str, Any]], reps: dict[tuple[str, str], d
     def within(p: dict[str, Any]) -> bool:
         se_e = paired_se(p["label"], best["label"], error_key)
         se_c = paired_se(p["label"], best["label"], "coverage")
-        return (p["error"] - best["error"] <= (se_e if math.isfinite(se_e) else 0.0)
-                and (error_key != "error"
-                     or best["coverage"] - p["coverage"] <= (se_c if math.isfinite(se_c) else 0.0)))
+        return p["error"] - best["error"] <= (se_e if math.isfinite(se_e) else 0.0) and (
+            error_key != "error" or best["coverage"] - p["coverage"] <= (se_c if math.isfinite(se_c) else 0.0)
+        )
 
     out["best"] = best["label"]
     out["recommended"] = min((p for p in pts if within(p)), key=lambda p: (p["time_s"], p["error"]))["label"]

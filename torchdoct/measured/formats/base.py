@@ -44,12 +44,38 @@ def regular_file(path: Path, what: str = "sequence file") -> None:
 
 
 #: Length units of OME-XML (symbols) and OME-NGFF (UDUNITS names), in µm.
-LENGTH_UM = {"m": 1e6, "meter": 1e6, "cm": 1e4, "centimeter": 1e4, "mm": 1e3, "millimeter": 1e3,
-             "µm": 1.0, "μm": 1.0, "um": 1.0, "micrometer": 1.0, "micron": 1.0, "nm": 1e-3, "nanometer": 1e-3}
+LENGTH_UM = {
+    "m": 1e6,
+    "meter": 1e6,
+    "cm": 1e4,
+    "centimeter": 1e4,
+    "mm": 1e3,
+    "millimeter": 1e3,
+    "µm": 1.0,
+    "μm": 1.0,
+    "um": 1.0,
+    "micrometer": 1.0,
+    "micron": 1.0,
+    "nm": 1e-3,
+    "nanometer": 1e-3,
+}
 #: Time units of OME-XML (symbols) and OME-NGFF (UDUNITS names), in s.
-TIME_S = {"s": 1.0, "second": 1.0, "ms": 1e-3, "millisecond": 1e-3, "µs": 1e-6, "μs": 1e-6, "us": 1e-6,
-          "microsecond": 1e-6, "ns": 1e-9, "nanosecond": 1e-9, "min": 60.0, "minute": 60.0, "h": 3600.0,
-          "hour": 3600.0}
+TIME_S = {
+    "s": 1.0,
+    "second": 1.0,
+    "ms": 1e-3,
+    "millisecond": 1e-3,
+    "µs": 1e-6,
+    "μs": 1e-6,
+    "us": 1e-6,
+    "microsecond": 1e-6,
+    "ns": 1e-9,
+    "nanosecond": 1e-9,
+    "min": 60.0,
+    "minute": 60.0,
+    "h": 3600.0,
+    "hour": 3600.0,
+}
 
 
 def to_unit(value: Any, unit: str | None, table: dict[str, float], default: str, where: str) -> float:
@@ -59,8 +85,9 @@ def to_unit(value: Any, unit: str | None, table: dict[str, float], default: str,
 
     u = default if unit in (None, "") else str(unit)
     if u not in table:
-        raise ValueError(f"{where}: unit {u!r} is not one of {', '.join(sorted(set(table)))}; store the value in "
-                         f"{default}")
+        raise ValueError(
+            f"{where}: unit {u!r} is not one of {', '.join(sorted(set(table)))}; store the value in {default}"
+        )
     try:
         v = float(value)
     except (TypeError, ValueError):

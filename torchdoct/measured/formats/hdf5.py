@@ -33,8 +33,11 @@ def flat_attributes(meta: Mapping[str, Any], prefix: str = "") -> dict[str, Any]
             out[name] = value
         elif isinstance(value, bool):
             out[name] = np.bool_(value)
-        elif isinstance(value, (list, tuple)) and value and all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        elif (
+            isinstance(value, (list, tuple))
+            and value
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+        ):
             out[name] = np.asarray(value, dtype=np.float64)
     return out
 
@@ -48,11 +51,16 @@ def check_flat_attributes(attrs: Any, meta: Mapping[str, Any], where: str) -> No
             continue
         got = attrs[key]
         got = got.decode("utf-8", "replace") if isinstance(got, bytes) else got
-        same = (got == want) if isinstance(want, str) else (
-            np.shape(got) == np.shape(want) and bool(np.all(np.asarray(got, dtype=np.float64) == want)))
+        same = (
+            (got == want)
+            if isinstance(want, str)
+            else (np.shape(got) == np.shape(want) and bool(np.all(np.asarray(got, dtype=np.float64) == want)))
+        )
         if not same:
-            raise ValueError(f"{where}: attribute {key!r} = {got!r} disagrees with the JSON attribute 'torchdoct' "
-                             f"({want!r}), which is what is read; edit both to the same value, or delete {key!r}")
+            raise ValueError(
+                f"{where}: attribute {key!r} = {got!r} disagrees with the JSON attribute 'torchdoct' "
+                f"({want!r}), which is what is read; edit both to the same value, or delete {key!r}"
+            )
 
 
 def read_dataset(ds: Any, where: str) -> np.ndarray:
@@ -63,8 +71,9 @@ def read_dataset(ds: Any, where: str) -> np.ndarray:
     if dt.names is not None:
         names = {n.lower(): n for n in dt.names}
         if set(names) != {"real", "imag"}:
-            raise ValueError(f"{where}: compound dataset with fields {dt.names}; expected MATLAB v7.3 complex "
-                             "{real, imag}")
+            raise ValueError(
+                f"{where}: compound dataset with fields {dt.names}; expected MATLAB v7.3 complex {{real, imag}}"
+            )
         raw = ds[()]
         re = np.asarray(raw[names["real"]])
         im = np.asarray(raw[names["imag"]])
@@ -91,6 +100,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
         raise ValueError(f"{path.name}: not a readable HDF5 / MATLAB v7.3 file ({err})") from None
     with fh:
         check_hdf5_local(fh, path, allow_external_hdf5)  # before any link is followed or any data read
+
         def resolved(k: str):  # None for a dangling soft link or one into a loop: only the one asked for is named
             try:
                 return fh.get(k)
@@ -104,14 +114,18 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
             else:
                 cands = [n for n in names if n not in ("labels", "label_params")]
                 if len(cands) != 1:
-                    raise ValueError(f"{path.name}: no dataset 'data' and {len(cands)} candidate datasets "
-                                     f"({', '.join(cands) or 'none'}); name one with --dataset")
+                    raise ValueError(
+                        f"{path.name}: no dataset 'data' and {len(cands)} candidate datasets "
+                        f"({', '.join(cands) or 'none'}); name one with --dataset"
+                    )
                 dataset = cands[0]
         if dataset in fh.keys() and resolved(dataset) is None:
             link = fh.get(dataset, getlink=True)
-            raise ValueError(f"{path.name}: dataset {dataset!r} is a link that leads to no dataset ("
-                             f"{type(link).__name__} to {getattr(link, 'path', '?')!r}: dangling or a loop); "
-                             "write the data into the file, or name another dataset with --dataset")
+            raise ValueError(
+                f"{path.name}: dataset {dataset!r} is a link that leads to no dataset ("
+                f"{type(link).__name__} to {getattr(link, 'path', '?')!r}: dangling or a loop); "
+                "write the data into the file, or name another dataset with --dataset"
+            )
         if dataset not in fh or not isinstance(fh[dataset], h5py.Dataset):
             raise ValueError(f"{path.name}: no dataset {dataset!r} (datasets: {', '.join(names) or 'none'})")
         data = read_dataset(fh[dataset], f"{path.name}:{dataset}")
@@ -124,8 +138,10 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
                 try:
                     raw = raw.decode("utf-8")
                 except UnicodeDecodeError as err:
-                    raise ValueError(f"{path.name}: attribute 'torchdoct' is not UTF-8 text (byte {err.start}); it "
-                                     "must hold the JSON metadata (write the file again)") from None
+                    raise ValueError(
+                        f"{path.name}: attribute 'torchdoct' is not UTF-8 text (byte {err.start}); it "
+                        "must hold the JSON metadata (write the file again)"
+                    ) from None
             meta = parse_json_object(str(raw), f"{path.name} attribute 'torchdoct'")
             check_flat_attributes(fh.attrs, meta, path.name)
     return Loaded(data=data, labels=labels, label_params=params, meta=meta)

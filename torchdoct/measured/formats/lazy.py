@@ -19,8 +19,14 @@ class LazyArray:
     array) seen through the axis permutation ``perm``; every read returns a numpy array. Errors of the
     store while reading (a truncated or corrupt chunk) become a ``ValueError`` naming ``where``."""
 
-    def __init__(self, source: Any, where: str, perm: tuple[int, ...] | None = None, cast: Any = None,
-                 convert: Callable[[np.ndarray], np.ndarray] | None = None):
+    def __init__(
+        self,
+        source: Any,
+        where: str,
+        perm: tuple[int, ...] | None = None,
+        cast: Any = None,
+        convert: Callable[[np.ndarray], np.ndarray] | None = None,
+    ):
         self._src = source
         self._where = where
         self._perm = tuple(range(len(source.shape))) if perm is None else tuple(perm)
@@ -55,7 +61,7 @@ class LazyArray:
         key = key if isinstance(key, tuple) else (key,)
         if any(k is Ellipsis for k in key):
             i = key.index(Ellipsis)
-            key = key[:i] + (slice(None),) * (self.ndim - len(key) + 1) + key[i + 1:]
+            key = key[:i] + (slice(None),) * (self.ndim - len(key) + 1) + key[i + 1 :]
         key = key + (slice(None),) * (self.ndim - len(key))
         if len(key) != self.ndim or not all(isinstance(k, (slice, int, np.integer)) for k in key):
             raise IndexError("a LazyArray takes integers and slices only")
@@ -65,8 +71,10 @@ class LazyArray:
         try:
             block = np.asarray(self._src[tuple(src_key)])
         except (ValueError, OSError, RuntimeError, TypeError, KeyError) as err:
-            raise ValueError(f"{self._where}: a chunk is unreadable, truncated or corrupt ({type(err).__name__}: "
-                             f"{err}); copy the store again completely") from None
+            raise ValueError(
+                f"{self._where}: a chunk is unreadable, truncated or corrupt ({type(err).__name__}: "
+                f"{err}); copy the store again completely"
+            ) from None
         if self._cast is not None:
             block = block.astype(self._cast, copy=False)
         if self._convert is not None:

@@ -24,8 +24,10 @@ def load_array(path: Path) -> np.ndarray:
         return np.load(path, mmap_mode="r", allow_pickle=False)
     except ValueError as err:
         if "pickle" in str(err).lower() or "object" in str(err).lower():
-            raise ValueError(f"{path.name}: holds an object array, which would need unpickling; refused "
-                             "(store a complex64/complex128 array)") from None
+            raise ValueError(
+                f"{path.name}: holds an object array, which would need unpickling; refused "
+                "(store a complex64/complex128 array)"
+            ) from None
         raise ValueError(f"{path.name}: not a readable .npy file ({err})") from None
 
 

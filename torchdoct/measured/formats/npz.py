@@ -24,8 +24,10 @@ def load_arrays(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray |
     try:
         with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # our handle: closed on errors too
             if "data" not in z.files:
-                raise ValueError(f"{path.name}: no array 'data' (arrays: {', '.join(z.files) or 'none'}); "
-                                 "store the sequence under the key 'data'")
+                raise ValueError(
+                    f"{path.name}: no array 'data' (arrays: {', '.join(z.files) or 'none'}); "
+                    "store the sequence under the key 'data'"
+                )
             out = []
             for key in ("data", "labels", "label_params", "meta_json"):
                 out.append(refuse_object(z[key], f"{path.name}[{key}]") if key in z.files else None)
@@ -33,8 +35,9 @@ def load_arrays(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray |
         if "pickle" in str(err).lower() or "object" in str(err).lower():
             raise ValueError(f"{path.name}: holds an object array, which would need unpickling; refused") from None
         if "EOF" in str(err) or "reading array data" in str(err):
-            raise ValueError(f"{path.name}: an array is truncated ({err}); copy or write the file again "
-                             "completely") from None
+            raise ValueError(
+                f"{path.name}: an array is truncated ({err}); copy or write the file again completely"
+            ) from None
         raise
     return out[0], out[1], out[2], out[3]
 
@@ -44,7 +47,9 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
     meta = None
     if raw is not None and not sidecar_exists(sidecar_path(path)):  # the sidecar, when there is one, is read instead
         if raw.dtype.kind not in "US" or raw.size != 1:
-            raise ValueError(f"{path.name}: 'meta_json' must be a JSON text (a 0-d string array); got a {raw.dtype} "
-                             f"array of shape {list(raw.shape)}")
+            raise ValueError(
+                f"{path.name}: 'meta_json' must be a JSON text (a 0-d string array); got a {raw.dtype} "
+                f"array of shape {list(raw.shape)}"
+            )
         meta = parse_json_object(str(raw.reshape(())), f"{path.name}: 'meta_json'")
     return Loaded(data=data, labels=labels, label_params=params, meta=meta)

@@ -83,7 +83,7 @@ def ome_meta(ome: dict[str, Any], where: str) -> tuple[str, dict[str, Any]]:
     if ome["annotation"]:
         meta.update({k: v for k, v in ome["annotation"].items() if k not in ("axes", "pitch_um", "frame_times_s")})
     pitch = {}
-    for ours, theirs in ((("z", "Z"), ("y", "Y"), ("x", "X")) if volume else (("z", "Y"), ("x", "X"))):
+    for ours, theirs in (("z", "Z"), ("y", "Y"), ("x", "X")) if volume else (("z", "Y"), ("x", "X")):
         key = f"PhysicalSize{theirs}"
         if px.get(key) is not None:
             pitch[ours] = to_unit(px[key], px.get(f"{key}Unit"), LENGTH_UM, "µm", f"{where}: OME {key}")
@@ -94,9 +94,11 @@ def ome_meta(ome: dict[str, Any], where: str) -> tuple[str, dict[str, Any]]:
         if pl.get("TheZ", "0") == "0" and pl.get("TheC", "0") == "0" and pl.get("DeltaT") is not None:
             first[int(pl.get("TheT", "0"))] = pl
     if len(first) == size_t and set(first) == set(range(size_t)):
-        meta["frame_times_s"] = [float(first[t]["DeltaT"]) * to_unit(1.0, first[t].get("DeltaTUnit"), TIME_S, "s",
-                                                                     f"{where}: OME Plane DeltaTUnit")
-                                 for t in range(size_t)]
+        meta["frame_times_s"] = [
+            float(first[t]["DeltaT"])
+            * to_unit(1.0, first[t].get("DeltaTUnit"), TIME_S, "s", f"{where}: OME Plane DeltaTUnit")
+            for t in range(size_t)
+        ]
     elif px.get("TimeIncrement") is not None:
         dt = to_unit(px["TimeIncrement"], px.get("TimeIncrementUnit"), TIME_S, "s", f"{where}: OME TimeIncrement")
         meta["frame_times_s"] = [t * dt for t in range(size_t)]
@@ -128,8 +130,9 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
         with TiffDamage() as damage, tifffile.TiffFile(path) as tf:
             xml = tf.pages[0].description if len(tf.pages) else ""
             if not tf.is_ome or not xml.lstrip().startswith("<"):
-                raise ValueError("no OME-XML in the first page's ImageDescription; name it .tif if it is a plain "
-                                 "TIFF stack")
+                raise ValueError(
+                    "no OME-XML in the first page's ImageDescription; name it .tif if it is a plain TIFF stack"
+                )
             ome = parse_ome(xml, where)
             px = ome["pixels"]
             sizes = {k: _size(px, f"Size{k}", where) for k in "TZCYX"}
@@ -137,14 +140,18 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
                 raise ValueError(f"OME SizeC={sizes['C']}: a sequence has one channel; export one channel")
             planes = sizes["T"] * sizes["Z"]
             if planes > len(tf.pages):
-                raise ValueError(f"OME-XML declares SizeT={sizes['T']} × SizeZ={sizes['Z']} = {planes} planes but the "
-                                 f"file holds {len(tf.pages)} pages; the file is truncated or its OME-XML is wrong")
+                raise ValueError(
+                    f"OME-XML declares SizeT={sizes['T']} × SizeZ={sizes['Z']} = {planes} planes but the "
+                    f"file holds {len(tf.pages)} pages; the file is truncated or its OME-XML is wrong"
+                )
             offset = _contiguous_offset(tf, planes) if streaming() else None
             check_tiff_pages(path, tf, streamed=offset is not None)  # one shape on every page, the size limit
             page = tf.pages[0]
             if tuple(page.shape) != (sizes["Y"], sizes["X"]):
-                raise ValueError(f"OME-XML declares planes of SizeY×SizeX = {sizes['Y']}×{sizes['X']} but the pages "
-                                 f"are {list(page.shape)}")
+                raise ValueError(
+                    f"OME-XML declares planes of SizeY×SizeX = {sizes['Y']}×{sizes['X']} but the pages "
+                    f"are {list(page.shape)}"
+                )
             if offset is not None:  # read slab by slab (torchdoct maps --max-memory-gb)
                 dt = np.dtype(page.dtype).newbyteorder(tf.byteorder)
                 data = np.memmap(path, dtype=dt, mode="r", offset=offset, shape=(planes, sizes["Y"], sizes["X"]))

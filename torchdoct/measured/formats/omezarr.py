@@ -85,8 +85,10 @@ def check_chunk_files(folder: Path, arr: Any, where: str) -> None:
         else:
             continue
         if not ok:
-            raise ValueError(f"{where}: chunk {f.relative_to(folder)} holds {size} bytes, not the chunk its header "
-                             "declares: truncated or corrupt; copy the store again completely")
+            raise ValueError(
+                f"{where}: chunk {f.relative_to(folder)} holds {size} bytes, not the chunk its header "
+                "declares: truncated or corrupt; copy the store again completely"
+            )
 
 
 def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = False) -> Loaded:
@@ -97,8 +99,10 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
     try:
         group = zarr.open_group(str(path), mode="r")
     except Exception as err:
-        raise ValueError(f"{where}: not a readable zarr group ({type(err).__name__}); an OME-Zarr image is a folder "
-                         "holding .zgroup and .zattrs (NGFF 0.4) or zarr.json (0.5): give that folder") from None
+        raise ValueError(
+            f"{where}: not a readable zarr group ({type(err).__name__}); an OME-Zarr image is a folder "
+            "holding .zgroup and .zattrs (NGFF 0.4) or zarr.json (0.5): give that folder"
+        ) from None
     version, ms = multiscale(dict(group.attrs), where)
     axes = ms.get("axes")
     if not isinstance(axes, list) or not axes:
@@ -119,8 +123,10 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
         raise ValueError(f"{where}/{key}: not an array of the {len(names)} axes {names}")
     dt = np.dtype(arr.dtype)
     if dt.hasobject or dt.kind not in "cfiu":
-        raise TypeError(f"{where}/{key}: dtype {dt} is not numeric (object arrays would need unpickling); store "
-                        "complex64/complex128 or float data")
+        raise TypeError(
+            f"{where}/{key}: dtype {dt} is not numeric (object arrays would need unpickling); store "
+            "complex64/complex128 or float data"
+        )
     check_declared_size(f"{where}/{key}", arr.shape, dt.itemsize, streamed=True)
     check_chunk_files(path / key, arr, f"{where}/{key}")
     scale = _scale(datasets[0].get("coordinateTransformations"), len(names), "scale", f"{where}/{key}")
@@ -145,8 +151,9 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
         for i in kept:
             n = names[i]
             if n != "t" and units[i]:
-                pitch[ours[n].lower()] = to_unit(scale[i], units[i], LENGTH_UM, "micrometer",
-                                                 f"{where}: axis {n} scale")
+                pitch[ours[n].lower()] = to_unit(
+                    scale[i], units[i], LENGTH_UM, "micrometer", f"{where}: axis {n} scale"
+                )
         if pitch:
             meta["pitch_um"] = pitch
         it = names.index("t")
@@ -155,5 +162,6 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
             t0 = (shift[it] if shift is not None else 0.0) * dt_s / scale[it]
             meta["frame_times_s"] = [t0 + k * dt_s for k in range(size["t"])]
     source = Squeezed(arr, tuple(drop)) if drop else arr
-    return Loaded(data=LazyArray(source, f"{where}/{key}"), meta=meta, sidecar_fills=True,
-                  integer_intensity=dt.kind in "iu")
+    return Loaded(
+        data=LazyArray(source, f"{where}/{key}"), meta=meta, sidecar_fills=True, integer_intensity=dt.kind in "iu"
+    )

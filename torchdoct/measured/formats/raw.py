@@ -36,9 +36,11 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
 
     side = sidecar_path(path)
     if not sidecar_exists(side):
-        raise ValueError(f"{path.name}: a raw binary needs its JSON sidecar {side.name} declaring dtype, shape "
-                         "(and byte_order, header_bytes); write one beside it (a name short enough that the "
-                         "sidecar's is legal too)")
+        raise ValueError(
+            f"{path.name}: a raw binary needs its JSON sidecar {side.name} declaring dtype, shape "
+            "(and byte_order, header_bytes); write one beside it (a name short enough that the "
+            "sidecar's is legal too)"
+        )
     try:
         text = read_capped(side, f"the sidecar of {path.name}").decode("utf-8")
     except UnicodeDecodeError as err:
@@ -47,8 +49,10 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
     where = f"{side.name}"
     missing = [k for k in ("dtype", "shape") if k not in meta]
     if missing:
-        raise ValueError(f"{where}: missing {', '.join(repr(k) for k in missing)} for the raw binary {path.name}; "
-                         f"e.g. \"dtype\": \"complex64\", \"shape\": [T, Z, X]")
+        raise ValueError(
+            f"{where}: missing {', '.join(repr(k) for k in missing)} for the raw binary {path.name}; "
+            f'e.g. "dtype": "complex64", "shape": [T, Z, X]'
+        )
     dtype = meta.pop("dtype")
     if dtype not in DTYPES:
         raise TypeError(f"{where}: dtype {dtype!r} is not supported; use one of {', '.join(DTYPES)}")
@@ -56,8 +60,11 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
     if order not in ("little", "big"):
         raise ValueError(f"{where}: byte_order must be 'little' or 'big'; got {order!r}")
     shape = meta.pop("shape")
-    if (not isinstance(shape, list) or not shape
-            or not all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in shape)):
+    if (
+        not isinstance(shape, list)
+        or not shape
+        or not all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in shape)
+    ):
         raise ValueError(f"{where}: shape must be a list of positive integers such as [T, Z, X]; got {shape!r}")
     header = meta.pop("header_bytes", 0)
     if isinstance(header, bool) or not isinstance(header, int) or header < 0:
@@ -66,11 +73,15 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
     n = check_declared_size(f"{path.name} (shape from {side.name})", shape, dt.itemsize, streamed=True)
     have = os.stat(path).st_size
     if have < header + n:
-        raise ValueError(f"{path.name}: truncated: {side.name} declares {shape} {dtype} after {header} header bytes "
-                         f"({header + n} bytes) but the file holds {have}; copy the file again completely, or fix "
-                         "shape / header_bytes")
+        raise ValueError(
+            f"{path.name}: truncated: {side.name} declares {shape} {dtype} after {header} header bytes "
+            f"({header + n} bytes) but the file holds {have}; copy the file again completely, or fix "
+            "shape / header_bytes"
+        )
     if have > header + n:
-        raise ValueError(f"{path.name}: holds {have - header - n} bytes more than {side.name} declares ({shape} "
-                         f"{dtype} after {header} header bytes); fix shape, dtype or header_bytes")
+        raise ValueError(
+            f"{path.name}: holds {have - header - n} bytes more than {side.name} declares ({shape} "
+            f"{dtype} after {header} header bytes); fix shape, dtype or header_bytes"
+        )
     data = np.memmap(path, dtype=dt, mode="r", offset=header, shape=tuple(shape))
     return Loaded(data=data, meta=meta, integer_intensity=dtype.startswith("uint"))

@@ -43,8 +43,9 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
 
     files = frame_files(path)
     if len(files) < 2:
-        raise ValueError(f"{path.name}/: {len(files)} TIFF file(s); a folder sequence needs one TIFF per frame "
-                         "(at least 2)")
+        raise ValueError(
+            f"{path.name}/: {len(files)} TIFF file(s); a folder sequence needs one TIFF per frame (at least 2)"
+        )
     shape = dtype = None
     for f in files:  # every file's shape before any pixel is read
         check_regular_file(f, "frame file")  # the one reader-side check: a FIFO would block the read
@@ -55,19 +56,35 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
                 damage.check()
         except (InputRefusal, MemoryLimitError):  # whole messages: a size, two page shapes
             raise
-        except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError, struct.error) as err:  # a damaged file
+        except (
+            tifffile.TiffFileError,
+            OSError,
+            ValueError,
+            IndexError,
+            KeyError,
+            struct.error,
+        ) as err:  # a damaged file
             raise ValueError(f"{path.name}/{f.name}: not a readable TIFF ({err})") from None
         if not pages or len(set(pages)) != 1 or len(dts) != 1 or len(pages[0]) != 2:
-            raise ValueError(f"{path.name}/{f.name}: pages of shapes {sorted(set(pages))}; each frame file must "
-                             "hold one or more [Z, X] pages of one shape")
+            raise ValueError(
+                f"{path.name}/{f.name}: pages of shapes {sorted(set(pages))}; each frame file must "
+                "hold one or more [Z, X] pages of one shape"
+            )
         this = (len(pages), *pages[0]) if len(pages) > 1 else pages[0]
         if shape is None:
             shape, dtype = this, dts.pop()
-            check_declared_size(f"{path.name}/", (len(files), *shape), np.dtype(dtype).itemsize,
-                                what=f"folder of {len(files)} frames", streamed=True)
+            check_declared_size(
+                f"{path.name}/",
+                (len(files), *shape),
+                np.dtype(dtype).itemsize,
+                what=f"folder of {len(files)} frames",
+                streamed=True,
+            )
         elif this != shape or dts.pop() != dtype:
-            raise ValueError(f"{path.name}/{f.name}: shape {list(this)} differs from {files[0].name}'s "
-                             f"{list(shape)}; every frame file must have the same shape and dtype")
+            raise ValueError(
+                f"{path.name}/{f.name}: shape {list(this)} differs from {files[0].name}'s "
+                f"{list(shape)}; every frame file must have the same shape and dtype"
+            )
     frames = FrameFiles(path, files, tuple(shape), np.dtype(dtype))
     if streaming():  # torchdoct maps --max-memory-gb: the frames the slabs need, read as they are needed
         data: Any = LazyArray(frames, f"{path.name}/")
@@ -99,13 +116,23 @@ class FrameFiles:
                     damage.check()
             except (InputRefusal, MemoryLimitError):  # whole messages: a size, two page shapes
                 raise
-            except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError, struct.error) as err:  # a damaged file
-                raise ValueError(f"{self._folder.name}/{f.name}: not a readable TIFF, truncated or corrupt ({err})"
-                                 ) from None
+            except (
+                tifffile.TiffFileError,
+                OSError,
+                ValueError,
+                IndexError,
+                KeyError,
+                struct.error,
+            ) as err:  # a damaged file
+                raise ValueError(
+                    f"{self._folder.name}/{f.name}: not a readable TIFF, truncated or corrupt ({err})"
+                ) from None
             if tuple(frame.shape) != self.shape[1:] or frame.dtype != self.dtype:  # changed since it was checked
-                raise ValueError(f"{self._folder.name}/{f.name}: shape {list(frame.shape)} {frame.dtype}, not the "
-                                 f"{list(self.shape[1:])} {self.dtype} of the other frames; every frame file must "
-                                 "have the same shape and dtype")
+                raise ValueError(
+                    f"{self._folder.name}/{f.name}: shape {list(frame.shape)} {frame.dtype}, not the "
+                    f"{list(self.shape[1:])} {self.dtype} of the other frames; every frame file must "
+                    "have the same shape and dtype"
+                )
             part = frame[rest]
             if single:
                 return np.asarray(part)
