@@ -34,6 +34,19 @@ pixel:
    by about a pixel within those lags is not seen this way and rule 2 applies to it; the grid benchmark
    (``python -m classifier.bench.grid``) reports what each rule leaves, the ballistic and diffusion wrong
    shares being the false-detection check.
+5. **A held pattern that moved** (any geometry; applied right after rule 0). A flow too slow for rule 0
+   still carries its pattern along: over the whole span of the speckle features' lags the window's peak keeps
+   its height while its offset moves by ``v⊥(τ_L − τ₁)``, linearly in the lag (speckle-motion §3 (a), §5). A
+   direction-symmetric motion can move the peak of a window's pattern only by changing the pattern: while the
+   pattern holds (``xc_peak_{m_L} ≥`` :data:`TRANSLATION_HOLD_MIN` at the longest lag ``m_L``) its offset
+   stays where the window's own grains put it, whatever the lag. Where the signed offset vector
+   (``xc_shift_{c}_m@…`` per axis, in pitches of that axis) moved between the shortest and the longest lag
+   by at least :data:`TRANSLATION_GROWTH_MIN` pitches, along a straight line in the lag (the residual of a
+   per-axis line through the lags at most :data:`TRANSLATION_LINEAR_MAX` pitches, root mean square per degree
+   of freedom), a ``ballistic`` decision or a ``ballistic-or-flow`` set is ``flow``
+   (:data:`TRANSLATED_TO_FLOW`). A ``diffusion`` decision stays: a slowly diffusing pattern under noise
+   moves its offset more often than a random-ballistic one (docs/abstention.md gives the measured
+   false-detection rates of the null motions and how they are recorded).
 3. **Decorrelated before the first lag** (any geometry; after rules 1 and 2). Where the moving part of a
    pixel decorrelates within the shortest lag of the speckle features, no lag sees its pattern: a flow that
    leaves the PSF (or the offset grid) within ``m₁·Δt`` keeps no moving peak for rule 0, and with static
@@ -88,11 +101,16 @@ __all__ = [
     "OFFSET_TO_SET",
     "OffsetMotion",
     "SET_LABEL",
+    "TRANSLATED_TO_FLOW",
+    "TRANSLATION_GROWTH_MIN",
+    "TRANSLATION_HOLD_MIN",
+    "TRANSLATION_LINEAR_MAX",
     "abstain_where_ambiguous",
     "coherent_motion",
     "fast_decorrelation",
     "offset_moved",
     "slow_decorrelation",
+    "translated",
 ]
 
 #: The window's intensity correlation at the longest lag below which a pixel counts as decorrelated
@@ -119,6 +137,14 @@ OFFSET_HOLD_MIN = 0.8
 #: turns into a set with flow, and the decisions that a growing offset does.
 OFFSET_TO_SET = {"ballistic": "ballistic-or-flow", "diffusion": "diffusion-or-flow"}
 OFFSET_GREW_TO_SET = {"ballistic": "ballistic-or-flow"}
+#: Rule 5: the window's peak correlation at the longest lag from which its pattern counts as held.
+TRANSLATION_HOLD_MIN = 0.8
+#: Rule 5: the smallest move of the signed peak offset between the shortest and the longest lag, in pitches.
+TRANSLATION_GROWTH_MIN = 0.4
+#: Rule 5: the largest residual of the offset's straight line in the lag, in pitches (RMS per degree of freedom).
+TRANSLATION_LINEAR_MAX = 0.1
+#: Rule 5: the outcomes a held pattern that moved turns into ``flow``.
+TRANSLATED_TO_FLOW = ("ballistic", "ballistic-or-flow")
 #: The set label a ballistic decision becomes.
 SET_LABEL = "ballistic-or-flow"
 
@@ -127,6 +153,7 @@ _RHO_LIN = re.compile(r"^rho_lin_(\d+)$")
 _XC_CENTRE_RES = re.compile(r"^xc_centre_(\d+)@(.+)$")
 _XC_PEAK = re.compile(r"^xc_peak_(\d+)@(.+)$")
 _XC_SHIFT = re.compile(r"^xc_shift_(\d+)@(.+)$")
+_XC_SHIFT_AXIS = re.compile(r"^xc_shift_([xyz])_(\d+)@(.+)$")
 
 
 def coherent_motion(
@@ -155,6 +182,56 @@ def coherent_motion(
         found = seen if found is None else (found | seen)
         used += [name, centre]
     return found, used
+
+
+def translated(
+    channels: Mapping[str, np.ndarray], pitch_um: Mapping[str, float] | None, idx: np.ndarray | None = None
+) -> tuple[np.ndarray | None, list[str]]:
+    """Rule 5 per classified pixel (module docstring): True where the window's pattern held at the longest lag
+    (``xc_peak_{m_L}@…`` ≥ :data:`TRANSLATION_HOLD_MIN`) and its signed peak offset (``xc_shift_{c}_m@…``,
+    µm, divided by the pitch of axis ``c``) moved by at least :data:`TRANSLATION_GROWTH_MIN` pitches between
+    the shortest and the longest lag along a straight line in the lag (residual at most
+    :data:`TRANSLATION_LINEAR_MAX` pitches); and the channel names read. ``pitch_um``: the pixel pitch (µm)
+    per axis letter. ``(None, [])`` without the signed offsets of every axis at three lags or more, the
+    longest lag's peak or the pitches. NaN counts as not moved."""
+    if not isinstance(pitch_um, Mapping):
+        return None, []
+    found: dict[str, dict[str, set[int]]] = {}
+    for name in channels:
+        m = _XC_SHIFT_AXIS.match(name)
+        if m:
+            found.setdefault(m.group(3), {}).setdefault(m.group(1), set()).add(int(m.group(2)))
+    for res, per_axis in sorted(found.items()):
+        axes = sorted(per_axis)
+        lags = sorted(set.intersection(*per_axis.values()))
+        pitch = {c: pitch_um.get(c) for c in axes}
+        ok_pitch = all(
+            isinstance(p, (int, float)) and not isinstance(p, bool) and 0 < p < np.inf for p in pitch.values()
+        )
+        if len(lags) < 3 or not ok_pitch or f"xc_peak_{lags[-1]}@{res}" not in channels:
+            continue
+
+        def read(name: str) -> np.ndarray:
+            v = np.asarray(channels[name], np.float64).reshape(-1)
+            return v if idx is None else v[idx]
+
+        names = [f"xc_shift_{c}_{m}@{res}" for c in axes for m in lags]
+        d = np.stack([np.stack([read(f"xc_shift_{c}_{m}@{res}") / float(pitch[c]) for m in lags]) for c in axes])
+        lag = np.asarray(lags, np.float64)
+        lc = lag - lag.mean()
+        slope = (d * lc[None, :, None]).sum(1) / (lc**2).sum()  # [axes, pixels], pitches per frame
+        resid = d - d.mean(1, keepdims=True) - slope[:, None, :] * lc[None, :, None]
+        rms = np.sqrt((resid**2).sum((0, 1)) / (len(axes) * (len(lags) - 2)))
+        growth = np.sqrt(((d[:, -1] - d[:, 0]) ** 2).sum(0))
+        held_name = f"xc_peak_{lags[-1]}@{res}"
+        with np.errstate(invalid="ignore"):
+            seen = (
+                (read(held_name) >= TRANSLATION_HOLD_MIN)
+                & (growth >= TRANSLATION_GROWTH_MIN)
+                & (rms <= TRANSLATION_LINEAR_MAX)
+            )
+        return seen, names + [held_name]
+    return None, []
 
 
 def slow_decorrelation(
@@ -273,9 +350,11 @@ def abstain_where_ambiguous(
     coherent: np.ndarray | None = None,
     fast: np.ndarray | None = None,
     moved: OffsetMotion | None = None,
+    translation: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, int]]:
     """``labels`` (indices into ``names``, one per classified pixel) with, first, the outcomes of
-    :data:`COHERENT_TO_FLOW` turned into ``flow`` where ``coherent`` (rule 0, :func:`coherent_motion`), then the
+    :data:`COHERENT_TO_FLOW` turned into ``flow`` where ``coherent`` (rule 0, :func:`coherent_motion`) and the
+    outcomes of :data:`TRANSLATED_TO_FLOW` where ``translation`` (rule 5, :func:`translated`), then the
     remaining ``ballistic`` into :data:`SET_LABEL` where rules 1 (``bscan``), 2 (``correlation`` ≥
     :data:`DECORRELATED_BELOW`; NaN counts as not decorrelated) or 3 (``fast``, :func:`fast_decorrelation`)
     apply, and last the remaining ``ballistic`` and ``diffusion`` into their set with flow where
@@ -286,6 +365,7 @@ def abstain_where_ambiguous(
     names = list(names)
     counts = {
         "coherent_motion": 0,
+        "translation": 0,
         "bscan_plane": 0,
         "slow_decorrelation": 0,
         "fast_decorrelation": 0,
@@ -297,6 +377,12 @@ def abstain_where_ambiguous(
     if coherent is not None and "flow" in names:
         to_flow = np.isin(out, [names.index(n) for n in COHERENT_TO_FLOW if n in names]) & np.asarray(coherent, bool)
         counts["coherent_motion"] = int(to_flow.sum())
+        out[to_flow] = names.index("flow")
+    if translation is not None and "flow" in names:
+        to_flow = np.isin(out, [names.index(n) for n in TRANSLATED_TO_FLOW if n in names]) & np.asarray(
+            translation, bool
+        )
+        counts["translation"] = int(to_flow.sum())
         out[to_flow] = names.index("flow")
     ball = out == names.index("ballistic")
     if bscan:

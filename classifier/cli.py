@@ -558,6 +558,11 @@ def _classify(args: argparse.Namespace) -> int:
                 f"{ch.get('fast_decorrelation', 0)} decorrelated before the first lag "
                 "(--decide-ballistic keeps the model's decisions)"
             )
+        if ch.get("translation"):
+            print(
+                f"  flow where the held speckle pattern moved along a line: {ch['translation']} ballistic decisions "
+                "or sets (--decide-ballistic keeps the model's decisions)"
+            )
         if ch.get("offset_moved"):
             print(
                 f"  a set with flow where the pattern's offset moved: {ch['offset_moved']} ballistic or diffusion "

@@ -267,22 +267,24 @@ def classify_maps(
     set_names: list[str] = []
     conformal_info = None
     if decision == "conformal":
+        cal = mdl.calibration
+        assert cal is not None  # _check_decision refuses the conformal decision without a calibration
         a = conformal.DEFAULT_ALPHA if alpha is None else float(alpha)
-        mode = mdl.calibration.get("mode", conformal.MODES[0])
-        labels_flat, set_size = conformal.decide(probs, x[:, -1], mdl.classes, mdl.calibration, a, mode)
+        mode = cal.get("mode", conformal.MODES[0])
+        labels_flat, set_size = conformal.decide(probs, x[:, -1], mdl.classes, cal, a, mode)
         set_names = conformal.set_label_names(mdl.classes)
         conformal_info = {
             "alpha": a,
-            "score": mdl.calibration["score"],
+            "score": cal["score"],
             "mode": mode,
             "thresholds": {
                 str(p["pool_pixels"]): dict(
                     zip(mdl.classes, map(float, conformal.pool_thresholds(p, len(mdl.classes), a, mode)))
                 )
-                for p in mdl.calibration["pools"]
+                for p in cal["pools"]
             },
             "set_sizes": {str(k): int((set_size == k).sum()) for k in range(len(mdl.classes) + 1)},
-            "guarantee": mdl.calibration.get("guarantee"),
+            "guarantee": cal.get("guarantee"),
         }
     shape = valid.shape
     ambiguity_info = None
@@ -302,6 +304,10 @@ def classify_maps(
         fast, fast_source = ambiguity.fast_decorrelation(channels, idx)
         pitch = _finest_pitch_um(meta0.get("pitch_um"))
         moved, moved_source = ambiguity.offset_moved(channels, pitch, idx, mdl.spec.n_frames)
+        pitches = meta0.get("pitch_um")
+        translation, translation_source = ambiguity.translated(
+            channels, pitches if isinstance(pitches, dict) else None, idx
+        )
         bscan = len(shape) == 2
         labels_flat, changed = ambiguity.abstain_where_ambiguous(
             labels_flat,
@@ -311,9 +317,11 @@ def classify_maps(
             coherent=coherent,
             fast=fast,
             moved=moved,
+            translation=translation,
         )
         ambiguity_info = {
             "rules": (["coherent_motion"] if coherent is not None else [])
+            + (["translation"] if translation is not None else [])
             + (["bscan_plane"] if bscan else [])
             + (["slow_decorrelation"] if corr is not None else [])
             + (["fast_decorrelation"] if fast is not None and not bscan else [])
@@ -329,13 +337,19 @@ def classify_maps(
             "offset_first_min_pitch": ambiguity.OFFSET_FIRST_MIN,
             "offset_growth_min_pitch": ambiguity.OFFSET_GROWTH_MIN,
             "offset_hold_min": ambiguity.OFFSET_HOLD_MIN,
+            "translation_channels": translation_source,
+            "translation_hold_min": ambiguity.TRANSLATION_HOLD_MIN,
+            "translation_growth_min_pitch": ambiguity.TRANSLATION_GROWTH_MIN,
+            "translation_linear_max_pitch": ambiguity.TRANSLATION_LINEAR_MAX,
             "changed_pixels": changed,
         }
     labels = np.full(valid.size, MASKED, np.uint8)
     labels[idx] = labels_flat.astype(np.uint8)
     pmaps = np.full((len(mdl.classes), valid.size), np.nan, np.float32)
     pmaps[:, idx] = probs.T
-    magnitude = None if mag_mean is None else magnitude_maps(labels_flat, mag_mean, mag_sd, idx, shape)
+    magnitude = (
+        None if mag_mean is None or mag_sd is None else magnitude_maps(labels_flat, mag_mean, mag_sd, idx, shape)
+    )
     t_end = time.perf_counter()
     n_pix = int(valid.size)
     background = bg if bg is not None else np.zeros(shape, bool)

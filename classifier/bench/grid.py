@@ -23,7 +23,8 @@ lateral resolution (rounded to 0.5 µm).
   half the mean intensity of a moving pixel is static), ``edge`` (a static slab over the deepest quarter of
   the image paints over the bands: the pixels next to it share their PSF with static tissue);
 * **noise**: none, or complex Gaussian noise :data:`SNR_DB` below the mean intensity (physics.md §8);
-* **geometry**: B-scan or volume (:data:`VOLUME_NY` planes along y);
+* **geometry**: B-scan or volume (at least :data:`VOLUME_NY` planes along y, and enough that the y field of
+  view holds the model's coarsest lateral resolution: maps refuse a reduction wider than the field of view);
 * **window**: the ``--pool`` of ``doct-classify`` (:data:`POOLS`).
 
 **Scores of a cell** (the pixels of each band whose box of half-width ``edge`` pixels holds no pixel of
@@ -92,6 +93,13 @@ BAND_RADIUS_PX = 12
 BAND_GAP_PX = 8
 IMAGE_NZ = 64
 VOLUME_NY = 8
+
+
+def volume_ny(spec, pitch_um: float) -> int:
+    """Planes along y of a volume cell: :data:`VOLUME_NY`, or more where the model's coarsest lateral
+    resolution (µm) is wider than that many planes of ``pitch_um``."""
+    coarsest = max(c.lateral_resolution_um for c in spec.configurations)
+    return max(VOLUME_NY, math.ceil(coarsest / pitch_um - 1e-9))
 
 
 @dataclass(frozen=True)
@@ -202,7 +210,7 @@ def phantom_dict(cell: GridCell, spec, levels: dict[str, dict[str, float]], dens
         "pitch_z_um": pitch,
     }
     if cell.geometry == "volume":
-        grid.update(n_y=VOLUME_NY, pitch_y_um=pitch)
+        grid.update(n_y=volume_ny(spec, pitch), pitch_y_um=pitch)
     else:
         grid["y_um"] = 0.0
     motions = {
@@ -456,6 +464,7 @@ def run_grid(
         "units": {"diffusion": "µm²/s", "ballistic": "µm/s", "flow": "µm/s", "seconds": "s"},
         "cells": rows,
         "summary": summarize(rows),
+        "summary_by_context": summarize_by_context(rows),
         "seconds": time.perf_counter() - t0,
         "machine": machine_info(),
     }
@@ -485,6 +494,50 @@ def summarize(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
             "min_coverage": min(cov) if cov else None,
             "mean_balanced_accuracy": float(np.mean(bas)) if bas else None,
         }
+    return out
+
+
+def summarize_by_context(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per geometry, static context and window, the pixels of every cell pooled: per motion the coverage
+    (share decided as one class), the recall on its decided pixels and the wrong share (share of its pixels
+    decided as another class); over the motions the coverage, the balanced accuracy on decided pixels (mean
+    recall over the motions with a decided pixel) and the worst wrong share."""
+    out = []
+    keys = sorted({(r["geometry"], r["context"], r["pool"]) for r in rows})
+    for geometry, context, pool in keys:
+        rs = [r for r in rows if (r["geometry"], r["context"], r["pool"]) == (geometry, context, pool)]
+        per: dict[str, dict[str, Any]] = {}
+        for m in MOTIONS:
+            n = sum(r["per_class"][m]["pixels"] for r in rs)
+            dec = sum(r["per_class"][m]["decided"] for r in rs)
+            right = sum(
+                round(r["per_class"][m]["recall"] * r["per_class"][m]["decided"])
+                for r in rs
+                if r["per_class"][m]["recall"] is not None
+            )
+            per[m] = {
+                "pixels": n,
+                "coverage": dec / n if n else None,
+                "recall": right / dec if dec else None,
+                "wrong_share": (dec - right) / n if n else None,
+            }
+        n_all = sum(p["pixels"] for p in per.values())
+        recalls = [p["recall"] for p in per.values() if p["recall"] is not None]
+        wrongs = [p["wrong_share"] for p in per.values() if p["wrong_share"] is not None]
+        out.append(
+            {
+                "geometry": geometry,
+                "context": context,
+                "pool": pool,
+                "cells": len(rs),
+                "coverage": sum(p["coverage"] * p["pixels"] for p in per.values() if p["pixels"]) / n_all
+                if n_all
+                else None,
+                "balanced_accuracy": float(np.mean(recalls)) if recalls else None,
+                "worst_wrong_share": max(wrongs) if wrongs else None,
+                "per_class": per,
+            }
+        )
     return out
 
 
@@ -573,6 +626,26 @@ def format_table(res: dict[str, Any]) -> str:
             f"| {pool} | {s['cells']} | {_fmt(s['worst_wrong_share'])} | {s['cells_over_10pct_wrong']} | "
             f"{_fmt(s['mean_coverage'])} | {_fmt(s['min_coverage'])} | {_fmt(s['mean_balanced_accuracy'])} |"
         )
+    if res.get("summary_by_context"):
+        lines += [
+            "",
+            "Pooled over the cells of each geometry, static context and window (`summary_by_context`): "
+            "coverage, balanced accuracy on decided pixels, worst wrong share, and per motion coverage / wrong share.",
+            "",
+            "| geometry | context | window | cells | coverage | balanced accuracy | worst wrong share | "
+            + " | ".join(f"{m} coverage / wrong" for m in MOTIONS)
+            + " |",
+            "|---|---|---:|---:|---:|---:|---:|" + "---:|" * len(MOTIONS),
+        ]
+        for s in res["summary_by_context"]:
+            lines.append(
+                f"| {s['geometry']} | {s['context']} | {s['pool']} | {s['cells']} | {_fmt(s['coverage'])} | "
+                f"{_fmt(s['balanced_accuracy'])} | {_fmt(s['worst_wrong_share'])} | "
+                + " | ".join(
+                    f"{_fmt(s['per_class'][m]['coverage'])} / {_fmt(s['per_class'][m]['wrong_share'])}" for m in MOTIONS
+                )
+                + " |"
+            )
     cols = [c for c in _COLUMNS if c not in ("key", "model", "decision")]
     lines += ["", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in res["cells"]:

@@ -30,7 +30,8 @@ the speckle window, the class map's resolution); the acquisition lasts ``n_frame
 has an in-plane component and the question is what the protocol resolves):
 
 * ``rules`` (what ``doct-classify`` keeps of a ``ballistic`` decision): ``flow`` where the pattern moved
-  coherently (rule 0, :func:`~classifier.ambiguity.coherent_motion`); else ``ballistic`` where the
+  coherently (rule 0, :func:`~classifier.ambiguity.coherent_motion`) or held and moved along a line
+  (rule 5, :func:`~classifier.ambiguity.translated`); else ``ballistic`` where the
   window decorrelated (rule 2: the centred correlation at the longest lag below
   :data:`~classifier.ambiguity.DECORRELATED_BELOW`), not before the first lag (rule 3,
   :func:`~classifier.ambiguity.fast_decorrelation`) and the peak offset did not move (rule 4,
@@ -49,7 +50,8 @@ pixels, plus half the window plus the offset grid's reach
 * ``accuracy`` per band: right share of its decided pixels (``None`` without a decided pixel);
   ``balanced_accuracy``: the mean of the two (``None`` when one is ``None``);
 * ``wrong_share`` per band: share of its scored pixels decided as the other class; ``wrong_share_max``;
-* ``rules`` per band: the share of its scored pixels where rule 0 (``coherent``), rule 4 (``moved``),
+* ``rules`` per band: the share of its scored pixels where rule 0 (``coherent``), rule 5 (``translated``),
+  rule 4 (``moved``),
   rule 2 (``decorrelated``) and rule 3 (``fast``) fire;
 * ``acquisition_s``: ``n_frames · interval``; ``seconds``: rendering of the protocol's phantoms (shared
   by its windows), this window's maps, and the decision and scoring, summed over the seeds.
@@ -342,9 +344,11 @@ def decide(channels: Mapping[str, np.ndarray], n_frames: int, pitch_um: float) -
         fast_decorrelation,
         offset_moved,
         slow_decorrelation,
+        translated,
     )
 
     coherent, _ = coherent_motion(channels, n_frames=n_frames)
+    translation, _ = translated(channels, {"z": pitch_um, "x": pitch_um})
     moved, _ = offset_moved(channels, pitch_um, n_frames=n_frames)
     corr, _ = slow_decorrelation(channels, n_frames=n_frames)
     fast, _ = fast_decorrelation(channels)
@@ -358,13 +362,21 @@ def decide(channels: Mapping[str, np.ndarray], n_frames: int, pitch_um: float) -
     to_code = np.array([CODES["ballistic"], CODES["flow"], UNDECIDED])
     start = np.zeros(coherent.shape, np.int64)
     any_moved = np.asarray(moved.off_centre, bool) | np.asarray(moved.grew, bool)
-    out: dict[str, np.ndarray] = {"coherent": coherent, "moved": any_moved, "decorrelated": decorrelated, "fast": fast}
+    if translation is None:
+        translation = np.zeros(coherent.shape, bool)
+    out: dict[str, np.ndarray] = {
+        "coherent": coherent,
+        "translated": translation,
+        "moved": any_moved,
+        "decorrelated": decorrelated,
+        "fast": fast,
+    }
     labels, _ = abstain_where_ambiguous(
-        start, names, bscan=False, correlation=corr, coherent=coherent, fast=fast, moved=moved
+        start, names, bscan=False, correlation=corr, coherent=coherent, fast=fast, moved=moved, translation=translation
     )
     out["rules"] = to_code[labels]
     labels, _ = abstain_where_ambiguous(
-        start, names, bscan=False, correlation=corr, coherent=coherent | any_moved, fast=fast
+        start, names, bscan=False, correlation=corr, coherent=coherent | any_moved, fast=fast, translation=translation
     )
     out["offset-as-flow"] = to_code[labels]
     return out
@@ -428,7 +440,11 @@ def score_outcome(counts: Mapping[str, Mapping[str, int]]) -> dict[str, Any]:
             "coverage": dec / n if n else None,
             "accuracy": c["right"] / dec if dec else None,
             "wrong_share": c["wrong"] / n if n else None,
-            "rules": {k: (c[k] / n if n else None) for k in ("coherent", "moved", "decorrelated", "fast") if k in c},
+            "rules": {
+                k: (c[k] / n if n else None)
+                for k in ("coherent", "translated", "moved", "decorrelated", "fast")
+                if k in c
+            },
         }
     n = sum(counts[b]["pixels"] for b in BANDS)
     dec = sum(counts[b]["decided"] for b in BANDS)
@@ -539,7 +555,7 @@ def run_protocol(
                 dec = decide(ch, n_frames, pitch)
                 edge = _edge_px(spec, pitch, v.window)
                 masks = {b: scored_mask(truth, CODES[b], edge) for b in BANDS}
-                fired = {k2: dec[k2] for k2 in ("coherent", "moved", "decorrelated", "fast")}
+                fired = {k2: dec[k2] for k2 in ("coherent", "translated", "moved", "decorrelated", "fast")}
                 for decision in DECISIONS:
                     c = count_outcome(dec[decision], truth, masks, fired)
                     acc = counts.setdefault((v, decision), {b: {} for b in BANDS})
@@ -666,8 +682,10 @@ _COLUMNS = (
     "accuracy_flow",
     "wrong_flow",
     "coherent_flow",
+    "translated_flow",
     "moved_flow",
     "coherent_ballistic",
+    "translated_ballistic",
     "moved_ballistic",
     "decorrelated_ballistic",
     "fast_ballistic",
@@ -700,8 +718,10 @@ def _flat(r: dict[str, Any]) -> dict[str, Any]:
         out[f"wrong_{b}"] = pb[b]["wrong_share"]
     for k in (
         "coherent_flow",
+        "translated_flow",
         "moved_flow",
         "coherent_ballistic",
+        "translated_ballistic",
         "moved_ballistic",
         "decorrelated_ballistic",
         "fast_ballistic",

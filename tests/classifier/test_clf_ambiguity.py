@@ -18,12 +18,17 @@ from classifier.ambiguity import (
     OFFSET_FIRST_MIN,
     OFFSET_GROWTH_MIN,
     OFFSET_HOLD_MIN,
+    TRANSLATED_TO_FLOW,
+    TRANSLATION_GROWTH_MIN,
+    TRANSLATION_HOLD_MIN,
+    TRANSLATION_LINEAR_MAX,
     OffsetMotion,
     abstain_where_ambiguous,
     coherent_motion,
     fast_decorrelation,
     offset_moved,
     slow_decorrelation,
+    translated,
 )
 
 NAMES = [
@@ -42,6 +47,7 @@ def test_every_ballistic_decision_of_a_bscan_becomes_ballistic_or_flow():
     out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=np.zeros(8))
     assert out.tolist() == [0, 6, 2, 3, 6, 4, 6, 6] and counts == {
         "coherent_motion": 0,
+        "translation": 0,
         "bscan_plane": 3,
         "slow_decorrelation": 0,
         "fast_decorrelation": 0,
@@ -56,6 +62,7 @@ def test_a_volume_keeps_ballistic_only_where_the_window_decorrelated():
     out, counts = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=corr)
     assert out.tolist() == [1, 6, 6, 6, 0, 2] and counts == {
         "coherent_motion": 0,
+        "translation": 0,
         "bscan_plane": 0,
         "slow_decorrelation": 3,
         "fast_decorrelation": 0,
@@ -64,6 +71,7 @@ def test_a_volume_keeps_ballistic_only_where_the_window_decorrelated():
     same, none = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=None)
     assert same.tolist() == labels.tolist() and none == {
         "coherent_motion": 0,
+        "translation": 0,
         "bscan_plane": 0,
         "slow_decorrelation": 0,
         "fast_decorrelation": 0,
@@ -99,6 +107,7 @@ def test_coherent_motion_turns_every_symmetric_motion_decision_into_flow_before_
     assert out.tolist() == [2, 2, 2, 2, 2, 3, 2, 6, 6]
     assert counts == {
         "coherent_motion": 5,
+        "translation": 0,
         "bscan_plane": 2,
         "slow_decorrelation": 0,
         "fast_decorrelation": 0,
@@ -132,6 +141,7 @@ def test_fast_decorrelation_makes_a_volume_ballistic_decision_a_set_after_the_sl
     assert out.tolist() == [6, 6, 1, 2, 0]  # flow and diffusion decisions stay
     assert counts == {
         "coherent_motion": 0,
+        "translation": 0,
         "bscan_plane": 0,
         "slow_decorrelation": 1,
         "fast_decorrelation": 1,
@@ -222,11 +232,71 @@ def test_every_rule_applies_in_one_call_each_to_the_pixels_the_earlier_rules_lef
     assert out.tolist() == [2, 6, 5, 6, 6, 0]
     assert counts == {
         "coherent_motion": 1,
+        "translation": 0,
         "bscan_plane": 0,
         "slow_decorrelation": 1,
         "fast_decorrelation": 1,
         "offset_moved": 2,
     }
+
+
+def _path(shift_z, shift_x, peak_last, lags=(2, 4, 8, 16)):
+    """Channels of one resolution holding a signed offset path (µm, one row per pixel) and the longest lag's peak."""
+    ch = {f"xc_peak_{lags[-1]}@original": np.asarray(peak_last, float)}
+    for j, m in enumerate(lags):
+        ch[f"xc_shift_z_{m}@original"] = np.asarray([p[j] for p in shift_z], float)
+        ch[f"xc_shift_x_{m}@original"] = np.asarray([p[j] for p in shift_x], float)
+    return ch
+
+
+def test_translation_rule_fires_on_a_held_pattern_moving_along_a_line_only():
+    """Rule 5 on offset paths (pitch 2 µm): a held pattern (peak 0.9) whose offset moves 0.45 pitch along a
+    line in the lag fires; the same path with a pattern that did not hold (peak 0.7), a move short of
+    TRANSLATION_GROWTH_MIN, a path that jumps to another grain and stays (off a line), or a still offset at the window's own grain
+    position (0.6 pitch from the centre) does not. NaN counts as not moved."""
+    p = 2.0
+    lags = (2, 4, 8, 16)
+    line = [0.3 + 0.45 * p * (m - 2) / 14 for m in lags]  # µm: from an offset of the window's grains
+    short = [0.3 + (TRANSLATION_GROWTH_MIN - 0.05) * p * (m - 2) / 14 for m in lags]
+    jump = [0.3, 0.3 + 0.5 * p, 0.3 + 0.5 * p, 0.3 + 0.5 * p]  # to a neighbouring grain, then still
+    still = [1.2] * 4
+    zero = [0.0] * 4
+    ch = _path([line, line, short, jump, still, [np.nan] * 4], [zero] * 6, [0.9, 0.7, 0.9, 0.9, 0.9, 0.9], lags)
+    seen, used = translated(ch, {"z": p, "x": p})
+    assert seen.tolist() == [True, False, False, False, False, False]
+    assert "xc_peak_16@original" in used and "xc_shift_z_2@original" in used
+    assert TRANSLATION_HOLD_MIN > 0.7 and TRANSLATION_LINEAR_MAX > 0
+    # the move counts in pitches of each axis: the same path in µm over a coarser x pitch is short of it
+    across = _path([zero], [line], [0.9], lags)
+    assert translated(across, {"z": p, "x": p})[0].tolist() == [True]
+    assert translated(across, {"z": p, "x": 2.5 * p})[0].tolist() == [False]
+    # without the signed offsets, three lags or the pitches, the rule is not applied
+    assert translated({k: v for k, v in ch.items() if "_x_" not in k}, {"z": p, "x": p})[0] is not None
+    assert translated(_path([line[:2]], [line[:2]], [0.9], lags[:2]), {"z": p, "x": p}) == (None, [])
+    assert translated(ch, None) == (None, [])
+
+
+def test_translation_rule_turns_ballistic_decisions_and_sets_into_flow_but_not_diffusion():
+    labels = np.array([1, 6, 0, 5, 4, 3, 1])
+    seen = np.array([True, True, True, True, True, True, False])
+    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=None, translation=seen)
+    assert out.tolist() == [2, 2, 0, 5, 4, 3, 6]
+    assert counts["translation"] == 2 and counts["bscan_plane"] == 1
+    assert TRANSLATED_TO_FLOW == ("ballistic", "ballistic-or-flow")
+
+
+def test_translation_rule_sees_slow_flow_and_rarely_random_ballistic_motion_in_simulated_patches():
+    """Static-free B-scan patches of the patch simulator (1.5-µm pixels, density 0.02 µm⁻³): flow at
+    0.335 µm/s at 10° polar (it moves the pattern about half a pitch over the lags; rule 0 sees nothing) and
+    random-ballistic motion at 0.0123 µm/s (the grid's slow level: a pattern that holds). The rule fires on
+    the flow more often than on the random motion by Z = 3.5 binomial standard errors."""
+    from tests.reference.translation_rule import fires
+
+    n = 48
+    p_f = fires(dict(motion="flow", speed_um_s=0.335, polar_deg=10.0, azimuth_deg=0.0, snr_db=None), n, 11, 1.5).mean()
+    p_s = fires(dict(motion="ballistic", speed_um_s=0.0123, snr_db=None), n, 12, 1.5).mean()
+    se = np.sqrt(p_f * (1 - p_f) / n + p_s * (1 - p_s) / n)
+    assert p_f - p_s > 3.5 * max(se, 1.0 / n), (p_f, p_s)
 
 
 def _speckle_channels(field, n_frames=32):

@@ -232,10 +232,11 @@ def test_maps_at_reduced_resolution_and_slab_invariance():
 
 def test_volume_with_block_raster_drops_boundary_bscans():
     raster = BlockRaster(n_blocks=2, n_repeats=8, bscans_per_block=4, drop_boundary=1)
-    data = speckle((8, 8, 5, 6), seed=7)
+    nz = 10  # 10 × 1.5 µm = 15 µm deep: the field of view holds the axial=14 target below
+    data = speckle((8, 8, nz, 6), seed=7)
     seq = make_seq(data, volume=True, raster=raster)
     m = compute_maps(seq, ["original", "lateral=9.8"], ocds_delay_range_s=(0.2048, 0.6144))
-    assert m.maps.shape == (6, 6, 5, 6) and m.meta["axes"] == "CYZX"
+    assert m.maps.shape == (6, 6, nz, 6) and m.meta["axes"] == "CYZX"
     assert m.meta["y_indices"] == [0, 1, 2, 5, 6, 7] and m.meta["reduction"]["lateral_axes"] == "YX"
     full = compute_maps(seq, ["original", "lateral=9.8"], ocds_delay_range_s=(0.2048, 0.6144), drop_boundary=False)
     np.testing.assert_array_equal(m.maps, full.maps[:, [0, 1, 2, 5, 6, 7]])
@@ -243,12 +244,12 @@ def test_volume_with_block_raster_drops_boundary_bscans():
     res = ["axial=14", "axial=14,lateral=9.8"]
     kw = dict(ocds_delay_range_s=(0.2048, 0.6144), metrics=["liv", "ocds", "mean_db", "aliv"])
     one = compute_maps(seq, res, **kw)
-    chunked = compute_maps(seq, res, slab_elements=8 * 2 * 5 * 6, **kw)
+    chunked = compute_maps(seq, res, slab_elements=8 * 2 * nz * 6, **kw)
     np.testing.assert_allclose(chunked.maps, one.maps, rtol=1e-4, atol=1e-4)
     # the original resolution with the aLIV smoothing is cut into whole B-scans: the same maps up to the
     # float32 rounding of the per-pixel sums (torch orders a reduction by the batch's shape)
     orig = compute_maps(seq, ["original"], **kw)
-    for size in (8 * 1 * 5 * 6, 8 * 3 * 5 * 6):
+    for size in (8 * 1 * nz * 6, 8 * 3 * nz * 6):
         np.testing.assert_allclose(
             compute_maps(seq, ["original"], slab_elements=size, **kw).maps, orig.maps, rtol=1e-5, atol=1e-5
         )
@@ -278,7 +279,7 @@ def test_slab_cut_follows_what_the_stages_need():
 
 
 def test_intensity_input_allows_only_original(tmp_path):
-    inten = np.abs(speckle((8, 5, 6), seed=8)) ** 2
+    inten = np.abs(speckle((8, 10, 6), seed=8)) ** 2  # 10 × 1.5 µm deep: holds the axial=14 target
     tifffile.imwrite(tmp_path / "cog.tif", inten.astype(np.float32))
     seq = read_sequence(tmp_path / "cog.tif", pitch_um="z=1.5,x=2", frame_interval_s=DT, system=SYSTEM)
     m = compute_maps(seq, ["original"], ocds_delay_range_s=(0.2048, 0.6144))
@@ -420,7 +421,7 @@ def test_cli_maps_errors(tmp_path, capsys):
     assert "finer than the original" in capsys.readouterr().err
     assert main(argv + sys_args) == 0
     assert read_maps(tmp_path / "m.npz").meta["system"]["lateral_resolution_um"] == 4.9
-    inten = np.abs(speckle((8, 5, 6))) ** 2
+    inten = np.abs(speckle((8, 5, 10))) ** 2  # 10 × 2 µm wide: holds the lateral=18 target
     tifffile.imwrite(tmp_path / "i.tif", inten.astype(np.float32))
     assert (
         main(
@@ -757,7 +758,7 @@ def test_one_frame_input_is_refused_naming_the_file(tmp_path, capsys):
 
 
 def test_big_endian_npy_is_read(tmp_path, capsys):
-    data = speckle((8, 5, 6), seed=17)
+    data = speckle((8, 10, 6), seed=17)  # 10 × 1.5 µm deep: holds the axial=14 target
     meta = {
         "axes": "TZX",
         "pitch_um": {"z": 1.5, "x": 2.0},
@@ -826,7 +827,7 @@ def test_bulk_phase_correction_is_the_corrected_sequence_for_every_channel():
 
 
 def _speckle_reference(data: np.ndarray, pitch: dict, window: int, ndim: int) -> np.ndarray:
-    from torchdoct.sim.speckle import default_speckle_features, speckle_motion
+    from torchdoct.sim.speckle import map_speckle_features, speckle_motion
 
     return speckle_motion(
         torch.from_numpy(data),
@@ -834,7 +835,7 @@ def _speckle_reference(data: np.ndarray, pitch: dict, window: int, ndim: int) ->
         DT,
         window=window,
         ndim=ndim,
-        names=default_speckle_features(ndim, n_frames=data.shape[0]),
+        names=map_speckle_features(ndim, n_frames=data.shape[0]),
     )[1].numpy()
 
 
@@ -843,9 +844,9 @@ def test_speckle_channels_match_the_feature_module_across_slabs(volume):
     shape = (12, 4, 20, 9) if volume else (12, 24, 13)
     data = speckle(shape, corr=0.9, seed=3, dtype=np.complex128)
     seq = make_seq(data, volume=volume)
-    from torchdoct.sim.speckle import default_speckle_features
+    from torchdoct.sim.speckle import map_speckle_features
 
-    names = default_speckle_features(3 if volume else 2, n_frames=shape[0])
+    names = map_speckle_features(3 if volume else 2, n_frames=shape[0])
     whole = compute_maps(seq, ["original", "axial=14"], speckle=True, speckle_window=5)
     slabs = compute_maps(
         seq,

@@ -261,9 +261,9 @@ def test_cli_maps_signature_channels(tmp_path, capsys):
     assert "intensity only" not in capsys.readouterr().out
     maps = read_maps(out)
     n = len(DEFAULT_FEATURES)
-    from torchdoct.sim.speckle import default_speckle_features
+    from torchdoct.sim.speckle import map_speckle_features
 
-    n_xc = len(default_speckle_features(2, n_frames=t))  # --signature adds the speckle channels, after the rest
+    n_xc = len(map_speckle_features(2, n_frames=t))  # --signature adds the speckle channels, after the rest
     assert maps.maps.shape == (6 + 2 * n + n_xc, 12, 10)
     assert all(c.startswith("xc_") and c.endswith("@original") for c in maps.channels[6 + 2 * n :])
     bare = tmp_path / "bare.npz"
@@ -396,7 +396,8 @@ def test_signature_channels_of_small_slabs_equal_the_whole_volume(volume):
     from torchdoct.measured.resolution import parse_resolution, reduce_resolution
 
     t = 16
-    seq = _field_seq((t, 4, 30, 9) if volume else (t, 40, 12), seed=22, volume=volume)
+    # 7 B-scans × 3 µm and 9 × 2 µm: the fields of view along y and x hold the lateral=18 target
+    seq = _field_seq((t, 7, 30, 9) if volume else (t, 40, 12), seed=22, volume=volume)
     res = ["original", "lateral=18", "axial=14"]
     names = default_features(t) + ("g1_phase_1", "phase_ramp")
     small = compute_maps(seq, res, metrics=("liv",), signature=names, slab_elements=t * 9 * 4 * 3, chunk_pixels=11)

@@ -14,7 +14,7 @@ import torch
 
 from ..sim.speckle import DEFAULT_MAX_OFFSET as SPECKLE_MAX_OFFSET
 from ..sim.speckle import DEFAULT_WINDOW as SPECKLE_WINDOW
-from ..sim.speckle import default_speckle_features, halo_pixels, speckle_feature_unit, speckle_motion
+from ..sim.speckle import halo_pixels, map_speckle_features, speckle_feature_unit, speckle_motion
 from .sequence import SequenceData
 
 __all__ = [
@@ -38,7 +38,7 @@ def speckle_channels(
     seq: SequenceData, names: _Seq[str] | None = None, *, window: int = SPECKLE_WINDOW
 ) -> tuple[str, ...]:
     """The speckle-motion features that maps of ``seq`` get (default
-    :func:`torchdoct.sim.speckle.default_speckle_features` of its B-scans or volume), checked before any
+    :func:`torchdoct.sim.speckle.map_speckle_features` of its B-scans or volume), checked before any
     work: the spatial axes (Z, X and Y), the pixel pitch of each, a uniform frame interval, the lags the
     protocol holds, the window (odd pixels)."""
     src = seq.source or "sequence"
@@ -60,7 +60,7 @@ def speckle_channels(
             f"{src}: speckle-motion channels need a uniform frame interval; got intervals "
             f"{d.min() if d.size else None}-{d.max() if d.size else None} s"
         )
-    names = tuple(names) if names is not None else default_speckle_features(ndim, n_frames=len(times))
+    names = tuple(names) if names is not None else map_speckle_features(ndim, n_frames=len(times))
     probe = torch.ones(len(times), *([2 * halo_pixels(window, SPECKLE_MAX_OFFSET) + 1] * ndim))
     try:  # the names, lags and window, on one small block
         speckle_motion(

@@ -77,6 +77,7 @@ __all__ = [
     "speckle_features",
     "default_lags",
     "default_speckle_features",
+    "map_speckle_features",
     "halo_pixels",
     "speckle_motion",
 ]
@@ -165,6 +166,14 @@ def default_speckle_features(
         raise ValueError(f"speckle features need 2 (Z, X) or 3 (Y, Z, X) spatial axes; got {ndim}")
     per_lag = tuple(f"xc_{k}_{m}" for m in lags for k in ("centre", "peak", "share", "asym", "shift"))
     return per_lag + ("xc_speed",)
+
+
+def map_speckle_features(ndim: int = 2, lags: Sequence[int] | None = None, *, n_frames: int = 32) -> tuple[str, ...]:
+    """The channels ``torchdoct maps --speckle`` writes: :func:`default_speckle_features`, then the signed
+    shift per axis and lag (``xc_shift_{c}_m``, what the classifier's rule of a held pattern that moved reads:
+    the offset's path, not only its length)."""
+    lags = default_lags(n_frames) if lags is None else tuple(lags)
+    return default_speckle_features(ndim, lags) + tuple(f"xc_shift_{c}_{m}" for m in lags for c in SPATIAL_AXES[ndim])
 
 
 def speckle_features(ndim: int = 2, lags: Sequence[int] | None = None, *, n_frames: int = 32) -> tuple[str, ...]:
