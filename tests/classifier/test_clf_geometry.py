@@ -15,12 +15,16 @@ import pytest
 
 from classifier.infer import classify_maps, default_model_for, read_maps
 
+#: [Z, X] of the B-scans and [Y, Z, X] of the volume: 10 × 1.5 µm deep and 10 × 2 µm wide (and long), so
+#: every field of view holds the signature's targets (axial=14, lateral=18)
+BSCAN, VOLUME = (10, 10), (10, 10, 10)
+
 
 def _sequence(tmp_path, axes: str):
     from torchdoct.measured.io import write_sequence
 
     rng = np.random.default_rng(5)
-    shape = (10, 8) if axes == "TZX" else (3, 8, 8)
+    shape = BSCAN if axes == "TZX" else VOLUME
     t = 32
     e = np.empty((t, *shape), np.complex64)
     e[0] = rng.standard_normal(shape) + 1j * rng.standard_normal(shape)
@@ -99,7 +103,7 @@ def test_a_phase_model_needs_bulk_phase_corrected_maps(maps):
     with pytest.raises(ValueError, match=r"not bulk-phase corrected.*--bulk-phase"):
         classify_maps(maps["bscan"], "signature-bscan-field", threads=1, background_db="none")
     res = classify_maps(maps["bscan-corrected"], "signature-bscan-field", threads=1, background_db="none")
-    assert res.model.spec.name == "signature-bscan-field" and res.info["classified"] == 80
+    assert res.model.spec.name == "signature-bscan-field" and res.info["classified"] == math.prod(BSCAN)
 
 
 def test_features_outside_their_physical_range_are_masked_and_counted(tmp_path):

@@ -377,7 +377,7 @@ def test_flow_layer_doppler_ramp_survives_the_histogram_and_is_biased_by_the_wei
 # volumes, slabs, options, refusals
 # ----------------------------------------------------------------------------------------------------------
 def test_volume_per_y_x_and_slab_invariance():
-    t, y, z, x = 12, 4, 32, 20
+    t, y, z, x = 12, 7, 32, 20  # 7 B-scans × 3 µm: the field of view along y holds the lateral=18 target
     truth = make_field(t, z, x, snr_db=30.0, seed=8, y=y).astype(np.complex64)
     phi = bulk_phase_of(t, (y, x), 8)
     seq = make_seq(with_bulk(truth, phi).astype(np.complex64), volume=True)

@@ -277,7 +277,7 @@ def test_readable_but_unusable_sequences(tmp_path, capsys, fmt, kind, dtype):
     tmp_path = Path(tempfile.mkdtemp(dir=tmp_path))  # one directory per example
     rng = np.random.default_rng(3)
     meta = json.loads(json.dumps(META))
-    data = _field(rng, dtype=dtype)
+    data = _field(rng, (T, 8, X), dtype=dtype)  # 8 × 2 µm deep: the field of view holds the axial=14 target
     if kind == "one-frame":
         data, meta["frame_times_s"] = data[:1], [0.0]
     elif kind == "all-nan":

@@ -287,7 +287,7 @@ def test_a_region_of_missing_samples_voids_only_the_pixels_whose_window_rests_mo
 
 def test_nan_samples_give_a_note_and_masked_signature(outdir, capsys):
     path = _sidecar(outdir / "nan.npy")
-    a = _field()
+    a = _field((8, 6, 10))  # 10 × 2 µm wide: the field of view holds the lateral=18 target
     a[3, 2, 1] = np.nan
     a[5, 2, 1] = np.inf
     np.save(path, a)
@@ -300,7 +300,7 @@ def test_nan_samples_give_a_note_and_masked_signature(outdir, capsys):
     for i, ch in enumerate(m.channels):
         v = m.maps[i]
         if ch.endswith("@original") and not ch.startswith(("aliv", "valid_weight")):
-            assert np.isnan(v[2, 1]) and np.isfinite(np.delete(v.ravel(), 2 * 5 + 1)).any(), ch
+            assert np.isnan(v[2, 1]) and np.isfinite(np.delete(v.ravel(), 2 * v.shape[1] + 1)).any(), ch
         if ch.endswith("@lateral=18") and not ch.startswith("valid_weight"):  # normalised: no pixel lost
             assert np.isfinite(v[2]).any(), ch
     w = m.maps[m.channels.index("valid_weight@lateral=18")]

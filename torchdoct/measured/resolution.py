@@ -51,6 +51,11 @@ Decisions (all switchable):
   naming the smallest one the data allow. At exactly two pixels the lateral target's sampled
   ``Σ|h|²`` differs from ``∫|h|²/pitch`` by ``2·exp(−π² s²/p²)`` = 1.4 % (Poisson summation,
   ``s = p/√2``), the axial one's by 1e-6.
+* **Targets wider than the image** (:func:`check_target_in_view`): a target PSF wider than the field of
+  view (pixels × pitch) of an axis it filters would reach past the image on both sides, so the edge
+  extension, not the sample, would make the result; ``torchdoct maps`` refuses it naming the widest target
+  the axis allows (one field of view, :data:`MAX_TARGET_FIELDS`) or the pitch to check.
+  :func:`reduce_resolution` keeps its own, looser memory bound on the Gaussian (:data:`MAX_KERNEL_AXES`).
 """
 
 from __future__ import annotations
@@ -199,9 +204,14 @@ def check_target_sampled(
         )
 
 
-#: The widest reduction target, in fields of view of the axis it filters: the Gaussian's padding
-#: (⌈5σ′⌉ + 1 pixels a side) then stays within about 15 axis lengths (lateral) or 25 (axial).
-MAX_TARGET_FIELDS = 4.0
+#: The widest reduction target, in fields of view (pixels × pitch) of an axis it filters: one. A wider
+#: target PSF reaches past the image on both sides, so the edge extension, not the sample, would make
+#: the maps.
+MAX_TARGET_FIELDS = 1.0
+
+#: The widest Gaussian :func:`reduce_resolution` runs, σ′ in lengths of the axis it filters (a memory bound,
+#: see :func:`_check_kernel_bound`).
+MAX_KERNEL_AXES = 4.0
 
 
 def check_target_in_view(
@@ -213,12 +223,13 @@ def check_target_in_view(
     shape: Any,
     option: str = "--resolution",
 ) -> None:
-    """Refuse a ``kind`` reduction along an axis it filters whose field of view (pixels × pitch) is
-    narrower than the original PSF (the samples cannot be at that pitch: a pitch given 1000× too fine
-    made a mean 10 dB off, constant over the image) or whose target is wider than
-    :data:`MAX_TARGET_FIELDS` fields of view (the kernel's padding would grow without bound and the edge
-    extension, not the sample, would make the maps). Names ``option``, the axis, its extent and the fix.
-    ``shape``: the field's shape in ``axes`` order."""
+    """Refuse a ``kind`` reduction along an axis it filters (lateral: Y and X; axial: Z) whose field of
+    view (pixels × pitch) is narrower than the original PSF (the samples cannot be at that pitch: a pitch
+    given 1000× too fine made a mean 10 dB off, constant over the image), or whose target is wider than
+    the field of view (:data:`MAX_TARGET_FIELDS`: the reduced PSF would reach past the image on both sides
+    and the edge extension, not the sample, would make the maps). A target of exactly one field of view is
+    accepted. Names ``option``, the axis, its extent and the fix (the widest target allowed, or the pitch).
+    ``shape``: the field's shape in ``axes`` order. Reads only the shape: nothing is allocated."""
     if _check_target(kind, original_um, target_um) == 0.0:
         return
     pitch = {str(k).lower(): v for k, v in dict(pitch_um or {}).items()}
@@ -237,21 +248,32 @@ def check_target_in_view(
                 "check the pitch (--pitch-um, µm per pixel)"
             )
         if target_um > MAX_TARGET_FIELDS * fov:
+            article = "an" if kind == "axial" else "a"
             raise ValueError(
-                f"{option}: a {kind} resolution of {target_um:g} µm is wider than {MAX_TARGET_FIELDS:g} "
-                f"fields of view along {c.lower()} ({dims[c]} pixels × {p:g} µm = {fov:g} µm): the edges, "
-                f"not the sample, would make the maps; give {kind}={MAX_TARGET_FIELDS * fov:g} or less, "
-                "or check the pitch (--pitch-um, µm per pixel)"
+                f"{option}: {article} {kind} resolution of {target_um:g} µm is wider than the field of view along "
+                f"{c.lower()} ({dims[c]} pixels × {p:g} µm = {fov:g} µm): the reduced PSF would reach past "
+                f"the image on both sides and the edges, not the sample, would make the maps; give "
+                f"{kind}={MAX_TARGET_FIELDS * fov:g} or less, or check the pitch (--pitch-um, µm per pixel)"
             )
 
 
 def _check_kernel_bound(sigma_um: float, pitch: float, n: int, axis: str) -> None:
-    """The bound of the reduction kernel: its σ' at most :data:`MAX_TARGET_FIELDS` axis lengths (the
-    padding, ⌈5σ'⌉ + 1 pixels a side, then stays within about 40 times the axis)."""
-    if sigma_um / pitch > MAX_TARGET_FIELDS * n:
+    """The bound of the reduction kernel, a memory guard of :func:`reduce_resolution` (which the Python API
+    calls directly): its σ' at most :data:`MAX_KERNEL_AXES` axis lengths, so the padding (⌈5σ'⌉ + 1 pixels
+    a side) keeps the padded axis within about 41 times the axis, one axis at a time.
+
+    Why 4 and not 1: this is not the validity check. :func:`check_target_in_view` (``torchdoct maps`` and
+    :func:`~torchdoct.measured.maps.compute_maps` call it before any work) refuses a target wider than one
+    field of view, which bounds σ' below ``Δ_t/(2√2)`` (lateral) or ``Δ_t/(2√ln2)`` (axial), about 0.35 or
+    0.60 axis lengths: behind it this guard never fires. Called on its own, ``reduce_resolution`` is a
+    numerical routine whose wider kernels are well defined (``edge_mode="wrap"`` on a periodic field pads
+    nothing), and a bound of 1 would refuse them only to bound memory by a smaller constant multiple (about
+    11 axis lengths instead of 41); what this guard must stop is a target or a pitch orders of magnitude
+    off, whose padding would otherwise grow without bound."""
+    if sigma_um / pitch > MAX_KERNEL_AXES * n:
         raise ValueError(
             f"the reduction along {axis} needs a Gaussian of σ' = {sigma_um / pitch:.4g} pixels, wider "
-            f"than {MAX_TARGET_FIELDS:g} times the axis ({n} pixels × {pitch:g} µm); give "
+            f"than {MAX_KERNEL_AXES:g} times the axis ({n} pixels × {pitch:g} µm); give "
             "a target no wider than the field of view, or check pitch_um (µm per pixel)"
         )
 
