@@ -93,6 +93,7 @@ def calibration_samples(
         out[n] = pooled_samples(ds, [np.array([n]) for _ in groups], rng)
     first = np.array([g[0] for g in groups])
     flow = ds.y[first] == 2
+    assert ds.polar_angle_deg is not None  # Dataset.__post_init__ fills it (NaN when unknown)
     polar = ds.polar_angle_deg[first]
     static_free = ds.static_fraction[first] == 0
     desc = {

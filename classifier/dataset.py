@@ -85,8 +85,11 @@ class Dataset:
 
     def save(self, path: str | os.PathLike) -> None:
         with open(path, "wb") as fh:
-            extra = {} if self.x_ref is None else {"x_ref": self.x_ref}
-            np.savez(fh, meta_json=np.asarray(json.dumps(self.meta)), **self.arrays(), **extra)
+            # Any: the names are array names, never savez's options
+            contents: dict[str, Any] = {"meta_json": np.asarray(json.dumps(self.meta)), **self.arrays()}
+            if self.x_ref is not None:
+                contents["x_ref"] = self.x_ref
+            np.savez(fh, **contents)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Dataset:

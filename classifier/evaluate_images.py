@@ -163,6 +163,7 @@ def _scores(
     out["balanced_accuracy"] = float(np.mean(recalls)) if recalls and len(recalls) == len(per) else None
     out["accuracy"] = float((decided[dec] == truth[dec]).mean()) if dec.any() else None
     if mag_err is not None:
+        assert in68 is not None and in95 is not None  # given with mag_err
         right = dec & (decided == truth) & np.isfinite(mag_err)
         out["magnitude"] = {
             "pixels": int(right.sum()),

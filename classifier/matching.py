@@ -25,7 +25,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -216,13 +216,16 @@ def bscan_notes(maps_list: Sequence[Maps], spec: FeatureSpec) -> list[str]:
     hold with another width along y than the spec's (the original width: an anisotropic PSF,
     :meth:`ChannelOptics.of_channel`), unlike the spec's isotropic training. A spec that gives that
     ``lateral_resolution_y_um`` was trained on it: no note."""
-    notes = []
+    notes: list[str] = []
     if MATCH_LATERAL_Y:  # such channels are refused, not noted
         return notes
     for m in maps_list:
-        reduced = [
-            c for c in spec.configurations if not c.optics.matches(ChannelOptics.of_channel(c.to_dict(), m.meta))
-        ]
+        reduced = []
+        for c in spec.configurations:
+            seen = ChannelOptics.of_channel(c.to_dict(), m.meta)
+            assert seen is not None  # a configuration holds its wavelength and both resolutions
+            if not c.optics.matches(seen):
+                reduced.append(c)
         if reduced:
             notes.append(
                 f"{m.name}: the lateral resolution was reduced along x only (B-scan data), so the "
@@ -240,20 +243,20 @@ def assemble_features(
 
     Returns ``(features, mean_db or None, info)``; ``info`` names the channel used for every feature.
     """
-    maps_list = [_as_maps(m) for m in maps_list]
-    if not maps_list:
+    all_maps = [_as_maps(m) for m in maps_list]
+    if not all_maps:
         raise ValueError("no maps file given")
     spec = model.spec
-    shape = maps_list[0].spatial_shape
-    for m in maps_list:
+    shape = all_maps[0].spatial_shape
+    for m in all_maps:
         if m.spatial_shape != shape:
             raise ValueError(
-                f"maps files have different shapes: {maps_list[0].name} {shape}, {m.name} {m.spatial_shape}"
+                f"maps files have different shapes: {all_maps[0].name} {shape}, {m.name} {m.spatial_shape}"
             )
         _check_protocol(m, spec, ignore_refractive_index)
-    intensity_only = any((m.meta.get("signature") or {}).get("intensity_only") for m in maps_list)
+    intensity_only = any((m.meta.get("signature") or {}).get("intensity_only") for m in all_maps)
     if spec.needs_field and not intensity_only:  # (intensity-only maps: the missing columns say so below)
-        uncorrected = [m.name for m in maps_list if not m.meta.get("bulk_phase")]
+        uncorrected = [m.name for m in all_maps if not m.meta.get("bulk_phase")]
         if uncorrected:
             raise ValueError(
                 f"model {model.path.name} reads the field's phase (|g1|), which a bulk phase per frame "
@@ -266,10 +269,10 @@ def assemble_features(
     used = []
     for col in model.columns[:-1]:
         metric = col["metric"]
-        found = _find_column(maps_list, col)
+        found = _find_column(all_maps, col)
         if (
             found is None
-            and any((m.meta.get("signature") or {}).get("intensity_only") for m in maps_list)
+            and any((m.meta.get("signature") or {}).get("intensity_only") for m in all_maps)
             and metric not in METRIC_UNITS
             and _signature.needs_field(metric)
         ):
@@ -280,9 +283,9 @@ def assemble_features(
                 f"model (--model {DEFAULT_MODEL})"
             )
         if found is None:
-            _refuse_other_geometry(maps_list, col, model)
+            _refuse_other_geometry(all_maps, col, model)
             have = "; ".join(
-                f"{m.name}: " + ", ".join(_describe_channel(ch) for ch in m.meta["channels"]) for m in maps_list
+                f"{m.name}: " + ", ".join(_describe_channel(ch) for ch in m.meta["channels"]) for m in all_maps
             )
             res = col["configuration"]
             raise ValueError(
@@ -302,7 +305,7 @@ def assemble_features(
         used.append({"feature": col["name"], "file": m.name, "channel": ch.get("name", str(i))})
     mean_db = None
     first = spec.configurations[0].optics
-    candidates = [(m, i) for m in maps_list for i, ch in enumerate(m.meta["channels"]) if ch.get("metric") == "mean_db"]
+    candidates = [(m, i) for m in all_maps for i, ch in enumerate(m.meta["channels"]) if ch.get("metric") == "mean_db"]
     candidates.sort(key=lambda t: 0 if channel_matches(t[0], t[1], "mean_db", first) else 1)
     if candidates:
         m, i = candidates[0]
@@ -310,7 +313,7 @@ def assemble_features(
     info = {
         "features": used,
         "intensity_channel": candidates[0][0].meta["channels"][candidates[0][1]].get("name") if candidates else None,
-        "notes": bscan_notes(maps_list, spec),
+        "notes": bscan_notes(all_maps, spec),
     }
     return np.stack(feats).astype(np.float32, copy=False), mean_db, info
 
@@ -325,12 +328,12 @@ def choose_default_model(
     signature channels: what the signature model closest to them, the one with the fewest missing
     features, lacks).
     """
-    maps_list = [_as_maps(m) for m in maps_list]
+    all_maps = [_as_maps(m) for m in maps_list]
     candidates = [name for name in SIGNATURE_MODELS if name in shipped]
-    liv_ocds = _liv_ocds_model(maps_list, shipped, open_model)
+    liv_ocds = _liv_ocds_model(all_maps, shipped, open_model)
     if not candidates:
         return liv_ocds, None
-    if not any(m.meta.get("signature") for m in maps_list):
+    if not any(m.meta.get("signature") for m in all_maps):
         return liv_ocds, (
             f"model {liv_ocds} (LIV/OCDS): the maps have no signature channels; "
             "`torchdoct maps DATA --signature ...` lets doct-classify use the more accurate "
@@ -340,19 +343,19 @@ def choose_default_model(
     for name in candidates:
         sig = open_model(name)
         try:
-            assemble_features(maps_list, sig, ignore_refractive_index=True)
+            assemble_features(all_maps, sig, ignore_refractive_index=True)
         except ValueError as err:
-            missing = [col for col in sig.columns[:-1] if _find_column(maps_list, col) is None]
+            missing = [col for col in sig.columns[:-1] if _find_column(all_maps, col) is None]
             failed.append((len(missing), name, err, missing, len(sig.columns) - 1))
             continue
         return name, None
-    _, name, err, missing, n_columns = min(failed, key=lambda f: f[0])  # ties: the earlier in SIGNATURE_MODELS
+    _, name, error, missing, n_columns = min(failed, key=lambda f: f[0])  # ties: the earlier in SIGNATURE_MODELS
     if missing:  # name the channels, not only the first error
         names = [str(col.get("name") if isinstance(col, dict) else col) for col in missing]
         more = f" and {len(names) - 3} more" if len(names) > 3 else ""
-        why = f"{err} (missing channel(s): {', '.join(names[:3])}{more}, {len(names)} of {n_columns})"
+        why = f"{error} (missing channel(s): {', '.join(names[:3])}{more}, {len(names)} of {n_columns})"
     else:
-        why = str(err)
+        why = str(error)
     return liv_ocds, f"model {liv_ocds} (LIV/OCDS) instead of {name}: {why}"
 
 
@@ -406,12 +409,12 @@ def spec_from_maps(maps_list: Sequence[Maps | MapsChannels], name: str | None = 
 
     from .features import Configuration
 
-    maps_list = [_as_maps(m) for m in maps_list]
-    if not maps_list:
+    all_maps = [_as_maps(m) for m in maps_list]
+    if not all_maps:
         raise ValueError("no maps file given")
-    first = maps_list[0]
+    first = all_maps[0]
     n_frames, dt = _frame_protocol(first)
-    for m in maps_list[1:]:
+    for m in all_maps[1:]:
         other = _frame_protocol(m)
         if other[0] != n_frames or not same_value(other[1], dt):
             raise ValueError(
@@ -419,7 +422,7 @@ def spec_from_maps(maps_list: Sequence[Maps | MapsChannels], name: str | None = 
                 f"frames {dt:g} s apart; maps of one model share the protocol"
             )
     notes: list[str] = []
-    signature = [m.meta.get("signature") for m in maps_list]
+    signature: list[Any] = [m.meta.get("signature") for m in all_maps]  # each a metadata dict, or None
     if all(signature):
         names = [tuple(s.get("features") or ()) for s in signature]
         if any(n != names[0] for n in names):
@@ -427,7 +430,7 @@ def spec_from_maps(maps_list: Sequence[Maps | MapsChannels], name: str | None = 
                 "the maps files hold different signature features; compute them with the same "
                 "`torchdoct maps --signature` options"
             )
-        corrected = all(m.meta.get("bulk_phase") for m in maps_list)
+        corrected = all(m.meta.get("bulk_phase") for m in all_maps)
         intensity_only = any(s.get("intensity_only") for s in signature)
         metrics = [f for f in names[0] if (corrected and not intensity_only) or not _signature.needs_field(f)]
         if not corrected and not intensity_only and len(metrics) < len(names[0]):
@@ -444,7 +447,7 @@ def spec_from_maps(maps_list: Sequence[Maps | MapsChannels], name: str | None = 
         )
     configurations: list[Configuration] = []
     labels: dict[str, int] = {}
-    for m in maps_list:
+    for m in all_maps:
         for i, ch in enumerate(m.meta["channels"]):
             if ch.get("metric") != metrics[0]:
                 continue
@@ -458,7 +461,7 @@ def spec_from_maps(maps_list: Sequence[Maps | MapsChannels], name: str | None = 
             if any(c.optics.matches(optics) for c in configurations):
                 continue
             label = str(ch.get("resolution") or f"c{len(configurations)}")
-            if len(maps_list) > 1:
+            if len(all_maps) > 1:
                 label = f"{optics.wavelength_um * 1000:g}nm-{label}"
             labels[label] = labels.get(label, 0) + 1
             if labels[label] > 1:
@@ -489,7 +492,7 @@ def spec_from_maps(maps_list: Sequence[Maps | MapsChannels], name: str | None = 
     )
     spec_name = name or f"like-{stem}"
     description = (
-        f"derived from the metadata of {', '.join(m.name for m in maps_list)} (doct-train --like): "
+        f"derived from the metadata of {', '.join(m.name for m in all_maps)} (doct-train --like): "
         f"{len(metrics)} features at {len(configurations)} configurations ("
         + "; ".join(f"{c.name}: {c.describe()}" for c in configurations)
         + f"), {geometry}; {n_frames} frames {dt:g} s apart, n = {1.0 if n is None else float(n):g}"
@@ -501,14 +504,15 @@ def spec_from_maps(maps_list: Sequence[Maps | MapsChannels], name: str | None = 
         metrics=tuple(metrics),
         n_frames=n_frames,
         frame_interval_s=dt,
-        ocds_delay_range_s=tuple(float(v) for v in rng),
+        # FeatureSpec refuses a range of any other length than 2
+        ocds_delay_range_s=cast("tuple[float, float]", tuple(float(v) for v in rng)),
         ocds_scale=str(first.meta.get("ocds_scale") or "db"),
         ocds_estimator=str(first.meta.get("ocds_estimator") or "pearson"),
         refractive_index=1.0 if n is None else float(n),
     )
     # every feature at every configuration must be in the maps (what assemble_features will look for)
     for metric, conf in spec.features:
-        if _find_column(maps_list, {"metric": metric, **conf.to_dict()}) is None:
+        if _find_column(all_maps, {"metric": metric, **conf.to_dict()}) is None:
             raise ValueError(
                 f"{first.name}: {metric} is missing at {conf.describe()}; the maps must hold every "
                 f"feature at every resolution. Fix: recompute them with one `torchdoct maps` call"
@@ -519,9 +523,9 @@ def spec_from_maps(maps_list: Sequence[Maps | MapsChannels], name: str | None = 
 def no_shipped_model_message(maps_list: Sequence[Maps | MapsChannels], reason: str) -> str:
     """The refusal when no shipped model fits the maps: what their system is, and the exact commands that
     train a model from the maps themselves (``doct-train --like``) and classify with it."""
-    maps_list = [_as_maps(m) for m in maps_list]
-    files = " ".join(str(m.path) if m.path is not None else m.name for m in maps_list)
-    m0 = maps_list[0]
+    all_maps = [_as_maps(m) for m in maps_list]
+    files = " ".join(str(m.path) if m.path is not None else m.name for m in all_maps)
+    m0 = all_maps[0]
     system = m0.meta.get("system") or {}
     times = m0.meta.get("frame_times_s") or []
     parts = []
@@ -548,7 +552,7 @@ def no_shipped_model_message(maps_list: Sequence[Maps | MapsChannels], reason: s
         and float(system.get("refractive_index") or 1) == 1.0
     )
     have = list(
-        dict.fromkeys(ch.get("resolution") for m in maps_list for ch in m.meta["channels"] if ch.get("resolution"))
+        dict.fromkeys(ch.get("resolution") for m in all_maps for ch in m.meta["channels"] if ch.get("resolution"))
     )
     if missing and shipped_system and missing.group(1) not in have:
         # the shipped system, one resolution short: name the --resolution to add

@@ -50,6 +50,15 @@ class MotionClassifier(nn.Module):
     (the ``pool_pixels`` column comes on top).
     """
 
+    # the buffers (register_buffer in __init__; magnitude_sd_scale only with a magnitude head)
+    liv_mask: torch.Tensor
+    corr_mask: torch.Tensor
+    pool_mask: torch.Tensor
+    feature_mean: torch.Tensor
+    feature_scale: torch.Tensor
+    temperature: torch.Tensor
+    magnitude_sd_scale: torch.Tensor
+
     def __init__(
         self,
         n_features: int,

@@ -223,6 +223,7 @@ def _magnitude_picture(res: Classification, path: str) -> None:
 
     from torchdoct import figures
 
+    assert res.magnitude is not None  # drawn only for a result with magnitudes (write_classification)
     mag = res.magnitude[0]
     labels = res.labels
     title_extra = ""

@@ -57,6 +57,7 @@ def identifiable_range(spec: FeatureSpec, label: int, prior: Prior | None = None
     of physics.md §5.3-5.4 on a log grid (:data:`_RANGE_GRID`, 5 % steps). ``ValueError`` when no
     magnitude of the grid is identifiable (a protocol that cannot see this motion)."""
     prior = prior or Prior()
+    variants: list[dict[str, Any]]  # Draw's keyword arguments that vary
     if label == 2:
         variants = [dict(polar_angle_deg=a) for a in _RANGE_POLAR_DEG]
     elif label == 1:
@@ -116,7 +117,8 @@ def prior_for_spec(
     finest = min(
         n_eff(1.0, c.lateral_resolution_um, c.axial_resolution_um, **lateral_y(c)) for c in spec.configurations
     )
-    density = tuple(float(f"{d * ref / finest:.3g}") for d in base.density_per_um3)
+    d_lo, d_hi = (float(f"{d * ref / finest:.3g}") for d in base.density_per_um3)
+    density = (d_lo, d_hi)
     base = _dc.replace(base, density_per_um3=density)
     ranges = {CLASSES[label]: list(identifiable_range(spec, label, base)) for label in range(len(CLASSES))}
     k = 10.0 ** float(margin_decades)

@@ -222,7 +222,8 @@ class Prior:
         unknown = sorted(set(data) - known)
         if unknown:
             raise ValueError(f"prior: unknown key(s) {unknown} (allowed: {sorted(known)})")
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+        values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+        return cls(**values)  # each field's type is checked by __post_init__
 
 
 @dataclass(frozen=True)

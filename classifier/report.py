@@ -172,8 +172,8 @@ def bootstrap_draws(
         for key, v in fn(pick).items():
             vals.setdefault(key, []).append(v)
     out = {}
-    for key, v in vals.items():
-        a = np.asarray(v, dtype=np.float64)
+    for key, values in vals.items():
+        a = np.asarray(values, dtype=np.float64)
         a = a[np.isfinite(a)]
         out[key] = float(np.std(a, ddof=1)) if a.size >= 2 else math.nan
     return out

@@ -89,8 +89,13 @@ def _unreadable_model(label: str, err: str, version: str) -> str:
         )
     opset = re.search(r"Opset (\d+) is under development.*?till opset (\d+)", text)
     old = re.search(r"No Op registered for (\w+) with domain_version of (\d+)", text)
-    if opset or (old and int(old.group(2)) < MIN_OPSET):
-        got, top = (opset.group(1), opset.group(2)) if opset else (old.group(2), _highest_opset())
+    outside: tuple[str, str | int] | None = None  # (the model's opset, the highest this onnxruntime reads)
+    if opset:
+        outside = (opset.group(1), opset.group(2))
+    elif old and int(old.group(2)) < MIN_OPSET:
+        outside = (old.group(2), _highest_opset())
+    if outside is not None:
+        got, top = outside
         return (
             f"model {label}: ONNX opset {got} is outside the opsets onnxruntime {version} supports "
             f"({MIN_OPSET} to {top}); export the model at an opset in that range (doct-train writes opset 17)"
@@ -163,7 +168,7 @@ class ClassifierModel:
     def predict_magnitude(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per motion class, predicted ``log10`` magnitude and its predictive SD, ``[N, K]`` each."""
         _, mean, sd = self.predict_all(x)
-        if mean is None:
+        if mean is None or sd is None:  # both or neither
             raise ValueError(f"model {self.path.name} has no magnitude head")
         return mean, sd
 

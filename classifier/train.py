@@ -42,7 +42,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -277,6 +277,7 @@ def _timed_predict(fn, x: np.ndarray, repeats: int = 3) -> tuple[np.ndarray, flo
         t0 = time.perf_counter()
         out = fn(x)
         best = min(best, time.perf_counter() - t0)
+    assert out is not None  # repeats >= 1
     return out, best / max(len(x), 1) * 1e6
 
 
@@ -329,10 +330,11 @@ def fit_network(
     # the generator is used in the same order as drawing them in turn (this epoch's samples, its batch
     # order, the next epoch's samples, ...), so the model is bit-identical; an early stop leaves one unused.
     pool = ThreadPoolExecutor(max_workers=1)
-    upcoming = None
+    upcoming: Future[dict[str, np.ndarray]] | None = None
     try:
         for epoch in range(1, cfg.max_epochs + 1):
             if epoch > 1:
+                assert upcoming is not None  # submitted by the previous epoch
                 samples = upcoming.result()
             x = torch.from_numpy(samples["x"])
             t = torch.from_numpy(class_targets(samples))
@@ -779,6 +781,7 @@ def training_report(
     if evaluation["bulk_phase"] is not None:
         report["bulk_phase"] = _by_pool(evaluation["bulk_phase"], "metrics")
     if evaluation["shifted_prior"] is not None:
+        assert data.shifted_prior is not None  # evaluated only when drawn (evaluate_test_sets)
         report["shifted_prior"] = _shifted_report(plan, data.shifted_prior, evaluation["shifted_prior"], conf)
     return report
 

@@ -105,7 +105,9 @@ def load_target(path: str | os.PathLike, system: str | None = None) -> Target:
     data = read_toml(p)
     if not isinstance(data, dict) or "system" not in data or "protocol" not in data:
         raise ValueError(f"--to {p.name}: needs [[system]] and [protocol] tables (the target system and its frames)")
-    keep = {k: data[k] for k in ("name", "description", "system", "protocol", "noise", "analysis") if k in data}
+    keep: dict[str, Any] = {
+        k: data[k] for k in ("name", "description", "system", "protocol", "noise", "analysis") if k in data
+    }
     analysis = dict(keep.get("analysis", {}))
     analysis["metrics"] = list(_METRICS)
     keep["analysis"] = analysis

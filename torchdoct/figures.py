@@ -88,7 +88,7 @@ def unit_text(unit: str | None) -> str:
 def _pitch(pitch_um: Mapping[str, Any] | None, key: str) -> float | None:
     if not isinstance(pitch_um, Mapping):
         return None
-    v = pitch_um.get(key)
+    v: Any = pitch_um.get(key)
     try:
         v = float(v)
     except (TypeError, ValueError):

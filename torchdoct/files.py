@@ -23,7 +23,7 @@ import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 
 __all__ = [
     "check_out",
@@ -114,7 +114,7 @@ def check_regular_file(path: str | os.PathLike, what: str = "input file") -> Pat
     return p
 
 
-def check_folder_files(path: str | os.PathLike, what: str = "folder") -> None:
+def check_folder_files(path: str | os.PathLike[str], what: str = "folder") -> None:
     """Every entry under the folder ``path`` is a folder or a regular file (:func:`check_regular_file` on each
     file, by ``stat`` alone), before a reader opens any: a FIFO or a device among a Zarr store's metadata or
     chunks would block the read or never end."""
@@ -155,6 +155,10 @@ def read_capped(path: str | os.PathLike, what: str = "input file", limit: int = 
     return data
 
 
+@overload
+def check_out(path: None, force: bool, suffix: str | Sequence[str], what: str = "--out") -> None: ...
+@overload
+def check_out(path: str | os.PathLike, force: bool, suffix: str | Sequence[str], what: str = "--out") -> Path: ...
 def check_out(
     path: str | os.PathLike | None, force: bool, suffix: str | Sequence[str], what: str = "--out"
 ) -> Path | None:
@@ -179,7 +183,7 @@ def check_out(
     return out
 
 
-def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
+def atomic_write(path: str | os.PathLike, write: Callable[[str], object]) -> None:
     """Call ``write(tmp)`` on a temporary file in ``path``'s directory, then rename it over ``path``.
 
     A crash or kill mid-write never leaves a partial file under the final name; the temporary file

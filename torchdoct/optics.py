@@ -105,9 +105,9 @@ class ChannelOptics:
             ]
         except AttributeError:
             return None
-        if any(v is None for v in values):
-            return None
         wl, lat, ax = values
+        if wl is None or lat is None or ax is None:
+            return None
         lat_y = None
         if meta is not None:
             reduction = meta.get("reduction")

@@ -27,7 +27,7 @@ import math
 import os
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -337,11 +337,11 @@ class TiffDamage:
 
     def __enter__(self) -> TiffDamage:
         class _Collect(logging.Handler):
-            def __init__(self):
+            def __init__(self) -> None:
                 super().__init__(logging.ERROR)
                 self.messages: list[str] = []
 
-            def emit(self, record):
+            def emit(self, record: logging.LogRecord) -> None:
                 self.messages.append(record.getMessage())
 
         self.log, self.handler = logging.getLogger("tifffile"), _Collect()
@@ -354,7 +354,7 @@ class TiffDamage:
         if self.handler.messages:
             raise ValueError("; ".join(self.handler.messages))
 
-    def __exit__(self, *exc) -> bool:
+    def __exit__(self, *exc) -> Literal[False]:
         self.log.removeHandler(self.handler)
         self.log.propagate = self.propagate
         return False

@@ -146,7 +146,8 @@ def write_sequence(
             with open(tmp, "wb") as fh:
                 np.save(fh, arr, allow_pickle=False)
     elif out.suffix == ".npz":
-        arrays = {"data": arr, "meta_json": np.asarray(text)}  # the metadata inside too (the archive may travel alone)
+        # the metadata inside too (the archive may travel alone); Any: the names are array names, never savez's options
+        arrays: dict[str, Any] = {"data": arr, "meta_json": np.asarray(text)}
         if lab is not None:
             arrays["labels"] = lab
         if par is not None:

@@ -90,6 +90,7 @@ figures in :mod:`torchdoct.measured.mapfigures` (their public names are importab
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Iterable, Mapping
@@ -218,7 +219,7 @@ def _peak_intensity(data: np.ndarray, src: str) -> float:
             )
         peak = max(peak, float(np.max(v, where=np.isfinite(v), initial=0.0)))
         top = max(top, float(np.max(np.abs(f), where=np.isfinite(f), initial=0.0)))
-    dtype = np.dtype(np.float64 if data.dtype in (np.complex128, np.float64) else np.float32)
+    dtype = np.dtype(np.float64) if data.dtype in (np.complex128, np.float64) else np.dtype(np.float32)
     if top > 0 and not peak >= float(np.finfo(dtype).tiny) * INTENSITY_MARGIN:
         sq = "|E|²" if np.iscomplexobj(data) else "the intensity"
         raise ValueError(
@@ -237,7 +238,7 @@ def _peak_intensity(data: np.ndarray, src: str) -> float:
 
 
 def _as_targets(resolutions: Iterable[str | ResolutionTarget]) -> list[ResolutionTarget]:
-    targets = []
+    targets: list[ResolutionTarget] = []
     for r in resolutions:
         t = r if isinstance(r, ResolutionTarget) else parse_resolution(r)
         if t.label in [x.label for x in targets]:
@@ -389,12 +390,15 @@ def check_maps_request(
     )
     changes = tuple(t for t in targets if req.optics(t) != (lat0, ax0))
     for t in targets:  # validate every target before any work
+        # a target asked: system is seq.system, which holds both original resolutions (or raised above)
         if t.lateral_resolution_um is not None:
+            assert lat0 is not None
             lateral_filter_sigma_um(lat0, t.lateral_resolution_um)
             if t in changes:  # the grid must hold the target PSF (two pixels at least)
                 check_target_sampled("lateral", lat0, t.lateral_resolution_um, seq.pitch_um, seq.axes)
                 check_target_in_view("lateral", lat0, t.lateral_resolution_um, seq.pitch_um, seq.axes, seq.data.shape)
         if t.axial_resolution_um is not None:
+            assert ax0 is not None
             axial_filter_sigma_um(ax0, t.axial_resolution_um)
             if t in changes:
                 check_target_sampled("axial", ax0, t.axial_resolution_um, seq.pitch_um, seq.axes)
@@ -511,7 +515,7 @@ def _normalized(
     ``W = (g ∗ w) / (g ∗ 1)`` with ``g`` the reduction's envelope (unit sum, no carrier; the same padding), and
     the reduced field ``red / W`` where ``W >= MIN_VALID_WEIGHT`` (else left as it is: those pixels are NaN in
     the maps). A missing sample costs its neighbourhood a share of its window, not its value."""
-    kw = dict(
+    kw: dict[str, Any] = dict(
         pitch_um=seq.pitch_um,
         system=req.system,
         lateral_resolution_um=t.lateral_resolution_um,
@@ -567,7 +571,12 @@ def _slab_plans(
     plans = []
     for t in req.targets:
         lat, ax = req.optics(t)
-        sig = axial_filter_sigma_um(req.axial_um, ax) / seq.pitch_um["z"] if ax != req.axial_um else 0.0
+        ax0 = req.axial_um  # None with ax: the optics are unknown
+        sig = (
+            axial_filter_sigma_um(ax0, ax) / seq.pitch_um["z"]
+            if ax0 is not None and ax is not None and ax != ax0
+            else 0.0
+        )
         field_needs = [CORRECTION_AXIS_NEEDS] if bulk else []
         if t in req.changes:
             field_needs.append(
@@ -611,6 +620,7 @@ def _channel_records(req: MapsRequest, outputs: _Seq[str]) -> list[dict[str, Any
             )
         if req.features:
             sig_system = req.signature_system
+            assert sig_system is not None  # check_maps_request sets it with the signature channels
             s_lat, s_ax = t.resolved(sig_system)
             sig_channels += [
                 {
@@ -782,6 +792,7 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int, cols:
         vals[VALID_WEIGHT] = weight.narrow(cdim - 1, m0 - a0, m1 - m0).to(torch.float64)
     if bad is not None:
         sp = axes[1:]
+        assert weight is not None  # set above whenever bad is
         lost = (weight < MIN_VALID_WEIGHT).cpu().numpy()
         masks["pixel"] = lost
         if work.smoothing_margin:
@@ -796,7 +807,7 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int, cols:
         if masks and m != VALID_WEIGHT:
             smoothed = m in ("aliv", "swiftness", FIT_FLAG) and "smoothed" in masks
             v = np.where(masks["smoothed" if smoothed else "pixel"], np.nan, v)
-        idx = [ti * len(outputs) + mi] + [slice(None)] * (data.ndim - 1)
+        idx: list[Any] = [ti * len(outputs) + mi] + [slice(None)] * (data.ndim - 1)
         idx[cdim] = slice(c0, c1)
         if cols is not None:
             idx[-1] = cols
@@ -815,8 +826,8 @@ def _map_slab(work: _SlabWork, ti: int, plan: _SlabPlan, c0: int, c1: int, cols:
             ys = np.flatnonzero(keep_y[c0:c1] if cdim == 1 else keep_y)
             x = x[torch.as_tensor(ys)]
             idx[1] = ys + (c0 if cdim == 1 else 0)
-        f = pixel_features(x, seq.frame_times_s, feats, chunk_pixels=work.chunk_pixels)[1]
-        f = f.movedim(-1, 0).cpu().numpy()  # [F, *spatial]
+        feat = pixel_features(x, seq.frame_times_s, feats, chunk_pixels=work.chunk_pixels)[1]
+        f = feat.movedim(-1, 0).cpu().numpy()  # [F, *spatial]
         if masks:  # the pixels that non-finite samples reach, as for the DOCT channels
             f = np.where(masks["pixel"] if ys is None else masks["pixel"][ys], np.nan, f)
         out[tuple(idx)] = f
@@ -846,15 +857,16 @@ def _doppler_channels(
     bulk-corrected as the reference was (:func:`~torchdoct.measured.doppler.doppler_slab`): only the kept
     B-scans of a block raster, NaN where ``mask`` (the pixels non-finite samples reach) is set."""
     seq, out, ref = work.seq, work.out, work.doppler
+    assert ref is not None  # called only with a Doppler reference (_map_slab)
     x = raw
     if work.bulk is not None:
         psel = list(sel)
         psel[seq.axes.index("Z")] = slice(None)
         x = np.multiply(raw, work.bulk[tuple(psel)])
-    x = torch.from_numpy(x).narrow(cdim, c0 - a0, c1 - c0)
-    f = doppler_slab(x, ref, cdim, c0, c1, chunk_pixels=work.chunk_pixels)
+    xt = torch.from_numpy(x).narrow(cdim, c0 - a0, c1 - c0)
+    f = doppler_slab(xt, ref, cdim, c0, c1, chunk_pixels=work.chunk_pixels)
     n = len(ref.lags)
-    idx: list[Any] = [slice(out.shape[0] - n, out.shape[0])] + [slice(None)] * (x.dim() - 1)
+    idx: list[Any] = [slice(out.shape[0] - n, out.shape[0])] + [slice(None)] * (xt.dim() - 1)
     idx[cdim] = slice(c0, c1)
     if work.keep_y is not None:
         ys = np.flatnonzero(work.keep_y[c0:c1] if cdim == 1 else work.keep_y)
@@ -923,9 +935,11 @@ def _maps_result(
         }
     raster = seq.block_raster
     if raster is not None:
+        keep_y = work.keep_y
+        assert keep_y is not None  # compute_maps sets it for a block raster
         meta["block_raster"] = raster.to_dict()
-        out = out[:, work.keep_y]
-        meta["y_indices"] = [int(i) for i in np.flatnonzero(work.keep_y)]
+        out = out[:, keep_y]
+        meta["y_indices"] = [int(i) for i in np.flatnonzero(keep_y)]
     if FIT_FLAG in outputs:
         meta["aliv"]["flag"] = (
             f"{FIT_FLAG} channel: 1 where the fit ended on the lower τ bound (curve flat over the "
@@ -1053,7 +1067,7 @@ def compute_maps(
         seq, req, bulk=bulk is not None, smoothing_margin=bool(margin), edge_mode=edge_mode, slab_elements=slab_elements
     )
     channels = _channel_records(req, outputs)
-    if n_dop:
+    if dref is not None and n_dop:
         t_dop = speckle_target(req)
         channels += doppler_channel_records(dref, t_dop.label, req.optics(t_dop), req.system.get("wavelength_um"))
     options = dict(
@@ -1218,7 +1232,7 @@ def write_pngs(
         )
         fig = map_figure(maps, info["name"], value_range=vr, db_range=db_range, hue_range=hue_range, y_index=y_index)
         try:
-            atomic_write(path, lambda tmp, fig=fig: fig.savefig(tmp, format="png", dpi=100))
+            atomic_write(path, functools.partial(fig.savefig, format="png", dpi=100))
         finally:
             plt.close(fig)
     return paths

@@ -277,10 +277,10 @@ def _finish(p: Path, arr: np.ndarray, names: np.ndarray | None, meta: dict[str, 
     if names is not None:
         if names.dtype.kind not in "US":
             raise ValueError(f"{p.name}: 'channels' must be an array of channel names; got dtype {names.dtype}")
-        names = tuple(str(c) for c in np.atleast_1d(names))
-        if len(names) != len(meta_names):
-            raise ValueError(f"{p.name}: 'channels' holds {len(names)} names for {len(meta_names)} maps")
-        for i, (a, b) in enumerate(zip(meta_names, names)):
+        stored = tuple(str(c) for c in np.atleast_1d(names))
+        if len(stored) != len(meta_names):
+            raise ValueError(f"{p.name}: 'channels' holds {len(stored)} names for {len(meta_names)} maps")
+        for i, (a, b) in enumerate(zip(meta_names, stored)):
             if a != b:
                 raise ValueError(
                     f"{where}: channels[{i}].name {a!r} differs from the channel name {b!r} (the file "

@@ -214,6 +214,7 @@ class SequenceData:
             raise ValueError(
                 f"{self.source or 'sequence'}: system metadata missing {', '.join(missing)}; {HOW['system']}"
             )
+        assert isinstance(sysd, Mapping)  # else every key is missing (raised above)
         return dict(sysd)
 
     @property

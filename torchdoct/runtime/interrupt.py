@@ -59,7 +59,7 @@ EXTRAS = {
     **dict.fromkeys(("napari", "npe2"), "napari"),
 }
 
-_NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
+_NAMES: dict[int, str] = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
 #: A command's progress bar shows only once its run has taken this long (s); ``$TQDM_DELAY`` overrides.
 PROGRESS_DELAY_S = 1.0
 

@@ -20,6 +20,7 @@ import dataclasses
 import math
 import os
 import tomllib
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -241,6 +242,7 @@ class Protocol:
         if self.frame_times_s is not None:
             t0 = self.frame_times_s[0]
             return tuple(t - t0 for t in self.frame_times_s)
+        assert self.frame_interval_s is not None  # __post_init__: exactly one of the two is given
         return tuple(i * self.frame_interval_s for i in range(self.n_frames))
 
     @property
@@ -384,7 +386,7 @@ class Population:
             if isinstance(m, Flow):
                 for a, c in enumerate(m.velocity_um_per_s):
                     v[a] += c
-        return tuple(v)
+        return (v[0], v[1], v[2])
 
     @property
     def ballistic(self) -> tuple[RandomBallistic, ...]:
@@ -445,7 +447,10 @@ class Analysis:
         r = self.ocds_delay_range_s
         if not isinstance(r, (list, tuple)) or len(r) != 2:
             raise TypeError(f"analysis.ocds_delay_range_s must be [min_s, max_s]; got {r!r}")
-        r = tuple(_number(f"analysis.ocds_delay_range_s[{i}]", x, positive=True, unit="s") for i, x in enumerate(r))
+        r = (
+            _number("analysis.ocds_delay_range_s[0]", r[0], positive=True, unit="s"),
+            _number("analysis.ocds_delay_range_s[1]", r[1], positive=True, unit="s"),
+        )
         if r[1] <= r[0]:
             _fail("analysis.ocds_delay_range_s", f"max must exceed min; got {list(r)}")
         object.__setattr__(self, "ocds_delay_range_s", r)
@@ -554,6 +559,7 @@ class Scene:
         if self.protocol.frame_interval_s is not None:
             pr["frame_interval_s"] = self.protocol.frame_interval_s
         else:
+            assert self.protocol.frame_times_s is not None  # Protocol: exactly one of the two is given
             pr["frame_times_s"] = list(self.protocol.frame_times_s)
         out["protocol"] = pr
         pops = []
@@ -581,7 +587,7 @@ class Scene:
 # parsing
 
 
-def _check_keys(path: str, table: Any, allowed: set[str], required: set[str] = frozenset()) -> dict:
+def _check_keys(path: str, table: Any, allowed: AbstractSet[str], required: AbstractSet[str] = frozenset()) -> dict:
     if not isinstance(table, dict):
         raise TypeError(f"{path} must be a table; got {type(table).__name__} {table!r}")
     unknown = sorted(set(table) - allowed)

@@ -267,7 +267,8 @@ def sincos_turns(t: torch.Tensor, *, force_torch: bool = False) -> tuple[torch.T
     t = _f32(t)
     lib = _use_c(force_torch)
     if lib is not None:
-        return _c_elementwise(lib.tdk_sincos_turns, t, 2)
+        sin, cos = _c_elementwise(lib.tdk_sincos_turns, t, 2)
+        return sin, cos
     n = _rint(t * 4.0)
     a = (t - n * 0.25) * _TWO_PI
     a2 = a * a

@@ -86,6 +86,11 @@ def capacity(mean: float) -> int:
     return int(math.ceil(c / 8.0) * 8)
 
 
+def _grown(h: tuple[float, float, float], g: float) -> tuple[float, float, float]:
+    """The half-widths ``h`` with ``g`` added to each."""
+    return (h[0] + g, h[1] + g, h[2] + g)
+
+
 def _box_volume(h: tuple[float, float, float]) -> float:
     return 8.0 * h[0] * h[1] * h[2]
 
@@ -158,7 +163,7 @@ def expected_entry_flux(pop: Population, h: tuple[float, float, float]) -> float
 def ellipsoid_entry_rate(pop: Population, h: tuple[float, float, float]) -> float:
     """Expected number of paths entering the ellipsoid of semi-axes ``h`` per unit time:
     ``ρ·π·hx·hy·hz·E|v/h|`` (see the module docstring; expectation over the velocity law, :func:`_law_mean`)."""
-    return pop.density_per_um3 * math.pi * math.prod(h) * _law_mean(pop, _mean_scaled_speed, tuple(h))
+    return pop.density_per_um3 * math.pi * math.prod(h) * _law_mean(pop, _mean_scaled_speed, h)
 
 
 def ellipsoid_entry_bound(pop: Population, h: tuple[float, float, float]) -> float:
@@ -244,7 +249,8 @@ def periodic_cell(
     :func:`periodic_image_bound` over the protocol's delays is at most ``target``; returns the cell's
     half-widths (µm) and its bound."""
     lags = _bound_lags(times_s)
-    H = tuple(float(h) for h in psf_half_widths_um)
+    hx, hy, hz = (float(h) for h in psf_half_widths_um)
+    H = (hx, hy, hz)
 
     def bound(g: float) -> float:
         return periodic_image_bound([h + g for h in H], optics, diffusion_um2_per_s, lags, w_intensity, w_field)
@@ -268,7 +274,7 @@ def periodic_cell(
             lo = mid
         else:
             hi, b = mid, b_mid
-    return tuple(h + hi for h in H), b
+    return _grown(H, hi), b
 
 
 @functools.lru_cache(maxsize=256)
@@ -436,7 +442,7 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
         )
         for s in scene.systems
     ]
-    H = tuple(max(h[a] for h in halfs) for a in range(3))
+    H = (max(h[0] for h in halfs), max(h[1] for h in halfs), max(h[2] for h in halfs))
     rho_total = sum(p.density_per_um3 for p in scene.populations)
 
     systems = []
@@ -496,13 +502,13 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
             prop_rate = rho * math.pi * math.prod(H) * ellipsoid_entry_bound(p, H)
             n = n0 + flux * T
             moving = p.max_speed_um_per_s > 0 and T > 0
-            groups = []
+            drift_groups: list[tuple[tuple[float, float, float], tuple[int, ...], float, int]] = []
             for h, idx in _groups(halfs):
                 ng = n if h == H else rho * _box_volume(h) + expected_entry_flux(p, h) * T
-                groups.append((h, idx, ng, capacity(ng)))
+                drift_groups.append((h, idx, ng, capacity(ng)))
             # every sampled path is evaluated at every frame of its group's systems (amplitudes below
             # the tolerance are set to 0)
-            evals = sum(g[2] * len(g[1]) for g in groups) * n_frames
+            evals = sum(g[2] * len(g[1]) for g in drift_groups) * n_frames
             pops.append(
                 PopulationPlan(
                     i,
@@ -515,7 +521,7 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
                     capacity(n0),
                     False,
                     evals,
-                    system_groups=tuple(groups),
+                    system_groups=tuple(drift_groups),
                     entry_proposal_rate_per_s=prop_rate,
                     entry_proposal_capacity=capacity(prop_rate * T) if moving else 0,
                     entry_capacity=capacity(flux * T) if moving else 0,
@@ -570,8 +576,8 @@ def make_plan(scene: Scene, *, truncation_tolerance: float | None = None, trunca
             dtm = protocol.max_interval_s
             sigma = math.sqrt(2.0 * D * dtm)
             margin = c * sigma + p.max_speed_um_per_s * dtm
-            R = tuple(h + margin for h in H)
-            outer = tuple(r + margin for r in R)
+            R = _grown(H, margin)
+            outer = _grown(R, margin)
             n = rho * _box_volume(R)
             n_prop = rho * (_box_volume(outer) - _box_volume(R))
             pops.append(

@@ -226,7 +226,7 @@ def signature(
     bad = ~(inten > 0).all(-1)  # I = 0 or NaN at some frame: no dB value
     safe = torch.where(bad[..., None], torch.ones_like(inten), inten) if bool(bad.any()) else inten
     cols: dict[str, torch.Tensor] = {}
-    db = None
+    db: torch.Tensor | None = None
     g_cache: dict[int, torch.Tensor] = {}
 
     def g(m: int) -> torch.Tensor:
@@ -238,10 +238,12 @@ def signature(
         if kind in ("rho_db", "db_variance") and db is None:
             db = to_db(safe)
         if kind == "rho_db":
+            assert db is not None  # computed just above
             v = _pearson(db[..., : n - m], db[..., m:])
         elif kind == "rho_lin":
             v = _pearson(safe[..., : n - m], safe[..., m:])
         elif kind == "db_variance":
+            assert db is not None  # computed just above
             v = _variance_last(db)
         elif kind == "lin_contrast":
             mean = safe.mean(-1)

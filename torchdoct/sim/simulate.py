@@ -44,7 +44,7 @@ import torch
 from ..conventions import TRUNCATION_MODES, noise_sigma
 from ..runtime.interrupt import progress_disabled
 from ..runtime.threads import map_ordered, resolve_threads, single_torch_thread
-from .config import Scene
+from .config import Diffusion, Scene
 from .memory import MemoryLimitError, available_memory_bytes, check_simulation, chunk_bytes, release_free_memory
 from .plan import BLOCK_TRIALS, Plan, make_plan
 from .samplers import scene_field, unit_directions
@@ -105,8 +105,10 @@ def _simulate_chunk(
     times = torch.tensor(scene.protocol.times_s, dtype=torch.float64, device=device)
     total = scene_field(scene, plan, draws, times, dtype, device)
     if plan.has_noise:
+        assert scene.noise is not None  # the scene's plan: has_noise is scene.noise is not None (make_plan)
+        snr_db = scene.noise.snr_db
         amp = torch.tensor(
-            [noise_sigma(s.mean_intensity, scene.noise.snr_db) for s in plan.systems],
+            [noise_sigma(s.mean_intensity, snr_db) for s in plan.systems],
             dtype=torch.float64,
             device=device,
         ).view(1, -1, 1)
@@ -161,9 +163,12 @@ def check_precision(scene: Scene, plan: Plan, dtype: torch.dtype) -> None:
     slow, resolved = [], False
     for i, pop in enumerate(scene.populations):
         for j, motion in enumerate(pop.motion):
-            speed = getattr(motion, "speed_um_per_s", None)
-            moved = speed * step if speed is not None else (2.0 * motion.diffusion_um2_per_s * step) ** 0.5
-            key = "speed_um_per_s" if speed is not None else "diffusion_um2_per_s"
+            if isinstance(motion, Diffusion):
+                moved = (2.0 * motion.diffusion_um2_per_s * step) ** 0.5
+                key = "diffusion_um2_per_s"
+            else:
+                moved = motion.speed_um_per_s * step
+                key = "speed_um_per_s"
             if moved >= MIN_SPACINGS_PER_FRAME * spacing:
                 resolved = True
             elif moved > 0:

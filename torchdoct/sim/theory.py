@@ -37,16 +37,14 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
+from typing import cast
 
 import numpy as np
 from scipy import special
 
-from torchdoct.conventions import (
-    DB_PER_NEPER_INTENSITY,
-    amplitude_sigma_axial_um,
-    amplitude_sigma_lateral_um,
-    wavenumber_per_um,
-)
+from torchdoct import conventions
+from torchdoct.conventions import DB_PER_NEPER_INTENSITY
 
 __all__ = [
     "g1_diffusion",
@@ -106,6 +104,17 @@ def _positive(name: str, value, unit: str) -> np.ndarray:
     return arr
 
 
+def _elementwise(formula: Callable[..., float]) -> Callable[..., np.ndarray]:
+    """A scalar formula of :mod:`torchdoct.conventions` applied to arrays: each is plain arithmetic, so it is
+    elementwise on numpy arrays (the conventions are typed for the scalar case)."""
+    return cast("Callable[..., np.ndarray]", formula)
+
+
+_amplitude_sigma_lateral_um = _elementwise(conventions.amplitude_sigma_lateral_um)
+_amplitude_sigma_axial_um = _elementwise(conventions.amplitude_sigma_axial_um)
+_wavenumber_per_um = _elementwise(conventions.wavenumber_per_um)
+
+
 def _check_directions(directions: str) -> None:
     if directions not in _DIRECTIONS:
         raise ValueError(f"`directions` must be one of {_DIRECTIONS}; got {directions!r}")
@@ -115,7 +124,7 @@ def _psf_widths(lateral_resolution_um, axial_resolution_um) -> tuple[np.ndarray,
     """Amplitude-PSF sigmas (s_x, s_z) in µm, via :mod:`torchdoct.conventions` only."""
     lat = _positive("lateral_resolution_um", lateral_resolution_um, "µm")
     ax = _positive("axial_resolution_um", axial_resolution_um, "µm")
-    return amplitude_sigma_lateral_um(lat), amplitude_sigma_axial_um(ax)
+    return _amplitude_sigma_lateral_um(lat), _amplitude_sigma_axial_um(ax)
 
 
 def _sigma_y(lateral_resolution_um, lateral_resolution_y_um) -> np.ndarray | None:
@@ -127,14 +136,14 @@ def _sigma_y(lateral_resolution_um, lateral_resolution_y_um) -> np.ndarray | Non
     lat = _positive("lateral_resolution_um", lateral_resolution_um, "µm")
     if np.all(np.broadcast_to(lat_y, np.broadcast_shapes(lat.shape, lat_y.shape)) == lat):
         return None
-    return amplitude_sigma_lateral_um(lat_y)
+    return _amplitude_sigma_lateral_um(lat_y)
 
 
 def _kn(wavelength_um, refractive_index) -> np.ndarray:
     """Wavenumber in the medium k·n (rad/µm), via :func:`torchdoct.conventions.wavenumber_per_um`."""
     wl = _positive("wavelength_um", wavelength_um, "µm")
     n = _positive("refractive_index", refractive_index, "")
-    return np.asarray(wavenumber_per_um(wl, n), dtype=np.float64)
+    return np.asarray(_wavenumber_per_um(wl, n), dtype=np.float64)
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -227,7 +227,7 @@ def _resolution_claims(cl: _Claims, study: Study, diffs, comp: Comparison, kind:
             cpos = c.where(c.x > 0)  # other − reference = low − high resolution
             cr = _crossing(c)
             found = bool(cr and cr["found"])
-            small = cpos.where(cpos.x <= (cr["x_lo"] if found else part.inset_max * (1 + 1e-9)))
+            small = cpos.where(cpos.x <= (cr["x_lo"] if cr is not None and found else part.inset_max * (1 + 1e-9)))
             if small.x.size:
                 text, verdict = _region(small, +1, cl.trials, "dB²")
                 res = (
@@ -248,7 +248,8 @@ def _resolution_claims(cl: _Claims, study: Study, diffs, comp: Comparison, kind:
                 " above about 1.2 µm²/s" if paper_cross else as_axial
             )
             if cr:
-                sides = f"pooled low − high below {_dz(*cr['left'][:2], 'dB²')}, above {_dz(*cr['right'][:2], 'dB²')}"
+                (dl, sl), (dr, sr) = cr["left"][:2], cr["right"][:2]  # (difference, its SE) each side
+                sides = f"pooled low − high below {_dz(dl, sl, 'dB²')}, above {_dz(dr, sr, 'dB²')}"
                 if found:
                     b0, b1 = cr["bracket"]
                     res = (

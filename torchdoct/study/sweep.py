@@ -294,6 +294,7 @@ def make_sweep(
         data = copy.deepcopy(base)
         for f, parts in zip(parsed, paths):
             _set_path(data, parts, f.values[0], where)
+        scene: Scene | dict[str, Any]  # the dict itself when cell 0 is not a valid scene
         try:
             scene = scene_from_dict(data)
         except (SceneError, TypeError):

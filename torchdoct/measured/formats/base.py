@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from .lazy import LazyArray
+
 __all__ = ["Loaded", "regular_file", "to_unit", "LENGTH_UM", "TIME_S"]
 
 
@@ -15,15 +17,15 @@ __all__ = ["Loaded", "regular_file", "to_unit", "LENGTH_UM", "TIME_S"]
 class Loaded:
     """What a format module's ``load`` returns.
 
-    ``data``: the stored array (any axis order; may be a read-only memory map). ``labels`` /
-    ``label_params``: optional arrays stored with it. ``meta``: the metadata the file carries (then
-    the sidecar is not read), or None. ``default_axes``: the stored order assumed when neither the file
-    nor the caller names one (a TIFF stack: ``TZX``), or None. ``integer_intensity``: integer samples
-    are intensities to be read as float32 (a TIFF's 8/16-bit pages). ``sidecar_fills``: the JSON sidecar,
-    when there is one, supplies the keys ``meta`` lacks (``meta`` wins).
+    ``data``: the stored array (any axis order; may be a read-only memory map, or a :class:`LazyArray`
+    read on demand). ``labels`` / ``label_params``: optional arrays stored with it. ``meta``: the metadata
+    the file carries (then the sidecar is not read), or None. ``default_axes``: the stored order assumed
+    when neither the file nor the caller names one (a TIFF stack: ``TZX``), or None. ``integer_intensity``:
+    integer samples are intensities to be read as float32 (a TIFF's 8/16-bit pages). ``sidecar_fills``: the
+    JSON sidecar, when there is one, supplies the keys ``meta`` lacks (``meta`` wins).
     """
 
-    data: np.ndarray
+    data: np.ndarray | LazyArray
     labels: np.ndarray | None = None
     label_params: np.ndarray | None = None
     meta: dict[str, Any] | None = None

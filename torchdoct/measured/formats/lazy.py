@@ -32,7 +32,7 @@ class LazyArray:
         self._perm = tuple(range(len(source.shape))) if perm is None else tuple(perm)
         self._cast = None if cast is None else np.dtype(cast)
         self._convert = convert
-        self.dtype = np.dtype(source.dtype) if cast is None else self._cast
+        self.dtype = np.dtype(source.dtype) if self._cast is None else self._cast
 
     @property
     def shape(self) -> tuple[int, ...]:

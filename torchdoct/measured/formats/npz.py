@@ -39,7 +39,9 @@ def load_arrays(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray |
                 f"{path.name}: an array is truncated ({err}); copy or write the file again completely"
             ) from None
         raise
-    return out[0], out[1], out[2], out[3]
+    data = out[0]
+    assert data is not None  # 'data' is in the archive (refused above otherwise)
+    return data, out[1], out[2], out[3]
 
 
 def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = False) -> Loaded:

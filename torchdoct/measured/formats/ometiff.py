@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import struct
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -128,7 +128,8 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
     where = path.name
     try:
         with TiffDamage() as damage, tifffile.TiffFile(path) as tf:
-            xml = tf.pages[0].description if len(tf.pages) else ""
+            # the first page is always a TiffPage (later ones may be TiffFrames): tifffile's TiffPages.first
+            xml = cast("tifffile.TiffPage", tf.pages[0]).description if len(tf.pages) else ""
             if not tf.is_ome or not xml.lstrip().startswith("<"):
                 raise ValueError(
                     "no OME-XML in the first page's ImageDescription; name it .tif if it is a plain TIFF stack"
@@ -152,6 +153,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
                     f"OME-XML declares planes of SizeY×SizeX = {sizes['Y']}×{sizes['X']} but the pages "
                     f"are {list(page.shape)}"
                 )
+            data: np.ndarray  # a memory map, or the pages read
             if offset is not None:  # read slab by slab (torchdoct maps --max-memory-gb)
                 dt = np.dtype(page.dtype).newbyteorder(tf.byteorder)
                 data = np.memmap(path, dtype=dt, mode="r", offset=offset, shape=(planes, sizes["Y"], sizes["X"]))

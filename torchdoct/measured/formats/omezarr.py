@@ -119,7 +119,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
         arr = group[key]
     except KeyError:
         raise ValueError(f"{where}: dataset {key!r} named by multiscales is missing from the store") from None
-    if not hasattr(arr, "dtype") or len(arr.shape) != len(names):
+    if not isinstance(arr, zarr.Array) or len(arr.shape) != len(names):  # a group, or other axes
         raise ValueError(f"{where}/{key}: not an array of the {len(names)} axes {names}")
     dt = np.dtype(arr.dtype)
     if dt.hasobject or dt.kind not in "cfiu":

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import struct
 from pathlib import Path
+from typing import cast
 
 from ...runtime.resources import MemoryLimitError
 from ..guards import InputRefusal, TiffDamage, check_tiff_pages, json_loads
@@ -28,7 +29,8 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
             data = tf.asarray()
             if data.ndim == 2 and len(tf.pages) > 1:  # one image per page, each its own series: all pages
                 data = tf.asarray(key=range(len(tf.pages)))
-            desc = tf.pages[0].description if len(tf.pages) else ""
+            # the first page is always a TiffPage (later ones may be TiffFrames): tifffile's TiffPages.first
+            desc = cast("tifffile.TiffPage", tf.pages[0]).description if len(tf.pages) else ""
             damage.check()
     except (InputRefusal, MemoryLimitError):  # whole messages: a size, two page shapes
         raise

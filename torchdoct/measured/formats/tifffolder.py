@@ -46,7 +46,8 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
         raise ValueError(
             f"{path.name}/: {len(files)} TIFF file(s); a folder sequence needs one TIFF per frame (at least 2)"
         )
-    shape = dtype = None
+    shape: tuple[int, ...] | None = None
+    dtype = None
     for f in files:  # every file's shape before any pixel is read
         check_regular_file(f, "frame file")  # the one reader-side check: a FIFO would block the read
         try:
@@ -85,6 +86,7 @@ def load(path: Path, dataset: str | None = None, allow_external_hdf5: bool = Fal
                 f"{path.name}/{f.name}: shape {list(this)} differs from {files[0].name}'s "
                 f"{list(shape)}; every frame file must have the same shape and dtype"
             )
+    assert shape is not None  # set by the first file (at least 2)
     frames = FrameFiles(path, files, tuple(shape), np.dtype(dtype))
     if streaming():  # torchdoct maps --max-memory-gb: the frames the slabs need, read as they are needed
         data: Any = LazyArray(frames, f"{path.name}/")
