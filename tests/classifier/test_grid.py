@@ -117,8 +117,20 @@ def test_grid_results_files_are_self_describing(tmp_path, levels):
         rows = list(csv.DictReader(fh))
     assert list(rows[0]) == list(grid._COLUMNS) and len(rows) == 4
     md = (tmp_path / "grid.md").read_text()
-    assert "worst wrong share" in md and md.count("\n| bscan |") == 4
+    # one row per cell and window, and one per (geometry, context, window) of the pooled summary
+    assert "worst wrong share" in md and md.count("\n| bscan |") == 4 + 4
     assert set(data["summary"]) == {"1", "5"}
+    ctx = data["summary_by_context"]
+    assert [(s["context"], s["pool"]) for s in ctx] == [("background", 1), ("background", 5), ("none", 1), ("none", 5)]
+    for s in ctx:
+        cells = [r for r in data["cells"] if (r["context"], r["pool"]) == (s["context"], s["pool"])]
+        for m in grid.MOTIONS:
+            p = s["per_class"][m]
+            assert p["pixels"] == sum(r["per_class"][m]["pixels"] for r in cells)
+            decided = sum(r["per_class"][m]["decided"] for r in cells)
+            assert p["coverage"] == pytest.approx(decided / p["pixels"])
+            assert 0 <= p["wrong_share"] <= p["coverage"] + 1e-12
+        assert s["worst_wrong_share"] == max(p["wrong_share"] for p in s["per_class"].values())
     with pytest.raises(ValueError, match="--force"):
         grid.write_grid(res, tmp_path)  # nothing overwritten without force
 
