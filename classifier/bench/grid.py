@@ -42,6 +42,10 @@ the coarsest configuration's resolution plus half the window; masked pixels are 
 
 Outputs (``write_grid``): ``grid.json`` (:data:`SCHEMA_VERSION`, the definitions above, the cells),
 ``grid.csv``, ``grid.md`` and ``grid.png`` (worst wrong share and coverage per cell, cividis).
+
+Kept whole (over 800 lines): the cells, the phantom, the scoring, the summaries, the table, the figure and
+the command line share the results schema they write; one file is one benchmark, as in
+:mod:`classifier.bench.protocol`.
 """
 
 from __future__ import annotations
