@@ -813,6 +813,66 @@ def protocol_quick(root: Path) -> str:
     return _protocol(root, "protocol-quick")
 
 
+def translation_rule(root: Path) -> str:
+    """How often rule 5 of classifier.ambiguity fires on independent patches, per motion and noise."""
+    d, p = load(root, "translation-rule/translation-rule.json")
+    rows = []
+    for r in d["rows"]:
+        if r["motion"] == "diffusion":
+            what = f"diffusion, D = {num(r['diffusion_um2_s'])} µm²/s"
+        elif r["motion"] == "ballistic":
+            what = f"random ballistic, {num(r['speed_um_s'])} µm/s"
+        else:
+            what = f"flow, {num(r['speed_um_s'])} µm/s, polar {num(r['polar_deg'])}°, azimuth {num(r['azimuth_deg'])}°"
+        snr = "none" if r["snr_db"] is None else f"{num(r['snr_db'])} dB"
+        rows.append([what, snr, pm(r["fired"], r["se"])])
+    th = d["thresholds"]
+    return "\n\n".join(
+        [
+            table(["motion", "noise (SNR)", "share of trials where rule 5 fires"], rows),
+            f"Direction-symmetric motions (false detections): mean {num(d['null_mean'])}, worst condition "
+            f"{num(d['null_max'])}. Thresholds: held peak ≥ {num(th['hold_min'])}, move ≥ "
+            f"{num(th['growth_min_pitch'])} pitch, line residual ≤ {num(th['linear_max_pitch'])} pitch; pixel pitch "
+            f"{num(d['pitch_um'])} µm.",
+            source(d["command"], p),
+        ]
+    )
+
+
+def grid_context(root: Path) -> str:
+    """The default grid pooled per geometry, static context and window (``summary_by_context``)."""
+    d, p = load(root, "grid-default.json")
+    ctx = d.get("summary_by_context")
+    if not ctx:
+        raise MissingResult(f"{p} has no summary_by_context: re-record it with the command in its 'command' field")
+    motions = list(ctx[0]["per_class"])
+    rows = []
+    for s in ctx:
+        pc = s["per_class"]
+        rows.append(
+            [
+                s["geometry"],
+                s["context"],
+                s["pool"],
+                s["cells"],
+                num(s["coverage"]),
+                num(s["balanced_accuracy"]),
+                num(s["worst_wrong_share"]),
+            ]
+            + [f"{num(pc[m]['coverage'])} / {num(pc[m]['wrong_share'])}" for m in motions]
+        )
+    header = [
+        "geometry",
+        "static context",
+        "window",
+        "cells",
+        "coverage",
+        "balanced accuracy (decided)",
+        "worst wrong share",
+    ] + [f"{m}: coverage / wrong" for m in motions]
+    return "\n\n".join([table(header, rows), source(d["command"], p)])
+
+
 RENDERERS: dict[str, Callable[[Path], str]] = {
     "bench-simulate": bench_simulate,
     "bench-study": bench_study,
@@ -835,6 +895,8 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "validation-table": validation_table,
     "protocol-full": protocol_full,
     "protocol-quick": protocol_quick,
+    "translation-rule": translation_rule,
+    "grid-context": grid_context,
 }
 
 
