@@ -20,6 +20,7 @@ from typing import Any
 #: Folders searched, in order, for a results file by its name (relative to the repository root).
 RESULT_DIRS = (
     "docs/results",
+    "docs/benchmarks",
     "benchmarks/results",
     "benchmarks",
     "notebooks/bench",
