@@ -44,7 +44,8 @@ pixel:
    by at least :data:`TRANSLATION_GROWTH_MIN` pitches, along a straight line in the lag (the residual of a
    per-axis line through the lags at most :data:`TRANSLATION_LINEAR_MAX` pitches, root mean square per degree
    of freedom), a ``ballistic`` decision or a ``ballistic-or-flow`` set is ``flow``
-   (:data:`TRANSLATED_TO_FLOW`). A ``diffusion`` decision stays: a slowly diffusing pattern under noise
+   (:data:`TRANSLATED_TO_FLOW`). It is applied at speckle windows of :data:`TRANSLATION_WINDOW_MIN` pixels or
+   more (the window its rates were recorded at). A ``diffusion`` decision stays: a slowly diffusing pattern under noise
    moves its offset more often than a random-ballistic one (docs/abstention.md gives the measured
    false-detection rates of the null motions and how they are recorded).
 3. **Decorrelated before the first lag** (any geometry; after rules 1 and 2). Where the moving part of a
@@ -105,6 +106,7 @@ __all__ = [
     "TRANSLATION_GROWTH_MIN",
     "TRANSLATION_HOLD_MIN",
     "TRANSLATION_LINEAR_MAX",
+    "TRANSLATION_WINDOW_MIN",
     "abstain_where_ambiguous",
     "coherent_motion",
     "fast_decorrelation",
@@ -143,6 +145,10 @@ TRANSLATION_HOLD_MIN = 0.8
 TRANSLATION_GROWTH_MIN = 0.4
 #: Rule 5: the largest residual of the offset's straight line in the lag, in pitches (RMS per degree of freedom).
 TRANSLATION_LINEAR_MAX = 0.1
+#: Rule 5: the narrowest speckle window (pixels per axis) it is applied at: the window its rates were
+#: recorded at (the maps' default). The offset's noise falls as the window's independent grains grow
+#: (speckle-motion §6): a narrower window moves a held pattern's offset by chance more often.
+TRANSLATION_WINDOW_MIN = 9
 #: Rule 5: the outcomes a held pattern that moved turns into ``flow``.
 TRANSLATED_TO_FLOW = ("ballistic", "ballistic-or-flow")
 #: The set label a ballistic decision becomes.
@@ -185,7 +191,10 @@ def coherent_motion(
 
 
 def translated(
-    channels: Mapping[str, np.ndarray], pitch_um: Mapping[str, float] | None, idx: np.ndarray | None = None
+    channels: Mapping[str, np.ndarray],
+    pitch_um: Mapping[str, float] | None,
+    idx: np.ndarray | None = None,
+    window_px: int | None = None,
 ) -> tuple[np.ndarray | None, list[str]]:
     """Rule 5 per classified pixel (module docstring): True where the window's pattern held at the longest lag
     (``xc_peak_{m_L}@…`` ≥ :data:`TRANSLATION_HOLD_MIN`) and its signed peak offset (``xc_shift_{c}_m@…``,
@@ -193,8 +202,12 @@ def translated(
     the shortest and the longest lag along a straight line in the lag (residual at most
     :data:`TRANSLATION_LINEAR_MAX` pitches); and the channel names read. ``pitch_um``: the pixel pitch (µm)
     per axis letter. ``(None, [])`` without the signed offsets of every axis at three lags or more, the
-    longest lag's peak or the pitches. NaN counts as not moved."""
+    longest lag's peak or the pitches, or when the speckle window ``window_px`` (pixels per axis, the maps'
+    ``meta["speckle"]["window_px"]``) is known and narrower than :data:`TRANSLATION_WINDOW_MIN`. NaN counts as
+    not moved."""
     if not isinstance(pitch_um, Mapping):
+        return None, []
+    if window_px is not None and int(window_px) < TRANSLATION_WINDOW_MIN:
         return None, []
     found: dict[str, dict[str, set[int]]] = {}
     for name in channels:

@@ -305,8 +305,13 @@ def classify_maps(
         pitch = _finest_pitch_um(meta0.get("pitch_um"))
         moved, moved_source = ambiguity.offset_moved(channels, pitch, idx, mdl.spec.n_frames)
         pitches = meta0.get("pitch_um")
+        spk = meta0.get("speckle")
+        window = spk.get("window_px") if isinstance(spk, dict) else None
         translation, translation_source = ambiguity.translated(
-            channels, pitches if isinstance(pitches, dict) else None, idx
+            channels,
+            pitches if isinstance(pitches, dict) else None,
+            idx,
+            window if isinstance(window, int) and not isinstance(window, bool) else None,
         )
         bscan = len(shape) == 2
         labels_flat, changed = ambiguity.abstain_where_ambiguous(
@@ -341,6 +346,7 @@ def classify_maps(
             "translation_hold_min": ambiguity.TRANSLATION_HOLD_MIN,
             "translation_growth_min_pitch": ambiguity.TRANSLATION_GROWTH_MIN,
             "translation_linear_max_pitch": ambiguity.TRANSLATION_LINEAR_MAX,
+            "translation_window_min_px": ambiguity.TRANSLATION_WINDOW_MIN,
             "changed_pixels": changed,
         }
     labels = np.full(valid.size, MASKED, np.uint8)

@@ -31,7 +31,7 @@ has an in-plane component and the question is what the protocol resolves):
 
 * ``rules`` (what ``doct-classify`` keeps of a ``ballistic`` decision): ``flow`` where the pattern moved
   coherently (rule 0, :func:`~classifier.ambiguity.coherent_motion`) or held and moved along a line
-  (rule 5, :func:`~classifier.ambiguity.translated`); else ``ballistic`` where the
+  (rule 5, :func:`~classifier.ambiguity.translated`, at windows of 9 pixels or more); else ``ballistic`` where the
   window decorrelated (rule 2: the centred correlation at the longest lag below
   :data:`~classifier.ambiguity.DECORRELATED_BELOW`), not before the first lag (rule 3,
   :func:`~classifier.ambiguity.fast_decorrelation`) and the peak offset did not move (rule 4,
@@ -332,7 +332,9 @@ def phantom_dict(
     return d
 
 
-def decide(channels: Mapping[str, np.ndarray], n_frames: int, pitch_um: float) -> dict[str, np.ndarray]:
+def decide(
+    channels: Mapping[str, np.ndarray], n_frames: int, pitch_um: float, window: int | None = None
+) -> dict[str, np.ndarray]:
     """Per pixel (flattened): the rules that fire (``coherent``, ``moved``, ``decorrelated``, ``fast``) and
     the outcome of each decision of :data:`DECISIONS` (codes :data:`CODES`, :data:`UNDECIDED`), from the
     speckle channels of one resolution (module docstring)."""
@@ -348,7 +350,7 @@ def decide(channels: Mapping[str, np.ndarray], n_frames: int, pitch_um: float) -
     )
 
     coherent, _ = coherent_motion(channels, n_frames=n_frames)
-    translation, _ = translated(channels, {"z": pitch_um, "x": pitch_um})
+    translation, _ = translated(channels, {"z": pitch_um, "x": pitch_um}, window_px=window)
     moved, _ = offset_moved(channels, pitch_um, n_frames=n_frames)
     corr, _ = slow_decorrelation(channels, n_frames=n_frames)
     fast, _ = fast_decorrelation(channels)
@@ -552,7 +554,7 @@ def run_protocol(
                 maps = compute_maps(seq, ["original"], metrics=("mean_db",), speckle=True, speckle_window=v.window)
                 t2 = time.perf_counter()
                 ch = {name: maps.data[i] for i, name in enumerate(maps.channels)}
-                dec = decide(ch, n_frames, pitch)
+                dec = decide(ch, n_frames, pitch, v.window)
                 edge = _edge_px(spec, pitch, v.window)
                 masks = {b: scored_mask(truth, CODES[b], edge) for b in BANDS}
                 fired = {k2: dec[k2] for k2 in ("coherent", "translated", "moved", "decorrelated", "fast")}

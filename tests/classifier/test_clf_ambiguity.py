@@ -22,6 +22,7 @@ from classifier.ambiguity import (
     TRANSLATION_GROWTH_MIN,
     TRANSLATION_HOLD_MIN,
     TRANSLATION_LINEAR_MAX,
+    TRANSLATION_WINDOW_MIN,
     OffsetMotion,
     abstain_where_ambiguous,
     coherent_motion,
@@ -274,6 +275,9 @@ def test_translation_rule_fires_on_a_held_pattern_moving_along_a_line_only():
     assert translated({k: v for k, v in ch.items() if "_x_" not in k}, {"z": p, "x": p})[0] is not None
     assert translated(_path([line[:2]], [line[:2]], [0.9], lags[:2]), {"z": p, "x": p}) == (None, [])
     assert translated(ch, None) == (None, [])
+    # narrower speckle windows than the one its rates were recorded at: not applied
+    assert translated(ch, {"z": p, "x": p}, window_px=TRANSLATION_WINDOW_MIN - 2) == (None, [])
+    assert translated(ch, {"z": p, "x": p}, window_px=TRANSLATION_WINDOW_MIN)[0].tolist()[0]
 
 
 def test_translation_rule_turns_ballistic_decisions_and_sets_into_flow_but_not_diffusion():
