@@ -38,9 +38,10 @@ pixel:
    still carries its pattern along: over the whole span of the speckle features' lags the window's peak keeps
    its height while its offset moves by ``v⊥(τ_L − τ₁)``, linearly in the lag (speckle-motion §3 (a), §5). A
    direction-symmetric motion can move the peak of a window's pattern only by changing the pattern: while the
-   pattern holds (``xc_peak_{m_L} ≥`` :data:`TRANSLATION_HOLD_MIN` at the longest lag ``m_L``) its offset
-   stays where the window's own grains put it, whatever the lag. Where the signed offset vector
-   (``xc_shift_{c}_m@…`` per axis, in pitches of that axis) moved between the shortest and the longest lag
+   pattern holds (``xc_peak_m ≥`` :data:`TRANSLATION_HOLD_MIN` at every lag from the shortest on, through
+   at least three lags: a fast flow's pattern leaves the offset grid at the longer lags) its offset stays
+   where the window's own grains put it, whatever the lag. Where the signed offset vector
+   (``xc_shift_{c}_m@…`` per axis, in pitches of that axis) moved between the shortest and the last held lag
    by at least :data:`TRANSLATION_GROWTH_MIN` pitches, along a straight line in the lag (the residual of a
    per-axis line through the lags at most :data:`TRANSLATION_LINEAR_MAX` pitches, root mean square per degree
    of freedom), a ``ballistic`` decision or a ``ballistic-or-flow`` set is ``flow``
@@ -139,9 +140,9 @@ OFFSET_HOLD_MIN = 0.8
 #: turns into a set with flow, and the decisions that a growing offset does.
 OFFSET_TO_SET = {"ballistic": "ballistic-or-flow", "diffusion": "diffusion-or-flow"}
 OFFSET_GREW_TO_SET = {"ballistic": "ballistic-or-flow"}
-#: Rule 5: the window's peak correlation at the longest lag from which its pattern counts as held.
+#: Rule 5: the window's peak correlation from which its pattern counts as held at a lag.
 TRANSLATION_HOLD_MIN = 0.8
-#: Rule 5: the smallest move of the signed peak offset between the shortest and the longest lag, in pitches.
+#: Rule 5: the smallest move of the signed peak offset between the shortest and the last held lag, in pitches.
 TRANSLATION_GROWTH_MIN = 0.4
 #: Rule 5: the largest residual of the offset's straight line in the lag, in pitches (RMS per degree of freedom).
 TRANSLATION_LINEAR_MAX = 0.1
@@ -196,15 +197,16 @@ def translated(
     idx: np.ndarray | None = None,
     window_px: int | None = None,
 ) -> tuple[np.ndarray | None, list[str]]:
-    """Rule 5 per classified pixel (module docstring): True where the window's pattern held at the longest lag
-    (``xc_peak_{m_L}@…`` ≥ :data:`TRANSLATION_HOLD_MIN`) and its signed peak offset (``xc_shift_{c}_m@…``,
-    µm, divided by the pitch of axis ``c``) moved by at least :data:`TRANSLATION_GROWTH_MIN` pitches between
-    the shortest and the longest lag along a straight line in the lag (residual at most
+    """Rule 5 per classified pixel (module docstring): True where, over the lags through which the window's
+    pattern held (the longest run of lags from the shortest on with ``xc_peak_m@…`` ≥
+    :data:`TRANSLATION_HOLD_MIN`, at least three lags), its signed peak offset (``xc_shift_{c}_m@…``, µm,
+    divided by the pitch of axis ``c``) moved by at least :data:`TRANSLATION_GROWTH_MIN` pitches from the
+    first to the last of them along a straight line in the lag (residual at most
     :data:`TRANSLATION_LINEAR_MAX` pitches); and the channel names read. ``pitch_um``: the pixel pitch (µm)
-    per axis letter. ``(None, [])`` without the signed offsets of every axis at three lags or more, the
-    longest lag's peak or the pitches, or when the speckle window ``window_px`` (pixels per axis, the maps'
+    per axis letter. ``(None, [])`` without the signed offsets of every axis and the peaks at three lags or
+    more, or the pitches, or when the speckle window ``window_px`` (pixels per axis, the maps'
     ``meta["speckle"]["window_px"]``) is known and narrower than :data:`TRANSLATION_WINDOW_MIN`. NaN counts as
-    not moved."""
+    not held and not moved."""
     if not isinstance(pitch_um, Mapping):
         return None, []
     if window_px is not None and int(window_px) < TRANSLATION_WINDOW_MIN:
@@ -216,34 +218,38 @@ def translated(
             found.setdefault(m.group(3), {}).setdefault(m.group(1), set()).add(int(m.group(2)))
     for res, per_axis in sorted(found.items()):
         axes = sorted(per_axis)
-        lags = sorted(set.intersection(*per_axis.values()))
+        lags = [m for m in sorted(set.intersection(*per_axis.values())) if f"xc_peak_{m}@{res}" in channels]
         pitch = {c: pitch_um.get(c) for c in axes}
         ok_pitch = all(
             isinstance(p, (int, float)) and not isinstance(p, bool) and 0 < p < np.inf for p in pitch.values()
         )
-        if len(lags) < 3 or not ok_pitch or f"xc_peak_{lags[-1]}@{res}" not in channels:
+        if len(lags) < 3 or not ok_pitch:
             continue
 
         def read(name: str) -> np.ndarray:
             v = np.asarray(channels[name], np.float64).reshape(-1)
             return v if idx is None else v[idx]
 
-        names = [f"xc_shift_{c}_{m}@{res}" for c in axes for m in lags]
+        names = [f"xc_shift_{c}_{m}@{res}" for c in axes for m in lags] + [f"xc_peak_{m}@{res}" for m in lags]
         d = np.stack([np.stack([read(f"xc_shift_{c}_{m}@{res}") / float(pitch[c]) for m in lags]) for c in axes])
-        lag = np.asarray(lags, np.float64)
-        lc = lag - lag.mean()
-        slope = (d * lc[None, :, None]).sum(1) / (lc**2).sum()  # [axes, pixels], pitches per frame
-        resid = d - d.mean(1, keepdims=True) - slope[:, None, :] * lc[None, :, None]
-        rms = np.sqrt((resid**2).sum((0, 1)) / (len(axes) * (len(lags) - 2)))
-        growth = np.sqrt(((d[:, -1] - d[:, 0]) ** 2).sum(0))
-        held_name = f"xc_peak_{lags[-1]}@{res}"
         with np.errstate(invalid="ignore"):
-            seen = (
-                (read(held_name) >= TRANSLATION_HOLD_MIN)
-                & (growth >= TRANSLATION_GROWTH_MIN)
-                & (rms <= TRANSLATION_LINEAR_MAX)
-            )
-        return seen, names + [held_name]
+            held = np.stack([read(f"xc_peak_{m}@{res}") >= TRANSLATION_HOLD_MIN for m in lags])  # [lags, pixels]
+        run = np.cumprod(held, axis=0).sum(0)  # lags held from the shortest on
+        seen = np.zeros(d.shape[-1], bool)
+        for k in range(3, len(lags) + 1):  # the pixels whose pattern held through exactly the first k lags
+            sel = run == k
+            if not sel.any():
+                continue
+            dk = d[:, :k, :]
+            lag = np.asarray(lags[:k], np.float64)
+            lc = lag - lag.mean()
+            slope = (dk * lc[None, :, None]).sum(1) / (lc**2).sum()  # [axes, pixels], pitches per frame
+            resid = dk - dk.mean(1, keepdims=True) - slope[:, None, :] * lc[None, :, None]
+            rms = np.sqrt((resid**2).sum((0, 1)) / (len(axes) * (k - 2)))
+            growth = np.sqrt(((dk[:, -1] - dk[:, 0]) ** 2).sum(0))
+            with np.errstate(invalid="ignore"):
+                seen |= sel & (growth >= TRANSLATION_GROWTH_MIN) & (rms <= TRANSLATION_LINEAR_MAX)
+        return seen, names
     return None, []
 
 

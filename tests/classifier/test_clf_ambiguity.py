@@ -241,10 +241,13 @@ def test_every_rule_applies_in_one_call_each_to_the_pixels_the_earlier_rules_lef
     }
 
 
-def _path(shift_z, shift_x, peak_last, lags=(2, 4, 8, 16)):
-    """Channels of one resolution holding a signed offset path (µm, one row per pixel) and the longest lag's peak."""
-    ch = {f"xc_peak_{lags[-1]}@original": np.asarray(peak_last, float)}
+def _path(shift_z, shift_x, peaks, lags=(2, 4, 8, 16)):
+    """Channels of one resolution: a signed offset path (µm, one row per pixel) and the peak at every lag (one
+    value per pixel for all lags, or one list per pixel)."""
+    rows = [list(v) if isinstance(v, (list, tuple)) else [v] * len(lags) for v in peaks]
+    ch = {}
     for j, m in enumerate(lags):
+        ch[f"xc_peak_{m}@original"] = np.asarray([r[j] for r in rows], float)
         ch[f"xc_shift_z_{m}@original"] = np.asarray([p[j] for p in shift_z], float)
         ch[f"xc_shift_x_{m}@original"] = np.asarray([p[j] for p in shift_x], float)
     return ch
@@ -253,8 +256,9 @@ def _path(shift_z, shift_x, peak_last, lags=(2, 4, 8, 16)):
 def test_translation_rule_fires_on_a_held_pattern_moving_along_a_line_only():
     """Rule 5 on offset paths (pitch 2 µm): a held pattern (peak 0.9) whose offset moves 0.45 pitch along a
     line in the lag fires; the same path with a pattern that did not hold (peak 0.7), a move short of
-    TRANSLATION_GROWTH_MIN, a path that jumps to another grain and stays (off a line), or a still offset at the window's own grain
-    position (0.6 pitch from the centre) does not. NaN counts as not moved."""
+    TRANSLATION_GROWTH_MIN, a path that jumps to another grain and stays (off a line), or a still offset at
+    the window's own grain position (0.6 pitch from the centre) does not. NaN counts as not moved. A pattern
+    that held through the first three lags only (a fast flow leaving the offset grid) is judged on them."""
     p = 2.0
     lags = (2, 4, 8, 16)
     line = [0.3 + 0.45 * p * (m - 2) / 14 for m in lags]  # µm: from an offset of the window's grains
@@ -262,18 +266,26 @@ def test_translation_rule_fires_on_a_held_pattern_moving_along_a_line_only():
     jump = [0.3, 0.3 + 0.5 * p, 0.3 + 0.5 * p, 0.3 + 0.5 * p]  # to a neighbouring grain, then still
     still = [1.2] * 4
     zero = [0.0] * 4
-    ch = _path([line, line, short, jump, still, [np.nan] * 4], [zero] * 6, [0.9, 0.7, 0.9, 0.9, 0.9, 0.9], lags)
+    fast = [0.3 + 0.45 * p * (m - 2) / 6 for m in lags[:3]] + [4.0]  # 0.45 pitch over lags 2-8, then off the grid
+    ch = _path(
+        [line, line, short, jump, still, [np.nan] * 4, fast, fast, line],
+        [zero] * 9,
+        [0.9, 0.7, 0.9, 0.9, 0.9, 0.9, [0.95, 0.95, 0.9, 0.4], [0.95, 0.9, 0.4, 0.4], [0.9, 0.9, 0.9, np.nan]],
+        lags,
+    )
     seen, used = translated(ch, {"z": p, "x": p})
-    assert seen.tolist() == [True, False, False, False, False, False]
+    # the last: NaN at lag 16 counts as not held, and over lags 2-8 the line moved too little
+    assert seen.tolist() == [True, False, False, False, False, False, True, False, False]
     assert "xc_peak_16@original" in used and "xc_shift_z_2@original" in used
     assert TRANSLATION_HOLD_MIN > 0.7 and TRANSLATION_LINEAR_MAX > 0
     # the move counts in pitches of each axis: the same path in µm over a coarser x pitch is short of it
     across = _path([zero], [line], [0.9], lags)
     assert translated(across, {"z": p, "x": p})[0].tolist() == [True]
     assert translated(across, {"z": p, "x": 2.5 * p})[0].tolist() == [False]
-    # without the signed offsets, three lags or the pitches, the rule is not applied
+    # without the signed offsets and peaks at three lags, or the pitches, the rule is not applied
     assert translated({k: v for k, v in ch.items() if "_x_" not in k}, {"z": p, "x": p})[0] is not None
     assert translated(_path([line[:2]], [line[:2]], [0.9], lags[:2]), {"z": p, "x": p}) == (None, [])
+    assert translated({k: v for k, v in ch.items() if "peak" not in k}, {"z": p, "x": p}) == (None, [])
     assert translated(ch, None) == (None, [])
     # narrower speckle windows than the one its rates were recorded at: not applied
     assert translated(ch, {"z": p, "x": p}, window_px=TRANSLATION_WINDOW_MIN - 2) == (None, [])

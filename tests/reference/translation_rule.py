@@ -16,7 +16,8 @@ scatterers; the sample is the centre pixel's window (the maps' speckle channels,
 
 * the null motions: random-ballistic motion at :data:`BALLISTIC_UM_S` and diffusion at :data:`DIFFUSION_UM2_S`
   (the grid's three levels of each, and one more decade below and between);
-* flow at :data:`FLOW_UM_S` at the grid's polar and azimuth angles (slow: the speed no earlier rule sees).
+* flow at :data:`FLOW_UM_S` at the grid's polar and azimuth angles (the slow one: the speed no earlier rule
+  sees).
 
 Reported per condition: the share of trials where the rule fires, with its binomial standard error. The
 rule's thresholds are physical (a held pattern, a move of a fraction of a pitch, a straight line); this
@@ -38,8 +39,9 @@ import numpy as np
 BALLISTIC_UM_S = (0.003, 0.0123, 0.03, 0.0536, 0.1, 0.233)
 #: Diffusion coefficients (µm²/s): the grid's B-scan levels and one between.
 DIFFUSION_UM2_S = (9.26e-5, 3e-4, 8.25e-4, 7.36e-3)
-#: Flow speeds (µm/s): the grid's slow B-scan level.
-FLOW_UM_S = (0.335,)
+#: Flow speeds (µm/s): the grid's slow and mid B-scan levels (the mid one leaves the offset grid within the
+#: longest lag: the rule judges it on the lags its pattern held through).
+FLOW_UM_S = (0.335, 1.54)
 ANGLES_DEG = (10.0, 45.0, 80.0)
 AZIMUTHS_DEG = (0.0, 45.0, 90.0)
 
