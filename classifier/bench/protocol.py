@@ -960,16 +960,26 @@ def _numbers(text: str, kind, what: str) -> list:
     return vals
 
 
+#: ``torchdoct protocol`` (the entry point ``torchdoct.commands``: :mod:`torchdoct.cli.extensions`).
+HELP = "what accuracy costs in acquisition time: coverage, accuracy and wrong share per frame count, interval, window"
+DESCRIPTION = (
+    "What accuracy costs in acquisition time: render flow and random-ballistic bands for every "
+    "frame count, frame interval and window, decide each pixel from the speckle pattern's "
+    "physics (classifier.ambiguity) and score coverage, accuracy and wrong share; writes "
+    "STEM.json/.csv/.md/.png into --out."
+)
+
+
 def build_parser():
     import argparse
 
-    p = argparse.ArgumentParser(
-        prog="python -m classifier.bench.protocol",
-        description="What accuracy costs in acquisition time: render flow and random-ballistic bands for every "
-        "frame count, frame interval and window, decide each pixel from the speckle pattern's "
-        "physics (classifier.ambiguity) and score coverage, accuracy and wrong share; writes "
-        "STEM.json/.csv/.md/.png into --out.",
-    )
+    p = argparse.ArgumentParser(prog="python -m classifier.bench.protocol", description=DESCRIPTION)
+    add_arguments(p)
+    return p
+
+
+def add_arguments(p) -> None:
+    """The options of ``torchdoct protocol`` (and ``python -m classifier.bench.protocol``)."""
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
     p.add_argument(
         "--quick",
@@ -1021,7 +1031,6 @@ def build_parser():
     p.add_argument("--threads", type=int, default=None, metavar="N")
     p.add_argument("--force", action="store_true", help="overwrite existing results")
     p.add_argument("--no-progress", action="store_true")
-    return p
 
 
 def _command_line(args) -> str:
@@ -1051,11 +1060,16 @@ def _command_line(args) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m classifier.bench.protocol``: parse ``argv`` and :func:`run`."""
+    return run(build_parser().parse_args(argv))
+
+
+def run(args) -> int:
+    """``torchdoct protocol``: check the output first, run the variants, write the files, print the headline."""
     import sys
 
     from .grid import check_output_dir
 
-    args = build_parser().parse_args(argv)
     try:
         out = check_output_dir(args.out, args.stem, SUFFIXES, args.force)
         frames = _numbers(args.frames, int, "--frames")

@@ -215,3 +215,18 @@ def test_an_output_that_is_a_file_and_both_system_sources_are_refused(tmp_path, 
     with pytest.raises(SystemExit) as e:
         P.main(["--out", str(tmp_path), "--spec", "signature", "--like", "m.npz"])
     assert e.value.code == 2
+
+
+def test_torchdoct_protocol_is_the_same_command(tmp_path, capsys):
+    """``torchdoct protocol`` (the entry point of the classifier's commands) parses the same options and
+    runs the same checks: an output that is a file exits 2 with one error line, nothing written."""
+    from torchdoct.cli import main
+
+    f = tmp_path / "file"
+    f.write_text("x")
+    assert main(["protocol", "--out", str(f), "--quick", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:") and f.read_text() == "x"
+    with pytest.raises(SystemExit) as e:
+        main(["protocol", "--help"])
+    assert e.value.code == 0 and "--frames" in capsys.readouterr().out
