@@ -101,6 +101,8 @@ BANDS = ("ballistic", "flow")
 CODES = {"ballistic": 3, "flow": 4}
 UNDECIDED = 0
 DECISIONS = ("rules", "offset-as-flow")
+#: The rules whose firing :func:`decide` reports per pixel, and the scores count per band.
+RULES = ("coherent", "translated", "moved", "decorrelated", "fast")
 FRAMES = (32, 64, 128)
 INTERVAL_FACTORS = (0.5, 1.0, 2.0)
 WINDOWS = (5, 9, 13)
@@ -442,11 +444,7 @@ def score_outcome(counts: Mapping[str, Mapping[str, int]]) -> dict[str, Any]:
             "coverage": dec / n if n else None,
             "accuracy": c["right"] / dec if dec else None,
             "wrong_share": c["wrong"] / n if n else None,
-            "rules": {
-                k: (c[k] / n if n else None)
-                for k in ("coherent", "translated", "moved", "decorrelated", "fast")
-                if k in c
-            },
+            "rules": {k: (c[k] / n if n else None) for k in RULES if k in c},
         }
     n = sum(counts[b]["pixels"] for b in BANDS)
     dec = sum(counts[b]["decided"] for b in BANDS)
@@ -557,7 +555,7 @@ def run_protocol(
                 dec = decide(ch, n_frames, pitch, v.window)
                 edge = _edge_px(spec, pitch, v.window)
                 masks = {b: scored_mask(truth, CODES[b], edge) for b in BANDS}
-                fired = {k2: dec[k2] for k2 in ("coherent", "translated", "moved", "decorrelated", "fast")}
+                fired = {k2: dec[k2] for k2 in RULES}
                 for decision in DECISIONS:
                     c = count_outcome(dec[decision], truth, masks, fired)
                     acc = counts.setdefault((v, decision), {b: {} for b in BANDS})
@@ -664,7 +662,8 @@ def _definitions() -> dict[str, str]:
 
 # ---------------------------------------------------------------------------------------------- outputs
 
-_COLUMNS = (
+#: The columns copied from a row as they are.
+_ROW_FIELDS = (
     "key",
     "decision",
     "n_frames",
@@ -677,12 +676,9 @@ _COLUMNS = (
     "coverage",
     "balanced_accuracy",
     "wrong_share_max",
-    "coverage_ballistic",
-    "accuracy_ballistic",
-    "wrong_ballistic",
-    "coverage_flow",
-    "accuracy_flow",
-    "wrong_flow",
+)
+#: ``RULE_BAND``: the share of a band's scored pixels where the rule fires (the rules that can fire on it).
+_RULE_COLUMNS = (
     "coherent_flow",
     "translated_flow",
     "moved_flow",
@@ -691,43 +687,23 @@ _COLUMNS = (
     "moved_ballistic",
     "decorrelated_ballistic",
     "fast_ballistic",
+)
+_COLUMNS = (
+    *_ROW_FIELDS,
+    *(f"{s}_{b}" for b in BANDS for s in ("coverage", "accuracy", "wrong")),
+    *_RULE_COLUMNS,
     "seconds",
 )
 
 
 def _flat(r: dict[str, Any]) -> dict[str, Any]:
     pb = r["per_band"]
-    out = {
-        k: r[k]
-        for k in (
-            "key",
-            "decision",
-            "n_frames",
-            "interval_factor",
-            "interval_s",
-            "acquisition_s",
-            "window",
-            "window_um",
-            "pixels",
-            "coverage",
-            "balanced_accuracy",
-            "wrong_share_max",
-        )
-    }
+    out = {k: r[k] for k in _ROW_FIELDS}
     for b in BANDS:
         out[f"coverage_{b}"] = pb[b]["coverage"]
         out[f"accuracy_{b}"] = pb[b]["accuracy"]
         out[f"wrong_{b}"] = pb[b]["wrong_share"]
-    for k in (
-        "coherent_flow",
-        "translated_flow",
-        "moved_flow",
-        "coherent_ballistic",
-        "translated_ballistic",
-        "moved_ballistic",
-        "decorrelated_ballistic",
-        "fast_ballistic",
-    ):
+    for k in _RULE_COLUMNS:
         rule, band = k.rsplit("_", 1)
         out[k] = pb[band]["rules"].get(rule)
     out["seconds"] = r["seconds"]["total"]
