@@ -163,6 +163,12 @@ _XC_SHIFT = re.compile(r"^xc_shift_(\d+)@(.+)$")
 _XC_SHIFT_AXIS = re.compile(r"^xc_shift_([xyz])_(\d+)@(.+)$")
 
 
+def _read(channels: Mapping[str, np.ndarray], name: str, idx: np.ndarray | None) -> np.ndarray:
+    """One channel's map as float64, flattened, at the classified pixels ``idx`` (all when ``None``)."""
+    v = np.asarray(channels[name], np.float64).reshape(-1)
+    return v if idx is None else v[idx]
+
+
 def coherent_motion(
     channels: Mapping[str, np.ndarray], idx: np.ndarray | None = None, n_frames: int = 32
 ) -> tuple[np.ndarray | None, list[str]]:
@@ -180,10 +186,7 @@ def coherent_motion(
         centre = f"xc_centre_{m.group(1)}@{m.group(2)}"
         if centre not in channels:
             continue
-        peak = np.asarray(channels[name], np.float64).reshape(-1)
-        cen = np.asarray(channels[centre], np.float64).reshape(-1)
-        if idx is not None:
-            peak, cen = peak[idx], cen[idx]
+        peak, cen = _read(channels, name, idx), _read(channels, centre, idx)
         with np.errstate(invalid="ignore", divide="ignore"):
             seen = (peak >= COHERENT_PEAK_MIN) & ((peak - cen) >= COHERENT_MOVED_MIN * peak)
         found = seen if found is None else (found | seen)
@@ -226,14 +229,14 @@ def translated(
         if len(lags) < 3 or not ok_pitch:
             continue
 
-        def read(name: str) -> np.ndarray:
-            v = np.asarray(channels[name], np.float64).reshape(-1)
-            return v if idx is None else v[idx]
-
         names = [f"xc_shift_{c}_{m}@{res}" for c in axes for m in lags] + [f"xc_peak_{m}@{res}" for m in lags]
-        d = np.stack([np.stack([read(f"xc_shift_{c}_{m}@{res}") / float(pitch[c]) for m in lags]) for c in axes])
+        d = np.stack(
+            [np.stack([_read(channels, f"xc_shift_{c}_{m}@{res}", idx) / float(pitch[c]) for m in lags]) for c in axes]
+        )
         with np.errstate(invalid="ignore"):
-            held = np.stack([read(f"xc_peak_{m}@{res}") >= TRANSLATION_HOLD_MIN for m in lags])  # [lags, pixels]
+            held = np.stack(
+                [_read(channels, f"xc_peak_{m}@{res}", idx) >= TRANSLATION_HOLD_MIN for m in lags]
+            )  # [lags, pixels]
         run = np.cumprod(held, axis=0).sum(0)  # lags held from the shortest on
         seen = np.zeros(d.shape[-1], bool)
         for k in range(3, len(lags) + 1):  # the pixels whose pattern held through exactly the first k lags
@@ -272,8 +275,7 @@ def slow_decorrelation(
         if m and (best is None or int(m.group(1)) > best[0]):
             best = (int(m.group(1)), name)
     if best is not None:
-        vals = np.asarray(channels[best[1]], np.float64).reshape(-1)
-        return (vals if idx is None else vals[idx]), best[1]
+        return _read(channels, best[1], idx), best[1]
     if columns is None or pooled is None:
         return None, None
     target = max(1, int(n_frames) // 2)
@@ -306,10 +308,7 @@ def fast_decorrelation(
     if lags is None:
         return None, []
     first, last = lags[0][1], lags[-1][1]
-    a = np.asarray(channels[first], np.float64).reshape(-1)
-    b = np.asarray(channels[last], np.float64).reshape(-1)
-    if idx is not None:
-        a, b = a[idx], b[idx]
+    a, b = _read(channels, first, idx), _read(channels, last, idx)
     with np.errstate(invalid="ignore"):
         fast = (a - b) < FAST_REMAINING_MAX * (1.0 - b)
     return fast, [first, last]
@@ -344,15 +343,10 @@ def offset_moved(
         return None, []
     lags = sorted(by_res[res])
     names = [f"xc_shift_{m}@{res}" for m in lags]
-
-    def read(name: str) -> np.ndarray:
-        v = np.asarray(channels[name], np.float64).reshape(-1)
-        return v if idx is None else v[idx]
-
-    shift = [read(n) for n in names]
+    shift = [_read(channels, n, idx) for n in names]
     held_name = f"xc_peak_{lags[0]}@{res}"
     with np.errstate(invalid="ignore"):
-        grew = read(held_name) >= OFFSET_HOLD_MIN
+        grew = _read(channels, held_name, idx) >= OFFSET_HOLD_MIN
         for a, b in zip(shift[:-1], shift[1:]):
             grew &= b > a
         grew &= (shift[-1] - shift[0]) >= OFFSET_GROWTH_MIN * pitch_um
