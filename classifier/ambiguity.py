@@ -45,8 +45,14 @@ pixel:
    by at least :data:`TRANSLATION_GROWTH_MIN` pitches, along a straight line in the lag (the residual of a
    per-axis line through the lags at most :data:`TRANSLATION_LINEAR_MAX` pitches, root mean square per degree
    of freedom), a ``ballistic`` decision or a ``ballistic-or-flow`` set is ``flow``
-   (:data:`TRANSLATED_TO_FLOW`). It is applied at speckle windows of :data:`TRANSLATION_WINDOW_MIN` pixels or
-   more (the window its rates were recorded at). A ``diffusion`` decision stays: a slowly diffusing pattern under noise
+   (:data:`TRANSLATED_TO_FLOW`), provided that on the maps at least :data:`TRANSLATION_SUPPORT_MIN` of the
+   valid windows centred within the pixel's speckle window moved so too. At the lowest densities two or
+   three scatterers can dominate a window, and their beat moves its pattern steadily while the scatterers
+   barely move (a relative axial step ``δ`` turns their relative phase by ``2kn·δ`` and slides the intensity
+   maximum between them by a share of their separation): such a window is alone, or nearly, among its
+   neighbours, while a flow translates every window that lies in it. It is applied at speckle windows of
+   :data:`TRANSLATION_WINDOW_MIN` pixels or more (the window its rates were recorded at). A ``diffusion``
+   decision stays: a slowly diffusing pattern under noise
    moves its offset more often than a random-ballistic one (docs/abstention.md gives the measured
    false-detection rates of the null motions and how they are recorded).
 3. **Decorrelated before the first lag** (any geometry; after rules 1 and 2). Where the moving part of a
@@ -107,6 +113,7 @@ __all__ = [
     "TRANSLATION_GROWTH_MIN",
     "TRANSLATION_HOLD_MIN",
     "TRANSLATION_LINEAR_MAX",
+    "TRANSLATION_SUPPORT_MIN",
     "TRANSLATION_WINDOW_MIN",
     "abstain_where_ambiguous",
     "coherent_motion",
@@ -152,6 +159,9 @@ TRANSLATION_LINEAR_MAX = 0.1
 TRANSLATION_WINDOW_MIN = 9
 #: Rule 5: the outcomes a held pattern that moved turns into ``flow``.
 TRANSLATED_TO_FLOW = ("ballistic", "ballistic-or-flow")
+#: Rule 5 on maps: the least share of the valid pixels of the speckle window around a pixel whose own window
+#: moved as a translation (a majority: the flow's region, not one window's few scatterers).
+TRANSLATION_SUPPORT_MIN = 0.5
 #: The set label a ballistic decision becomes.
 SET_LABEL = "ballistic-or-flow"
 
@@ -194,6 +204,26 @@ def coherent_motion(
     return found, used
 
 
+def _window_share(hit: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:
+    """Per pixel of a map: the share of the valid pixels of the ``window``-wide box centred on it (cut at the
+    map's edges) where ``hit`` holds; NaN where the box holds no valid pixel."""
+    num, den = hit & valid, valid.astype(np.float64)
+    num = num.astype(np.float64)
+    h = int(window) // 2
+    for ax in range(hit.ndim):
+        n = hit.shape[ax]
+        out = []
+        for a in (num, den):
+            c = np.cumsum(a, axis=ax)
+            c = np.concatenate([np.zeros_like(np.take(c, [0], axis=ax)), c], axis=ax)
+            hi = np.minimum(np.arange(n) + h + 1, n)
+            lo = np.maximum(np.arange(n) - h, 0)
+            out.append(np.take(c, hi, axis=ax) - np.take(c, lo, axis=ax))
+        num, den = out
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+
+
 def translated(
     channels: Mapping[str, np.ndarray],
     pitch_um: Mapping[str, float] | None,
@@ -205,11 +235,15 @@ def translated(
     :data:`TRANSLATION_HOLD_MIN`, at least three lags), its signed peak offset (``xc_shift_{c}_m@…``, µm,
     divided by the pitch of axis ``c``) moved by at least :data:`TRANSLATION_GROWTH_MIN` pitches from the
     first to the last of them along a straight line in the lag (residual at most
-    :data:`TRANSLATION_LINEAR_MAX` pitches); and the channel names read. ``pitch_um``: the pixel pitch (µm)
-    per axis letter. ``(None, [])`` without the signed offsets of every axis and the peaks at three lags or
-    more, or the pitches, or when the speckle window ``window_px`` (pixels per axis, the maps'
-    ``meta["speckle"]["window_px"]``) is known and narrower than :data:`TRANSLATION_WINDOW_MIN`. NaN counts as
-    not held and not moved."""
+    :data:`TRANSLATION_LINEAR_MAX` pitches); and, where the channels are maps (2-D B-scans, 3-D volumes),
+    at least :data:`TRANSLATION_SUPPORT_MIN` of the valid pixels of the speckle window centred on the pixel
+    (``window_px`` per axis, :data:`TRANSLATION_WINDOW_MIN` when unknown; cut at the map's edges) met that
+    criterion too: a flow translates every window that lies in it, a few scatterers moving alone only the
+    windows they dominate. 1-D channels are independent windows, judged one by one. Returns the mask and the
+    channel names read. ``pitch_um``: the pixel pitch (µm) per axis letter. ``(None, [])`` without the signed
+    offsets of every axis and the peaks at three lags or more, or the pitches, or when the speckle window
+    ``window_px`` (pixels per axis, the maps' ``meta["speckle"]["window_px"]``) is known and narrower than
+    :data:`TRANSLATION_WINDOW_MIN`. NaN counts as not held and not moved."""
     if not isinstance(pitch_um, Mapping):
         return None, []
     if window_px is not None and int(window_px) < TRANSLATION_WINDOW_MIN:
@@ -230,12 +264,14 @@ def translated(
             continue
 
         names = [f"xc_shift_{c}_{m}@{res}" for c in axes for m in lags] + [f"xc_peak_{m}@{res}" for m in lags]
+        shape = np.shape(channels[names[0]])
         d = np.stack(
-            [np.stack([_read(channels, f"xc_shift_{c}_{m}@{res}", idx) / float(pitch[c]) for m in lags]) for c in axes]
-        )
+            [np.stack([_read(channels, f"xc_shift_{c}_{m}@{res}", None) / float(pitch[c]) for m in lags]) for c in axes]
+        )  # every pixel of the map: the neighbours vote
+        first = _read(channels, f"xc_peak_{lags[0]}@{res}", None)
         with np.errstate(invalid="ignore"):
             held = np.stack(
-                [_read(channels, f"xc_peak_{m}@{res}", idx) >= TRANSLATION_HOLD_MIN for m in lags]
+                [_read(channels, f"xc_peak_{m}@{res}", None) >= TRANSLATION_HOLD_MIN for m in lags]
             )  # [lags, pixels]
         run = np.cumprod(held, axis=0).sum(0)  # lags held from the shortest on
         seen = np.zeros(d.shape[-1], bool)
@@ -252,7 +288,13 @@ def translated(
             growth = np.sqrt(((dk[:, -1] - dk[:, 0]) ** 2).sum(0))
             with np.errstate(invalid="ignore"):
                 seen |= sel & (growth >= TRANSLATION_GROWTH_MIN) & (rms <= TRANSLATION_LINEAR_MAX)
-        return seen, names
+        if len(shape) >= 2:
+            share = _window_share(
+                seen.reshape(shape), np.isfinite(first).reshape(shape), window_px or TRANSLATION_WINDOW_MIN
+            )
+            with np.errstate(invalid="ignore"):
+                seen = seen & (share >= TRANSLATION_SUPPORT_MIN).reshape(-1)
+        return (seen if idx is None else seen[idx]), names
     return None, []
 
 

@@ -617,31 +617,43 @@ def _pool_row(label: str, m: dict[str, Any], se: dict[str, Any] | None) -> list[
 def systems_validation(root: Path) -> str:
     d, p = load(root, "systems-validation.json")
     rows = []
+    pools = [k for k in d["systems"][0]["scores"] if k != "5-default"]
+    default = any("5-default" in s["scores"] for s in d["systems"])
     for s in d["systems"]:
-        sc = {k: v[0]["overall"] for k, v in s["scores"].items()}
+        sc = {k: s["scores"][k][0]["overall"] for k in pools}
         own = s.get("own_test_pool1", {})
-        rows.append(
-            [
-                f"`{s['system']}`: {s['description']}",
-                num(s["training_s"] / 60, 3),
-                f"{num(own.get('balanced_accuracy_identifiable'))} @ {num(own.get('coverage_identifiable'))}",
-                *[f"{num(o['balanced_accuracy'])} @ {num(o['coverage'])}" for o in sc.values()],
+        row = [
+            f"`{s['system']}`: {s['description']}",
+            num(s["training_s"] / 60, 3),
+            f"{num(own.get('balanced_accuracy_identifiable'))} @ {num(own.get('coverage_identifiable'))}",
+            *[f"{num(o['balanced_accuracy'])} @ {num(o['coverage'])}" for o in sc.values()],
+        ]
+        if default:
+            o = s["scores"]["5-default"][0]["overall"]
+            per = o["per_class"]
+            rec = [q["recall"] for q in per.values() if q.get("recall") is not None]
+            wrong = {k: sum(n for c, n in q["decided_as"].items() if c != k) / q["pixels"] for k, q in per.items()}
+            row += [
+                f"{num(sum(rec) / len(rec)) if rec else '–'} @ {num(o['coverage'])}",
+                ", ".join(f"{k} {num(w)}" for k, w in wrong.items()),
             ]
-        )
-    pools = list(d["systems"][0]["scores"])
-    t = table(
-        [
-            "system",
-            "`doct-train --like` (min)",
-            "own test split, pool 1",
-            *[f"pool {k}: bal. acc. @ coverage" for k in pools],
-        ],
-        rows,
-    )
+        rows.append(row)
+    heads = [
+        "system",
+        "`doct-train --like` (min)",
+        "own test split, pool 1",
+        *[f"pool {k}, model decisions: bal. acc. @ coverage" for k in pools],
+    ]
+    if default:
+        heads += ["pool 5, default decision: bal. acc. on decided @ coverage", "pool 5, default: wrong share"]
     return "\n\n".join(
         [
-            t,
-            f"Seeds {', '.join(map(str, d['seeds']))}; pool `5@0.6` is `--pool 5 --min-probability 0.6`.",
+            table(heads, rows),
+            f"First seed of {', '.join(map(str, d['seeds']))}. The model decisions are `doct-classify "
+            "--decide-ballistic`; pool `5@0.6` adds `--min-probability 0.6`. The default decision abstains where "
+            "the physics cannot tell (a B-scan's ballistic decisions become `ballistic-or-flow`); its balanced "
+            "accuracy counts the classes with decided pixels, and a class's wrong share is the share of its pixels "
+            "decided as another class.",
             source(d["command"], p),
         ]
     )
@@ -826,15 +838,17 @@ def translation_rule(root: Path) -> str:
         else:
             what = f"flow, {num(r['speed_um_s'])} µm/s, polar {num(r['polar_deg'])}°, azimuth {num(r['azimuth_deg'])}°"
         snr = "none" if r["snr_db"] is None else f"{num(r['snr_db'])} dB"
-        rows.append([what, snr, pm(r["fired"], r["se"])])
+        rows.append([what, snr, pm(r["fired"], r["se"]), pm(r["fired_window_alone"], r["se_window_alone"])])
     th = d["thresholds"]
     return "\n\n".join(
         [
-            table(["motion", "noise (SNR)", "share of trials where rule 5 fires"], rows),
+            table(["motion", "noise (SNR)", "share of trials where rule 5 fires", "the pixel's window alone"], rows),
             f"Direction-symmetric motions (false detections): mean {num(d['null_mean'])}, worst condition "
-            f"{num(d['null_max'])}. Thresholds: held peak ≥ {num(th['hold_min'])}, move ≥ "
-            f"{num(th['growth_min_pitch'])} pitch, line residual ≤ {num(th['linear_max_pitch'])} pitch; pixel pitch "
-            f"{num(d['pitch_um'])} µm.",
+            f"{num(d['null_max'])}; judged on the pixel's window alone, without the vote of its neighbours: mean "
+            f"{num(d['null_mean_window_alone'])}, worst {num(d['null_max_window_alone'])}. Thresholds: held peak ≥ "
+            f"{num(th['hold_min'])}, move ≥ {num(th['growth_min_pitch'])} pitch, line residual ≤ "
+            f"{num(th['linear_max_pitch'])} pitch, vote ≥ {num(th['support_min'])} of the windows around; pixel "
+            f"pitch {num(d['pitch_um'])} µm, patches of {d['patch_px']} × {d['patch_px']} pixels.",
             source(d["command"], p),
         ]
     )

@@ -292,6 +292,54 @@ def test_translation_rule_fires_on_a_held_pattern_moving_along_a_line_only():
     assert translated(ch, {"z": p, "x": p}, window_px=TRANSLATION_WINDOW_MIN)[0].tolist()[0]
 
 
+def test_translation_rule_on_maps_needs_the_windows_around_a_pixel_to_have_moved_too():
+    """On a map, one window whose held pattern moved along a line (a few scatterers moving alone) is not a
+    flow: at least TRANSLATION_SUPPORT_MIN of the valid windows of its speckle window must have moved too.
+    A region of moved windows (a flow) keeps every pixel whose neighbourhood is mostly inside it; NaN pixels
+    (outside the sample) do not vote; 1-D channels are judged window by window; ``idx`` reads the mask at
+    the classified pixels of the map."""
+    p, lags = 2.0, (2, 4, 8, 16)
+    line = [0.3 + 0.45 * p * (m - 2) / 14 for m in lags]
+    zero = [0.0] * 4
+
+    def field(moving: np.ndarray) -> dict:
+        flat = moving.reshape(-1)
+        ch = _path([line if f else zero for f in flat], [zero] * flat.size, [0.9] * flat.size, lags)
+        return {k: v.reshape(moving.shape) for k, v in ch.items()}
+
+    one = np.zeros((15, 15), bool)
+    one[7, 7] = True
+    assert translated(field(one), {"z": p, "x": p}, window_px=9)[0].sum() == 0
+    assert translated({k: v.reshape(-1) for k, v in field(one).items()}, {"z": p, "x": p})[0].sum() == 1
+    band = np.zeros((15, 31), bool)
+    band[:, 10:21] = True  # an 11-pixel-wide flow band
+    seen = translated(field(band), {"z": p, "x": p}, window_px=9)[0].reshape(band.shape)
+    assert not seen[~band].any()
+    assert seen[:, 11:20].all()  # the neighbourhood of each of these is at least 5/9 inside the band
+    # with the band's surroundings outside the sample (NaN), the band's edge columns keep their support
+    ch = field(band)
+    for k in ch:
+        ch[k] = np.where(band, ch[k], np.nan)
+    assert translated(ch, {"z": p, "x": p}, window_px=9)[0].reshape(band.shape)[:, 10:21].all()
+    idx = np.array([0, 7 * 31 + 15])
+    assert translated(field(band), {"z": p, "x": p}, idx, window_px=9)[0].tolist() == [False, True]
+
+
+def test_window_share_counts_the_valid_pixels_of_the_box_cut_at_the_edges():
+    from classifier.ambiguity import _window_share
+
+    rng = np.random.default_rng(3)
+    for shape in ((7, 9), (4, 5, 6)):
+        hit = rng.random(shape) < 0.4
+        valid = rng.random(shape) < 0.8
+        got = _window_share(hit, valid, 3)
+        for ix in np.ndindex(*shape):
+            box = tuple(slice(max(i - 1, 0), i + 2) for i in ix)
+            v = valid[box].sum()
+            want = (hit[box] & valid[box]).sum() / v if v else np.nan
+            assert np.isclose(got[ix], want, equal_nan=True)
+
+
 def test_translation_rule_turns_ballistic_decisions_and_sets_into_flow_but_not_diffusion():
     labels = np.array([1, 6, 0, 5, 4, 3, 1])
     seen = np.array([True, True, True, True, True, True, False])
@@ -309,8 +357,9 @@ def test_translation_rule_sees_slow_flow_and_rarely_random_ballistic_motion_in_s
     from tests.reference.translation_rule import fires
 
     n = 48
-    p_f = fires(dict(motion="flow", speed_um_s=0.335, polar_deg=10.0, azimuth_deg=0.0, snr_db=None), n, 11, 1.5).mean()
-    p_s = fires(dict(motion="ballistic", speed_um_s=0.0123, snr_db=None), n, 12, 1.5).mean()
+    flow = dict(motion="flow", speed_um_s=0.335, polar_deg=10.0, azimuth_deg=0.0, snr_db=None)
+    p_f = fires(flow, n, 11, 1.5)[0].mean()
+    p_s = fires(dict(motion="ballistic", speed_um_s=0.0123, snr_db=None), n, 12, 1.5)[0].mean()
     se = np.sqrt(p_f * (1 - p_f) / n + p_s * (1 - p_s) / n)
     assert p_f - p_s > 3.5 * max(se, 1.0 / n), (p_f, p_s)
 

@@ -7,12 +7,13 @@ Run (from the repository root)::
 
 Writes ``<out>/translation-rule.json`` and ``.md`` (not over existing files without ``--force``).
 
-**Data.** Each trial is one static-free B-scan patch (:func:`torchdoct.sim.patch.simulate_patch`: 13 × 13
+**Data.** Each trial is one static-free B-scan patch (:func:`torchdoct.sim.patch.simulate_patch`: 21 × 21
 pixels, 840 nm, 4.9/3.8 µm, 32 frames at 204.8 ms, density 0.02 µm⁻³, the lowest of the training prior:
 the fewest scatterers per PSF, where a few scatterers moving alone come nearest a translation), with its own
-scatterers; the sample is the centre pixel's window (the maps' speckle channels,
-:func:`torchdoct.sim.speckle.map_speckle_features`, window 9, offsets ±2). Conditions, with and without
-20 dB noise:
+scatterers; the sample is the centre pixel (the maps' speckle channels,
+:func:`torchdoct.sim.speckle.map_speckle_features`, window 9, offsets ±2), judged as the maps judge it (its
+window and the vote of the windows of its 9-pixel neighbourhood) and by its own window alone. Conditions,
+with and without 20 dB noise:
 
 * the null motions: random-ballistic motion at :data:`BALLISTIC_UM_S` and diffusion at :data:`DIFFUSION_UM2_S`
   (the grid's three levels of each, and one more decade below and between);
@@ -43,6 +44,9 @@ DIFFUSION_UM2_S = (9.26e-5, 3e-4, 8.25e-4, 7.36e-3)
 #: longest lag: the rule judges it on the lags its pattern held through).
 FLOW_UM_S = (0.335, 1.54)
 ANGLES_DEG = (10.0, 45.0, 80.0)
+#: Patch side (pixels): the centre's window (9), the windows of its 9-pixel neighbourhood that vote, and
+#: the ±2-pixel offset grid.
+PATCH_PX = 21
 AZIMUTHS_DEG = (0.0, 45.0, 90.0)
 
 
@@ -60,19 +64,22 @@ def conditions() -> list[dict]:
     return out
 
 
-def fires(cond: dict, trials: int, seed: int, pitch_um: float) -> np.ndarray:
-    """Rule 5 per trial of one condition (bool ``[trials]``)."""
+def fires(cond: dict, trials: int, seed: int, pitch_um: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rule 5 per trial of one condition at the patch's centre pixel: ``(rule, window)``, bool ``[trials]``
+    each; ``rule`` as the maps apply it (the centre's window and the vote of the windows around it,
+    :data:`classifier.ambiguity.TRANSLATION_SUPPORT_MIN`), ``window`` the centre's own window alone."""
     import torch
 
     from classifier.ambiguity import translated
     from torchdoct.sim.patch import simulate_patch
     from torchdoct.sim.speckle import map_speckle_features, speckle_motion
 
+    n = PATCH_PX
     field = simulate_patch(
         cond["motion"],
         trials=trials,
         seed=seed,
-        shape=(13, 13),
+        shape=(n, n),
         pitch_um=(pitch_um, pitch_um),
         density_per_um3=0.02,
         speed_um_s=cond.get("speed_um_s", 0.0),
@@ -84,11 +91,22 @@ def fires(cond: dict, trials: int, seed: int, pitch_um: float) -> np.ndarray:
     names = map_speckle_features(2, n_frames=field.shape[1])
     with torch.no_grad():
         _, x = speckle_motion(field, {"z": pitch_um, "x": pitch_um}, 0.2048, names, window=9, max_offset=2)
-    centre = x[..., 6, 6].double().numpy()  # [trials, F]
-    channels = {f"{n}@original": centre[:, j] for j, n in enumerate(names)}
-    seen, _ = translated(channels, {"z": pitch_um, "x": pitch_um})
-    assert seen is not None
-    return np.asarray(seen, bool)
+    maps = x.double().numpy()  # [trials, F, n, n]
+    pitch = {"z": pitch_um, "x": pitch_um}
+    centre = (n // 2) * n + n // 2
+    rule, window = np.zeros(trials, bool), np.zeros(trials, bool)
+    for t in range(trials):
+        channels = {f"{name}@original": maps[t, j] for j, name in enumerate(names)}
+        seen, _ = translated(channels, pitch, window_px=9)
+        alone, _ = translated({k: v.reshape(-1) for k, v in channels.items()}, pitch, window_px=9)
+        assert seen is not None and alone is not None
+        rule[t], window[t] = seen[centre], alone[centre]
+    return rule, window
+
+
+def _se(p: float, n: int) -> float:
+    """Binomial standard error of a share ``p`` of ``n`` trials (at least that of one trial in ``n``)."""
+    return math.sqrt(max(p * (1 - p), 1.0 / n) / n)
 
 
 def run(trials: int = 160, pitch_um: float = 1.5, seed: int = 5000, progress: bool = True) -> dict:
@@ -96,16 +114,26 @@ def run(trials: int = 160, pitch_um: float = 1.5, seed: int = 5000, progress: bo
     t0 = time.perf_counter()
     conds = conditions()
     for i, c in enumerate(conds):
-        f = fires(c, trials, seed + i, pitch_um)
-        p = float(f.mean())
-        rows.append({**c, "trials": trials, "fired": p, "se": math.sqrt(max(p * (1 - p), 1.0 / trials) / trials)})
+        f, alone = fires(c, trials, seed + i, pitch_um)
+        p, q = float(f.mean()), float(alone.mean())
+        rows.append(
+            {
+                **c,
+                "trials": trials,
+                "fired": p,
+                "se": _se(p, trials),
+                "fired_window_alone": q,
+                "se_window_alone": _se(q, trials),
+            }
+        )
         if progress:
             print(f"[{i + 1}/{len(conds)}] {c}: {p:.3f}", file=sys.stderr, flush=True)
     from classifier import ambiguity as amb
 
     null = [r["fired"] for r in rows if r["motion"] != "flow"]
+    null_alone = [r["fired_window_alone"] for r in rows if r["motion"] != "flow"]
     return {
-        "schema_version": 1,
+        "schema_version": 2,
         "benchmark": "translation-rule",
         "command": f"python -m tests.reference.translation_rule --out DIR --trials {trials} --pitch-um {pitch_um:g} "
         f"--seed {seed}",
@@ -114,10 +142,14 @@ def run(trials: int = 160, pitch_um: float = 1.5, seed: int = 5000, progress: bo
             "hold_min": amb.TRANSLATION_HOLD_MIN,
             "growth_min_pitch": amb.TRANSLATION_GROWTH_MIN,
             "linear_max_pitch": amb.TRANSLATION_LINEAR_MAX,
+            "support_min": amb.TRANSLATION_SUPPORT_MIN,
         },
+        "patch_px": PATCH_PX,
         "rows": rows,
         "null_mean": float(np.mean(null)),
         "null_max": float(np.max(null)),
+        "null_mean_window_alone": float(np.mean(null_alone)),
+        "null_max_window_alone": float(np.max(null_alone)),
         "seconds": time.perf_counter() - t0,
     }
 
@@ -136,19 +168,24 @@ def markdown(res: dict) -> str:
         f"# Rule 5 (a held pattern that moved): how often it fires (static-free B-scan patches, pitch "
         f"{res['pitch_um']:g} µm)",
         "",
-        f"Thresholds: peak at the longest lag ≥ {th['hold_min']:g}, move ≥ {th['growth_min_pitch']:g} pitch, "
-        f"line residual ≤ {th['linear_max_pitch']:g} pitch. Command: `{res['command']}`.",
+        f"Thresholds: held peak ≥ {th['hold_min']:g}, move ≥ {th['growth_min_pitch']:g} pitch, "
+        f"line residual ≤ {th['linear_max_pitch']:g} pitch, window vote ≥ {th['support_min']:g}. "
+        f"Command: `{res['command']}`.",
         "",
-        "| motion | SNR | fired | SE |",
-        "|---|---|---|---|",
+        "| motion | SNR | fired (rule) | SE | fired (window alone) | SE |",
+        "|---|---|---|---|---|---|",
     ]
     for r in res["rows"]:
         snr = "none" if r["snr_db"] is None else f"{r['snr_db']:g} dB"
-        lines.append(f"| {_label(r)} | {snr} | {r['fired']:.3f} | {r['se']:.3f} |")
+        lines.append(
+            f"| {_label(r)} | {snr} | {r['fired']:.3f} | {r['se']:.3f} | {r['fired_window_alone']:.3f} | "
+            f"{r['se_window_alone']:.3f} |"
+        )
     lines += [
         "",
         f"Direction-symmetric motions (false detections): mean {res['null_mean']:.4f}, worst condition "
-        f"{res['null_max']:.4f}.",
+        f"{res['null_max']:.4f} (window alone: {res['null_mean_window_alone']:.4f}, "
+        f"{res['null_max_window_alone']:.4f}).",
         "",
     ]
     return "\n".join(lines)
