@@ -207,21 +207,48 @@ def coherent_motion(
 def _window_share(hit: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:
     """Per pixel of a map: the share of the valid pixels of the ``window``-wide box centred on it (cut at the
     map's edges) where ``hit`` holds; NaN where the box holds no valid pixel."""
-    num, den = hit & valid, valid.astype(np.float64)
-    num = num.astype(np.float64)
+    num, den = (hit & valid).astype(np.int32), valid.astype(np.int32)  # counts ≤ window**ndim per box
     h = int(window) // 2
     for ax in range(hit.ndim):
         n = hit.shape[ax]
         out = []
         for a in (num, den):
-            c = np.cumsum(a, axis=ax)
+            c = np.cumsum(a, axis=ax, dtype=np.int64)
             c = np.concatenate([np.zeros_like(np.take(c, [0], axis=ax)), c], axis=ax)
             hi = np.minimum(np.arange(n) + h + 1, n)
             lo = np.maximum(np.arange(n) - h, 0)
-            out.append(np.take(c, hi, axis=ax) - np.take(c, lo, axis=ax))
+            out.append((np.take(c, hi, axis=ax) - np.take(c, lo, axis=ax)).astype(np.int32))
         num, den = out
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+        return np.where(den > 0, num / np.where(den > 0, den, 1), np.nan)
+
+
+#: Pixels per slab of rule 5's per-window criterion (bounds its float64 temporaries).
+_CHUNK = 1 << 20
+
+
+def _moved_along_a_line(d: np.ndarray, peaks: np.ndarray, lags: Sequence[int]) -> np.ndarray:
+    """Rule 5's per-window criterion (:func:`translated`): ``d`` the signed offsets ``[axes, lags, pixels]`` in
+    pitches, ``peaks`` ``xc_peak`` ``[lags, pixels]``; True where the pattern held through at least three lags
+    from the shortest on and its offset moved along a line over them."""
+    with np.errstate(invalid="ignore"):
+        held = peaks >= TRANSLATION_HOLD_MIN
+    run = np.cumprod(held, axis=0).sum(0)  # lags held from the shortest on
+    seen = np.zeros(d.shape[-1], bool)
+    for k in range(3, len(lags) + 1):  # the pixels whose pattern held through exactly the first k lags
+        sel = run == k
+        if not sel.any():
+            continue
+        dk = d[:, :k, :]
+        lag = np.asarray(lags[:k], np.float64)
+        lc = lag - lag.mean()
+        slope = (dk * lc[None, :, None]).sum(1) / (lc**2).sum()  # [axes, pixels], pitches per frame
+        resid = dk - dk.mean(1, keepdims=True) - slope[:, None, :] * lc[None, :, None]
+        rms = np.sqrt((resid**2).sum((0, 1)) / (d.shape[0] * (k - 2)))
+        growth = np.sqrt(((dk[:, -1] - dk[:, 0]) ** 2).sum(0))
+        with np.errstate(invalid="ignore"):
+            seen |= sel & (growth >= TRANSLATION_GROWTH_MIN) & (rms <= TRANSLATION_LINEAR_MAX)
+    return seen
 
 
 def translated(
@@ -256,42 +283,34 @@ def translated(
     for res, per_axis in sorted(found.items()):
         axes = sorted(per_axis)
         lags = [m for m in sorted(set.intersection(*per_axis.values())) if f"xc_peak_{m}@{res}" in channels]
-        pitch = {c: pitch_um.get(c) for c in axes}
+        given = {c: pitch_um.get(c) for c in axes}
         ok_pitch = all(
-            isinstance(p, (int, float)) and not isinstance(p, bool) and 0 < p < np.inf for p in pitch.values()
+            isinstance(p, (int, float)) and not isinstance(p, bool) and 0 < p < np.inf for p in given.values()
         )
         if len(lags) < 3 or not ok_pitch:
             continue
+        pitch = {c: float(p) for c, p in given.items() if p is not None}
 
         names = [f"xc_shift_{c}_{m}@{res}" for c in axes for m in lags] + [f"xc_peak_{m}@{res}" for m in lags]
         shape = np.shape(channels[names[0]])
-        d = np.stack(
-            [np.stack([_read(channels, f"xc_shift_{c}_{m}@{res}", None) / float(pitch[c]) for m in lags]) for c in axes]
-        )  # every pixel of the map: the neighbours vote
-        first = _read(channels, f"xc_peak_{lags[0]}@{res}", None)
-        with np.errstate(invalid="ignore"):
-            held = np.stack(
-                [_read(channels, f"xc_peak_{m}@{res}", None) >= TRANSLATION_HOLD_MIN for m in lags]
-            )  # [lags, pixels]
-        run = np.cumprod(held, axis=0).sum(0)  # lags held from the shortest on
-        seen = np.zeros(d.shape[-1], bool)
-        for k in range(3, len(lags) + 1):  # the pixels whose pattern held through exactly the first k lags
-            sel = run == k
-            if not sel.any():
-                continue
-            dk = d[:, :k, :]
-            lag = np.asarray(lags[:k], np.float64)
-            lc = lag - lag.mean()
-            slope = (dk * lc[None, :, None]).sum(1) / (lc**2).sum()  # [axes, pixels], pitches per frame
-            resid = dk - dk.mean(1, keepdims=True) - slope[:, None, :] * lc[None, :, None]
-            rms = np.sqrt((resid**2).sum((0, 1)) / (len(axes) * (k - 2)))
-            growth = np.sqrt(((dk[:, -1] - dk[:, 0]) ** 2).sum(0))
-            with np.errstate(invalid="ignore"):
-                seen |= sel & (growth >= TRANSLATION_GROWTH_MIN) & (rms <= TRANSLATION_LINEAR_MAX)
-        if len(shape) >= 2:
-            share = _window_share(
-                seen.reshape(shape), np.isfinite(first).reshape(shape), window_px or TRANSLATION_WINDOW_MIN
+        n = int(np.prod(shape))
+        seen = np.zeros(n, bool)
+        flat = {k: np.asarray(channels[k]).reshape(-1) for k in names}
+        for lo in range(0, n, _CHUNK):  # every pixel of the map (the neighbours vote), a slab at a time
+            part = slice(lo, min(lo + _CHUNK, n))
+            seen[part] = _moved_along_a_line(
+                np.stack(
+                    [
+                        np.stack([flat[f"xc_shift_{c}_{m}@{res}"][part].astype(np.float64) / pitch[c] for m in lags])
+                        for c in axes
+                    ]
+                ),
+                np.stack([flat[f"xc_peak_{m}@{res}"][part].astype(np.float64) for m in lags]),
+                lags,
             )
+        if len(shape) >= 2:
+            valid = np.isfinite(np.asarray(channels[f"xc_peak_{lags[0]}@{res}"])).reshape(shape)
+            share = _window_share(seen.reshape(shape), valid, window_px or TRANSLATION_WINDOW_MIN)
             with np.errstate(invalid="ignore"):
                 seen = seen & (share >= TRANSLATION_SUPPORT_MIN).reshape(-1)
         return (seen if idx is None else seen[idx]), names

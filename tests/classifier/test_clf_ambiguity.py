@@ -325,6 +325,26 @@ def test_translation_rule_on_maps_needs_the_windows_around_a_pixel_to_have_moved
     assert translated(field(band), {"z": p, "x": p}, idx, window_px=9)[0].tolist() == [False, True]
 
 
+def test_translation_rule_gives_the_same_mask_whatever_the_slab_size(monkeypatch):
+    """The per-window criterion runs over the map a slab of pixels at a time (bounded memory): slabs of
+    7 pixels give the mask of one slab."""
+    import classifier.ambiguity as amb
+
+    rng = np.random.default_rng(5)
+    p, lags = 1.5, (2, 4, 8, 16)
+    ch = {}
+    for m in lags:
+        ch[f"xc_peak_{m}@original"] = rng.uniform(0.75, 1.0, (12, 17))
+        for c in "zx":  # the left columns drift along z (a flow), the right ones jitter
+            sd = np.where(np.arange(17) < 9, 0.01, 0.3)
+            ch[f"xc_shift_{c}_{m}@original"] = rng.normal(0.0, 1.0, (12, 17)) * sd + 0.06 * m * (c == "z")
+    ch["xc_peak_2@original"][3, 4] = np.nan
+    whole = translated(ch, {"z": p, "x": p}, window_px=9)[0]
+    monkeypatch.setattr(amb, "_CHUNK", 7)
+    assert whole.any() and not whole.all()
+    assert np.array_equal(translated(ch, {"z": p, "x": p}, window_px=9)[0], whole)
+
+
 def test_window_share_counts_the_valid_pixels_of_the_box_cut_at_the_edges():
     from classifier.ambiguity import _window_share
 
