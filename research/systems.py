@@ -2,7 +2,7 @@
 --like`` → ``doct-classify``, scored against the rendered ground truth.
 
 ``python -m research.systems --out DIR [--system NAME ...] [--seeds 2026,1,2] [--quick]
-[--min-probability P ...]``
+[--min-probability P ...] [--stem STEM]``
 
 For each system phantom (``system-1310nm``: 1310 nm, lateral 10 µm, axial 8 µm; ``system-fast``: 64 frames
 12.8 ms apart; ``system-tissue-volume``: a volume in tissue, n = 1.38) the chain a user runs:
@@ -18,7 +18,10 @@ For each system phantom (``system-1310nm``: 1310 nm, lateral 10 µm, axial 8 µm
    coverage, recall per motion type, magnitude error and interval coverage; with ``--min-probability P``
    also at pool 5 with that threshold of the indeterminate outcome.
 
-Writes ``DIR/systems-validation.json`` and ``.md``.
+4. ``doct-classify --model DIR/SYSTEM --pool 5`` (the default decision, with the abstaining rules), scored
+   the same way, with each class's wrong share (its pixels decided as another class).
+
+Writes ``DIR/STEM.json`` and ``.md`` (``STEM`` default ``systems-validation``).
 """
 
 from __future__ import annotations
@@ -126,6 +129,12 @@ def evaluate(
             ):
                 raise RuntimeError(f"doct-classify {maps} failed")
             scores[str(p)].append(score_images(cdir, seq, edge_um=0.0))
+        # pool 5 with doct-classify's default decision: the rules of classifier.ambiguity abstain where the
+        # physics cannot tell (every ballistic decision of a B-scan becomes ballistic-or-flow)
+        cdir = out / f"cls-{system}-{s}-p5-default"
+        if classify_main([str(maps), "--model", str(model), "--out", str(cdir), "--pool", "5", "--force"]) != 0:
+            raise RuntimeError(f"doct-classify {maps} failed")
+        scores.setdefault("5-default", []).append(score_images(cdir, seq, edge_um=0.0))
         for mp in min_probabilities:  # pool 5 again, with another threshold of the indeterminate outcome
             cdir = out / f"cls-{system}-{s}-p5-mp{mp:g}"
             if (
@@ -219,7 +228,44 @@ def to_markdown(result: dict) -> str:
             f"{rec['diffusion']:.3f} / {rec['ballistic']:.3f} / {rec['flow']:.3f} | {mag} |"
             + (f" {'; '.join(thresholds)} |" if extra else "")
         )
+    if any("5-default" in r["scores"] for r in result["systems"]):
+        L += [
+            "",
+            "Pool 5 with doct-classify's default decision (the rules of `classifier.ambiguity`: a B-scan's "
+            "ballistic decisions become `ballistic-or-flow`); wrong share: the class's pixels decided as another "
+            "class. Balanced accuracy on decided pixels counts the classes with decided pixels.",
+            "",
+            "| system | coverage | balanced accuracy on decided | coverage diffusion / ballistic / flow "
+            "| wrong share diffusion / ballistic / flow |",
+            "|---|---|---|---|---|",
+        ]
+        for r in result["systems"]:
+            sc = r["scores"].get("5-default")
+            if not sc:
+                continue
+            c, cs = _overall(sc, "coverage")
+            ba = np.mean([_decided_ba(s) for s in sc])
+            cov, wrong = [], []
+            for k in ("diffusion", "ballistic", "flow"):
+                per = [s["overall"]["per_class"].get(k) for s in sc]
+                cov.append(np.mean([q["coverage"] if q else np.nan for q in per]))
+                wrong.append(np.mean([_wrong_share(q, k) if q else np.nan for q in per]))
+            L.append(
+                f"| {r['system']} | {c:.3f} ± {cs:.3f} | {ba:.3f} | {' / '.join(f'{v:.3f}' for v in cov)} | "
+                f"{' / '.join(f'{v:.3f}' for v in wrong)} |"
+            )
     return "\n".join(L) + "\n"
+
+
+def _wrong_share(per: dict, name: str) -> float:
+    """The share of a class's pixels decided as another class (``per_class`` entry of ``score_images``)."""
+    return sum(n for k, n in per["decided_as"].items() if k != name) / per["pixels"]
+
+
+def _decided_ba(score: dict) -> float:
+    """Balanced accuracy on decided pixels over the classes that have decided pixels."""
+    rec = [q["recall"] for q in score["overall"]["per_class"].values() if q.get("recall") is not None]
+    return float(np.mean(rec)) if rec else float("nan")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -235,6 +281,7 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         help="also classify at pool 5 with this doct-classify --min-probability (repeat)",
     )
+    p.add_argument("--stem", default="systems-validation", help="file names STEM.json, STEM.md")
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -246,13 +293,14 @@ def main(argv: list[str] | None = None) -> int:
         + "".join(f" --system {s}" for s in args.system or [])
         + (f" --seeds {args.seeds}" if args.seeds != "2026,1,2,3,4,5" else "")
         + (" --quick" if args.quick else "")
-        + "".join(f" --min-probability {mp:g}" for mp in args.min_probability),
+        + "".join(f" --min-probability {mp:g}" for mp in args.min_probability)
+        + (f" --stem {args.stem}" if args.stem != "systems-validation" else ""),
         "seeds": seeds,
         "systems": systems,
         "seconds": time.perf_counter() - t0,
     }
-    (out / "systems-validation.json").write_text(json.dumps(result, indent=1, default=float))
-    (out / "systems-validation.md").write_text(to_markdown(result))
+    (out / f"{args.stem}.json").write_text(json.dumps(result, indent=1, default=float))
+    (out / f"{args.stem}.md").write_text(to_markdown(result))
     print(to_markdown(result))
     return 0
 
