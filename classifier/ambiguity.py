@@ -149,8 +149,10 @@ OFFSET_TO_SET = {"ballistic": "ballistic-or-flow", "diffusion": "diffusion-or-fl
 OFFSET_GREW_TO_SET = {"ballistic": "ballistic-or-flow"}
 #: Rule 5: the window's peak correlation from which its pattern counts as held at a lag.
 TRANSLATION_HOLD_MIN = 0.8
-#: Rule 5: the smallest move of the signed peak offset between the shortest and the last held lag, in pitches.
-TRANSLATION_GROWTH_MIN = 0.4
+#: Rule 5: the smallest move of the signed peak offset between the shortest and the last held lag, in pitches
+#: (with the neighbours' vote, the direction-symmetric motions of the patch record, docs/abstention.md, stay
+#: at or near no false detection; a larger move loses slow oblique flow).
+TRANSLATION_GROWTH_MIN = 0.3
 #: Rule 5: the largest residual of the offset's straight line in the lag, in pitches (RMS per degree of freedom).
 TRANSLATION_LINEAR_MAX = 0.1
 #: Rule 5: the narrowest speckle window (pixels per axis) it is applied at: the window its rates were
