@@ -209,18 +209,11 @@ def coherent_motion(
 def _window_share(hit: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:
     """Per pixel of a map: the share of the valid pixels of the ``window``-wide box centred on it (cut at the
     map's edges) where ``hit`` holds; NaN where the box holds no valid pixel."""
+    from .pooling import _box_sum
+
     num, den = (hit & valid).astype(np.int32), valid.astype(np.int32)  # counts ≤ window**ndim per box
-    h = int(window) // 2
     for ax in range(hit.ndim):
-        n = hit.shape[ax]
-        out = []
-        for a in (num, den):
-            c = np.cumsum(a, axis=ax, dtype=np.int64)
-            c = np.concatenate([np.zeros_like(np.take(c, [0], axis=ax)), c], axis=ax)
-            hi = np.minimum(np.arange(n) + h + 1, n)
-            lo = np.maximum(np.arange(n) - h, 0)
-            out.append((np.take(c, hi, axis=ax) - np.take(c, lo, axis=ax)).astype(np.int32))
-        num, den = out
+        num, den = _box_sum(num, int(window), ax), _box_sum(den, int(window), ax)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(den > 0, num / np.where(den > 0, den, 1), np.nan)
 

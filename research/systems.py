@@ -107,56 +107,29 @@ def evaluate(
     files = {s: render_maps(out, system, s) for s in seeds}
     model, report = train(out, system, files[seeds[0]][1], quick, train_seed)
     scores: dict[str, list] = {str(p): [] for p in POOLS}
+
+    def classify(key: str, cdir: Path, maps: Path, seq: Path, *options: str) -> None:
+        """``doct-classify MAPS --model MODEL --out CDIR --force OPTIONS``, scored into ``scores[key]``."""
+        argv = [str(maps), "--model", str(model), "--out", str(cdir), *options, "--force"]
+        if classify_main(argv) != 0:
+            raise RuntimeError(f"doct-classify {' '.join(argv)} failed")
+        scores.setdefault(key, []).append(score_images(cdir, seq, edge_um=0.0))
+
     for s in seeds:
         seq, maps = files[s]
         for p in POOLS:
-            cdir = out / f"cls-{system}-{s}-p{p}"
-            if (
-                classify_main(
-                    [
-                        str(maps),
-                        "--model",
-                        str(model),
-                        "--out",
-                        str(cdir),
-                        "--pool",
-                        str(p),
-                        "--force",
-                        "--decide-ballistic",
-                    ]
-                )
-                != 0
-            ):
-                raise RuntimeError(f"doct-classify {maps} failed")
-            scores[str(p)].append(score_images(cdir, seq, edge_um=0.0))
+            classify(str(p), out / f"cls-{system}-{s}-p{p}", maps, seq, "--pool", str(p), "--decide-ballistic")
         # pool 5 with doct-classify's default decision: the rules of classifier.ambiguity abstain where the
         # physics cannot tell (every ballistic decision of a B-scan becomes ballistic-or-flow)
-        cdir = out / f"cls-{system}-{s}-p5-default"
-        if classify_main([str(maps), "--model", str(model), "--out", str(cdir), "--pool", "5", "--force"]) != 0:
-            raise RuntimeError(f"doct-classify {maps} failed")
-        scores.setdefault("5-default", []).append(score_images(cdir, seq, edge_um=0.0))
+        classify("5-default", out / f"cls-{system}-{s}-p5-default", maps, seq, "--pool", "5")
         for mp in min_probabilities:  # pool 5 again, with another threshold of the indeterminate outcome
-            cdir = out / f"cls-{system}-{s}-p5-mp{mp:g}"
-            if (
-                classify_main(
-                    [
-                        str(maps),
-                        "--model",
-                        str(model),
-                        "--out",
-                        str(cdir),
-                        "--pool",
-                        "5",
-                        "--min-probability",
-                        f"{mp:g}",
-                        "--force",
-                        "--decide-ballistic",
-                    ]
-                )
-                != 0
-            ):
-                raise RuntimeError(f"doct-classify {maps} --min-probability {mp:g} failed")
-            scores.setdefault(f"5@{mp:g}", []).append(score_images(cdir, seq, edge_um=0.0))
+            classify(
+                f"5@{mp:g}",
+                out / f"cls-{system}-{s}-p5-mp{mp:g}",
+                maps,
+                seq,
+                *("--pool", "5", "--min-probability", f"{mp:g}", "--decide-ballistic"),
+            )
     test = report["test"]["network"]["1"]
     return {
         "system": system,
