@@ -86,6 +86,13 @@ pixel:
 
    It only abstains: a random motion that reached transit within the shortest lag, or whose decaying
    pattern let the offset wander, loses coverage, never a right decision.
+6. **A decision its neighbours do not share** (maps of any geometry; applied after every other rule). A
+   region of one motion is at least a resolution cell wide, and the pooled evidence of neighbouring pixels
+   overlaps, so a motion's decisions come in patches; a single-class decision that fewer than
+   :data:`CONSENSUS_MIN` of the classified pixels of its window (the pooling window, at least
+   :data:`CONSENSUS_WINDOW_MIN` pixels per axis: about a resolution cell at the usual sampling) share is
+   a stray one: where a few scatterers dominate a pixel (the PSF half outside the sample at its surface, a
+   slab's border) or a pooled estimate fell in its tail. It becomes ``indeterminate``. It only abstains.
 """
 
 from __future__ import annotations
@@ -115,7 +122,10 @@ __all__ = [
     "TRANSLATION_LINEAR_MAX",
     "TRANSLATION_SUPPORT_MIN",
     "TRANSLATION_WINDOW_MIN",
+    "CONSENSUS_MIN",
+    "CONSENSUS_WINDOW_MIN",
     "abstain_where_ambiguous",
+    "unshared",
     "coherent_motion",
     "fast_decorrelation",
     "offset_moved",
@@ -166,6 +176,12 @@ TRANSLATED_TO_FLOW = ("ballistic", "ballistic-or-flow")
 TRANSLATION_SUPPORT_MIN = 0.5
 #: The set label a ballistic decision becomes.
 SET_LABEL = "ballistic-or-flow"
+#: Rule 6: the share of the classified pixels of a pixel's window that must hold its single-class decision.
+CONSENSUS_MIN = 0.5
+#: Rule 6: the narrowest window (pixels per axis), used where the pooling window is narrower.
+CONSENSUS_WINDOW_MIN = 3
+#: The single-class decisions rule 6 checks.
+_MOTIONS = ("diffusion", "ballistic", "flow")
 
 _XC_CENTRE = re.compile(r"^xc_centre_(\d+)@")
 _RHO_LIN = re.compile(r"^rho_lin_(\d+)$")
@@ -475,3 +491,27 @@ def abstain_where_ambiguous(
                     counts["offset_moved"] += int(sel.sum())
                     out[sel] = names.index(set_name)
     return out, counts
+
+
+def unshared(
+    labels: np.ndarray, names: Sequence[str], idx: np.ndarray, shape: tuple[int, ...], window: int
+) -> np.ndarray:
+    """Rule 6 (module docstring): per classified pixel (``labels``, indices into ``names``, at the flat
+    positions ``idx`` of a map of ``shape``), whether it holds a decision for one motion that fewer than
+    :data:`CONSENSUS_MIN` of the classified pixels of the ``window``-wide box centred on it (cut at the map's
+    edges; at least :data:`CONSENSUS_WINDOW_MIN`) share."""
+    labels = np.asarray(labels)
+    names = list(names)
+    grid = np.full(int(np.prod(shape)), -1, np.int16)
+    grid[idx] = labels
+    grid = grid.reshape(shape)
+    valid = grid >= 0
+    width = max(int(window), CONSENSUS_WINDOW_MIN)
+    out = np.zeros(labels.shape, bool)
+    for k, name in enumerate(names):
+        mine = labels == k
+        if name not in _MOTIONS or not mine.any():
+            continue
+        share = _window_share(grid == k, valid, width).reshape(-1)[idx]
+        out |= mine & (share < CONSENSUS_MIN)
+    return out

@@ -454,7 +454,8 @@ def build_classify_parser() -> argparse.ArgumentParser:
         "speckle pattern moved coherently, and a ballistic one ballistic-or-flow where the physics "
         "cannot exclude flow (every other B-scan pixel; a volume's pixels that have not decorrelated "
         "or decorrelated before the shortest lag), and a ballistic or diffusion one its set with flow "
-        "where the pattern's offset moved off the centre or grew with the lag; docs/abstention.md)",
+        "where the pattern's offset moved off the centre or grew with the lag, and a decision fewer than "
+        "half of its window's pixels share indeterminate; docs/abstention.md)",
     )
     p.add_argument(
         "--ignore-refractive-index",
@@ -567,6 +568,11 @@ def _classify(args: argparse.Namespace) -> int:
             print(
                 f"  a set with flow where the pattern's offset moved: {ch['offset_moved']} ballistic or diffusion "
                 "decisions (--decide-ballistic keeps the model's decisions)"
+            )
+        if ch.get("unshared"):
+            print(
+                f"  indeterminate where few neighbours share the decision: {ch['unshared']} pixels "
+                "(--decide-ballistic keeps the model's decisions)"
             )
         for c in res.label_names:
             print(f"  {c:>22}: {counts[c]:>9} ({counts[c] / total:6.1%})")

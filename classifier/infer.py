@@ -324,13 +324,17 @@ def classify_maps(
             moved=moved,
             translation=translation,
         )
+        alone = ambiguity.unshared(labels_flat, list(mdl.classes) + set_names, idx, shape, int(pool))
+        labels_flat = np.where(alone, mdl.classes.index("indeterminate"), labels_flat)
+        changed["unshared"] = int(alone.sum())
         ambiguity_info = {
             "rules": (["coherent_motion"] if coherent is not None else [])
             + (["translation"] if translation is not None else [])
             + (["bscan_plane"] if bscan else [])
             + (["slow_decorrelation"] if corr is not None else [])
             + (["fast_decorrelation"] if fast is not None and not bscan else [])
-            + (["offset_moved"] if moved is not None else []),
+            + (["offset_moved"] if moved is not None else [])
+            + ["unshared"],
             "coherent_channels": coherent_source,
             "coherent_peak_min": ambiguity.COHERENT_PEAK_MIN,
             "coherent_moved_min": ambiguity.COHERENT_MOVED_MIN,
@@ -347,6 +351,8 @@ def classify_maps(
             "translation_growth_min_pitch": ambiguity.TRANSLATION_GROWTH_MIN,
             "translation_linear_max_pitch": ambiguity.TRANSLATION_LINEAR_MAX,
             "translation_window_min_px": ambiguity.TRANSLATION_WINDOW_MIN,
+            "consensus_min": ambiguity.CONSENSUS_MIN,
+            "consensus_window_px": max(int(pool), ambiguity.CONSENSUS_WINDOW_MIN),
             "changed_pixels": changed,
         }
     labels = np.full(valid.size, MASKED, np.uint8)

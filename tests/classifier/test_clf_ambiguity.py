@@ -23,6 +23,8 @@ from classifier.ambiguity import (
     TRANSLATION_HOLD_MIN,
     TRANSLATION_LINEAR_MAX,
     TRANSLATION_WINDOW_MIN,
+    CONSENSUS_MIN,
+    CONSENSUS_WINDOW_MIN,
     OffsetMotion,
     abstain_where_ambiguous,
     coherent_motion,
@@ -30,6 +32,7 @@ from classifier.ambiguity import (
     offset_moved,
     slow_decorrelation,
     translated,
+    unshared,
 )
 
 NAMES = [
@@ -358,6 +361,41 @@ def test_window_share_counts_the_valid_pixels_of_the_box_cut_at_the_edges():
             v = valid[box].sum()
             want = (hit[box] & valid[box]).sum() / v if v else np.nan
             assert np.isclose(got[ix], want, equal_nan=True)
+
+
+def test_a_single_class_decision_few_of_its_neighbours_share_is_flagged_and_no_set_is():
+    """Rule 6: a decision stands where at least CONSENSUS_MIN of the classified pixels of its window hold it:
+    a patch of flow keeps its inside and loses the corners it shares with fewer; one flow pixel among
+    sets is flagged; a set or indeterminate pixel never; unclassified pixels do not count."""
+    assert CONSENSUS_MIN == 0.5 and CONSENSUS_WINDOW_MIN == 3
+    flow, ball_set, indet = NAMES.index("flow"), NAMES.index("ballistic-or-flow"), NAMES.index("indeterminate")
+    grid = np.full((12, 12), ball_set)
+    grid[2:7, 2:7] = flow  # a 5x5 patch
+    grid[10, 10] = flow  # a stray decision
+    grid[0, 11] = indet
+    shape = grid.shape
+    valid = np.ones(shape, bool)
+    valid[9:12, 0:3] = False  # not classified (background)
+    idx = np.flatnonzero(valid)
+    got = np.zeros(shape, bool).reshape(-1)
+    got[idx] = unshared(grid.reshape(-1)[idx], NAMES, idx, shape, 1)
+    got = got.reshape(shape)
+    expect = np.zeros(shape, bool)
+    expect[10, 10] = True
+    for i, j in ((2, 2), (2, 6), (6, 2), (6, 6)):  # corners: 4 of the 9 in their 3x3 box
+        expect[i, j] = True
+    np.testing.assert_array_equal(got, expect)
+    # the pooling window widens the box: at 5x5 the patch's corners keep 9/25 < 1/2, its edges 15/25 ≥ 1/2
+    got5 = np.zeros(shape, bool).reshape(-1)
+    got5[idx] = unshared(grid.reshape(-1)[idx], NAMES, idx, shape, 5)
+    got5 = got5.reshape(shape)
+    assert got5[2, 2] and got5[10, 10] and not got5[4, 2] and not got5[4, 4]
+    # the box counts only classified pixels: a flow pixel beside the background holds half of the classified pixels of its cut box
+    edge = grid.copy()
+    edge[8, 0:2] = flow
+    got_e = np.zeros(shape, bool).reshape(-1)
+    got_e[idx] = unshared(edge.reshape(-1)[idx], NAMES, idx, shape, 1)
+    assert not got_e.reshape(shape)[8, 0]  # box rows 7..8 (row 9 unclassified), cols 0..1: 2 of 4 are flow
 
 
 def test_translation_rule_turns_ballistic_decisions_and_sets_into_flow_but_not_diffusion():
