@@ -13,6 +13,8 @@ import pytest
 from classifier.ambiguity import (
     COHERENT_MOVED_MIN,
     COHERENT_PEAK_MIN,
+    CONSENSUS_MIN,
+    CONSENSUS_WINDOW_MIN,
     DECORRELATED_BELOW,
     FAST_REMAINING_MAX,
     OFFSET_FIRST_MIN,
@@ -23,8 +25,6 @@ from classifier.ambiguity import (
     TRANSLATION_HOLD_MIN,
     TRANSLATION_LINEAR_MAX,
     TRANSLATION_WINDOW_MIN,
-    CONSENSUS_MIN,
-    CONSENSUS_WINDOW_MIN,
     OffsetMotion,
     abstain_where_ambiguous,
     coherent_motion,
