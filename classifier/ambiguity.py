@@ -222,14 +222,21 @@ def coherent_motion(
     return found, used
 
 
+def _box_count(mask: np.ndarray, window: int) -> np.ndarray:
+    """Per pixel of a map: how many pixels of the ``window``-wide box centred on it (cut at the map's edges)
+    hold ``mask`` (int32: at most ``window**ndim``)."""
+    from .pooling import _box_sum
+
+    out = np.asarray(mask).astype(np.int32)
+    for ax in range(out.ndim):
+        out = _box_sum(out, int(window), ax)
+    return out
+
+
 def _window_share(hit: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:
     """Per pixel of a map: the share of the valid pixels of the ``window``-wide box centred on it (cut at the
     map's edges) where ``hit`` holds; NaN where the box holds no valid pixel."""
-    from .pooling import _box_sum
-
-    num, den = (hit & valid).astype(np.int32), valid.astype(np.int32)  # counts ≤ window**ndim per box
-    for ax in range(hit.ndim):
-        num, den = _box_sum(num, int(window), ax), _box_sum(den, int(window), ax)
+    num, den = _box_count(hit & valid, window), _box_count(valid, window)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(den > 0, num / np.where(den > 0, den, 1), np.nan)
 
@@ -505,13 +512,15 @@ def unshared(
     grid = np.full(int(np.prod(shape)), -1, np.int16)
     grid[idx] = labels
     grid = grid.reshape(shape)
-    valid = grid >= 0
     width = max(int(window), CONSENSUS_WINDOW_MIN)
     out = np.zeros(labels.shape, bool)
+    classified = None  # per classified pixel: the classified pixels of its box (≥ 1: itself)
     for k, name in enumerate(names):
         mine = labels == k
         if name not in _MOTIONS or not mine.any():
             continue
-        share = _window_share(grid == k, valid, width).reshape(-1)[idx]
-        out |= mine & (share < CONSENSUS_MIN)
+        if classified is None:
+            classified = _box_count(grid >= 0, width).reshape(-1)[idx]
+        same = _box_count(grid == k, width).reshape(-1)[idx]
+        out |= mine & (same < CONSENSUS_MIN * classified)
     return out
