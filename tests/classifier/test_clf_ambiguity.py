@@ -3,7 +3,8 @@ flow it is ``ballistic-or-flow`` (classifier.ambiguity): every ballistic decisio
 has not decorrelated or decorrelated before the shortest lag; a ballistic or diffusion decision is a set with flow where the pattern's
 offset moved; what the rules read; on exactly translated speckle beating against static speckle, the offset rule sees the flow that the
 moved-peak rule misses and fires more rarely under a direction-symmetric motion; and, on a rendered static-free B-scan of flow crossing the
-plane, no flow pixel decided as another class."""
+plane, no flow pixel decided as another class; a single-class decision few of its neighbours share is
+indeterminate (rule 6), last, in doct-classify's default only."""
 
 from __future__ import annotations
 
@@ -507,3 +508,28 @@ def test_flow_across_a_bscan_without_static_tissue_is_never_decided_as_another_c
     assert ruled["diffusion"]["decided"] <= model["diffusion"]["decided"]
     assert right(ruled["flow"]) >= right(model["flow"])
     assert ruled["flow"]["decided"] - right(ruled["flow"]) <= model["flow"]["decided"] - right(model["flow"])
+
+
+def test_classify_maps_applies_rule_6_last_and_decide_ballistic_skips_it(tmp_path, monkeypatch):
+    """doct-classify's default ends with rule 6: every pixel it flags becomes indeterminate and is counted
+    (a flag-everything stand-in leaves no single-class decision); --decide-ballistic applies no rule."""
+    from classifier import ambiguity
+    from classifier.bench.classify import _synthetic_maps
+    from classifier.infer import classify_maps, load_model
+
+    mdl = load_model("signature")
+    path = _synthetic_maps(tmp_path / "maps.npz", mdl.spec, 24, 0)
+    kept = classify_maps(path, mdl, pool=5, background_db=None, abstain_ambiguous=False)
+    assert kept.info["ambiguity"] is None
+    single = [mdl.classes.index(m) for m in ("diffusion", "ballistic", "flow")]
+    assert np.isin(kept.labels, single).any()
+
+    base = classify_maps(path, mdl, pool=5, background_db=None)
+    amb = base.info["ambiguity"]
+    assert amb["rules"][-1] == "unshared" and amb["consensus_min"] == CONSENSUS_MIN
+    assert amb["consensus_window_px"] == 5
+
+    monkeypatch.setattr(ambiguity, "unshared", lambda labels, *a, **k: np.ones(np.shape(labels), bool))
+    flagged = classify_maps(path, mdl, pool=5, background_db=None)
+    assert not np.isin(flagged.labels, single).any()
+    assert flagged.info["ambiguity"]["changed_pixels"]["unshared"] == flagged.info["classified"]
