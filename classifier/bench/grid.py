@@ -38,7 +38,10 @@ the coarsest configuration's resolution plus half the window; masked pixels are 
   ``wrong_share_max``, the worst of the three (the issue's "confidently wrong");
 * ``set_miss_share`` per motion: share given a set of classes that leaves the true one out;
 * ``identifiable`` per motion: the ground truth of the training (a motion outside it should be abstained on);
-* ``seconds``: render, maps and classification of the cell.
+* ``seconds``: render, maps and classification of the cell;
+* ``all_pixels``: the same scores over every pixel of each band, its borders included (``edge`` = 0):
+  where a band meets the empty medium or another band the PSF and the pooling window straddle the border
+  (``summary_by_context_all_pixels`` pools them like ``summary_by_context``).
 
 Outputs (``write_grid``): ``grid.json`` (:data:`SCHEMA_VERSION`, the definitions above, the cells),
 ``grid.csv``, ``grid.md`` and ``grid.png`` (worst wrong share and coverage per cell, cividis).
@@ -388,6 +391,7 @@ def run_cell(
             c = classify_maps(path, model, pool=int(pool), threads=threads, abstain_ambiguous=abstain_ambiguous, **kw)
             t2 = time.perf_counter()
             s = score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool)))
+            borders = score_labels(res.labels, c.labels, c.classes, 0)
             rows.append(
                 {
                     **asdict(cell),
@@ -399,6 +403,7 @@ def run_cell(
                     "magnitudes": {m: levels[m][cell.level] for m in MOTIONS},
                     "identifiable": ident,
                     **s,
+                    "all_pixels": borders,
                     "seconds": {
                         "render": t_render - t0,
                         "maps": t_maps - t_render,
@@ -469,6 +474,9 @@ def run_grid(
         "cells": rows,
         "summary": summarize(rows),
         "summary_by_context": summarize_by_context(rows),
+        "summary_by_context_all_pixels": summarize_by_context(
+            [{**r, "per_class": r["all_pixels"]["per_class"]} for r in rows if "all_pixels" in r]
+        ),
         "seconds": time.perf_counter() - t0,
         "machine": machine_info(),
     }
@@ -602,6 +610,17 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
+def _context_row(s: dict[str, Any]) -> str:
+    return (
+        f"| {s['geometry']} | {s['context']} | {s['pool']} | {s['cells']} | {_fmt(s['coverage'])} | "
+        f"{_fmt(s['balanced_accuracy'])} | {_fmt(s['worst_wrong_share'])} | "
+        + " | ".join(
+            f"{_fmt(s['per_class'][m]['coverage'])} / {_fmt(s['per_class'][m]['wrong_share'])}" for m in MOTIONS
+        )
+        + " |"
+    )
+
+
 def format_table(res: dict[str, Any]) -> str:
     """The Markdown table: a summary per window, then one row per cell and window."""
     lines = [
@@ -609,8 +628,8 @@ def format_table(res: dict[str, Any]) -> str:
         "",
         f"Models: {', '.join(f'{g}: `{m}`' for g, m in res['models'].items())}; decision: `{res['decision']}`"
         + (
-            ", flow where the speckle moved coherently, ballistic-or-flow where flow cannot be excluded and a set with flow where the "
-            "pattern's offset moved (classifier.ambiguity)"
+            ", flow where the speckle moved coherently, ballistic-or-flow where flow cannot be excluded, a set with flow where the "
+            "pattern's offset moved and indeterminate where few neighbours share a decision (classifier.ambiguity)"
             if res.get("abstain_ambiguous", False)
             else ", the model's decisions kept"
         )
@@ -641,15 +660,18 @@ def format_table(res: dict[str, Any]) -> str:
             + " |",
             "|---|---|---:|---:|---:|---:|---:|" + "---:|" * len(MOTIONS),
         ]
-        for s in res["summary_by_context"]:
-            lines.append(
-                f"| {s['geometry']} | {s['context']} | {s['pool']} | {s['cells']} | {_fmt(s['coverage'])} | "
-                f"{_fmt(s['balanced_accuracy'])} | {_fmt(s['worst_wrong_share'])} | "
-                + " | ".join(
-                    f"{_fmt(s['per_class'][m]['coverage'])} / {_fmt(s['per_class'][m]['wrong_share'])}" for m in MOTIONS
-                )
-                + " |"
-            )
+        lines += [_context_row(s) for s in res["summary_by_context"]]
+    if res.get("summary_by_context_all_pixels"):
+        lines += [
+            "",
+            "The same over every band pixel, borders included (`summary_by_context_all_pixels`, edge 0).",
+            "",
+            "| geometry | context | window | cells | coverage | balanced accuracy | worst wrong share | "
+            + " | ".join(f"{m} coverage / wrong" for m in MOTIONS)
+            + " |",
+            "|---|---|---:|---:|---:|---:|---:|" + "---:|" * len(MOTIONS),
+        ]
+        lines += [_context_row(s) for s in res["summary_by_context_all_pixels"]]
     cols = [c for c in _COLUMNS if c not in ("key", "model", "decision")]
     lines += ["", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in res["cells"]:

@@ -854,12 +854,13 @@ def translation_rule(root: Path) -> str:
     )
 
 
-def grid_context(root: Path) -> str:
-    """The default grid pooled per geometry, static context and window (``summary_by_context``)."""
+def grid_context(root: Path, key: str = "summary_by_context") -> str:
+    """The default grid pooled per geometry, static context and window (``key``: ``summary_by_context``, the
+    band interiors; ``summary_by_context_all_pixels``, borders included)."""
     d, p = load(root, "grid-default.json")
-    ctx = d.get("summary_by_context")
+    ctx = d.get(key)
     if not ctx:
-        raise MissingResult(f"{p} has no summary_by_context: re-record it with the command in its 'command' field")
+        raise MissingResult(f"{p} has no {key}: re-record it with the command in its 'command' field")
     motions = list(ctx[0]["per_class"])
     rows = []
     for s in ctx:
@@ -912,6 +913,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "protocol-quick": protocol_quick,
     "translation-rule": translation_rule,
     "grid-context": grid_context,
+    "grid-context-all-pixels": lambda root: grid_context(root, "summary_by_context_all_pixels"),
 }
 
 

@@ -118,7 +118,7 @@ def test_grid_results_files_are_self_describing(tmp_path, levels):
     assert list(rows[0]) == list(grid._COLUMNS) and len(rows) == 4
     md = (tmp_path / "grid.md").read_text()
     # one row per cell and window, and one per (geometry, context, window) of the pooled summary
-    assert "worst wrong share" in md and md.count("\n| bscan |") == 4 + 4
+    assert "worst wrong share" in md and md.count("\n| bscan |") == 4 + 4 + 4  # cells, interiors, all pixels
     assert set(data["summary"]) == {"1", "5"}
     ctx = data["summary_by_context"]
     assert [(s["context"], s["pool"]) for s in ctx] == [("background", 1), ("background", 5), ("none", 1), ("none", 5)]
@@ -131,6 +131,14 @@ def test_grid_results_files_are_self_describing(tmp_path, levels):
             assert p["coverage"] == pytest.approx(decided / p["pixels"])
             assert 0 <= p["wrong_share"] <= p["coverage"] + 1e-12
         assert s["worst_wrong_share"] == max(p["wrong_share"] for p in s["per_class"].values())
+    # every band pixel, borders included (edge 0): a superset of the interior pixels each cell scores
+    for r in data["cells"]:
+        for m in grid.MOTIONS:
+            assert r["all_pixels"]["per_class"][m]["pixels"] >= r["per_class"][m]["pixels"]
+    every = data["summary_by_context_all_pixels"]
+    assert [(s["context"], s["pool"]) for s in every] == [(s["context"], s["pool"]) for s in ctx]
+    for s, inner in zip(every, ctx):
+        assert all(s["per_class"][m]["pixels"] >= inner["per_class"][m]["pixels"] for m in grid.MOTIONS)
     with pytest.raises(ValueError, match="--force"):
         grid.write_grid(res, tmp_path)  # nothing overwritten without force
 
