@@ -475,7 +475,7 @@ def run_grid(
         "summary": summarize(rows),
         "summary_by_context": summarize_by_context(rows),
         "summary_by_context_all_pixels": summarize_by_context(
-            [{**r, "per_class": r["all_pixels"]["per_class"]} for r in rows if "all_pixels" in r]
+            [{**r, "per_class": r["all_pixels"]["per_class"]} for r in rows]
         ),
         "seconds": time.perf_counter() - t0,
         "machine": machine_info(),
@@ -649,29 +649,24 @@ def format_table(res: dict[str, Any]) -> str:
             f"| {pool} | {s['cells']} | {_fmt(s['worst_wrong_share'])} | {s['cells_over_10pct_wrong']} | "
             f"{_fmt(s['mean_coverage'])} | {_fmt(s['min_coverage'])} | {_fmt(s['mean_balanced_accuracy'])} |"
         )
-    if res.get("summary_by_context"):
-        lines += [
-            "",
-            "Pooled over the cells of each geometry, static context and window (`summary_by_context`): "
-            "coverage, balanced accuracy on decided pixels, worst wrong share, and per motion coverage / wrong share.",
-            "",
-            "| geometry | context | window | cells | coverage | balanced accuracy | worst wrong share | "
-            + " | ".join(f"{m} coverage / wrong" for m in MOTIONS)
-            + " |",
-            "|---|---|---:|---:|---:|---:|---:|" + "---:|" * len(MOTIONS),
-        ]
-        lines += [_context_row(s) for s in res["summary_by_context"]]
-    if res.get("summary_by_context_all_pixels"):
-        lines += [
-            "",
-            "The same over every band pixel, borders included (`summary_by_context_all_pixels`, edge 0).",
-            "",
-            "| geometry | context | window | cells | coverage | balanced accuracy | worst wrong share | "
-            + " | ".join(f"{m} coverage / wrong" for m in MOTIONS)
-            + " |",
-            "|---|---|---:|---:|---:|---:|---:|" + "---:|" * len(MOTIONS),
-        ]
-        lines += [_context_row(s) for s in res["summary_by_context_all_pixels"]]
+    captions = {
+        "summary_by_context": "Pooled over the cells of each geometry, static context and window (`summary_by_context`): "
+        "coverage, balanced accuracy on decided pixels, worst wrong share, and per motion coverage / wrong share.",
+        "summary_by_context_all_pixels": "The same over every band pixel, borders included "
+        "(`summary_by_context_all_pixels`, edge 0).",
+    }
+    for key, caption in captions.items():
+        if res.get(key):
+            lines += [
+                "",
+                caption,
+                "",
+                "| geometry | context | window | cells | coverage | balanced accuracy | worst wrong share | "
+                + " | ".join(f"{m} coverage / wrong" for m in MOTIONS)
+                + " |",
+                "|---|---|---:|---:|---:|---:|---:|" + "---:|" * len(MOTIONS),
+            ]
+            lines += [_context_row(s) for s in res[key]]
     cols = [c for c in _COLUMNS if c not in ("key", "model", "decision")]
     lines += ["", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in res["cells"]:
