@@ -87,12 +87,16 @@ pixel:
    It only abstains: a random motion that reached transit within the shortest lag, or whose decaying
    pattern let the offset wander, loses coverage, never a right decision.
 6. **A decision its neighbours do not share** (maps of any geometry; applied after every other rule). A
-   region of one motion is at least a resolution cell wide, and the pooled evidence of neighbouring pixels
-   overlaps, so a motion's decisions come in patches; a single-class decision that fewer than
-   :data:`CONSENSUS_MIN` of the classified pixels of its window (the pooling window, at least
-   :data:`CONSENSUS_WINDOW_MIN` pixels per axis: about a resolution cell at the usual sampling) share is
-   a stray one: where a few scatterers dominate a pixel (the PSF half outside the sample at its surface, a
-   slab's border) or a pooled estimate fell in its tail. It becomes ``indeterminate``. It only abstains.
+   region of one motion is at least a resolution cell wide, and the evidence of neighbouring pixels overlaps
+   (the pooling window, and the PSF of every configuration the model reads), so a motion's decisions come in
+   patches; a single-class decision that fewer than :data:`CONSENSUS_MIN` of the classified pixels of its box
+   share is a stray one: where a few scatterers dominate a pixel (the PSF half outside the sample at its
+   surface, a slab's border), a pooled estimate fell in its tail, or the coarsest configuration's PSF reaches
+   into a region of another motion and its features mix the two. The box (:func:`consensus_window`) is, per
+   axis, the widest of the pooling window, :data:`CONSENSUS_WINDOW_MIN` pixels, and the coarsest
+   configuration's footprint: the full width over which its intensity PSF stays above ``1/e²`` of its peak
+   (the lateral resolution itself; ``1.70×`` the axial FWHM, physics.md §5.1). It becomes
+   ``indeterminate``. It only abstains.
 """
 
 from __future__ import annotations
@@ -125,6 +129,7 @@ __all__ = [
     "CONSENSUS_MIN",
     "CONSENSUS_WINDOW_MIN",
     "abstain_where_ambiguous",
+    "consensus_window",
     "unshared",
     "coherent_motion",
     "fast_decorrelation",
@@ -178,7 +183,7 @@ TRANSLATION_SUPPORT_MIN = 0.5
 SET_LABEL = "ballistic-or-flow"
 #: Rule 6: the share of the classified pixels of a pixel's window that must hold its single-class decision.
 CONSENSUS_MIN = 0.5
-#: Rule 6: the narrowest window (pixels per axis), used where the pooling window is narrower.
+#: Rule 6: the narrowest window (pixels per axis), used where the pooling window and the footprint are narrower.
 CONSENSUS_WINDOW_MIN = 3
 #: The single-class decisions rule 6 checks.
 _MOTIONS = ("diffusion", "ballistic", "flow")
@@ -222,14 +227,22 @@ def coherent_motion(
     return found, used
 
 
-def _box_count(mask: np.ndarray, window: int) -> np.ndarray:
-    """Per pixel of a map: how many pixels of the ``window``-wide box centred on it (cut at the map's edges)
-    hold ``mask`` (int32: at most ``window**ndim``)."""
+def _widths(window: int | Sequence[int], ndim: int) -> list[int]:
+    """One box width per axis: ``window`` along every one of ``ndim`` axes, or the given widths."""
+    if isinstance(window, Sequence):
+        return [int(w) for w in window]
+    return [int(window)] * ndim
+
+
+def _box_count(mask: np.ndarray, window: int | Sequence[int]) -> np.ndarray:
+    """Per pixel of a map: how many pixels of the box centred on it (``window`` pixels along every axis, or
+    one width per axis; cut at the map's edges) hold ``mask`` (int32)."""
     from .pooling import _box_sum
 
     out = np.asarray(mask).astype(np.int32)
-    for ax in range(out.ndim):
-        out = _box_sum(out, int(window), ax)
+    widths = _widths(window, out.ndim)
+    for ax, w in enumerate(widths):
+        out = _box_sum(out, w, ax)
     return out
 
 
@@ -500,19 +513,51 @@ def abstain_where_ambiguous(
     return out, counts
 
 
+def consensus_window(
+    axes: str,
+    pitch_um: Mapping[str, Any] | None,
+    pool: int,
+    lateral_um: float | None = None,
+    axial_um: float | None = None,
+    lateral_y_um: float | None = None,
+) -> tuple[int, ...]:
+    """Rule 6's box (module docstring), pixels per axis of ``axes`` (the maps' spatial axes, e.g. ``"ZX"``,
+    ``"YZX"``): per axis the widest of ``pool``, :data:`CONSENSUS_WINDOW_MIN` and the footprint of the
+    coarsest configuration the model reads, the full width over which its intensity PSF
+    ``exp(−x²/s_x² − z²/s_z²)`` stays above ``1/e²``: ``2√2 s_x = lateral_um`` along ``x`` and ``y`` (the 1/e²
+    width; ``lateral_y_um`` along ``y`` when given), ``2√2 s_z = √2·axial_um/√ln 2`` along ``z``
+    (``axial_um`` the FWHM; physics.md §5.1), over the axis's pitch and rounded up to an odd count. An axis
+    without a positive finite pitch or resolution keeps the pooling window."""
+    base = max(int(pool), CONSENSUS_WINDOW_MIN)
+    pitch = pitch_um if isinstance(pitch_um, Mapping) else {}
+    out = []
+    for ax in axes.lower():
+        res = {"z": axial_um, "y": lateral_um if lateral_y_um is None else lateral_y_um}.get(ax, lateral_um)
+        width = res * np.sqrt(2.0 / np.log(2.0)) if (ax == "z" and res is not None) else res
+        p = pitch.get(ax)
+        ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < np.inf for v in (width, p))
+        n = int(np.ceil(float(width) / float(p) - 1e-9)) if ok else 0  # type: ignore[arg-type]
+        out.append(max(base, n + 1 - n % 2))
+    return tuple(out)
+
+
 def unshared(
-    labels: np.ndarray, names: Sequence[str], idx: np.ndarray, shape: tuple[int, ...], window: int
+    labels: np.ndarray, names: Sequence[str], idx: np.ndarray, shape: tuple[int, ...], window: int | Sequence[int]
 ) -> np.ndarray:
     """Rule 6 (module docstring): per classified pixel (``labels``, indices into ``names``, at the flat
     positions ``idx`` of a map of ``shape``), whether it holds a decision for one motion that fewer than
-    :data:`CONSENSUS_MIN` of the classified pixels of the ``window``-wide box centred on it (cut at the map's
-    edges; at least :data:`CONSENSUS_WINDOW_MIN`) share."""
+    :data:`CONSENSUS_MIN` of the classified pixels of the box centred on it share (``window`` pixels along
+    every axis, or one width per axis as :func:`consensus_window` gives; at least
+    :data:`CONSENSUS_WINDOW_MIN`; cut at the map's edges)."""
     labels = np.asarray(labels)
     names = list(names)
     grid = np.full(int(np.prod(shape)), -1, np.int16)
     grid[idx] = labels
     grid = grid.reshape(shape)
-    width = max(int(window), CONSENSUS_WINDOW_MIN)
+    given = _widths(window, len(shape))
+    if len(given) != len(shape):
+        raise ValueError(f"rule 6: {len(given)} window widths for a map of {len(shape)} axes {tuple(shape)}")
+    width = [max(w, CONSENSUS_WINDOW_MIN) for w in given]
     out = np.zeros(labels.shape, bool)
     classified = None  # per classified pixel: the classified pixels of its box (≥ 1: itself)
     for k, name in enumerate(names):

@@ -571,8 +571,9 @@ def _classify(args: argparse.Namespace) -> int:
             )
         if ch.get("unshared"):
             print(
-                f"  indeterminate where few neighbours share the decision: {ch['unshared']} pixels "
-                "(--decide-ballistic keeps the model's decisions)"
+                f"  indeterminate where few neighbours share the decision: {ch['unshared']} pixels (box "
+                + " × ".join(f"{n} {a}" for a, n in res.info["ambiguity"]["consensus_window_px"].items())
+                + " px; --decide-ballistic keeps the model's decisions)"
             )
         for c in res.label_names:
             print(f"  {c:>22}: {counts[c]:>9} ({counts[c] / total:6.1%})")

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -200,6 +200,13 @@ def _finest_pitch_um(pitch: Any) -> float | None:
     return min(good) if good else None
 
 
+def _spatial_axes(meta: Mapping[str, Any], shape: tuple[int, ...]) -> str:
+    """The spatial axes of a maps file (its ``axes`` without the leading channel axis ``C``; ``ZX`` or ``YZX``
+    by the map's rank when they are missing or do not match it)."""
+    axes = str(meta.get("axes", ""))[1:]
+    return axes if len(axes) == len(shape) else {1: "Z", 2: "ZX", 3: "YZX"}.get(len(shape), "")
+
+
 def classify_maps(
     paths: str | os.PathLike | Sequence[str | os.PathLike],
     model: ClassifierModel | str | None = None,
@@ -324,7 +331,19 @@ def classify_maps(
             moved=moved,
             translation=translation,
         )
-        alone = ambiguity.unshared(labels_flat, list(mdl.classes) + set_names, idx, shape, int(pool))
+        confs = mdl.spec.configurations
+        consensus = ambiguity.consensus_window(
+            _spatial_axes(meta0, shape),
+            pitches if isinstance(pitches, dict) else None,
+            int(pool),
+            lateral_um=max(c.lateral_resolution_um for c in confs),
+            axial_um=max(c.axial_resolution_um for c in confs),
+            lateral_y_um=max(
+                c.lateral_resolution_um if c.lateral_resolution_y_um is None else c.lateral_resolution_y_um
+                for c in confs
+            ),
+        )
+        alone = ambiguity.unshared(labels_flat, list(mdl.classes) + set_names, idx, shape, consensus)
         labels_flat = np.where(alone, mdl.classes.index("indeterminate"), labels_flat)
         changed["unshared"] = int(alone.sum())
         ambiguity_info = {
@@ -352,7 +371,7 @@ def classify_maps(
             "translation_linear_max_pitch": ambiguity.TRANSLATION_LINEAR_MAX,
             "translation_window_min_px": ambiguity.TRANSLATION_WINDOW_MIN,
             "consensus_min": ambiguity.CONSENSUS_MIN,
-            "consensus_window_px": max(int(pool), ambiguity.CONSENSUS_WINDOW_MIN),
+            "consensus_window_px": dict(zip(_spatial_axes(meta0, shape).lower(), consensus)),
             "changed_pixels": changed,
         }
     labels = np.full(valid.size, MASKED, np.uint8)
@@ -393,7 +412,7 @@ def classify_maps(
             "pixels_per_s": n_pix / max(t_end - t_read, 1e-12),
         }
     )
-    axes = str(meta0.get("axes", "C" + ("YZX" if len(shape) == 3 else "ZX")))[1:]
+    axes = _spatial_axes(meta0, shape)
     return Classification(
         labels=labels.reshape(shape),
         probabilities=pmaps.reshape((len(mdl.classes), *shape)),

@@ -399,6 +399,38 @@ def test_a_single_class_decision_few_of_its_neighbours_share_is_flagged_and_no_s
     assert not got_e.reshape(shape)[8, 0]  # box rows 7..8 (row 9 unclassified), cols 0..1: 2 of 4 are flow
 
 
+def test_rule_6_box_is_the_coarsest_psf_footprint_per_axis():
+    """The box spans, per axis, the full width where the coarsest configuration's intensity PSF stays above
+    1/e²: the lateral resolution along x and y, √2/√ln2 (≈ 1.70) times the axial FWHM along z, over the
+    pitch and rounded up to odd; never narrower than the pooling window or CONSENSUS_WINDOW_MIN; an axis
+    without a pitch keeps the pooling window."""
+    from classifier.ambiguity import consensus_window
+
+    # x: 18 / 1.5 = 12 → 13; z: 14 · 1.6986 / 1.5 = 15.85 → 16 → 17; y: 18 / 3 = 6 → 7
+    assert consensus_window("YZX", {"z": 1.5, "x": 1.5, "y": 3.0}, 1, 18.0, 14.0) == (7, 17, 13)
+    assert consensus_window("ZX", {"z": 1.5, "x": 1.5}, 21, 18.0, 14.0) == (21, 21)  # pooling window wider
+    assert consensus_window("ZX", {"z": 4.0, "x": 10.0}, 1, 18.0, 4.0) == (3, 3)  # footprint under the minimum
+    assert consensus_window("ZX", {"x": 1.5}, 5, 18.0, 14.0) == (5, 13)  # no z pitch
+    assert consensus_window("ZX", None, 5, 18.0, 14.0) == (5, 5)
+    assert consensus_window("YZX", {"z": 1.0, "x": 1.0, "y": 1.0}, 1, 4.0, 2.0, lateral_y_um=10.0) == (11, 5, 5)
+
+
+def test_rule_6_box_per_axis_flags_a_strip_narrower_than_half_of_it():
+    """A 3-pixel strip of flow decisions along z among sets stands in a 3×3 box (its centre column holds 3
+    of 3) but not in a box 13 pixels wide along x (3 of 13 < 1/2): the coarse PSF mixes it with its
+    neighbours. A window with the wrong number of axes is refused."""
+    flow, ball_set = NAMES.index("flow"), NAMES.index("ballistic-or-flow")
+    grid = np.full((20, 30), ball_set)
+    grid[:, 14:17] = flow
+    shape, idx = grid.shape, np.arange(grid.size)
+    narrow = unshared(grid.reshape(-1), NAMES, idx, shape, (3, 3)).reshape(shape)
+    wide = unshared(grid.reshape(-1), NAMES, idx, shape, (3, 13)).reshape(shape)
+    assert not narrow[:, 15].any() and wide[:, 14:17].all()
+    assert not wide[:, :14].any() and not wide[:, 17:].any()  # sets are never flagged
+    with pytest.raises(ValueError, match="2 axes"):
+        unshared(grid.reshape(-1), NAMES, idx, shape, (3, 3, 3))
+
+
 def test_translation_rule_turns_ballistic_decisions_and_sets_into_flow_but_not_diffusion():
     labels = np.array([1, 6, 0, 5, 4, 3, 1])
     seen = np.array([True, True, True, True, True, True, False])
@@ -527,7 +559,14 @@ def test_classify_maps_applies_rule_6_last_and_decide_ballistic_skips_it(tmp_pat
     base = classify_maps(path, mdl, pool=5, background_db=None)
     amb = base.info["ambiguity"]
     assert amb["rules"][-1] == "unshared" and amb["consensus_min"] == CONSENSUS_MIN
-    assert amb["consensus_window_px"] == 5
+    # the box is the coarsest configuration's 1/e² footprint per axis (odd, at least the pooling window)
+    pitch = base.pitch_um
+    coarse_lat = max(c.lateral_resolution_um for c in mdl.spec.configurations)
+    coarse_ax = max(c.axial_resolution_um for c in mdl.spec.configurations)
+    for ax, got in amb["consensus_window_px"].items():
+        width = coarse_ax * 2 * np.sqrt(2) / (2 * np.sqrt(np.log(2))) if ax == "z" else coarse_lat
+        n = int(np.ceil(width / pitch[ax] - 1e-9))
+        assert got == max(5, n + 1 - n % 2)
 
     monkeypatch.setattr(ambiguity, "unshared", lambda labels, *a, **k: np.ones(np.shape(labels), bool))
     flagged = classify_maps(path, mdl, pool=5, background_db=None)
