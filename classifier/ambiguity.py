@@ -86,6 +86,16 @@ pixel:
 
    It only abstains: a random motion that reached transit within the shortest lag, or whose decaying
    pattern let the offset wander, loses coverage, never a right decision.
+7. **A flow decision only the coarse configurations hold** (maps of any geometry; after rules 0–5, before
+   rule 6). While a pixel has not decorrelated (rule 2's correlation ≥ :data:`DECORRELATED_BELOW`) and its
+   pattern has not moved (neither rule 0 nor rule 5 fired), its own frames cannot tell slow flow from slow
+   random-ballistic motion (rule 2): a ``flow`` decision there rests on what the coarser configurations
+   see. Inside a region of one motion that is the region's own evidence; where the coarsest
+   configuration's footprint (rule 6's box, :func:`consensus_window`) reaches into another region, it can
+   be the neighbour's flow, mixed in by the wide PSF. So such a decision stands only where at least
+   :data:`FOOTPRINT_FLOW_MIN` of the classified pixels of its box are ``flow`` after rules 0–5 (the
+   footprint is one flow region); elsewhere it becomes ``indeterminate`` (the exclusion of diffusion
+   rests on the same mixed evidence). It only abstains.
 6. **A decision its neighbours do not share** (maps of any geometry; applied after every other rule). A
    region of one motion is at least a resolution cell wide, and the evidence of neighbouring pixels overlaps
    (the pooling window, and the PSF of every configuration the model reads), so a motion's decisions come in
@@ -128,7 +138,9 @@ __all__ = [
     "TRANSLATION_WINDOW_MIN",
     "CONSENSUS_MIN",
     "CONSENSUS_WINDOW_MIN",
+    "FOOTPRINT_FLOW_MIN",
     "abstain_where_ambiguous",
+    "borrowed_flow",
     "consensus_window",
     "unshared",
     "coherent_motion",
@@ -185,6 +197,10 @@ SET_LABEL = "ballistic-or-flow"
 CONSENSUS_MIN = 0.5
 #: Rule 6: the narrowest window (pixels per axis), used where the pooling window and the footprint are narrower.
 CONSENSUS_WINDOW_MIN = 3
+#: Rule 7: the least share of the classified pixels of a not-decorrelated, unmoved ``flow`` decision's box
+#: that must be ``flow`` for it to stand (nine in ten: the footprint is one flow region, a few scattered
+#: other outcomes aside; the grid's all-pixels scores barely change between 0.9 and 0.97).
+FOOTPRINT_FLOW_MIN = 0.9
 #: The single-class decisions rule 6 checks.
 _MOTIONS = ("diffusion", "ballistic", "flow")
 
@@ -539,6 +555,43 @@ def consensus_window(
         n = int(np.ceil(float(width) / float(p) - 1e-9)) if ok else 0  # type: ignore[arg-type]
         out.append(max(base, n + 1 - n % 2))
     return tuple(out)
+
+
+def borrowed_flow(
+    labels: np.ndarray,
+    names: Sequence[str],
+    idx: np.ndarray,
+    shape: tuple[int, ...],
+    window: int | Sequence[int],
+    correlation: np.ndarray | None,
+    coherent: np.ndarray | None = None,
+    translation: np.ndarray | None = None,
+) -> np.ndarray:
+    """Rule 7 (module docstring): per classified pixel (``labels`` after rules 0–5, indices into ``names``, at
+    the flat positions ``idx`` of a map of ``shape``), whether it holds a ``flow`` decision that the pixel's
+    own evidence does not found (``correlation``, rule 2's, at least :data:`DECORRELATED_BELOW`; neither
+    ``coherent``, rule 0, nor ``translation``, rule 5, seen) and that fewer than :data:`FOOTPRINT_FLOW_MIN` of
+    the classified pixels of its box (``window`` as in :func:`unshared`) share. All False without
+    ``correlation`` or a ``flow`` label; NaN correlation counts as decorrelated (not flagged)."""
+    labels = np.asarray(labels)
+    names = list(names)
+    if correlation is None or "flow" not in names:
+        return np.zeros(labels.shape, bool)
+    k = names.index("flow")
+    with np.errstate(invalid="ignore"):
+        cand = (labels == k) & (np.asarray(correlation, np.float64) >= DECORRELATED_BELOW)
+    for seen in (coherent, translation):
+        if seen is not None:
+            cand &= ~np.asarray(seen, bool)
+    if not cand.any():
+        return cand
+    grid = np.full(int(np.prod(shape)), -1, np.int16)
+    grid[idx] = labels
+    grid = grid.reshape(shape)
+    width = [max(w, CONSENSUS_WINDOW_MIN) for w in _widths(window, len(shape))]
+    flow = _box_count(grid == k, width).reshape(-1)[idx]
+    classified = _box_count(grid >= 0, width).reshape(-1)[idx]
+    return cand & (flow < FOOTPRINT_FLOW_MIN * classified)
 
 
 def unshared(

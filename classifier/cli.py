@@ -569,6 +569,11 @@ def _classify(args: argparse.Namespace) -> int:
                 f"  a set with flow where the pattern's offset moved: {ch['offset_moved']} ballistic or diffusion "
                 "decisions (--decide-ballistic keeps the model's decisions)"
             )
+        if ch.get("borrowed_flow"):
+            print(
+                f"  indeterminate where only the coarse configurations saw flow: {ch['borrowed_flow']} flow decisions "
+                "not decorrelated, unmoved, at a region's border (--decide-ballistic keeps the model's decisions)"
+            )
         if ch.get("unshared"):
             print(
                 f"  indeterminate where few neighbours share the decision: {ch['unshared']} pixels (box "

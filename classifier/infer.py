@@ -320,17 +320,6 @@ def classify_maps(
             idx,
             window if isinstance(window, int) and not isinstance(window, bool) else None,
         )
-        bscan = len(shape) == 2
-        labels_flat, changed = ambiguity.abstain_where_ambiguous(
-            labels_flat,
-            list(mdl.classes) + set_names,
-            bscan=bscan,
-            correlation=corr,
-            coherent=coherent,
-            fast=fast,
-            moved=moved,
-            translation=translation,
-        )
         confs = mdl.spec.configurations
         consensus = ambiguity.consensus_window(
             _spatial_axes(meta0, shape),
@@ -343,7 +332,24 @@ def classify_maps(
                 for c in confs
             ),
         )
-        alone = ambiguity.unshared(labels_flat, list(mdl.classes) + set_names, idx, shape, consensus)
+        bscan = len(shape) == 2
+        labels_flat, changed = ambiguity.abstain_where_ambiguous(
+            labels_flat,
+            list(mdl.classes) + set_names,
+            bscan=bscan,
+            correlation=corr,
+            coherent=coherent,
+            fast=fast,
+            moved=moved,
+            translation=translation,
+        )
+        names_all = list(mdl.classes) + set_names
+        borrowed = ambiguity.borrowed_flow(
+            labels_flat, names_all, idx, shape, consensus, corr, coherent=coherent, translation=translation
+        )
+        labels_flat = np.where(borrowed, mdl.classes.index("indeterminate"), labels_flat)
+        changed["borrowed_flow"] = int(borrowed.sum())
+        alone = ambiguity.unshared(labels_flat, names_all, idx, shape, consensus)
         labels_flat = np.where(alone, mdl.classes.index("indeterminate"), labels_flat)
         changed["unshared"] = int(alone.sum())
         ambiguity_info = {
@@ -353,6 +359,7 @@ def classify_maps(
             + (["slow_decorrelation"] if corr is not None else [])
             + (["fast_decorrelation"] if fast is not None and not bscan else [])
             + (["offset_moved"] if moved is not None else [])
+            + (["borrowed_flow"] if corr is not None else [])
             + ["unshared"],
             "coherent_channels": coherent_source,
             "coherent_peak_min": ambiguity.COHERENT_PEAK_MIN,
@@ -370,6 +377,7 @@ def classify_maps(
             "translation_growth_min_pitch": ambiguity.TRANSLATION_GROWTH_MIN,
             "translation_linear_max_pitch": ambiguity.TRANSLATION_LINEAR_MAX,
             "translation_window_min_px": ambiguity.TRANSLATION_WINDOW_MIN,
+            "footprint_flow_min": ambiguity.FOOTPRINT_FLOW_MIN,
             "consensus_min": ambiguity.CONSENSUS_MIN,
             "consensus_window_px": dict(zip(_spatial_axes(meta0, shape).lower(), consensus)),
             "changed_pixels": changed,

@@ -431,6 +431,36 @@ def test_rule_6_box_per_axis_flags_a_strip_narrower_than_half_of_it():
         unshared(grid.reshape(-1), NAMES, idx, shape, (3, 3, 3))
 
 
+def test_rule_7_flags_an_unfounded_flow_decision_only_where_its_footprint_holds_another_region():
+    """A flow strip beside a region of sets, not decorrelated and unmoved: the pixels whose box reaches the
+    sets (flow share < FOOTPRINT_FLOW_MIN) are flagged, the ones whose box is all flow are kept; a decorrelated
+    pixel, one whose pattern moved (rule 0 or 5) and a NaN correlation are never flagged; without the
+    correlation the rule does nothing."""
+    from classifier.ambiguity import DECORRELATED_BELOW, FOOTPRINT_FLOW_MIN, borrowed_flow
+
+    assert FOOTPRINT_FLOW_MIN == 0.9 and DECORRELATED_BELOW == 0.5
+    flow, ball_set = NAMES.index("flow"), NAMES.index("ballistic-or-flow")
+    grid = np.full((9, 30), ball_set)
+    grid[:, 10:30] = flow  # flow from column 10 on
+    shape, idx = grid.shape, np.arange(grid.size)
+    labels = grid.reshape(-1)
+    corr = np.full(grid.size, 0.9)  # not decorrelated anywhere
+    got = borrowed_flow(labels, NAMES, idx, shape, (3, 5), corr).reshape(shape)
+    # a 5-wide box holds 5 columns: flow share 3/5 at column 10, 4/5 at 11, 5/5 from 12 on
+    assert got[:, 10:12].all() and not got[:, 12:].any() and not got[:, :10].any()
+    decorrelated = corr.copy().reshape(shape)
+    decorrelated[:, 10] = DECORRELATED_BELOW - 0.01
+    decorrelated[0, 11] = np.nan
+    moved = np.zeros(shape, bool)
+    moved[4, 11] = True
+    got2 = borrowed_flow(labels, NAMES, idx, shape, (3, 5), decorrelated.reshape(-1), translation=moved.reshape(-1))
+    got2 = got2.reshape(shape)
+    assert not got2[:, 10].any() and not got2[0, 11] and not got2[4, 11] and got2[1:4, 11].all()
+    got3 = borrowed_flow(labels, NAMES, idx, shape, (3, 5), corr, coherent=moved.reshape(-1)).reshape(shape)
+    assert not got3[4, 11] and got3[3, 11]
+    assert not borrowed_flow(labels, NAMES, idx, shape, (3, 5), None).any()
+
+
 def test_translation_rule_turns_ballistic_decisions_and_sets_into_flow_but_not_diffusion():
     labels = np.array([1, 6, 0, 5, 4, 3, 1])
     seen = np.array([True, True, True, True, True, True, False])
@@ -558,7 +588,7 @@ def test_classify_maps_applies_rule_6_last_and_decide_ballistic_skips_it(tmp_pat
 
     base = classify_maps(path, mdl, pool=5, background_db=None)
     amb = base.info["ambiguity"]
-    assert amb["rules"][-1] == "unshared" and amb["consensus_min"] == CONSENSUS_MIN
+    assert amb["rules"][-2:] == ["borrowed_flow", "unshared"] and amb["consensus_min"] == CONSENSUS_MIN
     # the box is the coarsest configuration's 1/e² footprint per axis (odd, at least the pooling window)
     pitch = base.pitch_um
     coarse_lat = max(c.lateral_resolution_um for c in mdl.spec.configurations)
