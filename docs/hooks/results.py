@@ -889,6 +889,42 @@ def grid_context(root: Path, key: str = "summary_by_context") -> str:
     return "\n\n".join([table(header, rows), source(d["command"], p)])
 
 
+def grid_summary(root: Path) -> str:
+    """The default grid's summary per window: the band interiors' worst wrong share, cells over 10 %, mean and
+    lowest coverage and mean balanced accuracy; over every band pixel the worst cell's wrong share and the cells
+    over 5 %."""
+    d, p = load(root, "grid-default.json")
+    rows = []
+    for pool, s in d["summary"].items():
+        if "worst_wrong_share_all_pixels" not in s:
+            raise MissingResult(f"{p} has no all-pixels summary: re-record it with the command in its 'command' field")
+        rows.append(
+            [
+                pool,
+                s["cells"],
+                num(s["worst_wrong_share"]),
+                s["cells_over_10pct_wrong"],
+                num(s["mean_coverage"]),
+                num(s["min_coverage"]),
+                num(s["mean_balanced_accuracy"]),
+                num(s["worst_wrong_share_all_pixels"]),
+                s["cells_over_5pct_wrong_all_pixels"],
+            ]
+        )
+    header = [
+        "window",
+        "cells",
+        "worst wrong share",
+        "cells > 10 % wrong",
+        "mean coverage",
+        "lowest coverage",
+        "mean balanced accuracy",
+        "all pixels: worst wrong share",
+        "all pixels: cells > 5 % wrong",
+    ]
+    return "\n\n".join([table(header, rows), source(d["command"], p)])
+
+
 RENDERERS: dict[str, Callable[[Path], str]] = {
     "bench-simulate": bench_simulate,
     "bench-study": bench_study,
@@ -913,6 +949,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "protocol-quick": protocol_quick,
     "translation-rule": translation_rule,
     "grid-context": grid_context,
+    "grid-summary": grid_summary,
     "grid-context-all-pixels": lambda root: grid_context(root, "summary_by_context_all_pixels"),
 }
 
