@@ -120,6 +120,11 @@ def test_grid_results_files_are_self_describing(tmp_path, levels):
     # one row per cell and window, and one per (geometry, context, window) of the pooled summary
     assert "worst wrong share" in md and md.count("\n| bscan |") == 4 + 4 + 4  # cells, interiors, all pixels
     assert set(data["summary"]) == {"1", "5"}
+    for pool, summ in data["summary"].items():  # the all-pixels summary is the cells' own borders-included scores
+        all_px = [r["all_pixels"]["wrong_share_max"] for r in data["cells"] if str(r["pool"]) == pool]
+        assert summ["worst_wrong_share_all_pixels"] == max(all_px)
+        assert summ["cells_over_5pct_wrong_all_pixels"] == sum(w > 0.05 for w in all_px)
+        assert summ["worst_wrong_share_all_pixels"] >= 0 and "all pixels: worst wrong share" in md
     ctx = data["summary_by_context"]
     assert [(s["context"], s["pool"]) for s in ctx] == [("background", 1), ("background", 5), ("none", 1), ("none", 5)]
     for s in ctx:
