@@ -454,8 +454,9 @@ def build_classify_parser() -> argparse.ArgumentParser:
         "speckle pattern moved coherently, and a ballistic one ballistic-or-flow where the physics "
         "cannot exclude flow (every other B-scan pixel; a volume's pixels that have not decorrelated "
         "or decorrelated before the shortest lag), and a ballistic or diffusion one its set with flow "
-        "where the pattern's offset moved off the centre or grew with the lag, and a decision fewer than "
-        "half of its window's pixels share indeterminate; docs/abstention.md)",
+        "where the pattern's offset moved off the centre or grew with the lag; a flow decision that only the "
+        "coarse configurations found, beside another region, and a decision fewer than half of its box "
+        "(the coarsest PSF's footprint) share are indeterminate; docs/abstention.md)",
     )
     p.add_argument(
         "--ignore-refractive-index",

@@ -227,8 +227,9 @@ def classify_maps(
     ``None``: conformal when the model has a calibration, else the rule. ``alpha``: default
     :data:`classifier.conformal.DEFAULT_ALPHA`. ``abstain_ambiguous``: a ``ballistic`` decision becomes
     ``ballistic-or-flow`` where the physics cannot exclude flow (:mod:`classifier.ambiguity`: every B-scan
-    pixel; a volume's pixels whose window has not decorrelated), and ``flow`` where the speckle pattern
-    moved coherently."""
+    pixel; a volume's pixels whose window has not decorrelated), ``flow`` where the speckle pattern
+    moved coherently, and ``indeterminate`` where a flow decision rests only on the coarse configurations
+    beside another region (rule 7) or few pixels of its box share a decision (rule 6)."""
     t0 = time.perf_counter()
     _check_arguments(pool, min_probability)
     _check_alpha(alpha)
