@@ -334,9 +334,10 @@ def classify_maps(
             ),
         )
         bscan = len(shape) == 2
+        names_all = list(mdl.classes) + set_names
         labels_flat, changed = ambiguity.abstain_where_ambiguous(
             labels_flat,
-            list(mdl.classes) + set_names,
+            names_all,
             bscan=bscan,
             correlation=corr,
             coherent=coherent,
@@ -344,7 +345,6 @@ def classify_maps(
             moved=moved,
             translation=translation,
         )
-        names_all = list(mdl.classes) + set_names
         borrowed = ambiguity.borrowed_flow(
             labels_flat, names_all, idx, shape, consensus, corr, coherent=coherent, translation=translation
         )
