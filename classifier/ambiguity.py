@@ -557,6 +557,20 @@ def consensus_window(
     return tuple(out)
 
 
+def _label_map(
+    labels: np.ndarray, idx: np.ndarray, shape: tuple[int, ...], window: int | Sequence[int]
+) -> tuple[np.ndarray, list[int]]:
+    """Rules 6 and 7: the labels as a map of ``shape`` (−1 where not classified) and the box width per axis
+    (``window``, at least :data:`CONSENSUS_WINDOW_MIN`); ``ValueError`` when ``window`` gives another number
+    of axes than the map has."""
+    grid = np.full(int(np.prod(shape)), -1, np.int16)
+    grid[idx] = labels
+    given = _widths(window, len(shape))
+    if len(given) != len(shape):
+        raise ValueError(f"rule 6: {len(given)} window widths for a map of {len(shape)} axes {tuple(shape)}")
+    return grid.reshape(shape), [max(w, CONSENSUS_WINDOW_MIN) for w in given]
+
+
 def borrowed_flow(
     labels: np.ndarray,
     names: Sequence[str],
@@ -585,10 +599,7 @@ def borrowed_flow(
             cand &= ~np.asarray(seen, bool)
     if not cand.any():
         return cand
-    grid = np.full(int(np.prod(shape)), -1, np.int16)
-    grid[idx] = labels
-    grid = grid.reshape(shape)
-    width = [max(w, CONSENSUS_WINDOW_MIN) for w in _widths(window, len(shape))]
+    grid, width = _label_map(labels, idx, shape, window)
     flow = _box_count(grid == k, width).reshape(-1)[idx]
     classified = _box_count(grid >= 0, width).reshape(-1)[idx]
     return cand & (flow < FOOTPRINT_FLOW_MIN * classified)
@@ -604,13 +615,7 @@ def unshared(
     :data:`CONSENSUS_WINDOW_MIN`; cut at the map's edges)."""
     labels = np.asarray(labels)
     names = list(names)
-    grid = np.full(int(np.prod(shape)), -1, np.int16)
-    grid[idx] = labels
-    grid = grid.reshape(shape)
-    given = _widths(window, len(shape))
-    if len(given) != len(shape):
-        raise ValueError(f"rule 6: {len(given)} window widths for a map of {len(shape)} axes {tuple(shape)}")
-    width = [max(w, CONSENSUS_WINDOW_MIN) for w in given]
+    grid, width = _label_map(labels, idx, shape, window)
     out = np.zeros(labels.shape, bool)
     classified = None  # per classified pixel: the classified pixels of its box (≥ 1: itself)
     for k, name in enumerate(names):
