@@ -87,15 +87,17 @@ pixel:
    It only abstains: a random motion that reached transit within the shortest lag, or whose decaying
    pattern let the offset wander, loses coverage, never a right decision.
 7. **A flow decision only the coarse configurations hold** (maps of any geometry; after rules 0–5, before
-   rule 6). While a pixel has not decorrelated (rule 2's correlation ≥ :data:`DECORRELATED_BELOW`) and its
-   pattern has not moved (neither rule 0 nor rule 5 fired), its own frames cannot tell slow flow from slow
-   random-ballistic motion (rule 2): a ``flow`` decision there rests on what the coarser configurations
-   see. Inside a region of one motion that is the region's own evidence; where the coarsest
-   configuration's footprint (rule 6's box, :func:`consensus_window`) reaches into another region, it can
-   be the neighbour's flow, mixed in by the wide PSF. So such a decision stands only where at least
+   rule 6). Where a pixel's pattern has not moved (neither rule 0 nor rule 5 fired), nothing in its own
+   frames shows a translation: a ``flow`` decision there rests on how the decay changes across the
+   configurations the model reads, and the coarsest of them reads the whole footprint (rule 6's box,
+   :func:`consensus_window`). Inside a region of one motion that is the region's own evidence. Where the
+   footprint reaches into another region, the wide PSF mixes the neighbour's flow in: a random motion whose
+   own decay is fast at every resolution then decays slower at the coarse one, the signature of flow (not
+   decorrelated, rule 2's case; or decorrelated, as random-ballistic motion beside a vessel is), and the
+   network decides flow over a strip as wide as the reach. So such a decision stands only where at least
    :data:`FOOTPRINT_FLOW_MIN` of the classified pixels of its box are ``flow`` after rules 0–5 (the
-   footprint is one flow region); elsewhere it becomes ``indeterminate`` (the exclusion of diffusion
-   rests on the same mixed evidence). It only abstains.
+   footprint is one flow region); elsewhere it becomes ``indeterminate`` (the exclusion of diffusion rests
+   on the same mixed evidence). It only abstains.
 6. **A decision its neighbours do not share** (maps of any geometry; applied after every other rule). A
    region of one motion is at least a resolution cell wide, and the evidence of neighbouring pixels overlaps
    (the pooling window, and the PSF of every configuration the model reads), so a motion's decisions come in
@@ -103,10 +105,10 @@ pixel:
    share is a stray one: where a few scatterers dominate a pixel (the PSF half outside the sample at its
    surface, a slab's border), a pooled estimate fell in its tail, or the coarsest configuration's PSF reaches
    into a region of another motion and its features mix the two. The box (:func:`consensus_window`) is, per
-   axis, the widest of the pooling window, :data:`CONSENSUS_WINDOW_MIN` pixels, and the coarsest
-   configuration's footprint: the full width over which its intensity PSF stays above ``1/e²`` of its peak
-   (the lateral resolution itself; ``1.70×`` the axial FWHM, physics.md §5.1). It becomes
-   ``indeterminate``. It only abstains.
+   axis, the footprint of a pooled decision: the coarsest configuration's footprint (the full width over
+   which its intensity PSF stays above ``1/e²`` of its peak: the lateral resolution itself; ``1.70×`` the
+   axial FWHM, physics.md §5.1) widened by the pooling window, at least :data:`CONSENSUS_WINDOW_MIN`
+   pixels. It becomes ``indeterminate``. It only abstains.
 """
 
 from __future__ import annotations
@@ -197,7 +199,7 @@ SET_LABEL = "ballistic-or-flow"
 CONSENSUS_MIN = 0.5
 #: Rule 6: the narrowest window (pixels per axis), used where the pooling window and the footprint are narrower.
 CONSENSUS_WINDOW_MIN = 3
-#: Rule 7: the least share of the classified pixels of a not-decorrelated, unmoved ``flow`` decision's box
+#: Rule 7: the least share of the classified pixels of an unmoved ``flow`` decision's box
 #: that must be ``flow`` for it to stand (nine in ten: the footprint is one flow region, a few scattered
 #: other outcomes aside; the grid's all-pixels scores barely change between 0.9 and 0.97).
 FOOTPRINT_FLOW_MIN = 0.9
@@ -538,12 +540,15 @@ def consensus_window(
     lateral_y_um: float | None = None,
 ) -> tuple[int, ...]:
     """Rule 6's box (module docstring), pixels per axis of ``axes`` (the maps' spatial axes, e.g. ``"ZX"``,
-    ``"YZX"``): per axis the widest of ``pool``, :data:`CONSENSUS_WINDOW_MIN` and the footprint of the
-    coarsest configuration the model reads, the full width over which its intensity PSF
-    ``exp(−x²/s_x² − z²/s_z²)`` stays above ``1/e²``: ``2√2 s_x = lateral_um`` along ``x`` and ``y`` (the 1/e²
-    width; ``lateral_y_um`` along ``y`` when given), ``2√2 s_z = √2·axial_um/√ln 2`` along ``z``
-    (``axial_um`` the FWHM; physics.md §5.1), over the axis's pitch and rounded up to an odd count. An axis
-    without a positive finite pitch or resolution keeps the pooling window."""
+    ``"YZX"``): per axis the footprint of a decision pooled over ``pool`` pixels, the footprint of the
+    coarsest configuration the model reads widened by the pooling window. That footprint is the full width
+    over which the configuration's intensity PSF ``exp(−x²/s_x² − z²/s_z²)`` stays above ``1/e²``:
+    ``2√2 s_x = lateral_um`` along ``x`` and ``y`` (the 1/e² width; ``lateral_y_um`` along ``y`` when given),
+    ``2√2 s_z = √2·axial_um/√ln 2`` along ``z`` (``axial_um`` the FWHM; physics.md §5.1); over the axis's
+    pitch, rounded up, plus ``pool − 1`` (the pooled features at a pixel average the footprints of ``pool``
+    pixels per axis), rounded up to an odd count; never narrower than ``pool`` or
+    :data:`CONSENSUS_WINDOW_MIN`. An axis without a positive finite pitch or resolution keeps the pooling
+    window."""
     base = max(int(pool), CONSENSUS_WINDOW_MIN)
     pitch = pitch_um if isinstance(pitch_um, Mapping) else {}
     out = []
@@ -552,7 +557,7 @@ def consensus_window(
         width = res * np.sqrt(2.0 / np.log(2.0)) if (ax == "z" and res is not None) else res
         p = pitch.get(ax)
         ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < np.inf for v in (width, p))
-        n = int(np.ceil(float(width) / float(p) - 1e-9)) if ok else 0  # type: ignore[arg-type]
+        n = int(np.ceil(float(width) / float(p) - 1e-9)) + int(pool) - 1 if ok else 0  # type: ignore[arg-type]
         out.append(max(base, n + 1 - n % 2))
     return tuple(out)
 
@@ -577,23 +582,20 @@ def borrowed_flow(
     idx: np.ndarray,
     shape: tuple[int, ...],
     window: int | Sequence[int],
-    correlation: np.ndarray | None,
     coherent: np.ndarray | None = None,
     translation: np.ndarray | None = None,
 ) -> np.ndarray:
     """Rule 7 (module docstring): per classified pixel (``labels`` after rules 0–5, indices into ``names``, at
     the flat positions ``idx`` of a map of ``shape``), whether it holds a ``flow`` decision that the pixel's
-    own evidence does not found (``correlation``, rule 2's, at least :data:`DECORRELATED_BELOW`; neither
-    ``coherent``, rule 0, nor ``translation``, rule 5, seen) and that fewer than :data:`FOOTPRINT_FLOW_MIN` of
-    the classified pixels of its box (``window`` as in :func:`unshared`) share. All False without
-    ``correlation`` or a ``flow`` label; NaN correlation counts as decorrelated (not flagged)."""
+    own pattern does not found (neither ``coherent``, rule 0, nor ``translation``, rule 5, seen; a rule
+    without its channels sees nothing) and that fewer than :data:`FOOTPRINT_FLOW_MIN` of the classified
+    pixels of its box (``window`` as in :func:`unshared`) share. All False without a ``flow`` label."""
     labels = np.asarray(labels)
     names = list(names)
-    if correlation is None or "flow" not in names:
+    if "flow" not in names:
         return np.zeros(labels.shape, bool)
     k = names.index("flow")
-    with np.errstate(invalid="ignore"):
-        cand = (labels == k) & (np.asarray(correlation, np.float64) >= DECORRELATED_BELOW)
+    cand = labels == k
     for seen in (coherent, translation):
         if seen is not None:
             cand &= ~np.asarray(seen, bool)

@@ -573,7 +573,7 @@ def _classify(args: argparse.Namespace) -> int:
         if ch.get("borrowed_flow"):
             print(
                 f"  indeterminate where only the coarse configurations saw flow: {ch['borrowed_flow']} flow decisions "
-                "not decorrelated, unmoved, at a region's border (--decide-ballistic keeps the model's decisions)"
+                "whose pattern did not move, at a region's border (--decide-ballistic keeps the model's decisions)"
             )
         if ch.get("unshared"):
             print(

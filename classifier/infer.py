@@ -346,7 +346,7 @@ def classify_maps(
             translation=translation,
         )
         borrowed = ambiguity.borrowed_flow(
-            labels_flat, names_all, idx, shape, consensus, corr, coherent=coherent, translation=translation
+            labels_flat, names_all, idx, shape, consensus, coherent=coherent, translation=translation
         )
         labels_flat = np.where(borrowed, mdl.classes.index("indeterminate"), labels_flat)
         changed["borrowed_flow"] = int(borrowed.sum())
@@ -360,7 +360,7 @@ def classify_maps(
             + (["slow_decorrelation"] if corr is not None else [])
             + (["fast_decorrelation"] if fast is not None and not bscan else [])
             + (["offset_moved"] if moved is not None else [])
-            + (["borrowed_flow"] if corr is not None else [])
+            + ["borrowed_flow"]
             + ["unshared"],
             "coherent_channels": coherent_source,
             "coherent_peak_min": ambiguity.COHERENT_PEAK_MIN,

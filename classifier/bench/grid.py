@@ -43,6 +43,17 @@ the coarsest configuration's resolution plus half the window; masked pixels are 
   where a band meets the empty medium or another band the PSF and the pooling window straddle the border
   (``summary_by_context_all_pixels`` pools them like ``summary_by_context``).
 
+**Probes** (:data:`PROBES`, :func:`probe_dict`): phantoms unlike the bands, scored the same way, every
+motion at its ``mid`` level. Unlike the bands, which empty medium separates, their regions touch, so the
+coarse configurations' footprints straddle two motions:
+
+* ``*-layers``: three layers stacked in depth (diffusion, random-ballistic motion, flow at
+  :data:`PROBE_LAYER_FLOW_DEG`), the layers of the issue's static-free B-scan; ``-static``: inside static
+  tissue (a static population under every pixel, in the same phantom);
+* ``*-vessel``: a flow vessel of radius :data:`PROBE_VESSEL_RADIUS_PX` through random-ballistic tissue
+  without static scatterers, in the B-scan plane at 45° to the beam (B-scan) or along x (volume), the
+  flow along its axis.
+
 Outputs (``write_grid``): ``grid.json`` (:data:`SCHEMA_VERSION`, the definitions above, the cells),
 ``grid.csv``, ``grid.md`` and ``grid.png`` (worst wrong share and coverage per cell, cividis).
 
@@ -100,6 +111,12 @@ BAND_RADIUS_PX = 12
 BAND_GAP_PX = 8
 IMAGE_NZ = 64
 VOLUME_NY = 8
+#: Phantoms unlike the bands (:func:`probe_dict`): layers in depth and a vessel, without and with static tissue.
+PROBES = ("bscan-layers", "bscan-layers-static", "bscan-vessel", "volume-layers-static", "volume-vessel")
+#: Flow direction of the layer probes (polar, azimuth; degrees): oblique, out of the B-scan plane by 60°.
+PROBE_LAYER_FLOW_DEG = (45.0, 60.0)
+#: Vessel radius of the vessel probes (pixels).
+PROBE_VESSEL_RADIUS_PX = 12
 
 
 def volume_ny(spec, pitch_um: float) -> int:
@@ -205,7 +222,6 @@ def _pitch_um(spec) -> float:
 def phantom_dict(cell: GridCell, spec, levels: dict[str, dict[str, float]], density: float) -> dict[str, Any]:
     """The phantom of ``cell`` in the phantom-file schema (module docstring); a static background is a
     second phantom (:func:`_static_dict`)."""
-    c0 = spec.configurations[0]
     pitch = _pitch_um(spec)
     r_um, gap_um = BAND_RADIUS_PX * pitch, BAND_GAP_PX * pitch
     n_x = 3 * 2 * BAND_RADIUS_PX + 4 * BAND_GAP_PX
@@ -255,17 +271,9 @@ def phantom_dict(cell: GridCell, spec, levels: dict[str, dict[str, float]], dens
                 "density_per_um3": density,
             }
         )
-    system = {
-        "name": "grid-system",
-        "wavelength_um": c0.wavelength_um,
-        "lateral_resolution_um": c0.lateral_resolution_um,
-        "axial_resolution_um": c0.axial_resolution_um,
-    }
-    if spec.refractive_index != 1.0:
-        system["refractive_index"] = spec.refractive_index
     d: dict[str, Any] = {
         "name": cell.key,
-        "system": [system],
+        "system": [_system_dict(spec)],
         "protocol": {"n_frames": spec.n_frames, "frame_interval_s": spec.frame_interval_s},
         "grid": grid,
         "region": regions,
@@ -274,6 +282,20 @@ def phantom_dict(cell: GridCell, spec, levels: dict[str, dict[str, float]], dens
     if cell.snr_db is not None:
         d["noise"] = {"snr_db": float(cell.snr_db)}
     return d
+
+
+def _system_dict(spec) -> dict[str, Any]:
+    """The grid's system: the optics of the model's first configuration."""
+    c0 = spec.configurations[0]
+    system = {
+        "name": "grid-system",
+        "wavelength_um": c0.wavelength_um,
+        "lateral_resolution_um": c0.lateral_resolution_um,
+        "axial_resolution_um": c0.axial_resolution_um,
+    }
+    if spec.refractive_index != 1.0:
+        system["refractive_index"] = spec.refractive_index
+    return system
 
 
 def _static_dict(moving: dict[str, Any], density: float) -> dict[str, Any]:
@@ -415,6 +437,136 @@ def run_cell(
     return rows
 
 
+def probe_dict(name: str, spec, levels: dict[str, dict[str, float]], density: float, seed: int = 0) -> dict[str, Any]:
+    """The phantom of probe ``name`` (:data:`PROBES`, module docstring) in the phantom-file schema, built from
+    the system of ``spec`` and the speed ``levels`` of its geometry."""
+    if name not in PROBES:
+        raise ValueError(f"unknown probe {name!r}; give one of {', '.join(PROBES)}")
+    geometry, kind = name.split("-")[:2]
+    static = name.endswith("-static")
+    pitch = _pitch_um(spec)
+    n_x, n_z = 96, IMAGE_NZ
+    grid: dict[str, Any] = {"kind": geometry, "n_x": n_x, "n_z": n_z, "pitch_x_um": pitch, "pitch_z_um": pitch}
+    if geometry == "volume":
+        grid.update(n_y=volume_ny(spec, pitch), pitch_y_um=pitch)
+    else:
+        grid["y_um"] = 0.0
+    depth = n_z * pitch  # the grid is centred on the origin: z runs over [-depth/2, depth/2]
+    diffusion = {"kind": "diffusion", "diffusion_um2_per_s": levels["diffusion"]["mid"]}
+    ballistic = {"kind": "ballistic", "speed_um_per_s": levels["ballistic"]["mid"]}
+    flow_speed = levels["flow"]["mid"]
+    if kind == "layers":
+        polar, azimuth = PROBE_LAYER_FLOW_DEG
+        flow = {"kind": "flow", "speed_um_per_s": flow_speed, "polar_angle_deg": polar, "azimuth_deg": azimuth}
+        regions = [
+            {
+                "name": motion["kind"],
+                "shape": "slab",
+                "z_min_um": -depth / 2 + k * depth / 3,
+                "z_max_um": -depth / 2 + (k + 1) * depth / 3,
+                "density_per_um3": density,
+                "motion": [motion],
+            }
+            for k, motion in enumerate((diffusion, ballistic, flow))
+        ]
+    else:
+        in_plane = geometry == "bscan"  # at 45° in the x-z plane; a volume's vessel runs along x
+        axis = [math.sqrt(0.5), 0.0, math.sqrt(0.5)] if in_plane else [1.0, 0.0, 0.0]
+        flow = {
+            "kind": "flow",
+            "speed_um_per_s": flow_speed,
+            "polar_angle_deg": 45.0 if in_plane else 90.0,
+            "azimuth_deg": 0.0,
+        }
+        regions = [
+            {
+                "name": "ballistic",
+                "shape": "slab",
+                "z_min_um": -depth / 2,
+                "z_max_um": depth / 2,
+                "density_per_um3": density,
+                "motion": [ballistic],
+            },
+            {
+                "name": "flow",
+                "shape": "cylinder",
+                "center_um": [0.0, 0.0, 0.0],
+                "axis": axis,
+                "radius_um": PROBE_VESSEL_RADIUS_PX * pitch,
+                "density_per_um3": density,
+                "motion": [flow],
+            },
+        ]
+    d: dict[str, Any] = {
+        "name": f"probe-{name}",
+        "system": [_system_dict(spec)],
+        "protocol": {"n_frames": int(spec.n_frames), "frame_interval_s": float(spec.frame_interval_s)},
+        "grid": grid,
+        "region": regions,
+        "simulation": {"seed": int(seed)},
+    }
+    if static:
+        d["background"] = [{"name": "static-tissue", "density_per_um3": density}]
+    return d
+
+
+def run_probe(
+    name: str,
+    model,
+    levels: dict[str, dict[str, float]],
+    *,
+    pools: Sequence[int] = POOLS,
+    decision: str | None = None,
+    threads: int | None = None,
+    prior=None,
+    abstain_ambiguous: bool = True,
+    seed: int = 0,
+) -> list[dict[str, Any]]:
+    """Render, map, classify and score probe ``name`` (:func:`probe_dict`) at every window: one row per window."""
+    from torchdoct.image.phantom import phantom_from_dict
+    from torchdoct.image.render import render
+    from torchdoct.measured.maps import compute_maps
+    from torchdoct.measured.mapsfile import write_maps
+    from torchdoct.measured.sequence import SequenceData, validate_meta
+
+    from ..infer import classify_maps
+    from ..prior import Prior
+
+    spec = model.spec
+    density = float(min((prior or Prior()).density_per_um3))
+    t0 = time.perf_counter()
+    res = render(phantom_from_dict(probe_dict(name, spec, levels, density, seed)), seed=seed, threads=threads)
+    data = res.data[0].numpy()
+    meta = res.metadata(0)
+    meta.pop("phantom", None)
+    seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source=f"probe-{name}")
+    maps = compute_maps(
+        seq, [c.name for c in spec.configurations], metrics=("mean_db",), signature=list(spec.metrics), speckle=True
+    )
+    t_maps = time.perf_counter()
+    pitch = _pitch_um(spec)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        path = write_maps(Path(tmp) / "maps.npz", maps)
+        for pool in pools:
+            t1 = time.perf_counter()
+            kw = {} if decision is None else {"decision": decision}
+            c = classify_maps(path, model, pool=int(pool), threads=threads, abstain_ambiguous=abstain_ambiguous, **kw)
+            t2 = time.perf_counter()
+            rows.append(
+                {
+                    "probe": name,
+                    "geometry": name.split("-")[0],
+                    "pool": int(pool),
+                    "model": spec.name,
+                    **score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool))),
+                    "all_pixels": score_labels(res.labels, c.labels, c.classes, 0),
+                    "seconds": (t_maps - t0) + (t2 - t1),
+                }
+            )
+    return rows
+
+
 def run_grid(
     cells: Iterable[GridCell],
     model: str | None = None,
@@ -426,22 +578,24 @@ def run_grid(
     geometry_models: dict[str, str] | None = None,
     levels: dict[str, dict[str, dict[str, float]]] | None = None,
     abstain_ambiguous: bool = True,
+    probes: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Every cell of ``cells`` (module docstring) with ``model`` (default: the model ``doct-classify``
+    """Every cell of ``cells`` and every probe of ``probes`` (module docstring) with ``model`` (default: the model ``doct-classify``
     picks for the cell's maps: ``signature-bscan`` for B-scans, ``signature`` for volumes). ``levels``:
     ``{geometry: speed_levels(...)}`` already computed (default: computed here)."""
     from ..infer import load_model
 
     cells = list(cells)
     defaults = geometry_models or {"bscan": "signature-bscan", "volume": "signature"}
-    names = {g: (model or defaults[g]) for g in {c.geometry for c in cells}}
+    probes = list(probes)
+    names = {g: (model or defaults[g]) for g in {c.geometry for c in cells} | {p.split("-")[0] for p in probes}}
     models = {g: load_model(n, threads=threads) for g, n in names.items()}
     levels = {g: (levels or {}).get(g) or speed_levels(m.spec) for g, m in models.items()}
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(cells), desc="phantom grid", unit="cell")
+        bar = tqdm(total=len(cells) + len(probes), desc="phantom grid", unit="phantom")
     rows: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     for cell in cells:
@@ -454,6 +608,23 @@ def run_grid(
                 decision=decision,
                 threads=threads,
                 abstain_ambiguous=abstain_ambiguous,
+            )
+        )
+        if bar is not None:
+            bar.update()
+    probe_rows: list[dict[str, Any]] = []
+    for name in probes:
+        g = name.split("-")[0]
+        probe_rows.extend(
+            run_probe(
+                name,
+                models[g],
+                levels[g],
+                pools=pools,
+                decision=decision,
+                threads=threads,
+                abstain_ambiguous=abstain_ambiguous,
+                seed=cells[0].seed if cells else 0,
             )
         )
         if bar is not None:
@@ -472,6 +643,7 @@ def run_grid(
         "speed_levels": dict(levels.items()),
         "units": {"diffusion": "µm²/s", "ballistic": "µm/s", "flow": "µm/s", "seconds": "s"},
         "cells": rows,
+        "probes": probe_rows,
         "summary": summarize(rows),
         "summary_by_context": summarize_by_context(rows),
         "summary_by_context_all_pixels": summarize_by_context(
@@ -630,6 +802,33 @@ def _context_row(s: dict[str, Any]) -> str:
     )
 
 
+_PROBE_CAPTION = (
+    "Probes, phantoms unlike the bands (`probes`): coverage and wrong share per motion on the pixels away from "
+    "other regions, and the worst wrong share over every pixel of each region, borders included."
+)
+
+
+def format_probes(rows: Sequence[dict[str, Any]]) -> list[str]:
+    """The Markdown table of the probe rows (one per probe and window)."""
+    lines = [
+        "| probe | window | coverage | worst wrong share | "
+        + " | ".join(f"{m} coverage / wrong" for m in MOTIONS)
+        + " | all pixels: worst wrong share |",
+        "|---|---:|---:|---:|" + "---:|" * len(MOTIONS) + "---:|",
+    ]
+    for r in rows:
+        pc = r["per_class"]
+        lines.append(
+            f"| {r['probe']} | {r['pool']} | {_fmt(r['coverage'])} | {_fmt(r['wrong_share_max'])} | "
+            + " | ".join(
+                "–" if not pc[m]["pixels"] else f"{_fmt(pc[m]['coverage'])} / {_fmt(pc[m]['wrong_share'])}"
+                for m in MOTIONS
+            )
+            + f" | {_fmt(r['all_pixels']['wrong_share_max'])} |"
+        )
+    return lines
+
+
 def format_table(res: dict[str, Any]) -> str:
     """The Markdown table: a summary per window, then one row per cell and window."""
     lines = [
@@ -679,6 +878,8 @@ def format_table(res: dict[str, Any]) -> str:
                 "|---|---|---:|---:|---:|---:|---:|" + "---:|" * len(MOTIONS),
             ]
             lines += [_context_row(s) for s in res[key]]
+    if res.get("probes"):
+        lines += ["", _PROBE_CAPTION, "", *format_probes(res["probes"])]
     cols = [c for c in _COLUMNS if c not in ("key", "model", "decision")]
     lines += ["", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in res["cells"]:
@@ -816,6 +1017,7 @@ def build_parser():
     p.add_argument("--stem", default="grid", help="file names STEM.json, STEM.csv, ... (default grid)")
     p.add_argument("--threads", type=int, default=None, metavar="N")
     p.add_argument("--force", action="store_true", help="overwrite existing results")
+    p.add_argument("--no-probes", action="store_true", help="skip the probes (phantoms unlike the bands)")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -836,6 +1038,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             threads=args.threads,
             progress=not args.no_progress,
             abstain_ambiguous=not args.decide_ballistic,
+            probes=[] if args.no_probes else [p for p in PROBES if args.geometry in (None, p.split("-")[0])],
         )
         res["command"] = (
             "python -m classifier.bench.grid"
@@ -845,6 +1048,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             + (" --decide-ballistic" if args.decide_ballistic else "")
             + (f" --geometry {args.geometry}" if args.geometry else "")
             + (f" --seed {args.seed}" if args.seed else "")
+            + (" --no-probes" if args.no_probes else "")
             + (f" --stem {args.stem}" if args.stem != "grid" else "")
             + " --out DIR"
         )
@@ -857,6 +1061,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"window {pool}: {s['cells']} cells, worst wrong share {_fmt(s['worst_wrong_share'])}, "
             f"{s['cells_over_10pct_wrong']} over 10 %, mean coverage {_fmt(s['mean_coverage'])}; every band pixel: "
             f"worst {_fmt(s['worst_wrong_share_all_pixels'])}, {s['cells_over_5pct_wrong_all_pixels']} over 5 %"
+        )
+    for r in res.get("probes", []):
+        print(
+            f"probe {r['probe']}, window {r['pool']}: coverage {_fmt(r['coverage'])}, worst wrong share "
+            f"{_fmt(r['wrong_share_max'])}; every pixel: worst {_fmt(r['all_pixels']['wrong_share_max'])}"
         )
     print("wrote " + ", ".join(str(p) for p in written))
     return 0

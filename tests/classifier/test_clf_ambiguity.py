@@ -399,18 +399,21 @@ def test_a_single_class_decision_few_of_its_neighbours_share_is_flagged_and_no_s
     assert not got_e.reshape(shape)[8, 0]  # box rows 7..8 (row 9 unclassified), cols 0..1: 2 of 4 are flow
 
 
-def test_rule_6_box_is_the_coarsest_psf_footprint_per_axis():
+def test_rule_6_box_is_the_coarsest_psf_footprint_widened_by_the_pooling_window_per_axis():
     """The box spans, per axis, the full width where the coarsest configuration's intensity PSF stays above
-    1/e²: the lateral resolution along x and y, √2/√ln2 (≈ 1.70) times the axial FWHM along z, over the
-    pitch and rounded up to odd; never narrower than the pooling window or CONSENSUS_WINDOW_MIN; an axis
-    without a pitch keeps the pooling window."""
+    1/e² (the lateral resolution along x and y, √2/√ln2 ≈ 1.70 times the axial FWHM along z) over the
+    pitch, rounded up, plus pool − 1 (a pooled pixel averages the footprints of pool pixels), rounded up to
+    odd; never narrower than the pooling window or CONSENSUS_WINDOW_MIN; an axis without a pitch keeps the
+    pooling window."""
     from classifier.ambiguity import consensus_window
 
     # x: 18 / 1.5 = 12 → 13; z: 14 · 1.6986 / 1.5 = 15.85 → 16 → 17; y: 18 / 3 = 6 → 7
     assert consensus_window("YZX", {"z": 1.5, "x": 1.5, "y": 3.0}, 1, 18.0, 14.0) == (7, 17, 13)
-    assert consensus_window("ZX", {"z": 1.5, "x": 1.5}, 21, 18.0, 14.0) == (21, 21)  # pooling window wider
+    # pool 5: z 16 + 4 = 20 → 21, x 12 + 4 = 16 → 17; pool 21: z 36 → 37, x 32 → 33
+    assert consensus_window("ZX", {"z": 1.5, "x": 1.5}, 5, 18.0, 14.0) == (21, 17)
+    assert consensus_window("ZX", {"z": 1.5, "x": 1.5}, 21, 18.0, 14.0) == (37, 33)
     assert consensus_window("ZX", {"z": 4.0, "x": 10.0}, 1, 18.0, 4.0) == (3, 3)  # footprint under the minimum
-    assert consensus_window("ZX", {"x": 1.5}, 5, 18.0, 14.0) == (5, 13)  # no z pitch
+    assert consensus_window("ZX", {"x": 1.5}, 5, 18.0, 14.0) == (5, 17)  # no z pitch
     assert consensus_window("ZX", None, 5, 18.0, 14.0) == (5, 5)
     assert consensus_window("YZX", {"z": 1.0, "x": 1.0, "y": 1.0}, 1, 4.0, 2.0, lateral_y_um=10.0) == (11, 5, 5)
 
@@ -432,33 +435,28 @@ def test_rule_6_box_per_axis_flags_a_strip_narrower_than_half_of_it():
 
 
 def test_rule_7_flags_an_unfounded_flow_decision_only_where_its_footprint_holds_another_region():
-    """A flow strip beside a region of sets, not decorrelated and unmoved: the pixels whose box reaches the
-    sets (flow share < FOOTPRINT_FLOW_MIN) are flagged, the ones whose box is all flow are kept; a decorrelated
-    pixel, one whose pattern moved (rule 0 or 5) and a NaN correlation are never flagged; without the
-    correlation the rule does nothing."""
-    from classifier.ambiguity import DECORRELATED_BELOW, FOOTPRINT_FLOW_MIN, borrowed_flow
+    """A flow strip beside a region of sets, its pattern unmoved: the pixels whose box reaches the sets (flow
+    share < FOOTPRINT_FLOW_MIN) are flagged, decorrelated or not, the ones whose box is all flow are kept; a
+    pixel whose pattern moved (rule 0 or 5) is never flagged; without a flow label the rule does nothing."""
+    from classifier.ambiguity import FOOTPRINT_FLOW_MIN, borrowed_flow
 
-    assert FOOTPRINT_FLOW_MIN == 0.9 and DECORRELATED_BELOW == 0.5
+    assert FOOTPRINT_FLOW_MIN == 0.9
     flow, ball_set = NAMES.index("flow"), NAMES.index("ballistic-or-flow")
     grid = np.full((9, 30), ball_set)
     grid[:, 10:30] = flow  # flow from column 10 on
     shape, idx = grid.shape, np.arange(grid.size)
     labels = grid.reshape(-1)
-    corr = np.full(grid.size, 0.9)  # not decorrelated anywhere
-    got = borrowed_flow(labels, NAMES, idx, shape, (3, 5), corr).reshape(shape)
+    got = borrowed_flow(labels, NAMES, idx, shape, (3, 5)).reshape(shape)
     # a 5-wide box holds 5 columns: flow share 3/5 at column 10, 4/5 at 11, 5/5 from 12 on
     assert got[:, 10:12].all() and not got[:, 12:].any() and not got[:, :10].any()
-    decorrelated = corr.copy().reshape(shape)
-    decorrelated[:, 10] = DECORRELATED_BELOW - 0.01
-    decorrelated[0, 11] = np.nan
     moved = np.zeros(shape, bool)
     moved[4, 11] = True
-    got2 = borrowed_flow(labels, NAMES, idx, shape, (3, 5), decorrelated.reshape(-1), translation=moved.reshape(-1))
-    got2 = got2.reshape(shape)
-    assert not got2[:, 10].any() and not got2[0, 11] and not got2[4, 11] and got2[1:4, 11].all()
-    got3 = borrowed_flow(labels, NAMES, idx, shape, (3, 5), corr, coherent=moved.reshape(-1)).reshape(shape)
+    got2 = borrowed_flow(labels, NAMES, idx, shape, (3, 5), translation=moved.reshape(-1)).reshape(shape)
+    assert not got2[4, 11] and got2[3, 11] and got2[:, 10].all()
+    got3 = borrowed_flow(labels, NAMES, idx, shape, (3, 5), coherent=moved.reshape(-1)).reshape(shape)
     assert not got3[4, 11] and got3[3, 11]
-    assert not borrowed_flow(labels, NAMES, idx, shape, (3, 5), None).any()
+    no_flow = np.where(labels == flow, NAMES.index("ballistic"), labels)
+    assert not borrowed_flow(no_flow, NAMES, idx, shape, (3, 5)).any()
 
 
 def test_translation_rule_turns_ballistic_decisions_and_sets_into_flow_but_not_diffusion():
@@ -589,13 +587,13 @@ def test_classify_maps_applies_rule_6_last_and_decide_ballistic_skips_it(tmp_pat
     base = classify_maps(path, mdl, pool=5, background_db=None)
     amb = base.info["ambiguity"]
     assert amb["rules"][-2:] == ["borrowed_flow", "unshared"] and amb["consensus_min"] == CONSENSUS_MIN
-    # the box is the coarsest configuration's 1/e² footprint per axis (odd, at least the pooling window)
+    # the box is the coarsest configuration's 1/e² footprint per axis widened by the pooling window (odd)
     pitch = base.pitch_um
     coarse_lat = max(c.lateral_resolution_um for c in mdl.spec.configurations)
     coarse_ax = max(c.axial_resolution_um for c in mdl.spec.configurations)
     for ax, got in amb["consensus_window_px"].items():
         width = coarse_ax * 2 * np.sqrt(2) / (2 * np.sqrt(np.log(2))) if ax == "z" else coarse_lat
-        n = int(np.ceil(width / pitch[ax] - 1e-9))
+        n = int(np.ceil(width / pitch[ax] - 1e-9)) + 5 - 1
         assert got == max(5, n + 1 - n % 2)
 
     monkeypatch.setattr(ambiguity, "unshared", lambda labels, *a, **k: np.ones(np.shape(labels), bool))
