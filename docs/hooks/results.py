@@ -925,6 +925,27 @@ def grid_summary(root: Path) -> str:
     return "\n\n".join([table(header, rows), source(d["command"], p)])
 
 
+def grid_probes(root: Path) -> str:
+    """The default grid's probes (phantoms whose regions touch): per probe and window, coverage and wrong
+    share per motion on the pixels away from other regions, and the worst wrong share over every pixel."""
+    d, p = load(root, "grid-default.json")
+    probes = d.get("probes")
+    if not probes:
+        raise MissingResult(f"{p} has no probes: re-record it with the command in its 'command' field")
+    motions = list(probes[0]["per_class"])
+    rows = []
+    for r in probes:
+        pc = r["per_class"]
+        rows.append(
+            [r["probe"], r["pool"], num(r["coverage"]), num(r["wrong_share_max"])]
+            + [f"{num(pc[m]['coverage'])} / {num(pc[m]['wrong_share'])}" if pc[m]["pixels"] else "–" for m in motions]
+            + [num(r["all_pixels"]["wrong_share_max"])]
+        )
+    header = ["probe", "window", "coverage", "worst wrong share"] + [f"{m}: coverage / wrong" for m in motions]
+    header.append("all pixels: worst wrong share")
+    return "\n\n".join([table(header, rows), source(d["command"], p)])
+
+
 RENDERERS: dict[str, Callable[[Path], str]] = {
     "bench-simulate": bench_simulate,
     "bench-study": bench_study,
@@ -950,6 +971,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "translation-rule": translation_rule,
     "grid-context": grid_context,
     "grid-summary": grid_summary,
+    "grid-probes": grid_probes,
     "grid-context-all-pixels": lambda root: grid_context(root, "summary_by_context_all_pixels"),
 }
 
