@@ -97,7 +97,10 @@ pixel:
    network decides flow over a strip as wide as the reach. So such a decision stands only where at least
    :data:`FOOTPRINT_FLOW_MIN` of the classified pixels of its box are ``flow`` after rules 0–5 (the
    footprint is one flow region); elsewhere it becomes ``indeterminate`` (the exclusion of diffusion rests
-   on the same mixed evidence). It only abstains.
+   on the same mixed evidence). ``indeterminate`` pixels of the box (static tissue; a motion too slow or too
+   fast to identify) hold no other motion's evidence and are not counted: a vessel narrower than the
+   footprint in static tissue keeps its decisions, a random-motion strip beside it (its pixels a motion or a
+   set) does not. It only abstains.
 6. **A decision its neighbours do not share** (maps of any geometry; applied after every other rule). A
    region of one motion is at least a resolution cell wide, and the evidence of neighbouring pixels overlaps
    (the pooling window, and the PSF of every configuration the model reads), so a motion's decisions come in
@@ -199,7 +202,7 @@ SET_LABEL = "ballistic-or-flow"
 CONSENSUS_MIN = 0.5
 #: Rule 6: the narrowest window (pixels per axis), used where the pooling window and the footprint are narrower.
 CONSENSUS_WINDOW_MIN = 3
-#: Rule 7: the least share of the classified pixels of an unmoved ``flow`` decision's box
+#: Rule 7: the least share of the classified, not ``indeterminate`` pixels of an unmoved ``flow`` decision's box
 #: that must be ``flow`` for it to stand (nine in ten: the footprint is one flow region, a few scattered
 #: other outcomes aside; the grid's all-pixels scores barely change between 0.9 and 0.97).
 FOOTPRINT_FLOW_MIN = 0.9
@@ -589,7 +592,8 @@ def borrowed_flow(
     the flat positions ``idx`` of a map of ``shape``), whether it holds a ``flow`` decision that the pixel's
     own pattern does not found (neither ``coherent``, rule 0, nor ``translation``, rule 5, seen; a rule
     without its channels sees nothing) and that fewer than :data:`FOOTPRINT_FLOW_MIN` of the classified
-    pixels of its box (``window`` as in :func:`unshared`) share. All False without a ``flow`` label."""
+    pixels of its box (``window`` as in :func:`unshared`) that are not ``indeterminate`` share. All False
+    without a ``flow`` label."""
     labels = np.asarray(labels)
     names = list(names)
     if "flow" not in names:
@@ -603,8 +607,10 @@ def borrowed_flow(
         return cand
     grid, width = _label_map(labels, idx, shape, window)
     flow = _box_count(grid == k, width).reshape(-1)[idx]
-    classified = _box_count(grid >= 0, width).reshape(-1)[idx]
-    return cand & (flow < FOOTPRINT_FLOW_MIN * classified)
+    motion = grid >= 0
+    if "indeterminate" in names:  # static tissue, or a motion the data cannot identify: no other motion's evidence
+        motion &= grid != names.index("indeterminate")
+    return cand & (flow < FOOTPRINT_FLOW_MIN * _box_count(motion, width).reshape(-1)[idx])
 
 
 def unshared(

@@ -164,9 +164,9 @@ def to_markdown(result: dict) -> str:
         "Goals: pool 5 balanced accuracy ≥ 0.93 at coverage ≥ 0.90; doct-train --like ≤ 15 min on 2 cores.",
         "",
         "| system | training (simulation + fit) | own test split, pool 1 | pool 1: balanced accuracy @ coverage "
-        "| pool 5: balanced accuracy @ coverage | pool 5 recall diffusion / ballistic / flow | magnitude: median "
-        "\\|log10 error\\|, 68 % / 95 % cover (pool 5) |",
-        "|---|---|---|---|---|---|---|",
+        "| pool 5: balanced accuracy @ coverage | pool 5 recall diffusion / ballistic / flow | pool 5 wrong share "
+        "diffusion / ballistic / flow | magnitude: median \\|log10 error\\|, 68 % / 95 % cover (pool 5) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     extra = any(k.startswith("5@") for r in result["systems"] for k in r["scores"])
     if extra:  # pool 5 at other thresholds of the indeterminate outcome: one more column
@@ -180,6 +180,12 @@ def to_markdown(result: dict) -> str:
             cells.append(f"{b:.3f} ± {bs:.3f} @ {c:.3f} ± {cs:.3f}")
         rec = {
             k: np.mean([(s["overall"]["per_class"].get(k) or {}).get("recall") or np.nan for s in r["scores"]["5"]])
+            for k in ("diffusion", "ballistic", "flow")
+        }
+        wrong5 = {
+            k: np.mean(
+                [_wrong_share(q, k) if (q := s["overall"]["per_class"].get(k)) else np.nan for s in r["scores"]["5"]]
+            )
             for k in ("diffusion", "ballistic", "flow")
         }
         mags = [s["overall"].get("magnitude") or {} for s in r["scores"]["5"]]
@@ -198,7 +204,8 @@ def to_markdown(result: dict) -> str:
             f"| {r['system']}: {r['description']} | {t / 60:.1f} min ({r['simulation_s'] / 60:.1f} + "
             f"{r['fit_s'] / 60:.1f}) | {r['own_test_pool1']['balanced_accuracy_identifiable']:.3f} @ "
             f"{r['own_test_pool1']['coverage_identifiable']:.3f} | {cells[0]} | {cells[1]} | "
-            f"{rec['diffusion']:.3f} / {rec['ballistic']:.3f} / {rec['flow']:.3f} | {mag} |"
+            f"{rec['diffusion']:.3f} / {rec['ballistic']:.3f} / {rec['flow']:.3f} | "
+            f"{wrong5['diffusion']:.3f} / {wrong5['ballistic']:.3f} / {wrong5['flow']:.3f} | {mag} |"
             + (f" {'; '.join(thresholds)} |" if extra else "")
         )
     if any("5-default" in r["scores"] for r in result["systems"]):

@@ -628,6 +628,14 @@ def systems_validation(root: Path) -> str:
             f"{num(own.get('balanced_accuracy_identifiable'))} @ {num(own.get('coverage_identifiable'))}",
             *[f"{num(o['balanced_accuracy'])} @ {num(o['coverage'])}" for o in sc.values()],
         ]
+        if "5" in sc:  # the model's own decisions at pool 5: each class's pixels decided as another class
+            per5 = sc["5"]["per_class"]
+            row.append(
+                ", ".join(
+                    f"{k} {num(sum(n for c, n in q['decided_as'].items() if c != k) / q['pixels'])}"
+                    for k, q in per5.items()
+                )
+            )
         if default:
             o = s["scores"]["5-default"][0]["overall"]
             per = o["per_class"]
@@ -644,6 +652,8 @@ def systems_validation(root: Path) -> str:
         "own test split, pool 1",
         *[f"pool {k}, model decisions: bal. acc. @ coverage" for k in pools],
     ]
+    if "5" in pools:
+        heads.append("pool 5, model decisions: wrong share")
     if default:
         heads += ["pool 5, default decision: bal. acc. on decided @ coverage", "pool 5, default: wrong share"]
     return "\n\n".join(

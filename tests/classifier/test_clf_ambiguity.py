@@ -437,7 +437,8 @@ def test_rule_6_box_per_axis_flags_a_strip_narrower_than_half_of_it():
 def test_rule_7_flags_an_unfounded_flow_decision_only_where_its_footprint_holds_another_region():
     """A flow strip beside a region of sets, its pattern unmoved: the pixels whose box reaches the sets (flow
     share < FOOTPRINT_FLOW_MIN) are flagged, decorrelated or not, the ones whose box is all flow are kept; a
-    pixel whose pattern moved (rule 0 or 5) is never flagged; without a flow label the rule does nothing."""
+    pixel whose pattern moved (rule 0 or 5) is never flagged; indeterminate pixels (static tissue) are not
+    counted; without a flow label the rule does nothing."""
     from classifier.ambiguity import FOOTPRINT_FLOW_MIN, borrowed_flow
 
     assert FOOTPRINT_FLOW_MIN == 0.9
@@ -457,6 +458,13 @@ def test_rule_7_flags_an_unfounded_flow_decision_only_where_its_footprint_holds_
     assert not got3[4, 11] and got3[3, 11]
     no_flow = np.where(labels == flow, NAMES.index("ballistic"), labels)
     assert not borrowed_flow(no_flow, NAMES, idx, shape, (3, 5)).any()
+    # beside indeterminate pixels (static tissue) instead of sets: no other motion's evidence, nothing flagged
+    static = np.where(labels == ball_set, NAMES.index("indeterminate"), labels)
+    assert not borrowed_flow(static, NAMES, idx, shape, (3, 5)).any()
+    mixed = static.reshape(shape).copy()
+    mixed[:, 9] = ball_set  # one column of sets next to the flow: flow share 3/4 at column 10, 4/5 at 11
+    got4 = borrowed_flow(mixed.reshape(-1), NAMES, idx, shape, (3, 5)).reshape(shape)
+    assert got4[:, 10:12].all() and not got4[:, 12:].any()
 
 
 def test_translation_rule_turns_ballistic_decisions_and_sets_into_flow_but_not_diffusion():
