@@ -204,7 +204,7 @@ CONSENSUS_MIN = 0.5
 CONSENSUS_WINDOW_MIN = 3
 #: Rule 7: the least share of the classified, not ``indeterminate`` pixels of an unmoved ``flow`` decision's box
 #: that must be ``flow`` for it to stand (nine in ten: the footprint is one flow region, a few scattered
-#: other outcomes aside; the grid's all-pixels scores barely change between 0.9 and 0.97).
+#: other outcomes aside).
 FOOTPRINT_FLOW_MIN = 0.9
 #: The single-class decisions rule 6 checks.
 _MOTIONS = ("diffusion", "ballistic", "flow")
