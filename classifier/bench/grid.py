@@ -273,7 +273,7 @@ def phantom_dict(cell: GridCell, spec, levels: dict[str, dict[str, float]], dens
         )
     d: dict[str, Any] = {
         "name": cell.key,
-        "system": [_system_dict(spec)],
+        "system": [system_dict(spec)],
         "protocol": {"n_frames": spec.n_frames, "frame_interval_s": spec.frame_interval_s},
         "grid": grid,
         "region": regions,
@@ -284,11 +284,11 @@ def phantom_dict(cell: GridCell, spec, levels: dict[str, dict[str, float]], dens
     return d
 
 
-def _system_dict(spec) -> dict[str, Any]:
-    """The grid's system: the optics of the model's first configuration."""
+def system_dict(spec, name: str = "grid-system") -> dict[str, Any]:
+    """The ``[[system]]`` of a benchmark phantom: the optics of the model's first configuration."""
     c0 = spec.configurations[0]
     system = {
-        "name": "grid-system",
+        "name": name,
         "wavelength_um": c0.wavelength_um,
         "lateral_resolution_um": c0.lateral_resolution_um,
         "axial_resolution_um": c0.axial_resolution_um,
@@ -359,6 +359,69 @@ def _edge_px(spec, pitch: float, pool: int) -> int:
     return int(math.ceil(coarsest / 2.0 / pitch)) + pool // 2
 
 
+def _classify_rendered(
+    phantoms: Sequence[dict[str, Any]],
+    model,
+    source: str,
+    seed: int,
+    *,
+    pools: Sequence[int],
+    decision: str | None,
+    threads: int | None,
+    abstain_ambiguous: bool,
+) -> list[dict[str, Any]]:
+    """Render ``phantoms`` (phantom-file dicts; their fields add, the first rendered at ``seed``, a static
+    background after it at its own), map them as ``maps --signature`` does, classify at every window of
+    ``pools`` and score against the first phantom's labels: one row per window with the scores of the
+    pixels away from other regions, ``all_pixels`` (edge 0), the decision and the seconds taken."""
+    from torchdoct.image.phantom import phantom_from_dict
+    from torchdoct.image.render import render
+    from torchdoct.measured.maps import compute_maps
+    from torchdoct.measured.mapsfile import write_maps
+    from torchdoct.measured.sequence import SequenceData, validate_meta
+
+    from ..infer import classify_maps
+
+    spec = model.spec
+    t0 = time.perf_counter()
+    res = render(phantom_from_dict(phantoms[0]), seed=seed, threads=threads)
+    data = res.data[0].numpy()
+    for extra in phantoms[1:]:
+        data = data + render(phantom_from_dict(extra), threads=threads).data[0].numpy()
+    meta = res.metadata(0)
+    meta.pop("phantom", None)
+    seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source=source)
+    t_render = time.perf_counter()
+    maps = compute_maps(
+        seq, [c.name for c in spec.configurations], metrics=("mean_db",), signature=list(spec.metrics), speckle=True
+    )  # what maps --signature writes
+    t_maps = time.perf_counter()
+    pitch = _pitch_um(spec)
+    kw = {} if decision is None else {"decision": decision}
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        path = write_maps(Path(tmp) / "maps.npz", maps)
+        for pool in pools:
+            t1 = time.perf_counter()
+            c = classify_maps(path, model, pool=int(pool), threads=threads, abstain_ambiguous=abstain_ambiguous, **kw)
+            t2 = time.perf_counter()
+            rows.append(
+                {
+                    "pool": int(pool),
+                    "decision": c.info.get("decision", "rule"),
+                    **score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool))),
+                    "all_pixels": score_labels(res.labels, c.labels, c.classes, 0),
+                    "seconds": {
+                        "render": t_render - t0,
+                        "maps": t_maps - t_render,
+                        "classify": t2 - t1,
+                        "total": (t_maps - t0) + (t2 - t1),
+                    },
+                }
+            )
+    return rows
+
+
 def run_cell(
     cell: GridCell,
     model,
@@ -372,13 +435,6 @@ def run_cell(
 ) -> list[dict[str, Any]]:
     """Render, map, classify and score one cell at every window of ``pools``: one row per window.
     ``abstain_ambiguous``: doct-classify's default (:mod:`classifier.ambiguity`); False: ``--decide-ballistic``."""
-    from torchdoct.image.phantom import phantom_from_dict
-    from torchdoct.image.render import render
-    from torchdoct.measured.maps import compute_maps
-    from torchdoct.measured.mapsfile import write_maps
-    from torchdoct.measured.sequence import SequenceData, validate_meta
-
-    from ..infer import classify_maps
     from ..prior import Prior
     from ..truth import identifiability
 
@@ -386,54 +442,34 @@ def run_cell(
     spec = model.spec
     density = float(min(prior.density_per_um3))
     d = phantom_dict(cell, spec, levels, density)
-    t0 = time.perf_counter()
-    res = render(phantom_from_dict(d), seed=cell.seed, threads=threads)
-    data = res.data[0].numpy()
-    if cell.context == "background":
-        data = data + render(phantom_from_dict(_static_dict(d, density)), threads=threads).data[0].numpy()
-    meta = res.metadata(0)
-    meta.pop("phantom", None)
-    seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source=cell.key)
-    t_render = time.perf_counter()
-    maps = compute_maps(
-        seq, [c.name for c in spec.configurations], metrics=("mean_db",), signature=list(spec.metrics), speckle=True
-    )  # what maps --signature writes
-    t_maps = time.perf_counter()
+    phantoms = [d, _static_dict(d, density)] if cell.context == "background" else [d]
+    scored = _classify_rendered(
+        phantoms,
+        model,
+        cell.key,
+        cell.seed,
+        pools=pools,
+        decision=decision,
+        threads=threads,
+        abstain_ambiguous=abstain_ambiguous,
+    )
     ident = {}
     for label, name in enumerate(MOTIONS):
         mag = levels[name][cell.level]
         ident[name] = identifiability(spec, _draw(label, mag, cell.polar_deg, cell.azimuth_deg, density), prior)[0]
     rows = []
-    pitch = _pitch_um(spec)
-    with tempfile.TemporaryDirectory() as tmp:
-        path = write_maps(Path(tmp) / "maps.npz", maps)
-        for pool in pools:
-            t1 = time.perf_counter()
-            kw = {} if decision is None else {"decision": decision}
-            c = classify_maps(path, model, pool=int(pool), threads=threads, abstain_ambiguous=abstain_ambiguous, **kw)
-            t2 = time.perf_counter()
-            s = score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool)))
-            borders = score_labels(res.labels, c.labels, c.classes, 0)
-            rows.append(
-                {
-                    **asdict(cell),
-                    "key": cell.key,
-                    "pool": int(pool),
-                    "model": spec.name,
-                    "decision": c.info.get("decision", "rule"),
-                    "abstain_ambiguous": bool(abstain_ambiguous),
-                    "magnitudes": {m: levels[m][cell.level] for m in MOTIONS},
-                    "identifiable": ident,
-                    **s,
-                    "all_pixels": borders,
-                    "seconds": {
-                        "render": t_render - t0,
-                        "maps": t_maps - t_render,
-                        "classify": t2 - t1,
-                        "total": (t_maps - t0) + (t2 - t1),
-                    },
-                }
-            )
+    for r in scored:
+        head = {
+            **asdict(cell),
+            "key": cell.key,
+            "pool": r.pop("pool"),
+            "model": spec.name,
+            "decision": r.pop("decision"),
+            "abstain_ambiguous": bool(abstain_ambiguous),
+            "magnitudes": {m: levels[m][cell.level] for m in MOTIONS},
+            "identifiable": ident,
+        }
+        rows.append({**head, **r})
     return rows
 
 
@@ -499,7 +535,7 @@ def probe_dict(name: str, spec, levels: dict[str, dict[str, float]], density: fl
         ]
     d: dict[str, Any] = {
         "name": f"probe-{name}",
-        "system": [_system_dict(spec)],
+        "system": [system_dict(spec)],
         "protocol": {"n_frames": int(spec.n_frames), "frame_interval_s": float(spec.frame_interval_s)},
         "grid": grid,
         "region": regions,
@@ -523,48 +559,31 @@ def run_probe(
     seed: int = 0,
 ) -> list[dict[str, Any]]:
     """Render, map, classify and score probe ``name`` (:func:`probe_dict`) at every window: one row per window."""
-    from torchdoct.image.phantom import phantom_from_dict
-    from torchdoct.image.render import render
-    from torchdoct.measured.maps import compute_maps
-    from torchdoct.measured.mapsfile import write_maps
-    from torchdoct.measured.sequence import SequenceData, validate_meta
-
-    from ..infer import classify_maps
     from ..prior import Prior
 
     spec = model.spec
     density = float(min((prior or Prior()).density_per_um3))
-    t0 = time.perf_counter()
-    res = render(phantom_from_dict(probe_dict(name, spec, levels, density, seed)), seed=seed, threads=threads)
-    data = res.data[0].numpy()
-    meta = res.metadata(0)
-    meta.pop("phantom", None)
-    seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source=f"probe-{name}")
-    maps = compute_maps(
-        seq, [c.name for c in spec.configurations], metrics=("mean_db",), signature=list(spec.metrics), speckle=True
+    scored = _classify_rendered(
+        [probe_dict(name, spec, levels, density, seed)],
+        model,
+        f"probe-{name}",
+        seed,
+        pools=pools,
+        decision=decision,
+        threads=threads,
+        abstain_ambiguous=abstain_ambiguous,
     )
-    t_maps = time.perf_counter()
-    pitch = _pitch_um(spec)
-    rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        path = write_maps(Path(tmp) / "maps.npz", maps)
-        for pool in pools:
-            t1 = time.perf_counter()
-            kw = {} if decision is None else {"decision": decision}
-            c = classify_maps(path, model, pool=int(pool), threads=threads, abstain_ambiguous=abstain_ambiguous, **kw)
-            t2 = time.perf_counter()
-            rows.append(
-                {
-                    "probe": name,
-                    "geometry": name.split("-")[0],
-                    "pool": int(pool),
-                    "model": spec.name,
-                    **score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool))),
-                    "all_pixels": score_labels(res.labels, c.labels, c.classes, 0),
-                    "seconds": (t_maps - t0) + (t2 - t1),
-                }
-            )
-    return rows
+    return [
+        {
+            "probe": name,
+            "geometry": name.split("-")[0],
+            "pool": r["pool"],
+            "model": spec.name,
+            **{k: v for k, v in r.items() if k not in ("pool", "decision", "seconds")},
+            "seconds": r["seconds"]["total"],
+        }
+        for r in scored
+    ]
 
 
 def run_grid(

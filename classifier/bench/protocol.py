@@ -285,7 +285,8 @@ def phantom_dict(
     n_z: int = IMAGE_NZ,
 ) -> dict[str, Any]:
     """The phantom of one protocol (module docstring) in the phantom-file schema."""
-    c0 = spec.configurations[0]
+    from .grid import system_dict
+
     pitch = _pitch_um(spec)
     density = _density() if density is None else float(density)
     r_um, gap_um = radius_px * pitch, BAND_GAP_PX * pitch
@@ -313,14 +314,7 @@ def phantom_dict(
                 "motion": [motions[name]],
             }
         )
-    system = {
-        "name": "protocol-system",
-        "wavelength_um": c0.wavelength_um,
-        "lateral_resolution_um": c0.lateral_resolution_um,
-        "axial_resolution_um": c0.axial_resolution_um,
-    }
-    if spec.refractive_index != 1.0:
-        system["refractive_index"] = spec.refractive_index
+    system = system_dict(spec, "protocol-system")
     d: dict[str, Any] = {
         "name": f"protocol-T{n_frames}-dt{interval_s:g}",
         "system": [system],
