@@ -96,8 +96,10 @@ pixel:
    decorrelated, rule 2's case; or decorrelated, as random-ballistic motion beside a vessel is), and the
    network decides flow over a strip as wide as the reach. So such a decision stands only where at least
    :data:`FOOTPRINT_FLOW_MIN` of the classified pixels of its box are ``flow`` after rules 0–5 (the
-   footprint is one flow region); elsewhere it becomes ``indeterminate`` (the exclusion of diffusion rests
-   on the same mixed evidence). ``indeterminate`` pixels of the box (static tissue; a motion too slow or too
+   footprint is one flow region). The box reaches :data:`FOOTPRINT_REACH` times as far as the footprint: a
+   random motion that decays by a few percent by itself reads as flow even where only the far tail of the
+   coarse PSF (``exp(−2d²/r²)``, 14 % at the footprint's edge ``d = r``) holds a decorrelating flow.
+   Elsewhere it becomes ``indeterminate`` (the exclusion of diffusion rests on the same mixed evidence). ``indeterminate`` pixels of the box (static tissue; a motion too slow or too
    fast to identify) hold no other motion's evidence and are not counted: a vessel narrower than the
    footprint in static tissue keeps its decisions, a random-motion strip beside it (its pixels a motion or a
    set) does not. It only abstains.
@@ -206,6 +208,12 @@ CONSENSUS_WINDOW_MIN = 3
 #: that must be ``flow`` for it to stand (nine in ten: the footprint is one flow region, a few scattered
 #: other outcomes aside).
 FOOTPRINT_FLOW_MIN = 0.9
+#: Rule 7: the footprint term of its box, a multiple of rule 6's (:func:`consensus_window`, ``reach``). A
+#: neighbour at distance ``d`` holds the share ``exp(−2d²/r²)`` of the coarse intensity PSF (``r`` the 1/e² half
+#: width, physics.md §5.1): ``e^{−2}`` (14 %) at the footprint's edge, ``e^{−4.5}`` (1 %) at 1.5 of it. A flow that
+#: decorrelates fully adds that share to the decay the coarse configuration reads at every lag: beside the few
+#: percent a slow random motion decays by itself, 14 % is a flow's signature, 1 % is not.
+FOOTPRINT_REACH = 1.5
 #: The single-class decisions rule 6 checks.
 _MOTIONS = ("diffusion", "ballistic", "flow")
 
@@ -541,6 +549,7 @@ def consensus_window(
     lateral_um: float | None = None,
     axial_um: float | None = None,
     lateral_y_um: float | None = None,
+    reach: float = 1.0,
 ) -> tuple[int, ...]:
     """Rule 6's box (module docstring), pixels per axis of ``axes`` (the maps' spatial axes, e.g. ``"ZX"``,
     ``"YZX"``): per axis the footprint of a decision pooled over ``pool`` pixels, the footprint of the
@@ -550,14 +559,17 @@ def consensus_window(
     ``2√2 s_z = √2·axial_um/√ln 2`` along ``z`` (``axial_um`` the FWHM; physics.md §5.1); over the axis's
     pitch, rounded up, plus ``pool − 1`` (the pooled features at a pixel average the footprints of ``pool``
     pixels per axis), rounded up to an odd count; never narrower than ``pool`` or
-    :data:`CONSENSUS_WINDOW_MIN`. An axis without a positive finite pitch or resolution keeps the pooling
-    window."""
+    :data:`CONSENSUS_WINDOW_MIN`. ``reach`` scales the footprint (rule 7's box: :data:`FOOTPRINT_REACH`).
+    An axis without a positive finite pitch or resolution keeps the pooling window."""
+    if not (isinstance(reach, (int, float)) and not isinstance(reach, bool) and 0 < reach < np.inf):
+        raise ValueError(f"consensus_window: reach must be a positive finite number, got {reach!r}")
     base = max(int(pool), CONSENSUS_WINDOW_MIN)
     pitch = pitch_um if isinstance(pitch_um, Mapping) else {}
     out = []
     for ax in axes.lower():
         res = {"z": axial_um, "y": lateral_um if lateral_y_um is None else lateral_y_um}.get(ax, lateral_um)
         width = res * np.sqrt(2.0 / np.log(2.0)) if (ax == "z" and res is not None) else res
+        width = width * float(reach) if isinstance(width, (int, float)) and not isinstance(width, bool) else width
         p = pitch.get(ax)
         ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < np.inf for v in (width, p))
         n = int(np.ceil(float(width) / float(p) - 1e-9)) + int(pool) - 1 if ok else 0  # type: ignore[arg-type]

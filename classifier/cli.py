@@ -573,7 +573,9 @@ def _classify(args: argparse.Namespace) -> int:
         if ch.get("borrowed_flow"):
             print(
                 f"  indeterminate where only the coarse configurations saw flow: {ch['borrowed_flow']} flow decisions "
-                "whose pattern did not move, at a region's border (--decide-ballistic keeps the model's decisions)"
+                "whose pattern did not move, at a region's border (box "
+                + " × ".join(f"{n} {a}" for a, n in res.info["ambiguity"]["footprint_window_px"].items())
+                + " px; --decide-ballistic keeps the model's decisions)"
             )
         if ch.get("unshared"):
             print(

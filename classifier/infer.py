@@ -322,10 +322,7 @@ def classify_maps(
             window if isinstance(window, int) and not isinstance(window, bool) else None,
         )
         confs = mdl.spec.configurations
-        consensus = ambiguity.consensus_window(
-            _spatial_axes(meta0, shape),
-            pitches if isinstance(pitches, dict) else None,
-            int(pool),
+        coarsest = dict(
             lateral_um=max(c.lateral_resolution_um for c in confs),
             axial_um=max(c.axial_resolution_um for c in confs),
             lateral_y_um=max(
@@ -333,6 +330,10 @@ def classify_maps(
                 for c in confs
             ),
         )
+        axes = _spatial_axes(meta0, shape)
+        box_pitch = pitches if isinstance(pitches, dict) else None
+        consensus = ambiguity.consensus_window(axes, box_pitch, int(pool), **coarsest)
+        reach = ambiguity.consensus_window(axes, box_pitch, int(pool), reach=ambiguity.FOOTPRINT_REACH, **coarsest)
         bscan = len(shape) == 2
         names_all = list(mdl.classes) + set_names
         labels_flat, changed = ambiguity.abstain_where_ambiguous(
@@ -346,7 +347,7 @@ def classify_maps(
             translation=translation,
         )
         borrowed = ambiguity.borrowed_flow(
-            labels_flat, names_all, idx, shape, consensus, coherent=coherent, translation=translation
+            labels_flat, names_all, idx, shape, reach, coherent=coherent, translation=translation
         )
         labels_flat = np.where(borrowed, mdl.classes.index("indeterminate"), labels_flat)
         changed["borrowed_flow"] = int(borrowed.sum())
@@ -379,8 +380,10 @@ def classify_maps(
             "translation_linear_max_pitch": ambiguity.TRANSLATION_LINEAR_MAX,
             "translation_window_min_px": ambiguity.TRANSLATION_WINDOW_MIN,
             "footprint_flow_min": ambiguity.FOOTPRINT_FLOW_MIN,
+            "footprint_reach": ambiguity.FOOTPRINT_REACH,
+            "footprint_window_px": dict(zip(axes.lower(), reach)),
             "consensus_min": ambiguity.CONSENSUS_MIN,
-            "consensus_window_px": dict(zip(_spatial_axes(meta0, shape).lower(), consensus)),
+            "consensus_window_px": dict(zip(axes.lower(), consensus)),
             "changed_pixels": changed,
         }
     labels = np.full(valid.size, MASKED, np.uint8)

@@ -44,7 +44,7 @@ the coarsest configuration's resolution plus half the window; masked pixels are 
   (``summary_by_context_all_pixels`` pools them like ``summary_by_context``).
 
 **Probes** (:data:`PROBES`, :func:`probe_dict`): phantoms unlike the bands, scored the same way, every
-motion at its ``mid`` level. Unlike the bands, which empty medium separates, their regions touch, so the
+motion at its ``mid`` level unless the name says ``-slow``. Unlike the bands, which empty medium separates, their regions touch, so the
 coarse configurations' footprints straddle two motions:
 
 * ``*-layers``: three layers stacked in depth (diffusion, random-ballistic motion, flow at
@@ -52,7 +52,10 @@ coarse configurations' footprints straddle two motions:
   tissue (a static population under every pixel, in the same phantom);
 * ``*-vessel``: a flow vessel of radius :data:`PROBE_VESSEL_RADIUS_PX` through random-ballistic tissue
   without static scatterers, in the B-scan plane at 45° to the beam (B-scan) or along x (volume), the
-  flow along its axis.
+  flow along its axis;
+* ``-slow``: every motion at its ``slow`` level: a random motion that decays by a few percent beside a flow
+  that decorrelates over the acquisition, so that even the far tail of the coarse PSF mixes a flow's
+  signature into it.
 
 Outputs (``write_grid``): ``grid.json`` (:data:`SCHEMA_VERSION`, the definitions above, the cells),
 ``grid.csv``, ``grid.md`` and ``grid.png`` (worst wrong share and coverage per cell, cividis).
@@ -111,8 +114,17 @@ BAND_RADIUS_PX = 12
 BAND_GAP_PX = 8
 IMAGE_NZ = 64
 VOLUME_NY = 8
-#: Phantoms unlike the bands (:func:`probe_dict`): layers in depth and a vessel, without and with static tissue.
-PROBES = ("bscan-layers", "bscan-layers-static", "bscan-vessel", "volume-layers-static", "volume-vessel")
+#: Phantoms unlike the bands (:func:`probe_dict`): layers in depth and a vessel, without and with static tissue,
+#: with every motion at its mid level or (``-slow``) at its slow level.
+PROBES = (
+    "bscan-layers",
+    "bscan-layers-static",
+    "bscan-vessel",
+    "bscan-vessel-slow",
+    "volume-layers-static",
+    "volume-layers-static-slow",
+    "volume-vessel",
+)
 #: Flow direction of the layer probes (polar, azimuth; degrees): oblique, out of the B-scan plane by 60°.
 PROBE_LAYER_FLOW_DEG = (45.0, 60.0)
 #: Vessel radius of the vessel probes (pixels).
@@ -475,11 +487,11 @@ def run_cell(
 
 def probe_dict(name: str, spec, levels: dict[str, dict[str, float]], density: float, seed: int = 0) -> dict[str, Any]:
     """The phantom of probe ``name`` (:data:`PROBES`, module docstring) in the phantom-file schema, built from
-    the system of ``spec`` and the speed ``levels`` of its geometry."""
+    the system of ``spec`` and the speed ``levels`` of its geometry (``-slow``: every motion at ``slow``)."""
     if name not in PROBES:
         raise ValueError(f"unknown probe {name!r}; give one of {', '.join(PROBES)}")
-    geometry, kind = name.split("-")[:2]
-    static = name.endswith("-static")
+    geometry, kind, *variant = name.split("-")
+    static, level = "static" in variant, ("slow" if "slow" in variant else "mid")
     pitch = _pitch_um(spec)
     n_x, n_z = 96, IMAGE_NZ
     grid: dict[str, Any] = {"kind": geometry, "n_x": n_x, "n_z": n_z, "pitch_x_um": pitch, "pitch_z_um": pitch}
@@ -488,9 +500,9 @@ def probe_dict(name: str, spec, levels: dict[str, dict[str, float]], density: fl
     else:
         grid["y_um"] = 0.0
     depth = n_z * pitch  # the grid is centred on the origin: z runs over [-depth/2, depth/2]
-    diffusion = {"kind": "diffusion", "diffusion_um2_per_s": levels["diffusion"]["mid"]}
-    ballistic = {"kind": "ballistic", "speed_um_per_s": levels["ballistic"]["mid"]}
-    flow_speed = levels["flow"]["mid"]
+    diffusion = {"kind": "diffusion", "diffusion_um2_per_s": levels["diffusion"][level]}
+    ballistic = {"kind": "ballistic", "speed_um_per_s": levels["ballistic"][level]}
+    flow_speed = levels["flow"][level]
     if kind == "layers":
         polar, azimuth = PROBE_LAYER_FLOW_DEG
         flow = {"kind": "flow", "speed_um_per_s": flow_speed, "polar_angle_deg": polar, "azimuth_deg": azimuth}

@@ -418,6 +418,23 @@ def test_rule_6_box_is_the_coarsest_psf_footprint_widened_by_the_pooling_window_
     assert consensus_window("YZX", {"z": 1.0, "x": 1.0, "y": 1.0}, 1, 4.0, 2.0, lateral_y_um=10.0) == (11, 5, 5)
 
 
+def test_rule_7_box_reaches_one_and_a_half_footprints_where_the_coarse_psf_holds_one_percent():
+    """Rule 7's box scales the footprint term by FOOTPRINT_REACH = 1.5, where the coarse intensity PSF
+    exp(−2d²/r²) has fallen to e^(−4.5) (against e^(−2) at the footprint's edge); the pooling term is
+    unchanged; a reach that is not a positive finite number is refused."""
+    from classifier import ambiguity
+    from classifier.ambiguity import consensus_window
+
+    assert ambiguity.FOOTPRINT_REACH == 1.5
+    # x: 1.5 · 18 / 1.5 = 18 → 19; z: 1.5 · 14 · 1.6986 / 1.5 = 23.78 → 24 → 25; pool 5 adds 4 to each
+    assert consensus_window("ZX", {"z": 1.5, "x": 1.5}, 1, 18.0, 14.0, reach=1.5) == (25, 19)
+    assert consensus_window("ZX", {"z": 1.5, "x": 1.5}, 5, 18.0, 14.0, reach=1.5) == (29, 23)
+    assert consensus_window("ZX", {"z": 1.5, "x": 1.5}, 5, 18.0, 14.0, reach=1.0) == (21, 17)
+    for bad in (0.0, -1.0, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="reach"):
+            consensus_window("ZX", {"z": 1.5, "x": 1.5}, 1, 18.0, 14.0, reach=bad)
+
+
 def test_rule_6_box_per_axis_flags_a_strip_narrower_than_half_of_it():
     """A 3-pixel strip of flow decisions along z among sets stands in a 3×3 box (its centre column holds 3
     of 3) but not in a box 13 pixels wide along x (3 of 13 < 1/2): the coarse PSF mixes it with its
@@ -603,6 +620,10 @@ def test_classify_maps_applies_rule_6_last_and_decide_ballistic_skips_it(tmp_pat
         width = coarse_ax * 2 * np.sqrt(2) / (2 * np.sqrt(np.log(2))) if ax == "z" else coarse_lat
         n = int(np.ceil(width / pitch[ax] - 1e-9)) + 5 - 1
         assert got == max(5, n + 1 - n % 2)
+        # rule 7's box: the same with the footprint term 1.5 times as far
+        n7 = int(np.ceil(1.5 * width / pitch[ax] - 1e-9)) + 5 - 1
+        assert amb["footprint_window_px"][ax] == max(5, n7 + 1 - n7 % 2)
+    assert amb["footprint_reach"] == 1.5
 
     monkeypatch.setattr(ambiguity, "unshared", lambda labels, *a, **k: np.ones(np.shape(labels), bool))
     flagged = classify_maps(path, mdl, pool=5, background_db=None)
