@@ -103,7 +103,7 @@ pixel:
    fast to identify) hold no other motion's evidence and are not counted: a vessel narrower than the
    footprint in static tissue keeps its decisions, a random-motion strip beside it (its pixels a motion or a
    set) does not. It only abstains.
-6. **A decision its neighbours do not share** (maps of any geometry; applied after every other rule). A
+6. **A decision its neighbours do not share** (maps of any geometry; applied last, with rule 8). A
    region of one motion is at least a resolution cell wide, and the evidence of neighbouring pixels overlaps
    (the pooling window, and the PSF of every configuration the model reads), so a motion's decisions come in
    patches; a single-class decision that fewer than :data:`CONSENSUS_MIN` of the classified pixels of its box
@@ -114,6 +114,17 @@ pixel:
    which its intensity PSF stays above ``1/e²`` of its peak: the lateral resolution itself; ``1.70×`` the
    axial FWHM, physics.md §5.1) widened by the pooling window, at least :data:`CONSENSUS_WINDOW_MIN`
    pixels. It becomes ``indeterminate``. It only abstains.
+8. **A decision its finest footprint contradicts** (maps of any geometry; beside rule 6, on the same labels;
+   a pixel both flag counts for rule 6). Every configuration the model reads, the finest included, reads
+   the pixel's whole pooling window, so a pooled decision rests at least on the finest configuration's
+   footprint widened by the pooling window (:func:`consensus_window` with the finest resolutions). Where a
+   border between two motions crosses that box, the decision averages both: beside a faster neighbour a
+   slow motion's few percent of decay is outweighed, and the network decides the neighbour's motion a few
+   pixels into it. The pixels on the other side of the border say so: their outcomes exclude the decision
+   (another motion, or a set that does not name it: ``ballistic-or-flow`` excludes diffusion). A
+   single-class decision where at least :data:`CONTRADICTED_MIN` of the classified pixels of that box hold
+   such an outcome becomes ``indeterminate``. A few scattered sets inside one motion's region stay under
+   it; ``indeterminate`` pixels and sets that name the decided motion never contradict it. It only abstains.
 """
 
 from __future__ import annotations
@@ -146,10 +157,13 @@ __all__ = [
     "CONSENSUS_MIN",
     "CONSENSUS_WINDOW_MIN",
     "FOOTPRINT_FLOW_MIN",
+    "FOOTPRINT_REACH",
+    "CONTRADICTED_MIN",
     "abstain_where_ambiguous",
     "borrowed_flow",
     "consensus_window",
     "unshared",
+    "contradicted",
     "coherent_motion",
     "fast_decorrelation",
     "offset_moved",
@@ -214,6 +228,10 @@ FOOTPRINT_FLOW_MIN = 0.9
 #: decorrelates fully adds that share to the decay the coarse configuration reads at every lag: beside the few
 #: percent a slow random motion decays by itself, 14 % is a flow's signature, 1 % is not.
 FOOTPRINT_REACH = 1.5
+#: Rule 8: the share of the classified pixels of a decision's finest footprint holding an outcome that excludes
+#: its class from which the decision is contradicted (one in ten: a few scattered sets inside a region of one
+#: motion stay under it, a neighbouring region's edge inside the footprint does not).
+CONTRADICTED_MIN = 0.1
 #: The single-class decisions rule 6 checks.
 _MOTIONS = ("diffusion", "ballistic", "flow")
 
@@ -646,4 +664,29 @@ def unshared(
             classified = _box_count(grid >= 0, width).reshape(-1)[idx]
         same = _box_count(grid == k, width).reshape(-1)[idx]
         out |= mine & (same < CONSENSUS_MIN * classified)
+    return out
+
+
+def contradicted(
+    labels: np.ndarray, names: Sequence[str], idx: np.ndarray, shape: tuple[int, ...], window: int | Sequence[int]
+) -> np.ndarray:
+    """Rule 8 (module docstring): per classified pixel (``labels``, indices into ``names``, at the flat
+    positions ``idx`` of a map of ``shape``), whether it holds a decision for one motion while at least
+    :data:`CONTRADICTED_MIN` of the classified pixels of the box centred on it (``window`` pixels per axis, the
+    finest configuration's footprint widened by the pooling window, :func:`consensus_window`; cut at the map's
+    edges) hold an outcome that excludes that motion: another motion, or a set that does not name it."""
+    labels = np.asarray(labels)
+    names = list(names)
+    grid, width = _label_map(labels, idx, shape, window)
+    out = np.zeros(labels.shape, bool)
+    classified = None
+    for k, name in enumerate(names):
+        mine = labels == k
+        if name not in _MOTIONS or not mine.any():
+            continue
+        if classified is None:
+            classified = _box_count(grid >= 0, width).reshape(-1)[idx]
+        others = [j for j, n in enumerate(names) if j != k and n != "indeterminate" and name not in n.split("-or-")]
+        against = _box_count(np.isin(grid, others), width).reshape(-1)[idx]
+        out |= mine & (against >= CONTRADICTED_MIN * classified)
     return out

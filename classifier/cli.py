@@ -583,6 +583,12 @@ def _classify(args: argparse.Namespace) -> int:
                 + " × ".join(f"{n} {a}" for a, n in res.info["ambiguity"]["consensus_window_px"].items())
                 + " px; --decide-ballistic keeps the model's decisions)"
             )
+        if ch.get("contradicted"):
+            print(
+                f"  indeterminate where the finest footprint holds another motion: {ch['contradicted']} pixels (box "
+                + " × ".join(f"{n} {a}" for a, n in res.info["ambiguity"]["fine_window_px"].items())
+                + " px; --decide-ballistic keeps the model's decisions)"
+            )
         for c in res.label_names:
             print(f"  {c:>22}: {counts[c]:>9} ({counts[c] / total:6.1%})")
         print(f"  {res.info['pixels_per_s']:.3g} pixels/s; wrote {', '.join(p.name for p in written)} to {args.out}")

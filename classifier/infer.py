@@ -229,7 +229,8 @@ def classify_maps(
     ``ballistic-or-flow`` where the physics cannot exclude flow (:mod:`classifier.ambiguity`: every B-scan
     pixel; a volume's pixels whose window has not decorrelated), ``flow`` where the speckle pattern
     moved coherently, and ``indeterminate`` where a flow decision rests only on the coarse configurations
-    beside another region (rule 7) or few pixels of its box share a decision (rule 6)."""
+    beside another region (rule 7), few pixels of its box share a decision (rule 6) or one in ten of its
+    finest footprint holds an outcome that excludes it (rule 8)."""
     t0 = time.perf_counter()
     _check_arguments(pool, min_probability)
     _check_alpha(alpha)
@@ -334,6 +335,17 @@ def classify_maps(
         box_pitch = pitches if isinstance(pitches, dict) else None
         consensus = ambiguity.consensus_window(axes, box_pitch, int(pool), **coarsest)
         reach = ambiguity.consensus_window(axes, box_pitch, int(pool), reach=ambiguity.FOOTPRINT_REACH, **coarsest)
+        fine = ambiguity.consensus_window(
+            axes,
+            box_pitch,
+            int(pool),
+            lateral_um=min(c.lateral_resolution_um for c in confs),
+            axial_um=min(c.axial_resolution_um for c in confs),
+            lateral_y_um=min(
+                c.lateral_resolution_um if c.lateral_resolution_y_um is None else c.lateral_resolution_y_um
+                for c in confs
+            ),
+        )
         bscan = len(shape) == 2
         names_all = list(mdl.classes) + set_names
         labels_flat, changed = ambiguity.abstain_where_ambiguous(
@@ -352,8 +364,10 @@ def classify_maps(
         labels_flat = np.where(borrowed, mdl.classes.index("indeterminate"), labels_flat)
         changed["borrowed_flow"] = int(borrowed.sum())
         alone = ambiguity.unshared(labels_flat, names_all, idx, shape, consensus)
-        labels_flat = np.where(alone, mdl.classes.index("indeterminate"), labels_flat)
+        against = ambiguity.contradicted(labels_flat, names_all, idx, shape, fine) & ~alone
+        labels_flat = np.where(alone | against, mdl.classes.index("indeterminate"), labels_flat)
         changed["unshared"] = int(alone.sum())
+        changed["contradicted"] = int(against.sum())
         ambiguity_info = {
             "rules": (["coherent_motion"] if coherent is not None else [])
             + (["translation"] if translation is not None else [])
@@ -362,7 +376,7 @@ def classify_maps(
             + (["fast_decorrelation"] if fast is not None and not bscan else [])
             + (["offset_moved"] if moved is not None else [])
             + ["borrowed_flow"]
-            + ["unshared"],
+            + ["unshared", "contradicted"],
             "coherent_channels": coherent_source,
             "coherent_peak_min": ambiguity.COHERENT_PEAK_MIN,
             "coherent_moved_min": ambiguity.COHERENT_MOVED_MIN,
@@ -384,6 +398,8 @@ def classify_maps(
             "footprint_window_px": dict(zip(axes.lower(), reach)),
             "consensus_min": ambiguity.CONSENSUS_MIN,
             "consensus_window_px": dict(zip(axes.lower(), consensus)),
+            "contradicted_min": ambiguity.CONTRADICTED_MIN,
+            "fine_window_px": dict(zip(axes.lower(), fine)),
             "changed_pixels": changed,
         }
     labels = np.full(valid.size, MASKED, np.uint8)

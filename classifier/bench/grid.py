@@ -119,6 +119,7 @@ VOLUME_NY = 8
 PROBES = (
     "bscan-layers",
     "bscan-layers-static",
+    "bscan-layers-slow",
     "bscan-vessel",
     "bscan-vessel-slow",
     "volume-layers-static",

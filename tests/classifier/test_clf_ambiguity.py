@@ -451,6 +451,38 @@ def test_rule_6_box_per_axis_flags_a_strip_narrower_than_half_of_it():
         unshared(grid.reshape(-1), NAMES, idx, shape, (3, 3, 3))
 
 
+def test_rule_8_flags_a_decision_whose_fine_footprint_holds_one_in_ten_outcomes_that_exclude_it():
+    """A diffusion decision in a 5×5 box is contradicted from 3 of 25 pixels (≥ CONTRADICTED_MIN = 1/10) that
+    exclude diffusion: a set without it (ballistic-or-flow) or another motion; 2 of 25 are not enough; sets
+    that name diffusion and indeterminate pixels never contradict it (indeterminate ones count as classified);
+    sets are never flagged themselves."""
+    from classifier.ambiguity import CONTRADICTED_MIN, contradicted
+
+    assert CONTRADICTED_MIN == 0.1
+    diff, ball_set, diff_set = (
+        NAMES.index("diffusion"),
+        NAMES.index("ballistic-or-flow"),
+        NAMES.index("diffusion-or-flow"),
+    )
+    ind, flow = NAMES.index("indeterminate"), NAMES.index("flow")
+
+    def at_centre(cells):
+        grid = np.full((5, 5), diff)
+        for (z, x), v in cells.items():
+            grid[z, x] = v
+        shape, idx = grid.shape, np.arange(grid.size)
+        return contradicted(grid.reshape(-1), NAMES, idx, shape, (5, 5)).reshape(shape)[2, 2]
+
+    assert at_centre({(0, 0): ball_set, (0, 1): ball_set, (0, 2): ball_set})
+    assert at_centre({(0, 0): ball_set, (4, 4): flow, (0, 2): ball_set})
+    assert not at_centre({(0, 0): ball_set, (0, 1): ball_set})
+    assert not at_centre({(0, k): diff_set for k in range(5)} | {(4, k): ind for k in range(5)})
+    grid = np.full((5, 5), ball_set)
+    grid[2, 2] = diff
+    got = contradicted(grid.reshape(-1), NAMES, np.arange(25), (5, 5), (5, 5)).reshape(5, 5)
+    assert got[2, 2] and got.sum() == 1  # the sets around it are not flagged
+
+
 def test_rule_7_flags_an_unfounded_flow_decision_only_where_its_footprint_holds_another_region():
     """A flow strip beside a region of sets, its pattern unmoved: the pixels whose box reaches the sets (flow
     share < FOOTPRINT_FLOW_MIN) are flagged, decorrelated or not, the ones whose box is all flow are kept; a
@@ -611,7 +643,7 @@ def test_classify_maps_applies_rule_6_last_and_decide_ballistic_skips_it(tmp_pat
 
     base = classify_maps(path, mdl, pool=5, background_db=None)
     amb = base.info["ambiguity"]
-    assert amb["rules"][-2:] == ["borrowed_flow", "unshared"] and amb["consensus_min"] == CONSENSUS_MIN
+    assert amb["rules"][-3:] == ["borrowed_flow", "unshared", "contradicted"] and amb["consensus_min"] == CONSENSUS_MIN
     # the box is the coarsest configuration's 1/e² footprint per axis widened by the pooling window (odd)
     pitch = base.pitch_um
     coarse_lat = max(c.lateral_resolution_um for c in mdl.spec.configurations)
@@ -623,9 +655,24 @@ def test_classify_maps_applies_rule_6_last_and_decide_ballistic_skips_it(tmp_pat
         # rule 7's box: the same with the footprint term 1.5 times as far
         n7 = int(np.ceil(1.5 * width / pitch[ax] - 1e-9)) + 5 - 1
         assert amb["footprint_window_px"][ax] == max(5, n7 + 1 - n7 % 2)
-    assert amb["footprint_reach"] == 1.5
+        # rule 8's box: the finest configuration's footprint widened by the pooling window
+        fine = (
+            min(c.axial_resolution_um for c in mdl.spec.configurations) * np.sqrt(2 / np.log(2))
+            if ax == "z"
+            else min(c.lateral_resolution_um for c in mdl.spec.configurations)
+        )
+        n8 = int(np.ceil(fine / pitch[ax] - 1e-9)) + 5 - 1
+        assert amb["fine_window_px"][ax] == max(5, n8 + 1 - n8 % 2)
+    assert amb["footprint_reach"] == 1.5 and amb["rules"][-1] == "contradicted"
 
     monkeypatch.setattr(ambiguity, "unshared", lambda labels, *a, **k: np.ones(np.shape(labels), bool))
     flagged = classify_maps(path, mdl, pool=5, background_db=None)
     assert not np.isin(flagged.labels, single).any()
     assert flagged.info["ambiguity"]["changed_pixels"]["unshared"] == flagged.info["classified"]
+    assert flagged.info["ambiguity"]["changed_pixels"]["contradicted"] == 0  # a pixel counts for rule 6 first
+    # rule 8 beside rule 6: every pixel it flags becomes indeterminate and is counted
+    monkeypatch.setattr(ambiguity, "unshared", lambda labels, *a, **k: np.zeros(np.shape(labels), bool))
+    monkeypatch.setattr(ambiguity, "contradicted", lambda labels, *a, **k: np.ones(np.shape(labels), bool))
+    against = classify_maps(path, mdl, pool=5, background_db=None)
+    assert not np.isin(against.labels, single).any()
+    assert against.info["ambiguity"]["changed_pixels"]["contradicted"] == against.info["classified"]

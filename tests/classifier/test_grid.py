@@ -188,6 +188,11 @@ def test_probe_phantoms_put_touching_regions_on_the_models_system(levels):
     ves_slow = grid.probe_dict("bscan-vessel-slow", spec, levels, 0.04)["region"]
     assert [r["motion"][0]["speed_um_per_s"] for r in ves_slow] == [levels["ballistic"]["slow"], levels["flow"]["slow"]]
     assert "background" not in grid.probe_dict("bscan-vessel-slow", spec, levels, 0.04)
+    lay_slow = grid.probe_dict("bscan-layers-slow", spec, levels, 0.04)
+    speeds = [
+        r["motion"][0].get("speed_um_per_s", r["motion"][0].get("diffusion_um2_per_s")) for r in lay_slow["region"]
+    ]
+    assert speeds == [levels[m]["slow"] for m in grid.MOTIONS] and "background" not in lay_slow
     with pytest.raises(ValueError, match="unknown probe"):
         grid.probe_dict("bscan-discs", spec, levels, 0.04)
 
@@ -270,3 +275,27 @@ def test_a_slow_random_motion_beside_a_slow_flow_is_not_decided_flow_past_the_fo
     assert short["per_class"]["ballistic"]["wrong_share"] > 0.10, short["per_class"]
     assert ruled["wrong_share_max"] <= 0.10, ruled["per_class"]
     assert ruled["per_class"]["flow"]["coverage"] > 0.5
+
+
+def test_a_pooled_decision_whose_fine_footprint_holds_another_region_abstains(monkeypatch):
+    """Every motion at its slow level, layers in depth (a B-scan without static tissue): a pooled decision
+    near the border between the diffusing and the random-ballistic layer averages both, and the model
+    decides diffusion a few pixels into the ballistic layer (stop 43: 0.048 of its pixels at window 5
+    without rule 8). Rule 8 (a decision that one in ten pixels of its finest footprint contradict abstains)
+    leaves at most 0.01 of them decided as another class at either window, where without it window 5
+    exceeds 0.02; diffusion stays decided over most of its layer."""
+    from classifier import ambiguity
+    from classifier.features import load_spec
+    from classifier.infer import load_model
+
+    model = load_model("signature-bscan", threads=1)
+    lv = grid.speed_levels(load_spec("signature-bscan"))
+    ruled = grid.run_probe("bscan-layers-slow", model, lv, threads=1)
+    for r in ruled:
+        assert r["all_pixels"]["per_class"]["ballistic"]["wrong_share"] <= 0.01, (r["pool"], r["all_pixels"])
+        assert (
+            r["all_pixels"]["wrong_share_max"] <= 0.01 and r["all_pixels"]["per_class"]["diffusion"]["coverage"] > 0.7
+        )
+    monkeypatch.setattr(ambiguity, "contradicted", lambda labels, *a, **k: np.zeros(np.shape(labels), bool))
+    without = grid.run_probe("bscan-layers-slow", model, lv, pools=(5,), threads=1)[0]["all_pixels"]
+    assert without["per_class"]["ballistic"]["wrong_share"] > 0.02, without["per_class"]
