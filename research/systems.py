@@ -20,6 +20,11 @@ For each system phantom (``system-1310nm``: 1310 nm, lateral 10 µm, axial 8 µm
 
 4. ``doct-classify --model DIR/SYSTEM --pool 5`` (the default decision, with the abstaining rules), scored
    the same way, with each class's wrong share (its pixels decided as another class).
+5. The phantom grid's probes of the system's geometry (:data:`classifier.bench.grid.PROBES`: regions that
+   touch, with and without static tissue, built from the model's system at the speed levels and lowest
+   density of its own training prior), with the model, at windows 1 and 5, with the rules (the default)
+   and without them (``--decide-ballistic``): each motion's wrong share over all its pixels. Off the
+   system's own phantom, where the model meets touching regions it was not validated on.
 
 Writes ``DIR/STEM.json`` and ``.md`` (``STEM`` default ``systems-validation``).
 """
@@ -130,6 +135,7 @@ def evaluate(
                 seq,
                 *("--pool", "5", "--min-probability", f"{mp:g}", "--decide-ballistic"),
             )
+    probes = probe_scores(model, report["prior"], "volume" if "volume" in system else "bscan")
     test = report["test"]["network"]["1"]
     return {
         "system": system,
@@ -147,7 +153,26 @@ def evaluate(
         },
         "seeds": seeds,
         "scores": scores,
+        "probes": probes,
     }
+
+
+def probe_scores(model: Path, prior: dict, geometry: str) -> list[dict]:
+    """Step 5 (module docstring): one row per probe of ``geometry``, window and decision (rules or the
+    model alone), with the all-pixels scores of :func:`classifier.bench.grid.run_probe`."""
+    from classifier.bench import grid
+    from classifier.infer import load_model
+    from classifier.prior import Prior
+
+    mdl = load_model(model)
+    pri = Prior.from_dict(prior)
+    levels = grid.speed_levels(mdl.spec, pri)
+    rows = []
+    for name in (p for p in grid.PROBES if p.startswith(geometry)):
+        for rules in (True, False):
+            for r in grid.run_probe(name, mdl, levels, prior=pri, abstain_ambiguous=rules):
+                rows.append({"probe": name, "pool": r["pool"], "rules": rules, "all_pixels": r["all_pixels"]})
+    return rows
 
 
 def _overall(scores: list[dict], key: str) -> tuple[float, float]:
@@ -234,6 +259,38 @@ def to_markdown(result: dict) -> str:
                 f"| {r['system']} | {c:.3f} ± {cs:.3f} | {ba:.3f} | {' / '.join(f'{v:.3f}' for v in cov)} | "
                 f"{' / '.join(f'{v:.3f}' for v in wrong)} |"
             )
+    if any(r.get("probes") for r in result["systems"]):
+        L += [
+            "",
+            "Probes of the phantom grid (regions that touch; `classifier.bench.grid.PROBES`) built from each "
+            "system at its own training prior's speed levels and lowest density, classified by its model: "
+            "coverage and wrong share per motion over all pixels, borders included, with doct-classify's rules "
+            "(the default) and the model alone (`--decide-ballistic`).",
+            "",
+            "| system | probe | window | rules: coverage diffusion / ballistic / flow | rules: wrong share "
+            "diffusion / ballistic / flow | model alone: wrong share diffusion / ballistic / flow |",
+            "|---|---|---|---|---|---|",
+        ]
+        for r in result["systems"]:
+            rows = r.get("probes") or []
+            for name in dict.fromkeys(q["probe"] for q in rows):
+                for pool in sorted({q["pool"] for q in rows if q["probe"] == name}):
+                    got = {
+                        q["rules"]: q["all_pixels"]["per_class"]
+                        for q in rows
+                        if q["probe"] == name and q["pool"] == pool
+                    }
+
+                    def fmt(per, key):
+                        return " / ".join(
+                            "–" if not per.get(k) or per[k][key] is None else f"{per[k][key]:.3f}"
+                            for k in ("diffusion", "ballistic", "flow")
+                        )
+
+                    L.append(
+                        f"| {r['system']} | {name} | {pool} | {fmt(got[True], 'coverage')} | "
+                        f"{fmt(got[True], 'wrong_share')} | {fmt(got[False], 'wrong_share')} |"
+                    )
     return "\n".join(L) + "\n"
 
 

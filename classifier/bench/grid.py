@@ -288,6 +288,7 @@ def phantom_dict(cell: GridCell, spec, levels: dict[str, dict[str, float]], dens
         "name": cell.key,
         "system": [system_dict(spec)],
         "protocol": {"n_frames": spec.n_frames, "frame_interval_s": spec.frame_interval_s},
+        "analysis": {"ocds_delay_range_s": list(spec.ocds_delay_range_s)},
         "grid": grid,
         "region": regions,
         "simulation": {"seed": int(cell.seed)},
@@ -406,8 +407,15 @@ def _classify_rendered(
     seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source=source)
     t_render = time.perf_counter()
     maps = compute_maps(
-        seq, [c.name for c in spec.configurations], metrics=("mean_db",), signature=list(spec.metrics), speckle=True
-    )  # what maps --signature writes
+        seq,
+        [c.name for c in spec.configurations],
+        metrics=("mean_db",),
+        signature=list(spec.metrics),
+        speckle=True,
+        ocds_delay_range_s=tuple(spec.ocds_delay_range_s),
+        ocds_scale=spec.ocds_scale,
+        ocds_estimator=spec.ocds_estimator,
+    )  # what maps --signature writes, with the model's OCDS analysis
     t_maps = time.perf_counter()
     pitch = _pitch_um(spec)
     kw = {} if decision is None else {"decision": decision}
@@ -550,6 +558,7 @@ def probe_dict(name: str, spec, levels: dict[str, dict[str, float]], density: fl
         "name": f"probe-{name}",
         "system": [system_dict(spec)],
         "protocol": {"n_frames": int(spec.n_frames), "frame_interval_s": float(spec.frame_interval_s)},
+        "analysis": {"ocds_delay_range_s": [float(v) for v in spec.ocds_delay_range_s]},
         "grid": grid,
         "region": regions,
         "simulation": {"seed": int(seed)},

@@ -669,6 +669,53 @@ def systems_validation(root: Path) -> str:
     )
 
 
+def systems_probes(root: Path) -> str:
+    """The grid's probes with each system's own model (``research.systems``, step 5)."""
+    d, p = load(root, "systems-validation.json")
+    rows = []
+    motions = ("diffusion", "ballistic", "flow")
+    for s in d["systems"]:
+        probes = s.get("probes") or []
+        for q in probes:
+            if not q["rules"]:
+                continue
+            alone = next(a for a in probes if a["probe"] == q["probe"] and a["pool"] == q["pool"] and not a["rules"])
+            per, per0 = q["all_pixels"]["per_class"], alone["all_pixels"]["per_class"]
+
+            def cell(src: dict, key: str) -> str:
+                return " / ".join("–" if src[k][key] is None else num(src[k][key]) for k in motions)
+
+            rows.append(
+                [
+                    s["system"],
+                    q["probe"],
+                    q["pool"],
+                    cell(per, "coverage"),
+                    cell(per, "wrong_share"),
+                    cell(per0, "wrong_share"),
+                ]
+            )
+    if not rows:
+        return "(no probes recorded)"
+    heads = [
+        "system",
+        "probe",
+        "window",
+        "default: coverage diffusion / ballistic / flow",
+        "default: wrong share",
+        "model alone (`--decide-ballistic`): wrong share",
+    ]
+    return "\n\n".join(
+        [
+            table(heads, rows),
+            "Every pixel of each motion, borders included; a motion the probe lacks is `–`. The probes are the "
+            "phantom grid's (docs/benchmarks/grid.md), built from each system at the speed levels and lowest "
+            "density of its model's training prior.",
+            source(d["command"], p),
+        ]
+    )
+
+
 def translation_validation(root: Path) -> str:
     d, p = load(root, "translation-validation.json")
     rows = []
@@ -974,6 +1021,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "simulate-example": simulate_example,
     "quick-train": quick_train,
     "systems-validation": systems_validation,
+    "systems-probes": systems_probes,
     "translation-validation": translation_validation,
     "validation-table": validation_table,
     "protocol-full": protocol_full,
