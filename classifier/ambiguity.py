@@ -99,10 +99,10 @@ pixel:
    footprint is one flow region). The box reaches :data:`FOOTPRINT_REACH` times as far as the footprint: a
    random motion that decays by a few percent by itself reads as flow even where only the far tail of the
    coarse PSF (``exp(−2d²/r²)``, 14 % at the footprint's edge ``d = r``) holds a decorrelating flow.
-   Elsewhere it becomes ``indeterminate`` (the exclusion of diffusion rests on the same mixed evidence). ``indeterminate`` pixels of the box (static tissue; a motion too slow or too
-   fast to identify) hold no other motion's evidence and are not counted: a vessel narrower than the
-   footprint in static tissue keeps its decisions, a random-motion strip beside it (its pixels a motion or a
-   set) does not. It only abstains.
+   Elsewhere it becomes ``indeterminate`` (the exclusion of diffusion rests on the same mixed evidence).
+   ``indeterminate`` pixels of the box (static tissue; a motion too slow or too fast to identify) hold no
+   other motion's evidence and are not counted: a vessel narrower than the footprint in static tissue keeps
+   its decisions, a random-motion strip beside it (its pixels a motion or a set) does not. It only abstains.
 6. **A decision its neighbours do not share** (maps of any geometry; applied last, with rule 8). A
    region of one motion is at least a resolution cell wide, and the evidence of neighbouring pixels overlaps
    (the pooling window, and the PSF of every configuration the model reads), so a motion's decisions come in

@@ -200,6 +200,18 @@ def _finest_pitch_um(pitch: Any) -> float | None:
     return min(good) if good else None
 
 
+def _footprint_resolutions(confs, pick) -> dict[str, float]:
+    """The resolutions (µm) of the footprint :func:`classifier.ambiguity.consensus_window` reads, ``pick`` (``max``:
+    the coarsest, ``min``: the finest) over the configurations ``confs``: lateral (x), axial and lateral along y."""
+    return {
+        "lateral_um": pick(c.lateral_resolution_um for c in confs),
+        "axial_um": pick(c.axial_resolution_um for c in confs),
+        "lateral_y_um": pick(
+            c.lateral_resolution_um if c.lateral_resolution_y_um is None else c.lateral_resolution_y_um for c in confs
+        ),
+    }
+
+
 def _spatial_axes(meta: Mapping[str, Any], shape: tuple[int, ...]) -> str:
     """The spatial axes of a maps file (its ``axes`` without the leading channel axis ``C``; ``ZX`` or ``YZX``
     by the map's rank when they are missing or do not match it)."""
@@ -323,29 +335,14 @@ def classify_maps(
             window if isinstance(window, int) and not isinstance(window, bool) else None,
         )
         confs = mdl.spec.configurations
-        coarsest = dict(
-            lateral_um=max(c.lateral_resolution_um for c in confs),
-            axial_um=max(c.axial_resolution_um for c in confs),
-            lateral_y_um=max(
-                c.lateral_resolution_um if c.lateral_resolution_y_um is None else c.lateral_resolution_y_um
-                for c in confs
-            ),
-        )
         axes = _spatial_axes(meta0, shape)
         box_pitch = pitches if isinstance(pitches, dict) else None
+        coarsest, finest = _footprint_resolutions(confs, max), _footprint_resolutions(confs, min)
         consensus = ambiguity.consensus_window(axes, box_pitch, int(pool), **coarsest)
-        reach = ambiguity.consensus_window(axes, box_pitch, int(pool), reach=ambiguity.FOOTPRINT_REACH, **coarsest)
-        fine = ambiguity.consensus_window(
-            axes,
-            box_pitch,
-            int(pool),
-            lateral_um=min(c.lateral_resolution_um for c in confs),
-            axial_um=min(c.axial_resolution_um for c in confs),
-            lateral_y_um=min(
-                c.lateral_resolution_um if c.lateral_resolution_y_um is None else c.lateral_resolution_y_um
-                for c in confs
-            ),
+        footprint_box = ambiguity.consensus_window(
+            axes, box_pitch, int(pool), reach=ambiguity.FOOTPRINT_REACH, **coarsest
         )
+        fine_box = ambiguity.consensus_window(axes, box_pitch, int(pool), **finest)
         bscan = len(shape) == 2
         names_all = list(mdl.classes) + set_names
         labels_flat, changed = ambiguity.abstain_where_ambiguous(
@@ -359,12 +356,12 @@ def classify_maps(
             translation=translation,
         )
         borrowed = ambiguity.borrowed_flow(
-            labels_flat, names_all, idx, shape, reach, coherent=coherent, translation=translation
+            labels_flat, names_all, idx, shape, footprint_box, coherent=coherent, translation=translation
         )
         labels_flat = np.where(borrowed, mdl.classes.index("indeterminate"), labels_flat)
         changed["borrowed_flow"] = int(borrowed.sum())
         alone = ambiguity.unshared(labels_flat, names_all, idx, shape, consensus)
-        against = ambiguity.contradicted(labels_flat, names_all, idx, shape, fine) & ~alone
+        against = ambiguity.contradicted(labels_flat, names_all, idx, shape, fine_box) & ~alone
         labels_flat = np.where(alone | against, mdl.classes.index("indeterminate"), labels_flat)
         changed["unshared"] = int(alone.sum())
         changed["contradicted"] = int(against.sum())
@@ -395,11 +392,11 @@ def classify_maps(
             "translation_window_min_px": ambiguity.TRANSLATION_WINDOW_MIN,
             "footprint_flow_min": ambiguity.FOOTPRINT_FLOW_MIN,
             "footprint_reach": ambiguity.FOOTPRINT_REACH,
-            "footprint_window_px": dict(zip(axes.lower(), reach)),
+            "footprint_window_px": dict(zip(axes.lower(), footprint_box)),
             "consensus_min": ambiguity.CONSENSUS_MIN,
             "consensus_window_px": dict(zip(axes.lower(), consensus)),
             "contradicted_min": ambiguity.CONTRADICTED_MIN,
-            "fine_window_px": dict(zip(axes.lower(), fine)),
+            "fine_window_px": dict(zip(axes.lower(), fine_box)),
             "changed_pixels": changed,
         }
     labels = np.full(valid.size, MASKED, np.uint8)
