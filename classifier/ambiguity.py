@@ -130,7 +130,7 @@ pixel:
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -651,20 +651,9 @@ def unshared(
     :data:`CONSENSUS_MIN` of the classified pixels of the box centred on it share (``window`` pixels along
     every axis, or one width per axis as :func:`consensus_window` gives; at least
     :data:`CONSENSUS_WINDOW_MIN`; cut at the map's edges)."""
-    labels = np.asarray(labels)
-    names = list(names)
-    grid, width = _label_map(labels, idx, shape, window)
-    out = np.zeros(labels.shape, bool)
-    classified = None  # per classified pixel: the classified pixels of its box (≥ 1: itself)
-    for k, name in enumerate(names):
-        mine = labels == k
-        if name not in _MOTIONS or not mine.any():
-            continue
-        if classified is None:
-            classified = _box_count(grid >= 0, width).reshape(-1)[idx]
-        same = _box_count(grid == k, width).reshape(-1)[idx]
-        out |= mine & (same < CONSENSUS_MIN * classified)
-    return out
+    return _flag_single_class(
+        labels, names, idx, shape, window, lambda k, name: [k], lambda n, c: n < CONSENSUS_MIN * c
+    )
 
 
 def contradicted(
@@ -675,6 +664,26 @@ def contradicted(
     :data:`CONTRADICTED_MIN` of the classified pixels of the box centred on it (``window`` pixels per axis, the
     finest configuration's footprint widened by the pooling window, :func:`consensus_window`; cut at the map's
     edges) hold an outcome that excludes that motion: another motion, or a set that does not name it."""
+    names = list(names)
+
+    def excluding(k: int, name: str) -> list[int]:
+        return [j for j, n in enumerate(names) if j != k and n != "indeterminate" and name not in n.split("-or-")]
+
+    return _flag_single_class(labels, names, idx, shape, window, excluding, lambda n, c: n >= CONTRADICTED_MIN * c)
+
+
+def _flag_single_class(
+    labels: np.ndarray,
+    names: Sequence[str],
+    idx: np.ndarray,
+    shape: tuple[int, ...],
+    window: int | Sequence[int],
+    held_by: Callable[[int, str], list[int]],
+    flag: Callable[[np.ndarray, np.ndarray], np.ndarray],
+) -> np.ndarray:
+    """Rules 6 and 8: per classified pixel holding a single-class decision ``k`` (``name``), ``flag(n, c)`` where
+    ``n`` counts the pixels of its box whose label is one of ``held_by(k, name)`` and ``c`` the classified
+    pixels of the box (≥ 1: itself); False for every other pixel."""
     labels = np.asarray(labels)
     names = list(names)
     grid, width = _label_map(labels, idx, shape, window)
@@ -686,7 +695,6 @@ def contradicted(
             continue
         if classified is None:
             classified = _box_count(grid >= 0, width).reshape(-1)[idx]
-        others = [j for j, n in enumerate(names) if j != k and n != "indeterminate" and name not in n.split("-or-")]
-        against = _box_count(np.isin(grid, others), width).reshape(-1)[idx]
-        out |= mine & (against >= CONTRADICTED_MIN * classified)
+        held = _box_count(np.isin(grid, held_by(k, name)), width).reshape(-1)[idx]
+        out |= mine & flag(held, classified)
     return out
