@@ -1,6 +1,7 @@
 """Where the physics cannot tell random-ballistic motion from flow: a ``ballistic`` decision becomes the
 set ``ballistic-or-flow``, unless the speckle pattern moved coherently, which only flow does: then every
-decision but ``indeterminate`` is ``flow`` (numpy only: the classify path). The derivation is in docs/abstention.md
+decision but ``indeterminate`` is ``flow`` (numpy only: the classify path). The rules are applied in the order
+0, 5, 1, 2, 3, 4, 7, 9, then 6 and 8 together. The derivation is in docs/abstention.md
 ("What the data cannot tell") and docs/concepts/speckle-motion.md §3, §7.
 
 A network that reads one pixel's intensity (pooled or not) decides ``ballistic`` wherever the decay looks
@@ -103,7 +104,22 @@ pixel:
    ``indeterminate`` pixels of the box (static tissue; a motion too slow or too fast to identify) hold no
    other motion's evidence and are not counted: a vessel narrower than the footprint in static tissue keeps
    its decisions, a random-motion strip beside it (its pixels a motion or a set) does not. It only abstains.
-6. **A decision its neighbours do not share** (maps of any geometry; applied last, with rule 8). A
+9. **A flow decision a coarser configuration's faster decay founds** (maps of any geometry; right after
+   rule 7, on its labels). Reducing the resolution never speeds a region's decorrelation: a flow's transit
+   decay ``exp(−Σ_c v_c²τ²/(2s_c²))`` slows as the PSF widens, the Doppler-phase decay of diffusion and
+   random-ballistic motion depends on the PSF only through terms of order ``Dτ/s²`` and ``v²τ²/s²`` that
+   shrink as it widens, and a static share spread evenly through a region is the same at every resolution
+   (physics.md §5.3; near a static border it is not, §14, and the grid's static-edge cells measure the cost). So inside one motion's region the pooled intensity correlation of every
+   coarser configuration the model reads lies at or above the finest configuration's, lag by lag, up to the
+   estimator's scatter. Where a coarser configuration's correlation lies below the finest's, its wider PSF
+   reaches a region that decorrelates faster, and the decay the network read as flow is that neighbour's.
+   Rule 7 sees this only through the box's labels, and a slow random motion next to a flow is often left
+   ``indeterminate`` (a full prediction set, as static tissue is), which rule 7 does not count; rule 9
+   reads the evidence itself. Where, for some coarser configuration, the mean over the lags both read of
+   ``rho_lin_m@finest − rho_lin_m@coarser`` exceeds :data:`MIXED_DECAY_MIN`, a ``flow`` decision whose own
+   pattern did not move (neither rule 0 nor rule 5) becomes ``indeterminate``. A flow next to a slower
+   region keeps its decisions: there the coarser configuration decays slower, not faster. It only abstains.
+6. **A decision its neighbours do not share** (maps of any geometry; applied last, after rules 7 and 9, with rule 8). A
    region of one motion is at least a resolution cell wide, and the evidence of neighbouring pixels overlaps
    (the pooling window, and the PSF of every configuration the model reads), so a motion's decisions come in
    patches; a single-class decision that fewer than :data:`CONSENSUS_MIN` of the classified pixels of its box
@@ -159,17 +175,23 @@ __all__ = [
     "FOOTPRINT_FLOW_MIN",
     "FOOTPRINT_REACH",
     "CONTRADICTED_MIN",
+    "MIXED_DECAY_MIN",
     "abstain_where_ambiguous",
     "borrowed_flow",
     "consensus_window",
     "unshared",
     "contradicted",
     "coherent_motion",
+    "mixed_footprint",
     "fast_decorrelation",
     "offset_moved",
     "slow_decorrelation",
     "translated",
 ]
+
+#: Rule 9 (module docstring): how far (averaged over the lags the model reads) a coarser configuration's pooled
+#: intensity correlation may lie below the finest configuration's before a flow decision counts as mixed.
+MIXED_DECAY_MIN = 0.3
 
 #: The window's intensity correlation at the longest lag below which a pixel counts as decorrelated
 #: (rule 2 of the module docstring): half of the correlation is gone.
@@ -698,3 +720,51 @@ def _flag_single_class(
         held = _box_count(np.isin(grid, held_by(k, name)), width).reshape(-1)[idx]
         out |= mine & flag(held, classified)
     return out
+
+
+def mixed_footprint(
+    labels: np.ndarray,
+    names: Sequence[str],
+    columns: Sequence[Mapping[str, Any]],
+    pooled: np.ndarray,
+    finest: str | None,
+    coherent: np.ndarray | None = None,
+    translation: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Rule 9 (module docstring): per classified pixel (``labels`` after rule 7, indices into ``names``), whether
+    it holds a ``flow`` decision that its own pattern does not found (as in :func:`borrowed_flow`) and that a
+    coarser configuration founds by a faster decay than the finest one's; and that excess per pixel.
+
+    ``columns``: the model's input columns (``metric``, ``configuration``), the last one the pool size;
+    ``pooled``: the model's input rows; ``finest``: the name of the configuration with the smallest footprint.
+    The excess is, over the configurations other than ``finest``, the largest mean over the lags both read of
+    ``rho_lin_m@finest − rho_lin_m@coarser``; a decision is flagged where it exceeds :data:`MIXED_DECAY_MIN`.
+    All False, and the excess ``None``, when the model reads no ``rho_lin_m`` of ``finest`` and of another
+    configuration at a common lag."""
+    labels = np.asarray(labels)
+    names = list(names)
+    lags: dict[str, dict[int, int]] = {}
+    for j, col in enumerate(columns[:-1]):
+        m = _RHO_LIN.match(str(col.get("metric", "")))
+        if m and col.get("configuration") is not None:
+            lags.setdefault(str(col["configuration"]), {})[int(m.group(1))] = j
+    fine = lags.get(str(finest), {})
+    pairs = [(fine, cols, sorted(set(cols) & set(fine))) for conf, cols in lags.items() if conf != finest]
+    pairs = [p for p in pairs if p[2]]
+    if not pairs:
+        return np.zeros(labels.shape, bool), None
+    pooled = np.asarray(pooled)
+    excess = np.max(
+        [
+            np.mean([pooled[:, f[m]].astype(np.float64) - pooled[:, c[m]] for m in common], axis=0)
+            for f, c, common in pairs
+        ],
+        axis=0,
+    )
+    if "flow" not in names:
+        return np.zeros(labels.shape, bool), excess
+    cand = labels == names.index("flow")
+    for seen in (coherent, translation):
+        if seen is not None:
+            cand &= ~np.asarray(seen, bool)
+    return cand & (excess > MIXED_DECAY_MIN), excess

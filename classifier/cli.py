@@ -577,6 +577,12 @@ def _classify(args: argparse.Namespace) -> int:
                 + " × ".join(f"{n} {a}" for a, n in res.info["ambiguity"]["footprint_window_px"].items())
                 + " px; --decide-ballistic keeps the model's decisions)"
             )
+        if ch.get("mixed_footprint"):
+            print(
+                f"  indeterminate where a coarser configuration decayed faster than the finest: "
+                f"{ch['mixed_footprint']} flow decisions whose pattern did not move "
+                "(--decide-ballistic keeps the model's decisions)"
+            )
         if ch.get("unshared"):
             print(
                 f"  indeterminate where few neighbours share the decision: {ch['unshared']} pixels (box "

@@ -212,6 +212,17 @@ def _footprint_resolutions(confs, pick) -> dict[str, float]:
     }
 
 
+def _finest_configuration(confs) -> str:
+    """The name of the configuration with the smallest footprint (the product of its lateral, lateral-y and
+    axial resolutions; the first on a tie): rule 9's reference (:func:`classifier.ambiguity.mixed_footprint`)."""
+
+    def area(c) -> float:
+        lat_y = c.lateral_resolution_um if c.lateral_resolution_y_um is None else c.lateral_resolution_y_um
+        return c.lateral_resolution_um * lat_y * c.axial_resolution_um
+
+    return min(confs, key=area).name
+
+
 def _spatial_axes(meta: Mapping[str, Any], shape: tuple[int, ...]) -> str:
     """The spatial axes of a maps file (its ``axes`` without the leading channel axis ``C``; ``ZX`` or ``YZX``
     by the map's rank when they are missing or do not match it)."""
@@ -241,7 +252,7 @@ def classify_maps(
     ``ballistic-or-flow`` where the physics cannot exclude flow (:mod:`classifier.ambiguity`: every B-scan
     pixel; a volume's pixels whose window has not decorrelated), ``flow`` where the speckle pattern
     moved coherently, and ``indeterminate`` where a flow decision rests only on the coarse configurations
-    beside another region (rule 7), few pixels of its box share a decision (rule 6) or one in ten of its
+    beside another region (rule 7) or on a coarser configuration that decayed faster than the finest (rule 9), few pixels of its box share a decision (rule 6) or one in ten of its
     finest footprint holds an outcome that excludes it (rule 8)."""
     t0 = time.perf_counter()
     _check_arguments(pool, min_probability)
@@ -360,6 +371,12 @@ def classify_maps(
         )
         labels_flat = np.where(borrowed, mdl.classes.index("indeterminate"), labels_flat)
         changed["borrowed_flow"] = int(borrowed.sum())
+        finest_conf = _finest_configuration(confs)
+        mixed, _ = ambiguity.mixed_footprint(
+            labels_flat, names_all, mdl.columns, x, finest_conf, coherent=coherent, translation=translation
+        )
+        labels_flat = np.where(mixed, mdl.classes.index("indeterminate"), labels_flat)
+        changed["mixed_footprint"] = int(mixed.sum())
         alone = ambiguity.unshared(labels_flat, names_all, idx, shape, consensus)
         against = ambiguity.contradicted(labels_flat, names_all, idx, shape, fine_box) & ~alone
         labels_flat = np.where(alone | against, mdl.classes.index("indeterminate"), labels_flat)
@@ -372,7 +389,7 @@ def classify_maps(
             + (["slow_decorrelation"] if corr is not None else [])
             + (["fast_decorrelation"] if fast is not None and not bscan else [])
             + (["offset_moved"] if moved is not None else [])
-            + ["borrowed_flow"]
+            + ["borrowed_flow", "mixed_footprint"]
             + ["unshared", "contradicted"],
             "coherent_channels": coherent_source,
             "coherent_peak_min": ambiguity.COHERENT_PEAK_MIN,
@@ -393,6 +410,8 @@ def classify_maps(
             "footprint_flow_min": ambiguity.FOOTPRINT_FLOW_MIN,
             "footprint_reach": ambiguity.FOOTPRINT_REACH,
             "footprint_window_px": dict(zip(axes.lower(), footprint_box)),
+            "mixed_decay_min": ambiguity.MIXED_DECAY_MIN,
+            "finest_configuration": finest_conf,
             "consensus_min": ambiguity.CONSENSUS_MIN,
             "consensus_window_px": dict(zip(axes.lower(), consensus)),
             "contradicted_min": ambiguity.CONTRADICTED_MIN,

@@ -516,6 +516,51 @@ def test_rule_7_flags_an_unfounded_flow_decision_only_where_its_footprint_holds_
     assert got4[:, 10:12].all() and not got4[:, 12:].any()
 
 
+def test_rule_9_flags_a_flow_decision_where_a_coarser_configuration_decayed_faster_than_the_finest():
+    """The excess is, over the coarser configurations, the largest mean over the common lags of
+    rho_lin_m@finest − rho_lin_m@coarser; an unmoved flow decision is flagged above MIXED_DECAY_MIN, a coarser
+    configuration decaying slower (a flow beside a slower region) never flags, a moved pattern (rule 0 or 5)
+    keeps its decision, other labels are never flagged, and without two configurations' rho_lin nothing is."""
+    from classifier.ambiguity import MIXED_DECAY_MIN, mixed_footprint
+
+    assert MIXED_DECAY_MIN == 0.3
+    cols = [
+        {"metric": "rho_lin_1", "configuration": "original"},
+        {"metric": "rho_lin_4", "configuration": "original"},
+        {"metric": "lin_contrast", "configuration": "original"},
+        {"metric": "rho_lin_1", "configuration": "axial=14"},
+        {"metric": "rho_lin_4", "configuration": "axial=14"},
+        {"metric": "rho_lin_1", "configuration": "lateral=18"},
+        {"metric": "rho_lin_8", "configuration": "lateral=18"},  # no common lag beyond 1
+        {"metric": "pool_pixels"},
+    ]
+    #                 fine 1, fine 4, contrast, axial 1, axial 4, lateral 1, lateral 8, pool
+    rows = np.array(
+        [
+            [0.99, 0.90, 1.0, 0.40, 0.20, 0.99, 0.1, 25],  # axial: (0.59 + 0.70) / 2 = 0.645 > 0.3
+            [0.99, 0.90, 1.0, 0.80, 0.55, 0.99, 0.1, 25],  # axial: (0.19 + 0.35) / 2 = 0.27 ≤ 0.3
+            [0.99, 0.90, 1.0, 0.99, 0.95, 0.60, 0.1, 25],  # lateral at its one common lag: 0.39 > 0.3
+            [0.50, 0.20, 1.0, 0.90, 0.80, 0.95, 0.1, 25],  # coarser decays slower: excess < 0
+            [0.99, 0.90, 1.0, 0.40, 0.20, 0.99, 0.1, 25],  # as row 0, pattern moved
+            [0.99, 0.90, 1.0, 0.40, 0.20, 0.99, 0.1, 25],  # as row 0, a ballistic-or-flow set
+        ]
+    )
+    flow = NAMES.index("flow")
+    labels = np.array([flow] * 5 + [NAMES.index("ballistic-or-flow")])
+    moved = np.zeros(6, bool)
+    moved[4] = True
+    got, excess = mixed_footprint(labels, NAMES, cols, rows, "original", translation=moved)
+    np.testing.assert_allclose(excess, [0.645, 0.27, 0.39, -0.45, 0.645, 0.645], atol=1e-12)
+    assert got.tolist() == [True, False, True, False, False, False]
+    got0, _ = mixed_footprint(labels, NAMES, cols, rows, "original", coherent=moved)
+    assert got0.tolist() == got.tolist()
+    # one configuration only, or no rho_lin of the finest: nothing to compare
+    alone, ex = mixed_footprint(labels, NAMES, cols[:3] + cols[-1:], rows[:, [0, 1, 2, 7]], "original")
+    assert ex is None and not alone.any()
+    none, ex = mixed_footprint(labels, NAMES, cols, rows, "elsewhere")
+    assert ex is None and not none.any()
+
+
 def test_translation_rule_turns_ballistic_decisions_and_sets_into_flow_but_not_diffusion():
     labels = np.array([1, 6, 0, 5, 4, 3, 1])
     seen = np.array([True, True, True, True, True, True, False])
@@ -643,7 +688,10 @@ def test_classify_maps_applies_rule_6_last_and_decide_ballistic_skips_it(tmp_pat
 
     base = classify_maps(path, mdl, pool=5, background_db=None)
     amb = base.info["ambiguity"]
-    assert amb["rules"][-3:] == ["borrowed_flow", "unshared", "contradicted"] and amb["consensus_min"] == CONSENSUS_MIN
+    assert amb["rules"][-4:] == ["borrowed_flow", "mixed_footprint", "unshared", "contradicted"]
+    assert amb["consensus_min"] == CONSENSUS_MIN
+    # rule 9 compares every coarser configuration with the one of the smallest footprint
+    assert amb["finest_configuration"] == "original" and amb["mixed_decay_min"] == 0.3
     # the box is the coarsest configuration's 1/e² footprint per axis widened by the pooling window (odd)
     pitch = base.pitch_um
     coarse_lat = max(c.lateral_resolution_um for c in mdl.spec.configurations)
@@ -676,3 +724,15 @@ def test_classify_maps_applies_rule_6_last_and_decide_ballistic_skips_it(tmp_pat
     against = classify_maps(path, mdl, pool=5, background_db=None)
     assert not np.isin(against.labels, single).any()
     assert against.info["ambiguity"]["changed_pixels"]["contradicted"] == against.info["classified"]
+    # rule 9 before rules 6 and 8: every flow decision it flags becomes indeterminate and is counted
+    monkeypatch.undo()
+    n_flow = int((base.labels == mdl.classes.index("flow")).sum())
+    assert n_flow > 0
+    monkeypatch.setattr(
+        ambiguity,
+        "mixed_footprint",
+        lambda labels, names, *a, **k: (np.asarray(labels) == list(names).index("flow"), None),
+    )
+    mixed = classify_maps(path, mdl, pool=5, background_db=None)
+    assert not (mixed.labels == mdl.classes.index("flow")).any()
+    assert mixed.info["ambiguity"]["changed_pixels"]["mixed_footprint"] >= n_flow

@@ -259,22 +259,55 @@ def test_regions_that_touch_keep_every_motion_under_5_percent_wrong_with_the_rul
 def test_a_slow_random_motion_beside_a_slow_flow_is_not_decided_flow_past_the_footprint(monkeypatch):
     """Every motion at its slow level, layers in depth inside static tissue (a volume): the random-ballistic
     layer decays by a few percent by itself, so even the far tail of the coarse PSF mixes the flow layer's
-    signature in, and the model decides flow over a strip wider than the footprint (stop 43: 0.186 of the
-    ballistic pixels at window 5 with rule 7's box one footprint wide). Rule 7's box reaching 1.5 footprints
-    (where the coarse PSF holds e^-4.5 ≈ 1 %) keeps the strip under the grid's 10 % bound per motion, borders
-    included; one footprint does not; the flow layer stays decided."""
+    signature in, and the model decides flow over a strip wider than the footprint. Without rule 9 and with
+    rule 7's box one footprint wide, more than the grid's 10 % bound of the ballistic pixels at window 5 are
+    decided flow (recorded 0.164). Either mechanism alone keeps the strip under it: rule 7's box reaching 1.5
+    footprints (where the coarse PSF holds e^-4.5 ≈ 1 %; recorded 0.033) and rule 9 (the coarser
+    configurations decayed faster than the finest; recorded 0.067); both together leave 0.001. The flow
+    layer stays decided."""
     from classifier import ambiguity
     from classifier.features import load_spec
     from classifier.infer import load_model
 
     model = load_model("signature", threads=1)
     lv = grid.speed_levels(load_spec("signature"))
-    ruled = grid.run_probe("volume-layers-static-slow", model, lv, pools=(5,), threads=1)[0]["all_pixels"]
+
+    def ballistic_wrong() -> float:
+        r = grid.run_probe("volume-layers-static-slow", model, lv, pools=(5,), threads=1)[0]["all_pixels"]
+        assert r["per_class"]["flow"]["coverage"] > 0.5
+        return r["per_class"]["ballistic"]["wrong_share"]
+
+    assert ballistic_wrong() <= 0.10
     monkeypatch.setattr(ambiguity, "FOOTPRINT_REACH", 1.0)
-    short = grid.run_probe("volume-layers-static-slow", model, lv, pools=(5,), threads=1)[0]["all_pixels"]
-    assert short["per_class"]["ballistic"]["wrong_share"] > 0.10, short["per_class"]
-    assert ruled["wrong_share_max"] <= 0.10, ruled["per_class"]
-    assert ruled["per_class"]["flow"]["coverage"] > 0.5
+    assert ballistic_wrong() <= 0.10  # rule 9 alone
+    monkeypatch.setattr(ambiguity, "mixed_footprint", lambda labels, *a, **k: (np.zeros(np.shape(labels), bool), None))
+    assert ballistic_wrong() > 0.10  # neither
+    monkeypatch.setattr(ambiguity, "FOOTPRINT_REACH", 1.5)
+    assert ballistic_wrong() <= 0.10  # rule 7's reach alone
+
+
+def test_a_flow_decision_founded_on_a_coarser_configurations_faster_decay_abstains(monkeypatch):
+    """A slow flow along a vessel through slow random-ballistic tissue (a B-scan without static tissue): the
+    coarser configurations' PSFs reach the vessel, decay faster than the finest one, and the model decides
+    flow over the tissue beside it. With rule 7's box one footprint wide, rule 9 (such a decision abstains)
+    keeps at most 0.03 of the ballistic pixels decided as another class at either window (recorded 0.011 /
+    0.016), where without it window 5 exceeds the issue's 5 % bound (recorded 0.064); with every rule at most
+    0.02 (recorded 0.008 / 0.012). The vessel stays decided."""
+    from classifier import ambiguity
+    from classifier.features import load_spec
+    from classifier.infer import load_model
+
+    model = load_model("signature-bscan", threads=1)
+    lv = grid.speed_levels(load_spec("signature-bscan"))
+    for r in grid.run_probe("bscan-vessel-slow", model, lv, threads=1):
+        assert r["all_pixels"]["per_class"]["ballistic"]["wrong_share"] <= 0.02, (r["pool"], r["all_pixels"])
+        assert r["all_pixels"]["per_class"]["flow"]["coverage"] > 0.5
+    monkeypatch.setattr(ambiguity, "FOOTPRINT_REACH", 1.0)
+    for r in grid.run_probe("bscan-vessel-slow", model, lv, threads=1):
+        assert r["all_pixels"]["per_class"]["ballistic"]["wrong_share"] <= 0.03, (r["pool"], r["all_pixels"])
+    monkeypatch.setattr(ambiguity, "mixed_footprint", lambda labels, *a, **k: (np.zeros(np.shape(labels), bool), None))
+    without = grid.run_probe("bscan-vessel-slow", model, lv, pools=(5,), threads=1)[0]["all_pixels"]
+    assert without["per_class"]["ballistic"]["wrong_share"] > 0.05, without["per_class"]
 
 
 def test_a_pooled_decision_whose_fine_footprint_holds_another_region_abstains(monkeypatch):
