@@ -20,8 +20,9 @@ moving pixels, edge 0).
 
 ``systems``: :func:`research.systems.evaluate` with ``--quick`` models for each system phantom: per seed S a
 rendering with seed S, ``doct-train --like --quick`` on its maps (with ``--seed S``; doct-train's default
-seed for the first, as the test trains), classified at pools 1 and 5. A run varies both the rendering and
-the training, the two things a test run on another machine can draw differently.
+seed for the first, as the test trains), classified at pools 1 and 5; and the worst wrong share over the grid's probes of the system's geometry
+classified by that model with doct-classify's rules (``research.systems.probe_scores``). A run varies both the
+rendering and the training, the two things a test run on another machine can draw differently.
 
 ``slabs``: the four-slab phantom of ``tests/classifier/test_clf_end_to_end.py`` (``tests/classifier/_slabs.py``),
 B-scan and volume, per seed S rendered with ``--seed S`` → ``torchdoct maps`` (LIV/OCDS) → ``doct-classify
@@ -155,7 +156,14 @@ def record_systems(seeds: list[int]) -> dict:
                     slot["seeds"].append(seed)
                     for k, v in _overall(r["scores"][pool][0]).items():
                         slot.setdefault(k, []).append(v)
+                    slot.setdefault("probes_wrong_share_max", []).append(probes_wrong_share_max(r["probes"], pool))
     return runs
+
+
+def probes_wrong_share_max(rows: list[dict], pool: str) -> float:
+    """The largest share of a motion's pixels decided as another class, borders included, over the grid's
+    probes classified with doct-classify's rules at window ``pool`` (``research.systems.probe_scores`` rows)."""
+    return max(float(r["all_pixels"]["wrong_share_max"]) for r in rows if r["rules"] and str(r["pool"]) == pool)
 
 
 def record_slabs(seeds: list[int], progress: bool = True) -> dict:
@@ -182,7 +190,8 @@ STATISTICS = {
     "phantoms": "per rendering: score_images overall, all labelled moving pixels, edge 0; floor = mean - z*SD over "
     "renderings (ceiling mean + z*SD for the magnitude error)",
     "systems": "per rendering: score_images overall, all labelled moving pixels, edge 0; floor = mean - z*SD over "
-    "renderings (ceiling mean + z*SD for the magnitude error)",
+    "renderings (ceiling mean + z*SD for the magnitude error and for probes_wrong_share_max: the worst wrong share "
+    "over the grid's probes of the system's geometry with doct-classify's rules, every pixel)",
     "slabs": "per rendering: tests/classifier/_slabs.score (slab pixels at least 16 um from a boundary); "
     "floor = mean - z*SD over renderings",
 }
