@@ -104,32 +104,33 @@ pixel:
    ``indeterminate`` pixels of the box (static tissue; a motion too slow or too fast to identify) hold no
    other motion's evidence and are not counted: a vessel narrower than the footprint in static tissue keeps
    its decisions, a random-motion strip beside it (its pixels a motion or a set) does not. It only abstains.
-9. **A flow decision a coarser configuration's faster decay founds** (maps of any geometry; right after
-   rule 7, on its labels). Reducing the resolution never speeds a region's decorrelation: a flow's transit
-   decay ``exp(−Σ_c v_c²τ²/(2s_c²))`` slows as the PSF widens, the Doppler-phase decay of diffusion and
-   random-ballistic motion depends on the PSF only through terms of order ``Dτ/s²`` and ``v²τ²/s²`` that
-   shrink as it widens, and a static share spread evenly through a region is the same at every resolution
-   (physics.md §5.3; near a static border it is not, §14, and the grid's static-edge cells measure the cost). So inside one motion's region the pooled intensity correlation of every
-   coarser configuration the model reads lies at or above the finest configuration's, lag by lag, up to the
-   estimator's scatter. Where a coarser configuration's correlation lies below the finest's, its wider PSF
-   reaches a region that decorrelates faster, and the decay the network read as flow is that neighbour's.
-   Rule 7 sees this only through the box's labels, and a slow random motion next to a flow is often left
-   ``indeterminate`` (a full prediction set, as static tissue is), which rule 7 does not count; rule 9
-   reads the evidence itself. Where, for some coarser configuration, the mean over the lags both read of
-   ``rho_lin_m@finest − rho_lin_m@coarser`` exceeds :data:`MIXED_DECAY_MIN`, a ``flow`` decision whose own
-   pattern did not move (neither rule 0 nor rule 5) becomes ``indeterminate``. A flow next to a slower
-   region keeps its decisions: there the coarser configuration decays slower, not faster. It only abstains.
-6. **A decision its neighbours do not share** (maps of any geometry; applied last, after rules 7 and 9, with rule 8). A
-   region of one motion is at least a resolution cell wide, and the evidence of neighbouring pixels overlaps
-   (the pooling window, and the PSF of every configuration the model reads), so a motion's decisions come in
-   patches; a single-class decision that fewer than :data:`CONSENSUS_MIN` of the classified pixels of its box
-   share is a stray one: where a few scatterers dominate a pixel (the PSF half outside the sample at its
-   surface, a slab's border), a pooled estimate fell in its tail, or the coarsest configuration's PSF reaches
-   into a region of another motion and its features mix the two. The box (:func:`consensus_window`) is, per
-   axis, the footprint of a pooled decision: the coarsest configuration's footprint (the full width over
-   which its intensity PSF stays above ``1/e²`` of its peak: the lateral resolution itself; ``1.70×`` the
-   axial FWHM, physics.md §5.1) widened by the pooling window, at least :data:`CONSENSUS_WINDOW_MIN`
-   pixels. It becomes ``indeterminate``. It only abstains.
+9. **A flow decision a coarser configuration's faster decay founds** (maps of any geometry; right after rule 7,
+   on its labels). Reducing the resolution never speeds a region's decorrelation: a flow's transit decay
+   ``exp(−Σ_c v_c²τ²/(2s_c²))`` slows as the PSF widens, the Doppler-phase decay of diffusion and
+   random-ballistic motion depends on the PSF only through terms of order ``Dτ/s²`` and ``v²τ²/s²`` that shrink
+   as it widens, and a static share spread evenly through a region is the same at every resolution (physics.md
+   §5.3; near a static border it is not, §14, and the grid's static-edge cells measure the cost). So inside one
+   motion's region the pooled intensity correlation of every coarser configuration the model reads lies at or
+   above the finest configuration's, lag by lag, up to the estimator's scatter. Where a coarser configuration's
+   correlation lies below the finest's, its wider PSF reaches a region that decorrelates faster, and the decay
+   the network read as flow is that neighbour's. Rule 7 sees this only through the box's labels, and a slow
+   random motion next to a flow is often left ``indeterminate`` (a full prediction set, as static tissue is),
+   which rule 7 does not count; rule 9 reads the evidence itself. Where, for some coarser configuration, the
+   mean over the lags both read of ``rho_lin_m@finest − rho_lin_m@coarser`` exceeds :data:`MIXED_DECAY_MIN`, a
+   ``flow`` decision whose own pattern did not move (neither rule 0 nor rule 5) becomes ``indeterminate``. A
+   flow next to a slower region keeps its decisions: there the coarser configuration decays slower, not faster.
+   It only abstains.
+6. **A decision its neighbours do not share** (maps of any geometry; applied last, after rules 7 and 9, with
+   rule 8). A region of one motion is at least a resolution cell wide, and the evidence of neighbouring pixels
+   overlaps (the pooling window, and the PSF of every configuration the model reads), so a motion's decisions
+   come in patches; a single-class decision that fewer than :data:`CONSENSUS_MIN` of the classified pixels of
+   its box share is a stray one: where a few scatterers dominate a pixel (the PSF half outside the sample at
+   its surface, a slab's border), a pooled estimate fell in its tail, or the coarsest configuration's PSF
+   reaches into a region of another motion and its features mix the two. The box (:func:`consensus_window`) is,
+   per axis, the footprint of a pooled decision: the coarsest configuration's footprint (the full width over
+   which its intensity PSF stays above ``1/e²`` of its peak: the lateral resolution itself; ``1.70×`` the axial
+   FWHM, physics.md §5.1) widened by the pooling window, at least :data:`CONSENSUS_WINDOW_MIN` pixels. It
+   becomes ``indeterminate``. It only abstains.
 8. **A decision its finest footprint contradicts** (maps of any geometry; beside rule 6, on the same labels;
    a pixel both flag counts for rule 6). Every configuration the model reads, the finest included, reads
    the pixel's whole pooling window, so a pooled decision rests at least on the finest configuration's

@@ -252,8 +252,9 @@ def classify_maps(
     ``ballistic-or-flow`` where the physics cannot exclude flow (:mod:`classifier.ambiguity`: every B-scan
     pixel; a volume's pixels whose window has not decorrelated), ``flow`` where the speckle pattern
     moved coherently, and ``indeterminate`` where a flow decision rests only on the coarse configurations
-    beside another region (rule 7) or on a coarser configuration that decayed faster than the finest (rule 9), few pixels of its box share a decision (rule 6) or one in ten of its
-    finest footprint holds an outcome that excludes it (rule 8)."""
+    beside another region (rule 7) or on a coarser configuration that decayed faster than the finest (rule 9),
+    few pixels of its box share a decision (rule 6) or one in ten of its finest footprint holds an outcome that
+    excludes it (rule 8)."""
     t0 = time.perf_counter()
     _check_arguments(pool, min_probability)
     _check_alpha(alpha)

@@ -20,8 +20,8 @@ moving pixels, edge 0).
 
 ``systems``: :func:`research.systems.evaluate` with ``--quick`` models for each system phantom: per seed S a
 rendering with seed S, ``doct-train --like --quick`` on its maps (with ``--seed S``; doct-train's default
-seed for the first, as the test trains), classified at pools 1 and 5; and the worst wrong share over the grid's probes of the system's geometry
-classified by that model with doct-classify's rules (``research.systems.probe_scores``). A run varies both the
+seed for the first, as the test trains), classified at pools 1 and 5; and the worst wrong share over the
+grid's probes of the system's geometry classified by that model with doct-classify's rules (``research.systems.probe_scores``). A run varies both the
 rendering and the training, the two things a test run on another machine can draw differently.
 
 ``slabs``: the four-slab phantom of ``tests/classifier/test_clf_end_to_end.py`` (``tests/classifier/_slabs.py``),
