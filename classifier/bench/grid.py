@@ -39,6 +39,9 @@ the coarsest configuration's resolution plus half the window; masked pixels are 
 * ``set_miss_share`` per motion: share given a set of classes that leaves the true one out;
 * ``identifiable`` per motion: the ground truth of the training (a motion outside it should be abstained on);
 * ``seconds``: render, maps and classification of the cell;
+* ``classified`` and ``rules_changed``: the pixels the model classified and, per rule of
+  :mod:`classifier.ambiguity`, how many of them the rule changed (``info.ambiguity.changed_pixels``;
+  ``None`` with ``--decide-ballistic``); ``summary_by_context`` pools them as ``rules_changed_share``;
 * ``all_pixels``: the same scores over every pixel of each band, its borders included (``edge`` = 0):
   where a band meets the empty medium or another band the PSF and the pooling window straddle the border
   (``summary_by_context_all_pixels`` pools them like ``summary_by_context``).
@@ -432,6 +435,8 @@ def _classify_rendered(
                     "decision": c.info.get("decision", "rule"),
                     **score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool))),
                     "all_pixels": score_labels(res.labels, c.labels, c.classes, 0),
+                    "classified": int(c.info["classified"]),
+                    "rules_changed": dict(c.info["ambiguity"]["changed_pixels"]) if c.info.get("ambiguity") else None,
                     "seconds": {
                         "render": t_render - t0,
                         "maps": t_maps - t_render,
@@ -735,7 +740,8 @@ def summarize_by_context(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]
     """Per geometry, static context and window, the pixels of every cell pooled: per motion the coverage
     (share decided as one class), the recall on its decided pixels and the wrong share (share of its pixels
     decided as another class); over the motions the coverage, the balanced accuracy on decided pixels (mean
-    recall over the motions with a decided pixel) and the worst wrong share."""
+    recall over the motions with a decided pixel) and the worst wrong share; ``rules_changed_share``: per rule of
+    :mod:`classifier.ambiguity`, the pixels it changed over the classified pixels (``None`` without the rules)."""
     out = []
     keys = sorted({(r["geometry"], r["context"], r["pool"]) for r in rows})
     for geometry, context, pool in keys:
@@ -756,6 +762,13 @@ def summarize_by_context(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]
                 "wrong_share": (dec - right) / n if n else None,
             }
         n_all = sum(p["pixels"] for p in per.values())
+        ruled = [r for r in rs if r.get("rules_changed") is not None]
+        n_cls = sum(r["classified"] for r in ruled)
+        changed = (
+            {k: sum(r["rules_changed"].get(k, 0) for r in ruled) / n_cls for k in ruled[0]["rules_changed"]}
+            if ruled and n_cls
+            else None
+        )
         recalls = [p["recall"] for p in per.values() if p["recall"] is not None]
         wrongs = [p["wrong_share"] for p in per.values() if p["wrong_share"] is not None]
         out.append(
@@ -770,6 +783,7 @@ def summarize_by_context(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]
                 "balanced_accuracy": float(np.mean(recalls)) if recalls else None,
                 "worst_wrong_share": max(wrongs) if wrongs else None,
                 "per_class": per,
+                "rules_changed_share": changed,
             }
         )
     return out
@@ -849,6 +863,30 @@ _PROBE_CAPTION = (
 )
 
 
+_RULES_CAPTION = (
+    "What each rule of `classifier.ambiguity` changed, pooled over the cells of each geometry, static context and "
+    "window (`summary_by_context`, `rules_changed_share`): the pixels it changed as a share of the classified "
+    "pixels, every pixel of the cells."
+)
+
+
+def format_rules(rows: Sequence[dict[str, Any]]) -> list[str]:
+    """The Markdown table of ``rules_changed_share`` per geometry, static context and window."""
+    rules = list(dict.fromkeys(k for s in rows for k in s["rules_changed_share"]))
+    lines = [
+        "| geometry | context | window | " + " | ".join(rules) + " |",
+        "|---|---|---:|" + "---:|" * len(rules),
+    ]
+    for s in rows:
+        share = s["rules_changed_share"]
+        lines.append(
+            f"| {s['geometry']} | {s['context']} | {s['pool']} | "
+            + " | ".join("–" if k not in share else _fmt(share[k]) for k in rules)
+            + " |"
+        )
+    return lines
+
+
 def format_probes(rows: Sequence[dict[str, Any]]) -> list[str]:
     """The Markdown table of the probe rows (one per probe and window)."""
     lines = [
@@ -878,7 +916,9 @@ def format_table(res: dict[str, Any]) -> str:
         f"Models: {', '.join(f'{g}: `{m}`' for g, m in res['models'].items())}; decision: `{res['decision']}`"
         + (
             ", flow where the speckle moved coherently, ballistic-or-flow where flow cannot be excluded, a set with flow where the "
-            "pattern's offset moved and indeterminate where only the coarse configurations saw flow beside another region or few neighbours share a decision (classifier.ambiguity)"
+            "pattern's offset moved, and indeterminate where only the coarse configurations saw flow beside another region, a "
+            "coarser configuration decayed faster than the finest, few neighbours share a decision or the finest footprint "
+            "holds an outcome that excludes it (classifier.ambiguity)"
             if res.get("abstain_ambiguous", False)
             else ", the model's decisions kept"
         )
@@ -919,6 +959,9 @@ def format_table(res: dict[str, Any]) -> str:
                 "|---|---|---:|---:|---:|---:|---:|" + "---:|" * len(MOTIONS),
             ]
             lines += [_context_row(s) for s in res[key]]
+    ctx = [s for s in res.get("summary_by_context") or [] if s.get("rules_changed_share")]
+    if ctx:
+        lines += ["", _RULES_CAPTION, "", *format_rules(ctx)]
     if res.get("probes"):
         lines += ["", _PROBE_CAPTION, "", *format_probes(res["probes"])]
     cols = [c for c in _COLUMNS if c not in ("key", "model", "decision")]

@@ -946,6 +946,22 @@ def grid_context(root: Path, key: str = "summary_by_context") -> str:
     return "\n\n".join([table(header, rows), source(d["command"], p)])
 
 
+def grid_rules(root: Path) -> str:
+    """The default grid pooled per geometry, static context and window: per rule of ``classifier.ambiguity``, the
+    pixels it changed as a share of the classified pixels (``rules_changed_share``)."""
+    d, p = load(root, "grid-default.json")
+    ctx = [s for s in d.get("summary_by_context") or [] if s.get("rules_changed_share")]
+    if not ctx:
+        raise MissingResult(f"{p} has no rules_changed_share: re-record it with the command in its 'command' field")
+    rules = list(dict.fromkeys(k for s in ctx for k in s["rules_changed_share"]))
+    rows = [
+        [s["geometry"], s["context"], s["pool"]]
+        + [num(s["rules_changed_share"][k]) if k in s["rules_changed_share"] else "–" for k in rules]
+        for s in ctx
+    ]
+    return "\n\n".join([table(["geometry", "static context", "window", *rules], rows), source(d["command"], p)])
+
+
 def grid_summary(root: Path) -> str:
     """The default grid's summary per window: the band interiors' worst wrong share, cells over 10 %, mean and
     lowest coverage and mean balanced accuracy; over every band pixel the worst cell's wrong share and the cells
@@ -1029,6 +1045,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "translation-rule": translation_rule,
     "grid-context": grid_context,
     "grid-summary": grid_summary,
+    "grid-rules": grid_rules,
     "grid-probes": grid_probes,
     "grid-context-all-pixels": lambda root: grid_context(root, "summary_by_context_all_pixels"),
 }

@@ -120,7 +120,8 @@ def test_grid_results_files_are_self_describing(tmp_path, levels):
     assert list(rows[0]) == list(grid._COLUMNS) and len(rows) == 4
     md = (tmp_path / "grid.md").read_text()
     # one row per cell and window, and one per (geometry, context, window) of the pooled summary
-    assert "worst wrong share" in md and md.count("\n| bscan |") == 4 + 4 + 4  # cells, interiors, all pixels
+    # cells, interiors, all pixels, and what each rule changed
+    assert "worst wrong share" in md and md.count("\n| bscan |") == 4 + 4 + 4 + 4
     assert set(data["summary"]) == {"1", "5"}
     for pool, summ in data["summary"].items():  # the all-pixels summary is the cells' own borders-included scores
         all_px = [r["all_pixels"]["wrong_share_max"] for r in data["cells"] if str(r["pool"]) == pool]
@@ -138,6 +139,11 @@ def test_grid_results_files_are_self_describing(tmp_path, levels):
             assert p["coverage"] == pytest.approx(decided / p["pixels"])
             assert 0 <= p["wrong_share"] <= p["coverage"] + 1e-12
         assert s["worst_wrong_share"] == max(p["wrong_share"] for p in s["per_class"].values())
+        # what each rule changed: its pixels over the classified pixels of the context's cells
+        assert set(s["rules_changed_share"]) == set(cells[0]["rules_changed"]) >= {"mixed_footprint", "contradicted"}
+        for rule, share in s["rules_changed_share"].items():
+            changed = sum(r["rules_changed"][rule] for r in cells)
+            assert share == pytest.approx(changed / sum(r["classified"] for r in cells)) and 0 <= share <= 1
     # every band pixel, borders included (edge 0): a superset of the interior pixels each cell scores
     for r in data["cells"]:
         for m in grid.MOTIONS:
