@@ -632,6 +632,21 @@ def _label_map(
     return grid.reshape(shape), [max(w, CONSENSUS_WINDOW_MIN) for w in given]
 
 
+def _unmoved_flow(
+    labels: np.ndarray, names: list[str], coherent: np.ndarray | None, translation: np.ndarray | None
+) -> np.ndarray:
+    """Rules 7 and 9: the ``flow`` decisions that the pixel's own pattern does not found (neither ``coherent``,
+    rule 0, nor ``translation``, rule 5, seen; a rule without its channels sees nothing). All False without a
+    ``flow`` label."""
+    if "flow" not in names:
+        return np.zeros(labels.shape, bool)
+    cand = labels == names.index("flow")
+    for seen in (coherent, translation):
+        if seen is not None:
+            cand &= ~np.asarray(seen, bool)
+    return cand
+
+
 def borrowed_flow(
     labels: np.ndarray,
     names: Sequence[str],
@@ -649,17 +664,11 @@ def borrowed_flow(
     without a ``flow`` label."""
     labels = np.asarray(labels)
     names = list(names)
-    if "flow" not in names:
-        return np.zeros(labels.shape, bool)
-    k = names.index("flow")
-    cand = labels == k
-    for seen in (coherent, translation):
-        if seen is not None:
-            cand &= ~np.asarray(seen, bool)
+    cand = _unmoved_flow(labels, names, coherent, translation)
     if not cand.any():
         return cand
     grid, width = _label_map(labels, idx, shape, window)
-    flow = _box_count(grid == k, width).reshape(-1)[idx]
+    flow = _box_count(grid == names.index("flow"), width).reshape(-1)[idx]
     motion = grid >= 0
     if "indeterminate" in names:  # static tissue, or a motion the data cannot identify: no other motion's evidence
         motion &= grid != names.index("indeterminate")
@@ -762,10 +771,4 @@ def mixed_footprint(
         ],
         axis=0,
     )
-    if "flow" not in names:
-        return np.zeros(labels.shape, bool), excess
-    cand = labels == names.index("flow")
-    for seen in (coherent, translation):
-        if seen is not None:
-            cand &= ~np.asarray(seen, bool)
-    return cand & (excess > MIXED_DECAY_MIN), excess
+    return _unmoved_flow(labels, names, coherent, translation) & (excess > MIXED_DECAY_MIN), excess
