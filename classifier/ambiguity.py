@@ -1,7 +1,7 @@
 """Where the physics cannot tell random-ballistic motion from flow: a ``ballistic`` decision becomes the
 set ``ballistic-or-flow``, unless the speckle pattern moved coherently, which only flow does: then every
 decision but ``indeterminate`` is ``flow`` (numpy only: the classify path). The rules are applied in the order
-0, 5, 1, 2, 3, 4, 7, 9, then 6 and 8 together. The derivation is in docs/abstention.md
+0, 5, 10, 1, 2, 3, 4, 7, 9, then 6 and 8 together. The derivation is in docs/abstention.md
 ("What the data cannot tell") and docs/concepts/speckle-motion.md §3, §7.
 
 A network that reads one pixel's intensity (pooled or not) decides ``ballistic`` wherever the decay looks
@@ -56,6 +56,19 @@ pixel:
    decision stays: a slowly diffusing pattern under noise
    moves its offset more often than a random-ballistic one (docs/abstention.md gives the measured
    false-detection rates of the null motions and how they are recorded).
+10. **A Doppler phase that drifts against static tissue** (complex data whose maps hold ``doppler_phase_m@…``;
+   right after rule 5). Where static tissue gives a phase reference in the A-line or B-scan
+   (:mod:`torchdoct.measured.doppler`), a pixel's lag-``m`` product has the expectation ``I_s + I_m·g1(τ)``,
+   ``g1 = ⟨exp(−i·2kn·d_z)⟩`` over the scatterers' axial displacements. Direction-symmetric motions displace
+   up and down alike: ``g1`` is real and the phase symmetric about 0 (or π), the imaginary part of ``exp(iφ)``
+   zero in expectation. A flow gives every scatterer ``d_z = v_z·τ``: the phase keeps the sign of
+   ``−2kn·v_z·τ`` (wrapped) over its pixels, a static share only dilutes it. Where the imaginary part of the
+   mean of ``exp(iφ)`` at the shortest Doppler lag over the pixel's box (``max(pool,``
+   :data:`DOPPLER_WINDOW_MIN` ``)`` pixels per axis; :func:`doppler_imaginary`) is at least
+   :data:`DOPPLER_IM_MIN` in magnitude, the outcomes of :data:`DOPPLER_TO_FLOW` become ``flow``
+   (:func:`doppler_drift`). Flow across the beam, a phase wrapped near 0 or ±π at that lag, and samples
+   without a reference (no channel) are left to the other rules; a flow decision it founds is the pixel's own
+   evidence, which rules 7 and 9 leave. The grid benchmark records its statistic on each motion.
 3. **Decorrelated before the first lag** (any geometry; after rules 1 and 2). Where the moving part of a
    pixel decorrelates within the shortest lag of the speckle features, no lag sees its pattern: a flow that
    leaves the PSF (or the offset grid) within ``m₁·Δt`` keeps no moving peak for rule 0, and with static
@@ -88,8 +101,8 @@ pixel:
    It only abstains: a random motion that reached transit within the shortest lag, or whose decaying
    pattern let the offset wander, loses coverage, never a right decision.
 7. **A flow decision only the coarse configurations hold** (maps of any geometry; after rules 0–5, before
-   rule 6). Where a pixel's pattern has not moved (neither rule 0 nor rule 5 fired), nothing in its own
-   frames shows a translation: a ``flow`` decision there rests on how the decay changes across the
+   rule 6). Where a pixel's own data shows no flow (neither rule 0, 5 nor 10 fired), nothing in its own
+   frames shows a translation or a Doppler drift: a ``flow`` decision there rests on how the decay changes across the
    configurations the model reads, and the coarsest of them reads the whole footprint (rule 6's box,
    :func:`consensus_window`). Inside a region of one motion that is the region's own evidence. Where the
    footprint reaches into another region, the wide PSF mixes the neighbour's flow in: a random motion whose
@@ -117,7 +130,7 @@ pixel:
    random motion next to a flow is often left ``indeterminate`` (a full prediction set, as static tissue is),
    which rule 7 does not count; rule 9 reads the evidence itself. Where, for some coarser configuration, the
    mean over the lags both read of ``rho_lin_m@finest − rho_lin_m@coarser`` exceeds :data:`MIXED_DECAY_MIN`, a
-   ``flow`` decision whose own pattern did not move (neither rule 0 nor rule 5) becomes ``indeterminate``. A
+   ``flow`` decision its own data does not found (neither rule 0, 5 nor 10) becomes ``indeterminate``. A
    flow next to a slower region keeps its decisions: there the coarser configuration decays slower, not faster.
    It only abstains.
 6. **A decision its neighbours do not share** (maps of any geometry; applied last, after rules 7 and 9, with
@@ -156,6 +169,9 @@ __all__ = [
     "COHERENT_MOVED_MIN",
     "COHERENT_TO_FLOW",
     "COHERENT_PEAK_MIN",
+    "DOPPLER_IM_MIN",
+    "DOPPLER_TO_FLOW",
+    "DOPPLER_WINDOW_MIN",
     "DECORRELATED_BELOW",
     "FAST_REMAINING_MAX",
     "OFFSET_FIRST_MIN",
@@ -183,6 +199,8 @@ __all__ = [
     "unshared",
     "contradicted",
     "coherent_motion",
+    "doppler_drift",
+    "doppler_imaginary",
     "mixed_footprint",
     "fast_decorrelation",
     "offset_moved",
@@ -235,6 +253,16 @@ TRANSLATED_TO_FLOW = ("ballistic", "ballistic-or-flow")
 #: Rule 5 on maps: the least share of the valid pixels of the speckle window around a pixel whose own window
 #: moved as a translation (a majority: the flow's region, not one window's few scatterers).
 TRANSLATION_SUPPORT_MIN = 0.5
+#: Rule 10: the least magnitude of the imaginary part of the circular mean of ``exp(i·doppler_phase_m)`` over a
+#: pixel's box that counts as a directed axial motion. Direction-symmetric motions give it zero in expectation
+#: (a real ``g1``, its phase 0 or π); their measured null over the phantom grid's static-background and
+#: static-edge cells at the prior's lowest density is recorded and rendered in docs/abstention.md (rule 10).
+DOPPLER_IM_MIN = 0.5
+#: Rule 10: the narrowest box (pixels per axis) the Doppler phasor is averaged over (the pooling window where
+#: it is wider): a single pixel's phase can be set by the one scatterer that dominates it.
+DOPPLER_WINDOW_MIN = 5
+#: Rule 10: the outcomes a Doppler drift turns into ``flow`` (those of rule 0).
+DOPPLER_TO_FLOW = COHERENT_TO_FLOW
 #: The set label a ballistic decision becomes.
 SET_LABEL = "ballistic-or-flow"
 #: Rule 6: the share of the classified pixels of a pixel's window that must hold its single-class decision.
@@ -264,6 +292,7 @@ _XC_CENTRE_RES = re.compile(r"^xc_centre_(\d+)@(.+)$")
 _XC_PEAK = re.compile(r"^xc_peak_(\d+)@(.+)$")
 _XC_SHIFT = re.compile(r"^xc_shift_(\d+)@(.+)$")
 _XC_SHIFT_AXIS = re.compile(r"^xc_shift_([xyz])_(\d+)@(.+)$")
+_DOPPLER = re.compile(r"^doppler_phase_(\d+)@")
 
 
 def _read(channels: Mapping[str, np.ndarray], name: str, idx: np.ndarray | None) -> np.ndarray:
@@ -314,6 +343,55 @@ def _box_count(mask: np.ndarray, window: int | Sequence[int]) -> np.ndarray:
     for ax, w in enumerate(widths):
         out = _box_sum(out, w, ax)
     return out
+
+
+def _box_total(values: np.ndarray, window: int | Sequence[int]) -> np.ndarray:
+    """Per pixel of a map: the sum of ``values`` (float64) over the box centred on it (as :func:`_box_count`)."""
+    from .pooling import _box_sum
+
+    out = np.asarray(values, np.float64)
+    for ax, w in enumerate(_widths(window, out.ndim)):
+        out = _box_sum(out, w, ax)
+    return out
+
+
+def doppler_imaginary(
+    channels: Mapping[str, np.ndarray], window: int = DOPPLER_WINDOW_MIN
+) -> tuple[np.ndarray | None, str | None]:
+    """Rule 10's statistic on the whole map: per pixel the imaginary part of the circular mean of ``exp(i·φ)``,
+    ``φ`` the Doppler phase against a static reference at the shortest lag the maps hold (``doppler_phase_m@…``,
+    rad, :mod:`torchdoct.measured.doppler`), over the box of ``max(window, DOPPLER_WINDOW_MIN)`` pixels per axis
+    centred on the pixel (cut at the map's edges); 0 where less than half of the box holds a phase (NaN: no
+    reference). Returns the map and the channel read; ``(None, None)`` without a Doppler channel."""
+    best: tuple[int, str] | None = None
+    for name in channels:
+        m = _DOPPLER.match(name)
+        if m and (best is None or int(m.group(1)) < best[0]):
+            best = (int(m.group(1)), name)
+    if best is None:
+        return None, None
+    phase = np.asarray(channels[best[1]], np.float64)
+    ok = np.isfinite(phase)
+    width = max(int(window), DOPPLER_WINDOW_MIN)
+    im = _box_total(np.where(ok, np.sin(np.where(ok, phase, 0.0)), 0.0), width)
+    n_ok = _box_count(ok, width)
+    n_all = _box_count(np.ones(phase.shape, bool), width)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(2 * n_ok >= n_all, im / np.maximum(n_ok, 1), 0.0), best[1]
+
+
+def doppler_drift(
+    channels: Mapping[str, np.ndarray], idx: np.ndarray | None = None, window: int = DOPPLER_WINDOW_MIN
+) -> tuple[np.ndarray | None, list[str]]:
+    """Rule 10 per classified pixel (module docstring): True where :func:`doppler_imaginary` (the circular mean
+    of the Doppler phasor over the pixel's box of ``max(window, DOPPLER_WINDOW_MIN)`` pixels per axis) has an
+    imaginary part of magnitude at least :data:`DOPPLER_IM_MIN`; and the channel read, at the flat positions
+    ``idx`` (all when ``None``). ``(None, [])`` without a Doppler channel."""
+    im, name = doppler_imaginary(channels, window)
+    if im is None or name is None:
+        return None, []
+    seen = (np.abs(im) >= DOPPLER_IM_MIN).reshape(-1)
+    return (seen if idx is None else seen[idx]), [name]
 
 
 def _window_share(hit: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:
@@ -526,10 +604,12 @@ def abstain_where_ambiguous(
     fast: np.ndarray | None = None,
     moved: OffsetMotion | None = None,
     translation: np.ndarray | None = None,
+    doppler: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, int]]:
     """``labels`` (indices into ``names``, one per classified pixel) with, first, the outcomes of
     :data:`COHERENT_TO_FLOW` turned into ``flow`` where ``coherent`` (rule 0, :func:`coherent_motion`) and the
-    outcomes of :data:`TRANSLATED_TO_FLOW` where ``translation`` (rule 5, :func:`translated`), then the
+    outcomes of :data:`TRANSLATED_TO_FLOW` where ``translation`` (rule 5, :func:`translated`) and those of
+    :data:`DOPPLER_TO_FLOW` where ``doppler`` (rule 10, :func:`doppler_drift`), then the
     remaining ``ballistic`` into :data:`SET_LABEL` where rules 1 (``bscan``), 2 (``correlation`` ≥
     :data:`DECORRELATED_BELOW`; NaN counts as not decorrelated) or 3 (``fast``, :func:`fast_decorrelation`)
     apply, and last the remaining ``ballistic`` and ``diffusion`` into their set with flow where
@@ -541,6 +621,7 @@ def abstain_where_ambiguous(
     counts = {
         "coherent_motion": 0,
         "translation": 0,
+        "doppler_drift": 0,
         "bscan_plane": 0,
         "slow_decorrelation": 0,
         "fast_decorrelation": 0,
@@ -558,6 +639,10 @@ def abstain_where_ambiguous(
             translation, bool
         )
         counts["translation"] = int(to_flow.sum())
+        out[to_flow] = names.index("flow")
+    if doppler is not None and "flow" in names:
+        to_flow = np.isin(out, [names.index(n) for n in DOPPLER_TO_FLOW if n in names]) & np.asarray(doppler, bool)
+        counts["doppler_drift"] = int(to_flow.sum())
         out[to_flow] = names.index("flow")
     ball = out == names.index("ballistic")
     if bscan:
@@ -633,15 +718,19 @@ def _label_map(
 
 
 def _unmoved_flow(
-    labels: np.ndarray, names: list[str], coherent: np.ndarray | None, translation: np.ndarray | None
+    labels: np.ndarray,
+    names: list[str],
+    coherent: np.ndarray | None,
+    translation: np.ndarray | None,
+    doppler: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Rules 7 and 9: the ``flow`` decisions that the pixel's own pattern does not found (neither ``coherent``,
-    rule 0, nor ``translation``, rule 5, seen; a rule without its channels sees nothing). All False without a
-    ``flow`` label."""
+    """Rules 7 and 9: the ``flow`` decisions that the pixel's own data does not found (neither ``coherent``,
+    rule 0, nor ``translation``, rule 5, nor ``doppler``, rule 10, seen; a rule without its channels sees
+    nothing). All False without a ``flow`` label."""
     if "flow" not in names:
         return np.zeros(labels.shape, bool)
     cand = labels == names.index("flow")
-    for seen in (coherent, translation):
+    for seen in (coherent, translation, doppler):
         if seen is not None:
             cand &= ~np.asarray(seen, bool)
     return cand
@@ -655,16 +744,17 @@ def borrowed_flow(
     window: int | Sequence[int],
     coherent: np.ndarray | None = None,
     translation: np.ndarray | None = None,
+    doppler: np.ndarray | None = None,
 ) -> np.ndarray:
     """Rule 7 (module docstring): per classified pixel (``labels`` after rules 0–5, indices into ``names``, at
     the flat positions ``idx`` of a map of ``shape``), whether it holds a ``flow`` decision that the pixel's
-    own pattern does not found (neither ``coherent``, rule 0, nor ``translation``, rule 5, seen; a rule
-    without its channels sees nothing) and that fewer than :data:`FOOTPRINT_FLOW_MIN` of the classified
+    own data does not found (neither ``coherent``, rule 0, nor ``translation``, rule 5, nor ``doppler``, rule
+    10, seen; a rule without its channels sees nothing) and that fewer than :data:`FOOTPRINT_FLOW_MIN` of the classified
     pixels of its box (``window`` as in :func:`unshared`) that are not ``indeterminate`` share. All False
     without a ``flow`` label."""
     labels = np.asarray(labels)
     names = list(names)
-    cand = _unmoved_flow(labels, names, coherent, translation)
+    cand = _unmoved_flow(labels, names, coherent, translation, doppler)
     if not cand.any():
         return cand
     grid, width = _label_map(labels, idx, shape, window)
@@ -740,6 +830,7 @@ def mixed_footprint(
     finest: str | None,
     coherent: np.ndarray | None = None,
     translation: np.ndarray | None = None,
+    doppler: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Rule 9 (module docstring): per classified pixel (``labels`` after rule 7, indices into ``names``), whether
     it holds a ``flow`` decision that its own pattern does not found (as in :func:`borrowed_flow`) and that a
@@ -771,4 +862,4 @@ def mixed_footprint(
         ],
         axis=0,
     )
-    return _unmoved_flow(labels, names, coherent, translation) & (excess > MIXED_DECAY_MIN), excess
+    return _unmoved_flow(labels, names, coherent, translation, doppler) & (excess > MIXED_DECAY_MIN), excess

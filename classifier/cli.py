@@ -565,6 +565,12 @@ def _classify(args: argparse.Namespace) -> int:
                 f"  flow where the held speckle pattern moved along a line: {ch['translation']} ballistic decisions "
                 "or sets (--decide-ballistic keeps the model's decisions)"
             )
+        if ch.get("doppler_drift"):
+            print(
+                f"  flow where the Doppler phase against the static reference drifted: {ch['doppler_drift']} "
+                f"pixels decided as a direction-symmetric motion (box {amb['doppler_window_px']} px per axis; "
+                "--decide-ballistic keeps the model's decisions)"
+            )
         if ch.get("offset_moved"):
             print(
                 f"  a set with flow where the pattern's offset moved: {ch['offset_moved']} ballistic or diffusion "

@@ -328,9 +328,11 @@ def classify_maps(
             c: m.maps[i]
             for m in maps_list
             for i, c in enumerate(m.channels)
-            if c.startswith(("xc_centre_", "xc_peak_", "xc_shift_"))
+            if c.startswith(("xc_centre_", "xc_peak_", "xc_shift_", "doppler_phase_"))
         }
         coherent, coherent_source = ambiguity.coherent_motion(channels, idx, mdl.spec.n_frames)
+        doppler_window = max(int(pool), ambiguity.DOPPLER_WINDOW_MIN)
+        doppler, doppler_source = ambiguity.doppler_drift(channels, idx, doppler_window)
         corr, source = ambiguity.slow_decorrelation(
             {c: v for c, v in channels.items() if c.startswith("xc_centre_")}, mdl.columns, x, idx, mdl.spec.n_frames
         )
@@ -366,15 +368,30 @@ def classify_maps(
             fast=fast,
             moved=moved,
             translation=translation,
+            doppler=doppler,
         )
         borrowed = ambiguity.borrowed_flow(
-            labels_flat, names_all, idx, shape, footprint_box, coherent=coherent, translation=translation
+            labels_flat,
+            names_all,
+            idx,
+            shape,
+            footprint_box,
+            coherent=coherent,
+            translation=translation,
+            doppler=doppler,
         )
         labels_flat = np.where(borrowed, mdl.classes.index("indeterminate"), labels_flat)
         changed["borrowed_flow"] = int(borrowed.sum())
         finest_conf = _finest_configuration(confs)
         mixed, _ = ambiguity.mixed_footprint(
-            labels_flat, names_all, mdl.columns, x, finest_conf, coherent=coherent, translation=translation
+            labels_flat,
+            names_all,
+            mdl.columns,
+            x,
+            finest_conf,
+            coherent=coherent,
+            translation=translation,
+            doppler=doppler,
         )
         labels_flat = np.where(mixed, mdl.classes.index("indeterminate"), labels_flat)
         changed["mixed_footprint"] = int(mixed.sum())
@@ -386,6 +403,7 @@ def classify_maps(
         ambiguity_info = {
             "rules": (["coherent_motion"] if coherent is not None else [])
             + (["translation"] if translation is not None else [])
+            + (["doppler_drift"] if doppler is not None else [])
             + (["bscan_plane"] if bscan else [])
             + (["slow_decorrelation"] if corr is not None else [])
             + (["fast_decorrelation"] if fast is not None and not bscan else [])
@@ -404,6 +422,9 @@ def classify_maps(
             "offset_growth_min_pitch": ambiguity.OFFSET_GROWTH_MIN,
             "offset_hold_min": ambiguity.OFFSET_HOLD_MIN,
             "translation_channels": translation_source,
+            "doppler_channels": doppler_source,
+            "doppler_im_min": ambiguity.DOPPLER_IM_MIN,
+            "doppler_window_px": doppler_window,
             "translation_hold_min": ambiguity.TRANSLATION_HOLD_MIN,
             "translation_growth_min_pitch": ambiguity.TRANSLATION_GROWTH_MIN,
             "translation_linear_max_pitch": ambiguity.TRANSLATION_LINEAR_MAX,

@@ -371,6 +371,25 @@ def score_labels(
     return out
 
 
+def doppler_null(truth_codes: np.ndarray, imaginary: np.ndarray, edge_px: int) -> dict[str, Any]:
+    """Rule 10's statistic (:func:`classifier.ambiguity.doppler_imaginary`, the imaginary part of the box's mean
+    Doppler phasor) per motion over the pixels :func:`score_labels` scores (farther than ``edge_px`` from other
+    regions): its largest and median magnitude. For diffusion and random-ballistic motion it is the rule's
+    null (zero in expectation), for flow its power."""
+    from scipy.ndimage import maximum_filter
+
+    size = 2 * int(edge_px) + 1
+    out: dict[str, Any] = {}
+    mag = np.abs(np.asarray(imaginary, np.float64)).reshape(np.shape(truth_codes))
+    for name in MOTIONS:
+        code = CODES[name]
+        other = np.isin(truth_codes, [c for c in (0, *CODES.values()) if c != code])
+        near = maximum_filter(other.astype(np.uint8), size=size, mode="constant") > 0 if edge_px > 0 else other
+        v = mag[(truth_codes == code) & ~near]
+        out[name] = {"max": float(v.max()), "median": float(np.median(v))} if v.size else None
+    return out
+
+
 def _edge_px(spec, pitch: float, pool: int) -> int:
     coarsest = max(max(c.lateral_resolution_um, c.axial_resolution_um) for c in spec.configurations)
     return int(math.ceil(coarsest / 2.0 / pitch)) + pool // 2
@@ -415,12 +434,16 @@ def _classify_rendered(
         metrics=("mean_db",),
         signature=list(spec.metrics),
         speckle=True,
+        doppler=True,
         ocds_delay_range_s=tuple(spec.ocds_delay_range_s),
         ocds_scale=spec.ocds_scale,
         ocds_estimator=spec.ocds_estimator,
-    )  # what maps --signature writes, with the model's OCDS analysis
+    )  # what maps --signature writes (the Doppler channel where a static reference exists), with the model's OCDS analysis
     t_maps = time.perf_counter()
     pitch = _pitch_um(spec)
+    from ..ambiguity import DOPPLER_WINDOW_MIN, doppler_imaginary
+
+    dop_channels = {c: maps.maps[i] for i, c in enumerate(maps.channels) if c.startswith("doppler_phase_")}
     kw = {} if decision is None else {"decision": decision}
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -429,10 +452,18 @@ def _classify_rendered(
             t1 = time.perf_counter()
             c = classify_maps(path, model, pool=int(pool), threads=threads, abstain_ambiguous=abstain_ambiguous, **kw)
             t2 = time.perf_counter()
+            im, dop_name = doppler_imaginary(dop_channels, max(int(pool), DOPPLER_WINDOW_MIN))
             rows.append(
                 {
                     "pool": int(pool),
                     "decision": c.info.get("decision", "rule"),
+                    "doppler": None
+                    if im is None
+                    else {
+                        "channel": dop_name,
+                        "window_px": max(int(pool), DOPPLER_WINDOW_MIN),
+                        "abs_imaginary": doppler_null(res.labels, im, _edge_px(spec, pitch, int(pool))),
+                    },
                     **score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool))),
                     "all_pixels": score_labels(res.labels, c.labels, c.classes, 0),
                     "classified": int(c.info["classified"]),
@@ -771,6 +802,9 @@ def summarize_by_context(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]
         )
         recalls = [p["recall"] for p in per.values() if p["recall"] is not None]
         wrongs = [p["wrong_share"] for p in per.values() if p["wrong_share"] is not None]
+        dop = [r["doppler"]["abs_imaginary"] for r in rs if r.get("doppler")]
+        null = [d[m]["max"] for d in dop for m in ("diffusion", "ballistic") if d.get(m)]
+        power = [d["flow"]["median"] for d in dop if d.get("flow")]
         out.append(
             {
                 "geometry": geometry,
@@ -784,6 +818,11 @@ def summarize_by_context(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]
                 "worst_wrong_share": max(wrongs) if wrongs else None,
                 "per_class": per,
                 "rules_changed_share": changed,
+                "doppler": {
+                    "cells": len(dop),
+                    "null_max": max(null) if null else None,
+                    "flow_median": float(np.median(power)) if power else None,
+                },
             }
         )
     return out
@@ -863,6 +902,12 @@ _PROBE_CAPTION = (
 )
 
 
+_DOPPLER_CAPTION = (
+    "Rule 10's statistic (`classifier.ambiguity.doppler_imaginary`: the imaginary part of the mean Doppler phasor "
+    "over a pixel's box) on the pixels away from other regions, pooled over the cells of each geometry, static "
+    "context and window whose maps hold a Doppler channel (a static reference exists; `summary_by_context`, "
+    "`doppler`)."
+)
 _RULES_CAPTION = (
     "What each rule of `classifier.ambiguity` changed, pooled over the cells of each geometry, static context and "
     "window (`summary_by_context`, `rules_changed_share`): the pixels it changed as a share of the classified "
@@ -885,6 +930,26 @@ def format_rules(rows: Sequence[dict[str, Any]]) -> list[str]:
             + " |"
         )
     return lines
+
+
+def format_doppler(rows: Sequence[dict[str, Any]]) -> list[str]:
+    """Rule 10's statistic per geometry, static context and window (``summary_by_context``, ``doppler``): the
+    cells whose maps hold a Doppler channel, the largest magnitude over the direction-symmetric motions' pixels
+    (the null) and the median over the cells of the flow's median magnitude (the power)."""
+    from classifier.ambiguity import DOPPLER_IM_MIN
+
+    out = [
+        "| geometry | context | window | cells with a Doppler channel | null: largest \\|Im\\| (diffusion, ballistic) "
+        f"| flow: median \\|Im\\| (rule 10 at ≥ {DOPPLER_IM_MIN:g}) |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        d = r.get("doppler") or {}
+        out.append(
+            f"| {r['geometry']} | {r['context']} | {r['pool']} | {d.get('cells', 0)} | {_fmt(d.get('null_max'))} "
+            f"| {_fmt(d.get('flow_median'))} |"
+        )
+    return out
 
 
 def format_probes(rows: Sequence[dict[str, Any]]) -> list[str]:
@@ -962,6 +1027,9 @@ def format_table(res: dict[str, Any]) -> str:
     ctx = [s for s in res.get("summary_by_context") or [] if s.get("rules_changed_share")]
     if ctx:
         lines += ["", _RULES_CAPTION, "", *format_rules(ctx)]
+    dop = [s for s in res.get("summary_by_context") or [] if (s.get("doppler") or {}).get("cells")]
+    if dop:
+        lines += ["", _DOPPLER_CAPTION, "", *format_doppler(dop)]
     if res.get("probes"):
         lines += ["", _PROBE_CAPTION, "", *format_probes(res["probes"])]
     cols = [c for c in _COLUMNS if c not in ("key", "model", "decision")]

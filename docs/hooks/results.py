@@ -962,6 +962,36 @@ def grid_rules(root: Path) -> str:
     return "\n\n".join([table(["geometry", "static context", "window", *rules], rows), source(d["command"], p)])
 
 
+def grid_doppler(root: Path) -> str:
+    """The default grid pooled per geometry, static context and window, over the cells whose maps hold a Doppler
+    channel: rule 10's statistic on the direction-symmetric motions (the null, its largest magnitude) and on
+    flow (the median over the cells of each cell's median magnitude)."""
+    d, p = load(root, "grid-default.json")
+    ctx = [s for s in d.get("summary_by_context") or [] if (s.get("doppler") or {}).get("cells")]
+    if not ctx:
+        raise MissingResult(f"{p} has no doppler summary: re-record it with the command in its 'command' field")
+    rows = [
+        [
+            s["geometry"],
+            s["context"],
+            s["pool"],
+            s["doppler"]["cells"],
+            num(s["doppler"]["null_max"]),
+            num(s["doppler"]["flow_median"]),
+        ]
+        for s in ctx
+    ]
+    head = [
+        "geometry",
+        "static context",
+        "window",
+        "cells with a Doppler channel",
+        "null: largest |Im| (diffusion, ballistic)",
+        "flow: median |Im|",
+    ]
+    return "\n\n".join([table(head, rows), source(d["command"], p)])
+
+
 def grid_summary(root: Path) -> str:
     """The default grid's summary per window: the band interiors' worst wrong share, cells over 10 %, mean and
     lowest coverage and mean balanced accuracy; over every band pixel the worst cell's wrong share and the cells
@@ -1046,6 +1076,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "grid-context": grid_context,
     "grid-summary": grid_summary,
     "grid-rules": grid_rules,
+    "grid-doppler": grid_doppler,
     "grid-probes": grid_probes,
     "grid-context-all-pixels": lambda root: grid_context(root, "summary_by_context_all_pixels"),
 }

@@ -53,6 +53,7 @@ def test_every_ballistic_decision_of_a_bscan_becomes_ballistic_or_flow():
     assert out.tolist() == [0, 6, 2, 3, 6, 4, 6, 6] and counts == {
         "coherent_motion": 0,
         "translation": 0,
+        "doppler_drift": 0,
         "bscan_plane": 3,
         "slow_decorrelation": 0,
         "fast_decorrelation": 0,
@@ -68,6 +69,7 @@ def test_a_volume_keeps_ballistic_only_where_the_window_decorrelated():
     assert out.tolist() == [1, 6, 6, 6, 0, 2] and counts == {
         "coherent_motion": 0,
         "translation": 0,
+        "doppler_drift": 0,
         "bscan_plane": 0,
         "slow_decorrelation": 3,
         "fast_decorrelation": 0,
@@ -77,6 +79,7 @@ def test_a_volume_keeps_ballistic_only_where_the_window_decorrelated():
     assert same.tolist() == labels.tolist() and none == {
         "coherent_motion": 0,
         "translation": 0,
+        "doppler_drift": 0,
         "bscan_plane": 0,
         "slow_decorrelation": 0,
         "fast_decorrelation": 0,
@@ -113,6 +116,7 @@ def test_coherent_motion_turns_every_symmetric_motion_decision_into_flow_before_
     assert counts == {
         "coherent_motion": 5,
         "translation": 0,
+        "doppler_drift": 0,
         "bscan_plane": 2,
         "slow_decorrelation": 0,
         "fast_decorrelation": 0,
@@ -147,6 +151,7 @@ def test_fast_decorrelation_makes_a_volume_ballistic_decision_a_set_after_the_sl
     assert counts == {
         "coherent_motion": 0,
         "translation": 0,
+        "doppler_drift": 0,
         "bscan_plane": 0,
         "slow_decorrelation": 1,
         "fast_decorrelation": 1,
@@ -238,6 +243,7 @@ def test_every_rule_applies_in_one_call_each_to_the_pixels_the_earlier_rules_lef
     assert counts == {
         "coherent_motion": 1,
         "translation": 0,
+        "doppler_drift": 0,
         "bscan_plane": 0,
         "slow_decorrelation": 1,
         "fast_decorrelation": 1,
@@ -736,3 +742,93 @@ def test_classify_maps_applies_rule_6_last_and_decide_ballistic_skips_it(tmp_pat
     mixed = classify_maps(path, mdl, pool=5, background_db=None)
     assert not (mixed.labels == mdl.classes.index("flow")).any()
     assert mixed.info["ambiguity"]["changed_pixels"]["mixed_footprint"] >= n_flow
+
+
+def test_rule_10_sees_a_doppler_phase_that_keeps_one_sign_over_the_box():
+    """The imaginary part of the box's mean Doppler phasor, at the shortest lag the maps hold: a region of one
+    phase (a flow) is seen where |sin φ| ≥ DOPPLER_IM_MIN over the box, phases symmetric about 0 or about π (a
+    direction-symmetric motion) cancel, a box with less than half its pixels holding a phase sees nothing, the
+    box is never narrower than DOPPLER_WINDOW_MIN, and without a Doppler channel the rule is absent."""
+    from classifier.ambiguity import DOPPLER_IM_MIN, DOPPLER_WINDOW_MIN, doppler_drift, doppler_imaginary
+
+    assert DOPPLER_IM_MIN == 0.5 and DOPPLER_WINDOW_MIN == 5
+    phase = np.zeros((10, 20))
+    phase[:, :8] = 0.7  # sin 0.644: one sign, a flow
+    phase[:, 8:14] = np.where(np.arange(6) % 2, 1.2, -1.2)[None, :]  # ± in alternate columns: cancels
+    phase[:, 14:] = np.where(np.arange(10) % 2, np.pi - 0.3, -np.pi + 0.3)[:, None]  # about π: cancels
+    chans = {"doppler_phase_4@original": np.full_like(phase, 1.0), "doppler_phase_1@original": phase}
+    seen, names = doppler_drift(chans, None, 1)
+    assert names == ["doppler_phase_1@original"]  # the shortest lag
+    seen = seen.reshape(phase.shape)
+    # a 5-wide box: up to column 5 it holds only 0.7-columns; column 6 holds four and one at −1.2
+    im, _ = doppler_imaginary(chans, 1)
+    np.testing.assert_allclose(im[4, 0], np.sin(0.7), atol=1e-12)  # cut at the edge: 3 columns, all 0.7
+    np.testing.assert_allclose(im[4, 6], (4 * np.sin(0.7) + np.sin(-1.2)) / 5, atol=1e-12)
+    assert seen[:, :6].all() and not seen[:, 6:].any()
+    # symmetric phases leave only the box's odd one out: one column (row) of five
+    np.testing.assert_allclose(im[2:8, 10], -np.sin(1.2) / 5, atol=1e-12)
+    np.testing.assert_allclose(np.abs(im[2:8, 17]), np.sin(0.3) / 5, atol=1e-12)
+    # every pixel against a brute-force box mean (cut at the edges; NaN skipped; under half valid: 0), at the
+    # minimum box and at a pooling window of 9, with holes of no reference
+    holed = phase.copy()
+    holed[:, :3] = np.nan
+    holed[3:6, 12:16] = np.nan
+
+    def brute(ph, w):
+        out = np.zeros(ph.shape)
+        h = w // 2
+        for i in range(ph.shape[0]):
+            for j in range(ph.shape[1]):
+                box = ph[max(0, i - h) : i + h + 1, max(0, j - h) : j + h + 1]
+                ok = np.isfinite(box)
+                out[i, j] = np.sin(box[ok]).mean() if 2 * ok.sum() >= box.size else 0.0
+        return out
+
+    for ph in (phase, holed):
+        for pool, w in ((1, 5), (5, 5), (9, 9)):
+            got, _ = doppler_imaginary({"doppler_phase_1@original": ph}, pool)
+            ref = brute(ph, w)
+            np.testing.assert_allclose(got, ref, atol=1e-12)
+            m, _ = doppler_drift({"doppler_phase_1@original": ph}, None, pool)
+            assert m.tolist() == (np.abs(ref) >= DOPPLER_IM_MIN).reshape(-1).tolist()
+    h, _ = doppler_drift({"doppler_phase_1@original": holed}, None, 1)
+    assert not h.reshape(phase.shape)[:, 0].any()  # its box: three columns without a phase
+    idx = np.array([0, 25, 199])
+    at, _ = doppler_drift(chans, idx, 1)
+    assert at.tolist() == seen.reshape(-1)[idx].tolist()
+    assert doppler_drift({"xc_centre_2@original": phase}, None, 1) == (None, [])
+
+
+def test_rule_10_turns_direction_symmetric_outcomes_into_flow_before_rules_1_to_4():
+    """Where the Doppler phase drifted, ballistic, diffusion and their sets with flow become flow (counted as
+    doppler_drift) before a B-scan's ballistic decisions become sets; flow and indeterminate stay."""
+    labels = np.array([0, 1, 2, 3, 4, 5, 6, 1])
+    seen = np.array([True] * 7 + [False])
+    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=None, doppler=seen)
+    flow = NAMES.index("flow")
+    assert out.tolist() == [flow, flow, flow, 3, flow, flow, flow, NAMES.index("ballistic-or-flow")]
+    assert counts["doppler_drift"] == 5 and counts["bscan_plane"] == 1
+
+
+def test_rules_7_and_9_leave_a_flow_decision_the_doppler_phase_founds():
+    """A flow decision whose Doppler phase drifted is the pixel's own evidence: rule 7 (a box of other outcomes)
+    and rule 9 (a coarser configuration decaying faster) flag it only without that evidence."""
+    from classifier.ambiguity import borrowed_flow, mixed_footprint
+
+    flow, ball_set = NAMES.index("flow"), NAMES.index("ballistic-or-flow")
+    grid = np.full((9, 30), ball_set)
+    grid[:, 10:30] = flow
+    shape, idx, labels = grid.shape, np.arange(grid.size), grid.reshape(-1)
+    dop = np.zeros(shape, bool)
+    dop[:, 10] = True
+    without = borrowed_flow(labels, NAMES, idx, shape, (3, 5)).reshape(shape)
+    with_dop = borrowed_flow(labels, NAMES, idx, shape, (3, 5), doppler=dop.reshape(-1)).reshape(shape)
+    assert without[:, 10].all() and not with_dop[:, 10].any() and with_dop[:, 11].all()
+    cols = [
+        {"metric": "rho_lin_1", "configuration": "original"},
+        {"metric": "rho_lin_1", "configuration": "axial=14"},
+        {"metric": "pool_pixels"},
+    ]
+    rows = np.array([[0.99, 0.40, 25], [0.99, 0.40, 25]])
+    got, _ = mixed_footprint(np.array([flow, flow]), NAMES, cols, rows, "original", doppler=np.array([True, False]))
+    assert got.tolist() == [False, True]

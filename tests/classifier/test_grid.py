@@ -120,8 +120,9 @@ def test_grid_results_files_are_self_describing(tmp_path, levels):
     assert list(rows[0]) == list(grid._COLUMNS) and len(rows) == 4
     md = (tmp_path / "grid.md").read_text()
     # one row per cell and window, and one per (geometry, context, window) of the pooled summary
-    # cells, interiors, all pixels, and what each rule changed
-    assert "worst wrong share" in md and md.count("\n| bscan |") == 4 + 4 + 4 + 4
+    # cells, interiors, all pixels, what each rule changed, and rule 10's statistic where a Doppler channel exists
+    n_doppler = sum(1 for s in data["summary_by_context"] if s["doppler"]["cells"])
+    assert "worst wrong share" in md and md.count("\n| bscan |") == 4 + 4 + 4 + 4 + n_doppler
     assert set(data["summary"]) == {"1", "5"}
     for pool, summ in data["summary"].items():  # the all-pixels summary is the cells' own borders-included scores
         all_px = [r["all_pixels"]["wrong_share_max"] for r in data["cells"] if str(r["pool"]) == pool]
@@ -140,7 +141,24 @@ def test_grid_results_files_are_self_describing(tmp_path, levels):
             assert 0 <= p["wrong_share"] <= p["coverage"] + 1e-12
         assert s["worst_wrong_share"] == max(p["wrong_share"] for p in s["per_class"].values())
         # what each rule changed: its pixels over the classified pixels of the context's cells
-        assert set(s["rules_changed_share"]) == set(cells[0]["rules_changed"]) >= {"mixed_footprint", "contradicted"}
+        assert (
+            set(s["rules_changed_share"])
+            == set(cells[0]["rules_changed"])
+            >= {
+                "mixed_footprint",
+                "contradicted",
+                "doppler_drift",
+            }
+        )
+        # rule 10's statistic: the cells whose maps hold a Doppler channel, its null and its power on flow
+        dop = [r["doppler"] for r in cells if r["doppler"]]
+        assert s["doppler"]["cells"] == len(dop)
+        for d in dop:
+            assert d["channel"] == "doppler_phase_1@original" and d["window_px"] == max(s["pool"], 5)
+            for v in d["abs_imaginary"].values():
+                assert v is None or 0 <= v["median"] <= v["max"] <= 1
+        null = [d["abs_imaginary"][m]["max"] for d in dop for m in ("diffusion", "ballistic") if d["abs_imaginary"][m]]
+        assert s["doppler"]["null_max"] == (max(null) if null else None)
         for rule, share in s["rules_changed_share"].items():
             changed = sum(r["rules_changed"][rule] for r in cells)
             assert share == pytest.approx(changed / sum(r["classified"] for r in cells)) and 0 <= share <= 1
@@ -338,3 +356,23 @@ def test_a_pooled_decision_whose_fine_footprint_holds_another_region_abstains(mo
     monkeypatch.setattr(ambiguity, "contradicted", lambda labels, *a, **k: np.zeros(np.shape(labels), bool))
     without = grid.run_probe("bscan-layers-slow", model, lv, pools=(5,), threads=1)[0]["all_pixels"]
     assert without["per_class"]["ballistic"]["wrong_share"] > 0.02, without["per_class"]
+
+
+def test_fast_flow_inside_static_tissue_is_decided_where_its_doppler_phase_drifts(monkeypatch, levels):
+    """A fast flow nearly across the beam (polar 80°) inside static tissue, 20 dB (a B-scan): the static pattern
+    pins the window's peak and the flow decorrelates within the shortest speckle lag, so the speckle rules see
+    nothing and the model's decisions are sets; its Doppler phase against the static reference keeps one sign,
+    and rule 10 decides it (recorded flow coverage 0.87 / 0.97 at windows 1 / 5, 0.00 / 0.00 without the
+    rule). No motion's pixel, borders included, is decided as another class either way."""
+    from classifier import ambiguity
+    from classifier.infer import load_model
+
+    model = load_model("signature-bscan", threads=1)
+    cell = GridCell("bscan", "background", grid.SNR_DB, "fast", 80.0, 0.0)
+    for r in grid.run_cell(cell, model, levels, threads=1):
+        assert r["doppler"] and r["rules_changed"]["doppler_drift"] > 0
+        assert r["per_class"]["flow"]["coverage"] > 0.75, (r["pool"], r["per_class"]["flow"])
+        assert r["all_pixels"]["wrong_share_max"] <= 0.01, (r["pool"], r["all_pixels"])
+    monkeypatch.setattr(ambiguity, "doppler_drift", lambda *a, **k: (None, []))
+    for r in grid.run_cell(cell, model, levels, threads=1):
+        assert r["per_class"]["flow"]["coverage"] < 0.1 and r["all_pixels"]["wrong_share_max"] <= 0.01

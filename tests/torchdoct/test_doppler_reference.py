@@ -408,3 +408,37 @@ def test_static_pixel_phase_spread_is_the_predicted_one(lag):
     n, big_n = T - lag, n_z - 1
     predicted = math.sqrt((1 + 1 / big_n) * (lag / (snr * n * n) + 1 / (2 * snr * snr * n)))
     assert abs(float(ch.std()) / predicted - 1) < 0.05, (ch.std(), predicted)
+
+
+def test_signature_maps_of_complex_data_add_the_doppler_channel_and_no_doppler_leaves_it_out(tmp_path, capsys, field):
+    """``maps --signature`` gives the classifier what its rules read: on complex data the Doppler channel (rule 10
+    of classifier.ambiguity) where a static reference exists, as ``--doppler`` gives it; ``--no-doppler`` leaves
+    it out, and the two flags together are refused."""
+    np.save(tmp_path / "f.npy", field[:, :, :24].astype(np.complex64))
+    (tmp_path / "f.json").write_text(
+        json.dumps(
+            {
+                "axes": "TZX",
+                "pitch_um": {"z": DZ, "x": 2.0},
+                "frame_times_s": [DT * i for i in range(T)],
+                "system": SYSTEM,
+            }
+        )
+    )
+
+    def run(*flags):
+        out = tmp_path / f"m{len(flags)}{'-'.join(f.strip('-') for f in flags)}.npz"
+        code = main(["maps", str(tmp_path / "f.npy"), "--signature", *flags, "--out", str(out), "--no-progress"])
+        return code, out
+
+    code, out = run()
+    assert code == 0
+    got = read_maps(out)
+    assert NAME in got.channels and got.meta["doppler"]["channels"] == ["doppler_phase_1"]
+    explicit = compute_maps(seq_of(field[:, :, :24].astype(np.complex64)), metrics=("mean_db",), doppler=True)
+    np.testing.assert_array_equal(got.maps[got.index(NAME)], explicit.maps[explicit.index(NAME)])
+    code, out = run("--no-doppler")
+    assert code == 0 and not any(c.startswith("doppler_phase_") for c in read_maps(out).channels)
+    capsys.readouterr()
+    code, _ = run("--doppler", "--no-doppler")
+    assert code != 0 and "--no-doppler contradict" in capsys.readouterr().err

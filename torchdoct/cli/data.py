@@ -72,6 +72,12 @@ def _maps_arguments(mp) -> None:
         "no channel",
     )
     mp.add_argument(
+        "--no-doppler",
+        action="store_true",
+        help="with --signature: leave out the Doppler channel it adds by default for complex data (the "
+        "classifier's rule 10 reads it where a static reference exists)",
+    )
+    mp.add_argument(
         "--doppler-lags",
         default=None,
         metavar="M[,M..]",
@@ -345,7 +351,11 @@ def maps_one(args: argparse.Namespace) -> int:
     resolutions = args.resolution or ["original"]
     if args.doppler_lags is not None and not args.doppler:
         raise ValueError("--doppler-lags sets the Doppler channels; add --doppler")
+    if args.doppler and args.no_doppler:
+        raise ValueError("--doppler and --no-doppler contradict each other: give one")
     doppler = None
+    if args.signature and not args.no_doppler and seq.is_complex:
+        doppler = True  # one flag gives the classifier what it reads: its rule 10 reads the Doppler phase
     if args.doppler:
         doppler = True if args.doppler_lags is None else [_lag(v) for v in args.doppler_lags.split(",") if v.strip()]
     options = dict(
@@ -456,7 +466,8 @@ def maps_one(args: argparse.Namespace) -> int:
                 f"{rec['alines_without_reference']} (NaN there)"
             )
         if dop.get("absent"):
-            print(f"note: --doppler: no Doppler channel: {dop['absent']}")
+            flag = "--doppler" if args.doppler else "--signature (complex data)"
+            print(f"note: {flag}: no Doppler channel: {dop['absent']}")
     nonfinite = maps.meta.get("nonfinite")
     if nonfinite:  # masked per pixel (compute_maps): say how many and where
         per = ", ".join(f"{n} at {res}" for res, n in nonfinite["masked_pixels"].items())
