@@ -986,8 +986,8 @@ def grid_doppler(root: Path) -> str:
         "static context",
         "window",
         "cells with a Doppler channel",
-        "null: largest |Im| (diffusion, ballistic)",
-        "flow: median |Im|",
+        "null: largest magnitude (diffusion, ballistic)",
+        "flow: median magnitude",
     ]
     return "\n\n".join([table(head, rows), source(d["command"], p)])
 
