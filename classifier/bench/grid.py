@@ -980,7 +980,8 @@ def format_table(res: dict[str, Any]) -> str:
         "",
         f"Models: {', '.join(f'{g}: `{m}`' for g, m in res['models'].items())}; decision: `{res['decision']}`"
         + (
-            ", flow where the speckle moved coherently, ballistic-or-flow where flow cannot be excluded, a set with flow where the "
+            ", flow where the speckle moved coherently or the Doppler phase against a static reference drifted, "
+            "ballistic-or-flow where flow cannot be excluded, a set with flow where the "
             "pattern's offset moved, and indeterminate where only the coarse configurations saw flow beside another region, a "
             "coarser configuration decayed faster than the finest, few neighbours share a decision or the finest footprint "
             "holds an outcome that excludes it (classifier.ambiguity)"
@@ -1161,7 +1162,7 @@ def build_parser():
         "--decide-ballistic",
         action="store_true",
         help="keep the model's ballistic decisions (doct-classify --decide-ballistic; default: "
-        "flow where the speckle moved coherently, ballistic-or-flow where the physics cannot "
+        "flow where the speckle moved coherently or the Doppler phase drifted, ballistic-or-flow where the physics cannot "
         "exclude flow, classifier.ambiguity)",
     )
     p.add_argument("--geometry", choices=GEOMETRIES, default=None, help="only B-scans or only volumes")
