@@ -579,14 +579,14 @@ def _classify(args: argparse.Namespace) -> int:
         if ch.get("borrowed_flow"):
             print(
                 f"  indeterminate where only the coarse configurations saw flow: {ch['borrowed_flow']} flow decisions "
-                "whose pattern did not move, at a region's border (box "
+                "that neither the pattern's motion nor the Doppler phase founds, at a region's border (box "
                 + " × ".join(f"{n} {a}" for a, n in res.info["ambiguity"]["footprint_window_px"].items())
                 + " px; --decide-ballistic keeps the model's decisions)"
             )
         if ch.get("mixed_footprint"):
             print(
                 f"  indeterminate where a coarser configuration decayed faster than the finest: "
-                f"{ch['mixed_footprint']} flow decisions whose pattern did not move "
+                f"{ch['mixed_footprint']} flow decisions that neither the pattern's motion nor the Doppler phase founds "
                 "(--decide-ballistic keeps the model's decisions)"
             )
         if ch.get("unshared"):
