@@ -102,8 +102,8 @@ pixel:
    pattern let the offset wander, loses coverage, never a right decision.
 7. **A flow decision only the coarse configurations hold** (maps of any geometry; after rules 0–5, before
    rule 6). Where a pixel's own data shows no flow (neither rule 0, 5 nor 10 fired), nothing in its own
-   frames shows a translation or a Doppler drift: a ``flow`` decision there rests on how the decay changes across the
-   configurations the model reads, and the coarsest of them reads the whole footprint (rule 6's box,
+   frames shows a translation or a Doppler drift: a ``flow`` decision there rests on how the decay changes
+   across the configurations the model reads, and the coarsest of them reads the whole footprint (rule 6's box,
    :func:`consensus_window`). Inside a region of one motion that is the region's own evidence. Where the
    footprint reaches into another region, the wide PSF mixes the neighbour's flow in: a random motion whose
    own decay is fast at every resolution then decays slower at the coarse one, the signature of flow (not
@@ -376,8 +376,7 @@ def doppler_imaginary(
     im = _box_total(np.where(ok, np.sin(np.where(ok, phase, 0.0)), 0.0), width)
     n_ok = _box_count(ok, width)
     n_all = _box_count(np.ones(phase.shape, bool), width)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(2 * n_ok >= n_all, im / np.maximum(n_ok, 1), 0.0), best[1]
+    return np.where(2 * n_ok >= n_all, im / np.maximum(n_ok, 1), 0.0), best[1]
 
 
 def doppler_drift(
@@ -749,9 +748,9 @@ def borrowed_flow(
     """Rule 7 (module docstring): per classified pixel (``labels`` after rules 0–5, indices into ``names``, at
     the flat positions ``idx`` of a map of ``shape``), whether it holds a ``flow`` decision that the pixel's
     own data does not found (neither ``coherent``, rule 0, nor ``translation``, rule 5, nor ``doppler``, rule
-    10, seen; a rule without its channels sees nothing) and that fewer than :data:`FOOTPRINT_FLOW_MIN` of the classified
-    pixels of its box (``window`` as in :func:`unshared`) that are not ``indeterminate`` share. All False
-    without a ``flow`` label."""
+    10, seen; a rule without its channels sees nothing) and that fewer than :data:`FOOTPRINT_FLOW_MIN` of the
+    classified pixels of its box (``window`` as in :func:`unshared`) that are not ``indeterminate`` share. All
+    False without a ``flow`` label."""
     labels = np.asarray(labels)
     names = list(names)
     cand = _unmoved_flow(labels, names, coherent, translation, doppler)

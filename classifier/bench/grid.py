@@ -438,7 +438,7 @@ def _classify_rendered(
         ocds_delay_range_s=tuple(spec.ocds_delay_range_s),
         ocds_scale=spec.ocds_scale,
         ocds_estimator=spec.ocds_estimator,
-    )  # what maps --signature writes (the Doppler channel where a static reference exists), with the model's OCDS analysis
+    )  # what maps --signature writes (Doppler where a static reference exists), with the model's OCDS analysis
     t_maps = time.perf_counter()
     pitch = _pitch_um(spec)
     from ..ambiguity import DOPPLER_WINDOW_MIN, doppler_imaginary
@@ -1162,8 +1162,8 @@ def build_parser():
         "--decide-ballistic",
         action="store_true",
         help="keep the model's ballistic decisions (doct-classify --decide-ballistic; default: "
-        "flow where the speckle moved coherently or the Doppler phase drifted, ballistic-or-flow where the physics cannot "
-        "exclude flow, classifier.ambiguity)",
+        "flow where the speckle moved coherently or the Doppler phase drifted, ballistic-or-flow where the physics "
+        "cannot exclude flow, classifier.ambiguity)",
     )
     p.add_argument("--geometry", choices=GEOMETRIES, default=None, help="only B-scans or only volumes")
     p.add_argument("--seed", type=int, default=0, help="rendering seed of every cell")
