@@ -4,6 +4,10 @@ decision but ``indeterminate`` is ``flow`` (numpy only: the classify path). The 
 0, 5, 10, 1, 2, 3, 4, 7, 9, then 6 and 8 together. The derivation is in docs/abstention.md
 ("What the data cannot tell") and docs/concepts/speckle-motion.md §3, §7.
 
+Kept whole (over 800 lines): this docstring is the rules' specification in the order they run, and every rule
+shares the channel readers (``_read`` and the channel patterns) and the box sums (``_box_count``,
+``_box_total``, ``_window_share``); split, one ordered decision would be specified across files.
+
 A network that reads one pixel's intensity (pooled or not) decides ``ballistic`` wherever the decay looks
 like random-ballistic motion. Two kinds of flow give that same evidence, and the network's calibration
 (split-conformal, marginal over the training prior's directions and speeds) does not cover them pixel by
