@@ -337,26 +337,21 @@ def _widths(window: int | Sequence[int], ndim: int) -> list[int]:
     return [int(window)] * ndim
 
 
-def _box_count(mask: np.ndarray, window: int | Sequence[int]) -> np.ndarray:
-    """Per pixel of a map: how many pixels of the box centred on it (``window`` pixels along every axis, or
-    one width per axis; cut at the map's edges) hold ``mask`` (int32)."""
-    from .pooling import _box_sum
-
-    out = np.asarray(mask).astype(np.int32)
-    widths = _widths(window, out.ndim)
-    for ax, w in enumerate(widths):
-        out = _box_sum(out, w, ax)
-    return out
-
-
 def _box_total(values: np.ndarray, window: int | Sequence[int]) -> np.ndarray:
-    """Per pixel of a map: the sum of ``values`` (float64) over the box centred on it (as :func:`_box_count`)."""
+    """Per pixel of a map: the sum of ``values`` (in their own dtype) over the box centred on it (``window``
+    pixels along every axis, or one width per axis; cut at the map's edges)."""
     from .pooling import _box_sum
 
-    out = np.asarray(values, np.float64)
+    out = np.asarray(values)
     for ax, w in enumerate(_widths(window, out.ndim)):
         out = _box_sum(out, w, ax)
     return out
+
+
+def _box_count(mask: np.ndarray, window: int | Sequence[int]) -> np.ndarray:
+    """Per pixel of a map: how many pixels of the box centred on it (as :func:`_box_total`) hold ``mask``
+    (int32)."""
+    return _box_total(np.asarray(mask).astype(np.int32), window)
 
 
 def doppler_imaginary(
@@ -377,7 +372,7 @@ def doppler_imaginary(
     phase = np.asarray(channels[best[1]], np.float64)
     ok = np.isfinite(phase)
     width = max(int(window), DOPPLER_WINDOW_MIN)
-    im = _box_total(np.where(ok, np.sin(np.where(ok, phase, 0.0)), 0.0), width)
+    im = _box_total(np.where(ok, np.sin(np.where(ok, phase, 0.0)), 0.0), width)  # float64, as ``phase``
     n_ok = _box_count(ok, width)
     n_all = _box_count(np.ones(phase.shape, bool), width)
     return np.where(2 * n_ok >= n_all, im / np.maximum(n_ok, 1), 0.0), best[1]

@@ -322,6 +322,17 @@ def _static_dict(moving: dict[str, Any], density: float) -> dict[str, Any]:
     return d
 
 
+def _interior(truth_codes: np.ndarray, name: str, edge_px: int) -> np.ndarray:
+    """The pixels of motion ``name`` farther than ``edge_px`` from every other region (static tissue included)."""
+    from scipy.ndimage import maximum_filter
+
+    code = CODES[name]
+    other = np.isin(truth_codes, [c for c in (0, *CODES.values()) if c != code])
+    size = 2 * int(edge_px) + 1
+    near = maximum_filter(other.astype(np.uint8), size=size, mode="constant") > 0 if edge_px > 0 else other
+    return (truth_codes == code) & ~near
+
+
 def score_labels(
     truth_codes: np.ndarray, classes: np.ndarray, class_names: Sequence[str], edge_px: int, masked: int = 255
 ) -> dict[str, Any]:
@@ -329,18 +340,12 @@ def score_labels(
 
     ``classes``: ``classes.tif`` values; ``class_names``: the legend's names in value order (a name
     ``a-or-b`` is a set of classes, ``indeterminate`` the full set)."""
-    from scipy.ndimage import maximum_filter
-
     out: dict[str, Any] = {"per_class": {}}
     names = list(class_names)
     single = {n: i for i, n in enumerate(names) if n in MOTIONS}
-    size = 2 * int(edge_px) + 1
     recalls, scored, decided = [], 0, 0
     for name in MOTIONS:
-        code = CODES[name]
-        other = np.isin(truth_codes, [c for c in (0, *CODES.values()) if c != code])
-        near = maximum_filter(other.astype(np.uint8), size=size, mode="constant") > 0 if edge_px > 0 else other
-        sel = (truth_codes == code) & ~near & (classes != masked)
+        sel = _interior(truth_codes, name, edge_px) & (classes != masked)
         n = int(sel.sum())
         got = classes[sel]
         dec = np.isin(got, list(single.values()))
@@ -376,16 +381,10 @@ def doppler_null(truth_codes: np.ndarray, imaginary: np.ndarray, edge_px: int) -
     Doppler phasor) per motion over the pixels :func:`score_labels` scores (farther than ``edge_px`` from other
     regions): its largest and median magnitude. For diffusion and random-ballistic motion it is the rule's
     null (zero in expectation), for flow its power."""
-    from scipy.ndimage import maximum_filter
-
-    size = 2 * int(edge_px) + 1
     out: dict[str, Any] = {}
     mag = np.abs(np.asarray(imaginary, np.float64)).reshape(np.shape(truth_codes))
     for name in MOTIONS:
-        code = CODES[name]
-        other = np.isin(truth_codes, [c for c in (0, *CODES.values()) if c != code])
-        near = maximum_filter(other.astype(np.uint8), size=size, mode="constant") > 0 if edge_px > 0 else other
-        v = mag[(truth_codes == code) & ~near]
+        v = mag[_interior(truth_codes, name, edge_px)]
         out[name] = {"max": float(v.max()), "median": float(np.median(v))} if v.size else None
     return out
 

@@ -78,14 +78,23 @@ def layered_field(n_lines, layers, *, snr_db=30.0, seed=0, density=0.05):
     return np.ascontiguousarray(e.transpose(0, 2, 1))  # [T, Z, X]
 
 
-def seq_of(data):
-    meta = {
+def _meta():
+    return {
         "axes": "TZX",
         "pitch_um": {"z": DZ, "x": 2.0},
         "frame_times_s": [DT * i for i in range(T)],
         "system": SYSTEM,
     }
-    return SequenceData(data=data, meta=validate_meta(meta, data.shape), source="test.npy")
+
+
+def seq_of(data):
+    return SequenceData(data=data, meta=validate_meta(_meta(), data.shape), source="test.npy")
+
+
+def save_sequence(path, data):
+    """``data`` as ``path`` (.npy) with its JSON sidecar: what ``torchdoct maps`` reads."""
+    np.save(path, data)
+    path.with_suffix(".json").write_text(json.dumps(_meta()))
 
 
 def with_bulk(e, seed, per_aline=False):
@@ -200,17 +209,7 @@ def test_intensity_only_input_gives_no_channel_and_a_note(tmp_path, capsys):
     m = compute_maps(seq_of(inten.astype(np.float32)), metrics=("mean_db",), doppler=True)
     assert m.channels == ("mean_db@original",)
     assert "intensity only" in m.meta["doppler"]["absent"]
-    np.save(tmp_path / "i.npy", inten.astype(np.float32))
-    (tmp_path / "i.json").write_text(
-        json.dumps(
-            {
-                "axes": "TZX",
-                "pitch_um": {"z": DZ, "x": 2.0},
-                "frame_times_s": [DT * i for i in range(T)],
-                "system": SYSTEM,
-            }
-        )
-    )
+    save_sequence(tmp_path / "i.npy", inten.astype(np.float32))
     assert (
         main(
             [
@@ -239,17 +238,7 @@ def test_slabs_and_lags_and_the_cli(tmp_path, capsys, field):
     two = whole.maps[whole.index("doppler_phase_2@original")].astype(np.float64)
     mean, se = layer_mean(two, FLOW)
     assert abs(mean - (-2 * K * V_FLOW * 2 * DT)) <= Z_SE * se
-    np.save(tmp_path / "f.npy", data.astype(np.complex64))
-    (tmp_path / "f.json").write_text(
-        json.dumps(
-            {
-                "axes": "TZX",
-                "pitch_um": {"z": DZ, "x": 2.0},
-                "frame_times_s": [DT * i for i in range(T)],
-                "system": SYSTEM,
-            }
-        )
-    )
+    save_sequence(tmp_path / "f.npy", data.astype(np.complex64))
     out = tmp_path / "f.npz"
     assert (
         main(
@@ -414,17 +403,7 @@ def test_signature_maps_of_complex_data_add_the_doppler_channel_and_no_doppler_l
     """``maps --signature`` gives the classifier what its rules read: on complex data the Doppler channel (rule 10
     of classifier.ambiguity) where a static reference exists, as ``--doppler`` gives it; ``--no-doppler`` leaves
     it out, and the two flags together are refused."""
-    np.save(tmp_path / "f.npy", field[:, :, :24].astype(np.complex64))
-    (tmp_path / "f.json").write_text(
-        json.dumps(
-            {
-                "axes": "TZX",
-                "pitch_um": {"z": DZ, "x": 2.0},
-                "frame_times_s": [DT * i for i in range(T)],
-                "system": SYSTEM,
-            }
-        )
-    )
+    save_sequence(tmp_path / "f.npy", field[:, :, :24].astype(np.complex64))
 
     def run(*flags):
         out = tmp_path / f"m{len(flags)}{'-'.join(f.strip('-') for f in flags)}.npz"
