@@ -56,6 +56,9 @@ coarse configurations' footprints straddle two motions:
 * ``*-vessel``: a flow vessel of radius :data:`PROBE_VESSEL_RADIUS_PX` through random-ballistic tissue
   without static scatterers, in the B-scan plane at 45° to the beam (B-scan) or along x (volume), the
   flow along its axis;
+* ``bscan-crossing``: a flow vessel of the same radius across the B-scan plane (its axis and its flow along
+  y) through diffusing tissue without static scatterers: the flow the B-scan cannot tell from
+  random-ballistic motion (docs/abstention.md, rule 1), beside a motion it can decide;
 * ``-slow``: every motion at its ``slow`` level: a random motion that decays by a few percent beside a flow
   that decorrelates over the acquisition, so that even the far tail of the coarse PSF mixes a flow's
   signature into it.
@@ -117,14 +120,17 @@ BAND_RADIUS_PX = 12
 BAND_GAP_PX = 8
 IMAGE_NZ = 64
 VOLUME_NY = 8
-#: Phantoms unlike the bands (:func:`probe_dict`): layers in depth and a vessel, without and with static tissue,
-#: with every motion at its mid level or (``-slow``) at its slow level.
+#: Phantoms unlike the bands (:func:`probe_dict`): layers in depth, a vessel and a vessel across the B-scan plane,
+#: without and with static tissue, with every motion at its mid level or (``-slow``) at its slow level.
 PROBES = (
     "bscan-layers",
     "bscan-layers-static",
     "bscan-layers-slow",
     "bscan-vessel",
+    "bscan-vessel-static",
     "bscan-vessel-slow",
+    "bscan-crossing",
+    "volume-layers",
     "volume-layers-static",
     "volume-layers-static-slow",
     "volume-vessel",
@@ -560,6 +566,27 @@ def probe_dict(name: str, spec, levels: dict[str, dict[str, float]], density: fl
                 "motion": [motion],
             }
             for k, motion in enumerate((diffusion, ballistic, flow))
+        ]
+    elif kind == "crossing":  # across the B-scan plane: the vessel's axis and its flow along y
+        flow = {"kind": "flow", "speed_um_per_s": flow_speed, "polar_angle_deg": 90.0, "azimuth_deg": 90.0}
+        regions = [
+            {
+                "name": "diffusion",
+                "shape": "slab",
+                "z_min_um": -depth / 2,
+                "z_max_um": depth / 2,
+                "density_per_um3": density,
+                "motion": [diffusion],
+            },
+            {
+                "name": "flow",
+                "shape": "cylinder",
+                "center_um": [0.0, 0.0, 0.0],
+                "axis": [0.0, 1.0, 0.0],
+                "radius_um": PROBE_VESSEL_RADIUS_PX * pitch,
+                "density_per_um3": density,
+                "motion": [flow],
+            },
         ]
     else:
         in_plane = geometry == "bscan"  # at 45° in the x-z plane; a volume's vessel runs along x
