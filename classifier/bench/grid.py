@@ -189,10 +189,10 @@ def quick_cells(seed: int = 0) -> list[GridCell]:
     return cells
 
 
-def _draw(label: int, magnitude: float, polar: float, azimuth: float, density: float):
+def _draw(label: int, magnitude: float, polar: float, azimuth: float, density: float, law: str | None = None):
     from ..prior import Draw
 
-    return Draw(
+    d = Draw(
         label=label,
         magnitude=float(magnitude),
         polar_angle_deg=float(polar),
@@ -200,6 +200,19 @@ def _draw(label: int, magnitude: float, polar: float, azimuth: float, density: f
         density_per_um3=float(density),
         sim_seed=0,
     )
+    if law is not None:
+        import dataclasses
+
+        d = dataclasses.replace(d, ballistic_directions=law)
+    return d
+
+
+def _check_law(law: str | None) -> str | None:
+    from ..prior import BALLISTIC_LAWS
+
+    if law is not None and law not in BALLISTIC_LAWS:
+        raise ValueError(f"--ballistic-directions {law!r}: give one of {', '.join(BALLISTIC_LAWS)}")
+    return law
 
 
 def speed_levels(spec, prior=None) -> dict[str, dict[str, float]]:
@@ -236,14 +249,25 @@ def speed_levels(spec, prior=None) -> dict[str, dict[str, float]]:
     return out
 
 
+def _ballistic(speed: float, law: str | None) -> dict[str, Any]:
+    """A random-ballistic motion of the phantom schema at ``speed`` (µm/s), with direction law ``law`` if given."""
+    m: dict[str, Any] = {"kind": "ballistic", "speed_um_per_s": speed}
+    if _check_law(law) is not None:
+        m["directions"] = law
+    return m
+
+
 def _pitch_um(spec) -> float:
     finest = min(c.lateral_resolution_um for c in spec.configurations)
     return max(0.5, round(finest / 3.0 * 2.0) / 2.0)
 
 
-def phantom_dict(cell: GridCell, spec, levels: dict[str, dict[str, float]], density: float) -> dict[str, Any]:
+def phantom_dict(
+    cell: GridCell, spec, levels: dict[str, dict[str, float]], density: float, ballistic_directions: str | None = None
+) -> dict[str, Any]:
     """The phantom of ``cell`` in the phantom-file schema (module docstring); a static background is a
-    second phantom (:func:`_static_dict`)."""
+    second phantom (:func:`_static_dict`). ``ballistic_directions``: the random-ballistic direction law
+    (:data:`classifier.prior.BALLISTIC_LAWS`; ``None``: the phantom schema's default, isotropic)."""
     pitch = _pitch_um(spec)
     r_um, gap_um = BAND_RADIUS_PX * pitch, BAND_GAP_PX * pitch
     n_x = 3 * 2 * BAND_RADIUS_PX + 4 * BAND_GAP_PX
@@ -260,7 +284,7 @@ def phantom_dict(cell: GridCell, spec, levels: dict[str, dict[str, float]], dens
         grid["y_um"] = 0.0
     motions = {
         "diffusion": {"kind": "diffusion", "diffusion_um2_per_s": levels["diffusion"][cell.level]},
-        "ballistic": {"kind": "ballistic", "speed_um_per_s": levels["ballistic"][cell.level]},
+        "ballistic": _ballistic(levels["ballistic"][cell.level], ballistic_directions),
         "flow": {
             "kind": "flow",
             "speed_um_per_s": levels["flow"][cell.level],
@@ -494,16 +518,18 @@ def run_cell(
     threads: int | None = None,
     prior=None,
     abstain_ambiguous: bool = True,
+    ballistic_directions: str | None = None,
 ) -> list[dict[str, Any]]:
     """Render, map, classify and score one cell at every window of ``pools``: one row per window.
-    ``abstain_ambiguous``: doct-classify's default (:mod:`classifier.ambiguity`); False: ``--decide-ballistic``."""
+    ``abstain_ambiguous``: doct-classify's default (:mod:`classifier.ambiguity`); False: ``--decide-ballistic``.
+    ``ballistic_directions``: as in :func:`phantom_dict`."""
     from ..prior import Prior
     from ..truth import identifiability
 
     prior = prior or Prior()
     spec = model.spec
     density = float(min(prior.density_per_um3))
-    d = phantom_dict(cell, spec, levels, density)
+    d = phantom_dict(cell, spec, levels, density, ballistic_directions)
     phantoms = [d, _static_dict(d, density)] if cell.context == "background" else [d]
     scored = _classify_rendered(
         phantoms,
@@ -518,7 +544,8 @@ def run_cell(
     ident = {}
     for label, name in enumerate(MOTIONS):
         mag = levels[name][cell.level]
-        ident[name] = identifiability(spec, _draw(label, mag, cell.polar_deg, cell.azimuth_deg, density), prior)[0]
+        draw = _draw(label, mag, cell.polar_deg, cell.azimuth_deg, density, ballistic_directions)
+        ident[name] = identifiability(spec, draw, prior)[0]
     rows = []
     for r in scored:
         head = {
@@ -535,9 +562,17 @@ def run_cell(
     return rows
 
 
-def probe_dict(name: str, spec, levels: dict[str, dict[str, float]], density: float, seed: int = 0) -> dict[str, Any]:
+def probe_dict(
+    name: str,
+    spec,
+    levels: dict[str, dict[str, float]],
+    density: float,
+    seed: int = 0,
+    ballistic_directions: str | None = None,
+) -> dict[str, Any]:
     """The phantom of probe ``name`` (:data:`PROBES`, module docstring) in the phantom-file schema, built from
-    the system of ``spec`` and the speed ``levels`` of its geometry (``-slow``: every motion at ``slow``)."""
+    the system of ``spec`` and the speed ``levels`` of its geometry (``-slow``: every motion at ``slow``);
+    ``ballistic_directions`` as in :func:`phantom_dict`."""
     if name not in PROBES:
         raise ValueError(f"unknown probe {name!r}; give one of {', '.join(PROBES)}")
     geometry, kind, *variant = name.split("-")
@@ -551,7 +586,7 @@ def probe_dict(name: str, spec, levels: dict[str, dict[str, float]], density: fl
         grid["y_um"] = 0.0
     depth = n_z * pitch  # the grid is centred on the origin: z runs over [-depth/2, depth/2]
     diffusion = {"kind": "diffusion", "diffusion_um2_per_s": levels["diffusion"][level]}
-    ballistic = {"kind": "ballistic", "speed_um_per_s": levels["ballistic"][level]}
+    ballistic = _ballistic(levels["ballistic"][level], ballistic_directions)
     flow_speed = levels["flow"][level]
     if kind == "layers":
         polar, azimuth = PROBE_LAYER_FLOW_DEG
@@ -641,14 +676,16 @@ def run_probe(
     prior=None,
     abstain_ambiguous: bool = True,
     seed: int = 0,
+    ballistic_directions: str | None = None,
 ) -> list[dict[str, Any]]:
-    """Render, map, classify and score probe ``name`` (:func:`probe_dict`) at every window: one row per window."""
+    """Render, map, classify and score probe ``name`` (:func:`probe_dict`, with ``ballistic_directions``) at every
+    window: one row per window."""
     from ..prior import Prior
 
     spec = model.spec
     density = float(min((prior or Prior()).density_per_um3))
     scored = _classify_rendered(
-        [probe_dict(name, spec, levels, density, seed)],
+        [probe_dict(name, spec, levels, density, seed, ballistic_directions)],
         model,
         f"probe-{name}",
         seed,
@@ -682,10 +719,13 @@ def run_grid(
     levels: dict[str, dict[str, dict[str, float]]] | None = None,
     abstain_ambiguous: bool = True,
     probes: Sequence[str] = (),
+    ballistic_directions: str | None = None,
 ) -> dict[str, Any]:
     """Every cell of ``cells`` and every probe of ``probes`` (module docstring) with ``model`` (default: the model ``doct-classify``
     picks for the cell's maps: ``signature-bscan`` for B-scans, ``signature`` for volumes). ``levels``:
-    ``{geometry: speed_levels(...)}`` already computed (default: computed here)."""
+    ``{geometry: speed_levels(...)}`` already computed (default: computed here). ``ballistic_directions``: the
+    random-ballistic direction law of every phantom (:func:`phantom_dict`; default isotropic)."""
+    _check_law(ballistic_directions)
     from ..infer import load_model
 
     cells = list(cells)
@@ -711,6 +751,7 @@ def run_grid(
                 decision=decision,
                 threads=threads,
                 abstain_ambiguous=abstain_ambiguous,
+                ballistic_directions=ballistic_directions,
             )
         )
         if bar is not None:
@@ -728,6 +769,7 @@ def run_grid(
                 threads=threads,
                 abstain_ambiguous=abstain_ambiguous,
                 seed=cells[0].seed if cells else 0,
+                ballistic_directions=ballistic_directions,
             )
         )
         if bar is not None:
@@ -743,6 +785,7 @@ def run_grid(
         "models": {g: m.spec.name for g, m in models.items()},
         "decision": rows[0]["decision"] if rows else decision,
         "abstain_ambiguous": bool(abstain_ambiguous),
+        "ballistic_directions": ballistic_directions or "isotropic",
         "speed_levels": dict(levels.items()),
         "units": {"diffusion": "µm²/s", "ballistic": "µm/s", "flow": "µm/s", "seconds": "s"},
         "cells": rows,
@@ -1014,7 +1057,7 @@ def format_table(res: dict[str, Any]) -> str:
             if res.get("abstain_ambiguous", False)
             else ", the model's decisions kept"
         )
-        + ". "
+        + f". Random-ballistic direction law: `{res.get('ballistic_directions', 'isotropic')}`. "
         "Speed levels (diffusion µm²/s, speeds µm/s): "
         + "; ".join(
             f"{g}: " + ", ".join(f"{m} {'/'.join(f'{v:g}' for v in lv.values())}" for m, lv in levels.items())
@@ -1165,6 +1208,8 @@ def _json_default(o: Any) -> Any:
 def build_parser():
     import argparse
 
+    from ..prior import BALLISTIC_LAWS
+
     p = argparse.ArgumentParser(
         prog="python -m classifier.bench.grid",
         description="The phantom grid: render, map, classify and score phantoms built from "
@@ -1197,6 +1242,12 @@ def build_parser():
     p.add_argument("--threads", type=int, default=None, metavar="N")
     p.add_argument("--force", action="store_true", help="overwrite existing results")
     p.add_argument("--no-probes", action="store_true", help="skip the probes (phantoms unlike the bands)")
+    p.add_argument(
+        "--ballistic-directions",
+        default=None,
+        choices=BALLISTIC_LAWS,
+        help="the random-ballistic direction law of every phantom (default isotropic; the training prior holds both)",
+    )
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -1218,6 +1269,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             progress=not args.no_progress,
             abstain_ambiguous=not args.decide_ballistic,
             probes=[] if args.no_probes else [p for p in PROBES if args.geometry in (None, p.split("-")[0])],
+            ballistic_directions=args.ballistic_directions,
         )
         res["command"] = (
             "python -m classifier.bench.grid"
@@ -1228,6 +1280,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             + (f" --geometry {args.geometry}" if args.geometry else "")
             + (f" --seed {args.seed}" if args.seed else "")
             + (" --no-probes" if args.no_probes else "")
+            + (f" --ballistic-directions {args.ballistic_directions}" if args.ballistic_directions else "")
             + (f" --stem {args.stem}" if args.stem != "grid" else "")
             + " --out DIR"
         )

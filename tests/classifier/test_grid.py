@@ -96,6 +96,34 @@ def test_scores_are_exact_on_known_label_maps():
     assert e["per_class"]["diffusion"]["pixels"] == 4 * 8 and e["per_class"]["ballistic"]["pixels"] == 4 * 8
 
 
+def test_the_random_ballistic_direction_law_reaches_every_phantom_and_an_unknown_one_is_refused(levels, capsys):
+    """``--ballistic-directions`` sets the law of the random-ballistic population of every cell and probe (the
+    phantom's default, isotropic, when not given); its ground truth is computed under the same law."""
+    from classifier.features import load_spec
+    from torchdoct.image.phantom import phantom_from_dict
+
+    spec = load_spec("signature-bscan")
+    cell = GridCell("bscan", "none", None, "mid", 45.0, 0.0)
+
+    def laws(d):
+        return [m.get("directions") for r in d["region"] for m in r.get("motion", []) if m["kind"] == "ballistic"]
+
+    assert laws(grid.phantom_dict(cell, spec, levels, 0.02)) == [None]
+    d = grid.phantom_dict(cell, spec, levels, 0.02, "uniform-angles")
+    assert laws(d) == ["uniform-angles"]
+    ballistic = next(
+        p for p in phantom_from_dict(d).scene.populations if type(p.motion[0]).__name__ == "RandomBallistic"
+    )
+    assert ballistic.motion[0].directions == "uniform-angles"
+    assert laws(grid.probe_dict("bscan-vessel", spec, levels, 0.02, 0, "uniform-angles")) == ["uniform-angles"]
+    assert grid._draw(1, 0.05, 0.0, 0.0, 0.02, "uniform-angles").ballistic_directions == "uniform-angles"
+    with pytest.raises(ValueError, match="--ballistic-directions 'sideways'"):
+        grid.phantom_dict(cell, spec, levels, 0.02, "sideways")
+    with pytest.raises(SystemExit) as e:
+        grid.main(["--out", "unused", "--ballistic-directions", "sideways"])
+    assert e.value.code == 2 and "uniform-angles" in capsys.readouterr().err
+
+
 def test_grid_results_files_are_self_describing(tmp_path, levels):
     cells = [
         GridCell("bscan", "none", grid.SNR_DB, "mid", 80.0, 90.0),
@@ -109,6 +137,7 @@ def test_grid_results_files_are_self_describing(tmp_path, levels):
     data = json.loads((tmp_path / "grid.json").read_text())
     assert data["schema_version"] == grid.SCHEMA_VERSION and data["benchmark"] == "phantom-grid"
     assert data["models"] == {"bscan": "signature-bscan"} and data["decision"] == "conformal"
+    assert data["ballistic_directions"] == "isotropic"
     assert "Scores of a cell" in data["definitions"]["scores"]
     assert len(data["cells"]) == 4 and {r["pool"] for r in data["cells"]} == {1, 5}
     for r in data["cells"]:
