@@ -911,10 +911,10 @@ def translation_rule(root: Path) -> str:
     )
 
 
-def grid_context(root: Path, key: str = "summary_by_context") -> str:
-    """The default grid pooled per geometry, static context and window (``key``: ``summary_by_context``, the
-    band interiors; ``summary_by_context_all_pixels``, borders included)."""
-    d, p = load(root, "grid-default.json")
+def grid_context(root: Path, key: str = "summary_by_context", name: str = "grid-default.json") -> str:
+    """A recorded grid (``name``: the default one unless given) pooled per geometry, static context and window
+    (``key``: ``summary_by_context``, the band interiors; ``summary_by_context_all_pixels``, borders included)."""
+    d, p = load(root, name)
     ctx = d.get(key)
     if not ctx:
         raise MissingResult(f"{p} has no {key}: re-record it with the command in its 'command' field")
@@ -1079,6 +1079,9 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "grid-doppler": grid_doppler,
     "grid-probes": grid_probes,
     "grid-context-all-pixels": lambda root: grid_context(root, "summary_by_context_all_pixels"),
+    "grid-context-uniform-angles": lambda root: grid_context(
+        root, "summary_by_context_all_pixels", "grid-uniform-angles.json"
+    ),
 }
 
 
