@@ -235,11 +235,7 @@ def speed_levels(spec, prior=None) -> dict[str, dict[str, float]]:
             for i, mag in enumerate(_RANGE_GRID):
                 if not ok[i]:
                     continue
-                d = _draw(label, mag, v.get("polar", 0.0), v.get("azimuth", 0.0), density)
-                if "law" in v:
-                    import dataclasses
-
-                    d = dataclasses.replace(d, ballistic_directions=v["law"])
+                d = _draw(label, mag, v.get("polar", 0.0), v.get("azimuth", 0.0), density, v.get("law"))
                 ok[i] = identifiability(spec, d, prior)[0] == "identifiable"
         idx = np.flatnonzero(ok)
         if idx.size == 0:
@@ -602,44 +598,22 @@ def probe_dict(
             }
             for k, motion in enumerate((diffusion, ballistic, flow))
         ]
-    elif kind == "crossing":  # across the B-scan plane: the vessel's axis and its flow along y
-        flow = {"kind": "flow", "speed_um_per_s": flow_speed, "polar_angle_deg": 90.0, "azimuth_deg": 90.0}
-        regions = [
-            {
-                "name": "diffusion",
-                "shape": "slab",
-                "z_min_um": -depth / 2,
-                "z_max_um": depth / 2,
-                "density_per_um3": density,
-                "motion": [diffusion],
-            },
-            {
-                "name": "flow",
-                "shape": "cylinder",
-                "center_um": [0.0, 0.0, 0.0],
-                "axis": [0.0, 1.0, 0.0],
-                "radius_um": PROBE_VESSEL_RADIUS_PX * pitch,
-                "density_per_um3": density,
-                "motion": [flow],
-            },
-        ]
     else:
-        in_plane = geometry == "bscan"  # at 45° in the x-z plane; a volume's vessel runs along x
-        axis = [math.sqrt(0.5), 0.0, math.sqrt(0.5)] if in_plane else [1.0, 0.0, 0.0]
-        flow = {
-            "kind": "flow",
-            "speed_um_per_s": flow_speed,
-            "polar_angle_deg": 45.0 if in_plane else 90.0,
-            "azimuth_deg": 0.0,
-        }
+        if kind == "crossing":  # across the B-scan plane, through diffusing tissue: axis and flow along y
+            tissue, axis, polar, azimuth = diffusion, [0.0, 1.0, 0.0], 90.0, 90.0
+        elif geometry == "bscan":  # at 45° in the x-z plane
+            tissue, axis, polar, azimuth = ballistic, [math.sqrt(0.5), 0.0, math.sqrt(0.5)], 45.0, 0.0
+        else:  # a volume's vessel runs along x
+            tissue, axis, polar, azimuth = ballistic, [1.0, 0.0, 0.0], 90.0, 0.0
+        flow = {"kind": "flow", "speed_um_per_s": flow_speed, "polar_angle_deg": polar, "azimuth_deg": azimuth}
         regions = [
             {
-                "name": "ballistic",
+                "name": tissue["kind"],
                 "shape": "slab",
                 "z_min_um": -depth / 2,
                 "z_max_um": depth / 2,
                 "density_per_um3": density,
-                "motion": [ballistic],
+                "motion": [tissue],
             },
             {
                 "name": "flow",
