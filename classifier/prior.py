@@ -16,8 +16,7 @@ draw ``k`` of a split (:func:`draw_parameters`).
   identifiable range and keeps the scatterers per resolution volume). The paper's ranges
   (§3.2) end at 15 µm²/s and 6 µm/s and start at 0, which a log scale cannot hold; their lower ends
   are taken as 1e-3 µm²/s and 1e-2 µm/s, where the 840-nm LIV of diffusion and random-ballistic
-  motion is already a sizeable part of its plateau (physics.md §5.7), and extended a decade below
-  as the issue asks;
+  motion is already a sizeable part of its plateau (physics.md §5.7), and extended a decade below them;
 * flow direction within ``flow_polar_angle_deg`` = [θ₁, θ₂] (default [0, 180°]), azimuth ~ U[0, 360°);
   ``flow_polar_law`` ``"isotropic"`` (default): cos of the polar angle from the depth axis
   ~ U[cos θ₂, cos θ₁] (U[−1, 1] by default); ``"uniform-angle"``: the polar angle ~ U[θ₁, θ₂], which

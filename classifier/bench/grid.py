@@ -35,7 +35,7 @@ the coarsest configuration's resolution plus half the window; masked pixels are 
 * ``balanced_accuracy``: mean over the three motions of the right share of their decided pixels
   (``None`` when a motion has no decided pixel);
 * ``wrong_share`` per motion: share of its scored pixels decided as another single class, and
-  ``wrong_share_max``, the worst of the three (the issue's "confidently wrong");
+  ``wrong_share_max``, the worst of the three ("confidently wrong");
 * ``set_miss_share`` per motion: share given a set of classes that leaves the true one out;
 * ``identifiable`` per motion: the ground truth of the training (a motion outside it should be abstained on);
 * ``seconds``: render, maps and classification of the cell;
@@ -51,7 +51,7 @@ motion at its ``mid`` level unless the name says ``-slow``. Unlike the bands, wh
 coarse configurations' footprints straddle two motions:
 
 * ``*-layers``: three layers stacked in depth (diffusion, random-ballistic motion, flow at
-  :data:`PROBE_LAYER_FLOW_DEG`), the layers of the issue's static-free B-scan; ``-static``: inside static
+  :data:`PROBE_LAYER_FLOW_DEG`), the static-free layers of :mod:`classifier.bench.cases`; ``-static``: inside static
   tissue (a static population under every pixel, in the same phantom);
 * ``*-vessel``: a flow vessel of radius :data:`PROBE_VESSEL_RADIUS_PX` through random-ballistic tissue
   without static scatterers, in the B-scan plane at 45° to the beam (B-scan) or along x (volume), the
@@ -785,7 +785,7 @@ def _definitions() -> dict[str, str]:
 def summarize(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Per window: the worst cell's wrong share, the mean and the lowest coverage, cells over 10 % wrong; and
     over every band pixel (``all_pixels``, borders included, where the cells hold it): the worst cell's wrong
-    share and the cells over 5 % wrong (the issue's bound per motion)."""
+    share and the cells over 5 % wrong (the project's bound per motion)."""
     out = {}
     for pool in sorted({r["pool"] for r in rows}):
         rs = [r for r in rows if r["pool"] == pool]

@@ -1049,6 +1049,27 @@ def grid_probes(root: Path) -> str:
     return "\n\n".join([table(header, rows), source(d["command"], p)])
 
 
+def cases(root: Path) -> str:
+    """The cases (``classifier.bench.cases``): per case, window and decision (the rules, the model alone),
+    coverage and balanced accuracy, per motion its coverage and wrong share, and the worst wrong share, over
+    every pixel of each motion."""
+    d, p = load(root, "cases.json")
+    motions = ("diffusion", "ballistic", "flow")
+    rows = []
+    for r in d["rows"]:
+        a = r["all_pixels"]
+        pc = a["per_class"]
+        rows.append(
+            [r["case"], r["pool"], "rules (default)" if r["rules"] else "model alone", num(a["coverage"])]
+            + [num(a["balanced_accuracy"])]
+            + [f"{num(pc[m]['coverage'])} / {num(pc[m]['wrong_share'])}" if pc[m]["pixels"] else "–" for m in motions]
+            + [num(a["wrong_share_max"])]
+        )
+    header = ["case", "window", "decision", "coverage", "balanced accuracy"]
+    header += [f"{m}: coverage / wrong" for m in motions] + ["worst wrong share"]
+    return "\n\n".join([table(header, rows), source(d["command"], p)])
+
+
 RENDERERS: dict[str, Callable[[Path], str]] = {
     "bench-simulate": bench_simulate,
     "bench-study": bench_study,
@@ -1078,6 +1099,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "grid-rules": grid_rules,
     "grid-doppler": grid_doppler,
     "grid-probes": grid_probes,
+    "cases": cases,
     "grid-context-all-pixels": lambda root: grid_context(root, "summary_by_context_all_pixels"),
     "grid-context-uniform-angles": lambda root: grid_context(
         root, "summary_by_context_all_pixels", "grid-uniform-angles.json"

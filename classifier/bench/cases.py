@@ -1,0 +1,258 @@
+"""The cases: phantoms of the kinds on which a per-pixel model decides flow as random-ballistic motion with
+confidence, run the way a user runs them (``torchdoct render`` → ``torchdoct maps --signature`` →
+``doct-classify``, the models ``doct-classify`` picks), each scored with the rules of
+:mod:`classifier.ambiguity` (the default) and without them (``--decide-ballistic``: the model alone).
+
+Run (from the repository root)::
+
+    python -m classifier.bench.cases --out DIR [--force] [--threads N] [--no-progress]
+
+It writes ``DIR/cases.json`` and ``DIR/cases.md`` (the recorded run: ``docs/benchmarks/cases.*``, rendered
+in docs/benchmarks/grid.md). Unlike the phantom grid (:mod:`classifier.bench.grid`), whose phantoms are built
+from the model's own system and identifiable speed levels, these are fixed phantoms of one common system:
+840 nm, lateral resolution 4.9 µm (the 1/e² width of the intensity PSF), axial 3.8 µm (its FWHM), 2 µm pixels
+(not the grid's third of the lateral resolution), 32 frames at 0.2048 s, moving density
+:data:`DENSITY` µm⁻³. The cases (:data:`CASES`, :func:`case_dict`):
+
+* ``layers``: a B-scan of 96 × 96 pixels, three slabs stacked in depth without static tissue: diffusion
+  (D = 0.03 µm²/s), random-ballistic motion (0.12 µm/s, isotropic directions) and flow (0.3 µm/s, polar angle
+  45° from the beam, azimuth 60° from the B-scan's x axis);
+* ``layers-slow-25dB``: the same with the flow at 0.1 µm/s and complex Gaussian noise 25 dB below the mean
+  intensity;
+* ``layers-crossing``: the flow nearly across the B-scan plane (polar 80°, azimuth 85°): the flow a B-scan
+  cannot tell from random-ballistic motion (docs/abstention.md, rule 1), whose right outcome is a set or
+  ``indeterminate``;
+* ``layers-static``: the layers inside static tissue (a static population of the same density under every
+  pixel);
+* ``layers-volume`` and ``layers-crossing-volume``: ``layers`` and ``layers-crossing`` as volumes of
+  :data:`VOLUME_NY` planes along y, whose y neighbours see the flow across the plane;
+* ``motion-types``: the shipped phantom, nine discs in static tissue (flow, diffusion and random-ballistic
+  discs of three magnitudes each, 30 dB).
+
+Scores per case, window (``--pool`` 1 and 5) and decision (the rules, the model alone), by
+:func:`classifier.bench.grid.score_labels`: per motion the coverage (decided share), the wrong share
+(decided as another single class), the set-miss share (a set that leaves the true motion out), the balanced
+accuracy on the decided pixels, over every pixel of each motion (``all_pixels``) and over the pixels away
+from the other regions (the grid's edge: half the coarsest resolution plus half the window).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+SCHEMA_VERSION = 1
+#: The cases, in the order they are run and reported (module docstring).
+CASES = (
+    "layers",
+    "layers-slow-25dB",
+    "layers-crossing",
+    "layers-static",
+    "layers-volume",
+    "layers-crossing-volume",
+    "motion-types",
+)
+#: The system of the built cases: wavelength (µm), lateral (1/e² width) and axial (FWHM) resolution (µm).
+SYSTEM = {"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}
+PROTOCOL = {"n_frames": 32, "frame_interval_s": 0.2048}
+#: Pixel pitch (µm) and image size (pixels per axis) of the built cases.
+PITCH_UM = 2.0
+N_PX = 96
+#: Planes along y of the volume cases: a field of view (24 µm) that holds the models' coarsest lateral
+#: resolution (maps refuse a reduction wider than the field of view).
+VOLUME_NY = 12
+#: Moving (and static) density of the built cases, µm⁻³.
+DENSITY = 0.05
+#: The layers' motions: D (µm²/s), random-ballistic speed (µm/s), and per case the flow's speed (µm/s),
+#: polar and azimuth angle (degrees).
+DIFFUSION_UM2_S = 0.03
+BALLISTIC_UM_S = 0.12
+FLOW = {"": (0.3, 45.0, 60.0), "slow": (0.1, 45.0, 60.0), "crossing": (0.3, 80.0, 85.0)}
+SNR_DB = 25.0
+POOLS = (1, 5)
+SEED = 0
+
+
+def case_dict(name: str) -> dict[str, Any]:
+    """The phantom of case ``name`` (:data:`CASES`) in the phantom-file schema (module docstring)."""
+    if name not in CASES:
+        raise ValueError(f"unknown case {name!r}; give one of {', '.join(CASES)}")
+    if name == "motion-types":
+        from torchdoct.image.phantom import shipped_phantoms
+        from torchdoct.sim.config import read_toml
+
+        return read_toml(shipped_phantoms()[name])
+    parts = name.split("-")
+    volume, static = "volume" in parts, "static" in parts
+    speed, polar, azimuth = FLOW["crossing" if "crossing" in parts else "slow" if "slow" in parts else ""]
+    grid: dict[str, Any] = {"kind": "volume" if volume else "bscan", "n_x": N_PX, "n_z": N_PX}
+    grid.update(pitch_x_um=PITCH_UM, pitch_z_um=PITCH_UM)
+    if volume:
+        grid.update(n_y=VOLUME_NY, pitch_y_um=PITCH_UM)
+    else:
+        grid["y_um"] = 0.0
+    depth = N_PX * PITCH_UM  # the grid is centred on the origin: z runs over [-depth/2, depth/2]
+    motions = (
+        {"kind": "diffusion", "diffusion_um2_per_s": DIFFUSION_UM2_S},
+        {"kind": "ballistic", "speed_um_per_s": BALLISTIC_UM_S},
+        {"kind": "flow", "speed_um_per_s": speed, "polar_angle_deg": polar, "azimuth_deg": azimuth},
+    )
+    d: dict[str, Any] = {
+        "name": f"case-{name}",
+        "system": [dict(SYSTEM)],
+        "protocol": dict(PROTOCOL),
+        "grid": grid,
+        "region": [
+            {
+                "name": str(m["kind"]),
+                "shape": "slab",
+                "z_min_um": -depth / 2 + k * depth / 3,
+                "z_max_um": -depth / 2 + (k + 1) * depth / 3,
+                "density_per_um3": DENSITY,
+                "motion": [m],
+            }
+            for k, m in enumerate(motions)
+        ],
+        "simulation": {"seed": SEED},
+    }
+    if static:
+        d["background"] = [{"name": "static-tissue", "density_per_um3": DENSITY}]
+    if "25dB" in parts:
+        d["noise"] = {"snr_db": SNR_DB}
+    return d
+
+
+def run_case(name: str, *, threads: int | None = None, pools: Sequence[int] = POOLS) -> list[dict[str, Any]]:
+    """Render, map and classify case ``name`` once, and score it at every window of ``pools`` with the rules
+    and with the model alone: one row per window and decision."""
+    from ..infer import load_model
+    from .grid import _classify_rendered
+
+    d = case_dict(name)
+    model = load_model("signature" if d["grid"]["kind"] == "volume" else "signature-bscan", threads=threads)
+    rows = []
+    for rules in (True, False):
+        scored = _classify_rendered(
+            [d], model, f"case-{name}", SEED, pools=pools, decision=None, threads=threads, abstain_ambiguous=rules
+        )
+        for r in scored:
+            rows.append(
+                {
+                    "case": name,
+                    "geometry": d["grid"]["kind"],
+                    "model": model.spec.name,
+                    "pool": r["pool"],
+                    "rules": rules,
+                    **{k: r[k] for k in ("per_class", "pixels", "coverage", "balanced_accuracy", "wrong_share_max")},
+                    "all_pixels": r["all_pixels"],
+                    "rules_changed": r["rules_changed"],
+                    "seconds": r["seconds"]["total"],
+                }
+            )
+    return rows
+
+
+def run_cases(names: Sequence[str] = CASES, *, threads: int | None = None, progress: bool = True) -> dict[str, Any]:
+    """Every case of ``names`` (:func:`run_case`) and the results file's header."""
+    from tqdm.auto import tqdm
+
+    from torchdoct.runtime.machine import machine_info
+
+    t0 = time.perf_counter()
+    rows: list[dict[str, Any]] = []
+    for name in tqdm(names, desc="cases", unit="case", disable=not progress):
+        rows += run_case(name, threads=threads)
+
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "benchmark": "classifier.bench.cases",
+        "system": SYSTEM,
+        "protocol": PROTOCOL,
+        "pitch_um": PITCH_UM,
+        "density_per_um3": DENSITY,
+        "phantoms": {n: case_dict(n) for n in names},
+        "rows": rows,
+        "seconds": time.perf_counter() - t0,
+        "machine": machine_info(),
+    }
+
+
+def _fmt(v: Any) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    return f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+def format_table(res: dict[str, Any]) -> str:
+    """The cases as a Markdown table: per case, window and decision, over every pixel of each motion."""
+    lines = [
+        "| case | window | decision | coverage | balanced accuracy | diffusion: coverage / wrong | "
+        "ballistic: coverage / wrong | flow: coverage / wrong | worst wrong share |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in res["rows"]:
+        a = r["all_pixels"]
+        pc = a["per_class"]
+        per = [
+            f"{_fmt(pc[m]['coverage'])} / {_fmt(pc[m]['wrong_share'])}" if pc[m]["pixels"] else "–"
+            for m in ("diffusion", "ballistic", "flow")
+        ]
+        decision = "rules (default)" if r["rules"] else "model alone"
+        cells = [r["case"], str(r["pool"]), decision, _fmt(a["coverage"]), _fmt(a["balanced_accuracy"]), *per]
+        lines.append("| " + " | ".join(cells + [_fmt(a["wrong_share_max"])]) + " |")
+    lines += ["", f"Written by `{res.get('command', 'python -m classifier.bench.cases --out DIR')}`."]
+    return "\n".join(lines) + "\n"
+
+
+def write_cases(res: dict[str, Any], out_dir: str | Path, *, force: bool = False) -> list[Path]:
+    """Write ``cases.json`` and ``cases.md`` into ``out_dir`` together (both or none)."""
+    from torchdoct.files import output_set
+
+    from .grid import _json_default
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / "cases.json", out / "cases.md"]
+    with output_set(paths, force, "--out") as stage:
+        stage(paths[0]).write_text(json.dumps(res, separators=(",", ":"), default=_json_default), encoding="utf-8")
+        stage(paths[1]).write_text(format_table(res), encoding="utf-8")
+    return paths
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    import argparse
+    import sys
+
+    from .grid import check_output_dir
+
+    p = argparse.ArgumentParser(
+        prog="python -m classifier.bench.cases",
+        description="Fixed phantoms on which a per-pixel model decides flow as random-ballistic motion, "
+        "classified with and without the rules; writes cases.json and cases.md into --out.",
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
+    p.add_argument("--case", action="append", choices=CASES, help="only this case (repeatable; default: all)")
+    p.add_argument("--threads", type=int, default=None, metavar="N")
+    p.add_argument("--force", action="store_true", help="overwrite existing results")
+    p.add_argument("--no-progress", action="store_true")
+    args = p.parse_args(argv)
+    try:
+        out = check_output_dir(args.out, "cases", (".json", ".md"), args.force)
+        names = tuple(args.case) if args.case else CASES
+        res = run_cases(names, threads=args.threads, progress=not args.no_progress)
+        res["command"] = "python -m classifier.bench.cases" + "".join(f" --case {n}" for n in args.case or ())
+        res["command"] += " --out DIR"
+        for path in write_cases(res, out, force=args.force):
+            print(f"wrote {path}")
+    except (ValueError, OSError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
