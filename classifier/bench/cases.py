@@ -19,6 +19,10 @@ from the model's own system and identifiable speed levels, these are fixed phant
   45° from the beam, azimuth 60° from the B-scan's x axis);
 * ``layers-slow-25dB``: the same with the flow at 0.1 µm/s and complex Gaussian noise 25 dB below the mean
   intensity;
+* ``layers-slow-random-20dB``: the diffusion and the random-ballistic motion slow (D = 0.001 µm²/s,
+  0.03 µm/s), noise 20 dB below the mean intensity: the flow is then the steadiest population of the sample,
+  and its intensity drift hides under the noise pixel by pixel (the case of the Doppler reference's
+  population drift test, docs/concepts/doppler-reference.md §4);
 * ``layers-crossing``: the flow nearly across the B-scan plane (polar 80°, azimuth 85°): the flow a B-scan
   cannot tell from random-ballistic motion (docs/abstention.md, rule 1), whose right outcome is a set or
   ``indeterminate``;
@@ -50,6 +54,7 @@ SCHEMA_VERSION = 1
 CASES = (
     "layers",
     "layers-slow-25dB",
+    "layers-slow-random-20dB",
     "layers-crossing",
     "layers-static",
     "layers-volume",
@@ -71,8 +76,10 @@ DENSITY = 0.05
 #: polar and azimuth angle (degrees).
 DIFFUSION_UM2_S = 0.03
 BALLISTIC_UM_S = 0.12
+#: The slow random motions of ``layers-slow-random-20dB``: D (µm²/s) and speed (µm/s).
+SLOW_RANDOM = (0.001, 0.03)
 FLOW = {"": (0.3, 45.0, 60.0), "slow": (0.1, 45.0, 60.0), "crossing": (0.3, 80.0, 85.0)}
-SNR_DB = 25.0
+SNR_DB = {"25dB": 25.0, "20dB": 20.0}
 POOLS = (1, 5)
 SEED = 0
 
@@ -88,7 +95,7 @@ def case_dict(name: str) -> dict[str, Any]:
         return read_toml(shipped_phantoms()[name])
     parts = name.split("-")
     volume, static = "volume" in parts, "static" in parts
-    speed, polar, azimuth = FLOW["crossing" if "crossing" in parts else "slow" if "slow" in parts else ""]
+    speed, polar, azimuth = FLOW["crossing" if "crossing" in parts else "slow" if name == "layers-slow-25dB" else ""]
     grid: dict[str, Any] = {"kind": "volume" if volume else "bscan", "n_x": N_PX, "n_z": N_PX}
     grid.update(pitch_x_um=PITCH_UM, pitch_z_um=PITCH_UM)
     if volume:
@@ -96,9 +103,10 @@ def case_dict(name: str) -> dict[str, Any]:
     else:
         grid["y_um"] = 0.0
     depth = N_PX * PITCH_UM  # the grid is centred on the origin: z runs over [-depth/2, depth/2]
+    diffusion, ballistic = SLOW_RANDOM if "random" in parts else (DIFFUSION_UM2_S, BALLISTIC_UM_S)
     motions = (
-        {"kind": "diffusion", "diffusion_um2_per_s": DIFFUSION_UM2_S},
-        {"kind": "ballistic", "speed_um_per_s": BALLISTIC_UM_S},
+        {"kind": "diffusion", "diffusion_um2_per_s": diffusion},
+        {"kind": "ballistic", "speed_um_per_s": ballistic},
         {"kind": "flow", "speed_um_per_s": speed, "polar_angle_deg": polar, "azimuth_deg": azimuth},
     )
     d: dict[str, Any] = {
@@ -121,8 +129,9 @@ def case_dict(name: str) -> dict[str, Any]:
     }
     if static:
         d["background"] = [{"name": "static-tissue", "density_per_um3": DENSITY}]
-    if "25dB" in parts:
-        d["noise"] = {"snr_db": SNR_DB}
+    noise = [SNR_DB[p] for p in parts if p in SNR_DB]
+    if noise:
+        d["noise"] = {"snr_db": noise[0]}
     return d
 
 

@@ -17,7 +17,13 @@ def test_the_case_phantoms_hold_what_their_names_say():
     assert [r["z_min_um"] for r in layers["region"]] == pytest.approx([-96.0, -32.0, 32.0])
     assert "background" not in layers and "noise" not in layers  # static-free, noise-free
     assert C.case_dict("layers-static")["background"][0]["density_per_um3"] == C.DENSITY
-    assert C.case_dict("layers-slow-25dB")["noise"]["snr_db"] == C.SNR_DB
+    slow = C.case_dict("layers-slow-25dB")
+    assert slow["noise"]["snr_db"] == 25.0 and slow["region"][2]["motion"][0]["speed_um_per_s"] == 0.1
+    quiet = C.case_dict("layers-slow-random-20dB")
+    assert quiet["noise"]["snr_db"] == 20.0 and quiet["region"][2]["motion"][0]["speed_um_per_s"] == 0.3
+    assert [r["motion"][0].get("diffusion_um2_per_s", r["motion"][0].get("speed_um_per_s")) for r in quiet["region"]][
+        :2
+    ] == list(C.SLOW_RANDOM)
     crossing = C.case_dict("layers-crossing-volume")
     flow = crossing["region"][2]["motion"][0]
     assert (flow["polar_angle_deg"], flow["azimuth_deg"]) == (80.0, 85.0)
@@ -27,15 +33,19 @@ def test_the_case_phantoms_hold_what_their_names_say():
         C.case_dict("slabs")
 
 
-def test_static_free_layers_at_another_pitch_are_never_decided_as_another_motion():
+@pytest.mark.parametrize("case", ["layers", "layers-slow-random-20dB"])
+def test_static_free_layers_at_another_pitch_are_never_decided_as_another_motion(case):
     """The static-free B-scan layers at 2 µm pixels, every pixel: with the rules, no motion has more than 10 %
     of its pixels decided as another at window 1, nor more than 5 % at window 5 (the project's bounds;
-    recorded 0.000 in docs/benchmarks/cases.json), while the model alone decides flow as another motion."""
-    rows = {(r["pool"], r["rules"]): r["all_pixels"] for r in C.run_case("layers", threads=1)}
+    recorded 0.000 in docs/benchmarks/cases.json), while the model alone decides some motion as another.
+    With slow random motions under 20 dB of noise the flow is the steadiest population: before the Doppler
+    reference's population drift test it was taken for static tissue, and rule 10 turned nearly every
+    diffusion and random-ballistic pixel into flow."""
+    rows = {(r["pool"], r["rules"]): r["all_pixels"] for r in C.run_case(case, threads=1)}
     for pool, bound in ((1, 0.10), (5, 0.05)):
         per = rows[pool, True]["per_class"]
         assert all(per[m]["wrong_share"] <= bound for m in per), (pool, per)
-    assert rows[5, False]["per_class"]["flow"]["wrong_share"] > 0.05  # the case is one the rules must mend
+    assert rows[5, False]["wrong_share_max"] > 0.05  # the case is one the rules must mend
 
 
 def test_the_cases_command_writes_its_files_together_and_keeps_them(tmp_path, capsys):

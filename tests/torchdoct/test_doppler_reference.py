@@ -421,3 +421,40 @@ def test_signature_maps_of_complex_data_add_the_doppler_channel_and_no_doppler_l
     capsys.readouterr()
     code, _ = run("--doppler", "--no-doppler")
     assert code != 0 and "--no-doppler contradict" in capsys.readouterr().err
+
+
+def test_the_drift_statistic_of_noise_a_constant_and_a_drift():
+    """Step 6 of the reference rule: the lag-1 autocorrelation of a pixel's intensity fluctuations is near
+    ``−1/T`` for white noise (its mean over many pixels within 3.5 standard errors), 0 for a constant, and
+    near 1 for a slow drift; the bound of a population is the constant plus 3.5 standard errors of a white
+    population's mean, so it tightens with the population towards the constant."""
+    import torch
+
+    from torchdoct.measured.doppler import MAX_POPULATION_DRIFT, drift_statistic, max_population_drift
+
+    rng = np.random.default_rng(3)
+    white = drift_statistic(torch.from_numpy(rng.exponential(1.0, (T, 4000))))
+    sd = math.sqrt((T - 2) / ((T - 1) * (T + 1)))
+    assert abs(float(white.mean()) + 1 / T) <= Z_SE * sd / math.sqrt(4000)
+    assert float(drift_statistic(torch.ones(T, 3)).abs().max()) == 0.0
+    ramp = torch.linspace(1.0, 2.0, T, dtype=torch.float64)[:, None] + 0.01 * torch.from_numpy(
+        rng.standard_normal((T, 50))
+    )
+    assert float(drift_statistic(ramp).min()) > 0.8
+    bound = max_population_drift(np.array([10, 1000, 10**8]), T)
+    assert bound[0] > bound[1] > bound[2] > MAX_POPULATION_DRIFT and bound[2] == pytest.approx(
+        MAX_POPULATION_DRIFT, abs=1e-3
+    )
+
+
+def test_a_flow_steadier_than_its_noise_is_not_a_b_scan_reference():
+    """Without static tissue, an axial flow whose intensity drift hides under the noise pixel by pixel
+    passes the per-pixel tests and moves as one phase population: it was the B-scan's reference, and every
+    other pixel's phase then measured motion against the flow. As a population its fluctuations drift
+    (step 6 of docs/concepts/doppler-reference.md §4): no B-scan takes it, and at 15 dB no scope at all."""
+    f = layered_field(96, [(16, "flow", 1.0), (16, "ballistic", 0.3)], snr_db=20.0, seed=5)
+    per_lag = compute_maps(seq_of(f), metrics=("mean_db",), doppler=True).meta["doppler"]["per_lag"]["1"]
+    assert per_lag["alines_bscan_reference"] == 0 and per_lag["bscans_with_reference"] == 0, per_lag
+    f = layered_field(96, [(16, "flow", 1.5), (16, "ballistic", 0.3)], snr_db=15.0, seed=5)
+    m = compute_maps(seq_of(f), metrics=("mean_db",), doppler=True)
+    assert NAME not in m.channels and "drift" in m.meta["doppler"]["absent"]

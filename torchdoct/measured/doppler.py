@@ -23,7 +23,10 @@ heavier), the peak population (within ``1.5·h`` of the peak bin's centre) gives
 within ``h`` of it are the reference. ``h`` is 3.5 standard deviations of a static pixel's phase at the SNR
 floor (:func:`phase_tolerance`). The population counts when significantly more than :data:`MIN_WHITE_SHARE`
 of the steady pixels within ``h`` of it are white (:func:`white_population`): static tissue is white nearly
-everywhere, slow flow mostly drifts.
+everywhere, slow flow mostly drifts. And the population must be steady as a whole: the mean over its pixels of
+the lag-1 autocorrelation of their intensity fluctuations (:func:`drift_statistic`) is at most
+:func:`max_population_drift` (a flow that is the steadiest population of a static-free sample hides its
+drift under the noise pixel by pixel, not over hundreds of pixels).
 
 **Scope and minimum**: an A-line with at least :data:`MIN_REFERENCE_PIXELS` reference pixels uses its
 own reference; otherwise its B-scan's (the same rule on all the B-scan's pixels, which assumes a bulk
@@ -57,6 +60,9 @@ __all__ = [
     "REFERENCE_CONTRAST",
     "MIN_REFERENCE_PIXELS",
     "MIN_WHITE_SHARE",
+    "MAX_POPULATION_DRIFT",
+    "drift_statistic",
+    "max_population_drift",
     "WHITE_TEST_LEVEL",
     "MIN_BSCAN_COVERAGE",
     "PHASE_TOLERANCE_Z",
@@ -86,6 +92,11 @@ MIN_REFERENCE_PIXELS = 10
 #: (a majority), at the level below (:func:`white_population`).
 MIN_WHITE_SHARE = 0.5
 WHITE_TEST_LEVEL = 0.01
+#: Largest mean, over a reference population's pixels, of the lag-1 autocorrelation of their intensity
+#: fluctuations (:func:`drift_statistic`): white fluctuations (static tissue and noise) give ``−1/T`` in
+#: expectation, a constant intensity 0, a drift its share of the fluctuation (docs/concepts/doppler-reference.md
+#: §4, step 6).
+MAX_POPULATION_DRIFT = 0.05
 #: A B-scan's reference counts when at least this share of its A-lines with a candidate hold some of its
 #: pixels: the bulk phase it removes is common to the B-scan.
 MIN_BSCAN_COVERAGE = 0.5
@@ -99,7 +110,8 @@ REFERENCE_RULE = (
     "population of their phases relative to the sum of all of them (histogram of bin width h, weights "
     "1 - contrast/{c:g}); then those within h of that population's sum; the population counts when "
     "more than {ws:.0%} of the steady pixels within h of it are white (one-sided binomial test at "
-    "{lv:g}); scope: the A-line with >= {n} "
+    "{lv:g}) and the mean over its pixels of the lag-1 autocorrelation of their intensity fluctuations is at "
+    "most {dr:g} plus 3.5 standard errors of a white population's (steady as a population: no common drift); scope: the A-line with >= {n} "
     "reference pixels, else its B-scan with >= {n} whose reference reaches >= {cov:.0%} of the A-lines "
     "with a candidate, else none (NaN); channel: arg sum_t conj(C_t(p)) "
     "r_t/|r_t|, C_t = E_(t+m) conj(E_t), r_t the reference sum without p"
@@ -210,8 +222,10 @@ class DopplerReference:
                 ws=MIN_WHITE_SHARE,
                 lv=WHITE_TEST_LEVEL,
                 cov=MIN_BSCAN_COVERAGE,
+                dr=MAX_POPULATION_DRIFT,
             ),
             "min_bscan_coverage": MIN_BSCAN_COVERAGE,
+            "max_population_drift": MAX_POPULATION_DRIFT,
             "min_white_share": MIN_WHITE_SHARE,
             "min_whiteness": min_whiteness(self.n_frames),
             "reference_contrast": REFERENCE_CONTRAST,
@@ -255,9 +269,29 @@ def min_whiteness(n_frames: int, z: float = PHASE_TOLERANCE_Z) -> float:
     return 1.0 - z * math.sqrt((t - 2) / ((t - 1) * (t + 1)))
 
 
-def _candidates(lines: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(candidate, steady [L, Z] bool, weight [L, Z] float64)`` of A-lines ``[T, L, Z]``: steady (contrast)
-    and white (no drift: the von Neumann ratio; a constant intensity counts as white) intensity."""
+def max_population_drift(n_pixels: np.ndarray, n_frames: int, z: float = PHASE_TOLERANCE_Z) -> np.ndarray:
+    """Largest mean :func:`drift_statistic` of a reference population of ``n_pixels`` pixels:
+    :data:`MAX_POPULATION_DRIFT` plus ``z`` standard errors of the mean for white fluctuations (a pixel's
+    lag-1 autocorrelation has about the variance of the von Neumann ratio, ``(T − 2)/((T − 1)(T + 1))``,
+    :func:`min_whiteness`), so that a small static population is not rejected by chance."""
+    t = int(n_frames)
+    sd = math.sqrt((t - 2) / ((t - 1) * (t + 1)))
+    return MAX_POPULATION_DRIFT + z * sd / np.sqrt(np.maximum(np.asarray(n_pixels, dtype=np.float64), 1.0))
+
+
+def drift_statistic(inten: torch.Tensor) -> torch.Tensor:
+    """Per pixel of intensities ``[T, ...]``: the lag-1 autocorrelation of its fluctuations,
+    ``Σ_t d_t·d_{t+1} / Σ_t d_t²`` with ``d_t = I_t − mean_t I`` (0 for a constant intensity). White
+    fluctuations give ``−1/T`` in expectation; a drift raises it towards 1 by its share of the variance."""
+    dev = inten - inten.mean(0)
+    num, den = (dev[1:] * dev[:-1]).sum(0), (dev * dev).sum(0)
+    return torch.where(den > 0, num / torch.where(den > 0, den, torch.ones_like(den)), torch.zeros_like(den))
+
+
+def _candidates(lines: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(candidate, steady [L, Z] bool, weight, drift [L, Z] float64)`` of A-lines ``[T, L, Z]``: steady
+    (contrast) and white (no drift: the von Neumann ratio; a constant intensity counts as white) intensity;
+    the drift statistic of every pixel (:func:`drift_statistic`)."""
     inten = (lines.real**2 + lines.imag**2).double()
     mean = inten.mean(0)
     dev2 = ((inten - mean) ** 2).sum(0)
@@ -267,7 +301,7 @@ def _candidates(lines: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.
     steady = (contrast <= REFERENCE_CONTRAST) & (mean > 0) & torch.isfinite(contrast)
     cand = steady & white
     w = torch.where(cand, 1.0 - contrast / REFERENCE_CONTRAST, torch.zeros_like(contrast))
-    return cand, steady, w
+    return cand, steady, w, drift_statistic(inten)
 
 
 def white_population(n_white: np.ndarray, n_steady: np.ndarray) -> np.ndarray:
@@ -358,10 +392,10 @@ def _near_peak(psi: torch.Tensor, centre: torch.Tensor, h: float) -> torch.Tenso
 
 
 def _last_step(
-    c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, r1: torch.Tensor, h: float
-) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
+    c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, drift: torch.Tensor, r1: torch.Tensor, h: float
+) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray, np.ndarray]:
     """The candidates within ``h`` of the population's sum ``r1``: ``(their sums [K, G], the pixels [G, S],
-    their count [G], the steady pixels within h [G])``."""
+    their count [G], the steady pixels within h [G], the sum of their drift statistics [G])``."""
     in_phase = _phase_to(c, r1).abs() <= h
     sel = cand & in_phase
     return (
@@ -369,17 +403,18 @@ def _last_step(
         sel,
         sel.sum(-1).numpy().astype(np.int64),
         (steady & in_phase).sum(-1).numpy().astype(np.int64),
+        torch.where(sel, drift, torch.zeros_like(drift)).sum(-1).numpy(),
     )
 
 
 def _select_complete(
-    c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, w: torch.Tensor, h: float
-) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
+    c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, w: torch.Tensor, drift: torch.Tensor, h: float
+) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray, np.ndarray]:
     """The rule on groups whose pixels are all here (``c [K, G, S]``, the masks and weights ``[G, S]``): the
     candidates' sum, the peak of their phase histogram, the peak population's sum, then :func:`_last_step`."""
     psi = _phase_to(c, _group_sum(c, cand))
     sel = cand & _near_peak(psi, _peak_centres(_histogram(psi, w, h)), h)
-    return _last_step(c, cand, steady, _group_sum(c, sel), h)
+    return _last_step(c, cand, steady, drift, _group_sum(c, sel), h)
 
 
 def _slab_lines(block: torch.Tensor, volume: bool) -> torch.Tensor:
@@ -419,8 +454,8 @@ def estimate_doppler_reference(
     n_bscans = data.shape[1] if volume else 1
     n_x = data.shape[-1]
     hs = {m: phase_tolerance(m, n_t) for m in lags}
-    own = {m: _Scope(n_t - m, n_lines, n_z) for m in lags}
-    bscan = {m: _Scope(n_t - m, n_bscans, n_lines // n_bscans * n_z) for m in lags}
+    own = {m: _Scope(n_t - m, n_lines, n_z, n_t) for m in lags}
+    bscan = {m: _Scope(n_t - m, n_bscans, n_lines // n_bscans * n_z, n_t) for m in lags}
     split = not volume and len(slabs) > 1  # the one B-scan of a sequence spans several slabs
     n_cand = 0
     line_cand = np.zeros(n_lines, dtype=bool)  # the A-lines with a candidate
@@ -443,18 +478,18 @@ def estimate_doppler_reference(
 
     for c0, c1 in slabs:  # the A-line scope (whole in its slab), and the B-scan scope where it is whole too
         lines, rows, bs = read(c0, c1)
-        cand, steady, w = _candidates(lines)  # [L, Z]
+        cand, steady, w, drift = _candidates(lines)  # [L, Z]
         n_cand += int(cand.sum())
         line_cand[rows] = cand.any(1).numpy()
         n_g = bs.stop - bs.start
         for m in lags:
             c = _products(lines, m)  # [K, L, Z]
-            r, sel, n_sel, n_steady = _select_complete(c, cand, steady, w, hs[m])
-            own[m].put(rows, r, sel, n_sel, n_steady)
+            r, sel, n_sel, n_steady, d_sum = _select_complete(c, cand, steady, w, drift, hs[m])
+            own[m].put(rows, r, sel, n_sel, n_steady, d_sum)
             if not split and not own[m].ok(rows).all():  # some A-line needs its B-scan's reference
                 g = lambda a, n_g=n_g: a.reshape(*a.shape[:-2], n_g, -1)  # noqa: E731 (pixels by B-scan)
-                r, sel, n_sel, n_steady = _select_complete(g(c), g(cand), g(steady), g(w), hs[m])
-                bscan[m].put(bs, r, sel, n_sel, n_steady)
+                r, sel, n_sel, n_steady, d_sum = _select_complete(g(c), g(cand), g(steady), g(w), g(drift), hs[m])
+                bscan[m].put(bs, r, sel, n_sel, n_steady, d_sum)
         if bar is not None:
             bar.update(1)
     if bar is not None:
@@ -527,24 +562,31 @@ class _Scope:
     (``S`` pixels per group, A-line by A-line and depth by depth), the count and the steady pixels in phase,
     and which groups were evaluated (a B-scan only where some A-line needs it)."""
 
-    def __init__(self, k: int, n_groups: int, per_group: int) -> None:
+    def __init__(self, k: int, n_groups: int, per_group: int, n_frames: int) -> None:
+        self.n_frames = int(n_frames)
         self.sums = np.zeros((k, n_groups), dtype=np.complex128)
         self.count = np.zeros(n_groups, dtype=np.int64)
         self.steady = np.zeros(n_groups, dtype=np.int64)
+        self.drift = np.zeros(n_groups, dtype=np.float64)
         self.pixels = np.zeros((n_groups, per_group), dtype=bool)
         self.evaluated = np.zeros(n_groups, dtype=bool)
 
-    def put(self, rows: slice, r: torch.Tensor, sel: torch.Tensor, n_sel: np.ndarray, n_steady: np.ndarray) -> None:
+    def put(
+        self, rows: slice, r: torch.Tensor, sel: torch.Tensor, n_sel: np.ndarray, n_steady: np.ndarray, drift
+    ) -> None:
         self.sums[:, rows] = r.numpy()
         self.count[rows] = n_sel
         self.steady[rows] = n_steady
+        self.drift[rows] = drift
         self.pixels[rows] = sel.numpy().reshape(self.pixels[rows].shape)
         self.evaluated[rows] = True
 
     def ok(self, rows: slice) -> np.ndarray:
-        """Groups with a reference: enough pixels, and white as a population (:func:`white_population`)."""
+        """Groups with a reference: enough pixels, white as a population (:func:`white_population`), and no
+        common drift (the mean :func:`drift_statistic` of its pixels at most :func:`max_population_drift`)."""
         n = self.count[rows]
-        return (n >= MIN_REFERENCE_PIXELS) & white_population(n, self.steady[rows])
+        steady = self.drift[rows] <= max_population_drift(n, self.n_frames) * np.maximum(n, 1)
+        return (n >= MIN_REFERENCE_PIXELS) & white_population(n, self.steady[rows]) & steady
 
 
 def _bscan_passes(read, slabs, lags, hs, bscan: dict[int, _Scope], *, n_lines: int) -> None:
@@ -556,11 +598,12 @@ def _bscan_passes(read, slabs, lags, hs, bscan: dict[int, _Scope], *, n_lines: i
     sel_parts: dict[int, list[np.ndarray]] = {m: [] for m in lags}
     count = {m: np.zeros(1, dtype=np.int64) for m in lags}
     steady_n = {m: np.zeros(1, dtype=np.int64) for m in lags}
+    drift_n = {m: np.zeros(1, dtype=np.float64) for m in lags}
     for step in range(4):
         acc: dict[int, Any] = dict.fromkeys(lags, 0)
         for c0, c1 in slabs:
             lines, _, _ = read(c0, c1)
-            cand, steady, w = (a.reshape(1, -1) for a in _candidates(lines))
+            cand, steady, w, drift = (a.reshape(1, -1) for a in _candidates(lines))
             for m in lags:
                 c = _products(lines, m).reshape(lines.shape[0] - m, 1, -1)
                 if step == 0:
@@ -572,18 +615,20 @@ def _bscan_passes(read, slabs, lags, hs, bscan: dict[int, _Scope], *, n_lines: i
                 elif step == 2:
                     acc[m] = acc[m] + _group_sum(c, cand & _near_peak(psi, _peak_centres(hist[m]), hs[m]))
                 else:
-                    r, sel, n_sel, n_steady = _last_step(c, cand, steady, sums[m][1], hs[m])
+                    r, sel, n_sel, n_steady, d_sum = _last_step(c, cand, steady, drift, sums[m][1], hs[m])
                     acc[m] = acc[m] + r
                     sel_parts[m].append(sel.numpy().reshape(-1))
                     count[m] += n_sel
                     steady_n[m] += n_steady
+                    drift_n[m] += d_sum
         for m in lags:
             if step == 1:
                 hist[m] = acc[m]
             else:
                 sums[m].append(acc[m])
     for m in lags:
-        bscan[m].put(slice(0, 1), sums[m][2], torch.from_numpy(np.concatenate(sel_parts[m])), count[m], steady_n[m])
+        sel_all = torch.from_numpy(np.concatenate(sel_parts[m]))
+        bscan[m].put(slice(0, 1), sums[m][2], sel_all, count[m], steady_n[m], drift_n[m])
 
 
 # ----------------------------------------------------------------------------------------------
