@@ -426,21 +426,25 @@ def test_signature_maps_of_complex_data_add_the_doppler_channel_and_no_doppler_l
 def test_the_drift_statistic_of_noise_a_constant_and_a_drift():
     """Step 6 of the reference rule: the lag-1 autocorrelation of a pixel's intensity fluctuations is near
     ``−1/T`` for white noise (its mean over many pixels within 3.5 standard errors), 0 for a constant, and
-    near 1 for a slow drift; the bound of a population is the constant plus 3.5 standard errors of a white
-    population's mean, so it tightens with the population towards the constant."""
+    near 1 for a slow drift, whose drift contrast (the lag-1 autocovariance over the squared mean) is about
+    its variance over the squared mean; the bound of a population is the constant plus 3.5 standard errors
+    of a white population's mean, so it tightens with the population towards the constant."""
     import torch
 
     from torchdoct.measured.doppler import MAX_POPULATION_DRIFT, drift_statistic, max_population_drift
 
     rng = np.random.default_rng(3)
-    white = drift_statistic(torch.from_numpy(rng.exponential(1.0, (T, 4000))))
+    white = drift_statistic(torch.from_numpy(rng.exponential(1.0, (T, 4000))))[0]
     sd = math.sqrt((T - 2) / ((T - 1) * (T + 1)))
     assert abs(float(white.mean()) + 1 / T) <= Z_SE * sd / math.sqrt(4000)
-    assert float(drift_statistic(torch.ones(T, 3)).abs().max()) == 0.0
+    assert float(drift_statistic(torch.ones(T, 3)).abs().max()) == 0.0  # both statistics of a constant
     ramp = torch.linspace(1.0, 2.0, T, dtype=torch.float64)[:, None] + 0.01 * torch.from_numpy(
         rng.standard_normal((T, 50))
     )
-    assert float(drift_statistic(ramp).min()) > 0.8
+    r1, contrast = drift_statistic(ramp)
+    assert float(r1.min()) > 0.8  # the ramp's share of its fluctuation
+    expected = torch.linspace(1.0, 2.0, T, dtype=torch.float64).var(unbiased=False) / 1.5**2  # its contrast
+    assert torch.allclose(contrast, expected.expand_as(contrast), rtol=0.15)
     bound = max_population_drift(np.array([10, 1000, 10**8]), T)
     assert bound[0] > bound[1] > bound[2] > MAX_POPULATION_DRIFT and bound[2] == pytest.approx(
         MAX_POPULATION_DRIFT, abs=1e-3

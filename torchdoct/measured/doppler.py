@@ -26,7 +26,8 @@ of the steady pixels within ``h`` of it are white (:func:`white_population`): st
 everywhere, slow flow mostly drifts. And the population must be steady as a whole: the mean over its pixels of
 the lag-1 autocorrelation of their intensity fluctuations (:func:`drift_statistic`) is at most
 :func:`max_population_drift` (a flow that is the steadiest population of a static-free sample hides its
-drift under the noise pixel by pixel, not over hundreds of pixels).
+drift under the noise pixel by pixel, not over hundreds of pixels), or its drift's contrast is at most
+:data:`MAX_DRIFT_CONTRAST` (too small to move the phase).
 
 **Scope and minimum**: an A-line with at least :data:`MIN_REFERENCE_PIXELS` reference pixels uses its
 own reference; otherwise its B-scan's (the same rule on all the B-scan's pixels, which assumes a bulk
@@ -63,6 +64,7 @@ __all__ = [
     "MAX_POPULATION_DRIFT",
     "drift_statistic",
     "max_population_drift",
+    "MAX_DRIFT_CONTRAST",
     "WHITE_TEST_LEVEL",
     "MIN_BSCAN_COVERAGE",
     "PHASE_TOLERANCE_Z",
@@ -97,6 +99,13 @@ WHITE_TEST_LEVEL = 0.01
 #: expectation, a constant intensity 0, a drift its share of the fluctuation (docs/concepts/doppler-reference.md
 #: §4, step 6).
 MAX_POPULATION_DRIFT = 0.05
+#: Largest mean, over a reference population's pixels, of the lag-1 autocovariance of their intensity in units
+#: of the squared mean intensity (the drift's contrast, :func:`drift_statistic`) that counts as no drift
+#: whatever its share of the fluctuation: a 25th of :data:`REFERENCE_CONTRAST`, a drift of at most about
+#: 4.5 % rms of the intensity. A moving share ``ε`` of a pixel's field drifts its intensity by about ``2ε`` rms
+#: and its phase by at most about ``ε`` rad, so such a reference moves its phase by about 0.02 rad at most:
+#: static tissue whose intensity follows a moving neighbour's PSF tail stays a reference.
+MAX_DRIFT_CONTRAST = REFERENCE_CONTRAST / 25
 #: A B-scan's reference counts when at least this share of its A-lines with a candidate hold some of its
 #: pixels: the bulk phase it removes is common to the B-scan.
 MIN_BSCAN_COVERAGE = 0.5
@@ -111,7 +120,8 @@ REFERENCE_RULE = (
     "1 - contrast/{c:g}); then those within h of that population's sum; the population counts when "
     "more than {ws:.0%} of the steady pixels within h of it are white (one-sided binomial test at "
     "{lv:g}) and the mean over its pixels of the lag-1 autocorrelation of their intensity fluctuations is at "
-    "most {dr:g} plus 3.5 standard errors of a white population's (steady as a population: no common drift); scope: the A-line with >= {n} "
+    "most {dr:g} plus 3.5 standard errors of a white population's, or the mean lag-1 autocovariance over the "
+    "squared mean intensity is at most {dc:g} (steady as a population: no common drift); scope: the A-line with >= {n} "
     "reference pixels, else its B-scan with >= {n} whose reference reaches >= {cov:.0%} of the A-lines "
     "with a candidate, else none (NaN); channel: arg sum_t conj(C_t(p)) "
     "r_t/|r_t|, C_t = E_(t+m) conj(E_t), r_t the reference sum without p"
@@ -223,9 +233,11 @@ class DopplerReference:
                 lv=WHITE_TEST_LEVEL,
                 cov=MIN_BSCAN_COVERAGE,
                 dr=MAX_POPULATION_DRIFT,
+                dc=MAX_DRIFT_CONTRAST,
             ),
             "min_bscan_coverage": MIN_BSCAN_COVERAGE,
             "max_population_drift": MAX_POPULATION_DRIFT,
+            "max_drift_contrast": MAX_DRIFT_CONTRAST,
             "min_white_share": MIN_WHITE_SHARE,
             "min_whiteness": min_whiteness(self.n_frames),
             "reference_contrast": REFERENCE_CONTRAST,
@@ -280,16 +292,23 @@ def max_population_drift(n_pixels: np.ndarray, n_frames: int, z: float = PHASE_T
 
 
 def drift_statistic(inten: torch.Tensor) -> torch.Tensor:
-    """Per pixel of intensities ``[T, ...]``: the lag-1 autocorrelation of its fluctuations,
-    ``Σ_t d_t·d_{t+1} / Σ_t d_t²`` with ``d_t = I_t − mean_t I`` (0 for a constant intensity). White
-    fluctuations give ``−1/T`` in expectation; a drift raises it towards 1 by its share of the variance."""
-    dev = inten - inten.mean(0)
+    """Per pixel of intensities ``[T, ...]``, stacked ``[2, ...]``: the lag-1 autocorrelation of its
+    fluctuations, ``Σ_t d_t·d_{t+1} / Σ_t d_t²`` with ``d_t = I_t − mean_t I`` (0 for a constant intensity),
+    and the drift's contrast, ``Σ_t d_t·d_{t+1} / ((T − 1)·(mean_t I)²)`` (0 for a zero mean). White
+    fluctuations give the first ``−1/T`` in expectation; a drift raises it towards 1 by its share of the
+    variance, and the second by its own contrast."""
+    mean = inten.mean(0)
+    dev = inten - mean
     num, den = (dev[1:] * dev[:-1]).sum(0), (dev * dev).sum(0)
-    return torch.where(den > 0, num / torch.where(den > 0, den, torch.ones_like(den)), torch.zeros_like(den))
+    r1 = torch.where(den > 0, num / torch.where(den > 0, den, torch.ones_like(den)), torch.zeros_like(den))
+    sq = (inten.shape[0] - 1) * mean * mean
+    return torch.stack(
+        [r1, torch.where(sq > 0, num / torch.where(sq > 0, sq, torch.ones_like(sq)), torch.zeros_like(sq))]
+    )
 
 
 def _candidates(lines: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(candidate, steady [L, Z] bool, weight, drift [L, Z] float64)`` of A-lines ``[T, L, Z]``: steady
+    """``(candidate, steady [L, Z] bool, weight [L, Z], drift [2, L, Z] float64)`` of A-lines ``[T, L, Z]``: steady
     (contrast) and white (no drift: the von Neumann ratio; a constant intensity counts as white) intensity;
     the drift statistic of every pixel (:func:`drift_statistic`)."""
     inten = (lines.real**2 + lines.imag**2).double()
@@ -395,7 +414,7 @@ def _last_step(
     c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, drift: torch.Tensor, r1: torch.Tensor, h: float
 ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray, np.ndarray]:
     """The candidates within ``h`` of the population's sum ``r1``: ``(their sums [K, G], the pixels [G, S],
-    their count [G], the steady pixels within h [G], the sum of their drift statistics [G])``."""
+    their count [G], the steady pixels within h [G], the sums of their drift statistics [2, G])``."""
     in_phase = _phase_to(c, r1).abs() <= h
     sel = cand & in_phase
     return (
@@ -567,7 +586,7 @@ class _Scope:
         self.sums = np.zeros((k, n_groups), dtype=np.complex128)
         self.count = np.zeros(n_groups, dtype=np.int64)
         self.steady = np.zeros(n_groups, dtype=np.int64)
-        self.drift = np.zeros(n_groups, dtype=np.float64)
+        self.drift = np.zeros((2, n_groups), dtype=np.float64)
         self.pixels = np.zeros((n_groups, per_group), dtype=bool)
         self.evaluated = np.zeros(n_groups, dtype=bool)
 
@@ -577,15 +596,18 @@ class _Scope:
         self.sums[:, rows] = r.numpy()
         self.count[rows] = n_sel
         self.steady[rows] = n_steady
-        self.drift[rows] = drift
+        self.drift[:, rows] = drift
         self.pixels[rows] = sel.numpy().reshape(self.pixels[rows].shape)
         self.evaluated[rows] = True
 
     def ok(self, rows: slice) -> np.ndarray:
         """Groups with a reference: enough pixels, white as a population (:func:`white_population`), and no
-        common drift (the mean :func:`drift_statistic` of its pixels at most :func:`max_population_drift`)."""
+        common drift: the mean lag-1 autocorrelation of its pixels (:func:`drift_statistic`) at most
+        :func:`max_population_drift`, or the mean drift contrast at most :data:`MAX_DRIFT_CONTRAST`."""
         n = self.count[rows]
-        steady = self.drift[rows] <= max_population_drift(n, self.n_frames) * np.maximum(n, 1)
+        per = np.maximum(n, 1)
+        r1, contrast = self.drift[0, rows] / per, self.drift[1, rows] / per
+        steady = (r1 <= max_population_drift(n, self.n_frames)) | (contrast <= MAX_DRIFT_CONTRAST)
         return (n >= MIN_REFERENCE_PIXELS) & white_population(n, self.steady[rows]) & steady
 
 
@@ -598,12 +620,12 @@ def _bscan_passes(read, slabs, lags, hs, bscan: dict[int, _Scope], *, n_lines: i
     sel_parts: dict[int, list[np.ndarray]] = {m: [] for m in lags}
     count = {m: np.zeros(1, dtype=np.int64) for m in lags}
     steady_n = {m: np.zeros(1, dtype=np.int64) for m in lags}
-    drift_n = {m: np.zeros(1, dtype=np.float64) for m in lags}
+    drift_n = {m: np.zeros((2, 1), dtype=np.float64) for m in lags}
     for step in range(4):
         acc: dict[int, Any] = dict.fromkeys(lags, 0)
         for c0, c1 in slabs:
             lines, _, _ = read(c0, c1)
-            cand, steady, w, drift = (a.reshape(1, -1) for a in _candidates(lines))
+            cand, steady, w, drift = (a.reshape(*a.shape[:-2], 1, -1) for a in _candidates(lines))
             for m in lags:
                 c = _products(lines, m).reshape(lines.shape[0] - m, 1, -1)
                 if step == 0:
