@@ -78,8 +78,18 @@ DIFFUSION_UM2_S = 0.03
 BALLISTIC_UM_S = 0.12
 #: The slow random motions of ``layers-slow-random-20dB``: D (µm²/s) and speed (µm/s).
 SLOW_RANDOM = (0.001, 0.03)
-FLOW = {"": (0.3, 45.0, 60.0), "slow": (0.1, 45.0, 60.0), "crossing": (0.3, 80.0, 85.0)}
-SNR_DB = {"25dB": 25.0, "20dB": 20.0}
+FLOW = {"oblique": (0.3, 45.0, 60.0), "slow": (0.1, 45.0, 60.0), "crossing": (0.3, 80.0, 85.0)}
+#: The built cases: their flow (a key of :data:`FLOW`), slow random motions (:data:`SLOW_RANDOM`), static
+#: tissue under every pixel, noise (dB below the mean intensity; ``None``: none) and geometry.
+LAYERS = {
+    "layers": ("oblique", False, False, None, "bscan"),
+    "layers-slow-25dB": ("slow", False, False, 25.0, "bscan"),
+    "layers-slow-random-20dB": ("oblique", True, False, 20.0, "bscan"),
+    "layers-crossing": ("crossing", False, False, None, "bscan"),
+    "layers-static": ("oblique", False, True, None, "bscan"),
+    "layers-volume": ("oblique", False, False, None, "volume"),
+    "layers-crossing-volume": ("crossing", False, False, None, "volume"),
+}
 POOLS = (1, 5)
 SEED = 0
 
@@ -93,17 +103,15 @@ def case_dict(name: str) -> dict[str, Any]:
         from torchdoct.sim.config import read_toml
 
         return read_toml(shipped_phantoms()[name])
-    parts = name.split("-")
-    volume, static = "volume" in parts, "static" in parts
-    speed, polar, azimuth = FLOW["crossing" if "crossing" in parts else "slow" if name == "layers-slow-25dB" else ""]
-    grid: dict[str, Any] = {"kind": "volume" if volume else "bscan", "n_x": N_PX, "n_z": N_PX}
-    grid.update(pitch_x_um=PITCH_UM, pitch_z_um=PITCH_UM)
-    if volume:
+    flow, slow_random, static, snr_db, geometry = LAYERS[name]
+    speed, polar, azimuth = FLOW[flow]
+    grid: dict[str, Any] = {"kind": geometry, "n_x": N_PX, "n_z": N_PX, "pitch_x_um": PITCH_UM, "pitch_z_um": PITCH_UM}
+    if geometry == "volume":
         grid.update(n_y=VOLUME_NY, pitch_y_um=PITCH_UM)
     else:
         grid["y_um"] = 0.0
     depth = N_PX * PITCH_UM  # the grid is centred on the origin: z runs over [-depth/2, depth/2]
-    diffusion, ballistic = SLOW_RANDOM if "random" in parts else (DIFFUSION_UM2_S, BALLISTIC_UM_S)
+    diffusion, ballistic = SLOW_RANDOM if slow_random else (DIFFUSION_UM2_S, BALLISTIC_UM_S)
     motions = (
         {"kind": "diffusion", "diffusion_um2_per_s": diffusion},
         {"kind": "ballistic", "speed_um_per_s": ballistic},
@@ -129,15 +137,14 @@ def case_dict(name: str) -> dict[str, Any]:
     }
     if static:
         d["background"] = [{"name": "static-tissue", "density_per_um3": DENSITY}]
-    noise = [SNR_DB[p] for p in parts if p in SNR_DB]
-    if noise:
-        d["noise"] = {"snr_db": noise[0]}
+    if snr_db is not None:
+        d["noise"] = {"snr_db": snr_db}
     return d
 
 
 def run_case(name: str, *, threads: int | None = None, pools: Sequence[int] = POOLS) -> list[dict[str, Any]]:
-    """Render, map and classify case ``name`` once, and score it at every window of ``pools`` with the rules
-    and with the model alone: one row per window and decision."""
+    """Render, map, classify and score case ``name`` at every window of ``pools``, with the rules and with the
+    model alone: one row per window and decision."""
     from ..infer import load_model
     from .grid import _classify_rendered
 
