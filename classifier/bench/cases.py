@@ -103,6 +103,8 @@ def case_dict(name: str) -> dict[str, Any]:
         from torchdoct.sim.config import read_toml
 
         return read_toml(shipped_phantoms()[name])
+    from .grid import layer_regions
+
     flow, slow_random, static, snr_db, geometry = LAYERS[name]
     speed, polar, azimuth = FLOW[flow]
     grid: dict[str, Any] = {"kind": geometry, "n_x": N_PX, "n_z": N_PX, "pitch_x_um": PITCH_UM, "pitch_z_um": PITCH_UM}
@@ -122,17 +124,7 @@ def case_dict(name: str) -> dict[str, Any]:
         "system": [dict(SYSTEM)],
         "protocol": dict(PROTOCOL),
         "grid": grid,
-        "region": [
-            {
-                "name": str(m["kind"]),
-                "shape": "slab",
-                "z_min_um": -depth / 2 + k * depth / 3,
-                "z_max_um": -depth / 2 + (k + 1) * depth / 3,
-                "density_per_um3": DENSITY,
-                "motion": [m],
-            }
-            for k, m in enumerate(motions)
-        ],
+        "region": layer_regions(depth, DENSITY, motions),
         "simulation": {"seed": SEED},
     }
     if static:
@@ -150,26 +142,23 @@ def run_case(name: str, *, threads: int | None = None, pools: Sequence[int] = PO
 
     d = case_dict(name)
     model = load_model("signature" if d["grid"]["kind"] == "volume" else "signature-bscan", threads=threads)
-    rows = []
-    for rules in (True, False):
-        scored = _classify_rendered(
-            [d], model, f"case-{name}", SEED, pools=pools, decision=None, threads=threads, abstain_ambiguous=rules
-        )
-        for r in scored:
-            rows.append(
-                {
-                    "case": name,
-                    "geometry": d["grid"]["kind"],
-                    "model": model.spec.name,
-                    "pool": r["pool"],
-                    "rules": rules,
-                    **{k: r[k] for k in ("per_class", "pixels", "coverage", "balanced_accuracy", "wrong_share_max")},
-                    "all_pixels": r["all_pixels"],
-                    "rules_changed": r["rules_changed"],
-                    "seconds": r["seconds"]["total"],
-                }
-            )
-    return rows
+    scored = _classify_rendered(
+        [d], model, f"case-{name}", SEED, pools=pools, decision=None, threads=threads, abstain_ambiguous=(True, False)
+    )
+    return [
+        {
+            "case": name,
+            "geometry": d["grid"]["kind"],
+            "model": model.spec.name,
+            "pool": r["pool"],
+            "rules": r["abstain_ambiguous"],
+            **{k: r[k] for k in ("per_class", "pixels", "coverage", "balanced_accuracy", "wrong_share_max")},
+            "all_pixels": r["all_pixels"],
+            "rules_changed": r["rules_changed"],
+            "seconds": r["seconds"]["total"],
+        }
+        for r in scored
+    ]
 
 
 def run_cases(names: Sequence[str] = CASES, *, threads: int | None = None, progress: bool = True) -> dict[str, Any]:

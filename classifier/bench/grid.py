@@ -429,12 +429,14 @@ def _classify_rendered(
     pools: Sequence[int],
     decision: str | None,
     threads: int | None,
-    abstain_ambiguous: bool,
+    abstain_ambiguous: bool | Sequence[bool],
 ) -> list[dict[str, Any]]:
     """Render ``phantoms`` (phantom-file dicts; their fields add, the first rendered at ``seed``, a static
     background after it at its own), map them as ``maps --signature`` does, classify at every window of
-    ``pools`` and score against the first phantom's labels: one row per window with the scores of the
-    pixels away from other regions, ``all_pixels`` (edge 0), the decision and the seconds taken."""
+    ``pools`` (with the rules of :mod:`classifier.ambiguity` or without, or both when ``abstain_ambiguous`` is a
+    sequence: the rendering and the maps are made once) and score against the first phantom's labels: one row
+    per window and setting with the scores of the pixels away from other regions, ``all_pixels`` (edge 0), the
+    setting, the decision and the seconds taken."""
     from torchdoct.image.phantom import phantom_from_dict
     from torchdoct.image.render import render
     from torchdoct.measured.maps import compute_maps
@@ -473,14 +475,16 @@ def _classify_rendered(
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         path = write_maps(Path(tmp) / "maps.npz", maps)
-        for pool in pools:
+        settings = (abstain_ambiguous,) if isinstance(abstain_ambiguous, bool) else tuple(abstain_ambiguous)
+        for ab, pool in ((ab, pool) for ab in settings for pool in pools):
             t1 = time.perf_counter()
-            c = classify_maps(path, model, pool=int(pool), threads=threads, abstain_ambiguous=abstain_ambiguous, **kw)
+            c = classify_maps(path, model, pool=int(pool), threads=threads, abstain_ambiguous=ab, **kw)
             t2 = time.perf_counter()
             im, dop_name = doppler_imaginary(dop_channels, max(int(pool), DOPPLER_WINDOW_MIN))
             rows.append(
                 {
                     "pool": int(pool),
+                    "abstain_ambiguous": bool(ab),
                     "decision": c.info.get("decision", "rule"),
                     "doppler": None
                     if im is None
@@ -502,6 +506,24 @@ def _classify_rendered(
                 }
             )
     return rows
+
+
+def layer_regions(depth_um: float, density: float, motions: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Slabs of equal thickness stacked in depth over a grid of ``depth_um`` centred on the origin, one per
+    motion of ``motions`` (phantom-schema motions, shallowest first), each at ``density`` µm⁻³ and named by its
+    motion's kind."""
+    n = len(motions)
+    return [
+        {
+            "name": str(m["kind"]),
+            "shape": "slab",
+            "z_min_um": -depth_um / 2 + k * depth_um / n,
+            "z_max_um": -depth_um / 2 + (k + 1) * depth_um / n,
+            "density_per_um3": density,
+            "motion": [m],
+        }
+        for k, m in enumerate(motions)
+    ]
 
 
 def run_cell(
@@ -587,17 +609,7 @@ def probe_dict(
     if kind == "layers":
         polar, azimuth = PROBE_LAYER_FLOW_DEG
         flow = {"kind": "flow", "speed_um_per_s": flow_speed, "polar_angle_deg": polar, "azimuth_deg": azimuth}
-        regions = [
-            {
-                "name": motion["kind"],
-                "shape": "slab",
-                "z_min_um": -depth / 2 + k * depth / 3,
-                "z_max_um": -depth / 2 + (k + 1) * depth / 3,
-                "density_per_um3": density,
-                "motion": [motion],
-            }
-            for k, motion in enumerate((diffusion, ballistic, flow))
-        ]
+        regions = layer_regions(depth, density, (diffusion, ballistic, flow))
     else:
         if kind == "crossing":  # across the B-scan plane, through diffusing tissue: axis and flow along y
             tissue, axis, polar, azimuth = diffusion, [0.0, 1.0, 0.0], 90.0, 90.0
@@ -674,7 +686,7 @@ def run_probe(
             "geometry": name.split("-")[0],
             "pool": r["pool"],
             "model": spec.name,
-            **{k: v for k, v in r.items() if k not in ("pool", "decision", "seconds")},
+            **{k: v for k, v in r.items() if k not in ("pool", "decision", "seconds", "abstain_ambiguous")},
             "seconds": r["seconds"]["total"],
         }
         for r in scored

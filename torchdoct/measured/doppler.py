@@ -298,10 +298,14 @@ def drift_statistic(inten: torch.Tensor) -> torch.Tensor:
     fluctuations give the first ``−1/T`` in expectation; a drift raises it towards 1 by its share of the
     variance, and the second by its own contrast."""
     mean = inten.mean(0)
-    dev = inten - mean
+    return _drift(inten - mean, mean)
+
+
+def _drift(dev: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+    """:func:`drift_statistic` from the fluctuations ``dev [T, ...]`` about the temporal ``mean``."""
     num, den = (dev[1:] * dev[:-1]).sum(0), (dev * dev).sum(0)
     r1 = torch.where(den > 0, num / torch.where(den > 0, den, torch.ones_like(den)), torch.zeros_like(den))
-    sq = (inten.shape[0] - 1) * mean * mean
+    sq = (dev.shape[0] - 1) * mean * mean
     return torch.stack(
         [r1, torch.where(sq > 0, num / torch.where(sq > 0, sq, torch.ones_like(sq)), torch.zeros_like(sq))]
     )
@@ -313,14 +317,15 @@ def _candidates(lines: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.
     the drift statistic of every pixel (:func:`drift_statistic`)."""
     inten = (lines.real**2 + lines.imag**2).double()
     mean = inten.mean(0)
-    dev2 = ((inten - mean) ** 2).sum(0)
+    dev = inten - mean
+    dev2 = (dev * dev).sum(0)
     contrast = dev2 / inten.shape[0] / torch.where(mean > 0, mean * mean, torch.ones_like(mean))
     steps2 = ((inten[1:] - inten[:-1]) ** 2).sum(0)
     white = (steps2 >= 2.0 * min_whiteness(inten.shape[0]) * dev2) | (dev2 == 0)
     steady = (contrast <= REFERENCE_CONTRAST) & (mean > 0) & torch.isfinite(contrast)
     cand = steady & white
     w = torch.where(cand, 1.0 - contrast / REFERENCE_CONTRAST, torch.zeros_like(contrast))
-    return cand, steady, w, drift_statistic(inten)
+    return cand, steady, w, _drift(dev, mean)
 
 
 def white_population(n_white: np.ndarray, n_steady: np.ndarray) -> np.ndarray:
