@@ -13,11 +13,18 @@ like random-ballistic motion. Two kinds of flow give that same evidence, and the
 (split-conformal, marginal over the training prior's directions and speeds) does not cover them pixel by
 pixel:
 
-1. **Flow across a B-scan's plane.** In a B-scan (maps of axes ``ZX``) the speckle of a flow along ``y``
-   stays centred and only decays (speckle-motion §7): the same centred, decaying correlation as random
-   ballistic motion, diffusion aside. Neither the pixel's frames nor its in-plane neighbours can exclude
-   it, so in B-scan maps every ``ballistic`` decision is ``ballistic-or-flow``. Flow decisions stay: a
-   coherent in-plane shift or a transit decay the network reads as flow is not what random directions give.
+1. **Flow along an axis the maps cannot see** (``bscan_plane`` in the counts). In a B-scan (maps of axes
+   ``ZX``) the speckle of a flow along ``y`` stays centred and only decays (speckle-motion §7): the same
+   centred, decaying correlation as random ballistic motion, diffusion aside. Neither the pixel's frames nor
+   its in-plane neighbours can exclude it. A volume sees such a flow only through neighbours that share its
+   speckle: along an axis whose pitch ``p_c`` leaves the speckle correlation of neighbouring pixels
+   ``exp(−p_c²/(2s_c²))`` (speckle-motion §3 (a) at ``τ = 0``, at the speckle channels' resolution) below
+   :data:`NEIGHBOUR_CORRELATION_MIN`, a move of the pattern by less than a pitch changes no neighbour's
+   correlation and rules 0, 4 and 5 cannot see it; a volume with such an axis (an undersampled slow axis
+   ``y`` is the common one), or without the speckle channels, is a stack of B-scans for this rule
+   (:func:`unseen_axes`). So in B-scan maps, and in maps with an unseen axis, every ``ballistic`` decision
+   is ``ballistic-or-flow``. Flow decisions stay: a coherent in-plane shift or a transit decay the network
+   reads as flow is not what random directions give.
 2. **Flow too slow to decorrelate by transit** (any geometry). A flow decorrelates the intensity only by
    transit through the PSF, ``ρ(τ) = exp(−Σ_c v_c²τ²/(2s_c²))``; random-ballistic motion mostly by the
    Doppler phase of random directions, about ``2kn·s`` (≈ 30 at 840 nm) times faster at one speed. The two
@@ -163,11 +170,14 @@ pixel:
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
+
+from torchdoct.conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
 
 __all__ = [
     "COHERENT_MOVED_MIN",
@@ -267,6 +277,11 @@ DOPPLER_IM_MIN = 0.5
 DOPPLER_WINDOW_MIN = 5
 #: Rule 10: the outcomes a Doppler drift turns into ``flow`` (those of rule 0).
 DOPPLER_TO_FLOW = COHERENT_TO_FLOW
+#: Rule 1: the least speckle intensity correlation of neighbouring pixels along an axis,
+#: ``exp(−p²/(2s²))``, from which the speckle channels see the pattern move along it: ``e⁻¹``, a pitch of at
+#: most ``√2·s`` (half the intensity PSF's 1/e² width laterally, 0.85 of its FWHM axially; the sampling the
+#: maps' resolution reduction requires, two pixels per 1/e² width).
+NEIGHBOUR_CORRELATION_MIN = math.exp(-1.0)
 #: The set label a ballistic decision becomes.
 SET_LABEL = "ballistic-or-flow"
 #: Rule 6: the share of the classified pixels of a pixel's window that must hold its single-class decision.
@@ -303,6 +318,45 @@ def _read(channels: Mapping[str, np.ndarray], name: str, idx: np.ndarray | None)
     """One channel's map as float64, flattened, at the classified pixels ``idx`` (all when ``None``)."""
     v = np.asarray(channels[name], np.float64).reshape(-1)
     return v if idx is None else v[idx]
+
+
+def neighbour_correlation(pitch_um: float, sigma_um: float) -> float:
+    """The speckle intensity correlation of two pixels ``pitch_um`` apart along an axis whose amplitude PSF has
+    the standard deviation ``sigma_um`` (µm): ``exp(−p²/(2s²))`` (speckle-motion §3 (a) at ``τ = 0``)."""
+    return math.exp(-(pitch_um**2) / (2.0 * sigma_um**2))
+
+
+def unseen_axes(
+    axes: str,
+    pitch_um: Mapping[str, Any] | None,
+    lateral_um: float | None,
+    axial_um: float | None,
+    lateral_y_um: float | None = None,
+) -> list[str]:
+    """Rule 1 (module docstring): the axes (lower-case letters of ``x, y, z``) along which the speckle
+    channels of maps of spatial axes ``axes`` (``ZX``, ``YZX``) cannot see the pattern move: ``y`` of a
+    B-scan, and every axis whose pitch (``pitch_um``, µm per axis letter) leaves the speckle correlation of
+    neighbouring pixels below :data:`NEIGHBOUR_CORRELATION_MIN` at the speckle channels' resolution (lateral:
+    1/e² width along x, ``lateral_y_um`` along y when it differs; axial: FWHM; µm). An axis without a positive
+    finite pitch or resolution is unseen: nothing says its neighbours share the speckle (maps without the
+    speckle channels give ``None`` resolutions and see no axis)."""
+    pitch = {str(k).lower(): v for k, v in (pitch_um or {}).items()} if isinstance(pitch_um, Mapping) else {}
+    res = {"x": lateral_um, "y": lateral_um if lateral_y_um is None else lateral_y_um, "z": axial_um}
+
+    def positive(v: Any) -> float | None:
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+        return float(v) if ok else None
+
+    out = []
+    for c in "xyz":
+        p, r = positive(pitch.get(c)), positive(res[c])
+        if c.upper() not in axes.upper() or p is None or r is None:
+            out.append(c)
+            continue
+        s = amplitude_sigma_axial_um(r) if c == "z" else amplitude_sigma_lateral_um(r)
+        if neighbour_correlation(p, s) < NEIGHBOUR_CORRELATION_MIN * (1.0 - 1e-9):
+            out.append(c)
+    return out
 
 
 def coherent_motion(
@@ -596,7 +650,7 @@ def abstain_where_ambiguous(
     labels: np.ndarray,
     names: Sequence[str],
     *,
-    bscan: bool,
+    unseen_axis: bool,
     correlation: np.ndarray | None,
     coherent: np.ndarray | None = None,
     fast: np.ndarray | None = None,
@@ -608,7 +662,8 @@ def abstain_where_ambiguous(
     :data:`COHERENT_TO_FLOW` turned into ``flow`` where ``coherent`` (rule 0, :func:`coherent_motion`) and the
     outcomes of :data:`TRANSLATED_TO_FLOW` where ``translation`` (rule 5, :func:`translated`) and those of
     :data:`DOPPLER_TO_FLOW` where ``doppler`` (rule 10, :func:`doppler_drift`), then the
-    remaining ``ballistic`` into :data:`SET_LABEL` where rules 1 (``bscan``), 2 (``correlation`` ≥
+    remaining ``ballistic`` into :data:`SET_LABEL` where rules 1 (``unseen_axis``: a B-scan, or maps with an axis
+    :func:`unseen_axes` names), 2 (``correlation`` ≥
     :data:`DECORRELATED_BELOW`; NaN counts as not decorrelated) or 3 (``fast``, :func:`fast_decorrelation`)
     apply, and last the remaining ``ballistic`` and ``diffusion`` into their set with flow where
     ``moved.off_centre`` (:data:`OFFSET_TO_SET`) and the remaining ``ballistic`` where ``moved.grew``
@@ -643,7 +698,7 @@ def abstain_where_ambiguous(
         counts["doppler_drift"] = int(to_flow.sum())
         out[to_flow] = names.index("flow")
     ball = out == names.index("ballistic")
-    if bscan:
+    if unseen_axis:
         counts["bscan_plane"] = int(ball.sum())
         out[ball] = names.index(SET_LABEL)
         ball[:] = False

@@ -350,6 +350,16 @@ def classify_maps(
         )
         confs = mdl.spec.configurations
         axes = _spatial_axes(meta0, shape)
+        optics = next(
+            (m.optics(c) for m in maps_list for c in m.channels if c.startswith("xc_centre_")), None
+        )  # the speckle channels' resolution
+        unseen = ambiguity.unseen_axes(
+            axes,
+            pitches if isinstance(pitches, dict) else None,
+            None if optics is None else optics.lateral_resolution_um,
+            None if optics is None else optics.axial_resolution_um,
+            None if optics is None else optics.lateral_y_um,
+        )
         box_pitch = pitches if isinstance(pitches, dict) else None
         coarsest, finest = _footprint_resolutions(confs, max), _footprint_resolutions(confs, min)
         consensus = ambiguity.consensus_window(axes, box_pitch, int(pool), **coarsest)
@@ -357,12 +367,11 @@ def classify_maps(
             axes, box_pitch, int(pool), reach=ambiguity.FOOTPRINT_REACH, **coarsest
         )
         fine_box = ambiguity.consensus_window(axes, box_pitch, int(pool), **finest)
-        bscan = len(shape) == 2
         names_all = list(mdl.classes) + set_names
         labels_flat, changed = ambiguity.abstain_where_ambiguous(
             labels_flat,
             names_all,
-            bscan=bscan,
+            unseen_axis=bool(unseen),
             correlation=corr,
             coherent=coherent,
             fast=fast,
@@ -404,12 +413,14 @@ def classify_maps(
             "rules": (["coherent_motion"] if coherent is not None else [])
             + (["translation"] if translation is not None else [])
             + (["doppler_drift"] if doppler is not None else [])
-            + (["bscan_plane"] if bscan else [])
+            + (["bscan_plane"] if unseen else [])
             + (["slow_decorrelation"] if corr is not None else [])
-            + (["fast_decorrelation"] if fast is not None and not bscan else [])
+            + (["fast_decorrelation"] if fast is not None and not unseen else [])
             + (["offset_moved"] if moved is not None else [])
             + ["borrowed_flow", "mixed_footprint"]
             + ["unshared", "contradicted"],
+            "unseen_axes": unseen,
+            "neighbour_correlation_min": ambiguity.NEIGHBOUR_CORRELATION_MIN,
             "coherent_channels": coherent_source,
             "coherent_peak_min": ambiguity.COHERENT_PEAK_MIN,
             "coherent_moved_min": ambiguity.COHERENT_MOVED_MIN,

@@ -30,6 +30,10 @@ from the model's own system and identifiable speed levels, these are fixed phant
   pixel);
 * ``layers-volume`` and ``layers-crossing-volume``: ``layers`` and ``layers-crossing`` as volumes of
   :data:`VOLUME_NY` planes along y, whose y neighbours see the flow across the plane;
+* ``layers-static-coarse-y-volume``: the layers inside static tissue under 20 dB of noise, as a volume whose
+  slow axis y is undersampled (:data:`COARSE_PITCH_Y_UM`: neighbouring planes share no speckle), with the flow
+  along y (1 µm/s): the volume cannot see the flow move, and a ``ballistic`` decision there is a set
+  (docs/abstention.md, rule 1);
 * ``motion-types``: the shipped phantom, nine discs in static tissue (flow, diffusion and random-ballistic
   discs of three magnitudes each, 30 dB).
 
@@ -59,6 +63,7 @@ CASES = (
     "layers-static",
     "layers-volume",
     "layers-crossing-volume",
+    "layers-static-coarse-y-volume",
     "motion-types",
 )
 #: The system of the built cases: wavelength (µm), lateral (1/e² width) and axial (FWHM) resolution (µm).
@@ -70,6 +75,10 @@ N_PX = 96
 #: Planes along y of the volume cases: a field of view (24 µm) that holds the models' coarsest lateral
 #: resolution (maps refuse a reduction wider than the field of view).
 VOLUME_NY = 12
+#: The y pitch (µm) of ``layers-static-coarse-y-volume``: the coarsest the models' coarsest configuration
+#: (lateral 18 µm) allows (two pixels per 1/e² width); at the system's 4.9 µm the speckle of neighbouring planes
+#: is uncorrelated.
+COARSE_PITCH_Y_UM = 9.0
 #: Moving (and static) density of the built cases, µm⁻³.
 DENSITY = 0.05
 #: The layers' motions: D (µm²/s), random-ballistic speed (µm/s), and per case the flow's speed (µm/s),
@@ -78,9 +87,15 @@ DIFFUSION_UM2_S = 0.03
 BALLISTIC_UM_S = 0.12
 #: The slow random motions of ``layers-slow-random-20dB``: D (µm²/s) and speed (µm/s).
 SLOW_RANDOM = (0.001, 0.03)
-FLOW = {"oblique": (0.3, 45.0, 60.0), "slow": (0.1, 45.0, 60.0), "crossing": (0.3, 80.0, 85.0)}
+FLOW = {
+    "oblique": (0.3, 45.0, 60.0),
+    "slow": (0.1, 45.0, 60.0),
+    "crossing": (0.3, 80.0, 85.0),
+    "along-y": (1.0, 90.0, 90.0),
+}
 #: The built cases: their flow (a key of :data:`FLOW`), slow random motions (:data:`SLOW_RANDOM`), static
-#: tissue under every pixel, noise (dB below the mean intensity; ``None``: none) and geometry.
+#: tissue under every pixel, noise (dB below the mean intensity; ``None``: none) and geometry (``volume``:
+#: :data:`VOLUME_NY` planes at the pitch of x; ``coarse-y-volume``: at :data:`COARSE_PITCH_Y_UM`).
 LAYERS = {
     "layers": ("oblique", False, False, None, "bscan"),
     "layers-slow-25dB": ("slow", False, False, 25.0, "bscan"),
@@ -89,6 +104,7 @@ LAYERS = {
     "layers-static": ("oblique", False, True, None, "bscan"),
     "layers-volume": ("oblique", False, False, None, "volume"),
     "layers-crossing-volume": ("crossing", False, False, None, "volume"),
+    "layers-static-coarse-y-volume": ("along-y", False, True, 20.0, "coarse-y-volume"),
 }
 POOLS = (1, 5)
 SEED = 0
@@ -107,9 +123,10 @@ def case_dict(name: str) -> dict[str, Any]:
 
     flow, slow_random, static, snr_db, geometry = LAYERS[name]
     speed, polar, azimuth = FLOW[flow]
-    grid: dict[str, Any] = {"kind": geometry, "n_x": N_PX, "n_z": N_PX, "pitch_x_um": PITCH_UM, "pitch_z_um": PITCH_UM}
-    if geometry == "volume":
-        grid.update(n_y=VOLUME_NY, pitch_y_um=PITCH_UM)
+    kind = "volume" if geometry.endswith("volume") else geometry
+    grid: dict[str, Any] = {"kind": kind, "n_x": N_PX, "n_z": N_PX, "pitch_x_um": PITCH_UM, "pitch_z_um": PITCH_UM}
+    if kind == "volume":
+        grid.update(n_y=VOLUME_NY, pitch_y_um=COARSE_PITCH_Y_UM if geometry == "coarse-y-volume" else PITCH_UM)
     else:
         grid["y_um"] = 0.0
     depth = N_PX * PITCH_UM  # the grid is centred on the origin: z runs over [-depth/2, depth/2]

@@ -370,11 +370,24 @@ def decide(
         "fast": fast,
     }
     labels, _ = abstain_where_ambiguous(
-        start, names, bscan=False, correlation=corr, coherent=coherent, fast=fast, moved=moved, translation=translation
+        start,
+        names,
+        unseen_axis=False,
+        correlation=corr,
+        coherent=coherent,
+        fast=fast,
+        moved=moved,
+        translation=translation,
     )
     out["rules"] = to_code[labels]
     labels, _ = abstain_where_ambiguous(
-        start, names, bscan=False, correlation=corr, coherent=coherent | any_moved, fast=fast, translation=translation
+        start,
+        names,
+        unseen_axis=False,
+        correlation=corr,
+        coherent=coherent | any_moved,
+        fast=fast,
+        translation=translation,
     )
     out["offset-as-flow"] = to_code[labels]
     return out

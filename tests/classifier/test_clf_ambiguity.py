@@ -49,7 +49,7 @@ NAMES = [
 
 def test_every_ballistic_decision_of_a_bscan_becomes_ballistic_or_flow():
     labels = np.array([0, 1, 2, 3, 1, 4, 6, 1])
-    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=np.zeros(8))
+    out, counts = abstain_where_ambiguous(labels, NAMES, unseen_axis=True, correlation=np.zeros(8))
     assert out.tolist() == [0, 6, 2, 3, 6, 4, 6, 6] and counts == {
         "coherent_motion": 0,
         "translation": 0,
@@ -65,7 +65,7 @@ def test_every_ballistic_decision_of_a_bscan_becomes_ballistic_or_flow():
 def test_a_volume_keeps_ballistic_only_where_the_window_decorrelated():
     labels = np.array([1, 1, 1, 1, 0, 2])
     corr = np.array([DECORRELATED_BELOW - 1e-6, DECORRELATED_BELOW, 0.9, np.nan, 0.9, 0.9])
-    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=corr)
+    out, counts = abstain_where_ambiguous(labels, NAMES, unseen_axis=False, correlation=corr)
     assert out.tolist() == [1, 6, 6, 6, 0, 2] and counts == {
         "coherent_motion": 0,
         "translation": 0,
@@ -75,7 +75,7 @@ def test_a_volume_keeps_ballistic_only_where_the_window_decorrelated():
         "fast_decorrelation": 0,
         "offset_moved": 0,
     }
-    same, none = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=None)
+    same, none = abstain_where_ambiguous(labels, NAMES, unseen_axis=False, correlation=None)
     assert same.tolist() == labels.tolist() and none == {
         "coherent_motion": 0,
         "translation": 0,
@@ -109,7 +109,7 @@ def test_coherent_motion_needs_a_kept_peak_mostly_moved_off_centre_at_a_lag_up_t
 def test_coherent_motion_turns_every_symmetric_motion_decision_into_flow_before_the_other_rules():
     labels = np.array([1, 6, 0, 4, 5, 3, 2, 1, 1])
     coherent = np.array([True, True, True, True, True, True, True, False, False])
-    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=None, coherent=coherent)
+    out, counts = abstain_where_ambiguous(labels, NAMES, unseen_axis=True, correlation=None, coherent=coherent)
     # ballistic, the sets and diffusion become flow; indeterminate and flow stay; the rest of the B-scan's
     # ballistic is a set
     assert out.tolist() == [2, 2, 2, 2, 2, 3, 2, 6, 6]
@@ -146,7 +146,7 @@ def test_fast_decorrelation_makes_a_volume_ballistic_decision_a_set_after_the_sl
     labels = np.array([1, 1, 1, 2, 0])
     corr = np.array([0.9, 0.1, 0.1, 0.1, 0.1])
     fast = np.array([True, True, False, True, True])
-    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=corr, fast=fast)
+    out, counts = abstain_where_ambiguous(labels, NAMES, unseen_axis=False, correlation=corr, fast=fast)
     assert out.tolist() == [6, 6, 1, 2, 0]  # flow and diffusion decisions stay
     assert counts == {
         "coherent_motion": 0,
@@ -162,7 +162,7 @@ def test_fast_decorrelation_makes_a_volume_ballistic_decision_a_set_after_the_sl
 def test_labels_without_the_set_name_are_left_alone():
     labels = np.array([1, 1])
     out, counts = abstain_where_ambiguous(
-        labels, ["diffusion", "ballistic", "flow", "indeterminate"], bscan=True, correlation=None
+        labels, ["diffusion", "ballistic", "flow", "indeterminate"], unseen_axis=True, correlation=None
     )
     assert out.tolist() == [1, 1] and sum(counts.values()) == 0
 
@@ -221,11 +221,11 @@ def test_offset_rule_turns_remaining_decisions_into_sets_with_flow_and_only_abst
     off = np.array([True, True, True, True, True, False, False, False, False])
     grew = np.array([False, False, True, True, True, False, False, True, True])
     moved = OffsetMotion(off, grew)
-    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=False, correlation=np.zeros(9), moved=moved)
+    out, counts = abstain_where_ambiguous(labels, NAMES, unseen_axis=False, correlation=np.zeros(9), moved=moved)
     assert out.tolist() == [5, 6, 2, 3, 4, 0, 1, 0, 6]
     assert counts["offset_moved"] == 3
     # a B-scan's ballistic decisions are sets already (rule 1); its diffusion decisions still meet rule 4
-    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=None, moved=moved)
+    out, counts = abstain_where_ambiguous(labels, NAMES, unseen_axis=True, correlation=None, moved=moved)
     assert out.tolist() == [5, 6, 2, 3, 4, 0, 6, 0, 6] and counts["bscan_plane"] == 3
     assert counts["offset_moved"] == 1
 
@@ -237,7 +237,7 @@ def test_every_rule_applies_in_one_call_each_to_the_pixels_the_earlier_rules_lef
     fast = np.array([False, False, False, True, False, False])
     moved = OffsetMotion(np.array([True, True, True, True, True, False]), np.zeros(6, bool))
     out, counts = abstain_where_ambiguous(
-        labels, NAMES, bscan=False, correlation=corr, coherent=coherent, fast=fast, moved=moved
+        labels, NAMES, unseen_axis=False, correlation=corr, coherent=coherent, fast=fast, moved=moved
     )
     assert out.tolist() == [2, 6, 5, 6, 6, 0]
     assert counts == {
@@ -570,7 +570,7 @@ def test_rule_9_flags_a_flow_decision_where_a_coarser_configuration_decayed_fast
 def test_translation_rule_turns_ballistic_decisions_and_sets_into_flow_but_not_diffusion():
     labels = np.array([1, 6, 0, 5, 4, 3, 1])
     seen = np.array([True, True, True, True, True, True, False])
-    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=None, translation=seen)
+    out, counts = abstain_where_ambiguous(labels, NAMES, unseen_axis=True, correlation=None, translation=seen)
     assert out.tolist() == [2, 2, 0, 5, 4, 3, 6]
     assert counts["translation"] == 2 and counts["bscan_plane"] == 1
     assert TRANSLATED_TO_FLOW == ("ballistic", "ballistic-or-flow")
@@ -804,7 +804,7 @@ def test_rule_10_turns_direction_symmetric_outcomes_into_flow_before_rules_1_to_
     doppler_drift) before a B-scan's ballistic decisions become sets; flow and indeterminate stay."""
     labels = np.array([0, 1, 2, 3, 4, 5, 6, 1])
     seen = np.array([True] * 7 + [False])
-    out, counts = abstain_where_ambiguous(labels, NAMES, bscan=True, correlation=None, doppler=seen)
+    out, counts = abstain_where_ambiguous(labels, NAMES, unseen_axis=True, correlation=None, doppler=seen)
     flow = NAMES.index("flow")
     assert out.tolist() == [flow, flow, flow, 3, flow, flow, flow, NAMES.index("ballistic-or-flow")]
     assert counts["doppler_drift"] == 5 and counts["bscan_plane"] == 1
@@ -832,3 +832,26 @@ def test_rules_7_and_9_leave_a_flow_decision_the_doppler_phase_founds():
     rows = np.array([[0.99, 0.40, 25], [0.99, 0.40, 25]])
     got, _ = mixed_footprint(np.array([flow, flow]), NAMES, cols, rows, "original", doppler=np.array([True, False]))
     assert got.tolist() == [False, True]
+
+
+def test_an_axis_is_seen_while_neighbouring_pixels_share_their_speckle():
+    """Rule 1's axes: a B-scan never sees y; a volume sees an axis while the speckle correlation of neighbouring
+    pixels exp(−p²/(2s²)) is at least 1/e, a pitch of half the lateral 1/e² width, or 1/(2√ln2)·√2 of the axial
+    FWHM; an axis without a pitch or a resolution is unseen."""
+    from classifier.ambiguity import NEIGHBOUR_CORRELATION_MIN, neighbour_correlation, unseen_axes
+
+    assert neighbour_correlation(2.0, 2.0) == pytest.approx(np.exp(-0.5))
+    assert NEIGHBOUR_CORRELATION_MIN == pytest.approx(np.exp(-1.0))
+    lat, ax = 4.9, 3.8
+    half_lateral, axial_edge = lat / 2, ax * np.sqrt(2.0) / (2.0 * np.sqrt(np.log(2.0)))
+    fine = {"x": 2.0, "y": 2.0, "z": 2.0}
+    assert unseen_axes("ZX", fine, lat, ax) == ["y"]
+    assert unseen_axes("YZX", fine, lat, ax) == []
+    assert unseen_axes("YZX", {**fine, "y": half_lateral}, lat, ax) == []
+    assert unseen_axes("YZX", {**fine, "y": half_lateral * 1.01}, lat, ax) == ["y"]
+    assert unseen_axes("YZX", {**fine, "z": axial_edge}, lat, ax) == []
+    assert unseen_axes("YZX", {**fine, "z": axial_edge * 1.01}, lat, ax) == ["z"]
+    assert unseen_axes("YZX", {**fine, "y": 4.0}, lat, ax, lateral_y_um=9.0) == []  # a wider PSF along y
+    assert unseen_axes("YZX", {"x": 2.0, "z": 2.0}, lat, ax) == ["y"]  # no y pitch
+    assert unseen_axes("YZX", fine, None, None) == ["x", "y", "z"]  # no speckle channels: nothing is seen
+    assert unseen_axes("YZX", {**fine, "y": float("nan")}, lat, ax) == ["y"]
