@@ -429,3 +429,19 @@ def test_fast_flow_inside_static_tissue_is_decided_where_its_doppler_phase_drift
     monkeypatch.setattr(ambiguity, "doppler_drift", lambda *a, **k: (None, []))
     for r in grid.run_cell(cell, model, levels, threads=1):
         assert r["per_class"]["flow"]["coverage"] < 0.1 and r["all_pixels"]["wrong_share_max"] <= 0.01
+
+
+@pytest.mark.parametrize("name", ["signature", "signature-bscan"])
+def test_the_grid_samples_every_axis_finely_enough_to_see_the_speckle_move(name):
+    """The grid's pixels (a third of the finest lateral resolution) keep the speckle of neighbouring pixels
+    correlated along every axis at the resolution the speckle channels read (the original), so its volume cells
+    measure the rules of a volume, not those of a stack of B-scans (docs/abstention.md, rule 1)."""
+    from classifier.ambiguity import unseen_axes
+    from classifier.infer import load_model
+
+    spec = load_model(name, threads=1).spec
+    original = next(c for c in spec.configurations if c.name == "original")
+    p = grid._pitch_um(spec)
+    assert (
+        unseen_axes("YZX", {"x": p, "y": p, "z": p}, original.lateral_resolution_um, original.axial_resolution_um) == []
+    )
