@@ -207,6 +207,7 @@ __all__ = [
     "FOOTPRINT_REACH",
     "CONTRADICTED_MIN",
     "MIXED_DECAY_MIN",
+    "NEIGHBOUR_CORRELATION_MIN",
     "abstain_where_ambiguous",
     "borrowed_flow",
     "consensus_window",
@@ -220,6 +221,8 @@ __all__ = [
     "offset_moved",
     "slow_decorrelation",
     "translated",
+    "neighbour_correlation",
+    "unseen_axes",
 ]
 
 #: Rule 9 (module docstring): how far (averaged over the lags the model reads) a coarser configuration's pooled

@@ -556,7 +556,8 @@ def _classify(args: argparse.Namespace) -> int:
         if ch and ch["bscan_plane"] + ch["slow_decorrelation"] + ch.get("fast_decorrelation", 0):
             print(
                 f"  ballistic-or-flow where flow cannot be excluded: {ch['bscan_plane']} pixels of maps that cannot "
-                f"see the pattern move along {', '.join(amb.get('unseen_axes') or ['y'])} (flow along it), {ch['slow_decorrelation']} not decorrelated, "
+                f"see the pattern move along {', '.join(amb.get('unseen_axes') or ['y'])} (flow along it), "
+                f"{ch['slow_decorrelation']} not decorrelated, "
                 f"{ch.get('fast_decorrelation', 0)} decorrelated before the first lag "
                 "(--decide-ballistic keeps the model's decisions)"
             )
