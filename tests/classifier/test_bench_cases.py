@@ -53,6 +53,7 @@ def test_static_free_layers_at_another_pitch_are_never_decided_as_another_motion
     assert rows[5, False]["wrong_share_max"] > 0.05  # the case is one the rules must mend
 
 
+@pytest.mark.slow  # a volume of 110 592 pixels rendered, mapped and classified four times (about 30 s)
 def test_flow_along_an_undersampled_slow_axis_is_never_decided_as_another_motion():
     """A volume whose y pitch leaves neighbouring planes no shared speckle cannot see a flow along y move: with
     the rules no motion has more than 10 % of its pixels decided as another at window 1, nor more than 5 % at
