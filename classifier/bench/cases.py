@@ -1,7 +1,8 @@
 """The cases: phantoms of the kinds on which a per-pixel model decides flow as random-ballistic motion with
-confidence, run the way a user runs them (``torchdoct render`` → ``torchdoct maps --signature`` →
-``doct-classify``, the models ``doct-classify`` picks), each scored with the rules of
-:mod:`classifier.ambiguity` (the default) and without them (``--decide-ballistic``: the model alone).
+confidence, and of motions and samplings unlike the training prior's, run the way a user runs them
+(``torchdoct render`` → ``torchdoct maps --signature`` → ``doct-classify``, the models ``doct-classify``
+picks), each scored with the rules of :mod:`classifier.ambiguity` (the default) and without them
+(``--decide-ballistic``: the model alone).
 
 Run (from the repository root)::
 
@@ -34,6 +35,16 @@ from the model's own system and identifiable speed levels, these are fixed phant
   slow axis y is undersampled (:data:`COARSE_PITCH_Y_UM`: neighbouring planes share no speckle), with the flow
   along y (1 µm/s): the volume cannot see the flow move, and a ``ballistic`` decision there is a set
   (docs/abstention.md, rule 1);
+* ``layers-half-static``: ``layers-slow-random-20dB`` with static tissue under the A-lines at x < 0 only: the
+  static-free A-lines take the B-scan's Doppler reference (docs/concepts/doppler-reference.md §4);
+* ``layers-sheared-static``: ``layers-static`` under 20 dB of noise with a sheared flow: a plane Poiseuille
+  profile across the flow layer (:data:`SHEAR_SLABS` sub-slabs, peak 2 µm/s, parallel to the layer at azimuth
+  30°), whose speckle decorrelates by the velocity spread within the PSF as well as by transit;
+* ``layers-mixed-volume``: a static-free volume under 20 dB of noise whose diffusion layer holds four
+  diffusion coefficients and whose random-ballistic layer three speeds over two and three decades
+  (:data:`MIXED_RANDOM`), unlike the single value per pixel of the training prior;
+* ``layers-sparse-volume``: ``layers-slow-random-20dB``'s motions, noise-free, in a static-free volume at
+  :data:`SPARSE_DENSITY` µm⁻³, a few scatterers per resolution volume (non-Gaussian speckle);
 * ``motion-types``: the shipped phantom, nine discs in static tissue (flow, diffusion and random-ballistic
   discs of three magnitudes each, 30 dB).
 
@@ -51,7 +62,7 @@ import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 SCHEMA_VERSION = 1
 #: The cases, in the order they are run and reported (module docstring).
@@ -64,6 +75,10 @@ CASES = (
     "layers-volume",
     "layers-crossing-volume",
     "layers-static-coarse-y-volume",
+    "layers-half-static",
+    "layers-sheared-static",
+    "layers-mixed-volume",
+    "layers-sparse-volume",
     "motion-types",
 )
 #: The system of the built cases: wavelength (µm), lateral (1/e² width) and axial (FWHM) resolution (µm).
@@ -87,24 +102,52 @@ DIFFUSION_UM2_S = 0.03
 BALLISTIC_UM_S = 0.12
 #: The slow random motions of ``layers-slow-random-20dB``: D (µm²/s) and speed (µm/s).
 SLOW_RANDOM = (0.001, 0.03)
+#: The mixed random motions of ``layers-mixed-volume``: the diffusion layer holds one population per D
+#: (µm²/s) and the random-ballistic layer one per speed (µm/s), each at an equal share of :data:`DENSITY`.
+MIXED_RANDOM = ((1e-5, 1e-4, 1e-3, 1e-2), (0.002, 0.02, 0.2))
+#: The flows: speed (µm/s; for ``sheared`` the peak of the profile), polar angle from the beam and azimuth from
+#: the B-scan's x axis (degrees).
 FLOW = {
     "oblique": (0.3, 45.0, 60.0),
     "slow": (0.1, 45.0, 60.0),
     "crossing": (0.3, 80.0, 85.0),
     "along-y": (1.0, 90.0, 90.0),
+    "sheared": (2.0, 90.0, 30.0),
 }
-#: The built cases: their flow (a key of :data:`FLOW`), slow random motions (:data:`SLOW_RANDOM`), static
-#: tissue under every pixel, noise (dB below the mean intensity; ``None``: none) and geometry (``volume``:
-#: :data:`VOLUME_NY` planes at the pitch of x; ``coarse-y-volume``: at :data:`COARSE_PITCH_Y_UM`).
+#: Sub-slabs of the ``sheared`` flow: a plane Poiseuille profile across the flow layer, each sub-slab moving at
+#: ``v = v_max(1 − (2(z − z_c)/h)²)`` at its centre (``h`` the layer's thickness), the flow parallel to the
+#: layer (polar 90°) so that no scatterer leaves its sub-slab.
+SHEAR_SLABS = 32
+#: The density (µm⁻³) of ``layers-sparse-volume``: a few scatterers per resolution volume.
+SPARSE_DENSITY = 0.002
+
+
+class Layers(NamedTuple):
+    """A built case (module docstring): three layers in depth, diffusion, random-ballistic motion and flow."""
+
+    flow: str  #: a key of :data:`FLOW`
+    random: str = "plain"  #: ``plain`` (D = 0.03 µm²/s, 0.12 µm/s), ``slow`` (:data:`SLOW_RANDOM`), ``mixed``
+    static: str | None = None  #: static tissue under ``all`` pixels, under the ``half`` of the A-lines at x < 0
+    snr_db: float | None = None  #: noise, dB below the mean intensity (``None``: none)
+    geometry: str = "bscan"  #: ``bscan``; ``volume`` (planes at the pitch of x); ``coarse-y-volume``
+    density: float = DENSITY  #: moving and static density, µm⁻³
+
+
+#: The built cases (:class:`Layers`; ``coarse-y-volume``: :data:`VOLUME_NY` planes :data:`COARSE_PITCH_Y_UM`
+#: apart).
 LAYERS = {
-    "layers": ("oblique", False, False, None, "bscan"),
-    "layers-slow-25dB": ("slow", False, False, 25.0, "bscan"),
-    "layers-slow-random-20dB": ("oblique", True, False, 20.0, "bscan"),
-    "layers-crossing": ("crossing", False, False, None, "bscan"),
-    "layers-static": ("oblique", False, True, None, "bscan"),
-    "layers-volume": ("oblique", False, False, None, "volume"),
-    "layers-crossing-volume": ("crossing", False, False, None, "volume"),
-    "layers-static-coarse-y-volume": ("along-y", False, True, 20.0, "coarse-y-volume"),
+    "layers": Layers("oblique"),
+    "layers-slow-25dB": Layers("slow", snr_db=25.0),
+    "layers-slow-random-20dB": Layers("oblique", "slow", snr_db=20.0),
+    "layers-crossing": Layers("crossing"),
+    "layers-static": Layers("oblique", static="all"),
+    "layers-volume": Layers("oblique", geometry="volume"),
+    "layers-crossing-volume": Layers("crossing", geometry="volume"),
+    "layers-static-coarse-y-volume": Layers("along-y", static="all", snr_db=20.0, geometry="coarse-y-volume"),
+    "layers-half-static": Layers("oblique", "slow", static="half", snr_db=20.0),
+    "layers-sheared-static": Layers("sheared", static="all", snr_db=20.0),
+    "layers-mixed-volume": Layers("oblique", "mixed", snr_db=20.0, geometry="volume"),
+    "layers-sparse-volume": Layers("oblique", "slow", geometry="volume", density=SPARSE_DENSITY),
 }
 POOLS = (1, 5)
 SEED = 0
@@ -121,34 +164,98 @@ def case_dict(name: str) -> dict[str, Any]:
         return read_toml(shipped_phantoms()[name])
     from .grid import layer_regions
 
-    flow, slow_random, static, snr_db, geometry = LAYERS[name]
-    speed, polar, azimuth = FLOW[flow]
-    kind = "volume" if geometry.endswith("volume") else geometry
+    case = LAYERS[name]
+    speed, polar, azimuth = FLOW[case.flow]
+    kind = "volume" if case.geometry.endswith("volume") else case.geometry
     grid: dict[str, Any] = {"kind": kind, "n_x": N_PX, "n_z": N_PX, "pitch_x_um": PITCH_UM, "pitch_z_um": PITCH_UM}
     if kind == "volume":
-        grid.update(n_y=VOLUME_NY, pitch_y_um=COARSE_PITCH_Y_UM if geometry == "coarse-y-volume" else PITCH_UM)
+        grid.update(n_y=VOLUME_NY, pitch_y_um=COARSE_PITCH_Y_UM if case.geometry == "coarse-y-volume" else PITCH_UM)
     else:
         grid["y_um"] = 0.0
     depth = N_PX * PITCH_UM  # the grid is centred on the origin: z runs over [-depth/2, depth/2]
-    diffusion, ballistic = SLOW_RANDOM if slow_random else (DIFFUSION_UM2_S, BALLISTIC_UM_S)
-    motions = (
-        {"kind": "diffusion", "diffusion_um2_per_s": diffusion},
-        {"kind": "ballistic", "speed_um_per_s": ballistic},
-        {"kind": "flow", "speed_um_per_s": speed, "polar_angle_deg": polar, "azimuth_deg": azimuth},
+    diffusion, ballistic = {
+        "plain": ((DIFFUSION_UM2_S,), (BALLISTIC_UM_S,)),
+        "slow": ((SLOW_RANDOM[0],), (SLOW_RANDOM[1],)),
+        "mixed": MIXED_RANDOM,
+    }[case.random]
+    flow = {"kind": "flow", "speed_um_per_s": speed, "polar_angle_deg": polar, "azimuth_deg": azimuth}
+    layers = layer_regions(
+        depth,
+        case.density,
+        (
+            {"kind": "diffusion", "diffusion_um2_per_s": diffusion[0]},
+            {"kind": "ballistic", "speed_um_per_s": ballistic[0]},
+            flow,
+        ),
+    )
+    regions = (
+        _populations(layers[0], "diffusion_um2_per_s", diffusion)
+        + _populations(layers[1], "speed_um_per_s", ballistic)
+        + (_sheared(layers[2]) if case.flow == "sheared" else [layers[2]])
     )
     d: dict[str, Any] = {
         "name": f"case-{name}",
         "system": [dict(SYSTEM)],
         "protocol": dict(PROTOCOL),
         "grid": grid,
-        "region": layer_regions(depth, DENSITY, motions),
+        "region": regions,
         "simulation": {"seed": SEED},
     }
-    if static:
-        d["background"] = [{"name": "static-tissue", "density_per_um3": DENSITY}]
-    if snr_db is not None:
-        d["noise"] = {"snr_db": snr_db}
+    if case.static == "all":
+        d["background"] = [{"name": "static-tissue", "density_per_um3": case.density}]
+    elif case.static == "half":  # a cylinder along z over the A-lines at x < 0
+        width = N_PX * PITCH_UM
+        d["region"].append(
+            {
+                "name": "static-tissue",
+                "shape": "cylinder",
+                "center_um": [-width / 2, 0.0, 0.0],
+                "axis": [0.0, 0.0, 1.0],
+                "radius_um": width / 2,
+                "density_per_um3": case.density,
+                "motion": [],
+            }
+        )
+    if case.snr_db is not None:
+        d["noise"] = {"snr_db": case.snr_db}
     return d
+
+
+def _populations(layer: dict[str, Any], key: str, values: Sequence[float]) -> list[dict[str, Any]]:
+    """``layer`` (a region of :func:`classifier.bench.grid.layer_regions`) as one region per value of its motion's
+    ``key``, each at an equal share of its density (one region, unchanged, for one value)."""
+    if len(values) == 1:
+        return [layer]
+    return [
+        {
+            **layer,
+            "name": f"{layer['name']}-{k}",
+            "density_per_um3": layer["density_per_um3"] / len(values),
+            "motion": [{**layer["motion"][0], key: v}],
+        }
+        for k, v in enumerate(values)
+    ]
+
+
+def _sheared(layer: dict[str, Any]) -> list[dict[str, Any]]:
+    """The flow ``layer`` as :data:`SHEAR_SLABS` sub-slabs of a plane Poiseuille profile (the peak speed its
+    motion's)."""
+    z0, z1 = float(layer["z_min_um"]), float(layer["z_max_um"])
+    h, peak = z1 - z0, float(layer["motion"][0]["speed_um_per_s"])
+    out = []
+    for k in range(SHEAR_SLABS):
+        a, b = z0 + k * h / SHEAR_SLABS, z0 + (k + 1) * h / SHEAR_SLABS
+        speed = peak * (1.0 - (2.0 * ((a + b) / 2 - (z0 + z1) / 2) / h) ** 2)
+        out.append(
+            {
+                **layer,
+                "name": f"{layer['name']}-{k}",
+                "z_min_um": a,
+                "z_max_um": b,
+                "motion": [{**layer["motion"][0], "speed_um_per_s": speed}],
+            }
+        )
+    return out
 
 
 def run_case(name: str, *, threads: int | None = None, pools: Sequence[int] = POOLS) -> list[dict[str, Any]]:
