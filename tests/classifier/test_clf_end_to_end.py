@@ -37,6 +37,7 @@ def test_bscan_phantom_end_to_end(tmp_path):
     _check("bscan", score(truth, decided, z_axis))
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under five minutes
 def test_volume_phantom_end_to_end(tmp_path):
     grid, z_axis = GEOMETRIES["volume"]
     truth, decided, summary = run_chain(tmp_path, grid)

@@ -24,6 +24,7 @@ DATA = Path(__file__).resolve().parents[2] / "classifier" / "data"
 REPRODUCTION_Z = 2.0
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under five minutes
 @pytest.mark.parametrize(
     "name",
     [

@@ -75,6 +75,7 @@ def test_too_few_samples_is_refused():
         mc.fit_quantiles(np.zeros((10, 2)), np.zeros(10))
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under five minutes
 def test_small_run_writes_its_report(tmp_path, capsys):
     args = [
         "--out",

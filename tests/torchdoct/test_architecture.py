@@ -156,6 +156,7 @@ def _classes_and_functions():
                 yield name, node, [n for n in node.body if isinstance(n, ast.FunctionDef)]
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under five minutes
 def test_one_maps_class_and_one_channel_optics_match():
     maps = [name for name, cls, _ in _classes_and_functions() if cls.name == "Maps"]
     assert maps == ["torchdoct.measured.mapsfile"]

@@ -172,6 +172,7 @@ def _render(rng, *, nz=36, nx=36, pz=1.5, px=2.0, frames=8, dt=0.2048, d_um2_per
     return out
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under five minutes
 def test_whole_path_from_sequence_files_to_the_statistics_table(tmp_path, capsys):
     """Simulated sequences → ``torchdoct maps`` (3 resolutions) → ``torchdoct compare`` (Kruskal-Wallis)."""
     from torchdoct.measured.io import write_sequence

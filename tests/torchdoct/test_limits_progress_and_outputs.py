@@ -229,6 +229,7 @@ def test_a_scene_built_in_python_is_limited_in_make_plan():
 # progress bars and benchmark outputs
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under five minutes
 def test_a_short_run_shows_no_progress_bar(seq):
     """A short ``maps`` run prints no bar (it ends within tqdm's delay); with the delay set to 0 the same run
     draws one, so the bar is there for runs that last."""

@@ -334,6 +334,7 @@ def test_pseudo_color_takes_the_perceptual_map_scaled_by_brightness():
 # ----------------------------------------------------------------------------------------------------------
 # command line
 # ----------------------------------------------------------------------------------------------------------
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under five minutes
 def test_cli_maps_end_to_end(tmp_path, capsys):
     data = speckle((10, 24, 16), seed=9)
     seq_path = write_sequence(

@@ -9,6 +9,7 @@ the phase exp(i·2kn·z_j) of each scatterer is untouched.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from torchdoct.cli import main
@@ -79,6 +80,7 @@ def test_lateral_reduction_of_a_rendered_volume_equals_a_direct_render():
     assert _rel_err(high[:, inner, :, inner], want) > 0.3
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under five minutes
 def test_cli_render_maps_compare(tmp_path, capsys):
     """Render three samples, make maps at two resolutions from the command line, compare them.
 

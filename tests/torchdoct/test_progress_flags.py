@@ -78,6 +78,7 @@ def _simulate(extra_args, extra_env):
     return r.stderr
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under five minutes
 @pytest.mark.parametrize("how", ["--no-progress", "TQDM_DISABLE"])
 def test_no_progress_and_tqdm_disable_silence_a_command_that_shows_a_bar(how):
     shown = _simulate([], {})

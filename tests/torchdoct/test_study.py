@@ -291,6 +291,7 @@ def test_cli_study(tmp_path, capsys):
     assert "paper-reduced" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under five minutes
 def test_cli_bench_study(tmp_path, capsys):
     path = write_tiny_study(tmp_path)
     path.write_text(
