@@ -178,6 +178,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from torchdoct.conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
+from torchdoct.optics import _number as positive_number
 
 __all__ = [
     "COHERENT_MOVED_MIN",
@@ -346,13 +347,9 @@ def unseen_axes(
     pitch = {str(k).lower(): v for k, v in (pitch_um or {}).items()} if isinstance(pitch_um, Mapping) else {}
     res = {"x": lateral_um, "y": lateral_um if lateral_y_um is None else lateral_y_um, "z": axial_um}
 
-    def positive(v: Any) -> float | None:
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-        return float(v) if ok else None
-
     out = []
     for c in "xyz":
-        p, r = positive(pitch.get(c)), positive(res[c])
+        p, r = positive_number(pitch.get(c)), positive_number(res[c])
         if c.upper() not in axes.upper() or p is None or r is None:
             out.append(c)
             continue

@@ -172,7 +172,7 @@ def case_dict(name: str) -> dict[str, Any]:
         grid.update(n_y=VOLUME_NY, pitch_y_um=COARSE_PITCH_Y_UM if case.geometry == "coarse-y-volume" else PITCH_UM)
     else:
         grid["y_um"] = 0.0
-    depth = N_PX * PITCH_UM  # the grid is centred on the origin: z runs over [-depth/2, depth/2]
+    fov = N_PX * PITCH_UM  # along x and z; the grid is centred on the origin: z runs over [-fov/2, fov/2]
     diffusion, ballistic = {
         "plain": ((DIFFUSION_UM2_S,), (BALLISTIC_UM_S,)),
         "slow": ((SLOW_RANDOM[0],), (SLOW_RANDOM[1],)),
@@ -180,7 +180,7 @@ def case_dict(name: str) -> dict[str, Any]:
     }[case.random]
     flow = {"kind": "flow", "speed_um_per_s": speed, "polar_angle_deg": polar, "azimuth_deg": azimuth}
     layers = layer_regions(
-        depth,
+        fov,
         case.density,
         (
             {"kind": "diffusion", "diffusion_um2_per_s": diffusion[0]},
@@ -204,14 +204,13 @@ def case_dict(name: str) -> dict[str, Any]:
     if case.static == "all":
         d["background"] = [{"name": "static-tissue", "density_per_um3": case.density}]
     elif case.static == "half":  # a cylinder along z over the A-lines at x < 0
-        width = N_PX * PITCH_UM
         d["region"].append(
             {
                 "name": "static-tissue",
                 "shape": "cylinder",
-                "center_um": [-width / 2, 0.0, 0.0],
+                "center_um": [-fov / 2, 0.0, 0.0],
                 "axis": [0.0, 0.0, 1.0],
-                "radius_um": width / 2,
+                "radius_um": fov / 2,
                 "density_per_um3": case.density,
                 "motion": [],
             }
