@@ -45,6 +45,12 @@ from the model's own system and identifiable speed levels, these are fixed phant
   (:data:`MIXED_RANDOM`), unlike the single value per pixel of the training prior;
 * ``layers-sparse-volume``: ``layers-slow-random-20dB``'s motions, noise-free, in a static-free volume at
   :data:`SPARSE_DENSITY` µm⁻³, a few scatterers per resolution volume (non-Gaussian speckle);
+* ``layers-jittered-flow``: ``layers`` whose flow scatterers also diffuse (:data:`JITTER_UM2_S`), one
+  population with both motions: the renderer labels the layer ``mixed``, and it is scored by
+  :func:`classifier.bench.grid.score_mixed` (a decision naming a motion it does not hold is wrong);
+* ``layers-maxwell-volume``: ``layers`` as a static-free volume under 20 dB of noise whose random-ballistic
+  layer holds :data:`MAXWELL_POPULATIONS` speeds from a Maxwell distribution of mean :data:`BALLISTIC_UM_S`
+  (:func:`maxwell_speeds`: an isotropic Gaussian velocity, the other common model of random-ballistic motion);
 * ``motion-types``: the shipped phantom, nine discs in static tissue (flow, diffusion and random-ballistic
   discs of three magnitudes each, 30 dB).
 
@@ -52,7 +58,8 @@ Scores per case, window (``--pool`` 1 and 5) and decision (the rules, the model 
 :func:`classifier.bench.grid.score_labels`: per motion the coverage (decided share), the wrong share
 (decided as another single class), the set-miss share (a set that leaves the true motion out), the balanced
 accuracy on the decided pixels, over every pixel of each motion (``all_pixels``) and over the pixels away
-from the other regions (the grid's edge: half the coarsest resolution plus half the window).
+from the other regions (the grid's edge: half the coarsest resolution plus half the window); a ``mixed``
+region over its every pixel as ``mixed`` (:func:`classifier.bench.grid.score_mixed`).
 """
 
 from __future__ import annotations
@@ -79,6 +86,8 @@ CASES = (
     "layers-sheared-static",
     "layers-mixed-volume",
     "layers-sparse-volume",
+    "layers-jittered-flow",
+    "layers-maxwell-volume",
     "motion-types",
 )
 #: The system of the built cases: wavelength (µm), lateral (1/e² width) and axial (FWHM) resolution (µm).
@@ -105,10 +114,19 @@ SLOW_RANDOM = (0.001, 0.03)
 #: The mixed random motions of ``layers-mixed-volume``: the diffusion layer holds one population per D
 #: (µm²/s) and the random-ballistic layer one per speed (µm/s), each at an equal share of :data:`DENSITY`.
 MIXED_RANDOM = ((1e-5, 1e-4, 1e-3, 1e-2), (0.002, 0.02, 0.2))
+#: The populations of ``layers-maxwell-volume``'s random-ballistic layer: one per speed at the quantiles
+#: ``(k + 1/2)/K`` of a Maxwell distribution (isotropic Gaussian velocity: the speed over its per-axis standard
+#: deviation is chi-distributed with three degrees of freedom) whose mean is :data:`BALLISTIC_UM_S`.
+MAXWELL_POPULATIONS = 8
+#: The diffusion (µm²/s) of ``layers-jittered-flow``'s flow scatterers, added to their flow: over the
+#: acquisition it decorrelates the intensity about as much as the flow's transit does, and at the first lags
+#: more (diffusion's decay is linear in the lag, transit's quadratic).
+JITTER_UM2_S = 1e-4
 #: The flows: speed (µm/s; for ``sheared`` the peak of the profile), polar angle from the beam and azimuth from
-#: the B-scan's x axis (degrees).
+#: the B-scan's x axis (degrees); ``jittered`` is ``oblique`` whose scatterers also diffuse (:data:`JITTER_UM2_S`).
 FLOW = {
     "oblique": (0.3, 45.0, 60.0),
+    "jittered": (0.3, 45.0, 60.0),
     "slow": (0.1, 45.0, 60.0),
     "crossing": (0.3, 80.0, 85.0),
     "along-y": (1.0, 90.0, 90.0),
@@ -126,7 +144,9 @@ class Layers(NamedTuple):
     """A built case (module docstring): three layers in depth, diffusion, random-ballistic motion and flow."""
 
     flow: str  #: a key of :data:`FLOW`
-    random: str = "plain"  #: ``plain`` (D = 0.03 µm²/s, 0.12 µm/s), ``slow`` (:data:`SLOW_RANDOM`), ``mixed``
+    #: ``plain`` (D = 0.03 µm²/s, 0.12 µm/s), ``slow`` (:data:`SLOW_RANDOM`), ``mixed`` (:data:`MIXED_RANDOM`),
+    #: ``maxwell`` (``plain`` with Maxwell-distributed random-ballistic speeds, :data:`MAXWELL_POPULATIONS`)
+    random: str = "plain"
     static: str | None = None  #: static tissue under ``all`` pixels, under the ``half`` of the A-lines at x < 0
     snr_db: float | None = None  #: noise, dB below the mean intensity (``None``: none)
     geometry: str = "bscan"  #: ``bscan``; ``volume`` (planes at the pitch of x); ``coarse-y-volume``
@@ -148,6 +168,8 @@ LAYERS = {
     "layers-sheared-static": Layers("sheared", static="all", snr_db=20.0),
     "layers-mixed-volume": Layers("oblique", "mixed", snr_db=20.0, geometry="volume"),
     "layers-sparse-volume": Layers("oblique", "slow", geometry="volume", density=SPARSE_DENSITY),
+    "layers-jittered-flow": Layers("jittered"),
+    "layers-maxwell-volume": Layers("oblique", "maxwell", snr_db=20.0, geometry="volume"),
 }
 POOLS = (1, 5)
 SEED = 0
@@ -177,6 +199,7 @@ def case_dict(name: str) -> dict[str, Any]:
         "plain": ((DIFFUSION_UM2_S,), (BALLISTIC_UM_S,)),
         "slow": ((SLOW_RANDOM[0],), (SLOW_RANDOM[1],)),
         "mixed": MIXED_RANDOM,
+        "maxwell": ((DIFFUSION_UM2_S,), maxwell_speeds(BALLISTIC_UM_S)),
     }[case.random]
     flow = {"kind": "flow", "speed_um_per_s": speed, "polar_angle_deg": polar, "azimuth_deg": azimuth}
     layers = layer_regions(
@@ -193,6 +216,8 @@ def case_dict(name: str) -> dict[str, Any]:
         + _populations(layers[1], "speed_um_per_s", ballistic)
         + (_sheared(layers[2]) if case.flow == "sheared" else [layers[2]])
     )
+    if case.flow == "jittered":  # the flow's scatterers diffuse too: the renderer labels the layer "mixed"
+        regions[-1]["motion"] = [flow, {"kind": "diffusion", "diffusion_um2_per_s": JITTER_UM2_S}]
     d: dict[str, Any] = {
         "name": f"case-{name}",
         "system": [dict(SYSTEM)],
@@ -218,6 +243,19 @@ def case_dict(name: str) -> dict[str, Any]:
     if case.snr_db is not None:
         d["noise"] = {"snr_db": case.snr_db}
     return d
+
+
+def maxwell_speeds(mean_um_s: float, k: int = MAXWELL_POPULATIONS) -> tuple[float, ...]:
+    """Speeds (µm/s) at the quantiles ``(j + 1/2)/k`` of a Maxwell distribution of mean ``mean_um_s``: the speed
+    of an isotropic Gaussian velocity of per-axis standard deviation ``σ`` is ``σ·χ₃`` (mean ``2σ√(2/π)``)."""
+    from scipy.stats import chi
+
+    sigma = float(mean_um_s) / float(chi(3).mean())
+    return tuple(float(sigma * chi(3).ppf((j + 0.5) / k)) for j in range(k))
+
+
+#: The motions a case's ``mixed`` region combines (scored by :func:`classifier.bench.grid.score_mixed`).
+MIXED_HOLDS = {"layers-jittered-flow": ("flow", "diffusion")}
 
 
 def _populations(layer: dict[str, Any], key: str, values: Sequence[float]) -> list[dict[str, Any]]:
@@ -266,7 +304,15 @@ def run_case(name: str, *, threads: int | None = None, pools: Sequence[int] = PO
     d = case_dict(name)
     model = load_model("signature" if d["grid"]["kind"] == "volume" else "signature-bscan", threads=threads)
     scored = _classify_rendered(
-        [d], model, f"case-{name}", SEED, pools=pools, decision=None, threads=threads, abstain_ambiguous=(True, False)
+        [d],
+        model,
+        f"case-{name}",
+        SEED,
+        pools=pools,
+        decision=None,
+        threads=threads,
+        abstain_ambiguous=(True, False),
+        mixed_holds=MIXED_HOLDS.get(name),
     )
     return [
         {
@@ -278,6 +324,7 @@ def run_case(name: str, *, threads: int | None = None, pools: Sequence[int] = PO
             **{k: r[k] for k in ("per_class", "pixels", "coverage", "balanced_accuracy", "wrong_share_max")},
             "all_pixels": r["all_pixels"],
             "rules_changed": r["rules_changed"],
+            **({"mixed": r["mixed"]} if "mixed" in r else {}),
             "seconds": r["seconds"]["total"],
         }
         for r in scored
@@ -319,8 +366,8 @@ def format_table(res: dict[str, Any]) -> str:
     """The cases as a Markdown table: per case, window and decision, over every pixel of each motion."""
     lines = [
         "| case | window | decision | coverage | balanced accuracy | diffusion: coverage / wrong | "
-        "ballistic: coverage / wrong | flow: coverage / wrong | worst wrong share |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "ballistic: coverage / wrong | flow: coverage / wrong | mixture: coverage / wrong | worst wrong share |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in res["rows"]:
         a = r["all_pixels"]
@@ -329,6 +376,8 @@ def format_table(res: dict[str, Any]) -> str:
             f"{_fmt(pc[m]['coverage'])} / {_fmt(pc[m]['wrong_share'])}" if pc[m]["pixels"] else "–"
             for m in ("diffusion", "ballistic", "flow")
         ]
+        mx = r.get("mixed")
+        per.append(f"{_fmt(mx['coverage'])} / {_fmt(mx['wrong_share'])}" if mx and mx["pixels"] else "–")
         decision = "rules (default)" if r["rules"] else "model alone"
         cells = [r["case"], str(r["pool"]), decision, _fmt(a["coverage"]), _fmt(a["balanced_accuracy"]), *per]
         lines.append("| " + " | ".join(cells + [_fmt(a["wrong_share_max"])]) + " |")

@@ -106,6 +106,8 @@ SCHEMA_VERSION = 1
 MOTIONS = ("diffusion", "ballistic", "flow")
 #: Rendered motion codes (torchdoct.image.phantom.MOTION_CODES) of the three bands.
 CODES = {"diffusion": 2, "ballistic": 3, "flow": 4}
+#: Rendered code of a region whose scatterers combine motions (torchdoct.image.phantom.MOTION_CODES["mixed"]).
+MIXED_CODE = 5
 LEVELS = ("slow", "mid", "fast")
 #: Where the three speed levels lie in the identifiable range (fractions of its log10 span).
 LEVEL_FRACTIONS = (0.2, 0.5, 0.8)
@@ -402,6 +404,28 @@ def score_labels(
     return out
 
 
+def score_mixed(
+    truth_codes: np.ndarray, classes: np.ndarray, class_names: Sequence[str], holds: Sequence[str], masked: int = 255
+) -> dict[str, Any]:
+    """Scores of the pixels of a region whose scatterers combine the motions ``holds`` (rendered as ``mixed``):
+    no single motion is its truth, so a single-class decision naming a motion it holds is right and one naming
+    a motion it does not hold is wrong. Over every such pixel: ``coverage`` (decided as a single class), the
+    share ``decided_as`` each motion, and ``wrong_share`` (decided as a motion it does not hold)."""
+    names = list(class_names)
+    sel = (np.asarray(truth_codes) == MIXED_CODE) & (classes != masked)
+    n = int(sel.sum())
+    got = classes[sel]
+    shares = {m: (float((got == names.index(m)).mean()) if n else None) for m in MOTIONS if m in names}
+    known = [v for v in shares.values() if v is not None]
+    return {
+        "holds": list(holds),
+        "pixels": n,
+        "coverage": float(sum(known)) if n else None,
+        "decided_as": shares,
+        "wrong_share": float(sum(v for m, v in shares.items() if m not in holds and v is not None)) if n else None,
+    }
+
+
 def doppler_null(truth_codes: np.ndarray, imaginary: np.ndarray, edge_px: int) -> dict[str, Any]:
     """Rule 10's statistic (:func:`classifier.ambiguity.doppler_imaginary`, the imaginary part of the box's mean
     Doppler phasor) per motion over the pixels :func:`score_labels` scores (farther than ``edge_px`` from other
@@ -430,13 +454,15 @@ def _classify_rendered(
     decision: str | None,
     threads: int | None,
     abstain_ambiguous: bool | Sequence[bool],
+    mixed_holds: Sequence[str] | None = None,
 ) -> list[dict[str, Any]]:
     """Render ``phantoms`` (phantom-file dicts; their fields add, the first rendered at ``seed``, a static
     background after it at its own), map them as ``maps --signature`` does, classify at every window of
     ``pools`` (with the rules of :mod:`classifier.ambiguity` or without, or both when ``abstain_ambiguous`` is a
     sequence: the rendering and the maps are made once) and score against the first phantom's labels: one row
     per window and setting with the scores of the pixels away from other regions, ``all_pixels`` (edge 0), the
-    setting, the decision and the seconds taken."""
+    setting, the decision and the seconds taken; with ``mixed_holds`` (the motions a ``mixed`` region
+    combines) also ``mixed`` (:func:`score_mixed`)."""
     from torchdoct.image.phantom import phantom_from_dict
     from torchdoct.image.render import render
     from torchdoct.measured.maps import compute_maps
@@ -495,6 +521,7 @@ def _classify_rendered(
                     },
                     **score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool))),
                     "all_pixels": score_labels(res.labels, c.labels, c.classes, 0),
+                    **({"mixed": score_mixed(res.labels, c.labels, c.classes, mixed_holds)} if mixed_holds else {}),
                     "classified": int(c.info["classified"]),
                     "rules_changed": dict(c.info["ambiguity"]["changed_pixels"]) if c.info.get("ambiguity") else None,
                     "seconds": {

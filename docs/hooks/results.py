@@ -1049,6 +1049,14 @@ def grid_probes(root: Path) -> str:
     return "\n\n".join([table(header, rows), source(d["command"], p)])
 
 
+def mixture(m: dict | None) -> str:
+    """A mixed region's cell of the cases table: coverage / wrong share, and what it was decided as."""
+    if not m or not m["pixels"]:
+        return "–"
+    held = ", ".join(f"{k} {num(v)}" for k, v in m["decided_as"].items() if v)
+    return f"{num(m['coverage'])} / {num(m['wrong_share'])}" + (f" ({held})" if held else "")
+
+
 def cases(root: Path) -> str:
     """The cases (``classifier.bench.cases``): per case, window and decision (the rules, the model alone),
     coverage and balanced accuracy, per motion its coverage and wrong share, and the worst wrong share, over
@@ -1063,10 +1071,11 @@ def cases(root: Path) -> str:
             [r["case"], r["pool"], "rules (default)" if r["rules"] else "model alone", num(a["coverage"])]
             + [num(a["balanced_accuracy"])]
             + [f"{num(pc[m]['coverage'])} / {num(pc[m]['wrong_share'])}" if pc[m]["pixels"] else "–" for m in motions]
+            + [mixture(r.get("mixed"))]
             + [num(a["wrong_share_max"])]
         )
     header = ["case", "window", "decision", "coverage", "balanced accuracy"]
-    header += [f"{m}: coverage / wrong" for m in motions] + ["worst wrong share"]
+    header += [f"{m}: coverage / wrong" for m in motions] + ["mixture: coverage / wrong", "worst wrong share"]
     return "\n\n".join([table(header, rows), source(d["command"], p)])
 
 
