@@ -20,11 +20,16 @@ pixel:
    speckle: along an axis whose pitch ``p_c`` leaves the speckle correlation of neighbouring pixels
    ``exp(−p_c²/(2s_c²))`` (speckle-motion §3 (a) at ``τ = 0``, at the speckle channels' resolution) below
    :data:`NEIGHBOUR_CORRELATION_MIN`, a move of the pattern by less than a pitch changes no neighbour's
-   correlation and rules 0, 4 and 5 cannot see it; a volume with such an axis (an undersampled slow axis
+   correlation, and along an axis of a single pixel (one A-line's time series) there is no neighbour: rules
+   0, 4 and 5 cannot see it; a volume with such an axis (an undersampled slow axis
    ``y`` is the common one), or without the speckle channels, is a stack of B-scans for this rule
    (:func:`unseen_axes`). So in B-scan maps, and in maps with an unseen axis, every ``ballistic`` decision
    is ``ballistic-or-flow``. Flow decisions stay: a coherent in-plane shift or a transit decay the network
-   reads as flow is not what random directions give.
+   reads as flow is not what random directions give. On maps with an axis of a single pixel
+   (:func:`single_pixel_axes`: one A-line's time series) the speckle window is a line of a few axial grains
+   and the Doppler box a few pixels, unlike the windows and boxes over which rules 0, 5 and 10 had their
+   false detections recorded: those rules are not applied there, and a flow decision stands on the
+   network's reading of the decay and on rules 6-9.
 2. **Flow too slow to decorrelate by transit** (any geometry). A flow decorrelates the intensity only by
    transit through the PSF, ``ρ(τ) = exp(−Σ_c v_c²τ²/(2s_c²))``; random-ballistic motion mostly by the
    Doppler phase of random directions, about ``2kn·s`` (≈ 30 at 840 nm) times faster at one speed. The two
@@ -223,6 +228,7 @@ __all__ = [
     "slow_decorrelation",
     "translated",
     "neighbour_correlation",
+    "single_pixel_axes",
     "unseen_axes",
 ]
 
@@ -330,16 +336,26 @@ def neighbour_correlation(pitch_um: float, sigma_um: float) -> float:
     return math.exp(-(pitch_um**2) / (2.0 * sigma_um**2))
 
 
+def single_pixel_axes(extent_px: Mapping[str, int]) -> list[str]:
+    """The axes (lower-case letters) of a map that hold a single pixel (``extent_px``: pixels per axis letter):
+    one A-line's time series has one pixel along x (and y). There the speckle window is a line of a few axial
+    grains and the Doppler box a few pixels, not the windows and boxes over which rules 0, 5 and 10 had their
+    false detections recorded, so those rules found no flow on such maps (module docstring, rule 1)."""
+    return [str(c).lower() for c, n in extent_px.items() if int(n) < 2]
+
+
 def unseen_axes(
     axes: str,
     pitch_um: Mapping[str, Any] | None,
     lateral_um: float | None,
     axial_um: float | None,
     lateral_y_um: float | None = None,
+    extent_px: Mapping[str, int] | None = None,
 ) -> list[str]:
     """Rule 1 (module docstring): the axes (lower-case letters of ``x, y, z``) along which the speckle
     channels of maps of spatial axes ``axes`` (``ZX``, ``YZX``) cannot see the pattern move: ``y`` of a
-    B-scan, and every axis whose pitch (``pitch_um``, µm per axis letter) leaves the speckle correlation of
+    B-scan, every axis of a single pixel (``extent_px``, pixels per axis letter: one A-line's time series has
+    no neighbour along x), and every axis whose pitch (``pitch_um``, µm per axis letter) leaves the speckle correlation of
     neighbouring pixels below :data:`NEIGHBOUR_CORRELATION_MIN` at the speckle channels' resolution (lateral:
     1/e² width along x, ``lateral_y_um`` along y when it differs; axial: FWHM; µm). An axis without a positive
     finite pitch or resolution is unseen: nothing says its neighbours share the speckle (maps without the
@@ -348,9 +364,11 @@ def unseen_axes(
     res = {"x": lateral_um, "y": lateral_um if lateral_y_um is None else lateral_y_um, "z": axial_um}
 
     out = []
+    extent = {str(k).lower(): v for k, v in (extent_px or {}).items()} if isinstance(extent_px, Mapping) else {}
     for c in "xyz":
         p, r = positive_number(pitch.get(c)), positive_number(res[c])
-        if c.upper() not in axes.upper() or p is None or r is None:
+        n = extent.get(c)
+        if c.upper() not in axes.upper() or p is None or r is None or (n is not None and int(n) < 2):
             out.append(c)
             continue
         s = amplitude_sigma_axial_um(r) if c == "z" else amplitude_sigma_lateral_um(r)

@@ -330,9 +330,13 @@ def classify_maps(
             for i, c in enumerate(m.channels)
             if c.startswith(("xc_centre_", "xc_peak_", "xc_shift_", "doppler_phase_"))
         }
-        coherent, coherent_source = ambiguity.coherent_motion(channels, idx, mdl.spec.n_frames)
+        axes = _spatial_axes(meta0, shape)
+        extent = dict(zip(axes.lower(), shape))
+        single = ambiguity.single_pixel_axes(extent)  # one A-line: rules 0, 5 and 10 found nothing
+        founding = {} if single else channels
+        coherent, coherent_source = ambiguity.coherent_motion(founding, idx, mdl.spec.n_frames)
         doppler_window = max(int(pool), ambiguity.DOPPLER_WINDOW_MIN)
-        doppler, doppler_source = ambiguity.doppler_drift(channels, idx, doppler_window)
+        doppler, doppler_source = ambiguity.doppler_drift(founding, idx, doppler_window)
         corr, source = ambiguity.slow_decorrelation(
             {c: v for c, v in channels.items() if c.startswith("xc_centre_")}, mdl.columns, x, idx, mdl.spec.n_frames
         )
@@ -343,13 +347,12 @@ def classify_maps(
         spk = meta0.get("speckle")
         window = spk.get("window_px") if isinstance(spk, dict) else None
         translation, translation_source = ambiguity.translated(
-            channels,
+            founding,
             pitches if isinstance(pitches, dict) else None,
             idx,
             window if isinstance(window, int) and not isinstance(window, bool) else None,
         )
         confs = mdl.spec.configurations
-        axes = _spatial_axes(meta0, shape)
         optics = next(
             (m.optics(c) for m in maps_list for c in m.channels if c.startswith("xc_centre_")), None
         )  # the speckle channels' resolution
@@ -359,6 +362,7 @@ def classify_maps(
             None if optics is None else optics.lateral_resolution_um,
             None if optics is None else optics.axial_resolution_um,
             None if optics is None else optics.lateral_y_um,
+            extent,
         )
         box_pitch = pitches if isinstance(pitches, dict) else None
         coarsest, finest = _footprint_resolutions(confs, max), _footprint_resolutions(confs, min)
@@ -420,6 +424,7 @@ def classify_maps(
             + ["borrowed_flow", "mixed_footprint"]
             + ["unshared", "contradicted"],
             "unseen_axes": unseen,
+            "single_pixel_axes": single,
             "neighbour_correlation_min": ambiguity.NEIGHBOUR_CORRELATION_MIN,
             "coherent_channels": coherent_source,
             "coherent_peak_min": ambiguity.COHERENT_PEAK_MIN,

@@ -42,6 +42,7 @@ __all__ = [
     "MATCH_LATERAL_Y",
     "SIGNATURE_MODEL",
     "SIGNATURE_MODELS",
+    "ALINE_MODEL",
     "LIV_OCDS_MODELS",
     "MapsChannels",
     "column_optics",
@@ -60,8 +61,17 @@ SIGNATURE_MODEL = "signature"
 #: Shipped signature models ``doct-classify`` prefers without ``--model``, in this order: the first whose
 #: every channel the maps hold (``torchdoct maps --signature``; the two-wavelength one reads the maps of
 #: both bands, one file or two), and, for a model that reads the phase, whose maps are bulk-phase
-#: corrected. A model that is not shipped is skipped.
-SIGNATURE_MODELS = ("two-wavelength-signature", "signature-bscan-field", "signature-bscan", SIGNATURE_MODEL)
+#: corrected. A model that is not shipped is skipped. The A-line model (no lateral-reduced configuration) comes
+#: last: it fits maps that cannot hold a lateral reduction (one A-line) or were computed without one.
+#: The A-line signature model: the signature without a lateral-reduced configuration (one A-line's time series).
+ALINE_MODEL = "signature-aline"
+SIGNATURE_MODELS = (
+    "two-wavelength-signature",
+    "signature-bscan-field",
+    "signature-bscan",
+    SIGNATURE_MODEL,
+    ALINE_MODEL,
+)
 #: LIV/OCDS models for maps without signature channels, in this order (B-scan maps: the first).
 LIV_OCDS_MODELS = ("single-acquisition-bscan", DEFAULT_MODEL)
 
@@ -326,7 +336,7 @@ def choose_default_model(
     The first model of :data:`SIGNATURE_MODELS` in ``shipped`` whose every feature the maps hold (each
     opened with ``open_model(name)``), else :data:`DEFAULT_MODEL` (LIV/OCDS), saying why (for maps with
     signature channels: what the signature model closest to them, the one with the fewest missing
-    features, lacks).
+    features other than the A-line model, lacks).
     """
     all_maps = [_as_maps(m) for m in maps_list]
     candidates = [name for name in SIGNATURE_MODELS if name in shipped]
@@ -349,7 +359,10 @@ def choose_default_model(
             failed.append((len(missing), name, err, missing, len(sig.columns) - 1))
             continue
         return name, None
-    _, name, error, missing, n_columns = min(failed, key=lambda f: f[0])  # ties: the earlier in SIGNATURE_MODELS
+    # the closest: fewest missing features (ties: the earlier in SIGNATURE_MODELS); the A-line model's features
+    # are a subset of the others', so it is named only when it is the one signature model shipped
+    ranked = [f for f in failed if f[1] != ALINE_MODEL] or failed
+    _, name, error, missing, n_columns = min(ranked, key=lambda f: f[0])
     if missing:  # name the channels, not only the first error
         names = [str(col.get("name") if isinstance(col, dict) else col) for col in missing]
         more = f" and {len(names) - 3} more" if len(names) > 3 else ""

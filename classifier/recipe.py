@@ -205,6 +205,8 @@ SPEC_RECIPES["signature-bscan"] = dict(SPEC_RECIPES["signature"])
 #: the residual ``torchdoct maps --bulk-phase weighted-mean`` leaves on dynamic tissue,
 #: docs/physics.md §12), and the random-bulk-phase test split showing what an uncorrected phase costs.
 SPEC_RECIPES["signature-bscan-field"] = {**SPEC_RECIPES["signature-bscan"], "bulk_residual_step_rad": (0.0, 0.05)}
+#: The A-line signature (no lateral reduction: one A-line's time series) takes the signature recipe too.
+SPEC_RECIPES["signature-aline"] = dict(SPEC_RECIPES["signature"])
 
 
 #: Shipped specs trained with the :class:`TrainConfig` defaults (LIV/OCDS).
@@ -242,7 +244,13 @@ def recipe_for(spec: FeatureSpec) -> dict[str, Any]:
 #: flow that is identifiable; the scaled prior scored higher on the independent reference simulator, overall
 #: and for flow in every polar band (research/results/independent-ceiling.md, parts d and e, and each model's
 #: ``research/results/SPEC-independent.md``).
-SCALED_PRIOR_SPECS = ("signature", "signature-bscan", "signature-bscan-field", "two-wavelength-signature")
+SCALED_PRIOR_SPECS = (
+    "signature",
+    "signature-bscan",
+    "signature-bscan-field",
+    "signature-aline",
+    "two-wavelength-signature",
+)
 
 
 def default_prior(cfg: TrainConfig) -> Prior:

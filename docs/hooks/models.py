@@ -22,6 +22,8 @@ _USE = {
     "signature": "volume maps computed with `--signature`",
     "signature-bscan": "B-scan maps computed with `--signature`",
     "signature-bscan-field": "B-scan maps computed with `--signature` and `--bulk-phase` (reads the field's |g1|)",
+    "signature-aline": "maps computed with `--signature` at `original` and `axial=14` only: one A-line's time series "
+    "(no lateral reduction is possible), or any maps without a lateral-reduced channel",
     "two-wavelength": "the LIV/OCDS maps of both bands of a dual-band (840 / 1310 nm) acquisition",
     "two-wavelength-signature": "the signature maps of both bands of a dual-band acquisition",
 }

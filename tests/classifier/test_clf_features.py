@@ -15,8 +15,12 @@ def test_shipped_specs_are_the_documented_ones():
         "two-wavelength-signature",
         "signature-bscan",
         "signature-bscan-field",
+        "signature-aline",
         "single-acquisition-bscan",
     }
+    aline = load_spec("signature-aline")  # one A-line: no lateral reduction, the signature's metrics
+    assert [c.name for c in aline.configurations] == ["original", "axial=14"]
+    assert aline.metrics == load_spec("signature-bscan").metrics
     single = load_spec("single-acquisition")
     assert [(c.wavelength_um, c.lateral_resolution_um, c.axial_resolution_um) for c in single.configurations] == [
         (0.84, 4.9, 3.8),

@@ -34,6 +34,7 @@ REPRODUCTION_Z = 2.0
         "two-wavelength-signature",
         "signature-bscan",
         "signature-bscan-field",
+        "signature-aline",
         "single-acquisition-bscan",
     ],
 )
