@@ -58,13 +58,13 @@ __all__ = [
 MATCH_LATERAL_Y = True
 #: Shipped model used by default when the maps hold its (signature) channels.
 SIGNATURE_MODEL = "signature"
+#: The A-line signature model: the signature without a lateral-reduced configuration (one A-line's time series).
+ALINE_MODEL = "signature-aline"
 #: Shipped signature models ``doct-classify`` prefers without ``--model``, in this order: the first whose
 #: every channel the maps hold (``torchdoct maps --signature``; the two-wavelength one reads the maps of
 #: both bands, one file or two), and, for a model that reads the phase, whose maps are bulk-phase
 #: corrected. A model that is not shipped is skipped. The A-line model (no lateral-reduced configuration) comes
 #: last: it fits maps that cannot hold a lateral reduction (one A-line) or were computed without one.
-#: The A-line signature model: the signature without a lateral-reduced configuration (one A-line's time series).
-ALINE_MODEL = "signature-aline"
 SIGNATURE_MODELS = (
     "two-wavelength-signature",
     "signature-bscan-field",
