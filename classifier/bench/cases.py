@@ -51,6 +51,8 @@ from the model's own system and identifiable speed levels, these are fixed phant
 * ``layers-maxwell-volume``: ``layers`` as a static-free volume under 20 dB of noise whose random-ballistic
   layer holds :data:`MAXWELL_POPULATIONS` speeds from a Maxwell distribution of mean :data:`BALLISTIC_UM_S`
   (:func:`maxwell_speeds`: an isotropic Gaussian velocity, the other common model of random-ballistic motion);
+* ``aline``: one A-line's time series (one pixel along x) through ``layers-slow-random-20dB``'s layers, each
+  :data:`ALINE_NZ` / 3 pixels deep, classified by ``signature-aline`` (no lateral reduction of one A-line);
 * ``motion-types``: the shipped phantom, nine discs in static tissue (flow, diffusion and random-ballistic
   discs of three magnitudes each, 30 dB).
 
@@ -88,6 +90,7 @@ CASES = (
     "layers-sparse-volume",
     "layers-jittered-flow",
     "layers-maxwell-volume",
+    "aline",
     "motion-types",
 )
 #: The system of the built cases: wavelength (µm), lateral (1/e² width) and axial (FWHM) resolution (µm).
@@ -136,6 +139,9 @@ FLOW = {
 #: ``v = v_max(1 − (2(z − z_c)/h)²)`` at its centre (``h`` the layer's thickness), the flow parallel to the
 #: layer (polar 90°) so that no scatterer leaves its sub-slab.
 SHEAR_SLABS = 32
+#: Depth pixels of the ``aline`` case: one A-line through the three layers, each :data:`N_PX` × 16 pixels
+#: deep, so that every layer holds as many pixels as sixteen A-lines of the B-scan cases' layers.
+ALINE_NZ = 16 * N_PX
 #: The density (µm⁻³) of ``layers-sparse-volume``: a few scatterers per resolution volume.
 SPARSE_DENSITY = 0.002
 
@@ -149,7 +155,9 @@ class Layers(NamedTuple):
     random: str = "plain"
     static: str | None = None  #: static tissue under ``all`` pixels, under the ``half`` of the A-lines at x < 0
     snr_db: float | None = None  #: noise, dB below the mean intensity (``None``: none)
-    geometry: str = "bscan"  #: ``bscan``; ``volume`` (planes at the pitch of x); ``coarse-y-volume``
+    #: ``bscan``; ``volume`` (planes at the pitch of x); ``coarse-y-volume``; ``aline`` (one pixel along x,
+    #: :data:`ALINE_NZ` deep)
+    geometry: str = "bscan"
     density: float = DENSITY  #: moving and static density, µm⁻³
 
 
@@ -170,6 +178,7 @@ LAYERS = {
     "layers-sparse-volume": Layers("oblique", "slow", geometry="volume", density=SPARSE_DENSITY),
     "layers-jittered-flow": Layers("jittered"),
     "layers-maxwell-volume": Layers("oblique", "maxwell", snr_db=20.0, geometry="volume"),
+    "aline": Layers("oblique", "slow", snr_db=20.0, geometry="aline"),
 }
 POOLS = (1, 5)
 SEED = 0
@@ -188,13 +197,16 @@ def case_dict(name: str) -> dict[str, Any]:
 
     case = LAYERS[name]
     speed, polar, azimuth = FLOW[case.flow]
-    kind = "volume" if case.geometry.endswith("volume") else case.geometry
+    kind = "volume" if case.geometry.endswith("volume") else "bscan"
     grid: dict[str, Any] = {"kind": kind, "n_x": N_PX, "n_z": N_PX, "pitch_x_um": PITCH_UM, "pitch_z_um": PITCH_UM}
+    if case.geometry == "aline":
+        grid.update(n_x=1, n_z=ALINE_NZ)
     if kind == "volume":
         grid.update(n_y=VOLUME_NY, pitch_y_um=COARSE_PITCH_Y_UM if case.geometry == "coarse-y-volume" else PITCH_UM)
     else:
         grid["y_um"] = 0.0
     fov = N_PX * PITCH_UM  # along x and z; the grid is centred on the origin: z runs over [-fov/2, fov/2]
+    depth = grid["n_z"] * PITCH_UM
     diffusion, ballistic = {
         "plain": ((DIFFUSION_UM2_S,), (BALLISTIC_UM_S,)),
         "slow": ((SLOW_RANDOM[0],), (SLOW_RANDOM[1],)),
@@ -203,7 +215,7 @@ def case_dict(name: str) -> dict[str, Any]:
     }[case.random]
     flow = {"kind": "flow", "speed_um_per_s": speed, "polar_angle_deg": polar, "azimuth_deg": azimuth}
     layers = layer_regions(
-        fov,
+        depth,
         case.density,
         (
             {"kind": "diffusion", "diffusion_um2_per_s": diffusion[0]},
@@ -302,7 +314,11 @@ def run_case(name: str, *, threads: int | None = None, pools: Sequence[int] = PO
     from .grid import _classify_rendered
 
     d = case_dict(name)
-    model = load_model("signature" if d["grid"]["kind"] == "volume" else "signature-bscan", threads=threads)
+    if d["grid"]["n_x"] == 1:  # one A-line: no lateral reduction, the A-line model, no window wider than it
+        model = load_model("signature-aline", threads=threads)
+        pools = tuple(p for p in pools if int(p) == 1)
+    else:
+        model = load_model("signature" if d["grid"]["kind"] == "volume" else "signature-bscan", threads=threads)
     scored = _classify_rendered(
         [d],
         model,
