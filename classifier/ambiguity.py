@@ -25,8 +25,8 @@ pixel:
    ``y`` is the common one), or without the speckle channels, is a stack of B-scans for this rule
    (:func:`unseen_axes`). So in B-scan maps, and in maps with an unseen axis, every ``ballistic`` decision
    is ``ballistic-or-flow``. Flow decisions stay: a coherent in-plane shift or a transit decay the network
-   reads as flow is not what random directions give. On maps with an axis of a single pixel
-   (:func:`single_pixel_axes`: one A-line's time series) the speckle window is a line of a few axial grains
+   reads as flow is not what random directions give. On maps with fewer than two axes of more than one
+   pixel (:func:`line_windows`: one A-line's time series) the speckle window is a line of a few axial grains
    and the Doppler box a few pixels, unlike the windows and boxes over which rules 0, 5 and 10 had their
    false detections recorded: those rules are not applied there, and a flow decision stands on the
    network's reading of the decay and on rules 6-9.
@@ -229,6 +229,7 @@ __all__ = [
     "translated",
     "neighbour_correlation",
     "single_pixel_axes",
+    "line_windows",
     "unseen_axes",
 ]
 
@@ -338,10 +339,17 @@ def neighbour_correlation(pitch_um: float, sigma_um: float) -> float:
 
 def single_pixel_axes(extent_px: Mapping[str, int]) -> list[str]:
     """The axes (lower-case letters) of a map that hold a single pixel (``extent_px``: pixels per axis letter):
-    one A-line's time series has one pixel along x (and y). There the speckle window is a line of a few axial
-    grains and the Doppler box a few pixels, not the windows and boxes over which rules 0, 5 and 10 had their
-    false detections recorded, so those rules found no flow on such maps (module docstring, rule 1)."""
+    one A-line's time series has one pixel along x (and y)."""
     return [str(c).lower() for c, n in extent_px.items() if int(n) < 2]
+
+
+def line_windows(extent_px: Mapping[str, int]) -> bool:
+    """True where fewer than two axes of a map hold more than one pixel (``extent_px``: pixels per axis letter;
+    one A-line's time series): its speckle window is a line of a few axial grains and its Doppler box a few
+    pixels, not the two-dimensional windows and boxes over which rules 0, 5 and 10 had their false detections
+    recorded, so those rules found no flow on such maps (module docstring, rule 1). A volume of one plane is a
+    B-scan for them."""
+    return len(extent_px) - len(single_pixel_axes(extent_px)) < 2
 
 
 def unseen_axes(

@@ -332,8 +332,8 @@ def classify_maps(
         }
         axes = _spatial_axes(meta0, shape)
         extent = dict(zip(axes.lower(), shape))
-        single = ambiguity.single_pixel_axes(extent)  # one A-line: rules 0, 5 and 10 found nothing
-        founding = {} if single else channels
+        single = ambiguity.single_pixel_axes(extent)
+        founding = {} if ambiguity.line_windows(extent) else channels  # one A-line: rules 0, 5, 10 found nothing
         coherent, coherent_source = ambiguity.coherent_motion(founding, idx, mdl.spec.n_frames)
         doppler_window = max(int(pool), ambiguity.DOPPLER_WINDOW_MIN)
         doppler, doppler_source = ambiguity.doppler_drift(founding, idx, doppler_window)

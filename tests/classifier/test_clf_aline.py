@@ -63,9 +63,12 @@ def _mapped(tmp_path, seed: int):
     return res.labels, write_maps(tmp_path / f"aline-{seed}.npz", maps)
 
 
-def test_an_axis_of_one_pixel_is_unseen_and_founds_no_flow():
+def test_an_axis_of_one_pixel_is_unseen_and_a_line_of_windows_founds_no_flow():
     assert ambiguity.single_pixel_axes({"z": 96, "x": 1}) == ["x"]
     assert ambiguity.single_pixel_axes({"y": 4, "z": 96, "x": 8}) == []
+    assert ambiguity.line_windows({"z": 96, "x": 1}) and ambiguity.line_windows({"y": 1, "z": 96, "x": 1})
+    assert not ambiguity.line_windows({"y": 1, "z": 96, "x": 8})  # a volume of one plane is a B-scan
+    assert not ambiguity.line_windows({"z": 96, "x": 2})
     seen = ambiguity.unseen_axes("ZX", {"z": 2.0, "x": 2.0}, 4.9, 3.8)
     assert seen == ["y"]  # a B-scan at 2 µm sees x and z
     assert ambiguity.unseen_axes("ZX", {"z": 2.0, "x": 2.0}, 4.9, 3.8, extent_px={"z": 96, "x": 1}) == ["x", "y"]
