@@ -570,6 +570,14 @@ def no_shipped_model_message(maps_list: Sequence[Maps | MapsChannels], reason: s
     if missing and shipped_system and missing.group(1) not in have:
         # the shipped system, one resolution short: name the --resolution to add
         res = missing.group(1)
+        if res.startswith("lateral") and m0.spatial_shape[-1] == 1:  # one A-line: no lateral reduction exists
+            return (
+                f"{m0.name}: the maps lack the resolution {res} that the LIV/OCDS and B-scan or volume models read, "
+                "and one A-line (one pixel along x) cannot be reduced laterally. Fix: compute its signature at "
+                "the resolutions it has for the A-line model (signature-aline), `torchdoct maps DATA "
+                + " ".join(f"--resolution {r}" for r in dict.fromkeys([*have, "original", "axial=14"]))
+                + " --signature ...`, then classify again"
+            )
         return (
             f"{m0.name}: the maps lack the resolution {res} that the shipped models read (they hold "
             f"{', '.join(have)}). Fix: add `--resolution {res}` to `torchdoct maps`, e.g. `torchdoct maps DATA "

@@ -103,3 +103,23 @@ def test_one_alines_maps_take_the_aline_model_and_decide_no_motion_as_another(tm
     assert max(wrong[False, m] for m in CODES) > 0.05, wrong  # the model alone: the rules had work to do
     with pytest.raises(ValueError, match="largest valid pool is 1"):
         classify_maps(path, threads=1, pool=5, background_db="none")
+
+
+def test_one_alines_liv_ocds_maps_are_told_to_compute_the_signature_not_a_lateral_reduction(tmp_path):
+    """The LIV/OCDS models read a lateral reduction, which one A-line cannot have: the refusal names the
+    signature maps the A-line model reads instead of an impossible `--resolution lateral=18`."""
+    from torchdoct.image.phantom import phantom_from_dict
+    from torchdoct.image.render import render
+    from torchdoct.measured.maps import compute_maps
+    from torchdoct.measured.mapsfile import write_maps
+    from torchdoct.measured.sequence import SequenceData, validate_meta
+
+    res = render(phantom_from_dict(_aline(0)), seed=0, threads=1)
+    data = res.data[0].numpy()
+    meta = res.metadata(0)
+    meta.pop("phantom", None)
+    seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source="aline")
+    path = write_maps(tmp_path / "liv.npz", compute_maps(seq, ["original", "axial=14"]))
+    with pytest.raises(ValueError, match=r"cannot be reduced laterally.*--resolution axial=14 --signature") as err:
+        classify_maps(path, threads=1)
+    assert "lateral=18 ..." not in str(err.value)
