@@ -125,6 +125,8 @@ MAXWELL_POPULATIONS = 8
 #: acquisition it decorrelates the intensity about as much as the flow's transit does, and at the first lags
 #: more (diffusion's decay is linear in the lag, transit's quadratic).
 JITTER_UM2_S = 1e-4
+#: The motions a case's ``mixed`` region combines (scored by :func:`classifier.bench.grid.score_mixed`).
+MIXED_HOLDS = {"layers-jittered-flow": ("flow", "diffusion")}
 #: The flows: speed (µm/s; for ``sheared`` the peak of the profile), polar angle from the beam and azimuth from
 #: the B-scan's x axis (degrees); ``jittered`` is ``oblique`` whose scatterers also diffuse (:data:`JITTER_UM2_S`).
 FLOW = {
@@ -264,10 +266,6 @@ def maxwell_speeds(mean_um_s: float, k: int = MAXWELL_POPULATIONS) -> tuple[floa
 
     sigma = float(mean_um_s) / float(chi(3).mean())
     return tuple(float(sigma * chi(3).ppf((j + 0.5) / k)) for j in range(k))
-
-
-#: The motions a case's ``mixed`` region combines (scored by :func:`classifier.bench.grid.score_mixed`).
-MIXED_HOLDS = {"layers-jittered-flow": ("flow", "diffusion")}
 
 
 def _populations(layer: dict[str, Any], key: str, values: Sequence[float]) -> list[dict[str, Any]]:

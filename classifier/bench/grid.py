@@ -444,6 +444,25 @@ def _edge_px(spec, pitch: float, pool: int) -> int:
     return int(math.ceil(coarsest / 2.0 / pitch)) + pool // 2
 
 
+def signature_maps(seq, spec):
+    """The maps of ``seq`` as `torchdoct maps --signature` writes them for the model spec ``spec``: its
+    configurations, the signature it reads, the speckle channels and the Doppler channel (where a static
+    reference exists), with the spec's OCDS analysis."""
+    from torchdoct.measured.maps import compute_maps
+
+    return compute_maps(
+        seq,
+        [c.name for c in spec.configurations],
+        metrics=("mean_db",),
+        signature=list(spec.metrics),
+        speckle=True,
+        doppler=True,
+        ocds_delay_range_s=tuple(spec.ocds_delay_range_s),
+        ocds_scale=spec.ocds_scale,
+        ocds_estimator=spec.ocds_estimator,
+    )
+
+
 def _classify_rendered(
     phantoms: Sequence[dict[str, Any]],
     model,
@@ -465,7 +484,6 @@ def _classify_rendered(
     combines) also ``mixed`` (:func:`score_mixed`)."""
     from torchdoct.image.phantom import phantom_from_dict
     from torchdoct.image.render import render
-    from torchdoct.measured.maps import compute_maps
     from torchdoct.measured.mapsfile import write_maps
     from torchdoct.measured.sequence import SequenceData, validate_meta
 
@@ -481,17 +499,7 @@ def _classify_rendered(
     meta.pop("phantom", None)
     seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source=source)
     t_render = time.perf_counter()
-    maps = compute_maps(
-        seq,
-        [c.name for c in spec.configurations],
-        metrics=("mean_db",),
-        signature=list(spec.metrics),
-        speckle=True,
-        doppler=True,
-        ocds_delay_range_s=tuple(spec.ocds_delay_range_s),
-        ocds_scale=spec.ocds_scale,
-        ocds_estimator=spec.ocds_estimator,
-    )  # what maps --signature writes (Doppler where a static reference exists), with the model's OCDS analysis
+    maps = signature_maps(seq, spec)
     t_maps = time.perf_counter()
     pitch = _pitch_um(spec)
     from ..ambiguity import DOPPLER_WINDOW_MIN, doppler_imaginary

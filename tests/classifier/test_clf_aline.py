@@ -10,7 +10,7 @@ import pytest
 
 from classifier import ambiguity
 from classifier.bench import cases
-from classifier.bench.grid import CODES, layer_regions
+from classifier.bench.grid import CODES, layer_regions, signature_maps
 from classifier.infer import classify_maps, default_model_for, load_model, read_maps
 
 #: A-lines rendered (seeds), depth pixels per A-line, pixel pitch (µm).
@@ -39,7 +39,6 @@ def _aline(seed: int) -> dict:
 def _mapped(tmp_path, seed: int):
     from torchdoct.image.phantom import phantom_from_dict
     from torchdoct.image.render import render
-    from torchdoct.measured.maps import compute_maps
     from torchdoct.measured.mapsfile import write_maps
     from torchdoct.measured.sequence import SequenceData, validate_meta
 
@@ -49,17 +48,7 @@ def _mapped(tmp_path, seed: int):
     meta = res.metadata(0)
     meta.pop("phantom", None)
     seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source=f"aline-{seed}")
-    maps = compute_maps(  # what `torchdoct maps ALINE --resolution original --resolution axial=14 --signature` writes
-        seq,
-        ["original", "axial=14"],
-        metrics=("mean_db",),
-        signature=list(spec.metrics),
-        speckle=True,
-        doppler=True,
-        ocds_delay_range_s=tuple(spec.ocds_delay_range_s),
-        ocds_scale=spec.ocds_scale,
-        ocds_estimator=spec.ocds_estimator,
-    )
+    maps = signature_maps(seq, spec)  # `torchdoct maps ALINE --resolution original --resolution axial=14 --signature`
     return res.labels, write_maps(tmp_path / f"aline-{seed}.npz", maps)
 
 
