@@ -1,7 +1,7 @@
 """Where the physics cannot tell random-ballistic motion from flow: a ``ballistic`` decision becomes the
 set ``ballistic-or-flow``, unless the speckle pattern moved coherently, which only flow does: then every
 decision but ``indeterminate`` is ``flow`` (numpy only: the classify path). The rules are applied in the order
-0, 5, 10, 1, 2, 3, 4, 7, 9, then 6 and 8 together. The derivation is in docs/abstention.md
+0, 5, 10, 1, 11, 2, 3, 4, 7, 9, then 6 and 8 together. The derivation is in docs/abstention.md
 ("What the data cannot tell") and docs/concepts/speckle-motion.md §3, §7.
 
 Kept whole (over 800 lines): this docstring is the rules' specification in the order they run, and every rule
@@ -30,6 +30,17 @@ pixel:
    and the Doppler box a few pixels, unlike the windows and boxes over which rules 0, 5 and 10 had their
    false detections recorded: those rules are not applied there, and a flow decision stands on the
    network's reading of the decay and on rules 6-9.
+11. **A sheared flow without a phase reference** (``sheared_flow`` in the counts; right after rule 1). A
+   laminar flow's speed changes across it (a Poiseuille profile falls to zero at a vessel's wall): inside one
+   PSF its scatterers move with a spread of axial speeds ``n_z·G·u`` (``G`` the speed's change per µm along
+   ``ĝ``, ``u`` a scatterer's offset along ``ĝ``), and ``|g1(τ)|² = exp(−(2kn·n_z·G·s_g·τ)²/2)``, the Doppler
+   decay of random-ballistic motion with a Maxwell velocity of per-axis spread ``n_z·G·s_g/√2``
+   (speckle-motion §3 (e)). The pattern moves only with the local mean speed, zero at the wall: where the
+   shear decorrelates the window first, no intensity statistic separates the two, in a volume as in a B-scan.
+   The mean axial speed shows in the Doppler phase against a static reference (``−2kn·n_z·v̄·τ``); a flow
+   across the beam (``n_z = 0``) has no spread to decorrelate with. So a ``ballistic`` decision is
+   ``ballistic-or-flow`` at every pixel without a finite ``doppler_phase_m@…`` (:func:`phase_reference`; no
+   Doppler channel: every pixel).
 2. **Flow too slow to decorrelate by transit** (any geometry). A flow decorrelates the intensity only by
    transit through the PSF, ``ρ(τ) = exp(−Σ_c v_c²τ²/(2s_c²))``; random-ballistic motion mostly by the
    Doppler phase of random directions, about ``2kn·s`` (≈ 30 at 840 nm) times faster at one speed. The two
@@ -226,6 +237,7 @@ __all__ = [
     "fast_decorrelation",
     "offset_moved",
     "slow_decorrelation",
+    "phase_reference",
     "translated",
     "neighbour_correlation",
     "single_pixel_axes",
@@ -472,6 +484,22 @@ def doppler_drift(
     return (seen if idx is None else seen[idx]), [name]
 
 
+def phase_reference(channels: Mapping[str, np.ndarray], idx: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
+    """Rule 11 per classified pixel (module docstring): True where some Doppler channel (``doppler_phase_m@…``)
+    holds a finite phase, i.e. a static-tissue reference in the pixel's A-line or B-scan measures its mean
+    axial motion; and the channels read. All False without a Doppler channel (intensity-only data, or no
+    static reference anywhere)."""
+    names = sorted(c for c in channels if _DOPPLER.match(c))
+    n = int(np.asarray(channels[names[0]]).size) if names else 0
+    if not names:
+        size = len(idx) if idx is not None else 0
+        return np.zeros(size, bool), []
+    seen = np.zeros(n, bool)
+    for c in names:
+        seen |= np.isfinite(np.asarray(channels[c], np.float64).reshape(-1))
+    return (seen if idx is None else seen[idx]), names
+
+
 def _window_share(hit: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:
     """Per pixel of a map: the share of the valid pixels of the ``window``-wide box centred on it (cut at the
     map's edges) where ``hit`` holds; NaN where the box holds no valid pixel."""
@@ -683,13 +711,15 @@ def abstain_where_ambiguous(
     moved: OffsetMotion | None = None,
     translation: np.ndarray | None = None,
     doppler: np.ndarray | None = None,
+    reference: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, int]]:
     """``labels`` (indices into ``names``, one per classified pixel) with, first, the outcomes of
     :data:`COHERENT_TO_FLOW` turned into ``flow`` where ``coherent`` (rule 0, :func:`coherent_motion`) and the
     outcomes of :data:`TRANSLATED_TO_FLOW` where ``translation`` (rule 5, :func:`translated`) and those of
     :data:`DOPPLER_TO_FLOW` where ``doppler`` (rule 10, :func:`doppler_drift`), then the
     remaining ``ballistic`` into :data:`SET_LABEL` where rules 1 (``unseen_axis``: a B-scan, or maps with an axis
-    :func:`unseen_axes` names), 2 (``correlation`` ≥
+    :func:`unseen_axes` names), 11 (``reference`` False: no phase reference, :func:`phase_reference`; not
+    applied when ``reference`` is ``None``), 2 (``correlation`` ≥
     :data:`DECORRELATED_BELOW`; NaN counts as not decorrelated) or 3 (``fast``, :func:`fast_decorrelation`)
     apply, and last the remaining ``ballistic`` and ``diffusion`` into their set with flow where
     ``moved.off_centre`` (:data:`OFFSET_TO_SET`) and the remaining ``ballistic`` where ``moved.grew``
@@ -702,6 +732,7 @@ def abstain_where_ambiguous(
         "translation": 0,
         "doppler_drift": 0,
         "bscan_plane": 0,
+        "sheared_flow": 0,
         "slow_decorrelation": 0,
         "fast_decorrelation": 0,
         "offset_moved": 0,
@@ -728,6 +759,11 @@ def abstain_where_ambiguous(
         counts["bscan_plane"] = int(ball.sum())
         out[ball] = names.index(SET_LABEL)
         ball[:] = False
+    if reference is not None:
+        sheared = ball & ~np.asarray(reference, bool)
+        counts["sheared_flow"] = int(sheared.sum())
+        out[sheared] = names.index(SET_LABEL)
+        ball &= ~sheared
     if correlation is not None:
         slow = ball & ~(np.asarray(correlation, np.float64) < DECORRELATED_BELOW)
         counts["slow_decorrelation"] = int(slow.sum())

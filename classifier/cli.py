@@ -553,10 +553,13 @@ def _classify(args: argparse.Namespace) -> int:
                 "decided as a direction-symmetric motion (--decide-ballistic keeps the model's decisions)"
             )
         ch = amb["changed_pixels"] if amb else {}
-        if ch and ch["bscan_plane"] + ch["slow_decorrelation"] + ch.get("fast_decorrelation", 0):
+        if ch and ch["bscan_plane"] + ch.get("sheared_flow", 0) + ch["slow_decorrelation"] + ch.get(
+            "fast_decorrelation", 0
+        ):
             print(
                 f"  ballistic-or-flow where flow cannot be excluded: {ch['bscan_plane']} pixels of maps that cannot "
                 f"see the pattern move along {', '.join(amb.get('unseen_axes') or ['y'])} (flow along it), "
+                f"{ch.get('sheared_flow', 0)} without a phase reference (a sheared flow), "
                 f"{ch['slow_decorrelation']} not decorrelated, "
                 f"{ch.get('fast_decorrelation', 0)} decorrelated before the first lag "
                 "(--decide-ballistic keeps the model's decisions)"

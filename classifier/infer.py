@@ -341,6 +341,7 @@ def classify_maps(
             {c: v for c, v in channels.items() if c.startswith("xc_centre_")}, mdl.columns, x, idx, mdl.spec.n_frames
         )
         fast, fast_source = ambiguity.fast_decorrelation(channels, idx)
+        reference, reference_source = ambiguity.phase_reference(channels, idx)
         pitch = _finest_pitch_um(meta0.get("pitch_um"))
         moved, moved_source = ambiguity.offset_moved(channels, pitch, idx, mdl.spec.n_frames)
         pitches = meta0.get("pitch_um")
@@ -382,6 +383,7 @@ def classify_maps(
             moved=moved,
             translation=translation,
             doppler=doppler,
+            reference=reference,
         )
         borrowed = ambiguity.borrowed_flow(
             labels_flat,
@@ -417,7 +419,7 @@ def classify_maps(
             "rules": (["coherent_motion"] if coherent is not None else [])
             + (["translation"] if translation is not None else [])
             + (["doppler_drift"] if doppler is not None else [])
-            + (["bscan_plane"] if unseen else [])
+            + (["bscan_plane"] if unseen else ["sheared_flow"])
             + (["slow_decorrelation"] if corr is not None else [])
             + (["fast_decorrelation"] if fast is not None and not unseen else [])
             + (["offset_moved"] if moved is not None else [])
@@ -439,6 +441,8 @@ def classify_maps(
             "offset_hold_min": ambiguity.OFFSET_HOLD_MIN,
             "translation_channels": translation_source,
             "doppler_channels": doppler_source,
+            "reference_channels": reference_source,
+            "reference_share": float(np.mean(reference)) if len(reference) else 0.0,
             "doppler_im_min": ambiguity.DOPPLER_IM_MIN,
             "doppler_window_px": doppler_window,
             "translation_hold_min": ambiguity.TRANSLATION_HOLD_MIN,

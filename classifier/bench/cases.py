@@ -51,6 +51,12 @@ from the model's own system and identifiable speed levels, these are fixed phant
 * ``layers-maxwell-volume``: ``layers`` as a static-free volume under 20 dB of noise whose random-ballistic
   layer holds :data:`MAXWELL_POPULATIONS` speeds from a Maxwell distribution of mean :data:`BALLISTIC_UM_S`
   (:func:`maxwell_speeds`: an isotropic Gaussian velocity, the other common model of random-ballistic motion);
+* ``vessel-volume``: a static-free volume under 20 dB of noise holding a vessel with a Poiseuille profile
+  (:data:`VESSEL`: a cylinder whose axis leaves the B-scan planes at 60° from the beam, the speed falling from
+  its axis to zero at its wall; ``flow_profile = "poiseuille"``) beside a diffusing and a random-ballistic
+  sphere (``layers-slow-random-20dB``'s motions): the sheared flow whose spread of axial speeds decorrelates as
+  random-ballistic motion does (docs/abstention.md, rule 11);
+* ``vessel-static-volume``: ``vessel-volume`` inside static tissue, which gives the phase reference;
 * ``aline``: one A-line's time series (one pixel along x) through ``layers-slow-random-20dB``'s layers, each
   :data:`ALINE_NZ` / 3 pixels deep, classified by ``signature-aline`` (no lateral reduction of one A-line);
 * ``motion-types``: the shipped phantom, nine discs in static tissue (flow, diffusion and random-ballistic
@@ -90,6 +96,8 @@ CASES = (
     "layers-sparse-volume",
     "layers-jittered-flow",
     "layers-maxwell-volume",
+    "vessel-volume",
+    "vessel-static-volume",
     "aline",
     "motion-types",
 )
@@ -141,6 +149,18 @@ FLOW = {
 #: ``v = v_max(1 − (2(z − z_c)/h)²)`` at its centre (``h`` the layer's thickness), the flow parallel to the
 #: layer (polar 90°) so that no scatterer leaves its sub-slab.
 SHEAR_SLABS = 32
+#: The vessel of the ``vessel-*`` cases: peak (centre-line) speed (µm/s), radius (µm), polar and azimuth angle of
+#: its axis and flow (degrees), and the centre (µm, x, y, z) its axis passes through; beside it two spheres of
+#: radius :data:`SPHERE_RADIUS_UM` centred at :data:`SPHERE_CENTRES_UM` (diffusion, random-ballistic motion).
+VESSEL = {
+    "speed_um_per_s": 0.6,
+    "radius_um": 20.0,
+    "polar_deg": 60.0,
+    "azimuth_deg": 30.0,
+    "center_um": (0.0, 0.0, -35.0),
+}
+SPHERE_RADIUS_UM = 28.0
+SPHERE_CENTRES_UM = ((-50.0, 0.0, 50.0), (50.0, 0.0, 50.0))
 #: Depth pixels of the ``aline`` case: one A-line through the three layers, each :data:`N_PX` × 16 pixels
 #: deep, so that every layer holds as many pixels as sixteen A-lines of the B-scan cases' layers.
 ALINE_NZ = 16 * N_PX
@@ -197,6 +217,8 @@ def case_dict(name: str) -> dict[str, Any]:
         return read_toml(shipped_phantoms()[name])
     from .grid import layer_regions
 
+    if name in ("vessel-volume", "vessel-static-volume"):
+        return _vessel_dict(name, static=name == "vessel-static-volume")
     case = LAYERS[name]
     speed, polar, azimuth = FLOW[case.flow]
     kind = "volume" if case.geometry.endswith("volume") else "bscan"
@@ -256,6 +278,66 @@ def case_dict(name: str) -> dict[str, Any]:
         )
     if case.snr_db is not None:
         d["noise"] = {"snr_db": case.snr_db}
+    return d
+
+
+def _vessel_dict(name: str, *, static: bool) -> dict[str, Any]:
+    """The ``vessel-*`` cases (module docstring): :data:`VESSEL` with a Poiseuille profile and the two spheres of
+    ``layers-slow-random-20dB``'s motions, a volume of :data:`VOLUME_NY` planes, 20 dB of noise."""
+    polar, azimuth = math.radians(VESSEL["polar_deg"]), math.radians(VESSEL["azimuth_deg"])
+    axis = [math.sin(polar) * math.cos(azimuth), math.sin(polar) * math.sin(azimuth), math.cos(polar)]
+    flow = {
+        "kind": "flow",
+        "speed_um_per_s": VESSEL["speed_um_per_s"],
+        "polar_angle_deg": VESSEL["polar_deg"],
+        "azimuth_deg": VESSEL["azimuth_deg"],
+    }
+    random = (
+        {"kind": "diffusion", "diffusion_um2_per_s": SLOW_RANDOM[0]},
+        {"kind": "ballistic", "speed_um_per_s": SLOW_RANDOM[1]},
+    )
+    regions: list[dict[str, Any]] = [
+        {
+            "name": "vessel",
+            "shape": "cylinder",
+            "center_um": list(VESSEL["center_um"]),
+            "axis": axis,
+            "radius_um": VESSEL["radius_um"],
+            "flow_profile": "poiseuille",
+            "density_per_um3": DENSITY,
+            "motion": [flow],
+        }
+    ] + [
+        {
+            "name": motion["kind"],
+            "shape": "sphere",
+            "center_um": list(centre),
+            "radius_um": SPHERE_RADIUS_UM,
+            "density_per_um3": DENSITY,
+            "motion": [motion],
+        }
+        for centre, motion in zip(SPHERE_CENTRES_UM, random)
+    ]
+    grid = {
+        "kind": "volume",
+        "n_x": N_PX,
+        "n_z": N_PX,
+        "n_y": VOLUME_NY,
+        "pitch_x_um": PITCH_UM,
+        "pitch_z_um": PITCH_UM,
+    }
+    grid["pitch_y_um"] = PITCH_UM
+    d: dict[str, Any] = {
+        "name": f"case-{name}",
+        "system": [dict(SYSTEM)],
+        "protocol": dict(PROTOCOL),
+        "grid": grid,
+        "region": regions,
+        "noise": {"snr_db": 20.0},
+        "simulation": {"seed": SEED},
+    }
+    if static:
+        d["background"] = [{"name": "static-tissue", "density_per_um3": DENSITY}]
     return d
 
 

@@ -55,6 +55,13 @@ def test_the_case_phantoms_hold_what_their_names_say():
     assert len(maxwell) == C.MAXWELL_POPULATIONS
     assert sum(r["density_per_um3"] for r in maxwell) == pytest.approx(C.DENSITY)
     assert speeds == sorted(speeds) and len(set(speeds)) == len(speeds)
+    vessel = C.case_dict("vessel-volume")  # a Poiseuille vessel beside two spheres, static-free, 20 dB
+    tube = vessel["region"][0]
+    assert tube["shape"] == "cylinder" and tube["flow_profile"] == "poiseuille" and tube["radius_um"] == 20.0
+    assert tube["axis"] == pytest.approx([0.75, 0.75**0.5 / 2, 0.5])  # polar 60°, azimuth 30°
+    assert [r["motion"][0]["kind"] for r in vessel["region"]] == ["flow", "diffusion", "ballistic"]
+    assert vessel["grid"]["kind"] == "volume" and "background" not in vessel and vessel["noise"]["snr_db"] == 20.0
+    assert C.case_dict("vessel-static-volume")["background"][0]["density_per_um3"] == C.DENSITY
     assert C.case_dict("motion-types")["background"]  # the shipped phantom: discs in static tissue
     with pytest.raises(ValueError, match="unknown case 'slabs'"):
         C.case_dict("slabs")
@@ -96,7 +103,6 @@ def test_the_built_layers_are_never_decided_as_another_motion(case):
     assert rows[max(pools), False]["all_pixels"]["wrong_share_max"] > 0.05  # the case is one the rules must mend
 
 
-@pytest.mark.slow  # a volume of 110 592 pixels rendered, mapped and classified four times (about 30 s)
 @pytest.mark.slow  # a volume of 110 592 pixels rendered, mapped and classified four times (about 30 s)
 def test_flow_along_an_undersampled_slow_axis_is_never_decided_as_another_motion():
     """A volume whose y pitch leaves neighbouring planes no shared speckle cannot see a flow along y move: with

@@ -152,6 +152,12 @@ class Region:
     unbounded), ``cylinder`` (infinite; axis through ``center_um`` along ``axis``, ``radius_um``),
     ``label-image`` (pixels of ``file`` equal to ``value``; a [Z, X] image extends along y, a
     [Y, Z, X] image is a volume; the image's pixels are the phantom grid's).
+
+    ``flow_profile`` (cylinder only): ``uniform`` (default: every scatterer of the region moves with its
+    flow's velocity) or ``poiseuille``, laminar flow in a circular tube: a scatterer at distance ``r`` from
+    the axis moves with ``v_max·(1 − r²/R²)`` along the flow's direction, which must be the axis
+    (``speed_um_per_s`` is the centre-line speed ``v_max``; the mean over the cross-section is ``v_max/2``).
+    Diffusion or random-ballistic motion of the same region adds to it unchanged.
     """
 
     name: str
@@ -164,6 +170,7 @@ class Region:
     z_min_um: float = 0.0
     z_max_um: float = 0.0
     axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    flow_profile: str = "uniform"
     file: str = ""
     value: int = 0
     label_image: np.ndarray | None = field(default=None, repr=False, compare=False)
@@ -188,6 +195,21 @@ class Region:
             return tuple(out)
         return None  # label image: bounded by the grid, handled by the renderer
 
+    def axis_distance_sq(self, pos: torch.Tensor) -> torch.Tensor:
+        """Squared distance (µm²) of positions [..., 3] from a cylinder's axis."""
+        c = torch.tensor(self.center_um, dtype=pos.dtype, device=pos.device)
+        u = torch.tensor(self.axis, dtype=pos.dtype, device=pos.device)
+        d = pos - c
+        along = (d * u).sum(-1, keepdim=True)
+        return ((d - along * u) ** 2).sum(-1)
+
+    def flow_scale(self, pos: torch.Tensor) -> torch.Tensor | None:
+        """Per-scatterer factor on the region's flow velocity at positions [N, 3]: ``1 − r²/R²`` (at least 0)
+        for a Poiseuille cylinder, ``None`` (uniform flow) otherwise."""
+        if self.flow_profile != "poiseuille":
+            return None
+        return (1.0 - self.axis_distance_sq(pos) / self.radius_um**2).clamp_(min=0.0)
+
     def contains(self, pos: torch.Tensor, grid: Grid) -> torch.Tensor:
         """Boolean mask [...] of positions [..., 3] (µm, float64) inside the region."""
         c = torch.tensor(self.center_um, dtype=pos.dtype, device=pos.device)
@@ -200,10 +222,7 @@ class Region:
         if self.shape == "slab":
             return (pos[..., 2] >= self.z_min_um) & (pos[..., 2] <= self.z_max_um)
         if self.shape == "cylinder":
-            u = torch.tensor(self.axis, dtype=pos.dtype, device=pos.device)
-            d = pos - c
-            along = (d * u).sum(-1, keepdim=True)
-            return ((d - along * u) ** 2).sum(-1) <= self.radius_um**2
+            return self.axis_distance_sq(pos) <= self.radius_um**2
         # label image: nearest pixel of the grid; outside the image is outside the region
         img = torch.as_tensor(self.label_image == self.value, device=pos.device)
         idx = []
@@ -285,6 +304,8 @@ class Phantom:
             for key in _SHAPE_KEYS[r.shape]:
                 val = getattr(r, key)
                 d[key] = list(val) if isinstance(val, tuple) else val
+            if r.flow_profile != "uniform":
+                d["flow_profile"] = r.flow_profile
             p = dict(pops[r.population])
             p.pop("name", None)
             d.update(p)
@@ -308,6 +329,12 @@ _SHAPE_REQUIRED = {
     "label-image": {"file", "value"},
 }
 _POP_KEYS = {"density_per_um3", "reflectivity", "motion"}
+#: Optional keys of a shape beyond :data:`_SHAPE_KEYS`.
+_SHAPE_OPTIONAL = {"cylinder": ("flow_profile",)}
+#: Flow profiles of a cylinder region (:class:`Region`).
+FLOW_PROFILES = ("uniform", "poiseuille")
+#: Largest angle (degrees) between a Poiseuille cylinder's flow and its axis.
+PROFILE_AXIS_TOLERANCE_DEG = 0.5
 
 
 def _vec3(path: str, value: Any) -> tuple[float, float, float]:
@@ -446,7 +473,10 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
             _fail(path, "missing key 'shape'", f"set shape = one of {', '.join(map(repr, SHAPES))}")
         shape = _string(f"{path}.shape", r["shape"], SHAPES)
         _check_keys(
-            path, r, {"name", "shape", *_SHAPE_KEYS[shape], *_POP_KEYS}, {"density_per_um3", *_SHAPE_REQUIRED[shape]}
+            path,
+            r,
+            {"name", "shape", *_SHAPE_KEYS[shape], *_SHAPE_OPTIONAL.get(shape, ()), *_POP_KEYS},
+            {"density_per_um3", *_SHAPE_REQUIRED[shape]},
         )
         name = _string(f"{path}.name", r.get("name", f"region{i}"))
         if name in names or name.startswith("background"):
@@ -501,6 +531,9 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
                 _fail(f"{path}.axis", "must not be the zero vector", "give the direction of the cylinder axis")
             kw["axis"] = tuple(a / norm for a in ax)
             kw["radius_um"] = _number(f"{path}.radius_um", r["radius_um"], positive=True, hi=MAX_LENGTH_UM, unit="µm")
+            kw["flow_profile"] = _string(f"{path}.flow_profile", r.get("flow_profile", "uniform"), FLOW_PROFILES)
+            if kw["flow_profile"] == "poiseuille":
+                _check_profile(path, kw["axis"], scene.populations[kw["population"]])
         else:
             kw["file"] = _string(f"{path}.file", r["file"])
             kw["value"] = _integer(f"{path}.value", r["value"])
@@ -514,6 +547,32 @@ def phantom_from_dict(data: dict[str, Any], *, base_dir: Path | None = None) -> 
             kw["label_image"] = img
         regions.append(Region(**kw))
     return Phantom(scene=scene, grid=grid, regions=tuple(regions), background=background)
+
+
+def _check_profile(path: str, axis: tuple[float, float, float], pop: Population) -> None:
+    """A Poiseuille cylinder's population has a flow, and every flow runs along the axis (either way)."""
+    flows = [m for m in pop.active_motion if m.kind == "flow"]
+    ux, uy, uz = axis
+    polar = math.degrees(math.acos(max(-1.0, min(1.0, uz))))
+    azimuth = math.degrees(math.atan2(uy, ux))
+    along = f"polar_angle_deg = {polar:.6g}, azimuth_deg = {azimuth:.6g}"
+    if not flows:
+        _fail(
+            f"{path}.flow_profile",
+            "a Poiseuille profile shapes the region's flow, and the region has none",
+            f"add a [[region.motion]] of kind 'flow' along the axis ({along}), or drop flow_profile",
+        )
+    for m in flows:
+        v = m.velocity_um_per_s
+        speed = math.sqrt(sum(c * c for c in v))
+        cos = abs(sum(a * c for a, c in zip(axis, v))) / speed
+        if cos < math.cos(math.radians(PROFILE_AXIS_TOLERANCE_DEG)):
+            _fail(
+                f"{path}.motion",
+                f"the flow (polar {m.polar_angle_deg:g}°, azimuth {m.azimuth_deg:g}°) does not run along the "
+                "cylinder's axis: a Poiseuille profile is laminar flow along the tube",
+                f"set the flow's {along} (or the opposite direction), or drop flow_profile",
+            )
 
 
 def shipped_phantoms() -> dict[str, Path]:

@@ -276,6 +276,9 @@ def _seed_population(
     vel = None
     if pop.ballistic or any(pop.flow_velocity_um_per_s):
         vel = torch.tensor(pop.flow_velocity_um_per_s, dtype=_F64).expand(n, 3).clone()
+        scale = phantom.regions[region].flow_scale(pos) if region is not None else None
+        if scale is not None:  # a Poiseuille cylinder: the flow's speed falls off from the axis
+            vel *= scale[:, None]
         for b in pop.ballistic:
             vel += b.speed_um_per_s * unit_directions(torch.rand(n, 2, generator=gen, dtype=_F64), b.directions)
     name = phantom.scene.populations[index].name or f"population{index}"
