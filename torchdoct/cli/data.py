@@ -75,7 +75,8 @@ def _maps_arguments(mp) -> None:
         "--no-doppler",
         action="store_true",
         help="with --signature: leave out the Doppler channel it adds by default for complex data (the "
-        "classifier's rule 10 reads it where a static reference exists)",
+        "classifier's rules 10 and 11 read it where a static reference exists: without it no volume pixel is "
+        "decided random-ballistic)",
     )
     mp.add_argument(
         "--doppler-lags",
