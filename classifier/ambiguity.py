@@ -490,11 +490,9 @@ def phase_reference(channels: Mapping[str, np.ndarray], idx: np.ndarray | None =
     axial motion; and the channels read. All False without a Doppler channel (intensity-only data, or no
     static reference anywhere)."""
     names = sorted(c for c in channels if _DOPPLER.match(c))
-    n = int(np.asarray(channels[names[0]]).size) if names else 0
     if not names:
-        size = len(idx) if idx is not None else 0
-        return np.zeros(size, bool), []
-    seen = np.zeros(n, bool)
+        return np.zeros(0 if idx is None else len(idx), bool), []
+    seen = np.zeros(int(np.asarray(channels[names[0]]).size), bool)
     for c in names:
         seen |= np.isfinite(np.asarray(channels[c], np.float64).reshape(-1))
     return (seen if idx is None else seen[idx]), names

@@ -73,6 +73,21 @@ def test_a_poiseuille_cylinder_moves_each_scatterer_at_its_laminar_speed_along_t
     assert torch.allclose(st.vel.norm(dim=1), torch.full((st.vel.shape[0],), 0.6, dtype=torch.float64))
 
 
+def test_the_ground_truth_speed_of_a_pixel_is_the_laminar_speed_at_its_centre():
+    """label_params holds v_max (1 − r²/R²) at each vessel pixel's centre (float32), the flow label every vessel
+    pixel, and nothing outside."""
+    ph = phantom_from_dict(_vessel(n=24))
+    labels, params, region = R._pixel_labels(ph)
+    z = torch.tensor(ph.grid.coords_um("z"), dtype=torch.float64)
+    x = torch.tensor(ph.grid.coords_um("x"), dtype=torch.float64)
+    zz, xx = torch.meshgrid(z, x, indexing="ij")
+    r2 = ph.regions[0].axis_distance_sq(torch.stack([xx, torch.zeros_like(xx), zz], -1)).numpy()
+    inside = r2 <= 100.0
+    assert (labels[inside] == 4).all() and (labels[~inside] == 0).all() and inside.sum() > 20
+    np.testing.assert_allclose(params[1][inside], 0.6 * (1.0 - r2[inside] / 100.0), rtol=1e-6, atol=1e-7)
+    assert (params[1][~inside] == 0).all()
+
+
 def test_the_profile_round_trips_and_uniform_is_left_out():
     d = phantom_from_dict(_vessel()).to_dict()
     assert d["region"][0]["flow_profile"] == "poiseuille"

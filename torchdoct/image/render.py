@@ -411,6 +411,14 @@ def _pixel_labels(phantom: Phantom) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     look = region.long().clone()
     look[look < 0] = len(table)
     labels, params = codes[look], torch.stack([d[look], v[look]])
+    for i, r in enumerate(phantom.regions):  # a Poiseuille cylinder: the flow's speed at the pixel centre
+        scale = r.flow_scale(pos)
+        if scale is not None:
+            pop = phantom.scene.populations[r.population]
+            flow = math.sqrt(sum(c * c for c in pop.flow_velocity_um_per_s))
+            local = (flow * scale + sum(b.speed_um_per_s for b in pop.ballistic)).to(params.dtype)
+            inside = region == i + offset
+            params[1][inside] = local[inside]
     if grid.kind == "bscan":
         labels, params, region = labels[0], params[:, 0], region[0]
     return labels.numpy(), params.numpy(), region.numpy()
