@@ -254,17 +254,8 @@ def case_dict(name: str) -> dict[str, Any]:
     )
     if case.flow == "jittered":  # the flow's scatterers diffuse too: the renderer labels the layer "mixed"
         regions[-1]["motion"] = [flow, {"kind": "diffusion", "diffusion_um2_per_s": JITTER_UM2_S}]
-    d: dict[str, Any] = {
-        "name": f"case-{name}",
-        "system": [dict(SYSTEM)],
-        "protocol": dict(PROTOCOL),
-        "grid": grid,
-        "region": regions,
-        "simulation": {"seed": SEED},
-    }
-    if case.static == "all":
-        d["background"] = [{"name": "static-tissue", "density_per_um3": case.density}]
-    elif case.static == "half":  # a cylinder along z over the A-lines at x < 0
+    d = _case_phantom(name, grid, regions, static_density=case.density if case.static == "all" else None)
+    if case.static == "half":  # a cylinder along z over the A-lines at x < 0
         d["region"].append(
             {
                 "name": "static-tissue",
@@ -281,17 +272,36 @@ def case_dict(name: str) -> dict[str, Any]:
     return d
 
 
+def _case_phantom(
+    name: str, grid: dict[str, Any], regions: list[dict[str, Any]], *, static_density: float | None
+) -> dict[str, Any]:
+    """A case's phantom file: the cases' system, protocol and seed, with static tissue of ``static_density``
+    (µm⁻³) under every pixel unless ``None``."""
+    d: dict[str, Any] = {
+        "name": f"case-{name}",
+        "system": [dict(SYSTEM)],
+        "protocol": dict(PROTOCOL),
+        "grid": grid,
+        "region": regions,
+        "simulation": {"seed": SEED},
+    }
+    if static_density is not None:
+        d["background"] = [{"name": "static-tissue", "density_per_um3": static_density}]
+    return d
+
+
 def _vessel_dict(name: str, *, static: bool) -> dict[str, Any]:
     """The ``vessel-*`` cases (module docstring): :data:`VESSEL` with a Poiseuille profile and the two spheres of
     ``layers-slow-random-20dB``'s motions, a volume of :data:`VOLUME_NY` planes, 20 dB of noise."""
-    polar, azimuth = math.radians(VESSEL["polar_deg"]), math.radians(VESSEL["azimuth_deg"])
-    axis = [math.sin(polar) * math.cos(azimuth), math.sin(polar) * math.sin(azimuth), math.cos(polar)]
+    from torchdoct.sim.config import Flow
+
     flow = {
         "kind": "flow",
         "speed_um_per_s": VESSEL["speed_um_per_s"],
         "polar_angle_deg": VESSEL["polar_deg"],
         "azimuth_deg": VESSEL["azimuth_deg"],
     }
+    axis = Flow(speed_um_per_s=1.0, polar_angle_deg=VESSEL["polar_deg"], azimuth_deg=VESSEL["azimuth_deg"])
     random = (
         {"kind": "diffusion", "diffusion_um2_per_s": SLOW_RANDOM[0]},
         {"kind": "ballistic", "speed_um_per_s": SLOW_RANDOM[1]},
@@ -301,7 +311,7 @@ def _vessel_dict(name: str, *, static: bool) -> dict[str, Any]:
             "name": "vessel",
             "shape": "cylinder",
             "center_um": list(VESSEL["center_um"]),
-            "axis": axis,
+            "axis": list(axis.velocity_um_per_s),
             "radius_um": VESSEL["radius_um"],
             "flow_profile": "poiseuille",
             "density_per_um3": DENSITY,
@@ -318,26 +328,10 @@ def _vessel_dict(name: str, *, static: bool) -> dict[str, Any]:
         }
         for centre, motion in zip(SPHERE_CENTRES_UM, random)
     ]
-    grid = {
-        "kind": "volume",
-        "n_x": N_PX,
-        "n_z": N_PX,
-        "n_y": VOLUME_NY,
-        "pitch_x_um": PITCH_UM,
-        "pitch_z_um": PITCH_UM,
-    }
-    grid["pitch_y_um"] = PITCH_UM
-    d: dict[str, Any] = {
-        "name": f"case-{name}",
-        "system": [dict(SYSTEM)],
-        "protocol": dict(PROTOCOL),
-        "grid": grid,
-        "region": regions,
-        "noise": {"snr_db": 20.0},
-        "simulation": {"seed": SEED},
-    }
-    if static:
-        d["background"] = [{"name": "static-tissue", "density_per_um3": DENSITY}]
+    grid = {"kind": "volume", "n_x": N_PX, "n_z": N_PX, "n_y": VOLUME_NY}
+    grid.update(pitch_x_um=PITCH_UM, pitch_z_um=PITCH_UM, pitch_y_um=PITCH_UM)
+    d = _case_phantom(name, grid, regions, static_density=DENSITY if static else None)
+    d["noise"] = {"snr_db": 20.0}
     return d
 
 
