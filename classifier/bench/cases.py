@@ -57,6 +57,11 @@ from the model's own system and identifiable speed levels, these are fixed phant
   sphere (``layers-slow-random-20dB``'s motions): the sheared flow whose spread of axial speeds decorrelates as
   random-ballistic motion does (docs/abstention.md, rule 11);
 * ``vessel-static-volume``: ``vessel-volume`` inside static tissue, which gives the phase reference;
+* ``thin-vessels`` and ``thin-vessels-volume``: a B-scan and a volume of diffusing tissue
+  (:data:`THIN_VESSEL_TISSUE_D_UM2_S`) inside static tissue under 20 dB of noise, holding three vessels of radii
+  :data:`THIN_VESSEL_RADII_UM` across the B-scan plane and perpendicular to the beam (axes and plug flows along
+  y, :data:`THIN_VESSEL_SPEED_UM_S`): vessels narrower than the coarsest configuration's footprint, whose
+  coarse features read mostly the tissue around them (docs/abstention.md, "What a class map resolves");
 * ``aline``: one A-line's time series (one pixel along x) through ``layers-slow-random-20dB``'s layers, each
   :data:`ALINE_NZ` / 3 pixels deep, classified by ``signature-aline`` (no lateral reduction of one A-line);
 * ``motion-types``: the shipped phantom, nine discs in static tissue (flow, diffusion and random-ballistic
@@ -98,6 +103,8 @@ CASES = (
     "layers-maxwell-volume",
     "vessel-volume",
     "vessel-static-volume",
+    "thin-vessels",
+    "thin-vessels-volume",
     "aline",
     "motion-types",
 )
@@ -161,6 +168,13 @@ VESSEL = {
 }
 SPHERE_RADIUS_UM = 28.0
 SPHERE_CENTRES_UM = ((-50.0, 0.0, 50.0), (50.0, 0.0, 50.0))
+#: The vessels of the ``thin-vessels*`` cases: radii (µm), one vessel each, their axes along y (across the
+#: B-scan plane, perpendicular to the beam) through (x, z) = :data:`THIN_VESSEL_X_UM`, 0; plug flow along the
+#: axis (µm/s); in diffusing tissue of :data:`THIN_VESSEL_TISSUE_D_UM2_S` (µm²/s) inside static tissue, 20 dB.
+THIN_VESSEL_RADII_UM = (4.0, 8.0, 12.0)
+THIN_VESSEL_X_UM = (-48.0, 0.0, 48.0)
+THIN_VESSEL_SPEED_UM_S = 1.0
+THIN_VESSEL_TISSUE_D_UM2_S = 0.001
 #: Depth pixels of the ``aline`` case: one A-line through the three layers, each :data:`N_PX` × 16 pixels
 #: deep, so that every layer holds as many pixels as sixteen A-lines of the B-scan cases' layers.
 ALINE_NZ = 16 * N_PX
@@ -219,6 +233,8 @@ def case_dict(name: str) -> dict[str, Any]:
 
     if name in ("vessel-volume", "vessel-static-volume"):
         return _vessel_dict(name, static=name == "vessel-static-volume")
+    if name in ("thin-vessels", "thin-vessels-volume"):
+        return _thin_vessels_dict(name, volume=name == "thin-vessels-volume")
     case = LAYERS[name]
     speed, polar, azimuth = FLOW[case.flow]
     kind = "volume" if case.geometry.endswith("volume") else "bscan"
@@ -331,6 +347,40 @@ def _vessel_dict(name: str, *, static: bool) -> dict[str, Any]:
     grid = {"kind": "volume", "n_x": N_PX, "n_z": N_PX, "n_y": VOLUME_NY}
     grid.update(pitch_x_um=PITCH_UM, pitch_z_um=PITCH_UM, pitch_y_um=PITCH_UM)
     d = _case_phantom(name, grid, regions, static_density=DENSITY if static else None)
+    d["noise"] = {"snr_db": 20.0}
+    return d
+
+
+def _thin_vessels_dict(name: str, *, volume: bool) -> dict[str, Any]:
+    """The ``thin-vessels*`` cases (module docstring): diffusing tissue inside static tissue holding one vessel
+    per radius of :data:`THIN_VESSEL_RADII_UM`, their axes and plug flows along y; 20 dB of noise."""
+    fov = N_PX * PITCH_UM
+    flow = {"kind": "flow", "speed_um_per_s": THIN_VESSEL_SPEED_UM_S, "polar_angle_deg": 90.0, "azimuth_deg": 90.0}
+    regions: list[dict[str, Any]] = [
+        {
+            "name": "diffusion",
+            "shape": "slab",
+            "z_min_um": -fov / 2,
+            "z_max_um": fov / 2,
+            "density_per_um3": DENSITY,
+            "motion": [{"kind": "diffusion", "diffusion_um2_per_s": THIN_VESSEL_TISSUE_D_UM2_S}],
+        }
+    ] + [
+        {
+            "name": f"vessel-{radius:g}um",
+            "shape": "cylinder",
+            "center_um": [x, 0.0, 0.0],
+            "axis": [0.0, 1.0, 0.0],
+            "radius_um": radius,
+            "density_per_um3": DENSITY,
+            "motion": [dict(flow)],
+        }
+        for x, radius in zip(THIN_VESSEL_X_UM, THIN_VESSEL_RADII_UM)
+    ]
+    grid: dict[str, Any] = {"kind": "volume" if volume else "bscan", "n_x": N_PX, "n_z": N_PX}
+    grid.update(pitch_x_um=PITCH_UM, pitch_z_um=PITCH_UM)
+    grid.update({"n_y": VOLUME_NY, "pitch_y_um": PITCH_UM} if volume else {"y_um": 0.0})
+    d = _case_phantom(name, grid, regions, static_density=DENSITY)
     d["noise"] = {"snr_db": 20.0}
     return d
 

@@ -62,6 +62,15 @@ def test_the_case_phantoms_hold_what_their_names_say():
     assert [r["motion"][0]["kind"] for r in vessel["region"]] == ["flow", "diffusion", "ballistic"]
     assert vessel["grid"]["kind"] == "volume" and "background" not in vessel and vessel["noise"]["snr_db"] == 20.0
     assert C.case_dict("vessel-static-volume")["background"][0]["density_per_um3"] == C.DENSITY
+    for name, kind in (("thin-vessels", "bscan"), ("thin-vessels-volume", "volume")):
+        thin = C.case_dict(name)  # vessels across the B-scan plane in diffusing tissue inside static tissue, 20 dB
+        tissue, *tubes = thin["region"]
+        assert thin["grid"]["kind"] == kind and thin["background"] and thin["noise"]["snr_db"] == 20.0
+        assert tissue["motion"][0]["diffusion_um2_per_s"] == C.THIN_VESSEL_TISSUE_D_UM2_S
+        assert [t["radius_um"] for t in tubes] == list(C.THIN_VESSEL_RADII_UM)
+        for t in tubes:  # axis and plug flow along y: across the plane, perpendicular to the beam
+            assert t["axis"] == [0.0, 1.0, 0.0] and "flow_profile" not in t
+            assert (t["motion"][0]["polar_angle_deg"], t["motion"][0]["azimuth_deg"]) == (90.0, 90.0)
     assert C.case_dict("motion-types")["background"]  # the shipped phantom: discs in static tissue
     with pytest.raises(ValueError, match="unknown case 'slabs'"):
         C.case_dict("slabs")
