@@ -426,6 +426,15 @@ def score_mixed(
     }
 
 
+def score_region(
+    truth_codes: np.ndarray, classes: np.ndarray, class_names: Sequence[str], name: str, motion: str, mask: np.ndarray
+) -> dict[str, Any]:
+    """The scores of :func:`score_labels` (every pixel, edge 0) of one region: its pixels inside ``mask`` whose
+    rendered motion is ``motion`` (a region painted over by a later one keeps only what it still holds)."""
+    own = np.where(np.asarray(mask, bool) & (truth_codes == CODES[motion]), truth_codes, 0)
+    return {"region": name, "motion": motion, **score_labels(own, classes, class_names, 0)["per_class"][motion]}
+
+
 def doppler_null(truth_codes: np.ndarray, imaginary: np.ndarray, edge_px: int) -> dict[str, Any]:
     """Rule 10's statistic (:func:`classifier.ambiguity.doppler_imaginary`, the imaginary part of the box's mean
     Doppler phasor) per motion over the pixels :func:`score_labels` scores (farther than ``edge_px`` from other
@@ -474,6 +483,7 @@ def _classify_rendered(
     threads: int | None,
     abstain_ambiguous: bool | Sequence[bool],
     mixed_holds: Sequence[str] | None = None,
+    regions: Sequence[tuple[str, str, np.ndarray]] | None = None,
 ) -> list[dict[str, Any]]:
     """Render ``phantoms`` (phantom-file dicts; their fields add, the first rendered at ``seed``, a static
     background after it at its own), map them as ``maps --signature`` does, classify at every window of
@@ -481,7 +491,8 @@ def _classify_rendered(
     sequence: the rendering and the maps are made once) and score against the first phantom's labels: one row
     per window and setting with the scores of the pixels away from other regions, ``all_pixels`` (edge 0), the
     setting, the decision and the seconds taken; with ``mixed_holds`` (the motions a ``mixed`` region
-    combines) also ``mixed`` (:func:`score_mixed`)."""
+    combines) also ``mixed`` (:func:`score_mixed`); with ``regions`` (name, motion, pixel mask) also
+    ``per_region``: each region's pixels of its motion scored over every pixel (:func:`score_region`)."""
     from torchdoct.image.phantom import phantom_from_dict
     from torchdoct.image.render import render
     from torchdoct.measured.mapsfile import write_maps
@@ -530,6 +541,11 @@ def _classify_rendered(
                     **score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool))),
                     "all_pixels": score_labels(res.labels, c.labels, c.classes, 0),
                     **({"mixed": score_mixed(res.labels, c.labels, c.classes, mixed_holds)} if mixed_holds else {}),
+                    **(
+                        {"per_region": [score_region(res.labels, c.labels, c.classes, *r) for r in regions]}
+                        if regions
+                        else {}
+                    ),
                     "classified": int(c.info["classified"]),
                     "rules_changed": dict(c.info["ambiguity"]["changed_pixels"]) if c.info.get("ambiguity") else None,
                     "seconds": {

@@ -1079,6 +1079,27 @@ def cases(root: Path) -> str:
     return "\n\n".join([table(header, rows), source(d["command"], p)])
 
 
+def cases_regions(root: Path) -> str:
+    """The cases scored region by region (``per_region`` of ``cases.json``): per case, region, window and
+    decision, the region's coverage and wrong share over its every pixel."""
+    d, p = load(root, "cases.json")
+    rows = [
+        [
+            r["case"],
+            g["region"],
+            g["motion"],
+            g["pixels"],
+            r["pool"],
+            "rules (default)" if r["rules"] else "model alone",
+        ]
+        + [num(g["coverage"]), num(g["wrong_share"])]
+        for r in d["rows"]
+        for g in r.get("per_region", [])
+    ]
+    header = ["case", "region", "motion", "pixels", "window", "decision", "coverage", "wrong share"]
+    return "\n\n".join([table(header, rows), source(d["command"], p)])
+
+
 RENDERERS: dict[str, Callable[[Path], str]] = {
     "bench-simulate": bench_simulate,
     "bench-study": bench_study,
@@ -1109,6 +1130,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "grid-doppler": grid_doppler,
     "grid-probes": grid_probes,
     "cases": cases,
+    "cases-regions": cases_regions,
     "grid-context-all-pixels": lambda root: grid_context(root, "summary_by_context_all_pixels"),
     "grid-context-uniform-angles": lambda root: grid_context(
         root, "summary_by_context_all_pixels", "grid-uniform-angles.json"

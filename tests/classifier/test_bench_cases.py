@@ -76,6 +76,33 @@ def test_the_case_phantoms_hold_what_their_names_say():
         C.case_dict("slabs")
 
 
+def test_the_thin_vessels_are_scored_vessel_by_vessel_on_the_pixels_each_holds():
+    """``region_masks`` gives each region the pixel centres inside it (a vessel: those within its radius of its
+    axis along y), and ``score_region`` scores only the pixels of a region that still hold its motion (the
+    diffusing tissue without the vessels painted over it)."""
+    import numpy as np
+
+    from classifier.bench.grid import CODES, score_region
+
+    d = C.case_dict("thin-vessels")
+    masks = {name: (motion, mask) for name, motion, mask in C.region_masks(d)}
+    assert list(masks) == ["diffusion"] + [f"vessel-{r:g}um" for r in C.THIN_VESSEL_RADII_UM]
+    x = (np.arange(C.N_PX) - (C.N_PX - 1) / 2) * C.PITCH_UM
+    zz, xx = np.meshgrid(x, x, indexing="ij")  # (Z, X), the B-scan labels' shape
+    for xc, r in zip(C.THIN_VESSEL_X_UM, C.THIN_VESSEL_RADII_UM):
+        motion, mask = masks[f"vessel-{r:g}um"]
+        assert motion == "flow" and np.array_equal(mask, (xx - xc) ** 2 + zz**2 <= r**2)
+    assert masks["diffusion"][1].all()  # the slab spans the image
+    vessels = np.any([m for n, (_, m) in masks.items() if n != "diffusion"], axis=0)
+    truth = np.where(vessels, CODES["flow"], CODES["diffusion"])
+    names = ["diffusion", "ballistic", "flow", "indeterminate"]
+    decided = np.where(vessels, 0, 3)  # every vessel pixel decided diffusion, the tissue indeterminate
+    tissue = score_region(truth, decided, names, "diffusion", "diffusion", masks["diffusion"][1])
+    assert tissue["pixels"] == C.N_PX**2 - vessels.sum() and tissue["coverage"] == 0.0
+    thin = score_region(truth, decided, names, "vessel-4um", "flow", masks["vessel-4um"][1])
+    assert thin["pixels"] == masks["vessel-4um"][1].sum() and thin["wrong_share"] == 1.0
+
+
 @pytest.mark.parametrize(
     "case",
     [
