@@ -51,6 +51,10 @@ from the model's own system and identifiable speed levels, these are fixed phant
 * ``layers-maxwell-volume``: ``layers`` as a static-free volume under 20 dB of noise whose random-ballistic
   layer holds :data:`MAXWELL_POPULATIONS` speeds from a Maxwell distribution of mean :data:`BALLISTIC_UM_S`
   (:func:`maxwell_speeds`: an isotropic Gaussian velocity, the other common model of random-ballistic motion);
+* ``layers-creeping-half-static-volume``: ``layers-half-static``'s static tissue and slow random motions as a
+  volume under 20 dB of noise, with a creeping flow (0.1 µm/s at 30° from the beam): its Doppler phase per frame
+  is below rule 10's threshold and its pattern moves less than rule 5's 0.3 pitch over the acquisition, while
+  its beat against the static tissue decorrelates it like random motion (docs/abstention.md, rule 2);
 * ``vessel-volume``: a static-free volume under 20 dB of noise holding a vessel with a Poiseuille profile
   (:data:`VESSEL`: a cylinder whose axis leaves the B-scan planes at 60° from the beam, the speed falling from
   its axis to zero at its wall; ``flow_profile = "poiseuille"``) beside a diffusing and a random-ballistic
@@ -105,6 +109,7 @@ CASES = (
     "layers-sparse-volume",
     "layers-jittered-flow",
     "layers-maxwell-volume",
+    "layers-creeping-half-static-volume",
     "vessel-volume",
     "vessel-static-volume",
     "thin-vessels",
@@ -155,6 +160,7 @@ FLOW = {
     "crossing": (0.3, 80.0, 85.0),
     "along-y": (1.0, 90.0, 90.0),
     "sheared": (2.0, 90.0, 30.0),
+    "creeping": (0.1, 30.0, 30.0),
 }
 #: Sub-slabs of the ``sheared`` flow: a plane Poiseuille profile across the flow layer, each sub-slab moving at
 #: ``v = v_max(1 − (2(z − z_c)/h)²)`` at its centre (``h`` the layer's thickness), the flow parallel to the
@@ -220,6 +226,7 @@ LAYERS = {
     "layers-sparse-volume": Layers("oblique", "slow", geometry="volume", density=SPARSE_DENSITY),
     "layers-jittered-flow": Layers("jittered"),
     "layers-maxwell-volume": Layers("oblique", "maxwell", snr_db=20.0, geometry="volume"),
+    "layers-creeping-half-static-volume": Layers("creeping", "slow", static="half", snr_db=20.0, geometry="volume"),
     "aline": Layers("oblique", "slow", snr_db=20.0, geometry="aline"),
 }
 POOLS = (1, 5)
