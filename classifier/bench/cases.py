@@ -77,8 +77,8 @@ Scores per case, window (``--pool`` 1 and 5) and decision (the rules, the model 
 accuracy on the decided pixels, over every pixel of each motion (``all_pixels``) and over the pixels away
 from the other regions (the grid's edge: half the coarsest resolution plus half the window); a ``mixed``
 region over its every pixel as ``mixed`` (:func:`classifier.bench.grid.score_mixed`); the cases of
-:data:`REGION_CASES` also region by region (``per_region``: each region's pixels of its motion, every pixel,
-:func:`classifier.bench.grid.score_region`).
+:data:`REGION_CASES` also region by region (``per_region``: each region of one motion over the pixels the
+renderer assigns it, :func:`classifier.bench.grid.score_region`).
 """
 
 from __future__ import annotations
@@ -89,8 +89,6 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
-
-import numpy as np
 
 SCHEMA_VERSION = 1
 #: The cases, in the order they are run and reported (module docstring).
@@ -185,7 +183,7 @@ THIN_VESSEL_RADII_UM = (4.0, 8.0, 12.0)
 THIN_VESSEL_X_UM = (-48.0, 0.0, 48.0)
 THIN_VESSEL_SPEED_UM_S = 1.0
 THIN_VESSEL_TISSUE_D_UM2_S = 0.001
-#: The cases scored region by region as well (``per_region`` of their rows, :func:`region_masks`).
+#: The cases scored region by region as well (``per_region`` of their rows: each region of one motion).
 REGION_CASES = ("thin-vessels", "thin-vessels-volume")
 #: Depth pixels of the ``aline`` case: one A-line through the three layers, each :data:`N_PX` × 16 pixels
 #: deep, so that every layer holds as many pixels as sixteen A-lines of the B-scan cases' layers.
@@ -398,31 +396,6 @@ def _thin_vessels_dict(name: str, *, volume: bool) -> dict[str, Any]:
     return d
 
 
-def region_masks(d: dict[str, Any]) -> list[tuple[str, str, np.ndarray]]:
-    """Per region of phantom file ``d`` with one motion (diffusion, random-ballistic motion or flow): its name,
-    that motion and the mask of the pixel centres inside it, shaped as the rendered labels ((Z, X) or (Y, Z, X))."""
-    import torch
-
-    from torchdoct.image.phantom import phantom_from_dict
-
-    from .grid import CODES
-
-    ph = phantom_from_dict(d)
-    g = ph.grid
-    axes = ("z", "x") if g.kind == "bscan" else ("y", "z", "x")
-    coords = np.meshgrid(*(g.coords_um(a) for a in axes), indexing="ij")
-    xyz = dict(zip(axes, coords))
-    xyz.setdefault("y", np.full(coords[0].shape, g.y_um))
-    pos = torch.from_numpy(np.stack([xyz["x"], xyz["y"], xyz["z"]], axis=-1))
-    by_code = {code: name for name, code in CODES.items()}
-    table = ph.region_table()[1 if ph.background else 0 :]  # without the background's row, listed first
-    return [
-        (region.name, by_code[row["motion_code"]], region.contains(pos, g).numpy())
-        for region, row in zip(ph.regions, table)
-        if row["motion_code"] in by_code
-    ]
-
-
 def maxwell_speeds(mean_um_s: float, k: int = MAXWELL_POPULATIONS) -> tuple[float, ...]:
     """Speeds (µm/s) at the quantiles ``(j + 1/2)/k`` of a Maxwell distribution of mean ``mean_um_s``: the speed
     of an isotropic Gaussian velocity of per-axis standard deviation ``σ`` is ``σ·χ₃`` (mean ``2σ√(2/π)``)."""
@@ -491,7 +464,7 @@ def run_case(name: str, *, threads: int | None = None, pools: Sequence[int] = PO
         threads=threads,
         abstain_ambiguous=(True, False),
         mixed_holds=MIXED_HOLDS.get(name),
-        regions=region_masks(d) if name in REGION_CASES else None,
+        per_region=name in REGION_CASES,
     )
     return [
         {

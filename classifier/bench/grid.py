@@ -429,8 +429,9 @@ def score_mixed(
 def score_region(
     truth_codes: np.ndarray, classes: np.ndarray, class_names: Sequence[str], name: str, motion: str, mask: np.ndarray
 ) -> dict[str, Any]:
-    """The scores of :func:`score_labels` (every pixel, edge 0) of one region: its pixels inside ``mask`` whose
-    rendered motion is ``motion`` (a region painted over by a later one keeps only what it still holds)."""
+    """The scores of :func:`score_labels` (every pixel, edge 0) of one region: its pixels ``mask`` (the
+    renderer's ``regions == index``: a region painted over by a later one keeps only what it still holds)
+    whose rendered motion is ``motion``."""
     own = np.where(np.asarray(mask, bool) & (truth_codes == CODES[motion]), truth_codes, 0)
     return {"region": name, "motion": motion, **score_labels(own, classes, class_names, 0)["per_class"][motion]}
 
@@ -483,7 +484,7 @@ def _classify_rendered(
     threads: int | None,
     abstain_ambiguous: bool | Sequence[bool],
     mixed_holds: Sequence[str] | None = None,
-    regions: Sequence[tuple[str, str, np.ndarray]] | None = None,
+    per_region: bool = False,
 ) -> list[dict[str, Any]]:
     """Render ``phantoms`` (phantom-file dicts; their fields add, the first rendered at ``seed``, a static
     background after it at its own), map them as ``maps --signature`` does, classify at every window of
@@ -491,8 +492,8 @@ def _classify_rendered(
     sequence: the rendering and the maps are made once) and score against the first phantom's labels: one row
     per window and setting with the scores of the pixels away from other regions, ``all_pixels`` (edge 0), the
     setting, the decision and the seconds taken; with ``mixed_holds`` (the motions a ``mixed`` region
-    combines) also ``mixed`` (:func:`score_mixed`); with ``regions`` (name, motion, pixel mask) also
-    ``per_region``: each region's pixels of its motion scored over every pixel (:func:`score_region`)."""
+    combines) also ``mixed`` (:func:`score_mixed`); with ``per_region`` also ``per_region``: each region of one
+    motion scored over the pixels the renderer assigns it (:func:`score_region`)."""
     from torchdoct.image.phantom import phantom_from_dict
     from torchdoct.image.render import render
     from torchdoct.measured.mapsfile import write_maps
@@ -506,6 +507,12 @@ def _classify_rendered(
     data = res.data[0].numpy()
     for extra in phantoms[1:]:
         data = data + render(phantom_from_dict(extra), threads=threads).data[0].numpy()
+    by_code = {code: name for name, code in CODES.items()}
+    regions = [
+        (row["name"], by_code[row["motion_code"]], res.regions == i)
+        for i, row in enumerate(res.phantom.region_table())
+        if per_region and row["motion_code"] in by_code
+    ]
     meta = res.metadata(0)
     meta.pop("phantom", None)
     seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source=source)

@@ -81,30 +81,34 @@ def test_the_case_phantoms_hold_what_their_names_say():
 
 
 def test_the_thin_vessels_are_scored_vessel_by_vessel_on_the_pixels_each_holds():
-    """``region_masks`` gives each region the pixel centres inside it (a vessel: those within its radius of its
-    axis along y), and ``score_region`` scores only the pixels of a region that still hold its motion (the
-    diffusing tissue without the vessels painted over it)."""
+    """The renderer's region map (the ``regions`` the cases score by) gives each vessel the pixel centres within its
+    radius of its axis along y and the diffusing tissue every other pixel, and ``score_region`` scores only the
+    pixels of a region that still hold its motion (the tissue without the vessels painted over it)."""
     import numpy as np
 
     from classifier.bench.grid import CODES, score_region
+    from torchdoct.image.phantom import phantom_from_dict
+    from torchdoct.image.render import _pixel_labels
 
-    d = C.case_dict("thin-vessels")
-    masks = {name: (motion, mask) for name, motion, mask in C.region_masks(d)}
+    phantom = phantom_from_dict(C.case_dict("thin-vessels"))
+    codes, _, region = _pixel_labels(phantom)
+    table = phantom.region_table()
+    masks = {row["name"]: region == i for i, row in enumerate(table) if row["motion_code"] in CODES.values()}
     assert list(masks) == ["diffusion"] + [f"vessel-{r:g}um" for r in C.THIN_VESSEL_RADII_UM]
     x = (np.arange(C.N_PX) - (C.N_PX - 1) / 2) * C.PITCH_UM
     zz, xx = np.meshgrid(x, x, indexing="ij")  # (Z, X), the B-scan labels' shape
     for xc, r in zip(C.THIN_VESSEL_X_UM, C.THIN_VESSEL_RADII_UM):
-        motion, mask = masks[f"vessel-{r:g}um"]
-        assert motion == "flow" and np.array_equal(mask, (xx - xc) ** 2 + zz**2 <= r**2)
-    assert masks["diffusion"][1].all()  # the slab spans the image
-    vessels = np.any([m for n, (_, m) in masks.items() if n != "diffusion"], axis=0)
+        assert np.array_equal(masks[f"vessel-{r:g}um"], (xx - xc) ** 2 + zz**2 <= r**2)
+    vessels = np.any([m for n, m in masks.items() if n != "diffusion"], axis=0)
+    assert np.array_equal(masks["diffusion"], ~vessels)  # the slab spans the image, the vessels paint over it
     truth = np.where(vessels, CODES["flow"], CODES["diffusion"])
+    assert np.array_equal(codes, truth)
     names = ["diffusion", "ballistic", "flow", "indeterminate"]
     decided = np.where(vessels, 0, 3)  # every vessel pixel decided diffusion, the tissue indeterminate
-    tissue = score_region(truth, decided, names, "diffusion", "diffusion", masks["diffusion"][1])
+    tissue = score_region(truth, decided, names, "diffusion", "diffusion", masks["diffusion"])
     assert tissue["pixels"] == C.N_PX**2 - vessels.sum() and tissue["coverage"] == 0.0
-    thin = score_region(truth, decided, names, "vessel-4um", "flow", masks["vessel-4um"][1])
-    assert thin["pixels"] == masks["vessel-4um"][1].sum() and thin["wrong_share"] == 1.0
+    thin = score_region(truth, decided, names, "vessel-4um", "flow", masks["vessel-4um"])
+    assert thin["pixels"] == masks["vessel-4um"].sum() and thin["wrong_share"] == 1.0
 
 
 @pytest.mark.parametrize(
