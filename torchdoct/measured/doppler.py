@@ -65,6 +65,10 @@ __all__ = [
     "drift_statistic",
     "max_population_drift",
     "MAX_DRIFT_CONTRAST",
+    "PATTERN_MOVED_MIN",
+    "MAX_MOVED_SHARE",
+    "pattern_statistic",
+    "moved_population",
     "WHITE_TEST_LEVEL",
     "MIN_BSCAN_COVERAGE",
     "PHASE_TOLERANCE_Z",
@@ -106,6 +110,15 @@ MAX_POPULATION_DRIFT = 0.05
 #: and its phase by at most about ``ε`` rad, so such a reference moves its phase by about 0.02 rad at most:
 #: static tissue whose intensity follows a moving neighbour's PSF tail stays a reference.
 MAX_DRIFT_CONTRAST = REFERENCE_CONTRAST / 25
+#: :func:`pattern_statistic` above which a pixel's speckle pattern moved (step 7): static tissue in white noise
+#: exceeds it with a probability of about a tenth (each of a pixel's pairs is exponential with mean 1, and a
+#: pixel's statistic is the mean of its two), a flow whose Doppler phase the reference would carry in most of
+#: its pixels (docs/concepts/doppler-reference.md §4).
+PATTERN_MOVED_MIN = 2.0
+#: A reference population counts unless significantly more than this share of its pixels moved their pattern
+#: (one-sided binomial test at :data:`WHITE_TEST_LEVEL`): static tissue moves its pattern only by the noise's
+#: chance and where the PSF shares it with a moving neighbour (a layer's edge).
+MAX_MOVED_SHARE = 1.0 / 3.0
 #: A B-scan's reference counts when at least this share of its A-lines with a candidate hold some of its
 #: pixels: the bulk phase it removes is common to the B-scan.
 MIN_BSCAN_COVERAGE = 0.5
@@ -311,10 +324,43 @@ def _drift(dev: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
     )
 
 
+def pattern_statistic(lines: torch.Tensor) -> torch.Tensor:
+    """Per pixel of A-lines ``[T, L, Z]`` (complex), whether its speckle pattern stayed in place over the
+    sequence, read against its axial neighbours (``[L, Z]`` float64; docs/concepts/doppler-reference.md §4,
+    step 7). For each pair of adjacent depths, the products ``P_t = E_t(z+1)·E_t*(z)``: a phase common to both
+    pixels cancels (the bulk phase, and a flow's own Doppler rotation), so ``P_t`` changes only where the
+    pattern changes. The statistic of a pair is the change of the mean of ``P_t`` from the first ``⌊T/2⌋``
+    frames to the last ``⌊T/2⌋``, ``|P̄_2 − P̄_1|²``, over its variance under white noise, ``2v/⌊T/2⌋`` with
+    ``v = Σ_t |P_{t+1} − P_t|² / (2(T − 1))`` (from successive differences, which a slow change barely
+    touches); a pixel's is the mean over its pairs (one at either end of the A-line). Static tissue in white
+    noise gives each pair an exponential statistic of mean 1 (0 without noise: a constant ``P_t``); a pattern
+    that slides by a fair part of the PSF gives many times that. NaN where a sample is not finite; 0 for an
+    A-line of one pixel (no pair to read)."""
+    x = lines.to(_work_dtype(lines))
+    n_t, n_z = x.shape[0], x.shape[-1]
+    if n_z < 2 or n_t < 2:
+        return torch.zeros(x.shape[1:], dtype=torch.float64)
+    p = (x[..., 1:] * x[..., :-1].conj()).to(torch.complex128)  # [T, L, Z-1]
+    half = n_t // 2
+    change = (p[n_t - half :].mean(0) - p[:half].mean(0)).abs().square()
+    v = (p[1:] - p[:-1]).abs().square().sum(0) / (2.0 * (n_t - 1))
+    noise = 2.0 * v / half
+    pair = torch.where(noise > 0, change / torch.where(noise > 0, noise, torch.ones_like(noise)), change * math.inf)
+    pair = torch.where(change == 0, torch.zeros_like(pair), pair)  # a constant product (noise-free static): 0
+    total = torch.zeros(x.shape[1:], dtype=torch.float64)
+    count = torch.zeros(x.shape[1:], dtype=torch.float64)
+    total[..., :-1] += pair
+    total[..., 1:] += pair
+    count[..., :-1] += 1.0
+    count[..., 1:] += 1.0
+    return total / count
+
+
 def _candidates(lines: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(candidate, steady [L, Z] bool, weight [L, Z], drift [2, L, Z] float64)`` of A-lines ``[T, L, Z]``: steady
+    """``(candidate, steady [L, Z] bool, weight [L, Z], drift [3, L, Z] float64)`` of A-lines ``[T, L, Z]``: steady
     (contrast) and white (no drift: the von Neumann ratio; a constant intensity counts as white) intensity;
-    the drift statistic of every pixel (:func:`drift_statistic`)."""
+    the drift statistic of every pixel (:func:`drift_statistic`) and, third, 1 where its pattern moved
+    (:func:`pattern_statistic` above :data:`PATTERN_MOVED_MIN`, or not finite), else 0."""
     inten = (lines.real**2 + lines.imag**2).double()
     mean = inten.mean(0)
     dev = inten - mean
@@ -325,7 +371,8 @@ def _candidates(lines: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.
     steady = (contrast <= REFERENCE_CONTRAST) & (mean > 0) & torch.isfinite(contrast)
     cand = steady & white
     w = torch.where(cand, 1.0 - contrast / REFERENCE_CONTRAST, torch.zeros_like(contrast))
-    return cand, steady, w, _drift(dev, mean)
+    moved = (~(pattern_statistic(lines) <= PATTERN_MOVED_MIN)).double()
+    return cand, steady, w, torch.cat([_drift(dev, mean), moved[None]])
 
 
 def white_population(n_white: np.ndarray, n_steady: np.ndarray) -> np.ndarray:
@@ -338,6 +385,17 @@ def white_population(n_white: np.ndarray, n_steady: np.ndarray) -> np.ndarray:
     a small one must be clearly white."""
     n = np.asarray(n_steady, dtype=np.int64)
     return (n > 0) & (np.asarray(n_white) >= _binomial_threshold(n, MIN_WHITE_SHARE, WHITE_TEST_LEVEL))
+
+
+def moved_population(n_moved: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Whether a reference population's speckle pattern moved (step 7): of its ``n`` pixels, ``n_moved`` moved
+    theirs (:func:`pattern_statistic` above :data:`PATTERN_MOVED_MIN`), significantly more than
+    :data:`MAX_MOVED_SHARE` (one-sided binomial test at :data:`WHITE_TEST_LEVEL`). A flow steadier than its
+    noise passes the intensity tests (steps 2, 4 and 6) but carries its pattern along; the product of two
+    neighbouring pixels' fields cancels its Doppler rotation and the bulk phase, so the pattern's motion shows
+    even where the intensity barely changes."""
+    n = np.asarray(n, dtype=np.int64)
+    return (n > 0) & (np.asarray(n_moved) >= _binomial_threshold(n, MAX_MOVED_SHARE, WHITE_TEST_LEVEL))
 
 
 def _binomial_threshold(n: np.ndarray, p: float, level: float) -> np.ndarray:
@@ -419,7 +477,7 @@ def _last_step(
     c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, drift: torch.Tensor, r1: torch.Tensor, h: float
 ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray, np.ndarray]:
     """The candidates within ``h`` of the population's sum ``r1``: ``(their sums [K, G], the pixels [G, S],
-    their count [G], the steady pixels within h [G], the sums of their drift statistics [2, G])``."""
+    their count [G], the steady pixels within h [G], the sums of their drift statistics and pattern-held flags [3, G])``."""
     in_phase = _phase_to(c, r1).abs() <= h
     sel = cand & in_phase
     return (
@@ -591,7 +649,7 @@ class _Scope:
         self.sums = np.zeros((k, n_groups), dtype=np.complex128)
         self.count = np.zeros(n_groups, dtype=np.int64)
         self.steady = np.zeros(n_groups, dtype=np.int64)
-        self.drift = np.zeros((2, n_groups), dtype=np.float64)
+        self.drift = np.zeros((3, n_groups), dtype=np.float64)  # sums of r1, drift contrast, pattern moved
         self.pixels = np.zeros((n_groups, per_group), dtype=bool)
         self.evaluated = np.zeros(n_groups, dtype=bool)
 
@@ -606,14 +664,16 @@ class _Scope:
         self.evaluated[rows] = True
 
     def ok(self, rows: slice) -> np.ndarray:
-        """Groups with a reference: enough pixels, white as a population (:func:`white_population`), and no
-        common drift: the mean lag-1 autocorrelation of its pixels (:func:`drift_statistic`) at most
-        :func:`max_population_drift`, or the mean drift contrast at most :data:`MAX_DRIFT_CONTRAST`."""
+        """Groups with a reference: enough pixels, white as a population (:func:`white_population`), no
+        common drift (the mean lag-1 autocorrelation of its pixels, :func:`drift_statistic`, at most
+        :func:`max_population_drift`, or the mean drift contrast at most :data:`MAX_DRIFT_CONTRAST`), and a
+        pattern that held (:func:`moved_population` false)."""
         n = self.count[rows]
         per = np.maximum(n, 1)
         r1, contrast = self.drift[0, rows] / per, self.drift[1, rows] / per
         steady = (r1 <= max_population_drift(n, self.n_frames)) | (contrast <= MAX_DRIFT_CONTRAST)
-        return (n >= MIN_REFERENCE_PIXELS) & white_population(n, self.steady[rows]) & steady
+        held = ~moved_population(np.rint(self.drift[2, rows]).astype(np.int64), n)
+        return (n >= MIN_REFERENCE_PIXELS) & white_population(n, self.steady[rows]) & steady & held
 
 
 def _bscan_passes(read, slabs, lags, hs, bscan: dict[int, _Scope], *, n_lines: int) -> None:
@@ -625,7 +685,7 @@ def _bscan_passes(read, slabs, lags, hs, bscan: dict[int, _Scope], *, n_lines: i
     sel_parts: dict[int, list[np.ndarray]] = {m: [] for m in lags}
     count = {m: np.zeros(1, dtype=np.int64) for m in lags}
     steady_n = {m: np.zeros(1, dtype=np.int64) for m in lags}
-    drift_n = {m: np.zeros((2, 1), dtype=np.float64) for m in lags}
+    drift_n = {m: np.zeros((3, 1), dtype=np.float64) for m in lags}
     for step in range(4):
         acc: dict[int, Any] = dict.fromkeys(lags, 0)
         for c0, c1 in slabs:
