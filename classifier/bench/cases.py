@@ -27,8 +27,12 @@ from the model's own system and identifiable speed levels, these are fixed phant
 * ``layers-crossing``: the flow nearly across the B-scan plane (polar 80°, azimuth 85°): the flow a B-scan
   cannot tell from random-ballistic motion (docs/abstention.md, rule 1), whose right outcome is a set or
   ``indeterminate``;
-* ``layers-static``: the layers inside static tissue (a static population of the same density under every
-  pixel);
+* ``layers-static``: the layers inside static tissue: static tissue of the same density under every pixel,
+  the field of a second phantom on the same grid added to the layers' (:func:`case_phantoms`, as the phantom
+  grid's ``background`` context), so half the mean intensity of a moving pixel is static;
+* ``layers-10dB``: ``layers`` under noise 10 dB below the mean intensity: only the brightest speckles are
+  steady enough to be a Doppler reference's candidates, a few tens in the B-scan, and the slow flow's
+  intensity drift hides under the noise even over all of them (docs/concepts/doppler-reference.md §4, step 7);
 * ``layers-volume`` and ``layers-crossing-volume``: ``layers`` and ``layers-crossing`` as volumes of
   :data:`VOLUME_NY` planes along y, whose y neighbours see the flow across the plane;
 * ``layers-static-coarse-y-volume``: the layers inside static tissue under 20 dB of noise, as a volume whose
@@ -60,9 +64,11 @@ from the model's own system and identifiable speed levels, these are fixed phant
   its axis to zero at its wall; ``flow_profile = "poiseuille"``) beside a diffusing and a random-ballistic
   sphere (``layers-slow-random-20dB``'s motions): the sheared flow whose spread of axial speeds decorrelates as
   random-ballistic motion does (docs/abstention.md, rule 11);
-* ``vessel-static-volume``: ``vessel-volume`` inside static tissue, which gives the phase reference;
+* ``vessel-static-volume``: ``vessel-volume`` with static tissue around the vessel and the spheres (the
+  phantom's background), which gives the phase reference;
 * ``thin-vessels`` and ``thin-vessels-volume``: a B-scan and a volume of diffusing tissue
-  (:data:`THIN_VESSEL_TISSUE_D_UM2_S`) inside static tissue under 20 dB of noise, holding three vessels of radii
+  (:data:`THIN_VESSEL_TISSUE_D_UM2_S`) over static tissue under every pixel (as ``layers-static``) under
+  20 dB of noise, holding three vessels of radii
   :data:`THIN_VESSEL_RADII_UM` across the B-scan plane and perpendicular to the beam (axes and plug flows along
   y, :data:`THIN_VESSEL_SPEED_UM_S`): vessels narrower than the coarsest configuration's footprint, whose
   coarse features read mostly the tissue around them (docs/abstention.md, "What a class map resolves");
@@ -96,6 +102,7 @@ CASES = (
     "layers",
     "layers-slow-25dB",
     "layers-slow-random-20dB",
+    "layers-10dB",
     "layers-crossing",
     "layers-static",
     "layers-volume",
@@ -178,7 +185,8 @@ SPHERE_RADIUS_UM = 28.0
 SPHERE_CENTRES_UM = ((-50.0, 0.0, 50.0), (50.0, 0.0, 50.0))
 #: The vessels of the ``thin-vessels*`` cases: radii (µm), one vessel each, their axes along y (across the
 #: B-scan plane, perpendicular to the beam) through (x, z) = :data:`THIN_VESSEL_X_UM`, 0; plug flow along the
-#: axis (µm/s); in diffusing tissue of :data:`THIN_VESSEL_TISSUE_D_UM2_S` (µm²/s) inside static tissue, 20 dB.
+#: axis (µm/s); in diffusing tissue of :data:`THIN_VESSEL_TISSUE_D_UM2_S` (µm²/s) over static tissue under every
+#: pixel, 20 dB.
 THIN_VESSEL_RADII_UM = (4.0, 8.0, 12.0)
 THIN_VESSEL_X_UM = (-48.0, 0.0, 48.0)
 THIN_VESSEL_SPEED_UM_S = 1.0
@@ -199,7 +207,9 @@ class Layers(NamedTuple):
     #: ``plain`` (D = 0.03 µm²/s, 0.12 µm/s), ``slow`` (:data:`SLOW_RANDOM`), ``mixed`` (:data:`MIXED_RANDOM`),
     #: ``maxwell`` (``plain`` with Maxwell-distributed random-ballistic speeds, :data:`MAXWELL_POPULATIONS`)
     random: str = "plain"
-    static: str | None = None  #: static tissue under ``all`` pixels, under the ``half`` of the A-lines at x < 0
+    #: static tissue under ``all`` pixels (a second phantom, :func:`case_phantoms`), or under the ``half`` of the
+    #: A-lines at x < 0 (a static region)
+    static: str | None = None
     snr_db: float | None = None  #: noise, dB below the mean intensity (``None``: none)
     #: ``bscan``; ``volume`` (planes at the pitch of x); ``coarse-y-volume``; ``aline`` (one pixel along x,
     #: :data:`ALINE_NZ` deep)
@@ -213,6 +223,7 @@ LAYERS = {
     "layers": Layers("oblique"),
     "layers-slow-25dB": Layers("slow", snr_db=25.0),
     "layers-slow-random-20dB": Layers("oblique", "slow", snr_db=20.0),
+    "layers-10dB": Layers("oblique", snr_db=10.0),
     "layers-crossing": Layers("crossing"),
     "layers-static": Layers("oblique", static="all"),
     "layers-volume": Layers("oblique", geometry="volume"),
@@ -281,7 +292,7 @@ def case_dict(name: str) -> dict[str, Any]:
     )
     if case.flow == "jittered":  # the flow's scatterers diffuse too: the renderer labels the layer "mixed"
         regions[-1]["motion"] = [flow, {"kind": "diffusion", "diffusion_um2_per_s": JITTER_UM2_S}]
-    d = _case_phantom(name, grid, regions, static_density=case.density if case.static == "all" else None)
+    d = _case_phantom(name, grid, regions, static_density=None)  # static="all": a second phantom (case_phantoms)
     if case.static == "half":  # a cylinder along z over the A-lines at x < 0
         d["region"].append(
             {
@@ -303,7 +314,8 @@ def _case_phantom(
     name: str, grid: dict[str, Any], regions: list[dict[str, Any]], *, static_density: float | None
 ) -> dict[str, Any]:
     """A case's phantom file: the cases' system, protocol and seed, with static tissue of ``static_density``
-    (µm⁻³) under every pixel unless ``None``."""
+    (µm⁻³) around its regions (the phantom's background, wherever no region is) unless ``None``. Static tissue
+    under every pixel is a second phantom (:func:`case_phantoms`)."""
     d: dict[str, Any] = {
         "name": f"case-{name}",
         "system": [dict(SYSTEM)],
@@ -363,8 +375,9 @@ def _vessel_dict(name: str, *, static: bool) -> dict[str, Any]:
 
 
 def _thin_vessels_dict(name: str, *, volume: bool) -> dict[str, Any]:
-    """The ``thin-vessels*`` cases (module docstring): diffusing tissue inside static tissue holding one vessel
-    per radius of :data:`THIN_VESSEL_RADII_UM`, their axes and plug flows along y; 20 dB of noise."""
+    """The ``thin-vessels*`` cases (module docstring): diffusing tissue (over static tissue: :func:`case_phantoms`)
+    holding one vessel per radius of :data:`THIN_VESSEL_RADII_UM`, their axes and plug flows along y; 20 dB of
+    noise."""
     fov = N_PX * PITCH_UM
     flow = {"kind": "flow", "speed_um_per_s": THIN_VESSEL_SPEED_UM_S, "polar_angle_deg": 90.0, "azimuth_deg": 90.0}
     regions: list[dict[str, Any]] = [
@@ -391,7 +404,7 @@ def _thin_vessels_dict(name: str, *, volume: bool) -> dict[str, Any]:
     grid: dict[str, Any] = {"kind": "volume" if volume else "bscan", "n_x": N_PX, "n_z": N_PX}
     grid.update(pitch_x_um=PITCH_UM, pitch_z_um=PITCH_UM)
     grid.update({"n_y": VOLUME_NY, "pitch_y_um": PITCH_UM} if volume else {"y_um": 0.0})
-    d = _case_phantom(name, grid, regions, static_density=DENSITY)
+    d = _case_phantom(name, grid, regions, static_density=None)  # the static tissue: a second phantom (case_phantoms)
     d["noise"] = {"snr_db": 20.0}
     return d
 
@@ -442,6 +455,23 @@ def _sheared(layer: dict[str, Any]) -> list[dict[str, Any]]:
     return out
 
 
+def static_under(name: str) -> bool:
+    """Whether case ``name`` holds static tissue under every pixel (module docstring)."""
+    return name in ("thin-vessels", "thin-vessels-volume") or (name in LAYERS and LAYERS[name].static == "all")
+
+
+def case_phantoms(name: str) -> list[dict[str, Any]]:
+    """The phantoms whose fields add up to case ``name``: :func:`case_dict`, and for a case with static tissue
+    under every pixel (:func:`static_under`) a second phantom of static tissue at :data:`DENSITY` on the same
+    grid (as the phantom grid's ``background`` context, :mod:`classifier.bench.grid`)."""
+    d = case_dict(name)
+    if not static_under(name):
+        return [d]
+    from .grid import _static_dict
+
+    return [d, _static_dict(d, DENSITY)]
+
+
 def run_case(name: str, *, threads: int | None = None, pools: Sequence[int] = POOLS) -> list[dict[str, Any]]:
     """Render, map, classify and score case ``name`` at every window of ``pools``, with the rules and with the
     model alone: one row per window and decision."""
@@ -455,7 +485,7 @@ def run_case(name: str, *, threads: int | None = None, pools: Sequence[int] = PO
     else:
         model = load_model("signature" if d["grid"]["kind"] == "volume" else "signature-bscan", threads=threads)
     scored = _classify_rendered(
-        [d],
+        case_phantoms(name),
         model,
         f"case-{name}",
         SEED,
@@ -502,7 +532,7 @@ def run_cases(names: Sequence[str] = CASES, *, threads: int | None = None, progr
         "protocol": PROTOCOL,
         "pitch_um": PITCH_UM,
         "density_per_um3": DENSITY,
-        "phantoms": {n: case_dict(n) for n in names},
+        "phantoms": {n: case_phantoms(n) if static_under(n) else case_dict(n) for n in names},
         "rows": rows,
         "seconds": time.perf_counter() - t0,
         "machine": machine_info(),

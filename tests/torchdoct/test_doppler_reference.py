@@ -462,3 +462,48 @@ def test_a_flow_steadier_than_its_noise_is_not_a_b_scan_reference():
     f = layered_field(96, [(16, "flow", 1.5), (16, "ballistic", 0.3)], snr_db=15.0, seed=5)
     m = compute_maps(seq_of(f), metrics=("mean_db",), doppler=True)
     assert NAME not in m.channels and "drift" in m.meta["doppler"]["absent"]
+
+
+def test_the_pattern_statistic_cancels_a_common_phase_and_tells_a_sliding_pattern_from_static_noise():
+    """Step 7 of the reference rule (docs/concepts/doppler-reference.md §4): the product of axially neighbouring
+    fields cancels any phase common to the A-line at a frame, so a random bulk phase per frame, or a Doppler
+    rotation of the whole A-line, leaves the statistic unchanged (to rounding); a constant field gives 0;
+    static tissue in white noise moves its pattern (statistic above ``PATTERN_MOVED_MIN``) in far fewer pixels
+    than a population may (``MAX_MOVED_SHARE``), at any SNR, while an axial flow whose speckle slides 1.2 µm
+    over the sequence moves it in most of its pixels even at 11 dB."""
+    import torch
+
+    from torchdoct.measured.doppler import MAX_MOVED_SHARE, PATTERN_MOVED_MIN, pattern_statistic
+
+    def stat(e):  # [T, Z, X] → per pixel [X, Z]
+        return pattern_statistic(torch.from_numpy(np.ascontiguousarray(e)).permute(0, 2, 1)).numpy()
+
+    static = layered_field(200, [(32, "static", 0.0)], snr_db=20.0, seed=1)
+    u = stat(static)
+    spin = np.exp(1j * 0.6 * np.arange(T))[:, None, None]  # one Doppler rotation for every pixel
+    for common in (with_bulk(static, 4), static * spin):
+        np.testing.assert_allclose(stat(common), u, rtol=1e-9)
+    assert float(np.abs(stat(np.repeat(static[:1], T, 0))).max()) == 0.0
+    for snr in (11.0, 20.0, 30.0):
+        share = float((stat(layered_field(200, [(32, "static", 0.0)], snr_db=snr, seed=1)) > PATTERN_MOVED_MIN).mean())
+        assert share < MAX_MOVED_SHARE / 2, (snr, share)
+    flow = stat(layered_field(200, [(32, "flow", V_FLOW)], snr_db=11.0, seed=2))
+    assert float((flow > PATTERN_MOVED_MIN).mean()) > 0.5  # most of its pixels
+
+
+def test_a_flow_steadier_than_its_noise_at_11_db_is_no_reference_once_its_pattern_is_read(monkeypatch):
+    """Without static tissue at 11 dB, an axial flow beside random-ballistic motion passes the intensity tests
+    (steps 2, 4 and 6: the noise hides its drift from a few tens of pixels) and became the B-scan's reference,
+    so the random-ballistic layer showed the flow's Doppler phase reversed, the drift that rule 10 reads as
+    flow. Its pattern moves (step 7): no scope takes it and the channel is absent. With step 7 switched off
+    (monkeypatched) the B-scan takes it again, so this test fails without it."""
+    from torchdoct.measured import doppler
+
+    f = with_bulk(layered_field(96, [(16, "flow", V_FLOW), (16, "ballistic", 0.3)], snr_db=11.0, seed=5), 13)
+    m = compute_maps(seq_of(f), metrics=("mean_db",), doppler=True)
+    assert NAME not in m.channels and m.meta["doppler"]["per_lag"]["1"]["reference_pixels"] == 0
+    monkeypatch.setattr(doppler, "moved_population", lambda moved, n: np.zeros(np.shape(n), bool))
+    m = compute_maps(seq_of(f), metrics=("mean_db",), doppler=True)
+    assert m.meta["doppler"]["per_lag"]["1"]["alines_bscan_reference"] == 96
+    mean, se = layer_mean(m.maps[m.index(NAME)].astype(np.float64), slice(20, 32))  # the ballistic layer
+    assert abs(mean - 2 * K * V_FLOW * DT) <= Z_SE * se, (mean, se)  # the flow's Doppler phase, reversed

@@ -27,7 +27,11 @@ everywhere, slow flow mostly drifts. And the population must be steady as a whol
 the lag-1 autocorrelation of their intensity fluctuations (:func:`drift_statistic`) is at most
 :func:`max_population_drift` (a flow that is the steadiest population of a static-free sample hides its
 drift under the noise pixel by pixel, not over hundreds of pixels), or its drift's contrast is at most
-:data:`MAX_DRIFT_CONTRAST` (too small to move the phase).
+:data:`MAX_DRIFT_CONTRAST` (too small to move the phase). Last, its speckle pattern must have stayed in place:
+not significantly more than :data:`MAX_MOVED_SHARE` of its pixels moved theirs (:func:`pattern_statistic`,
+:func:`moved_population`). The product of axially neighbouring fields cancels the bulk phase and a flow's own
+Doppler rotation, so a flow whose intensity drift hides under the noise, even over tens of pixels (at a low
+SNR), still shows its pattern sliding.
 
 **Scope and minimum**: an A-line with at least :data:`MIN_REFERENCE_PIXELS` reference pixels uses its
 own reference; otherwise its B-scan's (the same rule on all the B-scan's pixels, which assumes a bulk
@@ -134,7 +138,10 @@ REFERENCE_RULE = (
     "more than {ws:.0%} of the steady pixels within h of it are white (one-sided binomial test at "
     "{lv:g}) and the mean over its pixels of the lag-1 autocorrelation of their intensity fluctuations is at "
     "most {dr:g} plus 3.5 standard errors of a white population's, or the mean lag-1 autocovariance over the "
-    "squared mean intensity is at most {dc:g} (steady as a population: no common drift); scope: the A-line with >= {n} "
+    "squared mean intensity is at most {dc:g} (steady as a population: no common drift); and not significantly more "
+    "than {ms:.3g} of its pixels moved their speckle pattern (the product of axially neighbouring fields, which "
+    "cancels a common phase, changed from the first half of the frames to the second by more than {pm:g} times its "
+    "noise variance; one-sided binomial test at {lv:g}); scope: the A-line with >= {n} "
     "reference pixels, else its B-scan with >= {n} whose reference reaches >= {cov:.0%} of the A-lines "
     "with a candidate, else none (NaN); channel: arg sum_t conj(C_t(p)) "
     "r_t/|r_t|, C_t = E_(t+m) conj(E_t), r_t the reference sum without p"
@@ -247,10 +254,14 @@ class DopplerReference:
                 cov=MIN_BSCAN_COVERAGE,
                 dr=MAX_POPULATION_DRIFT,
                 dc=MAX_DRIFT_CONTRAST,
+                ms=MAX_MOVED_SHARE,
+                pm=PATTERN_MOVED_MIN,
             ),
             "min_bscan_coverage": MIN_BSCAN_COVERAGE,
             "max_population_drift": MAX_POPULATION_DRIFT,
             "max_drift_contrast": MAX_DRIFT_CONTRAST,
+            "pattern_moved_min": PATTERN_MOVED_MIN,
+            "max_moved_share": MAX_MOVED_SHARE,
             "min_white_share": MIN_WHITE_SHARE,
             "min_whiteness": min_whiteness(self.n_frames),
             "reference_contrast": REFERENCE_CONTRAST,
@@ -266,8 +277,8 @@ class DopplerReference:
             out["absent"] = (
                 "no A-line and no B-scan holds the reference the rule needs (at least "
                 f"{MIN_REFERENCE_PIXELS} steady, white, phase-consistent pixels whose population "
-                "fluctuates as noise, not as a drift): no static tissue to measure the Doppler phase "
-                "against, so no channel rather than a made-up value"
+                "fluctuates as noise, not as a drift, and keeps its speckle pattern in place): no static "
+                "tissue to measure the Doppler phase against, so no channel rather than a made-up value"
             )
         return out
 
@@ -477,7 +488,7 @@ def _last_step(
     c: torch.Tensor, cand: torch.Tensor, steady: torch.Tensor, drift: torch.Tensor, r1: torch.Tensor, h: float
 ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray, np.ndarray]:
     """The candidates within ``h`` of the population's sum ``r1``: ``(their sums [K, G], the pixels [G, S],
-    their count [G], the steady pixels within h [G], the sums of their drift statistics and pattern-held flags [3, G])``."""
+    their count [G], the steady pixels within h [G], the sums of their drift statistics and pattern-moved flags [3, G])``."""
     in_phase = _phase_to(c, r1).abs() <= h
     sel = cand & in_phase
     return (
