@@ -114,10 +114,10 @@ MAX_POPULATION_DRIFT = 0.05
 #: and its phase by at most about ``ε`` rad, so such a reference moves its phase by about 0.02 rad at most:
 #: static tissue whose intensity follows a moving neighbour's PSF tail stays a reference.
 MAX_DRIFT_CONTRAST = REFERENCE_CONTRAST / 25
-#: :func:`pattern_statistic` above which a pixel's speckle pattern moved (step 7): static tissue in white noise
-#: exceeds it with a probability of about a tenth (each of a pixel's pairs is exponential with mean 1, and a
-#: pixel's statistic is the mean of its two), a flow whose Doppler phase the reference would carry in most of
-#: its pixels (docs/concepts/doppler-reference.md §4).
+#: :func:`pattern_statistic` above which a pixel's speckle pattern moved (step 7): for static tissue in white
+#: noise each of a pixel's pairs is exponential with mean 1 and exceeds it with probability ``e^{−2}``; a flow
+#: whose Doppler phase the reference would carry exceeds it in most of its pixels
+#: (docs/concepts/doppler-reference.md §4).
 PATTERN_MOVED_MIN = 2.0
 #: A reference population counts unless significantly more than this share of its pixels moved their pattern
 #: (one-sided binomial test at :data:`WHITE_TEST_LEVEL`): static tissue moves its pattern only by the noise's
@@ -347,19 +347,30 @@ def pattern_statistic(lines: torch.Tensor) -> torch.Tensor:
     noise gives each pair an exponential statistic of mean 1 (0 without noise: a constant ``P_t``); a pattern
     that slides by a fair part of the PSF gives many times that. NaN where a sample is not finite; 0 for an
     A-line of one pixel (no pair to read)."""
-    x = lines.to(_work_dtype(lines))
-    n_t, n_z = x.shape[0], x.shape[-1]
+    n_t, n_z = lines.shape[0], lines.shape[-1]
     if n_z < 2 or n_t < 2:
-        return torch.zeros(x.shape[1:], dtype=torch.float64)
-    p = (x[..., 1:] * x[..., :-1].conj()).to(torch.complex128)  # [T, L, Z-1]
+        return torch.zeros(lines.shape[1:], dtype=torch.float64)
     half = n_t // 2
-    change = (p[n_t - half :].mean(0) - p[:half].mean(0)).abs().square()
-    v = (p[1:] - p[:-1]).abs().square().sum(0) / (2.0 * (n_t - 1))
+    first = torch.zeros(lines.shape[1:-1] + (n_z - 1,), dtype=torch.complex128)
+    last, v = torch.zeros_like(first), torch.zeros(first.shape, dtype=torch.float64)
+    prev = None
+    for t in range(n_t):  # frame by frame: [L, Z−1] accumulators, not a [T, L, Z−1] array
+        x = lines[t].to(_work_dtype(lines))
+        p = (x[..., 1:] * x[..., :-1].conj()).to(torch.complex128)
+        if t < half:
+            first += p
+        if t >= n_t - half:
+            last += p
+        if prev is not None:
+            v += (p - prev).abs().square()
+        prev = p
+    change = ((last - first) / half).abs().square()
+    v /= 2.0 * (n_t - 1)
     noise = 2.0 * v / half
     pair = torch.where(noise > 0, change / torch.where(noise > 0, noise, torch.ones_like(noise)), change * math.inf)
     pair = torch.where(change == 0, torch.zeros_like(pair), pair)  # a constant product (noise-free static): 0
-    total = torch.zeros(x.shape[1:], dtype=torch.float64)
-    count = torch.zeros(x.shape[1:], dtype=torch.float64)
+    total = torch.zeros(lines.shape[1:], dtype=torch.float64)
+    count = torch.zeros(lines.shape[1:], dtype=torch.float64)
     total[..., :-1] += pair
     total[..., 1:] += pair
     count[..., :-1] += 1.0
