@@ -467,28 +467,32 @@ def test_a_flow_steadier_than_its_noise_is_not_a_b_scan_reference():
 def test_the_pattern_statistic_cancels_a_common_phase_and_tells_a_sliding_pattern_from_static_noise():
     """Step 7 of the reference rule (docs/concepts/doppler-reference.md §4): the product of axially neighbouring
     fields cancels any phase common to the A-line at a frame, so a random bulk phase per frame, or a Doppler
-    rotation of the whole A-line, leaves the statistic unchanged (to rounding); a constant field gives 0;
-    static tissue in white noise moves its pattern (statistic above ``PATTERN_MOVED_MIN``) in far fewer pixels
-    than a population may (``MAX_MOVED_SHARE``), at any SNR, while an axial flow whose speckle slides 1.2 µm
-    over the sequence moves it in most of its pixels even at 11 dB."""
+    rotation of the whole A-line, leaves both statistics unchanged (to rounding); a constant field gives 0;
+    static tissue in white noise moves its pattern (significance above ``PATTERN_MOVED_MIN`` and size at least
+    ``PATTERN_CHANGE_MIN``) in far fewer pixels than a population may (``MAX_MOVED_SHARE``), at any SNR, while
+    an axial flow whose speckle slides 1.2 µm over the sequence moves it in most of its pixels even at 11 dB."""
     import torch
 
-    from torchdoct.measured.doppler import MAX_MOVED_SHARE, PATTERN_MOVED_MIN, pattern_statistic
+    from torchdoct.measured.doppler import MAX_MOVED_SHARE, PATTERN_CHANGE_MIN, PATTERN_MOVED_MIN, pattern_statistic
 
-    def stat(e):  # [T, Z, X] → per pixel [X, Z]
+    def stat(e):  # [T, Z, X] → per pixel [2, X, Z]
         return pattern_statistic(torch.from_numpy(np.ascontiguousarray(e)).permute(0, 2, 1)).numpy()
+
+    def moved(e):
+        sig, size = stat(e)
+        return (sig > PATTERN_MOVED_MIN) & (size >= PATTERN_CHANGE_MIN)
 
     static = layered_field(200, [(32, "static", 0.0)], snr_db=20.0, seed=1)
     u = stat(static)
     spin = np.exp(1j * 0.6 * np.arange(T))[:, None, None]  # one Doppler rotation for every pixel
     for common in (with_bulk(static, 4), static * spin):
-        np.testing.assert_allclose(stat(common), u, rtol=1e-9)
+        np.testing.assert_allclose(stat(common), u, rtol=1e-9, atol=1e-12)
     assert float(np.abs(stat(np.repeat(static[:1], T, 0))).max()) == 0.0
     for snr in (11.0, 20.0, 30.0):
-        share = float((stat(layered_field(200, [(32, "static", 0.0)], snr_db=snr, seed=1)) > PATTERN_MOVED_MIN).mean())
+        share = float(moved(layered_field(200, [(32, "static", 0.0)], snr_db=snr, seed=1)).mean())
         assert share < MAX_MOVED_SHARE / 2, (snr, share)
-    flow = stat(layered_field(200, [(32, "flow", V_FLOW)], snr_db=11.0, seed=2))
-    assert float((flow > PATTERN_MOVED_MIN).mean()) > 0.5  # most of its pixels
+    flow = moved(layered_field(200, [(32, "flow", V_FLOW)], snr_db=11.0, seed=2))
+    assert float(flow.mean()) > 0.5  # most of its pixels
 
 
 def test_a_flow_steadier_than_its_noise_at_11_db_is_no_reference_once_its_pattern_is_read(monkeypatch):

@@ -70,6 +70,7 @@ __all__ = [
     "max_population_drift",
     "MAX_DRIFT_CONTRAST",
     "PATTERN_MOVED_MIN",
+    "PATTERN_CHANGE_MIN",
     "MAX_MOVED_SHARE",
     "pattern_statistic",
     "moved_population",
@@ -114,15 +115,20 @@ MAX_POPULATION_DRIFT = 0.05
 #: and its phase by at most about ``ε`` rad, so such a reference moves its phase by about 0.02 rad at most:
 #: static tissue whose intensity follows a moving neighbour's PSF tail stays a reference.
 MAX_DRIFT_CONTRAST = REFERENCE_CONTRAST / 25
-#: :func:`pattern_statistic` above which a pixel's speckle pattern moved (step 7): for static tissue in white
-#: noise each of a pixel's pairs is exponential with mean 1 and exceeds it with probability ``e^{−2}``; a flow
-#: whose Doppler phase the reference would carry exceeds it in most of its pixels
+#: Significance (:func:`pattern_statistic`, 0) above which a pixel's speckle pattern moved (step 7): for static
+#: tissue in white noise each of a pixel's pairs is exponential with mean 1 and exceeds it with probability
+#: ``e^{−2}``; a flow whose Doppler phase the reference would carry exceeds it in most of its pixels
 #: (docs/concepts/doppler-reference.md §4).
 PATTERN_MOVED_MIN = 2.0
+#: Size (:func:`pattern_statistic`, 1) from which a significant change counts as moved: a moving share ``ε`` of
+#: a pixel's field changes it by at most about ``2ε`` and turns the pixel's phase by at most about ``ε`` rad,
+#: so static tissue that shares its PSF with a moving neighbour (or slow random motion, whose phase is
+#: symmetric about 0 anyway) stays a reference unless its moving share could turn its phase by about 0.1 rad.
+PATTERN_CHANGE_MIN = 0.1
 #: A reference population counts unless significantly more than this share of its pixels moved their pattern
 #: (one-sided binomial test at :data:`WHITE_TEST_LEVEL`): static tissue moves its pattern only by the noise's
 #: chance and where the PSF shares it with a moving neighbour (a layer's edge).
-MAX_MOVED_SHARE = 1.0 / 3.0
+MAX_MOVED_SHARE = 0.4
 #: A B-scan's reference counts when at least this share of its A-lines with a candidate hold some of its
 #: pixels: the bulk phase it removes is common to the B-scan.
 MIN_BSCAN_COVERAGE = 0.5
@@ -141,7 +147,8 @@ REFERENCE_RULE = (
     "squared mean intensity is at most {dc:g} (steady as a population: no common drift); and not significantly more "
     "than {ms:.3g} of its pixels moved their speckle pattern (the product of axially neighbouring fields, which "
     "cancels a common phase, changed from the first half of the frames to the second by more than {pm:g} times its "
-    "noise variance; one-sided binomial test at {lv:g}); scope: the A-line with >= {n} "
+    "noise variance and by at least {pc:g} of the pair's intensity; one-sided binomial test at {lv:g}); scope: the "
+    "A-line with >= {n} "
     "reference pixels, else its B-scan with >= {n} whose reference reaches >= {cov:.0%} of the A-lines "
     "with a candidate, else none (NaN); channel: arg sum_t conj(C_t(p)) "
     "r_t/|r_t|, C_t = E_(t+m) conj(E_t), r_t the reference sum without p"
@@ -256,11 +263,13 @@ class DopplerReference:
                 dc=MAX_DRIFT_CONTRAST,
                 ms=MAX_MOVED_SHARE,
                 pm=PATTERN_MOVED_MIN,
+                pc=PATTERN_CHANGE_MIN,
             ),
             "min_bscan_coverage": MIN_BSCAN_COVERAGE,
             "max_population_drift": MAX_POPULATION_DRIFT,
             "max_drift_contrast": MAX_DRIFT_CONTRAST,
             "pattern_moved_min": PATTERN_MOVED_MIN,
+            "pattern_change_min": PATTERN_CHANGE_MIN,
             "max_moved_share": MAX_MOVED_SHARE,
             "min_white_share": MIN_WHITE_SHARE,
             "min_whiteness": min_whiteness(self.n_frames),
@@ -336,26 +345,33 @@ def _drift(dev: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
 
 
 def pattern_statistic(lines: torch.Tensor) -> torch.Tensor:
-    """Per pixel of A-lines ``[T, L, Z]`` (complex), whether its speckle pattern stayed in place over the
-    sequence, read against its axial neighbours (``[L, Z]`` float64; docs/concepts/doppler-reference.md §4,
-    step 7). For each pair of adjacent depths, the products ``P_t = E_t(z+1)·E_t*(z)``: a phase common to both
-    pixels cancels (the bulk phase, and a flow's own Doppler rotation), so ``P_t`` changes only where the
-    pattern changes. The statistic of a pair is the change of the mean of ``P_t`` from the first ``⌊T/2⌋``
-    frames to the last ``⌊T/2⌋``, ``|P̄_2 − P̄_1|²``, over its variance under white noise, ``2v/⌊T/2⌋`` with
-    ``v = Σ_t |P_{t+1} − P_t|² / (2(T − 1))`` (from successive differences, which a slow change barely
-    touches); a pixel's is the mean over its pairs (one at either end of the A-line). Static tissue in white
-    noise gives each pair an exponential statistic of mean 1 (0 without noise: a constant ``P_t``); a pattern
-    that slides by a fair part of the PSF gives many times that. NaN where a sample is not finite; 0 for an
-    A-line of one pixel (no pair to read)."""
+    """Per pixel of A-lines ``[T, L, Z]`` (complex), how far its speckle pattern moved over the sequence, read
+    against its axial neighbours (``[2, L, Z]`` float64; docs/concepts/doppler-reference.md §4, step 7). For
+    each pair of adjacent depths, the products ``P_t = E_t(z+1)·E_t*(z)``: a phase common to both pixels
+    cancels (the bulk phase, and a flow's own Doppler rotation), so ``P_t`` changes only where the pattern
+    changes. Of a pair, with ``ΔP = P̄_2 − P̄_1`` the change of the mean of ``P_t`` from the first ``⌊T/2⌋``
+    frames to the last ``⌊T/2⌋``:
+
+    0. its significance, ``|ΔP|²`` over its variance under white noise, ``2v/⌊T/2⌋`` with
+       ``v = Σ_t |P_{t+1} − P_t|² / (2(T − 1))`` (from successive differences, which a slow change barely
+       touches): static tissue in white noise gives an exponential statistic of mean 1 (0 without noise: a
+       constant ``P_t``), a pattern that slides by a fair part of the PSF many times that;
+    1. its size, ``|ΔP|`` over ``√(Ī(z)·Ī(z+1))`` (the largest ``|P̄|`` the two intensities allow): a moving
+       share ``ε`` of the pixels' fields changes it by at most about ``2ε``.
+
+    A pixel's values are the means over its pairs (one at either end of the A-line). NaN where a sample is not
+    finite; 0 for an A-line of one pixel (no pair to read)."""
     n_t, n_z = lines.shape[0], lines.shape[-1]
     if n_z < 2 or n_t < 2:
-        return torch.zeros(lines.shape[1:], dtype=torch.float64)
+        return torch.zeros((2,) + tuple(lines.shape[1:]), dtype=torch.float64)
     half = n_t // 2
     first = torch.zeros(lines.shape[1:-1] + (n_z - 1,), dtype=torch.complex128)
     last, v = torch.zeros_like(first), torch.zeros(first.shape, dtype=torch.float64)
+    inten = torch.zeros(lines.shape[1:], dtype=torch.float64)
     prev = None
     for t in range(n_t):  # frame by frame: [L, Z−1] accumulators, not a [T, L, Z−1] array
         x = lines[t].to(_work_dtype(lines))
+        inten += (x.real.double() ** 2 + x.imag.double() ** 2) / n_t
         p = (x[..., 1:] * x[..., :-1].conj()).to(torch.complex128)
         if t < half:
             first += p
@@ -364,25 +380,32 @@ def pattern_statistic(lines: torch.Tensor) -> torch.Tensor:
         if prev is not None:
             v += (p - prev).abs().square()
         prev = p
-    change = ((last - first) / half).abs().square()
+    delta = ((last - first) / half).abs()
+    change = delta.square()
     v /= 2.0 * (n_t - 1)
     noise = 2.0 * v / half
-    pair = torch.where(noise > 0, change / torch.where(noise > 0, noise, torch.ones_like(noise)), change * math.inf)
-    pair = torch.where(change == 0, torch.zeros_like(pair), pair)  # a constant product (noise-free static): 0
-    total = torch.zeros(lines.shape[1:], dtype=torch.float64)
+    sig = torch.where(noise > 0, change / torch.where(noise > 0, noise, torch.ones_like(noise)), change * math.inf)
+    sig = torch.where(change == 0, torch.zeros_like(sig), sig)  # a constant product (noise-free static): 0
+    scale = torch.sqrt(inten[..., 1:] * inten[..., :-1])
+    size = torch.where(
+        scale > 0, delta / torch.where(scale > 0, scale, torch.ones_like(scale)), torch.zeros_like(delta)
+    )
+    out = torch.zeros((2,) + tuple(lines.shape[1:]), dtype=torch.float64)
     count = torch.zeros(lines.shape[1:], dtype=torch.float64)
-    total[..., :-1] += pair
-    total[..., 1:] += pair
+    for k, pair in enumerate((sig, size)):
+        out[k, ..., :-1] += pair
+        out[k, ..., 1:] += pair
     count[..., :-1] += 1.0
     count[..., 1:] += 1.0
-    return total / count
+    return out / count
 
 
 def _candidates(lines: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(candidate, steady [L, Z] bool, weight [L, Z], drift [3, L, Z] float64)`` of A-lines ``[T, L, Z]``: steady
     (contrast) and white (no drift: the von Neumann ratio; a constant intensity counts as white) intensity;
     the drift statistic of every pixel (:func:`drift_statistic`) and, third, 1 where its pattern moved
-    (:func:`pattern_statistic` above :data:`PATTERN_MOVED_MIN`, or not finite), else 0."""
+    (:func:`pattern_statistic`: significance above :data:`PATTERN_MOVED_MIN` and size at least
+    :data:`PATTERN_CHANGE_MIN`, or not finite), else 0."""
     inten = (lines.real**2 + lines.imag**2).double()
     mean = inten.mean(0)
     dev = inten - mean
@@ -393,7 +416,8 @@ def _candidates(lines: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.
     steady = (contrast <= REFERENCE_CONTRAST) & (mean > 0) & torch.isfinite(contrast)
     cand = steady & white
     w = torch.where(cand, 1.0 - contrast / REFERENCE_CONTRAST, torch.zeros_like(contrast))
-    moved = (~(pattern_statistic(lines) <= PATTERN_MOVED_MIN)).double()
+    sig, size = pattern_statistic(lines)
+    moved = (~((sig <= PATTERN_MOVED_MIN) | (size < PATTERN_CHANGE_MIN))).double()
     return cand, steady, w, torch.cat([_drift(dev, mean), moved[None]])
 
 
@@ -411,7 +435,8 @@ def white_population(n_white: np.ndarray, n_steady: np.ndarray) -> np.ndarray:
 
 def moved_population(n_moved: np.ndarray, n: np.ndarray) -> np.ndarray:
     """Whether a reference population's speckle pattern moved (step 7): of its ``n`` pixels, ``n_moved`` moved
-    theirs (:func:`pattern_statistic` above :data:`PATTERN_MOVED_MIN`), significantly more than
+    theirs (:func:`pattern_statistic`: significance above :data:`PATTERN_MOVED_MIN`, size at least
+    :data:`PATTERN_CHANGE_MIN`), significantly more than
     :data:`MAX_MOVED_SHARE` (one-sided binomial test at :data:`WHITE_TEST_LEVEL`). A flow steadier than its
     noise passes the intensity tests (steps 2, 4 and 6) but carries its pattern along; the product of two
     neighbouring pixels' fields cancels its Doppler rotation and the bulk phase, so the pattern's motion shows
