@@ -122,8 +122,9 @@ MAX_DRIFT_CONTRAST = REFERENCE_CONTRAST / 25
 PATTERN_MOVED_MIN = 2.0
 #: Size (:func:`pattern_statistic`, 1) from which a significant change counts as moved: a moving share ``ε`` of
 #: a pixel's field changes it by at most about ``2ε`` and turns the pixel's phase by at most about ``ε`` rad,
-#: so static tissue that shares its PSF with a moving neighbour (or slow random motion, whose phase is
-#: symmetric about 0 anyway) stays a reference unless its moving share could turn its phase by about 0.1 rad.
+#: so static tissue that shares its PSF with a slowly moving neighbour (or slow random motion, whose phase is
+#: symmetric about 0 anyway) stays a reference unless its moving share could turn its phase by a few
+#: hundredths of a radian or more.
 PATTERN_CHANGE_MIN = 0.1
 #: A reference population counts unless significantly more than this share of its pixels moved their pattern
 #: (one-sided binomial test at :data:`WHITE_TEST_LEVEL`): static tissue moves its pattern only by the noise's
