@@ -43,6 +43,11 @@ and ``meta["doppler"]`` says why; intensity-only input gives no channel and a no
 lateral slabs of whole A-lines (:func:`estimate_doppler_reference`; the B-scan scope of a B-scan split
 into several slabs takes four passes); only the reference sums ``[T−m, (Y), X]`` and a reference mask
 ``[(Y), Z, X]`` are kept, and the channel is computed per pixel in the maps' own slabs (any cut).
+
+Kept whole (over 800 lines): the reference rule's seven steps, the constants they share, the slab and
+four-pass streaming that evaluates them, the channel and the metadata that records the rule are one
+definition; split, a change to a step would have to be mirrored across modules to keep the recorded rule
+true.
 """
 
 from __future__ import annotations
