@@ -34,10 +34,22 @@ import numpy as np
 
 from .conformal import DEFAULT_ALPHA, SCHEMA_VERSION, pool_thresholds, prediction_sets, scores_lac, set_labels
 
-__all__ = ["CALIBRATION_SEED", "POOLS", "calibration_samples", "calibrate", "reliability", "write_calibration", "main"]
+__all__ = [
+    "CALIBRATION_SEED",
+    "CALIBRATION_TRIALS",
+    "POOLS",
+    "calibration_samples",
+    "calibrate",
+    "reliability",
+    "write_calibration",
+    "write_calibration_files",
+    "main",
+]
 
 #: Seed of the calibration split (the shipped models train at seed 0 with splits train/validation/test).
 CALIBRATION_SEED = 7919
+#: Trials simulated per (draw, replicate) group of the calibration split (at least the largest pool size).
+CALIBRATION_TRIALS = 32
 POOLS = (1, 4, 9, 25)
 REPORTED_ALPHAS = (0.05, 0.1, 0.2)
 BINS = 10
@@ -64,7 +76,14 @@ def _model_prior(model) -> Any:
 
 
 def calibration_samples(
-    model, *, draws: int, trials: int = 32, seed: int = CALIBRATION_SEED, cache_dir=None, progress: bool = True
+    model,
+    *,
+    draws: int,
+    trials: int = CALIBRATION_TRIALS,
+    seed: int = CALIBRATION_SEED,
+    cache_dir=None,
+    use_cache: bool = True,
+    progress: bool = True,
 ) -> tuple[dict[int, dict[str, np.ndarray]], dict[str, Any]]:
     """``({pool: samples}, description)`` of the calibration split (module docstring)."""
     from .dataset import make_dataset
@@ -84,6 +103,7 @@ def calibration_samples(
         truncation_tolerance=float(config.get("truncation_tolerance", 1e-2)),
         truncation=str(config.get("truncation", "taper")),
         cache_dir=cache_dir,
+        use_cache=use_cache,
         progress=progress,
     )
     rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(1,)))
@@ -144,9 +164,10 @@ def calibrate(
     model_name: str,
     *,
     draws: int = 240,
-    trials: int = 32,
+    trials: int = CALIBRATION_TRIALS,
     seed: int = CALIBRATION_SEED,
     cache_dir=None,
+    use_cache: bool = True,
     progress: bool = True,
 ) -> dict[str, Any]:
     """The calibration record of a model (module docstring)."""
@@ -155,7 +176,7 @@ def calibrate(
 
     model = runtime.load_model(model_name, threads=1, calibration=False)
     samples, desc = calibration_samples(
-        model, draws=draws, trials=trials, seed=seed, cache_dir=cache_dir, progress=progress
+        model, draws=draws, trials=trials, seed=seed, cache_dir=cache_dir, use_cache=use_cache, progress=progress
     )
     classes = model.classes
     pools = []
@@ -240,6 +261,13 @@ def plot_reliability(cal: dict[str, Any], path: str | Path) -> None:
     plt.close(fig)
 
 
+def write_calibration_files(cal: dict[str, Any], json_path: str | Path, png_path: str | Path) -> None:
+    """The calibration record ``NAME.calibration.json`` and its reliability diagram, at the paths given
+    (``doct-train`` writes them into its output set)."""
+    Path(json_path).write_text(json.dumps(cal, indent=None, separators=(",", ":")), encoding="utf-8")
+    plot_reliability(cal, png_path)
+
+
 def write_calibration(cal: dict[str, Any], out_dir: str | Path, *, force: bool = False) -> list[Path]:
     from torchdoct.files import output_set
 
@@ -247,8 +275,7 @@ def write_calibration(cal: dict[str, Any], out_dir: str | Path, *, force: bool =
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / f"{cal['model']}.calibration.json", out / f"{cal['model']}.reliability.png"]
     with output_set(paths, force, "--out") as stage:
-        stage(paths[0]).write_text(json.dumps(cal, indent=None, separators=(",", ":")), encoding="utf-8")
-        plot_reliability(cal, stage(paths[1]))
+        write_calibration_files(cal, stage(paths[0]), stage(paths[1]))
     return paths
 
 
@@ -259,7 +286,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--model", required=True, help="shipped model name or .onnx file (its report NAME.json beside it)")
     ap.add_argument("--out", default=None, help="directory (default: beside the model)")
     ap.add_argument("--draws", type=int, default=240, help="parameter draws of the calibration split (default 240)")
-    ap.add_argument("--trials", type=int, default=32, help="trials per group (default 32; at least the largest pool)")
+    ap.add_argument(
+        "--trials",
+        type=int,
+        default=CALIBRATION_TRIALS,
+        help=f"trials per group (default {CALIBRATION_TRIALS}; at least the largest pool)",
+    )
     ap.add_argument("--seed", type=int, default=CALIBRATION_SEED)
     ap.add_argument("--cache", default=None, help="dataset cache directory")
     ap.add_argument("--force", action="store_true")

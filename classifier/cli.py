@@ -26,6 +26,10 @@ QUICK = {
     "replicates": 4,
     "max_epochs": 100,
 }
+#: Parameter draws of the calibration split ``doct-train`` simulates for a signature model (the default of
+#: ``python -m classifier.calibrate``, which calibrated the shipped signature models), and with ``--quick``.
+CALIBRATION_DRAWS = 240
+QUICK_CALIBRATION_DRAWS = 60
 
 _ERRORS = (ValueError, TypeError, FileNotFoundError)  # bad input: exit code 2 (torchdoct.cli.EXIT_CODES)
 
@@ -110,6 +114,16 @@ def build_train_parser() -> argparse.ArgumentParser:
         help="indeterminate below this top-class probability",
     )
     p.add_argument("--no-baselines", action="store_true", help="skip the scikit-learn baselines")
+    p.add_argument(
+        "--calibration-draws",
+        type=int,
+        default=None,
+        metavar="N",
+        help=f"parameter draws of the split that calibrates a signature model's conformal prediction sets "
+        f"after training (default {CALIBRATION_DRAWS}, with --quick {QUICK_CALIBRATION_DRAWS}; 0: none, and "
+        "doct-classify decides by the model's argmax rule): SPEC.calibration.json and SPEC.reliability.png "
+        "beside the model, as python -m classifier.calibrate writes them (docs/abstention.md)",
+    )
     p.add_argument("--cache", default=None, help="dataset cache directory (default ~/.cache/torchdoct/classifier)")
     p.add_argument("--no-cache", action="store_true", help="neither read nor write the dataset cache")
     p.add_argument(
@@ -169,7 +183,9 @@ def _train(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {out} is a file; give a directory")
     if args.cache is not None and not args.no_cache and Path(args.cache).exists() and not Path(args.cache).is_dir():
         raise ValueError(f"--cache {args.cache} is a file; give a directory (or --no-cache)")
+    calibration_draws = _calibration_draws(args, spec)
     suffixes = (".onnx", ".json", ".md", ".png") + ((".spec.toml", ".prior.toml") if args.like else ())
+    suffixes += (".calibration.json", ".reliability.png") if calibration_draws else ()
     paths = {s: out / f"{spec.name}{s}" for s in suffixes}
     if out.is_dir() and not args.dry_run:
         for s, p in paths.items():
@@ -190,12 +206,16 @@ def _train(args: argparse.Namespace) -> int:
         raise type(err)(_as_typed(str(err))) from None
     prior, ranges = _prior(args, spec, cfg)
     if args.like or args.prior or args.dry_run:
-        _print_plan(args, spec, prior, ranges, cfg, notes, paths)
+        _print_plan(args, spec, prior, ranges, cfg, notes, paths, calibration_draws)
     if args.dry_run:
         return 0
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    order = [s for s in (".json", ".md", ".png", ".spec.toml", ".prior.toml", ".onnx") if s in paths]  # the model last
+    order = [  # the model last
+        s
+        for s in (".json", ".md", ".png", ".spec.toml", ".prior.toml", ".calibration.json", ".reliability.png", ".onnx")
+        if s in paths
+    ]
     try:
         with output_set([paths[s] for s in order], args.force, f"--out {out}") as stage:  # all files or none
             line = _train_into(args, cfg, {s: stage(p) for s, p in paths.items()}, spec=spec, prior=prior)
@@ -203,6 +223,8 @@ def _train(args: argparse.Namespace) -> int:
                 _write_like_files(
                     spec, prior, ranges, args, {s: stage(paths[s]) for s in (".spec.toml", ".prior.toml")}
                 )
+            if calibration_draws:
+                line += "\n" + _calibrate_into(args, calibration_draws, {s: stage(p) for s, p in paths.items()})
     finally:
         if created and out.exists() and not any(out.iterdir()):
             out.rmdir()
@@ -253,8 +275,9 @@ def _read_prior(path: str):
 _RANGE_UNITS = {"diffusion": "D, µm²/s", "ballistic": "v, µm/s", "flow": "v, µm/s"}
 
 
-def _print_plan(args, spec, prior, ranges, cfg, notes, paths) -> None:
+def _print_plan(args, spec, prior, ranges, cfg, notes, paths, calibration_draws: int = 0) -> None:
     """What will be trained, printed before the work: spec, prior, recipe, expected time, cache key."""
+    from .calibrate import CALIBRATION_TRIALS
     from .dataset import dataset_key, default_cache_dir
     from .features import toml_text
     from .own_system import estimate_seconds
@@ -305,7 +328,20 @@ def _print_plan(args, spec, prior, ranges, cfg, notes, paths) -> None:
         f"{cfg.replicates} replicates × {cfg.trials_per_draw} trials, at most {cfg.max_epochs} epochs, "
         f"seed {cfg.seed}, PSF {cfg.truncation} at {cfg.truncation_tolerance:g}"
     )
-    est = estimate_seconds(spec, prior, cfg, pilot_draws=3 if args.quick else 6, threads=args.threads)
+    if calibration_draws:
+        print(
+            f"calibration: {calibration_draws} draws from the prior at the calibration seed, after training "
+            "(SPEC.calibration.json: doct-classify's conformal sets; --calibration-draws 0 skips it)"
+        )
+    est = estimate_seconds(
+        spec,
+        prior,
+        cfg,
+        pilot_draws=3 if args.quick else 6,
+        threads=args.threads,
+        calibration_draws=calibration_draws,
+        calibration_trials=CALIBRATION_TRIALS,
+    )
     print(
         f"expected time: about {est['total_s'] / 60:.1f} min (simulation {est['simulation_s'] / 60:.1f} min: "
         f"{est['draws']} draws at {est['pilot_s_per_draw']:.2f} s each on the cores, from a pilot of the first "
@@ -315,6 +351,7 @@ def _print_plan(args, spec, prior, ranges, cfg, notes, paths) -> None:
             if est["baselines_s"]
             else ""
         )
+        + (f"; the calibration {est['calibration_s'] / 60:.1f} min" if est["calibration_s"] else "")
         + ")"
     )
     if not args.no_cache:
@@ -336,6 +373,43 @@ def _print_plan(args, spec, prior, ranges, cfg, notes, paths) -> None:
             f"the same model again: doct-train --spec {paths['.spec.toml']} --prior {paths['.prior.toml']} --out "
             f"{args.out} --seed {cfg.seed}" + (" --quick" if args.quick else "") + extra
         )
+
+
+def _calibration_draws(args: argparse.Namespace, spec) -> int:
+    """Draws of the calibration split of this run: ``--calibration-draws``, else the default of a signature
+    spec (the models whose decision is the conformal sets; LIV/OCDS models keep their argmax rule, as the
+    shipped ones do)."""
+    if args.calibration_draws is not None:
+        if args.calibration_draws < 0:
+            raise ValueError(f"--calibration-draws {args.calibration_draws}: give 0 (no calibration) or more draws")
+        return int(args.calibration_draws)
+    if not spec.is_signature:
+        return 0
+    return QUICK_CALIBRATION_DRAWS if args.quick else CALIBRATION_DRAWS
+
+
+def _calibrate_into(args: argparse.Namespace, draws: int, paths: dict[str, Path]) -> str:
+    """Calibrate the model just written at ``paths[".onnx"]`` (its report beside it) on a split of
+    ``draws`` draws from its training prior at the calibration seed (:func:`classifier.calibrate.calibrate`)
+    and write the record and the reliability diagram; returns the summary line."""
+    from .calibrate import calibrate, write_calibration_files
+    from .conformal import DEFAULT_ALPHA
+
+    cal = calibrate(
+        str(paths[".onnx"]),
+        draws=draws,
+        cache_dir=args.cache,
+        use_cache=not args.no_cache,
+        progress=not args.no_progress,
+    )
+    write_calibration_files(cal, paths[".calibration.json"], paths[".reliability.png"])
+    pool = min(cal["pools"], key=lambda p: p["pool_pixels"])
+    sizes = pool["set_sizes"][f"{DEFAULT_ALPHA:g}"]
+    return (
+        f"calibrated: {pool['samples']} samples per pool size ({draws} draws); at alpha {DEFAULT_ALPHA:g} and one "
+        f"pixel the sets hold their class in {sizes['in_sample_coverage']:.3f} of the samples and decide "
+        f"{sizes['decided']:.3f} of them; doct-classify uses the sets (docs/abstention.md)"
+    )
 
 
 def _write_like_files(spec, prior, ranges, args, paths) -> None:

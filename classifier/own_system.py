@@ -190,14 +190,23 @@ def speed_cap(spec: FeatureSpec, prior: Prior, label: int) -> float:
 
 
 def estimate_seconds(
-    spec: FeatureSpec, prior: Prior, cfg: Any, *, pilot_draws: int = 6, threads: int | None = None
+    spec: FeatureSpec,
+    prior: Prior,
+    cfg: Any,
+    *,
+    pilot_draws: int = 6,
+    threads: int | None = None,
+    calibration_draws: int = 0,
+    calibration_trials: int = 0,
 ) -> dict[str, float]:
     """Expected time of :func:`classifier.train.train` with the recipe ``cfg`` (a
     :class:`classifier.train.TrainConfig`), in s, from a pilot: the first ``pilot_draws`` draws of the training split
     simulated and timed (their numbers are not kept). Simulation: the mean time per draw × the draws of
     every split (train, validation, test, and the test-sized shifted-prior and bulk-phase splits when the
     recipe makes them) / the cores; the network's fit: :data:`FIT_SECONDS_PER_SAMPLE_EPOCH` × samples
-    per epoch × the epoch cap (an upper bound: early stopping often ends sooner)."""
+    per epoch × the epoch cap (an upper bound: early stopping often ends sooner); the calibration split
+    (``calibration_draws`` draws of ``calibration_trials`` trials, after training) at the same time per
+    trial."""
     from torchdoct.runtime.threads import resolve_threads, single_torch_thread
 
     from .prior import draw_parameters
@@ -223,6 +232,7 @@ def estimate_seconds(
         extra += cfg.draws_test
     draws = cfg.draws_train + cfg.draws_validation + cfg.draws_test + extra
     simulation = per_draw * draws / resolve_threads(threads)
+    calibration = per_draw * calibration_draws * calibration_trials / cfg.trials_per_draw / resolve_threads(threads)
     samples = cfg.draws_train * cfg.replicates * (cfg.singles_per_group + cfg.pooled_per_group)
     fit = FIT_SECONDS_PER_SAMPLE_EPOCH * samples * cfg.max_epochs * (spec.n_features / 36.0) ** 0.5
     baselines = BASELINE_SECONDS_PER_SAMPLE * samples if cfg.baselines else 0.0
@@ -232,7 +242,8 @@ def estimate_seconds(
         "simulation_s": simulation,
         "fit_s": fit,
         "baselines_s": baselines,
-        "total_s": simulation + fit + baselines + REPORT_SECONDS,
+        "calibration_s": calibration,
+        "total_s": simulation + fit + baselines + calibration + REPORT_SECONDS,
     }
 
 

@@ -310,3 +310,37 @@ def test_like_writes_spec_and_prior_that_retrain_the_same_model(tmp_path, capsys
     bad.write_text("speed_um_per_s = [1.0, 0.1]\n")
     assert train_main(["--spec", str(spec_file), "--prior", str(bad), "--out", str(tmp_path / "c"), *tiny]) == 2
     assert "bad.prior.toml" in capsys.readouterr().err
+
+
+def test_doct_train_calibrates_a_signature_model_as_classifier_calibrate_does(tmp_path, capsys):
+    """``doct-train`` on a signature spec (here ``--like``, tiny sizes) writes the conformal calibration beside
+    the model: the very record ``python -m classifier.calibrate`` computes for the written model with the draws
+    it names, so ``doct-classify`` decides by the prediction sets. ``--calibration-draws 0`` writes none, and
+    the argmax rule decides."""
+    import json
+
+    from classifier.calibrate import CALIBRATION_SEED, POOLS, calibrate
+    from classifier.cli import classify_main, train_main
+
+    path = _bscan_maps(tmp_path)
+    tiny = ["--quick", "--draws-train", "6", "--draws-validation", "3", "--draws-test", "3", "--max-epochs", "2"]
+    tiny += ["--no-baselines", "--no-cache", "--no-progress"]
+    a = tmp_path / "a"
+    assert train_main(["--like", str(path), "--out", str(a), *tiny, "--calibration-draws", "4"]) == 0
+    assert "calibrated: " in capsys.readouterr().out
+    record = json.loads((a / "like-own.calibration.json").read_text())
+    assert (a / "like-own.reliability.png").stat().st_size > 0
+    assert record["description"]["draws"] == 4 and record["description"]["seed"] == CALIBRATION_SEED
+    assert [p["pool_pixels"] for p in record["pools"]] == list(POOLS)
+    again = json.loads(json.dumps(calibrate(str(a / "like-own.onnx"), draws=4, use_cache=False, progress=False)))
+    assert [(p["scores"], p["truth"]) for p in again["pools"]] == [(p["scores"], p["truth"]) for p in record["pools"]]
+    assert classify_main([str(path), "--model", str(a), "--out", str(tmp_path / "ca")]) == 0
+    assert json.loads((tmp_path / "ca" / "legend.json").read_text())["decision"] == "conformal"
+
+    b = tmp_path / "b"
+    assert train_main(["--like", str(path), "--out", str(b), *tiny, "--calibration-draws", "0"]) == 0
+    assert not (b / "like-own.calibration.json").exists() and not (b / "like-own.reliability.png").exists()
+    assert classify_main([str(path), "--model", str(b), "--out", str(tmp_path / "cb")]) == 0
+    assert json.loads((tmp_path / "cb" / "legend.json").read_text())["decision"] == "rule"
+    assert train_main(["--like", str(path), "--out", str(tmp_path / "c"), *tiny, "--calibration-draws", "-1"]) == 2
+    assert "--calibration-draws -1" in capsys.readouterr().err and not (tmp_path / "c").exists()
