@@ -9,9 +9,10 @@ For each system phantom (``system-1310nm``: 1310 nm, lateral 10 µm, axial 8 µm
 
 1. ``torchdoct render PHANTOM --seed S`` and ``torchdoct maps`` with the reductions the phantom names (about
    3.7× axially and laterally, as the paper) and ``--signature``;
-2. ``doct-train --like`` on the maps of the first seed (skipped when ``DIR/SYSTEM/`` already holds the model:
-   its report gives the training time);
-3. ``doct-classify --model DIR/SYSTEM --pool P --decide-ballistic`` (the model's own decisions, what the
+2. ``doct-train --like`` on the maps of the first seed, which also calibrates the model's conformal sets
+   (skipped when ``DIR/SYSTEM/`` already holds the model: its report gives the training time);
+3. ``doct-classify --model DIR/SYSTEM --pool P --decide-ballistic`` (the model's own decisions: its
+   conformal sets, without the rules of :mod:`classifier.ambiguity`; what the
    recorded floors measure; the ballistic-or-flow rules of :mod:`classifier.ambiguity` are scored by the
    phantom grid) for every seed and P = 1, 5, scored with
    :func:`classifier.evaluate_images.score_images` (all labelled moving pixels, edge 0): balanced accuracy,
@@ -186,7 +187,9 @@ def to_markdown(result: dict) -> str:
         "",
         f"Command: `{result['command']}`. Scores over all labelled moving pixels (edge 0) of the renderings "
         f"(seeds {result['seeds']}), mean ± SD over the renderings; the model trained on the first seed's maps. "
-        "Goals: pool 5 balanced accuracy ≥ 0.93 at coverage ≥ 0.90; doct-train --like ≤ 15 min on 2 cores.",
+        "Goals: pool 5 balanced accuracy ≥ 0.93 at coverage ≥ 0.90; doct-train --like ≤ 15 min on 2 cores. "
+        "Pools 1 and 5 below: the model's own decisions (`--decide-ballistic`, without the rules): its conformal "
+        "sets at α = 0.1 where doct-train calibrated it, a set of one motion type counted as decided.",
         "",
         "| system | training (simulation + fit) | own test split, pool 1 | pool 1: balanced accuracy @ coverage "
         "| pool 5: balanced accuracy @ coverage | pool 5 recall diffusion / ballistic / flow | pool 5 wrong share "
