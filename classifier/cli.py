@@ -26,8 +26,8 @@ QUICK = {
     "replicates": 4,
     "max_epochs": 100,
 }
-#: Parameter draws of the calibration split ``doct-train`` simulates for a signature model (the default of
-#: ``python -m classifier.calibrate``, which calibrated the shipped signature models), and with ``--quick``.
+#: Parameter draws of the calibration split ``doct-train`` simulates after training (the default of
+#: ``python -m classifier.calibrate``, which calibrated the shipped models), and with ``--quick``.
 CALIBRATION_DRAWS = 240
 QUICK_CALIBRATION_DRAWS = 60
 
@@ -119,7 +119,7 @@ def build_train_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         metavar="N",
-        help=f"parameter draws of the split that calibrates a signature model's conformal prediction sets "
+        help=f"parameter draws of the split that calibrates the model's conformal prediction sets "
         f"after training (default {CALIBRATION_DRAWS}, with --quick {QUICK_CALIBRATION_DRAWS}; 0: none, and "
         "doct-classify decides by the model's argmax rule): SPEC.calibration.json and SPEC.reliability.png "
         "beside the model, as python -m classifier.calibrate writes them (docs/abstention.md)",
@@ -183,7 +183,7 @@ def _train(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {out} is a file; give a directory")
     if args.cache is not None and not args.no_cache and Path(args.cache).exists() and not Path(args.cache).is_dir():
         raise ValueError(f"--cache {args.cache} is a file; give a directory (or --no-cache)")
-    calibration_draws = _calibration_draws(args, spec)
+    calibration_draws = _calibration_draws(args)
     suffixes = (".onnx", ".json", ".md", ".png") + ((".spec.toml", ".prior.toml") if args.like else ())
     suffixes += (".calibration.json", ".reliability.png") if calibration_draws else ()
     paths = {s: out / f"{spec.name}{s}" for s in suffixes}
@@ -375,16 +375,13 @@ def _print_plan(args, spec, prior, ranges, cfg, notes, paths, calibration_draws:
         )
 
 
-def _calibration_draws(args: argparse.Namespace, spec) -> int:
-    """Draws of the calibration split of this run: ``--calibration-draws``, else the default of a signature
-    spec (the models whose decision is the conformal sets; LIV/OCDS models keep their argmax rule, as the
-    shipped ones do)."""
+def _calibration_draws(args: argparse.Namespace) -> int:
+    """Draws of the calibration split of this run: ``--calibration-draws``, else the default (every model
+    is calibrated, as the shipped ones are, so that ``doct-classify`` decides by its conformal sets)."""
     if args.calibration_draws is not None:
         if args.calibration_draws < 0:
             raise ValueError(f"--calibration-draws {args.calibration_draws}: give 0 (no calibration) or more draws")
         return int(args.calibration_draws)
-    if not spec.is_signature:
-        return 0
     return QUICK_CALIBRATION_DRAWS if args.quick else CALIBRATION_DRAWS
 
 

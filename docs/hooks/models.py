@@ -174,8 +174,31 @@ def _calibration(root: Path, name: str) -> list[str]:
         f"{num(c['default_alpha'])}). {c['guarantee']} A set of two motions is answered as such (for example "
         "`ballistic-or-flow`), and where the physics cannot tell the motions apart the answer is a set too "
         "([Abstention](../abstention.md)); `--decision rule` applies the rule above instead, "
-        "`--decide-ballistic` keeps the model's own ballistic decisions."
+        "`--decide-ballistic` keeps the model's own ballistic decisions.",
+        "",
+        f"On its calibration samples at α = {num(c['default_alpha'])}, per pool size (the model alone, "
+        "without the rules of the abstention page):",
+        "",
+        *_calibration_table(c),
     ]
+
+
+def _calibration_table(c: dict[str, Any]) -> list[str]:
+    """Per calibrated pool size, at the default α: samples, mean set size, share of samples whose set holds
+    their class, share decided (a set of one class other than indeterminate)."""
+    key = f"{c['default_alpha']:g}"
+    rows = [
+        [
+            str(p["pool_pixels"]),
+            str(p["samples"]),
+            num(p["set_sizes"][key]["mean_set_size"]),
+            num(p["set_sizes"][key]["in_sample_coverage"], 3),
+            num(p["set_sizes"][key]["decided"], 3),
+        ]
+        for p in c["pools"]
+        if key in p.get("set_sizes", {})
+    ]
+    return [table(["pool pixels", "samples", "mean set size", "set holds the class", "decided"], rows)]
 
 
 def _grid_runs(root: Path) -> list[tuple[Path, dict[str, Any]]]:

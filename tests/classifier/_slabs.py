@@ -85,8 +85,8 @@ FLOORED = ("balanced", "mean_coverage", "static_indeterminate")
 
 
 def run_chain(work: Path, grid: str, seed: int | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """render (the phantom's own seed, or ``seed``) → maps → ``doct-classify --pool 5 --decide-ballistic`` in
-    ``work``: the ground-truth labels, the decided classes and the summary."""
+    """render (the phantom's own seed, or ``seed``) → maps → ``doct-classify --pool 5 --decision rule
+    --decide-ballistic`` in ``work``: the ground-truth labels, the decided classes and the summary."""
     import tifffile
 
     from classifier.cli import classify_main
@@ -99,8 +99,10 @@ def run_chain(work: Path, grid: str, seed: int | None = None) -> tuple[np.ndarra
     assert torchdoct_main(["render", str(phantom), *seeded, "--out", str(seq), "--no-progress", "--no-preview"]) == 0
     resolutions = ["--resolution", "original", "--resolution", "axial=14", "--resolution", "lateral=18"]
     assert torchdoct_main(["maps", str(seq), *resolutions, "--out", str(maps), "--no-progress"]) == 0
-    # the model's decisions, which the reference scores (the default's ballistic-or-flow: test_clf_ambiguity)
-    assert classify_main([str(maps), "--out", str(out), "--pool", "5", "--threads", "1", "--decide-ballistic"]) == 0
+    # the model's own argmax decisions, which the reference scores (its default conformal sets answer most
+    # pixels of LIV/OCDS maps with a set; the default's ballistic-or-flow: test_clf_ambiguity)
+    argv = [str(maps), "--out", str(out), "--pool", "5", "--threads", "1", "--decision", "rule", "--decide-ballistic"]
+    assert classify_main(argv) == 0
     with np.load(seq) as z:
         truth = z["labels"]
     decided = tifffile.imread(out / "classes.tif")

@@ -1,8 +1,9 @@
 """End to end: phantom → ``torchdoct render`` → ``torchdoct maps`` → ``doct-classify`` (shipped model) → accuracy.
 
 The four-slab phantom and its chain are in ``tests/classifier/_slabs.py``: diffusion, random-ballistic motion
-and flow slabs over a static one, B-scan and volume, ``--pool 5`` with the model's own decisions
-(``--decide-ballistic``; the default's ballistic-or-flow sets are tested in ``test_clf_ambiguity``).
+and flow slabs over a static one, B-scan and volume, ``--pool 5`` with the model's own argmax decisions
+(``--decision rule --decide-ballistic``; the default's conformal and ballistic-or-flow sets are tested in
+``test_conformal`` and ``test_clf_ambiguity``).
 
 Floors: ``mean − z·SD`` of the balanced accuracy, the mean coverage of the motion slabs and the static
 slab's indeterminate share over the recorded renderings of ``tests/floors/slabs.json`` (z and the command

@@ -243,6 +243,8 @@ def test_tiny_training_is_reproducible_and_exports_with_parity(cache_dir, tmp_pa
         "2",
         "--max-epochs",
         "4",
+        "--calibration-draws",
+        "0",
         "--cache",
         str(cache_dir),
         "--no-progress",
@@ -278,6 +280,8 @@ TINY_ARGV = [
     "6",
     "--replicates",
     "2",
+    "--calibration-draws",
+    "0",
     "--no-progress",
 ]
 
@@ -337,6 +341,8 @@ def test_baselines_cover_classes_absent_from_a_small_training_split(cache_dir, t
         "1",
         "--max-epochs",
         "1",
+        "--calibration-draws",
+        "0",
         "--cache",
         str(cache_dir),
         "--no-progress",

@@ -26,7 +26,8 @@ rendering and the training, the two things a test run on another machine can dra
 
 ``slabs``: the four-slab phantom of ``tests/classifier/test_clf_end_to_end.py`` (``tests/classifier/_slabs.py``),
 B-scan and volume, per seed S rendered with ``--seed S`` → ``torchdoct maps`` (LIV/OCDS) → ``doct-classify
---pool 5 --decide-ballistic``, scored by ``_slabs.score`` (balanced accuracy, mean coverage of the motion
+--pool 5 --decision rule --decide-ballistic`` (the rule was the default decision of the uncalibrated LIV/OCDS
+models when the file was recorded), scored by ``_slabs.score`` (balanced accuracy, mean coverage of the motion
 slabs, the static slab's indeterminate share, away from the slab boundaries).
 """
 
