@@ -59,6 +59,16 @@ def test_shipped_model_metadata_and_report(name):
     for pool, summary in meta["test_summary_by_pool"].items():
         for key, value in summary.items():
             assert report["test"]["network"][pool][key] == pytest.approx(value, rel=1e-12)
+    # calibrated, so that doct-classify answers conformal sets whichever model it picks: the record of this
+    # model's prior at the calibration seed, every pool size, scores a set holds its class for in ≥ 1 − α
+    from classifier.calibrate import CALIBRATION_SEED, POOLS
+
+    cal = model.calibration
+    assert cal is not None and cal["model"] == name and cal["description"]["seed"] == CALIBRATION_SEED
+    assert cal["description"]["prior"] == meta["prior"]
+    assert [p["pool_pixels"] for p in cal["pools"]] == list(POOLS)
+    for p in cal["pools"]:
+        assert p["set_sizes"]["0.1"]["in_sample_coverage"] >= 0.9, (name, p["pool_pixels"])
 
 
 def test_default_model_matches_torch_on_simulated_features():
