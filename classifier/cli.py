@@ -184,12 +184,14 @@ def _train(args: argparse.Namespace) -> int:
     if args.cache is not None and not args.no_cache and Path(args.cache).exists() and not Path(args.cache).is_dir():
         raise ValueError(f"--cache {args.cache} is a file; give a directory (or --no-cache)")
     calibration_draws = _calibration_draws(args)
+    # the calibration files belong to the set even when not written: an earlier model's are removed with it
     suffixes = (".onnx", ".json", ".md", ".png") + ((".spec.toml", ".prior.toml") if args.like else ())
-    suffixes += (".calibration.json", ".reliability.png") if calibration_draws else ()
+    suffixes += (".calibration.json", ".reliability.png")
     paths = {s: out / f"{spec.name}{s}" for s in suffixes}
+    written = [p for s, p in paths.items() if calibration_draws or s not in (".calibration.json", ".reliability.png")]
     if out.is_dir() and not args.dry_run:
-        for s, p in paths.items():
-            check_out(p, args.force, s, f"--out {out}")
+        for p in paths.values():
+            check_out(p, args.force, p.suffix, f"--out {out}")  # the last suffix: .toml of .spec.toml
     from torchdoct.runtime.threads import set_default_threads
 
     set_default_threads(args.threads)  # simulation threads (torchdoct.runtime.threads); ValueError names the fix
@@ -228,7 +230,7 @@ def _train(args: argparse.Namespace) -> int:
     finally:
         if created and out.exists() and not any(out.iterdir()):
             out.rmdir()
-    print(f"wrote {', '.join(str(p) for p in paths.values())}")
+    print(f"wrote {', '.join(str(p) for p in written)}")
     print(line)
     if args.like:
         print(f"classify: doct-classify {' '.join(args.like)} --model {paths['.onnx']} --out DIR")

@@ -315,8 +315,9 @@ def test_like_writes_spec_and_prior_that_retrain_the_same_model(tmp_path, capsys
 def test_doct_train_calibrates_a_signature_model_as_classifier_calibrate_does(tmp_path, capsys):
     """``doct-train`` on a signature spec (here ``--like``, tiny sizes) writes the conformal calibration beside
     the model: the very record ``python -m classifier.calibrate`` computes for the written model with the draws
-    it names, so ``doct-classify`` decides by the prediction sets. ``--calibration-draws 0`` writes none, and
-    the argmax rule decides."""
+    it names, so ``doct-classify`` decides by the prediction sets. Retrained into the same folder with
+    ``--calibration-draws 0 --force``, the earlier calibration is removed with the earlier model, and the argmax
+    rule decides."""
     import json
 
     from classifier.calibrate import CALIBRATION_SEED, POOLS, calibrate
@@ -337,10 +338,13 @@ def test_doct_train_calibrates_a_signature_model_as_classifier_calibrate_does(tm
     assert classify_main([str(path), "--model", str(a), "--out", str(tmp_path / "ca")]) == 0
     assert json.loads((tmp_path / "ca" / "legend.json").read_text())["decision"] == "conformal"
 
-    b = tmp_path / "b"
-    assert train_main(["--like", str(path), "--out", str(b), *tiny, "--calibration-draws", "0"]) == 0
-    assert not (b / "like-own.calibration.json").exists() and not (b / "like-own.reliability.png").exists()
-    assert classify_main([str(path), "--model", str(b), "--out", str(tmp_path / "cb")]) == 0
+    # retrained into the same folder without a calibration: the earlier model's calibration goes with it (it
+    # would decide the new model by the old one's scores), and the rule decides
+    assert train_main(["--like", str(path), "--out", str(a), *tiny, "--calibration-draws", "0"]) == 2  # no --force
+    assert train_main(["--like", str(path), "--out", str(a), *tiny, "--calibration-draws", "0", "--force"]) == 0
+    assert not (a / "like-own.calibration.json").exists() and not (a / "like-own.reliability.png").exists()
+    assert (a / "like-own.spec.toml").exists() and (a / "like-own.onnx").exists()
+    assert classify_main([str(path), "--model", str(a), "--out", str(tmp_path / "cb")]) == 0
     assert json.loads((tmp_path / "cb" / "legend.json").read_text())["decision"] == "rule"
     assert train_main(["--like", str(path), "--out", str(tmp_path / "c"), *tiny, "--calibration-draws", "-1"]) == 2
     assert "--calibration-draws -1" in capsys.readouterr().err and not (tmp_path / "c").exists()
