@@ -30,6 +30,8 @@ QUICK = {
 #: ``python -m classifier.calibrate``, which calibrated the shipped models), and with ``--quick``.
 CALIBRATION_DRAWS = 240
 QUICK_CALIBRATION_DRAWS = 60
+#: The files the calibration adds beside the model (:func:`classifier.calibrate.write_calibration_files`).
+_CALIBRATION_SUFFIXES = (".calibration.json", ".reliability.png")
 
 _ERRORS = (ValueError, TypeError, FileNotFoundError)  # bad input: exit code 2 (torchdoct.cli.EXIT_CODES)
 
@@ -186,9 +188,9 @@ def _train(args: argparse.Namespace) -> int:
     calibration_draws = _calibration_draws(args)
     # the calibration files belong to the set even when not written: an earlier model's are removed with it
     suffixes = (".onnx", ".json", ".md", ".png") + ((".spec.toml", ".prior.toml") if args.like else ())
-    suffixes += (".calibration.json", ".reliability.png")
+    suffixes += _CALIBRATION_SUFFIXES
     paths = {s: out / f"{spec.name}{s}" for s in suffixes}
-    written = [p for s, p in paths.items() if calibration_draws or s not in (".calibration.json", ".reliability.png")]
+    written = [p for s, p in paths.items() if calibration_draws or s not in _CALIBRATION_SUFFIXES]
     if out.is_dir() and not args.dry_run:
         for p in paths.values():
             check_out(p, args.force, p.suffix, f"--out {out}")  # the last suffix: .toml of .spec.toml
@@ -214,9 +216,7 @@ def _train(args: argparse.Namespace) -> int:
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     order = [  # the model last
-        s
-        for s in (".json", ".md", ".png", ".spec.toml", ".prior.toml", ".calibration.json", ".reliability.png", ".onnx")
-        if s in paths
+        s for s in (".json", ".md", ".png", ".spec.toml", ".prior.toml", *_CALIBRATION_SUFFIXES, ".onnx") if s in paths
     ]
     try:
         with output_set([paths[s] for s in order], args.force, f"--out {out}") as stage:  # all files or none

@@ -168,6 +168,11 @@ def test_flow_speed_range_is_optional_and_leaves_old_priors_unchanged():
 # -- the spec from the maps -------------------------------------------------------------------------------------------
 
 
+#: ``doct-train --like`` options of a tiny training (seconds): the recipe's steps, not its accuracy.
+TINY_LIKE = ["--quick", "--draws-train", "6", "--draws-validation", "3", "--draws-test", "3", "--max-epochs", "2"]
+TINY_LIKE += ["--no-baselines", "--no-cache", "--no-progress"]
+
+
 def _bscan_maps(tmp_path, *, bulk_phase=False, intensity_only=False, name="own.npz", spec="signature-bscan"):
     s = load_spec(spec)
     feats = s.metrics + (("g1_1", "g1_2") if not intensity_only else ())
@@ -274,20 +279,7 @@ def test_like_writes_spec_and_prior_that_retrain_the_same_model(tmp_path, capsys
     meta = dict(m.meta)
     meta.pop("reduction")
     path = save_maps(tmp_path / "vol.npz", m.maps, meta)
-    tiny = [
-        "--quick",
-        "--draws-train",
-        "6",
-        "--draws-validation",
-        "3",
-        "--draws-test",
-        "3",
-        "--max-epochs",
-        "2",
-        "--no-baselines",
-        "--no-cache",
-        "--no-progress",
-    ]
+    tiny = TINY_LIKE
     a, b = tmp_path / "a", tmp_path / "b"
     assert train_main(["--like", str(path), "--out", str(a), *tiny]) == 0
     printed = capsys.readouterr().out
@@ -324,8 +316,7 @@ def test_doct_train_calibrates_a_signature_model_as_classifier_calibrate_does(tm
     from classifier.cli import classify_main, train_main
 
     path = _bscan_maps(tmp_path)
-    tiny = ["--quick", "--draws-train", "6", "--draws-validation", "3", "--draws-test", "3", "--max-epochs", "2"]
-    tiny += ["--no-baselines", "--no-cache", "--no-progress"]
+    tiny = TINY_LIKE
     a = tmp_path / "a"
     assert train_main(["--like", str(path), "--out", str(a), *tiny, "--calibration-draws", "4"]) == 0
     assert "calibrated: " in capsys.readouterr().out
