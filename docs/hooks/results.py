@@ -1100,6 +1100,52 @@ def cases_regions(root: Path) -> str:
     return "\n\n".join([table(header, rows), source(d["command"], p)])
 
 
+def random_phantoms(root: Path) -> str:
+    """The random phantoms (``classifier.bench.random_phantoms``): per geometry, window and decision, the draws,
+    their median coverage, the share of draws whose worst wrong share exceeds each bound, and per motion its
+    coverage and wrong share over the pixels of every draw."""
+    d, p = load(root, "random-phantoms.json")
+    motions = ("diffusion", "ballistic", "flow")
+    bounds = [f"{b:g}" for b in d["bounds"]]
+    rows = [
+        [s["geometry"], s["pool"], "rules (default)" if s["rules"] else "model alone", s["draws"]]
+        + [num(s["median_coverage"])]
+        + [num(s["over_bound"][b]) for b in bounds]
+        + [f"{num(s['per_class'][m]['coverage'])} / {num(s['per_class'][m]['wrong_share'])}" for m in motions]
+        for s in d["summary"]
+    ]
+    header = ["geometry", "window", "decision", "draws", "median coverage"]
+    header += [f"share of draws over {b}" for b in bounds] + [f"{m}: coverage / wrong" for m in motions]
+    return "\n\n".join([table(header, rows), source(d["command"], p)])
+
+
+def random_phantoms_worst(root: Path) -> str:
+    """The draws whose worst wrong share with the rules (the default decision) exceeds the first bound: the
+    geometry, window, draw index, that share, the motion it falls on, and the draw's structure, context, noise,
+    density and motions."""
+    d, p = load(root, "random-phantoms.json")
+    by_key = {(x["geometry"], x["index"]): x for x in d["draws"]}
+    rows = []
+    for s in d["summary"]:
+        for w in s["worst"] if s["rules"] else ():
+            if w["wrong_share_max"] <= d["bounds"][0]:
+                continue
+            x = by_key[(s["geometry"], w["index"])]
+            m = x["motions"]
+            rows.append(
+                [s["geometry"], s["pool"], w["index"], num(w["wrong_share_max"]), w["motion"], x["structure"]]
+                + [x["context"], "none" if x["snr_db"] is None else f"{x['snr_db']:g} dB"]
+                + [num(x["density_per_um3"]), num(m["diffusion"]["diffusion_um2_per_s"])]
+                + [num(m["ballistic"]["speed_um_per_s"]), num(m["flow"]["speed_um_per_s"])]
+                + [f"{m['flow']['polar_angle_deg']:.0f}° / {m['flow']['azimuth_deg']:.0f}°"]
+            )
+    if not rows:
+        return f"No draw's worst wrong share with the rules exceeds {d['bounds'][0]:g}.\n\n" + source(d["command"], p)
+    header = ["geometry", "window", "draw", "worst wrong share", "on", "structure", "static", "noise"]
+    header += ["density (µm⁻³)", "D (µm²/s)", "ballistic (µm/s)", "flow (µm/s)", "flow polar / azimuth"]
+    return "\n\n".join([table(header, rows), source(d["command"], p)])
+
+
 RENDERERS: dict[str, Callable[[Path], str]] = {
     "bench-simulate": bench_simulate,
     "bench-study": bench_study,
@@ -1131,6 +1177,8 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "grid-probes": grid_probes,
     "cases": cases,
     "cases-regions": cases_regions,
+    "random-phantoms": random_phantoms,
+    "random-phantoms-worst": random_phantoms_worst,
     "grid-context-all-pixels": lambda root: grid_context(root, "summary_by_context_all_pixels"),
     "grid-context-uniform-angles": lambda root: grid_context(
         root, "summary_by_context_all_pixels", "grid-uniform-angles.json"
