@@ -30,8 +30,9 @@ log-uniform over :data:`DENSITY_RANGE` µm⁻³; diffusion coefficients log-unif
   :data:`LAYER_MIN_UM` deep;
 * ``vessel``: a slab of one random motion over the whole image, a sphere of the other (radius over
   :data:`SPHERE_RADIUS_RANGE` µm) and a straight vessel of flow along its own axis (radius over
-  :data:`VESSEL_RADIUS_RANGE` µm, wider than the models' coarsest footprint's half: the thin vessels are the
-  cases' ``thin-vessels``), a uniform (plug) or Poiseuille profile, drawn over every direction;
+  :data:`VESSEL_RADIUS_RANGE` µm: a diameter at least the widest footprint of the models' coarsest
+  configuration, 1.70 × 14 µm axially; far thinner vessels are the cases' ``thin-vessels``), with a uniform
+  (plug) or Poiseuille profile, in a direction uniform on the sphere;
 
 a static context of :data:`CONTEXTS` (``none``; ``under``: static tissue of the same density under every
 pixel, a second phantom whose field adds, as the grid's ``background``; ``half``: static tissue in place of
