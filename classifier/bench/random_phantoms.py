@@ -52,6 +52,8 @@ from typing import Any
 
 import numpy as np
 
+from .cases import _fmt
+
 SCHEMA_VERSION = 1
 #: The system, protocol, pixel pitch (µm) and image size (pixels per axis) of every draw: the cases'.
 SYSTEM = {"name": "840nm", "wavelength_um": 0.84, "lateral_resolution_um": 4.9, "axial_resolution_um": 3.8}
@@ -366,12 +368,6 @@ def run_random(
         "seconds": time.perf_counter() - t0,
         "machine": machine_info(),
     }
-
-
-def _fmt(v: Any) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "–"
-    return f"{v:.3f}" if isinstance(v, float) else str(v)
 
 
 def describe(d: dict[str, Any]) -> str:
