@@ -526,8 +526,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument(
         "--draw",
         metavar="GEOMETRY:INDEX",
-        help="write one draw's phantom files (PHANTOM.json, and PHANTOM-static.json for static tissue under "
-        "every pixel) into --out instead, to render and classify as a user would",
+        help="write one draw's phantom files (random-GEOMETRY-INDEX.toml, and ...-static.toml for static tissue "
+        "under every pixel) into --out instead, to render (torchdoct render) and classify as a user would",
     )
     p.add_argument("--threads", type=int, default=None, metavar="N")
     p.add_argument("--force", action="store_true", help="overwrite existing results")
@@ -551,20 +551,47 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def phantom_toml(d: dict[str, Any], header: str = "") -> str:
+    """A phantom-file dict (:func:`draw`'s) as the TOML file ``torchdoct render`` reads: its plain keys, its tables,
+    its arrays of tables, and each region's motions as ``[[region.motion]]`` (a static region has none).
+    ``header``: comment lines."""
+    from ..features import _toml_value
+
+    lines = [f"# {line}" for line in header.splitlines()]
+    lines += [f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, (dict, list))]
+    for k, v in d.items():
+        if isinstance(v, dict):
+            lines += ["", f"[{k}]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in v.items()]
+        elif isinstance(v, list):
+            for item in v:
+                lines += ["", f"[[{k}]]"]
+                lines += [f"{kk} = {_toml_value(vv)}" for kk, vv in item.items() if kk != "motion"]
+                for motion in item.get("motion", []):
+                    lines += ["", f"[[{k}.motion]]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in motion.items()]
+    return "\n".join(lines) + "\n"
+
+
 def _write_draw(args) -> int:
     from torchdoct.files import output_set
 
     geometry, index = _parse_draw(args.draw)
-    drawn, _ = draw(geometry, index, args.seed)
+    drawn, description = draw(geometry, index, args.seed)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a directory")
     out.mkdir(parents=True, exist_ok=True)
-    names = [f"random-{geometry}-{index}.json"] + ([f"random-{geometry}-{index}-static.json"] if len(drawn) > 1 else [])
+    stem = f"random-{geometry}-{index}"
+    names = [f"{stem}.toml"] + ([f"{stem}-static.toml"] if len(drawn) > 1 else [])
     paths = [out / n for n in names]
+    header = f"Draw {geometry}:{index} of python -m classifier.bench.random_phantoms --seed {args.seed}: {describe(description)}"
     with output_set(paths, args.force, "--out") as stage:
-        for path, d in zip(paths, drawn):
-            stage(path).write_text(json.dumps(d, indent=1), encoding="utf-8")
+        for k, (path, d) in enumerate(zip(paths, drawn)):
+            note = (
+                header
+                if k == 0
+                else header + "\nThe static tissue under every pixel: render it on the same grid and add its field."
+            )
+            stage(path).write_text(phantom_toml(d, note), encoding="utf-8")
     for path in paths:
         print(f"wrote {path}")
     return 0

@@ -129,7 +129,7 @@ def test_the_summary_counts_the_draws_over_each_bound_and_pools_the_pixels():
 
 
 def test_the_command_writes_its_files_together_keeps_them_and_writes_a_draw_to_render(tmp_path, capsys):
-    from torchdoct.image.phantom import phantom_from_dict
+    from torchdoct.image.phantom import load_phantom, phantom_from_dict
 
     out = tmp_path / "random"
     args = ["--out", str(out), "--bscans", "1", "--volumes", "0", "--no-progress", "--threads", "1"]
@@ -153,14 +153,29 @@ def test_the_command_writes_its_files_together_keeps_them_and_writes_a_draw_to_r
     assert "--bscans -2: give a whole number" in capsys.readouterr().err
 
     drawn = tmp_path / "draw"
-    assert R.main(["--out", str(drawn), "--draw", "volume:5"]) == 0
+    index = next(i for i in range(50) if R.draw("volume", i)[1]["context"] == "under")  # two files: moving, static
+    assert R.main(["--out", str(drawn), "--draw", f"volume:{index}"]) == 0
     written = sorted(drawn.iterdir())
-    phantoms, _ = R.draw("volume", 5)
-    assert [json.loads(p.read_text(encoding="utf-8")) for p in written] == phantoms
-    for p in written:
-        phantom_from_dict(json.loads(p.read_text(encoding="utf-8")))
+    assert [p.name for p in written] == [f"random-volume-{index}-static.toml", f"random-volume-{index}.toml"]
+    phantoms, _ = R.draw("volume", index)
+    for p, d in zip(written[::-1], phantoms):  # the files render's TOML reader reads are the draw's phantoms
+        assert load_phantom(p).to_dict() == phantom_from_dict(d).to_dict()
+    assert R.main(["--out", str(drawn), "--draw", f"volume:{index}"]) == 2  # kept without --force
+    assert "pass --force to overwrite" in capsys.readouterr().err
     assert R.main(["--out", str(drawn), "--draw", "aline:1"]) == 2
     assert "give GEOMETRY:INDEX" in capsys.readouterr().err
+
+
+def test_every_drawn_phantom_round_trips_through_its_toml_file():
+    import tomllib
+
+    from torchdoct.image.phantom import phantom_from_dict
+
+    for geometry in R.GEOMETRIES:
+        for index in range(40):
+            for d in R.draw(geometry, index)[0]:
+                again = tomllib.loads(R.phantom_toml(d, "a header\nof two lines"))
+                assert phantom_from_dict(again).to_dict() == phantom_from_dict(d).to_dict(), (geometry, index)
 
 
 def test_the_recorded_run_holds_every_draw_of_its_prior():
