@@ -473,6 +473,23 @@ def signature_maps(seq, spec):
     )
 
 
+def render_sequence(phantoms: Sequence[dict[str, Any]], source: str, seed: int, *, threads: int | None = None):
+    """Render ``phantoms`` (phantom-file dicts; their fields add, the first rendered at ``seed``, a static
+    background after it at its own) as the sequence ``torchdoct maps`` reads: ``(render result of the first,
+    SequenceData named source)``; the result's ``labels`` are the ground truth."""
+    from torchdoct.image.phantom import phantom_from_dict
+    from torchdoct.image.render import render
+    from torchdoct.measured.sequence import SequenceData, validate_meta
+
+    res = render(phantom_from_dict(phantoms[0]), seed=seed, threads=threads)
+    data = res.data[0].numpy()
+    for extra in phantoms[1:]:
+        data = data + render(phantom_from_dict(extra), threads=threads).data[0].numpy()
+    meta = res.metadata(0)
+    meta.pop("phantom", None)
+    return res, SequenceData(data=data, meta=validate_meta(meta, data.shape), source=source)
+
+
 def _classify_rendered(
     phantoms: Sequence[dict[str, Any]],
     model,
@@ -494,28 +511,19 @@ def _classify_rendered(
     setting, the decision and the seconds taken; with ``mixed_holds`` (the motions a ``mixed`` region
     combines) also ``mixed`` (:func:`score_mixed`); with ``per_region`` also ``per_region``: each region of one
     motion scored over the pixels the renderer assigns it (:func:`score_region`)."""
-    from torchdoct.image.phantom import phantom_from_dict
-    from torchdoct.image.render import render
     from torchdoct.measured.mapsfile import write_maps
-    from torchdoct.measured.sequence import SequenceData, validate_meta
 
     from ..infer import classify_maps
 
     spec = model.spec
     t0 = time.perf_counter()
-    res = render(phantom_from_dict(phantoms[0]), seed=seed, threads=threads)
-    data = res.data[0].numpy()
-    for extra in phantoms[1:]:
-        data = data + render(phantom_from_dict(extra), threads=threads).data[0].numpy()
+    res, seq = render_sequence(phantoms, source, seed, threads=threads)
     by_code = {code: name for name, code in CODES.items()}
     regions = [
         (row["name"], by_code[row["motion_code"]], res.regions == i)
         for i, row in enumerate(res.phantom.region_table())
         if per_region and row["motion_code"] in by_code
     ]
-    meta = res.metadata(0)
-    meta.pop("phantom", None)
-    seq = SequenceData(data=data, meta=validate_meta(meta, data.shape), source=source)
     t_render = time.perf_counter()
     maps = signature_maps(seq, spec)
     t_maps = time.perf_counter()

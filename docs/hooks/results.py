@@ -1146,6 +1146,27 @@ def random_phantoms_worst(root: Path) -> str:
     return "\n\n".join([table(header, rows), source(d["command"], p)])
 
 
+def spill_rules(root: Path) -> str:
+    """The candidate rules against the random phantoms' slow-region spill (``research.spill``): per geometry,
+    window and candidate, the share of draws over each bound, the coverage per motion, the worst pooled wrong
+    share of a motion, and the shares of the default decision's right and wrong single-class decisions that the
+    candidate sets aside."""
+    d, p = load(root, "spill-rules.json")
+    motions = ("diffusion", "ballistic", "flow")
+    rows = [
+        [s["geometry"], s["pool"], s["variant"], s["draws"]]
+        + [num(s["over_bound"][b]) for b in ("0.05", "0.1")]
+        + [num(s["per_class"][m]["coverage"]) for m in motions]
+        + [num(max(s["per_class"][m]["wrong_share"] or 0.0 for m in motions))]
+        + [num(s.get("flagged_right")), num(s.get("flagged_wrong")), s.get("wrong_decisions", "")]
+        for s in d["summary"]
+    ]
+    header = ["geometry", "window", "candidate", "draws", "share of draws over 0.05", "over 0.1"]
+    header += [f"{m} coverage" for m in motions] + ["worst pooled wrong share"]
+    header += ["right decisions set aside", "wrong decisions set aside", "wrong decisions (default)"]
+    return "\n\n".join([table(header, rows), source(d["command"], p)])
+
+
 RENDERERS: dict[str, Callable[[Path], str]] = {
     "bench-simulate": bench_simulate,
     "bench-study": bench_study,
@@ -1179,6 +1200,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "cases-regions": cases_regions,
     "random-phantoms": random_phantoms,
     "random-phantoms-worst": random_phantoms_worst,
+    "spill-rules": spill_rules,
     "grid-context-all-pixels": lambda root: grid_context(root, "summary_by_context_all_pixels"),
     "grid-context-uniform-angles": lambda root: grid_context(
         root, "summary_by_context_all_pixels", "grid-uniform-angles.json"
