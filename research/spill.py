@@ -7,7 +7,9 @@ measures candidate rules against it on the same draws, each applied to the defau
 (each only abstains: a flagged single-class decision becomes ``indeterminate``), and reports for each the
 share of draws over the project's bounds, the coverage and wrong share per motion, and how many of the default
 decision's right and wrong single-class decisions it flags (a rule worth shipping flags far more of the wrong
-than of the right). The candidates, from the physics of docs/abstention.md:
+than of the right), and of the right ones far from every other region (farther than the grid benchmark's
+scoring edge): there a candidate's premise, a coarse footprint that reaches another region, cannot hold, so
+what it flags there is its false-detection rate. The candidates, from the physics of docs/abstention.md:
 
 * ``mixed-pixel``: rule 9's statistic (:func:`classifier.ambiguity.mixed_footprint`: the mean over lags of the
   finest configuration's pooled intensity correlation minus a coarser one's; inside one motion's region it is
@@ -178,10 +180,19 @@ def candidates(
     return out
 
 
-def score(truth: np.ndarray, labels: np.ndarray, names: Sequence[str], flagged: np.ndarray | None) -> dict[str, Any]:
+def score(
+    truth: np.ndarray,
+    labels: np.ndarray,
+    names: Sequence[str],
+    flagged: np.ndarray | None,
+    interior: np.ndarray | None = None,
+) -> dict[str, Any]:
     """The random phantoms' scores (:func:`classifier.bench.grid.score_labels`, every pixel) of ``labels`` with
     the ``flagged`` pixels made ``indeterminate``, and how many of the unflagged decisions' right and wrong
-    single-class decisions the flag took."""
+    single-class decisions the flag took; with ``interior`` (the pixels far from every other region,
+    :func:`classifier.bench.grid.interior_pixels`) also how many of the right decisions there: the candidate's
+    false detections inside one motion's region, where its premise (a coarse footprint that reaches another
+    region) cannot hold."""
     from classifier.bench.grid import CODES, score_labels
 
     names = list(names)
@@ -208,6 +219,9 @@ def score(truth: np.ndarray, labels: np.ndarray, names: Sequence[str], flagged: 
             "wrong": int((flagged & wrong).sum()),
             "wrong_of": int(wrong.sum()),
         }
+        if interior is not None:
+            inside = right & interior
+            row["flagged"] |= {"right_interior": int((flagged & inside).sum()), "right_interior_of": int(inside.sum())}
     return row
 
 
@@ -215,7 +229,7 @@ def run_draw(geometry: str, index: int, model, *, threads: int | None = None) ->
     """Render and map one random-phantom draw as the benchmark does, classify it with the default decision at
     every window of the benchmark, and score the default and every candidate."""
     from classifier.bench import random_phantoms as rp
-    from classifier.bench.grid import render_sequence, signature_maps
+    from classifier.bench.grid import interior_pixels, render_sequence, scoring_edge_px, signature_maps
     from classifier.infer import classify_maps
     from torchdoct.measured.mapsfile import write_maps
 
@@ -233,8 +247,12 @@ def run_draw(geometry: str, index: int, model, *, threads: int | None = None) ->
             window = [int(w) for w in amb["fine_window_px"].values()]
             excess = excess_maps(path, model, c.labels, pool, amb["finest_configuration"])
             flags = candidates(c.labels, names, excess, window, unpooled if pool > 1 else None)
+            edge = scoring_edge_px(model.spec, rp.PITCH_UM, pool)
+            interior = np.any([interior_pixels(truth, m, edge) for m in rp.MOTIONS], axis=0)
             rows.append({"pool": pool, "variant": "default", **score(truth, c.labels, names, None)})
-            rows += [{"pool": pool, "variant": k, **score(truth, c.labels, names, f)} for k, f in flags.items()]
+            rows += [
+                {"pool": pool, "variant": k, **score(truth, c.labels, names, f, interior)} for k, f in flags.items()
+            ]
             if pool == 1:
                 unpooled = (c.labels, names)
     return {**description, "rows": rows}
@@ -274,8 +292,12 @@ def summarize(draws: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
             "per_class": per_class,
         }
         if rows and "flagged" in rows[0]:
-            f = {k: sum(r["flagged"][k] for r in rows) for k in ("right", "right_of", "wrong", "wrong_of")}
+            keys = ("right", "right_of", "wrong", "wrong_of", "right_interior", "right_interior_of")
+            f = {k: sum(r["flagged"].get(k, 0) for r in rows) for k in keys}
             entry["flagged_right"] = f["right"] / f["right_of"] if f["right_of"] else None
+            entry["flagged_right_interior"] = (
+                f["right_interior"] / f["right_interior_of"] if f["right_interior_of"] else None
+            )
             entry["flagged_wrong"] = f["wrong"] / f["wrong_of"] if f["wrong_of"] else None
             entry["wrong_decisions"] = f["wrong_of"]
         out.append(entry)
@@ -290,8 +312,9 @@ def to_markdown(result: Mapping[str, Any]) -> str:
     """The summary as one Markdown table."""
     lines = [
         "| geometry | window | candidate | draws over 0.05 | over 0.10 | diffusion coverage | ballistic coverage "
-        "| flow coverage | worst pooled wrong share | flags of right decisions | flags of wrong decisions |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| flow coverage | worst pooled wrong share | flags of right decisions | of right ones inside a region "
+        "| flags of wrong decisions |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for s in result["summary"]:
         pc = s["per_class"]
@@ -308,6 +331,7 @@ def to_markdown(result: Mapping[str, Any]) -> str:
                     *(_fmt(pc[m]["coverage"]) for m in ("diffusion", "ballistic", "flow")),
                     f"{worst:.4f}",
                     _fmt(s.get("flagged_right")),
+                    _fmt(s.get("flagged_right_interior")),
                     _fmt(s.get("flagged_wrong")),
                 ]
             )

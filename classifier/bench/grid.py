@@ -350,7 +350,7 @@ def _static_dict(moving: dict[str, Any], density: float) -> dict[str, Any]:
     return d
 
 
-def _interior(truth_codes: np.ndarray, name: str, edge_px: int) -> np.ndarray:
+def interior_pixels(truth_codes: np.ndarray, name: str, edge_px: int) -> np.ndarray:
     """The pixels of motion ``name`` farther than ``edge_px`` from every other region (static tissue included)."""
     from scipy.ndimage import maximum_filter
 
@@ -373,7 +373,7 @@ def score_labels(
     single = {n: i for i, n in enumerate(names) if n in MOTIONS}
     recalls, scored, decided = [], 0, 0
     for name in MOTIONS:
-        sel = _interior(truth_codes, name, edge_px) & (classes != masked)
+        sel = interior_pixels(truth_codes, name, edge_px) & (classes != masked)
         n = int(sel.sum())
         got = classes[sel]
         dec = np.isin(got, list(single.values()))
@@ -444,12 +444,14 @@ def doppler_null(truth_codes: np.ndarray, imaginary: np.ndarray, edge_px: int) -
     out: dict[str, Any] = {}
     mag = np.abs(np.asarray(imaginary, np.float64)).reshape(np.shape(truth_codes))
     for name in MOTIONS:
-        v = mag[_interior(truth_codes, name, edge_px)]
+        v = mag[interior_pixels(truth_codes, name, edge_px)]
         out[name] = {"max": float(v.max()), "median": float(np.median(v))} if v.size else None
     return out
 
 
-def _edge_px(spec, pitch: float, pool: int) -> int:
+def scoring_edge_px(spec, pitch: float, pool: int) -> int:
+    """How far (pixels of ``pitch`` µm) from another region a motion's pixel must lie to be scored away from
+    it: half the coarsest resolution of the configurations of ``spec`` plus half the pooling window."""
     coarsest = max(max(c.lateral_resolution_um, c.axial_resolution_um) for c in spec.configurations)
     return int(math.ceil(coarsest / 2.0 / pitch)) + pool // 2
 
@@ -551,9 +553,9 @@ def _classify_rendered(
                     else {
                         "channel": dop_name,
                         "window_px": max(int(pool), DOPPLER_WINDOW_MIN),
-                        "abs_imaginary": doppler_null(res.labels, im, _edge_px(spec, pitch, int(pool))),
+                        "abs_imaginary": doppler_null(res.labels, im, scoring_edge_px(spec, pitch, int(pool))),
                     },
-                    **score_labels(res.labels, c.labels, c.classes, _edge_px(spec, pitch, int(pool))),
+                    **score_labels(res.labels, c.labels, c.classes, scoring_edge_px(spec, pitch, int(pool))),
                     "all_pixels": score_labels(res.labels, c.labels, c.classes, 0),
                     **({"mixed": score_mixed(res.labels, c.labels, c.classes, mixed_holds)} if mixed_holds else {}),
                     **(

@@ -1149,8 +1149,8 @@ def random_phantoms_worst(root: Path) -> str:
 def spill_rules(root: Path) -> str:
     """The candidate rules against the random phantoms' slow-region spill (``research.spill``): per geometry,
     window and candidate, the share of draws over each bound, the coverage per motion, the worst pooled wrong
-    share of a motion, and the shares of the default decision's right and wrong single-class decisions that the
-    candidate sets aside."""
+    share of a motion, and the shares of the default decision's right single-class decisions (all, and those
+    far from every other region) and wrong ones that the candidate sets aside."""
     d, p = load(root, "spill-rules.json")
     motions = ("diffusion", "ballistic", "flow")
     rows = [
@@ -1158,12 +1158,14 @@ def spill_rules(root: Path) -> str:
         + [num(s["over_bound"][b]) for b in ("0.05", "0.1")]
         + [num(s["per_class"][m]["coverage"]) for m in motions]
         + [num(max(s["per_class"][m]["wrong_share"] or 0.0 for m in motions))]
-        + [num(s.get("flagged_right")), num(s.get("flagged_wrong")), s.get("wrong_decisions", "")]
+        + [num(s.get("flagged_right")), num(s.get("flagged_right_interior")), num(s.get("flagged_wrong"))]
+        + [s.get("wrong_decisions", "")]
         for s in d["summary"]
     ]
     header = ["geometry", "window", "candidate", "draws", "share of draws over 0.05", "over 0.1"]
     header += [f"{m} coverage" for m in motions] + ["worst pooled wrong share"]
-    header += ["right decisions set aside", "wrong decisions set aside", "wrong decisions (default)"]
+    header += ["right decisions set aside", "of them inside a region", "wrong decisions set aside"]
+    header += ["wrong decisions (default)"]
     return "\n\n".join([table(header, rows), source(d["command"], p)])
 
 

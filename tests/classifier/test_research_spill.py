@@ -131,6 +131,9 @@ def test_flags_are_scored_against_the_right_and_wrong_decisions_they_take():
     flagged = np.array([[True, False, False, True, False, False, True]])
     row = score(truth, labels, NAMES, flagged)
     assert row["flagged"] == {"right": 1, "right_of": 3, "wrong": 1, "wrong_of": 2}
+    interior = np.array([[True, True, True, True, False, False, False]])
+    inner = score(truth, labels, NAMES, flagged, interior)["flagged"]
+    assert (inner["right_interior"], inner["right_interior_of"]) == (1, 2)  # pixels 0 and 1; 0 flagged
     assert row["per_class"]["flow"]["wrong_share"] == pytest.approx(0.5)
     assert row["per_class"]["diffusion"]["coverage"] == pytest.approx(1 / 3)
     base = score(truth, labels, NAMES, None)
