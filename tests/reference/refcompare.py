@@ -38,6 +38,11 @@ __all__ = [
     "CELLS",
     "z_bound",
     "reference_features",
+    "recorded_reference",
+    "summarize",
+    "RECORD",
+    "REF_TRIALS",
+    "REF_SEED",
     "torchdoct_features",
     "compare",
     "format_failures",
@@ -45,6 +50,12 @@ __all__ = [
 
 #: Family-wise false-alarm rate of one comparison test (over all its features and configurations).
 FAMILY_ALPHA = 1e-3
+#: Trials and seed of the reference runs the comparison tests read (1024 trials: module docstring of
+#: test_reference_features), and the file that records them (:func:`recorded_reference`).
+REF_TRIALS = 1024
+REF_SEED = 20261201
+RECORD = Path(__file__).resolve().parent / "data" / "reference-features.json"
+RECORD_COMMAND = "python tests/reference/refcompare.py --record"
 _SPEC = Path(__file__).resolve().parents[2] / "classifier" / "specs" / "signature.toml"
 
 
@@ -140,7 +151,7 @@ def _torch_features(signals, names: Sequence[str] = NAMES) -> dict[str, np.ndarr
 
 @functools.cache
 def reference_features(
-    cell: str, trials: int, seed: int = 20261201, configs: tuple[int, ...] = (0, 1, 2)
+    cell: str, trials: int, seed: int = REF_SEED, configs: tuple[int, ...] = (0, 1, 2)
 ) -> dict[str, np.ndarray]:
     """Features ``{name: [trials, configs]}`` of the reference simulator's fields for ``cell`` at the
     configurations ``configs`` (indices into :data:`CONFIGS`; cached per session)."""
@@ -154,6 +165,54 @@ def reference_features(
         seed=seed,
     )
     return _torch_features(e)
+
+
+def summarize(features: dict[str, np.ndarray]) -> dict[str, list[list[float]]]:
+    """Per feature and configuration, what :func:`compare` reads of a side's trials: ``[mean, SD (ddof 1),
+    finite trials, NaN trials]`` over the finite trials."""
+    out = {}
+    for name, values in features.items():
+        rows = []
+        for s in range(values.shape[1]):
+            x = values[:, s]
+            f = x[np.isfinite(x)]
+            rows.append([float(f.mean()), float(f.std(ddof=1)), int(f.size), int(x.size - f.size)])
+        out[name] = rows
+    return out
+
+
+def record_key(cell: str, trials: int, seed: int, configs: Sequence[int]) -> str:
+    """The key of one reference run in :data:`RECORD`."""
+    return f"{cell} | trials {trials} | seed {seed} | configs {','.join(map(str, configs))}"
+
+
+def record_runs() -> list[tuple[str, tuple[int, ...]]]:
+    """The reference runs the comparison tests read: every cell at the signature configurations, every
+    B-scan cell at the x-only lateral reduction."""
+    return [(c, (0, 1, 2)) for c in CELLS] + [(c, (3,)) for c in BSCAN_CELLS]
+
+
+@functools.cache
+def _record() -> dict:
+    import json
+
+    if not RECORD.is_file():
+        raise FileNotFoundError(f"{RECORD} is missing: write it with `{RECORD_COMMAND}`")
+    return json.loads(RECORD.read_text(encoding="utf-8"))
+
+
+def recorded_reference(
+    cell: str, trials: int = REF_TRIALS, seed: int = REF_SEED, configs: tuple[int, ...] = (0, 1, 2)
+) -> dict[str, list[list[float]]]:
+    """The :func:`summarize` of :func:`reference_features` for ``cell`` as :data:`RECORD` holds it: the
+    reference simulator is deterministic for a seed, so its run is recorded once (``RECORD_COMMAND``) instead
+    of recomputed by every comparison (a minute per cell on one core); a test recomputes runs and checks
+    the record against them."""
+    runs = _record()["runs"]
+    key = record_key(cell, trials, seed, configs)
+    if key not in runs:
+        raise KeyError(f"{RECORD.name} holds no reference run {key!r}: write it again with `{RECORD_COMMAND}`")
+    return runs[key]
 
 
 def torchdoct_scene(cell: str, configs: Sequence[int] = (0, 1, 2)):
@@ -211,26 +270,31 @@ def torchdoct_features(
     return _torch_features(res.signals.to(torch.complex128))
 
 
-def compare(a: dict[str, np.ndarray], b: dict[str, np.ndarray], configs: Sequence[int] = (0, 1, 2)) -> list[dict]:
-    """Per feature and configuration: means, SEs, z of ``a − b`` (NaN trials dropped and counted)."""
+def compare(a: dict, b: dict, configs: Sequence[int] = (0, 1, 2)) -> list[dict]:
+    """Per feature and configuration: means, SEs, z of ``a − b`` (NaN trials dropped and counted); each side
+    is trials ``{name: [trials, configs]}`` or their :func:`summarize`."""
+
+    def stats(side: dict) -> dict:
+        return {k: (summarize({k: v})[k] if isinstance(v, np.ndarray) else v) for k, v in side.items()}
+
+    sa, sb = stats(a), stats(b)
     rows = []
-    for name in a:
+    for name in sa:
         for s, cname in enumerate(CONFIGS[i][0] for i in configs):
-            x, y = a[name][:, s], b[name][:, s]
-            fx, fy = x[np.isfinite(x)], y[np.isfinite(y)]
-            se = math.hypot(fx.std(ddof=1) / math.sqrt(fx.size), fy.std(ddof=1) / math.sqrt(fy.size))
-            d = float(fx.mean() - fy.mean())
+            (ma, sda, na, nan_a), (mb, sdb, nb, nan_b) = sa[name][s], sb[name][s]
+            se = math.hypot(sda / math.sqrt(na), sdb / math.sqrt(nb))
+            d = float(ma - mb)
             rows.append(
                 {
                     "feature": name,
                     "config": cname,
-                    "a": float(fx.mean()),
-                    "b": float(fy.mean()),
+                    "a": float(ma),
+                    "b": float(mb),
                     "bias": d,
                     "se": se,
                     "z": d / se if se > 0 else (0.0 if d == 0 else math.inf),
-                    "nan_a": int(x.size - fx.size),
-                    "nan_b": int(y.size - fy.size),
+                    "nan_a": int(nan_a),
+                    "nan_b": int(nan_b),
                 }
             )
     return rows
@@ -246,3 +310,40 @@ def format_failures(rows: list[dict], bound: float, top: int = 8) -> str:
         )
         + f"; |z| bound {bound:.2f}"
     )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``--record``: run every reference run of :func:`record_runs` (``--jobs`` processes) and write
+    :data:`RECORD`."""
+    import argparse
+    import json
+    from concurrent.futures import ProcessPoolExecutor
+
+    p = argparse.ArgumentParser(prog="python tests/reference/refcompare.py", description=main.__doc__)
+    p.add_argument("--record", action="store_true", required=True)
+    p.add_argument("--jobs", type=int, default=1)
+    args = p.parse_args(argv)
+    runs = record_runs()
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        done = list(pool.map(_summarized_run, runs))
+    record = {
+        "command": RECORD_COMMAND,
+        "trials": REF_TRIALS,
+        "seed": REF_SEED,
+        "runs": {record_key(c, REF_TRIALS, REF_SEED, k): s for (c, k), s in zip(runs, done)},
+    }
+    RECORD.parent.mkdir(parents=True, exist_ok=True)
+    RECORD.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
+    print(f"wrote {RECORD.name}: {len(runs)} reference runs")
+    return 0
+
+
+def _summarized_run(run: tuple[str, tuple[int, ...]]) -> dict:
+    cell, configs = run
+    return summarize(reference_features(cell, REF_TRIALS, REF_SEED, configs))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    import sys
+
+    sys.exit(main())

@@ -18,6 +18,12 @@ on both sides, ``SE² ∝ 1/1024 + 1/n_td``: 8192 torchdoct trials give 1.125/10
 slower per trial: it takes 2048 trials and the ``extended`` marker (a check of the truncation-free limit,
 not of what the models read; not in ``.ci/run``; ``python -m pytest -m extended``).
 
+The reference side: the reference simulator is deterministic for a seed, and its 1024-trial runs cost a
+minute per cell on one core, so each run's summary (mean, SD and counts of every feature per configuration:
+what the z-test reads) is recorded in ``tests/reference/data/reference-features.json`` by
+``python tests/reference/refcompare.py --record`` and the comparisons read it; the record is checked against
+the simulator by running the reference again (one run here, every run with ``-m extended``).
+
 Settings of torchdoct: the scene default (``simulation.truncation_tolerance`` and, where the
 simulator has it, ``simulation.truncation``; float32 as the training data use), a hard cut at 1e-3 in
 float32 and at 1e-4 in float64. A hard truncation at 1e-2 lets scatterers pop in at 1 % of the peak
@@ -39,7 +45,7 @@ from torchdoct.sim.simulate import simulate
 
 pytestmark = pytest.mark.slow
 
-REF_TRIALS = 1024
+REF_TRIALS = rc.REF_TRIALS
 TD_TRIALS = 8192
 #: torchdoct trials per setting (module docstring: the float64 setting's smaller sample).
 TD_TRIALS_OF = {"default": 4096, "1e-3 float32": TD_TRIALS, "1e-4 float64": 2048}
@@ -102,7 +108,7 @@ def _params():
 
 @pytest.mark.parametrize("cell,setting", _params())
 def test_every_feature_matches_reference(cell, setting):
-    ref = rc.reference_features(cell, REF_TRIALS)
+    ref = rc.recorded_reference(cell, REF_TRIALS)
     td = rc.torchdoct_features(cell, TD_TRIALS_OF[setting], **SETTINGS[setting])
     rows = rc.compare(td, ref)
     bound = rc.z_bound(len(rows))
@@ -117,7 +123,7 @@ def test_taper_matches_reference(cell, tolerance):
     """The smooth taper, float32, on the cells the hard cut biases. (At 1e-2 the taper's narrower PSF
     biases slow axial flow at lateral=18 by about −0.011 in ``rho_lin_8``: resolvable with 32,768
     trials per side, below this test's resolution; README, "Fidelity on what the models read".)"""
-    ref = rc.reference_features(cell, REF_TRIALS)
+    ref = rc.recorded_reference(cell, REF_TRIALS)
     td = rc.torchdoct_features(cell, TD_TRIALS, truncation="taper", truncation_tolerance=tolerance)
     rows = rc.compare(td, ref)
     bound = rc.z_bound(len(rows))
@@ -132,8 +138,30 @@ _HAS_Y_WIDTH = any(f.name == "lateral_resolution_y_um" for f in dataclasses.fiel
 @pytest.mark.parametrize("cell", list(rc.BSCAN_CELLS))
 def test_bscan_lateral_reduction_matches_reference(cell, setting):
     """A B-scan's x-only lateral reduction (18 µm along x, 4.9 µm along y, 3.8 µm axial): every feature."""
-    ref = rc.reference_features(cell, REF_TRIALS, configs=(3,))
+    ref = rc.recorded_reference(cell, REF_TRIALS, configs=(3,))
     td = rc.torchdoct_features(cell, TD_TRIALS_OF[setting], configs=(3,), **SETTINGS[setting])
     rows = rc.compare(td, ref, configs=(3,))
     bound = rc.z_bound(len(rows))
     assert max(abs(r["z"]) for r in rows) <= bound, rc.format_failures(rows, bound)
+
+
+def _assert_record_is_run(cell, configs):
+    fresh = rc.summarize(rc.reference_features(cell, REF_TRIALS, rc.REF_SEED, configs))
+    recorded = rc.recorded_reference(cell, REF_TRIALS, rc.REF_SEED, configs)
+    assert fresh.keys() == recorded.keys()
+    for name in fresh:
+        for (m, sd, n, nan), (rm, rsd, rn, rnan) in zip(fresh[name], recorded[name]):
+            assert (n, nan) == (rn, rnan), name
+            # the same trials: equal up to the summation order of another machine's libraries
+            assert m == pytest.approx(rm, rel=1e-9, abs=1e-12) and sd == pytest.approx(rsd, rel=1e-9, abs=1e-12), name
+
+
+def test_the_recorded_reference_is_the_reference_simulators_run():
+    """The cheapest recorded run (one configuration), run again by the reference simulator, gives the record."""
+    _assert_record_is_run("flow v=2 θ=60° along x", (3,))
+
+
+@pytest.mark.extended
+@pytest.mark.parametrize("cell,configs", rc.record_runs(), ids=lambda v: str(v))
+def test_every_recorded_reference_run_is_the_reference_simulators_run(cell, configs):
+    _assert_record_is_run(cell, configs)

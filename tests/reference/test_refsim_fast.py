@@ -104,3 +104,39 @@ def test_torchdoct_matches_reference_fast_flow():
     bound = rc.z_bound(len(rows))
     assert max(abs(r["z"]) for r in rows) <= bound, rc.format_failures(rows, bound)
     assert all(r["nan_a"] == 0 and r["nan_b"] == 0 for r in rows)
+
+
+def test_the_reference_record_holds_every_run_the_comparisons_read():
+    """tests/reference/data/reference-features.json: every run of ``refcompare.record_runs`` at the trials and
+    seed the comparisons use, every feature at each of its configurations, finite and NaN trials adding to the
+    run's trials, and the command that wrote it."""
+    import json
+
+    record = json.loads(rc.RECORD.read_text(encoding="utf-8"))
+    assert record["command"] == rc.RECORD_COMMAND
+    assert (record["trials"], record["seed"]) == (rc.REF_TRIALS, rc.REF_SEED)
+    runs = rc.record_runs()
+    assert set(record["runs"]) == {rc.record_key(c, rc.REF_TRIALS, rc.REF_SEED, k) for c, k in runs}
+    for cell, configs in runs:
+        run = rc.recorded_reference(cell, rc.REF_TRIALS, rc.REF_SEED, configs)
+        assert set(run) == set(rc.NAMES), cell
+        for name, rows in run.items():
+            assert len(rows) == len(configs), (cell, name)
+            for _mean, sd, n, nan in rows:
+                assert n + nan == rc.REF_TRIALS and n > 1 and sd >= 0, (cell, name)
+    with pytest.raises(KeyError, match="--record"):
+        rc.recorded_reference("flow v=2 θ=45°", 17)
+
+
+def test_compare_reads_trials_and_their_summary_alike():
+    rng = np.random.default_rng(5)
+    a = {"x": rng.normal(size=(200, 3)), "y": rng.normal(size=(200, 3))}
+    b = {"x": rng.normal(0.1, 1.0, size=(300, 3)), "y": rng.normal(size=(300, 3))}
+    b["x"][:7, 1] = np.nan
+    direct = rc.compare(a, b)
+    assert rc.compare(a, rc.summarize(b)) == direct
+    assert rc.compare(rc.summarize(a), rc.summarize(b)) == direct
+    row = next(r for r in direct if r["feature"] == "x" and r["config"] == rc.CONFIGS[1][0])
+    fb = b["x"][7:, 1]
+    se = np.hypot(a["x"][:, 1].std(ddof=1) / np.sqrt(200), fb.std(ddof=1) / np.sqrt(293))
+    assert row["nan_b"] == 7 and row["z"] == pytest.approx((a["x"][:, 1].mean() - fb.mean()) / se, rel=1e-12)
