@@ -54,6 +54,7 @@ SHAPE_BOX_THRESHOLDS = (0.2, 0.3)
 SHAPE_FLOOR = 0.2
 #: Decisions a candidate may set aside: rule 9 already covers ``flow``.
 FLAGGED = ("diffusion", "ballistic")
+_CLASSES = ("diffusion", "ballistic", "flow", "indeterminate")
 
 
 def excludes(outcome: str, decision: str) -> bool:
@@ -90,6 +91,10 @@ def decay_excess(x: np.ndarray, columns: Sequence[Mapping[str, Any]], finest: st
     more noise away and sits higher by it), and the ratio ``ρ(m)/ρ(m₁)`` is free of it. A row whose correlation
     at ``m₁`` is below ``floor`` in either configuration (decorrelated, or under the noise, within the first
     lag: no decay shape to compare) gets NaN for that pair."""
+    if floor is None:
+        from classifier.ambiguity import mixed_footprint
+
+        return mixed_footprint(np.zeros(len(x), int), _CLASSES, columns, x, finest)[1]
     lags: dict[str, dict[int, int]] = {}
     for j, col in enumerate(columns[:-1]):
         metric = str(col.get("metric", ""))
@@ -100,10 +105,7 @@ def decay_excess(x: np.ndarray, columns: Sequence[Mapping[str, Any]], finest: st
     per_pair = []
     for conf, cols in lags.items():
         common = sorted(set(cols) & set(fine))
-        if conf == finest or not common or (floor is not None and len(common) < 2):
-            continue
-        if floor is None:
-            per_pair.append(np.mean([x[:, fine[m]] - x[:, cols[m]] for m in common], axis=0))
+        if conf == finest or len(common) < 2:
             continue
         f1, c1 = x[:, fine[common[0]]], x[:, cols[common[0]]]
         ok = (f1 >= floor) & (c1 >= floor)
@@ -119,20 +121,17 @@ def decay_excess(x: np.ndarray, columns: Sequence[Mapping[str, Any]], finest: st
     return out
 
 
-def excess_maps(maps_path: Path, model, labels: np.ndarray, pool: int, finest: str) -> dict[str, np.ndarray]:
+def excess_maps(maps, features: np.ndarray, model, labels: np.ndarray, pool: int, finest: str) -> dict[str, np.ndarray]:
     """:func:`decay_excess` against the configuration ``finest``, raw (``mixed``) and on the decay's shape
     (``shape``, at :data:`SHAPE_FLOOR`), per pixel of a classification's spatial shape (NaN where it classified
-    nothing or the excess is undefined), from the model inputs ``classify_maps`` builds at ``pool``."""
-    from classifier.matching import assemble_features
+    nothing or the excess is undefined), from the model inputs ``classify_maps`` builds at ``pool`` out of
+    ``features`` (:func:`classifier.matching.assemble_features` of ``maps``, made once per map)."""
     from classifier.outputs import MASKED
     from classifier.pooling import independent_fraction, model_inputs
-    from torchdoct.measured import mapsfile
 
-    maps = mapsfile.read_maps(maps_path)
-    feats, _, _ = assemble_features([maps], model)
     valid = labels != MASKED
     frac = independent_fraction(int(pool), maps.meta.get("pitch_um"), model.spec)
-    x, idx = model_inputs(feats, valid, int(pool), frac, model.pool_pixels_max)
+    x, idx = model_inputs(features, valid, int(pool), frac, model.pool_pixels_max)
     out = {}
     for name, floor in (("mixed", None), ("shape", SHAPE_FLOOR)):
         grid = np.full(labels.size, np.nan)
@@ -231,6 +230,7 @@ def run_draw(geometry: str, index: int, model, *, threads: int | None = None) ->
     from classifier.bench import random_phantoms as rp
     from classifier.bench.grid import interior_pixels, render_sequence, scoring_edge_px, signature_maps
     from classifier.infer import classify_maps
+    from classifier.matching import assemble_features
     from torchdoct.measured.mapsfile import write_maps
 
     phantoms, description = rp.draw(geometry, index)
@@ -238,14 +238,16 @@ def run_draw(geometry: str, index: int, model, *, threads: int | None = None) ->
     truth = np.asarray(res.labels)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        path = write_maps(Path(tmp) / "maps.npz", signature_maps(seq, model.spec))
+        maps = signature_maps(seq, model.spec)
+        path = write_maps(Path(tmp) / "maps.npz", maps)
+        features, _, _ = assemble_features([maps], model)
         unpooled = None
         for pool in rp.POOLS:
             c = classify_maps(path, model, pool=pool, threads=threads)
             names = list(c.classes) + list(c.set_labels)
             amb = c.info["ambiguity"]
             window = [int(w) for w in amb["fine_window_px"].values()]
-            excess = excess_maps(path, model, c.labels, pool, amb["finest_configuration"])
+            excess = excess_maps(maps, features, model, c.labels, pool, amb["finest_configuration"])
             flags = candidates(c.labels, names, excess, window, unpooled if pool > 1 else None)
             edge = scoring_edge_px(model.spec, rp.PITCH_UM, pool)
             interior = np.any([interior_pixels(truth, m, edge) for m in rp.MOTIONS], axis=0)
