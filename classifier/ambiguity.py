@@ -1,7 +1,7 @@
 """Where the physics cannot tell random-ballistic motion from flow: a ``ballistic`` decision becomes the
 set ``ballistic-or-flow``, unless the speckle pattern moved coherently, which only flow does: then every
 decision but ``indeterminate`` is ``flow`` (numpy only: the classify path). The rules are applied in the order
-0, 5, 10, 1, 11, 2, 3, 4, 7, 9, then 6 and 8 together. The derivation is in docs/abstention.md
+0, 5, 10, 1, 11, 2, 3, 4, 7, 9, then 6 and 8 together, then 12. The derivation is in docs/abstention.md
 ("What the data cannot tell") and docs/concepts/speckle-motion.md §3, §7.
 
 Kept whole (over 800 lines): this docstring is the rules' specification in the order they run, and every rule
@@ -182,6 +182,26 @@ pixel:
    single-class decision where at least :data:`CONTRADICTED_MIN` of the classified pixels of that box hold
    such an outcome becomes ``indeterminate``. A few scattered sets inside one motion's region stay under
    it; ``indeterminate`` pixels and sets that name the decided motion never contradict it. It only abstains.
+12. **A diffusion decision whose finest footprint decays faster at a coarser configuration** (maps of any
+   geometry, pooled over :data:`MIXED_SHAPE_POOL_MIN` pixels or more; last, on the labels of rules 6 and 8).
+   Rule 9's premise read on the decay's shape: a slow region (slow flow, slow random-ballistic motion, a small
+   vessel) beside or inside faster diffusion is decided ``diffusion`` at its border or over all of it, because
+   the coarse configurations' PSFs reach the diffusion and decay as it does (docs/benchmarks/random.md). Rule 9's
+   raw excess misses it under noise: noise independent from frame to frame lowers each configuration's
+   correlations at every lag of a frame or more by one factor ``(⟨I⟩/(⟨I⟩+N₀))²`` set by its own SNR
+   (physics.md §8), and a coarser configuration averages more noise away and sits higher by exactly the amount
+   that hides the slow region's decay. Its shape, ``ρ(m)/ρ(m₁)`` at the shortest common lag ``m₁``, is free of
+   that factor (:func:`shape_excess`; undefined below :data:`SHAPE_FLOOR` at ``m₁``). Inside a diffusion region
+   rule 9's derivation puts the coarser shapes at or above the finest's, up to the scatter and bias of the
+   32-frame estimates, which the threshold has to clear; averaged over the decision's finest footprint (rule
+   8's box, :func:`footprint_mean`), a mean excess above :data:`MIXED_SHAPE_MIN` turns a ``diffusion``
+   decision ``indeterminate``. That threshold is the smallest at which at most 1 % of the
+   interior pixels of the phantom grid's diffusion bands, rendered at another seed than the grid benchmark's,
+   exceed it in B-scans and in volumes (``python -m research.spill --null``; docs/abstention.md gives the
+   recorded table). Unpooled, one pixel's 32-frame scatter fires it inside a region as often as at a border,
+   so it is not applied. ``ballistic`` decisions are not set aside: inside the grid's random-ballistic bands
+   the statistic exceeds any threshold that keeps diffusion's rate far more often (the same table; measured,
+   not derived), so the premise does not hold there. It only abstains.
 """
 
 from __future__ import annotations
@@ -224,6 +244,10 @@ __all__ = [
     "FOOTPRINT_REACH",
     "CONTRADICTED_MIN",
     "MIXED_DECAY_MIN",
+    "MIXED_SHAPE_FLAGS",
+    "MIXED_SHAPE_MIN",
+    "MIXED_SHAPE_POOL_MIN",
+    "SHAPE_FLOOR",
     "NEIGHBOUR_CORRELATION_MIN",
     "abstain_where_ambiguous",
     "borrowed_flow",
@@ -234,6 +258,9 @@ __all__ = [
     "doppler_drift",
     "doppler_imaginary",
     "mixed_footprint",
+    "mixed_shape",
+    "footprint_mean",
+    "shape_excess",
     "fast_decorrelation",
     "offset_moved",
     "slow_decorrelation",
@@ -245,6 +272,20 @@ __all__ = [
     "unseen_axes",
 ]
 
+#: Rule 12 (module docstring): a configuration's pooled intensity correlation at the shortest common lag under
+#: which its decay's shape is not compared (decorrelated, or under the noise, within the first lag).
+SHAPE_FLOOR = 0.2
+#: Rule 12: how far the mean over a decision's finest footprint of the shape excess (:func:`shape_excess`) may
+#: go before a ``diffusion`` decision counts as mixed; set at a stated false-detection rate inside one region
+#: (module docstring; ``python -m research.spill --null``).
+MIXED_SHAPE_MIN = 0.25
+#: Rule 12: the smallest pooling window (pixels per axis) at which it is applied, the window its
+#: false-detection rate was recorded at: unpooled, one pixel's scatter fires it inside a region as often as at
+#: a border.
+MIXED_SHAPE_POOL_MIN = 5
+#: Rule 12: the decisions it may set aside (rule 9 covers ``flow``; inside a random-ballistic region its premise
+#: fails, docs/abstention.md, rule 12).
+MIXED_SHAPE_FLAGS = ("diffusion",)
 #: Rule 9 (module docstring): how far (averaged over the lags the model reads) a coarser configuration's pooled
 #: intensity correlation may lie below the finest configuration's before a flow decision counts as mixed.
 MIXED_DECAY_MIN = 0.3
@@ -957,11 +998,7 @@ def mixed_footprint(
     configuration at a common lag."""
     labels = np.asarray(labels)
     names = list(names)
-    lags: dict[str, dict[int, int]] = {}
-    for j, col in enumerate(columns[:-1]):
-        m = _RHO_LIN.match(str(col.get("metric", "")))
-        if m and col.get("configuration") is not None:
-            lags.setdefault(str(col["configuration"]), {})[int(m.group(1))] = j
+    lags = _rho_lin_columns(columns)
     fine = lags.get(str(finest), {})
     pairs = [(fine, cols, sorted(set(cols) & set(fine))) for conf, cols in lags.items() if conf != finest]
     pairs = [p for p in pairs if p[2]]
@@ -976,3 +1013,93 @@ def mixed_footprint(
         axis=0,
     )
     return _unmoved_flow(labels, names, coherent, translation, doppler) & (excess > MIXED_DECAY_MIN), excess
+
+
+def _rho_lin_columns(columns: Sequence[Mapping[str, Any]]) -> dict[str, dict[int, int]]:
+    """Rules 9 and 12: per configuration, the input column of its pooled ``rho_lin_m`` at each lag ``m``."""
+    lags: dict[str, dict[int, int]] = {}
+    for j, col in enumerate(columns[:-1]):
+        m = _RHO_LIN.match(str(col.get("metric", "")))
+        if m and col.get("configuration") is not None:
+            lags.setdefault(str(col["configuration"]), {})[int(m.group(1))] = j
+    return lags
+
+
+def shape_excess(
+    columns: Sequence[Mapping[str, Any]],
+    pooled: np.ndarray,
+    finest: str | None,
+) -> np.ndarray | None:
+    """Rule 12's statistic per input row (module docstring): over the configurations other than ``finest`` that
+    read at least two lags in common with it, the largest mean over the lags after the shortest common one
+    ``m₁`` of ``ρ_f(m)/ρ_f(m₁) − ρ_c(m)/ρ_c(m₁)`` (``ρ`` the pooled ``rho_lin_m``, ``f`` the finest, ``c`` the
+    coarser configuration): rule 9's excess on the decay's shape. Noise independent from frame to frame lowers
+    every correlation at a lag of a frame or more by one factor ``(⟨I⟩/(⟨I⟩+N₀))²`` set by the configuration's
+    own SNR (physics.md §8); a coarser configuration averages more noise away and sits higher by it, which biases
+    rule 9's raw excess low by the very noise that hides a slow region's decay; the ratio is free of it. NaN for
+    a pair where either correlation at ``m₁`` is below :data:`SHAPE_FLOOR` (no decay shape to compare), and
+    where every pair is; ``None`` when the model reads no such pair. ``columns`` and ``pooled`` as in
+    :func:`mixed_footprint`."""
+    lags = _rho_lin_columns(columns)
+    fine = lags.get(str(finest), {})
+    x = np.asarray(pooled, np.float64)
+    per_pair = []
+    for conf, cols in lags.items():
+        common = sorted(set(cols) & set(fine))
+        if conf == finest or len(common) < 2:
+            continue
+        f1, c1 = x[:, fine[common[0]]], x[:, cols[common[0]]]
+        ok = (f1 >= SHAPE_FLOOR) & (c1 >= SHAPE_FLOOR)
+        f1, c1 = np.where(ok, f1, 1.0), np.where(ok, c1, 1.0)
+        shape = np.mean([x[:, fine[m]] / f1 - x[:, cols[m]] / c1 for m in common[1:]], axis=0)
+        per_pair.append(np.where(ok, shape, np.nan))
+    if not per_pair:
+        return None
+    stacked = np.array(per_pair)
+    out = np.full(stacked.shape[1], np.nan)
+    some = np.isfinite(stacked).any(axis=0)
+    out[some] = np.nanmax(stacked[:, some], axis=0)
+    return out
+
+
+def footprint_mean(
+    values: np.ndarray, idx: np.ndarray, shape: tuple[int, ...], window: int | Sequence[int]
+) -> np.ndarray:
+    """Rule 12: per classified pixel (``values`` one per pixel at the flat positions ``idx`` of a map of
+    ``shape``), the mean of the finite ``values`` over the box centred on it (``window`` pixels per axis, or one
+    width per axis; cut at the map's edges); NaN where the box holds none."""
+    grid = np.full(int(np.prod(shape)), np.nan)
+    grid[idx] = values
+    grid = grid.reshape(shape)
+    ok = np.isfinite(grid)
+    width = _widths(window, len(shape))
+    if len(width) != len(shape):
+        raise ValueError(f"rule 12: {len(width)} window widths for a map of {len(shape)} axes {tuple(shape)}")
+    total = _box_total(np.where(ok, grid, 0.0), width).reshape(-1)[idx]
+    count = _box_count(ok, width).reshape(-1)[idx]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def mixed_shape(
+    labels: np.ndarray,
+    names: Sequence[str],
+    idx: np.ndarray,
+    shape: tuple[int, ...],
+    window: int | Sequence[int],
+    excess: np.ndarray | None,
+    pool: int,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Rule 12 (module docstring): per classified pixel (``labels``, indices into ``names``, at the flat positions
+    ``idx`` of a map of ``shape``), whether it holds a decision of :data:`MIXED_SHAPE_FLAGS` where the mean of
+    ``excess`` (:func:`shape_excess`, one per classified pixel) over its finest footprint (``window``, rule 8's
+    box: :func:`consensus_window` with the finest resolutions) exceeds :data:`MIXED_SHAPE_MIN`; and that mean.
+    All False, and the mean ``None``, without ``excess`` or below a pooling window of
+    :data:`MIXED_SHAPE_POOL_MIN`."""
+    labels = np.asarray(labels)
+    if excess is None or int(pool) < MIXED_SHAPE_POOL_MIN:
+        return np.zeros(labels.shape, bool), None
+    names = list(names)
+    mean = footprint_mean(excess, idx, shape, window)
+    flaggable = np.isin(labels, [names.index(m) for m in MIXED_SHAPE_FLAGS if m in names])
+    return flaggable & (np.nan_to_num(mean, nan=-np.inf) > MIXED_SHAPE_MIN), mean

@@ -678,6 +678,11 @@ def _classify(args: argparse.Namespace) -> int:
                 + " × ".join(f"{n} {a}" for a, n in res.info["ambiguity"]["fine_window_px"].items())
                 + " px; --decide-ballistic keeps the model's decisions)"
             )
+        if ch.get("mixed_shape"):
+            print(
+                f"  indeterminate where a coarser configuration's decay shape is faster over the finest footprint: "
+                f"{ch['mixed_shape']} diffusion or ballistic decisions (--decide-ballistic keeps the model's decisions)"
+            )
         for c in res.label_names:
             print(f"  {c:>22}: {counts[c]:>9} ({counts[c] / total:6.1%})")
         print(f"  {res.info['pixels_per_s']:.3g} pixels/s; wrote {', '.join(p.name for p in written)} to {args.out}")

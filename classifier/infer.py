@@ -254,7 +254,8 @@ def classify_maps(
     moved coherently, and ``indeterminate`` where a flow decision rests only on the coarse configurations
     beside another region (rule 7) or on a coarser configuration that decayed faster than the finest (rule 9),
     few pixels of its box share a decision (rule 6) or one in ten of its finest footprint holds an outcome that
-    excludes it (rule 8)."""
+    excludes it (rule 8), and, pooled over 5 pixels or more, where a ``diffusion`` decision's finest footprint
+    decays faster in shape at a coarser configuration (rule 12)."""
     t0 = time.perf_counter()
     _check_arguments(pool, min_probability)
     _check_alpha(alpha)
@@ -415,6 +416,17 @@ def classify_maps(
         labels_flat = np.where(alone | against, mdl.classes.index("indeterminate"), labels_flat)
         changed["unshared"] = int(alone.sum())
         changed["contradicted"] = int(against.sum())
+        shape_mixed, _ = ambiguity.mixed_shape(
+            labels_flat,
+            names_all,
+            idx,
+            shape,
+            fine_box,
+            ambiguity.shape_excess(mdl.columns, x, finest_conf),
+            int(pool),
+        )
+        labels_flat = np.where(shape_mixed, mdl.classes.index("indeterminate"), labels_flat)
+        changed["mixed_shape"] = int(shape_mixed.sum())
         ambiguity_info = {
             "rules": (["coherent_motion"] if coherent is not None else [])
             + (["translation"] if translation is not None else [])
@@ -424,7 +436,8 @@ def classify_maps(
             + (["fast_decorrelation"] if fast is not None and not unseen else [])
             + (["offset_moved"] if moved is not None else [])
             + ["borrowed_flow", "mixed_footprint"]
-            + ["unshared", "contradicted"],
+            + ["unshared", "contradicted"]
+            + (["mixed_shape"] if int(pool) >= ambiguity.MIXED_SHAPE_POOL_MIN else []),
             "unseen_axes": unseen,
             "single_pixel_axes": single,
             "neighbour_correlation_min": ambiguity.NEIGHBOUR_CORRELATION_MIN,
@@ -458,6 +471,9 @@ def classify_maps(
             "consensus_window_px": dict(zip(axes.lower(), consensus)),
             "contradicted_min": ambiguity.CONTRADICTED_MIN,
             "fine_window_px": dict(zip(axes.lower(), fine_box)),
+            "mixed_shape_min": ambiguity.MIXED_SHAPE_MIN,
+            "mixed_shape_pool_min": ambiguity.MIXED_SHAPE_POOL_MIN,
+            "shape_floor": ambiguity.SHAPE_FLOOR,
             "changed_pixels": changed,
         }
     labels = np.full(valid.size, MASKED, np.uint8)

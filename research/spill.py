@@ -19,7 +19,7 @@ what it flags there is its false-detection rate. The candidates, from the physic
 * ``mixed-box-T``: the same statistic averaged over the classified pixels of rule 8's box (the finest
   footprint widened by the pooling window), over ``T``: averaging trades the single pixel's scatter for
   resolution, and the region a coarse PSF mixes in is as wide as that PSF;
-* ``shape-pixel`` and ``shape-box-T``: the same on the decay's shape (:func:`decay_excess` with a floor): each
+* ``shape-pixel`` and ``shape-box-T``: the same on the decay's shape (:func:`decay_excess` with ``shape``): each
   configuration's correlations divided by its own at the shortest lag, which removes the factor by which noise
   lowers them (physics.md §8: one factor for every lag of a frame or more, set by the configuration's own SNR;
   a coarser configuration averages more noise away, its correlations sit higher, and the raw excess is biased
@@ -32,6 +32,19 @@ Run from the repository root with a development install::
     python -m research.spill --out DIR [--bscans N] [--volumes N]
 
 It writes ``DIR/spill-rules.json`` and ``.md`` (the recorded run: ``research/results/spill-rules.*``).
+
+**The shape statistic's null** (``--null``): rule 12 of :mod:`classifier.ambiguity` (the ``shape-box``
+candidate, shipped) needs its threshold set on data it was not chosen on. Inside one motion's region the
+statistic's premise cannot hold (no coarse footprint reaches another motion), so the share of a region's
+interior pixels whose footprint mean exceeds a threshold is its false-detection rate there. This mode renders
+the grid benchmark's cells (:func:`classifier.bench.grid.full_cells`) at another seed than the benchmark's
+(:data:`NULL_SEED`), maps and classifies them at rule 12's window, and reports that share per geometry, motion
+and static context at every threshold of :data:`NULL_THRESHOLDS`, and the smallest threshold whose share stays
+at or under :data:`NULL_RATE` in every geometry and motion (``MIXED_SHAPE_MIN`` is that value)::
+
+    python -m research.spill --null --out DIR [--cells N] [--jobs N]
+
+It writes ``DIR/spill-null.json`` and ``.md`` (the recorded run: ``research/results/spill-null.*``).
 """
 
 from __future__ import annotations
@@ -47,11 +60,16 @@ from typing import Any
 
 import numpy as np
 
+from classifier.ambiguity import SHAPE_FLOOR
+
 #: Thresholds of the ``mixed-box`` and ``shape-box`` candidates (mean excess over rule 8's box).
 BOX_THRESHOLDS = (0.1, 0.2)
 SHAPE_BOX_THRESHOLDS = (0.2, 0.3)
-#: The shortest lag's correlation under which the decay's shape is not compared (``shape`` candidates).
-SHAPE_FLOOR = 0.2
+#: ``--null``: the thresholds at which the shape statistic's false-detection rate is reported, the stated rate
+#: rule 12's threshold is set at, and the seed of the grid's cells (the grid benchmark renders them at 0).
+NULL_THRESHOLDS = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5)
+NULL_RATE = 0.01
+NULL_SEED = 1
 #: Decisions a candidate may set aside: rule 9 already covers ``flow``.
 FLAGGED = ("diffusion", "ballistic")
 _CLASSES = ("diffusion", "ballistic", "flow", "indeterminate")
@@ -80,50 +98,22 @@ def box_mean(values: np.ndarray, valid: np.ndarray, window: Sequence[int]) -> np
         return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
-def decay_excess(x: np.ndarray, columns: Sequence[Mapping[str, Any]], finest: str, floor: float | None = None):
-    """Per input row, the largest over the coarser configurations of the mean over the lags both read of the
-    finest configuration's pooled intensity correlation minus the coarser one's (``rho_lin_m``; rule 9's excess,
-    :func:`classifier.ambiguity.mixed_footprint`); ``None`` when the model reads no common lag.
+def decay_excess(x: np.ndarray, columns: Sequence[Mapping[str, Any]], finest: str, shape: bool = False):
+    """Per input row, rule 9's excess (:func:`classifier.ambiguity.mixed_footprint`: the largest over the coarser
+    configurations of the mean over the lags both read of the finest configuration's pooled intensity correlation
+    minus the coarser one's), or with ``shape`` rule 12's on the decay's shape
+    (:func:`classifier.ambiguity.shape_excess`: each correlation divided by its own at the shortest common lag,
+    NaN under :data:`classifier.ambiguity.SHAPE_FLOOR`); ``None`` when the model reads no common lag."""
+    from classifier.ambiguity import mixed_footprint, shape_excess
 
-    With ``floor``, each correlation is first divided by its own at the shortest common lag ``m₁`` and the mean
-    runs over the lags after it: noise independent from frame to frame lowers every correlation at a lag of a
-    frame or more by one factor (physics.md §8), which a configuration's own SNR sets (a coarser one averages
-    more noise away and sits higher by it), and the ratio ``ρ(m)/ρ(m₁)`` is free of it. A row whose correlation
-    at ``m₁`` is below ``floor`` in either configuration (decorrelated, or under the noise, within the first
-    lag: no decay shape to compare) gets NaN for that pair."""
-    if floor is None:
-        from classifier.ambiguity import mixed_footprint
-
-        return mixed_footprint(np.zeros(len(x), int), _CLASSES, columns, x, finest)[1]
-    lags: dict[str, dict[int, int]] = {}
-    for j, col in enumerate(columns[:-1]):
-        metric = str(col.get("metric", ""))
-        if metric.startswith("rho_lin_") and col.get("configuration") is not None:
-            lags.setdefault(str(col["configuration"]), {})[int(metric.removeprefix("rho_lin_"))] = j
-    fine = lags.get(finest, {})
-    x = np.asarray(x, np.float64)
-    per_pair = []
-    for conf, cols in lags.items():
-        common = sorted(set(cols) & set(fine))
-        if conf == finest or len(common) < 2:
-            continue
-        f1, c1 = x[:, fine[common[0]]], x[:, cols[common[0]]]
-        ok = (f1 >= floor) & (c1 >= floor)
-        f1, c1 = np.where(ok, f1, 1.0), np.where(ok, c1, 1.0)
-        shape = np.mean([x[:, fine[m]] / f1 - x[:, cols[m]] / c1 for m in common[1:]], axis=0)
-        per_pair.append(np.where(ok, shape, np.nan))
-    if not per_pair:
-        return None
-    stacked = np.array(per_pair)
-    out = np.full(stacked.shape[1], np.nan)
-    some = np.isfinite(stacked).any(axis=0)
-    out[some] = np.nanmax(stacked[:, some], axis=0)
-    return out
+    if shape:
+        return shape_excess(columns, x, finest)
+    return mixed_footprint(np.zeros(len(x), int), _CLASSES, columns, x, finest)[1]
 
 
 def excess_maps(maps, features: np.ndarray, model, labels: np.ndarray, pool: int, finest: str) -> dict[str, np.ndarray]:
     """:func:`decay_excess` against the configuration ``finest``, raw (``mixed``) and on the decay's shape
-    (``shape``, at :data:`SHAPE_FLOOR`), per pixel of a classification's spatial shape (NaN where it classified
+    (``shape``, rule 12's statistic), per pixel of a classification's spatial shape (NaN where it classified
     nothing or the excess is undefined), from the model inputs ``classify_maps`` builds at ``pool`` out of
     ``features`` (:func:`classifier.matching.assemble_features` of ``maps``, made once per map)."""
     from classifier.outputs import MASKED
@@ -133,9 +123,9 @@ def excess_maps(maps, features: np.ndarray, model, labels: np.ndarray, pool: int
     frac = independent_fraction(int(pool), maps.meta.get("pitch_um"), model.spec)
     x, idx = model_inputs(features, valid, int(pool), frac, model.pool_pixels_max)
     out = {}
-    for name, floor in (("mixed", None), ("shape", SHAPE_FLOOR)):
+    for name in ("mixed", "shape"):
         grid = np.full(labels.size, np.nan)
-        e = decay_excess(x, model.columns, finest, floor)
+        e = decay_excess(x, model.columns, finest, name == "shape")
         if e is not None:
             grid[idx] = e
         out[name] = grid.reshape(labels.shape)
@@ -294,8 +284,8 @@ def summarize(draws: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
             "per_class": per_class,
         }
         if rows and "flagged" in rows[0]:
-            keys = ("right", "right_of", "wrong", "wrong_of", "right_interior", "right_interior_of")
-            f = {k: sum(r["flagged"].get(k, 0) for r in rows) for k in keys}
+            counted = ("right", "right_of", "wrong", "wrong_of", "right_interior", "right_interior_of")
+            f = {k: sum(r["flagged"].get(k, 0) for r in rows) for k in counted}
             entry["flagged_right"] = f["right"] / f["right_of"] if f["right_of"] else None
             entry["flagged_right_interior"] = (
                 f["right_interior"] / f["right_interior_of"] if f["right_interior_of"] else None
@@ -342,6 +332,170 @@ def to_markdown(result: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def run_null_cell(cell, model, levels: dict[str, dict[str, float]], density: float) -> dict[str, Any]:
+    """One grid cell rendered, mapped and classified (the default decision) at rule 12's window
+    (:data:`classifier.ambiguity.MIXED_SHAPE_POOL_MIN`): per motion, its interior pixels (farther than the grid's scoring edge from every other region) where the statistic's mean
+    over rule 8's box is defined, how many of them exceed each threshold of :data:`NULL_THRESHOLDS`, and the
+    largest."""
+    from classifier.ambiguity import MIXED_SHAPE_POOL_MIN, footprint_mean, shape_excess
+    from classifier.bench.grid import (
+        MOTIONS,
+        cell_phantoms,
+        interior_pixels,
+        render_sequence,
+        scoring_edge_px,
+        signature_maps,
+    )
+    from classifier.infer import classify_maps
+    from classifier.matching import assemble_features
+    from classifier.outputs import MASKED
+    from classifier.pooling import independent_fraction, model_inputs
+    from torchdoct.measured.mapsfile import write_maps
+
+    pool = MIXED_SHAPE_POOL_MIN
+    phantoms = cell_phantoms(cell, model.spec, levels, density)
+    res, seq = render_sequence(phantoms, cell.key, cell.seed)
+    truth = np.asarray(res.labels)
+    maps = signature_maps(seq, model.spec)
+    with tempfile.TemporaryDirectory() as tmp:
+        c = classify_maps(write_maps(Path(tmp) / "maps.npz", maps), model, pool=pool)
+    amb = c.info["ambiguity"]
+    features, _, _ = assemble_features([maps], model)
+    valid = c.labels != MASKED
+    frac = independent_fraction(pool, maps.meta.get("pitch_um"), model.spec)
+    x, idx = model_inputs(features, valid, pool, frac, model.pool_pixels_max)
+    window = [int(w) for w in amb["fine_window_px"].values()]
+    edge = scoring_edge_px(model.spec, float(phantoms[0]["grid"]["pitch_x_um"]), pool)
+    excess = shape_excess(model.columns, x, amb["finest_configuration"])
+    mean = np.full(valid.size, np.nan)
+    if excess is not None:
+        mean[idx] = footprint_mean(excess, idx, valid.shape, window)
+    mean = mean.reshape(valid.shape)
+    per_motion = {}
+    for m in MOTIONS:
+        values = mean[interior_pixels(truth, m, edge) & valid]
+        values = values[np.isfinite(values)]
+        per_motion[m] = {
+            "pixels": int(values.size),
+            "over": [int((values > t).sum()) for t in NULL_THRESHOLDS],
+            "max": float(values.max()) if values.size else None,
+        }
+    return {"key": cell.key, "geometry": cell.geometry, "context": cell.context, "per_motion": per_motion}
+
+
+def summarize_null(cells: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Per geometry and motion (and per static context), the share of interior pixels over each threshold; and
+    the smallest threshold of :data:`NULL_THRESHOLDS` whose share is at most :data:`NULL_RATE` in every geometry
+    for each motion whose decisions rule 12 sets aside (:data:`classifier.ambiguity.MIXED_SHAPE_FLAGS`;
+    ``None`` when none is)."""
+    from classifier.ambiguity import MIXED_SHAPE_FLAGS
+    from classifier.bench.grid import MOTIONS
+
+    def pooled(rows: Sequence[Mapping[str, Any]], m: str) -> dict[str, Any]:
+        n = sum(r["per_motion"][m]["pixels"] for r in rows)
+        over = [sum(r["per_motion"][m]["over"][k] for r in rows) for k in range(len(NULL_THRESHOLDS))]
+        return {"pixels": n, "share_over": [o / n if n else None for o in over]}
+
+    groups = []
+    for geometry in sorted({c["geometry"] for c in cells}):
+        for context in [None, *sorted({c["context"] for c in cells})]:
+            rows = [c for c in cells if c["geometry"] == geometry and context in (None, c["context"])]
+            if rows:
+                groups.append(
+                    {
+                        "geometry": geometry,
+                        "context": context or "all",
+                        "per_motion": {m: pooled(rows, m) for m in MOTIONS},
+                    }
+                )
+    overall = [g for g in groups if g["context"] == "all"]
+    chosen = next(
+        (
+            t
+            for k, t in enumerate(NULL_THRESHOLDS)
+            if all(
+                (g["per_motion"][m]["share_over"][k] or 0.0) <= NULL_RATE for g in overall for m in MIXED_SHAPE_FLAGS
+            )
+        ),
+        None,
+    )
+    return {
+        "flags": list(MIXED_SHAPE_FLAGS),
+        "thresholds": list(NULL_THRESHOLDS),
+        "rate": NULL_RATE,
+        "chosen": chosen,
+        "groups": groups,
+    }
+
+
+def null_markdown(result: Mapping[str, Any]) -> str:
+    """The null summary as one Markdown table: the share of interior pixels over each threshold."""
+    s = result["summary"]
+    head = " | ".join(f"over {t:g}" for t in s["thresholds"])
+    lines = [
+        f"| geometry | static context | motion | interior pixels | {head} |",
+        "| --- | --- | --- | --- | " + " | ".join("---" for _ in s["thresholds"]) + " |",
+    ]
+    for g in s["groups"]:
+        for m, p in g["per_motion"].items():
+            cells = " | ".join(_fmt(v) for v in p["share_over"])
+            lines.append(f"| {g['geometry']} | {g['context']} | {m} | {p['pixels']} | {cells} |")
+    chosen = "none" if s["chosen"] is None else f"{s['chosen']:g}"
+    flags = ", ".join(s["flags"])
+    lines += ["", f"Smallest threshold at or under a rate of {s['rate']:g} for {flags} in every geometry: {chosen}."]
+    return "\n".join(lines) + "\n"
+
+
+_NULL_STATE: dict[str, Any] = {}
+
+
+def _null_cell(cell) -> dict[str, Any]:
+    """:func:`run_null_cell` with the models, speed levels and density loaded once per process."""
+    if not _NULL_STATE:
+        from classifier.bench.grid import speed_levels
+        from classifier.infer import load_model
+        from classifier.prior import Prior
+
+        models = {g: load_model("signature" if g == "volume" else "signature-bscan") for g in ("bscan", "volume")}
+        _NULL_STATE.update(
+            models=models,
+            levels={g: speed_levels(m.spec) for g, m in models.items()},
+            density=float(min(Prior().density_per_um3)),
+        )
+    st = _NULL_STATE
+    return run_null_cell(cell, st["models"][cell.geometry], st["levels"][cell.geometry], st["density"])
+
+
+def null_main(out: Path, n_cells: int | None, jobs: int = 1) -> int:
+    """``--null``: every grid cell at :data:`NULL_SEED` (or the first ``n_cells``), in ``jobs`` processes (each
+    cell is rendered from its own seed: the same rows for any count), written to ``out``."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tqdm.auto import tqdm
+
+    from classifier.bench.grid import full_cells
+
+    t0 = time.perf_counter()
+    cells = full_cells(NULL_SEED)[: n_cells if n_cells else None]
+    if jobs > 1:
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            rows = list(tqdm(pool.map(_null_cell, cells), total=len(cells), desc="shape null", unit="cell"))
+    else:
+        rows = [_null_cell(c) for c in tqdm(cells, desc="shape null", unit="cell")]
+    extra = (f" --cells {n_cells}" if n_cells else "") + (f" --jobs {jobs}" if jobs > 1 else "")
+    result = {
+        "command": f"python -m research.spill --null --out DIR{extra}",
+        "seed": NULL_SEED,
+        "summary": summarize_null(rows),
+        "cells": rows,
+        "seconds": time.perf_counter() - t0,
+    }
+    (out / "spill-null.json").write_text(json.dumps(result, separators=(",", ":")))
+    (out / "spill-null.md").write_text(null_markdown(result))
+    print(null_markdown(result))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     from tqdm.auto import tqdm
 
@@ -352,13 +506,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--bscans", type=int, default=N_BSCANS, help=f"B-scan draws (default {N_BSCANS})")
     p.add_argument("--volumes", type=int, default=N_VOLUMES, help=f"volume draws (default {N_VOLUMES})")
+    p.add_argument("--null", action="store_true", help="the shape statistic's null on the grid's cells instead")
+    p.add_argument("--cells", type=int, default=None, help="--null: only the first N grid cells")
+    p.add_argument("--jobs", type=int, default=1, help="--null: processes (default 1)")
     args = p.parse_args(argv)
+    if args.cells is not None and args.cells < 1:
+        p.error(f"--cells must be a positive number of cells, got {args.cells}")
+    if args.jobs < 1:
+        p.error(f"--jobs must be a positive number of processes, got {args.jobs}")
     try:
         check_counts(args.bscans, args.volumes)
     except ValueError as err:
         p.error(str(err))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.null:
+        return null_main(out, args.cells, args.jobs)
     t0 = time.perf_counter()
     models = {g: load_model("signature" if g == "volume" else "signature-bscan") for g in ("bscan", "volume")}
     jobs = [("bscan", i) for i in range(args.bscans)] + [("volume", i) for i in range(args.volumes)]

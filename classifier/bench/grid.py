@@ -94,6 +94,7 @@ __all__ = [
     "quick_cells",
     "speed_levels",
     "phantom_dict",
+    "cell_phantoms",
     "run_cell",
     "run_grid",
     "score_labels",
@@ -327,6 +328,15 @@ def phantom_dict(
     if cell.snr_db is not None:
         d["noise"] = {"snr_db": float(cell.snr_db)}
     return d
+
+
+def cell_phantoms(
+    cell: GridCell, spec, levels: dict[str, dict[str, float]], density: float, ballistic_directions: str | None = None
+) -> list[dict[str, Any]]:
+    """The phantoms whose fields add to ``cell``'s (:func:`render_sequence`): :func:`phantom_dict`, and a static
+    background after it in the ``background`` context."""
+    d = phantom_dict(cell, spec, levels, density, ballistic_directions)
+    return [d, _static_dict(d, density)] if cell.context == "background" else [d]
 
 
 def system_dict(spec, name: str = "grid-system") -> dict[str, Any]:
@@ -615,8 +625,7 @@ def run_cell(
     prior = prior or Prior()
     spec = model.spec
     density = float(min(prior.density_per_um3))
-    d = phantom_dict(cell, spec, levels, density, ballistic_directions)
-    phantoms = [d, _static_dict(d, density)] if cell.context == "background" else [d]
+    phantoms = cell_phantoms(cell, spec, levels, density, ballistic_directions)
     scored = _classify_rendered(
         phantoms,
         model,

@@ -1169,6 +1169,26 @@ def spill_rules(root: Path) -> str:
     return "\n\n".join([table(header, rows), source(d["command"], p)])
 
 
+def spill_null(root: Path) -> str:
+    """Rule 12's statistic inside one region (``research.spill --null``): per geometry, static context and
+    motion, the share of a region's interior pixels whose footprint mean exceeds each threshold, and the smallest
+    threshold at or under the stated rate for the decisions the rule sets aside."""
+    d, p = load(root, "spill-null.json")
+    s = d["summary"]
+    rows = [
+        [g["geometry"], g["context"], m, v["pixels"]] + [num(x) for x in v["share_over"]]
+        for g in s["groups"]
+        for m, v in g["per_motion"].items()
+    ]
+    header = ["geometry", "static context", "motion", "interior pixels"] + [f"over {t:g}" for t in s["thresholds"]]
+    chosen = "none of them" if s["chosen"] is None else f"{s['chosen']:g}"
+    note = (
+        f"The smallest threshold whose share is at or under {s['rate']:g} for {', '.join(s['flags'])} in every "
+        f"geometry: {chosen} (the grid's cells at seed {d['seed']})."
+    )
+    return "\n\n".join([table(header, rows), note, source(d["command"], p)])
+
+
 RENDERERS: dict[str, Callable[[Path], str]] = {
     "bench-simulate": bench_simulate,
     "bench-study": bench_study,
@@ -1203,6 +1223,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "random-phantoms": random_phantoms,
     "random-phantoms-worst": random_phantoms_worst,
     "spill-rules": spill_rules,
+    "spill-null": spill_null,
     "grid-context-all-pixels": lambda root: grid_context(root, "summary_by_context_all_pixels"),
     "grid-context-uniform-angles": lambda root: grid_context(
         root, "summary_by_context_all_pixels", "grid-uniform-angles.json"

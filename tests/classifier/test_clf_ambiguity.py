@@ -700,7 +700,7 @@ def test_classify_maps_applies_rule_6_last_and_decide_ballistic_skips_it(tmp_pat
 
     base = classify_maps(path, mdl, pool=5, background_db=None)
     amb = base.info["ambiguity"]
-    assert amb["rules"][-4:] == ["borrowed_flow", "mixed_footprint", "unshared", "contradicted"]
+    assert amb["rules"][-5:] == ["borrowed_flow", "mixed_footprint", "unshared", "contradicted", "mixed_shape"]
     assert amb["consensus_min"] == CONSENSUS_MIN
     # rule 9 compares every coarser configuration with the one of the smallest footprint
     assert amb["finest_configuration"] == "original" and amb["mixed_decay_min"] == 0.3
@@ -723,7 +723,7 @@ def test_classify_maps_applies_rule_6_last_and_decide_ballistic_skips_it(tmp_pat
         )
         n8 = int(np.ceil(fine / pitch[ax] - 1e-9)) + 5 - 1
         assert amb["fine_window_px"][ax] == max(5, n8 + 1 - n8 % 2)
-    assert amb["footprint_reach"] == 1.5 and amb["rules"][-1] == "contradicted"
+    assert amb["footprint_reach"] == 1.5 and amb["rules"][-2] == "contradicted"
 
     monkeypatch.setattr(ambiguity, "unshared", lambda labels, *a, **k: np.ones(np.shape(labels), bool))
     flagged = classify_maps(path, mdl, pool=5, background_db=None)

@@ -10,12 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from classifier.ambiguity import MIXED_DECAY_MIN, mixed_footprint
+from classifier.ambiguity import MIXED_DECAY_MIN, SHAPE_FLOOR, mixed_footprint
 from classifier.bench.grid import CODES
 from research.spill import (
     BOX_THRESHOLDS,
     SHAPE_BOX_THRESHOLDS,
-    SHAPE_FLOOR,
     box_mean,
     candidates,
     decay_excess,
@@ -105,16 +104,16 @@ def test_the_shape_excess_is_free_of_each_configurations_noise_factor():
     fine, coarse = np.exp(-rates * tau), np.exp(-0.5 * rates * tau)  # the coarser decays slower: one region
     clean = _rows(fine, coarse)
     noisy = _rows(0.4 * fine, 0.9 * coarse)
-    shape_clean = decay_excess(clean, COLUMNS, "fine", SHAPE_FLOOR)
-    np.testing.assert_allclose(decay_excess(noisy, COLUMNS, "fine", SHAPE_FLOOR), shape_clean, atol=1e-12)
+    shape_clean = decay_excess(clean, COLUMNS, "fine", shape=True)
+    np.testing.assert_allclose(decay_excess(noisy, COLUMNS, "fine", shape=True), shape_clean, atol=1e-12)
     assert np.all(shape_clean < 0)  # one region: the coarser configuration's shape lies above
     assert not np.allclose(decay_excess(noisy, COLUMNS, "fine"), decay_excess(clean, COLUMNS, "fine"))
     # a coarse PSF that reaches a faster region decays faster in shape: positive excess
     mixed = _rows(fine, 0.5 * np.exp(-rates * tau) + 0.5 * np.exp(-4.0 * rates * tau))
-    assert np.all(decay_excess(mixed, COLUMNS, "fine", SHAPE_FLOOR) > 0)
+    assert np.all(decay_excess(mixed, COLUMNS, "fine", shape=True) > 0)
     # below the floor at the shortest lag in either configuration: undefined
     low = _rows(fine * (SHAPE_FLOOR * 0.9), coarse)
-    assert np.all(np.isnan(decay_excess(low, COLUMNS, "fine", SHAPE_FLOOR)))
+    assert np.all(np.isnan(decay_excess(low, COLUMNS, "fine", shape=True)))
 
 
 def test_a_pooled_decision_is_flagged_where_the_pixels_own_outcome_excludes_it():
