@@ -446,6 +446,14 @@ def null_markdown(result: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _write(stem: Path, result: Mapping[str, Any], markdown: str) -> int:
+    """``STEM.json`` (compact) and ``STEM.md``, the tables also printed; 0 (the exit status)."""
+    stem.with_suffix(".json").write_text(json.dumps(result, separators=(",", ":")))
+    stem.with_suffix(".md").write_text(markdown)
+    print(markdown)
+    return 0
+
+
 _NULL_STATE: dict[str, Any] = {}
 
 
@@ -490,10 +498,7 @@ def null_main(out: Path, n_cells: int | None, jobs: int = 1) -> int:
         "cells": rows,
         "seconds": time.perf_counter() - t0,
     }
-    (out / "spill-null.json").write_text(json.dumps(result, separators=(",", ":")))
-    (out / "spill-null.md").write_text(null_markdown(result))
-    print(null_markdown(result))
-    return 0
+    return _write(out / "spill-null", result, null_markdown(result))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -535,10 +540,7 @@ def main(argv: list[str] | None = None) -> int:
         "draws": draws,
         "seconds": time.perf_counter() - t0,
     }
-    (out / "spill-rules.json").write_text(json.dumps(result, separators=(",", ":")))
-    (out / "spill-rules.md").write_text(to_markdown(result))
-    print(to_markdown(result))
-    return 0
+    return _write(out / "spill-rules", result, to_markdown(result))
 
 
 if __name__ == "__main__":  # pragma: no cover
