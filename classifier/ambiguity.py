@@ -160,8 +160,8 @@ pixel:
    ``flow`` decision its own data does not found (neither rule 0, 5 nor 10) becomes ``indeterminate``. A
    flow next to a slower region keeps its decisions: there the coarser configuration decays slower, not faster.
    It only abstains.
-6. **A decision its neighbours do not share** (maps of any geometry; applied last, after rules 7 and 9, with
-   rule 8). A region of one motion is at least a resolution cell wide, and the evidence of neighbouring pixels
+6. **A decision its neighbours do not share** (maps of any geometry; after rules 7 and 9, with rule 8, before
+   rule 12). A region of one motion is at least a resolution cell wide, and the evidence of neighbouring pixels
    overlaps (the pooling window, and the PSF of every configuration the model reads), so a motion's decisions
    come in patches; a single-class decision that fewer than :data:`CONSENSUS_MIN` of the classified pixels of
    its box share is a stray one: where a few scatterers dominate a pixel (the PSF half outside the sample at
