@@ -681,7 +681,7 @@ def _classify(args: argparse.Namespace) -> int:
         if ch.get("mixed_shape"):
             print(
                 f"  indeterminate where a coarser configuration's decay shape is faster over the finest footprint: "
-                f"{ch['mixed_shape']} diffusion or ballistic decisions (--decide-ballistic keeps the model's decisions)"
+                f"{ch['mixed_shape']} diffusion decisions (--decide-ballistic keeps the model's decisions)"
             )
         for c in res.label_names:
             print(f"  {c:>22}: {counts[c]:>9} ({counts[c] / total:6.1%})")
