@@ -422,7 +422,9 @@ def classify_maps(
             idx,
             shape,
             fine_box,
-            ambiguity.shape_excess(mdl.columns, x, finest_conf),
+            ambiguity.shape_excess(mdl.columns, x, finest_conf)
+            if int(pool) >= ambiguity.MIXED_SHAPE_POOL_MIN
+            else None,
             int(pool),
         )
         labels_flat = np.where(shape_mixed, mdl.classes.index("indeterminate"), labels_flat)

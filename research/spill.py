@@ -86,16 +86,13 @@ def excludes(outcome: str, decision: str) -> bool:
 def box_mean(values: np.ndarray, valid: np.ndarray, window: Sequence[int]) -> np.ndarray:
     """Per pixel, the mean of ``values`` over the ``valid`` pixels of the box ``window`` (pixels per axis, odd)
     centred on it, the box cut at the image's edges (NaN where it holds none); ``values`` and ``valid`` over the
-    same spatial shape."""
-    from numpy.lib.stride_tricks import sliding_window_view
+    same spatial shape, ``values`` finite where valid (rule 12's :func:`classifier.ambiguity.footprint_mean` at
+    every pixel)."""
+    from classifier.ambiguity import footprint_mean
 
-    pads = [(w // 2, w // 2) for w in window]
-    axes = tuple(range(-len(window), 0))
-    v = sliding_window_view(np.pad(np.where(valid, values, 0.0), pads), window)
-    n = sliding_window_view(np.pad(valid.astype(float), pads), window)
-    total, count = v.sum(axis=axes), n.sum(axis=axes)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    shape = np.shape(values)
+    every = np.arange(int(np.prod(shape)))
+    return footprint_mean(np.where(valid, values, np.nan).reshape(-1), every, shape, list(window)).reshape(shape)
 
 
 def decay_excess(x: np.ndarray, columns: Sequence[Mapping[str, Any]], finest: str, shape: bool = False):
