@@ -445,3 +445,33 @@ def test_the_grid_samples_every_axis_finely_enough_to_see_the_speckle_move(name)
     assert (
         unseen_axes("YZX", {"x": p, "y": p, "z": p}, original.lateral_resolution_um, original.axial_resolution_um) == []
     )
+
+
+@pytest.mark.slow  # two B-scan cells rendered, mapped and classified at both windows (about 20 s)
+@pytest.mark.parametrize("key", ["bscan-edge-clean-slow-p80-a45", "bscan-none-20dB-mid-p45-a45"])
+def test_grid_cells_run_again_give_the_recorded_scores(key):
+    """The recorded grid (docs/benchmarks/grid-default.json) is what the code gives: a cell beside a static edge
+    where most rules fire and a static-free noisy cell, rendered, mapped and classified again at every window,
+    decide the same pixels and their rules set aside the same counts (to within two pixels: a pixel at a
+    decision threshold may flip with the floating-point rounding of another machine)."""
+    from pathlib import Path
+
+    from classifier.infer import load_model
+
+    res = json.loads((Path(__file__).resolve().parents[2] / "docs/benchmarks/grid-default.json").read_text())
+    recorded = {r["pool"]: r for r in res["cells"] if r["key"] == key}
+    assert sorted(recorded) == sorted(grid.POOLS)
+    cell = next(c for c in grid.full_cells(0) if c.key == key)
+    model = load_model(res["models"]["bscan"], threads=1)
+    for row in grid.run_cell(cell, model, grid.speed_levels(model.spec), threads=1):
+        r0 = recorded[row["pool"]]
+        assert set(row["rules_changed"]) == set(r0["rules_changed"])
+        for rule, n in r0["rules_changed"].items():
+            assert abs(row["rules_changed"][rule] - n) <= 2, (key, row["pool"], rule)
+        for scores, scores0 in ((row, r0), (row["all_pixels"], r0["all_pixels"])):
+            for m, a in scores0["per_class"].items():
+                b = scores["per_class"][m]
+                assert b["pixels"] == a["pixels"], (key, m)
+                assert abs(b["decided"] - a["decided"]) <= 2, (key, row["pool"], m)
+                tol = 2 / max(a["pixels"], 1)
+                assert b["wrong_share"] == pytest.approx(a["wrong_share"], abs=tol), (key, row["pool"], m)
