@@ -613,11 +613,12 @@ def run_cell(
     decision: str | None = None,
     threads: int | None = None,
     prior=None,
-    abstain_ambiguous: bool = True,
+    abstain_ambiguous: bool | Sequence[bool] = True,
     ballistic_directions: str | None = None,
 ) -> list[dict[str, Any]]:
     """Render, map, classify and score one cell at every window of ``pools``: one row per window.
-    ``abstain_ambiguous``: doct-classify's default (:mod:`classifier.ambiguity`); False: ``--decide-ballistic``.
+    ``abstain_ambiguous``: doct-classify's default (:mod:`classifier.ambiguity`); False: ``--decide-ballistic``;
+    a sequence of both: one row per setting and window, from one rendering and one set of maps.
     ``ballistic_directions``: as in :func:`phantom_dict`."""
     from ..prior import Prior
     from ..truth import identifiability
@@ -649,7 +650,7 @@ def run_cell(
             "pool": r.pop("pool"),
             "model": spec.name,
             "decision": r.pop("decision"),
-            "abstain_ambiguous": bool(abstain_ambiguous),
+            "abstain_ambiguous": r.pop("abstain_ambiguous"),
             "magnitudes": {m: levels[m][cell.level] for m in MOTIONS},
             "identifiable": ident,
         }

@@ -660,7 +660,8 @@ def crossing():
     model = load_model("signature-bscan")
     levels = grid.speed_levels(load_spec("signature-bscan"))
     cell = grid.GridCell("bscan", "none", 20.0, "mid", 80.0, 90.0, seed=3)
-    return {k: grid.run_cell(cell, model, levels, pools=(5,), threads=1, abstain_ambiguous=k)[0] for k in (True, False)}
+    rows = grid.run_cell(cell, model, levels, pools=(5,), threads=1, abstain_ambiguous=(True, False))
+    return {r["abstain_ambiguous"]: r for r in rows}
 
 
 def test_flow_across_a_bscan_without_static_tissue_is_never_decided_as_another_class(crossing):

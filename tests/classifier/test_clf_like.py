@@ -307,9 +307,9 @@ def test_like_writes_spec_and_prior_that_retrain_the_same_model(tmp_path, capsys
 def test_doct_train_calibrates_a_signature_model_as_classifier_calibrate_does(tmp_path, capsys):
     """``doct-train`` on a signature spec (here ``--like``, tiny sizes) writes the conformal calibration beside
     the model: the very record ``python -m classifier.calibrate`` computes for the written model with the draws
-    it names, so ``doct-classify`` decides by the prediction sets. Retrained into the same folder with
-    ``--calibration-draws 0 --force``, the earlier calibration is removed with the earlier model, and the argmax
-    rule decides."""
+    it names, so ``doct-classify`` decides by the prediction sets. A negative ``--calibration-draws`` is refused
+    before any work. (What a retraining without a calibration leaves: the slow
+    :func:`test_a_model_retrained_without_a_calibration_loses_the_earlier_models`.)"""
     import json
 
     from classifier.calibrate import CALIBRATION_SEED, POOLS, calibrate
@@ -328,14 +328,27 @@ def test_doct_train_calibrates_a_signature_model_as_classifier_calibrate_does(tm
     assert [(p["scores"], p["truth"]) for p in again["pools"]] == [(p["scores"], p["truth"]) for p in record["pools"]]
     assert classify_main([str(path), "--model", str(a), "--out", str(tmp_path / "ca")]) == 0
     assert json.loads((tmp_path / "ca" / "legend.json").read_text())["decision"] == "conformal"
+    assert train_main(["--like", str(path), "--out", str(tmp_path / "c"), *tiny, "--calibration-draws", "-1"]) == 2
+    assert "--calibration-draws -1" in capsys.readouterr().err and not (tmp_path / "c").exists()
 
-    # retrained into the same folder without a calibration: the earlier model's calibration goes with it (it
-    # would decide the new model by the old one's scores), and the rule decides
+
+@pytest.mark.slow  # three tiny trainings, a calibration and two classifications (about 10 s)
+def test_a_model_retrained_without_a_calibration_loses_the_earlier_models(tmp_path):
+    """Retrained into the same folder with ``--calibration-draws 0 --force``, the earlier model's calibration
+    goes with the earlier model (it would decide the new model by the old one's scores), and the argmax rule
+    decides; without ``--force`` nothing is overwritten."""
+    import json
+
+    from classifier.cli import classify_main, train_main
+
+    path = _bscan_maps(tmp_path)
+    tiny = TINY_LIKE
+    a = tmp_path / "a"
+    assert train_main(["--like", str(path), "--out", str(a), *tiny, "--calibration-draws", "2"]) == 0
+    assert (a / "like-own.calibration.json").exists()
     assert train_main(["--like", str(path), "--out", str(a), *tiny, "--calibration-draws", "0"]) == 2  # no --force
     assert train_main(["--like", str(path), "--out", str(a), *tiny, "--calibration-draws", "0", "--force"]) == 0
     assert not (a / "like-own.calibration.json").exists() and not (a / "like-own.reliability.png").exists()
     assert (a / "like-own.spec.toml").exists() and (a / "like-own.onnx").exists()
     assert classify_main([str(path), "--model", str(a), "--out", str(tmp_path / "cb")]) == 0
     assert json.loads((tmp_path / "cb" / "legend.json").read_text())["decision"] == "rule"
-    assert train_main(["--like", str(path), "--out", str(tmp_path / "c"), *tiny, "--calibration-draws", "-1"]) == 2
-    assert "--calibration-draws -1" in capsys.readouterr().err and not (tmp_path / "c").exists()

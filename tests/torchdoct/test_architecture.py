@@ -7,6 +7,7 @@ the research modules (research/, outside the packages) off the product path, usi
 from __future__ import annotations
 
 import ast
+import functools
 import os
 import subprocess
 import sys
@@ -34,10 +35,16 @@ def _modules() -> dict[str, Path]:
 MODULES = _modules()
 
 
+@functools.cache
+def _tree(path: Path) -> ast.Module:
+    """The syntax tree of ``path``, parsed once for all the checks (they only read it)."""
+    return ast.parse(path.read_text(encoding="utf-8"))
+
+
 def _module_level_imports(name: str, path: Path) -> set[str]:
     """Project modules imported by the statements that run at import time (not inside functions or
     classes' methods)."""
-    tree = ast.parse(path.read_text(encoding="utf-8"))
+    tree = _tree(path)
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found: set[str] = set()
 
@@ -115,12 +122,12 @@ def test_torchdoct_never_imports_classifier():
     """At any level (functions included): the commands reach the classifier through entry points
     (torchdoct/cli/extensions.py), and classifier/bench/tradeoffs/plan.py reads no command-line parser."""
     for name, path in MODULES.items():
-        tree = ast.parse(path.read_text(encoding="utf-8"))
+        tree = _tree(path)
         mods = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
         mods |= {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and not n.level}
         if name.startswith("torchdoct"):
             assert not any(m == "classifier" or m.startswith("classifier.") for m in mods), name
-    plan = ast.parse((REPO / "classifier/bench/tradeoffs/plan.py").read_text(encoding="utf-8"))
+    plan = _tree(REPO / "classifier/bench/tradeoffs/plan.py")
     assert not any(isinstance(n, ast.ImportFrom) and (n.module or "").endswith("cli") for n in ast.walk(plan))
 
 
@@ -150,7 +157,7 @@ def test_no_module_loads_a_project_file_by_path():
 
 def _classes_and_functions():
     for name, path in MODULES.items():
-        tree = ast.parse(path.read_text(encoding="utf-8"))
+        tree = _tree(path)
         for node in ast.walk(tree):
             if isinstance(node, ast.ClassDef):
                 yield name, node, [n for n in node.body if isinstance(n, ast.FunctionDef)]
@@ -166,12 +173,7 @@ def test_one_maps_class_and_one_channel_optics_match():
     assert set(matches) == {("torchdoct.optics", "ChannelOptics"), ("classifier.features", "Configuration")}
     # the spec's configuration delegates to the one match
     assert "self.optics.matches(" in ast.unparse(matches[("classifier.features", "Configuration")])
-    funcs = {
-        n.name
-        for path in MODULES.values()
-        for n in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
-        if isinstance(n, ast.FunctionDef)
-    }
+    funcs = {n.name for path in MODULES.values() for n in ast.walk(_tree(path)) if isinstance(n, ast.FunctionDef)}
     assert "_channel_matches" not in funcs
 
 
@@ -219,7 +221,7 @@ def _all_imports(name: str, path: Path) -> dict[str, bool]:
     """Project modules imported anywhere in the module (functions included) → True when one of those
     imports runs at import time."""
     top = _module_level_imports(name, path)
-    tree = ast.parse(path.read_text(encoding="utf-8"))
+    tree = _tree(path)
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found: set[str] = set()
     for node in ast.walk(tree):
@@ -273,7 +275,7 @@ def test_research_modules_stay_off_the_product_path():
             bad = sorted(m for m in _all_imports(name, path) if m in research)
             assert not bad, f"{name} (product path) imports {bad}"
     for name in sorted(research):
-        tree = ast.parse(MODULES[name].read_text(encoding="utf-8"))
+        tree = _tree(MODULES[name])
         package = name if MODULES[name].name == "__init__.py" else name.rpartition(".")[0]
         for node in ast.walk(tree):
             if not isinstance(node, ast.ImportFrom):
@@ -342,7 +344,7 @@ def test_research_and_reference_scripts_require_their_output_folder():
     scripts = sorted((REPO / RESEARCH).glob("*.py")) + sorted((REPO / "tests" / "reference").glob("*.py"))
     outs = []
     for path in scripts:
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        for node in ast.walk(_tree(path)):
             if (
                 isinstance(node, ast.Call)
                 and isinstance(node.func, ast.Attribute)
