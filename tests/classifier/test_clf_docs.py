@@ -41,12 +41,31 @@ def test_physics_reference_is_in_the_repository_with_every_cited_section():
     assert n > 20 and not missing, missing
 
 
+#: An absolute file-system path (a machine's directories); URLs do not match.
+_ABSOLUTE = re.compile(r"(?<![\w:/.)\]²³])/(?:[A-Za-z0-9_.-]+/){2,}")
+
+
 def test_physics_reference_speaks_only_of_the_project():
     """No absolute file-system path (a machine's directories) in the reference; URLs are fine."""
     text = PHYSICS.read_text(encoding="utf-8")
-    absolute = re.compile(r"(?<![\w:/.)\]²³])/(?:[A-Za-z0-9_.-]+/){2,}")
-    assert absolute.search("see /home/user/docs/x.md") and not absolute.search("https://example.org/a/b/")
-    assert not absolute.search(text), absolute.findall(text)
+    assert _ABSOLUTE.search("see /home/user/docs/x.md") and not _ABSOLUTE.search("https://example.org/a/b/")
+    assert not _ABSOLUTE.search(text), _ABSOLUTE.findall(text)
+
+
+def test_recorded_results_name_no_path_of_the_machine_they_ran_on():
+    """The recorded runs (benchmarks, floors, reference data, research results, the shipped models' reports) and
+    the packages' text files name their commands with the repository's paths or a placeholder (``--out DIR``),
+    never the directories of the machine that recorded them."""
+    folders = ("docs", "tests/floors", "tests/reference/data", "research/results", "classifier", "torchdoct")
+    files = [
+        p
+        for d in folders
+        for p in sorted((REPO / d).rglob("*"))
+        if p.suffix in (".json", ".md", ".csv", ".toml", ".txt") and p.is_file()
+    ]
+    assert len(files) > 100
+    found = {str(p.relative_to(REPO)): _ABSOLUTE.findall(p.read_text(encoding="utf-8")) for p in files}
+    assert not {k: v for k, v in found.items() if v}
 
 
 def test_the_legend_cites_the_repository_file(tmp_path):

@@ -219,7 +219,10 @@ def main(argv: list[str] | None = None) -> int:
         runs = record_systems(seeds)
     else:
         runs = record_slabs(seeds, progress=not a.no_progress)
-    command = f"python -m tests.reference.floors {a.what} --out {a.out.as_posix()} --seeds {','.join(map(str, seeds))}"
+    repo = Path(__file__).resolve().parents[2]
+    out = a.out.resolve()
+    named = out.relative_to(repo).as_posix() if out.is_relative_to(repo) else "FILE"  # no path of this machine
+    command = f"python -m tests.reference.floors {a.what} --out {named} --seeds {','.join(map(str, seeds))}"
     result = {"command": command, "z": Z, "statistic": STATISTICS[a.what], "runs": runs}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
