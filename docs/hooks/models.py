@@ -41,6 +41,49 @@ def _independent(root: Path, name: str) -> tuple[dict[str, Any], str] | None:
     return None
 
 
+def _independent_sets(e: dict[str, Any]) -> list[str]:
+    """The prediction sets of ``doct-classify`` on the independent data (``conformal`` of each pool), when the
+    report holds them: per pool and motion the share decided, decided as another motion and whose set misses it,
+    alone and after rule 1."""
+    rows = [
+        [
+            pool,
+            name,
+            num(q["decided"]),
+            num(q["wrong_share"]),
+            num(q["set_miss_share"]),
+            num(c["rule_1"][name]["decided"]),
+            num(c["rule_1"][name]["wrong_share"]),
+        ]
+        for pool, v in e["results"].items()
+        if (c := v.get("conformal"))
+        for name, q in c["per_class"].items()
+    ]
+    if not rows:
+        return []
+    alpha = next(v["conformal"]["alpha"] for v in e["results"].values() if v.get("conformal"))
+    return [
+        f"`doct-classify`'s prediction sets at α = {alpha:g} on the same pixels (identifiable ones), alone "
+        "(`--decide-ballistic`) and after rule 1 of the [abstention rules](../abstention.md) (a `ballistic` set "
+        "becomes `ballistic-or-flow`, as for one pixel's time series). These data are not drawn like the "
+        "calibration set, so the guarantee does not cover them: the set-miss share shows what it is worth here.",
+        "",
+        table(
+            [
+                "pool",
+                "motion",
+                "decided",
+                "decided as another",
+                "set misses it",
+                "rule 1: decided",
+                "rule 1: as another",
+            ],
+            rows,
+        ),
+        "",
+    ]
+
+
 def _spec_table(spec: dict[str, Any]) -> str:
     rows = [
         [
@@ -367,6 +410,7 @@ def card(root: Path, name: str) -> str:
                 ],
             ),
             "",
+            *_independent_sets(e),
             "Goals:",
             "",
             table(

@@ -68,6 +68,12 @@ and speed decade, the accuracy-coverage table, accuracy against magnitude, the m
 errors: bootstrap over draws (the independent unit), :data:`N_BOOT` resamples. Beside every number its target
 (:data:`TARGETS`, issue 24).
 
+**Prediction sets** (models with a calibration, ``conformal`` of each pool): ``doct-classify``'s sets at its
+default error level, per motion the share decided, decided as another motion and whose set misses it, alone
+(``--decide-ballistic``) and after rule 1, which ``doct-classify`` applies to one pixel's time series
+(:func:`conformal_scores`). These data are not drawn like the calibration set (another prior and simulator):
+they measure what the guarantee is worth off it.
+
 **Cost**: the reference simulator's draws (300 × 32 trials by default); diffusion draws cost the most, their
 Brownian steps and phases being drawn and evaluated at every frame. The report records the seconds, and
 its bootstrap standard errors beside every number.
@@ -501,6 +507,52 @@ def _resolve_model(model: str):
     return mdl, (mdl.path.stem if p.suffix == ".onnx" else str(model))
 
 
+def conformal_scores(
+    probabilities: np.ndarray,
+    pool_pixels: np.ndarray,
+    truth: np.ndarray,
+    identifiable: np.ndarray,
+    classes: Sequence[str],
+    calibration: dict[str, Any],
+    alpha: float,
+) -> dict[str, Any]:
+    """``doct-classify``'s prediction sets (:mod:`classifier.conformal`, the model's calibration at error level
+    ``alpha``) scored per motion over its identifiable samples (``truth`` indexes :data:`_CLASSES`): the share
+    decided as the motion (a set of that motion alone), decided as another motion (a set of one other motion:
+    the wrong share), whose set misses the motion (the share the split-conformal guarantee bounds by ``alpha``
+    on data drawn like the calibration set, not on these), and the mean number of motions in the set. With
+    ``rule_1`` the same after rule 1 of :mod:`classifier.ambiguity`, which ``doct-classify`` applies wherever
+    the maps cannot see an axis (always, for one pixel's time series): a ``ballistic`` set becomes
+    ``ballistic-or-flow``."""
+    from classifier.conformal import MODES, prediction_sets, set_label_names, set_labels, thresholds_for
+
+    mode = calibration.get("mode", MODES[0])
+    members = prediction_sets(probabilities, thresholds_for(calibration, pool_pixels, alpha, mode))
+    labels = set_labels(members, classes)
+    ballistic = list(classes).index("ballistic")
+    either = len(classes) + set_label_names(classes).index("ballistic-or-flow")
+    ruled = np.where(labels == ballistic, either, labels)
+    motion_idx = [list(classes).index(m) for m in _CLASSES]
+    out: dict[str, Any] = {"alpha": float(alpha), "mode": mode, "per_class": {}, "rule_1": {}}
+    for k, name in enumerate(_CLASSES):
+        sel = identifiable & (truth == k)
+        n = int(sel.sum())
+        own, others = motion_idx[k], [motion_idx[j] for j in range(len(_CLASSES)) if j != k]
+
+        def share(mask: np.ndarray) -> float | None:
+            return float(mask.mean()) if n else None
+
+        out["per_class"][name] = {
+            "samples": n,
+            "decided": share(labels[sel] == own),
+            "wrong_share": share(np.isin(labels[sel], others)),
+            "set_miss_share": share(~members[sel, own]),
+            "mean_set_size": share(members[sel][:, motion_idx].sum(axis=1)),
+        }
+        out["rule_1"][name] = {"decided": share(ruled[sel] == own), "wrong_share": share(np.isin(ruled[sel], others))}
+    return out
+
+
 def evaluate_model(
     model: str,
     *,
@@ -610,6 +662,18 @@ def evaluate_model(
             n_boot=n_boot,
             seed=seed,
         )
+        if mdl.calibration is not None:
+            from classifier.conformal import DEFAULT_ALPHA
+
+            results[str(pool)]["conformal"] = conformal_scores(
+                probs,
+                s["x"][:, -1],
+                np.asarray(s["y"]),
+                np.asarray(s["status"]) == STATUS.index("identifiable"),
+                classes,
+                mdl.calibration,
+                DEFAULT_ALPHA,
+            )
     import classifier
     import torchdoct
 
@@ -763,6 +827,30 @@ def format_markdown(r: dict[str, Any]) -> str:
             f"{_pm(m['accuracy_identifiable'], se.get('accuracy_identifiable'))} | {rec} | "
             f"{_pm(m['ece'], se.get('ece'))} | {_f(m['indeterminate_fraction'])} |"
         )
+    if any("conformal" in res for res in r["results"].values()):
+        L += [
+            "",
+            "## `doct-classify`'s prediction sets (identifiable pixels)",
+            "",
+            "Per motion: decided as it, decided as another motion (the wrong share), its set misses it, the mean "
+            "number of motions in its set; then the first two after rule 1 (a `ballistic` set becomes "
+            "`ballistic-or-flow`, as `doct-classify` does for one pixel's time series).",
+            "",
+            "| pool | α | motion | samples | decided | wrong | set misses | set size | rule 1: decided | "
+            "rule 1: wrong |",
+            "|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+        for pool, res in r["results"].items():
+            c = res.get("conformal")
+            if not c:
+                continue
+            for name, q in c["per_class"].items():
+                q1 = c["rule_1"][name]
+                L.append(
+                    f"| {pool} | {c['alpha']:g} | {name} | {q['samples']} | {_f(q['decided'])} | "
+                    f"{_f(q['wrong_share'])} | {_f(q['set_miss_share'])} | {_f(q['mean_set_size'], 2)} | "
+                    f"{_f(q1['decided'])} | {_f(q1['wrong_share'])} |"
+                )
     L += [
         "",
         "## Flow recall by polar band and speed decade (identifiable flow)",

@@ -164,6 +164,52 @@ def test_harness_deterministic_and_counts_ground_truth(monkeypatch):
     assert em.evaluate_model("signature", **{**kw, "seed": 4})["per_draw"] != a["per_draw"]
 
 
+def test_conformal_scores_count_decisions_wrong_ones_and_missed_sets_per_motion():
+    """Known probabilities against thresholds of 0.5 (a class is in the set when p ≥ 0.5): flow decided, decided
+    as ballistic, or in a two-motion set; rule 1 turns the ballistic decision into ballistic-or-flow; a wrong
+    decision always misses its own motion; non-identifiable rows are not counted."""
+    classes = ["diffusion", "ballistic", "flow", "indeterminate"]
+    cal = {
+        "classes": classes,
+        "mode": "marginal",
+        "pools": [{"pool_pixels": 1, "scores": [0.5] * 9, "truth": [0] * 9}],
+    }  # the marginal quantile of nine scores of 0.5 at any alpha < 1: 0.5
+    p = np.array(
+        [
+            [0.0, 0.0, 0.9, 0.1],  # flow: decided flow
+            [0.0, 0.8, 0.2, 0.0],  # flow: decided ballistic (wrong; rule 1: ballistic-or-flow)
+            [0.0, 0.5, 0.5, 0.0],  # flow: ballistic-or-flow
+            [0.0, 0.9, 0.1, 0.0],  # flow, not identifiable: not counted
+            [0.9, 0.1, 0.0, 0.0],  # diffusion: decided diffusion
+        ]
+    )
+    truth = np.array([2, 2, 2, 2, 0])
+    ident = np.array([True, True, True, False, True])
+    c = em.conformal_scores(p, np.ones(5), truth, ident, classes, cal, 0.1)
+    f, d, b = c["per_class"]["flow"], c["per_class"]["diffusion"], c["per_class"]["ballistic"]
+    assert f["samples"] == 3 and f["decided"] == pytest.approx(1 / 3) and f["wrong_share"] == pytest.approx(1 / 3)
+    assert f["set_miss_share"] == pytest.approx(1 / 3) and f["mean_set_size"] == pytest.approx(4 / 3)
+    assert c["rule_1"]["flow"] == {"decided": pytest.approx(1 / 3), "wrong_share": 0.0}
+    assert d["decided"] == 1.0 and d["wrong_share"] == 0.0 and b["samples"] == 0 and b["decided"] is None
+    for q in c["per_class"].values():  # a wrong decision is a set without the motion
+        assert q["wrong_share"] is None or q["wrong_share"] <= q["set_miss_share"]
+
+
+def test_the_harness_scores_a_calibrated_models_prediction_sets(monkeypatch):
+    """A calibrated model's report holds its prediction sets at doct-classify's default level at every pool,
+    for the three motions; rule 1 never adds a wrong decision."""
+    from classifier.conformal import DEFAULT_ALPHA
+
+    r = em.evaluate_model("signature", draws=3, trials=4, seed=3, n_boot=5, progress=False)
+    for res in r["results"].values():
+        c = res["conformal"]
+        assert c["alpha"] == DEFAULT_ALPHA and set(c["per_class"]) == set(em._CLASSES)
+        for name, q in c["per_class"].items():
+            if q["samples"]:
+                assert c["rule_1"][name]["wrong_share"] <= q["wrong_share"] <= q["set_miss_share"]
+    assert "prediction sets" in em.format_markdown(r)
+
+
 @pytest.mark.slow
 def test_shared_scatterers_leave_each_configuration_as_refsim_simulates_it():
     """Sharing scatterers between configurations changes no configuration's own statistics: per-feature
