@@ -615,6 +615,11 @@ def _pool_row(label: str, m: dict[str, Any], se: dict[str, Any] | None) -> list[
     ]
 
 
+def _wrong_shares(per_class: dict[str, Any]) -> dict[str, float]:
+    """Per motion of a ``score_images`` ``per_class`` block: the share of its pixels decided as another motion."""
+    return {k: sum(n for c, n in q["decided_as"].items() if c != k) / max(q["pixels"], 1) for k, q in per_class.items()}
+
+
 def systems_validation(root: Path) -> str:
     d, p = load(root, "systems-validation.json")
     rows = []
@@ -631,17 +636,12 @@ def systems_validation(root: Path) -> str:
         ]
         if "5" in sc:  # the model's own decisions at pool 5: each class's pixels decided as another class
             per5 = sc["5"]["per_class"]
-            row.append(
-                ", ".join(
-                    f"{k} {num(sum(n for c, n in q['decided_as'].items() if c != k) / q['pixels'])}"
-                    for k, q in per5.items()
-                )
-            )
+            row.append(", ".join(f"{k} {num(w)}" for k, w in _wrong_shares(per5).items()))
         if default:
             o = s["scores"]["5-default"][0]["overall"]
             per = o["per_class"]
             rec = [q["recall"] for q in per.values() if q.get("recall") is not None]
-            wrong = {k: sum(n for c, n in q["decided_as"].items() if c != k) / q["pixels"] for k, q in per.items()}
+            wrong = _wrong_shares(per)
             row += [
                 f"{num(sum(rec) / len(rec)) if rec else '–'} @ {num(o['coverage'])}",
                 ", ".join(f"{k} {num(w)}" for k, w in wrong.items()),
@@ -1283,7 +1283,7 @@ def goals(root: Path) -> str:
             wrong = {k: (q["wrong_share"] or 0.0) * n[k] for k, q in block.items()}
             rec = [right[k] / (right[k] + wrong[k]) for k in block if right[k] + wrong[k] > 0]
             ba = sum(rec) / len(rec) if rec else 0.0
-            cov = sum(right.values()) / max(sum(n.values()), 1) + sum(wrong.values()) / max(sum(n.values()), 1)
+            cov = (sum(right.values()) + sum(wrong.values())) / max(sum(n.values()), 1)
             worst = max((q["wrong_share"] or 0.0) for q in block.values())
             rows.append(
                 [
@@ -1302,10 +1302,7 @@ def goals(root: Path) -> str:
         o = sysrec["scores"]["5-default"][0]["overall"]
         rec = [q["recall"] for q in o["per_class"].values() if q.get("recall") is not None]
         ba = sum(rec) / len(rec) if rec else 0.0
-        wrong = max(
-            sum(n for c, n in q["decided_as"].items() if c != k) / max(q["pixels"], 1)
-            for k, q in o["per_class"].items()
-        )
+        wrong = max(_wrong_shares(o["per_class"]).values())
         rows.append(
             [
                 "`doct-train --like`, a 1310-nm system, full training, window 5",
