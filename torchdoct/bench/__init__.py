@@ -274,6 +274,8 @@ class BusyNeighbour:
         line = self.proc.stdout.readline()
         if b"ready" not in line:
             self.proc.kill()
+            self.proc.wait()
+            self.proc.stdout.close()
             raise RuntimeError("the busy neighbour process did not start")
         time.sleep(0.5)  # let it reach its steady loop
         return self
@@ -281,6 +283,7 @@ class BusyNeighbour:
     def __exit__(self, *exc) -> None:
         self.proc.kill()
         self.proc.wait()
+        self.proc.stdout.close()
 
 
 def _workloads(tmp: Path, command: Callable[[list[str]], int]) -> dict[str, Any]:

@@ -255,6 +255,42 @@ def _maps(args: argparse.Namespace) -> int:
     return run_benchmark(args, compute, fmt)
 
 
+def _maps_channels_arguments(bm) -> None:
+    bm.add_argument("--frames", type=int, default=32)
+    bm.add_argument("--size", nargs=2, type=int, default=[256, 256], metavar=("Z", "X"))
+    bm.add_argument("--repeats", type=int, default=3, help="rounds, each timing every channel set once (best is kept)")
+    bm.add_argument(
+        "--load", action="store_true", help="also the rounds beside a busy process that it starts and stops"
+    )
+    _add_out(bm)
+    bm.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+
+
+def _maps_channels(args: argparse.Namespace) -> int:
+    from ..bench.maps import bench_maps_channels
+
+    def compute() -> dict[str, Any]:
+        if args.frames < 2 or min(args.size) < 1 or args.repeats < 1:
+            raise ValueError("--frames must be >= 2, --size positive and --repeats >= 1")
+        return bench_maps_channels(frames=args.frames, shape=tuple(args.size), repeats=args.repeats, load=args.load)
+
+    def fmt(res: dict[str, Any]) -> str:
+        lines = [
+            f"maps of a complex64 {res['shape']} stack at {len(res['resolutions'])} resolutions, best of {res['repeats']} rounds:"
+        ]
+        for name, rec in res["sets"].items():
+            lines.append(
+                f"  {name}: "
+                + "; ".join(
+                    f"{m} {rec[f'seconds_{m}']:.2f} s ({rec[f'ratio_to_signature_{m}']:.2f} x signature)"
+                    for m in res["modes"]
+                )
+            )
+        return "\n".join(lines)
+
+    return run_benchmark(args, compute, fmt)
+
+
 def _stream_arguments(bs) -> None:
     bs.add_argument("--sizes-gb", default="1,4,16", help="input sizes (GiB; default 1,4,16)")
     bs.add_argument("--budget-gb", type=float, default=0.25, help="--max-memory-gb of the maps (default 0.25)")
@@ -388,6 +424,7 @@ _QUICK = {
     "render": ["--repeats", "1"],
     "load": ["--repeats", "1"],
     "stream": ["--sizes-gb", "0.0625,0.25"],
+    "maps-channels": ["--size", "64", "64", "--repeats", "1"],
 }
 
 
@@ -448,6 +485,11 @@ def benchmarks() -> dict[str, Any]:
         ),
         "render": Command("spheroid phantom: 32-frame 256×256 B-scan sequence", _render_arguments, _render),
         "maps": Command("time maps of a random complex stack at several resolutions", _maps_arguments, _maps),
+        "maps-channels": Command(
+            "maps with and without the signature, speckle and Doppler channels, compared in one run",
+            _maps_channels_arguments,
+            _maps_channels,
+        ),
         "stream": Command(
             "peak memory of streamed maps against input size (--max-memory-gb)", _stream_arguments, _stream
         ),

@@ -232,13 +232,17 @@ def _shifted(x: torch.Tensor, offset: Sequence[int]) -> torch.Tensor:
     return y
 
 
-def _lagged_product(head: torch.Tensor, tail: torch.Tensor, offset: Sequence[int]) -> torch.Tensor:
-    """``mean_i head[:, i, r]·tail[:, i, r + offset]`` (``[B, T', *S]`` → float64 ``[B, *S]``), 0 where
-    ``r + offset`` is outside the array."""
-    import torch
-
+def _lagged_box_sum(
+    head: torch.Tensor, tail: torch.Tensor, offset: Sequence[int], window: int, buf: torch.Tensor, weight=None
+) -> torch.Tensor:
+    """``Σ_{u in the window of r} Σ_i head[:, i, u]·tail[:, i, u + offset]`` (``[B, T', *S]`` → float64
+    ``[B, *S]``), the pairs with ``u + offset`` outside the array left out, each product times ``weight[:, u]``
+    when given. The frame sum runs frame by frame in the data's precision (one pass over each frame, no
+    ``[T', ...]`` product), the box sum in float64 on ``buf``: a scratch ``[B, *(S + window)]`` float64
+    array (zeroed here) that holds the products with the box sum's zeros around them
+    (:func:`_box_mean_sum`'s sums, without its padded copies)."""
     nd = len(offset)
-    out = torch.zeros(head.shape[:1] + head.shape[2:], dtype=torch.float64, device=head.device)
+    h = window // 2
     dst: list = [slice(None)]
     src: list = [slice(None)]
     for o, n in zip(offset, head.shape[-nd:]):
@@ -246,8 +250,18 @@ def _lagged_product(head: torch.Tensor, tail: torch.Tensor, offset: Sequence[int
         src.append(slice(max(0, o), min(n, n + o)))
     hd = head[(dst[0], slice(None), *dst[1:])]
     tl = tail[(src[0], slice(None), *src[1:])]
-    out[tuple(dst)] = (hd * tl).sum(1).to(torch.float64) / hd.shape[1]  # in the data's precision: T terms
-    return out
+    acc = hd[:, 0] * tl[:, 0]
+    for i in range(1, hd.shape[1]):
+        acc.addcmul_(hd[:, i], tl[:, i])
+    if weight is not None:
+        acc = acc * weight[tuple(dst)]
+    buf.zero_()
+    buf[(slice(None), *(slice(h + 1 + d.start, h + 1 + d.stop) for d in dst[1:]))] = acc
+    x = buf
+    for ax, n in enumerate(head.shape[-nd:], start=1):
+        c = x.cumsum(ax)
+        x = c.narrow(ax, window, n) - c.narrow(ax, 0, n)
+    return x
 
 
 def _refine(lo: torch.Tensor, mid: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
@@ -368,38 +382,48 @@ def speckle_motion(
         return v[(slice(None), *(slice(max_offset + o, max_offset + o + n) for o, n in zip(off, sp)))]
 
     n_part = padded_box(vw)  # valid pixels of every (shifted) window
+    pairs: dict[tuple[int, ...], tuple] = {}  # per offset, the same at every lag: the pixel pairs and partners
+
+    def offset_counts(off: tuple[int, ...]) -> tuple:
+        """``(w, pairs, none)``: the pairs' weights (None when every pixel is valid: the product is already 0
+        where the partner is outside the array), the window's pixel pairs (r, r + Δ) with both valid (≥ 1),
+        and where there is none (None when every window has one)."""
+        if off not in pairs:
+            w = None if all_valid else vw * _shifted(vw, off)
+            if w is None and not any(off):
+                cnt = moved(n_part, off)
+            else:
+                cnt = _box_mean_sum(vw * _shifted(vw, off) if w is None else w, window)
+            none = cnt <= 0
+            pairs[off] = (w, cnt.clamp_min(1.0), none if bool(none.any()) else None)
+        return pairs[off]
+
+    buf = torch.empty(safe.shape[:1] + tuple(n + window for n in sp), dtype=torch.float64, device=safe.device)
     for m in lags:
         head, tail = safe[:, : n_t - m], safe[:, m:]
         h_mean = _box_mean_sum(head.mean(1, dtype=torch.float64), window) / den_pix  # ⟨I(r, i)⟩, i < T − m
-        t_box = padded_box(tail.mean(1, dtype=torch.float64))
-        rho = []
-        for off in grid:
-            prod = _lagged_product(head, tail, off)
-            if all_valid:  # the product is 0 where the partner is outside the array
-                cnt = moved(n_part, [0] * ndim) if not any(off) else _box_mean_sum(vw * _shifted(vw, off), window)
-            else:
-                w = vw * _shifted(vw, off)  # the pixel pairs (r, r + Δ) with both valid
-                prod = prod * w
-                cnt = _box_mean_sum(w, window)
-            pos = cnt > 0
-            s_ii = _box_mean_sum(prod, window) / torch.where(pos, cnt, torch.ones_like(cnt))
-            n_t_w = moved(n_part, off)
-            s_t = moved(t_box, off) / torch.where(n_t_w > 0, n_t_w, torch.ones_like(n_t_w))  # ⟨I(r + Δ, i + m)⟩
-            norm = h_mean * s_t
-            c = s_ii / torch.where(norm > 0, norm, torch.ones_like(norm)) - 1.0  # Ĉ(Δ, m)
-            rho.append(torch.where(pos & (norm > 0), c, nan) / var)
-        r = torch.stack(rho, 0)  # [G, B, *S]
+        t_mean = padded_box(tail.mean(1, dtype=torch.float64)).div_(n_part.clamp_min(1.0))  # ⟨I(r + Δ, i + m)⟩ at r + Δ
+        h_mean.mul_(n_t - m)  # the frame pairs' count, folded into the normalisation
+        r = torch.empty((len(grid),) + h_mean.shape, dtype=torch.float64, device=h_mean.device)  # [G, B, *S]
+        for g, off in enumerate(grid):
+            w, cnt, none = offset_counts(off)
+            s_ii = _lagged_box_sum(head, tail, off, window, buf, w).div_(cnt)  # (T − m)·⟨I(r, i)·I(r + Δ, i + m)⟩
+            norm = moved(t_mean, off) * h_mean  # (T − m)·⟨I(r, i)⟩·⟨I(r + Δ, i + m)⟩ (finite, ≥ 0)
+            bad = norm <= 0 if none is None else (norm <= 0) | none
+            torch.div(s_ii, norm, out=r[g]).sub_(1.0).masked_fill_(bad, math.nan)  # Ĉ(Δ, m)
+        r.div_(var)  # ρ(Δ, m)
         feats: dict[str, torch.Tensor] = {"centre": r[centre_idx]}
-        filled = torch.where(torch.isnan(r), torch.full_like(r, -math.inf), r)
+        filled = r.nan_to_num(nan=-math.inf, posinf=math.inf, neginf=-math.inf)
         peak, arg = filled.max(0)
         feats["peak"] = torch.where(torch.isfinite(peak), peak, nan)
-        flip = torch.stack([r[grid.index(tuple(-o for o in off))] for off in grid], 0)
+        flip = [grid.index(tuple(-o for o in off)) for off in grid]
         nz = [i for i in range(len(grid)) if i != centre_idx]
         anti = torch.zeros_like(r[0])
         energy = torch.zeros_like(r[0])
         for i in nz:  # in grid order, one offset at a time: the same sums whatever the batch shape
-            anti += (r[i] - flip[i]) ** 2
-            energy += 4.0 * r[i] ** 2
+            d = r[i] - r[flip[i]]
+            anti.addcmul_(d, d)
+            energy.addcmul_(r[i], r[i], value=4.0)
         feats["asym"] = torch.sqrt(anti / (4.0 * len(nz)))
         feats["share"] = torch.where(energy > 0, anti / torch.where(energy > 0, energy, torch.ones_like(energy)), nan)
         coords = torch.tensor(grid, dtype=torch.long)  # [G, ndim]
@@ -408,6 +432,9 @@ def speckle_motion(
         for k in range(len(axes)):
             val = []
             for step in (-1, 0, 1):
+                if step == 0:  # the peak itself (where there is none, the shift is NaN below)
+                    val.append(peak)
+                    continue
                 nb = at.clone()
                 nb[..., k] = nb[..., k] + step
                 inside = (nb[..., k] >= -max_offset) & (nb[..., k] <= max_offset)
