@@ -1224,6 +1224,36 @@ def _context(d: dict[str, Any], geometry: str, context: str, pool: int) -> dict[
     )
 
 
+def _system_rows(sv: dict[str, Any], path: str, how: str, bound: tuple[float, float, float]) -> list[list[Any]]:
+    """The goals row of the 1310-nm system of a systems validation (``research.systems``): the default decision
+    at window 5 on the renderings it did not train on (every seed but the first), the mean balanced accuracy
+    and coverage over them and the worst motion's wrong share on any of them."""
+    ba_min, cov_min, wrong_max = bound
+    out = []
+    for sysrec in sv["systems"]:
+        if sysrec["system"] != "system-1310nm" or "5-default" not in sysrec["scores"]:
+            continue
+        held = sysrec["scores"]["5-default"][1:]  # the first seed's rendering trained the model
+        bas, covs, wrongs = [], [], []
+        for sc in held:
+            o = sc["overall"]
+            rec = [q["recall"] for q in o["per_class"].values() if q.get("recall") is not None]
+            bas.append(sum(rec) / len(rec) if rec else 0.0)
+            covs.append(o["coverage"])
+            wrongs.append(max(_wrong_shares(o["per_class"]).values()))
+        ba, cov, wrong = sum(bas) / len(bas), sum(covs) / len(covs), max(wrongs)
+        out.append(
+            [
+                f"`doct-train --like`, a 1310-nm system, {how}, window 5",
+                f"≥ {ba_min} at ≥ {cov_min}; wrong ≤ {wrong_max}",
+                f"{num(ba)} at {num(cov)}; wrong {num(wrong)} ({len(held)} renderings it did not train on)",
+                _met(ba >= ba_min and cov >= cov_min and wrong <= wrong_max),
+                f"`{path}`",
+            ]
+        )
+    return out
+
+
 def goals(root: Path) -> str:
     """The classifier's accuracy goals (docs/benchmarks/goals.md), each against the recorded run that measures it:
     the phantom grid's default decision (band interiors), the independent per-pixel evaluation, the systems
@@ -1319,22 +1349,13 @@ def goals(root: Path) -> str:
             )
 
     sv, sp = load(root, "systems-validation.json")
-    for sysrec in sv["systems"]:
-        if sysrec["system"] != "system-1310nm" or "5-default" not in sysrec["scores"]:
-            continue
-        o = sysrec["scores"]["5-default"][0]["overall"]
-        rec = [q["recall"] for q in o["per_class"].values() if q.get("recall") is not None]
-        ba = sum(rec) / len(rec) if rec else 0.0
-        wrong = max(_wrong_shares(o["per_class"]).values())
-        rows.append(
-            [
-                "`doct-train --like`, a 1310-nm system, full training, window 5",
-                "≥ 0.93 at ≥ 0.9; wrong ≤ 0.05",
-                f"{num(ba)} at {num(o['coverage'])}; wrong {num(wrong)}",
-                _met(ba >= 0.93 and o["coverage"] >= 0.90 and wrong <= 0.05),
-                f"`{sp}`",
-            ]
-        )
+    rows += _system_rows(sv, sp, "full training", (0.93, 0.90, 0.05))
+    try:
+        qv, qp = load(root, "systems-validation-quick.json")
+    except MissingResult:
+        qv = None
+    if qv is not None:
+        rows += _system_rows(qv, qp, "`--quick`", (0.75, 0.70, 0.20))
     longest = max(s["training_s"] for s in sv["systems"])
     rows.append(
         [
@@ -1368,6 +1389,7 @@ def goals(root: Path) -> str:
             source(g["command"], gp),
             source(e.get("command", "python -m tests.reference.evaluate_models --model signature --out DIR"), ep),
             source(sv["command"], sp),
+            *([source(qv["command"], qp)] if qv is not None else []),
             source("torchdoct bench maps-channels --size 256 256 --repeats 5 --load --out FILE", mp),
         ]
     )
