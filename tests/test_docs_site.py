@@ -191,3 +191,33 @@ def test_the_recorded_bulk_phase_run_agrees_with_the_first_order_prediction():
             assert abs(r["g1_4_static_z"]) < 1, r
             every = next(a for a in rows if (a["snr_db"], a["method"], a["mask"]) == (r["snr_db"], r["method"], "all"))
             assert r["residual_rms_rad"] < every["residual_rms_rad"], (r, every)
+
+
+def test_a_grid_rows_coverage_ceiling_leaves_out_only_the_motions_its_data_cannot_decide():
+    """Random-ballistic motion counts in volumes with static tissue only; flow across a static-free B-scan's
+    plane not at all; every other motion's pixels count in full."""
+
+    def cell(geometry, context, polar, azimuth, pixels=(10, 20, 30)):
+        per = {m: {"pixels": n} for m, n in zip(("diffusion", "ballistic", "flow"), pixels)}
+        return {
+            "geometry": geometry,
+            "context": context,
+            "pool": 5,
+            "polar_deg": polar,
+            "azimuth_deg": azimuth,
+            "per_class": per,
+        }
+
+    grid = {
+        "cells": [
+            cell("bscan", "none", 10.0, 0.0),
+            cell("bscan", "none", 80.0, 90.0),
+            cell("bscan", "background", 80.0, 90.0),
+            cell("volume", "none", 80.0, 90.0),
+            cell("volume", "background", 10.0, 0.0),
+        ]
+    }
+    assert results._coverage_ceiling(grid, "bscan", "none", 5) == (10 + 30 + 10) / 120
+    assert results._coverage_ceiling(grid, "bscan", "background", 5) == 40 / 60
+    assert results._coverage_ceiling(grid, "volume", "none", 5) == 40 / 60
+    assert results._coverage_ceiling(grid, "volume", "background", 5) == 1.0

@@ -515,7 +515,6 @@ def test_cli_bench_maps_runs(tmp_path, capsys):
     assert main(["bench", "maps", "--frames", "12", "--size", "16", "12", "--out", str(out)]) == 2
 
 
-
 def test_cli_bench_maps_channels_compares_every_channel_set_to_the_signature_maps(tmp_path):
     """One run times every channel set (idle and beside a busy process) and divides by the signature set's."""
     out = tmp_path / "channels.json"
@@ -532,6 +531,7 @@ def test_cli_bench_maps_channels_compares_every_channel_set_to_the_signature_map
             assert rec[f"ratio_to_signature_{mode}"] == rec[f"seconds_{mode}"] / base
             assert set(rec[f"seconds_per_resolution_{mode}"]) == {"original", "axial=14", "lateral=18"}
     assert main(argv + ["--out", str(out), "--no-progress"]) == 2  # nothing overwritten unasked
+
 
 # ----------------------------------------------------------------------------------------------------------
 # edge cases (issue 15): undefined neighbours, fits on a τ bound, reduction leakage, figures, bad inputs
