@@ -9,7 +9,8 @@ Floors: ``mean − z·SD`` of the quick model's pool-5 balanced accuracy and cov
 (and the ceiling ``mean + z·SD`` of the worst wrong share over the grid's probes with the rules, pools 1 and 5)
 of ``tests/floors/systems-quick.json`` (z and the command that records them are in the file;
 ``tests/reference/floors.py``). The test runs the shipped seed; the spread over renderings is the standard
-error of that one run.
+error of that one run. The volume system, the longest of the three (a few minutes), carries the ``extended``
+marker: ``.ci/run`` runs the two B-scan systems, ``python -m pytest -m extended`` the volume too.
 """
 
 from __future__ import annotations
@@ -23,7 +24,10 @@ from tests.reference.floors import SYSTEMS, floor, load, probes_wrong_share_max 
 RECORDED = load("systems-quick")
 
 
-@pytest.mark.parametrize("system", SYSTEMS)
+@pytest.mark.parametrize(
+    "system",
+    [pytest.param(s, marks=pytest.mark.extended) if s == "system-tissue-volume" else s for s in SYSTEMS],
+)
 def test_like_quick_model_classifies_its_system(system, tmp_path):
     from research.systems import evaluate
 
