@@ -269,7 +269,11 @@ def test_grid_command_refuses_bad_output_before_any_work(tmp_path, capsys):
 
 
 @pytest.mark.slow
+@pytest.mark.extended
 def test_quick_grid_runs_end_to_end(tmp_path):
+    """``python -m classifier.bench.grid --quick`` writes every quick cell at both settings (a smoke run of the
+    command, over a minute: ``extended``; the cells' scores are held to the record by the slow
+    ``test_grid_cells_run_again_give_the_recorded_scores``)."""
     assert grid.main(["--out", str(tmp_path), "--quick", "--threads", "1", "--no-progress"]) == 0
     data = json.loads((tmp_path / "grid.json").read_text())
     assert len(data["cells"]) == 2 * len(grid.quick_cells())
