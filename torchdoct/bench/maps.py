@@ -45,19 +45,10 @@ def bench_maps(
     seq = _random_stack(frames, shape, len(resolutions), metrics, seed)
     compute_maps(seq, ["original"], metrics=metrics)  # warm-up
     best, best_t = math.inf, {}
+    flags = {"signature": signature, "speckle": speckle, "doppler": doppler}
     for _ in range(max(1, int(repeats))):
         tm: dict[str, float] = {}
-        t0 = time.perf_counter()
-        compute_maps(
-            seq,
-            resolutions,
-            metrics=metrics,
-            timings=tm,
-            signature=signature or None,
-            speckle=speckle or None,
-            doppler=doppler or None,
-        )
-        dt = time.perf_counter() - t0
+        dt = _timed_maps(seq, resolutions, metrics, flags, tm)
         if dt < best:
             best, best_t = dt, tm
     return {
@@ -76,6 +67,28 @@ def bench_maps(
         "target_seconds": 10.0,
         "machine": machine_info(),
     }
+
+
+def _timed_maps(
+    seq: SequenceData,
+    resolutions: _Seq[str],
+    metrics: _Seq[str],
+    flags: dict[str, bool],
+    timings: dict[str, float] | None = None,
+) -> float:
+    """Seconds of one :func:`compute_maps` of ``seq`` with the channels ``flags`` names (``signature``,
+    ``speckle``, ``doppler``); its seconds per resolution into ``timings``."""
+    t0 = time.perf_counter()
+    compute_maps(
+        seq,
+        resolutions,
+        metrics=metrics,
+        timings=timings,
+        signature=flags["signature"] or None,
+        speckle=flags["speckle"] or None,
+        doppler=flags["doppler"] or None,
+    )
+    return time.perf_counter() - t0
 
 
 def _random_stack(
@@ -142,21 +155,8 @@ def bench_maps_channels(
 
     seq = _random_stack(frames, shape, len(resolutions), metrics, seed)
 
-    def run(flags: dict[str, bool], timings: dict[str, float] | None = None) -> float:
-        t0 = time.perf_counter()
-        compute_maps(
-            seq,
-            resolutions,
-            metrics=metrics,
-            timings=timings,
-            signature=flags["signature"] or None,
-            speckle=flags["speckle"] or None,
-            doppler=flags["doppler"] or None,
-        )
-        return time.perf_counter() - t0
-
     for flags in CHANNEL_SETS.values():  # warm-up: every code path and its imports once
-        run(flags)
+        _timed_maps(seq, resolutions, metrics, flags)
     modes = ["idle", "loaded"] if load else ["idle"]
     bar = None
     if not progress_disabled(progress):
@@ -169,7 +169,7 @@ def bench_maps_channels(
             for _ in range(max(1, int(repeats))):
                 for name, flags in CHANNEL_SETS.items():
                     tm: dict[str, float] = {}
-                    dt = run(flags, tm)
+                    dt = _timed_maps(seq, resolutions, metrics, flags, tm)
                     rec = sets[name]
                     if dt < rec.get(f"seconds_{mode}", math.inf):
                         rec[f"seconds_{mode}"] = dt

@@ -209,10 +209,15 @@ def _box_mean_sum(x: torch.Tensor, window: int) -> torch.Tensor:
     import torch.nn.functional as F
 
     h = window // 2
-    for ax in range(1, x.dim()):
-        n = x.shape[ax]
-        pad = [0, 0] * (x.dim() - 1 - ax) + [h + 1, h]
-        c = F.pad(x, pad).cumsum(ax)
+    sizes = x.shape[1:]
+    return _box_sums_of_padded(F.pad(x, [h + 1, h] * (x.dim() - 1)), window, sizes)
+
+
+def _box_sums_of_padded(x: torch.Tensor, window: int, sizes: Sequence[int]) -> torch.Tensor:
+    """:func:`_box_mean_sum` of an array already padded by ``window//2 + 1`` before and ``window//2`` after
+    each spatial axis (``sizes`` the unpadded ones): a difference of cumulative sums per axis."""
+    for ax, n in enumerate(sizes, start=1):
+        c = x.cumsum(ax)
         x = c.narrow(ax, window, n) - c.narrow(ax, 0, n)
     return x
 
@@ -257,11 +262,7 @@ def _lagged_box_sum(
         acc = acc * weight[tuple(dst)]
     buf.zero_()
     buf[(slice(None), *(slice(h + 1 + d.start, h + 1 + d.stop) for d in dst[1:]))] = acc
-    x = buf
-    for ax, n in enumerate(head.shape[-nd:], start=1):
-        c = x.cumsum(ax)
-        x = c.narrow(ax, window, n) - c.narrow(ax, 0, n)
-    return x
+    return _box_sums_of_padded(buf, window, head.shape[-nd:])
 
 
 def _refine(lo: torch.Tensor, mid: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
