@@ -63,6 +63,7 @@ def test_an_axis_of_one_pixel_is_unseen_and_a_line_of_windows_founds_no_flow():
     assert ambiguity.unseen_axes("ZX", {"z": 2.0, "x": 2.0}, 4.9, 3.8, extent_px={"z": 96, "x": 1}) == ["x", "y"]
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_one_alines_maps_take_the_aline_model_and_decide_no_motion_as_another(tmp_path):
     """Sixteen A-lines, every pixel of each slab away from its borders: with the rules no motion has more than
     10 % of its pixels decided as another (the window-1 bound), flow is never founded by the speckle or Doppler

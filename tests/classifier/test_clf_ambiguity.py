@@ -664,6 +664,7 @@ def crossing():
     return {r["abstain_ambiguous"]: r for r in rows}
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_flow_across_a_bscan_without_static_tissue_is_never_decided_as_another_class(crossing):
     ruled, model = crossing[True]["per_class"], crossing[False]["per_class"]
     assert ruled["flow"]["wrong_share"] <= 0.10  # issue target: abstaining is right here

@@ -85,6 +85,7 @@ def _status(spec, label, mag, prior):
     }
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 @pytest.mark.parametrize("label", [0, 1, 2])
 def test_identifiable_range_is_where_the_closed_forms_say(label):
     spec, prior = _spec(), Prior()
@@ -96,6 +97,7 @@ def test_identifiable_range_is_where_the_closed_forms_say(label):
     assert "identifiable" not in above and above <= {"decorrelated", "static"}
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_identifiability_scales_inversely_with_the_frame_interval():
     """Every criterion depends on D·τ or v·τ only: a protocol 16× faster sees motions 16× faster. The
     status itself scales exactly; the ranges of diffusion and flow (monotone in the magnitude) to the grid's
@@ -110,6 +112,7 @@ def test_identifiability_scales_inversely_with_the_frame_interval():
             assert abs(math.log10(b / a) - math.log10(16.0)) <= 1.0 / 24.0 + 1e-9
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_prior_for_spec_keeps_n_eff_and_widens_each_range_by_the_margin():
     spec = _spec(lat=10.0, ax=8.0, wl=1.31)
     prior, ranges = prior_for_spec(spec, Prior())
@@ -222,6 +225,7 @@ def test_spec_from_maps_refuses_channels_without_optics(tmp_path):
 # -- the commands -------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_like_dry_run_prints_spec_prior_time_and_key_and_writes_nothing(tmp_path, capsys):
     from classifier.cli import train_main
 
@@ -304,6 +308,7 @@ def test_like_writes_spec_and_prior_that_retrain_the_same_model(tmp_path, capsys
     assert "bad.prior.toml" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_doct_train_calibrates_a_signature_model_as_classifier_calibrate_does(tmp_path, capsys):
     """``doct-train`` on a signature spec (here ``--like``, tiny sizes) writes the conformal calibration beside
     the model: the very record ``python -m classifier.calibrate`` computes for the written model with the draws

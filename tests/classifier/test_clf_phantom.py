@@ -136,6 +136,7 @@ def test_phantom_regions_are_identifiable():
     assert sorted({lab for lab, _ in seen}) == [0, 1, 2] and len(seen) == 9  # three magnitudes per type
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 @pytest.mark.parametrize("pool", [1, 5])
 def test_motion_types_phantom_scores(chain, pool):
     seq, out = chain
@@ -154,6 +155,7 @@ def test_motion_types_phantom_scores(chain, pool):
     assert 0 < inner["pixels"] < o["pixels"]
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 @pytest.mark.parametrize("pool", [1, 5])
 def test_conformal_sets_decide_fewer_pixels_wrong_than_the_rule(chain, oblique_chain, pool):
     """The default decision (conformal sets at alpha 0.1) on the same maps as the rule: on both shipped
@@ -171,12 +173,14 @@ def test_conformal_sets_decide_fewer_pixels_wrong_than_the_rule(chain, oblique_c
             assert wrong["c"] <= wrong["r"], (name, c["decided_as"], rule[name]["decided_as"])
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_pooling_helps(chain):
     seq, out = chain
     one, five = (score_images(out[p], seq)["overall"] for p in (1, 5))
     assert five["balanced_accuracy"] > one["balanced_accuracy"] and five["coverage"] > one["coverage"]
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_scores_of_a_perfect_and_an_abstaining_classifier(chain, tmp_path):
     """Scores are exact on edited outputs: the truth itself scores 1; all indeterminate decides nothing."""
     import shutil
@@ -230,6 +234,7 @@ def test_ground_truth_declaring_a_tebibyte_is_refused_before_a_member_is_read(tm
         read_rendered_labels(path)
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_bad_inputs_are_named(chain, tmp_path):
     seq, out = chain
     labels, _ = read_rendered_labels(seq)
@@ -251,6 +256,7 @@ def test_scoring_does_not_import_torch():
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[2])
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_module_command(chain, tmp_path, capsys):
     from classifier.evaluate_images import main
 
@@ -275,6 +281,7 @@ def oblique_chain(tmp_path_factory):
     return _render_map_classify(tmp_path_factory, "oblique-flow")
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 @pytest.mark.parametrize("pool", [1, 5])
 def test_oblique_out_of_plane_flow_phantom_scores(oblique_chain, pool):
     """Flow leaving the B-scan plane: the default model for these B-scan maps is the B-scan signature model

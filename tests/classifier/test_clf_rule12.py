@@ -181,6 +181,7 @@ def test_rule_12s_threshold_is_the_recorded_nulls_choice():
         )
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_the_null_run_reproduces_the_recorded_first_cell(tmp_path):
     """``python -m research.spill --null --cells 1`` gives the recorded run's first cell exactly: the record is what
     its command writes."""

@@ -203,6 +203,7 @@ def test_train_config_validation():
         TrainConfig(eval_pools=(4, 9))
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_tiny_training_is_reproducible_and_exports_with_parity(cache_dir, tmp_path):
     cfg = TrainConfig(**TINY_RECIPE)
     a = train(cfg, cache_dir=cache_dir, log=None)
@@ -355,6 +356,7 @@ def test_baselines_cover_classes_absent_from_a_small_training_split(cache_dir, t
         assert m1["identifiable_samples"] > 0 and 0.0 <= m1["coverage_identifiable"] <= 1.0
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_failed_run_leaves_no_model_and_keeps_the_old_one(cache_dir, tmp_path, monkeypatch, capsys):
     import classifier.report as report
 

@@ -56,6 +56,7 @@ seed = 11
 """
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_spec_is_the_signature_at_the_two_wavelength_configurations():
     spec, sig, two = load_spec(NAME), load_spec("signature"), load_spec("two-wavelength")
     assert spec.n_features == 24 and len(spec.feature_names) == 24
@@ -156,6 +157,7 @@ def _merge(paths: list[Path], out: Path) -> Path:
     return save_maps(out, np.concatenate([m.data for m in maps]), meta)
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_rendered_dual_band_maps_assemble_into_the_spec_columns(tiny_model, rendered_maps, tmp_path):
     from classifier.infer import assemble_features, classify_maps, load_model, read_maps
 
@@ -186,6 +188,7 @@ def test_rendered_dual_band_maps_assemble_into_the_spec_columns(tiny_model, rend
         assemble_features(two[:1], model)
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_default_model_for_each_kind_of_maps(tiny_model, rendered_maps, tmp_path, monkeypatch):
     import classifier.infer as infer
 

@@ -124,6 +124,7 @@ def test_the_random_ballistic_direction_law_reaches_every_phantom_and_an_unknown
     assert e.value.code == 2 and "uniform-angles" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_grid_results_files_are_self_describing(tmp_path, levels):
     cells = [
         GridCell("bscan", "none", grid.SNR_DB, "mid", 80.0, 90.0),
@@ -297,6 +298,7 @@ def test_a_slow_ballistic_band_beside_a_flow_band_is_not_decided_flow_along_its_
     assert ruled["per_class"]["flow"]["coverage"] > 0.5  # the flow band itself stays decided
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_regions_that_touch_keep_every_motion_under_5_percent_wrong_with_the_rules():
     """The probes where the model's own decisions are most wrong (stop 42: a random-ballistic layer between
     diffusing and flowing ones, with and without static tissue, and random-ballistic tissue along a vessel;
@@ -367,6 +369,7 @@ def test_a_slow_random_motion_beside_a_slow_flow_is_not_decided_flow_past_the_fo
     assert ballistic_wrong() <= 0.10  # rule 7's reach alone
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_a_flow_decision_founded_on_a_coarser_configurations_faster_decay_abstains(monkeypatch):
     """A slow flow along a vessel through slow random-ballistic tissue (a B-scan without static tissue): the
     coarser configurations' PSFs reach the vessel, decay faster than the finest one, and the model decides
@@ -391,6 +394,7 @@ def test_a_flow_decision_founded_on_a_coarser_configurations_faster_decay_abstai
     assert without["per_class"]["ballistic"]["wrong_share"] > 0.05, without["per_class"]
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_a_pooled_decision_whose_fine_footprint_holds_another_region_abstains(monkeypatch):
     """Every motion at its slow level, layers in depth (a B-scan without static tissue): a pooled decision
     near the border between the diffusing and the random-ballistic layer averages both, and the model

@@ -73,6 +73,7 @@ def test_equal_configurations_see_identical_fields():
         assert not np.allclose(e[:, 0], e[:, 1]), motion.kind
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_static_scene_fields_correlated_as_shared_scatterers_predict():
     """Original and axial-reduced configurations of one trial see the same static scatterers: their
     intensities are correlated across trials as the closed form says (0.57 here); with refsim's
@@ -140,6 +141,7 @@ def test_features_of_a_draw_do_not_depend_on_the_trial_count():
     assert np.array_equal(a[:3], b)
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_harness_deterministic_and_counts_ground_truth(monkeypatch):
     """Same seed, same report; the ground truth per draw is classifier.truth.identifiability's, and the
     identifiable samples are the trials of the identifiable draws. Diffusion is moved to D in [0.05, 0.1]

@@ -26,6 +26,7 @@ def _synthetic(n: int, seed: int):
     return x, step + SIGMA * rng.standard_normal(n), step
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_quantile_regressors_recover_a_known_gaussian():
     n_train, n_test = 20000, 20000
     x, t, _ = _synthetic(n_train, 1)

@@ -72,6 +72,7 @@ def test_box_and_neglected_fraction():
     assert refsim.neglected_field_fraction(6.0) < 1e-16
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 @pytest.mark.parametrize("lateral_y", [None, 14.0])
 def test_one_time_statistics_match_closed_forms(lateral_y):
     """⟨I⟩ and C² of static scatterers against physics.md §5.2/§5.4 (per-axis sigmas), z from batch means."""

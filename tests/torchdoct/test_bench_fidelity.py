@@ -14,6 +14,7 @@ from torchdoct.bench import tradeoffs
 from torchdoct.cli import main
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_fidelity_resolves_a_loose_truncation_and_not_a_tight_one():
     settings = [
         {"truncation_tolerance": 0.1, "truncation": "hard", "dtype": "float32"},

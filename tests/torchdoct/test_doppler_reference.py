@@ -464,6 +464,7 @@ def test_a_flow_steadier_than_its_noise_is_not_a_b_scan_reference():
     assert NAME not in m.channels and "drift" in m.meta["doppler"]["absent"]
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_the_pattern_statistic_cancels_a_common_phase_and_tells_a_sliding_pattern_from_static_noise():
     """Step 7 of the reference rule (docs/concepts/doppler-reference.md §4): the product of axially neighbouring
     fields cancels any phase common to the A-line at a frame, so a random bulk phase per frame, or a Doppler

@@ -343,6 +343,7 @@ def _sweep(tmp_path, trials: int, workers: int) -> tuple[subprocess.Popen, Path]
     return proc, out
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_ctrl_c_on_a_running_sweep(tmp_path, sweeps):
     proc, out = sweeps(tmp_path, trials=2048, workers=1)
     os.killpg(proc.pid, signal.SIGINT)  # a terminal sends Ctrl-C to the whole process group

@@ -59,6 +59,7 @@ def _peak_rss_mb(argv: list[str], cwd: Path) -> tuple[int, float, str]:
 # render: grid bounds from pitch and extent
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 @pytest.mark.parametrize("pitch", ["1e-3", "1e-300"])
 def test_render_with_a_pitch_far_below_the_psf_stays_small(tmp_path, pitch):
     """A PSF window is never wider than the grid: 1e-3 µm pixels cost the grid's 16 × 16 pixels, not
@@ -172,6 +173,7 @@ def _scene_text(systems: int = 1, populations: int = 1, motions: int = 1) -> str
     return f'name = "many"\n{s}[protocol]\nn_frames = 8\nframe_interval_s = 0.2048\n{p}'
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_scene_of_100000_systems_is_refused_in_seconds(tmp_path, capsys):
     """A 10 MB scene of 100,000 systems: refused naming the file, the count and the limit (it ran for
     minutes in ``plan`` before)."""

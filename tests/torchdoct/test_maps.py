@@ -201,6 +201,7 @@ def test_fit_on_map_pixels_matches_curve_fit():
 # ----------------------------------------------------------------------------------------------------------
 # compute_maps: resolutions, slabs, volumes, block raster, intensity input
 # ----------------------------------------------------------------------------------------------------------
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_maps_at_reduced_resolution_and_slab_invariance():
     data = speckle((10, 60, 20), seed=6, dtype=np.complex128)
     seq = make_seq(data)
@@ -515,6 +516,7 @@ def test_cli_bench_maps_runs(tmp_path, capsys):
     assert main(["bench", "maps", "--frames", "12", "--size", "16", "12", "--out", str(out)]) == 2
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_cli_bench_maps_channels_compares_every_channel_set_to_the_signature_maps(tmp_path):
     """One run times every channel set (idle and beside a busy process) and divides by the signature set's."""
     out = tmp_path / "channels.json"

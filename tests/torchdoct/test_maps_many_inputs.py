@@ -35,6 +35,7 @@ def _single(tmp_path, path):
     return read_maps(out)
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 @pytest.mark.parametrize("how", [[], ["--workers", "2"]], ids=["one-after-another", "worker-processes"])
 def test_many_inputs_give_each_input_its_single_input_maps(tmp_path, inputs, capsys, how):
     out = tmp_path / "out"

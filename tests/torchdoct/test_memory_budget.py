@@ -64,6 +64,7 @@ def test_the_address_space_limit_sets_the_budget():
     assert 0 < int(n) < 3 * GIB and hard == "True" and "RLIMIT_AS" in source
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_a_file_over_the_address_space_limit_is_not_enough_memory_not_truncated(tmp_path):
     from numpy.lib import format as npf
 

@@ -157,6 +157,7 @@ def signature_maps(tmp_path_factory):
     return maps
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_doct_classify_runs_on_the_base_install(signature_maps, tmp_path):
     """doct-classify with the shipped default model, every optional module unimportable: it classifies,
     imports no torch, and every third-party module it loads comes with the base dependencies."""

@@ -241,6 +241,7 @@ def test_flow_region_is_rigid_translation_without_per_frame_draws(monkeypatch):
     assert torch.allclose(e[1, :, 1:], e[0, :, :-1], rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_reproducible_and_independent_of_chunking(monkeypatch):
     ph = _phantom(
         SMALL_GRID,

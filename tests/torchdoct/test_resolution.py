@@ -320,6 +320,7 @@ def _stats(e: np.ndarray) -> tuple[float, float, float]:
     return (float(i.mean()), float(metrics.liv(i).mean()), float(metrics.ocds(i, times, delay_range_s=DELAYS).mean()))
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 @pytest.mark.parametrize("case", ["axial", "lateral"])
 def test_reduced_equals_direct_simulation(case):
     """Same scatterers (static + diffusing), 8 frames: the reduced high-res sequence matches a direct

@@ -129,6 +129,7 @@ def test_study_sweeps_pairs_and_all():
 # ----------------------------------------------------------------------------------------------------------
 # a tiny study end to end
 # ----------------------------------------------------------------------------------------------------------
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_tiny_study_writes_every_output(tiny_run):
     path, r = tiny_run
     out = r.files[0].parent
@@ -145,6 +146,7 @@ def test_tiny_study_writes_every_output(tiny_run):
     assert {c["seed"] for c in rec["cells"]} == {c.seed for c in r.sweep_result.cells}
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_paired_differences_are_the_per_trial_differences(tiny_run):
     _, r = tiny_run
     d = r.differences
@@ -171,6 +173,7 @@ def test_paired_differences_are_the_per_trial_differences(tiny_run):
     assert ref["mean"] == pytest.approx(row["mean_reference"], rel=1e-12)
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_zero_motion_rows_are_exactly_zero(tiny_run):
     _, r = tiny_run
     z = r.differences[r.differences["value"] == 0.0]
@@ -179,6 +182,7 @@ def test_zero_motion_rows_are_exactly_zero(tiny_run):
         assert (z[col] == 0).all(), col
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_flow_has_no_wavelength_dependency_within_standard_errors(tiny_run):
     """physics.md §5.3(c): flow intensity statistics do not depend on the wavelength (same PSF)."""
     _, r = tiny_run
@@ -189,6 +193,7 @@ def test_flow_has_no_wavelength_dependency_within_standard_errors(tiny_run):
     assert (f["z"].abs() <= Z_SIGNIFICANT).all(), f[["value", "metric", "diff", "se", "z"]]
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_direction_law_comparison_shares_seeds(tiny_run):
     _, r = tiny_run
     d = r.directions
@@ -203,6 +208,7 @@ def test_direction_law_comparison_shares_seeds(tiny_run):
     pd.testing.assert_frame_equal(direction_differences(r.study, r.sweep_result), d)
 
 
+@pytest.mark.slow  # a few seconds: in the slow suite, so that the default suite stays under about five minutes
 def test_claims_report_quotes_the_tables(tiny_run):
     _, r = tiny_run
     text = (r.files[0].parent / "claims.md").read_text(encoding="utf-8")
