@@ -514,6 +514,7 @@ def _classify_rendered(
     abstain_ambiguous: bool | Sequence[bool],
     mixed_holds: Sequence[str] | None = None,
     per_region: bool = False,
+    settings: Sequence[tuple[str | None, bool]] | None = None,
 ) -> list[dict[str, Any]]:
     """Render ``phantoms`` (phantom-file dicts; their fields add, the first rendered at ``seed``, a static
     background after it at its own), map them as ``maps --signature`` does, classify at every window of
@@ -522,7 +523,9 @@ def _classify_rendered(
     per window and setting with the scores of the pixels away from other regions, ``all_pixels`` (edge 0), the
     setting, the decision and the seconds taken; with ``mixed_holds`` (the motions a ``mixed`` region
     combines) also ``mixed`` (:func:`score_mixed`); with ``per_region`` also ``per_region``: each region of one
-    motion scored over the pixels the renderer assigns it (:func:`score_region`)."""
+    motion scored over the pixels the renderer assigns it (:func:`score_region`). ``settings``: pairs
+    ``(decision, abstain_ambiguous)`` classified in turn from the same maps (they replace ``decision`` and
+    ``abstain_ambiguous``); each row then carries its pair's index as ``setting``."""
     from torchdoct.measured.mapsfile import write_maps
 
     from ..infer import classify_maps
@@ -543,18 +546,22 @@ def _classify_rendered(
     from ..ambiguity import DOPPLER_WINDOW_MIN, doppler_imaginary
 
     dop_channels = {c: maps.maps[i] for i, c in enumerate(maps.channels) if c.startswith("doppler_phase_")}
-    kw = {} if decision is None else {"decision": decision}
+    tagged = settings is not None
+    if settings is None:
+        abstains = (abstain_ambiguous,) if isinstance(abstain_ambiguous, bool) else tuple(abstain_ambiguous)
+        settings = [(decision, ab) for ab in abstains]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         path = write_maps(Path(tmp) / "maps.npz", maps)
-        settings = (abstain_ambiguous,) if isinstance(abstain_ambiguous, bool) else tuple(abstain_ambiguous)
-        for ab, pool in ((ab, pool) for ab in settings for pool in pools):
+        for k, (dec, ab), pool in ((k, st, pool) for k, st in enumerate(settings) for pool in pools):
+            kw = {} if dec is None else {"decision": dec}
             t1 = time.perf_counter()
             c = classify_maps(path, model, pool=int(pool), threads=threads, abstain_ambiguous=ab, **kw)
             t2 = time.perf_counter()
             im, dop_name = doppler_imaginary(dop_channels, max(int(pool), DOPPLER_WINDOW_MIN))
             rows.append(
                 {
+                    **({"setting": k} if tagged else {}),
                     "pool": int(pool),
                     "abstain_ambiguous": bool(ab),
                     "decision": c.info.get("decision", "rule"),
@@ -615,8 +622,10 @@ def run_cell(
     prior=None,
     abstain_ambiguous: bool | Sequence[bool] = True,
     ballistic_directions: str | None = None,
+    settings: Sequence[tuple[str | None, bool]] | None = None,
 ) -> list[dict[str, Any]]:
-    """Render, map, classify and score one cell at every window of ``pools``: one row per window.
+    """Render, map, classify and score one cell at every window of ``pools``: one row per window (and per
+    pair of ``settings``, :func:`_classify_rendered`).
     ``abstain_ambiguous``: doct-classify's default (:mod:`classifier.ambiguity`); False: ``--decide-ballistic``;
     a sequence of both: one row per setting and window, from one rendering and one set of maps.
     ``ballistic_directions``: as in :func:`phantom_dict`."""
@@ -636,6 +645,7 @@ def run_cell(
         decision=decision,
         threads=threads,
         abstain_ambiguous=abstain_ambiguous,
+        settings=settings,
     )
     ident = {}
     for label, name in enumerate(MOTIONS):
@@ -645,6 +655,7 @@ def run_cell(
     rows = []
     for r in scored:
         head = {
+            **({"setting": r.pop("setting")} if "setting" in r else {}),
             **asdict(cell),
             "key": cell.key,
             "pool": r.pop("pool"),
@@ -741,9 +752,10 @@ def run_probe(
     abstain_ambiguous: bool = True,
     seed: int = 0,
     ballistic_directions: str | None = None,
+    settings: Sequence[tuple[str | None, bool]] | None = None,
 ) -> list[dict[str, Any]]:
     """Render, map, classify and score probe ``name`` (:func:`probe_dict`, with ``ballistic_directions``) at every
-    window: one row per window."""
+    window: one row per window (and per pair of ``settings``, :func:`_classify_rendered`)."""
     from ..prior import Prior
 
     spec = model.spec
@@ -757,14 +769,16 @@ def run_probe(
         decision=decision,
         threads=threads,
         abstain_ambiguous=abstain_ambiguous,
+        settings=settings,
     )
     return [
         {
+            **({"setting": r["setting"]} if "setting" in r else {}),
             "probe": name,
             "geometry": name.split("-")[0],
             "pool": r["pool"],
             "model": spec.name,
-            **{k: v for k, v in r.items() if k not in ("pool", "decision", "seconds", "abstain_ambiguous")},
+            **{k: v for k, v in r.items() if k not in ("setting", "pool", "decision", "seconds", "abstain_ambiguous")},
             "seconds": r["seconds"]["total"],
         }
         for r in scored
@@ -789,9 +803,41 @@ def run_grid(
     picks for the cell's maps: ``signature-bscan`` for B-scans, ``signature`` for volumes). ``levels``:
     ``{geometry: speed_levels(...)}`` already computed (default: computed here). ``ballistic_directions``: the
     random-ballistic direction law of every phantom (:func:`phantom_dict`; default isotropic)."""
+    return run_grids(
+        cells,
+        [(decision, abstain_ambiguous)],
+        model,
+        pools=pools,
+        threads=threads,
+        progress=progress,
+        geometry_models=geometry_models,
+        levels=levels,
+        probes=probes,
+        ballistic_directions=ballistic_directions,
+    )[0]
+
+
+def run_grids(
+    cells: Iterable[GridCell],
+    settings: Sequence[tuple[str | None, bool]],
+    model: str | None = None,
+    *,
+    pools: Sequence[int] = POOLS,
+    threads: int | None = None,
+    progress: bool = True,
+    geometry_models: dict[str, str] | None = None,
+    levels: dict[str, dict[str, dict[str, float]]] | None = None,
+    probes: Sequence[str] = (),
+    ballistic_directions: str | None = None,
+) -> list[dict[str, Any]]:
+    """:func:`run_grid` for every pair ``(decision, abstain_ambiguous)`` of ``settings``, each phantom rendered
+    and mapped once and classified with each pair: one result per pair, each the one :func:`run_grid` gives with
+    that pair (a cell's render and maps seconds are those of the shared rendering; ``seconds`` is the whole
+    run's)."""
     _check_law(ballistic_directions)
     from ..infer import load_model
 
+    settings = [(d, bool(a)) for d, a in settings]
     cells = list(cells)
     defaults = geometry_models or {"bscan": "signature-bscan", "volume": "signature"}
     probes = list(probes)
@@ -812,10 +858,9 @@ def run_grid(
                 models[cell.geometry],
                 levels[cell.geometry],
                 pools=pools,
-                decision=decision,
                 threads=threads,
-                abstain_ambiguous=abstain_ambiguous,
                 ballistic_directions=ballistic_directions,
+                settings=settings,
             )
         )
         if bar is not None:
@@ -829,39 +874,46 @@ def run_grid(
                 models[g],
                 levels[g],
                 pools=pools,
-                decision=decision,
                 threads=threads,
-                abstain_ambiguous=abstain_ambiguous,
                 seed=cells[0].seed if cells else 0,
                 ballistic_directions=ballistic_directions,
+                settings=settings,
             )
         )
         if bar is not None:
             bar.update()
     if bar is not None:
         bar.close()
+    seconds = time.perf_counter() - t0
     from torchdoct.runtime.machine import machine_info
 
-    return {
-        "schema_version": SCHEMA_VERSION,
-        "benchmark": "phantom-grid",
-        "definitions": _definitions(),
-        "models": {g: m.spec.name for g, m in models.items()},
-        "decision": rows[0]["decision"] if rows else decision,
-        "abstain_ambiguous": bool(abstain_ambiguous),
-        "ballistic_directions": ballistic_directions or "isotropic",
-        "speed_levels": dict(levels.items()),
-        "units": {"diffusion": "µm²/s", "ballistic": "µm/s", "flow": "µm/s", "seconds": "s"},
-        "cells": rows,
-        "probes": probe_rows,
-        "summary": summarize(rows),
-        "summary_by_context": summarize_by_context(rows),
-        "summary_by_context_all_pixels": summarize_by_context(
-            [{**r, "per_class": r["all_pixels"]["per_class"]} for r in rows]
-        ),
-        "seconds": time.perf_counter() - t0,
-        "machine": machine_info(),
-    }
+    out = []
+    for k, (decision, abstain) in enumerate(settings):
+        mine = [{key: v for key, v in r.items() if key != "setting"} for r in rows if r["setting"] == k]
+        mine_probes = [{key: v for key, v in r.items() if key != "setting"} for r in probe_rows if r["setting"] == k]
+        out.append(
+            {
+                "schema_version": SCHEMA_VERSION,
+                "benchmark": "phantom-grid",
+                "definitions": _definitions(),
+                "models": {g: m.spec.name for g, m in models.items()},
+                "decision": mine[0]["decision"] if mine else decision,
+                "abstain_ambiguous": abstain,
+                "ballistic_directions": ballistic_directions or "isotropic",
+                "speed_levels": dict(levels.items()),
+                "units": {"diffusion": "µm²/s", "ballistic": "µm/s", "flow": "µm/s", "seconds": "s"},
+                "cells": mine,
+                "probes": mine_probes,
+                "summary": summarize(mine),
+                "summary_by_context": summarize_by_context(mine),
+                "summary_by_context_all_pixels": summarize_by_context(
+                    [{**r, "per_class": r["all_pixels"]["per_class"]} for r in mine]
+                ),
+                "seconds": seconds,
+                "machine": machine_info(),
+            }
+        )
+    return out
 
 
 def _definitions() -> dict[str, str]:
@@ -1269,6 +1321,26 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"not JSON-able: {type(o).__name__}")
 
 
+#: The grid's records that differ only in how the maps are classified (``--records``): name -> (stem, decision,
+#: decide-ballistic). One rendering and one set of maps per phantom serve all of them.
+RECORDS = {
+    "default": ("grid-default", None, False),
+    "rule": ("grid-rule", "rule", True),
+    "conformal": ("grid-conformal", "conformal", True),
+}
+
+
+def _records(value: str) -> list[str]:
+    names = [v.strip() for v in value.split(",") if v.strip()]
+    bad = [v for v in names if v not in RECORDS]
+    if bad or not names or len(set(names)) != len(names):
+        raise ValueError(
+            f"--records {value}: give distinct names among {', '.join(RECORDS)} separated by commas"
+            + (f" ({', '.join(bad)} unknown)" if bad else "")
+        )
+    return names
+
+
 def build_parser():
     import argparse
 
@@ -1300,6 +1372,17 @@ def build_parser():
         "flow where the speckle moved coherently or the Doppler phase drifted, ballistic-or-flow where the physics "
         "cannot exclude flow, classifier.ambiguity)",
     )
+    p.add_argument(
+        "--records",
+        default=None,
+        metavar="NAME[,NAME...]",
+        help="several of the grid's records from one rendering and one set of maps per phantom: "
+        + "; ".join(
+            f"{k}: {st}" + (f" (--decision {d} --decide-ballistic)" if d else " (the defaults)")
+            for k, (st, d, _) in RECORDS.items()
+        )
+        + " (instead of --stem, --decision and --decide-ballistic)",
+    )
     p.add_argument("--geometry", choices=GEOMETRIES, default=None, help="only B-scans or only volumes")
     p.add_argument("--seed", type=int, default=0, help="rendering seed of every cell")
     p.add_argument("--stem", default="grid", help="file names STEM.json, STEM.csv, ... (default grid)")
@@ -1321,37 +1404,62 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     args = build_parser().parse_args(argv)
     try:
-        out = check_output_dir(args.out, args.stem, (".json", ".csv", ".md", ".png"), args.force)
+        if args.records is not None:
+            if args.decision or args.decide_ballistic or args.stem != "grid":
+                raise ValueError(
+                    "--records names each record's stem and decision; give it without --stem, "
+                    "--decision and --decide-ballistic"
+                )
+            chosen = [RECORDS[n] for n in _records(args.records)]
+        else:
+            chosen = [(args.stem, args.decision, args.decide_ballistic)]
+        for stem, _, _ in chosen:
+            out = check_output_dir(args.out, stem, (".json", ".csv", ".md", ".png"), args.force)
         cells = quick_cells(args.seed) if args.quick else full_cells(args.seed)
         if args.geometry:
             cells = [c for c in cells if c.geometry == args.geometry]
-        res = run_grid(
+        results = run_grids(
             cells,
+            [(d, not b) for _, d, b in chosen],
             args.model,
-            decision=args.decision,
             threads=args.threads,
             progress=not args.no_progress,
-            abstain_ambiguous=not args.decide_ballistic,
             probes=[] if args.no_probes else [p for p in PROBES if args.geometry in (None, p.split("-")[0])],
             ballistic_directions=args.ballistic_directions,
         )
-        res["command"] = (
-            "python -m classifier.bench.grid"
-            + (" --quick" if args.quick else "")
-            + (f" --model {args.model}" if args.model else "")
-            + (f" --decision {args.decision}" if args.decision else "")
-            + (" --decide-ballistic" if args.decide_ballistic else "")
-            + (f" --geometry {args.geometry}" if args.geometry else "")
+        head = (" --quick" if args.quick else "") + (f" --model {args.model}" if args.model else "")
+        tail = (
+            (f" --geometry {args.geometry}" if args.geometry else "")
             + (f" --seed {args.seed}" if args.seed else "")
             + (" --no-probes" if args.no_probes else "")
             + (f" --ballistic-directions {args.ballistic_directions}" if args.ballistic_directions else "")
-            + (f" --stem {args.stem}" if args.stem != "grid" else "")
-            + " --out DIR"
         )
-        written = write_grid(res, out, force=args.force, stem=args.stem)
+        written = []
+        for res, (stem, decision, decide) in zip(results, chosen):
+            if args.records is not None:
+                how = f" --records {args.records}{head}{tail}"
+            else:
+                how = (
+                    head
+                    + (f" --decision {decision}" if decision else "")
+                    + (" --decide-ballistic" if decide else "")
+                    + tail
+                    + (f" --stem {stem}" if stem != "grid" else "")
+                )
+            res["command"] = f"python -m classifier.bench.grid{how} --out DIR"
+            written += write_grid(res, out, force=args.force, stem=stem)
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    for res, (stem, _, _) in zip(results, chosen):
+        if len(chosen) > 1:
+            print(f"{stem}:")
+        _print_summary(res)
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+def _print_summary(res: dict[str, Any]) -> None:
     for pool, s in res["summary"].items():
         print(
             f"window {pool}: {s['cells']} cells, worst wrong share {_fmt(s['worst_wrong_share'])}, "
@@ -1363,8 +1471,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"probe {r['probe']}, window {r['pool']}: coverage {_fmt(r['coverage'])}, worst wrong share "
             f"{_fmt(r['wrong_share_max'])}; every pixel: worst {_fmt(r['all_pixels']['wrong_share_max'])}"
         )
-    print("wrote " + ", ".join(str(p) for p in written))
-    return 0
 
 
 if __name__ == "__main__":

@@ -269,6 +269,48 @@ def test_grid_command_refuses_bad_output_before_any_work(tmp_path, capsys):
     assert "--force" in capsys.readouterr().err and (tmp_path / "d" / "grid.md").read_text() == "mine"
 
 
+def test_grid_records_option_refuses_unknown_names_and_the_single_record_options(tmp_path, capsys):
+    """``--records`` names each record's stem and decision: an unknown or repeated name, or ``--stem``,
+    ``--decision`` or ``--decide-ballistic`` beside it, is refused before any work, naming the choices; an
+    existing record is not overwritten without ``--force``."""
+    for bad in (["--records", "default,bogus"], ["--records", "rule,rule"], ["--records", ""]):
+        assert grid.main(["--out", str(tmp_path), "--quick", *bad]) == 2
+        assert "default, rule, conformal" in capsys.readouterr().err
+    for extra in (["--stem", "x"], ["--decision", "rule"], ["--decide-ballistic"]):
+        assert grid.main(["--out", str(tmp_path), "--quick", "--records", "rule", *extra]) == 2
+        assert "without --stem" in capsys.readouterr().err
+    (tmp_path / "grid-conformal.md").write_text("mine")
+    assert grid.main(["--out", str(tmp_path), "--quick", "--records", "default,conformal"]) == 2
+    assert "grid-conformal.md exists" in capsys.readouterr().err
+    assert (tmp_path / "grid-conformal.md").read_text() == "mine" and not (tmp_path / "grid-default.json").exists()
+
+
+@pytest.mark.slow  # three renderings of one B-scan cell
+def test_records_from_one_rendering_equal_the_records_run_one_by_one(levels):
+    """:func:`classifier.bench.grid.run_grids` renders and maps each phantom once and classifies it with each
+    setting: every record it gives equals the one :func:`run_grid` gives with that setting alone (cells and
+    probes, timings aside)."""
+    cell = GridCell("bscan", "background", grid.SNR_DB, "mid", 45.0, 0.0)
+    kw = dict(pools=(1, 5), threads=1, progress=False, levels={"bscan": levels}, probes=("bscan-vessel",))
+    settings = [(None, True), ("rule", False)]
+    together = grid.run_grids([cell], settings, **kw)
+
+    def timeless(res):
+        drop = ("seconds", "machine")
+        strip = lambda r: {k: v for k, v in r.items() if k not in drop}  # noqa: E731
+        return {
+            **strip(res),
+            "cells": [strip(r) for r in res["cells"]],
+            "probes": [strip(r) for r in res["probes"]],
+        }
+
+    for (decision, abstain), res in zip(settings, together):
+        alone = grid.run_grid([cell], decision=decision, abstain_ambiguous=abstain, **kw)
+        assert timeless(res) == timeless(alone)
+    assert together[0]["decision"] == "conformal" and together[1]["decision"] == "rule"
+    assert together[0]["cells"][0]["rules_changed"] and together[1]["cells"][0]["rules_changed"] is None
+
+
 @pytest.mark.slow
 @pytest.mark.extended
 def test_quick_grid_runs_end_to_end(tmp_path):
