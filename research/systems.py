@@ -82,12 +82,23 @@ def render_maps(out: Path, system: str, seed: int) -> tuple[Path, Path]:
     return seq, maps
 
 
-def train(out: Path, system: str, maps: Path, quick: bool, seed: int | None = None) -> tuple[Path, dict]:
+def train(
+    out: Path, system: str, maps: Path, quick: bool, seed: int | None = None, models: Path | None = None
+) -> tuple[Path, dict]:
     """The model of ``doct-train --like`` (trained unless present; ``seed``: its ``--seed``, default
-    doct-train's) and its report."""
+    doct-train's) and its report. ``models``: a folder of models trained earlier (``MODELS/SYSTEM/``, the
+    files ``doct-train`` wrote), copied into ``out/SYSTEM/`` and used instead of training; the record's
+    training time is then its report's."""
+    import shutil
+
     from classifier.cli import train_main
 
     mdir = out / system
+    if models is not None and not (mdir.is_dir() and any(mdir.glob("*.onnx"))):
+        src = models / system
+        if not any(src.glob("*.onnx")):
+            raise FileNotFoundError(f"--models {models}: no {system}/*.onnx there; give the folder that holds one")
+        shutil.copytree(src, mdir, dirs_exist_ok=True)
     found = sorted(mdir.glob("*.onnx")) if mdir.is_dir() else []
     if not found:
         argv = ["--like", str(maps), "--out", str(mdir), "--no-progress"] + (["--quick"] if quick else [])
@@ -106,12 +117,13 @@ def evaluate(
     quick: bool,
     min_probabilities: list[float] = (),
     train_seed: int | None = None,
+    models: Path | None = None,
 ) -> dict:
     from classifier.cli import classify_main
     from classifier.evaluate_images import score_images
 
     files = {s: render_maps(out, system, s) for s in seeds}
-    model, report = train(out, system, files[seeds[0]][1], quick, train_seed)
+    model, report = train(out, system, files[seeds[0]][1], quick, train_seed, models)
     scores: dict[str, list] = {str(p): [] for p in POOLS}
 
     def classify(key: str, cdir: Path, maps: Path, seq: Path, *options: str) -> None:
@@ -322,19 +334,30 @@ def main(argv: list[str] | None = None) -> int:
         help="also classify at pool 5 with this doct-classify --min-probability (repeat)",
     )
     p.add_argument("--stem", default="systems-validation", help="file names STEM.json, STEM.md")
+    p.add_argument(
+        "--models",
+        default=None,
+        metavar="DIR",
+        help="models trained earlier, DIR/SYSTEM/ as doct-train wrote them (research/results/systems-models "
+        "holds those of the record): used instead of training, their reports give the training time",
+    )
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     seeds = [int(s) for s in args.seeds.split(",")]
     t0 = time.perf_counter()
-    systems = [evaluate(out, s, seeds, args.quick, args.min_probability) for s in (args.system or list(SYSTEMS))]
+    models = None if args.models is None else Path(args.models)
+    systems = [
+        evaluate(out, s, seeds, args.quick, args.min_probability, models=models) for s in (args.system or list(SYSTEMS))
+    ]
     result = {
         "command": "python -m research.systems --out DIR"
         + "".join(f" --system {s}" for s in args.system or [])
         + (f" --seeds {args.seeds}" if args.seeds != "2026,1,2,3,4,5" else "")
         + (" --quick" if args.quick else "")
         + "".join(f" --min-probability {mp:g}" for mp in args.min_probability)
-        + (f" --stem {args.stem}" if args.stem != "systems-validation" else ""),
+        + (f" --stem {args.stem}" if args.stem != "systems-validation" else "")
+        + (f" --models {args.models}" if args.models else ""),
         "seeds": seeds,
         "systems": systems,
         "seconds": time.perf_counter() - t0,
