@@ -887,10 +887,13 @@ def run_grids(
     seconds = time.perf_counter() - t0
     from torchdoct.runtime.machine import machine_info
 
+    def of(k: int, rs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        """The rows of setting ``k``, without the tag."""
+        return [{key: v for key, v in r.items() if key != "setting"} for r in rs if r["setting"] == k]
+
     out = []
     for k, (decision, abstain) in enumerate(settings):
-        mine = [{key: v for key, v in r.items() if key != "setting"} for r in rows if r["setting"] == k]
-        mine_probes = [{key: v for key, v in r.items() if key != "setting"} for r in probe_rows if r["setting"] == k]
+        mine, mine_probes = of(k, rows), of(k, probe_rows)
         out.append(
             {
                 "schema_version": SCHEMA_VERSION,
@@ -1413,8 +1416,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             chosen = [RECORDS[n] for n in _records(args.records)]
         else:
             chosen = [(args.stem, args.decision, args.decide_ballistic)]
-        for stem, _, _ in chosen:
-            out = check_output_dir(args.out, stem, (".json", ".csv", ".md", ".png"), args.force)
+        out = Path(args.out)
+        for stem, _, _ in chosen:  # every record's files checked before any work
+            check_output_dir(out, stem, (".json", ".csv", ".md", ".png"), args.force)
         cells = quick_cells(args.seed) if args.quick else full_cells(args.seed)
         if args.geometry:
             cells = [c for c in cells if c.geometry == args.geometry]
