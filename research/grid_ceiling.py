@@ -110,14 +110,25 @@ ESTIMATORS = {
 }
 
 
+def _box_sum(values: np.ndarray, width: int) -> np.ndarray:
+    """Per pixel: the sum of ``values`` over the box of ``width`` pixels per axis centred on it (cut at the map's
+    edges), by differences of cumulative sums along each axis."""
+    out = np.asarray(values, np.float64)
+    h = width // 2
+    for ax in range(out.ndim):
+        n = out.shape[ax]
+        c = np.concatenate([np.zeros_like(out.take([0], axis=ax)), np.cumsum(out, axis=ax)], axis=ax)
+        i = np.arange(n)
+        out = c.take(np.minimum(i + h + 1, n), axis=ax) - c.take(np.maximum(i - h, 0), axis=ax)
+    return out
+
+
 def _box_mean(values: np.ndarray, width: int) -> np.ndarray:
     """NaN-aware mean over the box of ``width`` pixels per axis centred on each pixel (cut at the map's edges);
     NaN where the box holds no finite value."""
-    from classifier.ambiguity import _box_count, _box_total
-
     ok = np.isfinite(values)
-    tot = _box_total(np.where(ok, values, 0.0).astype(np.float64), width)
-    n = _box_count(ok, width)
+    tot = _box_sum(np.where(ok, values, 0.0), width)
+    n = _box_sum(ok.astype(np.float64), width)
     return np.where(n > 0, tot / np.maximum(n, 1), np.nan)
 
 
@@ -163,7 +174,9 @@ def cell_rows(cell, model, levels, seed: int, rng: np.random.Generator, per_moti
 
     density = float(min(Prior().density_per_um3))
     cell = G.GridCell(cell.geometry, cell.context, cell.snr_db, cell.level, cell.polar_deg, cell.azimuth_deg, seed)
-    res, seq = G.render_sequence(G.cell_phantoms(cell, model.spec, levels, density, None), cell.key, seed)
+    phantoms = G.cell_phantoms(cell, model.spec, levels, density, None)
+    pitch = float(phantoms[0]["grid"]["pitch_x_um"])
+    res, seq = G.render_sequence(phantoms, cell.key, seed)
     maps = G.signature_maps(seq, model.spec)
     channels = {c: maps.maps[i] for i, c in enumerate(maps.channels)}
     out: dict[str, Any] = {}
@@ -173,7 +186,7 @@ def cell_rows(cell, model, levels, seed: int, rng: np.random.Generator, per_moti
             net = classify_maps(path, model, pool=w, abstain_ambiguous=False)
             dflt = classify_maps(path, model, pool=w)
             names, feats = pixel_features(channels, net.probabilities, net.classes, w)
-            edge = G.scoring_edge_px(model.spec, G._pitch_um(model.spec), w)
+            edge = G.scoring_edge_px(model.spec, pitch, w)
             lab_names = dflt.label_names
             rows_x, rows_y, rows_d, rows_n = [], [], [], []
             for k, m in enumerate(MOTIONS):
@@ -396,13 +409,15 @@ def run_part(
             fold = np.concatenate([np.full(len(d[f"y{w}"]), i % 2) for i, d in enumerate(train)])
             prefixes = tuple(p for g in groups for p in GROUPS[g])
             cols = [i for i, n in enumerate(names) if n.startswith(prefixes)]
-            # a channel these maps never hold, or one fold's phantoms never do
+            # a channel these maps never hold, or one fold's phantoms never do; where no phantom has a Doppler
+            # reference (no static tissue), the share of the box that holds a phase is 0 everywhere and stays: the
+            # group then reads like the network alone
             cols = [i for i in cols if all(np.isfinite(xtr[fold == k, i]).any() for k in (0, 1))]
             if (
                 len(cols) == len([i for i, n in enumerate(names) if n.startswith(GROUPS["network"])])
                 and which != "network"
             ):
-                continue  # the group holds nothing in these maps (no Doppler channel without static tissue)
+                continue  # the groups add no column to the network's in these maps
 
             def fit(sel: np.ndarray, cols=cols, xtr=xtr, ytr=ytr):
                 return HistGradientBoostingClassifier(random_state=train_seed, **GB_PARAMS).fit(

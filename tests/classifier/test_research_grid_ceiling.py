@@ -136,3 +136,13 @@ def test_best_threshold_under_the_cell_bound_abstains_where_one_cell_is_confiden
     assert 0.8 < t_cell <= 0.96
     assert np.all(dec_cell[bad] == -1) and np.array_equal(dec_cell[~bad], y[~bad])
     assert C.worst_cell(y, dec_cell, cell_of)["cells_over_10pct_wrong"] == 0
+
+
+def test_box_sum_equals_the_brute_force_sum_over_the_box_cut_at_the_edges():
+    v = np.random.default_rng(3).random((6, 7, 5))
+    got = C._box_sum(v, 5)
+    want = np.empty_like(v)
+    for idx in np.ndindex(v.shape):
+        box = tuple(slice(max(i - 2, 0), i + 3) for i in idx)
+        want[idx] = v[box].sum()
+    assert np.allclose(got, want, rtol=1e-12, atol=1e-12)
