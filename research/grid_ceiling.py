@@ -156,8 +156,10 @@ def pixel_features(channels: dict[str, np.ndarray], probs: np.ndarray, classes: 
     if dop:
         ph = np.asarray(channels[dop[0]], np.float64)
         ok = np.isfinite(ph)
-        cols += [_box_mean(np.where(ok, np.cos(ph), np.nan), box), _box_mean(np.where(ok, np.sin(ph), np.nan), box)]
-        cols.append(_box_mean(ok.astype(np.float64), box))
+        n_ok = _box_sum(ok.astype(np.float64), box)
+        for part in (np.cos, np.sin):
+            cols.append(np.where(n_ok > 0, _box_sum(np.where(ok, part(ph), 0.0), box) / np.maximum(n_ok, 1), np.nan))
+        cols.append(n_ok / _box_sum(np.ones(ph.shape), box))
     else:
         cols += [np.full(shape, np.nan), np.full(shape, np.nan), np.zeros(shape)]
     names += ["doppler_re", "doppler_im", "doppler_share"]
@@ -406,17 +408,15 @@ def run_part(
             train = trains[set_name]
             xtr = np.concatenate([d[f"x{w}"] for d in train])
             ytr = np.concatenate([d[f"y{w}"] for d in train])
-            fold = np.concatenate([np.full(len(d[f"y{w}"]), i % 2) for i, d in enumerate(train)])
+            train_cell = np.concatenate([np.full(len(d[f"y{w}"]), i) for i, d in enumerate(train)])
+            fold = train_cell % 2
             prefixes = tuple(p for g in groups for p in GROUPS[g])
             cols = [i for i, n in enumerate(names) if n.startswith(prefixes)]
             # a channel these maps never hold, or one fold's phantoms never do; where no phantom has a Doppler
             # reference (no static tissue), the share of the box that holds a phase is 0 everywhere and stays: the
             # group then reads like the network alone
             cols = [i for i in cols if all(np.isfinite(xtr[fold == k, i]).any() for k in (0, 1))]
-            if (
-                len(cols) == len([i for i, n in enumerate(names) if n.startswith(GROUPS["network"])])
-                and which != "network"
-            ):
+            if which != "network" and all(names[i].startswith(GROUPS["network"]) for i in cols):
                 continue  # the groups add no column to the network's in these maps
 
             def fit(sel: np.ndarray, cols=cols, xtr=xtr, ytr=ytr):
@@ -430,7 +430,6 @@ def run_part(
                 oof[fold == k] = fit(fold != k).predict_proba(xtr[fold == k][:, cols])
             proba = fit(np.ones(len(ytr), bool)).predict_proba(xte[:, cols])
             cls = proba.argmax(axis=1).astype(np.int8)
-            train_cell = np.concatenate([np.full(len(d[f"y{w}"]), i) for i, d in enumerate(train)])
             entry["inputs"][f"{which}, {set_name}"] = {
                 "train_pixels": int(len(ytr)),
                 "features": [names[i] for i in cols],
