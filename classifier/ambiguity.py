@@ -62,6 +62,15 @@ pixel:
    by about a pixel within those lags is not seen this way and rule 2 applies to it; the grid benchmark
    (``python -m classifier.bench.grid``) reports what each rule leaves, the ballistic and diffusion wrong
    shares being the false-detection check.
+
+   **Inside static tissue** the static population's pattern neither moves nor decays, and it holds the
+   window's peak at the centre (speckle-motion §3 (d)): a flow sharing the PSF with static tissue moves only a
+   small share of the peak. Maps written with ``--speckle-dynamic`` also hold the channels of the dynamic field
+   (``xcd_…``: the complex field less its temporal mean, which is the static population's field), in which the
+   flow's offset shows alone (speckle-motion §3 (f)). Rules 0 and 5 read both families
+   (:data:`SPECKLE_FAMILIES`) with the same bounds, and a pixel counts where either shows the motion. Removing
+   a per-pixel mean is the same at ``r`` and ``r + Δ``, so a direction-symmetric motion keeps its centred
+   expectation in the dynamic field too: the premise of both rules holds there unchanged.
 5. **A held pattern that moved** (any geometry; applied right after rule 0). A flow too slow for rule 0
    still carries its pattern along: over the whole span of the speckle features' lags the window's peak keeps
    its height while its offset moves by ``v⊥(τ_L − τ₁)``, linearly in the lag (speckle-motion §3 (a), §5). A
@@ -297,6 +306,9 @@ DECORRELATED_BELOW = 0.5
 COHERENT_PEAK_MIN = 0.5
 #: Rule 0: the smallest share of that peak moved off the centre offset that counts as coherent motion.
 COHERENT_MOVED_MIN = 0.5
+#: Rules 0 and 5: the speckle channel families they read, the field's (``xc_…``) and the dynamic field's
+#: (``xcd_…``, :mod:`torchdoct.sim.speckle`; in maps written with ``--speckle-dynamic``).
+SPECKLE_FAMILIES = ("xc", "xcd")
 #: Rule 3: the largest share of the window's whole decay ``1 − ρ(m_last)`` still left after the shortest lag
 #: ``ρ(m₁) − ρ(m_last)`` that counts as decorrelated before the first lag (a fifth: most of the decay is over).
 FAST_REMAINING_MAX = 0.2
@@ -372,9 +384,7 @@ _MOTIONS = ("diffusion", "ballistic", "flow")
 _XC_CENTRE = re.compile(r"^xc_centre_(\d+)@")
 _RHO_LIN = re.compile(r"^rho_lin_(\d+)$")
 _XC_CENTRE_RES = re.compile(r"^xc_centre_(\d+)@(.+)$")
-_XC_PEAK = re.compile(r"^xc_peak_(\d+)@(.+)$")
 _XC_SHIFT = re.compile(r"^xc_shift_(\d+)@(.+)$")
-_XC_SHIFT_AXIS = re.compile(r"^xc_shift_([xyz])_(\d+)@(.+)$")
 _DOPPLER = re.compile(r"^doppler_phase_(\d+)@")
 
 
@@ -439,20 +449,21 @@ def unseen_axes(
 
 
 def coherent_motion(
-    channels: Mapping[str, np.ndarray], idx: np.ndarray | None = None, n_frames: int = 32
+    channels: Mapping[str, np.ndarray], idx: np.ndarray | None = None, n_frames: int = 32, family: str = "xc"
 ) -> tuple[np.ndarray | None, list[str]]:
     """Rule 0 per classified pixel (module docstring): True where the speckle pattern moved coherently at a
     lag ``m ≤ n_frames // 4``; and the lags' channel names read. ``channels``: name -> map holding
-    ``xc_peak_m@…`` and ``xc_centre_m@…`` of one resolution, read at ``idx``. ``(None, [])`` without them.
-    NaN counts as not seen."""
+    ``xc_peak_m@…`` and ``xc_centre_m@…`` of one resolution, read at ``idx``; ``family="xcd"``: those of the
+    dynamic field (``xcd_…``, :data:`SPECKLE_FAMILIES`). ``(None, [])`` without them. NaN counts as not seen."""
     found = None
     used: list[str] = []
     limit = max(1, int(n_frames) // 4)
+    peak_pattern = re.compile(rf"^{family}_peak_(\d+)@(.+)$")
     for name in sorted(channels):
-        m = _XC_PEAK.match(name)
+        m = peak_pattern.match(name)
         if not m or int(m.group(1)) > limit:
             continue
-        centre = f"xc_centre_{m.group(1)}@{m.group(2)}"
+        centre = f"{family}_centre_{m.group(1)}@{m.group(2)}"
         if centre not in channels:
             continue
         peak, cen = _read(channels, name, idx), _read(channels, centre, idx)
@@ -580,6 +591,7 @@ def translated(
     pitch_um: Mapping[str, float] | None,
     idx: np.ndarray | None = None,
     window_px: int | None = None,
+    family: str = "xc",
 ) -> tuple[np.ndarray | None, list[str]]:
     """Rule 5 per classified pixel (module docstring): True where, over the lags through which the window's
     pattern held (the longest run of lags from the shortest on with ``xc_peak_m@…`` ≥
@@ -594,19 +606,21 @@ def translated(
     channel names read. ``pitch_um``: the pixel pitch (µm) per axis letter. ``(None, [])`` without the signed
     offsets of every axis and the peaks at three lags or more, or the pitches, or when the speckle window
     ``window_px`` (pixels per axis, the maps' ``meta["speckle"]["window_px"]``) is known and narrower than
-    :data:`TRANSLATION_WINDOW_MIN`. NaN counts as not held and not moved."""
+    :data:`TRANSLATION_WINDOW_MIN`. NaN counts as not held and not moved. ``family="xcd"``: the channels of the
+    dynamic field (``xcd_…``, :data:`SPECKLE_FAMILIES`)."""
     if not isinstance(pitch_um, Mapping):
         return None, []
     if window_px is not None and int(window_px) < TRANSLATION_WINDOW_MIN:
         return None, []
     found: dict[str, dict[str, set[int]]] = {}
+    shift_pattern = re.compile(rf"^{family}_shift_([xyz])_(\d+)@(.+)$")
     for name in channels:
-        m = _XC_SHIFT_AXIS.match(name)
+        m = shift_pattern.match(name)
         if m:
             found.setdefault(m.group(3), {}).setdefault(m.group(1), set()).add(int(m.group(2)))
     for res, per_axis in sorted(found.items()):
         axes = sorted(per_axis)
-        lags = [m for m in sorted(set.intersection(*per_axis.values())) if f"xc_peak_{m}@{res}" in channels]
+        lags = [m for m in sorted(set.intersection(*per_axis.values())) if f"{family}_peak_{m}@{res}" in channels]
         given = {c: pitch_um.get(c) for c in axes}
         ok_pitch = all(
             isinstance(p, (int, float)) and not isinstance(p, bool) and 0 < p < np.inf for p in given.values()
@@ -615,7 +629,9 @@ def translated(
             continue
         pitch = {c: float(p) for c, p in given.items() if p is not None}
 
-        names = [f"xc_shift_{c}_{m}@{res}" for c in axes for m in lags] + [f"xc_peak_{m}@{res}" for m in lags]
+        names = [f"{family}_shift_{c}_{m}@{res}" for c in axes for m in lags] + [
+            f"{family}_peak_{m}@{res}" for m in lags
+        ]
         shape = np.shape(channels[names[0]])
         n = int(np.prod(shape))
         seen = np.zeros(n, bool)
@@ -625,15 +641,17 @@ def translated(
             seen[part] = _moved_along_a_line(
                 np.stack(
                     [
-                        np.stack([flat[f"xc_shift_{c}_{m}@{res}"][part].astype(np.float64) / pitch[c] for m in lags])
+                        np.stack(
+                            [flat[f"{family}_shift_{c}_{m}@{res}"][part].astype(np.float64) / pitch[c] for m in lags]
+                        )
                         for c in axes
                     ]
                 ),
-                np.stack([flat[f"xc_peak_{m}@{res}"][part].astype(np.float64) for m in lags]),
+                np.stack([flat[f"{family}_peak_{m}@{res}"][part].astype(np.float64) for m in lags]),
                 lags,
             )
         if len(shape) >= 2:
-            valid = np.isfinite(np.asarray(channels[f"xc_peak_{lags[0]}@{res}"])).reshape(shape)
+            valid = np.isfinite(np.asarray(channels[f"{family}_peak_{lags[0]}@{res}"])).reshape(shape)
             share = _window_share(seen.reshape(shape), valid, window_px or TRANSLATION_WINDOW_MIN)
             with np.errstate(invalid="ignore"):
                 seen = seen & (share >= TRANSLATION_SUPPORT_MIN).reshape(-1)

@@ -230,6 +230,21 @@ def _spatial_axes(meta: Mapping[str, Any], shape: tuple[int, ...]) -> str:
     return axes if len(axes) == len(shape) else {1: "Z", 2: "ZX", 3: "YZX"}.get(len(shape), "")
 
 
+#: The channels the abstention rules read beside the model's features (classifier.ambiguity).
+_RULE_CHANNELS = ("xc_centre_", "xc_peak_", "xc_shift_", "xcd_centre_", "xcd_peak_", "xcd_shift_", "doppler_phase_")
+
+
+def _either(found) -> tuple[np.ndarray | None, list[str]]:
+    """A rule's masks over the speckle families (:data:`classifier.ambiguity.SPECKLE_FAMILIES`), OR-ed, and the
+    channels read: ``(None, [])`` where no family's channels are there."""
+    mask, used = None, []
+    for m, names in found:
+        if m is not None:
+            mask = m if mask is None else mask | m
+            used += names
+    return mask, used
+
+
 def classify_maps(
     paths: str | os.PathLike | Sequence[str | os.PathLike],
     model: ClassifierModel | str | None = None,
@@ -325,17 +340,14 @@ def classify_maps(
     if abstain_ambiguous:
         if not set_names:
             set_names = conformal.set_label_names(mdl.classes)
-        channels = {
-            c: m.maps[i]
-            for m in maps_list
-            for i, c in enumerate(m.channels)
-            if c.startswith(("xc_centre_", "xc_peak_", "xc_shift_", "doppler_phase_"))
-        }
+        channels = {c: m.maps[i] for m in maps_list for i, c in enumerate(m.channels) if c.startswith(_RULE_CHANNELS)}
         axes = _spatial_axes(meta0, shape)
         extent = dict(zip(axes.lower(), shape))
         single = ambiguity.single_pixel_axes(extent)
         founding = {} if ambiguity.line_windows(extent) else channels  # one A-line: rules 0, 5, 10 found nothing
-        coherent, coherent_source = ambiguity.coherent_motion(founding, idx, mdl.spec.n_frames)
+        coherent, coherent_source = _either(
+            ambiguity.coherent_motion(founding, idx, mdl.spec.n_frames, family=f) for f in ambiguity.SPECKLE_FAMILIES
+        )
         doppler_window = max(int(pool), ambiguity.DOPPLER_WINDOW_MIN)
         doppler, doppler_source = ambiguity.doppler_drift(founding, idx, doppler_window)
         corr, source = ambiguity.slow_decorrelation(
@@ -348,11 +360,15 @@ def classify_maps(
         pitches = meta0.get("pitch_um")
         spk = meta0.get("speckle")
         window = spk.get("window_px") if isinstance(spk, dict) else None
-        translation, translation_source = ambiguity.translated(
-            founding,
-            pitches if isinstance(pitches, dict) else None,
-            idx,
-            window if isinstance(window, int) and not isinstance(window, bool) else None,
+        translation, translation_source = _either(
+            ambiguity.translated(
+                founding,
+                pitches if isinstance(pitches, dict) else None,
+                idx,
+                window if isinstance(window, int) and not isinstance(window, bool) else None,
+                family=f,
+            )
+            for f in ambiguity.SPECKLE_FAMILIES
         )
         confs = mdl.spec.configurations
         optics = next(

@@ -17,7 +17,9 @@ from _speckle_fields import translated_speckle
 from torchdoct.conventions import amplitude_sigma_axial_um, amplitude_sigma_lateral_um
 from torchdoct.sim.speckle import (
     default_speckle_features,
+    dynamic_speckle_features,
     halo_pixels,
+    is_dynamic_feature,
     parse_speckle_feature,
     speckle_features,
     speckle_motion,
@@ -186,3 +188,81 @@ def test_default_features_are_named_with_units():
     names = default_speckle_features(2)
     assert "xc_speed" in names and "xc_share_16" in names
     assert {parse_speckle_feature(n)[0] for n in names} == {"centre", "peak", "share", "asym", "shift", "speed"}
+
+
+# ---- the dynamic field (docs/concepts/speckle-motion.md §3 (f)) ------------------------------------------
+DYN = ("xcd_peak_2", "xcd_centre_2", "xcd_shift_z_2", "xcd_shift_x_2")
+
+
+def _fast_flow_with_static(static_amplitude: float, seed: int):
+    """A flow fast enough to renew its pattern several times over the acquisition (0.8/1.0 µm/s along z/x,
+    3-4 PSF widths of travel), plus frozen speckle of ``static_amplitude²`` times its power."""
+    v = (0.8, 1.0)
+    flow = translated_speckle(32, (32, 32), (S_Z, S_X), lambda i: (v[0] * i * DT, v[1] * i * DT), seed=seed)
+    static = translated_speckle(32, (32, 32), (S_Z, S_X), lambda i: (0.0, 0.0), seed=seed + 100, n_frames=1)
+    return v, flow, flow + static_amplitude * static
+
+
+def test_the_dynamic_field_of_static_tissue_plus_motion_is_that_of_the_motion_alone():
+    """A static population's field is its temporal mean, so removing the mean removes it exactly: every
+    feature of the dynamic field is the same with and without it (to rounding)."""
+    _, flow, mixed = _fast_flow_with_static(2.0, seed=41)
+    names = (*DYN, "xcd_share_8", "xcd_asym_8", "xcd_shift_16")
+    a = centre_features(flow, names)
+    b = centre_features(mixed, names)
+    torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+
+
+def test_static_tissue_holds_the_peak_at_the_centre_and_the_dynamic_field_shows_the_flow_moving():
+    """Frozen speckle of four times the flow's power (§3 (d)): the field's peak stays mostly at the centre; in
+    the dynamic field the moved share of the peak, (peak − centre)/peak, is larger by more than Z_SE standard
+    errors, and the offset points along the flow."""
+    v, _, mixed = _fast_flow_with_static(2.0, seed=43)
+    f = centre_features(mixed, ("xc_peak_2", "xc_centre_2", *DYN))
+    moved_field = (f[:, 0] - f[:, 1]) / f[:, 0]
+    moved_dyn = (f[:, 2] - f[:, 3]) / f[:, 2]
+    m_f, se_f = _mean_se(moved_field)
+    m_d, se_d = _mean_se(moved_dyn)
+    assert m_d - m_f > Z_SE * math.hypot(se_f, se_d), (m_f, m_d)
+    for i, vc in ((4, v[0]), (5, v[1])):
+        mean, se = _mean_se(f[:, i])
+        assert mean > Z_SE * se and vc > 0, (DYN[i - 2], mean, se)
+
+
+def test_direction_symmetric_motion_stays_centred_in_the_dynamic_field(flow_bscan):
+    """Removing a per-pixel mean acts alike at r and r + Δ: two patterns moving at ±v beside static tissue give
+    signed offsets of zero mean in the dynamic field too."""
+    v, field = flow_bscan
+
+    def back(i):
+        return (-v[0] * i * DT, -v[1] * i * DT)
+
+    field2 = translated_speckle(48, (32, 32), (S_Z, S_X), back, seed=12)
+    static = translated_speckle(48, (32, 32), (S_Z, S_X), lambda i: (0.0, 0.0), seed=13, n_frames=1)
+    names = ("xcd_shift_z_8", "xcd_shift_x_8", "xcd_shift_z_16", "xcd_shift_x_16")
+    sym = centre_features(field + field2 + 2.0 * static, names)
+    for i, n in enumerate(names):
+        mean, se = _mean_se(sym[:, i])
+        assert abs(mean) < Z_SE * se, (n, mean, se)
+
+
+def test_dynamic_features_need_a_complex_field_and_are_named_as_the_fields():
+    inten = torch.rand(2, 8, 9, 9, generator=torch.Generator().manual_seed(0)) + 0.1
+    with pytest.raises(ValueError, match="complex field"):
+        speckle_motion(inten, PITCH, DT, ["xcd_peak_2"], window=3)
+    with pytest.raises(ValueError, match="unknown speckle feature"):
+        parse_speckle_feature("xcd_velocity_x")
+    assert parse_speckle_feature("xcd_shift_y_4") == ("shift", "y", 4)
+    assert dynamic_speckle_features(3, (2, 4)) == (
+        "xcd_centre_2",
+        "xcd_peak_2",
+        "xcd_shift_y_2",
+        "xcd_shift_z_2",
+        "xcd_shift_x_2",
+        "xcd_centre_4",
+        "xcd_peak_4",
+        "xcd_shift_y_4",
+        "xcd_shift_z_4",
+        "xcd_shift_x_4",
+    )
+    assert is_dynamic_feature("xcd_peak_2") and not is_dynamic_feature("xc_peak_2")

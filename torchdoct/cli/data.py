@@ -58,6 +58,13 @@ def _maps_arguments(mp) -> None:
         "and volumes with a pixel pitch and a uniform frame interval",
     )
     mp.add_argument(
+        "--speckle-dynamic",
+        action="store_true",
+        help="also write the speckle-motion channels of the dynamic field (xcd_*: the complex field less its "
+        "temporal mean, which removes static tissue sharing the PSF, so a flow inside it shows its offset; "
+        "complex data; docs/concepts/speckle-motion.md §3 (f)); implies --speckle",
+    )
+    mp.add_argument(
         "--speckle-window",
         type=int,
         default=9,
@@ -380,6 +387,16 @@ def maps_one(args: argparse.Namespace) -> int:
             options["speckle"] = True
         except ValueError as err:
             print(f"note: --signature without the speckle-motion channels: {err}", file=sys.stderr)
+    if args.speckle_dynamic:
+        if args.no_speckle:
+            raise ValueError("--speckle-dynamic and --no-speckle contradict each other: give one")
+        from ..sim.speckle import dynamic_speckle_features, map_speckle_features
+
+        ndim, n_t = len(seq.axes) - 1, len(seq.frame_times_s)
+        if ndim in (2, 3):  # other axes: check_maps_request names what the speckle channels need
+            options["speckle"] = map_speckle_features(ndim, n_frames=n_t) + dynamic_speckle_features(ndim, n_frames=n_t)
+        else:
+            options["speckle"] = True
     check_maps_request(seq, resolutions, **options)  # what compute_maps refuses, before the bulk-phase estimate
     if args.png_y is not None:  # the B-scan shown must exist
         n_y = dict(zip(seq.axes, seq.data.shape)).get("Y")

@@ -14,7 +14,13 @@ import torch
 
 from ..sim.speckle import DEFAULT_MAX_OFFSET as SPECKLE_MAX_OFFSET
 from ..sim.speckle import DEFAULT_WINDOW as SPECKLE_WINDOW
-from ..sim.speckle import halo_pixels, map_speckle_features, speckle_feature_unit, speckle_motion
+from ..sim.speckle import (
+    halo_pixels,
+    is_dynamic_feature,
+    map_speckle_features,
+    speckle_feature_unit,
+    speckle_motion,
+)
 from .sequence import SequenceData
 
 __all__ = [
@@ -61,7 +67,18 @@ def speckle_channels(
             f"{d.min() if d.size else None}-{d.max() if d.size else None} s"
         )
     names = tuple(names) if names is not None else map_speckle_features(ndim, n_frames=len(times))
-    probe = torch.ones(len(times), *([2 * halo_pixels(window, SPECKLE_MAX_OFFSET) + 1] * ndim))
+    dyn = [n for n in names if is_dynamic_feature(n)]
+    if dyn and not np.iscomplexobj(seq.data):
+        raise ValueError(
+            f"{src}: the speckle channels of the dynamic field ({', '.join(dyn[:3])}{' …' if len(dyn) > 3 else ''}; "
+            "--speckle-dynamic) need complex data: an intensity sequence has no field whose temporal mean the "
+            "static tissue is; leave them out"
+        )
+    probe = torch.ones(
+        len(times),
+        *([2 * halo_pixels(window, SPECKLE_MAX_OFFSET) + 1] * ndim),
+        dtype=torch.complex64 if dyn else torch.float32,
+    )
     try:  # the names, lags and window, on one small block
         speckle_motion(
             probe,

@@ -44,6 +44,11 @@ B-scan's lateral axis, ``y`` the slow axis of a volume, positive towards increas
   the displacement of the scatterers: ``+z`` deeper (the Doppler phase ``−2kn·v_z·τ`` of
   :mod:`torchdoct.sim.signature`), ``+x``/``+y`` towards increasing column / B-scan index.
 * ``xc_speed`` (µm/s): the length of the in-plane velocity vector.
+* ``xcd_{kind}_{m}`` (``kind`` one of the per-lag kinds above): the same feature of the *dynamic field*, the
+  complex field less its temporal mean at each pixel, ``D(r, i) = E(r, i) − (1/T)·Σ_j E(r, j)``. A static
+  population's field is its temporal mean, so it leaves ``D`` whole: its centred, undecaying correlation no
+  longer holds the peak at the centre, and a flow inside static tissue shows its offset
+  (docs/concepts/speckle-motion.md §3 (f)). Complex input only (an intensity has no field to subtract).
 
 Every feature is invariant to the scale of the field (a gain or a reflectivity common to the window;
 a reflectivity that varies inside the window raises V̂ and Ĉ like extra speckle contrast). Pixels whose intensity is 0 or not finite at some frame
@@ -75,6 +80,8 @@ __all__ = [
     "is_speckle_feature",
     "speckle_feature_unit",
     "speckle_features",
+    "dynamic_speckle_features",
+    "is_dynamic_feature",
     "default_lags",
     "default_speckle_features",
     "map_speckle_features",
@@ -91,7 +98,9 @@ DEFAULT_MAX_OFFSET = 2
 #: Spatial axis letters of B-scans (2) and volumes (3), in array order after the frames.
 SPATIAL_AXES = {2: "zx", 3: "yzx"}
 
-_PATTERN = re.compile(r"^xc_(centre|peak|share|asym|shift|shift_[xyz])_([1-9][0-9]*)$")
+_PATTERN = re.compile(r"^xcd?_(centre|peak|share|asym|shift|shift_[xyz])_([1-9][0-9]*)$")
+#: The name prefix of the features of the dynamic field (module docstring).
+DYNAMIC_PREFIX = "xcd_"
 _VEL = re.compile(r"^xc_velocity_([xyz])$")
 #: Unit of every feature kind.
 UNITS = {
@@ -121,7 +130,8 @@ def parse_speckle_feature(name: str) -> tuple[str, str | None, int]:
     if m is None:
         raise ValueError(
             f"unknown speckle feature {name!r}: use xc_centre_M, xc_peak_M, xc_share_M, xc_asym_M, xc_shift_M, "
-            "xc_shift_{z,x,y}_M (M = lag in frames >= 1), xc_velocity_{z,x,y} or xc_speed"
+            "xc_shift_{z,x,y}_M (M = lag in frames >= 1), xc_velocity_{z,x,y} or xc_speed, or a per-lag one "
+            "of the dynamic field, xcd_centre_M ... xcd_shift_{z,x,y}_M"
         )
     kind = m.group(1)
     axis = kind[-1] if kind.startswith("shift_") else None
@@ -135,6 +145,11 @@ def is_speckle_feature(name: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def is_dynamic_feature(name: str) -> bool:
+    """True when ``name`` is a speckle feature of the dynamic field (``xcd_…``, module docstring)."""
+    return str(name).startswith(DYNAMIC_PREFIX) and is_speckle_feature(name)
 
 
 def speckle_feature_unit(name: str) -> str:
@@ -185,6 +200,22 @@ def speckle_features(ndim: int = 2, lags: Sequence[int] | None = None, *, n_fram
         default_speckle_features(ndim, lags)
         + tuple(f"xc_shift_{c}_{m}" for m in lags for c in axes)
         + tuple(f"xc_velocity_{c}" for c in axes)
+    )
+
+
+def dynamic_speckle_features(
+    ndim: int = 2, lags: Sequence[int] | None = None, *, n_frames: int = 32
+) -> tuple[str, ...]:
+    """The features of the dynamic field that ``torchdoct maps --speckle-dynamic`` adds (module docstring): per
+    lag the centred value, the peak and the signed shift per axis, what the classifier's rules of coherent
+    motion and of a held pattern that moved read (docs/abstention.md, rules 0 and 5)."""
+    lags = default_lags(n_frames) if lags is None else tuple(lags)
+    if ndim not in SPATIAL_AXES:
+        raise ValueError(f"speckle features need 2 (Z, X) or 3 (Y, Z, X) spatial axes; got {ndim}")
+    return tuple(
+        f"{DYNAMIC_PREFIX}{k}_{m}"
+        for m in lags
+        for k in ("centre", "peak", *(f"shift_{c}" for c in SPATIAL_AXES[ndim]))
     )
 
 
@@ -326,6 +357,24 @@ def speckle_motion(
                 f"speckle feature {n!r}: a {'volume' if ax == 'y' else 'B-scan'} has no axis {ax!r} "
                 f"(axes {', '.join(axes)})"
             )
+    dyn = [n for n in names if n.startswith(DYNAMIC_PREFIX)]
+    if dyn:
+        if not x.is_complex():
+            raise ValueError(
+                f"speckle features of the dynamic field ({', '.join(dyn)}) need the complex field: an intensity "
+                "has no temporal mean field to subtract"
+            )
+        plain = [n for n in names if not n.startswith(DYNAMIC_PREFIX)]
+        kw = dict(window=window, max_offset=max_offset, ndim=ndim, velocity_lags=velocity_lags)
+        wide_c = torch.complex128
+        # the temporal mean in double precision: a static pixel's dynamic field is its rounding, not a pattern
+        d = (x.to(wide_c) - x.to(wide_c).mean(-ndim - 1, keepdim=True)).to(x.dtype)
+        _, fd = speckle_motion(d, pitch_um, frame_interval_s, ["xc_" + n[len(DYNAMIC_PREFIX) :] for n in dyn], **kw)
+        cols = dict(zip(dyn, fd.unbind(-ndim - 1)))
+        if plain:
+            _, fp = speckle_motion(x, pitch_um, frame_interval_s, plain, **kw)
+            cols.update(zip(plain, fp.unbind(-ndim - 1)))
+        return names, torch.stack([cols[n] for n in names], -ndim - 1)
     vlags = tuple(int(m) for m in (default_lags(n_t) if velocity_lags is None else velocity_lags))
     if not vlags:
         raise ValueError("velocity_lags needs at least one lag")
