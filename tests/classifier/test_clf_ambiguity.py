@@ -863,3 +863,63 @@ def test_an_axis_is_seen_while_neighbouring_pixels_share_their_speckle():
     assert unseen_axes("YZX", {"x": 2.0, "z": 2.0}, lat, ax) == ["y"]  # no y pitch
     assert unseen_axes("YZX", fine, None, None) == ["x", "y", "z"]  # no speckle channels: nothing is seen
     assert unseen_axes("YZX", {**fine, "y": float("nan")}, lat, ax) == ["y"]
+
+
+def test_rules_0_and_5_read_the_dynamic_field_s_channels_beside_the_field_s():
+    """Inside static tissue the field's peak stays centred while the dynamic field's moves (speckle-motion §3 (f)):
+    rule 0 reads the family it is given, and the pixels either family shows are coherent motion."""
+    ch = {
+        "xc_peak_4@original": np.array([0.9, 0.9, 0.9]),
+        "xc_centre_4@original": np.array([0.9, 0.1, 0.9]),
+        "xcd_peak_4@original": np.array([0.9, 0.9, 0.9]),
+        "xcd_centre_4@original": np.array([0.1, 0.9, 0.9]),
+    }
+    field, used_f = coherent_motion(ch, n_frames=32)
+    dyn, used_d = coherent_motion(ch, n_frames=32, family="xcd")
+    assert field.tolist() == [False, True, False] and dyn.tolist() == [True, False, False]
+    assert used_f == ["xc_peak_4@original", "xc_centre_4@original"]
+    assert used_d == ["xcd_peak_4@original", "xcd_centre_4@original"]
+    # rule 5: the same path read from either family
+    p, lags = 2.0, (2, 4, 8, 16)
+    line = [0.3 + 0.45 * p * (m - 2) / 14 for m in lags]
+    path = _path([line], [[0.0] * 4], [0.9], lags)
+    dyn_path = {k.replace("xc_", "xcd_", 1): v for k, v in path.items()}
+    assert translated(dyn_path, {"z": p, "x": p}, family="xcd")[0].tolist() == [True]
+    assert translated(dyn_path, {"z": p, "x": p}) == (None, [])
+
+
+def test_classify_maps_counts_coherent_motion_that_only_the_dynamic_field_shows(tmp_path):
+    """Maps whose field's speckle peak is centred everywhere and whose dynamic field's peak moved: every
+    direction-symmetric decision becomes flow by rule 0, read from the xcd channels; without them, none."""
+    import dataclasses
+
+    from classifier.bench.classify import _synthetic_maps
+    from classifier.infer import classify_maps, load_model
+    from torchdoct.measured.mapsfile import read_maps, write_maps
+
+    mdl = load_model("signature")
+    base = read_maps(_synthetic_maps(tmp_path / "maps.npz", mdl.spec, 24, 0))
+    shape = base.maps.shape[1:]
+    extra = {"xc_peak_4": 0.9, "xc_centre_4": 0.9, "xcd_peak_4": 0.9, "xcd_centre_4": 0.1}
+    rec0 = base.meta["channels"][0]
+    recs = [{**rec0, "name": f"{k}@{rec0['resolution']}", "metric": k, "unit": "1"} for k in extra]
+
+    def with_channels(keys):
+        chans = [r for r in recs if r["metric"] in keys]
+        arrays = np.stack([np.full(shape, extra[r["metric"]], np.float32) for r in chans])
+        meta = {**base.meta, "channels": base.meta["channels"] + chans}
+        m = dataclasses.replace(
+            base,
+            maps=np.concatenate([base.maps, arrays]),
+            channels=base.channels + tuple(r["name"] for r in chans),
+            meta=meta,
+        )
+        return write_maps(tmp_path / f"m{len(keys)}.npz", m)
+
+    field_only = classify_maps(with_channels(list(extra)[:2]), mdl, pool=1, background_db=None)
+    both = classify_maps(with_channels(list(extra)), mdl, pool=1, background_db=None)
+    assert field_only.info["ambiguity"]["changed_pixels"]["coherent_motion"] == 0
+    changed = both.info["ambiguity"]["changed_pixels"]["coherent_motion"]
+    assert changed > 0 and "xcd_peak_4@original" in both.info["ambiguity"]["coherent_channels"]
+    sym = [mdl.classes.index(m) for m in ("diffusion", "ballistic")]
+    assert not np.isin(both.labels, sym).any()

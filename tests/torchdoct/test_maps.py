@@ -920,3 +920,48 @@ def test_speckle_channels_are_refused_without_a_pitch_or_an_original_resolution(
     )
     with pytest.raises(ValueError, match="pitch"):
         compute_maps(bare, ["original"], speckle=True)
+
+
+def test_speckle_dynamic_adds_the_dynamic_field_s_channels_across_slabs_and_leaves_the_others(tmp_path, capsys):
+    """``torchdoct maps --speckle-dynamic``: the channels of the dynamic field are those of
+    torchdoct.sim.speckle on the whole field (whatever the slabs: the temporal mean is per pixel), read back by
+    the torch-free reader; every other channel is bit for bit that of ``--speckle``; an intensity sequence is
+    refused, naming the file and the flag, before any work."""
+    from torchdoct.measured.mapsfile import write_maps
+    from torchdoct.sim.speckle import dynamic_speckle_features, map_speckle_features, speckle_motion
+
+    shape = (12, 4, 20, 9)
+    data = speckle(shape, corr=0.9, seed=21, dtype=np.complex128)
+    data += 2.0 * speckle((1, *shape[1:]), seed=22, dtype=np.complex128)  # static tissue sharing the PSF
+    seq = make_seq(data, volume=True)
+    dyn = dynamic_speckle_features(3, n_frames=12)
+    names = map_speckle_features(3, n_frames=12) + dyn
+    whole = compute_maps(seq, ["original"], speckle=names, speckle_window=5)
+    slabs = compute_maps(seq, ["original"], speckle=names, speckle_window=5, slab_elements=12 * 9 * 20 * 2)
+    ref = speckle_motion(torch.from_numpy(data), seq.pitch_um, DT, dyn, window=5, ndim=3)[1].numpy()
+    got = np.stack([whole[f"{n}@original"] for n in dyn])
+    np.testing.assert_allclose(got, ref.astype(np.float32), rtol=1e-5, atol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(
+        np.stack([slabs[f"{n}@original"] for n in dyn]), got, rtol=1e-5, atol=1e-6, equal_nan=True
+    )
+    plain = compute_maps(seq, ["original"], speckle=True, speckle_window=5)
+    for c in plain.channels:
+        assert np.array_equal(whole[c], plain[c], equal_nan=True), c
+    back = read_maps(write_maps(tmp_path / "m.npz", whole))
+    assert (
+        back.channels == whole.channels
+        and {c["name"]: c["unit"] for c in back.meta["channels"]}["xcd_shift_y_2@original"] == "um"
+    )
+    # the command line: one flag, and intensity data refused
+    np.save(tmp_path / "raw.npy", data)
+    meta = {"axes": "TYZX", "pitch_um": {"z": 1.5, "x": 2.0, "y": 3.0}, "frame_times_s": [DT * i for i in range(12)]}
+    (tmp_path / "raw.json").write_text(json.dumps({**meta, "system": SYSTEM}))
+    assert main(["maps", str(tmp_path / "raw.npy"), "--speckle-dynamic", "--out", str(tmp_path / "cli.npz")]) == 0
+    assert {f"{n}@original" for n in dyn} <= set(read_maps(tmp_path / "cli.npz").channels)
+    np.save(tmp_path / "inten.npy", (np.abs(data) ** 2).astype(np.float32))
+    (tmp_path / "inten.json").write_text(json.dumps({**meta, "system": SYSTEM}))
+    capsys.readouterr()
+    code = main(["maps", str(tmp_path / "inten.npy"), "--speckle-dynamic", "--out", str(tmp_path / "no.npz")])
+    err = capsys.readouterr().err
+    assert code != 0 and "inten.npy" in err and "--speckle-dynamic" in err and "complex" in err
+    assert not (tmp_path / "no.npz").exists()
