@@ -1213,6 +1213,35 @@ def spill_null(root: Path) -> str:
     return "\n\n".join([table(header, rows), note, source(d["command"], p)])
 
 
+def dynamic_speckle(root: Path) -> str:
+    """What the dynamic field's speckle channels add to the default decision (``research.dynamic_speckle``): per
+    part of the phantom grid and window, the default decision on the ``--signature`` maps and on the same maps
+    with ``--speckle-dynamic``: coverage, balanced accuracy, wrong shares, the worst cell; and the maps' time."""
+    d, p = load(root, "dynamic-speckle.json")
+    motions = ("diffusion", "ballistic", "flow")
+    rows = []
+    for part, pr in d["parts"].items():
+        for w, e in pr["windows"].items():
+            for v in ("default", "dynamic"):
+                s = e[v]
+                pm = s["per_motion"]
+                rows.append(
+                    [part, w, "with the dynamic channels" if v == "dynamic" else "--signature"]
+                    + [num(s["coverage"]), num(s["balanced_accuracy"]), num(s["worst_wrong_share"])]
+                    + [f"{num(s['worst_cell'])} ({s['cells_over']})"]
+                    + [" / ".join(num(pm[m]["coverage"]) for m in motions)]
+                )
+    header = ["grid part", "window", "maps", "coverage", "bal. acc.", "worst wrong share"]
+    header += [f"worst cell (cells over {d['cell_wrong_max']:g})", "coverage diffusion / ballistic / flow"]
+    cost = [
+        [part, num(pr["seconds"]["signature_maps"]), num(pr["seconds"]["dynamic_channels"])]
+        + [num(pr["seconds"]["dynamic_channels"] / max(pr["seconds"]["signature_maps"], 1e-9))]
+        for part, pr in d["parts"].items()
+    ]
+    cost_header = ["grid part", "signature maps (s)", "dynamic channels alone (s)", "ratio"]
+    return "\n\n".join([table(header, rows), table(cost_header, cost), source(d["command"], p)])
+
+
 # ---------------------------------------------------------------- the classifier's goals
 def _met(ok: bool) -> str:
     return "met" if ok else "**not met**"
@@ -1520,6 +1549,7 @@ RENDERERS: dict[str, Callable[[Path], str]] = {
     "random-phantoms-worst": random_phantoms_worst,
     "spill-rules": spill_rules,
     "spill-null": spill_null,
+    "dynamic-speckle": dynamic_speckle,
     "goals": goals,
     "grid-context-all-pixels": lambda root: grid_context(root, "summary_by_context_all_pixels"),
     "grid-context-uniform-angles": lambda root: grid_context(
