@@ -366,9 +366,9 @@ def speckle_motion(
             )
         plain = [n for n in names if not n.startswith(DYNAMIC_PREFIX)]
         kw = dict(window=window, max_offset=max_offset, ndim=ndim, velocity_lags=velocity_lags)
-        wide_c = torch.complex128
-        # the temporal mean in double precision: a static pixel's dynamic field is its rounding, not a pattern
-        d = (x.to(wide_c) - x.to(wide_c).mean(-ndim - 1, keepdim=True)).to(x.dtype)
+        # the temporal mean summed in double precision, one copy of the field: a static pixel's dynamic field is
+        # its rounding at most (exactly 0, an invalid pixel, when its field is constant), not a pattern
+        d = x - x.mean(-ndim - 1, keepdim=True, dtype=torch.complex128).to(x.dtype)
         _, fd = speckle_motion(d, pitch_um, frame_interval_s, ["xc_" + n[len(DYNAMIC_PREFIX) :] for n in dyn], **kw)
         cols = dict(zip(dyn, fd.unbind(-ndim - 1)))
         if plain:
