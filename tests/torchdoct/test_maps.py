@@ -524,7 +524,13 @@ def test_cli_bench_maps_channels_compares_every_channel_set_to_the_signature_map
     assert main(argv + ["--out", str(out), "--no-progress"]) == 0
     res = json.loads(out.read_text())
     assert res["shape"] == [12, 20, 16] and res["modes"] == ["idle", "loaded"]
-    assert list(res["sets"]) == ["plain", "signature", "signature+speckle", "signature+speckle+doppler"]
+    assert list(res["sets"]) == [
+        "plain",
+        "signature",
+        "signature+speckle",
+        "signature+speckle+doppler",
+        "signature+speckle+doppler+dynamic",
+    ]
     for mode in res["modes"]:
         base = res["sets"]["signature"][f"seconds_{mode}"]
         assert res["sets"]["signature"][f"ratio_to_signature_{mode}"] == 1.0

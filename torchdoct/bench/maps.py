@@ -77,7 +77,14 @@ def _timed_maps(
     timings: dict[str, float] | None = None,
 ) -> float:
     """Seconds of one :func:`compute_maps` of ``seq`` with the channels ``flags`` names (``signature``,
-    ``speckle``, ``doppler``); its seconds per resolution into ``timings``."""
+    ``speckle``, ``doppler``, and ``dynamic``: the speckle channels of the dynamic field too, as
+    ``torchdoct maps --speckle-dynamic``); its seconds per resolution into ``timings``."""
+    speckle: bool | tuple[str, ...] | None = flags["speckle"] or None
+    if flags.get("dynamic"):
+        from ..sim.speckle import dynamic_speckle_features, map_speckle_features
+
+        ndim, n_t = len(seq.axes) - 1, seq.data.shape[0]
+        speckle = map_speckle_features(ndim, n_frames=n_t) + dynamic_speckle_features(ndim, n_frames=n_t)
     t0 = time.perf_counter()
     compute_maps(
         seq,
@@ -85,7 +92,7 @@ def _timed_maps(
         metrics=metrics,
         timings=timings,
         signature=flags["signature"] or None,
-        speckle=flags["speckle"] or None,
+        speckle=speckle,
         doppler=flags["doppler"] or None,
     )
     return time.perf_counter() - t0
@@ -127,10 +134,12 @@ def _random_stack(
 
 #: The channel sets :func:`bench_maps_channels` compares: name → the flags of ``torchdoct maps``.
 CHANNEL_SETS: dict[str, dict[str, bool]] = {
-    "plain": {"signature": False, "speckle": False, "doppler": False},
-    "signature": {"signature": True, "speckle": False, "doppler": False},
-    "signature+speckle": {"signature": True, "speckle": True, "doppler": False},
-    "signature+speckle+doppler": {"signature": True, "speckle": True, "doppler": True},
+    "plain": {"signature": False, "speckle": False, "doppler": False, "dynamic": False},
+    "signature": {"signature": True, "speckle": False, "doppler": False, "dynamic": False},
+    "signature+speckle": {"signature": True, "speckle": True, "doppler": False, "dynamic": False},
+    "signature+speckle+doppler": {"signature": True, "speckle": True, "doppler": True, "dynamic": False},
+    # with --speckle-dynamic: the speckle channels of the dynamic field too (docs/concepts/speckle-motion.md §3 (f))
+    "signature+speckle+doppler+dynamic": {"signature": True, "speckle": True, "doppler": True, "dynamic": True},
 }
 
 
