@@ -14,7 +14,7 @@ geometry), the default decision at windows 1 and 5 on the maps ``torchdoct maps 
   :func:`classifier.bench.grid.scoring_edge_px`, the pixels the model classified): the coverage (share decided
   as a single motion), the recall on decided pixels and the wrong share (share of the motion's pixels decided as
   another motion, the false-detection check of both rules for diffusion and random-ballistic motion);
-* per part and window: the mean coverage over the motions, the balanced accuracy on decided pixels (the mean
+* per part and window: the coverage over the motions' pixels, the balanced accuracy on decided pixels (the mean
   recall over the motions with a decided pixel), the worst motion's pooled wrong share, and the worst cell's
   (how many cells have a motion with more than :data:`CELL_WRONG_MAX` of its pixels decided as another);
 * the maps' time: the seconds of the signature maps and of the dynamic channels alone, summed over the part's
@@ -116,9 +116,11 @@ def scores(c: dict[str, dict[str, int]]) -> dict[str, Any]:
             "wrong_share": v["wrong"] / n,
         }
     rec = [p["recall"] for p in per.values() if p["recall"] is not None]
+    n_all = sum(v["pixels"] for v in c.values())
     return {
         "per_motion": per,
-        "coverage": float(np.mean([p["coverage"] for p in per.values()])),
+        # over the motions' pixels, as the grid benchmark's summary_by_context
+        "coverage": sum(v["decided"] for v in c.values()) / n_all if n_all else 0.0,
         "balanced_accuracy": float(np.mean(rec)) if rec else None,
         "worst_wrong_share": max(p["wrong_share"] for p in per.values()),
     }

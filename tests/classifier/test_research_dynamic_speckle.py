@@ -15,7 +15,7 @@ def test_scores_count_a_motion_decided_as_another_as_its_wrong_share():
     pm = s["per_motion"]
     assert pm["diffusion"]["coverage"] == pytest.approx(0.8) and pm["diffusion"]["wrong_share"] == pytest.approx(0.2)
     assert pm["diffusion"]["recall"] == pytest.approx(0.75) and pm["ballistic"]["recall"] is None
-    assert s["coverage"] == pytest.approx((0.8 + 0 + 1) / 3)
+    assert s["coverage"] == pytest.approx((8 + 0 + 20) / 40)  # over the motions' pixels
     # a motion never decided counts for coverage, not for accuracy
     assert s["balanced_accuracy"] == pytest.approx((0.75 + 1) / 2)
     assert s["worst_wrong_share"] == pytest.approx(0.2)
