@@ -266,3 +266,23 @@ def test_dynamic_features_need_a_complex_field_and_are_named_as_the_fields():
         "xcd_shift_x_4",
     )
     assert is_dynamic_feature("xcd_peak_2") and not is_dynamic_feature("xc_peak_2")
+
+
+def test_a_bulk_phase_left_in_the_data_gives_the_dynamic_field_no_false_offset(flow_bscan):
+    """A random phase per frame common to the window (an uncorrected bulk motion) rotates the static field, so its
+    temporal mean no longer removes it (§3 (f)); what is left is still direction-symmetric: two patterns at ±v
+    beside static tissue under a random bulk phase keep zero mean signed offsets in the dynamic field (3.5 SE)."""
+    v, field = flow_bscan
+
+    def back(i):
+        return (-v[0] * i * DT, -v[1] * i * DT)
+
+    field2 = translated_speckle(48, (32, 32), (S_Z, S_X), back, seed=14)
+    static = translated_speckle(48, (32, 32), (S_Z, S_X), lambda i: (0.0, 0.0), seed=15, n_frames=1)
+    gen = torch.Generator().manual_seed(16)
+    bulk = torch.exp(1j * 2 * math.pi * torch.rand(48, T, 1, 1, generator=gen, dtype=torch.float64))
+    names = ("xcd_shift_z_8", "xcd_shift_x_8", "xcd_shift_z_16", "xcd_shift_x_16")
+    sym = centre_features((field + field2 + 2.0 * static) * bulk, names)
+    for i, n in enumerate(names):
+        mean, se = _mean_se(sym[:, i])
+        assert abs(mean) < Z_SE * se, (n, mean, se)
