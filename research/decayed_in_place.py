@@ -80,28 +80,16 @@ def decayed_in_place(channels: Mapping[str, np.ndarray], lags: Sequence[int]) ->
 def cell_counts(cell, model, levels, density: float) -> dict[str, dict[str, int]]:
     """Render and map one grid cell with the dynamic channels; per motion over the scored pixels at window 5: the
     pixels, those the default decision leaves ``ballistic-or-flow``, and those the candidate would decide."""
-    import dataclasses
-
     from classifier.bench import grid as G
     from classifier.infer import classify_maps
-    from torchdoct.measured.maps import compute_maps
     from torchdoct.measured.mapsfile import write_maps
-    from torchdoct.sim.speckle import default_lags, dynamic_speckle_features
+    from torchdoct.sim.speckle import default_lags
 
     phantoms = G.cell_phantoms(cell, model.spec, levels, density, None)
     pitch = float(phantoms[0]["grid"]["pitch_x_um"])
     res, seq = G.render_sequence(phantoms, cell.key, SEED)
     n_t = seq.data.shape[0]
-    maps = G.signature_maps(seq, model.spec)
-    dyn = compute_maps(seq, ["original"], metrics=("mean_db",), speckle=dynamic_speckle_features(3, n_frames=n_t))
-    keep = [i for i, c in enumerate(dyn.channels) if c.startswith("xcd_")]
-    recs = {r["name"]: r for r in dyn.meta["channels"]}
-    both = dataclasses.replace(
-        maps,
-        maps=np.concatenate([maps.maps, dyn.maps[keep]]),
-        channels=tuple(maps.channels) + tuple(dyn.channels[i] for i in keep),
-        meta={**maps.meta, "channels": list(maps.meta["channels"]) + [recs[dyn.channels[i]] for i in keep]},
-    )
+    both = G.signature_maps(seq, model.spec, dynamic=True)
     channels = {c: both.maps[i] for i, c in enumerate(both.channels)}
     with tempfile.TemporaryDirectory() as tmp:
         d = classify_maps(write_maps(Path(tmp) / "maps.npz", both), model, pool=POOL)

@@ -466,18 +466,19 @@ def scoring_edge_px(spec, pitch: float, pool: int) -> int:
     return int(math.ceil(coarsest / 2.0 / pitch)) + pool // 2
 
 
-def signature_maps(seq, spec):
+def signature_maps(seq, spec, *, dynamic: bool = False):
     """The maps of ``seq`` as `torchdoct maps --signature` writes them for the model spec ``spec``: its
     configurations, the signature it reads, the speckle channels and the Doppler channel (where a static
-    reference exists), with the spec's OCDS analysis."""
+    reference exists), with the spec's OCDS analysis; ``dynamic``: with the channels ``--speckle-dynamic`` adds too."""
     from torchdoct.measured.maps import compute_maps
+    from torchdoct.sim.speckle import map_speckle_features
 
     return compute_maps(
         seq,
         [c.name for c in spec.configurations],
         metrics=("mean_db",),
         signature=list(spec.metrics),
-        speckle=True,
+        speckle=map_speckle_features(len(seq.axes) - 1, n_frames=seq.data.shape[0], dynamic=True) if dynamic else True,
         doppler=True,
         ocds_delay_range_s=tuple(spec.ocds_delay_range_s),
         ocds_scale=spec.ocds_scale,

@@ -81,10 +81,9 @@ def _timed_maps(
     ``torchdoct maps --speckle-dynamic``); its seconds per resolution into ``timings``."""
     speckle: bool | tuple[str, ...] | None = flags["speckle"] or None
     if flags.get("dynamic"):
-        from ..sim.speckle import dynamic_speckle_features, map_speckle_features
+        from ..sim.speckle import map_speckle_features
 
-        ndim, n_t = len(seq.axes) - 1, seq.data.shape[0]
-        speckle = map_speckle_features(ndim, n_frames=n_t) + dynamic_speckle_features(ndim, n_frames=n_t)
+        speckle = map_speckle_features(len(seq.axes) - 1, n_frames=seq.data.shape[0], dynamic=True)
     t0 = time.perf_counter()
     compute_maps(
         seq,

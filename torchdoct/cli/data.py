@@ -390,11 +390,11 @@ def maps_one(args: argparse.Namespace) -> int:
     if args.speckle_dynamic:
         if args.no_speckle:
             raise ValueError("--speckle-dynamic and --no-speckle contradict each other: give one")
-        from ..sim.speckle import dynamic_speckle_features, map_speckle_features
+        from ..sim.speckle import map_speckle_features
 
         ndim, n_t = len(seq.axes) - 1, len(seq.frame_times_s)
         if ndim in (2, 3):  # other axes: check_maps_request names what the speckle channels need
-            options["speckle"] = map_speckle_features(ndim, n_frames=n_t) + dynamic_speckle_features(ndim, n_frames=n_t)
+            options["speckle"] = map_speckle_features(ndim, n_frames=n_t, dynamic=True)
         else:
             options["speckle"] = True
     check_maps_request(seq, resolutions, **options)  # what compute_maps refuses, before the bulk-phase estimate

@@ -183,12 +183,16 @@ def default_speckle_features(
     return per_lag + ("xc_speed",)
 
 
-def map_speckle_features(ndim: int = 2, lags: Sequence[int] | None = None, *, n_frames: int = 32) -> tuple[str, ...]:
+def map_speckle_features(
+    ndim: int = 2, lags: Sequence[int] | None = None, *, n_frames: int = 32, dynamic: bool = False
+) -> tuple[str, ...]:
     """The channels ``torchdoct maps --speckle`` writes: :func:`default_speckle_features`, then the signed
     shift per axis and lag (``xc_shift_{c}_m``, what the classifier's rule of a held pattern that moved reads:
-    the offset's path, not only its length)."""
+    the offset's path, not only its length); with ``dynamic`` (``--speckle-dynamic``), then
+    :func:`dynamic_speckle_features`."""
     lags = default_lags(n_frames) if lags is None else tuple(lags)
-    return default_speckle_features(ndim, lags) + tuple(f"xc_shift_{c}_{m}" for m in lags for c in SPATIAL_AXES[ndim])
+    out = default_speckle_features(ndim, lags) + tuple(f"xc_shift_{c}_{m}" for m in lags for c in SPATIAL_AXES[ndim])
+    return out + (dynamic_speckle_features(ndim, lags) if dynamic else ())
 
 
 def speckle_features(ndim: int = 2, lags: Sequence[int] | None = None, *, n_frames: int = 32) -> tuple[str, ...]:
